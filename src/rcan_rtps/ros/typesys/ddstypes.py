@@ -1,0 +1,93 @@
+"""Build cyclonedds `IdlStruct` classes from the neutral type model.
+
+This is the one place that knows cyclonedds' Python type vocabulary; a faster codec can
+replace it without touching the parser, the store or the hasher. Octet and uint8
+sequences and arrays map to `bytes`, which cyclonedds encodes in one copy.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+from cyclonedds.idl import IdlStruct, make_idl_struct
+from cyclonedds.idl import types as t
+
+from ..errors import WireError
+from .model import Collection, FieldType, MessageType, Primitive
+from .store import TypeStore
+
+_PRIMITIVES: dict[Primitive, Any] = {
+    Primitive.BOOLEAN: bool,
+    Primitive.OCTET: t.byte,
+    Primitive.CHAR: t.uint8,  # a ROS `char` is one unsigned byte on the wire
+    Primitive.INT8: t.int8,
+    Primitive.UINT8: t.uint8,
+    Primitive.INT16: t.int16,
+    Primitive.UINT16: t.uint16,
+    Primitive.INT32: t.int32,
+    Primitive.UINT32: t.uint32,
+    Primitive.INT64: t.int64,
+    Primitive.UINT64: t.uint64,
+    Primitive.FLOAT: t.float32,
+    Primitive.DOUBLE: t.float64,
+    Primitive.STRING: str,
+}
+BYTE_LIKE = (Primitive.OCTET, Primitive.UINT8, Primitive.CHAR)
+
+
+class UnsupportedTypeError(WireError):
+    """A type the cyclonedds codec cannot carry (wstring, wchar, long double)."""
+
+
+def is_byte_like(ftype: FieldType) -> bool:
+    return ftype.primitive in BYTE_LIKE and ftype.is_collection
+
+
+class DdsTypes:
+    """Caches one `IdlStruct` class per ROS struct type of a `TypeStore`."""
+
+    def __init__(self, store: TypeStore) -> None:
+        self.store = store
+        self._classes: dict[str, type[IdlStruct]] = {}
+        self._lock = threading.RLock()
+
+    def struct(self, name: str) -> type[IdlStruct]:
+        """The `IdlStruct` class of a ROS type, named `pkg::kind::dds_::T_` on the wire."""
+        msg = self.store.message(name)
+        with self._lock:
+            cls = self._classes.get(msg.name)
+            if cls is None:
+                cls = self._build(msg)
+                self._classes[msg.name] = cls
+            return cls
+
+    def _build(self, msg: MessageType) -> type[IdlStruct]:
+        fields = {f.name: self._annotation(msg, f.name, f.type) for f in msg.fields}
+        class_name = msg.dds_name.rsplit("::", 1)[-1]
+        return make_idl_struct(class_name, msg.dds_name, fields)
+
+    def _annotation(self, msg: MessageType, fname: str, ftype: FieldType) -> Any:
+        if is_byte_like(ftype) and ftype.collection is not Collection.ARRAY:
+            return bytes  # length-prefixed octets; bounds are checked by the value layer
+        element = self._element(msg, fname, ftype)
+        if ftype.collection is Collection.ARRAY:
+            return t.array[element, ftype.size]
+        if ftype.collection is Collection.BOUNDED_SEQUENCE:
+            return t.sequence[element, ftype.size]
+        if ftype.collection is Collection.SEQUENCE:
+            return t.sequence[element]
+        return element
+
+    def _element(self, msg: MessageType, fname: str, ftype: FieldType) -> Any:
+        if ftype.nested is not None:
+            return self.struct(ftype.nested)
+        assert ftype.primitive is not None
+        if ftype.primitive is Primitive.STRING and ftype.string_bound:
+            return t.bounded_str[ftype.string_bound]
+        found = _PRIMITIVES.get(ftype.primitive)
+        if found is None:
+            raise UnsupportedTypeError(
+                f"{msg.name}.{fname}: {ftype.primitive.value} is not supported on the wire yet"
+            )
+        return found

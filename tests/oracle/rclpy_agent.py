@@ -1,0 +1,227 @@
+"""A real rclpy node driven over JSON lines on stdin/stdout — the test oracle.
+
+Runs with the ROS 2 environment's interpreter (never the product's). Each request is
+`{"id": N, "op": NAME, ...}`; each answer `{"id": N, "ok": true, "result": ...}` or
+`{"id": N, "ok": false, "error": "..."}`. rclpy spins in a background thread;
+received messages are kept per topic until taken.
+"""
+
+from __future__ import annotations
+
+import array
+import importlib
+import json
+import sys
+import threading
+import time
+import traceback
+from typing import Any
+
+import rclpy
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+from rclpy.serialization import deserialize_message, serialize_message
+from rosidl_parser.definition import AbstractNestedType, NamespacedType
+
+
+def load_type(name: str) -> Any:
+    pkg, kind, short = name.split("/")
+    module = importlib.import_module(f"{pkg}.{kind}")
+    for suffix, attr in (("_Request", "Request"), ("_Response", "Response")):
+        if kind == "srv" and short.endswith(suffix):
+            return getattr(getattr(module, short[: -len(suffix)]), attr)
+    if kind == "action":
+        for part in ("Goal", "Result", "Feedback"):
+            if short.endswith("_" + part):
+                return getattr(getattr(module, short[: -len(part) - 1]), part)
+        impl_parts = {
+            "_SendGoal_Request": ("SendGoalService", "Request"),
+            "_SendGoal_Response": ("SendGoalService", "Response"),
+            "_GetResult_Request": ("GetResultService", "Request"),
+            "_GetResult_Response": ("GetResultService", "Response"),
+            "_FeedbackMessage": ("FeedbackMessage", None),
+        }
+        for suffix, (impl, attr) in impl_parts.items():
+            if short.endswith(suffix):
+                base = getattr(getattr(module, short[: -len(suffix)]).Impl, impl)
+                return getattr(base, attr) if attr else base
+    return getattr(module, short)
+
+
+def _nested_class(slot: NamespacedType) -> Any:
+    return load_type("/".join([*slot.namespaces, slot.name]))
+
+
+def fill(msg: Any, data: dict[str, Any]) -> Any:
+    for attr, slot in zip(msg.__slots__, msg.SLOT_TYPES):
+        name = attr.lstrip("_")
+        if name not in data:
+            continue
+        value = data[name]
+        if isinstance(slot, NamespacedType):
+            value = fill(_nested_class(slot)(), value) if isinstance(value, dict) else value
+        elif isinstance(slot, AbstractNestedType):
+            inner = slot.value_type
+            if isinstance(inner, NamespacedType):
+                cls = _nested_class(inner)
+                value = [fill(cls(), v) for v in value]
+            elif getattr(inner, "typename", "") == "octet":
+                value = [bytes([v]) for v in value]
+        elif getattr(slot, "typename", "") == "octet":
+            value = bytes([value])
+        setattr(msg, name, value)
+    return msg
+
+
+def plain(value: Any) -> Any:
+    if hasattr(value, "get_fields_and_field_types"):
+        return {name: plain(getattr(value, name)) for name in value.get_fields_and_field_types()}
+    if isinstance(value, bytes) and len(value) == 1:
+        return value[0]  # a single `byte` field, or one element of a byte array
+    if isinstance(value, (bytes, bytearray)):
+        return list(value)
+    if isinstance(value, (list, tuple, array.array)) or type(value).__name__ == "ndarray":
+        return [plain(v) for v in value]
+    if hasattr(value, "item"):  # numpy scalar
+        return value.item()
+    return value
+
+
+def make_qos(name: str) -> QoSProfile:
+    if name == "sensor":
+        return qos_profile_sensor_data
+    if name == "transient_local":
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                          reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return QoSProfile(depth=10)
+
+
+class Agent:
+    def __init__(self, node_name: str, namespace: str) -> None:
+        rclpy.init()
+        self.node = Node(node_name, namespace=namespace)
+        self.executor = MultiThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.lock = threading.Lock()
+        self.received: dict[str, list[Any]] = {}
+        self.publishers: dict[str, Any] = {}
+        self.subscriptions: dict[str, Any] = {}
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    # -- ops ----------------------------------------------------------------------
+    def op_ping(self) -> str:
+        return "pong"
+
+    def op_serialize(self, type: str, value: dict[str, Any]) -> str:
+        return serialize_message(fill(load_type(type)(), value)).hex()
+
+    def op_deserialize(self, type: str, hex: str) -> Any:
+        return plain(deserialize_message(bytes.fromhex(hex), load_type(type)))
+
+    def op_roundtrip(self, type: str, value: dict[str, Any]) -> Any:
+        return plain(fill(load_type(type)(), value))
+
+    def op_publisher(self, topic: str, type: str, qos: str = "default") -> bool:
+        self.publishers[topic] = self.node.create_publisher(load_type(type), topic, make_qos(qos))
+        return True
+
+    def op_publish(self, topic: str, type: str, value: dict[str, Any], count: int = 1,
+                   period: float = 0.05) -> int:
+        pub = self.publishers[topic]
+        msg = fill(load_type(type)(), value)
+        for _ in range(count):
+            pub.publish(msg)
+            time.sleep(period)
+        return count
+
+    def op_subscribe(self, topic: str, type: str, qos: str = "default") -> bool:
+        self.received.setdefault(topic, [])
+
+        def on_message(msg: Any, topic: str = topic) -> None:
+            with self.lock:
+                self.received[topic].append(plain(msg))
+
+        self.subscriptions[topic] = self.node.create_subscription(
+            load_type(type), topic, on_message, make_qos(qos))
+        return True
+
+    def op_take(self, topic: str) -> list[Any]:
+        with self.lock:
+            taken, self.received[topic] = self.received.get(topic, []), []
+        return taken
+
+    def op_wait_publishers(self, topic: str, count: int = 1, timeout: float = 10.0) -> int:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            n = self.node.count_publishers(topic)
+            if n >= count:
+                return n
+            time.sleep(0.05)
+        return self.node.count_publishers(topic)
+
+    def op_wait_subscribers(self, topic: str, count: int = 1, timeout: float = 10.0) -> int:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            n = self.node.count_subscribers(topic)
+            if n >= count:
+                return n
+            time.sleep(0.05)
+        return self.node.count_subscribers(topic)
+
+    def op_node_names(self) -> list[list[str]]:
+        return [list(x) for x in self.node.get_node_names_and_namespaces()]
+
+    def op_topic_names(self) -> list[list[Any]]:
+        return [[n, list(t)] for n, t in self.node.get_topic_names_and_types()]
+
+    def op_publishers_info(self, topic: str) -> list[dict[str, Any]]:
+        return [_endpoint(i) for i in self.node.get_publishers_info_by_topic(topic)]
+
+    def op_subscriptions_info(self, topic: str) -> list[dict[str, Any]]:
+        return [_endpoint(i) for i in self.node.get_subscriptions_info_by_topic(topic)]
+
+
+def _endpoint(info: Any) -> dict[str, Any]:
+    return {
+        "node_name": info.node_name,
+        "node_namespace": info.node_namespace,
+        "topic_type": info.topic_type,
+        "type_hash": str(info.topic_type_hash),
+        "reliability": info.qos_profile.reliability.name,
+        "durability": info.qos_profile.durability.name,
+    }
+
+
+def main() -> None:
+    node_name = sys.argv[1] if len(sys.argv) > 1 else "oracle"
+    namespace = sys.argv[2] if len(sys.argv) > 2 else "/"
+    agent = Agent(node_name, namespace)
+    print(json.dumps({"id": 0, "ok": True, "result": "ready"}), flush=True)
+    for line in sys.stdin:
+        if not line.strip():
+            continue
+        request = json.loads(line)
+        rid = request.pop("id")
+        op = request.pop("op")
+        try:
+            result = getattr(agent, f"op_{op}")(**request)
+            answer = {"id": rid, "ok": True, "result": result}
+        except Exception as exc:  # the answer carries the failure back to the test
+            answer = {"id": rid, "ok": False,
+                      "error": f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"}
+        print(json.dumps(answer), flush=True)
+    agent.executor.shutdown()
+    rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

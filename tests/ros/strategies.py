@@ -1,0 +1,52 @@
+"""Hypothesis strategies that generate plain values for any type of a TypeStore."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from hypothesis import strategies as st
+
+from rcan_rtps.ros.typesys.model import INTEGER_RANGES, Collection, FieldType, Primitive
+from rcan_rtps.ros.typesys.store import TypeStore
+
+_TEXT = st.text(st.characters(min_codepoint=32, max_codepoint=0x2FF), max_size=12)
+
+
+def _primitive(ftype: FieldType) -> st.SearchStrategy[Any]:
+    prim = ftype.primitive
+    assert prim is not None
+    if prim is Primitive.BOOLEAN:
+        return st.booleans()
+    if prim is Primitive.FLOAT:
+        return st.floats(width=32, allow_nan=False)
+    if prim.is_float:
+        return st.floats(allow_nan=False)
+    if prim.is_string:
+        if ftype.string_bound:
+            return _TEXT.filter(lambda s: len(s.encode()) <= ftype.string_bound)
+        return _TEXT
+    low, high = INTEGER_RANGES[prim]
+    return st.integers(low, high)
+
+
+def values_for(store: TypeStore, type_name: str, max_items: int = 4) -> st.SearchStrategy[Any]:
+    msg = store.message(type_name)
+    fields = {
+        # rclpy hides the empty-struct placeholder and always sends 0
+        f.name: st.just(0) if f.name == "structure_needs_at_least_one_member"
+        else _field(store, f.type, max_items)
+        for f in msg.fields
+    }
+    return st.fixed_dictionaries(fields)
+
+
+def _field(store: TypeStore, ftype: FieldType, max_items: int) -> st.SearchStrategy[Any]:
+    element = (values_for(store, ftype.nested, max_items) if ftype.nested is not None
+               else _primitive(ftype.element))
+    if ftype.collection is Collection.ARRAY:
+        return st.lists(element, min_size=ftype.size, max_size=ftype.size)
+    if ftype.collection is Collection.BOUNDED_SEQUENCE:
+        return st.lists(element, max_size=min(ftype.size, max_items))
+    if ftype.collection is Collection.SEQUENCE:
+        return st.lists(element, max_size=max_items)
+    return element

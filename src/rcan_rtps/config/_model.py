@@ -1,0 +1,235 @@
+"""Typed `.rcan.yaml`: the bridge spec's §5 keys plus the profile's additions.
+
+Validation that spans fields lives in `__post_init__`, so msgspec reports it with its key path.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Annotated, Literal
+
+import msgspec
+
+from rcan_rtps.rcan import ActionName, InvalidRuriError, RoleName, parse_ruri
+
+_ROS_NAME = re.compile(r"^~?/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*$")
+_NODE_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
+_PRINCIPAL = r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$"
+_ENV_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
+
+Positive = Annotated[float, msgspec.Meta(gt=0.0, le=1e6)]
+RosName = Annotated[str, msgspec.Meta(min_length=1, max_length=256)]
+EnvName = Annotated[str, msgspec.Meta(pattern=_ENV_NAME)]
+Point = tuple[float, float]
+
+
+class _Section(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
+    pass
+
+
+def _check_ros_name(value: str, key: str) -> None:
+    if not _ROS_NAME.fullmatch(value):
+        raise ValueError(f"`{key}` is not a valid ROS name: {value!r}")
+
+
+class RobotConfig(_Section, frozen=True, kw_only=True):
+    ruri: str
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        try:
+            parse_ruri(self.ruri)
+        except InvalidRuriError as exc:  # msgspec reports only ValueError/TypeError with a path
+            raise ValueError(f"`ruri`: {exc.rule}") from exc
+
+
+class Ros2Config(_Section, frozen=True, kw_only=True):
+    namespace: str = ""
+    node_name: Annotated[str, msgspec.Meta(pattern=_NODE_NAME)] = "rcan_bridge"
+    domain_id: Annotated[int, msgspec.Meta(ge=0, le=232)] = 0
+    distro: Literal["humble", "jazzy", "kilted"] = "jazzy"
+    cmd_vel_topic: RosName = "cmd_vel"
+    cmd_vel_type: Literal["geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistStamped"] = (
+        "geometry_msgs/msg/Twist"
+    )
+    estop_topic: RosName = "emergency_stop"
+    joint_states_topic: RosName = "joint_states"
+    joint_trajectory_topic: RosName = "joint_trajectory_controller/joint_trajectory"
+    nav_action: RosName = "navigate_to_pose"
+    odom_topic: RosName = "odom"
+    diagnostics_topic: RosName = "diagnostics"
+    battery_topic: RosName = "battery_state"
+    telemetry_rate_hz: Annotated[float, msgspec.Meta(gt=0.0, le=100.0)] = 10.0
+    nav_frame_id: Annotated[str, msgspec.Meta(min_length=1, max_length=128)] = "map"
+
+    def __post_init__(self) -> None:
+        if self.namespace not in ("", "/"):
+            _check_ros_name(self.namespace, "namespace")
+        for key in ("cmd_vel_topic", "estop_topic", "joint_states_topic",
+                    "joint_trajectory_topic", "nav_action", "odom_topic",
+                    "diagnostics_topic", "battery_topic"):
+            _check_ros_name(getattr(self, key), key)
+
+
+class ConfidenceGate(_Section, frozen=True, kw_only=True):
+    min_confidence: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
+    on_fail: Literal["block", "escalate"] = "block"
+
+
+class HitlGate(_Section, frozen=True, kw_only=True):
+    action: Literal["move", "arm_joint", "navigate", "clear_estop"]  # never stop/estop
+    require_auth: bool = True
+    authorized_roles: list[RoleName] = []
+
+
+class HitlConfig(_Section, frozen=True, kw_only=True):
+    notify_webhook: Annotated[str, msgspec.Meta(pattern=r"^https?://\S+$")] | None = None
+    timeout_seconds: Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)] = 300.0
+    confidence_gate: ConfidenceGate | None = None
+    gates: list[HitlGate] = []
+    require_distinct_approver: bool = False
+    authorize_endpoint: str = "/api/hitl/authorize"
+
+    def __post_init__(self) -> None:
+        actions = [g.action for g in self.gates]
+        if len(set(actions)) != len(actions):
+            raise ValueError("`gates` lists an action more than once")
+
+
+class PrincipalConfig(_Section, frozen=True, kw_only=True):
+    name: Annotated[str, msgspec.Meta(pattern=_PRINCIPAL)]
+    role: RoleName
+    token_env: EnvName | None = None
+    token_sha256: Annotated[str, msgspec.Meta(pattern=r"^[0-9a-fA-F]{64}$")] | None = None
+    rate_limit_per_min: Annotated[int, msgspec.Meta(ge=1)] | None = None
+
+    def __post_init__(self) -> None:
+        if (self.token_env is None) == (self.token_sha256 is None):
+            raise ValueError("give exactly one of `token_env` or `token_sha256`")
+
+
+class TlsConfig(_Section, frozen=True, kw_only=True):
+    cert: str
+    key: str
+    client_ca: str | None = None
+
+
+class JwtConfig(_Section, frozen=True, kw_only=True):
+    public_key: str  # PEM file holding the issuer's Ed25519 public key
+    audience: Annotated[str, msgspec.Meta(min_length=1)]
+    issuer: str | None = None
+    leeway_s: Annotated[float, msgspec.Meta(ge=0.0, le=300.0)] = 30.0
+
+
+class ApiConfig(_Section, frozen=True, kw_only=True):
+    host: str = "127.0.0.1"  # loopback unless the deployment opts in to a network
+    port: Annotated[int, msgspec.Meta(ge=1, le=65535)] = 8765
+    auth_token_env: EnvName | None = None
+    principals: list[PrincipalConfig] = []
+    tls: TlsConfig | None = None
+    jwt: JwtConfig | None = None
+    max_body_bytes: Annotated[int, msgspec.Meta(ge=256, le=16 * 1024 * 1024)] = 64 * 1024
+
+    def __post_init__(self) -> None:
+        names = [p.name for p in self.principals]
+        if len(set(names)) != len(names):
+            raise ValueError("`principals` repeats a name")
+        digests = [p.token_sha256.lower() for p in self.principals if p.token_sha256]
+        if len(set(digests)) != len(digests):
+            raise ValueError("`principals`: two share a token_sha256")
+        if not (self.principals or self.auth_token_env or self.jwt):
+            raise ValueError("no way to authenticate: set principals, auth_token_env or jwt")
+
+
+class SafetyConfig(_Section, frozen=True, kw_only=True):
+    # No default limits: a safe speed depends on the robot, so the deployment must say it.
+    max_linear_vel: Positive
+    max_angular_vel: Positive
+    velocity_exceed_deny: bool = True
+    session_timeout_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)] = 2.0
+    workspace: list[Point] | None = None
+    estop_state_path: str | None = None  # default: estop.state beside the audit log
+
+    def __post_init__(self) -> None:
+        if self.workspace is not None:
+            problem = polygon_problem(self.workspace)
+            if problem:
+                raise ValueError(f"`workspace` {problem}")
+
+
+class AuditConfig(_Section, frozen=True, kw_only=True):
+    path: str = "/var/lib/rcan/audit.jsonl"
+    key_path: str = "/var/lib/rcan/audit-ed25519.key"
+
+
+class RbacConfig(_Section, frozen=True, kw_only=True):
+    action_roles: dict[ActionName, RoleName] = {}
+    rate_limits_per_min: dict[RoleName, Annotated[int, msgspec.Meta(ge=1)] | None] = {}
+    hitl_approver_role: RoleName = "OWNER"
+    audit_read_role: RoleName = "LEASEE"
+    config_reload_role: RoleName = "CREATOR"
+
+    def __post_init__(self) -> None:
+        # An e-stop must always be available to any authenticated principal.
+        if self.action_roles.get("estop", "GUEST") != "GUEST":
+            raise ValueError("`action_roles`: estop cannot be raised above GUEST")
+
+
+class BridgeConfig(_Section, frozen=True, kw_only=True):
+    type: Literal["ros2"] = "ros2"
+    ros2: Ros2Config = Ros2Config()
+    hitl: HitlConfig = HitlConfig()
+    api: ApiConfig
+    safety: SafetyConfig
+    audit: AuditConfig = AuditConfig()
+    rbac: RbacConfig = RbacConfig()
+
+
+class RcanConfig(_Section, frozen=True, kw_only=True):
+    robot: RobotConfig
+    bridge: BridgeConfig
+
+
+def polygon_problem(points: list[Point]) -> str | None:
+    """Why a polygon cannot bound a workspace, or None if it can."""
+    if len(points) < 3:
+        return "needs at least 3 points"
+    if not all(math.isfinite(c) for p in points for c in p):
+        return "has a non-finite coordinate"
+    if _self_intersects(points):
+        return "crosses itself"
+    if abs(_area2(points)) < 1e-9:
+        return "has zero area"
+    return None
+
+
+def polygon_edges(pts: list[Point]) -> list[tuple[Point, Point]]:
+    """Each edge of the closed polygon, last point back to the first."""
+    return list(zip(pts, pts[1:] + pts[:1], strict=True))
+
+
+def _area2(pts: list[Point]) -> float:
+    return sum(a[0] * b[1] - b[0] * a[1] for a, b in polygon_edges(pts))
+
+
+def _cross(o: Point, a: Point, b: Point) -> float:
+    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+
+def _segments_cross(p1: Point, p2: Point, q1: Point, q2: Point) -> bool:
+    d1, d2 = _cross(q1, q2, p1), _cross(q1, q2, p2)
+    d3, d4 = _cross(p1, p2, q1), _cross(p1, p2, q2)
+    return d1 * d2 < 0 and d3 * d4 < 0
+
+
+def _self_intersects(pts: list[Point]) -> bool:
+    edges = polygon_edges(pts)
+    n = len(edges)
+    for i in range(n):
+        for j in range(i + 2, n):
+            if i == 0 and j == n - 1:
+                continue  # neighbours share a vertex
+            if _segments_cross(*edges[i], *edges[j]):
+                return True
+    return False

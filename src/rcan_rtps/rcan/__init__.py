@@ -1,0 +1,75 @@
+"""RCAN messages of the rcan-rtps profile: schemas, boundary validation, RURIs.
+
+Public API (everything else is private)::
+
+    validate_command(raw) -> NormalizedCommand     raises SchemaValidationError / InvalidRuriError
+    parse_ruri(text) -> Ruri                       raises InvalidRuriError
+    openapi_schemas() -> dict                      JSON Schema for OpenAPI components
+"""
+
+from ._enums import (
+    MOTION_ACTIONS,
+    Action,
+    ActionName,
+    ErrorCode,
+    Outcome,
+    Reason,
+    Role,
+    RoleName,
+)
+from ._errors import InvalidRuriError, RcanError, SchemaValidationError
+from ._messages import (
+    ActionParams,
+    AiInfo,
+    ArmJointParams,
+    Authorize,
+    DecisionBody,
+    EnvelopeCommand,
+    ErrorBody,
+    Fault,
+    MoveParams,
+    NavigateParams,
+    NoParams,
+    NormalizedCommand,
+    PendingAuth,
+    ShortCommand,
+    Status,
+)
+from ._ruri import Ruri, parse_ruri
+from ._schema import openapi_schemas
+from ._validate import convert_at, validate_command, validation_path
+
+__all__ = [
+    "MOTION_ACTIONS",
+    "Action",
+    "ActionName",
+    "ActionParams",
+    "AiInfo",
+    "ArmJointParams",
+    "Authorize",
+    "DecisionBody",
+    "EnvelopeCommand",
+    "ErrorBody",
+    "ErrorCode",
+    "Fault",
+    "InvalidRuriError",
+    "MoveParams",
+    "NavigateParams",
+    "NoParams",
+    "NormalizedCommand",
+    "Outcome",
+    "PendingAuth",
+    "RcanError",
+    "Reason",
+    "Role",
+    "RoleName",
+    "Ruri",
+    "SchemaValidationError",
+    "ShortCommand",
+    "Status",
+    "convert_at",
+    "openapi_schemas",
+    "parse_ruri",
+    "validate_command",
+    "validation_path",
+]

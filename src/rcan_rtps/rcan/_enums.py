@@ -1,0 +1,70 @@
+"""Roles, actions, outcomes and error codes of the rcan-rtps profile."""
+
+from __future__ import annotations
+
+import enum
+from typing import Literal
+
+
+class Role(enum.IntEnum):
+    """§12 roles; a higher role can do everything a lower one can."""
+
+    GUEST = 1
+    USER = 2
+    LEASEE = 3
+    OWNER = 4
+    CREATOR = 5
+
+
+RoleName = Literal["GUEST", "USER", "LEASEE", "OWNER", "CREATOR"]
+
+
+class Action(str, enum.Enum):
+    MOVE = "move"
+    ARM_JOINT = "arm_joint"
+    NAVIGATE = "navigate"
+    STOP = "stop"
+    ESTOP = "estop"
+    CLEAR_ESTOP = "clear_estop"
+
+
+ActionName = Literal["move", "arm_joint", "navigate", "stop", "estop", "clear_estop"]
+
+MOTION_ACTIONS = frozenset({Action.MOVE, Action.ARM_JOINT, Action.NAVIGATE})
+
+
+class Outcome(str, enum.Enum):
+    EXECUTED = "executed"
+    PENDING_AUTH = "pending_auth"
+    DENIED = "denied"
+    SAFETY_VIOLATION = "safety_violation"
+    FAILED = "failed"
+
+
+class ErrorCode(str, enum.Enum):
+    SCHEMA_VALIDATION_FAILED = "SCHEMA_VALIDATION_FAILED"
+    UNAUTHENTICATED = "UNAUTHENTICATED"
+    INSUFFICIENT_PRIVILEGES = "INSUFFICIENT_PRIVILEGES"
+    COMMAND_REJECTED = "COMMAND_REJECTED"
+    RATE_LIMITED = "RATE_LIMITED"
+    ROBOT_UNAVAILABLE = "ROBOT_UNAVAILABLE"
+    PAYLOAD_TOO_LARGE = "PAYLOAD_TOO_LARGE"
+    INVALID_RURI = "INVALID_RURI"
+
+
+class Reason(str, enum.Enum):
+    """COMMAND_REJECTED reasons of the profile, plus the ones docs/governance.md adds."""
+
+    VELOCITY_LIMIT = "velocity_limit"
+    ESTOP_ACTIVE = "estop_active"
+    WORKSPACE_VIOLATION = "workspace_violation"
+    CONFIDENCE_BELOW_GATE = "confidence_below_gate"
+    INVALID_VALUE = "invalid_value"
+    SAFETY_CHECK_ERROR = "safety_check_error"
+    PENDING_NOT_FOUND = "pending_not_found"
+    PENDING_EXPIRED = "pending_expired"
+    SELF_APPROVAL = "self_approval"
+    HITL_DENIED = "hitl_denied"
+    DISPATCH_ERROR = "dispatch_error"
+    AUDIT_UNAVAILABLE = "audit_unavailable"
+    NOT_THIS_ROBOT = "not_this_robot"

@@ -1,0 +1,204 @@
+"""msgspec schemas of the RCAN messages rcan-rtps speaks (see docs/rcan-profile)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+import msgspec
+
+from ._enums import ActionName, RoleName
+
+# Finite floats only: NaN and ±Inf fail both bounds, and absurd magnitudes are schema errors.
+Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
+Confidence = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
+ShortText = Annotated[str, msgspec.Meta(max_length=256)]
+JointName = Annotated[
+    str, msgspec.Meta(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_./-]+$")
+]
+MessageId = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+
+
+class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    pass
+
+
+# -- parameters, one struct per action ------------------------------------------------------
+
+
+class MoveParams(_Strict, frozen=True):
+    linear_x: Finite = 0.0
+    linear_y: Finite = 0.0
+    angular_z: Finite = 0.0
+
+
+class ArmJointParams(_Strict, frozen=True):
+    joints: Annotated[list[JointName], msgspec.Meta(min_length=1, max_length=64)]
+    positions: Annotated[list[Finite], msgspec.Meta(min_length=1, max_length=64)]
+    duration_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)]
+
+    def __post_init__(self) -> None:
+        if len(self.positions) != len(self.joints):
+            raise ValueError("`positions` must have one entry per joint")
+        if len(set(self.joints)) != len(self.joints):
+            raise ValueError("`joints` must not repeat a name")
+
+
+class NavigateParams(_Strict, frozen=True):
+    x: Finite
+    y: Finite
+    yaw: Finite
+    frame_id: Annotated[str, msgspec.Meta(min_length=1, max_length=128)] | None = None
+
+
+class NoParams(_Strict, frozen=True):
+    """stop, estop, clear_estop take no parameters."""
+
+
+ActionParams = MoveParams | ArmJointParams | NavigateParams | NoParams
+
+
+class AiInfo(_Strict, frozen=True):
+    provider: ShortText | None = None
+    model: ShortText | None = None
+    confidence: Confidence | None = None
+    thought_id: ShortText | None = None
+
+
+# -- COMMAND, as it arrives -----------------------------------------------------------------
+
+
+class ShortCommand(_Strict, frozen=True):
+    """The bridge spec's short form."""
+
+    action: ActionName
+    params: dict[str, Any] = {}
+    message_id: MessageId | None = None
+    ai_provider: ShortText | None = None
+    ai_model: ShortText | None = None
+    confidence: Confidence | None = None
+    thought_id: ShortText | None = None
+
+
+class EnvelopeCommand(_Strict, frozen=True):
+    """The RCAN envelope form (message_type 1 = COMMAND)."""
+
+    message_type: Literal[1]
+    ruri: Annotated[str, msgspec.Meta(max_length=512)]
+    action: ActionName
+    parameters: dict[str, Any] = {}
+    message_id: MessageId | None = None
+    timestamp_ms: Annotated[int, msgspec.Meta(ge=0)] | None = None
+    priority: Annotated[int, msgspec.Meta(ge=0, le=255)] = 0
+    ai: AiInfo | None = None
+
+
+class NormalizedCommand(msgspec.Struct, frozen=True, kw_only=True):
+    """The one internal command both forms become."""
+
+    action: ActionName
+    params: ActionParams
+    requested: dict[str, Any]
+    message_id: str
+    ruri: str | None = None
+    timestamp_ms: int | None = None
+    priority: int = 0
+    ai: AiInfo | None = None
+    claimed_role: Any = None
+
+
+# -- responses and notifications ------------------------------------------------------------
+
+
+class DecisionBody(msgspec.Struct, omit_defaults=True, kw_only=True):
+    """Body of every command / HiTL response."""
+
+    outcome: Literal["executed", "pending_auth", "denied", "safety_violation", "failed"]
+    audit_id: str | None = None
+    message_id: str | None = None
+    error_code: str | None = None
+    reason: str | None = None
+    applied: dict[str, Any] | None = None
+    pending_id: str | None = None
+    expires_at_ms: int | None = None
+
+
+class ErrorBody(msgspec.Struct, omit_defaults=True, kw_only=True):
+    """Body of a request refused before any decision (e.g. 400, 401, 413)."""
+
+    outcome: Literal["denied", "failed"] = "denied"
+    error_code: str
+    reason: str | None = None
+    path: str | None = None
+    audit_id: str | None = None
+
+
+class PendingAuth(msgspec.Struct, kw_only=True):
+    """PENDING_AUTH: what the HiTL webhook receives and GET /api/hitl/pending lists."""
+
+    pending_id: str
+    original_command: dict[str, Any]
+    confidence: float | None
+    ai_model: str | None
+    requires_auth_from_role: RoleName
+    expires_at_ms: int
+    issued_by: str
+    message_type: Literal["PENDING_AUTH"] = "PENDING_AUTH"
+
+
+class Authorize(_Strict, frozen=True):
+    """Body of POST /api/hitl/authorize and /api/hitl/deny."""
+
+    pending_id: Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+    reason: ShortText | None = None
+
+
+class Position(msgspec.Struct):
+    x: float
+    y: float
+    z: float
+
+
+class Velocity(msgspec.Struct):
+    linear_x: float
+    angular_z: float
+
+
+class Joints(msgspec.Struct):
+    names: list[str]
+    positions: list[float]
+    velocities: list[float]
+
+
+class Fault(msgspec.Struct):
+    name: str
+    message: str
+    level: Literal["WARN", "ERROR", "STALE"]
+
+
+class Telemetry(msgspec.Struct):
+    position: Position | None = None
+    yaw: float | None = None
+    velocity: Velocity | None = None
+    joints: Joints | None = None
+
+
+class RosInfo(msgspec.Struct):
+    domain_id: int
+    distro: str
+    connected: bool
+    last_telemetry_age_s: float | None
+
+
+class Status(msgspec.Struct, kw_only=True):
+    """STATUS (GET /api/status and the WebSocket stream)."""
+
+    ruri: str
+    state: Literal["idle", "moving", "executing", "estop", "fault", "safe_stop", "offline"]
+    estop: bool
+    battery_pct: float | None
+    telemetry: Telemetry
+    faults: list[Fault]
+    active_goals: list[str]
+    pending_auth: int
+    ros: RosInfo
+    timestamp_ms: int

@@ -1,0 +1,128 @@
+"""Validation at the boundary: raw bytes → NormalizedCommand, or SchemaValidationError."""
+
+from __future__ import annotations
+
+import re
+import uuid
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import msgspec
+
+from ._errors import SchemaValidationError
+from ._messages import (
+    ActionParams,
+    AiInfo,
+    ArmJointParams,
+    EnvelopeCommand,
+    MoveParams,
+    NavigateParams,
+    NoParams,
+    NormalizedCommand,
+    ShortCommand,
+)
+from ._ruri import parse_ruri
+
+_PARAMS: dict[str, type[ActionParams]] = {
+    "move": MoveParams,
+    "arm_joint": ArmJointParams,
+    "navigate": NavigateParams,
+    "stop": NoParams,
+    "estop": NoParams,
+    "clear_estop": NoParams,
+}
+_AT = re.compile(r"^(?P<detail>.*?)(?: - at `(?P<path>[^`]*)`)?$", re.DOTALL)
+_ROLE_CLAIMS = ("role", "role_level")
+# Overflowing literals (1e400) become ±inf here so the typed pass rejects them *with* their path.
+_DECODER = msgspec.json.Decoder(float_hook=float)
+
+T = TypeVar("T")
+
+
+def validation_path(exc: msgspec.ValidationError, prefix: str = "$") -> tuple[str, str]:
+    """Split a msgspec error into (JSON path under `prefix`, detail)."""
+    match = _AT.match(str(exc))
+    assert match is not None  # the pattern matches every string
+    inner = match["path"] or "$"
+    return prefix + inner[1:], match["detail"]
+
+
+def convert_at(obj: Any, kind: type[T], prefix: str) -> T:
+    try:
+        return msgspec.convert(obj, kind)
+    except msgspec.ValidationError as exc:
+        path, detail = validation_path(exc, prefix)
+        raise SchemaValidationError(path, detail) from exc
+
+
+def validate_command(
+    raw: bytes, *, new_id: Callable[[], str] = lambda: str(uuid.uuid4())
+) -> NormalizedCommand:
+    """Decode and validate a COMMAND body in either form; never trusts a number it did not check.
+
+    A `role`/`role_level` in the body is kept as `claimed_role` for the governor to refuse
+    (INSUFFICIENT_PRIVILEGES); the role itself always comes from authentication.
+    """
+    try:
+        obj = _DECODER.decode(raw)
+    except msgspec.DecodeError as exc:  # also NaN / Infinity tokens: not JSON
+        raise SchemaValidationError("$", str(exc)) from exc
+    if not isinstance(obj, dict):
+        raise SchemaValidationError("$", "expected a JSON object")
+    claimed = {k: obj.pop(k) for k in _ROLE_CLAIMS if k in obj}
+    claimed_role = claimed.get("role_level", claimed.get("role"))
+    if "message_type" in obj:
+        return _from_envelope(convert_at(obj, EnvelopeCommand, "$"), claimed_role, new_id)
+    return _from_short(convert_at(obj, ShortCommand, "$"), claimed_role, new_id)
+
+
+def _params(action: str, raw: dict[str, Any], prefix: str) -> ActionParams:
+    return convert_at(raw, _PARAMS[action], prefix)
+
+
+def _message_id(given: str | None, new_id: Callable[[], str]) -> str:
+    if given is None:
+        return new_id()
+    try:
+        return str(uuid.UUID(given))
+    except ValueError as exc:
+        raise SchemaValidationError("$.message_id", "expected a UUID") from exc
+
+
+def _from_short(
+    cmd: ShortCommand, claimed_role: Any, new_id: Callable[[], str]
+) -> NormalizedCommand:
+    ai_fields = (cmd.ai_provider, cmd.ai_model, cmd.confidence, cmd.thought_id)
+    ai = None
+    if any(f is not None for f in ai_fields):
+        ai = AiInfo(
+            provider=cmd.ai_provider,
+            model=cmd.ai_model,
+            confidence=cmd.confidence,
+            thought_id=cmd.thought_id,
+        )
+    return NormalizedCommand(
+        action=cmd.action,
+        params=_params(cmd.action, cmd.params, "$.params"),
+        requested=cmd.params,
+        message_id=_message_id(cmd.message_id, new_id),
+        ai=ai,
+        claimed_role=claimed_role,
+    )
+
+
+def _from_envelope(
+    cmd: EnvelopeCommand, claimed_role: Any, new_id: Callable[[], str]
+) -> NormalizedCommand:
+    parse_ruri(cmd.ruri)
+    return NormalizedCommand(
+        action=cmd.action,
+        params=_params(cmd.action, cmd.parameters, "$.parameters"),
+        requested=cmd.parameters,
+        message_id=_message_id(cmd.message_id, new_id),
+        ruri=cmd.ruri,
+        timestamp_ms=cmd.timestamp_ms,
+        priority=cmd.priority,
+        ai=cmd.ai,
+        claimed_role=claimed_role,
+    )

@@ -1,0 +1,50 @@
+"""Errors of the governance core.
+
+    GovernanceError
+    ├── AuthenticationError      no or invalid credentials (UNAUTHENTICATED)
+    ├── AuthConfigError          principals cannot be set up (e.g. a token env var is unset)
+    ├── EstopStateError          the e-stop state file cannot be written
+    └── AuditError
+        ├── AuditIntegrityError  the chain is broken; names the first bad `seq`
+        ├── AuditKeyError        the signing key is missing, unreadable or too open
+        └── AuditWriteError      an append could not be made durable; the log refuses more
+"""
+
+from __future__ import annotations
+
+
+class GovernanceError(Exception):
+    """Base of every error raised by `rcan_rtps.governance`."""
+
+
+class AuthenticationError(GovernanceError):
+    error_code = "UNAUTHENTICATED"
+
+
+class AuthConfigError(GovernanceError):
+    pass
+
+
+class EstopStateError(GovernanceError):
+    pass
+
+
+class AuditError(GovernanceError):
+    pass
+
+
+class AuditIntegrityError(AuditError):
+    def __init__(self, seq: int, detail: str, *, path: str = "") -> None:
+        where = f"{path}: " if path else ""
+        super().__init__(f"{where}audit chain broken at seq {seq}: {detail}")
+        self.seq = seq
+        self.detail = detail
+        self.path = path
+
+
+class AuditKeyError(AuditError):
+    pass
+
+
+class AuditWriteError(AuditError):
+    pass

@@ -51,3 +51,13 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):  
 
 
 sys.path.insert(0, str(ROOT / "tests"))
+
+
+_next_domain = [40 + (os.getpid() % 50)]
+
+
+@pytest.fixture
+def domain_id() -> int:
+    """A fresh DDS domain per test, so tests never see each other's nodes."""
+    _next_domain[0] = 40 + (_next_domain[0] - 39) % 150
+    return _next_domain[0]

@@ -2,7 +2,10 @@
 
 This is the one place that knows cyclonedds' Python type vocabulary; a faster codec can
 replace it without touching the parser, the store or the hasher. Octet and uint8
-sequences and arrays map to `bytes`, which cyclonedds encodes in one copy.
+sequences and arrays map to `bytes`, encoded in one copy: the struct is declared with
+`sequence<uint8>` (so cyclonedds can describe the type to XTypes peers) and the
+member's codec is then swapped for cyclonedds' own bytes codec, which writes the same
+wire format (uint32 length, raw octets).
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from typing import Any
 
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl import types as t
+from cyclonedds.idl._machinery import BytesMachine
 
 from ..errors import WireError
 from .model import Collection, FieldType, MessageType, Primitive
@@ -65,11 +69,19 @@ class DdsTypes:
     def _build(self, msg: MessageType) -> type[IdlStruct]:
         fields = {f.name: self._annotation(msg, f.name, f.type) for f in msg.fields}
         class_name = msg.dds_name.rsplit("::", 1)[-1]
-        return make_idl_struct(class_name, msg.dds_name, fields)
+        cls = make_idl_struct(class_name, msg.dds_name, fields)
+        byte_sequences = [f for f in msg.fields
+                          if is_byte_like(f.type) and f.type.collection is not Collection.ARRAY]
+        if byte_sequences:
+            cls.__idl__.populate()
+            for machine in (cls.__idl__.v1_machine, cls.__idl__.v2_machine):
+                for f in byte_sequences:
+                    machine.members_machines[f.name] = BytesMachine(f.type.size or None)
+        return cls
 
     def _annotation(self, msg: MessageType, fname: str, ftype: FieldType) -> Any:
         if is_byte_like(ftype) and ftype.collection is not Collection.ARRAY:
-            return bytes  # length-prefixed octets; bounds are checked by the value layer
+            ftype = FieldType(Primitive.UINT8, None, 0, ftype.collection, ftype.size)
         element = self._element(msg, fname, ftype)
         if ftype.collection is Collection.ARRAY:
             return t.array[element, ftype.size]

@@ -1,0 +1,305 @@
+"""A ROS 2 node made of plain DDS: one participant, its endpoints and its graph presence.
+
+The node announces itself on `ros_discovery_info` (so `ros2 node list` and rclpy's
+graph API see it), tags the participant `enclave=/;` and every endpoint with its
+`typehash=` (Jazzy and later). Subscriptions deliver into asyncio via a DDS listener,
+so no thread polls. Discovery is loopback-only when asked by flag or by the ROS
+environment variables.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import threading
+from collections.abc import AsyncIterator, Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from cyclonedds.core import Listener, Policy
+from cyclonedds.domain import Domain, DomainParticipant
+from cyclonedds.idl import IdlStruct
+from cyclonedds.pub import DataWriter, Publisher
+from cyclonedds.qos import Qos
+from cyclonedds.sub import DataReader, Subscriber
+from cyclonedds.topic import Topic
+
+from . import qos as qos_mod
+from .errors import GraphTimeout, WireError
+from .names import expand_topic_name, mangle_topic, normalize_namespace, validate_node_name
+from .qos import QosProfile
+from .typesys.ddstypes import DdsTypes
+from .typesys.store import TypeStore, env_idl_paths
+from .typesys.values import MessageValues
+
+log = logging.getLogger(__name__)
+
+DISCOVERY_TOPIC = "ros_discovery_info"
+_LOCALHOST_CONFIG = """<CycloneDDS><Domain Id="any"><General>
+<Interfaces><NetworkInterface address="127.0.0.1" multicast="false"/></Interfaces>
+<AllowMulticast>false</AllowMulticast></General>
+<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>32</MaxAutoParticipantIndex>
+<Peers><Peer address="localhost"/></Peers></Discovery></Domain></CycloneDDS>"""
+
+_domains: dict[int, Domain] = {}
+_domains_lock = threading.Lock()
+
+
+def resolve_domain_id(explicit: int | None = None) -> int:
+    if explicit is None:
+        raw = os.environ.get("ROS_DOMAIN_ID", "").strip()
+        explicit = int(raw) if raw.isdigit() else 0
+    if not 0 <= explicit <= 232:
+        raise WireError(f"domain id {explicit} is outside 0..232")
+    return explicit
+
+
+def localhost_requested(explicit: bool | None = None) -> bool:
+    """`--localhost`, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST or ROS_LOCALHOST_ONLY=1."""
+    if explicit is not None:
+        return explicit
+    if os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "").upper() == "LOCALHOST":
+        return True
+    return os.environ.get("ROS_LOCALHOST_ONLY", "") == "1"
+
+
+def _ensure_domain(domain_id: int, localhost: bool) -> None:
+    # A Domain object fixes the configuration for every participant of that id in
+    # this process, so the first node decides; it must be created before them.
+    if not localhost:
+        return
+    with _domains_lock:
+        if domain_id not in _domains:
+            _domains[domain_id] = Domain(domain_id, _LOCALHOST_CONFIG)
+
+
+def gid_bytes(entity: Any, size: int) -> bytes:
+    """An entity's GUID as a ROS Gid of the distro's size (16, or 24 zero-padded)."""
+    raw = entity.guid.bytes
+    return raw[:size].ljust(size, b"\0")
+
+
+class RosPublisher:
+    def __init__(self, node: RosNode, topic: str, type_name: str, writer: DataWriter) -> None:
+        self.node, self.topic, self.type_name, self.writer = node, topic, type_name, writer
+
+    def publish(self, message: IdlStruct | Mapping[str, Any]) -> None:
+        if not isinstance(message, IdlStruct):
+            message = self.node.values.build(self.type_name, message)
+        self.writer.write(message)
+
+    def matched_count(self) -> int:
+        return int(self.writer.get_publication_matched_status().current_count)
+
+    async def wait_for_subscribers(self, count: int = 1, timeout: float = 5.0) -> int:
+        return await _wait_count(self.matched_count, count, timeout,
+                                 f"no subscriber matched {self.topic}")
+
+
+class RosSubscription:
+    """Samples arrive through a DDS listener and are handed to asyncio (or a callback)."""
+
+    def __init__(self, node: RosNode, topic: str, type_name: str, qos: QosProfile,
+                 callback: Callable[[IdlStruct], None] | None, maxsize: int) -> None:
+        self.node, self.topic, self.type_name = node, topic, type_name
+        self.incompatible_qos_events = 0
+        self._callback = callback
+        self._queue: asyncio.Queue[IdlStruct] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        if callback is None:
+            self._loop = asyncio.get_running_loop()
+            self._queue = asyncio.Queue(maxsize)
+        listener = Listener(on_data_available=self._on_data,
+                            on_requested_incompatible_qos=self._on_incompatible)
+        dds_topic = node.topic(mangle_topic(topic), type_name)
+        user_data = node.endpoint_user_data(type_name)
+        self.reader: DataReader[Any] = DataReader(
+            node.subscriber, dds_topic, qos=qos.to_dds(user_data), listener=listener)
+
+    def _on_data(self, reader: DataReader[Any]) -> None:
+        for sample in reader.take(N=256):
+            if self._callback is not None:
+                self._callback(sample)
+            elif self._loop is not None:
+                try:
+                    self._loop.call_soon_threadsafe(self._put, sample)
+                except RuntimeError:  # the loop closed while DDS was still delivering
+                    return
+
+    def _put(self, sample: IdlStruct) -> None:
+        assert self._queue is not None
+        if self._queue.full():  # keep the newest, like a keep-last history
+            self._queue.get_nowait()
+        self._queue.put_nowait(sample)
+
+    def _on_incompatible(self, reader: DataReader[Any], status: Any) -> None:
+        self.incompatible_qos_events += 1
+        log.warning("subscription %s: a publisher offers incompatible QoS (policy id %s)",
+                    self.topic, getattr(status, "last_policy_id", "?"))
+
+    async def get(self, timeout: float | None = None) -> IdlStruct:
+        if self._queue is None:
+            raise WireError("this subscription delivers to a callback")
+        return await asyncio.wait_for(self._queue.get(), timeout)
+
+    def __aiter__(self) -> AsyncIterator[IdlStruct]:
+        return self._iterate()
+
+    async def _iterate(self) -> AsyncIterator[IdlStruct]:
+        while True:
+            yield await self.get()
+
+    def matched_count(self) -> int:
+        return int(self.reader.get_subscription_matched_status().current_count)
+
+    async def wait_for_publishers(self, count: int = 1, timeout: float = 5.0) -> int:
+        return await _wait_count(self.matched_count, count, timeout,
+                                 f"no publisher matched {self.topic}")
+
+
+async def _wait_count(current: Callable[[], int], count: int, timeout: float,
+                      message: str) -> int:
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while (n := current()) < count:
+        if loop.time() >= deadline:
+            raise GraphTimeout(f"{message} within {timeout} s")
+        await asyncio.sleep(0.02)
+    return n
+
+
+class RosNode:
+    """One ROS node on one DDS participant."""
+
+    def __init__(self, name: str, namespace: str = "/", *, domain_id: int | None = None,
+                 localhost: bool | None = None, distro: str | None = None,
+                 idl_paths: Iterable[str | Path] = (), store: TypeStore | None = None,
+                 enclave: str = "/") -> None:
+        validate_node_name(name)
+        self.name = name
+        self.namespace = normalize_namespace(namespace)
+        self.store = store or TypeStore([*idl_paths, *env_idl_paths()], distro)
+        self.types = DdsTypes(self.store)
+        self.values = MessageValues(self.types)
+        self.domain_id = resolve_domain_id(domain_id)
+        self.localhost = localhost_requested(localhost)
+        _ensure_domain(self.domain_id, self.localhost)
+        self.participant = DomainParticipant(
+            self.domain_id, qos=Qos(Policy.Userdata(f"enclave={enclave};".encode())))
+        self.publisher = Publisher(self.participant)
+        self.subscriber = Subscriber(self.participant)
+        self._topics: dict[str, Topic[Any]] = {}
+        self._readers: list[Any] = []
+        self._writers: list[Any] = []
+        self._lock = threading.Lock()
+        self._info_writer = self._discovery_writer()
+        self.announce()
+
+    @property
+    def fqn(self) -> str:
+        return f"{self.namespace.rstrip('/')}/{self.name}"
+
+    def resolve(self, name: str) -> str:
+        """A topic/service name resolved against this node, as rcl would."""
+        return expand_topic_name(name, self.name, self.namespace)
+
+    # -- entities -------------------------------------------------------------
+    def topic(self, dds_name: str, type_name: str) -> Topic[Any]:
+        with self._lock:
+            found = self._topics.get(dds_name)
+            if found is None:
+                found = Topic(self.participant, dds_name, self.types.struct(type_name))
+                self._topics[dds_name] = found
+            return found
+
+    def endpoint_user_data(self, type_name: str) -> bytes | None:
+        if self.store.distro == "humble":
+            return None  # type hashes exist from Iron on
+        return f"typehash={self.store.hash_of(type_name)};".encode()
+
+    def create_publisher(self, topic: str, type_name: str,
+                         qos: QosProfile = qos_mod.DEFAULT) -> RosPublisher:
+        full = self.resolve(topic)
+        writer = self.create_writer(mangle_topic(full), type_name, qos)
+        return RosPublisher(self, full, type_name, writer)
+
+    def create_subscription(self, topic: str, type_name: str,
+                            qos: QosProfile = qos_mod.DEFAULT, *,
+                            callback: Callable[[IdlStruct], None] | None = None,
+                            maxsize: int = 1000) -> RosSubscription:
+        sub = RosSubscription(self, self.resolve(topic), type_name, qos, callback, maxsize)
+        self.track_reader(sub.reader)
+        return sub
+
+    def create_writer(self, dds_topic: str, type_name: str, qos: QosProfile,
+                      extra_user_data: str = "") -> DataWriter:
+        """A raw writer (used for topics, service requests/replies, action parts)."""
+        user_data = (self.endpoint_user_data(type_name) or b"") + extra_user_data.encode()
+        writer = DataWriter(self.publisher, self.topic(dds_topic, type_name),
+                            qos=qos.to_dds(user_data or None))
+        self.track_writer(writer)
+        return writer
+
+    def create_reader(self, dds_topic: str, type_name: str, qos: QosProfile,
+                      listener: Listener | None = None, extra_user_data: str = "") -> DataReader[Any]:
+        user_data = (self.endpoint_user_data(type_name) or b"") + extra_user_data.encode()
+        reader: DataReader[Any] = DataReader(
+            self.subscriber, self.topic(dds_topic, type_name),
+            qos=qos.to_dds(user_data or None), listener=listener)
+        self.track_reader(reader)
+        return reader
+
+    def track_reader(self, reader: Any) -> None:
+        with self._lock:
+            self._readers.append(reader)
+        self.announce()
+
+    def track_writer(self, writer: Any) -> None:
+        with self._lock:
+            self._writers.append(writer)
+        self.announce()
+
+    # -- graph presence ---------------------------------------------------------
+    def _discovery_writer(self) -> DataWriter:
+        info_type = "rmw_dds_common/msg/ParticipantEntitiesInfo"
+        topic = self.topic(DISCOVERY_TOPIC, info_type)
+        return DataWriter(self.publisher, topic, qos=qos_mod.DISCOVERY_INFO.to_dds(
+            self.endpoint_user_data(info_type)))
+
+    def gid_size(self) -> int:
+        return self.store.message("rmw_dds_common/msg/Gid").fields[0].type.size
+
+    def announce(self) -> None:
+        """Publishes this node's entities on ros_discovery_info (on every change)."""
+        if not hasattr(self, "_info_writer"):
+            return
+        size = self.gid_size()
+        with self._lock:
+            readers = [{"data": gid_bytes(r, size)} for r in self._readers]
+            writers = [{"data": gid_bytes(w, size)} for w in self._writers]
+        info = self.values.build("rmw_dds_common/msg/ParticipantEntitiesInfo", {
+            "gid": {"data": gid_bytes(self.participant, size)},
+            "node_entities_info_seq": [{
+                "node_namespace": self.namespace,
+                "node_name": self.name,
+                "reader_gid_seq": readers,
+                "writer_gid_seq": writers,
+            }],
+        })
+        self._info_writer.write(info)
+
+    def close(self) -> None:
+        """Leaves the graph: deleting the participant withdraws every endpoint."""
+        with self._lock:
+            self._readers.clear()
+            self._writers.clear()
+        participant = self.participant
+        del self._info_writer
+        participant.__del__()
+
+    def __enter__(self) -> RosNode:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

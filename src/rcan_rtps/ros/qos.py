@@ -1,0 +1,143 @@
+"""ROS 2 QoS profiles, their presets, DDS translation and compatibility checks."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, replace
+from typing import Any
+
+from cyclonedds.core import Policy
+from cyclonedds.qos import Qos
+from cyclonedds.util import duration
+
+from .errors import QosError
+
+
+class Reliability(enum.Enum):
+    RELIABLE = "reliable"
+    BEST_EFFORT = "best_effort"
+
+
+class Durability(enum.Enum):
+    VOLATILE = "volatile"
+    TRANSIENT_LOCAL = "transient_local"
+
+
+class History(enum.Enum):
+    KEEP_LAST = "keep_last"
+    KEEP_ALL = "keep_all"
+
+
+@dataclass(frozen=True)
+class QosProfile:
+    history: History = History.KEEP_LAST
+    depth: int = 10
+    reliability: Reliability = Reliability.RELIABLE
+    durability: Durability = Durability.VOLATILE
+    lifespan_s: float | None = None  # None: infinite
+    deadline_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.history is History.KEEP_LAST and self.depth < 1:
+            raise QosError("keep-last history needs a depth of at least 1")
+
+    def with_(self, **changes: Any) -> QosProfile:
+        return replace(self, **changes)
+
+    def describe(self) -> str:
+        hist = f"keep_last({self.depth})" if self.history is History.KEEP_LAST else "keep_all"
+        return f"{self.reliability.value}, {self.durability.value}, {hist}"
+
+    def to_dds(self, user_data: bytes | None = None) -> Qos:
+        policies: list[Any] = [
+            Policy.History.KeepLast(self.depth) if self.history is History.KEEP_LAST
+            else Policy.History.KeepAll,
+            # rmw_cyclonedds: reliable writers block indefinitely rather than drop
+            Policy.Reliability.Reliable(duration(infinite=True))
+            if self.reliability is Reliability.RELIABLE else Policy.Reliability.BestEffort,
+            Policy.Durability.TransientLocal if self.durability is Durability.TRANSIENT_LOCAL
+            else Policy.Durability.Volatile,
+            Policy.WriterDataLifecycle(autodispose=False),
+            Policy.Liveliness.Automatic(duration(infinite=True)),
+        ]
+        if self.lifespan_s is not None:
+            policies.append(Policy.Lifespan(duration(seconds=self.lifespan_s)))
+        if self.deadline_s is not None:
+            policies.append(Policy.Deadline(duration(seconds=self.deadline_s)))
+        if user_data is not None:
+            policies.append(Policy.Userdata(user_data))
+        return Qos(*policies)
+
+
+# The presets of rmw/qos_profiles.h (identical in Humble, Jazzy and Kilted).
+DEFAULT = QosProfile()
+SENSOR_DATA = QosProfile(depth=5, reliability=Reliability.BEST_EFFORT)
+SERVICES = QosProfile(depth=10)
+ACTION_STATUS = QosProfile(depth=1, durability=Durability.TRANSIENT_LOCAL)
+TF_STATIC = QosProfile(depth=1, durability=Durability.TRANSIENT_LOCAL)
+ROSOUT = QosProfile(depth=1000, durability=Durability.TRANSIENT_LOCAL, lifespan_s=10.0)
+PARAMETER_EVENTS = QosProfile(depth=1000)
+DISCOVERY_INFO = QosProfile(depth=1, durability=Durability.TRANSIENT_LOCAL)
+
+PRESETS: dict[str, QosProfile] = {
+    "default": DEFAULT,
+    "sensor_data": SENSOR_DATA,
+    "services_default": SERVICES,
+    "action_status_default": ACTION_STATUS,
+    "tf_static": TF_STATIC,
+    "rosout": ROSOUT,
+    "parameter_events": PARAMETER_EVENTS,
+    "system_default": DEFAULT,
+}
+
+
+def preset(name: str) -> QosProfile:
+    try:
+        return PRESETS[name.replace("-", "_").lower()]
+    except KeyError:
+        raise QosError(f"unknown QoS preset {name!r}; known: {', '.join(PRESETS)}") from None
+
+
+def incompatibilities(writer: QosProfile, reader: QosProfile) -> list[str]:
+    """Why a writer and a reader would silently never match (empty when they match)."""
+    problems = []
+    if reader.reliability is Reliability.RELIABLE and writer.reliability is not reader.reliability:
+        problems.append("reader requests RELIABLE but the writer offers BEST_EFFORT")
+    if (reader.durability is Durability.TRANSIENT_LOCAL
+            and writer.durability is Durability.VOLATILE):
+        problems.append("reader requests TRANSIENT_LOCAL but the writer offers VOLATILE")
+    if reader.deadline_s is not None and (writer.deadline_s is None
+                                          or writer.deadline_s > reader.deadline_s):
+        problems.append("reader requests a shorter deadline than the writer offers")
+    return problems
+
+
+def from_dds(qos: Qos) -> QosProfile:
+    """The ROS view of a discovered endpoint's DDS QoS."""
+    profile = QosProfile()
+    for p in qos.policies if qos is not None else ():
+        if isinstance(p, Policy.History.KeepLast):
+            profile = profile.with_(history=History.KEEP_LAST, depth=p.depth)
+        elif p is Policy.History.KeepAll:
+            profile = profile.with_(history=History.KEEP_ALL)
+        elif p is Policy.Reliability.BestEffort:
+            profile = profile.with_(reliability=Reliability.BEST_EFFORT)
+        elif isinstance(p, Policy.Reliability.Reliable):
+            profile = profile.with_(reliability=Reliability.RELIABLE)
+        elif p is Policy.Durability.TransientLocal:
+            profile = profile.with_(durability=Durability.TRANSIENT_LOCAL)
+        elif p is Policy.Durability.Volatile:
+            profile = profile.with_(durability=Durability.VOLATILE)
+    return profile
+
+
+def user_data_of(qos: Qos | None) -> dict[str, str]:
+    """`key=value;` pairs from an entity's USER_DATA (`typehash=…;`, `enclave=…;`)."""
+    if qos is None:
+        return {}
+    for p in qos.policies:
+        if isinstance(p, Policy.Userdata):
+            text = bytes(p.data).decode("utf-8", "replace")
+            pairs = (item.split("=", 1) for item in text.split(";") if "=" in item)
+            return {k.strip(): v.strip() for k, v in pairs}
+    return {}

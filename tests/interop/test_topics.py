@@ -1,0 +1,138 @@
+"""Topics both ways between our node and a real rclpy Jazzy node, and graph presence."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from oracle.client import RclpyOracle
+
+from rcan_rtps.ros import qos
+from rcan_rtps.ros.participant import RosNode
+
+TWIST = {"linear": {"x": 0.5, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": -0.25}}
+
+
+@pytest.fixture
+def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_python, "oracle_node", "/lab", domain_id=domain_id) as agent:
+        yield agent
+
+
+@pytest.fixture
+def node(domain_id: int) -> Iterator[RosNode]:
+    with RosNode("rcan_bridge", "/robot1", domain_id=domain_id, distro="jazzy") as n:
+        yield n
+
+
+async def test_we_publish_twist_rclpy_receives(oracle: RclpyOracle, node: RosNode) -> None:
+    oracle.call("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
+    pub = node.create_publisher("cmd_vel", "geometry_msgs/msg/Twist")
+    await pub.wait_for_subscribers(1, timeout=15)
+    pub.publish(TWIST)
+    for _ in range(100):
+        got = oracle.call("take", topic="/robot1/cmd_vel")
+        if got:
+            break
+        await asyncio.sleep(0.05)
+    assert got == [TWIST]
+
+
+async def test_rclpy_publishes_we_receive(oracle: RclpyOracle, node: RosNode) -> None:
+    sub = node.create_subscription("/lab/chatter", "std_msgs/msg/String")
+    oracle.call("publisher", topic="/lab/chatter", type="std_msgs/msg/String")
+    await sub.wait_for_publishers(1, timeout=15)
+    assert oracle.call("wait_subscribers", topic="/lab/chatter") >= 1
+    oracle.call("publish", topic="/lab/chatter", type="std_msgs/msg/String",
+                value={"data": "héllo"})
+    msg = await sub.get(timeout=10)
+    assert msg.data == "héllo"
+
+
+async def test_sensor_data_qos_both_ways(oracle: RclpyOracle, node: RosNode) -> None:
+    scan = {"angle_min": -1.0, "angle_max": 1.0, "ranges": [1.0, 2.0, 3.5],
+            "header": {"frame_id": "laser", "stamp": {"sec": 3, "nanosec": 4}}}
+    oracle.call("subscribe", topic="/scan_out", type="sensor_msgs/msg/LaserScan", qos="sensor")
+    oracle.call("publisher", topic="/scan_in", type="sensor_msgs/msg/LaserScan", qos="sensor")
+    pub = node.create_publisher("/scan_out", "sensor_msgs/msg/LaserScan", qos.SENSOR_DATA)
+    sub = node.create_subscription("/scan_in", "sensor_msgs/msg/LaserScan", qos.SENSOR_DATA)
+    await pub.wait_for_subscribers(1, timeout=15)
+    await sub.wait_for_publishers(1, timeout=15)
+    oracle.call("publish", topic="/scan_in", type="sensor_msgs/msg/LaserScan", value=scan,
+                count=5)
+    got = await sub.get(timeout=10)
+    assert list(got.ranges) == [1.0, 2.0, 3.5] and got.header.frame_id == "laser"
+    for _ in range(5):  # best effort: a sample may be lost, so send a few
+        pub.publish(scan)
+        await asyncio.sleep(0.05)
+    received = oracle.call("take", topic="/scan_out")
+    assert received and received[0]["ranges"] == [1.0, 2.0, 3.5]
+
+
+async def test_images_both_ways(oracle: RclpyOracle, node: RosNode) -> None:
+    data = bytes(range(256)) * (640 * 480 * 3 // 256)
+    image = {"height": 480, "width": 640, "encoding": "rgb8", "step": 1920, "data": data}
+    oracle.call("subscribe", topic="/camera/image_raw", type="sensor_msgs/msg/Image")
+    pub = node.create_publisher("/camera/image_raw", "sensor_msgs/msg/Image")
+    await pub.wait_for_subscribers(1, timeout=15)
+    pub.publish(image)
+    for _ in range(200):
+        got = oracle.call("take", topic="/camera/image_raw")
+        if got:
+            break
+        await asyncio.sleep(0.05)
+    assert got[0]["width"] == 640 and bytes(got[0]["data"]) == data
+
+    # rclpy → us: a 160×120 frame (one UDP datagram). Fast DDS → Cyclone samples over
+    # ~128 kB do not arrive yet; tracked on the issue, not hidden here.
+    data = bytes(range(256)) * (160 * 120 * 3 // 256)
+    image = {"height": 120, "width": 160, "encoding": "rgb8", "step": 480, "data": data}
+    sub = node.create_subscription("/camera/back", "sensor_msgs/msg/Image")
+    oracle.call("publisher", topic="/camera/back", type="sensor_msgs/msg/Image")
+    await sub.wait_for_publishers(1, timeout=15)
+    assert oracle.call("wait_subscribers", topic="/camera/back") >= 1
+    oracle.call("publish", topic="/camera/back", type="sensor_msgs/msg/Image",
+                value={**image, "data": list(data)})
+    back = await sub.get(timeout=20)
+    assert back.encoding == "rgb8" and bytes(back.data) == data
+
+
+async def test_transient_local_reaches_late_joiner(oracle: RclpyOracle, node: RosNode) -> None:
+    pub = node.create_publisher("/map_meta", "std_msgs/msg/String", qos.TF_STATIC)
+    pub.publish({"data": "latched"})
+    oracle.call("subscribe", topic="/map_meta", type="std_msgs/msg/String",
+                qos="transient_local")
+    for _ in range(200):
+        got = oracle.call("take", topic="/map_meta")
+        if got:
+            break
+        await asyncio.sleep(0.05)
+    assert got == [{"data": "latched"}]
+
+    oracle.call("publisher", topic="/latched_back", type="std_msgs/msg/String",
+                qos="transient_local")
+    oracle.call("publish", topic="/latched_back", type="std_msgs/msg/String",
+                value={"data": "from rclpy"})
+    await asyncio.sleep(0.5)  # it was published before we exist; that is the point
+    sub = node.create_subscription("/latched_back", "std_msgs/msg/String", qos.TF_STATIC)
+    assert (await sub.get(timeout=15)).data == "from rclpy"
+
+
+async def test_rclpy_lists_our_node_and_type_hash(oracle: RclpyOracle, node: RosNode) -> None:
+    pub = node.create_publisher("cmd_vel", "geometry_msgs/msg/Twist")
+    oracle.call("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
+    await pub.wait_for_subscribers(1, timeout=15)
+    for _ in range(100):
+        names = oracle.call("node_names")
+        if ["rcan_bridge", "/robot1"] in names:
+            break
+        await asyncio.sleep(0.1)
+    assert ["rcan_bridge", "/robot1"] in names
+    infos = oracle.call("publishers_info", topic="/robot1/cmd_vel")
+    ours = [i for i in infos if i["node_name"] == "rcan_bridge"]
+    assert ours, infos
+    assert ours[0]["node_namespace"] == "/robot1"
+    assert ours[0]["topic_type"] == "geometry_msgs/msg/Twist"
+    assert node.store.hash_of("geometry_msgs/msg/Twist") in ours[0]["type_hash"]

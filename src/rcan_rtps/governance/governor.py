@@ -1,0 +1,429 @@
+"""The one entry point: authenticated command in, decision out, exactly one audit entry made.
+
+Order (§3.1): RBAC → rate limit → idempotency → §8 invariants → §9 HiTL → dispatch → §6 audit.
+An e-stop skips rate limiting and idempotency: it must never be refused or swallowed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import uuid
+from collections.abc import Coroutine, Mapping
+from pathlib import Path
+from typing import Any, Protocol
+
+import msgspec
+
+from rcan_rtps.config import RcanConfig
+from rcan_rtps.rcan import (
+    ActionParams,
+    DecisionBody,
+    ErrorCode,
+    InvalidRuriError,
+    NoParams,
+    NormalizedCommand,
+    Outcome,
+    PendingAuth,
+    Role,
+    parse_ruri,
+)
+
+from . import outcomes
+from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
+from .clock import Clock, SystemClock, now_ms
+from .errors import EstopStateError
+from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand, PendingStore
+from .invariants import AllOf, EstopLatch, Idempotency, Violation, safety_policy
+from .outcomes import Rejection
+from .rbac import Principal, RateLimiter, RolePolicy
+
+log = logging.getLogger(__name__)
+SWEEP_INTERVAL_S = 0.5
+
+
+class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):
+    """What the bridge reports after handing a command to ROS 2."""
+
+    ok: bool
+    ros2_topic: str | None = None
+    goal_id: str | None = None
+    detail: str | None = None
+
+
+class Dispatcher(Protocol):
+    """The hook the bridge plugs in; `applied` is what may be sent (clamped, checked)."""
+
+    async def dispatch(
+        self, command: NormalizedCommand, applied: Mapping[str, Any]
+    ) -> DispatchResult: ...
+
+
+class Decision(msgspec.Struct, frozen=True, kw_only=True):
+    outcome: Outcome
+    http_status: int
+    error_code: ErrorCode | None = None
+    reason: str | None = None
+    applied: dict[str, Any] | None = None
+    audit_id: str | None = None
+    message_id: str | None = None
+    pending_id: str | None = None
+    expires_at_ms: int | None = None
+    ros2_topic: str | None = None
+    goal_id: str | None = None
+
+    def body(self) -> DecisionBody:
+        return DecisionBody(
+            outcome=self.outcome.value,
+            audit_id=self.audit_id, message_id=self.message_id,
+            error_code=self.error_code.value if self.error_code else None, reason=self.reason,
+            applied=self.applied, pending_id=self.pending_id, expires_at_ms=self.expires_at_ms,
+        )
+
+
+class Governor:
+    def __init__(self, *, audit: AuditLog, dispatcher: Dispatcher, roles: RolePolicy,
+                 limiter: RateLimiter, safety: AllOf, latch: EstopLatch, hitl: HitlPolicy,
+                 clock: Clock, hitl_timeout_s: float = 300.0,
+                 require_distinct_approver: bool = False, session_timeout_s: float = 2.0,
+                 robot_ruri: str | None = None, notifier: Notifier | None = None) -> None:
+        self.audit = audit
+        self.latch = latch
+        self._dispatcher = dispatcher
+        self._roles = roles
+        self._limiter = limiter
+        self._safety = safety
+        self._hitl = hitl
+        self._clock = clock
+        self._pending = PendingStore()
+        self._idem: Idempotency[tuple[str, str], Decision] = Idempotency(clock)
+        self._hitl_ttl_ms = int(hitl_timeout_s * 1000)
+        self._distinct = require_distinct_approver
+        self._sessions = Sessions(clock, session_timeout_s)
+        self._robot = parse_ruri(robot_ruri).robot if robot_ruri else None
+        self._notifier = notifier
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._sweeper: asyncio.Task[None] | None = None
+
+    @classmethod
+    def from_config(cls, config: RcanConfig, *, audit: AuditLog, dispatcher: Dispatcher,
+                    clock: Clock | None = None, notifier: Notifier | None = None) -> Governor:
+        bridge, clock = config.bridge, clock or SystemClock()
+        beside_audit = Path(bridge.audit.path).parent / "estop.state"
+        latch = EstopLatch(Path(bridge.safety.estop_state_path or beside_audit))
+        return cls(
+            audit=audit, dispatcher=dispatcher, clock=clock, latch=latch, notifier=notifier,
+            roles=RolePolicy({a: Role[r] for a, r in bridge.rbac.action_roles.items()}),
+            limiter=RateLimiter(clock),
+            safety=safety_policy(bridge.safety, latch, bridge.ros2.nav_frame_id),
+            hitl=HitlPolicy(bridge.hitl, Role[bridge.rbac.hitl_approver_role]),
+            hitl_timeout_s=bridge.hitl.timeout_seconds,
+            require_distinct_approver=bridge.hitl.require_distinct_approver,
+            session_timeout_s=bridge.safety.session_timeout_s,
+            robot_ruri=config.robot.ruri,
+        )
+
+    # -- lifecycle --------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STARTED,
+                                            params={"estop_latched": self.latch.latched}))
+        self._sweeper = asyncio.create_task(self._sweep_forever())
+
+    async def stop(self) -> None:
+        if self._sweeper is not None:
+            self._sweeper.cancel()
+            await asyncio.gather(self._sweeper, return_exceptions=True)
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STOPPED))
+
+    # -- commands ---------------------------------------------------------------------------
+
+    async def decide(self, command: NormalizedCommand, principal: Principal) -> Decision:
+        """Decide, act and audit; a caller that goes away does not stop the decision."""
+        return await asyncio.shield(self._spawn(self._decide(command, principal)))
+
+    async def reject_request(self, principal: Principal | None, rejection: Rejection, *,
+                             message_id: str | None = None) -> Decision:
+        """A request refused before it became a command (schema, size, credentials).
+
+        Unauthenticated requests are not audited: anyone could fill the disk with them.
+        """
+        if principal is None:
+            return _decision(rejection, message_id=message_id)
+        record = AuditRecord(
+            event=AuditEvent.COMMAND_REJECTED, principal=principal.name, role=principal.role.name,
+            message_id=message_id, outcome=rejection.outcome.value,
+            deny_reason=rejection.deny_reason,
+        )
+        return _decision(rejection, await self.audit.append(record), message_id=message_id)
+
+    async def _decide(self, command: NormalizedCommand, principal: Principal) -> Decision:
+        refused = self._precheck(command, principal)
+        if refused is not None:
+            return await self._refuse(command, principal, refused)
+        if command.action == "estop":
+            return await self._estop(command, principal)
+        key = (principal.name, command.message_id)
+        earlier = self._idem.claim(key)
+        if earlier is not None:  # a retry: the first outcome, nothing executed twice
+            return await earlier
+        try:
+            decision = await self._govern(command, principal)
+        except BaseException as exc:
+            self._idem.abandon(key, exc)
+            raise
+        self._idem.resolve(key, decision)
+        return decision
+
+    def _precheck(self, command: NormalizedCommand, principal: Principal) -> Rejection | None:
+        if command.action == "estop":
+            return None  # any authenticated principal, whatever else the body says
+        if _claims_more(command.claimed_role, principal.role):
+            return outcomes.INSUFFICIENT_PRIVILEGES
+        if not self._roles.allows(principal.role, command.action):
+            return outcomes.INSUFFICIENT_PRIVILEGES
+        if command.ruri is not None and self._robot is not None:
+            try:
+                if parse_ruri(command.ruri).robot != self._robot:
+                    return outcomes.NOT_THIS_ROBOT
+            except InvalidRuriError as exc:
+                return outcomes.invalid_ruri(exc.rule)
+        if not self._limiter.allow(principal):
+            return outcomes.RATE_LIMITED
+        return None
+
+    async def _govern(self, command: NormalizedCommand, principal: Principal) -> Decision:
+        if not self.audit.healthy:  # no record possible: refuse rather than act unrecorded
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        try:
+            applied = self._safety(command, command.params)
+        except Violation as violation:
+            return await self._refuse(command, principal, violation.rejection)
+        gate = self._hitl.gate(command)
+        if isinstance(gate, Rejection):
+            return await self._refuse(command, principal, gate)
+        if isinstance(gate, Escalate):
+            return await self._hold(command, principal, gate.approver_role)
+        self._sessions.touch(principal, command.action)
+        return await self._execute(command, principal, applied, AuditEvent.COMMAND_DISPATCHED)
+
+    async def _estop(self, command: NormalizedCommand, principal: Principal) -> Decision:
+        self.latch.engage()  # before any await: no motion command passes from here on
+        result, failure = await self._dispatch(command, {})
+        try:
+            await self.latch.persist(principal.name, now_ms(self._clock))
+        except EstopStateError:
+            log.exception("e-stop latched in memory only")
+        return await self._finish(command, principal, result, failure, {}, AuditEvent.ESTOP)
+
+    async def _execute(self, command: NormalizedCommand, principal: Principal,
+                       params: ActionParams, event: AuditEvent,
+                       pending_id: str | None = None) -> Decision:
+        applied = msgspec.structs.asdict(params)
+        # Motion must not follow an e-stop that latched while this command was waiting.
+        if self.latch.latched and command.action in ("move", "arm_joint", "navigate"):
+            return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
+                                      pending_id=pending_id)
+        result, failure = await self._dispatch(command, applied)
+        if command.action == "clear_estop" and failure is None:
+            event = AuditEvent.ESTOP_CLEARED
+            try:
+                await self.latch.clear(principal.name, now_ms(self._clock))
+            except EstopStateError:
+                log.exception("e-stop clear not persisted: staying latched")
+                failure = outcomes.DISPATCH_ERROR
+        return await self._finish(command, principal, result, failure, applied, event, pending_id)
+
+    async def _dispatch(self, command: NormalizedCommand,
+                        applied: Mapping[str, Any]) -> tuple[DispatchResult, Rejection | None]:
+        try:
+            result = await self._dispatcher.dispatch(command, applied)
+        except Exception as exc:  # a bridge fault is an outcome (failed), never a crash
+            log.exception("dispatch of %s failed", command.action)
+            return DispatchResult(ok=False, detail=repr(exc)), outcomes.DISPATCH_ERROR
+        return result, None if result.ok else outcomes.ROBOT_UNAVAILABLE
+
+    async def _finish(self, command: NormalizedCommand, principal: Principal,
+                      result: DispatchResult, rejection: Rejection | None,
+                      applied: dict[str, Any], event: AuditEvent,
+                      pending_id: str | None = None) -> Decision:
+        outcome = rejection.outcome if rejection else Outcome.EXECUTED
+        record = _record(event, command, principal, outcome, applied=applied,
+                         rejection=rejection, ros2_topic=result.ros2_topic, pending_id=pending_id)
+        receipt = await self.audit.append(record)
+        if rejection is not None:
+            return _decision(rejection, receipt, message_id=command.message_id)
+        return Decision(outcome=Outcome.EXECUTED, http_status=200, applied=applied,
+                        audit_id=receipt.audit_id, message_id=command.message_id,
+                        ros2_topic=result.ros2_topic, goal_id=result.goal_id)
+
+    async def _refuse(self, command: NormalizedCommand, principal: Principal,
+                      rejection: Rejection, *, event: AuditEvent = AuditEvent.COMMAND_REJECTED,
+                      pending_id: str | None = None) -> Decision:
+        record = _record(event, command, principal, rejection.outcome, rejection=rejection,
+                         pending_id=pending_id)
+        receipt = await self.audit.append(record)
+        return _decision(rejection, receipt, message_id=command.message_id)
+
+    # -- HiTL -------------------------------------------------------------------------------
+
+    async def _hold(self, command: NormalizedCommand, principal: Principal,
+                    approver_role: Role) -> Decision:
+        pending = PendingCommand(
+            pending_id=uuid.uuid4().hex, command=command, issuer=principal,
+            approver_role=approver_role,
+            expires_at_ms=now_ms(self._clock) + self._hitl_ttl_ms,
+        )
+        record = _record(AuditEvent.PENDING_AUTH, command, principal, Outcome.PENDING_AUTH,
+                         pending_id=pending.pending_id)
+        receipt = await self.audit.append(record)
+        self._pending.put(pending)  # only once its PENDING_AUTH entry is durable
+        if self._notifier is not None:
+            self._spawn(self._notifier.notify(pending.message()))  # never awaited here
+        return Decision(outcome=Outcome.PENDING_AUTH, http_status=202,
+                        audit_id=receipt.audit_id, message_id=command.message_id,
+                        pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
+
+    async def authorize(self, pending_id: str, approver: Principal) -> Decision:
+        return await asyncio.shield(self._spawn(self._resolve(pending_id, approver, True)))
+
+    async def deny(self, pending_id: str, approver: Principal) -> Decision:
+        return await asyncio.shield(self._spawn(self._resolve(pending_id, approver, False)))
+
+    def pending(self) -> list[PendingAuth]:
+        return [p.message() for p in self._pending.list()]
+
+    async def _resolve(self, pending_id: str, approver: Principal, approve: bool) -> Decision:
+        verb = "hitl_authorize" if approve else "hitl_deny"
+        pending = self._pending.get(pending_id)
+        if pending is None:
+            return await self._refuse_hitl(verb, approver, outcomes.PENDING_NOT_FOUND)
+        if pending.expires_at_ms <= now_ms(self._clock):
+            await self.expire_pending()
+            return await self._refuse_hitl(verb, approver, outcomes.PENDING_EXPIRED)
+        if approver.role < pending.approver_role:
+            return await self._refuse_hitl(verb, approver, outcomes.INSUFFICIENT_PRIVILEGES)
+        if approve and self._distinct and approver.name == pending.issuer.name:
+            return await self._refuse_hitl(verb, approver, outcomes.SELF_APPROVAL)
+        if self._pending.take(pending_id) is None:  # another approval won the race
+            return await self._refuse_hitl(verb, approver, outcomes.PENDING_NOT_FOUND)
+        command = pending.command
+        if not approve:
+            return await self._refuse(command, approver, outcomes.HITL_DENIED,
+                                      event=AuditEvent.HITL_DENIED, pending_id=pending_id)
+        try:  # the state *now* decides, not the state when the command arrived
+            applied = self._safety(command, command.params)
+        except Violation as violation:
+            return await self._refuse(command, approver, violation.rejection,
+                                      event=AuditEvent.HITL_AUTHORIZED, pending_id=pending_id)
+        self._sessions.touch(pending.issuer, command.action)
+        return await self._execute(command, approver, applied, AuditEvent.HITL_AUTHORIZED,
+                                   pending_id)
+
+    async def _refuse_hitl(self, verb: str, approver: Principal,
+                           rejection: Rejection) -> Decision:
+        record = AuditRecord(event=AuditEvent.COMMAND_REJECTED, principal=approver.name,
+                             role=approver.role.name, action_type=verb,
+                             outcome=rejection.outcome.value, deny_reason=rejection.deny_reason)
+        return _decision(rejection, await self.audit.append(record))
+
+    async def expire_pending(self) -> list[Decision]:
+        """Discard and audit (HITL_EXPIRED) every pending command past its TTL."""
+        decisions = []
+        for p in self._pending.take_expired(now_ms(self._clock)):
+            decisions.append(await self._refuse(p.command, p.issuer, outcomes.PENDING_EXPIRED,
+                                                event=AuditEvent.HITL_EXPIRED,
+                                                pending_id=p.pending_id))
+        return decisions
+
+    # -- sessions (§10.8) -------------------------------------------------------------------
+
+    def heartbeat(self, principal: Principal) -> None:
+        self._sessions.heartbeat(principal)
+
+    async def safe_stop(self, principal: Principal) -> Decision:
+        """Session lost: zero velocity and cancel goals (a `stop`), audited as such."""
+        stop = NormalizedCommand(action="stop", params=NoParams(), requested={},
+                                 message_id=str(uuid.uuid4()))
+        result, failure = await self._dispatch(stop, {})
+        return await self._finish(stop, principal, result, failure, {},
+                                  AuditEvent.NETWORK_LOSS_SAFE_STOP)
+
+    async def sweep(self) -> None:
+        """One round of housekeeping: expire HiTL requests, stop for lost sessions."""
+        await self.expire_pending()
+        for principal in self._sessions.take_lost():
+            await self.safe_stop(principal)
+
+    async def _sweep_forever(self) -> None:
+        while True:
+            await asyncio.sleep(SWEEP_INTERVAL_S)
+            try:
+                await self.sweep()
+            except Exception:
+                log.exception("governance sweep failed")
+
+    def _spawn(self, coro: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+
+class Sessions:
+    """Who holds a control session, and since when nothing was heard from them."""
+
+    def __init__(self, clock: Clock, timeout_s: float) -> None:
+        self._clock = clock
+        self._timeout = timeout_s
+        self._last: dict[str, tuple[Principal, float]] = {}
+
+    def touch(self, principal: Principal, action: str) -> None:
+        if action in ("move", "arm_joint", "navigate"):
+            self._last[principal.name] = (principal, self._clock.monotonic())
+        elif action in ("stop", "estop"):
+            self._last.pop(principal.name, None)  # stopped on purpose: nothing to guard
+
+    def heartbeat(self, principal: Principal) -> None:
+        if principal.name in self._last:
+            self._last[principal.name] = (principal, self._clock.monotonic())
+
+    def take_lost(self) -> list[Principal]:
+        horizon = self._clock.monotonic() - self._timeout
+        lost = [p for p, at in self._last.values() if at < horizon]
+        for p in lost:
+            del self._last[p.name]
+        return lost
+
+
+def _claims_more(claimed: Any, role: Role) -> bool:
+    """A body's role claim is refused unless it names a role no higher than the real one."""
+    if claimed is None:
+        return False
+    if isinstance(claimed, str) and claimed in Role.__members__:
+        return Role[claimed] > role
+    if isinstance(claimed, int) and not isinstance(claimed, bool) and claimed in (1, 2, 3, 4, 5):
+        return Role(claimed) > role
+    return True  # unintelligible claims are treated as claiming more
+
+
+def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
+            outcome: Outcome, *, applied: dict[str, Any] | None = None,
+            rejection: Rejection | None = None, ros2_topic: str | None = None,
+            pending_id: str | None = None) -> AuditRecord:
+    ai = msgspec.structs.asdict(command.ai) if command.ai is not None else None
+    return AuditRecord(
+        event=event, principal=principal.name, role=principal.role.name,
+        message_id=command.message_id, action_type=command.action, params=command.requested,
+        applied=applied, outcome=outcome.value,
+        deny_reason=rejection.deny_reason if rejection else None, ai=ai,
+        ros2_topic=ros2_topic, pending_id=pending_id,
+    )
+
+
+def _decision(rejection: Rejection, receipt: AuditReceipt | None = None, *,
+              message_id: str | None = None) -> Decision:
+    return Decision(outcome=rejection.outcome, http_status=rejection.http_status,
+                    error_code=rejection.error_code, reason=rejection.reason,
+                    audit_id=receipt.audit_id if receipt else None, message_id=message_id)

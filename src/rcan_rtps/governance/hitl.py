@@ -1,0 +1,138 @@
+"""§9 human in the loop: gates, the pending store with TTL, and webhook notification."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Protocol, cast
+
+import aiohttp
+import msgspec
+
+from rcan_rtps.config import HitlConfig
+from rcan_rtps.rcan import Action, NormalizedCommand, PendingAuth, Role, RoleName
+
+from . import outcomes
+from .outcomes import Rejection
+from .rbac import Principal
+
+log = logging.getLogger(__name__)
+# A human must never be needed to stop the robot: these actions are never gated.
+NEVER_GATED = frozenset({Action.STOP.value, Action.ESTOP.value})
+
+
+class PendingCommand(msgspec.Struct, frozen=True, kw_only=True):
+    pending_id: str
+    command: NormalizedCommand
+    issuer: Principal
+    approver_role: Role
+    expires_at_ms: int
+
+    def message(self) -> PendingAuth:
+        ai = self.command.ai
+        return PendingAuth(
+            pending_id=self.pending_id,
+            original_command={"action": self.command.action, "params": self.command.requested,
+                              "message_id": self.command.message_id},
+            confidence=ai.confidence if ai else None,
+            ai_model=ai.model if ai else None,
+            requires_auth_from_role=cast(RoleName, self.approver_role.name),
+            expires_at_ms=self.expires_at_ms,
+            issued_by=self.issuer.name,
+        )
+
+
+class Escalate(msgspec.Struct, frozen=True):
+    """The gate's answer: a human of at least `approver_role` must authorize."""
+
+    approver_role: Role
+
+
+class HitlPolicy:
+    """Decides, per command, whether it passes, is refused, or waits for a human."""
+
+    def __init__(self, config: HitlConfig, default_approver: Role = Role.OWNER) -> None:
+        self._gate = config.confidence_gate
+        self._default = default_approver
+        self._actions: dict[str, Role] = {
+            g.action: min((Role[r] for r in g.authorized_roles), default=default_approver)
+            for g in config.gates if g.require_auth
+        }
+
+    def approver_role(self, action: str) -> Role:
+        return self._actions.get(action, self._default)
+
+    def gate(self, command: NormalizedCommand) -> Rejection | Escalate | None:
+        if command.action in NEVER_GATED:
+            return None
+        if self._gate is not None and command.ai is not None:
+            # An AI command that states no confidence is treated as confidence 0.
+            confidence = command.ai.confidence if command.ai.confidence is not None else 0.0
+            if confidence < self._gate.min_confidence:
+                if self._gate.on_fail == "block":
+                    return outcomes.CONFIDENCE_BELOW_GATE
+                return Escalate(self.approver_role(command.action))
+        if command.action in self._actions:
+            return Escalate(self._actions[command.action])
+        return None
+
+
+class PendingStore:
+    """Commands waiting for a human; `take` removes, so one approval cannot run twice."""
+
+    def __init__(self) -> None:
+        self._pending: dict[str, PendingCommand] = {}
+
+    def put(self, pending: PendingCommand) -> None:
+        self._pending[pending.pending_id] = pending
+
+    def get(self, pending_id: str) -> PendingCommand | None:
+        return self._pending.get(pending_id)
+
+    def take(self, pending_id: str) -> PendingCommand | None:
+        return self._pending.pop(pending_id, None)
+
+    def take_expired(self, now_ms: int) -> list[PendingCommand]:
+        gone = [p for p in self._pending.values() if p.expires_at_ms <= now_ms]
+        for p in gone:
+            del self._pending[p.pending_id]
+        return gone
+
+    def list(self) -> list[PendingCommand]:
+        return sorted(self._pending.values(), key=lambda p: p.expires_at_ms)
+
+    def __len__(self) -> int:
+        return len(self._pending)
+
+
+class Notifier(Protocol):
+    async def notify(self, message: PendingAuth) -> None: ...
+
+
+class WebhookNotifier:
+    """POSTs PENDING_AUTH as JSON; retries with backoff; each attempt has a timeout."""
+
+    def __init__(self, url: str, *, attempts: int = 3, timeout_s: float = 5.0,
+                 backoff_s: float = 0.5) -> None:
+        self.url = url
+        self.attempts = attempts
+        self.timeout = aiohttp.ClientTimeout(total=timeout_s)
+        self.backoff_s = backoff_s
+
+    async def notify(self, message: PendingAuth) -> None:
+        body = msgspec.json.encode(message)
+        headers = {"Content-Type": "application/json"}
+        async with aiohttp.ClientSession(timeout=self.timeout) as session:
+            for attempt in range(1, self.attempts + 1):
+                try:
+                    async with session.post(self.url, data=body, headers=headers) as resp:
+                        if resp.status < 300:
+                            return
+                        problem = f"HTTP {resp.status}"
+                except (aiohttp.ClientError, asyncio.TimeoutError) as exc:
+                    problem = repr(exc)
+                log.warning("HiTL webhook attempt %d/%d failed: %s", attempt, self.attempts,
+                            problem)
+                if attempt < self.attempts:
+                    await asyncio.sleep(self.backoff_s * 2 ** (attempt - 1))
+        log.error("HiTL webhook gave up on pending %s", message.pending_id)

@@ -1,0 +1,258 @@
+"""§8 safety invariants as composable checks; every check fails closed.
+
+A check takes the command and the parameters as they stand so far, and returns the parameters
+to apply (possibly clamped) or raises `Violation`. `AllOf` runs checks in order; any other
+exception inside a check becomes a denial (SAFETY_CHECK_ERROR), never a pass.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections import OrderedDict
+from collections.abc import Hashable, Sequence
+from pathlib import Path
+from typing import Any, Generic, Protocol, TypeVar
+
+import msgspec
+
+from rcan_rtps.config import SafetyConfig, polygon_edges, polygon_problem
+from rcan_rtps.rcan import (
+    MOTION_ACTIONS,
+    Action,
+    ActionParams,
+    MoveParams,
+    NavigateParams,
+    NormalizedCommand,
+)
+
+from . import outcomes
+from ._durable import atomic_write
+from .clock import Clock
+from .errors import EstopStateError, GovernanceError
+from .outcomes import Rejection
+
+log = logging.getLogger(__name__)
+EXCEED_DENY_FACTOR = 1.10  # the bridge spec: more than 10 % over the limit is denied, not clamped
+
+
+class Violation(GovernanceError):
+    def __init__(self, rejection: Rejection, detail: str = "") -> None:
+        super().__init__(detail or rejection.deny_reason)
+        self.rejection = rejection
+
+
+class Check(Protocol):
+    def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams: ...
+
+
+class AllOf:
+    """Every check must pass; parameters flow from one to the next."""
+
+    def __init__(self, *checks: Check) -> None:
+        self.checks = checks
+
+    def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
+        for check in self.checks:
+            try:
+                params = check(command, params)
+            except Violation:
+                raise
+            except Exception as exc:  # a broken check must never let a command through
+                log.exception("safety check %r failed", check)
+                raise Violation(outcomes.SAFETY_CHECK_ERROR, f"{check!r}: {exc}") from exc
+        return params
+
+
+def _numbers(value: Any) -> list[Any]:
+    if isinstance(value, msgspec.Struct):
+        value = msgspec.structs.asdict(value)
+    if isinstance(value, dict):
+        return [n for v in value.values() for n in _numbers(v)]
+    if isinstance(value, list | tuple):
+        return [n for v in value for n in _numbers(v)]
+    return [value] if isinstance(value, int | float) else []
+
+
+def finite_numbers(command: NormalizedCommand, params: ActionParams) -> ActionParams:
+    """Defence in depth behind the schema: every number finite, no bools posing as numbers."""
+    for n in _numbers(params):
+        if isinstance(n, bool) or not math.isfinite(n):
+            raise Violation(outcomes.INVALID_VALUE, f"non-finite or non-numeric value {n!r}")
+    return params
+
+
+class VelocityLimit:
+    """Clamp `move` to the limits; deny when a request exceeds a limit by more than 10 %."""
+
+    def __init__(self, max_linear: float, max_angular: float, deny_on_exceed: bool) -> None:
+        self.max_linear = max_linear
+        self.max_angular = max_angular
+        self.deny_on_exceed = deny_on_exceed
+
+    def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
+        if not isinstance(params, MoveParams):
+            return params
+        return MoveParams(
+            linear_x=self._limit(params.linear_x, self.max_linear, "linear_x"),
+            linear_y=self._limit(params.linear_y, self.max_linear, "linear_y"),
+            angular_z=self._limit(params.angular_z, self.max_angular, "angular_z"),
+        )
+
+    def _limit(self, value: float, limit: float, name: str) -> float:
+        if not math.isfinite(value):
+            raise Violation(outcomes.INVALID_VALUE, f"{name} is not finite")
+        if self.deny_on_exceed and abs(value) > limit * EXCEED_DENY_FACTOR:
+            raise Violation(outcomes.VELOCITY_LIMIT, f"{name}={value} exceeds {limit} by >10%")
+        return max(-limit, min(limit, value))
+
+
+class Workspace:
+    """Navigation goals must lie strictly inside the polygon (in the navigation frame)."""
+
+    def __init__(self, polygon: Sequence[tuple[float, float]] | None, frame_id: str) -> None:
+        self.polygon = list(polygon) if polygon is not None else None
+        self.frame_id = frame_id
+
+    def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
+        if not isinstance(params, NavigateParams) or self.polygon is None:
+            return params
+        problem = polygon_problem(self.polygon)
+        if problem:  # a polygon that bounds nothing must not allow everything
+            raise Violation(outcomes.WORKSPACE_VIOLATION, f"workspace {problem}")
+        if (params.frame_id or self.frame_id) != self.frame_id:
+            # The workspace is defined in one frame; a goal in another cannot be checked.
+            raise Violation(outcomes.WORKSPACE_VIOLATION, f"goal not in frame {self.frame_id}")
+        if not strictly_inside((params.x, params.y), self.polygon):
+            raise Violation(outcomes.WORKSPACE_VIOLATION, "goal outside the workspace")
+        return params
+
+
+def strictly_inside(point: tuple[float, float], polygon: list[tuple[float, float]]) -> bool:
+    """Ray casting; a point on an edge counts as outside (the boundary is the limit)."""
+    x, y = point
+    inside = False
+    for (x1, y1), (x2, y2) in polygon_edges(polygon):
+        if _on_segment(point, (x1, y1), (x2, y2)):
+            return False
+        if (y1 > y) != (y2 > y) and x < x1 + (y - y1) * (x2 - x1) / (y2 - y1):
+            inside = not inside
+    return inside
+
+
+def _on_segment(p: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> bool:
+    cross = (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0])
+    if abs(cross) > 1e-12 * max(1.0, abs(b[0] - a[0]) + abs(b[1] - a[1])):
+        return False
+    return min(a[0], b[0]) <= p[0] <= max(a[0], b[0]) and min(a[1], b[1]) <= p[1] <= max(a[1], b[1])
+
+
+class EstopLatch:
+    """The cached ESTOPPED state, persisted so a restart cannot silently clear it.
+
+    An unreadable state file counts as latched: losing the state must not unlatch the robot.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._latched = self._load()
+
+    def _load(self) -> bool:
+        try:
+            state = msgspec.json.decode(self.path.read_bytes())
+        except FileNotFoundError:
+            return False
+        except (OSError, msgspec.DecodeError):
+            log.error("e-stop state %s unreadable: starting latched", self.path)
+            return True
+        return not (isinstance(state, dict) and state.get("latched") is False)
+
+    @property
+    def latched(self) -> bool:
+        return self._latched
+
+    def engage(self) -> None:
+        """Latch now (synchronously, before any await), persist later."""
+        self._latched = True
+
+    async def persist(self, by: str, at_ms: int) -> None:
+        await self._write(self._latched, by, at_ms)
+
+    async def clear(self, by: str, at_ms: int) -> None:
+        """Persist the cleared state first: if that fails, the latch stays on."""
+        await self._write(False, by, at_ms)
+        self._latched = False
+
+    async def _write(self, latched: bool, by: str, at_ms: int) -> None:
+        data = msgspec.json.encode({"latched": latched, "by": by, "at_ms": at_ms})
+        try:
+            await asyncio.to_thread(atomic_write, self.path, data)
+        except OSError as exc:
+            raise EstopStateError(f"cannot persist e-stop state to {self.path}: {exc}") from exc
+
+
+class EstopGuard:
+    """While the e-stop is latched, no motion command passes."""
+
+    def __init__(self, latch: EstopLatch) -> None:
+        self.latch = latch
+
+    def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
+        if self.latch.latched and Action(command.action) in MOTION_ACTIONS:
+            raise Violation(outcomes.ESTOP_ACTIVE)
+        return params
+
+
+def safety_policy(safety: SafetyConfig, latch: EstopLatch, nav_frame_id: str) -> AllOf:
+    return AllOf(
+        EstopGuard(latch),
+        finite_numbers,
+        VelocityLimit(safety.max_linear_vel, safety.max_angular_vel, safety.velocity_exceed_deny),
+        Workspace(safety.workspace, nav_frame_id),
+    )
+
+
+# -- idempotency ----------------------------------------------------------------------------
+
+K = TypeVar("K", bound=Hashable)
+T = TypeVar("T")
+
+
+class Idempotency(Generic[K, T]):
+    """First outcome per key for `ttl_s`; concurrent duplicates wait for the first one."""
+
+    def __init__(self, clock: Clock, ttl_s: float = 600.0) -> None:
+        self._clock = clock
+        self._ttl = ttl_s
+        self._entries: OrderedDict[K, tuple[float, asyncio.Future[T]]] = OrderedDict()
+
+    def claim(self, key: K) -> asyncio.Future[T] | None:
+        """The earlier outcome (a future) if `key` was seen, else None after reserving `key`."""
+        self._prune()
+        seen = self._entries.get(key)
+        if seen is not None:
+            return seen[1]
+        future: asyncio.Future[T] = asyncio.get_running_loop().create_future()
+        self._entries[key] = (self._clock.monotonic(), future)
+        return None
+
+    def resolve(self, key: K, value: T) -> None:
+        future = self._entries[key][1]
+        if not future.done():
+            future.set_result(value)
+
+    def abandon(self, key: K, exc: BaseException) -> None:
+        """No outcome was reached: waiters get the error, and a retry may run again."""
+        _, future = self._entries.pop(key)
+        if not future.done():
+            future.set_exception(exc)
+            future.exception()  # mark retrieved: nobody may be waiting
+
+    def _prune(self) -> None:
+        horizon = self._clock.monotonic() - self._ttl
+        while self._entries:
+            key, (at, future) = next(iter(self._entries.items()))
+            if at > horizon or not future.done():
+                break
+            del self._entries[key]

@@ -1,0 +1,58 @@
+"""The profile's outcome table in one place: each refusal with its HTTP status and outcome."""
+
+from __future__ import annotations
+
+import msgspec
+
+from rcan_rtps.rcan import ErrorCode, Outcome, Reason
+
+
+class Rejection(msgspec.Struct, frozen=True):
+    http_status: int
+    outcome: Outcome
+    error_code: ErrorCode
+    reason: str | None = None
+
+    @property
+    def deny_reason(self) -> str:
+        """How the audit entry names it: the code, and the reason when there is one."""
+        code = self.error_code.value
+        return f"{code}:{self.reason}" if self.reason else code
+
+
+def _rejected(reason: Reason, outcome: Outcome = Outcome.DENIED, status: int = 409) -> Rejection:
+    return Rejection(status, outcome, ErrorCode.COMMAND_REJECTED, reason.value)
+
+
+D, S = Outcome.DENIED, Outcome.SAFETY_VIOLATION
+
+UNAUTHENTICATED = Rejection(401, D, ErrorCode.UNAUTHENTICATED)
+INSUFFICIENT_PRIVILEGES = Rejection(403, D, ErrorCode.INSUFFICIENT_PRIVILEGES)
+SELF_APPROVAL = Rejection(403, D, ErrorCode.INSUFFICIENT_PRIVILEGES, Reason.SELF_APPROVAL.value)
+RATE_LIMITED = Rejection(429, D, ErrorCode.RATE_LIMITED)
+PAYLOAD_TOO_LARGE = Rejection(413, D, ErrorCode.PAYLOAD_TOO_LARGE)
+NOT_THIS_ROBOT = Rejection(400, D, ErrorCode.INVALID_RURI, Reason.NOT_THIS_ROBOT.value)
+ROBOT_UNAVAILABLE = Rejection(503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE)
+DISPATCH_ERROR = Rejection(
+    503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE, Reason.DISPATCH_ERROR.value
+)
+AUDIT_UNAVAILABLE = Rejection(
+    503, Outcome.FAILED, ErrorCode.COMMAND_REJECTED, Reason.AUDIT_UNAVAILABLE.value
+)
+VELOCITY_LIMIT = _rejected(Reason.VELOCITY_LIMIT, S)
+WORKSPACE_VIOLATION = _rejected(Reason.WORKSPACE_VIOLATION, S)
+INVALID_VALUE = _rejected(Reason.INVALID_VALUE, S)
+ESTOP_ACTIVE = _rejected(Reason.ESTOP_ACTIVE)
+CONFIDENCE_BELOW_GATE = _rejected(Reason.CONFIDENCE_BELOW_GATE)
+SAFETY_CHECK_ERROR = _rejected(Reason.SAFETY_CHECK_ERROR)
+PENDING_NOT_FOUND = _rejected(Reason.PENDING_NOT_FOUND, status=404)
+PENDING_EXPIRED = _rejected(Reason.PENDING_EXPIRED, status=404)
+HITL_DENIED = _rejected(Reason.HITL_DENIED, status=200)
+
+
+def schema_failed(path: str) -> Rejection:
+    return Rejection(400, D, ErrorCode.SCHEMA_VALIDATION_FAILED, path)
+
+
+def invalid_ruri(rule: str) -> Rejection:
+    return Rejection(400, D, ErrorCode.INVALID_RURI, rule)

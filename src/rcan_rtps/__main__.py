@@ -1,0 +1,3 @@
+from rcan_rtps.cli.main import main
+
+raise SystemExit(main())

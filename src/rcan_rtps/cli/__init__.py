@@ -1,0 +1,1 @@
+"""The `rcan-rtps` command line, shaped like ros2cli."""

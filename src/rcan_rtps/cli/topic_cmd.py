@@ -1,0 +1,250 @@
+"""`rcan-rtps topic list|info|echo|pub|hz`, shaped like `ros2 topic`."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import statistics
+import sys
+import time
+from typing import Any
+
+import yaml
+
+from ..ros import qos as qos_mod
+from ..ros.errors import GraphTimeout, ValueFitError
+from ..ros.graph import Direction, Endpoint, RosGraph, short_gid
+from ..ros.participant import RosNode
+from ._common import make_node
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser("topic", help="inspect and use topics")
+    actions = parser.add_subparsers(dest="topic_command", required=True)
+
+    listing = actions.add_parser("list", help="topics on the graph")
+    listing.add_argument("-t", "--show-types", action="store_true")
+    listing.add_argument("--include-hidden-topics", action="store_true")
+    listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
+    listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
+
+    info = actions.add_parser("info", help="type and endpoints of a topic")
+    info.add_argument("topic", metavar="TOPIC")
+    info.add_argument("-v", "--verbose", action="store_true")
+    info.add_argument("--spin-time", type=float, default=1.5)
+    info.set_defaults(func=lambda a: asyncio.run(_info(a)))
+
+    echo = actions.add_parser("echo", help="print messages of a topic")
+    echo.add_argument("topic", metavar="TOPIC")
+    echo.add_argument("type", metavar="TYPE", nargs="?", help="default: from the graph")
+    echo.add_argument("--once", action="store_true")
+    echo.add_argument("--count", type=int, default=0, help="stop after N messages")
+    echo.add_argument("--json", action="store_true", help="one JSON object per line")
+    echo.add_argument("--timeout", type=float, default=0.0, help="give up after S seconds")
+    echo.set_defaults(func=lambda a: asyncio.run(_echo(a)))
+
+    pub = actions.add_parser("pub", help="publish messages built from YAML values")
+    pub.add_argument("topic", metavar="TOPIC")
+    pub.add_argument("type", metavar="TYPE")
+    pub.add_argument("values", metavar="VALUES", nargs="?", default="{}")
+    mode = pub.add_mutually_exclusive_group()
+    mode.add_argument("-1", "--once", action="store_true")
+    mode.add_argument("-t", "--times", type=int, default=0)
+    pub.add_argument("-r", "--rate", type=float, default=1.0, help="Hz (default 1)")
+    pub.add_argument("-w", "--wait-matching-subscriptions", type=int, default=None)
+    pub.add_argument("--qos-profile", default="default", choices=sorted(qos_mod.PRESETS))
+    pub.set_defaults(func=lambda a: asyncio.run(_pub(a)))
+
+    hz = actions.add_parser("hz", help="rate of a topic")
+    hz.add_argument("topic", metavar="TOPIC")
+    hz.add_argument("type", metavar="TYPE", nargs="?")
+    hz.add_argument("--window", type=int, default=10000)
+    hz.add_argument("--duration", type=float, default=0.0, help="stop after S seconds")
+    hz.set_defaults(func=lambda a: asyncio.run(_hz(a)))
+
+
+async def _graph(args: argparse.Namespace) -> tuple[RosNode, RosGraph]:
+    node = make_node(args)
+    graph = RosGraph(node)
+    await graph.settle(getattr(args, "spin_time", 1.5))
+    return node, graph
+
+
+async def _list(args: argparse.Namespace) -> int:
+    node, graph = await _graph(args)
+    with node:
+        for name, types in graph.topics(args.include_hidden_topics).items():
+            print(f"{name} [{', '.join(types)}]" if args.show_types else name)
+    return 0
+
+
+def _describe_endpoint(e: Endpoint) -> str:
+    q = e.qos
+    depth = f"KEEP_LAST ({q.depth})" if q.history is qos_mod.History.KEEP_LAST else "KEEP_ALL"
+    return "\n".join([
+        f"Node name: {e.node_name}",
+        f"Node namespace: {e.node_namespace}",
+        f"Topic type: {e.ros_type}",
+        f"Topic type hash: {e.type_hash or 'INVALID'}",
+        f"Endpoint type: {e.direction.value}",
+        f"GID: {short_gid(e.gid)}",
+        f"DDS vendor: {e.vendor}",
+        "QoS profile:",
+        f"  Reliability: {q.reliability.name}",
+        f"  History (Depth): {depth}",
+        f"  Durability: {q.durability.name}",
+        "",
+    ])
+
+
+async def _info(args: argparse.Namespace) -> int:
+    node, graph = await _graph(args)
+    with node:
+        topic = node.resolve(args.topic)
+        endpoints = graph.topic_endpoints(topic)
+        if not endpoints:
+            print(f"Unknown topic '{topic}'", file=sys.stderr)
+            return 1
+        pubs = [e for e in endpoints if e.direction is Direction.PUBLISHER]
+        subs = [e for e in endpoints if e.direction is Direction.SUBSCRIPTION]
+        print(f"Type: {', '.join(sorted({e.ros_type for e in endpoints}))}")
+        print(f"Publisher count: {len(pubs)}")
+        if args.verbose:
+            print()
+            for e in pubs:
+                print(_describe_endpoint(e))
+        print(f"Subscription count: {len(subs)}")
+        if args.verbose:
+            print()
+            for e in subs:
+                print(_describe_endpoint(e))
+    return 0
+
+
+async def _resolve_type(node: RosNode, graph: RosGraph, topic: str, given: str | None,
+                        timeout: float) -> tuple[str, list[Endpoint]]:
+    deadline = time.monotonic() + (timeout or 5.0)
+    while True:
+        graph.refresh()
+        pubs = [e for e in graph.topic_endpoints(topic) if e.direction is Direction.PUBLISHER]
+        if given or pubs or time.monotonic() > deadline:
+            break
+        await asyncio.sleep(0.1)
+    if given:
+        return given, pubs
+    types = sorted({e.ros_type for e in pubs})
+    if not types:
+        raise GraphTimeout(f"could not determine the type of '{topic}': no publisher found; "
+                           "pass TYPE explicitly")
+    if len(types) > 1:
+        raise GraphTimeout(f"'{topic}' has several types ({', '.join(types)}); pass TYPE")
+    return types[0], pubs
+
+
+def _adapted_qos(pubs: list[Endpoint]) -> qos_mod.QosProfile:
+    """Like ros2 topic echo: as strict as every publisher allows."""
+    profile = qos_mod.DEFAULT
+    if pubs and any(p.qos.reliability is qos_mod.Reliability.BEST_EFFORT for p in pubs):
+        profile = profile.with_(reliability=qos_mod.Reliability.BEST_EFFORT)
+    if pubs and all(p.qos.durability is qos_mod.Durability.TRANSIENT_LOCAL for p in pubs):
+        profile = profile.with_(durability=qos_mod.Durability.TRANSIENT_LOCAL)
+    return profile
+
+
+def _json_default(value: Any) -> Any:
+    return None if isinstance(value, float) and not math.isfinite(value) else str(value)
+
+
+async def _echo(args: argparse.Namespace) -> int:
+    node = make_node(args)
+    with node:
+        graph = RosGraph(node)
+        topic = node.resolve(args.topic)
+        type_name, pubs = await _resolve_type(node, graph, topic, args.type, args.timeout)
+        node.store.message(type_name)  # unknown type: fail before subscribing
+        sub = node.create_subscription(topic, type_name, _adapted_qos(pubs))
+        limit = 1 if args.once else args.count
+        seen = 0
+        deadline = time.monotonic() + args.timeout if args.timeout else None
+        while not limit or seen < limit:
+            left = deadline - time.monotonic() if deadline else None
+            if left is not None and left <= 0:
+                break
+            try:
+                msg = await sub.get(timeout=left)
+            except asyncio.TimeoutError:
+                break
+            plain = node.values.to_plain(type_name, msg)
+            if args.json:
+                print(json.dumps(plain, default=_json_default), flush=True)
+            else:
+                print(yaml.safe_dump(plain, sort_keys=False, allow_unicode=True) + "---",
+                      flush=True)
+            seen += 1
+        return 0 if seen or not limit else 1
+
+
+async def _pub(args: argparse.Namespace) -> int:
+    try:
+        values = yaml.safe_load(args.values) if args.values.strip() else {}
+    except yaml.YAMLError as exc:
+        raise ValueFitError("", f"VALUES is not valid YAML: {exc}") from None
+    node = make_node(args)
+    with node:
+        pub = node.create_publisher(args.topic, args.type, qos_mod.preset(args.qos_profile))
+        message = node.values.build(args.type, values)
+        times = 1 if args.once else args.times
+        wait_for = args.wait_matching_subscriptions
+        if wait_for is None:
+            wait_for = 1 if times else 0
+        if wait_for:
+            try:
+                await pub.wait_for_subscribers(wait_for, timeout=5.0)
+            except GraphTimeout:
+                print(f"warning: no subscriber matched {pub.topic}; publishing anyway",
+                      file=sys.stderr)
+        print(f"publisher: beginning loop\npublishing #1: {args.type}", flush=True)
+        period = 1.0 / args.rate if args.rate > 0 else 0.0
+        sent = 0
+        while not times or sent < times:
+            pub.publish(message)
+            sent += 1
+            if not times or sent < times:
+                await asyncio.sleep(period)
+        await asyncio.sleep(0.3)  # let reliable delivery finish before the participant goes
+    return 0
+
+
+async def _hz(args: argparse.Namespace) -> int:
+    node = make_node(args)
+    with node:
+        graph = RosGraph(node)
+        topic = node.resolve(args.topic)
+        type_name, pubs = await _resolve_type(node, graph, topic, args.type, 5.0)
+        sub = node.create_subscription(topic, type_name, _adapted_qos(pubs))
+        stamps: list[float] = []
+        start = last_report = time.monotonic()
+        while not args.duration or time.monotonic() - start < args.duration:
+            try:
+                await sub.get(timeout=0.2)
+                stamps.append(time.monotonic())
+                del stamps[: max(0, len(stamps) - args.window)]
+            except asyncio.TimeoutError:
+                pass
+            if time.monotonic() - last_report >= 1.0:
+                last_report = time.monotonic()
+                _report_rate(stamps)
+        _report_rate(stamps)
+    return 0
+
+
+def _report_rate(stamps: list[float]) -> None:
+    if len(stamps) < 2:
+        print("no new messages", flush=True)
+        return
+    gaps = [b - a for a, b in zip(stamps, stamps[1:])]
+    mean = statistics.fmean(gaps)
+    print(f"average rate: {1.0 / mean:.3f}\n\tmin: {min(gaps):.3f}s max: {max(gaps):.3f}s "
+          f"std dev: {statistics.pstdev(gaps):.5f}s window: {len(stamps)}", flush=True)

@@ -1,0 +1,205 @@
+"""The ROS graph as seen from DDS discovery: topics, nodes, services, actions.
+
+Endpoints come from the builtin publication/subscription topics (name, type, QoS,
+USER_DATA type hash, vendor from the GUID prefix); nodes and the endpoint → node
+mapping come from other participants' `ros_discovery_info`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+import uuid
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+from cyclonedds.builtin import (
+    BuiltinDataReader,
+    BuiltinTopicDcpsPublication,
+    BuiltinTopicDcpsSubscription,
+)
+from cyclonedds.core import InstanceState
+from cyclonedds.sub import DataReader
+
+from . import qos as qos_mod
+from .names import ACTION_INFIX, EndpointKind, action_of, demangle
+from .participant import DISCOVERY_TOPIC, RosNode
+from .qos import QosProfile
+from .typesys.store import normalize_name
+
+VENDORS = {
+    b"\x01\x01": "RTI Connext DDS",
+    b"\x01\x03": "OpenDDS",
+    b"\x01\x0f": "eProsima Fast DDS",
+    b"\x01\x10": "Eclipse Cyclone DDS",
+    b"\x01\x12": "RTI Connext Micro",
+    b"\x01\x0a": "GurumNetworks GurumDDS",
+}
+
+
+class Direction(enum.Enum):
+    PUBLISHER = "PUBLISHER"
+    SUBSCRIPTION = "SUBSCRIPTION"
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    direction: Direction
+    kind: EndpointKind
+    ros_name: str
+    ros_type: str
+    dds_topic: str
+    dds_type: str
+    gid: bytes
+    participant_gid: bytes
+    qos: QosProfile
+    type_hash: str
+    vendor: str
+    node_name: str = "_NODE_NAME_UNKNOWN_"
+    node_namespace: str = "_NODE_NAMESPACE_UNKNOWN_"
+
+
+def vendor_of(gid: bytes) -> str:
+    return VENDORS.get(gid[:2], f"unknown vendor {gid[:2].hex('.')}")
+
+
+def ros_type_of(dds_type: str, kind: EndpointKind) -> str:
+    name = normalize_name(dds_type)
+    if kind is EndpointKind.REQUEST and name.endswith("_Request"):
+        return name[: -len("_Request")]
+    if kind is EndpointKind.REPLY and name.endswith("_Response"):
+        return name[: -len("_Response")]
+    return name
+
+
+class RosGraph:
+    """A live view of the graph, kept current by reading DDS discovery data."""
+
+    def __init__(self, node: RosNode) -> None:
+        self.node = node
+        self._pubs = BuiltinDataReader(node.participant, BuiltinTopicDcpsPublication)
+        self._subs = BuiltinDataReader(node.participant, BuiltinTopicDcpsSubscription)
+        info_type = "rmw_dds_common/msg/ParticipantEntitiesInfo"
+        # Not tracked as a node endpoint: rmw does not list its discovery reader either.
+        # The type is keyless, so every participant writes the same instance: a deep
+        # history keeps one participant's update from overwriting another's unread one.
+        self._info = DataReader(node.subscriber, node.topic(DISCOVERY_TOPIC, info_type),
+                                qos=qos_mod.DISCOVERY_INFO.with_(depth=1000).to_dds())
+        self._endpoints: dict[bytes, tuple[Direction, Any]] = {}
+        self._node_infos: dict[bytes, Any] = {}
+
+    def refresh(self) -> None:
+        for direction, reader in ((Direction.PUBLISHER, self._pubs),
+                                  (Direction.SUBSCRIPTION, self._subs)):
+            for sample in reader.take(N=100_000):
+                key = sample.key.bytes
+                if sample.sample_info.instance_state == InstanceState.Alive:
+                    self._endpoints[key] = (direction, sample)
+                else:
+                    self._endpoints.pop(key, None)
+        for info in self._info.take(N=10_000):
+            gid = bytes(info.gid.data)[:16]
+            if info.sample_info.instance_state == InstanceState.Alive and \
+                    info.sample_info.valid_data:
+                self._node_infos[gid] = info
+            else:
+                self._node_infos.pop(gid, None)
+
+    async def settle(self, seconds: float = 1.0, patience: float = 4.0) -> None:
+        """Lets discovery run for `seconds`, then up to `patience` more until every
+        participant with ROS endpoints has announced its nodes. Fast DDS hands its
+        latched ros_discovery_info to a late reader only on its next heartbeat (3 s)."""
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        while True:
+            self.refresh()
+            elapsed = loop.time() - start
+            if elapsed >= seconds + patience or (elapsed >= seconds and not self._unannounced()):
+                return
+            await asyncio.sleep(0.1)
+
+    def _unannounced(self) -> set[bytes]:
+        ros_participants = {sample.participant_key.bytes
+                            for _, sample in self._endpoints.values()
+                            if demangle(sample.topic_name) is not None}
+        return ros_participants - set(self._node_infos)
+
+    # -- views -----------------------------------------------------------------
+    def _owners(self) -> dict[bytes, tuple[str, str]]:
+        owners: dict[bytes, tuple[str, str]] = {}
+        for info in self._node_infos.values():
+            for n in info.node_entities_info_seq:
+                for g in [*n.reader_gid_seq, *n.writer_gid_seq]:
+                    owners[bytes(g.data)[:16]] = (n.node_namespace, n.node_name)
+        return owners
+
+    def endpoints(self) -> list[Endpoint]:
+        owners = self._owners()
+        found = []
+        for key, (direction, sample) in self._endpoints.items():
+            mangled = demangle(sample.topic_name)
+            if mangled is None:
+                continue
+            user_data = qos_mod.user_data_of(sample.qos)
+            namespace, name = owners.get(key, ("_NODE_NAMESPACE_UNKNOWN_", "_NODE_NAME_UNKNOWN_"))
+            found.append(Endpoint(
+                direction, mangled.kind, mangled.name,
+                ros_type_of(sample.type_name, mangled.kind), sample.topic_name,
+                sample.type_name, key, sample.participant_key.bytes,
+                qos_mod.from_dds(sample.qos), user_data.get("typehash", ""),
+                vendor_of(key), name, namespace,
+            ))
+        return sorted(found, key=lambda e: (e.ros_name, e.direction.value, e.node_name))
+
+    def topics(self, include_hidden: bool = False) -> dict[str, list[str]]:
+        topics: dict[str, set[str]] = {}
+        for e in self.endpoints():
+            if e.kind is not EndpointKind.TOPIC:
+                continue
+            if not include_hidden and ACTION_INFIX in e.ros_name:
+                continue
+            topics.setdefault(e.ros_name, set()).add(e.ros_type)
+        return {name: sorted(types) for name, types in sorted(topics.items())}
+
+    def topic_endpoints(self, topic: str) -> list[Endpoint]:
+        return [e for e in self.endpoints()
+                if e.kind is EndpointKind.TOPIC and e.ros_name == topic]
+
+    def services(self, include_hidden: bool = False) -> dict[str, list[str]]:
+        services: dict[str, set[str]] = {}
+        for e in self.endpoints():
+            if e.kind is EndpointKind.REQUEST and (include_hidden or ACTION_INFIX not in e.ros_name):
+                services.setdefault(e.ros_name, set()).add(e.ros_type)
+        return {name: sorted(types) for name, types in sorted(services.items())}
+
+    def actions(self) -> dict[str, list[str]]:
+        actions: dict[str, set[str]] = {}
+        for e in self.endpoints():
+            member = action_of(e.ros_name)
+            if member and member[1] == "send_goal" and e.kind is EndpointKind.REQUEST:
+                actions.setdefault(member[0], set()).add(
+                    e.ros_type.removesuffix("_SendGoal"))
+        return {name: sorted(types) for name, types in sorted(actions.items())}
+
+    def nodes(self) -> list[tuple[str, str]]:
+        """(namespace, name) of every node announced by another or this participant."""
+        found = {(n.node_namespace, n.node_name)
+                 for info in self._node_infos.values() for n in info.node_entities_info_seq}
+        return sorted(found)
+
+
+def node_fqn(namespace: str, name: str) -> str:
+    return f"{namespace.rstrip('/')}/{name}"
+
+
+def short_gid(gid: bytes) -> str:
+    return ".".join(f"{b:02x}" for b in gid)
+
+
+def participant_uuid(gid: bytes) -> uuid.UUID:
+    return uuid.UUID(bytes=gid[:16])
+
+
+def matched(endpoints: Iterable[Endpoint], direction: Direction) -> list[Endpoint]:
+    return [e for e in endpoints if e.direction is direction]

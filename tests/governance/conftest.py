@@ -1,4 +1,4 @@
-"""Shared fixtures of the governance tests: a manual clock and a fresh audit log per test."""
+"""Fixtures of the governance tests: a manual clock, an audit log, a governor harness."""
 
 from __future__ import annotations
 
@@ -6,11 +6,11 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
+from govhelpers import RURI, Harness
 
 from rcan_rtps.governance.audit import AuditLog
 from rcan_rtps.governance.clock import ManualClock
-
-RURI = "rcan://registry.local/clearpath/husky/a200-0001"
+from rcan_rtps.governance.governor import Governor
 
 
 @pytest.fixture
@@ -24,3 +24,16 @@ async def audit_log(tmp_path: Path, clock: ManualClock) -> AsyncIterator[AuditLo
                               ruri=RURI, clock=clock)
     yield log
     await log.close()
+
+
+@pytest.fixture
+async def harness(tmp_path: Path, clock: ManualClock) -> AsyncIterator[Harness]:
+    h = Harness(tmp_path, clock)
+    yield h
+    await h.restart()
+
+
+@pytest.fixture
+async def gov(harness: Harness) -> Governor:
+    return await harness.governor()
+

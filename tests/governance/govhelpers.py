@@ -1,0 +1,107 @@
+"""Helpers of the governance tests: principals, commands, a recording dispatcher, a harness.
+
+The dispatcher records what governance would hand to the bridge; governance has no DDS.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from rcan_rtps.config import RcanConfig, loads_config
+from rcan_rtps.governance.audit import AuditLog
+from rcan_rtps.governance.clock import ManualClock
+from rcan_rtps.governance.governor import DispatchResult, Governor
+from rcan_rtps.governance.hitl import Notifier
+from rcan_rtps.governance.rbac import DEFAULT_RATE_LIMITS, Principal
+from rcan_rtps.rcan import NormalizedCommand, Role, validate_command
+
+RURI = "rcan://registry.local/clearpath/husky/a200-0001"
+CONFIG = """\
+robot: {ruri: "%(ruri)s"}
+bridge:
+  ros2: {namespace: /robot1}
+  api: {auth_token_env: RCAN_BRIDGE_TOKEN}
+  hitl:
+    timeout_seconds: 300
+    gates: [{action: arm_joint, require_auth: true, authorized_roles: [OWNER]}]
+    %(hitl_extra)s
+  safety:
+    max_linear_vel: 1.0
+    max_angular_vel: 0.5
+    workspace: [[-10, -10], [10, -10], [10, 10], [-10, 10]]
+  audit: {path: "%(dir)s/audit.jsonl", key_path: "%(dir)s/audit.key"}
+"""
+
+
+def principal(name: str, role: Role) -> Principal:
+    return Principal(name, role, DEFAULT_RATE_LIMITS[role])
+
+
+OPS = principal("ops", Role.OWNER)
+ADMIN = principal("root", Role.CREATOR)
+PLANNER = principal("planner", Role.USER)
+VIEWER = principal("viewer", Role.GUEST)
+
+
+def command(
+    action: str, params: Mapping[str, Any] | None = None, **extra: Any
+) -> NormalizedCommand:
+    body = {"action": action, "params": dict(params or {}), **extra}
+    return validate_command(json.dumps(body).encode())
+
+
+class RecordingDispatcher:
+    """Records each dispatch; can be told to report the robot unreachable or to raise."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, dict[str, Any]]] = []
+        self.available = True
+        self.raises: Exception | None = None
+
+    async def dispatch(self, command: NormalizedCommand,
+                       applied: Mapping[str, Any]) -> DispatchResult:
+        if self.raises is not None:
+            raise self.raises
+        if not self.available:
+            return DispatchResult(ok=False, detail="no subscriber on /robot1/cmd_vel")
+        self.calls.append((command.action, dict(applied)))
+        return DispatchResult(ok=True, ros2_topic=f"/robot1/{command.action}")
+
+
+def audit_entries(path: Path) -> list[dict[str, Any]]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+class Harness:
+    def __init__(self, tmp: Path, clock: ManualClock) -> None:
+        self.tmp = tmp
+        self.clock = clock
+        self.dispatcher = RecordingDispatcher()
+        self.logs: list[AuditLog] = []
+
+    def config(self, hitl_extra: str = "") -> RcanConfig:
+        text = CONFIG % {"ruri": RURI, "dir": self.tmp, "hitl_extra": hitl_extra}
+        return loads_config(text, env={})
+
+    async def governor(self, hitl_extra: str = "", notifier: Notifier | None = None,
+                       group_commit: bool = True) -> Governor:
+        config = self.config(hitl_extra)
+        log = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path,
+                                  ruri=RURI, clock=self.clock, group_commit=group_commit)
+        self.logs.append(log)
+        return Governor.from_config(config, audit=log, dispatcher=self.dispatcher,
+                                    clock=self.clock, notifier=notifier)
+
+    async def restart(self) -> None:
+        for log in self.logs:
+            await log.close()
+        self.logs.clear()
+
+    @property
+    def entries(self) -> list[dict[str, Any]]:
+        return audit_entries(self.tmp / "audit.jsonl")
+
+

@@ -60,7 +60,7 @@ def _nested_class(slot: NamespacedType) -> Any:
 
 
 def fill(msg: Any, data: dict[str, Any]) -> Any:
-    for attr, slot in zip(msg.__slots__, msg.SLOT_TYPES):
+    for attr, slot in zip(msg.__slots__, msg.SLOT_TYPES, strict=False):
         name = attr.lstrip("_")
         if name not in data:
             continue

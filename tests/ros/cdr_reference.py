@@ -77,4 +77,4 @@ def _element(store: TypeStore, w: _Writer, ftype: FieldType, value: Any) -> None
 def equal_ignoring_padding(a: bytes, b: bytes, padding: bytes) -> bool:
     if not len(a) == len(b) == len(padding):
         return False
-    return all(x == y or pad for x, y, pad in zip(a, b, padding))
+    return all(x == y or pad for x, y, pad in zip(a, b, padding, strict=False))

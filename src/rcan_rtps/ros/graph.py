@@ -169,7 +169,8 @@ class RosGraph:
     def services(self, include_hidden: bool = False) -> dict[str, list[str]]:
         services: dict[str, set[str]] = {}
         for e in self.endpoints():
-            if e.kind is EndpointKind.REQUEST and (include_hidden or ACTION_INFIX not in e.ros_name):
+            hidden = ACTION_INFIX in e.ros_name
+            if e.kind is EndpointKind.REQUEST and (include_hidden or not hidden):
                 services.setdefault(e.ros_name, set()).add(e.ros_type)
         return {name: sorted(types) for name, types in sorted(services.items())}
 

@@ -76,12 +76,12 @@ def _ensure_domain(domain_id: int, localhost: bool) -> None:
 
 def gid_bytes(entity: Any, size: int) -> bytes:
     """An entity's GUID as a ROS Gid of the distro's size (16, or 24 zero-padded)."""
-    raw = entity.guid.bytes
+    raw: bytes = entity.guid.bytes
     return raw[:size].ljust(size, b"\0")
 
 
 class RosPublisher:
-    def __init__(self, node: RosNode, topic: str, type_name: str, writer: DataWriter) -> None:
+    def __init__(self, node: RosNode, topic: str, type_name: str, writer: DataWriter[Any]) -> None:
         self.node, self.topic, self.type_name, self.writer = node, topic, type_name, writer
 
     def publish(self, message: IdlStruct | Mapping[str, Any]) -> None:
@@ -233,7 +233,7 @@ class RosNode:
         return sub
 
     def create_writer(self, dds_topic: str, type_name: str, qos: QosProfile,
-                      extra_user_data: str = "") -> DataWriter:
+                      extra_user_data: str = "") -> DataWriter[Any]:
         """A raw writer (used for topics, service requests/replies, action parts)."""
         user_data = (self.endpoint_user_data(type_name) or b"") + extra_user_data.encode()
         writer = DataWriter(self.publisher, self.topic(dds_topic, type_name),
@@ -242,7 +242,8 @@ class RosNode:
         return writer
 
     def create_reader(self, dds_topic: str, type_name: str, qos: QosProfile,
-                      listener: Listener | None = None, extra_user_data: str = "") -> DataReader[Any]:
+                      listener: Listener | None = None,
+                      extra_user_data: str = "") -> DataReader[Any]:
         user_data = (self.endpoint_user_data(type_name) or b"") + extra_user_data.encode()
         reader: DataReader[Any] = DataReader(
             self.subscriber, self.topic(dds_topic, type_name),
@@ -261,7 +262,7 @@ class RosNode:
         self.announce()
 
     # -- graph presence ---------------------------------------------------------
-    def _discovery_writer(self) -> DataWriter:
+    def _discovery_writer(self) -> DataWriter[Any]:
         info_type = "rmw_dds_common/msg/ParticipantEntitiesInfo"
         topic = self.topic(DISCOVERY_TOPIC, info_type)
         return DataWriter(self.publisher, topic, qos=qos_mod.DISCOVERY_INFO.to_dds(

@@ -76,7 +76,7 @@ class DdsTypes:
             cls.__idl__.populate()
             for machine in (cls.__idl__.v1_machine, cls.__idl__.v2_machine):
                 for f in byte_sequences:
-                    machine.members_machines[f.name] = BytesMachine(f.type.size or None)
+                    machine.members_machines[f.name] = BytesMachine(f.type.size or None)  # type: ignore[attr-defined]
         return cls
 
     def _annotation(self, msg: MessageType, fname: str, ftype: FieldType) -> Any:
@@ -84,11 +84,11 @@ class DdsTypes:
             ftype = FieldType(Primitive.UINT8, None, 0, ftype.collection, ftype.size)
         element = self._element(msg, fname, ftype)
         if ftype.collection is Collection.ARRAY:
-            return t.array[element, ftype.size]
+            return t.array[element, ftype.size]  # type: ignore[misc]
         if ftype.collection is Collection.BOUNDED_SEQUENCE:
-            return t.sequence[element, ftype.size]
+            return t.sequence[element, ftype.size]  # type: ignore[misc]
         if ftype.collection is Collection.SEQUENCE:
-            return t.sequence[element]
+            return t.sequence[element]  # type: ignore[misc]
         return element
 
     def _element(self, msg: MessageType, fname: str, ftype: FieldType) -> Any:
@@ -96,7 +96,7 @@ class DdsTypes:
             return self.struct(ftype.nested)
         assert ftype.primitive is not None
         if ftype.primitive is Primitive.STRING and ftype.string_bound:
-            return t.bounded_str[ftype.string_bound]
+            return t.bounded_str[ftype.string_bound]  # type: ignore[misc]
         found = _PRIMITIVES.get(ftype.primitive)
         if found is None:
             raise UnsupportedTypeError(

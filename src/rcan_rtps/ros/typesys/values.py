@@ -59,7 +59,8 @@ class MessageValues:
         if is_byte_like(ftype):
             return self._bytes(ftype, value, path)
         if isinstance(value, (str, bytes, Mapping)) or not isinstance(value, Sequence):
-            raise ValueFitError(path, f"expected a list ({ftype.ros_spelling()}), got {_kind(value)}")
+            raise ValueFitError(
+                path, f"expected a list ({ftype.ros_spelling()}), got {_kind(value)}")
         _check_length(ftype, len(value), path)
         element = ftype.element
         return [self._element(element, v, f"{path}[{i}]") for i, v in enumerate(value)]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import itertools
 import json
 import math
 import statistics
@@ -244,7 +245,7 @@ def _report_rate(stamps: list[float]) -> None:
     if len(stamps) < 2:
         print("no new messages", flush=True)
         return
-    gaps = [b - a for a, b in zip(stamps, stamps[1:])]
+    gaps = [b - a for a, b in itertools.pairwise(stamps)]
     mean = statistics.fmean(gaps)
     print(f"average rate: {1.0 / mean:.3f}\n\tmin: {min(gaps):.3f}s max: {max(gaps):.3f}s "
           f"std dev: {statistics.pstdev(gaps):.5f}s window: {len(stamps)}", flush=True)

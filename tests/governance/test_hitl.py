@@ -1,0 +1,191 @@
+"""§9 HiTL: approve, deny, expire, wrong role, self-approval, approval-time re-check, webhook."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from typing import Any
+
+import msgspec
+import pytest
+from aiohttp import web
+from govhelpers import ADMIN, OPS, PLANNER, Harness, command, principal
+
+from rcan_rtps.governance.governor import Decision, Governor
+from rcan_rtps.governance.hitl import WebhookNotifier
+from rcan_rtps.rcan import ErrorCode, Outcome, PendingAuth, Role
+
+ARM = {"joints": ["shoulder", "elbow"], "positions": [0.1, -0.2], "duration_s": 2.0}
+
+
+async def hold(gov: Governor, who: Any = PLANNER) -> Decision:
+    d = await gov.decide(command("arm_joint", ARM), who)
+    assert d.outcome is Outcome.PENDING_AUTH and d.pending_id
+    return d
+
+
+async def test_approve_dispatches_and_audits(harness: Harness, gov: Governor) -> None:
+    held = await hold(gov)
+    assert [p.pending_id for p in gov.pending()] == [held.pending_id]
+    assert gov.pending()[0].requires_auth_from_role == "OWNER"
+    d = await gov.authorize(held.pending_id or "", OPS)
+    assert (d.http_status, d.outcome) == (200, Outcome.EXECUTED)
+    assert harness.dispatcher.calls == [("arm_joint", {"joints": ["shoulder", "elbow"],
+                                                      "positions": [0.1, -0.2],
+                                                      "duration_s": 2.0})]
+    events = [(e["event"], e["outcome"], e["principal"]) for e in harness.entries]
+    assert events == [("PENDING_AUTH", "pending_auth", "planner"),
+                      ("HITL_AUTHORIZED", "executed", "ops")]
+    assert harness.entries[1]["pending_id"] == held.pending_id
+    assert gov.pending() == []
+    again = await gov.authorize(held.pending_id or "", OPS)  # one approval, one execution
+    assert (again.http_status, again.reason) == (404, "pending_not_found")
+    assert len(harness.dispatcher.calls) == 1
+
+
+async def test_deny_discards(harness: Harness, gov: Governor) -> None:
+    held = await hold(gov)
+    d = await gov.deny(held.pending_id or "", OPS)
+    assert (d.http_status, d.outcome, d.reason) == (200, Outcome.DENIED, "hitl_denied")
+    assert harness.entries[-1]["event"] == "HITL_DENIED"
+    assert harness.dispatcher.calls == [] and gov.pending() == []
+
+
+async def test_expiry_is_swept_and_audited(harness: Harness, gov: Governor) -> None:
+    held = await hold(gov)
+    harness.clock.advance(299)
+    assert await gov.expire_pending() == []
+    harness.clock.advance(1)
+    [expired] = await gov.expire_pending()
+    assert expired.reason == "pending_expired"
+    entry = harness.entries[-1]
+    assert (entry["event"], entry["pending_id"]) == ("HITL_EXPIRED", held.pending_id)
+    d = await gov.authorize(held.pending_id or "", OPS)
+    assert d.reason == "pending_not_found"
+    assert harness.dispatcher.calls == []
+
+
+async def test_late_authorize_expires_it_first(harness: Harness, gov: Governor) -> None:
+    held = await hold(gov)
+    harness.clock.advance(301)  # the sweep has not run yet
+    d = await gov.authorize(held.pending_id or "", OPS)
+    assert (d.http_status, d.reason) == (404, "pending_expired")
+    assert [e["event"] for e in harness.entries][-2:] == ["HITL_EXPIRED", "COMMAND_REJECTED"]
+    assert harness.dispatcher.calls == []
+
+
+async def test_wrong_role_cannot_approve_or_deny(harness: Harness, gov: Governor) -> None:
+    held = await hold(gov)
+    for verb in (gov.authorize, gov.deny):
+        d = await verb(held.pending_id or "", principal("lease", Role.LEASEE))
+        assert (d.http_status, d.error_code) == (403, ErrorCode.INSUFFICIENT_PRIVILEGES)
+    assert len(gov.pending()) == 1  # still waiting
+    assert (await gov.authorize(held.pending_id or "", ADMIN)).outcome is Outcome.EXECUTED
+
+
+async def test_self_approval_refused_when_distinct_required(harness: Harness) -> None:
+    gov = await harness.governor("require_distinct_approver: true")
+    held = await hold(gov, OPS)
+    d = await gov.authorize(held.pending_id or "", OPS)
+    assert (d.http_status, d.reason) == (403, "self_approval")
+    assert harness.dispatcher.calls == []
+    assert (await gov.authorize(held.pending_id or "", ADMIN)).outcome is Outcome.EXECUTED
+
+
+async def test_self_approval_allowed_by_default(gov: Governor) -> None:
+    held = await hold(gov, OPS)
+    assert (await gov.authorize(held.pending_id or "", OPS)).outcome is Outcome.EXECUTED
+
+
+async def test_authorize_rechecks_invariants_at_approval_time(
+    harness: Harness, gov: Governor
+) -> None:
+    held = await hold(gov)
+    await gov.decide(command("estop"), PLANNER)  # latched while the request waited
+    d = await gov.authorize(held.pending_id or "", OPS)
+    assert (d.http_status, d.outcome, d.reason) == (409, Outcome.DENIED, "estop_active")
+    entry = harness.entries[-1]
+    assert (entry["event"], entry["outcome"]) == ("HITL_AUTHORIZED", "denied")
+    assert [c[0] for c in harness.dispatcher.calls] == ["estop"]
+
+
+async def test_concurrent_approvals_execute_once(harness: Harness, gov: Governor) -> None:
+    held = await hold(gov)
+    results = await asyncio.gather(*(gov.authorize(held.pending_id or "", OPS)
+                                     for _ in range(5)))
+    assert sum(r.outcome is Outcome.EXECUTED for r in results) == 1
+    assert len(harness.dispatcher.calls) == 1
+
+
+# -- webhook --------------------------------------------------------------------------------
+
+
+class Hook:
+    """A local webhook receiver on 127.0.0.1 that can fail, or hold a request open."""
+
+    def __init__(self) -> None:
+        self.received: list[dict[str, Any]] = []
+        self.fail_first = 0
+        self.release = asyncio.Event()
+        self.release.set()
+
+    async def handle(self, request: web.Request) -> web.Response:
+        self.received.append(msgspec.json.decode(await request.read()))
+        await self.release.wait()
+        if self.fail_first > 0:
+            self.fail_first -= 1
+            return web.Response(status=500)
+        return web.Response(status=204)
+
+
+@pytest.fixture
+async def hook() -> AsyncIterator[tuple[Hook, str]]:
+    hook = Hook()
+    app = web.Application()
+    app.router.add_post("/hitl", hook.handle)
+    runner = web.AppRunner(app)
+    await runner.setup()
+    site = web.TCPSite(runner, "127.0.0.1", 0)
+    await site.start()
+    port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+    yield hook, f"http://127.0.0.1:{port}/hitl"
+    hook.release.set()
+    await runner.cleanup()
+
+
+async def test_webhook_gets_pending_auth_and_never_blocks(
+    harness: Harness, hook: tuple[Hook, str]
+) -> None:
+    receiver, url = hook
+    receiver.release.clear()  # the webhook hangs until we let it go
+    gov = await harness.governor(notifier=WebhookNotifier(url, attempts=1, timeout_s=30))
+    d = await hold(gov)  # returned while the webhook is still held open
+    while not receiver.received:
+        await asyncio.sleep(0.01)
+    assert not receiver.release.is_set()
+    message = receiver.received[0]
+    assert message["pending_id"] == d.pending_id
+    assert message["requires_auth_from_role"] == "OWNER"
+    assert message["expires_at_ms"] == d.expires_at_ms
+    assert message["original_command"]["action"] == "arm_joint"
+    assert set(message) >= {"pending_id", "original_command", "confidence", "ai_model",
+                            "requires_auth_from_role", "expires_at_ms"}
+    receiver.release.set()
+    await asyncio.gather(*gov._tasks)
+
+
+async def test_webhook_retries(hook: tuple[Hook, str]) -> None:
+    receiver, url = hook
+    receiver.fail_first = 2
+    message = PendingAuth(pending_id="p", original_command={}, confidence=None, ai_model=None,
+                          requires_auth_from_role="OWNER", expires_at_ms=1, issued_by="x")
+    await WebhookNotifier(url, attempts=3, backoff_s=0.01).notify(message)
+    assert len(receiver.received) == 3
+
+
+async def test_webhook_gives_up_quietly_when_unreachable() -> None:
+    message = PendingAuth(pending_id="p", original_command={}, confidence=None, ai_model=None,
+                          requires_auth_from_role="OWNER", expires_at_ms=1, issued_by="x")
+    notifier = WebhookNotifier("http://127.0.0.1:9/none", attempts=2, backoff_s=0.01,
+                               timeout_s=1)
+    await notifier.notify(message)  # logs, does not raise

@@ -1,0 +1,153 @@
+"""§8 invariants: clamping and >10 % denial, finiteness, workspace, e-stop latch, idempotency."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from pathlib import Path
+
+import pytest
+from govhelpers import command
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rcan_rtps.governance import outcomes
+from rcan_rtps.governance.clock import ManualClock
+from rcan_rtps.governance.invariants import (
+    AllOf,
+    EstopLatch,
+    Idempotency,
+    VelocityLimit,
+    Violation,
+    Workspace,
+    finite_numbers,
+    strictly_inside,
+)
+from rcan_rtps.rcan import MoveParams, NavigateParams, NoParams
+
+finite = st.floats(min_value=-1e9, max_value=1e9, allow_nan=False)
+limits = st.floats(min_value=0.01, max_value=10.0)
+MOVE = command("move")
+
+
+@settings(max_examples=300)
+@given(lin=limits, ang=limits, x=finite, y=finite, z=finite, deny=st.booleans())
+def test_applied_velocity_never_exceeds_its_limit(
+    lin: float, ang: float, x: float, y: float, z: float, deny: bool
+) -> None:
+    check = VelocityLimit(lin, ang, deny)
+    try:
+        applied = check(MOVE, MoveParams(linear_x=x, linear_y=y, angular_z=z))
+    except Violation as v:
+        assert v.rejection == outcomes.VELOCITY_LIMIT
+        assert deny and (abs(x) > lin * 1.1 or abs(y) > lin * 1.1 or abs(z) > ang * 1.1)
+        return
+    assert isinstance(applied, MoveParams)
+    assert abs(applied.linear_x) <= lin and abs(applied.linear_y) <= lin
+    assert abs(applied.angular_z) <= ang
+    if deny:
+        assert max(abs(x), abs(y)) <= lin * 1.1 and abs(z) <= ang * 1.1
+    if abs(x) <= lin:
+        assert applied.linear_x == x  # within limits nothing changes
+
+
+@given(bad=st.sampled_from([math.nan, math.inf, -math.inf]), field=st.integers(0, 2))
+def test_non_finite_never_passes_the_invariants(bad: float, field: int) -> None:
+    values = [0.0, 0.0, 0.0]
+    values[field] = bad
+    params = MoveParams(*values)  # built directly: as if the schema had been bypassed
+    policy = AllOf(finite_numbers, VelocityLimit(1.0, 1.0, False))
+    with pytest.raises(Violation) as info:
+        policy(MOVE, params)
+    assert info.value.rejection == outcomes.INVALID_VALUE
+    with pytest.raises(Violation):
+        VelocityLimit(1.0, 1.0, False)(MOVE, params)  # even alone
+
+
+def test_bools_posing_as_numbers_are_refused() -> None:
+    with pytest.raises(Violation):
+        finite_numbers(MOVE, MoveParams(linear_x=True))  # type: ignore[arg-type]
+
+
+SQUARE = [(-10.0, -10.0), (10.0, -10.0), (10.0, 10.0), (-10.0, 10.0)]
+NAV = command("navigate", {"x": 0, "y": 0, "yaw": 0})
+
+
+@pytest.mark.parametrize(
+    ("point", "inside"),
+    [((0, 0), True), ((9.99, 9.99), True), ((10, 0), False), ((10, 10), False),
+     ((-10.01, 0), False), ((0, 1e9), False)],
+)
+def test_point_in_square(point: tuple[float, float], inside: bool) -> None:
+    assert strictly_inside(point, SQUARE) is inside
+
+
+def test_concave_workspace() -> None:
+    ell = [(0.0, 0.0), (4.0, 0.0), (4.0, 1.0), (1.0, 1.0), (1.0, 4.0), (0.0, 4.0)]
+    assert strictly_inside((0.5, 3.0), ell) and strictly_inside((3.0, 0.5), ell)
+    assert not strictly_inside((3.0, 3.0), ell)
+
+
+@pytest.mark.parametrize(
+    "polygon",
+    [[(0.0, 0.0), (1.0, 1.0)], [(0.0, 0.0), (1.0, 1.0), (2.0, 2.0)],
+     [(0.0, 0.0), (2.0, 2.0), (2.0, 0.0), (0.0, 2.0)], [(0.0, 0.0), (1.0, 0.0), (1.0, math.nan)]],
+)
+def test_degenerate_workspace_fails_closed(polygon: list[tuple[float, float]]) -> None:
+    with pytest.raises(Violation) as info:
+        Workspace(polygon, "map")(NAV, NavigateParams(x=0.5, y=0.1, yaw=0))
+    assert info.value.rejection == outcomes.WORKSPACE_VIOLATION
+
+
+def test_goal_in_another_frame_is_refused() -> None:
+    check = Workspace(SQUARE, "map")
+    assert check(NAV, NavigateParams(x=1, y=1, yaw=0, frame_id="map"))
+    with pytest.raises(Violation):
+        check(NAV, NavigateParams(x=1, y=1, yaw=0, frame_id="odom"))
+    assert Workspace(None, "map")(NAV, NavigateParams(x=1e6, y=0, yaw=0))  # none configured
+
+
+def test_any_exception_in_a_check_denies() -> None:
+    def broken(*_: object) -> NoParams:
+        raise KeyError("oops")
+
+    with pytest.raises(Violation) as info:
+        AllOf(finite_numbers, broken)(command("stop"), NoParams())
+    assert info.value.rejection == outcomes.SAFETY_CHECK_ERROR
+
+
+async def test_estop_latch_persists(tmp_path: Path) -> None:
+    latch = EstopLatch(tmp_path / "estop.state")
+    assert not latch.latched
+    latch.engage()
+    await latch.persist("ops", 1)
+    assert EstopLatch(tmp_path / "estop.state").latched
+    await latch.clear("ops", 2)
+    assert not EstopLatch(tmp_path / "estop.state").latched
+    (tmp_path / "estop.state").write_text('{"latched": "no"}')
+    assert EstopLatch(tmp_path / "estop.state").latched  # anything odd: latched
+
+
+async def test_clear_that_cannot_persist_stays_latched(tmp_path: Path) -> None:
+    from rcan_rtps.governance.errors import EstopStateError
+
+    latch = EstopLatch(tmp_path / "missing-dir" / "estop.state")
+    latch.engage()
+    with pytest.raises(EstopStateError):
+        await latch.clear("ops", 1)
+    assert latch.latched
+
+
+async def test_idempotency_window_and_abandon() -> None:
+    clock = ManualClock()
+    cache: Idempotency[str, int] = Idempotency(clock, ttl_s=600)
+    assert cache.claim("a") is None
+    waiting = cache.claim("a")
+    assert waiting is not None and not waiting.done()
+    cache.resolve("a", 7)
+    assert await waiting == 7
+    clock.advance(600.5)
+    assert cache.claim("a") is None  # window over: a new first time
+    cache.abandon("a", RuntimeError("x"))
+    assert cache.claim("a") is None  # an abandoned attempt may run again
+    await asyncio.sleep(0)

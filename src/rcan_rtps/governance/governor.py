@@ -17,6 +17,8 @@ import msgspec
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.rcan import (
+    MOTION_ACTIONS,
+    Action,
     ActionParams,
     DecisionBody,
     ErrorCode,
@@ -222,7 +224,7 @@ class Governor:
                        pending_id: str | None = None) -> Decision:
         applied = msgspec.structs.asdict(params)
         # Motion must not follow an e-stop that latched while this command was waiting.
-        if self.latch.latched and command.action in ("move", "arm_joint", "navigate"):
+        if self.latch.latched and Action(command.action) in MOTION_ACTIONS:
             return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
                                       pending_id=pending_id)
         result, failure = await self._dispatch(command, applied)
@@ -380,7 +382,7 @@ class Sessions:
         self._last: dict[str, tuple[Principal, float]] = {}
 
     def touch(self, principal: Principal, action: str) -> None:
-        if action in ("move", "arm_joint", "navigate"):
+        if Action(action) in MOTION_ACTIONS:
             self._last[principal.name] = (principal, self._clock.monotonic())
         elif action in ("stop", "estop"):
             self._last.pop(principal.name, None)  # stopped on purpose: nothing to guard

@@ -33,6 +33,15 @@ def jazzy_share(jazzy_python: Path) -> Path:
     return jazzy_python.parent.parent / "share"
 
 
+@pytest.fixture(scope="session")
+def kilted_python() -> Path:
+    """ROS 2 Kilted, the optional second real graph (skipped where it did not install)."""
+    found = _oracle_python("kilted")
+    if found is None:
+        pytest.skip("ROS 2 Kilted oracle not installed")
+    return found
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if "interop" in item.nodeid.split("/"):

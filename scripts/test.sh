@@ -55,6 +55,11 @@ else
   echo "kilted oracle did not install; its tests will be skipped"
 fi
 
+echo "== wheel (.cache/dist): the tests install it apart from the source tree"
+rm -rf .cache/dist
+quiet_pip .venv/bin/pip wheel -q --no-deps -w .cache/dist .
+export RCAN_RTPS_WHEEL_DIR="$PWD/.cache/dist"
+
 echo "== static checks"
 # shellcheck disable=SC2046
 .venv/bin/ruff check $(ls -d src tests bench examples 2>/dev/null)

@@ -136,3 +136,20 @@ async def test_rclpy_lists_our_node_and_type_hash(oracle: RclpyOracle, node: Ros
     assert ours[0]["node_namespace"] == "/robot1"
     assert ours[0]["topic_type"] == "geometry_msgs/msg/Twist"
     assert node.store.hash_of("geometry_msgs/msg/Twist") in ours[0]["type_hash"]
+
+
+async def test_incompatible_qos_is_reported(oracle: RclpyOracle, node: RosNode) -> None:
+    """A reliable reader never matches a best-effort writer; we say so instead of hanging."""
+    oracle.call("publisher", topic="/lossy", type="std_msgs/msg/String", qos="sensor")
+    sub = node.create_subscription("/lossy", "std_msgs/msg/String", qos.DEFAULT)
+    for _ in range(150):
+        if sub.incompatible_qos_events:
+            break
+        await asyncio.sleep(0.05)
+    assert sub.incompatible_qos_events >= 1
+    assert sub.matched_count() == 0
+    assert qos.incompatibilities(qos.SENSOR_DATA, qos.DEFAULT) == [
+        "reader requests RELIABLE but the writer offers BEST_EFFORT"]
+    assert qos.incompatibilities(qos.DEFAULT, qos.SENSOR_DATA) == []
+    assert qos.incompatibilities(qos.DEFAULT, qos.TF_STATIC) == [
+        "reader requests TRANSIENT_LOCAL but the writer offers VOLATILE"]

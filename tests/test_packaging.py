@@ -1,0 +1,56 @@
+"""The wheel built from this repo carries the IDL bundle and works outside the source tree."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+import rcan_rtps
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def wheel() -> Path:
+    wheel_dir = Path(os.environ.get("RCAN_RTPS_WHEEL_DIR", ROOT / ".cache" / "dist"))
+    wheels = sorted(wheel_dir.glob("rcan_rtps-*.whl"))
+    if not wheels:
+        if os.environ.get("CI"):
+            pytest.fail("no wheel was built: scripts/test.sh builds it before the tests")
+        pytest.skip("no wheel built; run scripts/test.sh")
+    return wheels[-1]
+
+
+def test_wheel_carries_the_idl_bundle(wheel: Path) -> None:
+    names = set(zipfile.ZipFile(wheel).namelist())
+    bundle = {n for n in names if n.startswith("rcan_rtps/_idl/") and n.endswith(".idl")}
+    shipped = {p.relative_to(ROOT / "idl").as_posix() for p in (ROOT / "idl").rglob("*.idl")}
+    assert {n.removeprefix("rcan_rtps/_idl/") for n in bundle} == shipped
+    assert "rcan_rtps/py.typed" in names
+    assert any(n.endswith("entry_points.txt") for n in names)
+
+
+def test_installed_wheel_works_outside_the_tree(wheel: Path, tmp_path: Path) -> None:
+    target = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-index",
+                    "--target", str(target), str(wheel)], check=True, capture_output=True)
+    env = {**os.environ, "PYTHONPATH": str(target)}
+    probe = ("import rcan_rtps, sys; from rcan_rtps.ros.typesys.store import bundle_dir; "
+             "print(rcan_rtps.__file__); print(bundle_dir())")
+    done = subprocess.run([sys.executable, "-c", probe], env=env, cwd=tmp_path,
+                          capture_output=True, text=True, check=True)
+    module_file, bundle = done.stdout.split()
+    assert module_file.startswith(str(target)) and bundle.startswith(str(target))
+    hashed = subprocess.run([sys.executable, "-m", "rcan_rtps", "interface", "hash",
+                             "geometry_msgs/msg/Twist"], env=env, cwd=tmp_path,
+                            capture_output=True, text=True)
+    assert hashed.returncode == 0, hashed.stderr
+    assert hashed.stdout.startswith("RIHS01_") and len(hashed.stdout.strip()) == 71
+    assert rcan_rtps.__version__ in subprocess.run(
+        [sys.executable, "-m", "rcan_rtps", "--version"], env=env, cwd=tmp_path,
+        capture_output=True, text=True).stdout

@@ -1,0 +1,39 @@
+"""What the HTTP layer needs from the robot side, as protocols the bridge implements.
+
+The API never touches DDS: it asks a `RobotView` for STATUS and goal progress. Commands
+go through the governor, whose `Dispatcher` is the bridge's translation to ROS 2.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, Protocol
+
+import msgspec
+
+from ..rcan import Status
+
+GoalState = Literal["accepted", "executing", "canceling", "succeeded", "canceled",
+                    "aborted", "rejected", "unknown", "lost"]
+
+
+class GoalView(msgspec.Struct, kw_only=True):
+    """GET /api/goals/{goal_id}: a navigation goal as the bridge tracks it."""
+
+    goal_id: str
+    action: str
+    state: GoalState
+    feedback: dict[str, Any] | None = None
+    result: dict[str, Any] | None = None
+    detail: str | None = None
+    created_ms: int
+    updated_ms: int
+
+
+class RobotView(Protocol):
+    def status(self, *, pending_auth: int) -> Status:
+        """The robot's STATUS now; the API supplies the count of pending approvals."""
+        ...
+
+    def goal(self, goal_id: str) -> GoalView | None: ...
+
+    def goals(self) -> list[GoalView]: ...

@@ -62,6 +62,10 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     battery_topic: RosName = "battery_state"
     telemetry_rate_hz: Annotated[float, msgspec.Meta(gt=0.0, le=100.0)] = 10.0
     nav_frame_id: Annotated[str, msgspec.Meta(min_length=1, max_length=128)] = "map"
+    # Telemetry older than this makes the robot `offline`.
+    telemetry_stale_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)] = 2.0
+    # How long a command waits for a subscriber or action server before ROBOT_UNAVAILABLE.
+    match_timeout_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 1.0
 
     def __post_init__(self) -> None:
         if self.namespace not in ("", "/"):

@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import uuid
-from collections.abc import Coroutine, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -106,6 +106,7 @@ class Governor:
         self._notifier = notifier
         self._tasks: set[asyncio.Task[Any]] = set()
         self._sweeper: asyncio.Task[None] | None = None
+        self.safe_stop_listeners: list[Callable[[Principal], None]] = []
 
     @classmethod
     def from_config(cls, config: RcanConfig, *, audit: AuditLog, dispatcher: Dispatcher,
@@ -349,8 +350,20 @@ class Governor:
         stop = NormalizedCommand(action="stop", params=NoParams(), requested={},
                                  message_id=str(uuid.uuid4()))
         result, failure = await self._dispatch(stop, {})
+        for listener in self.safe_stop_listeners:  # e.g. STATUS shows `safe_stop`
+            listener(principal)
         return await self._finish(stop, principal, result, failure, {},
                                   AuditEvent.NETWORK_LOSS_SAFE_STOP)
+
+    async def end_session(self, principal: Principal) -> Decision | None:
+        """The principal's connection closed: if it held a control session, safe stop now.
+
+        Returns the safe stop's decision, or None when there was no session to end.
+        """
+        if not self._sessions.end(principal):
+            return None
+        # Shielded: the closing connection's handler may be cancelled; the stop must not be.
+        return await asyncio.shield(self._spawn(self.safe_stop(principal)))
 
     async def sweep(self) -> None:
         """One round of housekeeping: expire HiTL requests, stop for lost sessions."""
@@ -390,6 +403,10 @@ class Sessions:
     def heartbeat(self, principal: Principal) -> None:
         if principal.name in self._last:
             self._last[principal.name] = (principal, self._clock.monotonic())
+
+    def end(self, principal: Principal) -> bool:
+        """Drop the principal's session; True if it held one."""
+        return self._last.pop(principal.name, None) is not None
 
     def take_lost(self) -> list[Principal]:
         horizon = self._clock.monotonic() - self._timeout

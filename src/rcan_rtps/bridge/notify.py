@@ -1,0 +1,54 @@
+"""PENDING_AUTH notifications: a WARN diagnostic on the robot's graph (spec §4) plus the
+configured webhook, each isolated so one failing never silences the other."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Sequence
+
+from ..governance import Notifier
+from ..rcan import PendingAuth
+from ..ros.participant import RosNode
+from .rostime import now_msg
+
+log = logging.getLogger(__name__)
+WARN = 1
+
+
+class DiagnosticsNotifier:
+    """Publishes `DiagnosticArray` with one WARN status naming the pending command."""
+
+    def __init__(self, node: RosNode, topic: str) -> None:
+        self.node = node
+        self.publisher = node.create_publisher(topic, "diagnostic_msgs/msg/DiagnosticArray")
+
+    async def notify(self, message: PendingAuth) -> None:
+        action = message.original_command.get("action", "?")
+        self.publisher.publish({
+            "header": {"stamp": now_msg(), "frame_id": ""},
+            "status": [{
+                "level": WARN,
+                "name": f"{self.node.name}: hitl",
+                "message": f"command '{action}' awaits human approval",
+                "hardware_id": self.node.fqn,
+                "values": [
+                    {"key": "pending_id", "value": message.pending_id},
+                    {"key": "requires_auth_from_role", "value": message.requires_auth_from_role},
+                    {"key": "expires_at_ms", "value": str(message.expires_at_ms)},
+                ],
+            }],
+        })
+
+
+class FanOutNotifier:
+    def __init__(self, notifiers: Sequence[Notifier]) -> None:
+        self.notifiers = list(notifiers)
+
+    async def notify(self, message: PendingAuth) -> None:
+        results = await asyncio.gather(*(n.notify(message) for n in self.notifiers),
+                                       return_exceptions=True)
+        for notifier, result in zip(self.notifiers, results, strict=True):
+            if isinstance(result, BaseException):
+                log.warning("PENDING_AUTH notification via %s failed: %s",
+                            type(notifier).__name__, result)

@@ -1,0 +1,151 @@
+"""ROS 2 telemetry → RCAN STATUS (spec §4, profile STATUS).
+
+Subscriptions keep the latest odometry, joint states, diagnostics and battery; `status()`
+derives the state machine from them:
+
+    estop      the governor's e-stop latch is engaged
+    fault      any DiagnosticStatus is ERROR
+    offline    no telemetry for `telemetry_stale_s` (or none yet)
+    safe_stop  a control session was lost, until the next command
+    executing  a navigation goal is active
+    moving     odometry reports motion
+    idle       otherwise
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from ..config import RcanConfig
+from ..rcan import Fault, Joints, Position, RosInfo, Status, Telemetry, Velocity
+from ..ros import qos
+from ..ros.participant import RosNode
+from .rostime import quaternion_to_yaw
+
+_LEVELS = {1: "WARN", 2: "ERROR", 3: "STALE"}
+_MOVING_EPS = 1e-3  # m/s or rad/s below which the robot counts as still
+
+
+def _level(raw: Any) -> int:
+    return raw[0] if isinstance(raw, (bytes, bytearray)) else int(raw)
+
+
+def _finite_or_none(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+class TelemetryState:
+    """Latest robot telemetry, written from DDS listener threads, read by the API."""
+
+    def __init__(self, node: RosNode, config: RcanConfig, *,
+                 estop_latched: Callable[[], bool], active_goals: Callable[[], list[str]],
+                 monotonic: Callable[[], float] = time.monotonic) -> None:
+        self.config = config
+        self._estop_latched = estop_latched
+        self._active_goals = active_goals
+        self._monotonic = monotonic
+        self._lock = threading.Lock()
+        self._last_rx: float | None = None
+        self._position: Position | None = None
+        self._yaw: float | None = None
+        self._velocity: Velocity | None = None
+        self._joints: Joints | None = None
+        self._battery: float | None = None
+        self._faults: dict[str, Fault] = {}
+        self.safe_stopped = False
+        ros2 = config.bridge.ros2
+        self.domain_id = node.domain_id
+        self.distro = node.store.distro
+        # Sensor-data QoS (best effort) matches both reliable and best-effort publishers.
+        sensor = qos.SENSOR_DATA.with_(depth=10)
+        node.create_subscription(ros2.odom_topic, "nav_msgs/msg/Odometry", sensor,
+                                 callback=self._on_odom)
+        node.create_subscription(ros2.joint_states_topic, "sensor_msgs/msg/JointState", sensor,
+                                 callback=self._on_joints)
+        node.create_subscription(ros2.diagnostics_topic, "diagnostic_msgs/msg/DiagnosticArray",
+                                 sensor, callback=self._on_diagnostics)
+        node.create_subscription(ros2.battery_topic, "sensor_msgs/msg/BatteryState", sensor,
+                                 callback=self._on_battery)
+
+    # -- DDS side (listener threads) ----------------------------------------------------
+    def _touch(self) -> None:
+        self._last_rx = self._monotonic()
+
+    def _on_odom(self, msg: Any) -> None:
+        p, twist = msg.pose.pose, msg.twist.twist
+        with self._lock:
+            self._position = Position(p.position.x, p.position.y, p.position.z)
+            self._yaw = quaternion_to_yaw(p.orientation)
+            self._velocity = Velocity(twist.linear.x, twist.angular.z)
+            self._touch()
+
+    def _on_joints(self, msg: Any) -> None:
+        with self._lock:
+            self._joints = Joints(list(msg.name), list(msg.position), list(msg.velocity))
+            self._touch()
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        with self._lock:
+            for status in msg.status:
+                level = _level(status.level)
+                if level in _LEVELS:
+                    self._faults[status.name] = Fault(status.name, status.message,
+                                                      _LEVELS[level])  # type: ignore[arg-type]
+                else:  # OK clears what this component reported before
+                    self._faults.pop(status.name, None)
+            self._touch()
+
+    def _on_battery(self, msg: Any) -> None:
+        with self._lock:
+            pct = _finite_or_none(float(msg.percentage))
+            self._battery = None if pct is None else max(0.0, min(100.0, pct * 100.0))
+            self._touch()
+
+    def mark_safe_stop(self) -> None:
+        self.safe_stopped = True
+
+    def clear_safe_stop(self) -> None:
+        self.safe_stopped = False
+
+    # -- API side --------------------------------------------------------------------------
+    def age_s(self) -> float | None:
+        return None if self._last_rx is None else self._monotonic() - self._last_rx
+
+    def status(self, *, pending_auth: int) -> Status:
+        with self._lock:
+            age = self.age_s()
+            faults = sorted(self._faults.values(), key=lambda f: f.name)
+            telemetry = Telemetry(self._position, self._yaw, self._velocity, self._joints)
+            battery = self._battery
+        goals = self._active_goals()
+        stale = age is None or age > self.config.bridge.ros2.telemetry_stale_s
+        estop = self._estop_latched()
+        return Status(
+            ruri=self.config.robot.ruri, state=self._state(estop, faults, stale, goals, telemetry),
+            estop=estop, battery_pct=battery, telemetry=telemetry, faults=faults,
+            active_goals=goals, pending_auth=pending_auth,
+            ros=RosInfo(self.domain_id, self.distro, not stale,
+                        None if age is None else round(age, 3)),
+            timestamp_ms=int(time.time() * 1000),
+        )
+
+    def _state(self, estop: bool, faults: list[Fault], stale: bool, goals: list[str],
+               telemetry: Telemetry) -> Any:
+        if estop:
+            return "estop"
+        if any(f.level == "ERROR" for f in faults):
+            return "fault"
+        if stale:
+            return "offline"
+        if self.safe_stopped:
+            return "safe_stop"
+        if goals:
+            return "executing"
+        v = telemetry.velocity
+        if v is not None and (abs(v.linear_x) > _MOVING_EPS or abs(v.angular_z) > _MOVING_EPS):
+            return "moving"
+        return "idle"

@@ -1,0 +1,113 @@
+"""A governed bridge's ROS side (governor + dispatcher + telemetry) beside a real rclpy node."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import textwrap
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from oracle.client import RclpyOracle
+
+from rcan_rtps.bridge.commands import RosDispatcher
+from rcan_rtps.bridge.notify import DiagnosticsNotifier
+from rcan_rtps.bridge.telemetry import TelemetryState
+from rcan_rtps.config import RcanConfig, loads_config
+from rcan_rtps.governance import AuditLog, Decision, Governor, Principal
+from rcan_rtps.rcan import Role, validate_command
+from rcan_rtps.ros.participant import RosNode
+
+VIEWER = Principal("viewer", Role.GUEST)
+AGENT = Principal("agent", Role.USER)
+OPS = Principal("ops", Role.OWNER)
+
+
+def bridge_config(tmp_path: Path, domain_id: int, extra_ros2: str = "",
+                  extra: str = "") -> RcanConfig:
+    text = textwrap.dedent(f"""\
+        robot:
+          ruri: rcan://registry.local/acme/rover/unit-0001
+          name: Test Rover
+        bridge:
+          ros2:
+            namespace: /robot1
+            node_name: rcan_bridge
+            domain_id: {domain_id}
+            telemetry_stale_s: 1.0
+            match_timeout_s: 3.0
+        @@ROS2@@
+          api:
+            auth_token_env: RCAN_BRIDGE_TOKEN
+          safety:
+            max_linear_vel: 1.5
+            max_angular_vel: 1.0
+            session_timeout_s: 1.0
+            workspace: [[-10, -10], [10, -10], [10, 10], [-10, 10]]
+          audit:
+            path: {tmp_path / "audit.jsonl"}
+            key_path: {tmp_path / "audit.key"}
+        @@BRIDGE@@
+        """)
+    text = text.replace("@@ROS2@@", textwrap.indent(extra_ros2, "    "))
+    text = text.replace("@@BRIDGE@@", textwrap.indent(extra, "  "))
+    return loads_config(text, env={"RCAN_BRIDGE_TOKEN": "t" * 32})
+
+
+@dataclass
+class Rig:
+    node: RosNode
+    governor: Governor
+    telemetry: TelemetryState
+    dispatcher: RosDispatcher
+    oracle: RclpyOracle
+    audit_path: Path
+
+    async def command(self, principal: Principal, body: dict[str, Any]) -> Decision:
+        return await self.governor.decide(validate_command(json.dumps(body).encode()), principal)
+
+    def entries(self) -> list[dict[str, Any]]:
+        return [json.loads(line) for line in self.audit_path.read_text().splitlines()]
+
+    async def take(self, topic: str, want: int = 1, timeout: float = 10.0) -> list[Any]:
+        got: list[Any] = []
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while len(got) < want and loop.time() < deadline:
+            got += self.oracle.call("take", topic=topic)
+            await asyncio.sleep(0.05)
+        return got
+
+    async def until(self, predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while not predicate():
+            if loop.time() > deadline:
+                return False
+            await asyncio.sleep(0.05)
+        return True
+
+
+async def make_rig(config: RcanConfig, jazzy_python: Path, domain_id: int) -> Rig:
+    ros2 = config.bridge.ros2
+    node = RosNode(ros2.node_name, ros2.namespace, domain_id=domain_id, distro=ros2.distro)
+    audit = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path)
+    dispatcher = RosDispatcher(node, ros2)
+    governor = Governor.from_config(config, audit=audit, dispatcher=dispatcher,
+                                    notifier=DiagnosticsNotifier(node, ros2.diagnostics_topic))
+    telemetry = TelemetryState(node, config, estop_latched=lambda: governor.latch.latched,
+                               active_goals=lambda: [])
+    governor.safe_stop_listeners.append(lambda _p: telemetry.mark_safe_stop())
+    dispatcher.on_command = telemetry.clear_safe_stop
+    await governor.start()
+    oracle = RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id)
+    return Rig(node, governor, telemetry, dispatcher, oracle, Path(config.bridge.audit.path))
+
+
+async def close_rig(rig: Rig) -> None:
+    await rig.governor.stop()
+    await rig.governor.audit.close()
+    rig.oracle.close()
+    rig.node.close()

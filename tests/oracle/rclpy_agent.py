@@ -18,6 +18,8 @@ import traceback
 from typing import Any
 
 import rclpy
+from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
@@ -114,6 +116,12 @@ class Agent:
         self.received: dict[str, list[Any]] = {}
         self.publishers: dict[str, Any] = {}
         self.subscriptions: dict[str, Any] = {}
+        self.services: dict[str, Any] = {}
+        self.service_requests: dict[str, list[Any]] = {}
+        self.action_servers: dict[str, Any] = {}
+        self.action_clients: dict[str, Any] = {}
+        self.goals: dict[str, dict[str, Any]] = {}
+        self.group = ReentrantCallbackGroup()
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
 
@@ -188,6 +196,121 @@ class Agent:
 
     def op_subscriptions_info(self, topic: str) -> list[dict[str, Any]]:
         return [_endpoint(i) for i in self.node.get_subscriptions_info_by_topic(topic)]
+
+    # -- services and actions (issue 3) ---------------------------------------------
+    def op_service_server(self, name: str, type: str, delay: float = 0.0) -> bool:
+        """Trigger answers `triggered #N`; SetBool echoes `data` into `success`."""
+        self.service_requests[name] = []
+
+        def handle(request: Any, response: Any, name: str = name) -> Any:
+            with self.lock:
+                self.service_requests[name].append(plain(request))
+                count = len(self.service_requests[name])
+            time.sleep(delay)
+            if hasattr(request, "data"):
+                response.success = request.data
+                response.message = f"set to {request.data} (#{count})"
+            else:
+                response.success = True
+                response.message = f"triggered #{count}"
+            return response
+
+        self.services[name] = self.node.create_service(
+            load_type(type), name, handle, callback_group=self.group)
+        return True
+
+    def op_service_requests(self, name: str) -> list[Any]:
+        with self.lock:
+            return list(self.service_requests.get(name, []))
+
+    def op_service_call(self, name: str, type: str, value: dict[str, Any],
+                        timeout: float = 5.0) -> Any:
+        """An rclpy client call; returns the response or {"timeout": true}."""
+        srv = load_type(type)
+        client = self.node.create_client(srv, name, callback_group=self.group)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                return {"no_service": True}
+            future = client.call_async(fill(srv.Request(), value))
+            deadline = time.monotonic() + timeout
+            while not future.done() and time.monotonic() < deadline:
+                time.sleep(0.02)
+            return plain(future.result()) if future.done() else {"timeout": True}
+        finally:
+            self.node.destroy_client(client)
+
+    def op_action_server(self, name: str, mode: str = "succeed", period: float = 0.05) -> bool:
+        """test_msgs/action/Fibonacci; mode: succeed | abort | reject | slow (cancelable)."""
+        from test_msgs.action import Fibonacci
+
+        def on_goal(goal: Any) -> Any:
+            return GoalResponse.REJECT if mode == "reject" else GoalResponse.ACCEPT
+
+        def execute(handle: Any) -> Any:
+            seq = [0, 1]
+            step = period * (4 if mode == "slow" else 1)
+            for i in range(1, handle.request.order):
+                if handle.is_cancel_requested:
+                    handle.canceled()
+                    return Fibonacci.Result(sequence=seq)
+                seq.append(seq[i] + seq[i - 1])
+                handle.publish_feedback(Fibonacci.Feedback(sequence=seq))
+                time.sleep(step)
+            if mode == "abort":
+                handle.abort()
+            else:
+                handle.succeed()
+            return Fibonacci.Result(sequence=seq)
+
+        self.action_servers[name] = ActionServer(
+            self.node, Fibonacci, name, execute, goal_callback=on_goal,
+            cancel_callback=lambda _: CancelResponse.ACCEPT, callback_group=self.group)
+        return True
+
+    def op_action_send_goal(self, name: str, key: str, order: int) -> bool:
+        """Sends a Fibonacci goal with an rclpy ActionClient; progress kept under `key`."""
+        from test_msgs.action import Fibonacci
+
+        client = self.action_clients.get(name)
+        if client is None:
+            client = ActionClient(self.node, Fibonacci, name, callback_group=self.group)
+            self.action_clients[name] = client
+        if not client.wait_for_server(timeout_sec=10.0):
+            raise RuntimeError(f"no action server {name}")
+        record: dict[str, Any] = {"feedback": [], "accepted": None, "result": None}
+        self.goals[key] = record
+
+        def on_feedback(msg: Any) -> None:
+            with self.lock:
+                record["feedback"].append(list(msg.feedback.sequence))
+
+        def on_result(future: Any) -> None:
+            res = future.result()
+            with self.lock:
+                record["result"] = {"status": res.status, "sequence": list(res.result.sequence)}
+
+        def on_response(future: Any) -> None:
+            handle = future.result()
+            with self.lock:
+                record["accepted"] = handle.accepted
+            if handle.accepted:
+                handle.get_result_async().add_done_callback(on_result)
+
+        client.send_goal_async(Fibonacci.Goal(order=order), feedback_callback=on_feedback) \
+            .add_done_callback(on_response)
+        return True
+
+    def op_action_goal(self, key: str, timeout: float = 20.0) -> dict[str, Any]:
+        """Waits for the goal under `key` to finish (or the timeout) and returns its record."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                record = self.goals[key]
+                if record["result"] is not None or record["accepted"] is False:
+                    return dict(record)
+            time.sleep(0.05)
+        with self.lock:
+            return dict(self.goals[key])
 
 
 def _endpoint(info: Any) -> dict[str, Any]:

@@ -6,7 +6,10 @@
     ├── ValueFitError        a value does not fit its type (with the field path)
     ├── InvalidNameError     a ROS name breaks a validity rule (the rule is named)
     ├── QosError             a QoS profile that cannot be built or cannot match
-    └── GraphTimeout         something did not appear on the graph in time
+    ├── GraphTimeout         something did not appear on the graph in time
+    ├── ServiceUnavailable   no server for a service (or action) within the timeout
+    ├── ServiceTimeout       a server was there but no reply came in time
+    └── ActionError          an action goal could not be sent, confirmed or followed
 """
 
 from __future__ import annotations
@@ -61,4 +64,16 @@ class QosError(WireError):
 
 
 class GraphTimeout(WireError):
+    pass
+
+
+class ServiceUnavailable(WireError):
+    pass
+
+
+class ServiceTimeout(WireError):
+    pass
+
+
+class ActionError(WireError):
     pass

@@ -1,0 +1,142 @@
+"""rmw_cyclonedds' in-band request header, as a wrapper struct under the plain type's name.
+
+rmw_cyclonedds puts `uint64 client_guid; int64 seq` between the 4-byte CDR encapsulation
+and the fields of every request and reply, in the sample's byte order. A struct
+`{uint64 client_guid; int64 seq; <the fields of T>}` serializes to exactly those bytes:
+16 is a multiple of 8, so every later field keeps its alignment and its bytes. The
+wrapper keeps T's DDS type name so that rmw_cyclonedds endpoints match it. (The fields
+are copied rather than nested: a member type named like its parent breaks XTypes.)
+
+(Prepending raw bytes to a plain-typed sample is not an option with cyclonedds-python: it
+checks every written and received sample against the topic's type.)
+"""
+
+from __future__ import annotations
+
+import threading
+import typing
+import weakref
+from dataclasses import dataclass
+from typing import Any
+
+from cyclonedds.core import Policy
+from cyclonedds.idl import IdlStruct, make_idl_struct
+from cyclonedds.idl import types as t
+from cyclonedds.idl._machinery import BytesMachine
+from cyclonedds.pub import DataWriter
+from cyclonedds.qos import Qos
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+
+from .errors import WireError
+from .participant import RosNode
+from .qos import QosProfile
+from .typesys.ddstypes import is_byte_like
+from .typesys.model import Collection
+
+ENCAPSULATION_SIZE = 4
+HEADER_SIZE = 16  # uint64 client_guid at offset 4, int64 seq at offset 12 (after encapsulation)
+GUID_FIELD, SEQ_FIELD = "rmw_request_client_guid", "rmw_request_seq"
+
+
+@dataclass(frozen=True)
+class RequestHeader:
+    client_guid: int  # rmw_cyclonedds uses the request writer's instance handle
+    seq: int  # per-client sequence number, echoed in the reply
+
+
+_wrappers: dict[tuple[int, str], type[IdlStruct]] = {}
+_names: dict[type[IdlStruct], tuple[str, ...]] = {}
+_topics: weakref.WeakKeyDictionary[RosNode, dict[str, Topic[Any]]] = weakref.WeakKeyDictionary()
+_lock = threading.Lock()
+
+
+def wrapper_struct(node: RosNode, type_name: str) -> type[IdlStruct]:
+    """`{uint64 client_guid; int64 seq; <fields of T>}` named like T on the wire."""
+    plain = node.types.struct(type_name)
+    msg = node.store.message(type_name)
+    key = (id(plain), msg.dds_name)
+    with _lock:
+        found = _wrappers.get(key)
+        if found is None:
+            found = _build_wrapper(plain, msg)
+            _wrappers[key] = found
+        return found
+
+
+def _build_wrapper(plain: type[IdlStruct], msg: Any) -> type[IdlStruct]:
+    hints = typing.get_type_hints(plain, include_extras=True)
+    if GUID_FIELD in hints or SEQ_FIELD in hints:
+        raise WireError(f"{msg.name} has a field named like the request header")
+    short = msg.dds_name.rsplit("::", 1)[-1]
+    cls = make_idl_struct(f"{short}CycloneWrapper", msg.dds_name,
+                          {GUID_FIELD: t.uint64, SEQ_FIELD: t.int64, **hints})
+    # Byte sequences use cyclonedds' one-copy bytes codec, as in DdsTypes.
+    byte_sequences = [f for f in msg.fields
+                      if is_byte_like(f.type) and f.type.collection is not Collection.ARRAY]
+    if byte_sequences:
+        cls.__idl__.populate()
+        for machine in (cls.__idl__.v1_machine, cls.__idl__.v2_machine):
+            for f in byte_sequences:
+                machine.members_machines[f.name] = BytesMachine(f.type.size or None)  # type: ignore[attr-defined]
+    return cls
+
+
+def _field_names(cls: type[IdlStruct]) -> tuple[str, ...]:
+    names = _names.get(cls)
+    if names is None:
+        names = _names[cls] = tuple(getattr(cls, "__dataclass_fields__"))  # noqa: B009
+    return names
+
+
+def wrap(cls: type[IdlStruct], header: RequestHeader, payload: IdlStruct) -> IdlStruct:
+    fields = {name: getattr(payload, name) for name in _field_names(type(payload))}
+    return cls(**{GUID_FIELD: header.client_guid, SEQ_FIELD: header.seq, **fields})
+
+
+def unwrap(plain: type[IdlStruct], sample: Any) -> tuple[RequestHeader, IdlStruct]:
+    fields = {name: getattr(sample, name) for name in _field_names(plain)}
+    header = RequestHeader(int(getattr(sample, GUID_FIELD)), int(getattr(sample, SEQ_FIELD)))
+    return header, plain(**fields)
+
+
+def wrapper_topic(node: RosNode, dds_topic: str, type_name: str) -> Topic[Any]:
+    with _lock:
+        topics = _topics.setdefault(node, {})
+        found = topics.get(dds_topic)
+    if found is None:
+        try:
+            found = Topic(node.participant, dds_topic, wrapper_struct(node, type_name))
+        except Exception as exc:  # cyclonedds raises a bare DDSException
+            raise WireError(f"cannot create {dds_topic} with the Cyclone request header in "
+                            f"this participant (a plain one exists?): {exc}") from exc
+        with _lock:
+            found = _topics[node].setdefault(dds_topic, found)
+    return found
+
+
+def _user_data(node: RosNode, type_name: str, extra: str) -> bytes | None:
+    data = (node.endpoint_user_data(type_name) or b"") + extra.encode()
+    return data or None
+
+
+def create_writer(node: RosNode, dds_topic: str, type_name: str, qos: QosProfile,
+                  extra_user_data: str) -> DataWriter[Any]:
+    """A writer of wrapped samples; USER_DATA carries the plain type's hash, like rmw."""
+    writer: DataWriter[Any] = DataWriter(
+        node.publisher, wrapper_topic(node, dds_topic, type_name),
+        qos=qos.to_dds(_user_data(node, type_name, extra_user_data)))
+    node.track_writer(writer)
+    return writer
+
+
+def create_reader(node: RosNode, dds_topic: str, type_name: str, qos: QosProfile,
+                  listener: Any, extra_user_data: str) -> DataReader[Any]:
+    # Header member names are not part of the wire: match peers that name them differently.
+    tolerant = Qos(Policy.TypeConsistency.AllowTypeCoercion(ignore_member_names=True))
+    reader: DataReader[Any] = DataReader(
+        node.subscriber, wrapper_topic(node, dds_topic, type_name),
+        qos=qos.to_dds(_user_data(node, type_name, extra_user_data)) + tolerant,
+        listener=listener)
+    node.track_reader(reader)
+    return reader

@@ -1,0 +1,359 @@
+"""ROS 2 services over plain DDS, speaking both request-reply mappings.
+
+    RequestMapping.CYCLONE  rmw_cyclonedds: a 16-byte in-band header (client guid, seq) in
+                            every request and reply, so replies correlate exactly.
+    RequestMapping.FASTDDS  rmw_fastrtps: plain samples; the client's identity travels as RTPS
+                            sample identity, which the cyclonedds API can neither read nor write.
+    RequestMapping.AUTO     chosen per call from the vendor of the server's request reader
+                            (GUID prefix 01.10 Cyclone; anything else gets plain requests).
+
+With a Fast DDS server nothing in a reply names its request, and the server's reply writer
+sends each client's replies to every reply reader. So a client keeps one request
+outstanding per endpoint and queues the rest, drops replies that arrive while nothing is
+outstanding or that fail the caller's `accept` check, and after a timeout lets a late reply
+drain before its next request. What it cannot do is tell our reply from that of another
+process calling the same server at the same moment; actions cross-check goal ids on the
+status topic for that reason (see `actions.py`).
+
+`ServiceServer` speaks the Cyclone mapping only. Fast DDS clients cannot use it: they drop
+every reply without the RTPS related-sample identity, which cyclonedds cannot set, and their
+header-less requests would be misread, so requests from Fast DDS writers are dropped with a
+warning instead.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+import itertools
+import logging
+import weakref
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from cyclonedds.core import Listener
+from cyclonedds.idl import IdlStruct
+from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
+
+from . import _cyclone_header as cyclone
+from . import qos as qos_mod
+from .errors import ServiceTimeout, ServiceUnavailable, WireError
+from .graph import Direction, RosGraph
+from .names import mangle_service
+from .participant import RosNode
+from .qos import QosProfile
+
+log = logging.getLogger(__name__)
+
+CYCLONE_VENDOR = b"\x01\x10"
+STALE_REPLY_GRACE = 0.5  # s a timed-out Fast DDS request's late reply gets to arrive and be dropped
+CLIENT_READER_WAIT = 1.0  # s a server waits for the client's reply reader (rmw_cyclonedds: 0.1)
+
+Accept = Callable[[IdlStruct], bool]
+Handler = Callable[[IdlStruct], Awaitable["IdlStruct | Mapping[str, Any]"]]
+
+
+class RequestMapping(enum.Enum):
+    AUTO = "auto"
+    CYCLONE = "cyclone"
+    FASTDDS = "fastdds"
+
+
+@dataclass(frozen=True)
+class MappingPolicy:
+    """The mapping per service: a default plus per-service overrides (from configuration)."""
+
+    default: RequestMapping = RequestMapping.AUTO
+    services: Mapping[str, RequestMapping] = field(default_factory=dict)
+
+    def for_service(self, name: str) -> RequestMapping:
+        return self.services.get(name, self.default)
+
+
+def mapping_of_vendor(guid: bytes) -> RequestMapping:
+    return RequestMapping.CYCLONE if guid[:2] == CYCLONE_VENDOR else RequestMapping.FASTDDS
+
+
+_id_counters: weakref.WeakKeyDictionary[RosNode, itertools.count[int]] = \
+    weakref.WeakKeyDictionary()
+_graphs: weakref.WeakKeyDictionary[RosNode, RosGraph] = weakref.WeakKeyDictionary()
+
+
+def new_endpoint_id(node: RosNode) -> bytes:
+    """A client/service id as rmw_cyclonedds makes it: the participant's GUID prefix
+    (12 bytes) followed by a per-participant counter, big-endian."""
+    counter = _id_counters.setdefault(node, itertools.count(1))
+    prefix: bytes = node.participant.guid.bytes[:12]
+    return prefix + next(counter).to_bytes(4, "big")
+
+
+def format_endpoint_id(raw: bytes) -> str:
+    """rmw_cyclonedds' text form: hex bytes joined by '.', only the first zero-padded."""
+    return f"{raw[0]:02x}" + "".join(f".{b:x}" for b in raw[1:])
+
+
+def shared_graph(node: RosNode) -> RosGraph:
+    """One discovery view per node, shared by its clients."""
+    graph = _graphs.get(node)
+    if graph is None:
+        graph = _graphs[node] = RosGraph(node)
+    return graph
+
+
+def _user_data(endpoint: Any) -> dict[str, str]:
+    return qos_mod.user_data_of(getattr(endpoint, "qos", None))
+
+
+class _Pair:
+    """One writer and one reader of a service, in one mapping, delivering to asyncio."""
+
+    def __init__(self, node: RosNode, mapping: RequestMapping, out: tuple[str, str],
+                 into: tuple[str, str], qos: QosProfile, user: str,
+                 deliver: Callable[[_Pair, list[Any]], None]) -> None:
+        self.mapping = mapping
+        self._deliver = deliver
+        self._loop = asyncio.get_running_loop()
+        listener = Listener(on_data_available=self._on_data)
+        self.writer: DataWriter[Any]
+        self.reader: DataReader[Any]
+        if mapping is RequestMapping.CYCLONE:
+            self.writer = cyclone.create_writer(node, *out, qos, user)
+            self.reader = cyclone.create_reader(node, *into, qos, listener, user)
+            self.out_cls = cyclone.wrapper_struct(node, out[1])
+            self.in_plain = node.types.struct(into[1])
+        else:
+            self.writer = node.create_writer(*out, qos, extra_user_data=user)
+            self.reader = node.create_reader(*into, qos, listener, extra_user_data=user)
+            self.out_cls = node.types.struct(out[1])
+        # rmw_cyclonedds names a client in the header by its request writer's handle.
+        self.guid = int(self.writer.get_instance_handle()) & 0xFFFF_FFFF_FFFF_FFFF
+
+    def _on_data(self, reader: DataReader[Any]) -> None:  # runs on a DDS thread
+        try:
+            samples = reader.take(N=64)
+        except Exception:  # a sample that does not decode must not kill the listener
+            log.debug("dropped undecodable samples", exc_info=True)
+            return
+        if samples:
+            try:
+                self._loop.call_soon_threadsafe(self._deliver, self, samples)
+            except RuntimeError:  # the loop closed while DDS was still delivering
+                return
+
+    def matched(self) -> bool:
+        return bool(self.writer.get_publication_matched_status().current_count and
+                    self.reader.get_subscription_matched_status().current_count)
+
+
+class ServiceClient:
+    """Calls one service; `await call(request)` returns the response."""
+
+    def __init__(self, node: RosNode, service: str, type_name: str, *,
+                 mapping: RequestMapping = RequestMapping.AUTO,
+                 qos: QosProfile = qos_mod.SERVICES) -> None:
+        self.node = node
+        self.name = node.resolve(service)
+        srv = node.store.service(type_name)
+        self.type_name = srv.name
+        self.request_type, self.response_type = srv.request.name, srv.response.name
+        self.request_topic, self.reply_topic = mangle_service(self.name)
+        self.mapping = mapping
+        self.id = new_endpoint_id(node)
+        self._qos = qos
+        self._graph = shared_graph(node)
+        self._pairs: dict[RequestMapping, _Pair] = {}
+        self._seq = itertools.count(1)
+        self._pending: dict[int, asyncio.Future[IdlStruct]] = {}
+        self._plain_lock = asyncio.Lock()
+        self._plain_waiter: tuple[asyncio.Future[IdlStruct], Accept | None] | None = None
+        self._stale = False
+        self.dropped_replies = 0  # replies not ours: foreign guid, unsolicited, not accepted
+
+    # -- discovery --------------------------------------------------------------
+    def server_guids(self) -> list[bytes]:
+        """GUIDs of the request readers of this service's servers (from discovery)."""
+        self._graph.refresh()
+        return [e.gid for e in self._graph.endpoints()
+                if e.dds_topic == self.request_topic and e.direction is Direction.SUBSCRIPTION]
+
+    def resolve_mapping(self) -> RequestMapping | None:
+        """The configured mapping, or the servers' (None while there is no server)."""
+        if self.mapping is not RequestMapping.AUTO:
+            return self.mapping
+        mappings = {mapping_of_vendor(g) for g in self.server_guids()}
+        if len(mappings) > 1:
+            raise WireError(f"servers of {self.name} use both request mappings; "
+                            "choose one with RequestMapping.CYCLONE or FASTDDS")
+        return mappings.pop() if mappings else None
+
+    def _pair(self, mapping: RequestMapping) -> _Pair:
+        # Endpoints are made once the mapping is known: the two mappings' samples have
+        # different types on the wire, so one reader cannot serve both.
+        pair = self._pairs.get(mapping)
+        if pair is None:
+            pair = self._pairs[mapping] = _Pair(
+                self.node, mapping, (self.request_topic, self.request_type),
+                (self.reply_topic, self.response_type), self._qos,
+                f"clientid={format_endpoint_id(self.id)};", self._deliver)
+        return pair
+
+    async def wait_for_service(self, timeout: float = 5.0) -> _Pair:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            mapping = self.resolve_mapping()
+            if mapping is not None:
+                pair = self._pair(mapping)
+                if pair.matched():
+                    return pair
+            if loop.time() >= deadline:
+                raise ServiceUnavailable(
+                    f"no server for service {self.name} ({self.type_name}) within {timeout:g} s")
+            await asyncio.sleep(0.05)
+
+    # -- calls ------------------------------------------------------------------
+    async def call(self, request: IdlStruct | Mapping[str, Any] | None = None,
+                   timeout: float = 10.0, *, accept: Accept | None = None) -> IdlStruct:
+        """Sends one request and returns its response. `accept` may refuse a reply as not
+        ours (actions cross-check Fast DDS replies so); the wait then goes on."""
+        message = request if isinstance(request, IdlStruct) else \
+            self.node.values.build(self.request_type, request)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        pair = await self.wait_for_service(timeout)
+        if pair.mapping is RequestMapping.CYCLONE:
+            return await self._call_cyclone(pair, message, deadline)
+        return await self._call_plain(pair, message, deadline, accept)
+
+    async def _call_cyclone(self, pair: _Pair, message: IdlStruct,
+                            deadline: float) -> IdlStruct:
+        loop = asyncio.get_running_loop()
+        seq = next(self._seq)
+        future: asyncio.Future[IdlStruct] = loop.create_future()
+        self._pending[seq] = future
+        try:
+            pair.writer.write(cyclone.wrap(pair.out_cls, cyclone.RequestHeader(pair.guid, seq),
+                                           message))
+            return await asyncio.wait_for(future, max(0.0, deadline - loop.time()))
+        except asyncio.TimeoutError:
+            raise ServiceTimeout(f"service {self.name}: no reply within the timeout") from None
+        finally:
+            self._pending.pop(seq, None)
+
+    async def _call_plain(self, pair: _Pair, message: IdlStruct, deadline: float,
+                          accept: Accept | None) -> IdlStruct:
+        loop = asyncio.get_running_loop()
+        try:
+            await asyncio.wait_for(self._plain_lock.acquire(), max(0.0, deadline - loop.time()))
+        except asyncio.TimeoutError:
+            raise ServiceTimeout(f"service {self.name}: still queued behind earlier requests "
+                                 "(one request at a time with a Fast DDS server)") from None
+        try:
+            if self._stale:  # let a late reply to a timed-out request arrive and be dropped
+                await asyncio.sleep(max(0.0, min(STALE_REPLY_GRACE, deadline - loop.time())))
+                self._stale = False
+            future: asyncio.Future[IdlStruct] = loop.create_future()
+            self._plain_waiter = (future, accept)
+            pair.writer.write(message)
+            try:
+                return await asyncio.wait_for(future, max(0.0, deadline - loop.time()))
+            except asyncio.TimeoutError:
+                self._stale = True
+                raise ServiceTimeout(
+                    f"service {self.name}: no reply within the timeout") from None
+        finally:
+            self._plain_waiter = None
+            self._plain_lock.release()
+
+    def _deliver(self, pair: _Pair, samples: list[Any]) -> None:
+        for sample in samples:
+            if pair.mapping is RequestMapping.CYCLONE:
+                header, reply = cyclone.unwrap(pair.in_plain, sample)
+                future = self._pending.get(header.seq) \
+                    if header.client_guid == pair.guid else None
+                if future is not None and not future.done():
+                    future.set_result(reply)
+                else:  # another client's reply, or one we gave up on: never ours
+                    self.dropped_replies += 1
+                continue
+            waiter = self._plain_waiter
+            if waiter is None or waiter[0].done() or \
+                    (waiter[1] is not None and not waiter[1](sample)):
+                self.dropped_replies += 1
+                continue
+            waiter[0].set_result(sample)
+
+
+class ServiceServer:
+    """Serves one service with an async handler (Cyclone mapping; see the module docs)."""
+
+    def __init__(self, node: RosNode, service: str, type_name: str, handler: Handler, *,
+                 qos: QosProfile = qos_mod.SERVICES) -> None:
+        self.node = node
+        self.name = node.resolve(service)
+        srv = node.store.service(type_name)
+        self.type_name = srv.name
+        self.request_type, self.response_type = srv.request.name, srv.response.name
+        request_topic, reply_topic = mangle_service(self.name)
+        self.id = new_endpoint_id(node)
+        self._handler = handler
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._warned: set[bytes] = set()
+        self._pair = _Pair(node, RequestMapping.CYCLONE, (reply_topic, self.response_type),
+                           (request_topic, self.request_type), qos,
+                           f"serviceid={format_endpoint_id(self.id)};", self._deliver)
+
+    def _deliver(self, pair: _Pair, samples: list[Any]) -> None:
+        for sample in samples:
+            task = asyncio.get_running_loop().create_task(self._serve(sample))
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+
+    async def _serve(self, sample: Any) -> None:
+        writer_handle = int(sample.sample_info.publication_handle)
+        client = self._pair.reader.get_matched_publication_data(writer_handle)
+        if client is None:
+            return  # the client left before we got to its request
+        guid = bytes(client.key.bytes)
+        if guid[:2] != CYCLONE_VENDOR:
+            if guid not in self._warned:
+                self._warned.add(guid)
+                log.warning("service %s: ignoring requests of a %s client; it cannot use the "
+                            "Cyclone request-reply mapping", self.name, guid[:2].hex("."))
+            return
+        header, request = cyclone.unwrap(self._pair.in_plain, sample)
+        try:
+            response = await self._handler(request)
+            if not isinstance(response, IdlStruct):
+                response = self.node.values.build(self.response_type, response)
+        except Exception:  # a failing handler sends no reply, like rclpy; the client times out
+            log.exception("service %s: the handler failed", self.name)
+            return
+        if await self._client_reader_ready(_user_data(client).get("clientid"), writer_handle):
+            self._pair.writer.write(
+                cyclone.wrap(self._pair.out_cls, header, response))
+
+    async def _client_reader_ready(self, client_id: str | None, writer_handle: int) -> bool:
+        """Like rmw_cyclonedds: wait briefly until the client's reply reader is matched, so
+        the reply is not lost to a reader that discovery has not delivered yet."""
+        if client_id is None:
+            return True
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + CLIENT_READER_WAIT
+        writer, reader = self._pair.writer, self._pair.reader
+        while loop.time() < deadline:
+            for handle in writer.get_matched_subscriptions():
+                found = writer.get_matched_subscription_data(handle)
+                if found is not None and _user_data(found).get("clientid") == client_id:
+                    return True
+            if reader.get_matched_publication_data(writer_handle) is None:
+                return False  # the client is gone
+            await asyncio.sleep(0.01)
+        return False
+
+    async def close(self) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)

@@ -1,0 +1,109 @@
+"""Services against real rclpy Jazzy (Fast DDS) servers, and our client against our server."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+
+import pytest
+from oracle.client import RclpyOracle
+
+from rcan_rtps.ros.errors import ServiceTimeout, ServiceUnavailable, ValueFitError
+from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.services import RequestMapping, ServiceClient, ServiceServer
+
+
+@pytest.fixture
+def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_python, "srv_oracle", "/", domain_id=domain_id) as agent:
+        yield agent
+
+
+@pytest.fixture
+async def node(domain_id: int) -> AsyncIterator[RosNode]:
+    with RosNode("rcan_client", "/", domain_id=domain_id, distro="jazzy") as n:
+        yield n
+
+
+async def test_trigger_against_fastdds_server(oracle: RclpyOracle, node: RosNode) -> None:
+    oracle.call("service_server", name="/trigger", type="std_srvs/srv/Trigger")
+    client = ServiceClient(node, "/trigger", "std_srvs/srv/Trigger")
+    await client.wait_for_service(15)
+    assert client.resolve_mapping() is RequestMapping.FASTDDS
+    first = await client.call({}, timeout=10)
+    second = await client.call({}, timeout=10)
+    assert (first.success, first.message) == (True, "triggered #1")
+    assert second.message == "triggered #2"
+
+
+async def test_setbool_against_fastdds_server(oracle: RclpyOracle, node: RosNode) -> None:
+    oracle.call("service_server", name="/enable", type="std_srvs/srv/SetBool")
+    client = ServiceClient(node, "enable", "std_srvs/srv/SetBool")
+    await client.wait_for_service(15)
+    on = await client.call({"data": True}, timeout=10)
+    off = await client.call({"data": False}, timeout=10)
+    assert (on.success, on.message) == (True, "set to True (#1)")
+    assert (off.success, off.message) == (False, "set to False (#2)")
+    assert oracle.call("service_requests", name="/enable") == [{"data": True}, {"data": False}]
+
+
+async def test_concurrent_calls_to_fastdds_server_each_get_their_reply(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    oracle.call("service_server", name="/enable", type="std_srvs/srv/SetBool", delay=0.05)
+    client = ServiceClient(node, "/enable", "std_srvs/srv/SetBool")
+    await client.wait_for_service(15)
+    values = [i % 3 == 0 for i in range(8)]
+    replies = await asyncio.gather(*(client.call({"data": v}, timeout=30) for v in values))
+    # The server numbers requests in arrival order; each caller must get the reply that
+    # echoes its own value, so the numbers seen by the callers are all distinct.
+    assert [r.success for r in replies] == values
+    numbers = sorted(int(r.message.rsplit("#", 1)[1].rstrip(")")) for r in replies)
+    assert numbers == list(range(1, 9))
+
+
+async def test_our_client_against_our_server(domain_id: int, node: RosNode) -> None:
+    calls: list[bool] = []
+
+    async def handle(request: object) -> dict[str, object]:
+        value = bool(request.data)
+        calls.append(value)
+        await asyncio.sleep(0.05 if value else 0.0)  # replies come back out of order
+        return {"success": value, "message": f"ours {value}"}
+
+    with RosNode("rcan_server", "/robot", domain_id=domain_id) as server_node:
+        server = ServiceServer(server_node, "enable", "std_srvs/srv/SetBool", handle)
+        client = ServiceClient(node, "/robot/enable", "std_srvs/srv/SetBool")
+        await client.wait_for_service(15)
+        assert client.resolve_mapping() is RequestMapping.CYCLONE
+        values = [True, False, True, False, False]
+        replies = await asyncio.gather(*(client.call({"data": v}, timeout=15) for v in values))
+        assert [(r.success, r.message) for r in replies] == [(v, f"ours {v}") for v in values]
+        assert sorted(calls) == sorted(values)
+        await server.close()
+
+
+async def test_no_server_is_an_error_within_the_timeout(node: RosNode) -> None:
+    client = ServiceClient(node, "/nobody", "std_srvs/srv/Trigger")
+    with pytest.raises(ServiceUnavailable, match="/nobody"):
+        await asyncio.wait_for(client.call({}, timeout=1.0), 10)
+
+
+async def test_server_that_never_answers_times_out(domain_id: int, node: RosNode) -> None:
+    async def hang(request: object) -> dict[str, object]:
+        await asyncio.sleep(3600)
+        return {}
+
+    with RosNode("rcan_server", "/", domain_id=domain_id) as server_node:
+        server = ServiceServer(server_node, "/slow", "std_srvs/srv/Trigger", hang)
+        client = ServiceClient(node, "/slow", "std_srvs/srv/Trigger")
+        await client.wait_for_service(15)
+        with pytest.raises(ServiceTimeout):
+            await asyncio.wait_for(client.call({}, timeout=1.0), 10)
+        await server.close()
+
+
+async def test_malformed_request_names_the_field(node: RosNode) -> None:
+    client = ServiceClient(node, "/enable", "std_srvs/srv/SetBool")
+    with pytest.raises(ValueFitError, match=r"^data: expected true or false"):
+        await client.call({"data": "yes"}, timeout=1.0)

@@ -1,0 +1,65 @@
+"""The bridge's HTTP and WebSocket API (aiohttp), in front of the governor.
+
+Public API::
+
+    build_app(*, governor, authenticator, robot, config, cert_principals=None) -> Application
+    ApiServer(app, host=, port=, ssl_context=)     async context manager; `.url` once bound
+    server_ssl_context(tls) -> SSLContext          TLS; mTLS when `tls.client_ca` is set
+    cert_principals(config) -> {CN: Principal}     the mTLS mapping (principal name = CN)
+    RobotView, GoalView                            the contract the bridge implements
+
+Routes (all JSON; every one needs a principal, including /api/openapi.json — the document is
+no secret, but one rule without exceptions is easier to get right):
+
+    POST /api/command            COMMAND → decision (profile outcome table)
+    GET  /api/status             STATUS (GUEST+)
+    POST /api/heartbeat          keeps a control session alive (§10.8)
+    GET  /api/goals[/{goal_id}]  navigation goals (GUEST+), 404 when unknown
+    GET  /api/hitl/pending       pending commands (the lowest role that can approve one)
+    POST /api/hitl/authorize     {"pending_id"} → decision; the governor checks the approver
+    POST /api/hitl/deny          {"pending_id"} → decision
+    GET  /api/audit?since=&limit= entries verbatim (rbac.audit_read_role, LEASEE by default)
+    GET  /api/audit/verify       chain + signature check of what is on disk
+    GET  /api/openapi.json       OpenAPI 3.1, generated from the msgspec schemas
+    GET  /api/ws                 WebSocket: STATUS stream, commands in, outcomes out
+
+Decisions where the profile is silent:
+
+- Principal: the `Authorization: Bearer` credential; without one, a verified mTLS client
+  certificate whose subject CN is a configured principal's name. A presented credential that
+  fails is 401 even if a certificate would have named someone; two Authorization headers are 401.
+- Authentication happens before a body is read: an unauthenticated 1 MB body gets 401, not 413,
+  and nothing is audited. For an authenticated principal, 413 (size), 400 (schema, with the
+  field path) and INVALID_RURI are audited as COMMAND_REJECTED via `Governor.reject_request`.
+- Reads (status, goals, pending, audit) are not commands: refusing them is 403, not audited.
+- Errors outside the profile's table: unknown route 404 `NOT_FOUND`, wrong method 405
+  `METHOD_NOT_ALLOWED`; an unexpected exception is logged and answered 503 `failed`
+  ROBOT_UNAVAILABLE `internal_error` (audit failure: 503 COMMAND_REJECTED `audit_unavailable`);
+  the API never answers 500.
+- WebSocket: frames over `max_body_bytes` get a 413 outcome frame (audited); over 4× that the
+  socket is closed (1009) before buffering. More than 32 queued commands → 429 frame. The
+  credential must be in the upgrade request's headers (or the client certificate).
+- A WebSocket that closes while its principal holds a control session is session loss
+  (§10.8): safe stop at once (after the command in flight is decided; queued `stop`/`estop`
+  frames are still decided, other queued commands are dropped). The session belongs to the
+  principal, so any of the principal's sockets closing ends it — the safe side.
+"""
+
+from ._app import build_app, settings_from_config
+from ._keys import ApiSettings, Authenticator
+from ._server import ApiServer
+from ._tls import cert_principals, server_ssl_context
+from .ports import GoalState, GoalView, RobotView
+
+__all__ = [
+    "ApiServer",
+    "ApiSettings",
+    "Authenticator",
+    "GoalState",
+    "GoalView",
+    "RobotView",
+    "build_app",
+    "cert_principals",
+    "server_ssl_context",
+    "settings_from_config",
+]

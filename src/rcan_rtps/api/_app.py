@@ -1,0 +1,89 @@
+"""`build_app`: the aiohttp application in front of the governor."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import msgspec
+from aiohttp import WSCloseCode, web
+
+from rcan_rtps.config import RcanConfig
+from rcan_rtps.governance import Governor, Principal
+from rcan_rtps.rcan import Role
+
+from . import _routes as r
+from ._keys import (
+    AUTHENTICATOR,
+    CERT_PRINCIPALS,
+    GOVERNOR,
+    ROBOT,
+    SETTINGS,
+    SOCKETS,
+    ApiSettings,
+    Authenticator,
+)
+from ._middlewares import authenticate, last_resort
+from ._openapi import openapi_document
+from ._tls import cert_principals as config_cert_principals
+from ._ws import websocket
+from .ports import RobotView
+
+
+def settings_from_config(config: RcanConfig) -> ApiSettings:
+    bridge = config.bridge
+    approver = Role[bridge.rbac.hitl_approver_role]
+    gate_roles = [Role[name] for g in bridge.hitl.gates for name in g.authorized_roles]
+    return ApiSettings(
+        max_body_bytes=bridge.api.max_body_bytes,
+        telemetry_rate_hz=bridge.ros2.telemetry_rate_hz,
+        audit_read_role=Role[bridge.rbac.audit_read_role],
+        # Pending commands are for whoever could approve one of them.
+        hitl_list_role=min([approver, *gate_roles]),
+    )
+
+
+def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotView,
+              config: RcanConfig, cert_principals: Mapping[str, Principal] | None = None,
+              settings: ApiSettings | None = None) -> web.Application:
+    """The API. It never starts or stops the governor: whoever built that owns its lifetime.
+
+    `cert_principals` maps a client certificate's subject CN to a principal (mTLS); by default
+    the configured principals, by name, when `api.tls.client_ca` is set.
+    """
+    settings = settings or settings_from_config(config)
+    # aiohttp's own limit backs ours up for any body read outside `read_limited`.
+    app = web.Application(middlewares=[last_resort(), authenticate()],
+                          client_max_size=settings.max_body_bytes)
+    app[GOVERNOR] = governor
+    app[AUTHENTICATOR] = authenticator
+    app[ROBOT] = robot
+    app[SETTINGS] = settings
+    app[CERT_PRINCIPALS] = dict(config_cert_principals(config) if cert_principals is None
+                                else cert_principals)
+    sockets: set[web.WebSocketResponse] = set()
+    app[SOCKETS] = sockets
+    document = msgspec.json.encode(openapi_document())
+
+    async def get_openapi(request: web.Request) -> web.Response:
+        return web.Response(body=document, content_type="application/json")
+
+    app.router.add_post("/api/command", r.post_command)
+    app.router.add_get("/api/status", r.get_status, allow_head=False)
+    app.router.add_post("/api/heartbeat", r.post_heartbeat)
+    app.router.add_get("/api/goals", r.get_goals, allow_head=False)
+    app.router.add_get("/api/goals/{goal_id}", r.get_goal, allow_head=False)
+    app.router.add_get("/api/hitl/pending", r.get_pending, allow_head=False)
+    app.router.add_post("/api/hitl/authorize", r.post_authorize)
+    app.router.add_post("/api/hitl/deny", r.post_deny)
+    app.router.add_get("/api/audit", r.get_audit, allow_head=False)
+    app.router.add_get("/api/audit/verify", r.get_audit_verify, allow_head=False)
+    app.router.add_get("/api/openapi.json", get_openapi, allow_head=False)
+    app.router.add_get("/api/ws", websocket, allow_head=False)
+    app.on_shutdown.append(_close_sockets)
+    return app
+
+
+async def _close_sockets(app: web.Application) -> None:
+    sockets = app[SOCKETS]
+    for ws in list(sockets):
+        await ws.close(code=WSCloseCode.GOING_AWAY, message=b"bridge shutting down")

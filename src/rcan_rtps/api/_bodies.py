@@ -1,0 +1,81 @@
+"""Response bodies the API adds to the RCAN messages, and JSON response helpers."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, Literal
+
+import msgspec
+from aiohttp import web
+
+from rcan_rtps.governance import Decision
+from rcan_rtps.rcan import ErrorBody, ErrorCode, PendingAuth
+
+from .ports import GoalView
+
+JSON = "application/json"
+
+
+class GoalList(msgspec.Struct, kw_only=True):
+    goals: list[GoalView]
+
+
+class PendingList(msgspec.Struct, kw_only=True):
+    pending: list[PendingAuth]
+
+
+class HeartbeatAck(msgspec.Struct, kw_only=True):
+    ok: bool = True
+    principal: str
+    timestamp_ms: int
+
+
+class AuditPage(msgspec.Struct, kw_only=True):
+    """Entries with seq > `since`, verbatim (canonical JSON, so each can be re-verified)."""
+
+    entries: list[dict[str, Any]]
+    next_since: int
+    head_seq: int
+
+
+class VerifyReport(msgspec.Struct, kw_only=True, omit_defaults=True):
+    ok: bool
+    count: int | None = None
+    last_seq: int | None = None
+    last_audit_id: str | None = None
+    bad_seq: int | None = None
+    detail: str | None = None
+
+
+class WsFrame(msgspec.Struct, kw_only=True, omit_defaults=True):
+    """One WebSocket text frame from the bridge: a STATUS or a command's outcome."""
+
+    type: Literal["status", "outcome"]
+    body: Any
+    http_status: int | None = None
+
+
+def json_response(body: Any, status: int = 200,
+                  headers: Mapping[str, str] | None = None) -> web.Response:
+    return web.Response(body=msgspec.json.encode(body), status=status, content_type=JSON,
+                        headers=headers)
+
+
+def decision_response(decision: Decision) -> web.Response:
+    return json_response(decision.body(), decision.http_status)
+
+
+def error_body(code: ErrorCode | str, *, reason: str | None = None, path: str | None = None,
+               audit_id: str | None = None,
+               outcome: Literal["denied", "failed"] = "denied") -> ErrorBody:
+    value = code.value if isinstance(code, ErrorCode) else code
+    return ErrorBody(outcome=outcome, error_code=value, reason=reason, path=path,
+                     audit_id=audit_id)
+
+
+def error_response(status: int, code: ErrorCode | str, *, reason: str | None = None,
+                   path: str | None = None, audit_id: str | None = None,
+                   outcome: Literal["denied", "failed"] = "denied",
+                   headers: Mapping[str, str] | None = None) -> web.Response:
+    body = error_body(code, reason=reason, path=path, audit_id=audit_id, outcome=outcome)
+    return json_response(body, status, headers)

@@ -1,0 +1,109 @@
+"""The two middlewares: a last resort (no 500, ever) and authentication (every route).
+
+Order, outermost first: `last_resort` → `authenticate` → handler. Authentication comes before
+any body is read, so an unauthenticated caller cannot make the bridge read, parse or audit
+anything it sends.
+"""
+
+from __future__ import annotations
+
+import logging
+import ssl
+
+from aiohttp import web
+from aiohttp.typedefs import Handler, Middleware
+
+from rcan_rtps.governance import AuditError, AuthenticationError, Principal, outcomes
+from rcan_rtps.rcan import ErrorCode, Reason
+
+from ._bodies import error_response, json_response
+from ._keys import AUTHENTICATOR, CERT_PRINCIPALS, GOVERNOR, PRINCIPAL
+
+log = logging.getLogger(__name__)
+
+_HTTP_CODES = {
+    404: "NOT_FOUND",
+    405: "METHOD_NOT_ALLOWED",
+    413: ErrorCode.PAYLOAD_TOO_LARGE.value,
+}
+
+
+def last_resort() -> Middleware:
+    """HTTP errors become JSON; anything unexpected is logged and answered 503, never 500."""
+
+    @web.middleware
+    async def middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
+        try:
+            return await handler(request)
+        except web.HTTPException as exc:
+            if exc.status < 400:
+                raise
+            code = _HTTP_CODES.get(exc.status, "SCHEMA_VALIDATION_FAILED"
+                                   if exc.status == 400 else f"HTTP_{exc.status}")
+            headers = {k: v for k, v in exc.headers.items() if k.lower() == "allow"}
+            return error_response(exc.status, code, reason=exc.reason, headers=headers)
+        except AuditError:
+            # Nothing may happen unrecorded: without an audit log the bridge is unavailable.
+            log.exception("audit log failed while serving %s %s", request.method, request.path)
+            return error_response(503, ErrorCode.COMMAND_REJECTED, outcome="failed",
+                                  reason=Reason.AUDIT_UNAVAILABLE.value)
+        except Exception:
+            log.exception("unexpected error serving %s %s", request.method, request.path)
+            return error_response(503, ErrorCode.ROBOT_UNAVAILABLE, outcome="failed",
+                                  reason="internal_error")
+
+    return middleware
+
+
+def authenticate() -> Middleware:
+    """Every route needs a principal: a Bearer credential, or a mapped mTLS client certificate."""
+
+    @web.middleware
+    async def middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
+        principal, presented = _principal(request)
+        if principal is None:
+            decision = await request.app[GOVERNOR].reject_request(None,
+                                                                   outcomes.UNAUTHENTICATED)
+            challenge = 'Bearer realm="rcan"' + (', error="invalid_token"' if presented else "")
+            return json_response(decision.body(), decision.http_status,
+                                 {"WWW-Authenticate": challenge})
+        request[PRINCIPAL] = principal
+        return await handler(request)
+
+    return middleware
+
+
+def _principal(request: web.Request) -> tuple[Principal | None, bool]:
+    """(principal or None, whether a credential was presented)."""
+    headers = request.headers.getall("Authorization", [])
+    if len(headers) > 1:  # two credentials: which one counts is ambiguous, so neither does
+        return None, True
+    if headers:
+        scheme, _, token = headers[0].partition(" ")
+        if scheme.lower() != "bearer" or not token.strip():
+            return None, True
+        try:
+            return request.app[AUTHENTICATOR].authenticate(token.strip()), True
+        except AuthenticationError:
+            return None, True
+    name = peer_common_name(request)
+    if name is None:
+        return None, False
+    return request.app[CERT_PRINCIPALS].get(name), True
+
+
+def peer_common_name(request: web.Request) -> str | None:
+    """Subject CN of the client certificate, if the TLS handshake verified one."""
+    transport = request.transport
+    if transport is None:
+        return None
+    ssl_object = transport.get_extra_info("ssl_object")
+    if not isinstance(ssl_object, ssl.SSLObject):
+        return None
+    cert = ssl_object.getpeercert()  # empty unless the certificate was verified
+    if not cert:
+        return None
+    subject = cert.get("subject", ())
+    names = [attr[1] for rdn in subject if isinstance(rdn, tuple) for attr in rdn
+             if isinstance(attr, tuple) and attr[0] == "commonName"]
+    return names[0] if len(names) == 1 else None  # several CNs: no unambiguous identity

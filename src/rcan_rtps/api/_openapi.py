@@ -1,0 +1,131 @@
+"""GET /api/openapi.json: an OpenAPI 3.1 document built from the msgspec schemas."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+
+from rcan_rtps import __version__
+from rcan_rtps.rcan import openapi_schemas
+
+from ._bodies import AuditPage, GoalList, HeartbeatAck, PendingList, VerifyReport, WsFrame
+from .ports import GoalView
+
+_REF = "#/components/schemas/{name}"
+_API_TYPES: tuple[type[msgspec.Struct], ...] = (
+    GoalView, GoalList, PendingList, HeartbeatAck, AuditPage, VerifyReport, WsFrame,
+)
+
+
+def _ref(name: str) -> dict[str, str]:
+    return {"$ref": _REF.format(name=name)}
+
+
+def _json(name: str, description: str) -> dict[str, Any]:
+    return {"description": description, "content": {"application/json": {"schema": _ref(name)}}}
+
+
+def _errors(*codes: int) -> dict[str, Any]:
+    text = {400: "body or query fails the schema (field path in `path`)",
+            401: "no or invalid credentials", 403: "role too low",
+            404: "not found", 409: "refused by a safety invariant or the e-stop",
+            413: "body too large", 429: "rate limited",
+            503: "robot or audit log unavailable"}
+    return {str(c): _json("ErrorBody", text[c]) for c in (401, *codes, 503)}
+
+
+_COMMAND_BODY = {
+    "required": True,
+    "content": {"application/json": {"schema": {
+        "oneOf": [_ref("ShortCommand"), _ref("EnvelopeCommand")]}}},
+}
+_AUTHORIZE_BODY = {"required": True,
+                   "content": {"application/json": {"schema": _ref("Authorize")}}}
+_DECISION = {
+    **{str(c): _json("DecisionBody", d) for c, d in (
+        (200, "executed (possibly clamped; see `applied`)"), (202, "waiting for a human"),
+        (403, "role too low (audited)"), (409, "refused by an invariant (audited)"),
+        (413, "body too large (audited)"), (429, "rate limited (audited)"),
+        (503, "robot unreachable, or audit unavailable"))},
+    "400": _json("ErrorBody", "schema failure, with the field path (audited)"),
+    "401": _json("ErrorBody", "no or invalid credentials (not audited)"),
+}
+
+
+def _op(op_id: str, summary: str, responses: dict[str, Any],
+        body: dict[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
+    op: dict[str, Any] = {"operationId": op_id, "summary": summary, "responses": responses}
+    if body is not None:
+        op["requestBody"] = body
+    op.update(extra)
+    return op
+
+
+def _query(name: str, description: str) -> dict[str, Any]:
+    return {"name": name, "in": "query", "required": False, "description": description,
+            "schema": {"type": "integer", "minimum": 0}}
+
+
+PATHS: dict[str, dict[str, Any]] = {
+    "/api/command": {"post": _op("postCommand", "Send a COMMAND (short or envelope form)",
+                                 _DECISION, _COMMAND_BODY)},
+    "/api/status": {"get": _op("getStatus", "The robot's STATUS (GUEST+)",
+                               {"200": _json("Status", "STATUS"), **_errors()})},
+    "/api/heartbeat": {"post": _op("postHeartbeat", "Keep a control session alive",
+                                   {"200": _json("HeartbeatAck", "heard"), **_errors()})},
+    "/api/goals": {"get": _op("getGoals", "Navigation goals the bridge tracks (GUEST+)",
+                              {"200": _json("GoalList", "goals"), **_errors()})},
+    "/api/goals/{goal_id}": {"get": _op(
+        "getGoal", "One navigation goal (GUEST+)",
+        {"200": _json("GoalView", "the goal"), **_errors(404)},
+        parameters=[{"name": "goal_id", "in": "path", "required": True,
+                     "schema": {"type": "string"}}])},
+    "/api/hitl/pending": {"get": _op("getPending", "Commands waiting for a human (approvers)",
+                                     {"200": _json("PendingList", "pending"), **_errors(403)})},
+    "/api/hitl/authorize": {"post": _op("postAuthorize", "Approve a pending command",
+                                        _DECISION | {"404": _json("DecisionBody", "unknown or "
+                                                                  "expired pending_id")},
+                                        _AUTHORIZE_BODY)},
+    "/api/hitl/deny": {"post": _op("postDeny", "Deny a pending command",
+                                   _DECISION | {"404": _json("DecisionBody", "unknown or "
+                                                             "expired pending_id")},
+                                   _AUTHORIZE_BODY)},
+    "/api/audit": {"get": _op(
+        "getAudit", "Audit entries after `since`, verbatim (LEASEE+ by default)",
+        {"200": _json("AuditPage", "entries"), **_errors(400, 403)},
+        parameters=[_query("since", "return entries with seq > since (default 0)"),
+                    _query("limit", "at most this many entries")])},
+    "/api/audit/verify": {"get": _op("getAuditVerify", "Verify the chain and signatures",
+                                     {"200": _json("VerifyReport", "result"), **_errors(403)})},
+    "/api/openapi.json": {"get": _op("getOpenApi", "This document",
+                                     {"200": {"description": "OpenAPI 3.1 document",
+                                              "content": {"application/json": {}}},
+                                      **_errors()})},
+    "/api/ws": {"get": _op(
+        "getWebSocket",
+        "WebSocket: text frames in are COMMAND bodies; frames out are WsFrame (STATUS at "
+        "telemetry_rate_hz, outcomes with the REST body). Closing it while holding a control "
+        "session stops the robot.",
+        {"101": {"description": "switching to WebSocket; frames are WsFrame",
+                 "content": {"application/json": {"schema": _ref("WsFrame")}}},
+         **_errors()})},
+}
+
+
+def openapi_document() -> dict[str, Any]:
+    _, mine = msgspec.json.schema_components(_API_TYPES, ref_template=_REF)
+    return {
+        "openapi": "3.1.0",
+        "jsonSchemaDialect": "https://json-schema.org/draft/2020-12/schema",
+        "info": {"title": "rcan-rtps bridge API", "version": __version__,
+                 "description": "RCAN governance (RCAN 1.2, bridge spec v1.0) in front of a "
+                                "ROS 2 robot. Every route needs a Bearer token or a mapped "
+                                "mTLS client certificate."},
+        "security": [{"bearer": []}],
+        "paths": PATHS,
+        "components": {
+            "schemas": {**openapi_schemas(), **mine},
+            "securitySchemes": {"bearer": {"type": "http", "scheme": "bearer"}},
+        },
+    }

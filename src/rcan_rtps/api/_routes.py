@@ -1,0 +1,181 @@
+"""REST handlers: command, status, heartbeat, goals, HiTL and audit."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import msgspec
+from aiohttp import web
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
+from rcan_rtps.governance import AuditIntegrityError, verify_bytes
+from rcan_rtps.governance.clock import SystemClock, now_ms
+from rcan_rtps.rcan import Authorize, ErrorCode, Role, SchemaValidationError
+
+from ._bodies import (
+    AuditPage,
+    GoalList,
+    HeartbeatAck,
+    PendingList,
+    VerifyReport,
+    error_response,
+    json_response,
+)
+from ._commands import decode_as, read_limited, run_command, schema_failure, too_large
+from ._keys import GOVERNOR, PRINCIPAL, ROBOT, SETTINGS
+
+_WALL = SystemClock()
+
+
+def _forbidden(request: web.Request, needed: Role) -> web.Response | None:
+    """Reads are not commands: a refusal here is answered 403 but not audited."""
+    if request[PRINCIPAL].role >= needed:
+        return None
+    return error_response(403, ErrorCode.INSUFFICIENT_PRIVILEGES,
+                          reason=f"needs {needed.name} or higher")
+
+
+async def post_command(request: web.Request) -> web.Response:
+    governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
+    raw = await read_limited(request, request.app[SETTINGS].max_body_bytes)
+    if raw is None:
+        status, body = await too_large(governor, principal)
+        response = json_response(body, status)
+        response.force_close()  # the rest of the body is not worth reading
+        return response
+    status, body = await run_command(governor, principal, raw)
+    return json_response(body, status)
+
+
+async def get_status(request: web.Request) -> web.Response:
+    pending = len(request.app[GOVERNOR].pending())
+    return json_response(request.app[ROBOT].status(pending_auth=pending))
+
+
+async def post_heartbeat(request: web.Request) -> web.Response:
+    principal = request[PRINCIPAL]
+    request.app[GOVERNOR].heartbeat(principal)
+    return json_response(HeartbeatAck(principal=principal.name, timestamp_ms=now_ms(_WALL)))
+
+
+async def get_goals(request: web.Request) -> web.Response:
+    return json_response(GoalList(goals=request.app[ROBOT].goals()))
+
+
+async def get_goal(request: web.Request) -> web.Response:
+    goal = request.app[ROBOT].goal(request.match_info["goal_id"])
+    if goal is None:
+        return error_response(404, "NOT_FOUND", reason="goal_not_found")
+    return json_response(goal)
+
+
+# -- HiTL -----------------------------------------------------------------------------------
+
+
+async def get_pending(request: web.Request) -> web.Response:
+    refused = _forbidden(request, request.app[SETTINGS].hitl_list_role)
+    if refused is not None:
+        return refused
+    governor = request.app[GOVERNOR]
+    await governor.expire_pending()  # what has timed out is gone, and audited as such
+    return json_response(PendingList(pending=governor.pending()))
+
+
+async def post_authorize(request: web.Request) -> web.Response:
+    return await _resolve(request, approve=True)
+
+
+async def post_deny(request: web.Request) -> web.Response:
+    return await _resolve(request, approve=False)
+
+
+async def _resolve(request: web.Request, *, approve: bool) -> web.Response:
+    governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
+    raw = await read_limited(request, request.app[SETTINGS].max_body_bytes)
+    if raw is None:
+        status, body = await too_large(governor, principal)
+        return json_response(body, status)
+    try:
+        target: Authorize = decode_as(raw, Authorize)
+    except SchemaValidationError as exc:
+        status, body = await schema_failure(governor, principal, exc.path, exc.detail)
+        return json_response(body, status)
+    if approve:  # the governor checks the approver's role and audits either way
+        decision = await governor.authorize(target.pending_id, principal)
+    else:
+        decision = await governor.deny(target.pending_id, principal)
+    return json_response(decision.body(), decision.http_status)
+
+
+# -- audit ----------------------------------------------------------------------------------
+
+
+class _Seq(msgspec.Struct):
+    seq: int
+
+
+_SEQ = msgspec.json.Decoder(_Seq)
+
+
+def _query_int(request: web.Request, name: str, default: int, lo: int, hi: int) -> int:
+    text = request.query.get(name)
+    if text is None:
+        return default
+    if not (text.isascii() and text.isdigit()) or len(text) > 18 or not lo <= int(text) <= hi:
+        raise SchemaValidationError(f"$.query.{name}", f"expected an integer in [{lo}, {hi}]")
+    return int(text)
+
+
+async def get_audit(request: web.Request) -> web.Response:
+    settings = request.app[SETTINGS]
+    refused = _forbidden(request, settings.audit_read_role)
+    if refused is not None:
+        return refused
+    try:
+        since = _query_int(request, "since", 0, 0, 2**62)
+        limit = _query_int(request, "limit", settings.audit_page_max, 1, settings.audit_page_max)
+    except SchemaValidationError as exc:
+        return error_response(400, ErrorCode.SCHEMA_VALIDATION_FAILED, reason=exc.detail,
+                              path=exc.path)
+    log = request.app[GOVERNOR].audit
+    lines = await asyncio.to_thread(_entries_after, log.path, since, limit)
+    last = _SEQ.decode(lines[-1]).seq if lines else since
+    # Entries are passed on byte for byte, so a client can re-hash and re-verify each.
+    page = AuditPage(entries=[], next_since=last, head_seq=log.head.last_seq)
+    head = msgspec.json.encode(page)
+    body = head.replace(b'"entries":[]', b'"entries":[' + b",".join(lines) + b"]", 1)
+    return web.Response(body=body, content_type="application/json")
+
+
+def _complete_lines(path: Path) -> bytes:
+    data = path.read_bytes()
+    return data[: data.rfind(b"\n") + 1]  # a line being appended right now is not one yet
+
+
+def _entries_after(path: Path, since: int, limit: int) -> list[bytes]:
+    found: list[bytes] = []
+    for line in _complete_lines(path).splitlines():
+        if _SEQ.decode(line).seq > since:
+            found.append(line)
+            if len(found) == limit:
+                break
+    return found
+
+
+async def get_audit_verify(request: web.Request) -> web.Response:
+    refused = _forbidden(request, request.app[SETTINGS].audit_read_role)
+    if refused is not None:
+        return refused
+    log = request.app[GOVERNOR].audit
+    report = await asyncio.to_thread(_verify, log.path, log.public_key)
+    return json_response(report)
+
+
+def _verify(path: Path, pubkey: Ed25519PublicKey) -> VerifyReport:
+    try:
+        head = verify_bytes(_complete_lines(path), pubkey)
+    except AuditIntegrityError as exc:
+        return VerifyReport(ok=False, bad_seq=exc.seq, detail=exc.detail)
+    return VerifyReport(ok=True, count=head.count, last_seq=head.last_seq,
+                        last_audit_id=head.last_audit_id)

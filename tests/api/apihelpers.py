@@ -1,0 +1,210 @@
+"""Helpers of the API tests: principals and tokens, a config, an in-memory robot, a harness.
+
+The API has no DDS: the robot side is a `RobotView` kept in memory and a `Dispatcher` that
+records what the governor hands to the bridge.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+from aiohttp.test_utils import TestClient, TestServer
+
+from rcan_rtps.api import GoalView, build_app
+from rcan_rtps.config import RcanConfig, loads_config
+from rcan_rtps.governance import (
+    AuditLog,
+    DispatchResult,
+    Governor,
+    ManualClock,
+    Notifier,
+    TokenAuthenticator,
+)
+from rcan_rtps.rcan import NormalizedCommand, Status
+from rcan_rtps.rcan._messages import Position, RosInfo, Telemetry
+
+RURI = "rcan://registry.local/clearpath/husky/a200-0001"
+ROLES = {"viewer": "GUEST", "planner": "USER", "lessee": "LEASEE", "ops": "OWNER",
+         "root": "CREATOR", "ops2": "OWNER", "slow": "USER"}
+TOKENS = {name: f"{name}-token-0123456789abcdef" for name in ROLES}
+ENV = {f"TOK_{name.upper()}": token for name, token in TOKENS.items()}
+CONFIG = """\
+robot: {ruri: "%(ruri)s", name: Husky A200}
+bridge:
+  ros2: {namespace: /robot1, distro: jazzy, telemetry_rate_hz: %(rate)s}
+  api:
+    max_body_bytes: %(max_body)d
+    principals:
+%(principals)s
+    %(api_extra)s
+  hitl:
+    timeout_seconds: 300
+    gates: [{action: arm_joint, require_auth: true, authorized_roles: [OWNER]}]
+    confidence_gate: {min_confidence: 0.5, on_fail: escalate}
+    %(hitl_extra)s
+  safety:
+    max_linear_vel: 1.0
+    max_angular_vel: 0.5
+    session_timeout_s: 60
+    workspace: [[-10, -10], [10, -10], [10, 10], [-10, 10]]
+  audit: {path: "%(dir)s/audit.jsonl", key_path: "%(dir)s/audit.key"}
+"""
+
+
+def _principals() -> str:
+    lines = []
+    for name, role in ROLES.items():
+        limit = "" if name == "slow" else ", rate_limit_per_min: 1000000"
+        lines.append(f"      - {{name: {name}, role: {role}, token_env: TOK_{name.upper()}"
+                     f"{limit}}}")
+    return "\n".join(lines)
+
+
+def make_config(tmp: Path, *, hitl_extra: str = "", api_extra: str = "",
+                max_body: int = 64 * 1024, rate: float = 20.0) -> RcanConfig:
+    text = CONFIG % {"ruri": RURI, "dir": tmp, "hitl_extra": hitl_extra, "rate": rate,
+                     "api_extra": api_extra, "max_body": max_body,
+                     "principals": _principals()}
+    return loads_config(text, env=ENV)
+
+
+def auth(name: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {TOKENS[name]}"}
+
+
+class RecordingDispatcher:
+    """Records each dispatch as (action, applied); can report the robot unreachable."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, dict[str, Any]]] = []
+        self.available = True
+
+    async def dispatch(self, command: NormalizedCommand,
+                       applied: Mapping[str, Any]) -> DispatchResult:
+        if not self.available:
+            return DispatchResult(ok=False, detail="no subscriber on /robot1/cmd_vel")
+        self.calls.append((command.action, dict(applied)))
+        return DispatchResult(ok=True, ros2_topic="/robot1/cmd_vel")
+
+
+class MemoryRobot:
+    """A RobotView whose STATUS and goals the test sets directly."""
+
+    def __init__(self) -> None:
+        self.state: Any = "idle"
+        self.goal_views: dict[str, GoalView] = {}
+        self.x = 0.0
+
+    def status(self, *, pending_auth: int) -> Status:
+        return Status(
+            ruri=RURI, state=self.state, estop=False, battery_pct=87.5,
+            telemetry=Telemetry(position=Position(x=self.x, y=0.0, z=0.0), yaw=0.0),
+            faults=[], active_goals=sorted(self.goal_views), pending_auth=pending_auth,
+            ros=RosInfo(domain_id=0, distro="jazzy", connected=True, last_telemetry_age_s=0.1),
+            timestamp_ms=1,
+        )
+
+    def goal(self, goal_id: str) -> GoalView | None:
+        return self.goal_views.get(goal_id)
+
+    def goals(self) -> list[GoalView]:
+        return list(self.goal_views.values())
+
+
+class Api:
+    """The real Governor + AuditLog in tmp, the app on 127.0.0.1, and a client for it."""
+
+    def __init__(self, tmp: Path, *, hitl_extra: str = "", api_extra: str = "",
+                 max_body: int = 64 * 1024, notifier: Notifier | None = None,
+                 rate: float = 20.0) -> None:
+        self.tmp = tmp
+        self.clock = ManualClock()
+        self.config = make_config(tmp, hitl_extra=hitl_extra, api_extra=api_extra,
+                                  max_body=max_body, rate=rate)
+        self.dispatcher = RecordingDispatcher()
+        self.robot = MemoryRobot()
+        self.notifier = notifier
+        self.log: AuditLog | None = None
+        self.governor: Governor | None = None
+        self.app: web.Application | None = None
+        self.client: TestClient[web.Request, web.Application] | None = None
+
+    async def start(self) -> Api:
+        bridge = self.config.bridge
+        self.log = await AuditLog.open(bridge.audit.path, bridge.audit.key_path, ruri=RURI,
+                                       clock=self.clock)
+        self.governor = Governor.from_config(self.config, audit=self.log,
+                                             dispatcher=self.dispatcher, clock=self.clock,
+                                             notifier=self.notifier)
+        authenticator = TokenAuthenticator.from_config(bridge.api, bridge.rbac, ENV,
+                                                       clock=self.clock)
+        self.app = build_app(governor=self.governor, authenticator=authenticator,
+                             robot=self.robot, config=self.config)
+        self.client = TestClient(TestServer(self.app, host="127.0.0.1"))
+        await self.client.start_server()
+        return self
+
+    async def close(self) -> None:
+        if self.client is not None:
+            await self.client.close()
+        if self.log is not None:
+            await self.log.close()
+
+    @property
+    def gov(self) -> Governor:
+        assert self.governor is not None
+        return self.governor
+
+    @property
+    def http(self) -> TestClient[web.Request, web.Application]:
+        assert self.client is not None
+        return self.client
+
+    async def call(self, method: str, path: str, who: str | None = None, *,
+                   body: Any = None, raw: bytes | None = None,
+                   headers: Mapping[str, str] | None = None) -> tuple[int, Any]:
+        """(status, decoded JSON body); asserts the body *is* JSON, whatever the status."""
+        hdrs = {**(auth(who) if who else {}), **(headers or {})}
+        data = raw if raw is not None else (None if body is None else json.dumps(body))
+        if data is not None:
+            hdrs.setdefault("Content-Type", "application/json")
+        async with self.http.request(method, path, data=data, headers=hdrs) as resp:
+            text = await resp.text()
+            assert resp.content_type == "application/json", (resp.status, text)
+            return resp.status, json.loads(text)
+
+    async def command(self, who: str | None, body: Any = None, *,
+                      raw: bytes | None = None) -> tuple[int, Any]:
+        return await self.call("POST", "/api/command", who, body=body, raw=raw)
+
+    @property
+    def entries(self) -> list[dict[str, Any]]:
+        return [json.loads(line) for line in (self.tmp / "audit.jsonl").read_text().splitlines()]
+
+    def entry(self, audit_id: str) -> dict[str, Any]:
+        found = [e for e in self.entries if e["audit_id"] == audit_id]
+        assert len(found) == 1, audit_id
+        return found[0]
+
+
+async def webhook_receiver() -> tuple[web.AppRunner, str, list[dict[str, Any]]]:
+    """A local HiTL webhook on 127.0.0.1: returns (runner, url, received messages)."""
+    received: list[dict[str, Any]] = []
+
+    async def hook(request: web.Request) -> web.Response:
+        received.append(await request.json())
+        return web.Response(status=204)
+
+    app = web.Application()
+    app.router.add_post("/hitl", hook)
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, "127.0.0.1", 0)
+    await site.start()
+    host, port = runner.addresses[0][:2]
+    return runner, f"http://{host}:{port}/hitl", received
+

@@ -1,0 +1,446 @@
+"""ROS 2 actions over plain DDS: a client for Fast DDS and Cyclone servers, and a server.
+
+Action `/x` is three services (`/x/_action/send_goal`, `get_result`, `cancel_goal`) and two
+topics (`feedback`, `status`); see `services.py` for the two request-reply mappings.
+
+With a Fast DDS server a reply cannot be tied to its request (replies to every client
+reach every client), so the client cross-checks against the status topic, which names
+goals by id:
+- "accepted" counts only once the status topic lists our goal id; "rejected" only if our
+  id has not appeared there within a short grace period;
+- the result is requested only once the status topic shows our goal terminal, and a reply
+  is ours only if its status is that terminal status;
+- a cancel reply is ours only if it lists our goal id (or refuses, naming no goal).
+A server that leaves the graph ends its open goals with `GoalState.SERVER_LOST`.
+
+`ActionServer` speaks the Cyclone mapping (like `ServiceServer`); the simulated robot
+serves nav2 `NavigateToPose` with it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import logging
+import time
+import uuid
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from cyclonedds.idl import IdlStruct
+
+from . import qos as qos_mod
+from .errors import ActionError
+from .names import action_names
+from .participant import RosNode
+from .services import RequestMapping, ServiceClient, ServiceServer
+
+log = logging.getLogger(__name__)
+
+STATUS_TYPE = "action_msgs/msg/GoalStatusArray"
+CANCEL_TYPE = "action_msgs/srv/CancelGoal"
+UUID_TYPE = "unique_identifier_msgs/msg/UUID"
+REJECT_GRACE = 0.5  # s: a "rejected" reply is ours only if our goal does not show up by then
+LOST_GRACE = 0.5  # s without a status writer before open goals count as lost
+POLL = 0.02
+
+
+class GoalState(enum.IntEnum):
+    """action_msgs/msg/GoalStatus values, plus two outcomes only a client sees."""
+
+    UNKNOWN = 0
+    ACCEPTED = 1
+    EXECUTING = 2
+    CANCELING = 3
+    SUCCEEDED = 4
+    CANCELED = 5
+    ABORTED = 6
+    REJECTED = 100
+    SERVER_LOST = 101
+
+    @property
+    def terminal(self) -> bool:
+        return self in (GoalState.SUCCEEDED, GoalState.CANCELED, GoalState.ABORTED,
+                        GoalState.REJECTED, GoalState.SERVER_LOST)
+
+
+@dataclass(frozen=True)
+class GoalResult:
+    state: GoalState
+    result: IdlStruct | None
+    detail: str = ""
+
+
+def _now() -> dict[str, int]:
+    ns = time.time_ns()
+    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+
+def _stamp(msg: Any) -> tuple[int, int]:
+    return int(msg.sec), int(msg.nanosec)
+
+
+# -- client -------------------------------------------------------------------------
+class ClientGoal:
+    """One goal sent by an `ActionClient`."""
+
+    def __init__(self, client: ActionClient, goal_id: bytes) -> None:
+        self.client = client
+        self.goal_id = goal_id
+        self.accepted = False
+        self.stamp: tuple[int, int] = (0, 0)
+        self.state = GoalState.UNKNOWN
+        self._feedback: asyncio.Queue[IdlStruct] = asyncio.Queue(maxsize=1000)
+        self._result: GoalResult | None = None
+
+    def __repr__(self) -> str:
+        return f"<ClientGoal {uuid.UUID(bytes=self.goal_id)} {self.state.name}>"
+
+    async def feedback(self, timeout: float | None = None) -> AsyncIterator[IdlStruct]:
+        """Feedback messages (the `feedback` part) until the goal ends."""
+        loop = asyncio.get_running_loop()
+        deadline = None if timeout is None else loop.time() + timeout
+        while True:
+            if not self._feedback.empty():
+                yield self._feedback.get_nowait()
+                continue
+            self.client.check_server()
+            if self.state.terminal or (deadline is not None and loop.time() >= deadline):
+                return
+            try:
+                yield await asyncio.wait_for(self._feedback.get(), 0.1)
+            except asyncio.TimeoutError:
+                continue
+
+    async def result(self, timeout: float = 60.0) -> GoalResult:
+        """Waits for the goal to end and fetches its result (once)."""
+        if self._result is None:
+            self._result = await self.client._fetch_result(self, timeout)
+        return self._result
+
+    async def cancel(self, timeout: float = 10.0) -> bool:
+        """Asks the server to cancel this goal; True if the server is canceling it."""
+        return await self.client._cancel(self, timeout)
+
+    def _on_feedback(self, feedback: IdlStruct) -> None:
+        if self._feedback.full():  # keep the newest
+            self._feedback.get_nowait()
+        self._feedback.put_nowait(feedback)
+
+
+class ActionClient:
+    """Sends goals to one action and follows them."""
+
+    def __init__(self, node: RosNode, action: str, type_name: str, *,
+                 mapping: RequestMapping = RequestMapping.AUTO) -> None:
+        self.node = node
+        self.name = node.resolve(action)
+        self.types = node.store.action(type_name)
+        self.type_name = self.types.name
+        names = action_names(self.name)
+        self._send = ServiceClient(node, names["send_goal"], self.type_name + "_SendGoal",
+                                   mapping=mapping)
+        self._get = ServiceClient(node, names["get_result"], self.type_name + "_GetResult",
+                                  mapping=mapping)
+        self._cancel_srv = ServiceClient(node, names["cancel_goal"], CANCEL_TYPE,
+                                         mapping=mapping)
+        self._goals: dict[bytes, ClientGoal] = {}
+        self._status_seen: dict[bytes, tuple[GoalState, tuple[int, int]]] = {}
+        self._server_seen = False
+        self._lost_since: float | None = None
+        loop = asyncio.get_running_loop()
+
+        def on_loop(handler: Callable[[Any], None]) -> Callable[[IdlStruct], None]:
+            def hop(sample: IdlStruct) -> None:  # DDS thread → event loop
+                with contextlib.suppress(RuntimeError):  # the loop has closed
+                    loop.call_soon_threadsafe(handler, sample)
+            return hop
+
+        self._status = node.create_subscription(
+            names["status"], STATUS_TYPE, qos_mod.ACTION_STATUS, callback=on_loop(self._on_status))
+        self._feedback = node.create_subscription(
+            names["feedback"], self.type_name + "_FeedbackMessage", qos_mod.DEFAULT,
+            callback=on_loop(self._on_feedback))
+
+    # -- graph ----------------------------------------------------------------------
+    async def wait_for_server(self, timeout: float = 5.0) -> None:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        for client in (self._send, self._get, self._cancel_srv):
+            await client.wait_for_service(max(0.0, deadline - loop.time()))
+        await self._status.wait_for_publishers(1, max(0.0, deadline - loop.time()))
+        self._server_seen = True
+
+    def check_server(self) -> bool:
+        """False once the server has left the graph; its open goals then end as lost."""
+        if self._status.matched_count() > 0:
+            self._server_seen, self._lost_since = True, None
+            return True
+        if not self._server_seen:
+            return True  # never there: that is wait_for_server's error to report
+        now = time.monotonic()
+        self._lost_since = self._lost_since or now
+        if now - self._lost_since < LOST_GRACE:
+            return True
+        for goal in self._goals.values():
+            if not goal.state.terminal:
+                goal.state = GoalState.SERVER_LOST
+        return False
+
+    # -- goals ----------------------------------------------------------------------
+    async def send_goal(self, goal: IdlStruct | Mapping[str, Any] | None = None,
+                        timeout: float = 10.0) -> ClientGoal:
+        """Sends a goal; the returned goal says `accepted` (or its state is REJECTED)."""
+        values = self.node.values
+        message = goal if isinstance(goal, IdlStruct) else \
+            values.build(self.types.goal.name, goal)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        await self.wait_for_server(timeout)
+        handle = ClientGoal(self, uuid.uuid4().bytes)
+        self._goals[handle.goal_id] = handle  # before sending: feedback may come quickly
+        request_cls: Any = self.node.types.struct(self.types.send_goal.request.name)
+        request = request_cls(goal_id=values.build(UUID_TYPE, {"uuid": handle.goal_id}),
+                              goal=message)
+        reply: Any = await self._send.call(request, max(0.0, deadline - loop.time()))
+        if self._send.resolve_mapping() is RequestMapping.CYCLONE:
+            accepted = bool(reply.accepted)
+        else:
+            accepted = await self._confirm(handle, bool(reply.accepted), deadline)
+        handle.accepted = accepted
+        if accepted:
+            handle.stamp = self._status_seen.get(handle.goal_id, (GoalState.ACCEPTED,
+                                                                  _stamp(reply.stamp)))[1]
+            handle.state = max(handle.state, GoalState.ACCEPTED)
+        else:
+            handle.state = GoalState.REJECTED
+        return handle
+
+    async def _confirm(self, goal: ClientGoal, accepted: bool, deadline: float) -> bool:
+        """Fast DDS: the reply may be another client's; the status topic decides."""
+        loop = asyncio.get_running_loop()
+        until = deadline if accepted else min(deadline, loop.time() + REJECT_GRACE)
+        while goal.goal_id not in self._status_seen:
+            if loop.time() >= until:
+                if accepted:
+                    raise ActionError(
+                        f"action {self.name}: the server answered 'accepted' but goal "
+                        f"{uuid.UUID(bytes=goal.goal_id)} never appeared on its status topic "
+                        "(the reply was probably another client's)")
+                return False
+            await asyncio.sleep(POLL)
+        return True
+
+    async def _fetch_result(self, goal: ClientGoal, timeout: float) -> GoalResult:
+        if not goal.accepted:
+            return GoalResult(GoalState.REJECTED, None, "the server rejected the goal")
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while not goal.state.terminal:  # the result is asked for only once the goal ended
+            if not self.check_server():
+                break
+            if loop.time() >= deadline:
+                raise ActionError(f"action {self.name}: goal still {goal.state.name} after "
+                                  f"{timeout:g} s")
+            await asyncio.sleep(POLL)
+        if goal.state is GoalState.SERVER_LOST:
+            return GoalResult(GoalState.SERVER_LOST, None,
+                              f"action server {self.name} left the graph before the goal ended")
+        final = goal.state
+
+        def ours(reply: Any) -> bool:  # Fast DDS: another goal's result has another status
+            return int(reply.status) == int(final)
+
+        request = {"goal_id": {"uuid": goal.goal_id}}
+        reply: Any = await self._get.call(request, max(0.1, deadline - loop.time()),
+                                          accept=ours)
+        return GoalResult(GoalState(int(reply.status)), reply.result)
+
+    async def _cancel(self, goal: ClientGoal, timeout: float) -> bool:
+        request = {"goal_info": {"goal_id": {"uuid": goal.goal_id}}}
+
+        def ours(reply: Any) -> bool:  # Fast DDS: names our goal, or refuses naming none
+            return _names_goal(reply, goal.goal_id) or (
+                int(reply.return_code) != 0 and not reply.goals_canceling)
+
+        reply: Any = await self._cancel_srv.call(request, timeout, accept=ours)
+        canceling = _names_goal(reply, goal.goal_id)
+        if canceling and not goal.state.terminal:
+            goal.state = GoalState.CANCELING
+        return canceling
+
+    async def cancel_all(self, timeout: float = 10.0, *, server_wide: bool = False) -> int:
+        """Cancels this client's open goals (or, `server_wide`, every goal of the server,
+        whoever sent it: zero goal id and stamp). Returns how many goals are canceling."""
+        if server_wide:
+            reply: Any = await self._cancel_srv.call({}, timeout)
+            return len(reply.goals_canceling)
+        open_goals = [g for g in self._goals.values() if g.accepted and not g.state.terminal]
+        results = await asyncio.gather(*(g.cancel(timeout) for g in open_goals))
+        return sum(results)
+
+    # -- topics ---------------------------------------------------------------------
+    def _on_status(self, array: IdlStruct) -> None:
+        for status in array.status_list:  # type: ignore[attr-defined]
+            goal_id = bytes(status.goal_info.goal_id.uuid)
+            state = GoalState(int(status.status))
+            self._status_seen[goal_id] = (state, _stamp(status.goal_info.stamp))
+            goal = self._goals.get(goal_id)
+            if goal is not None and not goal.state.terminal:
+                goal.state = state
+
+    def _on_feedback(self, message: IdlStruct) -> None:
+        goal = self._goals.get(bytes(message.goal_id.uuid))  # type: ignore[attr-defined]
+        if goal is not None:
+            goal._on_feedback(message.feedback)  # type: ignore[attr-defined]
+
+
+def _names_goal(reply: Any, goal_id: bytes) -> bool:
+    return any(bytes(info.goal_id.uuid) == goal_id for info in reply.goals_canceling)
+
+
+# -- server -------------------------------------------------------------------------
+class ServerGoal:
+    """A goal being executed by an `ActionServer`."""
+
+    def __init__(self, server: ActionServer, goal_id: bytes, goal: IdlStruct) -> None:
+        self.server = server
+        self.goal_id = goal_id
+        self.goal = goal
+        self.stamp = _now()
+        self.state = GoalState.ACCEPTED
+        self.cancel_requested = asyncio.Event()
+        self.done: asyncio.Future[IdlStruct] = asyncio.get_running_loop().create_future()
+        self._end: GoalState | None = None
+
+    def publish_feedback(self, feedback: IdlStruct | Mapping[str, Any]) -> None:
+        self.server._publish_feedback(self, feedback)
+
+    def abort(self) -> None:
+        self._end = GoalState.ABORTED
+
+    def canceled(self) -> None:
+        self._end = GoalState.CANCELED
+
+
+Execute = Callable[[ServerGoal], Awaitable["IdlStruct | Mapping[str, Any] | None"]]
+
+
+class ActionServer:
+    """Serves one action (Cyclone mapping). `execute(goal)` returns the result; call
+    `goal.abort()` or `goal.canceled()` before returning to end it otherwise."""
+
+    def __init__(self, node: RosNode, action: str, type_name: str, execute: Execute, *,
+                 accept: Callable[[IdlStruct], Awaitable[bool]] | None = None,
+                 result_timeout: float = 900.0) -> None:
+        self.node = node
+        self.name = node.resolve(action)
+        self.types = node.store.action(type_name)
+        self.type_name = self.types.name
+        self._execute = execute
+        self._accept = accept
+        self._result_timeout = result_timeout
+        self._goals: dict[bytes, ServerGoal] = {}
+        self._tasks: set[asyncio.Task[None]] = set()
+        names = action_names(self.name)
+        self._status = node.create_publisher(names["status"], STATUS_TYPE, qos_mod.ACTION_STATUS)
+        self._feedback = node.create_publisher(
+            names["feedback"], self.type_name + "_FeedbackMessage", qos_mod.DEFAULT)
+        self._services = [
+            ServiceServer(node, names["send_goal"], self.type_name + "_SendGoal",
+                          self._on_send_goal),
+            ServiceServer(node, names["get_result"], self.type_name + "_GetResult",
+                          self._on_get_result),
+            ServiceServer(node, names["cancel_goal"], CANCEL_TYPE, self._on_cancel),
+        ]
+        self._publish_status()
+
+    async def _on_send_goal(self, request: Any) -> dict[str, Any]:
+        goal_id = bytes(request.goal_id.uuid)
+        accepted = goal_id not in self._goals and (
+            self._accept is None or await self._accept(request.goal))
+        if not accepted:
+            return {"accepted": False}
+        goal = self._goals[goal_id] = ServerGoal(self, goal_id, request.goal)
+        self._publish_status()
+        # Executes after this reply is written, like rclpy.
+        task = asyncio.get_running_loop().create_task(self._run(goal))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return {"accepted": True, "stamp": goal.stamp}
+
+    async def _run(self, goal: ServerGoal) -> None:
+        await asyncio.sleep(0)
+        if goal.state is GoalState.ACCEPTED:
+            goal.state = GoalState.EXECUTING
+            self._publish_status()
+        try:
+            result = await self._execute(goal)
+            end = goal._end or GoalState.SUCCEEDED
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("action %s: execute failed; the goal is aborted", self.name)
+            result, end = None, GoalState.ABORTED
+        message = result if isinstance(result, IdlStruct) else \
+            self.node.values.build(self.types.result.name, result or {})
+        goal.state = end
+        goal.done.set_result(message)
+        self._publish_status()
+        asyncio.get_running_loop().call_later(self._result_timeout, self._expire, goal.goal_id)
+
+    def _expire(self, goal_id: bytes) -> None:
+        self._goals.pop(goal_id, None)
+        self._publish_status()
+
+    async def _on_get_result(self, request: Any) -> IdlStruct:
+        response: Any = self.node.types.struct(self.types.get_result.response.name)
+        goal = self._goals.get(bytes(request.goal_id.uuid))
+        if goal is None:
+            return response(status=int(GoalState.UNKNOWN),
+                            result=self.node.values.build(self.types.result.name, {}))
+        result = await goal.done
+        return response(status=int(goal.state), result=result)
+
+    async def _on_cancel(self, request: Any) -> dict[str, Any]:
+        goal_id = bytes(request.goal_info.goal_id.uuid)
+        stamp = _stamp(request.goal_info.stamp)
+        if any(goal_id):
+            chosen = [g for g in (self._goals.get(goal_id),) if g is not None]
+        else:  # zero id: every goal, or those accepted at or before a non-zero stamp
+            chosen = [g for g in self._goals.values()
+                      if stamp == (0, 0) or (g.stamp["sec"], g.stamp["nanosec"]) <= stamp]
+        if not chosen:
+            return {"return_code": 2 if any(goal_id) else 0}  # ERROR_UNKNOWN_GOAL_ID
+        canceling = [g for g in chosen if not g.state.terminal]
+        for goal in canceling:
+            goal.state = GoalState.CANCELING
+            goal.cancel_requested.set()
+        if canceling:
+            self._publish_status()
+            return {"return_code": 0, "goals_canceling": [
+                {"goal_id": {"uuid": g.goal_id}, "stamp": g.stamp} for g in canceling]}
+        return {"return_code": 3}  # ERROR_GOAL_TERMINATED
+
+    def _publish_feedback(self, goal: ServerGoal, feedback: IdlStruct | Mapping[str, Any]
+                          ) -> None:
+        body = feedback if isinstance(feedback, IdlStruct) else \
+            self.node.values.build(self.types.feedback.name, feedback)
+        message_cls: Any = self.node.types.struct(self.types.feedback_message.name)
+        message = message_cls(goal_id=self.node.values.build(UUID_TYPE, {"uuid": goal.goal_id}),
+                              feedback=body)
+        self._feedback.publish(message)
+
+    def _publish_status(self) -> None:
+        self._status.publish({"status_list": [
+            {"goal_info": {"goal_id": {"uuid": g.goal_id}, "stamp": g.stamp},
+             "status": int(g.state)} for g in self._goals.values()]})
+
+    async def close(self) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        for service in self._services:
+            await service.close()

@@ -1,0 +1,135 @@
+"""Actions against a real rclpy Jazzy (Fast DDS) Fibonacci server."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+
+import pytest
+from oracle.client import RclpyOracle
+
+from rcan_rtps.ros.actions import ActionClient, GoalState
+from rcan_rtps.ros.errors import ServiceUnavailable, ValueFitError
+from rcan_rtps.ros.participant import RosNode
+
+FIB = "test_msgs/action/Fibonacci"
+
+
+def fibonacci(order: int) -> list[int]:
+    seq = [0, 1]
+    for i in range(1, order):
+        seq.append(seq[i] + seq[i - 1])
+    return seq
+
+
+@pytest.fixture
+def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_python, "fib_server", "/", domain_id=domain_id) as agent:
+        yield agent
+
+
+@pytest.fixture
+async def node(domain_id: int, jazzy_share: Path) -> AsyncIterator[RosNode]:
+    # test_msgs is not in the bundle; the oracle's share/ has its official .idl files.
+    with RosNode("rcan_actions", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as n:
+        yield n
+
+
+async def test_goal_succeeds_with_feedback(oracle: RclpyOracle, node: RosNode) -> None:
+    oracle.call("action_server", name="/fib")
+    client = ActionClient(node, "/fib", FIB)
+    goal = await client.send_goal({"order": 6}, timeout=20)
+    assert goal.accepted and goal.state is not GoalState.REJECTED
+    feedback = [list(f.sequence) async for f in goal.feedback(timeout=20)]
+    outcome = await goal.result(timeout=20)
+    assert outcome.state is GoalState.SUCCEEDED
+    assert outcome.result is not None and list(outcome.result.sequence) == fibonacci(6)
+    assert feedback and feedback[-1] == fibonacci(6)
+    assert all(f == fibonacci(len(f) - 1) for f in feedback)
+
+
+async def test_goal_cancelled_mid_run(oracle: RclpyOracle, node: RosNode) -> None:
+    oracle.call("action_server", name="/fib", mode="slow")
+    client = ActionClient(node, "/fib", FIB)
+    goal = await client.send_goal({"order": 40}, timeout=20)
+    async for _ in goal.feedback(timeout=20):
+        break  # running
+    assert await goal.cancel(timeout=10)
+    outcome = await goal.result(timeout=30)
+    assert outcome.state is GoalState.CANCELED
+    assert outcome.result is not None and len(outcome.result.sequence) < 41
+
+
+async def test_goal_rejected(oracle: RclpyOracle, node: RosNode) -> None:
+    oracle.call("action_server", name="/fib", mode="reject")
+    client = ActionClient(node, "/fib", FIB)
+    goal = await client.send_goal({"order": 3}, timeout=20)
+    assert not goal.accepted and goal.state is GoalState.REJECTED
+    assert (await goal.result()).state is GoalState.REJECTED
+
+
+async def test_goal_aborted(oracle: RclpyOracle, node: RosNode) -> None:
+    oracle.call("action_server", name="/fib", mode="abort")
+    client = ActionClient(node, "/fib", FIB)
+    goal = await client.send_goal({"order": 4}, timeout=20)
+    outcome = await goal.result(timeout=20)
+    assert outcome.state is GoalState.ABORTED
+    assert outcome.result is not None and list(outcome.result.sequence) == fibonacci(4)
+
+
+async def test_two_goals_in_flight(oracle: RclpyOracle, node: RosNode) -> None:
+    oracle.call("action_server", name="/fib", mode="slow")
+    client = ActionClient(node, "/fib", FIB)
+    first, second = await asyncio.gather(client.send_goal({"order": 9}, timeout=20),
+                                         client.send_goal({"order": 5}, timeout=20))
+    assert first.goal_id != second.goal_id and first.accepted and second.accepted
+    assert not first.state.terminal and not second.state.terminal  # both running at once
+    one, two = await asyncio.gather(first.result(timeout=30), second.result(timeout=30))
+    assert one.result is not None and list(one.result.sequence) == fibonacci(9)
+    assert two.result is not None and list(two.result.sequence) == fibonacci(5)
+
+
+async def test_our_client_and_an_rclpy_client_share_the_server(
+        oracle: RclpyOracle, node: RosNode, jazzy_python: Path, domain_id: int) -> None:
+    oracle.call("action_server", name="/fib")
+    with RclpyOracle(jazzy_python, "fib_client", "/", domain_id=domain_id) as other:
+        client = ActionClient(node, "/fib", FIB)
+        await client.wait_for_server(20)
+        for order in (7, 3, 10):  # several rounds, each with both clients' goals in flight
+            other.call("action_send_goal", name="/fib", key=f"k{order}", order=order + 2)
+            ours = await client.send_goal({"order": order}, timeout=20)
+            mine = await ours.result(timeout=30)
+            theirs = await asyncio.to_thread(other.call, "action_goal", key=f"k{order}",
+                                             timeout=60)
+            assert mine.state is GoalState.SUCCEEDED
+            assert mine.result is not None and list(mine.result.sequence) == fibonacci(order)
+            assert theirs["result"] == {"status": 4, "sequence": fibonacci(order + 2)}
+
+
+async def test_server_vanishing_mid_goal_ends_the_goal(jazzy_python: Path, domain_id: int,
+                                                      node: RosNode) -> None:
+    server = RclpyOracle(jazzy_python, "doomed", "/", domain_id=domain_id)
+    try:
+        server.call("action_server", name="/fib", mode="slow")
+        client = ActionClient(node, "/fib", FIB)
+        goal = await client.send_goal({"order": 200}, timeout=20)
+        async for _ in goal.feedback(timeout=20):
+            break
+    finally:
+        server.close()  # the node leaves the graph with the goal still running
+    outcome = await goal.result(timeout=30)
+    assert outcome.state is GoalState.SERVER_LOST and "left the graph" in outcome.detail
+
+
+async def test_no_server_is_an_error_within_the_timeout(node: RosNode) -> None:
+    client = ActionClient(node, "/nobody", FIB)
+    with pytest.raises(ServiceUnavailable, match="/nobody/_action/send_goal"):
+        await asyncio.wait_for(client.send_goal({"order": 1}, timeout=1.0), 10)
+
+
+async def test_malformed_goal_names_the_field(node: RosNode) -> None:
+    client = ActionClient(node, "/fib", FIB)
+    with pytest.raises(ValueFitError, match=r"^order: 3000000000 is out of range"):
+        await client.send_goal({"order": 3_000_000_000}, timeout=1.0)

@@ -1,0 +1,111 @@
+"""Our action client against our action server (Cyclone mapping) with the bundled nav2 types."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+
+from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
+from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.services import RequestMapping
+
+NAV = "nav2_msgs/action/NavigateToPose"
+GOAL = {"pose": {"header": {"frame_id": "map"}, "pose": {"position": {"x": 3.0, "y": -1.5}}},
+        "behavior_tree": ""}
+
+
+async def navigate(goal: ServerGoal) -> dict[str, Any]:
+    """A toy navigator: 0.5 m per step towards x, feedback each step, cancelable."""
+    target: Any = goal.goal
+    x = 0.0
+    while x < target.pose.pose.position.x:
+        if goal.cancel_requested.is_set():
+            goal.canceled()
+            return {"error_code": 0, "error_msg": "canceled"}
+        x += 0.5
+        goal.publish_feedback({
+            "current_pose": {"header": {"frame_id": "map"}, "pose": {"position": {"x": x}}},
+            "distance_remaining": target.pose.pose.position.x - x,
+            "number_of_recoveries": 0})
+        await asyncio.sleep(0.05)
+    if target.behavior_tree == "fail":
+        goal.abort()
+        return {"error_code": 9, "error_msg": "stuck"}
+    return {"error_code": 0, "error_msg": ""}
+
+
+@pytest.fixture
+async def nodes(domain_id: int) -> AsyncIterator[tuple[RosNode, RosNode]]:
+    with RosNode("robot_sim", "/robot1", domain_id=domain_id, distro="jazzy") as server_node, \
+            RosNode("rcan_bridge", "/", domain_id=domain_id, distro="jazzy") as client_node:
+        yield server_node, client_node
+
+
+async def test_navigate_to_pose_goal_feedback_result(nodes: tuple[RosNode, RosNode]) -> None:
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "navigate_to_pose", NAV, navigate)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    goal = await client.send_goal(GOAL, timeout=20)
+    assert client._send.resolve_mapping() is RequestMapping.CYCLONE
+    assert goal.accepted and goal.stamp != (0, 0)
+    remaining = [round(f.distance_remaining, 3) async for f in goal.feedback(timeout=20)]
+    outcome = await goal.result(timeout=20)
+    assert outcome.state is GoalState.SUCCEEDED
+    assert outcome.result is not None and outcome.result.error_code == 0
+    assert remaining == [2.5, 2.0, 1.5, 1.0, 0.5, 0.0]
+    await server.close()
+
+
+async def test_navigate_to_pose_cancel_and_abort(nodes: tuple[RosNode, RosNode]) -> None:
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "/robot1/navigate_to_pose", NAV, navigate)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    far = await client.send_goal({**GOAL, "pose": {"pose": {"position": {"x": 500.0}}}},
+                                 timeout=20)
+    failing = await client.send_goal({**GOAL, "behavior_tree": "fail"}, timeout=20)
+    async for _ in far.feedback(timeout=20):
+        break
+    assert await far.cancel(timeout=10)
+    cancelled, aborted = await asyncio.gather(far.result(timeout=20), failing.result(timeout=20))
+    assert cancelled.state is GoalState.CANCELED
+    assert cancelled.result is not None and cancelled.result.error_msg == "canceled"
+    assert aborted.state is GoalState.ABORTED
+    assert aborted.result is not None and aborted.result.error_code == 9
+    await server.close()
+
+
+async def test_rejected_goal_and_cancel_all(nodes: tuple[RosNode, RosNode]) -> None:
+    server_node, client_node = nodes
+
+    async def only_map_frame(goal: Any) -> bool:
+        return bool(goal.pose.header.frame_id == "map")
+
+    server = ActionServer(server_node, "/robot1/navigate_to_pose", NAV, navigate,
+                          accept=only_map_frame)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    rejected = await client.send_goal({"pose": {"header": {"frame_id": "odom"}}}, timeout=20)
+    assert not rejected.accepted and rejected.state is GoalState.REJECTED
+    goals = [await client.send_goal({**GOAL, "pose": {"header": {"frame_id": "map"}, "pose": {
+        "position": {"x": 500.0}}}}, timeout=20) for _ in range(2)]
+    assert await client.cancel_all(timeout=10) == 2
+    outcomes = await asyncio.gather(*(g.result(timeout=20) for g in goals))
+    assert [o.state for o in outcomes] == [GoalState.CANCELED, GoalState.CANCELED]
+    await server.close()
+
+
+async def test_server_vanishing_mid_goal(domain_id: int) -> None:
+    with RosNode("rcan_bridge", "/", domain_id=domain_id) as client_node:
+        server_node = RosNode("robot_sim", "/", domain_id=domain_id)
+        server = ActionServer(server_node, "/nav", NAV, navigate)
+        client = ActionClient(client_node, "/nav", NAV)
+        goal = await client.send_goal({**GOAL, "pose": {"pose": {"position": {"x": 500.0}}}},
+                                      timeout=20)
+        async for _ in goal.feedback(timeout=20):
+            break
+        await server.close()
+        server_node.close()  # the robot process is gone mid-goal
+        outcome = await goal.result(timeout=30)
+        assert outcome.state is GoalState.SERVER_LOST and outcome.result is None

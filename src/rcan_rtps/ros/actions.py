@@ -395,7 +395,7 @@ class ActionServer:
         self._goals.pop(goal_id, None)
         self._publish_status()
 
-    async def _on_get_result(self, request: Any) -> IdlStruct:
+    async def _on_get_result(self, request: Any) -> Any:
         response: Any = self.node.types.struct(self.types.get_result.response.name)
         goal = self._goals.get(bytes(request.goal_id.uuid))
         if goal is None:

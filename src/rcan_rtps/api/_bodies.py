@@ -9,11 +9,25 @@ import msgspec
 from aiohttp import web
 
 from rcan_rtps.governance import Decision
-from rcan_rtps.rcan import ErrorBody, ErrorCode, PendingAuth
+from rcan_rtps.rcan import ErrorCode, PendingAuth
 
 from .ports import GoalView
 
 JSON = "application/json"
+
+
+class ApiError(msgspec.Struct, kw_only=True, omit_defaults=True):
+    """A request refused before (or outside) a decision: 400, 401, 403, 404, 413, 503.
+
+    Like `rcan.ErrorBody`, but `outcome` is always present (the profile: every body has one;
+    ErrorBody's default would be omitted when encoded).
+    """
+
+    outcome: Literal["denied", "failed"]
+    error_code: str
+    reason: str | None = None
+    path: str | None = None
+    audit_id: str | None = None
 
 
 class GoalList(msgspec.Struct, kw_only=True):
@@ -67,9 +81,9 @@ def decision_response(decision: Decision) -> web.Response:
 
 def error_body(code: ErrorCode | str, *, reason: str | None = None, path: str | None = None,
                audit_id: str | None = None,
-               outcome: Literal["denied", "failed"] = "denied") -> ErrorBody:
+               outcome: Literal["denied", "failed"] = "denied") -> ApiError:
     value = code.value if isinstance(code, ErrorCode) else code
-    return ErrorBody(outcome=outcome, error_code=value, reason=reason, path=path,
+    return ApiError(outcome=outcome, error_code=value, reason=reason, path=path,
                      audit_id=audit_id)
 
 

@@ -23,6 +23,7 @@ from rcan_rtps.rcan import (
 from ._bodies import error_body
 
 Reply = tuple[int, Any]
+_TOO_DEEP = "JSON is nested too deeply"
 
 
 async def read_limited(request: web.Request, limit: int) -> bytes | None:
@@ -53,6 +54,8 @@ async def schema_failure(governor: Governor, principal: Principal, path: str,
 async def run_command(governor: Governor, principal: Principal, raw: bytes) -> Reply:
     try:
         command = validate_command(raw)
+    except RecursionError:  # msgspec gives up on deep nesting with this, not a DecodeError
+        return await schema_failure(governor, principal, "$", _TOO_DEEP)
     except SchemaValidationError as exc:
         return await schema_failure(governor, principal, exc.path, exc.detail)
     except InvalidRuriError as exc:
@@ -69,5 +72,5 @@ def decode_as(raw: bytes, kind: type[Any]) -> Any:
     except msgspec.ValidationError as exc:
         path, detail = validation_path(exc)
         raise SchemaValidationError(path, detail) from exc
-    except msgspec.DecodeError as exc:
-        raise SchemaValidationError("$", str(exc)) from exc
+    except (msgspec.DecodeError, RecursionError) as exc:
+        raise SchemaValidationError("$", str(exc) or _TOO_DEEP) from exc

@@ -9,12 +9,12 @@ import msgspec
 from rcan_rtps import __version__
 from rcan_rtps.rcan import openapi_schemas
 
-from ._bodies import AuditPage, GoalList, HeartbeatAck, PendingList, VerifyReport, WsFrame
+from ._bodies import ApiError, AuditPage, GoalList, HeartbeatAck, PendingList, VerifyReport, WsFrame
 from .ports import GoalView
 
 _REF = "#/components/schemas/{name}"
 _API_TYPES: tuple[type[msgspec.Struct], ...] = (
-    GoalView, GoalList, PendingList, HeartbeatAck, AuditPage, VerifyReport, WsFrame,
+    ApiError, GoalView, GoalList, PendingList, HeartbeatAck, AuditPage, VerifyReport, WsFrame,
 )
 
 
@@ -32,7 +32,7 @@ def _errors(*codes: int) -> dict[str, Any]:
             404: "not found", 409: "refused by a safety invariant or the e-stop",
             413: "body too large", 429: "rate limited",
             503: "robot or audit log unavailable"}
-    return {str(c): _json("ErrorBody", text[c]) for c in (401, *codes, 503)}
+    return {str(c): _json("ApiError", text[c]) for c in (401, *codes, 503)}
 
 
 _COMMAND_BODY = {
@@ -48,8 +48,8 @@ _DECISION = {
         (403, "role too low (audited)"), (409, "refused by an invariant (audited)"),
         (413, "body too large (audited)"), (429, "rate limited (audited)"),
         (503, "robot unreachable, or audit unavailable"))},
-    "400": _json("ErrorBody", "schema failure, with the field path (audited)"),
-    "401": _json("ErrorBody", "no or invalid credentials (not audited)"),
+    "400": _json("ApiError", "schema failure, with the field path (audited)"),
+    "401": _json("ApiError", "no or invalid credentials (not audited)"),
 }
 
 

@@ -1,0 +1,132 @@
+"""`rcan-rtps action list|info|send_goal`, shaped like `ros2 action`."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import signal
+import sys
+import uuid
+
+from ..ros.actions import ActionClient, ClientGoal, GoalState
+from ..ros.graph import Direction, RosGraph, node_fqn
+from ..ros.names import EndpointKind, action_names
+from ..ros.services import RequestMapping
+from ._common import make_node
+from .service_cmd import MAPPINGS, dump, parse_values
+
+EXIT_INTERRUPTED = 130
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser("action", help="inspect actions and send goals")
+    actions = parser.add_subparsers(dest="action_command", required=True)
+
+    listing = actions.add_parser("list", help="actions on the graph")
+    listing.add_argument("-t", "--show-types", action="store_true")
+    listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
+    listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
+
+    info = actions.add_parser("info", help="servers and clients of an action")
+    info.add_argument("action", metavar="NAME")
+    info.add_argument("-t", "--show-types", action="store_true")
+    info.add_argument("--spin-time", type=float, default=1.5)
+    info.set_defaults(func=lambda a: asyncio.run(_info(a)))
+
+    send = actions.add_parser("send_goal", help="send a goal and wait for its result "
+                                                "(Ctrl-C cancels the goal)")
+    send.add_argument("action", metavar="NAME")
+    send.add_argument("type", metavar="TYPE")
+    send.add_argument("values", metavar="VALUES", nargs="?", default="{}")
+    send.add_argument("-f", "--feedback", action="store_true", help="print feedback")
+    send.add_argument("--timeout", type=float, default=10.0,
+                      help="seconds to find the server and have the goal answered")
+    send.add_argument("--mapping", choices=MAPPINGS, default="auto")
+    send.set_defaults(func=lambda a: asyncio.run(_send_goal(a)))
+
+
+async def _list(args: argparse.Namespace) -> int:
+    with make_node(args) as node:
+        graph = RosGraph(node)
+        await graph.settle(args.spin_time)
+        for name, types in graph.actions().items():
+            print(f"{name} [{', '.join(types)}]" if args.show_types else name)
+    return 0
+
+
+async def _info(args: argparse.Namespace) -> int:
+    with make_node(args) as node:
+        graph = RosGraph(node)
+        await graph.settle(args.spin_time)
+        name = node.resolve(args.action)
+        send_goal = action_names(name)["send_goal"]
+        ends = [e for e in graph.endpoints()
+                if e.ros_name == send_goal and e.kind is EndpointKind.REQUEST]
+        if not ends:
+            print(f"Action not found: {name}", file=sys.stderr)
+            return 1
+        print(f"Action: {name}")
+        for title, direction in (("clients", Direction.PUBLISHER),
+                                 ("servers", Direction.SUBSCRIPTION)):
+            found = sorted({(node_fqn(e.node_namespace, e.node_name),
+                             e.ros_type.removesuffix("_SendGoal"))
+                            for e in ends if e.direction is direction})
+            print(f"Action {title}: {len(found)}")
+            for fqn, type_name in found:
+                print(f"    {fqn} [{type_name}]" if args.show_types else f"    {fqn}")
+    return 0
+
+
+async def _send_goal(args: argparse.Namespace) -> int:
+    values = parse_values(args.values)
+    interrupted = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    with contextlib.suppress(NotImplementedError):  # not on Windows
+        loop.add_signal_handler(signal.SIGINT, interrupted.set)
+    with make_node(args) as node:
+        client = ActionClient(node, args.action, args.type, mapping=RequestMapping(args.mapping))
+        goal_type = client.types.goal.name
+        message = node.values.build(goal_type, values)  # bad values fail before the graph
+        print("Waiting for an action server to become available...", flush=True)
+        await client.wait_for_server(args.timeout)
+        print("Sending goal:\n" + _indent(dump(node.values.to_plain(goal_type, message))),
+              flush=True)
+        goal = await client.send_goal(message, args.timeout)
+        if not goal.accepted:
+            print("Goal was rejected.", flush=True)
+            return 1
+        print(f"Goal accepted with ID: {uuid.UUID(bytes=goal.goal_id).hex}\n", flush=True)
+        follow = asyncio.ensure_future(_follow(client, goal, args.feedback))
+        stop = asyncio.ensure_future(interrupted.wait())
+        await asyncio.wait({follow, stop}, return_when=asyncio.FIRST_COMPLETED)
+        if not follow.done():  # Ctrl-C: cancel the goal on the server, then report
+            follow.cancel()
+            print("Canceling goal...", flush=True)
+            canceling = await goal.cancel(args.timeout)
+            print("Goal canceled." if canceling else "Cancel request refused.", flush=True)
+            outcome = await goal.result(args.timeout)
+            print(f"Goal finished with status: {outcome.state.name}", flush=True)
+            return EXIT_INTERRUPTED
+        stop.cancel()
+        return follow.result()
+
+
+async def _follow(client: ActionClient, goal: ClientGoal, feedback: bool) -> int:
+    if feedback:
+        feedback_type = client.types.feedback.name
+        async for message in goal.feedback():
+            plain = client.node.values.to_plain(feedback_type, message)
+            print("Feedback:\n" + _indent(dump(plain)) + "\n", flush=True)
+    outcome = await goal.result(timeout=365 * 24 * 3600.0)  # a goal may run for long
+    if outcome.result is not None:
+        plain = client.node.values.to_plain(client.types.result.name, outcome.result)
+        print("Result:\n" + _indent(dump(plain)) + "\n", flush=True)
+    elif outcome.detail:
+        print(outcome.detail, flush=True)
+    print(f"Goal finished with status: {outcome.state.name}", flush=True)
+    return 0 if outcome.state is GoalState.SUCCEEDED else 1
+
+
+def _indent(text: str) -> str:
+    return "\n".join("  " + line for line in text.splitlines())

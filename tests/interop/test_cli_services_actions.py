@@ -1,0 +1,97 @@
+"""`rcan-rtps service …` and `action …` as subprocesses against a real rclpy Jazzy graph."""
+
+from __future__ import annotations
+
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from oracle.client import RclpyOracle
+
+
+def cli(domain_id: int, *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    return subprocess.run([sys.executable, "-m", "rcan_rtps", *args], capture_output=True,
+                          text=True, env=env, timeout=timeout)
+
+
+@pytest.fixture
+def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_python, "cli_peer", "/demo", domain_id=domain_id) as agent:
+        yield agent
+
+
+def test_service_list_and_call(oracle: RclpyOracle, domain_id: int) -> None:
+    oracle.call("service_server", name="/demo/trigger", type="std_srvs/srv/Trigger")
+    oracle.call("service_server", name="/demo/enable", type="std_srvs/srv/SetBool")
+    listing = cli(domain_id, "service", "list", "-t")
+    assert listing.returncode == 0, listing.stderr
+    assert "/demo/trigger [std_srvs/srv/Trigger]" in listing.stdout.splitlines()
+    assert "/demo/enable [std_srvs/srv/SetBool]" in listing.stdout.splitlines()
+
+    done = cli(domain_id, "service", "call", "/demo/enable", "std_srvs/srv/SetBool",
+               "{data: true}")
+    assert done.returncode == 0, done.stderr
+    assert "success: true" in done.stdout and "message: set to True (#1)" in done.stdout
+    assert oracle.call("service_requests", name="/demo/enable") == [{"data": True}]
+
+
+def test_service_call_failures_are_messages(domain_id: int) -> None:
+    done = cli(domain_id, "service", "call", "/nobody", "std_srvs/srv/Trigger", "--timeout", "1")
+    assert done.returncode != 0
+    assert "no server for service /nobody" in done.stderr and "Traceback" not in done.stderr
+    done = cli(domain_id, "service", "call", "/x", "std_srvs/srv/SetBool", "{data: 7}")
+    assert done.returncode != 0
+    assert "data: expected true or false" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_action_list_info_and_send_goal(oracle: RclpyOracle, domain_id: int,
+                                        jazzy_share: Path) -> None:
+    oracle.call("action_server", name="/demo/fibonacci")
+    listing = cli(domain_id, "action", "list", "-t")
+    assert listing.returncode == 0, listing.stderr
+    assert "/demo/fibonacci [test_msgs/action/Fibonacci]" in listing.stdout.splitlines()
+    info = cli(domain_id, "action", "info", "/demo/fibonacci")
+    assert info.returncode == 0, info.stderr
+    assert "Action servers: 1\n    /demo/cli_peer" in info.stdout
+
+    done = cli(domain_id, "--idl-path", str(jazzy_share), "action", "send_goal",
+               "/demo/fibonacci", "test_msgs/action/Fibonacci", "{order: 5}", "--feedback")
+    assert done.returncode == 0, done.stderr
+    out = done.stdout
+    assert "Goal accepted with ID:" in out and "Feedback:" in out
+    assert "Result:\n  sequence:\n  - 0\n  - 1\n  - 1\n  - 2\n  - 3\n  - 5" in out
+    assert out.rstrip().endswith("Goal finished with status: SUCCEEDED")
+
+
+def test_send_goal_ctrl_c_cancels_the_goal(oracle: RclpyOracle, domain_id: int,
+                                          jazzy_share: Path) -> None:
+    oracle.call("action_server", name="/demo/fibonacci", mode="slow")
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rcan_rtps", "--idl-path", str(jazzy_share), "action",
+         "send_goal", "/demo/fibonacci", "test_msgs/action/Fibonacci", "{order: 100}", "-f"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert proc.stdout is not None
+        seen = ""
+        with selectors.DefaultSelector() as sel:
+            sel.register(proc.stdout, selectors.EVENT_READ)
+            deadline = time.monotonic() + 60
+            while "Feedback:" not in seen and time.monotonic() < deadline:
+                if sel.select(1.0):
+                    seen += proc.stdout.readline()
+        assert "Feedback:" in seen, seen
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert "Goal canceled." in out and "Goal finished with status: CANCELED" in out
+    assert "Traceback" not in err

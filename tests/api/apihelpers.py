@@ -6,6 +6,7 @@ records what the governor hands to the bridge.
 
 from __future__ import annotations
 
+import asyncio
 import json
 from collections.abc import Mapping
 from pathlib import Path
@@ -52,6 +53,7 @@ bridge:
     session_timeout_s: 60
     workspace: [[-10, -10], [10, -10], [10, 10], [-10, 10]]
   audit: {path: "%(dir)s/audit.jsonl", key_path: "%(dir)s/audit.key"}
+  %(bridge_extra)s
 """
 
 
@@ -65,8 +67,10 @@ def _principals() -> str:
 
 
 def make_config(tmp: Path, *, hitl_extra: str = "", api_extra: str = "",
-                max_body: int = 64 * 1024, rate: float = 20.0) -> RcanConfig:
+                bridge_extra: str = "", max_body: int = 64 * 1024,
+                rate: float = 20.0) -> RcanConfig:
     text = CONFIG % {"ruri": RURI, "dir": tmp, "hitl_extra": hitl_extra, "rate": rate,
+                     "bridge_extra": bridge_extra,
                      "api_extra": api_extra, "max_body": max_body,
                      "principals": _principals()}
     return loads_config(text, env=ENV)
@@ -82,9 +86,14 @@ class RecordingDispatcher:
     def __init__(self) -> None:
         self.calls: list[tuple[str, dict[str, Any]]] = []
         self.available = True
+        self.hold: asyncio.Event | None = None  # when set: motion waits for it
+        self.entered = asyncio.Event()  # a held dispatch has started
 
     async def dispatch(self, command: NormalizedCommand,
                        applied: Mapping[str, Any]) -> DispatchResult:
+        if self.hold is not None and command.action == "move":
+            self.entered.set()
+            await self.hold.wait()
         if not self.available:
             return DispatchResult(ok=False, detail="no subscriber on /robot1/cmd_vel")
         self.calls.append((command.action, dict(applied)))
@@ -119,12 +128,12 @@ class Api:
     """The real Governor + AuditLog in tmp, the app on 127.0.0.1, and a client for it."""
 
     def __init__(self, tmp: Path, *, hitl_extra: str = "", api_extra: str = "",
-                 max_body: int = 64 * 1024, notifier: Notifier | None = None,
-                 rate: float = 20.0) -> None:
+                 bridge_extra: str = "", max_body: int = 64 * 1024,
+                 notifier: Notifier | None = None, rate: float = 20.0) -> None:
         self.tmp = tmp
         self.clock = ManualClock()
         self.config = make_config(tmp, hitl_extra=hitl_extra, api_extra=api_extra,
-                                  max_body=max_body, rate=rate)
+                                  bridge_extra=bridge_extra, max_body=max_body, rate=rate)
         self.dispatcher = RecordingDispatcher()
         self.robot = MemoryRobot()
         self.notifier = notifier

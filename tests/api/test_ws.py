@@ -1,0 +1,194 @@
+"""GET /api/ws: STATUS stream, commands and outcomes, heartbeats, and session loss on close."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from typing import Any
+
+import aiohttp
+import pytest
+
+from rcan_rtps.governance import Principal
+from rcan_rtps.rcan import Role
+from tests.api.apihelpers import Api, auth
+
+
+async def _frame(ws: aiohttp.ClientWebSocketResponse, kind: str) -> dict[str, Any]:
+    """The next frame of `kind` ("status" / "outcome"), skipping the others."""
+    async def wait() -> dict[str, Any]:
+        while True:
+            msg = await ws.receive()
+            assert msg.type is aiohttp.WSMsgType.TEXT, msg
+            frame: dict[str, Any] = json.loads(msg.data)
+            if frame["type"] == kind:
+                return frame
+
+    return await asyncio.wait_for(wait(), timeout=30)
+
+
+async def _until(predicate: Any) -> None:
+    async def poll() -> None:
+        while not predicate():
+            await asyncio.sleep(0.01)
+
+    await asyncio.wait_for(poll(), timeout=30)
+
+
+async def test_status_is_pushed(api: Api) -> None:
+    async with api.http.ws_connect("/api/ws", headers=auth("viewer")) as ws:
+        first = await _frame(ws, "status")
+        assert first["body"]["ruri"] == api.robot.status(pending_auth=0).ruri
+        api.robot.x = 7.5
+        while (await _frame(ws, "status"))["body"]["telemetry"]["position"]["x"] != 7.5:
+            pass
+
+
+async def test_commands_in_outcomes_out_like_rest(api: Api) -> None:
+    rest_status, rest = await api.command("planner", {"action": "move",
+                                                      "params": {"linear_x": 0.3}})
+    async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
+        await ws.send_str(json.dumps({"action": "move", "params": {"linear_x": 0.3}}))
+        frame = await _frame(ws, "outcome")
+        assert frame["http_status"] == rest_status == 200
+        assert frame["body"].keys() == rest.keys()
+        assert frame["body"]["applied"] == rest["applied"]
+        assert api.entry(frame["body"]["audit_id"])["principal"] == "planner"
+
+        await ws.send_str('{"action": "move", "params": {"linear_x": NaN}}')
+        frame = await _frame(ws, "outcome")
+        assert (frame["http_status"], frame["body"]["error_code"]) == (
+            400, "SCHEMA_VALIDATION_FAILED")
+        assert api.entry(frame["body"]["audit_id"])["deny_reason"].startswith("SCHEMA")
+
+        await ws.send_bytes(b'{"action": "fly"}')
+        frame = await _frame(ws, "outcome")
+        assert (frame["http_status"], frame["body"]["path"]) == (400, "$.action")
+
+        await ws.send_str(json.dumps({"action": "move", "role": "CREATOR"}))
+        assert (await _frame(ws, "outcome"))["http_status"] == 403
+    assert [a for a, _ in api.dispatcher.calls].count("move") == 2
+
+
+async def test_oversized_frames(api: Api) -> None:
+    async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
+        await ws.send_str('{"action": "stop", "pad": "' + "x" * (64 * 1024) + '"}')
+        frame = await _frame(ws, "outcome")
+        assert (frame["http_status"], frame["body"]["error_code"]) == (413,
+                                                                       "PAYLOAD_TOO_LARGE")
+        assert api.entry(frame["body"]["audit_id"])["deny_reason"] == "PAYLOAD_TOO_LARGE"
+        await ws.send_str("x" * (1024 * 1024))  # beyond 4x the limit: the socket closes
+        msg = await asyncio.wait_for(ws.receive(), timeout=30)
+        while msg.type is aiohttp.WSMsgType.TEXT:
+            msg = await asyncio.wait_for(ws.receive(), timeout=30)
+        assert msg.type in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED)
+        assert ws.close_code == aiohttp.WSCloseCode.MESSAGE_TOO_BIG
+    assert api.dispatcher.calls == []
+
+
+async def test_websocket_needs_credentials(api: Api) -> None:
+    with pytest.raises(aiohttp.WSServerHandshakeError) as info:
+        await api.http.ws_connect("/api/ws")
+    assert info.value.status == 401
+
+
+async def _hold_session(api: Api, ws: aiohttp.ClientWebSocketResponse) -> None:
+    await ws.send_str(json.dumps({"action": "move", "params": {"linear_x": 0.2}}))
+    assert (await _frame(ws, "outcome"))["http_status"] == 200
+
+
+async def test_ping_counts_as_heartbeat(api: Api) -> None:
+    async with api.http.ws_connect("/api/ws", headers=auth("planner"), autoping=False) as ws:
+        await _hold_session(api, ws)
+        api.clock.advance(50)  # session_timeout_s is 60
+        await ws.ping(b"hb")
+        while (await asyncio.wait_for(ws.receive(), 30)).type is not aiohttp.WSMsgType.PONG:
+            pass
+        api.clock.advance(50)  # 100 s since the command, 50 s since the ping
+        await api.gov.sweep()
+        assert [a for a, _ in api.dispatcher.calls] == ["move"]
+        api.clock.advance(11)  # now 61 s of silence
+        await api.gov.sweep()
+        assert [a for a, _ in api.dispatcher.calls] == ["move", "stop"]
+
+
+async def test_any_frame_counts_as_heartbeat(api: Api) -> None:
+    async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
+        await _hold_session(api, ws)
+        api.clock.advance(50)
+        await ws.send_str("{}")  # not a valid command, but the client is there
+        await _frame(ws, "outcome")
+        api.clock.advance(50)
+        await api.gov.sweep()
+        assert [a for a, _ in api.dispatcher.calls] == ["move"]
+
+
+async def test_closing_the_socket_of_a_controller_stops_the_robot(api: Api) -> None:
+    ws = await api.http.ws_connect("/api/ws", headers=auth("planner"))
+    await _hold_session(api, ws)
+    await ws.close()
+    # No sweeper runs and the clock stands still: only the closed socket can cause this.
+    await _until(lambda: ("stop", {}) in api.dispatcher.calls)
+    stops = [e for e in api.entries if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+    assert [(e["principal"], e["action_type"], e["outcome"]) for e in stops] == [
+        ("planner", "stop", "executed")]
+
+
+async def test_closing_without_a_session_does_not_stop(api: Api) -> None:
+    async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
+        await _frame(ws, "status")
+    async with api.http.ws_connect("/api/ws", headers=auth("viewer")) as ws:
+        await _frame(ws, "status")
+    # A socket that held a session, closing after those: its stop is the only one.
+    ws = await api.http.ws_connect("/api/ws", headers=auth("planner"))
+    await _hold_session(api, ws)
+    await ws.close()
+    await _until(lambda: ("stop", {}) in api.dispatcher.calls)
+    assert [a for a, _ in api.dispatcher.calls] == ["move", "stop"]
+
+
+async def test_a_queued_estop_is_decided_even_after_close(api: Api) -> None:
+    api.dispatcher.hold = asyncio.Event()
+    ws = await api.http.ws_connect("/api/ws", headers=auth("planner"))
+    await ws.send_str(json.dumps({"action": "move"}))
+    await asyncio.wait_for(api.dispatcher.entered.wait(), timeout=30)
+    await ws.send_str(json.dumps({"action": "estop"}))
+    await ws.send_str(json.dumps({"action": "move"}))  # queued motion: dropped on close
+    await ws.close()
+    api.dispatcher.hold.set()
+    await _until(lambda: len(api.dispatcher.calls) >= 3)
+    # The move in flight finishes, the queued e-stop runs, then the session-loss stop.
+    assert [a for a, _ in api.dispatcher.calls] == ["move", "estop", "stop"]
+    assert api.gov.latch.latched
+
+
+async def test_server_shutdown_closes_sockets(api: Api) -> None:
+    ws = await api.http.ws_connect("/api/ws", headers=auth("viewer"))
+    await _frame(ws, "status")
+    closing = asyncio.create_task(api.http.server.close())  # the client answers meanwhile
+    msg = await asyncio.wait_for(ws.receive(), timeout=30)
+    while msg.type is aiohttp.WSMsgType.TEXT:
+        msg = await asyncio.wait_for(ws.receive(), timeout=30)
+    assert msg.type in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED)
+    assert ws.close_code == aiohttp.WSCloseCode.GOING_AWAY
+    await ws.close()
+    await asyncio.wait_for(closing, timeout=30)
+
+
+# -- the governor's part --------------------------------------------------------------------
+
+
+async def test_end_session_stops_once_and_only_for_a_session_holder(api: Api) -> None:
+    planner = Principal("planner", Role.USER, None)
+    assert await api.gov.end_session(planner) is None  # no session yet
+    status, _ = await api.command("planner", {"action": "move"})
+    assert status == 200
+    decision = await api.gov.end_session(planner)
+    assert decision is not None
+    assert decision.outcome.value == "executed"
+    assert api.entry(decision.audit_id or "")["event"] == "NETWORK_LOSS_SAFE_STOP"
+    assert await api.gov.end_session(planner) is None  # ended: nothing left to stop
+    await api.command("planner", {"action": "move"})
+    await api.command("planner", {"action": "stop"})  # stopped on purpose: session over
+    assert await api.gov.end_session(planner) is None
+    assert [a for a, _ in api.dispatcher.calls] == ["move", "stop", "move", "stop"]

@@ -107,3 +107,19 @@ async def test_malformed_request_names_the_field(node: RosNode) -> None:
     client = ServiceClient(node, "/enable", "std_srvs/srv/SetBool")
     with pytest.raises(ValueFitError, match=r"^data: expected true or false"):
         await client.call({"data": "yes"}, timeout=1.0)
+
+
+async def test_fastdds_client_cannot_use_our_server(oracle: RclpyOracle, node: RosNode) -> None:
+    """Documented limitation: our server drops header-less Fast DDS requests (it cannot set
+    the RTPS related-sample identity an rmw_fastrtps client needs on a reply)."""
+    handled: list[object] = []
+
+    async def handle(request: object) -> dict[str, object]:
+        handled.append(request)
+        return {"success": True, "message": "should not arrive"}
+
+    server = ServiceServer(node, "/ours", "std_srvs/srv/Trigger", handle)
+    reply = await asyncio.to_thread(oracle.call, "service_call", name="/ours",
+                                    type="std_srvs/srv/Trigger", value={}, wait=3.0)
+    assert reply == {"timeout": True} and handled == []
+    await server.close()

@@ -224,15 +224,16 @@ class Agent:
             return list(self.service_requests.get(name, []))
 
     def op_service_call(self, name: str, type: str, value: dict[str, Any],
-                        timeout: float = 5.0) -> Any:
-        """An rclpy client call; returns the response or {"timeout": true}."""
+                        wait: float = 5.0) -> Any:
+        """An rclpy client call; returns the response, {"no_service": true} or
+        {"timeout": true} after `wait` seconds."""
         srv = load_type(type)
         client = self.node.create_client(srv, name, callback_group=self.group)
         try:
-            if not client.wait_for_service(timeout_sec=timeout):
+            if not client.wait_for_service(timeout_sec=wait):
                 return {"no_service": True}
             future = client.call_async(fill(srv.Request(), value))
-            deadline = time.monotonic() + timeout
+            deadline = time.monotonic() + wait
             while not future.done() and time.monotonic() < deadline:
                 time.sleep(0.02)
             return plain(future.result()) if future.done() else {"timeout": True}

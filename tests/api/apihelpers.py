@@ -143,6 +143,14 @@ class Api:
         self.client: TestClient[web.Request, web.Application] | None = None
 
     async def start(self) -> Api:
+        """Build, and serve on 127.0.0.1 through aiohttp's test server."""
+        await self.build()
+        assert self.app is not None
+        self.client = TestClient(TestServer(self.app, host="127.0.0.1"))
+        await self.client.start_server()
+        return self
+
+    async def build(self) -> web.Application:
         bridge = self.config.bridge
         self.log = await AuditLog.open(bridge.audit.path, bridge.audit.key_path, ruri=RURI,
                                        clock=self.clock)
@@ -153,9 +161,7 @@ class Api:
                                                        clock=self.clock)
         self.app = build_app(governor=self.governor, authenticator=authenticator,
                              robot=self.robot, config=self.config)
-        self.client = TestClient(TestServer(self.app, host="127.0.0.1"))
-        await self.client.start_server()
-        return self
+        return self.app
 
     async def close(self) -> None:
         if self.client is not None:

@@ -9,7 +9,16 @@ from collections.abc import Sequence
 
 from .. import __version__
 from ..ros.errors import WireError
-from . import action_cmd, audit_cmd, config_cmd, interface_cmd, node_cmd, service_cmd, topic_cmd
+from . import (
+    action_cmd,
+    audit_cmd,
+    config_cmd,
+    discover_cmd,
+    interface_cmd,
+    node_cmd,
+    service_cmd,
+    topic_cmd,
+)
 from ._common import add_global_options
 
 EXIT_ERROR = 1
@@ -24,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_global_options(parser)
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in (topic_cmd, node_cmd, interface_cmd, config_cmd, audit_cmd,
-                   service_cmd, action_cmd):
+                   service_cmd, action_cmd, discover_cmd):
         module.register(commands)
     return parser
 

@@ -1,0 +1,165 @@
+"""mDNS: the advert and its TXT as a zeroconf browser sees them, re-announcement, withdrawal,
+and `rcan-rtps discover`. Zeroconf is bound to 127.0.0.1 only, and the tests that send packets
+run only inside a private network namespace (`scripts/netns`), so nothing leaves the machine."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import io
+import json
+import socket
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+
+from rcan_rtps.bridge.mdns import (
+    SERVICE_TYPE,
+    Advert,
+    DiscoveredRobot,
+    RcanAdvertiser,
+    RcanBrowser,
+    txt_records,
+)
+from rcan_rtps.cli.main import main
+from rcan_rtps.config import RcanConfig, loads_config
+
+LOOPBACK = ["127.0.0.1"]
+INSTANCE = "clearpath-husky-a200-0001"
+CONFIG = """\
+robot: {ruri: "rcan://registry.local/clearpath/husky/a200-0001", name: Husky A200}
+bridge:
+  ros2: {distro: kilted}
+  api: {auth_token_env: T}
+  safety: {max_linear_vel: 1.0, max_angular_vel: 1.0}
+  %s
+"""
+
+
+def _isolated() -> bool:
+    """Only a loopback interface: we are in a private network namespace."""
+    return [name for _, name in socket.if_nameindex()] == ["lo"]
+
+
+needs_netns = pytest.mark.skipif(
+    not _isolated(), reason="mDNS tests send multicast: run them under scripts/netns")
+
+
+def _config(extra: str = "") -> RcanConfig:
+    return loads_config(CONFIG % extra, env={"T": "t" * 32})
+
+
+def test_txt_records_follow_the_profile() -> None:
+    txt = txt_records(_config(), api_url="http://10.0.0.5:8765")
+    assert txt == {
+        "ruri": "rcan://registry.local/clearpath/husky/a200-0001",
+        "role": "USER", "version": "1.2", "spec": "1.2", "bridge": "ros2",
+        "distro": "kilted", "api": "http://10.0.0.5:8765",
+        "status_endpoint": "http://10.0.0.5:8765/api/status", "model": "husky",
+        "name": "Husky A200", "caps": "move,arm_joint,navigate,stop,estop,clear_estop",
+    }
+
+
+def test_role_is_the_lowest_that_may_command() -> None:
+    raised = _config("rbac: {action_roles: {move: LEASEE, arm_joint: OWNER, navigate: LEASEE,"
+                     " stop: LEASEE}}")
+    assert txt_records(raised, api_url="http://h:1")["role"] == "LEASEE"
+
+
+def test_advert_instance_and_port() -> None:
+    advert = Advert.from_config(_config(), api_url="https://10.0.0.5:9443/",
+                                addresses=["10.0.0.5"])
+    assert (advert.instance, advert.port, advert.addresses) == (INSTANCE, 9443, ("10.0.0.5",))
+    assert advert.txt["status_endpoint"] == "https://10.0.0.5:9443/api/status"
+
+
+def _advert(port: int = 18765, address: str = "127.0.0.1") -> Advert:
+    return Advert.from_config(_config(), api_url=f"http://{address}:{port}",
+                              addresses=[address])
+
+
+def _has(instance: str, **txt: str):  # type: ignore[no-untyped-def]
+    def check(robots: list[DiscoveredRobot]) -> bool:
+        return any(r.instance == instance and all(r.txt.get(k) == v for k, v in txt.items())
+                   for r in robots)
+    return check
+
+
+@pytest.fixture
+async def browser() -> AsyncIterator[RcanBrowser]:
+    async with RcanBrowser(interfaces=LOOPBACK) as found:
+        yield found
+
+
+@needs_netns
+async def test_browser_sees_the_txt_records(browser: RcanBrowser) -> None:
+    async with RcanAdvertiser(_advert(), interfaces=LOOPBACK):
+        robots = await browser.wait_for(_has(INSTANCE), timeout_s=30)
+    robot = next(r for r in robots if r.instance == INSTANCE)
+    assert robot.txt == _advert().txt
+    assert (robot.port, robot.addresses, robot.host) == (18765, ["127.0.0.1"],
+                                                         f"{INSTANCE}.local.")
+
+
+@needs_netns
+async def test_reannounced_on_endpoint_and_address_change(browser: RcanBrowser) -> None:
+    async with RcanAdvertiser(_advert(), interfaces=LOOPBACK) as advertiser:
+        await browser.wait_for(_has(INSTANCE), timeout_s=30)
+        assert not await advertiser.update(_advert())  # nothing changed: nothing sent
+        assert await advertiser.update(_advert(port=18766))
+        robots = await browser.wait_for(
+            _has(INSTANCE, status_endpoint="http://127.0.0.1:18766/api/status"), timeout_s=30)
+        assert next(r for r in robots if r.instance == INSTANCE).port == 18766
+        assert await advertiser.update(_advert(port=18766, address="127.0.0.2"))
+
+        def moved(robots: list[DiscoveredRobot]) -> bool:
+            return any(r.instance == INSTANCE and r.addresses == ["127.0.0.2"] for r in robots)
+
+        await browser.wait_for(moved, timeout_s=30)
+
+
+@needs_netns
+async def test_follow_reannounces_what_the_provider_says(browser: RcanBrowser) -> None:
+    current = [_advert()]
+    async with RcanAdvertiser(current[0], interfaces=LOOPBACK) as advertiser:
+        advertiser.follow(lambda: current[0], interval_s=0.05)
+        await browser.wait_for(_has(INSTANCE), timeout_s=30)
+        current[0] = _advert(port=18799)
+        await browser.wait_for(_has(INSTANCE, api="http://127.0.0.1:18799"), timeout_s=30)
+
+
+@needs_netns
+async def test_withdrawn_on_shutdown(browser: RcanBrowser) -> None:
+    async with RcanAdvertiser(_advert(), interfaces=LOOPBACK):
+        await browser.wait_for(_has(INSTANCE), timeout_s=30)
+    await browser.wait_for(lambda robots: not _has(INSTANCE)(robots), timeout_s=30)
+
+
+@needs_netns
+async def test_discover_command_lists_robots_with_their_txt(tmp_path: Path) -> None:
+    async with RcanAdvertiser(_advert(), interfaces=LOOPBACK):
+        async with RcanBrowser(interfaces=LOOPBACK) as browser:  # advertised by now
+            await browser.wait_for(_has(INSTANCE), timeout_s=30)
+        out = io.StringIO()
+
+        def run() -> int:
+            with contextlib.redirect_stdout(out):
+                return main(["discover", "--timeout", "1.5", "--json",
+                             "--interface", "127.0.0.1"])
+
+        assert await asyncio.to_thread(run) == 0
+    found = [json.loads(line) for line in out.getvalue().splitlines()]
+    robot = next(r for r in found if r["instance"] == INSTANCE)
+    assert robot["txt"]["ruri"] == "rcan://registry.local/clearpath/husky/a200-0001"
+    assert robot["txt"]["spec"] == "1.2"
+    assert robot["addresses"] == ["127.0.0.1"]
+
+
+def test_discover_rejects_a_bad_timeout(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["discover", "--timeout", "-1"]) == 1
+    assert "--timeout" in capsys.readouterr().err
+
+
+def test_service_type() -> None:
+    assert SERVICE_TYPE == "_rcan._tcp.local."

@@ -74,6 +74,23 @@ def test_advert_instance_and_port() -> None:
     assert advert.txt["status_endpoint"] == "https://10.0.0.5:9443/api/status"
 
 
+def test_advert_for_a_server_bound_to_one_address() -> None:
+    advert = Advert.for_server(_config(), host="127.0.0.1", port=8765, tls=True)
+    assert advert.addresses == ("127.0.0.1",)
+    assert advert.txt["api"] == "https://127.0.0.1:8765"
+
+
+def test_advert_for_a_wildcard_bind_names_the_mdns_host() -> None:
+    advert = Advert.for_server(_config(), host="0.0.0.0", port=8765)
+    assert advert.txt["api"] == f"http://{INSTANCE}.local:8765"
+    assert advert.addresses
+    for address in advert.addresses:
+        socket.inet_aton(address)
+    loopback = [a for a in advert.addresses if a.startswith("127.")]
+    assert loopback in ([], ["127.0.0.1"])
+    assert not loopback or advert.addresses == ("127.0.0.1",)
+
+
 def _advert(port: int = 18765, address: str = "127.0.0.1") -> Advert:
     return Advert.from_config(_config(), api_url=f"http://{address}:{port}",
                               addresses=[address])

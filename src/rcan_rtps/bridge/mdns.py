@@ -1,6 +1,7 @@
 """mDNS (zeroconf, async): advertise the robot as `_rcan._tcp.local.` and find RCAN robots.
 
     Advert.from_config(config, api_url=, addresses=) -> Advert     what is announced
+    Advert.for_server(config, host=, port=, tls=) -> Advert         ... for a bound API
     RcanAdvertiser(advert, interfaces=)                            async context manager:
         register on enter, `update(advert)` re-announces a changed address or endpoint,
         `follow(provider, interval_s)` re-announces whatever `provider()` says now,
@@ -24,6 +25,7 @@ from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import Any
 
+import ifaddr  # zeroconf's own dependency for interface addresses
 import msgspec
 from zeroconf import InterfaceChoice, IPVersion, ServiceStateChange, Zeroconf
 from zeroconf.asyncio import AsyncServiceBrowser, AsyncServiceInfo, AsyncZeroconf
@@ -38,6 +40,7 @@ SERVICE_TYPE = "_rcan._tcp.local."
 RCAN_SPEC = "1.2"
 _COMMANDING = ("move", "arm_joint", "navigate", "stop")
 _RESOLVE_MS = 3000.0
+_WILDCARDS = ("", "0.0.0.0")
 
 
 class Advert(msgspec.Struct, frozen=True, kw_only=True):
@@ -58,6 +61,37 @@ class Advert(msgspec.Struct, frozen=True, kw_only=True):
             443 if url.startswith("https") else 80)
         return cls(instance=instance, port=port, addresses=tuple(addresses),
                    txt=txt_records(config, api_url=url))
+
+
+    @classmethod
+    def for_server(cls, config: RcanConfig, *, host: str, port: int,
+                   tls: bool = False) -> Advert:
+        """The advert of an API bound to `host`:`port`. A wildcard bind announces every
+        interface address, and its `api` URL names the mDNS host `<instance>.local`, which
+        resolves to exactly those; call again (or `follow`) to pick up address changes."""
+        addresses = addresses_for(host)
+        wildcard = host in _WILDCARDS
+        ruri = parse_ruri(config.robot.ruri)
+        where = f"{ruri.manufacturer}-{ruri.model}-{ruri.device_id}.local" if wildcard else \
+            addresses[0]
+        scheme = "https" if tls else "http"
+        return cls.from_config(config, api_url=f"{scheme}://{where}:{port}",
+                               addresses=addresses)
+
+
+def addresses_for(host: str) -> list[str]:
+    """IPv4 addresses to announce for an API bound to `host`: for a wildcard, every
+    non-loopback interface address (loopback only when there is no other)."""
+    if host in _WILDCARDS:
+        found = sorted({str(ip.ip) for adapter in ifaddr.get_adapters() for ip in adapter.ips
+                        if ip.is_IPv4 and not str(ip.ip).startswith("127.")})
+        return found or ["127.0.0.1"]
+    try:
+        socket.inet_aton(host)
+    except OSError:
+        infos = socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_STREAM)
+        return sorted({str(info[4][0]) for info in infos})
+    return [host]
 
 
 def txt_records(config: RcanConfig, *, api_url: str) -> dict[str, str]:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import uuid
 
 import pytest
@@ -189,3 +191,12 @@ async def test_broken_robot_view_is_503_not_500(api: Api) -> None:
     status, body = await api.call("GET", "/api/status", "viewer")
     assert (status, body["outcome"], body["reason"]) == (503, "failed", "internal_error")
 
+
+
+def test_the_api_imports_no_dds() -> None:
+    code = ("import sys, rcan_rtps.api; "
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] == 'cyclonedds' "
+            "or m.startswith(('rcan_rtps.ros', 'rcan_rtps.bridge'))); print(bad)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=60)
+    assert out.stdout.strip() == "[]"

@@ -17,6 +17,7 @@ from . import (
     interface_cmd,
     node_cmd,
     service_cmd,
+    sim_cmd,
     topic_cmd,
 )
 from ._common import add_global_options
@@ -32,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"rcan-rtps {__version__}")
     add_global_options(parser)
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (topic_cmd, node_cmd, interface_cmd, config_cmd, audit_cmd,
+    for module in (topic_cmd, node_cmd, interface_cmd, config_cmd, audit_cmd, sim_cmd,
                    service_cmd, action_cmd, discover_cmd):
         module.register(commands)
     return parser

@@ -117,10 +117,22 @@ class RosSubscription:
         self.reader: DataReader[Any] = DataReader(
             node.subscriber, dds_topic, qos=qos.to_dds(user_data), listener=listener)
 
-    def _on_data(self, reader: DataReader[Any]) -> None:
-        for sample in reader.take(N=256):
+    def _on_data(self, _reader: Any) -> None:
+        # Runs on a DDS thread; it can fire before `self.reader` is assigned (historical
+        # data during construction) or after close: the next arrival retries.
+        reader = getattr(self, "reader", None)
+        if reader is None:
+            return
+        try:
+            samples = reader.take(N=256)
+        except Exception:  # the reader was deleted under us (shutdown)
+            return
+        for sample in samples:
             if self._callback is not None:
-                self._callback(sample)
+                try:
+                    self._callback(sample)
+                except Exception:  # one bad sample must not silence the subscription
+                    log.exception("subscription %s: callback failed", self.topic)
             elif self._loop is not None:
                 try:
                     self._loop.call_soon_threadsafe(self._put, sample)
@@ -192,6 +204,7 @@ class RosNode:
         self._topics: dict[str, Topic[Any]] = {}
         self._readers: list[Any] = []
         self._writers: list[Any] = []
+        self._subscriptions: list[RosSubscription] = []
         self._lock = threading.Lock()
         self._info_writer = self._discovery_writer()
         self.announce()
@@ -229,6 +242,8 @@ class RosNode:
                             callback: Callable[[IdlStruct], None] | None = None,
                             maxsize: int = 1000) -> RosSubscription:
         sub = RosSubscription(self, self.resolve(topic), type_name, qos, callback, maxsize)
+        # The node owns its subscriptions: a dropped handle must not silence the DDS listener.
+        self._subscriptions.append(sub)
         self.track_reader(sub.reader)
         return sub
 
@@ -295,6 +310,7 @@ class RosNode:
         with self._lock:
             self._readers.clear()
             self._writers.clear()
+            self._subscriptions.clear()
         participant = self.participant
         del self._info_writer
         participant.__del__()

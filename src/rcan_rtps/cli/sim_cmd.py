@@ -1,0 +1,37 @@
+"""`rcan-rtps sim`: the simulated robot as its own ROS 2 node (no ROS install needed)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+
+from ..ros.participant import RosNode
+from ..sim.robot import SimParams, SimRobot
+from ._common import make_store
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser("sim", help="run a simulated differential-drive robot")
+    parser.add_argument("--namespace", default="/robot1")
+    parser.add_argument("--node-name", default="sim_robot")
+    parser.add_argument("--cmd-vel-type", default="geometry_msgs/msg/Twist",
+                        choices=("geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistStamped"))
+    parser.add_argument("--rate", type=float, default=50.0, help="odometry rate (Hz)")
+    parser.add_argument("--cmd-timeout", type=float, default=0.5,
+                        help="stop when no cmd_vel arrived for this long (s)")
+    parser.set_defaults(func=lambda a: asyncio.run(_run(a)))
+
+
+async def _run(args: argparse.Namespace) -> int:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    with RosNode(args.node_name, args.namespace, domain_id=args.domain_id,
+                 localhost=args.localhost, store=make_store(args)) as node:
+        robot = SimRobot(node, cmd_vel_type=args.cmd_vel_type,
+                         params=SimParams(rate_hz=args.rate, cmd_timeout_s=args.cmd_timeout))
+        print(f"rcan-rtps sim ready node={node.fqn} domain={node.domain_id}", flush=True)
+        await robot.run(stop)
+    return 0

@@ -118,7 +118,7 @@ class RosDispatcher:
                                   detail=str(exc))
         return DispatchResult(ok=True, ros2_topic=self.navigator.action_name, goal_id=goal_id)
 
-    async def _halt(self) -> tuple[bool, int]:
+    async def halt(self) -> tuple[bool, int]:
         """Zero velocity and cancel every goal; (cmd_vel reached, goals cancelled)."""
         reached = await self._matched(self.cmd_vel)
         self.cmd_vel.publish(self._twist())  # published even unmatched: late joiners must stop
@@ -131,7 +131,7 @@ class RosDispatcher:
         return reached, cancelled
 
     async def _stop(self, applied: Mapping[str, Any]) -> DispatchResult:
-        reached, cancelled = await self._halt()
+        reached, cancelled = await self.halt()
         if not reached and not cancelled:
             return DispatchResult(ok=False, ros2_topic=self.cmd_vel.topic,
                                   detail=f"no subscriber on {self.cmd_vel.topic}")
@@ -143,7 +143,7 @@ class RosDispatcher:
         told = await self._matched(self.estop)
         if told:
             self.estop.publish({"data": True})  # the first write may have preceded the match
-        reached, cancelled = await self._halt()
+        reached, cancelled = await self.halt()
         if not (told or reached or cancelled):
             return DispatchResult(ok=False, ros2_topic=self.estop.topic,
                                   detail=f"no subscriber on {self.estop.topic}")

@@ -8,6 +8,9 @@ import sys
 from collections.abc import Sequence
 
 from .. import __version__
+from ..config import ConfigError
+from ..governance import GovernanceError
+from ..rcan import RcanError
 from ..ros.errors import WireError
 from . import (
     action_cmd,
@@ -16,6 +19,7 @@ from . import (
     discover_cmd,
     interface_cmd,
     node_cmd,
+    run_cmd,
     service_cmd,
     sim_cmd,
     topic_cmd,
@@ -33,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"rcan-rtps {__version__}")
     add_global_options(parser)
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (topic_cmd, node_cmd, interface_cmd, config_cmd, audit_cmd, sim_cmd,
+    for module in (run_cmd, topic_cmd, node_cmd, interface_cmd, config_cmd, audit_cmd, sim_cmd,
                    service_cmd, action_cmd, discover_cmd):
         module.register(commands)
     return parser
@@ -47,6 +51,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args))
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
-    except (WireError, ValueError, OSError) as exc:
+    except (WireError, ConfigError, GovernanceError, RcanError, ValueError, OSError) as exc:
         print(f"rcan-rtps: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

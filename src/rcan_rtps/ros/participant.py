@@ -20,6 +20,7 @@ from typing import Any
 from cyclonedds.core import Listener, Policy
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct
+from cyclonedds.internal import InvalidSample
 from cyclonedds.pub import DataWriter, Publisher
 from cyclonedds.qos import Qos
 from cyclonedds.sub import DataReader, Subscriber
@@ -128,6 +129,8 @@ class RosSubscription:
         except Exception:  # the reader was deleted under us (shutdown)
             return
         for sample in samples:
+            if isinstance(sample, InvalidSample):  # a writer left or disposed: no data
+                continue
             if self._callback is not None:
                 try:
                     self._callback(sample)

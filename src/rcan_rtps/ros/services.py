@@ -34,6 +34,7 @@ from typing import Any
 
 from cyclonedds.core import Listener
 from cyclonedds.idl import IdlStruct
+from cyclonedds.internal import InvalidSample
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 
@@ -136,6 +137,7 @@ class _Pair:
         except Exception:  # a sample that does not decode must not kill the listener
             log.debug("dropped undecodable samples", exc_info=True)
             return
+        samples = [s for s in samples if not isinstance(s, InvalidSample)]  # writer gone
         if samples:
             try:
                 self._loop.call_soon_threadsafe(self._deliver, self, samples)

@@ -1,0 +1,73 @@
+"""The built-in demo: a config for `rcan-rtps run --sim`, with tokens made per run."""
+
+from __future__ import annotations
+
+import os
+import secrets
+from collections.abc import Mapping
+from pathlib import Path
+
+from ..config import RcanConfig, loads_config
+
+USER_TOKEN_ENV = "RCAN_DEMO_USER_TOKEN"
+OWNER_TOKEN_ENV = "RCAN_BRIDGE_TOKEN"
+VIEWER_TOKEN_ENV = "RCAN_DEMO_VIEWER_TOKEN"
+
+DEMO_YAML = """\
+robot:
+  ruri: rcan://registry.local/rcan-rtps/simbot/sim-0001
+  name: rcan-rtps simulated robot
+bridge:
+  type: ros2
+  ros2:
+    namespace: {namespace}
+    node_name: rcan_bridge
+    domain_id: {domain_id}
+    distro: jazzy
+    telemetry_rate_hz: 10
+    nav_frame_id: map
+  hitl:
+    timeout_seconds: 300
+    confidence_gate: {{min_confidence: 0.5, on_fail: escalate}}
+    gates:
+      - {{action: arm_joint, require_auth: true, authorized_roles: [OWNER, CREATOR]}}
+  api:
+    host: 127.0.0.1
+    port: {port}
+    principals:
+      - {{name: viewer, role: GUEST, token_env: {viewer}}}
+      - {{name: operator, role: USER, token_env: {user}}}
+      - {{name: owner, role: OWNER, token_env: {owner}}}
+  safety:
+    max_linear_vel: 1.0
+    max_angular_vel: 1.5
+    velocity_exceed_deny: true
+    session_timeout_s: 5.0
+    workspace: [[-20, -20], [20, -20], [20, 20], [-20, 20]]
+  audit:
+    path: {state}/audit.jsonl
+    key_path: {state}/audit-ed25519.key
+"""
+
+
+def default_state_dir() -> Path:
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "rcan-rtps" / "sim"
+
+
+def demo_tokens(env: Mapping[str, str]) -> dict[str, str]:
+    """Fresh tokens for the demo principals; RCAN_BRIDGE_TOKEN, when set, is the owner's."""
+    return {
+        VIEWER_TOKEN_ENV: env.get(VIEWER_TOKEN_ENV) or secrets.token_urlsafe(24),
+        USER_TOKEN_ENV: env.get(USER_TOKEN_ENV) or secrets.token_urlsafe(24),
+        OWNER_TOKEN_ENV: env.get(OWNER_TOKEN_ENV) or secrets.token_urlsafe(24),
+    }
+
+
+def demo_config(*, state_dir: Path, port: int, domain_id: int, namespace: str,
+                env: Mapping[str, str]) -> RcanConfig:
+    state_dir.mkdir(parents=True, exist_ok=True)
+    text = DEMO_YAML.format(namespace=namespace, domain_id=domain_id, port=port,
+                            state=state_dir, viewer=VIEWER_TOKEN_ENV, user=USER_TOKEN_ENV,
+                            owner=OWNER_TOKEN_ENV)
+    return loads_config(text, source="<built-in demo config>", env=env)

@@ -1,0 +1,120 @@
+"""`navigate` goals over nav2 NavigateToPose, tracked for GET /api/goals/{goal_id}.
+
+Each accepted goal gets a watcher task that records feedback (as plain values) and the
+final result, so the API reads goal progress without touching DDS.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+import uuid
+from typing import Any
+
+from ..api.ports import GoalState, GoalView
+from ..ros.actions import ActionClient, ClientGoal
+from ..ros.actions import GoalState as RosGoalState
+from ..ros.errors import ActionError, WireError
+from ..ros.participant import RosNode
+
+log = logging.getLogger(__name__)
+NAVIGATE_TO_POSE = "nav2_msgs/action/NavigateToPose"
+_STATES: dict[RosGoalState, GoalState] = {
+    RosGoalState.UNKNOWN: "unknown", RosGoalState.ACCEPTED: "accepted",
+    RosGoalState.EXECUTING: "executing", RosGoalState.CANCELING: "canceling",
+    RosGoalState.SUCCEEDED: "succeeded", RosGoalState.CANCELED: "canceled",
+    RosGoalState.ABORTED: "aborted", RosGoalState.REJECTED: "rejected",
+    RosGoalState.SERVER_LOST: "lost",
+}
+_TERMINAL = {"succeeded", "canceled", "aborted", "rejected", "lost"}
+RESULT_TIMEOUT_S = 3600.0
+
+
+def _ms() -> int:
+    return int(time.time() * 1000)
+
+
+class GoalTracker:
+    """The bridge's `Navigator`: sends NavigateToPose goals and follows them."""
+
+    def __init__(self, node: RosNode, action: str, *, keep: int = 200) -> None:
+        self.node = node
+        self.client = ActionClient(node, action, NAVIGATE_TO_POSE)
+        self._views: dict[str, GoalView] = {}
+        self._handles: dict[str, ClientGoal] = {}
+        self._watchers: set[asyncio.Task[None]] = set()
+        self._keep = keep
+
+    @property
+    def action_name(self) -> str:
+        return self.client.name
+
+    async def send(self, goal: dict[str, Any], timeout: float) -> str:
+        handle = await self.client.send_goal(goal, timeout=timeout)
+        if not handle.accepted:
+            raise ActionError(f"{self.client.name} rejected the goal")
+        goal_id = str(uuid.UUID(bytes=handle.goal_id))
+        now = _ms()
+        self._views[goal_id] = GoalView(goal_id=goal_id, action=self.client.name,
+                                        state="accepted", created_ms=now, updated_ms=now)
+        self._handles[goal_id] = handle
+        task = asyncio.create_task(self._watch(goal_id, handle))
+        self._watchers.add(task)
+        task.add_done_callback(self._watchers.discard)
+        self._forget_old()
+        return goal_id
+
+    async def _watch(self, goal_id: str, handle: ClientGoal) -> None:
+        values = self.node.values
+        feedback_type = self.client.types.feedback.name
+        try:
+            async for feedback in handle.feedback():
+                self._update(goal_id, _STATES[handle.state],
+                             feedback=values.to_plain(feedback_type, feedback))
+            outcome = await handle.result(timeout=RESULT_TIMEOUT_S)
+        except (WireError, OSError) as exc:
+            self._update(goal_id, "unknown", detail=str(exc))
+            return
+        result = None
+        if outcome.result is not None:
+            result = values.to_plain(self.client.types.result.name, outcome.result)
+        self._update(goal_id, _STATES[outcome.state], result=result, detail=outcome.detail or None)
+
+    def _update(self, goal_id: str, state: GoalState, **changes: Any) -> None:
+        view = self._views.get(goal_id)
+        if view is None:
+            return
+        for key, value in changes.items():
+            if value is not None:
+                setattr(view, key, value)
+        view.state = state
+        view.updated_ms = _ms()
+
+    async def cancel_all(self) -> int:
+        """Cancels every goal on the server, whoever sent it: `stop` means stop."""
+        try:
+            return await self.client.cancel_all(timeout=2.0, server_wide=True)
+        except WireError:
+            log.warning("no action server on %s to cancel goals", self.client.name)
+            return 0
+
+    def active(self) -> list[str]:
+        return [g for g, v in self._views.items() if v.state not in _TERMINAL]
+
+    def goal(self, goal_id: str) -> GoalView | None:
+        return self._views.get(goal_id)
+
+    def goals(self) -> list[GoalView]:
+        return sorted(self._views.values(), key=lambda v: v.created_ms)
+
+    def _forget_old(self) -> None:
+        finished = [g for g, v in self._views.items() if v.state in _TERMINAL]
+        for goal_id in finished[: max(0, len(self._views) - self._keep)]:
+            self._views.pop(goal_id, None)
+            self._handles.pop(goal_id, None)
+
+    async def close(self) -> None:
+        for task in list(self._watchers):
+            task.cancel()
+        await asyncio.gather(*self._watchers, return_exceptions=True)

@@ -1,0 +1,107 @@
+"""`rcan-rtps run`: the governed bridge (and, with `--sim`, the simulated robot beside it)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import signal
+from pathlib import Path
+
+from ..bridge.demo import (
+    OWNER_TOKEN_ENV,
+    USER_TOKEN_ENV,
+    default_state_dir,
+    demo_config,
+    demo_tokens,
+)
+from ..bridge.runtime import Bridge, BridgeOptions
+from ..config import RcanConfig, load_config
+from ..ros.participant import RosNode
+from ..sim.navigation import NavigationServer
+from ..sim.robot import SimRobot
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser("run", help="run the governed bridge")
+    parser.add_argument("--config", type=Path, help=".rcan.yaml (default with --sim: built in)")
+    parser.add_argument("--sim", action="store_true",
+                        help="also run the simulated robot; loopback-only unless --lan")
+    parser.add_argument("--lan", action="store_true", help="with --sim: discover beyond loopback")
+    parser.add_argument("--host", help="override api.host")
+    parser.add_argument("--port", type=int, help="override api.port (0: any free port)")
+    parser.add_argument("--state-dir", type=Path, help="--sim: audit log and key (default: "
+                        "$XDG_STATE_HOME/rcan-rtps/sim)")
+    parser.add_argument("--no-mdns", action="store_true", help="do not advertise over mDNS")
+    parser.set_defaults(func=lambda a: asyncio.run(_run(a)))
+
+
+def _config(args: argparse.Namespace, env: dict[str, str]) -> RcanConfig:
+    if args.config is not None:
+        return load_config(args.config, env=env)
+    if not args.sim:
+        raise ValueError("--config FILE is required (or --sim for the built-in demo)")
+    domain = args.domain_id if args.domain_id is not None else int(
+        env.get("ROS_DOMAIN_ID", "0") or 0)
+    return demo_config(state_dir=args.state_dir or default_state_dir(),
+                       port=args.port or 8765, domain_id=domain,
+                       namespace="/robot1", env=env)
+
+
+CURL_EXAMPLES = (
+    "curl -s -H 'Authorization: Bearer {token}' {url}/api/status",
+    "curl -s -H 'Authorization: Bearer {token}' -H 'Content-Type: application/json' "
+    "-d '{{\"action\": \"move\", \"params\": {{\"linear_x\": 0.5}}}}' {url}/api/command",
+    "curl -s -H 'Authorization: Bearer {token}' -H 'Content-Type: application/json' "
+    "-d '{{\"action\": \"navigate\", \"params\": {{\"x\": 2.0, \"y\": 1.0, \"yaw\": 0.0}}}}' "
+    "{url}/api/command",
+)
+
+
+def _print_demo(url: str, env: dict[str, str], config: RcanConfig) -> None:
+    user, owner = env[USER_TOKEN_ENV], env[OWNER_TOKEN_ENV]
+    print(f"demo tokens: USER (operator) {user}\n             OWNER (owner)   {owner}")
+    print(f"audit log: {config.bridge.audit.path}")
+    print("try:")
+    for example in CURL_EXAMPLES:
+        print("  " + example.format(token=user, url=url))
+    print(flush=True)
+
+
+async def _run(args: argparse.Namespace) -> int:
+    env = dict(os.environ)
+    if args.sim:
+        env.update(demo_tokens(env))
+    config = _config(args, env)
+    localhost = args.localhost if args.localhost is not None else (
+        True if args.sim and not args.lan else None)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    sim_node = sim_task = nav = None
+    if args.sim:
+        ros2 = config.bridge.ros2
+        sim_node = RosNode("sim_robot", ros2.namespace or "/", domain_id=ros2.domain_id,
+                           distro=ros2.distro, localhost=localhost)
+        robot = SimRobot(sim_node, cmd_vel_type=ros2.cmd_vel_type)
+        nav = NavigationServer(robot, ros2.nav_action)
+        sim_task = asyncio.create_task(robot.run(stop))
+    bridge = Bridge(config, BridgeOptions(localhost=localhost, host=args.host, port=args.port,
+                                          mdns=not args.no_mdns, env=env))
+    try:
+        url = await bridge.start()
+        print(f"rcan-rtps ready api={url}", flush=True)
+        if args.sim:
+            _print_demo(url, env, config)
+        await stop.wait()
+    finally:
+        await bridge.stop()
+        stop.set()
+        if nav is not None:
+            await nav.close()
+        if sim_task is not None:
+            await sim_task
+        if sim_node is not None:
+            sim_node.close()
+    return 0

@@ -41,7 +41,7 @@ from .outcomes import Rejection
 from .rbac import Principal, RateLimiter, RolePolicy
 
 log = logging.getLogger(__name__)
-SWEEP_INTERVAL_S = 0.5
+SWEEP_INTERVAL_S = 0.05  # session-loss halt latency is timeout + at most this
 
 
 class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):

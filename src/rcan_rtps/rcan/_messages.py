@@ -125,7 +125,7 @@ class DecisionBody(msgspec.Struct, omit_defaults=True, kw_only=True):
 class ErrorBody(msgspec.Struct, omit_defaults=True, kw_only=True):
     """Body of a request refused before any decision (e.g. 400, 401, 413)."""
 
-    outcome: Literal["denied", "failed"] = "denied"
+    outcome: Literal["denied", "failed"]  # no default: omit_defaults would drop it
     error_code: str
     reason: str | None = None
     path: str | None = None

@@ -67,6 +67,8 @@ def validate_command(
         obj = _DECODER.decode(raw)
     except msgspec.DecodeError as exc:  # also NaN / Infinity tokens: not JSON
         raise SchemaValidationError("$", str(exc)) from exc
+    except RecursionError as exc:  # msgspec's answer to absurdly deep nesting
+        raise SchemaValidationError("$", "JSON nested too deeply") from exc
     if not isinstance(obj, dict):
         raise SchemaValidationError("$", "expected a JSON object")
     claimed = {k: obj.pop(k) for k in _ROLE_CLAIMS if k in obj}

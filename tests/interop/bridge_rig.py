@@ -13,6 +13,7 @@ from typing import Any
 from oracle.client import RclpyOracle
 
 from rcan_rtps.bridge.commands import RosDispatcher
+from rcan_rtps.bridge.navigation import GoalTracker
 from rcan_rtps.bridge.notify import DiagnosticsNotifier
 from rcan_rtps.bridge.telemetry import TelemetryState
 from rcan_rtps.config import RcanConfig, loads_config
@@ -64,6 +65,7 @@ class Rig:
     dispatcher: RosDispatcher
     oracle: RclpyOracle
     audit_path: Path
+    goals: GoalTracker | None = None
 
     async def command(self, principal: Principal, body: dict[str, Any]) -> Decision:
         return await self.governor.decide(validate_command(json.dumps(body).encode()), principal)
@@ -90,23 +92,28 @@ class Rig:
         return True
 
 
-async def make_rig(config: RcanConfig, jazzy_python: Path, domain_id: int) -> Rig:
+async def make_rig(config: RcanConfig, jazzy_python: Path, domain_id: int,
+                   *, navigation: bool = False) -> Rig:
     ros2 = config.bridge.ros2
     node = RosNode(ros2.node_name, ros2.namespace, domain_id=domain_id, distro=ros2.distro)
     audit = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path)
-    dispatcher = RosDispatcher(node, ros2)
+    goals = GoalTracker(node, ros2.nav_action) if navigation else None
+    dispatcher = RosDispatcher(node, ros2, goals)
     governor = Governor.from_config(config, audit=audit, dispatcher=dispatcher,
                                     notifier=DiagnosticsNotifier(node, ros2.diagnostics_topic))
     telemetry = TelemetryState(node, config, estop_latched=lambda: governor.latch.latched,
-                               active_goals=lambda: [])
+                               active_goals=goals.active if goals else list)
     governor.safe_stop_listeners.append(lambda _p: telemetry.mark_safe_stop())
     dispatcher.on_command = telemetry.clear_safe_stop
     await governor.start()
     oracle = RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id)
-    return Rig(node, governor, telemetry, dispatcher, oracle, Path(config.bridge.audit.path))
+    return Rig(node, governor, telemetry, dispatcher, oracle, Path(config.bridge.audit.path),
+               goals)
 
 
 async def close_rig(rig: Rig) -> None:
+    if rig.goals is not None:
+        await rig.goals.close()
     await rig.governor.stop()
     await rig.governor.audit.close()
     rig.oracle.close()

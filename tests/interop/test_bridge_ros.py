@@ -226,3 +226,43 @@ async def test_twist_stamped_carries_a_fresh_stamp(tmp_path: Path, jazzy_python:
         assert msg["twist"]["angular"]["z"] == 0.3
     finally:
         await close_rig(rig)
+
+
+async def test_navigate_and_session_loss_cancels_the_goal(tmp_path: Path, jazzy_python: Path,
+                                                         domain_id: int) -> None:
+    """navigate → NavigateToPose on our own server (the sim's); losing the session halts the
+    robot and cancels the goal. rclpy watches cmd_vel for the zero twist."""
+    from rcan_rtps.ros.participant import RosNode
+    from rcan_rtps.sim.navigation import NavigationServer
+    from rcan_rtps.sim.robot import SimRobot
+
+    config = bridge_config(tmp_path, domain_id)
+    stop = asyncio.Event()
+    with RosNode("sim_robot", "/robot1", domain_id=domain_id) as sim_node:
+        robot = SimRobot(sim_node)
+        nav = NavigationServer(robot)
+        sim = asyncio.create_task(robot.run(stop))
+        rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
+        try:
+            await subscribe(rig, "/robot1/cmd_vel", TWIST)
+            decision = await rig.command(AGENT, {"action": "navigate",
+                                                 "params": {"x": 8.0, "y": 0.0, "yaw": 0.0}})
+            assert decision.http_status == 200 and decision.goal_id, decision
+            assert rig.goals is not None
+            view = rig.goals.goal(decision.goal_id)
+            assert view is not None
+            assert await rig.until(lambda: view.feedback is not None)
+            assert rig.telemetry.status(pending_auth=0).active_goals == [decision.goal_id]
+            # no heartbeat: after session_timeout_s the goal is cancelled and the base halted
+            assert await rig.until(lambda: view.state == "canceled", timeout=15), view
+            zero = await rig.take("/robot1/cmd_vel", timeout=10)
+            assert zero and zero[-1]["linear"]["x"] == 0.0
+            assert await rig.until(lambda: abs(robot.state.v) < 1e-9)
+            events = [e["event"] for e in rig.entries()]
+            assert "NETWORK_LOSS_SAFE_STOP" in events
+            assert rig.telemetry.status(pending_auth=0).active_goals == []
+        finally:
+            await close_rig(rig)
+            stop.set()
+            await sim
+            await nav.close()

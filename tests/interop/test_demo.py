@@ -127,8 +127,9 @@ async def test_readme_tour(demo: Demo, http: aiohttp.ClientSession) -> None:
     code, body = await call(http, demo, demo.user, "POST", "/api/command",
                             {"action": "navigate", "params": {"x": 1.0, "y": 0.5, "yaw": 0.0}})
     assert code == 200 and body["outcome"] == "executed", body
+    goal_id = body["goal_id"]
     code, goals = await call(http, demo, demo.user, "GET", "/api/goals")
-    goal_id = goals["goals"][-1]["goal_id"]
+    assert goal_id in [g["goal_id"] for g in goals["goals"]]
     for _ in range(300):
         code, goal = await call(http, demo, demo.user, "GET", f"/api/goals/{goal_id}")
         if goal["state"] in ("succeeded", "aborted", "canceled", "lost"):
@@ -170,5 +171,34 @@ async def test_rclpy_on_localhost_sees_the_demo_robot(demo: Demo, jazzy_python: 
                 break
             await asyncio.sleep(0.05)
         assert odom and odom[-1]["child_frame_id"] == "base_link"
-        names = oracle.call("node_names")
+        names: list[Any] = []
+        for _ in range(100):
+            names = oracle.call("node_names")
+            if ["sim_robot", "/robot1"] in names and ["rcan_bridge", "/robot1"] in names:
+                break
+            await asyncio.sleep(0.1)
         assert ["sim_robot", "/robot1"] in names and ["rcan_bridge", "/robot1"] in names
+
+
+def _example(name: str, demo: Demo, token: str, *args: str) -> subprocess.CompletedProcess[str]:
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "RCAN_URL": demo.url, "RCAN_TOKEN": token}
+    return subprocess.run([sys.executable, str(root / "examples" / name), *args],
+                          capture_output=True, text=True, env=env, timeout=120)
+
+
+async def test_examples_agent_and_operator(demo: Demo, http: aiohttp.ClientSession) -> None:
+    await wait_status(http, demo, lambda s: s["ros"]["connected"])
+    agent = await asyncio.to_thread(_example, "agent_client.py", demo, demo.user)
+    assert agent.returncode == 0, agent.stderr
+    lines = agent.stdout.splitlines()
+    assert any(line.startswith("move") and "→ 200 executed" in line for line in lines)
+    assert any("→ 409 safety_violation" in line for line in lines)
+    assert any("→ 202 pending_auth" in line for line in lines)  # the low-confidence move
+    assert "navigate goal" in agent.stdout and ": succeeded" in agent.stdout
+    operator = await asyncio.to_thread(_example, "operator_approve.py", demo, demo.owner,
+                                       "--yes")
+    assert operator.returncode == 0, operator.stderr
+    assert "authorize: 200 executed" in operator.stdout
+    entries = [line for line in demo.audit.read_text().splitlines() if '"ai":' in line]
+    assert entries and all('"model":"planner-7b"' in line for line in entries)

@@ -80,6 +80,7 @@ class Decision(msgspec.Struct, frozen=True, kw_only=True):
             audit_id=self.audit_id, message_id=self.message_id,
             error_code=self.error_code.value if self.error_code else None, reason=self.reason,
             applied=self.applied, pending_id=self.pending_id, expires_at_ms=self.expires_at_ms,
+            goal_id=self.goal_id, ros2_topic=self.ros2_topic,
         )
 
 

@@ -120,6 +120,8 @@ class DecisionBody(msgspec.Struct, omit_defaults=True, kw_only=True):
     applied: dict[str, Any] | None = None
     pending_id: str | None = None
     expires_at_ms: int | None = None
+    goal_id: str | None = None  # navigate: follow it at GET /api/goals/{goal_id}
+    ros2_topic: str | None = None  # where the command went on the ROS 2 graph
 
 
 class ErrorBody(msgspec.Struct, omit_defaults=True, kw_only=True):

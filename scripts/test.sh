@@ -60,6 +60,9 @@ rm -rf .cache/dist
 quiet_pip .venv/bin/pip wheel -q --no-deps -w .cache/dist .
 export RCAN_RTPS_WHEEL_DIR="$PWD/.cache/dist"
 
+echo "== README main command, verbatim, in a fresh copy (loopback only)"
+bash scripts/readme_main.sh
+
 echo "== static checks"
 # shellcheck disable=SC2046
 .venv/bin/ruff check $(ls -d src tests bench examples 2>/dev/null)

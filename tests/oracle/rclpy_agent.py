@@ -11,6 +11,7 @@ from __future__ import annotations
 import array
 import importlib
 import json
+import os
 import sys
 import threading
 import time
@@ -20,7 +21,7 @@ from typing import Any
 import rclpy
 from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -110,7 +111,10 @@ class Agent:
     def __init__(self, node_name: str, namespace: str) -> None:
         rclpy.init()
         self.node = Node(node_name, namespace=namespace)
-        self.executor = MultiThreadedExecutor()
+        # Benchmarks want SingleThreadedExecutor: rclpy's MultiThreadedExecutor delivers
+        # bursts late, which would be measured as transport latency.
+        single = os.environ.get("RCAN_ORACLE_EXECUTOR") == "single"
+        self.executor = SingleThreadedExecutor() if single else MultiThreadedExecutor()
         self.executor.add_node(self.node)
         self.lock = threading.Lock()
         self.received: dict[str, list[Any]] = {}
@@ -157,6 +161,25 @@ class Agent:
         def on_message(msg: Any, topic: str = topic) -> None:
             with self.lock:
                 self.received[topic].append(plain(msg))
+
+        self.subscriptions[topic] = self.node.create_subscription(
+            load_type(type), topic, on_message, make_qos(qos))
+        return True
+
+    def op_subscribe_timed(self, topic: str, type: str, field: str = "linear.x",
+                           qos: str = "default") -> bool:
+        """Records (CLOCK_MONOTONIC ns at arrival, value of `field`) per message: latency
+        benchmarks compare it with the sender's monotonic clock (same host)."""
+        self.received.setdefault(topic, [])
+        path = field.split(".")
+
+        def on_message(msg: Any, topic: str = topic) -> None:
+            arrived = time.monotonic_ns()
+            value = msg
+            for part in path:
+                value = getattr(value, part)
+            with self.lock:
+                self.received[topic].append([arrived, value])
 
         self.subscriptions[topic] = self.node.create_subscription(
             load_type(type), topic, on_message, make_qos(qos))

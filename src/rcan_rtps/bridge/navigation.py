@@ -96,7 +96,7 @@ class GoalTracker:
         try:
             return await self.client.cancel_all(timeout=2.0, server_wide=True)
         except WireError:
-            log.warning("no action server on %s to cancel goals", self.client.name)
+            log.info("no action server on %s: no goals to cancel", self.client.name)
             return 0
 
     def active(self) -> list[str]:

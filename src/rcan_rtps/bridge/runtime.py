@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import os
@@ -75,6 +76,7 @@ class Bridge:
         self.telemetry: TelemetryState | None = None
         self.server: ApiServer | None = None
         self.advertiser: RcanAdvertiser | None = None
+        self._advert_task: asyncio.Task[None] | None = None
         self.url = ""
 
     async def start(self) -> str:
@@ -97,7 +99,8 @@ class Bridge:
         await self.governor.start()
         await self._serve()
         if opts.mdns:
-            await self._advertise()
+            # Joining mDNS takes ~1 s (probing): commands are accepted meanwhile.
+            self._advert_task = asyncio.create_task(self._advertise())
         return self.url
 
     def _latched(self) -> bool:
@@ -138,7 +141,11 @@ class Bridge:
             return Advert.for_server(self.config, host=host, port=port, tls=tls)
 
         self.advertiser = RcanAdvertiser(current(), interfaces=opts.mdns_interfaces)
-        await self.advertiser.start()
+        try:
+            await self.advertiser.start()
+        except Exception:  # no multicast here: the robot is still commandable by URL
+            log.exception("mDNS advertisement failed")
+            return
         self.advertiser.follow(current)  # re-announce when the address changes
 
     async def stop(self) -> None:
@@ -155,6 +162,9 @@ class Bridge:
             self.node = None
 
     async def _stop_mdns(self) -> None:
+        if self._advert_task is not None:
+            await self._advert_task  # finish joining before saying goodbye
+            self._advert_task = None
         if self.advertiser is not None:
             await self.advertiser.close()
             self.advertiser = None

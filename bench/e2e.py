@@ -1,0 +1,298 @@
+"""End-to-end benchmarks of the governed bridge, each against a floor measured in the same run.
+
+1. Latency: REST `move` → Twist received by an rclpy subscriber (p50/p99), versus the floor
+   = an aiohttp keep-alive echo round trip + a raw cyclonedds publish to the same subscriber.
+   Target: p99 ≤ 2× floor p99.
+2. Throughput: sustained governed commands per second with the durable (fsynced, signed)
+   audit log, many concurrent keep-alive clients. Target ≥ 2 000/s.
+3. Footprint: bridge RSS and time from start to the ready line, versus a bare rclpy node
+   (time to a created node, its RSS). Targets: ≤ 55 MB and ≤ 1 s.
+
+DDS runs here, so run it in a private network namespace (as root):
+    scripts/netns .venv/bin/python bench/e2e.py [--oracle .cache/ros-jazzy/bin/python]
+Writes the `## End to end` section of docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import aiohttp
+from aiohttp import web
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+from oracle.client import RclpyOracle  # noqa: E402
+
+from rcan_rtps.ros.participant import RosNode  # noqa: E402
+
+TOKEN = "bench-token-0123456789abcdef0123"
+DOMAIN = 77
+CONFIG = """\
+robot:
+  ruri: rcan://registry.local/bench/rover/bench-0001
+bridge:
+  ros2: {{namespace: /bench, node_name: rcan_bridge, domain_id: {domain}}}
+  api:
+    host: 127.0.0.1
+    port: {port}
+    principals: [{{name: bench, role: CREATOR, token_env: RCAN_BENCH_TOKEN}}]
+  safety: {{max_linear_vel: 100.0, max_angular_vel: 100.0, session_timeout_s: 3600}}
+  audit: {{path: {state}/audit.jsonl, key_path: {state}/audit.key}}
+"""
+
+
+def pct(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))]
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+# -- the bridge under test -----------------------------------------------------------------
+class BridgeProcess:
+    def __init__(self, state: Path) -> None:
+        self.port = free_port()
+        self.config = state / "bench.rcan.yaml"
+        self.config.write_text(CONFIG.format(domain=DOMAIN, port=self.port, state=state))
+        env = {**os.environ, "RCAN_BENCH_TOKEN": TOKEN, "ROS_DOMAIN_ID": str(DOMAIN)}
+        self.started = time.monotonic()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "rcan_rtps", "run", "--config", str(self.config)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        self.ready_s = time.monotonic() - self.started
+        found = re.match(r"rcan-rtps ready api=(\S+)", line)
+        if not found:
+            raise RuntimeError(f"bridge did not start: {line}{self.proc.stderr.read()}")
+        self.url = found.group(1)
+
+    def rss_mb(self) -> float:
+        return rss_mb(self.proc.pid)
+
+    def stop(self) -> None:
+        self.proc.send_signal(2)
+        self.proc.wait(timeout=30)
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+# -- measurements ----------------------------------------------------------------------------
+async def wait_arrivals(oracle: RclpyOracle, topic: str, want: int,
+                        timeout: float = 30.0) -> dict[float, int]:
+    arrivals: dict[float, int] = {}
+    deadline = time.monotonic() + timeout
+    while len(arrivals) < want and time.monotonic() < deadline:
+        for arrived, value in oracle.call("take", topic=topic):
+            arrivals.setdefault(value, arrived)
+        await asyncio.sleep(0.01)
+    return arrivals
+
+
+async def rest_move_latency(url: str, oracle: RclpyOracle, n: int) -> list[float]:
+    """ms from sending POST /api/command (move) to rclpy receiving that Twist."""
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    sent: dict[float, int] = {}
+    async with aiohttp.ClientSession(headers=headers) as http:
+        for i in range(n + 20):  # the first 20 warm up
+            value = 1.0 + i * 1e-3
+            before = time.monotonic_ns()
+            async with http.post(f"{url}/api/command", json={
+                    "action": "move", "params": {"linear_x": value}}) as resp:
+                assert resp.status == 200, await resp.text()
+                await resp.read()
+            sent[value] = before
+            await asyncio.sleep(0.005)
+    arrivals = await wait_arrivals(oracle, "/bench/cmd_vel", len(sent))
+    return [(arrivals[v] - t) / 1e6 for i, (v, t) in enumerate(sent.items())
+            if i >= 20 and v in arrivals]
+
+
+async def echo_round_trip(n: int) -> list[float]:
+    """ms for an aiohttp keep-alive request/response to a handler that echoes the body."""
+
+    async def echo(request: web.Request) -> web.Response:
+        return web.json_response(await request.json())
+
+    app = web.Application()
+    app.router.add_post("/echo", echo)
+    runner = web.AppRunner(app)
+    await runner.setup()
+    port = free_port()
+    await web.TCPSite(runner, "127.0.0.1", port).start()
+    times = []
+    async with aiohttp.ClientSession() as http:
+        for i in range(n + 20):
+            before = time.perf_counter()
+            async with http.post(f"http://127.0.0.1:{port}/echo",
+                                 json={"action": "move", "params": {"linear_x": 1.0}}) as r:
+                await r.read()
+            if i >= 20:
+                times.append((time.perf_counter() - before) * 1e3)
+    await runner.cleanup()
+    return times
+
+
+async def raw_publish_latency(oracle: RclpyOracle, n: int) -> list[float]:
+    """ms from a cyclonedds write of a Twist to rclpy receiving it."""
+    oracle.call("subscribe_timed", topic="/floor/cmd_vel", type="geometry_msgs/msg/Twist")
+    with RosNode("floor", "/floor", domain_id=DOMAIN) as node:
+        pub = node.create_publisher("cmd_vel", "geometry_msgs/msg/Twist")
+        await pub.wait_for_subscribers(1, timeout=15)
+        # both ends matched, or the first samples wait for a heartbeat and skew the floor
+        oracle.call("wait_publishers", topic="/floor/cmd_vel", timeout=15)
+        await asyncio.sleep(1.0)
+        msg_type = node.types.struct("geometry_msgs/msg/Twist")
+        vec = node.types.struct("geometry_msgs/msg/Vector3")
+        sent: dict[float, int] = {}
+        for i in range(n + 20):
+            value = 1.0 + i * 1e-3
+            msg = msg_type(linear=vec(value, 0.0, 0.0), angular=vec(0.0, 0.0, 0.0))
+            sent[value] = time.monotonic_ns()
+            pub.writer.write(msg)
+            await asyncio.sleep(0.005)
+        arrivals = await wait_arrivals(oracle, "/floor/cmd_vel", len(sent))
+    return [(arrivals[v] - t) / 1e6 for i, (v, t) in enumerate(sent.items())
+            if i >= 20 and v in arrivals]
+
+
+async def throughput(url: str, total: int, clients: int) -> tuple[float, int]:
+    """Governed commands per second (all 200, each durably audited before its reply)."""
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    per_client = total // clients
+    failures = 0
+
+    async def client(http: aiohttp.ClientSession, k: int) -> None:
+        nonlocal failures
+        for i in range(per_client):
+            async with http.post(f"{url}/api/command", json={
+                    "action": "move", "params": {"linear_x": 0.1 + (k * per_client + i) * 1e-6}
+            }) as resp:
+                await resp.read()
+                failures += resp.status != 200
+
+    connector = aiohttp.TCPConnector(limit=clients)
+    async with aiohttp.ClientSession(headers=headers, connector=connector) as http:
+        start = time.perf_counter()
+        await asyncio.gather(*(client(http, k) for k in range(clients)))
+        elapsed = time.perf_counter() - start
+    return per_client * clients / elapsed, failures
+
+
+def bare_rclpy(oracle_python: Path) -> tuple[float, float]:
+    """(seconds to a created rclpy node, RSS MB) of a process that only makes a node."""
+    script = ("import rclpy, sys, time; rclpy.init(); n = rclpy.create_node('bare'); "
+              "print('ready', flush=True); sys.stdin.readline()")
+    env = {**os.environ, "ROS_DOMAIN_ID": str(DOMAIN), "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
+    started = time.monotonic()
+    proc = subprocess.Popen([str(oracle_python), "-c", script], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True, env=env)
+    assert proc.stdout is not None and proc.stdin is not None
+    proc.stdout.readline()
+    ready = time.monotonic() - started
+    time.sleep(1.0)
+    rss = rss_mb(proc.pid)
+    proc.stdin.close()
+    proc.wait(timeout=10)
+    return ready, rss
+
+
+# -- report ----------------------------------------------------------------------------------
+def write_section(markdown: str) -> None:
+    path = ROOT / "docs" / "benchmarks.md"
+    text = path.read_text() if path.exists() else "# Benchmarks\n"
+    head, sep, rest = text.partition("## End to end")
+    tail = ""
+    if sep:
+        after = rest.split("\n## ", 1)
+        tail = "\n## " + after[1] if len(after) > 1 else ""
+    path.write_text(head.rstrip() + "\n\n" + markdown + tail)
+
+
+def verdict(ok: bool) -> str:
+    return "met" if ok else "**not met**"
+
+
+async def main() -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--oracle", type=Path, default=ROOT / ".cache/ros-jazzy/bin/python")
+    parser.add_argument("--samples", type=int, default=300)
+    parser.add_argument("--commands", type=int, default=6000)
+    parser.add_argument("--clients", type=int, default=64)
+    args = parser.parse_args()
+
+    with tempfile.TemporaryDirectory() as state, \
+            RclpyOracle(args.oracle, "bench_robot", "/bench", domain_id=DOMAIN,
+                        env={"RCAN_ORACLE_EXECUTOR": "single"}) as oracle:
+        oracle.call("subscribe_timed", topic="/bench/cmd_vel", type="geometry_msgs/msg/Twist")
+        bridge = BridgeProcess(Path(state))
+        try:
+            idle_rss = bridge.rss_mb()
+            oracle.call("wait_publishers", topic="/bench/cmd_vel", timeout=15)
+            await asyncio.sleep(1.0)  # let the bridge's side finish matching too
+            e2e = await rest_move_latency(bridge.url, oracle, args.samples)
+            echo = await echo_round_trip(args.samples)
+            raw = await raw_publish_latency(oracle, args.samples)
+            rate, failures = await throughput(bridge.url, args.commands, args.clients)
+            loaded_rss = bridge.rss_mb()
+        finally:
+            bridge.stop()
+        oracle.call("take", topic="/bench/cmd_vel")
+    bare_ready, bare_rss = bare_rclpy(args.oracle)
+
+    floor50 = pct(echo, 0.5) + pct(raw, 0.5)
+    floor99 = pct(echo, 0.99) + pct(raw, 0.99)
+    e2e50, e2e99 = pct(e2e, 0.5), pct(e2e, 0.99)
+    lines = [
+        "## End to end", "",
+        f"`bench/e2e.py` (same machine, same run; {len(e2e)} latency samples, "
+        f"{args.commands} commands from {args.clients} keep-alive clients; the bridge runs as "
+        "`rcan-rtps run` in its own process, the receiver is an rclpy Jazzy node).", "",
+        "| measure | bridge | floor / baseline | ratio | target | verdict |",
+        "|---|---|---|---|---|---|",
+        f"| REST `move` → rclpy Twist p50 | {e2e50:.2f} ms | {floor50:.2f} ms | "
+        f"{e2e50 / floor50:.2f}× | — | — |",
+        f"| REST `move` → rclpy Twist p99 | {e2e99:.2f} ms | {floor99:.2f} ms | "
+        f"{e2e99 / floor99:.2f}× | ≤ 2× | {verdict(e2e99 <= 2 * floor99)} |",
+        f"| governed commands/s (durable audit) | {rate:.0f}/s ({failures} non-200) | — | — "
+        f"| ≥ 2 000/s | {verdict(rate >= 2000 and failures == 0)} |",
+        f"| start → ready line | {bridge.ready_s:.2f} s | {bare_ready:.2f} s (bare rclpy node) "
+        f"| {bridge.ready_s / bare_ready:.2f}× | ≤ 1 s | {verdict(bridge.ready_s <= 1.0)} |",
+        f"| RSS idle / after load | {idle_rss:.0f} / {loaded_rss:.0f} MB | {bare_rss:.0f} MB "
+        f"(bare rclpy node) | {loaded_rss / bare_rss:.2f}× | ≤ 55 MB | "
+        f"{verdict(loaded_rss <= 55)} |",
+        "",
+        f"Floor = aiohttp keep-alive echo (p50 {pct(echo, 0.5):.2f} / p99 {pct(echo, 0.99):.2f}"
+        f" ms) + raw cyclonedds publish → rclpy (p50 {pct(raw, 0.5):.2f} / p99 "
+        f"{pct(raw, 0.99):.2f} ms). Median of all samples: e2e {statistics.median(e2e):.2f} ms.",
+        "",
+    ]
+    report = "\n".join(lines)
+    write_section(report)
+    print(report)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(asyncio.run(main()))

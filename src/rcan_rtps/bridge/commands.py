@@ -54,6 +54,7 @@ class RosDispatcher:
         # Latched (transient-local): a robot node that (re)joins still learns the e-stop state.
         self.estop = node.create_publisher(ros2.estop_topic, BOOL, ESTOP_QOS)
         self.trajectory = node.create_publisher(ros2.joint_trajectory_topic, TRAJECTORY)
+        self._vector3 = node.types.struct("geometry_msgs/msg/Vector3")
 
     async def dispatch(self, command: NormalizedCommand,
                        applied: Mapping[str, Any]) -> DispatchResult:
@@ -75,14 +76,19 @@ class RosDispatcher:
         return True
 
     def _twist(self, linear_x: float = 0.0, linear_y: float = 0.0,
-               angular_z: float = 0.0) -> dict[str, Any]:
-        twist = {"linear": {"x": linear_x, "y": linear_y, "z": 0.0},
-                 "angular": {"x": 0.0, "y": 0.0, "z": angular_z}}
+               angular_z: float = 0.0) -> Any:
+        # Built directly (the hot path): the governor has already checked these numbers.
+        vec: Any = self._vector3
+        twist_cls: Any = self.node.types.struct(TWIST)
+        twist = twist_cls(linear=vec(float(linear_x), float(linear_y), 0.0),
+                          angular=vec(0.0, 0.0, float(angular_z)))
         if self.ros2.cmd_vel_type == TWIST_STAMPED:
-            return {"header": {"stamp": now_msg(), "frame_id": ""}, "twist": twist}
+            header = self.node.values.build("std_msgs/msg/Header", {"stamp": now_msg()})
+            stamped: Any = self.node.types.struct(TWIST_STAMPED)
+            return stamped(header=header, twist=twist)
         return twist
 
-    async def _publish(self, pub: RosPublisher, message: dict[str, Any]) -> DispatchResult:
+    async def _publish(self, pub: RosPublisher, message: Any) -> DispatchResult:
         if not await self._matched(pub):
             return DispatchResult(ok=False, ros2_topic=pub.topic,
                                   detail=f"no subscriber on {pub.topic}")

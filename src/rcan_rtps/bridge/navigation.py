@@ -93,6 +93,8 @@ class GoalTracker:
 
     async def cancel_all(self) -> int:
         """Cancels every goal on the server, whoever sent it: `stop` means stop."""
+        if not self.client.server_present():
+            return 0  # nothing to cancel, and no reason to wait for a server to appear
         try:
             return await self.client.cancel_all(timeout=2.0, server_wide=True)
         except WireError:

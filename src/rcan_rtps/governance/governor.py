@@ -369,8 +369,10 @@ class Governor:
     async def sweep(self) -> None:
         """One round of housekeeping: expire HiTL requests, stop for lost sessions."""
         await self.expire_pending()
-        for principal in self._sessions.take_lost():
-            await self.safe_stop(principal)
+        lost = self._sessions.take_lost()
+        # Concurrently: one slow halt (say, a goal server that never answers) must not
+        # delay the next principal's, nor the next sweep.
+        await asyncio.gather(*(self._spawn(self.safe_stop(p)) for p in lost))
 
     async def _sweep_forever(self) -> None:
         while True:

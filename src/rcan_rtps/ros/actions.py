@@ -173,6 +173,10 @@ class ActionClient:
         await self._status.wait_for_publishers(1, max(0.0, deadline - loop.time()))
         self._server_seen = True
 
+    def server_present(self) -> bool:
+        """Whether an action server is on the graph now (its status writer is matched)."""
+        return self._status.matched_count() > 0
+
     def check_server(self) -> bool:
         """False once the server has left the graph; its open goals then end as lost."""
         if self._status.matched_count() > 0:

@@ -1,0 +1,96 @@
+"""Every listed message type crosses both ways between us and rclpy, default and sensor QoS."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from oracle.client import RclpyOracle
+
+from rcan_rtps.ros import qos
+from rcan_rtps.ros.participant import RosNode
+
+from ..ros.strategies import values_for
+
+TYPES = [
+    "geometry_msgs/msg/Twist",
+    "geometry_msgs/msg/TwistStamped",
+    "sensor_msgs/msg/JointState",
+    "nav_msgs/msg/Odometry",
+    "diagnostic_msgs/msg/DiagnosticArray",
+    "trajectory_msgs/msg/JointTrajectory",
+    "sensor_msgs/msg/BatteryState",
+    "sensor_msgs/msg/Image",
+    "sensor_msgs/msg/LaserScan",
+]
+QOS = {"default": qos.DEFAULT, "sensor": qos.SENSOR_DATA}
+
+
+@pytest.fixture(scope="module")
+def oracle(jazzy_python: Path) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_python, "types_oracle", domain_id=39) as agent:
+        yield agent
+
+
+@pytest.fixture(scope="module")
+def node() -> Iterator[RosNode]:
+    with RosNode("types_peer", domain_id=39) as n:
+        yield n
+
+
+async def _collect(take: Any, want: int, timeout: float = 10.0) -> list[Any]:
+    got: list[Any] = []
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while len(got) < want and loop.time() < deadline:
+        got += await take()
+        await asyncio.sleep(0.02)
+    return got
+
+
+@pytest.mark.parametrize("qos_name", sorted(QOS))
+@pytest.mark.parametrize("type_name", TYPES)
+@settings(max_examples=1, deadline=None, derandomize=True, suppress_health_check=[
+    HealthCheck.function_scoped_fixture, HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(data=st.data())
+async def test_both_ways(oracle: RclpyOracle, node: RosNode, type_name: str, qos_name: str,
+                         data: st.DataObject) -> None:
+    values = [data.draw(values_for(node.store, type_name, max_items=3)) for _ in range(3)]
+    short = type_name.rsplit("/", 1)[-1].lower()
+    out, back = f"/both/{short}_{qos_name}_out", f"/both/{short}_{qos_name}_back"
+    profile = QOS[qos_name]
+    # us → rclpy
+    oracle.call("subscribe", topic=out, type=type_name, qos=qos_name)
+    pub = node.create_publisher(out, type_name, profile)
+    await pub.wait_for_subscribers(1, timeout=15)
+    oracle.call("wait_publishers", topic=out)
+    await asyncio.sleep(0.2)
+    for value in values:
+        pub.publish(value)
+        await asyncio.sleep(0.02)
+    received = await _collect(lambda: asyncio.to_thread(oracle.call, "take", topic=out), 3)
+    expected = [oracle.call("roundtrip", type=type_name, value=v) for v in values]
+    assert received == expected
+    # rclpy → us
+    sub = node.create_subscription(back, type_name, profile)
+    oracle.call("publisher", topic=back, type=type_name, qos=qos_name)
+    await sub.wait_for_publishers(1, timeout=15)
+    oracle.call("wait_subscribers", topic=back)
+    await asyncio.sleep(0.2)
+    for value in values:
+        oracle.call("publish", topic=back, type=type_name, value=value, count=1, period=0.02)
+
+    async def take_ours() -> list[Any]:
+        items = []
+        while True:
+            try:
+                items.append(node.values.to_plain(type_name, await sub.get(timeout=0.05)))
+            except asyncio.TimeoutError:
+                return items
+
+    assert await _collect(take_ours, 3) == expected

@@ -15,6 +15,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from report import write_section  # bench/report.py (the script's own folder)
+
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord, verify_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -80,19 +82,6 @@ async def measure(dir_: Path, n: int) -> list[tuple[str, float, str]]:
     return rows
 
 
-def write_section(markdown: str) -> None:
-    """Replace only our own section of docs/benchmarks.md (create the file if missing)."""
-    path = ROOT / "docs" / "benchmarks.md"
-    path.parent.mkdir(exist_ok=True)
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    head, sep, rest = text.partition(SECTION)
-    parts = [head.rstrip(), markdown.rstrip()]
-    after = rest.split("\n## ", 1) if sep else []
-    if len(after) > 1:
-        parts.append("## " + after[1].rstrip())
-    path.write_text("\n\n".join(parts) + "\n")
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--entries", type=int, default=2000)
@@ -118,7 +107,7 @@ def main() -> int:
     markdown = "\n".join(lines)
     print(markdown)
     if not args.no_write:
-        write_section(markdown)
+        write_section(SECTION, markdown)
     return 0
 
 

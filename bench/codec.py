@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from report import write_section  # bench/report.py (the script's own folder)
+
 from rcan_rtps.ros.typesys.ddstypes import DdsTypes
 from rcan_rtps.ros.typesys.store import TypeStore
 from rcan_rtps.ros.typesys.values import MessageValues
@@ -86,18 +88,6 @@ def theirs(oracle: Path) -> dict[str, tuple[float, float]]:
     return {k: (v[0], v[1]) for k, v in json.loads(done.stdout).items()}
 
 
-def write_section(markdown: str) -> None:
-    path = ROOT / "docs" / "benchmarks.md"
-    path.parent.mkdir(exist_ok=True)
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    head, sep, rest = text.partition("## Codec")
-    tail = ""
-    if sep:
-        after = rest.split("\n## ", 1)
-        tail = "\n## " + after[1] if len(after) > 1 else ""
-    path.write_text(head.rstrip() + "\n\n" + markdown + tail)
-
-
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--oracle", type=Path, default=ROOT / ".cache/ros-jazzy/bin/python")
@@ -113,7 +103,7 @@ def main() -> int:
         rows.append(f"| {label} | {eo:.1f} | {er:.1f} | {eo / er:.1f}× | {do:.1f} | {dr:.1f} | "
                     f"{do / dr:.1f}× |")
     rows.append("")
-    write_section("\n".join(rows))
+    write_section("## Codec", "\n".join(rows))
     print("\n".join(rows))
     return 0
 

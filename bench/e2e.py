@@ -32,6 +32,7 @@ from aiohttp import web
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 from oracle.client import RclpyOracle  # noqa: E402
+from report import write_section  # noqa: E402 (bench/report.py)
 
 from rcan_rtps.ros.participant import RosNode  # noqa: E402
 
@@ -249,17 +250,6 @@ def bare_rclpy(oracle_python: Path) -> tuple[float, float]:
 
 
 # -- report ----------------------------------------------------------------------------------
-def write_section(markdown: str) -> None:
-    path = ROOT / "docs" / "benchmarks.md"
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    head, sep, rest = text.partition("## End to end")
-    tail = ""
-    if sep:
-        after = rest.split("\n## ", 1)
-        tail = "\n## " + after[1] if len(after) > 1 else ""
-    path.write_text(head.rstrip() + "\n\n" + markdown + tail)
-
-
 def verdict(ok: bool) -> str:
     return "met" if ok else "**not met**"
 
@@ -329,7 +319,7 @@ async def main() -> int:
         "",
     ]
     report = "\n".join(lines)
-    write_section(report)
+    write_section("## End to end", report)
     print(report)
     return 0
 

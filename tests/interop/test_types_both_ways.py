@@ -15,19 +15,9 @@ from oracle.client import RclpyOracle
 from rcan_rtps.ros import qos
 from rcan_rtps.ros.participant import RosNode
 
-from ..ros.strategies import values_for
+from ..ros.strategies import LISTED_TYPES, values_for
 
-TYPES = [
-    "geometry_msgs/msg/Twist",
-    "geometry_msgs/msg/TwistStamped",
-    "sensor_msgs/msg/JointState",
-    "nav_msgs/msg/Odometry",
-    "diagnostic_msgs/msg/DiagnosticArray",
-    "trajectory_msgs/msg/JointTrajectory",
-    "sensor_msgs/msg/BatteryState",
-    "sensor_msgs/msg/Image",
-    "sensor_msgs/msg/LaserScan",
-]
+TYPES = [*LISTED_TYPES]
 QOS = {"default": qos.DEFAULT, "sensor": qos.SENSOR_DATA}
 
 

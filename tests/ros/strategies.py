@@ -9,6 +9,19 @@ from hypothesis import strategies as st
 from rcan_rtps.ros.typesys.model import INTEGER_RANGES, Collection, FieldType, Primitive
 from rcan_rtps.ros.typesys.store import TypeStore
 
+# The message types the issue names for byte-exact and interop checks.
+LISTED_TYPES = [
+    "geometry_msgs/msg/Twist",
+    "geometry_msgs/msg/TwistStamped",
+    "sensor_msgs/msg/JointState",
+    "nav_msgs/msg/Odometry",
+    "diagnostic_msgs/msg/DiagnosticArray",
+    "trajectory_msgs/msg/JointTrajectory",
+    "sensor_msgs/msg/BatteryState",
+    "sensor_msgs/msg/Image",
+    "sensor_msgs/msg/LaserScan",
+]
+
 _TEXT = st.text(st.characters(min_codepoint=32, max_codepoint=0x2FF), max_size=12)
 
 

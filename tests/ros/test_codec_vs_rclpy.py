@@ -22,23 +22,11 @@ from rcan_rtps.ros.typesys.store import TypeStore
 from rcan_rtps.ros.typesys.values import MessageValues
 
 from .cdr_reference import encode, equal_ignoring_padding
-from .strategies import values_for
+from .strategies import LISTED_TYPES, values_for
 
 pytestmark = pytest.mark.interop
 
-TYPES = [
-    "geometry_msgs/msg/Twist",
-    "geometry_msgs/msg/TwistStamped",
-    "sensor_msgs/msg/JointState",
-    "nav_msgs/msg/Odometry",
-    "diagnostic_msgs/msg/DiagnosticArray",
-    "trajectory_msgs/msg/JointTrajectory",
-    "sensor_msgs/msg/BatteryState",
-    "sensor_msgs/msg/Image",
-    "sensor_msgs/msg/LaserScan",
-    "test_msgs/msg/Arrays",
-    "test_msgs/msg/BoundedSequences",
-]
+TYPES = [*LISTED_TYPES, "test_msgs/msg/Arrays", "test_msgs/msg/BoundedSequences"]
 
 
 @pytest.fixture(scope="module")

@@ -16,12 +16,14 @@ from ._keys import (
     AUTHENTICATOR,
     CERT_PRINCIPALS,
     GOVERNOR,
+    OBSERVE,
     ROBOT,
     SETTINGS,
     SOCKETS,
     ApiSettings,
     Authenticator,
 )
+from ._metrics import Metrics
 from ._middlewares import authenticate, last_resort
 from ._openapi import openapi_document
 from ._tls import cert_principals as config_cert_principals
@@ -63,6 +65,13 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     sockets: set[web.WebSocketResponse] = set()
     app[SOCKETS] = sockets
     document = msgspec.json.encode(openapi_document())
+    metrics = Metrics(governor, robot)
+    app[OBSERVE] = metrics.command_seconds.observe
+
+    async def get_metrics(request: web.Request) -> web.Response:
+        # Prometheus text format; scrape with the bearer token of any principal.
+        return web.Response(body=metrics.render(),
+                            headers={"Content-Type": metrics.content_type})
 
     async def get_openapi(request: web.Request) -> web.Response:
         return web.Response(body=document, content_type="application/json")
@@ -79,6 +88,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_get("/api/audit/verify", r.get_audit_verify, allow_head=False)
     app.router.add_get("/api/openapi.json", get_openapi, allow_head=False)
     app.router.add_get("/api/ws", websocket, allow_head=False)
+    app.router.add_get("/api/metrics", get_metrics, allow_head=False)
     app.on_shutdown.append(_close_sockets)
     return app
 

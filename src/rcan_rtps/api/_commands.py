@@ -6,6 +6,8 @@ audits them for an authenticated principal; everything else is `Governor.decide`
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from typing import Any
 
 import msgspec
@@ -51,7 +53,17 @@ async def schema_failure(governor: Governor, principal: Principal, path: str,
     return decision.http_status, body
 
 
-async def run_command(governor: Governor, principal: Principal, raw: bytes) -> Reply:
+async def run_command(governor: Governor, principal: Principal, raw: bytes,
+                      observe: Callable[[float], None] | None = None) -> Reply:
+    started = time.perf_counter()
+    try:
+        return await _run_command(governor, principal, raw)
+    finally:
+        if observe is not None:
+            observe(time.perf_counter() - started)
+
+
+async def _run_command(governor: Governor, principal: Principal, raw: bytes) -> Reply:
     try:
         command = validate_command(raw)
     except RecursionError:  # msgspec gives up on deep nesting with this, not a DecodeError

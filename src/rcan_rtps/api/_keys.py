@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Protocol
 
 import msgspec
@@ -37,5 +37,7 @@ AUTHENTICATOR = web.AppKey("authenticator", Authenticator)
 CERT_PRINCIPALS = web.AppKey("cert_principals", Mapping[str, Principal])
 SETTINGS = web.AppKey("settings", ApiSettings)
 SOCKETS = web.AppKey("sockets", set[web.WebSocketResponse])
+# Seconds per decided command, reported to the metrics (a no-op where there are none).
+OBSERVE: web.AppKey[Callable[[float], None]] = web.AppKey("observe_command_seconds")
 
 PRINCIPAL = web.RequestKey("principal", Principal)

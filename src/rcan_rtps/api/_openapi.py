@@ -102,6 +102,11 @@ PATHS: dict[str, dict[str, Any]] = {
                                      {"200": {"description": "OpenAPI 3.1 document",
                                               "content": {"application/json": {}}},
                                       **_errors()})},
+    "/api/metrics": {"get": _op(
+        "getMetrics", "Prometheus metrics: audit entries by event/action/outcome, command "
+        "latency, pending approvals, e-stop, robot state, telemetry age",
+        {"200": {"description": "Prometheus text exposition format",
+                 "content": {"text/plain": {"schema": {"type": "string"}}}}, **_errors()})},
     "/api/ws": {"get": _op(
         "getWebSocket",
         "WebSocket: text frames in are COMMAND bodies; frames out are WsFrame (STATUS at "

@@ -23,7 +23,7 @@ from ._bodies import (
     json_response,
 )
 from ._commands import decode_as, read_limited, run_command, schema_failure, too_large
-from ._keys import GOVERNOR, PRINCIPAL, ROBOT, SETTINGS
+from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, ROBOT, SETTINGS
 
 _WALL = SystemClock()
 
@@ -44,7 +44,7 @@ async def post_command(request: web.Request) -> web.Response:
         response = json_response(body, status)
         response.force_close()  # the rest of the body is not worth reading
         return response
-    status, body = await run_command(governor, principal, raw)
+    status, body = await run_command(governor, principal, raw, request.app[OBSERVE])
     return json_response(body, status)
 
 

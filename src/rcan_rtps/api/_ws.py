@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections.abc import Callable
 
 import msgspec
 from aiohttp import WSMsgType, web
@@ -21,7 +22,7 @@ from rcan_rtps.rcan import ErrorCode, validate_command
 
 from ._bodies import WsFrame, error_body
 from ._commands import Reply, run_command, too_large
-from ._keys import GOVERNOR, PRINCIPAL, ROBOT, SETTINGS, SOCKETS
+from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, ROBOT, SETTINGS, SOCKETS
 from .ports import RobotView
 
 log = logging.getLogger(__name__)
@@ -63,8 +64,10 @@ class _Commands:
     """In-order decisions of one socket's commands, with a bounded backlog."""
 
     def __init__(self, ws: web.WebSocketResponse, governor: Governor, principal: Principal,
-                 limit: int, backlog: int) -> None:
+                 limit: int, backlog: int,
+                 observe: Callable[[float], None] | None = None) -> None:
         self._ws = ws
+        self._observe = observe
         self._governor = governor
         self._principal = principal
         self._limit = limit
@@ -82,7 +85,7 @@ class _Commands:
     async def _decide(self, raw: bytes) -> Reply:
         if len(raw) > self._limit:
             return await too_large(self._governor, self._principal)
-        return await run_command(self._governor, self._principal, raw)
+        return await run_command(self._governor, self._principal, raw, self._observe)
 
     async def _work(self) -> None:
         while True:
@@ -117,7 +120,7 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
     await ws.prepare(request)
     app[SOCKETS].add(ws)
     commands = _Commands(ws, governor, principal, settings.max_body_bytes,
-                         settings.ws_max_in_flight)
+                         settings.ws_max_in_flight, app[OBSERVE])
     pusher = asyncio.create_task(
         _push_status(ws, governor, app[ROBOT], 1.0 / settings.telemetry_rate_hz))
     try:

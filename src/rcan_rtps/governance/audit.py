@@ -13,8 +13,9 @@ import datetime as dt
 import enum
 import fcntl
 import hashlib
+import logging
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,7 @@ from .clock import Clock, SystemClock
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
 
 GENESIS = "sha256:" + "0" * 64
+log = logging.getLogger(__name__)
 _UNSIGNED = ("audit_id", "sig")
 _REQUIRED = ("seq", "audit_id", "prev_hash", "sig", "event", "timestamp_ms")
 
@@ -267,6 +269,8 @@ class AuditLog:
         self._queue: list[tuple[bytes, asyncio.Future[None]]] = []
         self._flusher: asyncio.Task[None] | None = None
         self._broken: BaseException | None = None
+        # Told of every durable entry (e.g. metrics); a failing listener is logged, not raised.
+        self.listeners: list[Callable[[AuditRecord], None]] = []
 
     @classmethod
     async def open(cls, path: str | os.PathLike[str], key_path: str | os.PathLike[str], *,
@@ -312,6 +316,11 @@ class AuditLog:
             self._flusher = asyncio.create_task(self._flush())
         # A cancelled caller must not leave its entry half-acknowledged: the write goes on.
         await asyncio.shield(done)
+        for listener in self.listeners:
+            try:
+                listener(record)
+            except Exception:
+                log.exception("audit listener failed")
         return receipt
 
     async def close(self) -> None:

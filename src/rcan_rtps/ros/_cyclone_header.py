@@ -22,7 +22,6 @@ from typing import Any
 from cyclonedds.core import Policy
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl import types as t
-from cyclonedds.idl._machinery import BytesMachine
 from cyclonedds.pub import DataWriter
 from cyclonedds.qos import Qos
 from cyclonedds.sub import DataReader
@@ -31,8 +30,7 @@ from cyclonedds.topic import Topic
 from .errors import WireError
 from .participant import RosNode
 from .qos import QosProfile
-from .typesys.ddstypes import is_byte_like
-from .typesys.model import Collection
+from .typesys.ddstypes import use_bytes_codec
 
 ENCAPSULATION_SIZE = 4
 HEADER_SIZE = 16  # uint64 client_guid at offset 4, int64 seq at offset 12 (after encapsulation)
@@ -71,14 +69,7 @@ def _build_wrapper(plain: type[IdlStruct], msg: Any) -> type[IdlStruct]:
     short = msg.dds_name.rsplit("::", 1)[-1]
     cls = make_idl_struct(f"{short}CycloneWrapper", msg.dds_name,
                           {GUID_FIELD: t.uint64, SEQ_FIELD: t.int64, **hints})
-    # Byte sequences use cyclonedds' one-copy bytes codec, as in DdsTypes.
-    byte_sequences = [f for f in msg.fields
-                      if is_byte_like(f.type) and f.type.collection is not Collection.ARRAY]
-    if byte_sequences:
-        cls.__idl__.populate()
-        for machine in (cls.__idl__.v1_machine, cls.__idl__.v2_machine):
-            for f in byte_sequences:
-                machine.members_machines[f.name] = BytesMachine(f.type.size or None)  # type: ignore[attr-defined]
+    use_bytes_codec(cls, msg)  # byte sequences as in DdsTypes
     return cls
 
 

@@ -48,6 +48,18 @@ def is_byte_like(ftype: FieldType) -> bool:
     return ftype.primitive in BYTE_LIKE and ftype.is_collection
 
 
+def use_bytes_codec(cls: type[IdlStruct], msg: MessageType) -> None:
+    """Swaps in cyclonedds' one-copy bytes codec for `msg`'s octet/uint8 sequences."""
+    byte_sequences = [f for f in msg.fields
+                      if is_byte_like(f.type) and f.type.collection is not Collection.ARRAY]
+    if not byte_sequences:
+        return
+    cls.__idl__.populate()
+    for machine in (cls.__idl__.v1_machine, cls.__idl__.v2_machine):
+        for f in byte_sequences:
+            machine.members_machines[f.name] = BytesMachine(f.type.size or None)  # type: ignore[attr-defined]
+
+
 class DdsTypes:
     """Caches one `IdlStruct` class per ROS struct type of a `TypeStore`."""
 
@@ -70,13 +82,7 @@ class DdsTypes:
         fields = {f.name: self._annotation(msg, f.name, f.type) for f in msg.fields}
         class_name = msg.dds_name.rsplit("::", 1)[-1]
         cls = make_idl_struct(class_name, msg.dds_name, fields)
-        byte_sequences = [f for f in msg.fields
-                          if is_byte_like(f.type) and f.type.collection is not Collection.ARRAY]
-        if byte_sequences:
-            cls.__idl__.populate()
-            for machine in (cls.__idl__.v1_machine, cls.__idl__.v2_machine):
-                for f in byte_sequences:
-                    machine.members_machines[f.name] = BytesMachine(f.type.size or None)  # type: ignore[attr-defined]
+        use_bytes_codec(cls, msg)
         return cls
 
     def _annotation(self, msg: MessageType, fname: str, ftype: FieldType) -> Any:

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import argparse
 import os
+from typing import Any
 
+import yaml
+
+from ..ros.errors import ValueFitError
 from ..ros.participant import RosNode
 from ..ros.typesys.store import TypeStore, env_idl_paths
 
@@ -28,3 +32,15 @@ def make_node(args: argparse.Namespace) -> RosNode:
     # Hidden (leading '_') like ros2cli's own nodes, so `node list` leaves it out.
     return RosNode(f"_rcan_rtps_cli_{os.getpid()}", "/", domain_id=args.domain_id,
                    localhost=args.localhost, store=make_store(args))
+
+
+def parse_values(text: str) -> Any:
+    """VALUES as ros2cli takes them: YAML (an empty string means all defaults)."""
+    try:
+        return yaml.safe_load(text) if text.strip() else {}
+    except yaml.YAMLError as exc:
+        raise ValueFitError("", f"VALUES is not valid YAML: {exc}") from None
+
+
+def dump(values: Any) -> str:
+    return yaml.safe_dump(values, sort_keys=False, allow_unicode=True).rstrip()

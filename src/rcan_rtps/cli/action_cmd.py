@@ -13,8 +13,8 @@ from ..ros.actions import ActionClient, ClientGoal, GoalState
 from ..ros.graph import Direction, RosGraph, node_fqn
 from ..ros.names import EndpointKind, action_names
 from ..ros.services import RequestMapping
-from ._common import make_node
-from .service_cmd import MAPPINGS, dump, parse_values
+from ._common import dump, make_node, parse_values
+from .service_cmd import MAPPINGS
 
 EXIT_INTERRUPTED = 130
 

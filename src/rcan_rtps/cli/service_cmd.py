@@ -4,14 +4,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-from typing import Any
 
-import yaml
-
-from ..ros.errors import ValueFitError
 from ..ros.graph import RosGraph
 from ..ros.services import RequestMapping, ServiceClient
-from ._common import make_node
+from ._common import dump, make_node, parse_values
 
 MAPPINGS = [m.value for m in RequestMapping]
 
@@ -34,17 +30,6 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     call.add_argument("--mapping", choices=MAPPINGS, default="auto",
                       help="request-reply mapping (default: from the server's vendor)")
     call.set_defaults(func=lambda a: asyncio.run(_call(a)))
-
-
-def parse_values(text: str) -> Any:
-    try:
-        return yaml.safe_load(text) if text.strip() else {}
-    except yaml.YAMLError as exc:
-        raise ValueFitError("", f"VALUES is not valid YAML: {exc}") from None
-
-
-def dump(values: Any) -> str:
-    return yaml.safe_dump(values, sort_keys=False, allow_unicode=True).rstrip()
 
 
 async def _list(args: argparse.Namespace) -> int:

@@ -15,10 +15,10 @@ from typing import Any
 import yaml
 
 from ..ros import qos as qos_mod
-from ..ros.errors import GraphTimeout, ValueFitError
+from ..ros.errors import GraphTimeout
 from ..ros.graph import Direction, Endpoint, RosGraph, short_gid
 from ..ros.participant import RosNode
-from ._common import make_node
+from ._common import make_node, parse_values
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -188,10 +188,7 @@ async def _echo(args: argparse.Namespace) -> int:
 
 
 async def _pub(args: argparse.Namespace) -> int:
-    try:
-        values = yaml.safe_load(args.values) if args.values.strip() else {}
-    except yaml.YAMLError as exc:
-        raise ValueFitError("", f"VALUES is not valid YAML: {exc}") from None
+    values = parse_values(args.values)
     node = make_node(args)
     with node:
         pub = node.create_publisher(args.topic, args.type, qos_mod.preset(args.qos_profile))

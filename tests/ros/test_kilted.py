@@ -30,7 +30,7 @@ def test_bundle_hashes_match_kilted(kilted_python: Path) -> None:
     assert compared > 100
 
 
-async def test_kilted_rclpy_receives_our_twist(kilted_python: Path, domain_id: int) -> None:
+async def test_kilted_rclpy_receives_and_lists_us(kilted_python: Path, domain_id: int) -> None:
     with RclpyOracle(kilted_python, "kilted_oracle", domain_id=domain_id) as oracle, \
             RosNode("rcan_bridge", "/k", domain_id=domain_id, distro="kilted") as node:
         oracle.call("subscribe", topic="/k/cmd_vel", type="geometry_msgs/msg/Twist")
@@ -44,5 +44,37 @@ async def test_kilted_rclpy_receives_our_twist(kilted_python: Path, domain_id: i
                 break
             await asyncio.sleep(0.05)
         assert got and got[0]["linear"]["x"] == 0.3
-        # Kilted's rclpy does not yet list our node from ros_discovery_info (Jazzy does);
-        # tracked on the issue as open work rather than asserted here.
+        names: list[list[str]] = []
+        for _ in range(100):
+            names = oracle.call("node_names")
+            if ["rcan_bridge", "/k"] in names:
+                break
+            await asyncio.sleep(0.1)
+        assert ["rcan_bridge", "/k"] in names
+
+
+async def test_kilted_sequences_both_ways(kilted_python: Path, domain_id: int) -> None:
+    """Types with sequences match Fast DDS 3 (Kilted) too: XTypes info is not in the way."""
+    with RclpyOracle(kilted_python, "kilted_oracle", domain_id=domain_id) as oracle, \
+            RosNode("peer", "/k", domain_id=domain_id, distro="kilted") as node:
+        sub = node.create_subscription("/k/joint_states", "sensor_msgs/msg/JointState")
+        oracle.call("publisher", topic="/k/joint_states", type="sensor_msgs/msg/JointState")
+        await sub.wait_for_publishers(1, timeout=15)
+        oracle.call("wait_subscribers", topic="/k/joint_states")
+        oracle.call("publish", topic="/k/joint_states", type="sensor_msgs/msg/JointState",
+                    value={"name": ["a", "b"], "position": [0.5, 1.5]}, count=3)
+        got = await sub.get(timeout=10)
+        assert list(got.name) == ["a", "b"] and list(got.position) == [0.5, 1.5]
+        oracle.call("subscribe", topic="/k/diagnostics",
+                    type="diagnostic_msgs/msg/DiagnosticArray")
+        pub = node.create_publisher("/k/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+        await pub.wait_for_subscribers(1, timeout=15)
+        oracle.call("wait_publishers", topic="/k/diagnostics")
+        pub.publish({"status": [{"level": 2, "name": "motor", "message": "hot"}]})
+        received = []
+        for _ in range(100):
+            received = oracle.call("take", topic="/k/diagnostics")
+            if received:
+                break
+            await asyncio.sleep(0.05)
+        assert received and received[0]["status"][0]["message"] == "hot"

@@ -17,7 +17,7 @@ from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from cyclonedds.core import Listener, Policy
+from cyclonedds.core import DDSException, Listener, Policy
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct
 from cyclonedds.internal import InvalidSample
@@ -42,6 +42,11 @@ _LOCALHOST_CONFIG = """<CycloneDDS><Domain Id="any"><General>
 <AllowMulticast>false</AllowMulticast></General>
 <Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>32</MaxAutoParticipantIndex>
 <Peers><Peer address="localhost"/></Peers></Discovery></Domain></CycloneDDS>"""
+# ROS matches endpoints by type name (the hash travels in USER_DATA), never by XTypes. Fast DDS 3
+# (Kilted) sends type objects Cyclone rejects, which left every endpoint with a sequence of
+# strings or structs unmatched; so type information from Fast DDS (vendor 1.15) is ignored.
+_COMPAT_CONFIG = """<CycloneDDS><Domain Id="any"><Compatibility>
+<IgnoreTypeInformation>1.15</IgnoreTypeInformation></Compatibility></Domain></CycloneDDS>"""
 
 _domains: dict[int, Domain] = {}
 _domains_lock = threading.Lock()
@@ -67,12 +72,20 @@ def localhost_requested(explicit: bool | None = None) -> bool:
 
 def _ensure_domain(domain_id: int, localhost: bool) -> None:
     # A Domain object fixes the configuration for every participant of that id in
-    # this process, so the first node decides; it must be created before them.
-    if not localhost:
-        return
+    # this process, so the first node decides; it must be created before them. The
+    # user's CYCLONEDDS_URI comes first; our fragments refine it.
     with _domains_lock:
-        if domain_id not in _domains:
-            _domains[domain_id] = Domain(domain_id, _LOCALHOST_CONFIG)
+        if domain_id in _domains:
+            return
+        user = os.environ.get("CYCLONEDDS_URI", "").strip()
+        ours = [_COMPAT_CONFIG, *([_LOCALHOST_CONFIG] if localhost else [])]
+        try:
+            _domains[domain_id] = Domain(domain_id, ",".join(filter(None, [user, *ours])))
+        except DDSException:  # an older Cyclone without <Compatibility>: do without it
+            log.warning("Cyclone DDS does not know <Compatibility>; Fast DDS 3 peers may not "
+                        "match endpoints with sequences")
+            fallback = [user, *([_LOCALHOST_CONFIG] if localhost else [])]
+            _domains[domain_id] = Domain(domain_id, ",".join(filter(None, fallback)) or None)
 
 
 def gid_bytes(entity: Any, size: int) -> bytes:

@@ -66,6 +66,7 @@ class Rig:
     oracle: RclpyOracle
     audit_path: Path
     goals: GoalTracker | None = None
+    notifier: DiagnosticsNotifier | None = None
 
     async def command(self, principal: Principal, body: dict[str, Any]) -> Decision:
         return await self.governor.decide(validate_command(json.dumps(body).encode()), principal)
@@ -81,6 +82,16 @@ class Rig:
             got += self.oracle.call("take", topic=topic)
             await asyncio.sleep(0.05)
         return got
+
+    async def saw(self, topic: str, message: Any, timeout: float = 10.0) -> bool:
+        """Whether `message` arrives on `topic` (rclpy side) within `timeout`."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while loop.time() < deadline:
+            if message in self.oracle.call("take", topic=topic):
+                return True
+            await asyncio.sleep(0.05)
+        return False
 
     async def until(self, predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
         loop = asyncio.get_running_loop()
@@ -99,8 +110,9 @@ async def make_rig(config: RcanConfig, jazzy_python: Path, domain_id: int,
     audit = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path)
     goals = GoalTracker(node, ros2.nav_action) if navigation else None
     dispatcher = RosDispatcher(node, ros2, goals)
+    notifier = DiagnosticsNotifier(node, ros2.diagnostics_topic)
     governor = Governor.from_config(config, audit=audit, dispatcher=dispatcher,
-                                    notifier=DiagnosticsNotifier(node, ros2.diagnostics_topic))
+                                    notifier=notifier)
     telemetry = TelemetryState(node, config, estop_latched=lambda: governor.latch.latched,
                                active_goals=goals.active if goals else list)
     governor.safe_stop_listeners.append(lambda _p: telemetry.mark_safe_stop())
@@ -108,7 +120,7 @@ async def make_rig(config: RcanConfig, jazzy_python: Path, domain_id: int,
     await governor.start()
     oracle = RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id)
     return Rig(node, governor, telemetry, dispatcher, oracle, Path(config.bridge.audit.path),
-               goals)
+               goals, notifier)
 
 
 async def close_rig(rig: Rig) -> None:

@@ -29,7 +29,9 @@ async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterat
 
 
 async def subscribe(rig: Rig, topic: str, type_name: str, qos: str = "default") -> None:
+    """An rclpy subscription, matched with the bridge's writer before anything is sent."""
     rig.oracle.call("subscribe", topic=topic, type=type_name, qos=qos)
+    assert await asyncio.to_thread(rig.oracle.call, "wait_matched", topic=topic) >= 1
 
 
 async def test_rbac_before_publish(rig: Rig) -> None:
@@ -81,7 +83,7 @@ async def test_estop_latches_and_only_owner_clears(rig: Rig) -> None:
     await subscribe(rig, "/robot1/cmd_vel", TWIST)
     estop = await rig.command(VIEWER, {"action": "estop"})
     assert estop.http_status == 200
-    assert {"data": True} in await rig.take("/robot1/emergency_stop")
+    assert await rig.saw("/robot1/emergency_stop", {"data": True})
     assert rig.telemetry.status(pending_auth=0).state == "estop"
     moved = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.1}})
     assert moved.http_status == 409 and moved.reason == "estop_active"
@@ -89,7 +91,7 @@ async def test_estop_latches_and_only_owner_clears(rig: Rig) -> None:
     assert refused.http_status == 403
     cleared = await rig.command(OPS, {"action": "clear_estop"})
     assert cleared.http_status == 200
-    assert {"data": False} in await rig.take("/robot1/emergency_stop")
+    assert await rig.saw("/robot1/emergency_stop", {"data": False})
     assert (await rig.command(AGENT, {"action": "move",
                                       "params": {"linear_x": 0.1}})).http_status == 200
 
@@ -155,8 +157,6 @@ async def test_pending_auth_publishes_a_warn_diagnostic(tmp_path: Path, jazzy_py
     rig = await make_rig(config, jazzy_python, domain_id)
     try:
         await subscribe(rig, "/robot1/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
-        await rig.dispatcher.trajectory.wait_for_subscribers(0, timeout=1)
-        await asyncio.sleep(1.0)  # let the rclpy subscription match our diagnostics writer
         held = await rig.command(AGENT, {"action": "arm_joint", "params": {
             "joints": ["j1"], "positions": [0.1], "duration_s": 1.0}})
         assert held.http_status == 202 and held.pending_id
@@ -178,7 +178,9 @@ async def test_telemetry_becomes_status(rig: Rig) -> None:
                              ("/robot1/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
                              ("/robot1/battery_state", "sensor_msgs/msg/BatteryState")):
         rig.oracle.call("publisher", topic=topic, type=type_name)
-    await asyncio.sleep(1.0)
+    for subscription in rig.telemetry.subscriptions:  # both ends matched before publishing
+        await subscription.wait_for_publishers(1, timeout=15)
+    await asyncio.sleep(0.2)
     rig.oracle.call("publish", topic="/robot1/odom", type="nav_msgs/msg/Odometry", value=odom,
                     count=3)
     rig.oracle.call("publish", topic="/robot1/joint_states", type="sensor_msgs/msg/JointState",
@@ -207,9 +209,7 @@ async def test_telemetry_becomes_status(rig: Rig) -> None:
                     value={"status": [{"level": 0, "name": "motor", "message": "ok"}]}, count=2)
     assert await rig.until(lambda: rig.telemetry.status(pending_auth=0).state != "fault")
     # The robot falls silent: offline after the staleness window (1 s here).
-    started = time.monotonic()
     assert await rig.until(lambda: rig.telemetry.status(pending_auth=0).state == "offline")
-    assert time.monotonic() - started > 0  # (ordering only; no timing asserted)
     assert not rig.telemetry.status(pending_auth=0).ros.connected
 
 

@@ -9,6 +9,7 @@ import sys
 import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from oracle.client import RclpyOracle
@@ -43,6 +44,17 @@ async def latest(oracle: RclpyOracle, topic: str, timeout: float = 10.0) -> dict
     raise AssertionError(f"nothing on {topic}")
 
 
+async def until(oracle: RclpyOracle, predicate: Any, timeout: float = 15.0) -> bool:
+    """Whether some odometry message on /robot1/odom satisfies `predicate` in time."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while loop.time() < deadline:
+        if any(predicate(m) for m in oracle.call("take", topic="/robot1/odom")):
+            return True
+        await asyncio.sleep(0.05)
+    return False
+
+
 async def test_rclpy_drives_the_sim_and_sees_odometry(oracle: RclpyOracle,
                                                       sim: SimRobot) -> None:
     oracle.call("subscribe", topic="/robot1/odom", type="nav_msgs/msg/Odometry")
@@ -54,12 +66,10 @@ async def test_rclpy_drives_the_sim_and_sees_odometry(oracle: RclpyOracle,
     await asyncio.to_thread(oracle.call, "publish", topic="/robot1/cmd_vel",
                             type="geometry_msgs/msg/Twist", value={"linear": {"x": 0.5}},
                             count=20, period=0.05)
-    await asyncio.sleep(0.2)
-    moved = await latest(oracle, "/robot1/odom")
-    assert moved["pose"]["pose"]["position"]["x"] > start["pose"]["pose"]["position"]["x"] + 0.2
-    await asyncio.sleep(1.0)  # cmd_vel timeout: the base stops by itself
-    still = await latest(oracle, "/robot1/odom")
-    assert still["twist"]["twist"]["linear"]["x"] == 0.0
+    x0 = start["pose"]["pose"]["position"]["x"]
+    assert await until(oracle, lambda m: m["pose"]["pose"]["position"]["x"] > x0 + 0.2)
+    # cmd_vel timeout: the base stops by itself
+    assert await until(oracle, lambda m: m["twist"]["twist"]["linear"]["x"] == 0.0)
 
 
 async def test_estop_halts_and_latches(oracle: RclpyOracle, sim: SimRobot) -> None:

@@ -21,6 +21,7 @@ from typing import Any
 import rclpy
 from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
@@ -118,6 +119,7 @@ class Agent:
         self.executor.add_node(self.node)
         self.lock = threading.Lock()
         self.received: dict[str, list[Any]] = {}
+        self.matched: dict[str, int] = {}
         self.publishers: dict[str, Any] = {}
         self.subscriptions: dict[str, Any] = {}
         self.services: dict[str, Any] = {}
@@ -162,9 +164,26 @@ class Agent:
             with self.lock:
                 self.received[topic].append(plain(msg))
 
+        def on_matched(status: Any, topic: str = topic) -> None:
+            with self.lock:
+                self.matched[topic] = status.current_count
+
         self.subscriptions[topic] = self.node.create_subscription(
-            load_type(type), topic, on_message, make_qos(qos))
+            load_type(type), topic, on_message, make_qos(qos),
+            event_callbacks=SubscriptionEventCallbacks(matched=on_matched))
         return True
+
+    def op_wait_matched(self, topic: str, count: int = 1, timeout: float = 15.0) -> int:
+        """Publishers matched by our subscription at the DDS level (not just on the graph):
+        only then is a one-shot, volatile message sure to reach it."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                n = self.matched.get(topic, 0)
+            if n >= count:
+                return n
+            time.sleep(0.02)
+        return self.matched.get(topic, 0)
 
     def op_subscribe_timed(self, topic: str, type: str, field: str = "linear.x",
                            qos: str = "default") -> bool:

@@ -62,14 +62,17 @@ class TelemetryState:
         self.distro = node.store.distro
         # Sensor-data QoS (best effort) matches both reliable and best-effort publishers.
         sensor = qos.SENSOR_DATA.with_(depth=10)
-        node.create_subscription(ros2.odom_topic, "nav_msgs/msg/Odometry", sensor,
-                                 callback=self._on_odom)
-        node.create_subscription(ros2.joint_states_topic, "sensor_msgs/msg/JointState", sensor,
-                                 callback=self._on_joints)
-        node.create_subscription(ros2.diagnostics_topic, "diagnostic_msgs/msg/DiagnosticArray",
-                                 sensor, callback=self._on_diagnostics)
-        node.create_subscription(ros2.battery_topic, "sensor_msgs/msg/BatteryState", sensor,
-                                 callback=self._on_battery)
+        self.subscriptions = [
+            node.create_subscription(ros2.odom_topic, "nav_msgs/msg/Odometry", sensor,
+                                     callback=self._on_odom),
+            node.create_subscription(ros2.joint_states_topic, "sensor_msgs/msg/JointState",
+                                     sensor, callback=self._on_joints),
+            node.create_subscription(ros2.diagnostics_topic,
+                                     "diagnostic_msgs/msg/DiagnosticArray", sensor,
+                                     callback=self._on_diagnostics),
+            node.create_subscription(ros2.battery_topic, "sensor_msgs/msg/BatteryState", sensor,
+                                     callback=self._on_battery),
+        ]
 
     # -- DDS side (listener threads) ----------------------------------------------------
     def _touch(self) -> None:

@@ -62,11 +62,14 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):  
 sys.path.insert(0, str(ROOT / "tests"))
 
 
-_next_domain = [40 + (os.getpid() % 50)]
+# Test domains: 1..99 but 39 (module-scoped interop tests) and 77/78 (benchmarks). Above ~100,
+# DDS ports reach Linux's ephemeral range and can collide with other sockets.
+_TEST_DOMAINS = [d for d in range(1, 100) if d not in (39, 77, 78)]
+_next_domain = [os.getpid() % len(_TEST_DOMAINS)]
 
 
 @pytest.fixture
 def domain_id() -> int:
     """A fresh DDS domain per test, so tests never see each other's nodes."""
-    _next_domain[0] = 40 + (_next_domain[0] - 39) % 150
-    return _next_domain[0]
+    _next_domain[0] = (_next_domain[0] + 1) % len(_TEST_DOMAINS)
+    return _TEST_DOMAINS[_next_domain[0]]

@@ -48,7 +48,7 @@ _LOCALHOST_CONFIG = """<CycloneDDS><Domain Id="any"><General>
 _COMPAT_CONFIG = """<CycloneDDS><Domain Id="any"><Compatibility>
 <IgnoreTypeInformation>1.15</IgnoreTypeInformation></Compatibility></Domain></CycloneDDS>"""
 
-_domains: dict[int, Domain] = {}
+_domains: dict[int, tuple[Domain, int]] = {}  # domain id → (configured domain, nodes using it)
 _domains_lock = threading.Lock()
 
 
@@ -70,22 +70,38 @@ def localhost_requested(explicit: bool | None = None) -> bool:
     return os.environ.get("ROS_LOCALHOST_ONLY", "") == "1"
 
 
-def _ensure_domain(domain_id: int, localhost: bool) -> None:
+def _acquire_domain(domain_id: int, localhost: bool) -> None:
     # A Domain object fixes the configuration for every participant of that id in
     # this process, so the first node decides; it must be created before them. The
     # user's CYCLONEDDS_URI comes first; our fragments refine it.
     with _domains_lock:
         if domain_id in _domains:
+            domain, users = _domains[domain_id]
+            _domains[domain_id] = (domain, users + 1)
             return
         user = os.environ.get("CYCLONEDDS_URI", "").strip()
         ours = [_COMPAT_CONFIG, *([_LOCALHOST_CONFIG] if localhost else [])]
         try:
-            _domains[domain_id] = Domain(domain_id, ",".join(filter(None, [user, *ours])))
+            domain = Domain(domain_id, ",".join(filter(None, [user, *ours])))
         except DDSException:  # an older Cyclone without <Compatibility>: do without it
             log.warning("Cyclone DDS does not know <Compatibility>; Fast DDS 3 peers may not "
                         "match endpoints with sequences")
             fallback = [user, *([_LOCALHOST_CONFIG] if localhost else [])]
-            _domains[domain_id] = Domain(domain_id, ",".join(filter(None, fallback)) or None)
+            domain = Domain(domain_id, ",".join(filter(None, fallback)) or None)
+        _domains[domain_id] = (domain, 1)
+
+
+def _release_domain(domain_id: int) -> None:
+    """The last node of a domain gone: free its threads and sockets."""
+    with _domains_lock:
+        domain, users = _domains.get(domain_id, (None, 0))
+        if domain is None:
+            return
+        if users > 1:
+            _domains[domain_id] = (domain, users - 1)
+            return
+        del _domains[domain_id]
+    domain.__del__()
 
 
 def gid_bytes(entity: Any, size: int) -> bytes:
@@ -212,7 +228,7 @@ class RosNode:
         self.values = MessageValues(self.types)
         self.domain_id = resolve_domain_id(domain_id)
         self.localhost = localhost_requested(localhost)
-        _ensure_domain(self.domain_id, self.localhost)
+        _acquire_domain(self.domain_id, self.localhost)
         self.participant = DomainParticipant(
             self.domain_id, qos=Qos(Policy.Userdata(f"enclave={enclave};".encode())))
         self.publisher = Publisher(self.participant)
@@ -330,6 +346,7 @@ class RosNode:
         participant = self.participant
         del self._info_writer
         participant.__del__()
+        _release_domain(self.domain_id)
 
     def __enter__(self) -> RosNode:
         return self

@@ -17,6 +17,7 @@ from ..ros.actions import ActionClient, ClientGoal
 from ..ros.actions import GoalState as RosGoalState
 from ..ros.errors import ActionError, WireError
 from ..ros.participant import RosNode
+from ..ros.services import RequestMapping
 
 log = logging.getLogger(__name__)
 NAVIGATE_TO_POSE = "nav2_msgs/action/NavigateToPose"
@@ -38,9 +39,10 @@ def _ms() -> int:
 class GoalTracker:
     """The bridge's `Navigator`: sends NavigateToPose goals and follows them."""
 
-    def __init__(self, node: RosNode, action: str, *, keep: int = 200) -> None:
+    def __init__(self, node: RosNode, action: str, *, keep: int = 200,
+                 mapping: RequestMapping = RequestMapping.AUTO) -> None:
         self.node = node
-        self.client = ActionClient(node, action, NAVIGATE_TO_POSE)
+        self.client = ActionClient(node, action, NAVIGATE_TO_POSE, mapping=mapping)
         self._views: dict[str, GoalView] = {}
         self._handles: dict[str, ClientGoal] = {}
         self._watchers: set[asyncio.Task[None]] = set()

@@ -28,6 +28,7 @@ from ..governance import (
 )
 from ..rcan import Status
 from ..ros.participant import RosNode
+from ..ros.services import RequestMapping
 from .commands import RosDispatcher
 from .mdns import Advert, RcanAdvertiser
 from .navigation import GoalTracker
@@ -35,6 +36,13 @@ from .notify import DiagnosticsNotifier, FanOutNotifier
 from .telemetry import TelemetryState
 
 log = logging.getLogger(__name__)
+
+
+def nav_mapping(config: RcanConfig) -> RequestMapping:
+    """The configured request-reply mapping of the navigation action (name override first)."""
+    ros2 = config.bridge.ros2
+    chosen = ros2.request_mappings.get(ros2.nav_action, ros2.request_mapping)
+    return RequestMapping(chosen)
 
 
 class BridgeView:
@@ -86,7 +94,7 @@ class Bridge:
         self.node = RosNode(ros2.node_name, ros2.namespace or "/", domain_id=ros2.domain_id,
                             distro=ros2.distro, localhost=opts.localhost)
         self.audit = await AuditLog.open(bridge.audit.path, bridge.audit.key_path)
-        self.goals = GoalTracker(self.node, ros2.nav_action)
+        self.goals = GoalTracker(self.node, ros2.nav_action, mapping=nav_mapping(self.config))
         self.dispatcher = RosDispatcher(self.node, ros2, self.goals)
         self.governor = Governor.from_config(self.config, audit=self.audit,
                                              dispatcher=self.dispatcher,

@@ -66,6 +66,10 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     telemetry_stale_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)] = 2.0
     # How long a command waits for a subscriber or action server before ROBOT_UNAVAILABLE.
     match_timeout_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 1.0
+    # Request-reply mapping of services/actions: `auto` picks it from the server's DDS vendor
+    # (Cyclone's in-band header, or Fast DDS's plain requests); per-name overrides win.
+    request_mapping: Literal["auto", "cyclone", "fastdds"] = "auto"
+    request_mappings: dict[RosName, Literal["auto", "cyclone", "fastdds"]] = {}
 
     def __post_init__(self) -> None:
         if self.namespace not in ("", "/"):

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import enum
-import uuid
-from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,7 +21,7 @@ from cyclonedds.core import InstanceState
 from cyclonedds.sub import DataReader
 
 from . import qos as qos_mod
-from .names import ACTION_INFIX, EndpointKind, action_of, demangle
+from .names import EndpointKind, action_of, demangle, is_hidden
 from .participant import DISCOVERY_TOPIC, RosNode
 from .qos import QosProfile
 from .typesys.store import normalize_name
@@ -157,7 +155,7 @@ class RosGraph:
         for e in self.endpoints():
             if e.kind is not EndpointKind.TOPIC:
                 continue
-            if not include_hidden and ACTION_INFIX in e.ros_name:
+            if not include_hidden and is_hidden(e.ros_name):
                 continue
             topics.setdefault(e.ros_name, set()).add(e.ros_type)
         return {name: sorted(types) for name, types in sorted(topics.items())}
@@ -169,8 +167,7 @@ class RosGraph:
     def services(self, include_hidden: bool = False) -> dict[str, list[str]]:
         services: dict[str, set[str]] = {}
         for e in self.endpoints():
-            hidden = ACTION_INFIX in e.ros_name
-            if e.kind is EndpointKind.REQUEST and (include_hidden or not hidden):
+            if e.kind is EndpointKind.REQUEST and (include_hidden or not is_hidden(e.ros_name)):
                 services.setdefault(e.ros_name, set()).add(e.ros_type)
         return {name: sorted(types) for name, types in sorted(services.items())}
 
@@ -197,10 +194,3 @@ def node_fqn(namespace: str, name: str) -> str:
 def short_gid(gid: bytes) -> str:
     return ".".join(f"{b:02x}" for b in gid)
 
-
-def participant_uuid(gid: bytes) -> uuid.UUID:
-    return uuid.UUID(bytes=gid[:16])
-
-
-def matched(endpoints: Iterable[Endpoint], direction: Direction) -> list[Endpoint]:
-    return [e for e in endpoints if e.direction is direction]

@@ -17,7 +17,7 @@ from ..rcan import NormalizedCommand
 from ..ros import qos
 from ..ros.errors import GraphTimeout
 from ..ros.participant import RosNode, RosPublisher
-from .rostime import duration_msg, now_msg, yaw_to_quaternion
+from ..ros.rostime import duration_msg, now_msg, yaw_to_quaternion
 
 log = logging.getLogger(__name__)
 

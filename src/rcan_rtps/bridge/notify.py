@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from ..governance import Notifier
 from ..rcan import PendingAuth
 from ..ros.participant import RosNode
-from .rostime import now_msg
+from ..ros.rostime import now_msg
 
 log = logging.getLogger(__name__)
 WARN = 1

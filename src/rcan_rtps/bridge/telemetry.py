@@ -24,7 +24,7 @@ from ..config import RcanConfig
 from ..rcan import Fault, Joints, Position, RosInfo, Status, Telemetry, Velocity
 from ..ros import qos
 from ..ros.participant import RosNode
-from .rostime import quaternion_to_yaw
+from ..ros.rostime import quaternion_to_yaw
 
 _LEVELS = {1: "WARN", 2: "ERROR", 3: "STALE"}
 _MOVING_EPS = 1e-3  # m/s or rad/s below which the robot counts as still

@@ -35,6 +35,7 @@ from . import qos as qos_mod
 from .errors import ActionError
 from .names import action_names
 from .participant import RosNode
+from .rostime import now_msg
 from .services import RequestMapping, ServiceClient, ServiceServer
 
 log = logging.getLogger(__name__)
@@ -71,11 +72,6 @@ class GoalResult:
     state: GoalState
     result: IdlStruct | None
     detail: str = ""
-
-
-def _now() -> dict[str, int]:
-    ns = time.time_ns()
-    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
 
 
 def _stamp(msg: Any) -> tuple[int, int]:
@@ -313,7 +309,7 @@ class ServerGoal:
         self.server = server
         self.goal_id = goal_id
         self.goal = goal
-        self.stamp = _now()
+        self.stamp = now_msg()
         self.state = GoalState.ACCEPTED
         self.cancel_requested = asyncio.Event()
         self.done: asyncio.Future[IdlStruct] = asyncio.get_running_loop().create_future()

@@ -12,8 +12,8 @@ import math
 import time
 from typing import Any
 
-from ..bridge.rostime import duration_msg, now_msg, quaternion_to_yaw, yaw_to_quaternion
 from ..ros.actions import ActionServer, ServerGoal
+from ..ros.rostime import duration_msg, now_msg, quaternion_to_yaw, yaw_to_quaternion
 from .robot import SimRobot
 
 ACTION_TYPE = "nav2_msgs/action/NavigateToPose"

@@ -18,9 +18,9 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..bridge.rostime import now_msg, yaw_to_quaternion
 from ..ros import qos
 from ..ros.participant import RosNode
+from ..ros.rostime import now_msg, yaw_to_quaternion
 
 TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 ARM_JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist")

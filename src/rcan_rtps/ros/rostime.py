@@ -1,4 +1,4 @@
-"""ROS time and geometry helpers shared by command and telemetry translation."""
+"""ROS time and geometry values (builtin_interfaces Time/Duration, planar quaternions)."""
 
 from __future__ import annotations
 

@@ -21,7 +21,7 @@ import asyncio
 import contextlib
 import logging
 import socket
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import Any
 
@@ -135,24 +135,18 @@ class RcanAdvertiser:
         self._zc: AsyncZeroconf | None = None
         self._info: AsyncServiceInfo | None = None
         self._follower: asyncio.Task[None] | None = None
-        self._registering: Awaitable[Any] | None = None
 
-    async def start(self, *, wait: bool = True) -> None:
-        """Registers the advert. mDNS probing takes about 1.5 s; with `wait=False` it
-        finishes in the background (the bridge is ready before its advert is)."""
+    async def start(self) -> None:
+        """Registers the advert; returns once probing (about 1.5 s) is done."""
         self._zc = AsyncZeroconf(interfaces=_interfaces(self._interfaces),
                                  ip_version=IPVersion.V4Only)
         self._info = _service_info(self.advert)
-        self._registering = await self._zc.async_register_service(self._info)
-        if wait:
-            await self._registering
+        await (await self._zc.async_register_service(self._info))
 
     async def update(self, advert: Advert) -> bool:
         """Re-announce if anything changed (address, endpoint, TXT); True if it did."""
         if advert == self.advert:
             return False
-        if self._registering is not None:
-            await self._registering
         if self._zc is None or self._info is None:
             raise RuntimeError("RcanAdvertiser not started")
         info = _service_info(advert)
@@ -184,9 +178,6 @@ class RcanAdvertiser:
             self._follower.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._follower
-        if self._registering is not None:
-            with contextlib.suppress(Exception):  # finish probing before saying goodbye
-                await self._registering
         if self._zc is not None:
             if self._info is not None:
                 with contextlib.suppress(Exception):  # goodbye packets are best effort

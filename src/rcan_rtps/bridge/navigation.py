@@ -44,7 +44,6 @@ class GoalTracker:
         self.node = node
         self.client = ActionClient(node, action, NAVIGATE_TO_POSE, mapping=mapping)
         self._views: dict[str, GoalView] = {}
-        self._handles: dict[str, ClientGoal] = {}
         self._watchers: set[asyncio.Task[None]] = set()
         self._keep = keep
 
@@ -60,7 +59,6 @@ class GoalTracker:
         now = _ms()
         self._views[goal_id] = GoalView(goal_id=goal_id, action=self.client.name,
                                         state="accepted", created_ms=now, updated_ms=now)
-        self._handles[goal_id] = handle
         task = asyncio.create_task(self._watch(goal_id, handle))
         self._watchers.add(task)
         task.add_done_callback(self._watchers.discard)
@@ -116,7 +114,6 @@ class GoalTracker:
         finished = [g for g, v in self._views.items() if v.state in _TERMINAL]
         for goal_id in finished[: max(0, len(self._views) - self._keep)]:
             self._views.pop(goal_id, None)
-            self._handles.pop(goal_id, None)
 
     async def close(self) -> None:
         for task in list(self._watchers):

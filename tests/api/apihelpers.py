@@ -89,6 +89,12 @@ class RecordingDispatcher:
         self.hold: asyncio.Event | None = None  # when set: motion waits for it
         self.entered = asyncio.Event()  # a held dispatch has started
 
+    def route(self, command: NormalizedCommand) -> str | None:
+        return "/robot1/cmd_vel"
+
+    async def ready(self, command: NormalizedCommand) -> str | None:
+        return None if self.available else "no subscriber on /robot1/cmd_vel"
+
     async def dispatch(self, command: NormalizedCommand,
                        applied: Mapping[str, Any]) -> DispatchResult:
         if self.hold is not None and command.action == "move":

@@ -123,9 +123,12 @@ async def test_envelope_form_for_another_robot_is_refused(api: Api) -> None:
 
 
 async def test_rate_limit_is_429(api: Api) -> None:
-    codes = [(await api.command("slow", {"action": "stop"}))[0] for _ in range(101)]
+    codes = [(await api.command("slow", {"action": "move"}))[0] for _ in range(101)]
     assert codes[:100] == [200] * 100
     assert codes[100] == 429
+    # stop and estop form the e-stop lane: never rate-limited
+    assert (await api.command("slow", {"action": "stop"}))[0] == 200
+    assert (await api.command("slow", {"action": "estop"}))[0] == 200
 
 
 async def test_robot_unavailable_is_503(api: Api) -> None:

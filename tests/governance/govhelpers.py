@@ -61,6 +61,12 @@ class RecordingDispatcher:
         self.available = True
         self.raises: Exception | None = None
 
+    def route(self, command: NormalizedCommand) -> str | None:
+        return f"/robot1/{command.action}"
+
+    async def ready(self, command: NormalizedCommand) -> str | None:
+        return None if self.available else "no subscriber on /robot1/cmd_vel"
+
     async def dispatch(self, command: NormalizedCommand,
                        applied: Mapping[str, Any]) -> DispatchResult:
         if self.raises is not None:

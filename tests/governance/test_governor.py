@@ -167,20 +167,24 @@ async def test_confidence_escalate_goes_pending(harness: Harness) -> None:
 
 
 async def test_rate_limit_row(harness: Harness, gov: Governor) -> None:
-    decisions = [await gov.decide(command("stop"), principal("v", Role.USER)) for _ in range(101)]
+    move = {"linear_x": 0.1}
+    decisions = [await gov.decide(command("move", move), principal("v", Role.USER))
+                 for _ in range(101)]
     assert all(d.outcome is Outcome.EXECUTED for d in decisions[:100])
     check(decisions[100], 429, Outcome.DENIED, ErrorCode.RATE_LIMITED)
     assert harness.entries[-1]["deny_reason"] == "RATE_LIMITED"
     harness.clock.advance(0.6)  # 100/min refills one every 0.6 s
-    d = await gov.decide(command("stop"), principal("v", Role.USER))
+    d = await gov.decide(command("move", move), principal("v", Role.USER))
     assert d.outcome is Outcome.EXECUTED
 
 
 async def test_estop_is_never_rate_limited(gov: Governor) -> None:
     slow = Principal("slow", Role.USER, rate_limit_per_min=1)
-    assert (await gov.decide(command("stop"), slow)).outcome is Outcome.EXECUTED
-    assert (await gov.decide(command("stop"), slow)).error_code is ErrorCode.RATE_LIMITED
-    for _ in range(5):
+    move = command("move", {"linear_x": 0.1})
+    assert (await gov.decide(move, slow)).outcome is Outcome.EXECUTED
+    assert (await gov.decide(move, slow)).error_code is ErrorCode.RATE_LIMITED
+    for _ in range(5):  # stop and e-stop: never rate-limited
+        assert (await gov.decide(command("stop"), slow)).outcome is Outcome.EXECUTED
         d = await gov.decide(command("estop", message_id=MID), slow)  # not even as a retry
         assert d.outcome is Outcome.EXECUTED
 
@@ -197,7 +201,11 @@ async def test_dispatch_exception_is_failed_not_a_crash(harness: Harness, gov: G
     harness.dispatcher.raises = RuntimeError("bridge bug")
     d = await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)
     check(d, 503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE, "dispatch_error")
-    assert one_new_entry(harness, 0)["outcome"] == "failed"
+    # Write-ahead: the decision entry, then COMMAND_FAILED for the send that failed.
+    ahead, failed = harness.entries
+    assert (ahead["event"], ahead["outcome"]) == ("COMMAND_DISPATCHED", "executed")
+    assert (failed["event"], failed["outcome"]) == ("COMMAND_FAILED", "failed")
+    assert failed["message_id"] == ahead["message_id"] and failed["audit_id"] == d.audit_id
 
 
 async def test_command_for_another_robot_is_refused(harness: Harness, gov: Governor) -> None:

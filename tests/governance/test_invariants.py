@@ -13,10 +13,10 @@ from hypothesis import strategies as st
 
 from rcan_rtps.governance import outcomes
 from rcan_rtps.governance.clock import ManualClock
+from rcan_rtps.governance.estop import EstopMachine, LatchFile
+from rcan_rtps.governance.idempotency import CONFLICT, Idempotency
 from rcan_rtps.governance.invariants import (
     AllOf,
-    EstopLatch,
-    Idempotency,
     VelocityLimit,
     Violation,
     Workspace,
@@ -116,38 +116,84 @@ def test_any_exception_in_a_check_denies() -> None:
     assert info.value.rejection == outcomes.SAFETY_CHECK_ERROR
 
 
+def _loaded(path: Path, first_start: bool = False) -> bool:
+    return LatchFile(path).load(first_start=first_start)[0]
+
+
 async def test_estop_latch_persists(tmp_path: Path) -> None:
-    latch = EstopLatch(tmp_path / "estop.state")
-    assert not latch.latched
-    latch.engage()
-    await latch.persist("ops", 1)
-    assert EstopLatch(tmp_path / "estop.state").latched
-    await latch.clear("ops", 2)
-    assert not EstopLatch(tmp_path / "estop.state").latched
-    (tmp_path / "estop.state").write_text('{"latched": "no"}')
-    assert EstopLatch(tmp_path / "estop.state").latched  # anything odd: latched
+    state = tmp_path / "estop.state"
+    assert not _loaded(state, first_start=True)
+    await LatchFile(state).write(True, "ops", 1)
+    assert _loaded(state)
+    await LatchFile(state).write(False, "ops", 2)
+    assert not _loaded(state)
+    state.write_text('{"latched": "no"}')
+    assert _loaded(state)  # anything odd: latched
+
+
+async def test_missing_latch_file_is_latched_unless_first_start(tmp_path: Path) -> None:
+    state = tmp_path / "estop.state"
+    latched, why = LatchFile(state).load(first_start=False)
+    assert latched and why is not None and "missing" in why
+    assert LatchFile(state).load(first_start=True) == (False, None)
 
 
 async def test_clear_that_cannot_persist_stays_latched(tmp_path: Path) -> None:
     from rcan_rtps.governance.errors import EstopStateError
 
-    latch = EstopLatch(tmp_path / "missing-dir" / "estop.state")
-    latch.engage()
+    file = LatchFile(tmp_path / "missing-dir" / "estop.state")
+    machine = EstopMachine(file, latched=True)
+
+    async def clear() -> bool:
+        await file.write(False, "ops", 1)
+        return machine.unlatch()
+
     with pytest.raises(EstopStateError):
-        await latch.clear("ops", 1)
-    assert latch.latched
+        await machine.clear(clear)
+    assert machine.latched
+
+
+async def test_clear_followed_by_an_estop_stays_latched(tmp_path: Path) -> None:
+    machine = EstopMachine(LatchFile(tmp_path / "estop.state"), latched=True)
+    order: list[str] = []
+
+    async def clear() -> bool:
+        await asyncio.sleep(0.01)  # an e-stop arrives meanwhile
+        order.append("clear")
+        return machine.unlatch()
+
+    async def engage() -> None:
+        order.append("estop")
+
+    cleared = machine.clear(clear)
+    await asyncio.sleep(0)
+    engaged = machine.engage(engage)
+    assert await cleared is False and machine.latched
+    await engaged
+    assert order == ["clear", "estop"] and machine.latched
+    await machine.close()
 
 
 async def test_idempotency_window_and_abandon() -> None:
     clock = ManualClock()
     cache: Idempotency[str, int] = Idempotency(clock, ttl_s=600)
-    assert cache.claim("a") is None
-    waiting = cache.claim("a")
+    assert cache.claim("a", b"f") is None
+    assert cache.claim("a", b"other") is CONFLICT
+    waiting = cache.claim("a", b"f")
     assert waiting is not None and not waiting.done()
     cache.resolve("a", 7)
     assert await waiting == 7
     clock.advance(600.5)
-    assert cache.claim("a") is None  # window over: a new first time
+    assert cache.claim("a", b"f") is None  # window over: a new first time
     cache.abandon("a", RuntimeError("x"))
-    assert cache.claim("a") is None  # an abandoned attempt may run again
+    assert cache.claim("a", b"f") is None  # an abandoned attempt may run again
     await asyncio.sleep(0)
+
+
+async def test_idempotency_is_bounded_in_size() -> None:
+    cache: Idempotency[int, int] = Idempotency(ManualClock(), ttl_s=600, max_entries=100)
+    for key in range(10_000):
+        assert cache.claim(key, b"f") is None
+        cache.resolve(key, key)
+    assert len(cache) <= 100
+    assert cache.claim(9_999, b"f") is not None  # the newest are still remembered

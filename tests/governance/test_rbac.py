@@ -37,7 +37,8 @@ TOKEN = "t0ken-for-ops-0123456789"
 
 def test_public_api_is_exactly_the_export_list() -> None:
     public = {n for n in vars(governance) if not n.startswith("_")}
-    modules = {"audit", "clock", "errors", "governor", "hitl", "invariants", "outcomes", "rbac"}
+    modules = {"audit", "clock", "errors", "estop", "governor", "hitl", "idempotency",
+               "invariants", "outcomes", "rbac"}
     modules |= {"annotations"}
     assert len(set(governance.__all__)) == len(governance.__all__)
     assert set(governance.__all__) == public - modules

@@ -109,7 +109,7 @@ async def make_rig(config: RcanConfig, jazzy_python: Path, domain_id: int,
     node = RosNode(ros2.node_name, ros2.namespace, domain_id=domain_id, distro=ros2.distro)
     audit = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path)
     goals = GoalTracker(node, ros2.nav_action) if navigation else None
-    dispatcher = RosDispatcher(node, ros2, goals)
+    dispatcher = RosDispatcher(node, ros2, goals, telemetry_age=lambda: telemetry.age_s())
     notifier = DiagnosticsNotifier(node, ros2.diagnostics_topic)
     governor = Governor.from_config(config, audit=audit, dispatcher=dispatcher,
                                     notifier=notifier)

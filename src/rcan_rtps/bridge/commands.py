@@ -1,8 +1,13 @@
 """Governed commands → ROS 2 (spec §4): the bridge's `Dispatcher`.
 
-Only parameters the governor approved (`applied`: clamped, checked) reach the wire.
-A command whose topic has no subscriber, or whose action has no server, within
-`match_timeout_s` fails as ROBOT_UNAVAILABLE instead of vanishing into an empty graph.
+Only parameters the governor approved (`applied`: clamped, checked) reach the wire, and only
+after their audit entry is durable: `ready` does all the waiting (the governor calls it before
+writing the entry), and `dispatch` publishes motion before its first await.
+
+Robot liveness comes from the wire: a command topic whose robot-side reader is gone (it had
+matched and no longer does), or a robot whose telemetry stopped for `telemetry_stale_s`, answers
+ROBOT_UNAVAILABLE at once. A topic that never matched yet gets `match_timeout_s` to match
+(start-up). `stop` is never held back by any of this.
 """
 
 from __future__ import annotations
@@ -45,16 +50,42 @@ class Navigator(Protocol):
 
 class RosDispatcher:
     def __init__(self, node: RosNode, ros2: Ros2Config, navigator: Navigator | None = None,
-                 ) -> None:
+                 *, telemetry_age: Callable[[], float | None] = lambda: None) -> None:
         self.node = node
         self.ros2 = ros2
         self.navigator = navigator
         self.on_command: Callable[[], None] = lambda: None  # e.g. leave `safe_stop` state
+        self._telemetry_age = telemetry_age  # seconds since the robot last published, if ever
+        self._ever_matched: set[str] = set()
         self.cmd_vel = node.create_publisher(ros2.cmd_vel_topic, ros2.cmd_vel_type)
         # Latched (transient-local): a robot node that (re)joins still learns the e-stop state.
         self.estop = node.create_publisher(ros2.estop_topic, BOOL, ESTOP_QOS)
         self.trajectory = node.create_publisher(ros2.joint_trajectory_topic, TRAJECTORY)
         self._vector3 = node.types.struct("geometry_msgs/msg/Vector3")
+
+    def route(self, command: NormalizedCommand) -> str | None:
+        if command.action == "navigate":
+            return self.navigator.action_name if self.navigator is not None else None
+        return self._publisher(command.action).topic
+
+    def _publisher(self, action: str) -> RosPublisher:
+        if action == "arm_joint":
+            return self.trajectory
+        return self.estop if action in ("estop", "clear_estop") else self.cmd_vel
+
+    async def ready(self, command: NormalizedCommand) -> str | None:
+        if command.action in ("stop", "estop"):
+            return None  # stopping is never held back
+        if command.action != "clear_estop":
+            age = self._telemetry_age()
+            if age is not None and age > self.ros2.telemetry_stale_s:
+                return f"robot silent: no telemetry for {age:.1f} s"
+        if command.action == "navigate":
+            return None if self.navigator is not None else "navigation is not available"
+        pub = self._publisher(command.action)
+        if await self._matched(pub):
+            return None
+        return f"no subscriber on {pub.topic}"
 
     async def dispatch(self, command: NormalizedCommand,
                        applied: Mapping[str, Any]) -> DispatchResult:
@@ -68,11 +99,15 @@ class RosDispatcher:
     # -- helpers ---------------------------------------------------------------------
     async def _matched(self, pub: RosPublisher) -> bool:
         if pub.matched_count():
+            self._ever_matched.add(pub.topic)
             return True
+        if pub.topic in self._ever_matched:
+            return False  # the robot's reader left: unavailable now, not after a timeout
         try:
             await pub.wait_for_subscribers(1, timeout=self.ros2.match_timeout_s)
         except GraphTimeout:
             return False
+        self._ever_matched.add(pub.topic)
         return True
 
     def _twist(self, linear_x: float = 0.0, linear_y: float = 0.0,
@@ -89,9 +124,7 @@ class RosDispatcher:
         return twist
 
     async def _publish(self, pub: RosPublisher, message: Any) -> DispatchResult:
-        if not await self._matched(pub):
-            return DispatchResult(ok=False, ros2_topic=pub.topic,
-                                  detail=f"no subscriber on {pub.topic}")
+        # No await before the write: `ready` waited, the governor checked the latch last.
         pub.publish(message)
         return DispatchResult(ok=True, ros2_topic=pub.topic)
 
@@ -126,8 +159,11 @@ class RosDispatcher:
 
     async def halt(self) -> tuple[bool, int]:
         """Zero velocity and cancel every goal; (cmd_vel reached, goals cancelled)."""
-        reached = await self._matched(self.cmd_vel)
-        self.cmd_vel.publish(self._twist())  # published even unmatched: late joiners must stop
+        matched_before = self.cmd_vel.matched_count() > 0
+        self.cmd_vel.publish(self._twist())  # first, unconditionally: late joiners stop too
+        reached = matched_before or await self._matched(self.cmd_vel)
+        if reached and not matched_before:
+            self.cmd_vel.publish(self._twist())  # the first preceded the match
         cancelled = 0
         if self.navigator is not None:
             try:

@@ -95,7 +95,8 @@ class Bridge:
                             distro=ros2.distro, localhost=opts.localhost)
         self.audit = await AuditLog.open(bridge.audit.path, bridge.audit.key_path)
         self.goals = GoalTracker(self.node, ros2.nav_action, mapping=nav_mapping(self.config))
-        self.dispatcher = RosDispatcher(self.node, ros2, self.goals)
+        self.dispatcher = RosDispatcher(self.node, ros2, self.goals,
+                                        telemetry_age=self._telemetry_age)
         self.governor = Governor.from_config(self.config, audit=self.audit,
                                              dispatcher=self.dispatcher,
                                              notifier=self._notifier(self.node))
@@ -110,6 +111,9 @@ class Bridge:
             # Joining mDNS takes ~1 s (probing): commands are accepted meanwhile.
             self._advert_task = asyncio.create_task(self._advertise())
         return self.url
+
+    def _telemetry_age(self) -> float | None:
+        return self.telemetry.age_s() if self.telemetry is not None else None
 
     def _latched(self) -> bool:
         return self.governor is not None and self.governor.latch.latched

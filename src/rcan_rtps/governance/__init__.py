@@ -29,9 +29,11 @@ from .errors import (
     EstopStateError,
     GovernanceError,
 )
+from .estop import EstopMachine, LatchFile
 from .governor import Decision, Dispatcher, DispatchResult, Governor
 from .hitl import HitlPolicy, Notifier, PendingCommand, WebhookNotifier
-from .invariants import AllOf, EstopLatch, Violation, safety_policy
+from .idempotency import Idempotency
+from .invariants import AllOf, Violation, safety_policy
 from .outcomes import Rejection
 from .rbac import (
     DEFAULT_ACTION_ROLES,
@@ -66,12 +68,14 @@ __all__ = [
     "Decision",
     "DispatchResult",
     "Dispatcher",
-    "EstopLatch",
+    "EstopMachine",
     "EstopStateError",
     "GovernanceError",
     "Governor",
     "HitlPolicy",
+    "Idempotency",
     "JwtVerifier",
+    "LatchFile",
     "ManualClock",
     "Notifier",
     "PendingCommand",

@@ -3,12 +3,18 @@
 Each line is the canonical JSON (sorted keys, no whitespace, UTF-8) of one entry. `audit_id` is
 "sha256:" + hex SHA-256 of the canonical entry without `audit_id` and `sig`; `prev_hash` is the
 previous `audit_id` (the first links to GENESIS); `sig` is base64 Ed25519 over `audit_id`.
+
+Writes run on the log's own thread (never the default executor, which costly reads may fill).
+A signed checkpoint beside the log records the last verified entry, so opening the log checks
+only what was appended after it: start-up time does not grow with the log. `verify` and
+`rcan-rtps audit verify` still check the whole chain.
 """
 
 from __future__ import annotations
 
 import asyncio
 import base64
+import concurrent.futures
 import datetime as dt
 import enum
 import fcntl
@@ -24,7 +30,7 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
-from ._durable import fsync_dir, full_fsync, write_all
+from ._durable import atomic_write, fsync_dir, full_fsync, write_all
 from .clock import Clock, SystemClock
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
 
@@ -32,11 +38,13 @@ GENESIS = "sha256:" + "0" * 64
 log = logging.getLogger(__name__)
 _UNSIGNED = ("audit_id", "sig")
 _REQUIRED = ("seq", "audit_id", "prev_hash", "sig", "event", "timestamp_ms")
+CHECKPOINT_EVERY = 1000  # entries between checkpoints: bounds what a start after a crash re-checks
 
 
 class AuditEvent(str, enum.Enum):
     COMMAND_DISPATCHED = "COMMAND_DISPATCHED"
     COMMAND_REJECTED = "COMMAND_REJECTED"
+    COMMAND_FAILED = "COMMAND_FAILED"  # written after a write-ahead entry whose send failed
     PENDING_AUTH = "PENDING_AUTH"
     HITL_AUTHORIZED = "HITL_AUTHORIZED"
     HITL_DENIED = "HITL_DENIED"
@@ -162,6 +170,8 @@ class _Scan(msgspec.Struct):
     head: ChainHead
     good_end: int  # byte offset just past the last complete, valid line
     torn: bytes  # an unterminated tail (a crash mid-append), or b""
+    last_start: int = 0  # byte offset of the last valid line
+    last_span: tuple[int, int] = (0, 0)  # (start, end) of the last valid line in the file
 
 
 def _lines(data: bytes) -> Iterator[tuple[int, bytes]]:
@@ -211,14 +221,16 @@ def _sig_bytes(text: Any, seq: int) -> bytes:
     return sig
 
 
-def _scan(data: bytes, pubkey: Ed25519PublicKey | None) -> _Scan:
-    prev, seq, good_end = GENESIS, 0, 0
+def _scan(data: bytes, pubkey: Ed25519PublicKey | None, *, seq: int = 0,
+          prev: str = GENESIS) -> _Scan:
+    """Verify `data` as the entries after `seq` (whose id is `prev`)."""
+    good_end = last_start = 0
     for start, line in _lines(data):
         prev = _check_line(line, seq + 1, prev, pubkey)
         seq += 1
-        good_end = start + len(line) + 1
+        good_end, last_start = start + len(line) + 1, start
     head = ChainHead(count=seq, last_seq=seq, last_audit_id=prev)
-    return _Scan(head=head, good_end=good_end, torn=data[good_end:])
+    return _Scan(head=head, good_end=good_end, torn=data[good_end:], last_start=last_start)
 
 
 def verify(
@@ -242,6 +254,64 @@ def verify_bytes(data: bytes, pubkey: Ed25519PublicKey | None = None) -> ChainHe
     return scan.head
 
 
+# -- checkpoints ----------------------------------------------------------------------------
+
+
+class Checkpoint(msgspec.Struct, frozen=True, kw_only=True):
+    """The last verified entry: its seq, id and byte span, signed with the log's key."""
+
+    seq: int
+    audit_id: str
+    start: int  # byte offset of the entry's line
+    end: int  # just past its newline: where verification resumes
+    sig: str = ""
+
+    def signed_bytes(self) -> bytes:
+        return canonical({"seq": self.seq, "audit_id": self.audit_id,
+                          "start": self.start, "end": self.end})
+
+
+def checkpoint_path(log_path: Path) -> Path:
+    return log_path.with_name(log_path.name + ".checkpoint")
+
+
+def _write_checkpoint(path: Path, key: Ed25519PrivateKey, cp: Checkpoint) -> None:
+    sig = base64.b64encode(key.sign(cp.signed_bytes())).decode()
+    atomic_write(path, msgspec.json.encode(msgspec.structs.replace(cp, sig=sig)))
+
+
+def _read_checkpoint(path: Path, pubkey: Ed25519PublicKey) -> Checkpoint | None:
+    """A checkpoint this key signed, or None (missing, unreadable, or not ours)."""
+    try:
+        cp = msgspec.json.decode(path.read_bytes(), type=Checkpoint)
+        pubkey.verify(base64.b64decode(cp.sig, validate=True), cp.signed_bytes())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, msgspec.DecodeError, InvalidSignature):
+        log.warning("audit checkpoint %s unusable: verifying the whole log", path)
+        return None
+    return cp
+
+
+def _resume_point(fd: int, cp: Checkpoint) -> tuple[int, str, int] | None:
+    """(seq, audit_id, offset) to verify from, if the checkpointed line is still there."""
+    size = os.fstat(fd).st_size
+    if not 0 <= cp.start < cp.end <= size:
+        return None
+    line = os.pread(fd, cp.end - cp.start, cp.start)
+    if not line.endswith(b"\n"):
+        return None
+    try:
+        entry = msgspec.json.decode(line[:-1])
+    except msgspec.DecodeError:
+        return None
+    if not isinstance(entry, dict) or entry.get("seq") != cp.seq:
+        return None
+    if entry.get("audit_id") != cp.audit_id or entry_id(entry) != cp.audit_id:
+        return None
+    return cp.seq, cp.audit_id, cp.end
+
+
 # -- the log --------------------------------------------------------------------------------
 
 
@@ -257,7 +327,8 @@ class AuditLog:
     """
 
     def __init__(self, fd: int, key: Ed25519PrivateKey, head: ChainHead, *, path: Path,
-                 ruri: str | None, clock: Clock, group_commit: bool) -> None:
+                 ruri: str | None, clock: Clock, group_commit: bool, size: int,
+                 writer: concurrent.futures.ThreadPoolExecutor) -> None:
         self.path = path
         self._fd = fd
         self._key = key
@@ -269,6 +340,11 @@ class AuditLog:
         self._queue: list[tuple[bytes, asyncio.Future[None]]] = []
         self._flusher: asyncio.Task[None] | None = None
         self._broken: BaseException | None = None
+        self._writer = writer  # one thread: writes and checkpoints in order, apart from reads
+        self._size = size  # bytes durably in the file
+        self._last_span = (max(0, size - 1), size)
+        self._durable_seq, self._durable_id = head.last_seq, head.last_audit_id
+        self._checkpointed_seq = -1  # none written by this process yet
         # Told of every durable entry (e.g. metrics); a failing listener is logged, not raised.
         self.listeners: list[Callable[[AuditRecord], None]] = []
 
@@ -276,14 +352,26 @@ class AuditLog:
     async def open(cls, path: str | os.PathLike[str], key_path: str | os.PathLike[str], *,
                    ruri: str | None = None, clock: Clock | None = None,
                    group_commit: bool = True) -> AuditLog:
-        """Open (or create) the log, verify it whole, and cut a torn tail (audited).
+        """Open (or create) the log, verify what the checkpoint does not cover, cut a torn tail.
 
-        Any other break raises AuditIntegrityError: the bridge must not start on it.
+        A torn tail is cut and audited. Any other break raises AuditIntegrityError: the bridge
+        must not start on it. Missing directories are created (mode 0700).
         """
-        key = load_or_create_key(key_path)
-        fd, scan = await asyncio.to_thread(_open_and_scan, Path(path), key.public_key())
-        log = cls(fd, key, scan.head, path=Path(path), ruri=ruri,
-                  clock=clock or SystemClock(), group_commit=group_commit)
+        path = Path(path)
+        writer = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="rcan-audit")
+        try:
+            await asyncio.get_running_loop().run_in_executor(writer, _make_dirs, path,
+                                                             Path(key_path))
+            key = load_or_create_key(key_path)
+            opened = await asyncio.get_running_loop().run_in_executor(
+                writer, _open_and_scan, path, key.public_key())
+        except BaseException:
+            writer.shutdown(wait=False)
+            raise
+        fd, scan = opened
+        log = cls(fd, key, scan.head, path=path, ruri=ruri, clock=clock or SystemClock(),
+                  group_commit=group_commit, size=scan.good_end, writer=writer)
+        log._last_span = scan.last_span
         if scan.torn:
             await log.append(AuditRecord(
                 event=AuditEvent.AUDIT_TAIL_RECOVERED,
@@ -291,6 +379,7 @@ class AuditLog:
                         "cut_sha256": hashlib.sha256(scan.torn).hexdigest(),
                         "after_seq": scan.head.last_seq},
             ))
+        await log.checkpoint()
         return log
 
     @property
@@ -323,12 +412,28 @@ class AuditLog:
                 log.exception("audit listener failed")
         return receipt
 
+    async def checkpoint(self) -> None:
+        """Record the durable head as verified (every entry up to it is ours or was checked)."""
+        if self._size == 0 or not self.healthy:
+            return
+        start, end = self._last_span
+        cp = Checkpoint(seq=self._durable_seq, audit_id=self._durable_id, start=start, end=end)
+        try:
+            await asyncio.get_running_loop().run_in_executor(
+                self._writer, _write_checkpoint, checkpoint_path(self.path), self._key, cp)
+        except OSError:  # only start-up time suffers: the next start verifies more
+            log.exception("audit checkpoint not written")
+            return
+        self._checkpointed_seq = cp.seq
+
     async def close(self) -> None:
         if self._flusher is not None:
             await asyncio.gather(self._flusher, return_exceptions=True)
         if self._fd >= 0:
+            await self.checkpoint()
             os.close(self._fd)  # closing also drops the flock
             self._fd = -1
+        self._writer.shutdown(wait=True)
 
     def _seal(self, record: AuditRecord) -> tuple[bytes, AuditReceipt]:
         """Assign seq and link synchronously, so the chain order is the call order."""
@@ -349,16 +454,29 @@ class AuditLog:
         return canonical(entry) + b"\n", AuditReceipt(seq=self._seq, audit_id=audit_id)
 
     async def _flush(self) -> None:
+        loop = asyncio.get_running_loop()
         while self._queue:
             take = self._batch_limit or len(self._queue)
             batch, self._queue = self._queue[:take], self._queue[take:]
+            data = b"".join(b for b, _ in batch)
             try:
-                await asyncio.to_thread(_write_durable, self._fd, b"".join(b for b, _ in batch))
+                await loop.run_in_executor(self._writer, _write_durable, self._fd, data)
             except OSError as exc:
                 self._fail(batch + self._queue, exc)
                 return
+            self._durable(batch)
             for _, done in batch:
                 done.set_result(None)
+            if self._durable_seq - self._checkpointed_seq >= CHECKPOINT_EVERY:
+                await self.checkpoint()
+
+    def _durable(self, batch: list[tuple[bytes, asyncio.Future[None]]]) -> None:
+        """Track the durable head: its seq, id and byte span (for checkpoints)."""
+        last = batch[-1][0]
+        self._size += sum(len(b) for b, _ in batch)
+        self._last_span = (self._size - len(last), self._size)
+        self._durable_seq = self._seq - len(self._queue)
+        self._durable_id = _SEAL_ID.decode(last).audit_id
 
     def _fail(self, waiting: list[tuple[bytes, asyncio.Future[None]]], exc: OSError) -> None:
         # After a failed write the file's tail is unknown: refuse every further append.
@@ -368,17 +486,26 @@ class AuditLog:
             done.set_exception(AuditWriteError(f"audit write to {self.path} failed: {exc}"))
 
 
+class _Sealed(msgspec.Struct):
+    audit_id: str
+
+
+_SEAL_ID = msgspec.json.Decoder(_Sealed)
+
+
+def _make_dirs(*paths: Path) -> None:
+    for path in paths:
+        parent = path.parent
+        if not parent.exists():
+            parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+
+
 def _open_and_scan(path: Path, pubkey: Ed25519PublicKey) -> tuple[int, _Scan]:
     created = not path.exists()
     fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o600)
     try:
         _lock(fd, path)
-        data = _read_all(fd)
-        try:
-            scan = _scan(data, pubkey)
-        except AuditIntegrityError as exc:
-            raise AuditIntegrityError(exc.seq, exc.detail + "; refusing to start",
-                                      path=str(path)) from exc
+        scan = _scan_from_checkpoint(fd, path, pubkey)
         if scan.torn:
             os.ftruncate(fd, scan.good_end)
             full_fsync(fd)
@@ -390,6 +517,24 @@ def _open_and_scan(path: Path, pubkey: Ed25519PublicKey) -> tuple[int, _Scan]:
     return fd, scan
 
 
+def _scan_from_checkpoint(fd: int, path: Path, pubkey: Ed25519PublicKey) -> _Scan:
+    cp = _read_checkpoint(checkpoint_path(path), pubkey)
+    resume = _resume_point(fd, cp) if cp is not None else None
+    seq, prev, offset = resume or (0, GENESIS, 0)
+    if cp is not None and resume is None:
+        log.warning("audit checkpoint does not match %s: verifying the whole log", path)
+    data = _read_from(fd, offset)
+    try:
+        scan = _scan(data, pubkey, seq=seq, prev=prev)
+    except AuditIntegrityError as exc:
+        raise AuditIntegrityError(exc.seq, exc.detail + "; refusing to start",
+                                  path=str(path)) from exc
+    end = offset + scan.good_end
+    span = (offset + scan.last_start, end) if scan.good_end else (
+        (cp.start, cp.end) if resume and cp else (0, 0))
+    return _Scan(head=scan.head, good_end=end, torn=scan.torn, last_span=span)
+
+
 def _lock(fd: int, path: Path) -> None:
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -397,8 +542,8 @@ def _lock(fd: int, path: Path) -> None:
         raise AuditError(f"audit log {path} is in use by another process") from exc
 
 
-def _read_all(fd: int) -> bytes:
-    os.lseek(fd, 0, os.SEEK_SET)
+def _read_from(fd: int, offset: int) -> bytes:
+    os.lseek(fd, offset, os.SEEK_SET)
     chunks = []
     while chunk := os.read(fd, 1 << 20):
         chunks.append(chunk)

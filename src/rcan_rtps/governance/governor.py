@@ -1,7 +1,12 @@
-"""The one entry point: authenticated command in, decision out, exactly one audit entry made.
+"""The one entry point: authenticated command in, decision out, audited before it acts.
 
-Order (§3.1): RBAC → rate limit → idempotency → §8 invariants → §9 HiTL → dispatch → §6 audit.
-An e-stop skips rate limiting and idempotency: it must never be refused or swallowed.
+Order (§3.1): RBAC → rate limit → idempotency → §8 invariants → §9 HiTL → robot ready →
+§6 audit (durable) → dispatch. Write-ahead: a command's decision entry is on disk before anything
+reaches the robot; a send that then fails adds a COMMAND_FAILED entry. If the entry cannot be
+written, nothing is sent.
+
+The e-stop lane: `estop` and `stop` are never rate-limited and never answered from another
+command's idempotency entry. E-stop and clear are one serialized state machine (`estop.py`).
 """
 
 from __future__ import annotations
@@ -34,9 +39,11 @@ from rcan_rtps.rcan import (
 from . import outcomes
 from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
 from .clock import Clock, SystemClock, now_ms
-from .errors import EstopStateError
+from .errors import AuditError, EstopStateError
+from .estop import EstopMachine, LatchFile
 from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand, PendingStore
-from .invariants import AllOf, EstopLatch, Idempotency, Violation, safety_policy
+from .idempotency import Conflict, Idempotency
+from .invariants import AllOf, Violation, safety_policy
 from .outcomes import Rejection
 from .rbac import Principal, RateLimiter, RolePolicy
 
@@ -56,9 +63,19 @@ class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):
 class Dispatcher(Protocol):
     """The hook the bridge plugs in; `applied` is what may be sent (clamped, checked)."""
 
+    def route(self, command: NormalizedCommand) -> str | None:
+        """Where `command` will go (a topic or action name), for its write-ahead entry."""
+        ...
+
+    async def ready(self, command: NormalizedCommand) -> str | None:
+        """None if the robot can take `command` now, else why not (ROBOT_UNAVAILABLE)."""
+        ...
+
     async def dispatch(
         self, command: NormalizedCommand, applied: Mapping[str, Any]
-    ) -> DispatchResult: ...
+    ) -> DispatchResult:
+        """Send `command`; motion is published before the first await (after `ready`)."""
+        ...
 
 
 class Decision(msgspec.Struct, frozen=True, kw_only=True):
@@ -86,7 +103,7 @@ class Decision(msgspec.Struct, frozen=True, kw_only=True):
 
 class Governor:
     def __init__(self, *, audit: AuditLog, dispatcher: Dispatcher, roles: RolePolicy,
-                 limiter: RateLimiter, safety: AllOf, latch: EstopLatch, hitl: HitlPolicy,
+                 limiter: RateLimiter, safety: AllOf, latch: EstopMachine, hitl: HitlPolicy,
                  clock: Clock, hitl_timeout_s: float = 300.0,
                  require_distinct_approver: bool = False, session_timeout_s: float = 2.0,
                  robot_ruri: str | None = None, notifier: Notifier | None = None) -> None:
@@ -100,6 +117,7 @@ class Governor:
         self._clock = clock
         self._pending = PendingStore()
         self._idem: Idempotency[tuple[str, str], Decision] = Idempotency(clock)
+        self._latch_file_missing = not latch.file.exists()
         self._hitl_ttl_ms = int(hitl_timeout_s * 1000)
         self._distinct = require_distinct_approver
         self._sessions = Sessions(clock, session_timeout_s)
@@ -114,7 +132,12 @@ class Governor:
                     clock: Clock | None = None, notifier: Notifier | None = None) -> Governor:
         bridge, clock = config.bridge, clock or SystemClock()
         beside_audit = Path(bridge.audit.path).parent / "estop.state"
-        latch = EstopLatch(Path(bridge.safety.estop_state_path or beside_audit))
+        latch_file = LatchFile(Path(bridge.safety.estop_state_path or beside_audit))
+        # A missing latch file is a first start only if the audit log is new as well.
+        latched, reason = latch_file.load(first_start=audit.head.last_seq == 0)
+        if reason:
+            log.error("%s", reason)
+        latch = EstopMachine(latch_file, latched=latched, reason=reason)
         return cls(
             audit=audit, dispatcher=dispatcher, clock=clock, latch=latch, notifier=notifier,
             roles=RolePolicy({a: Role[r] for a, r in bridge.rbac.action_roles.items()}),
@@ -130,21 +153,39 @@ class Governor:
     # -- lifecycle --------------------------------------------------------------------------
 
     async def start(self) -> None:
-        await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STARTED,
-                                            params={"estop_latched": self.latch.latched}))
+        """BRIDGE_STARTED (durable), then a latched start tells the robot again."""
+        params: dict[str, Any] = {"estop_latched": self.latch.latched}
+        if self.latch.reason:
+            params["estop_reason"] = self.latch.reason
+        await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STARTED, params=params))
+        if self._latch_file_missing and not self.latch.latched:  # first start: record it
+            await self.latch.file.write(False, "first start", now_ms(self._clock))
+        if self.latch.latched:
+            await self.latch.engage(self._republish_estop)
         self._sweeper = asyncio.create_task(self._sweep_forever())
+
+    async def _republish_estop(self) -> None:
+        stop = NormalizedCommand(action="estop", params=NoParams(), requested={},
+                                 message_id=str(uuid.uuid4()))
+        _, failure = await self._dispatch(stop, {})
+        if failure is not None:
+            log.error("latched at start, but the robot could not be told (%s)", failure.reason)
 
     async def stop(self) -> None:
         if self._sweeper is not None:
             self._sweeper.cancel()
             await asyncio.gather(self._sweeper, return_exceptions=True)
         await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self.latch.close()
         await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STOPPED))
 
     # -- commands ---------------------------------------------------------------------------
 
     async def decide(self, command: NormalizedCommand, principal: Principal) -> Decision:
         """Decide, act and audit; a caller that goes away does not stop the decision."""
+        if command.action == "estop":  # any authenticated principal; latched right here
+            return await asyncio.shield(
+                self.latch.engage(lambda: self._estop(command, principal)))
         return await asyncio.shield(self._spawn(self._decide(command, principal)))
 
     async def reject_request(self, principal: Principal | None, rejection: Rejection, *,
@@ -166,10 +207,12 @@ class Governor:
         refused = self._precheck(command, principal)
         if refused is not None:
             return await self._refuse(command, principal, refused)
-        if command.action == "estop":
-            return await self._estop(command, principal)
+        if command.action == "stop" or not command.client_message_id:
+            return await self._govern(command, principal)  # never swallowed, never retried
         key = (principal.name, command.message_id)
-        earlier = self._idem.claim(key)
+        earlier = self._idem.claim(key, _fingerprint(command))
+        if isinstance(earlier, Conflict):
+            return await self._refuse(command, principal, outcomes.MESSAGE_ID_CONFLICT)
         if earlier is not None:  # a retry: the first outcome, nothing executed twice
             return await earlier
         try:
@@ -181,8 +224,6 @@ class Governor:
         return decision
 
     def _precheck(self, command: NormalizedCommand, principal: Principal) -> Rejection | None:
-        if command.action == "estop":
-            return None  # any authenticated principal, whatever else the body says
         if _claims_more(command.claimed_role, principal.role):
             return outcomes.INSUFFICIENT_PRIVILEGES
         if not self._roles.allows(principal.role, command.action):
@@ -193,13 +234,11 @@ class Governor:
                     return outcomes.NOT_THIS_ROBOT
             except InvalidRuriError as exc:
                 return outcomes.invalid_ruri(exc.rule)
-        if not self._limiter.allow(principal):
-            return outcomes.RATE_LIMITED
+        if command.action != "stop" and not self._limiter.allow(principal):
+            return outcomes.RATE_LIMITED  # a stop is never rate-limited
         return None
 
     async def _govern(self, command: NormalizedCommand, principal: Principal) -> Decision:
-        if not self.audit.healthy:  # no record possible: refuse rather than act unrecorded
-            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         try:
             applied = self._safety(command, command.params)
         except Violation as violation:
@@ -212,32 +251,112 @@ class Governor:
         self._sessions.touch(principal, command.action)
         return await self._execute(command, principal, applied, AuditEvent.COMMAND_DISPATCHED)
 
+    # -- the e-stop lane (run by the e-stop machine, one transition at a time) ------------
+
     async def _estop(self, command: NormalizedCommand, principal: Principal) -> Decision:
-        self.latch.engage()  # before any await: no motion command passes from here on
+        """Latched already; persist and audit (both durable), then tell the robot.
+
+        An e-stop always reaches the robot: if the latch file or the audit log cannot be
+        written, it is still published, and the failure is logged and answered.
+        """
+        at = now_ms(self._clock)
+        record = _record(AuditEvent.ESTOP, command, principal, Outcome.EXECUTED, applied={},
+                         ros2_topic=self._route(command))
+        persisted, receipt = await asyncio.gather(
+            self.latch.file.write(True, principal.name, at), self.audit.append(record),
+            return_exceptions=True)
+        if isinstance(persisted, BaseException):
+            log.error("e-stop latched in memory only: %s", persisted)
         result, failure = await self._dispatch(command, {})
+        if isinstance(receipt, BaseException):
+            log.error("e-stop sent but not audited: %s", receipt)
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        if failure is not None:
+            return await self._failed(command, principal, failure)
+        return _executed(command, {}, receipt, result)
+
+    async def _clear_estop(self, command: NormalizedCommand, principal: Principal,
+                           event: AuditEvent, pending_id: str | None) -> Decision:
+        """Audited, persisted, unlatched (unless an e-stop came after it), published."""
+        why = await self._ready(command)
+        if why is not None:
+            return await self._refuse(command, principal, outcomes.robot_unavailable(why),
+                                      pending_id=pending_id)
+        record = _record(AuditEvent.ESTOP_CLEARED, command, principal, Outcome.EXECUTED,
+                         applied={}, pending_id=pending_id, ros2_topic=self._route(command))
+        receipt = await self._write_ahead(record)
+        if receipt is None:
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         try:
-            await self.latch.persist(principal.name, now_ms(self._clock))
+            await self.latch.file.write(False, principal.name, now_ms(self._clock))
         except EstopStateError:
-            log.exception("e-stop latched in memory only")
-        return await self._finish(command, principal, result, failure, {}, AuditEvent.ESTOP)
+            log.exception("e-stop clear not persisted: staying latched")
+            return await self._failed(command, principal, outcomes.ESTOP_STATE_UNWRITABLE)
+        if not self.latch.unlatch():  # an e-stop is next in line: the robot stays stopped
+            return _executed(command, {}, receipt, DispatchResult(ok=True))
+        result, failure = await self._dispatch(command, {})
+        if failure is not None:
+            return await self._failed(command, principal, failure)
+        return _executed(command, {}, receipt, result)
+
+    # -- executing -------------------------------------------------------------------------
 
     async def _execute(self, command: NormalizedCommand, principal: Principal,
                        params: ActionParams, event: AuditEvent,
                        pending_id: str | None = None) -> Decision:
         applied = msgspec.structs.asdict(params)
-        # Motion must not follow an e-stop that latched while this command was waiting.
-        if self.latch.latched and Action(command.action) in MOTION_ACTIONS:
+        if command.action == "clear_estop":
+            return await self.latch.clear(
+                lambda: self._clear_estop(command, principal, event, pending_id))
+        motion = Action(command.action) in MOTION_ACTIONS
+        if motion and self.latch.latched:
             return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
                                       pending_id=pending_id)
+        why = await self._ready(command)
+        if why is not None:
+            return await self._refuse(command, principal, outcomes.robot_unavailable(why),
+                                      event=event, pending_id=pending_id)
+        # An e-stop that latched while this command waited wins.
+        if motion and self.latch.latched:
+            return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
+                                      pending_id=pending_id)
+        record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
+                         pending_id=pending_id, ros2_topic=self._route(command))
+        receipt = await self._write_ahead(record)
+        if receipt is None:
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        # Checked again after the write, with no await between this check and the publish.
+        if motion and self.latch.latched:
+            return await self._failed(command, principal, outcomes.ESTOP_ACTIVE)
         result, failure = await self._dispatch(command, applied)
-        if command.action == "clear_estop" and failure is None:
-            event = AuditEvent.ESTOP_CLEARED
-            try:
-                await self.latch.clear(principal.name, now_ms(self._clock))
-            except EstopStateError:
-                log.exception("e-stop clear not persisted: staying latched")
-                failure = outcomes.DISPATCH_ERROR
-        return await self._finish(command, principal, result, failure, applied, event, pending_id)
+        if failure is not None:
+            return await self._failed(command, principal, failure)
+        if command.action == "navigate" and self.latch.latched:
+            # Accepted while an e-stop latched: the e-stop's cancel may have missed this goal.
+            await self._dispatch(_stop_command(), {})
+        return _executed(command, applied, receipt, result)
+
+    async def _write_ahead(self, record: AuditRecord) -> AuditReceipt | None:
+        """The decision entry, durable; None if it cannot be written (then nothing is sent)."""
+        try:
+            return await self.audit.append(record)
+        except AuditError:
+            log.exception("audit write failed: %s not sent", record.action_type)
+            return None
+
+    def _route(self, command: NormalizedCommand) -> str | None:
+        try:
+            return self._dispatcher.route(command)
+        except Exception:  # only the audit entry's ros2_topic is missing then
+            log.exception("no route for %s", command.action)
+            return None
+
+    async def _ready(self, command: NormalizedCommand) -> str | None:
+        try:
+            return await self._dispatcher.ready(command)
+        except Exception as exc:  # a broken readiness check counts as "not ready"
+            log.exception("readiness check for %s failed", command.action)
+            return f"readiness check failed: {exc!r}"
 
     async def _dispatch(self, command: NormalizedCommand,
                         applied: Mapping[str, Any]) -> tuple[DispatchResult, Rejection | None]:
@@ -246,28 +365,23 @@ class Governor:
         except Exception as exc:  # a bridge fault is an outcome (failed), never a crash
             log.exception("dispatch of %s failed", command.action)
             return DispatchResult(ok=False, detail=repr(exc)), outcomes.DISPATCH_ERROR
-        return result, None if result.ok else outcomes.ROBOT_UNAVAILABLE
+        if result.ok:
+            return result, None
+        return result, outcomes.robot_unavailable(result.detail)
 
-    async def _finish(self, command: NormalizedCommand, principal: Principal,
-                      result: DispatchResult, rejection: Rejection | None,
-                      applied: dict[str, Any], event: AuditEvent,
-                      pending_id: str | None = None) -> Decision:
-        outcome = rejection.outcome if rejection else Outcome.EXECUTED
-        record = _record(event, command, principal, outcome, applied=applied,
-                         rejection=rejection, ros2_topic=result.ros2_topic, pending_id=pending_id)
-        receipt = await self.audit.append(record)
-        if rejection is not None:
-            return _decision(rejection, receipt, message_id=command.message_id)
-        return Decision(outcome=Outcome.EXECUTED, http_status=200, applied=applied,
-                        audit_id=receipt.audit_id, message_id=command.message_id,
-                        ros2_topic=result.ros2_topic, goal_id=result.goal_id)
+    async def _failed(self, command: NormalizedCommand, principal: Principal,
+                      rejection: Rejection) -> Decision:
+        """After a write-ahead entry: the send did not happen or failed (COMMAND_FAILED)."""
+        return await self._refuse(command, principal, rejection, event=AuditEvent.COMMAND_FAILED)
 
     async def _refuse(self, command: NormalizedCommand, principal: Principal,
                       rejection: Rejection, *, event: AuditEvent = AuditEvent.COMMAND_REJECTED,
                       pending_id: str | None = None) -> Decision:
         record = _record(event, command, principal, rejection.outcome, rejection=rejection,
                          pending_id=pending_id)
-        receipt = await self.audit.append(record)
+        receipt = await self._write_ahead(record)
+        if receipt is None:
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         return _decision(rejection, receipt, message_id=command.message_id)
 
     # -- HiTL -------------------------------------------------------------------------------
@@ -348,13 +462,19 @@ class Governor:
 
     async def safe_stop(self, principal: Principal) -> Decision:
         """Session lost: zero velocity and cancel goals (a `stop`), audited as such."""
-        stop = NormalizedCommand(action="stop", params=NoParams(), requested={},
-                                 message_id=str(uuid.uuid4()))
+        stop = _stop_command()
+        record = _record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
+                         applied={}, ros2_topic=self._route(stop))
+        receipt = await self._write_ahead(record)
+        # Halted even if the audit cannot be written: stopping is never held back.
         result, failure = await self._dispatch(stop, {})
         for listener in self.safe_stop_listeners:  # e.g. STATUS shows `safe_stop`
             listener(principal)
-        return await self._finish(stop, principal, result, failure, {},
-                                  AuditEvent.NETWORK_LOSS_SAFE_STOP)
+        if receipt is None:
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=stop.message_id)
+        if failure is not None:
+            return await self._failed(stop, principal, failure)
+        return _executed(stop, {}, receipt, result)
 
     async def end_session(self, principal: Principal) -> Decision | None:
         """The principal's connection closed: if it held a control session, safe stop now.
@@ -442,6 +562,24 @@ def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
         deny_reason=rejection.deny_reason if rejection else None, ai=ai,
         ros2_topic=ros2_topic, pending_id=pending_id,
     )
+
+
+def _stop_command() -> NormalizedCommand:
+    return NormalizedCommand(action="stop", params=NoParams(), requested={},
+                             message_id=str(uuid.uuid4()))
+
+
+def _fingerprint(command: NormalizedCommand) -> bytes:
+    """What makes a retry the same command: action, parameters and target robot."""
+    return msgspec.json.encode({"action": command.action, "params": command.requested,
+                                "ruri": command.ruri}, order="sorted")
+
+
+def _executed(command: NormalizedCommand, applied: dict[str, Any], receipt: AuditReceipt,
+              result: DispatchResult) -> Decision:
+    return Decision(outcome=Outcome.EXECUTED, http_status=200, applied=applied,
+                    audit_id=receipt.audit_id, message_id=command.message_id,
+                    ros2_topic=result.ros2_topic, goal_id=result.goal_id)
 
 
 def _decision(rejection: Rejection, receipt: AuditReceipt | None = None, *,

@@ -7,13 +7,10 @@ exception inside a check becomes a denial (SAFETY_CHECK_ERROR), never a pass.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
-from collections import OrderedDict
-from collections.abc import Hashable, Sequence
-from pathlib import Path
-from typing import Any, Generic, Protocol, TypeVar
+from collections.abc import Sequence
+from typing import Any, Protocol
 
 import msgspec
 
@@ -28,9 +25,7 @@ from rcan_rtps.rcan import (
 )
 
 from . import outcomes
-from ._durable import atomic_write
-from .clock import Clock
-from .errors import EstopStateError, GovernanceError
+from .errors import GovernanceError
 from .outcomes import Rejection
 
 log = logging.getLogger(__name__)
@@ -148,54 +143,15 @@ def _on_segment(p: tuple[float, float], a: tuple[float, float], b: tuple[float, 
     return min(a[0], b[0]) <= p[0] <= max(a[0], b[0]) and min(a[1], b[1]) <= p[1] <= max(a[1], b[1])
 
 
-class EstopLatch:
-    """The cached ESTOPPED state, persisted so a restart cannot silently clear it.
-
-    An unreadable state file counts as latched: losing the state must not unlatch the robot.
-    """
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self._latched = self._load()
-
-    def _load(self) -> bool:
-        try:
-            state = msgspec.json.decode(self.path.read_bytes())
-        except FileNotFoundError:
-            return False
-        except (OSError, msgspec.DecodeError):
-            log.error("e-stop state %s unreadable: starting latched", self.path)
-            return True
-        return not (isinstance(state, dict) and state.get("latched") is False)
-
+class Latch(Protocol):
     @property
-    def latched(self) -> bool:
-        return self._latched
-
-    def engage(self) -> None:
-        """Latch now (synchronously, before any await), persist later."""
-        self._latched = True
-
-    async def persist(self, by: str, at_ms: int) -> None:
-        await self._write(self._latched, by, at_ms)
-
-    async def clear(self, by: str, at_ms: int) -> None:
-        """Persist the cleared state first: if that fails, the latch stays on."""
-        await self._write(False, by, at_ms)
-        self._latched = False
-
-    async def _write(self, latched: bool, by: str, at_ms: int) -> None:
-        data = msgspec.json.encode({"latched": latched, "by": by, "at_ms": at_ms})
-        try:
-            await asyncio.to_thread(atomic_write, self.path, data)
-        except OSError as exc:
-            raise EstopStateError(f"cannot persist e-stop state to {self.path}: {exc}") from exc
+    def latched(self) -> bool: ...
 
 
 class EstopGuard:
     """While the e-stop is latched, no motion command passes."""
 
-    def __init__(self, latch: EstopLatch) -> None:
+    def __init__(self, latch: Latch) -> None:
         self.latch = latch
 
     def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
@@ -204,55 +160,10 @@ class EstopGuard:
         return params
 
 
-def safety_policy(safety: SafetyConfig, latch: EstopLatch, nav_frame_id: str) -> AllOf:
+def safety_policy(safety: SafetyConfig, latch: Latch, nav_frame_id: str) -> AllOf:
     return AllOf(
         EstopGuard(latch),
         finite_numbers,
         VelocityLimit(safety.max_linear_vel, safety.max_angular_vel, safety.velocity_exceed_deny),
         Workspace(safety.workspace, nav_frame_id),
     )
-
-
-# -- idempotency ----------------------------------------------------------------------------
-
-K = TypeVar("K", bound=Hashable)
-T = TypeVar("T")
-
-
-class Idempotency(Generic[K, T]):
-    """First outcome per key for `ttl_s`; concurrent duplicates wait for the first one."""
-
-    def __init__(self, clock: Clock, ttl_s: float = 600.0) -> None:
-        self._clock = clock
-        self._ttl = ttl_s
-        self._entries: OrderedDict[K, tuple[float, asyncio.Future[T]]] = OrderedDict()
-
-    def claim(self, key: K) -> asyncio.Future[T] | None:
-        """The earlier outcome (a future) if `key` was seen, else None after reserving `key`."""
-        self._prune()
-        seen = self._entries.get(key)
-        if seen is not None:
-            return seen[1]
-        future: asyncio.Future[T] = asyncio.get_running_loop().create_future()
-        self._entries[key] = (self._clock.monotonic(), future)
-        return None
-
-    def resolve(self, key: K, value: T) -> None:
-        future = self._entries[key][1]
-        if not future.done():
-            future.set_result(value)
-
-    def abandon(self, key: K, exc: BaseException) -> None:
-        """No outcome was reached: waiters get the error, and a retry may run again."""
-        _, future = self._entries.pop(key)
-        if not future.done():
-            future.set_exception(exc)
-            future.exception()  # mark retrieved: nobody may be waiting
-
-    def _prune(self) -> None:
-        horizon = self._clock.monotonic() - self._ttl
-        while self._entries:
-            key, (at, future) = next(iter(self._entries.items()))
-            if at > horizon or not future.done():
-                break
-            del self._entries[key]

@@ -39,6 +39,10 @@ DISPATCH_ERROR = Rejection(
 AUDIT_UNAVAILABLE = Rejection(
     503, Outcome.FAILED, ErrorCode.COMMAND_REJECTED, Reason.AUDIT_UNAVAILABLE.value
 )
+MESSAGE_ID_CONFLICT = Rejection(409, D, ErrorCode.MESSAGE_ID_CONFLICT)
+ESTOP_STATE_UNWRITABLE = Rejection(
+    503, Outcome.FAILED, ErrorCode.COMMAND_REJECTED, Reason.ESTOP_STATE_UNWRITABLE.value
+)
 VELOCITY_LIMIT = _rejected(Reason.VELOCITY_LIMIT, S)
 WORKSPACE_VIOLATION = _rejected(Reason.WORKSPACE_VIOLATION, S)
 INVALID_VALUE = _rejected(Reason.INVALID_VALUE, S)
@@ -48,6 +52,10 @@ SAFETY_CHECK_ERROR = _rejected(Reason.SAFETY_CHECK_ERROR)
 PENDING_NOT_FOUND = _rejected(Reason.PENDING_NOT_FOUND, status=404)
 PENDING_EXPIRED = _rejected(Reason.PENDING_EXPIRED, status=404)
 HITL_DENIED = _rejected(Reason.HITL_DENIED, status=200)
+
+
+def robot_unavailable(detail: str | None) -> Rejection:
+    return Rejection(503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE, detail)
 
 
 def schema_failed(path: str) -> Rejection:

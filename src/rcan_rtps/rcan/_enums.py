@@ -50,6 +50,7 @@ class ErrorCode(str, enum.Enum):
     ROBOT_UNAVAILABLE = "ROBOT_UNAVAILABLE"
     PAYLOAD_TOO_LARGE = "PAYLOAD_TOO_LARGE"
     INVALID_RURI = "INVALID_RURI"
+    MESSAGE_ID_CONFLICT = "MESSAGE_ID_CONFLICT"
 
 
 class Reason(str, enum.Enum):
@@ -68,3 +69,5 @@ class Reason(str, enum.Enum):
     DISPATCH_ERROR = "dispatch_error"
     AUDIT_UNAVAILABLE = "audit_unavailable"
     NOT_THIS_ROBOT = "not_this_robot"
+    ROBOT_SILENT = "robot_silent"
+    ESTOP_STATE_UNWRITABLE = "estop_state_unwritable"

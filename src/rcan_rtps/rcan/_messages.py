@@ -99,6 +99,7 @@ class NormalizedCommand(msgspec.Struct, frozen=True, kw_only=True):
     params: ActionParams
     requested: dict[str, Any]
     message_id: str
+    client_message_id: bool = False  # the client chose `message_id` (so it may retry with it)
     ruri: str | None = None
     timestamp_ms: int | None = None
     priority: int = 0

@@ -108,6 +108,7 @@ def _from_short(
         params=_params(cmd.action, cmd.params, "$.params"),
         requested=cmd.params,
         message_id=_message_id(cmd.message_id, new_id),
+        client_message_id=cmd.message_id is not None,
         ai=ai,
         claimed_role=claimed_role,
     )
@@ -122,6 +123,7 @@ def _from_envelope(
         params=_params(cmd.action, cmd.parameters, "$.parameters"),
         requested=cmd.parameters,
         message_id=_message_id(cmd.message_id, new_id),
+        client_message_id=cmd.message_id is not None,
         ruri=cmd.ruri,
         timestamp_ms=cmd.timestamp_ms,
         priority=cmd.priority,

@@ -1,0 +1,155 @@
+"""The e-stop as one serialized state machine: one owner, one order.
+
+E-stop and clear requests are applied one at a time, in arrival order, by one worker task. Each
+transition is persisted, audited, published and acknowledged before the next one starts, so the
+order of acknowledgements is the audit order. Two rules make an acknowledged e-stop stick:
+
+- an e-stop latches in memory the moment it arrives (before any await), so no motion command
+  passes from then on, even while earlier transitions are still being written;
+- a clear unlatches only if no e-stop arrived after it; otherwise that e-stop, next in line,
+  keeps the robot stopped (and the superseded clear publishes nothing).
+
+The latch file fails closed: unreadable means latched, and missing means latched unless the
+audit log is new too (a first start).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import logging
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import msgspec
+
+from ._durable import atomic_write
+from .errors import EstopStateError
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+
+class LatchState(msgspec.Struct, frozen=True, kw_only=True):
+    """What `estop.state` holds."""
+
+    latched: bool
+    by: str | None = None
+    at_ms: int | None = None
+
+
+class LatchFile:
+    """The persisted latch; written atomically (fsynced) on its own thread."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._writer = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="rcan-estop")
+
+    def load(self, *, first_start: bool) -> tuple[bool, str | None]:
+        """(latched, why it starts latched); fails closed on anything but a clear `false`."""
+        try:
+            state = msgspec.json.decode(self.path.read_bytes(), type=LatchState)
+        except FileNotFoundError:
+            if first_start:
+                return False, None
+            return True, f"e-stop state {self.path} is missing: latched until cleared"
+        except (OSError, msgspec.DecodeError) as exc:
+            return True, f"e-stop state {self.path} is unreadable ({exc}): latched until cleared"
+        if state.latched:
+            return True, f"latched by {state.by or 'unknown'} before this start"
+        return False, None
+
+    def exists(self) -> bool:
+        return self.path.exists()
+
+    async def write(self, latched: bool, by: str, at_ms: int) -> None:
+        data = msgspec.json.encode(LatchState(latched=latched, by=by, at_ms=at_ms))
+        try:
+            await asyncio.get_running_loop().run_in_executor(
+                self._writer, atomic_write, self.path, data)
+        except OSError as exc:
+            raise EstopStateError(f"cannot persist e-stop state to {self.path}: {exc}") from exc
+
+    def close(self) -> None:
+        self._writer.shutdown(wait=True)
+
+
+_Job = tuple[Callable[[], Awaitable[Any]], "asyncio.Future[Any]", bool]
+
+
+class EstopMachine:
+    """Owns the latch in memory and the order of transitions.
+
+    `engage` and `clear` take the transition's work (persist, audit, publish) as a coroutine
+    factory; the machine runs them one at a time in arrival order and returns their results.
+    """
+
+    def __init__(self, file: LatchFile, *, latched: bool, reason: str | None = None) -> None:
+        self.file = file
+        self.reason = reason  # why it started latched, if it did
+        self._latched = latched
+        self._engages_waiting = 0
+        self._queue: asyncio.Queue[_Job] | None = None
+        self._worker: asyncio.Task[None] | None = None
+
+    @property
+    def latched(self) -> bool:
+        """True from the moment an e-stop arrives until a clear ordered after it completes."""
+        return self._latched
+
+    def engage(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
+        """Latch now (synchronously), then run `work` in order."""
+        self._latched = True
+        self._engages_waiting += 1
+        return self._submit(work, engage=True)
+
+    def clear(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
+        """Run `work` in order; it calls `unlatch()` once the clear is durable."""
+        return self._submit(work, engage=False)
+
+    def unlatch(self) -> bool:
+        """From a clear's work: unlatch unless an e-stop arrived after it (then False)."""
+        if self._engages_waiting:
+            return False
+        self._latched = False
+        self.reason = None
+        return True
+
+    async def close(self) -> None:
+        """Finish every transition already submitted, then stop the worker."""
+        if self._queue is not None:
+            await self._queue.join()
+        if self._worker is not None:
+            self._worker.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._worker
+        self.file.close()
+
+    def _submit(self, work: Callable[[], Awaitable[T]], *, engage: bool) -> asyncio.Future[T]:
+        loop = asyncio.get_running_loop()
+        if self._queue is None:
+            self._queue = asyncio.Queue()
+        if self._worker is None or self._worker.done():
+            self._worker = loop.create_task(self._work(), name="estop-machine")
+        done: asyncio.Future[T] = loop.create_future()
+        self._queue.put_nowait((work, done, engage))
+        return done
+
+    async def _work(self) -> None:
+        assert self._queue is not None
+        while True:
+            work, done, engage = await self._queue.get()
+            if engage:
+                self._engages_waiting -= 1
+            try:
+                result = await work()
+            except Exception as exc:  # the caller gets it; the machine goes on
+                if not done.done():
+                    done.set_exception(exc)
+            else:
+                if not done.done():
+                    done.set_result(result)
+            finally:
+                self._queue.task_done()

@@ -494,10 +494,12 @@ _SEAL_ID = msgspec.json.Decoder(_Sealed)
 
 
 def _make_dirs(*paths: Path) -> None:
+    """Create each missing parent directory, private (0700): audit trails are not for all."""
     for path in paths:
-        parent = path.parent
-        if not parent.exists():
-            parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        missing = [d for d in (path.parent, *path.parent.parents) if not d.exists()]
+        for directory in reversed(missing):
+            directory.mkdir(mode=0o700, exist_ok=True)
+            os.chmod(directory, 0o700)  # mkdir's mode is filtered by the umask
 
 
 def _open_and_scan(path: Path, pubkey: Ed25519PublicKey) -> tuple[int, _Scan]:

@@ -4,6 +4,7 @@ Public API::
 
     build_app(*, governor, authenticator, robot, config, cert_principals=None) -> Application
     ApiServer(app, host=, port=, ssl_context=)     async context manager; `.url` once bound
+    bind(host, port)                               a listening socket for ApiServer(sock=)
     server_ssl_context(tls) -> SSLContext          TLS; mTLS when `tls.client_ca` is set
     cert_principals(config) -> {CN: Principal}     the mTLS mapping (principal name = CN)
     RobotView, GoalView                            the contract the bridge implements
@@ -47,7 +48,7 @@ Decisions where the profile is silent:
 
 from ._app import build_app, settings_from_config
 from ._keys import ApiSettings, Authenticator
-from ._server import ApiServer
+from ._server import ApiServer, bind
 from ._tls import cert_principals, server_ssl_context
 from .ports import GoalState, GoalView, RobotView
 
@@ -58,6 +59,7 @@ __all__ = [
     "GoalState",
     "GoalView",
     "RobotView",
+    "bind",
     "build_app",
     "cert_principals",
     "server_ssl_context",

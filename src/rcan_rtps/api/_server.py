@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import ssl
 from types import TracebackType
 
@@ -13,11 +14,13 @@ class ApiServer:
 
     def __init__(self, app: web.Application, *, host: str, port: int,
                  ssl_context: ssl.SSLContext | None = None,
-                 shutdown_timeout_s: float = 5.0) -> None:
+                 shutdown_timeout_s: float = 5.0, sock: socket.socket | None = None) -> None:
+        """`sock`: a socket bound beforehand (see `bind`), used instead of host and port."""
         self._runner = web.AppRunner(app, access_log=None,
                                      shutdown_timeout=shutdown_timeout_s)
         self._host = host
         self._port = port
+        self._sock = sock
         self._ssl = ssl_context
         self._url: str | None = None
 
@@ -30,7 +33,11 @@ class ApiServer:
 
     async def start(self) -> str:
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self._host, self._port, ssl_context=self._ssl)
+        site: web.BaseSite
+        if self._sock is not None:
+            site = web.SockSite(self._runner, self._sock, ssl_context=self._ssl)
+        else:
+            site = web.TCPSite(self._runner, self._host, self._port, ssl_context=self._ssl)
         await site.start()
         host, port = self._runner.addresses[0][:2]
         scheme = "https" if self._ssl is not None else "http"
@@ -48,3 +55,23 @@ class ApiServer:
     async def __aexit__(self, exc_type: type[BaseException] | None,
                         exc: BaseException | None, tb: TracebackType | None) -> None:
         await self.close()
+
+
+def bind(host: str, port: int) -> socket.socket:
+    """A listening socket for the API, bound now: a port in use fails before anything else."""
+    try:
+        infos = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM,
+                                   flags=socket.AI_PASSIVE)
+        family, _, _, _, address = infos[0]
+        sock = socket.socket(family, socket.SOCK_STREAM)
+    except OSError as exc:
+        raise OSError(exc.errno, f"cannot listen on {host}:{port}: {exc.strerror}") from exc
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(1024)
+    except OSError as exc:
+        sock.close()
+        raise OSError(exc.errno, f"cannot listen on {host}:{port}: {exc.strerror}") from exc
+    sock.setblocking(False)
+    return sock

@@ -1,5 +1,8 @@
 """The governed bridge as one object: start in dependency order, stop in reverse.
 
+    prepare: credentials, TLS, audit key and the API port are checked (the port bound) before
+           anything touches the robot: a start that fails here leaves no trace on the graph
+           and writes no audit entry
     start: ROS node → audit log → navigation client → dispatcher → governor (BRIDGE_STARTED)
            → telemetry → HTTP API → mDNS advert
     stop:  mDNS withdrawn → API closed (no new commands) → robot halted (zero velocity,
@@ -12,10 +15,13 @@ import asyncio
 import contextlib
 import logging
 import os
+import socket
+import ssl
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
-from ..api import ApiServer, build_app, cert_principals, server_ssl_context
+from ..api import ApiServer, bind, build_app, cert_principals, server_ssl_context
 from ..api.ports import GoalView
 from ..config import RcanConfig
 from ..governance import (
@@ -25,6 +31,7 @@ from ..governance import (
     SystemClock,
     TokenAuthenticator,
     WebhookNotifier,
+    load_private_key,
 )
 from ..rcan import Status
 from ..ros.participant import RosNode
@@ -85,10 +92,31 @@ class Bridge:
         self.server: ApiServer | None = None
         self.advertiser: RcanAdvertiser | None = None
         self._advert_task: asyncio.Task[None] | None = None
+        self._authenticator: TokenAuthenticator | None = None
+        self._ssl: ssl.SSLContext | None = None
+        self._sock: socket.socket | None = None
         self.url = ""
+
+    def prepare(self) -> None:
+        """Check everything that can fail without the robot; bind the API port.
+
+        Raises (AuthConfigError, AuditKeyError, OSError, ...) before the bridge joins the
+        domain or writes an audit entry.
+        """
+        if self._sock is not None:
+            return
+        api, opts = self.config.bridge.api, self.options
+        self._authenticator = TokenAuthenticator.from_config(
+            api, self.config.bridge.rbac, opts.env, clock=SystemClock())
+        self._ssl = server_ssl_context(api.tls) if api.tls else None
+        key = Path(self.config.bridge.audit.key_path)
+        if key.exists():
+            load_private_key(key)  # unreadable, too open or not Ed25519: refuse now
+        self._sock = bind(opts.host or api.host, api.port if opts.port is None else opts.port)
 
     async def start(self) -> str:
         """Brings the bridge up; returns the API's URL once it accepts commands."""
+        self.prepare()
         bridge, opts = self.config.bridge, self.options
         ros2 = bridge.ros2
         self.node = RosNode(ros2.node_name, ros2.namespace or "/", domain_id=ros2.domain_id,
@@ -132,15 +160,13 @@ class Bridge:
     async def _serve(self) -> None:
         api, opts = self.config.bridge.api, self.options
         assert self.governor is not None and self.telemetry is not None and self.goals
-        authenticator = TokenAuthenticator.from_config(api, self.config.bridge.rbac, opts.env,
-                                                       clock=SystemClock())
-        app = build_app(governor=self.governor, authenticator=authenticator,
+        assert self._authenticator is not None and self._sock is not None
+        app = build_app(governor=self.governor, authenticator=self._authenticator,
                         robot=BridgeView(self.telemetry, self.goals), config=self.config,
                         cert_principals=cert_principals(self.config) if api.tls else None)
-        ssl_context = server_ssl_context(api.tls) if api.tls else None
         self.server = ApiServer(app, host=opts.host or api.host,
                                 port=api.port if opts.port is None else opts.port,
-                                ssl_context=ssl_context)
+                                ssl_context=self._ssl, sock=self._sock)
         self.url = await self.server.start()
 
     async def _advertise(self) -> None:
@@ -172,6 +198,8 @@ class Bridge:
         if self.node is not None:
             self.node.close()
             self.node = None
+        if self._sock is not None and self.server is None:
+            self._sock.close()  # prepared but never served
 
     async def _stop_mdns(self) -> None:
         if self._advert_task is not None:

@@ -75,6 +75,12 @@ async def _run(args: argparse.Namespace) -> int:
     config = _config(args, env)
     localhost = args.localhost if args.localhost is not None else (
         True if args.sim and not args.lan else None)
+    # The demo keeps mDNS on loopback too: it must not talk to the LAN unless asked.
+    mdns_interfaces = ["127.0.0.1"] if args.sim and not args.lan else None
+    bridge = Bridge(config, BridgeOptions(localhost=localhost, host=args.host, port=args.port,
+                                          mdns=not args.no_mdns, mdns_interfaces=mdns_interfaces,
+                                          env=env))
+    bridge.prepare()  # tokens, TLS, key, port: fail before anything joins the domain
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -87,11 +93,6 @@ async def _run(args: argparse.Namespace) -> int:
         robot = SimRobot(sim_node, cmd_vel_type=ros2.cmd_vel_type)
         nav = NavigationServer(robot, ros2.nav_action)
         sim_task = asyncio.create_task(robot.run(stop))
-    # The demo keeps mDNS on loopback too: it must not talk to the LAN unless asked.
-    mdns_interfaces = ["127.0.0.1"] if args.sim and not args.lan else None
-    bridge = Bridge(config, BridgeOptions(localhost=localhost, host=args.host, port=args.port,
-                                          mdns=not args.no_mdns, mdns_interfaces=mdns_interfaces,
-                                          env=env))
     try:
         url = await bridge.start()
         print(f"rcan-rtps ready api={url}", flush=True)

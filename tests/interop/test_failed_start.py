@@ -1,0 +1,146 @@
+"""A start that fails leaves no trace: nothing on the robot's graph, no audit entry.
+
+`rcan-rtps run --config` is run as a real subprocess with a bad token, a short token, a port in
+use and a bad audit key. Meanwhile a plain DDS participant of the test watches the domain for
+new participants and an rclpy robot listens on `cmd_vel`: neither may see the failed bridge.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsParticipant
+from oracle.client import RclpyOracle
+
+from rcan_rtps.ros.participant import RosNode
+
+TOKEN = "t" * 32
+
+
+def _config(tmp: Path, domain_id: int, port: int) -> Path:
+    path = tmp / "robot.rcan.yaml"
+    path.write_text(textwrap.dedent(f"""\
+        robot:
+          ruri: rcan://registry.local/acme/rover/unit-0001
+          name: Test Rover
+        bridge:
+          ros2: {{namespace: /robot1, node_name: rcan_bridge, domain_id: {domain_id}}}
+          api: {{host: 127.0.0.1, port: {port}, auth_token_env: RCAN_BRIDGE_TOKEN}}
+          safety: {{max_linear_vel: 1.0, max_angular_vel: 1.0}}
+          audit: {{path: {tmp / "audit" / "audit.jsonl"}, key_path: {tmp / "audit.key"}}}
+        """))
+    return path
+
+
+def _run(config: Path, token: str | None) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if k != "RCAN_BRIDGE_TOKEN"}
+    if token is not None:
+        env["RCAN_BRIDGE_TOKEN"] = token
+    return subprocess.run([sys.executable, "-m", "rcan_rtps", "run", "--config", str(config),
+                           "--no-mdns"], capture_output=True, text=True, env=env, timeout=60)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class ParticipantWatch:
+    """Every DDS participant that appears on the domain (taken without a listener)."""
+
+    def __init__(self, domain_id: int) -> None:
+        self.node = RosNode("failed_start_watch", domain_id=domain_id)
+        self.reader = BuiltinDataReader(self.node.participant, BuiltinTopicDcpsParticipant)
+        self.node.track_reader(self.reader)
+        self.seen: set[bytes] = set()
+
+    def poll(self) -> set[bytes]:
+        for sample in self.reader.take(N=256):
+            key = getattr(sample, "key", None)
+            if key is not None:
+                self.seen.add(key.bytes)
+        return self.seen
+
+
+@pytest.fixture
+def robot(jazzy_python: Path, domain_id: int):  # type: ignore[no-untyped-def]
+    with RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id) as oracle:
+        oracle.call("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
+        yield oracle
+
+
+def _bad_key(tmp: Path) -> None:
+    (tmp / "audit.key").write_text("not a key")
+    os.chmod(tmp / "audit.key", 0o600)
+
+
+CASES = {  # case: (token, set-up, what the error must say)
+    "token unset": (None, None, "unset or empty"),
+    "token too short": ("short", None, "at least"),
+    "bad audit key": (TOKEN, _bad_key, "cannot load audit key"),
+    "port in use": (TOKEN, "occupy", "cannot listen on 127.0.0.1"),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_a_failed_start_leaves_no_trace(case: str, tmp_path: Path, domain_id: int,
+                                        robot: RclpyOracle) -> None:
+    token, setup, says = CASES[case]
+    port = _free_port()
+    occupied = None
+    if setup == "occupy":
+        occupied = socket.socket()
+        occupied.bind(("127.0.0.1", port))
+        occupied.listen(1)
+    elif callable(setup):
+        setup(tmp_path)
+    config = _config(tmp_path, domain_id, port)
+    watch = ParticipantWatch(domain_id)
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:  # the robot and the watcher know each other
+        if len(watch.poll()) >= 2:
+            break
+        time.sleep(0.05)
+    before = set(watch.poll())
+    try:
+        done = _run(config, token)
+    finally:
+        if occupied is not None:
+            occupied.close()
+    time.sleep(0.5)  # anything the failed start announced would have arrived by now
+    assert done.returncode != 0
+    assert done.stderr.startswith("rcan-rtps: error:") and says in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr
+    assert watch.poll() == before, "the failed bridge joined the domain"
+    assert robot.call("take", topic="/robot1/cmd_vel") == []
+    assert not (tmp_path / "audit" / "audit.jsonl").exists(), "an audit entry was written"
+    watch.node.close()
+
+
+def test_the_watch_does_see_a_bridge_that_starts(tmp_path: Path, domain_id: int) -> None:
+    """The control case: the same watch notices a bridge that did join."""
+    config = _config(tmp_path, domain_id, _free_port())
+    watch = ParticipantWatch(domain_id)
+    before = set(watch.poll())
+    env = {**os.environ, "RCAN_BRIDGE_TOKEN": TOKEN}
+    proc = subprocess.Popen([sys.executable, "-m", "rcan_rtps", "run", "--config", str(config),
+                             "--no-mdns"], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert proc.stdout is not None and "ready" in proc.stdout.readline()
+        deadline = time.monotonic() + 10
+        while watch.poll() == before and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert watch.poll() != before
+        assert (tmp_path / "audit" / "audit.jsonl").exists()
+    finally:
+        proc.terminate()
+        proc.wait(30)
+        watch.node.close()

@@ -26,6 +26,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -346,12 +347,34 @@ async def _robot_online(rig: Rig, oracle: RclpyOracle) -> None:
     assert any(t["linear"]["x"] == 0.5 for t in await rig.take(CMD_VEL, timeout=30))
 
 
-async def test_robot_sigkill_no_move_executed_once_offline(tmp_path: Path, jazzy_python: Path,
-                                                           domain_id: int) -> None:
+@pytest.mark.parametrize("disk", ["fast", "slow"])
+async def test_robot_sigkill_no_move_executed_once_offline(
+        tmp_path: Path, jazzy_python: Path, domain_id: int, disk: str,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """`slow`: each audit write takes 0.1 s longer (an SD card): the robot may go silent while
+    a move waits for its write-ahead entry."""
     config = _rig_config(tmp_path, domain_id)
     stale = config.bridge.ros2.telemetry_stale_s
     rig = await make_rig(config, jazzy_python, domain_id)
     probe = Probe(rig)
+    if disk == "slow":
+        write = audit_module._write_durable
+
+        def slow_write(fd: int, data: bytes) -> None:
+            time.sleep(0.1)
+            write(fd, data)
+
+        monkeypatch.setattr(audit_module, "_write_durable", slow_write)
+    # When each Twist really went out, on the probe's clock.
+    published: list[tuple[int, float]] = []
+    cmd_vel = rig.dispatcher.cmd_vel
+    publish = cmd_vel.publish
+
+    def recorded(message: Any) -> None:
+        published.append((probe.tick(), float(message.linear.x)))
+        publish(message)
+
+    cmd_vel.publish = recorded  # type: ignore[method-assign]
     try:
         await _robot_online(rig, rig.oracle)
         tasks = [asyncio.create_task(probe.mover()) for _ in range(3)]
@@ -379,16 +402,24 @@ async def test_robot_sigkill_no_move_executed_once_offline(tmp_path: Path, jazzy
     after_offline = [m for m in probe.moves if m.started > offline]
     blind = [m for m in probe.moves if m.started > killed and m.decision.http_status == 200]
     straddling = [m for m in blind if m.finished > offline]
-    print(f"\nrobot SIGKILL: moves={len(probe.moves)} executed after the kill (sent to a dead "
-          f"robot)={len(blind)}, of which answered after STATUS said offline="
-          f"{len(straddling)}; moves started once offline={len(after_offline)}")
+    late = [x for t, x in published if t > offline and x != 0.0]
+    print(f"\nrobot SIGKILL ({disk} disk): moves={len(probe.moves)} executed after the kill "
+          f"(sent to a dead robot)={len(blind)}, of which answered after STATUS said offline="
+          f"{len(straddling)}; moves started once offline={len(after_offline)}; Twists "
+          f"published once offline={len(late)}")
     assert all(s == "offline" for t, s in probe.states if t > offline), "the robot came back?"
+    # Nothing moves the robot once the bridge itself says it is offline: not even a move
+    # decided before, whose write-ahead entry was still being written.
+    assert not late, f"Twists published after STATUS said offline: {late}"
     executed = [m.n for m in after_offline if m.decision.outcome.value == "executed"]
     assert not executed, f"moves answered executed after STATUS said offline: {executed}"
     assert {(m.decision.http_status, m.decision.error_code.value if m.decision.error_code
              else None) for m in after_offline} == {(503, "ROBOT_UNAVAILABLE")}
     # Each is audited once, as refused at the dispatch stage: nothing was sent.
     entries = rig.entries()
+    # A move decided in time whose robot went silent during its write-ahead: COMMAND_FAILED.
+    print(f"moves failed after their write-ahead entry: "
+          f"{sum(e['event'] == 'COMMAND_FAILED' for e in entries)}")
     for m in after_offline:
         mine = [(e["event"], e["outcome"], e["deny_reason"].split(":")[0]) for e in entries
                 if e.get("message_id") == m.decision.message_id]

@@ -28,6 +28,7 @@ import sys
 import textwrap
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -177,8 +178,9 @@ async def _load_and_kill(url: str, proc: asyncio.subprocess.Process, rnd: Round,
 
 
 @pytest.mark.slow
-async def test_sigkill_under_load_loses_nothing_acknowledged(tmp_path: Path, jazzy_python: Path,
-                                                             domain_id: int) -> None:
+async def test_sigkill_under_load_loses_nothing_acknowledged(
+        tmp_path: Path, jazzy_python: Path, domain_id: int,
+        record_property: Callable[[str, object], None]) -> None:
     seed = int(os.environ.get("RCAN_KILL_SEED", random.SystemRandom().randrange(2**32)))
     rng = random.Random(seed)
     state = tmp_path / "state"
@@ -265,6 +267,7 @@ async def test_sigkill_under_load_loses_nothing_acknowledged(tmp_path: Path, jaz
               f"entries={len(entries)} "
               f"LOSSES: unaudited_twists={len(unaudited)} unrecorded_replies={len(unrecorded)}")
     print("\n" + report)
+    record_property("kill_report", report)
     assert not unaudited, f"Twists rclpy received without an audit entry: {unaudited}; {report}"
     assert not unrecorded, f"acknowledged decisions missing from the log: {unrecorded}; {report}"
     assert codes[200] >= ROUNDS, report  # every round was under load when it was killed

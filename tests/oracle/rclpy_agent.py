@@ -129,7 +129,6 @@ class Agent:
         self.action_servers: dict[str, Any] = {}
         self.action_clients: dict[str, Any] = {}
         self.goals: dict[str, dict[str, Any]] = {}
-        self.periodic: dict[str, threading.Event] = {}
         self.group = ReentrantCallbackGroup()
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
@@ -215,22 +214,19 @@ class Agent:
     def op_publish_periodic(self, topic: str, type: str, value: dict[str, Any],
                             period: float = 0.05) -> bool:
         """Publishes `value` on `topic` every `period` s in the background (a robot's
-        telemetry) until `stop_periodic`; needs `publisher` first."""
+        telemetry) for as long as the agent lives; needs `publisher` first."""
         pub = self.publishers[topic]
         msg = fill(load_type(type)(), value)
-        stop = threading.Event()
-        self.periodic[topic] = stop
 
         def loop() -> None:
-            while not stop.is_set():
-                pub.publish(msg)
-                stop.wait(period)
+            while rclpy.ok():
+                try:
+                    pub.publish(msg)
+                except Exception:  # the agent is shutting down
+                    return
+                time.sleep(period)
 
         threading.Thread(target=loop, daemon=True).start()
-        return True
-
-    def op_stop_periodic(self, topic: str) -> bool:
-        self.periodic.pop(topic).set()
         return True
 
     def op_take(self, topic: str) -> list[Any]:

@@ -4,8 +4,10 @@
    while concurrent REST clients send `move`s: every Twist rclpy received has its
    COMMAND_DISPATCHED entry, every decision a client got is in the file, and the chain verifies
    once the next start has cut a torn tail.
-2. The robot is SIGKILLed: once STATUS says `offline`, no `move` is answered "executed"; a
-   robot whose cmd_vel reader leaves cleanly gets 503 at once, not after the staleness timeout.
+2. The robot is SIGKILLed (audit disk fast, or slow): once STATUS says `offline`, no `move`
+   is answered "executed" and no Twist is published, not even for a move decided before whose
+   write-ahead entry was still being written; a robot whose cmd_vel reader leaves cleanly gets
+   503 at once, not after the staleness timeout.
 3. An audit log that cannot be written: a `move` sends nothing (503 audit_unavailable), an
    e-stop still reaches the robot.
 

@@ -105,6 +105,8 @@ def make_qos(name: str) -> QoSProfile:
         return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    if name == "deep":  # reliable, a history no burst overwrites: loss shows as loss
+        return QoSProfile(depth=100_000)
     return QoSProfile(depth=10)
 
 
@@ -202,6 +204,29 @@ class Agent:
 
         self.subscriptions[topic] = self.node.create_subscription(
             load_type(type), topic, on_message, make_qos(qos))
+        return True
+
+    def op_unsubscribe(self, topic: str) -> bool:
+        """Destroys our subscription to `topic` (a clean leave: writers see the reader go)."""
+        sub = self.subscriptions.pop(topic)
+        return bool(self.node.destroy_subscription(sub))
+
+    def op_publish_periodic(self, topic: str, type: str, value: dict[str, Any],
+                            period: float = 0.05) -> bool:
+        """Publishes `value` on `topic` every `period` s in the background (a robot's
+        telemetry) for as long as the agent lives; needs `publisher` first."""
+        pub = self.publishers[topic]
+        msg = fill(load_type(type)(), value)
+
+        def loop() -> None:
+            while rclpy.ok():
+                try:
+                    pub.publish(msg)
+                except Exception:  # the agent is shutting down
+                    return
+                time.sleep(period)
+
+        threading.Thread(target=loop, daemon=True).start()
         return True
 
     def op_take(self, topic: str) -> list[Any]:

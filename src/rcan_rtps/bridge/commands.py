@@ -77,9 +77,9 @@ class RosDispatcher:
         if command.action in ("stop", "estop"):
             return None  # stopping is never held back
         if command.action != "clear_estop":
-            age = self._telemetry_age()
-            if age is not None and age > self.ros2.telemetry_stale_s:
-                return f"robot silent: no telemetry for {age:.1f} s"
+            silent = self._silent()
+            if silent is not None:
+                return silent
         if command.action == "navigate":
             return None if self.navigator is not None else "navigation is not available"
         pub = self._publisher(command.action)
@@ -97,6 +97,12 @@ class RosDispatcher:
         return await handler(applied)
 
     # -- helpers ---------------------------------------------------------------------
+    def _silent(self) -> str | None:
+        age = self._telemetry_age()
+        if age is not None and age > self.ros2.telemetry_stale_s:
+            return f"robot silent: no telemetry for {age:.1f} s"
+        return None
+
     async def _matched(self, pub: RosPublisher) -> bool:
         if pub.matched_count():
             self._ever_matched.add(pub.topic)
@@ -128,15 +134,23 @@ class RosDispatcher:
         pub.publish(message)
         return DispatchResult(ok=True, ros2_topic=pub.topic)
 
+    async def _publish_motion(self, pub: RosPublisher, message: Any) -> DispatchResult:
+        # `ready` passed before the write-ahead entry; the robot may have gone silent or its
+        # reader left while that was written. Checked again with no await before the write.
+        why = self._silent() or (None if pub.matched_count() else f"no subscriber on {pub.topic}")
+        if why is not None:
+            return DispatchResult(ok=False, ros2_topic=pub.topic, detail=why)
+        return await self._publish(pub, message)
+
     # -- actions -----------------------------------------------------------------------
     async def _move(self, applied: Mapping[str, Any]) -> DispatchResult:
-        return await self._publish(self.cmd_vel, self._twist(
+        return await self._publish_motion(self.cmd_vel, self._twist(
             applied.get("linear_x", 0.0), applied.get("linear_y", 0.0),
             applied.get("angular_z", 0.0)))
 
     async def _arm_joint(self, applied: Mapping[str, Any]) -> DispatchResult:
         # A zero header stamp tells joint_trajectory_controller to start at once.
-        return await self._publish(self.trajectory, {
+        return await self._publish_motion(self.trajectory, {
             "joint_names": list(applied["joints"]),
             "points": [{"positions": list(applied["positions"]),
                         "time_from_start": duration_msg(applied["duration_s"])}],

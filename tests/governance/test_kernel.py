@@ -3,6 +3,7 @@ latch file, audit directories, and a start-up that does not grow with the log.""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import stat
@@ -226,3 +227,28 @@ async def test_start_up_work_does_not_grow_with_the_log(tmp_path: Path) -> None:
     finally:
         audit_mod._scan = real_scan  # type: ignore[assignment]
     assert scanned == [0] and size > 0
+
+
+async def test_a_command_still_in_flight_is_not_session_loss(harness: Harness) -> None:
+    """Waiting for a subscriber longer than the session timeout is not silence."""
+    gov = await harness.governor()
+    entered, release = asyncio.Event(), asyncio.Event()
+
+    async def slow_ready(cmd):  # type: ignore[no-untyped-def]
+        entered.set()
+        await release.wait()
+        return None
+
+    harness.dispatcher.ready = slow_ready  # type: ignore[method-assign]
+    moving = asyncio.ensure_future(gov.decide(command("move", {"linear_x": 0.2}), PLANNER))
+    await entered.wait()
+    harness.clock.advance(60)  # far past session_timeout_s
+    await gov.sweep()
+    assert [e["event"] for e in harness.entries] == []  # no NETWORK_LOSS_SAFE_STOP
+    release.set()
+    assert (await moving).outcome is Outcome.EXECUTED
+    await gov.sweep()
+    assert "NETWORK_LOSS_SAFE_STOP" not in [e["event"] for e in harness.entries]
+    harness.clock.advance(60)
+    await gov.sweep()  # silence after the command: now it is session loss
+    assert harness.entries[-1]["event"] == "NETWORK_LOSS_SAFE_STOP"

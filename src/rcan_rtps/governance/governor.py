@@ -12,9 +12,10 @@ command's idempotency entry. E-stop and clear are one serialized state machine (
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import uuid
-from collections.abc import Callable, Coroutine, Mapping
+from collections.abc import Callable, Coroutine, Iterator, Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -249,7 +250,12 @@ class Governor:
         if isinstance(gate, Escalate):
             return await self._hold(command, principal, gate.approver_role)
         self._sessions.touch(principal, command.action)
-        return await self._execute(command, principal, applied, AuditEvent.COMMAND_DISPATCHED)
+        # A command still being carried out (waiting for a subscriber, say) is not silence.
+        with self._sessions.in_flight(principal):
+            decision = await self._execute(command, principal, applied,
+                                           AuditEvent.COMMAND_DISPATCHED)
+        self._sessions.heartbeat(principal)
+        return decision
 
     # -- the e-stop lane (run by the e-stop machine, one transition at a time) ------------
 
@@ -516,6 +522,17 @@ class Sessions:
         self._clock = clock
         self._timeout = timeout_s
         self._last: dict[str, tuple[Principal, float]] = {}
+        self._busy: dict[str, int] = {}  # commands being carried out, per principal
+
+    @contextlib.contextmanager
+    def in_flight(self, principal: Principal) -> Iterator[None]:
+        self._busy[principal.name] = self._busy.get(principal.name, 0) + 1
+        try:
+            yield
+        finally:
+            left = self._busy.pop(principal.name) - 1
+            if left:
+                self._busy[principal.name] = left
 
     def touch(self, principal: Principal, action: str) -> None:
         if Action(action) in MOTION_ACTIONS:
@@ -533,7 +550,8 @@ class Sessions:
 
     def take_lost(self) -> list[Principal]:
         horizon = self._clock.monotonic() - self._timeout
-        lost = [p for p, at in self._last.values() if at < horizon]
+        lost = [p for p, at in self._last.values()
+                if at < horizon and p.name not in self._busy]
         for p in lost:
             del self._last[p.name]
         return lost

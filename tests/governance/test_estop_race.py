@@ -178,6 +178,7 @@ class EstopModel(RuleBasedStateMachine):
         before = len(self.harness.dispatcher.calls)
         self.gov = self.run(self.harness.governor())
         self.run(self.gov.start())
+        self.run(self.gov.latch.settled())
         republished = [a for a, _ in self.harness.dispatcher.calls[before:]]
         assert ("estop" in republished) is self.latched  # a latched start tells the robot
 

@@ -115,7 +115,8 @@ async def test_deleted_latch_file_starts_latched_and_says_why(harness: Harness) 
     (harness.tmp / "estop.state").unlink()
     gov = await harness.governor()
     await gov.start()
-    assert gov.latch.latched
+    assert gov.latch.latched  # at once; the robot is told in the background
+    await gov.latch.settled()
     started = harness.entries[-1]
     assert started["event"] == "BRIDGE_STARTED" and "missing" in started["params"]["estop_reason"]
     assert [a for a, _ in harness.dispatcher.calls] == ["estop"]  # the robot is told again

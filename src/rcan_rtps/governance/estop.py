@@ -117,6 +117,11 @@ class EstopMachine:
         self.reason = None
         return True
 
+    async def settled(self) -> None:
+        """Returns once every transition submitted so far has completed."""
+        if self._queue is not None:
+            await self._queue.join()
+
     async def close(self) -> None:
         """Finish every transition already submitted, then stop the worker."""
         if self._queue is not None:

@@ -161,8 +161,8 @@ class Governor:
         await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STARTED, params=params))
         if self._latch_file_missing and not self.latch.latched:  # first start: record it
             await self.latch.file.write(False, "first start", now_ms(self._clock))
-        if self.latch.latched:
-            await self.latch.engage(self._republish_estop)
+        if self.latch.latched:  # latched now; the robot is told without delaying the start
+            self._spawn(_awaited(self.latch.engage(self._republish_estop)))
         self._sweeper = asyncio.create_task(self._sweep_forever())
 
     async def _republish_estop(self) -> None:
@@ -580,6 +580,10 @@ def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
         deny_reason=rejection.deny_reason if rejection else None, ai=ai,
         ros2_topic=ros2_topic, pending_id=pending_id,
     )
+
+
+async def _awaited(future: asyncio.Future[Any]) -> Any:
+    return await future
 
 
 def _stop_command() -> NormalizedCommand:

@@ -189,20 +189,19 @@ async def main(args: argparse.Namespace) -> int:
             try:
                 oracle.call("wait_publishers", topic=ESTOP_TOPIC, timeout=15)
                 await asyncio.sleep(1.0)
-                idle_robot, idle_caller = await estop_latency(bridge.url, oracle, args.rounds)
-                loader = LoadProcess(bridge.url, clients=500, verifiers=6)
-                await asyncio.sleep(2.0)  # the load is on
-                busy_robot, busy_caller = await estop_latency(bridge.url, oracle, args.rounds)
-                loader.proc.terminate()
-                loaded = loader.proc.wait(60)
-                del loaded
-                oracle.call("take", topic="/bench/cmd_vel")
                 warm = LoadProcess(bridge.url, clients=64, commands=2000)
                 warm.result()
                 rss_before = rss_kb(bridge.proc.pid)
                 heavy = LoadProcess(bridge.url, clients=64, commands=args.commands)
                 counts = heavy.result(timeout=3600)
                 rss_after = rss_kb(bridge.proc.pid)
+                oracle.call("take", topic="/bench/cmd_vel")
+                idle_robot, idle_caller = await estop_latency(bridge.url, oracle, args.rounds)
+                loader = LoadProcess(bridge.url, clients=500, verifiers=args.verify_readers)
+                await asyncio.sleep(2.0)  # the load is on
+                busy_robot, busy_caller = await estop_latency(bridge.url, oracle, args.rounds)
+                loader.proc.terminate()
+                loader.proc.wait(60)
                 oracle.call("take", topic="/bench/cmd_vel")
             finally:
                 bridge.stop()
@@ -218,7 +217,8 @@ async def main(args: argparse.Namespace) -> int:
         "## Safety kernel", "",
         f"`bench/safety.py` (same machine, same run). E-stop: {args.rounds} e-stops each idle "
         f"and under load (500 clients sending `move` plus 6 looping `GET /api/audit/verify` on "
-        f"a {args.log_entries:,}-entry log, from a separate load process); each e-stop is "
+        f"a {args.log_entries:,}-entry log, from a separate load process; after the memory "
+        "run); each e-stop is "
         "cleared before the next. The robot is an rclpy Jazzy node; the bridge is "
         "`rcan-rtps run` in its own process. All processes share 2 cores.", "",
         "| measure | idle p50 / p99 | under load p50 / p99 | load / idle (p99) | target | "
@@ -252,6 +252,7 @@ if __name__ == "__main__":
     parser.add_argument("--rounds", type=int, default=100)
     parser.add_argument("--log-entries", type=int, default=30_000)
     parser.add_argument("--commands", type=int, default=100_000)
+    parser.add_argument("--verify-readers", type=int, default=6)
     parser.add_argument("--start-sizes", type=int, nargs="+", default=[0, 10_000, 100_000])
     parser.add_argument("--load", metavar="URL", help=argparse.SUPPRESS)
     parser.add_argument("--clients", type=int, default=500, help=argparse.SUPPRESS)

@@ -50,6 +50,9 @@ from .rbac import Principal, RateLimiter, RolePolicy
 
 log = logging.getLogger(__name__)
 SWEEP_INTERVAL_S = 0.05  # session-loss halt latency is timeout + at most this
+# Commands decided at once; the rest wait their turn without using the event loop, so a
+# flood of requests cannot queue the e-stop lane (which never waits here) behind itself.
+MAX_IN_FLIGHT = 16
 
 
 class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):
@@ -125,6 +128,7 @@ class Governor:
         self._robot = parse_ruri(robot_ruri).robot if robot_ruri else None
         self._notifier = notifier
         self._tasks: set[asyncio.Task[Any]] = set()
+        self._admission = asyncio.Semaphore(MAX_IN_FLIGHT)
         self._sweeper: asyncio.Task[None] | None = None
         self.safe_stop_listeners: list[Callable[[Principal], None]] = []
 
@@ -187,7 +191,10 @@ class Governor:
         if command.action == "estop":  # any authenticated principal; latched right here
             return await asyncio.shield(
                 self.latch.engage(lambda: self._estop(command, principal)))
-        return await asyncio.shield(self._spawn(self._decide(command, principal)))
+        if command.action == "stop":  # the e-stop lane: no admission queue
+            return await asyncio.shield(self._spawn(self._decide(command, principal)))
+        async with self._admission:
+            return await asyncio.shield(self._spawn(self._decide(command, principal)))
 
     async def reject_request(self, principal: Principal | None, rejection: Rejection, *,
                              message_id: str | None = None) -> Decision:

@@ -53,16 +53,18 @@ class RunProcess:
         with self._cond:
             self._cond.notify_all()
 
-    def wait_for(self, pattern: str, timeout: float) -> re.Match[str]:
+    def wait_for(self, pattern: str, timeout: float, *, stderr: bool = False) -> re.Match[str]:
+        """The first line of stdout (or stderr) matching `pattern`, waiting for it."""
+        lines = self.stderr if stderr else self.stdout
         deadline = time.monotonic() + timeout
         seen = 0
         with self._cond:
             while True:
-                for line in self.stdout[seen:]:
+                for line in lines[seen:]:
                     found = re.search(pattern, line)
                     if found:
                         return found
-                seen = len(self.stdout)
+                seen = len(lines)
                 left = deadline - time.monotonic()
                 if left <= 0 or self.proc.poll() is not None:
                     raise AssertionError(f"no line matching {pattern!r}:\n{self.output()}")

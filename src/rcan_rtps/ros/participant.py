@@ -168,7 +168,7 @@ class RosSubscription:
                 return
 
     def _put_all(self, samples: list[IdlStruct]) -> None:
-        if not self._closed:
+        if not self._closed and not self.node.closed:
             for sample in samples:
                 self._put(sample)
 

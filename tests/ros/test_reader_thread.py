@@ -9,9 +9,11 @@ Every wait below is for an outcome with a generous bound; nothing asserts a dura
 from __future__ import annotations
 
 import asyncio
+import re
 import threading
 import time
 from collections.abc import AsyncIterator, Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -287,3 +289,16 @@ async def test_a_node_that_only_publishes_has_no_reader_thread(domain_id: int) -
     with RosNode("talker", "/rt", domain_id=domain_id, localhost=True) as node:
         node.create_publisher("chatter", STRING).publish({"data": "x"})
         assert reader_threads(node) == []
+
+
+def test_no_python_runs_in_a_cyclone_thread() -> None:
+    """The deadlock invariant, as far as source can show it: no Cyclone listener and no
+    query-condition filter (both run Python on Cyclone's threads) anywhere in the product."""
+    src = Path(__file__).resolve().parents[2] / "src" / "rcan_rtps"
+    pattern = re.compile(r"\bListener\s*\(|\blistener\s*=|QueryCondition\s*\(|"
+                         r"import .*\b(Listener|QueryCondition)\b|\.wait_async\(")
+    offenders = [f"{path.relative_to(src)}:{n}: {line.strip()}"
+                 for path in sorted(src.rglob("*.py"))
+                 for n, line in enumerate(path.read_text().splitlines(), 1)
+                 if pattern.search(line) and not line.lstrip().startswith("#")]
+    assert offenders == []

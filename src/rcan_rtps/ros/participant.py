@@ -119,6 +119,9 @@ class RosPublisher:
     def publish(self, message: IdlStruct | Mapping[str, Any]) -> None:
         if not isinstance(message, IdlStruct):
             message = self.node.values.build(self.type_name, message)
+        # This holds the GIL inside Cyclone, local delivery included. That is safe only
+        # because no Cyclone thread ever waits for the GIL: never give a reader a Listener
+        # (see the invariant in readers.py).
         self.writer.write(message)
 
     def matched_count(self) -> int:

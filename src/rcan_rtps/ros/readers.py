@@ -17,6 +17,11 @@ DEADLOCK INVARIANT (keep it): no thread that Cyclone owns ever needs the GIL —
 Cyclone lock while it runs Python (wait, take and status reads return before a callback
 runs). So a DDS write from any thread can only wait on Cyclone locks whose holders never
 wait for the GIL.
+
+(The binding itself takes the GIL in C in two rare places: comparing two distinct Python
+types when a topic is created, and dropping a type whose last entity was deleted, which
+Cyclone may do on its garbage-collector thread under its sertype lock. Neither a write nor
+a take waits for that lock or that thread, so the invariant holds.)
 """
 
 from __future__ import annotations

@@ -127,7 +127,7 @@ class ReaderThread:
     def add(self, watch: Watch) -> Watch:
         with self._lock:
             if self._closing:
-                raise DDSException(-3, f"{self.name} is closed")
+                raise DDSException(-9, f"{self.name} is closed")  # ALREADY_DELETED
             if self._thread is None:
                 self._waitset = WaitSet(self._participant)
                 self._guard = GuardCondition(self._participant)
@@ -245,6 +245,10 @@ class ReaderThread:
             if not watch.closed:
                 log.debug("%s: reader gone", watch.label, exc_info=True)
             watch.closed = True
+            return
+        except Exception:  # never let one reader end the thread that serves them all
+            self.errors += 1
+            log.exception("%s: taking samples failed", watch.label)
             return
         if samples and not watch.closed:
             self._call(watch, watch.deliver, samples)

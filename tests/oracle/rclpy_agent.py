@@ -123,6 +123,8 @@ class Agent:
         self.received: dict[str, list[Any]] = {}
         self.matched: dict[str, int] = {}
         self.publishers: dict[str, Any] = {}
+        self.periodic: dict[str, threading.Event] = {}
+        self.published: dict[str, int] = {}
         self.subscriptions: dict[str, Any] = {}
         self.services: dict[str, Any] = {}
         self.service_requests: dict[str, list[Any]] = {}
@@ -158,6 +160,32 @@ class Agent:
             pub.publish(msg)
             time.sleep(period)
         return count
+
+    def op_publish_periodic(self, topic: str, type: str, value: dict[str, Any],
+                            rate: float = 100.0) -> bool:
+        """Publishes `value` on `topic` at `rate` Hz from a background thread until
+        `stop_periodic` (the publisher is made by `publisher` first)."""
+        pub = self.publishers[topic]
+        msg = fill(load_type(type)(), value)
+        stop = threading.Event()
+
+        def loop() -> None:
+            period = 1.0 / rate
+            next_at = time.monotonic()
+            while not stop.is_set():
+                pub.publish(msg)
+                self.published[topic] = self.published.get(topic, 0) + 1
+                next_at += period
+                stop.wait(max(0.0, next_at - time.monotonic()))
+
+        self.periodic[topic] = stop
+        threading.Thread(target=loop, daemon=True).start()
+        return True
+
+    def op_stop_periodic(self, topic: str) -> int:
+        """Stops a `publish_periodic` loop; returns how many messages it published."""
+        self.periodic.pop(topic).set()
+        return self.published.get(topic, 0)
 
     def op_subscribe(self, topic: str, type: str, qos: str = "default") -> bool:
         self.received.setdefault(topic, [])

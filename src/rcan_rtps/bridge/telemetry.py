@@ -39,7 +39,7 @@ def _finite_or_none(value: float) -> float | None:
 
 
 class TelemetryState:
-    """Latest robot telemetry, written from DDS listener threads, read by the API."""
+    """Latest robot telemetry, written from the node's reader thread, read by the API."""
 
     def __init__(self, node: RosNode, config: RcanConfig, *,
                  estop_latched: Callable[[], bool], active_goals: Callable[[], list[str]],
@@ -74,7 +74,7 @@ class TelemetryState:
                                      callback=self._on_battery),
         ]
 
-    # -- DDS side (listener threads) ----------------------------------------------------
+    # -- DDS side (the node's reader thread) --------------------------------------------
     def _touch(self) -> None:
         self._last_rx = self._monotonic()
 

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import logging
 import os
-import signal
+import threading
 from pathlib import Path
 
 from ..bridge.demo import (
@@ -16,6 +17,7 @@ from ..bridge.demo import (
     demo_tokens,
 )
 from ..bridge.runtime import Bridge, BridgeOptions
+from ..bridge.watchdog import DEFAULT_STALL_S, LoopWatchdog, SignalStopper
 from ..config import RcanConfig, load_config
 from ..ros.participant import RosNode
 from ..sim.navigation import NavigationServer
@@ -33,7 +35,23 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--state-dir", type=Path, help="--sim: audit log and key (default: "
                         "$XDG_STATE_HOME/rcan-rtps/sim)")
     parser.add_argument("--no-mdns", action="store_true", help="do not advertise over mDNS")
-    parser.set_defaults(func=lambda a: asyncio.run(_run(a)))
+    parser.add_argument("--stall-report", type=float, default=DEFAULT_STALL_S, metavar="S",
+                        help="log every thread's stack when the event loop stalls this long "
+                        f"(default {DEFAULT_STALL_S:g} s; 0: off)")
+    parser.set_defaults(func=_main)
+
+
+STALL_HOOK_ENV = "RCAN_RTPS_TEST_STALL_S"  # tests only: block the loop this long once ready
+
+
+def _main(args: argparse.Namespace) -> int:
+    # First, before any thread exists: SIGINT/SIGTERM always end the process, even with the
+    # event loop stuck (graceful stop, bounded; a second signal exits at once).
+    stopper = SignalStopper()
+    try:
+        return asyncio.run(_run(args, stopper))
+    finally:
+        stopper.finished()
 
 
 def _config(args: argparse.Namespace, env: dict[str, str]) -> RcanConfig:
@@ -68,7 +86,7 @@ def _print_demo(url: str, env: dict[str, str], config: RcanConfig) -> None:
     print(flush=True)
 
 
-async def _run(args: argparse.Namespace) -> int:
+async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
     env = dict(os.environ)
     if args.sim:
         env.update(demo_tokens(env))
@@ -83,8 +101,10 @@ async def _run(args: argparse.Namespace) -> int:
     bridge.prepare()  # tokens, TLS, key, port: fail before anything joins the domain
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
+    stopper.attach(loop, stop.set)
+    watchdog = LoopWatchdog(loop, args.stall_report) if args.stall_report > 0 else None
+    if watchdog is not None:
+        watchdog.start()
     sim_node = sim_task = nav = None
     if args.sim:
         ros2 = config.bridge.ros2
@@ -98,6 +118,7 @@ async def _run(args: argparse.Namespace) -> int:
         print(f"rcan-rtps ready api={url}", flush=True)
         if args.sim:
             _print_demo(url, env, config)
+        _test_stall(loop, env)
         await stop.wait()
     finally:
         await bridge.stop()
@@ -108,4 +129,19 @@ async def _run(args: argparse.Namespace) -> int:
             await sim_task
         if sim_node is not None:
             sim_node.close()
+        if watchdog is not None:
+            watchdog.stop()
     return 0
+
+
+def _test_stall(loop: asyncio.AbstractEventLoop, env: dict[str, str]) -> None:
+    """A test hook: RCAN_RTPS_TEST_STALL_S=S blocks the event loop for S s, in C (a lock
+    wait), half a second after the ready line."""
+    seconds = float(env.get(STALL_HOOK_ENV, "0") or 0)
+    if seconds > 0:
+        def stall() -> None:
+            logging.getLogger(__name__).warning("test hook: blocking the loop for %g s",
+                                                seconds)
+            threading.Event().wait(seconds)
+
+        loop.call_later(0.5, stall)

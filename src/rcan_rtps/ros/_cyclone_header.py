@@ -122,12 +122,12 @@ def create_writer(node: RosNode, dds_topic: str, type_name: str, qos: QosProfile
 
 
 def create_reader(node: RosNode, dds_topic: str, type_name: str, qos: QosProfile,
-                  listener: Any, extra_user_data: str) -> DataReader[Any]:
+                  extra_user_data: str) -> DataReader[Any]:
+    """A reader of wrapped samples, without delivery (`node.watch` it)."""
     # Header member names are not part of the wire: match peers that name them differently.
     tolerant = Qos(Policy.TypeConsistency.AllowTypeCoercion(ignore_member_names=True))
     reader: DataReader[Any] = DataReader(
         node.subscriber, wrapper_topic(node, dds_topic, type_name),
-        qos=qos.to_dds(_user_data(node, type_name, extra_user_data)) + tolerant,
-        listener=listener)
+        qos=qos.to_dds(_user_data(node, type_name, extra_user_data)) + tolerant)
     node.track_reader(reader)
     return reader

@@ -149,7 +149,7 @@ class ActionClient:
         loop = asyncio.get_running_loop()
 
         def on_loop(handler: Callable[[Any], None]) -> Callable[[IdlStruct], None]:
-            def hop(sample: IdlStruct) -> None:  # DDS thread → event loop
+            def hop(sample: IdlStruct) -> None:  # the node's reader thread → event loop
                 with contextlib.suppress(RuntimeError):  # the loop has closed
                     loop.call_soon_threadsafe(handler, sample)
             return hop

@@ -2,14 +2,16 @@
 
 The node announces itself on `ros_discovery_info` (so `ros2 node list` and rclpy's
 graph API see it), tags the participant `enclave=/;` and every endpoint with its
-`typehash=` (Jazzy and later). Subscriptions deliver into asyncio via a DDS listener,
-so no thread polls. Discovery is loopback-only when asked by flag or by the ROS
-environment variables.
+`typehash=` (Jazzy and later). Subscriptions are read by one thread per node that waits
+on a DDS WaitSet (see `readers.py`: never a Cyclone listener, which deadlocked against the
+GIL) and deliver to asyncio or to a callback run on that thread. Discovery is loopback-only
+when asked by flag or by the ROS environment variables.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import threading
@@ -17,10 +19,9 @@ from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from cyclonedds.core import DDSException, Listener, Policy
+from cyclonedds.core import DDSException, Policy
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct
-from cyclonedds.internal import InvalidSample
 from cyclonedds.pub import DataWriter, Publisher
 from cyclonedds.qos import Qos
 from cyclonedds.sub import DataReader, Subscriber
@@ -30,6 +31,7 @@ from . import qos as qos_mod
 from .errors import GraphTimeout, WireError
 from .names import expand_topic_name, mangle_topic, normalize_namespace, validate_node_name
 from .qos import QosProfile
+from .readers import ReaderThread, Watch
 from .typesys.ddstypes import DdsTypes
 from .typesys.store import TypeStore, env_idl_paths
 from .typesys.values import MessageValues
@@ -117,6 +119,9 @@ class RosPublisher:
     def publish(self, message: IdlStruct | Mapping[str, Any]) -> None:
         if not isinstance(message, IdlStruct):
             message = self.node.values.build(self.type_name, message)
+        # This holds the GIL inside Cyclone, local delivery included. That is safe only
+        # because no Cyclone thread ever waits for the GIL: never give a reader a Listener
+        # (see the invariant in readers.py).
         self.writer.write(message)
 
     def matched_count(self) -> int:
@@ -128,7 +133,8 @@ class RosPublisher:
 
 
 class RosSubscription:
-    """Samples arrive through a DDS listener and are handed to asyncio (or a callback)."""
+    """Samples arrive on the node's reader thread and are handed to asyncio (or to
+    `callback`, which then runs on that thread: keep it short, it may publish)."""
 
     def __init__(self, node: RosNode, topic: str, type_name: str, qos: QosProfile,
                  callback: Callable[[IdlStruct], None] | None, maxsize: int) -> None:
@@ -137,39 +143,37 @@ class RosSubscription:
         self._callback = callback
         self._queue: asyncio.Queue[IdlStruct] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._closed = False
         if callback is None:
             self._loop = asyncio.get_running_loop()
             self._queue = asyncio.Queue(maxsize)
-        listener = Listener(on_data_available=self._on_data,
-                            on_requested_incompatible_qos=self._on_incompatible)
         dds_topic = node.topic(mangle_topic(topic), type_name)
         user_data = node.endpoint_user_data(type_name)
         self.reader: DataReader[Any] = DataReader(
-            node.subscriber, dds_topic, qos=qos.to_dds(user_data), listener=listener)
+            node.subscriber, dds_topic, qos=qos.to_dds(user_data))
+        # Historical (transient-local) samples already in the reader trigger the condition.
+        self._watch = node.watch(self.reader, self._on_samples, f"subscription {topic}",
+                                 on_incompatible_qos=self._on_incompatible)
 
-    def _on_data(self, _reader: Any) -> None:
-        # Runs on a DDS thread; it can fire before `self.reader` is assigned (historical
-        # data during construction) or after close: the next arrival retries.
-        reader = getattr(self, "reader", None)
-        if reader is None:
-            return
-        try:
-            samples = reader.take(N=256)
-        except Exception:  # the reader was deleted under us (shutdown)
-            return
-        for sample in samples:
-            if isinstance(sample, InvalidSample):  # a writer left or disposed: no data
-                continue
-            if self._callback is not None:
+    def _on_samples(self, samples: list[IdlStruct]) -> None:  # on the node's reader thread
+        if self._callback is not None:
+            for sample in samples:
+                if self._closed:
+                    return
                 try:
                     self._callback(sample)
                 except Exception:  # one bad sample must not silence the subscription
                     log.exception("subscription %s: callback failed", self.topic)
-            elif self._loop is not None:
-                try:
-                    self._loop.call_soon_threadsafe(self._put, sample)
-                except RuntimeError:  # the loop closed while DDS was still delivering
-                    return
+        elif self._loop is not None:
+            try:
+                self._loop.call_soon_threadsafe(self._put_all, samples)
+            except RuntimeError:  # the loop closed while DDS was still delivering
+                return
+
+    def _put_all(self, samples: list[IdlStruct]) -> None:
+        if not self._closed and not self.node.closed:
+            for sample in samples:
+                self._put(sample)
 
     def _put(self, sample: IdlStruct) -> None:
         assert self._queue is not None
@@ -177,7 +181,7 @@ class RosSubscription:
             self._queue.get_nowait()
         self._queue.put_nowait(sample)
 
-    def _on_incompatible(self, reader: DataReader[Any], status: Any) -> None:
+    def _on_incompatible(self, status: Any) -> None:
         self.incompatible_qos_events += 1
         log.warning("subscription %s: a publisher offers incompatible QoS (policy id %s)",
                     self.topic, getattr(status, "last_policy_id", "?"))
@@ -200,6 +204,16 @@ class RosSubscription:
     async def wait_for_publishers(self, count: int = 1, timeout: float = 5.0) -> int:
         return await _wait_count(self.matched_count, count, timeout,
                                  f"no publisher matched {self.topic}")
+
+    def close(self) -> None:
+        """Stops deliveries (none after this returns) and deletes the reader; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self.node.unwatch(self._watch)
+        self.node.forget_reader(self.reader)
+        with contextlib.suppress(DDSException):
+            self.reader.__del__()
 
 
 async def _wait_count(current: Callable[[], int], count: int, timeout: float,
@@ -238,6 +252,8 @@ class RosNode:
         self._writers: list[Any] = []
         self._subscriptions: list[RosSubscription] = []
         self._lock = threading.Lock()
+        self.closed = False
+        self.reader_thread = ReaderThread(self.participant, f"dds-read {self.fqn}")
         self._info_writer = self._discovery_writer()
         self.announce()
 
@@ -274,7 +290,7 @@ class RosNode:
                             callback: Callable[[IdlStruct], None] | None = None,
                             maxsize: int = 1000) -> RosSubscription:
         sub = RosSubscription(self, self.resolve(topic), type_name, qos, callback, maxsize)
-        # The node owns its subscriptions: a dropped handle must not silence the DDS listener.
+        # The node owns its subscriptions: a dropped handle must not silence the topic.
         self._subscriptions.append(sub)
         self.track_reader(sub.reader)
         return sub
@@ -289,14 +305,32 @@ class RosNode:
         return writer
 
     def create_reader(self, dds_topic: str, type_name: str, qos: QosProfile,
-                      listener: Listener | None = None,
                       extra_user_data: str = "") -> DataReader[Any]:
+        """A raw reader, without delivery: `watch` it to get its samples."""
         user_data = (self.endpoint_user_data(type_name) or b"") + extra_user_data.encode()
         reader: DataReader[Any] = DataReader(
             self.subscriber, self.topic(dds_topic, type_name),
-            qos=qos.to_dds(user_data or None), listener=listener)
+            qos=qos.to_dds(user_data or None))
         self.track_reader(reader)
         return reader
+
+    def watch(self, reader: DataReader[Any], deliver: Callable[[list[Any]], None], label: str,
+              *, on_incompatible_qos: Callable[[Any], None] | None = None) -> Watch:
+        """Delivers `reader`'s valid samples, in batches, to `deliver` on this node's reader
+        thread (never on a Cyclone thread)."""
+        return self.reader_thread.add(Watch(reader, deliver, label, on_incompatible_qos))
+
+    def unwatch(self, watch: Watch) -> None:
+        """No delivery to `watch` starts after this returns."""
+        self.reader_thread.remove(watch)
+
+    def forget_reader(self, reader: Any) -> None:
+        with self._lock:
+            if reader in self._readers:
+                self._readers.remove(reader)
+            self._subscriptions = [s for s in self._subscriptions if s.reader is not reader]
+        if not self.closed:
+            self.announce()
 
     def track_reader(self, reader: Any) -> None:
         with self._lock:
@@ -338,7 +372,13 @@ class RosNode:
         self._info_writer.write(info)
 
     def close(self) -> None:
-        """Leaves the graph: deleting the participant withdraws every endpoint."""
+        """Leaves the graph: deleting the participant withdraws every endpoint. The reader
+        thread stops first, so no delivery happens after this returns. Idempotent."""
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+        self.reader_thread.close()
         with self._lock:
             self._readers.clear()
             self._writers.clear()

@@ -32,9 +32,7 @@ from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from cyclonedds.core import Listener
 from cyclonedds.idl import IdlStruct
-from cyclonedds.internal import InvalidSample
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 
@@ -108,7 +106,8 @@ def _user_data(endpoint: Any) -> dict[str, str]:
 
 
 class _Pair:
-    """One writer and one reader of a service, in one mapping, delivering to asyncio."""
+    """One writer and one reader of a service, in one mapping, delivering to asyncio (the
+    node's reader thread takes the samples; `deliver` runs on the event loop)."""
 
     def __init__(self, node: RosNode, mapping: RequestMapping, out: tuple[str, str],
                  into: tuple[str, str], qos: QosProfile, user: str,
@@ -116,33 +115,31 @@ class _Pair:
         self.mapping = mapping
         self._deliver = deliver
         self._loop = asyncio.get_running_loop()
-        listener = Listener(on_data_available=self._on_data)
+        self._node = node
         self.writer: DataWriter[Any]
         self.reader: DataReader[Any]
         if mapping is RequestMapping.CYCLONE:
             self.writer = cyclone.create_writer(node, *out, qos, user)
-            self.reader = cyclone.create_reader(node, *into, qos, listener, user)
+            self.reader = cyclone.create_reader(node, *into, qos, user)
             self.out_cls = cyclone.wrapper_struct(node, out[1])
             self.in_plain = node.types.struct(into[1])
         else:
             self.writer = node.create_writer(*out, qos, extra_user_data=user)
-            self.reader = node.create_reader(*into, qos, listener, extra_user_data=user)
+            self.reader = node.create_reader(*into, qos, extra_user_data=user)
             self.out_cls = node.types.struct(out[1])
         # rmw_cyclonedds names a client in the header by its request writer's handle.
         self.guid = int(self.writer.get_instance_handle()) & 0xFFFF_FFFF_FFFF_FFFF
+        self.watch = node.watch(self.reader, self._on_samples, f"{into[0]} ({mapping.value})")
 
-    def _on_data(self, reader: DataReader[Any]) -> None:  # runs on a DDS thread
+    def _on_samples(self, samples: list[Any]) -> None:  # on the node's reader thread
         try:
-            samples = reader.take(N=64)
-        except Exception:  # a sample that does not decode must not kill the listener
-            log.debug("dropped undecodable samples", exc_info=True)
+            self._loop.call_soon_threadsafe(self._on_loop, samples)
+        except RuntimeError:  # the loop closed while DDS was still delivering
             return
-        samples = [s for s in samples if not isinstance(s, InvalidSample)]  # writer gone
-        if samples:
-            try:
-                self._loop.call_soon_threadsafe(self._deliver, self, samples)
-            except RuntimeError:  # the loop closed while DDS was still delivering
-                return
+
+    def _on_loop(self, samples: list[Any]) -> None:
+        if not self.watch.closed and not self._node.closed:
+            self._deliver(self, samples)
 
     def matched(self) -> bool:
         return bool(self.writer.get_publication_matched_status().current_count and

@@ -89,7 +89,7 @@ class SimRobot:
         self.diagnostics = node.create_publisher("diagnostics",
                                                  "diagnostic_msgs/msg/DiagnosticArray")
 
-    # -- inputs (DDS listener threads) ----------------------------------------------------
+    # -- inputs (the node's reader thread) ------------------------------------------------
     def _on_cmd_vel(self, msg: Any) -> None:
         twist = msg.twist if self._stamped else msg
         with self._lock:

@@ -1,0 +1,160 @@
+"""Liveness of `rcan-rtps run`: a stalled event loop is reported, and signals always end it.
+
+`LoopWatchdog` is a thread that expects a heartbeat from the asyncio loop every
+`stall_after / 4` s. With none for `stall_after` s it logs the stall once, with every
+thread's stack, and logs the recovery when heartbeats resume.
+
+`SignalStopper` blocks SIGINT and SIGTERM in the calling (main) thread before any other
+thread exists, so every later thread inherits the block, and a dedicated thread takes them
+with `sigwait`: the first asks the loop to shut down gracefully and, if that has not
+finished within `bound` s, logs the stacks and `os._exit`s; a second one exits at once. As
+a backstop that needs no GIL, the first signal also arms faulthandler to dump the stacks
+and exit a few seconds after the bound.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import faulthandler
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Callable
+
+log = logging.getLogger(__name__)
+
+DEFAULT_STALL_S = 2.0
+DEFAULT_SHUTDOWN_BOUND_S = 10.0
+EXIT_STUCK = 1
+EXIT_SECOND_SIGNAL = 130
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def thread_stacks() -> str:
+    """Every Python thread's stack, named, most recent call last."""
+    names = {t.ident: t.name for t in threading.enumerate()}
+    frames = sys._current_frames()
+    me, main = threading.get_ident(), threading.main_thread().ident
+    parts = []
+    for ident, frame in sorted(frames.items(), key=lambda item: item[0] != main):
+        if ident == me:
+            continue
+        stack = "".join(traceback.format_stack(frame))
+        parts.append(f"Thread {names.get(ident, '?')} ({ident}):\n{stack}")
+    return "\n".join(parts)
+
+
+class LoopWatchdog:
+    """Detects a stalled asyncio loop from a thread of its own."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, stall_after: float = DEFAULT_STALL_S,
+                 *, stacks: Callable[[], str] = thread_stacks) -> None:
+        self.loop = loop
+        self.stall_after = stall_after
+        self.interval = stall_after / 4
+        self.stalls = 0
+        self._stacks = stacks
+        self._beat = time.monotonic()
+        self._handle: asyncio.TimerHandle | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="loop-watchdog", daemon=True)
+
+    def start(self) -> None:
+        """Call on the loop's thread."""
+        self._heartbeat()
+        self._thread.start()
+
+    def _heartbeat(self) -> None:
+        self._beat = time.monotonic()
+        self._handle = self.loop.call_later(self.interval, self._heartbeat)
+
+    def _watch(self) -> None:
+        stalled_at: float | None = None
+        while not self._stop.wait(self.interval):
+            now, beat = time.monotonic(), self._beat
+            if stalled_at is None and now - beat > self.stall_after:
+                stalled_at = beat
+                self.stalls += 1
+                log.error("event loop stalled: no heartbeat for %.1f s; thread stacks:\n%s",
+                          now - beat, self._stacks())
+            elif stalled_at is not None and beat > stalled_at:
+                log.warning("event loop recovered after a %.1f s stall", beat - stalled_at)
+                stalled_at = None
+
+    def stop(self) -> None:
+        """Idempotent; call on the loop's thread (or after the loop ended)."""
+        self._stop.set()
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(5.0)
+
+
+class SignalStopper:
+    """SIGINT/SIGTERM through `sigwait` on a thread of its own; see the module docs."""
+
+    def __init__(self, bound: float = DEFAULT_SHUTDOWN_BOUND_S,
+                 exit_now: Callable[[int], None] = os._exit) -> None:
+        self.bound = bound
+        self._exit = exit_now
+        self._lock = threading.Lock()
+        self._request: Callable[[], None] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._pending = False  # a signal came before a loop was attached
+        self._done = threading.Event()
+        self.received: list[int] = []
+        # Before any thread starts: threads inherit the mask, so none of them (Cyclone's
+        # included) runs a handler for these; only the sigwait below sees them.
+        self._old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
+        self._thread = threading.Thread(target=self._wait, name="signals", daemon=True)
+        self._thread.start()
+
+    def attach(self, loop: asyncio.AbstractEventLoop, request_stop: Callable[[], None]) -> None:
+        """`request_stop` runs on `loop` when the first signal arrives."""
+        with self._lock:
+            self._loop, self._request = loop, request_stop
+            pending = self._pending
+        if pending:
+            loop.call_soon_threadsafe(request_stop)
+
+    def finished(self) -> None:
+        """The graceful shutdown is over: no forced exit any more. Restores the mask."""
+        self._done.set()
+        faulthandler.cancel_dump_traceback_later()
+        signal.pthread_sigmask(signal.SIG_SETMASK, self._old_mask)
+
+    def _wait(self) -> None:
+        sig = signal.sigwait(SIGNALS)
+        self.received.append(sig)
+        log.warning("%s: shutting down (a second signal exits at once)",
+                    signal.Signals(sig).name)
+        # Without the GIL, should Python never run again: dump and exit after the bound.
+        faulthandler.dump_traceback_later(self.bound + 5.0, exit=True)
+        with self._lock:
+            loop, request = self._loop, self._request
+            self._pending = request is None
+        if loop is not None and request is not None:
+            # A RuntimeError: the loop has already closed, so shutdown is under way.
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(request)
+        threading.Thread(target=self._second, name="signals-again", daemon=True).start()
+        if not self._done.wait(self.bound):
+            log.error("shutdown did not finish within %.0f s; exiting now. Thread stacks:\n%s",
+                      self.bound, thread_stacks())
+            logging.shutdown()
+            self._exit(EXIT_STUCK)
+
+    def _second(self) -> None:
+        sig = signal.sigwait(SIGNALS)
+        if self._done.is_set():
+            return
+        self.received.append(sig)
+        log.warning("%s again: exiting now", signal.Signals(sig).name)
+        logging.shutdown()
+        self._exit(EXIT_SECOND_SIGNAL)

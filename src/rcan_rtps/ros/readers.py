@@ -1,0 +1,275 @@
+"""One thread per node reads all of the node's DDS readers; Cyclone's threads never run Python.
+
+Why not a Cyclone listener: cyclonedds-python's `write` (and `take`) keep the GIL while
+inside Cyclone. A listener runs Python on Cyclone's receive thread while that thread holds
+the reader's locks, so it waits for the GIL there; a `write` from Python that delivers
+locally to the same reader then waits for those locks while holding the GIL. Neither
+moves, and nothing else in the process does either (issue 9: the bridge froze for good).
+
+Here a `ReaderThread` blocks in `dds_waitset_wait` (a ctypes call: the GIL is released
+while it waits) on a WaitSet holding one ReadCondition per reader, the reader itself (its
+status mask reduced to REQUESTED_INCOMPATIBLE_QOS) and a GuardCondition that wakes it for
+attach/detach/close. It takes the samples and delivers them from *this* thread; owners
+hop to asyncio with `loop.call_soon_threadsafe` when they need the loop.
+
+DEADLOCK INVARIANT (keep it): no thread that Cyclone owns ever needs the GIL — no
+`Listener`, no `QueryCondition` filter anywhere in this package — and this thread holds no
+Cyclone lock while it runs Python (wait, take and status reads return before a callback
+runs). So a DDS write from any thread can only wait on Cyclone locks whose holders never
+wait for the GIL.
+
+(The binding itself takes the GIL in C in two rare places: comparing two distinct Python
+types when a topic is created, and dropping a type whose last entity was deleted, which
+Cyclone may do on its garbage-collector thread under its sertype lock. Neither a write nor
+a take waits for that lock or that thread, so the invariant holds.)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from cyclonedds.core import (
+    DDSException,
+    DDSStatus,
+    GuardCondition,
+    InstanceState,
+    ReadCondition,
+    SampleState,
+    ViewState,
+    WaitSet,
+)
+from cyclonedds.internal import dds_infinity
+from cyclonedds.sub import DataReader
+
+try:  # take raw samples and decode them one by one: one bad sample costs only itself
+    from cyclonedds._clayer import ddspy_take as _raw_take
+except ImportError:  # pragma: no cover - a binding without it: decode per batch
+    _raw_take = None
+
+log = logging.getLogger(__name__)
+
+ANY_SAMPLE = SampleState.Any | ViewState.Any | InstanceState.Any
+INCOMPATIBLE_QOS = DDSStatus.RequestedIncompatibleQos
+BATCH = 256  # samples taken per reader per wake-up; the rest stays triggered for the next
+REMOVE_WAIT = 10.0  # s `remove` waits for the thread to drop a reader before giving up
+
+Deliver = Callable[[list[Any]], None]
+OnIncompatible = Callable[[Any], None]
+
+
+class Watch:
+    """One reader on a `ReaderThread`: `deliver(samples)` gets its valid, decoded samples."""
+
+    def __init__(self, reader: DataReader[Any], deliver: Deliver, label: str,
+                 on_incompatible_qos: OnIncompatible | None = None) -> None:
+        self.reader = reader
+        self.deliver = deliver
+        self.label = label
+        self.on_incompatible_qos = on_incompatible_qos
+        self.condition = ReadCondition(reader, ANY_SAMPLE)
+        if on_incompatible_qos is not None:
+            reader.set_status_mask(INCOMPATIBLE_QOS)  # the reader triggers on this status only
+        self.closed = False
+        self.bad_samples = 0
+
+
+def take_valid(reader: DataReader[Any], n: int = BATCH,
+               watch: Watch | None = None) -> tuple[list[Any], int]:
+    """Up to `n` samples taken from `reader`: (the valid, decodable ones, how many were taken).
+    Invalid samples (a writer left or disposed) are skipped; a sample that does not decode is
+    logged and skipped, never the batch it came in."""
+    if _raw_take is None:  # pragma: no cover
+        samples = reader.take(N=n)
+        return [s for s in samples if getattr(s, "sample_info", None) is not None
+                and s.sample_info.valid_data], len(samples)
+    raw = _raw_take(reader._ref, ANY_SAMPLE, n)
+    if isinstance(raw, int):
+        raise DDSException(raw, f"taking from {reader!r}")
+    data_type = reader._topic.data_type
+    valid = []
+    for data, info in raw:
+        if not info.valid_data:
+            continue
+        try:
+            sample = data_type.deserialize(data)
+        except Exception:
+            if watch is not None:
+                watch.bad_samples += 1
+            log.warning("%s: dropped a sample that does not decode",
+                        watch.label if watch else reader, exc_info=log.isEnabledFor(10))
+            continue
+        sample.sample_info = info
+        valid.append(sample)
+    return valid, len(raw)
+
+
+class ReaderThread:
+    """Waits for data on any number of readers of one participant and delivers it."""
+
+    def __init__(self, participant: Any, name: str) -> None:
+        self.name = name
+        self._participant = participant
+        self._lock = threading.Lock()
+        self._watches: list[Watch] = []
+        self._attach: list[Watch] = []
+        self._detach: list[tuple[Watch, threading.Event]] = []
+        self._closing = False
+        self._thread: threading.Thread | None = None
+        self._waitset: WaitSet | None = None
+        self._guard: GuardCondition | None = None
+        self.errors = 0  # callbacks that raised
+
+    # -- any thread ---------------------------------------------------------------------
+    def add(self, watch: Watch) -> Watch:
+        with self._lock:
+            if self._closing:
+                raise DDSException(-9, f"{self.name} is closed")  # ALREADY_DELETED
+            if self._thread is None:
+                self._waitset = WaitSet(self._participant)
+                self._guard = GuardCondition(self._participant)
+                self._waitset.attach(self._guard)
+                self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+                self._thread.start()
+            self._attach.append(watch)
+        self._wake()
+        return watch
+
+    def remove(self, watch: Watch) -> None:
+        """Stops deliveries to `watch`: none starts after this returns (unless the thread
+        itself is stuck in a callback for more than REMOVE_WAIT)."""
+        if watch.closed:
+            return
+        watch.closed = True
+        done = threading.Event()
+        with self._lock:
+            running = self._thread is not None and not self._closing
+            if running:
+                self._detach.append((watch, done))
+        if not running:
+            return
+        self._wake()
+        if threading.current_thread() is not self._thread and not done.wait(REMOVE_WAIT):
+            log.warning("%s: still busy after %.0f s; %s detached late", self.name,
+                        REMOVE_WAIT, watch.label)
+
+    def close(self) -> None:
+        """Stops the thread and releases its conditions (idempotent). Callbacks in flight
+        finish first; none starts afterwards."""
+        with self._lock:
+            if self._closing:
+                thread = None
+            else:
+                self._closing = True
+                thread = self._thread
+        if thread is None:
+            return
+        self._wake()
+        if thread is not threading.current_thread():
+            thread.join(REMOVE_WAIT)
+            if thread.is_alive():
+                log.warning("%s did not stop within %.0f s", self.name, REMOVE_WAIT)
+
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def _wake(self) -> None:
+        guard = self._guard
+        if guard is not None:
+            # ctypes: releases the GIL; takes only the waitset's lock. A DDSException: the
+            # participant is gone, and the thread is leaving too.
+            with contextlib.suppress(DDSException):
+                guard.set(True)
+
+    # -- the thread ---------------------------------------------------------------------
+    def _run(self) -> None:
+        assert self._waitset is not None and self._guard is not None
+        waitset, guard = self._waitset, self._guard
+        try:
+            while True:
+                guard.take()  # before the changes: a wake-up after this is not lost
+                if not self._apply_changes(waitset):
+                    return
+                for watch in list(self._watches):
+                    if not watch.closed:
+                        self._service(watch)
+                # The GIL is released while this waits (ctypes).
+                waitset.wait(dds_infinity)
+        except DDSException as exc:  # the participant was deleted under us
+            log.debug("%s: leaving: %s", self.name, exc)
+        except Exception:
+            log.exception("%s: reader thread failed", self.name)
+        finally:
+            self._cleanup(waitset, guard)
+
+    def _apply_changes(self, waitset: WaitSet) -> bool:
+        with self._lock:
+            attach, self._attach = self._attach, []
+            detach, self._detach = self._detach, []
+            closing = self._closing
+        for watch in attach:
+            if watch.closed:
+                continue
+            waitset.attach(watch.condition)
+            if watch.on_incompatible_qos is not None:
+                waitset.attach(watch.reader)
+            self._watches.append(watch)
+        for watch, done in detach:
+            self._drop(waitset, watch)
+            done.set()
+        return not closing
+
+    def _drop(self, waitset: WaitSet, watch: Watch) -> None:
+        if watch in self._watches:
+            self._watches.remove(watch)
+        try:
+            waitset.detach(watch.condition)
+            waitset.detach(watch.reader)
+            watch.condition.__del__()  # dds_delete now, not whenever Python collects it
+        except DDSException:
+            pass
+
+    def _service(self, watch: Watch) -> None:
+        try:
+            if watch.on_incompatible_qos is not None and \
+                    watch.reader.take_status(INCOMPATIBLE_QOS) & INCOMPATIBLE_QOS:
+                status = watch.reader.get_requested_incompatible_qos_status()
+                self._call(watch, watch.on_incompatible_qos, status)
+            if not watch.condition.triggered:
+                return
+            samples, _taken = take_valid(watch.reader, BATCH, watch)
+        except DDSException:  # the reader was deleted under us (its owner closed it)
+            if not watch.closed:
+                log.debug("%s: reader gone", watch.label, exc_info=True)
+            watch.closed = True
+            return
+        except Exception:  # never let one reader end the thread that serves them all
+            self.errors += 1
+            log.exception("%s: taking samples failed", watch.label)
+            return
+        if samples and not watch.closed:
+            self._call(watch, watch.deliver, samples)
+
+    def _call(self, watch: Watch, fn: Callable[[Any], None], arg: Any) -> None:
+        try:
+            fn(arg)
+        except Exception:  # one bad delivery must not silence the reader, nor the others
+            self.errors += 1
+            log.exception("%s: delivery failed", watch.label)
+
+    def _cleanup(self, waitset: WaitSet, guard: GuardCondition) -> None:
+        with self._lock:
+            self._closing = True
+            pending, self._detach = self._detach, []
+            self._attach = []
+        for watch in list(self._watches):
+            watch.closed = True
+            self._drop(waitset, watch)
+        for _, done in pending:
+            done.set()
+        for entity in (waitset, guard):
+            with contextlib.suppress(DDSException):
+                entity.__del__()

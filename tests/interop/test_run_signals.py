@@ -1,0 +1,66 @@
+"""SIGTERM and SIGINT always end `rcan-rtps run`, even with its event loop stuck in C.
+
+The stall comes from a test-only hook (RCAN_RTPS_TEST_STALL_S: the loop blocks in a lock
+wait for that long, half a second after the ready line). Before the fix, a signal only set
+an asyncio event, which a stuck loop never looked at: these tests then fail (the process
+outlives EXIT_TIMEOUT and is killed).
+"""
+
+from __future__ import annotations
+
+import signal
+from pathlib import Path
+
+from .run_process import RunProcess, child_env, state_args
+
+EXIT_TIMEOUT = 60.0  # s; generous: the shutdown bound is 10 s
+STALL = "3600"
+
+
+def _run_sim(tmp_path: Path, domain_id: int, **env: str) -> RunProcess:
+    return RunProcess(["run", "--sim", "--port", "0", "--no-mdns",
+                       *state_args(tmp_path, "state")], child_env(domain_id, **env), demo=True)
+
+
+def test_sigterm_ends_a_run_whose_loop_is_stuck(tmp_path: Path, domain_id: int) -> None:
+    proc = _run_sim(tmp_path, domain_id, RCAN_RTPS_TEST_STALL_S=STALL)
+    try:
+        proc.wait_for(r"test hook: blocking the loop", 30, stderr=True)
+        # The watchdog reports the stall with the stuck frame.
+        proc.wait_for(r"event loop stalled", 60, stderr=True)
+        proc.wait_for(r"in stall", 10, stderr=True)
+        proc.signal(signal.SIGTERM)
+        rc = proc.wait(EXIT_TIMEOUT)
+        assert rc is not None, f"SIGTERM did not end a stuck run\n{proc.output()}"
+        assert rc == 1, proc.output()  # the bounded graceful stop gave up and exited
+        proc.wait_for(r"SIGTERM: shutting down", 5, stderr=True)
+        proc.wait_for(r"shutdown did not finish within 10 s; exiting now", 5, stderr=True)
+    finally:
+        proc.kill()
+
+
+def test_a_second_sigint_exits_at_once(tmp_path: Path, domain_id: int) -> None:
+    proc = _run_sim(tmp_path, domain_id, RCAN_RTPS_TEST_STALL_S=STALL)
+    try:
+        proc.wait_for(r"test hook: blocking the loop", 30, stderr=True)
+        proc.signal(signal.SIGINT)
+        proc.wait_for(r"SIGINT: shutting down", 30, stderr=True)
+        proc.signal(signal.SIGINT)
+        rc = proc.wait(EXIT_TIMEOUT)
+        assert rc == 130, f"rc={rc}\n{proc.output()}"  # not the bound's exit code (1)
+        proc.wait_for(r"SIGINT again: exiting now", 5, stderr=True)
+    finally:
+        proc.kill()
+
+
+def test_sigterm_stops_a_healthy_run_gracefully(tmp_path: Path, domain_id: int) -> None:
+    proc = _run_sim(tmp_path, domain_id)
+    try:
+        proc.signal(signal.SIGTERM)
+        rc = proc.wait(EXIT_TIMEOUT)
+        assert rc == 0, f"rc={rc}\n{proc.output()}"
+        audit = (tmp_path / "state" / "audit.jsonl").read_text()
+        assert '"event":"BRIDGE_STOPPED"' in audit  # the ordered shutdown ran
+        assert "event loop stalled" not in proc.output()
+    finally:
+        proc.kill()

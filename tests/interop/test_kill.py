@@ -341,7 +341,7 @@ async def _robot_online(rig: Rig, oracle: RclpyOracle) -> None:
     """Odometry at 20 Hz, a cmd_vel reader, and a first move that reached it."""
     oracle.call("publisher", topic="/robot1/odom", type=ODOM)
     oracle.call("publish_periodic", topic="/robot1/odom", type=ODOM, value=ODOM_MSG,
-                period=0.05)
+                rate=20.0)
     oracle.call("subscribe", topic=CMD_VEL, type=TWIST)
     assert await rig.until(lambda: rig.telemetry.status(pending_auth=0).state != "offline", 30)
     for _ in range(10):  # the first moves may wait for the match (match_timeout_s)

@@ -239,24 +239,6 @@ class Agent:
         sub = self.subscriptions.pop(topic)
         return bool(self.node.destroy_subscription(sub))
 
-    def op_publish_periodic(self, topic: str, type: str, value: dict[str, Any],
-                            period: float = 0.05) -> bool:
-        """Publishes `value` on `topic` every `period` s in the background (a robot's
-        telemetry) for as long as the agent lives; needs `publisher` first."""
-        pub = self.publishers[topic]
-        msg = fill(load_type(type)(), value)
-
-        def loop() -> None:
-            while rclpy.ok():
-                try:
-                    pub.publish(msg)
-                except Exception:  # the agent is shutting down
-                    return
-                time.sleep(period)
-
-        threading.Thread(target=loop, daemon=True).start()
-        return True
-
     def op_take(self, topic: str) -> list[Any]:
         with self.lock:
             taken, self.received[topic] = self.received.get(topic, []), []

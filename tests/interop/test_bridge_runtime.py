@@ -80,6 +80,8 @@ async def test_navigate_without_an_action_server_is_robot_unavailable(live: Live
 
 async def test_stopping_the_bridge_halts_the_robot(live: Live) -> None:
     live.oracle.call("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
+    assert live.bridge.dispatcher is not None  # matched first: match_timeout_s is short here
+    await live.bridge.dispatcher.cmd_vel.wait_for_subscribers(1, timeout=15)
     code, _ = await live.post({"action": "move", "params": {"linear_x": 0.3}})
     assert code == 200
     assert (await live.take("/robot1/cmd_vel"))[0]["linear"]["x"] == 0.3

@@ -44,10 +44,7 @@ def last_resort() -> Middleware:
             headers = {k: v for k, v in exc.headers.items() if k.lower() == "allow"}
             return error_response(exc.status, code, reason=exc.reason, headers=headers)
         except BodyTimeout:
-            # Not audited: no request was ever complete. The rest of the body is not awaited.
-            response = error_response(408, "REQUEST_TIMEOUT", reason="body_timeout")
-            response.force_close()
-            return response
+            return await _body_timed_out(request)
         except AuditError as exc:
             # Nothing may happen unrecorded: without an audit log the bridge is unavailable.
             log.exception("audit log failed while serving %s %s", request.method, request.path)
@@ -57,6 +54,18 @@ def last_resort() -> Middleware:
             return _failure(exc)
 
     return middleware
+
+
+async def _body_timed_out(request: web.Request) -> web.StreamResponse:
+    """408, not audited (no request was ever complete), then the connection closes at once:
+    aiohttp would otherwise linger reading the rest of the body the peer is trickling."""
+    response = error_response(408, "REQUEST_TIMEOUT", reason="body_timeout")
+    response.force_close()
+    await response.prepare(request)
+    await response.write_eof()
+    if request.transport is not None:
+        request.transport.close()  # sends what is buffered (the 408) first
+    return response
 
 
 def _failure(exc: Exception) -> web.Response:

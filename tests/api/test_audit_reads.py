@@ -53,7 +53,7 @@ async def test_estop_is_answered_before_six_verifies_of_a_large_log(api: Api) ->
         status, report = await api.call("GET", "/api/audit/verify", "lessee")
         finished.append(f"verify-{n}")
         assert status == 200
-        return report  # type: ignore[no-any-return]
+        return report
 
     verifies = [asyncio.create_task(verify(n)) for n in range(6)]
     await _until(lambda: _reads_of(api).verifying)  # the expensive part is underway
@@ -152,7 +152,7 @@ async def test_pages_are_bounded_and_never_hold_up_a_command(
     try:
         pages = [asyncio.create_task(api.call("GET", "/api/audit", "lessee"))
                  for _ in range(backlog + 1)]
-        await _until(lambda: _reads_of(api)._pages == backlog + 1)
+        await _until(lambda: _reads_of(api).pages_in_flight == backlog + 1)
         # One page being read (stuck), eight waiting: the next is refused, not queued.
         status, body = await api.call("GET", "/api/audit", "lessee")
         assert (status, body["error_code"], body["reason"]) == (429, "RATE_LIMITED",

@@ -99,7 +99,13 @@ class AuditReads:
 
     @property
     def verifying(self) -> bool:
+        """A verification run is reading the log right now."""
         return self._current is not None
+
+    @property
+    def pages_in_flight(self) -> int:
+        """Pages being read or waiting for the reader thread."""
+        return self._pages
 
     async def page(self, since: int, limit: int) -> list[bytes] | None:
         """Entries with seq > since (at most `limit`), or None when too many pages wait."""

@@ -64,7 +64,7 @@ async def test_estop_is_answered_before_six_verifies_of_a_large_log(api: Api) ->
 
     assert finished[0] == "estop", finished  # the order, not the time
     assert all(r["ok"] and r["last_seq"] >= head for r in reports), reports
-    assert _reads_of(api).runs <= 2  # six requests, at most two runs (coalesced)
+    assert _reads_of(api).runs < 6  # coalesced (exactly: test_verify_coalescing)
 
 
 @pytest.mark.slow
@@ -80,7 +80,9 @@ async def test_a_verify_covers_the_chain_as_it_was_when_asked(api: Api) -> None:
                                    for _ in range(5)))
     assert all(s == 200 and r["ok"] and r["last_seq"] >= seq for s, r in later), later
     assert (await first)[1]["ok"]
-    assert _reads_of(api).runs == 2  # the first, and one shared by the five that came later
+    # The first, and runs shared by the five that came later (one, unless the first run ended
+    # while they were still arriving).
+    assert 2 <= _reads_of(api).runs <= 3
 
 
 async def test_verify_coalescing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -37,8 +37,9 @@ async def _schema_refusal(api: Api, raw: bytes, path: str) -> dict[str, Any]:
 
 @pytest.mark.parametrize("raw", [
     b'{"action": "move",', b"", b"{}}", b"\xff\xfe{}", b"not json", b'{"action": "move"} x',
-    b"[" * 60000,
-], ids=["truncated", "empty", "trailing-brace", "not-utf8", "words", "trailing-junk", "deep"])
+    b"[" * 60000, b'{"action":"\xff"}', b'{"action": "move", "params": {"\xc3": 1}}',
+], ids=["truncated", "empty", "trailing-brace", "not-utf8", "words", "trailing-junk", "deep",
+        "not-utf8-in-string", "not-utf8-in-key"])
 async def test_malformed_json(api: Api, raw: bytes) -> None:
     await _schema_refusal(api, raw, "$")
 
@@ -140,6 +141,9 @@ async def test_hitl_bodies_are_validated_and_audited(api: Api) -> None:
     assert api.entry(body["audit_id"])["principal"] == "ops"
     status, body = await api.call("POST", "/api/hitl/deny", "ops", raw=b"{")
     assert (status, body["path"]) == (400, "$")
+    status, body = await api.call("POST", "/api/hitl/deny", "ops", raw=b'{"pending_id":"\xff"}')
+    assert (status, body["path"]) == (400, "$")
+    assert api.entry(body["audit_id"])["deny_reason"] == "SCHEMA_VALIDATION_FAILED:$"
     status, body = await api.call("POST", "/api/hitl/authorize", "ops",
                                   body={"pending_id": "nope"})
     assert (status, body["reason"]) == (404, "pending_not_found")

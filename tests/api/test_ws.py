@@ -155,10 +155,14 @@ async def test_a_queued_estop_is_decided_even_after_close(api: Api) -> None:
     await ws.send_str(json.dumps({"action": "estop"}))
     await ws.send_str(json.dumps({"action": "move"}))  # queued motion: dropped on close
     await ws.close()
+    # The e-stop does not wait for the move in flight (the e-stop lane): it reaches the robot
+    # while that move's dispatch is still held.
+    await _until(lambda: ("estop", {}) in api.dispatcher.calls)
     api.dispatcher.hold.set()
     await _until(lambda: len(api.dispatcher.calls) >= 3)
-    # The move in flight finishes, the queued e-stop runs, then the session-loss stop.
-    assert [a for a, _ in api.dispatcher.calls] == ["move", "estop", "stop"]
+    # The move in flight finishes (it passed the latch before the e-stop), the queued move is
+    # dropped, then the session-loss stop.
+    assert [a for a, _ in api.dispatcher.calls] == ["estop", "move", "stop"]
     assert api.gov.latch.latched
 
 

@@ -40,10 +40,27 @@ Decisions where the profile is silent:
 - WebSocket: frames over `max_body_bytes` get a 413 outcome frame (audited); over 4× that the
   socket is closed (1009) before buffering. More than 32 queued commands → 429 frame. The
   credential must be in the upgrade request's headers (or the client certificate).
+- E-stop lane (`_intake`): every frame is validated as it arrives; a valid `stop`/`estop` is
+  decided at once, concurrently with the socket's queue — never 429, never behind queued
+  commands — so its outcome frame may overtake earlier commands' frames (match by
+  `message_id`). Bad frames (invalid UTF-8 binary, not JSON, schema, 413) get their error
+  frame and the socket goes on; a decision that raises gets a 503 frame. A text frame that is
+  not UTF-8 is a WebSocket protocol error: closed 1007 (RFC 6455).
 - A WebSocket that closes while its principal holds a control session is session loss
-  (§10.8): safe stop at once (after the command in flight is decided; queued `stop`/`estop`
-  frames are still decided, other queued commands are dropped). The session belongs to the
-  principal, so any of the principal's sockets closing ends it — the safe side.
+  (§10.8): safe stop at once (after the command in flight and every stop sent are decided;
+  queued commands are dropped). The session belongs to the principal, so any of the
+  principal's sockets closing ends it — the safe side.
+- Audit reads (`_reads`) never use the default executor (the audit writer's): pages are read
+  by one dedicated thread (8 waiting at most; beyond, 429 RATE_LIMITED `reads_busy` with
+  Retry-After); verification runs in one spawned, niced worker process, and concurrent
+  verify requests share a run that started reading after they arrived (never refused).
+- Slow peers (`_conn`, config `bridge.api.*_timeout_s`): request headers must be complete
+  within `header_timeout_s` (10) of connecting, the next request's within
+  `keepalive_timeout_s` (30) of the previous one's end (also the idle keep-alive limit),
+  else the connection is closed; a body not complete `body_timeout_s` (30) after its headers
+  is answered 408 `REQUEST_TIMEOUT` `body_timeout` (not audited: no request was complete)
+  and the connection closed. A TLS handshake has `header_timeout_s` too. Invalid UTF-8 in a
+  body is 400 SCHEMA_VALIDATION_FAILED, audited like any schema failure.
 """
 
 from ._app import build_app, settings_from_config

@@ -12,11 +12,14 @@ from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.rcan import Role
 
 from . import _routes as r
+from ._conn import ConnectionDeadlines, track_requests
 from ._keys import (
     AUTHENTICATOR,
     CERT_PRINCIPALS,
+    DEADLINES,
     GOVERNOR,
     OBSERVE,
+    READS,
     ROBOT,
     SETTINGS,
     SOCKETS,
@@ -26,6 +29,7 @@ from ._keys import (
 from ._metrics import Metrics
 from ._middlewares import authenticate, last_resort
 from ._openapi import openapi_document
+from ._reads import AuditReads
 from ._tls import cert_principals as config_cert_principals
 from ._ws import websocket
 from .ports import RobotView
@@ -37,6 +41,9 @@ def settings_from_config(config: RcanConfig) -> ApiSettings:
     gate_roles = [Role[name] for g in bridge.hitl.gates for name in g.authorized_roles]
     return ApiSettings(
         max_body_bytes=bridge.api.max_body_bytes,
+        header_timeout_s=bridge.api.header_timeout_s,
+        body_timeout_s=bridge.api.body_timeout_s,
+        keepalive_timeout_s=bridge.api.keepalive_timeout_s,
         telemetry_rate_hz=bridge.ros2.telemetry_rate_hz,
         audit_read_role=Role[bridge.rbac.audit_read_role],
         # Pending commands are for whoever could approve one of them.
@@ -54,8 +61,12 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     """
     settings = settings or settings_from_config(config)
     # aiohttp's own limit backs ours up for any body read outside `read_limited`.
-    app = web.Application(middlewares=[last_resort(), authenticate()],
+    deadlines = ConnectionDeadlines(header_timeout_s=settings.header_timeout_s,
+                                    keepalive_timeout_s=settings.keepalive_timeout_s)
+    app = web.Application(middlewares=[track_requests(deadlines), last_resort(),
+                                       authenticate()],
                           client_max_size=settings.max_body_bytes)
+    app[DEADLINES] = deadlines  # ApiServer serves connections through it
     app[GOVERNOR] = governor
     app[AUTHENTICATOR] = authenticator
     app[ROBOT] = robot
@@ -64,6 +75,9 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
                                 else cert_principals)
     sockets: set[web.WebSocketResponse] = set()
     app[SOCKETS] = sockets
+    reads = AuditReads(governor.audit.path, governor.audit.public_key,
+                       backlog=settings.audit_read_backlog)
+    app[READS] = reads
     document = msgspec.json.encode(openapi_document())
     metrics = Metrics(governor, robot)
     app[OBSERVE] = metrics.command_seconds.observe
@@ -90,6 +104,11 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_get("/api/ws", websocket, allow_head=False)
     app.router.add_get("/api/metrics", get_metrics, allow_head=False)
     app.on_shutdown.append(_close_sockets)
+
+    async def close_reads(app: web.Application) -> None:
+        await reads.close()
+
+    app.on_cleanup.append(close_reads)
     return app
 
 

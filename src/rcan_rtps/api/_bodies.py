@@ -8,8 +8,8 @@ from typing import Any, Literal
 import msgspec
 from aiohttp import web
 
-from rcan_rtps.governance import Decision
-from rcan_rtps.rcan import ErrorCode, PendingAuth
+from rcan_rtps.governance import AuditError, Decision
+from rcan_rtps.rcan import ErrorCode, PendingAuth, Reason
 
 from .ports import GoalView
 
@@ -28,6 +28,7 @@ class ApiError(msgspec.Struct, kw_only=True, omit_defaults=True):
     reason: str | None = None
     path: str | None = None
     audit_id: str | None = None
+    message_id: str | None = None  # when the refused body had one (matches WebSocket replies)
 
 
 class GoalList(msgspec.Struct, kw_only=True):
@@ -80,11 +81,24 @@ def decision_response(decision: Decision) -> web.Response:
 
 
 def error_body(code: ErrorCode | str, *, reason: str | None = None, path: str | None = None,
-               audit_id: str | None = None,
-               outcome: Literal["denied", "failed"] = "denied") -> ApiError:
+               audit_id: str | None = None, outcome: Literal["denied", "failed"] = "denied",
+               message_id: str | None = None) -> ApiError:
     value = code.value if isinstance(code, ErrorCode) else code
     return ApiError(outcome=outcome, error_code=value, reason=reason, path=path,
-                     audit_id=audit_id)
+                    audit_id=audit_id, message_id=message_id)
+
+
+def failure_reply(exc: Exception) -> tuple[int, ApiError]:
+    """What an unexpected exception is answered with: 503, never 500.
+
+    Without an audit log nothing may run unrecorded, so the bridge is unavailable
+    (COMMAND_REJECTED `audit_unavailable`); anything else is ROBOT_UNAVAILABLE `internal_error`.
+    """
+    if isinstance(exc, AuditError):
+        return 503, error_body(ErrorCode.COMMAND_REJECTED, outcome="failed",
+                               reason=Reason.AUDIT_UNAVAILABLE.value)
+    return 503, error_body(ErrorCode.ROBOT_UNAVAILABLE, outcome="failed",
+                           reason="internal_error")
 
 
 def error_response(status: int, code: ErrorCode | str, *, reason: str | None = None,

@@ -1,37 +1,46 @@
-"""A COMMAND body in, an (HTTP status, body) out: shared by POST /api/command and the WebSocket.
+"""Reading request bodies, and the REST side of deciding a COMMAND body.
 
 Pre-command refusals (schema, RURI grammar, size) go through `Governor.reject_request`, which
-audits them for an authenticated principal; everything else is `Governor.decide`.
+audits them for an authenticated principal; everything else is `Governor.decide` (see
+`_intake`, which the WebSocket shares).
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
+import asyncio
 from typing import Any
 
 import msgspec
 from aiohttp import web
 
 from rcan_rtps.governance import Governor, Principal, outcomes
-from rcan_rtps.rcan import (
-    ErrorCode,
-    InvalidRuriError,
-    SchemaValidationError,
-    validate_command,
-    validation_path,
-)
+from rcan_rtps.rcan import ErrorCode, SchemaValidationError, validation_path
 
 from ._bodies import error_body
-
-Reply = tuple[int, Any]
-_TOO_DEEP = "JSON is nested too deeply"
+from ._intake import TOO_DEEP, Observe, Reply, decide, intake
 
 
-async def read_limited(request: web.Request, limit: int) -> bytes | None:
-    """The body, or None when it exceeds `limit` (read no further than that)."""
+class BodyTimeout(Exception):
+    """The request body did not arrive within `body_timeout_s` (answered 408, not audited:
+    no request was ever complete)."""
+
+
+async def read_limited(request: web.Request, limit: int,
+                       timeout_s: float | None = None) -> bytes | None:
+    """The body, or None when it exceeds `limit` (read no further than that).
+
+    Raises BodyTimeout when the whole body has not arrived `timeout_s` after the headers did:
+    a trickle of one byte a second must not hold a connection and a handler for hours.
+    """
     if request.content_length is not None and request.content_length > limit:
         return None
+    try:
+        return await asyncio.wait_for(_read(request, limit), timeout_s)
+    except asyncio.TimeoutError as exc:
+        raise BodyTimeout(f"body not complete within {timeout_s} s") from exc
+
+
+async def _read(request: web.Request, limit: int) -> bytes | None:
     buf = bytearray()
     async for chunk in request.content.iter_chunked(64 * 1024):
         buf += chunk
@@ -54,27 +63,9 @@ async def schema_failure(governor: Governor, principal: Principal, path: str,
 
 
 async def run_command(governor: Governor, principal: Principal, raw: bytes,
-                      observe: Callable[[float], None] | None = None) -> Reply:
-    started = time.perf_counter()
-    try:
-        return await _run_command(governor, principal, raw)
-    finally:
-        if observe is not None:
-            observe(time.perf_counter() - started)
-
-
-async def _run_command(governor: Governor, principal: Principal, raw: bytes) -> Reply:
-    try:
-        command = validate_command(raw)
-    except RecursionError:  # msgspec gives up on deep nesting with this, not a DecodeError
-        return await schema_failure(governor, principal, "$", _TOO_DEEP)
-    except SchemaValidationError as exc:
-        return await schema_failure(governor, principal, exc.path, exc.detail)
-    except InvalidRuriError as exc:
-        decision = await governor.reject_request(principal, outcomes.invalid_ruri(exc.rule))
-        return decision.http_status, decision.body()
-    decision = await governor.decide(command, principal)
-    return decision.http_status, decision.body()
+                      observe: Observe | None = None) -> Reply:
+    """A whole body, already within the size limit, to its reply."""
+    return await decide(governor, principal, intake(raw, len(raw)), observe)
 
 
 def decode_as(raw: bytes, kind: type[Any]) -> Any:
@@ -85,4 +76,6 @@ def decode_as(raw: bytes, kind: type[Any]) -> Any:
         path, detail = validation_path(exc)
         raise SchemaValidationError(path, detail) from exc
     except (msgspec.DecodeError, RecursionError) as exc:
-        raise SchemaValidationError("$", str(exc) or _TOO_DEEP) from exc
+        raise SchemaValidationError("$", str(exc) or TOO_DEEP) from exc
+    except UnicodeDecodeError as exc:  # msgspec's error for bad UTF-8 inside a string
+        raise SchemaValidationError("$", f"JSON is not valid UTF-8 (byte {exc.start})") from exc

@@ -11,6 +11,8 @@ from aiohttp import web
 from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.rcan import Role
 
+from ._conn import ConnectionDeadlines
+from ._reads import AuditReads
 from .ports import RobotView
 
 
@@ -18,6 +20,11 @@ class Authenticator(Protocol):
     """Bearer credential → principal; raises `AuthenticationError` (TokenAuthenticator does)."""
 
     def authenticate(self, bearer: str | None) -> Principal: ...
+
+
+HEADER_TIMEOUT_S = 10.0
+BODY_TIMEOUT_S = 30.0
+KEEPALIVE_TIMEOUT_S = 30.0
 
 
 class ApiSettings(msgspec.Struct, frozen=True, kw_only=True):
@@ -29,6 +36,14 @@ class ApiSettings(msgspec.Struct, frozen=True, kw_only=True):
     hitl_list_role: Role
     ws_max_in_flight: int = 32
     audit_page_max: int = 1000
+    # Slow or silent peers (see `_conn` and `read_limited`); config: bridge.api.*_timeout_s.
+    header_timeout_s: float = HEADER_TIMEOUT_S
+    body_timeout_s: float = BODY_TIMEOUT_S
+    keepalive_timeout_s: float = KEEPALIVE_TIMEOUT_S
+    # Stops of one WebSocket decided at once; beyond this the socket's reader waits.
+    stop_lane_width: int = 4
+    # GET /api/audit pages waiting for the reader thread; beyond this: 429 `reads_busy`.
+    audit_read_backlog: int = 8
 
 
 GOVERNOR = web.AppKey("governor", Governor)
@@ -37,6 +52,8 @@ AUTHENTICATOR = web.AppKey("authenticator", Authenticator)
 CERT_PRINCIPALS = web.AppKey("cert_principals", Mapping[str, Principal])
 SETTINGS = web.AppKey("settings", ApiSettings)
 SOCKETS = web.AppKey("sockets", set[web.WebSocketResponse])
+DEADLINES = web.AppKey("connection_deadlines", ConnectionDeadlines)
+READS = web.AppKey("audit_reads", AuditReads)
 # Seconds per decided command, reported to the metrics (a no-op where there are none).
 OBSERVE: web.AppKey[Callable[[float], None]] = web.AppKey("observe_command_seconds")
 

@@ -1,8 +1,8 @@
-"""The two middlewares: a last resort (no 500, ever) and authentication (every route).
+"""Two middlewares: a last resort (no 500, ever) and authentication (every route).
 
-Order, outermost first: `last_resort` → `authenticate` → handler. Authentication comes before
-any body is read, so an unauthenticated caller cannot make the bridge read, parse or audit
-anything it sends.
+Order, outermost first: `track_requests` (connection deadlines, in `_conn`) → `last_resort` →
+`authenticate` → handler. Authentication comes before any body is read, so an unauthenticated
+caller cannot make the bridge read, parse or audit anything it sends.
 """
 
 from __future__ import annotations
@@ -14,9 +14,10 @@ from aiohttp import web
 from aiohttp.typedefs import Handler, Middleware
 
 from rcan_rtps.governance import AuditError, AuthenticationError, Principal, outcomes
-from rcan_rtps.rcan import ErrorCode, Reason
+from rcan_rtps.rcan import ErrorCode
 
-from ._bodies import error_response, json_response
+from ._bodies import error_response, failure_reply, json_response
+from ._commands import BodyTimeout
 from ._keys import AUTHENTICATOR, CERT_PRINCIPALS, GOVERNOR, PRINCIPAL
 
 log = logging.getLogger(__name__)
@@ -42,17 +43,34 @@ def last_resort() -> Middleware:
                                    if exc.status == 400 else f"HTTP_{exc.status}")
             headers = {k: v for k, v in exc.headers.items() if k.lower() == "allow"}
             return error_response(exc.status, code, reason=exc.reason, headers=headers)
-        except AuditError:
+        except BodyTimeout:
+            return await _body_timed_out(request)
+        except AuditError as exc:
             # Nothing may happen unrecorded: without an audit log the bridge is unavailable.
             log.exception("audit log failed while serving %s %s", request.method, request.path)
-            return error_response(503, ErrorCode.COMMAND_REJECTED, outcome="failed",
-                                  reason=Reason.AUDIT_UNAVAILABLE.value)
-        except Exception:
+            return _failure(exc)
+        except Exception as exc:
             log.exception("unexpected error serving %s %s", request.method, request.path)
-            return error_response(503, ErrorCode.ROBOT_UNAVAILABLE, outcome="failed",
-                                  reason="internal_error")
+            return _failure(exc)
 
     return middleware
+
+
+async def _body_timed_out(request: web.Request) -> web.StreamResponse:
+    """408, not audited (no request was ever complete), then the connection closes at once:
+    aiohttp would otherwise linger reading the rest of the body the peer is trickling."""
+    response = error_response(408, "REQUEST_TIMEOUT", reason="body_timeout")
+    response.force_close()
+    await response.prepare(request)
+    await response.write_eof()
+    if request.transport is not None:
+        request.transport.close()  # sends what is buffered (the 408) first
+    return response
+
+
+def _failure(exc: Exception) -> web.Response:
+    status, body = failure_reply(exc)
+    return json_response(body, status)
 
 
 def authenticate() -> Middleware:

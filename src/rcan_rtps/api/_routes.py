@@ -2,14 +2,9 @@
 
 from __future__ import annotations
 
-import asyncio
-from pathlib import Path
-
 import msgspec
 from aiohttp import web
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
-from rcan_rtps.governance import AuditIntegrityError, verify_bytes
 from rcan_rtps.governance.clock import SystemClock, now_ms
 from rcan_rtps.rcan import Authorize, ErrorCode, Role, SchemaValidationError
 
@@ -18,12 +13,12 @@ from ._bodies import (
     GoalList,
     HeartbeatAck,
     PendingList,
-    VerifyReport,
     error_response,
     json_response,
 )
 from ._commands import decode_as, read_limited, run_command, schema_failure, too_large
-from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, ROBOT, SETTINGS
+from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, READS, ROBOT, SETTINGS
+from ._reads import line_seq
 
 _WALL = SystemClock()
 
@@ -36,9 +31,16 @@ def _forbidden(request: web.Request, needed: Role) -> web.Response | None:
                           reason=f"needs {needed.name} or higher")
 
 
+async def _body(request: web.Request) -> bytes | None:
+    settings = request.app[SETTINGS]
+    return await read_limited(request, settings.max_body_bytes, settings.body_timeout_s)
+
+
 async def post_command(request: web.Request) -> web.Response:
+    # Each request is its own task and no read shares an executor with the audit writer
+    # (`_reads`), so nothing queues a REST stop or e-stop behind anything else.
     governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
-    raw = await read_limited(request, request.app[SETTINGS].max_body_bytes)
+    raw = await _body(request)
     if raw is None:
         status, body = await too_large(governor, principal)
         response = json_response(body, status)
@@ -92,7 +94,7 @@ async def post_deny(request: web.Request) -> web.Response:
 
 async def _resolve(request: web.Request, *, approve: bool) -> web.Response:
     governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
-    raw = await read_limited(request, request.app[SETTINGS].max_body_bytes)
+    raw = await _body(request)
     if raw is None:
         status, body = await too_large(governor, principal)
         return json_response(body, status)
@@ -109,13 +111,6 @@ async def _resolve(request: web.Request, *, approve: bool) -> web.Response:
 
 
 # -- audit ----------------------------------------------------------------------------------
-
-
-class _Seq(msgspec.Struct):
-    seq: int
-
-
-_SEQ = msgspec.json.Decoder(_Seq)
 
 
 def _query_int(request: web.Request, name: str, default: int, lo: int, hi: int) -> int:
@@ -138,44 +133,22 @@ async def get_audit(request: web.Request) -> web.Response:
     except SchemaValidationError as exc:
         return error_response(400, ErrorCode.SCHEMA_VALIDATION_FAILED, reason=exc.detail,
                               path=exc.path)
-    log = request.app[GOVERNOR].audit
-    lines = await asyncio.to_thread(_entries_after, log.path, since, limit)
-    last = _SEQ.decode(lines[-1]).seq if lines else since
+    lines = await request.app[READS].page(since, limit)
+    if lines is None:  # the reader is busy: a bound, not a fault; try again shortly
+        return error_response(429, ErrorCode.RATE_LIMITED, reason="reads_busy",
+                              headers={"Retry-After": "1"})
+    last = line_seq(lines[-1]) if lines else since
     # Entries are passed on byte for byte, so a client can re-hash and re-verify each.
-    page = AuditPage(entries=[], next_since=last, head_seq=log.head.last_seq)
+    head_seq = request.app[GOVERNOR].audit.head.last_seq
+    page = AuditPage(entries=[], next_since=last, head_seq=head_seq)
     head = msgspec.json.encode(page)
     body = head.replace(b'"entries":[]', b'"entries":[' + b",".join(lines) + b"]", 1)
     return web.Response(body=body, content_type="application/json")
 
 
-def _complete_lines(path: Path) -> bytes:
-    data = path.read_bytes()
-    return data[: data.rfind(b"\n") + 1]  # a line being appended right now is not one yet
-
-
-def _entries_after(path: Path, since: int, limit: int) -> list[bytes]:
-    found: list[bytes] = []
-    for line in _complete_lines(path).splitlines():
-        if _SEQ.decode(line).seq > since:
-            found.append(line)
-            if len(found) == limit:
-                break
-    return found
-
-
 async def get_audit_verify(request: web.Request) -> web.Response:
+    """Coalesced with concurrent requests, run in a worker process (see `_reads`)."""
     refused = _forbidden(request, request.app[SETTINGS].audit_read_role)
     if refused is not None:
         return refused
-    log = request.app[GOVERNOR].audit
-    report = await asyncio.to_thread(_verify, log.path, log.public_key)
-    return json_response(report)
-
-
-def _verify(path: Path, pubkey: Ed25519PublicKey) -> VerifyReport:
-    try:
-        head = verify_bytes(_complete_lines(path), pubkey)
-    except AuditIntegrityError as exc:
-        return VerifyReport(ok=False, bad_seq=exc.seq, detail=exc.detail)
-    return VerifyReport(ok=True, count=head.count, last_seq=head.last_seq,
-                        last_audit_id=head.last_audit_id)
+    return json_response(await request.app[READS].verify())

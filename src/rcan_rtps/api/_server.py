@@ -1,12 +1,24 @@
-"""Serving the app: an `ApiServer` that binds, reports its URL, and shuts down in order."""
+"""Serving the app: an `ApiServer` that binds, reports its URL, and shuts down in order.
+
+It listens with `loop.create_server` on aiohttp's protocol factory (`runner.server`) wrapped in
+`ConnectionDeadlines` (see `_conn`), instead of a `TCPSite`, which offers no way to put
+anything in front of the protocol. The timeouts come from the app's `ApiSettings`.
+"""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import socket
 import ssl
 from types import TracebackType
+from typing import Any
 
 from aiohttp import web
+
+from ._keys import DEADLINES, KEEPALIVE_TIMEOUT_S, SETTINGS
+
+_BACKLOG = 128  # what TCPSite uses
 
 
 class ApiServer:
@@ -16,12 +28,19 @@ class ApiServer:
                  ssl_context: ssl.SSLContext | None = None,
                  shutdown_timeout_s: float = 5.0, sock: socket.socket | None = None) -> None:
         """`sock`: a socket bound beforehand (see `bind`), used instead of host and port."""
-        self._runner = web.AppRunner(app, access_log=None,
-                                     shutdown_timeout=shutdown_timeout_s)
+        settings = app.get(SETTINGS)
+        keepalive = settings.keepalive_timeout_s if settings else KEEPALIVE_TIMEOUT_S
+        # aiohttp's own keep-alive timer (idle between requests) backs up the deadlines.
+        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=shutdown_timeout_s,
+                                     keepalive_timeout=keepalive)
+        self._deadlines = app.get(DEADLINES)
+        self._handshake_s = settings.header_timeout_s if settings else None
+        self._shutdown_s = shutdown_timeout_s
         self._host = host
         self._port = port
         self._sock = sock
         self._ssl = ssl_context
+        self._listener: asyncio.Server | None = None
         self._url: str | None = None
 
     @property
@@ -33,20 +52,34 @@ class ApiServer:
 
     async def start(self) -> str:
         await self._runner.setup()
-        site: web.BaseSite
-        if self._sock is not None:
-            site = web.SockSite(self._runner, self._sock, ssl_context=self._ssl)
-        else:
-            site = web.TCPSite(self._runner, self._host, self._port, ssl_context=self._ssl)
-        await site.start()
-        host, port = self._runner.addresses[0][:2]
+        server = self._runner.server
+        assert server is not None  # setup() made it
+        factory = server if self._deadlines is None else self._deadlines.wrap(server)
+        loop = asyncio.get_running_loop()
+        where: dict[str, Any] = (
+            {"sock": self._sock} if self._sock is not None
+            else {"host": self._host, "port": self._port})
+        if self._ssl is None:
+            self._listener = await loop.create_server(factory, backlog=_BACKLOG, **where)
+        else:  # a TLS handshake that never ends is as slow as headers that never come
+            self._listener = await loop.create_server(
+                factory, backlog=_BACKLOG, ssl=self._ssl,
+                ssl_handshake_timeout=self._handshake_s, **where)
+        host, port = self._listener.sockets[0].getsockname()[:2]
         scheme = "https" if self._ssl is not None else "http"
         shown = f"[{host}]" if ":" in host else host
         self._url = f"{scheme}://{shown}:{port}"
         return self._url
 
     async def close(self) -> None:
-        await self._runner.cleanup()  # on_shutdown closes WebSockets, then cleanup_ctx unwinds
+        listener, self._listener = self._listener, None
+        if listener is not None:
+            listener.close()  # no new connections from here on
+        # on_shutdown closes WebSockets, the server closes connections, cleanup_ctx unwinds.
+        await self._runner.cleanup()
+        if listener is not None:
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(listener.wait_closed(), self._shutdown_s)
 
     async def __aenter__(self) -> ApiServer:
         await self.start()

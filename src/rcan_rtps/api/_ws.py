@@ -2,9 +2,17 @@
 
 Frames from the bridge are `{"type": "status", "body": STATUS}` and
 `{"type": "outcome", "http_status": N, "body": <the REST body>}`. Client frames are COMMAND
-bodies (text, or binary UTF-8 JSON), decided in order. Any client frame, ping or pong counts as a
-heartbeat. When the socket closes, a control session its principal holds ends at once: the
-governor stops the robot (§10.8) after the command in flight, if any, has been decided.
+bodies (text, or binary UTF-8 JSON). Each is validated as it arrives; a valid `stop` or `estop`
+is decided at once, concurrently with the socket's queue (never refused with 429, never behind
+queued commands), so its outcome frame may overtake the outcomes of commands sent before it:
+match outcomes by `message_id` (every command has one; send your own to know it). Other
+frames are decided in order, at most `ws_max_in_flight` waiting (beyond: a 429 frame). A bad
+frame (invalid UTF-8, not JSON, schema, 413) gets its error outcome frame and the socket goes
+on; so does a command whose decision raised (503 frame). A *text* frame that is not UTF-8 is a
+protocol error (RFC 6455 §8.1): aiohttp closes the socket (1007). Any client frame, ping or
+pong counts as a heartbeat. When the socket closes, a control session its principal holds ends
+at once: the governor stops the robot (§10.8) after the command in flight and every stop sent
+have been decided; queued commands are dropped.
 """
 
 from __future__ import annotations
@@ -12,17 +20,16 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Callable
 
 import msgspec
 from aiohttp import WSMsgType, web
 
 from rcan_rtps.governance import Governor, Principal
-from rcan_rtps.rcan import ErrorCode, validate_command
+from rcan_rtps.rcan import ErrorCode
 
 from ._bodies import WsFrame, error_body
-from ._commands import Reply, run_command, too_large
-from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, ROBOT, SETTINGS, SOCKETS
+from ._intake import Intake, Observe, Reply, StopLane, decide_safely, intake
+from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, ROBOT, SETTINGS, SOCKETS, ApiSettings
 from .ports import RobotView
 
 log = logging.getLogger(__name__)
@@ -30,7 +37,6 @@ _CLOSING = (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED, WSMsgType.ERRO
 # Hard cap on one frame; frames between the body limit and this get a 413 outcome frame,
 # larger ones close the socket (1009) before they are buffered.
 _FRAME_CAP_FACTOR = 4
-_STOPPING = frozenset({"estop", "stop"})
 
 
 async def _send(ws: web.WebSocketResponse, frame: WsFrame) -> bool:
@@ -61,55 +67,58 @@ async def _push_status(ws: web.WebSocketResponse, governor: Governor, robot: Rob
 
 
 class _Commands:
-    """In-order decisions of one socket's commands, with a bounded backlog."""
+    """One socket's commands: valid stops through the lane at once, the rest decided in order
+    with a bounded backlog. Nothing that goes wrong deciding one command stops the next."""
 
     def __init__(self, ws: web.WebSocketResponse, governor: Governor, principal: Principal,
-                 limit: int, backlog: int,
-                 observe: Callable[[float], None] | None = None) -> None:
+                 settings: ApiSettings, observe: Observe | None = None) -> None:
         self._ws = ws
         self._observe = observe
         self._governor = governor
         self._principal = principal
-        self._limit = limit
-        self._queue: asyncio.Queue[bytes] = asyncio.Queue(backlog)
+        self._limit = settings.max_body_bytes
+        self._queue: asyncio.Queue[Intake] = asyncio.Queue(settings.ws_max_in_flight)
+        self._lane = StopLane(governor, principal, self._deliver, observe=observe,
+                              width=settings.stop_lane_width)
         self._current: asyncio.Future[Reply] | None = None
         self._worker = asyncio.create_task(self._work())
 
-    def offer(self, raw: bytes) -> bool:
+    async def take(self, raw: bytes) -> None:
+        """Validate now; a stop is decided at once (never 429), anything else queues."""
+        item = intake(raw, self._limit)
+        if item.stopping:
+            await self._lane.submit(item)
+            return
         try:
-            self._queue.put_nowait(raw)
+            self._queue.put_nowait(item)
         except asyncio.QueueFull:
-            return False
-        return True
+            body = error_body(ErrorCode.RATE_LIMITED, reason="too_many_in_flight",
+                              message_id=item.message_id)
+            await self._deliver((429, body))
 
-    async def _decide(self, raw: bytes) -> Reply:
-        if len(raw) > self._limit:
-            return await too_large(self._governor, self._principal)
-        return await run_command(self._governor, self._principal, raw, self._observe)
+    async def _deliver(self, reply: Reply) -> None:
+        status, body = reply
+        await _send(self._ws, WsFrame(type="outcome", http_status=status, body=body))
 
     async def _work(self) -> None:
         while True:
-            raw = await self._queue.get()
-            self._current = asyncio.ensure_future(self._decide(raw))
-            status, body = await asyncio.shield(self._current)
-            await _send(self._ws, WsFrame(type="outcome", http_status=status, body=body))
+            item = await self._queue.get()
+            try:
+                self._current = asyncio.ensure_future(
+                    decide_safely(self._governor, self._principal, item, self._observe))
+                await self._deliver(await asyncio.shield(self._current))
+            except Exception:  # never the end of this socket's commands
+                log.exception("WebSocket command of %s failed", self._principal.name)
 
     async def close(self) -> None:
-        """Stop taking commands; finish the one in flight; still decide queued (e-)stops."""
+        """Stop taking commands; finish the one in flight and every stop; drop the rest."""
         self._worker.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await self._worker
         if self._current is not None:
             with contextlib.suppress(Exception):
                 await self._current
-        while not self._queue.empty():
-            raw = self._queue.get_nowait()
-            try:
-                action = validate_command(raw).action
-            except Exception:
-                continue
-            if action in _STOPPING:  # a stop the client sent must never be dropped
-                await self._decide(raw)
+        await self._lane.drain()  # a stop the client sent must never be dropped
 
 
 async def websocket(request: web.Request) -> web.WebSocketResponse:
@@ -119,8 +128,7 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
                                max_msg_size=settings.max_body_bytes * _FRAME_CAP_FACTOR)
     await ws.prepare(request)
     app[SOCKETS].add(ws)
-    commands = _Commands(ws, governor, principal, settings.max_body_bytes,
-                         settings.ws_max_in_flight, app[OBSERVE])
+    commands = _Commands(ws, governor, principal, settings, app[OBSERVE])
     pusher = asyncio.create_task(
         _push_status(ws, governor, app[ROBOT], 1.0 / settings.telemetry_rate_hz))
     try:
@@ -133,9 +141,7 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
                 await ws.pong(msg.data)
             elif msg.type in (WSMsgType.TEXT, WSMsgType.BINARY):
                 raw = msg.data.encode() if isinstance(msg.data, str) else msg.data
-                if not commands.offer(raw):
-                    body = error_body(ErrorCode.RATE_LIMITED, reason="too_many_in_flight")
-                    await _send(ws, WsFrame(type="outcome", http_status=429, body=body))
+                await commands.take(raw)
     finally:
         pusher.cancel()
         with contextlib.suppress(asyncio.CancelledError):

@@ -22,6 +22,7 @@ Positive = Annotated[float, msgspec.Meta(gt=0.0, le=1e6)]
 RosName = Annotated[str, msgspec.Meta(min_length=1, max_length=256)]
 EnvName = Annotated[str, msgspec.Meta(pattern=_ENV_NAME)]
 Point = tuple[float, float]
+Seconds = Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)]
 
 
 class _Section(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
@@ -138,6 +139,12 @@ class ApiConfig(_Section, frozen=True, kw_only=True):
     tls: TlsConfig | None = None
     jwt: JwtConfig | None = None
     max_body_bytes: Annotated[int, msgspec.Meta(ge=256, le=16 * 1024 * 1024)] = 64 * 1024
+    # Slow or silent peers: request headers complete within header_timeout_s of connecting
+    # (or of the previous request's end + keepalive_timeout_s, which is also the idle limit of
+    # a kept-alive connection); a body complete within body_timeout_s of its headers (408).
+    header_timeout_s: Seconds = 10.0
+    body_timeout_s: Seconds = 30.0
+    keepalive_timeout_s: Seconds = 30.0
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.principals]

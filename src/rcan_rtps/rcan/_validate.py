@@ -67,6 +67,8 @@ def validate_command(
         obj = _DECODER.decode(raw)
     except msgspec.DecodeError as exc:  # also NaN / Infinity tokens: not JSON
         raise SchemaValidationError("$", str(exc)) from exc
+    except UnicodeDecodeError as exc:  # msgspec raises this, not DecodeError, inside a string
+        raise SchemaValidationError("$", f"JSON is not valid UTF-8 (byte {exc.start})") from exc
     except RecursionError as exc:  # msgspec's answer to absurdly deep nesting
         raise SchemaValidationError("$", "JSON nested too deeply") from exc
     if not isinstance(obj, dict):

@@ -1,0 +1,126 @@
+"""Connection deadlines aiohttp does not have: complete request headers within
+`header_timeout_s` of connecting, and the next request's headers within `keepalive_timeout_s`
+of the previous request's end (which is also how long an idle keep-alive connection lives).
+
+How (and why this way): `ApiServer` serves aiohttp's public protocol factory (`runner.server`,
+a `web.Server`) through `ConnectionDeadlines.wrap`, which puts a small `asyncio.Protocol`
+in front of each `RequestHandler`. The wrapper forwards every protocol event unchanged and owns
+one timer per connection. The `track_requests` middleware tells it when a request reached the
+app (headers complete: timer off) and when its handler returned (timer on again, for the next
+request). No aiohttp internals are read or patched: only its documented protocol-factory and
+middleware interfaces and `request.protocol`. The wrapper never parses bytes, so a body that
+happens to contain a blank line cannot fool it. A WebSocket is one long request: no deadline
+applies while it is open. A timer that fires closes the transport; aiohttp sees an ordinary
+disconnect. The body has its own deadline (`body_timeout_s`, in `read_limited`: 408).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+
+from aiohttp import web
+from aiohttp.typedefs import Handler, Middleware
+
+log = logging.getLogger(__name__)
+
+ProtocolFactory = Callable[[], asyncio.BaseProtocol]
+
+
+class _Watched(asyncio.Protocol):
+    """One connection: aiohttp's handler behind it, and the connection's deadline."""
+
+    def __init__(self, inner: asyncio.BaseProtocol, owner: ConnectionDeadlines) -> None:
+        self._inner = inner
+        self._owner = owner
+        self._transport: asyncio.BaseTransport | None = None
+        self._timer: asyncio.TimerHandle | None = None
+        self._in_request = 0
+
+    # -- asyncio.Protocol: forwarded as they come ------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._transport = transport
+        self._owner.watched[self._inner] = self
+        self._arm(self._owner.header_timeout_s)
+        self._inner.connection_made(transport)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        self._owner.watched.pop(self._inner, None)
+        self._inner.connection_lost(exc)
+
+    def data_received(self, data: bytes) -> None:
+        assert isinstance(self._inner, asyncio.Protocol)
+        self._inner.data_received(data)
+
+    def eof_received(self) -> bool | None:
+        assert isinstance(self._inner, asyncio.Protocol)
+        return self._inner.eof_received()
+
+    def pause_writing(self) -> None:
+        self._inner.pause_writing()
+
+    def resume_writing(self) -> None:
+        self._inner.resume_writing()
+
+    # -- requests -------------------------------------------------------------------------
+
+    def request_started(self) -> None:
+        self._in_request += 1
+        self._disarm()
+
+    def request_finished(self) -> None:
+        self._in_request -= 1
+        if self._in_request == 0:
+            self._arm(self._owner.keepalive_timeout_s)
+
+    def _arm(self, seconds: float) -> None:
+        self._disarm()
+        self._timer = asyncio.get_running_loop().call_later(seconds, self._expire)
+
+    def _disarm(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+    def _expire(self) -> None:
+        self._timer = None
+        transport = self._transport
+        if transport is not None and not transport.is_closing() and self._in_request == 0:
+            log.debug("closing a connection that sent no complete request headers in time")
+            transport.close()
+
+
+class ConnectionDeadlines:
+    """The deadlines of every connection of one server (see the module docstring)."""
+
+    def __init__(self, *, header_timeout_s: float, keepalive_timeout_s: float) -> None:
+        self.header_timeout_s = header_timeout_s
+        self.keepalive_timeout_s = keepalive_timeout_s
+        # aiohttp's handler (what `request.protocol` is) → the wrapper in front of it.
+        self.watched: dict[object, _Watched] = {}
+
+    def wrap(self, factory: ProtocolFactory) -> Callable[[], asyncio.Protocol]:
+        """A protocol factory for `loop.create_server`: aiohttp's, behind deadlines."""
+        return lambda: _Watched(factory(), self)
+
+
+def track_requests(deadlines: ConnectionDeadlines) -> Middleware:
+    """Outermost middleware: a request that reached the app has its headers; its connection's
+    deadline pauses until the handler returns. A no-op for connections not served through
+    `ConnectionDeadlines.wrap` (e.g. aiohttp's test server)."""
+
+    @web.middleware
+    async def middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
+        watched = deadlines.watched.get(request.protocol)
+        if watched is None:
+            return await handler(request)
+        watched.request_started()
+        try:
+            return await handler(request)
+        finally:
+            watched.request_finished()
+
+    return middleware

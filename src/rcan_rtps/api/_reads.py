@@ -1,0 +1,181 @@
+"""The costly reads (GET /api/audit, GET /api/audit/verify), kept off the event loop and away
+from the audit writer, with bounded concurrency.
+
+- Never the default executor: the audit log writes and fsyncs through `asyncio.to_thread`, so a
+  pool full of reads would hold every command's reply (an e-stop's too) behind them.
+- Pages: one dedicated reader thread; at most `backlog` pages wait for it, beyond that the
+  caller answers 429 RATE_LIMITED `reads_busy` (with Retry-After). Scanning a page is short.
+- Verification is CPU-bound Python (decode, canonical re-encode, SHA-256, Ed25519 per entry):
+  in a thread it would fight the event loop for the GIL. It runs in one spawned worker process
+  at lowered priority (the robot's commands come first on a small CPU). One run at a time;
+  concurrent requests coalesce. A request joins the run that has not started reading the file
+  yet, or queues the next one, so every answer covers at least every entry that was durable
+  when the request arrived. Waiting is bounded by one run in progress plus one queued, however
+  many ask, so verify requests are never refused. Where no process can be started, the reader
+  thread verifies instead (logged once).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import logging
+import multiprocessing
+import os
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+from typing import Any
+
+import msgspec
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+from rcan_rtps.governance import AuditIntegrityError, verify_bytes
+
+from ._bodies import VerifyReport
+
+log = logging.getLogger(__name__)
+_NICE = 10  # verification yields the CPU to the bridge
+
+
+class _Seq(msgspec.Struct):
+    seq: int
+
+
+_SEQ = msgspec.json.Decoder(_Seq)
+
+
+def complete_lines(path: Path) -> bytes:
+    data = path.read_bytes()
+    return data[: data.rfind(b"\n") + 1]  # a line being appended right now is not one yet
+
+
+def entries_after(path: Path, since: int, limit: int) -> list[bytes]:
+    found: list[bytes] = []
+    for line in complete_lines(path).splitlines():
+        if _SEQ.decode(line).seq > since:
+            found.append(line)
+            if len(found) == limit:
+                break
+    return found
+
+
+def line_seq(line: bytes) -> int:
+    return _SEQ.decode(line).seq
+
+
+def verify_file(path: str, public_key: bytes) -> VerifyReport:
+    """Chain and signatures of what is on disk (runs in the worker process)."""
+    key = Ed25519PublicKey.from_public_bytes(public_key)
+    try:
+        head = verify_bytes(complete_lines(Path(path)), key)
+    except AuditIntegrityError as exc:
+        return VerifyReport(ok=False, bad_seq=exc.seq, detail=exc.detail)
+    return VerifyReport(ok=True, count=head.count, last_seq=head.last_seq,
+                        last_audit_id=head.last_audit_id)
+
+
+def _lower_priority() -> None:
+    with contextlib.suppress(OSError, AttributeError):
+        os.nice(_NICE)
+
+
+class AuditReads:
+    """The audit reads of one app; `close` on app cleanup."""
+
+    def __init__(self, path: Path, public_key: Ed25519PublicKey, *, backlog: int = 8) -> None:
+        self._path = path
+        self._key = public_key.public_bytes(Encoding.Raw, PublicFormat.Raw)
+        self._thread = concurrent.futures.ThreadPoolExecutor(
+            1, thread_name_prefix="rcan-audit-read")
+        self._page_room = 1 + backlog  # the one being read, and those waiting
+        self._pages = 0
+        self._process: concurrent.futures.ProcessPoolExecutor | None = None
+        self._no_process = False
+        self._current: asyncio.Future[Any] | None = None  # reading the file now
+        self._queued: asyncio.Task[VerifyReport] | None = None  # starts after _current
+        self.runs = 0  # verification runs started (coalescing shows as fewer runs than asks)
+
+    @property
+    def verifying(self) -> bool:
+        """A verification run is reading the log right now."""
+        return self._current is not None
+
+    @property
+    def pages_in_flight(self) -> int:
+        """Pages being read or waiting for the reader thread."""
+        return self._pages
+
+    async def page(self, since: int, limit: int) -> list[bytes] | None:
+        """Entries with seq > since (at most `limit`), or None when too many pages wait."""
+        if self._pages >= self._page_room:
+            return None
+        self._pages += 1
+        try:
+            loop = asyncio.get_running_loop()
+            return await loop.run_in_executor(self._thread, entries_after, self._path, since,
+                                              limit)
+        finally:
+            self._pages -= 1
+
+    async def verify(self) -> VerifyReport:
+        """A verification that started reading after this call: joined, queued or new."""
+        if self._queued is None:
+            self._queued = asyncio.create_task(self._run(self._current))
+        # Shielded: a caller that goes away must not cancel the run others wait for.
+        return await asyncio.shield(self._queued)
+
+    async def _run(self, previous: asyncio.Future[Any] | None) -> VerifyReport:
+        if previous is not None:
+            await asyncio.wait([previous])  # its outcome is its callers' business
+        # From here this run reads the file: later callers must queue a new one.
+        me = asyncio.current_task()
+        self._queued, self._current = None, me
+        self.runs += 1
+        try:
+            return await self._verify_once()
+        except BrokenProcessPool:  # the worker died (OOM, killed): once more, in a new one
+            log.warning("audit verifier process died; starting a new one")
+            self._drop_process()
+            return await self._verify_once()
+        finally:
+            if self._current is me:
+                self._current = None
+
+    async def _verify_once(self) -> VerifyReport:
+        pool = self._verifier()
+        path = str(self._path)
+        try:
+            future = pool.submit(verify_file, path, self._key)
+        except OSError:  # no worker process can be started here
+            if pool is self._thread:
+                raise
+            log.warning("cannot start an audit verifier process; using a thread",
+                        exc_info=True)
+            self._no_process = True
+            self._drop_process()
+            future = self._thread.submit(verify_file, path, self._key)
+        return await asyncio.wrap_future(future)
+
+    def _verifier(self) -> concurrent.futures.Executor:
+        if self._process is None and not self._no_process:
+            try:
+                self._process = concurrent.futures.ProcessPoolExecutor(
+                    1, mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_lower_priority)
+            except (OSError, NotImplementedError, ValueError):  # e.g. no POSIX semaphores
+                log.warning("no process for audit verification; using a thread",
+                            exc_info=True)
+                self._no_process = True
+        return self._process or self._thread
+
+    def _drop_process(self) -> None:
+        process, self._process = self._process, None
+        if process is not None:
+            process.shutdown(wait=False, cancel_futures=True)
+
+    async def close(self) -> None:
+        """Stop both workers; a verification in progress finishes in its process alone."""
+        self._drop_process()
+        self._thread.shutdown(wait=False, cancel_futures=True)

@@ -103,6 +103,7 @@ class RunProcess:
 @dataclass
 class HammerReport:
     replies: dict[int, int] = field(default_factory=dict)  # HTTP status → count
+    errors: list[str] = field(default_factory=list)  # the first few 5xx bodies, to say why
     hang: str | None = None  # the first request that got no reply in time
     seconds: float = 0.0
 
@@ -132,7 +133,9 @@ async def hammer(url: str, token: str, body: Callable[[int], dict[str, Any] | No
                         await resp.read()
                 else:
                     async with http.post(url + "/api/command", json=payload) as resp:
-                        await resp.read()
+                        text = await resp.text()
+                        if resp.status >= 500 and len(report.errors) < 5:
+                            report.errors.append(f"#{i} {payload}: {resp.status} {text}")
                 report.replies[resp.status] = report.replies.get(resp.status, 0) + 1
             except (asyncio.TimeoutError, aiohttp.ClientError) as exc:
                 report.hang = (f"request #{i} ({payload}) after {loop.time() - start:.1f} s: "

@@ -157,6 +157,8 @@ async def test_pending_auth_publishes_a_warn_diagnostic(tmp_path: Path, jazzy_py
     rig = await make_rig(config, jazzy_python, domain_id)
     try:
         await subscribe(rig, "/robot1/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+        assert rig.notifier is not None  # both ends matched: the warning is sent only once
+        await rig.notifier.publisher.wait_for_subscribers(1, timeout=15)
         held = await rig.command(AGENT, {"action": "arm_joint", "params": {
             "joints": ["j1"], "positions": [0.1], "duration_s": 1.0}})
         assert held.http_status == 202 and held.pending_id

@@ -9,6 +9,7 @@ import json
 import os
 import stat
 import tempfile
+import threading
 from pathlib import Path
 
 import pytest
@@ -136,9 +137,9 @@ async def test_group_commit_batches_concurrent_appends(
     writes: list[int] = []
     real = audit_mod._write_durable
 
-    def counting(fd: int, data: bytes) -> None:
+    def counting(fd: int, data: bytes) -> float:
         writes.append(data.count(b"\n"))
-        real(fd, data)
+        return real(fd, data)
 
     monkeypatch.setattr(audit_mod, "_write_durable", counting)
     for group, path in ((True, "g.jsonl"), (False, "s.jsonl")):
@@ -161,11 +162,12 @@ async def test_append_returns_only_after_the_write(
     real = audit_mod._write_durable
     loop = asyncio.get_running_loop()
 
-    def slow(fd: int, data: bytes) -> None:
+    def slow(fd: int, data: bytes) -> float:
         asyncio.run_coroutine_threadsafe(gate.wait(), loop).result()
-        real(fd, data)
+        return real(fd, data)
 
     monkeypatch.setattr(audit_mod, "_write_durable", slow)
+    monkeypatch.setattr(audit_mod, "INLINE_FSYNC_S", 0.0)  # a slow disk: the writer thread
     task = asyncio.create_task(audit_log.append(record()))
     await asyncio.sleep(0.05)
     assert not task.done()
@@ -178,13 +180,13 @@ async def test_append_returns_only_after_the_write(
 async def test_failed_write_poisons_the_log(
     audit_log: AuditLog, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    def broken(fd: int, data: bytes) -> None:
+    def broken(fd: int, data: bytes) -> float:
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(audit_mod, "_write_durable", broken)
     results = await asyncio.gather(*(audit_log.append(record(i)) for i in range(3)),
                                    return_exceptions=True)
-    assert all(isinstance(r, AuditWriteError) for r in results)
+    assert all(isinstance(r, AuditWriteError) for r in results)  # inline or queued alike
     assert not audit_log.healthy
     with pytest.raises(AuditWriteError):
         await audit_log.append(record())
@@ -337,3 +339,28 @@ async def test_public_key_export_round_trip(audit_log: AuditLog, tmp_path: Path)
     assert load_public_key(tmp_path / "pub.pem").public_bytes_raw() == (
         audit_log.public_key.public_bytes_raw()
     )
+
+
+async def test_an_idle_fast_log_writes_inline_and_a_burst_shares_fsyncs(
+    audit_log: AuditLog, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    threads: list[bool] = []
+    real = audit_mod._write_durable
+    loop_thread = threading.get_ident()
+
+    def where(fd: int, data: bytes) -> float:
+        threads.append(threading.get_ident() == loop_thread)
+        return real(fd, data)
+
+    monkeypatch.setattr(audit_mod, "_write_durable", where)
+    await asyncio.sleep(0.01)
+    await audit_log.append(record())  # alone: written on the loop, no thread hand-off
+    assert threads == [True]
+    threads.clear()
+    await asyncio.gather(*(audit_log.append(record(i)) for i in range(30)))
+    assert False in threads and len(threads) < 30  # the burst went to the writer thread
+    monkeypatch.setattr(audit_mod, "INLINE_FSYNC_S", 0.0)  # a slow disk: never on the loop
+    threads.clear()
+    await asyncio.sleep(0.01)
+    await audit_log.append(record())
+    assert threads == [False]

@@ -21,6 +21,7 @@ import fcntl
 import hashlib
 import logging
 import os
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,12 @@ log = logging.getLogger(__name__)
 _UNSIGNED = ("audit_id", "sig")
 _REQUIRED = ("seq", "audit_id", "prev_hash", "sig", "event", "timestamp_ms")
 CHECKPOINT_EVERY = 1000  # entries between checkpoints: bounds what a start after a crash re-checks
+# When the log is idle (no write running, none in the last INLINE_GAP_S) and its disk fast
+# (smoothed write+fsync below INLINE_FSYNC_S), an append writes on the loop: two thread
+# hand-offs cost more than such an fsync. Otherwise the writer thread does it, with group
+# commit: bursts share fsyncs, and a slow disk (an SD card) never blocks the event loop.
+INLINE_FSYNC_S = 0.001
+INLINE_GAP_S = 0.001
 
 
 class AuditEvent(str, enum.Enum):
@@ -315,9 +322,12 @@ def _resume_point(fd: int, cp: Checkpoint) -> tuple[int, str, int] | None:
 # -- the log --------------------------------------------------------------------------------
 
 
-def _write_durable(fd: int, data: bytes) -> None:
+def _write_durable(fd: int, data: bytes) -> float:
+    """Write and fsync; returns how long that took (seconds)."""
+    started = time.perf_counter()
     write_all(fd, data)
     full_fsync(fd)
+    return time.perf_counter() - started
 
 
 class AuditLog:
@@ -345,6 +355,9 @@ class AuditLog:
         self._last_span = (max(0, size - 1), size)
         self._durable_seq, self._durable_id = head.last_seq, head.last_audit_id
         self._checkpointed_seq = -1  # none written by this process yet
+        self._fsync_s = 0.0  # smoothed write+fsync time
+        self._checkpointing: asyncio.Task[None] | None = None
+        self._last_write_end = 0.0
         # Told of every durable entry (e.g. metrics); a failing listener is logged, not raised.
         self.listeners: list[Callable[[AuditRecord], None]] = []
 
@@ -399,12 +412,18 @@ class AuditLog:
         if not self.healthy:
             raise AuditWriteError(f"audit log {self.path} is not writable") from self._broken
         line, receipt = self._seal(record)
-        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        self._queue.append((line, done))
-        if self._flusher is None or self._flusher.done():
-            self._flusher = asyncio.create_task(self._flush())
-        # A cancelled caller must not leave its entry half-acknowledged: the write goes on.
-        await asyncio.shield(done)
+        if self._inline_ok():
+            self._write_inline(line)
+        else:
+            done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+            self._queue.append((line, done))
+            if self._flusher is None or self._flusher.done():
+                self._flusher = asyncio.create_task(self._flush())
+            # A cancelled caller must not leave its entry half-acknowledged: the write goes on.
+            await asyncio.shield(done)
+        if (self._durable_seq - self._checkpointed_seq >= CHECKPOINT_EVERY
+                and (self._checkpointing is None or self._checkpointing.done())):
+            self._checkpointing = asyncio.create_task(self.checkpoint())  # off the reply path
         for listener in self.listeners:
             try:
                 listener(record)
@@ -427,8 +446,9 @@ class AuditLog:
         self._checkpointed_seq = cp.seq
 
     async def close(self) -> None:
-        if self._flusher is not None:
-            await asyncio.gather(self._flusher, return_exceptions=True)
+        pending = [t for t in (self._flusher, self._checkpointing) if t is not None]
+        if pending:
+            await asyncio.gather(*pending, return_exceptions=True)
         if self._fd >= 0:
             await self.checkpoint()
             os.close(self._fd)  # closing also drops the flock
@@ -460,25 +480,39 @@ class AuditLog:
             batch, self._queue = self._queue[:take], self._queue[take:]
             data = b"".join(b for b, _ in batch)
             try:
-                await loop.run_in_executor(self._writer, _write_durable, self._fd, data)
-            except OSError as exc:
+                took = await loop.run_in_executor(self._writer, _write_durable, self._fd, data)
+                self._durable([line for line, _ in batch], took)
+            except Exception as exc:  # OSError, or a bug: no waiter may hang on it
                 self._fail(batch + self._queue, exc)
                 return
-            self._durable(batch)
             for _, done in batch:
                 done.set_result(None)
-            if self._durable_seq - self._checkpointed_seq >= CHECKPOINT_EVERY:
-                await self.checkpoint()
 
-    def _durable(self, batch: list[tuple[bytes, asyncio.Future[None]]]) -> None:
+    def _inline_ok(self) -> bool:
+        if self._queue or (self._flusher is not None and not self._flusher.done()):
+            return False
+        quiet = time.monotonic() - self._last_write_end > INLINE_GAP_S
+        return quiet and self._fsync_s < INLINE_FSYNC_S
+
+    def _write_inline(self, line: bytes) -> None:
+        try:
+            took = _write_durable(self._fd, line)
+        except Exception as exc:  # OSError, or a bug: either way the tail is unknown now
+            self._fail([], exc)
+            raise AuditWriteError(f"audit write to {self.path} failed: {exc}") from exc
+        self._durable([line], took)
+
+    def _durable(self, lines: list[bytes], took_s: float) -> None:
         """Track the durable head: its seq, id and byte span (for checkpoints)."""
-        last = batch[-1][0]
-        self._size += sum(len(b) for b, _ in batch)
+        self._fsync_s = 0.8 * self._fsync_s + 0.2 * took_s
+        self._last_write_end = time.monotonic()
+        last = lines[-1]
+        self._size += sum(len(b) for b in lines)
         self._last_span = (self._size - len(last), self._size)
         self._durable_seq = self._seq - len(self._queue)
         self._durable_id = _SEAL_ID.decode(last).audit_id
 
-    def _fail(self, waiting: list[tuple[bytes, asyncio.Future[None]]], exc: OSError) -> None:
+    def _fail(self, waiting: list[tuple[bytes, asyncio.Future[None]]], exc: Exception) -> None:
         # After a failed write the file's tail is unknown: refuse every further append.
         self._broken = exc
         self._queue = []

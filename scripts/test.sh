@@ -9,28 +9,16 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-PY=${PYTHON:-python3.11}
-command -v "$PY" >/dev/null 2>&1 || PY=python3
+# shellcheck source=scripts/setup_lib.sh
+. scripts/setup_lib.sh
 
 ROS_PKGS="rclpy rmw-fastrtps-cpp std-msgs geometry-msgs sensor-msgs nav-msgs trajectory-msgs
 diagnostic-msgs action-msgs unique-identifier-msgs test-msgs std-srvs builtin-interfaces
 rmw-dds-common rosidl-generator-type-description service-msgs"
 
-quiet_pip() { "$@" 2>&1 | grep -v -e '^WARNING: Location' -e '^\s*$' || true; }
-
-# Installs a virtualenv once per requirement set; the stamp file makes reruns cheap.
-ensure_venv() {  # dir stamp-text pip-args...
-  local dir=$1 stamp=$2; shift 2
-  if [ -f "$dir/.stamp" ] && [ "$(cat "$dir/.stamp")" = "$stamp" ]; then return 0; fi
-  rm -rf "$dir"
-  "$PY" -m venv "$dir"
-  quiet_pip "$dir/bin/pip" install -q "$@"
-  "$dir/bin/python" -c 'import sys; sys.exit(0)'
-  echo "$stamp" > "$dir/.stamp"
-}
-
 echo "== product environment (.venv)"
-ensure_venv .venv "$(sha256sum pyproject.toml | cut -c1-16)" -e '.[test]'
+ensure_venv .venv "$(sha256sum pyproject.toml | cut -c1-16)" -e '.[test]' \
+  || { echo "could not install the product's environment" >&2; exit 1; }
 # the editable install must follow the tree even when the stamp matched
 quiet_pip .venv/bin/pip install -q --no-deps -e .
 
@@ -39,7 +27,8 @@ ros_args() { for p in $ROS_PKGS; do printf 'ros-%s-%s ' "$1" "$p"; done; }
 echo "== ROS 2 Jazzy oracle (.cache/ros-jazzy)"
 mkdir -p .cache
 # shellcheck disable=SC2046
-ensure_venv .cache/ros-jazzy "jazzy:$ROS_PKGS" $(ros_args jazzy)
+ensure_venv .cache/ros-jazzy "jazzy:$ROS_PKGS" $(ros_args jazzy) \
+  || { echo "could not install the ROS 2 Jazzy oracle" >&2; exit 1; }
 .cache/ros-jazzy/bin/python -c 'import rclpy, test_msgs.action, std_srvs.srv' \
   || { echo "the Jazzy oracle does not import" >&2; exit 1; }
 export RCAN_RTPS_ORACLE_JAZZY="$PWD/.cache/ros-jazzy/bin/python"

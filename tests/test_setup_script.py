@@ -1,0 +1,45 @@
+"""The test command's set-up: a failed install fails the command and is never cached as good."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bash(script: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["bash", "-c", f"set -euo pipefail; . {ROOT}/scripts/setup_lib.sh; "
+                           + script], cwd=cwd, capture_output=True, text=True, timeout=300,
+                          env={"PATH": "/usr/bin:/bin", "PYTHON": sys.executable})
+
+
+def test_a_failed_install_fails_and_leaves_no_stamp(tmp_path: Path) -> None:
+    done = _bash("ensure_venv venv stamp-1 --no-index no-such-package-rcan-rtps-xyz", tmp_path)
+    assert done.returncode != 0
+    assert "pip install into venv failed" in done.stderr
+    assert not (tmp_path / "venv").exists()  # nothing half-made is left to be trusted later
+
+
+def test_inside_a_condition_the_failure_still_counts(tmp_path: Path) -> None:
+    # `set -e` does not apply inside `if`: the function must return the failure itself.
+    done = _bash("if ensure_venv venv s --no-index no-such-package-rcan-rtps-xyz; "
+                 "then echo installed; else echo refused; fi", tmp_path)
+    assert done.stdout.strip().splitlines()[-1] == "refused"
+    assert not (tmp_path / "venv").exists()
+
+
+def test_a_good_install_is_stamped_and_reused(tmp_path: Path) -> None:
+    # No packages to fetch (pip is asked only to check itself), so no network is needed.
+    assert _bash("ensure_venv venv s1 --no-index pip", tmp_path).returncode == 0
+    assert (tmp_path / "venv" / ".stamp").read_text().strip() == "s1"
+    marker = tmp_path / "venv" / "marker"
+    marker.write_text("x")
+    assert _bash("ensure_venv venv s1 --no-index pip", tmp_path).returncode == 0
+    assert marker.exists()  # the stamp matched: not rebuilt
+
+
+def test_quiet_pip_passes_the_exit_status_through(tmp_path: Path) -> None:
+    assert _bash("quiet_pip false", tmp_path).returncode != 0
+    assert _bash("quiet_pip true", tmp_path).returncode == 0

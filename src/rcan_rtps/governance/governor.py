@@ -50,9 +50,10 @@ from .rbac import Principal, RateLimiter, RolePolicy
 
 log = logging.getLogger(__name__)
 SWEEP_INTERVAL_S = 0.05  # session-loss halt latency is timeout + at most this
-# Commands decided at once; the rest wait their turn without using the event loop, so a
+# Commands decided at once (8 measured best for e-stop latency under load without losing
+# throughput); the rest wait their turn without using the event loop, so a
 # flood of requests cannot queue the e-stop lane (which never waits here) behind itself.
-MAX_IN_FLIGHT = 16
+MAX_IN_FLIGHT = 8
 
 
 class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):

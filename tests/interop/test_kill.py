@@ -365,9 +365,11 @@ async def test_robot_sigkill_no_move_executed_once_offline(
     if disk == "slow":
         write = audit_module._write_durable
 
-        def slow_write(fd: int, data: bytes) -> None:
+        def slow_write(fd: int, data: bytes) -> float:
+            started = time.perf_counter()
             time.sleep(0.1)
             write(fd, data)
+            return time.perf_counter() - started  # the log sees a slow disk
 
         monkeypatch.setattr(audit_module, "_write_durable", slow_write)
     # When each Twist really went out, on the probe's clock.
@@ -488,7 +490,7 @@ async def test_unwritable_audit_blocks_motion_but_not_estop(
         assert d.http_status == 200, d
         assert [t["linear"]["x"] for t in await rig.take(CMD_VEL, timeout=30)] == [0.5]
 
-        def broken_disk(fd: int, data: bytes) -> None:
+        def broken_disk(fd: int, data: bytes) -> float:
             raise OSError(5, "Input/output error (injected)")
 
         monkeypatch.setattr(audit_module, "_write_durable", broken_disk)

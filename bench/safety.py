@@ -27,7 +27,7 @@ from pathlib import Path
 import aiohttp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from e2e import ROOT, TOKEN, BridgeProcess, pct
+from e2e import ROOT, TOKEN, BridgeProcess, pct, rss_mb, verdict
 from oracle.client import RclpyOracle
 from report import write_section
 
@@ -164,18 +164,6 @@ async def startup_times(sizes: list[int]) -> list[tuple[int, float, float]]:
     return rows
 
 
-def rss_kb(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    return 0
-
-
-# -- report ----------------------------------------------------------------------------------
-def verdict(ok: bool) -> str:
-    return "met" if ok else "**not met**"
-
-
 async def main(args: argparse.Namespace) -> int:
     with RclpyOracle(args.oracle, "bench_robot", "/bench", domain_id=77,
                      env={"RCAN_ORACLE_EXECUTOR": "single"}) as oracle:
@@ -191,10 +179,10 @@ async def main(args: argparse.Namespace) -> int:
                 await asyncio.sleep(1.0)
                 warm = LoadProcess(bridge.url, clients=64, commands=2000)
                 warm.result()
-                rss_before = rss_kb(bridge.proc.pid)
+                rss_before = rss_mb(bridge.proc.pid)
                 heavy = LoadProcess(bridge.url, clients=64, commands=args.commands)
                 counts = heavy.result(timeout=3600)
-                rss_after = rss_kb(bridge.proc.pid)
+                rss_after = rss_mb(bridge.proc.pid)
                 oracle.call("take", topic="/bench/cmd_vel")
                 idle_robot, idle_caller = await estop_latency(bridge.url, oracle, args.rounds)
                 loader = LoadProcess(bridge.url, clients=500, verifiers=args.verify_readers)
@@ -212,7 +200,7 @@ async def main(args: argparse.Namespace) -> int:
         return (f"| e-stop → {name} | {i50:.1f} / {i99:.1f} ms | {b50:.1f} / {b99:.1f} ms | "
                 f"{b99 / i99:.1f}× | p99 ≤ 50 ms | {verdict(b99 <= 50 and i99 <= 50)} |")
 
-    growth = (rss_after - rss_before) / 1024
+    growth = rss_after - rss_before
     lines = [
         "## Safety kernel", "",
         f"`bench/safety.py` (same machine, same run). E-stop: {args.rounds} e-stops each idle "
@@ -230,8 +218,8 @@ async def main(args: argparse.Namespace) -> int:
         "| measure | before | after | growth | target | verdict |",
         "|---|---|---|---|---|---|",
         f"| bridge RSS around {counts['commands']:,} governed commands "
-        f"({counts['non_2xx_4xx']} 5xx) | {rss_before / 1024:.1f} MB | "
-        f"{rss_after / 1024:.1f} MB | {growth:+.1f} MB | ≤ 5 MB | {verdict(growth <= 5)} |",
+        f"({counts['non_2xx_4xx']} 5xx) | {rss_before:.1f} MB | "
+        f"{rss_after:.1f} MB | {growth:+.1f} MB | ≤ 5 MB | {verdict(growth <= 5)} |",
         "",
         "| audit entries | exec → ready (after a clean stop) | no checkpoint (full verify) | "
         "target | verdict |",

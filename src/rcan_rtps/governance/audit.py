@@ -330,6 +330,9 @@ def _write_durable(fd: int, data: bytes) -> float:
     return time.perf_counter() - started
 
 
+_Queued = tuple[bytes, AuditReceipt, "asyncio.Future[None]"]  # a sealed line awaiting its fsync
+
+
 class AuditLog:
     """The append-only chain. `append` returns only once its entry is on disk (fsynced).
 
@@ -347,7 +350,7 @@ class AuditLog:
         self._ruri = ruri
         self._clock = clock
         self._batch_limit = 0 if group_commit else 1
-        self._queue: list[tuple[bytes, asyncio.Future[None]]] = []
+        self._queue: list[_Queued] = []
         self._flusher: asyncio.Task[None] | None = None
         self._broken: BaseException | None = None
         self._writer = writer  # one thread: writes and checkpoints in order, apart from reads
@@ -413,10 +416,10 @@ class AuditLog:
             raise AuditWriteError(f"audit log {self.path} is not writable") from self._broken
         line, receipt = self._seal(record)
         if self._inline_ok():
-            self._write_inline(line)
+            self._write_inline(line, receipt)
         else:
             done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-            self._queue.append((line, done))
+            self._queue.append((line, receipt, done))
             if self._flusher is None or self._flusher.done():
                 self._flusher = asyncio.create_task(self._flush())
             # A cancelled caller must not leave its entry half-acknowledged: the write goes on.
@@ -478,14 +481,14 @@ class AuditLog:
         while self._queue:
             take = self._batch_limit or len(self._queue)
             batch, self._queue = self._queue[:take], self._queue[take:]
-            data = b"".join(b for b, _ in batch)
+            data = b"".join(line for line, _, _ in batch)
             try:
                 took = await loop.run_in_executor(self._writer, _write_durable, self._fd, data)
-                self._durable([line for line, _ in batch], took)
+                self._durable(data, batch[-1][0], batch[-1][1], took)
             except Exception as exc:  # OSError, or a bug: no waiter may hang on it
                 self._fail(batch + self._queue, exc)
                 return
-            for _, done in batch:
+            for _, _, done in batch:
                 done.set_result(None)
 
     def _inline_ok(self) -> bool:
@@ -494,37 +497,28 @@ class AuditLog:
         quiet = time.monotonic() - self._last_write_end > INLINE_GAP_S
         return quiet and self._fsync_s < INLINE_FSYNC_S
 
-    def _write_inline(self, line: bytes) -> None:
+    def _write_inline(self, line: bytes, receipt: AuditReceipt) -> None:
         try:
             took = _write_durable(self._fd, line)
         except Exception as exc:  # OSError, or a bug: either way the tail is unknown now
             self._fail([], exc)
             raise AuditWriteError(f"audit write to {self.path} failed: {exc}") from exc
-        self._durable([line], took)
+        self._durable(line, line, receipt, took)
 
-    def _durable(self, lines: list[bytes], took_s: float) -> None:
-        """Track the durable head: its seq, id and byte span (for checkpoints)."""
+    def _durable(self, written: bytes, last: bytes, head: AuditReceipt, took_s: float) -> None:
+        """Track the durable head (`last`, the line of `head`): seq, id and byte span."""
         self._fsync_s = 0.8 * self._fsync_s + 0.2 * took_s
         self._last_write_end = time.monotonic()
-        last = lines[-1]
-        self._size += sum(len(b) for b in lines)
+        self._size += len(written)
         self._last_span = (self._size - len(last), self._size)
-        self._durable_seq = self._seq - len(self._queue)
-        self._durable_id = _SEAL_ID.decode(last).audit_id
+        self._durable_seq, self._durable_id = head.seq, head.audit_id
 
-    def _fail(self, waiting: list[tuple[bytes, asyncio.Future[None]]], exc: Exception) -> None:
+    def _fail(self, waiting: list[_Queued], exc: Exception) -> None:
         # After a failed write the file's tail is unknown: refuse every further append.
         self._broken = exc
         self._queue = []
-        for _, done in waiting:
+        for _, _, done in waiting:
             done.set_exception(AuditWriteError(f"audit write to {self.path} failed: {exc}"))
-
-
-class _Sealed(msgspec.Struct):
-    audit_id: str
-
-
-_SEAL_ID = msgspec.json.Decoder(_Sealed)
 
 
 def _make_dirs(*paths: Path) -> None:

@@ -17,7 +17,7 @@ import logging
 import uuid
 from collections.abc import Callable, Coroutine, Iterator, Mapping
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import msgspec
 
@@ -171,9 +171,7 @@ class Governor:
         self._sweeper = asyncio.create_task(self._sweep_forever())
 
     async def _republish_estop(self) -> None:
-        stop = NormalizedCommand(action="estop", params=NoParams(), requested={},
-                                 message_id=str(uuid.uuid4()))
-        _, failure = await self._dispatch(stop, {})
+        _, failure = await self._dispatch(_bridge_command("estop"), {})
         if failure is not None:
             log.error("latched at start, but the robot could not be told (%s)", failure.reason)
 
@@ -347,7 +345,7 @@ class Governor:
             return await self._failed(command, principal, failure)
         if command.action == "navigate" and self.latch.latched:
             # Accepted while an e-stop latched: the e-stop's cancel may have missed this goal.
-            await self._dispatch(_stop_command(), {})
+            await self._dispatch(_bridge_command("stop"), {})
         return _executed(command, applied, receipt, result)
 
     async def _write_ahead(self, record: AuditRecord) -> AuditReceipt | None:
@@ -476,7 +474,7 @@ class Governor:
 
     async def safe_stop(self, principal: Principal) -> Decision:
         """Session lost: zero velocity and cancel goals (a `stop`), audited as such."""
-        stop = _stop_command()
+        stop = _bridge_command("stop")
         record = _record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
                          applied={}, ros2_topic=self._route(stop))
         receipt = await self._write_ahead(record)
@@ -594,8 +592,9 @@ async def _awaited(future: asyncio.Future[Any]) -> Any:
     return await future
 
 
-def _stop_command() -> NormalizedCommand:
-    return NormalizedCommand(action="stop", params=NoParams(), requested={},
+def _bridge_command(action: Literal["stop", "estop"]) -> NormalizedCommand:
+    """A command the bridge issues itself (a safe stop, an e-stop re-published at start)."""
+    return NormalizedCommand(action=action, params=NoParams(), requested={},
                              message_id=str(uuid.uuid4()))
 
 

@@ -39,6 +39,10 @@ from rcan_rtps.ros.participant import RosNode  # noqa: E402
 
 TOKEN = "bench-token-0123456789abcdef0123"
 SESSION_TIMEOUT_S = 1.0
+# Every latency sample, bridge and floor alike, is paced this far apart: an idle gap lets caches
+# and CPU clocks go cold (here ~3x the per-request CPU of a back-to-back loop), so a floor
+# measured back-to-back would not be comparable with paced bridge samples.
+PACE_S = 0.005
 DOMAIN = 77
 CONFIG = """\
 robot:
@@ -133,7 +137,7 @@ async def rest_move_latency(url: str, oracle: RclpyOracle, n: int) -> list[float
                 assert resp.status == 200, await resp.text()
                 await resp.read()
             sent[value] = before
-            await asyncio.sleep(0.005)
+            await asyncio.sleep(PACE_S)
     arrivals = await wait_arrivals(oracle, "/bench/cmd_vel", len(sent))
     return [(arrivals[v] - t) / 1e6 for i, (v, t) in enumerate(sent.items())
             if i >= 20 and v in arrivals]
@@ -160,6 +164,7 @@ async def echo_round_trip(n: int) -> list[float]:
                 await r.read()
             if i >= 20:
                 times.append((time.perf_counter() - before) * 1e3)
+            await asyncio.sleep(PACE_S)
     await runner.cleanup()
     return times
 
@@ -177,6 +182,7 @@ def fsync_latency(directory: Path, n: int) -> list[float]:
             os.fsync(fd)
             if i >= 20:
                 times.append((time.perf_counter() - before) * 1e3)
+            time.sleep(PACE_S)
     finally:
         os.close(fd)
         path.unlink()
@@ -200,7 +206,7 @@ async def raw_publish_latency(oracle: RclpyOracle, n: int) -> list[float]:
             msg = msg_type(linear=vec(value, 0.0, 0.0), angular=vec(0.0, 0.0, 0.0))
             sent[value] = time.monotonic_ns()
             pub.writer.write(msg)
-            await asyncio.sleep(0.005)
+            await asyncio.sleep(PACE_S)
         arrivals = await wait_arrivals(oracle, "/floor/cmd_vel", len(sent))
     return [(arrivals[v] - t) / 1e6 for i, (v, t) in enumerate(sent.items())
             if i >= 20 and v in arrivals]
@@ -277,7 +283,7 @@ def verdict(ok: bool) -> str:
 async def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--oracle", type=Path, default=ROOT / ".cache/ros-jazzy/bin/python")
-    parser.add_argument("--samples", type=int, default=300)
+    parser.add_argument("--samples", type=int, default=1000)
     parser.add_argument("--commands", type=int, default=6000)
     parser.add_argument("--clients", type=int, default=64)
     args = parser.parse_args()

@@ -18,6 +18,7 @@ import concurrent.futures
 import datetime as dt
 import enum
 import fcntl
+import functools
 import hashlib
 import logging
 import os
@@ -105,8 +106,13 @@ def entry_id(entry: dict[str, Any]) -> str:
 
 
 def iso_utc(ms: int) -> str:
-    stamp = dt.datetime.fromtimestamp(ms // 1000, tz=dt.timezone.utc)
-    return stamp.strftime("%Y-%m-%dT%H:%M:%S") + f".{ms % 1000:03d}Z"
+    return _iso_second(ms // 1000) + f".{ms % 1000:03d}Z"
+
+
+@functools.lru_cache(maxsize=4)
+def _iso_second(second: int) -> str:
+    # Cached: entries come many to a second, and formatting is a visible part of sealing one.
+    return dt.datetime.fromtimestamp(second, tz=dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S")
 
 
 # -- keys -----------------------------------------------------------------------------------
@@ -427,12 +433,16 @@ class AuditLog:
         if (self._durable_seq - self._checkpointed_seq >= CHECKPOINT_EVERY
                 and (self._checkpointing is None or self._checkpointing.done())):
             self._checkpointing = asyncio.create_task(self.checkpoint())  # off the reply path
+        if self.listeners:  # after the caller's next step (its publish), not before it
+            asyncio.get_running_loop().call_soon(self._tell_listeners, record)
+        return receipt
+
+    def _tell_listeners(self, record: AuditRecord) -> None:
         for listener in self.listeners:
             try:
                 listener(record)
             except Exception:
                 log.exception("audit listener failed")
-        return receipt
 
     async def checkpoint(self) -> None:
         """Record the durable head as verified (every entry up to it is ours or was checked)."""
@@ -469,7 +479,7 @@ class AuditLog:
             seq=self._seq + 1, prev_hash=self._prev, timestamp=iso_utc(ms), timestamp_ms=ms,
             ruri=self._ruri, bridge="ros2", event=record.event.value,
         )
-        audit_id = entry_id(entry)
+        audit_id = "sha256:" + hashlib.sha256(canonical(entry)).hexdigest()  # no id, no sig yet
         entry["audit_id"] = audit_id
         entry["sig"] = base64.b64encode(self._key.sign(audit_id.encode())).decode()
         self._seq += 1

@@ -42,16 +42,31 @@ def kilted_python() -> Path:
     return found
 
 
+ORACLE_FIXTURES = frozenset({"jazzy_python", "jazzy_share", "kilted_python"})
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if "interop" in item.nodeid.split("/"):
             item.add_marker(pytest.mark.interop)
+        # An `offline` test must mean something on a machine without ROS: it may not
+        # depend on the oracle, not even indirectly through another fixture.
+        used = ORACLE_FIXTURES.intersection(getattr(item, "fixturenames", ()))
+        if item.get_closest_marker("offline") is not None and used:
+            raise pytest.UsageError(
+                f"{item.nodeid} is marked offline but requests {', '.join(sorted(used))}")
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):  # type: ignore[no-untyped-def]
     outcome = yield
     report = outcome.get_result()
+    # An offline test has nothing to wait for: skipping it would hide a missing data file.
+    if report.skipped and item.get_closest_marker("offline") is not None:
+        report.outcome = "failed"
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else report.longrepr
+        report.longrepr = f"offline test skipped: {reason}"
+        return
     # Under CI a skipped interop test is a failure: the real graph must have been there.
     if ON_CI and report.skipped and item.get_closest_marker("interop") is not None:
         report.outcome = "failed"

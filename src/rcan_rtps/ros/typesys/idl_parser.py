@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 from ..errors import IdlSyntaxError
 from .model import (
+    INTEGER_RANGES,
     Collection,
     Constant,
     ConstValue,
@@ -156,6 +157,13 @@ class _Parser:
             self.i -= 1
             raise self._error(f"expected a whole number, found {tok.text!r}") from None
 
+    def _positive(self, what: str) -> int:
+        size = self._int()
+        if size <= 0:
+            self.i -= 1
+            raise self._error(f"{what} must be a positive number, found {size}")
+        return size
+
     # -- grammar --------------------------------------------------------------
     def parse(self) -> ParsedFile:
         while self._peek() is not None:
@@ -247,7 +255,7 @@ class _Parser:
             if self._accept("["):
                 if ftype.is_collection:
                     raise self._error(f"field {fname!r}: arrays of collections are not ROS types")
-                size = self._int()
+                size = self._positive("an array size")
                 self._expect("]")
                 ftype = FieldType(ftype.primitive, ftype.nested, ftype.string_bound,
                                   Collection.ARRAY, size)
@@ -267,7 +275,9 @@ class _Parser:
         ftype = self._type_spec(scope)
         name = self._ident()
         if self._accept("["):
-            size = self._int()
+            if ftype.is_collection:
+                raise self._error(f"typedef {name!r}: arrays of collections are not ROS types")
+            size = self._positive("an array size")
             self._expect("]")
             ftype = FieldType(ftype.primitive, ftype.nested, ftype.string_bound,
                               Collection.ARRAY, size)
@@ -320,7 +330,7 @@ class _Parser:
             element = self._type_spec(scope)
             if element.is_collection:
                 raise self._error("sequences of collections are not ROS types")
-            bound = self._int() if self._accept(",") else 0
+            bound = self._positive("a sequence bound") if self._accept(",") else 0
             self._expect(">")
             kind = Collection.BOUNDED_SEQUENCE if bound else Collection.SEQUENCE
             return FieldType(element.primitive, element.nested, element.string_bound, kind, bound)
@@ -329,7 +339,7 @@ class _Parser:
             prim = _PRIMITIVE_WORDS[words]
             bound = 0
             if prim.is_string and self._accept("<"):
-                bound = self._int()
+                bound = self._positive("a string bound")
                 self._expect(">")
             return FieldType(primitive=prim, string_bound=bound)
         return self._scoped_type(scope)
@@ -372,8 +382,10 @@ class _Parser:
             pass
         tok = self._next()
         try:
-            return _convert_scalar(sign + tok.text if tok.kind != "string" else tok.text,
-                                   ftype, quoted=tok.kind in ("string", "char"))
+            value = _convert_scalar(sign + tok.text if tok.kind != "string" else tok.text,
+                                    ftype, quoted=tok.kind in ("string", "char"))
+            _check_fits(value, ftype)
+            return value
         except ValueError as exc:
             self.i -= 1
             raise self._error(str(exc)) from None
@@ -386,10 +398,17 @@ class _Parser:
                 items = ast.literal_eval(raw) if raw.strip() else ()
                 if not isinstance(items, (tuple, list)):
                     items = (items,)
-                return tuple(_convert_python(v, ftype.element) for v in items)
+                values = tuple(_convert_python(v, ftype.element) for v in items)
+                _check_length(len(values), ftype)
+                for v in values:
+                    _check_fits(v, ftype.element)
+                return values
             if ftype.primitive is not None and ftype.primitive.is_string:
+                _check_fits(raw, ftype)
                 return raw
-            return _convert_scalar(raw, ftype, quoted=False)
+            value = _convert_scalar(raw, ftype, quoted=False)
+            _check_fits(value, ftype)
+            return value
         except (ValueError, SyntaxError) as exc:
             raise self._error(f"field {fname!r}: bad @default {raw!r}: {exc}") from None
 
@@ -400,7 +419,7 @@ def _convert_scalar(text: str, ftype: FieldType, *, quoted: bool) -> ConstValue:
         raise ValueError("constants must have a primitive type")
     if quoted:
         value = _unquote(text)
-        return ord(value) if prim in (Primitive.CHAR, Primitive.WCHAR) and len(value) == 1 \
+        return ord(value) if (prim.is_integer or prim is Primitive.WCHAR) and len(value) == 1 \
             else value
     if prim is Primitive.BOOLEAN:
         if text.upper() in ("TRUE", "FALSE"):
@@ -411,6 +430,36 @@ def _convert_scalar(text: str, ftype: FieldType, *, quoted: bool) -> ConstValue:
     if prim.is_string:
         return text
     return int(text, 0)
+
+
+def _check_fits(value: object, ftype: FieldType) -> None:
+    """Raises ValueError unless a constant or default `value` fits its (element) type."""
+    prim = ftype.primitive
+    if prim is None:
+        return
+    if prim.is_string:
+        if not isinstance(value, str):
+            raise ValueError(f"expected a string, found {value!r}")
+        if ftype.string_bound and len(value.encode("utf-8")) > ftype.string_bound:
+            raise ValueError(f"{value!r} is longer than the bound of {ftype.string_bound}")
+    elif prim is Primitive.BOOLEAN:
+        if not isinstance(value, bool):
+            raise ValueError(f"expected TRUE or FALSE, found {value!r}")
+    elif prim in INTEGER_RANGES:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"expected an integer, found {value!r}")
+        low, high = INTEGER_RANGES[prim]
+        if not low <= value <= high:
+            raise ValueError(f"{value} is out of range for {prim.value} [{low}, {high}]")
+    elif prim.is_float and (isinstance(value, bool) or not isinstance(value, (int, float))):
+        raise ValueError(f"expected a number, found {value!r}")
+
+
+def _check_length(length: int, ftype: FieldType) -> None:
+    if ftype.collection is Collection.ARRAY and length != ftype.size:
+        raise ValueError(f"expected exactly {ftype.size} items, found {length}")
+    if ftype.collection is Collection.BOUNDED_SEQUENCE and length > ftype.size:
+        raise ValueError(f"expected at most {ftype.size} items, found {length}")
 
 
 def _convert_python(value: object, ftype: FieldType) -> object:

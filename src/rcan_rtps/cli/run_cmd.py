@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import gc
 import logging
 import os
 import threading
@@ -115,6 +116,9 @@ async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
         sim_task = asyncio.create_task(robot.run(stop))
     try:
         url = await bridge.start()
+        # What start-up built lives as long as the process: out of the collector's sight, so a
+        # collection during a command scans only what commands allocate (ms → µs pauses).
+        gc.freeze()
         print(f"rcan-rtps ready api={url}", flush=True)
         if args.sim:
             _print_demo(url, env, config)

@@ -6,7 +6,6 @@ records what the governor hands to the bridge.
 
 from __future__ import annotations
 
-import asyncio
 import json
 from collections.abc import Mapping
 from pathlib import Path
@@ -14,18 +13,18 @@ from typing import Any
 
 from aiohttp import web
 from aiohttp.test_utils import TestClient, TestServer
+from recording import RecordingDispatcher
 
 from rcan_rtps.api import GoalView, build_app
 from rcan_rtps.config import RcanConfig, loads_config
 from rcan_rtps.governance import (
     AuditLog,
-    DispatchResult,
     Governor,
     ManualClock,
     Notifier,
     TokenAuthenticator,
 )
-from rcan_rtps.rcan import NormalizedCommand, Status
+from rcan_rtps.rcan import Status
 from rcan_rtps.rcan._messages import Position, RosInfo, Telemetry
 
 RURI = "rcan://registry.local/clearpath/husky/a200-0001"
@@ -78,32 +77,6 @@ def make_config(tmp: Path, *, hitl_extra: str = "", api_extra: str = "",
 
 def auth(name: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {TOKENS[name]}"}
-
-
-class RecordingDispatcher:
-    """Records each dispatch as (action, applied); can report the robot unreachable."""
-
-    def __init__(self) -> None:
-        self.calls: list[tuple[str, dict[str, Any]]] = []
-        self.available = True
-        self.hold: asyncio.Event | None = None  # when set: motion waits for it
-        self.entered = asyncio.Event()  # a held dispatch has started
-
-    def route(self, command: NormalizedCommand) -> str | None:
-        return "/robot1/cmd_vel"
-
-    async def ready(self, command: NormalizedCommand) -> str | None:
-        return None if self.available else "no subscriber on /robot1/cmd_vel"
-
-    async def dispatch(self, command: NormalizedCommand,
-                       applied: Mapping[str, Any]) -> DispatchResult:
-        if self.hold is not None and command.action == "move":
-            self.entered.set()
-            await self.hold.wait()
-        if not self.available:
-            return DispatchResult(ok=False, detail="no subscriber on /robot1/cmd_vel")
-        self.calls.append((command.action, dict(applied)))
-        return DispatchResult(ok=True, ros2_topic="/robot1/cmd_vel")
 
 
 class MemoryRobot:

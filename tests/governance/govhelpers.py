@@ -10,10 +10,12 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from recording import RecordingDispatcher
+
 from rcan_rtps.config import RcanConfig, loads_config
 from rcan_rtps.governance.audit import AuditLog
 from rcan_rtps.governance.clock import ManualClock
-from rcan_rtps.governance.governor import DispatchResult, Governor
+from rcan_rtps.governance.governor import Governor
 from rcan_rtps.governance.hitl import Notifier
 from rcan_rtps.governance.rbac import DEFAULT_RATE_LIMITS, Principal
 from rcan_rtps.rcan import NormalizedCommand, Role, validate_command
@@ -51,30 +53,6 @@ def command(
 ) -> NormalizedCommand:
     body = {"action": action, "params": dict(params or {}), **extra}
     return validate_command(json.dumps(body).encode())
-
-
-class RecordingDispatcher:
-    """Records each dispatch; can be told to report the robot unreachable or to raise."""
-
-    def __init__(self) -> None:
-        self.calls: list[tuple[str, dict[str, Any]]] = []
-        self.available = True
-        self.raises: Exception | None = None
-
-    def route(self, command: NormalizedCommand) -> str | None:
-        return f"/robot1/{command.action}"
-
-    async def ready(self, command: NormalizedCommand) -> str | None:
-        return None if self.available else "no subscriber on /robot1/cmd_vel"
-
-    async def dispatch(self, command: NormalizedCommand,
-                       applied: Mapping[str, Any]) -> DispatchResult:
-        if self.raises is not None:
-            raise self.raises
-        if not self.available:
-            return DispatchResult(ok=False, detail="no subscriber on /robot1/cmd_vel")
-        self.calls.append((command.action, dict(applied)))
-        return DispatchResult(ok=True, ros2_topic=f"/robot1/{command.action}")
 
 
 def audit_entries(path: Path) -> list[dict[str, Any]]:

@@ -223,7 +223,8 @@ async def test_failing_safety_check_denies(harness: Harness, gov: Governor,
     def broken(*_: object) -> None:
         raise ZeroDivisionError
 
-    monkeypatch.setattr(gov._safety, "checks", (*gov._safety.checks, broken))
+    move_policy = gov._safety.policies["move"]  # type: ignore[attr-defined]
+    monkeypatch.setattr(move_policy, "checks", (*move_policy.checks, broken))
     d = await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)
     check(d, 409, Outcome.DENIED, ErrorCode.COMMAND_REJECTED, "safety_check_error")
     assert harness.dispatcher.calls == []

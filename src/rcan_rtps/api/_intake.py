@@ -43,7 +43,6 @@ Reply = tuple[int, Any]
 Deliver = Callable[[Reply], Awaitable[None]]
 Observe = Callable[[float], None]
 
-STOPPING = frozenset({"estop", "stop"})
 TOO_DEEP = "JSON is nested too deeply"
 # A bug in validation must not take a transport down: it is answered (and audited) like this.
 _INTERNAL = Rejection(503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE, "internal_error")
@@ -60,7 +59,7 @@ class Intake:
     @property
     def stopping(self) -> bool:
         """A valid `stop` or `estop`: the kind no queue may hold back."""
-        return self.command is not None and self.command.action in STOPPING
+        return self.command is not None and self.command.spec.stopping
 
     @property
     def message_id(self) -> str | None:

@@ -12,6 +12,7 @@ from prometheus_client import CONTENT_TYPE_LATEST as CONTENT_TYPE
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 
 from rcan_rtps.governance import AuditRecord, Governor
+from rcan_rtps.rcan.actions import specs
 
 from .ports import RobotView
 
@@ -40,6 +41,10 @@ class Metrics:
         self.telemetry_age = Gauge("rcan_telemetry_age_seconds",
                                    "Age of the newest ROS 2 telemetry (NaN: none yet)",
                                    registry=self.registry)
+        self.actions = Gauge("rcan_action_info", "1 per action this bridge accepts",
+                             ["action", "effect", "default_role"], registry=self.registry)
+        for spec in specs():
+            self.actions.labels(spec.name, spec.effect.value, spec.default_role.name).set(1)
         governor.audit.listeners.append(self.on_audit)
 
     def on_audit(self, record: AuditRecord) -> None:

@@ -13,23 +13,20 @@ ROBOT_UNAVAILABLE at once. A topic that never matched yet gets `match_timeout_s`
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any, Protocol
 
 from ..config import Ros2Config
 from ..governance import DispatchResult
-from ..rcan import NormalizedCommand
+from ..rcan import ActionParams, ActionSpec, Effect, NormalizedCommand
+from ..rcan.actions import EstopSignal, Halt, Publish, SendGoal, specs, with_effect
 from ..ros import qos
 from ..ros.errors import GraphTimeout
 from ..ros.participant import RosNode, RosPublisher
-from ..ros.rostime import duration_msg, now_msg, yaw_to_quaternion
+from ..ros.rostime import now_msg
 
 log = logging.getLogger(__name__)
 
-TWIST = "geometry_msgs/msg/Twist"
-TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
-BOOL = "std_msgs/msg/Bool"
-TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
 ESTOP_QOS = qos.DEFAULT.with_(depth=1, durability=qos.Durability.TRANSIENT_LOCAL)
 
 
@@ -48,7 +45,39 @@ class Navigator(Protocol):
     def action_name(self) -> str: ...
 
 
+class _Kit:
+    """The `MessageKit` of one publish route: the action modules build messages with it."""
+
+    def __init__(self, node: RosNode, ros2: Ros2Config, message_type: str) -> None:
+        self._node, self._ros2, self._type = node, ros2, message_type
+
+    @property
+    def message_type(self) -> str:
+        return self._type
+
+    def struct(self, type_name: str) -> Any:
+        return self._node.types.struct(type_name)
+
+    def now(self) -> dict[str, int]:
+        return now_msg()
+
+    def setting(self, key: str) -> Any:
+        return getattr(self._ros2, key)
+
+
+class _Route:
+    """One declared `Publish`, bound to its publisher."""
+
+    def __init__(self, spec: Publish[Any], publisher: RosPublisher, kit: _Kit) -> None:
+        self.spec, self.publisher, self.kit = spec, publisher, kit
+
+    def message(self, params: ActionParams) -> Any:
+        return self.spec.build(params, self.kit)
+
+
 class RosDispatcher:
+    """Carries out each action as its registry entry declares (`ActionSpec.ros`)."""
+
     def __init__(self, node: RosNode, ros2: Ros2Config, navigator: Navigator | None = None,
                  *, telemetry_age: Callable[[], float | None] = lambda: None) -> None:
         self.node = node
@@ -57,44 +86,75 @@ class RosDispatcher:
         self.on_command: Callable[[], None] = lambda: None  # e.g. leave `safe_stop` state
         self._telemetry_age = telemetry_age  # seconds since the robot last published, if ever
         self._ever_matched: set[str] = set()
-        self.cmd_vel = node.create_publisher(ros2.cmd_vel_topic, ros2.cmd_vel_type)
+        self._publishers: dict[tuple[str, str, bool], RosPublisher] = {}
+        self._routes: dict[int, _Route] = {}
+        for spec in specs():
+            for publish in _publishes(spec):
+                self._bind(publish)
+        self._halt = self._bind(_halt_route().velocity)
+        self.cmd_vel = self._halt.publisher  # where halting publishes zero velocity
         # Latched (transient-local): a robot node that (re)joins still learns the e-stop state.
-        self.estop = node.create_publisher(ros2.estop_topic, BOOL, ESTOP_QOS)
-        self.trajectory = node.create_publisher(ros2.joint_trajectory_topic, TRAJECTORY)
-        self._vector3 = node.types.struct("geometry_msgs/msg/Vector3")
+        self.estop = self._bind(_estop_route().signal).publisher
+
+    def _bind(self, publish: Publish[Any]) -> _Route:
+        route = self._routes.get(id(publish))
+        if route is not None:
+            return route
+        topic = getattr(self.ros2, publish.topic_key)
+        type_name = publish.type_name or getattr(self.ros2, publish.type_key or "")
+        key = (topic, type_name, publish.latched)
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            publisher = self.node.create_publisher(
+                topic, type_name, ESTOP_QOS if publish.latched else qos.DEFAULT)
+            self._publishers[key] = publisher
+        route = self._routes[id(publish)] = _Route(
+            publish, publisher, _Kit(self.node, self.ros2, type_name))
+        return route
+
+    def _route_of(self, spec: ActionSpec[Any]) -> _Route:
+        ros = spec.ros
+        publish = ros if isinstance(ros, Publish) else (
+            ros.velocity if isinstance(ros, Halt) else ros.signal if isinstance(
+                ros, EstopSignal) else None)
+        if publish is None:
+            raise TypeError(f"{spec.name} does not publish")
+        return self._routes[id(publish)]
 
     def route(self, command: NormalizedCommand) -> str | None:
-        if command.action == "navigate":
+        if isinstance(command.spec.ros, SendGoal):
             return self.navigator.action_name if self.navigator is not None else None
-        return self._publisher(command.action).topic
-
-    def _publisher(self, action: str) -> RosPublisher:
-        if action == "arm_joint":
-            return self.trajectory
-        return self.estop if action in ("estop", "clear_estop") else self.cmd_vel
+        return self._route_of(command.spec).publisher.topic
 
     async def ready(self, command: NormalizedCommand) -> str | None:
-        if command.action in ("stop", "estop"):
+        spec = command.spec
+        if spec.stopping:
             return None  # stopping is never held back
-        if command.action != "clear_estop":
+        if spec.effect is not Effect.CLEAR_ESTOP:
             silent = self._silent()
             if silent is not None:
                 return silent
-        if command.action == "navigate":
+        if isinstance(spec.ros, SendGoal):
             return None if self.navigator is not None else "navigation is not available"
-        pub = self._publisher(command.action)
+        pub = self._route_of(spec).publisher
         if await self._matched(pub):
             return None
         return f"no subscriber on {pub.topic}"
 
     async def dispatch(self, command: NormalizedCommand,
-                       applied: Mapping[str, Any]) -> DispatchResult:
-        handler = {
-            "move": self._move, "arm_joint": self._arm_joint, "navigate": self._navigate,
-            "stop": self._stop, "estop": self._estop, "clear_estop": self._clear_estop,
-        }[command.action]
+                       applied: ActionParams) -> DispatchResult:
         self.on_command()
-        return await handler(applied)
+        ros = command.spec.ros
+        if isinstance(ros, SendGoal):
+            return await self._send_goal(ros, applied)
+        if isinstance(ros, Halt):
+            return await self._stop()
+        if isinstance(ros, EstopSignal) and ros.engaged:
+            return await self._estop(ros, applied)
+        route = self._route_of(command.spec)
+        if command.spec.motion:
+            return self._publish_motion(route, applied)
+        return self._publish(route, applied)
 
     # -- helpers ---------------------------------------------------------------------
     def _silent(self) -> str | None:
@@ -116,68 +176,41 @@ class RosDispatcher:
         self._ever_matched.add(pub.topic)
         return True
 
-    def _twist(self, linear_x: float = 0.0, linear_y: float = 0.0,
-               angular_z: float = 0.0) -> Any:
-        # Built directly (the hot path): the governor has already checked these numbers.
-        vec: Any = self._vector3
-        twist_cls: Any = self.node.types.struct(TWIST)
-        twist = twist_cls(linear=vec(float(linear_x), float(linear_y), 0.0),
-                          angular=vec(0.0, 0.0, float(angular_z)))
-        if self.ros2.cmd_vel_type == TWIST_STAMPED:
-            header = self.node.values.build("std_msgs/msg/Header", {"stamp": now_msg()})
-            stamped: Any = self.node.types.struct(TWIST_STAMPED)
-            return stamped(header=header, twist=twist)
-        return twist
-
-    async def _publish(self, pub: RosPublisher, message: Any) -> DispatchResult:
+    @staticmethod
+    def _publish(route: _Route, params: ActionParams) -> DispatchResult:
         # No await before the write: `ready` waited, the governor checked the latch last.
-        pub.publish(message)
-        return DispatchResult(ok=True, ros2_topic=pub.topic)
+        route.publisher.publish(route.message(params))
+        return DispatchResult(ok=True, ros2_topic=route.publisher.topic)
 
-    async def _publish_motion(self, pub: RosPublisher, message: Any) -> DispatchResult:
+    def _publish_motion(self, route: _Route, params: ActionParams) -> DispatchResult:
         # `ready` passed before the write-ahead entry; the robot may have gone silent or its
         # reader left while that was written. Checked again with no await before the write.
+        pub = route.publisher
         why = self._silent() or (None if pub.matched_count() else f"no subscriber on {pub.topic}")
         if why is not None:
             return DispatchResult(ok=False, ros2_topic=pub.topic, detail=why)
-        return await self._publish(pub, message)
+        return self._publish(route, params)
 
-    # -- actions -----------------------------------------------------------------------
-    async def _move(self, applied: Mapping[str, Any]) -> DispatchResult:
-        return await self._publish_motion(self.cmd_vel, self._twist(
-            applied.get("linear_x", 0.0), applied.get("linear_y", 0.0),
-            applied.get("angular_z", 0.0)))
-
-    async def _arm_joint(self, applied: Mapping[str, Any]) -> DispatchResult:
-        # A zero header stamp tells joint_trajectory_controller to start at once.
-        return await self._publish_motion(self.trajectory, {
-            "joint_names": list(applied["joints"]),
-            "points": [{"positions": list(applied["positions"]),
-                        "time_from_start": duration_msg(applied["duration_s"])}],
-        })
-
-    async def _navigate(self, applied: Mapping[str, Any]) -> DispatchResult:
+    async def _send_goal(self, ros: SendGoal[Any], params: ActionParams) -> DispatchResult:
         if self.navigator is None:
             return DispatchResult(ok=False, detail="navigation is not available")
-        frame = applied.get("frame_id") or self.ros2.nav_frame_id
-        goal = {"pose": {"header": {"stamp": now_msg(), "frame_id": frame},
-                         "pose": {"position": {"x": applied["x"], "y": applied["y"], "z": 0.0},
-                                  "orientation": yaw_to_quaternion(applied["yaw"])}}}
+        goal = ros.build(params, _Kit(self.node, self.ros2, ros.type_name))
         try:
             goal_id = await self.navigator.send(goal, timeout=self.ros2.match_timeout_s)
         except Exception as exc:  # rejected, no server, timeout: all mean "not executing"
-            log.warning("navigate goal not accepted: %s", exc)
+            log.warning("%s goal not accepted: %s", ros.type_name, exc)
             return DispatchResult(ok=False, ros2_topic=self.navigator.action_name,
                                   detail=str(exc))
         return DispatchResult(ok=True, ros2_topic=self.navigator.action_name, goal_id=goal_id)
 
     async def halt(self) -> tuple[bool, int]:
-        """Zero velocity and cancel every goal; (cmd_vel reached, goals cancelled)."""
+        """Zero velocity and cancel every goal; (velocity topic reached, goals cancelled)."""
+        zero = self._halt.message(with_effect(Effect.HALT).params())
         matched_before = self.cmd_vel.matched_count() > 0
-        self.cmd_vel.publish(self._twist())  # first, unconditionally: late joiners stop too
+        self.cmd_vel.publish(zero)  # first, unconditionally: late joiners stop too
         reached = matched_before or await self._matched(self.cmd_vel)
         if reached and not matched_before:
-            self.cmd_vel.publish(self._twist())  # the first preceded the match
+            self.cmd_vel.publish(zero)  # the first preceded the match
         cancelled = 0
         if self.navigator is not None:
             try:
@@ -186,24 +219,46 @@ class RosDispatcher:
                 log.exception("cancelling navigation goals failed")
         return reached, cancelled
 
-    async def _stop(self, applied: Mapping[str, Any]) -> DispatchResult:
+    async def _stop(self) -> DispatchResult:
         reached, cancelled = await self.halt()
         if not reached and not cancelled:
             return DispatchResult(ok=False, ros2_topic=self.cmd_vel.topic,
                                   detail=f"no subscriber on {self.cmd_vel.topic}")
         return DispatchResult(ok=True, ros2_topic=self.cmd_vel.topic)
 
-    async def _estop(self, applied: Mapping[str, Any]) -> DispatchResult:
+    async def _estop(self, ros: EstopSignal, params: ActionParams) -> DispatchResult:
         # The governor has already latched; here the robot is told, and motion halted too.
-        self.estop.publish({"data": True})
-        told = await self._matched(self.estop)
+        route = self._routes[id(ros.signal)]
+        signal = route.message(params)
+        route.publisher.publish(signal)
+        told = await self._matched(route.publisher)
         if told:
-            self.estop.publish({"data": True})  # the first write may have preceded the match
+            route.publisher.publish(signal)  # the first write may have preceded the match
         reached, cancelled = await self.halt()
         if not (told or reached or cancelled):
-            return DispatchResult(ok=False, ros2_topic=self.estop.topic,
-                                  detail=f"no subscriber on {self.estop.topic}")
-        return DispatchResult(ok=True, ros2_topic=self.estop.topic)
+            return DispatchResult(ok=False, ros2_topic=route.publisher.topic,
+                                  detail=f"no subscriber on {route.publisher.topic}")
+        return DispatchResult(ok=True, ros2_topic=route.publisher.topic)
 
-    async def _clear_estop(self, applied: Mapping[str, Any]) -> DispatchResult:
-        return await self._publish(self.estop, {"data": False})
+
+def _publishes(spec: ActionSpec[Any]) -> list[Publish[Any]]:
+    ros = spec.ros
+    if isinstance(ros, Publish):
+        return [ros]
+    if isinstance(ros, Halt):
+        return [ros.velocity]
+    if isinstance(ros, EstopSignal):
+        return [ros.signal] + ([ros.halt.velocity] if ros.halt else [])
+    return []
+
+
+def _halt_route() -> Halt:
+    ros = with_effect(Effect.HALT).ros
+    assert isinstance(ros, Halt), "the HALT action must route as Halt"
+    return ros
+
+
+def _estop_route() -> EstopSignal:
+    ros = with_effect(Effect.ESTOP).ros
+    assert isinstance(ros, EstopSignal), "the ESTOP action must route as EstopSignal"
+    return ros

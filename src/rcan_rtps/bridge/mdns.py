@@ -32,13 +32,13 @@ from zeroconf.asyncio import AsyncServiceBrowser, AsyncServiceInfo, AsyncZerocon
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import RolePolicy
-from rcan_rtps.rcan import Action, Role, parse_ruri
+from rcan_rtps.rcan import Effect, Role, parse_ruri
+from rcan_rtps.rcan.actions import names, specs
 
 log = logging.getLogger(__name__)
 
 SERVICE_TYPE = "_rcan._tcp.local."
 RCAN_SPEC = "1.2"
-_COMMANDING = ("move", "arm_joint", "navigate", "stop")
 _RESOLVE_MS = 3000.0
 _WILDCARDS = ("", "0.0.0.0")
 
@@ -97,7 +97,8 @@ def addresses_for(host: str) -> list[str]:
 def txt_records(config: RcanConfig, *, api_url: str) -> dict[str, str]:
     ruri = parse_ruri(config.robot.ruri)
     roles = RolePolicy({a: Role[r] for a, r in config.bridge.rbac.action_roles.items()})
-    lowest = min(roles.required(a) for a in _COMMANDING)
+    # The role a client needs to command the robot: to move it, and to stop what it started.
+    lowest = min(roles.required(s.name) for s in specs() if s.motion or s.effect is Effect.HALT)
     return {
         "ruri": config.robot.ruri,
         "role": lowest.name,
@@ -109,7 +110,7 @@ def txt_records(config: RcanConfig, *, api_url: str) -> dict[str, str]:
         "status_endpoint": f"{api_url}/api/status",
         "model": ruri.model,
         "name": config.robot.name or f"{ruri.manufacturer}-{ruri.model}-{ruri.device_id}",
-        "caps": ",".join(a.value for a in Action),
+        "caps": ",".join(names()),
     }
 
 

@@ -11,7 +11,7 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from rcan_rtps.rcan import ActionName, InvalidRuriError, RoleName, parse_ruri
+from rcan_rtps.rcan import ActionName, GateableName, InvalidRuriError, RoleName, parse_ruri
 
 _ROS_NAME = re.compile(r"^~?/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*$")
 _NODE_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
@@ -87,7 +87,7 @@ class ConfidenceGate(_Section, frozen=True, kw_only=True):
 
 
 class HitlGate(_Section, frozen=True, kw_only=True):
-    action: Literal["move", "arm_joint", "navigate", "clear_estop"]  # never stop/estop
+    action: GateableName  # never an action that stops the robot
     require_auth: bool = True
     authorized_roles: list[RoleName] = []
 

@@ -15,27 +15,27 @@ import asyncio
 import contextlib
 import logging
 import uuid
-from collections.abc import Callable, Coroutine, Iterator, Mapping
+from collections.abc import Callable, Coroutine, Iterator
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, Protocol
 
 import msgspec
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.rcan import (
-    MOTION_ACTIONS,
-    Action,
     ActionParams,
+    ActionSpec,
     DecisionBody,
+    Effect,
     ErrorCode,
     InvalidRuriError,
-    NoParams,
     NormalizedCommand,
     Outcome,
     PendingAuth,
     Role,
     parse_ruri,
 )
+from rcan_rtps.rcan.actions import with_effect
 
 from . import outcomes
 from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
@@ -44,7 +44,7 @@ from .errors import AuditError, EstopStateError
 from .estop import EstopMachine, LatchFile
 from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand, PendingStore
 from .idempotency import Conflict, Idempotency
-from .invariants import AllOf, Violation, safety_policy
+from .invariants import Check, Violation, safety_policy
 from .outcomes import Rejection
 from .rbac import Principal, RateLimiter, RolePolicy
 
@@ -66,7 +66,8 @@ class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):
 
 
 class Dispatcher(Protocol):
-    """The hook the bridge plugs in; `applied` is what may be sent (clamped, checked)."""
+    """The hook the bridge plugs in; `applied` is what may be sent (clamped, checked), typed
+    as the action's parameters all the way to the ROS message."""
 
     def route(self, command: NormalizedCommand) -> str | None:
         """Where `command` will go (a topic or action name), for its write-ahead entry."""
@@ -77,7 +78,7 @@ class Dispatcher(Protocol):
         ...
 
     async def dispatch(
-        self, command: NormalizedCommand, applied: Mapping[str, Any]
+        self, command: NormalizedCommand, applied: ActionParams
     ) -> DispatchResult:
         """Send `command`; motion is published before the first await (after `ready`)."""
         ...
@@ -108,7 +109,7 @@ class Decision(msgspec.Struct, frozen=True, kw_only=True):
 
 class Governor:
     def __init__(self, *, audit: AuditLog, dispatcher: Dispatcher, roles: RolePolicy,
-                 limiter: RateLimiter, safety: AllOf, latch: EstopMachine, hitl: HitlPolicy,
+                 limiter: RateLimiter, safety: Check, latch: EstopMachine, hitl: HitlPolicy,
                  clock: Clock, hitl_timeout_s: float = 300.0,
                  require_distinct_approver: bool = False, session_timeout_s: float = 2.0,
                  robot_ruri: str | None = None, notifier: Notifier | None = None) -> None:
@@ -171,7 +172,7 @@ class Governor:
         self._sweeper = asyncio.create_task(self._sweep_forever())
 
     async def _republish_estop(self) -> None:
-        _, failure = await self._dispatch(_bridge_command("estop"), {})
+        _, failure = await self._dispatch(_bridge_command(Effect.ESTOP))
         if failure is not None:
             log.error("latched at start, but the robot could not be told (%s)", failure.reason)
 
@@ -187,10 +188,11 @@ class Governor:
 
     async def decide(self, command: NormalizedCommand, principal: Principal) -> Decision:
         """Decide, act and audit; a caller that goes away does not stop the decision."""
-        if command.action == "estop":  # any authenticated principal; latched right here
+        effect = command.spec.effect
+        if effect is Effect.ESTOP:  # any authenticated principal; latched right here
             return await asyncio.shield(
                 self.latch.engage(lambda: self._estop(command, principal)))
-        if command.action == "stop":  # the e-stop lane: no admission queue
+        if effect is Effect.HALT:  # the e-stop lane: no admission queue
             return await asyncio.shield(self._spawn(self._decide(command, principal)))
         async with self._admission:
             return await asyncio.shield(self._spawn(self._decide(command, principal)))
@@ -214,7 +216,7 @@ class Governor:
         refused = self._precheck(command, principal)
         if refused is not None:
             return await self._refuse(command, principal, refused)
-        if command.action == "stop" or not command.client_message_id:
+        if command.spec.effect is Effect.HALT or not command.client_message_id:
             return await self._govern(command, principal)  # never swallowed, never retried
         key = (principal.name, command.message_id)
         earlier = self._idem.claim(key, _fingerprint(command))
@@ -241,7 +243,7 @@ class Governor:
                     return outcomes.NOT_THIS_ROBOT
             except InvalidRuriError as exc:
                 return outcomes.invalid_ruri(exc.rule)
-        if command.action != "stop" and not self._limiter.allow(principal):
+        if command.spec.effect is not Effect.HALT and not self._limiter.allow(principal):
             return outcomes.RATE_LIMITED  # a stop is never rate-limited
         return None
 
@@ -255,7 +257,7 @@ class Governor:
             return await self._refuse(command, principal, gate)
         if isinstance(gate, Escalate):
             return await self._hold(command, principal, gate.approver_role)
-        self._sessions.touch(principal, command.action)
+        self._sessions.touch(principal, command.spec)
         # A command still being carried out (waiting for a subscriber, say) is not silence.
         with self._sessions.in_flight(principal):
             decision = await self._execute(command, principal, applied,
@@ -279,7 +281,7 @@ class Governor:
             return_exceptions=True)
         if isinstance(persisted, BaseException):
             log.error("e-stop latched in memory only: %s", persisted)
-        result, failure = await self._dispatch(command, {})
+        result, failure = await self._dispatch(command, command.params)
         if isinstance(receipt, BaseException):
             log.error("e-stop sent but not audited: %s", receipt)
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
@@ -306,7 +308,7 @@ class Governor:
             return await self._failed(command, principal, outcomes.ESTOP_STATE_UNWRITABLE)
         if not self.latch.unlatch():  # an e-stop is next in line: the robot stays stopped
             return _executed(command, {}, receipt, DispatchResult(ok=True))
-        result, failure = await self._dispatch(command, {})
+        result, failure = await self._dispatch(command, command.params)
         if failure is not None:
             return await self._failed(command, principal, failure)
         return _executed(command, {}, receipt, result)
@@ -317,10 +319,11 @@ class Governor:
                        params: ActionParams, event: AuditEvent,
                        pending_id: str | None = None) -> Decision:
         applied = msgspec.structs.asdict(params)
-        if command.action == "clear_estop":
+        spec = command.spec
+        if spec.effect is Effect.CLEAR_ESTOP:
             return await self.latch.clear(
                 lambda: self._clear_estop(command, principal, event, pending_id))
-        motion = Action(command.action) in MOTION_ACTIONS
+        motion = spec.motion
         if motion and self.latch.latched:
             return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
                                       pending_id=pending_id)
@@ -340,12 +343,12 @@ class Governor:
         # Checked again after the write, with no await between this check and the publish.
         if motion and self.latch.latched:
             return await self._failed(command, principal, outcomes.ESTOP_ACTIVE)
-        result, failure = await self._dispatch(command, applied)
+        result, failure = await self._dispatch(command, params)
         if failure is not None:
             return await self._failed(command, principal, failure)
-        if command.action == "navigate" and self.latch.latched:
+        if spec.starts_goal and self.latch.latched:
             # Accepted while an e-stop latched: the e-stop's cancel may have missed this goal.
-            await self._dispatch(_bridge_command("stop"), {})
+            await self._dispatch(_bridge_command(Effect.HALT))
         return _executed(command, applied, receipt, result)
 
     async def _write_ahead(self, record: AuditRecord) -> AuditReceipt | None:
@@ -370,10 +373,11 @@ class Governor:
             log.exception("readiness check for %s failed", command.action)
             return f"readiness check failed: {exc!r}"
 
-    async def _dispatch(self, command: NormalizedCommand,
-                        applied: Mapping[str, Any]) -> tuple[DispatchResult, Rejection | None]:
+    async def _dispatch(self, command: NormalizedCommand, applied: ActionParams | None = None
+                        ) -> tuple[DispatchResult, Rejection | None]:
         try:
-            result = await self._dispatcher.dispatch(command, applied)
+            result = await self._dispatcher.dispatch(
+                command, command.params if applied is None else applied)
         except Exception as exc:  # a bridge fault is an outcome (failed), never a crash
             log.exception("dispatch of %s failed", command.action)
             return DispatchResult(ok=False, detail=repr(exc)), outcomes.DISPATCH_ERROR
@@ -447,7 +451,7 @@ class Governor:
         except Violation as violation:
             return await self._refuse(command, approver, violation.rejection,
                                       event=AuditEvent.HITL_AUTHORIZED, pending_id=pending_id)
-        self._sessions.touch(pending.issuer, command.action)
+        self._sessions.touch(pending.issuer, command.spec)
         return await self._execute(command, approver, applied, AuditEvent.HITL_AUTHORIZED,
                                    pending_id)
 
@@ -474,12 +478,12 @@ class Governor:
 
     async def safe_stop(self, principal: Principal) -> Decision:
         """Session lost: zero velocity and cancel goals (a `stop`), audited as such."""
-        stop = _bridge_command("stop")
+        stop = _bridge_command(Effect.HALT)
         record = _record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
                          applied={}, ros2_topic=self._route(stop))
         receipt = await self._write_ahead(record)
         # Halted even if the audit cannot be written: stopping is never held back.
-        result, failure = await self._dispatch(stop, {})
+        result, failure = await self._dispatch(stop)
         for listener in self.safe_stop_listeners:  # e.g. STATUS shows `safe_stop`
             listener(principal)
         if receipt is None:
@@ -540,10 +544,10 @@ class Sessions:
             if left:
                 self._busy[principal.name] = left
 
-    def touch(self, principal: Principal, action: str) -> None:
-        if Action(action) in MOTION_ACTIONS:
+    def touch(self, principal: Principal, spec: ActionSpec[Any]) -> None:
+        if spec.motion:
             self._last[principal.name] = (principal, self._clock.monotonic())
-        elif action in ("stop", "estop"):
+        elif spec.stopping:
             self._last.pop(principal.name, None)  # stopped on purpose: nothing to guard
 
     def heartbeat(self, principal: Principal) -> None:
@@ -592,9 +596,10 @@ async def _awaited(future: asyncio.Future[Any]) -> Any:
     return await future
 
 
-def _bridge_command(action: Literal["stop", "estop"]) -> NormalizedCommand:
+def _bridge_command(effect: Effect) -> NormalizedCommand:
     """A command the bridge issues itself (a safe stop, an e-stop re-published at start)."""
-    return NormalizedCommand(action=action, params=NoParams(), requested={},
+    spec = with_effect(effect)
+    return NormalizedCommand(action=spec.name, params=spec.params(), requested={},
                              message_id=str(uuid.uuid4()))
 
 

@@ -10,7 +10,8 @@ import aiohttp
 import msgspec
 
 from rcan_rtps.config import HitlConfig
-from rcan_rtps.rcan import Action, NormalizedCommand, PendingAuth, Role, RoleName
+from rcan_rtps.rcan import NormalizedCommand, PendingAuth, Role, RoleName
+from rcan_rtps.rcan.actions import specs
 
 from . import outcomes
 from .outcomes import Rejection
@@ -18,7 +19,7 @@ from .rbac import Principal
 
 log = logging.getLogger(__name__)
 # A human must never be needed to stop the robot: these actions are never gated.
-NEVER_GATED = frozenset({Action.STOP.value, Action.ESTOP.value})
+NEVER_GATED = frozenset(s.name for s in specs() if not s.hitl.gateable)
 
 
 class PendingCommand(msgspec.Struct, frozen=True, kw_only=True):
@@ -54,10 +55,16 @@ class HitlPolicy:
     def __init__(self, config: HitlConfig, default_approver: Role = Role.OWNER) -> None:
         self._gate = config.confidence_gate
         self._default = default_approver
+        # The registry's defaults first; a configured gate for an action replaces its default.
+        configured = {g.action for g in config.gates}
         self._actions: dict[str, Role] = {
-            g.action: min((Role[r] for r in g.authorized_roles), default=default_approver)
-            for g in config.gates if g.require_auth
+            s.name: default_approver for s in specs()
+            if s.hitl.gateable and s.hitl.required and s.name not in configured
         }
+        self._actions.update({
+            g.action: min((Role[r] for r in g.authorized_roles), default=default_approver)
+            for g in config.gates if g.require_auth and g.action not in NEVER_GATED
+        })
 
     def approver_role(self, action: str) -> Role:
         return self._actions.get(action, self._default)

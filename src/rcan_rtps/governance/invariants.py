@@ -9,20 +9,20 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
 import msgspec
 
 from rcan_rtps.config import SafetyConfig, polygon_edges, polygon_problem
 from rcan_rtps.rcan import (
-    MOTION_ACTIONS,
-    Action,
     ActionParams,
+    Invariant,
     MoveParams,
     NavigateParams,
     NormalizedCommand,
 )
+from rcan_rtps.rcan.actions import specs
 
 from . import outcomes
 from .errors import GovernanceError
@@ -155,15 +155,32 @@ class EstopGuard:
         self.latch = latch
 
     def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
-        if self.latch.latched and Action(command.action) in MOTION_ACTIONS:
+        if self.latch.latched and command.spec.motion:
             raise Violation(outcomes.ESTOP_ACTIVE)
         return params
 
 
-def safety_policy(safety: SafetyConfig, latch: Latch, nav_frame_id: str) -> AllOf:
-    return AllOf(
-        EstopGuard(latch),
-        finite_numbers,
-        VelocityLimit(safety.max_linear_vel, safety.max_angular_vel, safety.velocity_exceed_deny),
-        Workspace(safety.workspace, nav_frame_id),
-    )
+class PerAction:
+    """Each action through the invariants its registry entry declares; an action without an
+    entry is refused (fail closed)."""
+
+    def __init__(self, policies: Mapping[str, Check]) -> None:
+        self.policies = dict(policies)
+
+    def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
+        policy = self.policies.get(command.action)
+        if policy is None:
+            raise Violation(outcomes.SAFETY_CHECK_ERROR, f"no invariants for {command.action!r}")
+        return policy(command, params)
+
+
+def safety_policy(safety: SafetyConfig, latch: Latch, nav_frame_id: str) -> PerAction:
+    checks: dict[Invariant, Check] = {
+        Invariant.ESTOP_GUARD: EstopGuard(latch),
+        Invariant.FINITE: finite_numbers,
+        Invariant.VELOCITY: VelocityLimit(safety.max_linear_vel, safety.max_angular_vel,
+                                          safety.velocity_exceed_deny),
+        Invariant.WORKSPACE: Workspace(safety.workspace, nav_frame_id),
+    }
+    return PerAction({spec.name: AllOf(*(checks[i] for i in spec.invariants))
+                      for spec in specs()})

@@ -18,7 +18,8 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from rcan_rtps.config import ApiConfig, JwtConfig, RbacConfig
-from rcan_rtps.rcan import Role
+from rcan_rtps.rcan import Effect, Role
+from rcan_rtps.rcan.actions import specs, with_effect
 
 from .clock import Clock
 from .errors import AuthConfigError, AuthenticationError
@@ -30,14 +31,7 @@ SCOPES: Mapping[str, Role] = {
     "training": Role.OWNER,
     "admin": Role.CREATOR,
 }
-DEFAULT_ACTION_ROLES: Mapping[str, Role] = {
-    "move": Role.USER,
-    "arm_joint": Role.USER,
-    "navigate": Role.USER,
-    "stop": Role.USER,
-    "estop": Role.GUEST,  # an e-stop must always be available
-    "clear_estop": Role.OWNER,
-}
+DEFAULT_ACTION_ROLES: Mapping[str, Role] = {s.name: s.default_role for s in specs()}
 DEFAULT_RATE_LIMITS: Mapping[Role, int | None] = {
     Role.GUEST: 10,
     Role.USER: 100,
@@ -68,7 +62,7 @@ class RolePolicy:
     def __init__(self, overrides: Mapping[str, Role] | None = None) -> None:
         self._required = {**DEFAULT_ACTION_ROLES, **(overrides or {})}
         # Even a config cannot take the e-stop away from any authenticated principal.
-        self._required["estop"] = Role.GUEST
+        self._required[with_effect(Effect.ESTOP).name] = Role.GUEST
 
     def required(self, action: str) -> Role:
         return self._required[action]

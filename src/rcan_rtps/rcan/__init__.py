@@ -8,9 +8,6 @@ Public API (everything else is private)::
 """
 
 from ._enums import (
-    MOTION_ACTIONS,
-    Action,
-    ActionName,
     ErrorCode,
     Outcome,
     Reason,
@@ -19,18 +16,13 @@ from ._enums import (
 )
 from ._errors import InvalidRuriError, RcanError, SchemaValidationError
 from ._messages import (
-    ActionParams,
     AiInfo,
-    ArmJointParams,
     Authorize,
     DecisionBody,
     EnvelopeCommand,
     ErrorBody,
     Fault,
     Joints,
-    MoveParams,
-    NavigateParams,
-    NoParams,
     NormalizedCommand,
     PendingAuth,
     Position,
@@ -42,22 +34,39 @@ from ._messages import (
 )
 from ._ruri import Ruri, parse_ruri
 from ._schema import openapi_schemas
+from ._types import ActionParams
 from ._validate import convert_at, validate_command, validation_path
+from .actions import (
+    ACTIONS,
+    ActionName,
+    ActionSpec,
+    ArmJointParams,
+    Effect,
+    GateableName,
+    Invariant,
+    MoveParams,
+    NavigateParams,
+    NoParams,
+    action_spec,
+)
 
 __all__ = [
-    "MOTION_ACTIONS",
-    "Action",
+    "ACTIONS",
     "ActionName",
     "ActionParams",
+    "ActionSpec",
     "AiInfo",
     "ArmJointParams",
     "Authorize",
     "DecisionBody",
+    "Effect",
     "EnvelopeCommand",
     "ErrorBody",
     "ErrorCode",
     "Fault",
+    "GateableName",
     "InvalidRuriError",
+    "Invariant",
     "Joints",
     "MoveParams",
     "NavigateParams",
@@ -77,6 +86,7 @@ __all__ = [
     "Status",
     "Telemetry",
     "Velocity",
+    "action_spec",
     "convert_at",
     "openapi_schemas",
     "parse_ruri",

@@ -19,20 +19,6 @@ class Role(enum.IntEnum):
 RoleName = Literal["GUEST", "USER", "LEASEE", "OWNER", "CREATOR"]
 
 
-class Action(str, enum.Enum):
-    MOVE = "move"
-    ARM_JOINT = "arm_joint"
-    NAVIGATE = "navigate"
-    STOP = "stop"
-    ESTOP = "estop"
-    CLEAR_ESTOP = "clear_estop"
-
-
-ActionName = Literal["move", "arm_joint", "navigate", "stop", "estop", "clear_estop"]
-
-MOTION_ACTIONS = frozenset({Action.MOVE, Action.ARM_JOINT, Action.NAVIGATE})
-
-
 class Outcome(str, enum.Enum):
     EXECUTED = "executed"
     PENDING_AUTH = "pending_auth"

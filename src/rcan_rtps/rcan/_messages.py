@@ -6,58 +6,12 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 
-from ._enums import ActionName, RoleName
-
-# Finite floats only: NaN and ±Inf fail both bounds, and absurd magnitudes are schema errors.
-Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
-Confidence = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
-ShortText = Annotated[str, msgspec.Meta(max_length=256)]
-JointName = Annotated[
-    str, msgspec.Meta(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_./-]+$")
-]
-MessageId = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+from ._enums import RoleName
+from ._types import ActionParams, Confidence, MessageId, ShortText, Strict
+from .actions import ActionName, ActionSpec, action_spec
 
 
-class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
-    pass
-
-
-# -- parameters, one struct per action ------------------------------------------------------
-
-
-class MoveParams(_Strict, frozen=True):
-    linear_x: Finite = 0.0
-    linear_y: Finite = 0.0
-    angular_z: Finite = 0.0
-
-
-class ArmJointParams(_Strict, frozen=True):
-    joints: Annotated[list[JointName], msgspec.Meta(min_length=1, max_length=64)]
-    positions: Annotated[list[Finite], msgspec.Meta(min_length=1, max_length=64)]
-    duration_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)]
-
-    def __post_init__(self) -> None:
-        if len(self.positions) != len(self.joints):
-            raise ValueError("`positions` must have one entry per joint")
-        if len(set(self.joints)) != len(self.joints):
-            raise ValueError("`joints` must not repeat a name")
-
-
-class NavigateParams(_Strict, frozen=True):
-    x: Finite
-    y: Finite
-    yaw: Finite
-    frame_id: Annotated[str, msgspec.Meta(min_length=1, max_length=128)] | None = None
-
-
-class NoParams(_Strict, frozen=True):
-    """stop, estop, clear_estop take no parameters."""
-
-
-ActionParams = MoveParams | ArmJointParams | NavigateParams | NoParams
-
-
-class AiInfo(_Strict, frozen=True):
+class AiInfo(Strict, frozen=True):
     provider: ShortText | None = None
     model: ShortText | None = None
     confidence: Confidence | None = None
@@ -67,11 +21,11 @@ class AiInfo(_Strict, frozen=True):
 # -- COMMAND, as it arrives -----------------------------------------------------------------
 
 
-class ShortCommand(_Strict, frozen=True):
+class ShortCommand(Strict, frozen=True):
     """The bridge spec's short form."""
 
     action: ActionName
-    params: dict[str, Any] = {}
+    params: dict[str, Any] = msgspec.field(default_factory=dict)
     message_id: MessageId | None = None
     ai_provider: ShortText | None = None
     ai_model: ShortText | None = None
@@ -79,13 +33,13 @@ class ShortCommand(_Strict, frozen=True):
     thought_id: ShortText | None = None
 
 
-class EnvelopeCommand(_Strict, frozen=True):
+class EnvelopeCommand(Strict, frozen=True):
     """The RCAN envelope form (message_type 1 = COMMAND)."""
 
     message_type: Literal[1]
     ruri: Annotated[str, msgspec.Meta(max_length=512)]
     action: ActionName
-    parameters: dict[str, Any] = {}
+    parameters: dict[str, Any] = msgspec.field(default_factory=dict)
     message_id: MessageId | None = None
     timestamp_ms: Annotated[int, msgspec.Meta(ge=0)] | None = None
     priority: Annotated[int, msgspec.Meta(ge=0, le=255)] = 0
@@ -105,6 +59,11 @@ class NormalizedCommand(msgspec.Struct, frozen=True, kw_only=True):
     priority: int = 0
     ai: AiInfo | None = None
     claimed_role: Any = None
+
+    @property
+    def spec(self) -> ActionSpec[Any]:
+        """The registry's declaration of this command's action."""
+        return action_spec(self.action)
 
 
 # -- responses and notifications ------------------------------------------------------------
@@ -148,7 +107,7 @@ class PendingAuth(msgspec.Struct, kw_only=True):
     message_type: Literal["PENDING_AUTH"] = "PENDING_AUTH"
 
 
-class Authorize(_Strict, frozen=True):
+class Authorize(Strict, frozen=True):
     """Body of POST /api/hitl/authorize and /api/hitl/deny."""
 
     pending_id: Annotated[str, msgspec.Meta(min_length=1, max_length=64)]

@@ -7,26 +7,20 @@ from typing import Any
 import msgspec
 
 from ._messages import (
-    ArmJointParams,
     Authorize,
     DecisionBody,
     EnvelopeCommand,
     ErrorBody,
-    MoveParams,
-    NavigateParams,
-    NoParams,
     PendingAuth,
     ShortCommand,
     Status,
 )
+from .actions import specs
 
 _TYPES: tuple[type[msgspec.Struct], ...] = (
     ShortCommand,
     EnvelopeCommand,
-    MoveParams,
-    ArmJointParams,
-    NavigateParams,
-    NoParams,
+    *dict.fromkeys(spec.params for spec in specs()),  # each parameter type once
     Status,
     PendingAuth,
     Authorize,

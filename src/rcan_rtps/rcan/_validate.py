@@ -10,27 +10,11 @@ from typing import Any, TypeVar
 import msgspec
 
 from ._errors import SchemaValidationError
-from ._messages import (
-    ActionParams,
-    AiInfo,
-    ArmJointParams,
-    EnvelopeCommand,
-    MoveParams,
-    NavigateParams,
-    NoParams,
-    NormalizedCommand,
-    ShortCommand,
-)
+from ._messages import AiInfo, EnvelopeCommand, NormalizedCommand, ShortCommand
 from ._ruri import parse_ruri
+from ._types import ActionParams
+from .actions import action_spec
 
-_PARAMS: dict[str, type[ActionParams]] = {
-    "move": MoveParams,
-    "arm_joint": ArmJointParams,
-    "navigate": NavigateParams,
-    "stop": NoParams,
-    "estop": NoParams,
-    "clear_estop": NoParams,
-}
 _AT = re.compile(r"^(?P<detail>.*?)(?: - at `(?P<path>[^`]*)`)?$", re.DOTALL)
 _ROLE_CLAIMS = ("role", "role_level")
 # Overflowing literals (1e400) become ±inf here so the typed pass rejects them *with* their path.
@@ -81,7 +65,8 @@ def validate_command(
 
 
 def _params(action: str, raw: dict[str, Any], prefix: str) -> ActionParams:
-    return convert_at(raw, _PARAMS[action], prefix)
+    params: ActionParams = convert_at(raw, action_spec(action).params, prefix)
+    return params
 
 
 def _message_id(given: str | None, new_id: Callable[[], str]) -> str:

@@ -1,0 +1,24 @@
+"""Constrained field types shared by the RCAN schemas and the action parameters."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import msgspec
+
+# Finite floats only: NaN and ±Inf fail both bounds, and absurd magnitudes are schema errors.
+Finite = Annotated[float, msgspec.Meta(ge=-1e9, le=1e9)]
+Confidence = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
+ShortText = Annotated[str, msgspec.Meta(max_length=256)]
+JointName = Annotated[
+    str, msgspec.Meta(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_./-]+$")
+]
+MessageId = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+
+
+class Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """Unknown fields are errors: a typo must not silently become a default."""
+
+
+class ActionParams(Strict, frozen=True):
+    """Base of every action's parameters (one subclass per action, see `rcan.actions`)."""

@@ -1,0 +1,65 @@
+"""The action registry: one module per action (parameters, governance defaults, invariants,
+ROS translation). Everything that lists actions derives the list from `ACTIONS`."""
+
+from typing import TYPE_CHECKING, Literal
+
+from ._registry import (
+    ACTIONS,
+    action_spec,
+    markdown_table,
+    names,
+    specs,
+    stopping_names,
+    with_effect,
+)
+from ._spec import (
+    ActionSpec,
+    Builder,
+    Effect,
+    EstopSignal,
+    Halt,
+    HitlDefault,
+    Invariant,
+    MessageKit,
+    Publish,
+    RosRoute,
+    SendGoal,
+)
+from .arm_joint import ArmJointParams
+from .move import MoveParams
+from .navigate import NavigateParams
+from .stop import NoParams
+
+if TYPE_CHECKING:
+    ActionName = str
+    GateableName = str
+else:  # Literals of the registry's names: msgspec validates them and JSON Schema lists them
+    ActionName = Literal[names()]
+    GateableName = Literal[tuple(s.name for s in specs() if s.hitl.gateable)]
+
+__all__ = [
+    "ACTIONS",
+    "ActionName",
+    "ActionSpec",
+    "ArmJointParams",
+    "Builder",
+    "Effect",
+    "EstopSignal",
+    "GateableName",
+    "Halt",
+    "HitlDefault",
+    "Invariant",
+    "MessageKit",
+    "MoveParams",
+    "NavigateParams",
+    "NoParams",
+    "Publish",
+    "RosRoute",
+    "SendGoal",
+    "action_spec",
+    "markdown_table",
+    "names",
+    "specs",
+    "stopping_names",
+    "with_effect",
+]

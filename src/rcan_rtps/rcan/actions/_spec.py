@@ -1,0 +1,144 @@
+"""What an action declares: parameters, governance defaults, invariants, ROS translation."""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Generic, Protocol, TypeVar
+
+from .._enums import Role
+from .._types import ActionParams
+
+P = TypeVar("P", bound=ActionParams)
+
+
+class Effect(enum.Enum):
+    """What an action does to the robot; the governor's rules key on this, never on names."""
+
+    MOTION = "motion"  # moves the robot: refused while the e-stop is latched
+    HALT = "halt"  # zero velocity, cancel goals: the e-stop lane, never rate-limited or gated
+    ESTOP = "estop"  # latch, tell the robot, halt: any authenticated principal
+    CLEAR_ESTOP = "clear_estop"  # unlatch, once its audit entry is durable
+
+
+class Invariant(enum.Enum):
+    """The §8 checks an action's parameters go through (see governance.invariants)."""
+
+    ESTOP_GUARD = "estop_guard"  # refused while the e-stop is latched
+    FINITE = "finite"  # every number finite (behind the schema's bounds)
+    VELOCITY = "velocity"  # linear/angular limits: clamp, or deny >10 % over
+    WORKSPACE = "workspace"  # goal strictly inside the workspace polygon
+
+
+class MessageKit(Protocol):
+    """What a ROS translation may use; the bridge provides it (no DDS in action modules)."""
+
+    @property
+    def message_type(self) -> str:
+        """The ROS type the route's topic is configured with (e.g. Twist or TwistStamped)."""
+        ...
+
+    def struct(self, type_name: str) -> Any:
+        """The message class of a ROS type: for hot paths that build messages directly."""
+        ...
+
+    def now(self) -> dict[str, int]:
+        """`builtin_interfaces/Time` of the wall clock now."""
+        ...
+
+    def setting(self, key: str) -> Any:
+        """A `bridge.ros2` setting (e.g. `nav_frame_id`)."""
+        ...
+
+
+Builder = Callable[[P, MessageKit], Any]  # a message object, or its plain data (a mapping)
+
+
+@dataclass(frozen=True)
+class Publish(Generic[P]):
+    """Publish one message on a topic named by a `bridge.ros2` config key."""
+
+    topic_key: str
+    build: Builder[P]
+    type_name: str | None = None  # None: the type named by `type_key`
+    type_key: str | None = None
+    latched: bool = False  # transient-local: late joiners still get the last value
+
+
+@dataclass(frozen=True)
+class SendGoal(Generic[P]):
+    """Send an action goal to the server named by a `bridge.ros2` config key."""
+
+    action_key: str
+    type_name: str
+    build: Builder[P]
+
+
+@dataclass(frozen=True)
+class Halt:
+    """Publish zero velocity (`velocity`), and cancel every goal."""
+
+    velocity: Publish[Any]
+
+
+@dataclass(frozen=True)
+class EstopSignal:
+    """Publish the e-stop state (`signal`, latched); engaging it also halts (`halt`)."""
+
+    engaged: bool
+    signal: Publish[Any]
+    halt: Halt | None = None
+
+
+RosRoute = Publish[Any] | SendGoal[Any] | Halt | EstopSignal
+
+
+@dataclass(frozen=True)
+class HitlDefault:
+    """Whether a human may be asked (`gateable`) and must be, unless configured otherwise."""
+
+    gateable: bool = True
+    required: bool = False
+
+
+@dataclass(frozen=True)
+class ActionSpec(Generic[P]):
+    """One action, everything about it in one place; surfaces are derived from these."""
+
+    name: str
+    summary: str
+    params: type[P]
+    effect: Effect
+    default_role: Role
+    ros: RosRoute
+    invariants: tuple[Invariant, ...]
+    scope: str = "control"
+    hitl: HitlDefault = field(default_factory=HitlDefault)
+    starts_goal: bool = False  # its work outlives the command (a navigation goal)
+    order: int = 100  # where it is listed (docs, OpenAPI, mDNS caps); ties go by name
+
+    def __post_init__(self) -> None:
+        if not self.invariants:
+            raise ValueError(f"action {self.name!r} declares no invariants: fail closed")
+        if self.effect in (Effect.HALT, Effect.ESTOP) and self.hitl.gateable:
+            raise ValueError(f"action {self.name!r} stops the robot: it can never be gated")
+        if self.effect is Effect.MOTION and Invariant.ESTOP_GUARD not in self.invariants:
+            raise ValueError(f"motion action {self.name!r} must be guarded by the e-stop")
+
+    @property
+    def stopping(self) -> bool:
+        """Stops the robot: decided at once on every transport, never queued or limited."""
+        return self.effect in (Effect.HALT, Effect.ESTOP)
+
+    @property
+    def motion(self) -> bool:
+        return self.effect is Effect.MOTION
+
+    def describe(self) -> Mapping[str, Any]:
+        """Plain facts for docs and discovery."""
+        return {"action": self.name, "summary": self.summary, "effect": self.effect.value,
+                "default_role": self.default_role.name, "scope": self.scope,
+                "hitl": "never" if not self.hitl.gateable else (
+                    "required" if self.hitl.required else "optional"),
+                "invariants": [i.value for i in self.invariants]}

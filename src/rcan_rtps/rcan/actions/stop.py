@@ -1,0 +1,34 @@
+"""`stop`: zero velocity and cancel every goal. Never gated, never rate-limited."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .._enums import Role
+from .._types import ActionParams
+from ._spec import ActionSpec, Effect, Halt, HitlDefault, Invariant, MessageKit, Publish
+from .move import MoveParams, velocity
+
+
+class NoParams(ActionParams, frozen=True):
+    """stop, estop, clear_estop take no parameters."""
+
+
+def zero_velocity(params: ActionParams, kit: MessageKit) -> Any:
+    return velocity(MoveParams(), kit)
+
+
+HALT = Halt(velocity=Publish(topic_key="cmd_vel_topic", type_key="cmd_vel_type",
+                             build=zero_velocity))
+
+SPEC = ActionSpec(
+    order=40,
+    name="stop",
+    summary="Stop: zero velocity, cancel navigation goals.",
+    params=NoParams,
+    effect=Effect.HALT,
+    default_role=Role.USER,
+    ros=HALT,
+    invariants=(Invariant.FINITE,),
+    hitl=HitlDefault(gateable=False),
+)

@@ -1,0 +1,45 @@
+"""The one recording `Dispatcher` of the tests: what governance hands the bridge, no DDS.
+
+Records each dispatch as (action, applied parameters as a dict). It can report the robot
+unreachable (`available = False`), raise (`raises`), or hold `move`s until released (`hold`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+import msgspec
+
+from rcan_rtps.governance import DispatchResult
+from rcan_rtps.rcan import ActionParams, NormalizedCommand
+
+UNAVAILABLE = "no subscriber on /robot1/cmd_vel"
+
+
+class RecordingDispatcher:
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, dict[str, Any]]] = []
+        self.available = True
+        self.raises: Exception | None = None
+        self.hold: asyncio.Event | None = None  # when set: motion waits for it
+        self.entered = asyncio.Event()  # a held dispatch has started
+
+    def route(self, command: NormalizedCommand) -> str | None:
+        return f"/robot1/{command.action}"
+
+    async def ready(self, command: NormalizedCommand) -> str | None:
+        return None if self.available else UNAVAILABLE
+
+    async def dispatch(self, command: NormalizedCommand,
+                       applied: ActionParams) -> DispatchResult:
+        assert isinstance(applied, command.spec.params), "the typed path must stay typed"
+        if self.raises is not None:
+            raise self.raises
+        if self.hold is not None and command.spec.motion:
+            self.entered.set()
+            await self.hold.wait()
+        if not self.available:
+            return DispatchResult(ok=False, detail=UNAVAILABLE)
+        self.calls.append((command.action, msgspec.structs.asdict(applied)))
+        return DispatchResult(ok=True, ros2_topic=f"/robot1/{command.action}")

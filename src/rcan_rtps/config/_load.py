@@ -2,39 +2,30 @@
 
 from __future__ import annotations
 
-import copy
 import os
-import re
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 import msgspec
+import msgspec.inspect
 import yaml
-
-from rcan_rtps.rcan import validation_path
 
 from ._errors import ConfigError, ConfigIssue
 from ._model import RcanConfig
+from ._schema import (
+    INT_TAG,
+    INVALID,
+    MAP_TAG,
+    STR_TAG,
+    Walker,
+    Where,
+    is_null,
+    key_text,
+    line_of,
+    mapping_pairs,
+)
 
-_MISSING = re.compile(r"Object missing required field `(?P<field>[^`]+)`")
-_UNKNOWN = re.compile(r"Object contains unknown field `(?P<field>[^`]+)`")
-_NAMED = re.compile(r"`(?P<field>[A-Za-z_][A-Za-z0-9_]*)`:? ")
-_PLAINTEXT_KEYS = ("token", "auth_token", "password", "secret")
-_MAX_ROUNDS = 100
-# Valid stand-ins for required keys: after reporting a bad or missing one, checking goes on
-# with its siblings instead of dropping the whole parent section.
-_STANDINS: dict[tuple[str | int, ...], Any] = {
-    ("robot",): {"ruri": "rcan://standin/standin/standin/standin0"},
-    ("robot", "ruri"): "rcan://standin/standin/standin/standin0",
-    ("bridge",): {"api": {"auth_token_env": "STANDIN"},
-                  "safety": {"max_linear_vel": 1.0, "max_angular_vel": 1.0}},
-    ("bridge", "api"): {"auth_token_env": "STANDIN"},
-    ("bridge", "safety"): {"max_linear_vel": 1.0, "max_angular_vel": 1.0},
-    ("bridge", "safety", "max_linear_vel"): 1.0,
-    ("bridge", "safety", "max_angular_vel"): 1.0,
-}
-PathKey = tuple[str | int, ...]
+_SCHEMA = msgspec.inspect.type_info(RcanConfig)
 
 
 def load_config(
@@ -54,188 +45,84 @@ def loads_config(
     text: str, *, source: str = "<config>", env: Mapping[str, str] | None = None
 ) -> RcanConfig:
     env = os.environ if env is None else env
-    lines, data = _parse_yaml(text, source)
-    issues: list[ConfigIssue] = []
-    if not isinstance(data, dict):
-        raise ConfigError(source, [ConfigIssue("$", 1, "expected a mapping at the top")])
-    _reject_plaintext_secrets(data, (), lines, issues)
-    issues.extend(_apply_env_defaults(data, env))
-    config = _convert_collecting(data, lines, issues)
-    if issues or config is None:
-        raise ConfigError(source, sorted(issues, key=lambda i: (i.line or 0, i.path)))
+    root = _compose(text, source)
+    walker = Walker()
+    walker.issues.extend(_apply_env_fallbacks(root, env))
+    config = walker.value(root, _SCHEMA, Where("$", line_of(root)))
+    if walker.issues or config is INVALID:
+        issues = sorted(walker.issues, key=lambda i: (i.line or 0, i.path))
+        raise ConfigError(source, issues)
+    assert isinstance(config, RcanConfig)
     return config
 
 
-def _parse_yaml(text: str, source: str) -> tuple[dict[PathKey, int], Any]:
+def _compose(text: str, source: str) -> yaml.MappingNode:
+    """The document's node tree (nodes keep their lines); values are constructed while walking."""
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None
         raise ConfigError(source, [ConfigIssue("$", line, f"not valid YAML: {exc}")]) from exc
-    lines: dict[PathKey, int] = {}
-    if node is not None:
-        _map_lines(node, (), lines)
-    return lines, data
+    except RecursionError as exc:  # PyYAML composes nested collections recursively
+        raise ConfigError(source, [ConfigIssue("$", None, "nested too deeply")]) from exc
+    if root is None or is_null(root):
+        raise ConfigError(source, [ConfigIssue("$", 1, "the file is empty; expected a mapping")])
+    if not isinstance(root, yaml.MappingNode):
+        raise ConfigError(
+            source, [ConfigIssue("$", line_of(root), "expected a mapping at the top")]
+        )
+    return root
 
 
-def _map_lines(node: yaml.Node, at: PathKey, lines: dict[PathKey, int]) -> None:
-    lines[at] = node.start_mark.line + 1
-    if isinstance(node, yaml.MappingNode):
-        for key, value in node.value:
-            child = (*at, key.value)
-            _map_lines(value, child, lines)
-            lines[child] = key.start_mark.line + 1  # point at the key, not its value
-    elif isinstance(node, yaml.SequenceNode):
-        for index, item in enumerate(node.value):
-            _map_lines(item, (*at, index), lines)
+def _apply_env_fallbacks(root: yaml.MappingNode, env: Mapping[str, str]) -> list[ConfigIssue]:
+    """ROS_DOMAIN_ID / ROS_DISTRO fill `bridge.ros2` keys the file leaves out.
 
-
-def _line_of(at: PathKey, lines: dict[PathKey, int]) -> int | None:
-    while at not in lines and at:
-        at = at[:-1]
-    return lines.get(at)
-
-
-def _dotted(at: PathKey) -> str:
-    out = "$"
-    for part in at:
-        out += f"[{part}]" if isinstance(part, int) else f".{part}"
-    return out
-
-
-def _parse_path(text: str) -> PathKey:
-    parts: list[str | int] = []
-    for name, index in re.findall(r"\.([^.\[]+)|\[(\d+)\]", text[1:]):
-        parts.append(int(index) if index else name)
-    return tuple(parts)
-
-
-def _reject_plaintext_secrets(
-    data: Any, at: PathKey, lines: dict[PathKey, int], issues: list[ConfigIssue]
-) -> None:
-    """A secret in a config file leaks through backups and diffs: only token_env/token_sha256."""
-    if isinstance(data, dict):
-        for key in list(data):
-            if key in _PLAINTEXT_KEYS:
-                del data[key]
-                where = (*at, key)
-                msg = "plaintext secrets are not allowed; use token_env or token_sha256"
-                issues.append(ConfigIssue(_dotted(where), _line_of(where, lines), msg))
-            else:
-                _reject_plaintext_secrets(data[key], (*at, key), lines, issues)
-    elif isinstance(data, list):
-        for index, item in enumerate(data):
-            _reject_plaintext_secrets(item, (*at, index), lines, issues)
-
-
-def _apply_env_defaults(data: dict[str, Any], env: Mapping[str, str]) -> list[ConfigIssue]:
-    bridge = data.get("bridge")
-    if not isinstance(bridge, dict):
-        return []
-    ros2 = bridge.setdefault("ros2", {})
-    if not isinstance(ros2, dict):
+    They go in as nodes without a line, so the walk checks them like any other value.
+    """
+    ros2 = _ros2_node(root)
+    present = _entries(ros2)
+    if ros2 is None or present is None:
         return []
     issues: list[ConfigIssue] = []
-    if "domain_id" not in ros2 and env.get("ROS_DOMAIN_ID"):
+    domain = env.get("ROS_DOMAIN_ID")
+    if "domain_id" not in present and domain:
         try:
-            ros2["domain_id"] = int(env["ROS_DOMAIN_ID"])
+            _put(ros2, "domain_id", yaml.ScalarNode(INT_TAG, str(int(domain))))
         except ValueError:
-            msg = f"ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']!r} is not an integer"
+            msg = f"ROS_DOMAIN_ID={domain!r} is not an integer"
             issues.append(ConfigIssue("$.bridge.ros2.domain_id", None, msg))
-    if "distro" not in ros2 and env.get("ROS_DISTRO"):
-        ros2["distro"] = env["ROS_DISTRO"]
+    distro = env.get("ROS_DISTRO")
+    if "distro" not in present and distro:
+        _put(ros2, "distro", yaml.ScalarNode(STR_TAG, distro))
     return issues
 
 
-def _convert_collecting(
-    data: dict[str, Any], lines: dict[PathKey, int], issues: list[ConfigIssue]
-) -> RcanConfig | None:
-    """msgspec stops at the first error: record it, drop the bad key, and try again."""
-    pruner = _Pruner(data)
-    for _ in range(_MAX_ROUNDS):
-        try:
-            return msgspec.convert(data, RcanConfig)
-        except msgspec.ValidationError as exc:
-            text, detail = validation_path(exc)
-            at, detail = _blame(data, _parse_path(text), detail)
-            original = pruner.original(at)
-            # An error at or above something already dropped is an echo of that first error.
-            if not pruner.caused_by_drop(original):
-                issues.append(ConfigIssue(_dotted(original), _line_of(original, lines), detail))
-            if not pruner.drop(at):
-                return None
-    return None
+def _ros2_node(root: yaml.MappingNode) -> yaml.MappingNode | None:
+    """`bridge.ros2`, added empty if the bridge has none; None unless both are mappings."""
+    bridge = (_entries(root) or {}).get("bridge")
+    entries = _entries(bridge)
+    if not isinstance(bridge, yaml.MappingNode) or entries is None:
+        return None
+    ros2 = entries.get("ros2")
+    if ros2 is None:
+        ros2 = yaml.MappingNode(MAP_TAG, [])
+        _put(bridge, "ros2", ros2)
+    return ros2 if isinstance(ros2, yaml.MappingNode) else None
 
 
-def _blame(data: Any, at: PathKey, detail: str) -> tuple[PathKey, str]:
-    """Point at the key an error is about: a missing/unknown field, or a `key` named first."""
-    for pattern in (_MISSING, _UNKNOWN):
-        match = pattern.match(detail)
-        if match is not None:
-            return (*at, match["field"]), detail
-    match = _NAMED.match(detail)
-    if match is not None and match["field"] in (_get(data, at) or {}):
-        return (*at, match["field"]), detail[match.end() :].lstrip(": ")
-    return at, detail
+def _entries(node: yaml.Node | None) -> dict[str, yaml.Node] | None:
+    """A mapping node's values by key; None if it is no mapping or its `<<` merge is broken."""
+    if not isinstance(node, yaml.MappingNode) or node.tag != MAP_TAG:
+        return None
+    try:
+        return {key_text(key): value for key, value in mapping_pairs(node)}
+    except yaml.YAMLError:
+        return None  # the walk reports it
 
 
-def _get(data: Any, at: PathKey) -> Any:
-    for part in at:
-        data = data[part]
-    return data
-
-
-class _Pruner:
-    """Deletes bad values while remembering original list indices, so paths stay true."""
-
-    def __init__(self, data: dict[str, Any]) -> None:
-        self._data = data
-        self._indices: dict[int, list[int]] = {}  # id(list) -> original index per position
-        self._dropped: list[PathKey] = []
-
-    def original(self, at: PathKey) -> PathKey:
-        node: Any = self._data
-        out: list[str | int] = []
-        for part in at:
-            if isinstance(node, list) and isinstance(part, int):
-                out.append(self._index_map(node)[part] if part < len(node) else part)
-            else:
-                out.append(part)
-            node = node[part] if _has(node, part) else None
-        return tuple(out)
-
-    def caused_by_drop(self, original: PathKey) -> bool:
-        return any(d[: len(original)] == original for d in self._dropped)
-
-    def drop(self, at: PathKey) -> bool:
-        """Remove the value at `at` (or, for a missing key, its parent)."""
-        while at:
-            parent = _get(self._data, at[:-1])
-            key = at[-1]
-            standin = _STANDINS.get(at)
-            if standin is not None and parent.get(key) != standin:
-                self._dropped.append(self.original(at))
-                parent[key] = copy.deepcopy(standin)
-                return True
-            if _has(parent, key):
-                self._dropped.append(self.original(at))
-                if isinstance(parent, list):
-                    del self._index_map(parent)[key]  # type: ignore[arg-type]
-                del parent[key]
-                return True
-            at = at[:-1]  # a required key is missing: drop its whole parent
-        return False
-
-    def _index_map(self, node: list[Any]) -> list[int]:
-        return self._indices.setdefault(id(node), list(range(len(node))))
-
-
-def _has(node: Any, key: str | int) -> bool:
-    if isinstance(node, dict):
-        return key in node
-    return isinstance(node, list) and isinstance(key, int) and 0 <= key < len(node)
+def _put(mapping: yaml.MappingNode, key: str, value: yaml.Node) -> None:
+    mapping.value.append((yaml.ScalarNode(STR_TAG, key), value))
 
 
 def _resolve_paths(config: RcanConfig, base: Path) -> RcanConfig:

@@ -1,15 +1,20 @@
 """Typed `.rcan.yaml`: the bridge spec's §5 keys plus the profile's additions.
 
-Validation that spans fields lives in `__post_init__`, so msgspec reports it with its key path.
+A check of one field's value beyond its type (a ROS name, a polygon) is attached to the field's
+type with `_check`, so the loader reports it at that key's path and line; a check that spans
+fields lives in `__post_init__` and is reported at the section's path.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import re
-from typing import Annotated, Literal
+from collections.abc import Callable
+from typing import Annotated, Any, Literal
 
 import msgspec
+import msgspec.inspect
 
 from rcan_rtps.rcan import ActionName, GateableName, InvalidRuriError, RoleName, parse_ruri
 
@@ -18,49 +23,85 @@ _NODE_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
 _PRINCIPAL = r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$"
 _ENV_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
 
+# What is wrong with a field's (already well-typed) value, or None.
+Problem = Callable[[Any], str | None]
+_CHECK = "rcan_check"
+
+
+def _check(problem: Problem) -> msgspec.Meta:
+    return msgspec.Meta(extra={_CHECK: problem})
+
+
+def field_check(info: msgspec.inspect.Type) -> Problem | None:
+    """The `_check` attached to a field's type, if any."""
+    if isinstance(info, msgspec.inspect.Metadata) and info.extra:
+        problem: Problem | None = info.extra.get(_CHECK)
+        return problem
+    return None
+
+
+@functools.cache
+def _field_checks(cls: type[msgspec.Struct]) -> tuple[tuple[str, Problem], ...]:
+    info = msgspec.inspect.type_info(cls)
+    assert isinstance(info, msgspec.inspect.StructType)
+    checks = ((field.name, field_check(field.type)) for field in info.fields)
+    return tuple((name, problem) for name, problem in checks if problem is not None)
+
+
+def _ros_name_problem(value: str) -> str | None:
+    return None if _ROS_NAME.fullmatch(value) else f"is not a valid ROS name: {value!r}"
+
+
+def _namespace_problem(value: str) -> str | None:
+    return None if value in ("", "/") else _ros_name_problem(value)
+
+
+def _ruri_problem(value: str) -> str | None:
+    try:
+        parse_ruri(value)
+    except InvalidRuriError as exc:
+        return exc.rule
+    return None
+
+
 Positive = Annotated[float, msgspec.Meta(gt=0.0, le=1e6)]
 RosName = Annotated[str, msgspec.Meta(min_length=1, max_length=256)]
+RosTopic = Annotated[RosName, _check(_ros_name_problem)]
 EnvName = Annotated[str, msgspec.Meta(pattern=_ENV_NAME)]
 Point = tuple[float, float]
 Seconds = Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)]
 
 
 class _Section(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
-    pass
-
-
-def _check_ros_name(value: str, key: str) -> None:
-    if not _ROS_NAME.fullmatch(value):
-        raise ValueError(f"`{key}` is not a valid ROS name: {value!r}")
+    def __post_init__(self) -> None:
+        # The loader has run these already; this keeps msgspec (and direct construction) honest.
+        for name, problem_of in _field_checks(type(self)):
+            problem = problem_of(getattr(self, name))
+            if problem is not None:
+                raise ValueError(f"`{name}`: {problem}")
 
 
 class RobotConfig(_Section, frozen=True, kw_only=True):
-    ruri: str
+    ruri: Annotated[str, _check(_ruri_problem)]
     name: str = ""
-
-    def __post_init__(self) -> None:
-        try:
-            parse_ruri(self.ruri)
-        except InvalidRuriError as exc:  # msgspec reports only ValueError/TypeError with a path
-            raise ValueError(f"`ruri`: {exc.rule}") from exc
 
 
 class Ros2Config(_Section, frozen=True, kw_only=True):
-    namespace: str = ""
+    namespace: Annotated[str, _check(_namespace_problem)] = ""
     node_name: Annotated[str, msgspec.Meta(pattern=_NODE_NAME)] = "rcan_bridge"
     domain_id: Annotated[int, msgspec.Meta(ge=0, le=232)] = 0
     distro: Literal["humble", "jazzy", "kilted"] = "jazzy"
-    cmd_vel_topic: RosName = "cmd_vel"
+    cmd_vel_topic: RosTopic = "cmd_vel"
     cmd_vel_type: Literal["geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistStamped"] = (
         "geometry_msgs/msg/Twist"
     )
-    estop_topic: RosName = "emergency_stop"
-    joint_states_topic: RosName = "joint_states"
-    joint_trajectory_topic: RosName = "joint_trajectory_controller/joint_trajectory"
-    nav_action: RosName = "navigate_to_pose"
-    odom_topic: RosName = "odom"
-    diagnostics_topic: RosName = "diagnostics"
-    battery_topic: RosName = "battery_state"
+    estop_topic: RosTopic = "emergency_stop"
+    joint_states_topic: RosTopic = "joint_states"
+    joint_trajectory_topic: RosTopic = "joint_trajectory_controller/joint_trajectory"
+    nav_action: RosTopic = "navigate_to_pose"
+    odom_topic: RosTopic = "odom"
+    diagnostics_topic: RosTopic = "diagnostics"
+    battery_topic: RosTopic = "battery_state"
     telemetry_rate_hz: Annotated[float, msgspec.Meta(gt=0.0, le=100.0)] = 10.0
     nav_frame_id: Annotated[str, msgspec.Meta(min_length=1, max_length=128)] = "map"
     # Telemetry older than this makes the robot `offline`.
@@ -71,14 +112,6 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     # (Cyclone's in-band header, or Fast DDS's plain requests); per-name overrides win.
     request_mapping: Literal["auto", "cyclone", "fastdds"] = "auto"
     request_mappings: dict[RosName, Literal["auto", "cyclone", "fastdds"]] = {}
-
-    def __post_init__(self) -> None:
-        if self.namespace not in ("", "/"):
-            _check_ros_name(self.namespace, "namespace")
-        for key in ("cmd_vel_topic", "estop_topic", "joint_states_topic",
-                    "joint_trajectory_topic", "nav_action", "odom_topic",
-                    "diagnostics_topic", "battery_topic"):
-            _check_ros_name(getattr(self, key), key)
 
 
 class ConfidenceGate(_Section, frozen=True, kw_only=True):
@@ -92,18 +125,18 @@ class HitlGate(_Section, frozen=True, kw_only=True):
     authorized_roles: list[RoleName] = []
 
 
+def _repeated_gate_problem(gates: list[HitlGate]) -> str | None:
+    actions = [g.action for g in gates]
+    return "lists an action more than once" if len(set(actions)) != len(actions) else None
+
+
 class HitlConfig(_Section, frozen=True, kw_only=True):
     notify_webhook: Annotated[str, msgspec.Meta(pattern=r"^https?://\S+$")] | None = None
     timeout_seconds: Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)] = 300.0
     confidence_gate: ConfidenceGate | None = None
-    gates: list[HitlGate] = []
+    gates: Annotated[list[HitlGate], _check(_repeated_gate_problem)] = []
     require_distinct_approver: bool = False
     authorize_endpoint: str = "/api/hitl/authorize"
-
-    def __post_init__(self) -> None:
-        actions = [g.action for g in self.gates]
-        if len(set(actions)) != len(actions):
-            raise ValueError("`gates` lists an action more than once")
 
 
 class PrincipalConfig(_Section, frozen=True, kw_only=True):
@@ -114,6 +147,7 @@ class PrincipalConfig(_Section, frozen=True, kw_only=True):
     rate_limit_per_min: Annotated[int, msgspec.Meta(ge=1)] | None = None
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if (self.token_env is None) == (self.token_sha256 is None):
             raise ValueError("give exactly one of `token_env` or `token_sha256`")
 
@@ -131,11 +165,21 @@ class JwtConfig(_Section, frozen=True, kw_only=True):
     leeway_s: Annotated[float, msgspec.Meta(ge=0.0, le=300.0)] = 30.0
 
 
+def _principals_problem(principals: list[PrincipalConfig]) -> str | None:
+    names = [p.name for p in principals]
+    if len(set(names)) != len(names):
+        return "repeats a name"
+    digests = [p.token_sha256.lower() for p in principals if p.token_sha256]
+    if len(set(digests)) != len(digests):
+        return "two share a token_sha256"
+    return None
+
+
 class ApiConfig(_Section, frozen=True, kw_only=True):
     host: str = "127.0.0.1"  # loopback unless the deployment opts in to a network
     port: Annotated[int, msgspec.Meta(ge=1, le=65535)] = 8765
     auth_token_env: EnvName | None = None
-    principals: list[PrincipalConfig] = []
+    principals: Annotated[list[PrincipalConfig], _check(_principals_problem)] = []
     tls: TlsConfig | None = None
     jwt: JwtConfig | None = None
     max_body_bytes: Annotated[int, msgspec.Meta(ge=256, le=16 * 1024 * 1024)] = 64 * 1024
@@ -147,14 +191,13 @@ class ApiConfig(_Section, frozen=True, kw_only=True):
     keepalive_timeout_s: Seconds = 30.0
 
     def __post_init__(self) -> None:
-        names = [p.name for p in self.principals]
-        if len(set(names)) != len(names):
-            raise ValueError("`principals` repeats a name")
-        digests = [p.token_sha256.lower() for p in self.principals if p.token_sha256]
-        if len(set(digests)) != len(digests):
-            raise ValueError("`principals`: two share a token_sha256")
+        super().__post_init__()
         if not (self.principals or self.auth_token_env or self.jwt):
             raise ValueError("no way to authenticate: set principals, auth_token_env or jwt")
+
+
+def _workspace_problem(workspace: list[Point] | None) -> str | None:
+    return None if workspace is None else polygon_problem(workspace)
 
 
 class SafetyConfig(_Section, frozen=True, kw_only=True):
@@ -163,14 +206,8 @@ class SafetyConfig(_Section, frozen=True, kw_only=True):
     max_angular_vel: Positive
     velocity_exceed_deny: bool = True
     session_timeout_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)] = 2.0
-    workspace: list[Point] | None = None
+    workspace: Annotated[list[Point] | None, _check(_workspace_problem)] = None
     estop_state_path: str | None = None  # default: estop.state beside the audit log
-
-    def __post_init__(self) -> None:
-        if self.workspace is not None:
-            problem = polygon_problem(self.workspace)
-            if problem:
-                raise ValueError(f"`workspace` {problem}")
 
 
 class AuditConfig(_Section, frozen=True, kw_only=True):
@@ -178,17 +215,19 @@ class AuditConfig(_Section, frozen=True, kw_only=True):
     key_path: str = "/var/lib/rcan/audit-ed25519.key"
 
 
+def _estop_role_problem(action_roles: dict[ActionName, RoleName]) -> str | None:
+    # An e-stop must always be available to any authenticated principal.
+    if action_roles.get("estop", "GUEST") != "GUEST":
+        return "estop cannot be raised above GUEST"
+    return None
+
+
 class RbacConfig(_Section, frozen=True, kw_only=True):
-    action_roles: dict[ActionName, RoleName] = {}
+    action_roles: Annotated[dict[ActionName, RoleName], _check(_estop_role_problem)] = {}
     rate_limits_per_min: dict[RoleName, Annotated[int, msgspec.Meta(ge=1)] | None] = {}
     hitl_approver_role: RoleName = "OWNER"
     audit_read_role: RoleName = "LEASEE"
     config_reload_role: RoleName = "CREATOR"
-
-    def __post_init__(self) -> None:
-        # An e-stop must always be available to any authenticated principal.
-        if self.action_roles.get("estop", "GUEST") != "GUEST":
-            raise ValueError("`action_roles`: estop cannot be raised above GUEST")
 
 
 class BridgeConfig(_Section, frozen=True, kw_only=True):

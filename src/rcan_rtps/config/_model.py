@@ -16,7 +16,15 @@ from typing import Annotated, Any, Literal
 import msgspec
 import msgspec.inspect
 
-from rcan_rtps.rcan import ActionName, GateableName, InvalidRuriError, RoleName, parse_ruri
+from rcan_rtps.rcan import (
+    ActionName,
+    Effect,
+    GateableName,
+    InvalidRuriError,
+    RoleName,
+    parse_ruri,
+)
+from rcan_rtps.rcan.actions import with_effect
 
 _ROS_NAME = re.compile(r"^~?/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*$")
 _NODE_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
@@ -217,8 +225,9 @@ class AuditConfig(_Section, frozen=True, kw_only=True):
 
 def _estop_role_problem(action_roles: dict[ActionName, RoleName]) -> str | None:
     # An e-stop must always be available to any authenticated principal.
-    if action_roles.get("estop", "GUEST") != "GUEST":
-        return "estop cannot be raised above GUEST"
+    estop = with_effect(Effect.ESTOP).name
+    if action_roles.get(estop, "GUEST") != "GUEST":
+        return f"{estop} cannot be raised above GUEST"
     return None
 
 

@@ -42,6 +42,8 @@ class ApiServer:
         self._ssl = ssl_context
         self._listener: asyncio.Server | None = None
         self._url: str | None = None
+        self._set_up = False  # the runner has something to clean up
+        self._closed = False
 
     @property
     def url(self) -> str:
@@ -51,6 +53,9 @@ class ApiServer:
         return self._url
 
     async def start(self) -> str:
+        if self._closed:
+            raise RuntimeError("ApiServer closed")
+        self._set_up = True  # even a setup that fails half-way is cleaned up
         await self._runner.setup()
         server = self._runner.server
         assert server is not None  # setup() made it
@@ -72,6 +77,12 @@ class ApiServer:
         return self._url
 
     async def close(self) -> None:
+        """Stops serving; idempotent, and safe after a start that failed or never came."""
+        if self._closed:
+            return
+        self._closed = True
+        if not self._set_up:
+            return
         listener, self._listener = self._listener, None
         if listener is not None:
             listener.close()  # no new connections from here on

@@ -175,10 +175,12 @@ class RcanAdvertiser:
         self._follower = asyncio.create_task(loop())
 
     async def close(self) -> None:
-        if self._follower is not None:
-            self._follower.cancel()
+        """Withdraws the advert (goodbye packets); idempotent."""
+        follower, self._follower = self._follower, None
+        if follower is not None:
+            follower.cancel()
             with contextlib.suppress(asyncio.CancelledError):
-                await self._follower
+                await follower
         if self._zc is not None:
             if self._info is not None:
                 with contextlib.suppress(Exception):  # goodbye packets are best effort
@@ -286,8 +288,10 @@ class RcanBrowser:
         await asyncio.gather(*self._tasks, return_exceptions=True)
 
     async def close(self) -> None:
-        if self._browser is not None:
-            await self._browser.async_cancel()
+        """Idempotent."""
+        browser, self._browser = self._browser, None
+        if browser is not None:
+            await browser.async_cancel()
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)

@@ -116,6 +116,8 @@ class GoalTracker:
             self._views.pop(goal_id, None)
 
     async def close(self) -> None:
+        """Stops following goals (they go on on the server) and leaves; idempotent."""
         for task in list(self._watchers):
             task.cancel()
         await asyncio.gather(*self._watchers, return_exceptions=True)
+        self.client.close()

@@ -3,21 +3,32 @@
     prepare: credentials, TLS, audit key and the API port are checked (the port bound) before
            anything touches the robot: a start that fails here leaves no trace on the graph
            and writes no audit entry
-    start: ROS node → audit log → navigation client → dispatcher → governor (BRIDGE_STARTED)
-           → telemetry → HTTP API → mDNS advert
+    start: ROS node → audit log → navigation client → dispatcher → governor → telemetry
+           → governor started (BRIDGE_STARTED) → HTTP API → mDNS advert
     stop:  mDNS withdrawn → API closed (no new commands) → robot halted (zero velocity,
-           goals cancelled) → governor (BRIDGE_STOPPED) → audit closed → ROS node left
+           goals cancelled) → telemetry → governor (BRIDGE_STOPPED) → navigation client
+           → audit closed → ROS node left → API port released
+
+Each resource's cleanup goes on an `AsyncExitStack` as soon as the resource exists, so stop
+runs exactly the list above, and a start that fails at any step unwinds what it had acquired
+(in the same order) before the error propagates.
+
+    NEW → PREPARED → STARTING → RUNNING → STOPPING → STOPPED
+    prepare or start raising: FAILED (once unwound). stop() from NEW, FAILED or STOPPED does
+    nothing; a second start() raises BridgeStateError. A bridge is not restarted: make a new one.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import enum
+import inspect
 import logging
 import os
 import socket
 import ssl
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -79,10 +90,37 @@ class BridgeOptions:
     env: Mapping[str, str] = field(default_factory=lambda: dict(os.environ))
 
 
+class BridgeState(enum.Enum):
+    NEW = "new"
+    PREPARED = "prepared"  # checked; the API port is bound
+    STARTING = "starting"
+    RUNNING = "running"
+    STOPPING = "stopping"
+    STOPPED = "stopped"
+    FAILED = "failed"  # prepare or start raised; whatever it had acquired is released
+
+
+class BridgeStateError(RuntimeError):
+    """A lifecycle call the bridge's state does not allow (start twice, start after stop)."""
+
+
+Cleanup = Callable[[], object]  # returns None or an awaitable
+
+
 class Bridge:
+    # Set by prepare().
+    _authenticator: TokenAuthenticator
+    _ssl: ssl.SSLContext | None
+    _sock: socket.socket
+
     def __init__(self, config: RcanConfig, options: BridgeOptions | None = None) -> None:
         self.config = config
         self.options = options or BridgeOptions()
+        self.state = BridgeState.NEW
+        self._stack = contextlib.AsyncExitStack()  # every cleanup, in acquisition order
+        self._started = asyncio.Event()  # start finished (RUNNING or FAILED)
+        self._stopped = asyncio.Event()
+        # What the API and tests look at; the lifecycle itself only needs the stack.
         self.node: RosNode | None = None
         self.audit: AuditLog | None = None
         self.goals: GoalTracker | None = None
@@ -91,20 +129,84 @@ class Bridge:
         self.telemetry: TelemetryState | None = None
         self.server: ApiServer | None = None
         self.advertiser: RcanAdvertiser | None = None
-        self._advert_task: asyncio.Task[None] | None = None
-        self._authenticator: TokenAuthenticator | None = None
-        self._ssl: ssl.SSLContext | None = None
-        self._sock: socket.socket | None = None
         self.url = ""
 
+    # -- lifecycle -----------------------------------------------------------------------
     def prepare(self) -> None:
         """Check everything that can fail without the robot; bind the API port.
 
         Raises (AuthConfigError, AuditKeyError, OSError, ...) before the bridge joins the
-        domain or writes an audit entry.
+        domain or writes an audit entry. Again once prepared: nothing to do.
         """
-        if self._sock is not None:
+        if self.state is BridgeState.PREPARED:
             return
+        self._expect("prepare", BridgeState.NEW)
+        try:
+            self._check_and_bind()
+        except BaseException:
+            self.state = BridgeState.FAILED
+            raise
+        self.state = BridgeState.PREPARED
+
+    async def start(self) -> str:
+        """Brings the bridge up; returns the API's URL once it accepts commands.
+
+        A failure at any step releases what the earlier steps acquired, then propagates.
+        """
+        if self.state is BridgeState.NEW:
+            self.prepare()
+        self._expect("start", BridgeState.PREPARED)
+        self.state = BridgeState.STARTING
+        try:
+            await self._acquire()
+            self.state = BridgeState.RUNNING
+        except BaseException:
+            log.info("bridge start failed; releasing what it had acquired")
+            await self._stack.aclose()
+            self.state = BridgeState.FAILED
+            raise
+        finally:
+            self._started.set()
+        return self.url
+
+    async def stop(self) -> None:
+        """Graceful stop, in reverse order of start; each step runs even if an earlier one
+        failed. A no-op before start, after a failed start and once stopped."""
+        if self.state is BridgeState.STARTING:  # let the start finish, then undo it
+            await self._started.wait()
+        if self.state is BridgeState.STOPPING:
+            await self._stopped.wait()
+            return
+        if self.state not in (BridgeState.PREPARED, BridgeState.RUNNING):
+            return
+        self.state = BridgeState.STOPPING
+        try:
+            await self._stack.aclose()
+        finally:
+            self.state = BridgeState.STOPPED
+            self._stopped.set()
+
+    def _expect(self, call: str, state: BridgeState) -> None:
+        if self.state is not state:
+            raise BridgeStateError(f"cannot {call} a bridge that is {self.state.value} "
+                                   f"(only one that is {state.value})")
+
+    def _on_stop(self, step: str, cleanup: Cleanup) -> None:
+        """Registers `cleanup` to run on stop or on a failed start, after every cleanup
+        registered later. A failing cleanup is logged, never raised: the rest still run."""
+
+        async def run() -> None:
+            try:
+                result = cleanup()
+                if inspect.isawaitable(result):
+                    await result
+            except Exception:
+                log.exception("bridge shutdown: %s failed", step)
+
+        self._stack.push_async_callback(run)
+
+    # -- start, step by step (each registers its cleanup as soon as it has acquired) -----
+    def _check_and_bind(self) -> None:
         api, opts = self.config.bridge.api, self.options
         self._authenticator = TokenAuthenticator.from_config(
             api, self.config.bridge.rbac, opts.env, clock=SystemClock())
@@ -113,42 +215,62 @@ class Bridge:
         if key.exists():
             load_private_key(key)  # unreadable, too open or not Ed25519: refuse now
         self._sock = bind(opts.host or api.host, api.port if opts.port is None else opts.port)
+        # Last out: the server closes it too, but a bridge that never served must as well.
+        self._on_stop("API port", self._sock.close)
 
-    async def start(self) -> str:
-        """Brings the bridge up; returns the API's URL once it accepts commands."""
-        self.prepare()
-        bridge, opts = self.config.bridge, self.options
-        ros2 = bridge.ros2
-        self.node = RosNode(ros2.node_name, ros2.namespace or "/", domain_id=ros2.domain_id,
-                            distro=ros2.distro, localhost=opts.localhost)
-        self.audit = await AuditLog.open(bridge.audit.path, bridge.audit.key_path)
-        self.goals = GoalTracker(self.node, ros2.nav_action, mapping=nav_mapping(self.config))
-        self.dispatcher = RosDispatcher(self.node, ros2, self.goals,
-                                        telemetry_age=self._telemetry_age)
-        self.governor = Governor.from_config(self.config, audit=self.audit,
-                                             dispatcher=self.dispatcher,
-                                             notifier=self._notifier(self.node))
-        self.telemetry = TelemetryState(self.node, self.config,
-                                        estop_latched=lambda: self._latched(),
-                                        active_goals=self.goals.active)
-        self.governor.safe_stop_listeners.append(lambda _p: self._safe_stopped())
-        self.dispatcher.on_command = self.telemetry.clear_safe_stop
-        await self.governor.start()
-        await self._serve()
-        if opts.mdns:
-            # Joining mDNS takes ~1 s (probing): commands are accepted meanwhile.
-            self._advert_task = asyncio.create_task(self._advertise())
-        return self.url
+    async def _acquire(self) -> None:
+        node = self._join_domain()
+        audit = await self._open_audit()
+        goals, dispatcher = self._robot_side(node)
+        governor, telemetry = self._governance(node, audit, goals, dispatcher)
+        await self._start_governor(governor, dispatcher)
+        await self._serve(governor, telemetry, goals)
+        if self.options.mdns:
+            self._advertise_soon()
+
+    def _join_domain(self) -> RosNode:
+        ros2 = self.config.bridge.ros2
+        node = self.node = RosNode(ros2.node_name, ros2.namespace or "/",
+                                   domain_id=ros2.domain_id, distro=ros2.distro,
+                                   localhost=self.options.localhost)
+        self._on_stop("leaving the ROS graph", node.close)
+        return node
+
+    async def _open_audit(self) -> AuditLog:
+        audit = self.config.bridge.audit
+        self.audit = await AuditLog.open(audit.path, audit.key_path)
+        self._on_stop("closing the audit log", self.audit.close)
+        return self.audit
+
+    def _robot_side(self, node: RosNode) -> tuple[GoalTracker, RosDispatcher]:
+        ros2 = self.config.bridge.ros2
+        goals = self.goals = GoalTracker(node, ros2.nav_action, mapping=nav_mapping(self.config))
+        self._on_stop("navigation client", goals.close)
+        self.dispatcher = RosDispatcher(node, ros2, goals, telemetry_age=self._telemetry_age)
+        return goals, self.dispatcher
+
+    def _governance(self, node: RosNode, audit: AuditLog, goals: GoalTracker,
+                    dispatcher: RosDispatcher) -> tuple[Governor, TelemetryState]:
+        governor = self.governor = Governor.from_config(
+            self.config, audit=audit, dispatcher=dispatcher, notifier=self._notifier(node))
+        # BRIDGE_STOPPED answers a BRIDGE_STARTED; before that, only the latch file's thread.
+        self._on_stop("governor", lambda: governor.stop() if governor.started
+                      else governor.latch.close())
+        telemetry = self.telemetry = TelemetryState(
+            node, self.config, estop_latched=lambda: governor.latch.latched,
+            active_goals=goals.active)
+        self._on_stop("telemetry", telemetry.close)
+        governor.safe_stop_listeners.append(lambda _p: telemetry.mark_safe_stop())
+        dispatcher.on_command = telemetry.clear_safe_stop
+        return governor, telemetry
+
+    async def _start_governor(self, governor: Governor, dispatcher: RosDispatcher) -> None:
+        await governor.start()
+        # Before the governor's BRIDGE_STOPPED: the robot is halted while it is audited.
+        self._on_stop("halting the robot", dispatcher.halt)
 
     def _telemetry_age(self) -> float | None:
         return self.telemetry.age_s() if self.telemetry is not None else None
-
-    def _latched(self) -> bool:
-        return self.governor is not None and self.governor.latch.latched
-
-    def _safe_stopped(self) -> None:
-        if self.telemetry is not None:
-            self.telemetry.mark_safe_stop()
 
     def _notifier(self, node: RosNode) -> Notifier:
         ros2, hitl = self.config.bridge.ros2, self.config.bridge.hitl
@@ -157,20 +279,30 @@ class Bridge:
             notifiers.append(WebhookNotifier(hitl.notify_webhook))
         return FanOutNotifier(notifiers)
 
-    async def _serve(self) -> None:
+    async def _serve(self, governor: Governor, telemetry: TelemetryState,
+                     goals: GoalTracker) -> None:
         api, opts = self.config.bridge.api, self.options
-        assert self.governor is not None and self.telemetry is not None and self.goals
-        assert self._authenticator is not None and self._sock is not None
-        app = build_app(governor=self.governor, authenticator=self._authenticator,
-                        robot=BridgeView(self.telemetry, self.goals), config=self.config,
+        app = build_app(governor=governor, authenticator=self._authenticator,
+                        robot=BridgeView(telemetry, goals), config=self.config,
                         cert_principals=cert_principals(self.config) if api.tls else None)
-        self.server = ApiServer(app, host=opts.host or api.host,
-                                port=api.port if opts.port is None else opts.port,
-                                ssl_context=self._ssl, sock=self._sock)
-        self.url = await self.server.start()
+        server = self.server = ApiServer(app, host=opts.host or api.host,
+                                         port=api.port if opts.port is None else opts.port,
+                                         ssl_context=self._ssl, sock=self._sock)
+        self._on_stop("closing the API", server.close)  # first: start may fail half-way
+        self.url = await server.start()
+
+    def _advertise_soon(self) -> None:
+        # Joining mDNS takes ~1 s (probing): commands are accepted meanwhile.
+        task = asyncio.create_task(self._advertise())
+
+        async def withdraw() -> None:
+            await task  # finish joining before saying goodbye
+            if self.advertiser is not None:
+                await self.advertiser.close()
+
+        self._on_stop("withdrawing the mDNS advert", withdraw)
 
     async def _advertise(self) -> None:
-        assert self.server is not None
         api, opts = self.config.bridge.api, self.options
         host, port = opts.host or api.host, int(self.url.rsplit(":", 1)[1])
         tls = api.tls is not None
@@ -185,46 +317,3 @@ class Bridge:
             log.exception("mDNS advertisement failed")
             return
         self.advertiser.follow(current)  # re-announce when the address changes
-
-    async def stop(self) -> None:
-        """Graceful stop: each step runs even if an earlier one failed."""
-        steps = [self._stop_mdns, self._stop_api, self._halt_robot, self._stop_governor,
-                 self._stop_audit]
-        for step in steps:
-            try:
-                await step()
-            except Exception:
-                log.exception("bridge shutdown: %s failed", step.__name__)
-        if self.node is not None:
-            self.node.close()
-            self.node = None
-        if self._sock is not None and self.server is None:
-            self._sock.close()  # prepared but never served
-
-    async def _stop_mdns(self) -> None:
-        if self._advert_task is not None:
-            await self._advert_task  # finish joining before saying goodbye
-            self._advert_task = None
-        if self.advertiser is not None:
-            await self.advertiser.close()
-            self.advertiser = None
-
-    async def _stop_api(self) -> None:
-        if self.server is not None:
-            await self.server.close()
-            self.server = None
-
-    async def _halt_robot(self) -> None:
-        if self.dispatcher is not None:
-            await self.dispatcher.halt()
-        if self.goals is not None:
-            await self.goals.close()
-
-    async def _stop_governor(self) -> None:
-        if self.governor is not None:
-            await self.governor.stop()
-
-    async def _stop_audit(self) -> None:
-        if self.audit is not None:
-            with contextlib.suppress(Exception):
-                await self.audit.close()

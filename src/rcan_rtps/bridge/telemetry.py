@@ -74,6 +74,11 @@ class TelemetryState:
                                      callback=self._on_battery),
         ]
 
+    def close(self) -> None:
+        """Stops the deliveries (none after this returns); idempotent."""
+        for subscription in self.subscriptions:
+            subscription.close()
+
     # -- DDS side (the node's reader thread) --------------------------------------------
     def _touch(self) -> None:
         self._last_rx = self._monotonic()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import gc
 import logging
 import os
@@ -103,18 +104,17 @@ async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     stopper.attach(loop, stop.set)
-    watchdog = LoopWatchdog(loop, args.stall_report) if args.stall_report > 0 else None
-    if watchdog is not None:
-        watchdog.start()
-    sim_node = sim_task = nav = None
-    if args.sim:
-        ros2 = config.bridge.ros2
-        sim_node = RosNode("sim_robot", ros2.namespace or "/", domain_id=ros2.domain_id,
-                           distro=ros2.distro, localhost=localhost)
-        robot = SimRobot(sim_node, cmd_vel_type=ros2.cmd_vel_type)
-        nav = NavigationServer(robot, ros2.nav_action)
-        sim_task = asyncio.create_task(robot.run(stop))
-    try:
+    # Each part's cleanup is registered once it exists: any failure below unwinds exactly
+    # what was started, the bridge first (it halts the robot), the watchdog last.
+    async with contextlib.AsyncExitStack() as parts:
+        parts.push_async_callback(bridge.stop)  # releases the port should the sim fail
+        if args.stall_report > 0:
+            watchdog = LoopWatchdog(loop, args.stall_report)
+            watchdog.start()
+            parts.callback(watchdog.stop)
+        if args.sim:
+            _start_sim(parts, config, localhost, stop)
+        parts.push_async_callback(bridge.stop)  # again (idempotent): before the sim stops
         url = await bridge.start()
         # What start-up built lives as long as the process: out of the collector's sight, so a
         # collection during a command scans only what commands allocate (ms → µs pauses).
@@ -124,18 +124,26 @@ async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
             _print_demo(url, env, config)
         _test_stall(loop, env)
         await stop.wait()
-    finally:
-        await bridge.stop()
-        stop.set()
-        if nav is not None:
-            await nav.close()
-        if sim_task is not None:
-            await sim_task
-        if sim_node is not None:
-            sim_node.close()
-        if watchdog is not None:
-            watchdog.stop()
     return 0
+
+
+def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: bool | None,
+               stop: asyncio.Event) -> None:
+    """The simulated robot and its navigation server, on a node of their own."""
+    ros2 = config.bridge.ros2
+    sim_node = RosNode("sim_robot", ros2.namespace or "/", domain_id=ros2.domain_id,
+                       distro=ros2.distro, localhost=localhost)
+    parts.callback(sim_node.close)
+    robot = SimRobot(sim_node, cmd_vel_type=ros2.cmd_vel_type)
+    nav = NavigationServer(robot, ros2.nav_action)
+    sim_task = asyncio.create_task(robot.run(stop))
+
+    async def stop_sim() -> None:
+        stop.set()
+        await nav.close()
+        await sim_task
+
+    parts.push_async_callback(stop_sim)
 
 
 def _test_stall(loop: asyncio.AbstractEventLoop, env: dict[str, str]) -> None:

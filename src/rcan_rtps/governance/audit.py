@@ -459,6 +459,8 @@ class AuditLog:
         self._checkpointed_seq = cp.seq
 
     async def close(self) -> None:
+        """Waits for queued writes, checkpoints, and releases the file and its lock.
+        Idempotent."""
         pending = [t for t in (self._flusher, self._checkpointing) if t is not None]
         if pending:
             await asyncio.gather(*pending, return_exceptions=True)

@@ -73,6 +73,7 @@ class LatchFile:
             raise EstopStateError(f"cannot persist e-stop state to {self.path}: {exc}") from exc
 
     def close(self) -> None:
+        """Idempotent."""
         self._writer.shutdown(wait=True)
 
 
@@ -123,13 +124,14 @@ class EstopMachine:
             await self._queue.join()
 
     async def close(self) -> None:
-        """Finish every transition already submitted, then stop the worker."""
+        """Finish every transition already submitted, then stop the worker. Idempotent."""
         if self._queue is not None:
             await self._queue.join()
-        if self._worker is not None:
-            self._worker.cancel()
+        worker, self._worker = self._worker, None
+        if worker is not None:
+            worker.cancel()
             with contextlib.suppress(asyncio.CancelledError):
-                await self._worker
+                await worker
         self.file.close()
 
     def _submit(self, work: Callable[[], Awaitable[T]], *, engage: bool) -> asyncio.Future[T]:

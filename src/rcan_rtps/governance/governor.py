@@ -132,6 +132,8 @@ class Governor:
         self._tasks: set[asyncio.Task[Any]] = set()
         self._admission = asyncio.Semaphore(MAX_IN_FLIGHT)
         self._sweeper: asyncio.Task[None] | None = None
+        self.started = False  # BRIDGE_STARTED is durable
+        self._stopped = False
         self.safe_stop_listeners: list[Callable[[Principal], None]] = []
 
     @classmethod
@@ -165,6 +167,7 @@ class Governor:
         if self.latch.reason:
             params["estop_reason"] = self.latch.reason
         await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STARTED, params=params))
+        self.started = True
         if self._latch_file_missing and not self.latch.latched:  # first start: record it
             await self.latch.file.write(False, "first start", now_ms(self._clock))
         if self.latch.latched:  # latched now; the robot is told without delaying the start
@@ -177,6 +180,10 @@ class Governor:
             log.error("latched at start, but the robot could not be told (%s)", failure.reason)
 
     async def stop(self) -> None:
+        """BRIDGE_STOPPED once the sweeper, the tasks and the latch are done. Idempotent."""
+        if self._stopped:
+            return
+        self._stopped = True
         if self._sweeper is not None:
             self._sweeper.cancel()
             await asyncio.gather(self._sweeper, return_exceptions=True)

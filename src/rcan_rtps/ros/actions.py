@@ -281,6 +281,13 @@ class ActionClient:
         results = await asyncio.gather(*(g.cancel(timeout) for g in open_goals))
         return sum(results)
 
+    def close(self) -> None:
+        """Deletes the endpoints; calls still waiting fail. Idempotent."""
+        for client in (self._send, self._get, self._cancel_srv):
+            client.close()
+        self._status.close()
+        self._feedback.close()
+
     # -- topics ---------------------------------------------------------------------
     def _on_status(self, array: IdlStruct) -> None:
         for status in array.status_list:  # type: ignore[attr-defined]
@@ -344,6 +351,7 @@ class ActionServer:
         self._result_timeout = result_timeout
         self._goals: dict[bytes, ServerGoal] = {}
         self._tasks: set[asyncio.Task[None]] = set()
+        self._closed = False
         names = action_names(self.name)
         self._status = node.create_publisher(names["status"], STATUS_TYPE, qos_mod.ACTION_STATUS)
         self._feedback = node.create_publisher(
@@ -434,13 +442,19 @@ class ActionServer:
         self._feedback.publish(message)
 
     def _publish_status(self) -> None:
+        if self._closed:  # a result expiring after close
+            return
         self._status.publish({"status_list": [
             {"goal_info": {"goal_id": {"uuid": g.goal_id}, "stamp": g.stamp},
              "status": int(g.state)} for g in self._goals.values()]})
 
     async def close(self) -> None:
+        """Cancels the goals being executed, then deletes the endpoints; idempotent."""
+        self._closed = True
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         for service in self._services:
             await service.close()
+        self._status.close()
+        self._feedback.close()

@@ -115,6 +115,7 @@ def gid_bytes(entity: Any, size: int) -> bytes:
 class RosPublisher:
     def __init__(self, node: RosNode, topic: str, type_name: str, writer: DataWriter[Any]) -> None:
         self.node, self.topic, self.type_name, self.writer = node, topic, type_name, writer
+        self.closed = False
 
     def publish(self, message: IdlStruct | Mapping[str, Any]) -> None:
         if not isinstance(message, IdlStruct):
@@ -130,6 +131,15 @@ class RosPublisher:
     async def wait_for_subscribers(self, count: int = 1, timeout: float = 5.0) -> int:
         return await _wait_count(self.matched_count, count, timeout,
                                  f"no subscriber matched {self.topic}")
+
+    def close(self) -> None:
+        """Deletes the writer (it leaves the graph); idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        self.node.forget_writer(self.writer)
+        with contextlib.suppress(DDSException):
+            self.writer.__del__()
 
 
 class RosSubscription:
@@ -243,10 +253,12 @@ class RosNode:
         self.domain_id = resolve_domain_id(domain_id)
         self.localhost = localhost_requested(localhost)
         _acquire_domain(self.domain_id, self.localhost)
-        self.participant = DomainParticipant(
-            self.domain_id, qos=Qos(Policy.Userdata(f"enclave={enclave};".encode())))
-        self.publisher = Publisher(self.participant)
-        self.subscriber = Subscriber(self.participant)
+        try:
+            self.participant = DomainParticipant(
+                self.domain_id, qos=Qos(Policy.Userdata(f"enclave={enclave};".encode())))
+        except BaseException:
+            _release_domain(self.domain_id)
+            raise
         self._topics: dict[str, Topic[Any]] = {}
         self._readers: list[Any] = []
         self._writers: list[Any] = []
@@ -254,8 +266,14 @@ class RosNode:
         self._lock = threading.Lock()
         self.closed = False
         self.reader_thread = ReaderThread(self.participant, f"dds-read {self.fqn}")
-        self._info_writer = self._discovery_writer()
-        self.announce()
+        try:
+            self.publisher = Publisher(self.participant)
+            self.subscriber = Subscriber(self.participant)
+            self._info_writer = self._discovery_writer()
+            self.announce()
+        except BaseException:  # a half-made node leaves nothing behind
+            self.close()
+            raise
 
     @property
     def fqn(self) -> str:
@@ -337,6 +355,13 @@ class RosNode:
             self._readers.append(reader)
         self.announce()
 
+    def forget_writer(self, writer: Any) -> None:
+        with self._lock:
+            if writer in self._writers:
+                self._writers.remove(writer)
+        if not self.closed:
+            self.announce()
+
     def track_writer(self, writer: Any) -> None:
         with self._lock:
             self._writers.append(writer)
@@ -383,9 +408,8 @@ class RosNode:
             self._readers.clear()
             self._writers.clear()
             self._subscriptions.clear()
-        participant = self.participant
-        del self._info_writer
-        participant.__del__()
+        self.__dict__.pop("_info_writer", None)  # announce() does nothing from here on
+        self.participant.__del__()
         _release_domain(self.domain_id)
 
     def __enter__(self) -> RosNode:

@@ -24,6 +24,7 @@ warning instead.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import enum
 import itertools
 import logging
@@ -32,6 +33,7 @@ from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from cyclonedds.core import DDSException
 from cyclonedds.idl import IdlStruct
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
@@ -145,6 +147,17 @@ class _Pair:
         return bool(self.writer.get_publication_matched_status().current_count and
                     self.reader.get_subscription_matched_status().current_count)
 
+    def close(self) -> None:
+        """Stops deliveries and deletes both endpoints; idempotent."""
+        if self.watch.closed:
+            return
+        self._node.unwatch(self.watch)
+        self._node.forget_reader(self.reader)
+        self._node.forget_writer(self.writer)
+        for entity in (self.reader, self.writer):
+            with contextlib.suppress(DDSException):
+                entity.__del__()
+
 
 class ServiceClient:
     """Calls one service; `await call(request)` returns the response."""
@@ -168,6 +181,7 @@ class ServiceClient:
         self._plain_lock = asyncio.Lock()
         self._plain_waiter: tuple[asyncio.Future[IdlStruct], Accept | None] | None = None
         self._stale = False
+        self.closed = False
         self.dropped_replies = 0  # replies not ours: foreign guid, unsolicited, not accepted
 
     # -- discovery --------------------------------------------------------------
@@ -202,6 +216,8 @@ class ServiceClient:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
         while True:
+            if self.closed:
+                raise ServiceUnavailable(f"the client of {self.name} is closed")
             mapping = self.resolve_mapping()
             if mapping is not None:
                 pair = self._pair(mapping)
@@ -284,6 +300,20 @@ class ServiceClient:
                 continue
             waiter[0].set_result(sample)
 
+    def close(self) -> None:
+        """Deletes the endpoints; calls still waiting fail with ServiceUnavailable.
+        Idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        waiting = [*self._pending.values(), *([self._plain_waiter[0]] if self._plain_waiter
+                                               else [])]
+        for future in waiting:
+            if not future.done():
+                future.set_exception(ServiceUnavailable(f"the client of {self.name} closed"))
+        for pair in self._pairs.values():
+            pair.close()
+
 
 class ServiceServer:
     """Serves one service with an async handler (Cyclone mapping; see the module docs)."""
@@ -353,6 +383,8 @@ class ServiceServer:
         return False
 
     async def close(self) -> None:
+        """Cancels the requests being served, then deletes the endpoints; idempotent."""
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._pair.close()

@@ -17,7 +17,7 @@ from rcan_rtps.governance import AuditError, AuthenticationError, Principal, out
 from rcan_rtps.rcan import ErrorCode
 
 from ._bodies import error_response, failure_reply, json_response
-from ._commands import BodyTimeout
+from ._errors import BodyTimeout
 from ._keys import AUTHENTICATOR, CERT_PRINCIPALS, GOVERNOR, PRINCIPAL
 
 log = logging.getLogger(__name__)

@@ -2,6 +2,12 @@
 
 Imports no DDS. The bridge plugs in through `Dispatcher`; everything reaches the robot through
 `Governor.decide`, which leaves exactly one decisive audit entry per command.
+
+Public API: the governor (`Governor`, `Dispatcher`, `Decision`); policies (`RolePolicy`,
+`RateLimiter`, `HitlPolicy`, and the safety checks `AllOf`, `EstopGuard`, `VelocityLimit`,
+`Workspace`, `finite_numbers`, built from config by `safety_policy`); the audit log
+(`AuditLog`) and its verification (`verify`, `verify_bytes`); `GovernanceError` and its tree
+(see `errors`).
 """
 
 from .audit import (
@@ -26,6 +32,7 @@ from .errors import (
     AuditWriteError,
     AuthConfigError,
     AuthenticationError,
+    EmptyPolicyError,
     EstopStateError,
     GovernanceError,
 )
@@ -33,7 +40,16 @@ from .estop import EstopMachine, LatchFile
 from .governor import Decision, Dispatcher, DispatchResult, Governor
 from .hitl import HitlPolicy, Notifier, PendingCommand, WebhookNotifier
 from .idempotency import Idempotency
-from .invariants import AllOf, Violation, safety_policy
+from .invariants import (
+    AllOf,
+    Check,
+    EstopGuard,
+    VelocityLimit,
+    Violation,
+    Workspace,
+    finite_numbers,
+    safety_policy,
+)
 from .outcomes import Rejection
 from .rbac import (
     DEFAULT_ACTION_ROLES,
@@ -64,10 +80,13 @@ __all__ = [
     "AuthConfigError",
     "AuthenticationError",
     "ChainHead",
+    "Check",
     "Clock",
     "Decision",
     "DispatchResult",
     "Dispatcher",
+    "EmptyPolicyError",
+    "EstopGuard",
     "EstopMachine",
     "EstopStateError",
     "GovernanceError",
@@ -85,8 +104,11 @@ __all__ = [
     "RolePolicy",
     "SystemClock",
     "TokenAuthenticator",
+    "VelocityLimit",
     "Violation",
     "WebhookNotifier",
+    "Workspace",
+    "finite_numbers",
     "has_scope",
     "load_or_create_key",
     "load_private_key",

@@ -2,7 +2,9 @@
 
 A check takes the command and the parameters as they stand so far, and returns the parameters
 to apply (possibly clamped) or raises `Violation`. `AllOf` runs checks in order; any other
-exception inside a check becomes a denial (SAFETY_CHECK_ERROR), never a pass.
+exception inside a check becomes a denial (SAFETY_CHECK_ERROR), never a pass. `AllOf()` with
+no checks is refused (`EmptyPolicyError`). `safety_policy` always holds every built-in check:
+the config cannot leave the velocity limits out (`SafetyConfig` has no defaults for them).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from rcan_rtps.rcan import (
 from rcan_rtps.rcan.actions import specs
 
 from . import outcomes
-from .errors import GovernanceError
+from .errors import EmptyPolicyError, GovernanceError
 from .outcomes import Rejection
 
 log = logging.getLogger(__name__)
@@ -46,6 +48,8 @@ class AllOf:
     """Every check must pass; parameters flow from one to the next."""
 
     def __init__(self, *checks: Check) -> None:
+        if not checks:  # fail closed: a policy of nothing would pass a 1e6 m/s move
+            raise EmptyPolicyError("AllOf needs at least one check")
         self.checks = checks
 
     def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:

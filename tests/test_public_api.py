@@ -16,8 +16,15 @@ import pytest
 import rcan_rtps
 from rcan_rtps.api import ApiServerError
 from rcan_rtps.config import ConfigError, loads_config
-from rcan_rtps.governance import AllOf, EmptyPolicyError, GovernanceError, safety_policy
+from rcan_rtps.governance import (
+    AllOf,
+    EmptyPolicyError,
+    GovernanceError,
+    PerAction,
+    safety_policy,
+)
 from rcan_rtps.rcan import RcanError
+from rcan_rtps.rcan.actions import names
 from rcan_rtps.ros import WireError
 
 EXPECTED_EXPORTS: dict[str, set[str]] = {
@@ -107,6 +114,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "ManualClock",
         "Notifier",
         "PendingCommand",
+        "PerAction",
         "Principal",
         "RateLimiter",
         "Rejection",
@@ -128,19 +136,22 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "verify_bytes",
     },
     "rcan_rtps.rcan": {
-        "MOTION_ACTIONS",
-        "Action",
+        "ACTIONS",
         "ActionName",
         "ActionParams",
+        "ActionSpec",
         "AiInfo",
         "ArmJointParams",
         "Authorize",
         "DecisionBody",
+        "Effect",
         "EnvelopeCommand",
         "ErrorBody",
         "ErrorCode",
         "Fault",
+        "GateableName",
         "InvalidRuriError",
+        "Invariant",
         "Joints",
         "MoveParams",
         "NavigateParams",
@@ -160,11 +171,38 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "Status",
         "Telemetry",
         "Velocity",
+        "action_spec",
         "convert_at",
         "openapi_schemas",
         "parse_ruri",
         "validate_command",
         "validation_path",
+    },
+    "rcan_rtps.rcan.actions": {
+        "ACTIONS",
+        "ActionName",
+        "ActionSpec",
+        "ArmJointParams",
+        "Builder",
+        "Effect",
+        "EstopSignal",
+        "GateableName",
+        "Halt",
+        "HitlDefault",
+        "Invariant",
+        "MessageKit",
+        "MoveParams",
+        "NavigateParams",
+        "NoParams",
+        "Publish",
+        "RosRoute",
+        "SendGoal",
+        "action_spec",
+        "markdown_table",
+        "names",
+        "specs",
+        "stopping_names",
+        "with_effect",
     },
     "rcan_rtps.config": {
         "ApiConfig",
@@ -288,12 +326,17 @@ def test_an_empty_all_of_is_refused() -> None:
         AllOf()
 
 
+def test_an_empty_per_action_is_refused() -> None:
+    with pytest.raises(EmptyPolicyError, match="at least one action"):
+        PerAction({})
+
+
 def test_empty_policy_error_is_a_governance_value_error() -> None:
     assert issubclass(EmptyPolicyError, GovernanceError)
     assert issubclass(EmptyPolicyError, ValueError)
 
 
-def test_safety_policy_from_config_always_holds_the_builtin_checks() -> None:
+def test_safety_policy_from_config_checks_every_action() -> None:
     config = loads_config(
         'robot: {ruri: "rcan://registry.local/acme/bot/unit-0001"}\n'
         "bridge:\n"
@@ -306,7 +349,8 @@ def test_safety_policy_from_config_always_holds_the_builtin_checks() -> None:
         latched = False
 
     policy = safety_policy(config.bridge.safety, Unlatched(), "map")
-    assert len(policy.checks) == 4
+    assert set(policy.policies) == set(names())
+    assert all(isinstance(p, AllOf) and p.checks for p in policy.policies.values())
 
 
 def test_a_config_without_velocity_limits_does_not_load() -> None:

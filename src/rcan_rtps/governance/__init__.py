@@ -4,8 +4,8 @@ Imports no DDS. The bridge plugs in through `Dispatcher`; everything reaches the
 `Governor.decide`, which leaves exactly one decisive audit entry per command.
 
 Public API: the governor (`Governor`, `Dispatcher`, `Decision`); policies (`RolePolicy`,
-`RateLimiter`, `HitlPolicy`, and the safety checks `AllOf`, `EstopGuard`, `VelocityLimit`,
-`Workspace`, `finite_numbers`, built from config by `safety_policy`); the audit log
+`RateLimiter`, `HitlPolicy`, and the safety checks `AllOf`, `PerAction`, `EstopGuard`,
+`VelocityLimit`, `Workspace`, `finite_numbers`, built from config by `safety_policy`); the audit log
 (`AuditLog`) and its verification (`verify`, `verify_bytes`); `GovernanceError` and its tree
 (see `errors`).
 """
@@ -44,6 +44,7 @@ from .invariants import (
     AllOf,
     Check,
     EstopGuard,
+    PerAction,
     VelocityLimit,
     Violation,
     Workspace,
@@ -98,6 +99,7 @@ __all__ = [
     "ManualClock",
     "Notifier",
     "PendingCommand",
+    "PerAction",
     "Principal",
     "RateLimiter",
     "Rejection",

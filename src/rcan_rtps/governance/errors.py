@@ -32,7 +32,8 @@ class EstopStateError(GovernanceError):
 
 
 class EmptyPolicyError(GovernanceError, ValueError):
-    """`AllOf()` with no checks would pass any command; it is refused when built."""
+    """A combinator with nothing in it: `AllOf()` would pass any command, `PerAction({})`
+    refuse every one. Refused when built."""
 
 
 class AuditError(GovernanceError):

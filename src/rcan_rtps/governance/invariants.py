@@ -2,9 +2,10 @@
 
 A check takes the command and the parameters as they stand so far, and returns the parameters
 to apply (possibly clamped) or raises `Violation`. `AllOf` runs checks in order; any other
-exception inside a check becomes a denial (SAFETY_CHECK_ERROR), never a pass. `AllOf()` with
-no checks is refused (`EmptyPolicyError`). `safety_policy` always holds every built-in check:
-the config cannot leave the velocity limits out (`SafetyConfig` has no defaults for them).
+exception inside a check becomes a denial (SAFETY_CHECK_ERROR), never a pass. A combinator
+with nothing in it (`AllOf()`, `PerAction({})`) is refused when built (`EmptyPolicyError`).
+`safety_policy` gives every registry action its declared checks (each declares one or more),
+and the config cannot leave the velocity limits out (`SafetyConfig` has no defaults for them).
 """
 
 from __future__ import annotations
@@ -169,6 +170,8 @@ class PerAction:
     entry is refused (fail closed)."""
 
     def __init__(self, policies: Mapping[str, Check]) -> None:
+        if not policies:  # would refuse everything: a wiring mistake, reported where it is made
+            raise EmptyPolicyError("PerAction needs at least one action")
         self.policies = dict(policies)
 
     def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:

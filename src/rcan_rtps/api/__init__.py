@@ -8,6 +8,7 @@ Public API::
     server_ssl_context(tls) -> SSLContext          TLS; mTLS when `tls.client_ca` is set
     cert_principals(config) -> {CN: Principal}     the mTLS mapping (principal name = CN)
     RobotView, GoalView                            the contract the bridge implements
+    ApiServerError                                 base of the API's errors (see `_errors`)
 
 Routes (all JSON; every one needs a principal, including /api/openapi.json — the document is
 no secret, but one rule without exceptions is easier to get right):
@@ -64,6 +65,7 @@ Decisions where the profile is silent:
 """
 
 from ._app import build_app, settings_from_config
+from ._errors import ApiServerError
 from ._keys import ApiSettings, Authenticator
 from ._server import ApiServer, bind
 from ._tls import cert_principals, server_ssl_context
@@ -71,6 +73,7 @@ from .ports import GoalState, GoalView, RobotView
 
 __all__ = [
     "ApiServer",
+    "ApiServerError",
     "ApiSettings",
     "Authenticator",
     "GoalState",

@@ -18,12 +18,8 @@ from rcan_rtps.governance import Governor, Principal, outcomes
 from rcan_rtps.rcan import ErrorCode, SchemaValidationError, validation_path
 
 from ._bodies import error_body
+from ._errors import BodyTimeout
 from ._intake import TOO_DEEP, Observe, Reply, decide, intake
-
-
-class BodyTimeout(Exception):
-    """The request body did not arrive within `body_timeout_s` (answered 408, not audited:
-    no request was ever complete)."""
 
 
 async def read_limited(request: web.Request, limit: int,

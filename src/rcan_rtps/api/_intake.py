@@ -111,7 +111,8 @@ async def decide_safely(governor: Governor, principal: Principal, item: Intake,
     try:
         return await decide(governor, principal, item, observe)
     except Exception as exc:
-        log.exception("deciding a command of %s failed", principal.name)
+        log.exception("deciding a command of %s failed", principal.name,
+                      extra={"principal": principal.name})
         return failure_reply(exc)
 
 
@@ -141,7 +142,8 @@ class StopLane:
             reply = await decide_safely(self._governor, self._principal, item, self._observe)
             await self._deliver(reply)
         except Exception:  # a failed delivery must not go unnoticed, nor kill the lane
-            log.exception("delivering a stop outcome to %s failed", self._principal.name)
+            log.exception("delivering a stop outcome to %s failed", self._principal.name,
+                          extra={"principal": self._principal.name})
         finally:
             self._room.release()
 

@@ -17,7 +17,7 @@ from rcan_rtps.governance import AuditError, AuthenticationError, Principal, out
 from rcan_rtps.rcan import ErrorCode
 
 from ._bodies import error_response, failure_reply, json_response
-from ._commands import BodyTimeout
+from ._errors import BodyTimeout
 from ._keys import AUTHENTICATOR, CERT_PRINCIPALS, GOVERNOR, PRINCIPAL
 
 log = logging.getLogger(__name__)
@@ -47,10 +47,12 @@ def last_resort() -> Middleware:
             return await _body_timed_out(request)
         except AuditError as exc:
             # Nothing may happen unrecorded: without an audit log the bridge is unavailable.
-            log.exception("audit log failed while serving %s %s", request.method, request.path)
+            log.exception("audit log failed while serving %s %s", request.method, request.path,
+                          extra=_log_context(request))
             return _failure(exc)
         except Exception as exc:
-            log.exception("unexpected error serving %s %s", request.method, request.path)
+            log.exception("unexpected error serving %s %s", request.method, request.path,
+                          extra=_log_context(request))
             return _failure(exc)
 
     return middleware
@@ -66,6 +68,12 @@ async def _body_timed_out(request: web.Request) -> web.StreamResponse:
     if request.transport is not None:
         request.transport.close()  # sends what is buffered (the 408) first
     return response
+
+
+def _log_context(request: web.Request) -> dict[str, str]:
+    """Log `extra=` naming the request's principal, once authentication has found one."""
+    principal = request.get(PRINCIPAL)
+    return {"principal": principal.name} if principal is not None else {}
 
 
 def _failure(exc: Exception) -> web.Response:

@@ -108,7 +108,8 @@ class _Commands:
                     decide_safely(self._governor, self._principal, item, self._observe))
                 await self._deliver(await asyncio.shield(self._current))
             except Exception:  # never the end of this socket's commands
-                log.exception("WebSocket command of %s failed", self._principal.name)
+                log.exception("WebSocket command of %s failed", self._principal.name,
+                              extra={"principal": self._principal.name})
 
     async def close(self) -> None:
         """Stop taking commands; finish the one in flight and every stop; drop the rest."""
@@ -159,10 +160,12 @@ async def _end(ws: web.WebSocketResponse, governor: Governor, principal: Princip
         try:
             stop = await governor.end_session(principal)
         except Exception:
-            log.exception("safe stop after the WebSocket of %s closed failed", principal.name)
+            log.exception("safe stop after the WebSocket of %s closed failed", principal.name,
+                          extra={"principal": principal.name})
         else:
             if stop is not None:
                 log.warning("WebSocket of %s closed while it held a control session: "
-                            "safe stop (%s)", principal.name, stop.outcome.value)
+                            "safe stop (%s)", principal.name, stop.outcome.value,
+                            extra={"principal": principal.name, "audit_id": stop.audit_id})
         if not ws.closed:
             await ws.close()

@@ -13,6 +13,7 @@ from ..governance import GovernanceError
 from ..rcan import RcanError
 from ..ros.errors import WireError
 from . import (
+    _logging,
     action_cmd,
     audit_cmd,
     config_cmd,
@@ -28,6 +29,7 @@ from ._common import add_global_options
 
 EXIT_ERROR = 1
 EXIT_INTERRUPTED = 130
+log = logging.getLogger("rcan_rtps.cli")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,6 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="RCAN governance for ROS 2 robots, as a plain DDS peer (no ROS needed).")
     parser.add_argument("--version", action="version", version=f"rcan-rtps {__version__}")
     add_global_options(parser)
+    add_logging_options(parser)
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in (run_cmd, topic_cmd, node_cmd, interface_cmd, config_cmd, audit_cmd, sim_cmd,
                    service_cmd, action_cmd, discover_cmd):
@@ -43,14 +46,31 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def add_logging_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--log-level", choices=_logging.LOG_LEVELS,
+                        default=_logging.DEFAULT_LOG_LEVEL,
+                        help=f"least severe level logged (default: {_logging.DEFAULT_LOG_LEVEL})")
+    parser.add_argument("--log-format", choices=_logging.LOG_FORMATS, default="text",
+                        help="log lines on stderr: text (default) or json (one object a line: "
+                        "time, level, logger, event, principal/audit_id where relevant, exc)")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     parser = build_parser()
     args = parser.parse_args(argv)
+    _logging.configure(args.log_level, args.log_format)
     try:
         return int(args.func(args))
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
     except (WireError, ConfigError, GovernanceError, RcanError, ValueError, OSError) as exc:
-        print(f"rcan-rtps: error: {exc}", file=sys.stderr)
+        report_error(exc, as_json=args.log_format == "json")
         return EXIT_ERROR
+
+
+def report_error(exc: Exception, *, as_json: bool) -> None:
+    # In JSON mode stderr is read by machines: the error is a log line like every other.
+    if as_json:
+        log.error("%s", exc)
+    else:
+        print(f"rcan-rtps: error: {exc}", file=sys.stderr)

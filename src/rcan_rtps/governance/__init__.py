@@ -2,6 +2,12 @@
 
 Imports no DDS. The bridge plugs in through `Dispatcher`; everything reaches the robot through
 `Governor.decide`, which leaves exactly one decisive audit entry per command.
+
+Public API: the governor (`Governor`, `Dispatcher`, `Decision`); policies (`RolePolicy`,
+`RateLimiter`, `HitlPolicy`, and the safety checks `AllOf`, `PerAction`, `EstopGuard`,
+`VelocityLimit`, `Workspace`, `finite_numbers`, built from config by `safety_policy`); the audit log
+(`AuditLog`) and its verification (`verify`, `verify_bytes`); `GovernanceError` and its tree
+(see `errors`).
 """
 
 from .audit import (
@@ -26,6 +32,7 @@ from .errors import (
     AuditWriteError,
     AuthConfigError,
     AuthenticationError,
+    EmptyPolicyError,
     EstopStateError,
     GovernanceError,
 )
@@ -33,7 +40,17 @@ from .estop import EstopMachine, LatchFile
 from .governor import Decision, Dispatcher, DispatchResult, Governor
 from .hitl import HitlPolicy, Notifier, PendingCommand, WebhookNotifier
 from .idempotency import Idempotency
-from .invariants import AllOf, Violation, safety_policy
+from .invariants import (
+    AllOf,
+    Check,
+    EstopGuard,
+    PerAction,
+    VelocityLimit,
+    Violation,
+    Workspace,
+    finite_numbers,
+    safety_policy,
+)
 from .outcomes import Rejection
 from .rbac import (
     DEFAULT_ACTION_ROLES,
@@ -64,10 +81,13 @@ __all__ = [
     "AuthConfigError",
     "AuthenticationError",
     "ChainHead",
+    "Check",
     "Clock",
     "Decision",
     "DispatchResult",
     "Dispatcher",
+    "EmptyPolicyError",
+    "EstopGuard",
     "EstopMachine",
     "EstopStateError",
     "GovernanceError",
@@ -79,14 +99,18 @@ __all__ = [
     "ManualClock",
     "Notifier",
     "PendingCommand",
+    "PerAction",
     "Principal",
     "RateLimiter",
     "Rejection",
     "RolePolicy",
     "SystemClock",
     "TokenAuthenticator",
+    "VelocityLimit",
     "Violation",
     "WebhookNotifier",
+    "Workspace",
+    "finite_numbers",
     "has_scope",
     "load_or_create_key",
     "load_private_key",

@@ -4,6 +4,8 @@
     ├── AuthenticationError      no or invalid credentials (UNAUTHENTICATED)
     ├── AuthConfigError          principals cannot be set up (e.g. a token env var is unset)
     ├── EstopStateError          the e-stop state file cannot be written
+    ├── EmptyPolicyError         a policy combinator built with nothing to check (a ValueError)
+    ├── Violation                a command breaks a §8 safety invariant (`invariants`)
     └── AuditError
         ├── AuditIntegrityError  the chain is broken; names the first bad `seq`
         ├── AuditKeyError        the signing key is missing, unreadable or too open
@@ -27,6 +29,11 @@ class AuthConfigError(GovernanceError):
 
 class EstopStateError(GovernanceError):
     pass
+
+
+class EmptyPolicyError(GovernanceError, ValueError):
+    """A combinator with nothing in it: `AllOf()` would pass any command, `PerAction({})`
+    refuse every one. Refused when built."""
 
 
 class AuditError(GovernanceError):

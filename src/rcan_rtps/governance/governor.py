@@ -287,10 +287,12 @@ class Governor:
             self.latch.file.write(True, principal.name, at), self.audit.append(record),
             return_exceptions=True)
         if isinstance(persisted, BaseException):
-            log.error("e-stop latched in memory only: %s", persisted)
+            log.error("e-stop latched in memory only: %s", persisted,
+                      extra={"principal": principal.name})
         result, failure = await self._dispatch(command, command.params)
         if isinstance(receipt, BaseException):
-            log.error("e-stop sent but not audited: %s", receipt)
+            log.error("e-stop sent but not audited: %s", receipt,
+                      extra={"principal": principal.name})
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         if failure is not None:
             return await self._failed(command, principal, failure)
@@ -311,7 +313,8 @@ class Governor:
         try:
             await self.latch.file.write(False, principal.name, now_ms(self._clock))
         except EstopStateError:
-            log.exception("e-stop clear not persisted: staying latched")
+            log.exception("e-stop clear not persisted: staying latched",
+                          extra={"principal": principal.name, "audit_id": receipt.audit_id})
             return await self._failed(command, principal, outcomes.ESTOP_STATE_UNWRITABLE)
         if not self.latch.unlatch():  # an e-stop is next in line: the robot stays stopped
             return _executed(command, {}, receipt, DispatchResult(ok=True))
@@ -363,7 +366,8 @@ class Governor:
         try:
             return await self.audit.append(record)
         except AuditError:
-            log.exception("audit write failed: %s not sent", record.action_type)
+            log.exception("audit write failed: %s not sent", record.action_type,
+                          extra={"principal": record.principal})
             return None
 
     def _route(self, command: NormalizedCommand) -> str | None:

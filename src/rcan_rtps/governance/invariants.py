@@ -2,7 +2,10 @@
 
 A check takes the command and the parameters as they stand so far, and returns the parameters
 to apply (possibly clamped) or raises `Violation`. `AllOf` runs checks in order; any other
-exception inside a check becomes a denial (SAFETY_CHECK_ERROR), never a pass.
+exception inside a check becomes a denial (SAFETY_CHECK_ERROR), never a pass. A combinator
+with nothing in it (`AllOf()`, `PerAction({})`) is refused when built (`EmptyPolicyError`).
+`safety_policy` gives every registry action its declared checks (each declares one or more),
+and the config cannot leave the velocity limits out (`SafetyConfig` has no defaults for them).
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from rcan_rtps.rcan import (
 from rcan_rtps.rcan.actions import specs
 
 from . import outcomes
-from .errors import GovernanceError
+from .errors import EmptyPolicyError, GovernanceError
 from .outcomes import Rejection
 
 log = logging.getLogger(__name__)
@@ -46,6 +49,8 @@ class AllOf:
     """Every check must pass; parameters flow from one to the next."""
 
     def __init__(self, *checks: Check) -> None:
+        if not checks:  # fail closed: a policy of nothing would pass a 1e6 m/s move
+            raise EmptyPolicyError("AllOf needs at least one check")
         self.checks = checks
 
     def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
@@ -165,6 +170,8 @@ class PerAction:
     entry is refused (fail closed)."""
 
     def __init__(self, policies: Mapping[str, Check]) -> None:
+        if not policies:  # would refuse everything: a wiring mistake, reported where it is made
+            raise EmptyPolicyError("PerAction needs at least one action")
         self.policies = dict(policies)
 
     def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:

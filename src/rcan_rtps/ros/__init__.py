@@ -1,0 +1,69 @@
+"""The ROS 2 wire layer: a ROS 2 node made of plain DDS. Knows nothing of RCAN.
+
+Public API (the modules stay importable for the finer parts: `names`, `qos`, `rostime`)::
+
+    RosNode(name, namespace, *, domain_id=, localhost=, distro=, idl_paths=)  context manager
+      .create_publisher(topic, type) -> RosPublisher
+      .create_subscription(topic, type) -> RosSubscription   (async get / async for)
+    ServiceClient / ServiceServer, ActionClient / ActionServer   over both request mappings
+    RosGraph                 topics, nodes, services and actions seen through DDS discovery
+    TypeStore                one definition per ROS type, loaded from IDL; RIHS01 hashes
+    QosProfile               ROS QoS, with `qos.preset(name)` for the named profiles
+    WireError and its tree   see `errors`
+"""
+
+from .actions import ActionClient, ActionServer, ClientGoal, GoalResult, GoalState, ServerGoal
+from .errors import (
+    ActionError,
+    GraphTimeout,
+    IdlSyntaxError,
+    InvalidNameError,
+    QosError,
+    ServiceTimeout,
+    ServiceUnavailable,
+    UnknownTypeError,
+    UnsupportedDistroError,
+    UnsupportedTypeError,
+    ValueFitError,
+    WireError,
+)
+from .graph import Direction, Endpoint, RosGraph
+from .participant import RosNode, RosPublisher, RosSubscription
+from .qos import Durability, History, QosProfile, Reliability
+from .services import RequestMapping, ServiceClient, ServiceServer
+from .typesys import TypeStore
+
+__all__ = [
+    "ActionClient",
+    "ActionError",
+    "ActionServer",
+    "ClientGoal",
+    "Direction",
+    "Durability",
+    "Endpoint",
+    "GoalResult",
+    "GoalState",
+    "GraphTimeout",
+    "History",
+    "IdlSyntaxError",
+    "InvalidNameError",
+    "QosError",
+    "QosProfile",
+    "Reliability",
+    "RequestMapping",
+    "RosGraph",
+    "RosNode",
+    "RosPublisher",
+    "RosSubscription",
+    "ServerGoal",
+    "ServiceClient",
+    "ServiceServer",
+    "ServiceTimeout",
+    "ServiceUnavailable",
+    "TypeStore",
+    "UnknownTypeError",
+    "UnsupportedDistroError",
+    "UnsupportedTypeError",
+    "ValueFitError",
+    "WireError",
+]

@@ -1,15 +1,19 @@
 """Errors of the ROS 2 wire layer.
 
     WireError
-    ├── IdlSyntaxError       an .idl file does not parse (file and line)
-    ├── UnknownTypeError     a type name the store does not hold (with near names)
-    ├── ValueFitError        a value does not fit its type (with the field path)
-    ├── InvalidNameError     a ROS name breaks a validity rule (the rule is named)
-    ├── QosError             a QoS profile that cannot be built or cannot match
-    ├── GraphTimeout         something did not appear on the graph in time
-    ├── ServiceUnavailable   no server for a service (or action) within the timeout
-    ├── ServiceTimeout       a server was there but no reply came in time
-    └── ActionError          an action goal could not be sent, confirmed or followed
+    ├── IdlSyntaxError          an .idl file does not parse (file and line)
+    ├── UnknownTypeError        a type name the store does not hold (with near names)
+    ├── UnsupportedTypeError    a type the cyclonedds codec cannot carry (wstring, wchar, ...)
+    ├── UnsupportedDistroError  a ROS distro the IDL bundle does not cover (also a ValueError)
+    ├── ValueFitError           a value does not fit its type (with the field path)
+    ├── InvalidNameError        a ROS name breaks a validity rule (the rule is named)
+    ├── QosError                a QoS profile that cannot be built or cannot match
+    ├── GraphTimeout            something did not appear on the graph in time
+    ├── ServiceUnavailable      no server for a service (or action) within the timeout
+    ├── ServiceTimeout          a server was there but no reply came in time
+    └── ActionError             an action goal could not be sent, confirmed or followed
+
+Misuse (an API called out of order) raises RuntimeError/TypeError as Python does.
 """
 
 from __future__ import annotations
@@ -40,6 +44,15 @@ class UnknownTypeError(WireError):
         super().__init__(f"unknown type {name!r}{hint}")
         self.name = name
         self.suggestions = near
+
+
+class UnsupportedTypeError(WireError):
+    """A type the cyclonedds codec cannot carry (wstring, wchar, long double)."""
+
+
+class UnsupportedDistroError(WireError, ValueError):
+    # ValueError too: callers of `resolve_distro` caught ValueError before this class existed.
+    pass
 
 
 class ValueFitError(WireError):

@@ -1,0 +1,44 @@
+"""ROS interface types: IDL → neutral model → RIHS01 hashes and cyclonedds structs.
+
+Public API::
+
+    parse_idl(text, path) -> ParsedFile       the ROS dialect of OMG IDL
+    TypeStore(extra_paths, distro)            one definition per type, loaded lazily
+    rihs01(msg, lookup) -> "RIHS01_<hex>"     the type hash rosidl computes
+    DdsTypes(store).struct(name)              the cyclonedds `IdlStruct` of a type
+    MessageValues(types)                      plain values ⇄ messages, validated with paths
+"""
+
+from .ddstypes import DdsTypes
+from .hashing import rihs01
+from .idl_parser import parse_idl
+from .model import (
+    ActionType,
+    Collection,
+    Constant,
+    Field,
+    FieldType,
+    MessageType,
+    ParsedFile,
+    Primitive,
+    ServiceType,
+)
+from .store import TypeStore
+from .values import MessageValues
+
+__all__ = [
+    "ActionType",
+    "Collection",
+    "Constant",
+    "DdsTypes",
+    "Field",
+    "FieldType",
+    "MessageType",
+    "MessageValues",
+    "ParsedFile",
+    "Primitive",
+    "ServiceType",
+    "TypeStore",
+    "parse_idl",
+    "rihs01",
+]

@@ -17,7 +17,7 @@ from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl import types as t
 from cyclonedds.idl._machinery import BytesMachine
 
-from ..errors import WireError
+from ..errors import UnsupportedTypeError
 from .model import Collection, FieldType, MessageType, Primitive
 from .store import TypeStore
 
@@ -38,10 +38,6 @@ _PRIMITIVES: dict[Primitive, Any] = {
     Primitive.STRING: str,
 }
 BYTE_LIKE = (Primitive.OCTET, Primitive.UINT8, Primitive.CHAR)
-
-
-class UnsupportedTypeError(WireError):
-    """A type the cyclonedds codec cannot carry (wstring, wchar, long double)."""
 
 
 def is_byte_like(ftype: FieldType) -> bool:

@@ -14,7 +14,7 @@ import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from ..errors import UnknownTypeError
+from ..errors import UnknownTypeError, UnsupportedDistroError
 from .hashing import rihs01
 from .idl_parser import parse_idl
 from .model import (
@@ -54,7 +54,8 @@ def bundle_dir() -> Path:
 def resolve_distro(explicit: str | None = None) -> str:
     distro = (explicit or os.environ.get("ROS_DISTRO") or DEFAULT_DISTRO).lower()
     if distro not in DISTROS:
-        raise ValueError(f"unsupported ROS distro {distro!r}; choose one of {', '.join(DISTROS)}")
+        choices = ", ".join(DISTROS)
+        raise UnsupportedDistroError(f"unsupported ROS distro {distro!r}; choose one of {choices}")
     return distro
 
 

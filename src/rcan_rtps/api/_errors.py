@@ -1,0 +1,19 @@
+"""Errors of the HTTP/WebSocket API.
+
+    ApiServerError      base of every error the API raises (requests are answered, never raised)
+    └── BodyTimeout     a request body did not arrive in time (answered 408 by a middleware)
+
+Binding a socket raises OSError, like the stdlib; misuse (e.g. `ApiServer.url` before start)
+raises RuntimeError.
+"""
+
+from __future__ import annotations
+
+
+class ApiServerError(Exception):
+    """Base of every error raised by `rcan_rtps.api`."""
+
+
+class BodyTimeout(ApiServerError):
+    """The request body did not arrive within `body_timeout_s` (answered 408, not audited:
+    no request was ever complete)."""

@@ -15,6 +15,7 @@ import pytest
 
 import rcan_rtps
 from rcan_rtps.api import ApiServerError
+from rcan_rtps.bridge import BridgeError
 from rcan_rtps.config import ConfigError, loads_config
 from rcan_rtps.governance import (
     AllOf,
@@ -241,7 +242,8 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "settings_from_config",
     },
     # Applications, run from the command line: deliberately no Python API.
-    "rcan_rtps.bridge": set(),
+    "rcan_rtps.bridge": {"Bridge", "BridgeError", "BridgeOptions", "BridgeState",
+                         "BridgeStateError"},
     "rcan_rtps.cli": set(),
     "rcan_rtps.sim": set(),
 }
@@ -253,6 +255,7 @@ SUBSYSTEM_BASES: dict[str, type[Exception]] = {
     "rcan": RcanError,
     "config": ConfigError,
     "api": ApiServerError,
+    "bridge": BridgeError,
 }
 
 

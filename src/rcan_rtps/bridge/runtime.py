@@ -48,6 +48,7 @@ from ..rcan import Status
 from ..ros.participant import RosNode
 from ..ros.services import RequestMapping
 from .commands import RosDispatcher
+from .errors import BridgeStateError
 from .mdns import Advert, RcanAdvertiser
 from .navigation import GoalTracker
 from .notify import DiagnosticsNotifier, FanOutNotifier
@@ -98,10 +99,6 @@ class BridgeState(enum.Enum):
     STOPPING = "stopping"
     STOPPED = "stopped"
     FAILED = "failed"  # prepare or start raised; whatever it had acquired is released
-
-
-class BridgeStateError(RuntimeError):
-    """A lifecycle call the bridge's state does not allow (start twice, start after stop)."""
 
 
 Cleanup = Callable[[], object]  # returns None or an awaitable

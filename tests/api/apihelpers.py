@@ -7,7 +7,7 @@ records what the governor hands to the bridge.
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -86,15 +86,25 @@ class MemoryRobot:
         self.state: Any = "idle"
         self.goal_views: dict[str, GoalView] = {}
         self.x = 0.0
+        self.watchers: list[Callable[[], None]] = []
+        self.estop_latched: Callable[[], bool] = lambda: False  # the governor's, once built
 
     def status(self, *, pending_auth: int) -> Status:
         return Status(
-            ruri=RURI, state=self.state, estop=False, battery_pct=87.5,
+            ruri=RURI, state=self.state, estop=self.estop_latched(), battery_pct=87.5,
             telemetry=Telemetry(position=Position(x=self.x, y=0.0, z=0.0), yaw=0.0),
             faults=[], active_goals=sorted(self.goal_views), pending_auth=pending_auth,
             ros=RosInfo(domain_id=0, distro="jazzy", connected=True, last_telemetry_age_s=0.1),
             timestamp_ms=1,
         )
+
+    def watch(self, changed: Callable[[], None]) -> None:
+        self.watchers.append(changed)
+
+    def changed(self) -> None:
+        """What a test calls after setting `state`, `x` or goals: STATUS is pushed at once."""
+        for watcher in self.watchers:
+            watcher()
 
     def goal(self, goal_id: str) -> GoalView | None:
         return self.goal_views.get(goal_id)
@@ -138,6 +148,8 @@ class Api:
                                              notifier=self.notifier)
         authenticator = TokenAuthenticator.from_config(bridge.api, bridge.rbac, ENV,
                                                        clock=self.clock)
+        governor = self.governor
+        self.robot.estop_latched = lambda: governor.latch.latched
         self.app = build_app(governor=self.governor, authenticator=authenticator,
                              robot=self.robot, config=self.config)
         return self.app

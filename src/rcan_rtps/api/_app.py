@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import AsyncIterator, Callable, Mapping
 
 import msgspec
 from aiohttp import WSCloseCode, web
@@ -23,6 +23,7 @@ from ._keys import (
     ROBOT,
     SETTINGS,
     SOCKETS,
+    STATUS,
     ApiSettings,
     Authenticator,
 )
@@ -30,6 +31,7 @@ from ._metrics import Metrics
 from ._middlewares import authenticate, last_resort
 from ._openapi import openapi_document
 from ._reads import AuditReads
+from ._status import StatusHub
 from ._tls import cert_principals as config_cert_principals
 from ._ws import websocket
 from .ports import RobotView
@@ -79,7 +81,11 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
                        backlog=settings.audit_read_backlog)
     app[READS] = reads
     document = msgspec.json.encode(openapi_document())
-    metrics = Metrics(governor, robot)
+    app[STATUS] = status = StatusHub(
+        lambda: robot.status(pending_auth=len(governor.pending())),
+        period_s=1.0 / settings.telemetry_rate_hz)
+    app.cleanup_ctx.append(_status_owner(status, governor, robot))
+    metrics = Metrics(governor, status)
     app[OBSERVE] = metrics.command_seconds.observe
 
     async def get_metrics(request: web.Request) -> web.Response:
@@ -110,6 +116,19 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
 
     app.on_cleanup.append(close_reads)
     return app
+
+
+def _status_owner(status: StatusHub, governor: Governor, robot: RobotView
+                  ) -> Callable[[web.Application], AsyncIterator[None]]:
+    async def owner(app: web.Application) -> AsyncIterator[None]:
+        await status.start()
+        governor.status_listeners.append(status.changed)
+        robot.watch(status.changed)
+        yield
+        governor.status_listeners.remove(status.changed)
+        await status.close()
+
+    return owner
 
 
 async def _close_sockets(app: web.Application) -> None:

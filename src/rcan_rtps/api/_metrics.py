@@ -6,15 +6,13 @@ what is counted is exactly what is on record; gauges are read from the robot at 
 
 from __future__ import annotations
 
-from typing import Any
-
 from prometheus_client import CONTENT_TYPE_LATEST as CONTENT_TYPE
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 
 from rcan_rtps.governance import AuditRecord, Governor
 from rcan_rtps.rcan.actions import specs
 
-from .ports import RobotView
+from ._status import StatusHub
 
 _STATES = ("idle", "moving", "executing", "estop", "fault", "safe_stop", "offline")
 
@@ -22,9 +20,9 @@ _STATES = ("idle", "moving", "executing", "estop", "fault", "safe_stop", "offlin
 class Metrics:
     content_type = CONTENT_TYPE
 
-    def __init__(self, governor: Governor, robot: RobotView) -> None:
+    def __init__(self, governor: Governor, status: StatusHub) -> None:
         self.registry = CollectorRegistry()
-        self._governor, self._robot = governor, robot
+        self._status = status
         self.audit_entries = Counter(
             "rcan_audit_entries", "Durable audit entries, by event, action and outcome",
             ["event", "action", "outcome"], registry=self.registry)
@@ -52,9 +50,8 @@ class Metrics:
                                   record.outcome or "").inc()
 
     def render(self) -> bytes:
-        pending = len(self._governor.pending())
-        status: Any = self._robot.status(pending_auth=pending)
-        self.pending.set(pending)
+        status = self._status.snapshot()  # the STATUS owner's, as every transport sees it
+        self.pending.set(status.pending_auth)
         self.estop.set(1 if status.estop else 0)
         for state in _STATES:
             self.state.labels(state).set(1 if status.state == state else 0)

@@ -17,7 +17,7 @@ from ._bodies import (
     json_response,
 )
 from ._commands import decode_as, read_limited, run_command, schema_failure, too_large
-from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, READS, ROBOT, SETTINGS
+from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, READS, ROBOT, SETTINGS, STATUS
 from ._reads import line_seq
 
 _WALL = SystemClock()
@@ -51,8 +51,7 @@ async def post_command(request: web.Request) -> web.Response:
 
 
 async def get_status(request: web.Request) -> web.Response:
-    pending = len(request.app[GOVERNOR].pending())
-    return json_response(request.app[ROBOT].status(pending_auth=pending))
+    return json_response(request.app[STATUS].snapshot())
 
 
 async def post_heartbeat(request: web.Request) -> web.Response:

@@ -29,8 +29,8 @@ from rcan_rtps.rcan import ErrorCode
 
 from ._bodies import WsFrame, error_body
 from ._intake import Intake, Observe, Reply, StopLane, decide_safely, intake
-from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, ROBOT, SETTINGS, SOCKETS, ApiSettings
-from .ports import RobotView
+from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, SETTINGS, SOCKETS, STATUS, ApiSettings
+from ._status import StatusHub
 
 log = logging.getLogger(__name__)
 _CLOSING = (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED, WSMsgType.ERROR)
@@ -49,21 +49,15 @@ async def _send(ws: web.WebSocketResponse, frame: WsFrame) -> bool:
     return True
 
 
-async def _push_status(ws: web.WebSocketResponse, governor: Governor, robot: RobotView,
-                       period_s: float) -> None:
-    failing = False
-    while not ws.closed:
-        try:
-            status = robot.status(pending_auth=len(governor.pending()))
-            failing = False
-        except Exception:
-            if not failing:  # log a broken RobotView once, not at every tick
-                log.exception("STATUS for the WebSocket failed")
-            failing = True
-        else:
-            if not await _send(ws, WsFrame(type="status", body=status)):
+async def _push_status(ws: web.WebSocketResponse, hub: StatusHub) -> None:
+    """What the STATUS owner pushes (on change, at the telemetry rate), sent as it comes."""
+    subscription = hub.subscribe()
+    try:
+        while not ws.closed:
+            if not await _send(ws, WsFrame(type="status", body=await subscription.next())):
                 return
-        await asyncio.sleep(period_s)
+    finally:
+        subscription.close()
 
 
 class _Commands:
@@ -130,8 +124,7 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
     await ws.prepare(request)
     app[SOCKETS].add(ws)
     commands = _Commands(ws, governor, principal, settings, app[OBSERVE])
-    pusher = asyncio.create_task(
-        _push_status(ws, governor, app[ROBOT], 1.0 / settings.telemetry_rate_hz))
+    pusher = asyncio.create_task(_push_status(ws, app[STATUS]))
     try:
         while True:
             msg = await ws.receive()

@@ -6,6 +6,7 @@ go through the governor, whose `Dispatcher` is the bridge's translation to ROS 2
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Literal, Protocol
 
 import msgspec
@@ -32,6 +33,11 @@ class GoalView(msgspec.Struct, kw_only=True):
 class RobotView(Protocol):
     def status(self, *, pending_auth: int) -> Status:
         """The robot's STATUS now; the API supplies the count of pending approvals."""
+        ...
+
+    def watch(self, changed: Callable[[], None]) -> None:
+        """Call `changed` (from any thread) whenever what STATUS is made of may have changed;
+        the API's STATUS owner recomputes then instead of anyone polling."""
         ...
 
     def goal(self, goal_id: str) -> GoalView | None: ...

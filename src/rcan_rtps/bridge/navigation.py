@@ -10,6 +10,7 @@ import asyncio
 import logging
 import time
 import uuid
+from collections.abc import Callable
 from typing import Any
 
 from ..api.ports import GoalState, GoalView
@@ -46,6 +47,7 @@ class GoalTracker:
         self._views: dict[str, GoalView] = {}
         self._watchers: set[asyncio.Task[None]] = set()
         self._keep = keep
+        self.listeners: list[Callable[[], None]] = []  # told when the active goals change
 
     @property
     def action_name(self) -> str:
@@ -63,6 +65,7 @@ class GoalTracker:
         self._watchers.add(task)
         task.add_done_callback(self._watchers.discard)
         self._forget_old()
+        self._tell()
         return goal_id
 
     async def _watch(self, goal_id: str, handle: ClientGoal) -> None:
@@ -88,8 +91,17 @@ class GoalTracker:
         for key, value in changes.items():
             if value is not None:
                 setattr(view, key, value)
-        view.state = state
+        view.state, state_before = state, view.state
         view.updated_ms = _ms()
+        if state != state_before:
+            self._tell()
+
+    def _tell(self) -> None:
+        for listener in self.listeners:
+            try:
+                listener()
+            except Exception:  # STATUS is informative: it must never break goal tracking
+                log.exception("goal listener failed")
 
     async def cancel_all(self) -> int:
         """Cancels every goal on the server, whoever sent it: `stop` means stop."""

@@ -74,6 +74,10 @@ class BridgeView:
     def status(self, *, pending_auth: int) -> Status:
         return self.telemetry.status(pending_auth=pending_auth)
 
+    def watch(self, changed: Callable[[], None]) -> None:
+        self.telemetry.listeners.append(changed)
+        self.goals_.listeners.append(changed)
+
     def goal(self, goal_id: str) -> GoalView | None:
         return self.goals_.goal(goal_id)
 

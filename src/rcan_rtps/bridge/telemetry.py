@@ -14,6 +14,7 @@ derives the state machine from them:
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -26,6 +27,7 @@ from ..ros import qos
 from ..ros.participant import RosNode
 from ..ros.rostime import quaternion_to_yaw
 
+log = logging.getLogger(__name__)
 _LEVELS = {1: "WARN", 2: "ERROR", 3: "STALE"}
 _MOVING_EPS = 1e-3  # m/s or rad/s below which the robot counts as still
 
@@ -57,6 +59,8 @@ class TelemetryState:
         self._battery: float | None = None
         self._faults: dict[str, Fault] = {}
         self.safe_stopped = False
+        # Told (on the reader thread, or the loop) when what STATUS shows may have changed.
+        self.listeners: list[Callable[[], None]] = []
         ros2 = config.bridge.ros2
         self.domain_id = node.domain_id
         self.distro = node.store.distro
@@ -80,24 +84,40 @@ class TelemetryState:
             subscription.close()
 
     # -- DDS side (the node's reader thread) --------------------------------------------
-    def _touch(self) -> None:
-        self._last_rx = self._monotonic()
+    def _touch(self) -> bool:
+        """Note a sample; True if the robot was silent until now (STATUS: connected)."""
+        now, last = self._monotonic(), self._last_rx
+        self._last_rx = now
+        return last is None or now - last > self.config.bridge.ros2.telemetry_stale_s
+
+    def _tell(self, changed: bool) -> None:
+        if not changed:
+            return
+        for listener in self.listeners:
+            try:
+                listener()
+            except Exception:  # STATUS is informative: it must never break telemetry
+                log.exception("telemetry listener failed")
 
     def _on_odom(self, msg: Any) -> None:
         p, twist = msg.pose.pose, msg.twist.twist
         with self._lock:
+            was_moving = _moving(self._velocity)
             self._position = Position(p.position.x, p.position.y, p.position.z)
             self._yaw = quaternion_to_yaw(p.orientation)
             self._velocity = Velocity(twist.linear.x, twist.angular.z)
-            self._touch()
+            changed = self._touch() or was_moving != _moving(self._velocity)
+        self._tell(changed)
 
     def _on_joints(self, msg: Any) -> None:
         with self._lock:
             self._joints = Joints(list(msg.name), list(msg.position), list(msg.velocity))
-            self._touch()
+            changed = self._touch()
+        self._tell(changed)
 
     def _on_diagnostics(self, msg: Any) -> None:
         with self._lock:
+            before = dict(self._faults)
             for status in msg.status:
                 level = _level(status.level)
                 if level in _LEVELS:
@@ -105,19 +125,24 @@ class TelemetryState:
                                                       _LEVELS[level])  # type: ignore[arg-type]
                 else:  # OK clears what this component reported before
                     self._faults.pop(status.name, None)
-            self._touch()
+            changed = self._touch() or before != self._faults
+        self._tell(changed)
 
     def _on_battery(self, msg: Any) -> None:
         with self._lock:
+            before = self._battery
             pct = _finite_or_none(float(msg.percentage))
             self._battery = None if pct is None else max(0.0, min(100.0, pct * 100.0))
-            self._touch()
+            changed = self._touch() or before != self._battery
+        self._tell(changed)
 
     def mark_safe_stop(self) -> None:
-        self.safe_stopped = True
+        changed, self.safe_stopped = not self.safe_stopped, True
+        self._tell(changed)
 
     def clear_safe_stop(self) -> None:
-        self.safe_stopped = False
+        changed, self.safe_stopped = self.safe_stopped, False
+        self._tell(changed)
 
     # -- API side --------------------------------------------------------------------------
     def age_s(self) -> float | None:
@@ -153,7 +178,8 @@ class TelemetryState:
             return "safe_stop"
         if goals:
             return "executing"
-        v = telemetry.velocity
-        if v is not None and (abs(v.linear_x) > _MOVING_EPS or abs(v.angular_z) > _MOVING_EPS):
-            return "moving"
-        return "idle"
+        return "moving" if _moving(telemetry.velocity) else "idle"
+
+
+def _moving(v: Velocity | None) -> bool:
+    return v is not None and (abs(v.linear_x) > _MOVING_EPS or abs(v.angular_z) > _MOVING_EPS)

@@ -91,6 +91,7 @@ class EstopMachine:
         self.file = file
         self.reason = reason  # why it started latched, if it did
         self._latched = latched
+        self.listeners: list[Callable[[], None]] = []  # told when `latched` flips
         self._engages_waiting = 0
         self._queue: asyncio.Queue[_Job] | None = None
         self._worker: asyncio.Task[None] | None = None
@@ -102,8 +103,10 @@ class EstopMachine:
 
     def engage(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Latch now (synchronously), then run `work` in order."""
-        self._latched = True
+        flipped, self._latched = not self._latched, True
         self._engages_waiting += 1
+        if flipped:
+            self._tell()
         return self._submit(work, engage=True)
 
     def clear(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
@@ -116,7 +119,15 @@ class EstopMachine:
             return False
         self._latched = False
         self.reason = None
+        self._tell()
         return True
+
+    def _tell(self) -> None:
+        for listener in self.listeners:
+            try:
+                listener()
+            except Exception:  # a listener must never undo or delay a transition
+                log.exception("e-stop listener failed")
 
     async def settled(self) -> None:
         """Returns once every transition submitted so far has completed."""

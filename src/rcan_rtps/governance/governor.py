@@ -135,6 +135,9 @@ class Governor:
         self.started = False  # BRIDGE_STARTED is durable
         self._stopped = False
         self.safe_stop_listeners: list[Callable[[Principal], None]] = []
+        # Told when what STATUS shows of governance changes: the latch, pending approvals.
+        self.status_listeners: list[Callable[[], None]] = []
+        latch.listeners.append(self._status_changed)
 
     @classmethod
     def from_config(cls, config: RcanConfig, *, audit: AuditLog, dispatcher: Dispatcher,
@@ -424,6 +427,7 @@ class Governor:
                          pending_id=pending.pending_id)
         receipt = await self.audit.append(record)
         self._pending.put(pending)  # only once its PENDING_AUTH entry is durable
+        self._status_changed()
         if self._notifier is not None:
             self._spawn(self._notifier.notify(pending.message()))  # never awaited here
         return Decision(outcome=Outcome.PENDING_AUTH, http_status=202,
@@ -453,6 +457,7 @@ class Governor:
             return await self._refuse_hitl(verb, approver, outcomes.SELF_APPROVAL)
         if self._pending.take(pending_id) is None:  # another approval won the race
             return await self._refuse_hitl(verb, approver, outcomes.PENDING_NOT_FOUND)
+        self._status_changed()
         command = pending.command
         if not approve:
             return await self._refuse(command, approver, outcomes.HITL_DENIED,
@@ -476,11 +481,21 @@ class Governor:
     async def expire_pending(self) -> list[Decision]:
         """Discard and audit (HITL_EXPIRED) every pending command past its TTL."""
         decisions = []
-        for p in self._pending.take_expired(now_ms(self._clock)):
+        expired = self._pending.take_expired(now_ms(self._clock))
+        if expired:
+            self._status_changed()
+        for p in expired:
             decisions.append(await self._refuse(p.command, p.issuer, outcomes.PENDING_EXPIRED,
                                                 event=AuditEvent.HITL_EXPIRED,
                                                 pending_id=p.pending_id))
         return decisions
+
+    def _status_changed(self) -> None:
+        for listener in self.status_listeners:
+            try:
+                listener()
+            except Exception:  # STATUS is informative: it must never fail a decision
+                log.exception("STATUS listener failed")
 
     # -- sessions (§10.8) -------------------------------------------------------------------
 

@@ -72,7 +72,7 @@ def test_json_line_for_a_path_that_is_not_utf8(tmp_path: Path) -> None:
     assert "no\\xff-such.yaml" in error["event"]
 
 
-def test_text_format_and_warning_level_stay_the_default(tmp_path: Path) -> None:
+def test_text_format_is_the_default_and_debug_is_off(tmp_path: Path) -> None:
     (tmp_path / "bad.rcan.yaml").write_text(BAD_CONFIG)
     done = rcan_rtps("run", "--config", "bad.rcan.yaml", cwd=tmp_path)
     assert done.returncode == 1

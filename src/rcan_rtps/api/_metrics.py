@@ -9,7 +9,7 @@ from __future__ import annotations
 from prometheus_client import CONTENT_TYPE_LATEST as CONTENT_TYPE
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 
-from rcan_rtps.governance import AuditRecord, Governor
+from rcan_rtps.governance import AuditReceipt, AuditRecord, Governor
 from rcan_rtps.rcan.actions import specs
 
 from ._status import StatusHub
@@ -45,7 +45,7 @@ class Metrics:
             self.actions.labels(spec.name, spec.effect.value, spec.default_role.name).set(1)
         governor.audit.listeners.append(self.on_audit)
 
-    def on_audit(self, record: AuditRecord) -> None:
+    def on_audit(self, record: AuditRecord, receipt: AuditReceipt) -> None:
         self.audit_entries.labels(record.event.value, record.action_type or "",
                                   record.outcome or "").inc()
 

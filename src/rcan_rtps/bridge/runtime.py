@@ -44,6 +44,7 @@ from ..governance import (
     WebhookNotifier,
     load_private_key,
 )
+from ..governance.decision_log import log_entry
 from ..rcan import Status
 from ..ros.participant import RosNode
 from ..ros.services import RequestMapping
@@ -161,6 +162,10 @@ class Bridge:
         try:
             await self._acquire()
             self.state = BridgeState.RUNNING
+            ros2 = self.config.bridge.ros2
+            log.info("bridge running: api %s, node %s on domain %d, audit %s", self.url,
+                     self.node.fqn if self.node else ros2.node_name,
+                     ros2.domain_id, self.config.bridge.audit.path)
         except BaseException:
             log.info("bridge start failed; releasing what it had acquired")
             await self._stack.aclose()
@@ -181,11 +186,13 @@ class Bridge:
         if self.state not in (BridgeState.PREPARED, BridgeState.RUNNING):
             return
         self.state = BridgeState.STOPPING
+        log.info("bridge stopping")
         try:
             await self._stack.aclose()
         finally:
             self.state = BridgeState.STOPPED
             self._stopped.set()
+            log.info("bridge stopped")
 
     def _expect(self, call: str, state: BridgeState) -> None:
         if self.state is not state:
@@ -240,6 +247,7 @@ class Bridge:
     async def _open_audit(self) -> AuditLog:
         audit = self.config.bridge.audit
         self.audit = await AuditLog.open(audit.path, audit.key_path)
+        self.audit.listeners.append(log_entry)  # one log line per decision and safety event
         self._on_stop("closing the audit log", self.audit.close)
         return self.audit
 

@@ -21,7 +21,9 @@ import msgspec
 LOG_FORMATS = ("text", "json")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 DEFAULT_LOG_LEVEL = "warning"
-TEXT_FORMAT = "%(levelname)s %(name)s: %(message)s"
+SERVER_LOG_LEVEL = "info"  # `run`: one line per decision and safety event
+TEXT_FORMAT = "%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s"
+TEXT_DATE_FORMAT = "%Y-%m-%d %H:%M:%S"
 CONTEXT_FIELDS = ("principal", "audit_id")  # `extra=` keys the governance and API log with
 
 _NON_ASCII = re.compile(r"[^\x00-\x7f]")
@@ -62,8 +64,13 @@ class JsonFormatter(logging.Formatter):
 def configure(level: str = DEFAULT_LOG_LEVEL, fmt: str = "text") -> None:
     """Root logging to stderr; like `basicConfig`, leaves an already configured root alone."""
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(JsonFormatter() if fmt == "json" else logging.Formatter(TEXT_FORMAT))
+    handler.setFormatter(JsonFormatter() if fmt == "json"
+                         else logging.Formatter(TEXT_FORMAT, TEXT_DATE_FORMAT))
     logging.basicConfig(level=level.upper(), handlers=[handler])
+
+
+def default_level(command: str | None) -> str:
+    return SERVER_LOG_LEVEL if command == "run" else DEFAULT_LOG_LEVEL
 
 
 def _message(record: logging.LogRecord) -> str:

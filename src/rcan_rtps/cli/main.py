@@ -47,9 +47,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def add_logging_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--log-level", choices=_logging.LOG_LEVELS,
-                        default=_logging.DEFAULT_LOG_LEVEL,
-                        help=f"least severe level logged (default: {_logging.DEFAULT_LOG_LEVEL})")
+    parser.add_argument("--log-level", choices=_logging.LOG_LEVELS, default=None,
+                        help="least severe level logged (default: info for `run`, which logs "
+                        f"one line per decision; {_logging.DEFAULT_LOG_LEVEL} otherwise)")
     parser.add_argument("--log-format", choices=_logging.LOG_FORMATS, default="text",
                         help="log lines on stderr: text (default) or json (one object a line: "
                         "time, level, logger, event, principal/audit_id where relevant, exc)")
@@ -58,7 +58,8 @@ def add_logging_options(parser: argparse.ArgumentParser) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    _logging.configure(args.log_level, args.log_format)
+    _logging.configure(args.log_level or _logging.default_level(args.command),
+                       args.log_format)
     try:
         return int(args.func(args))
     except KeyboardInterrupt:

@@ -368,7 +368,7 @@ class AuditLog:
         self._checkpointing: asyncio.Task[None] | None = None
         self._last_write_end = 0.0
         # Told of every durable entry (e.g. metrics); a failing listener is logged, not raised.
-        self.listeners: list[Callable[[AuditRecord], None]] = []
+        self.listeners: list[Callable[[AuditRecord, AuditReceipt], None]] = []
 
     @classmethod
     async def open(cls, path: str | os.PathLike[str], key_path: str | os.PathLike[str], *,
@@ -434,13 +434,13 @@ class AuditLog:
                 and (self._checkpointing is None or self._checkpointing.done())):
             self._checkpointing = asyncio.create_task(self.checkpoint())  # off the reply path
         if self.listeners:  # after the caller's next step (its publish), not before it
-            asyncio.get_running_loop().call_soon(self._tell_listeners, record)
+            asyncio.get_running_loop().call_soon(self._tell_listeners, record, receipt)
         return receipt
 
-    def _tell_listeners(self, record: AuditRecord) -> None:
+    def _tell_listeners(self, record: AuditRecord, receipt: AuditReceipt) -> None:
         for listener in self.listeners:
             try:
-                listener(record)
+                listener(record, receipt)
             except Exception:
                 log.exception("audit listener failed")
 

@@ -80,15 +80,19 @@ class BridgeProcess:
                                              session=SESSION_TIMEOUT_S))
         env = {**os.environ, "RCAN_BENCH_TOKEN": TOKEN, "ROS_DOMAIN_ID": str(DOMAIN)}
         self.started = time.monotonic()
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "rcan_rtps", "run", "--config", str(self.config)],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        # Its log (a line per decision) goes to a file: a pipe nobody reads would fill up and
+        # block the bridge mid-benchmark.
+        self.log = state / "bridge.log"
+        with self.log.open("w") as log:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "rcan_rtps", "run", "--config", str(self.config)],
+                stdout=subprocess.PIPE, stderr=log, text=True, env=env)
         assert self.proc.stdout is not None
         line = self.proc.stdout.readline()
         self.ready_s = time.monotonic() - self.started
         found = re.match(r"rcan-rtps ready api=(\S+)", line)
         if not found:
-            raise RuntimeError(f"bridge did not start: {line}{self.proc.stderr.read()}")
+            raise RuntimeError(f"bridge did not start: {line}{self.log.read_text()}")
         self.url = found.group(1)
 
     def rss_mb(self) -> float:

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from waiting import eventually
 
 from rcan_rtps.api import _reads
 from rcan_rtps.api._bodies import VerifyReport
@@ -35,14 +36,6 @@ def _reads_of(api: Api) -> AuditReads:
     return api.app[READS]
 
 
-async def _until(predicate: Any) -> None:
-    async def poll() -> None:
-        while not predicate():
-            await asyncio.sleep(0.005)
-
-    await asyncio.wait_for(poll(), timeout=120)
-
-
 @pytest.mark.slow
 async def test_estop_is_answered_before_six_verifies_of_a_large_log(api: Api) -> None:
     await _grow(api, LARGE)
@@ -56,7 +49,8 @@ async def test_estop_is_answered_before_six_verifies_of_a_large_log(api: Api) ->
         return report
 
     verifies = [asyncio.create_task(verify(n)) for n in range(6)]
-    await _until(lambda: _reads_of(api).verifying)  # the expensive part is underway
+    # The expensive part is underway:
+    await eventually(lambda: _reads_of(api).verifying, timeout=120)
     status, body = await api.command("viewer", {"action": "estop"})
     finished.append("estop")
     assert (status, body["outcome"]) == (200, "executed")
@@ -71,7 +65,7 @@ async def test_estop_is_answered_before_six_verifies_of_a_large_log(api: Api) ->
 async def test_a_verify_covers_the_chain_as_it_was_when_asked(api: Api) -> None:
     await _grow(api, LARGE)
     first = asyncio.create_task(api.call("GET", "/api/audit/verify", "lessee"))
-    await _until(lambda: _reads_of(api).verifying)
+    await eventually(lambda: _reads_of(api).verifying, timeout=120)
     # Written while that run reads the file: a request from now on must see it.
     status, body = await api.command("planner", {"action": "move"})
     assert status == 200
@@ -103,7 +97,7 @@ async def test_verify_coalescing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     try:
         a = asyncio.create_task(reads.verify())
         b = asyncio.create_task(reads.verify())  # before run 1 reads anything: joins it
-        await _until(lambda: reads.verifying)
+        await eventually(lambda: reads.verifying, timeout=120)
         later = [asyncio.create_task(reads.verify()) for _ in range(5)]  # run 1 is reading
         await asyncio.sleep(0.05)
         assert served == [1]  # one run at a time
@@ -131,7 +125,7 @@ async def test_a_cancelled_caller_does_not_cancel_the_shared_run(tmp_path: Path,
     try:
         gone = asyncio.create_task(reads.verify())
         stays = asyncio.create_task(reads.verify())
-        await _until(lambda: reads.verifying)
+        await eventually(lambda: reads.verifying, timeout=120)
         gone.cancel()
         gate.set()
         assert (await stays).ok
@@ -154,7 +148,7 @@ async def test_pages_are_bounded_and_never_hold_up_a_command(
     try:
         pages = [asyncio.create_task(api.call("GET", "/api/audit", "lessee"))
                  for _ in range(backlog + 1)]
-        await _until(lambda: _reads_of(api).pages_in_flight == backlog + 1)
+        await eventually(lambda: _reads_of(api).pages_in_flight == backlog + 1, timeout=120)
         # One page being read (stuck), eight waiting: the next is refused, not queued.
         status, body = await api.call("GET", "/api/audit", "lessee")
         assert (status, body["error_code"], body["reason"]) == (429, "RATE_LIMITED",

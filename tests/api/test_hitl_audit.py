@@ -3,7 +3,6 @@ audit; the OpenAPI document."""
 
 from __future__ import annotations
 
-import asyncio
 import json
 import uuid
 from collections.abc import AsyncIterator
@@ -11,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from waiting import eventually
 
 from rcan_rtps.governance import WebhookNotifier, verify
 from tests.api.apihelpers import RURI, Api, webhook_receiver
@@ -27,14 +27,12 @@ class Hitl:
         self.received = received
 
     async def webhook_message(self, pending_id: str) -> dict[str, Any]:
-        async def arrival() -> dict[str, Any]:
-            while True:
-                for message in self.received:
-                    if message["pending_id"] == pending_id:
-                        return message
-                await asyncio.sleep(0.01)
+        def arrived() -> dict[str, Any] | None:
+            return next((m for m in self.received if m["pending_id"] == pending_id), None)
 
-        return await asyncio.wait_for(arrival(), timeout=30)
+        message: dict[str, Any] = await eventually(
+            arrived, timeout=30, what=f"the webhook message for {pending_id}")
+        return message
 
     async def hold(self) -> str:
         status, body = await self.api.command("planner", ARM)

@@ -30,14 +30,6 @@ async def _outcome(ws: aiohttp.ClientWebSocketResponse) -> dict[str, Any]:
     return await asyncio.wait_for(wait(), timeout=60)
 
 
-async def _until(predicate: Any) -> None:
-    async def poll() -> None:
-        while not predicate():
-            await asyncio.sleep(0.01)
-
-    await asyncio.wait_for(poll(), timeout=60)
-
-
 def _cmd(action: str, **extra: Any) -> str:
     return json.dumps({"action": action, "message_id": str(uuid.uuid4()), **extra})
 

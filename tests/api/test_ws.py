@@ -8,6 +8,7 @@ from typing import Any
 
 import aiohttp
 import pytest
+from waiting import eventually
 
 from rcan_rtps.governance import Principal
 from rcan_rtps.rcan import Role
@@ -25,14 +26,6 @@ async def _frame(ws: aiohttp.ClientWebSocketResponse, kind: str) -> dict[str, An
                 return frame
 
     return await asyncio.wait_for(wait(), timeout=30)
-
-
-async def _until(predicate: Any) -> None:
-    async def poll() -> None:
-        while not predicate():
-            await asyncio.sleep(0.01)
-
-    await asyncio.wait_for(poll(), timeout=30)
 
 
 async def test_status_is_pushed(api: Api) -> None:
@@ -128,7 +121,7 @@ async def test_closing_the_socket_of_a_controller_stops_the_robot(api: Api) -> N
     await _hold_session(api, ws)
     await ws.close()
     # No sweeper runs and the clock stands still: only the closed socket can cause this.
-    await _until(lambda: ("stop", {}) in api.dispatcher.calls)
+    await eventually(lambda: ("stop", {}) in api.dispatcher.calls, timeout=30)
     stops = [e for e in api.entries if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
     assert [(e["principal"], e["action_type"], e["outcome"]) for e in stops] == [
         ("planner", "stop", "executed")]
@@ -143,7 +136,7 @@ async def test_closing_without_a_session_does_not_stop(api: Api) -> None:
     ws = await api.http.ws_connect("/api/ws", headers=auth("planner"))
     await _hold_session(api, ws)
     await ws.close()
-    await _until(lambda: ("stop", {}) in api.dispatcher.calls)
+    await eventually(lambda: ("stop", {}) in api.dispatcher.calls, timeout=30)
     assert [a for a, _ in api.dispatcher.calls] == ["move", "stop"]
 
 
@@ -157,9 +150,9 @@ async def test_a_queued_estop_is_decided_even_after_close(api: Api) -> None:
     await ws.close()
     # The e-stop does not wait for the move in flight (the e-stop lane): it reaches the robot
     # while that move's dispatch is still held.
-    await _until(lambda: ("estop", {}) in api.dispatcher.calls)
+    await eventually(lambda: ("estop", {}) in api.dispatcher.calls, timeout=30)
     api.dispatcher.hold.set()
-    await _until(lambda: len(api.dispatcher.calls) >= 3)
+    await eventually(lambda: len(api.dispatcher.calls) >= 3, timeout=30)
     # The move in flight finishes (it passed the latch before the e-stop), the queued move is
     # dropped, then the session-loss stop.
     assert [a for a, _ in api.dispatcher.calls] == ["estop", "move", "stop"]

@@ -7,7 +7,6 @@ import asyncio
 import json
 import socket
 import threading
-import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -15,6 +14,7 @@ from typing import Any
 import pytest
 from aiohttp import web
 from interop.bridge_rig import bridge_config
+from waiting import eventually
 
 from rcan_rtps.api import ApiServer
 from rcan_rtps.bridge.mdns import Advert, RcanAdvertiser, RcanBrowser
@@ -67,12 +67,13 @@ def _ours(threads: list[threading.Thread]) -> set[threading.Thread]:
     return {t for t in threads if not t.name.startswith("asyncio_")}
 
 
-async def _threads_back_to(before: set[threading.Thread], timeout: float = 5.0) -> set[str]:
-    """Names of threads started since `before` and still alive after `timeout`."""
-    deadline = time.monotonic() + timeout
-    while (extra := _ours(threading.enumerate()) - before) and time.monotonic() < deadline:
-        await asyncio.sleep(0.05)
-    return {t.name for t in extra}
+async def _threads_back_to(before: set[threading.Thread], timeout: float = 5.0) -> None:
+    """Every thread started since `before` ends within `timeout`."""
+    def left() -> set[str]:
+        return {t.name for t in _ours(threading.enumerate()) - before}
+
+    await eventually(lambda: not left(), timeout=timeout,
+                     what=lambda: f"threads started since are gone: {sorted(left())}")
 
 
 def _can_bind(port: int) -> bool:
@@ -135,7 +136,7 @@ async def test_a_start_failing_at_any_step_releases_what_it_acquired(
     assert bridge.state is BridgeState.FAILED
     assert bridge.node is None or bridge.node.closed
     assert domain_id not in participant._domains  # no DDS participant left in the process
-    assert not await _threads_back_to(threads_before)
+    await _threads_back_to(threads_before)
     assert _can_bind(port), "the API port is still bound"
     events = _events(config)
     # BRIDGE_STARTED only if the governor got to start; then BRIDGE_STOPPED answers it.
@@ -176,7 +177,7 @@ async def test_states_of_a_start_and_a_stop(tmp_path: Path, domain_id: int) -> N
     await bridge.stop()
     assert bridge.state is BridgeState.STOPPED
     assert _events(config) == ["BRIDGE_STARTED", "BRIDGE_STOPPED"]
-    assert not await _threads_back_to(threads_before)
+    await _threads_back_to(threads_before)
     with pytest.raises(BridgeStateError, match="stopped"):
         await bridge.start()
 

@@ -159,17 +159,20 @@ async def test_append_returns_only_after_the_write(
     audit_log: AuditLog, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     gate = asyncio.Event()
+    writing = threading.Event()
     real = audit_mod._write_durable
     loop = asyncio.get_running_loop()
 
     def slow(fd: int, data: bytes) -> float:
+        writing.set()
         asyncio.run_coroutine_threadsafe(gate.wait(), loop).result()
         return real(fd, data)
 
     monkeypatch.setattr(audit_mod, "_write_durable", slow)
     monkeypatch.setattr(audit_mod, "INLINE_FSYNC_S", 0.0)  # a slow disk: the writer thread
     task = asyncio.create_task(audit_log.append(record()))
-    await asyncio.sleep(0.05)
+    # Sentinel: the write has started (and waits for the gate), not just "some time passed".
+    assert await asyncio.to_thread(writing.wait, 30)
     assert not task.done()
     assert audit_log.path.read_bytes() == b""
     gate.set()

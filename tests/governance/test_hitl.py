@@ -10,6 +10,7 @@ import msgspec
 import pytest
 from aiohttp import web
 from govhelpers import ADMIN, OPS, PLANNER, Harness, command, principal
+from waiting import eventually
 
 from rcan_rtps.governance.governor import Decision, Governor
 from rcan_rtps.governance.hitl import WebhookNotifier
@@ -160,8 +161,7 @@ async def test_webhook_gets_pending_auth_and_never_blocks(
     receiver.release.clear()  # the webhook hangs until we let it go
     gov = await harness.governor(notifier=WebhookNotifier(url, attempts=1, timeout_s=30))
     d = await hold(gov)  # returned while the webhook is still held open
-    while not receiver.received:
-        await asyncio.sleep(0.01)
+    await eventually(lambda: receiver.received, what="the webhook is called")
     assert not receiver.release.is_set()
     message = receiver.received[0]
     assert message["pending_id"] == d.pending_id

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import asyncio
 import json
 import textwrap
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -74,33 +72,6 @@ class Rig:
     def entries(self) -> list[dict[str, Any]]:
         return [json.loads(line) for line in self.audit_path.read_text().splitlines()]
 
-    async def take(self, topic: str, want: int = 1, timeout: float = 10.0) -> list[Any]:
-        got: list[Any] = []
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
-        while len(got) < want and loop.time() < deadline:
-            got += self.oracle.call("take", topic=topic)
-            await asyncio.sleep(0.05)
-        return got
-
-    async def saw(self, topic: str, message: Any, timeout: float = 10.0) -> bool:
-        """Whether `message` arrives on `topic` (rclpy side) within `timeout`."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
-        while loop.time() < deadline:
-            if message in self.oracle.call("take", topic=topic):
-                return True
-            await asyncio.sleep(0.05)
-        return False
-
-    async def until(self, predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
-        while not predicate():
-            if loop.time() > deadline:
-                return False
-            await asyncio.sleep(0.05)
-        return True
 
 
 async def make_rig(config: RcanConfig, jazzy_python: Path, domain_id: int,

@@ -38,7 +38,7 @@ async def node(domain_id: int, jazzy_share: Path) -> AsyncIterator[RosNode]:
 
 
 async def test_goal_succeeds_with_feedback(oracle: RclpyOracle, node: RosNode) -> None:
-    oracle.call("action_server", name="/fib")
+    await oracle.acall("action_server", name="/fib")
     client = ActionClient(node, "/fib", FIB)
     goal = await client.send_goal({"order": 6}, timeout=20)
     assert goal.accepted and goal.state is not GoalState.REJECTED
@@ -51,7 +51,7 @@ async def test_goal_succeeds_with_feedback(oracle: RclpyOracle, node: RosNode) -
 
 
 async def test_goal_cancelled_mid_run(oracle: RclpyOracle, node: RosNode) -> None:
-    oracle.call("action_server", name="/fib", mode="slow")
+    await oracle.acall("action_server", name="/fib", mode="slow")
     client = ActionClient(node, "/fib", FIB)
     goal = await client.send_goal({"order": 40}, timeout=20)
     async for _ in goal.feedback(timeout=20):
@@ -63,7 +63,7 @@ async def test_goal_cancelled_mid_run(oracle: RclpyOracle, node: RosNode) -> Non
 
 
 async def test_goal_rejected(oracle: RclpyOracle, node: RosNode) -> None:
-    oracle.call("action_server", name="/fib", mode="reject")
+    await oracle.acall("action_server", name="/fib", mode="reject")
     client = ActionClient(node, "/fib", FIB)
     goal = await client.send_goal({"order": 3}, timeout=20)
     assert not goal.accepted and goal.state is GoalState.REJECTED
@@ -71,7 +71,7 @@ async def test_goal_rejected(oracle: RclpyOracle, node: RosNode) -> None:
 
 
 async def test_goal_aborted(oracle: RclpyOracle, node: RosNode) -> None:
-    oracle.call("action_server", name="/fib", mode="abort")
+    await oracle.acall("action_server", name="/fib", mode="abort")
     client = ActionClient(node, "/fib", FIB)
     goal = await client.send_goal({"order": 4}, timeout=20)
     outcome = await goal.result(timeout=20)
@@ -80,7 +80,7 @@ async def test_goal_aborted(oracle: RclpyOracle, node: RosNode) -> None:
 
 
 async def test_two_goals_in_flight(oracle: RclpyOracle, node: RosNode) -> None:
-    oracle.call("action_server", name="/fib", mode="slow")
+    await oracle.acall("action_server", name="/fib", mode="slow")
     client = ActionClient(node, "/fib", FIB)
     first, second = await asyncio.gather(client.send_goal({"order": 9}, timeout=20),
                                          client.send_goal({"order": 5}, timeout=20))
@@ -93,16 +93,15 @@ async def test_two_goals_in_flight(oracle: RclpyOracle, node: RosNode) -> None:
 
 async def test_our_client_and_an_rclpy_client_share_the_server(
         oracle: RclpyOracle, node: RosNode, jazzy_python: Path, domain_id: int) -> None:
-    oracle.call("action_server", name="/fib")
+    await oracle.acall("action_server", name="/fib")
     with RclpyOracle(jazzy_python, "fib_client", "/", domain_id=domain_id) as other:
         client = ActionClient(node, "/fib", FIB)
         await client.wait_for_server(20)
         for order in (7, 3, 10):  # several rounds, each with both clients' goals in flight
-            other.call("action_send_goal", name="/fib", key=f"k{order}", order=order + 2)
+            await other.acall("action_send_goal", name="/fib", key=f"k{order}", order=order + 2)
             ours = await client.send_goal({"order": order}, timeout=20)
             mine = await ours.result(timeout=30)
-            theirs = await asyncio.to_thread(other.call, "action_goal", key=f"k{order}",
-                                             timeout=60)
+            theirs = await other.acall("action_goal", key=f"k{order}", timeout=60)
             assert mine.state is GoalState.SUCCEEDED
             assert mine.result is not None and list(mine.result.sequence) == fibonacci(order)
             assert theirs["result"] == {"status": 4, "sequence": fibonacci(order + 2)}
@@ -112,7 +111,7 @@ async def test_server_vanishing_mid_goal_ends_the_goal(jazzy_python: Path, domai
                                                       node: RosNode) -> None:
     server = RclpyOracle(jazzy_python, "doomed", "/", domain_id=domain_id)
     try:
-        server.call("action_server", name="/fib", mode="slow")
+        await server.acall("action_server", name="/fib", mode="slow")
         client = ActionClient(node, "/fib", FIB)
         goal = await client.send_goal({"order": 200}, timeout=20)
         async for _ in goal.feedback(timeout=20):

@@ -11,14 +11,34 @@ import math
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import pytest
+from waiting import eventually, take
 
 from rcan_rtps.governance import verify
 
 from .bridge_rig import AGENT, OPS, VIEWER, Rig, bridge_config, close_rig, make_rig
 
 TWIST = "geometry_msgs/msg/Twist"
+CMD_VEL = "/robot1/cmd_vel"
+SENTINEL_X = 0.125  # a move no test sends otherwise
+
+
+def xs(twists: list[Any]) -> list[float]:
+    return [float(t["linear"]["x"]) for t in twists]
+
+
+async def before_sentinel(rig: Rig) -> list[float]:
+    """The linear_x of every Twist rclpy got before a sentinel move sent now.
+
+    cmd_vel is one reliable writer matched with a reliable reader, so samples arrive in the
+    order they were written: once the sentinel is in, anything written before it is in too.
+    """
+    sentinel = await rig.command(AGENT, {"action": "move", "params": {"linear_x": SENTINEL_X}})
+    assert sentinel.http_status == 200, sentinel
+    got = xs(await take(rig.oracle, CMD_VEL, until=lambda got: SENTINEL_X in xs(got)))
+    return got[:got.index(SENTINEL_X)]
 
 
 @pytest.fixture
@@ -30,20 +50,20 @@ async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterat
 
 async def subscribe(rig: Rig, topic: str, type_name: str, qos: str = "default") -> None:
     """An rclpy subscription, matched with the bridge's writer before anything is sent."""
-    rig.oracle.call("subscribe", topic=topic, type=type_name, qos=qos)
-    assert await asyncio.to_thread(rig.oracle.call, "wait_matched", topic=topic) >= 1
+    await rig.oracle.acall("subscribe", topic=topic, type=type_name, qos=qos)
+    assert await rig.oracle.acall("wait_matched", topic=topic) >= 1
 
 
 async def test_rbac_before_publish(rig: Rig) -> None:
     await subscribe(rig, "/robot1/cmd_vel", TWIST)
     await rig.dispatcher.cmd_vel.wait_for_subscribers(1, timeout=15)
-    decision = await rig.command(VIEWER, {"action": "move", "params": {"linear_x": 0.5}})
+    decision = await rig.command(VIEWER, {"action": "move", "params": {"linear_x": 0.25}})
     assert decision.http_status == 403 and decision.error_code.value == "INSUFFICIENT_PRIVILEGES"
-    await asyncio.sleep(0.5)
-    assert rig.oracle.call("take", topic="/robot1/cmd_vel") == []
+    # The agent's move is the sentinel: one ordered, reliable writer, so the denied move,
+    # had it been published, would have arrived first.
     ok = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.5}})
     assert ok.http_status == 200
-    got = await rig.take("/robot1/cmd_vel")
+    got = await take(rig.oracle, CMD_VEL, until=lambda got: 0.5 in xs(got))
     assert got[0]["linear"]["x"] == 0.5
 
 
@@ -53,17 +73,15 @@ async def test_clamp_within_ten_percent_and_deny_beyond(rig: Rig) -> None:
                                         "params": {"linear_x": 1.6, "angular_z": -1.05}})
     assert clamped.http_status == 200 and clamped.applied == {
         "linear_x": 1.5, "linear_y": 0.0, "angular_z": -1.0}
-    got = await rig.take("/robot1/cmd_vel")
+    got = await take(rig.oracle, CMD_VEL)
     assert got[0]["linear"]["x"] == 1.5 and got[0]["angular"]["z"] == -1.0
     denied = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 1.7}})
     assert denied.http_status == 409 and denied.outcome.value == "safety_violation"
-    await asyncio.sleep(0.5)
-    # Only the session-loss halt (a zero twist) may follow; never the denied 1.7 m/s.
-    after = rig.oracle.call("take", topic="/robot1/cmd_vel")
-    assert all(m["linear"]["x"] == 0.0 for m in after)
-    last = rig.entries()[-1]
+    last = rig.entries()[-1]  # read before the sentinel move adds its own entry
     assert last["outcome"] == "safety_violation"
     assert last["deny_reason"] == "COMMAND_REJECTED:velocity_limit"
+    # Only the session-loss halt (a zero twist) may follow; never the denied 1.7 m/s.
+    assert all(x == 0.0 for x in await before_sentinel(rig))
 
 
 async def test_arm_joint_becomes_a_joint_trajectory(rig: Rig) -> None:
@@ -72,7 +90,7 @@ async def test_arm_joint_becomes_a_joint_trajectory(rig: Rig) -> None:
     decision = await rig.command(AGENT, {"action": "arm_joint", "params": {
         "joints": ["shoulder", "elbow"], "positions": [0.5, -1.25], "duration_s": 2.5}})
     assert decision.http_status == 200, decision
-    traj = (await rig.take(topic))[0]
+    traj = (await take(rig.oracle, topic))[0]
     assert traj["joint_names"] == ["shoulder", "elbow"]
     assert traj["points"][0]["positions"] == [0.5, -1.25]
     assert traj["points"][0]["time_from_start"] == {"sec": 2, "nanosec": 500_000_000}
@@ -83,7 +101,7 @@ async def test_estop_latches_and_only_owner_clears(rig: Rig) -> None:
     await subscribe(rig, "/robot1/cmd_vel", TWIST)
     estop = await rig.command(VIEWER, {"action": "estop"})
     assert estop.http_status == 200
-    assert await rig.saw("/robot1/emergency_stop", {"data": True})
+    await take(rig.oracle, "/robot1/emergency_stop", until=lambda got: {"data": True} in got)
     assert rig.telemetry.status(pending_auth=0).state == "estop"
     moved = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.1}})
     assert moved.http_status == 409 and moved.reason == "estop_active"
@@ -91,7 +109,7 @@ async def test_estop_latches_and_only_owner_clears(rig: Rig) -> None:
     assert refused.http_status == 403
     cleared = await rig.command(OPS, {"action": "clear_estop"})
     assert cleared.http_status == 200
-    assert await rig.saw("/robot1/emergency_stop", {"data": False})
+    await take(rig.oracle, "/robot1/emergency_stop", until=lambda got: {"data": False} in got)
     assert (await rig.command(AGENT, {"action": "move",
                                       "params": {"linear_x": 0.1}})).http_status == 200
 
@@ -124,7 +142,7 @@ async def test_session_loss_publishes_zero_twist(rig: Rig) -> None:
     await subscribe(rig, "/robot1/cmd_vel", TWIST)
     await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.4}})
     # No heartbeat: after session_timeout_s (1 s) the governor must halt the robot.
-    seen = await rig.take("/robot1/cmd_vel", want=2, timeout=10)
+    seen = await take(rig.oracle, CMD_VEL, until=lambda got: len(got) >= 2, timeout=10)
     assert [m["linear"]["x"] for m in seen] == [0.4, 0.0]
     assert seen[1]["angular"]["z"] == 0.0
     assert any(e["event"] == "NETWORK_LOSS_SAFE_STOP" for e in rig.entries())
@@ -142,9 +160,10 @@ async def test_heartbeat_keeps_the_session(rig: Rig) -> None:
     await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.4}})
     beating = asyncio.create_task(heartbeats())
     try:
-        assert (await rig.take("/robot1/cmd_vel"))[0]["linear"]["x"] == 0.4
-        await asyncio.sleep(2.0)  # twice the session timeout
-        assert rig.oracle.call("take", topic="/robot1/cmd_vel") == []
+        assert (await take(rig.oracle, CMD_VEL))[0]["linear"]["x"] == 0.4
+        await asyncio.sleep(2.0)  # the time under test: twice the session timeout
+        # No halt was published meanwhile: nothing arrived before a sentinel sent now.
+        assert await before_sentinel(rig) == []
         assert not any(e["event"] == "NETWORK_LOSS_SAFE_STOP" for e in rig.entries())
     finally:
         beating.cancel()
@@ -162,7 +181,7 @@ async def test_pending_auth_publishes_a_warn_diagnostic(tmp_path: Path, jazzy_py
         held = await rig.command(AGENT, {"action": "arm_joint", "params": {
             "joints": ["j1"], "positions": [0.1], "duration_s": 1.0}})
         assert held.http_status == 202 and held.pending_id
-        diag = (await rig.take("/robot1/diagnostics"))[0]["status"][0]
+        diag = (await take(rig.oracle, "/robot1/diagnostics"))[0]["status"][0]
         assert diag["level"] == 1 and "awaits human approval" in diag["message"]
         assert {"key": "pending_id", "value": held.pending_id} in diag["values"]
     finally:
@@ -179,18 +198,20 @@ async def test_telemetry_becomes_status(rig: Rig) -> None:
                              ("/robot1/joint_states", "sensor_msgs/msg/JointState"),
                              ("/robot1/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
                              ("/robot1/battery_state", "sensor_msgs/msg/BatteryState")):
-        rig.oracle.call("publisher", topic=topic, type=type_name)
+        await rig.oracle.acall("publisher", topic=topic, type=type_name)
     for subscription in rig.telemetry.subscriptions:  # both ends matched before publishing
         await subscription.wait_for_publishers(1, timeout=15)
     await asyncio.sleep(0.2)
-    rig.oracle.call("publish", topic="/robot1/odom", type="nav_msgs/msg/Odometry", value=odom,
-                    count=3)
-    rig.oracle.call("publish", topic="/robot1/joint_states", type="sensor_msgs/msg/JointState",
-                    value={"name": ["left", "right"], "position": [0.1, 0.2],
-                           "velocity": [1.0, 1.0]}, count=3)
-    rig.oracle.call("publish", topic="/robot1/battery_state", type="sensor_msgs/msg/BatteryState",
-                    value={"percentage": 0.8}, count=3)
-    assert await rig.until(lambda: rig.telemetry.status(pending_auth=0).battery_pct is not None)
+    await rig.oracle.acall("publish", topic="/robot1/odom", type="nav_msgs/msg/Odometry",
+                           value=odom, count=3)
+    await rig.oracle.acall("publish", topic="/robot1/joint_states",
+                           type="sensor_msgs/msg/JointState",
+                           value={"name": ["left", "right"], "position": [0.1, 0.2],
+                                  "velocity": [1.0, 1.0]}, count=3)
+    await rig.oracle.acall("publish", topic="/robot1/battery_state",
+                           type="sensor_msgs/msg/BatteryState", value={"percentage": 0.8},
+                           count=3)
+    await eventually(lambda: rig.telemetry.status(pending_auth=0).battery_pct is not None)
     status = rig.telemetry.status(pending_auth=2)
     assert status.state == "moving" and status.pending_auth == 2
     assert status.telemetry.position.x == 1.5 and status.telemetry.position.y == -2.0
@@ -200,24 +221,28 @@ async def test_telemetry_becomes_status(rig: Rig) -> None:
     assert abs(status.battery_pct - 80.0) < 1e-4
     assert status.ros.connected and status.ros.domain_id == rig.node.domain_id
 
-    rig.oracle.call("publish", topic="/robot1/diagnostics",
-                    type="diagnostic_msgs/msg/DiagnosticArray",
-                    value={"status": [{"level": 2, "name": "motor", "message": "overheat"}]},
-                    count=2)
-    assert await rig.until(lambda: rig.telemetry.status(pending_auth=0).state == "fault")
+    await rig.oracle.acall("publish", topic="/robot1/diagnostics",
+                           type="diagnostic_msgs/msg/DiagnosticArray",
+                           value={"status": [{"level": 2, "name": "motor",
+                                              "message": "overheat"}]},
+                           count=2)
+    await eventually(lambda: rig.telemetry.status(pending_auth=0).state == "fault")
     assert rig.telemetry.status(pending_auth=0).faults[0].message == "overheat"
-    rig.oracle.call("publish", topic="/robot1/diagnostics",
-                    type="diagnostic_msgs/msg/DiagnosticArray",
-                    value={"status": [{"level": 0, "name": "motor", "message": "ok"}]}, count=2)
-    assert await rig.until(lambda: rig.telemetry.status(pending_auth=0).state != "fault")
+    await rig.oracle.acall("publish", topic="/robot1/diagnostics",
+                           type="diagnostic_msgs/msg/DiagnosticArray",
+                           value={"status": [{"level": 0, "name": "motor", "message": "ok"}]},
+                           count=2)
+    await eventually(lambda: rig.telemetry.status(pending_auth=0).state != "fault")
     # The robot falls silent: offline after the staleness window (1 s here).
-    assert await rig.until(lambda: rig.telemetry.status(pending_auth=0).state == "offline")
+    await eventually(lambda: rig.telemetry.status(pending_auth=0).state == "offline")
     assert not rig.telemetry.status(pending_auth=0).ros.connected
 
 
 async def test_rclpy_lists_the_bridge_node(rig: Rig) -> None:
-    assert await rig.until(
-        lambda: ["rcan_bridge", "/robot1"] in rig.oracle.call("node_names"), timeout=15)
+    async def listed() -> bool:
+        return ["rcan_bridge", "/robot1"] in await rig.oracle.acall("node_names")
+
+    await eventually(listed, timeout=15)
 
 
 async def test_twist_stamped_carries_a_fresh_stamp(tmp_path: Path, jazzy_python: Path,
@@ -230,7 +255,7 @@ async def test_twist_stamped_carries_a_fresh_stamp(tmp_path: Path, jazzy_python:
         before = time.time()
         assert (await rig.command(AGENT, {"action": "move",
                                           "params": {"angular_z": 0.3}})).http_status == 200
-        msg = (await rig.take("/robot1/cmd_vel"))[0]
+        msg = (await take(rig.oracle, CMD_VEL))[0]
         stamp = msg["header"]["stamp"]["sec"] + msg["header"]["stamp"]["nanosec"] / 1e9
         assert before - 1 <= stamp <= time.time() + 1
         assert msg["twist"]["angular"]["z"] == 0.3
@@ -261,13 +286,14 @@ async def test_navigate_and_session_loss_cancels_the_goal(tmp_path: Path, jazzy_
             assert rig.goals is not None
             view = rig.goals.goal(decision.goal_id)
             assert view is not None
-            assert await rig.until(lambda: view.feedback is not None)
+            await eventually(lambda: view.feedback is not None)
             assert rig.telemetry.status(pending_auth=0).active_goals == [decision.goal_id]
             # no heartbeat: after session_timeout_s the goal is cancelled and the base halted
-            assert await rig.until(lambda: view.state == "canceled", timeout=15), view
-            zero = await rig.take("/robot1/cmd_vel", timeout=10)
+            await eventually(lambda: view.state == "canceled", timeout=15,
+                             what=lambda: f"the goal is canceled: {view}")
+            zero = await take(rig.oracle, CMD_VEL, timeout=10)
             assert zero and zero[-1]["linear"]["x"] == 0.0
-            assert await rig.until(lambda: abs(robot.state.v) < 1e-9)
+            await eventually(lambda: abs(robot.state.v) < 1e-9)
             events = [e["event"] for e in rig.entries()]
             assert "NETWORK_LOSS_SAFE_STOP" in events
             assert rig.telemetry.status(pending_auth=0).active_goals == []

@@ -11,6 +11,7 @@ from typing import Any
 import aiohttp
 import pytest
 from oracle.client import RclpyOracle
+from waiting import eventually, take
 
 from rcan_rtps.bridge.runtime import Bridge, BridgeOptions
 from rcan_rtps.governance import verify
@@ -33,16 +34,6 @@ class Live:
         async with self.http.post(self.bridge.url + "/api/command", json=body) as resp:
             return resp.status, await resp.json()
 
-    async def take(self, topic: str, timeout: float = 10.0) -> list[Any]:
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
-        while loop.time() < deadline:
-            got = self.oracle.call("take", topic=topic)
-            if got:
-                return list(got)
-            await asyncio.sleep(0.05)
-        return []
-
 
 @pytest.fixture
 async def live(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Live]:
@@ -60,15 +51,19 @@ async def live(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncItera
 
 
 async def test_rclpy_telemetry_reaches_the_websocket(live: Live) -> None:
-    live.oracle.call("publisher", topic="/robot1/odom", type="nav_msgs/msg/Odometry")
+    await live.oracle.acall("publisher", topic="/robot1/odom", type="nav_msgs/msg/Odometry")
     async with live.http.ws_connect(live.bridge.url + "/api/ws") as ws:
-        for _ in range(100):
-            await asyncio.to_thread(live.oracle.call, "publish", topic="/robot1/odom",
+
+        async def status_with_the_odometry() -> dict[str, Any] | None:
+            await live.oracle.acall("publish", topic="/robot1/odom",
                                     type="nav_msgs/msg/Odometry", value=ODOM, count=2)
-            frame = json.loads((await asyncio.wait_for(ws.receive(), 10)).data)
+            frame: dict[str, Any] = json.loads((await asyncio.wait_for(ws.receive(), 10)).data)
             position = frame.get("body", {}).get("telemetry", {}).get("position")
-            if frame.get("type") == "status" and position and position["x"] == 3.25:
-                break
+            found = frame.get("type") == "status" and position and position["x"] == 3.25
+            return frame if found else None
+
+        frame = await eventually(status_with_the_odometry, timeout=120)
+        position = frame["body"]["telemetry"]["position"]
         assert position == {"x": 3.25, "y": -1.5, "z": 0.0}
         assert frame["body"]["state"] == "moving" and frame["body"]["ros"]["connected"]
 
@@ -79,14 +74,14 @@ async def test_navigate_without_an_action_server_is_robot_unavailable(live: Live
 
 
 async def test_stopping_the_bridge_halts_the_robot(live: Live) -> None:
-    live.oracle.call("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
+    await live.oracle.acall("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
     assert live.bridge.dispatcher is not None  # matched first: match_timeout_s is short here
     await live.bridge.dispatcher.cmd_vel.wait_for_subscribers(1, timeout=15)
     code, _ = await live.post({"action": "move", "params": {"linear_x": 0.3}})
     assert code == 200
-    assert (await live.take("/robot1/cmd_vel"))[0]["linear"]["x"] == 0.3
+    assert (await take(live.oracle, "/robot1/cmd_vel"))[0]["linear"]["x"] == 0.3
     await live.bridge.stop()  # what SIGINT/SIGTERM do
-    zero = await live.take("/robot1/cmd_vel")
+    zero = await take(live.oracle, "/robot1/cmd_vel")
     assert zero and zero[-1]["linear"]["x"] == 0.0
     events = [json.loads(line)["event"] for line in live.audit.read_text().splitlines()]
     assert events[0] == "BRIDGE_STARTED" and events[-1] == "BRIDGE_STOPPED"
@@ -103,7 +98,8 @@ async def test_500_clients_20_commands_each_on_a_real_graph(tmp_path: Path, jazz
     statuses: list[int] = []
     try:
         with RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id) as oracle:
-            oracle.call("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
+            await oracle.acall("subscribe", topic="/robot1/cmd_vel",
+                               type="geometry_msgs/msg/Twist")
             assert bridge.dispatcher is not None
             await bridge.dispatcher.cmd_vel.wait_for_subscribers(1, timeout=15)
             connector = aiohttp.TCPConnector(limit=500)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 from oracle.client import RclpyOracle
+from waiting import eventually_sync
 
 
 def cli(domain_id: int, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
@@ -61,12 +62,8 @@ def test_topic_pub_reaches_rclpy(oracle: RclpyOracle, domain_id: int) -> None:
     done = cli(domain_id, "topic", "pub", "--once", "/cmd_vel", "geometry_msgs/msg/Twist",
                "{linear: {x: 0.2}, angular: {z: -0.1}}")
     assert done.returncode == 0, done.stderr
-    got = []
-    for _ in range(50):
-        got = oracle.call("take", topic="/cmd_vel")
-        if got:
-            break
-        time.sleep(0.1)
+    got = eventually_sync(lambda: oracle.call("take", topic="/cmd_vel"),
+                          what="a Twist on /cmd_vel")
     assert got and got[0]["linear"]["x"] == 0.2 and got[0]["angular"]["z"] == -0.1
 
 

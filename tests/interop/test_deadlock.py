@@ -101,15 +101,16 @@ async def test_hitl_with_rclpy_robot_publishing_diagnostics_at_100hz(
     env = child_env(domain_id, DL_USER_TOKEN=USER, DL_OWNER_TOKEN=OWNER)
     with RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id) as robot:
         topic = "/robot1/diagnostics"
-        robot.call("publisher", topic=topic, type="diagnostic_msgs/msg/DiagnosticArray")
-        robot.call("publish_periodic", topic=topic, type="diagnostic_msgs/msg/DiagnosticArray",
-                   value=DIAGNOSTICS_OK, rate=100.0)
-        robot.call("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
+        await robot.acall("publisher", topic=topic, type="diagnostic_msgs/msg/DiagnosticArray")
+        await robot.acall("publish_periodic", topic=topic,
+                          type="diagnostic_msgs/msg/DiagnosticArray",
+                          value=DIAGNOSTICS_OK, rate=100.0)
+        await robot.acall("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
         proc = RunProcess(["run", "--config", str(config), "--port", "0", "--no-mdns"], env,
                           demo=False)
         try:
-            assert robot.call("wait_subscribers", topic=topic, count=1, timeout=20.0) >= 1
-            assert robot.call("wait_matched", topic="/robot1/cmd_vel", timeout=20.0) >= 1
+            assert await robot.acall("wait_subscribers", topic=topic, count=1, timeout=20.0) >= 1
+            assert await robot.acall("wait_matched", topic="/robot1/cmd_vel", timeout=20.0) >= 1
 
             def held(i: int) -> dict[str, Any] | None:
                 if i % 4 == 3:
@@ -120,12 +121,12 @@ async def test_hitl_with_rclpy_robot_publishing_diagnostics_at_100hz(
             held_report, move_report = await asyncio.gather(
                 hammer(proc.url, USER, held, SECONDS, rate_hz=10.0),
                 hammer(proc.url, OWNER, _move, SECONDS, rate_hz=10.0))
-            published = robot.call("stop_periodic", topic=topic)
+            published = await robot.acall("stop_periodic", topic=topic)
             _assert_answered(held_report, proc, "held arm commands")
             _assert_answered(move_report, proc, "moves")
             assert held_report.replies.get(202, 0) >= 5 * SECONDS, held_report.replies
             assert move_report.replies.get(200, 0) >= 5 * SECONDS, move_report.replies
-            assert robot.call("take", topic="/robot1/cmd_vel"), "no move reached the robot"
+            assert await robot.acall("take", topic="/robot1/cmd_vel"), "no move reached the robot"
             assert published >= 50 * SECONDS, published  # the robot really ran at ~100 Hz
             await _estop_and_stop(proc, USER)
         finally:

@@ -14,6 +14,7 @@ from typing import Any
 
 import aiohttp
 import pytest
+from waiting import eventually, take
 
 
 @dataclass
@@ -76,13 +77,12 @@ async def call(http: aiohttp.ClientSession, demo: Demo, token: str, method: str,
 
 async def wait_status(http: aiohttp.ClientSession, demo: Demo, predicate: Any,
                       timeout: float = 20.0) -> dict[str, Any]:
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while True:
+    async def matching() -> dict[str, Any] | None:
         _, status = await call(http, demo, demo.user, "GET", "/api/status")
-        if predicate(status) or loop.time() > deadline:
-            return status
-        await asyncio.sleep(0.1)
+        return status if predicate(status) else None
+
+    status: dict[str, Any] = await eventually(matching, timeout=timeout, what="a STATUS")
+    return status
 
 
 async def test_readme_tour(demo: Demo, http: aiohttp.ClientSession) -> None:
@@ -130,11 +130,11 @@ async def test_readme_tour(demo: Demo, http: aiohttp.ClientSession) -> None:
     goal_id = body["goal_id"]
     code, goals = await call(http, demo, demo.user, "GET", "/api/goals")
     assert goal_id in [g["goal_id"] for g in goals["goals"]]
-    for _ in range(300):
-        code, goal = await call(http, demo, demo.user, "GET", f"/api/goals/{goal_id}")
-        if goal["state"] in ("succeeded", "aborted", "canceled", "lost"):
-            break
-        await asyncio.sleep(0.1)
+    async def finished() -> dict[str, Any] | None:
+        _, goal = await call(http, demo, demo.user, "GET", f"/api/goals/{goal_id}")
+        return goal if goal["state"] in ("succeeded", "aborted", "canceled", "lost") else None
+
+    goal = await eventually(finished, timeout=60, what=f"goal {goal_id} finished")
     assert goal["state"] == "succeeded", goal
     assert goal["feedback"]["distance_remaining"] < 0.1
     at = (await wait_status(http, demo, lambda s: True))["telemetry"]["position"]
@@ -163,21 +163,15 @@ async def test_rclpy_on_localhost_sees_the_demo_robot(demo: Demo, jazzy_python: 
 
     env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     with RclpyOracle(jazzy_python, "watcher", domain_id=demo.domain_id, env=env) as oracle:
-        oracle.call("subscribe", topic="/robot1/odom", type="nav_msgs/msg/Odometry")
-        odom: list[Any] = []
-        for _ in range(200):
-            odom = oracle.call("take", topic="/robot1/odom")
-            if odom:
-                break
-            await asyncio.sleep(0.05)
+        await oracle.acall("subscribe", topic="/robot1/odom", type="nav_msgs/msg/Odometry")
+        odom = await take(oracle, "/robot1/odom")
         assert odom and odom[-1]["child_frame_id"] == "base_link"
-        names: list[Any] = []
-        for _ in range(100):
-            names = oracle.call("node_names")
-            if ["sim_robot", "/robot1"] in names and ["rcan_bridge", "/robot1"] in names:
-                break
-            await asyncio.sleep(0.1)
-        assert ["sim_robot", "/robot1"] in names and ["rcan_bridge", "/robot1"] in names
+
+        async def both_listed() -> bool:
+            names = await oracle.acall("node_names")
+            return ["sim_robot", "/robot1"] in names and ["rcan_bridge", "/robot1"] in names
+
+        await eventually(both_listed)
 
 
 def _example(name: str, demo: Demo, token: str, *args: str) -> subprocess.CompletedProcess[str]:

@@ -12,12 +12,12 @@ import socket
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import pytest
 from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsParticipant
 from oracle.client import RclpyOracle
+from waiting import eventually_sync
 
 from rcan_rtps.ros.participant import RosNode
 
@@ -77,6 +77,33 @@ def robot(jazzy_python: Path, domain_id: int):  # type: ignore[no-untyped-def]
         yield oracle
 
 
+SENTINEL = {"linear": {"x": 0.125, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": 0.0}}
+
+
+def _sentinel(domain_id: int, watch: ParticipantWatch, robot: RclpyOracle) -> tuple[bytes, list]:
+    """A participant that joins now and a Twist it sends the robot, once both arrived.
+
+    Returns its participant key and the Twists the robot took before the sentinel one. Sound
+    because the failed bridge had exited before this starts: whatever it sent was already in
+    the host's socket buffers, while the sentinel must first be discovered (and, for the
+    Twist, matched) before anything of it can arrive.
+    """
+    with RosNode("failed_start_sentinel", "/robot1", domain_id=domain_id) as node:
+        key = node.participant.guid.bytes
+        eventually_sync(lambda: key in watch.poll(), what="the sentinel participant is seen")
+        pub = node.create_publisher("cmd_vel", "geometry_msgs/msg/Twist")
+        eventually_sync(lambda: pub.matched_count() >= 1, what="the robot matched the sentinel")
+        pub.publish(SENTINEL)
+        got: list = []
+
+        def arrived() -> bool:
+            got.extend(robot.call("take", topic="/robot1/cmd_vel"))
+            return SENTINEL in got
+
+        eventually_sync(arrived, what=lambda: f"the sentinel Twist: {got}")
+    return key, got[:got.index(SENTINEL)]
+
+
 def _bad_key(tmp: Path) -> None:
     (tmp / "audit.key").write_text("not a key")
     os.chmod(tmp / "audit.key", 0o600)
@@ -104,23 +131,20 @@ def test_a_failed_start_leaves_no_trace(case: str, tmp_path: Path, domain_id: in
         setup(tmp_path)
     config = _config(tmp_path, domain_id, port)
     watch = ParticipantWatch(domain_id)
-    deadline = time.monotonic() + 3.0
-    while time.monotonic() < deadline:  # the robot and the watcher know each other
-        if len(watch.poll()) >= 2:
-            break
-        time.sleep(0.05)
+    # The robot and the watcher know each other.
+    eventually_sync(lambda: len(watch.poll()) >= 2, what=lambda: f"two participants: {watch.seen}")
     before = set(watch.poll())
     try:
         done = _run(config, token)
     finally:
         if occupied is not None:
             occupied.close()
-    time.sleep(0.5)  # anything the failed start announced would have arrived by now
+    sentinel, twists = _sentinel(domain_id, watch, robot)
     assert done.returncode != 0
     assert done.stderr.startswith("rcan-rtps: error:") and says in done.stderr, done.stderr
     assert "Traceback" not in done.stderr
-    assert watch.poll() == before, "the failed bridge joined the domain"
-    assert robot.call("take", topic="/robot1/cmd_vel") == []
+    assert watch.poll() - {sentinel} == before, "the failed bridge joined the domain"
+    assert twists == []
     assert not (tmp_path / "audit" / "audit.jsonl").exists(), "an audit entry was written"
     watch.node.close()
 
@@ -135,10 +159,7 @@ def test_the_watch_does_see_a_bridge_that_starts(tmp_path: Path, domain_id: int)
                              "--no-mdns"], stdout=subprocess.PIPE, text=True, env=env)
     try:
         assert proc.stdout is not None and "ready" in proc.stdout.readline()
-        deadline = time.monotonic() + 10
-        while watch.poll() == before and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert watch.poll() != before
+        eventually_sync(lambda: watch.poll() != before, what="the bridge joins the domain")
         assert (tmp_path / "audit" / "audit.jsonl").exists()
     finally:
         proc.terminate()

@@ -39,6 +39,7 @@ import aiohttp
 import msgspec
 import pytest
 from oracle.client import RclpyOracle
+from waiting import eventually, take
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import AuditLog, Decision, verify
@@ -129,11 +130,14 @@ async def _start_bridge(config: Path, stderr: Any) -> tuple[asyncio.subprocess.P
 
 
 async def _drain(oracle: RclpyOracle, into: list[Any], quiet: float) -> None:
-    """Takes what rclpy received until nothing new came for `quiet` seconds."""
+    """Takes what rclpy received until nothing new came for `quiet` seconds.
+
+    A quiet period, not a sentinel: the writer was SIGKILLed, nothing can follow its samples.
+    """
     loop = asyncio.get_running_loop()
     last = loop.time()
     while loop.time() - last < quiet:
-        got = await asyncio.to_thread(oracle.call, "take", topic=CMD_VEL)
+        got = await oracle.acall("take", topic=CMD_VEL)
         if got:
             into += got
             last = loop.time()
@@ -196,7 +200,7 @@ async def test_sigkill_under_load_loses_nothing_acknowledged(
     forced_torn = rng.randrange(ROUNDS - 1) if ROUNDS > 1 else -1
     with RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id) as oracle, \
             (tmp_path / "bridge.log").open("w") as log:
-        oracle.call("subscribe", topic=CMD_VEL, type=TWIST, qos="deep")
+        await oracle.acall("subscribe", topic=CMD_VEL, type=TWIST, qos="deep")
         for i in range(ROUNDS):
             rnd = Round(i)
             rounds.append(rnd)
@@ -333,23 +337,22 @@ class Probe:
     def first(self, state: str, after: int = -1) -> int | None:
         return next((t for t, s in self.states if s == state and t > after), None)
 
-    async def until(self, predicate: Any, timeout: float) -> bool:
-        return await self.rig.until(predicate, timeout)
-
 
 async def _robot_online(rig: Rig, oracle: RclpyOracle) -> None:
     """Odometry at 20 Hz, a cmd_vel reader, and a first move that reached it."""
-    oracle.call("publisher", topic="/robot1/odom", type=ODOM)
-    oracle.call("publish_periodic", topic="/robot1/odom", type=ODOM, value=ODOM_MSG,
-                rate=20.0)
-    oracle.call("subscribe", topic=CMD_VEL, type=TWIST)
-    assert await rig.until(lambda: rig.telemetry.status(pending_auth=0).state != "offline", 30)
+    await oracle.acall("publisher", topic="/robot1/odom", type=ODOM)
+    await oracle.acall("publish_periodic", topic="/robot1/odom", type=ODOM, value=ODOM_MSG,
+                       rate=20.0)
+    await oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    await eventually(lambda: rig.telemetry.status(pending_auth=0).state != "offline",
+                     timeout=30)
     for _ in range(10):  # the first moves may wait for the match (match_timeout_s)
         d = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.5}})
         if d.http_status == 200:
             break
     assert d.http_status == 200, d
-    assert any(t["linear"]["x"] == 0.5 for t in await rig.take(CMD_VEL, timeout=30))
+    await take(oracle, CMD_VEL, until=lambda got: any(t["linear"]["x"] == 0.5 for t in got),
+               timeout=30)
 
 
 @pytest.mark.parametrize("disk", ["fast", "slow"])
@@ -387,19 +390,20 @@ async def test_robot_sigkill_no_move_executed_once_offline(
         tasks = [asyncio.create_task(probe.mover()) for _ in range(3)]
         tasks.append(asyncio.create_task(probe.monitor()))
         try:
-            assert await probe.until(
-                lambda: sum(m.decision.http_status == 200 for m in probe.moves) >= 20, 60)
+            await eventually(
+                lambda: sum(m.decision.http_status == 200 for m in probe.moves) >= 20, timeout=60)
             killed = probe.tick()
             rig.oracle.proc.send_signal(signal.SIGKILL)
             await asyncio.to_thread(rig.oracle.proc.wait)
             # Offline after telemetry_stale_s (+ a generous margin for a loaded machine) ...
-            assert await probe.until(lambda: probe.first("offline", killed) is not None,
-                                     stale + 30), probe.states[-5:]
+            await eventually(lambda: probe.first("offline", killed) is not None,
+                             timeout=stale + 30,
+                             what=lambda: f"offline after the kill: {probe.states[-5:]}")
             offline = probe.first("offline", killed)
             assert offline is not None
             # ... then at least 30 more moves, all started after STATUS said offline.
-            assert await probe.until(
-                lambda: sum(m.started > offline for m in probe.moves) >= 30, 60)
+            await eventually(lambda: sum(m.started > offline for m in probe.moves) >= 30,
+                             timeout=60)
         finally:
             probe.stop.set()
             await asyncio.gather(*tasks)
@@ -443,7 +447,8 @@ async def test_reader_leaving_is_unavailable_at_once(tmp_path: Path, jazzy_pytho
         await _robot_online(rig, rig.oracle)
 
         async def next_move_refused(how: str) -> None:
-            assert await rig.until(lambda: cmd_vel.matched_count() == 0, 60), how
+            await eventually(lambda: cmd_vel.matched_count() == 0, timeout=60,
+                             what=f"{how}: the cmd_vel reader is gone")
             d = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.25}})
             assert d.http_status == 503, (how, d)
             assert d.error_code is not None and d.error_code.value == "ROBOT_UNAVAILABLE"
@@ -451,23 +456,18 @@ async def test_reader_leaving_is_unavailable_at_once(tmp_path: Path, jazzy_pytho
             assert rig.telemetry.status(pending_auth=0).state != "offline"
 
         # (a) the robot destroys its cmd_vel subscription; its odometry goes on
-        assert rig.oracle.call("unsubscribe", topic=CMD_VEL)
+        assert await rig.oracle.acall("unsubscribe", topic=CMD_VEL)
         await next_move_refused("unsubscribe")
 
         # (b) another robot process subscribes (moves run again), then exits normally
         with RclpyOracle(jazzy_python, "driver", "/robot1", domain_id=domain_id) as driver:
-            driver.call("subscribe", topic=CMD_VEL, type=TWIST)
-            assert driver.call("wait_matched", topic=CMD_VEL, timeout=30) >= 1
+            await driver.acall("subscribe", topic=CMD_VEL, type=TWIST)
+            assert await driver.acall("wait_matched", topic=CMD_VEL, timeout=30) >= 1
             # Once a reader has left, a command never waits for one: both sides must match.
-            assert await rig.until(lambda: cmd_vel.matched_count() >= 1, 60)
+            await eventually(lambda: cmd_vel.matched_count() >= 1, timeout=60)
             d = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.125}})
             assert d.http_status == 200, d
-            got: list[Any] = []
-            loop = asyncio.get_running_loop()
-            deadline = loop.time() + 30
-            while not got and loop.time() < deadline:
-                got = driver.call("take", topic=CMD_VEL)
-                await asyncio.sleep(0.05)
+            got = await take(driver, CMD_VEL, timeout=30)
             assert [t["linear"]["x"] for t in got] == [0.125]
         await next_move_refused("clean exit")
     finally:
@@ -483,12 +483,12 @@ async def test_unwritable_audit_blocks_motion_but_not_estop(
     config = _rig_config(tmp_path, domain_id)
     rig = await make_rig(config, jazzy_python, domain_id)
     try:
-        rig.oracle.call("subscribe", topic="/robot1/emergency_stop", type="std_msgs/msg/Bool",
-                        qos="transient_local")
-        rig.oracle.call("subscribe", topic=CMD_VEL, type=TWIST)
+        await rig.oracle.acall("subscribe", topic="/robot1/emergency_stop",
+                               type="std_msgs/msg/Bool", qos="transient_local")
+        await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
         d = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.5}})
         assert d.http_status == 200, d
-        assert [t["linear"]["x"] for t in await rig.take(CMD_VEL, timeout=30)] == [0.5]
+        assert [t["linear"]["x"] for t in await take(rig.oracle, CMD_VEL, timeout=30)] == [0.5]
 
         def broken_disk(fd: int, data: bytes) -> float:
             raise OSError(5, "Input/output error (injected)")
@@ -503,15 +503,12 @@ async def test_unwritable_audit_blocks_motion_but_not_estop(
         assert rig.governor.latch.latched
         # The e-stop was not audited (it says so), but the robot was told.
         assert (d.http_status, d.reason) == (503, "audit_unavailable"), d
-        assert await rig.saw("/robot1/emergency_stop", {"data": True}, timeout=30)
+        await take(rig.oracle, "/robot1/emergency_stop", until=lambda got: {"data": True} in got,
+                   timeout=30)
         # The e-stop's halt is a zero Twist from the same writer, in order: had the refused
         # move been published, it would have arrived before it.
-        twists: list[Any] = []
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + 30
-        while not any(t["linear"]["x"] == 0.0 for t in twists) and loop.time() < deadline:
-            twists += rig.oracle.call("take", topic=CMD_VEL)
-            await asyncio.sleep(0.05)
+        twists = await take(rig.oracle, CMD_VEL, timeout=30,
+                            until=lambda got: any(t["linear"]["x"] == 0.0 for t in got))
         xs = [t["linear"]["x"] for t in twists]
         assert 0.0 in xs and 0.75 not in xs, xs
     finally:

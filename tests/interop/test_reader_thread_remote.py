@@ -18,6 +18,7 @@ from typing import Any
 
 import pytest
 from oracle.client import RclpyOracle
+from waiting import eventually
 
 from rcan_rtps.ros import qos
 from rcan_rtps.ros.participant import RosNode
@@ -48,10 +49,10 @@ async def test_own_writer_and_reader_with_a_remote_publisher_at_200hz(
                                        callback=on_sample)
         pub = node.create_publisher("/shared", INT)
         with RclpyOracle(jazzy_python, "flood", domain_id=domain_id) as oracle:
-            oracle.call("publisher", topic="/shared", type=INT)
+            await oracle.acall("publisher", topic="/shared", type=INT)
             await sub.wait_for_publishers(2, timeout=30)
-            oracle.call("publish_periodic", topic="/shared", type=INT, value={"data": -1},
-                        rate=200.0)
+            await oracle.acall("publish_periodic", topic="/shared", type=INT, value={"data": -1},
+                               rate=200.0)
             loop = asyncio.get_running_loop()
             start = loop.time()
             sent = 0
@@ -60,10 +61,9 @@ async def test_own_writer_and_reader_with_a_remote_publisher_at_200hz(
                     pub.publish({"data": sent})
                     sent += 1
                 await asyncio.sleep(0.005)
-            published = oracle.call("stop_periodic", topic="/shared")
-        deadline = loop.time() + 30
-        while counts["theirs"] == 0 and loop.time() < deadline:
-            await asyncio.sleep(0.05)
+            published = await oracle.acall("stop_periodic", topic="/shared")
+        await eventually(lambda: counts["theirs"] > 0, timeout=30,
+                         what=lambda: f"a remote sample: {published=} {counts}")
         assert published > 0 and counts["theirs"] > 0, (published, counts)
         assert counts["mine"] > 0 and sent > 1000
         # Never a Cyclone thread (those show as Dummy-N): the node's reader thread only.

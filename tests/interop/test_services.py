@@ -27,7 +27,7 @@ async def node(domain_id: int) -> AsyncIterator[RosNode]:
 
 
 async def test_trigger_against_fastdds_server(oracle: RclpyOracle, node: RosNode) -> None:
-    oracle.call("service_server", name="/trigger", type="std_srvs/srv/Trigger")
+    await oracle.acall("service_server", name="/trigger", type="std_srvs/srv/Trigger")
     client = ServiceClient(node, "/trigger", "std_srvs/srv/Trigger")
     await client.wait_for_service(15)
     assert client.resolve_mapping() is RequestMapping.FASTDDS
@@ -38,19 +38,20 @@ async def test_trigger_against_fastdds_server(oracle: RclpyOracle, node: RosNode
 
 
 async def test_setbool_against_fastdds_server(oracle: RclpyOracle, node: RosNode) -> None:
-    oracle.call("service_server", name="/enable", type="std_srvs/srv/SetBool")
+    await oracle.acall("service_server", name="/enable", type="std_srvs/srv/SetBool")
     client = ServiceClient(node, "enable", "std_srvs/srv/SetBool")
     await client.wait_for_service(15)
     on = await client.call({"data": True}, timeout=10)
     off = await client.call({"data": False}, timeout=10)
     assert (on.success, on.message) == (True, "set to True (#1)")
     assert (off.success, off.message) == (False, "set to False (#2)")
-    assert oracle.call("service_requests", name="/enable") == [{"data": True}, {"data": False}]
+    requests = await oracle.acall("service_requests", name="/enable")
+    assert requests == [{"data": True}, {"data": False}]
 
 
 async def test_concurrent_calls_to_fastdds_server_each_get_their_reply(
         oracle: RclpyOracle, node: RosNode) -> None:
-    oracle.call("service_server", name="/enable", type="std_srvs/srv/SetBool", delay=0.05)
+    await oracle.acall("service_server", name="/enable", type="std_srvs/srv/SetBool", delay=0.05)
     client = ServiceClient(node, "/enable", "std_srvs/srv/SetBool")
     await client.wait_for_service(15)
     values = [i % 3 == 0 for i in range(8)]
@@ -119,7 +120,7 @@ async def test_fastdds_client_cannot_use_our_server(oracle: RclpyOracle, node: R
         return {"success": True, "message": "should not arrive"}
 
     server = ServiceServer(node, "/ours", "std_srvs/srv/Trigger", handle)
-    reply = await asyncio.to_thread(oracle.call, "service_call", name="/ours",
-                                    type="std_srvs/srv/Trigger", value={}, wait=3.0)
+    reply = await oracle.acall("service_call", name="/ours",
+                               type="std_srvs/srv/Trigger", value={}, wait=3.0)
     assert reply == {"timeout": True} and handled == []
     await server.close()

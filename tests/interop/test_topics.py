@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 from oracle.client import RclpyOracle
+from waiting import eventually, take
 
 from rcan_rtps.ros import qos
 from rcan_rtps.ros.participant import RosNode
@@ -28,25 +29,21 @@ def node(domain_id: int) -> Iterator[RosNode]:
 
 
 async def test_we_publish_twist_rclpy_receives(oracle: RclpyOracle, node: RosNode) -> None:
-    oracle.call("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
+    await oracle.acall("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
     pub = node.create_publisher("cmd_vel", "geometry_msgs/msg/Twist")
     await pub.wait_for_subscribers(1, timeout=15)
     pub.publish(TWIST)
-    for _ in range(100):
-        got = oracle.call("take", topic="/robot1/cmd_vel")
-        if got:
-            break
-        await asyncio.sleep(0.05)
+    got = await take(oracle, "/robot1/cmd_vel")
     assert got == [TWIST]
 
 
 async def test_rclpy_publishes_we_receive(oracle: RclpyOracle, node: RosNode) -> None:
     sub = node.create_subscription("/lab/chatter", "std_msgs/msg/String")
-    oracle.call("publisher", topic="/lab/chatter", type="std_msgs/msg/String")
+    await oracle.acall("publisher", topic="/lab/chatter", type="std_msgs/msg/String")
     await sub.wait_for_publishers(1, timeout=15)
-    assert oracle.call("wait_subscribers", topic="/lab/chatter") >= 1
-    oracle.call("publish", topic="/lab/chatter", type="std_msgs/msg/String",
-                value={"data": "héllo"})
+    assert await oracle.acall("wait_subscribers", topic="/lab/chatter") >= 1
+    await oracle.acall("publish", topic="/lab/chatter", type="std_msgs/msg/String",
+                       value={"data": "héllo"})
     msg = await sub.get(timeout=10)
     assert msg.data == "héllo"
 
@@ -54,45 +51,43 @@ async def test_rclpy_publishes_we_receive(oracle: RclpyOracle, node: RosNode) ->
 async def test_sensor_data_qos_both_ways(oracle: RclpyOracle, node: RosNode) -> None:
     scan = {"angle_min": -1.0, "angle_max": 1.0, "ranges": [1.0, 2.0, 3.5],
             "header": {"frame_id": "laser", "stamp": {"sec": 3, "nanosec": 4}}}
-    oracle.call("subscribe", topic="/scan_out", type="sensor_msgs/msg/LaserScan", qos="sensor")
-    oracle.call("publisher", topic="/scan_in", type="sensor_msgs/msg/LaserScan", qos="sensor")
+    await oracle.acall("subscribe", topic="/scan_out", type="sensor_msgs/msg/LaserScan",
+                       qos="sensor")
+    await oracle.acall("publisher", topic="/scan_in", type="sensor_msgs/msg/LaserScan",
+                       qos="sensor")
     pub = node.create_publisher("/scan_out", "sensor_msgs/msg/LaserScan", qos.SENSOR_DATA)
     sub = node.create_subscription("/scan_in", "sensor_msgs/msg/LaserScan", qos.SENSOR_DATA)
     await pub.wait_for_subscribers(1, timeout=15)
     await sub.wait_for_publishers(1, timeout=15)
-    oracle.call("publish", topic="/scan_in", type="sensor_msgs/msg/LaserScan", value=scan,
-                count=5)
+    await oracle.acall("publish", topic="/scan_in", type="sensor_msgs/msg/LaserScan", value=scan,
+                       count=5)
     got = await sub.get(timeout=10)
     assert list(got.ranges) == [1.0, 2.0, 3.5] and got.header.frame_id == "laser"
     for _ in range(5):  # best effort: a sample may be lost, so send a few
         pub.publish(scan)
         await asyncio.sleep(0.05)
-    received = oracle.call("take", topic="/scan_out")
+    received = await take(oracle, "/scan_out")
     assert received and received[0]["ranges"] == [1.0, 2.0, 3.5]
 
 
 async def test_image_640x480_both_ways(oracle: RclpyOracle, node: RosNode) -> None:
     data = bytes(range(256)) * (640 * 480 * 3 // 256)
     image = {"height": 480, "width": 640, "encoding": "rgb8", "step": 1920, "data": data}
-    oracle.call("subscribe", topic="/camera/image_raw", type="sensor_msgs/msg/Image")
+    await oracle.acall("subscribe", topic="/camera/image_raw", type="sensor_msgs/msg/Image")
     pub = node.create_publisher("/camera/image_raw", "sensor_msgs/msg/Image")
     await pub.wait_for_subscribers(1, timeout=15)
     pub.publish(image)
-    for _ in range(200):
-        got = oracle.call("take", topic="/camera/image_raw")
-        if got:
-            break
-        await asyncio.sleep(0.05)
+    got = await take(oracle, "/camera/image_raw")
     assert got[0]["width"] == 640 and bytes(got[0]["data"]) == data
 
     # rclpy → us, streamed like a camera: Cyclone's volatile reader may drop the one
     # fragmented sample still in flight when it first syncs with Fast DDS's writer.
     sub = node.create_subscription("/camera/back", "sensor_msgs/msg/Image")
-    oracle.call("publisher", topic="/camera/back", type="sensor_msgs/msg/Image")
+    await oracle.acall("publisher", topic="/camera/back", type="sensor_msgs/msg/Image")
     await sub.wait_for_publishers(1, timeout=15)
-    assert oracle.call("wait_subscribers", topic="/camera/back") >= 1
-    oracle.call("publish", topic="/camera/back", type="sensor_msgs/msg/Image",
-                value={**image, "data": list(data)}, count=3, period=0.2, timeout=60)
+    assert await oracle.acall("wait_subscribers", topic="/camera/back") >= 1
+    await oracle.acall("publish", topic="/camera/back", type="sensor_msgs/msg/Image",
+                       value={**image, "data": list(data)}, count=3, period=0.2, timeout=60)
     back = await sub.get(timeout=20)
     assert back.encoding == "rgb8" and bytes(back.data) == data
 
@@ -100,19 +95,15 @@ async def test_image_640x480_both_ways(oracle: RclpyOracle, node: RosNode) -> No
 async def test_transient_local_reaches_late_joiner(oracle: RclpyOracle, node: RosNode) -> None:
     pub = node.create_publisher("/map_meta", "std_msgs/msg/String", qos.TF_STATIC)
     pub.publish({"data": "latched"})
-    oracle.call("subscribe", topic="/map_meta", type="std_msgs/msg/String",
-                qos="transient_local")
-    for _ in range(200):
-        got = oracle.call("take", topic="/map_meta")
-        if got:
-            break
-        await asyncio.sleep(0.05)
+    await oracle.acall("subscribe", topic="/map_meta", type="std_msgs/msg/String",
+                       qos="transient_local")
+    got = await take(oracle, "/map_meta")
     assert got == [{"data": "latched"}]
 
-    oracle.call("publisher", topic="/latched_back", type="std_msgs/msg/String",
-                qos="transient_local")
-    oracle.call("publish", topic="/latched_back", type="std_msgs/msg/String",
-                value={"data": "from rclpy"})
+    await oracle.acall("publisher", topic="/latched_back", type="std_msgs/msg/String",
+                       qos="transient_local")
+    await oracle.acall("publish", topic="/latched_back", type="std_msgs/msg/String",
+                       value={"data": "from rclpy"})
     await asyncio.sleep(0.5)  # it was published before we exist; that is the point
     sub = node.create_subscription("/latched_back", "std_msgs/msg/String", qos.TF_STATIC)
     assert (await sub.get(timeout=15)).data == "from rclpy"
@@ -120,15 +111,13 @@ async def test_transient_local_reaches_late_joiner(oracle: RclpyOracle, node: Ro
 
 async def test_rclpy_lists_our_node_and_type_hash(oracle: RclpyOracle, node: RosNode) -> None:
     pub = node.create_publisher("cmd_vel", "geometry_msgs/msg/Twist")
-    oracle.call("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
+    await oracle.acall("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
     await pub.wait_for_subscribers(1, timeout=15)
-    for _ in range(100):
-        names = oracle.call("node_names")
-        if ["rcan_bridge", "/robot1"] in names:
-            break
-        await asyncio.sleep(0.1)
-    assert ["rcan_bridge", "/robot1"] in names
-    infos = oracle.call("publishers_info", topic="/robot1/cmd_vel")
+    async def listed() -> bool:
+        return ["rcan_bridge", "/robot1"] in await oracle.acall("node_names")
+
+    await eventually(listed)
+    infos = await oracle.acall("publishers_info", topic="/robot1/cmd_vel")
     ours = [i for i in infos if i["node_name"] == "rcan_bridge"]
     assert ours, infos
     assert ours[0]["node_namespace"] == "/robot1"
@@ -138,13 +127,9 @@ async def test_rclpy_lists_our_node_and_type_hash(oracle: RclpyOracle, node: Ros
 
 async def test_incompatible_qos_is_reported(oracle: RclpyOracle, node: RosNode) -> None:
     """A reliable reader never matches a best-effort writer; we say so instead of hanging."""
-    oracle.call("publisher", topic="/lossy", type="std_msgs/msg/String", qos="sensor")
+    await oracle.acall("publisher", topic="/lossy", type="std_msgs/msg/String", qos="sensor")
     sub = node.create_subscription("/lossy", "std_msgs/msg/String", qos.DEFAULT)
-    for _ in range(150):
-        if sub.incompatible_qos_events:
-            break
-        await asyncio.sleep(0.05)
-    assert sub.incompatible_qos_events >= 1
+    await eventually(lambda: sub.incompatible_qos_events >= 1)
     assert sub.matched_count() == 0
     assert qos.incompatibilities(qos.SENSOR_DATA, qos.DEFAULT) == [
         "reader requests RELIABLE but the writer offers BEST_EFFORT"]

@@ -11,6 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from oracle.client import RclpyOracle
+from waiting import eventually, take
 
 from rcan_rtps.ros import qos
 from rcan_rtps.ros.participant import RosNode
@@ -33,16 +34,6 @@ def node() -> Iterator[RosNode]:
         yield n
 
 
-async def _collect(take: Any, want: int, timeout: float = 10.0) -> list[Any]:
-    got: list[Any] = []
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while len(got) < want and loop.time() < deadline:
-        got += await take()
-        await asyncio.sleep(0.02)
-    return got
-
-
 @pytest.mark.parametrize("qos_name", sorted(QOS))
 @pytest.mark.parametrize("type_name", TYPES)
 @settings(max_examples=1, deadline=None, derandomize=True, suppress_health_check=[
@@ -55,25 +46,25 @@ async def test_both_ways(oracle: RclpyOracle, node: RosNode, type_name: str, qos
     out, back = f"/both/{short}_{qos_name}_out", f"/both/{short}_{qos_name}_back"
     profile = QOS[qos_name]
     # us → rclpy
-    oracle.call("subscribe", topic=out, type=type_name, qos=qos_name)
+    await oracle.acall("subscribe", topic=out, type=type_name, qos=qos_name)
     pub = node.create_publisher(out, type_name, profile)
     await pub.wait_for_subscribers(1, timeout=15)
-    oracle.call("wait_publishers", topic=out)
+    await oracle.acall("wait_publishers", topic=out)
     await asyncio.sleep(0.2)
     for value in values:
         pub.publish(value)
         await asyncio.sleep(0.02)
-    received = await _collect(lambda: asyncio.to_thread(oracle.call, "take", topic=out), 3)
-    expected = [oracle.call("roundtrip", type=type_name, value=v) for v in values]
+    received = await take(oracle, out, until=lambda got: len(got) >= 3)
+    expected = [await oracle.acall("roundtrip", type=type_name, value=v) for v in values]
     assert received == expected
     # rclpy → us
     sub = node.create_subscription(back, type_name, profile)
-    oracle.call("publisher", topic=back, type=type_name, qos=qos_name)
+    await oracle.acall("publisher", topic=back, type=type_name, qos=qos_name)
     await sub.wait_for_publishers(1, timeout=15)
-    oracle.call("wait_subscribers", topic=back)
+    await oracle.acall("wait_subscribers", topic=back)
     await asyncio.sleep(0.2)
     for value in values:
-        oracle.call("publish", topic=back, type=type_name, value=value, count=1, period=0.02)
+        await oracle.acall("publish", topic=back, type=type_name, value=value, count=1, period=0.02)
 
     async def take_ours() -> list[Any]:
         items = []
@@ -83,4 +74,11 @@ async def test_both_ways(oracle: RclpyOracle, node: RosNode, type_name: str, qos
             except asyncio.TimeoutError:
                 return items
 
-    assert await _collect(take_ours, 3) == expected
+    ours: list[Any] = []
+
+    async def three_of_ours() -> bool:
+        ours.extend(await take_ours())
+        return len(ours) >= 3
+
+    await eventually(three_of_ours, what=lambda: f"3 samples on {back}: {ours!r}")
+    assert ours == expected

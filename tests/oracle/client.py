@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import selectors
 import subprocess
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -18,7 +20,12 @@ class OracleError(RuntimeError):
 
 
 class RclpyOracle:
-    """One rclpy node in its own process; `call(op, **args)` runs an op and returns its result."""
+    """One rclpy node in its own process; `call(op, **args)` runs an op and returns its result.
+
+    `call` blocks on the pipe. Async tests use `await acall(...)`, which runs it in a worker
+    thread so the event loop (and the bridge on it) keeps running meanwhile; a lock keeps
+    requests one at a time, as the pipe protocol and the request ids assume.
+    """
 
     def __init__(self, python: Path, node_name: str = "oracle", namespace: str = "/",
                  *, domain_id: int | None = None, env: dict[str, str] | None = None) -> None:
@@ -34,18 +41,24 @@ class RclpyOracle:
             text=True, env=full_env,
         )
         self._next_id = 1
+        self._lock = threading.Lock()
         self._selector = selectors.DefaultSelector()
         assert self.proc.stdout is not None
         self._selector.register(self.proc.stdout, selectors.EVENT_READ)
         self._read(0, timeout=60.0)
 
     def call(self, op: str, timeout: float = 30.0, **args: Any) -> Any:
-        rid = self._next_id
-        self._next_id += 1
-        assert self.proc.stdin is not None
-        self.proc.stdin.write(json.dumps({"id": rid, "op": op, **args}) + "\n")
-        self.proc.stdin.flush()
-        return self._read(rid, timeout)
+        with self._lock:
+            rid = self._next_id
+            self._next_id += 1
+            assert self.proc.stdin is not None
+            self.proc.stdin.write(json.dumps({"id": rid, "op": op, **args}) + "\n")
+            self.proc.stdin.flush()
+            return self._read(rid, timeout)
+
+    async def acall(self, op: str, timeout: float = 30.0, **args: Any) -> Any:
+        """`call` off the event loop."""
+        return await asyncio.to_thread(self.call, op, timeout, **args)
 
     def _read(self, rid: int, timeout: float) -> Any:
         assert self.proc.stdout is not None

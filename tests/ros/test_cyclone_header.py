@@ -23,6 +23,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 from oracle.client import RclpyOracle
+from waiting import eventually
 
 from rcan_rtps.ros import _cyclone_header as cyclone
 from rcan_rtps.ros.participant import RosNode
@@ -105,20 +106,14 @@ class CyclonePeer:
             self.writer = DataWriter(self.participant, request, qos=qos)
 
     async def take(self, timeout: float = 10.0) -> Any:
-        for _ in range(int(timeout / 0.02)):
-            got = self.reader.take(N=1)
-            if got:
-                return got[0]
-            await asyncio.sleep(0.02)
-        raise AssertionError("the peer received nothing")
+        got = await eventually(lambda: self.reader.take(N=1), timeout=timeout,
+                               what="the peer receives a request")
+        return got[0]
 
     async def matched(self) -> None:
-        for _ in range(500):
-            if self.writer.get_publication_matched_status().current_count and \
-                    self.reader.get_subscription_matched_status().current_count:
-                return
-            await asyncio.sleep(0.02)
-        raise AssertionError("the peer never matched")
+        await eventually(lambda: self.writer.get_publication_matched_status().current_count
+                         and self.reader.get_subscription_matched_status().current_count,
+                         what="the peer matched both ways")
 
 
 @pytest.fixture
@@ -140,7 +135,8 @@ async def test_our_client_echo_and_foreign_guid_replies_ignored(domain_id: int,
     # A reply for another client (same seq), then one for a request never made: ignored.
     peer.writer.write(ReplyWire(guid=guid ^ 1, seq=request.seq, success=False, message="foreign"))
     peer.writer.write(ReplyWire(guid=guid, seq=request.seq + 100, success=False, message="stale"))
-    await asyncio.sleep(0.3)
+    # Sentinel: the client counts what it drops, so both are in (and ignored) once it says 2.
+    await eventually(lambda: client.dropped_replies == 2)
     assert not pending.done()
     peer.writer.write(ReplyWire(guid=guid, seq=request.seq, success=True, message="mine"))
     reply = await pending

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import asyncio
 import json
 from pathlib import Path
 
 from oracle.client import RclpyOracle
+from waiting import eventually, take
 
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.typesys.store import TypeStore
@@ -33,24 +33,17 @@ def test_bundle_hashes_match_kilted(kilted_python: Path) -> None:
 async def test_kilted_rclpy_receives_and_lists_us(kilted_python: Path, domain_id: int) -> None:
     with RclpyOracle(kilted_python, "kilted_oracle", domain_id=domain_id) as oracle, \
             RosNode("rcan_bridge", "/k", domain_id=domain_id, distro="kilted") as node:
-        oracle.call("subscribe", topic="/k/cmd_vel", type="geometry_msgs/msg/Twist")
+        await oracle.acall("subscribe", topic="/k/cmd_vel", type="geometry_msgs/msg/Twist")
         pub = node.create_publisher("cmd_vel", "geometry_msgs/msg/Twist")
         await pub.wait_for_subscribers(1, timeout=15)
         pub.publish({"linear": {"x": 0.3}})
-        got = []
-        for _ in range(100):
-            got = oracle.call("take", topic="/k/cmd_vel")
-            if got:
-                break
-            await asyncio.sleep(0.05)
+        got = await take(oracle, "/k/cmd_vel")
         assert got and got[0]["linear"]["x"] == 0.3
-        names: list[list[str]] = []
-        for _ in range(100):
-            names = oracle.call("node_names")
-            if ["rcan_bridge", "/k"] in names:
-                break
-            await asyncio.sleep(0.1)
-        assert ["rcan_bridge", "/k"] in names
+
+        async def listed() -> bool:
+            return ["rcan_bridge", "/k"] in await oracle.acall("node_names")
+
+        await eventually(listed)
 
 
 async def test_kilted_sequences_both_ways(kilted_python: Path, domain_id: int) -> None:
@@ -58,23 +51,18 @@ async def test_kilted_sequences_both_ways(kilted_python: Path, domain_id: int) -
     with RclpyOracle(kilted_python, "kilted_oracle", domain_id=domain_id) as oracle, \
             RosNode("peer", "/k", domain_id=domain_id, distro="kilted") as node:
         sub = node.create_subscription("/k/joint_states", "sensor_msgs/msg/JointState")
-        oracle.call("publisher", topic="/k/joint_states", type="sensor_msgs/msg/JointState")
+        await oracle.acall("publisher", topic="/k/joint_states", type="sensor_msgs/msg/JointState")
         await sub.wait_for_publishers(1, timeout=15)
-        oracle.call("wait_subscribers", topic="/k/joint_states")
-        oracle.call("publish", topic="/k/joint_states", type="sensor_msgs/msg/JointState",
-                    value={"name": ["a", "b"], "position": [0.5, 1.5]}, count=3)
+        await oracle.acall("wait_subscribers", topic="/k/joint_states")
+        await oracle.acall("publish", topic="/k/joint_states", type="sensor_msgs/msg/JointState",
+                           value={"name": ["a", "b"], "position": [0.5, 1.5]}, count=3)
         got = await sub.get(timeout=10)
         assert list(got.name) == ["a", "b"] and list(got.position) == [0.5, 1.5]
-        oracle.call("subscribe", topic="/k/diagnostics",
-                    type="diagnostic_msgs/msg/DiagnosticArray")
+        await oracle.acall("subscribe", topic="/k/diagnostics",
+                           type="diagnostic_msgs/msg/DiagnosticArray")
         pub = node.create_publisher("/k/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
         await pub.wait_for_subscribers(1, timeout=15)
-        oracle.call("wait_publishers", topic="/k/diagnostics")
+        await oracle.acall("wait_publishers", topic="/k/diagnostics")
         pub.publish({"status": [{"level": 2, "name": "motor", "message": "hot"}]})
-        received = []
-        for _ in range(100):
-            received = oracle.call("take", topic="/k/diagnostics")
-            if received:
-                break
-            await asyncio.sleep(0.05)
+        received = await take(oracle, "/k/diagnostics")
         assert received and received[0]["status"][0]["message"] == "hot"

@@ -12,11 +12,12 @@ import asyncio
 import re
 import threading
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+from waiting import eventually
 
 from rcan_rtps.ros import qos
 from rcan_rtps.ros.participant import RosNode
@@ -38,14 +39,12 @@ async def nodes(domain_id: int) -> AsyncIterator[tuple[RosNode, RosNode]]:
         b.close()
 
 
-async def until(predicate: Callable[[], bool], timeout: float = 20.0) -> bool:
+async def loop_caught_up() -> None:
+    """Every callback handed to the loop so far has run: call_soon_threadsafe is FIFO."""
     loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while not predicate():
-        if loop.time() > deadline:
-            return False
-        await asyncio.sleep(0.01)
-    return True
+    done = loop.create_future()
+    loop.call_soon_threadsafe(done.set_result, None)
+    await done
 
 
 def reader_threads(node: RosNode) -> list[threading.Thread]:
@@ -72,7 +71,7 @@ async def test_callbacks_run_on_the_nodes_reader_thread(nodes: tuple[RosNode, Ro
     pub = b.create_publisher("chatter", STRING)
     await pub.wait_for_subscribers()
     pub.publish({"data": "hello"})
-    assert await until(lambda: bool(seen))
+    await eventually(lambda: bool(seen), timeout=20)
     assert seen == [(f"dds-read {a.fqn}", "hello")]
     assert a.reader_thread.alive() and len(reader_threads(a)) == 1
 
@@ -92,7 +91,7 @@ async def test_a_failing_callback_does_not_silence_the_subscription(
     await pub.wait_for_subscribers()
     for i in range(10):
         pub.publish({"data": i})
-    assert await until(lambda: len(good) == 5)
+    await eventually(lambda: len(good) == 5, timeout=20)
     assert good == [0, 2, 4, 6, 8]
 
 
@@ -105,7 +104,7 @@ async def test_invalid_samples_are_skipped(nodes: tuple[RosNode, RosNode]) -> No
     writer.write(b.values.build(INT, {"data": 7}))
     assert (await sub.get(timeout=20)).data == 7  # type: ignore[attr-defined]
     writer.__del__()  # unregisters: NOT_ALIVE_NO_WRITERS, an invalid sample
-    assert await until(lambda: sub.matched_count() == 0)
+    await eventually(lambda: sub.matched_count() == 0, timeout=20)
     with pytest.raises(asyncio.TimeoutError):
         await sub.get(timeout=0.5)
 
@@ -124,7 +123,7 @@ async def test_incompatible_qos_is_counted_without_a_listener(
     a, b = nodes
     b.create_publisher("strict", STRING, qos.SENSOR_DATA)  # best effort
     sub = a.create_subscription("strict", STRING, qos.DEFAULT)  # wants reliable
-    assert await until(lambda: sub.incompatible_qos_events >= 1)
+    await eventually(lambda: sub.incompatible_qos_events >= 1, timeout=20)
 
 
 async def test_many_subscriptions_share_one_thread(nodes: tuple[RosNode, RosNode]) -> None:
@@ -145,7 +144,7 @@ async def test_many_subscriptions_share_one_thread(nodes: tuple[RosNode, RosNode
             pub.publish({"data": i * 100 + round_})
     for i, sub in queued:
         got[i] = [(await sub.get(timeout=20)).data for _ in range(5)]  # type: ignore[attr-defined]
-    assert await until(lambda: all(len(v) == 5 for v in got.values()))
+    await eventually(lambda: all(len(v) == 5 for v in got.values()), timeout=20)
     assert got == {i: [i * 100 + r for r in range(5)] for i in range(n)}
     assert len(reader_threads(a)) == 1
 
@@ -208,7 +207,7 @@ async def test_own_writer_and_reader_on_one_topic_with_a_second_writer(
         stop.set()
         flooder.join(30)
     assert not flooder.is_alive()
-    assert await until(lambda: mine == 2000)
+    await eventually(lambda: mine == 2000, timeout=20)
     assert theirs > 0
 
 
@@ -234,11 +233,11 @@ async def test_close_while_samples_arrive(nodes: tuple[RosNode, RosNode]) -> Non
     flooder = threading.Thread(target=flood, daemon=True)
     flooder.start()
     try:
-        assert await until(lambda: len(closed_count) > 50)
+        await eventually(lambda: len(closed_count) > 50, timeout=20)
         doomed.close()
         after_close = len(closed_count)
         before = len(kept)
-        assert await until(lambda: len(kept) > before + 100)
+        await eventually(lambda: len(kept) > before + 100, timeout=20)
         assert len(closed_count) == after_close
         doomed.close()
     finally:
@@ -265,16 +264,18 @@ async def test_node_close_stops_the_thread_with_samples_in_flight(domain_id: int
         flooder = threading.Thread(target=flood, daemon=True)
         flooder.start()
         try:
-            assert await until(lambda: len(calls) > 50)
+            await eventually(lambda: len(calls) > 50, timeout=20)
             thread = reader_threads(a)[0]
             a.close()
             n = len(calls)
             assert not thread.is_alive() and not a.reader_thread.alive()
-            await asyncio.sleep(0.3)
+            # Callbacks run on the reader thread, now gone; samples it handed to the loop
+            # before it ended have been dealt with once a later hand-off has run.
+            await loop_caught_up()
             assert len(calls) == n  # no callback after close
             while not queued._queue.empty():  # type: ignore[union-attr]
                 queued._queue.get_nowait()  # type: ignore[union-attr]
-            await asyncio.sleep(0.1)
+            await loop_caught_up()
             assert queued._queue.empty()  # type: ignore[union-attr]
             a.close()  # idempotent
         finally:

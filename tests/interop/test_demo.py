@@ -307,3 +307,88 @@ async def _check_tour_line(line: str, out: str, shell: Shell, fill: dict[str, st
         assert "ok" in out.lower(), out
     elif "topic echo" in line:
         assert "child_frame_id: base_link" in out, out
+
+
+async def test_session_loss_cancels_a_goal_and_says_so(demo: Demo,
+                                                        http: aiohttp.ClientSession) -> None:
+    """No heartbeat while a far goal runs: after session_timeout_s (5 s) the bridge halts,
+    cancels the goal and logs both on stderr."""
+    await wait_status(http, demo, lambda s: s["ros"]["connected"])
+    code, body = await call(http, demo, demo.user, "POST", "/api/command",
+                            {"action": "navigate", "params": {"x": 15.0, "y": 0.0, "yaw": 0.0}})
+    assert code == 200, body
+    status = await wait_status(http, demo, lambda s: s["state"] == "safe_stop", 20.0)
+    assert status["state"] == "safe_stop"
+    code, goal = await call(http, demo, demo.user, "GET", f"/api/goals/{body['goal_id']}")
+    for _ in range(50):
+        if goal["state"] == "canceled":
+            break
+        await asyncio.sleep(0.1)
+        code, goal = await call(http, demo, demo.user, "GET", f"/api/goals/{body['goal_id']}")
+    assert goal["state"] == "canceled", goal
+    log = demo.errors.read_text()
+    assert "WARNING" in log and "control session of 'operator' lost (no command or heartbeat " \
+        "for 5 s): halting the robot (safe stop)" in log, log
+    assert f"cancelling navigation goal {body['goal_id']}" in log, log
+
+
+async def test_a_resolved_approval_is_no_fault(demo: Demo, http: aiohttp.ClientSession) -> None:
+    await wait_status(http, demo, lambda s: s["ros"]["connected"])
+    env = {**os.environ, "ROS_DOMAIN_ID": str(demo.domain_id)}
+    diagnostics = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "rcan_rtps", "--localhost", "topic", "echo",
+        "/robot1/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", "--json",
+        "--timeout", "12", stdout=asyncio.subprocess.PIPE, env=env)
+    await asyncio.sleep(3)  # the echo has matched the bridge's writer
+    code, held = await call(http, demo, demo.user, "POST", "/api/command", {
+        "action": "arm_joint", "params": {"joints": ["elbow"], "positions": [0.3],
+                                          "duration_s": 0.5}})
+    assert code == 202
+    status = await wait_status(http, demo, lambda s: s["pending_auth"] == 1)
+    assert not [f for f in status["faults"] if "approval" in f["message"]], status["faults"]
+    code, body = await call(http, demo, demo.owner, "POST", "/api/hitl/authorize",
+                            {"pending_id": held["pending_id"]})
+    assert code == 200, body
+    await asyncio.sleep(1)
+    status = await wait_status(http, demo, lambda s: True)
+    assert status["pending_auth"] == 0 and status["faults"] == [], status
+    out, _ = await diagnostics.communicate()
+    said = [json.loads(line)["status"][0] for line in out.decode().splitlines()]
+    hitl = [(s["level"], s["message"]) for s in said if s["name"].endswith(": hitl")]
+    assert [m for _, m in hitl[-2:]] == ["command 'arm_joint' awaits human approval",
+                                          "no command awaits human approval"], hitl
+    assert hitl[-1][0] in (0, "\x00"), hitl  # level OK
+
+
+async def test_default_tools_say_to_add_localhost(demo: Demo, http: aiohttp.ClientSession) -> None:
+    """The demo keeps to loopback: tools without --localhost see nothing, and say what to do."""
+    await wait_status(http, demo, lambda s: s["ros"]["connected"])
+    env = {**os.environ, "ROS_DOMAIN_ID": str(demo.domain_id)}
+    for name in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):
+        env.pop(name, None)
+
+    def cli(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "rcan_rtps", *args], capture_output=True,
+                              text=True, env=env, timeout=60)
+
+    listing = await asyncio.to_thread(cli, "topic", "list")
+    assert "add `--localhost`" in listing.stderr, listing.stderr
+    echo = await asyncio.to_thread(cli, "topic", "echo", "/robot1/odom", "--once")
+    assert echo.returncode == 1 and "add `--localhost`" in echo.stderr, echo.stderr
+    assert "Traceback" not in echo.stderr
+    nodes = await asyncio.to_thread(cli, "--localhost", "node", "list")
+    assert "/robot1/sim_robot" in nodes.stdout and "--localhost" not in nodes.stderr
+    pub = await asyncio.to_thread(cli, "--localhost", "topic", "pub", "/robot1/cmd_vel",
+                                  "geometry_msgs/msg/Twist", "{linear: {x: 0.1}}", "-t", "3",
+                                  "-r", "20")
+    assert pub.returncode == 0, pub.stderr
+    shown = [line for line in pub.stdout.splitlines() if line.startswith("publishing #")]
+    assert [line.split(":")[0] for line in shown] == ["publishing #1", "publishing #2",
+                                                      "publishing #3"], pub.stdout
+    assert "x=0.1" in shown[0]
+
+
+async def test_agent_client_with_a_wrong_token_fails(demo: Demo) -> None:
+    agent = await asyncio.to_thread(_example, "agent_client.py", demo, "not-a-token-at-all")
+    assert agent.returncode == 1 and "refused the token (401)" in agent.stderr, agent.stderr
+    assert "Traceback" not in agent.stderr

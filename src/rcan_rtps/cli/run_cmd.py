@@ -77,7 +77,7 @@ def _config(args: argparse.Namespace, env: dict[str, str]) -> RcanConfig:
     if not args.sim:
         raise ValueError("--config FILE is required (or --sim for the built-in demo)")
     return demo_config(state_dir=args.state_dir or default_state_dir(),
-                       port=8765 if args.port is None else args.port,
+                       port=args.port or 8765,  # 0 (any free port) is the server's to pick
                        domain_id=resolve_domain_id(args.domain_id, env),
                        namespace="/robot1", env=env)
 
@@ -151,7 +151,10 @@ async def _start_unless_stopped(bridge: Bridge, stop: asyncio.Event,
     """The bridge's URL once started, or None if a stop was asked for first (the start is
     then cancelled, which releases what it had acquired)."""
     async def start() -> str:
-        await asyncio.sleep(float(env.get(SLOW_START_HOOK_ENV, "0") or 0))
+        late = float(env.get(SLOW_START_HOOK_ENV, "0") or 0)
+        if late > 0:
+            logging.getLogger(__name__).warning("test hook: starting %g s late", late)
+            await asyncio.sleep(late)
         return await bridge.start()
 
     starting = asyncio.ensure_future(start())

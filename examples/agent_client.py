@@ -23,6 +23,10 @@ TOKEN = os.environ.get("RCAN_TOKEN", "")
 AI = {"ai_provider": "example-lab", "ai_model": "planner-7b"}
 
 
+class Unusable(Exception):
+    """The bridge cannot be used as configured: the message says why and what to do."""
+
+
 def request(method: str, path: str, body: Any = None) -> tuple[int, Any]:
     data = None if body is None else json.dumps(body).encode()
     req = urllib.request.Request(URL + path, data=data, method=method, headers={
@@ -31,7 +35,14 @@ def request(method: str, path: str, body: Any = None) -> tuple[int, Any]:
         with urllib.request.urlopen(req, timeout=10) as resp:
             return resp.status, json.loads(resp.read())
     except urllib.error.HTTPError as err:  # 4xx/5xx still carry a JSON decision
+        if err.code == 401:
+            raise Unusable(f"{URL} refused the token (401): set RCAN_TOKEN to a USER token "
+                           "(rcan-rtps run --sim prints one)") from None
         return err.code, json.loads(err.read())
+    except (urllib.error.URLError, OSError) as err:
+        reason = getattr(err, "reason", err)
+        raise Unusable(f"cannot reach the bridge at {URL} ({reason}): is `rcan-rtps run` "
+                       "running? (RCAN_URL sets the address)") from None
 
 
 def command(action: str, params: dict[str, Any], confidence: float) -> tuple[int, Any]:
@@ -47,6 +58,14 @@ def main() -> int:
     if not TOKEN:
         print("set RCAN_TOKEN to a USER token (rcan-rtps run --sim prints one)", file=sys.stderr)
         return 2
+    try:
+        return run()
+    except Unusable as exc:
+        print(f"agent_client: {exc}", file=sys.stderr)
+        return 1
+
+
+def run() -> int:
     command("move", {"linear_x": 0.4, "angular_z": 0.2}, confidence=0.93)
     command("move", {"linear_x": 3.0}, confidence=0.97)  # over the limit: refused
     status, decision = command("navigate", {"x": 1.5, "y": 0.5, "yaw": 1.57}, confidence=0.88)

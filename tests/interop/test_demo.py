@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import re
 import subprocess
@@ -24,42 +25,55 @@ class Demo:
     owner: str
     audit: Path
     domain_id: int
+    errors: Path  # the demo's stderr
 
 
-def _read_until(proc: subprocess.Popen[str], pattern: str, lines: list[str]) -> re.Match[str]:
+def _read_until(proc: subprocess.Popen[str], pattern: str, lines: list[str],
+                errors: Path) -> re.Match[str]:
     assert proc.stdout is not None
     for line in proc.stdout:
         lines.append(line)
         found = re.search(pattern, line)
         if found:
             return found
-    raise AssertionError("demo exited early:\n" + "".join(lines) + (proc.stderr.read()
-                                                                      if proc.stderr else ""))
+    raise AssertionError("demo exited early:\n" + "".join(lines) + errors.read_text())
 
 
 @pytest.fixture
 def demo(tmp_path: Path, domain_id: int) -> Iterator[Demo]:
-    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
-    env.pop("RCAN_BRIDGE_TOKEN", None)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "rcan_rtps", "run", "--sim", "--port", "0", "--no-mdns",
-         "--state-dir", str(tmp_path / "state")],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    yield from _run_demo(tmp_path, domain_id, "--state-dir", str(tmp_path / "state"))
+
+
+@pytest.fixture
+def home_demo(tmp_path: Path, domain_id: int) -> Iterator[Demo]:
+    """The demo as the README starts it: state under ~/.local/state (HOME is tmp_path)."""
+    yield from _run_demo(tmp_path, domain_id)
+
+
+def _run_demo(tmp_path: Path, domain_id: int, *args: str) -> Iterator[Demo]:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id), "HOME": str(tmp_path)}
+    for name in ("RCAN_BRIDGE_TOKEN", "RCAN_DEMO_USER_TOKEN", "XDG_STATE_HOME"):
+        env.pop(name, None)
+    errors = tmp_path / "demo.err"
+    with errors.open("w") as stderr:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "rcan_rtps", "run", "--sim", "--port", "0", "--no-mdns",
+             *args], stdout=subprocess.PIPE, stderr=stderr, text=True, env=env)
     lines: list[str] = []
     try:
-        url = _read_until(proc, r"^rcan-rtps ready api=(\S+)$", lines).group(1)
-        user = _read_until(proc, r"USER \(operator\) (\S+)", lines).group(1)
-        owner = _read_until(proc, r"OWNER \(owner\)\s+(\S+)", lines).group(1)
-        audit = Path(_read_until(proc, r"audit log: (\S+)", lines).group(1))
-        yield Demo(url, user, owner, audit, domain_id)
+        url = _read_until(proc, r"^rcan-rtps ready api=(\S+)$", lines, errors).group(1)
+        user = _read_until(proc, r"USER \(operator\)\s+(\S+)", lines, errors).group(1)
+        owner = _read_until(proc, r"OWNER \(owner\)\s+(\S+)", lines, errors).group(1)
+        audit = Path(_read_until(proc, r"audit log: (\S+)", lines, errors).group(1))
+        yield Demo(url, user, owner, audit, domain_id, errors)
     finally:
         proc.send_signal(2)  # SIGINT: the graceful path
         try:
             proc.wait(timeout=20)
         finally:
             proc.kill()
-    assert proc.returncode == 0, proc.stderr.read() if proc.stderr else ""
-    assert '"event":"BRIDGE_STOPPED"' in (tmp_path / "state" / "audit.jsonl").read_text()
+    assert proc.returncode == 0, errors.read_text()
+    assert '"event":"BRIDGE_STOPPED"' in audit.read_text()
 
 
 @pytest.fixture
@@ -196,3 +210,179 @@ async def test_examples_agent_and_operator(demo: Demo, http: aiohttp.ClientSessi
     assert "authorize: 200 executed" in operator.stdout
     entries = [line for line in demo.audit.read_text().splitlines() if '"ai":' in line]
     assert entries and all('"model":"planner-7b"' in line for line in entries)
+
+
+ROOT = Path(__file__).resolve().parents[2]
+TOUR_OUTCOME = re.compile(r"#\s+(\d{3}) (\w+)")  # a line's comment: `# 200 executed: …`
+
+
+def tour_lines() -> list[str]:
+    """The README's tour, one shell line each, as a reader would paste them."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    block = re.search(r"<!-- tour -->\n```bash\n(.*?)```", text, re.S)
+    assert block, "README.md has no tour block"
+    return block.group(1).splitlines()
+
+
+class Shell:
+    """One bash, fed a line at a time; each line's output and exit status come back."""
+
+    def __init__(self, cwd: Path, env: dict[str, str]) -> None:
+        self.proc = subprocess.Popen(["bash", "--noprofile", "--norc", "-s"], cwd=cwd, env=env,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.STDOUT, text=True, encoding="utf-8")
+
+    def run(self, line: str) -> tuple[int, str]:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(f"{line}\nprintf '\\n@@rc=%s\\n' $?\n")
+        self.proc.stdin.flush()
+        out: list[str] = []
+        for row in self.proc.stdout:
+            if row.startswith("@@rc="):
+                return int(row[5:]), "".join(out).strip()
+            out.append(row)
+        raise AssertionError(f"the shell ended during {line!r}: {''.join(out)}")
+
+    def close(self) -> None:
+        self.proc.kill()
+        self.proc.wait()
+
+
+async def test_readme_tour_line_by_line(home_demo: Demo, http: aiohttp.ClientSession,
+                                        tmp_path: Path) -> None:
+    demo = home_demo
+    await wait_status(http, demo, lambda s: s["ros"]["connected"])
+    # `.venv/bin/rcan-rtps` as the README has it: this interpreter's.
+    (tmp_path / ".venv").mkdir()
+    (tmp_path / ".venv" / "bin").symlink_to(Path(sys.executable).parent)
+    env = {**os.environ, "HOME": str(tmp_path), "ROS_DOMAIN_ID": str(demo.domain_id)}
+    env.pop("XDG_STATE_HOME", None)
+    shell = Shell(tmp_path, env)
+    fill = {"<USER token>": demo.user, "<OWNER token>": demo.owner,
+            "http://127.0.0.1:8765": demo.url}
+    try:
+        for line in tour_lines():
+            for placeholder, value in fill.items():
+                line = line.replace(placeholder, value)
+            rc, out = await asyncio.to_thread(shell.run, line)
+            assert rc == 0, (line, out)
+            await _check_tour_line(line, out, shell, fill, http, demo)
+    finally:
+        shell.close()
+
+
+async def _check_tour_line(line: str, out: str, shell: Shell, fill: dict[str, str],
+                           http: aiohttp.ClientSession, demo: Demo) -> None:
+    said = TOUR_OUTCOME.search(line)
+    if said:  # the comment is what happens
+        code, outcome = said.groups()
+        assert f'"outcome":"{outcome}"' in out, (line, out)
+        if line.startswith("cmd "):  # which prints the HTTP status too
+            assert out.endswith(f"→ {code}"), (line, out)
+    if "/api/hitl/pending" in line:
+        fill["<id>"] = json.loads(out)["pending"][0]["pending_id"]
+    elif "/api/goals " in line:  # a reader asks again until the robot is there
+        for _ in range(300):
+            goals = json.loads(out)["goals"]
+            if goals and goals[-1]["state"] not in ("accepted", "executing"):
+                break
+            await asyncio.sleep(0.1)
+            out = (await asyncio.to_thread(shell.run, line))[1]
+        assert goals[-1]["state"] == "succeeded", goals[-1]
+        assert goals[-1]["feedback"]["distance_remaining"] < 0.1
+    elif "/api/status" in line:
+        at = json.loads(out)["telemetry"]["position"]
+        assert abs(at["x"] - 2.0) < 0.1 and abs(at["y"] - 1.0) < 0.1, at
+    elif line.startswith("kill %1"):  # no heartbeats: the session lapses, the robot halts
+        status = await wait_status(http, demo, lambda s: s["state"] == "safe_stop", 15.0)
+        assert status["state"] == "safe_stop"
+        assert "WARNING" in demo.errors.read_text() and "safe stop" in demo.errors.read_text()
+    elif "audit verify" in line:
+        assert "ok" in out.lower(), out
+    elif "topic echo" in line:
+        assert "child_frame_id: base_link" in out, out
+
+
+async def test_session_loss_cancels_a_goal_and_says_so(demo: Demo,
+                                                        http: aiohttp.ClientSession) -> None:
+    """No heartbeat while a far goal runs: after session_timeout_s (5 s) the bridge halts,
+    cancels the goal and logs both on stderr."""
+    await wait_status(http, demo, lambda s: s["ros"]["connected"])
+    code, body = await call(http, demo, demo.user, "POST", "/api/command",
+                            {"action": "navigate", "params": {"x": 15.0, "y": 0.0, "yaw": 0.0}})
+    assert code == 200, body
+    status = await wait_status(http, demo, lambda s: s["state"] == "safe_stop", 20.0)
+    assert status["state"] == "safe_stop"
+    code, goal = await call(http, demo, demo.user, "GET", f"/api/goals/{body['goal_id']}")
+    for _ in range(50):
+        if goal["state"] == "canceled":
+            break
+        await asyncio.sleep(0.1)
+        code, goal = await call(http, demo, demo.user, "GET", f"/api/goals/{body['goal_id']}")
+    assert goal["state"] == "canceled", goal
+    log = demo.errors.read_text()
+    assert "WARNING" in log and "control session of 'operator' lost (no command or heartbeat " \
+        "for 5 s): halting the robot (safe stop)" in log, log
+    assert f"cancelling navigation goal {body['goal_id']}" in log, log
+
+
+async def test_a_resolved_approval_is_no_fault(demo: Demo, http: aiohttp.ClientSession) -> None:
+    await wait_status(http, demo, lambda s: s["ros"]["connected"])
+    env = {**os.environ, "ROS_DOMAIN_ID": str(demo.domain_id)}
+    diagnostics = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "rcan_rtps", "--localhost", "topic", "echo",
+        "/robot1/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", "--json",
+        "--timeout", "12", stdout=asyncio.subprocess.PIPE, env=env)
+    await asyncio.sleep(3)  # the echo has matched the bridge's writer
+    code, held = await call(http, demo, demo.user, "POST", "/api/command", {
+        "action": "arm_joint", "params": {"joints": ["elbow"], "positions": [0.3],
+                                          "duration_s": 0.5}})
+    assert code == 202
+    status = await wait_status(http, demo, lambda s: s["pending_auth"] == 1)
+    assert not [f for f in status["faults"] if "approval" in f["message"]], status["faults"]
+    code, body = await call(http, demo, demo.owner, "POST", "/api/hitl/authorize",
+                            {"pending_id": held["pending_id"]})
+    assert code == 200, body
+    await asyncio.sleep(1)
+    status = await wait_status(http, demo, lambda s: True)
+    assert status["pending_auth"] == 0 and status["faults"] == [], status
+    out, _ = await diagnostics.communicate()
+    said = [json.loads(line)["status"][0] for line in out.decode().splitlines()]
+    hitl = [(s["level"], s["message"]) for s in said if s["name"].endswith(": hitl")]
+    assert [m for _, m in hitl[-2:]] == ["command 'arm_joint' awaits human approval",
+                                          "no command awaits human approval"], hitl
+    assert hitl[-1][0] in (0, "\x00"), hitl  # level OK
+
+
+async def test_default_tools_say_to_add_localhost(demo: Demo, http: aiohttp.ClientSession) -> None:
+    """The demo keeps to loopback: tools without --localhost see nothing, and say what to do."""
+    await wait_status(http, demo, lambda s: s["ros"]["connected"])
+    env = {**os.environ, "ROS_DOMAIN_ID": str(demo.domain_id)}
+    for name in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):
+        env.pop(name, None)
+
+    def cli(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "rcan_rtps", *args], capture_output=True,
+                              text=True, env=env, timeout=60)
+
+    listing = await asyncio.to_thread(cli, "topic", "list")
+    assert "add `--localhost`" in listing.stderr, listing.stderr
+    echo = await asyncio.to_thread(cli, "topic", "echo", "/robot1/odom", "--once")
+    assert echo.returncode == 1 and "add `--localhost`" in echo.stderr, echo.stderr
+    assert "Traceback" not in echo.stderr
+    nodes = await asyncio.to_thread(cli, "--localhost", "node", "list")
+    assert "/robot1/sim_robot" in nodes.stdout and "--localhost" not in nodes.stderr
+    pub = await asyncio.to_thread(cli, "--localhost", "topic", "pub", "/robot1/cmd_vel",
+                                  "geometry_msgs/msg/Twist", "{linear: {x: 0.1}}", "-t", "3",
+                                  "-r", "20")
+    assert pub.returncode == 0, pub.stderr
+    shown = [line for line in pub.stdout.splitlines() if line.startswith("publishing #")]
+    assert [line.split(":")[0] for line in shown] == ["publishing #1", "publishing #2",
+                                                      "publishing #3"], pub.stdout
+    assert "x=0.1" in shown[0]
+
+
+async def test_agent_client_with_a_wrong_token_fails(demo: Demo) -> None:
+    agent = await asyncio.to_thread(_example, "agent_client.py", demo, "not-a-token-at-all")
+    assert agent.returncode == 1 and "refused the token (401)" in agent.stderr, agent.stderr
+    assert "Traceback" not in agent.stderr

@@ -9,6 +9,9 @@ outlives EXIT_TIMEOUT and is killed).
 from __future__ import annotations
 
 import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 from .run_process import RunProcess, child_env, state_args
@@ -64,3 +67,47 @@ def test_sigterm_stops_a_healthy_run_gracefully(tmp_path: Path, domain_id: int) 
         assert "event loop stalled" not in proc.output()
     finally:
         proc.kill()
+
+
+def _spawn(tmp_path: Path, domain_id: int, **env: str) -> tuple[subprocess.Popen[str], Path]:
+    errors = tmp_path / "stderr"
+    with errors.open("w") as sink:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "rcan_rtps", "run", "--sim", "--port", "0", "--no-mdns",
+             *state_args(tmp_path, "state")], stdout=subprocess.PIPE, stderr=sink, text=True,
+            env=child_env(domain_id, **env), start_new_session=True)
+    return proc, errors
+
+
+def _wait_for_line(path: Path, text: str, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while text not in path.read_text():
+        assert time.monotonic() < deadline, f"no {text!r} in:\n{path.read_text()}"
+        time.sleep(0.05)
+
+
+def test_ctrl_c_during_start_stops_without_banner(tmp_path: Path, domain_id: int) -> None:
+    proc, errors = _spawn(tmp_path, domain_id, RCAN_RTPS_TEST_SLOW_START_S="30")
+    try:
+        _wait_for_line(errors, "test hook: starting 30 s late", 60)
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=EXIT_TIMEOUT)
+    finally:
+        proc.kill()
+    log = errors.read_text()
+    assert proc.returncode == 0, log
+    assert "ready" not in out and "token" not in out, out  # nothing as if it had started
+    assert "Traceback" not in log and "SIGINT: shutting down" in log, log
+
+
+def test_ctrl_c_while_loading_is_one_line(tmp_path: Path, domain_id: int) -> None:
+    proc, errors = _spawn(tmp_path, domain_id)
+    try:
+        time.sleep(0.3)  # the interpreter is importing the command's modules
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=EXIT_TIMEOUT)
+    finally:
+        proc.kill()
+    log = errors.read_text()
+    assert "Traceback" not in log and len(log.splitlines()) <= 1, log
+    assert "ready" not in out

@@ -113,6 +113,14 @@ class GoalTracker:
             log.info("no action server on %s: no goals to cancel", self.client.name)
             return 0
 
+    def warn_cancelling(self, why: str) -> None:
+        """Logs each active goal about to be cancelled, and why."""
+        for goal_id in self.active():
+            feedback = self._views[goal_id].feedback or {}
+            left = feedback.get("distance_remaining")
+            where = f", {left:.2f} m from its target" if isinstance(left, float) else ""
+            log.warning("cancelling navigation goal %s%s: %s", goal_id, where, why)
+
     def active(self) -> list[str]:
         return [g for g, v in self._views.items() if v.state not in _TERMINAL]
 

@@ -13,31 +13,37 @@ from ..ros.participant import RosNode
 from ..ros.rostime import now_msg
 
 log = logging.getLogger(__name__)
-WARN = 1
+OK, WARN = 0, 1
 
 
 class DiagnosticsNotifier:
-    """Publishes `DiagnosticArray` with one WARN status naming the pending command."""
+    """Publishes `DiagnosticArray` with one WARN status naming the pending command, and an
+    OK for the same status once no approval waits any more (monitors then clear it)."""
 
     def __init__(self, node: RosNode, topic: str) -> None:
         self.node = node
         self.publisher = node.create_publisher(topic, "diagnostic_msgs/msg/DiagnosticArray")
+        self.warning = False  # a WARN is the last thing published
 
     async def notify(self, message: PendingAuth) -> None:
         action = message.original_command.get("action", "?")
+        self._publish(WARN, f"command '{action}' awaits human approval", [
+            {"key": "pending_id", "value": message.pending_id},
+            {"key": "requires_auth_from_role", "value": message.requires_auth_from_role},
+            {"key": "expires_at_ms", "value": str(message.expires_at_ms)},
+        ])
+
+    def pending_changed(self, waiting: int) -> None:
+        """Approvals were resolved or expired: with none left, the WARN gives way to OK."""
+        if self.warning and not waiting:
+            self._publish(OK, "no command awaits human approval", [])
+
+    def _publish(self, level: int, text: str, values: list[dict[str, str]]) -> None:
+        self.warning = level == WARN
         self.publisher.publish({
             "header": {"stamp": now_msg(), "frame_id": ""},
-            "status": [{
-                "level": WARN,
-                "name": f"{self.node.name}: hitl",
-                "message": f"command '{action}' awaits human approval",
-                "hardware_id": self.node.fqn,
-                "values": [
-                    {"key": "pending_id", "value": message.pending_id},
-                    {"key": "requires_auth_from_role", "value": message.requires_auth_from_role},
-                    {"key": "expires_at_ms", "value": str(message.expires_at_ms)},
-                ],
-            }],
+            "status": [{"level": level, "name": f"{self.node.name}: hitl", "message": text,
+                        "hardware_id": self.node.fqn, "values": values}],
         })
 
 

@@ -128,6 +128,7 @@ class Bridge:
         self.goals: GoalTracker | None = None
         self.dispatcher: RosDispatcher | None = None
         self.governor: Governor | None = None
+        self._diagnostics: DiagnosticsNotifier | None = None
         self.telemetry: TelemetryState | None = None
         self.server: ApiServer | None = None
         self.advertiser: RcanAdvertiser | None = None
@@ -270,6 +271,12 @@ class Bridge:
             active_goals=goals.active)
         self._on_stop("telemetry", telemetry.close)
         governor.safe_stop_listeners.append(lambda _p: telemetry.mark_safe_stop())
+        governor.session_lost_listeners.append(
+            lambda p: goals.warn_cancelling(f"control session of '{p.name}' lost"))
+        diagnostics = self._diagnostics
+        if diagnostics is not None:
+            governor.status_listeners.append(
+                lambda: diagnostics.pending_changed(len(governor.pending())))
         dispatcher.on_command = telemetry.clear_safe_stop
         return governor, telemetry
 
@@ -283,7 +290,8 @@ class Bridge:
 
     def _notifier(self, node: RosNode) -> Notifier:
         ros2, hitl = self.config.bridge.ros2, self.config.bridge.hitl
-        notifiers: list[Notifier] = [DiagnosticsNotifier(node, ros2.diagnostics_topic)]
+        self._diagnostics = DiagnosticsNotifier(node, ros2.diagnostics_topic)
+        notifiers: list[Notifier] = [self._diagnostics]
         if hitl.notify_webhook:
             notifiers.append(WebhookNotifier(hitl.notify_webhook))
         return FanOutNotifier(notifiers)

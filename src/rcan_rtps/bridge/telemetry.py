@@ -63,6 +63,7 @@ class TelemetryState:
         self.listeners: list[Callable[[], None]] = []
         ros2 = config.bridge.ros2
         self.domain_id = node.domain_id
+        self._own_hardware_id = node.fqn  # what the bridge's DiagnosticsNotifier signs with
         self.distro = node.store.distro
         # Sensor-data QoS (best effort) matches both reliable and best-effort publishers.
         sensor = qos.SENSOR_DATA.with_(depth=10)
@@ -116,9 +117,14 @@ class TelemetryState:
         self._tell(changed)
 
     def _on_diagnostics(self, msg: Any) -> None:
+        # The bridge's own notices (a HiTL approval waiting) are not the robot's faults, nor
+        # a sign of the robot's life: those are in `pending_auth`.
+        statuses = [s for s in msg.status if s.hardware_id != self._own_hardware_id]
+        if not statuses:
+            return
         with self._lock:
             before = dict(self._faults)
-            for status in msg.status:
+            for status in statuses:
                 level = _level(status.level)
                 if level in _LEVELS:
                     self._faults[status.name] = Fault(status.name, status.message,

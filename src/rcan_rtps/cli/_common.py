@@ -4,13 +4,18 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from typing import Any
 
 import yaml
 
 from ..ros.errors import ValueFitError
-from ..ros.participant import RosNode
+from ..ros.graph import RosGraph
+from ..ros.participant import RosNode, localhost_requested
 from ..ros.typesys.store import TypeStore, env_idl_paths
+
+TOPIC_HELP = "topic name, e.g. /robot1/odom (relative names resolve from /)"
+VALUES_HELP = "field values as YAML, e.g. \"{linear: {x: 0.2}}\" (default: all defaults)"
 
 
 def add_global_options(parser: argparse.ArgumentParser) -> None:
@@ -44,3 +49,20 @@ def parse_values(text: str) -> Any:
 
 def dump(values: Any) -> str:
     return yaml.safe_dump(values, sort_keys=False, allow_unicode=True).rstrip()
+
+
+def alone_hint(args: argparse.Namespace, node: RosNode, graph: RosGraph) -> str:
+    """What to try next when the graph shows nobody but this tool; '' when others are there."""
+    if any(name != node.name for _, name in graph.nodes()):
+        return ""
+    where = f"nothing found on ROS domain {node.domain_id}"
+    if localhost_requested(args.localhost):
+        return f"{where}: is anything running with this ROS_DOMAIN_ID (or --domain-id)?"
+    return (f"{where}; the demo (`rcan-rtps run --sim`) keeps to loopback: add `--localhost` "
+            "(or set ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST)")
+
+
+def warn_if_alone(args: argparse.Namespace, node: RosNode, graph: RosGraph) -> None:
+    hint = alone_hint(args, node, graph)
+    if hint:
+        print(f"rcan-rtps: {hint}", file=sys.stderr)

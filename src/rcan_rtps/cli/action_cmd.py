@@ -13,8 +13,8 @@ from ..ros.actions import ActionClient, ClientGoal, GoalState
 from ..ros.graph import Direction, RosGraph, node_fqn
 from ..ros.names import EndpointKind, action_names
 from ..ros.services import RequestMapping
-from ._common import dump, make_node, parse_values
-from .service_cmd import MAPPINGS
+from ._common import VALUES_HELP, dump, make_node, parse_values, warn_if_alone
+from .service_cmd import MAPPING_HELP, MAPPINGS
 
 EXIT_INTERRUPTED = 130
 
@@ -24,25 +24,28 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     actions = parser.add_subparsers(dest="action_command", required=True)
 
     listing = actions.add_parser("list", help="actions on the graph")
-    listing.add_argument("-t", "--show-types", action="store_true")
+    listing.add_argument("-t", "--show-types", action="store_true",
+                         help="show each action's type")
     listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
     listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
 
     info = actions.add_parser("info", help="servers and clients of an action")
-    info.add_argument("action", metavar="NAME")
-    info.add_argument("-t", "--show-types", action="store_true")
-    info.add_argument("--spin-time", type=float, default=1.5)
+    info.add_argument("action", metavar="NAME", help="action name, e.g. /robot1/navigate_to_pose")
+    info.add_argument("-t", "--show-types", action="store_true",
+                      help="show the action type of each server and client")
+    info.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
     info.set_defaults(func=lambda a: asyncio.run(_info(a)))
 
     send = actions.add_parser("send_goal", help="send a goal and wait for its result "
                                                 "(Ctrl-C cancels the goal)")
-    send.add_argument("action", metavar="NAME")
-    send.add_argument("type", metavar="TYPE")
-    send.add_argument("values", metavar="VALUES", nargs="?", default="{}")
+    send.add_argument("action", metavar="NAME", help="action name, e.g. /robot1/navigate_to_pose")
+    send.add_argument("type", metavar="TYPE",
+                      help="action type, e.g. nav2_msgs/action/NavigateToPose")
+    send.add_argument("values", metavar="VALUES", nargs="?", default="{}", help=VALUES_HELP)
     send.add_argument("-f", "--feedback", action="store_true", help="print feedback")
     send.add_argument("--timeout", type=float, default=10.0,
                       help="seconds to find the server and have the goal answered")
-    send.add_argument("--mapping", choices=MAPPINGS, default="auto")
+    send.add_argument("--mapping", choices=MAPPINGS, default="auto", help=MAPPING_HELP)
     send.set_defaults(func=lambda a: asyncio.run(_send_goal(a)))
 
 
@@ -52,6 +55,7 @@ async def _list(args: argparse.Namespace) -> int:
         await graph.settle(args.spin_time)
         for name, types in graph.actions().items():
             print(f"{name} [{', '.join(types)}]" if args.show_types else name)
+        warn_if_alone(args, node, graph)
     return 0
 
 

@@ -13,11 +13,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     audit = subparsers.add_parser("audit", help="check and export the signed audit chain")
     actions = audit.add_subparsers(dest="audit_command", required=True)
     check = actions.add_parser("verify", help="verify links, hashes and (with --pubkey) signatures")
-    check.add_argument("file", metavar="FILE")
+    check.add_argument("file", metavar="FILE", help="the audit log (.jsonl)")
     check.add_argument("--pubkey", metavar="FILE", help="PEM Ed25519 public key of the bridge")
     check.set_defaults(func=verify_command)
     export = actions.add_parser("export-pubkey", help="print the public key of a signing key")
-    export.add_argument("keyfile", metavar="KEYFILE")
+    export.add_argument("keyfile", metavar="KEYFILE",
+                        help="the bridge's Ed25519 signing key (bridge.audit.key_path)")
     export.set_defaults(func=export_pubkey_command)
 
 

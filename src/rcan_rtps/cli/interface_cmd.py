@@ -8,19 +8,22 @@ from ..ros.typesys.model import MessageType
 from ..ros.typesys.store import TypeStore, normalize_name
 from ._common import make_store
 
+EMPTY_PLACEHOLDER = "structure_needs_at_least_one_member"
+
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser("interface", help="list and show message types")
     actions = parser.add_subparsers(dest="interface_command", required=True)
     listing = actions.add_parser("list", help="every known interface")
     for flag, kind in (("-m", "messages"), ("-s", "services"), ("-a", "actions")):
-        listing.add_argument(flag, f"--only-{kind}", dest=kind, action="store_true")
+        listing.add_argument(flag, f"--only-{kind}", dest=kind, action="store_true",
+                             help=f"list {kind} (combinable; default: all kinds)")
     listing.set_defaults(func=list_command)
     show = actions.add_parser("show", help="fields and constants of a type")
-    show.add_argument("type", metavar="TYPE")
+    show.add_argument("type", metavar="TYPE", help="e.g. sensor_msgs/msg/JointState")
     show.set_defaults(func=show_command)
     hashing = actions.add_parser("hash", help="the RIHS01 type hash of a type")
-    hashing.add_argument("type", metavar="TYPE")
+    hashing.add_argument("type", metavar="TYPE", help="e.g. geometry_msgs/msg/Twist")
     hashing.set_defaults(func=hash_command)
 
 
@@ -41,6 +44,8 @@ def list_command(args: argparse.Namespace) -> int:
 def _describe(store: TypeStore, msg: MessageType, indent: str = "") -> list[str]:
     lines = [f"{indent}{c.type.ros_spelling()} {c.name}={c.value!r}" for c in msg.constants]
     for f in msg.fields:
+        if f.name == EMPTY_PLACEHOLDER and len(msg.fields) == 1:
+            continue  # rosidl's stand-in for "no fields" (an empty request, say)
         default = f" {f.default!r}" if f.default is not None else ""
         lines.append(f"{indent}{f.type.ros_spelling()} {f.name}{default}")
         if f.type.nested is not None:
@@ -60,7 +65,11 @@ def show_command(args: argparse.Namespace) -> int:
         parts = [act.goal, act.result, act.feedback]
     else:
         parts = [store.message(name)]
-    print("\n---\n".join("\n".join(_describe(store, p)) for p in parts))
+    lines: list[str] = []
+    for index, part in enumerate(parts):
+        lines.extend(["---"] if index else [])
+        lines.extend(_describe(store, part))
+    print("\n".join(lines))
     return 0
 
 

@@ -8,24 +8,7 @@ import sys
 from collections.abc import Sequence
 
 from .. import __version__
-from ..config import ConfigError
-from ..governance import GovernanceError
-from ..rcan import RcanError
-from ..ros.errors import WireError
-from . import (
-    _logging,
-    action_cmd,
-    audit_cmd,
-    config_cmd,
-    discover_cmd,
-    interface_cmd,
-    node_cmd,
-    run_cmd,
-    service_cmd,
-    sim_cmd,
-    topic_cmd,
-)
-from ._common import add_global_options
+from . import _logging
 
 EXIT_ERROR = 1
 EXIT_INTERRUPTED = 130
@@ -33,6 +16,22 @@ log = logging.getLogger("rcan_rtps.cli")
 
 
 def build_parser() -> argparse.ArgumentParser:
+    # Imported here, not at the top: until main() runs, a Ctrl-C would end in a traceback,
+    # and these pull in cyclonedds, aiohttp and cryptography.
+    from . import (
+        action_cmd,
+        audit_cmd,
+        config_cmd,
+        discover_cmd,
+        interface_cmd,
+        node_cmd,
+        run_cmd,
+        service_cmd,
+        sim_cmd,
+        topic_cmd,
+    )
+    from ._common import add_global_options
+
     parser = argparse.ArgumentParser(
         prog="rcan-rtps",
         description="RCAN governance for ROS 2 robots, as a plain DDS peer (no ROS needed).")
@@ -56,10 +55,23 @@ def add_logging_options(parser: argparse.ArgumentParser) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # before a command took Ctrl-C over (loading, parsing)
+        print("rcan-rtps: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _logging.configure(args.log_level or _logging.default_level(args.command),
                        args.log_format)
+    from ..config import ConfigError
+    from ..governance import GovernanceError
+    from ..rcan import RcanError
+    from ..ros.errors import WireError
+
     try:
         return int(args.func(args))
     except KeyboardInterrupt:

@@ -6,7 +6,7 @@ import argparse
 import asyncio
 
 from ..ros.graph import RosGraph, node_fqn
-from ._common import make_node
+from ._common import make_node, warn_if_alone
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -14,7 +14,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     actions = parser.add_subparsers(dest="node_command", required=True)
     listing = actions.add_parser("list", help="every node announced on the graph")
     listing.add_argument("-a", "--all", action="store_true", help="include hidden nodes")
-    listing.add_argument("--spin-time", type=float, default=1.5)
+    listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
     listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
 
 
@@ -26,4 +26,5 @@ async def _list(args: argparse.Namespace) -> int:
         for namespace, name in graph.nodes():
             if args.all or not name.startswith("_"):
                 print(node_fqn(namespace, name))
+        warn_if_alone(args, node, graph)
     return 0

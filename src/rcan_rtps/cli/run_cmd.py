@@ -14,6 +14,7 @@ from pathlib import Path
 from ..bridge.demo import (
     OWNER_TOKEN_ENV,
     USER_TOKEN_ENV,
+    VIEWER_TOKEN_ENV,
     default_state_dir,
     demo_config,
     demo_tokens,
@@ -21,14 +22,17 @@ from ..bridge.demo import (
 from ..bridge.runtime import Bridge, BridgeOptions
 from ..bridge.watchdog import DEFAULT_STALL_S, LoopWatchdog, SignalStopper
 from ..config import RcanConfig, load_config
-from ..ros.participant import RosNode
+from ..ros.participant import RosNode, resolve_domain_id
 from ..sim.navigation import NavigationServer
 from ..sim.robot import SimRobot
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    parser = subparsers.add_parser("run", help="run the governed bridge")
-    parser.add_argument("--config", type=Path, help=".rcan.yaml (default with --sim: built in)")
+    parser = subparsers.add_parser(
+        "run", help="run the governed bridge", epilog=TOKENS_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", type=Path, metavar="FILE",
+                        help=".rcan.yaml (default with --sim: built in)")
     parser.add_argument("--sim", action="store_true",
                         help="also run the simulated robot; loopback-only unless --lan")
     parser.add_argument("--lan", action="store_true", help="with --sim: discover beyond loopback")
@@ -43,7 +47,18 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.set_defaults(func=_main)
 
 
+TOKENS_EPILOG = f"""\
+tokens: each principal's bearer token is read from the environment variable its
+`token_env` names (bridge.api.principals; or bridge.api.auth_token_env), at least 16
+bytes; `rcan-rtps config check FILE` lists those that are missing.
+With --sim (the built-in config) the demo's tokens are made up per run and printed,
+unless these variables hold them:
+  {VIEWER_TOKEN_ENV:<24} GUEST `viewer`: reads status; may raise an e-stop
+  {USER_TOKEN_ENV:<24} USER `operator`: may command motion
+  {OWNER_TOKEN_ENV:<24} OWNER `owner`: also approves held commands, clears e-stops
+"""
 STALL_HOOK_ENV = "RCAN_RTPS_TEST_STALL_S"  # tests only: block the loop this long once ready
+SLOW_START_HOOK_ENV = "RCAN_RTPS_TEST_SLOW_START_S"  # tests only: a start this much slower
 
 
 def _main(args: argparse.Namespace) -> int:
@@ -61,10 +76,9 @@ def _config(args: argparse.Namespace, env: dict[str, str]) -> RcanConfig:
         return load_config(args.config, env=env)
     if not args.sim:
         raise ValueError("--config FILE is required (or --sim for the built-in demo)")
-    domain = args.domain_id if args.domain_id is not None else int(
-        env.get("ROS_DOMAIN_ID", "0") or 0)
     return demo_config(state_dir=args.state_dir or default_state_dir(),
-                       port=args.port or 8765, domain_id=domain,
+                       port=args.port or 8765,  # 0 (any free port) is the server's to pick
+                       domain_id=resolve_domain_id(args.domain_id, env),
                        namespace="/robot1", env=env)
 
 
@@ -79,8 +93,11 @@ CURL_EXAMPLES = (
 
 
 def _print_demo(url: str, env: dict[str, str], config: RcanConfig) -> None:
-    user, owner = env[USER_TOKEN_ENV], env[OWNER_TOKEN_ENV]
-    print(f"demo tokens: USER (operator) {user}\n             OWNER (owner)   {owner}")
+    user, owner, viewer = env[USER_TOKEN_ENV], env[OWNER_TOKEN_ENV], env[VIEWER_TOKEN_ENV]
+    print(f"demo tokens: USER (operator) {user}\n             OWNER (owner)   {owner}\n"
+          f"             GUEST (viewer)  {viewer}\n"
+          "(a client that sends motion commands heartbeats: POST /api/heartbeat at least "
+          f"every {config.bridge.safety.session_timeout_s:g} s, else the robot is halted)")
     print(f"audit log: {config.bridge.audit.path}")
     print("try:")
     for example in CURL_EXAMPLES:
@@ -115,7 +132,9 @@ async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
         if args.sim:
             _start_sim(parts, config, localhost, stop)
         parts.push_async_callback(bridge.stop)  # again (idempotent): before the sim stops
-        url = await bridge.start()
+        url = await _start_unless_stopped(bridge, stop, env)
+        if url is None:
+            return 0  # Ctrl-C (or SIGTERM) during start: no banner, no tokens
         # What start-up built lives as long as the process: out of the collector's sight, so a
         # collection during a command scans only what commands allocate (ms → µs pauses).
         gc.freeze()
@@ -125,6 +144,29 @@ async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
         _test_stall(loop, env)
         await stop.wait()
     return 0
+
+
+async def _start_unless_stopped(bridge: Bridge, stop: asyncio.Event,
+                                env: dict[str, str]) -> str | None:
+    """The bridge's URL once started, or None if a stop was asked for first (the start is
+    then cancelled, which releases what it had acquired)."""
+    async def start() -> str:
+        late = float(env.get(SLOW_START_HOOK_ENV, "0") or 0)
+        if late > 0:
+            logging.getLogger(__name__).warning("test hook: starting %g s late", late)
+            await asyncio.sleep(late)
+        return await bridge.start()
+
+    starting = asyncio.ensure_future(start())
+    stopping = asyncio.ensure_future(stop.wait())
+    await asyncio.wait({starting, stopping}, return_when=asyncio.FIRST_COMPLETED)
+    stopping.cancel()
+    if stop.is_set():
+        starting.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await starting
+        return None
+    return starting.result()
 
 
 def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: bool | None,

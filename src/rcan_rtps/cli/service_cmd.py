@@ -7,9 +7,11 @@ import asyncio
 
 from ..ros.graph import RosGraph
 from ..ros.services import RequestMapping, ServiceClient
-from ._common import dump, make_node, parse_values
+from ._common import VALUES_HELP, dump, make_node, parse_values, warn_if_alone
 
 MAPPINGS = [m.value for m in RequestMapping]
+MAPPING_HELP = ("how requests and replies are matched on the wire: cyclone (rmw_cyclonedds) or "
+                "fastdds (rmw_fastrtps) layout; auto (default) picks from the server's DDS vendor")
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -17,18 +19,19 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     actions = parser.add_subparsers(dest="service_command", required=True)
 
     listing = actions.add_parser("list", help="services on the graph")
-    listing.add_argument("-t", "--show-types", action="store_true")
-    listing.add_argument("--include-hidden-services", action="store_true")
+    listing.add_argument("-t", "--show-types", action="store_true",
+                         help="show each service's type")
+    listing.add_argument("--include-hidden-services", action="store_true",
+                         help="include services whose name has a part starting with '_'")
     listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
     listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
 
     call = actions.add_parser("call", help="call a service with a request built from YAML")
-    call.add_argument("service", metavar="NAME")
-    call.add_argument("type", metavar="TYPE")
-    call.add_argument("values", metavar="VALUES", nargs="?", default="{}")
+    call.add_argument("service", metavar="NAME", help="service name, e.g. /reset")
+    call.add_argument("type", metavar="TYPE", help="service type, e.g. std_srvs/srv/Trigger")
+    call.add_argument("values", metavar="VALUES", nargs="?", default="{}", help=VALUES_HELP)
     call.add_argument("--timeout", type=float, default=10.0, help="seconds (default 10)")
-    call.add_argument("--mapping", choices=MAPPINGS, default="auto",
-                      help="request-reply mapping (default: from the server's vendor)")
+    call.add_argument("--mapping", choices=MAPPINGS, default="auto", help=MAPPING_HELP)
     call.set_defaults(func=lambda a: asyncio.run(_call(a)))
 
 
@@ -38,6 +41,7 @@ async def _list(args: argparse.Namespace) -> int:
         await graph.settle(args.spin_time)
         for name, types in graph.services(args.include_hidden_services).items():
             print(f"{name} [{', '.join(types)}]" if args.show_types else name)
+        warn_if_alone(args, node, graph)
     return 0
 
 

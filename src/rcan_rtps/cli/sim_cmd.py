@@ -13,10 +13,12 @@ from ._common import make_store
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser("sim", help="run a simulated differential-drive robot")
-    parser.add_argument("--namespace", default="/robot1")
-    parser.add_argument("--node-name", default="sim_robot")
+    parser.add_argument("--namespace", default="/robot1",
+                        help="ROS namespace of the robot's node and topics (default /robot1)")
+    parser.add_argument("--node-name", default="sim_robot", help="node name (default sim_robot)")
     parser.add_argument("--cmd-vel-type", default="geometry_msgs/msg/Twist",
-                        choices=("geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistStamped"))
+                        choices=("geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistStamped"),
+                        help="type the robot takes on cmd_vel (default Twist)")
     parser.add_argument("--rate", type=float, default=50.0, help="odometry rate (Hz)")
     parser.add_argument("--cmd-timeout", type=float, default=0.5,
                         help="stop when no cmd_vel arrived for this long (s)")

@@ -15,10 +15,10 @@ from typing import Any
 import yaml
 
 from ..ros import qos as qos_mod
-from ..ros.errors import GraphTimeout
+from ..ros.errors import GraphTimeout, seconds
 from ..ros.graph import Direction, Endpoint, RosGraph, short_gid
 from ..ros.participant import RosNode
-from ._common import make_node, parse_values
+from ._common import TOPIC_HELP, VALUES_HELP, alone_hint, make_node, parse_values, warn_if_alone
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -26,42 +26,52 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     actions = parser.add_subparsers(dest="topic_command", required=True)
 
     listing = actions.add_parser("list", help="topics on the graph")
-    listing.add_argument("-t", "--show-types", action="store_true")
-    listing.add_argument("--include-hidden-topics", action="store_true")
+    listing.add_argument("-t", "--show-types", action="store_true",
+                         help="show each topic's ROS type(s)")
+    listing.add_argument("--include-hidden-topics", action="store_true",
+                         help="include topics whose name has a part starting with '_'")
     listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
     listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
 
     info = actions.add_parser("info", help="type and endpoints of a topic")
-    info.add_argument("topic", metavar="TOPIC")
-    info.add_argument("-v", "--verbose", action="store_true")
-    info.add_argument("--spin-time", type=float, default=1.5)
+    info.add_argument("topic", metavar="TOPIC", help=TOPIC_HELP)
+    info.add_argument("-v", "--verbose", action="store_true",
+                      help="list every endpoint: node, QoS, type hash, GID, DDS vendor")
+    info.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
     info.set_defaults(func=lambda a: asyncio.run(_info(a)))
 
     echo = actions.add_parser("echo", help="print messages of a topic")
-    echo.add_argument("topic", metavar="TOPIC")
-    echo.add_argument("type", metavar="TYPE", nargs="?", help="default: from the graph")
-    echo.add_argument("--once", action="store_true")
+    echo.add_argument("topic", metavar="TOPIC", help=TOPIC_HELP)
+    echo.add_argument("type", metavar="TYPE", nargs="?",
+                      help="message type, e.g. nav_msgs/msg/Odometry (default: from the graph)")
+    echo.add_argument("--once", action="store_true", help="print one message and exit")
     echo.add_argument("--count", type=int, default=0, help="stop after N messages")
     echo.add_argument("--json", action="store_true", help="one JSON object per line")
     echo.add_argument("--timeout", type=float, default=0.0, help="give up after S seconds")
     echo.set_defaults(func=lambda a: asyncio.run(_echo(a)))
 
     pub = actions.add_parser("pub", help="publish messages built from YAML values")
-    pub.add_argument("topic", metavar="TOPIC")
-    pub.add_argument("type", metavar="TYPE")
-    pub.add_argument("values", metavar="VALUES", nargs="?", default="{}")
+    pub.add_argument("topic", metavar="TOPIC", help=TOPIC_HELP)
+    pub.add_argument("type", metavar="TYPE", help="message type, e.g. geometry_msgs/msg/Twist")
+    pub.add_argument("values", metavar="VALUES", nargs="?", default="{}", help=VALUES_HELP)
     mode = pub.add_mutually_exclusive_group()
-    mode.add_argument("-1", "--once", action="store_true")
-    mode.add_argument("-t", "--times", type=int, default=0)
+    mode.add_argument("-1", "--once", action="store_true", help="publish one message and exit")
+    mode.add_argument("-t", "--times", type=int, default=0, metavar="N",
+                      help="publish N messages and exit (default: until Ctrl-C)")
     pub.add_argument("-r", "--rate", type=float, default=1.0, help="Hz (default 1)")
-    pub.add_argument("-w", "--wait-matching-subscriptions", type=int, default=None)
-    pub.add_argument("--qos-profile", default="default", choices=sorted(qos_mod.PRESETS))
+    pub.add_argument("-w", "--wait-matching-subscriptions", type=int, default=None, metavar="N",
+                     help="first wait up to 5 s for N subscribers (default: 1 with --once or "
+                     "--times, else 0)")
+    pub.add_argument("--qos-profile", default="default", choices=sorted(qos_mod.PRESETS),
+                     help="QoS preset of the publisher (default: default)")
     pub.set_defaults(func=lambda a: asyncio.run(_pub(a)))
 
     hz = actions.add_parser("hz", help="rate of a topic")
-    hz.add_argument("topic", metavar="TOPIC")
-    hz.add_argument("type", metavar="TYPE", nargs="?")
-    hz.add_argument("--window", type=int, default=10000)
+    hz.add_argument("topic", metavar="TOPIC", help=TOPIC_HELP)
+    hz.add_argument("type", metavar="TYPE", nargs="?",
+                    help="message type (default: from the graph)")
+    hz.add_argument("--window", type=int, default=10000, metavar="N",
+                    help="compute the rate over the last N messages (default 10000)")
     hz.add_argument("--duration", type=float, default=0.0, help="stop after S seconds")
     hz.set_defaults(func=lambda a: asyncio.run(_hz(a)))
 
@@ -78,6 +88,7 @@ async def _list(args: argparse.Namespace) -> int:
     with node:
         for name, types in graph.topics(args.include_hidden_topics).items():
             print(f"{name} [{', '.join(types)}]" if args.show_types else name)
+        warn_if_alone(args, node, graph)
     return 0
 
 
@@ -106,7 +117,8 @@ async def _info(args: argparse.Namespace) -> int:
         topic = node.resolve(args.topic)
         endpoints = graph.topic_endpoints(topic)
         if not endpoints:
-            print(f"Unknown topic '{topic}'", file=sys.stderr)
+            hint = alone_hint(args, node, graph)
+            print(f"Unknown topic '{topic}'" + (f" ({hint})" if hint else ""), file=sys.stderr)
             return 1
         pubs = [e for e in endpoints if e.direction is Direction.PUBLISHER]
         subs = [e for e in endpoints if e.direction is Direction.SUBSCRIPTION]
@@ -124,9 +136,10 @@ async def _info(args: argparse.Namespace) -> int:
     return 0
 
 
-async def _resolve_type(node: RosNode, graph: RosGraph, topic: str, given: str | None,
-                        timeout: float) -> tuple[str, list[Endpoint]]:
-    deadline = time.monotonic() + (timeout or 5.0)
+async def _resolve_type(args: argparse.Namespace, node: RosNode, graph: RosGraph, topic: str,
+                        given: str | None, timeout: float) -> tuple[str, list[Endpoint]]:
+    timeout = timeout or 5.0
+    deadline = time.monotonic() + timeout
     while True:
         graph.refresh()
         pubs = [e for e in graph.topic_endpoints(topic) if e.direction is Direction.PUBLISHER]
@@ -137,8 +150,9 @@ async def _resolve_type(node: RosNode, graph: RosGraph, topic: str, given: str |
         return given, pubs
     types = sorted({e.ros_type for e in pubs})
     if not types:
-        raise GraphTimeout(f"could not determine the type of '{topic}': no publisher found; "
-                           "pass TYPE explicitly")
+        hint = alone_hint(args, node, graph) or "is it published? or pass TYPE explicitly"
+        raise GraphTimeout(f"could not determine the type of '{topic}': no publisher found "
+                           f"within {seconds(timeout)}; {hint}")
     if len(types) > 1:
         raise GraphTimeout(f"'{topic}' has several types ({', '.join(types)}); pass TYPE")
     return types[0], pubs
@@ -163,7 +177,7 @@ async def _echo(args: argparse.Namespace) -> int:
     with node:
         graph = RosGraph(node)
         topic = node.resolve(args.topic)
-        type_name, pubs = await _resolve_type(node, graph, topic, args.type, args.timeout)
+        type_name, pubs = await _resolve_type(args, node, graph, topic, args.type, args.timeout)
         node.store.message(type_name)  # unknown type: fail before subscribing
         sub = node.create_subscription(topic, type_name, _adapted_qos(pubs))
         limit = 1 if args.once else args.count
@@ -184,6 +198,10 @@ async def _echo(args: argparse.Namespace) -> int:
                 print(yaml.safe_dump(plain, sort_keys=False, allow_unicode=True) + "---",
                       flush=True)
             seen += 1
+        if limit and not seen:
+            hint = alone_hint(args, node, graph) or f"is anything publishing on {topic}?"
+            print(f"rcan-rtps: no message on {topic} within {seconds(args.timeout)}; {hint}",
+                  file=sys.stderr)
         return 0 if seen or not limit else 1
 
 
@@ -203,16 +221,31 @@ async def _pub(args: argparse.Namespace) -> int:
             except GraphTimeout:
                 print(f"warning: no subscriber matched {pub.topic}; publishing anyway",
                       file=sys.stderr)
-        print(f"publisher: beginning loop\npublishing #1: {args.type}", flush=True)
+        print("publisher: beginning loop", flush=True)
+        shown = _shown(node.values.to_plain(args.type, message))
         period = 1.0 / args.rate if args.rate > 0 else 0.0
         sent = 0
         while not times or sent < times:
             pub.publish(message)
             sent += 1
+            print(f"publishing #{sent}: {args.type}({shown})", flush=True)
             if not times or sent < times:
                 await asyncio.sleep(period)
         await asyncio.sleep(0.3)  # let reliable delivery finish before the participant goes
     return 0
+
+
+def _shown(plain: Any) -> str:
+    """A message on one line, as `field=value` pairs (ros2 topic pub prints its repr)."""
+    if isinstance(plain, dict):
+        return ", ".join(f"{k}={_shown_value(v)}" for k, v in plain.items())
+    return str(plain)
+
+
+def _shown_value(value: Any) -> str:
+    if isinstance(value, dict):
+        return f"({_shown(value)})"
+    return repr(value)
 
 
 async def _hz(args: argparse.Namespace) -> int:
@@ -220,7 +253,7 @@ async def _hz(args: argparse.Namespace) -> int:
     with node:
         graph = RosGraph(node)
         topic = node.resolve(args.topic)
-        type_name, pubs = await _resolve_type(node, graph, topic, args.type, 5.0)
+        type_name, pubs = await _resolve_type(args, node, graph, topic, args.type, 5.0)
         sub = node.create_subscription(topic, type_name, _adapted_qos(pubs))
         stamps: list[float] = []
         start = last_report = time.monotonic()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -59,7 +60,9 @@ def loads_config(
 def _compose(text: str, source: str) -> yaml.MappingNode:
     """The document's node tree (nodes keep their lines); values are constructed while walking."""
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        stream = io.StringIO(text)
+        stream.name = source  # YAML's messages name the file, not a string
+        root = yaml.compose(stream, Loader=yaml.SafeLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None

@@ -135,6 +135,8 @@ class Governor:
         self.started = False  # BRIDGE_STARTED is durable
         self._stopped = False
         self.safe_stop_listeners: list[Callable[[Principal], None]] = []
+        # Told just before a lost session's halt, while its goals are still active.
+        self.session_lost_listeners: list[Callable[[Principal], None]] = []
         # Told when what STATUS shows of governance changes: the latch, pending approvals.
         self.status_listeners: list[Callable[[], None]] = []
         latch.listeners.append(self._status_changed)
@@ -502,8 +504,12 @@ class Governor:
     def heartbeat(self, principal: Principal) -> None:
         self._sessions.heartbeat(principal)
 
-    async def safe_stop(self, principal: Principal) -> Decision:
+    async def safe_stop(self, principal: Principal, why: str = "session ended") -> Decision:
         """Session lost: zero velocity and cancel goals (a `stop`), audited as such."""
+        log.warning("control session of '%s' lost (%s): halting the robot (safe stop)",
+                    principal.name, why)
+        for listener in self.session_lost_listeners:  # e.g. log the goals being cancelled
+            listener(principal)
         stop = _bridge_command(Effect.HALT)
         record = _record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
                          applied={}, ros2_topic=self._route(stop))
@@ -526,7 +532,8 @@ class Governor:
         if not self._sessions.end(principal):
             return None
         # Shielded: the closing connection's handler may be cancelled; the stop must not be.
-        return await asyncio.shield(self._spawn(self.safe_stop(principal)))
+        return await asyncio.shield(self._spawn(self.safe_stop(principal,
+                                                               "its connection closed")))
 
     async def sweep(self) -> None:
         """One round of housekeeping: expire HiTL requests, stop for lost sessions."""
@@ -534,7 +541,8 @@ class Governor:
         lost = self._sessions.take_lost()
         # Concurrently: one slow halt (say, a goal server that never answers) must not
         # delay the next principal's, nor the next sweep.
-        await asyncio.gather(*(self._spawn(self.safe_stop(p)) for p in lost))
+        quiet = f"no command or heartbeat for {self._sessions.timeout_s:g} s"
+        await asyncio.gather(*(self._spawn(self.safe_stop(p, quiet)) for p in lost))
 
     async def _sweep_forever(self) -> None:
         while True:
@@ -556,7 +564,7 @@ class Sessions:
 
     def __init__(self, clock: Clock, timeout_s: float) -> None:
         self._clock = clock
-        self._timeout = timeout_s
+        self.timeout_s = timeout_s
         self._last: dict[str, tuple[Principal, float]] = {}
         self._busy: dict[str, int] = {}  # commands being carried out, per principal
 
@@ -585,7 +593,7 @@ class Sessions:
         return self._last.pop(principal.name, None) is not None
 
     def take_lost(self) -> list[Principal]:
-        horizon = self._clock.monotonic() - self._timeout
+        horizon = self._clock.monotonic() - self.timeout_s
         lost = [p for p, at in self._last.values()
                 if at < horizon and p.name not in self._busy]
         for p in lost:

@@ -32,7 +32,7 @@ from typing import Any
 from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
-from .errors import ActionError
+from .errors import ActionError, seconds
 from .names import action_names
 from .participant import RosNode
 from .rostime import now_msg
@@ -243,7 +243,7 @@ class ActionClient:
                 break
             if loop.time() >= deadline:
                 raise ActionError(f"action {self.name}: goal still {goal.state.name} after "
-                                  f"{timeout:g} s")
+                                  f"{seconds(timeout)}")
             await asyncio.sleep(POLL)
         if goal.state is GoalState.SERVER_LOST:
             return GoalResult(GoalState.SERVER_LOST, None,

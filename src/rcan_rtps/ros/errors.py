@@ -22,6 +22,13 @@ import difflib
 from collections.abc import Iterable
 
 
+def seconds(duration: float) -> str:
+    """A duration for people: `1 s`, `0.5 s`, `2.5 s` (timeouts left over from a deadline
+    come as 0.999997)."""
+    text = f"{duration:.1f}".rstrip("0").rstrip(".") if duration < 10 else f"{duration:.0f}"
+    return f"{text} s"
+
+
 class WireError(Exception):
     """Base of every error raised by `rcan_rtps.ros`."""
 
@@ -40,7 +47,9 @@ class UnknownTypeError(WireError):
         if not near:
             short = name.rsplit("/", 1)[-1].lower()
             near = [k for k in known if k.rsplit("/", 1)[-1].lower() == short][:3]
-        hint = f"; did you mean {', '.join(near)}?" if near else ""
+        hint = f"; did you mean {', '.join(near)}?" if near else (
+            "; it is not in the bundled IDL: add a ROS install's IDL with "
+            "`--idl-path <ros>/share` (e.g. /opt/ros/jazzy/share; also RCAN_RTPS_IDL_PATH)")
         super().__init__(f"unknown type {name!r}{hint}")
         self.name = name
         self.suggestions = near

@@ -28,7 +28,7 @@ from cyclonedds.sub import DataReader, Subscriber
 from cyclonedds.topic import Topic
 
 from . import qos as qos_mod
-from .errors import GraphTimeout, WireError
+from .errors import GraphTimeout, WireError, seconds
 from .names import expand_topic_name, mangle_topic, normalize_namespace, validate_node_name
 from .qos import QosProfile
 from .readers import ReaderThread, Watch
@@ -54,10 +54,15 @@ _domains: dict[int, tuple[Domain, int]] = {}  # domain id → (configured domain
 _domains_lock = threading.Lock()
 
 
-def resolve_domain_id(explicit: int | None = None) -> int:
+def resolve_domain_id(explicit: int | None = None,
+                      env: Mapping[str, str] | None = None) -> int:
+    """`explicit`, else ROS_DOMAIN_ID, else 0; a value that is not a domain id is an error
+    (a typo must not silently put the process on domain 0)."""
     if explicit is None:
-        raw = os.environ.get("ROS_DOMAIN_ID", "").strip()
-        explicit = int(raw) if raw.isdigit() else 0
+        raw = (os.environ if env is None else env).get("ROS_DOMAIN_ID", "").strip()
+        if raw and not raw.isdigit():
+            raise WireError(f"ROS_DOMAIN_ID={raw!r} is not a domain id (an integer 0..232)")
+        explicit = int(raw) if raw else 0
     if not 0 <= explicit <= 232:
         raise WireError(f"domain id {explicit} is outside 0..232")
     return explicit
@@ -232,7 +237,7 @@ async def _wait_count(current: Callable[[], int], count: int, timeout: float,
     deadline = loop.time() + timeout
     while (n := current()) < count:
         if loop.time() >= deadline:
-            raise GraphTimeout(f"{message} within {timeout} s")
+            raise GraphTimeout(f"{message} within {seconds(timeout)}")
         await asyncio.sleep(0.02)
     return n
 

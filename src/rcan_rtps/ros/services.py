@@ -40,7 +40,7 @@ from cyclonedds.sub import DataReader
 
 from . import _cyclone_header as cyclone
 from . import qos as qos_mod
-from .errors import ServiceTimeout, ServiceUnavailable, WireError
+from .errors import ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction, RosGraph
 from .names import mangle_service
 from .participant import RosNode
@@ -225,7 +225,8 @@ class ServiceClient:
                     return pair
             if loop.time() >= deadline:
                 raise ServiceUnavailable(
-                    f"no server for service {self.name} ({self.type_name}) within {timeout:g} s")
+                    f"no server for service {self.name} ({self.type_name}) "
+                    f"within {seconds(timeout)}")
             await asyncio.sleep(0.05)
 
     # -- calls ------------------------------------------------------------------

@@ -1,0 +1,87 @@
+"""What a new user meets first, without a ROS graph: checks, errors and help that explain."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from rcan_rtps.cli.main import main
+from rcan_rtps.ros.errors import WireError, seconds
+from rcan_rtps.ros.participant import resolve_domain_id
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "turtlebot4.rcan.yaml"
+TOKEN_VARS = ("RCAN_BRIDGE_TOKEN", "RCAN_OPS_TOKEN", "RCAN_AGENT_TOKEN", "RCAN_DASHBOARD_TOKEN",
+              "RCAN_VIEWER_TOKEN")
+
+
+def test_config_check_names_unset_token_variables(monkeypatch: pytest.MonkeyPatch,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    for name in TOKEN_VARS:
+        monkeypatch.delenv(name, raising=False)
+    assert main(["config", "check", str(EXAMPLE)]) == 1
+    err = capsys.readouterr().err
+    assert "run` would fail here" in err and "RCAN_OPS_TOKEN" in err and "--file-only" in err
+    assert main(["config", "check", "--file-only", str(EXAMPLE)]) == 0
+    for name in TOKEN_VARS:
+        monkeypatch.setenv(name, "t" * 32)
+    assert main(["config", "check", str(EXAMPLE)]) == 0
+    assert ": ok (" in capsys.readouterr().out
+
+
+def test_config_check_names_the_file_in_yaml_errors(tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "robot.rcan.yaml"
+    bad.write_text("robot: [1\n")
+    assert main(["config", "check", str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert f'in "{bad}"' in err and "<unicode string>" not in err
+
+
+def test_interface_show_hides_the_empty_placeholder(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["interface", "show", "std_srvs/srv/Trigger"]) == 0
+    out = capsys.readouterr().out
+    assert "structure_needs_at_least_one_member" not in out
+    assert out.splitlines()[0] == "---" and "success" in out
+
+
+def test_an_unbundled_type_points_at_idl_path(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["interface", "show", "test_msgs/action/Fibonacci"]) == 1
+    assert "--idl-path <ros>/share" in capsys.readouterr().err
+
+
+def test_ros_domain_id_must_be_a_number(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("ROS_DOMAIN_ID", "abc")
+    with pytest.raises(WireError, match="ROS_DOMAIN_ID='abc' is not a domain id"):
+        resolve_domain_id()
+    assert resolve_domain_id(None, {"ROS_DOMAIN_ID": "7"}) == 7
+    assert resolve_domain_id(None, {}) == 0
+
+
+def test_run_sim_refuses_a_bad_ros_domain_id(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setenv("ROS_DOMAIN_ID", "abc")
+    assert main(["run", "--sim", "--no-mdns", "--state-dir", str(tmp_path)]) == 1
+    assert "is not a domain id" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("duration", "text"), [(0.999997, "1 s"), (0.5, "0.5 s"),
+                                                (2.25, "2.2 s"), (10.0, "10 s"), (5, "5 s")])
+def test_durations_read_as_people_write_them(duration: float, text: str) -> None:
+    assert seconds(duration) == text
+
+
+def _agent(url: str, token: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "RCAN_URL": url, "RCAN_TOKEN": token}
+    return subprocess.run([sys.executable, str(ROOT / "examples" / "agent_client.py")],
+                          capture_output=True, text=True, env=env, timeout=60)
+
+
+def test_agent_client_without_a_server_says_so() -> None:
+    agent = _agent("http://127.0.0.1:9", "some-token")
+    assert agent.returncode == 1
+    assert "cannot reach the bridge" in agent.stderr and "Traceback" not in agent.stderr

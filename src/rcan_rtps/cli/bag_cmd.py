@@ -24,6 +24,10 @@ from .topic_cmd import _adapted_qos
 DISCOVERY_PERIOD = 0.1  # s between looks for new topics while recording
 RECORD_DEPTH = 1000  # reader history: a slow disk must not cost messages
 MATCH_PATIENCE = 3.0  # s `play` waits for known subscriptions to match its publishers
+# Our writer matching a reader does not mean the reader has matched our writer yet (each side
+# learns of the other on its own), and a Fast DDS reader drops data from writers it does not
+# know: so a little more time before the first message.
+MATCH_GRACE = 0.5
 LABEL_WIDTH = 19  # ros2 bag info's label column
 
 
@@ -212,13 +216,17 @@ async def _await_matches(node: RosNode, publishers: dict[str, RosPublisher]) -> 
     graph = RosGraph(node)
     await graph.settle(0.5, patience=1.0)
     deadline = time.monotonic() + MATCH_PATIENCE
+    matched = False
     for pub in publishers.values():
         wanted = sum(1 for e in graph.topic_endpoints(pub.topic)
                      if e.direction is Direction.SUBSCRIPTION)
         left = deadline - time.monotonic()
         if wanted and left > 0:
+            matched = True
             with contextlib.suppress(Exception):
                 await pub.wait_for_subscribers(wanted, timeout=left)
+    if matched:
+        await asyncio.sleep(MATCH_GRACE)
 
 
 async def _play(args: argparse.Namespace) -> int:

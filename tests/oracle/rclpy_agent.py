@@ -274,6 +274,13 @@ class Agent:
     def op_subscriptions_info(self, topic: str) -> list[dict[str, Any]]:
         return [_endpoint(i) for i in self.node.get_subscriptions_info_by_topic(topic)]
 
+    def op_declare_parameter(self, name: str, value: Any) -> bool:
+        self.node.declare_parameter(name, value)
+        return True
+
+    def op_get_parameter(self, name: str) -> Any:
+        return plain(self.node.get_parameter(name).value)
+
     # -- services and actions (issue 3) ---------------------------------------------
     def op_service_server(self, name: str, type: str, delay: float = 0.0) -> bool:
         """Trigger answers `triggered #N`; SetBool echoes `data` into `success`."""

@@ -1,0 +1,61 @@
+"""`rcan-rtps param …` against an rclpy Jazzy node's rcl_interfaces parameter services."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import yaml
+from oracle.client import RclpyOracle
+
+
+def cli(domain_id: int, *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    return subprocess.run([sys.executable, "-m", "rcan_rtps", *args], capture_output=True,
+                          text=True, env=env, timeout=timeout)
+
+
+@pytest.fixture
+def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_python, "tuned", "/demo", domain_id=domain_id) as agent:
+        agent.call("declare_parameter", name="max_speed", value=0.5)
+        agent.call("declare_parameter", name="robot.name", value="rover")
+        agent.call("declare_parameter", name="wheels", value=[1, 2, 3, 4])
+        agent.call("declare_parameter", name="enabled", value=True)
+        yield agent
+
+
+def test_param_list_get_set_dump(oracle: RclpyOracle, domain_id: int) -> None:
+    listing = cli(domain_id, "param", "list", "/demo/tuned")
+    assert listing.returncode == 0, listing.stderr
+    names = listing.stdout.splitlines()
+    for name in ("max_speed", "robot.name", "wheels", "enabled", "use_sim_time"):
+        assert f"  {name}" in names
+
+    got = cli(domain_id, "param", "get", "/demo/tuned", "max_speed")
+    assert got.returncode == 0, got.stderr
+    assert got.stdout.strip() == "Double value is: 0.5"
+    assert cli(domain_id, "param", "get", "/demo/tuned", "enabled").stdout.strip() == \
+        "Boolean value is: True"
+    assert cli(domain_id, "param", "get", "/demo/tuned", "robot.name", "--hide-type") \
+        .stdout.strip() == "rover"
+
+    done = cli(domain_id, "param", "set", "/demo/tuned", "max_speed", "1.25")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "Set parameter successful"
+    assert oracle.call("get_parameter", name="max_speed") == 1.25
+
+    refused = cli(domain_id, "param", "set", "/demo/tuned", "max_speed", "fast")
+    assert refused.returncode == 1
+    assert refused.stdout.startswith("Setting parameter failed")
+    assert oracle.call("get_parameter", name="max_speed") == 1.25
+
+    dump = cli(domain_id, "param", "dump", "/demo/tuned")
+    assert dump.returncode == 0, dump.stderr
+    params = yaml.safe_load(dump.stdout)["/demo/tuned"]["ros__parameters"]
+    assert params["max_speed"] == 1.25 and params["robot"] == {"name": "rover"}
+    assert params["wheels"] == [1, 2, 3, 4] and params["enabled"] is True

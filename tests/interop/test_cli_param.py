@@ -59,3 +59,35 @@ def test_param_list_get_set_dump(oracle: RclpyOracle, domain_id: int) -> None:
     params = yaml.safe_load(dump.stdout)["/demo/tuned"]["ros__parameters"]
     assert params["max_speed"] == 1.25 and params["robot"] == {"name": "rover"}
     assert params["wheels"] == [1, 2, 3, 4] and params["enabled"] is True
+
+
+def parse_node_info(text: str) -> dict[str, dict[str, list[str]]]:
+    sections: dict[str, dict[str, list[str]]] = {}
+    current = ""
+    for line in text.splitlines()[1:]:
+        if line.startswith("    "):
+            name, types = line.strip().split(": ", 1)
+            sections[current][name] = types.split(", ")
+        elif line.startswith("  "):
+            current = line.strip().rstrip(":")
+            sections[current] = {}
+    return sections
+
+
+def test_node_info_lists_what_rclpy_reports(oracle: RclpyOracle, domain_id: int) -> None:
+    oracle.call("publisher", topic="/demo/chatter", type="std_msgs/msg/String")
+    oracle.call("subscribe", topic="/demo/cmd_vel", type="geometry_msgs/msg/Twist")
+    oracle.call("service_server", name="/demo/trigger", type="std_srvs/srv/Trigger")
+    oracle.call("action_server", name="/demo/fibonacci")
+    info = cli(domain_id, "node", "info", "/demo/tuned")
+    assert info.returncode == 0, info.stderr
+    assert info.stdout.splitlines()[0] == "/demo/tuned"
+    ours = parse_node_info(info.stdout)
+    theirs = oracle.call("node_info", name="tuned", namespace="/demo")
+    for section, entries in theirs.items():
+        visible = {name: sorted(types) for name, types in entries
+                   if not any(t.startswith("_") for t in name.split("/") if t)}
+        assert {n: sorted(t) for n, t in ours[section].items()} == visible, section
+    assert "/demo/chatter" in ours["Publishers"] and "/demo/fibonacci" in ours["Action Servers"]
+    assert ours["Service Servers"]["/demo/tuned/get_parameters"] == \
+        ["rcl_interfaces/srv/GetParameters"]

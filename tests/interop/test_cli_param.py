@@ -91,3 +91,17 @@ def test_node_info_lists_what_rclpy_reports(oracle: RclpyOracle, domain_id: int)
     assert "/demo/chatter" in ours["Publishers"] and "/demo/fibonacci" in ours["Action Servers"]
     assert ours["Service Servers"]["/demo/tuned/get_parameters"] == \
         ["rcl_interfaces/srv/GetParameters"]
+
+
+def test_topic_and_service_type_and_find(oracle: RclpyOracle, domain_id: int) -> None:
+    oracle.call("publisher", topic="/demo/chatter", type="std_msgs/msg/String")
+    oracle.call("service_server", name="/demo/trigger", type="std_srvs/srv/Trigger")
+    assert cli(domain_id, "topic", "type", "/demo/chatter").stdout.splitlines() == \
+        ["std_msgs/msg/String"]
+    assert "/demo/chatter" in cli(domain_id, "topic", "find", "std_msgs/msg/String") \
+        .stdout.splitlines()
+    assert cli(domain_id, "service", "type", "/demo/trigger").stdout.splitlines() == \
+        ["std_srvs/srv/Trigger"]
+    assert cli(domain_id, "service", "find", "std_srvs/srv/Trigger").stdout.splitlines() == \
+        ["/demo/trigger"]
+    assert cli(domain_id, "topic", "type", "/demo/nothing").returncode == 1

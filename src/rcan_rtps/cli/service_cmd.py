@@ -7,6 +7,7 @@ import asyncio
 
 from ..ros.graph import RosGraph
 from ..ros.services import RequestMapping, ServiceClient
+from ..ros.typesys.store import normalize_name
 from ._common import dump, make_node, parse_values
 
 MAPPINGS = [m.value for m in RequestMapping]
@@ -21,6 +22,17 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     listing.add_argument("--include-hidden-services", action="store_true")
     listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
     listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
+
+    kind = actions.add_parser("type", help="type of a service")
+    kind.add_argument("service", metavar="NAME")
+    kind.add_argument("--spin-time", type=float, default=1.5)
+    kind.set_defaults(func=lambda a: asyncio.run(_type(a)))
+
+    find = actions.add_parser("find", help="services of a type")
+    find.add_argument("type", metavar="TYPE")
+    find.add_argument("--include-hidden-services", action="store_true")
+    find.add_argument("--spin-time", type=float, default=1.5)
+    find.set_defaults(func=lambda a: asyncio.run(_find(a)))
 
     call = actions.add_parser("call", help="call a service with a request built from YAML")
     call.add_argument("service", metavar="NAME")
@@ -38,6 +50,27 @@ async def _list(args: argparse.Namespace) -> int:
         await graph.settle(args.spin_time)
         for name, types in graph.services(args.include_hidden_services).items():
             print(f"{name} [{', '.join(types)}]" if args.show_types else name)
+    return 0
+
+
+async def _type(args: argparse.Namespace) -> int:
+    with make_node(args) as node:
+        graph = RosGraph(node)
+        await graph.settle(args.spin_time)
+        types = graph.services(include_hidden=True).get(node.resolve(args.service), [])
+    for name in types:
+        print(name)
+    return 0 if types else 1
+
+
+async def _find(args: argparse.Namespace) -> int:
+    wanted = normalize_name(args.type)
+    with make_node(args) as node:
+        graph = RosGraph(node)
+        await graph.settle(args.spin_time)
+        for name, types in graph.services(args.include_hidden_services).items():
+            if wanted in types:
+                print(name)
     return 0
 
 

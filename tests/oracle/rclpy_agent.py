@@ -274,6 +274,35 @@ class Agent:
     def op_subscriptions_info(self, topic: str) -> list[dict[str, Any]]:
         return [_endpoint(i) for i in self.node.get_subscriptions_info_by_topic(topic)]
 
+    def op_node_info(self, name: str, namespace: str) -> dict[str, list[list[Any]]]:
+        """What rclpy's graph API reports for a node, per `ros2 node info` section."""
+        from rclpy.action import (
+            get_action_client_names_and_types_by_node,
+            get_action_server_names_and_types_by_node,
+        )
+
+        node = self.node
+        deadline = time.monotonic() + 10.0
+        while (name, namespace) not in node.get_node_names_and_namespaces() \
+                and time.monotonic() < deadline:
+            time.sleep(0.05)
+        found = {
+            "Subscribers": node.get_subscriber_names_and_types_by_node(name, namespace),
+            "Publishers": node.get_publisher_names_and_types_by_node(name, namespace),
+            "Service Servers": node.get_service_names_and_types_by_node(name, namespace),
+            "Service Clients": node.get_client_names_and_types_by_node(name, namespace),
+            "Action Servers": get_action_server_names_and_types_by_node(node, name, namespace),
+            "Action Clients": get_action_client_names_and_types_by_node(node, name, namespace),
+        }
+        return {k: [[n, list(t)] for n, t in v] for k, v in found.items()}
+
+    def op_declare_parameter(self, name: str, value: Any) -> bool:
+        self.node.declare_parameter(name, value)
+        return True
+
+    def op_get_parameter(self, name: str) -> Any:
+        return plain(self.node.get_parameter(name).value)
+
     # -- services and actions (issue 3) ---------------------------------------------
     def op_service_server(self, name: str, type: str, delay: float = 0.0) -> bool:
         """Trigger answers `triggered #N`; SetBool echoes `data` into `success`."""

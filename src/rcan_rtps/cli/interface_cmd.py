@@ -19,6 +19,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         listing.add_argument(flag, f"--only-{kind}", dest=kind, action="store_true",
                              help=f"list {kind} (combinable; default: all kinds)")
     listing.set_defaults(func=list_command)
+    packages = actions.add_parser("packages", help="packages with interfaces")
+    packages.set_defaults(func=packages_command)
     show = actions.add_parser("show", help="fields and constants of a type")
     show.add_argument("type", metavar="TYPE", help="e.g. sensor_msgs/msg/JointState")
     show.set_defaults(func=show_command)
@@ -38,6 +40,12 @@ def list_command(args: argparse.Namespace) -> int:
             for name in names:
                 if name.split("/")[1] == kind:
                     print(f"    {name}")
+    return 0
+
+
+def packages_command(args: argparse.Namespace) -> int:
+    for package in sorted({name.split("/")[0] for name in make_store(args).interface_names()}):
+        print(package)
     return 0
 
 

@@ -21,10 +21,12 @@ def build_parser() -> argparse.ArgumentParser:
     from . import (
         action_cmd,
         audit_cmd,
+        bag_cmd,
         config_cmd,
         discover_cmd,
         interface_cmd,
         node_cmd,
+        param_cmd,
         run_cmd,
         service_cmd,
         sim_cmd,
@@ -40,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_logging_options(parser)
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in (run_cmd, topic_cmd, node_cmd, interface_cmd, config_cmd, audit_cmd, sim_cmd,
-                   service_cmd, action_cmd, discover_cmd):
+                   service_cmd, action_cmd, discover_cmd, bag_cmd, param_cmd):
         module.register(commands)
     return parser
 

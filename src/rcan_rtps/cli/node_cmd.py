@@ -1,11 +1,12 @@
-"""`rcan-rtps node list`."""
+"""`rcan-rtps node list|info`, shaped like `ros2 node`."""
 
 from __future__ import annotations
 
 import argparse
 import asyncio
 
-from ..ros.graph import RosGraph, node_fqn
+from ..ros.graph import Direction, Endpoint, RosGraph, node_fqn
+from ..ros.names import EndpointKind, action_of, is_hidden
 from ._common import make_node, warn_if_alone
 
 
@@ -16,6 +17,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     listing.add_argument("-a", "--all", action="store_true", help="include hidden nodes")
     listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
     listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
+    info = actions.add_parser("info", help="endpoints of a node, grouped like ros2 node info")
+    info.add_argument("node", metavar="NODE_NAME", help="the node, e.g. /robot1/rcan_bridge")
+    info.add_argument("--include-hidden", action="store_true",
+                      help="show hidden topics, services and actions too")
+    info.add_argument("--spin-time", type=float, default=1.5,
+                      help="seconds to listen for the graph before answering (default 1.5)")
+    info.set_defaults(func=lambda a: asyncio.run(_info(a)))
 
 
 async def _list(args: argparse.Namespace) -> int:
@@ -27,4 +35,58 @@ async def _list(args: argparse.Namespace) -> int:
             if args.all or not name.startswith("_"):
                 print(node_fqn(namespace, name))
         warn_if_alone(args, node, graph)
+    return 0
+
+
+SECTIONS = ("Subscribers", "Publishers", "Service Servers", "Service Clients",
+            "Action Servers", "Action Clients")
+
+
+def _section_of(e: Endpoint) -> tuple[str, str, str] | None:
+    """(section, name, type) an endpoint stands for in `node info`, or None (reply
+    endpoints and action parts other than send_goal are implied by another one)."""
+    member = action_of(e.ros_name)
+    if member is not None:
+        if member[1] != "send_goal" or e.kind is not EndpointKind.REQUEST:
+            return None
+        role = "Action Servers" if e.direction is Direction.SUBSCRIPTION else "Action Clients"
+        return role, member[0], e.ros_type.removesuffix("_SendGoal")
+    if e.kind is EndpointKind.TOPIC:
+        role = "Subscribers" if e.direction is Direction.SUBSCRIPTION else "Publishers"
+        return role, e.ros_name, e.ros_type
+    if e.kind is EndpointKind.REQUEST:
+        role = "Service Servers" if e.direction is Direction.SUBSCRIPTION else "Service Clients"
+        return role, e.ros_name, e.ros_type
+    return None
+
+
+def describe_node(endpoints: list[Endpoint],
+                  include_hidden: bool) -> dict[str, dict[str, set[str]]]:
+    sections: dict[str, dict[str, set[str]]] = {s: {} for s in SECTIONS}
+    for e in endpoints:
+        found = _section_of(e)
+        if found is None:
+            continue
+        section, name, type_name = found
+        if include_hidden or not is_hidden(name):
+            sections[section].setdefault(name, set()).add(type_name)
+    return sections
+
+
+async def _info(args: argparse.Namespace) -> int:
+    node = make_node(args)
+    with node:
+        graph = RosGraph(node)
+        await graph.settle(args.spin_time)
+        target = args.node if args.node.startswith("/") else "/" + args.node
+        if target not in {node_fqn(ns, name) for ns, name in graph.nodes()}:
+            print(f"Unable to find node '{target}'")
+            return 1
+        mine = [e for e in graph.endpoints()
+                if node_fqn(e.node_namespace, e.node_name) == target]
+        print(target)
+        for section, entries in describe_node(mine, args.include_hidden).items():
+            print(f"  {section}:")
+            for name, types in sorted(entries.items()):
+                print(f"    {name}: {', '.join(sorted(types))}")
     return 0

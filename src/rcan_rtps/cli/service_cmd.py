@@ -7,6 +7,7 @@ import asyncio
 
 from ..ros.graph import RosGraph
 from ..ros.services import RequestMapping, ServiceClient
+from ..ros.typesys.store import normalize_name
 from ._common import VALUES_HELP, dump, make_node, parse_values, warn_if_alone
 
 MAPPINGS = [m.value for m in RequestMapping]
@@ -26,6 +27,20 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
     listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
 
+    kind = actions.add_parser("type", help="type of a service")
+    kind.add_argument("service", metavar="NAME", help="the service, e.g. /robot1/get_parameters")
+    kind.add_argument("--spin-time", type=float, default=1.5,
+                      help="seconds to listen for the graph before answering (default 1.5)")
+    kind.set_defaults(func=lambda a: asyncio.run(_type(a)))
+
+    find = actions.add_parser("find", help="services of a type")
+    find.add_argument("type", metavar="TYPE", help="a service type, e.g. std_srvs/srv/Trigger")
+    find.add_argument("--include-hidden-services", action="store_true",
+                      help="also services whose name has a part starting with `_`")
+    find.add_argument("--spin-time", type=float, default=1.5,
+                      help="seconds to listen for the graph before answering (default 1.5)")
+    find.set_defaults(func=lambda a: asyncio.run(_find(a)))
+
     call = actions.add_parser("call", help="call a service with a request built from YAML")
     call.add_argument("service", metavar="NAME", help="service name, e.g. /reset")
     call.add_argument("type", metavar="TYPE", help="service type, e.g. std_srvs/srv/Trigger")
@@ -42,6 +57,27 @@ async def _list(args: argparse.Namespace) -> int:
         for name, types in graph.services(args.include_hidden_services).items():
             print(f"{name} [{', '.join(types)}]" if args.show_types else name)
         warn_if_alone(args, node, graph)
+    return 0
+
+
+async def _type(args: argparse.Namespace) -> int:
+    with make_node(args) as node:
+        graph = RosGraph(node)
+        await graph.settle(args.spin_time)
+        types = graph.services(include_hidden=True).get(node.resolve(args.service), [])
+    for name in types:
+        print(name)
+    return 0 if types else 1
+
+
+async def _find(args: argparse.Namespace) -> int:
+    wanted = normalize_name(args.type)
+    with make_node(args) as node:
+        graph = RosGraph(node)
+        await graph.settle(args.spin_time)
+        for name, types in graph.services(args.include_hidden_services).items():
+            if wanted in types:
+                print(name)
     return 0
 
 

@@ -18,6 +18,7 @@ from ..ros import qos as qos_mod
 from ..ros.errors import GraphTimeout, seconds
 from ..ros.graph import Direction, Endpoint, RosGraph, short_gid
 from ..ros.participant import RosNode
+from ..ros.typesys.store import normalize_name
 from ._common import TOPIC_HELP, VALUES_HELP, alone_hint, make_node, parse_values, warn_if_alone
 
 
@@ -66,6 +67,20 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                      help="QoS preset of the publisher (default: default)")
     pub.set_defaults(func=lambda a: asyncio.run(_pub(a)))
 
+    kind = actions.add_parser("type", help="type of a topic")
+    kind.add_argument("topic", metavar="TOPIC", help="the topic, e.g. /robot1/odom")
+    kind.add_argument("--spin-time", type=float, default=1.5,
+                      help="seconds to listen for the graph before answering (default 1.5)")
+    kind.set_defaults(func=lambda a: asyncio.run(_type(a)))
+
+    find = actions.add_parser("find", help="topics of a type")
+    find.add_argument("type", metavar="TYPE", help="a message type, e.g. nav_msgs/msg/Odometry")
+    find.add_argument("--include-hidden-topics", action="store_true",
+                      help="also topics whose name has a part starting with `_`")
+    find.add_argument("--spin-time", type=float, default=1.5,
+                      help="seconds to listen for the graph before answering (default 1.5)")
+    find.set_defaults(func=lambda a: asyncio.run(_find(a)))
+
     hz = actions.add_parser("hz", help="rate of a topic")
     hz.add_argument("topic", metavar="TOPIC", help=TOPIC_HELP)
     hz.add_argument("type", metavar="TYPE", nargs="?",
@@ -89,6 +104,25 @@ async def _list(args: argparse.Namespace) -> int:
         for name, types in graph.topics(args.include_hidden_topics).items():
             print(f"{name} [{', '.join(types)}]" if args.show_types else name)
         warn_if_alone(args, node, graph)
+    return 0
+
+
+async def _type(args: argparse.Namespace) -> int:
+    node, graph = await _graph(args)
+    with node:
+        types = graph.topics(include_hidden=True).get(node.resolve(args.topic), [])
+    for name in types:
+        print(name)
+    return 0 if types else 1
+
+
+async def _find(args: argparse.Namespace) -> int:
+    wanted = normalize_name(args.type)
+    node, graph = await _graph(args)
+    with node:
+        for name, types in graph.topics(args.include_hidden_topics).items():
+            if wanted in types:
+                print(name)
     return 0
 
 

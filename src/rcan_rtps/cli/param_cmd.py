@@ -1,0 +1,187 @@
+"""`rcan-rtps param list|get|set|dump`, shaped like `ros2 param`, over the rcl_interfaces
+services every ROS 2 node serves (`<node>/list_parameters`, `get_parameters`, …)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import re
+from typing import Any
+
+import yaml
+
+from ..ros.participant import RosNode
+from ..ros.services import ServiceClient
+from ._common import make_node
+
+# rcl_interfaces/msg/ParameterType, and the ParameterValue field holding each type.
+NOT_SET, BOOL, INTEGER, DOUBLE, STRING = 0, 1, 2, 3, 4
+BYTE_ARRAY, BOOL_ARRAY, INTEGER_ARRAY, DOUBLE_ARRAY, STRING_ARRAY = 5, 6, 7, 8, 9
+VALUE_FIELDS = {
+    BOOL: "bool_value", INTEGER: "integer_value", DOUBLE: "double_value",
+    STRING: "string_value", BYTE_ARRAY: "byte_array_value", BOOL_ARRAY: "bool_array_value",
+    INTEGER_ARRAY: "integer_array_value", DOUBLE_ARRAY: "double_array_value",
+    STRING_ARRAY: "string_array_value",
+}
+# ros2 param get's wording, by type.
+GET_LABELS = {
+    BOOL: "Boolean value is:", INTEGER: "Integer value is:", DOUBLE: "Double value is:",
+    STRING: "String value is:", BYTE_ARRAY: "Byte values are:",
+    BOOL_ARRAY: "Boolean values are:", INTEGER_ARRAY: "Integer values are:",
+    DOUBLE_ARRAY: "Double values are:", STRING_ARRAY: "String values are:",
+}
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser("param", help="read and change a node's parameters")
+    actions = parser.add_subparsers(dest="param_command", required=True)
+
+    listing = actions.add_parser("list", help="parameter names of a node")
+    listing.add_argument("node", metavar="NODE_NAME", help="the node, e.g. /robot1/controller")
+    listing.add_argument("--filter", default="", help="only names matching this regex")
+    _common_options(listing)
+    listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
+
+    get = actions.add_parser("get", help="value of a parameter")
+    get.add_argument("node", metavar="NODE_NAME", help="the node, e.g. /robot1/controller")
+    get.add_argument("name", metavar="PARAMETER_NAME", help="the parameter (dotted for nested)")
+    get.add_argument("--hide-type", action="store_true", help="print the value only")
+    _common_options(get)
+    get.set_defaults(func=lambda a: asyncio.run(_get(a)))
+
+    set_ = actions.add_parser("set", help="set a parameter (VALUE is YAML)")
+    set_.add_argument("node", metavar="NODE_NAME", help="the node, e.g. /robot1/controller")
+    set_.add_argument("name", metavar="PARAMETER_NAME", help="the parameter (dotted for nested)")
+    set_.add_argument("value", metavar="VALUE", help="a YAML value: 0.5, true, hello, [1, 2]")
+    _common_options(set_)
+    set_.set_defaults(func=lambda a: asyncio.run(_set(a)))
+
+    dump = actions.add_parser("dump", help="every parameter of a node, as a params file")
+    dump.add_argument("node", metavar="NODE_NAME", help="the node, e.g. /robot1/controller")
+    _common_options(dump)
+    dump.set_defaults(func=lambda a: asyncio.run(_dump(a)))
+
+
+def _common_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--timeout", type=float, default=10.0,
+                        help="seconds to wait for the node's services (default 10)")
+
+
+def _node_fqn(name: str) -> str:
+    return name if name.startswith("/") else "/" + name
+
+
+async def _call(node: RosNode, target: str, service: str, values: dict[str, Any],
+                timeout: float) -> dict[str, Any]:
+    kind = "".join(part.capitalize() for part in service.split("_"))
+    client = ServiceClient(node, f"{_node_fqn(target)}/{service}", f"rcl_interfaces/srv/{kind}")
+    try:
+        response = await client.call(values, timeout)
+        return node.values.to_plain(client.response_type, response)
+    finally:
+        client.close()
+
+
+async def parameter_names(node: RosNode, target: str, timeout: float) -> list[str]:
+    reply = await _call(node, target, "list_parameters", {"prefixes": [], "depth": 0}, timeout)
+    return sorted(reply["result"]["names"])
+
+
+def to_python(value: dict[str, Any]) -> Any:
+    """A ParameterValue as a plain value (None when not set)."""
+    field = VALUE_FIELDS.get(value["type"])
+    return None if field is None else value[field]
+
+
+def to_parameter_value(value: Any) -> dict[str, Any]:
+    """A YAML value as a ParameterValue, typed like ros2 param set types it."""
+    if isinstance(value, bool):
+        return {"type": BOOL, "bool_value": value}
+    if isinstance(value, int):
+        return {"type": INTEGER, "integer_value": value}
+    if isinstance(value, float):
+        return {"type": DOUBLE, "double_value": value}
+    if isinstance(value, list) and value:
+        kind = _array_kind(value)
+        items = [float(v) for v in value] if kind == DOUBLE_ARRAY else value
+        return {"type": kind, VALUE_FIELDS[kind]: items}
+    return {"type": STRING, "string_value": "" if value is None else str(value)}
+
+
+def _array_kind(values: list[Any]) -> int:
+    if all(isinstance(v, bool) for v in values):
+        return BOOL_ARRAY
+    numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    if len(numbers) == len(values):
+        return INTEGER_ARRAY if all(isinstance(v, int) for v in numbers) else DOUBLE_ARRAY
+    if all(isinstance(v, str) for v in values):
+        return STRING_ARRAY
+    raise ValueError("array parameters must hold values of one type")
+
+
+def _format_value(kind: int, value: Any) -> str:
+    if kind == BOOL:
+        return str(bool(value))
+    if kind == BYTE_ARRAY:
+        return str([bytes([b]) for b in value])
+    return str(value)
+
+
+async def _list(args: argparse.Namespace) -> int:
+    pattern = re.compile(args.filter) if args.filter else None
+    with make_node(args) as node:
+        for name in await parameter_names(node, args.node, args.timeout):
+            if pattern is None or pattern.search(name):
+                print(f"  {name}")
+    return 0
+
+
+async def _get(args: argparse.Namespace) -> int:
+    with make_node(args) as node:
+        reply = await _call(node, args.node, "get_parameters", {"names": [args.name]},
+                            args.timeout)
+    values = reply["values"]
+    if not values or values[0]["type"] == NOT_SET:
+        print("Parameter not set.")
+        return 1
+    kind = values[0]["type"]
+    text = _format_value(kind, to_python(values[0]))
+    print(text if args.hide_type else f"{GET_LABELS[kind]} {text}")
+    return 0
+
+
+async def _set(args: argparse.Namespace) -> int:
+    value = to_parameter_value(yaml.safe_load(args.value) if args.value.strip() else "")
+    with make_node(args) as node:
+        reply = await _call(node, args.node, "set_parameters",
+                            {"parameters": [{"name": args.name, "value": value}]}, args.timeout)
+    result = reply["results"][0] if reply["results"] else {"successful": False, "reason": ""}
+    if result["successful"]:
+        print("Set parameter successful")
+        return 0
+    reason = f": {result['reason']}" if result["reason"] else ""
+    print(f"Setting parameter failed{reason}")
+    return 1
+
+
+def _nest(flat: dict[str, Any]) -> dict[str, Any]:
+    """`a.b.c: v` → {a: {b: {c: v}}}, as ros2 param dump writes dotted names."""
+    tree: dict[str, Any] = {}
+    for name, value in sorted(flat.items()):
+        *parents, leaf = name.split(".")
+        level = tree
+        for part in parents:
+            level = level.setdefault(part, {})
+        level[leaf] = value
+    return tree
+
+
+async def _dump(args: argparse.Namespace) -> int:
+    with make_node(args) as node:
+        names = await parameter_names(node, args.node, args.timeout)
+        reply = await _call(node, args.node, "get_parameters", {"names": names}, args.timeout)
+    values = {n: to_python(v) for n, v in zip(names, reply["values"], strict=False)
+              if v["type"] != NOT_SET}
+    document = {_node_fqn(args.node): {"ros__parameters": _nest(values)}}
+    print(yaml.safe_dump(document, sort_keys=False, default_flow_style=False).rstrip())
+    return 0

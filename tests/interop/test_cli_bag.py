@@ -1,0 +1,198 @@
+"""`rcan-rtps bag record|play|info` against a real rclpy Jazzy graph; bags checked with the
+MCAP library's own ROS 2 decoder and written by rosbags."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from oracle.client import RclpyOracle
+
+TIMING_TOLERANCE = 0.06  # s: each gap between played messages vs the recorded gap
+# `play` waits for the graph's subscriptions to match its writers, but the Fast DDS reader
+# learns of our writer on its own schedule; as with ros2 bag play, a start delay covers that
+# on a loaded machine.
+PLAY_DELAY = "1.0"
+
+
+def cli(domain_id: int, *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    return subprocess.run([sys.executable, "-m", "rcan_rtps", *args], capture_output=True,
+                          text=True, env=env, timeout=timeout)
+
+
+def cli_start(domain_id: int, *args: str) -> subprocess.Popen[str]:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    return subprocess.Popen([sys.executable, "-m", "rcan_rtps", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+
+
+def wait_for_lines(proc: subprocess.Popen[str], wanted: set[str], timeout: float) -> list[str]:
+    assert proc.stdout is not None
+    seen: list[str] = []
+    with selectors.DefaultSelector() as sel:
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        deadline = time.monotonic() + timeout
+        while wanted - set(seen) and time.monotonic() < deadline:
+            if sel.select(0.2):
+                line = proc.stdout.readline()
+                if not line:
+                    break
+                seen.append(line.strip())
+    assert not wanted - set(seen), f"missing {wanted - set(seen)}; got {seen}"
+    return seen
+
+
+@pytest.fixture
+def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_python, "bag_peer", "/", domain_id=domain_id) as agent:
+        yield agent
+
+
+def take_all(oracle: RclpyOracle, topic: str, count: int, timeout: float = 20) -> list[Any]:
+    got: list[Any] = []
+    deadline = time.monotonic() + timeout
+    while len(got) < count and time.monotonic() < deadline:
+        got += oracle.call("take", topic=topic)
+        time.sleep(0.1)
+    return got
+
+
+def assert_same_timing(arrivals_ns: list[int], recorded_ns: list[int]) -> None:
+    assert len(arrivals_ns) == len(recorded_ns)
+    played = [(b - a) / 1e9 for a, b in itertools.pairwise(arrivals_ns)]
+    original = [(b - a) / 1e9 for a, b in itertools.pairwise(recorded_ns)]
+    for got, want in zip(played, original, strict=True):
+        assert abs(got - want) < TIMING_TOLERANCE, (played, original)
+
+
+def read_bag(path: Path) -> tuple[Any, dict[str, list[tuple[int, Any]]]]:
+    (mcap_file,) = path.glob("*.mcap")
+    with mcap_file.open("rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        messages: dict[str, list[tuple[int, Any]]] = {}
+        for _, channel, message, decoded in reader.iter_decoded_messages(log_time_order=True):
+            messages.setdefault(channel.topic, []).append((message.log_time, decoded))
+        header = reader.get_header()
+    return (header, summary), messages
+
+
+def test_record_reads_back_with_the_mcap_library_and_plays_with_its_timing(
+        oracle: RclpyOracle, domain_id: int, tmp_path: Path, jazzy_share: Path) -> None:
+    oracle.call("publisher", topic="/rec/chatter", type="std_msgs/msg/String")
+    oracle.call("publisher", topic="/rec/pose", type="geometry_msgs/msg/PoseStamped",
+                qos="sensor")
+    bag = tmp_path / "recorded"
+    recorder = cli_start(domain_id, "bag", "record", "/rec/chatter", "/rec/pose",
+                         "-o", str(bag))
+    try:
+        wait_for_lines(recorder, {"Subscribed to topic '/rec/chatter'",
+                                  "Subscribed to topic '/rec/pose'"}, timeout=30)
+        time.sleep(1.0)  # the subscriptions' DDS match with Fast DDS
+        for i, gap in enumerate([0.1, 0.3, 0.2, 0.4, 0.1]):
+            oracle.call("publish", topic="/rec/chatter", type="std_msgs/msg/String",
+                        value={"data": f"hello {i}"}, count=1, period=gap)
+        oracle.call("publish", topic="/rec/pose", type="geometry_msgs/msg/PoseStamped",
+                    value={"header": {"frame_id": "map", "stamp": {"sec": 7}},
+                           "pose": {"position": {"x": 1.5}, "orientation": {"w": 1.0}}},
+                    count=3, period=0.1)
+        time.sleep(0.5)
+        recorder.send_signal(signal.SIGINT)
+        _, err = recorder.communicate(timeout=30)
+        assert recorder.returncode == 0, err
+    finally:
+        if recorder.poll() is None:
+            recorder.kill()
+
+    assert sorted(p.name for p in bag.iterdir()) == ["metadata.yaml", "recorded_0.mcap"]
+    (header, summary), messages = read_bag(bag)
+    assert header.profile == "ros2"
+    schemas = {s.name: s for s in summary.schemas.values()}
+    assert {s.encoding for s in schemas.values()} == {"ros2msg"}
+    assert schemas["std_msgs/msg/String"].data.decode() == "string data\n"
+    pose_def = schemas["geometry_msgs/msg/PoseStamped"].data.decode()
+    assert "\nMSG: std_msgs/Header\n" in pose_def and "\nMSG: builtin_interfaces/Time\n" in pose_def
+    channels = {c.topic: c for c in summary.channels.values()}
+    rclpy_hash = oracle.call("publishers_info", topic="/rec/chatter")[0]["type_hash"]
+    assert channels["/rec/chatter"].message_encoding == "cdr"
+    assert channels["/rec/chatter"].metadata["topic_type_hash"] == rclpy_hash
+    offered = yaml.safe_load(channels["/rec/pose"].metadata["offered_qos_profiles"])
+    assert offered[0]["reliability"] == "best_effort"
+
+    assert [m.data for _, m in messages["/rec/chatter"]] == [f"hello {i}" for i in range(5)]
+    pose = messages["/rec/pose"][0][1]
+    assert pose.header.frame_id == "map" and pose.header.stamp.sec == 7
+    assert pose.pose.position.x == 1.5 and len(messages["/rec/pose"]) == 3
+
+    info = cli(domain_id, "bag", "info", str(bag))
+    assert info.returncode == 0, info.stderr
+    lines = info.stdout.splitlines()
+    assert "Files:             recorded_0.mcap" in lines
+    assert "Storage id:        mcap" in lines and "Messages:          8" in lines
+    assert ("Topic information: Topic: /rec/chatter | Type: std_msgs/msg/String | Count: 5 | "
+            "Serialization Format: cdr") in lines
+
+    oracle.call("subscribe_timed", topic="/rec/chatter", type="std_msgs/msg/String",
+                field="data")
+    played = cli(domain_id, "bag", "play", str(bag), "--topics", "/rec/chatter",
+                 "-d", PLAY_DELAY)
+    assert played.returncode == 0, played.stderr
+    got = take_all(oracle, "/rec/chatter", 5)
+    assert [value for _, value in got] == [f"hello {i}" for i in range(5)]
+    assert_same_timing([arrived for arrived, _ in got],
+                       [t for t, _ in messages["/rec/chatter"]])
+
+
+def write_rosbags_bag(path: Path, offsets: list[float]) -> list[int]:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    twist = store.types["geometry_msgs/msg/Twist"]
+    vector = store.types["geometry_msgs/msg/Vector3"]
+    start = time.time_ns()
+    stamps = [start + round(s * 1e9) for s in offsets]
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/played/cmd_vel", twist.__msgtype__, typestore=store)
+        for i, stamp in enumerate(stamps):
+            msg = twist(linear=vector(x=float(i), y=0.0, z=0.0),
+                        angular=vector(x=0.0, y=0.0, z=0.5))
+            writer.write(conn, stamp, store.serialize_cdr(msg, twist.__msgtype__))
+    return stamps
+
+
+def test_a_bag_written_by_rosbags_plays_to_rclpy(oracle: RclpyOracle, domain_id: int,
+                                                 tmp_path: Path) -> None:
+    bag = tmp_path / "from_rosbags"
+    stamps = write_rosbags_bag(bag, [0.0, 0.25, 0.35, 0.8, 0.9, 1.3])
+    info = cli(domain_id, "bag", "info", str(bag))
+    assert info.returncode == 0, info.stderr
+    assert "Messages:          6" in info.stdout.splitlines()
+    assert "Duration:          1.300000000s" in info.stdout.splitlines()
+
+    oracle.call("subscribe_timed", topic="/played/cmd_vel", type="geometry_msgs/msg/Twist",
+                field="linear.x")
+    played = cli(domain_id, "bag", "play", str(bag), "-d", PLAY_DELAY)
+    assert played.returncode == 0, played.stderr
+    got = take_all(oracle, "/played/cmd_vel", 6)
+    assert [value for _, value in got] == [float(i) for i in range(6)]
+    assert_same_timing([arrived for arrived, _ in got], stamps)
+
+    doubled = cli(domain_id, "bag", "play", str(bag), "--rate", "2", "-d", PLAY_DELAY)
+    assert doubled.returncode == 0, doubled.stderr
+    got = take_all(oracle, "/played/cmd_vel", 6)
+    span = (got[-1][0] - got[0][0]) / 1e9
+    assert len(got) == 6 and abs(span - 0.65) < 2 * TIMING_TOLERANCE, span

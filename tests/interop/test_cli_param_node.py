@@ -1,0 +1,107 @@
+"""`rcan-rtps param …` against an rclpy Jazzy node's rcl_interfaces parameter services."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import yaml
+from oracle.client import RclpyOracle
+
+
+def cli(domain_id: int, *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    return subprocess.run([sys.executable, "-m", "rcan_rtps", *args], capture_output=True,
+                          text=True, env=env, timeout=timeout)
+
+
+@pytest.fixture
+def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_python, "tuned", "/demo", domain_id=domain_id) as agent:
+        agent.call("declare_parameter", name="max_speed", value=0.5)
+        agent.call("declare_parameter", name="robot.name", value="rover")
+        agent.call("declare_parameter", name="wheels", value=[1, 2, 3, 4])
+        agent.call("declare_parameter", name="enabled", value=True)
+        yield agent
+
+
+def test_param_list_get_set_dump(oracle: RclpyOracle, domain_id: int) -> None:
+    listing = cli(domain_id, "param", "list", "/demo/tuned")
+    assert listing.returncode == 0, listing.stderr
+    names = listing.stdout.splitlines()
+    for name in ("max_speed", "robot.name", "wheels", "enabled", "use_sim_time"):
+        assert f"  {name}" in names
+
+    got = cli(domain_id, "param", "get", "/demo/tuned", "max_speed")
+    assert got.returncode == 0, got.stderr
+    assert got.stdout.strip() == "Double value is: 0.5"
+    assert cli(domain_id, "param", "get", "/demo/tuned", "enabled").stdout.strip() == \
+        "Boolean value is: True"
+    assert cli(domain_id, "param", "get", "/demo/tuned", "robot.name", "--hide-type") \
+        .stdout.strip() == "rover"
+
+    done = cli(domain_id, "param", "set", "/demo/tuned", "max_speed", "1.25")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "Set parameter successful"
+    assert oracle.call("get_parameter", name="max_speed") == 1.25
+
+    refused = cli(domain_id, "param", "set", "/demo/tuned", "max_speed", "fast")
+    assert refused.returncode == 1
+    assert refused.stdout.startswith("Setting parameter failed")
+    assert oracle.call("get_parameter", name="max_speed") == 1.25
+
+    dump = cli(domain_id, "param", "dump", "/demo/tuned")
+    assert dump.returncode == 0, dump.stderr
+    params = yaml.safe_load(dump.stdout)["/demo/tuned"]["ros__parameters"]
+    assert params["max_speed"] == 1.25 and params["robot"] == {"name": "rover"}
+    assert params["wheels"] == [1, 2, 3, 4] and params["enabled"] is True
+
+
+def parse_node_info(text: str) -> dict[str, dict[str, list[str]]]:
+    sections: dict[str, dict[str, list[str]]] = {}
+    current = ""
+    for line in text.splitlines()[1:]:
+        if line.startswith("    "):
+            name, types = line.strip().split(": ", 1)
+            sections[current][name] = types.split(", ")
+        elif line.startswith("  "):
+            current = line.strip().rstrip(":")
+            sections[current] = {}
+    return sections
+
+
+def test_node_info_lists_what_rclpy_reports(oracle: RclpyOracle, domain_id: int) -> None:
+    oracle.call("publisher", topic="/demo/chatter", type="std_msgs/msg/String")
+    oracle.call("subscribe", topic="/demo/cmd_vel", type="geometry_msgs/msg/Twist")
+    oracle.call("service_server", name="/demo/trigger", type="std_srvs/srv/Trigger")
+    oracle.call("action_server", name="/demo/fibonacci")
+    info = cli(domain_id, "node", "info", "/demo/tuned")
+    assert info.returncode == 0, info.stderr
+    assert info.stdout.splitlines()[0] == "/demo/tuned"
+    ours = parse_node_info(info.stdout)
+    theirs = oracle.call("node_info", name="tuned", namespace="/demo")
+    for section, entries in theirs.items():
+        visible = {name: sorted(types) for name, types in entries
+                   if not any(t.startswith("_") for t in name.split("/") if t)}
+        assert {n: sorted(t) for n, t in ours[section].items()} == visible, section
+    assert "/demo/chatter" in ours["Publishers"] and "/demo/fibonacci" in ours["Action Servers"]
+    assert ours["Service Servers"]["/demo/tuned/get_parameters"] == \
+        ["rcl_interfaces/srv/GetParameters"]
+
+
+def test_topic_and_service_type_and_find(oracle: RclpyOracle, domain_id: int) -> None:
+    oracle.call("publisher", topic="/demo/chatter", type="std_msgs/msg/String")
+    oracle.call("service_server", name="/demo/trigger", type="std_srvs/srv/Trigger")
+    assert cli(domain_id, "topic", "type", "/demo/chatter").stdout.splitlines() == \
+        ["std_msgs/msg/String"]
+    assert "/demo/chatter" in cli(domain_id, "topic", "find", "std_msgs/msg/String") \
+        .stdout.splitlines()
+    assert cli(domain_id, "service", "type", "/demo/trigger").stdout.splitlines() == \
+        ["std_srvs/srv/Trigger"]
+    assert cli(domain_id, "service", "find", "std_srvs/srv/Trigger").stdout.splitlines() == \
+        ["/demo/trigger"]
+    assert cli(domain_id, "topic", "type", "/demo/nothing").returncode == 1

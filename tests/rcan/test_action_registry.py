@@ -94,7 +94,7 @@ def test_metrics_list_the_registry() -> None:
     from rcan_rtps.api._metrics import Metrics
 
     governor = SimpleNamespace(audit=SimpleNamespace(listeners=[]))
-    metrics = Metrics(governor, robot=None)  # type: ignore[arg-type]
+    metrics = Metrics(governor, status=None)  # type: ignore[arg-type]
     text = generate_latest(metrics.registry).decode()
     assert re.findall(r'rcan_action_info\{action="([a-z_]+)"', text) == NAMES
 

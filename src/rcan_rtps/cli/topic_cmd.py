@@ -15,6 +15,7 @@ from ..ros.errors import GraphTimeout, seconds
 from ..ros.graph import Direction, Endpoint, RosGraph, short_gid
 from ..ros.participant import RosNode
 from ..ros.typesys.store import normalize_name
+from . import _measure
 from ._common import (
     TOPIC_HELP,
     VALUES_HELP,
@@ -103,6 +104,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                     help="compute the rate over the last N messages (default 10000)")
     hz.add_argument("--duration", type=float, default=0.0, help="stop after S seconds")
     hz.set_defaults(func=lambda a: asyncio.run(_hz(a)))
+    _measure.register(actions)
 
 
 async def _graph(args: argparse.Namespace) -> tuple[RosNode, RosGraph]:

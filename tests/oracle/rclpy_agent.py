@@ -162,9 +162,10 @@ class Agent:
         return count
 
     def op_publish_periodic(self, topic: str, type: str, value: dict[str, Any],
-                            rate: float = 100.0) -> bool:
+                            rate: float = 100.0, stamp: bool = False) -> bool:
         """Publishes `value` on `topic` at `rate` Hz from a background thread until
-        `stop_periodic` (the publisher is made by `publisher` first)."""
+        `stop_periodic` (the publisher is made by `publisher` first); with `stamp`, each
+        message's header.stamp is the node clock's now."""
         pub = self.publishers[topic]
         msg = fill(load_type(type)(), value)
         stop = threading.Event()
@@ -173,6 +174,8 @@ class Agent:
             period = 1.0 / rate
             next_at = time.monotonic()
             while not stop.is_set():
+                if stamp:
+                    msg.header.stamp = self.node.get_clock().now().to_msg()
                 pub.publish(msg)
                 self.published[topic] = self.published.get(topic, 0) + 1
                 next_at += period

@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import asyncio
 import os
 import sys
+import time
 from typing import Any
 
 import yaml
 
-from ..ros.errors import ValueFitError
-from ..ros.graph import RosGraph
+from ..ros.errors import GraphTimeout, ValueFitError, seconds
+from ..ros.graph import Direction, Endpoint, RosGraph
 from ..ros.participant import RosNode, localhost_requested
 from ..ros.typesys.store import TypeStore, env_idl_paths
 
@@ -66,3 +68,26 @@ def warn_if_alone(args: argparse.Namespace, node: RosNode, graph: RosGraph) -> N
     hint = alone_hint(args, node, graph)
     if hint:
         print(f"rcan-rtps: {hint}", file=sys.stderr)
+
+
+async def resolve_type(args: argparse.Namespace, node: RosNode, graph: RosGraph, topic: str,
+                       given: str | None, timeout: float) -> tuple[str, list[Endpoint]]:
+    """TYPE as given, else the one type the topic's publishers use; and those publishers."""
+    timeout = timeout or 5.0
+    deadline = time.monotonic() + timeout
+    while True:
+        graph.refresh()
+        pubs = [e for e in graph.topic_endpoints(topic) if e.direction is Direction.PUBLISHER]
+        if given or pubs or time.monotonic() > deadline:
+            break
+        await asyncio.sleep(0.1)
+    if given:
+        return given, pubs
+    types = sorted({e.ros_type for e in pubs})
+    if not types:
+        hint = alone_hint(args, node, graph) or "is it published? or pass TYPE explicitly"
+        raise GraphTimeout(f"could not determine the type of '{topic}': no publisher found "
+                           f"within {seconds(timeout)}; {hint}")
+    if len(types) > 1:
+        raise GraphTimeout(f"'{topic}' has several types ({', '.join(types)}); pass TYPE")
+    return types[0], pubs

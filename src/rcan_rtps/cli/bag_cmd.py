@@ -19,7 +19,7 @@ from ..ros.graph import Direction, Endpoint, RosGraph
 from ..ros.names import is_hidden
 from ..ros.participant import RosNode, RosPublisher, RosSubscription
 from ._common import make_node
-from .topic_cmd import _adapted_qos
+from ._echo import adapted_qos
 
 DISCOVERY_PERIOD = 0.1  # s between looks for new topics while recording
 RECORD_DEPTH = 1000  # reader history: a slow disk must not cost messages
@@ -122,7 +122,7 @@ class _Recorder:
         self.node.store.message(type_name)  # an unknown type fails here, not on the wire
         offered = [qos_dict(p.qos, history_known=False) for p in publishers]
         self.writer.add_topic(topic, type_name, offered)
-        qos = _adapted_qos(publishers).with_(depth=RECORD_DEPTH)
+        qos = adapted_qos(publishers).with_(depth=RECORD_DEPTH)
 
         def on_message(message: Any, topic: str = topic) -> None:
             self.writer.write(topic, time.time_ns(), message.serialize())

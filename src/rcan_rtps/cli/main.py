@@ -24,6 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
         bag_cmd,
         config_cmd,
         discover_cmd,
+        doctor_cmd,
         interface_cmd,
         node_cmd,
         param_cmd,
@@ -42,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_logging_options(parser)
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in (run_cmd, topic_cmd, node_cmd, interface_cmd, config_cmd, audit_cmd, sim_cmd,
-                   service_cmd, action_cmd, discover_cmd, bag_cmd, param_cmd):
+                   service_cmd, action_cmd, discover_cmd, bag_cmd, param_cmd, doctor_cmd):
         module.register(commands)
     return parser
 

@@ -5,21 +5,27 @@ from __future__ import annotations
 import argparse
 import asyncio
 import itertools
-import json
-import math
 import statistics
 import sys
 import time
 from typing import Any
-
-import yaml
 
 from ..ros import qos as qos_mod
 from ..ros.errors import GraphTimeout, seconds
 from ..ros.graph import Direction, Endpoint, RosGraph, short_gid
 from ..ros.participant import RosNode
 from ..ros.typesys.store import normalize_name
-from ._common import TOPIC_HELP, VALUES_HELP, alone_hint, make_node, parse_values, warn_if_alone
+from . import _measure
+from ._common import (
+    TOPIC_HELP,
+    VALUES_HELP,
+    alone_hint,
+    make_node,
+    parse_values,
+    resolve_type,
+    warn_if_alone,
+)
+from ._echo import EchoFormat, adapted_qos, add_qos_options, chosen_qos
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -47,8 +53,17 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                       help="message type, e.g. nav_msgs/msg/Odometry (default: from the graph)")
     echo.add_argument("--once", action="store_true", help="print one message and exit")
     echo.add_argument("--count", type=int, default=0, help="stop after N messages")
-    echo.add_argument("--json", action="store_true", help="one JSON object per line")
+    style = echo.add_mutually_exclusive_group()
+    style.add_argument("--json", action="store_true", help="one JSON object per line")
+    style.add_argument("--csv", action="store_true",
+                       help="one line per message: every value, comma-separated, in field order")
+    echo.add_argument("--field", metavar="FIELD",
+                      help="print only this field; '.' selects sub-fields, e.g. "
+                      "pose.pose.position")
+    echo.add_argument("--no-arr", action="store_true",
+                      help="print arrays and sequences as a placeholder with type and length")
     echo.add_argument("--timeout", type=float, default=0.0, help="give up after S seconds")
+    add_qos_options(echo)
     echo.set_defaults(func=lambda a: asyncio.run(_echo(a)))
 
     pub = actions.add_parser("pub", help="publish messages built from YAML values")
@@ -89,6 +104,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                     help="compute the rate over the last N messages (default 10000)")
     hz.add_argument("--duration", type=float, default=0.0, help="stop after S seconds")
     hz.set_defaults(func=lambda a: asyncio.run(_hz(a)))
+    _measure.register(actions)
 
 
 async def _graph(args: argparse.Namespace) -> tuple[RosNode, RosGraph]:
@@ -170,50 +186,14 @@ async def _info(args: argparse.Namespace) -> int:
     return 0
 
 
-async def _resolve_type(args: argparse.Namespace, node: RosNode, graph: RosGraph, topic: str,
-                        given: str | None, timeout: float) -> tuple[str, list[Endpoint]]:
-    timeout = timeout or 5.0
-    deadline = time.monotonic() + timeout
-    while True:
-        graph.refresh()
-        pubs = [e for e in graph.topic_endpoints(topic) if e.direction is Direction.PUBLISHER]
-        if given or pubs or time.monotonic() > deadline:
-            break
-        await asyncio.sleep(0.1)
-    if given:
-        return given, pubs
-    types = sorted({e.ros_type for e in pubs})
-    if not types:
-        hint = alone_hint(args, node, graph) or "is it published? or pass TYPE explicitly"
-        raise GraphTimeout(f"could not determine the type of '{topic}': no publisher found "
-                           f"within {seconds(timeout)}; {hint}")
-    if len(types) > 1:
-        raise GraphTimeout(f"'{topic}' has several types ({', '.join(types)}); pass TYPE")
-    return types[0], pubs
-
-
-def _adapted_qos(pubs: list[Endpoint]) -> qos_mod.QosProfile:
-    """Like ros2 topic echo: as strict as every publisher allows."""
-    profile = qos_mod.DEFAULT
-    if pubs and any(p.qos.reliability is qos_mod.Reliability.BEST_EFFORT for p in pubs):
-        profile = profile.with_(reliability=qos_mod.Reliability.BEST_EFFORT)
-    if pubs and all(p.qos.durability is qos_mod.Durability.TRANSIENT_LOCAL for p in pubs):
-        profile = profile.with_(durability=qos_mod.Durability.TRANSIENT_LOCAL)
-    return profile
-
-
-def _json_default(value: Any) -> Any:
-    return None if isinstance(value, float) and not math.isfinite(value) else str(value)
-
-
 async def _echo(args: argparse.Namespace) -> int:
     node = make_node(args)
     with node:
         graph = RosGraph(node)
         topic = node.resolve(args.topic)
-        type_name, pubs = await _resolve_type(args, node, graph, topic, args.type, args.timeout)
-        node.store.message(type_name)  # unknown type: fail before subscribing
-        sub = node.create_subscription(topic, type_name, _adapted_qos(pubs))
+        type_name, pubs = await resolve_type(args, node, graph, topic, args.type, args.timeout)
+        shape = EchoFormat(args, node.values, type_name)  # bad type or field: fail now
+        sub = node.create_subscription(topic, type_name, chosen_qos(args, pubs))
         limit = 1 if args.once else args.count
         seen = 0
         deadline = time.monotonic() + args.timeout if args.timeout else None
@@ -225,12 +205,7 @@ async def _echo(args: argparse.Namespace) -> int:
                 msg = await sub.get(timeout=left)
             except asyncio.TimeoutError:
                 break
-            plain = node.values.to_plain(type_name, msg)
-            if args.json:
-                print(json.dumps(plain, default=_json_default), flush=True)
-            else:
-                print(yaml.safe_dump(plain, sort_keys=False, allow_unicode=True) + "---",
-                      flush=True)
+            print(shape.text(msg), flush=True)
             seen += 1
         if limit and not seen:
             hint = alone_hint(args, node, graph) or f"is anything publishing on {topic}?"
@@ -287,8 +262,8 @@ async def _hz(args: argparse.Namespace) -> int:
     with node:
         graph = RosGraph(node)
         topic = node.resolve(args.topic)
-        type_name, pubs = await _resolve_type(args, node, graph, topic, args.type, 5.0)
-        sub = node.create_subscription(topic, type_name, _adapted_qos(pubs))
+        type_name, pubs = await resolve_type(args, node, graph, topic, args.type, 5.0)
+        sub = node.create_subscription(topic, type_name, adapted_qos(pubs))
         stamps: list[float] = []
         start = last_report = time.monotonic()
         while not args.duration or time.monotonic() - start < args.duration:

@@ -111,21 +111,35 @@ class MessageValues:
         return 0
 
     # -- message → plain ------------------------------------------------------
-    def to_plain(self, type_name: str, message: IdlStruct) -> dict[str, Any]:
-        """A JSON-able dict; byte arrays become lists of ints."""
+    def to_plain(self, type_name: str, message: IdlStruct, *,
+                 no_arr: bool = False) -> dict[str, Any]:
+        """A JSON-able dict; byte arrays become lists of ints. `no_arr` puts a placeholder
+        naming type and length in place of every array and sequence (ros2's `--no-arr`)."""
         msg = self.types.store.message(type_name)
-        return {f.name: self._plain(f.type, getattr(message, f.name)) for f in msg.fields
-                if f.name != PLACEHOLDER}
+        return {f.name: self.field_to_plain(f.type, getattr(message, f.name), no_arr=no_arr)
+                for f in msg.fields if f.name != PLACEHOLDER}
 
-    def _plain(self, ftype: FieldType, value: Any) -> Any:
+    def field_to_plain(self, ftype: FieldType, value: Any, *, no_arr: bool = False) -> Any:
+        if ftype.is_collection and no_arr:
+            return array_placeholder(ftype, len(value))
         if isinstance(value, (bytes, bytearray)):
             return list(value)
         if ftype.is_collection:
             element = ftype.element
-            return [self._plain(element, v) for v in value]
+            return [self.field_to_plain(element, v, no_arr=no_arr) for v in value]
         if ftype.nested is not None:
-            return self.to_plain(ftype.nested, value)
+            return self.to_plain(ftype.nested, value, no_arr=no_arr)
         return value
+
+
+def array_placeholder(ftype: FieldType, length: int) -> str:
+    """What rosidl_runtime_py prints for an array left out: element type, bound, length."""
+    element = ftype.nested or (ftype.primitive.value if ftype.primitive else "unknown")
+    if ftype.collection is Collection.ARRAY:
+        return f"<array type: {element}[{ftype.size}]>"
+    if ftype.collection is Collection.BOUNDED_SEQUENCE:
+        return f"<sequence type: {element}[{ftype.size}], length: {length}>"
+    return f"<sequence type: {element}, length: {length}>"
 
 
 def _has_field(msg: MessageType, name: str) -> bool:

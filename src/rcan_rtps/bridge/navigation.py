@@ -13,6 +13,7 @@ import uuid
 from collections.abc import Callable
 from typing import Any
 
+from .._listeners import tell_all
 from ..api.ports import GoalState, GoalView
 from ..ros.actions import ActionClient, ClientGoal
 from ..ros.actions import GoalState as RosGoalState
@@ -97,11 +98,7 @@ class GoalTracker:
             self._tell()
 
     def _tell(self) -> None:
-        for listener in self.listeners:
-            try:
-                listener()
-            except Exception:  # STATUS is informative: it must never break goal tracking
-                log.exception("goal listener failed")
+        tell_all(self.listeners, log, "goal")
 
     async def cancel_all(self) -> int:
         """Cancels every goal on the server, whoever sent it: `stop` means stop."""

@@ -21,6 +21,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from .._listeners import tell_all
 from ..config import RcanConfig
 from ..rcan import Fault, Joints, Position, RosInfo, Status, Telemetry, Velocity
 from ..ros import qos
@@ -92,13 +93,8 @@ class TelemetryState:
         return last is None or now - last > self.config.bridge.ros2.telemetry_stale_s
 
     def _tell(self, changed: bool) -> None:
-        if not changed:
-            return
-        for listener in self.listeners:
-            try:
-                listener()
-            except Exception:  # STATUS is informative: it must never break telemetry
-                log.exception("telemetry listener failed")
+        if changed:
+            tell_all(self.listeners, log, "telemetry")
 
     def _on_odom(self, msg: Any) -> None:
         p, twist = msg.pose.pose, msg.twist.twist

@@ -25,6 +25,7 @@ from typing import Any, TypeVar
 
 import msgspec
 
+from .._listeners import tell_all
 from ._durable import atomic_write
 from .errors import EstopStateError
 
@@ -123,11 +124,7 @@ class EstopMachine:
         return True
 
     def _tell(self) -> None:
-        for listener in self.listeners:
-            try:
-                listener()
-            except Exception:  # a listener must never undo or delay a transition
-                log.exception("e-stop listener failed")
+        tell_all(self.listeners, log, "e-stop")  # never undoes or delays a transition
 
     async def settled(self) -> None:
         """Returns once every transition submitted so far has completed."""

@@ -37,6 +37,7 @@ from rcan_rtps.rcan import (
 )
 from rcan_rtps.rcan.actions import with_effect
 
+from .._listeners import tell_all
 from . import outcomes
 from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
 from .clock import Clock, SystemClock, now_ms
@@ -493,11 +494,7 @@ class Governor:
         return decisions
 
     def _status_changed(self) -> None:
-        for listener in self.status_listeners:
-            try:
-                listener()
-            except Exception:  # STATUS is informative: it must never fail a decision
-                log.exception("STATUS listener failed")
+        tell_all(self.status_listeners, log, "STATUS")
 
     # -- sessions (§10.8) -------------------------------------------------------------------
 

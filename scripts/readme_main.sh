@@ -1,15 +1,19 @@
 #!/usr/bin/env bash
-# Runs README.md's main command verbatim in a fresh clone, waits for the ready line, and
-# stops it with SIGINT (it must exit 0). The demo keeps DDS and mDNS on loopback, so this
-# needs no network namespace; it does need the package registries for `pip install`.
+# Runs README.md's main command verbatim in a fresh copy, waits for the ready line, and
+# stops it with SIGINT (it must exit 0). It runs outside a network namespace because its
+# `pip install` needs the package registries; the demo itself keeps DDS and mDNS on loopback
+# (localhost-only discovery) and serves 127.0.0.1:8765, which must be free.
 set -euo pipefail
 root="$(cd "$(dirname "$0")/.." && pwd)"
+# shellcheck source=scripts/setup_lib.sh
+. "$root/scripts/setup_lib.sh"
 cmd=$(awk '/<!-- main-command -->/{f=1; next} f && /^```bash/{g=1; next} g && /^```/{exit} g' \
       "$root/README.md")
 [ -n "$cmd" ] || { echo "README.md has no main command block" >&2; exit 1; }
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
-git -C "$root" ls-files -z | (cd "$root" && tar --null -T - -cf -) | (mkdir -p "$work/r" && tar -C "$work/r" -xf -)
+port_free 8765 || { echo "the README's demo serves on 8765: free it first" >&2; exit 1; }
+copy_source "$root" "$work/r"
 cd "$work/r"
 export XDG_STATE_HOME="$work/state" RCAN_BRIDGE_TOKEN=readme-check-owner-token
 setsid bash -c "$cmd" > "$work/out" 2>&1 &

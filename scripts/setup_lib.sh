@@ -23,3 +23,24 @@ ensure_venv() {  # dir stamp-text pip-args...
   "$dir/bin/python" -c 'import sys; sys.exit(0)' || { rm -rf "$dir"; return 1; }
   echo "$stamp" > "$dir/.stamp"
 }
+
+# Copies the source tree to DEST: the files git tracks in a checkout; elsewhere (an sdist, a
+# plain copy) everything but version control, environments and caches.
+copy_source() {  # src dest
+  local src=$1 dest=$2
+  mkdir -p "$dest"
+  if git -C "$src" rev-parse --is-inside-work-tree >/dev/null 2>&1; then
+    git -C "$src" ls-files -z | (cd "$src" && tar --null -T - -cf -) | tar -C "$dest" -xf -
+  else
+    (cd "$src" && tar --exclude=./.git --exclude=./.venv --exclude=./.cache \
+      --exclude='*.egg-info' --exclude=__pycache__ -cf - .) | tar -C "$dest" -xf -
+  fi
+}
+
+# Fails (with the reason) when something on this machine already listens on a local TCP port.
+port_free() {  # port
+  if (exec 3<>"/dev/tcp/127.0.0.1/$1") 2>/dev/null; then
+    echo "port $1 is already in use on this machine" >&2
+    return 1
+  fi
+}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -43,3 +44,34 @@ def test_a_good_install_is_stamped_and_reused(tmp_path: Path) -> None:
 def test_quiet_pip_passes_the_exit_status_through(tmp_path: Path) -> None:
     assert _bash("quiet_pip false", tmp_path).returncode != 0
     assert _bash("quiet_pip true", tmp_path).returncode == 0
+
+
+def test_copy_source_copies_tracked_files_from_a_checkout(tmp_path: Path) -> None:
+    done = _bash(f"copy_source {ROOT} {tmp_path}/copy", tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "copy" / "pyproject.toml").is_file()
+    assert not (tmp_path / "copy" / ".venv").exists()
+    assert not (tmp_path / "copy" / ".git").exists()
+
+
+def test_copy_source_works_without_git(tmp_path: Path) -> None:
+    # An sdist has no .git: everything but environments and caches is copied.
+    src = tmp_path / "sdist"
+    (src / "src").mkdir(parents=True)
+    (src / "pyproject.toml").write_text("[project]\n")
+    (src / "src" / "m.py").write_text("x = 1\n")
+    (src / ".venv").mkdir()
+    (src / ".venv" / "big").write_text("not copied")
+    done = _bash(f"copy_source {src} {tmp_path}/copy", tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "copy" / "src" / "m.py").read_text() == "x = 1\n"
+    assert not (tmp_path / "copy" / ".venv").exists()
+
+
+def test_port_free_refuses_a_port_in_use(tmp_path: Path) -> None:
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        done = _bash(f"port_free {port}", tmp_path)
+    assert done.returncode == 1 and f"port {port} is already in use" in done.stderr

@@ -346,7 +346,8 @@ async def main() -> int:
         f" ms) + one append+fsync beside the audit log (p50 {pct(syncs, 0.5):.2f} / p99 "
         f"{pct(syncs, 0.99):.2f} ms; the audit entry is durable before the publish) + raw "
         f"cyclonedds publish → rclpy (p50 {pct(raw, 0.5):.2f} / p99 "
-        f"{pct(raw, 0.99):.2f} ms). Median of all samples: e2e {statistics.median(e2e):.2f} ms. "
+        f"{pct(raw, 0.99):.2f} ms). Every latency sample, bridge and floor alike, is paced "
+        f"{PACE_S * 1e3:g} ms apart. Median of all samples: e2e {statistics.median(e2e):.2f} ms. "
         "The load generator (Python aiohttp clients) shares the machine's 2 cores with the "
         "bridge and the rclpy subscriber.",
         "",

@@ -136,3 +136,31 @@ async def test_incompatible_qos_is_reported(oracle: RclpyOracle, node: RosNode) 
     assert qos.incompatibilities(qos.DEFAULT, qos.SENSOR_DATA) == []
     assert qos.incompatibilities(qos.DEFAULT, qos.TF_STATIC) == [
         "reader requests TRANSIENT_LOCAL but the writer offers VOLATILE"]
+
+
+# -- full fidelity (issue 12) -------------------------------------------------------------
+LATCHED_5 = qos.DEFAULT.with_(depth=5, durability=qos.Durability.TRANSIENT_LOCAL)
+
+
+async def test_late_rclpy_subscriber_gets_our_whole_transient_local_history(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    pub = node.create_publisher("/robot1/history", "std_msgs/msg/Int32", LATCHED_5)
+    for i in range(5):
+        pub.publish({"data": i})
+    await oracle.acall("subscribe", topic="/robot1/history", type="std_msgs/msg/Int32",
+                       qos="transient_local:5")
+    got = await take(oracle, "/robot1/history", until=lambda got: len(got) >= 5)
+    assert [m["data"] for m in got] == [0, 1, 2, 3, 4]
+
+
+async def test_we_join_late_and_get_rclpy_transient_local_history(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    await oracle.acall("publisher", topic="/lab/history", type="std_msgs/msg/Int32",
+                       qos="transient_local:5")
+    for i in range(5):
+        await oracle.acall("publish", topic="/lab/history", type="std_msgs/msg/Int32",
+                           value={"data": i}, period=0.0)
+    sub = node.create_subscription("/lab/history", "std_msgs/msg/Int32", LATCHED_5)
+    got = [(await sub.get(timeout=15)).data for _ in range(5)]  # type: ignore[attr-defined]
+    assert got == [0, 1, 2, 3, 4]
+

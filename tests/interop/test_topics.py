@@ -164,3 +164,13 @@ async def test_we_join_late_and_get_rclpy_transient_local_history(
     got = [(await sub.get(timeout=15)).data for _ in range(5)]  # type: ignore[attr-defined]
     assert got == [0, 1, 2, 3, 4]
 
+
+async def test_our_best_effort_publisher_reports_a_reliable_rclpy_subscriber(
+        oracle: RclpyOracle, node: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    await oracle.acall("subscribe", topic="/robot1/strict", type="std_msgs/msg/String")
+    pub = node.create_publisher("strict", "std_msgs/msg/String", qos.SENSOR_DATA)
+    await eventually(lambda: pub.incompatible_qos_events >= 1, timeout=20)
+    assert pub.matched_count() == 0
+    assert any("publisher /robot1/strict" in r.getMessage()
+               and "RELIABILITY_QOS_POLICY" in r.getMessage() for r in caplog.records)
+

@@ -1,4 +1,4 @@
-"""QoS profiles → DDS QoS: what rmw_cyclonedds sets."""
+"""QoS profiles → DDS QoS: what rmw_cyclonedds sets, and the names of incompatible policies."""
 
 from __future__ import annotations
 
@@ -27,3 +27,8 @@ def test_transient_local_keeps_the_profiles_history_for_late_joiners() -> None:
 def test_volatile_has_no_durability_service() -> None:
     assert durability_service(qos.DEFAULT) is None
 
+
+def test_policy_names_read_like_rclpy() -> None:
+    assert qos.policy_name(11) == "RELIABILITY_QOS_POLICY"
+    assert qos.policy_name(2) == "DURABILITY_QOS_POLICY"
+    assert qos.policy_name(99) == "UNKNOWN(99)_QOS_POLICY"

@@ -14,6 +14,19 @@ from .errors import QosError
 
 _UNLIMITED = -1  # DDS_LENGTH_UNLIMITED
 
+# DDS QoS policy ids (as in an incompatible-QoS status' last_policy_id) → the names
+# rclpy's warnings use.
+_POLICY_NAMES = {
+    2: "DURABILITY", 3: "PRESENTATION", 4: "DEADLINE", 5: "LATENCY_BUDGET", 6: "OWNERSHIP",
+    8: "LIVELINESS", 10: "PARTITION", 11: "RELIABILITY", 12: "DESTINATION_ORDER", 13: "HISTORY",
+    21: "LIFESPAN", 22: "DURABILITY_SERVICE",
+}
+
+
+def policy_name(policy_id: int) -> str:
+    """`RELIABILITY_QOS_POLICY` for id 11, like rclpy's incompatible-QoS warnings."""
+    return f"{_POLICY_NAMES.get(policy_id, f'UNKNOWN({policy_id})')}_QOS_POLICY"
+
 
 class Reliability(enum.Enum):
     RELIABLE = "reliable"

@@ -174,3 +174,24 @@ async def test_our_best_effort_publisher_reports_a_reliable_rclpy_subscriber(
     assert any("publisher /robot1/strict" in r.getMessage()
                and "RELIABILITY_QOS_POLICY" in r.getMessage() for r in caplog.records)
 
+
+async def test_bounded_string_counts_characters_like_rclpy(
+        oracle: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
+    # string<=22 holding 22 two-byte characters (44 bytes): rclpy bounds characters, and
+    # rclpy → rclpy carries it; so must we, both ways.
+    value = {"bounded_string_value": "é" * 22}
+    with RosNode("strings", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as strings:
+        await oracle.acall("subscribe", topic="/to_rclpy", type="test_msgs/msg/Strings")
+        await oracle.acall("publisher", topic="/to_us", type="test_msgs/msg/Strings")
+        pub = strings.create_publisher("/to_rclpy", "test_msgs/msg/Strings")
+        sub = strings.create_subscription("/to_us", "test_msgs/msg/Strings")
+        await pub.wait_for_subscribers(1, timeout=15)
+        await sub.wait_for_publishers(1, timeout=15)
+        assert await oracle.acall("wait_matched", topic="/to_rclpy") >= 1
+        pub.publish(value)
+        await oracle.acall("publish", topic="/to_us", type="test_msgs/msg/Strings", value=value)
+        (theirs,) = await take(oracle, "/to_rclpy")
+        ours = await sub.get(timeout=10)
+    assert theirs["bounded_string_value"] == value["bounded_string_value"]
+    assert ours.bounded_string_value == value["bounded_string_value"]  # type: ignore[attr-defined]

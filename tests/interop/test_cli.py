@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import json
+import math
 import os
 import subprocess
 import sys
@@ -82,6 +84,29 @@ def test_topic_echo_resolves_the_type_from_the_graph(oracle: RclpyOracle,
         echo.kill()
     assert echo.returncode == 0, err
     assert out.splitlines()[:2] == ['{"data": "ok"}', '{"data": "ok"}']
+
+
+def test_topic_echo_json_is_strict_json_for_non_finite_floats(oracle: RclpyOracle,
+                                                               domain_id: int) -> None:
+    oracle.call("publisher", topic="/demo/odd", type="geometry_msgs/msg/Vector3")
+    echo = cli_start(domain_id, "topic", "echo", "/demo/odd", "--once", "--json",
+                     "--timeout", "30")
+    try:
+        deadline = time.monotonic() + 30
+        while echo.poll() is None and time.monotonic() < deadline:
+            oracle.call("publish", topic="/demo/odd", type="geometry_msgs/msg/Vector3",
+                        value={"x": math.nan, "y": math.inf, "z": -math.inf}, count=2,
+                        period=0.1)
+        out, err = echo.communicate(timeout=30)
+    finally:
+        echo.kill()
+    assert echo.returncode == 0, err
+
+    def refuse(constant: str) -> None:
+        raise AssertionError(f"bare {constant} is not JSON")
+
+    assert json.loads(out.splitlines()[0], parse_constant=refuse) == {
+        "x": "NaN", "y": "Infinity", "z": "-Infinity"}
 
 
 def test_topic_hz_measures_a_rate(oracle: RclpyOracle, domain_id: int) -> None:

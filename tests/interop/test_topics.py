@@ -136,3 +136,62 @@ async def test_incompatible_qos_is_reported(oracle: RclpyOracle, node: RosNode) 
     assert qos.incompatibilities(qos.DEFAULT, qos.SENSOR_DATA) == []
     assert qos.incompatibilities(qos.DEFAULT, qos.TF_STATIC) == [
         "reader requests TRANSIENT_LOCAL but the writer offers VOLATILE"]
+
+
+# -- full fidelity (issue 12) -------------------------------------------------------------
+LATCHED_5 = qos.DEFAULT.with_(depth=5, durability=qos.Durability.TRANSIENT_LOCAL)
+
+
+async def test_late_rclpy_subscriber_gets_our_whole_transient_local_history(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    pub = node.create_publisher("/robot1/history", "std_msgs/msg/Int32", LATCHED_5)
+    for i in range(5):
+        pub.publish({"data": i})
+    await oracle.acall("subscribe", topic="/robot1/history", type="std_msgs/msg/Int32",
+                       qos="transient_local:5")
+    got = await take(oracle, "/robot1/history", until=lambda got: len(got) >= 5)
+    assert [m["data"] for m in got] == [0, 1, 2, 3, 4]
+
+
+async def test_we_join_late_and_get_rclpy_transient_local_history(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    await oracle.acall("publisher", topic="/lab/history", type="std_msgs/msg/Int32",
+                       qos="transient_local:5")
+    for i in range(5):
+        await oracle.acall("publish", topic="/lab/history", type="std_msgs/msg/Int32",
+                           value={"data": i}, period=0.0)
+    sub = node.create_subscription("/lab/history", "std_msgs/msg/Int32", LATCHED_5)
+    got = [(await sub.get(timeout=15)).data for _ in range(5)]  # type: ignore[attr-defined]
+    assert got == [0, 1, 2, 3, 4]
+
+
+async def test_our_best_effort_publisher_reports_a_reliable_rclpy_subscriber(
+        oracle: RclpyOracle, node: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    await oracle.acall("subscribe", topic="/robot1/strict", type="std_msgs/msg/String")
+    pub = node.create_publisher("strict", "std_msgs/msg/String", qos.SENSOR_DATA)
+    await eventually(lambda: pub.incompatible_qos_events >= 1, timeout=20)
+    assert pub.matched_count() == 0
+    assert any("publisher /robot1/strict" in r.getMessage()
+               and "RELIABILITY_QOS_POLICY" in r.getMessage() for r in caplog.records)
+
+
+async def test_bounded_string_counts_characters_like_rclpy(
+        oracle: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
+    # string<=22 holding 22 two-byte characters (44 bytes): rclpy bounds characters, and
+    # rclpy → rclpy carries it; so must we, both ways.
+    value = {"bounded_string_value": "é" * 22}
+    with RosNode("strings", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as strings:
+        await oracle.acall("subscribe", topic="/to_rclpy", type="test_msgs/msg/Strings")
+        await oracle.acall("publisher", topic="/to_us", type="test_msgs/msg/Strings")
+        pub = strings.create_publisher("/to_rclpy", "test_msgs/msg/Strings")
+        sub = strings.create_subscription("/to_us", "test_msgs/msg/Strings")
+        await pub.wait_for_subscribers(1, timeout=15)
+        await sub.wait_for_publishers(1, timeout=15)
+        assert await oracle.acall("wait_matched", topic="/to_rclpy") >= 1
+        pub.publish(value)
+        await oracle.acall("publish", topic="/to_us", type="test_msgs/msg/Strings", value=value)
+        (theirs,) = await take(oracle, "/to_rclpy")
+        ours = await sub.get(timeout=10)
+    assert theirs["bounded_string_value"] == value["bounded_string_value"]
+    assert ours.bounded_string_value == value["bounded_string_value"]  # type: ignore[attr-defined]

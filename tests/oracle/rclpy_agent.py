@@ -101,8 +101,9 @@ def plain(value: Any) -> Any:
 def make_qos(name: str) -> QoSProfile:
     if name == "sensor":
         return qos_profile_sensor_data
-    if name == "transient_local":
-        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+    if name.startswith("transient_local"):  # `transient_local:N`: keep-last N (default 1)
+        _, _, depth = name.partition(":")
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth or 1),
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
     if name == "deep":  # reliable, a history no burst overwrites: loss shows as loss

@@ -35,8 +35,9 @@ def _primitive(ftype: FieldType) -> st.SearchStrategy[Any]:
     if prim.is_float:
         return st.floats(allow_nan=False)
     if prim.is_string:
+        # ROS bounds strings in characters (rclpy's setters), not UTF-8 bytes
         if ftype.string_bound:
-            return _TEXT.filter(lambda s: len(s.encode()) <= ftype.string_bound)
+            return _TEXT.filter(lambda s: len(s) <= ftype.string_bound)
         return _TEXT
     low, high = INTEGER_RANGES[prim]
     return st.integers(low, high)

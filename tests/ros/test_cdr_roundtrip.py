@@ -7,6 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from rcan_rtps.ros.errors import ValueFitError
 from rcan_rtps.ros.typesys.ddstypes import DdsTypes
 from rcan_rtps.ros.typesys.store import TypeStore
 from rcan_rtps.ros.typesys.values import MessageValues
@@ -45,3 +46,13 @@ def test_encode_decode_identity(type_name: str, data: st.DataObject) -> None:
     assert wire == bytes([0, 1, 0, 0]) + reference
     decoded = CODEC.types.struct(type_name).deserialize(wire)
     assert CODEC.to_plain(type_name, decoded) == value
+
+
+def test_bounded_string_counts_characters_like_rclpy() -> None:
+    # string<=22: rclpy's setter checks len(value), so 22 'é' (44 UTF-8 bytes) fit, 23 do not.
+    text = "é" * 22
+    wire = CODEC.build("test_msgs/msg/Strings", {"bounded_string_value": text}).serialize()
+    decoded = CODEC.types.struct("test_msgs/msg/Strings").deserialize(wire)
+    assert CODEC.to_plain("test_msgs/msg/Strings", decoded)["bounded_string_value"] == text
+    with pytest.raises(ValueFitError, match="bound of 22 characters"):
+        CODEC.build("test_msgs/msg/Strings", {"bounded_string_value": "é" * 23})

@@ -55,7 +55,9 @@ def test_action_names_round_trip(name: str) -> None:
     ("/1abc", "must not start with a digit"),
     ("/a/2b", "must not start with a digit"),
     ("a/~b", "'~' is allowed only at the start"),
-    ("~a", "'~' must be followed by '/'"),
+    ("~ab", "'~' must be followed by '/'"),  # rcl checks it from three characters on
+    ("~_x", "'~' must be followed by '/'"),
+    ("~{node}", "'~' must be followed by '/'"),
     ("/a{b", "substitutions must be balanced"),
     ("/", "must not be just '/'"),
 ])
@@ -94,6 +96,9 @@ def test_namespace_rules(ns: str, rule: str) -> None:
     ("/cmd_vel", "/cmd_vel"),
     ("~/status", "/robot1/rcan_bridge/status"),
     ("~", "/robot1/rcan_bridge"),
+    ("~/a/b", "/robot1/rcan_bridge/a/b"),
+    ("~x", "/robot1/rcan_bridgex"),  # what rcl makes of a two-character `~x`
+    ("~_", "/robot1/rcan_bridge_"),
     ("{node}/x", "/robot1/rcan_bridge/x"),
     ("a/b", "/robot1/a/b"),
 ])
@@ -104,6 +109,8 @@ def test_expansion_like_rcl(name: str, expected: str) -> None:
 def test_expansion_in_root_namespace() -> None:
     assert expand_topic_name("cmd_vel", "n", "/") == "/cmd_vel"
     assert expand_topic_name("~/x", "n", "/") == "/n/x"
+    assert expand_topic_name("~", "n", "/") == "/n"
+    assert expand_topic_name("~1", "n", "/") == "/n1"
 
 
 def test_unknown_substitution_is_named() -> None:

@@ -1,7 +1,7 @@
 """The node's reader thread (ros/readers.py), which replaced Cyclone listeners: delivery,
 callbacks on our thread (never a Cyclone one), close with samples in flight, many
 subscriptions on one thread, publishing from a callback, own writer + own reader on one
-topic, invalid samples, historical samples and incompatible QoS.
+topic, invalid samples, historical samples and incompatible QoS (both sides).
 
 Every wait below is for an outcome with a generous bound; nothing asserts a duration.
 """
@@ -124,6 +124,16 @@ async def test_incompatible_qos_is_counted_without_a_listener(
     b.create_publisher("strict", STRING, qos.SENSOR_DATA)  # best effort
     sub = a.create_subscription("strict", STRING, qos.DEFAULT)  # wants reliable
     await eventually(lambda: sub.incompatible_qos_events >= 1, timeout=20)
+
+
+async def test_publisher_hears_of_an_incompatible_subscription_without_a_listener(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    a, b = nodes
+    pub = b.create_publisher("strict_pub", STRING, qos.SENSOR_DATA)  # best effort
+    a.create_subscription("strict_pub", STRING, qos.DEFAULT)  # wants reliable
+    await eventually(lambda: pub.incompatible_qos_events >= 1, timeout=20)
+    pub.close()  # leaves the reader thread, which serves the node's other endpoints on
+    assert b.reader_thread.alive()
 
 
 async def test_many_subscriptions_share_one_thread(nodes: tuple[RosNode, RosNode]) -> None:
@@ -286,10 +296,13 @@ async def test_node_close_stops_the_thread_with_samples_in_flight(domain_id: int
         b.close()
 
 
-async def test_a_node_that_only_publishes_has_no_reader_thread(domain_id: int) -> None:
+async def test_a_node_that_only_publishes_shares_one_thread_for_writer_statuses(
+        domain_id: int) -> None:
+    # Publishers report incompatible subscriptions from the node's one reader thread too.
     with RosNode("talker", "/rt", domain_id=domain_id, localhost=True) as node:
         node.create_publisher("chatter", STRING).publish({"data": "x"})
-        assert reader_threads(node) == []
+        node.create_publisher("chatter2", STRING).publish({"data": "y"})
+        assert len(reader_threads(node)) == 1
 
 
 def test_no_python_runs_in_a_cyclone_thread() -> None:

@@ -117,7 +117,7 @@ def _render(plain: Any, style: str) -> str:
     if style == "csv":
         return _csv(plain)
     if style == "json":
-        return json.dumps(plain, default=_json_default)
+        return to_json(plain)
     if isinstance(plain, (dict, list)):
         return yaml.safe_dump(plain, sort_keys=False, allow_unicode=True) + "---"
     return f"{plain}\n---"
@@ -132,5 +132,21 @@ def _csv(plain: Any) -> str:
     return str(plain)
 
 
-def _json_default(value: Any) -> Any:
-    return None if isinstance(value, float) and not math.isfinite(value) else str(value)
+def to_json(plain: Any) -> str:
+    """Strict JSON: NaN and ±infinity (which json.dumps writes bare, and JSON lacks) become
+    the strings "NaN", "Infinity", "-Infinity" — protobuf's JSON spelling, which float()
+    and JavaScript's Number() read back; null would lose which one it was."""
+    try:
+        return json.dumps(plain, default=str, allow_nan=False)
+    except ValueError:  # rare: only then walk the message
+        return json.dumps(_finite_or_named(plain), default=str, allow_nan=False)
+
+
+def _finite_or_named(plain: Any) -> Any:
+    if isinstance(plain, float) and not math.isfinite(plain):
+        return "NaN" if math.isnan(plain) else "Infinity" if plain > 0 else "-Infinity"
+    if isinstance(plain, dict):
+        return {key: _finite_or_named(value) for key, value in plain.items()}
+    if isinstance(plain, (list, tuple)):
+        return [_finite_or_named(value) for value in plain]
+    return plain

@@ -45,14 +45,38 @@ def build_parser() -> argparse.ArgumentParser:
     for module in (run_cmd, topic_cmd, node_cmd, interface_cmd, config_cmd, audit_cmd, sim_cmd,
                    service_cmd, action_cmd, discover_cmd, bag_cmd, param_cmd, doctor_cmd):
         module.register(commands)
+    for command in commands_of(parser):  # global options may follow the verb too
+        add_global_options(command, after_verb=True)
+        add_logging_options(command, after_verb=True)
     return parser
 
 
-def add_logging_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--log-level", choices=_logging.LOG_LEVELS, default=None,
+def commands_of(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """The parsers that end a command line (`topic echo`, `run`), each once."""
+    found: dict[int, argparse.ArgumentParser] = {}
+    for action in parser._actions:  # argparse has no public walk of its sub-parsers
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                nested = commands_of(sub)
+                found.update((id(p), p) for p in (nested or [sub]))
+    return list(found.values())
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    from ._common import merge_global_options
+
+    return merge_global_options(build_parser().parse_args(argv))
+
+
+def add_logging_options(parser: argparse.ArgumentParser, *, after_verb: bool = False) -> None:
+    # After the verb: SUPPRESS defaults, so a value given before the verb is kept.
+    def default(value: str | None) -> str | None:
+        return argparse.SUPPRESS if after_verb else value
+
+    parser.add_argument("--log-level", choices=_logging.LOG_LEVELS, default=default(None),
                         help="least severe level logged (default: info for `run`, which logs "
                         f"one line per decision; {_logging.DEFAULT_LOG_LEVEL} otherwise)")
-    parser.add_argument("--log-format", choices=_logging.LOG_FORMATS, default="text",
+    parser.add_argument("--log-format", choices=_logging.LOG_FORMATS, default=default("text"),
                         help="log lines on stderr: text (default) or json (one object a line: "
                         "time, level, logger, event, principal/audit_id where relevant, exc)")
 
@@ -66,8 +90,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(argv: Sequence[str] | None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parse_args(argv)
     _logging.configure(args.log_level or _logging.default_level(args.command),
                        args.log_format)
     from ..config import ConfigError

@@ -1,9 +1,11 @@
 """ROS names: validation with the rule that broke, expansion, and DDS (de)mangling.
 
 Rules follow rcl/rmw: names hold letters, digits, `_` and `/`; no empty tokens (`//`),
-no trailing `/`, no token starting with a digit; `~` only as the first character;
-node names are a single token. Topic `/a/b` is DDS topic `rt/a/b`; service `/s` is
-`rq/sRequest` + `rr/sReply`; action `/x` lives under `/x/_action/…`.
+no trailing `/`, no token starting with a digit; `~` only as the first character, and
+then followed by `/` (except in a two-character name, as in rcl); node names are a
+single token. `~` expands to the node's fully qualified name. Topic `/a/b` is DDS topic
+`rt/a/b`; service `/s` is `rq/sRequest` + `rr/sReply`; action `/x` lives under
+`/x/_action/…`.
 """
 
 from __future__ import annotations
@@ -57,7 +59,9 @@ def validate_topic_name(name: str) -> None:
     _check_chars(body, "/~")
     if "~" in body[1:]:
         raise InvalidNameError(name, "'~' is allowed only at the start", body.index("~", 1))
-    if body.startswith("~") and len(body) > 1 and body[1] != "/":
+    # rcl checks this only in names of three characters or more: `~x` passes and expands
+    # to the node's name plus `x` (node /ns/n: `/ns/nx`); we resolve the same names it does.
+    if name.startswith("~") and len(name) > 2 and name[1] != "/":
         raise InvalidNameError(name, "'~' must be followed by '/'", 1)
     if body.endswith("/") and body != "/":
         raise InvalidNameError(name, "must not end with '/'", len(body) - 1)
@@ -130,7 +134,7 @@ def expand_topic_name(name: str, node_name: str, namespace: str) -> str:
         return substitutions[key]
 
     expanded = _SUBSTITUTION.sub(substitute, name)
-    if expanded.startswith("~"):
+    if expanded.startswith("~"):  # `~`, `~/x`, `~x`: the node's fully qualified name first
         expanded = f"{base}/{node_name}{expanded[1:]}"
     elif not expanded.startswith("/"):
         expanded = f"{base}/{expanded}"

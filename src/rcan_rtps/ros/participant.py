@@ -31,7 +31,7 @@ from . import qos as qos_mod
 from .errors import GraphTimeout, WireError, seconds
 from .names import expand_topic_name, mangle_topic, normalize_namespace, validate_node_name
 from .qos import QosProfile
-from .readers import ReaderThread, Watch
+from .readers import ReaderThread, Watch, WriterWatch
 from .typesys.ddstypes import DdsTypes
 from .typesys.store import TypeStore, env_idl_paths
 from .typesys.values import MessageValues
@@ -121,6 +121,15 @@ class RosPublisher:
     def __init__(self, node: RosNode, topic: str, type_name: str, writer: DataWriter[Any]) -> None:
         self.node, self.topic, self.type_name, self.writer = node, topic, type_name, writer
         self.closed = False
+        self.incompatible_qos_events = 0
+        self._watch = node.watch_writer(writer, self._on_incompatible, f"publisher {topic}")
+
+    def _on_incompatible(self, status: Any) -> None:  # on the node's reader thread
+        self.incompatible_qos_events += 1
+        # rclpy's default handler says the same (its event callbacks are optional too).
+        log.warning("publisher %s: a subscription requests incompatible QoS; no messages will "
+                    "be sent to it (last incompatible policy: %s)", self.topic,
+                    qos_mod.policy_name(status.last_policy_id))
 
     def publish(self, message: IdlStruct | Mapping[str, Any]) -> None:
         if not isinstance(message, IdlStruct):
@@ -142,6 +151,7 @@ class RosPublisher:
         if self.closed:
             return
         self.closed = True
+        self.node.unwatch(self._watch)
         self.node.forget_writer(self.writer)
         with contextlib.suppress(DDSException):
             self.writer.__del__()
@@ -198,8 +208,9 @@ class RosSubscription:
 
     def _on_incompatible(self, status: Any) -> None:
         self.incompatible_qos_events += 1
-        log.warning("subscription %s: a publisher offers incompatible QoS (policy id %s)",
-                    self.topic, getattr(status, "last_policy_id", "?"))
+        log.warning("subscription %s: a publisher offers incompatible QoS; it will not be "
+                    "heard (last incompatible policy: %s)", self.topic,
+                    qos_mod.policy_name(status.last_policy_id))
 
     async def get(self, timeout: float | None = None) -> IdlStruct:
         if self._queue is None:
@@ -343,7 +354,13 @@ class RosNode:
         thread (never on a Cyclone thread)."""
         return self.reader_thread.add(Watch(reader, deliver, label, on_incompatible_qos))
 
-    def unwatch(self, watch: Watch) -> None:
+    def watch_writer(self, writer: DataWriter[Any], on_incompatible_qos: Callable[[Any], None],
+                     label: str) -> WriterWatch:
+        """Calls `on_incompatible_qos(status)` on this node's reader thread when a reader
+        requests QoS that `writer` does not offer."""
+        return self.reader_thread.add(WriterWatch(writer, on_incompatible_qos, label))
+
+    def unwatch(self, watch: Watch | WriterWatch) -> None:
         """No delivery to `watch` starts after this returns."""
         self.reader_thread.remove(watch)
 

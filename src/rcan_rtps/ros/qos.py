@@ -12,6 +12,21 @@ from cyclonedds.util import duration
 
 from .errors import QosError
 
+_UNLIMITED = -1  # DDS_LENGTH_UNLIMITED
+
+# DDS QoS policy ids (as in an incompatible-QoS status' last_policy_id) → the names
+# rclpy's warnings use.
+_POLICY_NAMES = {
+    2: "DURABILITY", 3: "PRESENTATION", 4: "DEADLINE", 5: "LATENCY_BUDGET", 6: "OWNERSHIP",
+    8: "LIVELINESS", 10: "PARTITION", 11: "RELIABILITY", 12: "DESTINATION_ORDER", 13: "HISTORY",
+    21: "LIFESPAN", 22: "DURABILITY_SERVICE",
+}
+
+
+def policy_name(policy_id: int) -> str:
+    """`RELIABILITY_QOS_POLICY` for id 11, like rclpy's incompatible-QoS warnings."""
+    return f"{_POLICY_NAMES.get(policy_id, f'UNKNOWN({policy_id})')}_QOS_POLICY"
+
 
 class Reliability(enum.Enum):
     RELIABLE = "reliable"
@@ -48,10 +63,13 @@ class QosProfile:
         hist = f"keep_last({self.depth})" if self.history is History.KEEP_LAST else "keep_all"
         return f"{self.reliability.value}, {self.durability.value}, {hist}"
 
+    def _dds_history(self) -> Any:
+        return (Policy.History.KeepLast(self.depth) if self.history is History.KEEP_LAST
+                else Policy.History.KeepAll)
+
     def to_dds(self, user_data: bytes | None = None) -> Qos:
         policies: list[Any] = [
-            Policy.History.KeepLast(self.depth) if self.history is History.KEEP_LAST
-            else Policy.History.KeepAll,
+            self._dds_history(),
             # rmw_cyclonedds: reliable writers block indefinitely rather than drop
             Policy.Reliability.Reliable(duration(infinite=True))
             if self.reliability is Reliability.RELIABLE else Policy.Reliability.BestEffort,
@@ -60,6 +78,11 @@ class QosProfile:
             Policy.WriterDataLifecycle(autodispose=False),
             Policy.Liveliness.Automatic(duration(infinite=True)),
         ]
+        if self.durability is Durability.TRANSIENT_LOCAL:
+            # What a writer keeps for late joiners is the durability service's history
+            # (Cyclone's default: the last sample only); rmw_cyclonedds gives it the profile's.
+            policies.append(Policy.DurabilityService(
+                0, self._dds_history(), _UNLIMITED, _UNLIMITED, _UNLIMITED))
         if self.lifespan_s is not None:
             policies.append(Policy.Lifespan(duration(seconds=self.lifespan_s)))
         if self.deadline_s is not None:

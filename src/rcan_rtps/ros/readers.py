@@ -8,9 +8,10 @@ moves, and nothing else in the process does either (issue 9: the bridge froze fo
 
 Here a `ReaderThread` blocks in `dds_waitset_wait` (a ctypes call: the GIL is released
 while it waits) on a WaitSet holding one ReadCondition per reader, the reader itself (its
-status mask reduced to REQUESTED_INCOMPATIBLE_QOS) and a GuardCondition that wakes it for
-attach/detach/close. It takes the samples and delivers them from *this* thread; owners
-hop to asyncio with `loop.call_soon_threadsafe` when they need the loop.
+status mask reduced to REQUESTED_INCOMPATIBLE_QOS), each watched writer (reduced to
+OFFERED_INCOMPATIBLE_QOS) and a GuardCondition that wakes it for attach/detach/close.
+It takes the samples and delivers them from *this* thread; owners hop to asyncio with
+`loop.call_soon_threadsafe` when they need the loop.
 
 DEADLOCK INVARIANT (keep it): no thread that Cyclone owns ever needs the GIL — no
 `Listener`, no `QueryCondition` filter anywhere in this package — and this thread holds no
@@ -30,7 +31,7 @@ import contextlib
 import logging
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 from cyclonedds.core import (
     DDSException,
@@ -43,6 +44,7 @@ from cyclonedds.core import (
     WaitSet,
 )
 from cyclonedds.internal import dds_infinity
+from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 
 try:  # take raw samples and decode them one by one: one bad sample costs only itself
@@ -54,6 +56,7 @@ log = logging.getLogger(__name__)
 
 ANY_SAMPLE = SampleState.Any | ViewState.Any | InstanceState.Any
 INCOMPATIBLE_QOS = DDSStatus.RequestedIncompatibleQos
+OFFERED_INCOMPATIBLE_QOS = DDSStatus.OfferedIncompatibleQos
 BATCH = 256  # samples taken per reader per wake-up; the rest stays triggered for the next
 REMOVE_WAIT = 10.0  # s `remove` waits for the thread to drop a reader before giving up
 
@@ -75,6 +78,23 @@ class Watch:
             reader.set_status_mask(INCOMPATIBLE_QOS)  # the reader triggers on this status only
         self.closed = False
         self.bad_samples = 0
+
+
+class WriterWatch:
+    """One writer on a `ReaderThread`: `on_incompatible_qos(status)` hears of readers that
+    request what it does not offer (Cyclone reports that only as a status)."""
+
+    def __init__(self, writer: DataWriter[Any], on_incompatible_qos: OnIncompatible,
+                 label: str) -> None:
+        self.writer = writer
+        self.on_incompatible_qos = on_incompatible_qos
+        self.label = label
+        writer.set_status_mask(OFFERED_INCOMPATIBLE_QOS)  # it triggers on this status only
+        self.closed = False
+
+
+AnyWatch = Watch | WriterWatch
+W = TypeVar("W", Watch, WriterWatch)
 
 
 def take_valid(reader: DataReader[Any], n: int = BATCH,
@@ -114,9 +134,9 @@ class ReaderThread:
         self.name = name
         self._participant = participant
         self._lock = threading.Lock()
-        self._watches: list[Watch] = []
-        self._attach: list[Watch] = []
-        self._detach: list[tuple[Watch, threading.Event]] = []
+        self._watches: list[AnyWatch] = []
+        self._attach: list[AnyWatch] = []
+        self._detach: list[tuple[AnyWatch, threading.Event]] = []
         self._closing = False
         self._thread: threading.Thread | None = None
         self._waitset: WaitSet | None = None
@@ -124,7 +144,7 @@ class ReaderThread:
         self.errors = 0  # callbacks that raised
 
     # -- any thread ---------------------------------------------------------------------
-    def add(self, watch: Watch) -> Watch:
+    def add(self, watch: W) -> W:
         with self._lock:
             if self._closing:
                 raise DDSException(-9, f"{self.name} is closed")  # ALREADY_DELETED
@@ -138,7 +158,7 @@ class ReaderThread:
         self._wake()
         return watch
 
-    def remove(self, watch: Watch) -> None:
+    def remove(self, watch: AnyWatch) -> None:
         """Stops deliveries to `watch`: none starts after this returns (unless the thread
         itself is stuck in a callback for more than REMOVE_WAIT)."""
         if watch.closed:
@@ -213,26 +233,41 @@ class ReaderThread:
         for watch in attach:
             if watch.closed:
                 continue
-            waitset.attach(watch.condition)
-            if watch.on_incompatible_qos is not None:
-                waitset.attach(watch.reader)
+            for entity in _entities(watch):
+                waitset.attach(entity)
             self._watches.append(watch)
         for watch, done in detach:
             self._drop(waitset, watch)
             done.set()
         return not closing
 
-    def _drop(self, waitset: WaitSet, watch: Watch) -> None:
+    def _drop(self, waitset: WaitSet, watch: AnyWatch) -> None:
         if watch in self._watches:
             self._watches.remove(watch)
-        try:
-            waitset.detach(watch.condition)
-            waitset.detach(watch.reader)
-            watch.condition.__del__()  # dds_delete now, not whenever Python collects it
-        except DDSException:
-            pass
+        for entity in _entities(watch):
+            with contextlib.suppress(DDSException):
+                waitset.detach(entity)
+        if isinstance(watch, Watch):
+            with contextlib.suppress(DDSException):
+                watch.condition.__del__()  # dds_delete now, not whenever Python collects it
 
-    def _service(self, watch: Watch) -> None:
+    def _service(self, watch: AnyWatch) -> None:
+        if isinstance(watch, WriterWatch):
+            self._service_writer(watch)
+        else:
+            self._service_reader(watch)
+
+    def _service_writer(self, watch: WriterWatch) -> None:
+        try:
+            if not watch.writer.take_status(OFFERED_INCOMPATIBLE_QOS) & OFFERED_INCOMPATIBLE_QOS:
+                return
+            status = watch.writer.get_offered_incompatible_qos_status()
+        except DDSException:  # the writer was deleted under us (its owner closed it)
+            watch.closed = True
+            return
+        self._call(watch, watch.on_incompatible_qos, status)
+
+    def _service_reader(self, watch: Watch) -> None:
         try:
             if watch.on_incompatible_qos is not None and \
                     watch.reader.take_status(INCOMPATIBLE_QOS) & INCOMPATIBLE_QOS:
@@ -253,7 +288,7 @@ class ReaderThread:
         if samples and not watch.closed:
             self._call(watch, watch.deliver, samples)
 
-    def _call(self, watch: Watch, fn: Callable[[Any], None], arg: Any) -> None:
+    def _call(self, watch: AnyWatch, fn: Callable[[Any], None], arg: Any) -> None:
         try:
             fn(arg)
         except Exception:  # one bad delivery must not silence the reader, nor the others
@@ -273,3 +308,12 @@ class ReaderThread:
         for entity in (waitset, guard):
             with contextlib.suppress(DDSException):
                 entity.__del__()
+
+
+def _entities(watch: AnyWatch) -> list[Any]:
+    """What `watch` puts on the WaitSet."""
+    if isinstance(watch, WriterWatch):
+        return [watch.writer]
+    if watch.on_incompatible_qos is not None:
+        return [watch.condition, watch.reader]
+    return [watch.condition]

@@ -97,8 +97,9 @@ class DdsTypes:
         if ftype.nested is not None:
             return self.struct(ftype.nested)
         assert ftype.primitive is not None
-        if ftype.primitive is Primitive.STRING and ftype.string_bound:
-            return t.bounded_str[ftype.string_bound]  # type: ignore[misc]
+        # A bounded string is declared unbounded (`str`, the same bytes on the wire): Cyclone
+        # checks a declared bound in UTF-8 bytes (writing 22 'é' to a string<22> fails), where
+        # ROS bounds characters; values.py checks the bound the ROS way before anything is sent.
         found = _PRIMITIVES.get(ftype.primitive)
         if found is None:
             raise UnsupportedTypeError(

@@ -440,7 +440,7 @@ def _check_fits(value: object, ftype: FieldType) -> None:
     if prim.is_string:
         if not isinstance(value, str):
             raise ValueError(f"expected a string, found {value!r}")
-        if ftype.string_bound and len(value.encode("utf-8")) > ftype.string_bound:
+        if ftype.string_bound and len(value) > ftype.string_bound:
             raise ValueError(f"{value!r} is longer than the bound of {ftype.string_bound}")
     elif prim is Primitive.BOOLEAN:
         if not isinstance(value, bool):

@@ -167,8 +167,11 @@ def _primitive(ftype: FieldType, value: object, path: str) -> object:
     if prim.is_string:
         if not isinstance(value, str):
             raise ValueFitError(path, f"expected a string, got {_kind(value)}")
-        if ftype.string_bound and len(value.encode("utf-8")) > ftype.string_bound:
-            raise ValueFitError(path, f"string longer than its bound of {ftype.string_bound}")
+        # rclpy's generated setters bound string<N> and wstring<N> in characters (len(str)),
+        # not in UTF-8 bytes or UTF-16 units; nothing on the wire enforces bytes either.
+        if ftype.string_bound and len(value) > ftype.string_bound:
+            raise ValueFitError(path, f"string longer than its bound of {ftype.string_bound} "
+                                "characters")
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueFitError(path, f"expected a number ({prim.value}), got {_kind(value)}")

@@ -28,7 +28,8 @@ FIB = "test_msgs/action/Fibonacci"
 SCALE = float(os.environ.get("RCAN_RTPS_ZERO_LOSS_SCALE", "1"))
 CALLS_PER_CLIENT = int(160 * SCALE)  # fresh ServiceClient each, one node
 CALLS_PER_NODE = int(25 * SCALE)  # fresh RosNode (participant) each
-GOALS = int(100 * SCALE)  # fresh ActionClient each
+GOALS = int(100 * SCALE)  # fresh ActionClient each, one node
+GOALS_PER_NODE = int(15 * SCALE)  # fresh RosNode each
 CLI_CALLS = int(20 * SCALE)  # fresh `rcan-rtps service call` processes
 REPLY_TIMEOUT = 5.0
 
@@ -107,33 +108,59 @@ async def test_fresh_nodes_lose_no_reply(oracle: RclpyOracle, domain_id: int,
     tally.assert_clean(CALLS_PER_NODE)
 
 
-async def test_fresh_action_clients_get_every_first_feedback(oracle: RclpyOracle,
-                                                             node: RosNode) -> None:
-    lost_feedback: list[int] = []
-    wrong: list[tuple[int, object]] = []
-    for i in range(GOALS):
+class GoalTally:
+    """Outcomes of repeated goals: first feedback missing, wrong result."""
+
+    def __init__(self) -> None:
+        self.no_first_feedback: list[int] = []
+        self.wrong: list[tuple[int, object]] = []
+
+    async def run(self, client: ActionClient, i: int) -> None:
         order = 2 + i % 4  # the result tells one goal from another
-        client = ActionClient(node, "/fib", FIB)
-        try:
-            goal = await client.send_goal({"order": order}, timeout=10)
-            assert goal.accepted, f"goal {i} not accepted"
-            first = await _first_feedback(goal)
-            outcome = await goal.result(timeout=10)
-        finally:
-            client.close()
+        goal = await client.send_goal({"order": order}, timeout=10)
+        assert goal.accepted, f"goal {i} not accepted"
+        first = await _first_feedback(goal)
+        outcome = await goal.result(timeout=10)
         if first != fibonacci(2):  # the server's first feedback is [0, 1, 1]
-            lost_feedback.append(i)
+            self.no_first_feedback.append(i)
         if outcome.state is not GoalState.SUCCEEDED or outcome.result is None or \
                 list(outcome.result.sequence) != fibonacci(order):
-            wrong.append((i, outcome))
-    assert (lost_feedback, wrong) == ([], []), \
-        f"of {GOALS} goals: first feedback lost for {lost_feedback}, wrong results {wrong}"
+            self.wrong.append((i, outcome))
+
+    def assert_clean(self, total: int) -> None:
+        assert (self.no_first_feedback, self.wrong) == ([], []), \
+            f"of {total} goals: first feedback lost for {self.no_first_feedback}, " \
+            f"wrong results {self.wrong}"
 
 
 async def _first_feedback(goal: object) -> list[int] | None:
     async for feedback in goal.feedback(timeout=10):  # type: ignore[attr-defined]
         return list(feedback.sequence)
     return None
+
+
+async def test_fresh_action_clients_get_every_first_feedback(oracle: RclpyOracle,
+                                                             node: RosNode) -> None:
+    tally = GoalTally()
+    for i in range(GOALS):
+        client = ActionClient(node, "/fib", FIB)
+        try:
+            await tally.run(client, i)
+        finally:
+            client.close()
+    tally.assert_clean(GOALS)
+
+
+async def test_fresh_nodes_get_every_first_feedback(oracle: RclpyOracle, domain_id: int,
+                                                    jazzy_share: Path) -> None:
+    tally = GoalTally()
+    for i in range(GOALS_PER_NODE):
+        with RosNode(f"zero_loss_goal_{i}", "/", domain_id=domain_id, distro="jazzy",
+                     idl_paths=[jazzy_share]) as fresh:
+            client = ActionClient(fresh, "/fib", FIB)
+            await tally.run(client, i)
+            client.close()
+    tally.assert_clean(GOALS_PER_NODE)
 
 
 def test_fresh_cli_calls_lose_no_reply(oracle: RclpyOracle, domain_id: int,

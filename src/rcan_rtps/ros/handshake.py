@@ -7,13 +7,13 @@ Two things can make a volatile writer's sample miss a reader that is matched in 
    (it waits for the client's reply reader only when the request names that reader in its
    RTPS related-sample identity, which cyclonedds cannot write), and a feedback publisher
    does not wait at all.
-2. Cyclone accepts no data from a remote writer before it has had a HEARTBEAT from it, and
-   treats everything up to the first HEARTBEAT's last sequence number as history a volatile
-   reader must not get. A Fast DDS writer sends a new reader its HEARTBEAT (with a GAP) when
-   it matches it, and ignores Cyclone's pre-emptive ACKNACKs (count 0). If it matched our
-   reader before we knew its writer, that HEARTBEAT was dropped, the next one comes with
-   the reply, and the reply is dropped as history (traced; issue 12: 5 of 118 fresh CLI
-   calls lost). So a client creates its reply reader only once it knows the writer.
+2. Cyclone starts a volatile reader at the last sequence number of the first HEARTBEAT it
+   hears from a remote writer: a sample that arrived before and is covered by it is
+   dropped as history. A Fast DDS writer sends a new reader a GAP+HEARTBEAT once, when it
+   matches it, and ignores Cyclone's pre-emptive ACKNACKs (count 0). If it matched our
+   reader before we knew its writer, that HEARTBEAT was dropped, the next one came with
+   the reply, and the reply was dropped (traced; issue 12: 5 of 118 fresh CLI calls). So
+   clients make a reader only once discovery shows the writer it waits for.
 
 Against 1: discovery sends our readers to a peer on one reliable stream (SEDP
 subscriptions) in creation order, and the peer matches them in that order. A fresh

@@ -329,6 +329,24 @@ class Agent:
             load_type(type), name, handle, callback_group=self.group)
         return True
 
+    def op_echo_server(self, name: str) -> bool:
+        """test_msgs/srv/BasicTypes answering with a copy of each request (issue 12:
+        a reply names its request, so a misattributed reply shows)."""
+        from test_msgs.srv import BasicTypes
+
+        self.service_requests[name] = []
+
+        def handle(request: Any, response: Any, name: str = name) -> Any:
+            with self.lock:
+                self.service_requests[name].append(request.string_value)
+            for field in request.get_fields_and_field_types():
+                setattr(response, field, getattr(request, field))
+            return response
+
+        self.services[name] = self.node.create_service(
+            BasicTypes, name, handle, callback_group=self.group)
+        return True
+
     def op_service_requests(self, name: str) -> list[Any]:
         with self.lock:
             return list(self.service_requests.get(name, []))

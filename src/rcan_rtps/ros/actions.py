@@ -33,10 +33,12 @@ from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
 from .errors import ActionError, seconds
-from .names import action_names
-from .participant import RosNode
+from .graph import Direction
+from .handshake import matched_writers, writers_ready
+from .names import action_names, mangle_topic
+from .participant import RosNode, RosSubscription
 from .rostime import now_msg
-from .services import RequestMapping, ServiceClient, ServiceServer
+from .services import RequestMapping, ServiceClient, ServiceServer, shared_graph
 
 log = logging.getLogger(__name__)
 
@@ -146,6 +148,7 @@ class ActionClient:
         self._status_seen: dict[bytes, tuple[GoalState, tuple[int, int]]] = {}
         self._server_seen = False
         self._lost_since: float | None = None
+        self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
         loop = asyncio.get_running_loop()
 
         def on_loop(handler: Callable[[Any], None]) -> Callable[[IdlStruct], None]:
@@ -156,18 +159,55 @@ class ActionClient:
 
         self._status = node.create_subscription(
             names["status"], STATUS_TYPE, qos_mod.ACTION_STATUS, callback=on_loop(self._on_status))
-        self._feedback = node.create_subscription(
-            names["feedback"], self.type_name + "_FeedbackMessage", qos_mod.DEFAULT,
-            callback=on_loop(self._on_feedback))
+        # Made once the server's feedback writer is known (wait_for_server, handshake.py).
+        self._feedback: RosSubscription | None = None
+        self._feedback_topic = names["feedback"]
+        self._feedback_callback = on_loop(self._on_feedback)
 
     # -- graph ----------------------------------------------------------------------
     async def wait_for_server(self, timeout: float = 5.0) -> None:
+        """Waits like rcl's action server check: all three services matched both ways and
+        the status and feedback writers matched with our readers; then until the server's
+        replies and first feedback cannot be lost (see `handshake.py`)."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
-        for client in (self._send, self._get, self._cancel_srv):
-            await client.wait_for_service(max(0.0, deadline - loop.time()))
-        await self._status.wait_for_publishers(1, max(0.0, deadline - loop.time()))
+
+        def left() -> float:
+            return max(0.0, deadline - loop.time())
+
+        pairs = [await client.wait_matched(left())
+                 for client in (self._send, self._get, self._cancel_srv)]
+        await self._status.wait_for_publishers(1, left())
+        feedback = await self._feedback_subscription(left())
+        await feedback.wait_for_publishers(1, left())
+        writers = {h: g for h, g in matched_writers(feedback.reader).items()
+                   if h not in self._feedback_ready}
+        for pair in pairs:
+            writers |= pair.unready_writers()
+        if writers:  # one handshake for all: it proves every reader made before it
+            await writers_ready(self.node, writers, left())
+            for pair in pairs:
+                pair.ready |= writers.keys()
+            self._feedback_ready |= writers.keys()
         self._server_seen = True
+
+    async def _feedback_subscription(self, timeout: float) -> RosSubscription:
+        """The feedback subscription, made once discovery shows the server's feedback
+        writer (or at the timeout, for `wait_for_publishers` to report)."""
+        if self._feedback is None:
+            graph, topic = shared_graph(self.node), mangle_topic(self._feedback_topic)
+            loop = asyncio.get_running_loop()
+            deadline = loop.time() + timeout
+            while loop.time() < deadline:
+                graph.refresh()
+                if any(e.dds_topic == topic and e.direction is Direction.PUBLISHER
+                       for e in graph.endpoints()):
+                    break
+                await asyncio.sleep(POLL)
+            self._feedback = self.node.create_subscription(
+                self._feedback_topic, self.type_name + "_FeedbackMessage", qos_mod.DEFAULT,
+                callback=self._feedback_callback)
+        return self._feedback
 
     def server_present(self) -> bool:
         """Whether an action server is on the graph now (its status writer is matched)."""
@@ -286,7 +326,8 @@ class ActionClient:
         for client in (self._send, self._get, self._cancel_srv):
             client.close()
         self._status.close()
-        self._feedback.close()
+        if self._feedback is not None:
+            self._feedback.close()
 
     # -- topics ---------------------------------------------------------------------
     def _on_status(self, array: IdlStruct) -> None:

@@ -42,6 +42,7 @@ from . import _cyclone_header as cyclone
 from . import qos as qos_mod
 from .errors import ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction, RosGraph
+from .handshake import matched_writers, writers_ready
 from .names import mangle_service
 from .participant import RosNode
 from .qos import QosProfile
@@ -132,6 +133,11 @@ class _Pair:
         # rmw_cyclonedds names a client in the header by its request writer's handle.
         self.guid = int(self.writer.get_instance_handle()) & 0xFFFF_FFFF_FFFF_FFFF
         self.watch = node.watch(self.reader, self._on_samples, f"{into[0]} ({mapping.value})")
+        self.ready: set[int] = set()  # server writers whose next reply will reach us
+
+    def unready_writers(self) -> dict[int, bytes]:
+        """The matched server reply writers not yet made ready (see `handshake.py`)."""
+        return {h: g for h, g in matched_writers(self.reader).items() if h not in self.ready}
 
     def _on_samples(self, samples: list[Any]) -> None:  # on the node's reader thread
         try:
@@ -191,6 +197,10 @@ class ServiceClient:
         return [e.gid for e in self._graph.endpoints()
                 if e.dds_topic == self.request_topic and e.direction is Direction.SUBSCRIPTION]
 
+    def _reply_writer_known(self) -> bool:
+        return any(e.dds_topic == self.reply_topic and e.direction is Direction.PUBLISHER
+                   for e in self._graph.endpoints())
+
     def resolve_mapping(self) -> RequestMapping | None:
         """The configured mapping, or the servers' (None while there is no server)."""
         if self.mapping is not RequestMapping.AUTO:
@@ -213,13 +223,29 @@ class ServiceClient:
         return pair
 
     async def wait_for_service(self, timeout: float = 5.0) -> _Pair:
+        """Waits until a request can be answered: our request writer and reply reader are
+        matched with the server's endpoints, and the server has matched our reply reader
+        too, and its reply cannot be dropped on arrival (see `handshake.py`)."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        pair = await self.wait_matched(timeout)
+        writers = pair.unready_writers()
+        if writers:
+            await writers_ready(self.node, writers, max(0.0, deadline - loop.time()))
+            pair.ready |= writers.keys()  # ready, or best effort past the timeout: once
+        return pair
+
+    async def wait_matched(self, timeout: float = 5.0) -> _Pair:
+        """Waits until our request writer and reply reader match a server's (our view)."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
         while True:
             if self.closed:
                 raise ServiceUnavailable(f"the client of {self.name} is closed")
             mapping = self.resolve_mapping()
-            if mapping is not None:
+            # Our reply reader is made only once we know a server's reply writer, so that
+            # we hear the HEARTBEAT it sends when it matches the reader (handshake.py).
+            if mapping is not None and (mapping in self._pairs or self._reply_writer_known()):
                 pair = self._pair(mapping)
                 if pair.matched():
                     return pair

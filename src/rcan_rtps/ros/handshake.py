@@ -1,0 +1,103 @@
+"""Making sure a peer's next sample reaches our readers: a reply, or the first feedback.
+
+Two things can make a volatile writer's sample miss a reader that is matched in our view:
+
+1. The peer has not matched our reader yet, and a volatile writer drops what it writes
+   before the match. An rmw_fastrtps server replies at once to a client it cannot identify
+   (it waits for the client's reply reader only when the request names that reader in its
+   RTPS related-sample identity, which cyclonedds cannot write), and a feedback publisher
+   does not wait at all.
+2. Cyclone starts a volatile reader at the last sequence number of the first HEARTBEAT it
+   hears from a remote writer: a sample that arrived before and is covered by it is
+   dropped as history. A Fast DDS writer sends a new reader a GAP+HEARTBEAT once, when it
+   matches it, and ignores Cyclone's pre-emptive ACKNACKs (count 0). If it matched our
+   reader before we knew its writer, that HEARTBEAT was dropped, the next one came with
+   the reply, and the reply was dropped (traced; issue 12: 5 of 118 fresh CLI calls). So
+   clients make a reader only once discovery shows the writer it waits for.
+
+Against 1: discovery sends our readers to a peer on one reliable stream (SEDP
+subscriptions) in creation order, and the peer matches them in that order. A fresh
+transient-local reader of `ros_discovery_info` created *after* our other readers receives
+the peer's latched ParticipantEntitiesInfo only once the peer has matched it, so only after
+it has matched every reader created before it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from cyclonedds.core import DDSException
+from cyclonedds.sub import DataReader
+
+from . import qos as qos_mod
+from .participant import DISCOVERY_TOPIC, RosNode
+
+log = logging.getLogger(__name__)
+
+INFO_TYPE = "rmw_dds_common/msg/ParticipantEntitiesInfo"
+POLL = 0.01
+
+
+def participant_prefix(guid: bytes) -> bytes:
+    """The 12-byte GUID prefix naming an endpoint's participant."""
+    return bytes(guid[:12])
+
+
+def matched_writers(reader: DataReader[Any]) -> dict[int, bytes]:
+    """The writers `reader` is matched with (our view): instance handle → GUID."""
+    found = {}
+    for handle in reader.get_matched_publications():
+        data = reader.get_matched_publication_data(handle)
+        if data is not None:
+            found[int(handle)] = bytes(data.key.bytes)
+    return found
+
+
+async def writers_ready(node: RosNode, writers: Mapping[int, bytes], timeout: float) -> None:
+    """Waits (at most `timeout`, then goes on) until the participants of these writers
+    (handle → GUID, matched by readers of `node`) have matched our readers."""
+    await peers_know_our_readers(node, {participant_prefix(g) for g in writers.values()},
+                                 timeout)
+
+
+async def peers_know_our_readers(node: RosNode, peers: Iterable[bytes],
+                                 timeout: float) -> set[bytes]:
+    """Waits until each peer (participant prefix) has matched every reader this node created
+    so far. Returns the peers confirmed; peers that publish no `ros_discovery_info` (not a
+    ROS node) cannot be confirmed and are not waited for."""
+    wanted = set(peers)
+    if not wanted:
+        return set()
+    probe: DataReader[Any] = DataReader(
+        node.subscriber, node.topic(DISCOVERY_TOPIC, INFO_TYPE),
+        qos=qos_mod.DISCOVERY_INFO.with_(depth=1000).to_dds())
+    try:
+        return await _await_latched(probe, wanted, timeout)
+    finally:
+        with contextlib.suppress(DDSException):
+            probe.__del__()
+
+
+async def _await_latched(probe: DataReader[Any], wanted: set[bytes],
+                         timeout: float) -> set[bytes]:
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    heard: set[bytes] = set()
+    while True:
+        for sample in probe.take(N=1000):
+            if sample.sample_info.valid_data:
+                heard.add(participant_prefix(bytes(sample.gid.data)))
+        # A peer without a ros_discovery_info writer (not a ROS node) cannot be waited for.
+        announcing = {participant_prefix(g) for g in matched_writers(probe).values()}
+        waiting = (wanted & announcing) - heard
+        if not waiting:
+            return wanted & heard
+        if loop.time() >= deadline:
+            log.debug("peers %s did not confirm our readers within %.1f s",
+                      [p.hex() for p in waiting], timeout)
+            return wanted & heard
+        await asyncio.sleep(POLL)

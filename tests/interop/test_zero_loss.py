@@ -1,0 +1,178 @@
+"""Issue 12: no reply and no first feedback lost, calling real rclpy Jazzy (Fast DDS) servers
+from fresh clients, over and over.
+
+A fresh client is the worst case: its endpoints are as new as discovery can be when the
+request goes out. Every call is sequential (a Fast DDS server's replies reach every client's
+reader, see services.py), and every reply must echo its own request.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+
+import pytest
+from oracle.client import RclpyOracle
+
+from rcan_rtps.ros.actions import ActionClient, GoalState
+from rcan_rtps.ros.errors import ServiceTimeout
+from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.services import ServiceClient
+
+ECHO = "test_msgs/srv/BasicTypes"
+FIB = "test_msgs/action/Fibonacci"
+# Counts can be raised to hunt rarer losses: RCAN_RTPS_ZERO_LOSS_SCALE=5
+SCALE = float(os.environ.get("RCAN_RTPS_ZERO_LOSS_SCALE", "1"))
+CALLS_PER_CLIENT = int(160 * SCALE)  # fresh ServiceClient each, one node
+CALLS_PER_NODE = int(25 * SCALE)  # fresh RosNode (participant) each
+GOALS = int(100 * SCALE)  # fresh ActionClient each, one node
+GOALS_PER_NODE = int(15 * SCALE)  # fresh RosNode each
+CLI_CALLS = int(20 * SCALE)  # fresh `rcan-rtps service call` processes
+REPLY_TIMEOUT = 5.0
+
+
+def fibonacci(order: int) -> list[int]:
+    seq = [0, 1]
+    for i in range(1, order):
+        seq.append(seq[i] + seq[i - 1])
+    return seq
+
+
+@pytest.fixture
+def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_python, "zero_loss", "/", domain_id=domain_id) as agent:
+        agent.call("echo_server", name="/echo")
+        agent.call("action_server", name="/fib", period=0.01)
+        yield agent
+
+
+@pytest.fixture
+async def node(domain_id: int, jazzy_share: Path) -> AsyncIterator[RosNode]:
+    with RosNode("zero_loss_client", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as n:
+        yield n
+
+
+def request_of(i: int) -> dict[str, object]:
+    return {"string_value": f"call {i}", "int64_value": i, "uint32_value": 7 * i}
+
+
+class Tally:
+    """Outcomes of repeated calls: lost (timed out) and misattributed (another's reply)."""
+
+    def __init__(self) -> None:
+        self.lost: list[int] = []
+        self.wrong: list[tuple[int, str]] = []
+
+    async def call(self, client: ServiceClient, i: int) -> None:
+        try:
+            reply = await client.call(request_of(i), timeout=REPLY_TIMEOUT)
+        except ServiceTimeout:
+            self.lost.append(i)
+            return
+        if (reply.string_value, reply.int64_value, reply.uint32_value) != \
+                (f"call {i}", i, 7 * i):
+            self.wrong.append((i, reply.string_value))
+
+    def assert_clean(self, total: int) -> None:
+        assert (self.lost, self.wrong) == ([], []), \
+            f"of {total} calls: {len(self.lost)} lost {self.lost}, " \
+            f"{len(self.wrong)} misattributed {self.wrong}"
+
+
+async def test_fresh_service_clients_lose_no_reply(oracle: RclpyOracle, node: RosNode) -> None:
+    tally = Tally()
+    for i in range(CALLS_PER_CLIENT):
+        client = ServiceClient(node, "/echo", ECHO)
+        try:
+            await tally.call(client, i)
+        finally:
+            client.close()
+    tally.assert_clean(CALLS_PER_CLIENT)
+    served = await oracle.acall("service_requests", name="/echo")
+    assert served == [f"call {i}" for i in range(CALLS_PER_CLIENT)]
+
+
+async def test_fresh_nodes_lose_no_reply(oracle: RclpyOracle, domain_id: int,
+                                         jazzy_share: Path) -> None:
+    tally = Tally()
+    for i in range(CALLS_PER_NODE):
+        with RosNode(f"zero_loss_{i}", "/", domain_id=domain_id, distro="jazzy",
+                     idl_paths=[jazzy_share]) as fresh:
+            client = ServiceClient(fresh, "/echo", ECHO)
+            await tally.call(client, i)
+            client.close()
+    tally.assert_clean(CALLS_PER_NODE)
+
+
+class GoalTally:
+    """Outcomes of repeated goals: first feedback missing, wrong result."""
+
+    def __init__(self) -> None:
+        self.no_first_feedback: list[int] = []
+        self.wrong: list[tuple[int, object]] = []
+
+    async def run(self, client: ActionClient, i: int) -> None:
+        order = 2 + i % 4  # the result tells one goal from another
+        goal = await client.send_goal({"order": order}, timeout=10)
+        assert goal.accepted, f"goal {i} not accepted"
+        first = await _first_feedback(goal)
+        outcome = await goal.result(timeout=10)
+        if first != fibonacci(2):  # the server's first feedback is [0, 1, 1]
+            self.no_first_feedback.append(i)
+        if outcome.state is not GoalState.SUCCEEDED or outcome.result is None or \
+                list(outcome.result.sequence) != fibonacci(order):
+            self.wrong.append((i, outcome))
+
+    def assert_clean(self, total: int) -> None:
+        assert (self.no_first_feedback, self.wrong) == ([], []), \
+            f"of {total} goals: first feedback lost for {self.no_first_feedback}, " \
+            f"wrong results {self.wrong}"
+
+
+async def _first_feedback(goal: object) -> list[int] | None:
+    async for feedback in goal.feedback(timeout=10):  # type: ignore[attr-defined]
+        return list(feedback.sequence)
+    return None
+
+
+async def test_fresh_action_clients_get_every_first_feedback(oracle: RclpyOracle,
+                                                             node: RosNode) -> None:
+    tally = GoalTally()
+    for i in range(GOALS):
+        client = ActionClient(node, "/fib", FIB)
+        try:
+            await tally.run(client, i)
+        finally:
+            client.close()
+    tally.assert_clean(GOALS)
+
+
+async def test_fresh_nodes_get_every_first_feedback(oracle: RclpyOracle, domain_id: int,
+                                                    jazzy_share: Path) -> None:
+    tally = GoalTally()
+    for i in range(GOALS_PER_NODE):
+        with RosNode(f"zero_loss_goal_{i}", "/", domain_id=domain_id, distro="jazzy",
+                     idl_paths=[jazzy_share]) as fresh:
+            client = ActionClient(fresh, "/fib", FIB)
+            await tally.run(client, i)
+            client.close()
+    tally.assert_clean(GOALS_PER_NODE)
+
+
+def test_fresh_cli_calls_lose_no_reply(oracle: RclpyOracle, domain_id: int,
+                                       jazzy_share: Path) -> None:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    lost: list[tuple[int, str]] = []
+    for i in range(CLI_CALLS):
+        done = subprocess.run(
+            [sys.executable, "-m", "rcan_rtps", "--idl-path", str(jazzy_share), "service",
+             "call", "/echo", ECHO, f"{{string_value: cli {i}, int64_value: {i}}}",
+             "--timeout", str(REPLY_TIMEOUT)],
+            capture_output=True, text=True, env=env, timeout=60)
+        if done.returncode != 0 or f"string_value: cli {i}\n" not in done.stdout:
+            lost.append((i, done.stderr.strip()[-200:]))
+    assert lost == [], f"of {CLI_CALLS} CLI calls, {len(lost)} failed: {lost}"

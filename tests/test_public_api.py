@@ -156,6 +156,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "Joints",
         "MoveParams",
         "NavigateParams",
+        "Navigation",
         "NoParams",
         "NormalizedCommand",
         "Outcome",

@@ -87,6 +87,7 @@ class MemoryRobot:
         self.goal_views: dict[str, GoalView] = {}
         self.x = 0.0
         self.watchers: list[Callable[[], None]] = []
+        self.goal_watchers: list[Callable[[GoalView], None]] = []
         self.estop_latched: Callable[[], bool] = lambda: False  # the governor's, once built
 
     def status(self, *, pending_auth: int) -> Status:
@@ -105,6 +106,15 @@ class MemoryRobot:
         """What a test calls after setting `state`, `x` or goals: STATUS is pushed at once."""
         for watcher in self.watchers:
             watcher()
+
+    def watch_goals(self, changed: Callable[[GoalView], None]) -> None:
+        self.goal_watchers.append(changed)
+
+    def goal_changed(self, view: GoalView) -> None:
+        """What a test calls to play a goal's change (the tracker's event)."""
+        self.goal_views[view.goal_id] = view
+        for watcher in self.goal_watchers:
+            watcher(view)
 
     def goal(self, goal_id: str) -> GoalView | None:
         return self.goal_views.get(goal_id)

@@ -13,6 +13,7 @@ from oracle.client import RclpyOracle
 from rcan_rtps.bridge.commands import RosDispatcher
 from rcan_rtps.bridge.navigation import GoalTracker
 from rcan_rtps.bridge.notify import DiagnosticsNotifier
+from rcan_rtps.bridge.runtime import audit_goal_outcomes
 from rcan_rtps.bridge.telemetry import TelemetryState
 from rcan_rtps.config import RcanConfig, loads_config
 from rcan_rtps.governance import AuditLog, Decision, Governor, Principal
@@ -85,7 +86,10 @@ async def make_rig(config: RcanConfig, jazzy_python: Path, domain_id: int,
     governor = Governor.from_config(config, audit=audit, dispatcher=dispatcher,
                                     notifier=notifier)
     telemetry = TelemetryState(node, config, estop_latched=lambda: governor.latch.latched,
-                               active_goals=goals.active if goals else list)
+                               active_goals=goals.active if goals else list,
+                               navigation=goals.navigation if goals else lambda: None)
+    if goals is not None:
+        audit_goal_outcomes(goals, governor)
     governor.safe_stop_listeners.append(lambda _p: telemetry.mark_safe_stop())
     dispatcher.on_command = telemetry.clear_safe_stop
     await governor.start()

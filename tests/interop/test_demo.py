@@ -171,6 +171,48 @@ async def test_readme_tour(demo: Demo, http: aiohttp.ClientSession) -> None:
     assert verify.returncode == 0, verify.stdout + verify.stderr
 
 
+async def _frames(ws: aiohttp.ClientWebSocketResponse, into: list[dict[str, Any]]) -> None:
+    async for msg in ws:
+        if msg.type is aiohttp.WSMsgType.TEXT:
+            into.append(json.loads(msg.data))
+
+
+async def test_navigation_progress_and_outcome_over_http_and_websocket(
+        demo: Demo, http: aiohttp.ClientSession) -> None:
+    """Issue 11 item 4: feedback in STATUS and as WebSocket goal events; the end audited."""
+    await wait_status(http, demo, lambda s: s["ros"]["connected"])
+    frames: list[dict[str, Any]] = []
+    async with http.ws_connect(demo.url + "/api/ws",
+                               headers={"Authorization": f"Bearer {demo.user}"}) as ws:
+        reader = asyncio.create_task(_frames(ws, frames))
+        code, body = await call(http, demo, demo.user, "POST", "/api/command",
+                                {"action": "navigate", "params": {"x": 1.5, "y": 0.0, "yaw": 0.0}})
+        assert code == 200 and body["outcome"] == "executed", body
+        goal_id = body["goal_id"]
+
+        async def ended() -> bool:
+            await ws.ping()  # a frame from the client: the control session holds
+            return any(f["type"] == "goal" and f["body"]["goal_id"] == goal_id
+                       and f["body"]["state"] == "succeeded" for f in frames)
+
+        await eventually(ended, timeout=60, interval=0.3, what="the goal's end over the socket")
+        reader.cancel()
+    goal_frames = [f["body"] for f in frames if f["type"] == "goal"]
+    left = [g["feedback"]["distance_remaining"] for g in goal_frames if g["feedback"]]
+    assert len(left) >= 3 and left[0] > left[-1], left  # progress, as it happened
+    navs = [f["body"]["navigation"] for f in frames
+            if f["type"] == "status" and f["body"].get("navigation")]
+    assert navs and all(n["goal_id"] == goal_id for n in navs)
+    assert any(n["distance_remaining"] is not None and n["eta_s"] is not None for n in navs)
+    assert navs[-1]["recoveries"] == 0
+    _, status = await call(http, demo, demo.user, "GET", "/api/status")
+    assert status["navigation"] is None  # no goal active any more
+    entries = [json.loads(line) for line in demo.audit.read_text().splitlines()]
+    finished = [e for e in entries if e["event"] == "GOAL_FINISHED"]
+    assert [(e["params"]["goal_id"], e["outcome"]) for e in finished] == [(goal_id, "succeeded")]
+    assert finished[0]["message_id"] == body["message_id"]
+
+
 async def test_rclpy_on_localhost_sees_the_demo_robot(demo: Demo, jazzy_python: Path) -> None:
     """The demo speaks loopback-only discovery; rclpy in LOCALHOST mode finds it."""
     from oracle.client import RclpyOracle

@@ -13,10 +13,12 @@ from rcan_rtps.rcan import Role
 
 from . import _routes as r
 from ._conn import ConnectionDeadlines, track_requests
+from ._goal_events import GoalEvents
 from ._keys import (
     AUTHENTICATOR,
     CERT_PRINCIPALS,
     DEADLINES,
+    GOAL_EVENTS,
     GOVERNOR,
     OBSERVE,
     READS,
@@ -85,6 +87,8 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
         lambda: robot.status(pending_auth=len(governor.pending())),
         period_s=1.0 / settings.telemetry_rate_hz)
     app.cleanup_ctx.append(_status_owner(status, governor, robot))
+    app[GOAL_EVENTS] = goal_events = GoalEvents()
+    robot.watch_goals(goal_events.offer)
     metrics = Metrics(governor, status)
     app[OBSERVE] = metrics.command_seconds.observe
 

@@ -63,9 +63,9 @@ class VerifyReport(msgspec.Struct, kw_only=True, omit_defaults=True):
 
 
 class WsFrame(msgspec.Struct, kw_only=True, omit_defaults=True):
-    """One WebSocket text frame from the bridge: a STATUS or a command's outcome."""
+    """One WebSocket text frame from the bridge: a STATUS, a command's outcome, a goal's change."""
 
-    type: Literal["status", "outcome"]
+    type: Literal["status", "outcome", "goal"]
     body: Any
     http_status: int | None = None
 

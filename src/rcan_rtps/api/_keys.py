@@ -12,6 +12,7 @@ from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.rcan import Role
 
 from ._conn import ConnectionDeadlines
+from ._goal_events import GoalEvents
 from ._reads import AuditReads
 from ._status import StatusHub
 from .ports import RobotView
@@ -50,6 +51,7 @@ class ApiSettings(msgspec.Struct, frozen=True, kw_only=True):
 GOVERNOR = web.AppKey("governor", Governor)
 ROBOT = web.AppKey("robot", RobotView)
 STATUS = web.AppKey("status", StatusHub)  # the one STATUS owner of every transport
+GOAL_EVENTS = web.AppKey("goal_events", GoalEvents)  # goal changes, for the WebSocket
 AUTHENTICATOR = web.AppKey("authenticator", Authenticator)
 CERT_PRINCIPALS = web.AppKey("cert_principals", Mapping[str, Principal])
 SETTINGS = web.AppKey("settings", ApiSettings)

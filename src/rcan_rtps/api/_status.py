@@ -23,7 +23,13 @@ def _what_matters(status: Status) -> tuple[Any, ...]:
     """The parts of STATUS whose change is pushed at once (positions wait for the tick)."""
     return (status.state, status.estop, tuple((f.name, f.level, f.message) for f in status.faults),
             status.pending_auth, tuple(status.active_goals), status.ros.connected,
-            status.battery_pct)
+            status.battery_pct, _navigation_matters(status))
+
+
+def _navigation_matters(status: Status) -> tuple[Any, ...] | None:
+    # A recovery or a new state is pushed at once; the distance left waits for the tick.
+    nav = status.navigation
+    return None if nav is None else (nav.goal_id, nav.state, nav.recoveries)
 
 
 class StatusSubscription:

@@ -1,14 +1,15 @@
 """GET /api/ws: STATUS pushed at `telemetry_rate_hz`, commands in, outcomes out.
 
-Frames from the bridge are `{"type": "status", "body": STATUS}` and
-`{"type": "outcome", "http_status": N, "body": <the REST body>}`. Client frames are COMMAND
+Frames from the bridge are `{"type": "status", "body": STATUS}`, `{"type": "outcome",
+"http_status": N, "body": <the REST body>}` and, at each change of a navigation goal (feedback,
+state, its end), `{"type": "goal", "body": <GET /api/goals/{id}>}`. Client frames are COMMAND
 bodies (text, or binary UTF-8 JSON). Each is validated as it arrives; a valid `stop` or `estop`
 is decided at once, concurrently with the socket's queue (never refused with 429, never behind
 queued commands), so its outcome frame may overtake the outcomes of commands sent before it:
-match outcomes by `message_id` (every command has one; send your own to know it). Other
-frames are decided in order, at most `ws_max_in_flight` waiting (beyond: a 429 frame). A bad
-frame (invalid UTF-8, not JSON, schema, 413) gets its error outcome frame and the socket goes
-on; so does a command whose decision raised (503 frame). A *text* frame that is not UTF-8 is a
+match outcomes by `message_id` (every command has one; send your own to know it). Other frames
+are decided in order, at most `ws_max_in_flight` waiting (beyond: a 429 frame). A bad frame
+(invalid UTF-8, not JSON, schema, 413) gets its error outcome frame and the socket goes on; so
+does a command whose decision raised (503 frame). A *text* frame that is not UTF-8 is a
 protocol error (RFC 6455 §8.1): aiohttp closes the socket (1007). Any client frame, ping or
 pong counts as a heartbeat. When the socket closes, a control session its principal holds ends
 at once: the governor stops the robot (§10.8) after the command in flight and every stop sent
@@ -28,8 +29,9 @@ from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.rcan import ErrorCode
 
 from ._bodies import WsFrame, error_body
+from ._goal_events import GoalEvents
 from ._intake import Intake, Observe, Reply, StopLane, decide_safely, intake
-from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, SETTINGS, SOCKETS, STATUS, ApiSettings
+from ._keys import GOAL_EVENTS, GOVERNOR, OBSERVE, PRINCIPAL, SETTINGS, SOCKETS, STATUS, ApiSettings
 from ._status import StatusHub
 
 log = logging.getLogger(__name__)
@@ -55,6 +57,17 @@ async def _push_status(ws: web.WebSocketResponse, hub: StatusHub) -> None:
     try:
         while not ws.closed:
             if not await _send(ws, WsFrame(type="status", body=await subscription.next())):
+                return
+    finally:
+        subscription.close()
+
+
+async def _push_goals(ws: web.WebSocketResponse, events: GoalEvents) -> None:
+    """Every goal change, newest view per goal if the socket falls behind."""
+    subscription = events.subscribe()
+    try:
+        while not ws.closed:
+            if not await _send(ws, WsFrame(type="goal", body=await subscription.next())):
                 return
     finally:
         subscription.close()
@@ -124,7 +137,8 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
     await ws.prepare(request)
     app[SOCKETS].add(ws)
     commands = _Commands(ws, governor, principal, settings, app[OBSERVE])
-    pusher = asyncio.create_task(_push_status(ws, app[STATUS]))
+    pushers = (asyncio.create_task(_push_status(ws, app[STATUS])),
+               asyncio.create_task(_push_goals(ws, app[GOAL_EVENTS])))
     try:
         while True:
             msg = await ws.receive()
@@ -137,9 +151,10 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
                 raw = msg.data.encode() if isinstance(msg.data, str) else msg.data
                 await commands.take(raw)
     finally:
-        pusher.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await pusher
+        for pusher in pushers:
+            pusher.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await pusher
         await _end(ws, governor, principal, commands)
         app[SOCKETS].discard(ws)
     return ws

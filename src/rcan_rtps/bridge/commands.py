@@ -33,8 +33,11 @@ ESTOP_QOS = qos.DEFAULT.with_(depth=1, durability=qos.Durability.TRANSIENT_LOCAL
 class Navigator(Protocol):
     """Navigation goals (NavigateToPose); implemented over the ROS action client."""
 
-    async def send(self, goal: dict[str, Any], timeout: float) -> str:
-        """Sends a goal; returns its id once accepted. Raises on rejection/unavailability."""
+    async def send(self, goal: dict[str, Any], timeout: float, *,
+                   message_id: str | None = None) -> str:
+        """Sends a goal (for the command `message_id`); returns its id once accepted.
+
+        Raises on rejection/unavailability."""
         ...
 
     async def cancel_all(self) -> int:
@@ -146,7 +149,7 @@ class RosDispatcher:
         self.on_command()
         ros = command.spec.ros
         if isinstance(ros, SendGoal):
-            return await self._send_goal(ros, applied)
+            return await self._send_goal(ros, applied, command.message_id)
         if isinstance(ros, Halt):
             return await self._stop()
         if isinstance(ros, EstopSignal) and ros.engaged:
@@ -191,12 +194,14 @@ class RosDispatcher:
             return DispatchResult(ok=False, ros2_topic=pub.topic, detail=why)
         return self._publish(route, params)
 
-    async def _send_goal(self, ros: SendGoal[Any], params: ActionParams) -> DispatchResult:
+    async def _send_goal(self, ros: SendGoal[Any], params: ActionParams,
+                         message_id: str) -> DispatchResult:
         if self.navigator is None:
             return DispatchResult(ok=False, detail="navigation is not available")
         goal = ros.build(params, _Kit(self.node, self.ros2, ros.type_name))
         try:
-            goal_id = await self.navigator.send(goal, timeout=self.ros2.match_timeout_s)
+            goal_id = await self.navigator.send(goal, timeout=self.ros2.match_timeout_s,
+                                                message_id=message_id)
         except Exception as exc:  # rejected, no server, timeout: all mean "not executing"
             log.warning("%s goal not accepted: %s", ros.type_name, exc)
             return DispatchResult(ok=False, ros2_topic=self.navigator.action_name,

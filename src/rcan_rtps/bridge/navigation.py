@@ -1,7 +1,9 @@
 """`navigate` goals over nav2 NavigateToPose, tracked for GET /api/goals/{goal_id}.
 
 Each accepted goal gets a watcher task that records feedback (as plain values) and the
-final result, so the API reads goal progress without touching DDS.
+final result, so the API reads goal progress without touching DDS. Listeners hear of every
+change (`event_listeners`, e.g. WebSocket goal events) and of each goal's end, once
+(`finished_listeners`, e.g. the audit log).
 """
 
 from __future__ import annotations
@@ -13,8 +15,11 @@ import uuid
 from collections.abc import Callable
 from typing import Any
 
+import msgspec
+
 from .._listeners import tell_all
 from ..api.ports import GoalState, GoalView
+from ..rcan import Navigation
 from ..ros.actions import ActionClient, ClientGoal
 from ..ros.actions import GoalState as RosGoalState
 from ..ros.errors import ActionError, WireError
@@ -38,6 +43,32 @@ def _ms() -> int:
     return int(time.time() * 1000)
 
 
+class GoalFinished(msgspec.Struct, frozen=True):
+    """A goal reached a terminal state; `message_id` is the command that sent it."""
+
+    view: GoalView
+    message_id: str | None
+
+
+def _seconds(duration: Any) -> float | None:
+    if not isinstance(duration, dict):
+        return None
+    return round(float(duration.get("sec", 0)) + float(duration.get("nanosec", 0)) / 1e9, 3)
+
+
+def navigation_summary(view: GoalView) -> Navigation:
+    """NavigateToPose feedback (as plain values) as STATUS shows it."""
+    feedback = view.feedback or {}
+    left = feedback.get("distance_remaining")
+    recoveries = feedback.get("number_of_recoveries")
+    return Navigation(
+        goal_id=view.goal_id, state=view.state,
+        distance_remaining=round(float(left), 3) if isinstance(left, (int, float)) else None,
+        eta_s=_seconds(feedback.get("estimated_time_remaining")),
+        recoveries=recoveries if isinstance(recoveries, int) else None,
+        navigation_time_s=_seconds(feedback.get("navigation_time")))
+
+
 class GoalTracker:
     """The bridge's `Navigator`: sends NavigateToPose goals and follows them."""
 
@@ -48,13 +79,17 @@ class GoalTracker:
         self._views: dict[str, GoalView] = {}
         self._watchers: set[asyncio.Task[None]] = set()
         self._keep = keep
+        self._message_ids: dict[str, str | None] = {}  # goal → the command that sent it
         self.listeners: list[Callable[[], None]] = []  # told when the active goals change
+        self.event_listeners: list[Callable[[GoalView], None]] = []  # any change, a copy
+        self.finished_listeners: list[Callable[[GoalFinished], None]] = []  # once per goal
 
     @property
     def action_name(self) -> str:
         return self.client.name
 
-    async def send(self, goal: dict[str, Any], timeout: float) -> str:
+    async def send(self, goal: dict[str, Any], timeout: float, *,
+                   message_id: str | None = None) -> str:
         handle = await self.client.send_goal(goal, timeout=timeout)
         if not handle.accepted:
             raise ActionError(f"{self.client.name} rejected the goal")
@@ -62,11 +97,13 @@ class GoalTracker:
         now = _ms()
         self._views[goal_id] = GoalView(goal_id=goal_id, action=self.client.name,
                                         state="accepted", created_ms=now, updated_ms=now)
+        self._message_ids[goal_id] = message_id
         task = asyncio.create_task(self._watch(goal_id, handle))
         self._watchers.add(task)
         task.add_done_callback(self._watchers.discard)
         self._forget_old()
         self._tell()
+        self._tell_event(self._views[goal_id])
         return goal_id
 
     async def _watch(self, goal_id: str, handle: ClientGoal) -> None:
@@ -96,9 +133,26 @@ class GoalTracker:
         view.updated_ms = _ms()
         if state != state_before:
             self._tell()
+        self._tell_event(view)
+        if state in _TERMINAL and state_before not in _TERMINAL:
+            finished = GoalFinished(view=msgspec.structs.replace(view),
+                                    message_id=self._message_ids.get(goal_id))
+            tell_all(self.finished_listeners, log, "goal finished", finished)
 
     def _tell(self) -> None:
         tell_all(self.listeners, log, "goal")
+
+    def _tell_event(self, view: GoalView) -> None:
+        if self.event_listeners:
+            tell_all(self.event_listeners, log, "goal event", msgspec.structs.replace(view))
+
+    def navigation(self) -> Navigation | None:
+        """The newest active goal and its progress, for STATUS."""
+        active = [self._views[g] for g in self.active()]
+        if not active:
+            return None
+        view = max(active, key=lambda v: v.created_ms)
+        return navigation_summary(view)
 
     async def cancel_all(self) -> int:
         """Cancels every goal on the server, whoever sent it: `stop` means stop."""
@@ -131,6 +185,7 @@ class GoalTracker:
         finished = [g for g, v in self._views.items() if v.state in _TERMINAL]
         for goal_id in finished[: max(0, len(self._views) - self._keep)]:
             self._views.pop(goal_id, None)
+            self._message_ids.pop(goal_id, None)
 
     async def close(self) -> None:
         """Stops following goals (they go on on the server) and leaves; idempotent."""

@@ -65,6 +65,13 @@ def nav_mapping(config: RcanConfig) -> RequestMapping:
     return RequestMapping(chosen)
 
 
+def audit_goal_outcomes(goals: GoalTracker, governor: Governor) -> None:
+    """Each goal's end (succeeded, aborted, canceled, …) becomes a GOAL_FINISHED entry."""
+    goals.finished_listeners.append(lambda end: governor.goal_finished(
+        end.view.goal_id, end.view.state, server=end.view.action,
+        message_id=end.message_id, detail=end.view.detail))
+
+
 class BridgeView:
     """The `RobotView` the API reads: telemetry plus navigation goals."""
 
@@ -78,6 +85,9 @@ class BridgeView:
     def watch(self, changed: Callable[[], None]) -> None:
         self.telemetry.listeners.append(changed)
         self.goals_.listeners.append(changed)
+
+    def watch_goals(self, changed: Callable[[GoalView], None]) -> None:
+        self.goals_.event_listeners.append(changed)
 
     def goal(self, goal_id: str) -> GoalView | None:
         return self.goals_.goal(goal_id)
@@ -268,9 +278,10 @@ class Bridge:
                       else governor.latch.close())
         telemetry = self.telemetry = TelemetryState(
             node, self.config, estop_latched=lambda: governor.latch.latched,
-            active_goals=goals.active)
+            active_goals=goals.active, navigation=goals.navigation)
         self._on_stop("telemetry", telemetry.close)
         governor.safe_stop_listeners.append(lambda _p: telemetry.mark_safe_stop())
+        audit_goal_outcomes(goals, governor)
         governor.session_lost_listeners.append(
             lambda p: goals.warn_cancelling(f"control session of '{p.name}' lost"))
         diagnostics = self._diagnostics

@@ -23,7 +23,7 @@ from typing import Any
 
 from .._listeners import tell_all
 from ..config import RcanConfig
-from ..rcan import Fault, Joints, Position, RosInfo, Status, Telemetry, Velocity
+from ..rcan import Fault, Joints, Navigation, Position, RosInfo, Status, Telemetry, Velocity
 from ..ros import qos
 from ..ros.participant import RosNode
 from ..ros.rostime import quaternion_to_yaw
@@ -46,10 +46,12 @@ class TelemetryState:
 
     def __init__(self, node: RosNode, config: RcanConfig, *,
                  estop_latched: Callable[[], bool], active_goals: Callable[[], list[str]],
+                 navigation: Callable[[], Navigation | None] = lambda: None,
                  monotonic: Callable[[], float] = time.monotonic) -> None:
         self.config = config
         self._estop_latched = estop_latched
         self._active_goals = active_goals
+        self._navigation = navigation
         self._monotonic = monotonic
         self._lock = threading.Lock()
         self._last_rx: float | None = None
@@ -157,6 +159,7 @@ class TelemetryState:
             telemetry = Telemetry(self._position, self._yaw, self._velocity, self._joints)
             battery = self._battery
         goals = self._active_goals()
+        navigation = self._navigation() if goals else None
         stale = age is None or age > self.config.bridge.ros2.telemetry_stale_s
         estop = self._estop_latched()
         return Status(
@@ -165,7 +168,7 @@ class TelemetryState:
             active_goals=goals, pending_auth=pending_auth,
             ros=RosInfo(self.domain_id, self.distro, not stale,
                         None if age is None else round(age, 3)),
-            timestamp_ms=int(time.time() * 1000),
+            timestamp_ms=int(time.time() * 1000), navigation=navigation,
         )
 
     def _state(self, estop: bool, faults: list[Fault], stale: bool, goals: list[str],

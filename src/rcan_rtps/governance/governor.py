@@ -496,6 +496,27 @@ class Governor:
     def _status_changed(self) -> None:
         tell_all(self.status_listeners, log, "STATUS")
 
+    # -- goals the robot carries out -------------------------------------------------------
+
+    def goal_finished(self, goal_id: str, outcome: str, *, server: str,
+                      message_id: str | None, detail: str | None = None) -> None:
+        """A goal the bridge sent ended (succeeded, aborted, canceled, …): audited.
+
+        `message_id` links it to the COMMAND_DISPATCHED entry that sent it."""
+        if self._stopped:  # BRIDGE_STOPPED is the last entry
+            log.info("goal %s %s after the bridge stopped: not audited", goal_id, outcome)
+            return
+        record = AuditRecord(event=AuditEvent.GOAL_FINISHED, message_id=message_id,
+                             params={"goal_id": goal_id}, outcome=outcome,
+                             deny_reason=detail, ros2_topic=server)
+        self._spawn(self._record_event(record))
+
+    async def _record_event(self, record: AuditRecord) -> None:
+        try:
+            await self.audit.append(record)
+        except AuditError:
+            log.exception("audit write failed: %s not recorded", record.event.value)
+
     # -- sessions (§10.8) -------------------------------------------------------------------
 
     def heartbeat(self, principal: Principal) -> None:

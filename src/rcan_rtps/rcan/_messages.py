@@ -151,6 +151,17 @@ class RosInfo(msgspec.Struct):
     last_telemetry_age_s: float | None
 
 
+class Navigation(msgspec.Struct, kw_only=True):
+    """The navigation goal in progress, from its latest NavigateToPose feedback."""
+
+    goal_id: str
+    state: str
+    distance_remaining: float | None = None  # metres
+    eta_s: float | None = None  # the planner's estimate of the time left
+    recoveries: int | None = None  # recovery behaviours run so far
+    navigation_time_s: float | None = None
+
+
 class Status(msgspec.Struct, kw_only=True):
     """STATUS (GET /api/status and the WebSocket stream)."""
 
@@ -164,3 +175,4 @@ class Status(msgspec.Struct, kw_only=True):
     pending_auth: int
     ros: RosInfo
     timestamp_ms: int
+    navigation: Navigation | None = None  # the newest active goal, while there is one

@@ -1,0 +1,126 @@
+"""Navigation goals end in the audit log and show in STATUS (issue 11, item 4).
+
+The robot side is a NavigateToPose server of our own on a second DDS participant whose
+behaviour each goal's x picks: 1 succeeds, 2 aborts, 3 runs until cancelled (by `stop`).
+Feedback carries a distance that shrinks and a recovery count that grows.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from waiting import eventually
+
+from rcan_rtps.ros.actions import ActionServer, ServerGoal
+from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.rostime import duration_msg
+
+from .bridge_rig import AGENT, Rig, bridge_config, close_rig, make_rig
+
+NAV = "nav2_msgs/action/NavigateToPose"
+SUCCEED, ABORT, UNTIL_CANCELLED = 1.0, 2.0, 3.0
+
+
+def _feedback(step: int) -> dict[str, Any]:
+    left = max(0.0, 5.0 - 0.5 * step)
+    return {"distance_remaining": left, "estimated_time_remaining": duration_msg(left / 0.5),
+            "navigation_time": duration_msg(0.1 * step), "number_of_recoveries": step // 3}
+
+
+async def _execute(goal: ServerGoal) -> dict[str, Any]:
+    x = goal.goal.pose.pose.position.x
+    for step in range(10_000):
+        if goal.cancel_requested.is_set():
+            goal.canceled()
+            return {}
+        goal.publish_feedback(_feedback(step))
+        if x == SUCCEED and step == 5:
+            return {}
+        if x == ABORT and step == 5:
+            goal.abort()
+            return {"error_code": 101, "error_msg": "no valid path"}
+        await asyncio.sleep(0.05)
+    raise AssertionError("the goal was never cancelled")
+
+
+@pytest.fixture
+async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Rig]:
+    config = bridge_config(tmp_path, domain_id)
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node:
+        server = ActionServer(robot_node, "navigate_to_pose", NAV, _execute)
+        rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
+        heartbeat = asyncio.create_task(_hold_session(rig))
+        try:
+            yield rig
+        finally:
+            heartbeat.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await heartbeat
+            await close_rig(rig)
+            await server.close()
+
+
+async def _hold_session(rig: Rig) -> None:
+    while True:  # the agent's control session must outlive the goals
+        rig.governor.heartbeat(AGENT)
+        await asyncio.sleep(0.2)
+
+
+async def _navigate(rig: Rig, x: float) -> tuple[str, str]:
+    decision = await rig.command(AGENT, {"action": "navigate",
+                                         "params": {"x": x, "y": 0.0, "yaw": 0.0}})
+    assert decision.http_status == 200 and decision.goal_id, decision
+    return decision.goal_id, decision.message_id or ""
+
+
+def _has_feedback(rig: Rig, goal_id: str) -> bool:
+    view = rig.goals.goal(goal_id) if rig.goals is not None else None
+    return view is not None and view.feedback is not None
+
+
+def _finished(rig: Rig, goal_id: str) -> dict[str, Any] | None:
+    for entry in rig.entries():
+        if entry["event"] == "GOAL_FINISHED" and entry["params"]["goal_id"] == goal_id:
+            return entry
+    return None
+
+
+async def test_each_outcome_is_audited_once_and_linked_to_its_command(rig: Rig) -> None:
+    sent = {x: await _navigate(rig, x) for x in (SUCCEED, ABORT, UNTIL_CANCELLED)}
+    cancel_id, _ = sent[UNTIL_CANCELLED]
+    await eventually(lambda: _has_feedback(rig, cancel_id))
+    stop = await rig.command(AGENT, {"action": "stop"})
+    assert stop.http_status == 200, stop
+    expected = {SUCCEED: "succeeded", ABORT: "aborted", UNTIL_CANCELLED: "canceled"}
+    for x, (goal_id, message_id) in sent.items():
+        entry = await eventually(lambda g=goal_id: _finished(rig, g),
+                                 what=f"GOAL_FINISHED of {goal_id}")
+        assert entry["outcome"] == expected[x], entry
+        assert entry["message_id"] == message_id  # the navigate command that sent it
+        assert entry["ros2_topic"] == "/robot1/navigate_to_pose"
+    dispatched = {e["message_id"] for e in rig.entries() if e["event"] == "COMMAND_DISPATCHED"}
+    assert {m for _, m in sent.values()} <= dispatched
+    finished = [e for e in rig.entries() if e["event"] == "GOAL_FINISHED"]
+    assert len(finished) == 3  # once per goal, however many updates followed
+
+
+async def test_status_shows_the_active_goal_and_its_progress(rig: Rig) -> None:
+    goal_id, _ = await _navigate(rig, UNTIL_CANCELLED)
+
+    def progressed() -> Any:
+        nav = rig.telemetry.status(pending_auth=0).navigation
+        return nav if nav is not None and (nav.recoveries or 0) >= 1 else None
+
+    nav = await eventually(progressed, what="navigation with a recovery in STATUS")
+    assert nav.goal_id == goal_id and nav.state in ("accepted", "executing")
+    assert nav.distance_remaining is not None and 0.0 <= nav.distance_remaining < 5.0
+    assert nav.eta_s == pytest.approx(nav.distance_remaining / 0.5, abs=0.01)
+    assert nav.navigation_time_s is not None and nav.navigation_time_s > 0
+    assert (await rig.command(AGENT, {"action": "stop"})).http_status == 200
+    await eventually(lambda: rig.telemetry.status(pending_auth=0).navigation is None,
+                     what="no navigation once the goal is cancelled")

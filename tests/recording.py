@@ -41,5 +41,5 @@ class RecordingDispatcher:
             await self.hold.wait()
         if not self.available:
             return DispatchResult(ok=False, detail=UNAVAILABLE)
-        self.calls.append((command.action, msgspec.structs.asdict(applied)))
+        self.calls.append((command.action, msgspec.to_builtins(applied)))
         return DispatchResult(ok=True, ros2_topic=f"/robot1/{command.action}")

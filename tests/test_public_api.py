@@ -208,6 +208,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
     },
     "rcan_rtps.config": {
         "ApiConfig",
+        "ArmConfig",
         "AuditConfig",
         "BridgeConfig",
         "ConfidenceGate",

@@ -151,6 +151,11 @@ def test_each_kind_of_value_error(extra: str, path: str, words: str) -> None:
         ("request_mappings: {nav: zenoh}", "request_mappings.nav", "Invalid enum value"),
         ("request_mappings: [nav]", "request_mappings", "Expected `object`, got `array`"),
         ("request_mappings: {'': auto}", "request_mappings.", "of length >= 1"),
+        ("arms: {Left: {topic: l}}", "arms.Left", "matching regex"),
+        ("arms: {left: {topic: 'a b'}}", "arms.left.topic", "is not a valid ROS name"),
+        ("arms: {left: {topic: l, joints: [a, a]}}", "arms.left.joints",
+         "lists a joint more than once"),
+        ("arms: {left: {joints: [a]}}", "arms.left.topic", "required"),
     ],
 )
 def test_each_kind_of_constraint_error(ros2: str, path: str, words: str) -> None:

@@ -163,7 +163,9 @@ def test_the_scan_finds_what_it_must() -> None:
 
 
 def _example(spec: ActionSpec) -> dict[str, object]:
-    """Valid parameters for any action: a small sample for each required field."""
+    """Valid parameters for any action: its own example, or a sample for each required field."""
+    if spec.example is not None:
+        return dict(spec.example)
     info = msgspec.inspect.type_info(spec.params)
     assert isinstance(info, msgspec.inspect.StructType)
     out: dict[str, object] = {}

@@ -91,19 +91,31 @@ class RosDispatcher:
         self._ever_matched: set[str] = set()
         self._publishers: dict[tuple[str, str, bool], RosPublisher] = {}
         self._routes: dict[int, _Route] = {}
+        self._grouped: dict[tuple[int, str], _Route] = {}  # (route, group) → its own topic
         for spec in specs():
-            for publish in _publishes(spec):
-                self._bind(publish)
+            for publish in spec.ros.publishes():
+                self._bind_all(publish)
         self._halt = self._bind(_halt_route().velocity)
         self.cmd_vel = self._halt.publisher  # where halting publishes zero velocity
         # Latched (transient-local): a robot node that (re)joins still learns the e-stop state.
         self.estop = self._bind(_estop_route().signal).publisher
 
-    def _bind(self, publish: Publish[Any]) -> _Route:
-        route = self._routes.get(id(publish))
+    def _groups(self, publish: Publish[Any]) -> dict[str, Any]:
+        return dict(getattr(self.ros2, publish.group_key)) if publish.group_key else {}
+
+    def _bind_all(self, publish: Publish[Any]) -> None:
+        groups = self._groups(publish)
+        if not groups:
+            self._bind(publish)
+        for name, group in groups.items():
+            self._grouped[(id(publish), name)] = self._bind(publish, group.topic)
+
+    def _bind(self, publish: Publish[Any], group_topic: str | None = None) -> _Route:
+        """The route of `publish` on its configured topic, or on one group's topic."""
+        route = self._routes.get(id(publish)) if group_topic is None else None
         if route is not None:
             return route
-        topic = getattr(self.ros2, publish.topic_key)
+        topic = group_topic or getattr(self.ros2, publish.topic_key)
         type_name = publish.type_name or getattr(self.ros2, publish.type_key or "")
         key = (topic, type_name, publish.latched)
         publisher = self._publishers.get(key)
@@ -111,23 +123,34 @@ class RosDispatcher:
             publisher = self.node.create_publisher(
                 topic, type_name, ESTOP_QOS if publish.latched else qos.DEFAULT)
             self._publishers[key] = publisher
-        route = self._routes[id(publish)] = _Route(
-            publish, publisher, _Kit(self.node, self.ros2, type_name))
+        route = _Route(publish, publisher, _Kit(self.node, self.ros2, type_name))
+        if group_topic is None:
+            self._routes[id(publish)] = route
         return route
 
-    def _route_of(self, spec: ActionSpec[Any]) -> _Route:
-        ros = spec.ros
-        publish = ros if isinstance(ros, Publish) else (
-            ros.velocity if isinstance(ros, Halt) else ros.signal if isinstance(
-                ros, EstopSignal) else None)
-        if publish is None:
+    def _route_of(self, spec: ActionSpec[Any], params: ActionParams) -> _Route:
+        """The route of an action's own message; for a grouped one, the params' group's."""
+        publishes = spec.ros.publishes()
+        if not publishes:
             raise TypeError(f"{spec.name} does not publish")
-        return self._routes[id(publish)]
+        publish = publishes[0]
+        groups = self._groups(publish)
+        if not groups:
+            return self._routes[id(publish)]
+        group = getattr(params, "group", None) or (next(iter(groups)) if len(groups) == 1
+                                                   else None)
+        route = self._grouped.get((id(publish), group or ""))
+        if route is None:
+            raise LookupError(f"{spec.name}: no {publish.group_key} group {group!r}")
+        return route
 
     def route(self, command: NormalizedCommand) -> str | None:
         if isinstance(command.spec.ros, SendGoal):
             return self.navigator.action_name if self.navigator is not None else None
-        return self._route_of(command.spec).publisher.topic
+        try:
+            return self._route_of(command.spec, command.params).publisher.topic
+        except LookupError:
+            return None  # the group is unknown: the safety checks refuse it
 
     async def ready(self, command: NormalizedCommand) -> str | None:
         spec = command.spec
@@ -139,7 +162,10 @@ class RosDispatcher:
                 return silent
         if isinstance(spec.ros, SendGoal):
             return None if self.navigator is not None else "navigation is not available"
-        pub = self._route_of(spec).publisher
+        try:
+            pub = self._route_of(spec, command.params).publisher
+        except LookupError as exc:
+            return str(exc)
         if await self._matched(pub):
             return None
         return f"no subscriber on {pub.topic}"
@@ -154,7 +180,10 @@ class RosDispatcher:
             return await self._stop()
         if isinstance(ros, EstopSignal) and ros.engaged:
             return await self._estop(ros, applied)
-        route = self._route_of(command.spec)
+        try:
+            route = self._route_of(command.spec, applied)
+        except LookupError as exc:
+            return DispatchResult(ok=False, detail=str(exc))
         if command.spec.motion:
             return self._publish_motion(route, applied)
         return self._publish(route, applied)
@@ -244,17 +273,6 @@ class RosDispatcher:
             return DispatchResult(ok=False, ros2_topic=route.publisher.topic,
                                   detail=f"no subscriber on {route.publisher.topic}")
         return DispatchResult(ok=True, ros2_topic=route.publisher.topic)
-
-
-def _publishes(spec: ActionSpec[Any]) -> list[Publish[Any]]:
-    ros = spec.ros
-    if isinstance(ros, Publish):
-        return [ros]
-    if isinstance(ros, Halt):
-        return [ros.velocity]
-    if isinstance(ros, EstopSignal):
-        return [ros.signal] + ([ros.halt.velocity] if ros.halt else [])
-    return []
 
 
 def _halt_route() -> Halt:

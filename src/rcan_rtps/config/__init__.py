@@ -8,6 +8,7 @@ from ._errors import ConfigError, ConfigIssue
 from ._load import load_config, loads_config
 from ._model import (
     ApiConfig,
+    ArmConfig,
     AuditConfig,
     BridgeConfig,
     ConfidenceGate,
@@ -27,6 +28,7 @@ from ._model import (
 
 __all__ = [
     "ApiConfig",
+    "ArmConfig",
     "AuditConfig",
     "BridgeConfig",
     "ConfidenceGate",

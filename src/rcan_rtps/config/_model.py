@@ -94,6 +94,22 @@ class RobotConfig(_Section, frozen=True, kw_only=True):
     name: str = ""
 
 
+ArmName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,63}$")]
+JointName = Annotated[str, msgspec.Meta(min_length=1, max_length=128,
+                                        pattern=r"^[A-Za-z0-9_./-]+$")]
+
+
+def _repeated_joint_problem(joints: list[str]) -> str | None:
+    return "lists a joint more than once" if len(set(joints)) != len(joints) else None
+
+
+class ArmConfig(_Section, frozen=True, kw_only=True):
+    """One arm: its trajectory controller's topic and the joints it owns (empty: any)."""
+
+    topic: RosTopic
+    joints: Annotated[list[JointName], _check(_repeated_joint_problem)] = []
+
+
 class Ros2Config(_Section, frozen=True, kw_only=True):
     namespace: Annotated[str, _check(_namespace_problem)] = ""
     node_name: Annotated[str, msgspec.Meta(pattern=_NODE_NAME)] = "rcan_bridge"
@@ -106,6 +122,8 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     estop_topic: RosTopic = "emergency_stop"
     joint_states_topic: RosTopic = "joint_states"
     joint_trajectory_topic: RosTopic = "joint_trajectory_controller/joint_trajectory"
+    # Several arms: `arm_joint` names one by `group`; then joint_trajectory_topic is unused.
+    arms: dict[ArmName, ArmConfig] = {}
     nav_action: RosTopic = "navigate_to_pose"
     odom_topic: RosTopic = "odom"
     diagnostics_topic: RosTopic = "diagnostics"

@@ -17,9 +17,10 @@ from typing import Any, Protocol
 
 import msgspec
 
-from rcan_rtps.config import SafetyConfig, polygon_edges, polygon_problem
+from rcan_rtps.config import ArmConfig, SafetyConfig, polygon_edges, polygon_problem
 from rcan_rtps.rcan import (
     ActionParams,
+    ArmJointParams,
     Invariant,
     MoveParams,
     NavigateParams,
@@ -148,6 +149,41 @@ def _on_segment(p: tuple[float, float], a: tuple[float, float], b: tuple[float, 
     return min(a[0], b[0]) <= p[0] <= max(a[0], b[0]) and min(a[1], b[1]) <= p[1] <= max(a[1], b[1])
 
 
+class JointGroups:
+    """`arm_joint` names an arm that exists, and only joints it owns (`bridge.ros2.arms`).
+
+    The arm is resolved here (the only one, when `group` is left out), so `applied` and the
+    audit entry say which arm moved."""
+
+    def __init__(self, arms: Mapping[str, ArmConfig]) -> None:
+        self.arms = {name: frozenset(arm.joints) for name, arm in arms.items()}
+
+    def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
+        if not isinstance(params, ArmJointParams):
+            return params
+        if not self.arms:
+            if params.group is not None:
+                raise Violation(outcomes.JOINT_GROUP_VIOLATION,
+                                "this robot has no arm groups: leave out `group`")
+            return params
+        group = params.group or self._only_arm()
+        owned = self.arms.get(group)
+        if owned is None:
+            raise Violation(outcomes.JOINT_GROUP_VIOLATION,
+                            f"no arm {group!r} (arms: {', '.join(sorted(self.arms))})")
+        foreign = [j for j in params.joints if owned and j not in owned]
+        if foreign:
+            raise Violation(outcomes.JOINT_GROUP_VIOLATION,
+                            f"arm {group!r} has no joint {', '.join(foreign)}")
+        return msgspec.structs.replace(params, group=group)
+
+    def _only_arm(self) -> str:
+        if len(self.arms) > 1:
+            raise Violation(outcomes.JOINT_GROUP_VIOLATION,
+                            f"name the arm in `group`: one of {', '.join(sorted(self.arms))}")
+        return next(iter(self.arms))
+
+
 class Latch(Protocol):
     @property
     def latched(self) -> bool: ...
@@ -181,13 +217,15 @@ class PerAction:
         return policy(command, params)
 
 
-def safety_policy(safety: SafetyConfig, latch: Latch, nav_frame_id: str) -> PerAction:
+def safety_policy(safety: SafetyConfig, latch: Latch, nav_frame_id: str,
+                  arms: Mapping[str, ArmConfig] | None = None) -> PerAction:
     checks: dict[Invariant, Check] = {
         Invariant.ESTOP_GUARD: EstopGuard(latch),
         Invariant.FINITE: finite_numbers,
         Invariant.VELOCITY: VelocityLimit(safety.max_linear_vel, safety.max_angular_vel,
                                           safety.velocity_exceed_deny),
         Invariant.WORKSPACE: Workspace(safety.workspace, nav_frame_id),
+        Invariant.JOINT_GROUP: JointGroups(arms or {}),
     }
     return PerAction({spec.name: AllOf(*(checks[i] for i in spec.invariants))
                       for spec in specs()})

@@ -45,6 +45,7 @@ class Reason(str, enum.Enum):
     VELOCITY_LIMIT = "velocity_limit"
     ESTOP_ACTIVE = "estop_active"
     WORKSPACE_VIOLATION = "workspace_violation"
+    JOINT_GROUP_VIOLATION = "joint_group_violation"
     CONFIDENCE_BELOW_GATE = "confidence_below_gate"
     INVALID_VALUE = "invalid_value"
     SAFETY_CHECK_ERROR = "safety_check_error"

@@ -41,10 +41,19 @@ class SimParams:
 
 @dataclass
 class _ArmMotion:
-    start: list[float]
-    target: list[float]
+    """Straight lines between the trajectory's points, each reached at its time."""
+
+    waypoints: list[tuple[float, list[float]]]  # (seconds from `began`, positions); first at 0
     began: float
-    duration: float
+
+    def at(self, t: float) -> tuple[list[float], list[float], bool]:
+        """(positions, velocities, finished) `t` seconds after the start."""
+        for (t0, a), (t1, b) in zip(self.waypoints, self.waypoints[1:], strict=False):
+            if t < t1:
+                f, span = (t - t0) / (t1 - t0), t1 - t0
+                return ([x + (y - x) * f for x, y in zip(a, b, strict=True)],
+                        [(y - x) / span for x, y in zip(a, b, strict=True)], False)
+        return list(self.waypoints[-1][1]), [0.0] * len(self.waypoints[-1][1]), True
 
 
 @dataclass
@@ -106,17 +115,20 @@ class SimRobot:
     def _on_trajectory(self, msg: Any) -> None:
         if not msg.points:
             return
-        point = msg.points[-1]
-        duration = point.time_from_start.sec + point.time_from_start.nanosec / 1e9
         with self._lock:
             if self.state.estop:
                 return
-            target = list(self.state.arm_pos)
-            for name, position in zip(msg.joint_names, point.positions, strict=False):
-                if name in ARM_JOINTS:
-                    target[ARM_JOINTS.index(name)] = float(position)
-            self._arm = _ArmMotion(list(self.state.arm_pos), target, time.monotonic(),
-                                   max(duration, 1e-3))
+            start = list(self.state.arm_pos)
+            waypoints, last, target = [(0.0, start)], 0.0, start
+            for point in msg.points:
+                at = point.time_from_start.sec + point.time_from_start.nanosec / 1e9
+                target = list(target)
+                for name, position in zip(msg.joint_names, point.positions, strict=False):
+                    if name in ARM_JOINTS:
+                        target[ARM_JOINTS.index(name)] = float(position)
+                last = max(at, last + 1e-3)  # times must increase; a controller would refuse
+                waypoints.append((last, target))
+            self._arm = _ArmMotion(waypoints, time.monotonic())
 
     def drive(self, linear: float, angular: float) -> None:
         """A velocity command from inside the process (the navigation controller)."""
@@ -148,11 +160,8 @@ class SimRobot:
         if arm is None:
             s.arm_vel = [0.0] * len(ARM_JOINTS)
             return
-        f = min(1.0, (time.monotonic() - arm.began) / arm.duration)
-        s.arm_pos = [a + (b - a) * f for a, b in zip(arm.start, arm.target, strict=True)]
-        s.arm_vel = [(b - a) / arm.duration if f < 1.0 else 0.0
-                     for a, b in zip(arm.start, arm.target, strict=True)]
-        if f >= 1.0:
+        s.arm_pos, s.arm_vel, finished = arm.at(time.monotonic() - arm.began)
+        if finished:
             self._arm = None
 
     # -- outputs -----------------------------------------------------------------------------

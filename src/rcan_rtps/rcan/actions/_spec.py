@@ -29,6 +29,7 @@ class Invariant(enum.Enum):
     FINITE = "finite"  # every number finite (behind the schema's bounds)
     VELOCITY = "velocity"  # linear/angular limits: clamp, or deny >10 % over
     WORKSPACE = "workspace"  # goal strictly inside the workspace polygon
+    JOINT_GROUP = "joint_group"  # the arm exists and owns every joint named
 
 
 class MessageKit(Protocol):
@@ -64,6 +65,13 @@ class Publish(Generic[P]):
     type_name: str | None = None  # None: the type named by `type_key`
     type_key: str | None = None
     latched: bool = False  # transient-local: late joiners still get the last value
+    # Named groups (a `bridge.ros2` mapping name → {topic}): the params' `group` picks the
+    # topic; with no group configured, `topic_key`'s.
+    group_key: str | None = None
+
+    def publishes(self) -> tuple[Publish[Any], ...]:
+        """What this route publishes, its own message first."""
+        return (self,)
 
 
 @dataclass(frozen=True)
@@ -74,12 +82,18 @@ class SendGoal(Generic[P]):
     type_name: str
     build: Builder[P]
 
+    def publishes(self) -> tuple[Publish[Any], ...]:
+        return ()
+
 
 @dataclass(frozen=True)
 class Halt:
     """Publish zero velocity (`velocity`), and cancel every goal."""
 
     velocity: Publish[Any]
+
+    def publishes(self) -> tuple[Publish[Any], ...]:
+        return (self.velocity,)
 
 
 @dataclass(frozen=True)
@@ -89,6 +103,9 @@ class EstopSignal:
     engaged: bool
     signal: Publish[Any]
     halt: Halt | None = None
+
+    def publishes(self) -> tuple[Publish[Any], ...]:
+        return (self.signal, *(self.halt.publishes() if self.halt else ()))
 
 
 RosRoute = Publish[Any] | SendGoal[Any] | Halt | EstopSignal
@@ -117,6 +134,7 @@ class ActionSpec(Generic[P]):
     hitl: HitlDefault = field(default_factory=HitlDefault)
     starts_goal: bool = False  # its work outlives the command (a navigation goal)
     order: int = 100  # where it is listed (docs, OpenAPI, mDNS caps); ties go by name
+    example: Mapping[str, Any] | None = None  # valid params, where the required ones are not
 
     def __post_init__(self) -> None:
         if not self.invariants:

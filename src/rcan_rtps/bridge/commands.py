@@ -92,6 +92,7 @@ class RosDispatcher:
         self._publishers: dict[tuple[str, str, bool], RosPublisher] = {}
         self._routes: dict[int, _Route] = {}
         self._grouped: dict[tuple[int, str], _Route] = {}  # (route, group) → its own topic
+        self._goal_kits: dict[str, _Kit] = {}
         for spec in specs():
             for publish in spec.ros.publishes():
                 self._bind_all(publish)
@@ -227,7 +228,7 @@ class RosDispatcher:
                          message_id: str) -> DispatchResult:
         if self.navigator is None:
             return DispatchResult(ok=False, detail="navigation is not available")
-        goal = ros.build(params, _Kit(self.node, self.ros2, ros.type_name))
+        goal = ros.build(params, self._goal_kit(ros.type_name))
         try:
             goal_id = await self.navigator.send(goal, timeout=self.ros2.match_timeout_s,
                                                 message_id=message_id)
@@ -236,6 +237,12 @@ class RosDispatcher:
             return DispatchResult(ok=False, ros2_topic=self.navigator.action_name,
                                   detail=str(exc))
         return DispatchResult(ok=True, ros2_topic=self.navigator.action_name, goal_id=goal_id)
+
+    def _goal_kit(self, type_name: str) -> _Kit:
+        kit = self._goal_kits.get(type_name)
+        if kit is None:
+            kit = self._goal_kits[type_name] = _Kit(self.node, self.ros2, type_name)
+        return kit
 
     async def halt(self) -> tuple[bool, int]:
         """Zero velocity and cancel every goal; (velocity topic reached, goals cancelled)."""

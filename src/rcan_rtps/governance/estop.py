@@ -47,12 +47,15 @@ class LatchFile:
     def __init__(self, path: Path) -> None:
         self.path = path
         self._writer = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="rcan-estop")
+        self._found_at_load: bool | None = None
 
     def load(self, *, first_start: bool) -> tuple[bool, str | None]:
         """(latched, why it starts latched); fails closed on anything but a clear `false`."""
+        self._found_at_load = True
         try:
             state = msgspec.json.decode(self.path.read_bytes(), type=LatchState)
         except FileNotFoundError:
+            self._found_at_load = False
             if first_start:
                 return False, None
             return True, f"e-stop state {self.path} is missing: latched until cleared"
@@ -62,8 +65,11 @@ class LatchFile:
             return True, f"latched by {state.by or 'unknown'} before this start"
         return False, None
 
-    def exists(self) -> bool:
-        return self.path.exists()
+    def missing(self) -> bool:
+        """No file when it was loaded (the same read decided the latch), or now if never."""
+        if self._found_at_load is None:
+            return not self.path.exists()
+        return not self._found_at_load
 
     async def write(self, latched: bool, by: str, at_ms: int) -> None:
         data = msgspec.json.encode(LatchState(latched=latched, by=by, at_ms=at_ms))

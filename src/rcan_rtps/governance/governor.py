@@ -124,7 +124,7 @@ class Governor:
         self._clock = clock
         self._pending = PendingStore()
         self._idem: Idempotency[tuple[str, str], Decision] = Idempotency(clock)
-        self._latch_file_missing = not latch.file.exists()
+        self._latch_file_missing = latch.file.missing()
         self._hitl_ttl_ms = int(hitl_timeout_s * 1000)
         self._distinct = require_distinct_approver
         self._sessions = Sessions(clock, session_timeout_s)

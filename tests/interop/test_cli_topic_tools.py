@@ -55,8 +55,9 @@ def test_bw_reports_the_serialized_size_rclpy_sends(oracle: RclpyOracle,
     last = re.findall(r"([\d.]+) KB/s from (\d+) messages\n\tMessage size mean: ([\d.]+) KB "
                       r"min: ([\d.]+) KB max: ([\d.]+) KB", done.stdout)[-1]
     rate, count, mean, low, high = float(last[0]), int(last[1]), *map(float, last[2:])
-    assert 10.0 < rate < 40.0  # about 20 messages/s of ~1 KB
-    assert 2 <= count <= 50
+    # The rate's arithmetic is checked with a clock of our own (tests/cli/test_measure.py);
+    # here: rclpy's messages were counted, and at their size on the wire.
+    assert rate > 0.0 and 2 <= count <= 50
     assert mean == low == high == round(size / 1000, 2)
 
 

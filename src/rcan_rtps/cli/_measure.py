@@ -53,18 +53,22 @@ def _positive(text: str) -> int:
 class BandwidthWindow:
     """Arrival times and serialized sizes of the last `size` messages."""
 
-    def __init__(self, size: int) -> None:
+    def __init__(self, size: int, clock: Callable[[], float] = time.monotonic) -> None:
         self.samples: collections.deque[tuple[float, int]] = collections.deque(maxlen=size)
+        self._clock = clock
 
     def add(self, message: IdlStruct) -> None:  # on the node's reader thread
         # The size on the wire: CDR with its 4-byte encapsulation header, as rclpy's raw=True.
-        self.samples.append((time.monotonic(), len(message.serialize())))
+        self.add_size(len(message.serialize()))
+
+    def add_size(self, size: int) -> None:
+        self.samples.append((self._clock(), size))
 
     def report(self) -> str | None:
         samples = list(self.samples)
         if len(samples) < 2:
             return None
-        elapsed = time.monotonic() - samples[0][0]
+        elapsed = self._clock() - samples[0][0]
         sizes = [size for _, size in samples]
         rate = sum(sizes) / elapsed if elapsed > 0 else 0.0
         bw, mean, low, high = _in_units(rate, rate, statistics.fmean(sizes), min(sizes),

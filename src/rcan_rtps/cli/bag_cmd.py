@@ -9,12 +9,13 @@ import re
 import signal
 import sys
 import time
+from collections.abc import Iterable, Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 from ..ros import qos as qos_mod
-from ..ros.bag import BagReader, BagSummary, BagTopic, BagWriter, qos_dict
+from ..ros.bag import BagMessage, BagReader, BagSummary, BagTopic, BagWriter, qos_dict
 from ..ros.graph import Direction, Endpoint, RosGraph
 from ..ros.names import is_hidden
 from ..ros.participant import RosNode, RosPublisher, RosSubscription
@@ -255,19 +256,27 @@ async def _play(args: argparse.Namespace) -> int:
     return 0
 
 
+def playback(messages: Iterable[BagMessage], begin_ns: int, end_ns: int | None,
+             rate: float) -> Iterator[tuple[float, BagMessage]]:
+    """(seconds after the start of playback, message) for each message in the window: the
+    recorded gaps, divided by `rate`."""
+    for message in messages:
+        if message.log_time_ns < begin_ns:
+            continue
+        if end_ns is not None and message.log_time_ns > end_ns:
+            break
+        yield (message.log_time_ns - begin_ns) / 1e9 / rate, message
+
+
 async def _play_once(node: RosNode, reader: BagReader, summary: BagSummary,
                      publishers: dict[str, RosPublisher], args: argparse.Namespace) -> None:
     begin_ns = summary.start_ns + round(args.start_offset * 1e9)
     end_ns = begin_ns + round(args.playback_duration * 1e9) \
         if args.playback_duration >= 0 else None
     start = time.monotonic()
-    for message in reader.messages(set(publishers)):
-        if message.log_time_ns < begin_ns:
-            continue
-        if end_ns is not None and message.log_time_ns > end_ns:
-            break
-        due = start + (message.log_time_ns - begin_ns) / 1e9 / args.rate
-        if (wait := due - time.monotonic()) > 0:
+    for offset, message in playback(reader.messages(set(publishers)), begin_ns, end_ns,
+                                    args.rate):
+        if (wait := start + offset - time.monotonic()) > 0:
             await asyncio.sleep(wait)
         pub = publishers[message.topic]
         pub.publish(node.types.struct(pub.type_name).deserialize(message.data))

@@ -68,7 +68,9 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):  
         report.longrepr = f"offline test skipped: {reason}"
         return
     # Under CI a skipped interop test is a failure: the real graph must have been there.
-    if ON_CI and report.skipped and item.get_closest_marker("interop") is not None:
+    # (A strict xfail ran against it: a known limit, and it fails the day it passes.)
+    if ON_CI and report.skipped and not hasattr(report, "wasxfail") \
+            and item.get_closest_marker("interop") is not None:
         report.outcome = "failed"
         reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else report.longrepr
         report.longrepr = f"interop test skipped under CI=true: {reason}"

@@ -1,0 +1,43 @@
+"""One process of the concurrent-clients test: a fresh node calls /echo `calls` times, all
+at once, and prints a JSON tally (each reply must echo its own request)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sys
+
+from rcan_rtps.ros.errors import ServiceTimeout
+from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.services import ServiceClient
+
+ECHO = "test_msgs/srv/BasicTypes"
+
+
+async def main(tag: str, calls: int, domain_id: int, share: str) -> None:
+    lost: list[int] = []
+    wrong: list[str] = []
+    with RosNode(f"caller_{tag}", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[share]) as node:
+        client = ServiceClient(node, "/echo", ECHO)
+        await client.wait_for_service(timeout=30)
+
+        async def one(i: int) -> None:
+            request = {"string_value": f"{tag}:{i}", "int64_value": i}
+            try:
+                reply = await client.call(request, timeout=15)
+            except ServiceTimeout:
+                lost.append(i)
+                return
+            if (reply.string_value, reply.int64_value) != (f"{tag}:{i}", i):
+                wrong.append(f"{tag}:{i} got {reply.string_value}")
+
+        print("ready", flush=True)
+        sys.stdin.readline()  # every process starts calling at the same moment
+        await asyncio.gather(*(one(i) for i in range(calls)))
+        client.close()
+    print(json.dumps({"lost": lost, "wrong": wrong}), flush=True)
+
+
+if __name__ == "__main__":
+    asyncio.run(main(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]))

@@ -34,7 +34,9 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "ActionClient",
         "ActionError",
         "ActionServer",
+        "CdrDecodeError",
         "ClientGoal",
+        "Codec",
         "Direction",
         "Durability",
         "Endpoint",
@@ -63,6 +65,8 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "UnsupportedTypeError",
         "ValueFitError",
         "WireError",
+        "deserialize",
+        "serialize",
     },
     "rcan_rtps.ros.typesys": {
         "ActionType",

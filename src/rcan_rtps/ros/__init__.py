@@ -8,6 +8,7 @@ Public API (the modules stay importable for the finer parts: `names`, `qos`, `ro
     ServiceClient / ServiceServer, ActionClient / ActionServer   over both request mappings
     RosGraph                 topics, nodes, services and actions seen through DDS discovery
     TypeStore                one definition per ROS type, loaded from IDL; RIHS01 hashes
+    serialize / deserialize  messages to and from CDR bytes, no DDS (like rclpy.serialization)
     QosProfile               ROS QoS, with `qos.preset(name)` for the named profiles
     WireError and its tree   see `errors`
 """
@@ -15,6 +16,7 @@ Public API (the modules stay importable for the finer parts: `names`, `qos`, `ro
 from .actions import ActionClient, ActionServer, ClientGoal, GoalResult, GoalState, ServerGoal
 from .errors import (
     ActionError,
+    CdrDecodeError,
     GraphTimeout,
     IdlSyntaxError,
     InvalidNameError,
@@ -30,6 +32,7 @@ from .errors import (
 from .graph import Direction, Endpoint, RosGraph
 from .participant import RosNode, RosPublisher, RosSubscription
 from .qos import Durability, History, QosProfile, Reliability
+from .serialization import Codec, deserialize, serialize
 from .services import RequestMapping, ServiceClient, ServiceServer
 from .typesys import TypeStore
 
@@ -37,7 +40,9 @@ __all__ = [
     "ActionClient",
     "ActionError",
     "ActionServer",
+    "CdrDecodeError",
     "ClientGoal",
+    "Codec",
     "Direction",
     "Durability",
     "Endpoint",
@@ -66,4 +71,6 @@ __all__ = [
     "UnsupportedTypeError",
     "ValueFitError",
     "WireError",
+    "deserialize",
+    "serialize",
 ]

@@ -6,6 +6,7 @@
     ├── UnsupportedTypeError    a type the cyclonedds codec cannot carry (wstring, wchar, ...)
     ├── UnsupportedDistroError  a ROS distro the IDL bundle does not cover (also a ValueError)
     ├── ValueFitError           a value does not fit its type (with the field path)
+    ├── CdrDecodeError          bytes that do not decode as the type they were said to be
     ├── InvalidNameError        a ROS name breaks a validity rule (the rule is named)
     ├── QosError                a QoS profile that cannot be built or cannot match
     ├── GraphTimeout            something did not appear on the graph in time
@@ -70,6 +71,10 @@ class ValueFitError(WireError):
         super().__init__(f"{where}: {message}")
         self.path = path
         self.detail = message
+
+
+class CdrDecodeError(WireError):
+    """Bytes that are not the CDR of the type named (truncated, wrong type, no header)."""
 
 
 class InvalidNameError(WireError):

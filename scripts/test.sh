@@ -14,7 +14,8 @@ cd "$(dirname "$0")/.."
 
 ROS_PKGS="rclpy rmw-fastrtps-cpp std-msgs geometry-msgs sensor-msgs nav-msgs trajectory-msgs
 diagnostic-msgs action-msgs unique-identifier-msgs test-msgs std-srvs builtin-interfaces
-rmw-dds-common rosidl-generator-type-description service-msgs"
+rmw-dds-common rosidl-generator-type-description service-msgs visualization-msgs shape-msgs
+stereo-msgs actionlib-msgs rosidl-adapter"
 
 echo "== product environment (.venv)"
 ensure_venv .venv "$(sha256sum pyproject.toml | cut -c1-16)" -e '.[test]' \

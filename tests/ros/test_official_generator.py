@@ -38,7 +38,8 @@ class Official:
 def official(jazzy_python: Path, tmp_path_factory: pytest.TempPathFactory) -> Official:
     tmp = tmp_path_factory.mktemp("official")
     subprocess.run(
-        [str(jazzy_python), str(SCRIPT), "--out", str(tmp / "h.json"), "--idl-out", str(tmp / "idl")],
+        [str(jazzy_python), str(SCRIPT), "--out", str(tmp / "h.json"),
+         "--idl-out", str(tmp / "idl")],
         check=True, capture_output=True, text=True, timeout=300)
     hashes = json.loads((tmp / "h.json").read_text(encoding="utf-8"))["hashes"]
     return Official(hashes, tmp / "idl")

@@ -4,7 +4,7 @@ Runs under the Jazzy oracle's interpreter (it imports `rosidl_adapter` and
 `rosidl_generator_type_description`, both from PyPI): each package under
 tests/data/interfaces/ (not on PyPI; see SOURCES.md there) is translated to IDL by
 `rosidl_adapter` and hashed by `rosidl_generator_type_description`, packages in dependency
-order, types from installed packages read from the oracle's `share/`. Prints (or writes)
+order, types from installed packages read from the oracle's `share/`. Writes
 `{"hashes": {type name: RIHS01}}` for every type each interface defines, by default as the
 offline vectors tests/data/rihs01_official_jazzy.json:
 

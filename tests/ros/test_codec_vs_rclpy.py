@@ -26,7 +26,8 @@ from .strategies import LISTED_TYPES, values_for
 
 pytestmark = pytest.mark.interop
 
-TYPES = [*LISTED_TYPES, "test_msgs/msg/Arrays", "test_msgs/msg/BoundedSequences"]
+TYPES = [*LISTED_TYPES, "test_msgs/msg/Arrays", "test_msgs/msg/BoundedSequences",
+         "visualization_msgs/msg/Marker", "stereo_msgs/msg/DisparityImage"]
 
 
 @pytest.fixture(scope="module")

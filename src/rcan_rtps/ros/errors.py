@@ -60,7 +60,7 @@ class UnknownTypeError(WireError):
 
 
 class UnsupportedTypeError(WireError):
-    """A type the cyclonedds codec cannot carry (wstring, wchar, long double)."""
+    """A type the cyclonedds codec cannot carry (wchar, long double)."""
 
 
 class UnsupportedDistroError(WireError, ValueError):

@@ -73,8 +73,11 @@ def own_hashes(json_files: list[Path]) -> dict[str, str]:
     return hashes
 
 
-def official_hashes(interfaces: Path, share: Path, idl_root: Path, work: Path) -> dict[str, str]:
-    packages = {p.name: p for p in sorted(interfaces.iterdir()) if p.is_dir()}
+def official_hashes(interfaces: list[Path], share: Path, idl_root: Path,
+                    work: Path) -> dict[str, str]:
+    # a later folder's package replaces an earlier one's (another distro's version of it)
+    packages = {p.name: p.resolve() for root in interfaces for p in sorted(root.iterdir())
+                if p.is_dir()}
     includes = [f"{p.name}:{p}" for p in share.iterdir() if p.is_dir()]
     hashes: dict[str, str] = {}
     for pkg in build_order(packages):
@@ -91,7 +94,8 @@ def official_hashes(interfaces: Path, share: Path, idl_root: Path, work: Path) -
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--interfaces", type=Path, default=HERE / "interfaces")
+    parser.add_argument("--interfaces", type=Path, nargs="+", default=[HERE / "interfaces"],
+                        help="folders of packages; a later one's package replaces an earlier's")
     parser.add_argument("--share", type=Path, default=Path(sys.prefix) / "share")
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--idl-out", type=Path, help="keep rosidl_adapter's IDL here")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 from oracle.client import RclpyOracle
@@ -10,6 +11,8 @@ from waiting import eventually, take
 
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.typesys.store import TypeStore
+
+from .offline_data import DATA, load
 
 
 def test_bundle_hashes_match_kilted(kilted_python: Path) -> None:
@@ -28,6 +31,21 @@ def test_bundle_hashes_match_kilted(kilted_python: Path) -> None:
                     wrong.append(entry["type_name"])
     assert not wrong
     assert compared > 100
+
+
+def test_kilted_overrides_hash_as_the_kilted_generator_says(kilted_python: Path,
+                                                             tmp_path: Path) -> None:
+    """nav2_msgs at its Kilted release, with the packages not on PyPI it needs, through the
+    official Kilted generator: every hash equals ours under `--distro kilted`."""
+    out = tmp_path / "kilted.json"
+    subprocess.run([str(kilted_python), str(DATA / "make_rihs01_official.py"), "--interfaces",
+                    str(DATA / "interfaces"), str(DATA / "interfaces_distro/kilted"),
+                    "--out", str(out)], check=True, capture_output=True, timeout=300)
+    official = json.loads(out.read_text(encoding="utf-8"))["hashes"]
+    store = TypeStore(distro="kilted")
+    assert [n for n, h in official.items() if store.hash_of(n) != h] == []
+    jazzy = load("rihs01_official_jazzy.json")["hashes"]
+    assert len([n for n, h in official.items() if jazzy.get(n) != h]) > 20  # overrides matter
 
 
 async def test_kilted_rclpy_receives_and_lists_us(kilted_python: Path, domain_id: int) -> None:

@@ -72,3 +72,33 @@ def test_pypi_packages_give_the_bundle_structs(jazzy_share: Path) -> None:
                 _structs(ours.read_text(encoding="utf-8")), ours
             compared += 1
     assert compared >= 181
+
+
+DISTRO_FILES = DATA / "interfaces_distro"
+
+
+def _wire(text: str) -> dict[str, MessageType]:
+    """Structs without constants: what a distro override is for (idl/README.md)."""
+    return {k: dataclasses.replace(v, constants=()) for k, v in _structs(text).items()}
+
+
+@pytest.mark.offline
+@pytest.mark.parametrize("distro", ["humble", "kilted"])
+def test_distro_overrides_are_the_official_files_where_the_wire_differs(distro: str) -> None:
+    tool, overridden = _tool(), 0
+    for pkg_dir in sorted((DISTRO_FILES / distro).iterdir()):
+        for src in _sources(pkg_dir):
+            rel = Path(pkg_dir.name, src.parent.name, f"{src.stem}.idl")
+            theirs = tool.to_idl(src, pkg_dir.name)
+            override = bundle_dir() / "_distro" / distro / rel
+            jazzy = bundle_dir() / rel
+            if override.exists():
+                assert theirs == override.read_text(encoding="utf-8"), override
+                overridden += 1
+                if jazzy.exists():  # else new in that distro
+                    assert _wire(theirs) != _wire(jazzy.read_text(encoding="utf-8")), rel
+            else:
+                assert _wire(theirs) == _wire(jazzy.read_text(encoding="utf-8")), rel
+    packages = [p.name for p in (DISTRO_FILES / distro).iterdir()]
+    assert overridden == sum(
+        len(list((bundle_dir() / "_distro" / distro / p).glob("*/*.idl"))) for p in packages)

@@ -11,7 +11,9 @@ offline vectors tests/data/rihs01_official_jazzy.json:
     .cache/ros-jazzy/bin/python tests/data/make_rihs01_official.py [--out FILE] [--idl-out DIR]
 
 `--idl-out` keeps the IDL `rosidl_adapter` wrote (the official restatement, with constants
-and defaults). tests/ros/test_official_generator.py runs this live against the bundle.
+and defaults). tests/ros/test_official_generator.py runs this live against the bundle;
+tests/ros/test_kilted.py runs it under Kilted with `--interfaces tests/data/interfaces
+tests/data/interfaces_distro/kilted` (Kilted's nav2_msgs replacing Jazzy's).
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ from waiting import eventually, take
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.typesys.store import TypeStore
 
-from .offline_data import DATA, load
+from .offline_data import DATA, TEST_IDL, load
 
 
 def test_bundle_hashes_match_kilted(kilted_python: Path) -> None:
@@ -84,3 +84,27 @@ async def test_kilted_sequences_both_ways(kilted_python: Path, domain_id: int) -
         pub.publish({"status": [{"level": 2, "name": "motor", "message": "hot"}]})
         received = await take(oracle, "/k/diagnostics")
         assert received and received[0]["status"][0]["message"] == "hot"
+
+
+async def test_kilted_wstrings_both_ways(kilted_python: Path, domain_id: int) -> None:
+    """wstring (Fast DDS 3): the same UTF-16-units-as-uint32 wire as Jazzy, both ways."""
+    text = "Hellö 😀"
+    with RclpyOracle(kilted_python, "kilted_oracle", domain_id=domain_id) as oracle, \
+            RosNode("peer", "/k", domain_id=domain_id, distro="kilted",
+                    idl_paths=[TEST_IDL]) as node:
+        sub = node.create_subscription("/k/wide_in", "test_msgs/msg/WStrings")
+        await oracle.acall("publisher", topic="/k/wide_in", type="test_msgs/msg/WStrings")
+        await sub.wait_for_publishers(1, timeout=15)
+        await oracle.acall("wait_subscribers", topic="/k/wide_in")
+        await oracle.acall("publish", topic="/k/wide_in", type="test_msgs/msg/WStrings",
+                           value={"wstring_value": text}, count=3)
+        got = node.values.to_plain("test_msgs/msg/WStrings", await sub.get(timeout=10))
+        assert got["wstring_value"] == text and got["wstring_value_default3"] == "ハローワールド"
+        await oracle.acall("subscribe", topic="/k/wide_out", type="test_msgs/msg/WStrings")
+        pub = node.create_publisher("/k/wide_out", "test_msgs/msg/WStrings")
+        await pub.wait_for_subscribers(1, timeout=15)
+        await oracle.acall("wait_publishers", topic="/k/wide_out")
+        pub.publish({"wstring_value": text, "unbounded_sequence_of_wstrings": [text, ""]})
+        received = await take(oracle, "/k/wide_out")
+        assert received and received[0]["wstring_value"] == text
+        assert received[0]["unbounded_sequence_of_wstrings"] == [text, ""]

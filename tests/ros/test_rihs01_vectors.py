@@ -5,7 +5,7 @@ The expected values are copied from the type description files ROS 2 Jazzy ships
 official generator from the official files of the packages not on PyPI
 (tests/data/rihs01_official_jazzy.json, made by tests/data/make_rihs01_official.py), plus the
 nav2_msgs hashes pinned from a Jazzy install (tests/data/rihs01_nav2_jazzy.json). Our hashes
-are computed from `idl/` (and tests/data/idl/ for the test_msgs types) by the product's hasher.
+are computed from `idl/` (and tests/data/idl/, fixed test_msgs input) by the product's hasher.
 """
 
 from __future__ import annotations

@@ -14,7 +14,8 @@ cd "$(dirname "$0")/.."
 
 ROS_PKGS="rclpy rmw-fastrtps-cpp std-msgs geometry-msgs sensor-msgs nav-msgs trajectory-msgs
 diagnostic-msgs action-msgs unique-identifier-msgs test-msgs std-srvs builtin-interfaces
-rmw-dds-common rosidl-generator-type-description service-msgs"
+rmw-dds-common rosidl-generator-type-description service-msgs visualization-msgs shape-msgs
+stereo-msgs actionlib-msgs rosidl-adapter"
 
 echo "== product environment (.venv)"
 ensure_venv .venv "$(sha256sum pyproject.toml | cut -c1-16)" -e '.[test]' \
@@ -29,7 +30,7 @@ mkdir -p .cache
 # shellcheck disable=SC2046
 ensure_venv .cache/ros-jazzy "jazzy:$ROS_PKGS" $(ros_args jazzy) \
   || { echo "could not install the ROS 2 Jazzy oracle" >&2; exit 1; }
-.cache/ros-jazzy/bin/python -c 'import rclpy, test_msgs.action, std_srvs.srv' \
+.cache/ros-jazzy/bin/python -c 'import rclpy, test_msgs.action, std_srvs.srv, visualization_msgs.msg, rosidl_adapter' \
   || { echo "the Jazzy oracle does not import" >&2; exit 1; }
 export RCAN_RTPS_ORACLE_JAZZY="$PWD/.cache/ros-jazzy/bin/python"
 

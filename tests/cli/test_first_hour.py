@@ -50,8 +50,10 @@ def test_interface_show_hides_the_empty_placeholder(capsys: pytest.CaptureFixtur
 
 
 def test_an_unbundled_type_points_at_idl_path(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["interface", "show", "test_msgs/action/Fibonacci"]) == 1
-    assert "--idl-path <ros>/share" in capsys.readouterr().err
+    assert main(["interface", "show", "my_msgs/action/Fibonacci"]) == 1
+    err = capsys.readouterr().err
+    assert "package 'my_msgs' is not in the bundled IDL" in err
+    assert "--idl-path <ros>/share" in err and "example_interfaces/action/Fibonacci" in err
 
 
 def test_ros_domain_id_must_be_a_number(monkeypatch: pytest.MonkeyPatch) -> None:

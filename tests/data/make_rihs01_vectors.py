@@ -9,8 +9,8 @@ computed here; the values are copied as ROS ships them. Standard library only:
 
     python3 tests/data/make_rihs01_vectors.py [--share .cache/ros-jazzy/share]
 
-Packages missing from the install (nav2_msgs is not on PyPI) are listed and skipped; their
-known hashes live in tests/data/rihs01_nav2_jazzy.json, maintained by hand.
+Packages missing from the install (not on PyPI: nav2_msgs, tf2_msgs, …) are listed and
+skipped; tests/data/make_rihs01_official.py hashes them with the official generator.
 """
 
 from __future__ import annotations

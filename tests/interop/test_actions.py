@@ -31,7 +31,7 @@ def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
 
 @pytest.fixture
 async def node(domain_id: int, jazzy_share: Path) -> AsyncIterator[RosNode]:
-    # test_msgs is not in the bundle; the oracle's share/ has its official .idl files.
+    # the oracle's share/ first: rosidl's own test_msgs .idl files (the bundle has ours too)
     with RosNode("rcan_actions", "/", domain_id=domain_id, distro="jazzy",
                  idl_paths=[jazzy_share]) as n:
         yield n

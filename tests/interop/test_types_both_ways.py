@@ -1,4 +1,5 @@
-"""Every listed message type crosses both ways between us and rclpy, default and sensor QoS."""
+"""Every listed message type crosses both ways between us and rclpy, default and sensor QoS;
+so does test_msgs/msg/WStrings (wstring: UTF-16 units, astral characters as surrogate pairs)."""
 
 from __future__ import annotations
 
@@ -16,9 +17,10 @@ from waiting import eventually, take
 from rcan_rtps.ros import qos
 from rcan_rtps.ros.participant import RosNode
 
+from ..ros.offline_data import TEST_IDL
 from ..ros.strategies import LISTED_TYPES, values_for
 
-TYPES = [*LISTED_TYPES]
+TYPES = [*LISTED_TYPES, "test_msgs/msg/WStrings"]
 QOS = {"default": qos.DEFAULT, "sensor": qos.SENSOR_DATA}
 
 
@@ -30,7 +32,7 @@ def oracle(jazzy_python: Path) -> Iterator[RclpyOracle]:
 
 @pytest.fixture(scope="module")
 def node() -> Iterator[RosNode]:
-    with RosNode("types_peer", domain_id=39) as n:
+    with RosNode("types_peer", domain_id=39, idl_paths=[TEST_IDL]) as n:
         yield n
 
 
@@ -43,7 +45,24 @@ async def test_both_ways(oracle: RclpyOracle, node: RosNode, type_name: str, qos
                          data: st.DataObject) -> None:
     values = [data.draw(values_for(node.store, type_name, max_items=3)) for _ in range(3)]
     short = type_name.rsplit("/", 1)[-1].lower()
-    out, back = f"/both/{short}_{qos_name}_out", f"/both/{short}_{qos_name}_back"
+    await cross_both_ways(oracle, node, type_name, qos_name, values, f"{short}_{qos_name}")
+
+
+WIDE = ["", "a", "Hellö wörld!", "ハローワールド", "😀 needs two UTF-16 units", "\u00e9\U0001F600"]
+
+
+async def test_wstrings_with_astral_characters(oracle: RclpyOracle, node: RosNode) -> None:
+    values = [{"wstring_value": text, "array_of_wstrings": [text, "", "x"],
+               "unbounded_sequence_of_wstrings": WIDE[: i + 1]} for i, text in enumerate(WIDE)]
+    got = await cross_both_ways(oracle, node, "test_msgs/msg/WStrings", "default", values, "wide")
+    assert [m["wstring_value"] for m in got] == WIDE
+
+
+async def cross_both_ways(oracle: RclpyOracle, node: RosNode, type_name: str, qos_name: str,
+                          values: list[Any], tag: str) -> list[Any]:
+    """Sends `values` us → rclpy and rclpy → us; both sides must see what rclpy makes of them."""
+    n = len(values)
+    out, back = f"/both/{tag}_out", f"/both/{tag}_back"
     profile = QOS[qos_name]
     # us → rclpy
     await oracle.acall("subscribe", topic=out, type=type_name, qos=qos_name)
@@ -54,7 +73,7 @@ async def test_both_ways(oracle: RclpyOracle, node: RosNode, type_name: str, qos
     for value in values:
         pub.publish(value)
         await asyncio.sleep(0.02)
-    received = await take(oracle, out, until=lambda got: len(got) >= 3)
+    received = await take(oracle, out, until=lambda got: len(got) >= n)
     expected = [await oracle.acall("roundtrip", type=type_name, value=v) for v in values]
     assert received == expected
     # rclpy → us
@@ -76,9 +95,10 @@ async def test_both_ways(oracle: RclpyOracle, node: RosNode, type_name: str, qos
 
     ours: list[Any] = []
 
-    async def three_of_ours() -> bool:
+    async def all_of_ours() -> bool:
         ours.extend(await take_ours())
-        return len(ours) >= 3
+        return len(ours) >= n
 
-    await eventually(three_of_ours, what=lambda: f"3 samples on {back}: {ours!r}")
+    await eventually(all_of_ours, what=lambda: f"{n} samples on {back}: {ours!r}")
     assert ours == expected
+    return ours

@@ -69,6 +69,12 @@ def _element(store: TypeStore, w: _Writer, ftype: FieldType, value: Any) -> None
         encoded = value.encode("utf-8") + b"\0"
         w.put("I", len(encoded))
         w.raw(encoded)
+    elif ftype.primitive is Primitive.WSTRING:
+        # rmw_fastrtps: UTF-16 code units, counted, each a 4-byte wchar_t; no terminator
+        units = value.encode("utf-16-le")
+        w.put("I", len(units) // 2)
+        for (unit,) in struct.iter_unpack("<H", units):
+            w.put("I", unit)
     else:
         assert ftype.primitive is not None
         w.put(_FORMATS[ftype.primitive], value)

@@ -34,6 +34,12 @@ def _primitive(ftype: FieldType) -> st.SearchStrategy[Any]:
         return st.floats(width=32, allow_nan=False)
     if prim.is_float:
         return st.floats(allow_nan=False)
+    if prim is Primitive.WSTRING:
+        # any code point but surrogates: astral ones take two UTF-16 units on the wire
+        wide = st.text(st.characters(min_codepoint=32, blacklist_categories=("Cs",)),
+                       max_size=6)
+        return wide.filter(lambda s: len(s) <= ftype.string_bound) if ftype.string_bound \
+            else wide
     if prim.is_string:
         # ROS bounds strings in characters (rclpy's setters), not UTF-8 bytes
         if ftype.string_bound:

@@ -22,6 +22,7 @@ TYPES = [
     *LISTED_TYPES,
     "test_msgs/msg/BasicTypes",
     "test_msgs/msg/Strings",
+    "test_msgs/msg/WStrings",
     "rmw_dds_common/msg/ParticipantEntitiesInfo",
     "rcl_interfaces/msg/ParameterDescriptor",
     "rcl_interfaces/srv/SetParameters_Request",

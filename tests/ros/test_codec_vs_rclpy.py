@@ -26,7 +26,9 @@ from .strategies import LISTED_TYPES, values_for
 
 pytestmark = pytest.mark.interop
 
-TYPES = [*LISTED_TYPES, "test_msgs/msg/Arrays", "test_msgs/msg/BoundedSequences"]
+TYPES = [*LISTED_TYPES, "test_msgs/msg/Arrays", "test_msgs/msg/BoundedSequences",
+         "visualization_msgs/msg/Marker", "stereo_msgs/msg/DisparityImage",
+         "test_msgs/msg/WStrings"]
 
 
 @pytest.fixture(scope="module")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 from oracle.client import RclpyOracle
@@ -10,6 +11,8 @@ from waiting import eventually, take
 
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.typesys.store import TypeStore
+
+from .offline_data import DATA, TEST_IDL, load
 
 
 def test_bundle_hashes_match_kilted(kilted_python: Path) -> None:
@@ -28,6 +31,21 @@ def test_bundle_hashes_match_kilted(kilted_python: Path) -> None:
                     wrong.append(entry["type_name"])
     assert not wrong
     assert compared > 100
+
+
+def test_kilted_overrides_hash_as_the_kilted_generator_says(kilted_python: Path,
+                                                             tmp_path: Path) -> None:
+    """nav2_msgs at its Kilted release, with the packages not on PyPI it needs, through the
+    official Kilted generator: every hash equals ours under `--distro kilted`."""
+    out = tmp_path / "kilted.json"
+    subprocess.run([str(kilted_python), str(DATA / "make_rihs01_official.py"), "--interfaces",
+                    str(DATA / "interfaces"), str(DATA / "interfaces_distro/kilted"),
+                    "--out", str(out)], check=True, capture_output=True, timeout=300)
+    official = json.loads(out.read_text(encoding="utf-8"))["hashes"]
+    store = TypeStore(distro="kilted")
+    assert [n for n, h in official.items() if store.hash_of(n) != h] == []
+    jazzy = load("rihs01_official_jazzy.json")["hashes"]
+    assert len([n for n, h in official.items() if jazzy.get(n) != h]) > 20  # overrides matter
 
 
 async def test_kilted_rclpy_receives_and_lists_us(kilted_python: Path, domain_id: int) -> None:
@@ -66,3 +84,27 @@ async def test_kilted_sequences_both_ways(kilted_python: Path, domain_id: int) -
         pub.publish({"status": [{"level": 2, "name": "motor", "message": "hot"}]})
         received = await take(oracle, "/k/diagnostics")
         assert received and received[0]["status"][0]["message"] == "hot"
+
+
+async def test_kilted_wstrings_both_ways(kilted_python: Path, domain_id: int) -> None:
+    """wstring (Fast DDS 3): the same UTF-16-units-as-uint32 wire as Jazzy, both ways."""
+    text = "Hellö 😀"
+    with RclpyOracle(kilted_python, "kilted_oracle", domain_id=domain_id) as oracle, \
+            RosNode("peer", "/k", domain_id=domain_id, distro="kilted",
+                    idl_paths=[TEST_IDL]) as node:
+        sub = node.create_subscription("/k/wide_in", "test_msgs/msg/WStrings")
+        await oracle.acall("publisher", topic="/k/wide_in", type="test_msgs/msg/WStrings")
+        await sub.wait_for_publishers(1, timeout=15)
+        await oracle.acall("wait_subscribers", topic="/k/wide_in")
+        await oracle.acall("publish", topic="/k/wide_in", type="test_msgs/msg/WStrings",
+                           value={"wstring_value": text}, count=3)
+        got = node.values.to_plain("test_msgs/msg/WStrings", await sub.get(timeout=10))
+        assert got["wstring_value"] == text and got["wstring_value_default3"] == "ハローワールド"
+        await oracle.acall("subscribe", topic="/k/wide_out", type="test_msgs/msg/WStrings")
+        pub = node.create_publisher("/k/wide_out", "test_msgs/msg/WStrings")
+        await pub.wait_for_subscribers(1, timeout=15)
+        await oracle.acall("wait_publishers", topic="/k/wide_out")
+        pub.publish({"wstring_value": text, "unbounded_sequence_of_wstrings": [text, ""]})
+        received = await take(oracle, "/k/wide_out")
+        assert received and received[0]["wstring_value"] == text
+        assert received[0]["unbounded_sequence_of_wstrings"] == [text, ""]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import re
 from pathlib import Path
 
@@ -15,10 +16,13 @@ _BUILTIN = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int1
 
 
 def _value(text: str) -> object:
+    text = text.strip()
+    if text[:1] in ("'", '"'):  # 'a"b' and "a\"b" spell the same string
+        return ast.literal_eval(text)
     try:
         return float(text)
     except ValueError:
-        return text.strip().lower()
+        return text.lower()
 
 
 def meaning(text: str, package: str) -> tuple[list[tuple[str, str, object]], set[tuple[str, str]]]:

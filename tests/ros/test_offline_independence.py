@@ -24,6 +24,7 @@ OFFLINE_TESTS = [
     "test_rihs01_vectors.py",
     "test_cdr_vectors.py",
     "test_cdr_roundtrip.py",
+    "test_bundle_packages.py",
     "test_offline_independence.py",
 ]
 HELPERS = ["offline_data.py", "cdr_reference.py", "strategies.py"]

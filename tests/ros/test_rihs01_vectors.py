@@ -1,9 +1,11 @@
 """RIHS01 hashes of the IDL bundle equal the official ROS 2 Jazzy ones, with no ROS around.
 
 The expected values are copied from the type description files ROS 2 Jazzy ships
-(tests/data/rihs01_jazzy.json, made by tests/data/make_rihs01_vectors.py) plus the pinned
-nav2_msgs hashes (tests/data/rihs01_nav2_jazzy.json). Our hashes are computed from `idl/`
-(and tests/data/idl/ for the test_msgs types) by the product's hasher.
+(tests/data/rihs01_jazzy.json, made by tests/data/make_rihs01_vectors.py), computed by the
+official generator from the official files of the packages not on PyPI
+(tests/data/rihs01_official_jazzy.json, made by tests/data/make_rihs01_official.py), plus the
+nav2_msgs hashes pinned from a Jazzy install (tests/data/rihs01_nav2_jazzy.json). Our hashes
+are computed from `idl/` (and tests/data/idl/, fixed test_msgs input) by the product's hasher.
 """
 
 from __future__ import annotations
@@ -19,8 +21,9 @@ from .offline_data import TEST_IDL, load
 pytestmark = pytest.mark.offline
 
 JAZZY: dict[str, str] = load("rihs01_jazzy.json")["hashes"]
+OFFICIAL: dict[str, str] = load("rihs01_official_jazzy.json")["hashes"]
 NAV2: dict[str, str] = load("rihs01_nav2_jazzy.json")["hashes"]
-VECTORS = {**JAZZY, **NAV2}
+VECTORS = {**JAZZY, **OFFICIAL, **NAV2}
 
 
 @pytest.fixture(scope="module")
@@ -43,18 +46,29 @@ def test_vector_files_cover_what_the_bundle_ships(store: TypeStore) -> None:
         "std_srvs",
         "rmw_dds_common",
         "test_msgs",
+        "visualization_msgs",
+        "shape_msgs",
+        "stereo_msgs",
+        "actionlib_msgs",
+        "tf2_msgs",
+        "control_msgs",
+        "example_interfaces",
+        "vision_msgs",
+        "ackermann_msgs",
+        "geographic_msgs",
+        "statistics_msgs",
     ):
         assert pkg in packages, pkg
     kinds = {name.split("/")[1] for name in VECTORS}
     assert kinds == {"msg", "srv", "action"}
     assert any(name.endswith("_Event") for name in VECTORS)
     assert any(name.endswith("_SendGoal_Request") for name in VECTORS)
-    assert len(JAZZY) > 200
-    # every bundle interface whose package ROS 2 Jazzy ships on PyPI has a vector
-    bundle = [
-        n for n in TypeStore(distro="jazzy").interface_names() if not n.startswith("nav2_msgs/")
-    ]
-    assert [n for n in bundle if n not in JAZZY] == []
+    assert len(JAZZY) > 250
+    assert len(OFFICIAL) > 500
+    # every bundle interface has a vector: official files on PyPI, official generator elsewhere
+    bundle = TypeStore(distro="jazzy").interface_names()
+    assert [n for n in bundle if n not in JAZZY and n not in OFFICIAL] == []
+    assert all(NAV2[n] == OFFICIAL[n] for n in NAV2)
 
 
 @pytest.mark.parametrize("type_name", sorted(VECTORS))
@@ -65,10 +79,12 @@ def test_hash_equals_official(store: TypeStore, type_name: str) -> None:
 @pytest.mark.parametrize(
     ("type_name", "prefix"),
     [
-        # the check values written down in the wire notes, independently of the data files
+        # the check values written down in the wire notes, independently of the data files,
+        # and TFMessage as `ros2 topic info -v /tf` reports it on a Jazzy graph
         ("std_msgs/msg/String", "RIHS01_df668c74"),
         ("rmw_dds_common/msg/ParticipantEntitiesInfo", "RIHS01_91a0593b"),
         ("nav2_msgs/action/NavigateToPose_SendGoal_Request", "RIHS01_e9381f2a"),
+        ("tf2_msgs/msg/TFMessage", "RIHS01_e369d0f0"),
     ],
 )
 def test_known_prefixes(store: TypeStore, type_name: str, prefix: str) -> None:

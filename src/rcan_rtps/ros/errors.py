@@ -44,20 +44,24 @@ class IdlSyntaxError(WireError):
 
 class UnknownTypeError(WireError):
     def __init__(self, name: str, known: Iterable[str] = ()) -> None:
-        near = difflib.get_close_matches(name, list(known), n=3, cutoff=0.6)
+        known = list(known)
+        near = difflib.get_close_matches(name, known, n=3, cutoff=0.6)
         if not near:
             short = name.rsplit("/", 1)[-1].lower()
             near = [k for k in known if k.rsplit("/", 1)[-1].lower() == short][:3]
-        hint = f"; did you mean {', '.join(near)}?" if near else (
-            "; it is not in the bundled IDL: add a ROS install's IDL with "
-            "`--idl-path <ros>/share` (e.g. /opt/ros/jazzy/share; also RCAN_RTPS_IDL_PATH)")
-        super().__init__(f"unknown type {name!r}{hint}")
+        hints = [f"did you mean {', '.join(near)}?"] if near else []
+        package = name.split("/", 1)[0]
+        if not any(k.split("/", 1)[0] == package for k in known):  # a typo cannot be all
+            hints.insert(0, f"package {package!r} is not in the bundled IDL: add a ROS "
+                         "install's IDL with `--idl-path <ros>/share` (e.g. "
+                         "/opt/ros/jazzy/share; also RCAN_RTPS_IDL_PATH)")
+        super().__init__(f"unknown type {name!r}" + "".join(f"; {h}" for h in hints))
         self.name = name
         self.suggestions = near
 
 
 class UnsupportedTypeError(WireError):
-    """A type the cyclonedds codec cannot carry (wstring, wchar, long double)."""
+    """A type the cyclonedds codec cannot carry (wchar, long double)."""
 
 
 class UnsupportedDistroError(WireError, ValueError):

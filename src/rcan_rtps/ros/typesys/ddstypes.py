@@ -5,7 +5,9 @@ replace it without touching the parser, the store or the hasher. Octet and uint8
 sequences and arrays map to `bytes`, encoded in one copy: the struct is declared with
 `sequence<uint8>` (so cyclonedds can describe the type to XTypes peers) and the
 member's codec is then swapped for cyclonedds' own bytes codec, which writes the same
-wire format (uint32 length, raw octets).
+wire format (uint32 length, raw octets). A `wstring` is declared `sequence<uint32>`: that is
+how rmw_fastrtps puts it on the wire (uint32 count of UTF-16 code units, then each unit as a
+4-byte `wchar_t`, no terminator); values.py converts `str` to and from the units.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ _PRIMITIVES: dict[Primitive, Any] = {
     Primitive.FLOAT: t.float32,
     Primitive.DOUBLE: t.float64,
     Primitive.STRING: str,
+    Primitive.WSTRING: t.sequence[t.uint32],  # type: ignore[misc]
 }
 BYTE_LIKE = (Primitive.OCTET, Primitive.UINT8, Primitive.CHAR)
 

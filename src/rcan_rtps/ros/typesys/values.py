@@ -86,6 +86,8 @@ class MessageValues:
 
     def _default(self, field: Field) -> object:
         ftype = field.type
+        if ftype.element.primitive is Primitive.WSTRING and field.default is not None:
+            return _wide_default(field.default)
         if field.default is not None:
             if is_byte_like(ftype):
                 return bytes(field.default)  # type: ignore[call-overload]
@@ -104,6 +106,8 @@ class MessageValues:
         prim = ftype.primitive
         if prim is Primitive.BOOLEAN:
             return False
+        if prim is Primitive.WSTRING:
+            return []
         if prim is not None and prim.is_string:
             return ""
         if prim is not None and prim.is_float:
@@ -129,6 +133,8 @@ class MessageValues:
             return [self.field_to_plain(element, v, no_arr=no_arr) for v in value]
         if ftype.nested is not None:
             return self.to_plain(ftype.nested, value, no_arr=no_arr)
+        if ftype.primitive is Primitive.WSTRING:
+            return wide_to_str(value)
         return value
 
 
@@ -140,6 +146,25 @@ def array_placeholder(ftype: FieldType, length: int) -> str:
     if ftype.collection is Collection.BOUNDED_SEQUENCE:
         return f"<sequence type: {element}[{ftype.size}], length: {length}>"
     return f"<sequence type: {element}, length: {length}>"
+
+
+def str_to_wide(text: str) -> list[int]:
+    """A `wstring` as rmw puts it on the wire: its UTF-16 code units."""
+    units = text.encode("utf-16-le", "surrogatepass")
+    return list(memoryview(units).cast("H"))
+
+
+def wide_to_str(units: Sequence[int]) -> str:
+    """UTF-16 code units back to text; a unit no UTF-16 string holds becomes U+FFFD."""
+    chars = "".join(chr(u) if u <= 0xFFFF else "\ufffd" for u in units)
+    return chars.encode("utf-16-le", "surrogatepass").decode("utf-16-le", "replace")
+
+
+def _wide_default(value: object) -> object:
+    if isinstance(value, str):
+        return str_to_wide(value)
+    assert isinstance(value, (list, tuple)), value  # the parser checked it
+    return [str_to_wide(str(v)) for v in value]
 
 
 def _has_field(msg: MessageType, name: str) -> bool:
@@ -172,7 +197,7 @@ def _primitive(ftype: FieldType, value: object, path: str) -> object:
         if ftype.string_bound and len(value) > ftype.string_bound:
             raise ValueFitError(path, f"string longer than its bound of {ftype.string_bound} "
                                 "characters")
-        return value
+        return str_to_wide(value) if prim is Primitive.WSTRING else value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueFitError(path, f"expected a number ({prim.value}), got {_kind(value)}")
     if prim.is_float:

@@ -17,11 +17,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
 from oracle.client import OracleEnv, RclpyOracle
-from waiting import eventually_sync
+from waiting import eventually, eventually_sync
 
 from rcan_rtps.ros.actions import ActionServer, ServerGoal
-from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.participant import DISCOVERY_TOPIC, DISCOVERY_TYPE, RosNode
+from rcan_rtps.ros.qos import user_data_of
 from rcan_rtps.ros.services import ServiceServer
 
 FIB = "test_msgs/action/Fibonacci"
@@ -154,3 +156,18 @@ def test_cyclone_node_log_has_no_type_hash_warning(cyclone: OracleEnv, domain_id
     assert heard == [{"data": "hi"}] and served == [{}]  # every command did reach the node
     warnings = [line for line in peer.stderr().splitlines() if TYPE_HASH_WARNING in line]
     assert warnings == []
+
+
+async def test_our_discovery_endpoints_carry_the_hash_rmw_cyclonedds_uses(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """rmw_cyclonedds' own ros_discovery_info writer says which hash it expects there."""
+    publications = BuiltinDataReader(node.participant, BuiltinTopicDcpsPublication)
+    ours = node.participant.guid.bytes
+
+    def theirs() -> set[str]:
+        return {user_data_of(s.qos).get("typehash", "") for s in publications.read(N=1000)
+                if s.topic_name == DISCOVERY_TOPIC and s.participant_key.bytes != ours}
+
+    hashes = await eventually(theirs, what="rmw_cyclonedds' ros_discovery_info writer")
+    assert hashes == {node.store.hash_of(DISCOVERY_TYPE)}
+    assert node.endpoint_user_data(DISCOVERY_TYPE) == f"typehash={hashes.pop()};".encode()

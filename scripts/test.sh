@@ -3,6 +3,8 @@
 #   .venv              the product, editable, with test tools
 #   .cache/ros-jazzy   ROS 2 Jazzy from PyPI (rclpy + Fast DDS): the interop oracle
 #   .cache/ros-kilted  ROS 2 Kilted, a second real graph, when it installs
+#   .cache/ros-jazzy-cyclone  ROS 2 Jazzy whose rclpy also runs on rmw_cyclonedds_cpp, built
+#                      from tests/oracle/rmw-cyclonedds (or RCAN_RTPS_ORACLE_JAZZY_CYCLONE)
 # On Linux as root the suite runs inside a private network namespace (loopback only);
 # elsewhere every DDS participant is restricted to localhost discovery.
 # Extra arguments go to pytest.
@@ -44,6 +46,11 @@ else
   rm -rf .cache/ros-kilted
   echo "kilted oracle did not install; its tests will be skipped"
 fi
+
+echo "== ROS 2 Jazzy on rmw_cyclonedds_cpp (.cache/ros-jazzy-cyclone)"
+# shellcheck source=scripts/cyclone_oracle.sh
+. scripts/cyclone_oracle.sh
+ensure_cyclone_oracle .cache/ros-jazzy-cyclone tests/oracle/rmw-cyclonedds
 
 echo "== wheel (.cache/dist): the tests install it apart from the source tree"
 rm -rf .cache/dist

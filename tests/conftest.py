@@ -9,11 +9,15 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+from oracle.client import RMWS, OracleEnv  # noqa: E402
+
 ON_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
 
 def _oracle_python(distro: str) -> Path | None:
-    env = os.environ.get(f"RCAN_RTPS_ORACLE_{distro.upper()}")
+    env = os.environ.get(f"RCAN_RTPS_ORACLE_{distro.upper().replace('-', '_')}")
     candidate = Path(env) if env else ROOT / ".cache" / f"ros-{distro}" / "bin" / "python"
     return candidate if candidate.exists() else None
 
@@ -25,6 +29,32 @@ def jazzy_python() -> Path:
     if found is None:
         pytest.skip("ROS 2 Jazzy oracle not installed: run scripts/test.sh")
     return found
+
+
+@pytest.fixture(scope="session")
+def jazzy_cyclone_python() -> Path:
+    """ROS 2 Jazzy whose rclpy also runs on rmw_cyclonedds_cpp (built by scripts/test.sh from
+    tests/oracle/rmw-cyclonedds, or RCAN_RTPS_ORACLE_JAZZY_CYCLONE)."""
+    found = _oracle_python("jazzy-cyclone")
+    if found is None:
+        why = os.environ.get("RCAN_RTPS_ORACLE_JAZZY_CYCLONE_ERROR", "run scripts/test.sh")
+        pytest.skip(f"ROS 2 Jazzy on rmw_cyclonedds_cpp not available: {why}")
+    return found
+
+
+@pytest.fixture
+def oracle_rmw() -> str:
+    """The RMW rclpy oracles run on; tests that cover both parametrize it (`both_rmws`)."""
+    return "fastrtps"
+
+
+@pytest.fixture
+def jazzy_oracle(oracle_rmw: str, request: pytest.FixtureRequest) -> OracleEnv:
+    """The Jazzy oracle on `oracle_rmw`: hand it to RclpyOracle in place of a bare python."""
+    if oracle_rmw not in RMWS:
+        raise pytest.UsageError(f"unknown oracle RMW {oracle_rmw!r} (one of {RMWS})")
+    fixture = "jazzy_python" if oracle_rmw == "fastrtps" else "jazzy_cyclone_python"
+    return OracleEnv(request.getfixturevalue(fixture), oracle_rmw)
 
 
 @pytest.fixture(scope="session")
@@ -42,7 +72,10 @@ def kilted_python() -> Path:
     return found
 
 
-ORACLE_FIXTURES = frozenset({"jazzy_python", "jazzy_share", "kilted_python"})
+ORACLE_FIXTURES = frozenset({"jazzy_python", "jazzy_share", "kilted_python",
+                             "jazzy_cyclone_python", "jazzy_oracle"})
+# Under CI a test that needs the Cyclone oracle fails when skipped, wherever it lives.
+CI_REQUIRED_FIXTURES = frozenset({"jazzy_cyclone_python", "jazzy_oracle"})
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -69,14 +102,12 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):  
         return
     # Under CI a skipped interop test is a failure: the real graph must have been there.
     # (A strict xfail ran against it: a known limit, and it fails the day it passes.)
-    if ON_CI and report.skipped and not hasattr(report, "wasxfail") \
-            and item.get_closest_marker("interop") is not None:
+    needs_oracle = bool(CI_REQUIRED_FIXTURES.intersection(getattr(item, "fixturenames", ())))
+    if ON_CI and report.skipped and not hasattr(report, "wasxfail") and (
+            item.get_closest_marker("interop") is not None or needs_oracle):
         report.outcome = "failed"
         reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else report.longrepr
         report.longrepr = f"interop test skipped under CI=true: {reason}"
-
-
-sys.path.insert(0, str(ROOT / "tests"))
 
 
 # Test domains: 1..99 but 39 (module-scoped interop tests) and 77/78 (benchmarks). Above ~100,

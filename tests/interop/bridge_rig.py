@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from oracle.client import RclpyOracle
+from oracle.client import OracleEnv, RclpyOracle
 
 from rcan_rtps.bridge.commands import RosDispatcher
 from rcan_rtps.bridge.navigation import GoalTracker
@@ -75,7 +75,7 @@ class Rig:
 
 
 
-async def make_rig(config: RcanConfig, jazzy_python: Path, domain_id: int,
+async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id: int,
                    *, navigation: bool = False) -> Rig:
     ros2 = config.bridge.ros2
     node = RosNode(ros2.node_name, ros2.namespace, domain_id=domain_id, distro=ros2.distro)

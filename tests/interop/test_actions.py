@@ -1,4 +1,5 @@
-"""Actions against a real rclpy Jazzy (Fast DDS) Fibonacci server."""
+"""Actions against a real rclpy Jazzy Fibonacci server (on Fast DDS and on
+Cyclone DDS). rclpy's client on Cyclone against our server: test_rmw_cyclonedds.py."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import pytest
-from oracle.client import RclpyOracle
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
 
 from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.errors import ServiceUnavailable, ValueFitError
@@ -24,8 +25,8 @@ def fibonacci(order: int) -> list[int]:
 
 
 @pytest.fixture
-def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
-    with RclpyOracle(jazzy_python, "fib_server", "/", domain_id=domain_id) as agent:
+def oracle(jazzy_oracle: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_oracle, "fib_server", "/", domain_id=domain_id) as agent:
         yield agent
 
 
@@ -37,6 +38,7 @@ async def node(domain_id: int, jazzy_share: Path) -> AsyncIterator[RosNode]:
         yield n
 
 
+@both_rmws
 async def test_goal_succeeds_with_feedback(oracle: RclpyOracle, node: RosNode) -> None:
     await oracle.acall("action_server", name="/fib")
     client = ActionClient(node, "/fib", FIB)
@@ -50,6 +52,7 @@ async def test_goal_succeeds_with_feedback(oracle: RclpyOracle, node: RosNode) -
     assert all(f == fibonacci(len(f) - 1) for f in feedback)
 
 
+@both_rmws
 async def test_goal_cancelled_mid_run(oracle: RclpyOracle, node: RosNode) -> None:
     await oracle.acall("action_server", name="/fib", mode="slow")
     client = ActionClient(node, "/fib", FIB)
@@ -62,6 +65,7 @@ async def test_goal_cancelled_mid_run(oracle: RclpyOracle, node: RosNode) -> Non
     assert outcome.result is not None and len(outcome.result.sequence) < 41
 
 
+@both_rmws
 async def test_goal_rejected(oracle: RclpyOracle, node: RosNode) -> None:
     await oracle.acall("action_server", name="/fib", mode="reject")
     client = ActionClient(node, "/fib", FIB)
@@ -70,6 +74,7 @@ async def test_goal_rejected(oracle: RclpyOracle, node: RosNode) -> None:
     assert (await goal.result()).state is GoalState.REJECTED
 
 
+@both_rmws
 async def test_goal_aborted(oracle: RclpyOracle, node: RosNode) -> None:
     await oracle.acall("action_server", name="/fib", mode="abort")
     client = ActionClient(node, "/fib", FIB)
@@ -79,6 +84,7 @@ async def test_goal_aborted(oracle: RclpyOracle, node: RosNode) -> None:
     assert outcome.result is not None and list(outcome.result.sequence) == fibonacci(4)
 
 
+@both_rmws
 async def test_two_goals_in_flight(oracle: RclpyOracle, node: RosNode) -> None:
     await oracle.acall("action_server", name="/fib", mode="slow")
     client = ActionClient(node, "/fib", FIB)
@@ -91,10 +97,11 @@ async def test_two_goals_in_flight(oracle: RclpyOracle, node: RosNode) -> None:
     assert two.result is not None and list(two.result.sequence) == fibonacci(5)
 
 
+@both_rmws
 async def test_our_client_and_an_rclpy_client_share_the_server(
-        oracle: RclpyOracle, node: RosNode, jazzy_python: Path, domain_id: int) -> None:
+        oracle: RclpyOracle, node: RosNode, jazzy_oracle: OracleEnv, domain_id: int) -> None:
     await oracle.acall("action_server", name="/fib")
-    with RclpyOracle(jazzy_python, "fib_client", "/", domain_id=domain_id) as other:
+    with RclpyOracle(jazzy_oracle, "fib_client", "/", domain_id=domain_id) as other:
         client = ActionClient(node, "/fib", FIB)
         await client.wait_for_server(20)
         for order in (7, 3, 10):  # several rounds, each with both clients' goals in flight
@@ -107,9 +114,10 @@ async def test_our_client_and_an_rclpy_client_share_the_server(
             assert theirs["result"] == {"status": 4, "sequence": fibonacci(order + 2)}
 
 
-async def test_server_vanishing_mid_goal_ends_the_goal(jazzy_python: Path, domain_id: int,
+@both_rmws
+async def test_server_vanishing_mid_goal_ends_the_goal(jazzy_oracle: OracleEnv, domain_id: int,
                                                       node: RosNode) -> None:
-    server = RclpyOracle(jazzy_python, "doomed", "/", domain_id=domain_id)
+    server = RclpyOracle(jazzy_oracle, "doomed", "/", domain_id=domain_id)
     try:
         await server.acall("action_server", name="/fib", mode="slow")
         client = ActionClient(node, "/fib", FIB)

@@ -1,4 +1,5 @@
-"""Spec §10 MUSTs on the ROS side, against a real rclpy Jazzy robot node.
+"""Spec §10 MUSTs on the ROS side, against a real rclpy Jazzy robot node (on Fast DDS; the
+representative cases on Cyclone DDS too).
 
 Governor → dispatcher → DDS → rclpy, and rclpy telemetry → STATUS. (The HTTP edge has its
 own tests; here the governor is called directly, as the API does.)
@@ -14,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from oracle.client import OracleEnv, both_rmws
 from waiting import eventually, take
 
 from rcan_rtps.governance import verify
@@ -42,8 +44,8 @@ async def before_sentinel(rig: Rig) -> list[float]:
 
 
 @pytest.fixture
-async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Rig]:
-    r = await make_rig(bridge_config(tmp_path, domain_id), jazzy_python, domain_id)
+async def rig(tmp_path: Path, jazzy_oracle: OracleEnv, domain_id: int) -> AsyncIterator[Rig]:
+    r = await make_rig(bridge_config(tmp_path, domain_id), jazzy_oracle, domain_id)
     yield r
     await close_rig(r)
 
@@ -54,6 +56,7 @@ async def subscribe(rig: Rig, topic: str, type_name: str, qos: str = "default") 
     assert await rig.oracle.acall("wait_matched", topic=topic) >= 1
 
 
+@both_rmws
 async def test_rbac_before_publish(rig: Rig) -> None:
     await subscribe(rig, "/robot1/cmd_vel", TWIST)
     await rig.dispatcher.cmd_vel.wait_for_subscribers(1, timeout=15)
@@ -96,6 +99,7 @@ async def test_arm_joint_becomes_a_joint_trajectory(rig: Rig) -> None:
     assert traj["points"][0]["time_from_start"] == {"sec": 2, "nanosec": 500_000_000}
 
 
+@both_rmws
 async def test_estop_latches_and_only_owner_clears(rig: Rig) -> None:
     await subscribe(rig, "/robot1/emergency_stop", "std_msgs/msg/Bool")
     await subscribe(rig, "/robot1/cmd_vel", TWIST)
@@ -138,6 +142,7 @@ async def test_every_command_is_audited_with_ai_identity(rig: Rig) -> None:
     verify(rig.audit_path)
 
 
+@both_rmws
 async def test_session_loss_publishes_zero_twist(rig: Rig) -> None:
     await subscribe(rig, "/robot1/cmd_vel", TWIST)
     await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.4}})
@@ -188,6 +193,7 @@ async def test_pending_auth_publishes_a_warn_diagnostic(tmp_path: Path, jazzy_py
         await close_rig(rig)
 
 
+@both_rmws
 async def test_telemetry_becomes_status(rig: Rig) -> None:
     odom = {"header": {"frame_id": "odom"}, "child_frame_id": "base_link",
             "pose": {"pose": {"position": {"x": 1.5, "y": -2.0, "z": 0.0},
@@ -238,6 +244,7 @@ async def test_telemetry_becomes_status(rig: Rig) -> None:
     assert not rig.telemetry.status(pending_auth=0).ros.connected
 
 
+@both_rmws
 async def test_rclpy_lists_the_bridge_node(rig: Rig) -> None:
     async def listed() -> bool:
         return ["rcan_bridge", "/robot1"] in await rig.oracle.acall("node_names")

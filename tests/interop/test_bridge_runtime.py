@@ -1,4 +1,5 @@
-"""The whole bridge (`Bridge`: ROS node, governor, API) against real rclpy Jazzy nodes."""
+"""The whole bridge (`Bridge`: ROS node, governor, API) against real rclpy Jazzy nodes (on
+Fast DDS; the representative cases on Cyclone DDS too)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from typing import Any
 
 import aiohttp
 import pytest
-from oracle.client import RclpyOracle
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
 from waiting import eventually, take
 
 from rcan_rtps.bridge.runtime import Bridge, BridgeOptions
@@ -36,20 +37,21 @@ class Live:
 
 
 @pytest.fixture
-async def live(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Live]:
+async def live(tmp_path: Path, jazzy_oracle: OracleEnv, domain_id: int) -> AsyncIterator[Live]:
     config = bridge_config(tmp_path, domain_id, extra_ros2="match_timeout_s: 1.0")
     bridge = Bridge(config, BridgeOptions(port=0, mdns=False,
                                           env={"RCAN_BRIDGE_TOKEN": TOKEN}))
     await bridge.start()
     headers = {"Authorization": f"Bearer {TOKEN}"}
     try:
-        with RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id) as oracle:
+        with RclpyOracle(jazzy_oracle, "robot", "/robot1", domain_id=domain_id) as oracle:
             async with aiohttp.ClientSession(headers=headers) as http:
                 yield Live(bridge, oracle, http, Path(config.bridge.audit.path))
     finally:
         await bridge.stop()
 
 
+@both_rmws
 async def test_rclpy_telemetry_reaches_the_websocket(live: Live) -> None:
     await live.oracle.acall("publisher", topic="/robot1/odom", type="nav_msgs/msg/Odometry")
     async with live.http.ws_connect(live.bridge.url + "/api/ws") as ws:
@@ -73,6 +75,7 @@ async def test_navigate_without_an_action_server_is_robot_unavailable(live: Live
     assert code == 503 and body["error_code"] == "ROBOT_UNAVAILABLE"
 
 
+@both_rmws
 async def test_stopping_the_bridge_halts_the_robot(live: Live) -> None:
     await live.oracle.acall("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
     assert live.bridge.dispatcher is not None  # matched first: match_timeout_s is short here

@@ -1,4 +1,5 @@
-"""`rcan-rtps service …` and `action …` as subprocesses against a real rclpy Jazzy graph."""
+"""`rcan-rtps service …` and `action …` as subprocesses against a real rclpy Jazzy graph (on
+Fast DDS and on Cyclone DDS)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from oracle.client import RclpyOracle
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
 
 
 def cli(domain_id: int, *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
@@ -22,11 +23,12 @@ def cli(domain_id: int, *args: str, timeout: float = 90) -> subprocess.Completed
 
 
 @pytest.fixture
-def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
-    with RclpyOracle(jazzy_python, "cli_peer", "/demo", domain_id=domain_id) as agent:
+def oracle(jazzy_oracle: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_oracle, "cli_peer", "/demo", domain_id=domain_id) as agent:
         yield agent
 
 
+@both_rmws
 def test_service_list_and_call(oracle: RclpyOracle, domain_id: int) -> None:
     oracle.call("service_server", name="/demo/trigger", type="std_srvs/srv/Trigger")
     oracle.call("service_server", name="/demo/enable", type="std_srvs/srv/SetBool")
@@ -51,6 +53,7 @@ def test_service_call_failures_are_messages(domain_id: int) -> None:
     assert "data: expected true or false" in done.stderr and "Traceback" not in done.stderr
 
 
+@both_rmws
 def test_action_list_info_and_send_goal(oracle: RclpyOracle, domain_id: int,
                                         jazzy_share: Path) -> None:
     oracle.call("action_server", name="/demo/fibonacci")
@@ -70,6 +73,7 @@ def test_action_list_info_and_send_goal(oracle: RclpyOracle, domain_id: int,
     assert out.rstrip().endswith("Goal finished with status: SUCCEEDED")
 
 
+@both_rmws
 def test_send_goal_ctrl_c_cancels_the_goal(oracle: RclpyOracle, domain_id: int,
                                           jazzy_share: Path) -> None:
     oracle.call("action_server", name="/demo/fibonacci", mode="slow")

@@ -1,13 +1,13 @@
-"""Services against real rclpy Jazzy (Fast DDS) servers, and our client against our server."""
+"""Services against real rclpy Jazzy servers (on Fast DDS and on Cyclone DDS), and our client
+against our server. rclpy clients on Cyclone calling our servers: test_rmw_cyclonedds.py."""
 
 from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Iterator
-from pathlib import Path
 
 import pytest
-from oracle.client import RclpyOracle
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
 
 from rcan_rtps.ros.errors import ServiceTimeout, ServiceUnavailable, ValueFitError
 from rcan_rtps.ros.participant import RosNode
@@ -15,8 +15,8 @@ from rcan_rtps.ros.services import RequestMapping, ServiceClient, ServiceServer
 
 
 @pytest.fixture
-def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
-    with RclpyOracle(jazzy_python, "srv_oracle", "/", domain_id=domain_id) as agent:
+def oracle(jazzy_oracle: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_oracle, "srv_oracle", "/", domain_id=domain_id) as agent:
         yield agent
 
 
@@ -26,18 +26,23 @@ async def node(domain_id: int) -> AsyncIterator[RosNode]:
         yield n
 
 
-async def test_trigger_against_fastdds_server(oracle: RclpyOracle, node: RosNode) -> None:
+MAPPING_OF_RMW = {"fastrtps": RequestMapping.FASTDDS, "cyclonedds": RequestMapping.CYCLONE}
+
+
+@both_rmws
+async def test_trigger_against_rclpy_server(oracle: RclpyOracle, node: RosNode) -> None:
     await oracle.acall("service_server", name="/trigger", type="std_srvs/srv/Trigger")
     client = ServiceClient(node, "/trigger", "std_srvs/srv/Trigger")
     await client.wait_for_service(15)
-    assert client.resolve_mapping() is RequestMapping.FASTDDS
+    assert client.resolve_mapping() is MAPPING_OF_RMW[oracle.rmw]
     first = await client.call({}, timeout=10)
     second = await client.call({}, timeout=10)
     assert (first.success, first.message) == (True, "triggered #1")
     assert second.message == "triggered #2"
 
 
-async def test_setbool_against_fastdds_server(oracle: RclpyOracle, node: RosNode) -> None:
+@both_rmws
+async def test_setbool_against_rclpy_server(oracle: RclpyOracle, node: RosNode) -> None:
     await oracle.acall("service_server", name="/enable", type="std_srvs/srv/SetBool")
     client = ServiceClient(node, "enable", "std_srvs/srv/SetBool")
     await client.wait_for_service(15)
@@ -49,7 +54,8 @@ async def test_setbool_against_fastdds_server(oracle: RclpyOracle, node: RosNode
     assert requests == [{"data": True}, {"data": False}]
 
 
-async def test_concurrent_calls_to_fastdds_server_each_get_their_reply(
+@both_rmws
+async def test_concurrent_calls_to_rclpy_server_each_get_their_reply(
         oracle: RclpyOracle, node: RosNode) -> None:
     await oracle.acall("service_server", name="/enable", type="std_srvs/srv/SetBool", delay=0.05)
     client = ServiceClient(node, "/enable", "std_srvs/srv/SetBool")

@@ -1,4 +1,5 @@
-"""Topics both ways between our node and a real rclpy Jazzy node, and graph presence."""
+"""Topics both ways between our node and a real rclpy Jazzy node, and graph presence (on Fast
+DDS and on Cyclone DDS)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from oracle.client import RclpyOracle
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
 from waiting import eventually, take
 
 from rcan_rtps.ros import qos
@@ -17,8 +18,8 @@ TWIST = {"linear": {"x": 0.5, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.
 
 
 @pytest.fixture
-def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
-    with RclpyOracle(jazzy_python, "oracle_node", "/lab", domain_id=domain_id) as agent:
+def oracle(jazzy_oracle: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_oracle, "oracle_node", "/lab", domain_id=domain_id) as agent:
         yield agent
 
 
@@ -28,6 +29,7 @@ def node(domain_id: int) -> Iterator[RosNode]:
         yield n
 
 
+@both_rmws
 async def test_we_publish_twist_rclpy_receives(oracle: RclpyOracle, node: RosNode) -> None:
     await oracle.acall("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
     pub = node.create_publisher("cmd_vel", "geometry_msgs/msg/Twist")
@@ -37,6 +39,7 @@ async def test_we_publish_twist_rclpy_receives(oracle: RclpyOracle, node: RosNod
     assert got == [TWIST]
 
 
+@both_rmws
 async def test_rclpy_publishes_we_receive(oracle: RclpyOracle, node: RosNode) -> None:
     sub = node.create_subscription("/lab/chatter", "std_msgs/msg/String")
     await oracle.acall("publisher", topic="/lab/chatter", type="std_msgs/msg/String")
@@ -48,6 +51,7 @@ async def test_rclpy_publishes_we_receive(oracle: RclpyOracle, node: RosNode) ->
     assert msg.data == "héllo"
 
 
+@both_rmws
 async def test_sensor_data_qos_both_ways(oracle: RclpyOracle, node: RosNode) -> None:
     scan = {"angle_min": -1.0, "angle_max": 1.0, "ranges": [1.0, 2.0, 3.5],
             "header": {"frame_id": "laser", "stamp": {"sec": 3, "nanosec": 4}}}
@@ -70,6 +74,7 @@ async def test_sensor_data_qos_both_ways(oracle: RclpyOracle, node: RosNode) -> 
     assert received and received[0]["ranges"] == [1.0, 2.0, 3.5]
 
 
+@both_rmws
 async def test_image_640x480_both_ways(oracle: RclpyOracle, node: RosNode) -> None:
     data = bytes(range(256)) * (640 * 480 * 3 // 256)
     image = {"height": 480, "width": 640, "encoding": "rgb8", "step": 1920, "data": data}
@@ -92,6 +97,7 @@ async def test_image_640x480_both_ways(oracle: RclpyOracle, node: RosNode) -> No
     assert back.encoding == "rgb8" and bytes(back.data) == data
 
 
+@both_rmws
 async def test_transient_local_reaches_late_joiner(oracle: RclpyOracle, node: RosNode) -> None:
     pub = node.create_publisher("/map_meta", "std_msgs/msg/String", qos.TF_STATIC)
     pub.publish({"data": "latched"})
@@ -109,6 +115,7 @@ async def test_transient_local_reaches_late_joiner(oracle: RclpyOracle, node: Ro
     assert (await sub.get(timeout=15)).data == "from rclpy"
 
 
+@both_rmws
 async def test_rclpy_lists_our_node_and_type_hash(oracle: RclpyOracle, node: RosNode) -> None:
     pub = node.create_publisher("cmd_vel", "geometry_msgs/msg/Twist")
     await oracle.acall("subscribe", topic="/robot1/cmd_vel", type="geometry_msgs/msg/Twist")
@@ -125,6 +132,7 @@ async def test_rclpy_lists_our_node_and_type_hash(oracle: RclpyOracle, node: Ros
     assert node.store.hash_of("geometry_msgs/msg/Twist") in ours[0]["type_hash"]
 
 
+@both_rmws
 async def test_incompatible_qos_is_reported(oracle: RclpyOracle, node: RosNode) -> None:
     """A reliable reader never matches a best-effort writer; we say so instead of hanging."""
     await oracle.acall("publisher", topic="/lossy", type="std_msgs/msg/String", qos="sensor")
@@ -142,6 +150,7 @@ async def test_incompatible_qos_is_reported(oracle: RclpyOracle, node: RosNode) 
 LATCHED_5 = qos.DEFAULT.with_(depth=5, durability=qos.Durability.TRANSIENT_LOCAL)
 
 
+@both_rmws
 async def test_late_rclpy_subscriber_gets_our_whole_transient_local_history(
         oracle: RclpyOracle, node: RosNode) -> None:
     pub = node.create_publisher("/robot1/history", "std_msgs/msg/Int32", LATCHED_5)
@@ -153,6 +162,7 @@ async def test_late_rclpy_subscriber_gets_our_whole_transient_local_history(
     assert [m["data"] for m in got] == [0, 1, 2, 3, 4]
 
 
+@both_rmws
 async def test_we_join_late_and_get_rclpy_transient_local_history(
         oracle: RclpyOracle, node: RosNode) -> None:
     await oracle.acall("publisher", topic="/lab/history", type="std_msgs/msg/Int32",
@@ -165,6 +175,7 @@ async def test_we_join_late_and_get_rclpy_transient_local_history(
     assert got == [0, 1, 2, 3, 4]
 
 
+@both_rmws
 async def test_our_best_effort_publisher_reports_a_reliable_rclpy_subscriber(
         oracle: RclpyOracle, node: RosNode, caplog: pytest.LogCaptureFixture) -> None:
     await oracle.acall("subscribe", topic="/robot1/strict", type="std_msgs/msg/String")
@@ -175,6 +186,7 @@ async def test_our_best_effort_publisher_reports_a_reliable_rclpy_subscriber(
                and "RELIABILITY_QOS_POLICY" in r.getMessage() for r in caplog.records)
 
 
+@both_rmws
 async def test_bounded_string_counts_characters_like_rclpy(
         oracle: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
     # string<=22 holding 22 two-byte characters (44 bytes): rclpy bounds characters, and

@@ -1,5 +1,5 @@
-"""Issue 12: no reply and no first feedback lost, calling real rclpy Jazzy (Fast DDS) servers
-from fresh clients, over and over.
+"""Issue 12: no reply and no first feedback lost, calling real rclpy Jazzy servers (on Fast DDS
+and on Cyclone DDS) from fresh clients, over and over.
 
 A fresh client is the worst case: its endpoints are as new as discovery can be when the
 request goes out. Every call is sequential (a Fast DDS server's replies reach every client's
@@ -15,7 +15,7 @@ from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import pytest
-from oracle.client import RclpyOracle
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
 
 from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.errors import ServiceTimeout
@@ -26,7 +26,7 @@ ECHO = "test_msgs/srv/BasicTypes"
 FIB = "test_msgs/action/Fibonacci"
 # Counts can be raised to hunt rarer losses: RCAN_RTPS_ZERO_LOSS_SCALE=5
 SCALE = float(os.environ.get("RCAN_RTPS_ZERO_LOSS_SCALE", "1"))
-CALLS_PER_CLIENT = int(160 * SCALE)  # fresh ServiceClient each, one node
+CALLS_PER_CLIENT = int(200 * SCALE)  # fresh ServiceClient each, one node
 CALLS_PER_NODE = int(25 * SCALE)  # fresh RosNode (participant) each
 GOALS = int(100 * SCALE)  # fresh ActionClient each, one node
 GOALS_PER_NODE = int(15 * SCALE)  # fresh RosNode each
@@ -42,8 +42,8 @@ def fibonacci(order: int) -> list[int]:
 
 
 @pytest.fixture
-def oracle(jazzy_python: Path, domain_id: int) -> Iterator[RclpyOracle]:
-    with RclpyOracle(jazzy_python, "zero_loss", "/", domain_id=domain_id) as agent:
+def oracle(jazzy_oracle: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_oracle, "zero_loss", "/", domain_id=domain_id) as agent:
         agent.call("echo_server", name="/echo")
         agent.call("action_server", name="/fib", period=0.01)
         yield agent
@@ -83,6 +83,7 @@ class Tally:
             f"{len(self.wrong)} misattributed {self.wrong}"
 
 
+@both_rmws
 async def test_fresh_service_clients_lose_no_reply(oracle: RclpyOracle, node: RosNode) -> None:
     tally = Tally()
     for i in range(CALLS_PER_CLIENT):
@@ -96,6 +97,7 @@ async def test_fresh_service_clients_lose_no_reply(oracle: RclpyOracle, node: Ro
     assert served == [f"call {i}" for i in range(CALLS_PER_CLIENT)]
 
 
+@both_rmws
 async def test_fresh_nodes_lose_no_reply(oracle: RclpyOracle, domain_id: int,
                                          jazzy_share: Path) -> None:
     tally = Tally()
@@ -139,6 +141,7 @@ async def _first_feedback(goal: object) -> list[int] | None:
     return None
 
 
+@both_rmws
 async def test_fresh_action_clients_get_every_first_feedback(oracle: RclpyOracle,
                                                              node: RosNode) -> None:
     tally = GoalTally()
@@ -151,6 +154,7 @@ async def test_fresh_action_clients_get_every_first_feedback(oracle: RclpyOracle
     tally.assert_clean(GOALS)
 
 
+@both_rmws
 async def test_fresh_nodes_get_every_first_feedback(oracle: RclpyOracle, domain_id: int,
                                                     jazzy_share: Path) -> None:
     tally = GoalTally()
@@ -163,6 +167,7 @@ async def test_fresh_nodes_get_every_first_feedback(oracle: RclpyOracle, domain_
     tally.assert_clean(GOALS_PER_NODE)
 
 
+@both_rmws
 def test_fresh_cli_calls_lose_no_reply(oracle: RclpyOracle, domain_id: int,
                                        jazzy_share: Path) -> None:
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}

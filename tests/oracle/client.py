@@ -9,10 +9,35 @@ import selectors
 import subprocess
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 AGENT = Path(__file__).with_name("rclpy_agent.py")
+RMWS = ("fastrtps", "cyclonedds")  # the RMW implementations an oracle can run on
+# Runs a test against rclpy on each RMW (it overrides conftest's `oracle_rmw` fixture).
+both_rmws = pytest.mark.parametrize("oracle_rmw", RMWS)
+
+
+@dataclass(frozen=True)
+class OracleEnv:
+    """A ROS prefix's interpreter and the RMW its processes run on ("fastrtps" or
+    "cyclonedds"; the Cyclone one comes from tests/oracle/rmw-cyclonedds)."""
+
+    python: Path
+    rmw: str = "fastrtps"
+
+    @property
+    def prefix(self) -> Path:
+        return self.python.parent.parent
+
+    @property
+    def env(self) -> dict[str, str]:
+        # The recipe's README: ament index lookups need AMENT_PREFIX_PATH=PREFIX.
+        return {"RMW_IMPLEMENTATION": f"rmw_{self.rmw}_cpp",
+                "AMENT_PREFIX_PATH": str(self.prefix)}
 
 
 class OracleError(RuntimeError):
@@ -27,19 +52,24 @@ class RclpyOracle:
     requests one at a time, as the pipe protocol and the request ids assume.
     """
 
-    def __init__(self, python: Path, node_name: str = "oracle", namespace: str = "/",
-                 *, domain_id: int | None = None, env: dict[str, str] | None = None) -> None:
-        full_env = dict(os.environ)
-        full_env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
-        full_env["PYTHONUNBUFFERED"] = "1"
+    def __init__(self, python: Path | OracleEnv, node_name: str = "oracle",
+                 namespace: str = "/", *, domain_id: int | None = None,
+                 env: dict[str, str] | None = None) -> None:
+        oracle = python if isinstance(python, OracleEnv) else OracleEnv(python)
+        self.rmw = oracle.rmw
+        full_env = {**os.environ, **oracle.env, "PYTHONUNBUFFERED": "1"}
         if domain_id is not None:
             full_env["ROS_DOMAIN_ID"] = str(domain_id)
         full_env.update(env or {})
         self.proc = subprocess.Popen(
-            [str(python), str(AGENT), node_name, namespace],
+            [str(oracle.python), str(AGENT), node_name, namespace],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             text=True, env=full_env,
         )
+        # Drained all along: rmw warnings must never block the node on a full pipe.
+        self._stderr: list[str] = []
+        self._stderr_done = threading.Thread(target=self._drain_stderr, daemon=True)
+        self._stderr_done.start()
         self._next_id = 1
         self._lock = threading.Lock()
         self._selector = selectors.DefaultSelector()
@@ -69,14 +99,24 @@ class RclpyOracle:
                 raise OracleError(f"oracle did not answer request {rid} in {timeout} s")
             line = self.proc.stdout.readline()
             if not line:
-                err = self.proc.stderr.read() if self.proc.stderr else ""
-                raise OracleError(f"oracle exited: {err[-2000:]}")
+                self.proc.wait()
+                self._stderr_done.join(timeout=5)
+                raise OracleError(f"oracle exited: {self.stderr()[-2000:]}")
             answer = json.loads(line)
             if answer["id"] != rid:
                 continue
             if not answer["ok"]:
                 raise OracleError(answer["error"])
             return answer["result"]
+
+    def _drain_stderr(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self._stderr.append(line)
+
+    def stderr(self) -> str:
+        """What the node wrote to stderr so far (rcl/rmw log lines); all of it after close."""
+        return "".join(self._stderr)
 
     def close(self) -> None:
         if self.proc.poll() is None:
@@ -87,6 +127,7 @@ class RclpyOracle:
             except (OSError, subprocess.TimeoutExpired):
                 self.proc.kill()
                 self.proc.wait()
+        self._stderr_done.join(timeout=5)
         self._selector.close()
 
     def __enter__(self) -> RclpyOracle:

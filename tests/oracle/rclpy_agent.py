@@ -140,6 +140,10 @@ class Agent:
     def op_ping(self) -> str:
         return "pong"
 
+    def op_rmw(self) -> str:
+        """The RMW this node runs on (RMW_IMPLEMENTATION chooses it in the Cyclone prefix)."""
+        return str(rclpy.get_rmw_implementation_identifier())
+
     def op_serialize(self, type: str, value: dict[str, Any]) -> str:
         return serialize_message(fill(load_type(type)(), value)).hex()
 

@@ -18,11 +18,10 @@ from cyclonedds.builtin import (
     BuiltinTopicDcpsSubscription,
 )
 from cyclonedds.core import InstanceState
-from cyclonedds.sub import DataReader
 
 from . import qos as qos_mod
 from .names import EndpointKind, action_of, demangle, is_hidden
-from .participant import DISCOVERY_TOPIC, RosNode
+from .participant import RosNode
 from .qos import QosProfile
 from .typesys.store import normalize_name
 
@@ -78,12 +77,7 @@ class RosGraph:
         self.node = node
         self._pubs = BuiltinDataReader(node.participant, BuiltinTopicDcpsPublication)
         self._subs = BuiltinDataReader(node.participant, BuiltinTopicDcpsSubscription)
-        info_type = "rmw_dds_common/msg/ParticipantEntitiesInfo"
-        # Not tracked as a node endpoint: rmw does not list its discovery reader either.
-        # The type is keyless, so every participant writes the same instance: a deep
-        # history keeps one participant's update from overwriting another's unread one.
-        self._info = DataReader(node.subscriber, node.topic(DISCOVERY_TOPIC, info_type),
-                                qos=qos_mod.DISCOVERY_INFO.with_(depth=1000).to_dds())
+        self._info = node.discovery_reader()
         self._endpoints: dict[bytes, tuple[Direction, Any]] = {}
         self._node_infos: dict[bytes, Any] = {}
 

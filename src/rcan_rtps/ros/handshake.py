@@ -33,12 +33,10 @@ from typing import Any
 from cyclonedds.core import DDSException
 from cyclonedds.sub import DataReader
 
-from . import qos as qos_mod
-from .participant import DISCOVERY_TOPIC, RosNode
+from .participant import RosNode
 
 log = logging.getLogger(__name__)
 
-INFO_TYPE = "rmw_dds_common/msg/ParticipantEntitiesInfo"
 POLL = 0.01
 
 
@@ -72,9 +70,7 @@ async def peers_know_our_readers(node: RosNode, peers: Iterable[bytes],
     wanted = set(peers)
     if not wanted:
         return set()
-    probe: DataReader[Any] = DataReader(
-        node.subscriber, node.topic(DISCOVERY_TOPIC, INFO_TYPE),
-        qos=qos_mod.DISCOVERY_INFO.with_(depth=1000).to_dds())
+    probe = node.discovery_reader()
     try:
         return await _await_latched(probe, wanted, timeout)
     finally:

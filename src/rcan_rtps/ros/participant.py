@@ -39,6 +39,7 @@ from .typesys.values import MessageValues
 log = logging.getLogger(__name__)
 
 DISCOVERY_TOPIC = "ros_discovery_info"
+DISCOVERY_TYPE = "rmw_dds_common/msg/ParticipantEntitiesInfo"
 _LOCALHOST_CONFIG = """<CycloneDDS><Domain Id="any"><General>
 <Interfaces><NetworkInterface address="127.0.0.1" multicast="false"/></Interfaces>
 <AllowMulticast>false</AllowMulticast></General>
@@ -391,10 +392,18 @@ class RosNode:
 
     # -- graph presence ---------------------------------------------------------
     def _discovery_writer(self) -> DataWriter[Any]:
-        info_type = "rmw_dds_common/msg/ParticipantEntitiesInfo"
-        topic = self.topic(DISCOVERY_TOPIC, info_type)
+        topic = self.topic(DISCOVERY_TOPIC, DISCOVERY_TYPE)
         return DataWriter(self.publisher, topic, qos=qos_mod.DISCOVERY_INFO.to_dds(
-            self.endpoint_user_data(info_type)))
+            self.endpoint_user_data(DISCOVERY_TYPE)))
+
+    def discovery_reader(self) -> DataReader[Any]:
+        """A reader of every participant's ros_discovery_info (not a node endpoint: rmw
+        lists none). The type is keyless, so every participant writes the same instance: a
+        deep history keeps one's update from overwriting another's unread one. It carries
+        the type hash like every endpoint (rmw_cyclonedds warns about one without)."""
+        qos = qos_mod.DISCOVERY_INFO.with_(depth=1000)
+        return DataReader(self.subscriber, self.topic(DISCOVERY_TOPIC, DISCOVERY_TYPE),
+                          qos=qos.to_dds(self.endpoint_user_data(DISCOVERY_TYPE)))
 
     def gid_size(self) -> int:
         return self.store.message("rmw_dds_common/msg/Gid").fields[0].type.size
@@ -407,7 +416,7 @@ class RosNode:
         with self._lock:
             readers = [{"data": gid_bytes(r, size)} for r in self._readers]
             writers = [{"data": gid_bytes(w, size)} for w in self._writers]
-        info = self.values.build("rmw_dds_common/msg/ParticipantEntitiesInfo", {
+        info = self.values.build(DISCOVERY_TYPE, {
             "gid": {"data": gid_bytes(self.participant, size)},
             "node_entities_info_seq": [{
                 "node_namespace": self.namespace,

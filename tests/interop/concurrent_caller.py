@@ -1,5 +1,7 @@
-"""One process of the concurrent-clients test: a fresh node calls /echo `calls` times, all
-at once, and prints a JSON tally (each reply must echo its own request)."""
+"""One process of the concurrent-clients test: a fresh node calls /echo `calls` times, one
+after another (the processes run side by side), and prints a JSON tally (each reply must echo
+its own request). One call at a time per process, as a ROS tool makes them: a burst of many
+would overflow the server's request queue (KEEP_LAST 10), which loses requests by design."""
 
 from __future__ import annotations
 
@@ -34,7 +36,8 @@ async def main(tag: str, calls: int, domain_id: int, share: str) -> None:
 
         print("ready", flush=True)
         sys.stdin.readline()  # every process starts calling at the same moment
-        await asyncio.gather(*(one(i) for i in range(calls)))
+        for i in range(calls):
+            await one(i)
         client.close()
     print(json.dumps({"lost": lost, "wrong": wrong}), flush=True)
 

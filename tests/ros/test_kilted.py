@@ -108,3 +108,35 @@ async def test_kilted_wstrings_both_ways(kilted_python: Path, domain_id: int) ->
         received = await take(oracle, "/k/wide_out")
         assert received and received[0]["wstring_value"] == text
         assert received[0]["unbounded_sequence_of_wstrings"] == [text, ""]
+
+
+async def test_kilted_services_and_actions_from_fresh_clients(kilted_python: Path,
+                                                              domain_id: int) -> None:
+    """Kilted (Fast DDS 3) servers: every reply and every first feedback reaches a fresh
+    client of ours, each checked against its own request."""
+    from rcan_rtps.ros.actions import ActionClient, GoalState
+    from rcan_rtps.ros.services import RequestMapping, ServiceClient
+
+    with RclpyOracle(kilted_python, "kilted_oracle", domain_id=domain_id) as oracle, \
+            RosNode("peer", "/", domain_id=domain_id, distro="kilted",
+                    idl_paths=[TEST_IDL]) as node:
+        await oracle.acall("echo_server", name="/echo")
+        await oracle.acall("action_server", name="/fib", period=0.01)
+        for i in range(20):
+            client = ServiceClient(node, "/echo", "test_msgs/srv/BasicTypes")
+            reply = await client.call({"string_value": f"call {i}", "int64_value": i},
+                                      timeout=10)
+            assert (reply.string_value, reply.int64_value) == (f"call {i}", i)
+            assert client.resolve_mapping() is RequestMapping.FASTDDS
+            client.close()
+        for order in range(2, 8):
+            actions = ActionClient(node, "/fib", "test_msgs/action/Fibonacci")
+            goal = await actions.send_goal({"order": order}, timeout=10)
+            assert goal.accepted
+            async for feedback in goal.feedback(timeout=10):
+                assert list(feedback.sequence) == [0, 1, 1]  # the first, never lost
+                break
+            outcome = await goal.result(timeout=10)
+            assert outcome.state is GoalState.SUCCEEDED and outcome.result is not None
+            assert len(outcome.result.sequence) == order + 1
+            actions.close()

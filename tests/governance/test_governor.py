@@ -33,8 +33,11 @@ def check(decision: Decision, status: int, outcome: Outcome,
 async def test_executed_is_clamped_and_reports_applied(harness: Harness, gov: Governor) -> None:
     d = await gov.decide(command("move", {"linear_x": 1.05, "angular_z": -0.2}), PLANNER)
     check(d, 200, Outcome.EXECUTED)
-    assert d.applied == {"linear_x": 1.0, "linear_y": 0.0, "angular_z": -0.2}
-    assert harness.dispatcher.calls == [("move", d.applied)]
+    # Held (no duration_s), from a standstill with no acceleration limits: no ramp.
+    assert d.applied == {"linear_x": 1.0, "linear_y": 0.0, "angular_z": -0.2,
+                         "duration_s": None, "ramp_from": (0.0, 0.0, 0.0), "ramp_s": 0.0}
+    assert harness.dispatcher.calls == [("move", {"linear_x": 1.0, "linear_y": 0.0,
+                                                  "angular_z": -0.2, "duration_s": None})]
     entry = one_new_entry(harness, 0)
     assert (entry["event"], entry["outcome"], entry["audit_id"]) == (
         "COMMAND_DISPATCHED", "executed", d.audit_id)
@@ -315,8 +318,11 @@ async def test_1000_concurrent_decisions_leave_a_verifying_chain(harness: Harnes
     decisions = await asyncio.gather(*(gov.decide(c, ADMIN) for c in cmds))
     assert all(d.outcome is Outcome.EXECUTED for d in decisions)
     head = verify(harness.tmp / "audit.jsonl", harness.logs[0].public_key)
-    assert head.count == 1000
-    entries = harness.entries
+    # Each move replaced the stream of the one before: 999 of them ended that way.
+    assert head.count == 1999
+    ended = [e for e in harness.entries if e["event"] == "STREAM_ENDED"]
+    assert [e["params"]["reason"] for e in ended] == ["replaced"] * 999
+    entries = [e for e in harness.entries if e["event"] != "STREAM_ENDED"]
     assert [e["event"] for e in entries] == ["COMMAND_DISPATCHED"] * 1000
     assert {e["audit_id"] for e in entries} == {d.audit_id for d in decisions}
     assert {e["message_id"] for e in entries} == {c.message_id for c in cmds}
@@ -350,8 +356,10 @@ async def test_lifecycle_and_session_loss(harness: Harness, gov: Governor) -> No
     assert harness.dispatcher.calls[-1] == ("stop", {})
     await gov.sweep()  # once per loss
     await gov.stop()
-    assert [e["event"] for e in harness.entries] == [
+    assert [e["event"] for e in harness.entries if e["event"] != "STREAM_ENDED"] == [
         "BRIDGE_STARTED", "COMMAND_DISPATCHED", "NETWORK_LOSS_SAFE_STOP", "BRIDGE_STOPPED"]
+    assert [(e["params"]["reason"], e["principal"]) for e in harness.entries
+            if e["event"] == "STREAM_ENDED"] == [("session_lost", "planner")]
 
 
 async def test_broken_audit_log_refuses_commands(harness: Harness, gov: Governor) -> None:

@@ -60,6 +60,7 @@ class AuditEvent(str, enum.Enum):
     ESTOP = "ESTOP"
     ESTOP_CLEARED = "ESTOP_CLEARED"
     NETWORK_LOSS_SAFE_STOP = "NETWORK_LOSS_SAFE_STOP"
+    STREAM_ENDED = "STREAM_ENDED"  # a velocity stream stopped sending (params.reason says why)
     BRIDGE_STARTED = "BRIDGE_STARTED"
     BRIDGE_STOPPED = "BRIDGE_STOPPED"
     AUDIT_TAIL_RECOVERED = "AUDIT_TAIL_RECOVERED"

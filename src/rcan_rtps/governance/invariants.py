@@ -141,7 +141,7 @@ class AccelerationLimit:
             return params
         now, target = self.motion.commanded, Velocity.of(params)
         return RampedMove(**msgspec.structs.asdict(params),
-                          ramp_from=(now.linear_x, now.linear_y, now.angular_z),
+                          ramp_from=[now.linear_x, now.linear_y, now.angular_z],
                           ramp_s=round(self.limits.ramp_s(now, target), 6))
 
 

@@ -30,7 +30,7 @@ class MoveParams(ActionParams, frozen=True):
 class RampedMove(MoveParams, frozen=True):
     """A move as governed: the ramp from the velocity commanded when it was decided."""
 
-    ramp_from: tuple[float, float, float] = (0.0, 0.0, 0.0)  # linear_x, linear_y, angular_z
+    ramp_from: list[float] = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])  # x, y, z
     ramp_s: float = 0.0  # how long the acceleration limits take to reach the target
 
 

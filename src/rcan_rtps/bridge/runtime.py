@@ -6,8 +6,8 @@
     start: ROS node → audit log → navigation client → dispatcher → governor → telemetry
            → governor started (BRIDGE_STARTED) → HTTP API → mDNS advert
     stop:  mDNS withdrawn → API closed (no new commands) → velocity streams ended → robot
-           halted (zero velocity, goals cancelled) → telemetry → governor (BRIDGE_STOPPED) → navigation client
-           → audit closed → ROS node left → API port released
+           halted (zero velocity, goals cancelled) → telemetry → governor (BRIDGE_STOPPED)
+           → navigation client → audit closed → ROS node left → API port released
 
 Each resource's cleanup goes on an `AsyncExitStack` as soon as the resource exists, so stop
 runs exactly the list above, and a start that fails at any step unwinds what it had acquired

@@ -369,7 +369,7 @@ class Governor:
         priority = self._priorities.of(principal)
         refused = self.streams.admits(priority) if spec.streamed else None
         if refused is not None:
-            return await self._refuse(command, principal, refused, event=event,
+            return await self._refuse(command, principal, refused, event=_refused(event),
                                       pending_id=pending_id)
         why = await self._ready(command)
         if why is not None:
@@ -452,7 +452,7 @@ class Governor:
                    if self._priorities.of(principal) < level else None)
         if refused is not None or level is None:
             return await self._refuse(command, principal, refused or outcomes.UNKNOWN_LOCK,
-                                      event=event, pending_id=pending_id)
+                                      event=_refused(event), pending_id=pending_id)
         applied = {"name": params.name, "priority": level}
         record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          pending_id=pending_id)
@@ -730,6 +730,11 @@ def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
 
 async def _awaited(future: asyncio.Future[Any]) -> Any:
     return await future
+
+
+def _refused(event: AuditEvent) -> AuditEvent:
+    """The event of a refusal: an approval's own (HITL_AUTHORIZED), else COMMAND_REJECTED."""
+    return AuditEvent.COMMAND_REJECTED if event is AuditEvent.COMMAND_DISPATCHED else event
 
 
 def _bridge_command(effect: Effect) -> NormalizedCommand:

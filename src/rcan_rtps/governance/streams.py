@@ -126,10 +126,16 @@ class Latch(Protocol):
     def latched(self) -> bool: ...
 
 
+class Cancellable(Protocol):
+    def cancel(self) -> None: ...
+
+
 class Timer(Protocol):
+    """What the streams need of the event loop (tests drive a manual one)."""
+
     def time(self) -> float: ...
 
-    def call_at(self, when: float, callback: Callable[[], object]) -> asyncio.TimerHandle: ...
+    def call_at(self, when: float, callback: Callable[[], object]) -> Cancellable: ...
 
 
 class VelocityStreams:
@@ -146,7 +152,7 @@ class VelocityStreams:
         self.commanded = ZERO  # the velocity last sent
         self.locks: dict[str, int] = {}  # engaged lock → its priority
         self.on_end: Callable[[StreamEnded], None] = lambda ended: None
-        self._handle: asyncio.TimerHandle | None = None
+        self._handle: Cancellable | None = None
         self._last = ZERO
 
     # -- admission -----------------------------------------------------------------------

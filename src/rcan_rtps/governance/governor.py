@@ -352,7 +352,9 @@ class Governor:
 
     async def _execute(self, command: NormalizedCommand, principal: Principal,
                        params: ActionParams, event: AuditEvent,
-                       pending_id: str | None = None) -> Decision:
+                       pending_id: str | None = None, issuer: Principal | None = None
+                       ) -> Decision:
+        """`issuer`: whose command it is, when `principal` approved it (HiTL)."""
         applied = msgspec.structs.asdict(params)
         spec = command.spec
         if spec.effect is Effect.CLEAR_ESTOP:
@@ -366,8 +368,10 @@ class Governor:
         if motion and self.latch.latched:
             return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
                                       pending_id=pending_id)
-        priority = self._priorities.of(principal)
-        refused = self.streams.admits(priority) if spec.streamed else None
+        owner = issuer or principal  # a stream is its issuer's, at the issuer's priority
+        priority = self._priorities.of(owner)
+        # Streams and goals both drive the base: the same priorities and locks hold.
+        refused = self.streams.admits(priority) if spec.streamed or spec.starts_goal else None
         if refused is not None:
             return await self._refuse(command, principal, refused, event=_refused(event),
                                       pending_id=pending_id)
@@ -388,7 +392,7 @@ class Governor:
         if motion and self.latch.latched:
             return await self._failed(command, principal, outcomes.ESTOP_ACTIVE)
         if spec.streamed:
-            return await self._start_stream(command, principal, params, priority,
+            return await self._start_stream(command, owner, params, priority,
                                             (applied, receipt))
         result, failure = await self._dispatch(command, params)
         if failure is not None:
@@ -396,6 +400,8 @@ class Governor:
         if spec.starts_goal and self.latch.latched:
             # Accepted while an e-stop latched: the e-stop's cancel may have missed this goal.
             await self._dispatch(_bridge_command(Effect.HALT))
+        elif spec.starts_goal:  # the goal drives the base now: a velocity stream would fight it
+            self.streams.end(EndReason.REPLACED, owner.name)
         return _executed(command, applied, receipt, result)
 
     # -- velocity streams and locks ---------------------------------------------------------
@@ -570,7 +576,7 @@ class Governor:
                                       event=AuditEvent.HITL_AUTHORIZED, pending_id=pending_id)
         self._sessions.touch(pending.issuer, command.spec)
         return await self._execute(command, approver, applied, AuditEvent.HITL_AUTHORIZED,
-                                   pending_id)
+                                   pending_id, issuer=pending.issuer)
 
     async def _refuse_hitl(self, verb: str, approver: Principal,
                            rejection: Rejection) -> Decision:

@@ -202,3 +202,18 @@ async def test_estop_racing_moves_leaves_nothing_moving(tmp_path: Path) -> None:
         await gov.decide(command("clear_estop"), OPS)
         check_wire(wire.wire)
     await _settled(gov)
+
+
+async def test_robot_loss_ends_the_stream_and_is_audited(tmp_path: Path) -> None:
+    gov, wire, timer = await _governor(tmp_path)
+    d = await gov.decide(command("move", {"linear_x": 0.5}), PLANNER)
+    timer.advance(0.5)
+    wire.available = False  # the robot's reader left: the next sample cannot go
+    timer.advance(0.5)
+    assert gov.streams.active is None
+    sent = len(wire.wire)
+    timer.advance(2.0)
+    assert len(wire.wire) == sent
+    ended = [e for e in await _settled(gov) if e["event"] == "STREAM_ENDED"]
+    assert [(e["params"]["reason"], e["message_id"]) for e in ended] == [
+        ("robot_lost", d.message_id)]

@@ -46,7 +46,10 @@ async def test_commands_in_outcomes_out_like_rest(api: Api) -> None:
         assert frame["http_status"] == rest_status == 200
         assert frame["body"].keys() == rest.keys()
         # The same, but ramped from what the REST move commands now (its stream is held).
-        assert frame["body"]["applied"] == {**rest["applied"], "ramp_from": [0.3, 0.0, 0.0]}
+        # and it replaces that stream, which its entry records.
+        assert frame["body"]["applied"] == {
+            **rest["applied"], "ramp_from": [0.3, 0.0, 0.0],
+            "replaces": {"message_id": rest["message_id"], "reason": "replaced"}}
         assert api.entry(frame["body"]["audit_id"])["principal"] == "planner"
 
         await ws.send_str('{"action": "move", "params": {"linear_x": NaN}}')

@@ -31,8 +31,18 @@ def _entry(entries: list[dict[str, Any]], d: Decision) -> dict[str, Any]:
 
 
 def _ended(entries: list[dict[str, Any]]) -> list[tuple[str, str, str | None]]:
-    return [(e["principal"], e["params"]["reason"], e["params"]["ended_by"])
-            for e in entries if e["event"] == "STREAM_ENDED"]
+    """(whose stream, why, by whom) for every stream end: its own STREAM_ENDED entry, or the
+    replacing move's `applied.replaces`."""
+    owners = {e["message_id"]: e["principal"] for e in entries
+              if e["event"] == "COMMAND_DISPATCHED"}
+    ends = []
+    for e in entries:
+        if e["event"] == "STREAM_ENDED":
+            ends.append((e["principal"], e["params"]["reason"], e["params"]["ended_by"]))
+        elif e["event"] == "COMMAND_DISPATCHED" and "replaces" in (e["applied"] or {}):
+            old = e["applied"]["replaces"]
+            ends.append((owners[old["message_id"]], old["reason"], e["principal"]))
+    return ends
 
 
 async def test_a_higher_priority_move_preempts_and_a_lower_one_is_refused(tmp_path: Path) -> None:

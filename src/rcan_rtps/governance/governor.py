@@ -383,6 +383,9 @@ class Governor:
         if motion and self.latch.latched:
             return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
                                       pending_id=pending_id)
+        replaces = self.streams.active if spec.streamed else None
+        if replaces is not None:  # recorded here: a replaced stream's end costs no entry
+            applied = {**applied, "replaces": self.streams.replacing(priority)}
         record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          pending_id=pending_id, ros2_topic=self._route(command))
         receipt = await self._write_ahead(record)
@@ -393,7 +396,7 @@ class Governor:
             return await self._failed(command, principal, outcomes.ESTOP_ACTIVE)
         if spec.streamed:
             return await self._start_stream(command, owner, params, priority,
-                                            (applied, receipt))
+                                            (applied, receipt), replaces)
         result, failure = await self._dispatch(command, params)
         if failure is not None:
             return await self._failed(command, principal, failure)
@@ -408,7 +411,8 @@ class Governor:
 
     async def _start_stream(self, command: NormalizedCommand, principal: Principal,
                             params: ActionParams, priority: int,
-                            audited: tuple[dict[str, Any], AuditReceipt]) -> Decision:
+                            audited: tuple[dict[str, Any], AuditReceipt],
+                            replaces: Stream | None) -> Decision:
         """After the write-ahead entry: the first sample, then the stream takes over.
 
         No await between the admission check, the first sample (the dispatcher publishes
@@ -426,7 +430,7 @@ class Governor:
         stream = Stream(action=command.action, owner=principal.name, priority=priority,
                         target=target, message_id=command.message_id,
                         duration_s=params.duration_s)
-        refused = self.streams.start(stream, first, by=principal.name)
+        refused = self.streams.start(stream, first, by=principal.name, recorded=replaces)
         if refused is not None:
             return await self._failed(command, principal, refused)
         if params.duration_s is not None:  # a timed move bounds itself: silence counts after
@@ -434,6 +438,8 @@ class Governor:
         return _executed(command, audited[0], audited[1], result)
 
     def _stream_ended(self, ended: StreamEnded) -> None:
+        if ended.recorded:  # the replacing move's entry says so (`applied.replaces`)
+            return
         stream = ended.stream
         record = AuditRecord(
             event=AuditEvent.STREAM_ENDED, principal=stream.owner, action_type=stream.action,

@@ -113,6 +113,7 @@ class StreamEnded:
     last: Velocity  # the last sample it sent
     at: float
     zeroed: bool  # zero was sent (False: the next stream took over the wire)
+    recorded: bool = False  # the replacing move's own entry records it (`applied.replaces`)
 
 
 class VelocitySink(Protocol):
@@ -170,8 +171,12 @@ class VelocityStreams:
         return self.accel.step(self.commanded, target, self.period)
 
     # -- the stream ------------------------------------------------------------------------
-    def start(self, stream: Stream, first: Velocity, *, by: str) -> Rejection | None:
-        """`first` has just been sent; from now on `stream` owns the wire (sync, atomic)."""
+    def start(self, stream: Stream, first: Velocity, *, by: str,
+              recorded: Stream | None = None) -> Rejection | None:
+        """`first` has just been sent; from now on `stream` owns the wire (sync, atomic).
+
+        `recorded`: the stream the new move's audit entry says it replaces; its end needs no
+        entry of its own (any other stream it replaces, after a race, gets one)."""
         refused = self.admits(stream.priority)
         if refused is not None:  # changed since the first sample went: undo it at once
             self._send(self._last if self.active is not None else ZERO)
@@ -179,7 +184,8 @@ class VelocityStreams:
         old = self.active
         if old is not None:
             higher = stream.priority > old.priority
-            self._finish(EndReason.PREEMPTED if higher else EndReason.REPLACED, by, zero=False)
+            self._finish(EndReason.PREEMPTED if higher else EndReason.REPLACED, by, zero=False,
+                         recorded=old is recorded)
         timer = self._clock()
         stream.started_at = timer.time()
         if stream.duration_s is not None:
@@ -257,7 +263,16 @@ class VelocityStreams:
         self.commanded = velocity if why is None else ZERO
         return why
 
-    def _finish(self, reason: EndReason, by: str | None, *, zero: bool) -> None:
+    def replacing(self, priority: int) -> dict[str, str] | None:
+        """What a move of `priority` starting now would end: for its audit entry."""
+        old = self.active
+        if old is None:
+            return None
+        reason = EndReason.PREEMPTED if priority > old.priority else EndReason.REPLACED
+        return {"message_id": old.message_id, "reason": reason.value}
+
+    def _finish(self, reason: EndReason, by: str | None, *, zero: bool,
+                recorded: bool = False) -> None:
         stream, self.active = self.active, None
         if self._handle is not None:
             self._handle.cancel()
@@ -266,7 +281,7 @@ class VelocityStreams:
             self._send(ZERO)
         if stream is None:
             return
-        ended = StreamEnded(stream, reason, by, self._last, self._clock().time(), zero)
+        ended = StreamEnded(stream, reason, by, self._last, self._clock().time(), zero, recorded)
         try:
             self.on_end(ended)
         except Exception:  # reporting must never keep a stream alive

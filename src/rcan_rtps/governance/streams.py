@@ -199,7 +199,8 @@ class VelocityStreams:
         return None
 
     def end(self, reason: EndReason, by: str | None = None) -> bool:
-        """Zero now and end the active stream, if any (True). Zero is sent either way."""
+        """End the active stream, if any, sending zero at once (True). Without one (False),
+        nothing is sent here: the caller halts the robot itself."""
         if self.active is None:
             self.commanded = ZERO  # the caller halts; nothing of ours to end
             return False

@@ -12,7 +12,7 @@ from typing import Any
 import msgspec
 
 from rcan_rtps.governance import DispatchResult
-from rcan_rtps.rcan import ActionParams, NormalizedCommand
+from rcan_rtps.rcan import ActionParams, MoveParams, NormalizedCommand
 
 UNAVAILABLE = "no subscriber on /robot1/cmd_vel"
 
@@ -24,6 +24,7 @@ class RecordingDispatcher:
         self.raises: Exception | None = None
         self.hold: asyncio.Event | None = None  # when set: motion waits for it
         self.entered = asyncio.Event()  # a held dispatch has started
+        self.samples: list[MoveParams] = []  # velocity-stream samples after each first one
 
     def route(self, command: NormalizedCommand) -> str | None:
         return f"/robot1/{command.action}"
@@ -43,3 +44,11 @@ class RecordingDispatcher:
             return DispatchResult(ok=False, detail=UNAVAILABLE)
         self.calls.append((command.action, msgspec.to_builtins(applied)))
         return DispatchResult(ok=True, ros2_topic=f"/robot1/{command.action}")
+
+    def send_velocity(self, velocity: MoveParams) -> str | None:
+        if self.raises is not None:
+            raise self.raises
+        if not self.available and (velocity.linear_x or velocity.linear_y or velocity.angular_z):
+            return UNAVAILABLE
+        self.samples.append(velocity)
+        return None

@@ -68,8 +68,10 @@ async def test_move_is_executed_and_audited(api: Api) -> None:
     assert status == 200
     assert body["outcome"] == "executed"
     assert body["message_id"] == mid
-    assert body["applied"] == {"linear_x": 0.5, "linear_y": 0.0, "angular_z": 0.1}
-    assert api.dispatcher.calls == [("move", body["applied"])]
+    velocity = {"linear_x": 0.5, "linear_y": 0.0, "angular_z": 0.1}
+    assert body["applied"] == {**velocity, "duration_s": None,  # held, no ramp configured
+                               "ramp_from": [0.0, 0.0, 0.0], "ramp_s": 0.0}
+    assert api.dispatcher.calls == [("move", {**velocity, "duration_s": None})]
     entry = api.entry(body["audit_id"])
     assert (entry["event"], entry["principal"], entry["role"]) == (
         "COMMAND_DISPATCHED", "planner", "USER")

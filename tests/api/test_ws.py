@@ -45,7 +45,11 @@ async def test_commands_in_outcomes_out_like_rest(api: Api) -> None:
         frame = await _frame(ws, "outcome")
         assert frame["http_status"] == rest_status == 200
         assert frame["body"].keys() == rest.keys()
-        assert frame["body"]["applied"] == rest["applied"]
+        # The same, but ramped from what the REST move commands now (its stream is held).
+        # and it replaces that stream, which its entry records.
+        assert frame["body"]["applied"] == {
+            **rest["applied"], "ramp_from": [0.3, 0.0, 0.0],
+            "replaces": {"message_id": rest["message_id"], "reason": "replaced"}}
         assert api.entry(frame["body"]["audit_id"])["principal"] == "planner"
 
         await ws.send_str('{"action": "move", "params": {"linear_x": NaN}}')

@@ -57,7 +57,7 @@ def test_txt_records_follow_the_profile() -> None:
         "role": "USER", "version": "1.2", "spec": "1.2", "bridge": "ros2",
         "distro": "kilted", "api": "http://10.0.0.5:8765",
         "status_endpoint": "http://10.0.0.5:8765/api/status", "model": "husky",
-        "name": "Husky A200", "caps": "move,arm_joint,navigate,stop,estop,clear_estop",
+        "name": "Husky A200", "caps": "move,arm_joint,navigate,stop,estop,clear_estop,lock,unlock",
     }
 
 

@@ -27,7 +27,12 @@ async def test_every_entry_is_one_line_with_its_principal_and_audit_id(
         await gov.decide(command("stop"), ADMIN),
     ]
     await gov.audit.close()  # runs the listeners still scheduled
-    lines = _lines(caplog)
+    everything = _lines(caplog)
+    # The e-stop ended the move's velocity stream: that is an entry (and a line) of its own.
+    ended = [r for r in everything if r.getMessage().startswith("STREAM_ENDED")]
+    assert [r.getMessage().split(" [")[0] for r in ended] == [
+        "STREAM_ENDED by planner move (estopped)"]
+    lines = [r for r in everything if r not in ended]
     assert [r.audit_id for r in lines] == [d.audit_id for d in decisions]  # type: ignore[attr-defined]
     assert [r.principal for r in lines] == [  # type: ignore[attr-defined]
         "planner", "planner", "viewer", "ops", "root"]

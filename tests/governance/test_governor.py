@@ -33,8 +33,11 @@ def check(decision: Decision, status: int, outcome: Outcome,
 async def test_executed_is_clamped_and_reports_applied(harness: Harness, gov: Governor) -> None:
     d = await gov.decide(command("move", {"linear_x": 1.05, "angular_z": -0.2}), PLANNER)
     check(d, 200, Outcome.EXECUTED)
-    assert d.applied == {"linear_x": 1.0, "linear_y": 0.0, "angular_z": -0.2}
-    assert harness.dispatcher.calls == [("move", d.applied)]
+    # Held (no duration_s), from a standstill with no acceleration limits: no ramp.
+    assert d.applied == {"linear_x": 1.0, "linear_y": 0.0, "angular_z": -0.2,
+                         "duration_s": None, "ramp_from": [0.0, 0.0, 0.0], "ramp_s": 0.0}
+    assert harness.dispatcher.calls == [("move", {"linear_x": 1.0, "linear_y": 0.0,
+                                                  "angular_z": -0.2, "duration_s": None})]
     entry = one_new_entry(harness, 0)
     assert (entry["event"], entry["outcome"], entry["audit_id"]) == (
         "COMMAND_DISPATCHED", "executed", d.audit_id)
@@ -315,8 +318,16 @@ async def test_1000_concurrent_decisions_leave_a_verifying_chain(harness: Harnes
     decisions = await asyncio.gather(*(gov.decide(c, ADMIN) for c in cmds))
     assert all(d.outcome is Outcome.EXECUTED for d in decisions)
     head = verify(harness.tmp / "audit.jsonl", harness.logs[0].public_key)
-    assert head.count == 1000
-    entries = harness.entries
+    # Each move replaced the stream of the one before. Every stream's end is audited: in the
+    # entry of the move that replaced it (`applied.replaces`, the stream running when that
+    # move was decided), or, when another one had started meanwhile, in an entry of its own.
+    ended = [e for e in harness.entries if e["event"] == "STREAM_ENDED"]
+    assert head.count == 1000 + len(ended)
+    replaced = {e["applied"]["replaces"]["message_id"] for e in harness.entries
+                if e["event"] == "COMMAND_DISPATCHED" and "replaces" in e["applied"]}
+    running = {gov.streams.active.message_id} if gov.streams.active else set()
+    assert {c.message_id for c in cmds} == replaced | {e["message_id"] for e in ended} | running
+    entries = [e for e in harness.entries if e["event"] != "STREAM_ENDED"]
     assert [e["event"] for e in entries] == ["COMMAND_DISPATCHED"] * 1000
     assert {e["audit_id"] for e in entries} == {d.audit_id for d in decisions}
     assert {e["message_id"] for e in entries} == {c.message_id for c in cmds}
@@ -344,14 +355,16 @@ async def test_lifecycle_and_session_loss(harness: Harness, gov: Governor) -> No
     assert harness.entries[-1]["event"] == "COMMAND_DISPATCHED"
     harness.clock.advance(0.6)
     await gov.sweep()
-    entry = harness.entries[-1]
+    entry = [e for e in harness.entries if e["event"] != "STREAM_ENDED"][-1]
     assert (entry["event"], entry["principal"], entry["outcome"]) == (
         "NETWORK_LOSS_SAFE_STOP", "planner", "executed")
     assert harness.dispatcher.calls[-1] == ("stop", {})
     await gov.sweep()  # once per loss
     await gov.stop()
-    assert [e["event"] for e in harness.entries] == [
+    assert [e["event"] for e in harness.entries if e["event"] != "STREAM_ENDED"] == [
         "BRIDGE_STARTED", "COMMAND_DISPATCHED", "NETWORK_LOSS_SAFE_STOP", "BRIDGE_STOPPED"]
+    assert [(e["params"]["reason"], e["principal"]) for e in harness.entries
+            if e["event"] == "STREAM_ENDED"] == [("session_lost", "planner")]
 
 
 async def test_broken_audit_log_refuses_commands(harness: Harness, gov: Governor) -> None:

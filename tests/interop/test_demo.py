@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import os
 import re
 import subprocess
@@ -97,6 +98,42 @@ async def wait_status(http: aiohttp.ClientSession, demo: Demo, predicate: Any,
 
     status: dict[str, Any] = await eventually(matching, timeout=timeout, what="a STATUS")
     return status
+
+
+def stream_ended(demo: Demo, message_id: str) -> str | None:
+    """The reason the audit gives for the end of the velocity stream of `message_id`."""
+    for line in demo.audit.read_text().splitlines():
+        entry = json.loads(line)
+        if entry["event"] == "STREAM_ENDED" and entry["message_id"] == message_id:
+            return str(entry["params"]["reason"])
+    return None
+
+
+async def timed_move_distance(http: aiohttp.ClientSession, demo: Demo,
+                              send: Any) -> float:
+    """How far the simulated robot drives for a timed move that `send()` makes (over HTTP)."""
+    start = (await wait_status(http, demo, lambda s: s["ros"]["connected"] and
+                               s["telemetry"]["position"] is not None))["telemetry"]["position"]
+    message_id = await send()
+    await eventually(lambda: stream_ended(demo, message_id) == "completed", timeout=20,
+                     what="the timed move's end in the audit log")
+    stopped = await wait_status(  # the zero that ended it has reached the robot
+        http, demo, lambda s: (s["telemetry"]["velocity"] or {}).get("linear_x") == 0.0)
+    end = stopped["telemetry"]["position"]
+    return math.hypot(end["x"] - start["x"], end["y"] - start["y"])
+
+
+async def test_a_2s_move_at_half_a_metre_per_second_drives_one_metre(
+        demo: Demo, http: aiohttp.ClientSession) -> None:
+    """Issue 11: the sim keeps its 0.5 s command timeout; the stream keeps it fed."""
+    async def send() -> str:
+        code, body = await call(http, demo, demo.user, "POST", "/api/command", {
+            "action": "move", "params": {"linear_x": 0.5, "duration_s": 2.0}})
+        assert code == 200, body
+        return str(body["message_id"])
+
+    distance = await timed_move_distance(http, demo, send)
+    assert 0.9 <= distance <= 1.1, distance  # one Twist alone would have been 0.25 m
 
 
 async def test_readme_tour(demo: Demo, http: aiohttp.ClientSession) -> None:
@@ -321,7 +358,14 @@ async def _check_tour_line(line: str, out: str, shell: Shell, fill: dict[str, st
         assert f'"outcome":"{outcome}"' in out, (line, out)
         if line.startswith("cmd "):  # which prints the HTTP status too
             assert out.endswith(f"→ {code}"), (line, out)
-    if "/api/hitl/pending" in line:
+    if line.startswith("cmd ") and '"move"' in line and '"duration_s"' in line:  # ~1 m
+        message_id = json.loads(out.rsplit(" → ", 1)[0])["message_id"]
+        await eventually(lambda: stream_ended(demo, message_id) == "completed", timeout=20,
+                         what=lambda: f"{message_id} completed: {demo.audit.read_text()}")
+        stopped = await wait_status(
+            http, demo, lambda s: (s["telemetry"]["velocity"] or {}).get("linear_x") == 0.0)
+        assert 0.9 <= stopped["telemetry"]["position"]["x"] <= 1.0, stopped
+    elif "/api/hitl/pending" in line:
         fill["<id>"] = json.loads(out)["pending"][0]["pending_id"]
     elif "/api/goals " in line:  # a reader asks again until the robot is there
         for _ in range(300):

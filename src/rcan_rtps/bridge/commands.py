@@ -19,7 +19,16 @@ from typing import Any, Protocol
 from ..config import Ros2Config
 from ..governance import DispatchResult
 from ..rcan import ActionParams, ActionSpec, Effect, NormalizedCommand
-from ..rcan.actions import EstopSignal, Halt, Publish, SendGoal, specs, with_effect
+from ..rcan.actions import (
+    EstopSignal,
+    Halt,
+    MoveParams,
+    NoRoute,
+    Publish,
+    SendGoal,
+    specs,
+    with_effect,
+)
 from ..ros import qos
 from ..ros.errors import GraphTimeout
 from ..ros.participant import RosNode, RosPublisher
@@ -100,6 +109,8 @@ class RosDispatcher:
         self.cmd_vel = self._halt.publisher  # where halting publishes zero velocity
         # Latched (transient-local): a robot node that (re)joins still learns the e-stop state.
         self.estop = self._bind(_estop_route().signal).publisher
+        streamed = [s for s in specs() if s.streamed]
+        self._stream = self._route_of(streamed[0]) if streamed else self._halt
 
     def _groups(self, publish: Publish[Any]) -> dict[str, Any]:
         return dict(getattr(self.ros2, publish.group_key)) if publish.group_key else {}
@@ -129,7 +140,7 @@ class RosDispatcher:
             self._routes[id(publish)] = route
         return route
 
-    def _route_of(self, spec: ActionSpec[Any], params: ActionParams) -> _Route:
+    def _route_of(self, spec: ActionSpec[Any], params: ActionParams | None = None) -> _Route:
         """The route of an action's own message; for a grouped one, the params' group's."""
         publishes = spec.ros.publishes()
         if not publishes:
@@ -146,6 +157,8 @@ class RosDispatcher:
         return route
 
     def route(self, command: NormalizedCommand) -> str | None:
+        if isinstance(command.spec.ros, NoRoute):
+            return None
         if isinstance(command.spec.ros, SendGoal):
             return self.navigator.action_name if self.navigator is not None else None
         try:
@@ -155,8 +168,8 @@ class RosDispatcher:
 
     async def ready(self, command: NormalizedCommand) -> str | None:
         spec = command.spec
-        if spec.stopping:
-            return None  # stopping is never held back
+        if spec.stopping or isinstance(spec.ros, NoRoute):
+            return None  # stopping is never held back; a lock needs no robot
         if spec.effect is not Effect.CLEAR_ESTOP:
             silent = self._silent()
             if silent is not None:
@@ -175,6 +188,8 @@ class RosDispatcher:
                        applied: ActionParams) -> DispatchResult:
         self.on_command()
         ros = command.spec.ros
+        if isinstance(ros, NoRoute):
+            return DispatchResult(ok=True)
         if isinstance(ros, SendGoal):
             return await self._send_goal(ros, applied, command.message_id)
         if isinstance(ros, Halt):
@@ -188,6 +203,19 @@ class RosDispatcher:
         if command.spec.motion:
             return self._publish_motion(route, applied)
         return self._publish(route, applied)
+
+    def send_velocity(self, velocity: MoveParams) -> str | None:
+        """One sample of a velocity stream, now; why not, if the robot is gone."""
+        route = self._stream
+        if velocity.linear_x or velocity.linear_y or velocity.angular_z:
+            pub = route.publisher
+            why = self._silent() or (None if pub.matched_count()
+                                     else f"no subscriber on {pub.topic}")
+            if why is not None:
+                return why
+            self.on_command()
+        route.publisher.publish(route.message(velocity))  # zero always goes out
+        return None
 
     # -- helpers ---------------------------------------------------------------------
     def _silent(self) -> str | None:

@@ -25,6 +25,7 @@ bridge:
     domain_id: {domain_id}
     distro: jazzy
     telemetry_rate_hz: 10
+    cmd_rate_hz: 20
     nav_frame_id: map
   hitl:
     timeout_seconds: 300
@@ -43,6 +44,9 @@ bridge:
     max_angular_vel: 1.5
     velocity_exceed_deny: true
     session_timeout_s: 5.0
+    max_move_duration_s: 30
+    max_linear_accel: 2.0
+    max_angular_accel: 3.0
     workspace: [[-20, -20], [20, -20], [20, 20], [-20, 20]]
   audit:
     path: {state}/audit.jsonl

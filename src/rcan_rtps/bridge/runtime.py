@@ -5,9 +5,9 @@
            and writes no audit entry
     start: ROS node → audit log → navigation client → dispatcher → governor → telemetry
            → governor started (BRIDGE_STARTED) → HTTP API → mDNS advert
-    stop:  mDNS withdrawn → API closed (no new commands) → robot halted (zero velocity,
-           goals cancelled) → telemetry → governor (BRIDGE_STOPPED) → navigation client
-           → audit closed → ROS node left → API port released
+    stop:  mDNS withdrawn → API closed (no new commands) → velocity streams ended → robot
+           halted (zero velocity, goals cancelled) → telemetry → governor (BRIDGE_STOPPED)
+           → navigation client → audit closed → ROS node left → API port released
 
 Each resource's cleanup goes on an `AsyncExitStack` as soon as the resource exists, so stop
 runs exactly the list above, and a start that fails at any step unwinds what it had acquired
@@ -295,6 +295,8 @@ class Bridge:
         await governor.start()
         # Before the governor's BRIDGE_STOPPED: the robot is halted while it is audited.
         self._on_stop("halting the robot", dispatcher.halt)
+        # Before the halt: a velocity stream still sending would undo its zero.
+        self._on_stop("ending velocity streams", governor.end_streams)
 
     def _telemetry_age(self) -> float | None:
         return self.telemetry.age_s() if self.telemetry is not None else None

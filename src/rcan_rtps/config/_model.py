@@ -134,6 +134,9 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     telemetry_stale_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)] = 2.0
     # How long a command waits for a subscriber or action server before ROBOT_UNAVAILABLE.
     match_timeout_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 1.0
+    # How often a streamed `move` republishes its velocity (ros2_control's diff drive stops
+    # after 0.5 s without a command: 20 Hz leaves ten samples of margin).
+    cmd_rate_hz: Annotated[float, msgspec.Meta(ge=1.0, le=1000.0)] = 20.0
     # Request-reply mapping of services/actions: `auto` picks it from the server's DDS vendor
     # (Cyclone's in-band header, or Fast DDS's plain requests); per-name overrides win.
     request_mapping: Literal["auto", "cyclone", "fastdds"] = "auto"
@@ -234,6 +237,13 @@ class SafetyConfig(_Section, frozen=True, kw_only=True):
     session_timeout_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)] = 2.0
     workspace: Annotated[list[Point] | None, _check(_workspace_problem)] = None
     estop_state_path: str | None = None  # default: estop.state beside the audit log
+    # A timed move lasts at most this; longer requests are denied (a held move has no end but
+    # its sender's session, which needs heartbeats).
+    max_move_duration_s: Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)] = 30.0
+    # Velocity streams ramp within these (m/s², rad/s²); None: no ramp (the robot's own
+    # controller limits acceleration). Stopping is never ramped: a stop is zero at once.
+    max_linear_accel: Positive | None = None
+    max_angular_accel: Positive | None = None
 
 
 class AuditConfig(_Section, frozen=True, kw_only=True):
@@ -257,6 +267,30 @@ class RbacConfig(_Section, frozen=True, kw_only=True):
     config_reload_role: RoleName = "CREATOR"
 
 
+Priority = Annotated[int, msgspec.Meta(ge=0, le=1_000_000)]
+
+
+class MotionLock(_Section, frozen=True, kw_only=True):
+    name: Annotated[str, msgspec.Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
+    priority: Priority
+
+
+def _repeated_lock_problem(locks: list[MotionLock]) -> str | None:
+    names = [lock.name for lock in locks]
+    return "names a lock more than once" if len(set(names)) != len(names) else None
+
+
+class MotionConfig(_Section, frozen=True, kw_only=True):
+    """Who may take over a velocity stream (twist_mux-like): a higher priority preempts a
+    lower one, a lower one is refused; a principal's own priority wins over its role's."""
+
+    default_priority: Priority = 0
+    role_priorities: dict[RoleName, Priority] = {}
+    principal_priorities: dict[Annotated[str, msgspec.Meta(min_length=1, max_length=128)],
+                               Priority] = {}
+    locks: Annotated[list[MotionLock], _check(_repeated_lock_problem)] = []
+
+
 class BridgeConfig(_Section, frozen=True, kw_only=True):
     type: Literal["ros2"] = "ros2"
     ros2: Ros2Config = Ros2Config()
@@ -265,6 +299,7 @@ class BridgeConfig(_Section, frozen=True, kw_only=True):
     safety: SafetyConfig
     audit: AuditConfig = AuditConfig()
     rbac: RbacConfig = RbacConfig()
+    motion: MotionConfig = MotionConfig()
 
 
 class RcanConfig(_Section, frozen=True, kw_only=True):

@@ -61,6 +61,7 @@ class AuditEvent(str, enum.Enum):
     ESTOP_CLEARED = "ESTOP_CLEARED"
     NETWORK_LOSS_SAFE_STOP = "NETWORK_LOSS_SAFE_STOP"
     GOAL_FINISHED = "GOAL_FINISHED"  # a goal the bridge sent ended; `outcome` says how
+    STREAM_ENDED = "STREAM_ENDED"  # a velocity stream stopped sending (params.reason says why)
     BRIDGE_STARTED = "BRIDGE_STARTED"
     BRIDGE_STOPPED = "BRIDGE_STOPPED"
     AUDIT_TAIL_RECOVERED = "AUDIT_TAIL_RECOVERED"

@@ -30,6 +30,8 @@ def describe(record: AuditRecord) -> str:
         parts.append(f"-> {record.outcome}")
     if record.deny_reason:
         parts.append(f"({record.deny_reason})")
+    if record.event is AuditEvent.STREAM_ENDED and record.params:
+        parts.append(f"({record.params.get('reason')})")
     if record.ros2_topic:
         parts.append(f"on {record.ros2_topic}")
     return " ".join(parts)

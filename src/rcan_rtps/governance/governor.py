@@ -35,7 +35,7 @@ from rcan_rtps.rcan import (
     Role,
     parse_ruri,
 )
-from rcan_rtps.rcan.actions import with_effect
+from rcan_rtps.rcan.actions import LockParams, MoveParams, with_effect
 
 from .._listeners import tell_all
 from . import outcomes
@@ -47,7 +47,9 @@ from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand, PendingStore
 from .idempotency import Conflict, Idempotency
 from .invariants import Check, Violation, safety_policy
 from .outcomes import Rejection
+from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
+from .streams import AccelLimits, EndReason, Stream, StreamEnded, Velocity, VelocityStreams
 
 log = logging.getLogger(__name__)
 SWEEP_INTERVAL_S = 0.05  # session-loss halt latency is timeout + at most this
@@ -84,6 +86,10 @@ class Dispatcher(Protocol):
         """Send `command`; motion is published before the first await (after `ready`)."""
         ...
 
+    def send_velocity(self, velocity: MoveParams) -> str | None:
+        """Publish one sample of a velocity stream now; None if sent, else why not."""
+        ...
+
 
 class Decision(msgspec.Struct, frozen=True, kw_only=True):
     outcome: Outcome
@@ -113,7 +119,9 @@ class Governor:
                  limiter: RateLimiter, safety: Check, latch: EstopMachine, hitl: HitlPolicy,
                  clock: Clock, hitl_timeout_s: float = 300.0,
                  require_distinct_approver: bool = False, session_timeout_s: float = 2.0,
-                 robot_ruri: str | None = None, notifier: Notifier | None = None) -> None:
+                 robot_ruri: str | None = None, notifier: Notifier | None = None,
+                 streams: VelocityStreams | None = None,
+                 priorities: MotionPriorities | None = None) -> None:
         self.audit = audit
         self.latch = latch
         self._dispatcher = dispatcher
@@ -140,6 +148,11 @@ class Governor:
         self.session_lost_listeners: list[Callable[[Principal], None]] = []
         # Told when what STATUS shows of governance changes: the latch, pending approvals.
         self.status_listeners: list[Callable[[], None]] = []
+        # The one owner of the velocity streams; an e-stop ends them first thing.
+        self.streams = streams or VelocityStreams(dispatcher, latch)
+        self.streams.on_end = self._stream_ended
+        self._priorities = priorities or MotionPriorities()
+        latch.listeners.insert(0, self.streams.on_latch)
         latch.listeners.append(self._status_changed)
 
     @classmethod
@@ -153,12 +166,17 @@ class Governor:
         if reason:
             log.error("%s", reason)
         latch = EstopMachine(latch_file, latched=latched, reason=reason)
+        safety = bridge.safety
+        streams = VelocityStreams(dispatcher, latch, rate_hz=bridge.ros2.cmd_rate_hz,
+                                  accel=AccelLimits(safety.max_linear_accel,
+                                                    safety.max_angular_accel))
         return cls(
             audit=audit, dispatcher=dispatcher, clock=clock, latch=latch, notifier=notifier,
             roles=RolePolicy({a: Role[r] for a, r in bridge.rbac.action_roles.items()}),
             limiter=RateLimiter(clock),
-            safety=safety_policy(bridge.safety, latch, bridge.ros2.nav_frame_id,
-                                 bridge.ros2.arms),
+            safety=safety_policy(safety, latch, bridge.ros2.nav_frame_id, streams,
+                                 arms=bridge.ros2.arms),
+            streams=streams, priorities=MotionPriorities(bridge.motion),
             hitl=HitlPolicy(bridge.hitl, Role[bridge.rbac.hitl_approver_role]),
             hitl_timeout_s=bridge.hitl.timeout_seconds,
             require_distinct_approver=bridge.hitl.require_distinct_approver,
@@ -191,6 +209,7 @@ class Governor:
         if self._stopped:
             return
         self._stopped = True
+        self.end_streams()
         if self._sweeper is not None:
             self._sweeper.cancel()
             await asyncio.gather(self._sweeper, return_exceptions=True)
@@ -334,15 +353,28 @@ class Governor:
 
     async def _execute(self, command: NormalizedCommand, principal: Principal,
                        params: ActionParams, event: AuditEvent,
-                       pending_id: str | None = None) -> Decision:
+                       pending_id: str | None = None, issuer: Principal | None = None
+                       ) -> Decision:
+        """`issuer`: whose command it is, when `principal` approved it (HiTL)."""
         applied = msgspec.structs.asdict(params)
         spec = command.spec
         if spec.effect is Effect.CLEAR_ESTOP:
             return await self.latch.clear(
                 lambda: self._clear_estop(command, principal, event, pending_id))
+        if spec.effect in (Effect.LOCK, Effect.UNLOCK):
+            return await self._lock(command, principal, params, event, pending_id)
+        if spec.effect is Effect.HALT:  # zero at once, before the stop is even audited
+            self.streams.end(EndReason.STOPPED, principal.name)
         motion = spec.motion
         if motion and self.latch.latched:
             return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
+                                      pending_id=pending_id)
+        owner = issuer or principal  # a stream is its issuer's, at the issuer's priority
+        priority = self._priorities.of(owner)
+        # Streams and goals both drive the base: the same priorities and locks hold.
+        refused = self.streams.admits(priority) if spec.streamed or spec.starts_goal else None
+        if refused is not None:
+            return await self._refuse(command, principal, refused, event=_refused(event),
                                       pending_id=pending_id)
         why = await self._ready(command)
         if why is not None:
@@ -352,6 +384,9 @@ class Governor:
         if motion and self.latch.latched:
             return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
                                       pending_id=pending_id)
+        replaces = self.streams.active if spec.streamed else None
+        if replaces is not None:  # recorded here: a replaced stream's end costs no entry
+            applied = {**applied, "replaces": self.streams.replacing(priority)}
         record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          pending_id=pending_id, ros2_topic=self._route(command))
         receipt = await self._write_ahead(record)
@@ -360,13 +395,88 @@ class Governor:
         # Checked again after the write, with no await between this check and the publish.
         if motion and self.latch.latched:
             return await self._failed(command, principal, outcomes.ESTOP_ACTIVE)
+        if spec.streamed:
+            return await self._start_stream(command, owner, params, priority,
+                                            (applied, receipt), replaces)
         result, failure = await self._dispatch(command, params)
         if failure is not None:
             return await self._failed(command, principal, failure)
         if spec.starts_goal and self.latch.latched:
             # Accepted while an e-stop latched: the e-stop's cancel may have missed this goal.
             await self._dispatch(_bridge_command(Effect.HALT))
+        elif spec.starts_goal:  # the goal drives the base now: a velocity stream would fight it
+            self.streams.end(EndReason.REPLACED, owner.name)
         return _executed(command, applied, receipt, result)
+
+    # -- velocity streams and locks ---------------------------------------------------------
+
+    async def _start_stream(self, command: NormalizedCommand, principal: Principal,
+                            params: ActionParams, priority: int,
+                            audited: tuple[dict[str, Any], AuditReceipt],
+                            replaces: Stream | None) -> Decision:
+        """After the write-ahead entry: the first sample, then the stream takes over.
+
+        No await between the admission check, the first sample (the dispatcher publishes
+        motion before its first await) and `start`: the stream state cannot change in between.
+        """
+        assert isinstance(params, MoveParams), "only a move is streamed"
+        refused = self.streams.admits(priority)
+        if refused is not None:
+            return await self._failed(command, principal, refused)
+        target = Velocity.of(params)
+        first = self.streams.first_sample(target)
+        result, failure = await self._dispatch(command, first.params())
+        if failure is not None:
+            return await self._failed(command, principal, failure)
+        stream = Stream(action=command.action, owner=principal.name, priority=priority,
+                        target=target, message_id=command.message_id,
+                        duration_s=params.duration_s)
+        refused = self.streams.start(stream, first, by=principal.name, recorded=replaces)
+        if refused is not None:
+            return await self._failed(command, principal, refused)
+        if params.duration_s is not None:  # a timed move bounds itself: silence counts after
+            self._sessions.quiet_after(principal, params.duration_s)
+        return _executed(command, audited[0], audited[1], result)
+
+    def _stream_ended(self, ended: StreamEnded) -> None:
+        if ended.recorded:  # the replacing move's entry says so (`applied.replaces`)
+            return
+        stream = ended.stream
+        record = AuditRecord(
+            event=AuditEvent.STREAM_ENDED, principal=stream.owner, action_type=stream.action,
+            message_id=stream.message_id,
+            params={"reason": ended.reason.value, "ended_by": ended.by,
+                    "samples": stream.samples,
+                    "seconds": round(ended.at - stream.started_at, 3)},
+            applied={"last": ended.last._asdict(), "zero_sent": ended.zeroed})
+        self._spawn(self._write_ahead(record))
+
+    def end_streams(self) -> None:
+        """The bridge is stopping: zero now, before the robot is halted and the log closed."""
+        self.streams.end(EndReason.BRIDGE_STOPPED)
+
+    async def _lock(self, command: NormalizedCommand, principal: Principal,
+                    params: ActionParams, event: AuditEvent,
+                    pending_id: str | None) -> Decision:
+        """Engage or release a configured lock: only at or below the sender's priority."""
+        assert isinstance(params, LockParams), "a lock names its lock"
+        level = self._priorities.lock(params.name)
+        refused = (outcomes.UNKNOWN_LOCK if level is None else outcomes.LOWER_PRIORITY
+                   if self._priorities.of(principal) < level else None)
+        if refused is not None or level is None:
+            return await self._refuse(command, principal, refused or outcomes.UNKNOWN_LOCK,
+                                      event=_refused(event), pending_id=pending_id)
+        applied = {"name": params.name, "priority": level}
+        record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
+                         pending_id=pending_id)
+        receipt = await self._write_ahead(record)
+        if receipt is None:
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        if command.spec.effect is Effect.LOCK:
+            self.streams.lock(params.name, level, principal.name)
+        else:
+            self.streams.unlock(params.name)
+        return _executed(command, applied, receipt, DispatchResult(ok=True))
 
     async def _write_ahead(self, record: AuditRecord) -> AuditReceipt | None:
         """The decision entry, durable; None if it cannot be written (then nothing is sent)."""
@@ -473,7 +583,7 @@ class Governor:
                                       event=AuditEvent.HITL_AUTHORIZED, pending_id=pending_id)
         self._sessions.touch(pending.issuer, command.spec)
         return await self._execute(command, approver, applied, AuditEvent.HITL_AUTHORIZED,
-                                   pending_id)
+                                   pending_id, issuer=pending.issuer)
 
     async def _refuse_hitl(self, verb: str, approver: Principal,
                            rejection: Rejection) -> Decision:
@@ -527,6 +637,7 @@ class Governor:
         """Session lost: zero velocity and cancel goals (a `stop`), audited as such."""
         log.warning("control session of '%s' lost (%s): halting the robot (safe stop)",
                     principal.name, why)
+        self.streams.end(EndReason.SESSION_LOST, principal.name)  # zero first, at once
         for listener in self.session_lost_listeners:  # e.g. log the goals being cancelled
             listener(principal)
         stop = _bridge_command(Effect.HALT)
@@ -604,8 +715,14 @@ class Sessions:
             self._last.pop(principal.name, None)  # stopped on purpose: nothing to guard
 
     def heartbeat(self, principal: Principal) -> None:
+        last = self._last.get(principal.name)
+        if last is not None:  # never earlier than a timed move's end (quiet_after)
+            self._last[principal.name] = (principal, max(last[1], self._clock.monotonic()))
+
+    def quiet_after(self, principal: Principal, seconds: float) -> None:
+        """Silence counts from `seconds` from now (the end of a timed move)."""
         if principal.name in self._last:
-            self._last[principal.name] = (principal, self._clock.monotonic())
+            self._last[principal.name] = (principal, self._clock.monotonic() + seconds)
 
     def end(self, principal: Principal) -> bool:
         """Drop the principal's session; True if it held one."""
@@ -647,6 +764,11 @@ def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
 
 async def _awaited(future: asyncio.Future[Any]) -> Any:
     return await future
+
+
+def _refused(event: AuditEvent) -> AuditEvent:
+    """The event of a refusal: an approval's own (HITL_AUTHORIZED), else COMMAND_REJECTED."""
+    return AuditEvent.COMMAND_REJECTED if event is AuditEvent.COMMAND_DISPATCHED else event
 
 
 def _bridge_command(effect: Effect) -> NormalizedCommand:

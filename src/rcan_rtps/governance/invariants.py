@@ -26,11 +26,12 @@ from rcan_rtps.rcan import (
     NavigateParams,
     NormalizedCommand,
 )
-from rcan_rtps.rcan.actions import specs
+from rcan_rtps.rcan.actions import RampedMove, specs
 
 from . import outcomes
 from .errors import EmptyPolicyError, GovernanceError
 from .outcomes import Rejection
+from .streams import AccelLimits, Velocity
 
 log = logging.getLogger(__name__)
 EXCEED_DENY_FACTOR = 1.10  # the bridge spec: more than 10 % over the limit is denied, not clamped
@@ -95,7 +96,8 @@ class VelocityLimit:
     def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
         if not isinstance(params, MoveParams):
             return params
-        return MoveParams(
+        return msgspec.structs.replace(
+            params,
             linear_x=self._limit(params.linear_x, self.max_linear, "linear_x"),
             linear_y=self._limit(params.linear_y, self.max_linear, "linear_y"),
             angular_z=self._limit(params.angular_z, self.max_angular, "angular_z"),
@@ -107,6 +109,41 @@ class VelocityLimit:
         if self.deny_on_exceed and abs(value) > limit * EXCEED_DENY_FACTOR:
             raise Violation(outcomes.VELOCITY_LIMIT, f"{name}={value} exceeds {limit} by >10%")
         return max(-limit, min(limit, value))
+
+
+class DurationLimit:
+    """A timed move lasts at most `max_s`; a longer one is denied, not shortened."""
+
+    def __init__(self, max_s: float) -> None:
+        self.max_s = max_s
+
+    def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
+        duration = getattr(params, "duration_s", None)
+        if isinstance(params, MoveParams) and duration is not None and duration > self.max_s:
+            raise Violation(outcomes.DURATION_LIMIT, f"duration_s={duration} exceeds {self.max_s}")
+        return params
+
+
+class Commanded(Protocol):
+    @property
+    def commanded(self) -> Velocity: ...
+
+
+class AccelerationLimit:
+    """A move ramps from the velocity commanded now; the ramp is part of what is applied
+    (and audited). The stream enforces it sample by sample (governance.streams)."""
+
+    def __init__(self, limits: AccelLimits, motion: Commanded) -> None:
+        self.limits = limits
+        self.motion = motion
+
+    def __call__(self, command: NormalizedCommand, params: ActionParams) -> ActionParams:
+        if not isinstance(params, MoveParams):
+            return params
+        now, target = self.motion.commanded, Velocity.of(params)
+        return RampedMove(**msgspec.structs.asdict(params),
+                          ramp_from=[now.linear_x, now.linear_y, now.angular_z],
+                          ramp_s=round(self.limits.ramp_s(now, target), 6))
 
 
 class Workspace:
@@ -217,8 +254,16 @@ class PerAction:
         return policy(command, params)
 
 
+class _Standstill:
+    commanded = Velocity()
+
+
 def safety_policy(safety: SafetyConfig, latch: Latch, nav_frame_id: str,
+                  motion: Commanded | None = None, *,
                   arms: Mapping[str, ArmConfig] | None = None) -> PerAction:
+    """`motion`: what the robot is being told now (the velocity streams); `arms`: the joint
+    groups of `bridge.ros2.arms`."""
+    accel = AccelLimits(safety.max_linear_accel, safety.max_angular_accel)
     checks: dict[Invariant, Check] = {
         Invariant.ESTOP_GUARD: EstopGuard(latch),
         Invariant.FINITE: finite_numbers,
@@ -226,6 +271,8 @@ def safety_policy(safety: SafetyConfig, latch: Latch, nav_frame_id: str,
                                           safety.velocity_exceed_deny),
         Invariant.WORKSPACE: Workspace(safety.workspace, nav_frame_id),
         Invariant.JOINT_GROUP: JointGroups(arms or {}),
+        Invariant.DURATION: DurationLimit(safety.max_move_duration_s),
+        Invariant.ACCELERATION: AccelerationLimit(accel, motion or _Standstill()),
     }
     return PerAction({spec.name: AllOf(*(checks[i] for i in spec.invariants))
                       for spec in specs()})

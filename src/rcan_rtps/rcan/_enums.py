@@ -58,3 +58,7 @@ class Reason(str, enum.Enum):
     NOT_THIS_ROBOT = "not_this_robot"
     ROBOT_SILENT = "robot_silent"
     ESTOP_STATE_UNWRITABLE = "estop_state_unwritable"
+    DURATION_LIMIT = "duration_limit"  # duration_s over safety.max_move_duration_s
+    LOWER_PRIORITY = "lower_priority"  # a higher-priority velocity stream is running
+    MOTION_LOCKED = "motion_locked"  # a motion lock of a higher priority is engaged
+    UNKNOWN_LOCK = "unknown_lock"  # not in bridge.motion.locks

@@ -21,12 +21,14 @@ from ._spec import (
     HitlDefault,
     Invariant,
     MessageKit,
+    NoRoute,
     Publish,
     RosRoute,
     SendGoal,
 )
 from .arm_joint import ArmJointParams
-from .move import MoveParams
+from .lock import LockParams
+from .move import MoveParams, RampedMove
 from .navigate import NavigateParams
 from .stop import NoParams
 
@@ -49,11 +51,14 @@ __all__ = [
     "Halt",
     "HitlDefault",
     "Invariant",
+    "LockParams",
     "MessageKit",
     "MoveParams",
     "NavigateParams",
     "NoParams",
+    "NoRoute",
     "Publish",
+    "RampedMove",
     "RosRoute",
     "SendGoal",
     "action_spec",

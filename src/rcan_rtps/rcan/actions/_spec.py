@@ -20,6 +20,8 @@ class Effect(enum.Enum):
     HALT = "halt"  # zero velocity, cancel goals: the e-stop lane, never rate-limited or gated
     ESTOP = "estop"  # latch, tell the robot, halt: any authenticated principal
     CLEAR_ESTOP = "clear_estop"  # unlatch, once its audit entry is durable
+    LOCK = "lock"  # block lower-priority velocity streams (twist_mux-like); no robot I/O
+    UNLOCK = "unlock"  # release such a lock
 
 
 class Invariant(enum.Enum):
@@ -30,6 +32,8 @@ class Invariant(enum.Enum):
     VELOCITY = "velocity"  # linear/angular limits: clamp, or deny >10 % over
     WORKSPACE = "workspace"  # goal strictly inside the workspace polygon
     JOINT_GROUP = "joint_group"  # the arm exists and owns every joint named
+    DURATION = "duration"  # a timed move lasts at most safety.max_move_duration_s
+    ACCELERATION = "acceleration"  # a velocity stream ramps within safety.max_*_accel
 
 
 class MessageKit(Protocol):
@@ -108,7 +112,15 @@ class EstopSignal:
         return (self.signal, *(self.halt.publishes() if self.halt else ()))
 
 
-RosRoute = Publish[Any] | SendGoal[Any] | Halt | EstopSignal
+@dataclass(frozen=True)
+class NoRoute:
+    """Governance only (locks): nothing is sent to the robot."""
+
+    def publishes(self) -> tuple[Publish[Any], ...]:
+        return ()
+
+
+RosRoute = Publish[Any] | SendGoal[Any] | Halt | EstopSignal | NoRoute
 
 
 @dataclass(frozen=True)
@@ -133,6 +145,9 @@ class ActionSpec(Generic[P]):
     scope: str = "control"
     hitl: HitlDefault = field(default_factory=HitlDefault)
     starts_goal: bool = False  # its work outlives the command (a navigation goal)
+    # Held on the wire: republished at `cmd_rate_hz` until its duration ends or it is replaced,
+    # stopped, e-stopped, its session or the robot is lost (see governance.streams).
+    streamed: bool = False
     order: int = 100  # where it is listed (docs, OpenAPI, mDNS caps); ties go by name
     example: Mapping[str, Any] | None = None  # valid params, where the required ones are not
 
@@ -143,6 +158,8 @@ class ActionSpec(Generic[P]):
             raise ValueError(f"action {self.name!r} stops the robot: it can never be gated")
         if self.effect is Effect.MOTION and Invariant.ESTOP_GUARD not in self.invariants:
             raise ValueError(f"motion action {self.name!r} must be guarded by the e-stop")
+        if self.streamed and not (self.motion and isinstance(self.ros, Publish)):
+            raise ValueError(f"streamed action {self.name!r} must be motion that publishes")
 
     @property
     def stopping(self) -> bool:

@@ -1,8 +1,15 @@
-"""`move`: one velocity command (geometry_msgs Twist, or TwistStamped if configured)."""
+"""`move`: drive at a velocity (geometry_msgs Twist, or TwistStamped if configured).
+
+The velocity is streamed: republished at `bridge.ros2.cmd_rate_hz` for `duration_s` seconds
+(at most `safety.max_move_duration_s`), or, without `duration_s`, held until `stop`, the next
+move, an e-stop, the loss of the sender's control session or of the robot; then zero.
+"""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
+
+import msgspec
 
 from .._enums import Role
 from .._types import ActionParams, Finite
@@ -17,6 +24,14 @@ class MoveParams(ActionParams, frozen=True):
     linear_x: Finite = 0.0
     linear_y: Finite = 0.0
     angular_z: Finite = 0.0
+    duration_s: Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)] | None = None  # None: held
+
+
+class RampedMove(MoveParams, frozen=True):
+    """A move as governed: the ramp from the velocity commanded when it was decided."""
+
+    ramp_from: list[float] = msgspec.field(default_factory=lambda: [0.0, 0.0, 0.0])  # x, y, z
+    ramp_s: float = 0.0  # how long the acceleration limits take to reach the target
 
 
 def velocity(params: MoveParams, kit: MessageKit) -> Any:
@@ -34,10 +49,13 @@ def velocity(params: MoveParams, kit: MessageKit) -> Any:
 SPEC = ActionSpec(
     order=10,
     name="move",
-    summary="Drive at a velocity (m/s, rad/s), clamped to the safety limits.",
+    summary=("Drive at a velocity (m/s, rad/s), clamped to the safety limits and ramped "
+             "within the acceleration limits, for `duration_s` or until stopped."),
     params=MoveParams,
     effect=Effect.MOTION,
     default_role=Role.USER,
     ros=Publish(topic_key="cmd_vel_topic", type_key="cmd_vel_type", build=velocity),
-    invariants=(Invariant.ESTOP_GUARD, Invariant.FINITE, Invariant.VELOCITY),
+    invariants=(Invariant.ESTOP_GUARD, Invariant.FINITE, Invariant.VELOCITY,
+                Invariant.DURATION, Invariant.ACCELERATION),
+    streamed=True,
 )

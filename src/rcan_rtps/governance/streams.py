@@ -1,0 +1,289 @@
+"""Velocity streams (§8, issue 11): a governed `move` held on the wire until it ends.
+
+A robot's velocity controller stops when no command arrives for a while (ros2_control's diff
+drive: 0.5 s), so one Twist per `move` drives a fraction of a metre. `VelocityStreams` is the
+one owner of what the robot is being told to do: the active stream, the velocity last sent,
+the engaged motion locks. Everything about it runs on the event loop, without awaits:
+
+- `start` (after the move's write-ahead entry, see Governor) replaces the active stream
+  atomically; the first sample was sent by the dispatcher just before, with no await between.
+- a loop timer sends the next sample every 1/`rate_hz` s, each a step of the ramp from the
+  velocity last sent toward the target (acceleration limits), until the duration is over;
+- `end` (stop, e-stop, session loss, robot loss, completion) sends zero at once: a stop is
+  never ramped or delayed. The e-stop ends the stream from the latch's listener, synchronously
+  when the latch flips, before the e-stop's first await; and every sample checks the latch
+  right before it is written: no non-zero sample follows a latched e-stop.
+
+Every end is reported (`on_end`) so the governor audits it (STREAM_ENDED). Priorities and
+locks work like twist_mux's: a higher priority preempts, a lower one is refused while a higher
+stream runs or a higher lock is engaged.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple, Protocol
+
+from rcan_rtps.rcan.actions import MoveParams
+
+from . import outcomes
+from .outcomes import Rejection
+
+log = logging.getLogger(__name__)
+
+
+class Velocity(NamedTuple):
+    linear_x: float = 0.0
+    linear_y: float = 0.0
+    angular_z: float = 0.0
+
+    @classmethod
+    def of(cls, params: MoveParams) -> Velocity:
+        return cls(params.linear_x, params.linear_y, params.angular_z)
+
+    def params(self) -> MoveParams:
+        return MoveParams(linear_x=self.linear_x, linear_y=self.linear_y,
+                          angular_z=self.angular_z)
+
+
+ZERO = Velocity()
+
+
+@dataclass(frozen=True)
+class AccelLimits:
+    """m/s² and rad/s²; None: unlimited (a step goes straight to the target)."""
+
+    linear: float | None = None
+    angular: float | None = None
+
+    def step(self, current: Velocity, target: Velocity, dt: float) -> Velocity:
+        """One sample `dt` after `current`, toward `target`, within the limits."""
+        lin = math.inf if self.linear is None else self.linear * dt
+        ang = math.inf if self.angular is None else self.angular * dt
+        return Velocity(_toward(current.linear_x, target.linear_x, lin),
+                        _toward(current.linear_y, target.linear_y, lin),
+                        _toward(current.angular_z, target.angular_z, ang))
+
+    def ramp_s(self, current: Velocity, target: Velocity) -> float:
+        """How long the limits take from `current` to `target`."""
+        lin = max(abs(t - c) for c, t in zip(current[:2], target[:2], strict=True))
+        ang = abs(target.angular_z - current.angular_z)
+        return max(0.0 if self.linear is None else lin / self.linear,
+                   0.0 if self.angular is None else ang / self.angular)
+
+
+def _toward(current: float, target: float, max_step: float) -> float:
+    return max(current - max_step, min(current + max_step, target))
+
+
+class EndReason(str, enum.Enum):
+    COMPLETED = "completed"  # its duration is over
+    REPLACED = "replaced"  # a newer move of the same or a lower-or-equal priority sender
+    PREEMPTED = "preempted"  # a higher-priority move, or a lock above its priority
+    STOPPED = "stopped"
+    ESTOPPED = "estopped"
+    SESSION_LOST = "session_lost"
+    ROBOT_LOST = "robot_lost"
+    BRIDGE_STOPPED = "bridge_stopped"
+
+
+@dataclass
+class Stream:
+    action: str
+    owner: str  # the principal whose command it is
+    priority: int
+    target: Velocity
+    message_id: str
+    duration_s: float | None  # None: held until something ends it
+    started_at: float = 0.0  # loop time
+    ends_at: float | None = None
+    samples: int = 0
+
+
+@dataclass(frozen=True)
+class StreamEnded:
+    stream: Stream
+    reason: EndReason
+    by: str | None  # who ended it, when someone did
+    last: Velocity  # the last sample it sent
+    at: float
+    zeroed: bool  # zero was sent (False: the next stream took over the wire)
+    recorded: bool = False  # the replacing move's own entry records it (`applied.replaces`)
+
+
+class VelocitySink(Protocol):
+    def send_velocity(self, velocity: MoveParams) -> str | None:
+        """Publish one velocity sample now; None if sent, else why not (robot lost)."""
+        ...
+
+
+class Latch(Protocol):
+    @property
+    def latched(self) -> bool: ...
+
+
+class Cancellable(Protocol):
+    def cancel(self) -> None: ...
+
+
+class Timer(Protocol):
+    """What the streams need of the event loop (tests drive a manual one)."""
+
+    def time(self) -> float: ...
+
+    def call_at(self, when: float, callback: Callable[[], object]) -> Cancellable: ...
+
+
+class VelocityStreams:
+    """The one owner of the active velocity stream; see the module docs."""
+
+    def __init__(self, sink: VelocitySink, latch: Latch, *, rate_hz: float = 20.0,
+                 accel: AccelLimits | None = None, timer: Timer | None = None) -> None:
+        self._sink = sink
+        self._latch = latch
+        self.period = 1.0 / rate_hz
+        self.accel = accel or AccelLimits()
+        self._timer = timer
+        self.active: Stream | None = None
+        self.commanded = ZERO  # the velocity last sent
+        self.locks: dict[str, int] = {}  # engaged lock → its priority
+        self.on_end: Callable[[StreamEnded], None] = lambda ended: None
+        self._handle: Cancellable | None = None
+        self._last = ZERO
+
+    # -- admission -----------------------------------------------------------------------
+    def admits(self, priority: int) -> Rejection | None:
+        """None if a move of `priority` may start now (no higher stream, no higher lock)."""
+        if self._latch.latched:
+            return outcomes.ESTOP_ACTIVE
+        if any(p > priority for p in self.locks.values()):
+            return outcomes.MOTION_LOCKED
+        if self.active is not None and self.active.priority > priority:
+            return outcomes.LOWER_PRIORITY
+        return None
+
+    def first_sample(self, target: Velocity) -> Velocity:
+        return self.accel.step(self.commanded, target, self.period)
+
+    # -- the stream ------------------------------------------------------------------------
+    def start(self, stream: Stream, first: Velocity, *, by: str,
+              recorded: Stream | None = None) -> Rejection | None:
+        """`first` has just been sent; from now on `stream` owns the wire (sync, atomic).
+
+        `recorded`: the stream the new move's audit entry says it replaces; its end needs no
+        entry of its own (any other stream it replaces, after a race, gets one)."""
+        refused = self.admits(stream.priority)
+        if refused is not None:  # changed since the first sample went: undo it at once
+            self._send(self._last if self.active is not None else ZERO)
+            return refused
+        old = self.active
+        if old is not None:
+            higher = stream.priority > old.priority
+            self._finish(EndReason.PREEMPTED if higher else EndReason.REPLACED, by, zero=False,
+                         recorded=old is recorded)
+        timer = self._clock()
+        stream.started_at = timer.time()
+        if stream.duration_s is not None:
+            stream.ends_at = stream.started_at + stream.duration_s
+        stream.samples = 1
+        self.active, self.commanded, self._last = stream, first, first
+        if first == ZERO and stream.target == ZERO:
+            self._finish(EndReason.COMPLETED, None, zero=False)  # nothing to hold
+            return None
+        self._schedule(timer, stream.started_at + self.period)
+        return None
+
+    def end(self, reason: EndReason, by: str | None = None) -> bool:
+        """End the active stream, if any, sending zero at once (True). Without one (False),
+        nothing is sent here: the caller halts the robot itself."""
+        if self.active is None:
+            self.commanded = ZERO  # the caller halts; nothing of ours to end
+            return False
+        self._finish(reason, by, zero=True)
+        return True
+
+    def on_latch(self) -> None:
+        """The latch's listener: an e-stop ends the stream before anything else happens."""
+        if self._latch.latched:
+            self.end(EndReason.ESTOPPED)
+
+    # -- locks -----------------------------------------------------------------------------
+    def lock(self, name: str, priority: int, by: str) -> None:
+        self.locks[name] = priority
+        if self.active is not None and self.active.priority < priority:
+            self._finish(EndReason.PREEMPTED, by, zero=True)
+
+    def unlock(self, name: str) -> bool:
+        return self.locks.pop(name, None) is not None
+
+    # -- internals -------------------------------------------------------------------------
+    def _clock(self) -> Timer:
+        if self._timer is None:
+            self._timer = asyncio.get_running_loop()
+        return self._timer
+
+    def _schedule(self, timer: Timer, when: float) -> None:
+        self._handle = timer.call_at(when, lambda: self._tick(when))
+
+    def _tick(self, due: float) -> None:
+        stream, timer = self.active, self._clock()
+        if stream is None:
+            return
+        now = timer.time()
+        if stream.ends_at is not None and now >= stream.ends_at - self.period / 2:
+            self._finish(EndReason.COMPLETED, None, zero=True)
+            return
+        if self._latch.latched:  # the listener ended it already; never send on a latch
+            self._finish(EndReason.ESTOPPED, None, zero=True)
+            return
+        if self.commanded == ZERO and stream.target == ZERO:  # ramped down to a standstill
+            self._finish(EndReason.COMPLETED, None, zero=False)
+            return
+        sample = self.accel.step(self.commanded, stream.target, self.period)
+        why = self._send(sample)
+        if why is not None:
+            log.warning("velocity stream of '%s' ended: %s", stream.owner, why)
+            self._finish(EndReason.ROBOT_LOST, None, zero=True)
+            return
+        stream.samples += 1
+        self._last = sample
+        # A late tick (a busy loop) does not bunch up the next ones behind it.
+        self._schedule(timer, max(due + self.period, now + self.period / 2))
+
+    def _send(self, velocity: Velocity) -> str | None:
+        try:
+            why = self._sink.send_velocity(velocity.params())
+        except Exception as exc:  # a bridge fault ends the stream, never the loop
+            log.exception("sending a velocity sample failed")
+            why = repr(exc)
+        self.commanded = velocity if why is None else ZERO
+        return why
+
+    def replacing(self, priority: int) -> dict[str, str] | None:
+        """What a move of `priority` starting now would end: for its audit entry."""
+        old = self.active
+        if old is None:
+            return None
+        reason = EndReason.PREEMPTED if priority > old.priority else EndReason.REPLACED
+        return {"message_id": old.message_id, "reason": reason.value}
+
+    def _finish(self, reason: EndReason, by: str | None, *, zero: bool,
+                recorded: bool = False) -> None:
+        stream, self.active = self.active, None
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+        if zero:
+            self._send(ZERO)
+        if stream is None:
+            return
+        ended = StreamEnded(stream, reason, by, self._last, self._clock().time(), zero, recorded)
+        try:
+            self.on_end(ended)
+        except Exception:  # reporting must never keep a stream alive
+            log.exception("reporting the end of a velocity stream failed")

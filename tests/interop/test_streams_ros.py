@@ -1,0 +1,99 @@
+"""Velocity streams (issue 11) on the wire, as a real rclpy Jazzy subscriber receives them.
+
+cmd_vel is one reliable writer matched with one reliable reader: samples arrive in the order
+they were written. That order is what these tests check, never wall-clock latency: a sentinel
+velocity sent after the event under test bounds "everything written after it".
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from waiting import eventually, take
+
+from .bridge_rig import AGENT, OPS, VIEWER, Rig, bridge_config, close_rig, make_rig
+from .test_bridge_ros import CMD_VEL, SENTINEL_X, TWIST, subscribe, xs
+
+RATE_HZ = 20.0
+
+
+@pytest.fixture
+async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Rig]:
+    config = bridge_config(tmp_path, domain_id, extra_ros2=f"cmd_rate_hz: {RATE_HZ}\n")
+    r = await make_rig(config, jazzy_python, domain_id)
+    yield r
+    await close_rig(r)
+
+
+def sample_band(duration_s: float, rate_hz: float) -> range:
+    """How many samples a stream of `duration_s` sends: one at once, then one per period;
+    a busy loop may skip a late tick (never bunch them), so up to a fifth fewer."""
+    expected = round(duration_s * rate_hz)
+    return range(expected - max(2, expected // 5), expected + 2)
+
+
+async def after_sentinel_stream(rig: Rig) -> list[float]:
+    """Every linear_x received up to a sentinel move sent now (then stopped)."""
+    sentinel = await rig.command(AGENT, {"action": "move", "params": {"linear_x": SENTINEL_X}})
+    assert sentinel.http_status == 200, sentinel
+    got = xs(await take(rig.oracle, CMD_VEL, until=lambda got: SENTINEL_X in xs(got)))
+    await rig.command(AGENT, {"action": "stop"})
+    return got[:got.index(SENTINEL_X)]
+
+
+def ended(rig: Rig) -> list[tuple[str, str]]:
+    return [(e["message_id"], e["params"]["reason"]) for e in rig.entries()
+            if e["event"] == "STREAM_ENDED"]
+
+
+async def test_a_timed_move_streams_at_the_rate_then_zero(rig: Rig) -> None:
+    await subscribe(rig, CMD_VEL, TWIST)
+    d = await rig.command(AGENT, {"action": "move",
+                                  "params": {"linear_x": 0.5, "duration_s": 2.0}})
+    assert d.http_status == 200, d
+
+    def complete() -> bool:
+        return (d.message_id, "completed") in ended(rig)
+
+    await eventually(complete, timeout=15)
+    got = xs(await take(rig.oracle, CMD_VEL, until=lambda got: 0.0 in xs(got)))
+    moving = got[:got.index(0.0)]
+    assert set(moving) == {0.5}
+    assert len(moving) in sample_band(2.0, RATE_HZ), len(moving)
+    samples = next(e for e in rig.entries() if e["event"] == "STREAM_ENDED")["params"]["samples"]
+    assert samples == len(moving)  # what the audit counts is what rclpy received
+    assert all(x == 0.0 for x in await after_sentinel_stream(rig))  # and then only zero
+
+
+async def test_no_nonzero_sample_after_the_estop_reply(rig: Rig) -> None:
+    await subscribe(rig, "/robot1/emergency_stop", "std_msgs/msg/Bool")
+    await subscribe(rig, CMD_VEL, TWIST)
+    await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.5}})
+    await take(rig.oracle, CMD_VEL, until=lambda got: len(got) >= 5)  # streaming now
+    estop = await rig.command(VIEWER, {"action": "estop"})
+    assert estop.http_status == 200, estop
+    await asyncio.sleep(10 / RATE_HZ)  # ten periods: any stray tick would be written by now
+    assert (await rig.command(OPS, {"action": "clear_estop"})).http_status == 200
+    got = await after_sentinel_stream(rig)
+    first_zero = got.index(0.0)
+    assert set(got[:first_zero]) <= {0.5}  # what was still in flight before it
+    assert set(got[first_zero:]) == {0.0}, got  # after the e-stop: zero, and only zero
+    assert [r for _, r in ended(rig)][:1] == ["estopped"]
+
+
+async def test_session_loss_mid_stream_sends_zero_and_nothing_after(rig: Rig) -> None:
+    await subscribe(rig, CMD_VEL, TWIST)
+    d = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.4}})  # held
+    # No heartbeat: after session_timeout_s (1 s) the stream ends and zero goes out.
+    got: list[Any] = await take(rig.oracle, CMD_VEL, until=lambda got: 0.0 in xs(got),
+                                timeout=10)
+    assert set(xs(got)[:xs(got).index(0.0)]) == {0.4}
+    await eventually(lambda: (d.message_id, "session_lost") in ended(rig), timeout=10)
+    assert any(e["event"] == "NETWORK_LOSS_SAFE_STOP" for e in rig.entries())
+    await asyncio.sleep(10 / RATE_HZ)
+    rest = xs(got)[xs(got).index(0.0):] + await after_sentinel_stream(rig)
+    assert set(rest) == {0.0}, rest

@@ -1,5 +1,6 @@
-"""Every listed message type crosses both ways between us and rclpy, default and sensor QoS;
-so does test_msgs/msg/WStrings (wstring: UTF-16 units, astral characters as surrogate pairs)."""
+"""Every listed message type and every test_msgs message type crosses both ways between us and
+rclpy: random values (default and sensor QoS) and each field at both ends of its range
+(test_msgs); WStrings with astral characters (UTF-16 units, surrogate pairs)."""
 
 from __future__ import annotations
 
@@ -18,9 +19,12 @@ from rcan_rtps.ros import qos
 from rcan_rtps.ros.participant import RosNode
 
 from ..ros.offline_data import TEST_IDL
-from ..ros.strategies import LISTED_TYPES, values_for
+from ..ros.strategies import LISTED_TYPES, extreme_values, values_for
 
-TYPES = [*LISTED_TYPES, "test_msgs/msg/WStrings"]
+TEST_MSGS = ["Arrays", "BasicTypes", "BoundedPlainSequences", "BoundedSequences", "Builtins",
+             "Constants", "Defaults", "Empty", "MultiNested", "Nested", "Strings",
+             "UnboundedSequences", "WStrings"]
+TYPES = [*LISTED_TYPES, *(f"test_msgs/msg/{name}" for name in TEST_MSGS)]
 QOS = {"default": qos.DEFAULT, "sensor": qos.SENSOR_DATA}
 
 
@@ -46,6 +50,14 @@ async def test_both_ways(oracle: RclpyOracle, node: RosNode, type_name: str, qos
     values = [data.draw(values_for(node.store, type_name, max_items=3)) for _ in range(3)]
     short = type_name.rsplit("/", 1)[-1].lower()
     await cross_both_ways(oracle, node, type_name, qos_name, values, f"{short}_{qos_name}")
+
+
+@pytest.mark.parametrize("name", TEST_MSGS)
+async def test_test_msgs_at_both_ends_of_every_range(oracle: RclpyOracle, node: RosNode,
+                                                     name: str) -> None:
+    type_name = f"test_msgs/msg/{name}"
+    values = [extreme_values(node.store, type_name, end) for end in ("max", "min")]
+    await cross_both_ways(oracle, node, type_name, "default", values, f"{name.lower()}_ends")
 
 
 WIDE = ["", "a", "Hellö wörld!", "ハローワールド", "😀 needs two UTF-16 units", "\u00e9\U0001F600"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from hypothesis import strategies as st
@@ -70,3 +71,53 @@ def _field(store: TypeStore, ftype: FieldType, max_items: int) -> st.SearchStrat
     if ftype.collection is Collection.SEQUENCE:
         return st.lists(element, max_size=max_items)
     return element
+
+
+UNBOUNDED_EXTREME_ITEMS = 8  # an unbounded sequence or string at "max" has this many items
+_FLOAT32_MAX = 3.4028234663852886e38
+_DOUBLE_MAX = 1.7976931348623157e308
+
+
+def extreme_values(store: TypeStore, type_name: str, end: str) -> dict[str, Any]:
+    """Every field at one end of its range: `max` (largest numbers, strings and sequences at
+    their bounds, non-ASCII text, astral characters where unbounded) or `min` (smallest
+    numbers, -inf, empty strings and sequences)."""
+    assert end in ("max", "min")
+    msg = store.message(type_name)
+    return {f.name: 0 if f.name == "structure_needs_at_least_one_member"
+            else _extreme_field(store, f.type, end) for f in msg.fields}
+
+
+def _extreme_field(store: TypeStore, ftype: FieldType, end: str) -> Any:
+    def element() -> Any:
+        if ftype.nested is not None:
+            return extreme_values(store, ftype.nested, end)
+        return _extreme_primitive(ftype.element, end)
+
+    if ftype.collection is Collection.ARRAY:
+        return [element() for _ in range(ftype.size)]
+    if ftype.collection is Collection.BOUNDED_SEQUENCE:
+        return [element() for _ in range(ftype.size if end == "max" else 0)]
+    if ftype.collection is Collection.SEQUENCE:
+        return [element() for _ in range(UNBOUNDED_EXTREME_ITEMS if end == "max" else 0)]
+    return element()
+
+
+def _extreme_primitive(ftype: FieldType, end: str) -> Any:
+    prim = ftype.primitive
+    assert prim is not None
+    top = end == "max"
+    if prim is Primitive.BOOLEAN:
+        return top
+    if prim is Primitive.FLOAT:
+        return _FLOAT32_MAX if top else -math.inf
+    if prim.is_float:
+        return _DOUBLE_MAX if top else -math.inf
+    if prim.is_string:
+        if not top:
+            return ""
+        if ftype.string_bound:  # bounds count characters
+            return "é" * ftype.string_bound
+        return "Grüße 😀 " * UNBOUNDED_EXTREME_ITEMS
+    low, high = INTEGER_RANGES[prim]
+    return high if top else low

@@ -5,7 +5,9 @@ concurrent verifications coalesce honestly, and waiting pages are bounded."""
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -163,3 +165,27 @@ async def test_pages_are_bounded_and_never_hold_up_a_command(
         release.set()
     results = await asyncio.gather(*pages)
     assert {status for status, _ in results} == {200}
+
+
+async def test_closing_stops_a_verification_in_progress(tmp_path: Path) -> None:
+    """A verification still running when the app closes must not hold the process's exit:
+    Python joins a process pool's running task at exit (seen: a bridge that took over 30 s to
+    exit after SIGINT while a 130k-entry verify ran at low priority)."""
+    api = Api(tmp_path)
+    await api.build()
+    reads = _reads_of(api)
+    try:
+        pool = reads._verifier()
+        if not isinstance(pool, concurrent.futures.ProcessPoolExecutor):
+            pytest.skip("no process pool on this machine: verification runs in a thread")
+        running = pool.submit(time.sleep, 600)  # stands in for a long verification
+        await eventually(lambda: bool(getattr(pool, "_processes", {})), timeout=60)
+        workers = list(pool._processes.values())
+        await reads.close()
+        for worker in workers:
+            await asyncio.to_thread(worker.join, 30)
+            assert not worker.is_alive()
+        with pytest.raises(Exception):  # noqa: B017 (BrokenProcessPool or CancelledError)
+            await asyncio.wait_for(asyncio.wrap_future(running), 30)
+    finally:
+        await api.close()

@@ -170,12 +170,19 @@ class AuditReads:
                 self._no_process = True
         return self._process or self._thread
 
-    def _drop_process(self) -> None:
+    def _drop_process(self, *, stop_running: bool = False) -> None:
         process, self._process = self._process, None
-        if process is not None:
-            process.shutdown(wait=False, cancel_futures=True)
+        if process is None:
+            return
+        # The executor keeps no public handle on its worker (3.14 adds terminate_workers).
+        workers = list(getattr(process, "_processes", {}).values()) if stop_running else []
+        process.shutdown(wait=False, cancel_futures=True)
+        for worker in workers:
+            worker.terminate()
 
     async def close(self) -> None:
-        """Stop both workers; a verification in progress finishes in its process alone."""
-        self._drop_process()
+        """Stop both workers. A verification in progress is stopped too: at exit Python waits
+        for a pool's running task, and a long log's verification (a minute, at low priority on
+        a busy robot) must not hold the bridge's shutdown."""
+        self._drop_process(stop_running=True)
         self._thread.shutdown(wait=False, cancel_futures=True)

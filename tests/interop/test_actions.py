@@ -8,20 +8,13 @@ from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import pytest
-from oracle.client import OracleEnv, RclpyOracle, both_rmws
+from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
 
 from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.errors import ServiceUnavailable, ValueFitError
 from rcan_rtps.ros.participant import RosNode
 
 FIB = "test_msgs/action/Fibonacci"
-
-
-def fibonacci(order: int) -> list[int]:
-    seq = [0, 1]
-    for i in range(1, order):
-        seq.append(seq[i] + seq[i - 1])
-    return seq
 
 
 @pytest.fixture

@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
-from oracle.client import OracleEnv, RclpyOracle
+from oracle.client import OracleEnv, RclpyOracle, fibonacci
 from waiting import eventually, eventually_sync
 
 from rcan_rtps.ros.actions import ActionServer, ServerGoal
@@ -28,13 +28,6 @@ from rcan_rtps.ros.services import ServiceServer
 
 FIB = "test_msgs/action/Fibonacci"
 TYPE_HASH_WARNING = "Failed to parse type hash"
-
-
-def fibonacci(order: int) -> list[int]:
-    seq = [0, 1]
-    for i in range(1, order):
-        seq.append(seq[i] + seq[i - 1])
-    return seq
 
 
 @pytest.fixture

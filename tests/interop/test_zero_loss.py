@@ -15,7 +15,7 @@ from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import pytest
-from oracle.client import OracleEnv, RclpyOracle, both_rmws
+from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
 
 from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.errors import ServiceTimeout
@@ -32,13 +32,6 @@ GOALS = int(100 * SCALE)  # fresh ActionClient each, one node
 GOALS_PER_NODE = int(15 * SCALE)  # fresh RosNode each
 CLI_CALLS = int(20 * SCALE)  # fresh `rcan-rtps service call` processes
 REPLY_TIMEOUT = 5.0
-
-
-def fibonacci(order: int) -> list[int]:
-    seq = [0, 1]
-    for i in range(1, order):
-        seq.append(seq[i] + seq[i - 1])
-    return seq
 
 
 @pytest.fixture

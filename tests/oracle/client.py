@@ -21,6 +21,14 @@ RMWS = ("fastrtps", "cyclonedds")  # the RMW implementations an oracle can run o
 both_rmws = pytest.mark.parametrize("oracle_rmw", RMWS)
 
 
+def fibonacci(order: int) -> list[int]:
+    """The sequence the agent's Fibonacci action server ends with for `order`."""
+    seq = [0, 1]
+    for i in range(1, order):
+        seq.append(seq[i] + seq[i - 1])
+    return seq
+
+
 @dataclass(frozen=True)
 class OracleEnv:
     """A ROS prefix's interpreter and the RMW its processes run on ("fastrtps" or

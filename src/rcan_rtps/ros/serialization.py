@@ -7,8 +7,10 @@
 
 Bytes are what rmw puts on the wire and rosbag2 stores: a 4-byte encapsulation header
 (`00 01 00 00`, little-endian plain CDR) and the XCDR1 body. Values may be a typed message or
-plain values, checked field by field (errors name the field). Types come from the IDL bundle
-of the default distro unless a `TypeStore` is given.
+plain values, checked field by field (errors name the field). Numeric sequences may be given as
+`array.array`s of the field's width; typed messages decode them to arrays, and byte fields to
+read-only memoryviews over `data` (no copy). Types come from the IDL bundle of the default
+distro unless a `TypeStore` is given. The codecs are generated per type (typesys/cdr.py).
 """
 
 from __future__ import annotations
@@ -18,12 +20,10 @@ from typing import Any
 
 from cyclonedds.idl import IdlStruct
 
-from .errors import CdrDecodeError
 from .typesys import TypeStore
+from .typesys.cdr import CdrCodecs, MessageCodec
 from .typesys.ddstypes import DdsTypes
 from .typesys.values import MessageValues
-
-ENCAPSULATIONS = (b"\x00\x00", b"\x00\x01")  # plain CDR, big- and little-endian
 
 
 class Codec:
@@ -33,26 +33,24 @@ class Codec:
         self.store = store or TypeStore()
         self.types = DdsTypes(self.store)
         self.values = MessageValues(self.types)
+        self.codecs = CdrCodecs(self.types, self.values)
+
+    def of(self, type_name: str) -> MessageCodec:
+        """The generated codec of one type, for callers that encode many messages."""
+        return self.codecs.of(type_name)
 
     def serialize(self, type_name: str, value: Any) -> bytes:
-        message = value if isinstance(value, IdlStruct) else self.values.build(type_name, value)
-        expected = self.types.struct(type_name)
-        if not isinstance(message, expected):
-            raise TypeError(f"a {type(message).__name__} is not a {type_name} message")
-        return bytes(message.serialize())
+        codec = self.codecs.of(type_name)
+        if isinstance(value, IdlStruct):
+            if type(value) is not codec.struct:
+                raise TypeError(f"a {type(value).__name__} is not a {type_name} message")
+            return codec.encode(value)
+        return codec.encode_plain(value)
 
     def deserialize(self, type_name: str, data: bytes | bytearray | memoryview, *,
                     plain: bool = False) -> Any:
-        cls = self.types.struct(type_name)
-        raw = bytes(data)
-        if len(raw) < 4 or raw[:2] not in ENCAPSULATIONS:
-            raise CdrDecodeError(f"{type_name}: not plain CDR (encapsulation "
-                                 f"{raw[:4].hex(' ') or 'missing'})")
-        try:
-            message = cls.deserialize(raw)
-        except Exception as exc:  # truncated or not this type: the codec's own words
-            raise CdrDecodeError(f"{type_name}: {len(raw)} bytes do not decode ({exc})") from exc
-        return self.values.to_plain(type_name, message) if plain else message
+        codec = self.codecs.of(type_name)
+        return codec.decode_plain(data) if plain else codec.decode(data)
 
 
 _default: Codec | None = None

@@ -1,0 +1,211 @@
+"""Python source of a CDR decoder per ROS type and byte order, generated from the type model.
+
+*Typed* decoders build the type's `IdlStruct` (numeric sequences and arrays as `array.array`,
+byte fields as read-only memoryviews over the sample, no copy); *plain* decoders build the
+dicts and lists that `MessageValues.to_plain` gives (JSON-able). Lengths are checked
+against the buffer before anything is sliced, so truncated data raises instead of decoding short.
+"""
+
+from __future__ import annotations
+
+import struct
+
+from .cdr_encode import Source
+from .cdr_layout import ARRAY_CODES, FORMATS, NATIVE_LITTLE, Item, by_residue, layout, size_of
+from .ddstypes import DdsTypes, is_byte_like
+from .model import Collection, FieldType, MessageType, Primitive
+from .values import PLACEHOLDER
+
+
+class DecoderSource:
+    """Emits `dec_<n>(mv, p)` functions returning `(value, next offset)`; `p` counts from the
+    start of the buffer, encapsulation header included."""
+
+    def __init__(self, types: DdsTypes, source: Source, *, plain: bool, order: str) -> None:
+        self.types = types
+        self.src = source
+        self.plain = plain
+        self.order = order
+        self.swap = (order == "<") != NATIVE_LITTLE
+        self.functions: dict[str, str] = {}
+        self._pending: list[tuple[str, str, bool]] = []
+        self._run: list[tuple[Item, str]] = []
+        self._known: int | None = None
+
+    def function(self, type_name: str, *, top: bool = False) -> str:
+        key = f"{type_name}|{top}"
+        found = self.functions.get(key)
+        if found is None:
+            found = self.src.name("dec_")
+            self.functions[key] = found
+            self._pending.append((found, type_name, top))
+            if len(self._pending) == 1:
+                while self._pending:
+                    name, pending_type, pending_top = self._pending[0]
+                    self._body(name, self.types.store.message(pending_type), pending_top)
+                    self._pending.pop(0)
+        return found
+
+    def _body(self, name: str, msg: MessageType, top: bool) -> None:
+        self.src.emit(0, f"def {name}(mv, p):")
+        self._known = 0 if top else None
+        result = self._struct(msg, 1)
+        self._flush(1)
+        self.src.emit(1, f"return {result}, p")
+        self.src.emit(0, "")
+
+    # -- fields ------------------------------------------------------------------------
+    def _struct(self, msg: MessageType, ind: int) -> str:
+        """Emits the reads of `msg`'s fields; returns the expression that builds it."""
+        parts = [(f.name, self._field(f.type, ind)) for f in msg.fields]
+        if self.plain:
+            return "{" + ", ".join(f"{n!r}: {v}" for n, v in parts if n != PLACEHOLDER) + "}"
+        cls = self.src.const(self.types.struct(msg.name), "C")
+        return f"{cls}(" + ", ".join(v for _, v in parts) + ")"
+
+    def _field(self, ftype: FieldType, ind: int) -> str:
+        if ftype.collection is Collection.SINGLE:
+            return self._single(ftype, ind)
+        if ftype.collection is Collection.ARRAY:
+            return self._elements(ftype, str(ftype.size), ind)
+        self._flush(ind)
+        count = self._read("I", ind)
+        self._flush(ind)
+        if ftype.collection is Collection.BOUNDED_SEQUENCE:
+            self.src.emit(ind, f"if {count} > {ftype.size}: raise over_bound({count}, "
+                               f"{ftype.size})")
+        value = self._elements(ftype, count, ind)
+        self._known = None
+        return value
+
+    def _single(self, ftype: FieldType, ind: int) -> str:
+        if ftype.nested is not None:
+            return self._struct(self.types.store.message(ftype.nested), ind)
+        prim = ftype.primitive
+        assert prim is not None
+        if prim is Primitive.STRING:
+            return self._string(ind)
+        if prim is Primitive.WSTRING:
+            self._flush(ind)
+            value = self.src.name("w")
+            self.src.emit(ind, f"{value}, p = get_wide(mv, p, {self.order!r})")
+            self._known = None
+            return f"wide_to_str({value})" if self.plain else value
+        return self._read(FORMATS[prim], ind)
+
+    def _read(self, fmt: str, ind: int, align: int = 0) -> str:
+        local = self.src.name("v")
+        self._run.append((Item(fmt, align or size_of(fmt)), local))
+        return local
+
+    def _string(self, ind: int) -> str:
+        count = self._read("I", ind)
+        self._flush(ind)
+        value, end = self.src.name("s"), self.src.name("q")
+        self.src.emit(ind, f"{end} = p + {count}")
+        self.src.emit(ind, f"if {end} > len(mv): raise truncated({end}, len(mv))")
+        self.src.emit(ind, f"{value} = str(mv[p:{end} - 1], 'utf-8') if {count} else ''")
+        self.src.emit(ind, f"p = {end}")
+        self._known = None
+        return value
+
+    def _elements(self, ftype: FieldType, count: str, ind: int) -> str:
+        """`count` elements; a fixed array keeps the known residue where it can."""
+        element = ftype.element
+        if element.nested is not None:
+            self._flush(ind)
+            inner = self.function(element.nested)
+            value, item = self.src.name("l"), self.src.name("o")
+            self.src.emit(ind, f"{value} = []")
+            self.src.emit(ind, f"for _ in range({count}):")
+            self.src.emit(ind + 1, f"{item}, p = {inner}(mv, p)")
+            self.src.emit(ind + 1, f"{value}.append({item})")
+            self._known = None
+            return value
+        prim = element.primitive
+        assert prim is not None
+        if prim.is_string:
+            return self._strings(element, count, ind)
+        if ftype.collection is Collection.ARRAY and is_byte_like(ftype):
+            octets = self._read(f"{ftype.size}s", ind, align=1)
+            return f"list({octets})" if self.plain else octets
+        return self._block(prim, is_byte_like(ftype), count, ind)
+
+    def _strings(self, element: FieldType, count: str, ind: int) -> str:
+        self._flush(ind)
+        value = self.src.name("l")
+        self.src.emit(ind, f"{value} = []")
+        self.src.emit(ind, f"for _ in range({count}):")
+        self._known = None
+        item = self._single(element, ind + 1)
+        self._flush(ind + 1)
+        self.src.emit(ind + 1, f"{value}.append({item})")
+        self._known = None
+        return value
+
+    def _block(self, prim: Primitive, byte_like: bool, count: str, ind: int) -> str:
+        """`count` primitives read in one slice; a fixed array keeps the known residue."""
+        self._flush(ind)
+        size = size_of(FORMATS[prim])
+        value, end = self.src.name("a"), self.src.name("q")
+        static = count.isdigit()
+        inner = ind if static else ind + 1
+        if not static:
+            self.src.emit(ind, f"if {count}:")
+        if size > 1:
+            self._align(size, inner)
+        self.src.emit(inner, f"{end} = p + {count} * {size}")
+        self.src.emit(inner, f"if {end} > len(mv): raise truncated({end}, len(mv))")
+        self.src.emit(inner, f"{value} = {self._slice(prim, byte_like, end)}")
+        self.src.emit(inner, f"p = {end}")
+        if static:
+            if self._known is not None:
+                self._known = (self._known + int(count) * size) % 8
+            return value
+        self.src.emit(ind, "else:")
+        empty = "[]" if self.plain or prim is Primitive.BOOLEAN else (
+            "EMPTY_OCTETS" if byte_like else f"ARRAY({ARRAY_CODES[prim]!r})")
+        self.src.emit(ind + 1, f"{value} = {empty}")
+        self._known = None
+        return value
+
+    def _slice(self, prim: Primitive, byte_like: bool, end: str) -> str:
+        raw = f"mv[p:{end}]"
+        if byte_like:
+            return f"list({raw})" if self.plain else f"{raw}.toreadonly()"
+        if prim is Primitive.BOOLEAN:
+            return f"[b != 0 for b in {raw}]"
+        code = ARRAY_CODES[prim]
+        call = f"to_array({code!r}, {raw}, {self.swap})"
+        return f"{call}.tolist()" if self.plain else call
+
+    def _align(self, size: int, ind: int) -> None:
+        if self._known is not None:
+            pad = -self._known % size
+            if pad:
+                self.src.emit(ind, f"p += {pad}")
+            self._known = (self._known + pad) % 8
+        else:
+            self.src.emit(ind, f"p += (4 - p) & {size - 1}")
+
+    # -- runs ---------------------------------------------------------------------------
+    def _flush(self, ind: int) -> None:
+        if not self._run:
+            return
+        items = [item for item, _ in self._run]
+        targets = ", ".join(name for _, name in self._run) + ","
+        self._run = []
+        if self._known is not None:
+            fmt, end = layout(self._known, items, self.order)
+            reader = struct.Struct(fmt)
+            name = self.src.const(reader, "S")
+            self.src.emit(ind, f"{targets} = {name}.unpack_from(mv, p)")
+            self.src.emit(ind, f"p += {reader.size}")
+            self._known = end
+            return
+        table, after = by_residue(items, self.order)
+        name, chosen = self.src.const(table, "T"), self.src.name("r")
+        self.src.emit(ind, f"{chosen} = {name}[p & 7]")
+        self.src.emit(ind, f"{targets} = {chosen}.unpack_from(mv, p)")
+        self.src.emit(ind, f"p += {chosen}.size")
+        self._known = after

@@ -1,0 +1,319 @@
+"""Python source of a CDR encoder per ROS type, generated from the type model.
+
+Two flavours share one emitter: *typed* reads attributes of a message object and trusts their
+types; *plain* reads dicts (JSON/YAML values) and checks every value inline, raising `Slow`
+at the first doubt. The caller then runs the strict, path-naming validator of values.py:
+it either raises the precise `ValueFitError` or builds a typed message (coercing, e.g., an
+integral float into an int field), which the typed encoder then writes. So the fast path
+never accepts what the validator rejects, and errors read the same as before.
+
+Nested structs are inlined, so a Twist is one `Struct.pack`; sequences of structs call the
+element's own function in a loop.
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Any
+
+from .cdr_layout import (
+    ARRAY_CODES,
+    FORMATS,
+    NATIVE_LITTLE,
+    Item,
+    by_residue,
+    layout,
+    pad_table,
+    size_of,
+)
+from .ddstypes import is_byte_like
+from .model import Collection, Field, FieldType, MessageType, Primitive
+from .store import TypeStore
+
+
+class Slow(Exception):
+    """The plain encoder's signal: leave this value to the strict validator."""
+
+
+NUMBERS = frozenset({int, float})
+INTS = frozenset({int})
+BOOLS = frozenset({bool})
+
+
+class Source:
+    """Lines of one generated module and the constants its code refers to."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+        self.namespace: dict[str, Any] = {}
+        self._count = 0
+
+    def name(self, prefix: str) -> str:
+        self._count += 1
+        return f"{prefix}{self._count}"
+
+    def const(self, value: Any, prefix: str = "K") -> str:
+        name = self.name(prefix)
+        self.namespace[name] = value
+        return name
+
+    def emit(self, indent: int, line: str) -> None:
+        self.lines.append("    " * indent + line)
+
+    def text(self) -> str:
+        return "\n".join(self.lines) + "\n"
+
+
+class EncoderSource:
+    """Emits `enc_<n>(m, buf)` functions that append a struct's CDR body to a bytearray."""
+
+    def __init__(self, store: TypeStore, source: Source, *, plain: bool) -> None:
+        self.store = store
+        self.src = source
+        self.plain = plain
+        self.functions: dict[str, str] = {}
+        self._pending: list[tuple[str, str, bool]] = []  # function name, type, top level
+        self._run: list[tuple[Item, str]] = []
+        self._known: int | None = None
+
+    def function(self, type_name: str, *, top: bool = False) -> str:
+        """The name of the function encoding `type_name`, generated with what it needs.
+        A `top` one starts at body offset 0, so its first run needs no residue lookup."""
+        key = f"{type_name}|{top}"
+        found = self.functions.get(key)
+        if found is None:
+            found = self.src.name("enc_")
+            self.functions[key] = found
+            self._pending.append((found, type_name, top))
+            if len(self._pending) == 1:
+                self._drain()
+        return found
+
+    def _drain(self) -> None:
+        while self._pending:
+            name, type_name, top = self._pending[0]
+            self._body(name, self.store.message(type_name), top)
+            self._pending.pop(0)
+
+    def _body(self, name: str, msg: MessageType, top: bool) -> None:
+        self.src.emit(0, f"def {name}(m, buf):")
+        self._known = 0 if top else None
+        self._struct(msg, "m", 1)
+        self._flush(1)
+        self.src.emit(1, "return")
+        self.src.emit(0, "")
+
+    # -- fields ------------------------------------------------------------------------
+    def _struct(self, msg: MessageType, ref: str, ind: int) -> None:
+        if self.plain:
+            names = self.src.const(frozenset(f.name for f in msg.fields), "NAMES")
+            self.src.emit(ind, f"if {ref}.__class__ is not dict or not {names}.issuperset({ref}):")
+            self.src.emit(ind + 1, "raise Slow")
+        for f in msg.fields:
+            self._field(f, ref, ind)
+
+    def _value(self, f: Field, ref: str, ind: int) -> str:
+        """An expression (typed) or a local holding the field's value (plain)."""
+        if not self.plain:
+            return f"{ref}.{f.name}"
+        local = self.src.name("v")
+        default = self.src.const(_plain_default(f))
+        self.src.emit(ind, f"{local} = {ref}.get({f.name!r}, {default})")
+        return local
+
+    def _field(self, f: Field, ref: str, ind: int) -> None:
+        ftype = f.type
+        value = self._value(f, ref, ind)
+        if ftype.collection is Collection.SINGLE:
+            self._single(ftype, value, ind)
+        elif ftype.collection is Collection.ARRAY and _fixed_element(ftype):
+            self._fixed_array(ftype, value, ind)
+        else:
+            self._repeated(ftype, value, ind)
+
+    def _single(self, ftype: FieldType, value: str, ind: int) -> None:
+        if ftype.nested is not None:
+            if self.plain:
+                self.src.emit(ind, f"if {value} is None: raise Slow")
+            self._struct(self.store.message(ftype.nested), value, ind)
+            return
+        prim = ftype.primitive
+        assert prim is not None
+        if prim is Primitive.STRING:
+            self._string(ftype, value, ind)
+        elif prim is Primitive.WSTRING:
+            self._flush(ind)
+            self.src.emit(ind, f"put_wide(buf, {self._wide(ftype, value)})")
+            self._known = None
+        else:
+            self._check_scalar(prim, value, ind)
+            self._run.append((Item(FORMATS[prim], size_of(FORMATS[prim])), value))
+
+    def _check_scalar(self, prim: Primitive, value: str, ind: int) -> None:
+        if not self.plain:
+            return
+        if prim is Primitive.BOOLEAN:
+            self.src.emit(ind, f"if {value}.__class__ is not bool: raise Slow")
+        elif prim.is_float:
+            self.src.emit(ind, f"if {value}.__class__ not in NUMBERS: raise Slow")
+        else:
+            self.src.emit(ind, f"if {value}.__class__ is not int: raise Slow")
+
+    def _string(self, ftype: FieldType, value: str, ind: int) -> None:
+        if self.plain:
+            bound = f" or len({value}) > {ftype.string_bound}" if ftype.string_bound else ""
+            self.src.emit(ind, f"if {value}.__class__ is not str{bound}: raise Slow")
+        encoded = self.src.name("s")
+        self.src.emit(ind, f"{encoded} = {value}.encode()")
+        self._run.append((Item("I", 4), f"len({encoded}) + 1"))
+        self._flush(ind)
+        self.src.emit(ind, f"buf += {encoded}")
+        self.src.emit(ind, "buf.append(0)")
+        self._known = None
+
+    def _wide(self, ftype: FieldType, value: str) -> str:
+        return f"plain_wide({value}, {ftype.string_bound})" if self.plain else value
+
+    def _fixed_array(self, ftype: FieldType, value: str, ind: int) -> None:
+        """Arrays of fixed-size primitives join the current run."""
+        prim = ftype.primitive
+        assert prim is not None
+        n = ftype.size
+        if is_byte_like(ftype):
+            octets = f"plain_octets({value})" if self.plain else f"bytes({value})"
+            self._run.append((Item(f"{n}s", 1), octets))
+            if self.plain:  # `s` pads or truncates silently: the length is checked here
+                self.src.emit(ind, f"if len({value}) != {n}: raise Slow")
+            return
+        if self.plain:
+            allowed = "BOOLS" if prim is Primitive.BOOLEAN else (
+                "NUMBERS" if prim.is_float else "INTS")
+            self.src.emit(ind, f"if {value}.__class__ is not list or "
+                               f"not {allowed}.issuperset(map(type, {value})): raise Slow")
+        fmt = FORMATS[prim]
+        self._run.append((Item(f"{n}{fmt}", size_of(fmt)), f"*{value}"))
+
+    def _repeated(self, ftype: FieldType, value: str, ind: int) -> None:
+        self._flush(ind)
+        count = self.src.name("n")
+        if self.plain and not is_byte_like(ftype):
+            self.src.emit(ind, f"if {value}.__class__ is not list and {value}.__class__ is "
+                               "not ARRAY: raise Slow")
+        self.src.emit(ind, f"{count} = len({value})")
+        if ftype.collection is Collection.ARRAY:
+            self.src.emit(ind, f"if {count} != {ftype.size}: raise Slow" if self.plain else
+                          f"if {count} != {ftype.size}: raise length_error({count}, "
+                          f"{ftype.size}, True)")
+        else:
+            if ftype.collection is Collection.BOUNDED_SEQUENCE:
+                self.src.emit(ind, f"if {count} > {ftype.size}: raise Slow" if self.plain else
+                              f"if {count} > {ftype.size}: raise length_error({count}, "
+                              f"{ftype.size}, False)")
+            self._run.append((Item("I", 4), count))
+            self._flush(ind)
+        element = ftype.element
+        if element.nested is not None:
+            inner = self.function(element.nested)
+            item = self.src.name("e")
+            self.src.emit(ind, f"for {item} in {value}:")
+            self.src.emit(ind + 1, f"{inner}({item}, buf)")
+        elif is_byte_like(ftype):
+            octets = f"plain_octets({value})" if self.plain else value
+            self.src.emit(ind, f"buf += {octets}")
+        else:
+            assert element.primitive is not None
+            self._repeated_primitive(element, value, count, ind)
+        self._known = None
+
+    def _repeated_primitive(self, element: FieldType, value: str, count: str, ind: int) -> None:
+        prim = element.primitive
+        assert prim is not None
+        if prim is Primitive.STRING or prim is Primitive.WSTRING:
+            item = self.src.name("e")
+            self.src.emit(ind, f"for {item} in {value}:")
+            if prim is Primitive.WSTRING:
+                self.src.emit(ind + 1, f"put_wide(buf, {self._wide(element, item)})")
+                return
+            self._known = None
+            self._string(element, item, ind + 1)
+            return
+        fmt = FORMATS[prim]
+        align = size_of(fmt)
+        self.src.emit(ind, f"if {count}:")
+        if align > 1:
+            pads = self.src.const(pad_table(align), "PAD")
+            self.src.emit(ind + 1, f"buf += {pads}[len(buf) & 7]")
+        if prim is Primitive.BOOLEAN:
+            if self.plain:
+                self.src.emit(ind + 1, f"if not BOOLS.issuperset(map(type, {value})): raise Slow")
+            self.src.emit(ind + 1, f"buf += bytes({value})")
+            return
+        code = ARRAY_CODES[prim]
+        if self.plain:
+            allowed = "NUMBERS" if prim.is_float else "INTS"
+            self.src.emit(ind + 1, f"if {value}.__class__ is ARRAY:")
+            self.src.emit(ind + 2, f"if {value}.typecode != {code!r}: raise Slow")
+            self.src.emit(ind + 1, f"elif not {allowed}.issuperset(map(type, {value})): "
+                                   "raise Slow")
+        if NATIVE_LITTLE:
+            self.src.emit(ind + 1, f"if {value}.__class__ is ARRAY and "
+                                   f"{value}.typecode == {code!r}:")
+            self.src.emit(ind + 2, f"buf += {value}")
+            self.src.emit(ind + 1, "else:")
+            self.src.emit(ind + 2, f"buf += pack(f'<{{{count}}}{fmt}', *{value})")
+        else:
+            self.src.emit(ind + 1, f"buf += pack(f'<{{{count}}}{fmt}', *{value})")
+
+    # -- runs ---------------------------------------------------------------------------
+    def _flush(self, ind: int) -> None:
+        if not self._run:
+            return
+        items = [item for item, _ in self._run]
+        args = ", ".join(arg for _, arg in self._run)
+        self._run = []
+        if self._known is not None:
+            fmt, end = layout(self._known, items)
+            packer = self.src.const(struct.Struct(fmt), "S")
+            self.src.emit(ind, f"buf += {packer}.pack({args})")
+            self._known = end
+            return
+        table, after = by_residue(items)
+        packers = self.src.const(table, "T")
+        self.src.emit(ind, f"buf += {packers}[len(buf) & 7].pack({args})")
+        self._known = after
+
+
+def _fixed_element(ftype: FieldType) -> bool:
+    prim = ftype.primitive
+    return ftype.nested is None and prim is not None and not prim.is_string
+
+
+def _plain_default(f: Field) -> Any:
+    """What a missing plain field means: its @default, else zeros (as values.py builds)."""
+    ftype = f.type
+    if f.default is not None:
+        if ftype.element.primitive is Primitive.WSTRING:
+            return f.default  # plain values hold text, converted like any other
+        if is_byte_like(ftype):
+            return bytes(f.default)  # type: ignore[call-overload]
+        return list(f.default) if ftype.is_collection else f.default  # type: ignore[call-overload]
+    if ftype.collection is Collection.ARRAY:
+        if is_byte_like(ftype):
+            return bytes(ftype.size)
+        return [{} if ftype.nested else _zero(ftype.element)] * ftype.size
+    if ftype.is_collection:
+        return b"" if is_byte_like(ftype) else []
+    if ftype.nested is not None:
+        return {}
+    return _zero(ftype)
+
+
+def _zero(ftype: FieldType) -> Any:
+    prim = ftype.primitive
+    if prim is Primitive.BOOLEAN:
+        return False
+    if prim is not None and prim.is_string:
+        return ""
+    if prim is not None and prim.is_float:
+        return 0.0
+    return 0

@@ -28,10 +28,12 @@ from cyclonedds.sub import DataReader, Subscriber
 from cyclonedds.topic import Topic
 
 from . import qos as qos_mod
+from . import raw_cdr
 from .errors import GraphTimeout, WireError, seconds
 from .names import expand_topic_name, mangle_topic, normalize_namespace, validate_node_name
 from .qos import QosProfile
-from .readers import ReaderThread, Watch, WriterWatch
+from .readers import Decode, ReaderThread, Watch, WriterWatch
+from .typesys.cdr import CdrCodecs
 from .typesys.ddstypes import DdsTypes
 from .typesys.store import TypeStore, env_idl_paths
 from .typesys.values import MessageValues
@@ -121,6 +123,7 @@ def gid_bytes(entity: Any, size: int) -> bytes:
 class RosPublisher:
     def __init__(self, node: RosNode, topic: str, type_name: str, writer: DataWriter[Any]) -> None:
         self.node, self.topic, self.type_name, self.writer = node, topic, type_name, writer
+        self.codec = node.codecs.of(type_name)
         self.closed = False
         self.incompatible_qos_events = 0
         self._watch = node.watch_writer(writer, self._on_incompatible, f"publisher {topic}")
@@ -133,12 +136,20 @@ class RosPublisher:
                     qos_mod.policy_name(status.last_policy_id))
 
     def publish(self, message: IdlStruct | Mapping[str, Any]) -> None:
-        if not isinstance(message, IdlStruct):
-            message = self.node.values.build(self.type_name, message)
-        # This holds the GIL inside Cyclone, local delivery included. That is safe only
-        # because no Cyclone thread ever waits for the GIL: never give a reader a Listener
-        # (see the invariant in readers.py).
-        self.writer.write(message)
+        """Publishes a typed message or plain values (validated; errors name the field)."""
+        if isinstance(message, IdlStruct):
+            if type(message) is not self.codec.struct:
+                raise TypeError(f"a {type(message).__name__} is not a {self.type_name} message")
+            self.publish_cdr(self.codec.encode(message))
+        else:
+            self.publish_cdr(self.codec.encode_plain(message))
+
+    def publish_cdr(self, data: bytes) -> None:
+        """Publishes a sample given as CDR bytes (4-byte header + body) of this topic's type.
+        This holds the GIL inside Cyclone, local delivery included. That is safe only
+        because no Cyclone thread ever waits for the GIL: never give a reader a Listener
+        (see the invariant in readers.py)."""
+        raw_cdr.write(self.writer, data)
 
     def matched_count(self) -> int:
         return int(self.writer.get_publication_matched_status().current_count)
@@ -267,6 +278,7 @@ class RosNode:
         self.store = store or TypeStore([*idl_paths, *env_idl_paths()], distro)
         self.types = DdsTypes(self.store)
         self.values = MessageValues(self.types)
+        self.codecs = CdrCodecs(self.types, self.values)
         self.domain_id = resolve_domain_id(domain_id)
         self.localhost = localhost_requested(localhost)
         _acquire_domain(self.domain_id, self.localhost)
@@ -353,7 +365,22 @@ class RosNode:
               *, on_incompatible_qos: Callable[[Any], None] | None = None) -> Watch:
         """Delivers `reader`'s valid samples, in batches, to `deliver` on this node's reader
         thread (never on a Cyclone thread)."""
-        return self.reader_thread.add(Watch(reader, deliver, label, on_incompatible_qos))
+        decode = self.decoder_for(reader.topic.data_type)
+        return self.reader_thread.add(Watch(reader, deliver, label, on_incompatible_qos, decode))
+
+    def decoder_for(self, data_type: type[Any]) -> Decode | None:
+        """The generated decoder of a topic type this node made (`pkg::msg::dds_::T_`), or
+        None for other structs (the Cyclone request wrappers), which decode themselves."""
+        parts = getattr(data_type, "__idl_typename__", "").split("::")
+        if len(parts) != 4 or parts[2] != "dds_" or not parts[3].endswith("_"):
+            return None
+        name = f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
+        try:
+            if self.types.struct(name) is not data_type:
+                return None
+        except WireError:
+            return None
+        return self.codecs.of(name).decode
 
     def watch_writer(self, writer: DataWriter[Any], on_incompatible_qos: Callable[[Any], None],
                      label: str) -> WriterWatch:

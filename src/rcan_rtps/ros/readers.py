@@ -47,10 +47,7 @@ from cyclonedds.internal import dds_infinity
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 
-try:  # take raw samples and decode them one by one: one bad sample costs only itself
-    from cyclonedds._clayer import ddspy_take as _raw_take
-except ImportError:  # pragma: no cover - a binding without it: decode per batch
-    _raw_take = None
+from . import raw_cdr
 
 log = logging.getLogger(__name__)
 
@@ -62,14 +59,18 @@ REMOVE_WAIT = 10.0  # s `remove` waits for the thread to drop a reader before gi
 
 Deliver = Callable[[list[Any]], None]
 OnIncompatible = Callable[[Any], None]
+Decode = Callable[[bytes], Any]
 
 
 class Watch:
-    """One reader on a `ReaderThread`: `deliver(samples)` gets its valid, decoded samples."""
+    """One reader on a `ReaderThread`: `deliver(samples)` gets its valid samples, decoded by
+    `decode` (a generated codec; by default the topic type's own, slower one)."""
 
     def __init__(self, reader: DataReader[Any], deliver: Deliver, label: str,
-                 on_incompatible_qos: OnIncompatible | None = None) -> None:
+                 on_incompatible_qos: OnIncompatible | None = None,
+                 decode: Decode | None = None) -> None:
         self.reader = reader
+        self.decode: Decode = decode or reader._topic.data_type.deserialize
         self.deliver = deliver
         self.label = label
         self.on_incompatible_qos = on_incompatible_qos
@@ -102,20 +103,14 @@ def take_valid(reader: DataReader[Any], n: int = BATCH,
     """Up to `n` samples taken from `reader`: (the valid, decodable ones, how many were taken).
     Invalid samples (a writer left or disposed) are skipped; a sample that does not decode is
     logged and skipped, never the batch it came in."""
-    if _raw_take is None:  # pragma: no cover
-        samples = reader.take(N=n)
-        return [s for s in samples if getattr(s, "sample_info", None) is not None
-                and s.sample_info.valid_data], len(samples)
-    raw = _raw_take(reader._ref, ANY_SAMPLE, n)
-    if isinstance(raw, int):
-        raise DDSException(raw, f"taking from {reader!r}")
-    data_type = reader._topic.data_type
+    raw = raw_cdr.take(reader, ANY_SAMPLE, n)
+    decode = watch.decode if watch is not None else reader._topic.data_type.deserialize
     valid = []
     for data, info in raw:
         if not info.valid_data:
             continue
         try:
-            sample = data_type.deserialize(data)
+            sample = decode(data)
         except Exception:
             if watch is not None:
                 watch.bad_samples += 1

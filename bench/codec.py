@@ -293,6 +293,10 @@ def calibrate(row: Row, budget_s: float) -> None:
     row.n = max(1, min(20_000, int(budget_s / slower)))
 
 
+def reencoder(side: Side) -> Fn:
+    return lambda data: side.encode(side.decode(data))
+
+
 def padding_diff(mine: bytes, theirs: bytes, reencode: Fn) -> int | None:
     """How many bytes differ, if only where CDR pads for alignment (rclpy leaves padding
     uninitialised): then ours re-encodes rclpy's bytes into ours exactly. None: values differ."""
@@ -319,6 +323,19 @@ def run_round(rows: list[Row], reencoders: dict[str, Fn], ours_first: bool) -> N
                 print(f"WIRE MISMATCH: {row.message} {row.variant}", file=sys.stderr)
             row.padding = max(row.padding, diff or 0)
     gc.collect()
+
+
+def measure(rounds: int, budget_s: float) -> list[Row]:
+    rows: list[Row] = []
+    reencoders: dict[str, Fn] = {}
+    for label, (type_name, values) in CASES.items():
+        rows += rows_of(label, type_name, values)
+        reencoders[label] = reencoder(ours(type_name))
+    for row in rows:
+        calibrate(row, budget_s)
+    for r in range(rounds):
+        run_round(rows, reencoders, ours_first=r % 2 == 0)
+    return rows
 
 
 # -- the report --------------------------------------------------------------------------
@@ -406,21 +423,11 @@ def main() -> int:
         reexec(args.oracle)
     add_our_paths()
     rounds, budget = (5, 0.003) if args.quick else (args.rounds, args.budget_ms / 1e3)
-    rows: list[Row] = []
-    reencoders: dict[str, Fn] = {}
-    for label, (type_name, values) in CASES.items():
-        rows += rows_of(label, type_name, values)
-        mine = ours(type_name)
-        reencoders[label] = lambda data, mine=mine: mine.encode(mine.decode(data))
-    note = rclpy_side(CASES["Twist"][0])[1]
-    for row in rows:
-        calibrate(row, budget)
     started = time.perf_counter()
-    for r in range(rounds):
-        run_round(rows, reencoders, ours_first=r % 2 == 0)
-    text = report(rows, rounds, note)
+    rows = measure(rounds, budget)
+    text = report(rows, rounds, rclpy_side(CASES["Twist"][0])[1])
     print(text)
-    print(f"({time.perf_counter() - started:.0f} s of rounds)", file=sys.stderr)
+    print(f"({time.perf_counter() - started:.0f} s)", file=sys.stderr)
     if not args.quick:
         write_section("## Codec", text)
     return 1 if any(r.mismatch for r in rows) else 0

@@ -372,19 +372,20 @@ def commit() -> str:
     return done.stdout.strip() or "unknown"
 
 
-def report(rows: list[Row], rounds: int, note: str) -> str:
-    bad = [f"**{r.message} {r.direction} {r.variant}**" for r in rows if r.mismatch]
+def report(rows: list[Row], rounds: int, budget_ms: float, note: str) -> str:
+    bad = [f"{r.message} {r.direction} {r.variant}" for r in rows if r.mismatch]
     padded: dict[str, int] = {}
     for row in rows:
         if row.padding:
             padded[row.message] = max(padded.get(row.message, 0), row.padding)
-    pads = ", ".join(f"{m} (up to {n})" for m, n in padded.items())
+    pads = ", ".join(f"{m} {n}" for m, n in padded.items())
     lines = [
         "## Codec", "",
         f"`bench/codec.py` at {commit()}: ours and rclpy (Jazzy, C typesupport) in one "
         f"process, {rounds} rounds, each round timing a batch of N calls of each side back to "
-        "back, the order alternating per round. Cells: median µs per sample over the rounds "
-        f"(p10–p90). Ratio = ours / rclpy medians; lower is better. Machine: {machine()}.", "",
+        "back, the order alternating per round (N per row: the slower side's batch takes "
+        f"about {budget_ms:g} ms). Cells: median µs per sample over the rounds (p10–p90). "
+        f"Ratio = ours / rclpy medians; lower is better. Machine: {machine()}.", "",
         "| message | direction | variant | ours µs | rclpy µs | ratio | target ≤ 1.0× |",
         "|---|---|---|---|---|---|---|",
         *(table_row(r) for r in rows), "",
@@ -403,9 +404,9 @@ def report(rows: list[Row], rounds: int, note: str) -> str:
         "- Wire check: every round, both encoders' bytes compared; once, rclpy decodes our "
         "bytes and compares with what it decodes from its own. "
         + (f"**Values differ: {', '.join(bad)}.** " if bad else "Same values everywhere. ")
-        + (f"Bytes differ only in CDR alignment padding, which rclpy leaves uninitialised, "
-           f"for {pads} bytes; ours re-encodes rclpy's bytes to ours exactly." if pads
-           else "Bytes identical."),
+        + ("Bytes differ only in CDR alignment padding, which rclpy's serializer does not "
+           f"zero (most bytes differing in a round: {pads}); ours re-encodes rclpy's bytes "
+           "to ours exactly." if pads else "Bytes identical."),
     ]
     return "\n".join(lines) + "\n"
 
@@ -425,7 +426,7 @@ def main() -> int:
     rounds, budget = (5, 0.003) if args.quick else (args.rounds, args.budget_ms / 1e3)
     started = time.perf_counter()
     rows = measure(rounds, budget)
-    text = report(rows, rounds, rclpy_side(CASES["Twist"][0])[1])
+    text = report(rows, rounds, budget * 1e3, rclpy_side(CASES["Twist"][0])[1])
     print(text)
     print(f"({time.perf_counter() - started:.0f} s)", file=sys.stderr)
     if not args.quick:

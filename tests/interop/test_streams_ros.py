@@ -29,13 +29,6 @@ async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterat
     await close_rig(r)
 
 
-def sample_band(duration_s: float, rate_hz: float) -> range:
-    """How many samples a stream of `duration_s` sends: one at once, then one per period;
-    a busy loop may skip a late tick (never bunch them), so up to a fifth fewer."""
-    expected = round(duration_s * rate_hz)
-    return range(expected - max(2, expected // 5), expected + 2)
-
-
 async def after_sentinel_stream(rig: Rig) -> list[float]:
     """Every linear_x received up to a sentinel move sent now (then stopped)."""
     sentinel = await rig.command(AGENT, {"action": "move", "params": {"linear_x": SENTINEL_X}})
@@ -62,8 +55,7 @@ async def test_a_timed_move_streams_at_the_rate_then_zero(rig: Rig) -> None:
     await eventually(complete, timeout=15)
     got = xs(await take(rig.oracle, CMD_VEL, until=lambda got: 0.0 in xs(got)))
     moving = got[:got.index(0.0)]
-    assert set(moving) == {0.5}
-    assert len(moving) in sample_band(2.0, RATE_HZ), len(moving)
+    assert moving and set(moving) == {0.5}  # samples per second: bench/streams.py
     samples = next(e for e in rig.entries() if e["event"] == "STREAM_ENDED")["params"]["samples"]
     assert samples == len(moving)  # what the audit counts is what rclpy received
     assert all(x == 0.0 for x in await after_sentinel_stream(rig))  # and then only zero

@@ -11,8 +11,10 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from contextlib import AbstractContextManager, closing, contextmanager
 from pathlib import Path
+from typing import TypeVar
 
 import pytest
 from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
@@ -49,6 +51,42 @@ async def node(domain_id: int, jazzy_share: Path) -> AsyncIterator[RosNode]:
         yield n
 
 
+Client = TypeVar("Client", ServiceClient, ActionClient)
+Fresh = Callable[[int], AbstractContextManager[Client]]  # the i-th call's new client
+
+
+def on_node(node: RosNode, make: Callable[[RosNode], Client]) -> Fresh[Client]:
+    """A new client on `node` per call, closed after it."""
+    return lambda i: closing(make(node))
+
+
+def on_fresh_node(prefix: str, domain_id: int, share: Path,
+                  make: Callable[[RosNode], Client]) -> Fresh[Client]:
+    """A new node (DDS participant) per call, with a new client on it."""
+    @contextmanager
+    def fresh(i: int) -> Iterator[Client]:
+        with RosNode(f"{prefix}_{i}", "/", domain_id=domain_id, distro="jazzy",
+                     idl_paths=[share]) as node, closing(make(node)) as client:
+            yield client
+    return fresh
+
+
+async def each_fresh(count: int, fresh: Fresh[Client],
+                     use: Callable[[Client, int], Awaitable[None]]) -> None:
+    """`count` sequential calls, each from the new client `fresh` gives."""
+    for i in range(count):
+        with fresh(i) as client:
+            await use(client, i)
+
+
+def echo_client(node: RosNode) -> ServiceClient:
+    return ServiceClient(node, "/echo", ECHO)
+
+
+def fib_client(node: RosNode) -> ActionClient:
+    return ActionClient(node, "/fib", FIB)
+
+
 def request_of(i: int) -> dict[str, object]:
     return {"string_value": f"call {i}", "int64_value": i, "uint32_value": 7 * i}
 
@@ -79,12 +117,7 @@ class Tally:
 @both_rmws
 async def test_fresh_service_clients_lose_no_reply(oracle: RclpyOracle, node: RosNode) -> None:
     tally = Tally()
-    for i in range(CALLS_PER_CLIENT):
-        client = ServiceClient(node, "/echo", ECHO)
-        try:
-            await tally.call(client, i)
-        finally:
-            client.close()
+    await each_fresh(CALLS_PER_CLIENT, on_node(node, echo_client), tally.call)
     tally.assert_clean(CALLS_PER_CLIENT)
     served = await oracle.acall("service_requests", name="/echo")
     assert served == [f"call {i}" for i in range(CALLS_PER_CLIENT)]
@@ -94,12 +127,8 @@ async def test_fresh_service_clients_lose_no_reply(oracle: RclpyOracle, node: Ro
 async def test_fresh_nodes_lose_no_reply(oracle: RclpyOracle, domain_id: int,
                                          jazzy_share: Path) -> None:
     tally = Tally()
-    for i in range(CALLS_PER_NODE):
-        with RosNode(f"zero_loss_{i}", "/", domain_id=domain_id, distro="jazzy",
-                     idl_paths=[jazzy_share]) as fresh:
-            client = ServiceClient(fresh, "/echo", ECHO)
-            await tally.call(client, i)
-            client.close()
+    fresh = on_fresh_node("zero_loss", domain_id, jazzy_share, echo_client)
+    await each_fresh(CALLS_PER_NODE, fresh, tally.call)
     tally.assert_clean(CALLS_PER_NODE)
 
 
@@ -138,12 +167,7 @@ async def _first_feedback(goal: object) -> list[int] | None:
 async def test_fresh_action_clients_get_every_first_feedback(oracle: RclpyOracle,
                                                              node: RosNode) -> None:
     tally = GoalTally()
-    for i in range(GOALS):
-        client = ActionClient(node, "/fib", FIB)
-        try:
-            await tally.run(client, i)
-        finally:
-            client.close()
+    await each_fresh(GOALS, on_node(node, fib_client), tally.run)
     tally.assert_clean(GOALS)
 
 
@@ -151,12 +175,8 @@ async def test_fresh_action_clients_get_every_first_feedback(oracle: RclpyOracle
 async def test_fresh_nodes_get_every_first_feedback(oracle: RclpyOracle, domain_id: int,
                                                     jazzy_share: Path) -> None:
     tally = GoalTally()
-    for i in range(GOALS_PER_NODE):
-        with RosNode(f"zero_loss_goal_{i}", "/", domain_id=domain_id, distro="jazzy",
-                     idl_paths=[jazzy_share]) as fresh:
-            client = ActionClient(fresh, "/fib", FIB)
-            await tally.run(client, i)
-            client.close()
+    fresh = on_fresh_node("zero_loss_goal", domain_id, jazzy_share, fib_client)
+    await each_fresh(GOALS_PER_NODE, fresh, tally.run)
     tally.assert_clean(GOALS_PER_NODE)
 
 

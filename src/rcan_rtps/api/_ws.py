@@ -21,6 +21,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections.abc import Callable
+from typing import Literal, Protocol
 
 import msgspec
 from aiohttp import WSMsgType, web
@@ -29,10 +31,8 @@ from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.rcan import ErrorCode
 
 from ._bodies import WsFrame, error_body
-from ._goal_events import GoalEvents
 from ._intake import Intake, Observe, Reply, StopLane, decide_safely, intake
 from ._keys import GOAL_EVENTS, GOVERNOR, OBSERVE, PRINCIPAL, SETTINGS, SOCKETS, STATUS, ApiSettings
-from ._status import StatusHub
 
 log = logging.getLogger(__name__)
 _CLOSING = (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED, WSMsgType.ERROR)
@@ -51,23 +51,23 @@ async def _send(ws: web.WebSocketResponse, frame: WsFrame) -> bool:
     return True
 
 
-async def _push_status(ws: web.WebSocketResponse, hub: StatusHub) -> None:
-    """What the STATUS owner pushes (on change, at the telemetry rate), sent as it comes."""
-    subscription = hub.subscribe()
-    try:
-        while not ws.closed:
-            if not await _send(ws, WsFrame(type="status", body=await subscription.next())):
-                return
-    finally:
-        subscription.close()
+class _Feed(Protocol):
+    """A hub's subscription: `StatusHub.subscribe()`, `GoalEvents.subscribe()`."""
+
+    async def next(self) -> object: ...
+
+    def close(self) -> None: ...
 
 
-async def _push_goals(ws: web.WebSocketResponse, events: GoalEvents) -> None:
-    """Every goal change, newest view per goal if the socket falls behind."""
-    subscription = events.subscribe()
+async def _push(ws: web.WebSocketResponse, subscribe: Callable[[], _Feed],
+                kind: Literal["status", "goal"]) -> None:
+    """Sends what a feed yields as it comes: STATUS on change at the telemetry rate, every
+    goal change (newest view per goal if the socket falls behind). Subscribes inside the task:
+    one cancelled before it starts has then nothing to close."""
+    subscription = subscribe()
     try:
         while not ws.closed:
-            if not await _send(ws, WsFrame(type="goal", body=await subscription.next())):
+            if not await _send(ws, WsFrame(type=kind, body=await subscription.next())):
                 return
     finally:
         subscription.close()
@@ -137,8 +137,8 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
     await ws.prepare(request)
     app[SOCKETS].add(ws)
     commands = _Commands(ws, governor, principal, settings, app[OBSERVE])
-    pushers = (asyncio.create_task(_push_status(ws, app[STATUS])),
-               asyncio.create_task(_push_goals(ws, app[GOAL_EVENTS])))
+    pushers = (asyncio.create_task(_push(ws, app[STATUS].subscribe, "status")),
+               asyncio.create_task(_push(ws, app[GOAL_EVENTS].subscribe, "goal")))
     try:
         while True:
             msg = await ws.receive()

@@ -28,6 +28,7 @@ from waiting import eventually
 from rcan_rtps.ros import _cyclone_header as cyclone
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import ServiceClient, ServiceServer, format_endpoint_id
+from rcan_rtps.ros.typesys.cdr import CdrCodecs
 from rcan_rtps.ros.typesys.ddstypes import DdsTypes
 from rcan_rtps.ros.typesys.store import TypeStore
 from rcan_rtps.ros.typesys.values import MessageValues
@@ -50,9 +51,11 @@ def values() -> MessageValues:
 def test_header_layout_matches_the_documented_bytes(jazzy_python: Path, values: MessageValues,
                                                    type_name: str, value: Any) -> None:
     plain = values.build(type_name, value)
-    wrapped = cyclone.wrap(cyclone.wrapper_struct(_NodeLike(values), type_name),  # type: ignore[arg-type]
-                           cyclone.RequestHeader(GUID, SEQ), plain)
-    raw = wrapped.serialize()
+    raw = cyclone.wrap_cdr(cyclone.RequestHeader(GUID, SEQ), plain.serialize())
+    # the same bytes as the wrapper struct cyclonedds itself would write
+    wrapper = cyclone.wrapper_struct(_NodeLike(values), type_name)  # type: ignore[arg-type]
+    fields = {f: getattr(plain, f) for f in plain.__dataclass_fields__}
+    assert raw == wrapper(rmw_request_client_guid=GUID, rmw_request_seq=SEQ, **fields).serialize()
     assert raw[:4] == b"\x00\x01\x00\x00"  # CDR little-endian encapsulation
     assert raw[4:12] == struct.pack("<Q", GUID) == bytes.fromhex("0807060504030201")
     assert raw[12:20] == struct.pack("<q", SEQ)
@@ -62,19 +65,20 @@ def test_header_layout_matches_the_documented_bytes(jazzy_python: Path, values: 
 
 
 def test_big_endian_samples_carry_a_big_endian_header(values: MessageValues) -> None:
-    cls = cyclone.wrapper_struct(_NodeLike(values), "std_srvs/srv/SetBool_Request")  # type: ignore[arg-type]
-    raw = b"\x00\x00\x00\x00" + struct.pack(">Qq", GUID, 5) + b"\x01"
-    header, plain = cyclone.unwrap(values.types.struct("std_srvs/srv/SetBool_Request"),
-                                   cls.deserialize(raw))
-    assert header == cyclone.RequestHeader(GUID, 5) and plain.data is True
+    decode = cyclone.decoder(_NodeLike(values), "std_srvs/srv/SetBool_Request")  # type: ignore[arg-type]
+    for raw in (b"\x00\x00\x00\x00" + struct.pack(">Qq", GUID, 5) + b"\x01",
+                b"\x00\x01\x00\x00" + struct.pack("<Qq", GUID, 5) + b"\x01"):
+        sample = decode(raw)
+        assert sample.header == cyclone.RequestHeader(GUID, 5) and sample.payload.data is True
 
 
 class _NodeLike:
-    """The two attributes `wrapper_struct` reads from a node."""
+    """The attributes `wrapper_struct` and `decoder` read from a node."""
 
     def __init__(self, values: MessageValues) -> None:
         self.types = values.types
         self.store = values.types.store
+        self.codecs = CdrCodecs(values.types, values)
 
 
 # -- an rmw_cyclonedds-shaped peer ----------------------------------------------------

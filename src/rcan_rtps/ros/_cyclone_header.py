@@ -7,15 +7,18 @@ and the fields of every request and reply, in the sample's byte order. A struct
 wrapper keeps T's DDS type name so that rmw_cyclonedds endpoints match it. (The fields
 are copied rather than nested: a member type named like its parent breaks XTypes.)
 
-(Prepending raw bytes to a plain-typed sample is not an option with cyclonedds-python: it
-checks every written and received sample against the topic's type.)
+The topic keeps that wrapper type (for discovery and matching), but samples travel as raw
+CDR (raw_cdr.py): `wrap_cdr` puts the header in front of the generated codec's body, and
+`decoder` reads it back and decodes the body in place.
 """
 
 from __future__ import annotations
 
+import struct
 import threading
 import typing
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,14 +40,54 @@ HEADER_SIZE = 16  # uint64 client_guid at offset 4, int64 seq at offset 12 (afte
 GUID_FIELD, SEQ_FIELD = "rmw_request_client_guid", "rmw_request_seq"
 
 
+_HEADER = struct.Struct("<Qq")  # after the encapsulation, in the sample's byte order
+_HEADER_BIG = struct.Struct(">Qq")
+
+
 @dataclass(frozen=True)
 class RequestHeader:
     client_guid: int  # rmw_cyclonedds uses the request writer's instance handle
     seq: int  # per-client sequence number, echoed in the reply
 
 
+class Wrapped:
+    """A request or reply as read: its in-band header and the plain message."""
+
+    __slots__ = ("header", "payload", "sample_info")
+
+    def __init__(self, header: RequestHeader, payload: IdlStruct) -> None:
+        self.header = header
+        self.payload = payload
+        self.sample_info: Any = None
+
+
+def wrap_cdr(header: RequestHeader, data: bytes) -> bytes:
+    """The wire bytes of a wrapped sample, from the plain message's little-endian CDR."""
+    guid = header.client_guid & 0xFFFF_FFFF_FFFF_FFFF
+    return data[:ENCAPSULATION_SIZE] + _HEADER.pack(guid, header.seq) + data[ENCAPSULATION_SIZE:]
+
+
+def decoder(node: RosNode, type_name: str) -> Callable[[bytes], Wrapped]:
+    """Reads wrapped samples of `type_name`: the header, then the plain body decoded in place
+    (16 header bytes keep every later field's alignment, so the body decodes as it stands)."""
+    codecs = node.codecs
+    name = node.store.message(type_name).name
+    start = ENCAPSULATION_SIZE + HEADER_SIZE
+
+    def decode(data: bytes) -> Wrapped:
+        mv = memoryview(data)
+        little = bytes(mv[:2]) == b"\x00\x01"
+        if not little and bytes(mv[:2]) != b"\x00\x00":
+            raise WireError(f"{name}: not plain CDR (encapsulation {bytes(mv[:4]).hex(' ')})")
+        guid, seq = (_HEADER if little else _HEADER_BIG).unpack_from(mv, ENCAPSULATION_SIZE)
+        body = codecs.decoder(name, plain=False, order="<" if little else ">")
+        payload, _ = body(mv, start)
+        return Wrapped(RequestHeader(guid, seq), payload)
+
+    return decode
+
+
 _wrappers: dict[tuple[int, str], type[IdlStruct]] = {}
-_names: dict[type[IdlStruct], tuple[str, ...]] = {}
 _topics: weakref.WeakKeyDictionary[RosNode, dict[str, Topic[Any]]] = weakref.WeakKeyDictionary()
 _lock = threading.Lock()
 
@@ -71,24 +114,6 @@ def _build_wrapper(plain: type[IdlStruct], msg: Any) -> type[IdlStruct]:
                           {GUID_FIELD: t.uint64, SEQ_FIELD: t.int64, **hints})
     use_bytes_codec(cls, msg)  # byte sequences as in DdsTypes
     return cls
-
-
-def _field_names(cls: type[IdlStruct]) -> tuple[str, ...]:
-    names = _names.get(cls)
-    if names is None:
-        names = _names[cls] = tuple(getattr(cls, "__dataclass_fields__"))  # noqa: B009
-    return names
-
-
-def wrap(cls: type[IdlStruct], header: RequestHeader, payload: IdlStruct) -> IdlStruct:
-    fields = {name: getattr(payload, name) for name in _field_names(type(payload))}
-    return cls(**{GUID_FIELD: header.client_guid, SEQ_FIELD: header.seq, **fields})
-
-
-def unwrap(plain: type[IdlStruct], sample: Any) -> tuple[RequestHeader, IdlStruct]:
-    fields = {name: getattr(sample, name) for name in _field_names(plain)}
-    header = RequestHeader(int(getattr(sample, GUID_FIELD)), int(getattr(sample, SEQ_FIELD)))
-    return header, plain(**fields)
 
 
 def wrapper_topic(node: RosNode, dds_topic: str, type_name: str) -> Topic[Any]:

@@ -362,10 +362,12 @@ class RosNode:
         return reader
 
     def watch(self, reader: DataReader[Any], deliver: Callable[[list[Any]], None], label: str,
-              *, on_incompatible_qos: Callable[[Any], None] | None = None) -> Watch:
+              *, on_incompatible_qos: Callable[[Any], None] | None = None,
+              decode: Decode | None = None) -> Watch:
         """Delivers `reader`'s valid samples, in batches, to `deliver` on this node's reader
-        thread (never on a Cyclone thread)."""
-        decode = self.decoder_for(reader.topic.data_type)
+        thread (never on a Cyclone thread), decoded by `decode` (bytes → sample; by default
+        the generated decoder of the reader's type)."""
+        decode = decode or self.decoder_for(reader.topic.data_type)
         return self.reader_thread.add(Watch(reader, deliver, label, on_incompatible_qos, decode))
 
     def decoder_for(self, data_type: type[Any]) -> Decode | None:

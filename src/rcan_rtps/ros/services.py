@@ -40,12 +40,14 @@ from cyclonedds.sub import DataReader
 
 from . import _cyclone_header as cyclone
 from . import qos as qos_mod
+from . import raw_cdr
 from .errors import ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction, RosGraph
 from .handshake import matched_writers, writers_ready
 from .names import mangle_service
 from .participant import RosNode
 from .qos import QosProfile
+from .readers import Decode
 
 log = logging.getLogger(__name__)
 
@@ -124,15 +126,16 @@ class _Pair:
         if mapping is RequestMapping.CYCLONE:
             self.writer = cyclone.create_writer(node, *out, qos, user)
             self.reader = cyclone.create_reader(node, *into, qos, user)
-            self.out_cls = cyclone.wrapper_struct(node, out[1])
-            self.in_plain = node.types.struct(into[1])
+            decode: Decode | None = cyclone.decoder(node, into[1])
         else:
             self.writer = node.create_writer(*out, qos, extra_user_data=user)
             self.reader = node.create_reader(*into, qos, extra_user_data=user)
-            self.out_cls = node.types.struct(out[1])
+            decode = None  # the plain type's own generated decoder
+        self.out_codec = node.codecs.of(out[1])
         # rmw_cyclonedds names a client in the header by its request writer's handle.
         self.guid = int(self.writer.get_instance_handle()) & 0xFFFF_FFFF_FFFF_FFFF
-        self.watch = node.watch(self.reader, self._on_samples, f"{into[0]} ({mapping.value})")
+        self.watch = node.watch(self.reader, self._on_samples, f"{into[0]} ({mapping.value})",
+                                decode=decode)
         self.ready: set[int] = set()  # server writers whose next reply will reach us
 
     def unready_writers(self) -> dict[int, bytes]:
@@ -148,6 +151,11 @@ class _Pair:
     def _on_loop(self, samples: list[Any]) -> None:
         if not self.watch.closed and not self._node.closed:
             self._deliver(self, samples)
+
+    def write(self, message: IdlStruct, header: cyclone.RequestHeader | None = None) -> None:
+        """Sends one request or reply (with the in-band header in the Cyclone mapping)."""
+        data = self.out_codec.encode(message)
+        raw_cdr.write(self.writer, data if header is None else cyclone.wrap_cdr(header, data))
 
     def matched(self) -> bool:
         return bool(self.writer.get_publication_matched_status().current_count and
@@ -276,8 +284,7 @@ class ServiceClient:
         future: asyncio.Future[IdlStruct] = loop.create_future()
         self._pending[seq] = future
         try:
-            pair.writer.write(cyclone.wrap(pair.out_cls, cyclone.RequestHeader(pair.guid, seq),
-                                           message))
+            pair.write(message, cyclone.RequestHeader(pair.guid, seq))
             return await asyncio.wait_for(future, max(0.0, deadline - loop.time()))
         except asyncio.TimeoutError:
             raise ServiceTimeout(f"service {self.name}: no reply within the timeout") from None
@@ -298,7 +305,7 @@ class ServiceClient:
                 self._stale = False
             future: asyncio.Future[IdlStruct] = loop.create_future()
             self._plain_waiter = (future, accept)
-            pair.writer.write(message)
+            pair.write(message)
             try:
                 return await asyncio.wait_for(future, max(0.0, deadline - loop.time()))
             except asyncio.TimeoutError:
@@ -312,7 +319,7 @@ class ServiceClient:
     def _deliver(self, pair: _Pair, samples: list[Any]) -> None:
         for sample in samples:
             if pair.mapping is RequestMapping.CYCLONE:
-                header, reply = cyclone.unwrap(pair.in_plain, sample)
+                header, reply = sample.header, sample.payload
                 future = self._pending.get(header.seq) \
                     if header.client_guid == pair.guid else None
                 if future is not None and not future.done():
@@ -379,7 +386,7 @@ class ServiceServer:
                 log.warning("service %s: ignoring requests of a %s client; it cannot use the "
                             "Cyclone request-reply mapping", self.name, guid[:2].hex("."))
             return
-        header, request = cyclone.unwrap(self._pair.in_plain, sample)
+        header, request = sample.header, sample.payload
         try:
             response = await self._handler(request)
             if not isinstance(response, IdlStruct):
@@ -388,8 +395,7 @@ class ServiceServer:
             log.exception("service %s: the handler failed", self.name)
             return
         if await self._client_reader_ready(_user_data(client).get("clientid"), writer_handle):
-            self._pair.writer.write(
-                cyclone.wrap(self._pair.out_cls, header, response))
+            self._pair.write(response, header)
 
     async def _client_reader_ready(self, client_id: str | None, writer_handle: int) -> bool:
         """Like rmw_cyclonedds: wait briefly until the client's reply reader is matched, so

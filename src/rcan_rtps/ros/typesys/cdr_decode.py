@@ -172,7 +172,7 @@ class DecoderSource:
     def _slice(self, prim: Primitive, byte_like: bool, end: str) -> str:
         raw = f"mv[p:{end}]"
         if byte_like:
-            return f"list({raw})" if self.plain else f"{raw}.toreadonly()"
+            return f"list({raw}.tobytes())" if self.plain else f"{raw}.toreadonly()"
         if prim is Primitive.BOOLEAN:
             return f"[b != 0 for b in {raw}]"
         code = ARRAY_CODES[prim]

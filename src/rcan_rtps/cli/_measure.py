@@ -9,6 +9,7 @@ import math
 import statistics
 import time
 from collections.abc import Callable
+from typing import Any
 
 from cyclonedds.idl import IdlStruct
 
@@ -57,9 +58,9 @@ class BandwidthWindow:
         self.samples: collections.deque[tuple[float, int]] = collections.deque(maxlen=size)
         self._clock = clock
 
-    def add(self, message: IdlStruct) -> None:  # on the node's reader thread
+    def add(self, data: bytes) -> None:  # on the node's reader thread
         # The size on the wire: CDR with its 4-byte encapsulation header, as rclpy's raw=True.
-        self.add_size(len(message.serialize()))
+        self.add_size(len(data))
 
     def add_size(self, size: int) -> None:
         self.samples.append((self._clock(), size))
@@ -115,7 +116,7 @@ class DelayWindow:
 
 async def _bw(args: argparse.Namespace) -> int:
     window = BandwidthWindow(args.window)
-    return await _measure(args, window.add, window.report, needs_header=False)
+    return await _measure(args, window.add, window.report, needs_header=False, raw=True)
 
 
 async def _delay(args: argparse.Namespace) -> int:
@@ -123,9 +124,9 @@ async def _delay(args: argparse.Namespace) -> int:
     return await _measure(args, window.add, window.report, needs_header=True)
 
 
-async def _measure(args: argparse.Namespace, add: Callable[[IdlStruct], None],
+async def _measure(args: argparse.Namespace, add: Callable[[Any], None],
                    report: Callable[[], str | None],
-                   *, needs_header: bool) -> int:
+                   *, needs_header: bool, raw: bool = False) -> int:
     node = make_node(args)
     with node:
         graph = RosGraph(node)
@@ -134,7 +135,7 @@ async def _measure(args: argparse.Namespace, add: Callable[[IdlStruct], None],
         if needs_header:
             _check_header(node, type_name)
         # sensor_data (best effort) matches every publisher, as in ros2 topic bw/delay.
-        node.create_subscription(topic, type_name, qos_mod.SENSOR_DATA, callback=add)
+        node.create_subscription(topic, type_name, qos_mod.SENSOR_DATA, callback=add, raw=raw)
         print(f"Subscribed to [{topic}]", flush=True)
         start = time.monotonic()
         while not args.duration or time.monotonic() - start < args.duration:

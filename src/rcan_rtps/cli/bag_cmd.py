@@ -125,11 +125,11 @@ class _Recorder:
         self.writer.add_topic(topic, type_name, offered)
         qos = adapted_qos(publishers).with_(depth=RECORD_DEPTH)
 
-        def on_message(message: Any, topic: str = topic) -> None:
-            self.writer.write(topic, time.time_ns(), message.serialize())
+        def on_message(data: Any, topic: str = topic) -> None:  # the bytes as they came
+            self.writer.write(topic, time.time_ns(), bytes(data))
 
         self.subscriptions[topic] = self.node.create_subscription(
-            topic, type_name, qos, callback=on_message)
+            topic, type_name, qos, callback=on_message, raw=True)
         print(f"Subscribed to topic '{topic}'", flush=True)
 
     def close(self) -> None:
@@ -279,7 +279,7 @@ async def _play_once(node: RosNode, reader: BagReader, summary: BagSummary,
         if (wait := start + offset - time.monotonic()) > 0:
             await asyncio.sleep(wait)
         pub = publishers[message.topic]
-        pub.publish(node.types.struct(pub.type_name).deserialize(message.data))
+        pub.publish_cdr(message.data)
 
 
 # -- info -------------------------------------------------------------------------

@@ -169,12 +169,19 @@ class RosPublisher:
             self.writer.__del__()
 
 
+class CdrSample(bytes):
+    """A sample as it arrived: its CDR bytes (4-byte header + body), and its `sample_info`."""
+
+    sample_info: Any
+
+
 class RosSubscription:
     """Samples arrive on the node's reader thread and are handed to asyncio (or to
     `callback`, which then runs on that thread: keep it short, it may publish)."""
 
     def __init__(self, node: RosNode, topic: str, type_name: str, qos: QosProfile,
-                 callback: Callable[[IdlStruct], None] | None, maxsize: int) -> None:
+                 callback: Callable[[IdlStruct], None] | None, maxsize: int,
+                 raw: bool = False) -> None:
         self.node, self.topic, self.type_name = node, topic, type_name
         self.incompatible_qos_events = 0
         self._callback = callback
@@ -190,7 +197,8 @@ class RosSubscription:
             node.subscriber, dds_topic, qos=qos.to_dds(user_data))
         # Historical (transient-local) samples already in the reader trigger the condition.
         self._watch = node.watch(self.reader, self._on_samples, f"subscription {topic}",
-                                 on_incompatible_qos=self._on_incompatible)
+                                 on_incompatible_qos=self._on_incompatible,
+                                 decode=CdrSample if raw else None)
 
     def _on_samples(self, samples: list[IdlStruct]) -> None:  # on the node's reader thread
         if self._callback is not None:
@@ -335,8 +343,10 @@ class RosNode:
     def create_subscription(self, topic: str, type_name: str,
                             qos: QosProfile = qos_mod.DEFAULT, *,
                             callback: Callable[[IdlStruct], None] | None = None,
-                            maxsize: int = 1000) -> RosSubscription:
-        sub = RosSubscription(self, self.resolve(topic), type_name, qos, callback, maxsize)
+                            maxsize: int = 1000, raw: bool = False) -> RosSubscription:
+        """Samples arrive as typed messages, or with `raw` as `CdrSample` bytes undecoded."""
+        sub = RosSubscription(self, self.resolve(topic), type_name, qos, callback, maxsize,
+                              raw)
         # The node owns its subscriptions: a dropped handle must not silence the topic.
         self._subscriptions.append(sub)
         self.track_reader(sub.reader)

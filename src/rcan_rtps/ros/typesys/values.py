@@ -9,6 +9,7 @@ non-finite here because ROS allows them; the governance layer decides what it ac
 from __future__ import annotations
 
 import math
+from array import array
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -128,6 +129,10 @@ class MessageValues:
             return array_placeholder(ftype, len(value))
         if isinstance(value, (bytes, bytearray)):
             return list(value)
+        if isinstance(value, memoryview):  # a decoded byte field (no copy was made)
+            return list(value.tobytes())
+        if isinstance(value, array):  # a decoded numeric sequence
+            return value.tolist()
         if ftype.is_collection:
             element = ftype.element
             return [self.field_to_plain(element, v, no_arr=no_arr) for v in value]

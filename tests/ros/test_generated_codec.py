@@ -188,3 +188,23 @@ def test_random_bytes_decode_or_fail_cleanly(type_name: str, body: bytes) -> Non
             codec.decode(data)
         except CdrDecodeError:
             pass
+
+
+@pytest.mark.parametrize("data", [b"\x01\x02\x03", bytearray(b"\x01\x02\x03"), [1, 2, 3],
+                                  memoryview(b"\x01\x02\x03"),
+                                  memoryview(b"\x01\x02\x03\x00").cast("B")[:3]])
+def test_a_typed_byte_field_may_be_any_buffer_or_ints(data: Any) -> None:
+    codec = CODECS.of("std_msgs/msg/ByteMultiArray")
+    message = VALUES.build("std_msgs/msg/ByteMultiArray", {"data": b"\x01\x02\x03"})
+    expected = codec.encode(message)
+    message.data = data
+    assert codec.encode(message) == expected
+
+
+def test_a_typed_byte_field_counts_bytes_not_items() -> None:
+    from array import array
+    codec = CODECS.of("std_msgs/msg/UInt8MultiArray")
+    message = VALUES.build("std_msgs/msg/UInt8MultiArray", {"data": b"\x00" * 8})
+    expected = codec.encode(message)
+    message.data = memoryview(array("d", [0.0]))  # one item of 8 bytes
+    assert codec.encode(message) == expected

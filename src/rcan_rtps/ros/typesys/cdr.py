@@ -81,6 +81,15 @@ def _plain_octets(value: object) -> bytes:
     raise Slow
 
 
+def _octets(value: Any) -> Any:
+    """A typed message's byte field as a buffer of single bytes (any buffer, or ints)."""
+    if value.__class__ is bytes or value.__class__ is bytearray:
+        return value
+    if isinstance(value, memoryview):
+        return value if value.format == "B" and value.ndim == 1 else value.cast("B")
+    return bytes(value)  # a list of ints, or an array: bytes() checks 0..255
+
+
 def _to_array(code: str, raw: memoryview, swap: bool) -> array[Any]:
     values = array(code)
     values.frombytes(raw)
@@ -92,7 +101,8 @@ def _to_array(code: str, raw: memoryview, swap: bool) -> array[Any]:
 HELPERS: dict[str, Any] = {
     "Slow": Slow, "NUMBERS": NUMBERS, "INTS": INTS, "BOOLS": BOOLS, "ARRAY": array,
     "pack": struct.pack, "put_wide": _put_wide, "get_wide": _get_wide,
-    "plain_wide": _plain_wide, "plain_octets": _plain_octets, "to_array": _to_array,
+    "plain_wide": _plain_wide, "plain_octets": _plain_octets, "octets": _octets,
+    "to_array": _to_array,
     "wide_to_str": wide_to_str, "truncated": _truncated, "over_bound": _over_bound,
     "length_error": _length_error, "EMPTY_OCTETS": memoryview(b"").toreadonly(),
 }

@@ -115,7 +115,7 @@ class EncoderSource:
     def _value(self, f: Field, ref: str, ind: int) -> str:
         """An expression (typed) or a local holding the field's value (plain)."""
         if not self.plain:
-            return f"{ref}.{f.name}"
+            return f"{ref}.{f.name}"  # names are identifiers: cyclonedds structs need it too
         local = self.src.name("v")
         default = self.src.const(_plain_default(f))
         self.src.emit(ind, f"{local} = {ref}.get({f.name!r}, {default})")
@@ -133,8 +133,6 @@ class EncoderSource:
 
     def _single(self, ftype: FieldType, value: str, ind: int) -> None:
         if ftype.nested is not None:
-            if self.plain:
-                self.src.emit(ind, f"if {value} is None: raise Slow")
             self._struct(self.store.message(ftype.nested), value, ind)
             return
         prim = ftype.primitive
@@ -196,7 +194,11 @@ class EncoderSource:
     def _repeated(self, ftype: FieldType, value: str, ind: int) -> None:
         self._flush(ind)
         count = self.src.name("n")
-        if self.plain and not is_byte_like(ftype):
+        if is_byte_like(ftype):  # counted in bytes, whatever the buffer's item format
+            octets = self.src.name("o")
+            self.src.emit(ind, f"{octets} = {'plain_' if self.plain else ''}octets({value})")
+            value = octets
+        elif self.plain:
             self.src.emit(ind, f"if {value}.__class__ is not list and {value}.__class__ is "
                                "not ARRAY: raise Slow")
         self.src.emit(ind, f"{count} = len({value})")
@@ -218,8 +220,7 @@ class EncoderSource:
             self.src.emit(ind, f"for {item} in {value}:")
             self.src.emit(ind + 1, f"{inner}({item}, buf)")
         elif is_byte_like(ftype):
-            octets = f"plain_octets({value})" if self.plain else value
-            self.src.emit(ind, f"buf += {octets}")
+            self.src.emit(ind, f"buf += {value}")
         else:
             assert element.primitive is not None
             self._repeated_primitive(element, value, count, ind)

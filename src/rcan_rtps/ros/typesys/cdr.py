@@ -35,8 +35,8 @@ _U32 = by_residue([Item("I", 4)])[0]
 _U32_BIG = by_residue([Item("I", 4)], ">")[0]
 
 
-class Truncated(ValueError):
-    pass
+class Truncated(CdrDecodeError, ValueError):
+    """Fewer bytes than the lengths in the data say (wrapped with the type's name)."""
 
 
 def _truncated(needed: int, have: int) -> Truncated:

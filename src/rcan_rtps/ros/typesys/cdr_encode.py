@@ -16,6 +16,7 @@ from __future__ import annotations
 import struct
 from typing import Any
 
+from ..errors import WireError
 from .cdr_layout import (
     ARRAY_CODES,
     FORMATS,
@@ -31,8 +32,8 @@ from .model import Collection, Field, FieldType, MessageType, Primitive
 from .store import TypeStore
 
 
-class Slow(Exception):
-    """The plain encoder's signal: leave this value to the strict validator."""
+class Slow(WireError):
+    """The plain encoder's signal: leave this value to the strict validator (never escapes)."""
 
 
 NUMBERS = frozenset({int, float})

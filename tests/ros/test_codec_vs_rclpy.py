@@ -62,6 +62,11 @@ def values(store: TypeStore) -> MessageValues:
     return MessageValues(DdsTypes(store))
 
 
+def examples(n: int) -> settings:
+    return settings(max_examples=n, deadline=None, suppress_health_check=[
+        HealthCheck.too_slow, HealthCheck.function_scoped_fixture, HealthCheck.data_too_large])
+
+
 def test_every_bundled_package_is_compared_with_rclpy_or_said_not_to_be() -> None:
     packages = {t.split("/")[0] for t in BUNDLED}
     assert packages == set(ORACLE_PACKAGES) | set(NOT_ON_THE_INDEX)
@@ -79,8 +84,7 @@ def oracle(jazzy_python: Path) -> Iterator[RclpyOracle]:
 
 
 @pytest.mark.parametrize("type_name", TYPES)
-@settings(max_examples=25, deadline=None, suppress_health_check=[
-    HealthCheck.too_slow, HealthCheck.function_scoped_fixture, HealthCheck.data_too_large])
+@examples(25)
 @given(data=st.data())
 def test_bytes_equal_rclpy(oracle: RclpyOracle, store: TypeStore, codecs: CdrCodecs,
                            type_name: str, data: st.DataObject) -> None:
@@ -97,8 +101,7 @@ def test_bytes_equal_rclpy(oracle: RclpyOracle, store: TypeStore, codecs: CdrCod
 
 
 @pytest.mark.parametrize("type_name", TYPES)
-@settings(max_examples=10, deadline=None, suppress_health_check=[
-    HealthCheck.too_slow, HealthCheck.function_scoped_fixture, HealthCheck.data_too_large])
+@examples(10)
 @given(data=st.data())
 def test_we_decode_rclpy_bytes(oracle: RclpyOracle, store: TypeStore, values: MessageValues,
                                codecs: CdrCodecs, type_name: str, data: st.DataObject) -> None:
@@ -111,8 +114,7 @@ def test_we_decode_rclpy_bytes(oracle: RclpyOracle, store: TypeStore, values: Me
 
 
 @pytest.mark.parametrize("package", ORACLE_PACKAGES)
-@settings(max_examples=30, deadline=None, suppress_health_check=[
-    HealthCheck.too_slow, HealthCheck.function_scoped_fixture, HealthCheck.data_too_large])
+@examples(30)
 @given(data=st.data())
 def test_every_shared_type_both_ways(oracle: RclpyOracle, store: TypeStore, codecs: CdrCodecs,
                                      package: str, data: st.DataObject) -> None:

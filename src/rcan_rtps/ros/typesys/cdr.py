@@ -24,8 +24,9 @@ from cyclonedds.idl import IdlStruct
 
 from ..errors import CdrDecodeError, ValueFitError
 from .cdr_decode import DecoderSource
-from .cdr_encode import BOOLS, INTS, NUMBERS, EncoderSource, Slow, Source
+from .cdr_encode import BOOLS, INTS, NUMBERS, EncoderSource, Slow
 from .cdr_layout import HEADER_SIZE, LITTLE_HEADER, Item, by_residue
+from .cdr_source import Source
 from .ddstypes import DdsTypes
 from .values import MessageValues, str_to_wide, wide_to_str
 

@@ -10,43 +10,29 @@ from __future__ import annotations
 
 import struct
 
-from .cdr_encode import Source
 from .cdr_layout import ARRAY_CODES, FORMATS, NATIVE_LITTLE, Item, by_residue, layout, size_of
+from .cdr_source import FunctionWriter, Source
 from .ddstypes import DdsTypes, is_byte_like
 from .model import Collection, FieldType, MessageType, Primitive
 from .values import PLACEHOLDER
 
 
-class DecoderSource:
+class DecoderSource(FunctionWriter):
     """Emits `dec_<n>(mv, p)` functions returning `(value, next offset)`; `p` counts from the
     start of the buffer, encapsulation header included."""
 
+    prefix = "dec_"
+
     def __init__(self, types: DdsTypes, source: Source, *, plain: bool, order: str) -> None:
+        super().__init__(types.store, source)
         self.types = types
-        self.src = source
         self.plain = plain
         self.order = order
         self.swap = (order == "<") != NATIVE_LITTLE
-        self.functions: dict[str, str] = {}
-        self._pending: list[tuple[str, str, bool]] = []
         self._run: list[tuple[Item, str]] = []
         self._known: int | None = None
 
-    def function(self, type_name: str, *, top: bool = False) -> str:
-        key = f"{type_name}|{top}"
-        found = self.functions.get(key)
-        if found is None:
-            found = self.src.name("dec_")
-            self.functions[key] = found
-            self._pending.append((found, type_name, top))
-            if len(self._pending) == 1:
-                while self._pending:
-                    name, pending_type, pending_top = self._pending[0]
-                    self._body(name, self.types.store.message(pending_type), pending_top)
-                    self._pending.pop(0)
-        return found
-
-    def _body(self, name: str, msg: MessageType, top: bool) -> None:
+    def body(self, name: str, msg: MessageType, top: bool) -> None:
         self.src.emit(0, f"def {name}(mv, p):")
         self._known = 0 if top else None
         result = self._struct(msg, 1)

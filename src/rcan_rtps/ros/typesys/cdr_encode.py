@@ -27,6 +27,7 @@ from .cdr_layout import (
     pad_table,
     size_of,
 )
+from .cdr_source import FunctionWriter, Source
 from .ddstypes import is_byte_like
 from .model import Collection, Field, FieldType, MessageType, Primitive
 from .store import TypeStore
@@ -41,62 +42,18 @@ INTS = frozenset({int})
 BOOLS = frozenset({bool})
 
 
-class Source:
-    """Lines of one generated module and the constants its code refers to."""
-
-    def __init__(self) -> None:
-        self.lines: list[str] = []
-        self.namespace: dict[str, Any] = {}
-        self._count = 0
-
-    def name(self, prefix: str) -> str:
-        self._count += 1
-        return f"{prefix}{self._count}"
-
-    def const(self, value: Any, prefix: str = "K") -> str:
-        name = self.name(prefix)
-        self.namespace[name] = value
-        return name
-
-    def emit(self, indent: int, line: str) -> None:
-        self.lines.append("    " * indent + line)
-
-    def text(self) -> str:
-        return "\n".join(self.lines) + "\n"
-
-
-class EncoderSource:
+class EncoderSource(FunctionWriter):
     """Emits `enc_<n>(m, buf)` functions that append a struct's CDR body to a bytearray."""
 
+    prefix = "enc_"
+
     def __init__(self, store: TypeStore, source: Source, *, plain: bool) -> None:
-        self.store = store
-        self.src = source
+        super().__init__(store, source)
         self.plain = plain
-        self.functions: dict[str, str] = {}
-        self._pending: list[tuple[str, str, bool]] = []  # function name, type, top level
         self._run: list[tuple[Item, str]] = []
         self._known: int | None = None
 
-    def function(self, type_name: str, *, top: bool = False) -> str:
-        """The name of the function encoding `type_name`, generated with what it needs.
-        A `top` one starts at body offset 0, so its first run needs no residue lookup."""
-        key = f"{type_name}|{top}"
-        found = self.functions.get(key)
-        if found is None:
-            found = self.src.name("enc_")
-            self.functions[key] = found
-            self._pending.append((found, type_name, top))
-            if len(self._pending) == 1:
-                self._drain()
-        return found
-
-    def _drain(self) -> None:
-        while self._pending:
-            name, type_name, top = self._pending[0]
-            self._body(name, self.store.message(type_name), top)
-            self._pending.pop(0)
-
-    def _body(self, name: str, msg: MessageType, top: bool) -> None:
+    def body(self, name: str, msg: MessageType, top: bool) -> None:
         self.src.emit(0, f"def {name}(m, buf):")
         self._known = 0 if top else None
         self._struct(msg, "m", 1)

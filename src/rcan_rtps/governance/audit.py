@@ -371,6 +371,7 @@ class AuditLog:
         self._last_write_end = 0.0
         # Told of every durable entry (e.g. metrics); a failing listener is logged, not raised.
         self.listeners: list[Callable[[AuditRecord, AuditReceipt], None]] = []
+        self._told: list[tuple[AuditRecord, AuditReceipt]] = []  # durable, listeners not told
 
     @classmethod
     async def open(cls, path: str | os.PathLike[str], key_path: str | os.PathLike[str], *,
@@ -430,21 +431,26 @@ class AuditLog:
             self._queue.append((line, receipt, done))
             if self._flusher is None or self._flusher.done():
                 self._flusher = asyncio.create_task(self._flush())
-            # A cancelled caller must not leave its entry half-acknowledged: the write goes on.
-            await asyncio.shield(done)
+            # A cancelled caller cancels only its wait: the flusher writes the entry anyway
+            # (and skips the cancelled future), so no shield (a future more per entry).
+            await done
         if (self._durable_seq - self._checkpointed_seq >= CHECKPOINT_EVERY
                 and (self._checkpointing is None or self._checkpointing.done())):
             self._checkpointing = asyncio.create_task(self.checkpoint())  # off the reply path
         if self.listeners:  # after the caller's next step (its publish), not before it
-            asyncio.get_running_loop().call_soon(self._tell_listeners, record, receipt)
+            if not self._told:  # one loop callback for all the entries of a group commit
+                asyncio.get_running_loop().call_soon(self._tell_listeners)
+            self._told.append((record, receipt))
         return receipt
 
-    def _tell_listeners(self, record: AuditRecord, receipt: AuditReceipt) -> None:
-        for listener in self.listeners:
-            try:
-                listener(record, receipt)
-            except Exception:
-                log.exception("audit listener failed")
+    def _tell_listeners(self) -> None:
+        told, self._told = self._told, []
+        for record, receipt in told:
+            for listener in self.listeners:
+                try:
+                    listener(record, receipt)
+                except Exception:
+                    log.exception("audit listener failed")
 
     async def checkpoint(self) -> None:
         """Record the durable head as verified (every entry up to it is ours or was checked)."""
@@ -503,7 +509,8 @@ class AuditLog:
                 self._fail(batch + self._queue, exc)
                 return
             for _, _, done in batch:
-                done.set_result(None)
+                if not done.done():  # cancelled: its caller left, the entry is written
+                    done.set_result(None)
 
     def _inline_ok(self) -> bool:
         if self._queue or (self._flusher is not None and not self._flusher.done()):
@@ -532,7 +539,8 @@ class AuditLog:
         self._broken = exc
         self._queue = []
         for _, _, done in waiting:
-            done.set_exception(AuditWriteError(f"audit write to {self.path} failed: {exc}"))
+            if not done.done():
+                done.set_exception(AuditWriteError(f"audit write to {self.path} failed: {exc}"))
 
 
 def _make_dirs(*paths: Path) -> None:

@@ -43,7 +43,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     the memory of) the graph tools, bags and the rest of the CLI."""
     # Imported here, not at the top: until main() runs, a Ctrl-C would end in a traceback,
     # and these pull in cyclonedds, aiohttp and cryptography.
-    from ._common import add_global_options
+    from ._options import add_global_options
 
     parser = argparse.ArgumentParser(
         prog="rcan-rtps",
@@ -73,7 +73,7 @@ def commands_of(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    from ._common import merge_global_options
+    from ._options import merge_global_options
 
     words = sys.argv[1:] if argv is None else list(argv)
     return merge_global_options(build_parser(verb_of(words)).parse_args(words))

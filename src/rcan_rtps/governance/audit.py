@@ -29,7 +29,6 @@ from typing import Any
 
 import msgspec
 from cryptography.exceptions import InvalidSignature
-from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from ._durable import atomic_write, fsync_dir, full_fsync, write_all
@@ -129,6 +128,8 @@ def load_or_create_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
         return load_private_key(path)
     except OSError as exc:
         raise AuditKeyError(f"cannot create audit key {path}: {exc}") from exc
+    from cryptography.hazmat.primitives import serialization
+
     key = Ed25519PrivateKey.generate()
     pem = key.private_bytes(
         serialization.Encoding.PEM,
@@ -154,7 +155,8 @@ def load_private_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
     if mode & 0o077:
         raise AuditKeyError(f"audit key {path} is readable by others (mode {mode & 0o777:o})")
     try:
-        key = serialization.load_pem_private_key(path.read_bytes(), password=None)
+        pem = path.read_bytes()
+        key = _ed25519_pkcs8(pem) or _load_pem(pem)
     except (OSError, ValueError, TypeError) as exc:
         raise AuditKeyError(f"cannot load audit key {path}: {exc}") from exc
     if not isinstance(key, Ed25519PrivateKey):
@@ -162,13 +164,44 @@ def load_private_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
     return key
 
 
+# The unencrypted PKCS#8 DER of an Ed25519 key (RFC 8410) is this prefix and the 32-byte seed.
+_PKCS8_ED25519 = bytes.fromhex("302e020100300506032b657004220420")
+_PEM_HEAD, _PEM_TAIL = b"-----BEGIN PRIVATE KEY-----", b"-----END PRIVATE KEY-----"
+
+
+def _ed25519_pkcs8(pem: bytes) -> Ed25519PrivateKey | None:
+    """The key of a PEM that is exactly an Ed25519 PKCS#8 key (what this bridge writes), else
+    None. Parsed here: `cryptography`'s PEM loading imports every key type (~1 MB)."""
+    text = pem.strip()
+    if not (text.startswith(_PEM_HEAD) and text.endswith(_PEM_TAIL)):
+        return None
+    try:
+        der = base64.b64decode(b"".join(text[len(_PEM_HEAD):-len(_PEM_TAIL)].split()),
+                               validate=True)
+    except ValueError:
+        return None
+    if len(der) != len(_PKCS8_ED25519) + 32 or not der.startswith(_PKCS8_ED25519):
+        return None
+    return Ed25519PrivateKey.from_private_bytes(der[len(_PKCS8_ED25519):])
+
+
+def _load_pem(pem: bytes) -> object:
+    from cryptography.hazmat.primitives import serialization
+
+    return serialization.load_pem_private_key(pem, password=None)
+
+
 def public_key_pem(key: Ed25519PrivateKey) -> bytes:
+    from cryptography.hazmat.primitives import serialization
+
     return key.public_key().public_bytes(
         serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
     )
 
 
 def load_public_key(path: str | os.PathLike[str]) -> Ed25519PublicKey:
+    from cryptography.hazmat.primitives import serialization
+
     try:
         key = serialization.load_pem_public_key(Path(path).read_bytes())
     except (OSError, ValueError) as exc:

@@ -309,6 +309,48 @@ def baseline_tree(ref: str) -> Iterator[Path]:
                            check=False)
 
 
+# The HTTP floor of a governed command: an aiohttp server (on uvloop when installed, as the
+# bridge runs) answering each POST /api/command with a small JSON body, nothing else.
+ECHO_SERVER = """
+import asyncio, sys
+from aiohttp import web
+async def command(request):
+    await request.read()
+    return web.json_response({"outcome": "executed"})
+async def main():
+    app = web.Application()
+    app.router.add_post("/api/command", command)
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, "127.0.0.1", 0)
+    await site.start()
+    print(f"ready http://127.0.0.1:{site._server.sockets[0].getsockname()[1]}", flush=True)
+    await asyncio.Event().wait()
+try:
+    import uvloop
+    run = uvloop.run
+except ImportError:
+    run = asyncio.run
+run(main())
+"""
+
+
+async def http_floor(args: argparse.Namespace) -> float:
+    """CPU µs per request of `ECHO_SERVER` under the throughput load."""
+    proc = subprocess.Popen([sys.executable, "-c", ECHO_SERVER], stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout is not None
+        url = proc.stdout.readline().split()[1]
+        await throughput(url, min(1000, args.commands), args.clients)  # warm-up
+        before = cpu_seconds(proc.pid)
+        await throughput(url, args.commands, args.clients)
+        return (cpu_seconds(proc.pid) - before) / args.commands * 1e6
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 @dataclass
 class Side:
     """One bridge version's measurements over the rounds."""
@@ -322,6 +364,7 @@ class Side:
     failures: int = 0
     sustained_rss: float = float("nan")
     sustained_cpu_us: float = float("nan")
+    floor_us: list[float] = field(default_factory=list)  # the HTTP floor, once per round
 
 
 async def measured_run(bridge: BridgeProcess, oracle: RclpyOracle, commands: int,
@@ -383,6 +426,7 @@ async def before_after(oracle: RclpyOracle, args: argparse.Namespace) -> tuple[S
         for i in range(args.rounds):
             for k, side in enumerate((before, after) if i % 2 == 0 else (after, before)):
                 await compare_round(Path(state) / f"r{i}-{k}", side, oracle, args)
+            after.floor_us.append(await http_floor(args))
         if args.sustained > 0:
             for k, side in enumerate((before, after)):
                 await sustained(Path(state) / f"sustained-{k}", side, oracle, args)
@@ -410,6 +454,8 @@ def compare_report(before: Side, after: Side, args: argparse.Namespace) -> str:
         "|---|---|---|---|---|---|",
         row("governed commands/s", med(before.rates), med(after.rates), ".0f", "—", None),
         row("bridge CPU per command (µs)", cpu_b, cpu_a, ".0f", "≤ 300 µs", cpu_a <= 300),
+        f"| HTTP floor: CPU per request of a bare aiohttp JSON server under the same load | — "
+        f"| {med(after.floor_us):.0f} µs | {med(after.floor_us) / cpu_a:.2f} of after | — | — |",
         row("start → ready line (s)", med(before.ready_s), med(after.ready_s), ".2f", "≤ 1 s",
             med(after.ready_s) <= 1.0),
         row("RSS idle (MB)", med(before.idle_rss), med(after.idle_rss), ".1f", "≤ 55 MB",

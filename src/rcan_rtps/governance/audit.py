@@ -40,10 +40,11 @@ log = logging.getLogger(__name__)
 _UNSIGNED = ("audit_id", "sig")
 _REQUIRED = ("seq", "audit_id", "prev_hash", "sig", "event", "timestamp_ms")
 CHECKPOINT_EVERY = 1000  # entries between checkpoints: bounds what a start after a crash re-checks
-# When the log is idle (no write running, none in the last INLINE_GAP_S) and its disk fast
-# (smoothed write+fsync below INLINE_FSYNC_S), an append writes on the loop: two thread
-# hand-offs cost more than such an fsync. Otherwise the writer thread does it, with group
-# commit: bursts share fsyncs, and a slow disk (an SD card) never blocks the event loop.
+# When the disk is fast (smoothed write+fsync below INLINE_FSYNC_S) the loop writes: an idle
+# log's append at once (none in the last INLINE_GAP_S), a burst's entries together at the end
+# of the loop turn they were sealed in (group commit): thread hand-offs cost more CPU than such
+# an fsync blocks. Otherwise the writer thread does it, with group commit too: a slow disk
+# (an SD card) never blocks the event loop.
 INLINE_FSYNC_S = 0.001
 INLINE_GAP_S = 0.001
 
@@ -377,7 +378,8 @@ _Queued = tuple[bytes, AuditReceipt, "asyncio.Future[None]"]  # a sealed line aw
 class AuditLog:
     """The append-only chain. `append` returns only once its entry is on disk (fsynced).
 
-    With `group_commit`, appends that arrive while a write+fsync is running share the next one.
+    With `group_commit`, appends of one loop turn, or that arrive while the writer thread's
+    write+fsync is running, share the next one.
     """
 
     def __init__(self, fd: int, key: Ed25519PrivateKey, head: ChainHead, *, path: Path,
@@ -391,7 +393,8 @@ class AuditLog:
         self._ruri = ruri
         self._clock = clock
         self._batch_limit = 0 if group_commit else 1
-        self._queue: list[_Queued] = []
+        self._queue: list[_Queued] = []  # for the writer thread
+        self._loop_batch: list[_Queued] = []  # for the group commit at this loop turn's end
         self._flusher: asyncio.Task[None] | None = None
         self._broken: BaseException | None = None
         self._writer = writer  # one thread: writes and checkpoints in order, apart from reads
@@ -460,12 +463,20 @@ class AuditLog:
         if self._inline_ok():
             self._write_inline(line, receipt)
         else:
-            done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-            self._queue.append((line, receipt, done))
-            if self._flusher is None or self._flusher.done():
-                self._flusher = asyncio.create_task(self._flush())
-            # A cancelled caller cancels only its wait: the flusher writes the entry anyway
-            # (and skips the cancelled future), so no shield (a future more per entry).
+            loop = asyncio.get_running_loop()
+            done: asyncio.Future[None] = loop.create_future()
+            if self._loop_batch or self._loop_commit_ok():
+                # A fast disk under load: the entries of this loop turn share one write+fsync
+                # at its end, on the loop (no thread hand-off: cheaper than the thread's).
+                if not self._loop_batch:
+                    loop.call_soon(self._commit_loop_batch)
+                self._loop_batch.append((line, receipt, done))
+            else:
+                self._queue.append((line, receipt, done))
+                if self._flusher is None or self._flusher.done():
+                    self._flusher = asyncio.create_task(self._flush())
+            # A cancelled caller cancels only its wait: the entry is written anyway (its
+            # future skipped), so no shield (a future more per entry).
             await done
         if (self._durable_seq - self._checkpointed_seq >= CHECKPOINT_EVERY
                 and (self._checkpointing is None or self._checkpointing.done())):
@@ -502,6 +513,8 @@ class AuditLog:
     async def close(self) -> None:
         """Waits for queued writes, checkpoints, and releases the file and its lock.
         Idempotent."""
+        if self._loop_batch:
+            self._commit_loop_batch()
         pending = [t for t in (self._flusher, self._checkpointing) if t is not None]
         if pending:
             await asyncio.gather(*pending, return_exceptions=True)
@@ -545,8 +558,33 @@ class AuditLog:
                 if not done.done():  # cancelled: its caller left, the entry is written
                     done.set_result(None)
 
+    def _loop_commit_ok(self) -> bool:
+        """Group commit on the loop: the disk is fast (smoothed write+fsync under
+        INLINE_FSYNC_S) and no thread write is under way (entries stay in order)."""
+        return (self._batch_limit == 0 and self._fsync_s < INLINE_FSYNC_S and not self._queue
+                and (self._flusher is None or self._flusher.done()))
+
+    def _commit_loop_batch(self) -> None:
+        batch, self._loop_batch = self._loop_batch, []
+        if not batch:  # committed already (by close)
+            return
+        if not self.healthy:
+            self._fail(batch, OSError("the audit log is closed or broken"))
+            return
+        data = b"".join(line for line, _, _ in batch)
+        try:
+            took = _write_durable(self._fd, data)
+        except Exception as exc:  # OSError, or a bug: no waiter may hang on it
+            self._fail(batch, exc)
+            return
+        self._durable(data, batch[-1][0], batch[-1][1], took)
+        for _, _, done in batch:
+            if not done.done():  # cancelled: its caller left, the entry is written
+                done.set_result(None)
+
     def _inline_ok(self) -> bool:
-        if self._queue or (self._flusher is not None and not self._flusher.done()):
+        if self._queue or self._loop_batch or (self._flusher is not None
+                                                and not self._flusher.done()):
             return False
         quiet = time.monotonic() - self._last_write_end > INLINE_GAP_S
         return quiet and self._fsync_s < INLINE_FSYNC_S

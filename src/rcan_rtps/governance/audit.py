@@ -4,7 +4,8 @@ Each line is the canonical JSON (sorted keys, no whitespace, UTF-8) of one entry
 "sha256:" + hex SHA-256 of the canonical entry without `audit_id` and `sig`; `prev_hash` is the
 previous `audit_id` (the first links to GENESIS); `sig` is base64 Ed25519 over `audit_id`.
 
-Writes run on the log's own thread (never the default executor, which costly reads may fill).
+Writes run on the loop when the disk is fast (see INLINE_FSYNC_S), else on the log's own thread
+(never the default executor, which costly reads may fill).
 A signed checkpoint beside the log records the last verified entry, so opening the log checks
 only what was appended after it: start-up time does not grow with the log. `verify` and
 `rcan-rtps audit verify` still check the whole chain.

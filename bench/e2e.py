@@ -16,7 +16,7 @@
 
 DDS runs here, so run it in a private network namespace (as root):
     scripts/netns .venv/bin/python bench/e2e.py [--oracle .cache/ros-jazzy/bin/python]
-Writes the `## End to end` and `## End to end: before vs after` sections of docs/benchmarks.md
+Writes the `## End to end` and `## Before vs after, end to end` sections of docs/benchmarks.md
 (`--compare-only`: the second alone).
 """
 
@@ -443,7 +443,7 @@ def compare_report(before: Side, after: Side, args: argparse.Namespace) -> str:
 
     cpu_b, cpu_a = med(before.cpu_us), med(after.cpu_us)
     lines = [
-        "## End to end: before vs after", "",
+        "## Before vs after, end to end", "",
         f"`bench/e2e.py` (same machine, same run): the bridge of `{args.baseline_ref}` (a "
         "temporary git worktree, same interpreter and packages) and this tree's, alternately "
         f"over {args.rounds} interleaved rounds of {args.commands} governed `move` commands "
@@ -511,7 +511,7 @@ async def main() -> int:
             await end_to_end(oracle, args)
         before, after = await before_after(oracle, args)
     report = compare_report(before, after, args)
-    write_section("## End to end: before vs after", report)
+    write_section("## Before vs after, end to end", report)
     print(report)
     return 0
 

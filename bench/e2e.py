@@ -82,9 +82,10 @@ def free_port() -> int:
 
 # -- the bridge under test -----------------------------------------------------------------
 class BridgeProcess:
-    """`src`: run the bridge of that source tree (PYTHONPATH) instead of the installed one."""
+    """`src`: run the bridge of that source tree (PYTHONPATH) instead of the installed one;
+    `extra`: more `run` options."""
 
-    def __init__(self, state: Path, src: Path | None = None) -> None:
+    def __init__(self, state: Path, src: Path | None = None, extra: tuple[str, ...] = ()) -> None:
         self.port = free_port()
         state.mkdir(parents=True, exist_ok=True)
         self.config = state / "bench.rcan.yaml"
@@ -99,7 +100,7 @@ class BridgeProcess:
         self.log = state / "bridge.log"
         with self.log.open("w") as log:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "rcan_rtps", "run", "--config", str(self.config)],
+                [sys.executable, "-m", "rcan_rtps", "run", "--config", str(self.config), *extra],
                 stdout=subprocess.PIPE, stderr=log, text=True, env=env)
         assert self.proc.stdout is not None
         line = self.proc.stdout.readline()
@@ -363,6 +364,7 @@ class Side:
     idle_rss: list[float] = field(default_factory=list)
     failures: int = 0
     sustained_rss: float = float("nan")
+    quiet_rss: float = float("nan")  # idle, --no-mdns
     sustained_cpu_us: float = float("nan")
     floor_us: list[float] = field(default_factory=list)  # the HTTP floor, once per round
 
@@ -418,6 +420,15 @@ async def sustained(state: Path, side: Side, oracle: RclpyOracle,
         bridge.stop()
 
 
+async def idle_rss_without_mdns(state: Path, side: Side) -> float:
+    bridge = BridgeProcess(state, side.src, ("--no-mdns",))
+    try:
+        await asyncio.sleep(1.0)
+        return bridge.rss_mb()
+    finally:
+        bridge.stop()
+
+
 async def before_after(oracle: RclpyOracle, args: argparse.Namespace) -> tuple[Side, Side]:
     """The baseline's bridge and this tree's, alternately, each round in the other order."""
     with baseline_tree(args.baseline_ref) as base_src, \
@@ -427,6 +438,8 @@ async def before_after(oracle: RclpyOracle, args: argparse.Namespace) -> tuple[S
             for k, side in enumerate((before, after) if i % 2 == 0 else (after, before)):
                 await compare_round(Path(state) / f"r{i}-{k}", side, oracle, args)
             after.floor_us.append(await http_floor(args))
+        for k, side in enumerate((before, after)):
+            side.quiet_rss = await idle_rss_without_mdns(Path(state) / f"quiet-{k}", side)
         if args.sustained > 0:
             for k, side in enumerate((before, after)):
                 await sustained(Path(state) / f"sustained-{k}", side, oracle, args)
@@ -458,12 +471,14 @@ def compare_report(before: Side, after: Side, args: argparse.Namespace) -> str:
         f"| {med(after.floor_us):.0f} µs | {med(after.floor_us) / cpu_a:.2f} of after | — | — |",
         row("start → ready line (s)", med(before.ready_s), med(after.ready_s), ".2f", "≤ 1 s",
             med(after.ready_s) <= 1.0),
-        row("RSS idle (MB)", med(before.idle_rss), med(after.idle_rss), ".1f", "≤ 55 MB",
-            med(after.idle_rss) <= 55),
+        row("RSS idle, mDNS advertising on (MB)", med(before.idle_rss), med(after.idle_rss),
+            ".1f", "≤ 55 MB", med(after.idle_rss) <= 55),
+        row("RSS idle, `--no-mdns` (MB)", before.quiet_rss, after.quiet_rss, ".1f", "≤ 55 MB",
+            after.quiet_rss <= 55),
     ]
     if args.sustained > 0:
         lines += [
-            row(f"RSS after {args.sustained} commands (MB)", before.sustained_rss,
+            row(f"RSS after {args.sustained} commands, mDNS on (MB)", before.sustained_rss,
                 after.sustained_rss, ".1f", "≤ 55 MB, flat", after.sustained_rss <= 55),
             row(f"CPU per command over those {args.sustained} (µs)", before.sustained_cpu_us,
                 after.sustained_cpu_us, ".0f", "≤ 300 µs", after.sustained_cpu_us <= 300),

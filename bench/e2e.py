@@ -8,16 +8,23 @@
    audit log, many concurrent keep-alive clients. Target ≥ 2 000/s.
 3. Footprint: bridge RSS and time from start to the ready line, versus a bare rclpy node
    (time to a created node, its RSS). Targets: ≤ 55 MB and ≤ 1 s.
+4. Before vs after, in one run: the bridge of `--baseline-ref` (a temporary git worktree, its
+   src on PYTHONPATH, same interpreter) and this tree's, alternately over `--rounds` interleaved
+   rounds: governed commands/s and the bridge process's CPU µs per command (utime+stime from
+   /proc/<pid>/stat over the throughput run ÷ commands), medians; start → ready; RSS idle and
+   after `--sustained` commands (100 000 by default). Target ≤ 300 µs/command, RSS ≤ 55 MB.
 
 DDS runs here, so run it in a private network namespace (as root):
     scripts/netns .venv/bin/python bench/e2e.py [--oracle .cache/ros-jazzy/bin/python]
-Writes the `## End to end` section of docs/benchmarks.md.
+Writes the `## End to end` and `## Before vs after, end to end` sections of docs/benchmarks.md
+(`--compare-only`: the second alone).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import os
 import re
 import statistics
@@ -25,6 +32,8 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import aiohttp
@@ -73,19 +82,25 @@ def free_port() -> int:
 
 # -- the bridge under test -----------------------------------------------------------------
 class BridgeProcess:
-    def __init__(self, state: Path) -> None:
+    """`src`: run the bridge of that source tree (PYTHONPATH) instead of the installed one;
+    `extra`: more `run` options."""
+
+    def __init__(self, state: Path, src: Path | None = None, extra: tuple[str, ...] = ()) -> None:
         self.port = free_port()
+        state.mkdir(parents=True, exist_ok=True)
         self.config = state / "bench.rcan.yaml"
         self.config.write_text(CONFIG.format(domain=DOMAIN, port=self.port, state=state,
                                              session=SESSION_TIMEOUT_S))
         env = {**os.environ, "RCAN_BENCH_TOKEN": TOKEN, "ROS_DOMAIN_ID": str(DOMAIN)}
+        if src is not None:
+            env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")])
         self.started = time.monotonic()
         # Its log (a line per decision) goes to a file: a pipe nobody reads would fill up and
         # block the bridge mid-benchmark.
         self.log = state / "bridge.log"
         with self.log.open("w") as log:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "rcan_rtps", "run", "--config", str(self.config)],
+                [sys.executable, "-m", "rcan_rtps", "run", "--config", str(self.config), *extra],
                 stdout=subprocess.PIPE, stderr=log, text=True, env=env)
         assert self.proc.stdout is not None
         line = self.proc.stdout.readline()
@@ -279,23 +294,245 @@ def bare_rclpy(oracle_python: Path) -> tuple[float, float]:
     return ready, rss
 
 
+
+# -- before vs after, in one run --------------------------------------------------------------
+@contextlib.contextmanager
+def baseline_tree(ref: str) -> Iterator[Path]:
+    """The `src` directory of `ref`, checked out into a temporary git worktree."""
+    with tempfile.TemporaryDirectory(prefix="rcan-baseline-") as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "--quiet",
+                        str(tree), ref], check=True)
+        try:
+            yield tree / "src"
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)],
+                           check=False)
+
+
+# The HTTP floor of a governed command: an aiohttp server (on uvloop when installed, as the
+# bridge runs) answering each POST /api/command with a small JSON body, nothing else.
+ECHO_SERVER = """
+import asyncio, sys
+from aiohttp import web
+async def command(request):
+    await request.read()
+    return web.json_response({"outcome": "executed"})
+async def main():
+    app = web.Application()
+    app.router.add_post("/api/command", command)
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, "127.0.0.1", 0)
+    await site.start()
+    print(f"ready http://127.0.0.1:{site._server.sockets[0].getsockname()[1]}", flush=True)
+    await asyncio.Event().wait()
+try:
+    import uvloop
+    run = uvloop.run
+except ImportError:
+    run = asyncio.run
+run(main())
+"""
+
+
+async def http_floor(args: argparse.Namespace) -> float:
+    """CPU µs per request of `ECHO_SERVER` under the throughput load."""
+    proc = subprocess.Popen([sys.executable, "-c", ECHO_SERVER], stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout is not None
+        url = proc.stdout.readline().split()[1]
+        await throughput(url, min(1000, args.commands), args.clients)  # warm-up
+        before = cpu_seconds(proc.pid)
+        await throughput(url, args.commands, args.clients)
+        return (cpu_seconds(proc.pid) - before) / args.commands * 1e6
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+@dataclass
+class Side:
+    """One bridge version's measurements over the rounds."""
+
+    label: str
+    src: Path | None
+    rates: list[float] = field(default_factory=list)
+    cpu_us: list[float] = field(default_factory=list)
+    ready_s: list[float] = field(default_factory=list)
+    idle_rss: list[float] = field(default_factory=list)
+    failures: int = 0
+    sustained_rss: float = float("nan")
+    quiet_rss: float = float("nan")  # idle, --no-mdns
+    sustained_cpu_us: float = float("nan")
+    floor_us: list[float] = field(default_factory=list)  # the HTTP floor, once per round
+
+
+async def measured_run(bridge: BridgeProcess, oracle: RclpyOracle, commands: int,
+                       clients: int) -> tuple[float, float, int]:
+    """(commands/s, bridge CPU µs per command, non-200 replies) of one throughput run."""
+    cpu_before = cpu_seconds(bridge.proc.pid)
+    rate, failures = await throughput(bridge.url, commands, clients)
+    cpu_us = (cpu_seconds(bridge.proc.pid) - cpu_before) / commands * 1e6
+    oracle.call("take", topic="/bench/cmd_vel")  # the receiver keeps no backlog
+    return rate, cpu_us, failures
+
+
+async def started_bridge(state: Path, side: Side, oracle: RclpyOracle) -> BridgeProcess:
+    bridge = BridgeProcess(state, side.src)
+    side.ready_s.append(bridge.ready_s)
+    await asyncio.sleep(1.0)  # settle: imports done, matching finished
+    side.idle_rss.append(bridge.rss_mb())
+    oracle.call("wait_publishers", topic="/bench/cmd_vel", timeout=15)
+    return bridge
+
+
+async def compare_round(state: Path, side: Side, oracle: RclpyOracle,
+                        args: argparse.Namespace) -> None:
+    bridge = await started_bridge(state, side, oracle)
+    try:
+        await measured_run(bridge, oracle, min(1000, args.commands), args.clients)  # warm-up
+        rate, cpu_us, failures = await measured_run(bridge, oracle, args.commands,
+                                                    args.clients)
+    finally:
+        bridge.stop()
+    side.rates.append(rate)
+    side.cpu_us.append(cpu_us)
+    side.failures += failures
+
+
+async def sustained(state: Path, side: Side, oracle: RclpyOracle,
+                    args: argparse.Namespace) -> None:
+    """RSS after `args.sustained` commands, sent in chunks (the receiver drained between)."""
+    bridge = await started_bridge(state, side, oracle)
+    chunk, done, cpu = 10_000, 0, 0.0
+    try:
+        while done < args.sustained:
+            n = min(chunk, args.sustained - done)
+            _, cpu_us, failures = await measured_run(bridge, oracle, n, args.clients)
+            side.failures += failures
+            cpu += cpu_us * n
+            done += n
+        side.sustained_rss = bridge.rss_mb()
+        side.sustained_cpu_us = cpu / max(1, done)
+    finally:
+        bridge.stop()
+
+
+async def idle_rss_without_mdns(state: Path, side: Side) -> float:
+    bridge = BridgeProcess(state, side.src, ("--no-mdns",))
+    try:
+        await asyncio.sleep(1.0)
+        return bridge.rss_mb()
+    finally:
+        bridge.stop()
+
+
+async def before_after(oracle: RclpyOracle, args: argparse.Namespace) -> tuple[Side, Side]:
+    """The baseline's bridge and this tree's, alternately, each round in the other order."""
+    with baseline_tree(args.baseline_ref) as base_src, \
+            tempfile.TemporaryDirectory() as state:
+        before, after = Side(f"before ({args.baseline_ref})", base_src), Side("after", None)
+        for i in range(args.rounds):
+            for k, side in enumerate((before, after) if i % 2 == 0 else (after, before)):
+                await compare_round(Path(state) / f"r{i}-{k}", side, oracle, args)
+            after.floor_us.append(await http_floor(args))
+        for k, side in enumerate((before, after)):
+            side.quiet_rss = await idle_rss_without_mdns(Path(state) / f"quiet-{k}", side)
+        if args.sustained > 0:
+            for k, side in enumerate((before, after)):
+                await sustained(Path(state) / f"sustained-{k}", side, oracle, args)
+    return before, after
+
+
+def compare_report(before: Side, after: Side, args: argparse.Namespace) -> str:
+    med = statistics.median
+
+    def row(name: str, b: float, a: float, fmt: str, target: str, ok: bool | None) -> str:
+        ratio = a / b if b else float("nan")
+        judged = "—" if ok is None else verdict(ok)
+        return f"| {name} | {b:{fmt}} | {a:{fmt}} | {ratio:.2f}× | {target} | {judged} |"
+
+    cpu_b, cpu_a = med(before.cpu_us), med(after.cpu_us)
+    lines = [
+        "## Before vs after, end to end", "",
+        f"`bench/e2e.py` (same machine, same run): the bridge of `{args.baseline_ref}` (a "
+        "temporary git worktree, same interpreter and packages) and this tree's, alternately "
+        f"over {args.rounds} interleaved rounds of {args.commands} governed `move` commands "
+        f"from {args.clients} keep-alive clients (after a warm-up); medians. CPU is the bridge "
+        "process's utime+stime over the run ÷ commands. The load generator and the rclpy "
+        "receiver share the machine's 2 cores with the bridge.", "",
+        "| measure | before | after | after / before | target | verdict |",
+        "|---|---|---|---|---|---|",
+        row("governed commands/s", med(before.rates), med(after.rates), ".0f", "—", None),
+        row("bridge CPU per command (µs)", cpu_b, cpu_a, ".0f", "≤ 300 µs", cpu_a <= 300),
+        f"| HTTP floor: CPU per request of a bare aiohttp JSON server under the same load | — "
+        f"| {med(after.floor_us):.0f} µs | {med(after.floor_us) / cpu_a:.2f} of after | — | — |",
+        row("start → ready line (s)", med(before.ready_s), med(after.ready_s), ".2f", "≤ 1 s",
+            med(after.ready_s) <= 1.0),
+        row("RSS idle, mDNS advertising on (MB)", med(before.idle_rss), med(after.idle_rss),
+            ".1f", "≤ 55 MB", med(after.idle_rss) <= 55),
+        row("RSS idle, `--no-mdns` (MB)", before.quiet_rss, after.quiet_rss, ".1f", "≤ 55 MB",
+            after.quiet_rss <= 55),
+    ]
+    if args.sustained > 0:
+        lines += [
+            row(f"RSS after {args.sustained} commands, mDNS on (MB)", before.sustained_rss,
+                after.sustained_rss, ".1f", "≤ 55 MB, flat", after.sustained_rss <= 55),
+            row(f"CPU per command over those {args.sustained} (µs)", before.sustained_cpu_us,
+                after.sustained_cpu_us, ".0f", "≤ 300 µs", after.sustained_cpu_us <= 300),
+        ]
+    lines += [
+        "",
+        f"Non-200 replies: before {before.failures}, after {after.failures}. Rounds (commands/s"
+        f" · µs/command): before {_rounds(before)}; after {_rounds(after)}.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _rounds(side: Side) -> str:
+    return ", ".join(f"{r:.0f} · {c:.0f}" for r, c in zip(side.rates, side.cpu_us, strict=True))
+
+
 # -- report ----------------------------------------------------------------------------------
 def verdict(ok: bool) -> str:
     return "met" if ok else "**not met**"
 
 
-async def main() -> int:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     parser.add_argument("--oracle", type=Path, default=ROOT / ".cache/ros-jazzy/bin/python")
     parser.add_argument("--samples", type=int, default=1000)
     parser.add_argument("--commands", type=int, default=6000)
     parser.add_argument("--clients", type=int, default=64)
-    args = parser.parse_args()
+    parser.add_argument("--baseline-ref", default="9ad6ad5",
+                        help="git ref whose bridge is the 'before' (default 9ad6ad5)")
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved before/after rounds")
+    parser.add_argument("--sustained", type=int, default=100_000,
+                        help="commands before the sustained-load RSS (0: skip)")
+    parser.add_argument("--compare-only", action="store_true",
+                        help="only the before-vs-after section")
+    return parser.parse_args()
 
-    with tempfile.TemporaryDirectory() as state, \
-            RclpyOracle(args.oracle, "bench_robot", "/bench", domain_id=DOMAIN,
-                        env={"RCAN_ORACLE_EXECUTOR": "single"}) as oracle:
+
+async def main() -> int:
+    args = parse_args()
+    with RclpyOracle(args.oracle, "bench_robot", "/bench", domain_id=DOMAIN,
+                     env={"RCAN_ORACLE_EXECUTOR": "single"}) as oracle:
         oracle.call("subscribe_timed", topic="/bench/cmd_vel", type="geometry_msgs/msg/Twist")
+        if not args.compare_only:
+            await end_to_end(oracle, args)
+        before, after = await before_after(oracle, args)
+    report = compare_report(before, after, args)
+    write_section("## Before vs after, end to end", report)
+    print(report)
+    return 0
+
+
+async def end_to_end(oracle: RclpyOracle, args: argparse.Namespace) -> None:
+    with tempfile.TemporaryDirectory() as state:
         bridge = BridgeProcess(Path(state))
         try:
             idle_rss = bridge.rss_mb()
@@ -308,8 +545,8 @@ async def main() -> int:
             halts = await session_loss_halt(bridge.url, oracle, 10)
             cpu_before, wall_before = cpu_seconds(bridge.proc.pid), time.perf_counter()
             rate, failures = await throughput(bridge.url, args.commands, args.clients)
-            busy = (cpu_seconds(bridge.proc.pid) - cpu_before) / (time.perf_counter()
-                                                                   - wall_before)
+            cpu = cpu_seconds(bridge.proc.pid) - cpu_before
+            busy = cpu / (time.perf_counter() - wall_before)
             loaded_rss = bridge.rss_mb()
         finally:
             bridge.stop()
@@ -336,6 +573,8 @@ async def main() -> int:
         f"| governed commands/s (durable audit) | {rate:.0f}/s ({failures} non-200; bridge "
         f"process busy {busy:.0%} of one core) | — | — | ≥ 2 000/s | "
         f"{verdict(rate >= 2000 and failures == 0)} |",
+        f"| bridge CPU per governed command | {cpu / args.commands * 1e6:.0f} µs | — | — | "
+        f"≤ 300 µs | {verdict(cpu / args.commands * 1e6 <= 300)} |",
         f"| start → ready line | {bridge.ready_s:.2f} s | {bare_ready:.2f} s (bare rclpy node) "
         f"| {bridge.ready_s / bare_ready:.2f}× | ≤ 1 s | {verdict(bridge.ready_s <= 1.0)} |",
         f"| RSS idle / after load | {idle_rss:.0f} / {loaded_rss:.0f} MB | {bare_rss:.0f} MB "
@@ -355,7 +594,6 @@ async def main() -> int:
     report = "\n".join(lines)
     write_section("## End to end", report)
     print(report)
-    return 0
 
 
 if __name__ == "__main__":

@@ -36,6 +36,8 @@ class _Watched(asyncio.Protocol):
         self._owner = owner
         self._transport: asyncio.BaseTransport | None = None
         self._timer: asyncio.TimerHandle | None = None
+        self._timer_due = 0.0  # loop time the timer fires at
+        self._deadline: float | None = None  # loop time the connection is closed at
         self._in_request = 0
 
     # -- asyncio.Protocol: forwarded as they come ------------------------------------------
@@ -48,6 +50,7 @@ class _Watched(asyncio.Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
+        self._cancel_timer()
         self._owner.watched.pop(self._inner, None)
         self._inner.connection_lost(exc)
 
@@ -77,16 +80,37 @@ class _Watched(asyncio.Protocol):
             self._arm(self._owner.keepalive_timeout_s)
 
     def _arm(self, seconds: float) -> None:
-        self._disarm()
-        self._timer = asyncio.get_running_loop().call_later(seconds, self._expire)
+        # A deadline, not a timer per request: the timer in place fires no later than any
+        # deadline since it was set and re-arms itself for what is left (keep-alive requests
+        # then cost no timer of their own).
+        loop = asyncio.get_running_loop()
+        self._deadline = loop.time() + seconds
+        if self._timer is None or self._timer_due > self._deadline:
+            self._cancel_timer()
+            self._schedule(loop, self._deadline)
 
     def _disarm(self) -> None:
+        self._deadline = None  # the timer, if any, finds nothing due and stops
+
+    def _cancel_timer(self) -> None:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
 
+    def _schedule(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
+        self._timer_due = when
+        self._timer = loop.call_at(when, self._expire)
+
     def _expire(self) -> None:
         self._timer = None
+        deadline = self._deadline
+        if deadline is None:
+            return
+        loop = asyncio.get_running_loop()
+        if loop.time() < deadline:  # moved on since this timer was set
+            self._schedule(loop, deadline)
+            return
+        self._deadline = None
         transport = self._transport
         if transport is not None and not transport.is_closing() and self._in_request == 0:
             log.debug("closing a connection that sent no complete request headers in time")

@@ -21,15 +21,12 @@ import asyncio
 import concurrent.futures
 import contextlib
 import logging
-import multiprocessing
 import os
-from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
 import msgspec
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
-from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
 from rcan_rtps.governance import AuditIntegrityError, verify_bytes
 
@@ -86,7 +83,7 @@ class AuditReads:
 
     def __init__(self, path: Path, public_key: Ed25519PublicKey, *, backlog: int = 8) -> None:
         self._path = path
-        self._key = public_key.public_bytes(Encoding.Raw, PublicFormat.Raw)
+        self._key = public_key.public_bytes_raw()
         self._thread = concurrent.futures.ThreadPoolExecutor(
             1, thread_name_prefix="rcan-audit-read")
         self._page_room = 1 + backlog  # the one being read, and those waiting
@@ -135,7 +132,7 @@ class AuditReads:
         self.runs += 1
         try:
             return await self._verify_once()
-        except BrokenProcessPool:  # the worker died (OOM, killed): once more, in a new one
+        except concurrent.futures.BrokenExecutor:  # the worker died (OOM, killed): again
             log.warning("audit verifier process died; starting a new one")
             self._drop_process()
             return await self._verify_once()
@@ -160,6 +157,8 @@ class AuditReads:
 
     def _verifier(self) -> concurrent.futures.Executor:
         if self._process is None and not self._no_process:
+            import multiprocessing  # here: a bridge that never verifies never loads it
+
             try:
                 self._process = concurrent.futures.ProcessPoolExecutor(
                     1, mp_context=multiprocessing.get_context("spawn"),

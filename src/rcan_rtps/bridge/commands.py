@@ -102,6 +102,7 @@ class RosDispatcher:
         self._routes: dict[int, _Route] = {}
         self._grouped: dict[tuple[int, str], _Route] = {}  # (route, group) → its own topic
         self._goal_kits: dict[str, _Kit] = {}
+        self._direct: dict[str, _Route] = {}
         for spec in specs():
             for publish in spec.ros.publishes():
                 self._bind_all(publish)
@@ -111,6 +112,10 @@ class RosDispatcher:
         self.estop = self._bind(_estop_route().signal).publisher
         streamed = [s for s in specs() if s.streamed]
         self._stream = self._route_of(streamed[0]) if streamed else self._halt
+        # Each command looks its route up thrice (audit entry, readiness, send): those of
+        # ungrouped actions are found once, here.
+        self._direct = {spec.name: self._route_of(spec) for spec in specs()
+                        if spec.ros.publishes() and not spec.ros.publishes()[0].group_key}
 
     def _groups(self, publish: Publish[Any]) -> dict[str, Any]:
         return dict(getattr(self.ros2, publish.group_key)) if publish.group_key else {}
@@ -142,6 +147,9 @@ class RosDispatcher:
 
     def _route_of(self, spec: ActionSpec[Any], params: ActionParams | None = None) -> _Route:
         """The route of an action's own message; for a grouped one, the params' group's."""
+        direct = self._direct.get(spec.name)
+        if direct is not None:
+            return direct
         publishes = spec.ros.publishes()
         if not publishes:
             raise TypeError(f"{spec.name} does not publish")

@@ -31,6 +31,7 @@ import ssl
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..api import ApiServer, bind, build_app, cert_principals, server_ssl_context
 from ..api.ports import GoalView
@@ -50,10 +51,12 @@ from ..ros.participant import RosNode
 from ..ros.services import RequestMapping
 from .commands import RosDispatcher
 from .errors import BridgeStateError
-from .mdns import Advert, RcanAdvertiser
 from .navigation import GoalTracker
 from .notify import DiagnosticsNotifier, FanOutNotifier
 from .telemetry import TelemetryState
+
+if TYPE_CHECKING:
+    from .mdns import Advert, RcanAdvertiser  # imported when advertising: zeroconf is large
 
 log = logging.getLogger(__name__)
 
@@ -333,6 +336,8 @@ class Bridge:
         self._on_stop("withdrawing the mDNS advert", withdraw)
 
     async def _advertise(self) -> None:
+        from .mdns import Advert, RcanAdvertiser
+
         api, opts = self.config.bridge.api, self.options
         host, port = opts.host or api.host, int(self.url.rsplit(":", 1)[1])
         tls = api.tls is not None

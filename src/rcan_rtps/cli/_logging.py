@@ -61,11 +61,25 @@ class JsonFormatter(logging.Formatter):
         return fields
 
 
+class TextFormatter(logging.Formatter):
+    """TEXT_FORMAT, its time formatted once a second: a bridge logs a line per decision."""
+
+    def __init__(self) -> None:
+        super().__init__(TEXT_FORMAT, TEXT_DATE_FORMAT)
+        self._cached = (-1, "")  # (second, its text): one object, so threads see a pair
+
+    def formatTime(self, record: logging.LogRecord, datefmt: str | None = None) -> str:
+        second, stamp = self._cached
+        if int(record.created) != second:
+            stamp = super().formatTime(record, datefmt)
+            self._cached = (int(record.created), stamp)
+        return stamp
+
+
 def configure(level: str = DEFAULT_LOG_LEVEL, fmt: str = "text") -> None:
     """Root logging to stderr; like `basicConfig`, leaves an already configured root alone."""
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(JsonFormatter() if fmt == "json"
-                         else logging.Formatter(TEXT_FORMAT, TEXT_DATE_FORMAT))
+    handler.setFormatter(JsonFormatter() if fmt == "json" else TextFormatter())
     logging.basicConfig(level=level.upper(), handlers=[handler])
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import sys
 from collections.abc import Sequence
@@ -15,25 +16,34 @@ EXIT_INTERRUPTED = 130
 log = logging.getLogger("rcan_rtps.cli")
 
 
-def build_parser() -> argparse.ArgumentParser:
+# Each verb's module, in the order `--help` lists them.
+COMMANDS = {
+    "run": "run_cmd", "topic": "topic_cmd", "node": "node_cmd", "interface": "interface_cmd",
+    "config": "config_cmd", "audit": "audit_cmd", "sim": "sim_cmd", "service": "service_cmd",
+    "action": "action_cmd", "discover": "discover_cmd", "bag": "bag_cmd", "param": "param_cmd",
+    "doctor": "doctor_cmd",
+}
+# Options before the verb that take a value (the value is not a verb).
+_VALUED = frozenset({"--domain-id", "--idl-path", "--distro", "--log-level", "--log-format"})
+
+
+def verb_of(argv: Sequence[str]) -> str | None:
+    """The command a command line names, if any (its first word that is not an option)."""
+    words = iter(argv)
+    for word in words:
+        if word in _VALUED:
+            next(words, None)
+        elif not word.startswith("-"):
+            return word if word in COMMANDS else None
+    return None
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser; with `only`, of that verb alone: a bridge run does not import (nor pay
+    the memory of) the graph tools, bags and the rest of the CLI."""
     # Imported here, not at the top: until main() runs, a Ctrl-C would end in a traceback,
     # and these pull in cyclonedds, aiohttp and cryptography.
-    from . import (
-        action_cmd,
-        audit_cmd,
-        bag_cmd,
-        config_cmd,
-        discover_cmd,
-        doctor_cmd,
-        interface_cmd,
-        node_cmd,
-        param_cmd,
-        run_cmd,
-        service_cmd,
-        sim_cmd,
-        topic_cmd,
-    )
-    from ._common import add_global_options
+    from ._options import add_global_options
 
     parser = argparse.ArgumentParser(
         prog="rcan-rtps",
@@ -42,9 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_global_options(parser)
     add_logging_options(parser)
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (run_cmd, topic_cmd, node_cmd, interface_cmd, config_cmd, audit_cmd, sim_cmd,
-                   service_cmd, action_cmd, discover_cmd, bag_cmd, param_cmd, doctor_cmd):
-        module.register(commands)
+    for verb, module in COMMANDS.items():
+        if only is None or verb == only:
+            importlib.import_module(f"{__package__}.{module}").register(commands)
     for command in commands_of(parser):  # global options may follow the verb too
         add_global_options(command, after_verb=True)
         add_logging_options(command, after_verb=True)
@@ -63,9 +73,10 @@ def commands_of(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    from ._common import merge_global_options
+    from ._options import merge_global_options
 
-    return merge_global_options(build_parser().parse_args(argv))
+    words = sys.argv[1:] if argv is None else list(argv)
+    return merge_global_options(build_parser(verb_of(words)).parse_args(words))
 
 
 def add_logging_options(parser: argparse.ArgumentParser, *, after_verb: bool = False) -> None:

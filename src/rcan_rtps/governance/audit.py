@@ -4,7 +4,8 @@ Each line is the canonical JSON (sorted keys, no whitespace, UTF-8) of one entry
 "sha256:" + hex SHA-256 of the canonical entry without `audit_id` and `sig`; `prev_hash` is the
 previous `audit_id` (the first links to GENESIS); `sig` is base64 Ed25519 over `audit_id`.
 
-Writes run on the log's own thread (never the default executor, which costly reads may fill).
+Writes run on the loop when the disk is fast (see INLINE_FSYNC_S), else on the log's own thread
+(never the default executor, which costly reads may fill).
 A signed checkpoint beside the log records the last verified entry, so opening the log checks
 only what was appended after it: start-up time does not grow with the log. `verify` and
 `rcan-rtps audit verify` still check the whole chain.
@@ -29,7 +30,6 @@ from typing import Any
 
 import msgspec
 from cryptography.exceptions import InvalidSignature
-from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from ._durable import atomic_write, fsync_dir, full_fsync, write_all
@@ -41,10 +41,11 @@ log = logging.getLogger(__name__)
 _UNSIGNED = ("audit_id", "sig")
 _REQUIRED = ("seq", "audit_id", "prev_hash", "sig", "event", "timestamp_ms")
 CHECKPOINT_EVERY = 1000  # entries between checkpoints: bounds what a start after a crash re-checks
-# When the log is idle (no write running, none in the last INLINE_GAP_S) and its disk fast
-# (smoothed write+fsync below INLINE_FSYNC_S), an append writes on the loop: two thread
-# hand-offs cost more than such an fsync. Otherwise the writer thread does it, with group
-# commit: bursts share fsyncs, and a slow disk (an SD card) never blocks the event loop.
+# When the disk is fast (smoothed write+fsync below INLINE_FSYNC_S) the loop writes: an idle
+# log's append at once (none in the last INLINE_GAP_S), a burst's entries together at the end
+# of the loop turn they were sealed in (group commit): thread hand-offs cost more CPU than such
+# an fsync blocks. Otherwise the writer thread does it, with group commit too: a slow disk
+# (an SD card) never blocks the event loop.
 INLINE_FSYNC_S = 0.001
 INLINE_GAP_S = 0.001
 
@@ -129,6 +130,8 @@ def load_or_create_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
         return load_private_key(path)
     except OSError as exc:
         raise AuditKeyError(f"cannot create audit key {path}: {exc}") from exc
+    from cryptography.hazmat.primitives import serialization
+
     key = Ed25519PrivateKey.generate()
     pem = key.private_bytes(
         serialization.Encoding.PEM,
@@ -154,7 +157,8 @@ def load_private_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
     if mode & 0o077:
         raise AuditKeyError(f"audit key {path} is readable by others (mode {mode & 0o777:o})")
     try:
-        key = serialization.load_pem_private_key(path.read_bytes(), password=None)
+        pem = path.read_bytes()
+        key = _ed25519_pkcs8(pem) or _load_pem(pem)
     except (OSError, ValueError, TypeError) as exc:
         raise AuditKeyError(f"cannot load audit key {path}: {exc}") from exc
     if not isinstance(key, Ed25519PrivateKey):
@@ -162,13 +166,44 @@ def load_private_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
     return key
 
 
+# The unencrypted PKCS#8 DER of an Ed25519 key (RFC 8410) is this prefix and the 32-byte seed.
+_PKCS8_ED25519 = bytes.fromhex("302e020100300506032b657004220420")
+_PEM_HEAD, _PEM_TAIL = b"-----BEGIN PRIVATE KEY-----", b"-----END PRIVATE KEY-----"
+
+
+def _ed25519_pkcs8(pem: bytes) -> Ed25519PrivateKey | None:
+    """The key of a PEM that is exactly an Ed25519 PKCS#8 key (what this bridge writes), else
+    None. Parsed here: `cryptography`'s PEM loading imports every key type (~1 MB)."""
+    text = pem.strip()
+    if not (text.startswith(_PEM_HEAD) and text.endswith(_PEM_TAIL)):
+        return None
+    try:
+        der = base64.b64decode(b"".join(text[len(_PEM_HEAD):-len(_PEM_TAIL)].split()),
+                               validate=True)
+    except ValueError:
+        return None
+    if len(der) != len(_PKCS8_ED25519) + 32 or not der.startswith(_PKCS8_ED25519):
+        return None
+    return Ed25519PrivateKey.from_private_bytes(der[len(_PKCS8_ED25519):])
+
+
+def _load_pem(pem: bytes) -> object:
+    from cryptography.hazmat.primitives import serialization
+
+    return serialization.load_pem_private_key(pem, password=None)
+
+
 def public_key_pem(key: Ed25519PrivateKey) -> bytes:
+    from cryptography.hazmat.primitives import serialization
+
     return key.public_key().public_bytes(
         serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
     )
 
 
 def load_public_key(path: str | os.PathLike[str]) -> Ed25519PublicKey:
+    from cryptography.hazmat.primitives import serialization
+
     try:
         key = serialization.load_pem_public_key(Path(path).read_bytes())
     except (OSError, ValueError) as exc:
@@ -344,7 +379,8 @@ _Queued = tuple[bytes, AuditReceipt, "asyncio.Future[None]"]  # a sealed line aw
 class AuditLog:
     """The append-only chain. `append` returns only once its entry is on disk (fsynced).
 
-    With `group_commit`, appends that arrive while a write+fsync is running share the next one.
+    With `group_commit`, appends of one loop turn, or that arrive while the writer thread's
+    write+fsync is running, share the next one.
     """
 
     def __init__(self, fd: int, key: Ed25519PrivateKey, head: ChainHead, *, path: Path,
@@ -358,7 +394,8 @@ class AuditLog:
         self._ruri = ruri
         self._clock = clock
         self._batch_limit = 0 if group_commit else 1
-        self._queue: list[_Queued] = []
+        self._queue: list[_Queued] = []  # for the writer thread
+        self._loop_batch: list[_Queued] = []  # for the group commit at this loop turn's end
         self._flusher: asyncio.Task[None] | None = None
         self._broken: BaseException | None = None
         self._writer = writer  # one thread: writes and checkpoints in order, apart from reads
@@ -371,6 +408,7 @@ class AuditLog:
         self._last_write_end = 0.0
         # Told of every durable entry (e.g. metrics); a failing listener is logged, not raised.
         self.listeners: list[Callable[[AuditRecord, AuditReceipt], None]] = []
+        self._told: list[tuple[AuditRecord, AuditReceipt]] = []  # durable, listeners not told
 
     @classmethod
     async def open(cls, path: str | os.PathLike[str], key_path: str | os.PathLike[str], *,
@@ -426,25 +464,38 @@ class AuditLog:
         if self._inline_ok():
             self._write_inline(line, receipt)
         else:
-            done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-            self._queue.append((line, receipt, done))
-            if self._flusher is None or self._flusher.done():
-                self._flusher = asyncio.create_task(self._flush())
-            # A cancelled caller must not leave its entry half-acknowledged: the write goes on.
-            await asyncio.shield(done)
+            loop = asyncio.get_running_loop()
+            done: asyncio.Future[None] = loop.create_future()
+            if self._loop_batch or self._loop_commit_ok():
+                # A fast disk under load: the entries of this loop turn share one write+fsync
+                # at its end, on the loop (no thread hand-off: cheaper than the thread's).
+                if not self._loop_batch:
+                    loop.call_soon(self._commit_loop_batch)
+                self._loop_batch.append((line, receipt, done))
+            else:
+                self._queue.append((line, receipt, done))
+                if self._flusher is None or self._flusher.done():
+                    self._flusher = asyncio.create_task(self._flush())
+            # A cancelled caller cancels only its wait: the entry is written anyway (its
+            # future skipped), so no shield (a future more per entry).
+            await done
         if (self._durable_seq - self._checkpointed_seq >= CHECKPOINT_EVERY
                 and (self._checkpointing is None or self._checkpointing.done())):
             self._checkpointing = asyncio.create_task(self.checkpoint())  # off the reply path
         if self.listeners:  # after the caller's next step (its publish), not before it
-            asyncio.get_running_loop().call_soon(self._tell_listeners, record, receipt)
+            if not self._told:  # one loop callback for all the entries of a group commit
+                asyncio.get_running_loop().call_soon(self._tell_listeners)
+            self._told.append((record, receipt))
         return receipt
 
-    def _tell_listeners(self, record: AuditRecord, receipt: AuditReceipt) -> None:
-        for listener in self.listeners:
-            try:
-                listener(record, receipt)
-            except Exception:
-                log.exception("audit listener failed")
+    def _tell_listeners(self) -> None:
+        told, self._told = self._told, []
+        for record, receipt in told:
+            for listener in self.listeners:
+                try:
+                    listener(record, receipt)
+                except Exception:
+                    log.exception("audit listener failed")
 
     async def checkpoint(self) -> None:
         """Record the durable head as verified (every entry up to it is ours or was checked)."""
@@ -463,6 +514,8 @@ class AuditLog:
     async def close(self) -> None:
         """Waits for queued writes, checkpoints, and releases the file and its lock.
         Idempotent."""
+        if self._loop_batch:
+            self._commit_loop_batch()
         pending = [t for t in (self._flusher, self._checkpointing) if t is not None]
         if pending:
             await asyncio.gather(*pending, return_exceptions=True)
@@ -503,10 +556,36 @@ class AuditLog:
                 self._fail(batch + self._queue, exc)
                 return
             for _, _, done in batch:
+                if not done.done():  # cancelled: its caller left, the entry is written
+                    done.set_result(None)
+
+    def _loop_commit_ok(self) -> bool:
+        """Group commit on the loop: the disk is fast (smoothed write+fsync under
+        INLINE_FSYNC_S) and no thread write is under way (entries stay in order)."""
+        return (self._batch_limit == 0 and self._fsync_s < INLINE_FSYNC_S and not self._queue
+                and (self._flusher is None or self._flusher.done()))
+
+    def _commit_loop_batch(self) -> None:
+        batch, self._loop_batch = self._loop_batch, []
+        if not batch:  # committed already (by close)
+            return
+        if not self.healthy:
+            self._fail(batch, OSError("the audit log is closed or broken"))
+            return
+        data = b"".join(line for line, _, _ in batch)
+        try:
+            took = _write_durable(self._fd, data)
+        except Exception as exc:  # OSError, or a bug: no waiter may hang on it
+            self._fail(batch, exc)
+            return
+        self._durable(data, batch[-1][0], batch[-1][1], took)
+        for _, _, done in batch:
+            if not done.done():  # cancelled: its caller left, the entry is written
                 done.set_result(None)
 
     def _inline_ok(self) -> bool:
-        if self._queue or (self._flusher is not None and not self._flusher.done()):
+        if self._queue or self._loop_batch or (self._flusher is not None
+                                                and not self._flusher.done()):
             return False
         quiet = time.monotonic() - self._last_write_end > INLINE_GAP_S
         return quiet and self._fsync_s < INLINE_FSYNC_S
@@ -532,7 +611,8 @@ class AuditLog:
         self._broken = exc
         self._queue = []
         for _, _, done in waiting:
-            done.set_exception(AuditWriteError(f"audit write to {self.path} failed: {exc}"))
+            if not done.done():
+                done.set_exception(AuditWriteError(f"audit write to {self.path} failed: {exc}"))
 
 
 def _make_dirs(*paths: Path) -> None:

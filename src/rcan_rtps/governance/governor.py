@@ -49,7 +49,15 @@ from .invariants import Check, Violation, safety_policy
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
-from .streams import AccelLimits, EndReason, Stream, StreamEnded, Velocity, VelocityStreams
+from .streams import (
+    AccelLimits,
+    EndReason,
+    Replaces,
+    Stream,
+    StreamEnded,
+    Velocity,
+    VelocityStreams,
+)
 
 log = logging.getLogger(__name__)
 SWEEP_INTERVAL_S = 0.05  # session-loss halt latency is timeout + at most this
@@ -384,9 +392,9 @@ class Governor:
         if motion and self.latch.latched:
             return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
                                       pending_id=pending_id)
-        replaces = self.streams.active if spec.streamed else None
-        if replaces is not None:  # recorded here: a replaced stream's end costs no entry
-            applied = {**applied, "replaces": self.streams.replacing(priority)}
+        if spec.streamed:
+            return await self._stream(command, principal, owner, params, applied, event,
+                                      pending_id, priority)
         record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          pending_id=pending_id, ros2_topic=self._route(command))
         receipt = await self._write_ahead(record)
@@ -395,9 +403,6 @@ class Governor:
         # Checked again after the write, with no await between this check and the publish.
         if motion and self.latch.latched:
             return await self._failed(command, principal, outcomes.ESTOP_ACTIVE)
-        if spec.streamed:
-            return await self._start_stream(command, owner, params, priority,
-                                            (applied, receipt), replaces)
         result, failure = await self._dispatch(command, params)
         if failure is not None:
             return await self._failed(command, principal, failure)
@@ -410,16 +415,41 @@ class Governor:
 
     # -- velocity streams and locks ---------------------------------------------------------
 
+    async def _stream(self, command: NormalizedCommand, principal: Principal,
+                      owner: Principal, params: ActionParams, applied: dict[str, Any],
+                      event: AuditEvent, pending_id: str | None, priority: int) -> Decision:
+        """A move: its write-ahead entry (naming the stream it replaces), then the stream.
+
+        The claim is made with no await before the entry is sealed, so claims and entries
+        come in the same order; a move that does not start releases its claim."""
+        replaces = self.streams.claim(owner.name, command.message_id, priority)
+        if replaces is not None:  # recorded here: a replaced stream's end costs no entry
+            applied = {**applied, "replaces": replaces.entry()}
+        record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
+                         pending_id=pending_id, ros2_topic=self._route(command))
+        try:
+            receipt = await self._write_ahead(record)
+            if receipt is None:
+                return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+            # Checked again after the write, with no await between this check and the publish.
+            if self.latch.latched:
+                return await self._failed(command, principal, outcomes.ESTOP_ACTIVE)
+            return await self._start_stream(command, owner, params, priority,
+                                            (applied, receipt), replaces)
+        finally:
+            self.streams.release(owner.name, command.message_id)
+
     async def _start_stream(self, command: NormalizedCommand, principal: Principal,
                             params: ActionParams, priority: int,
                             audited: tuple[dict[str, Any], AuditReceipt],
-                            replaces: Stream | None) -> Decision:
+                            replaces: Replaces | None) -> Decision:
         """After the write-ahead entry: the first sample, then the stream takes over.
 
         No await between the admission check, the first sample (the dispatcher publishes
         motion before its first await) and `start`: the stream state cannot change in between.
         """
         assert isinstance(params, MoveParams), "only a move is streamed"
+        self.streams.release(principal.name, command.message_id)  # refused or started: done
         refused = self.streams.admits(priority)
         if refused is not None:
             return await self._failed(command, principal, refused)

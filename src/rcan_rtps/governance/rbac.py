@@ -14,7 +14,6 @@ from typing import Any, TypeGuard
 
 import msgspec
 from cryptography.exceptions import InvalidSignature
-from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from rcan_rtps.config import ApiConfig, JwtConfig, RbacConfig
@@ -180,6 +179,8 @@ class JwtVerifier:
     @classmethod
     def from_config(cls, cfg: JwtConfig, clock: Clock,
                     limits: Mapping[Role, int | None]) -> JwtVerifier:
+        from cryptography.hazmat.primitives import serialization  # JWT configs only
+
         try:
             key = serialization.load_pem_public_key(Path(cfg.public_key).read_bytes())
         except (OSError, ValueError) as exc:

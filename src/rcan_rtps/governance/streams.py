@@ -116,6 +116,25 @@ class StreamEnded:
     recorded: bool = False  # the replacing move's own entry records it (`applied.replaces`)
 
 
+class Replaces(NamedTuple):
+    """The stream a move's audit entry says it ends (`applied.replaces`)."""
+
+    owner: str
+    message_id: str
+    reason: EndReason
+
+    def entry(self) -> dict[str, str]:
+        return {"message_id": self.message_id, "reason": self.reason.value}
+
+
+class _Claim(NamedTuple):
+    """A move whose entry is being written; it starts its stream once that is durable."""
+
+    owner: str
+    message_id: str
+    priority: int
+
+
 class VelocitySink(Protocol):
     def send_velocity(self, velocity: MoveParams) -> str | None:
         """Publish one velocity sample now; None if sent, else why not (robot lost)."""
@@ -155,6 +174,7 @@ class VelocityStreams:
         self.on_end: Callable[[StreamEnded], None] = lambda ended: None
         self._handle: Cancellable | None = None
         self._last = ZERO
+        self._claim: _Claim | None = None  # the move that starts next, once audited
 
     # -- admission -----------------------------------------------------------------------
     def admits(self, priority: int) -> Rejection | None:
@@ -171,12 +191,35 @@ class VelocityStreams:
         return self.accel.step(self.commanded, target, self.period)
 
     # -- the stream ------------------------------------------------------------------------
+    def claim(self, owner: str, message_id: str, priority: int) -> Replaces | None:
+        """A move of `priority` is about to write its entry: what it will replace, for that
+        entry. Entries are written, and their streams started, in claim order, so the stream
+        it replaces is the one claimed just before it (still being audited) or, with none
+        pending, the active one; under load each end is then recorded by its successor's
+        entry instead of an entry of its own. A move that cannot replace that (lower
+        priority) claims nothing. `release` undoes a claim whose move does not start."""
+        last = self._claim
+        if last is None and self.active is not None:
+            last = _Claim(self.active.owner, self.active.message_id, self.active.priority)
+        if last is not None and last.priority > priority:
+            return None
+        self._claim = _Claim(owner, message_id, priority)
+        if last is None:
+            return None
+        reason = EndReason.PREEMPTED if priority > last.priority else EndReason.REPLACED
+        return Replaces(last.owner, last.message_id, reason)
+
+    def release(self, owner: str, message_id: str) -> None:
+        if self._claim is not None and self._claim[:2] == (owner, message_id):
+            self._claim = None
+
     def start(self, stream: Stream, first: Velocity, *, by: str,
-              recorded: Stream | None = None) -> Rejection | None:
+              recorded: Replaces | None = None) -> Rejection | None:
         """`first` has just been sent; from now on `stream` owns the wire (sync, atomic).
 
         `recorded`: the stream the new move's audit entry says it replaces; its end needs no
         entry of its own (any other stream it replaces, after a race, gets one)."""
+        self.release(stream.owner, stream.message_id)
         refused = self.admits(stream.priority)
         if refused is not None:  # changed since the first sample went: undo it at once
             self._send(self._last if self.active is not None else ZERO)
@@ -184,8 +227,9 @@ class VelocityStreams:
         old = self.active
         if old is not None:
             higher = stream.priority > old.priority
+            said = recorded is not None and recorded[:2] == (old.owner, old.message_id)
             self._finish(EndReason.PREEMPTED if higher else EndReason.REPLACED, by, zero=False,
-                         recorded=old is recorded)
+                         recorded=said, keep_timer=True)
         timer = self._clock()
         stream.started_at = timer.time()
         if stream.duration_s is not None:
@@ -195,7 +239,10 @@ class VelocityStreams:
         if first == ZERO and stream.target == ZERO:
             self._finish(EndReason.COMPLETED, None, zero=False)  # nothing to hold
             return None
-        self._schedule(timer, stream.started_at + self.period)
+        # A replaced stream's timer is due within a period: kept, not re-armed per move (its
+        # tick waits for this stream's first period when it comes early).
+        if self._handle is None:
+            self._schedule(timer, stream.started_at + self.period)
         return None
 
     def end(self, reason: EndReason, by: str | None = None) -> bool:
@@ -231,10 +278,15 @@ class VelocityStreams:
         self._handle = timer.call_at(when, lambda: self._tick(when))
 
     def _tick(self, due: float) -> None:
+        self._handle = None
         stream, timer = self.active, self._clock()
         if stream is None:
             return
         now = timer.time()
+        first_due = stream.started_at + self.period
+        if now < first_due and stream.samples == 1:  # armed for the stream it replaced
+            self._schedule(timer, first_due)
+            return
         if stream.ends_at is not None and now >= stream.ends_at - self.period / 2:
             self._finish(EndReason.COMPLETED, None, zero=True)
             return
@@ -264,18 +316,10 @@ class VelocityStreams:
         self.commanded = velocity if why is None else ZERO
         return why
 
-    def replacing(self, priority: int) -> dict[str, str] | None:
-        """What a move of `priority` starting now would end: for its audit entry."""
-        old = self.active
-        if old is None:
-            return None
-        reason = EndReason.PREEMPTED if priority > old.priority else EndReason.REPLACED
-        return {"message_id": old.message_id, "reason": reason.value}
-
     def _finish(self, reason: EndReason, by: str | None, *, zero: bool,
-                recorded: bool = False) -> None:
+                recorded: bool = False, keep_timer: bool = False) -> None:
         stream, self.active = self.active, None
-        if self._handle is not None:
+        if self._handle is not None and not keep_timer:
             self._handle.cancel()
             self._handle = None
         if zero:

@@ -1,0 +1,66 @@
+"""A bridge run imports what serving needs, not the rest of the CLI (issue 14: idle memory).
+
+The set comes from the running process itself (`PYTHONPROFILEIMPORTTIME`: one stderr line per
+module imported), up to and after its ready line and a governed command; no timing or memory
+figure is asserted, only which modules were loaded.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import urllib.request
+from pathlib import Path
+
+from rcan_rtps.cli.main import COMMANDS
+from rcan_rtps.governance.audit import load_or_create_key
+
+from .run_process import RunProcess, child_env, state_args
+
+EXIT_TIMEOUT = 60.0
+# Loaded only by the commands, options or requests that use them.
+NOT_FOR_A_RUN = {
+    *(f"rcan_rtps.cli.{module}" for module in COMMANDS.values() if module != "run_cmd"),
+    "rcan_rtps.cli._common", "rcan_rtps.cli._echo", "rcan_rtps.cli._measure",
+    "rcan_rtps.ros.bag", "mcap",  # bags
+    "rcan_rtps.bridge.mdns", "zeroconf",  # --no-mdns
+    "prometheus_client",  # until /api/metrics is scraped
+    "concurrent.futures.process", "multiprocessing",  # until an audit verification
+    "cryptography.hazmat.primitives.serialization",  # an existing key is parsed without it
+}
+
+
+def imported(stderr: list[str]) -> set[str]:
+    found = (re.match(r"import time:\s+\d+ \|\s+\d+ \|\s*(\S+)", line) for line in stderr)
+    return {m.group(1) for m in found if m}
+
+
+def command(url: str, token: str) -> int:
+    body = json.dumps({"action": "move", "params": {"linear_x": 0.1, "duration_s": 0.2}})
+    request = urllib.request.Request(
+        f"{url}/api/command", data=body.encode(), method="POST",
+        headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=30) as reply:
+        return int(reply.status)
+
+
+def test_a_bridge_run_leaves_cli_only_modules_unimported(tmp_path: Path,
+                                                          domain_id: int) -> None:
+    # A second start's: the first one writes the key (with cryptography's PEM writer).
+    (tmp_path / "state").mkdir(mode=0o700)
+    load_or_create_key(tmp_path / "state" / "audit-ed25519.key")
+    env = child_env(domain_id, PYTHONPROFILEIMPORTTIME="1")
+    proc = RunProcess(["run", "--sim", "--port", "0", "--no-mdns",
+                       *state_args(tmp_path, "state")], env, demo=True)
+    try:
+        assert command(proc.url, proc.user) == 200, proc.output()
+        proc.signal(signal.SIGINT)
+        assert proc.wait(EXIT_TIMEOUT) == 0, proc.output()
+        modules = imported(proc.stderr)
+        assert "rcan_rtps.bridge.runtime" in modules  # the import log is complete
+        loaded = {m for m in NOT_FOR_A_RUN
+                  if m in modules or any(n.startswith(m + ".") for n in modules)}
+        assert not loaded, f"a bridge run imported {sorted(loaded)}"
+    finally:
+        proc.kill()

@@ -316,3 +316,28 @@ def test_no_python_runs_in_a_cyclone_thread() -> None:
                  for n, line in enumerate(path.read_text().splitlines(), 1)
                  if pattern.search(line) and not line.lstrip().startswith("#")]
     assert offenders == []
+
+
+def _dds_matched(pub: Any) -> int:
+    return int(pub.writer.get_publication_matched_status().current_count)
+
+
+async def test_a_publishers_matched_count_follows_subscriptions_coming_and_going(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """The count comes from the reader thread, not a DDS call: it must follow every change
+    and settle on what DDS says, also for a publisher made after its subscribers."""
+    a, b = nodes
+    pub = b.create_publisher("/rt/matched", STRING)
+    for cycle in range(20):
+        count = cycle % 3 + 1
+        subs = [a.create_subscription("/rt/matched", STRING) for _ in range(count)]
+        await eventually(lambda n=count: pub.matched_count() == n == _dds_matched(pub),
+                         what=f"cycle {cycle}: {count} matched")
+        late = b.create_publisher(f"/rt/matched_{cycle}", STRING)
+        early = a.create_subscription(f"/rt/matched_{cycle}", STRING)
+        await eventually(lambda p=late: p.matched_count() == 1, what=f"late publisher {cycle}")
+        for sub in [*subs, early]:
+            sub.close()
+        late.close()
+        await eventually(lambda: pub.matched_count() == 0 == _dds_matched(pub),
+                         what=f"cycle {cycle}: all left")

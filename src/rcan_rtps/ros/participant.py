@@ -126,7 +126,11 @@ class RosPublisher:
         self.codec = node.codecs.of(type_name)
         self.closed = False
         self.incompatible_qos_events = 0
-        self._watch = node.watch_writer(writer, self._on_incompatible, f"publisher {topic}")
+        # The matched count is kept by the node's reader thread from PUBLICATION_MATCHED, so
+        # asking it costs no DDS call (the bridge asks before every move).
+        self._matched = 0
+        self._watch = node.watch_writer(writer, self._on_incompatible, f"publisher {topic}",
+                                        on_matched=self._on_matched)
 
     def _on_incompatible(self, status: Any) -> None:  # on the node's reader thread
         self.incompatible_qos_events += 1
@@ -151,8 +155,12 @@ class RosPublisher:
         (see the invariant in readers.py)."""
         raw_cdr.write(self.writer, data)
 
+    def _on_matched(self, count: int) -> None:  # on the node's reader thread (first: creation)
+        self._matched = count
+
     def matched_count(self) -> int:
-        return int(self.writer.get_publication_matched_status().current_count)
+        """Subscriptions matched now (as of the reader thread's last status read)."""
+        return self._matched
 
     async def wait_for_subscribers(self, count: int = 1, timeout: float = 5.0) -> int:
         return await _wait_count(self.matched_count, count, timeout,
@@ -395,10 +403,17 @@ class RosNode:
         return self.codecs.of(name).decode
 
     def watch_writer(self, writer: DataWriter[Any], on_incompatible_qos: Callable[[Any], None],
-                     label: str) -> WriterWatch:
+                     label: str, *, on_matched: Callable[[int], None] | None = None
+                     ) -> WriterWatch:
         """Calls `on_incompatible_qos(status)` on this node's reader thread when a reader
-        requests QoS that `writer` does not offer."""
-        return self.reader_thread.add(WriterWatch(writer, on_incompatible_qos, label))
+        requests QoS that `writer` does not offer, and `on_matched(count)` when the number
+        of matched readers changes, first with the count now."""
+        watch = WriterWatch(writer, on_incompatible_qos, label, on_matched)
+        if on_matched is not None:
+            # After the mask is set (a later change triggers the thread, which reads the count
+            # again) and before the thread has the writer (its reads all come after this one).
+            on_matched(int(writer.get_publication_matched_status().current_count))
+        return self.reader_thread.add(watch)
 
     def unwatch(self, watch: Watch | WriterWatch) -> None:
         """No delivery to `watch` starts after this returns."""

@@ -9,7 +9,8 @@ moves, and nothing else in the process does either (issue 9: the bridge froze fo
 Here a `ReaderThread` blocks in `dds_waitset_wait` (a ctypes call: the GIL is released
 while it waits) on a WaitSet holding one ReadCondition per reader, the reader itself (its
 status mask reduced to REQUESTED_INCOMPATIBLE_QOS), each watched writer (reduced to
-OFFERED_INCOMPATIBLE_QOS) and a GuardCondition that wakes it for attach/detach/close.
+OFFERED_INCOMPATIBLE_QOS, plus PUBLICATION_MATCHED for publishers, whose matched count it
+keeps) and a GuardCondition that wakes it for attach/detach/close.
 It takes the samples and delivers them from *this* thread; owners hop to asyncio with
 `loop.call_soon_threadsafe` when they need the loop.
 
@@ -54,6 +55,7 @@ log = logging.getLogger(__name__)
 ANY_SAMPLE = SampleState.Any | ViewState.Any | InstanceState.Any
 INCOMPATIBLE_QOS = DDSStatus.RequestedIncompatibleQos
 OFFERED_INCOMPATIBLE_QOS = DDSStatus.OfferedIncompatibleQos
+PUBLICATION_MATCHED = DDSStatus.PublicationMatched
 BATCH = 256  # samples taken per reader per wake-up; the rest stays triggered for the next
 REMOVE_WAIT = 10.0  # s `remove` waits for the thread to drop a reader before giving up
 
@@ -83,14 +85,17 @@ class Watch:
 
 class WriterWatch:
     """One writer on a `ReaderThread`: `on_incompatible_qos(status)` hears of readers that
-    request what it does not offer (Cyclone reports that only as a status)."""
+    request what it does not offer (Cyclone reports that only as a status), and
+    `on_matched(count)`, if given, of each change in the number of matched readers."""
 
     def __init__(self, writer: DataWriter[Any], on_incompatible_qos: OnIncompatible,
-                 label: str) -> None:
+                 label: str, on_matched: Callable[[int], None] | None = None) -> None:
         self.writer = writer
         self.on_incompatible_qos = on_incompatible_qos
+        self.on_matched = on_matched
         self.label = label
-        writer.set_status_mask(OFFERED_INCOMPATIBLE_QOS)  # it triggers on this status only
+        self.mask = OFFERED_INCOMPATIBLE_QOS | (PUBLICATION_MATCHED if on_matched else 0)
+        writer.set_status_mask(self.mask)  # it triggers on these statuses only
         self.closed = False
 
 
@@ -254,13 +259,18 @@ class ReaderThread:
 
     def _service_writer(self, watch: WriterWatch) -> None:
         try:
-            if not watch.writer.take_status(OFFERED_INCOMPATIBLE_QOS) & OFFERED_INCOMPATIBLE_QOS:
-                return
-            status = watch.writer.get_offered_incompatible_qos_status()
+            changed = watch.writer.take_status(watch.mask)
+            matched = watch.writer.get_publication_matched_status().current_count \
+                if changed & PUBLICATION_MATCHED else None
+            incompatible = watch.writer.get_offered_incompatible_qos_status() \
+                if changed & OFFERED_INCOMPATIBLE_QOS else None
         except DDSException:  # the writer was deleted under us (its owner closed it)
             watch.closed = True
             return
-        self._call(watch, watch.on_incompatible_qos, status)
+        if matched is not None and watch.on_matched is not None:
+            self._call(watch, watch.on_matched, int(matched))
+        if incompatible is not None:
+            self._call(watch, watch.on_incompatible_qos, incompatible)
 
     def _service_reader(self, watch: Watch) -> None:
         try:

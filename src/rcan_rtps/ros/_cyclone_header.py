@@ -33,6 +33,7 @@ from cyclonedds.topic import Topic
 from .errors import WireError
 from .participant import RosNode
 from .qos import QosProfile
+from .typesys.cdr import byte_order
 from .typesys.ddstypes import use_bytes_codec
 
 ENCAPSULATION_SIZE = 4
@@ -70,18 +71,13 @@ def wrap_cdr(header: RequestHeader, data: bytes) -> bytes:
 def decoder(node: RosNode, type_name: str) -> Callable[[bytes], Wrapped]:
     """Reads wrapped samples of `type_name`: the header, then the plain body decoded in place
     (16 header bytes keep every later field's alignment, so the body decodes as it stands)."""
-    codecs = node.codecs
-    name = node.store.message(type_name).name
-    start = ENCAPSULATION_SIZE + HEADER_SIZE
+    codec = node.codecs.of(type_name)
 
     def decode(data: bytes) -> Wrapped:
         mv = memoryview(data)
-        little = bytes(mv[:2]) == b"\x00\x01"
-        if not little and bytes(mv[:2]) != b"\x00\x00":
-            raise WireError(f"{name}: not plain CDR (encapsulation {bytes(mv[:4]).hex(' ')})")
-        guid, seq = (_HEADER if little else _HEADER_BIG).unpack_from(mv, ENCAPSULATION_SIZE)
-        body = codecs.decoder(name, plain=False, order="<" if little else ">")
-        payload, _ = body(mv, start)
+        header = _HEADER if byte_order(mv, codec.type_name) == "<" else _HEADER_BIG
+        guid, seq = header.unpack_from(mv, ENCAPSULATION_SIZE)
+        payload = codec.decode(mv, offset=ENCAPSULATION_SIZE + HEADER_SIZE)
         return Wrapped(RequestHeader(guid, seq), payload)
 
     return decode

@@ -141,12 +141,7 @@ class RosPublisher:
 
     def publish(self, message: IdlStruct | Mapping[str, Any]) -> None:
         """Publishes a typed message or plain values (validated; errors name the field)."""
-        if isinstance(message, IdlStruct):
-            if type(message) is not self.codec.struct:
-                raise TypeError(f"a {type(message).__name__} is not a {self.type_name} message")
-            self.publish_cdr(self.codec.encode(message))
-        else:
-            self.publish_cdr(self.codec.encode_plain(message))
+        self.publish_cdr(self.codec.encode_value(message))
 
     def publish_cdr(self, data: bytes) -> None:
         """Publishes a sample given as CDR bytes (4-byte header + body) of this topic's type.
@@ -389,18 +384,10 @@ class RosNode:
         return self.reader_thread.add(Watch(reader, deliver, label, on_incompatible_qos, decode))
 
     def decoder_for(self, data_type: type[Any]) -> Decode | None:
-        """The generated decoder of a topic type this node made (`pkg::msg::dds_::T_`), or
-        None for other structs (the Cyclone request wrappers), which decode themselves."""
-        parts = getattr(data_type, "__idl_typename__", "").split("::")
-        if len(parts) != 4 or parts[2] != "dds_" or not parts[3].endswith("_"):
-            return None
-        name = f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
-        try:
-            if self.types.struct(name) is not data_type:
-                return None
-        except WireError:
-            return None
-        return self.codecs.of(name).decode
+        """The generated decoder of a topic type this node made, or None for other structs
+        (the Cyclone request wrappers), which decode themselves."""
+        name = self.types.name_of(data_type)
+        return None if name is None else self.codecs.of(name).decode
 
     def watch_writer(self, writer: DataWriter[Any], on_incompatible_qos: Callable[[Any], None],
                      label: str, *, on_matched: Callable[[int], None] | None = None

@@ -18,8 +18,6 @@ from __future__ import annotations
 import threading
 from typing import Any
 
-from cyclonedds.idl import IdlStruct
-
 from .typesys import TypeStore
 from .typesys.cdr import CdrCodecs, MessageCodec
 from .typesys.ddstypes import DdsTypes
@@ -40,12 +38,7 @@ class Codec:
         return self.codecs.of(type_name)
 
     def serialize(self, type_name: str, value: Any) -> bytes:
-        codec = self.codecs.of(type_name)
-        if isinstance(value, IdlStruct):
-            if type(value) is not codec.struct:
-                raise TypeError(f"a {type(value).__name__} is not a {type_name} message")
-            return codec.encode(value)
-        return codec.encode_plain(value)
+        return self.codecs.of(type_name).encode_value(value)
 
     def deserialize(self, type_name: str, data: bytes | bytearray | memoryview, *,
                     plain: bool = False) -> Any:

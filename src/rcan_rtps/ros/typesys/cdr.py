@@ -24,14 +24,12 @@ from cyclonedds.idl import IdlStruct
 
 from ..errors import CdrDecodeError, ValueFitError
 from .cdr_decode import DecoderSource
-from .cdr_encode import BOOLS, INTS, NUMBERS, EncoderSource, Slow
+from .cdr_encode import INTS, NUMBERS, EncoderSource, Slow
 from .cdr_layout import HEADER_SIZE, LITTLE_HEADER, Item, by_residue
 from .cdr_source import Source
 from .ddstypes import DdsTypes
 from .values import MessageValues, str_to_wide, wide_to_str
 
-Encoder = Callable[[Any], bytes]
-Decoder = Callable[[Any], Any]
 _U32 = by_residue([Item("I", 4)])[0]
 _U32_BIG = by_residue([Item("I", 4)], ">")[0]
 
@@ -100,13 +98,22 @@ def _to_array(code: str, raw: memoryview, swap: bool) -> array[Any]:
 
 
 HELPERS: dict[str, Any] = {
-    "Slow": Slow, "NUMBERS": NUMBERS, "INTS": INTS, "BOOLS": BOOLS, "ARRAY": array,
+    "Slow": Slow, "NUMBERS": NUMBERS, "INTS": INTS, "ARRAY": array,
     "pack": struct.pack, "put_wide": _put_wide, "get_wide": _get_wide,
     "plain_wide": _plain_wide, "plain_octets": _plain_octets, "octets": _octets,
     "to_array": _to_array,
     "wide_to_str": wide_to_str, "truncated": _truncated, "over_bound": _over_bound,
     "length_error": _length_error, "EMPTY_OCTETS": memoryview(b"").toreadonly(),
 }
+
+
+def byte_order(mv: memoryview, type_name: str) -> str:
+    """`<` or `>` from a plain-CDR encapsulation header; anything else is a CdrDecodeError."""
+    header = bytes(mv[:HEADER_SIZE])
+    if len(header) == HEADER_SIZE and header[:2] in (b"\x00\x00", b"\x00\x01"):
+        return "<" if header[1] else ">"
+    raise CdrDecodeError(f"{type_name}: not plain CDR (encapsulation "
+                         f"{header.hex(' ') or 'missing'})")
 
 
 def _compile(source: Source, label: str) -> dict[str, Any]:
@@ -146,23 +153,32 @@ class MessageCodec:
             return self.encode(self._codecs.values.build(self.type_name, value))
         return bytes(buf)
 
-    def decode(self, data: bytes | bytearray | memoryview) -> IdlStruct:
-        return self._run(self._decode, "<", False, data)  # type: ignore[no-any-return]
+    def encode_value(self, value: Any) -> bytes:
+        """CDR of a typed message of this type (another struct is a TypeError) or of plain
+        values."""
+        if isinstance(value, IdlStruct):
+            if type(value) is not self.struct:
+                raise TypeError(f"a {type(value).__name__} is not a {self.type_name} message")
+            return self.encode(value)
+        return self.encode_plain(value)
+
+    def decode(self, data: bytes | bytearray | memoryview, *,
+               offset: int = HEADER_SIZE) -> IdlStruct:
+        """The typed message in `data`, its body starting at `offset` (after the header, or
+        after an in-band prefix whose size keeps the body's alignment)."""
+        return self._run(False, data, offset)  # type: ignore[no-any-return]
 
     def decode_plain(self, data: bytes | bytearray | memoryview) -> dict[str, Any]:
-        return self._run(self._decode_plain, "<", True, data)  # type: ignore[no-any-return]
+        return self._run(True, data, HEADER_SIZE)  # type: ignore[no-any-return]
 
-    def _run(self, decoder: Callable[..., Any], order: str, plain: bool,
-             data: bytes | bytearray | memoryview) -> Any:
+    def _run(self, plain: bool, data: bytes | bytearray | memoryview, offset: int) -> Any:
         mv = memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
-        header = bytes(mv[:2])
-        if header == b"\x00\x00":
+        if byte_order(mv, self.type_name) == "<":
+            decoder = self._decode_plain if plain else self._decode
+        else:
             decoder = self._codecs.decoder(self.type_name, plain=plain, order=">")
-        elif header != b"\x00\x01" or len(mv) < HEADER_SIZE:
-            raise CdrDecodeError(f"{self.type_name}: not plain CDR (encapsulation "
-                                 f"{bytes(mv[:4]).hex(' ') or 'missing'})")
         try:
-            value, _ = decoder(mv, HEADER_SIZE)
+            value, _ = decoder(mv, offset)
         except (struct.error, ValueError) as exc:  # truncated, over a bound, bad UTF-8
             raise CdrDecodeError(f"{self.type_name}: {len(mv)} bytes do not decode "
                                  f"({exc})") from exc

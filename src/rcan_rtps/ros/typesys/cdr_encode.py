@@ -39,7 +39,6 @@ class Slow(WireError):
 
 NUMBERS = frozenset({int, float})
 INTS = frozenset({int})
-BOOLS = frozenset({bool})
 
 
 class EncoderSource(FunctionWriter):

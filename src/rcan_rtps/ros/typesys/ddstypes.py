@@ -65,6 +65,7 @@ class DdsTypes:
     def __init__(self, store: TypeStore) -> None:
         self.store = store
         self._classes: dict[str, type[IdlStruct]] = {}
+        self._names: dict[type[IdlStruct], str] = {}  # the other way round
         self._lock = threading.RLock()
 
     def struct(self, name: str) -> type[IdlStruct]:
@@ -75,7 +76,12 @@ class DdsTypes:
             if cls is None:
                 cls = self._build(msg)
                 self._classes[msg.name] = cls
+                self._names[cls] = msg.name
             return cls
+
+    def name_of(self, cls: type[Any]) -> str | None:
+        """The ROS name of a struct class this registry made, else None."""
+        return self._names.get(cls)
 
     def _build(self, msg: MessageType) -> type[IdlStruct]:
         fields = {f.name: self._annotation(msg, f.name, f.type) for f in msg.fields}

@@ -555,9 +555,7 @@ class AuditLog:
             except Exception as exc:  # OSError, or a bug: no waiter may hang on it
                 self._fail(batch + self._queue, exc)
                 return
-            for _, _, done in batch:
-                if not done.done():  # cancelled: its caller left, the entry is written
-                    done.set_result(None)
+            _settle(batch)
 
     def _loop_commit_ok(self) -> bool:
         """Group commit on the loop: the disk is fast (smoothed write+fsync under
@@ -579,9 +577,7 @@ class AuditLog:
             self._fail(batch, exc)
             return
         self._durable(data, batch[-1][0], batch[-1][1], took)
-        for _, _, done in batch:
-            if not done.done():  # cancelled: its caller left, the entry is written
-                done.set_result(None)
+        _settle(batch)
 
     def _inline_ok(self) -> bool:
         if self._queue or self._loop_batch or (self._flusher is not None
@@ -613,6 +609,13 @@ class AuditLog:
         for _, _, done in waiting:
             if not done.done():
                 done.set_exception(AuditWriteError(f"audit write to {self.path} failed: {exc}"))
+
+
+def _settle(batch: list[_Queued]) -> None:
+    """Wakes the callers of a durable batch (a cancelled caller left; its entry is written)."""
+    for _, _, done in batch:
+        if not done.done():
+            done.set_result(None)
 
 
 def _make_dirs(*paths: Path) -> None:

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import pytest
+
 from rcan_rtps.cli._measure import BandwidthWindow
+from rcan_rtps.cli.topic_cmd import _report_rate
 
 
 class Clock:
@@ -36,3 +39,12 @@ def test_slow_topics_are_in_bytes() -> None:
     clock.now += 1.0
     assert window.report() == ("20 B/s from 2 messages\n"
                                "\tMessage size mean: 20 B min: 10 B max: 30 B")
+
+
+def test_hz_reports_the_mean_rate_and_gaps_of_its_stamps(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    _report_rate([10.0, 10.05, 10.15, 10.2])  # gaps 0.05, 0.1, 0.05: mean 1/15 s
+    assert capsys.readouterr().out == ("average rate: 15.000\n\tmin: 0.050s max: 0.100s "
+                                       "std dev: 0.02357s window: 4\n")
+    _report_rate([3.0])
+    assert capsys.readouterr().out == "no new messages\n"

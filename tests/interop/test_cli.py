@@ -7,6 +7,7 @@ import asyncio
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import time
@@ -126,9 +127,12 @@ def test_topic_hz_measures_a_rate(oracle: RclpyOracle, domain_id: int) -> None:
     finally:
         hz.kill()
     assert hz.returncode == 0, err
-    rates = [float(line.split()[-1]) for line in out.splitlines()
-             if line.startswith("average rate:")]
-    assert rates and 5.0 < max(rates) < 40.0  # published at 20 Hz
+    # The rate's arithmetic is checked on stamps of our own (tests/cli/test_measure.py); here:
+    # rclpy's messages were received and reported, whatever this machine's speed.
+    reports = re.findall(r"average rate: ([\d.]+)\n\tmin: [\d.]+s max: [\d.]+s "
+                         r"std dev: [\d.]+s window: (\d+)", out)
+    assert reports and all(float(rate) > 0 for rate, _ in reports)
+    assert 2 <= max(int(window) for _, window in reports) <= 60, out
 
 
 def test_bad_values_name_the_field_path(domain_id: int) -> None:

@@ -81,6 +81,12 @@ def configure(level: str = DEFAULT_LOG_LEVEL, fmt: str = "text") -> None:
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter() if fmt == "json" else TextFormatter())
     logging.basicConfig(level=level.upper(), handlers=[handler])
+    # Neither format shows a record's source line, thread or process, and `run` logs a line
+    # per decision: skip finding them (the logging HOWTO's "Optimization" switches).
+    logging._srcfile = None  # no findCaller stack walk
+    logging.logThreads = False
+    logging.logProcesses = False
+    logging.logMultiprocessing = False
 
 
 def default_level(command: str | None) -> str:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any, Protocol
 
 import msgspec
@@ -67,14 +67,21 @@ class AllOf:
         return params
 
 
-def _numbers(value: Any) -> list[Any]:
+def _numbers(value: Any) -> Iterator[Any]:
+    """Every int or float (bools too) inside a params struct, at any depth."""
     if isinstance(value, msgspec.Struct):
-        value = msgspec.structs.asdict(value)
-    if isinstance(value, dict):
-        return [n for v in value.values() for n in _numbers(v)]
-    if isinstance(value, list | tuple):
-        return [n for v in value for n in _numbers(v)]
-    return [value] if isinstance(value, int | float) else []
+        value = [getattr(value, name) for name in value.__struct_fields__]
+    elif isinstance(value, dict):
+        value = value.values()
+    elif not isinstance(value, list | tuple):
+        if isinstance(value, int | float):
+            yield value
+        return
+    for item in value:
+        if isinstance(item, int | float):  # the usual case: a flat struct of numbers
+            yield item
+        elif item is not None and not isinstance(item, str):
+            yield from _numbers(item)
 
 
 def finite_numbers(command: NormalizedCommand, params: ActionParams) -> ActionParams:

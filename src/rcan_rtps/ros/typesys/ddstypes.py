@@ -66,10 +66,14 @@ class DdsTypes:
         self.store = store
         self._classes: dict[str, type[IdlStruct]] = {}
         self._names: dict[type[IdlStruct], str] = {}  # the other way round
+        self._by_asked: dict[str, type[IdlStruct]] = {}  # as asked for: "pkg/T", "pkg/msg/T"…
         self._lock = threading.RLock()
 
     def struct(self, name: str) -> type[IdlStruct]:
         """The `IdlStruct` class of a ROS type, named `pkg::kind::dds_::T_` on the wire."""
+        found = self._by_asked.get(name)  # the hot path (a message built per command): no lock
+        if found is not None:
+            return found
         msg = self.store.message(name)
         with self._lock:
             cls = self._classes.get(msg.name)
@@ -77,6 +81,7 @@ class DdsTypes:
                 cls = self._build(msg)
                 self._classes[msg.name] = cls
                 self._names[cls] = msg.name
+            self._by_asked[name] = cls
             return cls
 
     def name_of(self, cls: type[Any]) -> str | None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import ctypes
 import gc
 import logging
 import os
@@ -164,6 +165,7 @@ async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
         url = await _start_unless_stopped(bridge, stop, env)
         if url is None:
             return 0  # Ctrl-C (or SIGTERM) during start: no banner, no tokens
+        release_free_memory()
         # What start-up built lives as long as the process: out of the collector's sight, so a
         # collection during a command scans only what commands allocate (ms → µs pauses).
         gc.freeze()
@@ -173,6 +175,19 @@ async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
         _test_stall(loop, env)
         await stop.wait()
     return 0
+
+
+def release_free_memory() -> None:
+    """Start-up's garbage collected and the C heap's free pages handed back to the system
+    (glibc's malloc_trim; elsewhere nothing more): ~0.6 MB of idle RSS."""
+    gc.collect()
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        trim = ctypes.CDLL(None).malloc_trim  # ctypes: already imported by cyclonedds
+    except (OSError, AttributeError):  # not glibc (musl has no malloc_trim)
+        return
+    trim(0)
 
 
 async def _start_unless_stopped(bridge: Bridge, stop: asyncio.Event,

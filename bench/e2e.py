@@ -12,7 +12,10 @@
    src on PYTHONPATH, same interpreter) and this tree's, alternately over `--rounds` interleaved
    rounds: governed commands/s and the bridge process's CPU µs per command (utime+stime from
    /proc/<pid>/stat over the throughput run ÷ commands), medians; start → ready; RSS idle and
-   after `--sustained` commands (100 000 by default). Target ≤ 300 µs/command, RSS ≤ 55 MB.
+   after `--sustained` commands (100 000 by default), read after each fifth of them so that
+   "flat" is shown; and the RSS floor: a process that imports only the third-party libraries a
+   bridge run imports (`LIBRARY_FLOOR`) and nothing of ours. Target ≤ 300 µs/command,
+   RSS ≤ 55 MB.
 
 DDS runs here, so run it in a private network namespace (as root):
     scripts/netns .venv/bin/python bench/e2e.py [--oracle .cache/ros-jazzy/bin/python]
@@ -336,6 +339,35 @@ run(main())
 """
 
 
+# The RSS floor of a bridge run: the third-party libraries it imports (aiohttp's server,
+# cyclonedds' domain/pub/sub/idl, cryptography's Ed25519, msgspec, zeroconf, uvloop, yaml) and
+# nothing of ours, idle on a running event loop as the bridge is.
+LIBRARY_FLOOR = """
+import asyncio, sys
+import aiohttp.web, cryptography.hazmat.primitives.asymmetric.ed25519, msgspec, yaml, zeroconf
+import cyclonedds.domain, cyclonedds.idl, cyclonedds.pub, cyclonedds.sub, uvloop
+async def main():
+    print("ready", flush=True)
+    await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline)
+uvloop.run(main())
+"""
+
+
+async def library_floor_rss() -> float:
+    """Idle RSS (MB) of `LIBRARY_FLOOR`, read after the same settling time as a bridge's."""
+    proc = subprocess.Popen([sys.executable, "-c", LIBRARY_FLOOR], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stdin is not None
+        if proc.stdout.readline().strip() != "ready":
+            raise RuntimeError("the library floor process did not start")
+        await asyncio.sleep(1.0)
+        return rss_mb(proc.pid)
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 async def http_floor(args: argparse.Namespace) -> float:
     """CPU µs per request of `ECHO_SERVER` under the throughput load."""
     proc = subprocess.Popen([sys.executable, "-c", ECHO_SERVER], stdout=subprocess.PIPE,
@@ -363,7 +395,7 @@ class Side:
     ready_s: list[float] = field(default_factory=list)
     idle_rss: list[float] = field(default_factory=list)
     failures: int = 0
-    sustained_rss: float = float("nan")
+    sustained_rss: list[tuple[int, float]] = field(default_factory=list)  # (commands, MB)
     quiet_rss: float = float("nan")  # idle, --no-mdns
     sustained_cpu_us: float = float("nan")
     floor_us: list[float] = field(default_factory=list)  # the HTTP floor, once per round
@@ -402,19 +434,26 @@ async def compare_round(state: Path, side: Side, oracle: RclpyOracle,
     side.failures += failures
 
 
+SUSTAINED_POINTS = 5  # RSS read after each fifth of the sustained commands
+
+
 async def sustained(state: Path, side: Side, oracle: RclpyOracle,
                     args: argparse.Namespace) -> None:
-    """RSS after `args.sustained` commands, sent in chunks (the receiver drained between)."""
+    """RSS after each fifth of `args.sustained` commands, sent in chunks (the receiver
+    drained between)."""
     bridge = await started_bridge(state, side, oracle)
     chunk, done, cpu = 10_000, 0, 0.0
+    points = [args.sustained * k // SUSTAINED_POINTS for k in range(1, SUSTAINED_POINTS + 1)]
     try:
-        while done < args.sustained:
-            n = min(chunk, args.sustained - done)
-            _, cpu_us, failures = await measured_run(bridge, oracle, n, args.clients)
-            side.failures += failures
-            cpu += cpu_us * n
-            done += n
-        side.sustained_rss = bridge.rss_mb()
+        side.sustained_rss = [(0, side.idle_rss[-1])]
+        for point in points:
+            while done < point:
+                n = min(chunk, point - done)
+                _, cpu_us, failures = await measured_run(bridge, oracle, n, args.clients)
+                side.failures += failures
+                cpu += cpu_us * n
+                done += n
+            side.sustained_rss.append((done, bridge.rss_mb()))
         side.sustained_cpu_us = cpu / max(1, done)
     finally:
         bridge.stop()
@@ -429,8 +468,10 @@ async def idle_rss_without_mdns(state: Path, side: Side) -> float:
         bridge.stop()
 
 
-async def before_after(oracle: RclpyOracle, args: argparse.Namespace) -> tuple[Side, Side]:
-    """The baseline's bridge and this tree's, alternately, each round in the other order."""
+async def before_after(oracle: RclpyOracle, args: argparse.Namespace
+                       ) -> tuple[Side, Side, float]:
+    """The baseline's bridge and this tree's, alternately, each round in the other order;
+    and the library floor's RSS."""
     with baseline_tree(args.baseline_ref) as base_src, \
             tempfile.TemporaryDirectory() as state:
         before, after = Side(f"before ({args.baseline_ref})", base_src), Side("after", None)
@@ -440,13 +481,15 @@ async def before_after(oracle: RclpyOracle, args: argparse.Namespace) -> tuple[S
             after.floor_us.append(await http_floor(args))
         for k, side in enumerate((before, after)):
             side.quiet_rss = await idle_rss_without_mdns(Path(state) / f"quiet-{k}", side)
+        floor_rss = await library_floor_rss()
         if args.sustained > 0:
             for k, side in enumerate((before, after)):
                 await sustained(Path(state) / f"sustained-{k}", side, oracle, args)
-    return before, after
+    return before, after, floor_rss
 
 
-def compare_report(before: Side, after: Side, args: argparse.Namespace) -> str:
+def compare_report(before: Side, after: Side, floor_rss: float,
+                   args: argparse.Namespace) -> str:
     med = statistics.median
 
     def row(name: str, b: float, a: float, fmt: str, target: str, ok: bool | None) -> str:
@@ -475,11 +518,18 @@ def compare_report(before: Side, after: Side, args: argparse.Namespace) -> str:
             ".1f", "≤ 55 MB", med(after.idle_rss) <= 55),
         row("RSS idle, `--no-mdns` (MB)", before.quiet_rss, after.quiet_rss, ".1f", "≤ 55 MB",
             after.quiet_rss <= 55),
+        f"| RSS floor: a process importing only the third-party libraries of a run (aiohttp, "
+        f"cyclonedds, cryptography, msgspec, zeroconf, uvloop, yaml), idle (MB) | — "
+        f"| {floor_rss:.1f} | {med(after.idle_rss) - floor_rss:+.1f} MB: after, mDNS on | — "
+        f"| — |",
     ]
     if args.sustained > 0:
         lines += [
-            row(f"RSS after {args.sustained} commands, mDNS on (MB)", before.sustained_rss,
-                after.sustained_rss, ".1f", "≤ 55 MB, flat", after.sustained_rss <= 55),
+            row(f"RSS under sustained load, after {done} of {args.sustained} commands, mDNS "
+                "on (MB)", b, a, ".1f", "≤ 55 MB, flat", a <= 55)
+            for (done, b), (_, a) in zip(before.sustained_rss, after.sustained_rss, strict=True)
+        ]
+        lines += [
             row(f"CPU per command over those {args.sustained} (µs)", before.sustained_cpu_us,
                 after.sustained_cpu_us, ".0f", "≤ 300 µs", after.sustained_cpu_us <= 300),
         ]
@@ -524,8 +574,8 @@ async def main() -> int:
         oracle.call("subscribe_timed", topic="/bench/cmd_vel", type="geometry_msgs/msg/Twist")
         if not args.compare_only:
             await end_to_end(oracle, args)
-        before, after = await before_after(oracle, args)
-    report = compare_report(before, after, args)
+        before, after, floor_rss = await before_after(oracle, args)
+    report = compare_report(before, after, floor_rss, args)
     write_section("## Before vs after, end to end", report)
     print(report)
     return 0

@@ -13,7 +13,7 @@ import threading
 from pathlib import Path
 
 import pytest
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -25,6 +25,7 @@ from rcan_rtps.governance.audit import (
     AuditRecord,
     canonical,
     entry_id,
+    load_or_create_key,
     load_public_key,
     verify,
     verify_bytes,
@@ -108,6 +109,21 @@ async def test_key_is_private_and_reused(tmp_path: Path, clock: ManualClock) -> 
     assert receipt.seq == 2
     assert log.public_key.public_bytes_raw() == pub.public_bytes_raw()
     assert verify(tmp_path / "a.jsonl", pub).count == 2
+
+
+def test_a_created_key_is_the_pem_cryptography_writes(tmp_path: Path) -> None:
+    # Written without cryptography's serialization module: the same bytes its PEM writer makes,
+    # and what any PKCS#8 reader (here cryptography's own) loads as that key.
+    from cryptography.hazmat.primitives import serialization
+
+    key = load_or_create_key(tmp_path / "k.key")
+    written = (tmp_path / "k.key").read_bytes()
+    assert written == key.private_bytes(serialization.Encoding.PEM,
+                                        serialization.PrivateFormat.PKCS8,
+                                        serialization.NoEncryption())
+    loaded = serialization.load_pem_private_key(written, password=None)
+    assert isinstance(loaded, Ed25519PrivateKey)
+    assert loaded.private_bytes_raw() == key.private_bytes_raw()
 
 
 async def test_key_readable_by_others_is_refused(tmp_path: Path) -> None:

@@ -31,7 +31,6 @@ from ._keys import (
 )
 from ._metrics import Metrics
 from ._middlewares import authenticate, last_resort
-from ._openapi import openapi_document
 from ._reads import AuditReads
 from ._status import StatusHub
 from ._tls import cert_principals as config_cert_principals
@@ -82,7 +81,6 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     reads = AuditReads(governor.audit.path, governor.audit.public_key,
                        backlog=settings.audit_read_backlog)
     app[READS] = reads
-    document = msgspec.json.encode(openapi_document())
     app[STATUS] = status = StatusHub(
         lambda: robot.status(pending_auth=len(governor.pending())),
         period_s=1.0 / settings.telemetry_rate_hz)
@@ -97,8 +95,14 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
         return web.Response(body=metrics.render(),
                             headers={"Content-Type": metrics.content_type})
 
+    document: list[bytes] = []  # built on the first request: most runs are never asked
+
     async def get_openapi(request: web.Request) -> web.Response:
-        return web.Response(body=document, content_type="application/json")
+        if not document:
+            from ._openapi import openapi_document  # with the document: a run may never need it
+
+            document.append(msgspec.json.encode(openapi_document()))
+        return web.Response(body=document[0], content_type="application/json")
 
     app.router.add_post("/api/command", r.post_command)
     app.router.add_get("/api/status", r.get_status, allow_head=False)

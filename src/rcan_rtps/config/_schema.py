@@ -8,7 +8,6 @@ section; its siblings are still checked.
 
 from __future__ import annotations
 
-import difflib
 import operator
 import re
 from collections.abc import Iterable
@@ -267,6 +266,8 @@ class Walker:
 
 
 def _unknown_key(name: str, fields: dict[str, Any]) -> str:
+    import difflib  # here: an error's hint, not worth its memory in a process that runs
+
     close = difflib.get_close_matches(name, fields, n=1)
     return "unknown key" + (f"; did you mean `{close[0]}`?" if close else "")
 

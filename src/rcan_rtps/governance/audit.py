@@ -130,16 +130,9 @@ def load_or_create_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
         return load_private_key(path)
     except OSError as exc:
         raise AuditKeyError(f"cannot create audit key {path}: {exc}") from exc
-    from cryptography.hazmat.primitives import serialization
-
     key = Ed25519PrivateKey.generate()
-    pem = key.private_bytes(
-        serialization.Encoding.PEM,
-        serialization.PrivateFormat.PKCS8,
-        serialization.NoEncryption(),
-    )
     try:
-        write_all(fd, pem)
+        write_all(fd, _ed25519_pkcs8_pem(key))
         full_fsync(fd)
     finally:
         os.close(fd)
@@ -169,6 +162,13 @@ def load_private_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
 # The unencrypted PKCS#8 DER of an Ed25519 key (RFC 8410) is this prefix and the 32-byte seed.
 _PKCS8_ED25519 = bytes.fromhex("302e020100300506032b657004220420")
 _PEM_HEAD, _PEM_TAIL = b"-----BEGIN PRIVATE KEY-----", b"-----END PRIVATE KEY-----"
+
+
+def _ed25519_pkcs8_pem(key: Ed25519PrivateKey) -> bytes:
+    """The unencrypted PKCS#8 PEM of `key`, the bytes `cryptography`'s PEM writer makes. Made
+    here: that writer's module imports every key type (~1 MB a first start would keep)."""
+    der = base64.b64encode(_PKCS8_ED25519 + key.private_bytes_raw())  # 64 chars: one line
+    return b"\n".join((_PEM_HEAD, der, _PEM_TAIL, b""))
 
 
 def _ed25519_pkcs8(pem: bytes) -> Ed25519PrivateKey | None:

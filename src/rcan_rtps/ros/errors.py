@@ -19,7 +19,6 @@ Misuse (an API called out of order) raises RuntimeError/TypeError as Python does
 
 from __future__ import annotations
 
-import difflib
 from collections.abc import Iterable
 
 
@@ -44,6 +43,8 @@ class IdlSyntaxError(WireError):
 
 class UnknownTypeError(WireError):
     def __init__(self, name: str, known: Iterable[str] = ()) -> None:
+        import difflib  # here: an error's hint, not worth its memory in a process that runs
+
         known = list(known)
         near = difflib.get_close_matches(name, known, n=3, cutoff=0.6)
         if not near:

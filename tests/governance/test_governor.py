@@ -345,6 +345,60 @@ async def test_a_cancelled_caller_still_gets_its_command_audited(
     assert [e["event"] for e in harness.entries] == ["COMMAND_DISPATCHED"]
 
 
+@pytest.mark.parametrize("steps", range(12))
+async def test_a_caller_cancelled_at_any_step_leaves_audit_and_robot_agreeing(
+    harness: Harness, gov: Governor, steps: int
+) -> None:
+    """Cancelled after `steps` loop turns: a decision once begun runs to its end all the same,
+    so every command audited as dispatched also reached the dispatcher."""
+    cmds = [command("move", {"linear_x": 0.1 + k / 100}) for k in range(3)]
+    callers = [asyncio.create_task(gov.decide(c, PLANNER)) for c in cmds]
+    for _ in range(steps):
+        await asyncio.sleep(0)
+    for caller in callers:
+        caller.cancel()
+    await asyncio.gather(*callers, return_exceptions=True)
+    await asyncio.gather(*gov._tasks)
+    dispatched = [e for e in harness.entries if e["event"] == "COMMAND_DISPATCHED"]
+    assert len(dispatched) == len(harness.dispatcher.calls)
+    # Cancelled before its first step a caller has asked nothing; after it, all its command.
+    assert len(dispatched) == (0 if steps == 0 else len(cmds))
+
+
+async def test_a_decision_task_cancelled_before_it_ran_does_not_leave_its_caller_waiting(
+    gov: Governor
+) -> None:
+    caller = asyncio.create_task(gov.decide(command("move", {"linear_x": 0.1}), PLANNER))
+    for _ in range(100):  # until the caller has handed the decision to its task
+        if gov._tasks:
+            break
+        await asyncio.sleep(0)
+    assert gov._tasks, "the decision runs in a task of its own"
+    for task in gov._tasks:
+        task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await asyncio.wait_for(caller, 5.0)
+
+
+async def test_a_failing_decision_reaches_its_caller_or_the_log(
+    gov: Governor, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    async def broken(*_: Any) -> Decision:
+        await asyncio.sleep(0)
+        raise RuntimeError("decision bug")
+
+    monkeypatch.setattr(gov, "_decide", broken)
+    with pytest.raises(RuntimeError, match="decision bug"):
+        await gov.decide(command("move", {"linear_x": 0.1}), PLANNER)
+    caller = asyncio.create_task(gov.decide(command("move", {"linear_x": 0.1}), PLANNER))
+    await asyncio.sleep(0)
+    caller.cancel()
+    await asyncio.gather(caller, return_exceptions=True)
+    await asyncio.gather(*gov._tasks)
+    assert any("after its caller left" in r.getMessage() and r.exc_info
+               for r in caplog.records)
+
+
 async def test_lifecycle_and_session_loss(harness: Harness, gov: Governor) -> None:
     await gov.start()
     await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)

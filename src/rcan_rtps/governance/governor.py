@@ -580,10 +580,10 @@ class Governor:
                         pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
 
     async def authorize(self, pending_id: str, approver: Principal) -> Decision:
-        return await asyncio.shield(self._spawn(self._resolve(pending_id, approver, True)))
+        return await self._detached(self._resolve(pending_id, approver, True))
 
     async def deny(self, pending_id: str, approver: Principal) -> Decision:
-        return await asyncio.shield(self._spawn(self._resolve(pending_id, approver, False)))
+        return await self._detached(self._resolve(pending_id, approver, False))
 
     def pending(self) -> list[PendingAuth]:
         return [p.message() for p in self._pending.list()]
@@ -692,9 +692,8 @@ class Governor:
         """
         if not self._sessions.end(principal):
             return None
-        # Shielded: the closing connection's handler may be cancelled; the stop must not be.
-        return await asyncio.shield(self._spawn(self.safe_stop(principal,
-                                                               "its connection closed")))
+        # Detached: the closing connection's handler may be cancelled; the stop must not be.
+        return await self._detached(self.safe_stop(principal, "its connection closed"))
 
     async def sweep(self) -> None:
         """One round of housekeeping: expire HiTL requests, stop for lost sessions."""

@@ -62,10 +62,12 @@ from .streams import (
 
 log = logging.getLogger(__name__)
 SWEEP_INTERVAL_S = 0.05  # session-loss halt latency is timeout + at most this
-# Commands decided at once (8 measured best for e-stop latency under load without losing
-# throughput); the rest wait their turn without using the event loop, so a
-# flood of requests cannot queue the e-stop lane (which never waits here) behind itself.
-MAX_IN_FLIGHT = 8
+# Commands decided at once; the rest wait their turn without using the event loop, so a flood
+# of requests cannot queue the e-stop lane (which never waits here) behind itself. The limit
+# also caps how many audit entries share one fsync: 16 measured ~4 entries per fsync against
+# ~2 at 8, and ~20 % less CPU per command, for an e-stop p99 under 500 clients of ~28 ms
+# (18 ms at 8, 60 ms at 32; target 50 ms).
+MAX_IN_FLIGHT = 16
 
 
 class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):

@@ -13,8 +13,9 @@
    rounds: governed commands/s and the bridge process's CPU µs per command (utime+stime from
    /proc/<pid>/stat over the throughput run ÷ commands), medians; start → ready; RSS idle and
    after `--sustained` commands (100 000 by default), read after each fifth of them so that
-   "flat" is shown; and the RSS floor: a process that imports only the third-party libraries a
-   bridge run imports (`LIBRARY_FLOOR`) and nothing of ours. Target ≤ 300 µs/command,
+   "flat" is shown; and the RSS floors: a process that holds only what a run holds that is not
+   ours (`LIBRARY_FLOOR`: its third-party libraries, one DDS participant), with and without
+   zeroconf. Target ≤ 300 µs/command,
    RSS ≤ 55 MB.
 
 DDS runs here, so run it in a private network namespace (as root):
@@ -339,13 +340,18 @@ run(main())
 """
 
 
-# The RSS floor of a bridge run: the third-party libraries it imports (aiohttp's server,
-# cyclonedds' domain/pub/sub/idl, cryptography's Ed25519, msgspec, zeroconf, uvloop, yaml) and
-# nothing of ours, idle on a running event loop as the bridge is.
+# The RSS floors of a bridge run: a process holding what every run holds that is not ours,
+# the third-party libraries it imports (aiohttp's server, cyclonedds' domain/pub/sub/idl,
+# cryptography's Ed25519, msgspec, uvloop; zeroconf when mDNS is on) and one DDS participant,
+# idle on a running event loop as the bridge is. yaml is left out: a run drops it once its
+# config is read, so the floor stays a floor.
 LIBRARY_FLOOR = """
 import asyncio, sys
-import aiohttp.web, cryptography.hazmat.primitives.asymmetric.ed25519, msgspec, yaml, zeroconf
-import cyclonedds.domain, cyclonedds.idl, cyclonedds.pub, cyclonedds.sub, uvloop
+import aiohttp.web, cryptography.hazmat.primitives.asymmetric.ed25519, msgspec, uvloop
+import cyclonedds.domain, cyclonedds.idl, cyclonedds.pub, cyclonedds.sub
+if sys.argv[2] == "mdns":
+    import zeroconf
+participant = cyclonedds.domain.DomainParticipant(int(sys.argv[1]))
 async def main():
     print("ready", flush=True)
     await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline)
@@ -353,10 +359,11 @@ uvloop.run(main())
 """
 
 
-async def library_floor_rss() -> float:
+async def library_floor_rss(mdns: bool) -> float:
     """Idle RSS (MB) of `LIBRARY_FLOOR`, read after the same settling time as a bridge's."""
-    proc = subprocess.Popen([sys.executable, "-c", LIBRARY_FLOOR], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", LIBRARY_FLOOR, str(DOMAIN), "mdns" if mdns else "no-mdns"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None and proc.stdin is not None
         if proc.stdout.readline().strip() != "ready":
@@ -399,6 +406,14 @@ class Side:
     quiet_rss: float = float("nan")  # idle, --no-mdns
     sustained_cpu_us: float = float("nan")
     floor_us: list[float] = field(default_factory=list)  # the HTTP floor, once per round
+
+
+@dataclass
+class Floors:
+    """Idle RSS (MB) of `LIBRARY_FLOOR`, with zeroconf (mDNS on) and without."""
+
+    mdns: float
+    quiet: float
 
 
 async def measured_run(bridge: BridgeProcess, oracle: RclpyOracle, commands: int,
@@ -469,9 +484,9 @@ async def idle_rss_without_mdns(state: Path, side: Side) -> float:
 
 
 async def before_after(oracle: RclpyOracle, args: argparse.Namespace
-                       ) -> tuple[Side, Side, float]:
+                       ) -> tuple[Side, Side, Floors]:
     """The baseline's bridge and this tree's, alternately, each round in the other order;
-    and the library floor's RSS."""
+    and the library floors' RSS."""
     with baseline_tree(args.baseline_ref) as base_src, \
             tempfile.TemporaryDirectory() as state:
         before, after = Side(f"before ({args.baseline_ref})", base_src), Side("after", None)
@@ -481,14 +496,15 @@ async def before_after(oracle: RclpyOracle, args: argparse.Namespace
             after.floor_us.append(await http_floor(args))
         for k, side in enumerate((before, after)):
             side.quiet_rss = await idle_rss_without_mdns(Path(state) / f"quiet-{k}", side)
-        floor_rss = await library_floor_rss()
+        floor_rss = Floors(mdns=await library_floor_rss(True),
+                           quiet=await library_floor_rss(False))
         if args.sustained > 0:
             for k, side in enumerate((before, after)):
                 await sustained(Path(state) / f"sustained-{k}", side, oracle, args)
     return before, after, floor_rss
 
 
-def compare_report(before: Side, after: Side, floor_rss: float,
+def compare_report(before: Side, after: Side, floor_rss: Floors,
                    args: argparse.Namespace) -> str:
     med = statistics.median
 
@@ -518,10 +534,12 @@ def compare_report(before: Side, after: Side, floor_rss: float,
             ".1f", "≤ 55 MB", med(after.idle_rss) <= 55),
         row("RSS idle, `--no-mdns` (MB)", before.quiet_rss, after.quiet_rss, ".1f", "≤ 55 MB",
             after.quiet_rss <= 55),
-        f"| RSS floor: a process importing only the third-party libraries of a run (aiohttp, "
-        f"cyclonedds, cryptography, msgspec, zeroconf, uvloop, yaml), idle (MB) | — "
-        f"| {floor_rss:.1f} | {med(after.idle_rss) - floor_rss:+.1f} MB: after, mDNS on | — "
-        f"| — |",
+        f"| RSS floor, mDNS on: a process holding only what a run holds that is not ours (the "
+        f"third-party libraries it imports: aiohttp, cyclonedds, cryptography, msgspec, uvloop,"
+        f" zeroconf; one DDS participant), idle (MB) | — | {floor_rss.mdns:.1f} | "
+        f"{med(after.idle_rss) - floor_rss.mdns:+.1f} MB: after, mDNS on | — | — |",
+        f"| RSS floor, `--no-mdns`: the same without zeroconf (MB) | — | {floor_rss.quiet:.1f} "
+        f"| {after.quiet_rss - floor_rss.quiet:+.1f} MB: after, `--no-mdns` | — | — |",
     ]
     if args.sustained > 0:
         lines += [

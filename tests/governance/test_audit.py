@@ -22,6 +22,7 @@ from rcan_rtps.governance.audit import (
     GENESIS,
     AuditEvent,
     AuditLog,
+    AuditReceipt,
     AuditRecord,
     canonical,
     entry_id,
@@ -387,3 +388,69 @@ async def test_an_idle_fast_log_writes_inline_and_a_burst_shares_fsyncs(
     threads.clear()
     await asyncio.gather(*(audit_log.append(record(i)) for i in range(30)))
     assert not any(threads) and len(threads) < 30  # the writer thread's group commits
+
+
+def _loop_commits(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Entries per write+fsync; the disk reads as fast and never idle, so every append under
+    test goes to a group commit on the loop (neither inline nor the writer thread)."""
+    writes: list[int] = []
+    real = audit_mod._write_durable
+
+    def fast(fd: int, data: bytes) -> float:
+        real(fd, data)
+        writes.append(data.count(b"\n"))
+        return 0.0
+
+    monkeypatch.setattr(audit_mod, "_write_durable", fast)
+    monkeypatch.setattr(audit_mod, "INLINE_GAP_S", 1e9)
+    return writes
+
+
+async def _a_turn_later(log: AuditLog, i: int, *, urgent: bool = False) -> AuditReceipt:
+    await asyncio.sleep(0)  # one loop turn
+    return await log.append(record(i), urgent=urgent)
+
+
+async def test_a_loop_group_commit_holds_one_turn_for_more_entries(
+    audit_log: AuditLog, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    writes = _loop_commits(monkeypatch)
+    await audit_log.append(record(0))
+    writes.clear()
+    # Sealed a turn apart: one write+fsync for both (committing at the end of the first
+    # entry's turn would have taken two).
+    await asyncio.gather(audit_log.append(record(1)), _a_turn_later(audit_log, 2))
+    assert writes == [2]
+    # A turn is held once, not again and again: a third turn's entry gets a commit of its own.
+    writes.clear()
+
+    async def two_turns_later() -> AuditReceipt:
+        await asyncio.sleep(0)
+        return await _a_turn_later(audit_log, 5)
+
+    await asyncio.gather(audit_log.append(record(3)), _a_turn_later(audit_log, 4),
+                         two_turns_later())
+    assert writes == [2, 1]
+    assert verify(audit_log.path, audit_log.public_key).count == 6
+
+
+async def test_a_stop_in_a_loop_group_commit_is_not_held(
+    audit_log: AuditLog, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    writes = _loop_commits(monkeypatch)
+    await audit_log.append(record(0))
+    writes.clear()
+    # The urgent entry's batch is written at the first chance; the next turn's entry waits
+    # for a commit of its own instead of holding the stop back.
+    await asyncio.gather(audit_log.append(record(1)), audit_log.append(record(2), urgent=True),
+                         _a_turn_later(audit_log, 3))
+    assert writes == [2, 1]
+    # Urgency belongs to the batch it was in: the next batch holds its turn again.
+    writes.clear()
+    await asyncio.gather(audit_log.append(record(4)), _a_turn_later(audit_log, 5))
+    assert writes == [2]
+    # An urgent entry sealed in the held turn joins its batch, written as already scheduled.
+    writes.clear()
+    await asyncio.gather(audit_log.append(record(6)), _a_turn_later(audit_log, 7, urgent=True))
+    assert writes == [2]
+    assert verify(audit_log.path, audit_log.public_key).count == 8

@@ -426,3 +426,29 @@ async def test_broken_audit_log_refuses_commands(harness: Harness, gov: Governor
     d = await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)
     assert (d.http_status, d.outcome, d.reason) == (503, Outcome.FAILED, "audit_unavailable")
     assert harness.dispatcher.calls == []
+
+
+async def test_only_stops_skip_the_held_turn_of_a_group_commit(
+    gov: Governor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An e-stop, a `stop` and a session-loss stop reach the robot without waiting for more
+    entries to share their fsync; everything else may wait the loop turn."""
+    urgent: dict[str, bool] = {}
+    append = gov.audit.append
+
+    async def spying(record: Any, **kw: Any) -> Any:
+        urgent[record.event.value + ":" + str(record.action_type)] = kw.get("urgent", False)
+        return await append(record, **kw)
+
+    monkeypatch.setattr(gov.audit, "append", spying)
+    await gov.decide(command("move", {"linear_x": 0.1}), PLANNER)
+    await gov.decide(command("stop"), PLANNER)
+    await gov.safe_stop(PLANNER)
+    await gov.decide(command("estop"), PLANNER)
+    await gov.decide(command("clear_estop"), ADMIN)
+    assert urgent == {
+        "COMMAND_DISPATCHED:move": False, "COMMAND_DISPATCHED:stop": True,
+        "STREAM_ENDED:move": False,  # the stream's zero went out at once; this only records it
+        "NETWORK_LOSS_SAFE_STOP:stop": True, "ESTOP:estop": True,
+        "ESTOP_CLEARED:clear_estop": False,
+    }

@@ -42,10 +42,11 @@ _UNSIGNED = ("audit_id", "sig")
 _REQUIRED = ("seq", "audit_id", "prev_hash", "sig", "event", "timestamp_ms")
 CHECKPOINT_EVERY = 1000  # entries between checkpoints: bounds what a start after a crash re-checks
 # When the disk is fast (smoothed write+fsync below INLINE_FSYNC_S) the loop writes: an idle
-# log's append at once (none in the last INLINE_GAP_S), a burst's entries together at the end
-# of the loop turn they were sealed in (group commit): thread hand-offs cost more CPU than such
-# an fsync blocks. Otherwise the writer thread does it, with group commit too: a slow disk
-# (an SD card) never blocks the event loop.
+# log's append at once (none in the last INLINE_GAP_S), a burst's entries together one loop
+# turn after the turn the first was sealed in (group commit; the turn held back lets the next
+# turn's entries share the fsync, about twice as many each, unless a stop is waiting): thread
+# hand-offs cost more CPU than such an fsync blocks. Otherwise the writer thread does it, with
+# group commit too: a slow disk (an SD card) never blocks the event loop.
 INLINE_FSYNC_S = 0.001
 INLINE_GAP_S = 0.001
 
@@ -379,7 +380,7 @@ _Queued = tuple[bytes, AuditReceipt, "asyncio.Future[None]"]  # a sealed line aw
 class AuditLog:
     """The append-only chain. `append` returns only once its entry is on disk (fsynced).
 
-    With `group_commit`, appends of one loop turn, or that arrive while the writer thread's
+    With `group_commit`, appends of two loop turns, or that arrive while the writer thread's
     write+fsync is running, share the next one.
     """
 
@@ -395,7 +396,8 @@ class AuditLog:
         self._clock = clock
         self._batch_limit = 0 if group_commit else 1
         self._queue: list[_Queued] = []  # for the writer thread
-        self._loop_batch: list[_Queued] = []  # for the group commit at this loop turn's end
+        self._loop_batch: list[_Queued] = []  # for the group commit on the loop
+        self._urgent = False  # the loop batch holds a stop: commit it without holding a turn
         self._flusher: asyncio.Task[None] | None = None
         self._broken: BaseException | None = None
         self._writer = writer  # one thread: writes and checkpoints in order, apart from reads
@@ -456,8 +458,11 @@ class AuditLog:
     def head(self) -> ChainHead:
         return ChainHead(count=self._seq, last_seq=self._seq, last_audit_id=self._prev)
 
-    async def append(self, record: AuditRecord) -> AuditReceipt:
-        """Chain, sign and durably write one entry; returns once it is fsynced."""
+    async def append(self, record: AuditRecord, *, urgent: bool = False) -> AuditReceipt:
+        """Chain, sign and durably write one entry; returns once it is fsynced.
+
+        `urgent` (a stop): a group commit it is in does not wait a loop turn for more entries.
+        """
         if not self.healthy:
             raise AuditWriteError(f"audit log {self.path} is not writable") from self._broken
         line, receipt = self._seal(record)
@@ -467,11 +472,12 @@ class AuditLog:
             loop = asyncio.get_running_loop()
             done: asyncio.Future[None] = loop.create_future()
             if self._loop_batch or self._loop_commit_ok():
-                # A fast disk under load: the entries of this loop turn share one write+fsync
-                # at its end, on the loop (no thread hand-off: cheaper than the thread's).
+                # A fast disk under load: the entries of this loop turn and the next share
+                # one write+fsync, on the loop (no thread hand-off: cheaper than the thread's).
                 if not self._loop_batch:
-                    loop.call_soon(self._commit_loop_batch)
+                    loop.call_soon(self._commit_next_turn)
                 self._loop_batch.append((line, receipt, done))
+                self._urgent = self._urgent or urgent
             else:
                 self._queue.append((line, receipt, done))
                 if self._flusher is None or self._flusher.done():
@@ -563,8 +569,17 @@ class AuditLog:
         return (self._batch_limit == 0 and self._fsync_s < INLINE_FSYNC_S and not self._queue
                 and (self._flusher is None or self._flusher.done()))
 
+    def _commit_next_turn(self) -> None:
+        """Runs the turn after the batch's first entry; commits in the turn after that, so
+        what that turn seals joins the batch; at once if a stop is waiting."""
+        if self._urgent or not self._loop_batch:
+            self._commit_loop_batch()
+        else:
+            asyncio.get_running_loop().call_soon(self._commit_loop_batch)
+
     def _commit_loop_batch(self) -> None:
         batch, self._loop_batch = self._loop_batch, []
+        self._urgent = False
         if not batch:  # committed already (by close)
             return
         if not self.healthy:

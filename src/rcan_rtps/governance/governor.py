@@ -321,7 +321,8 @@ class Governor:
         record = _record(AuditEvent.ESTOP, command, principal, Outcome.EXECUTED, applied={},
                          ros2_topic=self._route(command))
         persisted, receipt = await asyncio.gather(
-            self.latch.file.write(True, principal.name, at), self.audit.append(record),
+            self.latch.file.write(True, principal.name, at),
+            self.audit.append(record, urgent=True),
             return_exceptions=True)
         if isinstance(persisted, BaseException):
             log.error("e-stop latched in memory only: %s", persisted,
@@ -400,7 +401,7 @@ class Governor:
                                       pending_id, priority)
         record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          pending_id=pending_id, ros2_topic=self._route(command))
-        receipt = await self._write_ahead(record)
+        receipt = await self._write_ahead(record, urgent=spec.effect is Effect.HALT)
         if receipt is None:
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         # Checked again after the write, with no await between this check and the publish.
@@ -511,10 +512,12 @@ class Governor:
             self.streams.unlock(params.name)
         return _executed(command, applied, receipt, DispatchResult(ok=True))
 
-    async def _write_ahead(self, record: AuditRecord) -> AuditReceipt | None:
-        """The decision entry, durable; None if it cannot be written (then nothing is sent)."""
+    async def _write_ahead(self, record: AuditRecord, *, urgent: bool = False
+                           ) -> AuditReceipt | None:
+        """The decision entry, durable; None if it cannot be written (then nothing is sent).
+        `urgent`: a stop's, whose group commit waits for no more entries."""
         try:
-            return await self.audit.append(record)
+            return await self.audit.append(record, urgent=urgent)
         except AuditError:
             log.exception("audit write failed: %s not sent", record.action_type,
                           extra={"principal": record.principal})
@@ -676,7 +679,7 @@ class Governor:
         stop = _bridge_command(Effect.HALT)
         record = _record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
                          applied={}, ros2_topic=self._route(stop))
-        receipt = await self._write_ahead(record)
+        receipt = await self._write_ahead(record, urgent=True)
         # Halted even if the audit cannot be written: stopping is never held back.
         result, failure = await self._dispatch(stop)
         for listener in self.safe_stop_listeners:  # e.g. STATUS shows `safe_stop`

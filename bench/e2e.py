@@ -56,6 +56,9 @@ SESSION_TIMEOUT_S = 1.0
 # and CPU clocks go cold (here ~3x the per-request CPU of a back-to-back loop), so a floor
 # measured back-to-back would not be comparable with paced bridge samples.
 PACE_S = 0.005
+# The bridge's latency samples and the floor's are taken in this many alternating blocks, so
+# that the machine drifting (other load, clocks) between phases hits both sides alike.
+LATENCY_BLOCKS = 5
 DOMAIN = 77
 CONFIG = """\
 robot:
@@ -147,13 +150,16 @@ async def wait_arrivals(oracle: RclpyOracle, topic: str, want: int,
     return arrivals
 
 
-async def rest_move_latency(url: str, oracle: RclpyOracle, n: int) -> list[float]:
-    """ms from sending POST /api/command (move) to rclpy receiving that Twist."""
+async def rest_move_latency(url: str, oracle: RclpyOracle, n: int, first: float = 1.0
+                            ) -> list[float]:
+    """ms from sending POST /api/command (move) to rclpy receiving that Twist (values from
+    `first` up: a block's own, so no earlier stream's sample can pass for one of them)."""
     headers = {"Authorization": f"Bearer {TOKEN}"}
     sent: dict[float, int] = {}
+    oracle.call("take", topic="/bench/cmd_vel")
     async with aiohttp.ClientSession(headers=headers) as http:
         for i in range(n + 20):  # the first 20 warm up
-            value = 1.0 + i * 1e-3
+            value = first + i * 1e-3
             before = time.monotonic_ns()
             async with http.post(f"{url}/api/command", json={
                     "action": "move", "params": {"linear_x": value}}) as resp:
@@ -212,9 +218,10 @@ def fsync_latency(directory: Path, n: int) -> list[float]:
     return times
 
 
-async def raw_publish_latency(oracle: RclpyOracle, n: int) -> list[float]:
-    """ms from a cyclonedds write of a Twist to rclpy receiving it."""
-    oracle.call("subscribe_timed", topic="/floor/cmd_vel", type="geometry_msgs/msg/Twist")
+async def raw_publish_latency(oracle: RclpyOracle, n: int, first: float = 1.0) -> list[float]:
+    """ms from a cyclonedds write of a Twist to rclpy receiving it (rclpy subscribed to
+    /floor/cmd_vel with `subscribe_timed` already)."""
+    oracle.call("take", topic="/floor/cmd_vel")
     with RosNode("floor", "/floor", domain_id=DOMAIN) as node:
         pub = node.create_publisher("cmd_vel", "geometry_msgs/msg/Twist")
         await pub.wait_for_subscribers(1, timeout=15)
@@ -225,7 +232,7 @@ async def raw_publish_latency(oracle: RclpyOracle, n: int) -> list[float]:
         vec = node.types.struct("geometry_msgs/msg/Vector3")
         sent: dict[float, int] = {}
         for i in range(n + 20):
-            value = 1.0 + i * 1e-3
+            value = first + i * 1e-3
             msg = msg_type(linear=vec(value, 0.0, 0.0), angular=vec(0.0, 0.0, 0.0))
             sent[value] = time.monotonic_ns()
             pub.writer.write(msg)
@@ -233,6 +240,24 @@ async def raw_publish_latency(oracle: RclpyOracle, n: int) -> list[float]:
         arrivals = await wait_arrivals(oracle, "/floor/cmd_vel", len(sent))
     return [(arrivals[v] - t) / 1e6 for i, (v, t) in enumerate(sent.items())
             if i >= 20 and v in arrivals]
+
+
+async def latencies(url: str, oracle: RclpyOracle, state: Path, n: int
+                    ) -> tuple[list[float], list[float], list[float], list[float]]:
+    """(bridge, echo, raw publish, fsync) samples, n of each, in `LATENCY_BLOCKS` rounds."""
+    e2e: list[float] = []
+    echo: list[float] = []
+    raw: list[float] = []
+    syncs: list[float] = []
+    oracle.call("subscribe_timed", topic="/floor/cmd_vel", type="geometry_msgs/msg/Twist")
+    for block in range(LATENCY_BLOCKS):
+        k = n // LATENCY_BLOCKS + (block < n % LATENCY_BLOCKS)
+        first = 1.0 + block * (1 + (k + 20) * 1e-3)  # past the values of the blocks before
+        e2e += await rest_move_latency(url, oracle, k, first)
+        echo += await echo_round_trip(k)
+        raw += await raw_publish_latency(oracle, k, first)
+        syncs += fsync_latency(state, k)
+    return e2e, echo, raw, syncs
 
 
 async def session_loss_halt(url: str, oracle: RclpyOracle, rounds: int) -> list[float]:
@@ -606,10 +631,8 @@ async def end_to_end(oracle: RclpyOracle, args: argparse.Namespace) -> None:
             idle_rss = bridge.rss_mb()
             oracle.call("wait_publishers", topic="/bench/cmd_vel", timeout=15)
             await asyncio.sleep(1.0)  # let the bridge's side finish matching too
-            e2e = await rest_move_latency(bridge.url, oracle, args.samples)
-            echo = await echo_round_trip(args.samples)
-            raw = await raw_publish_latency(oracle, args.samples)
-            syncs = fsync_latency(Path(state), args.samples)
+            e2e, echo, raw, syncs = await latencies(bridge.url, oracle, Path(state),
+                                                    args.samples)
             halts = await session_loss_halt(bridge.url, oracle, 10)
             cpu_before, wall_before = cpu_seconds(bridge.proc.pid), time.perf_counter()
             rate, failures = await throughput(bridge.url, args.commands, args.clients)
@@ -654,7 +677,8 @@ async def end_to_end(oracle: RclpyOracle, args: argparse.Namespace) -> None:
         f"{pct(syncs, 0.99):.2f} ms; the audit entry is durable before the publish) + raw "
         f"cyclonedds publish → rclpy (p50 {pct(raw, 0.5):.2f} / p99 "
         f"{pct(raw, 0.99):.2f} ms). Every latency sample, bridge and floor alike, is paced "
-        f"{PACE_S * 1e3:g} ms apart. Median of all samples: e2e {statistics.median(e2e):.2f} ms. "
+        f"{PACE_S * 1e3:g} ms apart; the four are taken in {LATENCY_BLOCKS} alternating blocks."
+        f" Median of all samples: e2e {statistics.median(e2e):.2f} ms. "
         "The load generator (Python aiohttp clients) shares the machine's 2 cores with the "
         "bridge and the rclpy subscriber.",
         "",

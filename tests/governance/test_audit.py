@@ -390,9 +390,10 @@ async def test_an_idle_fast_log_writes_inline_and_a_burst_shares_fsyncs(
     assert not any(threads) and len(threads) < 30  # the writer thread's group commits
 
 
-def _loop_commits(monkeypatch: pytest.MonkeyPatch) -> list[int]:
-    """Entries per write+fsync; the disk reads as fast and never idle, so every append under
-    test goes to a group commit on the loop (neither inline nor the writer thread)."""
+async def _loop_commits(log: AuditLog, monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Entries per write+fsync from here on (after one first entry); the disk reads as fast
+    and never idle, so every append goes to a group commit on the loop (neither inline nor
+    the writer thread)."""
     writes: list[int] = []
     real = audit_mod._write_durable
 
@@ -403,6 +404,8 @@ def _loop_commits(monkeypatch: pytest.MonkeyPatch) -> list[int]:
 
     monkeypatch.setattr(audit_mod, "_write_durable", fast)
     monkeypatch.setattr(audit_mod, "INLINE_GAP_S", 1e9)
+    await log.append(record(0))
+    writes.clear()
     return writes
 
 
@@ -414,9 +417,7 @@ async def _a_turn_later(log: AuditLog, i: int, *, urgent: bool = False) -> Audit
 async def test_a_loop_group_commit_holds_one_turn_for_more_entries(
     audit_log: AuditLog, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    writes = _loop_commits(monkeypatch)
-    await audit_log.append(record(0))
-    writes.clear()
+    writes = await _loop_commits(audit_log, monkeypatch)
     # Sealed a turn apart: one write+fsync for both (committing at the end of the first
     # entry's turn would have taken two).
     await asyncio.gather(audit_log.append(record(1)), _a_turn_later(audit_log, 2))
@@ -437,9 +438,7 @@ async def test_a_loop_group_commit_holds_one_turn_for_more_entries(
 async def test_a_stop_in_a_loop_group_commit_is_not_held(
     audit_log: AuditLog, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    writes = _loop_commits(monkeypatch)
-    await audit_log.append(record(0))
-    writes.clear()
+    writes = await _loop_commits(audit_log, monkeypatch)
     # The urgent entry's batch is written at the first chance; the next turn's entry waits
     # for a commit of its own instead of holding the stop back.
     await asyncio.gather(audit_log.append(record(1)), audit_log.append(record(2), urgent=True),

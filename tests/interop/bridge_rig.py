@@ -91,6 +91,7 @@ async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id
     if goals is not None:
         audit_goal_outcomes(goals, governor)
     governor.safe_stop_listeners.append(lambda _p: telemetry.mark_safe_stop())
+    governor.status_listeners.append(lambda: notifier.pending_changed(len(governor.pending())))
     dispatcher.on_command = telemetry.clear_safe_stop
     await governor.start()
     oracle = RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id)
@@ -101,6 +102,8 @@ async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id
 async def close_rig(rig: Rig) -> None:
     if rig.goals is not None:
         await rig.goals.close()
+    if rig.notifier is not None:
+        rig.notifier.close()
     await rig.governor.stop()
     await rig.governor.audit.close()
     rig.oracle.close()

@@ -18,6 +18,7 @@ import pytest
 from oracle.client import OracleEnv, both_rmws
 from waiting import eventually, take
 
+from rcan_rtps.bridge.notify import REPEAT_S
 from rcan_rtps.governance import verify
 
 from .bridge_rig import AGENT, OPS, VIEWER, Rig, bridge_config, close_rig, make_rig
@@ -192,6 +193,16 @@ async def test_pending_auth_publishes_a_warn_diagnostic(tmp_path: Path, jazzy_py
         diag = (await take(rig.oracle, "/robot1/diagnostics"))[0]["status"][0]
         assert diag["level"] == 1 and "awaits human approval" in diag["message"]
         assert {"key": "pending_id", "value": held.pending_id} in diag["values"]
+        # Repeated while it waits (as ROS diagnostics are): a late monitor sees it too.
+        again = (await take(rig.oracle, "/robot1/diagnostics"))[-1]["status"][0]
+        assert again["level"] == 1 and again["values"] == diag["values"]
+        denied = await rig.governor.deny(held.pending_id, OPS)
+        assert denied.http_status == 200, denied
+        last = await take(rig.oracle, "/robot1/diagnostics",
+                          until=lambda got: bool(got) and got[-1]["status"][0]["level"] == 0)
+        assert last[-1]["status"][0]["message"] == "no command awaits human approval"
+        await asyncio.sleep(2 * REPEAT_S)  # no WARN after the OK
+        assert await rig.oracle.acall("take", topic="/robot1/diagnostics") == []
     finally:
         await close_rig(rig)
 

@@ -14,16 +14,23 @@ from ..ros.rostime import now_msg
 
 log = logging.getLogger(__name__)
 OK, WARN = 0, 1
+# A WARN is published again at this period while approvals wait, as ROS diagnostics are
+# (diagnostic_updater's default): a monitor that joins late, or missed a sample, still sees it.
+REPEAT_S = 1.0
 
 
 class DiagnosticsNotifier:
-    """Publishes `DiagnosticArray` with one WARN status naming the pending command, and an
-    OK for the same status once no approval waits any more (monitors then clear it)."""
+    """Publishes `DiagnosticArray` with one WARN status naming the pending command (again
+    every `repeat_s` while it is the latest), and an OK for the same status once no approval
+    waits any more (monitors then clear it)."""
 
-    def __init__(self, node: RosNode, topic: str) -> None:
+    def __init__(self, node: RosNode, topic: str, repeat_s: float = REPEAT_S) -> None:
         self.node = node
         self.publisher = node.create_publisher(topic, "diagnostic_msgs/msg/DiagnosticArray")
         self.warning = False  # a WARN is the last thing published
+        self.repeat_s = repeat_s
+        self._last_warn: tuple[str, list[dict[str, str]]] | None = None
+        self._repeater: asyncio.Task[None] | None = None
 
     async def notify(self, message: PendingAuth) -> None:
         action = message.original_command.get("action", "?")
@@ -38,8 +45,28 @@ class DiagnosticsNotifier:
         if self.warning and not waiting:
             self._publish(OK, "no command awaits human approval", [])
 
+    def close(self) -> None:
+        """Stops repeating (the bridge is stopping); idempotent."""
+        if self._repeater is not None:
+            self._repeater.cancel()
+            self._repeater = None
+
+    async def _repeat(self) -> None:
+        while self.warning and self._last_warn is not None:
+            await asyncio.sleep(self.repeat_s)
+            if self.warning and self._last_warn is not None:
+                try:
+                    self._publish(WARN, *self._last_warn)
+                except Exception:  # the node is closing: the next stop step ends this
+                    log.exception("repeating the PENDING_AUTH diagnostic failed")
+                    return
+
     def _publish(self, level: int, text: str, values: list[dict[str, str]]) -> None:
         self.warning = level == WARN
+        if self.warning:
+            self._last_warn = (text, values)
+            if self._repeater is None or self._repeater.done():
+                self._repeater = asyncio.get_running_loop().create_task(self._repeat())
         self.publisher.publish({
             "header": {"stamp": now_msg(), "frame_id": ""},
             "status": [{"level": level, "name": f"{self.node.name}: hitl", "message": text,

@@ -307,6 +307,7 @@ class Bridge:
     def _notifier(self, node: RosNode) -> Notifier:
         ros2, hitl = self.config.bridge.ros2, self.config.bridge.hitl
         self._diagnostics = DiagnosticsNotifier(node, ros2.diagnostics_topic)
+        self._on_stop("diagnostics", self._diagnostics.close)
         notifiers: list[Notifier] = [self._diagnostics]
         if hitl.notify_webhook:
             notifiers.append(WebhookNotifier(hitl.notify_webhook))

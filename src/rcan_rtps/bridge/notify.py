@@ -27,10 +27,14 @@ class DiagnosticsNotifier:
     def __init__(self, node: RosNode, topic: str, repeat_s: float = REPEAT_S) -> None:
         self.node = node
         self.publisher = node.create_publisher(topic, "diagnostic_msgs/msg/DiagnosticArray")
-        self.warning = False  # a WARN is the last thing published
         self.repeat_s = repeat_s
-        self._last_warn: tuple[str, list[dict[str, str]]] | None = None
+        self._warn: tuple[str, list[dict[str, str]]] | None = None  # the WARN last published
         self._repeater: asyncio.Task[None] | None = None
+
+    @property
+    def warning(self) -> bool:
+        """A WARN is the last thing published."""
+        return self._warn is not None
 
     async def notify(self, message: PendingAuth) -> None:
         action = message.original_command.get("action", "?")
@@ -52,21 +56,19 @@ class DiagnosticsNotifier:
             self._repeater = None
 
     async def _repeat(self) -> None:
-        while self.warning and self._last_warn is not None:
+        while self._warn is not None:
             await asyncio.sleep(self.repeat_s)
-            if self.warning and self._last_warn is not None:
+            if self._warn is not None:
                 try:
-                    self._publish(WARN, *self._last_warn)
+                    self._publish(WARN, *self._warn)
                 except Exception:  # the node is closing: the next stop step ends this
                     log.exception("repeating the PENDING_AUTH diagnostic failed")
                     return
 
     def _publish(self, level: int, text: str, values: list[dict[str, str]]) -> None:
-        self.warning = level == WARN
-        if self.warning:
-            self._last_warn = (text, values)
-            if self._repeater is None or self._repeater.done():
-                self._repeater = asyncio.get_running_loop().create_task(self._repeat())
+        self._warn = (text, values) if level == WARN else None
+        if self._warn is not None and (self._repeater is None or self._repeater.done()):
+            self._repeater = asyncio.get_running_loop().create_task(self._repeat())
         self.publisher.publish({
             "header": {"stamp": now_msg(), "frame_id": ""},
             "status": [{"level": level, "name": f"{self.node.name}: hitl", "message": text,

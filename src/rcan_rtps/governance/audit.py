@@ -84,6 +84,14 @@ class AuditRecord(msgspec.Struct, kw_only=True, frozen=True):
     ai: dict[str, Any] | None = None
     ros2_topic: str | None = None
     pending_id: str | None = None
+    # A stop executed although its body had these problems (see rcan._salvage).
+    warnings: list[str] | None = None
+    # A stop's signals went out before this entry was durable (they never wait for the disk).
+    sent_first: bool | None = None
+
+
+# Left out of an entry when None: older entries never had them.
+_OPTIONAL = frozenset({"ai", "pending_id", "warnings", "sent_first"})
 
 
 class AuditReceipt(msgspec.Struct, frozen=True):
@@ -536,7 +544,7 @@ class AuditLog:
         ms = int(self._clock.time() * 1000)
         entry: dict[str, Any] = {
             k: v for k, v in msgspec.structs.asdict(record).items()
-            if not (k in ("ai", "pending_id") and v is None)
+            if not (k in _OPTIONAL and v is None)
         }
         entry.update(
             seq=self._seq + 1, prev_hash=self._prev, timestamp=iso_utc(ms), timestamp_ms=ms,

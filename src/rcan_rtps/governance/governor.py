@@ -114,6 +114,7 @@ class Decision(msgspec.Struct, frozen=True, kw_only=True):
     expires_at_ms: int | None = None
     ros2_topic: str | None = None
     goal_id: str | None = None
+    warnings: list[str] | None = None  # a stop executed in spite of these problems
 
     def body(self) -> DecisionBody:
         return DecisionBody(
@@ -121,7 +122,7 @@ class Decision(msgspec.Struct, frozen=True, kw_only=True):
             audit_id=self.audit_id, message_id=self.message_id,
             error_code=self.error_code.value if self.error_code else None, reason=self.reason,
             applied=self.applied, pending_id=self.pending_id, expires_at_ms=self.expires_at_ms,
-            goal_id=self.goal_id, ros2_topic=self.ros2_topic,
+            goal_id=self.goal_id, ros2_topic=self.ros2_topic, warnings=self.warnings,
         )
 
 
@@ -233,13 +234,38 @@ class Governor:
     async def decide(self, command: NormalizedCommand, principal: Principal) -> Decision:
         """Decide, act and audit; a caller that goes away does not stop the decision."""
         effect = command.spec.effect
+        if command.spec.stopping:
+            command = self._forgiven(command, principal)
         if effect is Effect.ESTOP:  # any authenticated principal; latched right here
-            return await asyncio.shield(
+            decision = await asyncio.shield(
                 self.latch.engage(lambda: self._estop(command, principal)))
-        if effect is Effect.HALT:  # the e-stop lane: no admission queue
-            return await self._detached(self._decide(command, principal))
-        async with self._admission:
-            return await self._detached(self._decide(command, principal))
+        elif effect is Effect.HALT:  # the e-stop lane: no admission queue
+            decision = await self._detached(self._decide(command, principal))
+        else:
+            async with self._admission:
+                return await self._detached(self._decide(command, principal))
+        if command.warnings:  # executed anyway: the caller learns what was wrong
+            return msgspec.structs.replace(decision, warnings=list(command.warnings))
+        return decision
+
+    def _forgiven(self, command: NormalizedCommand, principal: Principal) -> NormalizedCommand:
+        """A stop whose role claim or RURI would refuse another command: those become
+        warnings, and the stop goes ahead (an authenticated request that says stop, stops)."""
+        warnings = list(command.warnings)
+        if _claims_more(command.claimed_role, principal.role):
+            warnings.append(f"role claim {command.claimed_role!r} ignored: the role comes "
+                            f"from authentication ({principal.role.name})")
+        ruri = command.ruri
+        if ruri is not None and self._robot is not None:
+            try:
+                if parse_ruri(ruri).robot != self._robot:
+                    warnings.append(f"addressed to {ruri}, not this robot ({self._robot})")
+            except InvalidRuriError as exc:
+                warnings.append(f"ruri ignored: {exc.rule}")
+        if len(warnings) == len(command.warnings):
+            return command
+        return msgspec.structs.replace(command, warnings=tuple(warnings), claimed_role=None,
+                                       ruri=None)
 
     async def reject_request(self, principal: Principal | None, rejection: Rejection, *,
                              message_id: str | None = None) -> Decision:
@@ -319,15 +345,18 @@ class Governor:
         """
         at = now_ms(self._clock)
         record = _record(AuditEvent.ESTOP, command, principal, Outcome.EXECUTED, applied={},
-                         ros2_topic=self._route(command))
-        persisted, receipt = await asyncio.gather(
+                         ros2_topic=self._route(command), sent_first=True)
+        # The robot is told first (the dispatch's first step publishes, before any await);
+        # latch file and audit entry are made durable beside it, both before the reply.
+        sent, persisted, receipt = await asyncio.gather(
+            self._dispatch(command, command.params),
             self.latch.file.write(True, principal.name, at),
             self.audit.append(record, urgent=True),
             return_exceptions=True)
         if isinstance(persisted, BaseException):
             log.error("e-stop latched in memory only: %s", persisted,
                       extra={"principal": principal.name})
-        result, failure = await self._dispatch(command, command.params)
+        result, failure = _sent(sent)
         if isinstance(receipt, BaseException):
             log.error("e-stop sent but not audited: %s", receipt,
                       extra={"principal": principal.name})
@@ -377,6 +406,7 @@ class Governor:
             return await self._lock(command, principal, params, event, pending_id)
         if spec.effect is Effect.HALT:  # zero at once, before the stop is even audited
             self.streams.end(EndReason.STOPPED, principal.name)
+            return await self._halt(command, principal, params, event)
         motion = spec.motion
         if motion and self.latch.latched:
             return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
@@ -401,7 +431,7 @@ class Governor:
                                       pending_id, priority)
         record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          pending_id=pending_id, ros2_topic=self._route(command))
-        receipt = await self._write_ahead(record, urgent=spec.effect is Effect.HALT)
+        receipt = await self._write_ahead(record)
         if receipt is None:
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         # Checked again after the write, with no await between this check and the publish.
@@ -415,6 +445,22 @@ class Governor:
             await self._dispatch(_bridge_command(Effect.HALT))
         elif spec.starts_goal:  # the goal drives the base now: a velocity stream would fight it
             self.streams.end(EndReason.REPLACED, owner.name)
+        return _executed(command, applied, receipt, result)
+
+    async def _halt(self, command: NormalizedCommand, principal: Principal,
+                    params: ActionParams, event: AuditEvent) -> Decision:
+        """A stop: zero velocity and goal cancels go out first, its entry is made durable
+        beside them (never before: stopping does not wait for the disk), then the reply."""
+        applied: dict[str, Any] = {}  # nothing of the body reaches the robot (a reason is kept)
+        record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
+                         ros2_topic=self._route(command), sent_first=True)
+        sent, receipt = await asyncio.gather(self._dispatch(command, params),
+                                             self._write_ahead(record, urgent=True))
+        result, failure = sent
+        if receipt is None:
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        if failure is not None:
+            return await self._failed(command, principal, failure)
         return _executed(command, applied, receipt, result)
 
     # -- velocity streams and locks ---------------------------------------------------------
@@ -678,10 +724,10 @@ class Governor:
             listener(principal)
         stop = _bridge_command(Effect.HALT)
         record = _record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
-                         applied={}, ros2_topic=self._route(stop))
-        receipt = await self._write_ahead(record, urgent=True)
-        # Halted even if the audit cannot be written: stopping is never held back.
-        result, failure = await self._dispatch(stop)
+                         applied={}, ros2_topic=self._route(stop), sent_first=True)
+        # Halted first, and even if the audit cannot be written: stopping is never held back.
+        (result, failure), receipt = await asyncio.gather(
+            self._dispatch(stop), self._write_ahead(record, urgent=True))
         for listener in self.safe_stop_listeners:  # e.g. STATUS shows `safe_stop`
             listener(principal)
         if receipt is None:
@@ -824,7 +870,7 @@ def _claims_more(claimed: Any, role: Role) -> bool:
 def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
             outcome: Outcome, *, applied: dict[str, Any] | None = None,
             rejection: Rejection | None = None, ros2_topic: str | None = None,
-            pending_id: str | None = None) -> AuditRecord:
+            pending_id: str | None = None, sent_first: bool | None = None) -> AuditRecord:
     ai = msgspec.structs.asdict(command.ai) if command.ai is not None else None
     return AuditRecord(
         event=event, principal=principal.name, role=principal.role.name,
@@ -832,7 +878,16 @@ def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
         applied=applied, outcome=outcome.value,
         deny_reason=rejection.deny_reason if rejection else None, ai=ai,
         ros2_topic=ros2_topic, pending_id=pending_id,
+        warnings=list(command.warnings) or None, sent_first=sent_first,
     )
+
+
+def _sent(outcome: tuple[DispatchResult, Rejection | None] | BaseException
+          ) -> tuple[DispatchResult, Rejection | None]:
+    """A dispatch's result out of `gather(..., return_exceptions=True)`."""
+    if isinstance(outcome, BaseException):  # `_dispatch` catches Exception: this is worse
+        raise outcome
+    return outcome
 
 
 async def _awaited(future: asyncio.Future[Any]) -> Any:

@@ -188,10 +188,22 @@ class TlsConfig(_Section, frozen=True, kw_only=True):
 
 
 class JwtConfig(_Section, frozen=True, kw_only=True):
-    public_key: str  # PEM file holding the issuer's Ed25519 public key
+    """EdDSA JWTs. A JWT's principal is `jwt:<iss>/<sub>`, never a configured principal."""
+
+    # Exactly one: a PEM file of the issuer's Ed25519 public key (a token's `kid` is not
+    # looked at), or a JWKS file (RFC 7517) whose keys tokens choose by `kid` (rotation).
+    public_key: str | None = None
+    jwks: str | None = None
     audience: Annotated[str, msgspec.Meta(min_length=1)]
-    issuer: str | None = None
+    issuer: Annotated[str, msgspec.Meta(min_length=1)] | None = None
     leeway_s: Annotated[float, msgspec.Meta(ge=0.0, le=300.0)] = 30.0
+    # exp - iat (or exp - now, without iat) above this is refused: no token lasts for ever.
+    max_lifetime_s: Annotated[float, msgspec.Meta(gt=0.0, le=366 * 86400.0)] = 86400.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if (self.public_key is None) == (self.jwks is None):
+            raise ValueError("give exactly one of `public_key` or `jwks`")
 
 
 def _principals_problem(principals: list[PrincipalConfig]) -> str | None:

@@ -8,6 +8,7 @@ fields lives in `__post_init__` and is reported at the section's path.
 from __future__ import annotations
 
 import functools
+import ipaddress
 import math
 import re
 from collections.abc import Callable
@@ -230,11 +231,37 @@ class ApiConfig(_Section, frozen=True, kw_only=True):
     header_timeout_s: Seconds = 10.0
     body_timeout_s: Seconds = 30.0
     keepalive_timeout_s: Seconds = 30.0
+    # Serve plain HTTP on a non-loopback `host` (bearer tokens in clear on the network): only
+    # behind something that encrypts (a TLS-terminating proxy, a VPN) that the bridge cannot see.
+    allow_plaintext: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if not (self.principals or self.auth_token_env or self.jwt):
             raise ValueError("no way to authenticate: set principals, auth_token_env or jwt")
+        problem = plaintext_problem(self, self.host)
+        if problem is not None:
+            raise ValueError(problem)
+
+
+def is_loopback(host: str) -> bool:
+    """Whether `host` is a loopback address or `localhost` (a name that could resolve
+    elsewhere, and the empty host or 0.0.0.0 meaning every interface, are not)."""
+    if host.lower().rstrip(".") == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def plaintext_problem(api: ApiConfig, host: str) -> str | None:
+    """Why serving `api` on `host` would put credentials on the network in clear, or None."""
+    if api.tls is not None or api.allow_plaintext or is_loopback(host):
+        return None
+    return (f"`host` {host!r} is not loopback and there is no `tls`: bearer tokens would cross "
+            "the network in clear. Set `tls` (cert, key; client_ca for mTLS), or "
+            "`allow_plaintext: true` if something outside the bridge encrypts the traffic")
 
 
 def _workspace_problem(workspace: list[Point] | None) -> str | None:

@@ -160,8 +160,13 @@ def _percent(char: str) -> str:
 
 
 # Why a JWT is refused, as the 401's `reason` (the message goes in WWW-Authenticate).
-MALFORMED, UNKNOWN_KID, CLAIMS, NOT_YET = (
-    "jwt_malformed", "jwt_unknown_kid", "jwt_claims", "jwt_not_yet_valid")
+MALFORMED = "jwt_malformed"  # not a compact EdDSA JWS of JSON objects
+BAD_SIGNATURE = "jwt_bad_signature"
+UNKNOWN_KID = "jwt_unknown_kid"  # JWKS keys: no kid, or one the file does not hold
+EXPIRED = "jwt_expired"  # or without exp
+NOT_YET = "jwt_not_yet_valid"  # nbf or iat in the future
+TOO_LONG = "jwt_lifetime_too_long"  # exp more than max_lifetime_s after iat (or now)
+CLAIMS = "jwt_claims"  # aud, iss, sub or role
 
 
 def _refused(reason: str, message: str) -> AuthenticationError:
@@ -298,7 +303,7 @@ class JwtVerifier:
         try:
             self._key(header).verify(_b64url(sig_b64), f"{head_b64}.{body_b64}".encode("ascii"))
         except InvalidSignature as exc:
-            raise _refused("jwt_bad_signature", "bad JWT signature") from exc
+            raise _refused(BAD_SIGNATURE, "bad JWT signature") from exc
         return self._principal(_json_object(_b64url(body_b64)))
 
     def _key(self, header: dict[str, Any]) -> Ed25519PublicKey:
@@ -334,7 +339,7 @@ class JwtVerifier:
         now = self._clock.time()
         exp, nbf, iat = claims.get("exp"), claims.get("nbf"), claims.get("iat")
         if not _is_time(exp) or now > exp + self._leeway:
-            raise _refused("jwt_expired", "JWT expired or without exp")
+            raise _refused(EXPIRED, "JWT expired or without exp")
         if nbf is not None and (not _is_time(nbf) or now + self._leeway < nbf):
             raise _refused(NOT_YET, "JWT not valid yet")
         if iat is not None and (not _is_time(iat) or now + self._leeway < iat):
@@ -342,7 +347,7 @@ class JwtVerifier:
         lifetime = exp - (now if iat is None else iat)
         if lifetime > self._max_lifetime:
             raise _refused(
-                "jwt_lifetime_too_long", f"JWT lifetime {lifetime:.0f} s exceeds the maximum of "
+                TOO_LONG, f"JWT lifetime {lifetime:.6g} s exceeds the maximum of "
                 f"{self._max_lifetime:g} s (bridge.api.jwt.max_lifetime_s)")
 
 

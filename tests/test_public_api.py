@@ -236,6 +236,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "TlsConfig",
         "load_config",
         "loads_config",
+        "plaintext_problem",
         "polygon_edges",
         "polygon_problem",
     },

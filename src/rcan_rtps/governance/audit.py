@@ -61,6 +61,7 @@ class AuditEvent(str, enum.Enum):
     HITL_EXPIRED = "HITL_EXPIRED"
     ESTOP = "ESTOP"
     ESTOP_CLEARED = "ESTOP_CLEARED"
+    ESTOP_REPEATED = "ESTOP_REPEATED"  # e-stops sent while already latched, counted together
     NETWORK_LOSS_SAFE_STOP = "NETWORK_LOSS_SAFE_STOP"
     GOAL_FINISHED = "GOAL_FINISHED"  # a goal the bridge sent ended; `outcome` says how
     STREAM_ENDED = "STREAM_ENDED"  # a velocity stream stopped sending (params.reason says why)

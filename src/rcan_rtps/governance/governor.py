@@ -16,7 +16,7 @@ import contextlib
 import functools
 import logging
 import uuid
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Callable, Coroutine, Iterator, Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -43,13 +43,14 @@ from . import outcomes
 from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
 from .clock import Clock, SystemClock, now_ms
 from .errors import AuditError, EstopStateError
-from .estop import EstopMachine, LatchFile
+from .estop import EstopMachine, EstopRepeats, LatchFile
 from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand, PendingStore
 from .idempotency import Conflict, Idempotency
 from .invariants import Check, Violation, safety_policy
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
+from .resume import resume
 from .streams import (
     AccelLimits,
     EndReason,
@@ -133,7 +134,8 @@ class Governor:
                  require_distinct_approver: bool = False, session_timeout_s: float = 2.0,
                  robot_ruri: str | None = None, notifier: Notifier | None = None,
                  streams: VelocityStreams | None = None,
-                 priorities: MotionPriorities | None = None) -> None:
+                 priorities: MotionPriorities | None = None,
+                 held_locks: Mapping[str, str] | None = None) -> None:
         self.audit = audit
         self.latch = latch
         self._dispatcher = dispatcher
@@ -164,6 +166,11 @@ class Governor:
         self.streams = streams or VelocityStreams(dispatcher, latch)
         self.streams.on_end = self._stream_ended
         self._priorities = priorities or MotionPriorities()
+        self._held_at_start = dict(held_locks or {})  # lock → holder, as the log left them
+        self._lock_holders: dict[str, str] = {}  # engaged locks → who engaged them
+        self._repeats = EstopRepeats()
+        # The ESTOP entry holding the latch, while no clear was audited after it.
+        self._latched_by: AuditReceipt | None = None
         latch.listeners.insert(0, self.streams.on_latch)
         latch.listeners.append(self._status_changed)
 
@@ -175,6 +182,11 @@ class Governor:
         latch_file = LatchFile(Path(bridge.safety.estop_state_path or beside_audit))
         # A missing latch file is a first start only if the audit log is new as well.
         latched, reason = latch_file.load(first_start=audit.head.last_seq == 0)
+        resumed = resume(audit.path)
+        if resumed.latched and not latched:  # the stricter of file and signed chain
+            latched, reason = True, (
+                f"the audit log's last e-stop (by {resumed.latched_by}) was never cleared, "
+                f"though {latch_file.path} says it was: latched until cleared")
         if reason:
             log.error("%s", reason)
         latch = EstopMachine(latch_file, latched=latched, reason=reason)
@@ -193,7 +205,7 @@ class Governor:
             hitl_timeout_s=bridge.hitl.timeout_seconds,
             require_distinct_approver=bridge.hitl.require_distinct_approver,
             session_timeout_s=bridge.safety.session_timeout_s,
-            robot_ruri=config.robot.ruri,
+            robot_ruri=config.robot.ruri, held_locks=resumed.locks,
         )
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -203,6 +215,10 @@ class Governor:
         params: dict[str, Any] = {"estop_latched": self.latch.latched}
         if self.latch.reason:
             params["estop_reason"] = self.latch.reason
+        released = self._retake_locks()
+        params["locks"] = dict(self._lock_holders)
+        if released:
+            params["locks_released"] = released
         await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STARTED, params=params))
         self.started = True
         if self._latch_file_missing and not self.latch.latched:  # first start: record it
@@ -227,7 +243,24 @@ class Governor:
             await asyncio.gather(self._sweeper, return_exceptions=True)
         await asyncio.gather(*self._tasks, return_exceptions=True)
         await self.latch.close()
-        await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STOPPED))
+        await self._record_repeats()
+        params = {"estop_latched": self.latch.latched, "locks": dict(self._lock_holders)}
+        await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STOPPED, params=params))
+
+    def _retake_locks(self) -> list[str]:
+        """Engage the locks the log says were held; those no longer configured are released
+        (their names returned, for BRIDGE_STARTED)."""
+        released = []
+        for name, holder in sorted(self._held_at_start.items()):
+            level = self._priorities.lock(name)
+            if level is None:
+                released.append(name)
+                continue
+            self.streams.lock(name, level, holder)
+            self._lock_holders[name] = holder
+            log.warning("motion lock %r (engaged by %s) held again after the restart",
+                        name, holder)
+        return released
 
     # -- commands ---------------------------------------------------------------------------
 
@@ -338,11 +371,12 @@ class Governor:
     # -- the e-stop lane (run by the e-stop machine, one transition at a time) ------------
 
     async def _estop(self, command: NormalizedCommand, principal: Principal) -> Decision:
-        """Latched already; persist and audit (both durable), then tell the robot.
-
-        An e-stop always reaches the robot: if the latch file or the audit log cannot be
-        written, it is still published, and the failure is logged and answered.
+        """Latched already; tell the robot, with latch file and audit entry made durable
+        beside it. An e-stop always reaches the robot: if the latch file or the audit log
+        cannot be written, it is still published, and the failure is logged and answered.
         """
+        if self._latched_by is not None:
+            return await self._estop_again(command, principal)
         at = now_ms(self._clock)
         record = _record(AuditEvent.ESTOP, command, principal, Outcome.EXECUTED, applied={},
                          ros2_topic=self._route(command), sent_first=True)
@@ -361,9 +395,34 @@ class Governor:
             log.error("e-stop sent but not audited: %s", receipt,
                       extra={"principal": principal.name})
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        self._latched_by = receipt
         if failure is not None:
             return await self._failed(command, principal, failure)
         return _executed(command, {}, receipt, result)
+
+    async def _estop_again(self, command: NormalizedCommand, principal: Principal) -> Decision:
+        """An e-stop while an audited one holds the latch: the robot is told again, and the
+        caller answered with the entry that latched it; the repeats are recorded together."""
+        assert self._latched_by is not None
+        result, failure = await self._dispatch(command, command.params)
+        self._repeats.add(principal.name, now_ms(self._clock), failed=failure is not None,
+                          warnings=command.warnings)
+        if failure is not None:
+            return _decision(failure, message_id=command.message_id)
+        return Decision(outcome=Outcome.EXECUTED, http_status=200, applied={},
+                        audit_id=self._latched_by.audit_id, message_id=command.message_id,
+                        reason="already_latched", ros2_topic=result.ros2_topic)
+
+    async def _record_repeats(self) -> None:
+        """One ESTOP_REPEATED entry per principal for the repeats counted so far."""
+        estop = with_effect(Effect.ESTOP).name
+        for name, tally in self._repeats.take().items():
+            params = msgspec.structs.asdict(tally)
+            if not tally.warnings:
+                del params["warnings"]
+            await self._record_event(AuditRecord(
+                event=AuditEvent.ESTOP_REPEATED, principal=name, action_type=estop,
+                params=params, outcome=Outcome.EXECUTED.value))
 
     async def _clear_estop(self, command: NormalizedCommand, principal: Principal,
                            event: AuditEvent, pending_id: str | None) -> Decision:
@@ -372,11 +431,13 @@ class Governor:
         if why is not None:
             return await self._refuse(command, principal, outcomes.robot_unavailable(why),
                                       pending_id=pending_id)
+        await self._record_repeats()  # the e-stops it clears come first in the log
         record = _record(AuditEvent.ESTOP_CLEARED, command, principal, Outcome.EXECUTED,
                          applied={}, pending_id=pending_id, ros2_topic=self._route(command))
         receipt = await self._write_ahead(record)
         if receipt is None:
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        self._latched_by = None  # an e-stop after this clear is a new one, audited in full
         try:
             await self.latch.file.write(False, principal.name, now_ms(self._clock))
         except EstopStateError:
@@ -554,8 +615,10 @@ class Governor:
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         if command.spec.effect is Effect.LOCK:
             self.streams.lock(params.name, level, principal.name)
+            self._lock_holders[params.name] = principal.name
         else:
             self.streams.unlock(params.name)
+            self._lock_holders.pop(params.name, None)
         return _executed(command, applied, receipt, DispatchResult(ok=True))
 
     async def _write_ahead(self, record: AuditRecord, *, urgent: bool = False
@@ -747,8 +810,11 @@ class Governor:
         return await self._detached(self.safe_stop(principal, "its connection closed"))
 
     async def sweep(self) -> None:
-        """One round of housekeeping: expire HiTL requests, stop for lost sessions."""
+        """One round of housekeeping: expire HiTL requests, stop for lost sessions, record
+        e-stop repeats that waited long enough."""
         await self.expire_pending()
+        if self._repeats.due(now_ms(self._clock)):  # in order with the latch's transitions
+            await self.latch.then(self._record_repeats)
         lost = self._sessions.take_lost()
         # Concurrently: one slow halt (say, a goal server that never answers) must not
         # delay the next principal's, nor the next sweep.

@@ -95,8 +95,8 @@ def _path(leaves: Sequence[bytes], m: int, lo: int, hi: int) -> list[bytes]:
         return []
     k = _split(n)
     if m < k:
-        return _path(leaves, m, lo, lo + k) + [root_of(leaves[lo + k:hi])]
-    return _path(leaves, m - k, lo + k, hi) + [root_of(leaves[lo:lo + k])]
+        return [*_path(leaves, m, lo, lo + k), root_of(leaves[lo + k:hi])]
+    return [*_path(leaves, m - k, lo + k, hi), root_of(leaves[lo:lo + k])]
 
 
 def consistency_proof(leaves: Sequence[bytes], old: int, new: int) -> list[bytes]:
@@ -114,8 +114,8 @@ def _subproof(leaves: Sequence[bytes], m: int, lo: int, hi: int, whole: bool) ->
         return [] if whole else [root_of(leaves[lo:hi])]
     k = _split(n)
     if m <= k:
-        return _subproof(leaves, m, lo, lo + k, whole) + [root_of(leaves[lo + k:hi])]
-    return _subproof(leaves, m - k, lo + k, hi, False) + [root_of(leaves[lo:lo + k])]
+        return [*_subproof(leaves, m, lo, lo + k, whole), root_of(leaves[lo + k:hi])]
+    return [*_subproof(leaves, m - k, lo + k, hi, False), root_of(leaves[lo:lo + k])]
 
 
 def verify_inclusion(leaf: bytes, index: int, size: int, proof: Sequence[bytes],

@@ -338,6 +338,26 @@ def verify(
         raise AuditIntegrityError(exc.seq, exc.detail, path=str(path)) from exc
 
 
+def entries(data: bytes, pubkey: Ed25519PublicKey | None = None
+            ) -> Iterator[tuple[int, str, bytes]]:
+    """The entries of a whole audit file in order, each verified as `verify_bytes` does:
+    (seq, audit_id, line without its newline). Raises AuditIntegrityError at the first break,
+    after yielding the valid entries before it."""
+    seq, prev, end = 0, GENESIS, 0
+    for start, line in _lines(data):
+        try:
+            prev = _check_line(line, seq + 1, prev, pubkey)
+        except AuditIntegrityError as exc:
+            if _only_damage_left(data, start + len(line) + 1):
+                raise AuditIntegrityError(exc.seq, "the last line is damaged (a torn tail, or "
+                                          f"an edit): {exc.detail}") from exc
+            raise
+        seq, end = seq + 1, start + len(line) + 1
+        yield seq, prev, line
+    if end < len(data):
+        raise AuditIntegrityError(seq + 1, "incomplete last line (torn tail)")
+
+
 def verify_bytes(data: bytes, pubkey: Ed25519PublicKey | None = None) -> ChainHead:
     """`verify` on the content of an audit file."""
     scan = _scan(data, pubkey)
@@ -789,7 +809,9 @@ class AuditLog:
                       "seq %d", self.path, exc, len(waiting) or 1, self._durable_seq)
         for _, _, done in waiting:
             if not done.done():
-                done.set_exception(AuditWriteError(f"audit write to {self.path} failed: {exc}"))
+                error = AuditWriteError(f"audit write to {self.path} failed: {exc}")
+                error.__cause__ = exc
+                done.set_exception(error)
 
 
 def _settle(batch: list[_Queued]) -> None:

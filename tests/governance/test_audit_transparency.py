@@ -135,6 +135,9 @@ async def test_a_group_commit_gets_one_head_and_a_reopened_log_goes_on(tmp_path:
     log = await AuditLog.open(tmp_path / "a.jsonl", tmp_path / "k.key")
     await log.append(record(41))
     await log.close()
+    heads = [h for h in parse_tree_heads((tmp_path / "a.jsonl.sth").read_bytes())[0]
+             if isinstance(h, TreeHead)]
+    assert [h.tree_size for h in heads[-2:]] == [40, 41]  # at open, then the new commit
     assert run("audit", "verify", str(tmp_path / "a.jsonl")) == 0
 
 
@@ -500,3 +503,18 @@ def test_the_audit_recovers_from_efbig(tmp_path: Path, capsys: pytest.CaptureFix
     result = json.loads(child.stdout)
     assert any("File too large" in r for r in result["while_full"])  # EFBIG, from the kernel
     _full_disk_case(result, out, capsys)
+
+
+def test_the_witness_is_a_checked_config_key() -> None:
+    from rcan_rtps.config import ConfigError, loads_config
+
+    base = ("robot: {ruri: rcan://registry.local/clearpath/husky/a200-0001}\n"
+            "bridge:\n  api: {auth_token_env: RCAN_BRIDGE_TOKEN}\n"
+            "  safety: {max_linear_vel: 1.5, max_angular_vel: 1.0}\n")
+    config = loads_config(base + "  audit: {witness: 'file:///mnt/witness/robot1.sth'}\n", env={})
+    assert config.bridge.audit.witness == "file:///mnt/witness/robot1.sth"
+    assert loads_config(base, env={}).bridge.audit.witness is None
+    with pytest.raises(ConfigError) as info:
+        loads_config(base + "  audit: {witness: 'witness.sth'}\n", env={})
+    [issue] = info.value.issues
+    assert issue.path == "$.bridge.audit.witness" and "file://" in issue.message

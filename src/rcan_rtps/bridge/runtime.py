@@ -260,7 +260,7 @@ class Bridge:
 
     async def _open_audit(self) -> AuditLog:
         audit = self.config.bridge.audit
-        self.audit = await AuditLog.open(audit.path, audit.key_path)
+        self.audit = await AuditLog.open(audit.path, audit.key_path, witness=audit.witness)
         self.audit.listeners.append(log_entry)  # one log line per decision and safety event
         self._on_stop("closing the audit log", self.audit.close)
         return self.audit

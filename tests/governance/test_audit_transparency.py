@@ -518,3 +518,17 @@ def test_the_witness_is_a_checked_config_key() -> None:
         loads_config(base + "  audit: {witness: 'witness.sth'}\n", env={})
     [issue] = info.value.issues
     assert issue.path == "$.bridge.audit.witness" and "file://" in issue.message
+
+
+def test_a_failed_atomic_write_leaves_no_temporary_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from rcan_rtps.governance import _durable
+
+    def full(fd: int, data: bytes) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(_durable, "write_all", full)
+    with pytest.raises(OSError):
+        _durable.atomic_write(tmp_path / "state", b"x")
+    assert list(tmp_path.iterdir()) == []  # no half-written copy taking the space freed

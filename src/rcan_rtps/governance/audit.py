@@ -465,7 +465,7 @@ def _write_durable(fd: int, data: bytes) -> float:
     return time.perf_counter() - started
 
 
-class _TailUnknown(Exception):
+class _TailUnknown(AuditWriteError):
     """A failed write could not be cut back: what the file ends with is unknown."""
 
 

@@ -532,3 +532,11 @@ def test_a_failed_atomic_write_leaves_no_temporary_file(
     with pytest.raises(OSError):
         _durable.atomic_write(tmp_path / "state", b"x")
     assert list(tmp_path.iterdir()) == []  # no half-written copy taking the space freed
+
+
+def test_the_public_key_beside_the_log_is_the_pem_cryptography_writes(tmp_path: Path) -> None:
+    from cryptography.hazmat.primitives import serialization
+
+    key = audit_mod.load_or_create_key(tmp_path / "k.key")
+    assert audit_mod.public_key_pem(key) == key.public_key().public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo)

@@ -209,12 +209,15 @@ def _load_pem(pem: bytes) -> object:
     return serialization.load_pem_private_key(pem, password=None)
 
 
-def public_key_pem(key: Ed25519PrivateKey) -> bytes:
-    from cryptography.hazmat.primitives import serialization
+# The SubjectPublicKeyInfo DER of an Ed25519 key (RFC 8410) is this prefix and the 32-byte key.
+_SPKI_ED25519 = bytes.fromhex("302a300506032b6570032100")
 
-    return key.public_key().public_bytes(
-        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
-    )
+
+def public_key_pem(key: Ed25519PrivateKey) -> bytes:
+    """The SubjectPublicKeyInfo PEM of `key`'s public key, the bytes `cryptography`'s PEM writer
+    makes; made here for the same reason as `_ed25519_pkcs8_pem` (a run writes it at open)."""
+    der = base64.b64encode(_SPKI_ED25519 + key.public_key().public_bytes_raw())  # one line
+    return b"\n".join((b"-----BEGIN PUBLIC KEY-----", der, b"-----END PUBLIC KEY-----", b""))
 
 
 def load_public_key(path: str | os.PathLike[str]) -> Ed25519PublicKey:

@@ -265,7 +265,8 @@ class Bridge:
     async def _open_audit(self) -> AuditLog:
         audit = self.config.bridge.audit
         # Every entry names the robot it governs (§6): a log read apart from its robot says whose.
-        self.audit = await AuditLog.open(audit.path, audit.key_path, ruri=self.config.robot.ruri)
+        self.audit = await AuditLog.open(audit.path, audit.key_path, ruri=self.config.robot.ruri,
+                                         witness=audit.witness)
         self.audit.listeners.append(log_entry)  # one log line per decision and safety event
         self._on_stop("closing the audit log", self.audit.close)
         return self.audit

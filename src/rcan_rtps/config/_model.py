@@ -285,9 +285,19 @@ class SafetyConfig(_Section, frozen=True, kw_only=True):
     max_angular_accel: Positive | None = None
 
 
+def _witness_problem(url: str | None) -> str | None:
+    if url is None:
+        return None
+    from rcan_rtps.governance.witness import witness_problem  # the witness's own rule
+
+    return witness_problem(url)
+
+
 class AuditConfig(_Section, frozen=True, kw_only=True):
     path: str = "/var/lib/rcan/audit.jsonl"
     key_path: str = "/var/lib/rcan/audit-ed25519.key"
+    # Where each signed tree head is sent (file:///abs/path appended, http(s):// POSTed).
+    witness: Annotated[str | None, _check(_witness_problem)] = None
 
 
 def _estop_role_problem(action_roles: dict[ActionName, RoleName]) -> str | None:

@@ -20,6 +20,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from rcan_rtps.rcan import Effect
+from rcan_rtps.rcan.actions import with_effect
+
 _CHUNK = 64 * 1024
 _ENGAGED = ("ESTOP", "ESTOP_REPEATED")
 _BOUNDARIES = ("BRIDGE_STARTED", "BRIDGE_STOPPED")
@@ -68,21 +71,21 @@ def _apply(state: Resumed, entry: dict[str, Any]) -> None:
         state.latched, state.latched_by = True, entry.get("principal")
     elif event == "ESTOP_CLEARED":
         state.latched, state.latched_by = False, None
-    elif event == "COMMAND_FAILED" and action == "clear_estop":
+    elif event == "COMMAND_FAILED" and action == with_effect(Effect.CLEAR_ESTOP).name:
         # The clear was audited but not persisted (the governor stayed latched).
         state.latched, state.latched_by = True, "a clear that failed"
-    elif entry.get("outcome") == "executed" and action in ("lock", "unlock"):
+    elif entry.get("outcome") == "executed":
         _lock_entry(state, entry, action)
 
 
-def _lock_entry(state: Resumed, entry: dict[str, Any], action: str) -> None:
+def _lock_entry(state: Resumed, entry: dict[str, Any], action: Any) -> None:
     applied = entry.get("applied")
     name = applied.get("name") if isinstance(applied, dict) else None
     if not isinstance(name, str):
         return
-    if action == "lock":
+    if action == with_effect(Effect.LOCK).name:
         state.locks[name] = str(entry.get("principal"))
-    else:
+    elif action == with_effect(Effect.UNLOCK).name:
         state.locks.pop(name, None)
 
 

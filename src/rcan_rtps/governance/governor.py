@@ -102,6 +102,10 @@ class Dispatcher(Protocol):
         """Publish one sample of a velocity stream now; None if sent, else why not."""
         ...
 
+    async def cancel_goal(self, goal_id: str) -> bool:
+        """Cancel one goal `dispatch` started; True if its server is canceling it."""
+        ...
+
 
 class Decision(msgspec.Struct, frozen=True, kw_only=True):
     outcome: Outcome

@@ -45,6 +45,17 @@ class HeartbeatAck(msgspec.Struct, kw_only=True):
     timestamp_ms: int
 
 
+class HeartbeatReply(msgspec.Struct, kw_only=True, omit_defaults=True):
+    """A HEARTBEAT message's reply (POST /api/command, the WebSocket): HeartbeatAck's fields
+    with the message's id and an RCAN 3.x status."""
+
+    ok: bool
+    principal: str
+    timestamp_ms: int
+    status: Literal["ok"]
+    msg_id: str | None = None
+
+
 class AuditPage(msgspec.Struct, kw_only=True):
     """Entries with seq > `since`, verbatim (canonical JSON, so each can be re-verified)."""
 

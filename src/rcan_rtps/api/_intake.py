@@ -26,16 +26,22 @@ from dataclasses import dataclass
 from typing import Any
 
 from rcan_rtps.governance import Governor, Principal, Rejection, outcomes
+from rcan_rtps.governance.clock import SystemClock, now_ms
 from rcan_rtps.rcan import (
+    STATUS_OF,
+    DecisionBody,
+    Envelope,
     ErrorCode,
+    Heartbeat,
     InvalidRuriError,
     NormalizedCommand,
     Outcome,
     SchemaValidationError,
-    validate_command,
+    VersionIncompatibleError,
+    validate_message,
 )
 
-from ._bodies import error_body, failure_reply
+from ._bodies import HeartbeatReply, error_body, failure_reply
 
 log = logging.getLogger(__name__)
 
@@ -46,15 +52,19 @@ Observe = Callable[[float], None]
 TOO_DEEP = "JSON is nested too deeply"
 # A bug in validation must not take a transport down: it is answered (and audited) like this.
 _INTERNAL = Rejection(503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE, "internal_error")
+_WALL = SystemClock()
 
 
 @dataclass(frozen=True)
 class Intake:
-    """A validated command, or the pre-command refusal its body earned (with schema detail)."""
+    """A validated command or HEARTBEAT, or the pre-command refusal its body earned (with
+    schema detail, and the message's id where an RCAN 3.x reply needs it)."""
 
     command: NormalizedCommand | None = None
+    heartbeat: Heartbeat | None = None
     refusal: Rejection | None = None
     detail: str | None = None
+    msg_id: str | None = None
 
     @property
     def stopping(self) -> bool:
@@ -71,16 +81,21 @@ def intake(raw: bytes, limit: int) -> Intake:
     if len(raw) > limit:
         return Intake(refusal=outcomes.PAYLOAD_TOO_LARGE)
     try:
-        return Intake(command=validate_command(raw))
+        message = validate_message(raw)
     except RecursionError:  # msgspec gives up on deep nesting with this, not a DecodeError
         return Intake(refusal=outcomes.schema_failed("$"), detail=TOO_DEEP)
     except SchemaValidationError as exc:
         return Intake(refusal=outcomes.schema_failed(exc.path), detail=exc.detail)
     except InvalidRuriError as exc:
         return Intake(refusal=outcomes.invalid_ruri(exc.rule))
+    except VersionIncompatibleError as exc:
+        return Intake(refusal=outcomes.version_incompatible(exc.rule), msg_id=exc.msg_id)
     except Exception:
         log.exception("validating a command body failed unexpectedly")
         return Intake(refusal=_INTERNAL)
+    if isinstance(message, Heartbeat):
+        return Intake(heartbeat=message)
+    return Intake(command=message)
 
 
 async def decide(governor: Governor, principal: Principal, item: Intake,
@@ -88,13 +103,18 @@ async def decide(governor: Governor, principal: Principal, item: Intake,
     """The decision for one intake; pre-command refusals are audited for the principal."""
     started = time.perf_counter()
     try:
+        if item.heartbeat is not None:
+            return 200, heartbeat(governor, principal, item.heartbeat)
         if item.command is not None:
             decision = await governor.decide(item.command, principal)
-            return decision.http_status, decision.body()
+            return decision.http_status, replied(decision.body(), item.command.envelope)
         assert item.refusal is not None
         decision = await governor.reject_request(principal, item.refusal)
         if item.refusal.error_code is not ErrorCode.SCHEMA_VALIDATION_FAILED:
-            return decision.http_status, decision.body()
+            refused = decision.body()
+            if item.msg_id is not None:
+                refused.msg_id, refused.status = item.msg_id, STATUS_OF[refused.outcome]
+            return decision.http_status, refused
         # Schema failures also say what was wrong where (the reason is the field path).
         body = error_body(ErrorCode.SCHEMA_VALIDATION_FAILED, reason=item.detail,
                           path=item.refusal.reason, audit_id=decision.audit_id)
@@ -102,6 +122,21 @@ async def decide(governor: Governor, principal: Principal, item: Intake,
     finally:
         if observe is not None:
             observe(time.perf_counter() - started)
+
+
+def replied(body: DecisionBody, envelope: Envelope | None) -> DecisionBody:
+    """A decision's body; for a message of the RCAN 3.x generation also its id and status."""
+    if envelope is not None:
+        body.msg_id = envelope.msg_id or body.message_id
+        body.status = STATUS_OF[body.outcome]
+    return body
+
+
+def heartbeat(governor: Governor, principal: Principal, beat: Heartbeat) -> HeartbeatReply:
+    """A HEARTBEAT keeps its sender's control session alive; it is not audited."""
+    governor.heartbeat(principal)
+    return HeartbeatReply(ok=True, principal=principal.name, timestamp_ms=now_ms(_WALL),
+                          msg_id=beat.message_id, status="ok")
 
 
 async def decide_safely(governor: Governor, principal: Principal, item: Intake,

@@ -104,10 +104,13 @@ class AuditRecord(msgspec.Struct, kw_only=True, frozen=True):
     warnings: list[str] | None = None
     # A stop's signals went out before this entry was durable (they never wait for the disk).
     sent_first: bool | None = None
+    # An RCAN 3.x message's envelope facts: version, ignored fields, firmware_hash,
+    # attestation_ref, signature (see rcan._v3.Envelope.audit_facts).
+    rcan: dict[str, Any] | None = None
 
 
 # Left out of an entry when None: older entries never had them.
-_OPTIONAL = frozenset({"ai", "pending_id", "warnings", "sent_first"})
+_OPTIONAL = frozenset({"ai", "pending_id", "warnings", "sent_first", "rcan"})
 
 
 class AuditReceipt(msgspec.Struct, frozen=True):

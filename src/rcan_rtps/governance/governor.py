@@ -949,6 +949,7 @@ def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
         deny_reason=rejection.deny_reason if rejection else None, ai=ai,
         ros2_topic=ros2_topic, pending_id=pending_id,
         warnings=list(command.warnings) or None, sent_first=sent_first,
+        rcan=command.envelope.audit_facts() if command.envelope is not None else None,
     )
 
 

@@ -63,6 +63,15 @@ def robot_unavailable(detail: str | None) -> Rejection:
     return Rejection(503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE, detail)
 
 
+# RCAN 3.x: §3.5 versions, §8.3 replay window (the profile's "Two generations").
+MESSAGE_STALE = Rejection(408, D, ErrorCode.MESSAGE_STALE)
+REPLAY_DETECTED = Rejection(409, D, ErrorCode.REPLAY_DETECTED)
+
+
+def version_incompatible(rule: str) -> Rejection:
+    return Rejection(400, D, ErrorCode.VERSION_INCOMPATIBLE, rule)
+
+
 def schema_failed(path: str) -> Rejection:
     return Rejection(400, D, ErrorCode.SCHEMA_VALIDATION_FAILED, path)
 

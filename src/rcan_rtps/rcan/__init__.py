@@ -3,6 +3,8 @@
 Public API (everything else is private)::
 
     validate_command(raw) -> NormalizedCommand     raises SchemaValidationError / InvalidRuriError
+                                                   / VersionIncompatibleError
+    validate_message(raw) -> NormalizedCommand | Heartbeat   the same, HEARTBEAT included
     decode_object(raw) -> dict                     a JSON object with unique keys, else
                                                    SchemaValidationError
     parse_ruri(text) -> Ruri                       raises InvalidRuriError
@@ -16,7 +18,12 @@ from ._enums import (
     Role,
     RoleName,
 )
-from ._errors import InvalidRuriError, RcanError, SchemaValidationError
+from ._errors import (
+    InvalidRuriError,
+    RcanError,
+    SchemaValidationError,
+    VersionIncompatibleError,
+)
 from ._messages import (
     AiInfo,
     Authorize,
@@ -35,10 +42,17 @@ from ._messages import (
     Telemetry,
     Velocity,
 )
-from ._ruri import Ruri, parse_ruri
+from ._ruri import RobotId, Ruri, parse_ruri
 from ._schema import openapi_schemas
 from ._types import ActionParams
-from ._validate import convert_at, decode_object, validate_command, validation_path
+from ._v3 import SPOKEN, STATUS_OF, Envelope, Heartbeat, RcanCommand, Signature
+from ._validate import (
+    convert_at,
+    decode_object,
+    validate_command,
+    validate_message,
+    validation_path,
+)
 from .actions import (
     ACTIONS,
     ActionName,
@@ -55,6 +69,8 @@ from .actions import (
 
 __all__ = [
     "ACTIONS",
+    "SPOKEN",
+    "STATUS_OF",
     "ActionName",
     "ActionParams",
     "ActionSpec",
@@ -63,11 +79,13 @@ __all__ = [
     "Authorize",
     "DecisionBody",
     "Effect",
+    "Envelope",
     "EnvelopeCommand",
     "ErrorBody",
     "ErrorCode",
     "Fault",
     "GateableName",
+    "Heartbeat",
     "InvalidRuriError",
     "Invariant",
     "Joints",
@@ -79,22 +97,27 @@ __all__ = [
     "Outcome",
     "PendingAuth",
     "Position",
+    "RcanCommand",
     "RcanError",
     "Reason",
+    "RobotId",
     "Role",
     "RoleName",
     "RosInfo",
     "Ruri",
     "SchemaValidationError",
     "ShortCommand",
+    "Signature",
     "Status",
     "Telemetry",
     "Velocity",
+    "VersionIncompatibleError",
     "action_spec",
     "convert_at",
     "decode_object",
     "openapi_schemas",
     "parse_ruri",
     "validate_command",
+    "validate_message",
     "validation_path",
 ]

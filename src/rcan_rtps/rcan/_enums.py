@@ -37,6 +37,10 @@ class ErrorCode(str, enum.Enum):
     PAYLOAD_TOO_LARGE = "PAYLOAD_TOO_LARGE"
     INVALID_RURI = "INVALID_RURI"
     MESSAGE_ID_CONFLICT = "MESSAGE_ID_CONFLICT"
+    # RCAN 3.x (see docs/rcan-profile.md, "Two generations")
+    VERSION_INCOMPATIBLE = "VERSION_INCOMPATIBLE"  # §3.5: rcan_version of another MAJOR
+    MESSAGE_STALE = "MESSAGE_STALE"  # §8.3: timestamp outside the replay window
+    REPLAY_DETECTED = "REPLAY_DETECTED"  # §8.3: msg_id already seen within the window
 
 
 class Reason(str, enum.Enum):

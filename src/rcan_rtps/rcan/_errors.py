@@ -2,7 +2,8 @@
 
     RcanError
     ├── SchemaValidationError   a body breaks the schema (error_code SCHEMA_VALIDATION_FAILED, path)
-    └── InvalidRuriError        a RURI breaks the profile's grammar (error_code INVALID_RURI)
+    ├── InvalidRuriError        a RURI breaks the profile's grammar (error_code INVALID_RURI)
+    └── VersionIncompatibleError  `rcan_version` of a MAJOR this bridge does not speak (§3.5)
 """
 
 from __future__ import annotations
@@ -30,3 +31,13 @@ class InvalidRuriError(RcanError):
         super().__init__(f"invalid RURI {ruri!r}: {rule}")
         self.ruri = ruri
         self.rule = rule
+
+
+class VersionIncompatibleError(RcanError):
+    error_code = "VERSION_INCOMPATIBLE"
+
+    def __init__(self, version: str, rule: str, msg_id: str | None = None) -> None:
+        super().__init__(f"rcan_version {version!r}: {rule}")
+        self.version = version
+        self.rule = rule
+        self.msg_id = msg_id  # the refused message's, when it had a readable one

@@ -8,6 +8,7 @@ import msgspec
 
 from ._enums import RoleName
 from ._types import ActionParams, Confidence, MessageId, ShortText, Strict
+from ._v3 import Envelope, Status3, VersionText
 from .actions import ActionName, ActionSpec, action_spec
 
 
@@ -44,6 +45,7 @@ class EnvelopeCommand(Strict, frozen=True):
     timestamp_ms: Annotated[int, msgspec.Meta(ge=0)] | None = None
     priority: Annotated[int, msgspec.Meta(ge=0, le=255)] = 0
     ai: AiInfo | None = None
+    rcan_version: VersionText | None = None  # present: §3.5 applies (see `_v3`)
 
 
 class SafetyMessage(Strict, frozen=True):
@@ -57,6 +59,7 @@ class SafetyMessage(Strict, frozen=True):
     reason: Annotated[str, msgspec.Meta(max_length=512)] | None = None
     timestamp_ms: Annotated[int, msgspec.Meta(ge=0)] | None = None
     message_id: MessageId | None = None
+    rcan_version: VersionText | None = None  # the SDK leaves it out; present: §3.5 applies
 
 
 class NormalizedCommand(msgspec.Struct, frozen=True, kw_only=True):
@@ -74,6 +77,8 @@ class NormalizedCommand(msgspec.Struct, frozen=True, kw_only=True):
     claimed_role: Any = None
     # What was wrong with a stop that was executed anyway (audited, and in its reply).
     warnings: tuple[str, ...] = ()
+    # A message of the RCAN 3.x generation: what it carried beyond the command (`_v3`).
+    envelope: Envelope | None = None
 
     @property
     def spec(self) -> ActionSpec[Any]:
@@ -98,6 +103,11 @@ class DecisionBody(msgspec.Struct, omit_defaults=True, kw_only=True):
     goal_id: str | None = None  # navigate: follow it at GET /api/goals/{goal_id}
     ros2_topic: str | None = None  # where the command went on the ROS 2 graph
     warnings: list[str] | None = None  # a stop executed although its body had these problems
+    # Replies to RCAN 3.x messages (rcan.message.RCANResponse): the message's id, and `outcome`
+    # as its status (executed → ok, pending_auth → pending, denied or safety_violation →
+    # blocked, failed → error).
+    msg_id: str | None = None
+    status: Status3 | None = None
 
 
 class ErrorBody(msgspec.Struct, omit_defaults=True, kw_only=True):

@@ -108,7 +108,8 @@ def salvage_stop(action: str, obj: dict[str, Any], problems: list[str],
     """The stop `action` from a body that failed validation for `problems`."""
     warnings: list[str] = []
     requested = _requested(obj)
-    message_id, client_id = _message_id(obj.get("message_id"), new_id, warnings)
+    message_id, client_id = _message_id(obj.get("message_id", obj.get("msg_id")), new_id,
+                                        warnings)
     if warnings:  # the id's own warning says more than the schema's
         problems = [p for p in problems if not p.startswith("$.message_id:")]
     warnings[:0] = problems
@@ -118,7 +119,7 @@ def salvage_stop(action: str, obj: dict[str, Any], problems: list[str],
         requested=requested,
         message_id=message_id,
         client_message_id=client_id,
-        ruri=_ruri(obj.get("ruri"), warnings),
+        ruri=_ruri(obj.get("ruri", obj.get("target")), warnings),
         timestamp_ms=_timestamp(obj.get("timestamp_ms")),
         ai=_ai(obj, warnings),
         claimed_role=next((obj[k] for k in reversed(_ROLE_CLAIMS) if k in obj), None),

@@ -11,16 +11,29 @@ from typing import Any, TypeVar
 
 import msgspec
 
-from ._errors import InvalidRuriError, SchemaValidationError
+from ._errors import InvalidRuriError, SchemaValidationError, VersionIncompatibleError
 from ._messages import AiInfo, EnvelopeCommand, NormalizedCommand, SafetyMessage, ShortCommand
 from ._ruri import parse_ruri
 from ._salvage import duplicate_key, salvage_stop, stop_intent
 from ._types import ActionParams
-from .actions import Effect, action_spec, with_effect
+from ._v3 import (
+    Envelope,
+    Heartbeat,
+    HeartbeatMessage,
+    RcanCommand,
+    message_version,
+    normal_id,
+    signed_bytes,
+    split_known,
+)
+from .actions import Effect, action_spec, names, with_effect
 
 _AT = re.compile(r"^(?P<detail>.*?)(?: - at `(?P<path>[^`]*)`)?$", re.DOTALL)
 _ROLE_CLAIMS = ("role", "role_level")
 SAFETY_MESSAGE_TYPE = 6  # RCAN SAFETY: ESTOP, STOP, RESUME
+HEARTBEAT_MESSAGE_TYPE = 4
+_V3_KEYS = ("rcan", "rcan_version", "cmd")  # the SDK's COMMAND (no message_type)
+_MESSAGE_ERRORS = (SchemaValidationError, InvalidRuriError, VersionIncompatibleError)
 # Overflowing literals (1e400) become ±inf here so the typed pass rejects them *with* their path.
 _DECODER = msgspec.json.Decoder(float_hook=float)
 
@@ -83,7 +96,18 @@ def decode_object(raw: bytes) -> dict[str, Any]:
 def validate_command(
     raw: bytes, *, new_id: Callable[[], str] = new_message_id
 ) -> NormalizedCommand:
-    """Decode and validate a COMMAND body in any form; never trusts a number it did not check.
+    """`validate_message` for a body that must be a command (a HEARTBEAT is a schema error)."""
+    message = validate_message(raw, new_id=new_id)
+    if isinstance(message, Heartbeat):
+        raise SchemaValidationError("$.message_type", "a HEARTBEAT is not a command")
+    return message
+
+
+def validate_message(
+    raw: bytes, *, new_id: Callable[[], str] = new_message_id
+) -> NormalizedCommand | Heartbeat:
+    """Decode and validate a COMMAND, SAFETY or HEARTBEAT body in any form of either
+    generation; never trusts a number it did not check.
 
     A `role`/`role_level` in the body is kept as `claimed_role` for the governor to refuse
     (INSUFFICIENT_PRIVILEGES); the role itself always comes from authentication.
@@ -91,8 +115,10 @@ def validate_command(
     Stops are the most forgiving input: a JSON object in which any `action` (or `cmd`) is
     `estop`/`stop`, or an RCAN SAFETY message whose `safety_event` is ESTOP/STOP, becomes that
     stop whatever else is wrong with it (duplicate keys, unknown fields, a malformed
-    `message_id`, …); the problems travel with it as `warnings`. Any other body with a
-    duplicate key is refused: which value counts would be the parser's guess.
+    `message_id`, an incompatible `rcan_version`, …); the problems travel with it as
+    `warnings`. A body that is valid as something else but also says stop somewhere (an
+    ignored field of a newer MINOR, say) is that stop too. Any other body with a duplicate key
+    is refused: which value counts would be the parser's guess.
     """
     obj = _decode(raw)
     duplicate = duplicate_key(raw, obj)
@@ -103,11 +129,15 @@ def validate_command(
         return salvage_stop(stop, obj, [f"{duplicate.path}: duplicate key {duplicate.key!r}"],
                             new_id)
     try:
-        return _strict(dict(obj), new_id)
-    except (SchemaValidationError, InvalidRuriError) as exc:
+        message = _strict(dict(obj), new_id)
+    except _MESSAGE_ERRORS as exc:
         if stop is None:
             raise
         return salvage_stop(stop, obj, [_problem(exc)], new_id)
+    said = message.action if isinstance(message, NormalizedCommand) else "a heartbeat"
+    if stop is not None and said != stop:
+        return salvage_stop(stop, obj, [f"$: says {stop} beside {said}: {stop} it is"], new_id)
+    return message
 
 
 def _decode(raw: bytes) -> dict[str, Any]:
@@ -124,21 +154,44 @@ def _decode(raw: bytes) -> dict[str, Any]:
     return obj
 
 
-def _strict(obj: dict[str, Any], new_id: Callable[[], str]) -> NormalizedCommand:
+def _strict(obj: dict[str, Any], new_id: Callable[[], str]) -> NormalizedCommand | Heartbeat:
     claimed = {k: obj.pop(k) for k in _ROLE_CLAIMS if k in obj}
     claimed_role = claimed.get("role_level", claimed.get("role"))
+    version = message_version(obj)  # §3.5: first, before anything else is looked at
     kind = obj.get("message_type")
     if kind == SAFETY_MESSAGE_TYPE:
-        return _from_safety(convert_at(obj, SafetyMessage, "$"), claimed_role, new_id)
+        safety, ignored = _known(obj, SafetyMessage, version)
+        return _from_safety(safety, claimed_role, new_id, ignored)
+    if kind == HEARTBEAT_MESSAGE_TYPE:
+        beat, ignored = _known(obj, HeartbeatMessage, version)
+        return _heartbeat(beat, ignored)
     if "message_type" in obj:
-        return _from_envelope(convert_at(obj, EnvelopeCommand, "$"), claimed_role, new_id)
+        envelope, ignored = _known(obj, EnvelopeCommand, version)
+        return _from_envelope(envelope, claimed_role, new_id, ignored)
+    if any(key in obj for key in _V3_KEYS):
+        if version is None:
+            raise SchemaValidationError("$.rcan", "required: the RCAN version this COMMAND "
+                                        "speaks (the SDK writes rcan and rcan_version)")
+        command, ignored = _known(obj, RcanCommand, version)
+        return _from_v3(command, obj, claimed_role, ignored)
     return _from_short(convert_at(obj, ShortCommand, "$"), claimed_role, new_id)
 
 
-def _problem(exc: SchemaValidationError | InvalidRuriError) -> str:
+def _known(obj: dict[str, Any], kind: type[T], version: str | None) -> tuple[T, tuple[str, ...]]:
+    """`obj` as `kind`: with an rcan_version, unknown envelope fields are ignored (§3.5) and
+    named; without one, they are errors (the 1.2 forms and the SDK's SAFETY stay strict)."""
+    ignored: tuple[str, ...] = ()
+    if version is not None:
+        obj, ignored = split_known(obj, kind)
+    return convert_at(obj, kind, "$"), ignored
+
+
+def _problem(exc: Exception) -> str:
     if isinstance(exc, SchemaValidationError):
         return f"{exc.path}: {exc.detail}"
-    return f"invalid RURI {exc.ruri!r}: {exc.rule}"
+    if isinstance(exc, InvalidRuriError):
+        return f"invalid RURI {exc.ruri!r}: {exc.rule}"
+    return str(exc)
 
 
 def _params(action: str, raw: dict[str, Any], prefix: str) -> ActionParams:
@@ -179,9 +232,14 @@ def _from_short(
 
 
 def _from_envelope(
-    cmd: EnvelopeCommand, claimed_role: Any, new_id: Callable[[], str]
+    cmd: EnvelopeCommand, claimed_role: Any, new_id: Callable[[], str],
+    ignored: tuple[str, ...] = (),
 ) -> NormalizedCommand:
     parse_ruri(cmd.ruri)
+    envelope = None
+    if cmd.rcan_version is not None:
+        envelope = Envelope(version=cmd.rcan_version, msg_id=cmd.message_id, ignored=ignored,
+                            sent_at_s=_seconds(cmd.timestamp_ms))
     return NormalizedCommand(
         action=cmd.action,
         params=_params(cmd.action, cmd.parameters, "$.parameters"),
@@ -193,6 +251,7 @@ def _from_envelope(
         priority=cmd.priority,
         ai=cmd.ai,
         claimed_role=claimed_role,
+        envelope=envelope,
     )
 
 
@@ -200,7 +259,8 @@ _SAFETY_EFFECTS = {"ESTOP": Effect.ESTOP, "STOP": Effect.HALT, "RESUME": Effect.
 
 
 def _from_safety(
-    msg: SafetyMessage, claimed_role: Any, new_id: Callable[[], str]
+    msg: SafetyMessage, claimed_role: Any, new_id: Callable[[], str],
+    ignored: tuple[str, ...] = (),
 ) -> NormalizedCommand:
     parse_ruri(msg.ruri)
     action = with_effect(_SAFETY_EFFECTS[msg.safety_event]).name
@@ -215,4 +275,56 @@ def _from_safety(
         ruri=msg.ruri,
         timestamp_ms=msg.timestamp_ms,
         claimed_role=claimed_role,
+        envelope=Envelope(version=msg.rcan_version, msg_id=msg.message_id, safety=True,
+                          ignored=ignored, sent_at_s=_seconds(msg.timestamp_ms)),
     )
+
+
+def _seconds(ms: int | None) -> float | None:
+    return None if ms is None else ms / 1000.0
+
+
+def _heartbeat(beat: HeartbeatMessage, ignored: tuple[str, ...]) -> Heartbeat:
+    if beat.ruri is not None:
+        parse_ruri(beat.ruri)
+    return Heartbeat(message_id=beat.message_id, envelope=Envelope(
+        version=beat.rcan_version, msg_id=beat.message_id, ignored=ignored,
+        sent_at_s=_seconds(beat.timestamp_ms)))
+
+
+def _from_v3(cmd: RcanCommand, obj: dict[str, Any], claimed_role: Any,
+             ignored: tuple[str, ...]) -> NormalizedCommand:
+    """The SDK's COMMAND: `cmd` names a registry action, `params` are its parameters."""
+    if cmd.cmd not in names():
+        raise SchemaValidationError("$.cmd", f"unknown action {cmd.cmd!r} (this robot's: "
+                                    f"{', '.join(names())})")
+    parse_ruri(cmd.target)
+    ai = _v3_ai(cmd)
+    version = cmd.rcan_version or cmd.rcan
+    return NormalizedCommand(
+        action=cmd.cmd,
+        params=_params(cmd.cmd, cmd.params, "$.params"),
+        requested=cmd.params,
+        message_id=normal_id(cmd.msg_id),
+        client_message_id=True,
+        ruri=cmd.target,
+        timestamp_ms=int(cmd.timestamp * 1000),
+        ai=ai,
+        claimed_role=claimed_role,
+        envelope=Envelope(
+            version=version, msg_id=cmd.msg_id, sent_at_s=cmd.timestamp, ignored=ignored,
+            firmware_hash=cmd.firmware_hash, attestation_ref=cmd.attestation_ref, sig=cmd.sig,
+            signed=signed_bytes(obj) if cmd.sig is not None else None),
+    )
+
+
+def _v3_ai(cmd: RcanCommand) -> AiInfo | None:
+    """The SDK's top-level `confidence`, with our `ai` block's provider/model/thought_id."""
+    ai = None if cmd.ai is None else convert_at(cmd.ai, AiInfo, "$.ai")
+    if cmd.confidence is None:
+        return ai
+    if ai is None:
+        return AiInfo(confidence=cmd.confidence)
+    if ai.confidence is not None and ai.confidence != cmd.confidence:
+        raise SchemaValidationError("$.ai.confidence", "differs from confidence")
+    return msgspec.structs.replace(ai, confidence=cmd.confidence)

@@ -161,7 +161,7 @@ class Api:
         governor = self.governor
         self.robot.estop_latched = lambda: governor.latch.latched
         self.app = build_app(governor=self.governor, authenticator=authenticator,
-                             robot=self.robot, config=self.config)
+                             robot=self.robot, config=self.config, clock=self.clock)
         return self.app
 
     async def close(self) -> None:

@@ -18,7 +18,7 @@ from rcan_rtps.rcan import ErrorCode, convert_at, decode_object
 
 from ._bodies import error_body
 from ._errors import BodyTimeout
-from ._intake import Observe, Reply, decide, intake
+from ._intake import NO_CHECKS, Checks, Observe, Reply, decide, intake
 
 T = TypeVar("T")
 
@@ -68,9 +68,9 @@ async def schema_failure(governor: Governor, principal: Principal, path: str,
 
 
 async def run_command(governor: Governor, principal: Principal, raw: bytes,
-                      observe: Observe | None = None) -> Reply:
+                      observe: Observe | None = None, checks: Checks = NO_CHECKS) -> Reply:
     """A whole body, already within the size limit, to its reply."""
-    return await decide(governor, principal, intake(raw, len(raw)), observe)
+    return await decide(governor, principal, intake(raw, len(raw), checks), observe)
 
 
 def decode_as(raw: bytes, kind: type[T]) -> T:

@@ -25,8 +25,11 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
+import msgspec
+
 from rcan_rtps.governance import Governor, Principal, Rejection, outcomes
 from rcan_rtps.governance.clock import SystemClock, now_ms
+from rcan_rtps.governance.replay import ReplayWindow
 from rcan_rtps.rcan import (
     STATUS_OF,
     DecisionBody,
@@ -56,6 +59,16 @@ _WALL = SystemClock()
 
 
 @dataclass(frozen=True)
+class Checks:
+    """What every transport checks of an RCAN 3.x message beyond its schema (§8.3)."""
+
+    replay: ReplayWindow | None = None
+
+
+NO_CHECKS = Checks()
+
+
+@dataclass(frozen=True)
 class Intake:
     """A validated command or HEARTBEAT, or the pre-command refusal its body earned (with
     schema detail, and the message's id where an RCAN 3.x reply needs it)."""
@@ -76,8 +89,9 @@ class Intake:
         return None if self.command is None else self.command.message_id
 
 
-def intake(raw: bytes, limit: int) -> Intake:
-    """Size check, then `validate_command`; every failure becomes a refusal, never a raise."""
+def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS) -> Intake:
+    """Size check, `validate_message`, then the replay window; every failure becomes a
+    refusal, never a raise. A stale or replayed stop is still that stop, with a warning."""
     if len(raw) > limit:
         return Intake(refusal=outcomes.PAYLOAD_TOO_LARGE)
     try:
@@ -93,9 +107,25 @@ def intake(raw: bytes, limit: int) -> Intake:
     except Exception:
         log.exception("validating a command body failed unexpectedly")
         return Intake(refusal=_INTERNAL)
-    if isinstance(message, Heartbeat):
-        return Intake(heartbeat=message)
-    return Intake(command=message)
+    refusal = _replay_refusal(message, checks.replay)
+    if refusal is None:
+        if isinstance(message, Heartbeat):
+            return Intake(heartbeat=message)
+        return Intake(command=message)
+    if isinstance(message, NormalizedCommand) and message.spec.stopping:
+        warning = f"{refusal.deny_reason}: stopped all the same (a stop always stops)"
+        return Intake(command=msgspec.structs.replace(
+            message, warnings=(*message.warnings, warning)))
+    assert message.envelope is not None  # only envelopes are checked
+    return Intake(refusal=refusal, msg_id=message.envelope.msg_id)
+
+
+def _replay_refusal(message: NormalizedCommand | Heartbeat,
+                    window: ReplayWindow | None) -> Rejection | None:
+    envelope = message.envelope
+    if window is None or envelope is None or not envelope.replay_checked:
+        return None
+    return window.check(envelope.msg_id, envelope.sent_at_s, safety=envelope.safety)
 
 
 async def decide(governor: Governor, principal: Principal, item: Intake,
@@ -109,7 +139,8 @@ async def decide(governor: Governor, principal: Principal, item: Intake,
             decision = await governor.decide(item.command, principal)
             return decision.http_status, replied(decision.body(), item.command.envelope)
         assert item.refusal is not None
-        decision = await governor.reject_request(principal, item.refusal)
+        decision = await governor.reject_request(principal, item.refusal,
+                                                 message_id=item.msg_id)
         if item.refusal.error_code is not ErrorCode.SCHEMA_VALIDATION_FAILED:
             refused = decision.body()
             if item.msg_id is not None:

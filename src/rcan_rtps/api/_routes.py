@@ -17,7 +17,7 @@ from ._bodies import (
     json_response,
 )
 from ._commands import decode_as, read_limited, run_command, schema_failure, too_large
-from ._keys import GOVERNOR, OBSERVE, PRINCIPAL, READS, ROBOT, SETTINGS, STATUS
+from ._keys import CHECKS, GOVERNOR, OBSERVE, PRINCIPAL, READS, ROBOT, SETTINGS, STATUS
 from ._reads import line_seq
 
 _WALL = SystemClock()
@@ -46,7 +46,8 @@ async def post_command(request: web.Request) -> web.Response:
         response = json_response(body, status)
         response.force_close()  # the rest of the body is not worth reading
         return response
-    status, body = await run_command(governor, principal, raw, request.app[OBSERVE])
+    status, body = await run_command(governor, principal, raw, request.app[OBSERVE],
+                                     request.app[CHECKS])
     return json_response(body, status)
 
 

@@ -31,8 +31,27 @@ from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.rcan import ErrorCode
 
 from ._bodies import WsFrame, error_body
-from ._intake import Intake, Observe, Reply, StopLane, decide_safely, intake
-from ._keys import GOAL_EVENTS, GOVERNOR, OBSERVE, PRINCIPAL, SETTINGS, SOCKETS, STATUS, ApiSettings
+from ._intake import (
+    NO_CHECKS,
+    Checks,
+    Intake,
+    Observe,
+    Reply,
+    StopLane,
+    decide_safely,
+    intake,
+)
+from ._keys import (
+    CHECKS,
+    GOAL_EVENTS,
+    GOVERNOR,
+    OBSERVE,
+    PRINCIPAL,
+    SETTINGS,
+    SOCKETS,
+    STATUS,
+    ApiSettings,
+)
 
 log = logging.getLogger(__name__)
 _CLOSING = (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED, WSMsgType.ERROR)
@@ -78,8 +97,10 @@ class _Commands:
     with a bounded backlog. Nothing that goes wrong deciding one command stops the next."""
 
     def __init__(self, ws: web.WebSocketResponse, governor: Governor, principal: Principal,
-                 settings: ApiSettings, observe: Observe | None = None) -> None:
+                 settings: ApiSettings, observe: Observe | None = None,
+                 checks: Checks = NO_CHECKS) -> None:
         self._ws = ws
+        self._checks = checks
         self._observe = observe
         self._governor = governor
         self._principal = principal
@@ -92,7 +113,7 @@ class _Commands:
 
     async def take(self, raw: bytes) -> None:
         """Validate now; a stop is decided at once (never 429), anything else queues."""
-        item = intake(raw, self._limit)
+        item = intake(raw, self._limit, self._checks)
         if item.stopping:
             await self._lane.submit(item)
             return
@@ -136,7 +157,7 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
                                max_msg_size=settings.max_body_bytes * _FRAME_CAP_FACTOR)
     await ws.prepare(request)
     app[SOCKETS].add(ws)
-    commands = _Commands(ws, governor, principal, settings, app[OBSERVE])
+    commands = _Commands(ws, governor, principal, settings, app[OBSERVE], app[CHECKS])
     pushers = (asyncio.create_task(_push(ws, app[STATUS].subscribe, "status")),
                asyncio.create_task(_push(ws, app[GOAL_EVENTS].subscribe, "goal")))
     try:

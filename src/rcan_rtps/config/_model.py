@@ -340,6 +340,15 @@ class MotionConfig(_Section, frozen=True, kw_only=True):
     locks: Annotated[list[MotionLock], _check(_repeated_lock_problem)] = []
 
 
+class SecurityConfig(_Section, frozen=True, kw_only=True):
+    """RCAN §8.3 for messages carrying rcan_version >= 1.5 (the spec's `security` keys)."""
+
+    replay_window_s: Annotated[float, msgspec.Meta(ge=5.0, le=300.0)] = 30.0
+    msg_id_cache_size: Annotated[int, msgspec.Meta(ge=100, le=1_000_000)] = 10_000
+    # A sender's clock may run this far ahead of the bridge's (§8.4's drift tolerance).
+    clock_ahead_s: Annotated[float, msgspec.Meta(ge=0.0, le=60.0)] = 5.0
+
+
 class BridgeConfig(_Section, frozen=True, kw_only=True):
     type: Literal["ros2"] = "ros2"
     ros2: Ros2Config = Ros2Config()
@@ -349,6 +358,7 @@ class BridgeConfig(_Section, frozen=True, kw_only=True):
     audit: AuditConfig = AuditConfig()
     rbac: RbacConfig = RbacConfig()
     motion: MotionConfig = MotionConfig()
+    security: SecurityConfig = SecurityConfig()
 
 
 class RcanConfig(_Section, frozen=True, kw_only=True):

@@ -1,0 +1,77 @@
+"""§8.3 replay window for messages carrying rcan_version >= 1.5: fresh, and never seen before.
+
+A message is stale when its sender's timestamp is more than `window_s` old (`safety_window_s`
+for SAFETY messages), or more than `ahead_s` in the future (the sender's clock may run a little
+ahead of ours; more than that is not drift). A fresh message whose `msg_id` was seen while that
+id could still be fresh is a replay. Ids are kept until the message they came with goes stale,
+at most `max_entries` of them: when that many fresh ids are held, new messages are refused
+(`replay_window_full`) rather than an id forgotten while a replay of it would still pass —
+stops are never refused (their callers turn any refusal into a warning).
+
+The 1.2 forms and unversioned messages keep the idempotent retry instead (the governor's).
+"""
+
+from __future__ import annotations
+
+import heapq
+
+from rcan_rtps.rcan import ErrorCode, Outcome
+
+from . import outcomes
+from .clock import Clock
+from .outcomes import Rejection
+
+DEFAULT_WINDOW_S = 30.0
+SAFETY_WINDOW_S = 10.0  # §8.3: a SAFETY message's window is never longer
+DEFAULT_AHEAD_S = 5.0  # §8.4's clock-drift tolerance
+DEFAULT_MAX_ENTRIES = 10_000
+WINDOW_FULL = Rejection(429, Outcome.DENIED, ErrorCode.RATE_LIMITED, "replay_window_full")
+
+
+class ReplayWindow:
+    def __init__(self, clock: Clock, *, window_s: float = DEFAULT_WINDOW_S,
+                 ahead_s: float = DEFAULT_AHEAD_S,
+                 max_entries: int = DEFAULT_MAX_ENTRIES) -> None:
+        self._clock = clock
+        self.window_s = window_s
+        self.safety_window_s = min(window_s, SAFETY_WINDOW_S)
+        self.ahead_s = ahead_s
+        self._max = max_entries
+        self._seen: dict[str, float] = {}  # msg_id → when it goes stale (wall clock)
+        self._expiry: list[tuple[float, str]] = []  # the same, soonest first
+
+    def __len__(self) -> int:
+        return len(self._seen)
+
+    def check(self, msg_id: str | None, sent_at_s: float | None, *,
+              safety: bool = False) -> Rejection | None:
+        """None if the message may go on (its id is then remembered), else why not."""
+        now = self._clock.time()
+        window = self.safety_window_s if safety else self.window_s
+        if sent_at_s is None:
+            return _stale("no_timestamp")
+        if now - sent_at_s > window:
+            return _stale(f"older_than_{window:g}_s")
+        if sent_at_s - now > self.ahead_s:
+            return _stale(f"more_than_{self.ahead_s:g}_s_ahead")
+        if msg_id is None:  # nothing to remember it by: fresh is all that can be said
+            return None
+        self._forget_stale(now)
+        if msg_id in self._seen:
+            return outcomes.REPLAY_DETECTED
+        if len(self._seen) >= self._max:
+            return WINDOW_FULL
+        expires = sent_at_s + window
+        self._seen[msg_id] = expires
+        heapq.heappush(self._expiry, (expires, msg_id))
+        return None
+
+    def _forget_stale(self, now: float) -> None:
+        while self._expiry and self._expiry[0][0] < now:
+            _, msg_id = heapq.heappop(self._expiry)
+            self._seen.pop(msg_id, None)
+
+
+def _stale(reason: str) -> Rejection:
+    return Rejection(outcomes.MESSAGE_STALE.http_status, Outcome.DENIED, ErrorCode.MESSAGE_STALE,
+                     reason)

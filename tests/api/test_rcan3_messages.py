@@ -15,7 +15,8 @@ import pytest
 from rcan.message import RCANMessage, RCANResponse
 from rcan.safety import make_estop_message, make_resume_message
 
-from tests.api.apihelpers import RURI, Api
+from tests.api.apihelpers import RURI, Api, auth
+from tests.api.test_ws import _frame
 
 # The robot of apihelpers (configured in the 1.2 form), addressed in the 2.1+ form the SDK
 # insists on: the same robot.
@@ -183,3 +184,15 @@ async def test_the_heartbeat_shape_is_rcan_specs(api: Api) -> None:
         assert (status, body["status"]) == (200, "ok"), body
     status, body = await api.command("viewer", heartbeat(api, load=0.3))
     assert (status, "`load`" in body["reason"]) == (400, True), body
+
+
+async def test_the_websocket_speaks_the_sdks_messages_too(api: Api) -> None:
+    """Same intake as REST: SDK COMMAND, HEARTBEAT, and the replay window."""
+    msg = sdk_command(api, "move", {"linear_x": 0.2, "duration_s": 1.0})
+    async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
+        for body, http, status in ((msg, 200, "ok"), (heartbeat(api), 200, "ok"),
+                                   (msg, 409, "blocked")):
+            await ws.send_str(json.dumps(body))
+            frame = await _frame(ws, "outcome")
+            assert (frame["http_status"], frame["body"]["status"]) == (http, status), frame
+    assert [a for a, _ in api.dispatcher.calls] == ["move"]

@@ -29,7 +29,10 @@ from rcan_rtps.rcan._messages import Position, RosInfo, Telemetry
 
 RURI = "rcan://registry.local/clearpath/husky/a200-0001"
 ROLES = {"viewer": "GUEST", "planner": "USER", "lessee": "LEASEE", "ops": "OWNER",
-         "root": "CREATOR", "ops2": "OWNER", "slow": "USER"}
+         "root": "CREATOR", "ops2": "OWNER", "slow": "USER",
+         # RCAN v2's names for roles (issue 24): OPERATOR = USER, ADMIN = OWNER, …
+         "operator": "OPERATOR", "admin": "ADMIN", "contributor": "CONTRIBUTOR",
+         "peer": "M2M_PEER"}
 TOKENS = {name: f"{name}-token-0123456789abcdef" for name in ROLES}
 ENV = {f"TOK_{name.upper()}": token for name, token in TOKENS.items()}
 CONFIG = """\

@@ -68,7 +68,7 @@ bridge:
   ros2: {domain_id: 999, distro: rolling, cmd_vel_topic: "bad topic"}
   api:
     principals:
-      - {name: a, role: ADMIN, token_env: A}
+      - {name: a, role: SUPERUSER, token_env: A}
       - {name: b, role: USER, token_env: B, token_sha256: %s}
       - {name: c, role: USER, token: hunter2}
   safety:

@@ -19,10 +19,11 @@ import msgspec.inspect
 
 from rcan_rtps.rcan import (
     ActionName,
+    AnyRoleName,
     Effect,
     GateableName,
     InvalidRuriError,
-    RoleName,
+    Role,
     parse_ruri,
 )
 from rcan_rtps.rcan.actions import with_effect
@@ -152,7 +153,7 @@ class ConfidenceGate(_Section, frozen=True, kw_only=True):
 class HitlGate(_Section, frozen=True, kw_only=True):
     action: GateableName  # never an action that stops the robot
     require_auth: bool = True
-    authorized_roles: list[RoleName] = []
+    authorized_roles: list[AnyRoleName] = []
 
 
 def _repeated_gate_problem(gates: list[HitlGate]) -> str | None:
@@ -171,7 +172,7 @@ class HitlConfig(_Section, frozen=True, kw_only=True):
 
 class PrincipalConfig(_Section, frozen=True, kw_only=True):
     name: Annotated[str, msgspec.Meta(pattern=_PRINCIPAL)]
-    role: RoleName
+    role: AnyRoleName  # the profile's names or RCAN v2's (OPERATOR = USER, …; see Role)
     token_env: EnvName | None = None
     token_sha256: Annotated[str, msgspec.Meta(pattern=r"^[0-9a-fA-F]{64}$")] | None = None
     rate_limit_per_min: Annotated[int, msgspec.Meta(ge=1)] | None = None
@@ -200,6 +201,9 @@ class JwtConfig(_Section, frozen=True, kw_only=True):
     leeway_s: Annotated[float, msgspec.Meta(ge=0.0, le=300.0)] = 30.0
     # exp - iat (or exp - now, without iat) above this is refused: no token lasts for ever.
     max_lifetime_s: Annotated[float, msgspec.Meta(gt=0.0, le=366 * 86400.0)] = 86400.0
+    # The role of a token whose role is RCAN v2's M2M_TRUSTED (`rcan_role` 6, RRF-issued fleet
+    # orchestration); unset, such tokens are refused.
+    m2m_trusted_role: AnyRoleName | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -300,20 +304,32 @@ class AuditConfig(_Section, frozen=True, kw_only=True):
     witness: Annotated[str | None, _check(_witness_problem)] = None
 
 
-def _estop_role_problem(action_roles: dict[ActionName, RoleName]) -> str | None:
+def _estop_role_problem(action_roles: dict[ActionName, AnyRoleName]) -> str | None:
     # An e-stop must always be available to any authenticated principal.
     estop = with_effect(Effect.ESTOP).name
-    if action_roles.get(estop, "GUEST") != "GUEST":
+    if Role[action_roles.get(estop, "GUEST")] is not Role.GUEST:
         return f"{estop} cannot be raised above GUEST"
     return None
 
 
+def _same_role_twice_problem(by_role: dict[AnyRoleName, Any]) -> str | None:
+    """Keys that are two names of one role (USER and OPERATOR): which would count?"""
+    seen: dict[Role, str] = {}
+    for name in by_role:
+        other = seen.setdefault(Role[name], name)
+        if other != name:
+            return f"{other} and {name} name the same role ({Role[name].name})"
+    return None
+
+
 class RbacConfig(_Section, frozen=True, kw_only=True):
-    action_roles: Annotated[dict[ActionName, RoleName], _check(_estop_role_problem)] = {}
-    rate_limits_per_min: dict[RoleName, Annotated[int, msgspec.Meta(ge=1)] | None] = {}
-    hitl_approver_role: RoleName = "OWNER"
-    audit_read_role: RoleName = "LEASEE"
-    config_reload_role: RoleName = "CREATOR"
+    action_roles: Annotated[dict[ActionName, AnyRoleName], _check(_estop_role_problem)] = {}
+    rate_limits_per_min: Annotated[
+        dict[AnyRoleName, Annotated[int, msgspec.Meta(ge=1)] | None],
+        _check(_same_role_twice_problem)] = {}
+    hitl_approver_role: AnyRoleName = "OWNER"
+    audit_read_role: AnyRoleName = "LEASEE"
+    config_reload_role: AnyRoleName = "CREATOR"
 
 
 Priority = Annotated[int, msgspec.Meta(ge=0, le=1_000_000)]
@@ -334,7 +350,8 @@ class MotionConfig(_Section, frozen=True, kw_only=True):
     lower one, a lower one is refused; a principal's own priority wins over its role's."""
 
     default_priority: Priority = 0
-    role_priorities: dict[RoleName, Priority] = {}
+    role_priorities: Annotated[dict[AnyRoleName, Priority],
+                               _check(_same_role_twice_problem)] = {}
     principal_priorities: dict[Annotated[str, msgspec.Meta(min_length=1, max_length=128)],
                                Priority] = {}
     locks: Annotated[list[MotionLock], _check(_repeated_lock_problem)] = []

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from rcan_rtps.config import MotionConfig
+from rcan_rtps.rcan import Role
 
 from .rbac import Principal
 
@@ -13,7 +14,8 @@ class MotionPriorities:
     def __init__(self, config: MotionConfig | None = None) -> None:
         config = config or MotionConfig()
         self._default = config.default_priority
-        self._roles = {str(role): p for role, p in config.role_priorities.items()}
+        # Keyed by the profile's name: the config may use RCAN v2's (OPERATOR for USER).
+        self._roles = {Role[role].name: p for role, p in config.role_priorities.items()}
         self._principals = dict(config.principal_priorities)
         self._locks = {lock.name: lock.priority for lock in config.locks}
 

@@ -17,7 +17,7 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from rcan_rtps.config import ApiConfig, JwtConfig, RbacConfig
-from rcan_rtps.rcan import Effect, Role
+from rcan_rtps.rcan import JWT_LEVELS, M2M_TRUSTED, M2M_TRUSTED_LEVEL, Effect, Role
 from rcan_rtps.rcan.actions import specs, with_effect
 
 from .clock import Clock
@@ -167,6 +167,7 @@ EXPIRED = "jwt_expired"  # or without exp
 NOT_YET = "jwt_not_yet_valid"  # nbf or iat in the future
 TOO_LONG = "jwt_lifetime_too_long"  # exp more than max_lifetime_s after iat (or now)
 CLAIMS = "jwt_claims"  # aud, iss, sub or role
+M2M_TRUSTED_REFUSED = "jwt_m2m_trusted_not_configured"  # see JwtConfig.m2m_trusted_role
 
 
 def _refused(reason: str, message: str) -> AuthenticationError:
@@ -276,8 +277,10 @@ class JwtVerifier:
     def __init__(self, keys: JwtKeys, *, audience: str, clock: Clock,
                  issuer: str | None = None, leeway_s: float = 30.0,
                  max_lifetime_s: float = DEFAULT_MAX_JWT_LIFETIME_S,
-                 limits: Mapping[Role, int | None] = DEFAULT_RATE_LIMITS) -> None:
+                 limits: Mapping[Role, int | None] = DEFAULT_RATE_LIMITS,
+                 m2m_trusted_role: Role | None = None) -> None:
         self._keys = keys
+        self._m2m_trusted = m2m_trusted_role
         self._audience = audience
         self._issuer = issuer
         self._leeway = leeway_s
@@ -289,8 +292,10 @@ class JwtVerifier:
     def from_config(cls, cfg: JwtConfig, clock: Clock,
                     limits: Mapping[Role, int | None]) -> JwtVerifier:
         keys: JwtKeys = load_jwks(cfg.jwks) if cfg.jwks else load_pem_key(cfg.public_key or "")
+        trusted = Role[cfg.m2m_trusted_role] if cfg.m2m_trusted_role else None
         return cls(keys, audience=cfg.audience, clock=clock, issuer=cfg.issuer,
-                   leeway_s=cfg.leeway_s, max_lifetime_s=cfg.max_lifetime_s, limits=limits)
+                   leeway_s=cfg.leeway_s, max_lifetime_s=cfg.max_lifetime_s, limits=limits,
+                   m2m_trusted_role=trusted)
 
     def verify(self, token: str) -> Principal:
         if len(token) > _MAX_JWT:
@@ -323,15 +328,54 @@ class JwtVerifier:
         audiences = aud if isinstance(aud, list) else [aud]
         if self._audience not in audiences:
             raise _refused(CLAIMS, "JWT audience mismatch")
-        iss, sub, role = claims.get("iss"), claims.get("sub"), claims.get("role")
+        iss, sub = claims.get("iss"), claims.get("sub")
         if iss is not None and not _is_name(iss):
             raise _refused(CLAIMS, f"JWT iss must be a string of 1-{_MAX_CLAIM_CHARS} chars")
         if self._issuer is not None and iss != self._issuer:
             raise _refused(CLAIMS, "JWT issuer mismatch")
-        if not _is_name(sub) or not isinstance(role, str) or role not in Role.__members__:
-            raise _refused(
-                CLAIMS, f"JWT needs a sub (1-{_MAX_CLAIM_CHARS} chars) and a known role")
-        return Principal(jwt_principal_name(iss, sub), Role[role], self._limits[Role[role]])
+        if not _is_name(sub):
+            raise _refused(CLAIMS, f"JWT needs a sub (1-{_MAX_CLAIM_CHARS} chars)")
+        role = self._role(claims.get("role"), claims.get("rcan_role"))
+        return Principal(jwt_principal_name(iss, sub), role, self._limits[role])
+
+    def _role(self, name: Any, level: Any) -> Role:
+        """The role a token states: `role` (a name, the profile's or RCAN v2's) and/or
+        `rcan_role` (an RCAN v2 level, rcan.identity.ROLE_TO_JWT_LEVEL); both must agree."""
+        by_name = by_level = None
+        if name is not None:
+            by_name = self._named(name)
+        if level is not None:
+            by_level = self._leveled(level)
+        if by_name is None and by_level is None:
+            raise _refused(CLAIMS, "JWT needs a role (role or rcan_role)")
+        if by_name is not None and by_level is not None and by_name is not by_level:
+            raise _refused(CLAIMS, f"JWT role {name!r} and rcan_role {level!r} disagree")
+        found = by_name if by_name is not None else by_level
+        assert found is not None
+        return found
+
+    def _named(self, name: Any) -> Role:
+        if name == M2M_TRUSTED:
+            return self._trusted()
+        if not isinstance(name, str) or name not in Role.__members__:
+            raise _refused(CLAIMS, "JWT role is not a known role")
+        return Role[name]
+
+    def _leveled(self, level: Any) -> Role:
+        if not _is_time(level):  # a finite number (not a bool)
+            raise _refused(CLAIMS, "JWT rcan_role must be a number")
+        if float(level) == M2M_TRUSTED_LEVEL:
+            return self._trusted()
+        role = JWT_LEVELS.get(float(level))
+        if role is None:
+            raise _refused(CLAIMS, f"JWT rcan_role {level!r} is not an RCAN role level")
+        return role
+
+    def _trusted(self) -> Role:
+        if self._m2m_trusted is None:
+            raise _refused(M2M_TRUSTED_REFUSED, "JWT role M2M_TRUSTED needs "
+                           "bridge.api.jwt.m2m_trusted_role in the config")
+        return self._m2m_trusted
 
     def _check_times(self, claims: dict[str, Any]) -> None:
         """exp required, not past; nbf and iat not in the future; exp at most max_lifetime_s

@@ -12,6 +12,10 @@ Public API (everything else is private)::
 """
 
 from ._enums import (
+    JWT_LEVELS,
+    M2M_TRUSTED,
+    M2M_TRUSTED_LEVEL,
+    AnyRoleName,
     ErrorCode,
     Outcome,
     Reason,
@@ -69,12 +73,16 @@ from .actions import (
 
 __all__ = [
     "ACTIONS",
+    "JWT_LEVELS",
+    "M2M_TRUSTED",
+    "M2M_TRUSTED_LEVEL",
     "SPOKEN",
     "STATUS_OF",
     "ActionName",
     "ActionParams",
     "ActionSpec",
     "AiInfo",
+    "AnyRoleName",
     "ArmJointParams",
     "Authorize",
     "DecisionBody",

@@ -7,16 +7,38 @@ from typing import Literal
 
 
 class Role(enum.IntEnum):
-    """§12 roles; a higher role can do everything a lower one can."""
+    """§12 roles; a higher role can do everything a lower one can.
+
+    RCAN v2's names (`rcan.identity.Role`) are aliases of the role each stands for here — one
+    mapping for tokens, JWTs, config and bodies' role claims (docs/rcan-profile.md):
+    OPERATOR = USER, ADMIN = OWNER, CONTRIBUTOR = GUEST (its scope is fleet contribution, not
+    control), M2M_PEER = USER. `Role["ADMIN"] is Role.OWNER`; names in output are always the
+    profile's. LEASEE has no v2 name; M2M_TRUSTED (RRF-issued fleet orchestration) has no
+    role here unless `api.jwt.m2m_trusted_role` gives it one.
+    """
 
     GUEST = 1
     USER = 2
     LEASEE = 3
     OWNER = 4
     CREATOR = 5
+    OPERATOR = 2
+    ADMIN = 4
+    CONTRIBUTOR = 1
+    M2M_PEER = 2
 
 
 RoleName = Literal["GUEST", "USER", "LEASEE", "OWNER", "CREATOR"]
+# What config and JWT `role` claims may name: the profile's roles and RCAN v2's aliases.
+AnyRoleName = Literal["GUEST", "USER", "LEASEE", "OWNER", "CREATOR",
+                      "OPERATOR", "ADMIN", "CONTRIBUTOR", "M2M_PEER"]
+M2M_TRUSTED = "M2M_TRUSTED"
+
+# JWT `rcan_role` levels (rcan.identity.ROLE_TO_JWT_LEVEL) → the role they stand for; 6.0 is
+# M2M_TRUSTED (see Role).
+JWT_LEVELS: dict[float, Role] = {1.0: Role.GUEST, 2.0: Role.USER, 2.5: Role.GUEST,
+                                 3.0: Role.OWNER, 4.0: Role.USER, 5.0: Role.CREATOR}
+M2M_TRUSTED_LEVEL = 6.0
 
 
 class Outcome(str, enum.Enum):

@@ -54,7 +54,8 @@ def test_txt_records_follow_the_profile() -> None:
     txt = txt_records(_config(), api_url="http://10.0.0.5:8765")
     assert txt == {
         "ruri": "rcan://registry.local/clearpath/husky/a200-0001",
-        "role": "USER", "version": "1.2", "spec": "1.2", "bridge": "ros2",
+        "role": "USER", "version": "1.2", "spec": "1.2", "versions": "1.2,3.2",
+        "rcan_version": "3.2", "bridge": "ros2",
         "distro": "kilted", "api": "http://10.0.0.5:8765",
         "status_endpoint": "http://10.0.0.5:8765/api/status", "model": "husky",
         "name": "Husky A200", "caps": "move,arm_joint,navigate,stop,estop,clear_estop,lock,unlock",

@@ -15,7 +15,7 @@ VIEWER_TOKEN_ENV = "RCAN_DEMO_VIEWER_TOKEN"
 
 DEMO_YAML = """\
 robot:
-  ruri: rcan://registry.local/rcan-rtps/simbot/sim-0001
+  ruri: rcan://registry.local/rcan-rtps/simbot/v1/sim-0001
   name: rcan-rtps simulated robot
 bridge:
   type: ros2

@@ -32,13 +32,13 @@ from zeroconf.asyncio import AsyncServiceBrowser, AsyncServiceInfo, AsyncZerocon
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import RolePolicy
-from rcan_rtps.rcan import Effect, Role, parse_ruri
+from rcan_rtps.rcan import SPOKEN, Effect, Role, parse_ruri
 from rcan_rtps.rcan.actions import names, specs
 
 log = logging.getLogger(__name__)
 
 SERVICE_TYPE = "_rcan._tcp.local."
-RCAN_SPEC = "1.2"
+RCAN_SPEC = "1.2"  # `version` and `spec`, as 1.2 clients read them
 _RESOLVE_MS = 3000.0
 _WILDCARDS = ("", "0.0.0.0")
 
@@ -104,6 +104,10 @@ def txt_records(config: RcanConfig, *, api_url: str) -> dict[str, str]:
         "role": lowest.name,
         "version": RCAN_SPEC,
         "spec": RCAN_SPEC,
+        # Every protocol version spoken (the 1.2 dialect, and RCAN 3.x as the SDK writes it),
+        # and the newest, under the name the node manifest gives it.
+        "versions": ",".join(SPOKEN),
+        "rcan_version": SPOKEN[-1],
         "bridge": "ros2",
         "distro": config.bridge.ros2.distro,
         "api": api_url,

@@ -64,8 +64,9 @@ async def test_entries_carry_the_profile_fields_and_link(audit_log: AuditLog) ->
     assert set(first) == {
         "seq", "audit_id", "prev_hash", "timestamp", "timestamp_ms", "ruri", "principal",
         "role", "message_id", "event", "action_type", "params", "applied", "outcome",
-        "deny_reason", "ai", "bridge", "ros2_topic", "sig",
+        "deny_reason", "ai", "bridge", "ros2_topic", "sig", "canonical",
     }
+    assert first["canonical"] == "rcan-canonical-json-v1"  # issue 24: the SDK's encoding
     assert "ai" not in second  # only when given
     assert first["seq"] == 1 and second["seq"] == 2
     assert first["prev_hash"] == GENESIS

@@ -1,8 +1,16 @@
 """§6 audit chain: JSON lines, SHA-256 links, Ed25519 signatures, durable group commit.
 
-Each line is the canonical JSON (sorted keys, no whitespace, UTF-8) of one entry. `audit_id` is
-"sha256:" + hex SHA-256 of the canonical entry without `audit_id` and `sig`; `prev_hash` is the
-previous `audit_id` (the first links to GENESIS); `sig` is base64 Ed25519 over `audit_id`.
+Each line is the canonical JSON of one entry. `audit_id` is "sha256:" + hex SHA-256 of the
+canonical entry without `audit_id` and `sig`; `prev_hash` is the previous `audit_id` (the first
+links to GENESIS); `sig` is base64 Ed25519 over `audit_id`.
+
+Canonical JSON comes in two versions, told apart by the entry's `canonical` field (inside what
+`audit_id` covers, so no entry can be moved from one to the other): entries that say
+`"canonical": "rcan-canonical-json-v1"` (all written now) are RCAN canonical JSON v1, byte for
+byte what the rcan SDK's `rcan.encoding.canonical_json` makes (sorted keys, no whitespace, raw
+UTF-8, whole-number floats written as integers, other floats as Python's `repr`); entries
+without it (written before) are sorted-keys msgspec JSON, where a whole float stays `50.0`.
+Both verify; a log may hold both, older entries first.
 
 Writes run on the loop when the disk is fast (see INLINE_FSYNC_S), else on the log's own thread
 (never the default executor, which costly reads may fill).
@@ -31,6 +39,7 @@ import enum
 import fcntl
 import functools
 import hashlib
+import json
 import logging
 import os
 import time
@@ -127,13 +136,57 @@ class ChainHead(msgspec.Struct, frozen=True):
 
 
 def canonical(obj: Any) -> bytes:
-    """Sorted keys, no whitespace, UTF-8; floats in shortest round-trip form."""
+    """Sorted keys, no whitespace, UTF-8; floats in shortest round-trip form (entries from
+    before RCAN canonical JSON v1, checkpoints and tree heads)."""
     return msgspec.json.encode(obj, order="sorted")
+
+
+CANONICAL_V1 = "rcan-canonical-json-v1"
+CANONICAL_KEY = "canonical"  # an entry's marker: which canonical JSON it is written in
+
+
+def canonical_v1(obj: Any) -> bytes:
+    """RCAN canonical JSON v1 (rcan-spec fixtures/canonical-json-v1.json): sorted keys, no
+    whitespace, raw UTF-8, whole-number floats as integers (50.0 → 50, -0.0 → 0), other
+    floats as Python's `json` writes them (the SDK's `canonical_json`, byte for byte)."""
+    exponents: list[bool] = []
+    return _encode_v1(_whole_floats_as_ints(obj, exponents), bool(exponents))
+
+
+def _encode_v1(normal: Any, exponents: bool) -> bytes:
+    """Already normalized: msgspec's bytes are `json`'s (keys, strings, ints alike) unless a
+    float is written with an exponent (msgspec: 2.5e-05 as 0.000025, 1e-07 as 1e-7)."""
+    if exponents:
+        return json.dumps(normal, sort_keys=True, separators=(",", ":"),
+                          ensure_ascii=False).encode("utf-8")
+    return msgspec.json.encode(normal, order="sorted")
+
+
+def _whole_floats_as_ints(value: Any, exponents: list[bool]) -> Any:
+    """`value` with each whole float an int; notes in `exponents` a float written with one."""
+    if isinstance(value, float):
+        if value.is_integer():
+            return int(value)
+        if "e" in repr(value):
+            exponents.append(True)
+        return value
+    if isinstance(value, dict):
+        return {k: _whole_floats_as_ints(v, exponents) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_whole_floats_as_ints(v, exponents) for v in value]
+    return value
+
+
+def canonical_entry(entry: dict[str, Any]) -> bytes:
+    """An entry in the canonical JSON its marker names."""
+    if entry.get(CANONICAL_KEY) == CANONICAL_V1:
+        return canonical_v1(entry)
+    return canonical(entry)
 
 
 def entry_id(entry: dict[str, Any]) -> str:
     body = {k: v for k, v in entry.items() if k not in _UNSIGNED}
-    return "sha256:" + hashlib.sha256(canonical(body)).hexdigest()
+    return "sha256:" + hashlib.sha256(canonical_entry(body)).hexdigest()
 
 
 def iso_utc(ms: int) -> str:
@@ -274,7 +327,7 @@ def _check_line(line: bytes, seq: int, prev: str, pubkey: Ed25519PublicKey | Non
         raise AuditIntegrityError(seq, f"not JSON ({exc})") from exc
     if not isinstance(entry, dict) or not all(k in entry for k in _REQUIRED):
         raise AuditIntegrityError(seq, "not an audit entry")
-    if canonical(entry) != line:
+    if canonical_entry(entry) != line:
         raise AuditIntegrityError(seq, "not in canonical form")
     if entry["seq"] != seq:
         raise AuditIntegrityError(seq, f"found seq {entry['seq']!r} where {seq} belongs")
@@ -710,12 +763,17 @@ class AuditLog:
             seq=self._seq + 1, prev_hash=self._prev, timestamp=iso_utc(ms), timestamp_ms=ms,
             ruri=self._ruri, bridge="ros2", event=record.event.value,
         )
-        audit_id = "sha256:" + hashlib.sha256(canonical(entry)).hexdigest()  # no id, no sig yet
-        entry["audit_id"] = audit_id
-        entry["sig"] = base64.b64encode(self._key.sign(audit_id.encode())).decode()
+        entry[CANONICAL_KEY] = CANONICAL_V1
+        exponents: list[bool] = []
+        normal = _whole_floats_as_ints(entry, exponents)  # once, for both encodings
+        body = _encode_v1(normal, bool(exponents))  # no id, no sig yet
+        audit_id = "sha256:" + hashlib.sha256(body).hexdigest()
+        normal["audit_id"] = audit_id
+        normal["sig"] = base64.b64encode(self._key.sign(audit_id.encode())).decode()
         self._seq += 1
         self._prev = audit_id
-        return canonical(entry) + b"\n", AuditReceipt(seq=self._seq, audit_id=audit_id)
+        line = _encode_v1(normal, bool(exponents))
+        return line + b"\n", AuditReceipt(seq=self._seq, audit_id=audit_id)
 
     def _sign_head(self, tree: CompactTree) -> TreeHead:
         return sign_tree_head(self._key, tree.size, tree.root(), int(self._clock.time() * 1000))

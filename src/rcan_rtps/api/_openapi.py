@@ -38,7 +38,8 @@ def _errors(*codes: int) -> dict[str, Any]:
 _COMMAND_BODY = {
     "required": True,
     "content": {"application/json": {"schema": {
-        "oneOf": [_ref("ShortCommand"), _ref("EnvelopeCommand")]}}},
+        "oneOf": [_ref("ShortCommand"), _ref("EnvelopeCommand"), _ref("RcanCommand"),
+                  _ref("SafetyMessage"), _ref("HeartbeatMessage")]}}},
 }
 _AUTHORIZE_BODY = {"required": True,
                    "content": {"application/json": {"schema": _ref("Authorize")}}}

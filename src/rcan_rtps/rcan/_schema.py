@@ -12,14 +12,19 @@ from ._messages import (
     EnvelopeCommand,
     ErrorBody,
     PendingAuth,
+    SafetyMessage,
     ShortCommand,
     Status,
 )
+from ._v3 import HeartbeatMessage, RcanCommand
 from .actions import specs
 
 _TYPES: tuple[type[msgspec.Struct], ...] = (
     ShortCommand,
     EnvelopeCommand,
+    RcanCommand,  # the rcan SDK's COMMAND, and its SAFETY; HEARTBEAT (docs/rcan-profile.md)
+    SafetyMessage,
+    HeartbeatMessage,
     *dict.fromkeys(spec.params for spec in specs()),  # each parameter type once
     Status,
     PendingAuth,

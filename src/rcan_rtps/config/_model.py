@@ -279,6 +279,9 @@ class SafetyConfig(_Section, frozen=True, kw_only=True):
     # A timed move lasts at most this; longer requests are denied (a held move has no end but
     # its sender's session, which needs heartbeats).
     max_move_duration_s: Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)] = 30.0
+    # A timed move is held too: it ends (session_lost) once its sender has been silent this
+    # long (no command, heartbeat or WebSocket frame); None: `session_timeout_s`.
+    unattended_move_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)] | None = None
     # Velocity streams ramp within these (m/s², rad/s²); None: no ramp (the robot's own
     # controller limits acceleration). Stopping is never ramped: a stop is zero at once.
     max_linear_accel: Positive | None = None

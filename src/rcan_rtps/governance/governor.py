@@ -54,6 +54,7 @@ from .resume import resume
 from .streams import (
     AccelLimits,
     EndReason,
+    HeldGoal,
     Replaces,
     Stream,
     StreamEnded,
@@ -136,6 +137,7 @@ class Governor:
                  limiter: RateLimiter, safety: Check, latch: EstopMachine, hitl: HitlPolicy,
                  clock: Clock, hitl_timeout_s: float = 300.0,
                  require_distinct_approver: bool = False, session_timeout_s: float = 2.0,
+                 unattended_move_s: float | None = None,
                  robot_ruri: str | None = None, notifier: Notifier | None = None,
                  streams: VelocityStreams | None = None,
                  priorities: MotionPriorities | None = None,
@@ -153,7 +155,7 @@ class Governor:
         self._latch_file_missing = latch.file.missing()
         self._hitl_ttl_ms = int(hitl_timeout_s * 1000)
         self._distinct = require_distinct_approver
-        self._sessions = Sessions(clock, session_timeout_s)
+        self._sessions = Sessions(clock, session_timeout_s, unattended_move_s)
         self._robot = parse_ruri(robot_ruri).robot if robot_ruri else None
         self._notifier = notifier
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -175,6 +177,7 @@ class Governor:
         self._repeats = EstopRepeats()
         # The ESTOP entry holding the latch, while no clear was audited after it.
         self._latched_by: AuditReceipt | None = None
+        self._ended_by: dict[str, str] = {}  # goals the arbiter cancelled → why, by whom
         latch.listeners.insert(0, self.streams.on_latch)
         latch.listeners.append(self._status_changed)
 
@@ -209,6 +212,7 @@ class Governor:
             hitl_timeout_s=bridge.hitl.timeout_seconds,
             require_distinct_approver=bridge.hitl.require_distinct_approver,
             session_timeout_s=bridge.safety.session_timeout_s,
+            unattended_move_s=bridge.safety.unattended_move_s,
             robot_ruri=config.robot.ruri, held_locks=resumed.locks,
         )
 
@@ -364,13 +368,27 @@ class Governor:
             return await self._refuse(command, principal, gate)
         if isinstance(gate, Escalate):
             return await self._hold(command, principal, gate.approver_role)
-        self._sessions.touch(principal, command.spec)
         # A command still being carried out (waiting for a subscriber, say) is not silence.
         with self._sessions.in_flight(principal):
             decision = await self._execute(command, principal, applied,
                                            AuditEvent.COMMAND_DISPATCHED)
+        self._opened(principal, command, decision)
         self._sessions.heartbeat(principal)
         return decision
+
+    def _opened(self, principal: Principal, command: NormalizedCommand,
+                decision: Decision) -> None:
+        """An executed stop ends its sender's control session (motion opens one as it is
+        sent: `_sending`)."""
+        if decision.outcome is Outcome.EXECUTED and command.spec.stopping:
+            self._sessions.touch(principal, command.spec)
+
+    def _sending(self, owner: Principal, command: NormalizedCommand) -> None:
+        """Motion is about to reach the robot: its owner holds a control session from now on.
+        A command refused before this point opens none, so its sender's silence can never
+        halt someone else's motion."""
+        timed = command.spec.streamed and getattr(command.params, "duration_s", None) is not None
+        self._sessions.touch(owner, command.spec, timed=timed)
 
     # -- the e-stop lane (run by the e-stop machine, one transition at a time) ------------
 
@@ -384,6 +402,7 @@ class Governor:
         at = now_ms(self._clock)
         record = _record(AuditEvent.ESTOP, command, principal, Outcome.EXECUTED, applied={},
                          ros2_topic=self._route(command), sent_first=True)
+        self.streams.take_goals()  # the e-stop cancels every goal
         # The robot is told first (the dispatch's first step publishes, before any await);
         # latch file and audit entry are made durable beside it, both before the reply.
         sent, persisted, receipt = await asyncio.gather(
@@ -502,15 +521,53 @@ class Governor:
         # Checked again after the write, with no await between this check and the publish.
         if motion and self.latch.latched:
             return await self._failed(command, principal, outcomes.ESTOP_ACTIVE)
+        if motion:
+            self._sending(owner, command)
         result, failure = await self._dispatch(command, params)
         if failure is not None:
             return await self._failed(command, principal, failure)
         if spec.starts_goal and self.latch.latched:
             # Accepted while an e-stop latched: the e-stop's cancel may have missed this goal.
             await self._dispatch(_bridge_command(Effect.HALT))
-        elif spec.starts_goal:  # the goal drives the base now: a velocity stream would fight it
-            self.streams.end(EndReason.REPLACED, owner.name)
+        elif spec.starts_goal:
+            refused = self._hold_goal(result.goal_id, owner, priority, command.message_id)
+            if refused is not None:
+                return await self._failed(command, principal, refused)
         return _executed(command, applied, receipt, result)
+
+    def _hold_goal(self, goal_id: str | None, owner: Principal, priority: int,
+                   message_id: str) -> Rejection | None:
+        """An accepted goal holds the base: the stream and the goals it replaces end. If a
+        higher stream, goal or lock took the base while it was being sent, it is cancelled
+        (the refusal returned)."""
+        if goal_id is None:
+            return None
+        goal = HeldGoal(goal_id, owner.name, priority, message_id)
+        refused = self.streams.admits(priority)
+        if refused is not None:
+            self._cancel_goals([goal], owner, why=refused.reason or "refused")
+            return refused
+        self.streams.end(EndReason.REPLACED, owner.name)  # a stream would fight the goal
+        self._cancel_goals(self.streams.goal_started(goal), owner)
+        return None
+
+    def _cancel_goals(self, goals: list[HeldGoal], by: Principal, *,
+                      why: str = "replaced") -> None:
+        """Cancel goals the arbiter took off the base (never awaited by the command); their
+        GOAL_FINISHED entries say by whom."""
+        for goal in goals:
+            reason = why if goal.owner == by.name or why != "replaced" else "preempted"
+            self._ended_by[goal.goal_id] = f"{reason} by {by.name}"
+            log.warning("cancelling goal %s of %s: %s by %s", goal.goal_id, goal.owner,
+                        reason, by.name, extra={"principal": by.name})
+            self._spawn(self._cancel_goal(goal.goal_id))
+
+    async def _cancel_goal(self, goal_id: str) -> None:
+        try:
+            if not await self._dispatcher.cancel_goal(goal_id):
+                log.warning("goal %s was not cancelled (already over?)", goal_id)
+        except Exception:
+            log.exception("cancelling goal %s failed", goal_id)
 
     async def _halt(self, command: NormalizedCommand, principal: Principal,
                     params: ActionParams, event: AuditEvent) -> Decision:
@@ -519,6 +576,7 @@ class Governor:
         applied: dict[str, Any] = {}  # nothing of the body reaches the robot (a reason is kept)
         record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          ros2_topic=self._route(command), sent_first=True)
+        self.streams.take_goals()  # the halt cancels every goal
         sent, receipt = await asyncio.gather(self._dispatch(command, params),
                                              self._write_ahead(record, urgent=True))
         result, failure = sent
@@ -570,6 +628,7 @@ class Governor:
             return await self._failed(command, principal, refused)
         target = Velocity.of(params)
         first = self.streams.first_sample(target)
+        self._sending(principal, command)
         result, failure = await self._dispatch(command, first.params())
         if failure is not None:
             return await self._failed(command, principal, failure)
@@ -579,8 +638,7 @@ class Governor:
         refused = self.streams.start(stream, first, by=principal.name, recorded=replaces)
         if refused is not None:
             return await self._failed(command, principal, refused)
-        if params.duration_s is not None:  # a timed move bounds itself: silence counts after
-            self._sessions.quiet_after(principal, params.duration_s)
+        self._cancel_goals(self.streams.take_goals(below=priority + 1), principal)
         return _executed(command, audited[0], audited[1], result)
 
     def _stream_ended(self, ended: StreamEnded) -> None:
@@ -618,8 +676,9 @@ class Governor:
         if receipt is None:
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         if command.spec.effect is Effect.LOCK:
-            self.streams.lock(params.name, level, principal.name)
+            lower = self.streams.lock(params.name, level, principal.name)
             self._lock_holders[params.name] = principal.name
+            self._cancel_goals(lower, principal, why=f"locked out by {params.name!r}")
         else:
             self.streams.unlock(params.name)
             self._lock_holders.pop(params.name, None)
@@ -730,9 +789,10 @@ class Governor:
         except Violation as violation:
             return await self._refuse(command, approver, violation.rejection,
                                       event=AuditEvent.HITL_AUTHORIZED, pending_id=pending_id)
-        self._sessions.touch(pending.issuer, command.spec)
-        return await self._execute(command, approver, applied, AuditEvent.HITL_AUTHORIZED,
-                                   pending_id, issuer=pending.issuer)
+        decision = await self._execute(command, approver, applied, AuditEvent.HITL_AUTHORIZED,
+                                       pending_id, issuer=pending.issuer)
+        self._opened(pending.issuer, command, decision)
+        return decision
 
     async def _refuse_hitl(self, verb: str, approver: Principal,
                            rejection: Rejection) -> Decision:
@@ -763,6 +823,8 @@ class Governor:
         """A goal the bridge sent ended (succeeded, aborted, canceled, …): audited.
 
         `message_id` links it to the COMMAND_DISPATCHED entry that sent it."""
+        self.streams.goal_ended(goal_id)  # the base is free of it
+        detail = self._ended_by.pop(goal_id, None) or detail
         if self._stopped:  # BRIDGE_STOPPED is the last entry
             log.info("goal %s %s after the bridge stopped: not audited", goal_id, outcome)
             return
@@ -783,10 +845,18 @@ class Governor:
         self._sessions.heartbeat(principal)
 
     async def safe_stop(self, principal: Principal, why: str = "session ended") -> Decision:
-        """Session lost: zero velocity and cancel goals (a `stop`), audited as such."""
+        """Session lost: zero velocity and cancel goals (a `stop`), audited as such.
+
+        What the principal drives stops; if someone else holds the base (a higher stream or
+        goal, still attended), only the principal's own goals are cancelled: its silence must
+        not halt another principal's motion."""
+        self.streams.end_of(principal.name, EndReason.SESSION_LOST)  # zero first, at once
+        own = self.streams.take_goals(owner=principal.name)
+        if self.streams.driven_by_other_than(principal.name):
+            return await self._own_stop(principal, why, own)
         log.warning("control session of '%s' lost (%s): halting the robot (safe stop)",
                     principal.name, why)
-        self.streams.end(EndReason.SESSION_LOST, principal.name)  # zero first, at once
+        self.streams.take_goals()  # the halt cancels every goal
         for listener in self.session_lost_listeners:  # e.g. log the goals being cancelled
             listener(principal)
         stop = _bridge_command(Effect.HALT)
@@ -802,6 +872,20 @@ class Governor:
         if failure is not None:
             return await self._failed(stop, principal, failure)
         return _executed(stop, {}, receipt, result)
+
+    async def _own_stop(self, principal: Principal, why: str,
+                        goals: list[HeldGoal]) -> Decision:
+        log.warning("control session of '%s' lost (%s): its goals cancelled; the base stays "
+                    "with who holds it", principal.name, why)
+        self._cancel_goals(goals, principal, why="session lost")
+        stop = _bridge_command(Effect.HALT)
+        applied = {"scope": "own", "goals_cancelled": [g.goal_id for g in goals]}
+        record = _record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
+                         applied=applied, sent_first=True)
+        receipt = await self._write_ahead(record, urgent=True)
+        if receipt is None:
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=stop.message_id)
+        return _executed(stop, applied, receipt, DispatchResult(ok=True))
 
     async def end_session(self, principal: Principal) -> Decision | None:
         """The principal's connection closed: if it held a control session, safe stop now.
@@ -822,8 +906,9 @@ class Governor:
         lost = self._sessions.take_lost()
         # Concurrently: one slow halt (say, a goal server that never answers) must not
         # delay the next principal's, nor the next sweep.
-        quiet = f"no command or heartbeat for {self._sessions.timeout_s:g} s"
-        await asyncio.gather(*(self._spawn(self.safe_stop(p, quiet)) for p in lost))
+        await asyncio.gather(*(
+            self._spawn(self.safe_stop(p, f"no command or heartbeat for {allowed:g} s"))
+            for p, allowed in lost))
 
     async def _sweep_forever(self) -> None:
         while True:
@@ -879,12 +964,15 @@ def _settled(running: set[asyncio.Task[Any]], decision: Coroutine[Any, Any, Deci
 
 
 class Sessions:
-    """Who holds a control session, and since when nothing was heard from them."""
+    """Who holds a control session, since when nothing was heard from them, and how much
+    silence their session allows (a timed move's: `unattended_s`)."""
 
-    def __init__(self, clock: Clock, timeout_s: float) -> None:
+    def __init__(self, clock: Clock, timeout_s: float, unattended_s: float | None = None
+                 ) -> None:
         self._clock = clock
         self.timeout_s = timeout_s
-        self._last: dict[str, tuple[Principal, float]] = {}
+        self.unattended_s = unattended_s or timeout_s
+        self._last: dict[str, tuple[Principal, float, float]] = {}  # → (p, heard, allowed)
         self._busy: dict[str, int] = {}  # commands being carried out, per principal
 
     @contextlib.contextmanager
@@ -897,31 +985,30 @@ class Sessions:
             if left:
                 self._busy[principal.name] = left
 
-    def touch(self, principal: Principal, spec: ActionSpec[Any]) -> None:
+    def touch(self, principal: Principal, spec: ActionSpec[Any], *, timed: bool = False
+              ) -> None:
+        """An executed command: motion opens (or renews) the session, a stop ends it."""
         if spec.motion:
-            self._last[principal.name] = (principal, self._clock.monotonic())
+            allowed = self.unattended_s if timed else self.timeout_s
+            self._last[principal.name] = (principal, self._clock.monotonic(), allowed)
         elif spec.stopping:
             self._last.pop(principal.name, None)  # stopped on purpose: nothing to guard
 
     def heartbeat(self, principal: Principal) -> None:
         last = self._last.get(principal.name)
-        if last is not None:  # never earlier than a timed move's end (quiet_after)
-            self._last[principal.name] = (principal, max(last[1], self._clock.monotonic()))
-
-    def quiet_after(self, principal: Principal, seconds: float) -> None:
-        """Silence counts from `seconds` from now (the end of a timed move)."""
-        if principal.name in self._last:
-            self._last[principal.name] = (principal, self._clock.monotonic() + seconds)
+        if last is not None:
+            self._last[principal.name] = (principal, self._clock.monotonic(), last[2])
 
     def end(self, principal: Principal) -> bool:
         """Drop the principal's session; True if it held one."""
         return self._last.pop(principal.name, None) is not None
 
-    def take_lost(self) -> list[Principal]:
-        horizon = self._clock.monotonic() - self.timeout_s
-        lost = [p for p, at in self._last.values()
-                if at < horizon and p.name not in self._busy]
-        for p in lost:
+    def take_lost(self) -> list[tuple[Principal, float]]:
+        """Sessions silent for longer than they allow: (principal, the silence allowed)."""
+        now = self._clock.monotonic()
+        lost = [(p, allowed) for p, at, allowed in self._last.values()
+                if now - at > allowed and p.name not in self._busy]
+        for p, _ in lost:
             del self._last[p.name]
         return lost
 

@@ -25,6 +25,8 @@ class RecordingDispatcher:
         self.hold: asyncio.Event | None = None  # when set: motion waits for it
         self.entered = asyncio.Event()  # a held dispatch has started
         self.samples: list[MoveParams] = []  # velocity-stream samples after each first one
+        self.cancelled: list[str] = []  # goals cancelled one by one (the arbiter's)
+        self._goals = 0
 
     def route(self, command: NormalizedCommand) -> str | None:
         return f"/robot1/{command.action}"
@@ -43,7 +45,15 @@ class RecordingDispatcher:
         if not self.available:
             return DispatchResult(ok=False, detail=UNAVAILABLE)
         self.calls.append((command.action, msgspec.to_builtins(applied)))
-        return DispatchResult(ok=True, ros2_topic=f"/robot1/{command.action}")
+        goal_id = None
+        if command.spec.starts_goal:
+            self._goals += 1
+            goal_id = f"goal-{self._goals}"
+        return DispatchResult(ok=True, ros2_topic=f"/robot1/{command.action}", goal_id=goal_id)
+
+    async def cancel_goal(self, goal_id: str) -> bool:
+        self.cancelled.append(goal_id)
+        return True
 
     def send_velocity(self, velocity: MoveParams) -> str | None:
         if self.raises is not None:

@@ -53,6 +53,10 @@ class Navigator(Protocol):
         """Cancels every active goal; returns how many were active."""
         ...
 
+    async def cancel(self, goal_id: str) -> bool:
+        """Cancels one goal this bridge sent; True if the server is canceling it."""
+        ...
+
     @property
     def action_name(self) -> str: ...
 
@@ -211,6 +215,12 @@ class RosDispatcher:
         if command.spec.motion:
             return self._publish_motion(route, applied)
         return self._publish(route, applied)
+
+    async def cancel_goal(self, goal_id: str) -> bool:
+        """Cancel one goal the bridge sent (the arbiter preempting it)."""
+        if self.navigator is None:
+            return False
+        return await self.navigator.cancel(goal_id)
 
     def send_velocity(self, velocity: MoveParams) -> str | None:
         """One sample of a velocity stream, now; why not, if the robot is gone."""

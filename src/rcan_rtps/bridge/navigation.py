@@ -80,6 +80,7 @@ class GoalTracker:
         self._watchers: set[asyncio.Task[None]] = set()
         self._keep = keep
         self._message_ids: dict[str, str | None] = {}  # goal → the command that sent it
+        self._handles: dict[str, ClientGoal] = {}  # goals not yet finished
         self.listeners: list[Callable[[], None]] = []  # told when the active goals change
         self.event_listeners: list[Callable[[GoalView], None]] = []  # any change, a copy
         self.finished_listeners: list[Callable[[GoalFinished], None]] = []  # once per goal
@@ -98,6 +99,7 @@ class GoalTracker:
         self._views[goal_id] = GoalView(goal_id=goal_id, action=self.client.name,
                                         state="accepted", created_ms=now, updated_ms=now)
         self._message_ids[goal_id] = message_id
+        self._handles[goal_id] = handle
         task = asyncio.create_task(self._watch(goal_id, handle))
         self._watchers.add(task)
         task.add_done_callback(self._watchers.discard)
@@ -135,6 +137,7 @@ class GoalTracker:
             self._tell()
         self._tell_event(view)
         if state in _TERMINAL and state_before not in _TERMINAL:
+            self._handles.pop(goal_id, None)
             finished = GoalFinished(view=msgspec.structs.replace(view),
                                     message_id=self._message_ids.get(goal_id))
             tell_all(self.finished_listeners, log, "goal finished", finished)
@@ -164,6 +167,17 @@ class GoalTracker:
             log.info("no action server on %s: no goals to cancel", self.client.name)
             return 0
 
+    async def cancel(self, goal_id: str) -> bool:
+        """Cancels one goal this bridge sent; True if the server is canceling it."""
+        handle = self._handles.get(goal_id)
+        if handle is None:
+            return False
+        try:
+            return await handle.cancel(timeout=2.0)
+        except WireError as exc:
+            log.warning("cancelling goal %s failed: %s", goal_id, exc)
+            return False
+
     def warn_cancelling(self, why: str) -> None:
         """Logs each active goal about to be cancelled, and why."""
         for goal_id in self.active():
@@ -186,6 +200,7 @@ class GoalTracker:
         for goal_id in finished[: max(0, len(self._views) - self._keep)]:
             self._views.pop(goal_id, None)
             self._message_ids.pop(goal_id, None)
+            self._handles.pop(goal_id, None)
 
     async def close(self) -> None:
         """Stops following goals (they go on on the server) and leaves; idempotent."""

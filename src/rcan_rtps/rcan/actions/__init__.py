@@ -30,7 +30,7 @@ from .arm_joint import ArmJointParams
 from .lock import LockParams
 from .move import MoveParams, RampedMove
 from .navigate import NavigateParams
-from .stop import NoParams
+from .stop import NoParams, StopParams
 
 if TYPE_CHECKING:
     ActionName = str
@@ -61,6 +61,7 @@ __all__ = [
     "RampedMove",
     "RosRoute",
     "SendGoal",
+    "StopParams",
     "action_spec",
     "markdown_table",
     "names",

@@ -10,6 +10,7 @@ from rcan_rtps import __version__
 from rcan_rtps.rcan import openapi_schemas
 
 from ._bodies import ApiError, AuditPage, GoalList, HeartbeatAck, PendingList, VerifyReport, WsFrame
+from ._protocol import HEAD_TOO_LARGE, MAX_FIELDS, MAX_LINE
 from .ports import GoalView
 
 _REF = "#/components/schemas/{name}"
@@ -26,13 +27,17 @@ def _json(name: str, description: str) -> dict[str, Any]:
     return {"description": description, "content": {"application/json": {"schema": _ref(name)}}}
 
 
+_HEAD_TOO_LARGE = (f"request line or a header field over {MAX_LINE} bytes, or more than "
+                   f"{MAX_FIELDS} header fields ({HEAD_TOO_LARGE}; not audited)")
+
+
 def _errors(*codes: int) -> dict[str, Any]:
     text = {400: "body or query fails the schema (field path in `path`)",
             401: "no or invalid credentials", 403: "role too low",
             404: "not found", 409: "refused by a safety invariant or the e-stop",
-            413: "body too large", 429: "rate limited",
+            413: "body too large", 429: "rate limited", 431: _HEAD_TOO_LARGE,
             503: "robot or audit log unavailable"}
-    return {str(c): _json("ApiError", text[c]) for c in (401, *codes, 503)}
+    return {str(c): _json("ApiError", text[c]) for c in (401, *codes, 431, 503)}
 
 
 _COMMAND_BODY = {
@@ -51,6 +56,7 @@ _DECISION = {
     "400": _json("ApiError", "schema failure, with the field path (audited)"),
     "401": _json("ApiError", "no or invalid credentials (not audited); a refused JWT says why "
                  "in `reason`"),
+    "431": _json("ApiError", _HEAD_TOO_LARGE),
 }
 
 

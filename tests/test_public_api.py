@@ -186,6 +186,11 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
     },
     "rcan_rtps.rcan.actions": {
         "ACTIONS",
+        "READS",
+        "Reads",
+        "not_understood",
+        "numbers",
+        "unreadable",
         "ActionName",
         "ActionSpec",
         "ArmJointParams",

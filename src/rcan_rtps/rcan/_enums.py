@@ -62,3 +62,5 @@ class Reason(str, enum.Enum):
     LOWER_PRIORITY = "lower_priority"  # a higher-priority velocity stream is running
     MOTION_LOCKED = "motion_locked"  # a motion lock of a higher priority is engaged
     UNKNOWN_LOCK = "unknown_lock"  # not in bridge.motion.locks
+    # A check was handed parameters it cannot read (another type, a field missing): refused.
+    PARAMS_NOT_UNDERSTOOD = "params_not_understood"

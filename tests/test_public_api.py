@@ -147,6 +147,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "ActionSpec",
         "AiInfo",
         "ArmJointParams",
+        "Approval",
         "Authorize",
         "DecisionBody",
         "Effect",

@@ -56,8 +56,10 @@ class AuditEvent(str, enum.Enum):
     COMMAND_REJECTED = "COMMAND_REJECTED"
     COMMAND_FAILED = "COMMAND_FAILED"  # written after a write-ahead entry whose send failed
     PENDING_AUTH = "PENDING_AUTH"
+    HITL_APPROVAL = "HITL_APPROVAL"  # one of several approvals a held command needs
     HITL_AUTHORIZED = "HITL_AUTHORIZED"
     HITL_DENIED = "HITL_DENIED"
+    HITL_WITHDRAWN = "HITL_WITHDRAWN"  # taken back by its issuer (or an approver)
     HITL_EXPIRED = "HITL_EXPIRED"
     ESTOP = "ESTOP"
     ESTOP_CLEARED = "ESTOP_CLEARED"
@@ -84,6 +86,8 @@ class AuditRecord(msgspec.Struct, kw_only=True, frozen=True):
     ai: dict[str, Any] | None = None
     ros2_topic: str | None = None
     pending_id: str | None = None
+    # The HiTL reviews of a held command (each approver, decision and reason), in order.
+    approvals: list[dict[str, Any]] | None = None
 
 
 class AuditReceipt(msgspec.Struct, frozen=True):
@@ -536,7 +540,7 @@ class AuditLog:
         ms = int(self._clock.time() * 1000)
         entry: dict[str, Any] = {
             k: v for k, v in msgspec.structs.asdict(record).items()
-            if not (k in ("ai", "pending_id") and v is None)
+            if not (k in ("ai", "pending_id", "approvals") and v is None)
         }
         entry.update(
             seq=self._seq + 1, prev_hash=self._prev, timestamp=iso_utc(ms), timestamp_ms=ms,

@@ -17,6 +17,7 @@ from ._enums import (
 from ._errors import InvalidRuriError, RcanError, SchemaValidationError
 from ._messages import (
     AiInfo,
+    Approval,
     Authorize,
     DecisionBody,
     EnvelopeCommand,
@@ -57,6 +58,7 @@ __all__ = [
     "ActionParams",
     "ActionSpec",
     "AiInfo",
+    "Approval",
     "ArmJointParams",
     "Authorize",
     "DecisionBody",

@@ -53,6 +53,8 @@ class Reason(str, enum.Enum):
     PENDING_EXPIRED = "pending_expired"
     SELF_APPROVAL = "self_approval"
     HITL_DENIED = "hitl_denied"
+    HITL_WITHDRAWN = "hitl_withdrawn"  # the issuer (or an approver) took it back
+    ALREADY_APPROVED = "already_approved"  # an approver's second approval counts once
     DISPATCH_ERROR = "dispatch_error"
     AUDIT_UNAVAILABLE = "audit_unavailable"
     NOT_THIS_ROBOT = "not_this_robot"

@@ -112,17 +112,20 @@ async def test_claimed_higher_role_is_refused_and_audited(api: Api,
 
 async def test_envelope_form_for_another_robot_is_refused(api: Api) -> None:
     other = "rcan://registry.local/clearpath/husky/zz99-9999"
-    status, body = await api.command("planner", {"message_type": 1, "ruri": other,
-                                                 "action": "stop"})
+    move = {"message_type": 1, "action": "move", "parameters": {"linear_x": 0.1}}
+    status, body = await api.command("planner", {**move, "ruri": other})
     assert (status, body["error_code"], body["reason"]) == (400, "INVALID_RURI",
                                                             "not_this_robot")
-    status, body = await api.command("planner", {"message_type": 1, "ruri": "http://x",
-                                                 "action": "stop"})
+    status, body = await api.command("planner", {**move, "ruri": "http://x"})
     assert (status, body["error_code"]) == (400, "INVALID_RURI")
     assert api.entry(body["audit_id"])["deny_reason"].startswith("INVALID_RURI")
-    status, body = await api.command("planner", {"message_type": 1, "ruri": RURI,
-                                                 "action": "stop"})
+    status, body = await api.command("planner", {**move, "ruri": RURI})
     assert status == 200
+    # A stop is the exception: it stops, and says what was wrong.
+    status, body = await api.command("planner", {"message_type": 1, "ruri": other,
+                                                 "action": "stop"})
+    assert (status, body["warnings"]) == (200, [f"addressed to {other}, not this robot "
+                                                f"({RURI})"])
 
 
 async def test_rate_limit_is_429(api: Api) -> None:

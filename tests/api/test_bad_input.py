@@ -60,7 +60,7 @@ async def test_not_an_object(api: Api, raw: bytes) -> None:
     ({"action": "arm_joint", "params": {"joints": ["a"], "positions": ["x"],
                                         "duration_s": 1}}, "$.params.positions[0]"),
     ({"action": "navigate", "params": {"x": 1, "y": 2}}, "$.params"),
-    ({"message_type": 1, "ruri": 7, "action": "stop"}, "$.ruri"),
+    ({"message_type": 1, "ruri": 7, "action": "move"}, "$.ruri"),
     ({"action": "move", "bogus": 1}, "$"),
     ({"action": "move", "params": {"linear_z": 1}}, "$.params"),
 ], ids=lambda v: v if isinstance(v, str) else None)

@@ -47,8 +47,8 @@ async def test_estop_behind_100_queued_moves_is_decided_at_once(api: Api) -> Non
     ws = await _held_socket(api)
     for _ in range(100):
         await ws.send_str(_cmd("move", params={"linear_x": 0.1}))
-    # Mentions an e-stop but is not a valid command: no lane for it, the full queue refuses it.
-    await ws.send_str('{"action": "estop", "bogus": 1}')
+    # Mentions an e-stop but does not say one: no lane for it, the full queue refuses it.
+    await ws.send_str('{"action": "move", "params": {"estop": 1}}')
     estop_id = str(uuid.uuid4())
     await ws.send_str(json.dumps({"action": "estop", "message_id": estop_id}))
 
@@ -71,7 +71,7 @@ async def test_estop_behind_100_queued_moves_is_decided_at_once(api: Api) -> Non
     statuses = Counter(f["http_status"] for f in rest)
     # The held move (it passed the latch before the e-stop; its stream never starts once the
     # latch is seen) and the queued moves, all refused by the latch; the overflow and the
-    # invalid e-stop got 429 above.
+    # move that mentions an e-stop got 429 above.
     assert refused == 100 - WS_BACKLOG + 1
     assert statuses == {409: WS_BACKLOG + 1}, statuses
     assert all(f["body"]["reason"] == "estop_active" for f in rest if f["http_status"] == 409)
@@ -113,7 +113,8 @@ async def test_bad_frames_never_end_the_socket(api: Api) -> None:
             (b'{"action": "move"', 400, "$"),  # not JSON
             ("not json at all", 400, "$"),
             ('{"action": "fly"}', 400, "$.action"),  # schema
-            ('{"action": "estop", "params": {"x": 1}}', 400, "$.params"),
+            ('{"action": "move", "params": {"x": 1}}', 400, "$.params"),
+            ('{"action": "move", "action": "move"}', 400, "$.action"),  # duplicate key
             ('{"action": "stop", "pad": "' + "x" * (64 * 1024) + '"}', 413, None),  # oversize
         ]
         for frame_data, status, path in bad:

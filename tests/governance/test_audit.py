@@ -197,17 +197,46 @@ async def test_append_returns_only_after_the_write(
     assert receipt.audit_id in audit_log.path.read_text()
 
 
-async def test_failed_write_poisons_the_log(
+async def test_a_failed_write_is_cut_back_and_the_log_goes_on(
+    audit_log: AuditLog, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    await audit_log.append(record(0))
+    durable = audit_log.path.read_bytes()
+    real = audit_mod._write_durable
+
+    def half_then_full(fd: int, data: bytes) -> float:
+        os.write(fd, data[: len(data) // 2])  # a torn write: part of the batch reached the file
+        raise OSError(28, "No space left on device")
+
+    for slow_disk in (False, True):  # inline / loop group commit, and the writer thread
+        monkeypatch.setattr(audit_mod, "INLINE_FSYNC_S", 0.0 if slow_disk else 1.0)
+        monkeypatch.setattr(audit_mod, "_write_durable", half_then_full)
+        results = await asyncio.gather(*(audit_log.append(record(i)) for i in range(3)),
+                                       return_exceptions=True)
+        assert all(isinstance(r, AuditWriteError) for r in results)  # inline or queued alike
+        assert audit_log.path.read_bytes() == durable  # cut back: no torn or refused entry
+        assert audit_log.healthy and audit_log.head.last_seq == 1 + slow_disk
+        monkeypatch.setattr(audit_mod, "_write_durable", real)
+        receipt = await audit_log.append(record(9))  # space is back: the chain goes on
+        durable = audit_log.path.read_bytes()
+        assert verify(audit_log.path, audit_log.public_key).count == receipt.seq == 2 + slow_disk
+
+
+async def test_a_write_that_cannot_be_cut_back_poisons_the_log(
     audit_log: AuditLog, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     def broken(fd: int, data: bytes) -> float:
-        raise OSError(28, "No space left on device")
+        raise OSError(5, "Input/output error")
+
+    def no_truncate(fd: int, length: int) -> None:
+        raise OSError(5, "Input/output error")
 
     monkeypatch.setattr(audit_mod, "_write_durable", broken)
+    monkeypatch.setattr(audit_mod.os, "ftruncate", no_truncate)
     results = await asyncio.gather(*(audit_log.append(record(i)) for i in range(3)),
                                    return_exceptions=True)
-    assert all(isinstance(r, AuditWriteError) for r in results)  # inline or queued alike
-    assert not audit_log.healthy
+    assert all(isinstance(r, AuditWriteError) for r in results)
+    assert not audit_log.healthy  # the tail is unknown: nothing more may chain onto it
     with pytest.raises(AuditWriteError):
         await audit_log.append(record())
 
@@ -373,6 +402,8 @@ async def test_an_idle_fast_log_writes_inline_and_a_burst_shares_fsyncs(
         return real(fd, data)
 
     monkeypatch.setattr(audit_mod, "_write_durable", where)
+    # The disk counts as fast whatever this machine's load makes an fsync take right now.
+    monkeypatch.setattr(audit_mod, "INLINE_FSYNC_S", 60.0)
     await asyncio.sleep(0.01)
     await audit_log.append(record())  # alone: written on the loop, no thread hand-off
     assert threads == [True]

@@ -37,6 +37,9 @@ def test_verify_ok_with_exported_key(
     (tmp_path / "pub.pem").write_text(pem)
     assert run("audit", "verify", str(chain_file), "--pubkey", str(tmp_path / "pub.pem")) == 0
     assert "OK" in capsys.readouterr().out
+    assert run("audit", "verify", str(chain_file)) == 0  # with the key beside the log
+    assert "a.jsonl.pub" in capsys.readouterr().out
+    (tmp_path / "a.jsonl.pub").unlink()
     assert run("audit", "verify", str(chain_file)) == 0
     assert "signatures need --pubkey" in capsys.readouterr().out
 

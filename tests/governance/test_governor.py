@@ -93,9 +93,9 @@ async def test_payload_too_large_row(harness: Harness, gov: Governor) -> None:
     [
         (VIEWER, command("move", {"linear_x": 0.1})),
         (PLANNER, command("clear_estop")),
-        (PLANNER, command("stop", role="OWNER")),  # a body claiming more than the token
-        (PLANNER, command("stop", role_level=9)),
-        (PLANNER, command("stop", role="ROOT")),
+        (PLANNER, command("move", {"linear_x": 0.1}, role="OWNER")),  # claims more than its token
+        (PLANNER, command("move", {"linear_x": 0.1}, role_level=9)),
+        (PLANNER, command("move", {"linear_x": 0.1}, role="ROOT")),
     ],
 )
 async def test_role_too_low_row(harness: Harness, gov: Governor, who: Any, cmd: Any) -> None:
@@ -103,6 +103,19 @@ async def test_role_too_low_row(harness: Harness, gov: Governor, who: Any, cmd: 
     check(d, 403, Outcome.DENIED, ErrorCode.INSUFFICIENT_PRIVILEGES)
     assert one_new_entry(harness, 0)["event"] == "COMMAND_REJECTED"
     assert harness.dispatcher.calls == []
+
+
+@pytest.mark.parametrize("action", ["stop", "estop"])
+@pytest.mark.parametrize("claim", [{"role": "OWNER"}, {"role_level": 9}, {"role": "ROOT"}])
+async def test_a_stop_claiming_more_than_its_token_still_stops(
+        harness: Harness, gov: Governor, action: str, claim: dict[str, Any]) -> None:
+    """Any authenticated request that says stop, stops: the claim is a warning, not a 403."""
+    d = await gov.decide(command(action, **claim), PLANNER)
+    check(d, 200, Outcome.EXECUTED)
+    assert d.warnings and "role claim" in d.warnings[0]
+    entry = one_new_entry(harness, 0)
+    assert entry["action_type"] == action and entry["warnings"] == d.warnings
+    assert [c[0] for c in harness.dispatcher.calls] == [action]
 
 
 async def test_claiming_no_more_than_the_token_is_harmless(gov: Governor) -> None:
@@ -213,12 +226,24 @@ async def test_dispatch_exception_is_failed_not_a_crash(harness: Harness, gov: G
 
 async def test_command_for_another_robot_is_refused(harness: Harness, gov: Governor) -> None:
     body = {"message_type": 1, "ruri": "rcan://registry.local/clearpath/husky/other-0002",
-            "action": "stop"}
+            "action": "move", "parameters": {"linear_x": 0.1}}
     d = await gov.decide(validate_command(json.dumps(body).encode()), PLANNER)
     check(d, 400, Outcome.DENIED, ErrorCode.INVALID_RURI, "not_this_robot")
     body["ruri"] = RURI + "/nav"
     d = await gov.decide(validate_command(json.dumps(body).encode()), PLANNER)
     assert d.outcome is Outcome.EXECUTED
+
+
+@pytest.mark.parametrize("action", ["stop", "estop"])
+async def test_a_stop_addressed_to_another_robot_still_stops(
+        harness: Harness, gov: Governor, action: str) -> None:
+    """It reached this robot's bridge, authenticated: stopping is the safe reading."""
+    other = "rcan://registry.local/clearpath/husky/other-0002"
+    body = {"message_type": 1, "ruri": other, "action": action}
+    d = await gov.decide(validate_command(json.dumps(body).encode()), PLANNER)
+    check(d, 200, Outcome.EXECUTED)
+    assert d.warnings == [f"addressed to {other}, not this robot ({RURI})"]
+    assert [c[0] for c in harness.dispatcher.calls] == [action]
 
 
 async def test_failing_safety_check_denies(harness: Harness, gov: Governor,

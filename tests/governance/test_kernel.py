@@ -66,8 +66,8 @@ async def test_generated_ids_are_not_remembered(harness: Harness) -> None:
 # -- write-ahead ------------------------------------------------------------------------------
 
 
-async def test_nothing_is_sent_before_its_entry_is_durable(harness: Harness) -> None:
-    gov = await harness.governor()
+def _spy_on_sends(harness: Harness) -> list[int]:
+    """How many lines the audit file held at each send."""
     path = harness.tmp / "audit.jsonl"
     seen: list[int] = []
 
@@ -77,13 +77,37 @@ async def test_nothing_is_sent_before_its_entry_is_durable(harness: Harness) -> 
 
     real = harness.dispatcher.dispatch
     harness.dispatcher.dispatch = dispatch  # type: ignore[method-assign]
-    for action, params in [("move", {"linear_x": 0.2}), ("stop", {}), ("estop", {})]:
+    return seen
+
+
+async def test_nothing_is_sent_before_its_entry_is_durable(harness: Harness) -> None:
+    gov = await harness.governor()
+    path = harness.tmp / "audit.jsonl"
+    seen = _spy_on_sends(harness)
+    for action, params in [("move", {"linear_x": 0.2}), ("navigate", {"x": 1, "y": 1, "yaw": 0})]:
         before = len(path.read_bytes().splitlines())
         d = await gov.decide(command(action, params), OPS)
         assert d.outcome is Outcome.EXECUTED
-        # Its own entry was already in the file (beside the STREAM_ENDED a stop causes).
+        # Its own entry was already in the file.
         written = [json.loads(line) for line in path.read_bytes().splitlines()[before:seen[-1]]]
         assert [e["action_type"] for e in written if e["event"] != "STREAM_ENDED"] == [action]
+
+
+@pytest.mark.parametrize("action", ["stop", "estop"])
+async def test_a_stop_is_sent_first_and_durable_before_its_reply(harness: Harness,
+                                                                  action: str) -> None:
+    """The amended write-ahead rule: a stop's signals never wait for the disk, its entry
+    (which says so) is durable before the reply."""
+    gov = await harness.governor()
+    path = harness.tmp / "audit.jsonl"
+    seen = _spy_on_sends(harness)
+    before = len(path.read_bytes().splitlines())
+    d = await gov.decide(command(action), OPS)
+    assert d.outcome is Outcome.EXECUTED
+    assert seen == [before]  # nothing of it was on disk when it went out
+    written = [json.loads(line) for line in path.read_bytes().splitlines()[before:]]
+    [entry] = [e for e in written if e.get("action_type") == action]
+    assert entry["sent_first"] is True and entry["audit_id"] == d.audit_id
 
 
 async def test_audit_failure_sends_no_motion_but_the_estop_still_goes(harness: Harness) -> None:

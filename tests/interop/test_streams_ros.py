@@ -15,6 +15,8 @@ from typing import Any
 import pytest
 from waiting import eventually, take
 
+from rcan_rtps.rcan import validate_command
+
 from .bridge_rig import AGENT, OPS, VIEWER, Rig, bridge_config, close_rig, make_rig
 from .test_bridge_ros import CMD_VEL, SENTINEL_X, TWIST, subscribe, xs
 
@@ -75,6 +77,26 @@ async def test_no_nonzero_sample_after_the_estop_reply(rig: Rig) -> None:
     assert set(got[:first_zero]) <= {0.5}  # what was still in flight before it
     assert set(got[first_zero:]) == {0.0}, got  # after the e-stop: zero, and only zero
     assert [r for _, r in ended(rig)][:1] == ["estopped"]
+
+
+@pytest.mark.parametrize("raw", [
+    b'{"action": "estop", "params": {"reason": "person in path", "speed": 0}}',
+    b'{"action": "estop", "action": "move", "params": {"linear_x": 0.3}}',
+    b'{"message_type": 6, "safety_event": "ESTOP", "message_id": "not-a-uuid", "x": 1}',
+], ids=["unknown-param", "duplicate-keys", "safety-with-junk"])
+async def test_an_estop_with_junk_stops_the_robot(rig: Rig, raw: bytes) -> None:
+    """Issue 23: on 599eb3c each of these was a 400 and the robot went on at 0.3 m/s."""
+    await subscribe(rig, "/robot1/emergency_stop", "std_msgs/msg/Bool")
+    await subscribe(rig, CMD_VEL, TWIST)
+    await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.3}})
+    await take(rig.oracle, CMD_VEL, until=lambda got: len(got) >= 3)  # streaming now
+    estop = await rig.governor.decide(validate_command(raw), VIEWER)
+    assert (estop.http_status, bool(estop.warnings)) == (200, True), estop
+    bools = await take(rig.oracle, "/robot1/emergency_stop", until=lambda got: len(got) >= 1)
+    assert bools[-1]["data"] is True
+    assert (await rig.command(OPS, {"action": "clear_estop"})).http_status == 200
+    got = await after_sentinel_stream(rig)
+    assert 0.0 in got and set(got[got.index(0.0):]) == {0.0}, got
 
 
 async def test_session_loss_mid_stream_sends_zero_and_nothing_after(rig: Rig) -> None:

@@ -74,7 +74,7 @@ def test_envelope_and_short_forms_normalise_to_the_same_command() -> None:
         (b'{"action":"move","params":{"linear_x":true}}', "$.params.linear_x"),
         (b'{"action":"move","params":{"speed":1}}', "$.params"),
         (b'{"action":"fly"}', "$.action"),
-        (b'{"action":"stop","params":{"now":1}}', "$.params"),
+        (b'{"action":"move","params":{"now":1}}', "$.params"),
         (b'{"action":"move","confidence":1.5}', "$.confidence"),
         (b'{"action":"move","message_id":"not-a-uuid"}', "$.message_id"),
         (b'{"action":"navigate","params":{"x":1,"y":2}}', "$.params"),
@@ -107,7 +107,7 @@ def test_role_claims_are_kept_for_the_governor_not_trusted() -> None:
 
 def test_envelope_with_bad_ruri_is_invalid_ruri() -> None:
     with pytest.raises(InvalidRuriError) as info:
-        validate_command(body({"message_type": 1, "ruri": "rcan://x/y/z/short", "action": "stop"}))
+        validate_command(body({"message_type": 1, "ruri": "rcan://x/y/z/short", "action": "move"}))
     assert info.value.error_code == "INVALID_RURI"
 
 

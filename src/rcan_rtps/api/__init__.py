@@ -32,6 +32,9 @@ Decisions where the profile is silent:
 - Principal: the `Authorization: Bearer` credential; without one, a verified mTLS client
   certificate whose subject CN is a configured principal's name. A presented credential that
   fails is 401 even if a certificate would have named someone; two Authorization headers are 401.
+- A refused JWT's 401 has a `reason` (`jwt_expired`, `jwt_lifetime_too_long`, `jwt_unknown_kid`,
+  ...) and the message in `WWW-Authenticate: ... error_description`; a JWT's principal is
+  `jwt:<iss>/<sub>`, never a configured one (docs/governance.md, Identity).
 - Authentication happens before a body is read: an unauthenticated 1 MB body gets 401, not 413,
   and nothing is audited. For an authenticated principal, 413 (size), 400 (schema, with the
   field path) and INVALID_RURI are audited as COMMAND_REJECTED via `Governor.reject_request`.

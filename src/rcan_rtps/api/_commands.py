@@ -9,17 +9,18 @@ from __future__ import annotations
 
 import asyncio
 import sys
-from typing import Any
+from typing import TypeVar
 
-import msgspec
 from aiohttp import web
 
 from rcan_rtps.governance import Governor, Principal, outcomes
-from rcan_rtps.rcan import ErrorCode, SchemaValidationError, validation_path
+from rcan_rtps.rcan import ErrorCode, convert_at, decode_object
 
 from ._bodies import error_body
 from ._errors import BodyTimeout
-from ._intake import TOO_DEEP, Observe, Reply, decide, intake
+from ._intake import Observe, Reply, decide, intake
+
+T = TypeVar("T")
 
 
 async def read_limited(request: web.Request, limit: int,
@@ -72,14 +73,7 @@ async def run_command(governor: Governor, principal: Principal, raw: bytes,
     return await decide(governor, principal, intake(raw, len(raw)), observe)
 
 
-def decode_as(raw: bytes, kind: type[Any]) -> Any:
-    """Strict decode of a small JSON body; raises SchemaValidationError with the field path."""
-    try:
-        return msgspec.json.decode(raw, type=kind)
-    except msgspec.ValidationError as exc:
-        path, detail = validation_path(exc)
-        raise SchemaValidationError(path, detail) from exc
-    except (msgspec.DecodeError, RecursionError) as exc:
-        raise SchemaValidationError("$", str(exc) or TOO_DEEP) from exc
-    except UnicodeDecodeError as exc:  # msgspec's error for bad UTF-8 inside a string
-        raise SchemaValidationError("$", f"JSON is not valid UTF-8 (byte {exc.start})") from exc
+def decode_as(raw: bytes, kind: type[T]) -> T:
+    """Strict decode of a small JSON object body (unique keys); raises SchemaValidationError
+    with the field path."""
+    return convert_at(decode_object(raw), kind, "$")

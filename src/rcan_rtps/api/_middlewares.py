@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import ssl
 
+import msgspec
 from aiohttp import web
 from aiohttp.typedefs import Handler, Middleware
 
@@ -86,21 +87,37 @@ def authenticate() -> Middleware:
 
     @web.middleware
     async def middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
-        principal, presented = _principal(request)
+        try:
+            principal, presented = _principal(request)
+        except AuthenticationError as exc:
+            return await _unauthenticated(request, exc)
         if principal is None:
-            decision = await request.app[GOVERNOR].reject_request(None,
-                                                                   outcomes.UNAUTHENTICATED)
-            challenge = 'Bearer realm="rcan"' + (', error="invalid_token"' if presented else "")
-            return json_response(decision.body(), decision.http_status,
-                                 {"WWW-Authenticate": challenge})
+            return await _unauthenticated(request, None if not presented else
+                                          AuthenticationError("invalid credentials"))
         request[PRINCIPAL] = principal
         return await handler(request)
 
     return middleware
 
 
+async def _unauthenticated(request: web.Request,
+                           refused: AuthenticationError | None) -> web.Response:
+    """401; a refused JWT says why (`reason`, and RFC 6750's error_description)."""
+    rejection = outcomes.UNAUTHENTICATED
+    challenge = 'Bearer realm="rcan"'
+    if refused is not None:
+        challenge += ', error="invalid_token"'
+        if refused.reason is not None:
+            rejection = msgspec.structs.replace(rejection, reason=refused.reason)
+            # The messages are fixed ASCII text: nothing of the token is echoed.
+            challenge += f', error_description="{str(refused).replace(chr(34), chr(39))}"'
+    decision = await request.app[GOVERNOR].reject_request(None, rejection)
+    return json_response(decision.body(), decision.http_status, {"WWW-Authenticate": challenge})
+
+
 def _principal(request: web.Request) -> tuple[Principal | None, bool]:
-    """(principal or None, whether a credential was presented)."""
+    """(principal or None, whether a credential was presented); a refused bearer credential
+    raises AuthenticationError."""
     headers = request.headers.getall("Authorization", [])
     if len(headers) > 1:  # two credentials: which one counts is ambiguous, so neither does
         return None, True
@@ -108,10 +125,7 @@ def _principal(request: web.Request) -> tuple[Principal | None, bool]:
         scheme, _, token = headers[0].partition(" ")
         if scheme.lower() != "bearer" or not token.strip():
             return None, True
-        try:
-            return request.app[AUTHENTICATOR].authenticate(token.strip()), True
-        except AuthenticationError:
-            return None, True
+        return request.app[AUTHENTICATOR].authenticate(token.strip()), True
     name = peer_common_name(request)
     if name is None:
         return None, False

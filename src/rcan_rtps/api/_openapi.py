@@ -49,7 +49,8 @@ _DECISION = {
         (413, "body too large (audited)"), (429, "rate limited (audited)"),
         (503, "robot unreachable, or audit unavailable"))},
     "400": _json("ApiError", "schema failure, with the field path (audited)"),
-    "401": _json("ApiError", "no or invalid credentials (not audited)"),
+    "401": _json("ApiError", "no or invalid credentials (not audited); a refused JWT says why "
+                 "in `reason`"),
 }
 
 

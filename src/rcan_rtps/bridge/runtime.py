@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 
 from ..api import ApiServer, bind, build_app, cert_principals, server_ssl_context
 from ..api.ports import GoalView
-from ..config import RcanConfig
+from ..config import RcanConfig, plaintext_problem
 from ..governance import (
     AuditLog,
     Governor,
@@ -236,7 +236,11 @@ class Bridge:
         key = Path(self.config.bridge.audit.key_path)
         if key.exists():
             load_private_key(key)  # unreadable, too open or not Ed25519: refuse now
-        self._sock = bind(opts.host or api.host, api.port if opts.port is None else opts.port)
+        host = opts.host or api.host
+        plaintext = plaintext_problem(api, host)  # --host may point a loopback config outward
+        if plaintext is not None:
+            raise ValueError(f"api: {plaintext}")
+        self._sock = bind(host, api.port if opts.port is None else opts.port)
         # Last out: the server closes it too, but a bridge that never served must as well.
         self._on_stop("API port", self._sock.close)
 
@@ -260,7 +264,9 @@ class Bridge:
 
     async def _open_audit(self) -> AuditLog:
         audit = self.config.bridge.audit
-        self.audit = await AuditLog.open(audit.path, audit.key_path)
+        # Every entry names the robot it governs (§6): a log read apart from its robot says whose.
+        self.audit = await AuditLog.open(audit.path, audit.key_path, ruri=self.config.robot.ruri,
+                                         witness=audit.witness)
         self.audit.listeners.append(log_entry)  # one log line per decision and safety event
         self._on_stop("closing the audit log", self.audit.close)
         return self.audit

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import ssl
 import sys
 from collections.abc import Mapping
 
@@ -16,12 +17,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     actions = config.add_subparsers(dest="config_command", required=True)
     check = actions.add_parser(
         "check", help="validate a config file, listing every problem",
-        description="Validates FILE and checks that every token variable it names is set "
-        "here, as `rcan-rtps run` needs (--file-only: for a machine that will not run it).")
+        description="Validates FILE, then checks what `rcan-rtps run` needs here: every token "
+        "variable it names is set, its TLS files and JWT keys exist and load (--file-only: "
+        "the file alone, for a machine that will not run it).")
     check.add_argument("file", metavar="FILE", help="the .rcan.yaml to check")
     check.add_argument("--file-only", action="store_true",
-                       help="check the file alone, not the token environment variables "
-                       "(for checking a config on a machine that will not run it)")
+                       help="check the file alone, not the token variables, TLS files and JWT "
+                       "keys (for checking a config on a machine that will not run it)")
     check.set_defaults(func=check_command)
 
 
@@ -31,14 +33,25 @@ def check_command(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(str(exc), file=sys.stderr)
         return 1
-    missing = [] if args.file_only else missing_tokens(config, os.environ)
-    if missing:
-        print(f"{args.file}: valid, but `rcan-rtps run` would fail here: token variables "
-              f"unset or shorter than {MIN_TOKEN_BYTES} bytes: {', '.join(missing)} "
-              "(--file-only skips this check)", file=sys.stderr)
+    problems = [] if args.file_only else run_problems(config, os.environ)
+    if problems:
+        print(f"{args.file}: valid, but `rcan-rtps run` would fail here "
+              "(--file-only skips these checks):", file=sys.stderr)
+        for problem in problems:
+            print(f"  - {problem}", file=sys.stderr)
         return 1
     print(f"{args.file}: ok ({config.robot.ruri})")
     return 0
+
+
+def run_problems(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
+    """What stops `rcan-rtps run` with this config on this machine: tokens, TLS, JWT keys."""
+    problems: list[str] = []
+    missing = missing_tokens(config, env)
+    if missing:
+        problems.append(f"token variables unset or shorter than {MIN_TOKEN_BYTES} bytes: "
+                        f"{', '.join(missing)}")
+    return problems + tls_problems(config) + jwt_problems(config)
 
 
 def missing_tokens(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
@@ -49,3 +62,49 @@ def missing_tokens(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
         names.append(api.auth_token_env)
     return [n for n in dict.fromkeys(names)
             if len(env.get(n, "").encode()) < MIN_TOKEN_BYTES]
+
+
+def _unreadable(key: str, path: str) -> str | None:
+    """Why the file a config key names cannot be read, or None."""
+    try:
+        with open(path, "rb"):
+            return None
+    except OSError as exc:
+        return f"{key}: cannot read {path}: {exc.strerror or exc}"
+
+
+def tls_problems(config: RcanConfig) -> list[str]:
+    """Missing or unreadable TLS files, else a certificate and key that do not load."""
+    tls = config.bridge.api.tls
+    if tls is None:
+        return []
+    named = {"cert": tls.cert, "key": tls.key, "client_ca": tls.client_ca}
+    problems = [problem for key, path in named.items() if path is not None
+                for problem in [_unreadable(f"bridge.api.tls.{key}", path)] if problem]
+    if problems:
+        return problems
+    from rcan_rtps.api import server_ssl_context  # TLS configs only
+
+    try:
+        server_ssl_context(tls)
+    except (ssl.SSLError, OSError, ValueError) as exc:
+        return [f"bridge.api.tls: the certificate, key or client CA does not load: {exc}"]
+    return []
+
+
+def jwt_problems(config: RcanConfig) -> list[str]:
+    """A JWT key file (PEM or JWKS) that is missing or holds no usable Ed25519 key."""
+    jwt = config.bridge.api.jwt
+    if jwt is None:
+        return []
+    from rcan_rtps.governance import AuthConfigError
+    from rcan_rtps.governance.rbac import load_jwks, load_pem_key
+
+    try:
+        if jwt.jwks is not None:
+            load_jwks(jwt.jwks)
+        else:
+            load_pem_key(jwt.public_key or "")
+    except AuthConfigError as exc:
+        return [f"bridge.api.jwt: {exc}"]
+    return []

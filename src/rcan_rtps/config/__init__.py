@@ -28,6 +28,7 @@ from ._model import (
     Ros2Config,
     SafetyConfig,
     TlsConfig,
+    plaintext_problem,
     polygon_edges,
     polygon_problem,
 )
@@ -54,6 +55,7 @@ __all__ = [
     "TlsConfig",
     "load_config",
     "loads_config",
+    "plaintext_problem",
     "polygon_edges",
     "polygon_problem",
 ]

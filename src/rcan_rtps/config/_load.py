@@ -148,8 +148,8 @@ def _resolve_paths(config: RcanConfig, base: Path) -> RcanConfig:
         )
         api = msgspec.structs.replace(api, tls=tls)
     if api.jwt is not None:
-        api = msgspec.structs.replace(
-            api, jwt=msgspec.structs.replace(api.jwt, public_key=rel(api.jwt.public_key))
-        )
+        jwt = msgspec.structs.replace(api.jwt, public_key=rel(api.jwt.public_key),
+                                      jwks=rel(api.jwt.jwks))
+        api = msgspec.structs.replace(api, jwt=jwt)
     bridge = msgspec.structs.replace(bridge, audit=audit, safety=safety, api=api)
     return msgspec.structs.replace(config, bridge=bridge)

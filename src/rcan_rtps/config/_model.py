@@ -8,6 +8,7 @@ fields lives in `__post_init__` and is reported at the section's path.
 from __future__ import annotations
 
 import functools
+import ipaddress
 import math
 import re
 from collections.abc import Callable
@@ -191,10 +192,22 @@ class TlsConfig(_Section, frozen=True, kw_only=True):
 
 
 class JwtConfig(_Section, frozen=True, kw_only=True):
-    public_key: str  # PEM file holding the issuer's Ed25519 public key
+    """EdDSA JWTs. A JWT's principal is `jwt:<iss>/<sub>`, never a configured principal."""
+
+    # Exactly one: a PEM file of the issuer's Ed25519 public key (a token's `kid` is not
+    # looked at), or a JWKS file (RFC 7517) whose keys tokens choose by `kid` (rotation).
+    public_key: str | None = None
+    jwks: str | None = None
     audience: Annotated[str, msgspec.Meta(min_length=1)]
-    issuer: str | None = None
+    issuer: Annotated[str, msgspec.Meta(min_length=1)] | None = None
     leeway_s: Annotated[float, msgspec.Meta(ge=0.0, le=300.0)] = 30.0
+    # exp - iat (or exp - now, without iat) above this is refused: no token lasts for ever.
+    max_lifetime_s: Annotated[float, msgspec.Meta(gt=0.0, le=366 * 86400.0)] = 86400.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if (self.public_key is None) == (self.jwks is None):
+            raise ValueError("give exactly one of `public_key` or `jwks`")
 
 
 def _principals_problem(principals: list[PrincipalConfig]) -> str | None:
@@ -221,11 +234,37 @@ class ApiConfig(_Section, frozen=True, kw_only=True):
     header_timeout_s: Seconds = 10.0
     body_timeout_s: Seconds = 30.0
     keepalive_timeout_s: Seconds = 30.0
+    # Serve plain HTTP on a non-loopback `host` (bearer tokens in clear on the network): only
+    # behind something that encrypts (a TLS-terminating proxy, a VPN) that the bridge cannot see.
+    allow_plaintext: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if not (self.principals or self.auth_token_env or self.jwt):
             raise ValueError("no way to authenticate: set principals, auth_token_env or jwt")
+        problem = plaintext_problem(self, self.host)
+        if problem is not None:
+            raise ValueError(problem)
+
+
+def is_loopback(host: str) -> bool:
+    """Whether `host` is a loopback address or `localhost` (a name that could resolve
+    elsewhere, and the empty host or 0.0.0.0 meaning every interface, are not)."""
+    if host.lower().rstrip(".") == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def plaintext_problem(api: ApiConfig, host: str) -> str | None:
+    """Why serving `api` on `host` would put credentials on the network in clear, or None."""
+    if api.tls is not None or api.allow_plaintext or is_loopback(host):
+        return None
+    return (f"`host` {host!r} is not loopback and there is no `tls`: bearer tokens would cross "
+            "the network in clear. Set `tls` (cert, key; client_ca for mTLS), or "
+            "`allow_plaintext: true` if something outside the bridge encrypts the traffic")
 
 
 def _workspace_problem(workspace: list[Point] | None) -> str | None:
@@ -249,9 +288,19 @@ class SafetyConfig(_Section, frozen=True, kw_only=True):
     max_angular_accel: Positive | None = None
 
 
+def _witness_problem(url: str | None) -> str | None:
+    if url is None:
+        return None
+    from rcan_rtps.governance.witness import witness_problem  # the witness's own rule
+
+    return witness_problem(url)
+
+
 class AuditConfig(_Section, frozen=True, kw_only=True):
     path: str = "/var/lib/rcan/audit.jsonl"
     key_path: str = "/var/lib/rcan/audit-ed25519.key"
+    # Where each signed tree head is sent (file:///abs/path appended, http(s):// POSTed).
+    witness: Annotated[str | None, _check(_witness_problem)] = None
 
 
 def _estop_role_problem(action_roles: dict[ActionName, RoleName]) -> str | None:

@@ -6,9 +6,19 @@ previous `audit_id` (the first links to GENESIS); `sig` is base64 Ed25519 over `
 
 Writes run on the loop when the disk is fast (see INLINE_FSYNC_S), else on the log's own thread
 (never the default executor, which costly reads may fill).
-A signed checkpoint beside the log records the last verified entry, so opening the log checks
-only what was appended after it: start-up time does not grow with the log. `verify` and
-`rcan-rtps audit verify` still check the whole chain.
+A signed checkpoint beside the log records the last verified entry (and the Merkle tree's peaks
+there), so opening the log checks only what was appended after it: start-up time does not grow
+with the log. `verify` and `rcan-rtps audit verify` still check the whole chain.
+
+Transparency (`treehead`, `merkle`): each commit batch, once durable, gets a signed tree head
+(RFC 6962 root over the entries' lines) appended to `<log>.sth` and handed to the witness; the
+tree is kept incrementally (O(log n) per entry). The public key is written beside the log
+(`<log>.pub`), where `audit verify` finds it.
+
+A failed write or fsync (a full disk) fails the callers of its batch and of every entry sealed
+after it (they chain onto it; nothing was sent for them), cuts the file back to its last durable
+length and rewinds the chain to the last durable entry: the next append works once the disk
+does. Only when the file cannot be cut back does the log refuse further appends.
 """
 
 from __future__ import annotations
@@ -26,7 +36,7 @@ import os
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 from cryptography.exceptions import InvalidSignature
@@ -35,6 +45,11 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 from ._durable import atomic_write, fsync_dir, full_fsync, write_all
 from .clock import Clock, SystemClock
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
+from .merkle import CompactTree, leaf_hash
+from .treehead import TreeHead, TreeHeadFile, public_key_path, sign_tree_head, tree_head_path
+
+if TYPE_CHECKING:
+    from .witness import Witness
 
 GENESIS = "sha256:" + "0" * 64
 log = logging.getLogger(__name__)
@@ -63,6 +78,7 @@ class AuditEvent(str, enum.Enum):
     HITL_EXPIRED = "HITL_EXPIRED"
     ESTOP = "ESTOP"
     ESTOP_CLEARED = "ESTOP_CLEARED"
+    ESTOP_REPEATED = "ESTOP_REPEATED"  # e-stops sent while already latched, counted together
     NETWORK_LOSS_SAFE_STOP = "NETWORK_LOSS_SAFE_STOP"
     GOAL_FINISHED = "GOAL_FINISHED"  # a goal the bridge sent ended; `outcome` says how
     STREAM_ENDED = "STREAM_ENDED"  # a velocity stream stopped sending (params.reason says why)
@@ -88,6 +104,14 @@ class AuditRecord(msgspec.Struct, kw_only=True, frozen=True):
     pending_id: str | None = None
     # The HiTL reviews of a held command (each approver, decision and reason), in order.
     approvals: list[dict[str, Any]] | None = None
+    # A stop executed although its body had these problems (see rcan._salvage).
+    warnings: list[str] | None = None
+    # A stop's signals went out before this entry was durable (they never wait for the disk).
+    sent_first: bool | None = None
+
+
+# Left out of an entry when None: older entries never had them.
+_OPTIONAL = frozenset({"ai", "pending_id", "warnings", "sent_first", "approvals"})
 
 
 class AuditReceipt(msgspec.Struct, frozen=True):
@@ -198,12 +222,15 @@ def _load_pem(pem: bytes) -> object:
     return serialization.load_pem_private_key(pem, password=None)
 
 
-def public_key_pem(key: Ed25519PrivateKey) -> bytes:
-    from cryptography.hazmat.primitives import serialization
+# The SubjectPublicKeyInfo DER of an Ed25519 key (RFC 8410) is this prefix and the 32-byte key.
+_SPKI_ED25519 = bytes.fromhex("302a300506032b6570032100")
 
-    return key.public_key().public_bytes(
-        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
-    )
+
+def public_key_pem(key: Ed25519PrivateKey) -> bytes:
+    """The SubjectPublicKeyInfo PEM of `key`'s public key, the bytes `cryptography`'s PEM writer
+    makes; made here for the same reason as `_ed25519_pkcs8_pem` (a run writes it at open)."""
+    der = base64.b64encode(_SPKI_ED25519 + key.public_key().public_bytes_raw())  # one line
+    return b"\n".join((b"-----BEGIN PUBLIC KEY-----", der, b"-----END PUBLIC KEY-----", b""))
 
 
 def load_public_key(path: str | os.PathLike[str]) -> Ed25519PublicKey:
@@ -227,6 +254,7 @@ class _Scan(msgspec.Struct):
     torn: bytes  # an unterminated tail (a crash mid-append), or b""
     last_start: int = 0  # byte offset of the last valid line
     last_span: tuple[int, int] = (0, 0)  # (start, end) of the last valid line in the file
+    tree: CompactTree | None = None  # the Merkle tree of the valid lines, when asked for
 
 
 def _lines(data: bytes) -> Iterator[tuple[int, bytes]]:
@@ -277,15 +305,40 @@ def _sig_bytes(text: Any, seq: int) -> bytes:
 
 
 def _scan(data: bytes, pubkey: Ed25519PublicKey | None, *, seq: int = 0,
-          prev: str = GENESIS) -> _Scan:
-    """Verify `data` as the entries after `seq` (whose id is `prev`)."""
+          prev: str = GENESIS, tree: CompactTree | None = None) -> _Scan:
+    """Verify `data` as the entries after `seq` (whose id is `prev`); each valid line is
+    added to `tree` (the tree of the entries up to `seq`), if given."""
     good_end = last_start = 0
     for start, line in _lines(data):
-        prev = _check_line(line, seq + 1, prev, pubkey)
+        try:
+            prev = _check_line(line, seq + 1, prev, pubkey)
+        except AuditIntegrityError as exc:
+            if _only_damage_left(data, start + len(line) + 1):
+                raise AuditIntegrityError(exc.seq, "the last line is damaged (a torn tail, or "
+                                          f"an edit): {exc.detail}") from exc
+            raise
         seq += 1
         good_end, last_start = start + len(line) + 1, start
+        if tree is not None:
+            tree.append(leaf_hash(line))
     head = ChainHead(count=seq, last_seq=seq, last_audit_id=prev)
-    return _Scan(head=head, good_end=good_end, torn=data[good_end:], last_start=last_start)
+    return _Scan(head=head, good_end=good_end, torn=data[good_end:], last_start=last_start,
+                 tree=tree)
+
+
+def _only_damage_left(data: bytes, offset: int) -> bool:
+    """No well-formed entry (one whose audit_id matches its content) follows `offset`: a
+    failure before it is confined to the end of the file, as a crash mid-append leaves it."""
+    return not any(_well_formed(line) for _, line in _lines(data[offset:]))
+
+
+def _well_formed(line: bytes) -> bool:
+    try:
+        entry = msgspec.json.decode(line)
+    except (msgspec.DecodeError, UnicodeDecodeError):
+        return False
+    return (isinstance(entry, dict) and all(k in entry for k in _REQUIRED)
+            and entry.get("audit_id") == entry_id(entry))
 
 
 def verify(
@@ -301,6 +354,26 @@ def verify(
         raise AuditIntegrityError(exc.seq, exc.detail, path=str(path)) from exc
 
 
+def entries(data: bytes, pubkey: Ed25519PublicKey | None = None
+            ) -> Iterator[tuple[int, str, bytes]]:
+    """The entries of a whole audit file in order, each verified as `verify_bytes` does:
+    (seq, audit_id, line without its newline). Raises AuditIntegrityError at the first break,
+    after yielding the valid entries before it."""
+    seq, prev, end = 0, GENESIS, 0
+    for start, line in _lines(data):
+        try:
+            prev = _check_line(line, seq + 1, prev, pubkey)
+        except AuditIntegrityError as exc:
+            if _only_damage_left(data, start + len(line) + 1):
+                raise AuditIntegrityError(exc.seq, "the last line is damaged (a torn tail, or "
+                                          f"an edit): {exc.detail}") from exc
+            raise
+        seq, end = seq + 1, start + len(line) + 1
+        yield seq, prev, line
+    if end < len(data):
+        raise AuditIntegrityError(seq + 1, "incomplete last line (torn tail)")
+
+
 def verify_bytes(data: bytes, pubkey: Ed25519PublicKey | None = None) -> ChainHead:
     """`verify` on the content of an audit file."""
     scan = _scan(data, pubkey)
@@ -313,39 +386,69 @@ def verify_bytes(data: bytes, pubkey: Ed25519PublicKey | None = None) -> ChainHe
 
 
 class Checkpoint(msgspec.Struct, frozen=True, kw_only=True):
-    """The last verified entry: its seq, id and byte span, signed with the log's key."""
+    """The last verified entry: its seq, id and byte span, and the peaks of the Merkle tree of
+    the entries up to it (hex; absent in checkpoints of older versions), signed with the log's
+    key. A start-up aid, not a tree head: `<log>.sth` holds those."""
 
     seq: int
     audit_id: str
     start: int  # byte offset of the entry's line
     end: int  # just past its newline: where verification resumes
+    tree: list[str] | None = None
     sig: str = ""
 
     def signed_bytes(self) -> bytes:
-        return canonical({"seq": self.seq, "audit_id": self.audit_id,
-                          "start": self.start, "end": self.end})
+        body: dict[str, Any] = {"seq": self.seq, "audit_id": self.audit_id,
+                                "start": self.start, "end": self.end}
+        if self.tree is not None:
+            body["tree"] = self.tree
+        return canonical(body)
+
+    def compact_tree(self) -> CompactTree | None:
+        if self.tree is None:
+            return None
+        try:
+            return CompactTree(self.seq, [bytes.fromhex(p) for p in self.tree])
+        except ValueError:
+            return None
 
 
 def checkpoint_path(log_path: Path) -> Path:
     return log_path.with_name(log_path.name + ".checkpoint")
 
 
-def _write_checkpoint(path: Path, key: Ed25519PrivateKey, cp: Checkpoint) -> None:
+def _write_checkpoint(path: Path, key: Ed25519PrivateKey, cp: Checkpoint,
+                      heads: TreeHeadFile | None = None) -> None:
+    if heads is not None:
+        heads.sync()  # the tree heads up to the checkpoint survive a power loss too
     sig = base64.b64encode(key.sign(cp.signed_bytes())).decode()
     atomic_write(path, msgspec.json.encode(msgspec.structs.replace(cp, sig=sig)))
+
+
+def read_checkpoint(path: Path, pubkey: Ed25519PublicKey | None) -> Checkpoint:
+    """The checkpoint at `path`, its signature checked when `pubkey` is given; raises OSError
+    (FileNotFoundError if there is none) or ValueError (malformed, or not signed by `pubkey`)."""
+    try:
+        cp = msgspec.json.decode(path.read_bytes(), type=Checkpoint)
+    except msgspec.DecodeError as exc:
+        raise ValueError(f"checkpoint {path} is malformed: {exc}") from exc
+    if pubkey is not None:
+        try:
+            pubkey.verify(base64.b64decode(cp.sig, validate=True), cp.signed_bytes())
+        except (ValueError, InvalidSignature) as exc:
+            raise ValueError(f"checkpoint {path} is not signed by this key") from exc
+    return cp
 
 
 def _read_checkpoint(path: Path, pubkey: Ed25519PublicKey) -> Checkpoint | None:
     """A checkpoint this key signed, or None (missing, unreadable, or not ours)."""
     try:
-        cp = msgspec.json.decode(path.read_bytes(), type=Checkpoint)
-        pubkey.verify(base64.b64decode(cp.sig, validate=True), cp.signed_bytes())
+        return read_checkpoint(path, pubkey)
     except FileNotFoundError:
         return None
-    except (OSError, ValueError, msgspec.DecodeError, InvalidSignature):
+    except (OSError, ValueError):
         log.warning("audit checkpoint %s unusable: verifying the whole log", path)
         return None
-    return cp
 
 
 def _resume_point(fd: int, cp: Checkpoint) -> tuple[int, str, int] | None:
@@ -378,6 +481,46 @@ def _write_durable(fd: int, data: bytes) -> float:
     return time.perf_counter() - started
 
 
+class _TailUnknown(AuditWriteError):
+    """A failed write could not be cut back: what the file ends with is unknown."""
+
+
+_Signer = Callable[[CompactTree], TreeHead]
+
+
+def _commit(fd: int, lines: list[bytes], size_before: int, tree: CompactTree | None,
+            sign: _Signer, heads: TreeHeadFile | None
+            ) -> tuple[float, CompactTree | None, TreeHead | None]:
+    """Write and fsync a batch, then its tree head. A failed write is cut back to
+    `size_before` (the durable length) and re-raised; `_TailUnknown` if it cannot be.
+    Returns the write+fsync time, the grown tree and the batch's tree head."""
+    try:
+        took = _write_durable(fd, b"".join(lines))
+    except Exception as exc:
+        _cut_back(fd, size_before, exc)
+        raise
+    if tree is None:  # lost by an earlier failure (logged): no more heads until a restart
+        return took, None, None
+    try:  # the entries are durable: nothing here may turn that into a failure
+        grown = tree.copy()
+        grown.extend(leaf_hash(line[:-1]) for line in lines)
+        head = sign(grown)
+        if heads is not None:
+            heads.append(head)
+    except Exception:
+        log.exception("audit tree head not made: no more tree heads until a restart")
+        return took, None, None
+    return took, grown, head
+
+
+def _cut_back(fd: int, size: int, cause: Exception) -> None:
+    try:
+        os.ftruncate(fd, size)
+        full_fsync(fd)
+    except OSError as exc:
+        raise _TailUnknown(f"{cause}; then cutting back failed: {exc}") from exc
+
+
 _Queued = tuple[bytes, AuditReceipt, "asyncio.Future[None]"]  # a sealed line awaiting its fsync
 
 
@@ -385,12 +528,14 @@ class AuditLog:
     """The append-only chain. `append` returns only once its entry is on disk (fsynced).
 
     With `group_commit`, appends of two loop turns, or that arrive while the writer thread's
-    write+fsync is running, share the next one.
+    write+fsync is running, share the next one. Each commit's tree head follows its fsync.
     """
 
     def __init__(self, fd: int, key: Ed25519PrivateKey, head: ChainHead, *, path: Path,
                  ruri: str | None, clock: Clock, group_commit: bool, size: int,
-                 writer: concurrent.futures.ThreadPoolExecutor) -> None:
+                 writer: concurrent.futures.ThreadPoolExecutor,
+                 tree: CompactTree | None = None, heads: TreeHeadFile | None = None,
+                 witness: Witness | None = None) -> None:
         self.path = path
         self._fd = fd
         self._key = key
@@ -408,6 +553,9 @@ class AuditLog:
         self._size = size  # bytes durably in the file
         self._last_span = (max(0, size - 1), size)
         self._durable_seq, self._durable_id = head.last_seq, head.last_audit_id
+        self._tree = tree  # the Merkle tree of the durable entries (None: lost, no heads)
+        self._heads = heads  # <log>.sth
+        self._witness = witness
         self._checkpointed_seq = -1  # none written by this process yet
         self._fsync_s = 0.0  # smoothed write+fsync time
         self._checkpointing: asyncio.Task[None] | None = None
@@ -419,26 +567,30 @@ class AuditLog:
     @classmethod
     async def open(cls, path: str | os.PathLike[str], key_path: str | os.PathLike[str], *,
                    ruri: str | None = None, clock: Clock | None = None,
-                   group_commit: bool = True) -> AuditLog:
+                   group_commit: bool = True, witness: str | None = None) -> AuditLog:
         """Open (or create) the log, verify what the checkpoint does not cover, cut a torn tail.
 
         A torn tail is cut and audited. Any other break raises AuditIntegrityError: the bridge
-        must not start on it. Missing directories are created (mode 0700).
+        must not start on it. Missing directories are created (mode 0700). The public key is
+        written beside the log (`<log>.pub`); tree heads go to `<log>.sth` and, with
+        `witness` (a file://, http:// or https:// URL), to the witness too.
         """
         path = Path(path)
         writer = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="rcan-audit")
         try:
-            await asyncio.get_running_loop().run_in_executor(writer, _make_dirs, path,
-                                                             Path(key_path))
+            sender = _witness(witness)
+            loop = asyncio.get_running_loop()
+            await loop.run_in_executor(writer, _make_dirs, path, Path(key_path))
             key = load_or_create_key(key_path)
-            opened = await asyncio.get_running_loop().run_in_executor(
-                writer, _open_and_scan, path, key.public_key())
+            fd, scan = await loop.run_in_executor(writer, _open_and_scan, path,
+                                                  key.public_key())
+            heads = await loop.run_in_executor(writer, _open_sidecars, path, key)
         except BaseException:
             writer.shutdown(wait=False)
             raise
-        fd, scan = opened
         log = cls(fd, key, scan.head, path=path, ruri=ruri, clock=clock or SystemClock(),
-                  group_commit=group_commit, size=scan.good_end, writer=writer)
+                  group_commit=group_commit, size=scan.good_end, writer=writer,
+                  tree=scan.tree, heads=heads, witness=sender)
         log._last_span = scan.last_span
         if scan.torn:
             await log.append(AuditRecord(
@@ -447,6 +599,8 @@ class AuditLog:
                         "cut_sha256": hashlib.sha256(scan.torn).hexdigest(),
                         "after_seq": scan.head.last_seq},
             ))
+        else:  # a head for what is there (older logs have none; the witness learns of it)
+            await log._publish_head()
         await log.checkpoint()
         return log
 
@@ -512,18 +666,22 @@ class AuditLog:
         if self._size == 0 or not self.healthy:
             return
         start, end = self._last_span
-        cp = Checkpoint(seq=self._durable_seq, audit_id=self._durable_id, start=start, end=end)
+        tree = self._tree
+        peaks = [p.hex() for p in tree.peaks] if tree is not None else None
+        cp = Checkpoint(seq=self._durable_seq, audit_id=self._durable_id, start=start, end=end,
+                        tree=peaks)
         try:
             await asyncio.get_running_loop().run_in_executor(
-                self._writer, _write_checkpoint, checkpoint_path(self.path), self._key, cp)
+                self._writer, _write_checkpoint, checkpoint_path(self.path), self._key, cp,
+                self._heads)
         except OSError:  # only start-up time suffers: the next start verifies more
             log.exception("audit checkpoint not written")
             return
         self._checkpointed_seq = cp.seq
 
     async def close(self) -> None:
-        """Waits for queued writes, checkpoints, and releases the file and its lock.
-        Idempotent."""
+        """Waits for queued writes, checkpoints, sends the last tree heads to the witness
+        (2 s at most) and releases the files and the lock. Idempotent."""
         if self._loop_batch:
             self._commit_loop_batch()
         pending = [t for t in (self._flusher, self._checkpointing) if t is not None]
@@ -533,6 +691,13 @@ class AuditLog:
             await self.checkpoint()
             os.close(self._fd)  # closing also drops the flock
             self._fd = -1
+        loop = asyncio.get_running_loop()
+        heads, self._heads = self._heads, None
+        witness, self._witness = self._witness, None
+        if heads is not None:
+            await loop.run_in_executor(self._writer, heads.close)
+        if witness is not None:
+            await loop.run_in_executor(self._writer, witness.close)
         self._writer.shutdown(wait=True)
 
     def _seal(self, record: AuditRecord) -> tuple[bytes, AuditReceipt]:
@@ -540,7 +705,7 @@ class AuditLog:
         ms = int(self._clock.time() * 1000)
         entry: dict[str, Any] = {
             k: v for k, v in msgspec.structs.asdict(record).items()
-            if not (k in ("ai", "pending_id", "approvals") and v is None)
+            if not (k in _OPTIONAL and v is None)
         }
         entry.update(
             seq=self._seq + 1, prev_hash=self._prev, timestamp=iso_utc(ms), timestamp_ms=ms,
@@ -553,18 +718,35 @@ class AuditLog:
         self._prev = audit_id
         return canonical(entry) + b"\n", AuditReceipt(seq=self._seq, audit_id=audit_id)
 
+    def _sign_head(self, tree: CompactTree) -> TreeHead:
+        return sign_tree_head(self._key, tree.size, tree.root(), int(self._clock.time() * 1000))
+
+    async def _publish_head(self) -> None:
+        """A tree head for the durable entries, outside any commit (at open)."""
+        tree = self._tree
+        if tree is None or tree.size == 0:
+            return
+        head = self._sign_head(tree)
+        if self._heads is not None:
+            await asyncio.get_running_loop().run_in_executor(self._writer, self._heads.append,
+                                                             head)
+        if self._witness is not None:
+            self._witness.submit(head.line())
+
     async def _flush(self) -> None:
         loop = asyncio.get_running_loop()
         while self._queue:
             take = self._batch_limit or len(self._queue)
             batch, self._queue = self._queue[:take], self._queue[take:]
-            data = b"".join(line for line, _, _ in batch)
+            lines = [line for line, _, _ in batch]
             try:
-                took = await loop.run_in_executor(self._writer, _write_durable, self._fd, data)
-                self._durable(data, batch[-1][0], batch[-1][1], took)
+                took, tree, head = await loop.run_in_executor(
+                    self._writer, _commit, self._fd, lines, self._size, self._tree,
+                    self._sign_head, self._heads)
             except Exception as exc:  # OSError, or a bug: no waiter may hang on it
-                self._fail(batch + self._queue, exc)
+                self._fail(batch, exc)
                 return
+            self._durable(lines, batch[-1][1], took, tree, head)
             _settle(batch)
 
     def _loop_commit_ok(self) -> bool:
@@ -589,13 +771,14 @@ class AuditLog:
         if not self.healthy:
             self._fail(batch, OSError("the audit log is closed or broken"))
             return
-        data = b"".join(line for line, _, _ in batch)
+        lines = [line for line, _, _ in batch]
         try:
-            took = _write_durable(self._fd, data)
+            took, tree, head = _commit(self._fd, lines, self._size, self._tree,
+                                       self._sign_head, self._heads)
         except Exception as exc:  # OSError, or a bug: no waiter may hang on it
             self._fail(batch, exc)
             return
-        self._durable(data, batch[-1][0], batch[-1][1], took)
+        self._durable(lines, batch[-1][1], took, tree, head)
         _settle(batch)
 
     def _inline_ok(self) -> bool:
@@ -607,27 +790,44 @@ class AuditLog:
 
     def _write_inline(self, line: bytes, receipt: AuditReceipt) -> None:
         try:
-            took = _write_durable(self._fd, line)
-        except Exception as exc:  # OSError, or a bug: either way the tail is unknown now
+            took, tree, head = _commit(self._fd, [line], self._size, self._tree,
+                                       self._sign_head, self._heads)
+        except Exception as exc:  # OSError, or a bug
             self._fail([], exc)
             raise AuditWriteError(f"audit write to {self.path} failed: {exc}") from exc
-        self._durable(line, line, receipt, took)
+        self._durable([line], receipt, took, tree, head)
 
-    def _durable(self, written: bytes, last: bytes, head: AuditReceipt, took_s: float) -> None:
-        """Track the durable head (`last`, the line of `head`): seq, id and byte span."""
+    def _durable(self, lines: list[bytes], last: AuditReceipt, took_s: float,
+                 tree: CompactTree | None, head: TreeHead | None) -> None:
+        """Track the durable end (`last`, the receipt of the last of `lines`): seq, id, byte
+        span and tree; hand the batch's tree head to the witness."""
         self._fsync_s = 0.8 * self._fsync_s + 0.2 * took_s
         self._last_write_end = time.monotonic()
-        self._size += len(written)
-        self._last_span = (self._size - len(last), self._size)
-        self._durable_seq, self._durable_id = head.seq, head.audit_id
+        self._size += sum(len(line) for line in lines)
+        self._last_span = (self._size - len(lines[-1]), self._size)
+        self._durable_seq, self._durable_id = last.seq, last.audit_id
+        self._tree = tree
+        if head is not None and self._witness is not None:
+            self._witness.submit(head.line())
 
-    def _fail(self, waiting: list[_Queued], exc: Exception) -> None:
-        # After a failed write the file's tail is unknown: refuse every further append.
-        self._broken = exc
-        self._queue = []
+    def _fail(self, batch: list[_Queued], exc: Exception) -> None:
+        """A commit failed: its entries and every one sealed after it (they chain onto it)
+        are refused. The file was cut back to its durable length, so the chain goes on from
+        the last durable entry; if it could not be (`_TailUnknown`), the log refuses more."""
+        waiting = batch + self._queue + self._loop_batch
+        self._queue, self._loop_batch, self._urgent = [], [], False
+        if isinstance(exc, _TailUnknown) or self._fd < 0:
+            self._broken = exc
+            log.error("audit log %s unwritable until a restart: %s", self.path, exc)
+        else:
+            self._seq, self._prev = self._durable_seq, self._durable_id
+            log.error("audit write to %s failed: %s; %d entries refused, the log goes on from "
+                      "seq %d", self.path, exc, len(waiting) or 1, self._durable_seq)
         for _, _, done in waiting:
             if not done.done():
-                done.set_exception(AuditWriteError(f"audit write to {self.path} failed: {exc}"))
+                error = AuditWriteError(f"audit write to {self.path} failed: {exc}")
+                error.__cause__ = exc
+                done.set_exception(error)
 
 
 def _settle(batch: list[_Queued]) -> None:
@@ -637,6 +837,14 @@ def _settle(batch: list[_Queued]) -> None:
             done.set_result(None)
 
 
+def _witness(url: str | None) -> Witness | None:
+    if url is None:
+        return None
+    from .witness import Witness  # its thread and imports only where one is configured
+
+    return Witness(url)
+
+
 def _make_dirs(*paths: Path) -> None:
     """Create each missing parent directory, private (0700): audit trails are not for all."""
     for path in paths:
@@ -644,6 +852,24 @@ def _make_dirs(*paths: Path) -> None:
         for directory in reversed(missing):
             directory.mkdir(mode=0o700, exist_ok=True)
             os.chmod(directory, 0o700)  # mkdir's mode is filtered by the umask
+
+
+def _open_sidecars(path: Path, key: Ed25519PrivateKey) -> TreeHeadFile | None:
+    """Write the public key beside the log (if it is not there already) and open the tree-head
+    file. Neither is the record: a failure is logged, and the log works without them."""
+    pub = public_key_path(path)
+    pem = public_key_pem(key)
+    try:
+        if not pub.exists() or pub.read_bytes() != pem:
+            atomic_write(pub, pem, mode=0o644)
+    except OSError as exc:
+        log.warning("audit public key not written to %s: %s", pub, exc)
+    try:
+        return TreeHeadFile(tree_head_path(path))
+    except OSError as exc:
+        log.error("audit tree heads %s cannot be opened: %s (no tree heads will be written "
+                  "there)", tree_head_path(path), exc)
+        return None
 
 
 def _open_and_scan(path: Path, pubkey: Ed25519PublicKey) -> tuple[int, _Scan]:
@@ -666,19 +892,37 @@ def _open_and_scan(path: Path, pubkey: Ed25519PublicKey) -> tuple[int, _Scan]:
 def _scan_from_checkpoint(fd: int, path: Path, pubkey: Ed25519PublicKey) -> _Scan:
     cp = _read_checkpoint(checkpoint_path(path), pubkey)
     resume = _resume_point(fd, cp) if cp is not None else None
-    seq, prev, offset = resume or (0, GENESIS, 0)
     if cp is not None and resume is None:
         log.warning("audit checkpoint does not match %s: verifying the whole log", path)
-    data = _read_from(fd, offset)
+    data = _read_from(fd, 0 if resume is None else resume[2])
+    tree = _resume_tree(fd, cp, resume)
+    if tree is None:
+        resume, tree = None, CompactTree()
+        data = _read_from(fd, 0)
+    seq, prev, offset = resume or (0, GENESIS, 0)
     try:
-        scan = _scan(data, pubkey, seq=seq, prev=prev)
+        scan = _scan(data, pubkey, seq=seq, prev=prev, tree=tree)
     except AuditIntegrityError as exc:
         raise AuditIntegrityError(exc.seq, exc.detail + "; refusing to start",
                                   path=str(path)) from exc
     end = offset + scan.good_end
     span = (offset + scan.last_start, end) if scan.good_end else (
         (cp.start, cp.end) if resume and cp else (0, 0))
-    return _Scan(head=scan.head, good_end=end, torn=scan.torn, last_span=span)
+    return _Scan(head=scan.head, good_end=end, torn=scan.torn, last_span=span, tree=scan.tree)
+
+
+def _resume_tree(fd: int, cp: Checkpoint | None,
+                 resume: tuple[int, str, int] | None) -> CompactTree | None:
+    """The Merkle tree at the checkpoint: its peaks, or (a checkpoint of an older version)
+    the lines it vouches for, hashed once. None: verify and hash from the start instead."""
+    if cp is None or resume is None:
+        return CompactTree()
+    tree = cp.compact_tree()
+    if tree is not None:
+        return tree
+    tree = CompactTree()
+    tree.extend(leaf_hash(line) for _, line in _lines(_read_from(fd, 0)[:resume[2]]))
+    return tree if tree.size == cp.seq else None
 
 
 def _lock(fd: int, path: Path) -> None:

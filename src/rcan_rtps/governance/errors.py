@@ -20,7 +20,14 @@ class GovernanceError(Exception):
 
 
 class AuthenticationError(GovernanceError):
+    """`reason`: a code a caller may be told (why a JWT is refused); None for a bad token,
+    of which nothing is said."""
+
     error_code = "UNAUTHENTICATED"
+
+    def __init__(self, message: str, *, reason: str | None = None) -> None:
+        super().__init__(message)
+        self.reason = reason
 
 
 class AuthConfigError(GovernanceError):

@@ -120,6 +120,10 @@ class EstopMachine:
         """Run `work` in order; it calls `unlatch()` once the clear is durable."""
         return self._submit(work, engage=False)
 
+    def then(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
+        """Run `work` in order with the transitions, changing nothing of the latch itself."""
+        return self._submit(work, engage=False)
+
     def unlatch(self) -> bool:
         """From a clear's work: unlatch unless an e-stop arrived after it (then False)."""
         if self._engages_waiting:
@@ -174,3 +178,46 @@ class EstopMachine:
                     done.set_result(result)
             finally:
                 self._queue.task_done()
+
+
+class Tally(msgspec.Struct, kw_only=True):
+    """One principal's e-stops while already latched, since they were last recorded."""
+
+    count: int = 0
+    failed: int = 0  # the robot could not be told again
+    first_ms: int = 0
+    last_ms: int = 0
+    warnings: list[str] = msgspec.field(default_factory=list)  # distinct, at most MAX_WARNINGS
+
+
+class EstopRepeats:
+    """E-stops that arrive while an audited e-stop holds the latch: each is answered and sent
+    to the robot again at once, and they are recorded together, one entry per principal (at
+    the next clear, at the bridge's stop, or every `every_ms`), so a flood of them cannot fill
+    the disk while the robot is already stopped."""
+
+    MAX_WARNINGS = 8
+
+    def __init__(self, every_ms: int = 60_000) -> None:
+        self.every_ms = every_ms
+        self._tallies: dict[str, Tally] = {}
+
+    def add(self, principal: str, at_ms: int, *, failed: bool,
+            warnings: tuple[str, ...] = ()) -> None:
+        tally = self._tallies.get(principal)
+        if tally is None:
+            tally = self._tallies[principal] = Tally(first_ms=at_ms)
+        tally.count += 1
+        tally.failed += failed
+        tally.last_ms = at_ms
+        for warning in warnings:
+            if warning not in tally.warnings and len(tally.warnings) < self.MAX_WARNINGS:
+                tally.warnings.append(warning)
+
+    def due(self, now_ms: int) -> bool:
+        """Some tally has waited `every_ms` to be recorded."""
+        return any(now_ms - t.first_ms >= self.every_ms for t in self._tallies.values())
+
+    def take(self) -> dict[str, Tally]:
+        taken, self._tallies = self._tallies, {}
+        return taken

@@ -16,7 +16,7 @@ import contextlib
 import functools
 import logging
 import uuid
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Callable, Coroutine, Iterator, Mapping
 from pathlib import Path
 from typing import Any, Protocol, cast
 
@@ -45,13 +45,14 @@ from . import outcomes
 from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
 from .clock import Clock, SystemClock, now_ms
 from .errors import AuditError, EstopStateError
-from .estop import EstopMachine, LatchFile
+from .estop import EstopMachine, EstopRepeats, LatchFile
 from .hitl import Escalate, Held, HitlPolicy, Notifier, PendingCommand, PendingStore, Verdict
 from .idempotency import Conflict, Idempotency
 from .invariants import Check, Violation, safety_policy
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
+from .resume import resume
 from .streams import (
     AccelLimits,
     EndReason,
@@ -116,6 +117,7 @@ class Decision(msgspec.Struct, frozen=True, kw_only=True):
     expires_at_ms: int | None = None
     ros2_topic: str | None = None
     goal_id: str | None = None
+    warnings: list[str] | None = None  # a stop executed in spite of these problems
 
     def body(self) -> DecisionBody:
         return DecisionBody(
@@ -123,7 +125,7 @@ class Decision(msgspec.Struct, frozen=True, kw_only=True):
             audit_id=self.audit_id, message_id=self.message_id,
             error_code=self.error_code.value if self.error_code else None, reason=self.reason,
             applied=self.applied, pending_id=self.pending_id, expires_at_ms=self.expires_at_ms,
-            goal_id=self.goal_id, ros2_topic=self.ros2_topic,
+            goal_id=self.goal_id, ros2_topic=self.ros2_topic, warnings=self.warnings,
         )
 
 
@@ -134,7 +136,8 @@ class Governor:
                  require_distinct_approver: bool = False, session_timeout_s: float = 2.0,
                  robot_ruri: str | None = None, notifier: Notifier | None = None,
                  streams: VelocityStreams | None = None,
-                 priorities: MotionPriorities | None = None) -> None:
+                 priorities: MotionPriorities | None = None,
+                 held_locks: Mapping[str, str] | None = None) -> None:
         self.audit = audit
         self.latch = latch
         self._dispatcher = dispatcher
@@ -165,6 +168,11 @@ class Governor:
         self.streams = streams or VelocityStreams(dispatcher, latch)
         self.streams.on_end = self._stream_ended
         self._priorities = priorities or MotionPriorities()
+        self._held_at_start = dict(held_locks or {})  # lock → holder, as the log left them
+        self._lock_holders: dict[str, str] = {}  # engaged locks → who engaged them
+        self._repeats = EstopRepeats()
+        # The ESTOP entry holding the latch, while no clear was audited after it.
+        self._latched_by: AuditReceipt | None = None
         latch.listeners.insert(0, self.streams.on_latch)
         latch.listeners.append(self._status_changed)
 
@@ -176,6 +184,11 @@ class Governor:
         latch_file = LatchFile(Path(bridge.safety.estop_state_path or beside_audit))
         # A missing latch file is a first start only if the audit log is new as well.
         latched, reason = latch_file.load(first_start=audit.head.last_seq == 0)
+        resumed = resume(audit.path)
+        if resumed.latched and not latched:  # the stricter of file and signed chain
+            latched, reason = True, (
+                f"the audit log's last e-stop (by {resumed.latched_by}) was never cleared, "
+                f"though {latch_file.path} says it was: latched until cleared")
         if reason:
             log.error("%s", reason)
         latch = EstopMachine(latch_file, latched=latched, reason=reason)
@@ -194,7 +207,7 @@ class Governor:
             hitl_timeout_s=bridge.hitl.timeout_seconds,
             require_distinct_approver=bridge.hitl.require_distinct_approver,
             session_timeout_s=bridge.safety.session_timeout_s,
-            robot_ruri=config.robot.ruri,
+            robot_ruri=config.robot.ruri, held_locks=resumed.locks,
         )
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -204,6 +217,10 @@ class Governor:
         params: dict[str, Any] = {"estop_latched": self.latch.latched}
         if self.latch.reason:
             params["estop_reason"] = self.latch.reason
+        released = self._retake_locks()
+        params["locks"] = dict(self._lock_holders)
+        if released:
+            params["locks_released"] = released
         await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STARTED, params=params))
         self.started = True
         if self._latch_file_missing and not self.latch.latched:  # first start: record it
@@ -228,20 +245,62 @@ class Governor:
             await asyncio.gather(self._sweeper, return_exceptions=True)
         await asyncio.gather(*self._tasks, return_exceptions=True)
         await self.latch.close()
-        await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STOPPED))
+        await self._record_repeats()
+        params = {"estop_latched": self.latch.latched, "locks": dict(self._lock_holders)}
+        await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STOPPED, params=params))
+
+    def _retake_locks(self) -> list[str]:
+        """Engage the locks the log says were held; those no longer configured are released
+        (their names returned, for BRIDGE_STARTED)."""
+        released = []
+        for name, holder in sorted(self._held_at_start.items()):
+            level = self._priorities.lock(name)
+            if level is None:
+                released.append(name)
+                continue
+            self.streams.lock(name, level, holder)
+            self._lock_holders[name] = holder
+            log.warning("motion lock %r (engaged by %s) held again after the restart",
+                        name, holder)
+        return released
 
     # -- commands ---------------------------------------------------------------------------
 
     async def decide(self, command: NormalizedCommand, principal: Principal) -> Decision:
         """Decide, act and audit; a caller that goes away does not stop the decision."""
         effect = command.spec.effect
+        if command.spec.stopping:
+            command = self._forgiven(command, principal)
         if effect is Effect.ESTOP:  # any authenticated principal; latched right here
-            return await asyncio.shield(
+            decision = await asyncio.shield(
                 self.latch.engage(lambda: self._estop(command, principal)))
-        if effect is Effect.HALT:  # the e-stop lane: no admission queue
-            return await self._detached(self._decide(command, principal))
-        async with self._admission:
-            return await self._detached(self._decide(command, principal))
+        elif effect is Effect.HALT:  # the e-stop lane: no admission queue
+            decision = await self._detached(self._decide(command, principal))
+        else:
+            async with self._admission:
+                return await self._detached(self._decide(command, principal))
+        if command.warnings:  # executed anyway: the caller learns what was wrong
+            return msgspec.structs.replace(decision, warnings=list(command.warnings))
+        return decision
+
+    def _forgiven(self, command: NormalizedCommand, principal: Principal) -> NormalizedCommand:
+        """A stop whose role claim or RURI would refuse another command: those become
+        warnings, and the stop goes ahead (an authenticated request that says stop, stops)."""
+        warnings = list(command.warnings)
+        if _claims_more(command.claimed_role, principal.role):
+            warnings.append(f"role claim {command.claimed_role!r} ignored: the role comes "
+                            f"from authentication ({principal.role.name})")
+        ruri = command.ruri
+        if ruri is not None and self._robot is not None:
+            try:
+                if parse_ruri(ruri).robot != self._robot:
+                    warnings.append(f"addressed to {ruri}, not this robot ({self._robot})")
+            except InvalidRuriError as exc:
+                warnings.append(f"ruri ignored: {exc.rule}")
+        if len(warnings) == len(command.warnings):
+            return command
+        return msgspec.structs.replace(command, warnings=tuple(warnings), claimed_role=None,
+                                       ruri=None)
 
     async def reject_request(self, principal: Principal | None, rejection: Rejection, *,
                              message_id: str | None = None) -> Decision:
@@ -314,29 +373,58 @@ class Governor:
     # -- the e-stop lane (run by the e-stop machine, one transition at a time) ------------
 
     async def _estop(self, command: NormalizedCommand, principal: Principal) -> Decision:
-        """Latched already; persist and audit (both durable), then tell the robot.
-
-        An e-stop always reaches the robot: if the latch file or the audit log cannot be
-        written, it is still published, and the failure is logged and answered.
+        """Latched already; tell the robot, with latch file and audit entry made durable
+        beside it. An e-stop always reaches the robot: if the latch file or the audit log
+        cannot be written, it is still published, and the failure is logged and answered.
         """
+        if self._latched_by is not None:
+            return await self._estop_again(command, principal)
         at = now_ms(self._clock)
         record = _record(AuditEvent.ESTOP, command, principal, Outcome.EXECUTED, applied={},
-                         ros2_topic=self._route(command))
-        persisted, receipt = await asyncio.gather(
+                         ros2_topic=self._route(command), sent_first=True)
+        # The robot is told first (the dispatch's first step publishes, before any await);
+        # latch file and audit entry are made durable beside it, both before the reply.
+        sent, persisted, receipt = await asyncio.gather(
+            self._dispatch(command, command.params),
             self.latch.file.write(True, principal.name, at),
             self.audit.append(record, urgent=True),
             return_exceptions=True)
         if isinstance(persisted, BaseException):
             log.error("e-stop latched in memory only: %s", persisted,
                       extra={"principal": principal.name})
-        result, failure = await self._dispatch(command, command.params)
+        result, failure = _sent(sent)
         if isinstance(receipt, BaseException):
             log.error("e-stop sent but not audited: %s", receipt,
                       extra={"principal": principal.name})
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        self._latched_by = receipt
         if failure is not None:
             return await self._failed(command, principal, failure)
         return _executed(command, {}, receipt, result)
+
+    async def _estop_again(self, command: NormalizedCommand, principal: Principal) -> Decision:
+        """An e-stop while an audited one holds the latch: the robot is told again, and the
+        caller answered with the entry that latched it; the repeats are recorded together."""
+        assert self._latched_by is not None
+        result, failure = await self._dispatch(command, command.params)
+        self._repeats.add(principal.name, now_ms(self._clock), failed=failure is not None,
+                          warnings=command.warnings)
+        if failure is not None:
+            return _decision(failure, message_id=command.message_id)
+        return Decision(outcome=Outcome.EXECUTED, http_status=200, applied={},
+                        audit_id=self._latched_by.audit_id, message_id=command.message_id,
+                        reason="already_latched", ros2_topic=result.ros2_topic)
+
+    async def _record_repeats(self) -> None:
+        """One ESTOP_REPEATED entry per principal for the repeats counted so far."""
+        estop = with_effect(Effect.ESTOP).name
+        for name, tally in self._repeats.take().items():
+            params = msgspec.structs.asdict(tally)
+            if not tally.warnings:
+                del params["warnings"]
+            await self._record_event(AuditRecord(
+                event=AuditEvent.ESTOP_REPEATED, principal=name, action_type=estop,
+                params=params, outcome=Outcome.EXECUTED.value))
 
     async def _clear_estop(self, command: NormalizedCommand, principal: Principal,
                            event: AuditEvent, pending_id: str | None) -> Decision:
@@ -345,11 +433,13 @@ class Governor:
         if why is not None:
             return await self._refuse(command, principal, outcomes.robot_unavailable(why),
                                       pending_id=pending_id)
+        await self._record_repeats()  # the e-stops it clears come first in the log
         record = _record(AuditEvent.ESTOP_CLEARED, command, principal, Outcome.EXECUTED,
                          applied={}, pending_id=pending_id, ros2_topic=self._route(command))
         receipt = await self._write_ahead(record)
         if receipt is None:
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        self._latched_by = None  # an e-stop after this clear is a new one, audited in full
         try:
             await self.latch.file.write(False, principal.name, now_ms(self._clock))
         except EstopStateError:
@@ -379,6 +469,7 @@ class Governor:
             return await self._lock(command, principal, params, event, pending_id)
         if spec.effect is Effect.HALT:  # zero at once, before the stop is even audited
             self.streams.end(EndReason.STOPPED, principal.name)
+            return await self._halt(command, principal, params, event)
         motion = spec.motion
         if motion and self.latch.latched:
             return await self._refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
@@ -403,7 +494,7 @@ class Governor:
                                       pending_id, priority)
         record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          pending_id=pending_id, ros2_topic=self._route(command))
-        receipt = await self._write_ahead(record, urgent=spec.effect is Effect.HALT)
+        receipt = await self._write_ahead(record)
         if receipt is None:
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         # Checked again after the write, with no await between this check and the publish.
@@ -417,6 +508,22 @@ class Governor:
             await self._dispatch(_bridge_command(Effect.HALT))
         elif spec.starts_goal:  # the goal drives the base now: a velocity stream would fight it
             self.streams.end(EndReason.REPLACED, owner.name)
+        return _executed(command, applied, receipt, result)
+
+    async def _halt(self, command: NormalizedCommand, principal: Principal,
+                    params: ActionParams, event: AuditEvent) -> Decision:
+        """A stop: zero velocity and goal cancels go out first, its entry is made durable
+        beside them (never before: stopping does not wait for the disk), then the reply."""
+        applied: dict[str, Any] = {}  # nothing of the body reaches the robot (a reason is kept)
+        record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
+                         ros2_topic=self._route(command), sent_first=True)
+        sent, receipt = await asyncio.gather(self._dispatch(command, params),
+                                             self._write_ahead(record, urgent=True))
+        result, failure = sent
+        if receipt is None:
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        if failure is not None:
+            return await self._failed(command, principal, failure)
         return _executed(command, applied, receipt, result)
 
     # -- velocity streams and locks ---------------------------------------------------------
@@ -510,8 +617,10 @@ class Governor:
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         if command.spec.effect is Effect.LOCK:
             self.streams.lock(params.name, level, principal.name)
+            self._lock_holders[params.name] = principal.name
         else:
             self.streams.unlock(params.name)
+            self._lock_holders.pop(params.name, None)
         return _executed(command, applied, receipt, DispatchResult(ok=True))
 
     async def _write_ahead(self, record: AuditRecord, *, urgent: bool = False
@@ -744,10 +853,10 @@ class Governor:
             listener(principal)
         stop = _bridge_command(Effect.HALT)
         record = _record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
-                         applied={}, ros2_topic=self._route(stop))
-        receipt = await self._write_ahead(record, urgent=True)
-        # Halted even if the audit cannot be written: stopping is never held back.
-        result, failure = await self._dispatch(stop)
+                         applied={}, ros2_topic=self._route(stop), sent_first=True)
+        # Halted first, and even if the audit cannot be written: stopping is never held back.
+        (result, failure), receipt = await asyncio.gather(
+            self._dispatch(stop), self._write_ahead(record, urgent=True))
         for listener in self.safe_stop_listeners:  # e.g. STATUS shows `safe_stop`
             listener(principal)
         if receipt is None:
@@ -767,8 +876,11 @@ class Governor:
         return await self._detached(self.safe_stop(principal, "its connection closed"))
 
     async def sweep(self) -> None:
-        """One round of housekeeping: expire HiTL requests, stop for lost sessions."""
+        """One round of housekeeping: expire HiTL requests, stop for lost sessions, record
+        e-stop repeats that waited long enough."""
         await self.expire_pending()
+        if self._repeats.due(now_ms(self._clock)):  # in order with the latch's transitions
+            await self.latch.then(self._record_repeats)
         lost = self._sessions.take_lost()
         # Concurrently: one slow halt (say, a goal server that never answers) must not
         # delay the next principal's, nor the next sweep.
@@ -890,7 +1002,7 @@ def _claims_more(claimed: Any, role: Role) -> bool:
 def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
             outcome: Outcome, *, applied: dict[str, Any] | None = None,
             rejection: Rejection | None = None, ros2_topic: str | None = None,
-            pending_id: str | None = None) -> AuditRecord:
+            pending_id: str | None = None, sent_first: bool | None = None) -> AuditRecord:
     ai = msgspec.structs.asdict(command.ai) if command.ai is not None else None
     return AuditRecord(
         event=event, principal=principal.name, role=principal.role.name,
@@ -898,9 +1010,18 @@ def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
         applied=applied, outcome=outcome.value,
         deny_reason=rejection.deny_reason if rejection else None, ai=ai,
         ros2_topic=ros2_topic, pending_id=pending_id,
+        warnings=list(command.warnings) or None, sent_first=sent_first,
         # A held command's reviews (who approved, denied or withdrew it, and why).
         approvals=[msgspec.to_builtins(a) for a in command.approvals] or None,
     )
+
+
+def _sent(outcome: tuple[DispatchResult, Rejection | None] | BaseException
+          ) -> tuple[DispatchResult, Rejection | None]:
+    """A dispatch's result out of `gather(..., return_exceptions=True)`."""
+    if isinstance(outcome, BaseException):  # `_dispatch` catches Exception: this is worse
+        raise outcome
+    return outcome
 
 
 async def _awaited(future: asyncio.Future[Any]) -> Any:

@@ -3,6 +3,8 @@
 Public API (everything else is private)::
 
     validate_command(raw) -> NormalizedCommand     raises SchemaValidationError / InvalidRuriError
+    decode_object(raw) -> dict                     a JSON object with unique keys, else
+                                                   SchemaValidationError
     parse_ruri(text) -> Ruri                       raises InvalidRuriError
     openapi_schemas() -> dict                      JSON Schema for OpenAPI components
 """
@@ -37,7 +39,7 @@ from ._messages import (
 from ._ruri import Ruri, parse_ruri
 from ._schema import openapi_schemas
 from ._types import ActionParams
-from ._validate import convert_at, validate_command, validation_path
+from ._validate import convert_at, decode_object, validate_command, validation_path
 from .actions import (
     ACTIONS,
     ActionName,
@@ -92,6 +94,7 @@ __all__ = [
     "Velocity",
     "action_spec",
     "convert_at",
+    "decode_object",
     "openapi_schemas",
     "parse_ruri",
     "validate_command",

@@ -56,8 +56,21 @@ class Approval(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
     reason: str | None = None
 
 
+class SafetyMessage(Strict, frozen=True):
+    """RCAN SAFETY (message_type 6), as the official `rcan` SDK builds it (`rcan.safety`):
+    ESTOP and STOP are the e-stop and `stop`; RESUME clears an e-stop (OWNER, like
+    `clear_estop`)."""
+
+    message_type: Literal[6]
+    safety_event: Literal["ESTOP", "STOP", "RESUME"]
+    ruri: Annotated[str, msgspec.Meta(max_length=512)]
+    reason: Annotated[str, msgspec.Meta(max_length=512)] | None = None
+    timestamp_ms: Annotated[int, msgspec.Meta(ge=0)] | None = None
+    message_id: MessageId | None = None
+
+
 class NormalizedCommand(msgspec.Struct, frozen=True, kw_only=True):
-    """The one internal command both forms become."""
+    """The one internal command every form becomes."""
 
     action: ActionName
     params: ActionParams
@@ -69,6 +82,8 @@ class NormalizedCommand(msgspec.Struct, frozen=True, kw_only=True):
     priority: int = 0
     ai: AiInfo | None = None
     claimed_role: Any = None
+    # What was wrong with a stop that was executed anyway (audited, and in its reply).
+    warnings: tuple[str, ...] = ()
     # Who reviewed it while it was held for a human (§9), in order; set by the governor only
     # (never decoded from a body), and recorded in the audit entries of its resolution.
     approvals: tuple[Approval, ...] = ()
@@ -95,6 +110,7 @@ class DecisionBody(msgspec.Struct, omit_defaults=True, kw_only=True):
     expires_at_ms: int | None = None
     goal_id: str | None = None  # navigate: follow it at GET /api/goals/{goal_id}
     ros2_topic: str | None = None  # where the command went on the ROS 2 graph
+    warnings: list[str] | None = None  # a stop executed although its body had these problems
 
 
 class ErrorBody(msgspec.Struct, omit_defaults=True, kw_only=True):

@@ -31,7 +31,7 @@ from .arm_joint import ArmJointParams
 from .lock import LockParams
 from .move import MoveParams, RampedMove
 from .navigate import NavigateParams
-from .stop import NoParams
+from .stop import NoParams, StopParams
 
 if TYPE_CHECKING:
     ActionName = str
@@ -64,6 +64,7 @@ __all__ = [
     "Reads",
     "RosRoute",
     "SendGoal",
+    "StopParams",
     "action_spec",
     "markdown_table",
     "names",

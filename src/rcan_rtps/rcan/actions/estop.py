@@ -6,12 +6,12 @@ from typing import Any
 
 from .._enums import Role
 from ._spec import ActionSpec, Effect, EstopSignal, HitlDefault, Invariant, MessageKit, Publish
-from .stop import HALT, NoParams
+from .stop import HALT, StopParams
 
 BOOL = "std_msgs/msg/Bool"
 
 
-def engaged(params: NoParams, kit: MessageKit) -> dict[str, Any]:
+def engaged(params: StopParams, kit: MessageKit) -> dict[str, Any]:
     return {"data": True}
 
 
@@ -19,7 +19,7 @@ SPEC = ActionSpec(
     order=50,
     name="estop",
     summary="Emergency stop: latched until an OWNER clears it.",
-    params=NoParams,
+    params=StopParams,
     effect=Effect.ESTOP,
     default_role=Role.GUEST,  # an e-stop must always be available
     ros=EstopSignal(engaged=True, halt=HALT, signal=Publish(

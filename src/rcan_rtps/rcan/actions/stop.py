@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
+
+import msgspec
 
 from .._enums import Role
 from .._types import ActionParams
@@ -11,7 +13,14 @@ from .move import MoveParams, velocity
 
 
 class NoParams(ActionParams, frozen=True):
-    """stop, estop, clear_estop take no parameters."""
+    """clear_estop takes no parameters."""
+
+
+class StopParams(ActionParams, frozen=True, omit_defaults=True):
+    """stop and estop: only why, for the audit log (what stops is not negotiable)."""
+
+    # RCAN SAFETY messages allow 512 characters of reason (the `rcan` SDK truncates there).
+    reason: Annotated[str, msgspec.Meta(max_length=512)] | None = None
 
 
 def zero_velocity(params: ActionParams, kit: MessageKit) -> Any:
@@ -25,7 +34,7 @@ SPEC = ActionSpec(
     order=40,
     name="stop",
     summary="Stop: zero velocity, cancel navigation goals.",
-    params=NoParams,
+    params=StopParams,
     effect=Effect.HALT,
     default_role=Role.USER,
     ros=HALT,

@@ -1,0 +1,192 @@
+"""Stops are the most forgiving input: a body that says stop is executed as that stop.
+
+`validate_command` is strict for everything else; for a body in which any `action` (or `cmd`,
+the RCAN 3.x COMMAND's name for it) is `estop`/`stop`, or any `safety_event` is ESTOP/STOP,
+what is wrong with it (duplicate keys, unknown fields, a malformed `message_id`, a bad RURI,
+ill-typed AI fields) becomes a warning on the stop instead of a refusal. What can be kept of
+such a body (a valid id, RURI, reason, AI fields, role claim) is kept; the rest is dropped,
+each with its warning.
+"""
+
+from __future__ import annotations
+
+import json
+import uuid
+from collections.abc import Callable, Iterable
+from typing import Any, NamedTuple
+
+import msgspec
+
+from ._errors import InvalidRuriError, SchemaValidationError
+from ._messages import AiInfo, NormalizedCommand
+from ._ruri import parse_ruri
+from .actions import Effect, StopParams, with_effect
+
+_ACTION_KEYS = ("action", "cmd")
+_ACTION_EFFECTS = {with_effect(e).name: e for e in (Effect.ESTOP, Effect.HALT)}
+_SAFETY_EFFECTS = {"ESTOP": Effect.ESTOP, "STOP": Effect.HALT}  # RCAN SAFETY safety_event
+_ROLE_CLAIMS = ("role", "role_level")
+_AI_FIELDS = {"ai_provider": "provider", "ai_model": "model", "confidence": "confidence",
+              "thought_id": "thought_id"}
+
+
+class Duplicate(NamedTuple):
+    """The first key that occurs twice in one object, and the top-level object's pairs."""
+
+    path: str
+    key: str
+    top: list[tuple[str, Any]]
+
+
+def duplicate_key(raw: bytes, obj: dict[str, Any]) -> Duplicate | None:
+    """The first repeated key of `raw` (already decoded as `obj`), or None.
+
+    Every key in the text is followed by a colon, so when the text holds no more colons
+    than `obj` has keys no key can repeat: the usual body costs a count, not a second parse.
+    """
+    if raw.count(b":") == _count_keys(obj):
+        return None
+    try:
+        top = json.loads(raw, object_pairs_hook=_Pairs)
+    except RecursionError as exc:  # deeper than this parser goes: nothing is taken on trust
+        raise SchemaValidationError("$", "JSON nested too deeply") from exc
+    return _first_duplicate(top)
+
+
+class _Pairs(list[tuple[str, Any]]):
+    """A JSON object as its key/value pairs, every occurrence kept."""
+
+
+def _count_keys(obj: Any) -> int:
+    count, todo = 0, [obj]
+    while todo:
+        item = todo.pop()
+        if isinstance(item, dict):
+            count += len(item)
+            todo.extend(item.values())
+        elif isinstance(item, list):
+            todo.extend(item)
+    return count
+
+
+def _first_duplicate(top: _Pairs) -> Duplicate | None:
+    todo: list[tuple[str, Any]] = [("$", top)]
+    while todo:
+        path, item = todo.pop(0)
+        if isinstance(item, _Pairs):
+            seen: set[str] = set()
+            for key, value in item:
+                if key in seen:
+                    return Duplicate(f"{path}.{key}", key, list(top))
+                seen.add(key)
+                todo.append((f"{path}.{key}", value))
+        elif isinstance(item, list):
+            todo.extend((f"{path}[{i}]", value) for i, value in enumerate(item))
+    return None
+
+
+def stop_intent(pairs: Iterable[tuple[str, Any]]) -> str | None:
+    """`estop` if any value of the body says e-stop, else `stop` if any says stop, else None.
+
+    Case and surrounding blanks are forgiven: what stops is never a matter of spelling."""
+    said: set[Effect] = set()
+    for key, value in pairs:
+        if not isinstance(value, str):
+            continue
+        if key in _ACTION_KEYS:
+            said.add(_ACTION_EFFECTS.get(value.strip().lower(), Effect.MOTION))
+        elif key == "safety_event":
+            said.add(_SAFETY_EFFECTS.get(value.strip().upper(), Effect.MOTION))
+    for effect in (Effect.ESTOP, Effect.HALT):  # the stronger stop wins
+        if effect in said:
+            return with_effect(effect).name
+    return None
+
+
+def salvage_stop(action: str, obj: dict[str, Any], problems: list[str],
+                 new_id: Callable[[], str]) -> NormalizedCommand:
+    """The stop `action` from a body that failed validation for `problems`."""
+    warnings: list[str] = []
+    requested = _requested(obj)
+    message_id, client_id = _message_id(obj.get("message_id"), new_id, warnings)
+    if warnings:  # the id's own warning says more than the schema's
+        problems = [p for p in problems if not p.startswith("$.message_id:")]
+    warnings[:0] = problems
+    return NormalizedCommand(
+        action=action,
+        params=_params(requested.get("reason", obj.get("reason")), warnings),
+        requested=requested,
+        message_id=message_id,
+        client_message_id=client_id,
+        ruri=_ruri(obj.get("ruri"), warnings),
+        timestamp_ms=_timestamp(obj.get("timestamp_ms")),
+        ai=_ai(obj, warnings),
+        claimed_role=next((obj[k] for k in reversed(_ROLE_CLAIMS) if k in obj), None),
+        warnings=tuple(dict.fromkeys(warnings)),
+    )
+
+
+def _requested(obj: dict[str, Any]) -> dict[str, Any]:
+    for key in ("params", "parameters"):
+        if isinstance(obj.get(key), dict):
+            return dict(obj[key])
+    reason = obj.get("reason")  # a SAFETY message's
+    return {"reason": reason} if reason is not None else {}
+
+
+def _params(reason: Any, warnings: list[str]) -> StopParams:
+    limit = 512
+    if reason is None:
+        return StopParams()
+    if not isinstance(reason, str):
+        warnings.append("reason dropped: not a string")
+        return StopParams()
+    if len(reason) > limit:
+        warnings.append(f"reason cut to {limit} characters")
+    return StopParams(reason=reason[:limit])
+
+
+def _message_id(given: Any, new_id: Callable[[], str],
+                warnings: list[str]) -> tuple[str, bool]:
+    if given is not None:
+        try:
+            if isinstance(given, str) and len(given) <= 64:
+                return str(uuid.UUID(given)), True
+        except ValueError:
+            pass
+    made = new_id()
+    if given is not None:
+        shown = given[:64] if isinstance(given, str) else type(given).__name__
+        warnings.append(f"message_id {shown!r} is not a UUID: recorded as {made}")
+    return made, False
+
+
+def _ruri(given: Any, warnings: list[str]) -> str | None:
+    if given is None:
+        return None
+    try:
+        if not isinstance(given, str):
+            raise InvalidRuriError(type(given).__name__, "not a string")
+        parse_ruri(given)
+        return given
+    except InvalidRuriError as exc:
+        warnings.append(f"ruri ignored: {exc.rule}")
+        return None
+
+
+def _timestamp(given: Any) -> int | None:
+    ok = isinstance(given, int) and not isinstance(given, bool) and given >= 0
+    return given if ok else None
+
+
+def _ai(obj: dict[str, Any], warnings: list[str]) -> AiInfo | None:
+    fields: Any = obj.get("ai")
+    if fields is None:
+        fields = {name: obj[key] for key, name in _AI_FIELDS.items() if key in obj} or None
+    if fields is None:
+        return None
+    try:
+        return msgspec.convert(fields, AiInfo)
+    except msgspec.ValidationError as exc:
+        warnings.append(f"ai fields dropped: {exc}")
+        return None

@@ -18,8 +18,10 @@ no secret, but one rule without exceptions is easier to get right):
     POST /api/heartbeat          keeps a control session alive (§10.8)
     GET  /api/goals[/{goal_id}]  navigation goals (GUEST+), 404 when unknown
     GET  /api/hitl/pending       pending commands (the lowest role that can approve one)
-    POST /api/hitl/authorize     {"pending_id"} → decision; the governor checks the approver
-    POST /api/hitl/deny          {"pending_id"} → decision
+    POST /api/hitl/authorize     {"pending_id", "reason"?} → decision; the governor checks the
+                                 approver; 202 while more approvals are needed (n-of-m)
+    POST /api/hitl/deny          {"pending_id"} → decision (any approver's denial ends it)
+    POST /api/hitl/withdraw      {"pending_id"} → decision; the issuer's own (or an approver's)
     GET  /api/audit?since=&limit= entries verbatim (rbac.audit_read_role, LEASEE by default)
     GET  /api/audit/verify       chain + signature check of what is on disk
     GET  /api/openapi.json       OpenAPI 3.1, generated from the msgspec schemas

@@ -74,6 +74,8 @@ def _query(name: str, description: str) -> dict[str, Any]:
             "schema": {"type": "integer", "minimum": 0}}
 
 
+_HITL_DECISION = _DECISION | {"404": _json("DecisionBody", "unknown or expired pending_id")}
+
 PATHS: dict[str, dict[str, Any]] = {
     "/api/command": {"post": _op("postCommand", "Send a COMMAND (short or envelope form)",
                                  _DECISION, _COMMAND_BODY)},
@@ -90,14 +92,17 @@ PATHS: dict[str, dict[str, Any]] = {
                      "schema": {"type": "string"}}])},
     "/api/hitl/pending": {"get": _op("getPending", "Commands waiting for a human (approvers)",
                                      {"200": _json("PendingList", "pending"), **_errors(403)})},
-    "/api/hitl/authorize": {"post": _op("postAuthorize", "Approve a pending command",
-                                        _DECISION | {"404": _json("DecisionBody", "unknown or "
-                                                                  "expired pending_id")},
-                                        _AUTHORIZE_BODY)},
-    "/api/hitl/deny": {"post": _op("postDeny", "Deny a pending command",
-                                   _DECISION | {"404": _json("DecisionBody", "unknown or "
-                                                             "expired pending_id")},
-                                   _AUTHORIZE_BODY)},
+    "/api/hitl/authorize": {"post": _op(
+        "postAuthorize", "Approve a pending command (`reason` is audited): 200 once it has "
+        "as many distinct approvers as it needs and ran, 202 while it needs more (n-of-m); "
+        "the issuer is never one of several approvers, an approver counts once (409)",
+        _HITL_DECISION, _AUTHORIZE_BODY)},
+    "/api/hitl/deny": {"post": _op(
+        "postDeny", "Deny a pending command (any approver; ends it, whatever approvals it "
+        "had; `reason` is audited)", _HITL_DECISION, _AUTHORIZE_BODY)},
+    "/api/hitl/withdraw": {"post": _op(
+        "postWithdraw", "Withdraw a pending command: its issuer, or an approver; audited "
+        "HITL_WITHDRAWN (`reason` too); anyone else 403", _HITL_DECISION, _AUTHORIZE_BODY)},
     "/api/audit": {"get": _op(
         "getAudit", "Audit entries after `since`, verbatim (LEASEE+ by default)",
         {"200": _json("AuditPage", "entries"), **_errors(400, 403)},

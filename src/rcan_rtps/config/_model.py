@@ -153,6 +153,9 @@ class HitlGate(_Section, frozen=True, kw_only=True):
     action: GateableName  # never an action that stops the robot
     require_auth: bool = True
     authorized_roles: list[RoleName] = []
+    # Distinct approvers a held command of this action needs (n-of-m); above 1 its issuer
+    # never counts as one of them.
+    approvals: Annotated[int, msgspec.Meta(ge=1, le=16)] = 1
 
 
 def _repeated_gate_problem(gates: list[HitlGate]) -> str | None:

@@ -18,7 +18,7 @@ import logging
 import uuid
 from collections.abc import Callable, Coroutine, Iterator, Mapping
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import msgspec
 
@@ -26,6 +26,7 @@ from rcan_rtps.config import RcanConfig
 from rcan_rtps.rcan import (
     ActionParams,
     ActionSpec,
+    Approval,
     DecisionBody,
     Effect,
     ErrorCode,
@@ -34,6 +35,7 @@ from rcan_rtps.rcan import (
     Outcome,
     PendingAuth,
     Role,
+    RoleName,
     parse_ruri,
 )
 from rcan_rtps.rcan.actions import LockParams, MoveParams, with_effect
@@ -44,7 +46,7 @@ from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
 from .clock import Clock, SystemClock, now_ms
 from .errors import AuditError, EstopStateError
 from .estop import EstopMachine, EstopRepeats, LatchFile
-from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand, PendingStore
+from .hitl import Escalate, Held, HitlPolicy, Notifier, PendingCommand, PendingStore, Verdict
 from .idempotency import Conflict, Idempotency
 from .invariants import Check, Violation, safety_policy
 from .outcomes import Rejection
@@ -744,6 +746,7 @@ class Governor:
             pending_id=uuid.uuid4().hex, command=command, issuer=principal,
             approver_role=approver_role,
             expires_at_ms=now_ms(self._clock) + self._hitl_ttl_ms,
+            approvals_required=self._hitl.approvals(command.action),
         )
         record = _record(AuditEvent.PENDING_AUTH, command, principal, Outcome.PENDING_AUTH,
                          pending_id=pending.pending_id)
@@ -756,59 +759,122 @@ class Governor:
                         audit_id=receipt.audit_id, message_id=command.message_id,
                         pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
 
-    async def authorize(self, pending_id: str, approver: Principal) -> Decision:
-        return await self._detached(self._resolve(pending_id, approver, True))
+    async def authorize(self, pending_id: str, approver: Principal,
+                        reason: str | None = None) -> Decision:
+        """One approval; the command runs once it has as many distinct ones as it needs."""
+        return await self._detached(self._resolve(pending_id, approver, "approve", reason))
 
-    async def deny(self, pending_id: str, approver: Principal) -> Decision:
-        return await self._detached(self._resolve(pending_id, approver, False))
+    async def deny(self, pending_id: str, approver: Principal,
+                   reason: str | None = None) -> Decision:
+        """Any approver's denial ends it, whatever approvals it had."""
+        return await self._detached(self._resolve(pending_id, approver, "deny", reason))
+
+    async def withdraw(self, pending_id: str, principal: Principal,
+                       reason: str | None = None) -> Decision:
+        """Its issuer takes a pending command back (an approver may too): never executed."""
+        return await self._detached(self._resolve(pending_id, principal, "withdraw", reason))
 
     def pending(self) -> list[PendingAuth]:
-        return [p.message() for p in self._pending.list()]
+        return [held.message() for held in self._pending.list()]
 
-    async def _resolve(self, pending_id: str, approver: Principal, approve: bool) -> Decision:
-        verb = "hitl_authorize" if approve else "hitl_deny"
-        pending = self._pending.get(pending_id)
-        if pending is None:
-            return await self._refuse_hitl(verb, approver, outcomes.PENDING_NOT_FOUND)
-        if pending.expires_at_ms <= now_ms(self._clock):
-            await self.expire_pending()
-            return await self._refuse_hitl(verb, approver, outcomes.PENDING_EXPIRED)
-        if approver.role < pending.approver_role:
-            return await self._refuse_hitl(verb, approver, outcomes.INSUFFICIENT_PRIVILEGES)
-        if approve and self._distinct and approver.name == pending.issuer.name:
-            return await self._refuse_hitl(verb, approver, outcomes.SELF_APPROVAL)
-        if self._pending.take(pending_id) is None:  # another approval won the race
-            return await self._refuse_hitl(verb, approver, outcomes.PENDING_NOT_FOUND)
+    async def _resolve(self, pending_id: str, reviewer: Principal, verdict: Verdict,
+                       reason: str | None) -> Decision:
+        held = self._pending.get(pending_id)
+        if held is None:
+            return await self._refuse_hitl(verdict, reviewer, outcomes.PENDING_NOT_FOUND,
+                                           pending_id)
+        async with held.lock:  # one review at a time: each counted once, released once
+            reviewed = await self._review(held, reviewer, verdict, reason)
+        if isinstance(reviewed, Decision):
+            return reviewed
+        command, pending = reviewed, held.pending  # out of the store, with every review
         self._status_changed()
-        command = pending.command
-        if not approve:
-            return await self._refuse(command, approver, outcomes.HITL_DENIED,
-                                      event=AuditEvent.HITL_DENIED, pending_id=pending_id)
+        if verdict != "approve":
+            denied = verdict == "deny"
+            return await self._refuse(
+                command, reviewer, outcomes.HITL_DENIED if denied else outcomes.HITL_WITHDRAWN,
+                event=AuditEvent.HITL_DENIED if denied else AuditEvent.HITL_WITHDRAWN,
+                pending_id=pending_id)
         try:  # the state *now* decides, not the state when the command arrived
             applied = self._safety(command, command.params)
         except Violation as violation:
-            return await self._refuse(command, approver, violation.rejection,
+            return await self._refuse(command, reviewer, violation.rejection,
                                       event=AuditEvent.HITL_AUTHORIZED, pending_id=pending_id)
-        decision = await self._execute(command, approver, applied, AuditEvent.HITL_AUTHORIZED,
+        decision = await self._execute(command, reviewer, applied, AuditEvent.HITL_AUTHORIZED,
                                        pending_id, issuer=pending.issuer)
         self._opened(pending.issuer, command, decision)
         return decision
 
-    async def _refuse_hitl(self, verb: str, approver: Principal,
-                           rejection: Rejection) -> Decision:
-        record = AuditRecord(event=AuditEvent.COMMAND_REJECTED, principal=approver.name,
-                             role=approver.role.name, action_type=verb,
+    async def _review(self, held: Held, reviewer: Principal, verdict: Verdict,
+                      reason: str | None) -> Decision | NormalizedCommand:
+        """Under `held.lock`: refused, or counted (an approval of several: still pending), or
+        taken from the store and returned with every review so far, to run or discard."""
+        pending = held.pending
+        if self._pending.get(pending.pending_id) is not held:  # resolved while this waited
+            return await self._refuse_hitl(verdict, reviewer, outcomes.PENDING_NOT_FOUND,
+                                           pending.pending_id)
+        if pending.expires_at_ms <= now_ms(self._clock):
+            await self.expire_pending()
+            return await self._refuse_hitl(verdict, reviewer, outcomes.PENDING_EXPIRED,
+                                           pending.pending_id)
+        refused = self._may_review(held, reviewer, verdict)
+        if refused is not None:
+            return await self._refuse_hitl(verdict, reviewer, refused, pending.pending_id)
+        review = Approval(principal=reviewer.name, role=cast(RoleName, reviewer.role.name),
+                          decision=verdict, at_ms=now_ms(self._clock), reason=reason)
+        if verdict == "approve" and held.missing > 1:
+            return await self._count_approval(held, reviewer, review)
+        self._pending.take(pending.pending_id)
+        return held.reviewed(review)
+
+    def _may_review(self, held: Held, reviewer: Principal, verdict: Verdict
+                    ) -> Rejection | None:
+        pending = held.pending
+        issuer = reviewer.name == pending.issuer.name
+        if reviewer.role < pending.approver_role and not (verdict == "withdraw" and issuer):
+            return outcomes.INSUFFICIENT_PRIVILEGES
+        if verdict != "approve":
+            return None
+        if issuer and (self._distinct or pending.approvals_required > 1):
+            return outcomes.SELF_APPROVAL  # n-of-m: the issuer is never one of the n
+        if held.approved_by(reviewer.name):
+            return outcomes.ALREADY_APPROVED
+        return None
+
+    async def _count_approval(self, held: Held, approver: Principal,
+                              review: Approval) -> Decision:
+        """An approval while more are needed: on record (HITL_APPROVAL) before it counts."""
+        pending = held.pending
+        record = _record(AuditEvent.HITL_APPROVAL, held.reviewed(review), approver,
+                         Outcome.PENDING_AUTH, pending_id=pending.pending_id)
+        receipt = await self._write_ahead(record)
+        if receipt is None:  # an approval that is not on record does not count
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=pending.command.message_id)
+        held.approvals.append(review)
+        self._status_changed()
+        return Decision(outcome=Outcome.PENDING_AUTH, http_status=202,
+                        audit_id=receipt.audit_id, message_id=pending.command.message_id,
+                        pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
+
+    async def _refuse_hitl(self, verdict: Verdict, reviewer: Principal, rejection: Rejection,
+                           pending_id: str) -> Decision:
+        verb = "hitl_authorize" if verdict == "approve" else f"hitl_{verdict}"
+        record = AuditRecord(event=AuditEvent.COMMAND_REJECTED, principal=reviewer.name,
+                             role=reviewer.role.name, action_type=verb, pending_id=pending_id,
                              outcome=rejection.outcome.value, deny_reason=rejection.deny_reason)
         return _decision(rejection, await self.audit.append(record))
 
     async def expire_pending(self) -> list[Decision]:
-        """Discard and audit (HITL_EXPIRED) every pending command past its TTL."""
+        """Discard and audit (HITL_EXPIRED, with any approvals it had) every pending command
+        past its TTL."""
         decisions = []
         expired = self._pending.take_expired(now_ms(self._clock))
         if expired:
             self._status_changed()
-        for p in expired:
-            decisions.append(await self._refuse(p.command, p.issuer, outcomes.PENDING_EXPIRED,
+        for held in expired:
+            p = held.pending
+            decisions.append(await self._refuse(held.reviewed(), p.issuer,
+                                                outcomes.PENDING_EXPIRED,
                                                 event=AuditEvent.HITL_EXPIRED,
                                                 pending_id=p.pending_id))
         return decisions
@@ -1036,6 +1102,8 @@ def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
         deny_reason=rejection.deny_reason if rejection else None, ai=ai,
         ros2_topic=ros2_topic, pending_id=pending_id,
         warnings=list(command.warnings) or None, sent_first=sent_first,
+        # A held command's reviews (who approved, denied or withdrew it, and why).
+        approvals=[msgspec.to_builtins(a) for a in command.approvals] or None,
     )
 
 

@@ -163,13 +163,23 @@ def _repeated_gate_problem(gates: list[HitlGate]) -> str | None:
     return "lists an action more than once" if len(set(actions)) != len(actions) else None
 
 
+AUTHORIZE_PATH = "/api/hitl/authorize"
+
+
+def _authorize_endpoint_problem(path: str) -> str | None:
+    if path == AUTHORIZE_PATH:
+        return None
+    return f"approvals are served at {AUTHORIZE_PATH} only (a proxy may map another path)"
+
+
 class HitlConfig(_Section, frozen=True, kw_only=True):
     notify_webhook: Annotated[str, msgspec.Meta(pattern=r"^https?://\S+$")] | None = None
     timeout_seconds: Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)] = 300.0
     confidence_gate: ConfidenceGate | None = None
     gates: Annotated[list[HitlGate], _check(_repeated_gate_problem)] = []
     require_distinct_approver: bool = False
-    authorize_endpoint: str = "/api/hitl/authorize"
+    # The bridge spec's key, kept so its configs load: approvals are served at this one path.
+    authorize_endpoint: Annotated[str, _check(_authorize_endpoint_problem)] = AUTHORIZE_PATH
 
 
 class PrincipalConfig(_Section, frozen=True, kw_only=True):
@@ -319,7 +329,6 @@ class RbacConfig(_Section, frozen=True, kw_only=True):
     rate_limits_per_min: dict[RoleName, Annotated[int, msgspec.Meta(ge=1)] | None] = {}
     hitl_approver_role: RoleName = "OWNER"
     audit_read_role: RoleName = "LEASEE"
-    config_reload_role: RoleName = "CREATOR"
 
 
 Priority = Annotated[int, msgspec.Meta(ge=0, le=1_000_000)]

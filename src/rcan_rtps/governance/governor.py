@@ -12,11 +12,10 @@ command's idempotency entry. E-stop and clear are one serialized state machine (
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import functools
 import logging
 import uuid
-from collections.abc import Callable, Coroutine, Iterator, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from pathlib import Path
 from typing import Any, Protocol, cast
 
@@ -25,7 +24,6 @@ import msgspec
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.rcan import (
     ActionParams,
-    ActionSpec,
     Approval,
     DecisionBody,
     Effect,
@@ -53,6 +51,7 @@ from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
 from .resume import resume
+from .sessions import Sessions
 from .streams import (
     AccelLimits,
     EndReason,
@@ -1027,56 +1026,6 @@ def _settled(running: set[asyncio.Task[Any]], decision: Coroutine[Any, Any, Deci
     if not outcome.done():  # cancelled (maybe before it ever ran): the caller must not hang
         outcome.cancel()
         decision.close()  # a no-op once it ran; else no "never awaited" warning
-
-
-class Sessions:
-    """Who holds a control session, since when nothing was heard from them, and how much
-    silence their session allows (a timed move's: `unattended_s`)."""
-
-    def __init__(self, clock: Clock, timeout_s: float, unattended_s: float | None = None
-                 ) -> None:
-        self._clock = clock
-        self.timeout_s = timeout_s
-        self.unattended_s = unattended_s or timeout_s
-        self._last: dict[str, tuple[Principal, float, float]] = {}  # → (p, heard, allowed)
-        self._busy: dict[str, int] = {}  # commands being carried out, per principal
-
-    @contextlib.contextmanager
-    def in_flight(self, principal: Principal) -> Iterator[None]:
-        self._busy[principal.name] = self._busy.get(principal.name, 0) + 1
-        try:
-            yield
-        finally:
-            left = self._busy.pop(principal.name) - 1
-            if left:
-                self._busy[principal.name] = left
-
-    def touch(self, principal: Principal, spec: ActionSpec[Any], *, timed: bool = False
-              ) -> None:
-        """An executed command: motion opens (or renews) the session, a stop ends it."""
-        if spec.motion:
-            allowed = self.unattended_s if timed else self.timeout_s
-            self._last[principal.name] = (principal, self._clock.monotonic(), allowed)
-        elif spec.stopping:
-            self._last.pop(principal.name, None)  # stopped on purpose: nothing to guard
-
-    def heartbeat(self, principal: Principal) -> None:
-        last = self._last.get(principal.name)
-        if last is not None:
-            self._last[principal.name] = (principal, self._clock.monotonic(), last[2])
-
-    def end(self, principal: Principal) -> bool:
-        """Drop the principal's session; True if it held one."""
-        return self._last.pop(principal.name, None) is not None
-
-    def take_lost(self) -> list[tuple[Principal, float]]:
-        """Sessions silent for longer than they allow: (principal, the silence allowed)."""
-        now = self._clock.monotonic()
-        lost = [(p, allowed) for p, at, allowed in self._last.values()
-                if now - at > allowed and p.name not in self._busy]
-        for p, _ in lost:
-            del self._last[p.name]
-        return lost
 
 
 def _claims_more(claimed: Any, role: Role) -> bool:

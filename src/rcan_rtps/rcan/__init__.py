@@ -30,6 +30,7 @@ from ._errors import (
 )
 from ._messages import (
     AiInfo,
+    Approval,
     Authorize,
     DecisionBody,
     EnvelopeCommand,
@@ -83,6 +84,7 @@ __all__ = [
     "ActionSpec",
     "AiInfo",
     "AnyRoleName",
+    "Approval",
     "ArmJointParams",
     "Authorize",
     "DecisionBody",

@@ -3,6 +3,7 @@ ROS translation). Everything that lists actions derives the list from `ACTIONS`.
 
 from typing import TYPE_CHECKING, Literal
 
+from ._invariants import READS, Reads, not_understood, numbers, unreadable
 from ._registry import (
     ACTIONS,
     action_spec,
@@ -41,6 +42,7 @@ else:  # Literals of the registry's names: msgspec validates them and JSON Schem
 
 __all__ = [
     "ACTIONS",
+    "READS",
     "ActionName",
     "ActionSpec",
     "ArmJointParams",
@@ -59,13 +61,17 @@ __all__ = [
     "NoRoute",
     "Publish",
     "RampedMove",
+    "Reads",
     "RosRoute",
     "SendGoal",
     "StopParams",
     "action_spec",
     "markdown_table",
     "names",
+    "not_understood",
+    "numbers",
     "specs",
     "stopping_names",
+    "unreadable",
     "with_effect",
 ]

@@ -12,6 +12,7 @@ from collections.abc import Iterator, Mapping
 from types import MappingProxyType
 from typing import Any
 
+from ._invariants import READS
 from ._spec import ActionSpec, Effect
 
 
@@ -62,11 +63,14 @@ def specs() -> Iterator[ActionSpec[Any]]:
 
 
 def markdown_table() -> str:
-    """The actions table of docs/actions.md."""
+    """The tables of docs/actions.md: the actions, then what each §8 check reads."""
     rows = ["| action | what it does | default role | human approval | §8 invariants |",
             "|---|---|---|---|---|"]
     for spec in ACTIONS.values():
         facts = spec.describe()
         rows.append(f"| `{spec.name}` | {spec.summary} | {facts['default_role']} | "
                     f"{facts['hitl']} | {', '.join(facts['invariants'])} |")
+    rows += ["", "| §8 check | reads from the parameters (an action declaring it must have them) |",
+             "|---|---|"]
+    rows += [f"| {invariant.value} | {reads.describe()} |" for invariant, reads in READS.items()]
     return "\n".join(rows) + "\n"

@@ -5,7 +5,9 @@ from typing import TYPE_CHECKING, Literal
 
 from ._registry import (
     ACTIONS,
+    GoalRoute,
     action_spec,
+    goal_routes,
     markdown_table,
     names,
     specs,
@@ -27,6 +29,7 @@ from ._spec import (
     SendGoal,
 )
 from .arm_joint import ArmJointParams
+from .dock import DockParams
 from .lock import LockParams
 from .move import MoveParams, RampedMove
 from .navigate import NavigateParams
@@ -45,9 +48,11 @@ __all__ = [
     "ActionSpec",
     "ArmJointParams",
     "Builder",
+    "DockParams",
     "Effect",
     "EstopSignal",
     "GateableName",
+    "GoalRoute",
     "Halt",
     "HitlDefault",
     "Invariant",
@@ -63,6 +68,7 @@ __all__ = [
     "SendGoal",
     "StopParams",
     "action_spec",
+    "goal_routes",
     "markdown_table",
     "names",
     "specs",

@@ -28,6 +28,7 @@ from rcan_rtps.rcan import Status
 from rcan_rtps.rcan._messages import Position, RosInfo, Telemetry
 
 RURI = "rcan://registry.local/clearpath/husky/a200-0001"
+ARM_GATE = "[{action: arm_joint, require_auth: true, authorized_roles: [OWNER]}]"
 ROLES = {"viewer": "GUEST", "planner": "USER", "lessee": "LEASEE", "ops": "OWNER",
          "root": "CREATOR", "ops2": "OWNER", "slow": "USER"}
 TOKENS = {name: f"{name}-token-0123456789abcdef" for name in ROLES}
@@ -43,7 +44,7 @@ bridge:
     %(api_extra)s
   hitl:
     timeout_seconds: 300
-    gates: [{action: arm_joint, require_auth: true, authorized_roles: [OWNER]}]
+    gates: %(gates)s
     confidence_gate: {min_confidence: 0.5, on_fail: escalate}
     %(hitl_extra)s
   safety:
@@ -67,8 +68,9 @@ def _principals() -> str:
 
 def make_config(tmp: Path, *, hitl_extra: str = "", api_extra: str = "",
                 bridge_extra: str = "", max_body: int = 64 * 1024,
-                rate: float = 20.0) -> RcanConfig:
+                rate: float = 20.0, gates: str = ARM_GATE) -> RcanConfig:
     text = CONFIG % {"ruri": RURI, "dir": tmp, "hitl_extra": hitl_extra, "rate": rate,
+                     "gates": gates,
                      "bridge_extra": bridge_extra,
                      "api_extra": api_extra, "max_body": max_body,
                      "principals": _principals()}
@@ -128,11 +130,13 @@ class Api:
 
     def __init__(self, tmp: Path, *, hitl_extra: str = "", api_extra: str = "",
                  bridge_extra: str = "", max_body: int = 64 * 1024,
-                 notifier: Notifier | None = None, rate: float = 20.0) -> None:
+                 notifier: Notifier | None = None, rate: float = 20.0,
+                 gates: str = ARM_GATE) -> None:
         self.tmp = tmp
         self.clock = ManualClock()
         self.config = make_config(tmp, hitl_extra=hitl_extra, api_extra=api_extra,
-                                  bridge_extra=bridge_extra, max_body=max_body, rate=rate)
+                                  bridge_extra=bridge_extra, max_body=max_body, rate=rate,
+                                  gates=gates)
         self.dispatcher = RecordingDispatcher()
         self.robot = MemoryRobot()
         self.notifier = notifier

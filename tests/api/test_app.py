@@ -14,7 +14,8 @@ from tests.api.apihelpers import RURI, TOKENS, Api
 
 ROUTES = [("POST", "/api/command"), ("GET", "/api/status"), ("POST", "/api/heartbeat"),
           ("GET", "/api/goals"), ("GET", "/api/goals/g1"), ("GET", "/api/hitl/pending"),
-          ("POST", "/api/hitl/authorize"), ("POST", "/api/hitl/deny"), ("GET", "/api/audit"),
+          ("POST", "/api/hitl/authorize"), ("POST", "/api/hitl/deny"),
+          ("POST", "/api/hitl/withdraw"), ("GET", "/api/audit"),
           ("GET", "/api/audit/verify"), ("GET", "/api/openapi.json"), ("GET", "/api/ws"),
           ("GET", "/api/metrics")]
 

@@ -6,6 +6,10 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import json
+import signal
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -192,3 +196,55 @@ async def test_closing_stops_a_verification_in_progress(tmp_path: Path) -> None:
             await asyncio.wait_for(asyncio.wrap_future(running), 30)
     finally:
         await api.close()
+
+
+_VERIFY_WITH_SIGNALS_BLOCKED = """
+import asyncio, json, multiprocessing, re, signal, sys
+from pathlib import Path
+from rcan_rtps.api._reads import AuditReads
+from rcan_rtps.governance import AuditLog
+
+
+def masks(pid: str) -> list[dict[str, int]]:
+    found = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        status = (task / "status").read_text()
+        found.append({key: int(re.search(rf"^{key}:\\s*([0-9a-f]+)", status, re.M)[1], 16)
+                      for key in ("SigBlk", "SigIgn")})
+    return found
+
+
+async def main(tmp: Path) -> None:
+    log = await AuditLog.open(tmp / "audit.jsonl", tmp / "audit.key")
+    reads = AuditReads(log.path, log.public_key)
+    try:
+        for _ in range(2):  # the first starts the worker (and the resource tracker)
+            assert (await reads.verify()).ok
+        workers = [str(p.pid) for p in multiprocessing.active_children()]
+        print(json.dumps({"bridge": masks("self"), "workers": [masks(w) for w in workers]}))
+    finally:
+        await reads.close()
+        await log.close()
+
+
+signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})  # as `run` does
+asyncio.run(main(Path(sys.argv[1])))
+"""
+
+
+def test_verifying_leaves_sigint_and_sigterm_blocked(tmp_path: Path) -> None:
+    """Issue 23: the verifier's process pool (multiprocessing's resource tracker) unblocked
+    SIGINT and SIGTERM in the thread that started it, the event loop's: SIGTERM then killed
+    `rcan-rtps run` on the spot. Run in a fresh interpreter: the tracker starts once per
+    process. The worker takes SIGTERM (close() ends it so) and ignores SIGINT."""
+    done = subprocess.run([sys.executable, "-c", _VERIFY_WITH_SIGNALS_BLOCKED, str(tmp_path)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    found = json.loads(done.stdout)
+    both = (1 << (signal.SIGINT - 1)) | (1 << (signal.SIGTERM - 1))
+    assert [m["SigBlk"] & both for m in found["bridge"]] == [both] * len(found["bridge"])
+    assert len(found["workers"]) == 1, found
+    worker = found["workers"][0][0]  # its main thread
+    term, intr = 1 << (signal.SIGTERM - 1), 1 << (signal.SIGINT - 1)
+    assert not worker["SigBlk"] & term and not worker["SigIgn"] & term, worker
+    assert worker["SigIgn"] & intr, worker

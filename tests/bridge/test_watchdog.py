@@ -1,10 +1,14 @@
 """The event-loop watchdog of `rcan-rtps run`: one stall report with every stack, then the
-recovery. The stall lasts until the report is out, so no timing is asserted."""
+recovery. The stall lasts until the report is out, so no timing is asserted. And its signal
+stopper's backstop, in a process of its own (it owns the process's signal handling)."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 
@@ -90,3 +94,58 @@ def test_thread_stacks_name_every_other_thread() -> None:
     finally:
         release.set()
         worker.join()
+
+
+# -- SignalStopper: a signal delivered past the block still stops in order --------------------
+
+_UNBLOCKED_THREAD = """
+import asyncio, signal, sys, threading
+from rcan_rtps.bridge.watchdog import SignalStopper
+from rcan_rtps.cli.run_cmd import run_loop
+
+sig = signal.Signals[sys.argv[1]]
+stopper = SignalStopper()
+
+
+async def main() -> int:
+    stop = asyncio.Event()
+    stopper.attach(asyncio.get_running_loop(), stop.set)
+    ready = threading.Event()
+
+    def careless() -> None:  # what multiprocessing's resource tracker does to its thread
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {sig})
+        ready.set()
+        threading.Event().wait(60)
+
+    thread = threading.Thread(target=careless, daemon=True)
+    thread.start()
+    ready.wait()
+    signal.pthread_kill(thread.ident, sig)  # the kernel's pick: a thread not blocking it
+    await asyncio.wait_for(stop.wait(), 60)
+    print("stop requested", flush=True)
+    return 0
+
+
+try:
+    code = run_loop(main())
+finally:
+    stopper.finished()
+sys.exit(code)
+"""
+
+
+@pytest.mark.parametrize("loop", ["asyncio", "uvloop"])
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_a_signal_taken_by_a_thread_that_unblocked_it_still_stops_in_order(
+        sig: str, loop: str) -> None:
+    """The first signal reaches the stopper's graceful path (not SIGTERM's default action,
+    not a KeyboardInterrupt) even when some thread has unblocked it and the kernel hands it
+    to that thread; the idle loop is woken for it."""
+    if loop == "uvloop":
+        pytest.importorskip("uvloop")
+    env = {**os.environ, "RCAN_RTPS_LOOP": loop}
+    done = subprocess.run([sys.executable, "-c", _UNBLOCKED_THREAD, sig], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, (done.returncode, done.stderr)
+    assert "stop requested" in done.stdout
+    assert f"{sig}: shutting down" in done.stderr and "Traceback" not in done.stderr

@@ -500,3 +500,20 @@ def test_mutated_yaml_text_never_crashes_the_loader(data: st.DataObject) -> None
         cut = data.draw(st.integers(min_value=0, max_value=8))
         text = text[:start] + data.draw(pieces) + text[start + cut :]
     loads_or_config_error(text)
+
+
+def test_keys_that_nothing_would_honour_are_refused() -> None:
+    """Issue 23 item 11: a key the bridge does not act on must not look as if it did."""
+    path, _, message = only_issue(
+        MINIMAL + "  hitl: {authorize_endpoint: /approve}\n")
+    assert path == "$.bridge.hitl.authorize_endpoint" and "/api/hitl/authorize" in message
+    loads_config(MINIMAL + "  hitl: {authorize_endpoint: /api/hitl/authorize}\n", env={})
+    path, _, _ = only_issue(MINIMAL + "  rbac: {config_reload_role: OWNER}\n")
+    assert path == "$.bridge.rbac.config_reload_role"
+
+
+def test_unattended_move_s_is_checked() -> None:
+    config = loads_config(with_safety("unattended_move_s: 1.5"), env={})
+    assert config.bridge.safety.unattended_move_s == 1.5
+    path, _, _ = only_issue(with_safety("unattended_move_s: 0"))
+    assert path == "$.bridge.safety.unattended_move_s"

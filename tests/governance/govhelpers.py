@@ -21,6 +21,7 @@ from rcan_rtps.governance.rbac import DEFAULT_RATE_LIMITS, Principal
 from rcan_rtps.rcan import NormalizedCommand, Role, validate_command
 
 RURI = "rcan://registry.local/clearpath/husky/a200-0001"
+ARM_GATE = "[{action: arm_joint, require_auth: true, authorized_roles: [OWNER]}]"
 CONFIG = """\
 robot: {ruri: "%(ruri)s"}
 bridge:
@@ -28,7 +29,7 @@ bridge:
   api: {auth_token_env: RCAN_BRIDGE_TOKEN}
   hitl:
     timeout_seconds: 300
-    gates: [{action: arm_joint, require_auth: true, authorized_roles: [OWNER]}]
+    gates: %(gates)s
     %(hitl_extra)s
   safety:
     max_linear_vel: 1.0
@@ -66,13 +67,14 @@ class Harness:
         self.dispatcher = RecordingDispatcher()
         self.logs: list[AuditLog] = []
 
-    def config(self, hitl_extra: str = "") -> RcanConfig:
-        text = CONFIG % {"ruri": RURI, "dir": self.tmp, "hitl_extra": hitl_extra}
+    def config(self, hitl_extra: str = "", gates: str = ARM_GATE) -> RcanConfig:
+        text = CONFIG % {"ruri": RURI, "dir": self.tmp, "hitl_extra": hitl_extra,
+                         "gates": gates}
         return loads_config(text, env={})
 
     async def governor(self, hitl_extra: str = "", notifier: Notifier | None = None,
-                       group_commit: bool = True) -> Governor:
-        config = self.config(hitl_extra)
+                       group_commit: bool = True, gates: str = ARM_GATE) -> Governor:
+        config = self.config(hitl_extra, gates)
         log = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path,
                                   ruri=RURI, clock=self.clock, group_commit=group_commit)
         self.logs.append(log)

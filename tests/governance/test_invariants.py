@@ -3,27 +3,45 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
+import uuid
 from pathlib import Path
+from typing import Any
 
 import pytest
-from govhelpers import command
+from govhelpers import PLANNER, Harness, command
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rcan_rtps.governance import outcomes
 from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.governance.estop import EstopMachine, LatchFile
+from rcan_rtps.governance.governor import Governor
 from rcan_rtps.governance.idempotency import CONFLICT, Idempotency
 from rcan_rtps.governance.invariants import (
+    AccelerationLimit,
     AllOf,
+    Check,
+    DurationLimit,
+    EstopGuard,
+    JointGroups,
     VelocityLimit,
     Violation,
     Workspace,
     finite_numbers,
     strictly_inside,
 )
-from rcan_rtps.rcan import MoveParams, NavigateParams, NoParams
+from rcan_rtps.governance.streams import AccelLimits, Velocity
+from rcan_rtps.rcan import (
+    ActionParams,
+    ArmJointParams,
+    MoveParams,
+    NavigateParams,
+    NoParams,
+    NormalizedCommand,
+    Outcome,
+)
 
 finite = st.floats(min_value=-1e9, max_value=1e9, allow_nan=False)
 limits = st.floats(min_value=0.01, max_value=10.0)
@@ -114,6 +132,76 @@ def test_any_exception_in_a_check_denies() -> None:
     with pytest.raises(Violation) as info:
         AllOf(finite_numbers, broken)(command("stop"), NoParams())
     assert info.value.rejection == outcomes.SAFETY_CHECK_ERROR
+
+
+# -- parameters a check cannot read: refused, never passed -------------------------------------
+
+
+class Standstill:
+    commanded = Velocity()
+
+
+class TextVelocity(ActionParams, frozen=True):
+    linear_x: str = "fast"  # the right name, a kind the velocity check cannot limit
+    linear_y: float = 0.0
+    angular_z: float = 0.0
+    duration_s: float | None = None
+
+
+class Blob(ActionParams, frozen=True):
+    data: bytes = b"\x00"  # no number the finite check could walk to
+
+
+ARM = ArmJointParams(joints=["elbow"], positions=[0.1], duration_s=1.0)
+GOAL = NavigateParams(x=1.0, y=1.0, yaw=0.0)
+FOREIGN: list[tuple[str, Check, Any]] = [
+    ("velocity", VelocityLimit(1.0, 1.0, True), GOAL),
+    ("velocity", VelocityLimit(1.0, 1.0, True), TextVelocity()),
+    ("duration", DurationLimit(30.0), GOAL),
+    ("acceleration", AccelerationLimit(AccelLimits(1.0, 1.0), Standstill()), ARM),
+    ("workspace", Workspace(SQUARE, "map"), MoveParams(linear_x=0.5)),
+    ("workspace", Workspace(None, "map"), MoveParams(linear_x=0.5)),  # no fence: still read
+    ("joint_group", JointGroups({}), GOAL),
+    ("finite", finite_numbers, {"linear_x": 9.0}),  # not an action's parameters at all
+    ("finite", finite_numbers, Blob()),
+]
+
+
+@pytest.mark.parametrize(("name", "check", "params"), FOREIGN,
+                         ids=[f"{n}-{type(p).__name__}" for n, _, p in FOREIGN])
+def test_a_check_refuses_parameters_it_cannot_read(name: str, check: Check, params: Any,
+                                                  caplog: pytest.LogCaptureFixture) -> None:
+    with pytest.raises(Violation) as info:
+        check(command("move"), params)
+    assert info.value.rejection == outcomes.PARAMS_NOT_UNDERSTOOD
+    assert info.value.rejection.deny_reason == "COMMAND_REJECTED:params_not_understood"
+    assert f"{name} check" in str(info.value)
+    [record] = [r for r in caplog.records if r.levelno == logging.ERROR]
+    assert record.exc_info is None  # a clear line, no traceback
+
+
+def test_checks_that_read_nothing_need_nothing() -> None:
+    class Latch:
+        latched = False
+
+    assert EstopGuard(Latch())(command("navigate", {"x": 0, "y": 0, "yaw": 0}), NoParams())
+
+
+async def test_the_governor_refuses_and_audits_unreadable_parameters(
+    harness: Harness, gov: Governor
+) -> None:
+    """A navigate carrying a move's parameters: on main the workspace check passed it."""
+    mixed = NormalizedCommand(action="navigate", params=MoveParams(linear_x=0.3),
+                              requested={"linear_x": 0.3}, message_id=str(uuid.uuid4()))
+    decision = await gov.decide(mixed, PLANNER)
+    assert (decision.http_status, decision.outcome, decision.reason) == (
+        409, Outcome.DENIED, "params_not_understood")
+    assert harness.dispatcher.calls == []
+    entry = harness.entries[-1]
+    assert (entry["event"], entry["action_type"], entry["deny_reason"]) == (
+        "COMMAND_REJECTED", "navigate", "COMMAND_REJECTED:params_not_understood")
+    assert entry["audit_id"] == decision.audit_id
+    assert "COMMAND_DISPATCHED" not in [e["event"] for e in harness.entries]
 
 
 def _loaded(path: Path, first_start: bool = False) -> bool:

@@ -18,8 +18,10 @@ no secret, but one rule without exceptions is easier to get right):
     POST /api/heartbeat          keeps a control session alive (§10.8)
     GET  /api/goals[/{goal_id}]  navigation goals (GUEST+), 404 when unknown
     GET  /api/hitl/pending       pending commands (the lowest role that can approve one)
-    POST /api/hitl/authorize     {"pending_id"} → decision; the governor checks the approver
-    POST /api/hitl/deny          {"pending_id"} → decision
+    POST /api/hitl/authorize     {"pending_id", "reason"?} → decision; the governor checks the
+                                 approver; 202 while more approvals are needed (n-of-m)
+    POST /api/hitl/deny          {"pending_id"} → decision (any approver's denial ends it)
+    POST /api/hitl/withdraw      {"pending_id"} → decision; the issuer's own (or an approver's)
     GET  /api/audit?since=&limit= entries verbatim (rbac.audit_read_role, LEASEE by default)
     GET  /api/audit/verify       chain + signature check of what is on disk
     GET  /api/openapi.json       OpenAPI 3.1, generated from the msgspec schemas
@@ -58,6 +60,8 @@ Decisions where the profile is silent:
   by one dedicated thread (8 waiting at most; beyond, 429 RATE_LIMITED `reads_busy` with
   Retry-After); verification runs in one spawned, niced worker process, and concurrent
   verify requests share a run that started reading after they arrived (never refused).
+  Starting that process leaves the signal mask of the starting thread as it was (SIGINT and
+  SIGTERM stay blocked in every thread of `rcan-rtps run`: see `bridge.watchdog`).
 - Slow peers (`_conn`, config `bridge.api.*_timeout_s`): request headers must be complete
   within `header_timeout_s` (10) of connecting, the next request's within
   `keepalive_timeout_s` (30) of the previous one's end (also the idle keep-alive limit),
@@ -65,6 +69,14 @@ Decisions where the profile is silent:
   is answered 408 `REQUEST_TIMEOUT` `body_timeout` (not audited: no request was complete)
   and the connection closed. A TLS handshake has `header_timeout_s` too. Invalid UTF-8 in a
   body is 400 SCHEMA_VALIDATION_FAILED, audited like any schema failure.
+- What aiohttp's HTTP parser refuses before any middleware runs (`_protocol`): a request line
+  or header field over 8190 bytes, or more than 128 header fields → 431
+  `REQUEST_HEADER_FIELDS_TOO_LARGE` `header_too_large`; other malformed HTTP → 400
+  `BAD_REQUEST` `malformed_http`. Both are the usual JSON error body (`outcome` denied), not
+  audited (no request was ever read), logged as one line without a traceback, and the
+  connection is closed.
+- A client that goes away (connection reset mid-body or mid-response) is not an error: a
+  debug line, no traceback, nothing audited for a body that never arrived whole.
 """
 
 from ._app import build_app, settings_from_config

@@ -112,6 +112,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_get("/api/hitl/pending", r.get_pending, allow_head=False)
     app.router.add_post("/api/hitl/authorize", r.post_authorize)
     app.router.add_post("/api/hitl/deny", r.post_deny)
+    app.router.add_post("/api/hitl/withdraw", r.post_withdraw)
     app.router.add_get("/api/audit", r.get_audit, allow_head=False)
     app.router.add_get("/api/audit/verify", r.get_audit_verify, allow_head=False)
     app.router.add_get("/api/openapi.json", get_openapi, allow_head=False)

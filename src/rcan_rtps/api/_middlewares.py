@@ -31,7 +31,8 @@ _HTTP_CODES = {
 
 
 def last_resort() -> Middleware:
-    """HTTP errors become JSON; anything unexpected is logged and answered 503, never 500."""
+    """HTTP errors become JSON; anything unexpected is logged and answered 503, never 500.
+    A client that went away (reset mid-body, or mid-response) is no error: one debug line."""
 
     @web.middleware
     async def middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
@@ -51,6 +52,14 @@ def last_resort() -> Middleware:
             log.exception("audit log failed while serving %s %s", request.method, request.path,
                           extra=_log_context(request))
             return _failure(exc)
+        except ConnectionError as exc:
+            if not _client_gone(request):  # e.g. a connection of the bridge's own failed
+                log.exception("unexpected error serving %s %s", request.method, request.path,
+                              extra=_log_context(request))
+                return _failure(exc)
+            log.debug("client went away during %s %s: %s", request.method, request.path,
+                      exc, extra=_log_context(request))
+            return _gone()
         except Exception as exc:
             log.exception("unexpected error serving %s %s", request.method, request.path,
                           extra=_log_context(request))
@@ -68,6 +77,18 @@ async def _body_timed_out(request: web.Request) -> web.StreamResponse:
     await response.write_eof()
     if request.transport is not None:
         request.transport.close()  # sends what is buffered (the 408) first
+    return response
+
+
+def _client_gone(request: web.Request) -> bool:
+    transport = request.transport
+    return transport is None or transport.is_closing()
+
+
+def _gone() -> web.Response:
+    """For aiohttp to finish the request with; nobody is there to read it."""
+    response = error_response(400, "CLIENT_GONE", reason="connection_closed")
+    response.force_close()
     return response
 
 

@@ -10,6 +10,7 @@ from rcan_rtps import __version__
 from rcan_rtps.rcan import openapi_schemas
 
 from ._bodies import ApiError, AuditPage, GoalList, HeartbeatAck, PendingList, VerifyReport, WsFrame
+from ._protocol import HEAD_TOO_LARGE, MAX_FIELDS, MAX_LINE
 from .ports import GoalView
 
 _REF = "#/components/schemas/{name}"
@@ -26,13 +27,17 @@ def _json(name: str, description: str) -> dict[str, Any]:
     return {"description": description, "content": {"application/json": {"schema": _ref(name)}}}
 
 
+_HEAD_TOO_LARGE = (f"request line or a header field over {MAX_LINE} bytes, or more than "
+                   f"{MAX_FIELDS} header fields ({HEAD_TOO_LARGE}; not audited)")
+
+
 def _errors(*codes: int) -> dict[str, Any]:
     text = {400: "body or query fails the schema (field path in `path`)",
             401: "no or invalid credentials", 403: "role too low",
             404: "not found", 409: "refused by a safety invariant or the e-stop",
-            413: "body too large", 429: "rate limited",
+            413: "body too large", 429: "rate limited", 431: _HEAD_TOO_LARGE,
             503: "robot or audit log unavailable"}
-    return {str(c): _json("ApiError", text[c]) for c in (401, *codes, 503)}
+    return {str(c): _json("ApiError", text[c]) for c in (401, *codes, 431, 503)}
 
 
 _COMMAND_BODY = {
@@ -51,6 +56,7 @@ _DECISION = {
     "400": _json("ApiError", "schema failure, with the field path (audited)"),
     "401": _json("ApiError", "no or invalid credentials (not audited); a refused JWT says why "
                  "in `reason`"),
+    "431": _json("ApiError", _HEAD_TOO_LARGE),
 }
 
 
@@ -68,6 +74,8 @@ def _query(name: str, description: str) -> dict[str, Any]:
             "schema": {"type": "integer", "minimum": 0}}
 
 
+_HITL_DECISION = _DECISION | {"404": _json("DecisionBody", "unknown or expired pending_id")}
+
 PATHS: dict[str, dict[str, Any]] = {
     "/api/command": {"post": _op("postCommand", "Send a COMMAND (short or envelope form)",
                                  _DECISION, _COMMAND_BODY)},
@@ -84,14 +92,17 @@ PATHS: dict[str, dict[str, Any]] = {
                      "schema": {"type": "string"}}])},
     "/api/hitl/pending": {"get": _op("getPending", "Commands waiting for a human (approvers)",
                                      {"200": _json("PendingList", "pending"), **_errors(403)})},
-    "/api/hitl/authorize": {"post": _op("postAuthorize", "Approve a pending command",
-                                        _DECISION | {"404": _json("DecisionBody", "unknown or "
-                                                                  "expired pending_id")},
-                                        _AUTHORIZE_BODY)},
-    "/api/hitl/deny": {"post": _op("postDeny", "Deny a pending command",
-                                   _DECISION | {"404": _json("DecisionBody", "unknown or "
-                                                             "expired pending_id")},
-                                   _AUTHORIZE_BODY)},
+    "/api/hitl/authorize": {"post": _op(
+        "postAuthorize", "Approve a pending command (`reason` is audited): 200 once it has "
+        "as many distinct approvers as it needs and ran, 202 while it needs more (n-of-m); "
+        "the issuer is never one of several approvers, an approver counts once (409)",
+        _HITL_DECISION, _AUTHORIZE_BODY)},
+    "/api/hitl/deny": {"post": _op(
+        "postDeny", "Deny a pending command (any approver; ends it, whatever approvals it "
+        "had; `reason` is audited)", _HITL_DECISION, _AUTHORIZE_BODY)},
+    "/api/hitl/withdraw": {"post": _op(
+        "postWithdraw", "Withdraw a pending command: its issuer, or an approver; audited "
+        "HITL_WITHDRAWN (`reason` too); anyone else 403", _HITL_DECISION, _AUTHORIZE_BODY)},
     "/api/audit": {"get": _op(
         "getAudit", "Audit entries after `since`, verbatim (LEASEE+ by default)",
         {"200": _json("AuditPage", "entries"), **_errors(400, 403)},

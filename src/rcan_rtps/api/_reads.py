@@ -13,6 +13,12 @@ from the audit writer, with bounded concurrency.
   when the request arrived. Waiting is bounded by one run in progress plus one queued, however
   many ask, so verify requests are never refused. Where no process can be started, the reader
   thread verifies instead (logged once).
+- Starting that process leaves the signal mask of the thread that starts it as it was:
+  multiprocessing's resource tracker unblocks SIGINT and SIGTERM there, and `rcan-rtps run`
+  keeps them blocked in every thread (one thread takes them with sigwait and stops the robot
+  in order; a SIGTERM delivered anywhere else would kill the bridge on the spot). The worker
+  itself ignores SIGINT (a Ctrl-C reaches the whole process group; the bridge ends the
+  worker) and takes SIGTERM, which is how the bridge ends it.
 """
 
 from __future__ import annotations
@@ -22,6 +28,8 @@ import concurrent.futures
 import contextlib
 import logging
 import os
+import signal
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -73,9 +81,25 @@ def verify_file(path: str, public_key: bytes) -> VerifyReport:
                         last_audit_id=head.last_audit_id)
 
 
-def _lower_priority() -> None:
+def _worker_start() -> None:
+    """In the worker process: below the bridge's priority; SIGINT ignored, SIGTERM taken
+    (the worker inherits whatever mask the thread that spawned it had)."""
     with contextlib.suppress(OSError, AttributeError):
         os.nice(_NICE)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
+@contextlib.contextmanager
+def keep_signal_mask() -> Iterator[None]:
+    """The calling thread's signal mask as it was once the block is done, whatever the block
+    did to it: multiprocessing's resource tracker, when it starts, blocks SIGINT and SIGTERM
+    around its spawn and then *unblocks* them instead of restoring the mask."""
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, ())
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 class AuditReads:
@@ -144,7 +168,8 @@ class AuditReads:
         pool = self._verifier()
         path = str(self._path)
         try:
-            future = pool.submit(verify_file, path, self._key)
+            with keep_signal_mask():  # starts the worker (and the resource tracker) if need be
+                future = pool.submit(verify_file, path, self._key)
         except OSError:  # no worker process can be started here
             if pool is self._thread:
                 raise
@@ -160,9 +185,10 @@ class AuditReads:
             import multiprocessing  # here: a bridge that never verifies never loads it
 
             try:
-                self._process = concurrent.futures.ProcessPoolExecutor(
-                    1, mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_lower_priority)
+                with keep_signal_mask():  # its queues' semaphores start the resource tracker
+                    self._process = concurrent.futures.ProcessPoolExecutor(
+                        1, mp_context=multiprocessing.get_context("spawn"),
+                        initializer=_worker_start)
             except (OSError, NotImplementedError, ValueError):  # e.g. no POSIX semaphores
                 log.warning("no process for audit verification; using a thread",
                             exc_info=True)

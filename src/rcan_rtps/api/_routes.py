@@ -6,6 +6,7 @@ import msgspec
 from aiohttp import web
 
 from rcan_rtps.governance.clock import SystemClock, now_ms
+from rcan_rtps.governance.hitl import Verdict
 from rcan_rtps.rcan import Authorize, ErrorCode, Role, SchemaValidationError
 
 from ._bodies import (
@@ -84,14 +85,19 @@ async def get_pending(request: web.Request) -> web.Response:
 
 
 async def post_authorize(request: web.Request) -> web.Response:
-    return await _resolve(request, approve=True)
+    return await _resolve(request, "approve")
 
 
 async def post_deny(request: web.Request) -> web.Response:
-    return await _resolve(request, approve=False)
+    return await _resolve(request, "deny")
 
 
-async def _resolve(request: web.Request, *, approve: bool) -> web.Response:
+async def post_withdraw(request: web.Request) -> web.Response:
+    """The issuer takes its pending command back (approvers may too); others get 403."""
+    return await _resolve(request, "withdraw")
+
+
+async def _resolve(request: web.Request, verdict: Verdict) -> web.Response:
     governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
     raw = await _body(request)
     if raw is None:
@@ -102,10 +108,10 @@ async def _resolve(request: web.Request, *, approve: bool) -> web.Response:
     except SchemaValidationError as exc:
         status, body = await schema_failure(governor, principal, exc.path, exc.detail)
         return json_response(body, status)
-    if approve:  # the governor checks the approver's role and audits either way
-        decision = await governor.authorize(target.pending_id, principal)
-    else:
-        decision = await governor.deny(target.pending_id, principal)
+    # The governor checks who may review it, and audits either way (with the reason).
+    review = {"approve": governor.authorize, "deny": governor.deny,
+              "withdraw": governor.withdraw}[verdict]
+    decision = await review(target.pending_id, principal, target.reason)
     return json_response(decision.body(), decision.http_status)
 
 

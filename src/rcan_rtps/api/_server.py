@@ -1,8 +1,10 @@
 """Serving the app: an `ApiServer` that binds, reports its URL, and shuts down in order.
 
-It listens with `loop.create_server` on aiohttp's protocol factory (`runner.server`) wrapped in
-`ConnectionDeadlines` (see `_conn`), instead of a `TCPSite`, which offers no way to put
-anything in front of the protocol. The timeouts come from the app's `ApiSettings`.
+It listens with `loop.create_server` on aiohttp's protocol, `ApiRequestHandler` (see
+`_protocol`: the API's replies to what aiohttp's parser refuses) for the runner's server,
+wrapped in `ConnectionDeadlines` (see `_conn`), instead of a `TCPSite`, which offers no way
+to choose or put anything in front of the protocol. The timeouts come from the app's
+`ApiSettings`.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from typing import Any
 from aiohttp import web
 
 from ._keys import DEADLINES, KEEPALIVE_TIMEOUT_S, SETTINGS
+from ._protocol import ApiRequestHandler, handler_args
 
 _BACKLOG = 128  # what TCPSite uses
 
@@ -31,8 +34,9 @@ class ApiServer:
         settings = app.get(SETTINGS)
         keepalive = settings.keepalive_timeout_s if settings else KEEPALIVE_TIMEOUT_S
         # aiohttp's own keep-alive timer (idle between requests) backs up the deadlines.
-        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=shutdown_timeout_s,
-                                     keepalive_timeout=keepalive)
+        self._handler_args = handler_args(keepalive)
+        self._runner = web.AppRunner(app, shutdown_timeout=shutdown_timeout_s,
+                                     **self._handler_args)
         self._deadlines = app.get(DEADLINES)
         self._handshake_s = settings.header_timeout_s if settings else None
         self._shutdown_s = shutdown_timeout_s
@@ -59,8 +63,12 @@ class ApiServer:
         await self._runner.setup()
         server = self._runner.server
         assert server is not None  # setup() made it
-        factory = server if self._deadlines is None else self._deadlines.wrap(server)
         loop = asyncio.get_running_loop()
+
+        def handler() -> ApiRequestHandler:  # what `server()` makes, with our error replies
+            return ApiRequestHandler(server, loop=loop, **self._handler_args)
+
+        factory = handler if self._deadlines is None else self._deadlines.wrap(handler)
         where: dict[str, Any] = (
             {"sock": self._sock} if self._sock is not None
             else {"host": self._host, "port": self._port})

@@ -10,6 +10,13 @@ with `sigwait`: the first asks the loop to shut down gracefully and, if that has
 finished within `bound` s, logs the stacks and `os._exit`s; a second one exits at once. As
 a backstop that needs no GIL, the first signal also arms faulthandler to dump the stacks
 and exit a few seconds after the bound.
+
+Whatever a thread later unblocks (multiprocessing's resource tracker unblocks both in the
+thread that starts it; the API's audit verifier puts that mask back), a signal the kernel
+hands to such a thread is not lost to a default action: the handlers installed here pass it
+on to the sigwait thread, so it takes the same path. They are Python handlers, run by the
+main thread (through the event loop, which they wake, once one is attached): a backstop that
+needs the interpreter. The block is what works with the loop stuck.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
+from types import FrameType
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +105,9 @@ class LoopWatchdog:
 
 
 class SignalStopper:
-    """SIGINT/SIGTERM through `sigwait` on a thread of its own; see the module docs."""
+    """SIGINT/SIGTERM through `sigwait` on a thread of its own; see the module docs.
+
+    Create it on the main thread, before any other thread starts; `finished` when done."""
 
     def __init__(self, bound: float = DEFAULT_SHUTDOWN_BOUND_S,
                  exit_now: Callable[[int], None] = os._exit) -> None:
@@ -114,23 +124,46 @@ class SignalStopper:
         self._old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
         self._thread = threading.Thread(target=self._wait, name="signals", daemon=True)
         self._thread.start()
+        # The backstop (module docs). It also keeps asyncio.Runner from installing its own
+        # SIGINT handler, which would cancel the main task instead of stopping in order.
+        self._old_handlers = {sig: signal.signal(sig, self._forward) for sig in SIGNALS}
 
     def attach(self, loop: asyncio.AbstractEventLoop, request_stop: Callable[[], None]) -> None:
-        """`request_stop` runs on `loop` when the first signal arrives."""
+        """`request_stop` runs on `loop` when the first signal arrives. Call on the loop's
+        (main) thread."""
         with self._lock:
             self._loop, self._request = loop, request_stop
             pending = self._pending
         if pending:
             loop.call_soon_threadsafe(request_stop)
+        # The backstop through the loop from here on: a plain Python handler runs only when
+        # the main thread next runs Python, and an idle loop may sleep in epoll for long; the
+        # loop's own signal handling wakes it. (Closing the loop removes these handlers.)
+        for sig in SIGNALS:
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.add_signal_handler(sig, self._forward, sig, None)
 
     def finished(self) -> None:
-        """The graceful shutdown is over: no forced exit any more. Restores the mask."""
+        """The graceful shutdown is over: no forced exit any more. Restores the handlers,
+        then the mask (a signal still pending then takes its default action)."""
         self._done.set()
         faulthandler.cancel_dump_traceback_later()
+        for sig, handler in self._old_handlers.items():
+            signal.signal(sig, handler)
         signal.pthread_sigmask(signal.SIG_SETMASK, self._old_mask)
 
+    def _forward(self, signum: int, frame: FrameType | None) -> None:
+        """A signal delivered to a thread that did not block it: to the sigwait thread."""
+        ident = self._thread.ident
+        if ident is not None and self._thread.is_alive():
+            with contextlib.suppress(OSError):  # it has just ended: the process is exiting
+                signal.pthread_kill(ident, signum)
+
     def _wait(self) -> None:
-        sig = signal.sigwait(SIGNALS)
+        self._first(signal.sigwait(SIGNALS))
+        self._again(signal.sigwait(SIGNALS))
+
+    def _first(self, sig: int) -> None:
         self.received.append(sig)
         log.warning("%s: shutting down (a second signal exits at once)",
                     signal.Signals(sig).name)
@@ -143,15 +176,16 @@ class SignalStopper:
             # A RuntimeError: the loop has already closed, so shutdown is under way.
             with contextlib.suppress(RuntimeError):
                 loop.call_soon_threadsafe(request)
-        threading.Thread(target=self._second, name="signals-again", daemon=True).start()
+        threading.Thread(target=self._bounded, name="signals-bound", daemon=True).start()
+
+    def _bounded(self) -> None:
         if not self._done.wait(self.bound):
             log.error("shutdown did not finish within %.0f s; exiting now. Thread stacks:\n%s",
                       self.bound, thread_stacks())
             logging.shutdown()
             self._exit(EXIT_STUCK)
 
-    def _second(self) -> None:
-        sig = signal.sigwait(SIGNALS)
+    def _again(self, sig: int) -> None:
         if self._done.is_set():
             return
         self.received.append(sig)

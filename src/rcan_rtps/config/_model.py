@@ -189,11 +189,23 @@ class HitlGate(_Section, frozen=True, kw_only=True):
     action: GateableName  # never an action that stops the robot
     require_auth: bool = True
     authorized_roles: list[RoleName] = []
+    # Distinct approvers a held command of this action needs (n-of-m); above 1 its issuer
+    # never counts as one of them.
+    approvals: Annotated[int, msgspec.Meta(ge=1, le=16)] = 1
 
 
 def _repeated_gate_problem(gates: list[HitlGate]) -> str | None:
     actions = [g.action for g in gates]
     return "lists an action more than once" if len(set(actions)) != len(actions) else None
+
+
+AUTHORIZE_PATH = "/api/hitl/authorize"
+
+
+def _authorize_endpoint_problem(path: str) -> str | None:
+    if path == AUTHORIZE_PATH:
+        return None
+    return f"approvals are served at {AUTHORIZE_PATH} only (a proxy may map another path)"
 
 
 class HitlConfig(_Section, frozen=True, kw_only=True):
@@ -202,7 +214,8 @@ class HitlConfig(_Section, frozen=True, kw_only=True):
     confidence_gate: ConfidenceGate | None = None
     gates: Annotated[list[HitlGate], _check(_repeated_gate_problem)] = []
     require_distinct_approver: bool = False
-    authorize_endpoint: str = "/api/hitl/authorize"
+    # The bridge spec's key, kept so its configs load: approvals are served at this one path.
+    authorize_endpoint: Annotated[str, _check(_authorize_endpoint_problem)] = AUTHORIZE_PATH
 
 
 class PrincipalConfig(_Section, frozen=True, kw_only=True):
@@ -315,6 +328,9 @@ class SafetyConfig(_Section, frozen=True, kw_only=True):
     # A timed move lasts at most this; longer requests are denied (a held move has no end but
     # its sender's session, which needs heartbeats).
     max_move_duration_s: Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)] = 30.0
+    # A timed move is held too: it ends (session_lost) once its sender has been silent this
+    # long (no command, heartbeat or WebSocket frame); None: `session_timeout_s`.
+    unattended_move_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)] | None = None
     # Velocity streams ramp within these (m/s², rad/s²); None: no ramp (the robot's own
     # controller limits acceleration). Stopping is never ramped: a stop is zero at once.
     max_linear_accel: Positive | None = None
@@ -349,7 +365,6 @@ class RbacConfig(_Section, frozen=True, kw_only=True):
     rate_limits_per_min: dict[RoleName, Annotated[int, msgspec.Meta(ge=1)] | None] = {}
     hitl_approver_role: RoleName = "OWNER"
     audit_read_role: RoleName = "LEASEE"
-    config_reload_role: RoleName = "CREATOR"
 
 
 Priority = Annotated[int, msgspec.Meta(ge=0, le=1_000_000)]

@@ -71,8 +71,10 @@ class AuditEvent(str, enum.Enum):
     COMMAND_REJECTED = "COMMAND_REJECTED"
     COMMAND_FAILED = "COMMAND_FAILED"  # written after a write-ahead entry whose send failed
     PENDING_AUTH = "PENDING_AUTH"
+    HITL_APPROVAL = "HITL_APPROVAL"  # one of several approvals a held command needs
     HITL_AUTHORIZED = "HITL_AUTHORIZED"
     HITL_DENIED = "HITL_DENIED"
+    HITL_WITHDRAWN = "HITL_WITHDRAWN"  # taken back by its issuer (or an approver)
     HITL_EXPIRED = "HITL_EXPIRED"
     ESTOP = "ESTOP"
     ESTOP_CLEARED = "ESTOP_CLEARED"
@@ -100,6 +102,8 @@ class AuditRecord(msgspec.Struct, kw_only=True, frozen=True):
     ai: dict[str, Any] | None = None
     ros2_topic: str | None = None
     pending_id: str | None = None
+    # The HiTL reviews of a held command (each approver, decision and reason), in order.
+    approvals: list[dict[str, Any]] | None = None
     # A stop executed although its body had these problems (see rcan._salvage).
     warnings: list[str] | None = None
     # A stop's signals went out before this entry was durable (they never wait for the disk).
@@ -107,7 +111,7 @@ class AuditRecord(msgspec.Struct, kw_only=True, frozen=True):
 
 
 # Left out of an entry when None: older entries never had them.
-_OPTIONAL = frozenset({"ai", "pending_id", "warnings", "sent_first"})
+_OPTIONAL = frozenset({"ai", "pending_id", "warnings", "sent_first", "approvals"})
 
 
 class AuditReceipt(msgspec.Struct, frozen=True):

@@ -12,20 +12,19 @@ command's idempotency entry. E-stop and clear are one serialized state machine (
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import functools
 import logging
 import uuid
-from collections.abc import Callable, Coroutine, Iterator, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import msgspec
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.rcan import (
     ActionParams,
-    ActionSpec,
+    Approval,
     DecisionBody,
     Effect,
     ErrorCode,
@@ -34,6 +33,7 @@ from rcan_rtps.rcan import (
     Outcome,
     PendingAuth,
     Role,
+    RoleName,
     parse_ruri,
 )
 from rcan_rtps.rcan.actions import LockParams, MoveParams, with_effect
@@ -44,16 +44,18 @@ from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
 from .clock import Clock, SystemClock, now_ms
 from .errors import AuditError, EstopStateError
 from .estop import EstopMachine, EstopRepeats, LatchFile
-from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand, PendingStore
+from .hitl import Escalate, Held, HitlPolicy, Notifier, PendingCommand, PendingStore, Verdict
 from .idempotency import Conflict, Idempotency
 from .invariants import Check, Violation, safety_policy
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
 from .resume import resume
+from .sessions import Sessions
 from .streams import (
     AccelLimits,
     EndReason,
+    HeldGoal,
     Replaces,
     Stream,
     StreamEnded,
@@ -136,6 +138,7 @@ class Governor:
                  limiter: RateLimiter, safety: Check, latch: EstopMachine, hitl: HitlPolicy,
                  clock: Clock, hitl_timeout_s: float = 300.0,
                  require_distinct_approver: bool = False, session_timeout_s: float = 2.0,
+                 unattended_move_s: float | None = None,
                  robot_ruri: str | None = None, notifier: Notifier | None = None,
                  streams: VelocityStreams | None = None,
                  priorities: MotionPriorities | None = None,
@@ -153,7 +156,7 @@ class Governor:
         self._latch_file_missing = latch.file.missing()
         self._hitl_ttl_ms = int(hitl_timeout_s * 1000)
         self._distinct = require_distinct_approver
-        self._sessions = Sessions(clock, session_timeout_s)
+        self._sessions = Sessions(clock, session_timeout_s, unattended_move_s)
         self._robot = parse_ruri(robot_ruri).robot if robot_ruri else None
         self._notifier = notifier
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -175,6 +178,7 @@ class Governor:
         self._repeats = EstopRepeats()
         # The ESTOP entry holding the latch, while no clear was audited after it.
         self._latched_by: AuditReceipt | None = None
+        self._ended_by: dict[str, str] = {}  # goals the arbiter cancelled → why, by whom
         latch.listeners.insert(0, self.streams.on_latch)
         latch.listeners.append(self._status_changed)
 
@@ -209,6 +213,7 @@ class Governor:
             hitl_timeout_s=bridge.hitl.timeout_seconds,
             require_distinct_approver=bridge.hitl.require_distinct_approver,
             session_timeout_s=bridge.safety.session_timeout_s,
+            unattended_move_s=bridge.safety.unattended_move_s,
             robot_ruri=config.robot.ruri, held_locks=resumed.locks,
         )
 
@@ -364,13 +369,27 @@ class Governor:
             return await self._refuse(command, principal, gate)
         if isinstance(gate, Escalate):
             return await self._hold(command, principal, gate.approver_role)
-        self._sessions.touch(principal, command.spec)
         # A command still being carried out (waiting for a subscriber, say) is not silence.
         with self._sessions.in_flight(principal):
             decision = await self._execute(command, principal, applied,
                                            AuditEvent.COMMAND_DISPATCHED)
+        self._opened(principal, command, decision)
         self._sessions.heartbeat(principal)
         return decision
+
+    def _opened(self, principal: Principal, command: NormalizedCommand,
+                decision: Decision) -> None:
+        """An executed stop ends its sender's control session (motion opens one as it is
+        sent: `_sending`)."""
+        if decision.outcome is Outcome.EXECUTED and command.spec.stopping:
+            self._sessions.touch(principal, command.spec)
+
+    def _sending(self, owner: Principal, command: NormalizedCommand) -> None:
+        """Motion is about to reach the robot: its owner holds a control session from now on.
+        A command refused before this point opens none, so its sender's silence can never
+        halt someone else's motion."""
+        timed = command.spec.streamed and getattr(command.params, "duration_s", None) is not None
+        self._sessions.touch(owner, command.spec, timed=timed)
 
     # -- the e-stop lane (run by the e-stop machine, one transition at a time) ------------
 
@@ -384,6 +403,7 @@ class Governor:
         at = now_ms(self._clock)
         record = _record(AuditEvent.ESTOP, command, principal, Outcome.EXECUTED, applied={},
                          ros2_topic=self._route(command), sent_first=True)
+        self.streams.take_goals()  # the e-stop cancels every goal
         # The robot is told first (the dispatch's first step publishes, before any await);
         # latch file and audit entry are made durable beside it, both before the reply.
         sent, persisted, receipt = await asyncio.gather(
@@ -502,15 +522,53 @@ class Governor:
         # Checked again after the write, with no await between this check and the publish.
         if motion and self.latch.latched:
             return await self._failed(command, principal, outcomes.ESTOP_ACTIVE)
+        if motion:
+            self._sending(owner, command)
         result, failure = await self._dispatch(command, params)
         if failure is not None:
             return await self._failed(command, principal, failure)
         if spec.starts_goal and self.latch.latched:
             # Accepted while an e-stop latched: the e-stop's cancel may have missed this goal.
             await self._dispatch(_bridge_command(Effect.HALT))
-        elif spec.starts_goal:  # the goal drives the base now: a velocity stream would fight it
-            self.streams.end(EndReason.REPLACED, owner.name)
+        elif spec.starts_goal:
+            refused = self._hold_goal(result.goal_id, owner, priority, command.message_id)
+            if refused is not None:
+                return await self._failed(command, principal, refused)
         return _executed(command, applied, receipt, result)
+
+    def _hold_goal(self, goal_id: str | None, owner: Principal, priority: int,
+                   message_id: str) -> Rejection | None:
+        """An accepted goal holds the base: the stream and the goals it replaces end. If a
+        higher stream, goal or lock took the base while it was being sent, it is cancelled
+        (the refusal returned)."""
+        if goal_id is None:
+            return None
+        goal = HeldGoal(goal_id, owner.name, priority, message_id)
+        refused = self.streams.admits(priority)
+        if refused is not None:
+            self._cancel_goals([goal], owner, why=refused.reason or "refused")
+            return refused
+        self.streams.end(EndReason.REPLACED, owner.name)  # a stream would fight the goal
+        self._cancel_goals(self.streams.goal_started(goal), owner)
+        return None
+
+    def _cancel_goals(self, goals: list[HeldGoal], by: Principal, *,
+                      why: str = "replaced") -> None:
+        """Cancel goals the arbiter took off the base (never awaited by the command); their
+        GOAL_FINISHED entries say by whom."""
+        for goal in goals:
+            reason = why if goal.owner == by.name or why != "replaced" else "preempted"
+            self._ended_by[goal.goal_id] = f"{reason} by {by.name}"
+            log.warning("cancelling goal %s of %s: %s by %s", goal.goal_id, goal.owner,
+                        reason, by.name, extra={"principal": by.name})
+            self._spawn(self._cancel_goal(goal.goal_id))
+
+    async def _cancel_goal(self, goal_id: str) -> None:
+        try:
+            if not await self._dispatcher.cancel_goal(goal_id):
+                log.warning("goal %s was not cancelled (already over?)", goal_id)
+        except Exception:
+            log.exception("cancelling goal %s failed", goal_id)
 
     async def _halt(self, command: NormalizedCommand, principal: Principal,
                     params: ActionParams, event: AuditEvent) -> Decision:
@@ -519,6 +577,7 @@ class Governor:
         applied: dict[str, Any] = {}  # nothing of the body reaches the robot (a reason is kept)
         record = _record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          ros2_topic=self._route(command), sent_first=True)
+        self.streams.take_goals()  # the halt cancels every goal
         sent, receipt = await asyncio.gather(self._dispatch(command, params),
                                              self._write_ahead(record, urgent=True))
         result, failure = sent
@@ -570,6 +629,7 @@ class Governor:
             return await self._failed(command, principal, refused)
         target = Velocity.of(params)
         first = self.streams.first_sample(target)
+        self._sending(principal, command)
         result, failure = await self._dispatch(command, first.params())
         if failure is not None:
             return await self._failed(command, principal, failure)
@@ -579,8 +639,7 @@ class Governor:
         refused = self.streams.start(stream, first, by=principal.name, recorded=replaces)
         if refused is not None:
             return await self._failed(command, principal, refused)
-        if params.duration_s is not None:  # a timed move bounds itself: silence counts after
-            self._sessions.quiet_after(principal, params.duration_s)
+        self._cancel_goals(self.streams.take_goals(below=priority + 1), principal)
         return _executed(command, audited[0], audited[1], result)
 
     def _stream_ended(self, ended: StreamEnded) -> None:
@@ -618,8 +677,9 @@ class Governor:
         if receipt is None:
             return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         if command.spec.effect is Effect.LOCK:
-            self.streams.lock(params.name, level, principal.name)
+            lower = self.streams.lock(params.name, level, principal.name)
             self._lock_holders[params.name] = principal.name
+            self._cancel_goals(lower, principal, why=f"locked out by {params.name!r}")
         else:
             self.streams.unlock(params.name)
             self._lock_holders.pop(params.name, None)
@@ -685,6 +745,7 @@ class Governor:
             pending_id=uuid.uuid4().hex, command=command, issuer=principal,
             approver_role=approver_role,
             expires_at_ms=now_ms(self._clock) + self._hitl_ttl_ms,
+            approvals_required=self._hitl.approvals(command.action),
         )
         record = _record(AuditEvent.PENDING_AUTH, command, principal, Outcome.PENDING_AUTH,
                          pending_id=pending.pending_id)
@@ -697,58 +758,122 @@ class Governor:
                         audit_id=receipt.audit_id, message_id=command.message_id,
                         pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
 
-    async def authorize(self, pending_id: str, approver: Principal) -> Decision:
-        return await self._detached(self._resolve(pending_id, approver, True))
+    async def authorize(self, pending_id: str, approver: Principal,
+                        reason: str | None = None) -> Decision:
+        """One approval; the command runs once it has as many distinct ones as it needs."""
+        return await self._detached(self._resolve(pending_id, approver, "approve", reason))
 
-    async def deny(self, pending_id: str, approver: Principal) -> Decision:
-        return await self._detached(self._resolve(pending_id, approver, False))
+    async def deny(self, pending_id: str, approver: Principal,
+                   reason: str | None = None) -> Decision:
+        """Any approver's denial ends it, whatever approvals it had."""
+        return await self._detached(self._resolve(pending_id, approver, "deny", reason))
+
+    async def withdraw(self, pending_id: str, principal: Principal,
+                       reason: str | None = None) -> Decision:
+        """Its issuer takes a pending command back (an approver may too): never executed."""
+        return await self._detached(self._resolve(pending_id, principal, "withdraw", reason))
 
     def pending(self) -> list[PendingAuth]:
-        return [p.message() for p in self._pending.list()]
+        return [held.message() for held in self._pending.list()]
 
-    async def _resolve(self, pending_id: str, approver: Principal, approve: bool) -> Decision:
-        verb = "hitl_authorize" if approve else "hitl_deny"
-        pending = self._pending.get(pending_id)
-        if pending is None:
-            return await self._refuse_hitl(verb, approver, outcomes.PENDING_NOT_FOUND)
-        if pending.expires_at_ms <= now_ms(self._clock):
-            await self.expire_pending()
-            return await self._refuse_hitl(verb, approver, outcomes.PENDING_EXPIRED)
-        if approver.role < pending.approver_role:
-            return await self._refuse_hitl(verb, approver, outcomes.INSUFFICIENT_PRIVILEGES)
-        if approve and self._distinct and approver.name == pending.issuer.name:
-            return await self._refuse_hitl(verb, approver, outcomes.SELF_APPROVAL)
-        if self._pending.take(pending_id) is None:  # another approval won the race
-            return await self._refuse_hitl(verb, approver, outcomes.PENDING_NOT_FOUND)
+    async def _resolve(self, pending_id: str, reviewer: Principal, verdict: Verdict,
+                       reason: str | None) -> Decision:
+        held = self._pending.get(pending_id)
+        if held is None:
+            return await self._refuse_hitl(verdict, reviewer, outcomes.PENDING_NOT_FOUND,
+                                           pending_id)
+        async with held.lock:  # one review at a time: each counted once, released once
+            reviewed = await self._review(held, reviewer, verdict, reason)
+        if isinstance(reviewed, Decision):
+            return reviewed
+        command, pending = reviewed, held.pending  # out of the store, with every review
         self._status_changed()
-        command = pending.command
-        if not approve:
-            return await self._refuse(command, approver, outcomes.HITL_DENIED,
-                                      event=AuditEvent.HITL_DENIED, pending_id=pending_id)
+        if verdict != "approve":
+            denied = verdict == "deny"
+            return await self._refuse(
+                command, reviewer, outcomes.HITL_DENIED if denied else outcomes.HITL_WITHDRAWN,
+                event=AuditEvent.HITL_DENIED if denied else AuditEvent.HITL_WITHDRAWN,
+                pending_id=pending_id)
         try:  # the state *now* decides, not the state when the command arrived
             applied = self._safety(command, command.params)
         except Violation as violation:
-            return await self._refuse(command, approver, violation.rejection,
+            return await self._refuse(command, reviewer, violation.rejection,
                                       event=AuditEvent.HITL_AUTHORIZED, pending_id=pending_id)
-        self._sessions.touch(pending.issuer, command.spec)
-        return await self._execute(command, approver, applied, AuditEvent.HITL_AUTHORIZED,
-                                   pending_id, issuer=pending.issuer)
+        decision = await self._execute(command, reviewer, applied, AuditEvent.HITL_AUTHORIZED,
+                                       pending_id, issuer=pending.issuer)
+        self._opened(pending.issuer, command, decision)
+        return decision
 
-    async def _refuse_hitl(self, verb: str, approver: Principal,
-                           rejection: Rejection) -> Decision:
-        record = AuditRecord(event=AuditEvent.COMMAND_REJECTED, principal=approver.name,
-                             role=approver.role.name, action_type=verb,
+    async def _review(self, held: Held, reviewer: Principal, verdict: Verdict,
+                      reason: str | None) -> Decision | NormalizedCommand:
+        """Under `held.lock`: refused, or counted (an approval of several: still pending), or
+        taken from the store and returned with every review so far, to run or discard."""
+        pending = held.pending
+        if self._pending.get(pending.pending_id) is not held:  # resolved while this waited
+            return await self._refuse_hitl(verdict, reviewer, outcomes.PENDING_NOT_FOUND,
+                                           pending.pending_id)
+        if pending.expires_at_ms <= now_ms(self._clock):
+            await self.expire_pending()
+            return await self._refuse_hitl(verdict, reviewer, outcomes.PENDING_EXPIRED,
+                                           pending.pending_id)
+        refused = self._may_review(held, reviewer, verdict)
+        if refused is not None:
+            return await self._refuse_hitl(verdict, reviewer, refused, pending.pending_id)
+        review = Approval(principal=reviewer.name, role=cast(RoleName, reviewer.role.name),
+                          decision=verdict, at_ms=now_ms(self._clock), reason=reason)
+        if verdict == "approve" and held.missing > 1:
+            return await self._count_approval(held, reviewer, review)
+        self._pending.take(pending.pending_id)
+        return held.reviewed(review)
+
+    def _may_review(self, held: Held, reviewer: Principal, verdict: Verdict
+                    ) -> Rejection | None:
+        pending = held.pending
+        issuer = reviewer.name == pending.issuer.name
+        if reviewer.role < pending.approver_role and not (verdict == "withdraw" and issuer):
+            return outcomes.INSUFFICIENT_PRIVILEGES
+        if verdict != "approve":
+            return None
+        if issuer and (self._distinct or pending.approvals_required > 1):
+            return outcomes.SELF_APPROVAL  # n-of-m: the issuer is never one of the n
+        if held.approved_by(reviewer.name):
+            return outcomes.ALREADY_APPROVED
+        return None
+
+    async def _count_approval(self, held: Held, approver: Principal,
+                              review: Approval) -> Decision:
+        """An approval while more are needed: on record (HITL_APPROVAL) before it counts."""
+        pending = held.pending
+        record = _record(AuditEvent.HITL_APPROVAL, held.reviewed(review), approver,
+                         Outcome.PENDING_AUTH, pending_id=pending.pending_id)
+        receipt = await self._write_ahead(record)
+        if receipt is None:  # an approval that is not on record does not count
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=pending.command.message_id)
+        held.approvals.append(review)
+        self._status_changed()
+        return Decision(outcome=Outcome.PENDING_AUTH, http_status=202,
+                        audit_id=receipt.audit_id, message_id=pending.command.message_id,
+                        pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
+
+    async def _refuse_hitl(self, verdict: Verdict, reviewer: Principal, rejection: Rejection,
+                           pending_id: str) -> Decision:
+        verb = "hitl_authorize" if verdict == "approve" else f"hitl_{verdict}"
+        record = AuditRecord(event=AuditEvent.COMMAND_REJECTED, principal=reviewer.name,
+                             role=reviewer.role.name, action_type=verb, pending_id=pending_id,
                              outcome=rejection.outcome.value, deny_reason=rejection.deny_reason)
         return _decision(rejection, await self.audit.append(record))
 
     async def expire_pending(self) -> list[Decision]:
-        """Discard and audit (HITL_EXPIRED) every pending command past its TTL."""
+        """Discard and audit (HITL_EXPIRED, with any approvals it had) every pending command
+        past its TTL."""
         decisions = []
         expired = self._pending.take_expired(now_ms(self._clock))
         if expired:
             self._status_changed()
-        for p in expired:
-            decisions.append(await self._refuse(p.command, p.issuer, outcomes.PENDING_EXPIRED,
+        for held in expired:
+            p = held.pending
+            decisions.append(await self._refuse(held.reviewed(), p.issuer,
+                                                outcomes.PENDING_EXPIRED,
                                                 event=AuditEvent.HITL_EXPIRED,
                                                 pending_id=p.pending_id))
         return decisions
@@ -763,6 +888,8 @@ class Governor:
         """A goal the bridge sent ended (succeeded, aborted, canceled, …): audited.
 
         `message_id` links it to the COMMAND_DISPATCHED entry that sent it."""
+        self.streams.goal_ended(goal_id)  # the base is free of it
+        detail = self._ended_by.pop(goal_id, None) or detail
         if self._stopped:  # BRIDGE_STOPPED is the last entry
             log.info("goal %s %s after the bridge stopped: not audited", goal_id, outcome)
             return
@@ -783,10 +910,18 @@ class Governor:
         self._sessions.heartbeat(principal)
 
     async def safe_stop(self, principal: Principal, why: str = "session ended") -> Decision:
-        """Session lost: zero velocity and cancel goals (a `stop`), audited as such."""
+        """Session lost: zero velocity and cancel goals (a `stop`), audited as such.
+
+        What the principal drives stops; if someone else holds the base (a higher stream or
+        goal, still attended), only the principal's own goals are cancelled: its silence must
+        not halt another principal's motion."""
+        self.streams.end_of(principal.name, EndReason.SESSION_LOST)  # zero first, at once
+        own = self.streams.take_goals(owner=principal.name)
+        if self.streams.driven_by_other_than(principal.name):
+            return await self._own_stop(principal, why, own)
         log.warning("control session of '%s' lost (%s): halting the robot (safe stop)",
                     principal.name, why)
-        self.streams.end(EndReason.SESSION_LOST, principal.name)  # zero first, at once
+        self.streams.take_goals()  # the halt cancels every goal
         for listener in self.session_lost_listeners:  # e.g. log the goals being cancelled
             listener(principal)
         stop = _bridge_command(Effect.HALT)
@@ -802,6 +937,20 @@ class Governor:
         if failure is not None:
             return await self._failed(stop, principal, failure)
         return _executed(stop, {}, receipt, result)
+
+    async def _own_stop(self, principal: Principal, why: str,
+                        goals: list[HeldGoal]) -> Decision:
+        log.warning("control session of '%s' lost (%s): its goals cancelled; the base stays "
+                    "with who holds it", principal.name, why)
+        self._cancel_goals(goals, principal, why="session lost")
+        stop = _bridge_command(Effect.HALT)
+        applied = {"scope": "own", "goals_cancelled": [g.goal_id for g in goals]}
+        record = _record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
+                         applied=applied, sent_first=True)
+        receipt = await self._write_ahead(record, urgent=True)
+        if receipt is None:
+            return _decision(outcomes.AUDIT_UNAVAILABLE, message_id=stop.message_id)
+        return _executed(stop, applied, receipt, DispatchResult(ok=True))
 
     async def end_session(self, principal: Principal) -> Decision | None:
         """The principal's connection closed: if it held a control session, safe stop now.
@@ -822,8 +971,9 @@ class Governor:
         lost = self._sessions.take_lost()
         # Concurrently: one slow halt (say, a goal server that never answers) must not
         # delay the next principal's, nor the next sweep.
-        quiet = f"no command or heartbeat for {self._sessions.timeout_s:g} s"
-        await asyncio.gather(*(self._spawn(self.safe_stop(p, quiet)) for p in lost))
+        await asyncio.gather(*(
+            self._spawn(self.safe_stop(p, f"no command or heartbeat for {allowed:g} s"))
+            for p, allowed in lost))
 
     async def _sweep_forever(self) -> None:
         while True:
@@ -878,54 +1028,6 @@ def _settled(running: set[asyncio.Task[Any]], decision: Coroutine[Any, Any, Deci
         decision.close()  # a no-op once it ran; else no "never awaited" warning
 
 
-class Sessions:
-    """Who holds a control session, and since when nothing was heard from them."""
-
-    def __init__(self, clock: Clock, timeout_s: float) -> None:
-        self._clock = clock
-        self.timeout_s = timeout_s
-        self._last: dict[str, tuple[Principal, float]] = {}
-        self._busy: dict[str, int] = {}  # commands being carried out, per principal
-
-    @contextlib.contextmanager
-    def in_flight(self, principal: Principal) -> Iterator[None]:
-        self._busy[principal.name] = self._busy.get(principal.name, 0) + 1
-        try:
-            yield
-        finally:
-            left = self._busy.pop(principal.name) - 1
-            if left:
-                self._busy[principal.name] = left
-
-    def touch(self, principal: Principal, spec: ActionSpec[Any]) -> None:
-        if spec.motion:
-            self._last[principal.name] = (principal, self._clock.monotonic())
-        elif spec.stopping:
-            self._last.pop(principal.name, None)  # stopped on purpose: nothing to guard
-
-    def heartbeat(self, principal: Principal) -> None:
-        last = self._last.get(principal.name)
-        if last is not None:  # never earlier than a timed move's end (quiet_after)
-            self._last[principal.name] = (principal, max(last[1], self._clock.monotonic()))
-
-    def quiet_after(self, principal: Principal, seconds: float) -> None:
-        """Silence counts from `seconds` from now (the end of a timed move)."""
-        if principal.name in self._last:
-            self._last[principal.name] = (principal, self._clock.monotonic() + seconds)
-
-    def end(self, principal: Principal) -> bool:
-        """Drop the principal's session; True if it held one."""
-        return self._last.pop(principal.name, None) is not None
-
-    def take_lost(self) -> list[Principal]:
-        horizon = self._clock.monotonic() - self.timeout_s
-        lost = [p for p, at in self._last.values()
-                if at < horizon and p.name not in self._busy]
-        for p in lost:
-            del self._last[p.name]
-        return lost
-
-
 def _claims_more(claimed: Any, role: Role) -> bool:
     """A body's role claim is refused unless it names a role no higher than the real one."""
     if claimed is None:
@@ -949,6 +1051,8 @@ def _record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
         deny_reason=rejection.deny_reason if rejection else None, ai=ai,
         ros2_topic=ros2_topic, pending_id=pending_id,
         warnings=list(command.warnings) or None, sent_first=sent_first,
+        # A held command's reviews (who approved, denied or withdrew it, and why).
+        approvals=[msgspec.to_builtins(a) for a in command.approvals] or None,
     )
 
 

@@ -1,16 +1,21 @@
-"""§9 human in the loop: gates, the pending store with TTL, and webhook notification."""
+"""§9 human in the loop: gates, the pending store with TTL, and webhook notification.
+
+A held command waits in the store (`Held`) with the reviews it has so far; its reviews are
+decided one at a time (`Held.lock`), so approvals racing for the same command count once each
+and release it once.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Protocol, cast
+from typing import Literal, Protocol, cast
 
 import aiohttp
 import msgspec
 
 from rcan_rtps.config import HitlConfig
-from rcan_rtps.rcan import NormalizedCommand, PendingAuth, Role, RoleName
+from rcan_rtps.rcan import Approval, NormalizedCommand, PendingAuth, Role, RoleName
 from rcan_rtps.rcan.actions import specs
 
 from . import outcomes
@@ -20,6 +25,7 @@ from .rbac import Principal
 log = logging.getLogger(__name__)
 # A human must never be needed to stop the robot: these actions are never gated.
 NEVER_GATED = frozenset(s.name for s in specs() if not s.hitl.gateable)
+Verdict = Literal["approve", "deny", "withdraw"]
 
 
 class PendingCommand(msgspec.Struct, frozen=True, kw_only=True):
@@ -28,8 +34,9 @@ class PendingCommand(msgspec.Struct, frozen=True, kw_only=True):
     issuer: Principal
     approver_role: Role
     expires_at_ms: int
+    approvals_required: int = 1  # distinct approvers (`hitl.gates[].approvals`)
 
-    def message(self) -> PendingAuth:
+    def message(self, approvals: list[Approval] | None = None) -> PendingAuth:
         ai = self.command.ai
         return PendingAuth(
             pending_id=self.pending_id,
@@ -40,7 +47,37 @@ class PendingCommand(msgspec.Struct, frozen=True, kw_only=True):
             requires_auth_from_role=cast(RoleName, self.approver_role.name),
             expires_at_ms=self.expires_at_ms,
             issued_by=self.issuer.name,
+            approvals_required=self.approvals_required,
+            approvals=list(approvals or ()),
         )
+
+
+class Held:
+    """A pending command in the store, with the approvals counted so far.
+
+    `lock`: one review at a time (checked, audited, counted, maybe released), so two approvals
+    racing cannot both count as the last one, nor one approver count twice."""
+
+    def __init__(self, pending: PendingCommand) -> None:
+        self.pending = pending
+        self.approvals: list[Approval] = []
+        self.lock = asyncio.Lock()
+
+    @property
+    def missing(self) -> int:
+        """Approvals still needed before it may run."""
+        return self.pending.approvals_required - len(self.approvals)
+
+    def approved_by(self, name: str) -> bool:
+        return any(a.principal == name for a in self.approvals)
+
+    def reviewed(self, review: Approval | None = None) -> NormalizedCommand:
+        """The command with its reviews so far (and `review`), as its audit entries show it."""
+        reviews = (*self.approvals, review) if review is not None else tuple(self.approvals)
+        return msgspec.structs.replace(self.pending.command, approvals=reviews)
+
+    def message(self) -> PendingAuth:
+        return self.pending.message(self.approvals)
 
 
 class Escalate(msgspec.Struct, frozen=True):
@@ -55,6 +92,8 @@ class HitlPolicy:
     def __init__(self, config: HitlConfig, default_approver: Role = Role.OWNER) -> None:
         self._gate = config.confidence_gate
         self._default = default_approver
+        # Distinct approvers per action; whatever holds the command (a gate, the confidence gate).
+        self._approvals = {g.action: g.approvals for g in config.gates}
         # The registry's defaults first; a configured gate for an action replaces its default.
         configured = {g.action for g in config.gates}
         self._actions: dict[str, Role] = {
@@ -68,6 +107,10 @@ class HitlPolicy:
 
     def approver_role(self, action: str) -> Role:
         return self._actions.get(action, self._default)
+
+    def approvals(self, action: str) -> int:
+        """How many distinct approvers a held `action` needs."""
+        return self._approvals.get(action, 1)
 
     def gate(self, command: NormalizedCommand) -> Rejection | Escalate | None:
         if command.action in NEVER_GATED:
@@ -88,25 +131,26 @@ class PendingStore:
     """Commands waiting for a human; `take` removes, so one approval cannot run twice."""
 
     def __init__(self) -> None:
-        self._pending: dict[str, PendingCommand] = {}
+        self._pending: dict[str, Held] = {}
 
-    def put(self, pending: PendingCommand) -> None:
-        self._pending[pending.pending_id] = pending
+    def put(self, pending: PendingCommand) -> Held:
+        held = self._pending[pending.pending_id] = Held(pending)
+        return held
 
-    def get(self, pending_id: str) -> PendingCommand | None:
+    def get(self, pending_id: str) -> Held | None:
         return self._pending.get(pending_id)
 
-    def take(self, pending_id: str) -> PendingCommand | None:
+    def take(self, pending_id: str) -> Held | None:
         return self._pending.pop(pending_id, None)
 
-    def take_expired(self, now_ms: int) -> list[PendingCommand]:
-        gone = [p for p in self._pending.values() if p.expires_at_ms <= now_ms]
-        for p in gone:
-            del self._pending[p.pending_id]
+    def take_expired(self, now_ms: int) -> list[Held]:
+        gone = [h for h in self._pending.values() if h.pending.expires_at_ms <= now_ms]
+        for h in gone:
+            del self._pending[h.pending.pending_id]
         return gone
 
-    def list(self) -> list[PendingCommand]:
-        return sorted(self._pending.values(), key=lambda p: p.expires_at_ms)
+    def list(self) -> list[Held]:
+        return sorted(self._pending.values(), key=lambda h: h.pending.expires_at_ms)
 
     def __len__(self) -> int:
         return len(self._pending)

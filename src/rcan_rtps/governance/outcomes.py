@@ -54,9 +54,12 @@ MOTION_LOCKED = _rejected(Reason.MOTION_LOCKED)
 UNKNOWN_LOCK = _rejected(Reason.UNKNOWN_LOCK)
 CONFIDENCE_BELOW_GATE = _rejected(Reason.CONFIDENCE_BELOW_GATE)
 SAFETY_CHECK_ERROR = _rejected(Reason.SAFETY_CHECK_ERROR)
+PARAMS_NOT_UNDERSTOOD = _rejected(Reason.PARAMS_NOT_UNDERSTOOD)
 PENDING_NOT_FOUND = _rejected(Reason.PENDING_NOT_FOUND, status=404)
 PENDING_EXPIRED = _rejected(Reason.PENDING_EXPIRED, status=404)
 HITL_DENIED = _rejected(Reason.HITL_DENIED, status=200)
+HITL_WITHDRAWN = _rejected(Reason.HITL_WITHDRAWN, status=200)
+ALREADY_APPROVED = _rejected(Reason.ALREADY_APPROVED)
 
 
 def robot_unavailable(detail: str | None) -> Rejection:

@@ -17,6 +17,12 @@ the engaged motion locks. Everything about it runs on the event loop, without aw
 Every end is reported (`on_end`) so the governor audits it (STREAM_ENDED). Priorities and
 locks work like twist_mux's: a higher priority preempts, a lower one is refused while a higher
 stream runs or a higher lock is engaged.
+
+Goals drive the base too (a Nav2 goal, a docking): the goals the bridge sent are held here
+beside the stream, with their owner's priority, so one arbiter decides for both. A move or a
+goal is refused while a higher stream, goal or lock holds the base; once it starts, the lower
+and equal goals it replaces are returned to the governor to cancel (`goal_started`,
+`goals_at_or_below`), and a lock returns the goals below it (`lock`).
 """
 
 from __future__ import annotations
@@ -127,6 +133,16 @@ class Replaces(NamedTuple):
         return {"message_id": self.message_id, "reason": self.reason.value}
 
 
+@dataclass(frozen=True)
+class HeldGoal:
+    """A goal the bridge sent, holding the base until it ends."""
+
+    goal_id: str
+    owner: str
+    priority: int
+    message_id: str
+
+
 class _Claim(NamedTuple):
     """A move whose entry is being written; it starts its stream once that is durable."""
 
@@ -171,6 +187,7 @@ class VelocityStreams:
         self.active: Stream | None = None
         self.commanded = ZERO  # the velocity last sent
         self.locks: dict[str, int] = {}  # engaged lock → its priority
+        self.goals: dict[str, HeldGoal] = {}  # goals in progress, by id
         self.on_end: Callable[[StreamEnded], None] = lambda ended: None
         self._handle: Cancellable | None = None
         self._last = ZERO
@@ -178,14 +195,43 @@ class VelocityStreams:
 
     # -- admission -----------------------------------------------------------------------
     def admits(self, priority: int) -> Rejection | None:
-        """None if a move of `priority` may start now (no higher stream, no higher lock)."""
+        """None if a move or goal of `priority` may start now (no higher stream, goal or
+        lock)."""
         if self._latch.latched:
             return outcomes.ESTOP_ACTIVE
         if any(p > priority for p in self.locks.values()):
             return outcomes.MOTION_LOCKED
         if self.active is not None and self.active.priority > priority:
             return outcomes.LOWER_PRIORITY
+        if any(g.priority > priority for g in self.goals.values()):
+            return outcomes.LOWER_PRIORITY
         return None
+
+    # -- goals -----------------------------------------------------------------------------
+    def goal_started(self, goal: HeldGoal) -> list[HeldGoal]:
+        """`goal` holds the base now: the other goals it replaces (forgotten; to cancel)."""
+        replaced = self.take_goals(below=goal.priority + 1)
+        self.goals[goal.goal_id] = goal
+        return replaced
+
+    def goal_ended(self, goal_id: str) -> None:
+        self.goals.pop(goal_id, None)
+
+    def take_goals(self, *, owner: str | None = None,
+                   below: float = math.inf) -> list[HeldGoal]:
+        """Forget (and return) the goals of `owner` (or anyone's) of a priority below
+        `below`: they are being cancelled."""
+        taken = [g for g in self.goals.values()
+                 if (owner is None or g.owner == owner) and g.priority < below]
+        for goal in taken:
+            del self.goals[goal.goal_id]
+        return taken
+
+    def driven_by_other_than(self, owner: str) -> bool:
+        """Someone else's stream or goal holds the base."""
+        if self.active is not None and self.active.owner != owner:
+            return True
+        return any(g.owner != owner for g in self.goals.values())
 
     def first_sample(self, target: Velocity) -> Velocity:
         return self.accel.step(self.commanded, target, self.period)
@@ -254,16 +300,26 @@ class VelocityStreams:
         self._finish(reason, by, zero=True)
         return True
 
+    def end_of(self, owner: str, reason: EndReason) -> bool:
+        """End the active stream if it is `owner`'s (True), sending zero at once."""
+        if self.active is None or self.active.owner != owner:
+            return False
+        self._finish(reason, owner, zero=True)
+        return True
+
     def on_latch(self) -> None:
         """The latch's listener: an e-stop ends the stream before anything else happens."""
         if self._latch.latched:
             self.end(EndReason.ESTOPPED)
 
     # -- locks -----------------------------------------------------------------------------
-    def lock(self, name: str, priority: int, by: str) -> None:
+    def lock(self, name: str, priority: int, by: str) -> list[HeldGoal]:
+        """Engage a lock: a lower stream ends at once; the lower goals are returned (and
+        forgotten) for the caller to cancel."""
         self.locks[name] = priority
         if self.active is not None and self.active.priority < priority:
             self._finish(EndReason.PREEMPTED, by, zero=True)
+        return self.take_goals(below=priority)
 
     def unlock(self, name: str) -> bool:
         return self.locks.pop(name, None) is not None

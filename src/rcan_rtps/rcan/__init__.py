@@ -19,6 +19,7 @@ from ._enums import (
 from ._errors import InvalidRuriError, RcanError, SchemaValidationError
 from ._messages import (
     AiInfo,
+    Approval,
     Authorize,
     DecisionBody,
     EnvelopeCommand,
@@ -59,6 +60,7 @@ __all__ = [
     "ActionParams",
     "ActionSpec",
     "AiInfo",
+    "Approval",
     "ArmJointParams",
     "Authorize",
     "DecisionBody",

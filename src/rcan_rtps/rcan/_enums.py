@@ -53,6 +53,8 @@ class Reason(str, enum.Enum):
     PENDING_EXPIRED = "pending_expired"
     SELF_APPROVAL = "self_approval"
     HITL_DENIED = "hitl_denied"
+    HITL_WITHDRAWN = "hitl_withdrawn"  # the issuer (or an approver) took it back
+    ALREADY_APPROVED = "already_approved"  # an approver's second approval counts once
     DISPATCH_ERROR = "dispatch_error"
     AUDIT_UNAVAILABLE = "audit_unavailable"
     NOT_THIS_ROBOT = "not_this_robot"
@@ -62,3 +64,5 @@ class Reason(str, enum.Enum):
     LOWER_PRIORITY = "lower_priority"  # a higher-priority velocity stream is running
     MOTION_LOCKED = "motion_locked"  # a motion lock of a higher priority is engaged
     UNKNOWN_LOCK = "unknown_lock"  # not in bridge.motion.locks
+    # A check was handed parameters it cannot read (another type, a field missing): refused.
+    PARAMS_NOT_UNDERSTOOD = "params_not_understood"

@@ -46,6 +46,16 @@ class EnvelopeCommand(Strict, frozen=True):
     ai: AiInfo | None = None
 
 
+class Approval(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
+    """One human's word on a held command (§9): who, in what role, what they decided, why."""
+
+    principal: str
+    role: RoleName
+    decision: Literal["approve", "deny", "withdraw"]
+    at_ms: int
+    reason: str | None = None
+
+
 class SafetyMessage(Strict, frozen=True):
     """RCAN SAFETY (message_type 6), as the official `rcan` SDK builds it (`rcan.safety`):
     ESTOP and STOP are the e-stop and `stop`; RESUME clears an e-stop (OWNER, like
@@ -74,6 +84,9 @@ class NormalizedCommand(msgspec.Struct, frozen=True, kw_only=True):
     claimed_role: Any = None
     # What was wrong with a stop that was executed anyway (audited, and in its reply).
     warnings: tuple[str, ...] = ()
+    # Who reviewed it while it was held for a human (§9), in order; set by the governor only
+    # (never decoded from a body), and recorded in the audit entries of its resolution.
+    approvals: tuple[Approval, ...] = ()
 
     @property
     def spec(self) -> ActionSpec[Any]:
@@ -121,10 +134,15 @@ class PendingAuth(msgspec.Struct, kw_only=True):
     expires_at_ms: int
     issued_by: str
     message_type: Literal["PENDING_AUTH"] = "PENDING_AUTH"
+    # n-of-m approval (`hitl.gates[].approvals`): how many distinct approvers it needs, and
+    # the approvals it has so far.
+    approvals_required: int = 1
+    approvals: list[Approval] = []
 
 
 class Authorize(Strict, frozen=True):
-    """Body of POST /api/hitl/authorize and /api/hitl/deny."""
+    """Body of POST /api/hitl/authorize, /api/hitl/deny and /api/hitl/withdraw; `reason` is
+    recorded in the audit."""
 
     pending_id: Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
     reason: ShortText | None = None

@@ -3,6 +3,7 @@ ROS translation). Everything that lists actions derives the list from `ACTIONS`.
 
 from typing import TYPE_CHECKING, Literal
 
+from ._invariants import READS, Reads, not_understood, numbers, unreadable
 from ._registry import (
     ACTIONS,
     GoalRoute,
@@ -44,6 +45,7 @@ else:  # Literals of the registry's names: msgspec validates them and JSON Schem
 
 __all__ = [
     "ACTIONS",
+    "READS",
     "ActionName",
     "ActionSpec",
     "ArmJointParams",
@@ -64,6 +66,7 @@ __all__ = [
     "NoRoute",
     "Publish",
     "RampedMove",
+    "Reads",
     "RosRoute",
     "SendGoal",
     "StopParams",
@@ -71,7 +74,10 @@ __all__ = [
     "goal_routes",
     "markdown_table",
     "names",
+    "not_understood",
+    "numbers",
     "specs",
     "stopping_names",
+    "unreadable",
     "with_effect",
 ]

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
+from ._invariants import READS
 from ._spec import ActionSpec, Effect, SendGoal
 
 
@@ -99,11 +100,14 @@ def goal_routes() -> tuple[GoalRoute, ...]:
 
 
 def markdown_table() -> str:
-    """The actions table of docs/actions.md."""
+    """The tables of docs/actions.md: the actions, then what each §8 check reads."""
     rows = ["| action | what it does | default role | human approval | §8 invariants |",
             "|---|---|---|---|---|"]
     for spec in ACTIONS.values():
         facts = spec.describe()
         rows.append(f"| `{spec.name}` | {spec.summary} | {facts['default_role']} | "
                     f"{facts['hitl']} | {', '.join(facts['invariants'])} |")
+    rows += ["", "| §8 check | reads from the parameters (an action declaring it must have them) |",
+             "|---|---|"]
+    rows += [f"| {invariant.value} | {reads.describe()} |" for invariant, reads in READS.items()]
     return "\n".join(rows) + "\n"

@@ -9,6 +9,8 @@ from typing import Any, Generic, Protocol, TypeVar
 
 from .._enums import Role
 from .._types import ActionParams
+from ._invariants import Invariant as Invariant  # action modules import it from here
+from ._invariants import unreadable
 
 P = TypeVar("P", bound=ActionParams)
 
@@ -22,18 +24,6 @@ class Effect(enum.Enum):
     CLEAR_ESTOP = "clear_estop"  # unlatch, once its audit entry is durable
     LOCK = "lock"  # block lower-priority velocity streams (twist_mux-like); no robot I/O
     UNLOCK = "unlock"  # release such a lock
-
-
-class Invariant(enum.Enum):
-    """The §8 checks an action's parameters go through (see governance.invariants)."""
-
-    ESTOP_GUARD = "estop_guard"  # refused while the e-stop is latched
-    FINITE = "finite"  # every number finite (behind the schema's bounds)
-    VELOCITY = "velocity"  # linear/angular limits: clamp, or deny >10 % over
-    WORKSPACE = "workspace"  # goal strictly inside the workspace polygon
-    JOINT_GROUP = "joint_group"  # the arm exists and owns every joint named
-    DURATION = "duration"  # a timed move lasts at most safety.max_move_duration_s
-    ACCELERATION = "acceleration"  # a velocity stream ramps within safety.max_*_accel
 
 
 class MessageKit(Protocol):
@@ -168,6 +158,11 @@ class ActionSpec(Generic[P]):
             # The governor arbitrates goals by `starts_goal`; the bridge tracks them by route.
             raise ValueError(f"action {self.name!r}: a goal is started exactly by a SendGoal "
                              "route")
+        for invariant in self.invariants:  # a check must never meet what it cannot read
+            problem = unreadable(self.params, invariant)
+            if problem:
+                raise ValueError(f"action {self.name!r} declares the {invariant.value} check, "
+                                 f"but {problem}")
 
     @property
     def stopping(self) -> bool:

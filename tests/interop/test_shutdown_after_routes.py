@@ -1,0 +1,235 @@
+"""Issue 23, item 2: SIGTERM and SIGINT stop the robot whatever the API was asked before.
+
+One `rcan-rtps run --sim` per signal (a real process, mDNS on, in the test's network
+namespace) is asked every route of the API — each GET and POST the OpenAPI document lists,
+the audit verification and a WebSocket included — while a USER's `move` streams and its
+`navigate` goal drives; then it gets the signal. An rclpy Jazzy node records what reached
+the robot. An orderly stop is: exit status 0, the signal taken by the bridge's own handler
+(its bounded graceful stop), zero velocity as the last Twist on /robot1/cmd_vel, the goal
+canceled on the action's status topic, the stream ended `bridge_stopped` and BRIDGE_STOPPED
+the last audit entry. After each route the test also reads every thread's signal mask from
+/proc: none may take SIGINT or SIGTERM but the one waiting for them.
+
+Before the fix, the verification's process pool (multiprocessing's resource tracker)
+unblocked both signals in the event loop's thread: SIGTERM then killed the bridge at once
+(exit 143, nothing stopped, no BRIDGE_STOPPED), SIGINT bypassed the bounded stop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import platform
+import re
+import signal
+import uuid
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+from oracle.client import RclpyOracle
+from waiting import eventually
+
+from .run_process import RunProcess, child_env, state_args
+
+EXIT_TIMEOUT = 60.0  # s; generous: the bounded stop gives up after 10 s
+CMD_VEL = "/robot1/cmd_vel"
+GOAL_STATUS = "/robot1/navigate_to_pose/_action/status"
+CANCELING, CANCELED = 3, 5  # action_msgs/msg/GoalStatus
+SPEED = 0.3
+_RT_SIGTIMEDWAIT = {"x86_64": 128, "aarch64": 137}  # syscall numbers
+
+
+def _takes_stop_signals(pid: int) -> list[str]:
+    """Threads of `pid` in which SIGINT or SIGTERM is not blocked, except those waiting for
+    them in sigwait (the kernel unblocks what a thread waits for while it waits)."""
+    bits = (1 << (signal.SIGINT - 1)) | (1 << (signal.SIGTERM - 1))
+    found = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            status = (task / "status").read_text()
+            waiting = (task / "wchan").read_text()
+            syscall = (task / "syscall").read_text().split()[0]
+        except (FileNotFoundError, ProcessLookupError, IndexError):
+            continue  # the thread has just ended
+        blocked = int(re.search(r"^SigBlk:\s*([0-9a-f]+)", status, re.M).group(1), 16)
+        in_sigwait = ("sigtimedwait" in waiting
+                      or syscall == str(_RT_SIGTIMEDWAIT.get(platform.machine())))
+        if blocked & bits != bits and not in_sigwait:
+            found.append(f"{task.name} ({(task / 'comm').read_text().strip()})")
+    return found
+
+
+class Client:
+    """The API of one run, as its demo principals; records each (method, route) visited and
+    the threads that took stop signals after it."""
+
+    def __init__(self, proc: RunProcess, http: aiohttp.ClientSession) -> None:
+        self.proc, self.http = proc, http
+        self.visited: set[tuple[str, str]] = set()
+        self.unblocked: dict[str, list[str]] = {}
+        self.sockets: list[aiohttp.ClientWebSocketResponse] = []  # open until the end
+
+    def _after(self, method: str, route: str) -> None:
+        self.visited.add((method, route))
+        threads = _takes_stop_signals(self.proc.proc.pid)
+        if threads:
+            self.unblocked[f"{method} {route}"] = threads
+
+    async def call(self, method: str, path: str, token: str, body: Any = None, *,
+                   route: str | None = None) -> tuple[int, Any]:
+        async with self.http.request(method, self.proc.url + path, json=body,
+                                     headers={"Authorization": f"Bearer {token}"}) as resp:
+            data = await resp.read()
+            status, ctype = resp.status, resp.content_type
+        self._after(method.lower(), route or path.split("?")[0])
+        return status, (json.loads(data) if ctype == "application/json" else data.decode())
+
+    async def command(self, token: str, body: dict[str, Any]) -> dict[str, Any]:
+        status, reply = await self.call("POST", "/api/command", token, body)
+        assert status in (200, 202), (status, reply)
+        return dict(reply)
+
+    async def websocket(self, token: str) -> aiohttp.ClientWebSocketResponse:
+        ws = await self.http.ws_connect(self.proc.url + "/api/ws",
+                                        headers={"Authorization": f"Bearer {token}"})
+        frame = json.loads((await ws.receive(timeout=30)).data)
+        assert frame["type"] == "status", frame
+        self._after("get", "/api/ws")
+        self.sockets.append(ws)
+        return ws
+
+
+@contextlib.asynccontextmanager
+async def heartbeats(client: Client, token: str) -> AsyncIterator[None]:
+    """The operator's control session held (5 s timeout in the demo) until the signal: the
+    stop that follows must be the shutdown's, not a session loss."""
+    async def beat() -> None:
+        while True:
+            status, _ = await client.call("POST", "/api/heartbeat", token)
+            assert status == 200
+            await asyncio.sleep(1.0)
+
+    task = asyncio.create_task(beat())
+    try:
+        yield
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+async def visit_every_route(client: Client, proc: RunProcess) -> tuple[str, str]:
+    """Every route, with a goal and a velocity stream running at the end; (goal_id, the
+    move's message_id)."""
+    user, owner = proc.user, proc.owner
+    for path in ("/api/status", "/api/openapi.json", "/api/metrics", "/api/goals"):
+        status, _ = await client.call("GET", path, user)
+        assert status == 200, path
+    await client.websocket(owner)  # left open: the shutdown closes it
+    # HiTL: one arm command denied, one approved.
+    arm = {"action": "arm_joint", "params": {"joints": ["elbow"], "positions": [0.2],
+                                             "duration_s": 0.5}}
+    held = [(await client.command(user, arm))["pending_id"] for _ in range(2)]
+    status, pending = await client.call("GET", "/api/hitl/pending", owner)
+    assert sorted(p["pending_id"] for p in pending["pending"]) == sorted(held)
+    status, _ = await client.call("POST", "/api/hitl/deny", owner, {"pending_id": held[0]})
+    assert status == 200
+    status, done = await client.call("POST", "/api/hitl/authorize", owner,
+                                     {"pending_id": held[1]})
+    assert (status, done["outcome"]) == (200, "executed"), done
+    # A goal far away (still driving at the signal), then a velocity held until stopped.
+    goal = await client.command(user, {"action": "navigate",
+                                       "params": {"x": 15.0, "y": 0.0, "yaw": 0.0}})
+    assert goal["outcome"] == "executed", goal
+    goal_id = goal["goal_id"]
+    status, _ = await client.call("GET", f"/api/goals/{goal_id}", user,
+                                  route="/api/goals/{goal_id}")
+    assert status == 200
+    status, page = await client.call("GET", "/api/audit?since=0", owner)
+    assert status == 200 and page["entries"]
+    status, report = await client.call("GET", "/api/audit/verify", owner)
+    assert status == 200 and report["ok"], report
+    move = await client.command(user, {"action": "move", "params": {"linear_x": SPEED}})
+    assert move["outcome"] == "executed", move
+    status, metrics = await client.call("GET", "/api/metrics", owner)  # after a command too
+    assert status == 200 and "rcan" in metrics
+    return goal_id, move["message_id"]
+
+
+def _served_routes(document: dict[str, Any]) -> set[tuple[str, str]]:
+    return {(method, path) for path, ops in document["paths"].items() for method in ops}
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+async def test_a_signal_after_every_route_stops_the_robot(
+        tmp_path: Path, domain_id: int, jazzy_python: Path, sig: signal.Signals) -> None:
+    env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}  # the demo keeps to loopback
+    with RclpyOracle(jazzy_python, "recorder", domain_id=domain_id, env=env) as robot:
+        await robot.acall("subscribe", topic=CMD_VEL, type="geometry_msgs/msg/Twist")
+        await robot.acall("subscribe", topic=GOAL_STATUS,
+                          type="action_msgs/msg/GoalStatusArray")
+        proc = RunProcess(["run", "--sim", "--port", "0", *state_args(tmp_path, "state")],
+                          child_env(domain_id), demo=True)
+        try:
+            assert await robot.acall("wait_matched", topic=CMD_VEL, timeout=30.0) >= 1
+            async with aiohttp.ClientSession() as http:
+                client = Client(proc, http)
+                _, document = await client.call("GET", "/api/openapi.json", proc.user)
+                async with heartbeats(client, proc.user):
+                    goal_id, move_id = await visit_every_route(client, proc)
+                    assert client.visited == _served_routes(document), (
+                        "routes not visited: "
+                        f"{_served_routes(document) - client.visited}")
+                    await eventually(lambda: _driving(client, goal_id), timeout=30,
+                                     what="the goal executing")
+                    await eventually(lambda: _moving(robot), timeout=30,
+                                     what=f"linear.x {SPEED} on {CMD_VEL}")
+                    unblocked = dict(client.unblocked)
+                    proc.signal(sig)
+                rc = proc.wait(EXIT_TIMEOUT)
+            assert rc == 0, f"rc={rc}\n{proc.output()}"
+            # The bridge's own handler took it: the bounded graceful stop, not a default.
+            proc.wait_for(rf"{sig.name}: shutting down", 5, stderr=True)
+            assert not unblocked, f"threads taking SIGINT/SIGTERM after a route: {unblocked}"
+            _assert_stopped_in_order(tmp_path / "state" / "audit.jsonl", move_id)
+            twists = await robot.acall("take", topic=CMD_VEL)
+            assert twists and twists[-1] == _ZERO_TWIST, twists[-5:]
+            # The server accepted the cancel (CANCELING); the sim, stopped right after the
+            # bridge, may or may not have published CANCELED by then.
+            states = _goal_states(await robot.acall("take", topic=GOAL_STATUS), goal_id)
+            assert states[-1:] in ([CANCELING], [CANCELED]), states
+        finally:
+            proc.kill()
+
+
+async def _driving(client: Client, goal_id: str) -> bool:
+    status, goal = await client.call("GET", f"/api/goals/{goal_id}", client.proc.user,
+                                     route="/api/goals/{goal_id}")
+    return status == 200 and goal["state"] == "executing"
+
+
+async def _moving(robot: RclpyOracle) -> bool:
+    return any(m["linear"]["x"] == SPEED for m in await robot.acall("take", topic=CMD_VEL))
+
+
+_ZERO_TWIST = {"linear": {"x": 0.0, "y": 0.0, "z": 0.0},
+               "angular": {"x": 0.0, "y": 0.0, "z": 0.0}}
+
+
+def _goal_states(arrays: list[dict[str, Any]], goal_id: str) -> list[int]:
+    """The statuses of `goal_id` in the order the action server published them."""
+    wanted = list(uuid.UUID(goal_id).bytes)
+    return [s["status"] for array in arrays for s in array["status_list"]
+            if list(s["goal_info"]["goal_id"]["uuid"]) == wanted]
+
+
+def _assert_stopped_in_order(audit: Path, move_id: str) -> None:
+    entries = [json.loads(line) for line in audit.read_text().splitlines()]
+    assert entries[-1]["event"] == "BRIDGE_STOPPED", entries[-3:]
+    ended = [e for e in entries if e["event"] == "STREAM_ENDED"
+             and e["message_id"] == move_id]
+    assert [e["params"]["reason"] for e in ended] == ["bridge_stopped"], ended

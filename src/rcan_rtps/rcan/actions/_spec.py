@@ -154,15 +154,15 @@ class ActionSpec(Generic[P]):
             raise ValueError(f"motion action {self.name!r} must be guarded by the e-stop")
         if self.streamed and not (self.motion and isinstance(self.ros, Publish)):
             raise ValueError(f"streamed action {self.name!r} must be motion that publishes")
-        if self.starts_goal != isinstance(self.ros, SendGoal):
-            # The governor arbitrates goals by `starts_goal`; the bridge tracks them by route.
-            raise ValueError(f"action {self.name!r}: a goal is started exactly by a SendGoal "
-                             "route")
         for invariant in self.invariants:  # a check must never meet what it cannot read
             problem = unreadable(self.params, invariant)
             if problem:
                 raise ValueError(f"action {self.name!r} declares the {invariant.value} check, "
                                  f"but {problem}")
+        if self.starts_goal != isinstance(self.ros, SendGoal):
+            # The governor arbitrates goals by `starts_goal`; the bridge tracks them by route.
+            raise ValueError(f"action {self.name!r}: a goal is started exactly by a SendGoal "
+                             "route")
 
     @property
     def stopping(self) -> bool:

@@ -20,7 +20,7 @@ from rcan_rtps.ros.actions import ActionServer, ServerGoal
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.rostime import duration_msg
 
-from .bridge_rig import AGENT, Rig, bridge_config, close_rig, make_rig
+from .bridge_rig import AGENT, OPS, Rig, bridge_config, close_rig, make_rig
 
 NAV = "nav2_msgs/action/NavigateToPose"
 SUCCEED, ABORT, UNTIL_CANCELLED = 1.0, 2.0, 3.0
@@ -48,9 +48,16 @@ async def _execute(goal: ServerGoal) -> dict[str, Any]:
     raise AssertionError("the goal was never cancelled")
 
 
+MOTION = """\
+motion:
+  role_priorities: {USER: 10, OWNER: 50}
+  locks: [{name: teleop, priority: 50}]
+"""
+
+
 @pytest.fixture
 async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Rig]:
-    config = bridge_config(tmp_path, domain_id)
+    config = bridge_config(tmp_path, domain_id, extra=MOTION)
     with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node:
         server = ActionServer(robot_node, "navigate_to_pose", NAV, _execute)
         rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
@@ -66,8 +73,9 @@ async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterat
 
 
 async def _hold_session(rig: Rig) -> None:
-    while True:  # the agent's control session must outlive the goals
+    while True:  # the control sessions must outlive the goals
         rig.governor.heartbeat(AGENT)
+        rig.governor.heartbeat(OPS)
         await asyncio.sleep(0.2)
 
 
@@ -91,7 +99,12 @@ def _finished(rig: Rig, goal_id: str) -> dict[str, Any] | None:
 
 
 async def test_each_outcome_is_audited_once_and_linked_to_its_command(rig: Rig) -> None:
-    sent = {x: await _navigate(rig, x) for x in (SUCCEED, ABORT, UNTIL_CANCELLED)}
+    # One at a time: a new goal of the same priority would replace the one running.
+    sent = {}
+    for x in (SUCCEED, ABORT, UNTIL_CANCELLED):
+        sent[x] = await _navigate(rig, x)
+        if x != UNTIL_CANCELLED:
+            await eventually(lambda g=sent[x][0]: _finished(rig, g))
     cancel_id, _ = sent[UNTIL_CANCELLED]
     await eventually(lambda: _has_feedback(rig, cancel_id))
     stop = await rig.command(AGENT, {"action": "stop"})
@@ -124,3 +137,43 @@ async def test_status_shows_the_active_goal_and_its_progress(rig: Rig) -> None:
     assert (await rig.command(AGENT, {"action": "stop"})).http_status == 200
     await eventually(lambda: rig.telemetry.status(pending_auth=0).navigation is None,
                      what="no navigation once the goal is cancelled")
+
+
+# -- one arbiter for the base (issue 23 item 3), with the server seeing each cancel ----------
+
+
+async def test_a_new_goal_replaces_the_one_running(rig: Rig) -> None:
+    first, _ = await _navigate(rig, UNTIL_CANCELLED)
+    await eventually(lambda: _has_feedback(rig, first))
+    second, _ = await _navigate(rig, UNTIL_CANCELLED)
+    entry = await eventually(lambda: _finished(rig, first))
+    assert (entry["outcome"], entry["deny_reason"]) == ("canceled", "replaced by agent")
+    assert rig.goals is not None and rig.goals.active() == [second]
+    assert (await rig.command(AGENT, {"action": "stop"})).http_status == 200
+
+
+async def test_a_higher_lock_cancels_a_lower_goal_and_refuses_more(rig: Rig) -> None:
+    """599eb3c: a higher-priority lock left a lower-priority goal driving (5/5)."""
+    goal, _ = await _navigate(rig, UNTIL_CANCELLED)
+    await eventually(lambda: _has_feedback(rig, goal))
+    lock = await rig.command(OPS, {"action": "lock", "params": {"name": "teleop"}})
+    assert lock.http_status == 200, lock
+    entry = await eventually(lambda: _finished(rig, goal))
+    assert (entry["outcome"], entry["deny_reason"]) == ("canceled",
+                                                      "locked out by 'teleop' by ops")
+    again = await rig.command(AGENT, {"action": "navigate",
+                                      "params": {"x": UNTIL_CANCELLED, "y": 0.0, "yaw": 0.0}})
+    assert (again.http_status, again.reason) == (409, "motion_locked")
+
+
+async def test_nothing_lower_drives_beside_a_higher_goal(rig: Rig) -> None:
+    """599eb3c: a lower navigate or move was accepted while a higher goal ran (5/5)."""
+    high = await rig.command(OPS, {"action": "navigate",
+                                   "params": {"x": UNTIL_CANCELLED, "y": 0.0, "yaw": 0.0}})
+    assert high.http_status == 200 and high.goal_id, high
+    for body in ({"action": "navigate", "params": {"x": 1.0, "y": 0.0, "yaw": 0.0}},
+                 {"action": "move", "params": {"linear_x": 0.2}}):
+        low = await rig.command(AGENT, body)
+        assert (low.http_status, low.reason) == (409, "lower_priority"), low
+    assert rig.goals is not None and rig.goals.active() == [high.goal_id]
+    assert (await rig.command(OPS, {"action": "stop"})).http_status == 200

@@ -130,13 +130,15 @@ async def visit_every_route(client: Client, proc: RunProcess) -> tuple[str, str]
         status, _ = await client.call("GET", path, user)
         assert status == 200, path
     await client.websocket(owner)  # left open: the shutdown closes it
-    # HiTL: one arm command denied, one approved.
+    # HiTL: one arm command denied, one withdrawn by its issuer, one approved.
     arm = {"action": "arm_joint", "params": {"joints": ["elbow"], "positions": [0.2],
                                              "duration_s": 0.5}}
-    held = [(await client.command(user, arm))["pending_id"] for _ in range(2)]
+    held = [(await client.command(user, arm))["pending_id"] for _ in range(3)]
     status, pending = await client.call("GET", "/api/hitl/pending", owner)
     assert sorted(p["pending_id"] for p in pending["pending"]) == sorted(held)
     status, _ = await client.call("POST", "/api/hitl/deny", owner, {"pending_id": held[0]})
+    assert status == 200
+    status, _ = await client.call("POST", "/api/hitl/withdraw", user, {"pending_id": held[2]})
     assert status == 200
     status, done = await client.call("POST", "/api/hitl/authorize", owner,
                                      {"pending_id": held[1]})

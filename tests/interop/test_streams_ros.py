@@ -45,22 +45,44 @@ def ended(rig: Rig) -> list[tuple[str, str]]:
             if e["event"] == "STREAM_ENDED"]
 
 
+async def _heartbeats(rig: Rig) -> None:
+    while True:  # a timed move is held: its sender stays heard from (issue 23)
+        rig.governor.heartbeat(AGENT)
+        await asyncio.sleep(0.25)
+
+
 async def test_a_timed_move_streams_at_the_rate_then_zero(rig: Rig) -> None:
     await subscribe(rig, CMD_VEL, TWIST)
     d = await rig.command(AGENT, {"action": "move",
                                   "params": {"linear_x": 0.5, "duration_s": 2.0}})
     assert d.http_status == 200, d
+    beating = asyncio.create_task(_heartbeats(rig))
 
     def complete() -> bool:
         return (d.message_id, "completed") in ended(rig)
 
-    await eventually(complete, timeout=15)
+    try:
+        await eventually(complete, timeout=15)
+    finally:
+        beating.cancel()
     got = xs(await take(rig.oracle, CMD_VEL, until=lambda got: 0.0 in xs(got)))
     moving = got[:got.index(0.0)]
     assert moving and set(moving) == {0.5}  # samples per second: bench/streams.py
     samples = next(e for e in rig.entries() if e["event"] == "STREAM_ENDED")["params"]["samples"]
     assert samples == len(moving)  # what the audit counts is what rclpy received
     assert all(x == 0.0 for x in await after_sentinel_stream(rig))  # and then only zero
+
+
+async def test_a_timed_move_whose_sender_vanished_ends_on_the_wire(rig: Rig) -> None:
+    """599eb3c: 160 nonzero Twists over 7.95 s with nobody there and a 2 s timeout."""
+    await subscribe(rig, CMD_VEL, TWIST)
+    d = await rig.command(AGENT, {"action": "move",
+                                  "params": {"linear_x": 0.5, "duration_s": 20.0}})
+    assert d.http_status == 200, d
+    await eventually(lambda: (d.message_id, "session_lost") in ended(rig), timeout=15)
+    got = xs(await take(rig.oracle, CMD_VEL, until=lambda got: 0.0 in xs(got)))
+    assert set(got[:got.index(0.0)]) == {0.5}
+    assert all(x == 0.0 for x in await after_sentinel_stream(rig))
 
 
 async def test_no_nonzero_sample_after_the_estop_reply(rig: Rig) -> None:

@@ -272,14 +272,15 @@ async def test_dock_docks_the_simulated_robot(demo: Demo, http: aiohttp.ClientSe
         "/robot1/dock_robot", "nav2_msgs/action/DockRobot", "dock")
     at = (await wait_status(http, demo, lambda s: True))["telemetry"]["position"]
     assert abs(at["x"] - (-1.5)) < 0.1 and abs(at["y"]) < 0.1, at  # the sim's dock `home`
-    # on the dock, the battery charges (sensor_msgs/BatteryState POWER_SUPPLY_STATUS_CHARGING)
+    # on the dock, the battery charges (sensor_msgs/BatteryState POWER_SUPPLY_STATUS_CHARGING,
+    # or _FULL: the sim starts full, and a few seconds of driving are soon charged back)
     env = {**os.environ, "ROS_DOMAIN_ID": str(demo.domain_id)}
     echo = await asyncio.to_thread(subprocess.run, [
         sys.executable, "-m", "rcan_rtps", "--localhost", "topic", "echo",
         "/robot1/battery_state", "--once", "--json", "--timeout", "20"],
         capture_output=True, text=True, env=env, timeout=60)
     assert echo.returncode == 0, echo.stderr
-    assert json.loads(echo.stdout)["power_supply_status"] == 1, echo.stdout
+    assert json.loads(echo.stdout)["power_supply_status"] in (1, 4), echo.stdout
     entries = [json.loads(line) for line in demo.audit.read_text().splitlines()]
     finished_entries = [(e["params"]["goal_id"], e["outcome"], e["ros2_topic"])
                         for e in entries if e["event"] == "GOAL_FINISHED"]
@@ -445,7 +446,8 @@ async def test_session_loss_cancels_a_goal_and_says_so(demo: Demo,
     log = demo.errors.read_text()
     assert "WARNING" in log and "control session of 'operator' lost (no command or heartbeat " \
         "for 5 s): halting the robot (safe stop)" in log, log
-    assert f"cancelling navigation goal {body['goal_id']}" in log, log
+    assert f"cancelling NavigateToPose goal {body['goal_id']} on /robot1/navigate_to_pose" \
+        in log, log
 
 
 async def test_a_resolved_approval_is_no_fault(demo: Demo, http: aiohttp.ClientSession) -> None:

@@ -192,7 +192,8 @@ class GoalTracker:
             feedback = self._views[goal_id].feedback or {}
             left = feedback.get("distance_remaining")
             where = f", {left:.2f} m from its target" if isinstance(left, float) else ""
-            log.warning("cancelling %s goal %s%s: %s", self.client.name, goal_id, where, why)
+            log.warning("cancelling %s goal %s on %s%s: %s", self.type_name.rsplit("/", 1)[-1],
+                        goal_id, self.client.name, where, why)
 
     def active(self) -> list[str]:
         return [g for g, v in self._views.items() if v.state not in _TERMINAL]

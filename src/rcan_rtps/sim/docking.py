@@ -28,6 +28,7 @@ DOCK_NOT_IN_DB, FAILED_TO_STAGE, FAILED_TO_DETECT_DOCK, UNKNOWN = 901, 903, 904,
 NAV_TO_STAGING_POSE, INITIAL_PERCEPTION, CONTROLLING, WAIT_FOR_CHARGE = 1, 2, 3, 4
 STAGING_OFFSET_M = 0.5  # nav2's staging_x_offset: where the final approach starts
 DETECTION_RANGE_M = 0.3  # the dock is seen from this close to its staging pose
+CHARGE_WAIT_STEPS = 3  # control steps in WAIT_FOR_CHARGE (the sim's charger starts at once)
 
 
 @dataclass(frozen=True)
@@ -79,7 +80,9 @@ class DockingServer:
         if ended is not None:
             return ended
         self.robot.dock(dock_id)
-        goal.publish_feedback(self._feedback(WAIT_FOR_CHARGE, started))
+        for _ in range(CHARGE_WAIT_STEPS):  # as nav2 does, until the charger is seen to charge
+            goal.publish_feedback(self._feedback(WAIT_FOR_CHARGE, started))
+            await asyncio.sleep(1.0 / CONTROL_HZ)
         return {"success": True}
 
     def _detect(self, goal: ServerGoal, dock: Dock, started: float) -> dict[str, Any] | None:

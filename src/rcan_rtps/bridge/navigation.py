@@ -121,7 +121,7 @@ class GoalTracker:
         feedback_type = self.client.types.feedback.name
         try:
             async for feedback in handle.feedback():
-                self._update(goal_id, _STATES[handle.state],
+                self._update(goal_id, self._in_progress(goal_id, handle),
                              feedback=values.to_plain(feedback_type, feedback))
             outcome = await handle.result(timeout=RESULT_TIMEOUT_S)
         except (WireError, OSError) as exc:
@@ -131,6 +131,13 @@ class GoalTracker:
         if outcome.result is not None:
             result = values.to_plain(self.client.types.result.name, outcome.result)
         self._update(goal_id, _STATES[outcome.state], result=result, detail=outcome.detail or None)
+
+    def _in_progress(self, goal_id: str, handle: ClientGoal) -> GoalState:
+        """The state to show with feedback: a goal's end is shown with its result (and
+        audited with it) once fetched, never by feedback read after its status ended."""
+        state = _STATES[handle.state]
+        view = self._views.get(goal_id)
+        return view.state if state in _TERMINAL and view is not None else state
 
     def _update(self, goal_id: str, state: GoalState, **changes: Any) -> None:
         view = self._views.get(goal_id)

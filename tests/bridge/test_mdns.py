@@ -58,13 +58,14 @@ def test_txt_records_follow_the_profile() -> None:
         "rcan_version": "3.2", "bridge": "ros2",
         "distro": "kilted", "api": "http://10.0.0.5:8765",
         "status_endpoint": "http://10.0.0.5:8765/api/status", "model": "husky",
-        "name": "Husky A200", "caps": "move,arm_joint,navigate,stop,estop,clear_estop,lock,unlock",
+        "name": "Husky A200",
+        "caps": "move,arm_joint,navigate,dock,stop,estop,clear_estop,lock,unlock",
     }
 
 
 def test_role_is_the_lowest_that_may_command() -> None:
     raised = _config("rbac: {action_roles: {move: LEASEE, arm_joint: OWNER, navigate: LEASEE,"
-                     " stop: LEASEE}}")
+                     " dock: LEASEE, stop: LEASEE}}")
     assert txt_records(raised, api_url="http://h:1")["role"] == "LEASEE"
 
 

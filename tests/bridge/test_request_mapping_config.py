@@ -41,3 +41,12 @@ def test_a_bad_mapping_is_named_with_its_line() -> None:
     with pytest.raises(ConfigError) as err:
         config("    request_mapping: zenoh")
     assert "request_mapping" in str(err.value) and "line 5" in str(err.value)
+
+
+def test_each_goal_route_takes_its_own_servers_override() -> None:
+    from rcan_rtps.bridge.goals import route_mapping
+
+    ros2 = config("    request_mapping: fastdds\n"
+                  "    request_mappings: {dock_robot: cyclone}").bridge.ros2  # type: ignore[attr-defined]
+    assert route_mapping(ros2, "dock_action") is RequestMapping.CYCLONE
+    assert route_mapping(ros2, "nav_action") is RequestMapping.FASTDDS

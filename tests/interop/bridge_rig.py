@@ -11,7 +11,7 @@ from typing import Any
 from oracle.client import OracleEnv, RclpyOracle
 
 from rcan_rtps.bridge.commands import RosDispatcher
-from rcan_rtps.bridge.navigation import GoalTracker
+from rcan_rtps.bridge.goals import GoalRoutes
 from rcan_rtps.bridge.notify import DiagnosticsNotifier
 from rcan_rtps.bridge.runtime import audit_goal_outcomes
 from rcan_rtps.bridge.telemetry import TelemetryState
@@ -64,7 +64,7 @@ class Rig:
     dispatcher: RosDispatcher
     oracle: RclpyOracle
     audit_path: Path
-    goals: GoalTracker | None = None
+    goals: GoalRoutes | None = None
     notifier: DiagnosticsNotifier | None = None
 
     async def command(self, principal: Principal, body: dict[str, Any]) -> Decision:
@@ -80,7 +80,7 @@ async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id
     ros2 = config.bridge.ros2
     node = RosNode(ros2.node_name, ros2.namespace, domain_id=domain_id, distro=ros2.distro)
     audit = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path)
-    goals = GoalTracker(node, ros2.nav_action) if navigation else None
+    goals = GoalRoutes(node, ros2) if navigation else None
     dispatcher = RosDispatcher(node, ros2, goals, telemetry_age=lambda: telemetry.age_s())
     notifier = DiagnosticsNotifier(node, ros2.diagnostics_topic)
     governor = Governor.from_config(config, audit=audit, dispatcher=dispatcher,

@@ -250,6 +250,43 @@ async def test_navigation_progress_and_outcome_over_http_and_websocket(
     assert finished[0]["message_id"] == body["message_id"]
 
 
+async def test_dock_docks_the_simulated_robot(demo: Demo, http: aiohttp.ClientSession) -> None:
+    """Issue 23 item 4: `dock` is a nav2 DockRobot goal to the sim's own docking server: the
+    robot drives onto its dock `home` and charges there."""
+    await wait_status(http, demo, lambda s: s["ros"]["connected"] and
+                      s["telemetry"]["position"] is not None)
+    code, body = await call(http, demo, demo.user, "POST", "/api/command",
+                            {"action": "dock", "params": {"dock_id": "home"}})
+    assert code == 200 and body["outcome"] == "executed", body
+    assert body["ros2_topic"] == "/robot1/dock_robot"
+    goal_id = body["goal_id"]
+
+    async def finished() -> dict[str, Any] | None:
+        await call(http, demo, demo.user, "POST", "/api/heartbeat")  # the session holds
+        _, goal = await call(http, demo, demo.user, "GET", f"/api/goals/{goal_id}")
+        return goal if goal["state"] in ("succeeded", "aborted", "canceled", "lost") else None
+
+    goal = await eventually(finished, timeout=60, interval=0.5, what=f"goal {goal_id} finished")
+    assert goal["state"] == "succeeded" and goal["result"]["success"], goal
+    assert (goal["action"], goal["action_type"], goal["command"]) == (
+        "/robot1/dock_robot", "nav2_msgs/action/DockRobot", "dock")
+    at = (await wait_status(http, demo, lambda s: True))["telemetry"]["position"]
+    assert abs(at["x"] - (-1.5)) < 0.1 and abs(at["y"]) < 0.1, at  # the sim's dock `home`
+    # on the dock, the battery charges (sensor_msgs/BatteryState POWER_SUPPLY_STATUS_CHARGING,
+    # or _FULL: the sim starts full, and a few seconds of driving are soon charged back)
+    env = {**os.environ, "ROS_DOMAIN_ID": str(demo.domain_id)}
+    echo = await asyncio.to_thread(subprocess.run, [
+        sys.executable, "-m", "rcan_rtps", "--localhost", "topic", "echo",
+        "/robot1/battery_state", "--once", "--json", "--timeout", "20"],
+        capture_output=True, text=True, env=env, timeout=60)
+    assert echo.returncode == 0, echo.stderr
+    assert json.loads(echo.stdout)["power_supply_status"] in (1, 4), echo.stdout
+    entries = [json.loads(line) for line in demo.audit.read_text().splitlines()]
+    finished_entries = [(e["params"]["goal_id"], e["outcome"], e["ros2_topic"])
+                        for e in entries if e["event"] == "GOAL_FINISHED"]
+    assert finished_entries == [(goal_id, "succeeded", "/robot1/dock_robot")]
+
+
 async def test_rclpy_on_localhost_sees_the_demo_robot(demo: Demo, jazzy_python: Path) -> None:
     """The demo speaks loopback-only discovery; rclpy in LOCALHOST mode finds it."""
     from oracle.client import RclpyOracle
@@ -409,7 +446,8 @@ async def test_session_loss_cancels_a_goal_and_says_so(demo: Demo,
     log = demo.errors.read_text()
     assert "WARNING" in log and "control session of 'operator' lost (no command or heartbeat " \
         "for 5 s): halting the robot (safe stop)" in log, log
-    assert f"cancelling navigation goal {body['goal_id']}" in log, log
+    assert f"cancelling NavigateToPose goal {body['goal_id']} on /robot1/navigate_to_pose" \
+        in log, log
 
 
 async def test_a_resolved_approval_is_no_fault(demo: Demo, http: aiohttp.ClientSession) -> None:

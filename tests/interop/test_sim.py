@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import subprocess
 import sys
@@ -14,8 +15,19 @@ import pytest
 from oracle.client import RclpyOracle
 from waiting import eventually, eventually_sync, take
 
+from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.participant import RosNode
-from rcan_rtps.sim.robot import ARM_JOINTS, SimRobot
+from rcan_rtps.sim.docking import ACTION_TYPE as DOCK_ROBOT
+from rcan_rtps.sim.docking import (
+    CONTROLLING,
+    DOCK_NOT_IN_DB,
+    DOCKS,
+    FAILED_TO_DETECT_DOCK,
+    NAV_TO_STAGING_POSE,
+    WAIT_FOR_CHARGE,
+    DockingServer,
+)
+from rcan_rtps.sim.robot import ARM_JOINTS, CHARGING, DISCHARGING, SimRobot
 
 
 @pytest.fixture
@@ -130,7 +142,81 @@ def test_sim_command_is_a_node_rclpy_sees(jazzy_python: Path, domain_id: int) ->
                 assert topics.get(topic) == [type_name], topics
             eventually_sync(lambda: oracle.call("take", topic="/bot/odom"),
                             what="odometry from the sim")
+            # its goal servers: nav2 NavigateToPose and DockRobot, as rclpy lists them
+            def action_servers() -> dict[str, list[str]] | None:
+                info = oracle.call("node_info", name="sim_robot", namespace="/bot")
+                found = {n: t for n, t in info["Action Servers"]}
+                return found if len(found) >= 2 else None
+
+            servers = eventually_sync(action_servers, what="the sim's two action servers")
+            assert servers == {"/bot/navigate_to_pose": ["nav2_msgs/action/NavigateToPose"],
+                               "/bot/dock_robot": ["nav2_msgs/action/DockRobot"]}, servers
     finally:
         proc.terminate()
         proc.wait(timeout=10)
     assert proc.returncode == 0
+
+
+# -- docking (issue 23, item 4): the sim serves nav2 DockRobot ------------------------------
+
+@pytest.fixture
+async def dock_client(sim: SimRobot, domain_id: int) -> AsyncIterator[ActionClient]:
+    server = DockingServer(sim)
+    with RosNode("dock_client", "/robot1", domain_id=domain_id) as node:
+        client = ActionClient(node, "dock_robot", DOCK_ROBOT)
+        try:
+            yield client
+        finally:
+            client.close()
+            await server.close()
+
+
+async def _dock(client: ActionClient, goal: dict[str, Any]) -> tuple[Any, list[int]]:
+    handle = await client.send_goal(goal, timeout=15)
+    assert handle.accepted
+    states = [int(f.state) async for f in handle.feedback(timeout=60)]
+    return await handle.result(timeout=30), states
+
+
+async def test_docking_drives_onto_the_dock_and_charges(sim: SimRobot,
+                                                        dock_client: ActionClient) -> None:
+    home = DOCKS["home"]
+    outcome, states = await _dock(dock_client, {"dock_id": "home"})
+    assert outcome.state is GoalState.SUCCEEDED and outcome.result.success, outcome
+    # staging first, then the approach, then waiting for the charge
+    assert states[0] == NAV_TO_STAGING_POSE, states
+    assert states.index(NAV_TO_STAGING_POSE) < states.index(CONTROLLING) < states.index(
+        WAIT_FOR_CHARGE), states
+    s = sim.state
+    assert abs(s.x - home.x) < 0.1 and abs(s.y - home.y) < 0.1
+    assert abs(math.atan2(math.sin(s.yaw - home.yaw), math.cos(s.yaw - home.yaw))) < 0.1
+    assert s.docked_at == "home"
+    sim.state.energy_wh = 40.0
+    sim.step(10.0)
+    assert sim.state.energy_wh > 40.0  # charging, idle load and all
+    battery = await _battery(sim)
+    assert battery["power_supply_status"] == CHARGING
+    sim.drive(0.3, 0.0)  # driving off the dock ends the charge
+    sim.step(0.1)
+    assert sim.state.docked_at is None
+    assert (await _battery(sim))["power_supply_status"] == DISCHARGING
+
+
+async def _battery(sim: SimRobot) -> dict[str, Any]:
+    """The battery_state the sim publishes now, as a reader on the wire gets it."""
+    with RosNode("battery_reader", "/robot1", domain_id=sim.node.domain_id) as node:
+        reader = node.create_subscription("battery_state", "sensor_msgs/msg/BatteryState")
+        msg = await reader.get(timeout=15)  # published at 1 Hz, after this reader was made
+        return {"power_supply_status": int(msg.power_supply_status)}
+
+
+async def test_docking_failures_carry_nav2_error_codes(sim: SimRobot,
+                                                       dock_client: ActionClient) -> None:
+    outcome, _ = await _dock(dock_client, {"dock_id": "garage"})
+    assert outcome.state is GoalState.ABORTED
+    assert (outcome.result.success, outcome.result.error_code) == (False, DOCK_NOT_IN_DB)
+    # Without staging the robot must already see the dock: from the origin it does not.
+    outcome, _ = await _dock(dock_client, {"dock_id": "home", "navigate_to_staging_pose": False})
+    assert outcome.state is GoalState.ABORTED
+    assert outcome.result.error_code == FAILED_TO_DETECT_DOCK
+    assert sim.state.docked_at is None and abs(sim.state.x) < 1e-6

@@ -16,7 +16,7 @@ no secret, but one rule without exceptions is easier to get right):
     POST /api/command            COMMAND → decision (profile outcome table)
     GET  /api/status             STATUS (GUEST+)
     POST /api/heartbeat          keeps a control session alive (§10.8)
-    GET  /api/goals[/{goal_id}]  navigation goals (GUEST+), 404 when unknown
+    GET  /api/goals[/{goal_id}]  goals of every goal action (GUEST+), 404 when unknown
     GET  /api/hitl/pending       pending commands (the lowest role that can approve one)
     POST /api/hitl/authorize     {"pending_id", "reason"?} → decision; the governor checks the
                                  approver; 202 while more approvals are needed (n-of-m)

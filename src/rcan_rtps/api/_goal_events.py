@@ -1,4 +1,4 @@
-"""Goal events for the WebSocket: every change of a navigation goal (feedback, state, end).
+"""Goal events for the WebSocket: every change of a goal (feedback, state, end).
 
 A subscriber that falls behind keeps only the newest view of each goal, so memory stays
 bounded by the goals the bridge tracks and the last thing sent about a goal is its latest

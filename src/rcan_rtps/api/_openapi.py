@@ -84,10 +84,10 @@ PATHS: dict[str, dict[str, Any]] = {
                                {"200": _json("Status", "STATUS"), **_errors()})},
     "/api/heartbeat": {"post": _op("postHeartbeat", "Keep a control session alive",
                                    {"200": _json("HeartbeatAck", "heard"), **_errors()})},
-    "/api/goals": {"get": _op("getGoals", "Navigation goals the bridge tracks (GUEST+)",
+    "/api/goals": {"get": _op("getGoals", "Goals the bridge tracks, of every goal action (GUEST+)",
                               {"200": _json("GoalList", "goals"), **_errors()})},
     "/api/goals/{goal_id}": {"get": _op(
-        "getGoal", "One navigation goal (GUEST+)",
+        "getGoal", "One goal: navigation, docking, ... (GUEST+)",
         {"200": _json("GoalView", "the goal"), **_errors(404)},
         parameters=[{"name": "goal_id", "in": "path", "required": True,
                      "schema": {"type": "string"}}])},

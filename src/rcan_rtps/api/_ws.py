@@ -1,7 +1,7 @@
 """GET /api/ws: STATUS pushed at `telemetry_rate_hz`, commands in, outcomes out.
 
 Frames from the bridge are `{"type": "status", "body": STATUS}`, `{"type": "outcome",
-"http_status": N, "body": <the REST body>}` and, at each change of a navigation goal (feedback,
+"http_status": N, "body": <the REST body>}` and, at each change of a goal (feedback,
 state, its end), `{"type": "goal", "body": <GET /api/goals/{id}>}`. Client frames are COMMAND
 bodies (text, or binary UTF-8 JSON). Each is validated as it arrives; a valid `stop` or `estop`
 is decided at once, concurrently with the socket's queue (never refused with 429, never behind

@@ -18,10 +18,12 @@ GoalState = Literal["accepted", "executing", "canceling", "succeeded", "canceled
 
 
 class GoalView(msgspec.Struct, kw_only=True):
-    """GET /api/goals/{goal_id}: a navigation goal as the bridge tracks it."""
+    """GET /api/goals/{goal_id}: a goal (navigation, docking, ...) as the bridge tracks it."""
 
     goal_id: str
-    action: str
+    action: str  # the ROS action server it was sent to, e.g. /robot1/dock_robot
+    action_type: str | None = None  # its ROS type, e.g. nav2_msgs/action/DockRobot
+    command: str | None = None  # the RCAN action whose command sent it, e.g. dock
     state: GoalState
     feedback: dict[str, Any] | None = None
     result: dict[str, Any] | None = None

@@ -39,26 +39,26 @@ log = logging.getLogger(__name__)
 ESTOP_QOS = qos.DEFAULT.with_(depth=1, durability=qos.Durability.TRANSIENT_LOCAL)
 
 
-class Navigator(Protocol):
-    """Navigation goals (NavigateToPose); implemented over the ROS action client."""
+class GoalServers(Protocol):
+    """The goal action servers, one per goal route (`bridge.goals.GoalRoutes`)."""
 
-    async def send(self, goal: dict[str, Any], timeout: float, *,
-                   message_id: str | None = None) -> str:
-        """Sends a goal (for the command `message_id`); returns its id once accepted.
+    def action_name(self, action_key: str) -> str | None:
+        """The action server a route's config key names, if the route is known."""
+        ...
 
-        Raises on rejection/unavailability."""
+    async def send(self, action_key: str, goal: dict[str, Any], timeout: float, *,
+                   message_id: str | None = None, command: str | None = None) -> str:
+        """Sends a goal to its route's server (for the command `message_id` of action
+        `command`); returns its id once accepted. Raises on rejection/unavailability."""
         ...
 
     async def cancel_all(self) -> int:
-        """Cancels every active goal; returns how many were active."""
+        """Cancels every active goal on every server; returns how many were active."""
         ...
 
     async def cancel(self, goal_id: str) -> bool:
-        """Cancels one goal this bridge sent; True if the server is canceling it."""
+        """Cancels one goal this bridge sent, on its own server; True if it is canceling."""
         ...
-
-    @property
-    def action_name(self) -> str: ...
 
 
 class _Kit:
@@ -94,11 +94,11 @@ class _Route:
 class RosDispatcher:
     """Carries out each action as its registry entry declares (`ActionSpec.ros`)."""
 
-    def __init__(self, node: RosNode, ros2: Ros2Config, navigator: Navigator | None = None,
+    def __init__(self, node: RosNode, ros2: Ros2Config, goals: GoalServers | None = None,
                  *, telemetry_age: Callable[[], float | None] = lambda: None) -> None:
         self.node = node
         self.ros2 = ros2
-        self.navigator = navigator
+        self.goals = goals  # None: no goal action is available (every goal is refused)
         self.on_command: Callable[[], None] = lambda: None  # e.g. leave `safe_stop` state
         self._telemetry_age = telemetry_age  # seconds since the robot last published, if ever
         self._ever_matched: set[str] = set()
@@ -172,7 +172,7 @@ class RosDispatcher:
         if isinstance(command.spec.ros, NoRoute):
             return None
         if isinstance(command.spec.ros, SendGoal):
-            return self.navigator.action_name if self.navigator is not None else None
+            return self._goal_server(command.spec.ros)
         try:
             return self._route_of(command.spec, command.params).publisher.topic
         except LookupError:
@@ -187,7 +187,8 @@ class RosDispatcher:
             if silent is not None:
                 return silent
         if isinstance(spec.ros, SendGoal):
-            return None if self.navigator is not None else "navigation is not available"
+            server = self._goal_server(spec.ros)
+            return None if server is not None else f"{spec.ros.type_name} is not available"
         try:
             pub = self._route_of(spec, command.params).publisher
         except LookupError as exc:
@@ -203,7 +204,7 @@ class RosDispatcher:
         if isinstance(ros, NoRoute):
             return DispatchResult(ok=True)
         if isinstance(ros, SendGoal):
-            return await self._send_goal(ros, applied, command.message_id)
+            return await self._send_goal(ros, applied, command)
         if isinstance(ros, Halt):
             return await self._stop()
         if isinstance(ros, EstopSignal) and ros.engaged:
@@ -217,10 +218,10 @@ class RosDispatcher:
         return self._publish(route, applied)
 
     async def cancel_goal(self, goal_id: str) -> bool:
-        """Cancel one goal the bridge sent (the arbiter preempting it)."""
-        if self.navigator is None:
+        """Cancel one goal the bridge sent, on its own server (the arbiter preempting it)."""
+        if self.goals is None:
             return False
-        return await self.navigator.cancel(goal_id)
+        return await self.goals.cancel(goal_id)
 
     def send_velocity(self, velocity: MoveParams) -> str | None:
         """One sample of a velocity stream, now; why not, if the robot is gone."""
@@ -270,19 +271,24 @@ class RosDispatcher:
             return DispatchResult(ok=False, ros2_topic=pub.topic, detail=why)
         return self._publish(route, params)
 
+    def _goal_server(self, ros: SendGoal[Any]) -> str | None:
+        return self.goals.action_name(ros.action_key) if self.goals is not None else None
+
     async def _send_goal(self, ros: SendGoal[Any], params: ActionParams,
-                         message_id: str) -> DispatchResult:
-        if self.navigator is None:
-            return DispatchResult(ok=False, detail="navigation is not available")
+                         command: NormalizedCommand) -> DispatchResult:
+        server = self._goal_server(ros)
+        if self.goals is None or server is None:
+            return DispatchResult(ok=False, detail=f"{ros.type_name} is not available")
         goal = ros.build(params, self._goal_kit(ros.type_name))
-        try:
-            goal_id = await self.navigator.send(goal, timeout=self.ros2.match_timeout_s,
-                                                message_id=message_id)
+        try:  # to the route's own server: each goal action has its own
+            goal_id = await self.goals.send(ros.action_key, goal,
+                                            timeout=self.ros2.match_timeout_s,
+                                            message_id=command.message_id,
+                                            command=command.spec.name)
         except Exception as exc:  # rejected, no server, timeout: all mean "not executing"
             log.warning("%s goal not accepted: %s", ros.type_name, exc)
-            return DispatchResult(ok=False, ros2_topic=self.navigator.action_name,
-                                  detail=str(exc))
-        return DispatchResult(ok=True, ros2_topic=self.navigator.action_name, goal_id=goal_id)
+            return DispatchResult(ok=False, ros2_topic=server, detail=str(exc))
+        return DispatchResult(ok=True, ros2_topic=server, goal_id=goal_id)
 
     def _goal_kit(self, type_name: str) -> _Kit:
         kit = self._goal_kits.get(type_name)
@@ -299,11 +305,11 @@ class RosDispatcher:
         if reached and not matched_before:
             self.cmd_vel.publish(zero)  # the first preceded the match
         cancelled = 0
-        if self.navigator is not None:
+        if self.goals is not None:
             try:
-                cancelled = await self.navigator.cancel_all()
+                cancelled = await self.goals.cancel_all()  # on every goal server
             except Exception:
-                log.exception("cancelling navigation goals failed")
+                log.exception("cancelling goals failed")
         return reached, cancelled
 
     async def _stop(self) -> DispatchResult:

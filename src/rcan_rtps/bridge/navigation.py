@@ -1,4 +1,5 @@
-"""`navigate` goals over nav2 NavigateToPose, tracked for GET /api/goals/{goal_id}.
+"""Goals on one action server (nav2 NavigateToPose, DockRobot, ...), tracked for
+GET /api/goals/{goal_id}; `bridge.goals` holds one tracker per goal route.
 
 Each accepted goal gets a watcher task that records feedback (as plain values) and the
 final result, so the API reads goal progress without touching DDS. Listeners hear of every
@@ -70,12 +71,12 @@ def navigation_summary(view: GoalView) -> Navigation:
 
 
 class GoalTracker:
-    """The bridge's `Navigator`: sends NavigateToPose goals and follows them."""
+    """Sends goals to one action server (of one type) and follows them."""
 
-    def __init__(self, node: RosNode, action: str, *, keep: int = 200,
-                 mapping: RequestMapping = RequestMapping.AUTO) -> None:
+    def __init__(self, node: RosNode, action: str, type_name: str = NAVIGATE_TO_POSE, *,
+                 keep: int = 200, mapping: RequestMapping = RequestMapping.AUTO) -> None:
         self.node = node
-        self.client = ActionClient(node, action, NAVIGATE_TO_POSE, mapping=mapping)
+        self.client = ActionClient(node, action, type_name, mapping=mapping)
         self._views: dict[str, GoalView] = {}
         self._watchers: set[asyncio.Task[None]] = set()
         self._keep = keep
@@ -89,14 +90,21 @@ class GoalTracker:
     def action_name(self) -> str:
         return self.client.name
 
+    @property
+    def type_name(self) -> str:
+        return self.client.type_name
+
     async def send(self, goal: dict[str, Any], timeout: float, *,
-                   message_id: str | None = None) -> str:
+                   message_id: str | None = None, command: str | None = None) -> str:
+        """Sends a goal (for the command `message_id` of action `command`); its id once
+        accepted. Raises on rejection, or when no server answers within `timeout`."""
         handle = await self.client.send_goal(goal, timeout=timeout)
         if not handle.accepted:
             raise ActionError(f"{self.client.name} rejected the goal")
         goal_id = str(uuid.UUID(bytes=handle.goal_id))
         now = _ms()
         self._views[goal_id] = GoalView(goal_id=goal_id, action=self.client.name,
+                                        action_type=self.client.type_name, command=command,
                                         state="accepted", created_ms=now, updated_ms=now)
         self._message_ids[goal_id] = message_id
         self._handles[goal_id] = handle
@@ -113,7 +121,7 @@ class GoalTracker:
         feedback_type = self.client.types.feedback.name
         try:
             async for feedback in handle.feedback():
-                self._update(goal_id, _STATES[handle.state],
+                self._update(goal_id, self._in_progress(goal_id, handle),
                              feedback=values.to_plain(feedback_type, feedback))
             outcome = await handle.result(timeout=RESULT_TIMEOUT_S)
         except (WireError, OSError) as exc:
@@ -123,6 +131,13 @@ class GoalTracker:
         if outcome.result is not None:
             result = values.to_plain(self.client.types.result.name, outcome.result)
         self._update(goal_id, _STATES[outcome.state], result=result, detail=outcome.detail or None)
+
+    def _in_progress(self, goal_id: str, handle: ClientGoal) -> GoalState:
+        """The state to show with feedback: a goal's end is shown with its result (and
+        audited with it) once fetched, never by feedback read after its status ended."""
+        state = _STATES[handle.state]
+        view = self._views.get(goal_id)
+        return view.state if state in _TERMINAL and view is not None else state
 
     def _update(self, goal_id: str, state: GoalState, **changes: Any) -> None:
         view = self._views.get(goal_id)
@@ -184,7 +199,8 @@ class GoalTracker:
             feedback = self._views[goal_id].feedback or {}
             left = feedback.get("distance_remaining")
             where = f", {left:.2f} m from its target" if isinstance(left, float) else ""
-            log.warning("cancelling navigation goal %s%s: %s", goal_id, where, why)
+            log.warning("cancelling %s goal %s on %s%s: %s", self.type_name.rsplit("/", 1)[-1],
+                        goal_id, self.client.name, where, why)
 
     def active(self) -> list[str]:
         return [g for g, v in self._views.items() if v.state not in _TERMINAL]

@@ -3,11 +3,11 @@
     prepare: credentials, TLS, audit key and the API port are checked (the port bound) before
            anything touches the robot: a start that fails here leaves no trace on the graph
            and writes no audit entry
-    start: ROS node → audit log → navigation client → dispatcher → governor → telemetry
+    start: ROS node → audit log → goal action clients → dispatcher → governor → telemetry
            → governor started (BRIDGE_STARTED) → HTTP API → mDNS advert
     stop:  mDNS withdrawn → API closed (no new commands) → velocity streams ended → robot
            halted (zero velocity, goals cancelled) → telemetry → governor (BRIDGE_STOPPED)
-           → navigation client → audit closed → ROS node left → API port released
+           → goal action clients → audit closed → ROS node left → API port released
 
 Each resource's cleanup goes on an `AsyncExitStack` as soon as the resource exists, so stop
 runs exactly the list above, and a start that fails at any step unwinds what it had acquired
@@ -51,7 +51,7 @@ from ..ros.participant import RosNode
 from ..ros.services import RequestMapping
 from .commands import RosDispatcher
 from .errors import BridgeStateError
-from .navigation import GoalTracker
+from .goals import GoalRoutes, route_mapping
 from .notify import DiagnosticsNotifier, FanOutNotifier
 from .telemetry import TelemetryState
 
@@ -63,22 +63,21 @@ log = logging.getLogger(__name__)
 
 def nav_mapping(config: RcanConfig) -> RequestMapping:
     """The configured request-reply mapping of the navigation action (name override first)."""
-    ros2 = config.bridge.ros2
-    chosen = ros2.request_mappings.get(ros2.nav_action, ros2.request_mapping)
-    return RequestMapping(chosen)
+    return route_mapping(config.bridge.ros2, "nav_action")
 
 
-def audit_goal_outcomes(goals: GoalTracker, governor: Governor) -> None:
-    """Each goal's end (succeeded, aborted, canceled, …) becomes a GOAL_FINISHED entry."""
+def audit_goal_outcomes(goals: GoalRoutes, governor: Governor) -> None:
+    """Each goal's end (succeeded, aborted, canceled, …), on any goal server, becomes a
+    GOAL_FINISHED entry."""
     goals.finished_listeners.append(lambda end: governor.goal_finished(
         end.view.goal_id, end.view.state, server=end.view.action,
         message_id=end.message_id, detail=end.view.detail))
 
 
 class BridgeView:
-    """The `RobotView` the API reads: telemetry plus navigation goals."""
+    """The `RobotView` the API reads: telemetry plus every goal action's goals."""
 
-    def __init__(self, telemetry: TelemetryState, goals: GoalTracker) -> None:
+    def __init__(self, telemetry: TelemetryState, goals: GoalRoutes) -> None:
         self.telemetry = telemetry
         self.goals_ = goals
 
@@ -138,7 +137,7 @@ class Bridge:
         # What the API and tests look at; the lifecycle itself only needs the stack.
         self.node: RosNode | None = None
         self.audit: AuditLog | None = None
-        self.goals: GoalTracker | None = None
+        self.goals: GoalRoutes | None = None
         self.dispatcher: RosDispatcher | None = None
         self.governor: Governor | None = None
         self._diagnostics: DiagnosticsNotifier | None = None
@@ -271,14 +270,14 @@ class Bridge:
         self._on_stop("closing the audit log", self.audit.close)
         return self.audit
 
-    def _robot_side(self, node: RosNode) -> tuple[GoalTracker, RosDispatcher]:
+    def _robot_side(self, node: RosNode) -> tuple[GoalRoutes, RosDispatcher]:
         ros2 = self.config.bridge.ros2
-        goals = self.goals = GoalTracker(node, ros2.nav_action, mapping=nav_mapping(self.config))
-        self._on_stop("navigation client", goals.close)
+        goals = self.goals = GoalRoutes(node, ros2)  # an action client per goal route
+        self._on_stop("goal action clients", goals.close)
         self.dispatcher = RosDispatcher(node, ros2, goals, telemetry_age=self._telemetry_age)
         return goals, self.dispatcher
 
-    def _governance(self, node: RosNode, audit: AuditLog, goals: GoalTracker,
+    def _governance(self, node: RosNode, audit: AuditLog, goals: GoalRoutes,
                     dispatcher: RosDispatcher) -> tuple[Governor, TelemetryState]:
         governor = self.governor = Governor.from_config(
             self.config, audit=audit, dispatcher=dispatcher, notifier=self._notifier(node))
@@ -320,7 +319,7 @@ class Bridge:
         return FanOutNotifier(notifiers)
 
     async def _serve(self, governor: Governor, telemetry: TelemetryState,
-                     goals: GoalTracker) -> None:
+                     goals: GoalRoutes) -> None:
         api, opts = self.config.bridge.api, self.options
         app = build_app(governor=governor, authenticator=self._authenticator,
                         robot=BridgeView(telemetry, goals), config=self.config,

@@ -7,7 +7,7 @@ derives the state machine from them:
     fault      any DiagnosticStatus is ERROR
     offline    no telemetry for `telemetry_stale_s` (or none yet)
     safe_stop  a control session was lost, until the next command
-    executing  a navigation goal is active
+    executing  a goal (navigation, docking) is active
     moving     odometry reports motion
     idle       otherwise
 """

@@ -242,8 +242,9 @@ async def _start_unless_stopped(bridge: Bridge, stop: asyncio.Event,
 
 def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: bool | None,
                stop: asyncio.Event) -> None:
-    """The simulated robot and its navigation server, on a node of their own."""
+    """The simulated robot and its navigation and docking servers, on a node of their own."""
     from ..ros.participant import RosNode  # --sim only: a bridge run leaves these unimported
+    from ..sim.docking import DockingServer
     from ..sim.navigation import NavigationServer
     from ..sim.robot import SimRobot
 
@@ -253,11 +254,13 @@ def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: 
     parts.callback(sim_node.close)
     robot = SimRobot(sim_node, cmd_vel_type=ros2.cmd_vel_type)
     nav = NavigationServer(robot, ros2.nav_action)
+    docking = DockingServer(robot, ros2.dock_action)
     sim_task = asyncio.create_task(robot.run(stop))
 
     async def stop_sim() -> None:
         stop.set()
         await nav.close()
+        await docking.close()
         await sim_task
 
     parts.push_async_callback(stop_sim)

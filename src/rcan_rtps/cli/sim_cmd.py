@@ -7,6 +7,8 @@ import asyncio
 import signal
 
 from ..ros.participant import RosNode
+from ..sim.docking import DockingServer
+from ..sim.navigation import NavigationServer
 from ..sim.robot import SimParams, SimRobot
 from ._common import make_store
 
@@ -22,6 +24,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--rate", type=float, default=50.0, help="odometry rate (Hz)")
     parser.add_argument("--cmd-timeout", type=float, default=0.5,
                         help="stop when no cmd_vel arrived for this long (s)")
+    parser.add_argument("--nav-action", default="navigate_to_pose",
+                        help="its nav2 NavigateToPose server (default navigate_to_pose)")
+    parser.add_argument("--dock-action", default="dock_robot",
+                        help="its nav2 DockRobot server, dock id `home` (default dock_robot)")
     parser.set_defaults(func=lambda a: asyncio.run(_run(a)))
 
 
@@ -34,6 +40,12 @@ async def _run(args: argparse.Namespace) -> int:
                  localhost=args.localhost, store=make_store(args)) as node:
         robot = SimRobot(node, cmd_vel_type=args.cmd_vel_type,
                          params=SimParams(rate_hz=args.rate, cmd_timeout_s=args.cmd_timeout))
+        nav = NavigationServer(robot, args.nav_action)
+        docking = DockingServer(robot, args.dock_action)
         print(f"rcan-rtps sim ready node={node.fqn} domain={node.domain_id}", flush=True)
-        await robot.run(stop)
+        try:
+            await robot.run(stop)
+        finally:
+            await nav.close()
+            await docking.close()
     return 0

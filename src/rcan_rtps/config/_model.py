@@ -26,7 +26,7 @@ from rcan_rtps.rcan import (
     Role,
     parse_ruri,
 )
-from rcan_rtps.rcan.actions import with_effect
+from rcan_rtps.rcan.actions import GoalRoute, goal_routes, with_effect
 
 _ROS_NAME = re.compile(r"^~?/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*$")
 _NODE_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
@@ -126,7 +126,8 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     joint_trajectory_topic: RosTopic = "joint_trajectory_controller/joint_trajectory"
     # Several arms: `arm_joint` names one by `group`; then joint_trajectory_topic is unused.
     arms: dict[ArmName, ArmConfig] = {}
-    nav_action: RosTopic = "navigate_to_pose"
+    nav_action: RosTopic = "navigate_to_pose"  # nav2 NavigateToPose (`navigate`)
+    dock_action: RosTopic = "dock_robot"  # nav2 DockRobot, opennav_docking's server (`dock`)
     odom_topic: RosTopic = "odom"
     diagnostics_topic: RosTopic = "diagnostics"
     battery_topic: RosTopic = "battery_state"
@@ -143,6 +144,41 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     # (Cyclone's in-band header, or Fast DDS's plain requests); per-name overrides win.
     request_mapping: Literal["auto", "cyclone", "fastdds"] = "auto"
     request_mappings: dict[RosName, Literal["auto", "cyclone", "fastdds"]] = {}
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        problem = goal_routes_problem(self, goal_routes())
+        if problem is not None:
+            raise ValueError(problem)
+
+    def resolve(self, name: str) -> str:
+        """The fully qualified name of a configured topic or action, as the node resolves it:
+        absolute as is, `~` inside the node, anything else inside `namespace`."""
+        namespace = self.namespace.rstrip("/")
+        if name.startswith("/"):
+            return name
+        if name.startswith("~"):
+            return f"{namespace}/{self.node_name}{name[1:]}"
+        return f"{namespace}/{name}"
+
+
+def goal_routes_problem(ros2: Ros2Config, routes: tuple[GoalRoute, ...]) -> str | None:
+    """Why the registry's goal routes cannot each reach a server of their own type, or None:
+    a route whose key `bridge.ros2` does not have, or two keys naming one action server for
+    two action types (a goal would go to a server that cannot take it)."""
+    servers: dict[str, GoalRoute] = {}
+    for route in routes:
+        name = getattr(ros2, route.action_key, None)
+        if not isinstance(name, str) or route.action_key not in Ros2Config.__struct_fields__:
+            return (f"action {', '.join(route.actions)} sends {route.type_name} goals to the "
+                    f"server named by `{route.action_key}`, which bridge.ros2 does not have")
+        resolved = ros2.resolve(name)
+        seen = servers.setdefault(resolved, route)
+        if seen.type_name != route.type_name:
+            return (f"`{seen.action_key}` and `{route.action_key}` both name the action "
+                    f"server {resolved}, for {seen.type_name} ({', '.join(seen.actions)}) and "
+                    f"{route.type_name} ({', '.join(route.actions)}): give each its own name")
+    return None
 
 
 class ConfidenceGate(_Section, frozen=True, kw_only=True):

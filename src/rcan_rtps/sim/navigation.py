@@ -14,7 +14,7 @@ from typing import Any
 
 from ..ros.actions import ActionServer, ServerGoal
 from ..ros.rostime import duration_msg, now_msg, quaternion_to_yaw, yaw_to_quaternion
-from .robot import SimRobot
+from .robot import SimRobot, SimState
 
 ACTION_TYPE = "nav2_msgs/action/NavigateToPose"
 POSITION_TOLERANCE_M = 0.05
@@ -28,25 +28,25 @@ def _wrap(angle: float) -> float:
     return math.atan2(math.sin(angle), math.cos(angle))
 
 
+def steer(s: SimState, gx: float, gy: float, gyaw: float) -> tuple[float, float, float, bool]:
+    """(linear, angular, distance, done) for one control step towards a pose."""
+    distance = math.hypot(gx - s.x, gy - s.y)
+    if distance > POSITION_TOLERANCE_M:
+        heading = _wrap(math.atan2(gy - s.y, gx - s.x) - s.yaw)
+        turn = max(-TURN_RADPS, min(TURN_RADPS, 2.0 * heading))
+        # Drive only when roughly facing the goal; slow down on approach.
+        speed = 0.0 if abs(heading) > 0.5 else min(CRUISE_MPS, distance)
+        return speed, turn, distance, False
+    yaw_error = _wrap(gyaw - s.yaw)
+    if abs(yaw_error) > YAW_TOLERANCE_RAD:
+        return 0.0, max(-TURN_RADPS, min(TURN_RADPS, 2.0 * yaw_error)), distance, False
+    return 0.0, 0.0, distance, True
+
+
 class NavigationServer:
     def __init__(self, robot: SimRobot, action: str = "navigate_to_pose") -> None:
         self.robot = robot
         self.server = ActionServer(robot.node, action, ACTION_TYPE, self._execute)
-
-    def _command(self, gx: float, gy: float, gyaw: float) -> tuple[float, float, float, bool]:
-        """(linear, angular, distance, done) for one control step."""
-        s = self.robot.state
-        distance = math.hypot(gx - s.x, gy - s.y)
-        if distance > POSITION_TOLERANCE_M:
-            heading = _wrap(math.atan2(gy - s.y, gx - s.x) - s.yaw)
-            turn = max(-TURN_RADPS, min(TURN_RADPS, 2.0 * heading))
-            # Drive only when roughly facing the goal; slow down on approach.
-            speed = 0.0 if abs(heading) > 0.5 else min(CRUISE_MPS, distance)
-            return speed, turn, distance, False
-        yaw_error = _wrap(gyaw - s.yaw)
-        if abs(yaw_error) > YAW_TOLERANCE_RAD:
-            return 0.0, max(-TURN_RADPS, min(TURN_RADPS, 2.0 * yaw_error)), distance, False
-        return 0.0, 0.0, distance, True
 
     def _feedback(self, started: float, distance: float) -> dict[str, Any]:
         s = self.robot.state
@@ -74,7 +74,7 @@ class NavigationServer:
                 goal.abort()
                 return {"error_code": 9999, "error_msg": "emergency stop engaged"} \
                     if self._has_error_fields() else {}
-            linear, angular, distance, done = self._command(gx, gy, gyaw)
+            linear, angular, distance, done = steer(self.robot.state, gx, gy, gyaw)
             self.robot.drive(linear, angular)
             goal.publish_feedback(self._feedback(started, distance))
             if done:

@@ -2,10 +2,10 @@
 
 It is a real ROS 2 node on the wire (any rclpy tool can watch it): it integrates
 `cmd_vel` (Twist or TwistStamped) into `odom` at `rate_hz`, publishes wheel and arm
-`joint_states`, a `battery_state` that drains with motion and `diagnostics`; it
-halts and stays halted while `emergency_stop` is true; its arm follows
-`joint_trajectory_controller/joint_trajectory`. Like ros2_control's diff_drive
-controller it stops when no velocity command arrived for `cmd_timeout_s`.
+`joint_states`, a `battery_state` that drains with motion (and charges while docked, see
+`sim.docking`) and `diagnostics`; it halts and stays halted while `emergency_stop` is true;
+its arm follows `joint_trajectory_controller/joint_trajectory`. Like ros2_control's
+diff_drive controller it stops when no velocity command arrived for `cmd_timeout_s`.
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ from ..ros.rostime import now_msg, yaw_to_quaternion
 
 TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 ARM_JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist")
+# sensor_msgs/msg/BatteryState power_supply_status
+CHARGING, DISCHARGING, FULL = 1, 2, 4
 
 
 @dataclass
@@ -37,6 +39,7 @@ class SimParams:
     battery_wh: float = 50.0
     idle_w: float = 5.0
     drive_w_per_mps: float = 40.0
+    charge_w: float = 60.0  # what the dock supplies
 
 
 @dataclass
@@ -69,6 +72,7 @@ class SimState:
     energy_wh: float = 50.0
     estop: bool = False
     distance_m: float = 0.0
+    docked_at: str | None = None  # the dock the robot is on (charging), until it drives off
 
 
 class SimRobot:
@@ -136,6 +140,11 @@ class SimRobot:
             self._cmd = (linear, angular)
             self._cmd_at = time.monotonic()
 
+    def dock(self, dock_id: str) -> None:
+        """On the dock `dock_id`: charging until the robot drives off it."""
+        with self._lock:
+            self.state.docked_at = dock_id
+
     # -- physics -----------------------------------------------------------------------------
     def step(self, dt: float) -> None:
         p, s = self.params, self.state
@@ -151,8 +160,12 @@ class SimRobot:
             half = p.wheel_base_m / 2
             for i, sign in enumerate((-1.0, 1.0)):
                 s.wheel_pos[i] += (s.v + sign * s.w * half) / p.wheel_radius_m * dt
+            if s.v or s.w:
+                s.docked_at = None  # driven off the dock
             power = p.idle_w + p.drive_w_per_mps * abs(s.v)
-            s.energy_wh = max(0.0, s.energy_wh - power * dt / 3600.0)
+            if s.docked_at is not None:
+                power -= p.charge_w
+            s.energy_wh = min(p.battery_wh, max(0.0, s.energy_wh - power * dt / 3600.0))
             self._step_arm()
 
     def _step_arm(self) -> None:
@@ -190,9 +203,10 @@ class SimRobot:
     def publish_battery(self) -> None:
         s = self.state
         fraction = s.energy_wh / self.params.battery_wh
+        supply = DISCHARGING if s.docked_at is None else (CHARGING if fraction < 1.0 else FULL)
         self.battery.publish({
             "header": {"stamp": now_msg()}, "voltage": 22.0 + 3.2 * fraction,
-            "percentage": fraction, "present": True, "power_supply_status": 2,  # discharging
+            "percentage": fraction, "present": True, "power_supply_status": supply,
         })
 
     def publish_diagnostics(self) -> None:
@@ -204,6 +218,8 @@ class SimRobot:
              "hardware_id": self.node.fqn},
             {"level": 1 if s.estop else 0, "name": "sim: emergency stop",
              "message": "engaged" if s.estop else "released", "hardware_id": self.node.fqn},
+            {"level": 0, "name": "sim: dock", "hardware_id": self.node.fqn,
+             "message": "undocked" if s.docked_at is None else f"docked at {s.docked_at}"},
         ]
         self.diagnostics.publish({"header": {"stamp": now_msg()}, "status": statuses})
 

@@ -6,7 +6,9 @@ from typing import TYPE_CHECKING, Literal
 from ._invariants import READS, Reads, not_understood, numbers, unreadable
 from ._registry import (
     ACTIONS,
+    GoalRoute,
     action_spec,
+    goal_routes,
     markdown_table,
     names,
     specs,
@@ -28,6 +30,7 @@ from ._spec import (
     SendGoal,
 )
 from .arm_joint import ArmJointParams
+from .dock import DockParams
 from .lock import LockParams
 from .move import MoveParams, RampedMove
 from .navigate import NavigateParams
@@ -47,9 +50,11 @@ __all__ = [
     "ActionSpec",
     "ArmJointParams",
     "Builder",
+    "DockParams",
     "Effect",
     "EstopSignal",
     "GateableName",
+    "GoalRoute",
     "Halt",
     "HitlDefault",
     "Invariant",
@@ -66,6 +71,7 @@ __all__ = [
     "SendGoal",
     "StopParams",
     "action_spec",
+    "goal_routes",
     "markdown_table",
     "names",
     "not_understood",

@@ -8,12 +8,42 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
 from ._invariants import READS
-from ._spec import ActionSpec, Effect
+from ._spec import ActionSpec, Effect, SendGoal
+
+
+@dataclass(frozen=True)
+class GoalRoute:
+    """One goal action server: the `bridge.ros2` key that names it, its type, and the
+    registry actions that send goals to it."""
+
+    action_key: str
+    type_name: str
+    actions: tuple[str, ...]
+
+
+def collect_goal_routes(found: Iterable[ActionSpec[Any]]) -> tuple[GoalRoute, ...]:
+    """The distinct (config key, type) of every SendGoal; a key declared with two types is
+    refused (one key names one server, and a server serves one type)."""
+    routes: dict[str, GoalRoute] = {}
+    for spec in found:
+        ros = spec.ros
+        if not isinstance(ros, SendGoal):
+            continue
+        seen = routes.get(ros.action_key)
+        if seen is not None and seen.type_name != ros.type_name:
+            raise ValueError(
+                f"goal route `{ros.action_key}` declared with two action types: "
+                f"{seen.type_name} ({', '.join(seen.actions)}) and {ros.type_name} "
+                f"({spec.name})")
+        actions = (*seen.actions, spec.name) if seen else (spec.name,)
+        routes[ros.action_key] = GoalRoute(ros.action_key, ros.type_name, actions)
+    return tuple(routes.values())
 
 
 def _discover() -> dict[str, ActionSpec[Any]]:
@@ -34,10 +64,12 @@ def _discover() -> dict[str, ActionSpec[Any]]:
     for effect in (Effect.HALT, Effect.ESTOP, Effect.CLEAR_ESTOP):
         if sum(s.effect is effect for s in found.values()) != 1:
             raise ValueError(f"exactly one action must have effect {effect.name}")
+    collect_goal_routes(found.values())  # refused here, before anything uses the registry
     return found
 
 
 ACTIONS: Mapping[str, ActionSpec[Any]] = MappingProxyType(_discover())
+_GOAL_ROUTES = collect_goal_routes(ACTIONS.values())
 
 
 def action_spec(name: str) -> ActionSpec[Any]:
@@ -60,6 +92,11 @@ def stopping_names() -> frozenset[str]:
 
 def specs() -> Iterator[ActionSpec[Any]]:
     return iter(ACTIONS.values())
+
+
+def goal_routes() -> tuple[GoalRoute, ...]:
+    """Every goal action server the registry sends to, one per (config key, type)."""
+    return _GOAL_ROUTES
 
 
 def markdown_table() -> str:

@@ -70,7 +70,11 @@ class Publish(Generic[P]):
 
 @dataclass(frozen=True)
 class SendGoal(Generic[P]):
-    """Send an action goal to the server named by a `bridge.ros2` config key."""
+    """Send an action goal to the server named by a `bridge.ros2` config key.
+
+    Every (config key, action type) the registry declares is a goal route of its own: the
+    bridge follows each with its own action client (bridge.goals), and a config naming one
+    server for two types is refused when loaded."""
 
     action_key: str
     type_name: str
@@ -134,7 +138,7 @@ class ActionSpec(Generic[P]):
     invariants: tuple[Invariant, ...]
     scope: str = "control"
     hitl: HitlDefault = field(default_factory=HitlDefault)
-    starts_goal: bool = False  # its work outlives the command (a navigation goal)
+    starts_goal: bool = False  # its work outlives the command (a SendGoal: nav, docking)
     # Held on the wire: republished at `cmd_rate_hz` until its duration ends or it is replaced,
     # stopped, e-stopped, its session or the robot is lost (see governance.streams).
     streamed: bool = False
@@ -155,6 +159,10 @@ class ActionSpec(Generic[P]):
             if problem:
                 raise ValueError(f"action {self.name!r} declares the {invariant.value} check, "
                                  f"but {problem}")
+        if self.starts_goal != isinstance(self.ros, SendGoal):
+            # The governor arbitrates goals by `starts_goal`; the bridge tracks them by route.
+            raise ValueError(f"action {self.name!r}: a goal is started exactly by a SendGoal "
+                             "route")
 
     @property
     def stopping(self) -> bool:

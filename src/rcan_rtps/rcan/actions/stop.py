@@ -1,4 +1,5 @@
-"""`stop`: zero velocity and cancel every goal. Never gated, never rate-limited."""
+"""`stop`: zero velocity and cancel every goal, on every goal server. Never gated, never
+rate-limited."""
 
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ HALT = Halt(velocity=Publish(topic_key="cmd_vel_topic", type_key="cmd_vel_type",
 SPEC = ActionSpec(
     order=40,
     name="stop",
-    summary="Stop: zero velocity, cancel navigation goals.",
+    summary="Stop: zero velocity, cancel every goal (navigation, docking).",
     params=StopParams,
     effect=Effect.HALT,
     default_role=Role.USER,

@@ -1,0 +1,125 @@
+"""Every goal action the registry declares, each on its own action server.
+
+One `GoalTracker` (one action client) per distinct (configured action name, action type) of
+the registry's `SendGoal` routes: `navigate` reaches the NavigateToPose server named by
+`bridge.ros2.nav_action`, `dock` the DockRobot server named by `dock_action`. The config has
+already refused two types on one server (`config._model.goal_routes_problem`).
+
+What concerns goals as a whole spans every tracker: a stop cancels goals on every server, the
+API lists every goal, and listeners (STATUS, WebSocket goal events, the audit's GOAL_FINISHED)
+hear from all of them. STATUS `navigation` stays NavigateToPose's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from ..api.ports import GoalView
+from ..config import Ros2Config
+from ..rcan import Navigation
+from ..rcan.actions import GoalRoute, goal_routes
+from ..ros.participant import RosNode
+from ..ros.services import RequestMapping
+from .navigation import NAVIGATE_TO_POSE, GoalFinished, GoalTracker, navigation_summary
+
+log = logging.getLogger(__name__)
+
+
+def route_mapping(ros2: Ros2Config, action_key: str) -> RequestMapping:
+    """The configured request-reply mapping of a goal route (its name's override first)."""
+    name = getattr(ros2, action_key)
+    return RequestMapping(ros2.request_mappings.get(name, ros2.request_mapping))
+
+
+class GoalRoutes:
+    """The bridge's goals: one tracker per goal route, found by the route's config key."""
+
+    def __init__(self, node: RosNode, ros2: Ros2Config,
+                 routes: tuple[GoalRoute, ...] | None = None) -> None:
+        self.listeners: list[Callable[[], None]] = []  # the active goals changed
+        self.event_listeners: list[Callable[[GoalView], None]] = []  # any change, a copy
+        self.finished_listeners: list[Callable[[GoalFinished], None]] = []  # once per goal
+        self._by_key: dict[str, GoalTracker] = {}
+        trackers: dict[tuple[str, str], GoalTracker] = {}
+        for route in goal_routes() if routes is None else routes:
+            server = (ros2.resolve(getattr(ros2, route.action_key)), route.type_name)
+            tracker = trackers.get(server)
+            if tracker is None:
+                tracker = trackers[server] = GoalTracker(
+                    node, getattr(ros2, route.action_key), route.type_name,
+                    mapping=route_mapping(ros2, route.action_key))
+                # Every tracker tells the same listeners: whoever listens hears of all goals.
+                tracker.listeners = self.listeners
+                tracker.event_listeners = self.event_listeners
+                tracker.finished_listeners = self.finished_listeners
+            self._by_key[route.action_key] = tracker
+        self.trackers: tuple[GoalTracker, ...] = tuple(trackers.values())
+
+    def tracker(self, action_key: str) -> GoalTracker | None:
+        """The tracker of the server a route's config key names."""
+        return self._by_key.get(action_key)
+
+    def action_name(self, action_key: str) -> str | None:
+        tracker = self._by_key.get(action_key)
+        return tracker.action_name if tracker is not None else None
+
+    async def send(self, action_key: str, goal: dict[str, Any], timeout: float, *,
+                   message_id: str | None = None, command: str | None = None) -> str:
+        """Sends a goal to its route's own server; its id once accepted. Raises on rejection
+        or unavailability, and LookupError for a route the registry did not declare."""
+        tracker = self._by_key.get(action_key)
+        if tracker is None:
+            raise LookupError(f"no goal route `{action_key}`")
+        return await tracker.send(goal, timeout, message_id=message_id, command=command)
+
+    async def cancel_all(self) -> int:
+        """Cancels every goal on every goal server, whoever sent it: `stop` means stop. The
+        servers are asked at once, so one slow server does not hold the others' cancel."""
+        counts = await asyncio.gather(*(t.cancel_all() for t in self.trackers),
+                                      return_exceptions=True)
+        for tracker, count in zip(self.trackers, counts, strict=True):
+            if isinstance(count, BaseException):
+                log.error("cancelling goals on %s failed: %s", tracker.action_name, count)
+        return sum(c for c in counts if isinstance(c, int))
+
+    async def cancel(self, goal_id: str) -> bool:
+        """Cancels one goal this bridge sent, on its own server; True if it is canceling."""
+        for tracker in self.trackers:
+            if tracker.goal(goal_id) is not None:
+                return await tracker.cancel(goal_id)
+        return False
+
+    def warn_cancelling(self, why: str) -> None:
+        for tracker in self.trackers:
+            tracker.warn_cancelling(why)
+
+    def navigation(self) -> Navigation | None:
+        """STATUS `navigation`: the newest active NavigateToPose goal and its progress."""
+        navigating = self._active_views(lambda t: t.type_name == NAVIGATE_TO_POSE)
+        return navigation_summary(navigating[-1]) if navigating else None
+
+    def active(self) -> list[str]:
+        """The goals not yet ended, on every server, oldest first."""
+        return [v.goal_id for v in self._active_views(lambda t: True)]
+
+    def _active_views(self, which: Callable[[GoalTracker], bool]) -> list[GoalView]:
+        views = [t.goal(g) for t in self.trackers if which(t) for g in t.active()]
+        return sorted((v for v in views if v is not None), key=lambda v: v.created_ms)
+
+    def goal(self, goal_id: str) -> GoalView | None:
+        for tracker in self.trackers:
+            view = tracker.goal(goal_id)
+            if view is not None:
+                return view
+        return None
+
+    def goals(self) -> list[GoalView]:
+        """Every goal tracked, on every server, oldest first."""
+        return sorted((v for t in self.trackers for v in t.goals()), key=lambda v: v.created_ms)
+
+    async def close(self) -> None:
+        """Stops following goals (they go on on their servers) and leaves; idempotent."""
+        await asyncio.gather(*(t.close() for t in self.trackers))

@@ -285,3 +285,10 @@ async def test_idempotency_is_bounded_in_size() -> None:
         cache.resolve(key, key)
     assert len(cache) <= 100
     assert cache.claim(9_999, b"f") is not None  # the newest are still remembered
+
+
+def test_a_declared_flag_is_no_number_posing_as_one() -> None:
+    """A `bool` field (dock's navigate_to_staging_pose) passes the finite check; a bool in
+    a number's field still does not (above)."""
+    dock = command("dock", {"dock_id": "home", "navigate_to_staging_pose": False})
+    assert finite_numbers(dock, dock.params) is dock.params

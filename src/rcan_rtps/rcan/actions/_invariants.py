@@ -14,6 +14,7 @@ kind of value it understands in each (`READS`); the check itself lives in
 from __future__ import annotations
 
 import enum
+import functools
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -194,11 +195,22 @@ def _value_matches(value: Any, kind: Kind) -> bool:
     return isinstance(value, list | tuple) and all(isinstance(v, str) for v in value)
 
 
+@functools.cache
+def _flags(kind: type[msgspec.Struct]) -> frozenset[str]:
+    """The fields of a params struct declared `bool`: a flag there is no number."""
+    info = mi.type_info(kind)
+    assert isinstance(info, mi.StructType)
+    return frozenset(f.name for f in info.fields if isinstance(f.type, mi.BoolType))
+
+
 def numbers(value: Any) -> Iterator[Any]:
-    """Every int or float (bools too) inside a params struct, at any depth; TypeError at a
-    value it does not know how to walk (it would otherwise go unchecked)."""
+    """Every int or float inside a params struct, at any depth — a bool too, unless its field
+    is declared `bool` (then it is a flag, not a number posing as one); TypeError at a value
+    it does not know how to walk (it would otherwise go unchecked)."""
     if isinstance(value, msgspec.Struct):
-        items: Any = [getattr(value, name) for name in value.__struct_fields__]
+        flags = _flags(type(value))
+        items: Any = [getattr(value, name) for name in value.__struct_fields__
+                      if not (name in flags and isinstance(getattr(value, name), bool))]
     elif isinstance(value, dict):
         items = value.values()
     elif isinstance(value, list | tuple):

@@ -2,8 +2,9 @@
 
 The dock is named by its id in the docking server's dock database; where it is is the robot's
 configuration, not the command's, so there are no coordinates to check against the workspace.
-It drives the base: motion, guarded by the e-stop and arbitrated like `navigate`. Its only
-invariant is that guard: it has no number for FINITE to check (and FINITE refuses any bool).
+It drives the base: motion, guarded by the e-stop and arbitrated like `navigate`. FINITE has
+no number of its own to check (a declared `bool` is a flag, not a number) and keeps any future
+one honest.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ SPEC = ActionSpec(
     effect=Effect.MOTION,
     default_role=Role.USER,
     ros=SendGoal(action_key="dock_action", type_name=DOCK_ROBOT, build=goal),
-    invariants=(Invariant.ESTOP_GUARD,),
+    invariants=(Invariant.ESTOP_GUARD, Invariant.FINITE),
     starts_goal=True,
     example={"dock_id": "home"},
 )

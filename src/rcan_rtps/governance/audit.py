@@ -366,13 +366,7 @@ def _scan(data: bytes, pubkey: Ed25519PublicKey | None, *, seq: int = 0,
     added to `tree` (the tree of the entries up to `seq`), if given."""
     good_end = last_start = 0
     for start, line in _lines(data):
-        try:
-            prev = _check_line(line, seq + 1, prev, pubkey)
-        except AuditIntegrityError as exc:
-            if _only_damage_left(data, start + len(line) + 1):
-                raise AuditIntegrityError(exc.seq, "the last line is damaged (a torn tail, or "
-                                          f"an edit): {exc.detail}") from exc
-            raise
+        prev = _check_at(data, start, line, seq + 1, prev, pubkey)
         seq += 1
         good_end, last_start = start + len(line) + 1, start
         if tree is not None:
@@ -380,6 +374,19 @@ def _scan(data: bytes, pubkey: Ed25519PublicKey | None, *, seq: int = 0,
     head = ChainHead(count=seq, last_seq=seq, last_audit_id=prev)
     return _Scan(head=head, good_end=good_end, torn=data[good_end:], last_start=last_start,
                  tree=tree)
+
+
+def _check_at(data: bytes, start: int, line: bytes, seq: int, prev: str,
+              pubkey: Ed25519PublicKey | None) -> str:
+    """`_check_line` for the line at `start` of `data`; a failure that nothing well-formed
+    follows is reported as the damaged last line it is (a torn tail, or an edit there)."""
+    try:
+        return _check_line(line, seq, prev, pubkey)
+    except AuditIntegrityError as exc:
+        if _only_damage_left(data, start + len(line) + 1):
+            raise AuditIntegrityError(exc.seq, "the last line is damaged (a torn tail, or "
+                                      f"an edit): {exc.detail}") from exc
+        raise
 
 
 def _only_damage_left(data: bytes, offset: int) -> bool:
@@ -417,13 +424,7 @@ def entries(data: bytes, pubkey: Ed25519PublicKey | None = None
     after yielding the valid entries before it."""
     seq, prev, end = 0, GENESIS, 0
     for start, line in _lines(data):
-        try:
-            prev = _check_line(line, seq + 1, prev, pubkey)
-        except AuditIntegrityError as exc:
-            if _only_damage_left(data, start + len(line) + 1):
-                raise AuditIntegrityError(exc.seq, "the last line is damaged (a torn tail, or "
-                                          f"an edit): {exc.detail}") from exc
-            raise
+        prev = _check_at(data, start, line, seq + 1, prev, pubkey)
         seq, end = seq + 1, start + len(line) + 1
         yield seq, prev, line
     if end < len(data):

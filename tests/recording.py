@@ -26,6 +26,7 @@ class RecordingDispatcher:
         self.entered = asyncio.Event()  # a held dispatch has started
         self.samples: list[MoveParams] = []  # velocity-stream samples after each first one
         self.cancelled: list[str] = []  # goals cancelled one by one (the arbiter's)
+        self.signals: list[int] = []  # e-stop signals published as the latch engaged
         self._goals = 0
 
     def route(self, command: NormalizedCommand) -> str | None:
@@ -54,6 +55,9 @@ class RecordingDispatcher:
     async def cancel_goal(self, goal_id: str) -> bool:
         self.cancelled.append(goal_id)
         return True
+
+    def signal_estop(self) -> None:
+        self.signals.append(len(self.calls))  # how many dispatches came before it
 
     def send_velocity(self, velocity: MoveParams) -> str | None:
         if self.raises is not None:

@@ -279,3 +279,15 @@ async def test_a_command_still_in_flight_is_not_session_loss(harness: Harness) -
     await gov.sweep()  # silence after the command: now it is session loss
     events = [e["event"] for e in harness.entries if e["event"] != "STREAM_ENDED"]
     assert events[-1] == "NETWORK_LOSS_SAFE_STOP"
+
+
+async def test_the_estop_signal_goes_out_as_the_latch_engages(harness: Harness) -> None:
+    """Issue 23: the e-stop Bool waited for the latch-file and audit fsyncs. It is published
+    from the latch's listener now: before the e-stop's first await, before any dispatch."""
+    gov = await harness.governor()
+    pending = asyncio.ensure_future(gov.decide(command("estop"), VIEWER))
+    await asyncio.sleep(0)  # the decision's first step: the latch engages, nothing awaited
+    assert gov.latch.latched and harness.dispatcher.signals == [0]
+    assert (await pending).outcome is Outcome.EXECUTED
+    await gov.decide(command("estop"), VIEWER)  # already latched: no flip, no second signal
+    assert harness.dispatcher.signals == [0]

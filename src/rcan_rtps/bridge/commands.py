@@ -223,6 +223,13 @@ class RosDispatcher:
             return False
         return await self.goals.cancel(goal_id)
 
+    def signal_estop(self) -> None:
+        """`emergency_stop: true` now, on the latched topic (the e-stop's dispatch repeats it
+        once matched, and halts)."""
+        ros = _estop_route()
+        route = self._routes[id(ros.signal)]
+        route.publisher.publish(route.message(with_effect(Effect.ESTOP).params()))
+
     def send_velocity(self, velocity: MoveParams) -> str | None:
         """One sample of a velocity stream, now; why not, if the robot is gone."""
         route = self._stream

@@ -108,6 +108,11 @@ class Dispatcher(Protocol):
         """Cancel one goal `dispatch` started; True if its server is canceling it."""
         ...
 
+    def signal_estop(self) -> None:
+        """Publish the e-stop signal now (no await): the moment the latch engages, beside the
+        zero velocity; the e-stop's dispatch then tells the robot again and halts it."""
+        ...
+
 
 class Decision(msgspec.Struct, frozen=True, kw_only=True):
     outcome: Outcome
@@ -180,6 +185,7 @@ class Governor:
         self._latched_by: AuditReceipt | None = None
         self._ended_by: dict[str, str] = {}  # goals the arbiter cancelled → why, by whom
         latch.listeners.insert(0, self.streams.on_latch)
+        latch.listeners.insert(1, self._signal_estop)
         latch.listeners.append(self._status_changed)
 
     @classmethod
@@ -289,6 +295,12 @@ class Governor:
         if command.warnings:  # executed anyway: the caller learns what was wrong
             return msgspec.structs.replace(decision, warnings=list(command.warnings))
         return decision
+
+    def _signal_estop(self) -> None:
+        """The latch's listener: the robot hears of an e-stop as it latches, before any await
+        (no loop turn, no disk), like the zero velocity the streams send from theirs."""
+        if self.latch.latched:
+            self._dispatcher.signal_estop()
 
     def _forgiven(self, command: NormalizedCommand, principal: Principal) -> NormalizedCommand:
         """A stop whose role claim or RURI would refuse another command: those become

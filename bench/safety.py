@@ -287,6 +287,12 @@ async def estop_block(root: Path, version: Version, placement: Placement,
         await asyncio.sleep(1.0)
         LoadProcess(bridge.url, clients=64, commands=500).result()  # warm-up
         async with aiohttp.ClientSession(headers=HEADERS) as http:
+            # The warm-up's last move is still streaming: stop it, so the idle e-stops find
+            # the robot at rest (an e-stop ends a stream at once: its zero would not be the
+            # one the idle rows are about).
+            async with http.post(f"{bridge.url}/api/command", json={"action": "stop"}) as resp:
+                assert resp.status == 200, await resp.text()
+            await asyncio.sleep(1.0)
             for _ in range(rounds):
                 await estop_round(http, bridge.url, oracle, idle)
             loader = LoadProcess(bridge.url, clients=500, verifiers=6)

@@ -276,7 +276,8 @@ def place_state(run: Path, version: Version, placement: Placement,
 
 async def estop_block(root: Path, version: Version, placement: Placement,
                       slow: SlowDisk | None, oracle: RclpyOracle, rounds: int,
-                      idle: Samples, busy: Samples, loads: list[dict[str, int]]) -> None:
+                      idle: Samples, busy: Samples, loads: list[dict[str, int]],
+                      unclean: list[str]) -> None:
     """One bridge of `version`: `rounds` e-stops idle, then `rounds` under load."""
     run = root / f"run-{len(list(root.glob('run-*')))}"
     audit_dir, latch = place_state(run, version, placement, slow)
@@ -307,7 +308,27 @@ async def estop_block(root: Path, version: Version, placement: Placement,
                 loads.append(json.loads(out.strip().splitlines()[-1]))
         oracle.call("take", topic=CMD_VEL)
     finally:
-        bridge.stop()
+        if not stop_bridge(bridge):
+            unclean.append(version.label)
+
+
+def stop_bridge(bridge: BridgeProcess, grace_s: float = 30.0) -> bool:
+    """SIGINT, as `BridgeProcess.stop`; a bridge still running `grace_s` later is killed
+    with its children (False)."""
+    bridge.proc.send_signal(signals.SIGINT)
+    try:
+        bridge.proc.wait(timeout=grace_s)
+        return True
+    except subprocess.TimeoutExpired:
+        children = []
+        for tasks in Path(f"/proc/{bridge.proc.pid}/task").glob("*/children"):
+            with contextlib.suppress(OSError):
+                children += [int(pid) for pid in tasks.read_text().split()]
+        for pid in [bridge.proc.pid, *children]:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signals.SIGKILL)
+        bridge.proc.wait()
+        return False
 
 
 def filled_template(directory: Path, entries: int, src: Path | None) -> Path:
@@ -328,6 +349,7 @@ class EstopResults:
     latch_floor: dict[str, list[float]]  # disk name → ms per latch-file write
     loads: list[dict[str, int]]
     machine_load: tuple[tuple[float, float], tuple[float, float]]  # loadavg at start, at end
+    unclean: list[str]  # per bridge that had to be killed after SIGINT, its version
 
 
 async def estop_matrix(oracle: RclpyOracle, args: argparse.Namespace) -> EstopResults:
@@ -342,6 +364,7 @@ async def estop_matrix(oracle: RclpyOracle, args: argparse.Namespace) -> EstopRe
         samples = {(v.label, p.name, loaded): Samples() for v in (before, after)
                    for p in PLACEMENTS for loaded in (False, True)}
         loads: list[dict[str, int]] = []
+        unclean: list[str] = []  # a version's label per bridge killed after SIGINT
         with slow_disk(root, args.fsync_ms) as slow:
             floor = {"normal disk": latch_write_ms(root),
                      "slow disk": latch_write_ms(slow.mount)}
@@ -354,9 +377,10 @@ async def estop_matrix(oracle: RclpyOracle, args: argparse.Namespace) -> EstopRe
                         await estop_block(
                             root, version, placement, slow, oracle, per_block,
                             samples[(version.label, placement.name, False)],
-                            samples[(version.label, placement.name, True)], loads)
+                            samples[(version.label, placement.name, True)], loads,
+                            unclean)
     return EstopResults(samples, (before.label, after.label), floor, loads,
-                        (load_start, os.getloadavg()[:2]))
+                        (load_start, os.getloadavg()[:2]), unclean)
 
 
 def estop_report(results: EstopResults, args: argparse.Namespace) -> list[str]:
@@ -414,6 +438,9 @@ def estop_report(results: EstopResults, args: argparse.Namespace) -> list[str]:
         f"{load5_end:.2f} as they ended. The reply waits for the latch file and the audit "
         "entry to be durable (a stop's entry is on disk by its reply): on the slow disk it "
         "cannot come before the latch-file write above, whatever the bridge does.", "",
+        f"Bridges still running 30 s after SIGINT (then killed with their children), of "
+        f"{len(PLACEMENTS) * args.blocks} per version: before {results.unclean.count(before)}"
+        f", after {results.unclean.count(after)}.", "",
     ]
 
 

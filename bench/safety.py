@@ -369,10 +369,11 @@ async def estop_matrix(oracle: RclpyOracle, args: argparse.Namespace) -> EstopRe
             floor = {"normal disk": latch_write_ms(root),
                      "slow disk": latch_write_ms(slow.mount)}
             per_block = -(-args.rounds // args.blocks)
-            for placement in PLACEMENTS:
+            for placement in (PLACEMENTS[i] for i in args.placements):
                 for block in range(args.blocks):
                     for version in (before, after) if block % 2 == 0 else (after, before):
-                        print(f"e-stop: {version.label}, {placement.name}, block {block}",
+                        print(f"{time.strftime('%H:%M:%S')} load {os.getloadavg()[0]:.2f} "
+                              f"e-stop: {version.label}, {placement.name}, block {block}",
                               flush=True)
                         await estop_block(
                             root, version, placement, slow, oracle, per_block,
@@ -397,7 +398,7 @@ def estop_report(results: EstopResults, args: argparse.Namespace) -> list[str]:
         return f"p99 ≤ {TARGET_MS:g} ms | {verdict(pct(values, 0.99) <= TARGET_MS)}"
 
     rows = []
-    for placement in PLACEMENTS:
+    for placement in (PLACEMENTS[i] for i in args.placements):
         for loaded in (False, True):
             for signal in SIGNALS:
                 b = results.samples[(before, placement.name, loaded)].by_signal[signal]
@@ -406,7 +407,7 @@ def estop_report(results: EstopResults, args: argparse.Namespace) -> list[str]:
                             f"{names[signal]} | {cell(b)} | {cell(a)} | "
                             f"{judged(placement, signal, a)} |")
     floor = results.latch_floor
-    n = len(results.samples[(after, PLACEMENTS[0].name, False)].by_signal["Bool"])
+    n = len(results.samples[(after, PLACEMENTS[args.placements[0]].name, False)].by_signal["Bool"])
     commands = sum(load.get("commands", 0) for load in results.loads)
     verifies = sum(load.get("verifies", 0) for load in results.loads)
     errors = sum(load.get("non_2xx_4xx", 0) for load in results.loads)
@@ -439,7 +440,7 @@ def estop_report(results: EstopResults, args: argparse.Namespace) -> list[str]:
         "entry to be durable (a stop's entry is on disk by its reply): on the slow disk it "
         "cannot come before the latch-file write above, whatever the bridge does.", "",
         f"Bridges still running 30 s after SIGINT (then killed with their children), of "
-        f"{len(PLACEMENTS) * args.blocks} per version: before {results.unclean.count(before)}"
+        f"{len(args.placements) * args.blocks} per version: before {results.unclean.count(before)}"
         f", after {results.unclean.count(after)}.", "",
     ]
 
@@ -506,7 +507,11 @@ async def main(args: argparse.Namespace) -> int:
         oracle.call("subscribe_timed", topic=CMD_VEL, type="geometry_msgs/msg/Twist")
         oracle.call("subscribe_timed", topic=ESTOP_TOPIC, type="std_msgs/msg/Bool",
                     field="data")
-        estop = estop_report(await estop_matrix(oracle, args), args)
+        results = await estop_matrix(oracle, args)
+        if args.raw:
+            args.raw.write_text(json.dumps({" / ".join(map(str, key)): samples.by_signal
+                                            for key, samples in results.samples.items()}))
+        estop = estop_report(results, args)
         if args.estop_only:
             print("\n".join(estop))
             return 0
@@ -553,6 +558,10 @@ if __name__ == "__main__":
     parser.add_argument("--estop-only", action="store_true",
                         help="the e-stop latency alone, printed, docs untouched")
     parser.add_argument("--note", default="", help="a line added under the section")
+    parser.add_argument("--placements", type=int, nargs="+", default=[0, 1, 2],
+                        help="which state placements (0 normal disk, 1 latch file on the slow "
+                        "disk, 2 latch file + audit log on it)")
+    parser.add_argument("--raw", type=Path, help="write every e-stop sample (ms) here, JSON")
     parser.add_argument("--log-entries", type=int, default=30_000)
     parser.add_argument("--commands", type=int, default=100_000)
     parser.add_argument("--start-sizes", type=int, nargs="+", default=[0, 10_000, 100_000])

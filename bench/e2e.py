@@ -69,8 +69,8 @@ bridge:
     host: 127.0.0.1
     port: {port}
     principals: [{{name: bench, role: CREATOR, token_env: RCAN_BENCH_TOKEN}}]
-  safety: {{max_linear_vel: 100.0, max_angular_vel: 100.0, session_timeout_s: {session}}}
-  audit: {{path: {state}/audit.jsonl, key_path: {state}/audit.key}}
+  safety: {{max_linear_vel: 100.0, max_angular_vel: 100.0, session_timeout_s: {session}{latch}}}
+  audit: {{path: {audit}/audit.jsonl, key_path: {audit}/audit.key}}
 """
 
 
@@ -90,14 +90,18 @@ def free_port() -> int:
 # -- the bridge under test -----------------------------------------------------------------
 class BridgeProcess:
     """`src`: run the bridge of that source tree (PYTHONPATH) instead of the installed one;
-    `extra`: more `run` options."""
+    `extra`: more `run` options; `audit_dir`: where the audit log is (default `state`);
+    `latch_path`: the e-stop latch file (`safety.estop_state_path`; default beside the log)."""
 
-    def __init__(self, state: Path, src: Path | None = None, extra: tuple[str, ...] = ()) -> None:
+    def __init__(self, state: Path, src: Path | None = None, extra: tuple[str, ...] = (), *,
+                 audit_dir: Path | None = None, latch_path: Path | None = None) -> None:
         self.port = free_port()
         state.mkdir(parents=True, exist_ok=True)
         self.config = state / "bench.rcan.yaml"
-        self.config.write_text(CONFIG.format(domain=DOMAIN, port=self.port, state=state,
-                                             session=SESSION_TIMEOUT_S))
+        latch = "" if latch_path is None else f", estop_state_path: {latch_path}"
+        self.config.write_text(CONFIG.format(domain=DOMAIN, port=self.port,
+                                             audit=audit_dir or state,
+                                             session=SESSION_TIMEOUT_S, latch=latch))
         env = {**os.environ, "RCAN_BENCH_TOKEN": TOKEN, "ROS_DOMAIN_ID": str(DOMAIN)}
         if src is not None:
             env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")])

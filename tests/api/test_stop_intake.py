@@ -13,11 +13,11 @@ import json
 import uuid
 from typing import Any
 
-import aiohttp
 import pytest
 from rcan.safety import make_estop_message, make_resume_message, make_stop_message
 
 from tests.api.apihelpers import RURI, Api, auth
+from tests.api.test_stop_lane import _outcome
 
 # Each was answered 400 on 599eb3c and the robot kept moving.
 JUNK_STOPS: list[tuple[str, bytes]] = [
@@ -138,18 +138,6 @@ async def test_a_resume_with_junk_is_refused_not_forgiven(api: Api) -> None:
 
 
 # -- the WebSocket ----------------------------------------------------------------------------
-
-
-async def _outcome(ws: aiohttp.ClientWebSocketResponse) -> dict[str, Any]:
-    async def wait() -> dict[str, Any]:
-        while True:
-            msg = await ws.receive()
-            assert msg.type is aiohttp.WSMsgType.TEXT, msg
-            frame: dict[str, Any] = json.loads(msg.data)
-            if frame["type"] == "outcome":
-                return frame
-
-    return await asyncio.wait_for(wait(), timeout=60)
 
 
 @pytest.mark.parametrize(("what", "raw"), JUNK_STOPS[1:], ids=[w for w, _ in JUNK_STOPS[1:]])

@@ -61,6 +61,10 @@ async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterat
     with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node:
         server = ActionServer(robot_node, "navigate_to_pose", NAV, _execute)
         rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
+        assert rig.goals is not None
+        tracker = rig.goals.tracker("nav_action")
+        assert tracker is not None  # the server is discovered before any goal is sent
+        await eventually(tracker.client.server_present, what="the NavigateToPose server")
         heartbeat = asyncio.create_task(_hold_session(rig))
         try:
             yield rig

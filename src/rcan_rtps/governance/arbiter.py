@@ -9,6 +9,7 @@ engage or release a lock (cancelling the goals below it), and audit every end it
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -34,6 +35,7 @@ from .streams import EndReason, HeldGoal, Replaces, Stream, StreamEnded, Velocit
 
 log = logging.getLogger("rcan_rtps.governance.governor")
 Sending = Callable[[Principal, NormalizedCommand], None]
+ENDED_BY_KEPT = 1024  # cancelled goals whose end is still awaited, remembered at most
 
 
 class BaseArbiter:
@@ -49,7 +51,9 @@ class BaseArbiter:
         self._sending = sending
         self._held_at_start = dict(held_locks or {})  # lock → holder, as the log left them
         self.lock_holders: dict[str, str] = {}  # engaged locks → who engaged them
-        self._ended_by: dict[str, str] = {}  # goals the arbiter cancelled → why, by whom
+        # Goals the arbiter cancelled → why, by whom (for their GOAL_FINISHED); bounded: a goal
+        # whose server vanished never reports its end.
+        self._ended_by: OrderedDict[str, str] = OrderedDict()
         streams.on_end = self._stream_ended
 
     def admits(self, priority: int) -> Rejection | None:
@@ -96,6 +100,8 @@ class BaseArbiter:
         for goal in goals:
             reason = why if goal.owner == by.name or why != "replaced" else "preempted"
             self._ended_by[goal.goal_id] = f"{reason} by {by.name}"
+            while len(self._ended_by) > ENDED_BY_KEPT:
+                self._ended_by.popitem(last=False)
             log.warning("cancelling goal %s of %s: %s by %s", goal.goal_id, goal.owner,
                         reason, by.name, extra={"principal": by.name})
             self._steps.spawn(self._cancel_goal(goal.goal_id))

@@ -96,9 +96,10 @@ def load_public_key(alg: Algorithm, data: bytes) -> PublicKey:
             key = serialization.load_pem_public_key(data)
         else:
             key = serialization.load_der_public_key(data)
-    except (ValueError, UnsupportedAlgorithm) as exc:
-        raise KeyLoadError(f"neither the {KEY_BYTES[alg]} raw bytes of an {alg} public key "
-                           f"nor a PEM/DER SubjectPublicKeyInfo ({exc})") from None
+    except (ValueError, UnsupportedAlgorithm):
+        raise KeyLoadError(f"is neither the {KEY_BYTES[alg]} raw bytes of an {alg} public "
+                           f"key nor a PEM/DER SubjectPublicKeyInfo ({len(data)} bytes)"
+                           ) from None
     if not isinstance(key, (MLDSA65PublicKey, Ed25519PublicKey)) or algorithm_of(key) != alg:
         raise KeyLoadError(f"holds a {type(key).__name__}, not an {alg} public key")
     return key

@@ -21,7 +21,6 @@ import re
 from typing import Any, Final, Literal
 
 from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
-from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from cryptography.hazmat.primitives.asymmetric.mldsa import MLDSA65PublicKey
 
@@ -91,6 +90,8 @@ def load_public_key(alg: Algorithm, data: bytes) -> PublicKey:
     PEM/DER SubjectPublicKeyInfo. Raises KeyLoadError."""
     if len(data) == KEY_BYTES[alg]:
         return _from_raw(alg, data)
+    from cryptography.hazmat.primitives import serialization  # key files only: not for a run
+
     try:
         if data.lstrip().startswith(b"-----BEGIN"):
             key = serialization.load_pem_public_key(data)

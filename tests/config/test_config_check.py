@@ -176,6 +176,42 @@ def test_a_good_jwks_passes(tmp_path: Path) -> None:
     assert check(tmp_path, text) == 0
 
 
+# -- n-of-m approvals that nobody configured could give ------------------------------------
+
+PRINCIPALS = """principals:
+      - {name: ops, role: OWNER, token_env: RCAN_CHECK_TOKEN}
+      - {name: admin, role: ADMIN, token_env: RCAN_CHECK_TOKEN}
+      - {name: planner, role: USER, token_env: RCAN_CHECK_TOKEN}
+"""
+
+
+def _gated(approvals: int, roles: str = "[OWNER]") -> str:
+    api = CONFIG.replace("    auth_token_env: RCAN_CHECK_TOKEN\n", "")
+    return (api % {"host": "127.0.0.1", "api_extra": PRINCIPALS}
+            + f"  hitl:\n    gates: [{{action: arm_joint, require_auth: true, "
+            f"authorized_roles: {roles}, approvals: {approvals}}}]\n")
+
+
+@pytest.mark.parametrize("approvals", [1, 2])
+def test_approvals_the_configured_principals_can_give_pass(
+        approvals: int, tmp_path: Path) -> None:
+    assert check(tmp_path, _gated(approvals)) == 0  # ops and admin (ADMIN = OWNER)
+
+
+def test_more_approvals_than_principals_able_to_give_them_fail_the_check(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert check(tmp_path, _gated(3)) == 1
+    err = capsys.readouterr().err
+    assert "hitl.gates[arm_joint]: needs 3 distinct approvers of role OWNER" in err
+    assert "only 2 configured principal(s)" in err
+
+
+def test_a_creator_only_gate_with_no_creator_fails_even_the_file_only_check(
+        tmp_path: Path) -> None:
+    assert check(tmp_path, _gated(1, "[CREATOR]"), "--file-only") == 1  # the file's own fault
+    assert check(tmp_path, _gated(1, "[OWNER]"), "--file-only") == 0
+
+
 # -- signing keys of principals (issue 24 item 5) -------------------------------------------
 
 SIGNER = ("principals: [{name: ops, role: OWNER, token_env: RCAN_CHECK_TOKEN, "

@@ -150,10 +150,9 @@ def _status_owner(status: StatusHub, governor: Governor, robot: RobotView
                   ) -> Callable[[web.Application], AsyncIterator[None]]:
     async def owner(app: web.Application) -> AsyncIterator[None]:
         await status.start()
-        governor.status_listeners.append(status.changed)
+        governor.events.governance.subscribe(status.changed)  # a no-op once it closed
         robot.watch(status.changed)
         yield
-        governor.status_listeners.remove(status.changed)
         await status.close()
 
     return owner

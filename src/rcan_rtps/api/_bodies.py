@@ -71,6 +71,11 @@ class VerifyReport(msgspec.Struct, kw_only=True, omit_defaults=True):
     last_audit_id: str | None = None
     bad_seq: int | None = None
     detail: str | None = None
+    # The signed tree heads beside the log (RFC 6962 style) that match its entries, and the
+    # largest tree they cover; a head that does not match is a problem like a broken chain.
+    tree_heads: int | None = None
+    tree_size: int | None = None
+    problems: list[str] | None = None
 
 
 class WsFrame(msgspec.Struct, kw_only=True, omit_defaults=True):

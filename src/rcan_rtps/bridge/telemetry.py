@@ -21,8 +21,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from .._listeners import tell_all
 from ..config import RcanConfig
+from ..events import Events
 from ..rcan import Fault, Joints, Navigation, Position, RosInfo, Status, Telemetry, Velocity
 from ..ros import qos
 from ..ros.participant import RosNode
@@ -47,7 +47,8 @@ class TelemetryState:
     def __init__(self, node: RosNode, config: RcanConfig, *,
                  estop_latched: Callable[[], bool], active_goals: Callable[[], list[str]],
                  navigation: Callable[[], Navigation | None] = lambda: None,
-                 monotonic: Callable[[], float] = time.monotonic) -> None:
+                 monotonic: Callable[[], float] = time.monotonic,
+                 events: Events | None = None) -> None:
         self.config = config
         self._estop_latched = estop_latched
         self._active_goals = active_goals
@@ -63,7 +64,7 @@ class TelemetryState:
         self._faults: dict[str, Fault] = {}
         self.safe_stopped = False
         # Told (on the reader thread, or the loop) when what STATUS shows may have changed.
-        self.listeners: list[Callable[[], None]] = []
+        self.events = events or Events()
         ros2 = config.bridge.ros2
         self.domain_id = node.domain_id
         self._own_hardware_id = node.fqn  # what the bridge's DiagnosticsNotifier signs with
@@ -96,7 +97,7 @@ class TelemetryState:
 
     def _tell(self, changed: bool) -> None:
         if changed:
-            tell_all(self.listeners, log, "telemetry")
+            self.events.robot.emit()
 
     def _on_odom(self, msg: Any) -> None:
         p, twist = msg.pose.pose, msg.twist.twist

@@ -153,9 +153,13 @@ async def test_verify_passes_unsigned_messages_required_refuses_them(api: Api) -
     assert reply["msg_id"] == unsigned["msg_id"]
     assert api.entry(reply["audit_id"])["deny_reason"] == "SIGNATURE_REQUIRED:unsigned"
     # the 1.2 forms carry no signature at all
-    status, reply = await api.command("ops", {"action": "move", "params": {"linear_x": 0.2}})
+    short = {"action": "move", "params": {"linear_x": 0.2},
+             "message_id": "7d0c6f1e-2a43-4a8e-9a41-0a6f1f6b2c11"}
+    status, reply = await api.command("ops", short)
     assert (status, reply["error_code"], reply["reason"]) == (
         403, "SIGNATURE_REQUIRED", "unsigned"), reply
+    assert "msg_id" not in reply  # a 1.2 reply
+    assert api.entry(reply["audit_id"])["message_id"] == short["message_id"]
     assert len(api.dispatcher.calls) == 1
 
 

@@ -82,6 +82,7 @@ class Intake:
     detail: str | None = None
     msg_id: str | None = None
     rcan: dict[str, Any] | None = None  # a refused RCAN 3.x message's envelope facts (audit)
+    refused_id: str | None = None  # a refused 1.2 form's own message_id (audit only)
 
     @property
     def stopping(self) -> bool:
@@ -144,7 +145,8 @@ def _checked(command: NormalizedCommand, checks: Checks, principal: str | None) 
             command, warnings=(*command.warnings, *warnings)))
     envelope = command.envelope
     if envelope is None:  # a 1.2 form refused by a `required` policy
-        return Intake(refusal=refusals[0])
+        own_id = command.message_id if command.client_message_id else None
+        return Intake(refusal=refusals[0], refused_id=own_id)
     return Intake(refusal=refusals[0], msg_id=envelope.msg_id, rcan=envelope.audit_facts())
 
 
@@ -167,8 +169,8 @@ async def decide(governor: Governor, principal: Principal, item: Intake,
             decision = await governor.decide(item.command, principal)
             return decision.http_status, replied(decision.body(), item.command.envelope)
         assert item.refusal is not None
-        decision = await governor.reject_request(principal, item.refusal,
-                                                 message_id=item.msg_id, rcan=item.rcan)
+        decision = await governor.reject_request(principal, item.refusal, rcan=item.rcan,
+                                                 message_id=item.msg_id or item.refused_id)
         if item.refusal.error_code is not ErrorCode.SCHEMA_VALIDATION_FAILED:
             refused = decision.body()
             if item.msg_id is not None:

@@ -210,3 +210,26 @@ def test_a_creator_only_gate_with_no_creator_fails_even_the_file_only_check(
         tmp_path: Path) -> None:
     assert check(tmp_path, _gated(1, "[CREATOR]"), "--file-only") == 1  # the file's own fault
     assert check(tmp_path, _gated(1, "[OWNER]"), "--file-only") == 0
+
+
+# -- signing keys of principals (issue 24 item 5) -------------------------------------------
+
+SIGNER = ("principals: [{name: ops, role: OWNER, token_env: RCAN_CHECK_TOKEN, "
+          "signatures: {policy: required, keys: [{kid: k1, alg: ed25519, "
+          "public_key_file: keys/ops.pub}]}}]")
+
+
+def test_a_signing_key_file_is_checked_relative_to_the_config(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    text = config_text("127.0.0.1", SIGNER)
+    assert check(tmp_path, text) == 1
+    assert f"cannot read {tmp_path / 'keys' / 'ops.pub'}" in capsys.readouterr().err
+    assert check(tmp_path, text, "--file-only") == 0
+    (tmp_path / "keys").mkdir()
+    (tmp_path / "keys" / "ops.pub").write_bytes(b"\0" * 31)
+    assert check(tmp_path, text) == 1
+    assert "is neither the 32 raw bytes of an ed25519" in capsys.readouterr().err
+    key = Ed25519PrivateKey.generate().public_key()
+    (tmp_path / "keys" / "ops.pub").write_bytes(key.public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo))
+    assert check(tmp_path, text) == 0

@@ -10,6 +10,7 @@ from aiohttp import WSCloseCode, web
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import Clock, Governor, Principal, SystemClock
 from rcan_rtps.governance.replay import ReplayWindow
+from rcan_rtps.governance.signatures import Signatures
 from rcan_rtps.rcan import Role
 
 from . import _routes as r
@@ -57,22 +58,27 @@ def settings_from_config(config: RcanConfig) -> ApiSettings:
     )
 
 
-def message_checks(config: RcanConfig, clock: Clock) -> Checks:
+def message_checks(config: RcanConfig, clock: Clock,
+                   signatures: Signatures | None = None) -> Checks:
+    """§8.3's window, and the principals' signature keys and policies (loaded from the config
+    unless given: raises AuthConfigError for a key that does not load)."""
     security = config.bridge.security
     return Checks(replay=ReplayWindow(clock, window_s=security.replay_window_s,
                                       ahead_s=security.clock_ahead_s,
-                                      max_entries=security.msg_id_cache_size))
+                                      max_entries=security.msg_id_cache_size),
+                  signatures=signatures or Signatures.from_config(config.bridge.api))
 
 
 def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotView,
               config: RcanConfig, cert_principals: Mapping[str, Principal] | None = None,
-              settings: ApiSettings | None = None, clock: Clock | None = None
-              ) -> web.Application:
+              settings: ApiSettings | None = None, clock: Clock | None = None,
+              signatures: Signatures | None = None) -> web.Application:
     """The API. It never starts or stops the governor: whoever built that owns its lifetime.
 
     `cert_principals` maps a client certificate's subject CN to a principal (mTLS); by default
     the configured principals, by name, when `api.tls.client_ca` is set. `clock` is the wall
-    clock RCAN 3.x message timestamps are held against (§8.3).
+    clock RCAN 3.x message timestamps are held against (§8.3). `signatures`: the principals'
+    signing keys, already loaded (else loaded from `config`).
     """
     settings = settings or settings_from_config(config)
     # aiohttp's own limit backs ours up for any body read outside `read_limited`.
@@ -84,7 +90,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app[DEADLINES] = deadlines  # ApiServer serves connections through it
     app[GOVERNOR] = governor
     app[AUTHENTICATOR] = authenticator
-    app[CHECKS] = message_checks(config, clock or SystemClock())
+    app[CHECKS] = message_checks(config, clock or SystemClock(), signatures)
     app[ROBOT] = robot
     app[SETTINGS] = settings
     app[CERT_PRINCIPALS] = dict(config_cert_principals(config) if cert_principals is None

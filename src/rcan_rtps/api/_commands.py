@@ -70,7 +70,7 @@ async def schema_failure(governor: Governor, principal: Principal, path: str,
 async def run_command(governor: Governor, principal: Principal, raw: bytes,
                       observe: Observe | None = None, checks: Checks = NO_CHECKS) -> Reply:
     """A whole body, already within the size limit, to its reply."""
-    return await decide(governor, principal, intake(raw, len(raw), checks), observe)
+    return await decide(governor, principal, intake(raw, len(raw), checks, principal.name), observe)
 
 
 def decode_as(raw: bytes, kind: type[T]) -> T:

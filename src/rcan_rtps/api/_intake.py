@@ -30,6 +30,7 @@ import msgspec
 from rcan_rtps.governance import Governor, Principal, Rejection, outcomes
 from rcan_rtps.governance.clock import SystemClock, now_ms
 from rcan_rtps.governance.replay import ReplayWindow
+from rcan_rtps.governance.signatures import Signatures
 from rcan_rtps.rcan import (
     STATUS_OF,
     DecisionBody,
@@ -60,9 +61,11 @@ _WALL = SystemClock()
 
 @dataclass(frozen=True)
 class Checks:
-    """What every transport checks of an RCAN 3.x message beyond its schema (§8.3)."""
+    """What every transport checks of a message beyond its schema: signatures (per principal)
+    and the §8.3 replay window."""
 
     replay: ReplayWindow | None = None
+    signatures: Signatures | None = None
 
 
 NO_CHECKS = Checks()
@@ -78,6 +81,8 @@ class Intake:
     refusal: Rejection | None = None
     detail: str | None = None
     msg_id: str | None = None
+    rcan: dict[str, Any] | None = None  # a refused RCAN 3.x message's envelope facts (audit)
+    refused_id: str | None = None  # a refused 1.2 form's own message_id (audit only)
 
     @property
     def stopping(self) -> bool:
@@ -89,9 +94,11 @@ class Intake:
         return None if self.command is None else self.command.message_id
 
 
-def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS) -> Intake:
-    """Size check, `validate_message`, then the replay window; every failure becomes a
-    refusal, never a raise. A stale or replayed stop is still that stop, with a warning."""
+def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS,
+           principal: str | None = None) -> Intake:
+    """Size check, `validate_message`, then the sender's signature policy and the replay
+    window; every failure becomes a refusal, never a raise. A stop that fails the last two is
+    still that stop, with a warning for each failure."""
     if len(raw) > limit:
         return Intake(refusal=outcomes.PAYLOAD_TOO_LARGE)
     try:
@@ -107,17 +114,40 @@ def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS) -> Intake:
     except Exception:
         log.exception("validating a command body failed unexpectedly")
         return Intake(refusal=_INTERNAL)
-    refusal = _replay_refusal(message, checks.replay)
-    if refusal is None:
-        if isinstance(message, Heartbeat):
+    if isinstance(message, Heartbeat):  # not a command: no signature policy
+        refusal = _replay_refusal(message, checks.replay)
+        if refusal is None:
             return Intake(heartbeat=message)
-        return Intake(command=message)
-    if isinstance(message, NormalizedCommand) and message.spec.stopping:
-        warning = f"{refusal.deny_reason}: stopped all the same (a stop always stops)"
+        assert message.envelope is not None  # only envelopes are checked
+        return Intake(refusal=refusal, msg_id=message.envelope.msg_id)
+    return _checked(message, checks, principal)
+
+
+def _checked(command: NormalizedCommand, checks: Checks, principal: str | None) -> Intake:
+    refusals: list[Rejection] = []
+    if checks.signatures is not None and principal is not None:
+        refusal, envelope = checks.signatures.check(principal, command.envelope)
+        if envelope is not command.envelope:
+            command = msgspec.structs.replace(command, envelope=envelope)
+        if refusal is not None:
+            refusals.append(refusal)
+    # A message refused for its signature does not use up its msg_id (a stop goes on anyway).
+    if not refusals or command.spec.stopping:
+        refusal = _replay_refusal(command, checks.replay)
+        if refusal is not None:
+            refusals.append(refusal)
+    if not refusals:
+        return Intake(command=command)
+    if command.spec.stopping:
+        warnings = [f"{r.deny_reason}: stopped all the same (a stop always stops)"
+                    for r in refusals]
         return Intake(command=msgspec.structs.replace(
-            message, warnings=(*message.warnings, warning)))
-    assert message.envelope is not None  # only envelopes are checked
-    return Intake(refusal=refusal, msg_id=message.envelope.msg_id)
+            command, warnings=(*command.warnings, *warnings)))
+    envelope = command.envelope
+    if envelope is None:  # a 1.2 form refused by a `required` policy
+        own_id = command.message_id if command.client_message_id else None
+        return Intake(refusal=refusals[0], refused_id=own_id)
+    return Intake(refusal=refusals[0], msg_id=envelope.msg_id, rcan=envelope.audit_facts())
 
 
 def _replay_refusal(message: NormalizedCommand | Heartbeat,
@@ -139,8 +169,8 @@ async def decide(governor: Governor, principal: Principal, item: Intake,
             decision = await governor.decide(item.command, principal)
             return decision.http_status, replied(decision.body(), item.command.envelope)
         assert item.refusal is not None
-        decision = await governor.reject_request(principal, item.refusal,
-                                                 message_id=item.msg_id)
+        decision = await governor.reject_request(principal, item.refusal, rcan=item.rcan,
+                                                 message_id=item.msg_id or item.refused_id)
         if item.refusal.error_code is not ErrorCode.SCHEMA_VALIDATION_FAILED:
             refused = decision.body()
             if item.msg_id is not None:

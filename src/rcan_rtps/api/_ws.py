@@ -113,7 +113,7 @@ class _Commands:
 
     async def take(self, raw: bytes) -> None:
         """Validate now; a stop is decided at once (never 429), anything else queues."""
-        item = intake(raw, self._limit, self._checks)
+        item = intake(raw, self._limit, self._checks, self._principal.name)
         if item.stopping:
             await self._lane.submit(item)
             return

@@ -47,6 +47,7 @@ from ..governance import (
     load_private_key,
 )
 from ..governance.decision_log import log_entry
+from ..governance.signatures import Signatures
 from ..rcan import Status
 from ..ros.participant import RosNode
 from ..ros.services import RequestMapping
@@ -138,6 +139,7 @@ Cleanup = Callable[[], object]  # returns None or an awaitable
 class Bridge:
     # Set by prepare().
     _authenticator: TokenAuthenticator
+    _signatures: Signatures
     _ssl: ssl.SSLContext | None
     _sock: socket.socket
 
@@ -247,6 +249,7 @@ class Bridge:
         self._authenticator = TokenAuthenticator.from_config(
             api, self.config.bridge.rbac, opts.env, clock=SystemClock())
         self._ssl = server_ssl_context(api.tls) if api.tls else None
+        self._signatures = Signatures.from_config(api)  # a key that does not load: refuse now
         key = Path(self.config.bridge.audit.key_path)
         if key.exists():
             load_private_key(key)  # unreadable, too open or not Ed25519: refuse now
@@ -333,7 +336,8 @@ class Bridge:
         api, opts = self.config.bridge.api, self.options
         app = build_app(governor=governor, authenticator=self._authenticator,
                         robot=BridgeView(telemetry, goals), config=self.config,
-                        cert_principals=cert_principals(self.config) if api.tls else None)
+                        cert_principals=cert_principals(self.config) if api.tls else None,
+                        signatures=self._signatures)
         server = self.server = ApiServer(app, host=opts.host or api.host,
                                          port=api.port if opts.port is None else opts.port,
                                          ssl_context=self._ssl, sock=self._sock)

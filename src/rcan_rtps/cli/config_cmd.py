@@ -55,13 +55,14 @@ def _report(heading: str, problems: list[str]) -> bool:
 
 
 def run_problems(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
-    """What stops `rcan-rtps run` with this config on this machine: tokens, TLS, JWT keys."""
+    """What stops `rcan-rtps run` with this config on this machine: tokens, TLS, JWT and
+    signing keys."""
     problems: list[str] = []
     missing = missing_tokens(config, env)
     if missing:
         problems.append(f"token variables unset or shorter than {MIN_TOKEN_BYTES} bytes: "
                         f"{', '.join(missing)}")
-    return problems + tls_problems(config) + jwt_problems(config)
+    return problems + tls_problems(config) + jwt_problems(config) + signer_problems(config)
 
 
 def approval_problems(config: RcanConfig) -> list[str]:
@@ -141,4 +142,18 @@ def jwt_problems(config: RcanConfig) -> list[str]:
             load_pem_key(jwt.public_key or "")
     except AuthConfigError as exc:
         return [f"bridge.api.jwt: {exc}"]
+    return []
+
+
+def signer_problems(config: RcanConfig) -> list[str]:
+    """A principal's signing key (inline or file) that does not load as a key of its alg."""
+    if not any(p.signatures for p in config.bridge.api.principals):
+        return []
+    from rcan_rtps.governance import AuthConfigError
+    from rcan_rtps.governance.signatures import Signatures
+
+    try:
+        Signatures.from_config(config.bridge.api)
+    except AuthConfigError as exc:
+        return [f"bridge.api: {exc}"]
     return []

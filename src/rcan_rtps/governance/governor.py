@@ -243,7 +243,8 @@ class Governor:
                                        ruri=None)
 
     async def reject_request(self, principal: Principal | None, rejection: Rejection, *,
-                             message_id: str | None = None) -> Decision:
+                             message_id: str | None = None,
+                             rcan: dict[str, Any] | None = None) -> Decision:
         """A request refused before it became a command (schema, size, credentials).
 
         Unauthenticated requests are not audited: anyone could fill the disk with them.
@@ -253,7 +254,7 @@ class Governor:
         entry = AuditRecord(
             event=AuditEvent.COMMAND_REJECTED, principal=principal.name, role=principal.role.name,
             message_id=message_id, outcome=rejection.outcome.value,
-            deny_reason=rejection.deny_reason,
+            deny_reason=rejection.deny_reason, rcan=rcan,
         )
         return decision(rejection, await self.audit.append(entry), message_id=message_id)
 

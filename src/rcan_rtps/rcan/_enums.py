@@ -63,6 +63,9 @@ class ErrorCode(str, enum.Enum):
     VERSION_INCOMPATIBLE = "VERSION_INCOMPATIBLE"  # §3.5: rcan_version of another MAJOR
     MESSAGE_STALE = "MESSAGE_STALE"  # §8.3: timestamp outside the replay window
     REPLAY_DETECTED = "REPLAY_DETECTED"  # §8.3: msg_id already seen within the window
+    # Signed messages (docs/rcan-profile.md, "Signed messages")
+    SIGNATURE_INVALID = "SIGNATURE_INVALID"  # a sig that does not verify with a key of yours
+    SIGNATURE_REQUIRED = "SIGNATURE_REQUIRED"  # your policy is `required`: unsigned, or loose
 
 
 class Reason(str, enum.Enum):

@@ -17,7 +17,6 @@ are always refused: a typo must not become a zero.
 
 from __future__ import annotations
 
-import json
 import re
 import uuid
 from typing import Annotated, Any, Literal
@@ -99,6 +98,10 @@ class Envelope(msgspec.Struct, frozen=True, kw_only=True):
     attestation_ref: str | None = None
     sig: Signature | None = None
     signed: bytes | None = None  # the bytes `sig` covers
+    verified: bool = False  # `sig` checked against a trusted key of the sender (signatures)
+    # Governance fields of the message outside what a signature covers (`confidence`, `ai`
+    # given beside `params` rather than inside them).
+    unsigned_fields: tuple[str, ...] = ()
 
     @property
     def replay_checked(self) -> bool:
@@ -116,7 +119,7 @@ class Envelope(msgspec.Struct, frozen=True, kw_only=True):
         if self.attestation_ref is not None:
             facts["attestation_ref"] = self.attestation_ref
         if self.sig is not None:
-            facts["sig"] = {"alg": self.sig.alg, "kid": self.sig.kid}
+            facts["sig"] = {"alg": self.sig.alg, "kid": self.sig.kid, "verified": self.verified}
         return facts or None
 
 
@@ -173,17 +176,6 @@ def normal_id(text: str) -> str:
         return str(uuid.UUID(text))
     except ValueError:
         return text
-
-
-def signed_bytes(obj: dict[str, Any]) -> bytes:
-    """The bytes `rcan.signing` signs for a COMMAND (`_canonical_message_bytes`): the JSON of
-    rcan, msg_id, timestamp, cmd, target and params with sorted keys and no whitespace, in
-    Python's `json` spelling (ASCII escapes, floats by repr) — made again from what arrived."""
-    rcan = obj.get("rcan", obj.get("rcan_version"))
-    payload = {"rcan": rcan, "msg_id": obj.get("msg_id"), "timestamp": obj.get("timestamp"),
-               "cmd": obj.get("cmd"), "target": obj.get("target"),
-               "params": obj.get("params", {})}
-    return json.dumps(payload, sort_keys=True, separators=(",", ":")).encode()
 
 
 Status3 = Literal["ok", "pending", "blocked", "error"]

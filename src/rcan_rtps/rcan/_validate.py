@@ -15,7 +15,8 @@ from ._errors import InvalidRuriError, SchemaValidationError, VersionIncompatibl
 from ._messages import AiInfo, EnvelopeCommand, NormalizedCommand, SafetyMessage, ShortCommand
 from ._ruri import parse_ruri
 from ._salvage import duplicate_key, salvage_stop, stop_intent
-from ._types import ActionParams
+from ._signatures import signed_bytes
+from ._types import ActionParams, Confidence, Strict
 from ._v3 import (
     Envelope,
     Heartbeat,
@@ -23,7 +24,6 @@ from ._v3 import (
     RcanCommand,
     message_version,
     normal_id,
-    signed_bytes,
     split_known,
 )
 from .actions import Effect, action_spec, names, with_effect
@@ -299,6 +299,8 @@ def _from_v3(cmd: RcanCommand, obj: dict[str, Any], claimed_role: Any,
         raise SchemaValidationError("$.cmd", f"unknown action {cmd.cmd!r} (this robot's: "
                                     f"{', '.join(names())})")
     parse_ruri(cmd.target)
+    unsigned = tuple(f for f in _GOVERNANCE_FIELDS if getattr(cmd, f) is not None)
+    cmd = _lift_governance(cmd)
     ai = _v3_ai(cmd)
     version = cmd.rcan_version or cmd.rcan
     return NormalizedCommand(
@@ -314,8 +316,34 @@ def _from_v3(cmd: RcanCommand, obj: dict[str, Any], claimed_role: Any,
         envelope=Envelope(
             version=version, msg_id=cmd.msg_id, sent_at_s=cmd.timestamp, ignored=ignored,
             firmware_hash=cmd.firmware_hash, attestation_ref=cmd.attestation_ref, sig=cmd.sig,
-            signed=signed_bytes(obj) if cmd.sig is not None else None),
+            signed=signed_bytes(obj) if cmd.sig is not None else None,
+            unsigned_fields=unsigned),
     )
+
+
+# A COMMAND's governance fields: beside `params` (the SDK's `confidence`) or inside them, where
+# a signature covers them; never action parameters.
+_GOVERNANCE_FIELDS = ("confidence", "ai")
+
+
+class _SignedGovernance(Strict, frozen=True):
+    confidence: Confidence | None = None
+    ai: dict[str, Any] | None = None
+
+
+def _lift_governance(cmd: RcanCommand) -> RcanCommand:
+    """`cmd` with `confidence`/`ai` taken out of its params (once only: not in both places)."""
+    inside = {k: v for k, v in cmd.params.items() if k in _GOVERNANCE_FIELDS}
+    if not inside:
+        return cmd
+    for name in inside:
+        if getattr(cmd, name) is not None:
+            raise SchemaValidationError(f"$.params.{name}", f"given twice: inside params "
+                                        f"(signed) and beside them ({name})")
+    lifted = convert_at(inside, _SignedGovernance, "$.params")
+    params = {k: v for k, v in cmd.params.items() if k not in _GOVERNANCE_FIELDS}
+    return msgspec.structs.replace(cmd, params=params, confidence=lifted.confidence,
+                                   ai=lifted.ai)
 
 
 def _v3_ai(cmd: RcanCommand) -> AiInfo | None:

@@ -56,6 +56,7 @@ class Approval(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
     decision: Literal["approve", "deny", "withdraw"]
     at_ms: int
     reason: str | None = None
+    message_id: str | None = None  # the AUTHORIZE message (§16.4) that said it, if one did
 
 
 class SafetyMessage(Strict, frozen=True):
@@ -131,6 +132,9 @@ class ErrorBody(msgspec.Struct, omit_defaults=True, kw_only=True):
     reason: str | None = None
     path: str | None = None
     audit_id: str | None = None
+    # A refused message of the RCAN 3.x generation: its id, and `outcome` as its status.
+    msg_id: str | None = None
+    status: Status3 | None = None
 
 
 class PendingAuth(msgspec.Struct, kw_only=True):

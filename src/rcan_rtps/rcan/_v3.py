@@ -102,6 +102,7 @@ class Envelope(msgspec.Struct, frozen=True, kw_only=True):
     # Governance fields of the message outside what a signature covers (`confidence`, `ai`
     # given beside `params` rather than inside them).
     unsigned_fields: tuple[str, ...] = ()
+    skill: str | None = None  # an INVOKE's skill (§19), recorded beside its action
 
     @property
     def replay_checked(self) -> bool:
@@ -112,6 +113,8 @@ class Envelope(msgspec.Struct, frozen=True, kw_only=True):
         """What the audit entry's `rcan` object records (never the signature's value); None
         for a message of the 3.x forms that carries nothing beyond a 1.2 one would."""
         facts: dict[str, Any] = {} if self.version is None else {"version": self.version}
+        if self.skill is not None:
+            facts["skill"] = self.skill
         if self.ignored:
             facts["ignored"] = list(self.ignored)
         if self.firmware_hash is not None:
@@ -141,7 +144,7 @@ def message_version(obj: dict[str, Any]) -> str | None:
         raise SchemaValidationError("$.rcan", f"{alias!r} differs from rcan_version {given!r}")
     if given is None:
         return None
-    msg_id = _readable_id(obj)
+    msg_id = readable_id(obj)
     if not isinstance(given, str):
         raise VersionIncompatibleError(repr(given), "not a version string", msg_id)
     try:
@@ -155,7 +158,8 @@ def message_version(obj: dict[str, Any]) -> str | None:
     return given
 
 
-def _readable_id(obj: dict[str, Any]) -> str | None:
+def readable_id(obj: dict[str, Any]) -> str | None:
+    """The message's id as a reply may echo it: printable, at most 64 characters."""
     for key in ("msg_id", "message_id"):
         value = obj.get(key)
         if isinstance(value, str) and 0 < len(value) <= 64 and value.isprintable():

@@ -28,6 +28,8 @@ from rcan_rtps.rcan import (
 )
 from rcan_rtps.rcan.actions import GoalRoute, goal_routes, with_effect
 
+from ._skills import skill_problem
+
 _ROS_NAME = re.compile(r"^~?/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*$")
 _NODE_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
 _PRINCIPAL = r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$"
@@ -459,6 +461,27 @@ class SecurityConfig(_Section, frozen=True, kw_only=True):
     clock_ahead_s: Annotated[float, msgspec.Meta(ge=0.0, le=60.0)] = 5.0
 
 
+ParamName = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+SkillName = Annotated[str, msgspec.Meta(
+    min_length=1, max_length=128, pattern=r"^[a-z][a-z0-9_]*(\.[a-z][a-z0-9_]*)*$")]
+
+
+class SkillConfig(_Section, frozen=True, kw_only=True):
+    """One skill an INVOKE may name (RCAN §19): a registry action (never a stop: those have
+    their own lane), its fixed parameters, and those the invoker may set."""
+
+    action: GateableName
+    params: dict[ParamName, Any] = {}
+    allow: list[ParamName] = []
+    description: Annotated[str, msgspec.Meta(max_length=256)] = ""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        problem = skill_problem(self.action, self.params, self.allow)
+        if problem is not None:
+            raise ValueError(problem)
+
+
 class BridgeConfig(_Section, frozen=True, kw_only=True):
     type: Literal["ros2"] = "ros2"
     ros2: Ros2Config = Ros2Config()
@@ -469,6 +492,7 @@ class BridgeConfig(_Section, frozen=True, kw_only=True):
     rbac: RbacConfig = RbacConfig()
     motion: MotionConfig = MotionConfig()
     security: SecurityConfig = SecurityConfig()
+    skills: dict[SkillName, SkillConfig] = {}  # what INVOKE may run (§19)
 
 
 class RcanConfig(_Section, frozen=True, kw_only=True):

@@ -17,6 +17,7 @@ from . import _routes as r
 from ._conn import ConnectionDeadlines, track_requests
 from ._goal_events import GoalEvents
 from ._intake import Checks
+from ._invoke import Invocations
 from ._keys import (
     AUTHENTICATOR,
     CERT_PRINCIPALS,
@@ -24,6 +25,7 @@ from ._keys import (
     DEADLINES,
     GOAL_EVENTS,
     GOVERNOR,
+    INVOCATIONS,
     OBSERVE,
     READS,
     ROBOT,
@@ -106,6 +108,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.cleanup_ctx.append(_status_owner(status, governor, robot))
     app[GOAL_EVENTS] = goal_events = GoalEvents()
     robot.watch_goals(goal_events.offer)
+    app[INVOCATIONS] = Invocations(config.bridge.skills, robot)
     metrics = Metrics(governor, status)
     app[OBSERVE] = metrics.command_seconds.observe
 

@@ -29,6 +29,9 @@ class ApiError(msgspec.Struct, kw_only=True, omit_defaults=True):
     path: str | None = None
     audit_id: str | None = None
     message_id: str | None = None  # when the refused body had one (matches WebSocket replies)
+    # A refused message of the RCAN 3.x generation: its id, and `outcome` as its status.
+    msg_id: str | None = None
+    status: Literal["ok", "pending", "blocked", "error"] | None = None
 
 
 class GoalList(msgspec.Struct, kw_only=True):

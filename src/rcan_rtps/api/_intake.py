@@ -33,19 +33,24 @@ from rcan_rtps.governance.replay import ReplayWindow
 from rcan_rtps.governance.signatures import Signatures
 from rcan_rtps.rcan import (
     STATUS_OF,
+    Authorization,
     DecisionBody,
     Envelope,
     ErrorCode,
     Heartbeat,
     InvalidRuriError,
+    Invoke,
+    InvokeCancel,
     NormalizedCommand,
     Outcome,
     SchemaValidationError,
     VersionIncompatibleError,
+    reply_id,
     validate_message,
 )
 
 from ._bodies import HeartbeatReply, error_body, failure_reply
+from ._invoke import NO_SKILLS, Invocations, authorize
 
 log = logging.getLogger(__name__)
 
@@ -73,11 +78,13 @@ NO_CHECKS = Checks()
 
 @dataclass(frozen=True)
 class Intake:
-    """A validated command or HEARTBEAT, or the pre-command refusal its body earned (with
-    schema detail, and the message's id where an RCAN 3.x reply needs it)."""
+    """A validated command, HEARTBEAT, INVOKE, INVOKE_CANCEL or AUTHORIZE, or the pre-command
+    refusal its body earned (with schema detail, and the message's id where an RCAN 3.x reply
+    needs it)."""
 
     command: NormalizedCommand | None = None
     heartbeat: Heartbeat | None = None
+    message3: Invoke | InvokeCancel | Authorization | None = None
     refusal: Rejection | None = None
     detail: str | None = None
     msg_id: str | None = None
@@ -106,9 +113,10 @@ def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS,
     except RecursionError:  # msgspec gives up on deep nesting with this, not a DecodeError
         return Intake(refusal=outcomes.schema_failed("$"), detail=TOO_DEEP)
     except SchemaValidationError as exc:
-        return Intake(refusal=outcomes.schema_failed(exc.path), detail=exc.detail)
+        return Intake(refusal=outcomes.schema_failed(exc.path), detail=exc.detail,
+                      msg_id=reply_id(raw))
     except InvalidRuriError as exc:
-        return Intake(refusal=outcomes.invalid_ruri(exc.rule))
+        return Intake(refusal=outcomes.invalid_ruri(exc.rule), msg_id=reply_id(raw))
     except VersionIncompatibleError as exc:
         return Intake(refusal=outcomes.version_incompatible(exc.rule), msg_id=exc.msg_id)
     except Exception:
@@ -120,7 +128,25 @@ def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS,
             return Intake(heartbeat=message)
         assert message.envelope is not None  # only envelopes are checked
         return Intake(refusal=refusal, msg_id=message.envelope.msg_id)
+    if not isinstance(message, NormalizedCommand):
+        return _checked_message3(message, checks, principal)
     return _checked(message, checks, principal)
+
+
+def _checked_message3(message: Invoke | InvokeCancel | Authorization, checks: Checks,
+                      principal: str | None) -> Intake:
+    """INVOKE, INVOKE_CANCEL, AUTHORIZE: the sender's signature policy (none of them can be
+    signed: under `required` they are refused, so no command escapes the policy through a
+    skill), then the replay window."""
+    refusal = None
+    if checks.signatures is not None and principal is not None:
+        refusal, _ = checks.signatures.check(principal, message.envelope)
+    if refusal is None:
+        refusal = _replay_refusal(message, checks.replay)
+    if refusal is None:
+        return Intake(message3=message)
+    envelope = message.envelope
+    return Intake(refusal=refusal, msg_id=envelope.msg_id, rcan=envelope.audit_facts())
 
 
 def _checked(command: NormalizedCommand, checks: Checks, principal: str | None) -> Intake:
@@ -150,8 +176,8 @@ def _checked(command: NormalizedCommand, checks: Checks, principal: str | None) 
     return Intake(refusal=refusals[0], msg_id=envelope.msg_id, rcan=envelope.audit_facts())
 
 
-def _replay_refusal(message: NormalizedCommand | Heartbeat,
-                    window: ReplayWindow | None) -> Rejection | None:
+def _replay_refusal(message: NormalizedCommand | Heartbeat | Invoke | InvokeCancel
+                    | Authorization, window: ReplayWindow | None) -> Rejection | None:
     envelope = message.envelope
     if window is None or envelope is None or not envelope.replay_checked:
         return None
@@ -159,12 +185,17 @@ def _replay_refusal(message: NormalizedCommand | Heartbeat,
 
 
 async def decide(governor: Governor, principal: Principal, item: Intake,
-                 observe: Observe | None = None) -> Reply:
-    """The decision for one intake; pre-command refusals are audited for the principal."""
+                 observe: Observe | None = None,
+                 invocations: Invocations | None = None) -> Reply:
+    """The decision for one intake; pre-command refusals are audited for the principal. An
+    INVOKE of a goal is answered when the goal ends (`_invoke`)."""
     started = time.perf_counter()
     try:
         if item.heartbeat is not None:
             return 200, heartbeat(governor, principal, item.heartbeat)
+        if item.message3 is not None:
+            return await _message3(governor, principal, item.message3,
+                                   invocations or NO_SKILLS)
         if item.command is not None:
             decision = await governor.decide(item.command, principal)
             return decision.http_status, replied(decision.body(), item.command.envelope)
@@ -179,10 +210,26 @@ async def decide(governor: Governor, principal: Principal, item: Intake,
         # Schema failures also say what was wrong where (the reason is the field path).
         body = error_body(ErrorCode.SCHEMA_VALIDATION_FAILED, reason=item.detail,
                           path=item.refusal.reason, audit_id=decision.audit_id)
+        if item.msg_id is not None:
+            body.msg_id, body.status = item.msg_id, STATUS_OF[body.outcome]
         return decision.http_status, body
     finally:
         if observe is not None:
             observe(time.perf_counter() - started)
+
+
+async def _message3(governor: Governor, principal: Principal,
+                    message: Invoke | InvokeCancel | Authorization,
+                    invocations: Invocations) -> Reply:
+    if isinstance(message, Authorization):
+        return await authorize(governor, principal, message)
+    if isinstance(message, InvokeCancel):
+        return await invocations.cancel(governor, principal, message)
+    started = await invocations.start(governor, principal, message)
+    if started.finish is not None:
+        return await started.finish()
+    assert started.reply is not None
+    return started.reply
 
 
 def replied(body: DecisionBody, envelope: Envelope | None) -> DecisionBody:
@@ -201,11 +248,12 @@ def heartbeat(governor: Governor, principal: Principal, beat: Heartbeat) -> Hear
 
 
 async def decide_safely(governor: Governor, principal: Principal, item: Intake,
-                        observe: Observe | None = None) -> Reply:
+                        observe: Observe | None = None,
+                        invocations: Invocations | None = None) -> Reply:
     """`decide` for transports without a last-resort middleware: an exception is an answer
     (503, as REST gives), never the end of the connection's command handling."""
     try:
-        return await decide(governor, principal, item, observe)
+        return await decide(governor, principal, item, observe, invocations)
     except Exception as exc:
         log.exception("deciding a command of %s failed", principal.name,
                       extra={"principal": principal.name})

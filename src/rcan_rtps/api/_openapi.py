@@ -44,7 +44,8 @@ _COMMAND_BODY = {
     "required": True,
     "content": {"application/json": {"schema": {
         "oneOf": [_ref("ShortCommand"), _ref("EnvelopeCommand"), _ref("RcanCommand"),
-                  _ref("SafetyMessage"), _ref("HeartbeatMessage")]}}},
+                  _ref("SafetyMessage"), _ref("HeartbeatMessage"), _ref("InvokeMessage"),
+                  _ref("InvokeCancelMessage"), _ref("AuthorizeMessage")]}}},
 }
 _AUTHORIZE_BODY = {"required": True,
                    "content": {"application/json": {"schema": _ref("Authorize")}}}
@@ -76,10 +77,17 @@ def _query(name: str, description: str) -> dict[str, Any]:
 
 
 _HITL_DECISION = _DECISION | {"404": _json("DecisionBody", "unknown or expired pending_id")}
+# An INVOKE (and INVOKE_CANCEL) is answered with an INVOKE_RESULT (§19.3), any other body with
+# a decision.
+_COMMAND_DECISION = _DECISION | {"200": {
+    "description": "executed (possibly clamped; see `applied`); an INVOKE's INVOKE_RESULT",
+    "content": {"application/json": {"schema": {
+        "oneOf": [_ref("DecisionBody"), _ref("InvokeResult")]}}}}}
 
 PATHS: dict[str, dict[str, Any]] = {
-    "/api/command": {"post": _op("postCommand", "Send a COMMAND (short or envelope form)",
-                                 _DECISION, _COMMAND_BODY)},
+    "/api/command": {"post": _op("postCommand", "Send a COMMAND (any form), SAFETY, HEARTBEAT, "
+                                 "INVOKE, INVOKE_CANCEL or AUTHORIZE",
+                                 _COMMAND_DECISION, _COMMAND_BODY)},
     "/api/status": {"get": _op("getStatus", "The robot's STATUS (GUEST+)",
                                {"200": _json("Status", "STATUS"), **_errors()})},
     "/api/heartbeat": {"post": _op("postHeartbeat", "Keep a control session alive",

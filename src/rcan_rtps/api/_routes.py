@@ -18,7 +18,17 @@ from ._bodies import (
     json_response,
 )
 from ._commands import decode_as, read_limited, run_command, schema_failure, too_large
-from ._keys import CHECKS, GOVERNOR, OBSERVE, PRINCIPAL, READS, ROBOT, SETTINGS, STATUS
+from ._keys import (
+    CHECKS,
+    GOVERNOR,
+    INVOCATIONS,
+    OBSERVE,
+    PRINCIPAL,
+    READS,
+    ROBOT,
+    SETTINGS,
+    STATUS,
+)
 from ._reads import line_seq
 
 _WALL = SystemClock()
@@ -48,7 +58,7 @@ async def post_command(request: web.Request) -> web.Response:
         response.force_close()  # the rest of the body is not worth reading
         return response
     status, body = await run_command(governor, principal, raw, request.app[OBSERVE],
-                                     request.app[CHECKS])
+                                     request.app[CHECKS], request.app[INVOCATIONS])
     return json_response(body, status)
 
 

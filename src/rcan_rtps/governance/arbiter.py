@@ -106,6 +106,36 @@ class BaseArbiter:
                         reason, by.name, extra={"principal": by.name})
             self._steps.spawn(self._cancel_goal(goal.goal_id))
 
+    async def cancel_requested(self, goal_id: str, principal: Principal, *,
+                               message_id: str | None, why: str) -> Decision:
+        """Cancel one goal at its sender's request (an INVOKE_CANCEL of the INVOKE that started
+        it, or that INVOKE's timeout, §19): the entry first, then the cancel; the goal's
+        GOAL_FINISHED says by whom. The caller has checked the goal is `principal`'s."""
+        entry = AuditRecord(event=AuditEvent.COMMAND_DISPATCHED, principal=principal.name,
+                            role=principal.role.name, message_id=message_id,
+                            action_type="cancel_goal", params={"goal_id": goal_id, "why": why},
+                            outcome=Outcome.EXECUTED.value)
+        receipt = await self._steps.write_ahead(entry)
+        if receipt is None:
+            return decision(outcomes.AUDIT_UNAVAILABLE, message_id=message_id)
+        self._ended_by[goal_id] = f"{why} by {principal.name}"
+        try:
+            cancelling = await self._steps.dispatcher.cancel_goal(goal_id)
+        except Exception:
+            log.exception("cancelling goal %s failed", goal_id)
+            cancelling = False
+        if not cancelling:
+            self._ended_by.pop(goal_id, None)
+            failed = outcomes.robot_unavailable("goal_not_cancelled")
+            await self._steps.record_event(AuditRecord(
+                event=AuditEvent.COMMAND_FAILED, principal=principal.name,
+                role=principal.role.name, message_id=message_id, action_type="cancel_goal",
+                params={"goal_id": goal_id}, outcome=failed.outcome.value,
+                deny_reason=failed.deny_reason))
+            return decision(failed, message_id=message_id)
+        return Decision(outcome=Outcome.EXECUTED, http_status=200, audit_id=receipt.audit_id,
+                        message_id=message_id, goal_id=goal_id)
+
     async def _cancel_goal(self, goal_id: str) -> None:
         try:
             if not await self._steps.dispatcher.cancel_goal(goal_id):

@@ -283,14 +283,22 @@ class Governor:
             return outcomes.INSUFFICIENT_PRIVILEGES
         if not self._roles.allows(principal.role, command.action):
             return outcomes.INSUFFICIENT_PRIVILEGES
-        if command.ruri is not None and self._robot is not None:
-            try:
-                if parse_ruri(command.ruri).robot != self._robot:
-                    return outcomes.NOT_THIS_ROBOT
-            except InvalidRuriError as exc:
-                return outcomes.invalid_ruri(exc.rule)
+        elsewhere = self.not_this_robot(command.ruri)
+        if elsewhere is not None:
+            return elsewhere
         if command.spec.effect is not Effect.HALT and not self._limiter.allow(principal):
             return outcomes.RATE_LIMITED  # a stop is never rate-limited
+        return None
+
+    def not_this_robot(self, ruri: str | None) -> Rejection | None:
+        """The refusal of a message addressed to another robot (or to an unreadable RURI)."""
+        if ruri is None or self._robot is None:
+            return None
+        try:
+            if parse_ruri(ruri).robot != self._robot:
+                return outcomes.NOT_THIS_ROBOT
+        except InvalidRuriError as exc:
+            return outcomes.invalid_ruri(exc.rule)
         return None
 
     async def _govern(self, command: NormalizedCommand, principal: Principal) -> Decision:
@@ -424,23 +432,39 @@ class Governor:
     # -- HiTL (the desk holds and reviews; an approved command comes back here) -------------
 
     async def authorize(self, pending_id: str, approver: Principal,
-                        reason: str | None = None) -> Decision:
-        """One approval; the command runs once it has as many distinct ones as it needs."""
-        return await self._detached(self._desk.resolve(pending_id, approver, "approve", reason))
+                        reason: str | None = None, *, message_id: str | None = None
+                        ) -> Decision:
+        """One approval; the command runs once it has as many distinct ones as it needs.
+        `message_id`: the AUTHORIZE message's (§16.4), recorded with the review."""
+        return await self._detached(self._desk.resolve(pending_id, approver, "approve", reason,
+                                                       message_id))
 
     async def deny(self, pending_id: str, approver: Principal,
-                   reason: str | None = None) -> Decision:
+                   reason: str | None = None, *, message_id: str | None = None) -> Decision:
         """Any approver's denial ends it, whatever approvals it had."""
-        return await self._detached(self._desk.resolve(pending_id, approver, "deny", reason))
+        return await self._detached(self._desk.resolve(pending_id, approver, "deny", reason,
+                                                       message_id))
 
     async def withdraw(self, pending_id: str, principal: Principal,
-                       reason: str | None = None) -> Decision:
+                       reason: str | None = None, *, message_id: str | None = None
+                       ) -> Decision:
         """Its issuer takes a pending command back (an approver may too): never executed."""
         return await self._detached(self._desk.resolve(pending_id, principal, "withdraw",
-                                                       reason))
+                                                       reason, message_id))
 
     def pending(self) -> list[PendingAuth]:
         return self._desk.pending()
+
+    def pending_for_thought(self, thought_id: str) -> str | None:
+        """The held command whose AI `thought_id` this is (AUTHORIZE names it so), or None."""
+        return self._desk.for_thought(thought_id)
+
+    async def cancel_goal(self, goal_id: str, principal: Principal, *, message_id: str | None,
+                          why: str) -> Decision:
+        """Cancel one goal of `principal`'s at its request (INVOKE_CANCEL, an INVOKE's
+        timeout: §19), audited before the cancel goes out."""
+        return await self._detached(self._base.cancel_requested(
+            goal_id, principal, message_id=message_id, why=why))
 
     async def expire_pending(self) -> list[Decision]:
         """Discard and audit (HITL_EXPIRED) every pending command past its TTL."""

@@ -46,6 +46,14 @@ class HitlDesk:
     def pending(self) -> list[PendingAuth]:
         return [held.message() for held in self._pending.list()]
 
+    def for_thought(self, thought_id: str) -> str | None:
+        """The held command whose AI `thought_id` this is (an AUTHORIZE names it so, §16.4),
+        or None when none or more than one has it."""
+        found = [held.pending.pending_id for held in self._pending.list()
+                 if held.pending.command.ai is not None
+                 and held.pending.command.ai.thought_id == thought_id]
+        return found[0] if len(found) == 1 else None
+
     async def hold(self, command: NormalizedCommand, principal: Principal,
                    approver_role: Role) -> Decision:
         pending = PendingCommand(
@@ -66,12 +74,15 @@ class HitlDesk:
                         pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
 
     async def resolve(self, pending_id: str, reviewer: Principal, verdict: Verdict,
-                      reason: str | None) -> Decision:
+                      reason: str | None, message_id: str | None = None) -> Decision:
+        """`message_id`: the AUTHORIZE message's (§16.4) that said it, if one did: recorded
+        with the review (and with a refusal of it)."""
         held = self._pending.get(pending_id)
         if held is None:
-            return await self._refuse(verdict, reviewer, outcomes.PENDING_NOT_FOUND, pending_id)
+            return await self._refuse(verdict, reviewer, outcomes.PENDING_NOT_FOUND, pending_id,
+                                      message_id)
         async with held.lock:  # one review at a time: each counted once, released once
-            reviewed = await self._review(held, reviewer, verdict, reason)
+            reviewed = await self._review(held, reviewer, verdict, reason, message_id)
         if isinstance(reviewed, Decision):
             return reviewed
         command, pending = reviewed, held.pending  # out of the store, with every review
@@ -85,22 +96,25 @@ class HitlDesk:
             pending_id=pending_id)
 
     async def _review(self, held: Held, reviewer: Principal, verdict: Verdict,
-                      reason: str | None) -> Decision | NormalizedCommand:
+                      reason: str | None, message_id: str | None
+                      ) -> Decision | NormalizedCommand:
         """Under `held.lock`: refused, or counted (an approval of several: still pending), or
         taken from the store and returned with every review so far, to run or discard."""
         pending = held.pending
         if self._pending.get(pending.pending_id) is not held:  # resolved while this waited
             return await self._refuse(verdict, reviewer, outcomes.PENDING_NOT_FOUND,
-                                      pending.pending_id)
+                                      pending.pending_id, message_id)
         if pending.expires_at_ms <= now_ms(self._clock):
             await self.expire()
             return await self._refuse(verdict, reviewer, outcomes.PENDING_EXPIRED,
-                                      pending.pending_id)
+                                      pending.pending_id, message_id)
         refused = self._may_review(held, reviewer, verdict)
         if refused is not None:
-            return await self._refuse(verdict, reviewer, refused, pending.pending_id)
+            return await self._refuse(verdict, reviewer, refused, pending.pending_id,
+                                      message_id)
         review = Approval(principal=reviewer.name, role=cast(RoleName, reviewer.role.name),
-                          decision=verdict, at_ms=now_ms(self._clock), reason=reason)
+                          decision=verdict, at_ms=now_ms(self._clock), reason=reason,
+                          message_id=message_id)
         if verdict == "approve" and held.missing > 1:
             return await self._count_approval(held, reviewer, review)
         self._pending.take(pending.pending_id)
@@ -136,12 +150,14 @@ class HitlDesk:
                         pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
 
     async def _refuse(self, verdict: Verdict, reviewer: Principal, rejection: Rejection,
-                      pending_id: str) -> Decision:
+                      pending_id: str, message_id: str | None = None) -> Decision:
         verb = "hitl_authorize" if verdict == "approve" else f"hitl_{verdict}"
         entry = AuditRecord(event=AuditEvent.COMMAND_REJECTED, principal=reviewer.name,
                             role=reviewer.role.name, action_type=verb, pending_id=pending_id,
-                            outcome=rejection.outcome.value, deny_reason=rejection.deny_reason)
-        return decision(rejection, await self._steps.audit.append(entry))
+                            message_id=message_id, outcome=rejection.outcome.value,
+                            deny_reason=rejection.deny_reason)
+        return decision(rejection, await self._steps.audit.append(entry),
+                        message_id=message_id)
 
     async def expire(self) -> list[Decision]:
         """Discard and audit (HITL_EXPIRED, with any approvals it had) every pending command

@@ -24,6 +24,8 @@ if TYPE_CHECKING:  # types only: governance and api import this module, never th
     from .governance.audit import AuditReceipt, AuditRecord
     from .governance.rbac import Principal
 
+__all__ = ["Channel", "Events", "EventsFrozenError"]
+
 log = logging.getLogger(__name__)
 P = ParamSpec("P")
 

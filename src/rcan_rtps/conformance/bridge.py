@@ -20,7 +20,11 @@ import msgspec
 Body = dict[str, Any]
 
 
-class MissingToken(Exception):
+class ConformanceError(Exception):
+    """Base of the errors a conformance run reports as a case's failure."""
+
+
+class MissingToken(ConformanceError):
     def __init__(self, role: str) -> None:
         super().__init__(f"needs a {role} principal's token (--token-for {role}=TOKEN)")
 
@@ -128,7 +132,7 @@ class _RawPage(msgspec.Struct):
     head_seq: int
 
 
-class ProbeError(Exception):
+class ProbeError(ConformanceError):
     """The bridge answered something a probe cannot go on from."""
 
 

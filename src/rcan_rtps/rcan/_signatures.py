@@ -24,6 +24,8 @@ from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from cryptography.hazmat.primitives.asymmetric.mldsa import MLDSA65PublicKey
 
+from ._errors import RcanError
+
 Algorithm = Literal["ml-dsa-65", "ed25519"]
 ALGORITHMS: Final[tuple[Algorithm, ...]] = ("ml-dsa-65", "ed25519")
 PublicKey = MLDSA65PublicKey | Ed25519PublicKey
@@ -34,7 +36,7 @@ _B64URL = re.compile(r"^[A-Za-z0-9_-]*={0,2}$")
 _B64 = re.compile(r"^[A-Za-z0-9+/_-]*={0,2}$")
 
 
-class KeyLoadError(ValueError):
+class KeyLoadError(RcanError, ValueError):
     """A configured public key that is not a key of its algorithm."""
 
 

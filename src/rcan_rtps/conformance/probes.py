@@ -284,6 +284,31 @@ async def hitl_gate(bridge: BridgeUnderTest, case: Case) -> Verdict:
     return passed("GUEST refused (403 INSUFFICIENT_PRIVILEGES); OWNER's approval executed it")
 
 
+@probe("L3-THOUGHT-001")
+async def thought_log_scope(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    """A thought made here (an AI's zero move with its reasoning), read as the case's USER
+    (operational scopes: no reasoning) and as the OWNER (config scope: the reasoning)."""
+    thought = f"conformance-{message_id()}"
+    reply = await bridge.command("USER", {
+        "action": "move", "params": ZERO_MOVE, "message_id": message_id(),
+        "ai_provider": "conformance", "ai_model": "probe", "confidence": 0.9,
+        "thought_id": thought, "ai_reasoning": "conformance probe: hold still"})
+    if reply.get("outcome") is None:
+        return failed(f"the AI command was not decided: {reply.describe()}")
+    path = f"/api/thoughts/{thought}"
+    seen = await bridge.call("USER", "GET", path)
+    if seen.status != case.expect.get("http_status", 200):
+        return failed(f"GET {path} as USER: {seen.describe()}")
+    absent = [f for f in case.expect["response_contains"] if seen.get(f) is None]
+    leaked = [f for f in case.expect["response_excludes"] if seen.get(f) is not None]
+    if absent or leaked:
+        return failed(f"as USER: missing {absent}, shown {leaked}")
+    owner = await bridge.call("OWNER", "GET", path)
+    if owner.get("reasoning") is None:
+        return failed(f"the OWNER (config scope) was not shown the reasoning: {owner.describe()}")
+    return passed("USER: confidence, no reasoning; OWNER: the reasoning")
+
+
 # -- helpers --------------------------------------------------------------------------------
 
 async def _entry(bridge: BridgeUnderTest, since: int, mid: str) -> Body | None:

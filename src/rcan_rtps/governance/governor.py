@@ -40,6 +40,7 @@ from rcan_rtps.rcan.actions import LockParams, MoveParams, with_effect
 
 from .._listeners import tell_all
 from . import outcomes
+from .ai import AiPolicy
 from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
 from .clock import Clock, SystemClock, now_ms
 from .errors import AuditError, EstopStateError
@@ -147,7 +148,8 @@ class Governor:
                  robot_ruri: str | None = None, notifier: Notifier | None = None,
                  streams: VelocityStreams | None = None,
                  priorities: MotionPriorities | None = None,
-                 held_locks: Mapping[str, str] | None = None) -> None:
+                 held_locks: Mapping[str, str] | None = None,
+                 ai: AiPolicy | None = None) -> None:
         self.audit = audit
         self.latch = latch
         self._dispatcher = dispatcher
@@ -155,6 +157,7 @@ class Governor:
         self._limiter = limiter
         self._safety = safety
         self._hitl = hitl
+        self._ai = ai or AiPolicy()
         self._clock = clock
         self._pending = PendingStore()
         self._idem: Idempotency[tuple[str, str], Decision] = Idempotency(clock)
@@ -221,6 +224,7 @@ class Governor:
             session_timeout_s=bridge.safety.session_timeout_s,
             unattended_move_s=bridge.safety.unattended_move_s,
             robot_ruri=config.robot.ruri, held_locks=resumed.locks,
+            ai=AiPolicy(bridge.ai.agents),
         )
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -316,6 +320,9 @@ class Governor:
                     warnings.append(f"addressed to {ruri}, not this robot ({self._robot})")
             except InvalidRuriError as exc:
                 warnings.append(f"ruri ignored: {exc.rule}")
+        ai_problem = self._ai.warning(command, principal)
+        if ai_problem is not None:
+            warnings.append(ai_problem)
         if len(warnings) == len(command.warnings):
             return command
         return msgspec.structs.replace(command, warnings=tuple(warnings), claimed_role=None,
@@ -367,6 +374,10 @@ class Governor:
                     return outcomes.NOT_THIS_ROBOT
             except InvalidRuriError as exc:
                 return outcomes.invalid_ruri(exc.rule)
+        if not command.spec.stopping:  # a stop's AI problems are warnings (`_forgiven`)
+            refused = self._ai.check(command, principal)
+            if refused is not None:
+                return refused
         if command.spec.effect is not Effect.HALT and not self._limiter.allow(principal):
             return outcomes.RATE_LIMITED  # a stop is never rate-limited
         return None

@@ -39,14 +39,11 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from rcan_rtps.governance import AuditIntegrityError, verify_bytes
 
 from ._bodies import VerifyReport
+from ._errors import ReadsBusy
 
 log = logging.getLogger(__name__)
 _NICE = 10  # verification yields the CPU to the bridge
 T = TypeVar("T")
-
-
-class ReadsBusy(Exception):
-    """Too many reads wait for the reader thread: answer 429 `reads_busy` (a bound)."""
 
 
 class _Seq(msgspec.Struct):

@@ -44,9 +44,9 @@ from rcan_rtps.governance.merkle import CompactTree, leaf_hash
 from rcan_rtps.rcan import SPOKEN, ErrorCode, Role, SchemaValidationError
 
 from ._bodies import error_response
+from ._errors import ReadsBusy
 from ._keys import PRINCIPAL, READS
 from ._node_manifest import AUDIT_EXPORT, newest_version
-from ._reads import ReadsBusy
 
 log = logging.getLogger(__name__)
 PATH = AUDIT_EXPORT

@@ -33,15 +33,15 @@ from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import Governor
 from rcan_rtps.governance.keyfacts import KeyFacts
 from rcan_rtps.governance.rbac import RolePolicy
-from rcan_rtps.governance.timesync import clock_status
 from rcan_rtps.governance.treehead import tree_head_path
 from rcan_rtps.rcan import SPOKEN, ErrorCode, Role
 from rcan_rtps.rcan.actions import Effect, EstopSignal, Invariant, specs, with_effect
 
 from ._bodies import error_response
+from ._errors import ReadsBusy
 from ._keys import READS
 from ._node_manifest import AUDIT_EXPORT, newest_version
-from ._reads import ReadsBusy, last_line
+from ._reads import last_line
 
 PATH = "/api/safety/manifest"
 PROTOCOL = 66
@@ -118,6 +118,8 @@ def _audit_tails(path: Path) -> tuple[_Tail | None, dict[str, Any] | None]:
 
 
 async def live_part(request: web.Request, governor: Governor) -> dict[str, Any]:
+    from rcan_rtps.governance.timesync import clock_status  # ctypes: only once asked
+
     audit = governor.audit
     tail, tree_head = await request.app[READS].read(_audit_tails, audit.path)
     clock = clock_status()

@@ -20,8 +20,10 @@ Who may read it: `rbac.audit_read_role`, as GET /api/audit (403 otherwise, not a
   root. Both are in the JSONL header too. They say what the bridge read from its log; each
   entry still carries its own signature (`rcan-rtps audit verify`, GET /api/audit/verify).
 - Large logs are streamed: the log is read twice in chunks of about 1 MiB on the audit reader
-  thread (first for the root the headers need, then for the body), never whole into memory;
-  entries appended meanwhile are not part of the export.
+  thread (first for the root the headers need, then for the body; decoding, hashing and
+  formatting are done there too, off the event loop), never whole into memory; entries
+  appended meanwhile are not part of the export. A client that goes away mid-stream is no
+  error (the middleware's debug line).
 """
 
 from __future__ import annotations
@@ -86,20 +88,23 @@ class Selection:
         self.start: int | None = None  # byte offset of the first chosen line's chunk
         self.end = 0  # just past the last complete line read
 
-    def take(self, line: bytes) -> bool:
+    def chosen(self, line: bytes) -> _Entry | None:
+        """The line's seq and time if it falls in the range, else None."""
         entry = _ENTRY.decode(line)
         q = self.query
-        return q.lo_ms <= entry.timestamp_ms and (q.hi_ms is None or entry.timestamp_ms < q.hi_ms)
+        inside = q.lo_ms <= entry.timestamp_ms and (q.hi_ms is None
+                                                    or entry.timestamp_ms < q.hi_ms)
+        return entry if inside else None
 
     def add(self, lines: list[bytes], chunk_start: int) -> None:
         for line in lines:
-            if self.take(line):
-                self.tree.append(leaf_hash(line))
-                seq = _ENTRY.decode(line).seq
-                self.first_seq = seq if self.first_seq is None else self.first_seq
-                self.last_seq = seq
-                if self.start is None:
-                    self.start = chunk_start
+            entry = self.chosen(line)
+            if entry is None:
+                continue
+            self.tree.append(leaf_hash(line))
+            self.last_seq = entry.seq
+            if self.start is None:
+                self.first_seq, self.start = entry.seq, chunk_start
 
 
 def _ms(name: str, text: str) -> int:
@@ -158,24 +163,38 @@ async def _on_reader(request: web.Request, fn: Callable[..., Any], *args: Any) -
             await asyncio.sleep(0.05)
 
 
+def _select_chunk(chosen: Selection, path: Path, start: int) -> int:
+    """Pass one over one chunk (reader thread): where the next one starts."""
+    lines, after = read_lines(path, start, None)
+    chosen.add(lines, start)
+    return after
+
+
+def _body_chunk(chosen: Selection, path: Path, start: int, fmt: str) -> tuple[bytes, int]:
+    """Pass two over one chunk (reader thread): its chosen entries, formatted."""
+    lines, after = read_lines(path, start, chosen.end)
+    return _body_of((ln for ln in lines if chosen.chosen(ln)), fmt), after
+
+
 async def select(request: web.Request, path: Path, query: Query) -> Selection:
+    """Decoding, hashing and formatting stay on the reader thread, off the event loop."""
     chosen = Selection(query)
     start = 0
     while True:
-        lines, after = await _on_reader(request, read_lines, path, start, None)
+        after = await _on_reader(request, _select_chunk, chosen, path, start)
         if after == start:
             chosen.end = start
             return chosen
-        chosen.add(lines, start)
         start = after
 
 
-def _csv_row(line: bytes) -> str:
-    entry = msgspec.json.decode(line)
+def _csv_rows(lines: Iterable[bytes]) -> bytes:
     out = io.StringIO()
-    row = [_cell(entry.get(c)) for c in CSV_COLUMNS[:-1]] + [line.decode()]
-    csv.writer(out, lineterminator="\r\n").writerow(row)
-    return out.getvalue()
+    writer = csv.writer(out, lineterminator="\r\n")
+    for line in lines:
+        entry = msgspec.json.decode(line)
+        writer.writerow([_cell(entry.get(c)) for c in CSV_COLUMNS[:-1]] + [line.decode()])
+    return out.getvalue().encode()
 
 
 def _cell(value: Any) -> str:
@@ -194,7 +213,7 @@ def _csv_header() -> bytes:
 
 def _body_of(lines: Iterable[bytes], fmt: str) -> bytes:
     if fmt == "csv":
-        return "".join(_csv_row(line) for line in lines).encode()
+        return _csv_rows(lines)
     return b"".join(line + b"\n" for line in lines)
 
 
@@ -237,9 +256,9 @@ def handler(governor: Governor, read_role: Role
                 "rcan_version": newest_version(SPOKEN)}) + b"\n")
         start = chosen.end if chosen.start is None else chosen.start
         while start < chosen.end:
-            lines, start = await _on_reader(request, read_lines, path, start, chosen.end)
-            await response.write(_body_of((ln for ln in lines if chosen.take(ln)),
-                                          query.format))
+            body, start = await _on_reader(request, _body_chunk, chosen, path, start,
+                                           query.format)
+            await response.write(body)
         await response.write_eof()
         return response
 

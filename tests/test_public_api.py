@@ -17,6 +17,8 @@ import rcan_rtps
 from rcan_rtps.api import ApiServerError
 from rcan_rtps.bridge import BridgeError
 from rcan_rtps.config import ConfigError, loads_config
+from rcan_rtps.conformance import ConformanceError
+from rcan_rtps.events import EventsFrozenError
 from rcan_rtps.governance import (
     AllOf,
     EmptyPolicyError,
@@ -155,6 +157,15 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "Signature",
         "VersionIncompatibleError",
         "validate_message",
+        # INVOKE / INVOKE_CANCEL (§19), AUTHORIZE (§16.4)
+        "Authorization",
+        "Invoke",
+        "InvokeCancel",
+        "InvokeResult",
+        "InvokeStatus",
+        "invoke_command",
+        "reply_id",
+        "skill_error",
         "ActionName",
         "ActionParams",
         "ActionSpec",
@@ -237,6 +248,18 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "stopping_names",
         "with_effect",
     },
+    "rcan_rtps.conformance": {
+        "LEVELS",
+        "Case",
+        "ConformanceError",
+        "Level",
+        "MissingToken",
+        "ProbeError",
+        "Result",
+        "Suite",
+        "load_suite",
+        "run_suite",
+    },
     "rcan_rtps.config": {
         "ApiConfig",
         "ArmConfig",
@@ -255,8 +278,12 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "RcanConfig",
         "RobotConfig",
         "Ros2Config",
+        "SignaturePolicy",
+        "SignaturesConfig",
+        "SignerKey",
         "SafetyConfig",
         "SecurityConfig",
+        "SkillConfig",
         "TlsConfig",
         "load_config",
         "loads_config",
@@ -293,6 +320,8 @@ SUBSYSTEM_BASES: dict[str, type[Exception]] = {
     "config": ConfigError,
     "api": ApiServerError,
     "bridge": BridgeError,
+    "conformance": ConformanceError,
+    "events": EventsFrozenError,
 }
 
 

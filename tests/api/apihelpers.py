@@ -60,23 +60,26 @@ bridge:
 """
 
 
-def _principals() -> str:
+def _principals(extra: Mapping[str, str]) -> str:
     lines = []
     for name, role in ROLES.items():
         limit = "" if name == "slow" else ", rate_limit_per_min: 1000000"
+        more = f", {extra[name]}" if name in extra else ""
         lines.append(f"      - {{name: {name}, role: {role}, token_env: TOK_{name.upper()}"
-                     f"{limit}}}")
+                     f"{limit}{more}}}")
     return "\n".join(lines)
 
 
 def make_config(tmp: Path, *, hitl_extra: str = "", api_extra: str = "",
                 bridge_extra: str = "", max_body: int = 64 * 1024,
-                rate: float = 20.0, gates: str = ARM_GATE) -> RcanConfig:
+                rate: float = 20.0, gates: str = ARM_GATE,
+                principal_extra: Mapping[str, str] | None = None) -> RcanConfig:
+    """The harness's config; `principal_extra` adds flow-mapping keys to named principals."""
     text = CONFIG % {"ruri": RURI, "dir": tmp, "hitl_extra": hitl_extra, "rate": rate,
                      "gates": gates,
                      "bridge_extra": bridge_extra,
                      "api_extra": api_extra, "max_body": max_body,
-                     "principals": _principals()}
+                     "principals": _principals(principal_extra or {})}
     return loads_config(text, env=ENV)
 
 
@@ -134,12 +137,13 @@ class Api:
     def __init__(self, tmp: Path, *, hitl_extra: str = "", api_extra: str = "",
                  bridge_extra: str = "", max_body: int = 64 * 1024,
                  notifier: Notifier | None = None, rate: float = 20.0,
-                 gates: str = ARM_GATE) -> None:
+                 gates: str = ARM_GATE,
+                 principal_extra: Mapping[str, str] | None = None) -> None:
         self.tmp = tmp
         self.clock = ManualClock()
         self.config = make_config(tmp, hitl_extra=hitl_extra, api_extra=api_extra,
                                   bridge_extra=bridge_extra, max_body=max_body, rate=rate,
-                                  gates=gates)
+                                  gates=gates, principal_extra=principal_extra)
         self.dispatcher = RecordingDispatcher()
         self.robot = MemoryRobot()
         self.notifier = notifier

@@ -200,6 +200,23 @@ async def test_audit_verify_endpoint(api: Api) -> None:
     assert (status, report["ok"], report["bad_seq"]) == (200, False, 2)
 
 
+async def test_audit_verify_endpoint_checks_the_tree_heads_too(api: Api) -> None:
+    """A log cut back to an earlier, internally valid prefix passes the chain check alone:
+    the signed tree heads beside it still name the entries it lost."""
+    for _ in range(3):
+        await api.command("planner", {"action": "stop"})
+    status, report = await api.call("GET", "/api/audit/verify", "lessee")
+    assert (status, report["ok"]) == (200, True)
+    assert report["tree_heads"] >= 1 and report["tree_size"] == report["count"] == 3
+    path = api.tmp / "audit.jsonl"
+    lines = path.read_bytes().splitlines(keepends=True)
+    path.write_bytes(b"".join(lines[:2]))  # the last entry gone, cut at a line end
+    assert verify(path).count == 2  # the chain alone sees nothing wrong
+    status, report = await api.call("GET", "/api/audit/verify", "lessee")
+    assert (status, report["ok"], report["count"]) == (200, False, 2)
+    assert any("tree head" in p for p in report["problems"]), report
+
+
 async def test_audit_read_role_comes_from_config(tmp_path: Path) -> None:
     api = await Api(tmp_path, bridge_extra="rbac: {audit_read_role: OWNER}").start()
     try:

@@ -23,6 +23,7 @@ from rcan_rtps.bridge.runtime import Bridge, BridgeOptions, BridgeState, BridgeS
 from rcan_rtps.bridge.telemetry import TelemetryState
 from rcan_rtps.bridge.watchdog import LoopWatchdog
 from rcan_rtps.config import RcanConfig
+from rcan_rtps.events import EventsFrozenError
 from rcan_rtps.governance import AuditLog
 from rcan_rtps.governance.estop import EstopMachine, LatchFile
 from rcan_rtps.ros import participant
@@ -169,6 +170,10 @@ async def test_states_of_a_start_and_a_stop(tmp_path: Path, domain_id: int) -> N
     with pytest.raises(BridgeStateError, match="running"):
         bridge.prepare()
     assert bridge.node is not None and not bridge.node.closed
+    # Every listener was wired while starting; a late one is a wiring bug, refused.
+    assert bridge.events.frozen
+    with pytest.raises(EventsFrozenError):
+        bridge.events.governance.subscribe(lambda: None)
     stopping = asyncio.ensure_future(bridge.stop())
     await asyncio.sleep(0)
     assert bridge.state is BridgeState.STOPPING

@@ -174,3 +174,62 @@ def test_a_good_jwks_passes(tmp_path: Path) -> None:
     write_jwks(tmp_path / "keys.json", {"k1": Ed25519PrivateKey.generate()})
     text = config_text("127.0.0.1", "jwt: {jwks: keys.json, audience: rcan-bridge}")
     assert check(tmp_path, text) == 0
+
+
+# -- n-of-m approvals that nobody configured could give ------------------------------------
+
+PRINCIPALS = """principals:
+      - {name: ops, role: OWNER, token_env: RCAN_CHECK_TOKEN}
+      - {name: admin, role: ADMIN, token_env: RCAN_CHECK_TOKEN}
+      - {name: planner, role: USER, token_env: RCAN_CHECK_TOKEN}
+"""
+
+
+def _gated(approvals: int, roles: str = "[OWNER]") -> str:
+    api = CONFIG.replace("    auth_token_env: RCAN_CHECK_TOKEN\n", "")
+    return (api % {"host": "127.0.0.1", "api_extra": PRINCIPALS}
+            + f"  hitl:\n    gates: [{{action: arm_joint, require_auth: true, "
+            f"authorized_roles: {roles}, approvals: {approvals}}}]\n")
+
+
+@pytest.mark.parametrize("approvals", [1, 2])
+def test_approvals_the_configured_principals_can_give_pass(
+        approvals: int, tmp_path: Path) -> None:
+    assert check(tmp_path, _gated(approvals)) == 0  # ops and admin (ADMIN = OWNER)
+
+
+def test_more_approvals_than_principals_able_to_give_them_fail_the_check(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert check(tmp_path, _gated(3)) == 1
+    err = capsys.readouterr().err
+    assert "hitl.gates[arm_joint]: needs 3 distinct approvers of role OWNER" in err
+    assert "only 2 configured principal(s)" in err
+
+
+def test_a_creator_only_gate_with_no_creator_fails_even_the_file_only_check(
+        tmp_path: Path) -> None:
+    assert check(tmp_path, _gated(1, "[CREATOR]"), "--file-only") == 1  # the file's own fault
+    assert check(tmp_path, _gated(1, "[OWNER]"), "--file-only") == 0
+
+
+# -- signing keys of principals (issue 24 item 5) -------------------------------------------
+
+SIGNER = ("principals: [{name: ops, role: OWNER, token_env: RCAN_CHECK_TOKEN, "
+          "signatures: {policy: required, keys: [{kid: k1, alg: ed25519, "
+          "public_key_file: keys/ops.pub}]}}]")
+
+
+def test_a_signing_key_file_is_checked_relative_to_the_config(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    text = config_text("127.0.0.1", SIGNER)
+    assert check(tmp_path, text) == 1
+    assert f"cannot read {tmp_path / 'keys' / 'ops.pub'}" in capsys.readouterr().err
+    assert check(tmp_path, text, "--file-only") == 0
+    (tmp_path / "keys").mkdir()
+    (tmp_path / "keys" / "ops.pub").write_bytes(b"\0" * 31)
+    assert check(tmp_path, text) == 1
+    assert "is neither the 32 raw bytes of an ed25519" in capsys.readouterr().err
+    key = Ed25519PrivateKey.generate().public_key()
+    (tmp_path / "keys" / "ops.pub").write_bytes(key.public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo))
+    assert check(tmp_path, text) == 0

@@ -261,3 +261,19 @@ BaseModel.TestCase.settings = settings(
     max_examples=60, stateful_step_count=30, deadline=None,
     suppress_health_check=[HealthCheck.too_slow])
 test_base_model = BaseModel.TestCase
+
+
+async def test_cancelled_goals_that_never_end_are_not_remembered_forever(tmp_path: Path) -> None:
+    """A goal the arbiter cancels is remembered until its end names who ended it; a server
+    that vanished never reports that end, so what is remembered is bounded."""
+    from rcan_rtps.governance.arbiter import ENDED_BY_KEPT
+    from rcan_rtps.governance.streams import HeldGoal
+
+    gov, wire, _, _ = await stream_governor(tmp_path)
+    goals = [HeldGoal(f"lost-{n}", PLANNER.name, 10, f"m{n}") for n in range(ENDED_BY_KEPT + 50)]
+    gov._base.cancel_goals(goals, OPS)
+    await _settled(gov)
+    assert len(wire.cancelled) == len(goals)  # every one was still cancelled
+    assert len(gov._base._ended_by) == ENDED_BY_KEPT
+    assert gov._base.goal_ended("lost-0") is None  # the oldest were let go
+    assert gov._base.goal_ended(f"lost-{len(goals) - 1}") == "preempted by ops"

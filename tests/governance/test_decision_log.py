@@ -18,7 +18,7 @@ async def test_every_entry_is_one_line_with_its_principal_and_audit_id(
         harness: Harness, caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.INFO, logger="rcan_rtps.decisions")
     gov = await harness.governor()
-    gov.audit.listeners.append(log_entry)
+    gov.audit.audited.subscribe(log_entry)
     decisions = [
         await gov.decide(command("move", {"linear_x": 0.2}), PLANNER),
         await gov.decide(command("move", {"linear_x": 99.0}), PLANNER),  # denied: >10 % over

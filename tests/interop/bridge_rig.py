@@ -13,9 +13,10 @@ from oracle.client import OracleEnv, RclpyOracle
 from rcan_rtps.bridge.commands import RosDispatcher
 from rcan_rtps.bridge.goals import GoalRoutes
 from rcan_rtps.bridge.notify import DiagnosticsNotifier
-from rcan_rtps.bridge.runtime import audit_goal_outcomes
+from rcan_rtps.bridge.runtime import wire_robot_side
 from rcan_rtps.bridge.telemetry import TelemetryState
 from rcan_rtps.config import RcanConfig, loads_config
+from rcan_rtps.events import Events
 from rcan_rtps.governance import AuditLog, Decision, Governor, Principal
 from rcan_rtps.rcan import Role, validate_command
 from rcan_rtps.ros.participant import RosNode
@@ -79,20 +80,21 @@ async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id
                    *, navigation: bool = False) -> Rig:
     ros2 = config.bridge.ros2
     node = RosNode(ros2.node_name, ros2.namespace, domain_id=domain_id, distro=ros2.distro)
-    audit = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path)
-    goals = GoalRoutes(node, ros2) if navigation else None
-    dispatcher = RosDispatcher(node, ros2, goals, telemetry_age=lambda: telemetry.age_s())
+    events = Events()
+    audit = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path,
+                                audited=events.audited)
+    goals = GoalRoutes(node, ros2, events=events) if navigation else None
+    dispatcher = RosDispatcher(node, ros2, goals, telemetry_age=lambda: telemetry.age_s(),
+                               events=events)
     notifier = DiagnosticsNotifier(node, ros2.diagnostics_topic)
     governor = Governor.from_config(config, audit=audit, dispatcher=dispatcher,
-                                    notifier=notifier)
+                                    notifier=notifier, events=events)
     telemetry = TelemetryState(node, config, estop_latched=lambda: governor.latch.latched,
                                active_goals=goals.active if goals else list,
-                               navigation=goals.navigation if goals else lambda: None)
-    if goals is not None:
-        audit_goal_outcomes(goals, governor)
-    governor.safe_stop_listeners.append(lambda _p: telemetry.mark_safe_stop())
-    governor.status_listeners.append(lambda: notifier.pending_changed(len(governor.pending())))
-    dispatcher.on_command = telemetry.clear_safe_stop
+                               navigation=goals.navigation if goals else lambda: None,
+                               events=events)
+    wire_robot_side(events, governor, telemetry, goals, notifier)
+    events.freeze()
     await governor.start()
     oracle = RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id)
     return Rig(node, governor, telemetry, dispatcher, oracle, Path(config.bridge.audit.path),

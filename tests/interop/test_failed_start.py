@@ -24,7 +24,10 @@ from rcan_rtps.ros.participant import RosNode
 TOKEN = "t" * 32
 
 
-def _config(tmp: Path, domain_id: int, port: int) -> Path:
+DEFAULT_API = "auth_token_env: RCAN_BRIDGE_TOKEN"
+
+
+def _config(tmp: Path, domain_id: int, port: int, api: str | None = None) -> Path:
     path = tmp / "robot.rcan.yaml"
     path.write_text(textwrap.dedent(f"""\
         robot:
@@ -32,7 +35,7 @@ def _config(tmp: Path, domain_id: int, port: int) -> Path:
           name: Test Rover
         bridge:
           ros2: {{namespace: /robot1, node_name: rcan_bridge, domain_id: {domain_id}}}
-          api: {{host: 127.0.0.1, port: {port}, auth_token_env: RCAN_BRIDGE_TOKEN}}
+          api: {{host: 127.0.0.1, port: {port}, {api or DEFAULT_API}}}
           safety: {{max_linear_vel: 1.0, max_angular_vel: 1.0}}
           audit: {{path: {tmp / "audit" / "audit.jsonl"}, key_path: {tmp / "audit.key"}}}
         """))
@@ -109,10 +112,19 @@ def _bad_key(tmp: Path) -> None:
     os.chmod(tmp / "audit.key", 0o600)
 
 
+def _bad_signing_key(tmp: Path) -> str:
+    """A principal whose signing key file is one byte short of an Ed25519 key."""
+    (tmp / "ops.pub").write_bytes(b"\0" * 31)
+    return ("principals: [{name: ops, role: OWNER, token_env: RCAN_BRIDGE_TOKEN, signatures: "
+            f"{{keys: [{{kid: k1, alg: ed25519, public_key_file: {tmp / 'ops.pub'}}}]}}}}]")
+
+
 CASES = {  # case: (token, set-up, what the error must say)
     "token unset": (None, None, "unset or empty"),
     "token too short": ("short", None, "at least"),
     "bad audit key": (TOKEN, _bad_key, "cannot load audit key"),
+    "bad signing key": (TOKEN, _bad_signing_key, "signatures kid 'k1': the public key is "
+                        "neither the 32 raw bytes"),
     "port in use": (TOKEN, "occupy", "cannot listen on 127.0.0.1"),
 }
 
@@ -122,14 +134,14 @@ def test_a_failed_start_leaves_no_trace(case: str, tmp_path: Path, domain_id: in
                                         robot: RclpyOracle) -> None:
     token, setup, says = CASES[case]
     port = _free_port()
-    occupied = None
+    occupied, api = None, None
     if setup == "occupy":
         occupied = socket.socket()
         occupied.bind(("127.0.0.1", port))
         occupied.listen(1)
     elif callable(setup):
-        setup(tmp_path)
-    config = _config(tmp_path, domain_id, port)
+        api = setup(tmp_path)
+    config = _config(tmp_path, domain_id, port, api)
     watch = ParticipantWatch(domain_id)
     # The robot and the watcher know each other.
     eventually_sync(lambda: len(watch.poll()) >= 2, what=lambda: f"two participants: {watch.seen}")

@@ -92,8 +92,9 @@ def test_metrics_list_the_registry() -> None:
     from prometheus_client import generate_latest
 
     from rcan_rtps.api._metrics import Metrics
+    from rcan_rtps.events import Events
 
-    governor = SimpleNamespace(audit=SimpleNamespace(listeners=[]))
+    governor = SimpleNamespace(audit=SimpleNamespace(audited=Events().audited))
     metrics = Metrics(governor, status=None)  # type: ignore[arg-type]
     text = generate_latest(metrics.registry).decode()
     assert re.findall(r'rcan_action_info\{action="([a-z_]+)"', text) == NAMES

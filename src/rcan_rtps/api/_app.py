@@ -10,6 +10,7 @@ from aiohttp import WSCloseCode, web
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import Clock, Governor, Principal, SystemClock
 from rcan_rtps.governance.replay import ReplayWindow
+from rcan_rtps.governance.signatures import Signatures
 from rcan_rtps.rcan import Role
 
 from . import _audit_export, _node_manifest, _safety_manifest
@@ -17,6 +18,7 @@ from . import _routes as r
 from ._conn import ConnectionDeadlines, track_requests
 from ._goal_events import GoalEvents
 from ._intake import Checks
+from ._invoke import Invocations
 from ._keys import (
     AUTHENTICATOR,
     CERT_PRINCIPALS,
@@ -24,6 +26,7 @@ from ._keys import (
     DEADLINES,
     GOAL_EVENTS,
     GOVERNOR,
+    INVOCATIONS,
     OBSERVE,
     READS,
     ROBOT,
@@ -58,22 +61,27 @@ def settings_from_config(config: RcanConfig) -> ApiSettings:
     )
 
 
-def message_checks(config: RcanConfig, clock: Clock) -> Checks:
+def message_checks(config: RcanConfig, clock: Clock,
+                   signatures: Signatures | None = None) -> Checks:
+    """§8.3's window, and the principals' signature keys and policies (loaded from the config
+    unless given: raises AuthConfigError for a key that does not load)."""
     security = config.bridge.security
     return Checks(replay=ReplayWindow(clock, window_s=security.replay_window_s,
                                       ahead_s=security.clock_ahead_s,
-                                      max_entries=security.msg_id_cache_size))
+                                      max_entries=security.msg_id_cache_size),
+                  signatures=signatures or Signatures.from_config(config.bridge.api))
 
 
 def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotView,
               config: RcanConfig, cert_principals: Mapping[str, Principal] | None = None,
-              settings: ApiSettings | None = None, clock: Clock | None = None
-              ) -> web.Application:
+              settings: ApiSettings | None = None, clock: Clock | None = None,
+              signatures: Signatures | None = None) -> web.Application:
     """The API. It never starts or stops the governor: whoever built that owns its lifetime.
 
     `cert_principals` maps a client certificate's subject CN to a principal (mTLS); by default
     the configured principals, by name, when `api.tls.client_ca` is set. `clock` is the wall
-    clock RCAN 3.x message timestamps are held against (§8.3).
+    clock RCAN 3.x message timestamps are held against (§8.3). `signatures`: the principals'
+    signing keys, already loaded (else loaded from `config`).
     """
     settings = settings or settings_from_config(config)
     # aiohttp's own limit backs ours up for any body read outside `read_limited`.
@@ -85,7 +93,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app[DEADLINES] = deadlines  # ApiServer serves connections through it
     app[GOVERNOR] = governor
     app[AUTHENTICATOR] = authenticator
-    app[CHECKS] = message_checks(config, clock or SystemClock())
+    app[CHECKS] = message_checks(config, clock or SystemClock(), signatures)
     app[ROBOT] = robot
     app[SETTINGS] = settings
     app[CERT_PRINCIPALS] = dict(config_cert_principals(config) if cert_principals is None
@@ -101,6 +109,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.cleanup_ctx.append(_status_owner(status, governor, robot))
     app[GOAL_EVENTS] = goal_events = GoalEvents()
     robot.watch_goals(goal_events.offer)
+    app[INVOCATIONS] = Invocations(config.bridge.skills, robot)
     metrics = Metrics(governor, status)
     app[OBSERVE] = metrics.command_seconds.observe
 
@@ -123,6 +132,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_post("/api/heartbeat", r.post_heartbeat)
     app.router.add_get("/api/goals", r.get_goals, allow_head=False)
     app.router.add_get("/api/goals/{goal_id}", r.get_goal, allow_head=False)
+    app.router.add_get("/api/thoughts/{thought_id}", r.get_thought, allow_head=False)
     app.router.add_get("/api/hitl/pending", r.get_pending, allow_head=False)
     app.router.add_post("/api/hitl/authorize", r.post_authorize)
     app.router.add_post("/api/hitl/deny", r.post_deny)
@@ -152,10 +162,9 @@ def _status_owner(status: StatusHub, governor: Governor, robot: RobotView
                   ) -> Callable[[web.Application], AsyncIterator[None]]:
     async def owner(app: web.Application) -> AsyncIterator[None]:
         await status.start()
-        governor.status_listeners.append(status.changed)
+        governor.events.governance.subscribe(status.changed)  # a no-op once it closed
         robot.watch(status.changed)
         yield
-        governor.status_listeners.remove(status.changed)
         await status.close()
 
     return owner

@@ -29,6 +29,9 @@ class ApiError(msgspec.Struct, kw_only=True, omit_defaults=True):
     path: str | None = None
     audit_id: str | None = None
     message_id: str | None = None  # when the refused body had one (matches WebSocket replies)
+    # A refused message of the RCAN 3.x generation: its id, and `outcome` as its status.
+    msg_id: str | None = None
+    status: Literal["ok", "pending", "blocked", "error"] | None = None
 
 
 class GoalList(msgspec.Struct, kw_only=True):
@@ -71,6 +74,11 @@ class VerifyReport(msgspec.Struct, kw_only=True, omit_defaults=True):
     last_audit_id: str | None = None
     bad_seq: int | None = None
     detail: str | None = None
+    # The signed tree heads beside the log (RFC 6962 style) that match its entries, and the
+    # largest tree they cover; a head that does not match is a problem like a broken chain.
+    tree_heads: int | None = None
+    tree_size: int | None = None
+    problems: list[str] | None = None
 
 
 class WsFrame(msgspec.Struct, kw_only=True, omit_defaults=True):

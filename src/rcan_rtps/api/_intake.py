@@ -30,21 +30,27 @@ import msgspec
 from rcan_rtps.governance import Governor, Principal, Rejection, outcomes
 from rcan_rtps.governance.clock import SystemClock, now_ms
 from rcan_rtps.governance.replay import ReplayWindow
+from rcan_rtps.governance.signatures import Signatures
 from rcan_rtps.rcan import (
     STATUS_OF,
+    Authorization,
     DecisionBody,
     Envelope,
     ErrorCode,
     Heartbeat,
     InvalidRuriError,
+    Invoke,
+    InvokeCancel,
     NormalizedCommand,
     Outcome,
     SchemaValidationError,
     VersionIncompatibleError,
+    reply_id,
     validate_message,
 )
 
 from ._bodies import HeartbeatReply, error_body, failure_reply
+from ._invoke import NO_SKILLS, Invocations, authorize
 
 log = logging.getLogger(__name__)
 
@@ -60,9 +66,11 @@ _WALL = SystemClock()
 
 @dataclass(frozen=True)
 class Checks:
-    """What every transport checks of an RCAN 3.x message beyond its schema (§8.3)."""
+    """What every transport checks of a message beyond its schema: signatures (per principal)
+    and the §8.3 replay window."""
 
     replay: ReplayWindow | None = None
+    signatures: Signatures | None = None
 
 
 NO_CHECKS = Checks()
@@ -70,14 +78,18 @@ NO_CHECKS = Checks()
 
 @dataclass(frozen=True)
 class Intake:
-    """A validated command or HEARTBEAT, or the pre-command refusal its body earned (with
-    schema detail, and the message's id where an RCAN 3.x reply needs it)."""
+    """A validated command, HEARTBEAT, INVOKE, INVOKE_CANCEL or AUTHORIZE, or the pre-command
+    refusal its body earned (with schema detail, and the message's id where an RCAN 3.x reply
+    needs it)."""
 
     command: NormalizedCommand | None = None
     heartbeat: Heartbeat | None = None
+    message3: Invoke | InvokeCancel | Authorization | None = None
     refusal: Rejection | None = None
     detail: str | None = None
     msg_id: str | None = None
+    rcan: dict[str, Any] | None = None  # a refused RCAN 3.x message's envelope facts (audit)
+    refused_id: str | None = None  # a refused 1.2 form's own message_id (audit only)
 
     @property
     def stopping(self) -> bool:
@@ -89,9 +101,11 @@ class Intake:
         return None if self.command is None else self.command.message_id
 
 
-def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS) -> Intake:
-    """Size check, `validate_message`, then the replay window; every failure becomes a
-    refusal, never a raise. A stale or replayed stop is still that stop, with a warning."""
+def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS,
+           principal: str | None = None) -> Intake:
+    """Size check, `validate_message`, then the sender's signature policy and the replay
+    window; every failure becomes a refusal, never a raise. A stop that fails the last two is
+    still that stop, with a warning for each failure."""
     if len(raw) > limit:
         return Intake(refusal=outcomes.PAYLOAD_TOO_LARGE)
     try:
@@ -99,29 +113,71 @@ def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS) -> Intake:
     except RecursionError:  # msgspec gives up on deep nesting with this, not a DecodeError
         return Intake(refusal=outcomes.schema_failed("$"), detail=TOO_DEEP)
     except SchemaValidationError as exc:
-        return Intake(refusal=outcomes.schema_failed(exc.path), detail=exc.detail)
+        return Intake(refusal=outcomes.schema_failed(exc.path), detail=exc.detail,
+                      msg_id=reply_id(raw))
     except InvalidRuriError as exc:
-        return Intake(refusal=outcomes.invalid_ruri(exc.rule))
+        return Intake(refusal=outcomes.invalid_ruri(exc.rule), msg_id=reply_id(raw))
     except VersionIncompatibleError as exc:
         return Intake(refusal=outcomes.version_incompatible(exc.rule), msg_id=exc.msg_id)
     except Exception:
         log.exception("validating a command body failed unexpectedly")
         return Intake(refusal=_INTERNAL)
-    refusal = _replay_refusal(message, checks.replay)
-    if refusal is None:
-        if isinstance(message, Heartbeat):
+    if isinstance(message, Heartbeat):  # not a command: no signature policy
+        refusal = _replay_refusal(message, checks.replay)
+        if refusal is None:
             return Intake(heartbeat=message)
-        return Intake(command=message)
-    if isinstance(message, NormalizedCommand) and message.spec.stopping:
-        warning = f"{refusal.deny_reason}: stopped all the same (a stop always stops)"
+        assert message.envelope is not None  # only envelopes are checked
+        return Intake(refusal=refusal, msg_id=message.envelope.msg_id)
+    if not isinstance(message, NormalizedCommand):
+        return _checked_message3(message, checks, principal)
+    return _checked(message, checks, principal)
+
+
+def _checked_message3(message: Invoke | InvokeCancel | Authorization, checks: Checks,
+                      principal: str | None) -> Intake:
+    """INVOKE, INVOKE_CANCEL, AUTHORIZE: the sender's signature policy (none of them can be
+    signed: under `required` they are refused, so no command escapes the policy through a
+    skill), then the replay window."""
+    refusal = None
+    if checks.signatures is not None and principal is not None:
+        refusal, _ = checks.signatures.check(principal, message.envelope)
+    if refusal is None:
+        refusal = _replay_refusal(message, checks.replay)
+    if refusal is None:
+        return Intake(message3=message)
+    envelope = message.envelope
+    return Intake(refusal=refusal, msg_id=envelope.msg_id, rcan=envelope.audit_facts())
+
+
+def _checked(command: NormalizedCommand, checks: Checks, principal: str | None) -> Intake:
+    refusals: list[Rejection] = []
+    if checks.signatures is not None and principal is not None:
+        refusal, envelope = checks.signatures.check(principal, command.envelope)
+        if envelope is not command.envelope:
+            command = msgspec.structs.replace(command, envelope=envelope)
+        if refusal is not None:
+            refusals.append(refusal)
+    # A message refused for its signature does not use up its msg_id (a stop goes on anyway).
+    if not refusals or command.spec.stopping:
+        refusal = _replay_refusal(command, checks.replay)
+        if refusal is not None:
+            refusals.append(refusal)
+    if not refusals:
+        return Intake(command=command)
+    if command.spec.stopping:
+        warnings = [f"{r.deny_reason}: stopped all the same (a stop always stops)"
+                    for r in refusals]
         return Intake(command=msgspec.structs.replace(
-            message, warnings=(*message.warnings, warning)))
-    assert message.envelope is not None  # only envelopes are checked
-    return Intake(refusal=refusal, msg_id=message.envelope.msg_id)
+            command, warnings=(*command.warnings, *warnings)))
+    envelope = command.envelope
+    if envelope is None:  # a 1.2 form refused by a `required` policy
+        own_id = command.message_id if command.client_message_id else None
+        return Intake(refusal=refusals[0], refused_id=own_id)
+    return Intake(refusal=refusals[0], msg_id=envelope.msg_id, rcan=envelope.audit_facts())
 
 
-def _replay_refusal(message: NormalizedCommand | Heartbeat,
-                    window: ReplayWindow | None) -> Rejection | None:
+def _replay_refusal(message: NormalizedCommand | Heartbeat | Invoke | InvokeCancel
+                    | Authorization, window: ReplayWindow | None) -> Rejection | None:
     envelope = message.envelope
     if window is None or envelope is None or not envelope.replay_checked:
         return None
@@ -129,18 +185,23 @@ def _replay_refusal(message: NormalizedCommand | Heartbeat,
 
 
 async def decide(governor: Governor, principal: Principal, item: Intake,
-                 observe: Observe | None = None) -> Reply:
-    """The decision for one intake; pre-command refusals are audited for the principal."""
+                 observe: Observe | None = None,
+                 invocations: Invocations | None = None) -> Reply:
+    """The decision for one intake; pre-command refusals are audited for the principal. An
+    INVOKE of a goal is answered when the goal ends (`_invoke`)."""
     started = time.perf_counter()
     try:
         if item.heartbeat is not None:
             return 200, heartbeat(governor, principal, item.heartbeat)
+        if item.message3 is not None:
+            return await _message3(governor, principal, item.message3,
+                                   invocations or NO_SKILLS)
         if item.command is not None:
             decision = await governor.decide(item.command, principal)
             return decision.http_status, replied(decision.body(), item.command.envelope)
         assert item.refusal is not None
-        decision = await governor.reject_request(principal, item.refusal,
-                                                 message_id=item.msg_id)
+        decision = await governor.reject_request(principal, item.refusal, rcan=item.rcan,
+                                                 message_id=item.msg_id or item.refused_id)
         if item.refusal.error_code is not ErrorCode.SCHEMA_VALIDATION_FAILED:
             refused = decision.body()
             if item.msg_id is not None:
@@ -149,10 +210,26 @@ async def decide(governor: Governor, principal: Principal, item: Intake,
         # Schema failures also say what was wrong where (the reason is the field path).
         body = error_body(ErrorCode.SCHEMA_VALIDATION_FAILED, reason=item.detail,
                           path=item.refusal.reason, audit_id=decision.audit_id)
+        if item.msg_id is not None:
+            body.msg_id, body.status = item.msg_id, STATUS_OF[body.outcome]
         return decision.http_status, body
     finally:
         if observe is not None:
             observe(time.perf_counter() - started)
+
+
+async def _message3(governor: Governor, principal: Principal,
+                    message: Invoke | InvokeCancel | Authorization,
+                    invocations: Invocations) -> Reply:
+    if isinstance(message, Authorization):
+        return await authorize(governor, principal, message)
+    if isinstance(message, InvokeCancel):
+        return await invocations.cancel(governor, principal, message)
+    started = await invocations.start(governor, principal, message)
+    if started.finish is not None:
+        return await started.finish()
+    assert started.reply is not None
+    return started.reply
 
 
 def replied(body: DecisionBody, envelope: Envelope | None) -> DecisionBody:
@@ -171,11 +248,12 @@ def heartbeat(governor: Governor, principal: Principal, beat: Heartbeat) -> Hear
 
 
 async def decide_safely(governor: Governor, principal: Principal, item: Intake,
-                        observe: Observe | None = None) -> Reply:
+                        observe: Observe | None = None,
+                        invocations: Invocations | None = None) -> Reply:
     """`decide` for transports without a last-resort middleware: an exception is an answer
     (503, as REST gives), never the end of the connection's command handling."""
     try:
-        return await decide(governor, principal, item, observe)
+        return await decide(governor, principal, item, observe, invocations)
     except Exception as exc:
         log.exception("deciding a command of %s failed", principal.name,
                       extra={"principal": principal.name})

@@ -58,7 +58,7 @@ class Metrics:
         self._gauges: dict[str, float] = {"pending": 0.0, "estop": 0.0, "age": float("nan")}
         self._state = ""
         self._registry: CollectorRegistry | None = None
-        governor.audit.listeners.append(self.on_audit)
+        governor.audit.audited.subscribe(self.on_audit)
 
     def on_audit(self, record: AuditRecord, receipt: AuditReceipt) -> None:
         key = (record.event.value, record.action_type or "", record.outcome or "")

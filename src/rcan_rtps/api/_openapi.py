@@ -7,6 +7,7 @@ from typing import Any
 import msgspec
 
 from rcan_rtps import __version__
+from rcan_rtps.governance.thoughts import Thought
 from rcan_rtps.rcan import openapi_schemas
 
 from ._bodies import ApiError, AuditPage, GoalList, HeartbeatAck, PendingList, VerifyReport, WsFrame
@@ -16,6 +17,7 @@ from .ports import GoalView
 _REF = "#/components/schemas/{name}"
 _API_TYPES: tuple[type[msgspec.Struct], ...] = (
     ApiError, GoalView, GoalList, PendingList, HeartbeatAck, AuditPage, VerifyReport, WsFrame,
+    Thought,
 )
 
 
@@ -44,7 +46,8 @@ _COMMAND_BODY = {
     "required": True,
     "content": {"application/json": {"schema": {
         "oneOf": [_ref("ShortCommand"), _ref("EnvelopeCommand"), _ref("RcanCommand"),
-                  _ref("SafetyMessage"), _ref("HeartbeatMessage")]}}},
+                  _ref("SafetyMessage"), _ref("HeartbeatMessage"), _ref("InvokeMessage"),
+                  _ref("InvokeCancelMessage"), _ref("AuthorizeMessage")]}}},
 }
 _AUTHORIZE_BODY = {"required": True,
                    "content": {"application/json": {"schema": _ref("Authorize")}}}
@@ -81,10 +84,17 @@ def _seconds(name: str, description: str) -> dict[str, Any]:
 
 
 _HITL_DECISION = _DECISION | {"404": _json("DecisionBody", "unknown or expired pending_id")}
+# An INVOKE (and INVOKE_CANCEL) is answered with an INVOKE_RESULT (§19.3), any other body with
+# a decision.
+_COMMAND_DECISION = _DECISION | {"200": {
+    "description": "executed (possibly clamped; see `applied`); an INVOKE's INVOKE_RESULT",
+    "content": {"application/json": {"schema": {
+        "oneOf": [_ref("DecisionBody"), _ref("InvokeResult")]}}}}}
 
 PATHS: dict[str, dict[str, Any]] = {
-    "/api/command": {"post": _op("postCommand", "Send a COMMAND (short or envelope form)",
-                                 _DECISION, _COMMAND_BODY)},
+    "/api/command": {"post": _op("postCommand", "Send a COMMAND (any form), SAFETY, HEARTBEAT, "
+                                 "INVOKE, INVOKE_CANCEL or AUTHORIZE",
+                                 _COMMAND_DECISION, _COMMAND_BODY)},
     "/api/status": {"get": _op("getStatus", "The robot's STATUS (GUEST+)",
                                {"200": _json("Status", "STATUS"), **_errors()})},
     "/api/heartbeat": {"post": _op("postHeartbeat", "Keep a control session alive",
@@ -95,6 +105,12 @@ PATHS: dict[str, dict[str, Any]] = {
         "getGoal", "One goal: navigation, docking, ... (GUEST+)",
         {"200": _json("GoalView", "the goal"), **_errors(404)},
         parameters=[{"name": "goal_id", "in": "path", "required": True,
+                     "schema": {"type": "string"}}])},
+    "/api/thoughts/{thought_id}": {"get": _op(
+        "getThought", "What an AI's thought led to (RCAN §16.5): model, confidence, its "
+        "commands and their decisions (GUEST+); `reasoning` only for OWNER+",
+        {"200": _json("Thought", "the thought"), **_errors(404)},
+        parameters=[{"name": "thought_id", "in": "path", "required": True,
                      "schema": {"type": "string"}}])},
     "/api/hitl/pending": {"get": _op("getPending", "Commands waiting for a human (approvers)",
                                      {"200": _json("PendingList", "pending"), **_errors(403)})},

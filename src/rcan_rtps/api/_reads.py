@@ -36,7 +36,7 @@ from typing import Any, TypeVar
 import msgspec
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
-from rcan_rtps.governance import AuditIntegrityError, verify_bytes
+from rcan_rtps.governance.logcheck import check_log
 
 from ._bodies import VerifyReport
 from ._errors import ReadsBusy
@@ -92,14 +92,16 @@ def last_line(path: Path, block: int = 4096) -> bytes | None:
 
 
 def verify_file(path: str, public_key: bytes) -> VerifyReport:
-    """Chain and signatures of what is on disk (runs in the worker process)."""
+    """Chain, signatures, tree heads and start-up checkpoint of what is on disk, as
+    `rcan-rtps audit verify` checks them (runs in the worker process)."""
     key = Ed25519PublicKey.from_public_bytes(public_key)
-    try:
-        head = verify_bytes(complete_lines(Path(path)), key)
-    except AuditIntegrityError as exc:
-        return VerifyReport(ok=False, bad_seq=exc.seq, detail=exc.detail)
-    return VerifyReport(ok=True, count=head.count, last_seq=head.last_seq,
-                        last_audit_id=head.last_audit_id)
+    report = check_log(Path(path), key, live=True)
+    newest = report.newest.tree_size if report.newest is not None else None
+    return VerifyReport(
+        ok=report.ok, count=report.entries, last_seq=report.entries,
+        last_audit_id=report.last_audit_id, bad_seq=report.bad_seq,
+        detail=report.problems[0] if report.problems else None,
+        tree_heads=report.heads, tree_size=newest, problems=report.problems or None)
 
 
 def _worker_start() -> None:

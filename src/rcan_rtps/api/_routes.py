@@ -18,7 +18,17 @@ from ._bodies import (
     json_response,
 )
 from ._commands import decode_as, read_limited, run_command, schema_failure, too_large
-from ._keys import CHECKS, GOVERNOR, OBSERVE, PRINCIPAL, READS, ROBOT, SETTINGS, STATUS
+from ._keys import (
+    CHECKS,
+    GOVERNOR,
+    INVOCATIONS,
+    OBSERVE,
+    PRINCIPAL,
+    READS,
+    ROBOT,
+    SETTINGS,
+    STATUS,
+)
 from ._reads import line_seq
 
 _WALL = SystemClock()
@@ -48,7 +58,7 @@ async def post_command(request: web.Request) -> web.Response:
         response.force_close()  # the rest of the body is not worth reading
         return response
     status, body = await run_command(governor, principal, raw, request.app[OBSERVE],
-                                     request.app[CHECKS])
+                                     request.app[CHECKS], request.app[INVOCATIONS])
     return json_response(body, status)
 
 
@@ -64,6 +74,15 @@ async def post_heartbeat(request: web.Request) -> web.Response:
 
 async def get_goals(request: web.Request) -> web.Response:
     return json_response(GoalList(goals=request.app[ROBOT].goals()))
+
+
+async def get_thought(request: web.Request) -> web.Response:
+    """§16.5: any authenticated principal (status scope); `reasoning` for OWNER+ only."""
+    thought = request.app[GOVERNOR].thoughts.read(request.match_info["thought_id"],
+                                                   request[PRINCIPAL])
+    if thought is None:
+        return error_response(404, "NOT_FOUND", reason="thought_not_found")
+    return json_response(thought)
 
 
 async def get_goal(request: web.Request) -> web.Response:

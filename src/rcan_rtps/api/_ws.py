@@ -7,7 +7,9 @@ bodies (text, or binary UTF-8 JSON). Each is validated as it arrives; a valid `s
 is decided at once, concurrently with the socket's queue (never refused with 429, never behind
 queued commands), so its outcome frame may overtake the outcomes of commands sent before it:
 match outcomes by `message_id` (every command has one; send your own to know it). Other frames
-are decided in order, at most `ws_max_in_flight` waiting (beyond: a 429 frame). A bad frame
+are decided in order, at most `ws_max_in_flight` waiting (beyond: a 429 frame); an INVOKE
+whose goal is under way is answered (its INVOKE_RESULT outcome frame, `reply_to` its msg_id)
+when the goal ends, while the frames behind it go on being decided. A bad frame
 (invalid UTF-8, not JSON, schema, 413) gets its error outcome frame and the socket goes on; so
 does a command whose decision raised (503 frame). A *text* frame that is not UTF-8 is a
 protocol error (RFC 6455 §8.1): aiohttp closes the socket (1007). Any client frame, ping or
@@ -28,9 +30,9 @@ import msgspec
 from aiohttp import WSMsgType, web
 
 from rcan_rtps.governance import Governor, Principal
-from rcan_rtps.rcan import ErrorCode
+from rcan_rtps.rcan import ErrorCode, Invoke
 
-from ._bodies import WsFrame, error_body
+from ._bodies import WsFrame, error_body, failure_reply
 from ._intake import (
     NO_CHECKS,
     Checks,
@@ -41,10 +43,12 @@ from ._intake import (
     decide_safely,
     intake,
 )
+from ._invoke import Invocations
 from ._keys import (
     CHECKS,
     GOAL_EVENTS,
     GOVERNOR,
+    INVOCATIONS,
     OBSERVE,
     PRINCIPAL,
     SETTINGS,
@@ -98,9 +102,11 @@ class _Commands:
 
     def __init__(self, ws: web.WebSocketResponse, governor: Governor, principal: Principal,
                  settings: ApiSettings, observe: Observe | None = None,
-                 checks: Checks = NO_CHECKS) -> None:
+                 checks: Checks = NO_CHECKS, invocations: Invocations | None = None) -> None:
         self._ws = ws
         self._checks = checks
+        self._invocations = invocations
+        self._invoking: set[asyncio.Task[None]] = set()  # INVOKEs waiting for their goals
         self._observe = observe
         self._governor = governor
         self._principal = principal
@@ -113,7 +119,7 @@ class _Commands:
 
     async def take(self, raw: bytes) -> None:
         """Validate now; a stop is decided at once (never 429), anything else queues."""
-        item = intake(raw, self._limit, self._checks)
+        item = intake(raw, self._limit, self._checks, self._principal.name)
         if item.stopping:
             await self._lane.submit(item)
             return
@@ -132,12 +138,43 @@ class _Commands:
         while True:
             item = await self._queue.get()
             try:
+                if isinstance(item.message3, Invoke) and self._invocations is not None:
+                    await self._invoke(item.message3, self._invocations)
+                    continue
                 self._current = asyncio.ensure_future(
-                    decide_safely(self._governor, self._principal, item, self._observe))
+                    decide_safely(self._governor, self._principal, item, self._observe,
+                                  self._invocations))
                 await self._deliver(await asyncio.shield(self._current))
             except Exception:  # never the end of this socket's commands
                 log.exception("WebSocket command of %s failed", self._principal.name,
                               extra={"principal": self._principal.name})
+
+    async def _invoke(self, invoke: Invoke, invocations: Invocations) -> None:
+        """Decided in order like any command; an INVOKE whose goal is under way is answered
+        when it ends, while the frames behind it go on being decided."""
+        try:
+            started = await invocations.start(self._governor, self._principal, invoke)
+        except Exception as exc:  # answered as REST would (503), never the socket's end
+            log.exception("an INVOKE of %s failed", self._principal.name,
+                          extra={"principal": self._principal.name})
+            await self._deliver(failure_reply(exc))
+            return
+        if started.finish is None:
+            assert started.reply is not None
+            await self._deliver(started.reply)
+            return
+        finish = started.finish
+
+        async def answer() -> None:
+            try:
+                await self._deliver(await finish())
+            except Exception:
+                log.exception("answering an INVOKE of %s failed", self._principal.name,
+                              extra={"principal": self._principal.name})
+
+        task = asyncio.create_task(answer())
+        self._invoking.add(task)
+        task.add_done_callback(self._invoking.discard)
 
     async def close(self) -> None:
         """Stop taking commands; finish the one in flight and every stop; drop the rest."""
@@ -148,6 +185,8 @@ class _Commands:
             with contextlib.suppress(Exception):
                 await self._current
         await self._lane.drain()  # a stop the client sent must never be dropped
+        for task in list(self._invoking):  # nobody is left to answer
+            task.cancel()
 
 
 async def websocket(request: web.Request) -> web.WebSocketResponse:
@@ -157,7 +196,8 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
                                max_msg_size=settings.max_body_bytes * _FRAME_CAP_FACTOR)
     await ws.prepare(request)
     app[SOCKETS].add(ws)
-    commands = _Commands(ws, governor, principal, settings, app[OBSERVE], app[CHECKS])
+    commands = _Commands(ws, governor, principal, settings, app[OBSERVE], app[CHECKS],
+                         app[INVOCATIONS])
     pushers = (asyncio.create_task(_push(ws, app[STATUS].subscribe, "status")),
                asyncio.create_task(_push(ws, app[GOAL_EVENTS].subscribe, "goal")))
     try:

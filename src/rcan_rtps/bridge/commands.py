@@ -17,6 +17,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from ..config import Ros2Config
+from ..events import Events
 from ..governance import DispatchResult
 from ..rcan import ActionParams, ActionSpec, Effect, NormalizedCommand
 from ..rcan.actions import (
@@ -95,11 +96,12 @@ class RosDispatcher:
     """Carries out each action as its registry entry declares (`ActionSpec.ros`)."""
 
     def __init__(self, node: RosNode, ros2: Ros2Config, goals: GoalServers | None = None,
-                 *, telemetry_age: Callable[[], float | None] = lambda: None) -> None:
+                 *, telemetry_age: Callable[[], float | None] = lambda: None,
+                 events: Events | None = None) -> None:
         self.node = node
         self.ros2 = ros2
         self.goals = goals  # None: no goal action is available (every goal is refused)
-        self.on_command: Callable[[], None] = lambda: None  # e.g. leave `safe_stop` state
+        self.events = events or Events()  # `command_sent`: e.g. leave `safe_stop` state
         self._telemetry_age = telemetry_age  # seconds since the robot last published, if ever
         self._ever_matched: set[str] = set()
         self._publishers: dict[tuple[str, str, bool], RosPublisher] = {}
@@ -199,7 +201,7 @@ class RosDispatcher:
 
     async def dispatch(self, command: NormalizedCommand,
                        applied: ActionParams) -> DispatchResult:
-        self.on_command()
+        self.events.command_sent.emit()
         ros = command.spec.ros
         if isinstance(ros, NoRoute):
             return DispatchResult(ok=True)
@@ -239,7 +241,7 @@ class RosDispatcher:
                                      else f"no subscriber on {pub.topic}")
             if why is not None:
                 return why
-            self.on_command()
+            self.events.command_sent.emit()
         route.publisher.publish(route.message(velocity))  # zero always goes out
         return None
 

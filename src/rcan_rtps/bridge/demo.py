@@ -51,6 +51,13 @@ bridge:
   audit:
     path: {state}/audit.jsonl
     key_path: {state}/audit-ed25519.key
+  skills:  # what an RCAN INVOKE (§19) may run: a registry action, fixed and allowed params
+    go_home: {{action: navigate, params: {{x: 0, y: 0, yaw: 0}}, description: back to the origin}}
+    go_to: {{action: navigate, allow: [x, y, yaw], description: drive to a point}}
+    nudge: {{action: move, params: {{linear_x: 0.3}}, allow: [duration_s]}}
+    raise_elbow:  # held for an owner, as every arm_joint is here
+      action: arm_joint
+      params: {{joints: [elbow], positions: [0.8], duration_s: 1}}
 """
 
 

@@ -19,11 +19,12 @@ from typing import Any
 
 from ..api.ports import GoalView
 from ..config import Ros2Config
+from ..events import Events
 from ..rcan import Navigation
 from ..rcan.actions import GoalRoute, goal_routes
 from ..ros.participant import RosNode
 from ..ros.services import RequestMapping
-from .navigation import NAVIGATE_TO_POSE, GoalFinished, GoalTracker, navigation_summary
+from .navigation import NAVIGATE_TO_POSE, GoalTracker, navigation_summary
 
 log = logging.getLogger(__name__)
 
@@ -38,10 +39,10 @@ class GoalRoutes:
     """The bridge's goals: one tracker per goal route, found by the route's config key."""
 
     def __init__(self, node: RosNode, ros2: Ros2Config,
-                 routes: tuple[GoalRoute, ...] | None = None) -> None:
-        self.listeners: list[Callable[[], None]] = []  # the active goals changed
-        self.event_listeners: list[Callable[[GoalView], None]] = []  # any change, a copy
-        self.finished_listeners: list[Callable[[GoalFinished], None]] = []  # once per goal
+                 routes: tuple[GoalRoute, ...] | None = None,
+                 events: Events | None = None) -> None:
+        # Every tracker tells the same events: whoever listens hears of all goals.
+        self.events = events or Events()
         self._by_key: dict[str, GoalTracker] = {}
         trackers: dict[tuple[str, str], GoalTracker] = {}
         for route in goal_routes() if routes is None else routes:
@@ -50,11 +51,7 @@ class GoalRoutes:
             if tracker is None:
                 tracker = trackers[server] = GoalTracker(
                     node, getattr(ros2, route.action_key), route.type_name,
-                    mapping=route_mapping(ros2, route.action_key))
-                # Every tracker tells the same listeners: whoever listens hears of all goals.
-                tracker.listeners = self.listeners
-                tracker.event_listeners = self.event_listeners
-                tracker.finished_listeners = self.finished_listeners
+                    mapping=route_mapping(ros2, route.action_key), events=self.events)
             self._by_key[route.action_key] = tracker
         self.trackers: tuple[GoalTracker, ...] = tuple(trackers.values())
 

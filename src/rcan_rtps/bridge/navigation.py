@@ -2,9 +2,9 @@
 GET /api/goals/{goal_id}; `bridge.goals` holds one tracker per goal route.
 
 Each accepted goal gets a watcher task that records feedback (as plain values) and the
-final result, so the API reads goal progress without touching DDS. Listeners hear of every
-change (`event_listeners`, e.g. WebSocket goal events) and of each goal's end, once
-(`finished_listeners`, e.g. the audit log).
+final result, so the API reads goal progress without touching DDS. The bridge's `Events` hear
+of every change (`goal`, e.g. WebSocket goal events), of the active goals changing (`robot`,
+STATUS) and of each goal's end, once (`goal_finished`, e.g. the audit log).
 """
 
 from __future__ import annotations
@@ -13,13 +13,12 @@ import asyncio
 import logging
 import time
 import uuid
-from collections.abc import Callable
 from typing import Any
 
 import msgspec
 
-from .._listeners import tell_all
 from ..api.ports import GoalState, GoalView
+from ..events import Events
 from ..rcan import Navigation
 from ..ros.actions import ActionClient, ClientGoal
 from ..ros.actions import GoalState as RosGoalState
@@ -74,7 +73,8 @@ class GoalTracker:
     """Sends goals to one action server (of one type) and follows them."""
 
     def __init__(self, node: RosNode, action: str, type_name: str = NAVIGATE_TO_POSE, *,
-                 keep: int = 200, mapping: RequestMapping = RequestMapping.AUTO) -> None:
+                 keep: int = 200, mapping: RequestMapping = RequestMapping.AUTO,
+                 events: Events | None = None) -> None:
         self.node = node
         self.client = ActionClient(node, action, type_name, mapping=mapping)
         self._views: dict[str, GoalView] = {}
@@ -82,9 +82,9 @@ class GoalTracker:
         self._keep = keep
         self._message_ids: dict[str, str | None] = {}  # goal → the command that sent it
         self._handles: dict[str, ClientGoal] = {}  # goals not yet finished
-        self.listeners: list[Callable[[], None]] = []  # told when the active goals change
-        self.event_listeners: list[Callable[[GoalView], None]] = []  # any change, a copy
-        self.finished_listeners: list[Callable[[GoalFinished], None]] = []  # once per goal
+        # Told when the active goals change (`robot`), of any change (`goal`, a copy) and of
+        # each goal's end, once (`goal_finished`).
+        self.events = events or Events()
 
     @property
     def action_name(self) -> str:
@@ -155,14 +155,14 @@ class GoalTracker:
             self._handles.pop(goal_id, None)
             finished = GoalFinished(view=msgspec.structs.replace(view),
                                     message_id=self._message_ids.get(goal_id))
-            tell_all(self.finished_listeners, log, "goal finished", finished)
+            self.events.goal_finished.emit(finished)
 
     def _tell(self) -> None:
-        tell_all(self.listeners, log, "goal")
+        self.events.robot.emit()
 
     def _tell_event(self, view: GoalView) -> None:
-        if self.event_listeners:
-            tell_all(self.event_listeners, log, "goal event", msgspec.structs.replace(view))
+        if self.events.goal.heard:
+            self.events.goal.emit(msgspec.structs.replace(view))
 
     def navigation(self) -> Navigation | None:
         """The newest active goal and its progress, for STATUS."""

@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING
 from ..api import ApiServer, bind, build_app, cert_principals, server_ssl_context
 from ..api.ports import GoalView
 from ..config import RcanConfig, plaintext_problem
+from ..events import Events
 from ..governance import (
     AuditLog,
     Governor,
@@ -46,6 +47,7 @@ from ..governance import (
     load_private_key,
 )
 from ..governance.decision_log import log_entry
+from ..governance.signatures import Signatures
 from ..rcan import Status
 from ..ros.participant import RosNode
 from ..ros.services import RequestMapping
@@ -66,12 +68,26 @@ def nav_mapping(config: RcanConfig) -> RequestMapping:
     return route_mapping(config.bridge.ros2, "nav_action")
 
 
-def audit_goal_outcomes(goals: GoalRoutes, governor: Governor) -> None:
+def audit_goal_outcomes(events: Events, governor: Governor) -> None:
     """Each goal's end (succeeded, aborted, canceled, …), on any goal server, becomes a
     GOAL_FINISHED entry."""
-    goals.finished_listeners.append(lambda end: governor.goal_finished(
+    events.goal_finished.subscribe(lambda end: governor.goal_finished(
         end.view.goal_id, end.view.state, server=end.view.action,
         message_id=end.message_id, detail=end.view.detail))
+
+
+def wire_robot_side(events: Events, governor: Governor, telemetry: TelemetryState,
+                    goals: GoalRoutes | None, diagnostics: DiagnosticsNotifier | None) -> None:
+    """What the robot side listens to: STATUS's `safe_stop` follows lost sessions and sent
+    commands, goal ends are audited, pending approvals are published as diagnostics."""
+    events.safe_stop.subscribe(lambda _p: telemetry.mark_safe_stop())
+    events.command_sent.subscribe(telemetry.clear_safe_stop)
+    if goals is not None:
+        audit_goal_outcomes(events, governor)
+        events.session_lost.subscribe(
+            lambda p: goals.warn_cancelling(f"control session of '{p.name}' lost"))
+    if diagnostics is not None:
+        events.governance.subscribe(lambda: diagnostics.pending_changed(len(governor.pending())))
 
 
 class BridgeView:
@@ -85,11 +101,10 @@ class BridgeView:
         return self.telemetry.status(pending_auth=pending_auth)
 
     def watch(self, changed: Callable[[], None]) -> None:
-        self.telemetry.listeners.append(changed)
-        self.goals_.listeners.append(changed)
+        self.telemetry.events.robot.subscribe(changed)  # telemetry and goals tell `robot`
 
     def watch_goals(self, changed: Callable[[GoalView], None]) -> None:
-        self.goals_.event_listeners.append(changed)
+        self.goals_.events.goal.subscribe(changed)
 
     def goal(self, goal_id: str) -> GoalView | None:
         return self.goals_.goal(goal_id)
@@ -124,6 +139,7 @@ Cleanup = Callable[[], object]  # returns None or an awaitable
 class Bridge:
     # Set by prepare().
     _authenticator: TokenAuthenticator
+    _signatures: Signatures
     _ssl: ssl.SSLContext | None
     _sock: socket.socket
 
@@ -140,6 +156,7 @@ class Bridge:
         self.goals: GoalRoutes | None = None
         self.dispatcher: RosDispatcher | None = None
         self.governor: Governor | None = None
+        self.events = Events()  # who is told what; frozen once the API serves
         self._diagnostics: DiagnosticsNotifier | None = None
         self.telemetry: TelemetryState | None = None
         self.server: ApiServer | None = None
@@ -232,6 +249,7 @@ class Bridge:
         self._authenticator = TokenAuthenticator.from_config(
             api, self.config.bridge.rbac, opts.env, clock=SystemClock())
         self._ssl = server_ssl_context(api.tls) if api.tls else None
+        self._signatures = Signatures.from_config(api)  # a key that does not load: refuse now
         key = Path(self.config.bridge.audit.key_path)
         if key.exists():
             load_private_key(key)  # unreadable, too open or not Ed25519: refuse now
@@ -250,6 +268,7 @@ class Bridge:
         governor, telemetry = self._governance(node, audit, goals, dispatcher)
         await self._start_governor(governor, dispatcher)
         await self._serve(governor, telemetry, goals)
+        self.events.freeze()  # every listener is wired: none may be added from now on
         if self.options.mdns:
             self._advertise_soon()
 
@@ -265,38 +284,32 @@ class Bridge:
         audit = self.config.bridge.audit
         # Every entry names the robot it governs (§6): a log read apart from its robot says whose.
         self.audit = await AuditLog.open(audit.path, audit.key_path, ruri=self.config.robot.ruri,
-                                         witness=audit.witness)
-        self.audit.listeners.append(log_entry)  # one log line per decision and safety event
+                                         witness=audit.witness, audited=self.events.audited)
+        self.events.audited.subscribe(log_entry)  # one log line per decision and safety event
         self._on_stop("closing the audit log", self.audit.close)
         return self.audit
 
     def _robot_side(self, node: RosNode) -> tuple[GoalRoutes, RosDispatcher]:
         ros2 = self.config.bridge.ros2
-        goals = self.goals = GoalRoutes(node, ros2)  # an action client per goal route
+        goals = self.goals = GoalRoutes(node, ros2, events=self.events)  # a client per route
         self._on_stop("goal action clients", goals.close)
-        self.dispatcher = RosDispatcher(node, ros2, goals, telemetry_age=self._telemetry_age)
+        self.dispatcher = RosDispatcher(node, ros2, goals, telemetry_age=self._telemetry_age,
+                                        events=self.events)
         return goals, self.dispatcher
 
     def _governance(self, node: RosNode, audit: AuditLog, goals: GoalRoutes,
                     dispatcher: RosDispatcher) -> tuple[Governor, TelemetryState]:
         governor = self.governor = Governor.from_config(
-            self.config, audit=audit, dispatcher=dispatcher, notifier=self._notifier(node))
+            self.config, audit=audit, dispatcher=dispatcher, notifier=self._notifier(node),
+            events=self.events)
         # BRIDGE_STOPPED answers a BRIDGE_STARTED; before that, only the latch file's thread.
         self._on_stop("governor", lambda: governor.stop() if governor.started
                       else governor.latch.close())
         telemetry = self.telemetry = TelemetryState(
             node, self.config, estop_latched=lambda: governor.latch.latched,
-            active_goals=goals.active, navigation=goals.navigation)
+            active_goals=goals.active, navigation=goals.navigation, events=self.events)
         self._on_stop("telemetry", telemetry.close)
-        governor.safe_stop_listeners.append(lambda _p: telemetry.mark_safe_stop())
-        audit_goal_outcomes(goals, governor)
-        governor.session_lost_listeners.append(
-            lambda p: goals.warn_cancelling(f"control session of '{p.name}' lost"))
-        diagnostics = self._diagnostics
-        if diagnostics is not None:
-            governor.status_listeners.append(
-                lambda: diagnostics.pending_changed(len(governor.pending())))
-        dispatcher.on_command = telemetry.clear_safe_stop
+        wire_robot_side(self.events, governor, telemetry, goals, self._diagnostics)
         return governor, telemetry
 
     async def _start_governor(self, governor: Governor, dispatcher: RosDispatcher) -> None:
@@ -323,7 +336,8 @@ class Bridge:
         api, opts = self.config.bridge.api, self.options
         app = build_app(governor=governor, authenticator=self._authenticator,
                         robot=BridgeView(telemetry, goals), config=self.config,
-                        cert_principals=cert_principals(self.config) if api.tls else None)
+                        cert_principals=cert_principals(self.config) if api.tls else None,
+                        signatures=self._signatures)
         server = self.server = ApiServer(app, host=opts.host or api.host,
                                          port=api.port if opts.port is None else opts.port,
                                          ssl_context=self._ssl, sock=self._sock)

@@ -21,8 +21,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from .._listeners import tell_all
 from ..config import RcanConfig
+from ..events import Events
 from ..rcan import (
     Fault,
     Joints,
@@ -58,7 +58,8 @@ class TelemetryState:
     def __init__(self, node: RosNode, config: RcanConfig, *,
                  estop_latched: Callable[[], bool], active_goals: Callable[[], list[str]],
                  navigation: Callable[[], Navigation | None] = lambda: None,
-                 monotonic: Callable[[], float] = time.monotonic) -> None:
+                 monotonic: Callable[[], float] = time.monotonic,
+                 events: Events | None = None) -> None:
         self.config = config
         self._estop_latched = estop_latched
         self._active_goals = active_goals
@@ -79,7 +80,7 @@ class TelemetryState:
         self._seq = 0
         self._last_us = 0
         # Told (on the reader thread, or the loop) when what STATUS shows may have changed.
-        self.listeners: list[Callable[[], None]] = []
+        self.events = events or Events()
         ros2 = config.bridge.ros2
         self.domain_id = node.domain_id
         self._own_hardware_id = node.fqn  # what the bridge's DiagnosticsNotifier signs with
@@ -112,7 +113,7 @@ class TelemetryState:
 
     def _tell(self, changed: bool) -> None:
         if changed:
-            tell_all(self.listeners, log, "telemetry")
+            self.events.robot.emit()
 
     def _on_odom(self, msg: Any) -> None:
         p, twist = msg.pose.pose, msg.twist.twist

@@ -9,7 +9,9 @@ import sys
 from collections.abc import Mapping
 
 from rcan_rtps.config import ConfigError, RcanConfig, load_config
+from rcan_rtps.governance.hitl import HitlPolicy
 from rcan_rtps.governance.rbac import MIN_TOKEN_BYTES
+from rcan_rtps.rcan import Role
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -33,25 +35,58 @@ def check_command(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(str(exc), file=sys.stderr)
         return 1
-    problems = [] if args.file_only else run_problems(config, os.environ)
-    if problems:
-        print(f"{args.file}: valid, but `rcan-rtps run` would fail here "
-              "(--file-only skips these checks):", file=sys.stderr)
-        for problem in problems:
-            print(f"  - {problem}", file=sys.stderr)
+    failed = _report(f"{args.file}: valid, but no held command could ever be approved:",
+                     approval_problems(config))
+    if not args.file_only:
+        failed |= _report(f"{args.file}: valid, but `rcan-rtps run` would fail here "
+                          "(--file-only skips these checks):", run_problems(config, os.environ))
+    if failed:
         return 1
     print(f"{args.file}: ok ({config.robot.ruri})")
     return 0
 
 
+def _report(heading: str, problems: list[str]) -> bool:
+    if problems:
+        print(heading, file=sys.stderr)
+        for problem in problems:
+            print(f"  - {problem}", file=sys.stderr)
+    return bool(problems)
+
+
 def run_problems(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
-    """What stops `rcan-rtps run` with this config on this machine: tokens, TLS, JWT keys."""
+    """What stops `rcan-rtps run` with this config on this machine: tokens, TLS, JWT and
+    signing keys."""
     problems: list[str] = []
     missing = missing_tokens(config, env)
     if missing:
         problems.append(f"token variables unset or shorter than {MIN_TOKEN_BYTES} bytes: "
                         f"{', '.join(missing)}")
-    return problems + tls_problems(config) + jwt_problems(config)
+    return problems + tls_problems(config) + jwt_problems(config) + signer_problems(config)
+
+
+def approval_problems(config: RcanConfig) -> list[str]:
+    """Gates whose n-of-m can never be met: fewer configured principals may approve than the
+    gate needs, and no JWT issuer could bring more. Every such command would expire."""
+    api, bridge = config.bridge.api, config.bridge
+    if api.jwt is not None:
+        return []  # JWT principals are not known in advance: any number may come
+    roles = [Role[p.role] for p in api.principals]
+    if not api.principals and api.auth_token_env:
+        roles.append(Role.OWNER)  # the one default principal
+    policy = HitlPolicy(bridge.hitl, Role[bridge.rbac.hitl_approver_role])
+    problems = []
+    for gate in bridge.hitl.gates:
+        if not gate.require_auth:
+            continue
+        approver = policy.approver_role(gate.action)
+        able = sum(1 for role in roles if role >= approver)
+        if able < gate.approvals:
+            problems.append(
+                f"hitl.gates[{gate.action}]: needs {gate.approvals} distinct approvers of role "
+                f"{approver.name} or higher, but only {able} configured principal(s) may "
+                "approve: every held command would expire")
+    return problems
 
 
 def missing_tokens(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
@@ -107,4 +142,18 @@ def jwt_problems(config: RcanConfig) -> list[str]:
             load_pem_key(jwt.public_key or "")
     except AuthConfigError as exc:
         return [f"bridge.api.jwt: {exc}"]
+    return []
+
+
+def signer_problems(config: RcanConfig) -> list[str]:
+    """A principal's signing key (inline or file) that does not load as a key of its alg."""
+    if not any(p.signatures for p in config.bridge.api.principals):
+        return []
+    from rcan_rtps.governance import AuthConfigError
+    from rcan_rtps.governance.signatures import Signatures
+
+    try:
+        Signatures.from_config(config.bridge.api)
+    except AuthConfigError as exc:
+        return [f"bridge.api: {exc}"]
     return []

@@ -12,7 +12,7 @@ import msgspec.inspect
 import yaml
 
 from ._errors import ConfigError, ConfigIssue
-from ._model import RcanConfig
+from ._model import PrincipalConfig, RcanConfig
 from ._schema import (
     INT_TAG,
     INVALID,
@@ -151,5 +151,17 @@ def _resolve_paths(config: RcanConfig, base: Path) -> RcanConfig:
         jwt = msgspec.structs.replace(api.jwt, public_key=rel(api.jwt.public_key),
                                       jwks=rel(api.jwt.jwks))
         api = msgspec.structs.replace(api, jwt=jwt)
+    api = msgspec.structs.replace(api, principals=[
+        _signer_paths(p, base) for p in api.principals])
     bridge = msgspec.structs.replace(bridge, audit=audit, safety=safety, api=api)
     return msgspec.structs.replace(config, bridge=bridge)
+
+
+def _signer_paths(principal: PrincipalConfig, base: Path) -> PrincipalConfig:
+    if principal.signatures is None:
+        return principal
+    keys = [key if key.public_key_file is None else
+            msgspec.structs.replace(key, public_key_file=str(base / key.public_key_file))
+            for key in principal.signatures.keys]
+    return msgspec.structs.replace(principal, signatures=msgspec.structs.replace(
+        principal.signatures, keys=keys))

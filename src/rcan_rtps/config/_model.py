@@ -28,6 +28,8 @@ from rcan_rtps.rcan import (
 )
 from rcan_rtps.rcan.actions import GoalRoute, goal_routes, with_effect
 
+from ._skills import skill_problem
+
 _ROS_NAME = re.compile(r"^~?/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*$")
 _NODE_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
 _PRINCIPAL = r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$"
@@ -221,12 +223,48 @@ class HitlConfig(_Section, frozen=True, kw_only=True):
     authorize_endpoint: Annotated[str, _check(_authorize_endpoint_problem)] = AUTHORIZE_PATH
 
 
+KeyId = Annotated[str, msgspec.Meta(min_length=1, max_length=128,
+                                    pattern=r"^[A-Za-z0-9._:-]+$")]
+# off: a `sig` is recorded, not checked; verify: a `sig` must verify with one of the
+# principal's keys, unsigned messages pass; required: every command but a stop must be signed.
+SignaturePolicy = Literal["off", "verify", "required"]
+
+
+class SignerKey(_Section, frozen=True, kw_only=True):
+    """A public key its principal signs RCAN 3.x COMMANDs with (docs/rcan-profile.md): the
+    `kid` the signatures name (the SDK's is `MLDSAKeyPair.key_id`), and the key, inline
+    (base64 of its raw bytes) or in a file (raw bytes, as `MLDSAKeyPair.save_public` writes
+    them, or PEM)."""
+
+    kid: KeyId
+    alg: Literal["ml-dsa-65", "ed25519"] = "ml-dsa-65"
+    public_key: Annotated[str, msgspec.Meta(min_length=1, max_length=8192)] | None = None
+    public_key_file: Annotated[str, msgspec.Meta(min_length=1)] | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if (self.public_key is None) == (self.public_key_file is None):
+            raise ValueError("give exactly one of `public_key` or `public_key_file`")
+
+
+def _repeated_kid_problem(keys: list[SignerKey]) -> str | None:
+    kids = [key.kid for key in keys]
+    return "lists a kid more than once" if len(set(kids)) != len(kids) else None
+
+
+class SignaturesConfig(_Section, frozen=True, kw_only=True):
+    policy: SignaturePolicy = "verify"
+    keys: Annotated[list[SignerKey], _check(_repeated_kid_problem)] = []
+
+
 class PrincipalConfig(_Section, frozen=True, kw_only=True):
     name: Annotated[str, msgspec.Meta(pattern=_PRINCIPAL)]
     role: AnyRoleName  # the profile's names or RCAN v2's (OPERATOR = USER, …; see Role)
     token_env: EnvName | None = None
     token_sha256: Annotated[str, msgspec.Meta(pattern=r"^[0-9a-fA-F]{64}$")] | None = None
     rate_limit_per_min: Annotated[int, msgspec.Meta(ge=1)] | None = None
+    # Signed messages; absent: policy off (a `sig` is recorded, not checked).
+    signatures: SignaturesConfig | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -269,6 +307,12 @@ def _principals_problem(principals: list[PrincipalConfig]) -> str | None:
     digests = [p.token_sha256.lower() for p in principals if p.token_sha256]
     if len(set(digests)) != len(digests):
         return "two share a token_sha256"
+    owners: dict[str, str] = {}
+    for p in principals:
+        for key in p.signatures.keys if p.signatures else []:
+            other = owners.setdefault(key.kid, p.name)
+            if other != p.name:
+                return f"kid {key.kid!r} is bound to two principals ({other}, {p.name})"
     return None
 
 
@@ -419,6 +463,27 @@ class SecurityConfig(_Section, frozen=True, kw_only=True):
     clock_ahead_s: Annotated[float, msgspec.Meta(ge=0.0, le=60.0)] = 5.0
 
 
+ParamName = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+SkillName = Annotated[str, msgspec.Meta(
+    min_length=1, max_length=128, pattern=r"^[a-z][a-z0-9_]*(\.[a-z][a-z0-9_]*)*$")]
+
+
+class SkillConfig(_Section, frozen=True, kw_only=True):
+    """One skill an INVOKE may name (RCAN §19): a registry action (never a stop: those have
+    their own lane), its fixed parameters, and those the invoker may set."""
+
+    action: GateableName
+    params: dict[ParamName, Any] = {}
+    allow: list[ParamName] = []
+    description: Annotated[str, msgspec.Meta(max_length=256)] = ""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        problem = skill_problem(self.action, self.params, self.allow)
+        if problem is not None:
+            raise ValueError(problem)
+
+
 ModelName = Annotated[str, msgspec.Meta(min_length=1, max_length=256)]
 
 
@@ -466,6 +531,7 @@ class BridgeConfig(_Section, frozen=True, kw_only=True):
     rbac: RbacConfig = RbacConfig()
     motion: MotionConfig = MotionConfig()
     security: SecurityConfig = SecurityConfig()
+    skills: dict[SkillName, SkillConfig] = {}  # what INVOKE may run (§19)
     ai: AiConfig = AiConfig()
 
     def __post_init__(self) -> None:

@@ -51,6 +51,7 @@ import msgspec
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
+from ..events import Channel
 from ._durable import atomic_write, fsync_dir, full_fsync, write_all
 from .clock import Clock, SystemClock
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
@@ -592,7 +593,8 @@ class AuditLog:
                  ruri: str | None, clock: Clock, group_commit: bool, size: int,
                  writer: concurrent.futures.ThreadPoolExecutor,
                  tree: CompactTree | None = None, heads: TreeHeadFile | None = None,
-                 witness: Witness | None = None) -> None:
+                 witness: Witness | None = None,
+                 audited: Channel[[AuditRecord, AuditReceipt]] | None = None) -> None:
         self.path = path
         self._fd = fd
         self._key = key
@@ -618,13 +620,14 @@ class AuditLog:
         self._checkpointing: asyncio.Task[None] | None = None
         self._last_write_end = 0.0
         # Told of every durable entry (e.g. metrics); a failing listener is logged, not raised.
-        self.listeners: list[Callable[[AuditRecord, AuditReceipt], None]] = []
+        self.audited: Channel[[AuditRecord, AuditReceipt]] = audited or Channel("audit")
         self._told: list[tuple[AuditRecord, AuditReceipt]] = []  # durable, listeners not told
 
     @classmethod
     async def open(cls, path: str | os.PathLike[str], key_path: str | os.PathLike[str], *,
                    ruri: str | None = None, clock: Clock | None = None,
-                   group_commit: bool = True, witness: str | None = None) -> AuditLog:
+                   group_commit: bool = True, witness: str | None = None,
+                   audited: Channel[[AuditRecord, AuditReceipt]] | None = None) -> AuditLog:
         """Open (or create) the log, verify what the checkpoint does not cover, cut a torn tail.
 
         A torn tail is cut and audited. Any other break raises AuditIntegrityError: the bridge
@@ -647,7 +650,7 @@ class AuditLog:
             raise
         log = cls(fd, key, scan.head, path=path, ruri=ruri, clock=clock or SystemClock(),
                   group_commit=group_commit, size=scan.good_end, writer=writer,
-                  tree=scan.tree, heads=heads, witness=sender)
+                  tree=scan.tree, heads=heads, witness=sender, audited=audited)
         log._last_span = scan.last_span
         if scan.torn:
             await log.append(AuditRecord(
@@ -711,7 +714,7 @@ class AuditLog:
         if (self._durable_seq - self._checkpointed_seq >= CHECKPOINT_EVERY
                 and (self._checkpointing is None or self._checkpointing.done())):
             self._checkpointing = asyncio.create_task(self.checkpoint())  # off the reply path
-        if self.listeners:  # after the caller's next step (its publish), not before it
+        if self.audited.heard:  # after the caller's next step (its publish), not before it
             if not self._told:  # one loop callback for all the entries of a group commit
                 asyncio.get_running_loop().call_soon(self._tell_listeners)
             self._told.append((record, receipt))
@@ -720,11 +723,7 @@ class AuditLog:
     def _tell_listeners(self) -> None:
         told, self._told = self._told, []
         for record, receipt in told:
-            for listener in self.listeners:
-                try:
-                    listener(record, receipt)
-                except Exception:
-                    log.exception("audit listener failed")
+            self.audited.emit(record, receipt)
 
     async def checkpoint(self) -> None:
         """Record the durable head as verified (every entry up to it is ours or was checked)."""

@@ -25,7 +25,6 @@ from typing import Any, TypeVar
 
 import msgspec
 
-from .._listeners import tell_all
 from ._durable import atomic_write
 from .errors import EstopStateError
 
@@ -98,7 +97,7 @@ class EstopMachine:
         self.file = file
         self.reason = reason  # why it started latched, if it did
         self._latched = latched
-        self.listeners: list[Callable[[], None]] = []  # told when `latched` flips
+        self._on_flip: Callable[[], None] | None = None  # the kernel's reflex (`bind`)
         self._engages_waiting = 0
         self._queue: asyncio.Queue[_Job] | None = None
         self._worker: asyncio.Task[None] | None = None
@@ -133,8 +132,20 @@ class EstopMachine:
         self._tell()
         return True
 
+    def bind(self, on_flip: Callable[[], None]) -> None:
+        """The one reflex to `latched` flipping, called synchronously at the flip (the
+        governor's: zero the stream, publish the e-stop Bool, tell STATUS). Set once."""
+        if self._on_flip is not None:
+            raise RuntimeError("the e-stop latch has its reflex already")
+        self._on_flip = on_flip
+
     def _tell(self) -> None:
-        tell_all(self.listeners, log, "e-stop")  # never undoes or delays a transition
+        if self._on_flip is None:
+            return
+        try:
+            self._on_flip()
+        except Exception:  # never undoes or delays a transition
+            log.exception("e-stop reflex failed")
 
     async def settled(self) -> None:
         """Returns once every transition submitted so far has completed."""

@@ -39,6 +39,8 @@ from .treehead import (
 
 class LogReport(msgspec.Struct, kw_only=True):
     entries: int = 0  # valid entries, in order from seq 1
+    last_audit_id: str | None = None  # of the last valid entry
+    bad_seq: int | None = None  # where the chain broke, if it did
     heads: int = 0  # tree heads checked (the sidecar's)
     witnessed: int = 0  # tree heads checked from witness files
     newest: TreeHead | None = None  # the largest head that matched
@@ -56,9 +58,13 @@ class _Anchor(msgspec.Struct, frozen=True):
 
 
 def check_log(path: Path, pubkey: Ed25519PublicKey | None,
-              witness_files: Sequence[Path] = ()) -> LogReport:
+              witness_files: Sequence[Path] = (), *, live: bool = False) -> LogReport:
     """Everything `audit verify` checks. Raises OSError only when the log cannot be read and
-    nothing anchors it (then there is nothing to check)."""
+    nothing anchors it (then there is nothing to check).
+
+    `live`: the log of a running bridge. Its tree heads are read before its entries (a head is
+    written only once its entries are durable, so every head read names entries on disk), and
+    a last line still being appended is not an entry yet."""
     report = LogReport()
     anchors = _anchors(tree_head_path(path), "tree heads", pubkey, report)
     own = len(anchors)
@@ -76,6 +82,8 @@ def check_log(path: Path, pubkey: Ed25519PublicKey | None,
         report.problems.append(f"{path} is missing, but tree heads or a checkpoint name its "
                                "entries")
         data = b""
+    if live:
+        data = data[: data.rfind(b"\n") + 1]
     roots, ids = _scan(data, pubkey, {a.head.tree_size for a in anchors},
                        checkpoint[0] if checkpoint else None, report)
     for i, anchor in enumerate(anchors):
@@ -139,12 +147,14 @@ def _scan(data: bytes, pubkey: Ed25519PublicKey | None, sizes: set[int],
     try:
         for seq, audit_id, line in entries(data, pubkey):
             tree.append(leaf_hash(line))
+            report.last_audit_id = audit_id
             if seq in sizes:
                 roots[seq] = tree.root()
             if seq == checkpoint_seq:
                 ids[seq] = audit_id
     except AuditIntegrityError as exc:
         report.problems.append(str(exc))
+        report.bad_seq = exc.seq
     report.entries = tree.size
     return roots, ids
 

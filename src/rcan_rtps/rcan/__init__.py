@@ -4,7 +4,10 @@ Public API (everything else is private)::
 
     validate_command(raw) -> NormalizedCommand     raises SchemaValidationError / InvalidRuriError
                                                    / VersionIncompatibleError
-    validate_message(raw) -> NormalizedCommand | Heartbeat   the same, HEARTBEAT included
+    validate_message(raw) -> a message            the same, HEARTBEAT, INVOKE, INVOKE_CANCEL and
+                                                   AUTHORIZE included (`_invoke`)
+    invoke_command(invoke, action, params) -> NormalizedCommand   what an INVOKE's skill runs
+    reply_id(raw) -> str | None                    the msg_id a refusal of a 3.x body echoes
     decode_object(raw) -> dict                     a JSON object with unique keys, else
                                                    SchemaValidationError
     parse_ruri(text) -> Ruri                       raises InvalidRuriError
@@ -27,6 +30,14 @@ from ._errors import (
     RcanError,
     SchemaValidationError,
     VersionIncompatibleError,
+)
+from ._invoke import (
+    Authorization,
+    Invoke,
+    InvokeCancel,
+    InvokeResult,
+    InvokeStatus,
+    skill_error,
 )
 from ._messages import (
     AiInfo,
@@ -55,6 +66,8 @@ from ._v3 import SPOKEN, STATUS_OF, Envelope, Heartbeat, RcanCommand, Signature
 from ._validate import (
     convert_at,
     decode_object,
+    invoke_command,
+    reply_id,
     validate_command,
     validate_message,
     validation_path,
@@ -87,6 +100,7 @@ __all__ = [
     "AnyRoleName",
     "Approval",
     "ArmJointParams",
+    "Authorization",
     "Authorize",
     "DecisionBody",
     "Effect",
@@ -99,6 +113,10 @@ __all__ = [
     "Heartbeat",
     "InvalidRuriError",
     "Invariant",
+    "Invoke",
+    "InvokeCancel",
+    "InvokeResult",
+    "InvokeStatus",
     "Joints",
     "MoveParams",
     "NavigateParams",
@@ -127,8 +145,11 @@ __all__ = [
     "action_spec",
     "convert_at",
     "decode_object",
+    "invoke_command",
     "openapi_schemas",
     "parse_ruri",
+    "reply_id",
+    "skill_error",
     "validate_command",
     "validate_message",
     "validation_path",

@@ -66,6 +66,9 @@ class ErrorCode(str, enum.Enum):
     # §16.1: an AI command that does not say which model made it (rcan-spec conformance
     # L3-AI-002's code).
     AUDIT_INCOMPLETE_AI_IDENTITY = "AUDIT_INCOMPLETE_AI_IDENTITY"
+    # Signed messages (docs/rcan-profile.md, "Signed messages")
+    SIGNATURE_INVALID = "SIGNATURE_INVALID"  # a sig that does not verify with a key of yours
+    SIGNATURE_REQUIRED = "SIGNATURE_REQUIRED"  # your policy is `required`: unsigned, or loose
 
 
 class Reason(str, enum.Enum):

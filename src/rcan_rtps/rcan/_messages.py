@@ -11,12 +11,17 @@ from ._types import ActionParams, Confidence, MessageId, ShortText, Strict
 from ._v3 import Envelope, Status3, VersionText
 from .actions import ActionName, ActionSpec, action_spec
 
+# The model's reasoning behind a command (§16.5's Thought log): kept out of the audit entry
+# (which records its digest), readable only with the config scope (see governance/thoughts).
+Reasoning = Annotated[str, msgspec.Meta(max_length=8192)]
+
 
 class AiInfo(Strict, frozen=True):
     provider: ShortText | None = None
     model: ShortText | None = None
     confidence: Confidence | None = None
     thought_id: ShortText | None = None
+    reasoning: Reasoning | None = None
 
 
 # -- COMMAND, as it arrives -----------------------------------------------------------------
@@ -32,6 +37,7 @@ class ShortCommand(Strict, frozen=True):
     ai_model: ShortText | None = None
     confidence: Confidence | None = None
     thought_id: ShortText | None = None
+    ai_reasoning: Reasoning | None = None
 
 
 class EnvelopeCommand(Strict, frozen=True):
@@ -56,6 +62,7 @@ class Approval(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
     decision: Literal["approve", "deny", "withdraw"]
     at_ms: int
     reason: str | None = None
+    message_id: str | None = None  # the AUTHORIZE message (§16.4) that said it, if one did
 
 
 class SafetyMessage(Strict, frozen=True):
@@ -131,6 +138,9 @@ class ErrorBody(msgspec.Struct, omit_defaults=True, kw_only=True):
     reason: str | None = None
     path: str | None = None
     audit_id: str | None = None
+    # A refused message of the RCAN 3.x generation: its id, and `outcome` as its status.
+    msg_id: str | None = None
+    status: Status3 | None = None
 
 
 class PendingAuth(msgspec.Struct, kw_only=True):

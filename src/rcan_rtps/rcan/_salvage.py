@@ -20,14 +20,18 @@ import msgspec
 from ._errors import InvalidRuriError, SchemaValidationError
 from ._messages import AiInfo, NormalizedCommand
 from ._ruri import parse_ruri
+from ._v3 import Envelope, readable_id
 from .actions import Effect, StopParams, with_effect
 
 _ACTION_KEYS = ("action", "cmd")
 _ACTION_EFFECTS = {with_effect(e).name: e for e in (Effect.ESTOP, Effect.HALT)}
 _SAFETY_EFFECTS = {"ESTOP": Effect.ESTOP, "STOP": Effect.HALT}  # RCAN SAFETY safety_event
 _ROLE_CLAIMS = ("role", "role_level")
+# A body of the RCAN 3.x generation: its reply carries msg_id and status, salvaged or not.
+_V3_MARKS = ("rcan", "rcan_version", "cmd", "msg_id")
+_V3_TYPES = (4, 6, 11, 13, 45)  # HEARTBEAT, SAFETY, INVOKE, INVOKE_CANCEL, AUTHORIZE
 _AI_FIELDS = {"ai_provider": "provider", "ai_model": "model", "confidence": "confidence",
-              "thought_id": "thought_id"}
+              "thought_id": "thought_id", "ai_reasoning": "reasoning"}
 
 
 class Duplicate(NamedTuple):
@@ -124,7 +128,20 @@ def salvage_stop(action: str, obj: dict[str, Any], problems: list[str],
         ai=_ai(obj, warnings),
         claimed_role=next((obj[k] for k in reversed(_ROLE_CLAIMS) if k in obj), None),
         warnings=tuple(dict.fromkeys(warnings)),
+        envelope=_envelope(obj),
     )
+
+
+def _envelope(obj: dict[str, Any]) -> Envelope | None:
+    """For a stop salvaged from an RCAN 3.x message: its id for the reply. The version is
+    left out (it may be the very thing that was wrong), so no replay check is added to a
+    stop that had none."""
+    kind = obj.get("message_type")
+    typed = isinstance(kind, int) and not isinstance(kind, bool) and kind in _V3_TYPES
+    if not typed and not isinstance(obj.get("type"), str) and not any(
+            key in obj for key in _V3_MARKS):
+        return None
+    return Envelope(version=None, msg_id=readable_id(obj), safety=kind == 6)
 
 
 def _requested(obj: dict[str, Any]) -> dict[str, Any]:

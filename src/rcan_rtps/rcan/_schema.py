@@ -6,6 +6,7 @@ from typing import Any
 
 import msgspec
 
+from ._invoke import AuthorizeMessage, InvokeCancelMessage, InvokeMessage, InvokeResult
 from ._messages import (
     Authorize,
     DecisionBody,
@@ -25,6 +26,10 @@ _TYPES: tuple[type[msgspec.Struct], ...] = (
     RcanCommand,  # the rcan SDK's COMMAND, and its SAFETY; HEARTBEAT (docs/rcan-profile.md)
     SafetyMessage,
     HeartbeatMessage,
+    InvokeMessage,  # §19, and AUTHORIZE (§16.4): also command bodies
+    InvokeCancelMessage,
+    AuthorizeMessage,
+    InvokeResult,
     *dict.fromkeys(spec.params for spec in specs()),  # each parameter type once
     Status,
     PendingAuth,

@@ -17,7 +17,6 @@ are always refused: a typo must not become a zero.
 
 from __future__ import annotations
 
-import json
 import re
 import uuid
 from typing import Annotated, Any, Literal
@@ -99,6 +98,11 @@ class Envelope(msgspec.Struct, frozen=True, kw_only=True):
     attestation_ref: str | None = None
     sig: Signature | None = None
     signed: bytes | None = None  # the bytes `sig` covers
+    verified: bool = False  # `sig` checked against a trusted key of the sender (signatures)
+    # Governance fields of the message outside what a signature covers (`confidence`, `ai`
+    # given beside `params` rather than inside them).
+    unsigned_fields: tuple[str, ...] = ()
+    skill: str | None = None  # an INVOKE's skill (§19), recorded beside its action
 
     @property
     def replay_checked(self) -> bool:
@@ -109,6 +113,8 @@ class Envelope(msgspec.Struct, frozen=True, kw_only=True):
         """What the audit entry's `rcan` object records (never the signature's value); None
         for a message of the 3.x forms that carries nothing beyond a 1.2 one would."""
         facts: dict[str, Any] = {} if self.version is None else {"version": self.version}
+        if self.skill is not None:
+            facts["skill"] = self.skill
         if self.ignored:
             facts["ignored"] = list(self.ignored)
         if self.firmware_hash is not None:
@@ -116,7 +122,7 @@ class Envelope(msgspec.Struct, frozen=True, kw_only=True):
         if self.attestation_ref is not None:
             facts["attestation_ref"] = self.attestation_ref
         if self.sig is not None:
-            facts["sig"] = {"alg": self.sig.alg, "kid": self.sig.kid}
+            facts["sig"] = {"alg": self.sig.alg, "kid": self.sig.kid, "verified": self.verified}
         return facts or None
 
 
@@ -138,7 +144,7 @@ def message_version(obj: dict[str, Any]) -> str | None:
         raise SchemaValidationError("$.rcan", f"{alias!r} differs from rcan_version {given!r}")
     if given is None:
         return None
-    msg_id = _readable_id(obj)
+    msg_id = readable_id(obj)
     if not isinstance(given, str):
         raise VersionIncompatibleError(repr(given), "not a version string", msg_id)
     try:
@@ -152,7 +158,8 @@ def message_version(obj: dict[str, Any]) -> str | None:
     return given
 
 
-def _readable_id(obj: dict[str, Any]) -> str | None:
+def readable_id(obj: dict[str, Any]) -> str | None:
+    """The message's id as a reply may echo it: printable, at most 64 characters."""
     for key in ("msg_id", "message_id"):
         value = obj.get(key)
         if isinstance(value, str) and 0 < len(value) <= 64 and value.isprintable():
@@ -173,17 +180,6 @@ def normal_id(text: str) -> str:
         return str(uuid.UUID(text))
     except ValueError:
         return text
-
-
-def signed_bytes(obj: dict[str, Any]) -> bytes:
-    """The bytes `rcan.signing` signs for a COMMAND (`_canonical_message_bytes`): the JSON of
-    rcan, msg_id, timestamp, cmd, target and params with sorted keys and no whitespace, in
-    Python's `json` spelling (ASCII escapes, floats by repr) — made again from what arrived."""
-    rcan = obj.get("rcan", obj.get("rcan_version"))
-    payload = {"rcan": rcan, "msg_id": obj.get("msg_id"), "timestamp": obj.get("timestamp"),
-               "cmd": obj.get("cmd"), "target": obj.get("target"),
-               "params": obj.get("params", {})}
-    return json.dumps(payload, sort_keys=True, separators=(",", ":")).encode()
 
 
 Status3 = Literal["ok", "pending", "blocked", "error"]

@@ -12,10 +12,25 @@ from typing import Any, TypeVar
 import msgspec
 
 from ._errors import InvalidRuriError, SchemaValidationError, VersionIncompatibleError
+from ._invoke import (
+    AUTHORIZE_TYPE,
+    INVOKE_CANCEL_TYPE,
+    INVOKE_TYPE,
+    AuthorizeMessage,
+    Invoke,
+    InvokeCancelMessage,
+    InvokeMessage,
+    Message3,
+    from_authorize,
+    from_cancel,
+    from_invoke,
+    is_kind,
+)
 from ._messages import AiInfo, EnvelopeCommand, NormalizedCommand, SafetyMessage, ShortCommand
 from ._ruri import parse_ruri
 from ._salvage import duplicate_key, salvage_stop, stop_intent
-from ._types import ActionParams
+from ._signatures import signed_bytes
+from ._types import ActionParams, Confidence, Strict
 from ._v3 import (
     Envelope,
     Heartbeat,
@@ -23,7 +38,7 @@ from ._v3 import (
     RcanCommand,
     message_version,
     normal_id,
-    signed_bytes,
+    readable_id,
     split_known,
 )
 from .actions import Effect, action_spec, names, with_effect
@@ -96,18 +111,22 @@ def decode_object(raw: bytes) -> dict[str, Any]:
 def validate_command(
     raw: bytes, *, new_id: Callable[[], str] = new_message_id
 ) -> NormalizedCommand:
-    """`validate_message` for a body that must be a command (a HEARTBEAT is a schema error)."""
+    """`validate_message` for a body that must be a command (a HEARTBEAT, INVOKE, … is a
+    schema error)."""
     message = validate_message(raw, new_id=new_id)
-    if isinstance(message, Heartbeat):
-        raise SchemaValidationError("$.message_type", "a HEARTBEAT is not a command")
+    if not isinstance(message, NormalizedCommand):
+        raise SchemaValidationError("$", f"{_said(message)} is not a command")
     return message
+
+
+Message = NormalizedCommand | Heartbeat | Message3
 
 
 def validate_message(
     raw: bytes, *, new_id: Callable[[], str] = new_message_id
-) -> NormalizedCommand | Heartbeat:
-    """Decode and validate a COMMAND, SAFETY or HEARTBEAT body in any form of either
-    generation; never trusts a number it did not check.
+) -> Message:
+    """Decode and validate a COMMAND, SAFETY, HEARTBEAT, INVOKE, INVOKE_CANCEL or AUTHORIZE
+    body in any form of either generation; never trusts a number it did not check.
 
     A `role`/`role_level` in the body is kept as `claimed_role` for the governor to refuse
     (INSUFFICIENT_PRIVILEGES); the role itself always comes from authentication.
@@ -134,10 +153,16 @@ def validate_message(
         if stop is None:
             raise
         return salvage_stop(stop, obj, [_problem(exc)], new_id)
-    said = message.action if isinstance(message, NormalizedCommand) else "a heartbeat"
+    said = _said(message)
     if stop is not None and said != stop:
         return salvage_stop(stop, obj, [f"$: says {stop} beside {said}: {stop} it is"], new_id)
     return message
+
+
+def _said(message: Message) -> str:
+    if isinstance(message, NormalizedCommand):
+        return message.action
+    return f"a {type(message).__name__.upper()}"
 
 
 def _decode(raw: bytes) -> dict[str, Any]:
@@ -154,10 +179,13 @@ def _decode(raw: bytes) -> dict[str, Any]:
     return obj
 
 
-def _strict(obj: dict[str, Any], new_id: Callable[[], str]) -> NormalizedCommand | Heartbeat:
+def _strict(obj: dict[str, Any], new_id: Callable[[], str]) -> Message:
     claimed = {k: obj.pop(k) for k in _ROLE_CLAIMS if k in obj}
     claimed_role = claimed.get("role_level", claimed.get("role"))
     version = message_version(obj)  # §3.5: first, before anything else is looked at
+    spoken = _message3(obj, version, new_id)
+    if spoken is not None:
+        return spoken
     kind = obj.get("message_type")
     if kind == SAFETY_MESSAGE_TYPE:
         safety, ignored = _known(obj, SafetyMessage, version)
@@ -175,6 +203,25 @@ def _strict(obj: dict[str, Any], new_id: Callable[[], str]) -> NormalizedCommand
         command, ignored = _known(obj, RcanCommand, version)
         return _from_v3(command, obj, claimed_role, ignored)
     return _from_short(convert_at(obj, ShortCommand, "$"), claimed_role, new_id)
+
+
+def _message3(obj: dict[str, Any], version: str | None,
+              new_id: Callable[[], str]) -> Message3 | None:
+    """INVOKE, INVOKE_CANCEL or AUTHORIZE (see `_invoke`), or None for any other message."""
+    if is_kind(obj, "INVOKE", INVOKE_TYPE):
+        invoke, ignored = _known(obj, InvokeMessage, version)
+        message: Message3 = from_invoke(invoke, ignored, new_id())
+    elif is_kind(obj, "INVOKE_CANCEL", INVOKE_CANCEL_TYPE):
+        cancel, ignored = _known(obj, InvokeCancelMessage, version)
+        message = from_cancel(cancel, ignored)
+    elif is_kind(obj, "AUTHORIZE", AUTHORIZE_TYPE):
+        authorize, ignored = _known(obj, AuthorizeMessage, version)
+        message = from_authorize(authorize, ignored)
+    else:
+        return None
+    if message.ruri is not None:
+        parse_ruri(message.ruri)
+    return message
 
 
 def _known(obj: dict[str, Any], kind: type[T], version: str | None) -> tuple[T, tuple[str, ...]]:
@@ -211,7 +258,8 @@ def _message_id(given: str | None, new_id: Callable[[], str]) -> str:
 def _from_short(
     cmd: ShortCommand, claimed_role: Any, new_id: Callable[[], str]
 ) -> NormalizedCommand:
-    ai_fields = (cmd.ai_provider, cmd.ai_model, cmd.confidence, cmd.thought_id)
+    ai_fields = (cmd.ai_provider, cmd.ai_model, cmd.confidence, cmd.thought_id,
+                 cmd.ai_reasoning)
     ai = None
     if any(f is not None for f in ai_fields):
         ai = AiInfo(
@@ -219,6 +267,7 @@ def _from_short(
             model=cmd.ai_model,
             confidence=cmd.confidence,
             thought_id=cmd.thought_id,
+            reasoning=cmd.ai_reasoning,
         )
     return NormalizedCommand(
         action=cmd.action,
@@ -299,6 +348,8 @@ def _from_v3(cmd: RcanCommand, obj: dict[str, Any], claimed_role: Any,
         raise SchemaValidationError("$.cmd", f"unknown action {cmd.cmd!r} (this robot's: "
                                     f"{', '.join(names())})")
     parse_ruri(cmd.target)
+    unsigned = tuple(f for f in _GOVERNANCE_FIELDS if getattr(cmd, f) is not None)
+    cmd = _lift_governance(cmd)
     ai = _v3_ai(cmd)
     version = cmd.rcan_version or cmd.rcan
     return NormalizedCommand(
@@ -314,8 +365,34 @@ def _from_v3(cmd: RcanCommand, obj: dict[str, Any], claimed_role: Any,
         envelope=Envelope(
             version=version, msg_id=cmd.msg_id, sent_at_s=cmd.timestamp, ignored=ignored,
             firmware_hash=cmd.firmware_hash, attestation_ref=cmd.attestation_ref, sig=cmd.sig,
-            signed=signed_bytes(obj) if cmd.sig is not None else None),
+            signed=signed_bytes(obj) if cmd.sig is not None else None,
+            unsigned_fields=unsigned),
     )
+
+
+# A COMMAND's governance fields: beside `params` (the SDK's `confidence`) or inside them, where
+# a signature covers them; never action parameters.
+_GOVERNANCE_FIELDS = ("confidence", "ai")
+
+
+class _SignedGovernance(Strict, frozen=True):
+    confidence: Confidence | None = None
+    ai: dict[str, Any] | None = None
+
+
+def _lift_governance(cmd: RcanCommand) -> RcanCommand:
+    """`cmd` with `confidence`/`ai` taken out of its params (once only: not in both places)."""
+    inside = {k: v for k, v in cmd.params.items() if k in _GOVERNANCE_FIELDS}
+    if not inside:
+        return cmd
+    for name in inside:
+        if getattr(cmd, name) is not None:
+            raise SchemaValidationError(f"$.params.{name}", f"given twice: inside params "
+                                        f"(signed) and beside them ({name})")
+    lifted = convert_at(inside, _SignedGovernance, "$.params")
+    params = {k: v for k, v in cmd.params.items() if k not in _GOVERNANCE_FIELDS}
+    return msgspec.structs.replace(cmd, params=params, confidence=lifted.confidence,
+                                   ai=lifted.ai)
 
 
 def _v3_ai(cmd: RcanCommand) -> AiInfo | None:
@@ -328,3 +405,31 @@ def _v3_ai(cmd: RcanCommand) -> AiInfo | None:
     if ai.confidence is not None and ai.confidence != cmd.confidence:
         raise SchemaValidationError("$.ai.confidence", "differs from confidence")
     return msgspec.structs.replace(ai, confidence=cmd.confidence)
+
+
+def invoke_command(invoke: Invoke, action: str, params: dict[str, Any]) -> NormalizedCommand:
+    """The command an INVOKE runs: `action` with `params` (the skill's fixed ones and what the
+    invoker may set, already merged by the caller); SchemaValidationError at `$.params`."""
+    return NormalizedCommand(
+        action=action,
+        params=_params(action, params, "$.params"),
+        requested=params,
+        message_id=normal_id(invoke.msg_id),
+        client_message_id=invoke.client_msg_id,
+        ruri=invoke.ruri,
+        timestamp_ms=invoke.timestamp_ms,
+        envelope=invoke.envelope,
+    )
+
+
+def reply_id(raw: bytes) -> str | None:
+    """The id a refusal of `raw` echoes as `msg_id`: its `msg_id` (or `message_id`) when it
+    is a message of the RCAN 3.x generation (it carries `rcan_version` or `rcan`), else None.
+    Best effort on a body already refused: anything unreadable gives None."""
+    try:
+        obj = _DECODER.decode(raw)
+    except (msgspec.DecodeError, UnicodeDecodeError, RecursionError):
+        return None
+    if not isinstance(obj, dict) or not any(k in obj for k in ("rcan_version", "rcan")):
+        return None
+    return readable_id(obj)

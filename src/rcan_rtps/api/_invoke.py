@@ -1,0 +1,353 @@
+"""INVOKE / INVOKE_CANCEL (RCAN §19) and AUTHORIZE (§16.4), over the governor.
+
+An INVOKE names a skill of `bridge.skills`; the skill's action, with its fixed parameters and
+those the invoker may set, becomes a command the governor decides like any other (roles,
+invariants, HiTL, audit: nothing is bypassed). Its reply is an INVOKE_RESULT: at once for a
+command that is done when it is executed or refused; for one that starts a goal (navigate,
+dock), when the goal ends, or at `timeout_ms` (the goal is then cancelled: `timeout`). A held
+INVOKE (HiTL) is answered 202 `pending` like any held command; its approval is answered to
+the approver.
+
+INVOKE_CANCEL names an INVOKE of its own sender by msg_id: a goal it started is cancelled
+through the governor (audited) and the INVOKE is answered `cancelled`; a held one is withdrawn.
+One already answered is left alone (§19.4: the earlier result stands, and is repeated); one
+never seen is `not_found`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import OrderedDict
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass, field
+
+import msgspec
+
+from rcan_rtps.config import SkillConfig
+from rcan_rtps.governance import Governor, Principal, Rejection, outcomes
+from rcan_rtps.governance.governor import Decision
+from rcan_rtps.rcan import (
+    STATUS_OF,
+    Authorization,
+    DecisionBody,
+    ErrorCode,
+    Invoke,
+    InvokeCancel,
+    InvokeResult,
+    InvokeStatus,
+    Outcome,
+    SchemaValidationError,
+    invoke_command,
+    skill_error,
+)
+
+from .ports import GoalView, RobotView
+
+Reply = tuple[int, object]
+TERMINAL = frozenset({"succeeded", "canceled", "aborted", "rejected", "lost"})
+FINISHED_KEPT = 1024  # answered INVOKEs remembered for a late INVOKE_CANCEL
+SKILL_NOT_FOUND = Rejection(404, Outcome.DENIED, ErrorCode.COMMAND_REJECTED, "skill_not_found")
+INVOKE_NOT_FOUND = Rejection(404, Outcome.DENIED, ErrorCode.COMMAND_REJECTED,
+                             "invoke_not_found")
+INVOKE_FINISHED = Rejection(409, Outcome.DENIED, ErrorCode.COMMAND_REJECTED, "invoke_finished")
+INVOKE_RUNNING = Rejection(409, Outcome.DENIED, ErrorCode.MESSAGE_ID_CONFLICT, "invoke_running")
+NOT_YOUR_PRINCIPAL_ID = Rejection(403, Outcome.DENIED, ErrorCode.INSUFFICIENT_PRIVILEGES,
+                                  "principal_id_not_yours")
+# Governor refusals that are the §19 statuses' own, not a plain failure.
+_CONFLICTS = {"lower_priority", "motion_locked"}
+_STATUS_OF_KIND: dict[str, InvokeStatus] = {
+    "not_found": "not_found", "invalid_params": "invalid_params", "conflict": "failure"}
+
+
+@dataclass
+class _Running:
+    """An INVOKE that has not been answered yet."""
+
+    skill: str
+    invoke_id: str
+    started: float = field(default_factory=time.monotonic)
+    goal_id: str | None = None
+    pending_id: str | None = None
+    cancelled: bool = False  # by its INVOKE_CANCEL: a canceled goal is then `cancelled`
+    ended: asyncio.Future[GoalView] = field(
+        default_factory=lambda: asyncio.get_running_loop().create_future())
+    answered: asyncio.Future[InvokeResult] = field(
+        default_factory=lambda: asyncio.get_running_loop().create_future())
+
+
+@dataclass(frozen=True)
+class Started:
+    """An INVOKE decided: its reply now, or `finish` to await it (a goal under way)."""
+
+    reply: Reply | None = None
+    finish: Callable[[], Awaitable[Reply]] | None = None
+
+
+class Invocations:
+    """The skills the config declares, and the INVOKEs under way, by (principal, msg_id)."""
+
+    def __init__(self, skills: Mapping[str, SkillConfig], robot: RobotView | None) -> None:
+        self.skills = dict(skills)
+        self._robot = robot
+        self._running: dict[tuple[str, str], _Running] = {}
+        self._by_goal: dict[str, _Running] = {}
+        self._finished: OrderedDict[tuple[str, str], InvokeResult] = OrderedDict()
+        if robot is not None:
+            robot.watch_goals(self._goal_changed)
+
+    # -- INVOKE ---------------------------------------------------------------------------
+
+    async def start(self, governor: Governor, principal: Principal, invoke: Invoke) -> Started:
+        self._forget_reviewed(governor)
+        skill = self.skills.get(invoke.skill)
+        if skill is None:
+            return Started(reply=await self._refused(
+                governor, principal, invoke, SKILL_NOT_FOUND, "not_found",
+                f"no skill {invoke.skill!r} here (this robot's: "
+                f"{', '.join(sorted(self.skills)) or 'none'})"))
+        key = (principal.name, invoke.msg_id)
+        if key in self._running:
+            return Started(reply=await self._refused(
+                governor, principal, invoke, INVOKE_RUNNING, "conflict",
+                f"an INVOKE with msg_id {invoke.msg_id!r} is still running"))
+        given = sorted(set(invoke.params) - set(skill.allow))
+        try:
+            if given:
+                raise SchemaValidationError(f"$.params.{given[0]}", "not a parameter this "
+                                            f"skill lets the invoker set (allowed: "
+                                            f"{', '.join(skill.allow) or 'none'})")
+            command = invoke_command(invoke, skill.action, {**skill.params, **invoke.params})
+        except SchemaValidationError as exc:
+            return Started(reply=await self._refused(
+                governor, principal, invoke, outcomes.schema_failed(exc.path),
+                "invalid_params", exc.detail, path=exc.path))
+        running = self._running[key] = _Running(skill=invoke.skill, invoke_id=invoke.msg_id)
+        try:
+            decision = await governor.decide(command, principal)
+        except BaseException:
+            del self._running[key]
+            raise
+        return await self._decided(governor, principal, invoke, key, running, decision)
+
+    def _forget_reviewed(self, governor: Governor) -> None:
+        """Held INVOKEs a reviewer has resolved (or that expired) are no longer under way:
+        what became of them was answered to the reviewer."""
+        held = {p.pending_id for p in governor.pending()}
+        for key, running in list(self._running.items()):
+            if running.pending_id is not None and running.pending_id not in held:
+                del self._running[key]
+
+    async def _decided(self, governor: Governor, principal: Principal, invoke: Invoke,
+                       key: tuple[str, str], running: _Running, decision: Decision) -> Started:
+        if decision.outcome is Outcome.PENDING_AUTH:  # held: an INVOKE_CANCEL withdraws it
+            running.pending_id = decision.pending_id
+            body = decision.body()
+            body.msg_id, body.status = invoke.msg_id, "pending"
+            return Started(reply=(decision.http_status, body))
+        if decision.outcome is not Outcome.EXECUTED or decision.goal_id is None:
+            del self._running[key]
+            result = self._result(running, decision, _decided_status(decision))
+            return Started(reply=(decision.http_status, self._answer(key, running, result)))
+        running.goal_id = decision.goal_id
+        self._by_goal[decision.goal_id] = running
+        view = None if self._robot is None else self._robot.goal(decision.goal_id)
+        if view is not None:
+            self._goal_changed(view)
+        if running.cancelled:  # cancelled while its goal was being sent
+            await governor.cancel_goal(decision.goal_id, principal, message_id=None,
+                                       why="INVOKE_CANCEL")
+        return Started(finish=lambda: self._finish(governor, principal, invoke, key, running,
+                                                   decision))
+
+    async def _finish(self, governor: Governor, principal: Principal, invoke: Invoke,
+                      key: tuple[str, str], running: _Running, decision: Decision) -> Reply:
+        """Wait for the goal's end (or `timeout_ms`: then cancel it), and answer."""
+        assert running.goal_id is not None
+        left = invoke.timeout_ms / 1000 - (time.monotonic() - running.started)
+        try:
+            view = await asyncio.wait_for(asyncio.shield(running.ended), max(left, 0.0))
+        except asyncio.TimeoutError:
+            cancel = await governor.cancel_goal(running.goal_id, principal,
+                                                message_id=decision.message_id,
+                                                why="INVOKE timeout")
+            result = self._result(running, decision, "timeout",
+                                  f"not done within {invoke.timeout_ms} ms: goal cancelled"
+                                  f" ({cancel.outcome.value})")
+        else:
+            result = self._ended(running, decision, view)
+        finally:
+            self._running.pop(key, None)
+            self._by_goal.pop(running.goal_id, None)
+        return 200, self._answer(key, running, result)
+
+    def _ended(self, running: _Running, decision: Decision, view: GoalView) -> InvokeResult:
+        if view.state == "succeeded":
+            return self._result(running, decision, "success", result=view.result)
+        if view.state == "canceled" and running.cancelled:
+            return self._result(running, decision, "cancelled",
+                                "aborted by the client's INVOKE_CANCEL")
+        why = f"goal {view.state}" + (f": {view.detail}" if view.detail else "")
+        return self._result(running, decision, "failure", why, result=view.result)
+
+    def _goal_changed(self, view: GoalView) -> None:
+        running = self._by_goal.get(view.goal_id)
+        if running is not None and view.state in TERMINAL and not running.ended.done():
+            running.ended.set_result(view)
+
+    # -- INVOKE_CANCEL --------------------------------------------------------------------
+
+    async def cancel(self, governor: Governor, principal: Principal,
+                     cancel: InvokeCancel) -> Reply:
+        refused = _addressed(governor, cancel.ruri, cancel.principal_id, principal)
+        if refused is not None:
+            return await _refuse(governor, principal, refused, cancel.message_id)
+        key = (principal.name, cancel.invoke_id)  # §19.4: only its own invoker cancels it
+        self._forget_reviewed(governor)
+        running = self._running.get(key)
+        if running is None:
+            return await self._not_running(governor, principal, cancel, key)
+        running.cancelled = True
+        if running.pending_id is not None:
+            decision = await governor.withdraw(running.pending_id, principal, cancel.reason,
+                                               message_id=cancel.message_id)
+            self._running.pop(key, None)
+            status: InvokeStatus = ("cancelled" if decision.reason == "hitl_withdrawn"
+                                    else "failure")
+            result = self._result(running, decision, status, "withdrawn by INVOKE_CANCEL"
+                                  if status == "cancelled" else decision.reason)
+            return decision.http_status, self._answer(key, running, result)
+        if running.goal_id is not None:
+            decision = await governor.cancel_goal(running.goal_id, principal,
+                                                  message_id=cancel.message_id,
+                                                  why="INVOKE_CANCEL")
+            if decision.outcome is not Outcome.EXECUTED:
+                return decision.http_status, _body(decision.body(), cancel.message_id)
+        try:  # the INVOKE's own answer, once its goal has wound down
+            answered = await asyncio.wait_for(asyncio.shield(running.answered),
+                                              cancel.cancel_timeout_ms / 1000)
+        except asyncio.TimeoutError:
+            return 202, InvokeResult(type="INVOKE_RESULT", status="cancelled",
+                                     skill=running.skill, reply_to=running.invoke_id,
+                                     reason="cancelling", msg_id=cancel.message_id)
+        return 200, answered
+
+    async def _not_running(self, governor: Governor, principal: Principal,
+                           cancel: InvokeCancel, key: tuple[str, str]) -> Reply:
+        earlier = self._finished.get(key)
+        rejection = INVOKE_NOT_FOUND if earlier is None else INVOKE_FINISHED
+        decision = await governor.reject_request(principal, rejection,
+                                                 message_id=cancel.message_id)
+        if earlier is None:
+            return decision.http_status, InvokeResult(
+                type="INVOKE_RESULT", status="not_found", reply_to=cancel.invoke_id,
+                error=skill_error("not_found", f"no INVOKE {cancel.invoke_id!r} of yours is "
+                                  "running"),
+                outcome=decision.outcome.value, audit_id=decision.audit_id,
+                error_code=rejection.error_code.value, reason=rejection.reason,
+                msg_id=cancel.message_id)
+        # §19.4: the earlier INVOKE_RESULT stands; it is repeated, with this refusal's entry.
+        return decision.http_status, msgspec.structs.replace(
+            earlier, reason=rejection.reason, audit_id=decision.audit_id,
+            msg_id=cancel.message_id)
+
+    # -- answers --------------------------------------------------------------------------
+
+    def _result(self, running: _Running, decision: Decision, status: InvokeStatus,
+                message: str | None = None, *, result: dict[str, object] | None = None,
+                kind: str | None = None) -> InvokeResult:
+        error = None
+        if status != "success":
+            error = skill_error(kind or _kind(status, decision),
+                                message or decision.reason or status)
+        body = decision.body()
+        return InvokeResult(
+            type="INVOKE_RESULT", status=status, skill=running.skill,
+            reply_to=running.invoke_id,
+            duration_ms=int((time.monotonic() - running.started) * 1000), result=result,
+            error=error, outcome=body.outcome, audit_id=body.audit_id,
+            message_id=body.message_id, msg_id=running.invoke_id, error_code=body.error_code,
+            reason=body.reason, applied=body.applied, goal_id=body.goal_id,
+            ros2_topic=body.ros2_topic, warnings=body.warnings)
+
+    def _answer(self, key: tuple[str, str], running: _Running,
+                result: InvokeResult) -> InvokeResult:
+        self._finished[key] = result
+        self._finished.move_to_end(key)
+        while len(self._finished) > FINISHED_KEPT:
+            self._finished.popitem(last=False)
+        if not running.answered.done():
+            running.answered.set_result(result)
+        return result
+
+    async def _refused(self, governor: Governor, principal: Principal, invoke: Invoke,
+                       rejection: Rejection, kind: str, message: str, *,
+                       path: str | None = None) -> Reply:
+        """An INVOKE refused before it became a command: audited, answered INVOKE_RESULT."""
+        decision = await governor.reject_request(principal, rejection, message_id=invoke.msg_id,
+                                                 rcan=invoke.envelope.audit_facts())
+        return decision.http_status, InvokeResult(
+            type="INVOKE_RESULT", status=_STATUS_OF_KIND[kind], skill=invoke.skill,
+            reply_to=invoke.msg_id, error=skill_error(kind, message),
+            outcome=decision.outcome.value, audit_id=decision.audit_id,
+            message_id=invoke.msg_id, msg_id=invoke.msg_id,
+            error_code=rejection.error_code.value, reason=message if path else rejection.reason,
+            path=path)
+
+
+# -- AUTHORIZE --------------------------------------------------------------------------------
+
+
+async def authorize(governor: Governor, principal: Principal, message: Authorization) -> Reply:
+    """AUTHORIZE (§16.4) is `/api/hitl/authorize` or `/deny` in a message: the governor checks
+    the reviewer's role, counts n-of-m approvals and audits, as for those endpoints."""
+    refused = _addressed(governor, message.ruri, message.principal_id, principal)
+    if refused is not None:
+        return await _refuse(governor, principal, refused, message.message_id)
+    pending_id = message.pending_id
+    if pending_id is None:
+        assert message.thought_id is not None
+        pending_id = governor.pending_for_thought(message.thought_id)
+        if pending_id is None:
+            return await _refuse(governor, principal, outcomes.PENDING_NOT_FOUND,
+                                 message.message_id)
+    review = governor.authorize if message.verdict == "approve" else governor.deny
+    decision = await review(pending_id, principal, message.reason,
+                            message_id=message.message_id)
+    return decision.http_status, _body(decision.body(), message.message_id)
+
+
+def _addressed(governor: Governor, ruri: str | None, principal_id: str | None,
+               principal: Principal) -> Rejection | None:
+    """A message for another robot, or one that names another principal as its sender."""
+    if principal_id is not None and principal_id != principal.name:
+        return NOT_YOUR_PRINCIPAL_ID
+    return governor.not_this_robot(ruri)
+
+
+async def _refuse(governor: Governor, principal: Principal, rejection: Rejection,
+                  msg_id: str | None) -> Reply:
+    decision = await governor.reject_request(principal, rejection, message_id=msg_id)
+    return decision.http_status, _body(decision.body(), msg_id)
+
+
+def _body(body: DecisionBody, msg_id: str | None) -> DecisionBody:
+    body.msg_id, body.status = msg_id or body.message_id, STATUS_OF[body.outcome]
+    return body
+
+
+def _decided_status(decision: Decision) -> InvokeStatus:
+    if decision.outcome is Outcome.EXECUTED:
+        return "success"
+    if decision.error_code is ErrorCode.INSUFFICIENT_PRIVILEGES:
+        return "unauthorized"
+    return "failure"
+
+
+def _kind(status: InvokeStatus, decision: Decision) -> str:
+    if status == "failure" and decision.reason in _CONFLICTS:
+        return "conflict"
+    return status
+
+
+NO_SKILLS = Invocations({}, None)  # where no skills were given: every INVOKE is not_found

@@ -1,0 +1,56 @@
+"""`rcan-rtps conformance --url URL --token T [--level L1|L2|L3]`: the published RCAN
+conformance suite's cases against a running bridge, one line per case.
+
+It commands the robot: zero-velocity moves, an arm trajectory to where the arm already is,
+an e-stop it clears again. Run it against a simulator or a robot that may be stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+
+_ROLES = ("GUEST", "USER", "LEASEE", "OWNER", "CREATOR")
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser(
+        "conformance", help="run the published RCAN conformance suite against a bridge",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--url", required=True, help="the bridge's API, e.g. http://127.0.0.1:8765")
+    parser.add_argument("--token", required=True,
+                        help="an OWNER's bearer token (reads the audit, approves, clears "
+                             "the e-stops the safety cases raise)")
+    parser.add_argument("--token-for", metavar="ROLE=TOKEN", action="append", default=[],
+                        type=_role_token, help="a token of another role the cases need "
+                        "(GUEST, USER); repeatable")
+    parser.add_argument("--level", choices=("L1", "L2", "L3"), default="L3",
+                        help="run the cases up to this level (default L3: all)")
+    parser.set_defaults(func=_conformance)
+
+
+def _role_token(text: str) -> tuple[str, str]:
+    role, sep, token = text.partition("=")
+    if not sep or role.upper() not in _ROLES or not token:
+        raise argparse.ArgumentTypeError(f"expected ROLE=TOKEN with ROLE one of {_ROLES}")
+    return role.upper(), token
+
+
+def _conformance(args: argparse.Namespace) -> int:
+    from rcan_rtps.conformance import load_suite, run_suite
+
+    suite = load_suite()
+    source = suite.vendored.source
+    print(f"RCAN conformance suite v{suite.version} ({source.repository}, {source.path} at "
+          f"{source.snapshot_commit[:12]}), up to {args.level}, against {args.url}")
+    tokens = {"OWNER": args.token, **dict(args.token_for)}
+    results = asyncio.run(run_suite(suite, args.level, args.url, tokens,
+                                    report=lambda r: print(r.line(), flush=True)))
+    counts = {o: sum(r.outcome == o for r in results)
+              for o in ("pass", "fail", "n/a", "out of scope")}
+    print(", ".join(f"{n} {o}" for o, n in counts.items()))
+    if counts["fail"]:
+        print("not conformant: see the FAIL lines", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,358 @@
+"""One probe per in-scope case: the suite's description turned into requests to the bridge.
+
+A probe returns a `Verdict`: pass, fail (saying what it saw), or n/a (the case presumes a
+configuration this bridge does not have, e.g. a confidence gate that blocks when this one
+escalates — the other case of the pair then runs). The suite's example actions are mapped to
+registry actions (`vendored.json`, `actions`); motion probes send zero velocity.
+"""
+
+from __future__ import annotations
+
+import base64
+import ipaddress
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any, Literal
+from urllib.parse import urlsplit
+
+import msgspec
+
+from .bridge import Body, BridgeUnderTest, ProbeError, Reply, message_id
+from .suite import Case
+
+Outcome = Literal["pass", "fail", "n/a"]
+
+
+class Verdict(msgspec.Struct, frozen=True):
+    outcome: Outcome
+    detail: str = ""
+
+
+def passed(detail: str = "") -> Verdict:
+    return Verdict("pass", detail)
+
+
+def failed(detail: str) -> Verdict:
+    return Verdict("fail", detail)
+
+
+Probe = Callable[[BridgeUnderTest, Case], Awaitable[Verdict]]
+PROBES: dict[str, Probe] = {}
+
+
+def probe(*case_ids: str) -> Callable[[Probe], Probe]:
+    def register(fn: Probe) -> Probe:
+        for case_id in case_ids:
+            PROBES[case_id] = fn
+        return fn
+    return register
+
+
+ZERO_MOVE: Body = {"linear_x": 0.0, "angular_z": 0.0, "duration_s": 0.2}
+
+
+def _refused(reply: Reply) -> bool:
+    return reply.status >= 400 and reply.get("outcome") != "executed"
+
+
+# -- L1 -------------------------------------------------------------------------------------
+
+@probe("L1-RURI-001", "L1-RURI-002", "L1-RURI-003")
+async def ruri_format(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    """The suite's RURI on a command: a valid one names another robot (refused as such), an
+    invalid one is refused for its grammar."""
+    body = {"message_type": 1, "ruri": case.input["ruri"], "action": "unlock",
+            "parameters": {"name": "conformance-probe"}, "message_id": message_id()}
+    reply = await bridge.command("OWNER", body)
+    if reply.get("error_code") != "INVALID_RURI":
+        return failed(f"expected INVALID_RURI, got {reply.describe()}")
+    parsed = reply.get("reason") == "not_this_robot"
+    if parsed != case.expect["valid"]:
+        return failed(f"{case.input['ruri']} taken as {'valid' if parsed else 'invalid'}: "
+                      f"{reply.describe()}")
+    return passed(reply.get("reason") or "")
+
+
+@probe("L1-MDNS-001")
+async def mdns_advert(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    from rcan_rtps.bridge.mdns import SERVICE_TYPE, RcanBrowser
+
+    wanted = case.input["service_type"]
+    if SERVICE_TYPE.removesuffix(".local.") != wanted:
+        return failed(f"advertised as {SERVICE_TYPE}, not {wanted}")
+    host = urlsplit(bridge.url).hostname or ""
+    try:
+        interfaces = [str(ipaddress.ip_address(host))]
+    except ValueError:
+        interfaces = None  # a name: browse everywhere
+    async with RcanBrowser(interfaces=interfaces) as browser:
+        try:
+            robots = await browser.wait_for(
+                lambda found: any(r.txt.get("api") == bridge.url for r in found), 8.0)
+        except TimeoutError:
+            return failed(f"no {wanted} advert with api={bridge.url} within 8 s")
+    [robot] = [r for r in robots if r.txt.get("api") == bridge.url]
+    missing = [k for k in case.expect["required_txt_keys"] if not robot.txt.get(k)]
+    if missing:
+        return failed(f"TXT lacks {missing}")
+    return passed(", ".join(f"{k}={robot.txt[k]}" for k in case.expect["required_txt_keys"]))
+
+
+@probe("L1-RBAC-001")
+async def guest_cannot_command(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    body = {"action": "move", "params": ZERO_MOVE, "message_id": message_id()}
+    reply = await bridge.command("GUEST", body)
+    expected = (case.expect["http_status"], case.expect["error_code"])
+    if (reply.status, reply.get("error_code")) != expected:
+        return failed(f"expected {expected}, got {reply.describe()}")
+    return passed()
+
+
+@probe("L1-AUDIT-001")
+async def audit_entry_fields(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    since = await bridge.head_seq()
+    mid = message_id()
+    reply = await bridge.command("USER", {"action": "move", "params": ZERO_MOVE,
+                                          "message_id": mid})
+    if reply.get("outcome") != "executed":
+        return failed(f"the USER's command was not dispatched: {reply.describe()}")
+    entry = await bridge.wait_for_entry(since, lambda e: e.get("message_id") == mid)
+    if entry is None:
+        return failed(f"no audit entry with message_id {mid}")
+    missing = [f for f in case.expect["audit_entry_contains"] if entry.get(f) in (None, "")]
+    if missing:
+        return failed(f"entry {entry.get('seq')} lacks {missing}")
+    return passed(f"entry {entry['seq']} ({entry['event']})")
+
+
+@probe("L1-SCHEMA-001")
+async def malformed_rejected(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    reply = await bridge.command("USER", case.input["message"])
+    if (reply.status, reply.get("error_code")) != (400, case.expect["error_code"]):
+        return failed(f"expected 400 {case.expect['error_code']}, got {reply.describe()}")
+    return passed(str(reply.get("reason") or ""))
+
+
+# -- L2 -------------------------------------------------------------------------------------
+
+@probe("L2-SAFE-001")
+async def estop_blocks_commands(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    raised = await bridge.command("GUEST" if bridge.has("GUEST") else "OWNER",
+                                  {"action": "estop", "params": {"reason": "conformance"}})
+    if raised.get("outcome") != "executed":
+        return failed(f"the e-stop did not latch: {raised.describe()}")
+    try:
+        since = await bridge.head_seq()
+        mid = message_id()
+        reply = await bridge.command("USER", {"action": "move", "params": ZERO_MOVE,
+                                              "message_id": mid})
+    finally:
+        await bridge.clear_estop()
+    return _refusal(reply, case, await _entry(bridge, since, mid))
+
+
+@probe("L2-INJECT-001")
+async def injected_text_blocked(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    since = await bridge.head_seq()
+    params = {**ZERO_MOVE, **case.input["payload"]}
+    reply = await bridge.command("USER", {"action": "move", "params": params,
+                                          "message_id": message_id()})
+    if not _refused(reply):
+        return failed(f"dispatched: {reply.describe()}")
+    entry = await bridge.wait_for_entry(since, lambda e: e.get("event") == "COMMAND_REJECTED")
+    if entry is None:
+        return failed("refused, but no COMMAND_REJECTED entry")
+    return passed(f"{reply.describe()}; audited as entry {entry['seq']}")
+
+
+@probe("L2-CONF-001", "L2-CONF-002")
+async def confidence_gate(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    ai = case.input["ai_command"]
+    mid = message_id()
+    reply = await bridge.command("USER", {
+        "action": "move", "params": ZERO_MOVE, "message_id": mid, "ai_provider": "conformance",
+        "ai_model": "probe", "confidence": ai["confidence"]})
+    escalates = case.input["confidence_gate"]["on_fail"] == "escalate"
+    if reply.get("outcome") == "pending_auth":
+        await bridge.call("USER", "POST", "/api/hitl/withdraw",
+                          {"pending_id": reply.get("pending_id")})
+        return passed("held for approval (then withdrawn)") if escalates else Verdict(
+            "n/a", "this bridge's confidence gate escalates (see the case that escalates)")
+    if reply.get("reason") == "confidence_below_gate":
+        return Verdict("n/a", "this bridge's confidence gate blocks (see the case that "
+                              "blocks)") if escalates else passed(reply.describe())
+    return failed(f"confidence {ai['confidence']} neither blocked nor held: {reply.describe()}")
+
+
+@probe("L2-SAFE-002")
+async def silence_safe_stops(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    since = await bridge.head_seq()
+    mid = message_id()
+    held = {"linear_x": 0.0, "angular_z": 0.0}  # a held stream: it needs its sender
+    reply = await bridge.command("USER", {"action": "move", "params": held, "message_id": mid})
+    if reply.get("outcome") != "executed":
+        return failed(f"the USER's move was not dispatched: {reply.describe()}")
+    started = time.monotonic()
+    move = await _entry(bridge, since, mid)
+    if move is None:
+        return failed("no entry for the move")
+    # Silence from here: no command and no heartbeat as the USER.
+    stop = await bridge.wait_for_entry(
+        since, lambda e: e.get("event") == case.expect["audit_event"]
+        and e.get("principal") == move.get("principal"), timeout_s=SESSION_WAIT_S)
+    if stop is None:
+        return failed(f"no {case.expect['audit_event']} within {SESSION_WAIT_S:g} s of silence")
+    state = (await bridge.status()).get("state")
+    if state != case.expect["robot_state"]:
+        return failed(f"STATUS says {state!r} after the safe stop")
+    return passed(f"after {time.monotonic() - started:.1f} s of silence: entry {stop['seq']}, "
+                  f"state {state}")
+
+
+SESSION_WAIT_S = 30.0
+
+
+@probe("L2-HMAC-001")
+async def tampered_entry_breaks_chain(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    from rcan_rtps.governance import AuditIntegrityError, verify_bytes
+
+    key = await _audit_key(bridge)
+    lines = await _audit_lines(bridge)
+    if len(lines) < 2:
+        return failed("the log has fewer than 2 entries to tamper with")
+    verify_bytes(b"".join(lines), key)  # untampered: raises if the bridge's chain is broken
+    victim = len(lines) // 2
+    tampered = list(lines)
+    tampered[victim] = lines[victim].replace(b'"outcome":"', b'"outcome":"X', 1)
+    if tampered[victim] == lines[victim]:
+        tampered[victim] = lines[victim].replace(b'"event":"', b'"event":"X', 1)
+    try:
+        verify_bytes(b"".join(tampered), key)
+    except AuditIntegrityError as exc:
+        if exc.seq != victim + 1:
+            return failed(f"tampered entry {victim + 1}, but verification blamed {exc.seq}")
+        return passed(f"{len(lines)} entries verify; entry {victim + 1} changed: refused")
+    return failed(f"entry {victim + 1} changed, and the chain still verified")
+
+
+# -- L3 -------------------------------------------------------------------------------------
+
+@probe("L3-AI-001")
+async def ai_identity_audited(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    ai = case.input["ai_metadata"]
+    since, mid = await bridge.head_seq(), message_id()
+    reply = await bridge.command("USER", {
+        "action": "move", "params": ZERO_MOVE, "message_id": mid,
+        "ai_provider": ai["provider"], "ai_model": ai["model"], "confidence": ai["confidence"]})
+    if reply.get("outcome") != "executed":
+        return failed(f"not dispatched: {reply.describe()}")
+    entry = await _entry(bridge, since, mid)
+    if entry is None:
+        return failed(f"no entry for {mid}")
+    recorded = entry.get("ai") or {}
+    missing = [f for f in case.expect.get("audit_ai_fields", ("provider", "model", "confidence"))
+               if recorded.get(f.removeprefix("ai.")) is None]
+    if missing:
+        return failed(f"entry {entry['seq']}'s ai lacks {missing}: {recorded}")
+    return passed(f"entry {entry['seq']}: ai {recorded}")
+
+
+@probe("L3-HITL-001", "L3-HITL-002")
+async def hitl_gate(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    """A gated action waits for approval; a GUEST's approval is refused, an OWNER's runs it."""
+    since, mid = await bridge.head_seq(), message_id()
+    reply = await bridge.command("USER", {"action": "arm_joint", "message_id": mid,
+                                          "params": await _still_arm(bridge)})
+    if reply.get("outcome") != "pending_auth":
+        return failed(f"arm_joint (the suite's arm_extend) was not held: {reply.describe()}")
+    pending = {"pending_id": reply.get("pending_id")}
+    dispatched = await bridge.wait_for_entry(
+        since, lambda e: e.get("message_id") == mid and e.get("event") == "COMMAND_DISPATCHED",
+        timeout_s=0.5)
+    if dispatched is not None:
+        return failed(f"held, yet dispatched (entry {dispatched['seq']})")
+    if case.id == "L3-HITL-001":
+        await bridge.call("USER", "POST", "/api/hitl/withdraw", pending)
+        return passed(f"held as {pending['pending_id']} (then withdrawn)")
+    guest = await bridge.call("GUEST", "POST", "/api/hitl/authorize", pending)
+    if (guest.status, guest.get("error_code")) != (403, "INSUFFICIENT_PRIVILEGES"):
+        await bridge.call("USER", "POST", "/api/hitl/withdraw", pending)
+        return failed(f"a GUEST's approval: {guest.describe()}")
+    owner = await bridge.call("OWNER", "POST", "/api/hitl/authorize", pending)
+    if owner.get("outcome") != "executed":
+        return failed(f"an OWNER's approval: {owner.describe()}")
+    return passed("GUEST refused (403 INSUFFICIENT_PRIVILEGES); OWNER's approval executed it")
+
+
+@probe("L3-THOUGHT-001")
+async def thought_log_scope(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    """A thought made here (an AI's zero move with its reasoning), read as the case's USER
+    (operational scopes: no reasoning) and as the OWNER (config scope: the reasoning)."""
+    thought = f"conformance-{message_id()}"
+    reply = await bridge.command("USER", {
+        "action": "move", "params": ZERO_MOVE, "message_id": message_id(),
+        "ai_provider": "conformance", "ai_model": "probe", "confidence": 0.9,
+        "thought_id": thought, "ai_reasoning": "conformance probe: hold still"})
+    if reply.get("outcome") is None:
+        return failed(f"the AI command was not decided: {reply.describe()}")
+    path = f"/api/thoughts/{thought}"
+    seen = await bridge.call("USER", "GET", path)
+    if seen.status != case.expect.get("http_status", 200):
+        return failed(f"GET {path} as USER: {seen.describe()}")
+    absent = [f for f in case.expect["response_contains"] if seen.get(f) is None]
+    leaked = [f for f in case.expect["response_excludes"] if seen.get(f) is not None]
+    if absent or leaked:
+        return failed(f"as USER: missing {absent}, shown {leaked}")
+    owner = await bridge.call("OWNER", "GET", path)
+    if owner.get("reasoning") is None:
+        return failed(f"the OWNER (config scope) was not shown the reasoning: {owner.describe()}")
+    return passed("USER: confidence, no reasoning; OWNER: the reasoning")
+
+
+# -- helpers --------------------------------------------------------------------------------
+
+async def _entry(bridge: BridgeUnderTest, since: int, mid: str) -> Body | None:
+    return await bridge.wait_for_entry(since, lambda e: e.get("message_id") == mid)
+
+
+def _refusal(reply: Reply, case: Case, entry: Body | None) -> Verdict:
+    reason = case.expect.get("reason")
+    if not _refused(reply):
+        return failed(f"dispatched: {reply.describe()}")
+    if reply.get("error_code") != case.expect["error_code"] or reply.get("reason") != reason:
+        return failed(f"expected {case.expect['error_code']}/{reason}, got {reply.describe()}")
+    if entry is None or entry.get("event") != "COMMAND_REJECTED":
+        return failed(f"refused, but audited as {entry and entry.get('event')}")
+    return passed(f"{reply.describe()}; entry {entry['seq']}")
+
+
+async def _still_arm(bridge: BridgeUnderTest) -> dict[str, Any]:
+    """A trajectory to where the arm already is (it does not move), from STATUS."""
+    joints = ((await bridge.status()).get("telemetry") or {}).get("joints") or {}
+    # STATUS lists every joint the robot reports; wheels are not the arm's (a heuristic: a
+    # robot whose arm joints say "wheel" needs its own probe).
+    names, positions = joints.get("names") or [], joints.get("positions") or []
+    if len(names) != len(positions):
+        raise ProbeError(f"STATUS joints: {len(names)} names, {len(positions)} positions")
+    held = [(n, p) for n, p in zip(names, positions, strict=True) if "wheel" not in n]
+    if not held:
+        raise ProbeError("STATUS shows no arm joints to hold still")
+    return {"joints": [n for n, _ in held], "positions": [p for _, p in held],
+            "duration_s": 1.0}
+
+
+async def _audit_lines(bridge: BridgeUnderTest) -> list[bytes]:
+    return [line + b"\n" for line in await bridge.lines_since(0)]
+
+
+async def _audit_key(bridge: BridgeUnderTest) -> Any:
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
+    reply = await bridge.call("OWNER", "GET", "/.well-known/rcan-node.json", public=True)
+    keys = reply.get("public_keys") if reply.status == 200 else None
+    for key in keys or []:
+        if isinstance(key, dict) and key.get("alg", "").lower() == "ed25519":
+            raw = base64.b64decode(key["public_key"])
+            return Ed25519PublicKey.from_public_bytes(raw[-32:])
+    raise ProbeError(f"no Ed25519 audit key in the node manifest: {reply.describe()}")
+

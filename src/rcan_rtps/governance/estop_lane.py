@@ -1,0 +1,142 @@
+"""The e-stop lane: what an e-stop, a repeated e-stop and a clear do, one transition at a time.
+
+`EstopMachine` (estop.py) owns the latch and the order of transitions; this module is the work
+each transition does. An e-stop reaches the robot first and is made durable beside it (latch
+file and audit entry, both before the reply); a clear is written ahead like any command and
+unlatches only once it is durable. Repeats while latched are answered at once and recorded
+together (ESTOP_REPEATED), so a flood of e-stops cannot grow the log one entry each.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+import msgspec
+
+from rcan_rtps.rcan import Effect, NormalizedCommand, Outcome
+from rcan_rtps.rcan.actions import with_effect
+
+from . import outcomes
+from .audit import AuditEvent, AuditReceipt, AuditRecord
+from .clock import Clock, now_ms
+from .errors import EstopStateError
+from .estop import EstopMachine, EstopRepeats
+from .rbac import Principal
+from .steps import (
+    Decision,
+    DispatchResult,
+    Steps,
+    bridge_command,
+    decision,
+    executed,
+    record,
+    sent,
+)
+from .streams import VelocityStreams
+
+log = logging.getLogger("rcan_rtps.governance.governor")
+
+
+class EstopLane:
+    def __init__(self, steps: Steps, latch: EstopMachine, streams: VelocityStreams,
+                 clock: Clock) -> None:
+        self._steps = steps
+        self._latch = latch
+        self._streams = streams
+        self._clock = clock
+        self._repeats = EstopRepeats()
+        # The ESTOP entry holding the latch, while no clear was audited after it.
+        self._latched_by: AuditReceipt | None = None
+
+    async def estop(self, command: NormalizedCommand, principal: Principal) -> Decision:
+        """Latched already; tell the robot, with latch file and audit entry made durable
+        beside it. An e-stop always reaches the robot: if the latch file or the audit log
+        cannot be written, it is still published, and the failure is logged and answered.
+        """
+        if self._latched_by is not None:
+            return await self._again(command, principal)
+        steps = self._steps
+        entry = record(AuditEvent.ESTOP, command, principal, Outcome.EXECUTED, applied={},
+                       ros2_topic=steps.route(command), sent_first=True)
+        self._streams.take_goals()  # the e-stop cancels every goal
+        # The robot is told first (the dispatch's first step publishes, before any await);
+        # latch file and audit entry are made durable beside it, both before the reply.
+        dispatched, persisted, receipt = await asyncio.gather(
+            steps.dispatch(command, command.params),
+            self._latch.file.write(True, principal.name, now_ms(self._clock)),
+            steps.audit.append(entry, urgent=True),
+            return_exceptions=True)
+        if isinstance(persisted, BaseException):
+            log.error("e-stop latched in memory only: %s", persisted,
+                      extra={"principal": principal.name})
+        result, failure = sent(dispatched)
+        if isinstance(receipt, BaseException):
+            log.error("e-stop sent but not audited: %s", receipt,
+                      extra={"principal": principal.name})
+            return decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        self._latched_by = receipt
+        if failure is not None:
+            return await steps.failed(command, principal, failure)
+        return executed(command, {}, receipt, result)
+
+    async def _again(self, command: NormalizedCommand, principal: Principal) -> Decision:
+        """An e-stop while an audited one holds the latch: the robot is told again, and the
+        caller answered with the entry that latched it; the repeats are recorded together."""
+        assert self._latched_by is not None
+        result, failure = await self._steps.dispatch(command, command.params)
+        self._repeats.add(principal.name, now_ms(self._clock), failed=failure is not None,
+                          warnings=command.warnings)
+        if failure is not None:
+            return decision(failure, message_id=command.message_id)
+        return Decision(outcome=Outcome.EXECUTED, http_status=200, applied={},
+                        audit_id=self._latched_by.audit_id, message_id=command.message_id,
+                        reason="already_latched", ros2_topic=result.ros2_topic)
+
+    def repeats_due(self) -> bool:
+        return self._repeats.due(now_ms(self._clock))
+
+    async def record_repeats(self) -> None:
+        """One ESTOP_REPEATED entry per principal for the repeats counted so far."""
+        estop = with_effect(Effect.ESTOP).name
+        for name, tally in self._repeats.take().items():
+            params = msgspec.structs.asdict(tally)
+            if not tally.warnings:
+                del params["warnings"]
+            await self._steps.record_event(AuditRecord(
+                event=AuditEvent.ESTOP_REPEATED, principal=name, action_type=estop,
+                params=params, outcome=Outcome.EXECUTED.value))
+
+    async def clear(self, command: NormalizedCommand, principal: Principal,
+                    event: AuditEvent, pending_id: str | None) -> Decision:
+        """Audited, persisted, unlatched (unless an e-stop came after it), published."""
+        steps = self._steps
+        why = await steps.ready(command)
+        if why is not None:
+            return await steps.refuse(command, principal, outcomes.robot_unavailable(why),
+                                      pending_id=pending_id)
+        await self.record_repeats()  # the e-stops it clears come first in the log
+        entry = record(AuditEvent.ESTOP_CLEARED, command, principal, Outcome.EXECUTED,
+                       applied={}, pending_id=pending_id, ros2_topic=steps.route(command))
+        receipt = await steps.write_ahead(entry)
+        if receipt is None:
+            return decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
+        self._latched_by = None  # an e-stop after this clear is a new one, audited in full
+        try:
+            await self._latch.file.write(False, principal.name, now_ms(self._clock))
+        except EstopStateError:
+            log.exception("e-stop clear not persisted: staying latched",
+                          extra={"principal": principal.name, "audit_id": receipt.audit_id})
+            return await steps.failed(command, principal, outcomes.ESTOP_STATE_UNWRITABLE)
+        if not self._latch.unlatch():  # an e-stop is next in line: the robot stays stopped
+            return executed(command, {}, receipt, DispatchResult(ok=True))
+        result, failure = await steps.dispatch(command, command.params)
+        if failure is not None:
+            return await steps.failed(command, principal, failure)
+        return executed(command, {}, receipt, result)
+
+    async def republish(self) -> None:
+        """Latched at start: the robot is told again."""
+        _, failure = await self._steps.dispatch(bridge_command(Effect.ESTOP))
+        if failure is not None:
+            log.error("latched at start, but the robot could not be told (%s)", failure.reason)

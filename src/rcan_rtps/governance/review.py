@@ -1,0 +1,174 @@
+"""The HiTL desk (§9): holding a gated command, and its reviews — approve, deny, withdraw.
+
+`hitl.py` holds the policy (which commands are gated, by whom, how many approvals) and the
+store of pending commands. This module is what happens to them: a held command is on record
+(PENDING_AUTH) before it can be reviewed; each review is checked and counted once, under the
+command's own lock; an approval of several is on record (HITL_APPROVAL) before it counts; a
+denial or a withdrawal ends it; an expired one is discarded and audited. The command the last
+approval releases goes back to the governor, which runs it through the pipeline as it is *now*.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Awaitable, Callable
+from typing import cast
+
+from rcan_rtps.rcan import Approval, NormalizedCommand, Outcome, PendingAuth, Role, RoleName
+
+from . import outcomes
+from .audit import AuditEvent, AuditRecord
+from .clock import Clock, now_ms
+from .hitl import Held, HitlPolicy, Notifier, PendingCommand, PendingStore, Verdict
+from .outcomes import Rejection
+from .rbac import Principal
+from .steps import Decision, Steps, decision, record
+
+# Runs an approved command (taken from the store, with every review) for its last approver.
+RunApproved = Callable[[NormalizedCommand, Principal, PendingCommand], Awaitable[Decision]]
+
+
+class HitlDesk:
+    def __init__(self, steps: Steps, policy: HitlPolicy, clock: Clock, *,
+                 timeout_s: float, require_distinct_approver: bool,
+                 notifier: Notifier | None, changed: Callable[[], None],
+                 run_approved: RunApproved) -> None:
+        self._steps = steps
+        self._policy = policy
+        self._clock = clock
+        self._ttl_ms = int(timeout_s * 1000)
+        self._distinct = require_distinct_approver
+        self._notifier = notifier
+        self._changed = changed  # what STATUS shows (the pending count) changed
+        self._run_approved = run_approved
+        self._pending = PendingStore()
+
+    def pending(self) -> list[PendingAuth]:
+        return [held.message() for held in self._pending.list()]
+
+    def for_thought(self, thought_id: str) -> str | None:
+        """The held command whose AI `thought_id` this is (an AUTHORIZE names it so, §16.4),
+        or None when none or more than one has it."""
+        found = [held.pending.pending_id for held in self._pending.list()
+                 if held.pending.command.ai is not None
+                 and held.pending.command.ai.thought_id == thought_id]
+        return found[0] if len(found) == 1 else None
+
+    async def hold(self, command: NormalizedCommand, principal: Principal,
+                   approver_role: Role) -> Decision:
+        pending = PendingCommand(
+            pending_id=uuid.uuid4().hex, command=command, issuer=principal,
+            approver_role=approver_role,
+            expires_at_ms=now_ms(self._clock) + self._ttl_ms,
+            approvals_required=self._policy.approvals(command.action),
+        )
+        entry = record(AuditEvent.PENDING_AUTH, command, principal, Outcome.PENDING_AUTH,
+                       pending_id=pending.pending_id)
+        receipt = await self._steps.audit.append(entry)
+        self._pending.put(pending)  # only once its PENDING_AUTH entry is durable
+        self._changed()
+        if self._notifier is not None:
+            self._steps.spawn(self._notifier.notify(pending.message()))  # never awaited here
+        return Decision(outcome=Outcome.PENDING_AUTH, http_status=202,
+                        audit_id=receipt.audit_id, message_id=command.message_id,
+                        pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
+
+    async def resolve(self, pending_id: str, reviewer: Principal, verdict: Verdict,
+                      reason: str | None, message_id: str | None = None) -> Decision:
+        """`message_id`: the AUTHORIZE message's (§16.4) that said it, if one did: recorded
+        with the review (and with a refusal of it)."""
+        held = self._pending.get(pending_id)
+        if held is None:
+            return await self._refuse(verdict, reviewer, outcomes.PENDING_NOT_FOUND, pending_id,
+                                      message_id)
+        async with held.lock:  # one review at a time: each counted once, released once
+            reviewed = await self._review(held, reviewer, verdict, reason, message_id)
+        if isinstance(reviewed, Decision):
+            return reviewed
+        command, pending = reviewed, held.pending  # out of the store, with every review
+        self._changed()
+        if verdict == "approve":
+            return await self._run_approved(command, reviewer, pending)
+        denied = verdict == "deny"
+        return await self._steps.refuse(
+            command, reviewer, outcomes.HITL_DENIED if denied else outcomes.HITL_WITHDRAWN,
+            event=AuditEvent.HITL_DENIED if denied else AuditEvent.HITL_WITHDRAWN,
+            pending_id=pending_id)
+
+    async def _review(self, held: Held, reviewer: Principal, verdict: Verdict,
+                      reason: str | None, message_id: str | None
+                      ) -> Decision | NormalizedCommand:
+        """Under `held.lock`: refused, or counted (an approval of several: still pending), or
+        taken from the store and returned with every review so far, to run or discard."""
+        pending = held.pending
+        if self._pending.get(pending.pending_id) is not held:  # resolved while this waited
+            return await self._refuse(verdict, reviewer, outcomes.PENDING_NOT_FOUND,
+                                      pending.pending_id, message_id)
+        if pending.expires_at_ms <= now_ms(self._clock):
+            await self.expire()
+            return await self._refuse(verdict, reviewer, outcomes.PENDING_EXPIRED,
+                                      pending.pending_id, message_id)
+        refused = self._may_review(held, reviewer, verdict)
+        if refused is not None:
+            return await self._refuse(verdict, reviewer, refused, pending.pending_id,
+                                      message_id)
+        review = Approval(principal=reviewer.name, role=cast(RoleName, reviewer.role.name),
+                          decision=verdict, at_ms=now_ms(self._clock), reason=reason,
+                          message_id=message_id)
+        if verdict == "approve" and held.missing > 1:
+            return await self._count_approval(held, reviewer, review)
+        self._pending.take(pending.pending_id)
+        return held.reviewed(review)
+
+    def _may_review(self, held: Held, reviewer: Principal, verdict: Verdict
+                    ) -> Rejection | None:
+        pending = held.pending
+        issuer = reviewer.name == pending.issuer.name
+        if reviewer.role < pending.approver_role and not (verdict == "withdraw" and issuer):
+            return outcomes.INSUFFICIENT_PRIVILEGES
+        if verdict != "approve":
+            return None
+        if issuer and (self._distinct or pending.approvals_required > 1):
+            return outcomes.SELF_APPROVAL  # n-of-m: the issuer is never one of the n
+        if held.approved_by(reviewer.name):
+            return outcomes.ALREADY_APPROVED
+        return None
+
+    async def _count_approval(self, held: Held, approver: Principal,
+                              review: Approval) -> Decision:
+        """An approval while more are needed: on record (HITL_APPROVAL) before it counts."""
+        pending = held.pending
+        entry = record(AuditEvent.HITL_APPROVAL, held.reviewed(review), approver,
+                       Outcome.PENDING_AUTH, pending_id=pending.pending_id)
+        receipt = await self._steps.write_ahead(entry)
+        if receipt is None:  # an approval that is not on record does not count
+            return decision(outcomes.AUDIT_UNAVAILABLE, message_id=pending.command.message_id)
+        held.approvals.append(review)
+        self._changed()
+        return Decision(outcome=Outcome.PENDING_AUTH, http_status=202,
+                        audit_id=receipt.audit_id, message_id=pending.command.message_id,
+                        pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
+
+    async def _refuse(self, verdict: Verdict, reviewer: Principal, rejection: Rejection,
+                      pending_id: str, message_id: str | None = None) -> Decision:
+        verb = "hitl_authorize" if verdict == "approve" else f"hitl_{verdict}"
+        entry = AuditRecord(event=AuditEvent.COMMAND_REJECTED, principal=reviewer.name,
+                            role=reviewer.role.name, action_type=verb, pending_id=pending_id,
+                            message_id=message_id, outcome=rejection.outcome.value,
+                            deny_reason=rejection.deny_reason)
+        return decision(rejection, await self._steps.audit.append(entry),
+                        message_id=message_id)
+
+    async def expire(self) -> list[Decision]:
+        """Discard and audit (HITL_EXPIRED, with any approvals it had) every pending command
+        past its TTL."""
+        decisions = []
+        expired = self._pending.take_expired(now_ms(self._clock))
+        if expired:
+            self._changed()
+        for held in expired:
+            p = held.pending
+            decisions.append(await self._steps.refuse(
+                held.reviewed(), p.issuer, outcomes.PENDING_EXPIRED,
+                event=AuditEvent.HITL_EXPIRED, pending_id=p.pending_id))
+        return decisions

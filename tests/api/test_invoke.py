@@ -1,0 +1,189 @@
+"""Issue 24: INVOKE / INVOKE_CANCEL (§19) of the skills `bridge.skills` declares.
+
+An INVOKE runs its skill's action through the governor (roles, invariants, HiTL, audit); its
+reply is an INVOKE_RESULT as rcan-spec's §19 writes it. Shapes: tests/data/rcan-spec/.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from rcan_rtps.api import GoalView
+from tests.api.apihelpers import Api, auth
+from tests.api.test_ws import _frame
+
+TARGET = "rcan://registry.local/clearpath/husky/v1/a200-0001"
+DATA = Path(__file__).parents[1] / "data" / "rcan-spec"
+PROSE = json.loads((DATA / "section-19-examples.json").read_text())
+SKILLS = ("skills: {go_home: {action: navigate, params: {x: 0, y: 0, yaw: 0}}, "
+          "go_to: {action: navigate, allow: [x, y, yaw]}, "
+          "nudge: {action: move, params: {linear_x: 0.3}, allow: [duration_s]}, "
+          "raise_elbow: {action: arm_joint, params: {joints: [elbow], positions: [0.8], "
+          "duration_s: 1}}}")
+
+
+@pytest.fixture
+async def api(tmp_path: Path) -> AsyncIterator[Api]:
+    harness = await Api(tmp_path, bridge_extra=SKILLS).start()
+    yield harness
+    await harness.close()
+
+
+def invoke(skill: str, msg_id: str, **fields: Any) -> dict[str, Any]:
+    return {"type": "INVOKE", "skill": skill, "msg_id": msg_id, **fields}
+
+
+def cancel(msg_id: str, **fields: Any) -> dict[str, Any]:
+    """§19.4's shape (section-19-examples.json `invokeCancel`) for the INVOKE `msg_id`."""
+    body: dict[str, Any] = json.loads(json.dumps(PROSE["invokeCancel"]))
+    body["payload"]["msg_id"] = msg_id
+    return {**body, **fields}
+
+
+def ended(goal_id: str, state: str, result: dict[str, Any] | None = None) -> GoalView:
+    return GoalView(goal_id=goal_id, action="/robot1/navigate_to_pose", command="navigate",
+                    state=state, result=result, created_ms=1, updated_ms=2)
+
+
+async def sent(api: Api, action: str, count: int = 1) -> None:
+    """Until the dispatcher has been handed `count` commands of `action`."""
+    async def wait() -> None:
+        while sum(a == action for a, _ in api.dispatcher.calls) < count:
+            await asyncio.sleep(0.01)
+    await asyncio.wait_for(wait(), timeout=10)
+
+
+async def test_an_invoke_runs_its_skill_through_the_governor(api: Api) -> None:
+    status, body = await api.command("planner", invoke("nudge", "inv-1",
+                                                       params={"duration_s": 1.0}))
+    assert (status, body["type"], body["status"], body["skill"]) == (
+        200, "INVOKE_RESULT", "success", "nudge"), body
+    assert (body["reply_to"], body["outcome"]) == ("inv-1", "executed")
+    assert [(a, p["linear_x"]) for a, p in api.dispatcher.calls] == [("move", 0.3)]
+    entry = api.entry(body["audit_id"])
+    assert (entry["event"], entry["action_type"], entry["message_id"]) == (
+        "COMMAND_DISPATCHED", "move", "inv-1")
+    assert entry["params"] == {"linear_x": 0.3, "duration_s": 1.0}
+    assert entry["rcan"] == {"skill": "nudge"}
+
+
+@pytest.mark.parametrize(("who", "body", "http", "status", "code"), [
+    ("planner", invoke("fly", "i-1"), 404, "not_found", 7001),  # not declared
+    ("planner", invoke("nudge", "i-2", params={"linear_x": 0.9}), 400, "invalid_params",
+     7004),  # fixed by the skill
+    ("planner", invoke("go_to", "i-3", params={"x": "far", "y": 0, "yaw": 0}), 400,
+     "invalid_params", 7004),
+    ("viewer", invoke("nudge", "i-4"), 403, "unauthorized", 7003),  # GUEST: no motion
+    ("planner", invoke("go_to", "i-5", params={"x": 50, "y": 0, "yaw": 0}), 409, "failure",
+     7006),  # outside the workspace: the invariant refuses it
+])
+async def test_a_refused_invoke_says_why_and_is_audited(api: Api, who: str,
+                                                         body: dict[str, Any], http: int,
+                                                         status: str, code: int) -> None:
+    got, reply = await api.command(who, body)
+    assert (got, reply["type"], reply["status"], reply["error"]["code"]) == (
+        http, "INVOKE_RESULT", status, code), reply
+    assert reply["reply_to"] == body["msg_id"] and reply["error"]["message"]
+    assert api.dispatcher.calls == []
+    entry = api.entry(reply["audit_id"])
+    assert (entry["event"], entry["message_id"]) == ("COMMAND_REJECTED", body["msg_id"])
+    assert entry["rcan"]["skill"] == body["skill"]
+
+
+async def test_an_undeclared_skill_names_the_declared_ones(api: Api) -> None:
+    _, reply = await api.command("planner", PROSE["invokeMessage"])  # pick_and_place
+    assert reply["error"]["name"] == "SkillNotFound"
+    assert "go_home" in reply["error"]["message"], reply
+
+
+async def test_a_goal_skill_is_answered_when_the_goal_ends(api: Api) -> None:
+    reply = asyncio.create_task(api.command("planner", invoke("go_home", "inv-nav")))
+    await sent(api, "navigate")
+    assert not reply.done()  # §19: one INVOKE_RESULT, the final one
+    api.robot.goal_changed(ended("goal-1", "succeeded", {"error_code": 0}))
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["status"], body["goal_id"], body["result"]) == (
+        200, "success", "goal-1", {"error_code": 0}), body
+
+
+async def test_a_failed_goal_is_a_failed_skill(api: Api) -> None:
+    reply = asyncio.create_task(api.command("planner", invoke("go_home", "inv-nav")))
+    await sent(api, "navigate")
+    api.robot.goal_changed(ended("goal-1", "aborted"))
+    _, body = await asyncio.wait_for(reply, 10)
+    assert (body["status"], body["error"]["name"]) == ("failure", "SkillFailed"), body
+
+
+async def test_invoke_cancel_cancels_the_goal_through_the_governor(api: Api) -> None:
+    reply = asyncio.create_task(api.command("planner", invoke("go_home", "inv-nav")))
+    await sent(api, "navigate")
+    cancelled = asyncio.create_task(api.command("planner", cancel("inv-nav")))
+    async def cancelling() -> None:
+        while api.dispatcher.cancelled != ["goal-1"]:
+            await asyncio.sleep(0.01)
+    await asyncio.wait_for(cancelling(), 10)
+    entry = [e for e in api.entries if e.get("action_type") == "cancel_goal"][-1]
+    assert (entry["event"], entry["principal"], entry["params"]["goal_id"]) == (
+        "COMMAND_DISPATCHED", "planner", "goal-1")
+    api.robot.goal_changed(ended("goal-1", "canceled"))
+    for task in (reply, cancelled):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"], body["reply_to"], body["error"]["code"]) == (
+            200, "cancelled", "inv-nav", 7007), body
+
+
+async def test_an_invoke_past_its_timeout_is_cancelled(api: Api) -> None:
+    status, body = await api.command("planner", invoke("go_home", "inv-t", timeout_ms=50))
+    assert (status, body["status"], body["error"]["code"]) == (200, "timeout", 7002), body
+    assert api.dispatcher.cancelled == ["goal-1"]
+
+
+async def test_a_cancel_of_nothing_running_says_why(api: Api) -> None:
+    status, body = await api.command("planner", cancel("never-sent"))
+    assert (status, body["status"], body["error"]["code"]) == (404, "not_found", 7001), body
+    assert api.entry(body["audit_id"])["event"] == "COMMAND_REJECTED"
+    status, _ = await api.command("planner", invoke("nudge", "inv-done",
+                                                    params={"duration_s": 1.0}))
+    assert status == 200
+    status, body = await api.command("planner", cancel("inv-done"))
+    assert (status, body["reason"], body["status"]) == (409, "invoke_finished", "success"), body
+    # §19.4: only its invoker cancels an INVOKE
+    reply = asyncio.create_task(api.command("planner", invoke("go_home", "inv-nav")))
+    await sent(api, "navigate")
+    status, body = await api.command("ops", cancel("inv-nav"))
+    assert (status, body["status"]) == (404, "not_found"), body
+    assert api.dispatcher.cancelled == []
+    api.robot.goal_changed(ended("goal-1", "succeeded"))
+    assert (await reply)[1]["status"] == "success"
+
+
+async def test_a_held_invoke_is_pending_and_its_cancel_withdraws_it(api: Api) -> None:
+    status, body = await api.command("planner", invoke("raise_elbow", "inv-arm"))
+    assert (status, body["outcome"], body["status"], body["msg_id"]) == (
+        202, "pending_auth", "pending", "inv-arm"), body
+    flat = {**json.loads((DATA / "invoke-cancel.json").read_text())["examples"][0],
+            "message_type": 13, "ruri": TARGET, "principal_id": "planner",
+            "cancel_msg_id": "inv-arm"}
+    status, body = await api.command("planner", flat)
+    assert (status, body["status"], body["reason"]) == (200, "cancelled", "hitl_withdrawn"), body
+    assert api.gov.pending() == [] and api.dispatcher.calls == []
+    assert api.entries[-1]["event"] == "HITL_WITHDRAWN"
+
+
+async def test_the_websocket_takes_them_and_is_not_held_up(api: Api) -> None:
+    async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
+        await ws.send_str(json.dumps(invoke("go_home", "inv-ws")))
+        await sent(api, "navigate")
+        await ws.send_str(json.dumps(invoke("fly", "inv-no")))  # answered while it runs
+        frame = await _frame(ws, "outcome")
+        assert (frame["http_status"], frame["body"]["reply_to"]) == (404, "inv-no"), frame
+        api.robot.goal_changed(ended("goal-1", "succeeded"))
+        frame = await _frame(ws, "outcome")
+        assert (frame["body"]["reply_to"], frame["body"]["status"]) == (
+            "inv-ws", "success"), frame

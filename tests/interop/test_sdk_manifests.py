@@ -156,11 +156,11 @@ async def test_status_carries_the_section_20_names(sim: Demo,
                                                    http: aiohttp.ClientSession) -> None:
     status = await wait_status(http, sim, lambda s: s["ros"]["connected"]
                                and s["battery_percent"] is not None
-                               and s["position"] is not None)
+                               and s["position"] is not None, timeout=60)
     assert status["battery_percent"] == status["battery_pct"]
     assert isinstance(status["battery_percent"], float) and 0 <= status["battery_percent"] <= 100
     assert status["cpu_percent"] is None or 0.0 <= status["cpu_percent"] <= 100.0
     assert status["position"]["heading_rad"] == status["telemetry"]["yaw"]
     assert status["timestamp_us"] // 1000 == status["timestamp_ms"]
-    again = await wait_status(http, sim, lambda s: s["cpu_percent"] is not None)
+    again = await wait_status(http, sim, lambda s: s["cpu_percent"] is not None, timeout=60)
     assert again["seq"] > status["seq"] and again["uptime_ms"] > status["uptime_ms"]

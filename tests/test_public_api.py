@@ -192,6 +192,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "PendingAuth",
         "Position",
         "RcanError",
+        "RobotPosition",
         "Reason",
         "Role",
         "RoleName",

@@ -18,7 +18,8 @@ ROUTES = [("POST", "/api/command"), ("GET", "/api/status"), ("POST", "/api/heart
           ("POST", "/api/hitl/authorize"), ("POST", "/api/hitl/deny"),
           ("POST", "/api/hitl/withdraw"), ("GET", "/api/audit"),
           ("GET", "/api/audit/verify"), ("GET", "/api/openapi.json"), ("GET", "/api/ws"),
-          ("GET", "/api/metrics")]
+          ("GET", "/api/metrics"), ("GET", "/api/safety/manifest"), ("GET", "/api/v1/audit")]
+PUBLIC = [("GET", "/.well-known/rcan-node.json")]  # §17.3: no authentication
 
 
 def test_public_api_is_sorted_and_complete() -> None:
@@ -32,7 +33,22 @@ def test_every_route_is_in_the_test_list(api: Api) -> None:
     served = {(r.method, r.resource.canonical) for r in api.app.router.routes()
               if r.resource is not None}
     assert served == {(m, p.replace("g1", "{goal_id}").replace("t1", "{thought_id}"))
-                      for m, p in ROUTES}
+                      for m, p in ROUTES + PUBLIC}
+
+
+@pytest.mark.parametrize("headers", [
+    {}, {"Authorization": "Bearer not-a-token-of-anyone-at-all"}, {"Authorization": "Bearer "},
+], ids=["missing", "invalid", "empty"])
+async def test_the_node_manifest_needs_no_credential(api: Api, headers: dict[str, str]
+                                                     ) -> None:
+    before = len(api.entries)
+    status, body = await api.call("GET", "/.well-known/rcan-node.json", headers=headers)
+    assert status == 200 and body["ruri"] == RURI, body
+    assert len(api.entries) == before
+    # only GET: anything else on that path is no public way in
+    status, body = await api.call("POST", "/.well-known/rcan-node.json", headers=headers,
+                                  body={"action": "move"})
+    assert status == 401, body
 
 
 @pytest.mark.parametrize(("method", "path"), ROUTES)

@@ -34,6 +34,7 @@ def sdk_command(api: Api, cmd: str, params: dict[str, Any] | None = None,
 
 async def test_the_sdks_command_executes_and_is_audited(api: Api) -> None:
     msg = sdk_command(api, "move", {"linear_x": 0.4, "duration_s": 1.0}, confidence=0.9)
+    msg["ai"] = {"model": "planner-7b"}  # the SDK has no field for it; §16.1 wants it
     status, body = await api.command("planner", msg)
     assert (status, body["outcome"]) == (200, "executed"), body
     reply = RCANResponse.from_dict(body)  # the SDK reads our reply
@@ -43,7 +44,8 @@ async def test_the_sdks_command_executes_and_is_audited(api: Api) -> None:
     assert (entry["event"], entry["action_type"]) == ("COMMAND_DISPATCHED", "move")
     assert entry["message_id"] == msg["msg_id"]
     assert entry["params"] == {"linear_x": 0.4, "duration_s": 1.0}
-    assert entry["ai"]["confidence"] == 0.9
+    assert entry["ai"] == {"confidence": 0.9, "model": "planner-7b", "provider": None,
+                           "thought_id": None}
     assert entry["rcan"] == {"version": "3.2"}
 
 

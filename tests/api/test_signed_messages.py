@@ -187,9 +187,11 @@ async def test_under_required_confidence_and_ai_must_be_signed(api: Api) -> None
     entry = api.entry(reply["audit_id"])
     assert (entry["ai"]["confidence"], entry["ai"]["model"]) == (0.9, "planner-7b")
     assert entry["params"] == {"linear_x": 0.2, "duration_s": 1.0}
-    # beside params under `verify`: still accepted (only `required` insists)
-    status, reply = await api.command("planner", sdk_signed(
-        message(api, "move", {"linear_x": 0.2}, confidence=0.9)))
+    # beside params under `verify`: still accepted (only `required` insists); an AI command
+    # names its model (§16.1)
+    beside = sdk_signed(message(api, "move", {"linear_x": 0.2}, confidence=0.9))
+    beside["ai"] = {"model": "planner-7b"}
+    status, reply = await api.command("planner", beside)
     assert (status, reply["status"]) == (200, "ok"), reply
 
 

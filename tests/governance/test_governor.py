@@ -164,11 +164,13 @@ async def test_inside_workspace_executes(gov: Governor) -> None:
 
 async def test_confidence_block_row(harness: Harness) -> None:
     gov = await harness.governor("confidence_gate: {min_confidence: 0.7, on_fail: block}")
-    d = await gov.decide(command("move", {"linear_x": 0.1}, confidence=0.69), PLANNER)
+    d = await gov.decide(command("move", {"linear_x": 0.1}, confidence=0.69,
+                                 ai_model="m"), PLANNER)
     check(d, 409, Outcome.DENIED, ErrorCode.COMMAND_REJECTED, "confidence_below_gate")
     d = await gov.decide(command("move", {"linear_x": 0.1}, ai_model="m"), PLANNER)
     check(d, 409, Outcome.DENIED, ErrorCode.COMMAND_REJECTED, "confidence_below_gate")
-    d = await gov.decide(command("move", {"linear_x": 0.1}, confidence=0.7), PLANNER)
+    d = await gov.decide(command("move", {"linear_x": 0.1}, confidence=0.7, ai_model="m"),
+                         PLANNER)
     assert d.outcome is Outcome.EXECUTED
     d = await gov.decide(command("move", {"linear_x": 0.1}), PLANNER)  # no AI: a human's
     assert d.outcome is Outcome.EXECUTED
@@ -178,7 +180,8 @@ async def test_confidence_block_row(harness: Harness) -> None:
 
 async def test_confidence_escalate_goes_pending(harness: Harness) -> None:
     gov = await harness.governor("confidence_gate: {min_confidence: 0.7, on_fail: escalate}")
-    d = await gov.decide(command("move", {"linear_x": 0.1}, confidence=0.2), PLANNER)
+    d = await gov.decide(command("move", {"linear_x": 0.1}, confidence=0.2,
+                                 ai_model="m"), PLANNER)
     check(d, 202, Outcome.PENDING_AUTH)
 
 

@@ -230,8 +230,8 @@ async def test_telemetry_becomes_status(rig: Rig) -> None:
                            value={"name": ["left", "right"], "position": [0.1, 0.2],
                                   "velocity": [1.0, 1.0]}, count=3)
     await rig.oracle.acall("publish", topic="/robot1/battery_state",
-                           type="sensor_msgs/msg/BatteryState", value={"percentage": 0.8},
-                           count=3)
+                           type="sensor_msgs/msg/BatteryState",
+                           value={"percentage": 0.8, "voltage": 14.2}, count=3)
     await eventually(lambda: rig.telemetry.status(pending_auth=0).battery_pct is not None)
     status = rig.telemetry.status(pending_auth=2)
     assert status.state == "moving" and status.pending_auth == 2
@@ -241,6 +241,18 @@ async def test_telemetry_becomes_status(rig: Rig) -> None:
     assert status.telemetry.joints.names == ["left", "right"]
     assert abs(status.battery_pct - 80.0) < 1e-4
     assert status.ros.connected and status.ros.domain_id == rig.node.domain_id
+    # RCAN §20's names beside the profile's (issue 24)
+    assert status.battery_percent == status.battery_pct
+    assert status.battery_v is not None and abs(status.battery_v - 14.2) < 1e-4
+    assert status.position is not None and (status.position.x, status.position.y) == (1.5, -2.0)
+    assert status.position.heading_rad is not None
+    assert abs(status.position.heading_rad - 0.5) < 1e-9
+    later = rig.telemetry.status(pending_auth=0)
+    assert status.seq is not None and later.seq is not None and later.seq > status.seq
+    assert status.timestamp_us is not None and later.timestamp_us is not None
+    assert later.timestamp_us > status.timestamp_us
+    assert status.timestamp_us // 1000 == status.timestamp_ms
+    assert status.uptime_ms is not None and status.uptime_ms >= 0
 
     await rig.oracle.acall("publish", topic="/robot1/diagnostics",
                            type="diagnostic_msgs/msg/DiagnosticArray",

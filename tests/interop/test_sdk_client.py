@@ -56,7 +56,8 @@ async def test_the_readme_sdk_client(sim: Demo, session: aiohttp.ClientSession,
     assert done.returncode == 0, done.stderr
     said = [line.split("#")[1].split(":")[0].strip() for line in sdk_lines().splitlines()
             if line.startswith("print(")]
-    assert done.stdout.split() == said == ["ok", "REPLAY_DETECTED", "ok", "blocked", "ok"]
+    assert done.stdout.split() == said == ["AUDIT_INCOMPLETE_AI_IDENTITY", "ok",
+                                           "REPLAY_DETECTED", "ok", "blocked", "ok"]
 
 
 async def test_the_sdk_drives_the_simulator(sim: Demo, session: aiohttp.ClientSession) -> None:
@@ -72,7 +73,8 @@ async def test_the_sdk_drives_the_simulator(sim: Demo, session: aiohttp.ClientSe
 
     # COMMAND: executed, audited, and the robot moves
     held = RCANMessage(cmd="move", target=robot, params={"linear_x": 0.4}, confidence=0.8)
-    code, body = await send(demo.user, held.to_dict())
+    ai = {"ai": {"provider": "acme", "model": "planner-7b"}}  # an AI command names its model
+    code, body = await send(demo.user, held.to_dict() | ai)
     assert (code, body["status"], body["msg_id"]) == (200, "ok", held.msg_id), body
     await wait_status(http, demo, lambda s: s["telemetry"]["position"]["x"] > start_x + 0.05)
     # STOP halts that held stream
@@ -100,8 +102,8 @@ async def test_the_sdk_drives_the_simulator(sim: Demo, session: aiohttp.ClientSe
     code, body = await send(demo.user, make_estop_message(str(robot), "drill"))
     assert (code, body["status"]) == (200, "ok"), body
     await wait_status(http, demo, lambda s: s["estop"])
-    code, body = await send(demo.user, held.to_dict() | {"msg_id": "m-after-estop",
-                                                           "timestamp": time.time()})
+    code, body = await send(demo.user, held.to_dict() | ai | {"msg_id": "m-after-estop",
+                                                                "timestamp": time.time()})
     assert (code, body["status"]) == (409, "blocked"), body
     code, body = await send(demo.user, make_resume_message(str(robot), "go"))
     assert (code, body["status"]) == (403, "blocked"), body

@@ -126,7 +126,8 @@ async def visit_every_route(client: Client, proc: RunProcess) -> tuple[str, str]
     """Every route, with a goal and a velocity stream running at the end; (goal_id, the
     move's message_id)."""
     user, owner = proc.user, proc.owner
-    for path in ("/api/status", "/api/openapi.json", "/api/metrics", "/api/goals"):
+    for path in ("/api/status", "/api/openapi.json", "/api/metrics", "/api/goals",
+                 "/api/safety/manifest", "/.well-known/rcan-node.json"):
         status, _ = await client.call("GET", path, user)
         assert status == 200, path
     await client.websocket(owner)  # left open: the shutdown closes it
@@ -161,6 +162,8 @@ async def visit_every_route(client: Client, proc: RunProcess) -> tuple[str, str]
     assert status == 200 and page["entries"]
     status, report = await client.call("GET", "/api/audit/verify", owner)
     assert status == 200 and report["ok"], report
+    status, export = await client.call("GET", "/api/v1/audit?format=jsonl", owner)
+    assert status == 200 and '"type":"audit_export"' in export
     move = await client.command(user, {"action": "move", "params": {"linear_x": SPEED}})
     assert move["outcome"] == "executed", move
     status, metrics = await client.call("GET", "/api/metrics", owner)  # after a command too

@@ -10,8 +10,8 @@ Public API::
     RobotView, GoalView                            the contract the bridge implements
     ApiServerError                                 base of the API's errors (see `_errors`)
 
-Routes (all JSON; every one needs a principal, including /api/openapi.json — the document is
-no secret, but one rule without exceptions is easier to get right):
+Routes (JSON unless said; every one needs a principal, including /api/openapi.json — the
+document is no secret — but the node manifest, which §17.3 makes public):
 
     POST /api/command            COMMAND → decision (profile outcome table)
     GET  /api/status             STATUS (GUEST+)
@@ -26,6 +26,10 @@ no secret, but one rule without exceptions is easier to get right):
     GET  /api/audit/verify       chain + signature check of what is on disk
     GET  /api/openapi.json       OpenAPI 3.1, generated from the msgspec schemas
     GET  /api/ws                 WebSocket: STATUS stream, commands in, outcomes out
+    GET  /.well-known/rcan-node.json  §17 node manifest (public: RURI, versions, public keys)
+    GET  /api/safety/manifest    Protocol 66 safety manifest (derived from config + registry)
+    GET  /api/v1/audit?from=&to=&format=jsonl|csv  §20 export (audit_read_role), streamed,
+                                 X-Audit-Chain-Root / X-Audit-Issuer-Sig
 
 Decisions where the profile is silent:
 

@@ -13,6 +13,7 @@ from rcan_rtps.governance.replay import ReplayWindow
 from rcan_rtps.governance.signatures import Signatures
 from rcan_rtps.rcan import Role
 
+from . import _audit_export, _node_manifest, _safety_manifest
 from . import _routes as r
 from ._conn import ConnectionDeadlines, track_requests
 from ._goal_events import GoalEvents
@@ -87,7 +88,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     deadlines = ConnectionDeadlines(header_timeout_s=settings.header_timeout_s,
                                     keepalive_timeout_s=settings.keepalive_timeout_s)
     app = web.Application(middlewares=[track_requests(deadlines), last_resort(),
-                                       authenticate()],
+                                       authenticate(frozenset({_node_manifest.PATH}))],
                           client_max_size=settings.max_body_bytes)
     app[DEADLINES] = deadlines  # ApiServer serves connections through it
     app[GOVERNOR] = governor
@@ -141,6 +142,13 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_get("/api/openapi.json", get_openapi, allow_head=False)
     app.router.add_get("/api/ws", websocket, allow_head=False)
     app.router.add_get("/api/metrics", get_metrics, allow_head=False)
+    # RCAN 3.x: §17 node manifest (public), Protocol 66 safety manifest, §20 audit export.
+    app.router.add_get(_node_manifest.PATH, _node_manifest.handler(
+        config, governor.audit.public_key), allow_head=False)
+    app.router.add_get(_safety_manifest.PATH, _safety_manifest.handler(config, governor),
+                       allow_head=False)
+    app.router.add_get(_audit_export.PATH, _audit_export.handler(
+        governor, settings.audit_read_role), allow_head=False)
     app.on_shutdown.append(_close_sockets)
 
     async def close_reads(app: web.Application) -> None:

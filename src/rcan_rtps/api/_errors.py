@@ -1,7 +1,8 @@
 """Errors of the HTTP/WebSocket API.
 
     ApiServerError      base of every error the API raises (requests are answered, never raised)
-    └── BodyTimeout     a request body did not arrive in time (answered 408 by a middleware)
+    ├── BodyTimeout     a request body did not arrive in time (answered 408 by a middleware)
+    └── ReadsBusy       too many audit reads wait for the reader thread (answered 429)
 
 Binding a socket raises OSError, like the stdlib; misuse (e.g. `ApiServer.url` before start)
 raises RuntimeError.
@@ -17,3 +18,8 @@ class ApiServerError(Exception):
 class BodyTimeout(ApiServerError):
     """The request body did not arrive within `body_timeout_s` (answered 408, not audited:
     no request was ever complete)."""
+
+
+class ReadsBusy(ApiServerError):
+    """Too many reads wait for the audit reader thread: answered 429 `reads_busy` (a bound,
+    not a fault)."""

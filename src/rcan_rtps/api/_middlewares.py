@@ -1,4 +1,5 @@
-"""Two middlewares: a last resort (no 500, ever) and authentication (every route).
+"""Two middlewares: a last resort (no 500, ever) and authentication (every route but the
+node manifest).
 
 Order, outermost first: `track_requests` (connection deadlines, in `_conn`) → `last_resort` →
 `authenticate` → handler. Authentication comes before any body is read, so an unauthenticated
@@ -103,11 +104,15 @@ def _failure(exc: Exception) -> web.Response:
     return json_response(body, status)
 
 
-def authenticate() -> Middleware:
-    """Every route needs a principal: a Bearer credential, or a mapped mTLS client certificate."""
+def authenticate(public: frozenset[str] = frozenset()) -> Middleware:
+    """Every route needs a principal (a Bearer credential, or a mapped mTLS client
+    certificate), except GETs of the `public` paths (the node manifest: §17.3 says no
+    authentication), which never look at a credential."""
 
     @web.middleware
     async def middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
+        if request.path in public and request.method == "GET":
+            return await handler(request)
         try:
             principal, presented = _principal(request)
         except AuthenticationError as exc:

@@ -78,6 +78,11 @@ def _query(name: str, description: str) -> dict[str, Any]:
             "schema": {"type": "integer", "minimum": 0}}
 
 
+def _seconds(name: str, description: str) -> dict[str, Any]:
+    return {"name": name, "in": "query", "required": False, "description": description,
+            "schema": {"type": "string", "pattern": r"^[0-9]{1,11}(\.[0-9]{1,3})?$"}}
+
+
 _HITL_DECISION = _DECISION | {"404": _json("DecisionBody", "unknown or expired pending_id")}
 # An INVOKE (and INVOKE_CANCEL) is answered with an INVOKE_RESULT (§19.3), any other body with
 # a decision.
@@ -136,6 +141,32 @@ PATHS: dict[str, dict[str, Any]] = {
         "latency, pending approvals, e-stop, robot state, telemetry age",
         {"200": {"description": "Prometheus text exposition format",
                  "content": {"text/plain": {"schema": {"type": "string"}}}}, **_errors()})},
+    "/.well-known/rcan-node.json": {"get": _op(
+        "getNodeManifest", "RCAN §17 node manifest: the robot's RURI, the RCAN versions "
+        "spoken, the bridge's public keys (public: no credential)",
+        {"200": {"description": "node manifest",
+                 "content": {"application/json": {"schema": {"type": "object"}}}}},
+        security=[])},
+    "/api/safety/manifest": {"get": _op(
+        "getSafetyManifest", "Protocol 66 safety manifest: invariants, limits, workspace, "
+        "e-stop, audit and clock facts, derived from the config and the action registry",
+        {"200": {"description": "safety manifest",
+                 "content": {"application/json": {"schema": {"type": "object"}}}},
+         **_errors(429)})},
+    "/api/v1/audit": {"get": _op(
+        "getAuditExport", "RCAN §20 audit export (rbac.audit_read_role): entries with "
+        "from <= time < to, verbatim, streamed; X-Audit-Chain-Root is the RFC 6962 root over "
+        "the exported lines, X-Audit-Issuer-Sig Ed25519 over its 32 bytes",
+        {"200": {"description": "JSON lines (a header line, then entries) or CSV",
+                 "headers": {"X-Audit-Chain-Root": {"schema": {"type": "string"}},
+                             "X-Audit-Issuer-Sig": {"schema": {"type": "string"}}},
+                 "content": {"application/x-ndjson": {"schema": {"type": "string"}},
+                             "text/csv": {"schema": {"type": "string"}}}},
+         **_errors(400, 403)},
+        parameters=[_seconds("from", "entries at or after this Unix time (s)"),
+                    _seconds("to", "entries before this Unix time (s)"),
+                    {"name": "format", "in": "query", "required": False,
+                     "schema": {"enum": ["jsonl", "csv"], "default": "jsonl"}}])},
     "/api/ws": {"get": _op(
         "getWebSocket",
         "WebSocket: text frames in are COMMAND bodies; frames out are WsFrame (STATUS at "
@@ -154,8 +185,8 @@ def openapi_document() -> dict[str, Any]:
         "jsonSchemaDialect": "https://json-schema.org/draft/2020-12/schema",
         "info": {"title": "rcan-rtps bridge API", "version": __version__,
                  "description": "RCAN governance (RCAN 1.2, bridge spec v1.0) in front of a "
-                                "ROS 2 robot. Every route needs a Bearer token or a mapped "
-                                "mTLS client certificate."},
+                                "ROS 2 robot. Every route but the node manifest needs a "
+                                "Bearer token or a mapped mTLS client certificate."},
         "security": [{"bearer": []}],
         "paths": PATHS,
         "components": {

@@ -29,9 +29,9 @@ import contextlib
 import logging
 import os
 import signal
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import msgspec
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
@@ -39,9 +39,11 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from rcan_rtps.governance.logcheck import check_log
 
 from ._bodies import VerifyReport
+from ._errors import ReadsBusy
 
 log = logging.getLogger(__name__)
 _NICE = 10  # verification yields the CPU to the bridge
+T = TypeVar("T")
 
 
 class _Seq(msgspec.Struct):
@@ -68,6 +70,25 @@ def entries_after(path: Path, since: int, limit: int) -> list[bytes]:
 
 def line_seq(line: bytes) -> int:
     return _SEQ.decode(line).seq
+
+
+def last_line(path: Path, block: int = 4096) -> bytes | None:
+    """The last complete line of a file (without its newline), read from the end; None if
+    the file is missing or holds no complete line."""
+    try:
+        with path.open("rb") as file:
+            end = file.seek(0, os.SEEK_END)
+            tail, start = b"", end
+            while start > 0:
+                start = max(0, start - block)
+                file.seek(start)
+                tail = file.read(end - start)
+                body = tail[: tail.rfind(b"\n") + 1]  # a line being appended is not one yet
+                if body.count(b"\n") >= 2 or (start == 0 and body):
+                    return body[:-1].rsplit(b"\n", 1)[-1]
+    except FileNotFoundError:
+        return None
+    return None
 
 
 def verify_file(path: str, public_key: bytes) -> VerifyReport:
@@ -129,6 +150,17 @@ class AuditReads:
     def pages_in_flight(self) -> int:
         """Pages being read or waiting for the reader thread."""
         return self._pages
+
+    async def read(self, fn: Callable[..., T], *args: Any) -> T:
+        """`fn(*args)` on the reader thread, among the pages (raises ReadsBusy beyond the
+        backlog): audit exports read their chunks and the safety manifest its tails here."""
+        if self._pages >= self._page_room:
+            raise ReadsBusy
+        self._pages += 1
+        try:
+            return await asyncio.get_running_loop().run_in_executor(self._thread, fn, *args)
+        finally:
+            self._pages -= 1
 
     async def page(self, since: int, limit: int) -> list[bytes] | None:
         """Entries with seq > since (at most `limit`), or None when too many pages wait."""

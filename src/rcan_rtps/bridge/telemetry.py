@@ -23,10 +23,21 @@ from typing import Any
 
 from ..config import RcanConfig
 from ..events import Events
-from ..rcan import Fault, Joints, Navigation, Position, RosInfo, Status, Telemetry, Velocity
+from ..rcan import (
+    Fault,
+    Joints,
+    Navigation,
+    Position,
+    RobotPosition,
+    RosInfo,
+    Status,
+    Telemetry,
+    Velocity,
+)
 from ..ros import qos
 from ..ros.participant import RosNode
 from ..ros.rostime import quaternion_to_yaw
+from .hostcpu import CpuMeter
 
 log = logging.getLogger(__name__)
 _LEVELS = {1: "WARN", 2: "ERROR", 3: "STALE"}
@@ -61,8 +72,13 @@ class TelemetryState:
         self._velocity: Velocity | None = None
         self._joints: Joints | None = None
         self._battery: float | None = None
+        self._battery_v: float | None = None
         self._faults: dict[str, Fault] = {}
         self.safe_stopped = False
+        self._started = monotonic()
+        self._cpu = CpuMeter()
+        self._seq = 0
+        self._last_us = 0
         # Told (on the reader thread, or the loop) when what STATUS shows may have changed.
         self.events = events or Events()
         ros2 = config.bridge.ros2
@@ -138,6 +154,7 @@ class TelemetryState:
             before = self._battery
             pct = _finite_or_none(float(msg.percentage))
             self._battery = None if pct is None else max(0.0, min(100.0, pct * 100.0))
+            self._battery_v = _finite_or_none(float(msg.voltage))
             changed = self._touch() or before != self._battery
         self._tell(changed)
 
@@ -158,7 +175,10 @@ class TelemetryState:
             age = self.age_s()
             faults = sorted(self._faults.values(), key=lambda f: f.name)
             telemetry = Telemetry(self._position, self._yaw, self._velocity, self._joints)
-            battery = self._battery
+            battery, volts = self._battery, self._battery_v
+            self._seq += 1
+            now_us = self._last_us = max(time.time_ns() // 1000, self._last_us + 1)
+            seq = self._seq
         goals = self._active_goals()
         navigation = self._navigation() if goals else None
         stale = age is None or age > self.config.bridge.ros2.telemetry_stale_s
@@ -169,7 +189,10 @@ class TelemetryState:
             active_goals=goals, pending_auth=pending_auth,
             ros=RosInfo(self.domain_id, self.distro, not stale,
                         None if age is None else round(age, 3)),
-            timestamp_ms=int(time.time() * 1000), navigation=navigation,
+            timestamp_ms=now_us // 1000, navigation=navigation,
+            battery_percent=battery, battery_v=volts, cpu_percent=self._cpu.percent(),
+            uptime_ms=int((self._monotonic() - self._started) * 1000), seq=seq,
+            timestamp_us=now_us, position=_position(telemetry),
         )
 
     def _state(self, estop: bool, faults: list[Fault], stale: bool, goals: list[str],
@@ -185,6 +208,12 @@ class TelemetryState:
         if goals:
             return "executing"
         return "moving" if _moving(telemetry.velocity) else "idle"
+
+
+def _position(telemetry: Telemetry) -> RobotPosition | None:
+    """§20.3's position from the odometry's."""
+    p = telemetry.position
+    return None if p is None else RobotPosition(p.x, p.y, telemetry.yaw)
 
 
 def _moving(v: Velocity | None) -> bool:

@@ -96,6 +96,8 @@ class _Section(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=
 class RobotConfig(_Section, frozen=True, kw_only=True):
     ruri: Annotated[str, _check(_ruri_problem)]
     name: str = ""
+    # Who operates the robot, as the node manifest names it (default: the RURI's manufacturer).
+    operator: Annotated[str, msgspec.Meta(max_length=256)] = ""
 
 
 ArmName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,63}$")]
@@ -482,6 +484,43 @@ class SkillConfig(_Section, frozen=True, kw_only=True):
             raise ValueError(problem)
 
 
+ModelName = Annotated[str, msgspec.Meta(min_length=1, max_length=256)]
+
+
+def _models_problem(agents: dict[str, list[str]]) -> str | None:
+    for name, models in agents.items():
+        if not models:
+            return f"{name!r} is bound to no model (leave it out to bind it to none)"
+        if len(set(models)) != len(models):
+            return f"{name!r} lists a model more than once"
+    return None
+
+
+class AiConfig(_Section, frozen=True, kw_only=True):
+    """AI accountability (§16.1). An AI command (one carrying `confidence`, `ai` or `ai_*`) must
+    name its model, always; `agents` binds principals to the models they may name: each of
+    their commands must then be an AI command naming one of them. Keys are principals' names
+    (`api.principals[].name`, or a JWT's `jwt:<iss>/<sub>`)."""
+
+    agents: Annotated[dict[Annotated[str, msgspec.Meta(min_length=1, max_length=256)],
+                           list[ModelName]], _check(_models_problem)] = {}
+
+
+def unknown_agents_problem(ai: AiConfig, api: ApiConfig) -> str | None:
+    """Agents that name no principal this config can authenticate (a typo would bind no one)."""
+    known = {p.name for p in api.principals}
+    if not api.principals and api.auth_token_env:
+        known.add("default")  # auth_token_env's one principal
+    for name in ai.agents:
+        if name.startswith("jwt:"):
+            if api.jwt is None:
+                return f"`ai.agents` names {name!r}, but there is no `api.jwt`"
+        elif name not in known:
+            return (f"`ai.agents` names {name!r}, which is not in `api.principals` "
+                    "(a JWT's principal is `jwt:<iss>/<sub>`)")
+    return None
+
+
 class BridgeConfig(_Section, frozen=True, kw_only=True):
     type: Literal["ros2"] = "ros2"
     ros2: Ros2Config = Ros2Config()
@@ -493,6 +532,13 @@ class BridgeConfig(_Section, frozen=True, kw_only=True):
     motion: MotionConfig = MotionConfig()
     security: SecurityConfig = SecurityConfig()
     skills: dict[SkillName, SkillConfig] = {}  # what INVOKE may run (§19)
+    ai: AiConfig = AiConfig()
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        problem = unknown_agents_problem(self.ai, self.api)
+        if problem is not None:
+            raise ValueError(problem)
 
 
 class RcanConfig(_Section, frozen=True, kw_only=True):

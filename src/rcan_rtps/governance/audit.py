@@ -668,6 +668,14 @@ class AuditLog:
     def public_key(self) -> Ed25519PublicKey:
         return self._key.public_key()
 
+    def sign_digest(self, digest: bytes) -> bytes:
+        """Ed25519 by the log's key over a 32-byte digest (an audit export's chain root, §20).
+        The log's other signatures are over text of 71 bytes or more (audit ids, tree heads,
+        checkpoints), so none of them can stand for one of these, nor the other way round."""
+        if len(digest) != 32:
+            raise ValueError("a digest is 32 bytes")
+        return self._key.sign(digest)
+
     @property
     def healthy(self) -> bool:
         return self._broken is None and self._fd >= 0

@@ -40,6 +40,7 @@ from rcan_rtps.rcan import (
 
 from ..events import Events
 from . import outcomes
+from .ai import AiPolicy
 from .arbiter import BaseArbiter
 from .audit import AuditEvent, AuditLog, AuditRecord
 from .clock import Clock, SystemClock, now_ms
@@ -91,7 +92,8 @@ class Governor:
                  streams: VelocityStreams | None = None,
                  priorities: MotionPriorities | None = None,
                  held_locks: Mapping[str, str] | None = None,
-                 events: Events | None = None) -> None:
+                 events: Events | None = None,
+                 ai: AiPolicy | None = None) -> None:
         self.audit = audit
         self.latch = latch
         self.events = events or Events()
@@ -102,6 +104,7 @@ class Governor:
         self._limiter = limiter
         self._safety = safety
         self._hitl = hitl
+        self._ai = ai or AiPolicy()
         self._clock = clock
         self._idem: Idempotency[tuple[str, str], Decision] = Idempotency(clock)
         self._latch_file_missing = latch.file.missing()
@@ -157,6 +160,7 @@ class Governor:
             session_timeout_s=bridge.safety.session_timeout_s,
             unattended_move_s=bridge.safety.unattended_move_s,
             robot_ruri=config.robot.ruri, held_locks=resumed.locks, events=events,
+            ai=AiPolicy(bridge.ai.agents),
         )
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -251,6 +255,9 @@ class Governor:
                     warnings.append(f"addressed to {ruri}, not this robot ({self._robot})")
             except InvalidRuriError as exc:
                 warnings.append(f"ruri ignored: {exc.rule}")
+        ai_problem = self._ai.warning(command, principal)
+        if ai_problem is not None:
+            warnings.append(ai_problem)
         if len(warnings) == len(command.warnings):
             return command
         return msgspec.structs.replace(command, warnings=tuple(warnings), claimed_role=None,
@@ -300,6 +307,10 @@ class Governor:
         elsewhere = self.not_this_robot(command.ruri)
         if elsewhere is not None:
             return elsewhere
+        if not command.spec.stopping:  # a stop's AI problems are warnings (`_forgiven`)
+            refused = self._ai.check(command, principal)
+            if refused is not None:
+                return refused
         if command.spec.effect is not Effect.HALT and not self._limiter.allow(principal):
             return outcomes.RATE_LIMITED  # a stop is never rate-limited
         return None

@@ -62,6 +62,13 @@ HITL_WITHDRAWN = _rejected(Reason.HITL_WITHDRAWN, status=200)
 ALREADY_APPROVED = _rejected(Reason.ALREADY_APPROVED)
 
 
+# §16.1 AI accountability (governance.ai).
+AI_MODEL_REQUIRED = Rejection(400, D, ErrorCode.AUDIT_INCOMPLETE_AI_IDENTITY,
+                              Reason.AI_MODEL_REQUIRED.value)
+AI_MODEL_NOT_ALLOWED = Rejection(403, D, ErrorCode.INSUFFICIENT_PRIVILEGES,
+                                 Reason.AI_MODEL_NOT_ALLOWED.value)
+
+
 def robot_unavailable(detail: str | None) -> Rejection:
     return Rejection(503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE, detail)
 

@@ -63,6 +63,9 @@ class ErrorCode(str, enum.Enum):
     VERSION_INCOMPATIBLE = "VERSION_INCOMPATIBLE"  # §3.5: rcan_version of another MAJOR
     MESSAGE_STALE = "MESSAGE_STALE"  # §8.3: timestamp outside the replay window
     REPLAY_DETECTED = "REPLAY_DETECTED"  # §8.3: msg_id already seen within the window
+    # §16.1: an AI command that does not say which model made it (rcan-spec conformance
+    # L3-AI-002's code).
+    AUDIT_INCOMPLETE_AI_IDENTITY = "AUDIT_INCOMPLETE_AI_IDENTITY"
     # Signed messages (docs/rcan-profile.md, "Signed messages")
     SIGNATURE_INVALID = "SIGNATURE_INVALID"  # a sig that does not verify with a key of yours
     SIGNATURE_REQUIRED = "SIGNATURE_REQUIRED"  # your policy is `required`: unsigned, or loose
@@ -95,3 +98,5 @@ class Reason(str, enum.Enum):
     UNKNOWN_LOCK = "unknown_lock"  # not in bridge.motion.locks
     # A check was handed parameters it cannot read (another type, a field missing): refused.
     PARAMS_NOT_UNDERSTOOD = "params_not_understood"
+    AI_MODEL_REQUIRED = "ai_model_required"  # an AI command without `ai.model` (§16.1)
+    AI_MODEL_NOT_ALLOWED = "ai_model_not_allowed"  # not one of its agent's `ai.agents` models

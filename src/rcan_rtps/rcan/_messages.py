@@ -216,8 +216,21 @@ class Navigation(msgspec.Struct, kw_only=True):
     navigation_time_s: float | None = None
 
 
+class RobotPosition(msgspec.Struct):
+    """§20.3's `position`: world-frame x, y (m) and heading (rad)."""
+
+    x: float
+    y: float
+    heading_rad: float | None
+
+
 class Status(msgspec.Struct, kw_only=True):
-    """STATUS (GET /api/status and the WebSocket stream)."""
+    """STATUS (GET /api/status and the WebSocket stream).
+
+    The §20 Telemetry Field Registry's names (the Robot State object, and the conformance
+    suite's `battery_percent`/`cpu_percent`) come beside the profile's own fields; §20.2's
+    per-joint objects are left out: a JointState does not say which joints are prismatic
+    (`position_m`) and which revolute (`position_rad`)."""
 
     ruri: str
     state: Literal["idle", "moving", "executing", "estop", "fault", "safe_stop", "offline"]
@@ -230,3 +243,11 @@ class Status(msgspec.Struct, kw_only=True):
     ros: RosInfo
     timestamp_ms: int
     navigation: Navigation | None = None  # the newest active goal, while there is one
+    # RCAN §20 (see above), None where not known:
+    battery_percent: float | None = None  # = battery_pct, 0-100
+    battery_v: float | None = None  # BatteryState.voltage
+    cpu_percent: float | None = None  # 0-100, of the machine the bridge runs on
+    uptime_ms: int | None = None  # since the bridge started
+    seq: int | None = None  # grows with every STATUS computed
+    timestamp_us: int | None = None  # µs since the epoch, increasing within a run
+    position: RobotPosition | None = None  # from odometry

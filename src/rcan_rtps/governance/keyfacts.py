@@ -1,0 +1,35 @@
+"""How the bridge names its public keys to others (node manifest, audit export, P66).
+
+- `kid`: the first 8 hex digits of SHA-256 over the raw public key, the rule the rcan SDK
+  uses for its own key ids (`rcan.signing`, `key_id`), so a client keeps one convention;
+- `public_key`: `ed25519:<base64>` (rcan-spec §17.3, node_pubkey / public_key);
+- `fingerprint`: `sha256:<hex>` of the raw key (§17's `public_key_fingerprint`);
+- `raw_b64url`: unpadded base64url of the raw key (RCAN 2.3's `ed25519_public_key`, RFC 8037's
+  `x` of a JWK).
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
+
+class KeyFacts:
+    """The public names of one Ed25519 public key."""
+
+    __slots__ = ("fingerprint", "kid", "public_key", "raw_b64url")
+
+    def __init__(self, key: Ed25519PublicKey) -> None:
+        raw = key.public_bytes_raw()
+        digest = hashlib.sha256(raw).hexdigest()
+        self.kid = digest[:8]
+        self.fingerprint = "sha256:" + digest
+        self.public_key = "ed25519:" + base64.b64encode(raw).decode()
+        self.raw_b64url = base64.urlsafe_b64encode(raw).rstrip(b"=").decode()
+
+
+def signature_text(signature: bytes) -> str:
+    """`ed25519:<base64>`, as rcan-spec writes Ed25519 signatures (§17, §20 headers)."""
+    return "ed25519:" + base64.b64encode(signature).decode()

@@ -53,7 +53,7 @@ async def test_every_command_of_a_thought_refused_or_not(api: Api) -> None:
     await api.command("planner", _ai_move("th-3"))
     too_fast = {**_ai_move("th-3"), "params": {"linear_x": 99.0, "duration_s": 0.5}}
     await api.command("planner", too_fast)
-    status, thought = await api.call("GET", "/api/thoughts/th-3", "planner")
+    _, thought = await api.call("GET", "/api/thoughts/th-3", "planner")
     assert [c["outcome"] for c in thought["commands"]] == ["executed", "safety_violation"]
     assert thought["action"]["outcome"] == "safety_violation"  # the latest
     assert thought["action"]["reason"] == "velocity_limit"

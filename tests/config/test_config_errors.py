@@ -332,7 +332,7 @@ def test_environment_fallbacks_are_checked_like_file_values() -> None:
     assert (config.bridge.ros2.domain_id, config.bridge.ros2.distro) == (7, "humble")
 
 
-def test_merge_keys_and_repeated_keys_read_as_yaml_does() -> None:
+def test_merge_keys_read_as_yaml_does() -> None:
     text = (
         MINIMAL
         + """\
@@ -341,18 +341,28 @@ def test_merge_keys_and_repeated_keys_read_as_yaml_does() -> None:
   ros2:
     <<: {telemetry_rate_hz: 5, odom_topic: odom2}
     telemetry_rate_hz: 20
-    odom_topic: first
-    odom_topic: second
 """
     )
     config = loads_config(text, env={})
     assert config.bridge.ros2.telemetry_rate_hz == 20.0  # explicit beats merged
-    assert config.bridge.ros2.odom_topic == "second"  # the last of a repeated key wins
+    assert config.bridge.ros2.odom_topic == "odom2"  # merged where not given
     assert config.bridge.hitl.confidence_gate is not None
     for bad_merge in ("{<<: 5}", "{<<: [{odom_topic: x}, 5]}", "&me {<<: *me}"):
         path, line, message = only_issue(MINIMAL + f"  ros2: {bad_merge}\n")
         assert (path, line) == ("$.bridge.ros2", 6)
         assert "merge" in message
+
+
+def test_a_repeated_key_is_an_error_naming_both_lines() -> None:
+    """Which of two values would count is a guess: a second `ros2:` block would silently
+    replace the first (and with it the namespace the robot's topics are under)."""
+    text = MINIMAL + "  ros2:\n    odom_topic: first\n    odom_topic: second\n"
+    path, line, message = only_issue(text)
+    assert (path, line) == ("$.bridge.ros2", 6)
+    assert "repeated key `odom_topic` (first on line 7)" in message and "line 8" in message
+    twice = MINIMAL + "  ros2: {namespace: /a}\n  ros2: {namespace: /b}\n"
+    path, _, message = only_issue(twice)
+    assert path == "$.bridge" and "repeated key `ros2`" in message
 
 
 def test_a_value_the_walk_does_not_know_is_left_to_msgspec_and_reported_cleanly() -> None:

@@ -86,8 +86,9 @@ def mapping_pairs(
 ) -> list[tuple[yaml.Node, yaml.Node]]:
     """A mapping's entries with `<<` merges applied as YAML does, leaving the tree as it is.
 
-    A key of the mapping itself beats a merged one; of several merged, the first source wins;
-    a repeated key keeps its last value.
+    A key of the mapping itself beats a merged one; of several merged, the first source wins.
+    A key the mapping itself gives twice is an error: which of its values counts would be a
+    guess (two `ros2:` blocks, say, of which one would vanish without a word).
     """
     if id(node) in merging:
         raise ConstructorError(None, None, "a `<<` merge includes itself", node.start_mark)
@@ -99,7 +100,13 @@ def mapping_pairs(
             for source in reversed(_merge_sources(value)):
                 entries |= {key_text(k): (k, v) for k, v in mapping_pairs(source, merging)}
         else:
-            own[key_text(key)] = (key, value)
+            name = key_text(key)
+            if name in own:
+                first = own[name][0].start_mark.line + 1
+                raise ConstructorError(None, None, f"repeated key `{name}` (first on line "
+                                       f"{first}): which value counts would be a guess",
+                                       key.start_mark)
+            own[name] = (key, value)
     return list((entries | own).values())
 
 

@@ -223,7 +223,7 @@ async def test_a_goal_skills_result_is_audited_when_the_goal_ends(api: Api) -> N
     assert (entry["status"], entry["outcome"], entry["params"]["goal_id"],
             entry["params"]["result"]) == ("success", "executed", "goal-1", {"error_code": 0})
 
-    status, body = await api.command("planner", invoke("go_home", "inv-t", timeout_ms=50))
+    _, body = await api.command("planner", invoke("go_home", "inv-t", timeout_ms=50))
     assert body["status"] == "timeout"
     [entry] = results(api, "inv-t")
     assert (entry["status"], entry["params"]["error"]) == (
@@ -265,3 +265,34 @@ async def test_a_cancelled_invokes_result_is_audited_once(api: Api) -> None:
     status, body = await api.command("planner", cancel("inv-nav"))  # answered: repeated
     assert (status, body["reason"], body["invoke_id"]) == (409, "invoke_finished", "inv-nav")
     assert len(results(api, "inv-nav")) == 1
+
+
+async def test_the_skills_are_listed_as_a_capability_with_their_declarations(
+        api: Api) -> None:
+    """§18/§19.7: the `invoke` capability lists every skill an INVOKE may name; beside it,
+    what each runs and who may run it (any principal reads it)."""
+    status, body = await api.call("GET", "/api/skills", "viewer")
+    assert status == 200, body
+    assert body["caps"] == {"invoke": {"version": "1.0", "required": False, "params": {
+        "skills": ["go_home", "go_to", "nudge", "raise_elbow"]}}}
+    assert body["skills"]["nudge"] == {"action": "move", "role": "USER",
+                                       "params": {"linear_x": 0.3}, "allow": ["duration_s"],
+                                       "description": ""}
+    assert body["skills"]["go_to"]["allow"] == ["x", "y", "yaw"]
+    assert body["skills"]["raise_elbow"]["action"] == "arm_joint"
+    status, _ = await api.call("GET", "/api/skills", None)
+    assert status == 401
+    _, document = await api.call("GET", "/api/openapi.json", "viewer")
+    assert "SkillList" in document["components"]["schemas"]
+    assert "/api/skills" in document["paths"]
+
+
+async def test_a_bridge_without_skills_lists_none(tmp_path: Path) -> None:
+    harness = await Api(tmp_path).start()
+    try:
+        status, body = await harness.call("GET", "/api/skills", "viewer")
+    finally:
+        await harness.close()
+    assert (status, body) == (200, {"caps": {"invoke": {"version": "1.0", "required": False,
+                                                        "params": {"skills": []}}},
+                                    "skills": {}})

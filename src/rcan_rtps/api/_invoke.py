@@ -47,6 +47,7 @@ from rcan_rtps.rcan import (
     skill_error,
 )
 
+from ._bodies import Capability, SkillList, SkillView
 from .ports import GoalView, RobotView
 
 Reply = tuple[int, object]
@@ -100,6 +101,13 @@ class Invocations:
         self._finished: OrderedDict[tuple[str, str], InvokeResult] = OrderedDict()
         if robot is not None:
             robot.watch_goals(self._goal_changed)
+
+    def listed(self, governor: Governor) -> SkillList:
+        """What GET /api/skills says: the §18/§19.7 `invoke` capability and each skill."""
+        names = sorted(self.skills)
+        return SkillList(
+            caps={"invoke": Capability(params={"skills": names})},
+            skills={name: _view(self.skills[name], governor) for name in names})
 
     # -- INVOKE ---------------------------------------------------------------------------
 
@@ -348,6 +356,12 @@ async def _refuse(governor: Governor, principal: Principal, rejection: Rejection
 def _body(body: DecisionBody, msg_id: str | None) -> DecisionBody:
     body.msg_id, body.status = msg_id or body.message_id, STATUS_OF[body.outcome]
     return body
+
+
+def _view(skill: SkillConfig, governor: Governor) -> SkillView:
+    return SkillView(action=skill.action, role=governor.role_for(skill.action).name,
+                     params=dict(skill.params), allow=list(skill.allow),
+                     description=skill.description)
 
 
 async def _audit(governor: Governor, principal: Principal, result: InvokeResult) -> None:

@@ -472,6 +472,10 @@ class Governor:
     def pending(self) -> list[PendingAuth]:
         return self._desk.pending()
 
+    def role_for(self, action: str) -> Role:
+        """The role `action` needs here (the profile's table, with the config's overrides)."""
+        return self._roles.required(action)
+
     def pending_for_thought(self, thought_id: str) -> str | None:
         """The held command whose AI `thought_id` this is (AUTHORIZE names it so), or None."""
         return self._desk.for_thought(thought_id)

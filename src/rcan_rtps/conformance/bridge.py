@@ -21,6 +21,8 @@ from typing import Any
 import aiohttp
 import msgspec
 
+from rcan_rtps.rcan.actions import MoveParams, specs
+
 Body = dict[str, Any]
 
 
@@ -56,7 +58,10 @@ class Skill(msgspec.Struct, frozen=True):
     allow: list[str] = msgspec.field(default_factory=list)
 
 
-_VELOCITIES = ("linear_x", "linear_y", "angular_z")  # the `move` action's; each 0 by default
+# The registry's velocity action (its parameters are MoveParams) and its velocities, each 0 by
+# default: a bridge of this version names them so.
+_VELOCITY_ACTION = next(s.name for s in specs() if s.params is MoveParams)
+_VELOCITIES = tuple(f.name for f in msgspec.structs.fields(MoveParams) if f.name != "duration_s")
 
 
 def still_skill(skills: Mapping[str, Skill]) -> Skill | None:
@@ -65,7 +70,7 @@ def still_skill(skills: Mapping[str, Skill]) -> Skill | None:
     nothing (a held zero stream would outlive the case)."""
     for name in sorted(skills):
         skill = skills[name]
-        if (skill.action == "move" and not skill.allow and "duration_s" in skill.params
+        if (skill.action == _VELOCITY_ACTION and not skill.allow and "duration_s" in skill.params
                 and all(skill.params.get(v, 0) == 0 for v in _VELOCITIES)):
             return skill
     return None

@@ -15,6 +15,8 @@ from typing import Any
 import pytest
 
 from rcan_rtps.api import GoalView
+from rcan_rtps.governance import Principal
+from rcan_rtps.rcan import Role
 from tests.api.apihelpers import Api, auth
 from tests.api.test_ws import _frame
 
@@ -296,3 +298,11 @@ async def test_a_bridge_without_skills_lists_none(tmp_path: Path) -> None:
     assert (status, body) == (200, {"caps": {"invoke": {"version": "1.0", "required": False,
                                                         "params": {"skills": []}}},
                                     "skills": {}})
+
+
+async def test_no_invoke_result_is_audited_after_the_bridge_stopped(api: Api) -> None:
+    """BRIDGE_STOPPED is the last entry: a goal skill answered after it is only logged."""
+    await api.gov.stop()
+    await api.gov.invoke_result(Principal("planner", Role.USER), invoke_id="inv-late",
+                                status="success", outcome="executed", facts={})
+    assert api.entries[-1]["event"] == "BRIDGE_STOPPED"

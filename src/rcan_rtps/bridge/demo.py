@@ -58,7 +58,7 @@ bridge:
     hold_still:  # moves nothing (it ends a running move): what `rcan-rtps conformance` invokes
       action: move
       params: {{linear_x: 0, angular_z: 0, duration_s: 0.5}}
-      description: zero velocity for half a second
+      description: a zero velocity (it ends a running move)
     raise_elbow:  # held for an owner, as every arm_joint is here
       action: arm_joint
       params: {{joints: [elbow], positions: [0.8], duration_s: 1}}

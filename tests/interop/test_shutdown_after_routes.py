@@ -143,6 +143,8 @@ async def visit_every_route(client: Client, proc: RunProcess) -> tuple[str, str]
     status, done = await client.call("POST", "/api/hitl/authorize", owner,
                                      {"pending_id": held[1]})
     assert (status, done["outcome"]) == (200, "executed"), done
+    status, skills = await client.call("GET", "/api/skills", user)
+    assert status == 200 and "hold_still" in skills["caps"]["invoke"]["params"]["skills"]
     # A goal far away (still driving at the signal), then a velocity held until stopped.
     goal = await client.command(user, {"action": "navigate",
                                        "params": {"x": 15.0, "y": 0.0, "yaw": 0.0}})

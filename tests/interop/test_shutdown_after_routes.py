@@ -145,6 +145,12 @@ async def visit_every_route(client: Client, proc: RunProcess) -> tuple[str, str]
     assert (status, done["outcome"]) == (200, "executed"), done
     status, skills = await client.call("GET", "/api/skills", user)
     assert status == 200 and "hold_still" in skills["caps"]["invoke"]["params"]["skills"]
+    # An AI's stop, and the thought it came from (§16.5).
+    thought = {"action": "stop", "ai_provider": "p", "ai_model": "m", "thought_id": "t-1"}
+    assert (await client.command(user, thought))["outcome"] == "executed"
+    status, _ = await client.call("GET", "/api/thoughts/t-1", user,
+                                  route="/api/thoughts/{thought_id}")
+    assert status == 200
     # A goal far away (still driving at the signal), then a velocity held until stopped.
     goal = await client.command(user, {"action": "navigate",
                                        "params": {"x": 15.0, "y": 0.0, "yaw": 0.0}})

@@ -7,6 +7,7 @@ from typing import Any
 import msgspec
 
 from rcan_rtps import __version__
+from rcan_rtps.governance.thoughts import Thought
 from rcan_rtps.rcan import openapi_schemas
 
 from ._bodies import (
@@ -26,6 +27,7 @@ _REF = "#/components/schemas/{name}"
 _API_TYPES: tuple[type[msgspec.Struct], ...] = (
     ApiError, GoalView, GoalList, PendingList, HeartbeatAck, AuditPage, VerifyReport, WsFrame,
     SkillList,
+    Thought,
 )
 
 
@@ -114,6 +116,12 @@ PATHS: dict[str, dict[str, Any]] = {
         "with the `invoke` capability (§19.7: `params.skills`), and each skill's action, the "
         "role it needs, its fixed and allowed parameters",
         {"200": _json("SkillList", "skills"), **_errors()})},
+    "/api/thoughts/{thought_id}": {"get": _op(
+        "getThought", "What an AI's thought led to (RCAN §16.5): model, confidence, its "
+        "commands and their decisions (GUEST+); `reasoning` only for OWNER+",
+        {"200": _json("Thought", "the thought"), **_errors(404)},
+        parameters=[{"name": "thought_id", "in": "path", "required": True,
+                     "schema": {"type": "string"}}])},
     "/api/hitl/pending": {"get": _op("getPending", "Commands waiting for a human (approvers)",
                                      {"200": _json("PendingList", "pending"), **_errors(403)})},
     "/api/hitl/authorize": {"post": _op(

@@ -76,6 +76,15 @@ async def get_goals(request: web.Request) -> web.Response:
     return json_response(GoalList(goals=request.app[ROBOT].goals()))
 
 
+async def get_thought(request: web.Request) -> web.Response:
+    """§16.5: any authenticated principal (status scope); `reasoning` for OWNER+ only."""
+    thought = request.app[GOVERNOR].thoughts.read(request.match_info["thought_id"],
+                                                   request[PRINCIPAL])
+    if thought is None:
+        return error_response(404, "NOT_FOUND", reason="thought_not_found")
+    return json_response(thought)
+
+
 async def get_goal(request: web.Request) -> web.Response:
     goal = request.app[ROBOT].goal(request.match_info["goal_id"])
     if goal is None:

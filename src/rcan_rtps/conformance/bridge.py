@@ -38,6 +38,7 @@ class MissingToken(ConformanceError):
 class Reply(msgspec.Struct, frozen=True):
     status: int
     body: Any
+    headers: dict[str, str] = msgspec.field(default_factory=dict)
 
     def get(self, key: str) -> Any:
         return self.body.get(key) if isinstance(self.body, dict) else None
@@ -94,10 +95,12 @@ class BridgeUnderTest:
         async with self.session.request(method, self.url + path, json=body,
                                         headers=headers) as response:
             data = await response.read()
+            headers = dict(response.headers)
             try:
-                return Reply(response.status, msgspec.json.decode(data) if data else None)
-            except msgspec.DecodeError:
-                return Reply(response.status, data.decode("utf-8", "replace"))
+                body = msgspec.json.decode(data) if data else None
+            except msgspec.DecodeError:  # not one JSON document: JSON lines, CSV, text
+                body = data.decode("utf-8", "replace")
+            return Reply(response.status, body, headers)
 
     async def command(self, role: str, body: Body) -> Reply:
         return await self.call(role, "POST", "/api/command", body)

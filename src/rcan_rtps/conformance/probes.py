@@ -287,6 +287,94 @@ async def hitl_gate(bridge: BridgeUnderTest, case: Case) -> Verdict:
     return passed("GUEST refused (403 INSUFFICIENT_PRIVILEGES); OWNER's approval executed it")
 
 
+@probe("L3-THOUGHT-001")
+async def thought_log_scope(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    """A thought made here (an AI's zero move with its reasoning), read as the case's USER
+    (operational scopes: no reasoning) and as the OWNER (config scope: the reasoning)."""
+    thought = f"conformance-{message_id()}"
+    reply = await bridge.command("USER", {
+        "action": "move", "params": ZERO_MOVE, "message_id": message_id(),
+        "ai_provider": "conformance", "ai_model": "probe", "confidence": 0.9,
+        "thought_id": thought, "ai_reasoning": "conformance probe: hold still"})
+    if reply.get("outcome") is None:
+        return failed(f"the AI command was not decided: {reply.describe()}")
+    path = f"/api/thoughts/{thought}"
+    seen = await bridge.call("USER", "GET", path)
+    if seen.status != case.expect.get("http_status", 200):
+        return failed(f"GET {path} as USER: {seen.describe()}")
+    absent = [f for f in case.expect["response_contains"] if seen.get(f) is None]
+    leaked = [f for f in case.expect["response_excludes"] if seen.get(f) is not None]
+    if absent or leaked:
+        return failed(f"as USER: missing {absent}, shown {leaked}")
+    owner = await bridge.call("OWNER", "GET", path)
+    if owner.get("reasoning") is None:
+        return failed(f"the OWNER (config scope) was not shown the reasoning: {owner.describe()}")
+    return passed("USER: confidence, no reasoning; OWNER: the reasoning")
+
+
+@probe("L3-AI-002")
+async def ai_without_model_refused(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    ai = case.input["ai_metadata"]
+    since, mid = await bridge.head_seq(), message_id()
+    reply = await bridge.command("USER", {
+        "action": "move", "params": ZERO_MOVE, "message_id": mid,
+        "ai_provider": ai["provider"], "confidence": ai["confidence"]})
+    if not _refused(reply):
+        return failed(f"an AI command without ai.model was dispatched: {reply.describe()}")
+    if reply.get("error_code") != case.expect["error_code"]:
+        return failed(f"expected {case.expect['error_code']}, got {reply.describe()}")
+    entry = await _entry(bridge, since, mid)
+    if entry is None or entry.get("event") != "COMMAND_REJECTED":
+        return failed(f"refused, but audited as {entry and entry.get('event')}")
+    return passed(f"{reply.describe()}; entry {entry['seq']}")
+
+
+@probe("L3-CHAIN-001")
+async def offline_export_verifies(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    """The §20 JSONL export, checked here with nothing but the node manifest's public key: every
+    entry's signature and link, and the issuer's signature over the RFC 6962 root of the
+    exported lines; one byte changed, both checks refuse."""
+    from cryptography.exceptions import InvalidSignature
+
+    from rcan_rtps.governance import AuditIntegrityError, verify_bytes
+    from rcan_rtps.governance.merkle import leaf_hash, root_of
+
+    key = await _audit_key(bridge)
+    path = f"/api/v1/audit?format={case.input['export_format']}"
+    export = await bridge.call("OWNER", "GET", path)
+    raw = export.body if isinstance(export.body, str) else None
+    if export.status != 200 or raw is None:
+        return failed(f"GET {path}: HTTP {export.status}")
+    header, *entries = raw.encode().splitlines()
+    if msgspec.json.decode(header).get("count") != len(entries):
+        return failed(f"the export's header says {header!r}, and {len(entries)} entries follow")
+    root_text, sig_text = export.headers.get("X-Audit-Chain-Root", ""), export.headers.get(
+        "X-Audit-Issuer-Sig", "")
+    root = root_of([leaf_hash(line) for line in entries])
+    if root_text != "sha256:" + root.hex():
+        return failed(f"X-Audit-Chain-Root {root_text} is not the root of the exported lines")
+    try:
+        key.verify(base64.b64decode(sig_text.removeprefix("ed25519:")), root)
+    except (InvalidSignature, ValueError):
+        return failed("X-Audit-Issuer-Sig does not verify with the node manifest's key")
+    data = b"".join(line + b"\n" for line in entries)
+    try:
+        verify_bytes(data, key)
+    except AuditIntegrityError as exc:
+        return failed(f"the untampered export does not verify: {exc}")
+    victim = len(entries) // 2
+    tampered = list(entries)
+    tampered[victim] = entries[victim].replace(b'"outcome":"', b'"outcome":"X', 1)
+    try:
+        verify_bytes(b"".join(line + b"\n" for line in tampered), key)
+    except AuditIntegrityError:
+        if root_of([leaf_hash(line) for line in tampered]) == root:
+            return failed("a tampered export kept its root")
+        return passed(f"{len(entries)} exported entries verify offline; entry {victim + 1} "
+                      "changed: refused")
+    return failed(f"entry {victim + 1} changed, and the export still verified")
+
+
 # -- INVOKE (§19) ---------------------------------------------------------------------------
 
 @probe("L1-INVOKE-001")
@@ -442,13 +530,15 @@ async def _audit_lines(bridge: BridgeUnderTest) -> list[bytes]:
 
 
 async def _audit_key(bridge: BridgeUnderTest) -> Any:
+    """The bridge's audit key, from its public node manifest (`ed25519_public_key`)."""
     from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
     reply = await bridge.call("OWNER", "GET", "/.well-known/rcan-node.json", public=True)
-    keys = reply.get("public_keys") if reply.status == 200 else None
-    for key in keys or []:
-        if isinstance(key, dict) and key.get("alg", "").lower() == "ed25519":
-            raw = base64.b64decode(key["public_key"])
-            return Ed25519PublicKey.from_public_bytes(raw[-32:])
-    raise ProbeError(f"no Ed25519 audit key in the node manifest: {reply.describe()}")
-
+    raw = reply.get("ed25519_public_key") if reply.status == 200 else None
+    if not isinstance(raw, str):
+        raise ProbeError(f"no Ed25519 audit key in the node manifest: {reply.describe()}")
+    try:
+        padded = raw + "=" * (-len(raw) % 4)
+        return Ed25519PublicKey.from_public_bytes(base64.urlsafe_b64decode(padded))
+    except ValueError as exc:
+        raise ProbeError(f"the node manifest's key does not load: {exc}") from None

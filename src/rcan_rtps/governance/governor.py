@@ -59,6 +59,7 @@ from .steps import (
     Dispatcher,
     DispatchResult,
     Steps,
+    ai_facts,
     bridge_command,
     decision,
     executed,
@@ -66,6 +67,7 @@ from .steps import (
     refused_event,
 )
 from .streams import AccelLimits, EndReason, HeldGoal, VelocityStreams
+from .thoughts import ThoughtLog
 
 __all__ = ["MAX_IN_FLIGHT", "Decision", "DispatchResult", "Dispatcher", "Governor"]
 
@@ -105,6 +107,7 @@ class Governor:
         self._latch_file_missing = latch.file.missing()
         self._sessions = Sessions(clock, session_timeout_s, unattended_move_s)
         self._robot = parse_ruri(robot_ruri).robot if robot_ruri else None
+        self.thoughts = ThoughtLog()  # §16.5: what each AI thought led to
         self._admission = asyncio.Semaphore(MAX_IN_FLIGHT)
         self._sweeper: asyncio.Task[None] | None = None
         self.started = False  # BRIDGE_STARTED is durable
@@ -218,10 +221,21 @@ class Governor:
             decided = await self._detached(self._decide(command, principal))
         else:
             async with self._admission:
-                return await self._detached(self._decide(command, principal))
+                decided = await self._detached(self._decide(command, principal))
+        if command.ai is not None:
+            self._remember_thought(command, principal, decided)
         if command.warnings:  # executed anyway: the caller learns what was wrong
             return msgspec.structs.replace(decided, warnings=list(command.warnings))
         return decided
+
+    def _remember_thought(self, command: NormalizedCommand, principal: Principal,
+                          decided: Decision) -> None:
+        facts = ai_facts(command) or {}
+        self.thoughts.remember(
+            command, principal, now_ms(self._clock), outcome=decided.outcome.value,
+            audit_id=decided.audit_id, reason=decided.reason,
+            error_code=decided.error_code.value if decided.error_code else None,
+            reasoning_sha256=facts.get("reasoning_sha256"))
 
     def _forgiven(self, command: NormalizedCommand, principal: Principal) -> NormalizedCommand:
         """A stop whose role claim or RURI would refuse another command: those become

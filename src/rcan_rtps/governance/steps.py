@@ -8,6 +8,7 @@ one `Steps`, so an entry, a send and a refusal mean the same thing wherever they
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import logging
 import uuid
 from collections.abc import Coroutine
@@ -174,18 +175,29 @@ def record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
            rejection: Rejection | None = None, ros2_topic: str | None = None,
            pending_id: str | None = None, sent_first: bool | None = None) -> AuditRecord:
     """The audit entry of `command`'s decision."""
-    ai = msgspec.structs.asdict(command.ai) if command.ai is not None else None
     return AuditRecord(
         event=event, principal=principal.name, role=principal.role.name,
         message_id=command.message_id, action_type=command.action, params=command.requested,
         applied=applied, outcome=outcome.value,
-        deny_reason=rejection.deny_reason if rejection else None, ai=ai,
+        deny_reason=rejection.deny_reason if rejection else None, ai=ai_facts(command),
         ros2_topic=ros2_topic, pending_id=pending_id,
         warnings=list(command.warnings) or None, sent_first=sent_first,
         # A held command's reviews (who approved, denied or withdrew it, and why).
         approvals=[msgspec.to_builtins(a) for a in command.approvals] or None,
         rcan=command.envelope.audit_facts() if command.envelope is not None else None,
     )
+
+
+def ai_facts(command: NormalizedCommand) -> dict[str, Any] | None:
+    """A command's AI fields as its entry records them: the reasoning by its digest only (the
+    audit is readable below the config scope the reasoning itself needs, §16.5)."""
+    if command.ai is None:
+        return None
+    facts = msgspec.structs.asdict(command.ai)
+    reasoning = facts.pop("reasoning")
+    if reasoning is not None:
+        facts["reasoning_sha256"] = hashlib.sha256(reasoning.encode()).hexdigest()
+    return facts
 
 
 def sent(outcome: Sent | BaseException) -> Sent:

@@ -11,12 +11,17 @@ from ._types import ActionParams, Confidence, MessageId, ShortText, Strict
 from ._v3 import Envelope, Status3, VersionText
 from .actions import ActionName, ActionSpec, action_spec
 
+# The model's reasoning behind a command (§16.5's Thought log): kept out of the audit entry
+# (which records its digest), readable only with the config scope (see governance/thoughts).
+Reasoning = Annotated[str, msgspec.Meta(max_length=8192)]
+
 
 class AiInfo(Strict, frozen=True):
     provider: ShortText | None = None
     model: ShortText | None = None
     confidence: Confidence | None = None
     thought_id: ShortText | None = None
+    reasoning: Reasoning | None = None
 
 
 # -- COMMAND, as it arrives -----------------------------------------------------------------
@@ -32,6 +37,7 @@ class ShortCommand(Strict, frozen=True):
     ai_model: ShortText | None = None
     confidence: Confidence | None = None
     thought_id: ShortText | None = None
+    ai_reasoning: Reasoning | None = None
 
 
 class EnvelopeCommand(Strict, frozen=True):

@@ -258,7 +258,8 @@ def _message_id(given: str | None, new_id: Callable[[], str]) -> str:
 def _from_short(
     cmd: ShortCommand, claimed_role: Any, new_id: Callable[[], str]
 ) -> NormalizedCommand:
-    ai_fields = (cmd.ai_provider, cmd.ai_model, cmd.confidence, cmd.thought_id)
+    ai_fields = (cmd.ai_provider, cmd.ai_model, cmd.confidence, cmd.thought_id,
+                 cmd.ai_reasoning)
     ai = None
     if any(f is not None for f in ai_fields):
         ai = AiInfo(
@@ -266,6 +267,7 @@ def _from_short(
             model=cmd.ai_model,
             confidence=cmd.confidence,
             thought_id=cmd.thought_id,
+            reasoning=cmd.ai_reasoning,
         )
     return NormalizedCommand(
         action=cmd.action,

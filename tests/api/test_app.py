@@ -13,6 +13,7 @@ from rcan_rtps.api import GoalView
 from tests.api.apihelpers import RURI, TOKENS, Api
 
 ROUTES = [("POST", "/api/command"), ("GET", "/api/status"), ("POST", "/api/heartbeat"),
+          ("GET", "/api/skills"),
           ("GET", "/api/goals"), ("GET", "/api/goals/g1"), ("GET", "/api/thoughts/t1"),
           ("GET", "/api/hitl/pending"),
           ("POST", "/api/hitl/authorize"), ("POST", "/api/hitl/deny"),

@@ -15,6 +15,8 @@ from typing import Any
 import pytest
 
 from rcan_rtps.api import GoalView
+from rcan_rtps.governance import Principal
+from rcan_rtps.rcan import Role
 from tests.api.apihelpers import Api, auth
 from tests.api.test_ws import _frame
 
@@ -173,7 +175,7 @@ async def test_a_held_invoke_is_pending_and_its_cancel_withdraws_it(api: Api) ->
     status, body = await api.command("planner", flat)
     assert (status, body["status"], body["reason"]) == (200, "cancelled", "hitl_withdrawn"), body
     assert api.gov.pending() == [] and api.dispatcher.calls == []
-    assert api.entries[-1]["event"] == "HITL_WITHDRAWN"
+    assert [e["event"] for e in api.entries[-2:]] == ["HITL_WITHDRAWN", "INVOKE_RESULT"]
 
 
 async def test_the_websocket_takes_them_and_is_not_held_up(api: Api) -> None:
@@ -187,3 +189,120 @@ async def test_the_websocket_takes_them_and_is_not_held_up(api: Api) -> None:
         frame = await _frame(ws, "outcome")
         assert (frame["body"]["reply_to"], frame["body"]["status"]) == (
             "inv-ws", "success"), frame
+
+
+def results(api: Api, invoke_id: str) -> list[dict[str, Any]]:
+    return [e for e in api.entries if e["event"] == "INVOKE_RESULT"
+            and e.get("invoke_id") == invoke_id]
+
+
+async def test_each_answer_carries_the_suites_names_and_is_audited_first(api: Api) -> None:
+    """rcan-spec's conformance suite: an INVOKE_RESULT has invoke_id, status and payload
+    (L1-INVOKE-003), and its audit entry invoke_id, status and outcome (L3-INVOKE-001); the
+    entry is on disk when the answer is sent."""
+    status, body = await api.command("planner", invoke("nudge", "inv-1",
+                                                       params={"duration_s": 1.0}))
+    assert (status, body["invoke_id"], body["reply_to"], body["payload"]) == (
+        200, "inv-1", "inv-1", {}), body
+    [entry] = results(api, "inv-1")
+    assert (entry["status"], entry["outcome"], entry["message_id"], entry["principal"],
+            entry["role"]) == ("success", "executed", "inv-1", "planner", "USER"), entry
+    assert entry["params"]["skill"] == "nudge" and entry["params"]["duration_ms"] >= 0
+    assert "deny_reason" not in entry or entry["deny_reason"] is None
+    # the lifecycle, from the log alone: the command the skill ran, then its result
+    lifecycle = [e["event"] for e in api.entries if e.get("message_id") == "inv-1"]
+    assert lifecycle == ["COMMAND_DISPATCHED", "INVOKE_RESULT"]
+
+
+async def test_a_goal_skills_result_is_audited_when_the_goal_ends(api: Api) -> None:
+    reply = asyncio.create_task(api.command("planner", invoke("go_home", "inv-nav")))
+    await sent(api, "navigate")
+    assert results(api, "inv-nav") == []  # no result yet: the goal runs
+    api.robot.goal_changed(ended("goal-1", "succeeded", {"error_code": 0}))
+    _, body = await asyncio.wait_for(reply, 10)
+    assert body["payload"] == body["result"] == {"error_code": 0}, body
+    [entry] = results(api, "inv-nav")
+    assert (entry["status"], entry["outcome"], entry["params"]["goal_id"],
+            entry["params"]["result"]) == ("success", "executed", "goal-1", {"error_code": 0})
+
+    _, body = await api.command("planner", invoke("go_home", "inv-t", timeout_ms=50))
+    assert body["status"] == "timeout"
+    [entry] = results(api, "inv-t")
+    assert (entry["status"], entry["params"]["error"]) == (
+        "timeout", {"code": 7002, "name": "SkillTimeout"}), entry
+    assert "not done within 50 ms" in entry["deny_reason"]
+
+
+@pytest.mark.parametrize(("who", "body", "status", "outcome"), [
+    ("planner", invoke("fly", "i-1"), "not_found", "denied"),  # before it became a command
+    ("planner", invoke("nudge", "i-2", params={"linear_x": 0.9}), "invalid_params", "denied"),
+    ("viewer", invoke("nudge", "i-4"), "unauthorized", "denied"),  # the governor's refusal
+    ("planner", invoke("go_to", "i-5", params={"x": 50, "y": 0, "yaw": 0}), "failure",
+     "safety_violation"),
+])
+async def test_a_refused_invokes_result_is_audited(api: Api, who: str, body: dict[str, Any],
+                                                   status: str, outcome: str) -> None:
+    _, reply = await api.command(who, body)
+    assert (reply["invoke_id"], reply["payload"]) == (body["msg_id"], {}), reply
+    [entry] = results(api, body["msg_id"])
+    assert (entry["status"], entry["outcome"], entry["params"]["error"]["code"]) == (
+        status, outcome, reply["error"]["code"]), entry
+    assert entry["deny_reason"] == reply["error"]["message"]
+    refused = api.entry(reply["audit_id"])  # the refusal's own entry comes first
+    assert (refused["event"], refused["seq"] < entry["seq"]) == ("COMMAND_REJECTED", True)
+
+
+async def test_a_cancelled_invokes_result_is_audited_once(api: Api) -> None:
+    reply = asyncio.create_task(api.command("planner", invoke("go_home", "inv-nav")))
+    await sent(api, "navigate")
+    cancelled = asyncio.create_task(api.command("planner", cancel("inv-nav")))
+    async def cancelling() -> None:
+        while api.dispatcher.cancelled != ["goal-1"]:
+            await asyncio.sleep(0.01)
+    await asyncio.wait_for(cancelling(), 10)
+    api.robot.goal_changed(ended("goal-1", "canceled"))
+    await asyncio.wait_for(asyncio.gather(reply, cancelled), 10)
+    [entry] = results(api, "inv-nav")  # one INVOKE, one INVOKE_RESULT (§19.1)
+    assert entry["status"] == "cancelled"
+    status, body = await api.command("planner", cancel("inv-nav"))  # answered: repeated
+    assert (status, body["reason"], body["invoke_id"]) == (409, "invoke_finished", "inv-nav")
+    assert len(results(api, "inv-nav")) == 1
+
+
+async def test_the_skills_are_listed_as_a_capability_with_their_declarations(
+        api: Api) -> None:
+    """§18/§19.7: the `invoke` capability lists every skill an INVOKE may name; beside it,
+    what each runs and who may run it (any principal reads it)."""
+    status, body = await api.call("GET", "/api/skills", "viewer")
+    assert status == 200, body
+    assert body["caps"] == {"invoke": {"version": "1.0", "required": False, "params": {
+        "skills": ["go_home", "go_to", "nudge", "raise_elbow"]}}}
+    assert body["skills"]["nudge"] == {"action": "move", "role": "USER",
+                                       "params": {"linear_x": 0.3}, "allow": ["duration_s"],
+                                       "description": ""}
+    assert body["skills"]["go_to"]["allow"] == ["x", "y", "yaw"]
+    assert body["skills"]["raise_elbow"]["action"] == "arm_joint"
+    status, _ = await api.call("GET", "/api/skills", None)
+    assert status == 401
+    _, document = await api.call("GET", "/api/openapi.json", "viewer")
+    assert "SkillList" in document["components"]["schemas"]
+    assert "/api/skills" in document["paths"]
+
+
+async def test_a_bridge_without_skills_lists_none(tmp_path: Path) -> None:
+    harness = await Api(tmp_path).start()
+    try:
+        status, body = await harness.call("GET", "/api/skills", "viewer")
+    finally:
+        await harness.close()
+    assert (status, body) == (200, {"caps": {"invoke": {"version": "1.0", "required": False,
+                                                        "params": {"skills": []}}},
+                                    "skills": {}})
+
+
+async def test_no_invoke_result_is_audited_after_the_bridge_stopped(api: Api) -> None:
+    """BRIDGE_STOPPED is the last entry: a goal skill answered after it is only logged."""
+    await api.gov.stop()
+    await api.gov.invoke_result(Principal("planner", Role.USER), invoke_id="inv-late",
+                                status="success", outcome="executed", facts={})
+    assert api.entries[-1]["event"] == "BRIDGE_STOPPED"

@@ -1,9 +1,10 @@
 """Issue 24: INVOKE / INVOKE_CANCEL (§19) and AUTHORIZE (§16.4) against a real `run --sim`.
 
-The demo config declares skills (`bridge.skills`: go_home, go_to, nudge, raise_elbow); the
-simulated robot is a real ROS 2 node, so a skill's goal is a real NavigateToPose goal whose end
-answers the INVOKE. Message shapes: tests/data/rcan-spec/ (SOURCE.md). A client that waits for
-a goal heartbeats, as every client of a goal does (the demo's session_timeout_s is 5 s).
+The demo config declares skills (`bridge.skills`: go_home, go_to, nudge, raise_elbow,
+hold_still); the simulated robot is a real ROS 2 node, so a skill's goal is a real
+NavigateToPose goal whose end answers the INVOKE. Message shapes: tests/data/rcan-spec/
+(SOURCE.md). A client that waits for a goal heartbeats, as every client of a goal does (the
+demo's session_timeout_s is 5 s).
 """
 
 from __future__ import annotations

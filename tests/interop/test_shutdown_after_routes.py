@@ -144,6 +144,8 @@ async def visit_every_route(client: Client, proc: RunProcess) -> tuple[str, str]
     status, done = await client.call("POST", "/api/hitl/authorize", owner,
                                      {"pending_id": held[1]})
     assert (status, done["outcome"]) == (200, "executed"), done
+    status, skills = await client.call("GET", "/api/skills", user)
+    assert status == 200 and "hold_still" in skills["caps"]["invoke"]["params"]["skills"]
     # An AI's stop, and the thought it came from (§16.5).
     thought = {"action": "stop", "ai_provider": "p", "ai_model": "m", "thought_id": "t-1"}
     assert (await client.command(user, thought))["outcome"] == "executed"

@@ -153,13 +153,19 @@ def test_an_invoke_becomes_its_skills_command() -> None:
 
 
 def test_invoke_result_has_the_specs_shape() -> None:
-    """What the bridge answers validates against rcan-spec's INVOKE_RESULT fields."""
+    """What the bridge answers validates against rcan-spec's INVOKE_RESULT fields: §19.3's,
+    and the conformance suite's names for two of them (invoke_id = reply_to, payload =
+    result or {})."""
     import msgspec
 
     for example in (PROSE["invokeResult"], PROSE["invokeFailure"], PROSE["invokeNotFound"],
                     PROSE["invokeCancelledResult"]):
-        result = msgspec.convert(example, InvokeResult)
-        assert json.loads(msgspec.json.encode(result)) == example
+        written = {**example, "invoke_id": example["reply_to"],
+                   "payload": example.get("result", {})}
+        result = msgspec.convert(written, InvokeResult)
+        assert json.loads(msgspec.json.encode(result)) == written
+    with pytest.raises(msgspec.ValidationError, match="invoke_id"):
+        msgspec.convert(PROSE["invokeResult"], InvokeResult)  # never written without it
 
 
 @pytest.mark.parametrize(("body", "expected"), [

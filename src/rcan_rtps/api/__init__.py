@@ -17,6 +17,8 @@ document is no secret — but the node manifest, which §17.3 makes public):
     GET  /api/status             STATUS (GUEST+)
     POST /api/heartbeat          keeps a control session alive (§10.8)
     GET  /api/goals[/{goal_id}]  goals of every goal action (GUEST+), 404 when unknown
+    GET  /api/skills             the skills an INVOKE may name: §18's `invoke` capability and
+                                 each skill's action, role, fixed and allowed params (GUEST+)
     GET  /api/hitl/pending       pending commands (the lowest role that can approve one)
     POST /api/hitl/authorize     {"pending_id", "reason"?} → decision; the governor checks the
                                  approver; 202 while more approvals are needed (n-of-m)

@@ -132,6 +132,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_post("/api/heartbeat", r.post_heartbeat)
     app.router.add_get("/api/goals", r.get_goals, allow_head=False)
     app.router.add_get("/api/goals/{goal_id}", r.get_goal, allow_head=False)
+    app.router.add_get("/api/skills", r.get_skills, allow_head=False)
     app.router.add_get("/api/thoughts/{thought_id}", r.get_thought, allow_head=False)
     app.router.add_get("/api/hitl/pending", r.get_pending, allow_head=False)
     app.router.add_post("/api/hitl/authorize", r.post_authorize)

@@ -38,6 +38,32 @@ class GoalList(msgspec.Struct, kw_only=True):
     goals: list[GoalView]
 
 
+class Capability(msgspec.Struct, kw_only=True):
+    """A Capability Descriptor of RCAN §18.2."""
+
+    version: str = "1.0"
+    required: bool = False
+    params: dict[str, Any] = msgspec.field(default_factory=dict)
+
+
+class SkillView(msgspec.Struct, kw_only=True):
+    """One skill of `bridge.skills`, as an INVOKE runs it."""
+
+    action: str  # the registry action it runs
+    role: str  # the lowest role that may invoke it: its action's (rbac)
+    params: dict[str, Any]  # always run with these
+    allow: list[str]  # the parameters an INVOKE may set
+    description: str = ""
+
+
+class SkillList(msgspec.Struct, kw_only=True):
+    """GET /api/skills: §18's Capability Object Map with the `invoke` capability (§19.7: its
+    `params.skills` lists every skill an INVOKE may name), and each skill's declaration."""
+
+    caps: dict[str, Capability]
+    skills: dict[str, SkillView]
+
+
 class PendingList(msgspec.Struct, kw_only=True):
     pending: list[PendingAuth]
 

@@ -12,6 +12,11 @@ INVOKE_CANCEL names an INVOKE of its own sender by msg_id: a goal it started is 
 through the governor (audited) and the INVOKE is answered `cancelled`; a held one is withdrawn.
 One already answered is left alone (§19.4: the earlier result stands, and is repeated); one
 never seen is `not_found`.
+
+Each INVOKE_RESULT that answers an INVOKE is audited before it is sent (an INVOKE_RESULT entry
+with the INVOKE's msg_id as `invoke_id` and `message_id`, §19.5's `status` and the decision's
+`outcome`): with the decision entries the INVOKE's command made, the whole lifecycle INVOKE →
+INVOKE_RESULT can be read back from the log (rcan-spec's conformance case L3-INVOKE-001).
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ from rcan_rtps.rcan import (
     skill_error,
 )
 
+from ._bodies import Capability, SkillList, SkillView
 from .ports import GoalView, RobotView
 
 Reply = tuple[int, object]
@@ -96,6 +102,13 @@ class Invocations:
         if robot is not None:
             robot.watch_goals(self._goal_changed)
 
+    def listed(self, governor: Governor) -> SkillList:
+        """What GET /api/skills says: the §18/§19.7 `invoke` capability and each skill."""
+        names = sorted(self.skills)
+        return SkillList(
+            caps={"invoke": Capability(params={"skills": names})},
+            skills={name: _view(self.skills[name], governor) for name in names})
+
     # -- INVOKE ---------------------------------------------------------------------------
 
     async def start(self, governor: Governor, principal: Principal, invoke: Invoke) -> Started:
@@ -148,7 +161,8 @@ class Invocations:
         if decision.outcome is not Outcome.EXECUTED or decision.goal_id is None:
             del self._running[key]
             result = self._result(running, decision, _decided_status(decision))
-            return Started(reply=(decision.http_status, self._answer(key, running, result)))
+            return Started(reply=(decision.http_status,
+                                  await self._answer(governor, principal, key, running, result)))
         running.goal_id = decision.goal_id
         self._by_goal[decision.goal_id] = running
         view = None if self._robot is None else self._robot.goal(decision.goal_id)
@@ -179,7 +193,7 @@ class Invocations:
         finally:
             self._running.pop(key, None)
             self._by_goal.pop(running.goal_id, None)
-        return 200, self._answer(key, running, result)
+        return 200, await self._answer(governor, principal, key, running, result)
 
     def _ended(self, running: _Running, decision: Decision, view: GoalView) -> InvokeResult:
         if view.state == "succeeded":
@@ -216,7 +230,8 @@ class Invocations:
                                     else "failure")
             result = self._result(running, decision, status, "withdrawn by INVOKE_CANCEL"
                                   if status == "cancelled" else decision.reason)
-            return decision.http_status, self._answer(key, running, result)
+            return decision.http_status, await self._answer(governor, principal, key, running,
+                                                            result)
         if running.goal_id is not None:
             decision = await governor.cancel_goal(running.goal_id, principal,
                                                   message_id=cancel.message_id,
@@ -228,6 +243,7 @@ class Invocations:
                                               cancel.cancel_timeout_ms / 1000)
         except asyncio.TimeoutError:
             return 202, InvokeResult(type="INVOKE_RESULT", status="cancelled",
+                                     invoke_id=running.invoke_id, payload={},
                                      skill=running.skill, reply_to=running.invoke_id,
                                      reason="cancelling", msg_id=cancel.message_id)
         return 200, answered
@@ -240,7 +256,8 @@ class Invocations:
                                                  message_id=cancel.message_id)
         if earlier is None:
             return decision.http_status, InvokeResult(
-                type="INVOKE_RESULT", status="not_found", reply_to=cancel.invoke_id,
+                type="INVOKE_RESULT", status="not_found", invoke_id=cancel.invoke_id,
+                payload={}, reply_to=cancel.invoke_id,
                 error=skill_error("not_found", f"no INVOKE {cancel.invoke_id!r} of yours is "
                                   "running"),
                 outcome=decision.outcome.value, audit_id=decision.audit_id,
@@ -262,16 +279,19 @@ class Invocations:
                                 message or decision.reason or status)
         body = decision.body()
         return InvokeResult(
-            type="INVOKE_RESULT", status=status, skill=running.skill,
-            reply_to=running.invoke_id,
+            type="INVOKE_RESULT", status=status, invoke_id=running.invoke_id,
+            payload=result or {}, skill=running.skill, reply_to=running.invoke_id,
             duration_ms=int((time.monotonic() - running.started) * 1000), result=result,
             error=error, outcome=body.outcome, audit_id=body.audit_id,
             message_id=body.message_id, msg_id=running.invoke_id, error_code=body.error_code,
             reason=body.reason, applied=body.applied, goal_id=body.goal_id,
             ros2_topic=body.ros2_topic, warnings=body.warnings)
 
-    def _answer(self, key: tuple[str, str], running: _Running,
-                result: InvokeResult) -> InvokeResult:
+    async def _answer(self, governor: Governor, principal: Principal, key: tuple[str, str],
+                      running: _Running, result: InvokeResult) -> InvokeResult:
+        """The INVOKE's one INVOKE_RESULT (§19.1): audited, remembered for a late
+        INVOKE_CANCEL, handed to a cancel waiting for it."""
+        await _audit(governor, principal, result)
         self._finished[key] = result
         self._finished.move_to_end(key)
         while len(self._finished) > FINISHED_KEPT:
@@ -286,13 +306,15 @@ class Invocations:
         """An INVOKE refused before it became a command: audited, answered INVOKE_RESULT."""
         decision = await governor.reject_request(principal, rejection, message_id=invoke.msg_id,
                                                  rcan=invoke.envelope.audit_facts())
-        return decision.http_status, InvokeResult(
-            type="INVOKE_RESULT", status=_STATUS_OF_KIND[kind], skill=invoke.skill,
-            reply_to=invoke.msg_id, error=skill_error(kind, message),
-            outcome=decision.outcome.value, audit_id=decision.audit_id,
-            message_id=invoke.msg_id, msg_id=invoke.msg_id,
+        result = InvokeResult(
+            type="INVOKE_RESULT", status=_STATUS_OF_KIND[kind], invoke_id=invoke.msg_id,
+            payload={}, skill=invoke.skill, reply_to=invoke.msg_id,
+            error=skill_error(kind, message), outcome=decision.outcome.value,
+            audit_id=decision.audit_id, message_id=invoke.msg_id, msg_id=invoke.msg_id,
             error_code=rejection.error_code.value, reason=message if path else rejection.reason,
             path=path)
+        await _audit(governor, principal, result)
+        return decision.http_status, result
 
 
 # -- AUTHORIZE --------------------------------------------------------------------------------
@@ -334,6 +356,24 @@ async def _refuse(governor: Governor, principal: Principal, rejection: Rejection
 def _body(body: DecisionBody, msg_id: str | None) -> DecisionBody:
     body.msg_id, body.status = msg_id or body.message_id, STATUS_OF[body.outcome]
     return body
+
+
+def _view(skill: SkillConfig, governor: Governor) -> SkillView:
+    return SkillView(action=skill.action, role=governor.role_for(skill.action).name,
+                     params=dict(skill.params), allow=list(skill.allow),
+                     description=skill.description)
+
+
+async def _audit(governor: Governor, principal: Principal, result: InvokeResult) -> None:
+    """The INVOKE_RESULT entry of an INVOKE's answer."""
+    facts: dict[str, object] = {"skill": result.skill, "duration_ms": result.duration_ms,
+                                "goal_id": result.goal_id, "result": result.result}
+    if result.error is not None:
+        facts["error"] = {"code": result.error.code, "name": result.error.name}
+    await governor.invoke_result(
+        principal, invoke_id=result.invoke_id, status=result.status, outcome=result.outcome,
+        facts={k: v for k, v in facts.items() if v is not None},
+        detail=None if result.error is None else result.error.message)
 
 
 def _decided_status(decision: Decision) -> InvokeStatus:

@@ -10,13 +10,23 @@ from rcan_rtps import __version__
 from rcan_rtps.governance.thoughts import Thought
 from rcan_rtps.rcan import openapi_schemas
 
-from ._bodies import ApiError, AuditPage, GoalList, HeartbeatAck, PendingList, VerifyReport, WsFrame
+from ._bodies import (
+    ApiError,
+    AuditPage,
+    GoalList,
+    HeartbeatAck,
+    PendingList,
+    SkillList,
+    VerifyReport,
+    WsFrame,
+)
 from ._protocol import HEAD_TOO_LARGE, MAX_FIELDS, MAX_LINE
 from .ports import GoalView
 
 _REF = "#/components/schemas/{name}"
 _API_TYPES: tuple[type[msgspec.Struct], ...] = (
     ApiError, GoalView, GoalList, PendingList, HeartbeatAck, AuditPage, VerifyReport, WsFrame,
+    SkillList,
     Thought,
 )
 
@@ -106,6 +116,11 @@ PATHS: dict[str, dict[str, Any]] = {
         {"200": _json("GoalView", "the goal"), **_errors(404)},
         parameters=[{"name": "goal_id", "in": "path", "required": True,
                      "schema": {"type": "string"}}])},
+    "/api/skills": {"get": _op(
+        "getSkills", "The skills an INVOKE may name (GUEST+): RCAN §18's Capability Object Map "
+        "with the `invoke` capability (§19.7: `params.skills`), and each skill's action, the "
+        "role it needs, its fixed and allowed parameters",
+        {"200": _json("SkillList", "skills"), **_errors()})},
     "/api/thoughts/{thought_id}": {"get": _op(
         "getThought", "What an AI's thought led to (RCAN §16.5): model, confidence, its "
         "commands and their decisions (GUEST+); `reasoning` only for OWNER+",

@@ -92,6 +92,12 @@ async def get_goal(request: web.Request) -> web.Response:
     return json_response(goal)
 
 
+async def get_skills(request: web.Request) -> web.Response:
+    """The skills an INVOKE may name (RCAN §18/§19.7), any principal: a client must not invoke
+    an unlisted skill, and the conformance runner picks one to invoke from here."""
+    return json_response(request.app[INVOCATIONS].listed(request.app[GOVERNOR]))
+
+
 # -- HiTL -----------------------------------------------------------------------------------
 
 

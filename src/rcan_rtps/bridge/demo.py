@@ -55,6 +55,10 @@ bridge:
     go_home: {{action: navigate, params: {{x: 0, y: 0, yaw: 0}}, description: back to the origin}}
     go_to: {{action: navigate, allow: [x, y, yaw], description: drive to a point}}
     nudge: {{action: move, params: {{linear_x: 0.3}}, allow: [duration_s]}}
+    hold_still:  # moves nothing (it ends a running move): what `rcan-rtps conformance` invokes
+      action: move
+      params: {{linear_x: 0, angular_z: 0, duration_s: 0.5}}
+      description: a zero velocity (it ends a running move)
     raise_elbow:  # held for an owner, as every arm_joint is here
       action: arm_joint
       params: {{joints: [elbow], positions: [0.8], duration_s: 1}}

@@ -2,7 +2,10 @@
 conformance suite's cases against a running bridge, one line per case.
 
 It commands the robot: zero-velocity moves, an arm trajectory to where the arm already is,
-an e-stop it clears again. Run it against a simulator or a robot that may be stopped.
+an e-stop it clears again, and INVOKEs of one skill the bridge lists (GET /api/skills): by
+default the first that moves nothing (a move fixed at zero velocity for a fixed duration, the
+invoker setting nothing; the demo's `hold_still`), else the one `--skill` names. Run it
+against a simulator or a robot that may be stopped.
 """
 
 from __future__ import annotations
@@ -27,6 +30,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         "(GUEST, USER); repeatable")
     parser.add_argument("--level", choices=("L1", "L2", "L3"), default="L3",
                         help="run the cases up to this level (default L3: all)")
+    parser.add_argument("--skill", metavar="NAME",
+                        help="the skill the INVOKE cases invoke, as a USER and with no "
+                             "parameters: choose a harmless one (default: one the bridge "
+                             "lists that moves nothing)")
     parser.set_defaults(func=_conformance)
 
 
@@ -45,7 +52,7 @@ def _conformance(args: argparse.Namespace) -> int:
     print(f"RCAN conformance suite v{suite.version} ({source.repository}, {source.path} at "
           f"{source.snapshot_commit[:12]}), up to {args.level}, against {args.url}")
     tokens = {"OWNER": args.token, **dict(args.token_for)}
-    results = asyncio.run(run_suite(suite, args.level, args.url, tokens,
+    results = asyncio.run(run_suite(suite, args.level, args.url, tokens, skill=args.skill,
                                     report=lambda r: print(r.line(), flush=True)))
     counts = {o: sum(r.outcome == o for r in results)
               for o in ("pass", "fail", "n/a", "out of scope")}

@@ -4,6 +4,10 @@ A probe speaks as a role: the principal whose token was given for it. The OWNER'
 the run's own (`--token`): it reads the audit, approves, and clears the e-stops the safety
 cases raise. Other roles' tokens are optional; a case that needs one it was not given fails,
 saying which.
+
+The INVOKE cases (§19) invoke one skill of those the bridge lists (`GET /api/skills`; §19.7:
+a client never invokes an unlisted one): the one the run names (`--skill`), else the first,
+by name, that cannot move the robot (`still_skill`).
 """
 
 from __future__ import annotations
@@ -16,6 +20,8 @@ from typing import Any
 
 import aiohttp
 import msgspec
+
+from rcan_rtps.rcan.actions import MoveParams, specs
 
 Body = dict[str, Any]
 
@@ -43,12 +49,42 @@ class Reply(msgspec.Struct, frozen=True):
         return f"HTTP {self.status} {fields or self.body!r}"
 
 
+class Skill(msgspec.Struct, frozen=True):
+    """A skill the bridge lists, as GET /api/skills declares it."""
+
+    name: str
+    action: str
+    role: str
+    params: dict[str, Any] = msgspec.field(default_factory=dict)
+    allow: list[str] = msgspec.field(default_factory=list)
+
+
+# The registry's velocity action (its parameters are MoveParams) and its velocities, each 0 by
+# default: a bridge of this version names them so.
+_VELOCITY_ACTION = next(s.name for s in specs() if s.params is MoveParams)
+_VELOCITIES = tuple(f.name for f in msgspec.structs.fields(MoveParams) if f.name != "duration_s")
+
+
+def still_skill(skills: Mapping[str, Skill]) -> Skill | None:
+    """The first skill, by name, that cannot move the robot: a `move` whose velocities are
+    fixed at zero (or left at their zero default) for a fixed duration, the invoker setting
+    nothing (a held zero stream would outlive the case)."""
+    for name in sorted(skills):
+        skill = skills[name]
+        if (skill.action == _VELOCITY_ACTION and not skill.allow and "duration_s" in skill.params
+                and all(skill.params.get(v, 0) == 0 for v in _VELOCITIES)):
+            return skill
+    return None
+
+
 class BridgeUnderTest:
     def __init__(self, session: aiohttp.ClientSession, url: str,
-                 tokens: Mapping[str, str]) -> None:
+                 tokens: Mapping[str, str], *, skill: str | None = None) -> None:
         self.session = session
         self.url = url.rstrip("/")
         self._tokens = dict(tokens)
+        self._skill_name = skill  # the run's --skill
+        self._skill: Skill | None = None
 
     def has(self, role: str) -> bool:
         return role in self._tokens
@@ -68,6 +104,44 @@ class BridgeUnderTest:
 
     async def command(self, role: str, body: Body) -> Reply:
         return await self.call(role, "POST", "/api/command", body)
+
+    async def skill(self) -> Skill:
+        """The skill the INVOKE cases invoke (see the module's docstring), looked up once."""
+        if self._skill is None:
+            reply = await self.call("OWNER", "GET", "/api/skills")
+            if reply.status != 200:
+                raise ProbeError(f"GET /api/skills: {reply.describe()}")
+            try:
+                listed = msgspec.convert(reply.get("skills"), dict[str, _Declared])
+            except msgspec.ValidationError as exc:
+                raise ProbeError(f"GET /api/skills: {exc}") from None
+            skills = {n: Skill(name=n, action=d.action, role=d.role, params=d.params,
+                               allow=d.allow) for n, d in listed.items()}
+            self._skill = self._choose(skills)
+        return self._skill
+
+    def _choose(self, skills: Mapping[str, Skill]) -> Skill:
+        if self._skill_name is not None:
+            if self._skill_name not in skills:
+                raise ProbeError(f"--skill {self._skill_name}: not listed by GET /api/skills "
+                                 f"(listed: {', '.join(sorted(skills)) or 'none'})")
+            return skills[self._skill_name]
+        found = still_skill(skills)
+        if found is None:
+            raise ProbeError("no listed skill is sure to move nothing (a move fixed at zero "
+                             "velocity for a fixed duration): name a harmless one with --skill "
+                             f"(listed: {', '.join(sorted(skills)) or 'none'})")
+        return found
+
+    async def invoke(self, role: str, skill: Skill, msg_id: str, *,
+                     timeout_ms: int | None = None) -> Reply:
+        """An INVOKE of `skill` with nothing set by the invoker, in §3's form (MessageType
+        11, `skill_id`); the reply is its INVOKE_RESULT."""
+        body: Body = {"message_type": 11, "skill_id": skill.name, "params": {},
+                      "msg_id": msg_id}
+        if timeout_ms is not None:
+            body["timeout_ms"] = timeout_ms
+        return await self.command(role, body)
 
     async def status(self) -> Body:
         reply = await self.call("OWNER", "GET", "/api/status")
@@ -127,6 +201,13 @@ class BridgeUnderTest:
         if token is None:
             raise MissingToken(role)
         return token
+
+
+class _Declared(msgspec.Struct):
+    action: str
+    role: str
+    params: dict[str, Any] = msgspec.field(default_factory=dict)
+    allow: list[str] = msgspec.field(default_factory=list)
 
 
 class _RawPage(msgspec.Struct):

@@ -3,7 +3,9 @@
 A probe returns a `Verdict`: pass, fail (saying what it saw), or n/a (the case presumes a
 configuration this bridge does not have, e.g. a confidence gate that blocks when this one
 escalates — the other case of the pair then runs). The suite's example actions are mapped to
-registry actions (`vendored.json`, `actions`); motion probes send zero velocity.
+registry actions (`vendored.json`, `actions`); motion probes send zero velocity. The INVOKE
+probes invoke the skill `BridgeUnderTest.skill` picks (one that moves nothing, unless the run
+names another), never the suite's example skills.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from __future__ import annotations
 import base64
 import ipaddress
 import time
+import uuid
 from collections.abc import Awaitable, Callable
 from typing import Any, Literal
 from urllib.parse import urlsplit
@@ -370,6 +373,124 @@ async def offline_export_verifies(bridge: BridgeUnderTest, case: Case) -> Verdic
         return passed(f"{len(entries)} exported entries verify offline; entry {victim + 1} "
                       "changed: refused")
     return failed(f"entry {victim + 1} changed, and the export still verified")
+
+
+# -- INVOKE (§19) ---------------------------------------------------------------------------
+
+@probe("L1-INVOKE-001")
+async def invoke_routed_to_skill(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    """A USER's INVOKE of a listed skill runs it: its action is dispatched as that skill."""
+    skill = await bridge.skill()
+    since, mid = await bridge.head_seq(), invoke_id()
+    reply = await bridge.invoke("USER", skill, mid,
+                                timeout_ms=case.input.get("payload", {}).get("timeout_ms"))
+    if (reply.status, reply.get("type"), reply.get("status")) != (200, "INVOKE_RESULT",
+                                                                  "success"):
+        return failed(f"{skill.name}: {_invoke_reply(reply)}")
+    entry = await bridge.wait_for_entry(
+        since, lambda e: e.get("message_id") == mid and e.get("event") == "COMMAND_DISPATCHED")
+    if entry is None:
+        return failed(f"{skill.name} answered success, but no COMMAND_DISPATCHED entry")
+    ran_as = (entry.get("rcan") or {}).get("skill")
+    if ran_as != skill.name or entry.get("action_type") != skill.action:
+        return failed(f"entry {entry['seq']}: {entry.get('action_type')} as skill {ran_as!r}")
+    return passed(f"{skill.name} ran as {skill.action} (entry {entry['seq']})")
+
+
+@probe("L1-INVOKE-002")
+async def guest_cannot_invoke(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    skill = await bridge.skill()
+    if skill.role == "GUEST":
+        return failed(f"{skill.name} is open to GUEST here: the case needs a skill that "
+                      "requires control scope (name one with --skill)")
+    since, mid = await bridge.head_seq(), invoke_id()
+    reply = await bridge.invoke("GUEST", skill, mid)
+    expected = (case.expect["http_status"], case.expect["error_code"])
+    if (reply.status, reply.get("error_code")) != expected:
+        return failed(f"expected {expected}, got {_invoke_reply(reply)}")
+    entry = await _entry(bridge, since, mid)
+    if entry is None or entry.get("event") != "COMMAND_REJECTED":
+        return failed(f"refused, but audited as {entry and entry.get('event')}")
+    return passed(f"{skill.name} (needs {skill.role}): {reply.status} "
+                  f"{reply.get('error_code')}, status {reply.get('status')}")
+
+
+@probe("L1-INVOKE-003")
+async def invoke_result_fields(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    skill = await bridge.skill()
+    mid = invoke_id()
+    reply = await bridge.invoke("USER", skill, mid)
+    if reply.get("type") != "INVOKE_RESULT":
+        return failed(f"not an INVOKE_RESULT: {_invoke_reply(reply)}")
+    missing = [f for f in case.expect["required_fields"] if reply.get(f) is None]
+    if missing:
+        return failed(f"INVOKE_RESULT lacks {missing}: {reply.body!r}")
+    if reply.get("invoke_id") != mid:
+        return failed(f"invoke_id {reply.get('invoke_id')!r} does not echo the INVOKE's {mid}")
+    if reply.get("status") not in ("success", "failure") or not isinstance(
+            reply.get("payload"), dict):
+        return failed(f"status {reply.get('status')!r}, payload {reply.get('payload')!r}")
+    return passed(f"invoke_id {mid}, status {reply.get('status')}, "
+                  f"payload {reply.get('payload')}")
+
+
+@probe("L2-INVOKE-001")
+async def estop_blocks_invoke(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    skill = await bridge.skill()
+    raised = await bridge.command("GUEST" if bridge.has("GUEST") else "OWNER",
+                                  {"action": "estop", "params": {"reason": "conformance"}})
+    if raised.get("outcome") != "executed":
+        return failed(f"the e-stop did not latch: {raised.describe()}")
+    try:
+        since, mid = await bridge.head_seq(), invoke_id()
+        reply = await bridge.invoke("USER", skill, mid)
+    finally:
+        await bridge.clear_estop()
+    if reply.get("status") == "success":
+        return failed(f"{skill.name} ran under the e-stop: {_invoke_reply(reply)}")
+    return _refusal(reply, case, await _entry(bridge, since, mid))
+
+
+@probe("L3-INVOKE-001")
+async def invoke_result_audited(bridge: BridgeUnderTest, case: Case) -> Verdict:
+    """The INVOKE's INVOKE_RESULT is in the log with its invoke_id, after the entries of what
+    the skill did: the lifecycle reads back from the audit alone."""
+    skill = await bridge.skill()
+    since, mid = await bridge.head_seq(), invoke_id(case.input.get("invoke_id", "inv"))
+    reply = await bridge.invoke("USER", skill, mid)
+    if reply.get("type") != "INVOKE_RESULT":
+        return failed(f"not an INVOKE_RESULT: {_invoke_reply(reply)}")
+    result = await bridge.wait_for_entry(
+        since, lambda e: e.get("event") == "INVOKE_RESULT" and e.get("invoke_id") == mid)
+    if result is None:
+        return failed(f"no INVOKE_RESULT entry with invoke_id {mid}")
+    missing = [f for f in case.expect["audit_entry_contains"] if result.get(f) in (None, "")]
+    if missing:
+        return failed(f"entry {result['seq']} lacks {missing}")
+    if result.get("status") != reply.get("status"):
+        return failed(f"entry {result['seq']} says {result.get('status')!r}, the INVOKE_RESULT "
+                      f"{reply.get('status')!r}")
+    before = [e for e in await bridge.entries_since(since)
+              if e.get("message_id") == mid and e["seq"] < result["seq"]]
+    if not before:
+        return failed(f"entry {result['seq']}: no entry of the INVOKE's command before it")
+    lifecycle = " → ".join(f"{e['event']} {e['seq']}" for e in [*before, result])
+    return passed(f"{mid}: {lifecycle} (status {result['status']}, outcome "
+                  f"{result['outcome']})")
+
+
+def invoke_id(prefix: str = "inv") -> str:
+    """A fresh INVOKE msg_id (a repeated one would be answered from its first decision)."""
+    return f"{prefix}-{uuid.uuid4().hex[:16]}"
+
+
+def _invoke_reply(reply: Reply) -> str:
+    error = reply.get("error")
+    fields = {k: reply.get(k) for k in ("status", "outcome", "error_code", "reason")
+              if reply.get(k) is not None}
+    if isinstance(error, dict):
+        fields["error"] = f"{error.get('code')} {error.get('name')}: {error.get('message')}"
+    return f"HTTP {reply.status} {fields or reply.body!r}"
 
 
 # -- helpers --------------------------------------------------------------------------------

@@ -32,10 +32,13 @@ class Result(msgspec.Struct, frozen=True):
 
 async def run_suite(suite: Suite, level: Level, url: str, tokens: Mapping[str, str], *,
                     report: Callable[[Result], None] = lambda r: None,
-                    timeout: aiohttp.ClientTimeout | None = None) -> list[Result]:
+                    timeout: aiohttp.ClientTimeout | None = None,
+                    skill: str | None = None) -> list[Result]:
+    """`skill`: the one the INVOKE cases invoke (else one the bridge lists that moves
+    nothing; see `BridgeUnderTest`)."""
     results = []
     async with aiohttp.ClientSession(timeout=timeout or aiohttp.ClientTimeout(total=20)) as s:
-        bridge = BridgeUnderTest(s, url, tokens)
+        bridge = BridgeUnderTest(s, url, tokens, skill=skill)
         for case in suite.upto(level):
             result = await _run_case(bridge, case)
             report(result)

@@ -92,6 +92,7 @@ class AuditEvent(str, enum.Enum):
     NETWORK_LOSS_SAFE_STOP = "NETWORK_LOSS_SAFE_STOP"
     GOAL_FINISHED = "GOAL_FINISHED"  # a goal the bridge sent ended; `outcome` says how
     STREAM_ENDED = "STREAM_ENDED"  # a velocity stream stopped sending (params.reason says why)
+    INVOKE_RESULT = "INVOKE_RESULT"  # an RCAN INVOKE's result (§19.3), once decided
     BRIDGE_STARTED = "BRIDGE_STARTED"
     BRIDGE_STOPPED = "BRIDGE_STOPPED"
     AUDIT_TAIL_RECOVERED = "AUDIT_TAIL_RECOVERED"
@@ -121,10 +122,15 @@ class AuditRecord(msgspec.Struct, kw_only=True, frozen=True):
     # An RCAN 3.x message's envelope facts: version, ignored fields, firmware_hash,
     # attestation_ref, signature (see rcan._v3.Envelope.audit_facts).
     rcan: dict[str, Any] | None = None
+    # An INVOKE_RESULT entry's: the INVOKE's msg_id and §19.5's status (the rcan-spec
+    # conformance suite's names; `outcome` is the governor's decision on the skill's command).
+    invoke_id: str | None = None
+    status: str | None = None
 
 
 # Left out of an entry when None: older entries never had them.
-_OPTIONAL = frozenset({"ai", "pending_id", "warnings", "sent_first", "approvals", "rcan"})
+_OPTIONAL = frozenset({"ai", "pending_id", "warnings", "sent_first", "approvals", "rcan",
+                       "invoke_id", "status"})
 
 
 class AuditReceipt(msgspec.Struct, frozen=True):

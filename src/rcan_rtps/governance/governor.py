@@ -454,6 +454,23 @@ class Governor:
                             deny_reason=detail, ros2_topic=server)
         self._steps.spawn(self._steps.record_event(entry))
 
+    async def invoke_result(self, principal: Principal, *, invoke_id: str, status: str,
+                            outcome: str | None, facts: dict[str, Any],
+                            detail: str | None = None) -> None:
+        """An RCAN INVOKE's result (§19.3), decided: audited (INVOKE_RESULT) before it is
+        answered, so that each INVOKE's lifecycle (its decision entries and this one, all
+        with `message_id` = its msg_id) can be read back from the log. `outcome`: the
+        governor's decision on the skill's command (`denied` for an INVOKE refused before it
+        became one); `facts`: the skill, duration, goal and error."""
+        if self._stopped:  # BRIDGE_STOPPED is the last entry
+            log.info("INVOKE %s %s after the bridge stopped: not audited", invoke_id, status)
+            return
+        entry = AuditRecord(event=AuditEvent.INVOKE_RESULT, principal=principal.name,
+                            role=principal.role.name, message_id=invoke_id, invoke_id=invoke_id,
+                            status=status, outcome=outcome, params=facts, deny_reason=detail)
+        # Its own task: stop() waits for it, and the caller's cancellation does not undo it.
+        await asyncio.shield(self._steps.spawn(self._steps.record_event(entry)))
+
     # -- HiTL (the desk holds and reviews; an approved command comes back here) -------------
 
     async def authorize(self, pending_id: str, approver: Principal,
@@ -479,6 +496,10 @@ class Governor:
 
     def pending(self) -> list[PendingAuth]:
         return self._desk.pending()
+
+    def role_for(self, action: str) -> Role:
+        """The role `action` needs here (the profile's table, with the config's overrides)."""
+        return self._roles.required(action)
 
     def pending_for_thought(self, thought_id: str) -> str | None:
         """The held command whose AI `thought_id` this is (AUTHORIZE names it so), or None."""

@@ -219,10 +219,17 @@ def skill_error(kind: str, message: str) -> SkillError:
 
 class InvokeResult(msgspec.Struct, omit_defaults=True, kw_only=True):
     """INVOKE_RESULT (§19.3) as this bridge answers an INVOKE (and an INVOKE_CANCEL), with
-    the governor's decision fields beside the spec's."""
+    the governor's decision fields beside the spec's.
+
+    rcan-spec names the correlation and the output twice: §19.3 (and §3's payload table)
+    `reply_to` and `result`; the conformance suite (v1.4, L1-INVOKE-003) `invoke_id` and
+    `payload`. Both pairs are written: `invoke_id` is `reply_to`, and `payload` is `result`,
+    or `{}` when the skill produced none (the suite requires the field)."""
 
     type: Literal["INVOKE_RESULT"]  # no default: omit_defaults would drop it
     status: InvokeStatus
+    invoke_id: str  # = reply_to: the INVOKE's msg_id (or the one made for it)
+    payload: dict[str, Any]  # = result, or {}
     skill: str | None = None
     reply_to: str | None = None
     duration_ms: int | None = None
@@ -240,3 +247,4 @@ class InvokeResult(msgspec.Struct, omit_defaults=True, kw_only=True):
     goal_id: str | None = None
     ros2_topic: str | None = None
     warnings: list[str] | None = None
+

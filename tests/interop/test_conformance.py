@@ -102,7 +102,7 @@ def test_a_level_runs_the_cases_up_to_it(sim: Sim) -> None:
 
 def test_a_bridge_without_its_hitl_gate_fails_l3_hitl_001(tmp_path: Path,
                                                          domain_id: int) -> None:
-    text = DEMO_YAML.format(namespace="/robot1", domain_id=domain_id, port=0,
+    text = DEMO_YAML.format(namespace="/robot1", domain_id=domain_id, port=8765,  # --port 0
                             state=tmp_path / "state", viewer=VIEWER_TOKEN_ENV,
                             user=USER_TOKEN_ENV, owner=OWNER_TOKEN_ENV)
     ungated = re.sub(r"    gates:\n      - \{action: arm_joint[^\n]*\n", "", text)

@@ -10,6 +10,7 @@ names another), never the suite's example skills.
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import ipaddress
 import time
@@ -205,9 +206,11 @@ async def silence_safe_stops(bridge: BridgeUnderTest, case: Case) -> Verdict:
         and e.get("principal") == move.get("principal"), timeout_s=SESSION_WAIT_S)
     if stop is None:
         return failed(f"no {case.expect['audit_event']} within {SESSION_WAIT_S:g} s of silence")
-    state = (await bridge.status()).get("state")
+    # STATUS is told once the halt is sent and its entry durable: a read racing the entry may
+    # see the state before it.
+    state = await _status_state(bridge, case.expect["robot_state"], within_s=3.0)
     if state != case.expect["robot_state"]:
-        return failed(f"STATUS says {state!r} after the safe stop")
+        return failed(f"STATUS says {state!r} 3 s after the safe stop")
     return passed(f"after {time.monotonic() - started:.1f} s of silence: entry {stop['seq']}, "
                   f"state {state}")
 
@@ -494,6 +497,15 @@ def _invoke_reply(reply: Reply) -> str:
 
 
 # -- helpers --------------------------------------------------------------------------------
+
+async def _status_state(bridge: BridgeUnderTest, wanted: str, within_s: float) -> Any:
+    deadline = time.monotonic() + within_s
+    while True:
+        state = (await bridge.status()).get("state")
+        if state == wanted or time.monotonic() > deadline:
+            return state
+        await asyncio.sleep(0.1)
+
 
 async def _entry(bridge: BridgeUnderTest, since: int, mid: str) -> Body | None:
     return await bridge.wait_for_entry(since, lambda e: e.get("message_id") == mid)

@@ -182,8 +182,8 @@ async def test_an_estop_reaches_every_socket_without_a_tick(slow_api: Api) -> No
 
 
 async def test_pending_approvals_are_pushed(tmp_path: Any) -> None:
-    gate = "gates: [{action: move, require_auth: true, authorized_roles: [OWNER]}]"
-    api = await Api(tmp_path, rate=1.0 / NEVER, hitl_extra=gate).start()
+    gate = "[{action: move, require_auth: true, authorized_roles: [OWNER]}]"
+    api = await Api(tmp_path, rate=1.0 / NEVER, gates=gate).start()
     try:
         async with api.http.ws_connect("/api/ws", headers=auth("viewer")) as ws:
             assert (await _status_frame(ws))["pending_auth"] == 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,6 +53,9 @@ def bridge_config(tmp_path: Path, domain_id: int, extra_ros2: str = "",
             key_path: {tmp_path / "audit.key"}
         @@BRIDGE@@
         """)
+    for line in extra_ros2.splitlines():  # an extra key replaces its default (never twice)
+        key = line.split(":", 1)[0].strip()
+        text = re.sub(rf"^    {re.escape(key)}: .*\n", "", text, flags=re.M)
     text = text.replace("@@ROS2@@", textwrap.indent(extra_ros2, "    "))
     text = text.replace("@@BRIDGE@@", textwrap.indent(extra, "  "))
     return loads_config(text, env={"RCAN_BRIDGE_TOKEN": "t" * 32})

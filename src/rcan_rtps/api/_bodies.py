@@ -9,7 +9,7 @@ import msgspec
 from aiohttp import web
 
 from rcan_rtps.governance import AuditError, Decision
-from rcan_rtps.rcan import ErrorCode, PendingAuth, Reason
+from rcan_rtps.rcan import DecisionBody, ErrorCode, PendingAuth, Reason
 
 from .ports import GoalView
 
@@ -66,6 +66,18 @@ class SkillList(msgspec.Struct, kw_only=True):
 
 class PendingList(msgspec.Struct, kw_only=True):
     pending: list[PendingAuth]
+
+
+class PendingView(msgspec.Struct, kw_only=True, omit_defaults=True):
+    """GET /api/hitl/pending/{pending_id}, for its issuer and its approvers: `pending` while it
+    waits (`pending` is its PENDING_AUTH); `resolving` while an approval runs it; `resolved`
+    with the `decision` that ended it (executed, denied, withdrawn, expired, refused)."""
+
+    pending_id: str
+    state: Literal["pending", "resolving", "resolved"]
+    pending: PendingAuth | None = None
+    decision: DecisionBody | None = None
+
 
 
 class HeartbeatAck(msgspec.Struct, kw_only=True):

@@ -27,7 +27,7 @@ async def test_the_issuer_reads_its_held_command_then_its_execution(api: Api) ->
     assert (status, body["state"]) == (200, "resolved"), body
     assert body["decision"]["outcome"] == "executed"
     assert body["decision"]["audit_id"] == done["audit_id"]
-    assert "pending" not in body
+    assert body["pending"]["original_command"]["params"]["positions"] == [0.5]  # what ran
 
 
 async def test_approvers_read_it_strangers_do_not(api: Api) -> None:

@@ -69,13 +69,14 @@ class PendingList(msgspec.Struct, kw_only=True):
 
 
 class PendingView(msgspec.Struct, kw_only=True, omit_defaults=True):
-    """GET /api/hitl/pending/{pending_id}, for its issuer and its approvers: `pending` while it
-    waits (`pending` is its PENDING_AUTH); `resolving` while an approval runs it; `resolved`
-    with the `decision` that ended it (executed, denied, withdrawn, expired, refused)."""
+    """GET /api/hitl/pending/{pending_id}, for its issuer and its approvers: its PENDING_AUTH
+    (`pending`, with the approvals it had) and its `state` — `pending` while it waits,
+    `resolving` while the last approval runs it, `resolved` with the `decision` that ended it
+    (executed, denied: `hitl_denied`, `hitl_withdrawn`, `pending_expired`, or refused)."""
 
     pending_id: str
     state: Literal["pending", "resolving", "resolved"]
-    pending: PendingAuth | None = None
+    pending: PendingAuth
     decision: DecisionBody | None = None
 
 

@@ -121,8 +121,8 @@ async def get_pending_one(request: web.Request) -> web.Response:
         return error_response(404, "NOT_FOUND", reason="pending_not_found")
     decision = record.decision
     return json_response(PendingView(
-        pending_id=record.pending_id, state=record.state,
-        pending=record.waiting, decision=decision.body() if decision else None))
+        pending_id=record.held.pending_id, state=record.state, pending=record.held,
+        decision=decision.body() if decision else None))
 
 
 async def post_authorize(request: web.Request) -> web.Response:

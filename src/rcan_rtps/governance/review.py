@@ -38,13 +38,13 @@ PendingState = Literal["pending", "resolving", "resolved"]
 
 @dataclass(frozen=True)
 class PendingRecord:
-    """A held command as its issuer or an approver may read it: still waiting (`waiting`),
-    taken from the store and being decided (neither), or resolved (`decision`)."""
+    """A held command as its issuer or an approver may read it: its PENDING_AUTH (`held`),
+    and whether it still waits (`waiting`), is being decided (neither) or was (`decision`)."""
 
-    pending_id: str
+    held: PendingAuth
     issuer: str
     approver_role: Role
-    waiting: PendingAuth | None = None
+    waiting: bool = False
     decision: Decision | None = None
 
     def may_read(self, reader: Principal) -> bool:
@@ -52,7 +52,7 @@ class PendingRecord:
 
     @property
     def state(self) -> PendingState:
-        if self.waiting is not None:
+        if self.waiting:
             return "pending"
         return "resolving" if self.decision is None else "resolved"
 
@@ -81,12 +81,13 @@ class HitlDesk:
         held = self._pending.get(pending_id)
         if held is not None:
             p = held.pending
-            return PendingRecord(p.pending_id, p.issuer.name, p.approver_role, held.message())
+            return PendingRecord(held.message(), p.issuer.name, p.approver_role, waiting=True)
         return self._resolved.get(pending_id)
 
-    def _resolving(self, pending: PendingCommand, decided: Decision | None = None) -> None:
+    def _resolving(self, held: Held, decided: Decision | None = None) -> None:
+        pending = held.pending
         self._resolved[pending.pending_id] = PendingRecord(
-            pending.pending_id, pending.issuer.name, pending.approver_role, decision=decided)
+            held.message(), pending.issuer.name, pending.approver_role, decision=decided)
         self._resolved.move_to_end(pending.pending_id)
         while len(self._resolved) > KEPT_RESOLVED:
             self._resolved.popitem(last=False)
@@ -132,13 +133,13 @@ class HitlDesk:
             return reviewed
         command, pending = reviewed, held.pending  # out of the store, with every review
         self._changed()
-        self._resolving(pending)  # readable as being decided, not as unknown, meanwhile
+        self._resolving(held)  # readable as being decided, not as unknown, meanwhile
         try:
             decided = await self._decide(command, reviewer, pending, verdict)
         except BaseException:
             self._resolved.pop(pending.pending_id, None)  # never "being decided" for good
             raise
-        self._resolving(pending, decided)
+        self._resolving(held, decided)
         return decided
 
     async def _decide(self, command: NormalizedCommand, reviewer: Principal,
@@ -224,9 +225,9 @@ class HitlDesk:
             self._changed()
         for held in expired:
             p = held.pending
-            self._resolving(p)
+            self._resolving(held)
             decisions.append(await self._steps.refuse(
                 held.reviewed(), p.issuer, outcomes.PENDING_EXPIRED,
                 event=AuditEvent.HITL_EXPIRED, pending_id=p.pending_id))
-            self._resolving(p, decisions[-1])
+            self._resolving(held, decisions[-1])
         return decisions

@@ -13,3 +13,9 @@ as anyone else, and nothing reaches the robot around them.
 Only `rcan-rtps mcp` imports this package (a bridge run never does), and only `server` needs
 the `mcp` extra (`pip install 'rcan-rtps[mcp]'`).
 """
+
+__all__ = ["McpServerError"]
+
+
+class McpServerError(Exception):
+    """Base of this package's errors."""

@@ -16,10 +16,12 @@ from urllib.parse import quote, urlsplit
 
 import aiohttp
 
+from . import McpServerError
+
 REQUEST_TIMEOUT_S = 10.0
 
 
-class BridgeUnavailable(Exception):
+class BridgeUnavailable(McpServerError):
     """No usable reply from the bridge."""
 
 

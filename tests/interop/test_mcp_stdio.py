@@ -22,6 +22,7 @@ import pytest
 from mcp import Client, StdioServerParameters
 from mcp.client.stdio import stdio_client
 from mcp_types import CallToolResult, Implementation
+from waiting import eventually
 
 from rcan_rtps.rcan.actions import names
 from tests.interop.test_demo import Demo, _run_demo, call, timed_move_distance, wait_status
@@ -173,3 +174,37 @@ async def test_a_wrong_token_is_refused(sim: Demo, http: aiohttp.ClientSession,
     code, status = await call(http, sim, sim.user, "GET", "/api/status")
     assert code == 200 and status["estop"] is False
     assert not [e for e in entries(sim)[before:] if e.get("ai")]  # nothing of it ran
+
+
+async def test_a_goal_is_held_until_it_ends(sim: Demo, http: aiohttp.ClientSession,
+                                            tmp_path: Path) -> None:
+    """A navigation goal outlasts the 5 s session timeout: the server heartbeats until the goal
+    has ended (without, the session would lapse and the bridge cancel the goal)."""
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    async with agent(sim, tmp_path) as client:
+        sent = await client.call_tool("navigate", {"x": 2.0, "y": 1.0, "yaw": 0.0,
+                                                   "confidence": 0.9})
+        assert not sent.is_error and data(sent)["goal_id"], sent
+        goal_id = data(sent)["goal_id"]
+
+        async def ended() -> str | None:
+            goals = data(await client.call_tool("get_goals", {}))["goals"]
+            state = next(g["state"] for g in goals if g["goal_id"] == goal_id)
+            return None if state in ("accepted", "executing") else str(state)
+
+        assert await eventually(ended, timeout=60, what="the goal's end") == "succeeded"
+    assert not [e for e in entries(sim) if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+
+
+async def test_an_agent_gone_mid_move_stops_it(sim: Demo, http: aiohttp.ClientSession,
+                                               tmp_path: Path) -> None:
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    async with agent(sim, tmp_path) as client:
+        done = await client.call_tool("move", {"linear_x": 0.2, "duration_s": 20.0,
+                                               "confidence": 0.9})
+        assert data(done)["outcome"] == "executed", done
+        await wait_status(http, sim, lambda s: s["state"] == "moving")
+    # the client closed the server's stdin: it stopped what it had started, at once
+    stops = [e for e in entries(sim) if e.get("action_type") == "stop"]
+    assert [e["params"].get("reason") for e in stops] == ["MCP client disconnected"], stops
+    await wait_status(http, sim, lambda s: s["telemetry"]["velocity"]["linear_x"] == 0.0)

@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import json
 import os
+import re
 import sys
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
@@ -25,7 +26,14 @@ from mcp_types import CallToolResult, Implementation
 from waiting import eventually
 
 from rcan_rtps.rcan.actions import names
-from tests.interop.test_demo import Demo, _run_demo, call, timed_move_distance, wait_status
+from tests.interop.test_demo import (
+    ROOT,
+    Demo,
+    _run_demo,
+    call,
+    timed_move_distance,
+    wait_status,
+)
 
 AGENT = {"provider": "acme", "model": "planner-7b", "client": "test-agent/1.2"}
 READS = {"get_status", "get_goals", "get_pending_approval", "wait_for_approval"}
@@ -208,3 +216,32 @@ async def test_an_agent_gone_mid_move_stops_it(sim: Demo, http: aiohttp.ClientSe
     stops = [e for e in entries(sim) if e.get("action_type") == "stop"]
     assert [e["params"].get("reason") for e in stops] == ["MCP client disconnected"], stops
     await wait_status(http, sim, lambda s: s["telemetry"]["velocity"]["linear_x"] == 0.0)
+
+
+def readme_config(path: Path) -> dict[str, Any]:
+    block = re.search(r"<!-- mcp-config -->\n```json\n(.*?)```", path.read_text(), re.S)
+    assert block, f"{path.name} has no mcp-config block"
+    return dict(json.loads(block.group(1)))
+
+
+async def test_the_readme_client_configuration(sim: Demo, http: aiohttp.ClientSession,
+                                               tmp_path: Path) -> None:
+    """The README's one line, as a client would run it (with this run's URL and token)."""
+    config = readme_config(ROOT / "README.md")
+    assert config == readme_config(ROOT / "docs" / "mcp.md")
+    entry = config["mcpServers"]["robot"]
+    assert entry["command"] == "rcan-rtps"
+    args = [sim.url if a == "http://127.0.0.1:8765" else a for a in entry["args"]]
+    env = {name: sim.user for name in entry["env"]}
+    server = StdioServerParameters(
+        command=str(Path(sys.executable).parent / "rcan-rtps"), args=args,
+        env={**env, "PYTHONPATH": os.environ.get("PYTHONPATH", "")})
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    with (tmp_path / "mcp.err").open("a") as errlog:
+        async with Client(stdio_client(server, errlog=errlog)) as client:
+            status = data(await client.call_tool("get_status", {}))
+            assert (status["http_status"], status["estop"]) == (200, False), status
+            done = await client.call_tool("stop", {"reason": "readme check"})
+            assert data(done)["outcome"] == "executed", done
+    stop = [e for e in entries(sim) if e.get("action_type") == "stop"][-1]
+    assert (stop["ai"]["provider"], stop["ai"]["model"]) == ("anthropic", "claude-sonnet-4-5")

@@ -150,10 +150,12 @@ class RobotTools:
         spec = tool.action
         if spec is None or body.get("outcome") != "executed":
             return
+        applied = body.get("applied") or {}
+        duration = applied.get(DURATION, params.get(DURATION))  # as governed, if it says
         if spec.stopping:
             self._keepalive.release_all()
-        elif tool.timed and isinstance(params.get(DURATION), int | float):
-            self._keepalive.hold_for(key, float(params[DURATION]))
+        elif tool.timed and isinstance(duration, int | float):
+            self._keepalive.hold_for(key, float(duration))
         elif spec.starts_goal and isinstance(body.get("goal_id"), str):
             self._keepalive.hold_goal(key, body["goal_id"])
 

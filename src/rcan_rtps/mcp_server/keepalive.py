@@ -38,7 +38,10 @@ class Keepalive:
 
     @property
     def holding(self) -> bool:
-        return bool(self._holds)
+        """Whether motion this server started may still run (a move not yet over, a goal not
+        known to have ended)."""
+        now = time.monotonic()
+        return any(h.until is None or h.until > now for h in self._holds.values())
 
     def hold_for(self, key: str, seconds: float) -> None:
         self._hold(key, Hold(until=time.monotonic() + seconds + MARGIN_S))

@@ -26,6 +26,7 @@ from rcan_rtps.governance import (
     PerAction,
     safety_policy,
 )
+from rcan_rtps.mcp_server import McpServerError
 from rcan_rtps.rcan import RcanError
 from rcan_rtps.rcan.actions import names
 from rcan_rtps.ros import WireError
@@ -310,6 +311,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
                          "BridgeStateError"},
     "rcan_rtps.cli": set(),
     "rcan_rtps.sim": set(),
+    "rcan_rtps.mcp_server": {"McpServerError"},  # `rcan-rtps mcp`'s: no Python API beyond it
 }
 
 # The one base of each subsystem; every exception class defined under it derives from it.
@@ -322,6 +324,7 @@ SUBSYSTEM_BASES: dict[str, type[Exception]] = {
     "bridge": BridgeError,
     "conformance": ConformanceError,
     "events": EventsFrozenError,
+    "mcp_server": McpServerError,
 }
 
 

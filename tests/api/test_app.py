@@ -15,7 +15,7 @@ from tests.api.apihelpers import RURI, TOKENS, Api
 ROUTES = [("POST", "/api/command"), ("GET", "/api/status"), ("POST", "/api/heartbeat"),
           ("GET", "/api/skills"),
           ("GET", "/api/goals"), ("GET", "/api/goals/g1"), ("GET", "/api/thoughts/t1"),
-          ("GET", "/api/hitl/pending"),
+          ("GET", "/api/hitl/pending"), ("GET", "/api/hitl/pending/p1"),
           ("POST", "/api/hitl/authorize"), ("POST", "/api/hitl/deny"),
           ("POST", "/api/hitl/withdraw"), ("GET", "/api/audit"),
           ("GET", "/api/audit/verify"), ("GET", "/api/openapi.json"), ("GET", "/api/ws"),
@@ -33,7 +33,8 @@ def test_every_route_is_in_the_test_list(api: Api) -> None:
     assert api.app is not None
     served = {(r.method, r.resource.canonical) for r in api.app.router.routes()
               if r.resource is not None}
-    assert served == {(m, p.replace("g1", "{goal_id}").replace("t1", "{thought_id}"))
+    assert served == {(m, p.replace("g1", "{goal_id}").replace("t1", "{thought_id}")
+                       .replace("p1", "{pending_id}"))
                       for m, p in ROUTES + PUBLIC}
 
 

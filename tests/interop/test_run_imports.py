@@ -33,6 +33,7 @@ NOT_FOR_A_RUN = {
     "cryptography.hazmat.primitives.serialization",
     "rcan_rtps.api._openapi",  # until /api/openapi.json is asked for
     "difflib",  # "did you mean" hints of config and type errors
+    "rcan_rtps.mcp_server", "mcp", "mcp_types",  # `rcan-rtps mcp` (the `mcp` extra)
 }
 
 

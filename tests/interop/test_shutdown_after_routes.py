@@ -139,6 +139,9 @@ async def visit_every_route(client: Client, proc: RunProcess) -> tuple[str, str]
     assert sorted(p["pending_id"] for p in pending["pending"]) == sorted(held)
     status, _ = await client.call("POST", "/api/hitl/deny", owner, {"pending_id": held[0]})
     assert status == 200
+    status, denied = await client.call("GET", f"/api/hitl/pending/{held[0]}", user,
+                                       route="/api/hitl/pending/{pending_id}")  # its issuer
+    assert (status, denied["decision"]["outcome"]) == (200, "denied"), denied
     status, _ = await client.call("POST", "/api/hitl/withdraw", user, {"pending_id": held[2]})
     assert status == 200
     status, done = await client.call("POST", "/api/hitl/authorize", owner,

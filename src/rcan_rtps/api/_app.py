@@ -135,6 +135,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_get("/api/skills", r.get_skills, allow_head=False)
     app.router.add_get("/api/thoughts/{thought_id}", r.get_thought, allow_head=False)
     app.router.add_get("/api/hitl/pending", r.get_pending, allow_head=False)
+    app.router.add_get("/api/hitl/pending/{pending_id}", r.get_pending_one, allow_head=False)
     app.router.add_post("/api/hitl/authorize", r.post_authorize)
     app.router.add_post("/api/hitl/deny", r.post_deny)
     app.router.add_post("/api/hitl/withdraw", r.post_withdraw)

@@ -9,7 +9,7 @@ import msgspec
 from aiohttp import web
 
 from rcan_rtps.governance import AuditError, Decision
-from rcan_rtps.rcan import ErrorCode, PendingAuth, Reason
+from rcan_rtps.rcan import DecisionBody, ErrorCode, PendingAuth, Reason
 
 from .ports import GoalView
 
@@ -66,6 +66,19 @@ class SkillList(msgspec.Struct, kw_only=True):
 
 class PendingList(msgspec.Struct, kw_only=True):
     pending: list[PendingAuth]
+
+
+class PendingView(msgspec.Struct, kw_only=True, omit_defaults=True):
+    """GET /api/hitl/pending/{pending_id}, for its issuer and its approvers: its PENDING_AUTH
+    (`pending`, with the approvals it had) and its `state` — `pending` while it waits,
+    `resolving` while the last approval runs it, `resolved` with the `decision` that ended it
+    (executed, denied: `hitl_denied`, `hitl_withdrawn`, `pending_expired`, or refused)."""
+
+    pending_id: str
+    state: Literal["pending", "resolving", "resolved"]
+    pending: PendingAuth
+    decision: DecisionBody | None = None
+
 
 
 class HeartbeatAck(msgspec.Struct, kw_only=True):

@@ -16,6 +16,7 @@ from ._bodies import (
     GoalList,
     HeartbeatAck,
     PendingList,
+    PendingView,
     SkillList,
     VerifyReport,
     WsFrame,
@@ -25,8 +26,8 @@ from .ports import GoalView
 
 _REF = "#/components/schemas/{name}"
 _API_TYPES: tuple[type[msgspec.Struct], ...] = (
-    ApiError, GoalView, GoalList, PendingList, HeartbeatAck, AuditPage, VerifyReport, WsFrame,
-    SkillList,
+    ApiError, GoalView, GoalList, PendingList, PendingView, HeartbeatAck, AuditPage, VerifyReport,
+    WsFrame, SkillList,
     Thought,
 )
 
@@ -129,6 +130,13 @@ PATHS: dict[str, dict[str, Any]] = {
                      "schema": {"type": "string"}}])},
     "/api/hitl/pending": {"get": _op("getPending", "Commands waiting for a human (approvers)",
                                      {"200": _json("PendingList", "pending"), **_errors(403)})},
+    "/api/hitl/pending/{pending_id}": {"get": _op(
+        "getPendingOne", "One held command, for its issuer and its approvers: waiting (its "
+        "PENDING_AUTH), being decided, or resolved with the decision that ended it (kept for "
+        "the last 1024 resolved); unknown, or anyone else's: 404",
+        {"200": _json("PendingView", "the held command"), **_errors(404)},
+        parameters=[{"name": "pending_id", "in": "path", "required": True,
+                     "schema": {"type": "string"}}])},
     "/api/hitl/authorize": {"post": _op(
         "postAuthorize", "Approve a pending command (`reason` is audited): 200 once it has "
         "as many distinct approvers as it needs and ran, 202 while it needs more (n-of-m); "

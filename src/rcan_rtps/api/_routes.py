@@ -14,6 +14,7 @@ from ._bodies import (
     GoalList,
     HeartbeatAck,
     PendingList,
+    PendingView,
     error_response,
     json_response,
 )
@@ -108,6 +109,20 @@ async def get_pending(request: web.Request) -> web.Response:
     governor = request.app[GOVERNOR]
     await governor.expire_pending()  # what has timed out is gone, and audited as such
     return json_response(PendingList(pending=governor.pending()))
+
+
+async def get_pending_one(request: web.Request) -> web.Response:
+    """One held command, for its issuer (an agent waiting for a human) and its approvers:
+    waiting, or what came of it. Anyone else is refused as if it were unknown (404)."""
+    governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
+    await governor.expire_pending()  # an expired one reads as expired, not as waiting
+    record = governor.pending_record(request.match_info["pending_id"])
+    if record is None or not record.may_read(principal):
+        return error_response(404, "NOT_FOUND", reason="pending_not_found")
+    decision = record.decision
+    return json_response(PendingView(
+        pending_id=record.held.pending_id, state=record.state, pending=record.held,
+        decision=decision.body() if decision else None))
 
 
 async def post_authorize(request: web.Request) -> web.Response:

@@ -21,7 +21,7 @@ COMMANDS = {
     "run": "run_cmd", "topic": "topic_cmd", "node": "node_cmd", "interface": "interface_cmd",
     "config": "config_cmd", "audit": "audit_cmd", "sim": "sim_cmd", "service": "service_cmd",
     "action": "action_cmd", "discover": "discover_cmd", "bag": "bag_cmd", "param": "param_cmd",
-    "doctor": "doctor_cmd", "conformance": "conformance_cmd",
+    "doctor": "doctor_cmd", "conformance": "conformance_cmd", "mcp": "mcp_cmd",
 }
 # Options before the verb that take a value (the value is not a verb).
 _VALUED = frozenset({"--domain-id", "--idl-path", "--distro", "--log-level", "--log-format"})

@@ -53,7 +53,7 @@ from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
 from .resume import resume
-from .review import HitlDesk
+from .review import HitlDesk, PendingRecord
 from .sessions import Sessions
 from .steps import (
     Decision,
@@ -496,6 +496,10 @@ class Governor:
 
     def pending(self) -> list[PendingAuth]:
         return self._desk.pending()
+
+    def pending_record(self, pending_id: str) -> PendingRecord | None:
+        """One held command, waiting or what came of it (see `review`), or None if unknown."""
+        return self._desk.record(pending_id)
 
     def role_for(self, action: str) -> Role:
         """The role `action` needs here (the profile's table, with the config's overrides)."""

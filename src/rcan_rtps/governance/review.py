@@ -6,13 +6,19 @@ store of pending commands. This module is what happens to them: a held command i
 command's own lock; an approval of several is on record (HITL_APPROVAL) before it counts; a
 denial or a withdrawal ends it; an expired one is discarded and audited. The command the last
 approval releases goes back to the governor, which runs it through the pipeline as it is *now*.
+
+What came of a held command stays readable for a while (`KEPT_RESOLVED` of them, the oldest let
+go first): its issuer — an agent waiting for a human — learns it was executed, denied, withdrawn
+or expired without the approvers' list or the audit log (GET /api/hitl/pending/{pending_id}).
 """
 
 from __future__ import annotations
 
 import uuid
+from collections import OrderedDict
 from collections.abc import Awaitable, Callable
-from typing import cast
+from dataclasses import dataclass
+from typing import Literal, cast
 
 from rcan_rtps.rcan import Approval, NormalizedCommand, Outcome, PendingAuth, Role, RoleName
 
@@ -26,6 +32,29 @@ from .steps import Decision, Steps, decision, record
 
 # Runs an approved command (taken from the store, with every review) for its last approver.
 RunApproved = Callable[[NormalizedCommand, Principal, PendingCommand], Awaitable[Decision]]
+KEPT_RESOLVED = 1024
+PendingState = Literal["pending", "resolving", "resolved"]
+
+
+@dataclass(frozen=True)
+class PendingRecord:
+    """A held command as its issuer or an approver may read it: its PENDING_AUTH (`held`),
+    and whether it still waits (`waiting`), is being decided (neither) or was (`decision`)."""
+
+    held: PendingAuth
+    issuer: str
+    approver_role: Role
+    waiting: bool = False
+    decision: Decision | None = None
+
+    def may_read(self, reader: Principal) -> bool:
+        return reader.name == self.issuer or reader.role >= self.approver_role
+
+    @property
+    def state(self) -> PendingState:
+        if self.waiting:
+            return "pending"
+        return "resolving" if self.decision is None else "resolved"
 
 
 class HitlDesk:
@@ -42,9 +71,26 @@ class HitlDesk:
         self._changed = changed  # what STATUS shows (the pending count) changed
         self._run_approved = run_approved
         self._pending = PendingStore()
+        self._resolved: OrderedDict[str, PendingRecord] = OrderedDict()
 
     def pending(self) -> list[PendingAuth]:
         return [held.message() for held in self._pending.list()]
+
+    def record(self, pending_id: str) -> PendingRecord | None:
+        """One held command, waiting or resolved (or being decided), or None if unknown."""
+        held = self._pending.get(pending_id)
+        if held is not None:
+            p = held.pending
+            return PendingRecord(held.message(), p.issuer.name, p.approver_role, waiting=True)
+        return self._resolved.get(pending_id)
+
+    def _resolving(self, held: Held, decided: Decision | None = None) -> None:
+        pending = held.pending
+        self._resolved[pending.pending_id] = PendingRecord(
+            held.message(), pending.issuer.name, pending.approver_role, decision=decided)
+        self._resolved.move_to_end(pending.pending_id)
+        while len(self._resolved) > KEPT_RESOLVED:
+            self._resolved.popitem(last=False)
 
     def for_thought(self, thought_id: str) -> str | None:
         """The held command whose AI `thought_id` this is (an AUTHORIZE names it so, §16.4),
@@ -87,13 +133,24 @@ class HitlDesk:
             return reviewed
         command, pending = reviewed, held.pending  # out of the store, with every review
         self._changed()
+        self._resolving(held)  # readable as being decided, not as unknown, meanwhile
+        try:
+            decided = await self._decide(command, reviewer, pending, verdict)
+        except BaseException:
+            self._resolved.pop(pending.pending_id, None)  # never "being decided" for good
+            raise
+        self._resolving(held, decided)
+        return decided
+
+    async def _decide(self, command: NormalizedCommand, reviewer: Principal,
+                      pending: PendingCommand, verdict: Verdict) -> Decision:
         if verdict == "approve":
             return await self._run_approved(command, reviewer, pending)
         denied = verdict == "deny"
         return await self._steps.refuse(
             command, reviewer, outcomes.HITL_DENIED if denied else outcomes.HITL_WITHDRAWN,
             event=AuditEvent.HITL_DENIED if denied else AuditEvent.HITL_WITHDRAWN,
-            pending_id=pending_id)
+            pending_id=pending.pending_id)
 
     async def _review(self, held: Held, reviewer: Principal, verdict: Verdict,
                       reason: str | None, message_id: str | None
@@ -168,7 +225,9 @@ class HitlDesk:
             self._changed()
         for held in expired:
             p = held.pending
+            self._resolving(held)
             decisions.append(await self._steps.refuse(
                 held.reviewed(), p.issuer, outcomes.PENDING_EXPIRED,
                 event=AuditEvent.HITL_EXPIRED, pending_id=p.pending_id))
+            self._resolving(held, decisions[-1])
         return decisions

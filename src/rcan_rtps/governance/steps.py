@@ -194,6 +194,8 @@ def ai_facts(command: NormalizedCommand) -> dict[str, Any] | None:
     if command.ai is None:
         return None
     facts = msgspec.structs.asdict(command.ai)
+    if facts["client"] is None:  # recorded where there is one: older entries stay as they were
+        del facts["client"]
     reasoning = facts.pop("reasoning")
     if reasoning is not None:
         facts["reasoning_sha256"] = hashlib.sha256(reasoning.encode()).hexdigest()

@@ -22,6 +22,8 @@ class AiInfo(Strict, frozen=True):
     confidence: Confidence | None = None
     thought_id: ShortText | None = None
     reasoning: Reasoning | None = None
+    # The software that relayed the model's call (an MCP client: `name/version`): audited.
+    client: ShortText | None = None
 
 
 # -- COMMAND, as it arrives -----------------------------------------------------------------
@@ -38,6 +40,7 @@ class ShortCommand(Strict, frozen=True):
     confidence: Confidence | None = None
     thought_id: ShortText | None = None
     ai_reasoning: Reasoning | None = None
+    ai_client: ShortText | None = None
 
 
 class EnvelopeCommand(Strict, frozen=True):

@@ -31,7 +31,7 @@ _ROLE_CLAIMS = ("role", "role_level")
 _V3_MARKS = ("rcan", "rcan_version", "cmd", "msg_id")
 _V3_TYPES = (4, 6, 11, 13, 45)  # HEARTBEAT, SAFETY, INVOKE, INVOKE_CANCEL, AUTHORIZE
 _AI_FIELDS = {"ai_provider": "provider", "ai_model": "model", "confidence": "confidence",
-              "thought_id": "thought_id", "ai_reasoning": "reasoning"}
+              "thought_id": "thought_id", "ai_reasoning": "reasoning", "ai_client": "client"}
 
 
 class Duplicate(NamedTuple):

@@ -259,7 +259,7 @@ def _from_short(
     cmd: ShortCommand, claimed_role: Any, new_id: Callable[[], str]
 ) -> NormalizedCommand:
     ai_fields = (cmd.ai_provider, cmd.ai_model, cmd.confidence, cmd.thought_id,
-                 cmd.ai_reasoning)
+                 cmd.ai_reasoning, cmd.ai_client)
     ai = None
     if any(f is not None for f in ai_fields):
         ai = AiInfo(
@@ -268,6 +268,7 @@ def _from_short(
             confidence=cmd.confidence,
             thought_id=cmd.thought_id,
             reasoning=cmd.ai_reasoning,
+            client=cmd.ai_client,
         )
     return NormalizedCommand(
         action=cmd.action,

@@ -1,0 +1,93 @@
+"""The bridge's REST API as the MCP server uses it: with the agent's token, and nothing else.
+
+Replies come back as they are (status and JSON body), refusals included: deciding is the
+bridge's. What is not a reply — the bridge unreachable, a body that is not JSON — is a
+`BridgeUnavailable`, whose message says so without a traceback.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any
+from urllib.parse import quote, urlsplit
+
+import aiohttp
+
+from . import McpServerError
+
+REQUEST_TIMEOUT_S = 10.0
+
+
+class BridgeUnavailable(McpServerError):
+    """No usable reply from the bridge."""
+
+
+@dataclass(frozen=True)
+class Reply:
+    status: int
+    body: dict[str, Any]
+
+    @property
+    def ok(self) -> bool:
+        return self.status < 400
+
+
+def check_url(url: str) -> str:
+    """The bridge's base URL (http or https, a host, no path beyond `/`), without its `/`."""
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise ValueError(f"--url {url!r}: expected http(s)://host:port of a running bridge")
+    if parts.path not in ("", "/") or parts.query or parts.fragment:
+        raise ValueError(f"--url {url!r}: give the bridge's base URL, without a path")
+    return url.rstrip("/")
+
+
+def path_part(value: str) -> str:
+    """A value as one path segment (an id an agent gave is never a path of its own)."""
+    return quote(value, safe="")
+
+
+class BridgeClient:
+    def __init__(self, url: str, token: str, *, timeout_s: float = REQUEST_TIMEOUT_S) -> None:
+        self.url = check_url(url)
+        self._headers = {"Authorization": f"Bearer {token}"}
+        self._timeout = aiohttp.ClientTimeout(total=timeout_s)
+        self._http: aiohttp.ClientSession | None = None
+
+    async def __aenter__(self) -> BridgeClient:
+        self._http = aiohttp.ClientSession(headers=self._headers, timeout=self._timeout)
+        return self
+
+    async def __aexit__(self, kind: type[BaseException] | None, exc: BaseException | None,
+                        tb: TracebackType | None) -> None:
+        if self._http is not None:
+            await self._http.close()
+
+    async def get(self, path: str) -> Reply:
+        return await self._request("GET", path)
+
+    async def post(self, path: str, body: dict[str, Any] | None = None) -> Reply:
+        return await self._request("POST", path, body)
+
+    async def _request(self, method: str, path: str, body: Any = None) -> Reply:
+        if self._http is None:
+            raise RuntimeError("BridgeClient used outside `async with`")
+        try:
+            async with self._http.request(method, self.url + path, json=body) as resp:
+                raw = await resp.read()
+                status = resp.status
+        except (aiohttp.ClientError, asyncio.TimeoutError, OSError) as exc:
+            raise BridgeUnavailable(f"the bridge at {self.url} did not answer {method} {path}: "
+                                    f"{type(exc).__name__} {exc}".rstrip()) from exc
+        try:
+            decoded = json.loads(raw) if raw else {}
+        except ValueError as exc:
+            raise BridgeUnavailable(f"the bridge at {self.url} answered {method} {path} with "
+                                    f"{status} and a body that is not JSON") from exc
+        if not isinstance(decoded, dict):
+            raise BridgeUnavailable(f"{method} {path}: expected a JSON object, got "
+                                    f"{type(decoded).__name__}")
+        return Reply(status, decoded)

@@ -1,0 +1,94 @@
+"""Heartbeats for the motion this server started, while it runs.
+
+The bridge stops the robot when the sender of a motion command goes quiet for
+`safety.session_timeout_s` (§10.8): a timed move or a goal is no exception. An agent waits in
+silence between tool calls, so this server holds the session for it — for as long as a move
+it started lasts, or a goal it started has not ended — and for nothing else: once the agent's
+motion is over (or stopped), the heartbeats stop, and if this server goes away, so do they,
+and the bridge halts what is left.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass
+
+from .bridge import BridgeClient, BridgeUnavailable, path_part
+
+log = logging.getLogger(__name__)
+INTERVAL_S = 1.0  # the demo's session timeout is 5 s; a config's is at least this, or close
+MARGIN_S = 1.0  # past a move's end: its final zero is sent by the bridge, not by anyone here
+GOAL_ENDED = frozenset({"succeeded", "canceled", "aborted", "rejected", "unknown", "lost"})
+
+
+@dataclass
+class Hold:
+    until: float | None = None  # monotonic end of a timed move
+    goal_id: str | None = None  # a goal, until it ends
+
+
+class Keepalive:
+    def __init__(self, bridge: BridgeClient, *, interval_s: float = INTERVAL_S) -> None:
+        self._bridge = bridge
+        self._interval = interval_s
+        self._holds: dict[str, Hold] = {}
+        self._wake = asyncio.Event()
+
+    @property
+    def holding(self) -> bool:
+        """Whether motion this server started may still run (a move not yet over, a goal not
+        known to have ended)."""
+        now = time.monotonic()
+        return any(h.until is None or h.until > now for h in self._holds.values())
+
+    def hold_for(self, key: str, seconds: float) -> None:
+        self._hold(key, Hold(until=time.monotonic() + seconds + MARGIN_S))
+
+    def hold_goal(self, key: str, goal_id: str) -> None:
+        self._hold(key, Hold(goal_id=goal_id))
+
+    def release_all(self) -> None:
+        """The robot was stopped: nothing this server started runs any more."""
+        self._holds.clear()
+
+    def _hold(self, key: str, hold: Hold) -> None:
+        self._holds[key] = hold
+        self._wake.set()
+
+    async def run(self) -> None:
+        """Until cancelled: a heartbeat every interval while anything is held."""
+        while True:
+            if not self._holds:
+                self._wake.clear()
+                await self._wake.wait()
+            await self._prune()
+            if self._holds:
+                await self._beat()
+            await asyncio.sleep(self._interval)
+
+    async def _prune(self) -> None:
+        now = time.monotonic()
+        for key, hold in list(self._holds.items()):
+            if hold.until is not None and now >= hold.until:
+                del self._holds[key]
+            elif hold.goal_id is not None and await self._goal_over(hold.goal_id):
+                self._holds.pop(key, None)
+
+    async def _goal_over(self, goal_id: str) -> bool:
+        try:
+            reply = await self._bridge.get(f"/api/goals/{path_part(goal_id)}")
+        except BridgeUnavailable as exc:
+            log.warning("goal %s: %s", goal_id, exc)
+            return False  # keep the session: the bridge decides when it is lost
+        return reply.status == 404 or reply.body.get("state") in GOAL_ENDED
+
+    async def _beat(self) -> None:
+        try:
+            reply = await self._bridge.post("/api/heartbeat")
+        except BridgeUnavailable as exc:
+            log.warning("heartbeat: %s", exc)
+            return
+        if not reply.ok:
+            log.warning("heartbeat refused: %s %s", reply.status, reply.body.get("error_code"))

@@ -1,0 +1,241 @@
+"""The MCP server: the tools of `tools`, each call a request to the bridge (`bridge`).
+
+Built on the official SDK's low-level `Server` (the tools' schemas are derived, not written as
+functions). Every action's call is a short-form COMMAND carrying the agent's identity: the
+configured `ai_provider` and `ai_model`, the MCP client's `name/version` as `ai_client`, and a
+`thought_id` of its own (GET /api/thoughts/{thought_id} shows what it led to). What the bridge
+decides comes back as it is; a refusal is a tool error (`isError`) with the RCAN `error_code`
+and `reason`. Tool errors never carry a traceback: an unexpected one is logged on stderr.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import uuid
+from dataclasses import dataclass
+from typing import Any
+
+import anyio
+import mcp_types as types
+from mcp.server.context import ServerRequestContext
+from mcp.server.lowlevel import Server
+from mcp.server.stdio import stdio_server
+
+from rcan_rtps import __version__
+
+from .bridge import BridgeClient, BridgeUnavailable, Reply, path_part
+from .keepalive import Keepalive
+from .tools import DURATION, WAIT_MAX_S, ToolDef, derive_tools
+
+log = logging.getLogger(__name__)
+POLL_S = 0.5
+CLIENT_MAX = 256  # the bridge's `ai_client` is at most this long
+INSTRUCTIONS = (
+    "Tools of one robot, governed by its rcan-rtps bridge: each action is checked against "
+    "your role, the safety limits and the e-stop, and audited with your identity. A move is "
+    "timed (duration_s). State your confidence: low confidence waits for a human. A held "
+    "command returns a pending_id: call wait_for_approval. estop and stop always work.")
+
+
+@dataclass(frozen=True)
+class Agent:
+    """Who the agent is, as every command of this server names it (§16 AI fields)."""
+
+    provider: str
+    model: str
+
+
+def client_of(ctx: ServerRequestContext[Any]) -> str:
+    """The MCP client's `name/version`, as its initialization (or request) said."""
+    params = ctx.session.client_params
+    info = params.client_info if params is not None else None
+    if info is None:
+        return "unknown"
+    return f"{info.name}/{info.version}"[:CLIENT_MAX]
+
+
+def result(reply: Reply, note: str, **extra: Any) -> types.CallToolResult:
+    """The bridge's reply as a tool result: an error when it refused (4xx, 5xx)."""
+    return tool_result({"http_status": reply.status, **reply.body, **extra}, note,
+                       error=not reply.ok)
+
+
+def tool_result(data: dict[str, Any], note: str, *, error: bool) -> types.CallToolResult:
+    """`data` as structured content, and as text under a first line that says what it is:
+    `note`, or for an error the RCAN `error_code` and `reason`."""
+    head = note
+    if error:
+        code = data.get("error_code") or data.get("outcome") or "REFUSED"
+        head = f"refused: {code}: {data.get('reason') or 'no reason given'}"
+    return types.CallToolResult(
+        content=[types.TextContent(type="text", text=f"{head}\n{json.dumps(data)}")],
+        structured_content=data, is_error=error)
+
+
+def failure(message: str, error_code: str) -> types.CallToolResult:
+    data = {"error_code": error_code, "reason": message}
+    return types.CallToolResult(
+        content=[types.TextContent(type="text", text=f"{error_code}: {message}")],
+        structured_content=data, is_error=True)
+
+
+def _outcome_note(body: dict[str, Any]) -> str:
+    outcome = body.get("outcome", "")
+    if outcome == "pending_auth":
+        return (f"pending_auth: held for a human; call wait_for_approval with pending_id "
+                f"{body.get('pending_id')}")
+    return str(outcome)
+
+
+class RobotTools:
+    """The handlers: list the derived tools, run one."""
+
+    def __init__(self, bridge: BridgeClient, agent: Agent, keepalive: Keepalive,
+                 tools: dict[str, ToolDef] | None = None) -> None:
+        self._bridge = bridge
+        self._agent = agent
+        self._keepalive = keepalive
+        self._tools = derive_tools() if tools is None else tools
+
+    async def list_tools(self, ctx: ServerRequestContext[Any],
+                         params: types.PaginatedRequestParams | None) -> types.ListToolsResult:
+        return types.ListToolsResult(tools=[
+            types.Tool(name=t.name, description=t.description, input_schema=t.input_schema)
+            for t in self._tools.values()])
+
+    async def call_tool(self, ctx: ServerRequestContext[Any],
+                        params: types.CallToolRequestParams) -> types.CallToolResult:
+        tool = self._tools.get(params.name)
+        if tool is None:
+            return failure(f"no tool named {params.name!r}", "UNKNOWN_TOOL")
+        args = dict(params.arguments or {})
+        try:
+            if tool.action is not None:
+                return await self._command(tool, args, client_of(ctx))
+            return await self._read(tool.name, args)
+        except BridgeUnavailable as exc:
+            return failure(str(exc), "BRIDGE_UNAVAILABLE")
+        except Exception:  # a tool error, never a traceback to the agent: the log has it
+            log.exception("tool %s failed", tool.name)
+            return failure(f"{tool.name} failed inside the MCP server (see its log)",
+                           "INTERNAL_ERROR")
+
+    # -- actions --------------------------------------------------------------------------
+
+    async def _command(self, tool: ToolDef, args: dict[str, Any],
+                       client: str) -> types.CallToolResult:
+        assert tool.action is not None
+        thought_id = uuid.uuid4().hex
+        body: dict[str, Any] = {
+            "action": tool.name, "ai_provider": self._agent.provider,
+            "ai_model": self._agent.model, "ai_client": client, "thought_id": thought_id}
+        if "confidence" in args:
+            body["confidence"] = args.pop("confidence")
+        if "reasoning" in args:
+            body["ai_reasoning"] = args.pop("reasoning")
+        body["params"] = args
+        if tool.timed and args.get(DURATION) is None:
+            return failure(f"`{DURATION}` is required: a {tool.name} an agent starts is timed",
+                           "SCHEMA_VALIDATION_FAILED")
+        reply = await self._bridge.post("/api/command", body)
+        if reply.ok:
+            self._started(tool, args, reply.body, key=thought_id)
+        return result(reply, _outcome_note(reply.body), thought_id=thought_id)
+
+    def _started(self, tool: ToolDef, params: dict[str, Any], body: dict[str, Any],
+                 key: str) -> None:
+        """Hold the control session for what an executed command left running."""
+        spec = tool.action
+        if spec is None or body.get("outcome") != "executed":
+            return
+        applied = body.get("applied") or {}
+        duration = applied.get(DURATION, params.get(DURATION))  # as governed, if it says
+        if spec.stopping:
+            self._keepalive.release_all()
+        elif tool.timed and isinstance(duration, int | float):
+            self._keepalive.hold_for(key, float(duration))
+        elif spec.starts_goal and isinstance(body.get("goal_id"), str):
+            self._keepalive.hold_goal(key, body["goal_id"])
+
+    # -- reads ----------------------------------------------------------------------------
+
+    async def _read(self, name: str, args: dict[str, Any]) -> types.CallToolResult:
+        if name == "get_status":
+            return result(await self._bridge.get("/api/status"), "status")
+        if name == "get_goals":
+            return result(await self._bridge.get("/api/goals"), "goals")
+        pending_id = args.get("pending_id")
+        if not isinstance(pending_id, str) or not pending_id:
+            return failure("`pending_id` must be a non-empty string", "SCHEMA_VALIDATION_FAILED")
+        if name == "get_pending_approval":
+            reply = await self._pending(pending_id)
+            return result(reply, str(reply.body.get("state", "")))
+        timeout = args.get("timeout_s", 30.0)
+        if not isinstance(timeout, int | float) or not 0 < timeout <= WAIT_MAX_S:
+            return failure(f"`timeout_s` must be a number in (0, {WAIT_MAX_S:g}]",
+                           "SCHEMA_VALIDATION_FAILED")
+        return await self._wait(pending_id, float(timeout))
+
+    async def _pending(self, pending_id: str) -> Reply:
+        return await self._bridge.get(f"/api/hitl/pending/{path_part(pending_id)}")
+
+    async def _wait(self, pending_id: str, timeout_s: float) -> types.CallToolResult:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while True:
+            reply = await self._pending(pending_id)
+            state = reply.body.get("state")
+            if not reply.ok or state == "resolved":
+                break
+            if loop.time() >= deadline:
+                return result(reply, f"still {state} after {timeout_s:g} s: wait again, or "
+                                     "withdraw it over the bridge's API")
+            await asyncio.sleep(min(POLL_S, max(0.0, deadline - loop.time())))
+        if not reply.ok:
+            return result(reply, "")
+        return self._resolved(reply)
+
+    def _resolved(self, reply: Reply) -> types.CallToolResult:
+        """A decided command: an error unless it executed; what it started is held."""
+        decision = reply.body.get("decision") or {}
+        held = (reply.body.get("pending") or {}).get("original_command") or {}
+        tool = self._tools.get(str(held.get("action")))
+        if tool is not None and isinstance(held.get("params"), dict):
+            self._started(tool, held["params"], decision, key=str(reply.body["pending_id"]))
+        shown = {"http_status": reply.status, **reply.body,
+                 **{k: decision[k] for k in ("outcome", "error_code", "reason") if k in decision}}
+        outcome = str(decision.get("outcome", ""))
+        return tool_result(shown, outcome, error=outcome != "executed")
+
+
+def build_server(tools: RobotTools) -> Server[Any]:
+    return Server("rcan-rtps", version=__version__, instructions=INSTRUCTIONS,
+                  on_list_tools=tools.list_tools, on_call_tool=tools.call_tool)
+
+
+async def serve_stdio(url: str, token: str, agent: Agent) -> None:
+    """Serve MCP on stdin/stdout until the client closes them; then stop what is still
+    running that this server started (an agent gone must not leave the robot moving)."""
+    async with BridgeClient(url, token) as bridge:
+        keepalive = Keepalive(bridge)
+        server = build_server(RobotTools(bridge, agent, keepalive))
+        async with stdio_server() as (read, write), anyio.create_task_group() as group:
+            group.start_soon(keepalive.run)
+            await server.run(read, write, server.create_initialization_options())
+            group.cancel_scope.cancel()
+        if keepalive.holding:
+            await _stop_on_exit(bridge, agent)
+
+
+async def _stop_on_exit(bridge: BridgeClient, agent: Agent) -> None:
+    body = {"action": "stop", "params": {"reason": "MCP client disconnected"},
+            "ai_provider": agent.provider, "ai_model": agent.model}
+    try:
+        reply = await bridge.post("/api/command", body)
+    except BridgeUnavailable as exc:
+        log.warning("stop at exit: %s", exc)
+        return
+    log.info("stop at exit (the MCP client left while its motion ran): %s",
+             reply.body.get("outcome"))

@@ -1,0 +1,247 @@
+"""Issue 25: `rcan-rtps mcp` (stdio), driven by the official MCP SDK's own client, in front of
+`rcan-rtps run --sim` (a real subprocess each): the tools are the registry's; a timed move
+drives the simulator about as far as it should (longer than the session timeout: the server's
+heartbeats hold it); an over-limit move is refused with its reason; a gated arm command waits
+for the OWNER, who approves it over REST, and the agent's wait returns executed; an e-stop
+latches while the agent waits on another; a wrong token is refused; the audit log names the
+agent — its model, provider and MCP client — on every command it sent."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import re
+import sys
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+from mcp import Client, StdioServerParameters
+from mcp.client.stdio import stdio_client
+from mcp_types import CallToolResult, Implementation
+from waiting import eventually
+
+from rcan_rtps.rcan.actions import names
+from tests.interop.test_demo import (
+    ROOT,
+    Demo,
+    _run_demo,
+    call,
+    timed_move_distance,
+    wait_status,
+)
+
+AGENT = {"provider": "acme", "model": "planner-7b", "client": "test-agent/1.2"}
+READS = {"get_status", "get_goals", "get_pending_approval", "wait_for_approval"}
+
+
+@pytest.fixture
+def sim(tmp_path: Path, domain_id: int) -> Iterator[Demo]:
+    yield from _run_demo(tmp_path, domain_id, "--state-dir", str(tmp_path / "state"))
+
+
+@pytest.fixture
+async def http() -> AsyncIterator[aiohttp.ClientSession]:
+    async with aiohttp.ClientSession() as session:
+        yield session
+
+
+@contextlib.asynccontextmanager
+async def agent(demo: Demo, tmp_path: Path, token: str | None = None
+                ) -> AsyncIterator[Client]:
+    """`python -m rcan_rtps mcp` as an MCP client launches it, with the USER's token."""
+    server = StdioServerParameters(
+        command=sys.executable,
+        args=["-m", "rcan_rtps", "mcp", "--url", demo.url, "--token-env", "AGENT_TOKEN",
+              "--ai-provider", AGENT["provider"], "--ai-model", AGENT["model"]],
+        env={"AGENT_TOKEN": token or demo.user, "PYTHONPATH": os.environ.get("PYTHONPATH", "")})
+    with (tmp_path / "mcp.err").open("a") as errlog:
+        async with Client(stdio_client(server, errlog=errlog),
+                          client_info=Implementation(name="test-agent", version="1.2")) as c:
+            yield c
+
+
+def data(done: CallToolResult) -> dict[str, Any]:
+    assert done.structured_content is not None, done
+    return dict(done.structured_content)
+
+
+def entries(demo: Demo) -> list[dict[str, Any]]:
+    return [json.loads(line) for line in demo.audit.read_text().splitlines()]
+
+
+async def test_tools_and_a_timed_move(sim: Demo, http: aiohttp.ClientSession,
+                                      tmp_path: Path) -> None:
+    async with agent(sim, tmp_path) as client:
+        tools = {t.name for t in (await client.list_tools()).tools}
+        assert tools == set(names()) | READS
+
+        async def send() -> str:
+            # 7 s: longer than the demo's 5 s session timeout, held by the server's heartbeats
+            done = await client.call_tool("move", {"linear_x": 0.2, "duration_s": 7.0,
+                                                   "confidence": 0.9})
+            assert not done.is_error, done
+            assert (data(done)["outcome"], data(done)["http_status"]) == ("executed", 200)
+            return str(data(done)["message_id"])
+
+        distance = await timed_move_distance(http, sim, send)
+        assert 1.2 <= distance <= 1.5, distance  # 7 s at 0.2 m/s, less the 0.1 s ramp
+        status = data(await client.call_tool("get_status", {}))
+        assert status["state"] != "safe_stop" and status["estop"] is False, status
+
+        over = await client.call_tool("move", {"linear_x": 2.0, "duration_s": 1.0,
+                                               "confidence": 0.9})
+        assert over.is_error
+        assert (data(over)["http_status"], data(over)["outcome"], data(over)["reason"]) == (
+            409, "safety_violation", "velocity_limit"), data(over)
+        assert "velocity_limit" in over.content[0].text  # type: ignore[union-attr]
+        untimed = await client.call_tool("move", {"linear_x": 0.1, "confidence": 0.9})
+        assert untimed.is_error and "duration_s" in data(untimed)["reason"]
+        goals = data(await client.call_tool("get_goals", {}))
+        assert goals["goals"] == []
+    mine = [e for e in entries(sim) if e.get("action_type") == "move"
+            and e["event"] in ("COMMAND_DISPATCHED", "COMMAND_REJECTED")]
+    assert [e["outcome"] for e in mine] == ["executed", "safety_violation"], mine
+    for entry in mine:  # the agent's identity, with a thought of its own per call
+        assert entry["principal"] == "operator"
+        assert {k: entry["ai"][k] for k in AGENT} == AGENT, entry["ai"]
+    assert len({e["ai"]["thought_id"] for e in mine}) == 2
+    ended = [e for e in entries(sim) if e["event"] == "STREAM_ENDED"]
+    assert [e["params"]["reason"] for e in ended] == ["completed"], ended
+
+
+async def test_a_gated_command_waits_for_the_owner(sim: Demo, http: aiohttp.ClientSession,
+                                                   tmp_path: Path) -> None:
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    async with agent(sim, tmp_path) as client:
+        held = await client.call_tool("arm_joint", {
+            "joints": ["elbow"], "positions": [0.8], "duration_s": 1.0, "confidence": 0.9})
+        assert not held.is_error, held
+        pending_id = data(held)["pending_id"]
+        assert (data(held)["outcome"], data(held)["http_status"]) == ("pending_auth", 202)
+        assert "wait_for_approval" in held.content[0].text  # type: ignore[union-attr]
+        seen = data(await client.call_tool("get_pending_approval", {"pending_id": pending_id}))
+        assert (seen["state"], seen["pending"]["requires_auth_from_role"]) == (
+            "pending", "OWNER"), seen
+
+        waiting = asyncio.create_task(client.call_tool(
+            "wait_for_approval", {"pending_id": pending_id, "timeout_s": 60}))
+        await asyncio.sleep(1.0)
+        assert not waiting.done()
+        code, approved = await call(http, sim, sim.owner, "POST", "/api/hitl/authorize",
+                                    {"pending_id": pending_id})
+        assert (code, approved["outcome"]) == (200, "executed"), approved
+        done = await asyncio.wait_for(waiting, 30)
+        assert not done.is_error, done
+        assert (data(done)["state"], data(done)["outcome"]) == ("resolved", "executed")
+        assert data(done)["decision"]["audit_id"] == approved["audit_id"]
+    authorized = [e for e in entries(sim) if e["event"] == "HITL_AUTHORIZED"]
+    assert len(authorized) == 1 and authorized[0]["ai"]["client"] == AGENT["client"]
+
+
+async def test_estop_latches_while_the_agent_waits(sim: Demo, http: aiohttp.ClientSession,
+                                                   tmp_path: Path) -> None:
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    async with agent(sim, tmp_path) as client:
+        held = data(await client.call_tool("arm_joint", {
+            "joints": ["elbow"], "positions": [0.3], "duration_s": 1.0, "confidence": 0.9}))
+        waiting = asyncio.create_task(client.call_tool(
+            "wait_for_approval", {"pending_id": held["pending_id"], "timeout_s": 20}))
+        await asyncio.sleep(0.5)
+        stopped = await client.call_tool("estop", {"reason": "agent saw a person"})
+        assert not stopped.is_error and data(stopped)["outcome"] == "executed", stopped
+        assert not waiting.done()  # the e-stop did not wait behind the wait
+        await wait_status(http, sim, lambda s: s["estop"])
+        refused = await client.call_tool("move", {"linear_x": 0.1, "duration_s": 1.0,
+                                                  "confidence": 0.9})
+        assert refused.is_error and data(refused)["http_status"] == 409, data(refused)
+        clear = await client.call_tool("clear_estop", {})  # an OWNER's, not a USER's
+        assert clear.is_error and data(clear)["http_status"] == 403, data(clear)
+        waiting.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await waiting
+    estops = [e for e in entries(sim) if e.get("action_type") == "estop"]
+    assert estops and estops[0]["ai"]["client"] == AGENT["client"], estops
+
+
+async def test_a_wrong_token_is_refused(sim: Demo, http: aiohttp.ClientSession,
+                                        tmp_path: Path) -> None:
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    before = len(entries(sim))
+    async with agent(sim, tmp_path, token="not-the-agents-token-0123456789") as client:
+        for name, args in (("get_status", {}), ("move", {"linear_x": 0.1, "duration_s": 1.0}),
+                           ("estop", {})):
+            done = await client.call_tool(name, args)
+            assert done.is_error, name
+            assert (data(done)["http_status"], data(done)["error_code"]) == (
+                401, "UNAUTHENTICATED"), data(done)
+    code, status = await call(http, sim, sim.user, "GET", "/api/status")
+    assert code == 200 and status["estop"] is False
+    assert not [e for e in entries(sim)[before:] if e.get("ai")]  # nothing of it ran
+
+
+async def test_a_goal_is_held_until_it_ends(sim: Demo, http: aiohttp.ClientSession,
+                                            tmp_path: Path) -> None:
+    """A navigation goal outlasts the 5 s session timeout: the server heartbeats until the goal
+    has ended (without, the session would lapse and the bridge cancel the goal)."""
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    async with agent(sim, tmp_path) as client:
+        sent = await client.call_tool("navigate", {"x": 2.0, "y": 1.0, "yaw": 0.0,
+                                                   "confidence": 0.9})
+        assert not sent.is_error and data(sent)["goal_id"], sent
+        goal_id = data(sent)["goal_id"]
+
+        async def ended() -> str | None:
+            goals = data(await client.call_tool("get_goals", {}))["goals"]
+            state = next(g["state"] for g in goals if g["goal_id"] == goal_id)
+            return None if state in ("accepted", "executing") else str(state)
+
+        assert await eventually(ended, timeout=60, what="the goal's end") == "succeeded"
+    assert not [e for e in entries(sim) if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+
+
+async def test_an_agent_gone_mid_move_stops_it(sim: Demo, http: aiohttp.ClientSession,
+                                               tmp_path: Path) -> None:
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    async with agent(sim, tmp_path) as client:
+        done = await client.call_tool("move", {"linear_x": 0.2, "duration_s": 20.0,
+                                               "confidence": 0.9})
+        assert data(done)["outcome"] == "executed", done
+        await wait_status(http, sim, lambda s: s["state"] == "moving")
+    # the client closed the server's stdin: it stopped what it had started, at once
+    stops = [e for e in entries(sim) if e.get("action_type") == "stop"]
+    assert [e["params"].get("reason") for e in stops] == ["MCP client disconnected"], stops
+    await wait_status(http, sim, lambda s: s["telemetry"]["velocity"]["linear_x"] == 0.0)
+
+
+def readme_config(path: Path) -> dict[str, Any]:
+    block = re.search(r"<!-- mcp-config -->\n```json\n(.*?)```", path.read_text(), re.S)
+    assert block, f"{path.name} has no mcp-config block"
+    return dict(json.loads(block.group(1)))
+
+
+async def test_the_readme_client_configuration(sim: Demo, http: aiohttp.ClientSession,
+                                               tmp_path: Path) -> None:
+    """The README's one line, as a client would run it (with this run's URL and token)."""
+    config = readme_config(ROOT / "README.md")
+    assert config == readme_config(ROOT / "docs" / "mcp.md")
+    entry = config["mcpServers"]["robot"]
+    assert entry["command"] == "rcan-rtps"
+    args = [sim.url if a == "http://127.0.0.1:8765" else a for a in entry["args"]]
+    env = {name: sim.user for name in entry["env"]}
+    server = StdioServerParameters(
+        command=str(Path(sys.executable).parent / "rcan-rtps"), args=args,
+        env={**env, "PYTHONPATH": os.environ.get("PYTHONPATH", "")})
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    with (tmp_path / "mcp.err").open("a") as errlog:
+        async with Client(stdio_client(server, errlog=errlog)) as client:
+            status = data(await client.call_tool("get_status", {}))
+            assert (status["http_status"], status["estop"]) == (200, False), status
+            done = await client.call_tool("stop", {"reason": "readme check"})
+            assert data(done)["outcome"] == "executed", done
+    stop = [e for e in entries(sim) if e.get("action_type") == "stop"][-1]
+    assert (stop["ai"]["provider"], stop["ai"]["model"]) == ("anthropic", "claude-sonnet-4-5")

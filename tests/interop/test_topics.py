@@ -182,8 +182,11 @@ async def test_our_best_effort_publisher_reports_a_reliable_rclpy_subscriber(
     pub = node.create_publisher("strict", "std_msgs/msg/String", qos.SENSOR_DATA)
     await eventually(lambda: pub.incompatible_qos_events >= 1, timeout=20)
     assert pub.matched_count() == 0
-    assert any("publisher /robot1/strict" in r.getMessage()
-               and "RELIABILITY_QOS_POLICY" in r.getMessage() for r in caplog.records)
+    # The warning is logged from the listener's thread just after the count goes up.
+    await eventually(lambda: any(
+        "publisher /robot1/strict" in r.getMessage()
+        and "RELIABILITY_QOS_POLICY" in r.getMessage() for r in caplog.records),
+        timeout=5, what="the incompatible-QoS warning")
 
 
 @both_rmws

@@ -31,6 +31,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from cyclonedds.core import DDSException
+from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 
 from .participant import RosNode
@@ -45,10 +46,35 @@ def participant_prefix(guid: bytes) -> bytes:
     return bytes(guid[:12])
 
 
+_RETRIES = 8
+
+
+def matched_publications(reader: DataReader[Any]) -> list[int]:
+    """`reader.get_matched_publications()`, asked again when a writer matched between the
+    binding's two calls: it sizes its buffer by the first and then indexes up to the count the
+    second returns (cyclonedds 0.10 and 11 raise IndexError). Empty if it never settles."""
+    for _ in range(_RETRIES):
+        try:
+            return list(reader.get_matched_publications())
+        except IndexError:
+            continue
+    return []
+
+
+def matched_subscriptions(writer: DataWriter[Any]) -> list[int]:
+    """`writer.get_matched_subscriptions()`, as `matched_publications`."""
+    for _ in range(_RETRIES):
+        try:
+            return list(writer.get_matched_subscriptions())
+        except IndexError:
+            continue
+    return []
+
+
 def matched_writers(reader: DataReader[Any]) -> dict[int, bytes]:
     """The writers `reader` is matched with (our view): instance handle → GUID."""
     found = {}
-    for handle in reader.get_matched_publications():
+    for handle in matched_publications(reader):
         data = reader.get_matched_publication_data(handle)
         if data is not None:
             found[int(handle)] = bytes(data.key.bytes)

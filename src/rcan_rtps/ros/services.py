@@ -43,7 +43,7 @@ from . import qos as qos_mod
 from . import raw_cdr
 from .errors import ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction, RosGraph
-from .handshake import matched_writers, writers_ready
+from .handshake import matched_subscriptions, matched_writers, writers_ready
 from .names import mangle_service
 from .participant import RosNode
 from .qos import QosProfile
@@ -406,7 +406,7 @@ class ServiceServer:
         deadline = loop.time() + CLIENT_READER_WAIT
         writer, reader = self._pair.writer, self._pair.reader
         while loop.time() < deadline:
-            for handle in writer.get_matched_subscriptions():
+            for handle in matched_subscriptions(writer):
                 found = writer.get_matched_subscription_data(handle)
                 if found is not None and _user_data(found).get("clientid") == client_id:
                     return True

@@ -122,14 +122,18 @@ async def test_a_failed_goal_is_a_failed_skill(api: Api) -> None:
     assert (body["status"], body["error"]["name"]) == ("failure", "SkillFailed"), body
 
 
+async def _goal_cancel_sent(api: Api, goal_id: str) -> None:
+    async def cancelling() -> None:
+        while api.dispatcher.cancelled != [goal_id]:
+            await asyncio.sleep(0.01)
+    await asyncio.wait_for(cancelling(), 10)
+
+
 async def test_invoke_cancel_cancels_the_goal_through_the_governor(api: Api) -> None:
     reply = asyncio.create_task(api.command("planner", invoke("go_home", "inv-nav")))
     await sent(api, "navigate")
     cancelled = asyncio.create_task(api.command("planner", cancel("inv-nav")))
-    async def cancelling() -> None:
-        while api.dispatcher.cancelled != ["goal-1"]:
-            await asyncio.sleep(0.01)
-    await asyncio.wait_for(cancelling(), 10)
+    await _goal_cancel_sent(api, "goal-1")
     entry = [e for e in api.entries if e.get("action_type") == "cancel_goal"][-1]
     assert (entry["event"], entry["principal"], entry["params"]["goal_id"]) == (
         "COMMAND_DISPATCHED", "planner", "goal-1")
@@ -256,10 +260,7 @@ async def test_a_cancelled_invokes_result_is_audited_once(api: Api) -> None:
     reply = asyncio.create_task(api.command("planner", invoke("go_home", "inv-nav")))
     await sent(api, "navigate")
     cancelled = asyncio.create_task(api.command("planner", cancel("inv-nav")))
-    async def cancelling() -> None:
-        while api.dispatcher.cancelled != ["goal-1"]:
-            await asyncio.sleep(0.01)
-    await asyncio.wait_for(cancelling(), 10)
+    await _goal_cancel_sent(api, "goal-1")
     api.robot.goal_changed(ended("goal-1", "canceled"))
     await asyncio.wait_for(asyncio.gather(reply, cancelled), 10)
     [entry] = results(api, "inv-nav")  # one INVOKE, one INVOKE_RESULT (§19.1)

@@ -16,7 +16,7 @@ import ipaddress
 import time
 import uuid
 from collections.abc import Awaitable, Callable
-from typing import Any, Literal
+from typing import Any, Literal, TypeGuard
 from urllib.parse import urlsplit
 
 import msgspec
@@ -141,10 +141,9 @@ async def malformed_rejected(bridge: BridgeUnderTest, case: Case) -> Verdict:
 
 @probe("L2-SAFE-001")
 async def estop_blocks_commands(bridge: BridgeUnderTest, case: Case) -> Verdict:
-    raised = await bridge.command("GUEST" if bridge.has("GUEST") else "OWNER",
-                                  {"action": "estop", "params": {"reason": "conformance"}})
-    if raised.get("outcome") != "executed":
-        return failed(f"the e-stop did not latch: {raised.describe()}")
+    raised = await _raise_estop(bridge)
+    if raised is not None:
+        return raised
     try:
         since = await bridge.head_seq()
         mid = message_id()
@@ -327,7 +326,7 @@ async def ai_without_model_refused(bridge: BridgeUnderTest, case: Case) -> Verdi
     if reply.get("error_code") != case.expect["error_code"]:
         return failed(f"expected {case.expect['error_code']}, got {reply.describe()}")
     entry = await _entry(bridge, since, mid)
-    if entry is None or entry.get("event") != "COMMAND_REJECTED":
+    if not _audited_as_refused(entry):
         return failed(f"refused, but audited as {entry and entry.get('event')}")
     return passed(f"{reply.describe()}; entry {entry['seq']}")
 
@@ -412,7 +411,7 @@ async def guest_cannot_invoke(bridge: BridgeUnderTest, case: Case) -> Verdict:
     if (reply.status, reply.get("error_code")) != expected:
         return failed(f"expected {expected}, got {_invoke_reply(reply)}")
     entry = await _entry(bridge, since, mid)
-    if entry is None or entry.get("event") != "COMMAND_REJECTED":
+    if not _audited_as_refused(entry):
         return failed(f"refused, but audited as {entry and entry.get('event')}")
     return passed(f"{skill.name} (needs {skill.role}): {reply.status} "
                   f"{reply.get('error_code')}, status {reply.get('status')}")
@@ -440,10 +439,9 @@ async def invoke_result_fields(bridge: BridgeUnderTest, case: Case) -> Verdict:
 @probe("L2-INVOKE-001")
 async def estop_blocks_invoke(bridge: BridgeUnderTest, case: Case) -> Verdict:
     skill = await bridge.skill()
-    raised = await bridge.command("GUEST" if bridge.has("GUEST") else "OWNER",
-                                  {"action": "estop", "params": {"reason": "conformance"}})
-    if raised.get("outcome") != "executed":
-        return failed(f"the e-stop did not latch: {raised.describe()}")
+    raised = await _raise_estop(bridge)
+    if raised is not None:
+        return raised
     try:
         since, mid = await bridge.head_seq(), invoke_id()
         reply = await bridge.invoke("USER", skill, mid)
@@ -517,9 +515,22 @@ def _refusal(reply: Reply, case: Case, entry: Body | None) -> Verdict:
         return failed(f"dispatched: {reply.describe()}")
     if reply.get("error_code") != case.expect["error_code"] or reply.get("reason") != reason:
         return failed(f"expected {case.expect['error_code']}/{reason}, got {reply.describe()}")
-    if entry is None or entry.get("event") != "COMMAND_REJECTED":
+    if not _audited_as_refused(entry):
         return failed(f"refused, but audited as {entry and entry.get('event')}")
     return passed(f"{reply.describe()}; entry {entry['seq']}")
+
+
+async def _raise_estop(bridge: BridgeUnderTest) -> Verdict | None:
+    """Latch the e-stop (a GUEST's, if given: anyone may); a failed verdict if it did not."""
+    raised = await bridge.command("GUEST" if bridge.has("GUEST") else "OWNER",
+                                  {"action": "estop", "params": {"reason": "conformance"}})
+    if raised.get("outcome") != "executed":
+        return failed(f"the e-stop did not latch: {raised.describe()}")
+    return None
+
+
+def _audited_as_refused(entry: Body | None) -> TypeGuard[Body]:
+    return entry is not None and entry.get("event") == "COMMAND_REJECTED"
 
 
 async def _still_arm(bridge: BridgeUnderTest) -> dict[str, Any]:

@@ -17,7 +17,8 @@ from mcp_types import Implementation
 
 from rcan_rtps.mcp_server.bridge import BridgeClient
 from rcan_rtps.mcp_server.keepalive import Keepalive
-from rcan_rtps.mcp_server.server import Agent, RobotTools, build_server
+from rcan_rtps.mcp_server.seat import Agent, Seat
+from rcan_rtps.mcp_server.server import RobotTools, build_server
 from rcan_rtps.mcp_server.tools import READS, action_tool, derive_tools
 from rcan_rtps.rcan import Role
 from rcan_rtps.rcan._types import ActionParams
@@ -49,7 +50,8 @@ async def agent_client() -> AsyncIterator[Client]:
     manager, not a fixture: the SDK's task groups must be left in the task that entered them).
     """
     async with BridgeClient(f"http://127.0.0.1:{closed_port()}", "agent-token") as bridge:
-        tools = RobotTools(bridge, Agent("acme", "planner-7b"), Keepalive(bridge))
+        seat = Seat(bridge, Agent("acme", "planner-7b"), Keepalive(bridge))
+        tools = RobotTools(lambda ctx: seat)
         async with Client(build_server(tools),
                           client_info=Implementation(name="test-agent", version="1.2")) as c:
             yield c
@@ -86,7 +88,8 @@ async def test_an_action_added_to_the_registry_is_a_tool(
     monkeypatch.setattr(_registry, "ACTIONS",
                         MappingProxyType({**_registry.ACTIONS, "beep": BEEP}))
     async with BridgeClient(f"http://127.0.0.1:{closed_port()}", "t") as bridge:
-        tools = RobotTools(bridge, Agent("acme", "m"), Keepalive(bridge))
+        seat = Seat(bridge, Agent("acme", "m"), Keepalive(bridge))
+        tools = RobotTools(lambda ctx: seat)
         async with Client(build_server(tools)) as client:
             beep = (await listed(client))["beep"]
     assert beep.description.startswith("Beep (a test's action).")

@@ -13,7 +13,7 @@ from rcan_rtps.governance.replay import ReplayWindow
 from rcan_rtps.governance.signatures import Signatures
 from rcan_rtps.rcan import Role
 
-from . import _audit_export, _node_manifest, _safety_manifest
+from . import _audit_export, _mcp, _node_manifest, _safety_manifest
 from . import _routes as r
 from ._conn import ConnectionDeadlines, track_requests
 from ._goal_events import GoalEvents
@@ -36,6 +36,7 @@ from ._keys import (
     ApiSettings,
     Authenticator,
 )
+from ._mcp import McpEndpoint
 from ._metrics import Metrics
 from ._middlewares import authenticate, last_resort
 from ._reads import AuditReads
@@ -141,17 +142,25 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_post("/api/hitl/withdraw", r.post_withdraw)
     app.router.add_get("/api/audit", r.get_audit, allow_head=False)
     app.router.add_get("/api/audit/verify", r.get_audit_verify, allow_head=False)
+    app.router.add_get("/api/audit/mine", r.get_my_audit, allow_head=False)
     app.router.add_get("/api/openapi.json", get_openapi, allow_head=False)
     app.router.add_get("/api/ws", websocket, allow_head=False)
     app.router.add_get("/api/metrics", get_metrics, allow_head=False)
     # RCAN 3.x: §17 node manifest (public), Protocol 66 safety manifest, §20 audit export.
     app.router.add_get(_node_manifest.PATH, _node_manifest.handler(
         config, governor.audit.public_key), allow_head=False)
-    app.router.add_get(_safety_manifest.PATH, _safety_manifest.handler(config, governor),
+    app.router.add_get(_safety_manifest.PATH, _safety_manifest.handler(config),
                        allow_head=False)
     app.router.add_get(_audit_export.PATH, _audit_export.handler(
         governor, settings.audit_read_role), allow_head=False)
+    mcp = McpEndpoint(config)
+    app.router.add_route("*", _mcp.PATH, mcp.handle)
+
+    async def close_mcp(app: web.Application) -> None:
+        await mcp.close()
+
     app.on_shutdown.append(_close_sockets)
+    app.on_shutdown.append(close_mcp)
 
     async def close_reads(app: web.Application) -> None:
         await reads.close()

@@ -24,6 +24,7 @@ from the audit writer, with bounded concurrency.
 from __future__ import annotations
 
 import asyncio
+import collections
 import concurrent.futures
 import contextlib
 import logging
@@ -53,6 +54,14 @@ class _Seq(msgspec.Struct):
 _SEQ = msgspec.json.Decoder(_Seq)
 
 
+class _Who(msgspec.Struct):
+    seq: int
+    principal: str | None = None
+
+
+_WHO = msgspec.json.Decoder(_Who)
+
+
 def complete_lines(path: Path) -> bytes:
     data = path.read_bytes()
     return data[: data.rfind(b"\n") + 1]  # a line being appended right now is not one yet
@@ -66,6 +75,19 @@ def entries_after(path: Path, since: int, limit: int) -> list[bytes]:
             if len(found) == limit:
                 break
     return found
+
+
+def entries_of(path: Path, principal: str, since: int, limit: int, last: bool) -> list[bytes]:
+    """One principal's entries with seq > since: the first `limit`, or with `last` the newest
+    `limit` (a whole scan: the log has no index by principal)."""
+    found: collections.deque[bytes] = collections.deque(maxlen=limit if last else None)
+    for line in complete_lines(path).splitlines():
+        who = _WHO.decode(line)
+        if who.seq > since and who.principal == principal:
+            found.append(line)
+            if not last and len(found) == limit:
+                break
+    return list(found)
 
 
 def line_seq(line: bytes) -> int:

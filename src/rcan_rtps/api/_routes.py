@@ -5,20 +5,24 @@ from __future__ import annotations
 import msgspec
 from aiohttp import web
 
+from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.governance.clock import SystemClock, now_ms
 from rcan_rtps.governance.hitl import Verdict
 from rcan_rtps.rcan import Authorize, ErrorCode, Role, SchemaValidationError
 
 from ._bodies import (
+    ApiError,
     AuditPage,
     GoalList,
     HeartbeatAck,
     PendingList,
     PendingView,
+    error_body,
     error_response,
     json_response,
 )
 from ._commands import decode_as, read_limited, run_command, schema_failure, too_large
+from ._errors import ReadsBusy
 from ._keys import (
     CHECKS,
     GOVERNOR,
@@ -30,7 +34,8 @@ from ._keys import (
     SETTINGS,
     STATUS,
 )
-from ._reads import line_seq
+from ._reads import entries_of, line_seq
+from .ports import GoalView, RobotView
 
 _WALL = SystemClock()
 
@@ -67,10 +72,13 @@ async def get_status(request: web.Request) -> web.Response:
     return json_response(request.app[STATUS].snapshot())
 
 
+def heartbeat(governor: Governor, principal: Principal) -> HeartbeatAck:
+    governor.heartbeat(principal)
+    return HeartbeatAck(principal=principal.name, timestamp_ms=now_ms(_WALL))
+
+
 async def post_heartbeat(request: web.Request) -> web.Response:
-    principal = request[PRINCIPAL]
-    request.app[GOVERNOR].heartbeat(principal)
-    return json_response(HeartbeatAck(principal=principal.name, timestamp_ms=now_ms(_WALL)))
+    return json_response(heartbeat(request.app[GOVERNOR], request[PRINCIPAL]))
 
 
 async def get_goals(request: web.Request) -> web.Response:
@@ -86,11 +94,16 @@ async def get_thought(request: web.Request) -> web.Response:
     return json_response(thought)
 
 
-async def get_goal(request: web.Request) -> web.Response:
-    goal = request.app[ROBOT].goal(request.match_info["goal_id"])
+def goal_view(robot: RobotView, goal_id: str) -> tuple[int, GoalView | ApiError]:
+    goal = robot.goal(goal_id)
     if goal is None:
-        return error_response(404, "NOT_FOUND", reason="goal_not_found")
-    return json_response(goal)
+        return 404, error_body("NOT_FOUND", reason="goal_not_found")
+    return 200, goal
+
+
+async def get_goal(request: web.Request) -> web.Response:
+    status, body = goal_view(request.app[ROBOT], request.match_info["goal_id"])
+    return json_response(body, status)
 
 
 async def get_skills(request: web.Request) -> web.Response:
@@ -111,18 +124,24 @@ async def get_pending(request: web.Request) -> web.Response:
     return json_response(PendingList(pending=governor.pending()))
 
 
-async def get_pending_one(request: web.Request) -> web.Response:
+async def pending_view(governor: Governor, principal: Principal, pending_id: str
+                       ) -> tuple[int, PendingView | ApiError]:
     """One held command, for its issuer (an agent waiting for a human) and its approvers:
     waiting, or what came of it. Anyone else is refused as if it were unknown (404)."""
-    governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
     await governor.expire_pending()  # an expired one reads as expired, not as waiting
-    record = governor.pending_record(request.match_info["pending_id"])
+    record = governor.pending_record(pending_id)
     if record is None or not record.may_read(principal):
-        return error_response(404, "NOT_FOUND", reason="pending_not_found")
+        return 404, error_body("NOT_FOUND", reason="pending_not_found")
     decision = record.decision
-    return json_response(PendingView(
-        pending_id=record.held.pending_id, state=record.state, pending=record.held,
-        decision=decision.body() if decision else None))
+    return 200, PendingView(pending_id=record.held.pending_id, state=record.state,
+                            pending=record.held,
+                            decision=decision.body() if decision else None)
+
+
+async def get_pending_one(request: web.Request) -> web.Response:
+    status, body = await pending_view(request.app[GOVERNOR], request[PRINCIPAL],
+                                      request.match_info["pending_id"])
+    return json_response(body, status)
 
 
 async def post_authorize(request: web.Request) -> web.Response:
@@ -168,28 +187,65 @@ def _query_int(request: web.Request, name: str, default: int, lo: int, hi: int) 
     return int(text)
 
 
+def _paging(request: web.Request) -> tuple[int, int]:
+    """`since` and `limit` of an audit page (raises SchemaValidationError)."""
+    page_max = request.app[SETTINGS].audit_page_max
+    return (_query_int(request, "since", 0, 0, 2**62),
+            _query_int(request, "limit", page_max, 1, page_max))
+
+
+def _page_body(app: web.Application, lines: list[bytes], since: int) -> bytes:
+    """An AuditPage with the entries passed on byte for byte, so a client can re-hash and
+    re-verify each."""
+    last = line_seq(lines[-1]) if lines else since
+    page = AuditPage(entries=[], next_since=last, head_seq=app[GOVERNOR].audit.head.last_seq)
+    head = msgspec.json.encode(page)
+    return head.replace(b'"entries":[]', b'"entries":[' + b",".join(lines) + b"]", 1)
+
+
+_READS_BUSY = (429, error_body(ErrorCode.RATE_LIMITED, reason="reads_busy"))
+
+
 async def get_audit(request: web.Request) -> web.Response:
-    settings = request.app[SETTINGS]
-    refused = _forbidden(request, settings.audit_read_role)
+    refused = _forbidden(request, request.app[SETTINGS].audit_read_role)
     if refused is not None:
         return refused
     try:
-        since = _query_int(request, "since", 0, 0, 2**62)
-        limit = _query_int(request, "limit", settings.audit_page_max, 1, settings.audit_page_max)
+        since, limit = _paging(request)
     except SchemaValidationError as exc:
         return error_response(400, ErrorCode.SCHEMA_VALIDATION_FAILED, reason=exc.detail,
                               path=exc.path)
     lines = await request.app[READS].page(since, limit)
     if lines is None:  # the reader is busy: a bound, not a fault; try again shortly
-        return error_response(429, ErrorCode.RATE_LIMITED, reason="reads_busy",
-                              headers={"Retry-After": "1"})
-    last = line_seq(lines[-1]) if lines else since
-    # Entries are passed on byte for byte, so a client can re-hash and re-verify each.
-    head_seq = request.app[GOVERNOR].audit.head.last_seq
-    page = AuditPage(entries=[], next_since=last, head_seq=head_seq)
-    head = msgspec.json.encode(page)
-    body = head.replace(b'"entries":[]', b'"entries":[' + b",".join(lines) + b"]", 1)
-    return web.Response(body=body, content_type="application/json")
+        return json_response(_READS_BUSY[1], _READS_BUSY[0], {"Retry-After": "1"})
+    return web.Response(body=_page_body(request.app, lines, since),
+                        content_type="application/json")
+
+
+async def my_audit(app: web.Application, principal: Principal, since: int, limit: int,
+                   last: bool) -> tuple[int, bytes | ApiError]:
+    """The caller's own entries (any role: what it did, never anyone else's)."""
+    try:
+        lines = await app[READS].read(entries_of, app[GOVERNOR].audit.path, principal.name,
+                                      since, limit, last)
+    except ReadsBusy:
+        return _READS_BUSY
+    return 200, _page_body(app, lines, since)
+
+
+async def get_my_audit(request: web.Request) -> web.Response:
+    """GET /api/audit/mine?since=&limit= (oldest first) or ?last=N (the newest N)."""
+    try:
+        since, limit = _paging(request)
+        last = _query_int(request, "last", 0, 0, request.app[SETTINGS].audit_page_max)
+    except SchemaValidationError as exc:
+        return error_response(400, ErrorCode.SCHEMA_VALIDATION_FAILED, reason=exc.detail,
+                              path=exc.path)
+    status, body = await my_audit(request.app, request[PRINCIPAL], since, last or limit,
+                                  last > 0)
+    if isinstance(body, bytes):
+        return web.Response(body=body, content_type="application/json")
+    return json_response(body, status, {"Retry-After": "1"})
 
 
 async def get_audit_verify(request: web.Request) -> web.Response:

@@ -37,9 +37,9 @@ from rcan_rtps.governance.treehead import tree_head_path
 from rcan_rtps.rcan import SPOKEN, ErrorCode, Role
 from rcan_rtps.rcan.actions import Effect, EstopSignal, Invariant, specs, with_effect
 
-from ._bodies import error_response
+from ._bodies import ApiError, error_body, json_response
 from ._errors import ReadsBusy
-from ._keys import READS
+from ._keys import GOVERNOR, READS
 from ._node_manifest import AUDIT_EXPORT, newest_version
 from ._reads import last_line
 
@@ -117,11 +117,11 @@ def _audit_tails(path: Path) -> tuple[_Tail | None, dict[str, Any] | None]:
     return tail, None if head is None else msgspec.json.decode(head)
 
 
-async def live_part(request: web.Request, governor: Governor) -> dict[str, Any]:
+async def live_part(app: web.Application, governor: Governor) -> dict[str, Any]:
     from rcan_rtps.governance.timesync import clock_status  # ctypes: only once asked
 
     audit = governor.audit
-    tail, tree_head = await request.app[READS].read(_audit_tails, audit.path)
+    tail, tree_head = await app[READS].read(_audit_tails, audit.path)
     clock = clock_status()
     head = audit.head
     return {
@@ -144,18 +144,24 @@ async def live_part(request: web.Request, governor: Governor) -> dict[str, Any]:
     }
 
 
-def handler(config: RcanConfig, governor: Governor
-            ) -> Callable[[web.Request], Awaitable[web.Response]]:
+async def manifest_reply(app: web.Application, fixed: dict[str, Any]
+                         ) -> tuple[int, bytes | ApiError]:
+    """The manifest now (`fixed`: its `static_part`), or 429 while the reader is busy."""
+    try:
+        live = await live_part(app, app[GOVERNOR])
+    except ReadsBusy:
+        return 429, error_body(ErrorCode.RATE_LIMITED, reason="reads_busy")
+    estop = {**fixed["estop"], "latched": live.pop("estop_latched")}
+    return 200, msgspec.json.encode({**fixed, **live, "estop": estop})
+
+
+def handler(config: RcanConfig) -> Callable[[web.Request], Awaitable[web.Response]]:
     fixed = static_part(config)
 
     async def get_safety_manifest(request: web.Request) -> web.Response:
-        try:
-            live = await live_part(request, governor)
-        except ReadsBusy:
-            return error_response(429, ErrorCode.RATE_LIMITED, reason="reads_busy",
-                                  headers={"Retry-After": "1"})
-        estop = {**fixed["estop"], "latched": live.pop("estop_latched")}
-        body = {**fixed, **live, "estop": estop}
-        return web.Response(body=msgspec.json.encode(body), content_type="application/json")
+        status, body = await manifest_reply(request.app, fixed)
+        if isinstance(body, bytes):
+            return web.Response(body=body, content_type="application/json")
+        return json_response(body, status, {"Retry-After": "1"})
 
     return get_safety_manifest

@@ -43,12 +43,13 @@ def run(args: argparse.Namespace) -> int:
         if not value.strip() or len(value) > 256:
             raise ValueError(f"{option}: expected 1 to 256 characters")
     try:
-        from ..mcp_server.server import Agent, serve_stdio
+        from ..mcp_server.server import serve_stdio
     except ModuleNotFoundError as exc:
         if exc.name is not None and exc.name.split(".")[0] in ("mcp", "mcp_types"):
             raise ValueError(EXTRA_HINT) from None
         raise
     from ..mcp_server.bridge import check_url
+    from ..mcp_server.seat import Agent
 
     asyncio.run(serve_stdio(check_url(args.url), token,
                             Agent(args.ai_provider, args.ai_model)))

@@ -1,4 +1,5 @@
-"""The bridge's REST API as the MCP server uses it: with the agent's token, and nothing else.
+"""`RobotApi` over the bridge's REST API, with the agent's token and nothing else (the stdio
+server, `rcan-rtps mcp`).
 
 Replies come back as they are (status and JSON body), refusals included: deciding is the
 bridge's. What is not a reply — the bridge unreachable, a body that is not JSON — is a
@@ -9,30 +10,16 @@ from __future__ import annotations
 
 import asyncio
 import json
-from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
 from urllib.parse import quote, urlsplit
 
 import aiohttp
 
-from . import McpServerError
+from .ports import BridgeUnavailable, Reply
 
 REQUEST_TIMEOUT_S = 10.0
-
-
-class BridgeUnavailable(McpServerError):
-    """No usable reply from the bridge."""
-
-
-@dataclass(frozen=True)
-class Reply:
-    status: int
-    body: dict[str, Any]
-
-    @property
-    def ok(self) -> bool:
-        return self.status < 400
+__all__ = ["BridgeClient", "BridgeUnavailable", "Reply", "check_url"]
 
 
 def check_url(url: str) -> str:
@@ -66,11 +53,31 @@ class BridgeClient:
         if self._http is not None:
             await self._http.close()
 
-    async def get(self, path: str) -> Reply:
-        return await self._request("GET", path)
+    # -- RobotApi -------------------------------------------------------------------------
 
-    async def post(self, path: str, body: dict[str, Any] | None = None) -> Reply:
-        return await self._request("POST", path, body)
+    async def command(self, body: dict[str, Any]) -> Reply:
+        return await self._request("POST", "/api/command", body)
+
+    async def heartbeat(self) -> Reply:
+        return await self._request("POST", "/api/heartbeat")
+
+    async def status(self) -> Reply:
+        return await self._request("GET", "/api/status")
+
+    async def goals(self) -> Reply:
+        return await self._request("GET", "/api/goals")
+
+    async def goal(self, goal_id: str) -> Reply:
+        return await self._request("GET", f"/api/goals/{path_part(goal_id)}")
+
+    async def pending(self, pending_id: str) -> Reply:
+        return await self._request("GET", f"/api/hitl/pending/{path_part(pending_id)}")
+
+    async def my_audit(self, last: int) -> Reply:
+        return await self._request("GET", f"/api/audit/mine?last={int(last)}")
+
+    async def safety_manifest(self) -> Reply:
+        return await self._request("GET", "/api/safety/manifest")
 
     async def _request(self, method: str, path: str, body: Any = None) -> Reply:
         if self._http is None:

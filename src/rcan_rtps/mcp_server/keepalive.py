@@ -6,6 +6,10 @@ silence between tool calls, so this server holds the session for it — for as l
 it started lasts, or a goal it started has not ended — and for nothing else: once the agent's
 motion is over (or stopped), the heartbeats stop, and if this server goes away, so do they,
 and the bridge halts what is left.
+
+One `Keepalive` per agent principal (heartbeats are a principal's); each hold remembers the
+MCP session that started it, so a session that closes can stop what it left running
+(`release_session`) without touching another session's.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import logging
 import time
 from dataclasses import dataclass
 
-from .bridge import BridgeClient, BridgeUnavailable, path_part
+from .ports import BridgeUnavailable, RobotApi
 
 log = logging.getLogger(__name__)
 INTERVAL_S = 1.0  # the demo's session timeout is 5 s; a config's is at least this, or close
@@ -27,10 +31,14 @@ GOAL_ENDED = frozenset({"succeeded", "canceled", "aborted", "rejected", "unknown
 class Hold:
     until: float | None = None  # monotonic end of a timed move
     goal_id: str | None = None  # a goal, until it ends
+    session: str | None = None  # the MCP session that started it (None: stdio's only one)
+
+    def running(self, now: float) -> bool:
+        return self.until is None or self.until > now
 
 
 class Keepalive:
-    def __init__(self, bridge: BridgeClient, *, interval_s: float = INTERVAL_S) -> None:
+    def __init__(self, bridge: RobotApi, *, interval_s: float = INTERVAL_S) -> None:
         self._bridge = bridge
         self._interval = interval_s
         self._holds: dict[str, Hold] = {}
@@ -41,17 +49,24 @@ class Keepalive:
         """Whether motion this server started may still run (a move not yet over, a goal not
         known to have ended)."""
         now = time.monotonic()
-        return any(h.until is None or h.until > now for h in self._holds.values())
+        return any(h.running(now) for h in self._holds.values())
 
-    def hold_for(self, key: str, seconds: float) -> None:
-        self._hold(key, Hold(until=time.monotonic() + seconds + MARGIN_S))
+    def hold_for(self, key: str, seconds: float, session: str | None = None) -> None:
+        self._hold(key, Hold(until=time.monotonic() + seconds + MARGIN_S, session=session))
 
-    def hold_goal(self, key: str, goal_id: str) -> None:
-        self._hold(key, Hold(goal_id=goal_id))
+    def hold_goal(self, key: str, goal_id: str, session: str | None = None) -> None:
+        self._hold(key, Hold(goal_id=goal_id, session=session))
 
     def release_all(self) -> None:
         """The robot was stopped: nothing this server started runs any more."""
         self._holds.clear()
+
+    def release_session(self, session: str) -> bool:
+        """Forget a closed session's holds: whether any of them may still be running."""
+        now = time.monotonic()
+        mine = [k for k, h in self._holds.items() if h.session == session]
+        running = any(self._holds.pop(k).running(now) for k in mine)
+        return running
 
     def _hold(self, key: str, hold: Hold) -> None:
         self._holds[key] = hold
@@ -78,7 +93,7 @@ class Keepalive:
 
     async def _goal_over(self, goal_id: str) -> bool:
         try:
-            reply = await self._bridge.get(f"/api/goals/{path_part(goal_id)}")
+            reply = await self._bridge.goal(goal_id)
         except BridgeUnavailable as exc:
             log.warning("goal %s: %s", goal_id, exc)
             return False  # keep the session: the bridge decides when it is lost
@@ -86,7 +101,7 @@ class Keepalive:
 
     async def _beat(self) -> None:
         try:
-            reply = await self._bridge.post("/api/heartbeat")
+            reply = await self._bridge.heartbeat()
         except BridgeUnavailable as exc:
             log.warning("heartbeat: %s", exc)
             return

@@ -14,7 +14,7 @@ import asyncio
 import json
 import logging
 import uuid
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import anyio
@@ -22,11 +22,16 @@ import mcp_types as types
 from mcp.server.context import ServerRequestContext
 from mcp.server.lowlevel import Server
 from mcp.server.stdio import stdio_server
+from mcp.shared.exceptions import MCPError
+from mcp_types.jsonrpc import INTERNAL_ERROR, INVALID_REQUEST
 
 from rcan_rtps import __version__
 
-from .bridge import BridgeClient, BridgeUnavailable, Reply, path_part
+from .bridge import BridgeClient
 from .keepalive import Keepalive
+from .ports import BridgeUnavailable, Reply, RobotApi
+from .resources import JSON_TYPE, RESOURCE_NOT_FOUND, RESOURCES
+from .seat import Agent, Seat
 from .tools import DURATION, WAIT_MAX_S, ToolDef, derive_tools
 
 log = logging.getLogger(__name__)
@@ -39,12 +44,10 @@ INSTRUCTIONS = (
     "command returns a pending_id: call wait_for_approval. estop and stop always work.")
 
 
-@dataclass(frozen=True)
-class Agent:
-    """Who the agent is, as every command of this server names it (§16 AI fields)."""
-
-    provider: str
-    model: str
+def ai_fields(agent: Agent) -> dict[str, str]:
+    """The short form's AI identity fields the agent has (none it has not)."""
+    fields = {"ai_provider": agent.provider, "ai_model": agent.model}
+    return {k: v for k, v in fields.items() if v is not None}
 
 
 def client_of(ctx: ServerRequestContext[Any]) -> str:
@@ -89,21 +92,42 @@ def _outcome_note(body: dict[str, Any]) -> str:
     return str(outcome)
 
 
-class RobotTools:
-    """The handlers: list the derived tools, run one."""
+SeatOf = Callable[[ServerRequestContext[Any]], Seat]
 
-    def __init__(self, bridge: BridgeClient, agent: Agent, keepalive: Keepalive,
-                 tools: dict[str, ToolDef] | None = None) -> None:
-        self._bridge = bridge
-        self._agent = agent
-        self._keepalive = keepalive
-        self._tools = derive_tools() if tools is None else tools
+
+class RobotTools:
+    """The handlers: list the derived tools and resources, run a tool, read a resource.
+
+    `seat_of` says who calls: one fixed seat over stdio, the authenticated principal of each
+    request at the bridge's `/mcp`. `tools` (tests) replaces the registry's; otherwise the
+    tools are derived once the robot's safety manifest is known (its limits go into the
+    descriptions), from `manifest` or from the bridge on the first listing.
+    """
+
+    def __init__(self, seat_of: SeatOf, *, tools: dict[str, ToolDef] | None = None,
+                 manifest: Mapping[str, Any] | None = None) -> None:
+        self._seat_of = seat_of
+        self._described = tools is not None or manifest is not None
+        self._tools = tools if tools is not None else derive_tools(manifest=manifest)
 
     async def list_tools(self, ctx: ServerRequestContext[Any],
                          params: types.PaginatedRequestParams | None) -> types.ListToolsResult:
+        if not self._described:
+            await self._describe(self._seat_of(ctx).api)
         return types.ListToolsResult(tools=[
             types.Tool(name=t.name, description=t.description, input_schema=t.input_schema)
             for t in self._tools.values()])
+
+    async def _describe(self, api: RobotApi) -> None:
+        """The tools with this robot's limits; without them while the bridge cannot say."""
+        try:
+            manifest = await api.safety_manifest()
+        except BridgeUnavailable as exc:
+            log.warning("safety manifest: %s", exc)
+            return
+        if manifest.ok:
+            self._tools = derive_tools(manifest=manifest.body)
+            self._described = True
 
     async def call_tool(self, ctx: ServerRequestContext[Any],
                         params: types.CallToolRequestParams) -> types.CallToolResult:
@@ -112,9 +136,10 @@ class RobotTools:
             return failure(f"no tool named {params.name!r}", "UNKNOWN_TOOL")
         args = dict(params.arguments or {})
         try:
+            seat = self._seat_of(ctx)
             if tool.action is not None:
-                return await self._command(tool, args, client_of(ctx))
-            return await self._read(tool.name, args)
+                return await self._command(seat, tool, args, client_of(ctx))
+            return await self._read(seat, tool.name, args)
         except BridgeUnavailable as exc:
             return failure(str(exc), "BRIDGE_UNAVAILABLE")
         except Exception:  # a tool error, never a traceback to the agent: the log has it
@@ -124,13 +149,12 @@ class RobotTools:
 
     # -- actions --------------------------------------------------------------------------
 
-    async def _command(self, tool: ToolDef, args: dict[str, Any],
+    async def _command(self, seat: Seat, tool: ToolDef, args: dict[str, Any],
                        client: str) -> types.CallToolResult:
         assert tool.action is not None
         thought_id = uuid.uuid4().hex
-        body: dict[str, Any] = {
-            "action": tool.name, "ai_provider": self._agent.provider,
-            "ai_model": self._agent.model, "ai_client": client, "thought_id": thought_id}
+        body: dict[str, Any] = {"action": tool.name, **ai_fields(seat.agent),
+                                "ai_client": client, "thought_id": thought_id}
         if "confidence" in args:
             body["confidence"] = args.pop("confidence")
         if "reasoning" in args:
@@ -139,53 +163,53 @@ class RobotTools:
         if tool.timed and args.get(DURATION) is None:
             return failure(f"`{DURATION}` is required: a {tool.name} an agent starts is timed",
                            "SCHEMA_VALIDATION_FAILED")
-        reply = await self._bridge.post("/api/command", body)
+        reply = await seat.api.command(body)
         if reply.ok:
-            self._started(tool, args, reply.body, key=thought_id)
+            self._started(seat, tool, args, reply.body, key=thought_id)
         return result(reply, _outcome_note(reply.body), thought_id=thought_id)
 
-    def _started(self, tool: ToolDef, params: dict[str, Any], body: dict[str, Any],
-                 key: str) -> None:
+    def _started(self, seat: Seat, tool: ToolDef, params: dict[str, Any],
+                 body: dict[str, Any], key: str) -> None:
         """Hold the control session for what an executed command left running."""
-        spec = tool.action
+        spec, keepalive = tool.action, seat.keepalive
         if spec is None or body.get("outcome") != "executed":
             return
         applied = body.get("applied") or {}
         duration = applied.get(DURATION, params.get(DURATION))  # as governed, if it says
         if spec.stopping:
-            self._keepalive.release_all()
+            keepalive.release_all()
         elif tool.timed and isinstance(duration, int | float):
-            self._keepalive.hold_for(key, float(duration))
+            keepalive.hold_for(key, float(duration), seat.session)
         elif spec.starts_goal and isinstance(body.get("goal_id"), str):
-            self._keepalive.hold_goal(key, body["goal_id"])
+            keepalive.hold_goal(key, body["goal_id"], seat.session)
 
     # -- reads ----------------------------------------------------------------------------
 
-    async def _read(self, name: str, args: dict[str, Any]) -> types.CallToolResult:
+    async def _read(self, seat: Seat, name: str, args: dict[str, Any]
+                    ) -> types.CallToolResult:
+        api = seat.api
         if name == "get_status":
-            return result(await self._bridge.get("/api/status"), "status")
+            return result(await api.status(), "status")
         if name == "get_goals":
-            return result(await self._bridge.get("/api/goals"), "goals")
+            return result(await api.goals(), "goals")
         pending_id = args.get("pending_id")
         if not isinstance(pending_id, str) or not pending_id:
             return failure("`pending_id` must be a non-empty string", "SCHEMA_VALIDATION_FAILED")
         if name == "get_pending_approval":
-            reply = await self._pending(pending_id)
+            reply = await api.pending(pending_id)
             return result(reply, str(reply.body.get("state", "")))
         timeout = args.get("timeout_s", 30.0)
         if not isinstance(timeout, int | float) or not 0 < timeout <= WAIT_MAX_S:
             return failure(f"`timeout_s` must be a number in (0, {WAIT_MAX_S:g}]",
                            "SCHEMA_VALIDATION_FAILED")
-        return await self._wait(pending_id, float(timeout))
+        return await self._wait(seat, pending_id, float(timeout))
 
-    async def _pending(self, pending_id: str) -> Reply:
-        return await self._bridge.get(f"/api/hitl/pending/{path_part(pending_id)}")
-
-    async def _wait(self, pending_id: str, timeout_s: float) -> types.CallToolResult:
+    async def _wait(self, seat: Seat, pending_id: str, timeout_s: float
+                    ) -> types.CallToolResult:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout_s
         while True:
-            reply = await self._pending(pending_id)
+            reply = await seat.api.pending(pending_id)
             state = reply.body.get("state")
             if not reply.ok or state == "resolved":
                 break
@@ -195,47 +219,78 @@ class RobotTools:
             await asyncio.sleep(min(POLL_S, max(0.0, deadline - loop.time())))
         if not reply.ok:
             return result(reply, "")
-        return self._resolved(reply)
+        return self._resolved(seat, reply)
 
-    def _resolved(self, reply: Reply) -> types.CallToolResult:
+    def _resolved(self, seat: Seat, reply: Reply) -> types.CallToolResult:
         """A decided command: an error unless it executed; what it started is held."""
         decision = reply.body.get("decision") or {}
         held = (reply.body.get("pending") or {}).get("original_command") or {}
         tool = self._tools.get(str(held.get("action")))
         if tool is not None and isinstance(held.get("params"), dict):
-            self._started(tool, held["params"], decision, key=str(reply.body["pending_id"]))
+            self._started(seat, tool, held["params"], decision,
+                          key=str(reply.body["pending_id"]))
         shown = {"http_status": reply.status, **reply.body,
                  **{k: decision[k] for k in ("outcome", "error_code", "reason") if k in decision}}
         outcome = str(decision.get("outcome", ""))
         return tool_result(shown, outcome, error=outcome != "executed")
 
+    # -- resources ------------------------------------------------------------------------
+
+    async def list_resources(self, ctx: ServerRequestContext[Any],
+                             params: types.PaginatedRequestParams | None
+                             ) -> types.ListResourcesResult:
+        return types.ListResourcesResult(resources=[
+            types.Resource(uri=r.uri, name=r.name, description=r.description,
+                           mime_type=JSON_TYPE) for r in RESOURCES.values()])
+
+    async def read_resource(self, ctx: ServerRequestContext[Any],
+                            params: types.ReadResourceRequestParams
+                            ) -> types.ReadResourceResult:
+        uri = str(params.uri)
+        resource = RESOURCES.get(uri)
+        if resource is None:
+            raise MCPError(RESOURCE_NOT_FOUND, f"no resource {uri!r}: see resources/list")
+        try:
+            reply = await resource.read(self._seat_of(ctx).api)
+        except BridgeUnavailable as exc:
+            raise MCPError(INTERNAL_ERROR, f"BRIDGE_UNAVAILABLE: {exc}") from None
+        if not reply.ok:
+            code = reply.body.get("error_code") or reply.body.get("outcome") or "REFUSED"
+            raise MCPError(INVALID_REQUEST, f"refused: {code}: "
+                           f"{reply.body.get('reason') or 'no reason given'} "
+                           f"(HTTP {reply.status})", {"http_status": reply.status, **reply.body})
+        return types.ReadResourceResult(contents=[types.TextResourceContents(
+            uri=uri, mime_type=JSON_TYPE, text=json.dumps(resource.shape(reply.body)))])
+
 
 def build_server(tools: RobotTools) -> Server[Any]:
     return Server("rcan-rtps", version=__version__, instructions=INSTRUCTIONS,
-                  on_list_tools=tools.list_tools, on_call_tool=tools.call_tool)
+                  on_list_tools=tools.list_tools, on_call_tool=tools.call_tool,
+                  on_list_resources=tools.list_resources,
+                  on_read_resource=tools.read_resource)
 
 
 async def serve_stdio(url: str, token: str, agent: Agent) -> None:
     """Serve MCP on stdin/stdout until the client closes them; then stop what is still
     running that this server started (an agent gone must not leave the robot moving)."""
     async with BridgeClient(url, token) as bridge:
-        keepalive = Keepalive(bridge)
-        server = build_server(RobotTools(bridge, agent, keepalive))
+        seat = Seat(bridge, agent, Keepalive(bridge))
+        server = build_server(RobotTools(lambda ctx: seat))
         async with stdio_server() as (read, write), anyio.create_task_group() as group:
-            group.start_soon(keepalive.run)
+            group.start_soon(seat.keepalive.run)
             await server.run(read, write, server.create_initialization_options())
             group.cancel_scope.cancel()
-        if keepalive.holding:
-            await _stop_on_exit(bridge, agent)
+        if seat.keepalive.holding:
+            await stop_left_running(seat, "MCP client disconnected")
 
 
-async def _stop_on_exit(bridge: BridgeClient, agent: Agent) -> None:
-    body = {"action": "stop", "params": {"reason": "MCP client disconnected"},
-            "ai_provider": agent.provider, "ai_model": agent.model}
+async def stop_left_running(seat: Seat, reason: str) -> None:
+    """Stop the robot as the agent: its client went away while motion it started ran."""
+    body = {"action": "stop", "params": {"reason": reason}, **ai_fields(seat.agent)}
+    seat.keepalive.release_all()
     try:
-        reply = await bridge.post("/api/command", body)
+        reply = await seat.api.command(body)
     except BridgeUnavailable as exc:
-        log.warning("stop at exit: %s", exc)
+        log.warning("stop (%s): %s", reason, exc)
         return
-    log.info("stop at exit (the MCP client left while its motion ran): %s",
-             reply.body.get("outcome"))
+    log.info("stop (%s, while motion it started ran): %s", reason, reply.body.get("outcome"))

@@ -19,7 +19,7 @@ from typing import Any
 
 import msgspec
 
-from rcan_rtps.rcan.actions import ActionSpec, specs
+from rcan_rtps.rcan.actions import ActionSpec, Invariant, specs
 
 DURATION = "duration_s"
 PENDING_ID = {"type": "string", "minLength": 1, "maxLength": 64, "pattern": "^[A-Za-z0-9_-]+$",
@@ -36,6 +36,14 @@ AI_ARGUMENTS: Mapping[str, dict[str, Any]] = {
                        "by its owners), its SHA-256 in the signed audit log."},
 }
 WAIT_MAX_S = 600.0
+# The robot's limits (its safety manifest's `limits`) each check holds an action to, with
+# their units: an action's description states those of its checks, so a new action is
+# described with no code here.
+LIMITS: Mapping[Invariant, tuple[tuple[str, str], ...]] = {
+    Invariant.VELOCITY: (("max_linear_vel", "m/s"), ("max_angular_vel", "rad/s")),
+    Invariant.DURATION: (("max_move_duration_s", "s"),),
+    Invariant.ACCELERATION: (("max_linear_accel", "m/s²"), ("max_angular_accel", "rad/s²")),
+}
 
 
 @dataclass(frozen=True)
@@ -73,7 +81,24 @@ def _required(prop: dict[str, Any]) -> dict[str, Any]:
     return {**branches[0], **kept} if len(branches) == 1 else kept
 
 
-def _describe(spec: ActionSpec[Any]) -> str:
+def _limits_line(spec: ActionSpec[Any], manifest: Mapping[str, Any]) -> str | None:
+    """This robot's limits on the action, from its safety manifest (None: none apply)."""
+    limits = manifest.get("limits") or {}
+    said = [f"{name} {limits[name]:g} {unit}" for check in spec.invariants
+            for name, unit in LIMITS.get(check, ()) if isinstance(limits.get(name), int | float)]
+    if Invariant.VELOCITY in spec.invariants and said:
+        over = ("refused" if limits.get("velocity_exceed_deny", True)
+                else "clamped to the limit")
+        said.append(f"a velocity up to 10 % over is clamped to the limit, beyond that {over}")
+    workspace = manifest.get("workspace")
+    if Invariant.WORKSPACE in spec.invariants and isinstance(workspace, dict):
+        corners = " ".join(f"({x:g}, {y:g})" for x, y in workspace.get("polygon", ()))
+        said.append(f"the goal must lie inside the workspace polygon {corners} "
+                    f"(frame {workspace.get('frame_id')}, m)")
+    return f"This robot's limits: {'; '.join(said)}." if said else None
+
+
+def _describe(spec: ActionSpec[Any], manifest: Mapping[str, Any]) -> str:
     facts = spec.describe()
     lines = [spec.summary,
              f"Needs the {facts['default_role']} role or higher (the robot's config may "
@@ -92,11 +117,16 @@ def _describe(spec: ActionSpec[Any]) -> str:
         lines.append("Starts a goal (its goal_id comes back): follow it with get_goals; this "
                      "server keeps the control session alive until it ends.")
     lines.append(f"Checked by: {', '.join(facts['invariants'])}.")
+    limits = _limits_line(spec, manifest)
+    if limits is not None:
+        lines.append(limits)
     return " ".join(lines)
 
 
-def action_tool(spec: ActionSpec[Any]) -> ToolDef | None:
-    """The tool of one registry action; None for a streamed action that cannot be timed."""
+def action_tool(spec: ActionSpec[Any], manifest: Mapping[str, Any] | None = None
+                ) -> ToolDef | None:
+    """The tool of one registry action; None for a streamed action that cannot be timed.
+    `manifest`: the robot's safety manifest, whose limits the description states."""
     schema = params_schema(spec.params)
     props: dict[str, Any] = copy.deepcopy(schema.get("properties", {}))
     required = list(schema.get("required", []))
@@ -114,7 +144,7 @@ def action_tool(spec: ActionSpec[Any]) -> ToolDef | None:
             prop["description"] = "seconds"
     props.update(copy.deepcopy(dict(AI_ARGUMENTS)))
     schema.update(properties=props, required=sorted(set(required)))
-    return ToolDef(spec.name, _describe(spec), schema, spec)
+    return ToolDef(spec.name, _describe(spec, manifest or {}), schema, spec)
 
 
 def _object(properties: dict[str, Any], required: list[str]) -> dict[str, Any]:
@@ -144,10 +174,12 @@ READS = (
 )
 
 
-def derive_tools(actions: Iterable[ActionSpec[Any]] | None = None) -> dict[str, ToolDef]:
-    """Every tool by name: the registry's actions (`specs()` unless given), then the reads."""
+def derive_tools(actions: Iterable[ActionSpec[Any]] | None = None,
+                 manifest: Mapping[str, Any] | None = None) -> dict[str, ToolDef]:
+    """Every tool by name: the registry's actions (`specs()` unless given), then the reads.
+    `manifest`: the robot's safety manifest (its limits go into the descriptions)."""
     tools: dict[str, ToolDef] = {}
-    found = [action_tool(spec) for spec in (specs() if actions is None else actions)]
+    found = [action_tool(spec, manifest) for spec in (specs() if actions is None else actions)]
     for tool in [*(t for t in found if t is not None), *READS]:
         if tool.name in tools:
             raise ValueError(f"two tools named {tool.name!r}")

@@ -1,0 +1,96 @@
+"""An ASGI application behind one aiohttp route (the MCP SDK's streamable HTTP transport).
+
+aiohttp has already read and authenticated the request: the body is read whole before the
+application runs (bounded like any other body), and what the route adds to the scope (who
+asked) goes in as extra scope keys. The application's response is streamed as it comes
+(a Server-Sent Events stream stays open as long as the application writes to it). When the
+client goes away, the application's `receive()` says so (`http.disconnect`), and writes to
+the gone client raise `ConnectionResetError`, which ASGI applications take as a disconnect.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Awaitable, Callable, MutableMapping
+from typing import Any
+
+from aiohttp import web
+
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+AsgiApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+GONE_POLL_S = 1.0  # how often a waiting `receive()` looks whether the client is still there
+
+
+def scope_of(request: web.Request, extra: dict[str, Any]) -> Scope:
+    peer = request.transport.get_extra_info("peername") if request.transport else None
+    host = request.transport.get_extra_info("sockname") if request.transport else None
+    return {
+        "type": "http", "asgi": {"version": "3.0", "spec_version": "2.3"},
+        "http_version": f"{request.version.major}.{request.version.minor}",
+        "method": request.method, "scheme": request.scheme,
+        "path": request.path, "raw_path": request.raw_path.split("?", 1)[0].encode(),
+        "query_string": request.query_string.encode(), "root_path": "",
+        "headers": [(k.lower(), v) for k, v in request.raw_headers],
+        "client": tuple(peer[:2]) if isinstance(peer, tuple) else None,
+        "server": tuple(host[:2]) if isinstance(host, tuple) else None,
+        **extra,
+    }
+
+
+class _Exchange:
+    """One request's `receive` and `send`, and the aiohttp response they build."""
+
+    def __init__(self, request: web.Request, body: bytes) -> None:
+        self._request = request
+        self._body: bytes | None = body
+        self._done = asyncio.Event()
+        self.response: web.StreamResponse | None = None
+
+    async def receive(self) -> Message:
+        if self._body is not None:
+            body, self._body = self._body, None
+            return {"type": "http.request", "body": body, "more_body": False}
+        while not self._done.is_set() and not self._gone():
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self._done.wait(), GONE_POLL_S)
+        return {"type": "http.disconnect"}
+
+    def _gone(self) -> bool:
+        transport = self._request.transport
+        return transport is None or transport.is_closing()
+
+    async def send(self, message: Message) -> None:
+        kind = message["type"]
+        if kind == "http.response.start":
+            response = web.StreamResponse(status=int(message["status"]))
+            for name, value in message.get("headers", ()):
+                response.headers.add(name.decode("latin-1"), value.decode("latin-1"))
+            self.response = response
+            await response.prepare(self._request)
+        elif kind == "http.response.body":
+            if self.response is None:
+                raise RuntimeError("ASGI body before its start")
+            body = message.get("body", b"")
+            if body:
+                await self.response.write(body)
+            if not message.get("more_body", False):
+                await self.response.write_eof()
+                self._done.set()
+
+    def finish(self) -> None:
+        self._done.set()
+
+
+async def serve(app: AsgiApp, request: web.Request, body: bytes,
+                extra: dict[str, Any]) -> web.StreamResponse | None:
+    """Run `app` on this request; its response, or None if it sent none."""
+    exchange = _Exchange(request, body)
+    try:
+        await app(scope_of(request, extra), exchange.receive, exchange.send)
+    finally:
+        exchange.finish()
+    return exchange.response

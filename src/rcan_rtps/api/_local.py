@@ -1,0 +1,72 @@
+"""The API as one principal sees it, called in process: what the bridge's `/mcp` tools use.
+
+Each method is its REST route's function (`_routes`, `_commands`, `_safety_manifest`) with the
+principal that authenticated the MCP request — the same intake, governance, audit and replies,
+without a second HTTP round trip. Replies are the JSON the route would have sent.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import TYPE_CHECKING, Any
+
+import msgspec
+from aiohttp import web
+
+from rcan_rtps.governance import Principal
+
+from . import _routes as r
+from ._bodies import GoalList
+from ._commands import run_command, too_large
+from ._keys import CHECKS, GOVERNOR, INVOCATIONS, OBSERVE, ROBOT, SETTINGS, STATUS
+from ._safety_manifest import manifest_reply
+
+if TYPE_CHECKING:
+    from rcan_rtps.mcp_server.ports import Reply
+
+
+def _reply(status: int, body: Any) -> Reply:
+    from rcan_rtps.mcp_server.ports import Reply
+
+    if isinstance(body, bytes):
+        return Reply(status, json.loads(body))
+    return Reply(status, msgspec.to_builtins(body))
+
+
+class LocalApi:
+    """`mcp_server.ports.RobotApi` inside the bridge, as `principal`."""
+
+    def __init__(self, app: web.Application, principal: Principal,
+                 fixed_manifest: dict[str, Any]) -> None:
+        self._app = app
+        self._principal = principal
+        self._manifest = fixed_manifest
+
+    async def command(self, body: dict[str, Any]) -> Reply:
+        app, governor = self._app, self._app[GOVERNOR]
+        raw = msgspec.json.encode(body)
+        if len(raw) > app[SETTINGS].max_body_bytes:
+            return _reply(*await too_large(governor, self._principal))
+        return _reply(*await run_command(governor, self._principal, raw, app[OBSERVE],
+                                         app[CHECKS], app[INVOCATIONS]))
+
+    async def heartbeat(self) -> Reply:
+        return _reply(200, r.heartbeat(self._app[GOVERNOR], self._principal))
+
+    async def status(self) -> Reply:
+        return _reply(200, self._app[STATUS].snapshot())
+
+    async def goals(self) -> Reply:
+        return _reply(200, GoalList(goals=self._app[ROBOT].goals()))
+
+    async def goal(self, goal_id: str) -> Reply:
+        return _reply(*r.goal_view(self._app[ROBOT], goal_id))
+
+    async def pending(self, pending_id: str) -> Reply:
+        return _reply(*await r.pending_view(self._app[GOVERNOR], self._principal, pending_id))
+
+    async def my_audit(self, last: int) -> Reply:
+        return _reply(*await r.my_audit(self._app, self._principal, 0, last, True))
+
+    async def safety_manifest(self) -> Reply:
+        return _reply(*await manifest_reply(self._app, self._manifest))

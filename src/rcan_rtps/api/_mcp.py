@@ -1,0 +1,154 @@
+"""`/mcp`: the MCP tools served by the bridge itself (streamable HTTP, bearer token).
+
+Authenticated like every API route (the `authenticate` middleware runs first: no principal,
+no MCP). The official SDK (`rcan-rtps[mcp]`) is imported on the first request to `/mcp`, so
+a bridge nobody asks for MCP never loads it; without the extra, `/mcp` answers 501 saying
+what to install. Each request runs as its principal (`_local.LocalApi`: the REST routes'
+own functions), naming the agent's model from its `RCAN-AI-Provider` and `RCAN-AI-Model`
+headers (or the `ai_provider` and `ai_model` query parameters, for clients that can set no
+header but `Authorization`). A principal's timed moves and goals are held by heartbeats
+while they run; a session the client closes (DELETE) stops what it left running.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from typing import TYPE_CHECKING, Any
+
+from aiohttp import web
+
+from rcan_rtps.config import RcanConfig
+from rcan_rtps.governance import Principal
+
+from . import _asgi
+from ._bodies import error_response, json_response
+from ._commands import read_limited, too_large
+from ._keys import GOVERNOR, PRINCIPAL, SETTINGS
+from ._local import LocalApi
+from ._safety_manifest import static_part
+
+if TYPE_CHECKING:
+    from rcan_rtps.mcp_server.http import HttpMcp
+    from rcan_rtps.mcp_server.keepalive import Keepalive
+    from rcan_rtps.mcp_server.seat import Agent, Seat
+
+log = logging.getLogger(__name__)
+PATH = "/mcp"
+SESSION_HEADER = "Mcp-Session-Id"
+IDENTITY_MAX = 256
+EXTRA_HINT = "MCP needs the SDK on the bridge: pip install 'rcan-rtps[mcp]'"
+
+
+def agent_of(request: web.Request) -> Agent:
+    """The model the request's agent names (headers first, then the query)."""
+    from rcan_rtps.mcp_server.seat import Agent
+
+    def named(header: str, query: str) -> str | None:
+        value = request.headers.get(header) or request.query.get(query)
+        return value if value and value.strip() and len(value) <= IDENTITY_MAX else None
+
+    return Agent(named("RCAN-AI-Provider", "ai_provider"), named("RCAN-AI-Model", "ai_model"))
+
+
+class McpEndpoint:
+    """The route's handler; `close` at the bridge's shutdown."""
+
+    def __init__(self, config: RcanConfig) -> None:
+        self._config = config
+        self._fixed: dict[str, Any] | None = None
+        self._server: HttpMcp | None = None
+        self._missing = False
+        self._starting: asyncio.Lock | None = None
+        self._stop = asyncio.Event()
+        self._serving: asyncio.Task[None] | None = None
+        self._beating: list[asyncio.Task[None]] = []
+        self._keepalives: dict[str, Keepalive] = {}
+
+    async def handle(self, request: web.Request) -> web.StreamResponse:
+        server = await self._started(request.app)
+        if server is None:
+            return error_response(501, "NOT_IMPLEMENTED", reason=EXTRA_HINT)
+        app, principal = request.app, request[PRINCIPAL]
+        settings = app[SETTINGS]
+        body = await read_limited(request, settings.max_body_bytes, settings.body_timeout_s)
+        if body is None:
+            status, refused = await too_large(app[GOVERNOR], principal)
+            return json_response(refused, status)
+        seat = self._seat(app, principal, agent_of(request), request.headers.get(SESSION_HEADER))
+
+        async def run(scope: Any, receive: Any, send: Any) -> None:
+            await server.handle(scope, receive, send, seat, principal.name, principal.role.name)
+
+        response = await _asgi.serve(run, request, body, {})
+        if response is None:
+            return error_response(503, "ROBOT_UNAVAILABLE", outcome="failed",
+                                  reason="mcp_no_response")
+        if request.method == "DELETE" and response.status < 300 and seat.session:
+            await self._session_closed(seat)
+        return response
+
+    def _seat(self, app: web.Application, principal: Principal, agent: Agent,
+              session: str | None) -> Seat:
+        from rcan_rtps.mcp_server.keepalive import Keepalive
+        from rcan_rtps.mcp_server.seat import Seat
+
+        assert self._fixed is not None
+        api = LocalApi(app, principal, self._fixed)
+        keepalive = self._keepalives.get(principal.name)
+        if keepalive is None:  # one per principal: heartbeats are a principal's
+            keepalive = self._keepalives[principal.name] = Keepalive(api)
+            self._beating.append(asyncio.create_task(keepalive.run(),
+                                                     name=f"mcp-keepalive-{principal.name}"))
+        return Seat(api, agent, keepalive, session)
+
+    async def _session_closed(self, seat: Seat) -> None:
+        """The client closed its session: stop what it started that still runs."""
+        from rcan_rtps.mcp_server.server import stop_left_running
+
+        assert seat.session is not None
+        if seat.keepalive.release_session(seat.session):
+            await stop_left_running(seat, "MCP session closed")
+
+    async def _started(self, app: web.Application) -> HttpMcp | None:
+        if self._server is not None or self._missing:
+            return self._server
+        if self._starting is None:
+            self._starting = asyncio.Lock()
+        async with self._starting:
+            if self._server is None and not self._missing:
+                self._server = await self._start(app)
+        return self._server
+
+    async def _start(self, app: web.Application) -> HttpMcp | None:
+        try:
+            from rcan_rtps.mcp_server.http import HttpMcp
+        except ModuleNotFoundError as exc:
+            if exc.name is None or exc.name.split(".")[0] not in ("mcp", "mcp_types"):
+                raise
+            log.warning("a client asked for %s: %s", PATH, EXTRA_HINT)
+            self._missing = True
+            return None
+        self._fixed = static_part(self._config)
+        server = HttpMcp(self._fixed, max_body_bytes=app[SETTINGS].max_body_bytes)
+        ready = asyncio.Event()
+        self._serving = serving = asyncio.create_task(server.run(ready, self._stop), name="mcp")
+        waiting = asyncio.create_task(ready.wait())
+        await asyncio.wait([serving, waiting], return_when=asyncio.FIRST_COMPLETED)
+        waiting.cancel()
+        if serving.done():
+            serving.result()  # it failed to start: raise why (the request is answered 503)
+        return server
+
+    async def close(self) -> None:
+        """End every session (their streams close), then the heartbeats: the bridge is
+        shutting down, and stops the robot itself."""
+        self._stop.set()
+        if self._serving is not None:
+            await asyncio.wait([self._serving])
+        for task in self._beating:
+            task.cancel()
+        for task in self._beating:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task

@@ -1,0 +1,60 @@
+"""The same tools at the bridge's own `/mcp` (streamable HTTP, the official SDK's transport).
+
+The bridge's route (`rcan_rtps.api._mcp`) authenticates each request like any other, builds
+its `Seat` — the principal's view of the bridge, the agent identity the request names, the
+principal's heartbeats — and hands the request to `HttpMcp.handle` with that seat in the ASGI
+scope. A session belongs to the principal that opened it: the SDK answers a request for it
+with another credential as if the session did not exist (404).
+
+Responses are plain JSON, not an event stream per call: a tool call has one answer, and an
+event stream would only add framing to each reply.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Mapping
+from typing import Any
+
+from mcp.server.auth.middleware.bearer_auth import AuthenticatedUser
+from mcp.server.auth.provider import AccessToken
+from mcp.server.context import ServerRequestContext
+from mcp.server.streamable_http_manager import StreamableHTTPSessionManager
+
+from .seat import Seat
+from .server import RobotTools, build_server
+
+SEAT = "rcan.seat"  # the ASGI scope key of a request's seat
+MAX_SESSIONS = 256
+SESSION_IDLE_S = 30 * 60.0
+Asgi = Any  # the ASGI callables, typed by the caller
+
+
+def seat_of(ctx: ServerRequestContext[Any]) -> Seat:
+    request = ctx.request
+    seat = getattr(request, "scope", {}).get(SEAT)
+    if not isinstance(seat, Seat):  # only the bridge's route calls in, always with a seat
+        raise RuntimeError("an MCP request reached the tools without a seat")
+    return seat
+
+
+class HttpMcp:
+    """One bridge's MCP sessions: `run` for the bridge's lifetime, `handle` per request."""
+
+    def __init__(self, manifest: Mapping[str, Any], *, max_body_bytes: int) -> None:
+        server = build_server(RobotTools(seat_of, manifest=manifest))
+        self._manager = StreamableHTTPSessionManager(
+            server, json_response=True, session_idle_timeout=SESSION_IDLE_S,
+            max_request_body_size=max_body_bytes, max_sessions=MAX_SESSIONS)
+
+    async def run(self, ready: asyncio.Event, stop: asyncio.Event) -> None:
+        """Serve sessions until `stop`; then end them all (their open streams close)."""
+        async with self._manager.run():
+            ready.set()
+            await stop.wait()
+
+    async def handle(self, scope: Asgi, receive: Asgi, send: Asgi, seat: Seat,
+                     principal: str, role: str) -> None:
+        # The SDK binds a session to the credential that opened it (here: the principal).
+        user = AuthenticatedUser(AccessToken(token="-", client_id=principal, scopes=[role]))
+        await self._manager.handle_request({**scope, "user": user, SEAT: seat}, receive, send)

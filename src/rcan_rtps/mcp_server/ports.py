@@ -1,0 +1,57 @@
+"""What the MCP server needs of a bridge: `RobotApi`, one principal's view of its API.
+
+Two implementations: `bridge.BridgeClient`, the REST API with the agent's token (`rcan-rtps
+mcp`, over stdio), and the bridge's own `/mcp` endpoint (`rcan_rtps.api._mcp`), which calls
+the same functions its REST handlers call, as the principal that authenticated the request.
+Either way a reply is what the REST API would have answered: its status and JSON body,
+refusals included — deciding is the bridge's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from . import McpServerError
+
+
+class BridgeUnavailable(McpServerError):
+    """No usable reply from the bridge."""
+
+
+@dataclass(frozen=True)
+class Reply:
+    status: int
+    body: dict[str, Any]
+
+    @property
+    def ok(self) -> bool:
+        return self.status < 400
+
+
+class RobotApi(Protocol):
+    """The bridge as one principal sees it; each call as its REST route answers it."""
+
+    async def command(self, body: dict[str, Any]) -> Reply:
+        """POST /api/command."""
+
+    async def heartbeat(self) -> Reply:
+        """POST /api/heartbeat."""
+
+    async def status(self) -> Reply:
+        """GET /api/status."""
+
+    async def goals(self) -> Reply:
+        """GET /api/goals."""
+
+    async def goal(self, goal_id: str) -> Reply:
+        """GET /api/goals/{goal_id}."""
+
+    async def pending(self, pending_id: str) -> Reply:
+        """GET /api/hitl/pending/{pending_id}."""
+
+    async def my_audit(self, last: int) -> Reply:
+        """GET /api/audit/mine?last=N: the caller's own newest entries."""
+
+    async def safety_manifest(self) -> Reply:
+        """GET /api/safety-manifest (the limits every command is held to)."""

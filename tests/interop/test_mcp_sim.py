@@ -1,10 +1,12 @@
-"""Issue 25: `rcan-rtps mcp` (stdio), driven by the official MCP SDK's own client, in front of
-`rcan-rtps run --sim` (a real subprocess each): the tools are the registry's; a timed move
-drives the simulator about as far as it should (longer than the session timeout: the server's
-heartbeats hold it); an over-limit move is refused with its reason; a gated arm command waits
-for the OWNER, who approves it over REST, and the agent's wait returns executed; an e-stop
-latches while the agent waits on another; a wrong token is refused; the audit log names the
-agent — its model, provider and MCP client — on every command it sent."""
+"""Issue 25: an AI agent over MCP, driven by the official MCP SDK's own client against
+`rcan-rtps run --sim` (a real subprocess each), through both doors — `rcan-rtps mcp` (stdio,
+in front of the bridge's REST API) and the bridge's own `/mcp` (streamable HTTP): the tools
+are the registry's; a timed move drives the simulator about as far as it should (longer than
+the session timeout: the server's heartbeats hold it); an over-limit move is refused with its
+reason; a gated arm command waits for the OWNER, who approves it over REST, and the agent's
+wait returns executed; an e-stop latches while the agent waits on another; a wrong token is
+refused; the audit log names the agent — its model, provider and MCP client — on every
+command it sent."""
 
 from __future__ import annotations
 
@@ -22,6 +24,8 @@ import aiohttp
 import pytest
 from mcp import Client, StdioServerParameters
 from mcp.client.stdio import stdio_client
+from mcp.client.streamable_http import streamable_http_client
+from mcp.shared._httpx_utils import create_mcp_http_client
 from mcp_types import CallToolResult, Implementation
 from waiting import eventually
 
@@ -50,10 +54,24 @@ async def http() -> AsyncIterator[aiohttp.ClientSession]:
         yield session
 
 
+@pytest.fixture(params=["stdio", "http"])
+def door(request: pytest.FixtureRequest) -> str:
+    return str(request.param)
+
+
 @contextlib.asynccontextmanager
-async def agent(demo: Demo, tmp_path: Path, token: str | None = None
+async def agent(demo: Demo, tmp_path: Path, token: str | None = None, door: str = "stdio"
                 ) -> AsyncIterator[Client]:
-    """`python -m rcan_rtps mcp` as an MCP client launches it, with the USER's token."""
+    """With the USER's token: `python -m rcan_rtps mcp` as an MCP client launches it, or the
+    bridge's `/mcp` with the agent's model in headers."""
+    if door == "http":
+        headers = {"Authorization": f"Bearer {token or demo.user}",
+                   "RCAN-AI-Provider": AGENT["provider"], "RCAN-AI-Model": AGENT["model"]}
+        async with create_mcp_http_client(headers=headers) as http, Client(
+                streamable_http_client(f"{demo.url}/mcp", http_client=http),
+                client_info=Implementation(name="test-agent", version="1.2")) as c:
+            yield c
+        return
     server = StdioServerParameters(
         command=sys.executable,
         args=["-m", "rcan_rtps", "mcp", "--url", demo.url, "--token-env", "AGENT_TOKEN",
@@ -75,8 +93,8 @@ def entries(demo: Demo) -> list[dict[str, Any]]:
 
 
 async def test_tools_and_a_timed_move(sim: Demo, http: aiohttp.ClientSession,
-                                      tmp_path: Path) -> None:
-    async with agent(sim, tmp_path) as client:
+                                      tmp_path: Path, door: str) -> None:
+    async with agent(sim, tmp_path, door=door) as client:
         tools = {t.name for t in (await client.list_tools()).tools}
         assert tools == set(names()) | READS
 
@@ -115,9 +133,9 @@ async def test_tools_and_a_timed_move(sim: Demo, http: aiohttp.ClientSession,
 
 
 async def test_a_gated_command_waits_for_the_owner(sim: Demo, http: aiohttp.ClientSession,
-                                                   tmp_path: Path) -> None:
+                                                   tmp_path: Path, door: str) -> None:
     await wait_status(http, sim, lambda s: s["ros"]["connected"])
-    async with agent(sim, tmp_path) as client:
+    async with agent(sim, tmp_path, door=door) as client:
         held = await client.call_tool("arm_joint", {
             "joints": ["elbow"], "positions": [0.8], "duration_s": 1.0, "confidence": 0.9})
         assert not held.is_error, held
@@ -144,9 +162,9 @@ async def test_a_gated_command_waits_for_the_owner(sim: Demo, http: aiohttp.Clie
 
 
 async def test_estop_latches_while_the_agent_waits(sim: Demo, http: aiohttp.ClientSession,
-                                                   tmp_path: Path) -> None:
+                                                   tmp_path: Path, door: str) -> None:
     await wait_status(http, sim, lambda s: s["ros"]["connected"])
-    async with agent(sim, tmp_path) as client:
+    async with agent(sim, tmp_path, door=door) as client:
         held = data(await client.call_tool("arm_joint", {
             "joints": ["elbow"], "positions": [0.3], "duration_s": 1.0, "confidence": 0.9}))
         waiting = asyncio.create_task(client.call_tool(
@@ -169,27 +187,35 @@ async def test_estop_latches_while_the_agent_waits(sim: Demo, http: aiohttp.Clie
 
 
 async def test_a_wrong_token_is_refused(sim: Demo, http: aiohttp.ClientSession,
-                                        tmp_path: Path) -> None:
+                                        tmp_path: Path, door: str) -> None:
     await wait_status(http, sim, lambda s: s["ros"]["connected"])
     before = len(entries(sim))
-    async with agent(sim, tmp_path, token="not-the-agents-token-0123456789") as client:
-        for name, args in (("get_status", {}), ("move", {"linear_x": 0.1, "duration_s": 1.0}),
-                           ("estop", {})):
-            done = await client.call_tool(name, args)
-            assert done.is_error, name
-            assert (data(done)["http_status"], data(done)["error_code"]) == (
-                401, "UNAUTHENTICATED"), data(done)
+    wrong = "not-the-agents-token-0123456789"
+    if door == "http":  # refused at the door: the SDK's client cannot even initialize
+        with pytest.raises(Exception):  # noqa: B017 (the SDK's error type varies by era)
+            async with agent(sim, tmp_path, token=wrong, door=door):
+                pass
+        async with http.post(f"{sim.url}/mcp", json={}) as resp:  # and no token at all
+            assert (resp.status, (await resp.json())["error_code"]) == (401, "UNAUTHENTICATED")
+    else:  # the stdio server starts (the bridge may come later); each call is refused
+        async with agent(sim, tmp_path, token=wrong, door=door) as client:
+            for name, args in (("get_status", {}),
+                               ("move", {"linear_x": 0.1, "duration_s": 1.0}), ("estop", {})):
+                done = await client.call_tool(name, args)
+                assert done.is_error, name
+                assert (data(done)["http_status"], data(done)["error_code"]) == (
+                    401, "UNAUTHENTICATED"), data(done)
     code, status = await call(http, sim, sim.user, "GET", "/api/status")
     assert code == 200 and status["estop"] is False
     assert not [e for e in entries(sim)[before:] if e.get("ai")]  # nothing of it ran
 
 
 async def test_a_goal_is_held_until_it_ends(sim: Demo, http: aiohttp.ClientSession,
-                                            tmp_path: Path) -> None:
+                                            tmp_path: Path, door: str) -> None:
     """A navigation goal outlasts the 5 s session timeout: the server heartbeats until the goal
     has ended (without, the session would lapse and the bridge cancel the goal)."""
     await wait_status(http, sim, lambda s: s["ros"]["connected"])
-    async with agent(sim, tmp_path) as client:
+    async with agent(sim, tmp_path, door=door) as client:
         sent = await client.call_tool("navigate", {"x": 2.0, "y": 1.0, "yaw": 0.0,
                                                    "confidence": 0.9})
         assert not sent.is_error and data(sent)["goal_id"], sent

@@ -18,8 +18,10 @@ ROUTES = [("POST", "/api/command"), ("GET", "/api/status"), ("POST", "/api/heart
           ("GET", "/api/hitl/pending"), ("GET", "/api/hitl/pending/p1"),
           ("POST", "/api/hitl/authorize"), ("POST", "/api/hitl/deny"),
           ("POST", "/api/hitl/withdraw"), ("GET", "/api/audit"),
-          ("GET", "/api/audit/verify"), ("GET", "/api/openapi.json"), ("GET", "/api/ws"),
-          ("GET", "/api/metrics"), ("GET", "/api/safety/manifest"), ("GET", "/api/v1/audit")]
+          ("GET", "/api/audit/verify"), ("GET", "/api/audit/mine"),
+          ("GET", "/api/openapi.json"), ("GET", "/api/ws"),
+          ("GET", "/api/metrics"), ("GET", "/api/safety/manifest"), ("GET", "/api/v1/audit"),
+          ("POST", "/mcp"), ("GET", "/mcp"), ("DELETE", "/mcp")]
 PUBLIC = [("GET", "/.well-known/rcan-node.json")]  # §17.3: no authentication
 
 

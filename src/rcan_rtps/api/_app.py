@@ -154,7 +154,8 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_get(_audit_export.PATH, _audit_export.handler(
         governor, settings.audit_read_role), allow_head=False)
     mcp = McpEndpoint(config)
-    app.router.add_route("*", _mcp.PATH, mcp.handle)
+    for method in ("POST", "GET", "DELETE"):  # streamable HTTP's three
+        app.router.add_route(method, _mcp.PATH, mcp.handle)
 
     async def close_mcp(app: web.Application) -> None:
         await mcp.close()

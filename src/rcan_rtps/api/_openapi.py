@@ -84,6 +84,17 @@ def _op(op_id: str, summary: str, responses: dict[str, Any],
     return op
 
 
+_MCP_DOC = ("MCP (streamable HTTP, JSON-RPC; see docs/mcp.md): the registry's actions as "
+            "tools, as the authenticated principal; the agent's model in the RCAN-AI-Provider "
+            "and RCAN-AI-Model headers. 501 without the `rcan-rtps[mcp]` extra")
+_MCP_REPLY = {"200": {"description": "a JSON-RPC response (or an event stream for GET)",
+                      "content": {"application/json": {}, "text/event-stream": {}}},
+              "202": {"description": "a notification or response accepted"},
+              "404": {"description": "an unknown session, or another principal's"},
+              **_errors(400, 413)}
+_MCP = {method: _op(f"{method}Mcp", _MCP_DOC, _MCP_REPLY) for method in ("post", "get", "delete")}
+
+
 def _query(name: str, description: str) -> dict[str, Any]:
     return {"name": name, "in": "query", "required": False, "description": description,
             "schema": {"type": "integer", "minimum": 0}}
@@ -153,6 +164,14 @@ PATHS: dict[str, dict[str, Any]] = {
         {"200": _json("AuditPage", "entries"), **_errors(400, 403)},
         parameters=[_query("since", "return entries with seq > since (default 0)"),
                     _query("limit", "at most this many entries")])},
+    "/api/audit/mine": {"get": _op(
+        "getMyAudit", "The caller's own audit entries, verbatim (any role; never another "
+        "principal's): after `since` (oldest first), or the newest `last`",
+        {"200": _json("AuditPage", "entries"), **_errors(400, 429)},
+        parameters=[_query("since", "return entries with seq > since (default 0)"),
+                    _query("limit", "at most this many entries"),
+                    _query("last", "the newest this many entries instead")])},
+    "/mcp": _MCP,
     "/api/audit/verify": {"get": _op("getAuditVerify", "Verify the chain and signatures",
                                      {"200": _json("VerifyReport", "result"), **_errors(403)})},
     "/api/openapi.json": {"get": _op("getOpenApi", "This document",

@@ -36,10 +36,9 @@ from mcp.shared._httpx_utils import create_mcp_http_client
 from mcp_types import Implementation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import e2e  # noqa: E402 (bench/e2e.py: the bridge process, the oracle, percentiles)
-from report import write_section  # noqa: E402
-
-from oracle.client import RclpyOracle  # noqa: E402
+import e2e
+from oracle.client import RclpyOracle
+from report import write_section
 
 TOPIC = "/bench/cmd_vel"
 MODEL = {"ai_provider": "bench", "ai_model": "bench-model"}
@@ -137,7 +136,8 @@ def report(found: dict[str, list[float]], samples: int, blocks: int) -> str:
     rest50, rest99 = e2e.pct(found["REST"], 0.5), e2e.pct(found["REST"], 0.99)
     targets = {"MCP HTTP (/mcp)": 1.5, "MCP HTTP, 2025 sessions": 1.5, "MCP stdio": 2.0}
     lines = ["## MCP", "",
-             f"`bench/mcp_latency.py` (same machine, same run, one bridge; {samples} samples per door "
+             f"`bench/mcp_latency.py` (same machine, same run, one bridge; {samples} samples "
+             f"per door "
              f"in {blocks} alternating blocks, paced {e2e.PACE_S * 1e3:g} ms apart): a timed "
              "`move` sent → its Twist received by an rclpy Jazzy subscriber. REST is a "
              "keep-alive aiohttp session; both MCP doors use the official SDK's client "

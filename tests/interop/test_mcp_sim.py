@@ -244,8 +244,8 @@ async def test_an_agent_gone_mid_move_stops_it(sim: Demo, http: aiohttp.ClientSe
     await wait_status(http, sim, lambda s: s["telemetry"]["velocity"]["linear_x"] == 0.0)
 
 
-def readme_config(path: Path) -> dict[str, Any]:
-    block = re.search(r"<!-- mcp-config -->\n```json\n(.*?)```", path.read_text(), re.S)
+def readme_config(path: Path, name: str = "mcp-config") -> dict[str, Any]:
+    block = re.search(rf"<!-- {name} -->\n```json\n(.*?)```", path.read_text(), re.S)
     assert block, f"{path.name} has no mcp-config block"
     return dict(json.loads(block.group(1)))
 
@@ -271,3 +271,87 @@ async def test_the_readme_client_configuration(sim: Demo, http: aiohttp.ClientSe
             assert data(done)["outcome"] == "executed", done
     stop = [e for e in entries(sim) if e.get("action_type") == "stop"][-1]
     assert (stop["ai"]["provider"], stop["ai"]["model"]) == ("anthropic", "claude-sonnet-4-5")
+
+
+async def test_the_readme_http_client_configuration(sim: Demo, http: aiohttp.ClientSession
+                                                    ) -> None:
+    """The README's HTTP line, as a client would use it (this run's URL and USER token)."""
+    config = readme_config(ROOT / "README.md", "mcp-http-config")
+    assert config == readme_config(ROOT / "docs" / "mcp.md", "mcp-http-config")
+    entry = config["mcpServers"]["robot"]
+    assert entry["type"] == "http"
+    url = entry["url"].replace("http://127.0.0.1:8765", sim.url)
+    headers = {k: v.replace("<USER token>", sim.user) for k, v in entry["headers"].items()}
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    async with create_mcp_http_client(headers=headers) as client_http, \
+            Client(streamable_http_client(url, http_client=client_http)) as client:
+        status = data(await client.call_tool("get_status", {}))
+        assert (status["http_status"], status["estop"]) == (200, False), status
+        done = await client.call_tool("stop", {"reason": "readme check"})
+        assert data(done)["outcome"] == "executed", done
+    stop = [e for e in entries(sim) if e.get("action_type") == "stop"][-1]
+    assert (stop["principal"], stop["ai"]["provider"], stop["ai"]["model"]) == (
+        "operator", "anthropic", "claude-sonnet-4-5")
+
+
+# -- the README's session transcript ----------------------------------------------------------
+
+TRANSCRIPT = re.compile(r"<!-- mcp-transcript -->\n```text\n(.*?)```", re.S)
+SESSION: list[tuple[str, dict[str, Any]]] = [
+    ("move", {"linear_x": 0.3, "duration_s": 2.0, "confidence": 0.9,
+              "reasoning": "the user asked me to drive to the door"}),
+    ("move", {"linear_x": 2.0, "duration_s": 1.0, "confidence": 0.9}),
+    ("arm_joint", {"joints": ["elbow"], "positions": [0.8], "duration_s": 1.0,
+                   "confidence": 0.9}),
+    ("wait_for_approval", {"pending_id": "<pending_id>", "timeout_s": 60}),
+    ("estop", {"reason": "a person stepped in front of the robot"}),
+    ("move", {"linear_x": 0.1, "duration_s": 1.0, "confidence": 0.9}),
+]
+
+
+def said(done: CallToolResult) -> str:
+    first = done.content[0].text.splitlines()[0]  # type: ignore[union-attr]
+    return ("error: " if done.is_error else "") + first
+
+
+async def transcript_of_a_session(client: Client, http: aiohttp.ClientSession,
+                                  sim: Demo) -> list[str]:
+    """The session as an agent's client sees it: each call and the first line of its result
+    (pending ids replaced by `<pending_id>`); an OWNER approves the held command over REST."""
+    tools = [t.name for t in (await client.list_tools()).tools]
+    lines = ["→ tools/list", f"← {len(tools)} tools: {', '.join(tools)}"]
+    pending_id = ""
+    for name, args in SESSION:
+        sent = {k: (pending_id if v == "<pending_id>" else v) for k, v in args.items()}
+        if name == "wait_for_approval":
+            code, approved = await call(http, sim, sim.owner, "POST", "/api/hitl/authorize",
+                                        {"pending_id": pending_id})
+            assert code == 200, approved
+            lines.append(f"  (an OWNER: POST /api/hitl/authorize → {code} "
+                         f"{approved['outcome']})")
+        done = await client.call_tool(name, sent)
+        if data(done).get("outcome") == "pending_auth":
+            pending_id = str(data(done)["pending_id"])
+        lines += [f"→ {name} {json.dumps(args)}",
+                  f"← {said(done).replace(pending_id or '<none>', '<pending_id>')}"]
+    return lines
+
+
+async def test_the_readme_transcript(sim: Demo, http: aiohttp.ClientSession,
+                                     tmp_path: Path) -> None:
+    """A real session over `/mcp`, as README.md and docs/mcp.md show it (RCAN_WRITE_DOCS=1
+    writes it there)."""
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    async with agent(sim, tmp_path, door="http") as client:
+        lines = await transcript_of_a_session(client, http, sim)
+    entry = next(e for e in entries(sim) if e.get("action_type") == "move")
+    lines.append(f"audit: {json.dumps({k: entry[k] for k in ('principal', 'outcome')})} "
+                 f"ai={json.dumps({k: entry['ai'][k] for k in AGENT})}")
+    text = "\n".join(lines) + "\n"
+    for doc in (ROOT / "README.md", ROOT / "docs" / "mcp.md"):
+        if os.environ.get("RCAN_WRITE_DOCS") == "1":
+            doc.write_text(TRANSCRIPT.sub(lambda _: f"<!-- mcp-transcript -->\n```text\n"
+                                          f"{text}```", doc.read_text(), count=1))
+        shown = TRANSCRIPT.search(doc.read_text())
+        assert shown, f"{doc.name} has no mcp-transcript block"
+        assert shown.group(1) == text, f"{doc.name}'s transcript is not this session's"

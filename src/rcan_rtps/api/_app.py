@@ -17,6 +17,7 @@ from . import _audit_export, _mcp, _node_manifest, _safety_manifest
 from . import _routes as r
 from ._conn import ConnectionDeadlines, track_requests
 from ._goal_events import GoalEvents
+from ._images import NO_IMAGES
 from ._intake import Checks
 from ._invoke import Invocations
 from ._keys import (
@@ -26,6 +27,7 @@ from ._keys import (
     DEADLINES,
     GOAL_EVENTS,
     GOVERNOR,
+    IMAGES,
     INVOCATIONS,
     OBSERVE,
     READS,
@@ -43,7 +45,7 @@ from ._reads import AuditReads
 from ._status import StatusHub
 from ._tls import cert_principals as config_cert_principals
 from ._ws import websocket
-from .ports import RobotView
+from .ports import ImageSource, RobotView
 
 
 def settings_from_config(config: RcanConfig) -> ApiSettings:
@@ -76,13 +78,15 @@ def message_checks(config: RcanConfig, clock: Clock,
 def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotView,
               config: RcanConfig, cert_principals: Mapping[str, Principal] | None = None,
               settings: ApiSettings | None = None, clock: Clock | None = None,
-              signatures: Signatures | None = None) -> web.Application:
+              signatures: Signatures | None = None,
+              images: ImageSource | None = None) -> web.Application:
     """The API. It never starts or stops the governor: whoever built that owns its lifetime.
 
     `cert_principals` maps a client certificate's subject CN to a principal (mTLS); by default
     the configured principals, by name, when `api.tls.client_ca` is set. `clock` is the wall
     clock RCAN 3.x message timestamps are held against (§8.3). `signatures`: the principals'
-    signing keys, already loaded (else loaded from `config`).
+    signing keys, already loaded (else loaded from `config`). `images`: the configured camera
+    topics (`bridge.ros2.images`), if any.
     """
     settings = settings or settings_from_config(config)
     # aiohttp's own limit backs ours up for any body read outside `read_limited`.
@@ -111,6 +115,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app[GOAL_EVENTS] = goal_events = GoalEvents()
     robot.watch_goals(goal_events.offer)
     app[INVOCATIONS] = Invocations(config.bridge.skills, robot)
+    app[IMAGES] = images or NO_IMAGES
     metrics = Metrics(governor, status)
     app[OBSERVE] = metrics.command_seconds.observe
 
@@ -134,6 +139,8 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_get("/api/goals", r.get_goals, allow_head=False)
     app.router.add_get("/api/goals/{goal_id}", r.get_goal, allow_head=False)
     app.router.add_get("/api/skills", r.get_skills, allow_head=False)
+    app.router.add_get("/api/images", r.get_images, allow_head=False)
+    app.router.add_get("/api/images/{name}", r.get_image, allow_head=False)
     app.router.add_get("/api/thoughts/{thought_id}", r.get_thought, allow_head=False)
     app.router.add_get("/api/hitl/pending", r.get_pending, allow_head=False)
     app.router.add_get("/api/hitl/pending/{pending_id}", r.get_pending_one, allow_head=False)

@@ -17,7 +17,7 @@ from ._intake import Checks
 from ._invoke import Invocations
 from ._reads import AuditReads
 from ._status import StatusHub
-from .ports import RobotView
+from .ports import ImageSource, RobotView
 
 
 class Authenticator(Protocol):
@@ -61,6 +61,7 @@ SOCKETS = web.AppKey("sockets", set[web.WebSocketResponse])
 DEADLINES = web.AppKey("connection_deadlines", ConnectionDeadlines)
 READS = web.AppKey("audit_reads", AuditReads)
 CHECKS = web.AppKey("message_checks", Checks)  # §8.3 (and signatures) of RCAN 3.x messages
+IMAGES = web.AppKey("images", ImageSource)  # bridge.ros2.images (none: an empty source)
 INVOCATIONS = web.AppKey("invocations", Invocations)  # bridge.skills and INVOKEs under way
 # Seconds per decided command, reported to the metrics (a no-op where there are none).
 OBSERVE: web.AppKey[Callable[[float], None]] = web.AppKey("observe_command_seconds")

@@ -18,11 +18,13 @@ from rcan_rtps.governance import Principal
 from . import _routes as r
 from ._bodies import GoalList
 from ._commands import run_command, too_large
-from ._keys import CHECKS, GOVERNOR, INVOCATIONS, OBSERVE, ROBOT, SETTINGS, STATUS
+from ._images import image_list
+from ._keys import CHECKS, GOVERNOR, IMAGES, INVOCATIONS, OBSERVE, ROBOT, SETTINGS, STATUS
 from ._safety_manifest import manifest_reply
+from .ports import ImageFrame
 
 if TYPE_CHECKING:
-    from rcan_rtps.mcp_server.ports import Reply
+    from rcan_rtps.mcp_server.ports import Blob, Reply
 
 
 def _reply(status: int, body: Any) -> Reply:
@@ -70,3 +72,14 @@ class LocalApi:
 
     async def safety_manifest(self) -> Reply:
         return _reply(*await manifest_reply(self._app, self._manifest))
+
+    async def images(self) -> Reply:
+        return _reply(200, image_list(self._app[IMAGES].names()))
+
+    async def image(self, name: str) -> Reply | Blob:
+        from rcan_rtps.mcp_server.ports import Blob
+
+        status, frame = await r.image_reply(self._app[IMAGES], name)
+        if isinstance(frame, ImageFrame):
+            return Blob(frame.mime, frame.data)
+        return _reply(status, frame)

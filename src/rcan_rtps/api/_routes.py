@@ -23,9 +23,11 @@ from ._bodies import (
 )
 from ._commands import decode_as, read_limited, run_command, schema_failure, too_large
 from ._errors import ReadsBusy
+from ._images import REFUSALS, frame_headers, image_list
 from ._keys import (
     CHECKS,
     GOVERNOR,
+    IMAGES,
     INVOCATIONS,
     OBSERVE,
     PRINCIPAL,
@@ -35,7 +37,7 @@ from ._keys import (
     STATUS,
 )
 from ._reads import entries_of, line_seq
-from .ports import GoalView, RobotView
+from .ports import GoalView, ImageFrame, ImageSource, ImageUnavailable, RobotView
 
 _WALL = SystemClock()
 
@@ -110,6 +112,27 @@ async def get_skills(request: web.Request) -> web.Response:
     """The skills an INVOKE may name (RCAN §18/§19.7), any principal: a client must not invoke
     an unlisted skill, and the conformance runner picks one to invoke from here."""
     return json_response(request.app[INVOCATIONS].listed(request.app[GOVERNOR]))
+
+
+async def get_images(request: web.Request) -> web.Response:
+    return json_response(image_list(request.app[IMAGES].names()))
+
+
+async def image_reply(images: ImageSource, name: str
+                      ) -> tuple[int, ImageFrame | ApiError]:
+    try:
+        return 200, await images.frame(name)
+    except ImageUnavailable as exc:
+        status, code = REFUSALS[exc.reason]
+        return status, error_body(code, reason=exc.reason, outcome="failed")
+
+
+async def get_image(request: web.Request) -> web.Response:
+    status, frame = await image_reply(request.app[IMAGES], request.match_info["name"])
+    if isinstance(frame, ApiError):
+        return json_response(frame, status)
+    return web.Response(body=frame.data, content_type=frame.mime,
+                        headers=frame_headers(frame))
 
 
 # -- HiTL -----------------------------------------------------------------------------------

@@ -50,3 +50,32 @@ class RobotView(Protocol):
     def goal(self, goal_id: str) -> GoalView | None: ...
 
     def goals(self) -> list[GoalView]: ...
+
+
+class ImageFrame(msgspec.Struct, frozen=True, kw_only=True):
+    """A camera's latest frame as a client sees it: an image file and what it shows."""
+
+    mime: str  # image/png (raw frames), image/jpeg or image/png (compressed ones)
+    data: bytes
+    width: int | None  # None for a compressed frame (its file says)
+    height: int | None
+    age_s: float  # since it arrived
+
+
+class ImageUnavailable(Exception):
+    """No frame to show: `reason` is `image_not_found` (no such name), `no_frame_yet`, or
+    `unsupported_image` (an encoding that cannot be shown)."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+class ImageSource(Protocol):
+    """The configured camera topics (`bridge.ros2.images`)."""
+
+    def names(self) -> list[str]: ...
+
+    async def frame(self, name: str) -> ImageFrame:
+        """The newest frame; raises ImageUnavailable."""
+        ...

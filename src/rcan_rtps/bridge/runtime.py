@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..api import ApiServer, bind, build_app, cert_principals, server_ssl_context
-from ..api.ports import GoalView
+from ..api.ports import GoalView, ImageSource
 from ..config import RcanConfig, plaintext_problem
 from ..events import Events
 from ..governance import (
@@ -159,6 +159,7 @@ class Bridge:
         self.events = Events()  # who is told what; frozen once the API serves
         self._diagnostics: DiagnosticsNotifier | None = None
         self.telemetry: TelemetryState | None = None
+        self.images: ImageSource | None = None  # bridge.ros2.images, when any
         self.server: ApiServer | None = None
         self.advertiser: RcanAdvertiser | None = None
         self.url = ""
@@ -309,6 +310,11 @@ class Bridge:
             node, self.config, estop_latched=lambda: governor.latch.latched,
             active_goals=goals.active, navigation=goals.navigation, events=self.events)
         self._on_stop("telemetry", telemetry.close)
+        if self.config.bridge.ros2.images:
+            from .images import ImageFeeds  # only where a camera is configured
+
+            images = self.images = ImageFeeds(node, self.config.bridge.ros2.images)
+            self._on_stop("image feeds", images.close)
         wire_robot_side(self.events, governor, telemetry, goals, self._diagnostics)
         return governor, telemetry
 
@@ -337,7 +343,7 @@ class Bridge:
         app = build_app(governor=governor, authenticator=self._authenticator,
                         robot=BridgeView(telemetry, goals), config=self.config,
                         cert_principals=cert_principals(self.config) if api.tls else None,
-                        signatures=self._signatures)
+                        signatures=self._signatures, images=self.images)
         server = self.server = ApiServer(app, host=opts.host or api.host,
                                          port=api.port if opts.port is None else opts.port,
                                          ssl_context=self._ssl, sock=self._sock)

@@ -109,6 +109,18 @@ def _repeated_joint_problem(joints: list[str]) -> str | None:
     return "lists a joint more than once" if len(set(joints)) != len(joints) else None
 
 
+ImageName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,63}$")]
+
+
+class ImageFeedConfig(_Section, frozen=True, kw_only=True):
+    """A camera topic clients may look at (GET /api/images/{name}, MCP `robot://image/...`):
+    raw frames are shown as PNG, compressed ones as they come (JPEG or PNG)."""
+
+    topic: RosTopic
+    type: Literal["sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"] = (
+        "sensor_msgs/msg/Image")
+
+
 class ArmConfig(_Section, frozen=True, kw_only=True):
     """One arm: its trajectory controller's topic and the joints it owns (empty: any)."""
 
@@ -135,6 +147,7 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     odom_topic: RosTopic = "odom"
     diagnostics_topic: RosTopic = "diagnostics"
     battery_topic: RosTopic = "battery_state"
+    images: dict[ImageName, ImageFeedConfig] = {}  # none: no camera is shown
     telemetry_rate_hz: Annotated[float, msgspec.Meta(gt=0.0, le=100.0)] = 10.0
     nav_frame_id: Annotated[str, msgspec.Meta(min_length=1, max_length=128)] = "map"
     # Telemetry older than this makes the robot `offline`.

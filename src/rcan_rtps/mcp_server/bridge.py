@@ -11,12 +11,12 @@ from __future__ import annotations
 import asyncio
 import json
 from types import TracebackType
-from typing import Any
+from typing import Any, overload
 from urllib.parse import quote, urlsplit
 
 import aiohttp
 
-from .ports import BridgeUnavailable, Reply
+from .ports import Blob, BridgeUnavailable, Reply
 
 REQUEST_TIMEOUT_S = 10.0
 __all__ = ["BridgeClient", "BridgeUnavailable", "Reply", "check_url"]
@@ -79,13 +79,30 @@ class BridgeClient:
     async def safety_manifest(self) -> Reply:
         return await self._request("GET", "/api/safety/manifest")
 
-    async def _request(self, method: str, path: str, body: Any = None) -> Reply:
+    async def images(self) -> Reply:
+        return await self._request("GET", "/api/images")
+
+    async def image(self, name: str) -> Reply | Blob:
+        return await self._request("GET", f"/api/images/{path_part(name)}", blob=True)
+
+    @overload
+    async def _request(self, method: str, path: str, body: Any = None) -> Reply: ...
+
+    @overload
+    async def _request(self, method: str, path: str, body: Any = None, *,
+                       blob: bool) -> Reply | Blob: ...
+
+    async def _request(self, method: str, path: str, body: Any = None, *,
+                       blob: bool = False) -> Reply | Blob:
+        """The reply; with `blob`, a successful reply that is not JSON comes as it is."""
         if self._http is None:
             raise RuntimeError("BridgeClient used outside `async with`")
         try:
             async with self._http.request(method, self.url + path, json=body) as resp:
                 raw = await resp.read()
                 status = resp.status
+                if blob and status == 200 and resp.content_type != "application/json":
+                    return Blob(resp.content_type, raw)
         except (aiohttp.ClientError, asyncio.TimeoutError, OSError) as exc:
             raise BridgeUnavailable(f"the bridge at {self.url} did not answer {method} {path}: "
                                     f"{type(exc).__name__} {exc}".rstrip()) from exc

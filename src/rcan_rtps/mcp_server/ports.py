@@ -29,6 +29,14 @@ class Reply:
         return self.status < 400
 
 
+@dataclass(frozen=True)
+class Blob:
+    """An image the bridge served (GET /api/images/{name} when it had a frame)."""
+
+    mime: str
+    data: bytes
+
+
 class RobotApi(Protocol):
     """The bridge as one principal sees it; each call as its REST route answers it."""
 
@@ -54,4 +62,10 @@ class RobotApi(Protocol):
         """GET /api/audit/mine?last=N: the caller's own newest entries."""
 
     async def safety_manifest(self) -> Reply:
-        """GET /api/safety-manifest (the limits every command is held to)."""
+        """GET /api/safety/manifest (the limits every command is held to)."""
+
+    async def images(self) -> Reply:
+        """GET /api/images: the configured cameras."""
+
+    async def image(self, name: str) -> Reply | Blob:
+        """GET /api/images/{name}: its newest frame, or why not."""

@@ -5,7 +5,9 @@
   battery, faults and the navigation in progress — from that same STATUS;
 - `robot://safety-manifest`: the limits, workspace and e-stop every command is held to;
 - `robot://audit/mine`: the agent's own newest audit entries (GET /api/audit/mine): what it
-  asked, what came of it, with its model and thought ids. Never another principal's.
+  asked, what came of it, with its model and thought ids. Never another principal's;
+- `robot://image/{name}`: a configured camera's newest frame (GET /api/images/{name}), a PNG
+  (or the JPEG the camera sent), listed for each camera the bridge has.
 
 No MCP SDK import here (the server turns these into the SDK's types).
 """
@@ -21,6 +23,10 @@ from .ports import Reply, RobotApi
 JSON_TYPE = "application/json"
 RESOURCE_NOT_FOUND = -32002  # MCP's code for a resource that is not there
 MY_AUDIT_LAST = 50
+IMAGE_PREFIX = "robot://image/"
+IMAGE_TEMPLATE = IMAGE_PREFIX + "{name}"
+IMAGE_DESCRIPTION = ("The newest frame of the robot's camera `{name}`: a PNG (a raw frame, "
+                     "shown losslessly) or the JPEG the camera sent.")
 TELEMETRY_FIELDS = ("state", "estop", "battery_pct", "battery_v", "telemetry", "position",
                     "faults", "navigation", "active_goals", "timestamp_ms")
 

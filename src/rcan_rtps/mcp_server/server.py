@@ -11,6 +11,7 @@ and `reason`. Tool errors never carry a traceback: an unexpected one is logged o
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
 import logging
 import uuid
@@ -29,8 +30,15 @@ from rcan_rtps import __version__
 
 from .bridge import BridgeClient
 from .keepalive import Keepalive
-from .ports import BridgeUnavailable, Reply, RobotApi
-from .resources import JSON_TYPE, RESOURCE_NOT_FOUND, RESOURCES
+from .ports import Blob, BridgeUnavailable, Reply, RobotApi
+from .resources import (
+    IMAGE_DESCRIPTION,
+    IMAGE_PREFIX,
+    IMAGE_TEMPLATE,
+    JSON_TYPE,
+    RESOURCE_NOT_FOUND,
+    RESOURCES,
+)
 from .seat import Agent, Seat
 from .tools import DURATION, WAIT_MAX_S, ToolDef, derive_tools
 
@@ -239,34 +247,66 @@ class RobotTools:
     async def list_resources(self, ctx: ServerRequestContext[Any],
                              params: types.PaginatedRequestParams | None
                              ) -> types.ListResourcesResult:
-        return types.ListResourcesResult(resources=[
-            types.Resource(uri=r.uri, name=r.name, description=r.description,
-                           mime_type=JSON_TYPE) for r in RESOURCES.values()])
+        fixed = [types.Resource(uri=r.uri, name=r.name, description=r.description,
+                                mime_type=JSON_TYPE) for r in RESOURCES.values()]
+        return types.ListResourcesResult(resources=fixed + await self._cameras(ctx))
+
+    async def _cameras(self, ctx: ServerRequestContext[Any]) -> list[types.Resource]:
+        """A resource per configured camera (none while the bridge cannot say)."""
+        try:
+            reply = await self._seat_of(ctx).api.images()
+        except BridgeUnavailable:
+            return []
+        listed = reply.body.get("images") if reply.ok else None
+        return [types.Resource(uri=IMAGE_PREFIX + str(entry["name"]),
+                               name=f"camera {entry['name']}",
+                               description=IMAGE_DESCRIPTION.format(name=entry["name"]))
+                for entry in listed or () if isinstance(entry, dict) and "name" in entry]
+
+    async def list_resource_templates(self, ctx: ServerRequestContext[Any],
+                                      params: types.PaginatedRequestParams | None
+                                      ) -> types.ListResourceTemplatesResult:
+        return types.ListResourceTemplatesResult(resource_templates=[types.ResourceTemplate(
+            uri_template=IMAGE_TEMPLATE, name="camera",
+            description=IMAGE_DESCRIPTION.format(name="{name}"))])
 
     async def read_resource(self, ctx: ServerRequestContext[Any],
                             params: types.ReadResourceRequestParams
                             ) -> types.ReadResourceResult:
         uri = str(params.uri)
         resource = RESOURCES.get(uri)
-        if resource is None:
+        if resource is None and not uri.startswith(IMAGE_PREFIX):
             raise MCPError(RESOURCE_NOT_FOUND, f"no resource {uri!r}: see resources/list")
+        api = self._seat_of(ctx).api
         try:
-            reply = await resource.read(self._seat_of(ctx).api)
+            reply = (await resource.read(api) if resource is not None
+                     else await api.image(uri.removeprefix(IMAGE_PREFIX)))
         except BridgeUnavailable as exc:
             raise MCPError(INTERNAL_ERROR, f"BRIDGE_UNAVAILABLE: {exc}") from None
+        if isinstance(reply, Blob):
+            return types.ReadResourceResult(contents=[types.BlobResourceContents(
+                uri=uri, mime_type=reply.mime, blob=base64.b64encode(reply.data).decode())])
         if not reply.ok:
-            code = reply.body.get("error_code") or reply.body.get("outcome") or "REFUSED"
-            raise MCPError(INVALID_REQUEST, f"refused: {code}: "
-                           f"{reply.body.get('reason') or 'no reason given'} "
-                           f"(HTTP {reply.status})", {"http_status": reply.status, **reply.body})
+            raise refused(reply)
+        assert resource is not None
         return types.ReadResourceResult(contents=[types.TextResourceContents(
             uri=uri, mime_type=JSON_TYPE, text=json.dumps(resource.shape(reply.body)))])
+
+
+def refused(reply: Reply) -> MCPError:
+    """A resource the bridge would not give, as an MCP error naming its RCAN refusal."""
+    code = reply.body.get("error_code") or reply.body.get("outcome") or "REFUSED"
+    code_number = RESOURCE_NOT_FOUND if reply.status == 404 else INVALID_REQUEST
+    reason = reply.body.get("reason") or "no reason given"
+    return MCPError(code_number, f"refused: {code}: {reason} (HTTP {reply.status})",
+                    {"http_status": reply.status, **reply.body})
 
 
 def build_server(tools: RobotTools) -> Server[Any]:
     return Server("rcan-rtps", version=__version__, instructions=INSTRUCTIONS,
                   on_list_tools=tools.list_tools, on_call_tool=tools.call_tool,
                   on_list_resources=tools.list_resources,
+                  on_list_resource_templates=tools.list_resource_templates,
                   on_read_resource=tools.read_resource)
 
 

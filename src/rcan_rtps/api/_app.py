@@ -15,11 +15,14 @@ from rcan_rtps.rcan import Role
 
 from . import _audit_export, _node_manifest, _safety_manifest
 from . import _routes as r
+from ._approvals import ApprovalsFeed
 from ._conn import ConnectionDeadlines, track_requests
+from ._console import add_console, is_console_path
 from ._goal_events import GoalEvents
 from ._intake import Checks
 from ._invoke import Invocations
 from ._keys import (
+    APPROVALS,
     AUTHENTICATOR,
     CERT_PRINCIPALS,
     CHECKS,
@@ -33,6 +36,7 @@ from ._keys import (
     SETTINGS,
     SOCKETS,
     STATUS,
+    WS_TICKETS,
     ApiSettings,
     Authenticator,
 )
@@ -40,6 +44,7 @@ from ._metrics import Metrics
 from ._middlewares import authenticate, last_resort
 from ._reads import AuditReads
 from ._status import StatusHub
+from ._tickets import WsTickets
 from ._tls import cert_principals as config_cert_principals
 from ._ws import websocket
 from .ports import RobotView
@@ -88,7 +93,8 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     deadlines = ConnectionDeadlines(header_timeout_s=settings.header_timeout_s,
                                     keepalive_timeout_s=settings.keepalive_timeout_s)
     app = web.Application(middlewares=[track_requests(deadlines), last_resort(),
-                                       authenticate(frozenset({_node_manifest.PATH}))],
+                                       authenticate(frozenset({_node_manifest.PATH}),
+                                                    static=is_console_path)],
                           client_max_size=settings.max_body_bytes)
     app[DEADLINES] = deadlines  # ApiServer serves connections through it
     app[GOVERNOR] = governor
@@ -110,6 +116,9 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app[GOAL_EVENTS] = goal_events = GoalEvents()
     robot.watch_goals(goal_events.offer)
     app[INVOCATIONS] = Invocations(config.bridge.skills, robot)
+    app[WS_TICKETS] = WsTickets((clock or SystemClock()).monotonic)
+    app[APPROVALS] = approvals = ApprovalsFeed(governor.pending)
+    app.cleanup_ctx.append(_approvals_feed(approvals, governor))
     metrics = Metrics(governor, status)
     app[OBSERVE] = metrics.command_seconds.observe
 
@@ -151,6 +160,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
                        allow_head=False)
     app.router.add_get(_audit_export.PATH, _audit_export.handler(
         governor, settings.audit_read_role), allow_head=False)
+    add_console(app)  # the operator console (/, /console/) and what it asks the API
     app.on_shutdown.append(_close_sockets)
 
     async def close_reads(app: web.Application) -> None:
@@ -170,6 +180,17 @@ def _status_owner(status: StatusHub, governor: Governor, robot: RobotView
         await status.close()
 
     return owner
+
+
+def _approvals_feed(approvals: ApprovalsFeed, governor: Governor
+                    ) -> Callable[[web.Application], AsyncIterator[None]]:
+    async def feed(app: web.Application) -> AsyncIterator[None]:
+        approvals.start()
+        governor.events.governance.subscribe(approvals.changed)  # a no-op once it closed
+        yield
+        approvals.close()
+
+    return feed
 
 
 async def _close_sockets(app: web.Application) -> None:

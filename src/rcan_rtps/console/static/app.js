@@ -16,8 +16,9 @@ class Console {
     this.retries = 0;
     this.latched = false;
     this.signedIn = false;
-    this.plot = new PosePlot(byId("plot"));
+    this.plot = new PosePlot(byId("plot"), byId("pose-text"));
     this.goals = new Goals();
+    this.goals.render();
     this.approvals = null;
     this.audit = null;
     byId("sign-in-form").addEventListener("submit", (event) => {

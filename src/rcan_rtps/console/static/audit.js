@@ -102,7 +102,7 @@ export class AuditTail {
       box.dataset.state = r.ok ? "ok" : "bad";
       byId("verify-text").textContent = r.ok
         ? `chain verified: ${r.count} entries, signed tree heads ${r.tree_heads ?? 0}` +
-          ` (size ${r.tree_size ?? "–"})`
+          ` (size ${r.tree_size ?? "–"}), at ${when(Date.now())}`
         : `VERIFICATION FAILED at seq ${r.bad_seq ?? "?"}: ${r.detail || ""}`;
     } catch (err) {
       box.dataset.state = "bad";

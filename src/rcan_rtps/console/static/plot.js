@@ -8,7 +8,8 @@ const FOLLOW_PAD = 1.5; // m around the trail and the robot
 const FOLLOW_MIN = 6; // m: the smallest span shown
 
 export class PosePlot {
-  constructor(container) {
+  constructor(container, readout) {
+    this.readout = readout;
     this.workspace = null;
     this.trail = [];
     this.robot = null;
@@ -16,14 +17,14 @@ export class PosePlot {
     this.view = null;
     this.svg = s("svg", { viewBox: "-3 -3 6 6", preserveAspectRatio: "xMidYMid meet",
                           role: "img", "aria-label": "robot pose" });
-    this.grid = s("g", { class: "grid" });
+    this.grid = s("g", { class: "gridlines" });
     this.area = s("polygon", { class: "workspace", id: "workspace" });
     this.path = s("polyline", { class: "trail", id: "trail" });
     this.marker = s("g", { id: "robot", class: "robot" },
       s("circle", { class: "robot-body", r: "0.25" }),
       s("polygon", { class: "robot-nose", points: "0.3,0 0.05,0.12 0.05,-0.12" }));
     this.marker.setAttribute("visibility", "hidden");
-    this.svg.append(this.grid, this.area, this.path, this.marker);
+    this.svg.append(this.area, this.grid, this.path, this.marker);
     put(container, this.svg);
   }
 
@@ -56,6 +57,8 @@ export class PosePlot {
     this.marker.setAttribute("data-y", y.toFixed(3));
     this.marker.setAttribute("visibility", "visible");
     this.robot = [x, y];
+    this.readout.textContent = `x ${x.toFixed(2)} m, y ${y.toFixed(2)} m` +
+      (typeof yaw === "number" ? `, yaw ${((yaw * 180) / Math.PI).toFixed(0)}°` : "");
     this.refit();
   }
 

@@ -19,8 +19,11 @@ ROUTES = [("POST", "/api/command"), ("GET", "/api/status"), ("POST", "/api/heart
           ("POST", "/api/hitl/authorize"), ("POST", "/api/hitl/deny"),
           ("POST", "/api/hitl/withdraw"), ("GET", "/api/audit"),
           ("GET", "/api/audit/verify"), ("GET", "/api/openapi.json"), ("GET", "/api/ws"),
-          ("GET", "/api/metrics"), ("GET", "/api/safety/manifest"), ("GET", "/api/v1/audit")]
-PUBLIC = [("GET", "/.well-known/rcan-node.json")]  # §17.3: no authentication
+          ("GET", "/api/metrics"), ("GET", "/api/safety/manifest"), ("GET", "/api/v1/audit"),
+          ("GET", "/api/whoami"), ("POST", "/api/ws-ticket")]
+PUBLIC = [("GET", "/.well-known/rcan-node.json"),  # §17.3: no authentication
+          # the operator console's static files (tests/console)
+          ("GET", "/"), ("GET", "/console"), ("GET", "/console/"), ("GET", "/console/{name}")]
 
 
 def test_public_api_is_sorted_and_complete() -> None:

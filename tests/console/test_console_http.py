@@ -51,8 +51,6 @@ async def test_the_console_needs_no_principal_and_every_api_route_still_does(api
     assert "<title>rcan-rtps console</title>" in await page.text()
     for name in ("app.js", "console.css"):
         assert (await get(api, f"/console/{name}")).status == 200
-    head = await api.http.head("/console/app.js")
-    assert head.status == 200
     # every /api route: 401 without a credential, whether the console asks or anything else
     for path in ("/api/status", "/api/whoami", "/api/hitl/pending", "/api/audit",
                  "/api/safety/manifest", "/api/openapi.json", "/api/ws"):

@@ -79,10 +79,10 @@ def add_console(app: web.Application) -> None:
     async def file(request: web.Request) -> web.Response:
         return serve(request.match_info["name"])
 
-    app.router.add_get("/", to_console)
-    app.router.add_get(PREFIX.rstrip("/"), to_console)
-    app.router.add_get(PREFIX, page)
-    app.router.add_get(PREFIX + "{name}", file)
+    app.router.add_get("/", to_console, allow_head=False)
+    app.router.add_get(PREFIX.rstrip("/"), to_console, allow_head=False)
+    app.router.add_get(PREFIX, page, allow_head=False)
+    app.router.add_get(PREFIX + "{name}", file, allow_head=False)
     app.router.add_get(WHOAMI_PATH, get_whoami, allow_head=False)
     app.router.add_post("/api/ws-ticket", post_ws_ticket)
 

@@ -114,7 +114,7 @@ def authenticate(public: frozenset[str] = frozenset(),
                  static: Callable[[str], bool] = _nothing_static) -> Middleware:
     """Every route needs a principal (a Bearer credential, a WebSocket ticket on `/api/ws`, or
     a mapped mTLS client certificate), except GETs of the `public` paths (the node manifest:
-    §17.3 says no authentication) and GETs and HEADs of the paths `static` accepts (the
+    §17.3 says no authentication) and GETs of the paths `static` accepts (the
     console's page and assets, which hold no data: what they show comes from `/api/*`), which
     never look at a credential."""
 
@@ -122,7 +122,7 @@ def authenticate(public: frozenset[str] = frozenset(),
     async def middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
         if request.method == "GET" and request.path in public:
             return await handler(request)
-        if request.method in ("GET", "HEAD") and static(request.path):
+        if request.method == "GET" and static(request.path):
             return await handler(request)
         try:
             principal, presented = _principal(request)

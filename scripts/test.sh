@@ -5,6 +5,8 @@
 #   .cache/ros-kilted  ROS 2 Kilted, a second real graph, when it installs
 #   .cache/ros-jazzy-cyclone  ROS 2 Jazzy whose rclpy also runs on rmw_cyclonedds_cpp, built
 #                      from tests/oracle/rmw-cyclonedds (or RCAN_RTPS_ORACLE_JAZZY_CYCLONE)
+#   /usr/bin/chromium, /usr/bin/chromedriver  Debian's headless browser and its driver, for
+#                      the console tests (tests/console), installed with apt when missing
 # On Linux as root the suite runs inside a private network namespace (loopback only);
 # elsewhere every DDS participant is restricted to localhost discovery.
 # Extra arguments go to pytest.
@@ -26,6 +28,22 @@ ensure_venv .venv "$(sha256sum pyproject.toml | cut -c1-16)" -e '.[test]' \
 quiet_pip .venv/bin/pip install -q --no-deps -e .
 
 ros_args() { for p in $ROS_PKGS; do printf 'ros-%s-%s ' "$1" "$p"; done; }
+
+echo "== Chromium for the console tests (Debian's chromium and chromium-driver)"
+# Selenium drives the system browser through the system driver: nothing downloads a browser.
+have_chromium() { [ -x /usr/bin/chromium ] && [ -x /usr/bin/chromedriver ]; }
+if ! have_chromium && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+  { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+      chromium chromium-driver; } >/dev/null 2>&1 || true
+fi
+if have_chromium; then
+  echo "$(/usr/bin/chromium --version 2>/dev/null | head -1)"
+elif [ "${CI:-}" = true ]; then
+  echo "chromium and chromium-driver could not be installed: the console tests need them" >&2
+  exit 1
+else
+  echo "no chromium: the console browser tests will be skipped"
+fi
 
 echo "== ROS 2 Jazzy oracle (.cache/ros-jazzy)"
 mkdir -p .cache

@@ -32,6 +32,10 @@ def test_wheel_carries_the_idl_bundle(wheel: Path) -> None:
     shipped = {p.relative_to(ROOT / "idl").as_posix() for p in (ROOT / "idl").rglob("*.idl")}
     assert {n.removeprefix("rcan_rtps/_idl/") for n in bundle} == shipped
     assert "rcan_rtps/py.typed" in names
+    # the operator console's static files (served from the installed package, no build step)
+    static = ROOT / "src" / "rcan_rtps" / "console" / "static"
+    shipped_console = {f"rcan_rtps/console/static/{p.name}" for p in static.iterdir()}
+    assert shipped_console and shipped_console <= names
     assert any(n.endswith("entry_points.txt") for n in names)
 
 
@@ -51,6 +55,12 @@ def test_installed_wheel_works_outside_the_tree(wheel: Path, tmp_path: Path) -> 
                             capture_output=True, text=True)
     assert hashed.returncode == 0, hashed.stderr
     assert hashed.stdout.startswith("RIHS01_") and len(hashed.stdout.strip()) == 71
+    console = subprocess.run(  # the console's files, read from the installed package
+        [sys.executable, "-c", "import rcan_rtps.console as c; print(c.__file__); "
+         "print(b'<title>rcan-rtps console</title>' in c.asset('index.html'))"],
+        env=env, cwd=tmp_path, capture_output=True, text=True, check=True)
+    assert console.stdout.split() == [str(target / "rcan_rtps" / "console" / "__init__.py"),
+                                      "True"]
     assert rcan_rtps.__version__ in subprocess.run(
         [sys.executable, "-m", "rcan_rtps", "--version"], env=env, cwd=tmp_path,
         capture_output=True, text=True).stdout

@@ -271,6 +271,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "ConfigIssue",
         "HitlConfig",
         "HitlGate",
+        "ImageFeedConfig",
         "JwtConfig",
         "MotionConfig",
         "MotionLock",
@@ -312,6 +313,8 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
     "rcan_rtps.cli": set(),
     "rcan_rtps.sim": set(),
     "rcan_rtps.mcp_server": {"McpServerError"},  # `rcan-rtps mcp`'s: no Python API beyond it
+    # the operator console's static files, as the API serves them
+    "rcan_rtps.console": {"CONTENT_TYPES", "CSP", "asset", "asset_names"},
 }
 
 # The one base of each subsystem; every exception class defined under it derives from it.

@@ -21,8 +21,12 @@ ROUTES = [("POST", "/api/command"), ("GET", "/api/status"), ("POST", "/api/heart
           ("GET", "/api/audit/verify"), ("GET", "/api/audit/mine"),
           ("GET", "/api/openapi.json"), ("GET", "/api/ws"),
           ("GET", "/api/metrics"), ("GET", "/api/safety/manifest"), ("GET", "/api/v1/audit"),
-          ("POST", "/mcp"), ("GET", "/mcp"), ("DELETE", "/mcp")]
-PUBLIC = [("GET", "/.well-known/rcan-node.json")]  # §17.3: no authentication
+          ("POST", "/mcp"), ("GET", "/mcp"), ("DELETE", "/mcp"),
+          ("GET", "/api/images"), ("GET", "/api/images/front"),
+          ("GET", "/api/whoami"), ("POST", "/api/ws-ticket")]
+PUBLIC = [("GET", "/.well-known/rcan-node.json"),  # §17.3: no authentication
+          # the operator console's static files (tests/console)
+          ("GET", "/"), ("GET", "/console"), ("GET", "/console/"), ("GET", "/console/{name}")]
 
 
 def test_public_api_is_sorted_and_complete() -> None:
@@ -36,7 +40,7 @@ def test_every_route_is_in_the_test_list(api: Api) -> None:
     served = {(r.method, r.resource.canonical) for r in api.app.router.routes()
               if r.resource is not None}
     assert served == {(m, p.replace("g1", "{goal_id}").replace("t1", "{thought_id}")
-                       .replace("p1", "{pending_id}"))
+                       .replace("p1", "{pending_id}").replace("front", "{name}"))
                       for m, p in ROUTES + PUBLIC}
 
 

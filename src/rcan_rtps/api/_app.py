@@ -15,12 +15,15 @@ from rcan_rtps.rcan import Role
 
 from . import _audit_export, _mcp, _node_manifest, _safety_manifest
 from . import _routes as r
+from ._approvals import ApprovalsFeed
 from ._conn import ConnectionDeadlines, track_requests
+from ._console import add_console, is_console_path
 from ._goal_events import GoalEvents
 from ._images import NO_IMAGES
 from ._intake import Checks
 from ._invoke import Invocations
 from ._keys import (
+    APPROVALS,
     AUTHENTICATOR,
     CERT_PRINCIPALS,
     CHECKS,
@@ -35,6 +38,7 @@ from ._keys import (
     SETTINGS,
     SOCKETS,
     STATUS,
+    WS_TICKETS,
     ApiSettings,
     Authenticator,
 )
@@ -43,6 +47,7 @@ from ._metrics import Metrics
 from ._middlewares import authenticate, last_resort
 from ._reads import AuditReads
 from ._status import StatusHub
+from ._tickets import WsTickets
 from ._tls import cert_principals as config_cert_principals
 from ._ws import websocket
 from .ports import ImageSource, RobotView
@@ -93,7 +98,8 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     deadlines = ConnectionDeadlines(header_timeout_s=settings.header_timeout_s,
                                     keepalive_timeout_s=settings.keepalive_timeout_s)
     app = web.Application(middlewares=[track_requests(deadlines), last_resort(),
-                                       authenticate(frozenset({_node_manifest.PATH}))],
+                                       authenticate(frozenset({_node_manifest.PATH}),
+                                                    static=is_console_path)],
                           client_max_size=settings.max_body_bytes)
     app[DEADLINES] = deadlines  # ApiServer serves connections through it
     app[GOVERNOR] = governor
@@ -116,6 +122,9 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     robot.watch_goals(goal_events.offer)
     app[INVOCATIONS] = Invocations(config.bridge.skills, robot)
     app[IMAGES] = images or NO_IMAGES
+    app[WS_TICKETS] = WsTickets((clock or SystemClock()).monotonic)
+    app[APPROVALS] = approvals = ApprovalsFeed(governor.pending)
+    app.cleanup_ctx.append(_approvals_feed(approvals, governor))
     metrics = Metrics(governor, status)
     app[OBSERVE] = metrics.command_seconds.observe
 
@@ -167,6 +176,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     async def close_mcp(app: web.Application) -> None:
         await mcp.close()
 
+    add_console(app)  # the operator console (/, /console/) and what it asks the API
     app.on_shutdown.append(_close_sockets)
     app.on_shutdown.append(close_mcp)
 
@@ -187,6 +197,17 @@ def _status_owner(status: StatusHub, governor: Governor, robot: RobotView
         await status.close()
 
     return owner
+
+
+def _approvals_feed(approvals: ApprovalsFeed, governor: Governor
+                    ) -> Callable[[web.Application], AsyncIterator[None]]:
+    async def feed(app: web.Application) -> AsyncIterator[None]:
+        approvals.start()
+        governor.events.governance.subscribe(approvals.changed)  # a no-op once it closed
+        yield
+        approvals.close()
+
+    return feed
 
 
 async def _close_sockets(app: web.Application) -> None:

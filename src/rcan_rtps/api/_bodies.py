@@ -121,9 +121,10 @@ class VerifyReport(msgspec.Struct, kw_only=True, omit_defaults=True):
 
 
 class WsFrame(msgspec.Struct, kw_only=True, omit_defaults=True):
-    """One WebSocket text frame from the bridge: a STATUS, a command's outcome, a goal's change."""
+    """One WebSocket text frame from the bridge: a STATUS, a command's outcome, a goal's change,
+    the held commands (approvers only)."""
 
-    type: Literal["status", "outcome", "goal"]
+    type: Literal["status", "outcome", "goal", "approvals"]
     body: Any
     http_status: int | None = None
 

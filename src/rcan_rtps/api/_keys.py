@@ -11,12 +11,14 @@ from aiohttp import web
 from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.rcan import Role
 
+from ._approvals import ApprovalsFeed
 from ._conn import ConnectionDeadlines
 from ._goal_events import GoalEvents
 from ._intake import Checks
 from ._invoke import Invocations
 from ._reads import AuditReads
 from ._status import StatusHub
+from ._tickets import WsTickets
 from .ports import ImageSource, RobotView
 
 
@@ -63,6 +65,8 @@ READS = web.AppKey("audit_reads", AuditReads)
 CHECKS = web.AppKey("message_checks", Checks)  # §8.3 (and signatures) of RCAN 3.x messages
 IMAGES = web.AppKey("images", ImageSource)  # bridge.ros2.images (none: an empty source)
 INVOCATIONS = web.AppKey("invocations", Invocations)  # bridge.skills and INVOKEs under way
+WS_TICKETS = web.AppKey("ws_tickets", WsTickets)  # how a browser opens the WebSocket
+APPROVALS = web.AppKey("approvals", ApprovalsFeed)  # held commands, for approvers' sockets
 # Seconds per decided command, reported to the metrics (a no-op where there are none).
 OBSERVE: web.AppKey[Callable[[float], None]] = web.AppKey("observe_command_seconds")
 

@@ -1,5 +1,5 @@
-"""Two middlewares: a last resort (no 500, ever) and authentication (every route but the
-node manifest).
+"""Two middlewares: a last resort (no 500, ever) and authentication (every `/api/*` route;
+not the node manifest nor the console's static pages).
 
 Order, outermost first: `track_requests` (connection deadlines, in `_conn`) → `last_resort` →
 `authenticate` → handler. Authentication comes before any body is read, so an unauthenticated
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import ssl
+from collections.abc import Callable
 
 import msgspec
 from aiohttp import web
@@ -20,7 +21,8 @@ from rcan_rtps.rcan import ErrorCode
 
 from ._bodies import error_response, failure_reply, json_response
 from ._errors import BodyTimeout
-from ._keys import AUTHENTICATOR, CERT_PRINCIPALS, GOVERNOR, PRINCIPAL
+from ._keys import AUTHENTICATOR, CERT_PRINCIPALS, GOVERNOR, PRINCIPAL, WS_TICKETS
+from ._tickets import same_origin, ticket_of
 
 log = logging.getLogger(__name__)
 
@@ -104,14 +106,23 @@ def _failure(exc: Exception) -> web.Response:
     return json_response(body, status)
 
 
-def authenticate(public: frozenset[str] = frozenset()) -> Middleware:
-    """Every route needs a principal (a Bearer credential, or a mapped mTLS client
-    certificate), except GETs of the `public` paths (the node manifest: §17.3 says no
-    authentication), which never look at a credential."""
+def _nothing_static(path: str) -> bool:
+    return False
+
+
+def authenticate(public: frozenset[str] = frozenset(),
+                 static: Callable[[str], bool] = _nothing_static) -> Middleware:
+    """Every route needs a principal (a Bearer credential, a WebSocket ticket on `/api/ws`, or
+    a mapped mTLS client certificate), except GETs of the `public` paths (the node manifest:
+    §17.3 says no authentication) and GETs of the paths `static` accepts (the
+    console's page and assets, which hold no data: what they show comes from `/api/*`), which
+    never look at a credential."""
 
     @web.middleware
     async def middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
-        if request.path in public and request.method == "GET":
+        if request.method == "GET" and request.path in public:
+            return await handler(request)
+        if request.method == "GET" and static(request.path):
             return await handler(request)
         try:
             principal, presented = _principal(request)
@@ -143,7 +154,8 @@ async def _unauthenticated(request: web.Request,
 
 def _principal(request: web.Request) -> tuple[Principal | None, bool]:
     """(principal or None, whether a credential was presented); a refused bearer credential
-    raises AuthenticationError."""
+    raises AuthenticationError. A WebSocket ticket counts only without an `Authorization`
+    header, and only from the page's own origin (`_tickets`)."""
     headers = request.headers.getall("Authorization", [])
     if len(headers) > 1:  # two credentials: which one counts is ambiguous, so neither does
         return None, True
@@ -152,6 +164,10 @@ def _principal(request: web.Request) -> tuple[Principal | None, bool]:
         if scheme.lower() != "bearer" or not token.strip():
             return None, True
         return request.app[AUTHENTICATOR].authenticate(token.strip()), True
+    ticket = ticket_of(request)
+    if ticket is not None:  # spent here, whatever comes of it (tickets are single-use)
+        principal = request.app[WS_TICKETS].redeem(ticket)
+        return (principal if same_origin(request) else None), True
     name = peer_common_name(request)
     if name is None:
         return None, False

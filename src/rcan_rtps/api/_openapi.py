@@ -21,14 +21,17 @@ from ._bodies import (
     VerifyReport,
     WsFrame,
 )
+from ._console import WhoAmI
 from ._protocol import HEAD_TOO_LARGE, MAX_FIELDS, MAX_LINE
+from ._tickets import TicketReply
 from .ports import GoalView
 
 _REF = "#/components/schemas/{name}"
+
 _API_TYPES: tuple[type[msgspec.Struct], ...] = (
     ApiError, GoalView, GoalList, PendingList, PendingView, HeartbeatAck, AuditPage, VerifyReport,
     WsFrame, SkillList,
-    Thought,
+    Thought, WhoAmI, TicketReply,
 )
 
 
@@ -48,6 +51,7 @@ def _errors(*codes: int) -> dict[str, Any]:
     text = {400: "body or query fails the schema (field path in `path`)",
             401: "no or invalid credentials", 403: "role too low",
             404: "not found", 409: "refused by a safety invariant or the e-stop",
+            422: "cannot be shown",
             413: "body too large", 429: "rate limited", 431: _HEAD_TOO_LARGE,
             503: "robot or audit log unavailable"}
     return {str(c): _json("ApiError", text[c]) for c in (401, *codes, 431, 503)}
@@ -103,6 +107,17 @@ def _query(name: str, description: str) -> dict[str, Any]:
 def _seconds(name: str, description: str) -> dict[str, Any]:
     return {"name": name, "in": "query", "required": False, "description": description,
             "schema": {"type": "string", "pattern": r"^[0-9]{1,11}(\.[0-9]{1,3})?$"}}
+
+
+def _console_op(path: str, op_id: str, summary: str) -> dict[str, Any]:
+    """The console's static routes: public (`security: []`), so no 401."""
+    if "{" not in path:
+        status = "200" if path.startswith("/console/") else "302"
+        return _op(op_id, summary, {status: {"description": summary}}, security=[])
+    return _op(op_id, summary, {"200": {"description": summary},
+                                "404": _json("ApiError", "no such asset")}, security=[],
+               parameters=[{"name": "name", "in": "path", "required": True,
+                            "schema": {"type": "string"}}])
 
 
 _HITL_DECISION = _DECISION | {"404": _json("DecisionBody", "unknown or expired pending_id")}
@@ -172,6 +187,18 @@ PATHS: dict[str, dict[str, Any]] = {
                     _query("limit", "at most this many entries"),
                     _query("last", "the newest this many entries instead")])},
     "/mcp": _MCP,
+    "/api/images": {"get": _op(
+        "getImages", "The configured cameras (bridge.ros2.images), each with its path",
+        {"200": {"description": "`{images: [{name, path}]}`",
+                 "content": {"application/json": {}}}, **_errors()})},
+    "/api/images/{name}": {"get": _op(
+        "getImage", "A camera's newest frame: a PNG (a raw frame, lossless) or the JPEG/PNG "
+        "the camera sent; X-Image-Size and X-Image-Age-S headers. 404 no such camera, 503 no "
+        "frame yet, 422 an encoding that cannot be shown",
+        {"200": {"description": "the frame", "content": {"image/png": {}, "image/jpeg": {}}},
+         **_errors(404, 422)},
+        parameters=[{"name": "name", "in": "path", "required": True,
+                     "schema": {"type": "string"}}])},
     "/api/audit/verify": {"get": _op("getAuditVerify", "Verify the chain and signatures",
                                      {"200": _json("VerifyReport", "result"), **_errors(403)})},
     "/api/openapi.json": {"get": _op("getOpenApi", "This document",
@@ -212,11 +239,29 @@ PATHS: dict[str, dict[str, Any]] = {
     "/api/ws": {"get": _op(
         "getWebSocket",
         "WebSocket: text frames in are COMMAND bodies; frames out are WsFrame (STATUS at "
-        "telemetry_rate_hz, outcomes with the REST body). Closing it while holding a control "
-        "session stops the robot.",
+        "telemetry_rate_hz, outcomes with the REST body, goal changes, and the held commands "
+        "to approvers). Closing it while holding a control session stops the robot. A browser "
+        "authenticates it with `?ticket=` (POST /api/ws-ticket) instead of the header.",
         {"101": {"description": "switching to WebSocket; frames are WsFrame",
                  "content": {"application/json": {"schema": _ref("WsFrame")}}},
-         **_errors()})},
+         **_errors()},
+        parameters=[{"name": "ticket", "in": "query", "required": False,
+                     "description": "a single-use ticket from POST /api/ws-ticket (used only "
+                                    "without an Authorization header)",
+                     "schema": {"type": "string"}}])},
+    "/api/ws-ticket": {"post": _op(
+        "postWsTicket", "A single-use ticket (30 s) for the caller's own WebSocket, for a "
+        "browser, which cannot set Authorization on one (any principal)",
+        {"200": _json("TicketReply", "the ticket"), **_errors(429)})},
+    "/api/whoami": {"get": _op(
+        "getWhoAmI", "The caller's principal, role and what the console offers it (any "
+        "principal; the API decides either way)",
+        {"200": _json("WhoAmI", "who the credential is"), **_errors()})},
+    **{path: {"get": _console_op(path, op_id, summary)} for path, op_id, summary in (
+        ("/", "getRoot", "redirects to the operator console, /console/ (public)"),
+        ("/console", "getConsoleBare", "redirects to /console/ (public)"),
+        ("/console/", "getConsole", "the operator console's page (public: it holds no data)"),
+        ("/console/{name}", "getConsoleAsset", "one of the console's static files (public)"))},
 }
 
 
@@ -227,8 +272,9 @@ def openapi_document() -> dict[str, Any]:
         "jsonSchemaDialect": "https://json-schema.org/draft/2020-12/schema",
         "info": {"title": "rcan-rtps bridge API", "version": __version__,
                  "description": "RCAN governance (RCAN 1.2, bridge spec v1.0) in front of a "
-                                "ROS 2 robot. Every route but the node manifest needs a "
-                                "Bearer token or a mapped mTLS client certificate."},
+                                "ROS 2 robot. Every /api route needs a Bearer token (or, for "
+                                "/api/ws, a ticket) or a mapped mTLS client certificate; the "
+                                "node manifest and the console's static files need none."},
         "security": [{"bearer": []}],
         "paths": PATHS,
         "components": {

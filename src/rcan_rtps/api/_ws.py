@@ -2,7 +2,9 @@
 
 Frames from the bridge are `{"type": "status", "body": STATUS}`, `{"type": "outcome",
 "http_status": N, "body": <the REST body>}` and, at each change of a goal (feedback,
-state, its end), `{"type": "goal", "body": <GET /api/goals/{id}>}`. Client frames are COMMAND
+state, its end), `{"type": "goal", "body": <GET /api/goals/{id}>}` and, to a principal who
+may list held commands, `{"type": "approvals", "body": <GET /api/hitl/pending>}` when the
+socket opens and at each change of that list (`_approvals`). Client frames are COMMAND
 bodies (text, or binary UTF-8 JSON). Each is validated as it arrives; a valid `stop` or `estop`
 is decided at once, concurrently with the socket's queue (never refused with 429, never behind
 queued commands), so its outcome frame may overtake the outcomes of commands sent before it:
@@ -45,6 +47,7 @@ from ._intake import (
 )
 from ._invoke import Invocations
 from ._keys import (
+    APPROVALS,
     CHECKS,
     GOAL_EVENTS,
     GOVERNOR,
@@ -83,7 +86,7 @@ class _Feed(Protocol):
 
 
 async def _push(ws: web.WebSocketResponse, subscribe: Callable[[], _Feed],
-                kind: Literal["status", "goal"]) -> None:
+                kind: Literal["status", "goal", "approvals"]) -> None:
     """Sends what a feed yields as it comes: STATUS on change at the telemetry rate, every
     goal change (newest view per goal if the socket falls behind). Subscribes inside the task:
     one cancelled before it starts has then nothing to close."""
@@ -198,8 +201,10 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
     app[SOCKETS].add(ws)
     commands = _Commands(ws, governor, principal, settings, app[OBSERVE], app[CHECKS],
                          app[INVOCATIONS])
-    pushers = (asyncio.create_task(_push(ws, app[STATUS].subscribe, "status")),
-               asyncio.create_task(_push(ws, app[GOAL_EVENTS].subscribe, "goal")))
+    pushers = [asyncio.create_task(_push(ws, app[STATUS].subscribe, "status")),
+               asyncio.create_task(_push(ws, app[GOAL_EVENTS].subscribe, "goal"))]
+    if principal.role >= settings.hitl_list_role:  # who may list what waits for a human
+        pushers.append(asyncio.create_task(_push(ws, app[APPROVALS].subscribe, "approvals")))
     try:
         while True:
             msg = await ws.receive()

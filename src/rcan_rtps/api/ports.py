@@ -12,6 +12,7 @@ from typing import Any, Literal, Protocol
 import msgspec
 
 from ..rcan import Status
+from ._errors import ApiServerError
 
 GoalState = Literal["accepted", "executing", "canceling", "succeeded", "canceled",
                     "aborted", "rejected", "unknown", "lost"]
@@ -62,7 +63,7 @@ class ImageFrame(msgspec.Struct, frozen=True, kw_only=True):
     age_s: float  # since it arrived
 
 
-class ImageUnavailable(Exception):
+class ImageUnavailable(ApiServerError):
     """No frame to show: `reason` is `image_not_found` (no such name), `no_frame_yet`, or
     `unsupported_image` (an encoding that cannot be shown)."""
 

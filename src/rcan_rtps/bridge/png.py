@@ -12,6 +12,8 @@ import struct
 import zlib
 from dataclasses import dataclass
 
+from .errors import BridgeError
+
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -31,7 +33,7 @@ LAYOUTS = {
 }
 
 
-class UnsupportedImage(ValueError):
+class UnsupportedImage(BridgeError):
     """An Image this encoder cannot show (its encoding, or a size that does not add up)."""
 
 

@@ -240,11 +240,10 @@ def test_a_recorder_killed_after_2_s_leaves_a_bag_mcap_and_rosbags_read(
 
     (mcap_file,) = bag.glob("*.mcap")
     seen = []
-    with mcap_file.open("rb") as stream:
-        with pytest.raises(EndOfFile):  # no summary, no footer: the recorder never closed it
-            for _, channel, message in NonSeekingReader(stream).iter_messages(
-                    log_time_order=False):
-                seen.append((channel.topic, message.data))
+    # no summary, no footer: the recorder never closed it
+    with mcap_file.open("rb") as stream, pytest.raises(EndOfFile):
+        for _, channel, message in NonSeekingReader(stream).iter_messages(log_time_order=False):
+            seen.append((channel.topic, message.data))
     assert len(seen) == 5 and {topic for topic, _ in seen} == {"/crash/chatter"}
 
     info = cli(domain_id, "bag", "info", str(bag))

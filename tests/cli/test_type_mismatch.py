@@ -29,7 +29,7 @@ def test_another_name_is_named_with_both_hashes() -> None:
     assert problem is not None
     short = {name: "RIHS01 " + STORE.hash_of(name).removeprefix("RIHS01_")[:12] + "…"
              for name in (STRING, INT32)}
-    assert str(problem) == (f"type mismatch: /chatter has {STRING} ({short[STRING]}), "
+    assert problem == (f"type mismatch: /chatter has {STRING} ({short[STRING]}), "
                             f"you asked for {INT32} ({short[INT32]})")
 
 
@@ -38,7 +38,7 @@ def test_the_same_name_with_another_definition_is_a_mismatch() -> None:
     problem = type_conflict(STORE, "me", [_endpoint(STRING, changed)], "/chatter",
                             "std_msgs/String")
     assert problem is not None
-    assert f"has {STRING} (RIHS01 abababababab…), you asked for {STRING} (RIHS01 " in str(problem)
+    assert f"has {STRING} (RIHS01 abababababab…), you asked for {STRING} (RIHS01 " in problem
 
 
 def test_the_same_type_or_an_unknown_hash_or_our_own_endpoint_is_no_mismatch() -> None:

@@ -86,11 +86,6 @@ async def resolve_type(args: argparse.Namespace, node: RosNode, graph: RosGraph,
     return types[0], pubs
 
 
-class TypeMismatchError(WireError):
-    """The topic's endpoints carry another type (name or RIHS01 hash) than the one asked for:
-    DDS will never match them (Cyclone reports it as an incompatible TYPE_CONSISTENCY)."""
-
-
 def _short_hash(type_hash: str) -> str:
     if not type_hash:
         return "no type hash"
@@ -99,7 +94,7 @@ def _short_hash(type_hash: str) -> str:
 
 
 def type_conflict(store: TypeStore, own_node: str, endpoints: list[Endpoint], topic: str,
-                  type_name: str) -> TypeMismatchError | None:
+                  type_name: str) -> str | None:
     """What is wrong when other endpoints of `topic` have another type than `type_name`: a
     different name, or the same name with a different RIHS01 hash (a changed definition;
     compared only where both sides have a hash)."""
@@ -111,14 +106,15 @@ def type_conflict(store: TypeStore, own_node: str, endpoints: list[Endpoint], to
     if not theirs:
         return None
     has = ", ".join(f"{name} ({_short_hash(h)})" for name, h in sorted(theirs))
-    return TypeMismatchError(f"type mismatch: {topic} has {has}, you asked for {type_name} "
-                             f"({_short_hash(ours)})")
+    return (f"type mismatch: {topic} has {has}, you asked for {type_name} "
+            f"({_short_hash(ours)})")
 
 
 def check_type(node: RosNode, graph: RosGraph, topic: str, type_name: str) -> None:
-    """Raises TypeMismatchError when the graph shows `topic` with another type."""
+    """Fails when the graph shows `topic` with another type: DDS never matches the two
+    (Cyclone reports it as an incompatible TYPE_CONSISTENCY), so waiting cannot help."""
     graph.refresh()
     problem = type_conflict(node.store, node.name, graph.topic_endpoints(topic), topic,
                             type_name)
     if problem is not None:
-        raise problem
+        raise WireError(problem)

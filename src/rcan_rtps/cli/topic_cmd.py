@@ -260,7 +260,7 @@ async def _pub(args: argparse.Namespace) -> int:
 async def _await_subscribers(node: RosNode, graph: RosGraph, pub: RosPublisher, wanted: int,
                              patience: float) -> None:
     """Up to `patience` s for `wanted` matched subscriptions; a subscription of another type
-    (which never matches) ends the wait with a TypeMismatchError."""
+    (which never matches) ends the wait with an error."""
     deadline = time.monotonic() + patience
     while True:
         check_type(node, graph, pub.topic, pub.type_name)

@@ -202,3 +202,61 @@ def test_a_bag_written_by_rosbags_plays_to_rclpy(oracle: RclpyOracle, domain_id:
     assert [value for _, value in twice_as_fast] == [float(i) for i in range(6)]
     # relative, not absolute: the same bag at twice the rate takes less time than at once
     assert (twice_as_fast[-1][0] - twice_as_fast[0][0]) < (got[-1][0] - got[0][0])
+
+
+def test_a_recorder_killed_after_2_s_leaves_a_bag_mcap_and_rosbags_read(
+        oracle: RclpyOracle, domain_id: int, tmp_path: Path) -> None:
+    """SIGKILL, no clean exit: the bag holds what was recorded until the last flush (at most
+    a second before), mcap's sequential reader reads it as it is, and after `bag reindex`
+    rosbags reads it as a complete bag."""
+    from mcap.exceptions import EndOfFile
+    from mcap.reader import NonSeekingReader
+    from rosbags.highlevel import AnyReader
+
+    oracle.call("publisher", topic="/crash/chatter", type="std_msgs/msg/String")
+    bag = tmp_path / "killed"
+    started = time.monotonic()
+    recorder = cli_start(domain_id, "bag", "record", "/crash/chatter", "-o", str(bag))
+    try:
+        wait_for_lines(recorder, {"Subscribed to topic '/crash/chatter'"}, timeout=30)
+        oracle.call("wait_subscribers", topic="/crash/chatter")
+        time.sleep(0.5)  # the subscription's DDS match with Fast DDS, as above
+        oracle.call("publish", topic="/crash/chatter", type="std_msgs/msg/String",
+                    value={"data": "before the kill"}, count=5, period=0.05)
+        time.sleep(max(0.0, 2.0 - (time.monotonic() - started)))
+        # what metadata.yaml counts is in the file: wait for the five to be counted
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+            if meta["rosbag2_bagfile_information"]["message_count"] == 5:
+                break
+            time.sleep(0.1)
+        recorder.send_signal(signal.SIGKILL)
+        recorder.communicate(timeout=30)
+    finally:
+        if recorder.poll() is None:
+            recorder.kill()
+    assert recorder.returncode == -signal.SIGKILL
+
+    (mcap_file,) = bag.glob("*.mcap")
+    seen = []
+    # no summary, no footer: the recorder never closed it
+    with mcap_file.open("rb") as stream, pytest.raises(EndOfFile):
+        for _, channel, message in NonSeekingReader(stream).iter_messages(log_time_order=False):
+            seen.append((channel.topic, message.data))
+    assert len(seen) == 5 and {topic for topic, _ in seen} == {"/crash/chatter"}
+
+    info = cli(domain_id, "bag", "info", str(bag))
+    assert info.returncode == 1 and "Traceback" not in info.stderr
+    assert "bag reindex" in info.stderr
+
+    rebuilt = cli(domain_id, "bag", "reindex", str(bag))
+    assert rebuilt.returncode == 0, rebuilt.stderr
+    assert f"Reindexed '{mcap_file}': 5 messages" in rebuilt.stdout
+    with AnyReader([bag]) as reader:
+        assert [c.topic for c in reader.connections] == ["/crash/chatter"]
+        got = [reader.deserialize(raw, conn.msgtype).data for conn, _, raw in reader.messages()]
+    assert got == ["before the kill"] * 5
+    info = cli(domain_id, "bag", "info", str(bag))
+    assert info.returncode == 0, info.stderr
+    assert "Messages:          5" in info.stdout.splitlines()

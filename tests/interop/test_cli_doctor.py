@@ -47,3 +47,20 @@ def test_doctor_fails_on_a_bad_setting(domain_id: int) -> None:
     assert done.returncode == 1
     assert "ROS_AUTOMATIC_DISCOVERY_RANGE='moon' is not one of" in done.stdout
     assert "1/6 check(s) failed\nFailed modules: environment" in done.stdout
+
+
+def _domain_row(out: str) -> str:
+    return next(line.split(":", 1)[1].strip() for line in out.splitlines()
+                if line.startswith("ROS_DOMAIN_ID "))
+
+
+def test_doctor_report_says_where_the_domain_id_comes_from(domain_id: int) -> None:
+    unset = {k: v for k, v in os.environ.items() if k != "ROS_DOMAIN_ID"}
+    done = subprocess.run([sys.executable, "-m", "rcan_rtps", "doctor", "--report",
+                           "--spin-time", "0.2"], capture_output=True, text=True, env=unset,
+                          timeout=60)
+    assert _domain_row(done.stdout) == "0 (ROS_DOMAIN_ID is not set: the default)", done.stdout
+    done = doctor(domain_id, "--report", "--spin-time", "0.2")
+    assert _domain_row(done.stdout) == f"{domain_id} (from the environment)"
+    done = doctor(domain_id, "--report", "--spin-time", "0.2", "--domain-id", "5")
+    assert _domain_row(done.stdout) == "5 (from --domain-id)"

@@ -424,6 +424,8 @@ async def _check_tour_line(line: str, out: str, shell: Shell, fill: dict[str, st
         assert "ok" in out.lower(), out
     elif "topic echo" in line:
         assert "child_frame_id: base_link" in out, out
+    elif "param get" in line:  # the sim serves its parameters
+        assert out.strip() == "Double value is: 2.0", out
 
 
 async def test_session_loss_cancels_a_goal_and_says_so(demo: Demo,

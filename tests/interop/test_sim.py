@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from oracle.client import RclpyOracle
+from oracle.client import OracleEnv, RclpyOracle
 from waiting import eventually, eventually_sync, take
 
 from rcan_rtps.ros.actions import ActionClient, GoalState
@@ -220,3 +220,61 @@ async def test_docking_failures_carry_nav2_error_codes(sim: SimRobot,
     assert outcome.state is GoalState.ABORTED
     assert outcome.result.error_code == FAILED_TO_DETECT_DOCK
     assert sim.state.docked_at is None and abs(sim.state.x) < 1e-6
+
+
+def _cli(domain_id: int, *args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    return subprocess.run([sys.executable, "-m", "rcan_rtps", *args], capture_output=True,
+                          text=True, env=env, timeout=60)
+
+
+@pytest.fixture
+def sim_process(domain_id: int) -> Iterator[subprocess.Popen[str]]:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    proc = subprocess.Popen([sys.executable, "-m", "rcan_rtps", "sim", "--namespace", "/bot"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert proc.stdout is not None
+        assert "rcan-rtps sim ready node=/bot/sim_robot" in proc.stdout.readline()
+        yield proc
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+def test_the_sim_serves_its_parameters(sim_process: subprocess.Popen[str],
+                                       domain_id: int) -> None:
+    listing = _cli(domain_id, "param", "list", "/bot/sim_robot")
+    assert listing.returncode == 0, listing.stderr
+    names = [line.strip() for line in listing.stdout.splitlines()]
+    assert {"use_sim_time", "rate_hz", "cmd_timeout_s", "max_linear", "max_angular"} <= set(names)
+    got = _cli(domain_id, "param", "get", "/bot/sim_robot", "use_sim_time")
+    assert got.stdout.strip() == "Boolean value is: False", got.stderr
+    got = _cli(domain_id, "param", "get", "/bot/sim_robot", "rate_hz")
+    assert got.stdout.strip() == "Double value is: 50.0", got.stderr
+
+    done = _cli(domain_id, "param", "set", "/bot/sim_robot", "max_linear", "1.5")
+    assert (done.returncode, done.stdout.strip()) == (0, "Set parameter successful")
+    got = _cli(domain_id, "param", "get", "/bot/sim_robot", "max_linear")
+    assert got.stdout.strip() == "Double value is: 1.5"
+    for name, value, why in (("rate_hz", "10.0", "read-only"),
+                             ("use_sim_time", "true", "wall-clock time"),
+                             ("max_linear", "fast", "is of type {double}")):
+        refused = _cli(domain_id, "param", "set", "/bot/sim_robot", name, value)
+        assert refused.returncode == 1 and why in refused.stdout, refused.stdout
+    dump = _cli(domain_id, "param", "dump", "/bot/sim_robot")
+    assert "    max_linear: 1.5" in dump.stdout and "    use_sim_time: false" in dump.stdout
+
+
+def test_rclpy_reads_the_sims_parameters(sim_process: subprocess.Popen[str],
+                                         jazzy_cyclone_python: Path, domain_id: int) -> None:
+    """rclpy on rmw_cyclonedds_cpp (our servers speak the Cyclone request-reply mapping)."""
+    with RclpyOracle(OracleEnv(jazzy_cyclone_python, "cyclonedds"), "reader",
+                     domain_id=domain_id) as oracle:
+        reply = oracle.call("service_call", name="/bot/sim_robot/get_parameters",
+                            type="rcl_interfaces/srv/GetParameters",
+                            value={"names": ["use_sim_time", "max_angular", "nothing"]},
+                            wait=15.0)
+    values = reply["values"]
+    assert [v["type"] for v in values] == [1, 3, 0], reply
+    assert values[0]["bool_value"] is False and values[1]["double_value"] == 3.0

@@ -11,14 +11,15 @@ from typing import Any
 
 import yaml
 
-from ..ros.errors import GraphTimeout, ValueFitError, seconds
+from ..ros.errors import GraphTimeout, ValueFitError, WireError, seconds
 from ..ros.graph import Direction, Endpoint, RosGraph
 from ..ros.participant import RosNode, localhost_requested
-from ..ros.typesys.store import TypeStore, env_idl_paths
+from ..ros.typesys.store import TypeStore, env_idl_paths, normalize_name
 from ._options import IDL_PATH_AFTER_VERB, add_global_options, merge_global_options
 
 __all__ = ["IDL_PATH_AFTER_VERB", "add_global_options", "merge_global_options"]
 
+TYPE_CHECK_PERIOD = 0.5  # s between looks at the graph for endpoints of another type
 TOPIC_HELP = "topic name, e.g. /robot1/odom (relative names resolve from /)"
 VALUES_HELP = "field values as YAML, e.g. \"{linear: {x: 0.2}}\" (default: all defaults)"
 
@@ -83,3 +84,37 @@ async def resolve_type(args: argparse.Namespace, node: RosNode, graph: RosGraph,
     if len(types) > 1:
         raise GraphTimeout(f"'{topic}' has several types ({', '.join(types)}); pass TYPE")
     return types[0], pubs
+
+
+def _short_hash(type_hash: str) -> str:
+    if not type_hash:
+        return "no type hash"
+    kind, _, digest = type_hash.partition("_")
+    return f"{kind} {digest[:12]}…" if digest else type_hash
+
+
+def type_conflict(store: TypeStore, own_node: str, endpoints: list[Endpoint], topic: str,
+                  type_name: str) -> str | None:
+    """What is wrong when other endpoints of `topic` have another type than `type_name`: a
+    different name, or the same name with a different RIHS01 hash (a changed definition;
+    compared only where both sides have a hash)."""
+    type_name = normalize_name(type_name)
+    ours = store.hash_of(type_name) if store.distro != "humble" else ""
+    theirs = {(e.ros_type, e.type_hash) for e in endpoints
+              if e.node_name != own_node and (e.ros_type != type_name or (
+                  ours and e.type_hash and e.type_hash != ours))}
+    if not theirs:
+        return None
+    has = ", ".join(f"{name} ({_short_hash(h)})" for name, h in sorted(theirs))
+    return (f"type mismatch: {topic} has {has}, you asked for {type_name} "
+            f"({_short_hash(ours)})")
+
+
+def check_type(node: RosNode, graph: RosGraph, topic: str, type_name: str) -> None:
+    """Fails when the graph shows `topic` with another type: DDS never matches the two
+    (Cyclone reports it as an incompatible TYPE_CONSISTENCY), so waiting cannot help."""
+    graph.refresh()
+    problem = type_conflict(node.store, node.name, graph.topic_endpoints(topic), topic,
+                            type_name)
+    if problem is not None:
+        raise WireError(problem)

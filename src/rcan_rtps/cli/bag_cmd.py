@@ -1,4 +1,4 @@
-"""`rcan-rtps bag record|play|info`: MCAP bags shaped like `ros2 bag`'s (see ros/bag.py)."""
+"""`rcan-rtps bag record|play|info|reindex`: MCAP bags shaped like `ros2 bag`'s (see ros/bag.py)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,15 @@ from pathlib import Path
 from typing import Any
 
 from ..ros import qos as qos_mod
-from ..ros.bag import BagMessage, BagReader, BagSummary, BagTopic, BagWriter, qos_dict
+from ..ros.bag import (
+    BagMessage,
+    BagReader,
+    BagSummary,
+    BagTopic,
+    BagWriter,
+    qos_dict,
+    reindex,
+)
 from ..ros.graph import Direction, Endpoint, RosGraph
 from ..ros.names import is_hidden
 from ..ros.participant import RosNode, RosPublisher, RosSubscription
@@ -76,6 +84,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     info = actions.add_parser("info", help="summary of a bag")
     info.add_argument("bag", metavar="BAG", help="bag folder or .mcap file")
     info.set_defaults(func=info_command)
+
+    rebuild = actions.add_parser(
+        "reindex", help="rebuild a bag a recorder left unfinished (killed, crashed): its "
+        "MCAP summary and indexes, and metadata.yaml")
+    rebuild.add_argument("bag", metavar="BAG", help="bag folder")
+    rebuild.set_defaults(func=reindex_command)
 
 
 # -- record -----------------------------------------------------------------------
@@ -331,4 +345,14 @@ def describe(summary: BagSummary) -> str:
 
 def info_command(args: argparse.Namespace) -> int:
     print(describe(BagReader(Path(args.bag)).summary()))
+    return 0
+
+
+# -- reindex ----------------------------------------------------------------------
+def reindex_command(args: argparse.Namespace) -> int:
+    for done in reindex(Path(args.bag), args.distro or ""):
+        torn = f" (left out a torn last record of {done.dropped_bytes} B)" \
+            if done.dropped_bytes else ""
+        print(f"Reindexed '{done.path}': {done.messages} messages{torn}")
+    print(f"Wrote '{Path(args.bag) / 'metadata.yaml'}'")
     return 0

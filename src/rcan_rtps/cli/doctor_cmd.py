@@ -137,8 +137,13 @@ def _check_domain(check: Check, explicit: int | None) -> None:
     except WireError as exc:
         check.errors.append(str(exc))
         return
-    check.rows.append(("ROS_DOMAIN_ID", f"{domain} (from "
-                       f"{'--domain-id' if explicit is not None else 'the environment'})"))
+    if explicit is not None:
+        source = "from --domain-id"
+    elif os.environ.get("ROS_DOMAIN_ID", "").strip():
+        source = "from the environment"
+    else:
+        source = "ROS_DOMAIN_ID is not set: the default"
+    check.rows.append(("ROS_DOMAIN_ID", f"{domain} ({source})"))
     if domain not in SAFE_DOMAIN_IDS:
         check.warnings.append(f"domain id {domain} is above 101: on Linux its ports can collide "
                               "with ephemeral ports")

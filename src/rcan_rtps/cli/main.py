@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import sys
@@ -113,9 +114,23 @@ def _main(argv: Sequence[str] | None) -> int:
         return int(args.func(args))
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
+    except BrokenPipeError:  # `… | head`: the reader has what it wanted
+        _quiet_stdout()
+        return 0
     except (WireError, ConfigError, GovernanceError, RcanError, ValueError, OSError) as exc:
         report_error(exc, as_json=args.log_format == "json")
         return EXIT_ERROR
+
+
+def _quiet_stdout() -> None:
+    """Points stdout at /dev/null, so the interpreter's own flush at exit cannot hit the
+    closed pipe again (and print a second error)."""
+    import os
+
+    with contextlib.suppress(OSError, ValueError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
 
 
 def report_error(exc: Exception, *, as_json: bool) -> None:

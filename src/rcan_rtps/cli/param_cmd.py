@@ -10,19 +10,23 @@ from typing import Any
 
 import yaml
 
+from ..ros.parameters import (
+    BOOL,
+    BOOL_ARRAY,
+    BYTE_ARRAY,
+    DOUBLE,
+    DOUBLE_ARRAY,
+    INTEGER,
+    INTEGER_ARRAY,
+    NOT_SET,
+    STRING,
+    STRING_ARRAY,
+    VALUE_FIELDS,
+)
 from ..ros.participant import RosNode
 from ..ros.services import ServiceClient
 from ._common import make_node
 
-# rcl_interfaces/msg/ParameterType, and the ParameterValue field holding each type.
-NOT_SET, BOOL, INTEGER, DOUBLE, STRING = 0, 1, 2, 3, 4
-BYTE_ARRAY, BOOL_ARRAY, INTEGER_ARRAY, DOUBLE_ARRAY, STRING_ARRAY = 5, 6, 7, 8, 9
-VALUE_FIELDS = {
-    BOOL: "bool_value", INTEGER: "integer_value", DOUBLE: "double_value",
-    STRING: "string_value", BYTE_ARRAY: "byte_array_value", BOOL_ARRAY: "bool_array_value",
-    INTEGER_ARRAY: "integer_array_value", DOUBLE_ARRAY: "double_array_value",
-    STRING_ARRAY: "string_array_value",
-}
 # ros2 param get's wording, by type.
 GET_LABELS = {
     BOOL: "Boolean value is:", INTEGER: "Integer value is:", DOUBLE: "Double value is:",

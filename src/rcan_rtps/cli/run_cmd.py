@@ -246,6 +246,7 @@ def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: 
     from ..ros.participant import RosNode  # --sim only: a bridge run leaves these unimported
     from ..sim.docking import DockingServer
     from ..sim.navigation import NavigationServer
+    from ..sim.parameters import serve_parameters
     from ..sim.robot import SimRobot
 
     ros2 = config.bridge.ros2
@@ -255,12 +256,14 @@ def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: 
     robot = SimRobot(sim_node, cmd_vel_type=ros2.cmd_vel_type)
     nav = NavigationServer(robot, ros2.nav_action)
     docking = DockingServer(robot, ros2.dock_action)
+    parameters = serve_parameters(robot)
     sim_task = asyncio.create_task(robot.run(stop))
 
     async def stop_sim() -> None:
         stop.set()
         await nav.close()
         await docking.close()
+        await parameters.close()
         await sim_task
 
     parts.push_async_callback(stop_sim)

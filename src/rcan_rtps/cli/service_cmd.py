@@ -4,12 +4,20 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import re
+import time
 
+from ..ros.errors import ServiceUnavailable, seconds
 from ..ros.graph import RosGraph
+from ..ros.participant import RosNode
 from ..ros.services import RequestMapping, ServiceClient
 from ..ros.typesys.store import normalize_name
-from ._common import VALUES_HELP, dump, make_node, parse_values, warn_if_alone
+from ._common import VALUES_HELP, alone_hint, dump, make_node, parse_values, warn_if_alone
 
+# How long `call` looks for a server on the graph before saying there is none (discovery
+# on a quiet domain takes well under a second; --timeout, when shorter, wins).
+SERVER_PATIENCE = 3.0
+TYPE_NAME = re.compile(r"[A-Za-z]\w*/(?:srv/)?[A-Za-z]\w*")
 MAPPINGS = [m.value for m in RequestMapping]
 MAPPING_HELP = ("how requests and replies are matched on the wire: cyclone (rmw_cyclonedds) or "
                 "fastdds (rmw_fastrtps) layout; auto (default) picks from the server's DDS vendor")
@@ -43,8 +51,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
     call = actions.add_parser("call", help="call a service with a request built from YAML")
     call.add_argument("service", metavar="NAME", help="service name, e.g. /reset")
-    call.add_argument("type", metavar="TYPE", help="service type, e.g. std_srvs/srv/Trigger")
-    call.add_argument("values", metavar="VALUES", nargs="?", default="{}", help=VALUES_HELP)
+    call.add_argument("type", metavar="TYPE", nargs="?", default=None,
+                      help="service type, e.g. std_srvs/srv/Trigger (default: the server's, "
+                      "from the graph)")
+    call.add_argument("values", metavar="VALUES", nargs="?", default=None, help=VALUES_HELP)
     call.add_argument("--timeout", type=float, default=10.0, help="seconds (default 10)")
     call.add_argument("--mapping", choices=MAPPINGS, default="auto", help=MAPPING_HELP)
     call.set_defaults(func=lambda a: asyncio.run(_call(a)))
@@ -81,11 +91,49 @@ async def _find(args: argparse.Namespace) -> int:
     return 0
 
 
+def type_and_values(type_word: str | None, values_word: str | None) -> tuple[str | None, str]:
+    """TYPE and VALUES from the words after NAME: TYPE may be left out, so a lone word that
+    is not a type name (`{data: true}`, `data: 1`) is VALUES."""
+    if values_word is None and type_word is not None and not TYPE_NAME.fullmatch(type_word):
+        return None, type_word
+    return type_word, "{}" if values_word is None else values_word
+
+
+async def _server_type(args: argparse.Namespace, node: RosNode, service: str, given: str | None,
+                       patience: float) -> str:
+    """Waits (up to `patience` s) for a server of `service` on the graph; its type, or
+    `given`. No server: an error naming the service, not its DDS topics."""
+    graph = RosGraph(node)
+    deadline = time.monotonic() + patience
+    while True:
+        graph.refresh()
+        types = graph.services(include_hidden=True).get(service, [])
+        if types or time.monotonic() >= deadline:
+            break
+        await asyncio.sleep(0.1)
+    if not types:
+        hint = alone_hint(args, node, graph) \
+            or "`rcan-rtps service list` shows the services there are"
+        raise ServiceUnavailable(f"no server for service {service} within "
+                                 f"{seconds(patience)}; {hint}")
+    if given is not None:
+        return given
+    if len(types) > 1:
+        raise ServiceUnavailable(f"servers of {service} have several types "
+                                 f"({', '.join(types)}); pass TYPE")
+    return types[0]
+
+
 async def _call(args: argparse.Namespace) -> int:
-    values = parse_values(args.values)
+    type_word, values_text = type_and_values(args.type, args.values)
+    values = parse_values(values_text)
     with make_node(args) as node:
-        client = ServiceClient(node, args.service, args.type,
-                               mapping=RequestMapping(args.mapping))
+        service = node.resolve(args.service)
+        if type_word is not None:  # bad values fail before any wait
+            node.values.build(node.store.service(type_word).request.name, values)
+        type_name = await _server_type(args, node, service, type_word,
+                                       min(args.timeout, SERVER_PATIENCE))
+        client = ServiceClient(node, service, type_name, mapping=RequestMapping(args.mapping))
         request = node.values.build(client.request_type, values)  # bad values fail here
         print(f"requester: making request: {client.request_type}", flush=True)
         response = await client.call(request, args.timeout)

@@ -9,6 +9,7 @@ import signal
 from ..ros.participant import RosNode
 from ..sim.docking import DockingServer
 from ..sim.navigation import NavigationServer
+from ..sim.parameters import serve_parameters
 from ..sim.robot import SimParams, SimRobot
 from ._common import make_store
 
@@ -42,10 +43,12 @@ async def _run(args: argparse.Namespace) -> int:
                          params=SimParams(rate_hz=args.rate, cmd_timeout_s=args.cmd_timeout))
         nav = NavigationServer(robot, args.nav_action)
         docking = DockingServer(robot, args.dock_action)
+        parameters = serve_parameters(robot)
         print(f"rcan-rtps sim ready node={node.fqn} domain={node.domain_id}", flush=True)
         try:
             await robot.run(stop)
         finally:
             await nav.close()
             await docking.close()
+            await parameters.close()
     return 0

@@ -13,19 +13,23 @@ from typing import Any
 from ..ros import qos as qos_mod
 from ..ros.errors import GraphTimeout, seconds
 from ..ros.graph import Direction, Endpoint, RosGraph, short_gid
-from ..ros.participant import RosNode
+from ..ros.participant import RosNode, RosPublisher
 from ..ros.typesys.store import normalize_name
 from . import _measure
 from ._common import (
     TOPIC_HELP,
+    TYPE_CHECK_PERIOD,
     VALUES_HELP,
     alone_hint,
+    check_type,
     make_node,
     parse_values,
     resolve_type,
     warn_if_alone,
 )
 from ._echo import EchoFormat, adapted_qos, add_qos_options, chosen_qos
+
+SUBSCRIBER_PATIENCE = 5.0  # s `pub --once/--times` waits for subscriptions to match
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -193,18 +197,24 @@ async def _echo(args: argparse.Namespace) -> int:
         topic = node.resolve(args.topic)
         type_name, pubs = await resolve_type(args, node, graph, topic, args.type, args.timeout)
         shape = EchoFormat(args, node.values, type_name)  # bad type or field: fail now
+        check_type(node, graph, topic, type_name)
         sub = node.create_subscription(topic, type_name, chosen_qos(args, pubs))
         limit = 1 if args.once else args.count
         seen = 0
         deadline = time.monotonic() + args.timeout if args.timeout else None
+        next_check = time.monotonic() + TYPE_CHECK_PERIOD
         while not limit or seen < limit:
-            left = deadline - time.monotonic() if deadline else None
+            now = time.monotonic()
+            if now >= next_check:  # a publisher of another type is never heard: say so
+                check_type(node, graph, topic, type_name)
+                next_check = now + TYPE_CHECK_PERIOD
+            left = deadline - now if deadline else None
             if left is not None and left <= 0:
                 break
             try:
-                msg = await sub.get(timeout=left)
+                msg = await sub.get(timeout=min(left or TYPE_CHECK_PERIOD, TYPE_CHECK_PERIOD))
             except asyncio.TimeoutError:
-                break
+                continue
             print(shape.text(msg), flush=True)
             seen += 1
         if limit and not seen:
@@ -224,17 +234,20 @@ async def _pub(args: argparse.Namespace) -> int:
         wait_for = args.wait_matching_subscriptions
         if wait_for is None:
             wait_for = 1 if times else 0
+        graph = RosGraph(node)
         if wait_for:
-            try:
-                await pub.wait_for_subscribers(wait_for, timeout=5.0)
-            except GraphTimeout:
-                print(f"warning: no subscriber matched {pub.topic}; publishing anyway",
-                      file=sys.stderr)
+            await _await_subscribers(node, graph, pub, wait_for, SUBSCRIBER_PATIENCE)
+        else:
+            check_type(node, graph, pub.topic, args.type)
         print("publisher: beginning loop", flush=True)
         shown = _shown(node.values.to_plain(args.type, message))
         period = 1.0 / args.rate if args.rate > 0 else 0.0
         sent = 0
+        next_check = time.monotonic() + TYPE_CHECK_PERIOD
         while not times or sent < times:
+            if time.monotonic() >= next_check:  # a subscription of another type appeared
+                check_type(node, graph, pub.topic, args.type)
+                next_check = time.monotonic() + TYPE_CHECK_PERIOD
             pub.publish(message)
             sent += 1
             print(f"publishing #{sent}: {args.type}({shown})", flush=True)
@@ -242,6 +255,25 @@ async def _pub(args: argparse.Namespace) -> int:
                 await asyncio.sleep(period)
         await asyncio.sleep(0.3)  # let reliable delivery finish before the participant goes
     return 0
+
+
+async def _await_subscribers(node: RosNode, graph: RosGraph, pub: RosPublisher, wanted: int,
+                             patience: float) -> None:
+    """Up to `patience` s for `wanted` matched subscriptions; a subscription of another type
+    (which never matches) ends the wait with an error."""
+    deadline = time.monotonic() + patience
+    while True:
+        check_type(node, graph, pub.topic, pub.type_name)
+        left = deadline - time.monotonic()
+        if left <= 0:
+            print(f"warning: no subscriber matched {pub.topic}; publishing anyway",
+                  file=sys.stderr)
+            return
+        try:
+            await pub.wait_for_subscribers(wanted, timeout=min(left, TYPE_CHECK_PERIOD))
+            return
+        except GraphTimeout:
+            continue
 
 
 def _shown(plain: Any) -> str:

@@ -134,6 +134,10 @@ class RosPublisher:
 
     def _on_incompatible(self, status: Any) -> None:  # on the node's reader thread
         self.incompatible_qos_events += 1
+        if status.last_policy_id == qos_mod.TYPE_CONSISTENCY_POLICY_ID:
+            log.warning("publisher %s: a subscription has another type (name or definition); "
+                        "no messages will be sent to it", self.topic)
+            return
         # rclpy's default handler says the same (its event callbacks are optional too).
         log.warning("publisher %s: a subscription requests incompatible QoS; no messages will "
                     "be sent to it (last incompatible policy: %s)", self.topic,
@@ -231,6 +235,10 @@ class RosSubscription:
 
     def _on_incompatible(self, status: Any) -> None:
         self.incompatible_qos_events += 1
+        if status.last_policy_id == qos_mod.TYPE_CONSISTENCY_POLICY_ID:
+            log.warning("subscription %s: a publisher has another type (name or definition); "
+                        "it will not be heard", self.topic)
+            return
         log.warning("subscription %s: a publisher offers incompatible QoS; it will not be "
                     "heard (last incompatible policy: %s)", self.topic,
                     qos_mod.policy_name(status.last_policy_id))

@@ -19,8 +19,12 @@ _UNLIMITED = -1  # DDS_LENGTH_UNLIMITED
 _POLICY_NAMES = {
     2: "DURABILITY", 3: "PRESENTATION", 4: "DEADLINE", 5: "LATENCY_BUDGET", 6: "OWNERSHIP",
     8: "LIVELINESS", 10: "PARTITION", 11: "RELIABILITY", 12: "DESTINATION_ORDER", 13: "HISTORY",
-    21: "LIFESPAN", 22: "DURABILITY_SERVICE",
+    21: "LIFESPAN", 22: "DURABILITY_SERVICE", 23: "DATA_REPRESENTATION",
+    24: "TYPE_CONSISTENCY_ENFORCEMENT",
 }
+# What Cyclone reports when the two sides' types differ (name or definition): not a QoS
+# the user chose, so it is told as a type mismatch.
+TYPE_CONSISTENCY_POLICY_ID = 24
 
 
 def policy_name(policy_id: int) -> str:

@@ -16,6 +16,7 @@ from aiohttp.test_utils import TestClient, TestServer
 from recording import RecordingDispatcher
 
 from rcan_rtps.api import GoalView, build_app
+from rcan_rtps.api.ports import ImageSource
 from rcan_rtps.config import RcanConfig, loads_config
 from rcan_rtps.governance import (
     AuditLog,
@@ -138,8 +139,10 @@ class Api:
                  bridge_extra: str = "", max_body: int = 64 * 1024,
                  notifier: Notifier | None = None, rate: float = 20.0,
                  gates: str = ARM_GATE,
-                 principal_extra: Mapping[str, str] | None = None) -> None:
+                 principal_extra: Mapping[str, str] | None = None,
+                 images: ImageSource | None = None) -> None:
         self.tmp = tmp
+        self.images = images
         self.clock = ManualClock()
         self.config = make_config(tmp, hitl_extra=hitl_extra, api_extra=api_extra,
                                   bridge_extra=bridge_extra, max_body=max_body, rate=rate,
@@ -172,7 +175,8 @@ class Api:
         governor = self.governor
         self.robot.estop_latched = lambda: governor.latch.latched
         self.app = build_app(governor=self.governor, authenticator=authenticator,
-                             robot=self.robot, config=self.config, clock=self.clock)
+                             robot=self.robot, config=self.config, clock=self.clock,
+                             images=self.images)
         return self.app
 
     async def close(self) -> None:

@@ -27,6 +27,7 @@ bridge:
     telemetry_rate_hz: 10
     cmd_rate_hz: 20
     nav_frame_id: map
+    images: {{overhead: {{topic: camera/image_raw}}}}  # the sim's top-down camera
   hitl:
     timeout_seconds: 300
     confidence_gate: {{min_confidence: 0.5, on_fail: escalate}}

@@ -244,6 +244,7 @@ def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: 
                stop: asyncio.Event) -> None:
     """The simulated robot and its navigation and docking servers, on a node of their own."""
     from ..ros.participant import RosNode  # --sim only: a bridge run leaves these unimported
+    from ..sim.camera import SimCamera
     from ..sim.docking import DockingServer
     from ..sim.navigation import NavigationServer
     from ..sim.parameters import serve_parameters
@@ -258,6 +259,7 @@ def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: 
     docking = DockingServer(robot, ros2.dock_action)
     parameters = serve_parameters(robot)
     sim_task = asyncio.create_task(robot.run(stop))
+    camera_task = asyncio.create_task(SimCamera(sim_node, robot).run(stop))
 
     async def stop_sim() -> None:
         stop.set()
@@ -265,6 +267,7 @@ def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: 
         await docking.close()
         await parameters.close()
         await sim_task
+        await camera_task
 
     parts.push_async_callback(stop_sim)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import gc
 import json
 import logging
 import uuid
@@ -45,6 +46,7 @@ from .tools import DURATION, WAIT_MAX_S, ToolDef, derive_tools
 log = logging.getLogger(__name__)
 POLL_S = 0.5
 CLIENT_MAX = 256  # the bridge's `ai_client` is at most this long
+LIST_TTL_MS = 300_000
 INSTRUCTIONS = (
     "Tools of one robot, governed by its rcan-rtps bridge: each action is checked against "
     "your role, the safety limits and the e-stop, and audited with your identity. A move is "
@@ -117,14 +119,24 @@ class RobotTools:
         self._seat_of = seat_of
         self._described = tools is not None or manifest is not None
         self._tools = tools if tools is not None else derive_tools(manifest=manifest)
+        self._listing: tuple[dict[str, ToolDef], types.ListToolsResult] | None = None
 
     async def list_tools(self, ctx: ServerRequestContext[Any],
                          params: types.PaginatedRequestParams | None) -> types.ListToolsResult:
         if not self._described:
             await self._describe(self._seat_of(ctx).api)
-        return types.ListToolsResult(tools=[
-            types.Tool(name=t.name, description=t.description, input_schema=t.input_schema)
-            for t in self._tools.values()])
+        if self._listing is None or self._listing[0] is not self._tools:
+            # The tools of a run do not change once described: clients may keep the list
+            # (a 2026-07-28 client otherwise lists them again to check each call's result).
+            self._listing = (self._tools, types.ListToolsResult(ttl_ms=LIST_TTL_MS, tools=[
+                types.Tool(name=t.name, description=t.description, input_schema=t.input_schema)
+                for t in self._tools.values()]))
+        return self._listing[1]
+
+    def input_schema(self, name: str) -> Mapping[str, Any] | None:
+        """A tool's input schema, for the SDK's checks of a call (without listing them all)."""
+        tool = self._tools.get(name)
+        return None if tool is None else tool.input_schema
 
     async def _describe(self, api: RobotApi) -> None:
         """The tools with this robot's limits; without them while the bridge cannot say."""
@@ -305,6 +317,7 @@ def refused(reply: Reply) -> MCPError:
 def build_server(tools: RobotTools) -> Server[Any]:
     return Server("rcan-rtps", version=__version__, instructions=INSTRUCTIONS,
                   on_list_tools=tools.list_tools, on_call_tool=tools.call_tool,
+                  get_tool_input_schema=tools.input_schema,
                   on_list_resources=tools.list_resources,
                   on_list_resource_templates=tools.list_resource_templates,
                   on_read_resource=tools.read_resource)
@@ -316,6 +329,7 @@ async def serve_stdio(url: str, token: str, agent: Agent) -> None:
     async with BridgeClient(url, token) as bridge:
         seat = Seat(bridge, agent, Keepalive(bridge))
         server = build_server(RobotTools(lambda ctx: seat))
+        gc.freeze()  # the SDK's modules live as long as the process: no collection scans them
         async with stdio_server() as (read, write), anyio.create_task_group() as group:
             group.start_soon(seat.keepalive.run)
             await server.run(read, write, server.create_initialization_options())

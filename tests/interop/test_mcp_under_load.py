@@ -12,7 +12,6 @@ import os
 import signal
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,16 +19,11 @@ import aiohttp
 import pytest
 from waiting import eventually
 
-from tests.interop.test_demo import Demo, _run_demo, call, wait_status
+from tests.interop.test_demo import Demo, call, wait_status
 from tests.interop.test_mcp_sim import AGENT, agent, data, entries
 from tests.interop.test_stops_under_load import cpu_load  # noqa: F401 (a fixture)
 
 ROUNDS = 20
-
-
-@pytest.fixture
-def sim(tmp_path: Path, domain_id: int) -> Iterator[Demo]:
-    yield from _run_demo(tmp_path, domain_id, "--state-dir", str(tmp_path / "state"))
 
 
 @pytest.mark.slow

@@ -39,7 +39,8 @@ from tests.interop.test_demo import (
 )
 
 AGENT = {"provider": "acme", "model": "planner-7b", "client": "test-agent/1.2"}
-READS = {"get_status", "get_goals", "get_pending_approval", "wait_for_approval"}
+READS = {"get_status", "get_goals", "get_my_pending_approvals", "get_pending_approval",
+         "wait_for_approval"}
 
 
 @pytest.fixture

@@ -64,6 +64,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "ServiceUnavailable",
         "TypeStore",
         "UnknownTypeError",
+        "UnsupportedBindingError",
         "UnsupportedDistroError",
         "UnsupportedTypeError",
         "ValueFitError",

@@ -99,6 +99,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # before a command took Ctrl-C over (loading, parsing)
         print("rcan-rtps: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except ImportError as exc:  # no usable cyclonedds: missing, or a line the wire refuses
+        if exc.name != "cyclonedds":
+            raise
+        print(f"rcan-rtps: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
 
 
 def _main(argv: Sequence[str] | None) -> int:

@@ -23,9 +23,11 @@ import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from cryptography import x509
 from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import serialization
 
 from . import keystore as ks
 from . import smime
@@ -195,6 +197,12 @@ def _check_governance_domain(text: bytes, domain_id: int, files: EnclaveFiles) -
                             " in a new directory)")
 
 
+def _public_der(key: Any) -> bytes:
+    der: bytes = key.public_bytes(serialization.Encoding.DER,
+                                  serialization.PublicFormat.SubjectPublicKeyInfo)
+    return der
+
+
 def check(files: EnclaveFiles, domain_id: int, now: datetime.datetime | None = None) -> None:
     """What Cyclone's plugins would refuse, refused first with the reason and the remedy:
     certificates in their validity window and issued by the identity CA, the key that of
@@ -209,7 +217,7 @@ def check(files: EnclaveFiles, domain_id: int, now: datetime.datetime | None = N
     _check_window(permissions_ca, f"the permissions CA {files.permissions_ca}", now)
     _check_window(cert, f"the certificate {files.cert}", now)
     _check_issued(cert, identity_ca, f"the certificate {files.cert}")
-    if cert.public_key().public_numbers() != key.public_key().public_numbers():
+    if _public_der(cert.public_key()) != _public_der(key.public_key()):
         raise CertificateError(f"{files.key} is not the key of {files.cert} (the two come "
                                "from different enclaves or runs): restore the pair, or "
                                "remove both and create the enclave again")

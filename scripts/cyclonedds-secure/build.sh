@@ -19,7 +19,7 @@ here=$(cd "$(dirname "$0")" && pwd)
 repo=$(cd "$here/../.." && pwd)
 prefix=${1:?usage: build.sh PREFIX}
 mkdir -p "$prefix"
-prefix=$(cd "$prefix" && pwd)
+prefix=$(cd "$prefix" && pwd -P)  # physical: the venv and rpaths must outlive links
 python=${PYTHON:-python3}
 tarball=$here/cyclonedds-11.0.1-src.tar.gz
 version=11.0.1
@@ -76,9 +76,14 @@ done
 # rcan-rtps's runtime dependencies (not rcan-rtps itself: it runs from the tree's src/),
 # with the binding above kept.
 deps=$("$python" - "$repo/pyproject.toml" <<'EOF'
-import sys, tomllib
-with open(sys.argv[1], "rb") as f:
-    deps = tomllib.load(f)["project"]["dependencies"]
+import re, sys
+text = open(sys.argv[1], encoding="utf-8").read()
+try:
+    import tomllib
+    deps = tomllib.loads(text)["project"]["dependencies"]
+except ImportError:  # Python 3.10: the list's quoted strings, comments left out
+    block = re.search(r"^dependencies = \[(.*?)^\]", text, re.S | re.M).group(1)
+    deps = re.findall(r'^\s*"([^"]+)"', block, re.M)
 print("\n".join(d for d in deps if not d.startswith("cyclonedds")))
 EOF
 )

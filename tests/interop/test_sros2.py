@@ -236,3 +236,45 @@ async def test_our_node_without_security_under_permissive_warns_and_sees_nothing
                 await sub.get(timeout=3)
             assert sub.matched_count() == 0
         assert rclpy_node.call("stop_periodic", topic="/from_rclpy") > 0
+
+
+PROBE = """
+import json, sys
+from rcan_rtps.ros.security import SecurityError, settings
+try:
+    props = settings.participant_security(sys.argv[1], int(sys.argv[2]))
+    print(json.dumps({"props": dict(props), "has_security": settings.cyclone_has_security()}))
+except SecurityError as e:
+    print(json.dumps({"error": type(e).__name__, "message": str(e)}))
+"""
+
+
+def probe(secure_cyclone: tuple[Path, Path], store: Path, domain_id: int,
+          strategy: str) -> dict[str, Any]:
+    """participant_security in the secure interpreter (no participant is made)."""
+    python, home = secure_cyclone
+    done = subprocess.run(
+        [str(python), "-c", PROBE, "/rcan_rtps/peer", str(domain_id)], capture_output=True,
+        text=True, check=True, timeout=60,
+        env={**os.environ, **secured(store, "/rcan_rtps/peer"), "CYCLONEDDS_HOME": str(home),
+             "ROS_SECURITY_STRATEGY": strategy, "PYTHONPATH": str(ROOT / "src")})
+    said: dict[str, Any] = json.loads(done.stdout)
+    return said
+
+
+def test_the_secure_cyclone_gets_its_own_plugins(secure_cyclone: tuple[Path, Path],
+                                                 store: Path, domain_id: int) -> None:
+    said = probe(secure_cyclone, store, domain_id, "Enforce")
+    assert said["has_security"] is True
+    lib = secure_cyclone[1].resolve() / "lib"
+    assert said["props"]["dds.sec.auth.library.path"] == str(lib / "libdds_security_auth.so")
+    assert said["props"]["dds.sec.access.library.path"] == str(lib / "libdds_security_ac.so")
+
+
+def test_credentials_that_are_wrong_are_refused_under_permissive_too(
+        secure_cyclone: tuple[Path, Path], store: Path, domain_id: int) -> None:
+    """Permissive runs unsecured only without credentials (as rmw_cyclonedds): a keystore
+    made for another domain is an error, not a reason to drop security."""
+    said = probe(secure_cyclone, store, domain_id + 1, "Permissive")
+    assert said["error"] == "KeystoreError"
+    assert f"not domain {domain_id + 1}" in said["message"]

@@ -6,6 +6,8 @@ import argparse
 import os
 from pathlib import Path
 
+KEYSTORE_HELP = "the keystore directory (public/, private/, enclaves/)"
+
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
@@ -13,28 +15,30 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     verbs = parser.add_subparsers(dest="security_command", required=True)
     keystore = verbs.add_parser(
         "create-keystore", help="a new keystore: a CA and governance signed for the domain")
-    keystore.add_argument("keystore", type=Path, metavar="KEYSTORE")
+    keystore.add_argument("keystore", type=Path, metavar="KEYSTORE", help=KEYSTORE_HELP)
     keystore.set_defaults(func=create_keystore_command)
     enclave = verbs.add_parser(
         "create-enclave", help="an enclave's key, certificate and default permissions")
-    enclave.add_argument("keystore", type=Path, metavar="KEYSTORE")
+    enclave.add_argument("keystore", type=Path, metavar="KEYSTORE", help=KEYSTORE_HELP)
     enclave.add_argument("enclave", metavar="ENCLAVE", help="e.g. /robot1/rcan_bridge")
     enclave.set_defaults(func=create_enclave_command)
     permission = verbs.add_parser(
         "create-permission", help="an enclave's permissions from an SROS2 policy file")
-    permission.add_argument("keystore", type=Path, metavar="KEYSTORE")
-    permission.add_argument("enclave", metavar="ENCLAVE")
+    permission.add_argument("keystore", type=Path, metavar="KEYSTORE", help=KEYSTORE_HELP)
+    permission.add_argument("enclave", metavar="ENCLAVE", help="an enclave of the keystore")
     permission.add_argument("policy", type=Path, metavar="POLICY",
                             help="an SROS2 policy XML (<policy version=\"0.2.0\">)")
     permission.set_defaults(func=create_permission_command)
     listing = verbs.add_parser("list-enclaves", help="the enclaves of a keystore")
-    listing.add_argument("keystore", type=Path, metavar="KEYSTORE")
+    listing.add_argument("keystore", type=Path, metavar="KEYSTORE", help=KEYSTORE_HELP)
     listing.set_defaults(func=list_enclaves_command)
     check = verbs.add_parser(
         "check", help="check an enclave as a secured participant would (default: from "
         "ROS_SECURITY_KEYSTORE and ROS_SECURITY_ENCLAVE_OVERRIDE)")
-    check.add_argument("keystore", type=Path, nargs="?", metavar="KEYSTORE")
-    check.add_argument("enclave", nargs="?", metavar="ENCLAVE")
+    check.add_argument("keystore", type=Path, nargs="?", metavar="KEYSTORE",
+                       help="default: ROS_SECURITY_KEYSTORE")
+    check.add_argument("enclave", nargs="?", metavar="ENCLAVE",
+                       help="default: ROS_SECURITY_ENCLAVE_OVERRIDE, else /")
     check.set_defaults(func=check_command)
 
 

@@ -215,6 +215,10 @@ def _signing_certificate(signer: _Signer, ca: x509.Certificate) -> x509.Certific
         return ca
     for cert in signer.certificates:
         if (cert.issuer.public_bytes(), cert.serial_number) == signer.issuer_serial:
+            if cert.issuer == cert.subject:  # self-signed: a CA of its own
+                raise SignatureError("not signed by this CA but by another one "
+                                     f"({cert.subject.rfc4514_string()}, serial "
+                                     f"{cert.serial_number:x}): from another keystore?")
             try:
                 cert.verify_directly_issued_by(ca)
             except (ValueError, TypeError, InvalidSignature) as e:

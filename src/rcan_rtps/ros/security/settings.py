@@ -257,6 +257,11 @@ def plugin_dir(library: object | None = None) -> Path | None:
     return Path(os.path.realpath(name)).parent
 
 
+def _library_path(library: object) -> str:
+    name = str(getattr(library, "_name", "?"))
+    return os.path.realpath(name) if "/" in name else name
+
+
 def participant_security(enclave: str, domain_id: int,
                          env: Mapping[str, str] | None = None,
                          library: object | None = None) -> list[tuple[str, str]]:
@@ -272,7 +277,7 @@ def participant_security(enclave: str, domain_id: int,
         if not cyclone_has_security(library):
             raise SecurityUnavailable(
                 f"{ENABLE}=true, but the Cyclone DDS library loaded "
-                f"({getattr(library, '_name', '?')}) has no DDS-Security. "
+                f"({_library_path(library)}) has no DDS-Security. "
                 f"{HOW_TO_GET_SECURITY}")
     except (KeystoreError, SecurityUnavailable) as e:
         if request.enforce:

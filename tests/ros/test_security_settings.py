@@ -206,6 +206,15 @@ def test_permissions_signed_by_another_ca(store: Path, tmp_path: Path) -> None:
         check(files(store), 7)
 
 
+def test_permissions_of_another_enclave(store: Path) -> None:
+    keystore.create_enclave(store, "/other", 7)
+    shutil.copy(store / "enclaves/other/permissions.p7s",
+                store / "enclaves/robot1/rcan_bridge/permissions.p7s")
+    with pytest.raises(KeystoreError, match=r"has no grant for CN=/robot1/rcan_bridge .*"
+                       r"it grants 'CN=/other'"):
+        check(files(store), 7)
+
+
 def test_a_governance_for_another_domain(store: Path) -> None:
     with pytest.raises(KeystoreError, match=r"covers domain 7, not domain 8.*ROS_DOMAIN_ID=8"):
         check(files(store), 8)

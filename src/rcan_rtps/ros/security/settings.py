@@ -197,6 +197,29 @@ def _check_governance_domain(text: bytes, domain_id: int, files: EnclaveFiles) -
                             " in a new directory)")
 
 
+def _subject(text: str) -> dict[str, str]:
+    """`CN=/a, O=b` as {"CN": "/a", "O": "b"} (DDS compares subject names by attribute)."""
+    pairs = (part.split("=", 1) for part in text.replace(";", ",").split(",") if "=" in part)
+    return {key.strip().upper(): value.strip() for key, value in pairs}
+
+
+def _check_grant(text: bytes, cert: x509.Certificate, files: EnclaveFiles) -> None:
+    """The permissions must hold a grant for this certificate's subject (Cyclone's access
+    control looks it up by subject name; without one it refuses the participant)."""
+    try:
+        grants = list(ET.fromstring(text).iterfind("permissions/grant"))
+    except ET.ParseError as e:
+        raise KeystoreError(f"{files.permissions}: the signed permissions are not valid XML "
+                            f"({e})") from e
+    subject = cert.subject.rfc4514_string()
+    wanted = _subject(subject)
+    if not any(_subject(g.findtext("subject_name") or "") == wanted for g in grants):
+        names = ", ".join(repr(g.findtext("subject_name")) for g in grants) or "none"
+        raise KeystoreError(f"{files.permissions} has no grant for {subject} (the subject of "
+                            f"{files.cert}; it grants {names}): the permissions belong to "
+                            "another enclave — `rcan-rtps security create-permission`")
+
+
 def _public_der(key: Any) -> bytes:
     der: bytes = key.public_bytes(serialization.Encoding.DER,
                                   serialization.PublicFormat.SubjectPublicKeyInfo)
@@ -232,6 +255,8 @@ def check(files: EnclaveFiles, domain_id: int, now: datetime.datetime | None = N
                           "`") from e
         if what == "governance":
             _check_governance_domain(text, domain_id, files)
+        else:
+            _check_grant(text, cert, files)
 
 
 def cyclone_library() -> object:

@@ -6,6 +6,7 @@ Cyclone DDS built with security (scripts/cyclonedds-secure), SROS2 set by the en
     {"published": N}                           a subscriber matched /from_us, N samples sent
     {"received": "..."}                        the first sample on /from_rclpy
     {"called": {...}}                          /rclpy_trigger's reply
+    {"action": {...}}                          a Fibonacci goal on rclpy's /fib: state, result
     {"serving": true}                          /our_trigger is served until stdin closes
     {"heard": [...]}                           every /from_rclpy text, at the end
 
@@ -20,10 +21,12 @@ import json
 import sys
 from typing import Any
 
+from rcan_rtps.ros.actions import ActionClient
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import ServiceClient, ServiceServer
 
 STRING, TRIGGER = "std_msgs/msg/String", "std_srvs/srv/Trigger"
+FIB = "test_msgs/action/Fibonacci"
 
 
 def say(**what: Any) -> None:
@@ -49,6 +52,10 @@ async def run(domain_id: int) -> None:
         await client.wait_for_service(30)
         reply = await client.call({}, timeout=15)
         say(called={"success": bool(reply.success), "message": reply.message})
+        goal = await ActionClient(node, "/fib", FIB).send_goal({"order": 5}, timeout=30)
+        outcome = await goal.result(timeout=30)
+        sequence = list(outcome.result.sequence) if outcome.result is not None else None
+        say(action={"state": outcome.state.name, "sequence": sequence})
 
         async def trigger(request: Any) -> dict[str, Any]:
             return {"success": True, "message": "served by rcan-rtps"}

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from oracle.client import OracleEnv, OracleError, RclpyOracle
+from oracle.client import OracleEnv, OracleError, RclpyOracle, fibonacci
 
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.security import SecurityUnavailable, SignatureError, keystore, settings
@@ -161,7 +161,7 @@ def outsider(cyclone: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
         yield agent
 
 
-def test_our_secured_node_publishes_subscribes_and_calls_an_outsider_sees_nothing(
+def test_our_secured_node_publishes_subscribes_calls_an_outsider_sees_nothing(
         cyclone: OracleEnv, store: Path, domain_id: int, secure_cyclone: tuple[Path, Path],
         outsider: RclpyOracle) -> None:
     python, home = secure_cyclone
@@ -177,12 +177,14 @@ def test_our_secured_node_publishes_subscribes_and_calls_an_outsider_sees_nothin
         rclpy_node.call("publish_periodic", topic="/from_rclpy", type=STRING,
                         value={"data": "from secured rclpy"}, rate=10.0)
         rclpy_node.call("service_server", name="/rclpy_trigger", type=TRIGGER)
+        rclpy_node.call("action_server", name="/fib")
         peer = Peer(python, home, secured(store, "/rcan_rtps/peer"), domain_id)
         try:
             assert peer.next() == {"secured": True}
             assert peer.next() == {"published": 5}
             assert peer.next() == {"received": "from secured rclpy"}
             assert peer.next() == {"called": {"success": True, "message": "triggered #1"}}
+            assert peer.next() == {"action": {"state": "SUCCEEDED", "sequence": fibonacci(5)}}
             assert peer.next() == {"serving": True}
             ours = rclpy_node.call("service_call", name="/our_trigger", type=TRIGGER,
                                    value={}, wait=20.0)

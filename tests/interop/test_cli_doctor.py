@@ -123,7 +123,8 @@ def test_doctor_refuses_enforced_ros_security_without_dds_security(domain_id: in
     enforced = doctor(domain_id, "--spin-time", "0.2", ROS_SECURITY_STRATEGY="Enforce", **wanted)
     assert enforced.returncode == 1
     assert f"ERROR (security): {problem}" in enforced.stdout
-    assert "1/7 check(s) failed\nFailed modules: security" in enforced.stdout
+    # the graph check fails too: Enforce without security never starts a participant
+    assert "2/7 check(s) failed\nFailed modules: security graph" in enforced.stdout
     permissive = doctor(domain_id, "--spin-time", "0.2", **wanted)
     assert permissive.returncode == 0, permissive.stdout
     assert f"WARNING (security): {problem}" in permissive.stdout

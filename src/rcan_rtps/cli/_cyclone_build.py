@@ -12,14 +12,13 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..ros.security.settings import cyclone_has_security
+
 # Cyclone's three security plugins, by the names its configuration loads them under
 # (`dds.sec.auth.library.path` and friends default to these).
 SECURITY_PLUGINS = (("authentication", "dds_security_auth"),
                     ("access control", "dds_security_ac"),
                     ("cryptography", "dds_security_crypto"))
-# A libddsc built with DDS_HAS_SECURITY exports the DDS_Security_* helpers; PyPI's wheel,
-# built without it, exports none.
-SECURITY_SYMBOL = "DDS_Security_DataHolder_alloc"
 _VERSION = re.compile(r"(\d+\.\d+\.\d+)")
 
 
@@ -70,8 +69,9 @@ def build_options(library: CLibrary) -> dict[str, bool]:
     options = {"type library": bool(getattr(_clayer, "HAS_TYPELIB", False)),
                "type discovery": bool(getattr(_clayer, "HAS_TYPE_DISCOVERY", False)),
                "topic discovery": bool(getattr(_clayer, "HAS_TOPIC_DISCOVERY", False))}
-    options["DDS-Security"] = library.handle is not None and hasattr(library.handle,
-                                                                      SECURITY_SYMBOL)
+    # the same test the participant makes before it asks Cyclone for security
+    options["DDS-Security"] = (library.handle is not None
+                               and cyclone_has_security(library.handle))
     return options
 
 

@@ -23,8 +23,11 @@ repo=$(cd "$(dirname "$0")/.." && pwd)
 cache=${RCAN_RTPS_AARCH64_CACHE:-/var/cache/rcan-rtps}
 suite=bookworm
 mirror=http://deb.debian.org/debian
-packages=python3,python3-venv,python3-dev,build-essential,cmake,libssl-dev,curl,ca-certificates
-host_packages=(qemu-user-static binfmt-support mmdebstrap zstd)
+# what a robot computer has for install-aarch64.sh once Cyclone C is built (libssl-dev: the
+# cross build's OpenSSL), and curl for the tour
+packages=python3,python3-venv,python3-dev,gcc,libc6-dev,libssl-dev,curl,ca-certificates
+host_packages=(qemu-user-static binfmt-support mmdebstrap zstd cmake make
+  gcc-aarch64-linux-gnu g++-aarch64-linux-gnu)
 
 say() { printf 'aarch64: %s\n' "$*"; }
 fail() { printf 'aarch64: step failed: %s\n' "$*" >&2; exit 1; }
@@ -83,7 +86,8 @@ copy_sources() {  # root: the install script and the vendored source, as a user'
   rm -rf "$1/opt/rcan-rtps-src" && mkdir -p "$dest/cyclonedds-secure" \
     && cp "$repo/scripts/install-aarch64.sh" "$dest/" \
     && cp "$repo/scripts/cyclonedds-secure/cyclonedds-11.0.1-src.tar.gz" "$dest/cyclonedds-secure/" \
-    && cp /etc/resolv.conf "$1/etc/resolv.conf"
+    && cp /etc/resolv.conf "$1/etc/resolv.conf" \
+    && cp /etc/ssl/certs/ca-certificates.crt "$1/etc/ssl/host-ca-certificates.crt"
 }
 
 install_wheel() {  # root, wheel: install-aarch64.sh in the root, emulated
@@ -92,7 +96,9 @@ install_wheel() {  # root, wheel: install-aarch64.sh in the root, emulated
   rm -rf "$root/tmp/wheel" && mkdir -p "$root/tmp/wheel" && cp "$wheel" "$root/tmp/wheel/" \
     || fail "copy the wheel into the root"
   copy_sources "$root" || fail "copy install-aarch64.sh into the root"
-  in_root "$root" bash /opt/rcan-rtps-src/scripts/install-aarch64.sh \
+  # PIP_CERT: the host's CA bundle, as this machine's TLS to the package index may be re-signed
+  in_root "$root" env PIP_CERT=/etc/ssl/host-ca-certificates.crt PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    bash /opt/rcan-rtps-src/scripts/install-aarch64.sh \
       --package "/tmp/wheel/$(basename "$wheel")" --venv /opt/rcan-rtps-venv \
     || fail "install-aarch64.sh in the arm64 root (its own message above names the step)"
   say "install-aarch64.sh done in $(elapsed "$start") s (emulated)"
@@ -107,6 +113,15 @@ build_root() {  # root, wheel: mmdebstrap, then the install
       fail "mmdebstrap of an arm64 $suite root (log: $root.mmdebstrap.log)"; }
   say "mmdebstrap done in $(elapsed "$start") s"
   [ "$(in_root "$root" uname -m)" = aarch64 ] || fail "the root's programs do not run as aarch64"
+  # a robot's /etc/hosts (mmdebstrap writes none; Cyclone aborts on an unresolvable localhost)
+  printf '127.0.0.1\tlocalhost\n::1\tlocalhost ip6-localhost ip6-loopback\n' >"$root/etc/hosts" \
+    || fail "write the root's /etc/hosts"
+  # Cyclone C cross-built here by the install script's step 2 (minutes, where the same build
+  # emulated takes over half an hour on 2 cores); in the root the script then finds it built
+  local cross; cross=$(date +%s)
+  bash "$repo/scripts/install-aarch64.sh" --sysroot "$root" \
+    || fail "install-aarch64.sh --sysroot: Cyclone DDS C cross-built for the root"
+  say "Cyclone DDS C cross-built in $(elapsed "$cross") s"
   install_wheel "$root" "$2"
 }
 

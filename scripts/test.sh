@@ -91,6 +91,21 @@ rm -rf .cache/dist
 quiet_pip .venv/bin/pip wheel -q --no-deps -w .cache/dist .
 export RCAN_RTPS_WHEEL_DIR="$PWD/.cache/dist"
 
+echo "== arm64 root for the emulated aarch64 test (scripts/aarch64-emulated.sh prepare)"
+# Root on Linux only (binfmt_misc, chroot). Built once per recipe (cold: mmdebstrap, Cyclone C
+# cross-built, the binding built under emulation; docs/aarch64.md has the times) and kept
+# outside the clone, in /var/cache/rcan-rtps; tests/aarch64 then runs offline from it.
+if [ "$(uname -s)" = Linux ] && [ "$(id -u)" = 0 ]; then
+  export RCAN_RTPS_AARCH64_LOG="$PWD/.cache/aarch64-prepare.log"
+  if bash scripts/aarch64-emulated.sh prepare .cache/dist/rcan_rtps-*.whl \
+      >"$RCAN_RTPS_AARCH64_LOG" 2>&1; then
+    grep '^aarch64: ' "$RCAN_RTPS_AARCH64_LOG" | tail -n 2
+  else
+    tail -n 20 "$RCAN_RTPS_AARCH64_LOG" >&2
+    echo "the arm64 root was not prepared; tests/aarch64 will skip (fail under CI=true)" >&2
+  fi
+fi
+
 echo "== README main command, verbatim, in a fresh copy (loopback only)"
 bash scripts/readme_main.sh
 

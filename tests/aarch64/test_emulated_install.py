@@ -45,6 +45,14 @@ def wheel() -> Path:
     return wheels[-1]
 
 
+def _prepare_log() -> str:
+    """The end of scripts/test.sh's prepare step, which says why the root is not there."""
+    log = Path(os.environ.get("RCAN_RTPS_AARCH64_LOG", ROOT / ".cache" / "aarch64-prepare.log"))
+    if not log.is_file():
+        return "\n(no prepare log: scripts/test.sh prepares the root before the tests)"
+    return f"\n{log}, last lines:\n" + "\n".join(log.read_text().splitlines()[-15:])
+
+
 def _harness(*args: str, timeout: float) -> subprocess.CompletedProcess[str]:
     return subprocess.run(["bash", str(HARNESS), *args], capture_output=True, text=True,
                           timeout=timeout, stdin=subprocess.DEVNULL)
@@ -61,7 +69,7 @@ def test_the_wheel_installs_and_runs_on_emulated_aarch64(wheel: Path) -> None:
     done = _harness("smoke", str(wheel), timeout=1800)
     output = done.stdout + done.stderr
     if done.returncode == NOT_PREPARED:
-        _not_here(done.stderr.strip())
+        _not_here(done.stderr.strip() + _prepare_log())
     failed = [line for line in output.splitlines() if "step failed" in line]
     assert done.returncode == 0, (failed or ["(no step named)"])[0] + "\n" + output[-6000:]
     # each part of it, as the harness and release.sh's tour report them

@@ -48,8 +48,9 @@ class UnsupportedBindingError(WireError, ImportError):
             *(f"  - {item}" for item in missing),
             "Install the 11.x line into this environment: pip install 'cyclonedds>=11,<12' "
             "(wheels for Linux x86_64 and macOS).",
-            "Where no wheel exists (Linux aarch64): build Cyclone DDS C 11 from its release "
-            "source (cmake, Release), run ldconfig for its lib directory, then "
+            "Where no wheel exists (Linux aarch64): scripts/install-aarch64.sh in a source "
+            "checkout does it all (docs/aarch64.md); by hand, build Cyclone DDS C 11 from its "
+            "release source (cmake, Release), run ldconfig for its lib directory, then "
             "CYCLONEDDS_HOME=<its install prefix> pip install 'cyclonedds>=11,<12'.",
             "Debian's and Ubuntu's python3-cyclonedds and cyclonedds-dev are the 0.10 line; "
             "see docs/compatibility.md ('Cyclone DDS lines').",

@@ -2,21 +2,26 @@
 # The aarch64 install, checked under emulation (tests/aarch64 runs it; root on Linux):
 # an arm64 Debian bookworm root (Python 3.11, as on Raspberry Pi OS bookworm) made by
 # mmdebstrap from Debian's registry, whose programs run under qemu-user through binfmt_misc;
-# in it scripts/install-aarch64.sh builds Cyclone DDS C 11 with DDS-Security and the binding
-# and installs WHEEL; then, in a private network namespace (scripts/netns), `rcan-rtps run
-# --sim` must reach its ready line, answer /api/status and execute a move (release.sh's tour).
+# in it scripts/install-aarch64.sh installs WHEEL (Cyclone DDS C 11 with DDS-Security, the
+# binding built against it, rcan-rtps); then, in a private network namespace (scripts/netns),
+# `rcan-rtps run --sim` must reach its ready line, answer /api/status and execute a move
+# (release.sh's tour).
 #
-#   scripts/aarch64-emulated.sh host          arm64 programs run here, or exit 3 saying why
-#                                             (installs qemu-user-static, binfmt-support,
-#                                             mmdebstrap, zstd with apt when missing)
-#   scripts/aarch64-emulated.sh smoke WHEEL   the whole check
+#   scripts/aarch64-emulated.sh host           arm64 programs run here, or exit 3 saying why
+#                                              (installs the host tools below with apt when
+#                                              missing, mounts binfmt_misc)
+#   scripts/aarch64-emulated.sh prepare WHEEL  the cached root, built when missing (network)
+#   scripts/aarch64-emulated.sh smoke WHEEL    the check, offline, from the cached root (exit 4
+#                                              when it was not prepared)
 #
-# A cold run builds the root (about N min, docs/aarch64.md) and keeps it, after the install,
-# as an archive OUTSIDE the clone: $RCAN_RTPS_AARCH64_CACHE (default /var/cache/rcan-rtps)
-# /aarch64-root-KEY.tar.zst, KEY hashing this script, install-aarch64.sh, the vendored Cyclone
-# source and the root's recipe, so CI's fresh clones on the same machine reuse it. A cached run
-# unpacks it, runs install-aarch64.sh again with WHEEL (Cyclone and the binding are kept, the
-# wheel is reinstalled) and the tour. Every step says its name; a failure names the step.
+# prepare, cold (docs/aarch64.md has the times): mmdebstrap, then Cyclone C cross-built on this
+# machine by install-aarch64.sh --sysroot, then install-aarch64.sh in the root with WHEEL; the
+# root is kept as an archive OUTSIDE the clone, $RCAN_RTPS_AARCH64_CACHE (default
+# /var/cache/rcan-rtps)/aarch64-root-KEY.tar.zst, KEY hashing install-aarch64.sh, the vendored
+# Cyclone source and the functions below that make the root, so CI's fresh clones on this
+# machine reuse it; a changed dependency list of rcan-rtps is installed into it, not rebuilt.
+# smoke unpacks it, runs install-aarch64.sh again with WHEEL (Cyclone and the binding found in
+# place, the wheel reinstalled) and the tour. Every step says its name; a failure names it.
 set -uo pipefail
 
 repo=$(cd "$(dirname "$0")/.." && pwd)
@@ -66,9 +71,10 @@ host() {
 }
 
 # -- the root --------------------------------------------------------------------------------
-cache_key() {
-  { sha256sum "$0" "$repo/scripts/install-aarch64.sh" \
+cache_key() {  # the recipe: what makes the root, not how it is tested
+  { sha256sum "$repo/scripts/install-aarch64.sh" \
       "$repo/scripts/cyclonedds-secure/cyclonedds-11.0.1-src.tar.gz" | cut -d' ' -f1
+    declare -f build_root install_wheel copy_sources in_root
     echo "$suite $mirror $packages"; } | sha256sum | cut -c1-16
 }
 
@@ -125,6 +131,11 @@ build_root() {  # root, wheel: mmdebstrap, then the install
   install_wheel "$root" "$2"
 }
 
+work_root=
+# the unpacked root is removed whatever happens (its mounts were in a private namespace)
+trap '[ -n "$work_root" ] && rm -rf "$work_root" "$work_root.mmdebstrap.log"' EXIT
+new_work_root() { mktemp -d /var/tmp/rcan-rtps-aarch64.XXXXXX; }
+
 deps_hash() {  # rcan-rtps's dependency list: a change re-installs them into the cached root
   sed -n '/^dependencies = \[/,/^\]/p' "$repo/pyproject.toml" | sha256sum | cut -c1-16
 }
@@ -141,8 +152,8 @@ prepare() {  # wheel: the cached root for this recipe, with this dependency list
     return 0
   fi
   mkdir -p "$cache" || fail "create the cache directory $cache"
-  root=$(mktemp -d /var/tmp/rcan-rtps-aarch64.XXXXXX) || fail "make a work directory"
-  trap 'rm -rf "$root" "$root.mmdebstrap.log"' EXIT
+  root=$(new_work_root) || fail "make a work directory"
+  work_root=$root
   start=$(date +%s)
   if [ -f "$archive" ]; then  # same recipe, other dependencies: install them on the cached root
     tar -C "$root" --zstd -xf "$archive" || fail "unpack the cached root $archive"
@@ -166,8 +177,8 @@ smoke() {  # wheel: the cached root unpacked, WHEEL installed by install-aarch64
   [ -f "$archive" ] && [ "$(cat "$archive.deps" 2>/dev/null)" = "$(deps_hash)" ] || {
     printf 'aarch64: not prepared: no %s for this recipe and dependency list (run: %s prepare WHEEL, with network)\n' \
       "$archive" "$0" >&2; exit 4; }
-  root=$(mktemp -d /var/tmp/rcan-rtps-aarch64.XXXXXX) || fail "make a work directory"
-  trap 'rm -rf "$root"' EXIT
+  root=$(new_work_root) || fail "make a work directory"
+  work_root=$root
   start=$(date +%s)
   tar -C "$root" --zstd -xf "$archive" || fail "unpack the cached root $archive"
   say "root unpacked from $archive in $(elapsed "$start") s"
@@ -184,6 +195,7 @@ smoke() {  # wheel: the cached root unpacked, WHEEL installed by install-aarch64
 
 case "${1:-}" in
   host) host ;;
+  key) cache_key ;;  # the cache key of this recipe
   prepare|smoke) [ $# -eq 2 ] || { echo "usage: $0 $1 WHEEL" >&2; exit 2; }; "$1" "$2" ;;
-  *) sed -n '2,21p' "$0" >&2; exit 2 ;;
+  *) sed -n '2,/^set -uo/p' "$0" | sed '$d' >&2; exit 2 ;;
 esac

@@ -60,13 +60,16 @@ host() {
     why=$(mount -t binfmt_misc binfmt_misc /proc/sys/fs/binfmt_misc 2>&1) \
       || binfmt_unavailable "mount -t binfmt_misc binfmt_misc /proc/sys/fs/binfmt_misc: $why"
   fi
-  [ -f /proc/sys/fs/binfmt_misc/qemu-aarch64 ] || update-binfmts --enable qemu-aarch64 >/dev/null 2>&1 \
-    || binfmt_unavailable "update-binfmts --enable qemu-aarch64 failed"
-  grep -q '^enabled' /proc/sys/fs/binfmt_misc/qemu-aarch64 \
-    || binfmt_unavailable "qemu-aarch64 is registered but disabled (/proc/sys/fs/binfmt_misc/qemu-aarch64)"
+  # binfmt_misc is there: from here on a problem is a failure, not a reason to skip
+  local entry=/proc/sys/fs/binfmt_misc/qemu-aarch64
+  [ -f "$entry" ] || update-binfmts --enable qemu-aarch64 >/dev/null 2>&1 \
+    || fail "binfmt_misc: update-binfmts --enable qemu-aarch64 (qemu-user-static's entry)"
+  [ -f "$entry" ] || fail "binfmt_misc: no qemu-aarch64 entry after update-binfmts --enable"
+  grep -q '^enabled' "$entry" || echo 1 >"$entry" \
+    || fail "binfmt_misc: the qemu-aarch64 entry is disabled and could not be enabled"
   # F (fix binary): the interpreter is opened at registration, so it works inside a chroot
-  grep -q '^flags: .*F' /proc/sys/fs/binfmt_misc/qemu-aarch64 \
-    || binfmt_unavailable "qemu-aarch64 is registered without the F flag: chroots cannot reach its interpreter"
+  grep -q '^flags: .*F' "$entry" \
+    || fail "binfmt_misc: qemu-aarch64 is registered without the F flag: a chroot cannot reach its interpreter"
   say "binfmt_misc: qemu-aarch64 enabled ($(/usr/bin/qemu-aarch64-static --version | head -1))"
 }
 
@@ -182,6 +185,13 @@ smoke() {  # wheel: the cached root unpacked, WHEEL installed by install-aarch64
   start=$(date +%s)
   tar -C "$root" --zstd -xf "$archive" || fail "unpack the cached root $archive"
   say "root unpacked from $archive in $(elapsed "$start") s"
+  # what runs in it is arm64 code under qemu: the kernel says x86_64, the root aarch64
+  local machine python_elf
+  machine=$(in_root "$root" uname -m)
+  python_elf=$(od -An -tu2 -j18 -N2 "$root/usr/bin/python3.11" | tr -d ' ')
+  [ "$machine" = aarch64 ] && [ "$python_elf" = 183 ] \
+    || fail "the root is not aarch64 (uname -m: $machine, python3's ELF machine: $python_elf)"
+  say "the root runs as $machine (python3 is an aarch64 ELF) on a $(uname -m) kernel"
   install_wheel "$root" "$wheel"
   say "the tour: run --sim, /api/status, a move (loopback only, private network namespace)"
   local tour_start; tour_start=$(date +%s)

@@ -254,7 +254,8 @@ build_binding() {
 
 # -- 5. rcan-rtps -----------------------------------------------------------------------------------
 install_rcan_rtps() {
-  # then again, forced: a same-numbered earlier build of it must not stay in place
+  # with its dependencies, then once more forced: an earlier build carrying the same version
+  # number (a source tree, a rebuilt wheel) must not stay in place
   "$venv/bin/python" -m pip install -q "$package" \
     && "$venv/bin/python" -m pip install -q --force-reinstall --no-deps "$package" || return 1
   env -u CYCLONEDDS_HOME "$venv/bin/rcan-rtps" --version || return 1

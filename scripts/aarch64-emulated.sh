@@ -118,8 +118,8 @@ build_root() {  # root, wheel: mmdebstrap, then the install
   start=$(date +%s)
   say "building the arm64 $suite root (mmdebstrap; cold, takes minutes)"
   mmdebstrap --quiet --arch=arm64 --variant=apt --include="$packages" "$suite" "$root" "$mirror" \
-    >"$root.mmdebstrap.log" 2>&1 || { tail -n 30 "$root.mmdebstrap.log" >&2
-      fail "mmdebstrap of an arm64 $suite root (log: $root.mmdebstrap.log)"; }
+    >"$cache/aarch64-mmdebstrap.log" 2>&1 || { tail -n 30 "$cache/aarch64-mmdebstrap.log" >&2
+      fail "mmdebstrap of an arm64 $suite root (log: $cache/aarch64-mmdebstrap.log)"; }
   say "mmdebstrap done in $(elapsed "$start") s"
   [ "$(in_root "$root" uname -m)" = aarch64 ] || fail "the root's programs do not run as aarch64"
   # a robot's /etc/hosts (mmdebstrap writes none; Cyclone aborts on an unresolvable localhost)
@@ -136,7 +136,7 @@ build_root() {  # root, wheel: mmdebstrap, then the install
 
 work_root=
 # the unpacked root is removed whatever happens (its mounts were in a private namespace)
-trap '[ -n "$work_root" ] && rm -rf "$work_root" "$work_root.mmdebstrap.log"' EXIT
+trap '[ -n "$work_root" ] && rm -rf "$work_root"' EXIT
 new_work_root() { mktemp -d /var/tmp/rcan-rtps-aarch64.XXXXXX; }
 
 deps_hash() {  # rcan-rtps's dependency list: a change re-installs them into the cached root

@@ -2,12 +2,12 @@
 
 An arm64 Debian bookworm root, whose programs run under qemu-user through binfmt_misc:
 scripts/install-aarch64.sh installs scripts/test.sh's wheel there (Cyclone DDS C 11 with
-DDS-Security and the binding built in the root), then `rcan-rtps run --sim` reaches its ready
+DDS-Security cross-built for the root, the binding built in it), then `rcan-rtps run --sim` reaches its ready
 line, answers /api/status and executes a move, loopback only (scripts/aarch64-emulated.sh).
 
 The root is prepared, with network, by scripts/test.sh before the tests (built cold once, then
-kept as an archive outside the clone); this test runs offline from that archive. It is long
-(about a minute and a half cached): with pytest-xdist it belongs to the serial phase.
+kept as an archive outside the clone); this test runs offline from that archive, about half a
+minute, with qemu on both cores: with pytest-xdist it belongs to the serial phase.
 """
 
 from __future__ import annotations

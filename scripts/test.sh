@@ -9,6 +9,10 @@
 #                      binding against it (scripts/cyclonedds-secure), for the SROS2 tests
 #   /usr/bin/chromium, /usr/bin/chromedriver  Debian's headless browser and its driver, for
 #                      the console tests (tests/console), installed with apt when missing
+#   /var/cache/rcan-rtps/aarch64-root-*.tar.zst  an arm64 Debian root with the wheel installed
+#                      by scripts/install-aarch64.sh, for tests/aarch64 under qemu (root on
+#                      Linux; scripts/aarch64-emulated.sh; kept outside the clone, rebuilt only
+#                      when its recipe changes)
 # On Linux as root the suite runs inside a private network namespace (loopback only);
 # elsewhere every DDS participant is restricted to localhost discovery.
 # Extra arguments go to pytest.

@@ -2,8 +2,9 @@
 
 An arm64 Debian bookworm root, whose programs run under qemu-user through binfmt_misc:
 scripts/install-aarch64.sh installs scripts/test.sh's wheel there (Cyclone DDS C 11 with
-DDS-Security cross-built for the root, the binding built in it), then `rcan-rtps run --sim` reaches its ready
-line, answers /api/status and executes a move, loopback only (scripts/aarch64-emulated.sh).
+DDS-Security cross-built for the root, the binding built in it), then `rcan-rtps run --sim`
+reaches its ready line, answers /api/status and executes a move, loopback only
+(scripts/aarch64-emulated.sh).
 
 The root is prepared, with network, by scripts/test.sh before the tests (built cold once, then
 kept as an archive outside the clone); this test runs offline from that archive, about half a

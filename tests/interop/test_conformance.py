@@ -17,6 +17,9 @@ import pytest
 from rcan_rtps.bridge.demo import DEMO_YAML, OWNER_TOKEN_ENV, USER_TOKEN_ENV, VIEWER_TOKEN_ENV
 from rcan_rtps.conformance import load_suite
 
+# Each simulator advertises over mDNS (L1-MDNS-001) under the demo's name: like every test
+# that advertises, in the serial phase (tests/bridge/test_mdns.py).
+pytestmark = pytest.mark.serial
 
 @dataclass
 class Sim:

@@ -35,6 +35,9 @@ from waiting import eventually
 
 from .run_process import RunProcess, child_env, state_args
 
+# mDNS on, under the demo's name: like every test that advertises, in the serial phase
+# (tests/bridge/test_mdns.py).
+pytestmark = pytest.mark.serial
 EXIT_TIMEOUT = 60.0  # s; generous: the bounded stop gives up after 10 s
 CMD_VEL = "/robot1/cmd_vel"
 GOAL_STATUS = "/robot1/navigate_to_pose/_action/status"

@@ -177,6 +177,14 @@ def module_domain_id() -> int:
     return _MODULE_DOMAIN
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _own_state_home(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """A demo started without --state-dir keeps its state (latched e-stop, audit log) under
+    $XDG_STATE_HOME: this session's own (each xdist worker has its own temporary directory),
+    never the user's ~/.local/state nor another worker's."""
+    os.environ["XDG_STATE_HOME"] = str(tmp_path_factory.mktemp("xdg-state"))
+
+
 def pytest_configure(config: pytest.Config) -> None:
     # Whatever starts a DDS participant without naming a domain joins this worker's own, not
     # domain 0 shared with every other worker.

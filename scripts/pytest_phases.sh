@@ -5,7 +5,8 @@
 #      default: 2 per core), an idle worker taking tests queued for a busy one (worksteal).
 #      Each worker has its own DDS domains and temporary directories (tests/conftest.py).
 #   2. the `serial` tests, alone: a CPU load generator would starve (and be disturbed by)
-#      tests beside it; mDNS adverts share one multicast group and the demo's name.
+#      tests beside it; mDNS adverts share one multicast group and the demo's name; bag
+#      playback's arrival gaps would carry the other workers' scheduling delays.
 # Not `--dist loadgroup` with `xdist_group` marks: on pytest 9.2 xdist 3.8 silently stops
 # grouping (pytest-xdist issue 1386), so what must not overlap runs in phase 2.
 # RCAN_RTPS_TEST_WORKERS=0 runs phase 1 in one process, like plain pytest. A `-m` among the

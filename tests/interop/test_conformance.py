@@ -99,7 +99,8 @@ def test_every_in_scope_case_passes_against_the_simulator(sim: Sim) -> None:
 
 def test_a_level_runs_the_cases_up_to_it(sim: Sim) -> None:
     done = _conformance(sim, "--level", "L1")
-    assert set(_lines(done.stdout)) == {c.id for c in load_suite().upto("L1")}, done.stdout
+    assert set(_lines(done.stdout)) == {c.id for c in load_suite().upto("L1")}, \
+        done.stdout + done.stderr
     assert done.returncode == 0, done.stdout + done.stderr
 
 

@@ -79,8 +79,10 @@ CI_REQUIRED_FIXTURES = frozenset({"jazzy_cyclone_python", "jazzy_oracle"})
 
 
 def _uses_the_load_generator(item: pytest.Item) -> bool:
-    module = getattr(item, "module", None)
-    return "cpu_load" in getattr(item, "fixturenames", ()) or hasattr(module, "burning_cpus")
+    """The `cpu_load` fixture, or `burning_cpus` called in the test function itself."""
+    code = getattr(getattr(item, "obj", None), "__code__", None)
+    return "cpu_load" in getattr(item, "fixturenames", ()) or (
+        code is not None and "burning_cpus" in code.co_names)
 
 
 @pytest.hookimpl(tryfirst=True)  # before `-m` selects on the marks added here

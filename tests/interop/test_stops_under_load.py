@@ -8,9 +8,6 @@ zero Twist arrived no non-zero one may follow until the clear.
 from __future__ import annotations
 
 import asyncio
-import os
-import subprocess
-import sys
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
@@ -20,6 +17,7 @@ from waiting import eventually, take
 from rcan_rtps.rcan import validate_command
 
 from .bridge_rig import AGENT, OPS, VIEWER, Rig, bridge_config, close_rig, make_rig
+from .cpu_load import burning_cpus
 from .test_bridge_ros import CMD_VEL, TWIST, subscribe, xs
 
 ROUNDS = 20
@@ -30,20 +28,13 @@ JUNK = [
     b'{"message_type": 6, "safety_event": "ESTOP", "message_id": "x", "extra": 1}',
     b'{"action": "ESTOP", "message_id": 12, "confidence": "high"}',
 ]
-_BURN = "import itertools\nfor _ in itertools.count(): pass\n"
 
 
 @pytest.fixture
 def cpu_load() -> Iterator[None]:
     """One busy process per core for the test's duration."""
-    burners = [subprocess.Popen([sys.executable, "-c", _BURN])
-               for _ in range(os.cpu_count() or 2)]
-    try:
+    with burning_cpus():
         yield
-    finally:
-        for burner in burners:
-            burner.kill()
-            burner.wait()
 
 
 @pytest.fixture

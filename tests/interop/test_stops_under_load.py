@@ -10,7 +10,7 @@ once a zero Twist arrived no non-zero one may follow until the clear.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
@@ -20,7 +20,6 @@ from waiting import eventually, take
 from rcan_rtps.rcan import validate_command
 
 from .bridge_rig import AGENT, OPS, VIEWER, Rig, bridge_config, close_rig, make_rig
-from .cpu_load import burning_cpus
 from .test_bridge_ros import CMD_VEL, TWIST, subscribe, xs
 
 ROUNDS = 100
@@ -31,13 +30,6 @@ JUNK = [
     b'{"message_type": 6, "safety_event": "ESTOP", "message_id": "x", "extra": 1}',
     b'{"action": "ESTOP", "message_id": 12, "confidence": "high"}',
 ]
-
-
-@pytest.fixture
-def cpu_load() -> Iterator[None]:
-    """One busy process per core for the test's duration."""
-    with burning_cpus():
-        yield
 
 
 @pytest.fixture

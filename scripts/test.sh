@@ -5,6 +5,8 @@
 #   .cache/ros-kilted  ROS 2 Kilted, a second real graph, when it installs
 #   .cache/ros-jazzy-cyclone  ROS 2 Jazzy whose rclpy also runs on rmw_cyclonedds_cpp, built
 #                      from tests/oracle/rmw-cyclonedds (or RCAN_RTPS_ORACLE_JAZZY_CYCLONE)
+#   .cache/cyclonedds-secure  Cyclone DDS C 11 built with DDS-Security and the cyclonedds
+#                      binding against it (scripts/cyclonedds-secure), for the SROS2 tests
 #   /usr/bin/chromium, /usr/bin/chromedriver  Debian's headless browser and its driver, for
 #                      the console tests (tests/console), installed with apt when missing
 # On Linux as root the suite runs inside a private network namespace (loopback only);
@@ -69,6 +71,20 @@ echo "== ROS 2 Jazzy on rmw_cyclonedds_cpp (.cache/ros-jazzy-cyclone)"
 # shellcheck source=scripts/cyclone_oracle.sh
 . scripts/cyclone_oracle.sh
 ensure_cyclone_oracle .cache/ros-jazzy-cyclone tests/oracle/rmw-cyclonedds
+
+echo "== Cyclone DDS C 11 with DDS-Security (.cache/cyclonedds-secure), for the SROS2 tests"
+# PyPI's cyclonedds wheel has no DDS-Security: tests/interop/test_sros2.py runs our node on
+# this build (about 2.5 min on 2 cores the first time; reused while the recipe is unchanged).
+if [ -z "${RCAN_RTPS_SECURE_CYCLONE:-}" ]; then
+  if PYTHON=$PY bash scripts/cyclonedds-secure/build.sh .cache/cyclonedds-secure \
+      >.cache/cyclonedds-secure.log 2>&1; then
+    tail -n 1 .cache/cyclonedds-secure.log
+  else
+    tail -n 20 .cache/cyclonedds-secure.log >&2
+    export RCAN_RTPS_SECURE_CYCLONE_ERROR="its build failed (log: .cache/cyclonedds-secure.log)"
+    echo "the secure Cyclone did not build; the SROS2 tests will skip (fail under CI=true)" >&2
+  fi
+fi
 
 echo "== wheel (.cache/dist): the tests install it apart from the source tree"
 rm -rf .cache/dist

@@ -64,3 +64,30 @@ def test_installed_wheel_works_outside_the_tree(wheel: Path, tmp_path: Path) -> 
     assert rcan_rtps.__version__ in subprocess.run(
         [sys.executable, "-m", "rcan_rtps", "--version"], env=env, cwd=tmp_path,
         capture_output=True, text=True).stdout
+
+
+def _release_check(directory: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["bash", str(ROOT / "scripts" / "release.sh"), "check",
+                           str(directory)], capture_output=True, text=True, timeout=120)
+
+
+def test_the_release_check_passes_the_built_wheel(wheel: Path) -> None:
+    done = _release_check(wheel.parent)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert f"wheel {wheel.name}: " in done.stdout and "metadata and contents checked" in done.stdout
+
+
+def test_the_release_check_refuses_a_wheel_with_tests_and_without_the_console(
+        wheel: Path, tmp_path: Path) -> None:
+    bad = tmp_path / wheel.name
+    with zipfile.ZipFile(wheel) as good, zipfile.ZipFile(bad, "w") as out:
+        for item in good.infolist():
+            if item.filename != "rcan_rtps/console/static/index.html":
+                out.writestr(item, good.read(item))
+        out.writestr("tests/conftest.py", "")
+        out.writestr("rcan_rtps/.cache/dist/x", "")
+    done = _release_check(tmp_path)
+    assert done.returncode == 1
+    assert "files missing from the wheel: ['rcan_rtps/console/static/index.html']" in done.stderr
+    assert ("files that do not belong in the wheel: ['rcan_rtps/.cache/dist/x', "
+            "'tests/conftest.py']") in done.stderr

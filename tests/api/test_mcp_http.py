@@ -335,3 +335,22 @@ asyncio.run(main(sys.argv[2] == "block"))
         assert expect in run.stdout, run.stdout
         if mode == "block":
             assert "pip install 'rcan-rtps[mcp]'" in run.stdout
+
+
+async def test_an_agent_lists_its_own_held_commands_only(api: Api) -> None:
+    arm = {"joints": ["elbow"], "positions": [0.5], "duration_s": 1.0, "confidence": 0.9}
+    await api.command("slow", {"action": "arm_joint", "params": {
+        "joints": ["elbow"], "positions": [0.2], "duration_s": 1.0}})  # another USER's
+    async with agent(api) as client:
+        held = [data(await client.call_tool("arm_joint", arm))["pending_id"] for _ in range(2)]
+        mine = await client.call_tool("get_my_pending_approvals", {})
+    assert mine.content[0].text.startswith("2 held for a human")  # type: ignore[union-attr]
+    assert sorted(p["pending_id"] for p in data(mine)["pending"]) == sorted(held)
+    status, body = await api.call("GET", "/api/hitl/pending?mine=true", "slow")
+    assert (status, [p["issued_by"] for p in body["pending"]]) == (200, ["slow"])
+    status, body = await api.call("GET", "/api/hitl/pending", "slow")
+    assert status == 403  # the whole list stays the approvers'
+    status, body = await api.call("GET", "/api/hitl/pending?mine=yes", "slow")
+    assert (status, body["path"]) == (400, "$.query.mine")
+    status, body = await api.call("GET", "/api/hitl/pending?mine=false", "ops")
+    assert status == 200 and len(body["pending"]) == 3

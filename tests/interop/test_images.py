@@ -21,7 +21,7 @@ from rcan_rtps.bridge.images import ImageFeeds
 from rcan_rtps.config import ImageFeedConfig
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.sim.camera import HEIGHT, ROBOT, WIDTH, pixel_of
-from tests.interop.test_demo import Demo, _run_demo, call, wait_status
+from tests.interop.test_demo import Demo, call, wait_status
 from tests.interop.test_mcp_sim import agent
 
 FEEDS = {"front": ImageFeedConfig(topic="/cam/front"),
@@ -84,11 +84,6 @@ async def test_rclpy_frames_are_shown_as_files(oracle: RclpyOracle, node: RosNod
         assert unknown.value.reason == "image_not_found"
     finally:
         feeds.close()
-
-
-@pytest.fixture
-def sim(tmp_path: Path, domain_id: int) -> Iterator[Demo]:
-    yield from _run_demo(tmp_path, domain_id, "--state-dir", str(tmp_path / "state"))
 
 
 def robot_drawn_at(rows: bytes) -> tuple[float, float]:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -20,15 +20,10 @@ import aiohttp
 import pytest
 from waiting import eventually
 
-from tests.interop.test_demo import Demo, _run_demo, call, wait_status
+from tests.interop.test_demo import Demo, call, wait_status
 
 DATA = Path(__file__).parents[1] / "data" / "rcan-spec"
 PROSE = json.loads((DATA / "section-19-examples.json").read_text())
-
-
-@pytest.fixture
-def sim(tmp_path: Path, domain_id: int) -> Iterator[Demo]:
-    yield from _run_demo(tmp_path, domain_id, "--state-dir", str(tmp_path / "state"))
 
 
 @pytest.fixture

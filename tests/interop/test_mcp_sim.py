@@ -16,7 +16,7 @@ import json
 import os
 import re
 import sys
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -33,19 +33,14 @@ from rcan_rtps.rcan.actions import names
 from tests.interop.test_demo import (
     ROOT,
     Demo,
-    _run_demo,
     call,
     timed_move_distance,
     wait_status,
 )
 
 AGENT = {"provider": "acme", "model": "planner-7b", "client": "test-agent/1.2"}
-READS = {"get_status", "get_goals", "get_pending_approval", "wait_for_approval"}
-
-
-@pytest.fixture
-def sim(tmp_path: Path, domain_id: int) -> Iterator[Demo]:
-    yield from _run_demo(tmp_path, domain_id, "--state-dir", str(tmp_path / "state"))
+READS = {"get_status", "get_goals", "get_my_pending_approvals", "get_pending_approval",
+         "wait_for_approval"}
 
 
 @pytest.fixture

@@ -11,7 +11,7 @@ import re
 import subprocess
 import sys
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -23,12 +23,7 @@ from rcan.message import RCANMessage
 from rcan.safety import make_estop_message, make_resume_message, make_stop_message
 from waiting import eventually
 
-from tests.interop.test_demo import ROOT, Demo, _run_demo, call, stream_ended, wait_status
-
-
-@pytest.fixture
-def sim(tmp_path: Path, domain_id: int) -> Iterator[Demo]:
-    yield from _run_demo(tmp_path, domain_id, "--state-dir", str(tmp_path / "state"))
+from tests.interop.test_demo import ROOT, Demo, call, stream_ended, wait_status
 
 
 @pytest.fixture

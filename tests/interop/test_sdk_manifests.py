@@ -14,8 +14,7 @@ import hashlib
 import io
 import json
 import time
-from collections.abc import AsyncIterator, Iterator, Sequence
-from pathlib import Path
+from collections.abc import AsyncIterator, Sequence
 from typing import Any
 
 import aiohttp
@@ -28,12 +27,7 @@ from rcan.node import NodeClient
 from rcan.safety import make_estop_message, make_resume_message
 
 from rcan_rtps.governance import load_public_key
-from tests.interop.test_demo import Demo, _run_demo, call, wait_status
-
-
-@pytest.fixture
-def sim(tmp_path: Path, domain_id: int) -> Iterator[Demo]:
-    yield from _run_demo(tmp_path, domain_id, "--state-dir", str(tmp_path / "state"))
+from tests.interop.test_demo import Demo, call, wait_status
 
 
 @pytest.fixture

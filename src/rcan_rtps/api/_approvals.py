@@ -11,7 +11,6 @@ newest list.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 from collections.abc import Callable
 
 import msgspec
@@ -19,6 +18,7 @@ import msgspec
 from rcan_rtps.rcan import PendingAuth
 
 from ._bodies import PendingList
+from ._wakeup import Wakeup
 
 
 class ApprovalsSubscription:
@@ -51,14 +51,16 @@ class ApprovalsFeed:
     def __init__(self, pending: Callable[[], list[PendingAuth]]) -> None:
         self._pending = pending
         self._subscribers: set[ApprovalsSubscription] = set()
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._scheduled = False
+        self._wakeup = Wakeup(self._refresh)
 
     def start(self) -> None:
-        self._loop = asyncio.get_running_loop()
+        self._wakeup.start()
 
     def close(self) -> None:
-        self._loop = None
+        self._wakeup.close()
+
+    def changed(self) -> None:
+        self._wakeup.changed()
 
     def subscribe(self) -> ApprovalsSubscription:
         """The list as it is now first, then each change."""
@@ -74,16 +76,7 @@ class ApprovalsFeed:
     def subscribers(self) -> int:
         return len(self._subscribers)
 
-    def changed(self) -> None:
-        loop = self._loop
-        if loop is None or self._scheduled:
-            return
-        self._scheduled = True
-        with contextlib.suppress(RuntimeError):  # the loop is closing: nobody to tell
-            loop.call_soon_threadsafe(self._refresh)
-
     def _refresh(self) -> None:
-        self._scheduled = False
         current = self._now()
         for subscription in list(self._subscribers):
             subscription.offer(*current)

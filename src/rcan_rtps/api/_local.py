@@ -16,7 +16,7 @@ from aiohttp import web
 from rcan_rtps.governance import Principal
 
 from . import _routes as r
-from ._bodies import GoalList
+from ._bodies import GoalList, PendingList
 from ._commands import run_command, too_large
 from ._images import image_list
 from ._keys import CHECKS, GOVERNOR, IMAGES, INVOCATIONS, OBSERVE, ROBOT, SETTINGS, STATUS
@@ -66,6 +66,11 @@ class LocalApi:
 
     async def pending(self, pending_id: str) -> Reply:
         return _reply(*await r.pending_view(self._app[GOVERNOR], self._principal, pending_id))
+
+    async def my_pending(self) -> Reply:
+        governor = self._app[GOVERNOR]
+        await governor.expire_pending()
+        return _reply(200, PendingList(pending=r.own_pending(governor, self._principal)))
 
     async def my_audit(self, last: int) -> Reply:
         return _reply(*await r.my_audit(self._app, self._principal, 0, last, True))

@@ -154,8 +154,13 @@ PATHS: dict[str, dict[str, Any]] = {
         {"200": _json("Thought", "the thought"), **_errors(404)},
         parameters=[{"name": "thought_id", "in": "path", "required": True,
                      "schema": {"type": "string"}}])},
-    "/api/hitl/pending": {"get": _op("getPending", "Commands waiting for a human (approvers)",
-                                     {"200": _json("PendingList", "pending"), **_errors(403)})},
+    "/api/hitl/pending": {"get": _op(
+        "getPending", "Commands waiting for a human (approvers); with `mine=true`, the caller's "
+        "own (any principal)",
+        {"200": _json("PendingList", "pending"), **_errors(400, 403)},
+        parameters=[{"name": "mine", "in": "query", "required": False,
+                     "description": "true: only the caller's own held commands",
+                     "schema": {"type": "boolean"}}])},
     "/api/hitl/pending/{pending_id}": {"get": _op(
         "getPendingOne", "One held command, for its issuer and its approvers: waiting (its "
         "PENDING_AUTH), being decided, or resolved with the decision that ended it (kept for "

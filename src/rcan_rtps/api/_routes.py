@@ -8,7 +8,7 @@ from aiohttp import web
 from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.governance.clock import SystemClock, now_ms
 from rcan_rtps.governance.hitl import Verdict
-from rcan_rtps.rcan import Authorize, ErrorCode, Role, SchemaValidationError
+from rcan_rtps.rcan import Authorize, ErrorCode, PendingAuth, Role, SchemaValidationError
 
 from ._bodies import (
     ApiError,
@@ -139,12 +139,24 @@ async def get_image(request: web.Request) -> web.Response:
 
 
 async def get_pending(request: web.Request) -> web.Response:
-    refused = _forbidden(request, request.app[SETTINGS].hitl_list_role)
-    if refused is not None:
-        return refused
-    governor = request.app[GOVERNOR]
+    """The held commands, for those who could approve one; `?mine=true`: the caller's own,
+    for any principal (an agent that waits on several)."""
+    governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
+    mine = request.query.get("mine")
+    if mine not in (None, "true", "false"):
+        return error_response(400, ErrorCode.SCHEMA_VALIDATION_FAILED,
+                              reason="expected true or false", path="$.query.mine")
+    if mine != "true":
+        refused = _forbidden(request, request.app[SETTINGS].hitl_list_role)
+        if refused is not None:
+            return refused
     await governor.expire_pending()  # what has timed out is gone, and audited as such
-    return json_response(PendingList(pending=governor.pending()))
+    return json_response(PendingList(pending=own_pending(governor, principal)
+                                     if mine == "true" else governor.pending()))
+
+
+def own_pending(governor: Governor, principal: Principal) -> list[PendingAuth]:
+    return [p for p in governor.pending() if p.issued_by == principal.name]
 
 
 async def pending_view(governor: Governor, principal: Principal, pending_id: str

@@ -15,6 +15,7 @@ from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 from ..rcan import Status
+from ._wakeup import Wakeup
 
 log = logging.getLogger(__name__)
 
@@ -67,8 +68,7 @@ class StatusHub:
         self._period = period_s
         self._subscribers: set[StatusSubscription] = set()
         self._latest: Status | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._refresh_scheduled = False
+        self._wakeup = Wakeup(self._refresh)
         self._failing = False
         self._ticker: asyncio.Task[None] | None = None
 
@@ -98,22 +98,16 @@ class StatusHub:
     # -- being told ------------------------------------------------------------------------
     def changed(self) -> None:
         """Something STATUS is made of may have changed; safe from any thread."""
-        loop = self._loop
-        if loop is None or self._refresh_scheduled:
-            return
-        self._refresh_scheduled = True
-        with contextlib.suppress(RuntimeError):  # the loop is closing: nobody to tell
-            loop.call_soon_threadsafe(self._refresh)
+        self._wakeup.changed()
 
     def _refresh(self) -> None:
-        self._refresh_scheduled = False
         status = self._try_compute()
         if status is not None:
             self._take(status, tick=False)
 
     # -- the tick --------------------------------------------------------------------------
     async def start(self) -> None:
-        self._loop = asyncio.get_running_loop()
+        self._wakeup.start()
         if self._ticker is None:
             self._ticker = asyncio.create_task(self._tick(), name="status-hub")
 
@@ -123,7 +117,7 @@ class StatusHub:
             ticker.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await ticker
-        self._loop = None
+        self._wakeup.close()
 
     async def _tick(self) -> None:
         while True:

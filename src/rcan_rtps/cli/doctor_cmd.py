@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import importlib.metadata
 import os
 import platform
 import socket
 import struct
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,10 +19,12 @@ from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsParticipant
 from cyclonedds.core import DDSException
 
 from ..ros import qos as qos_mod
+from ..ros._binding import binding_location, binding_version
 from ..ros.errors import WireError
 from ..ros.graph import Direction, RosGraph, node_fqn
 from ..ros.participant import localhost_requested, resolve_domain_id
 from ..ros.typesys.store import resolve_distro
+from . import _cyclone_build as cyclone
 from ._common import alone_hint, make_node, make_store
 
 DISCOVERY_RANGES = ("SUBNET", "LOCALHOST", "OFF", "SYSTEM_DEFAULT")
@@ -52,8 +54,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 async def _doctor(args: argparse.Namespace) -> int:
-    checks = [_platform(), _middleware(), _environment(args), _network(args),
-              _interfaces(args), await _graph(args)]
+    library = cyclone.c_library()
+    checks = [_platform(), _middleware(library), _security(library), _environment(args),
+              _network(args), _interfaces(args), await _graph(args)]
     if args.report:
         for check in checks:
             print(_section(check))
@@ -79,29 +82,75 @@ def _section(check: Check) -> str:
 def _platform() -> Check:
     check = Check("platform", "PLATFORM INFORMATION")
     uname = platform.uname()
+    libc = " ".join(filter(None, platform.libc_ver()))
     check.rows = [("system", uname.system), ("platform info", platform.platform()),
                   ("release", uname.release), ("processor", uname.machine or "unknown"),
-                  ("python", f"{platform.python_implementation()} {platform.python_version()}")]
+                  ("python", f"{platform.python_implementation()} {platform.python_version()}"
+                   f" ({sys.executable})"),
+                  ("libc", libc or "unknown")]
     return check
 
 
-def _middleware() -> Check:
+def _middleware(library: cyclone.CLibrary) -> Check:
     check = Check("middleware", "RMW MIDDLEWARE")
-    try:
-        version = importlib.metadata.version("cyclonedds")
-    except importlib.metadata.PackageNotFoundError:
-        version = "unknown"
+    version = binding_version()
+    if version == "unknown":
         check.warnings.append("the cyclonedds distribution has no metadata; is it installed "
                               "with pip?")
+    where = f"{library.path} ({library.origin})" if library.path else library.origin
+    options = cyclone.build_options(library)
     uri = os.environ.get("CYCLONEDDS_URI", "").strip()
     check.rows = [("middleware name", "cyclonedds (Python binding)"),
-                  ("cyclonedds version", version),
+                  ("cyclonedds version", f"{version} ({binding_location()})"),
+                  ("Cyclone DDS C library", f"{library.version} at {where}"),
+                  ("C build options", ", ".join(f"{name}: {'yes' if on else 'no'}"
+                                                for name, on in options.items())),
                   ("equivalent rmw", "rmw_cyclonedds_cpp (interoperates with any rmw over DDS)"),
                   ("CYCLONEDDS_URI", uri or "(not set)")]
+    if library.version not in ("unknown", version):
+        check.warnings.append(f"the binding is {version} but its C library is "
+                              f"{library.version}: build both from the same release")
     for path in _config_files(uri):
         if not path.is_file():
             check.errors.append(f"CYCLONEDDS_URI names {path}, which is not a file")
     return check
+
+
+def _security(library: cyclone.CLibrary) -> Check:
+    """DDS-Security (what SROS2 runs on): built into libddsc, and its three plugins
+    loadable; and what ROS_SECURITY_* ask for."""
+    check = Check("security", "DDS SECURITY")
+    built_in = cyclone.build_options(library)["DDS-Security"]
+    plugins = cyclone.security_plugins(library)
+    check.rows.append(("built into the C library", "yes" if built_in else
+                       "no (PyPI's cyclonedds wheel is built without it)"))
+    for plugin in plugins:
+        check.rows.append((f"plugin {plugin.name}", _plugin_state(plugin)))
+    available = built_in and all(p.loadable for p in plugins)
+    check.rows.append(("available", "yes" if available else "no"))
+    env = os.environ
+    enable = env.get("ROS_SECURITY_ENABLE", "")
+    strategy = env.get("ROS_SECURITY_STRATEGY", "")
+    check.rows += [("ROS_SECURITY_ENABLE", enable or "(not set)"),
+                   ("ROS_SECURITY_STRATEGY", strategy or "(not set: Permissive)"),
+                   ("ROS_SECURITY_KEYSTORE", env.get("ROS_SECURITY_KEYSTORE", "") or "(not set)")]
+    if enable.lower() == "true" and not available:
+        problem = ("ROS_SECURITY_ENABLE=true but this Cyclone DDS cannot do DDS-Security: "
+                   "use a Cyclone DDS C 11 built with security (CYCLONEDDS_HOME) and its "
+                   "binding built against it")
+        (check.errors if strategy == "Enforce" else check.warnings).append(problem)
+    return check
+
+
+def _plugin_state(plugin: cyclone.Plugin) -> str:
+    if plugin.on_search_path:
+        return "loadable (on the library path)"
+    if plugin.found and plugin.loadable:
+        return (f"at {plugin.found}, not on the library path (add its directory to "
+                "LD_LIBRARY_PATH, or name the file in the security settings)")
+    if plugin.found:
+        return f"at {plugin.found}, does not load"
+    return "not found"
 
 
 def _config_files(uri: str) -> Iterator[Path]:
@@ -180,15 +229,28 @@ def _network(args: argparse.Namespace) -> Check:
         return check
     multicast = [(name, flags) for name, flags in usable
                  if flags is None or flags & IFF_MULTICAST]
+    check.rows.append(("discovery", _discovery_scope(args.localhost)))
     if localhost_requested(args.localhost):
-        check.rows.append(("discovery", "this machine only (unicast over loopback)"))
-    elif not multicast:
+        return check  # loopback unicast: no multicast needed
+    if not multicast:
         check.warnings.append("no interface that is up has multicast: DDS discovery finds no "
                               "peer unless --localhost or CYCLONEDDS_URI <Peers> is used")
     elif all(flags is not None and flags & IFF_LOOPBACK for _, flags in multicast):
         check.warnings.append("only loopback is up with multicast: DDS discovery will find "
                               "peers on this machine only")
     return check
+
+
+def _discovery_scope(explicit: bool | None) -> str:
+    if not localhost_requested(explicit):
+        return "the subnet (multicast on the interfaces that have it)"
+    if explicit:
+        source = "--localhost"
+    elif os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "").upper() == "LOCALHOST":
+        source = "ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST"
+    else:
+        source = "ROS_LOCALHOST_ONLY=1"
+    return f"this machine only, unicast over loopback (from {source})"
 
 
 def _interface_flags(name: str) -> int | None:

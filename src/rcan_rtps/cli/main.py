@@ -23,6 +23,7 @@ COMMANDS = {
     "config": "config_cmd", "audit": "audit_cmd", "sim": "sim_cmd", "service": "service_cmd",
     "action": "action_cmd", "discover": "discover_cmd", "bag": "bag_cmd", "param": "param_cmd",
     "doctor": "doctor_cmd", "conformance": "conformance_cmd", "mcp": "mcp_cmd",
+    "security": "security_cmd",
 }
 # Options before the verb that take a value (the value is not a verb).
 _VALUED = frozenset({"--domain-id", "--idl-path", "--distro", "--log-level", "--log-format"})
@@ -99,6 +100,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # before a command took Ctrl-C over (loading, parsing)
         print("rcan-rtps: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except ImportError as exc:  # no usable cyclonedds: missing, or a line the wire refuses
+        if exc.name != "cyclonedds":
+            raise
+        print(f"rcan-rtps: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
 
 
 def _main(argv: Sequence[str] | None) -> int:

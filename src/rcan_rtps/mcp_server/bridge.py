@@ -73,6 +73,9 @@ class BridgeClient:
     async def pending(self, pending_id: str) -> Reply:
         return await self._request("GET", f"/api/hitl/pending/{path_part(pending_id)}")
 
+    async def my_pending(self) -> Reply:
+        return await self._request("GET", "/api/hitl/pending?mine=true")
+
     async def my_audit(self, last: int) -> Reply:
         return await self._request("GET", f"/api/audit/mine?last={int(last)}")
 

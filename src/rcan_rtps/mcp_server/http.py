@@ -13,6 +13,7 @@ event stream would only add framing to each reply.
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Mapping
 from typing import Any
 
@@ -42,6 +43,11 @@ class HttpMcp:
     """One bridge's MCP sessions: `run` for the bridge's lifetime, `handle` per request."""
 
     def __init__(self, manifest: Mapping[str, Any], *, max_body_bytes: int) -> None:
+        # The SDK's INFO lines (a line per session opened or closed, with its id) are not the
+        # bridge's to log: the decisions are, in rcan_rtps.decisions.
+        sdk_log = logging.getLogger("mcp")
+        if sdk_log.level == logging.NOTSET:
+            sdk_log.setLevel(logging.WARNING)
         server = build_server(RobotTools(seat_of, manifest=manifest))
         self._manager = StreamableHTTPSessionManager(
             server, json_response=True, session_idle_timeout=SESSION_IDLE_S,

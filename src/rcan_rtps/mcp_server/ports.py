@@ -58,6 +58,9 @@ class RobotApi(Protocol):
     async def pending(self, pending_id: str) -> Reply:
         """GET /api/hitl/pending/{pending_id}."""
 
+    async def my_pending(self) -> Reply:
+        """GET /api/hitl/pending?mine=true: the caller's own held commands."""
+
     async def my_audit(self, last: int) -> Reply:
         """GET /api/audit/mine?last=N: the caller's own newest entries."""
 

@@ -212,6 +212,9 @@ class RobotTools:
             return result(await api.status(), "status")
         if name == "get_goals":
             return result(await api.goals(), "goals")
+        if name == "get_my_pending_approvals":
+            reply = await api.my_pending()
+            return result(reply, f"{len(reply.body.get('pending') or ())} held for a human")
         pending_id = args.get("pending_id")
         if not isinstance(pending_id, str) or not pending_id:
             return failure("`pending_id` must be a non-empty string", "SCHEMA_VALIDATION_FAILED")

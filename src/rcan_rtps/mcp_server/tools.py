@@ -159,6 +159,9 @@ READS = (
     ToolDef("get_goals", "The goals the bridge tracks (navigation, docking, ...): each with "
             "its state (accepted, executing, succeeded, aborted, canceled, ...), feedback and "
             "result.", _object({}, [])),
+    ToolDef("get_my_pending_approvals", "Your commands held for a human right now, each with "
+            "its pending_id, the role that must approve it and when it expires.",
+            _object({}, [])),
     ToolDef("get_pending_approval", "One of your commands held for a human: `pending` while "
             "it waits (with the role that must approve it and when it expires), then "
             "`resolved` with the decision that ended it (executed, denied, withdrawn, "

@@ -11,7 +11,14 @@ Public API (the modules stay importable for the finer parts: `names`, `qos`, `ro
     serialize / deserialize  messages to and from CDR bytes, no DDS (like rclpy.serialization)
     QosProfile               ROS QoS, with `qos.preset(name)` for the named profiles
     WireError and its tree   see `errors`
+
+Importing it checks the installed cyclonedds binding first (`_binding`): on one that cannot
+run it (the 0.10 line) the import raises UnsupportedBindingError, saying how to get 11.x.
 """
+
+from ._binding import require_supported_binding
+
+require_supported_binding()  # before the modules below touch what a 0.10 binding lacks
 
 from .actions import ActionClient, ActionServer, ClientGoal, GoalResult, GoalState, ServerGoal
 from .errors import (
@@ -24,6 +31,7 @@ from .errors import (
     ServiceTimeout,
     ServiceUnavailable,
     UnknownTypeError,
+    UnsupportedBindingError,
     UnsupportedDistroError,
     UnsupportedTypeError,
     ValueFitError,
@@ -67,6 +75,7 @@ __all__ = [
     "ServiceUnavailable",
     "TypeStore",
     "UnknownTypeError",
+    "UnsupportedBindingError",
     "UnsupportedDistroError",
     "UnsupportedTypeError",
     "ValueFitError",

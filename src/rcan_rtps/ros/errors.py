@@ -1,6 +1,8 @@
 """Errors of the ROS 2 wire layer.
 
     WireError
+    ├── UnsupportedBindingError the installed cyclonedds cannot run the wire layer (at import;
+    │                           also an ImportError)
     ├── IdlSyntaxError          an .idl file does not parse (file and line)
     ├── UnknownTypeError        a type name the store does not hold (with near names)
     ├── UnsupportedTypeError    a type the cyclonedds codec cannot carry (wstring, wchar, ...)
@@ -31,6 +33,31 @@ def seconds(duration: float) -> str:
 
 class WireError(Exception):
     """Base of every error raised by `rcan_rtps.ros`."""
+
+
+class UnsupportedBindingError(WireError, ImportError):
+    """The installed cyclonedds binding lacks what the wire layer calls (the 0.10 line).
+
+    Raised when `rcan_rtps.ros` is imported, so an ImportError too: `name` is 'cyclonedds'.
+    The message names the version found, what is missing and how to get the 11.x line."""
+
+    def __init__(self, version: str, location: str, missing: list[str]) -> None:
+        lines = [
+            f"the cyclonedds Python binding {version} (at {location}) cannot run rcan-rtps, "
+            "which needs its 11.x line; it lacks:",
+            *(f"  - {item}" for item in missing),
+            "Install the 11.x line into this environment: pip install 'cyclonedds>=11,<12' "
+            "(wheels for Linux x86_64 and macOS).",
+            "Where no wheel exists (Linux aarch64): build Cyclone DDS C 11 from its release "
+            "source (cmake, Release), run ldconfig for its lib directory, then "
+            "CYCLONEDDS_HOME=<its install prefix> pip install 'cyclonedds>=11,<12'.",
+            "Debian's and Ubuntu's python3-cyclonedds and cyclonedds-dev are the 0.10 line; "
+            "see docs/compatibility.md ('Cyclone DDS lines').",
+        ]
+        super().__init__("\n".join(lines), name="cyclonedds")
+        self.version = version
+        self.location = location
+        self.missing = list(missing)
 
 
 class IdlSyntaxError(WireError):

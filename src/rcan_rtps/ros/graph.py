@@ -55,6 +55,9 @@ class Endpoint:
     vendor: str
     node_name: str = "_NODE_NAME_UNKNOWN_"
     node_namespace: str = "_NODE_NAMESPACE_UNKNOWN_"
+    # rmw_cyclonedds' `serviceid=`/`clientid=` of a service endpoint: the mark of its
+    # request-reply mapping that survives DDS-Security (which rewrites the GUID's vendor bytes)
+    service_id: str = ""
 
 
 def vendor_of(gid: bytes) -> str:
@@ -141,6 +144,7 @@ class RosGraph:
                 sample.type_name, key, sample.participant_key.bytes,
                 qos_mod.from_dds(sample.qos), user_data.get("typehash", ""),
                 vendor_of(key), name, namespace,
+                user_data.get("serviceid") or user_data.get("clientid") or "",
             ))
         return sorted(found, key=lambda e: (e.ros_name, e.direction.value, e.node_name))
 

@@ -114,6 +114,22 @@ def _release_domain(domain_id: int) -> None:
     domain.__del__()
 
 
+def _security_properties(enclave: str, domain_id: int) -> list[Policy.Property]:
+    """SROS2 from the ROS_SECURITY_* environment (ros/security/settings.py): the DDS-Security
+    properties of the participant, or none to run unsecured."""
+    if os.environ.get("ROS_SECURITY_ENABLE", "") != "true":  # rcl's test; spares the import
+        return []
+    from .security.settings import participant_security
+
+    return [Policy.Property(key, value, False)
+            for key, value in participant_security(enclave, domain_id)]
+
+
+def _enclave_of(security: list[Policy.Property]) -> str:
+    cert = next(p.value for p in security if p.key == "dds.sec.auth.identity_certificate")
+    return str(Path(cert.removeprefix("file:")).parent)
+
+
 def gid_bytes(entity: Any, size: int) -> bytes:
     """An entity's GUID as a ROS Gid of the distro's size (16, or 24 zero-padded)."""
     raw: bytes = entity.guid.bytes
@@ -273,6 +289,11 @@ class RosSubscription:
             self.reader.__del__()
 
 
+def _settle(done: asyncio.Future[None]) -> None:
+    if not done.done():
+        done.set_result(None)
+
+
 async def _wait_count(current: Callable[[], int], count: int, timeout: float,
                       message: str) -> int:
     loop = asyncio.get_running_loop()
@@ -300,13 +321,24 @@ class RosNode:
         self.codecs = CdrCodecs(self.types, self.values)
         self.domain_id = resolve_domain_id(domain_id)
         self.localhost = localhost_requested(localhost)
+        security = _security_properties(enclave, self.domain_id)
         _acquire_domain(self.domain_id, self.localhost)
         try:
-            self.participant = DomainParticipant(
-                self.domain_id, qos=Qos(Policy.Userdata(f"enclave={enclave};".encode())))
+            self.participant = DomainParticipant(self.domain_id, qos=Qos(
+                Policy.Userdata(f"enclave={enclave};".encode()), *security))
+        except DDSException as e:
+            _release_domain(self.domain_id)
+            if not security:
+                raise
+            from .security.errors import SecurityError
+            raise SecurityError(
+                f"Cyclone DDS refused the secured participant of {self.fqn} (enclave "
+                f"{_enclave_of(security)}): {e}; Cyclone's own message, on stderr, says "
+                "why") from e
         except BaseException:
             _release_domain(self.domain_id)
             raise
+        self.secured = bool(security)
         self._topics: dict[str, Topic[Any]] = {}
         self._readers: list[Any] = []
         self._writers: list[Any] = []
@@ -413,6 +445,20 @@ class RosNode:
     def unwatch(self, watch: Watch | WriterWatch) -> None:
         """No delivery to `watch` starts after this returns."""
         self.reader_thread.remove(watch)
+
+    async def delivered(self) -> None:
+        """Returns once every sample our readers held when it was called has been handed to
+        its callback — and, for callbacks that hop to this event loop with
+        `call_soon_threadsafe`, once those hops have run (they were queued before ours)."""
+        loop = asyncio.get_running_loop()
+        done: asyncio.Future[None] = loop.create_future()
+
+        def wake() -> None:  # on the reader thread (or here, if it is not running)
+            with contextlib.suppress(RuntimeError):  # the loop has closed
+                loop.call_soon_threadsafe(_settle, done)
+
+        self.reader_thread.after_next_pass(wake)
+        await done
 
     def forget_reader(self, reader: Any) -> None:
         with self._lock:

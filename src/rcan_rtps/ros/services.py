@@ -42,7 +42,7 @@ from . import _cyclone_header as cyclone
 from . import qos as qos_mod
 from . import raw_cdr
 from .errors import ServiceTimeout, ServiceUnavailable, WireError, seconds
-from .graph import Direction, RosGraph
+from .graph import Direction, Endpoint, RosGraph
 from .handshake import matched_subscriptions, matched_writers, writers_ready
 from .names import mangle_service
 from .participant import RosNode
@@ -76,8 +76,13 @@ class MappingPolicy:
         return self.services.get(name, self.default)
 
 
-def mapping_of_vendor(guid: bytes) -> RequestMapping:
-    return RequestMapping.CYCLONE if guid[:2] == CYCLONE_VENDOR else RequestMapping.FASTDDS
+def mapping_of_vendor(guid: bytes, service_id: str = "") -> RequestMapping:
+    """rmw_cyclonedds' mapping for its endpoints: known by their vendor bytes, or, as a
+    secured participant's GUID no longer starts with them (DDS-Security derives it from the
+    certificate), by the serviceid/clientid rmw_cyclonedds puts in their USER_DATA."""
+    if guid[:2] == CYCLONE_VENDOR or service_id:
+        return RequestMapping.CYCLONE
+    return RequestMapping.FASTDDS
 
 
 _id_counters: weakref.WeakKeyDictionary[RosNode, itertools.count[int]] = \
@@ -201,8 +206,11 @@ class ServiceClient:
     # -- discovery --------------------------------------------------------------
     def server_guids(self) -> list[bytes]:
         """GUIDs of the request readers of this service's servers (from discovery)."""
+        return [e.gid for e in self._server_readers()]
+
+    def _server_readers(self) -> list[Endpoint]:
         self._graph.refresh()
-        return [e.gid for e in self._graph.endpoints()
+        return [e for e in self._graph.endpoints()
                 if e.dds_topic == self.request_topic and e.direction is Direction.SUBSCRIPTION]
 
     def _reply_writer_known(self) -> bool:
@@ -213,7 +221,7 @@ class ServiceClient:
         """The configured mapping, or the servers' (None while there is no server)."""
         if self.mapping is not RequestMapping.AUTO:
             return self.mapping
-        mappings = {mapping_of_vendor(g) for g in self.server_guids()}
+        mappings = {mapping_of_vendor(e.gid, e.service_id) for e in self._server_readers()}
         if len(mappings) > 1:
             raise WireError(f"servers of {self.name} use both request mappings; "
                             "choose one with RequestMapping.CYCLONE or FASTDDS")
@@ -380,7 +388,8 @@ class ServiceServer:
         if client is None:
             return  # the client left before we got to its request
         guid = bytes(client.key.bytes)
-        if guid[:2] != CYCLONE_VENDOR:
+        if mapping_of_vendor(guid, _user_data(client).get("clientid", "")) \
+                is not RequestMapping.CYCLONE:
             if guid not in self._warned:
                 self._warned.add(guid)
                 log.warning("service %s: ignoring requests of a %s client; it cannot use the "

@@ -21,7 +21,8 @@
 DDS runs here, so run it in a private network namespace (as root):
     scripts/netns .venv/bin/python bench/e2e.py [--oracle .cache/ros-jazzy/bin/python]
 Writes the `## End to end` and `## Before vs after, end to end` sections of docs/benchmarks.md
-(`--compare-only`: the second alone).
+(`--compare-only`: the second alone). `--footprint-only` measures just the idle RSS over the
+library floor, of `--baseline-ref`'s bridge and this tree's (no oracle needed), and prints it.
 """
 
 from __future__ import annotations
@@ -611,11 +612,54 @@ def parse_args() -> argparse.Namespace:
                         help="commands before the sustained-load RSS (0: skip)")
     parser.add_argument("--compare-only", action="store_true",
                         help="only the before-vs-after section")
+    parser.add_argument("--footprint-only", action="store_true",
+                        help="only idle RSS over the library floor, before and after (printed)")
     return parser.parse_args()
+
+
+async def idle_rss(state: Path, src: Path | None, extra: tuple[str, ...] = ()) -> float:
+    bridge = BridgeProcess(state, src, extra)
+    try:
+        await asyncio.sleep(1.0)  # the floor's settling time too
+        return bridge.rss_mb()
+    finally:
+        bridge.stop()
+
+
+async def footprint_only(args: argparse.Namespace) -> str:
+    """Idle RSS minus the library floor (mDNS on, and `--no-mdns`), for `--baseline-ref`'s
+    bridge and this tree's, each round in the other order, the floor measured in each round;
+    medians over `--rounds`. Both sources are byte-compiled first, as an installed package
+    is (else one side would pay the compiler's garbage)."""
+    ours: dict[tuple[str, bool], list[float]] = {}
+    with baseline_tree(args.baseline_ref) as base_src, \
+            tempfile.TemporaryDirectory() as state:
+        sides = {f"before ({args.baseline_ref})": base_src, "after": ROOT / "src"}
+        for src in sides.values():
+            subprocess.run([sys.executable, "-m", "compileall", "-q", str(src)],
+                           check=True, stdout=subprocess.DEVNULL)
+        for i in range(args.rounds):
+            order = list(sides.items()) if i % 2 == 0 else list(sides.items())[::-1]
+            for mdns in (True, False):
+                floor = await library_floor_rss(mdns)
+                for k, (label, src) in enumerate(order):
+                    rss = await idle_rss(Path(state) / f"r{i}-{k}-{mdns}",
+                                         None if label == "after" else src,
+                                         () if mdns else ("--no-mdns",))
+                    ours.setdefault((label, mdns), []).append(rss - floor)
+    med = statistics.median
+    lines = ["| idle RSS over the library floor (MB, median of "
+             f"{args.rounds}) | mDNS on | `--no-mdns` |", "|---|---|---|"]
+    lines += [f"| {label} | {med(ours[label, True]):.2f} | {med(ours[label, False]):.2f} |"
+              for label in sides]
+    return "\n".join(lines)
 
 
 async def main() -> int:
     args = parse_args()
+    if args.footprint_only:
+        print(await footprint_only(args))
+        return 0
     with RclpyOracle(args.oracle, "bench_robot", "/bench", domain_id=DOMAIN,
                      env={"RCAN_ORACLE_EXECUTOR": "single"}) as oracle:
         oracle.call("subscribe_timed", topic="/bench/cmd_vel", type="geometry_msgs/msg/Twist")

@@ -15,7 +15,7 @@
 #                      when its recipe changes)
 # On Linux as root the suite runs inside a private network namespace (loopback only);
 # elsewhere every DDS participant is restricted to localhost discovery.
-# Extra arguments go to pytest.
+# Extra arguments go to pytest (both phases: scripts/pytest_phases.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -119,12 +119,13 @@ echo "== static checks"
 .venv/bin/mypy
 
 echo "== tests"
-PYTEST=(.venv/bin/python -m pytest "$@")
+# In parallel, then the serial tests alone (scripts/pytest_phases.sh; RCAN_RTPS_TEST_WORKERS).
+PHASES=(bash scripts/pytest_phases.sh "$@")
 if [ "$(uname -s)" = Linux ] && [ "$(id -u)" = 0 ] && [ -z "${RCAN_RTPS_IN_NETNS:-}" ]; then
   export RCAN_RTPS_IN_NETNS=1
   exec unshare -n sh -c 'ip link set lo up && ip link set lo multicast on &&
-    ip route add 224.0.0.0/4 dev lo && exec "$@"' sh "${PYTEST[@]}"
+    ip route add 224.0.0.0/4 dev lo && exec "$@"' sh "${PHASES[@]}"
 fi
 # No namespace available: keep every participant on loopback.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
-exec "${PYTEST[@]}"
+exec "${PHASES[@]}"

@@ -78,10 +78,22 @@ ORACLE_FIXTURES = frozenset({"jazzy_python", "jazzy_share", "kilted_python",
 CI_REQUIRED_FIXTURES = frozenset({"jazzy_cyclone_python", "jazzy_oracle"})
 
 
+def _uses_the_load_generator(item: pytest.Item) -> bool:
+    """The `cpu_load` fixture, or `burning_cpus` called in the test function itself."""
+    code = getattr(getattr(item, "obj", None), "__code__", None)
+    return "cpu_load" in getattr(item, "fixturenames", ()) or (
+        code is not None and "burning_cpus" in code.co_names)
+
+
+@pytest.hookimpl(tryfirst=True)  # before `-m` selects on the marks added here
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if "interop" in item.nodeid.split("/"):
             item.add_marker(pytest.mark.interop)
+        # A load generator busies every core: its tests run alone, after the parallel phase
+        # (beside other tests they would starve them, and be starved by them).
+        if _uses_the_load_generator(item):
+            item.add_marker(pytest.mark.serial)
         # An `offline` test must mean something on a machine without ROS: it may not
         # depend on the oracle, not even indirectly through another fixture.
         used = ORACLE_FIXTURES.intersection(getattr(item, "fixturenames", ()))
@@ -110,14 +122,72 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):  
         report.longrepr = f"interop test skipped under CI=true: {reason}"
 
 
-# Test domains: 1..99 but 39 (module-scoped interop tests) and 77/78 (benchmarks). Above ~100,
-# DDS ports reach Linux's ephemeral range and can collide with other sockets.
-_TEST_DOMAINS = [d for d in range(1, 100) if d not in (39, 77, 78)]
-_next_domain = [os.getpid() % len(_TEST_DOMAINS)]
+# Test domains: 1..99 but 77/78 (benchmarks). Above ~100, DDS ports reach Linux's ephemeral
+# range and can collide with other sockets. Under pytest-xdist the workers share one network
+# namespace, so each takes a disjoint share of them (`worker_domains`): DDS ports and
+# participant ids derive from the domain id, so disjoint domains never meet on the wire.
+_TEST_DOMAINS = [d for d in range(1, 100) if d not in (77, 78)]
+
+
+def _worker() -> tuple[int, int]:
+    """(this worker's index, how many workers): (0, 1) without xdist."""
+    name = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    index = int(name[2:]) if name.startswith("gw") and name[2:].isdigit() else 0
+    return index, max(count, 1)
+
+
+def worker_domains() -> list[int]:
+    """This worker's share of the test domains (all of them when tests run in one process)."""
+    index, count = _worker()
+    share = _TEST_DOMAINS[index::count]
+    if len(share) < 4:
+        raise pytest.UsageError(f"{count} workers leave worker {index} only {len(share)} "
+                                "DDS domains: run fewer workers")
+    return share
+
+
+# The worker's first domain is kept for module-scoped fixtures (`module_domain_id`); pytest
+# tears a module's fixtures down before the next module's are set up, so one is enough.
+# Its second is the default for processes given no domain (ROS_DOMAIN_ID, set below).
+_MODULE_DOMAIN, _DEFAULT_DOMAIN, *_PER_TEST_DOMAINS = worker_domains()
+_next_domain = [os.getpid() % len(_PER_TEST_DOMAINS)]
+
+
+def next_domain_id() -> int:
+    """A domain of this worker's not used by the last few dozen tests."""
+    _next_domain[0] = (_next_domain[0] + 1) % len(_PER_TEST_DOMAINS)
+    return _PER_TEST_DOMAINS[_next_domain[0]]
 
 
 @pytest.fixture
 def domain_id() -> int:
     """A fresh DDS domain per test, so tests never see each other's nodes."""
-    _next_domain[0] = (_next_domain[0] + 1) % len(_TEST_DOMAINS)
-    return _TEST_DOMAINS[_next_domain[0]]
+    return next_domain_id()
+
+
+@pytest.fixture
+def another_domain_id() -> int:
+    """A second fresh domain, for a test that needs two."""
+    return next_domain_id()
+
+
+@pytest.fixture(scope="module")
+def module_domain_id() -> int:
+    """The domain of a module-scoped fixture's nodes: this worker's own, apart from the
+    per-test ones."""
+    return _MODULE_DOMAIN
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _own_state_home(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """A demo started without --state-dir keeps its state (latched e-stop, audit log) under
+    $XDG_STATE_HOME: this session's own (each xdist worker has its own temporary directory),
+    never the user's ~/.local/state nor another worker's."""
+    os.environ["XDG_STATE_HOME"] = str(tmp_path_factory.mktemp("xdg-state"))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # Whatever starts a DDS participant without naming a domain joins this worker's own, not
+    # domain 0 shared with every other worker.
+    os.environ["ROS_DOMAIN_ID"] = str(_DEFAULT_DOMAIN)

@@ -15,6 +15,11 @@ from typing import Any, Protocol
 
 POLL_S = 0.02
 TIMEOUT_S = 10.0
+# The discovery window of a graph command (`node list`, `topic info`, ...) that must see a
+# peer: the CLI lists what it found in `--spin-time` (1.5 s by default, for people), and on a
+# busy machine (the suite's own workers beside it) a fresh participant can take longer than
+# that to meet its peers. 5 s also covers Fast DDS's 3 s heartbeat for late readers.
+SPIN = ("--spin-time", "5")
 
 Describe = str | Callable[[], str] | None
 

@@ -33,6 +33,8 @@ from rcan_rtps.ros.readers import ReaderThread
 from rcan_rtps.ros.services import ServiceClient, ServiceServer
 
 TOKEN = "t" * 32
+# What advertises over mDNS runs in the serial phase, like every mDNS test (test_mdns.py).
+ADVERTISES = pytest.mark.serial
 
 # Bridge.start's steps, in order; each registers its own cleanup.
 START_STEPS = [
@@ -122,7 +124,9 @@ def test_every_start_step_is_listed() -> None:
 
 
 @pytest.mark.parametrize("when", ["before", "after"])
-@pytest.mark.parametrize("step", START_STEPS)
+@pytest.mark.parametrize("step", [
+    pytest.param(step, marks=ADVERTISES) if step == "_advertise_soon" else step
+    for step in START_STEPS])
 async def test_a_start_failing_at_any_step_releases_what_it_acquired(
     step: str, when: str, tmp_path: Path, domain_id: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -333,6 +337,7 @@ async def test_api_server_closes_twice_and_unstarted(tmp_path: Path, domain_id: 
     await _twice(ApiServer(web.Application(), host="127.0.0.1", port=0).close)  # unstarted
 
 
+@ADVERTISES
 async def test_mdns_closes_twice(tmp_path: Path, domain_id: int) -> None:
     config = bridge_config(tmp_path, domain_id)
     advert = Advert.for_server(config, host="127.0.0.1", port=8000, tls=False)

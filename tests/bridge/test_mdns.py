@@ -25,6 +25,9 @@ from rcan_rtps.bridge.mdns import (
 from rcan_rtps.cli.main import main
 from rcan_rtps.config import RcanConfig, loads_config
 
+# mDNS is one multicast group for the whole network namespace and these adverts share names
+# (so do the demo's): what advertises runs in the serial phase (scripts/pytest_phases.sh).
+pytestmark = pytest.mark.serial
 LOOPBACK = ["127.0.0.1"]
 INSTANCE = "clearpath-husky-a200-0001"
 CONFIG = """\

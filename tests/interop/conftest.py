@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.interop.cpu_load import burning_cpus
 from tests.interop.test_demo import Demo, _run_demo
 
 
@@ -15,3 +16,10 @@ def sim(tmp_path: Path, domain_id: int) -> Iterator[Demo]:
     """`rcan-rtps run --sim` as a user starts it (its own process, the demo's config and
     tokens), with its state in this test's directory; a test module may define its own."""
     yield from _run_demo(tmp_path, domain_id, "--state-dir", str(tmp_path / "state"))
+
+
+@pytest.fixture
+def cpu_load() -> Iterator[None]:
+    """One busy process per core for the test's duration (a robot computer at work)."""
+    with burning_cpus():
+        yield

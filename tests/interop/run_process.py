@@ -36,6 +36,7 @@ class RunProcess:
             stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
         self.stdout: list[str] = []
         self.stderr: list[str] = []
+        self._drained: list[list[str]] = []  # the sinks whose stream reached its end
         self._cond = threading.Condition()
         for stream, sink in ((self.proc.stdout, self.stdout), (self.proc.stderr, self.stderr)):
             threading.Thread(target=self._drain, args=(stream, sink), daemon=True).start()
@@ -51,6 +52,7 @@ class RunProcess:
                 sink.append(line)
                 self._cond.notify_all()
         with self._cond:
+            self._drained.append(sink)
             self._cond.notify_all()
 
     def wait_for(self, pattern: str, timeout: float, *, stderr: bool = False) -> re.Match[str]:
@@ -66,7 +68,10 @@ class RunProcess:
                         return found
                 seen = len(lines)
                 left = deadline - time.monotonic()
-                if left <= 0 or self.proc.poll() is not None:
+                # An exited process may still have lines in the pipe, not yet read by the
+                # drain thread (a busy machine): all of them are in only at the stream's end.
+                ended = self.proc.poll() is not None and any(d is lines for d in self._drained)
+                if left <= 0 or ended:
                     raise AssertionError(f"no line matching {pattern!r}:\n{self.output()}")
                 self._cond.wait(min(left, 0.5))
 

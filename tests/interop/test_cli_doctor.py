@@ -56,7 +56,8 @@ def _domain_row(out: str) -> str:
                 if line.startswith("ROS_DOMAIN_ID "))
 
 
-def test_doctor_report_says_where_the_domain_id_comes_from(domain_id: int) -> None:
+def test_doctor_report_says_where_the_domain_id_comes_from(domain_id: int,
+                                                           another_domain_id: int) -> None:
     unset = {k: v for k, v in os.environ.items() if k != "ROS_DOMAIN_ID"}
     done = subprocess.run([sys.executable, "-m", "rcan_rtps", "doctor", "--report",
                            "--spin-time", "0.2"], capture_output=True, text=True, env=unset,
@@ -64,8 +65,9 @@ def test_doctor_report_says_where_the_domain_id_comes_from(domain_id: int) -> No
     assert _domain_row(done.stdout) == "0 (ROS_DOMAIN_ID is not set: the default)", done.stdout
     done = doctor(domain_id, "--report", "--spin-time", "0.2")
     assert _domain_row(done.stdout) == f"{domain_id} (from the environment)"
-    done = doctor(domain_id, "--report", "--spin-time", "0.2", "--domain-id", "5")
-    assert _domain_row(done.stdout) == "5 (from --domain-id)"
+    done = doctor(domain_id, "--report", "--spin-time", "0.2",
+                  "--domain-id", str(another_domain_id))
+    assert _domain_row(done.stdout) == f"{another_domain_id} (from --domain-id)"
 
 
 def _rows(out: str) -> dict[str, str]:

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 from oracle.client import RclpyOracle
+from waiting import SPIN
 
 
 def cli(domain_id: int, *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
@@ -79,7 +80,7 @@ def test_node_info_lists_what_rclpy_reports(oracle: RclpyOracle, domain_id: int)
     oracle.call("subscribe", topic="/demo/cmd_vel", type="geometry_msgs/msg/Twist")
     oracle.call("service_server", name="/demo/trigger", type="std_srvs/srv/Trigger")
     oracle.call("action_server", name="/demo/fibonacci")
-    info = cli(domain_id, "node", "info", "/demo/tuned")
+    info = cli(domain_id, "node", "info", "/demo/tuned", *SPIN)
     assert info.returncode == 0, info.stderr
     assert info.stdout.splitlines()[0] == "/demo/tuned"
     ours = parse_node_info(info.stdout)
@@ -96,12 +97,12 @@ def test_node_info_lists_what_rclpy_reports(oracle: RclpyOracle, domain_id: int)
 def test_topic_and_service_type_and_find(oracle: RclpyOracle, domain_id: int) -> None:
     oracle.call("publisher", topic="/demo/chatter", type="std_msgs/msg/String")
     oracle.call("service_server", name="/demo/trigger", type="std_srvs/srv/Trigger")
-    assert cli(domain_id, "topic", "type", "/demo/chatter").stdout.splitlines() == \
+    assert cli(domain_id, "topic", "type", "/demo/chatter", *SPIN).stdout.splitlines() == \
         ["std_msgs/msg/String"]
-    assert "/demo/chatter" in cli(domain_id, "topic", "find", "std_msgs/msg/String") \
+    assert "/demo/chatter" in cli(domain_id, "topic", "find", "std_msgs/msg/String", *SPIN) \
         .stdout.splitlines()
-    assert cli(domain_id, "service", "type", "/demo/trigger").stdout.splitlines() == \
+    assert cli(domain_id, "service", "type", "/demo/trigger", *SPIN).stdout.splitlines() == \
         ["std_srvs/srv/Trigger"]
-    assert cli(domain_id, "service", "find", "std_srvs/srv/Trigger").stdout.splitlines() == \
+    assert cli(domain_id, "service", "find", "std_srvs/srv/Trigger", *SPIN).stdout.splitlines() == \
         ["/demo/trigger"]
     assert cli(domain_id, "topic", "type", "/demo/nothing").returncode == 1

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 from oracle.client import OracleEnv, RclpyOracle, both_rmws
+from waiting import SPIN
 
 
 def cli(domain_id: int, *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
@@ -32,7 +33,7 @@ def oracle(jazzy_oracle: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
 def test_service_list_and_call(oracle: RclpyOracle, domain_id: int) -> None:
     oracle.call("service_server", name="/demo/trigger", type="std_srvs/srv/Trigger")
     oracle.call("service_server", name="/demo/enable", type="std_srvs/srv/SetBool")
-    listing = cli(domain_id, "service", "list", "-t")
+    listing = cli(domain_id, "service", "list", "-t", *SPIN)
     assert listing.returncode == 0, listing.stderr
     assert "/demo/trigger [std_srvs/srv/Trigger]" in listing.stdout.splitlines()
     assert "/demo/enable [std_srvs/srv/SetBool]" in listing.stdout.splitlines()
@@ -57,10 +58,10 @@ def test_service_call_failures_are_messages(domain_id: int) -> None:
 def test_action_list_info_and_send_goal(oracle: RclpyOracle, domain_id: int,
                                         jazzy_share: Path) -> None:
     oracle.call("action_server", name="/demo/fibonacci")
-    listing = cli(domain_id, "action", "list", "-t")
+    listing = cli(domain_id, "action", "list", "-t", *SPIN)
     assert listing.returncode == 0, listing.stderr
     assert "/demo/fibonacci [test_msgs/action/Fibonacci]" in listing.stdout.splitlines()
-    info = cli(domain_id, "action", "info", "/demo/fibonacci")
+    info = cli(domain_id, "action", "info", "/demo/fibonacci", *SPIN)
     assert info.returncode == 0, info.stderr
     assert "Action servers: 1\n    /demo/cli_peer" in info.stdout
 

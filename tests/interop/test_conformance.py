@@ -17,6 +17,9 @@ import pytest
 from rcan_rtps.bridge.demo import DEMO_YAML, OWNER_TOKEN_ENV, USER_TOKEN_ENV, VIEWER_TOKEN_ENV
 from rcan_rtps.conformance import load_suite
 
+# Each simulator advertises over mDNS (L1-MDNS-001) under the demo's name: like every test
+# that advertises, in the serial phase (tests/bridge/test_mdns.py).
+pytestmark = pytest.mark.serial
 
 @dataclass
 class Sim:
@@ -96,7 +99,8 @@ def test_every_in_scope_case_passes_against_the_simulator(sim: Sim) -> None:
 
 def test_a_level_runs_the_cases_up_to_it(sim: Sim) -> None:
     done = _conformance(sim, "--level", "L1")
-    assert set(_lines(done.stdout)) == {c.id for c in load_suite().upto("L1")}, done.stdout
+    assert set(_lines(done.stdout)) == {c.id for c in load_suite().upto("L1")}, \
+        done.stdout + done.stderr
     assert done.returncode == 0, done.stdout + done.stderr
 
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import aiohttp
 import pytest
-from waiting import eventually, take
+from waiting import SPIN, eventually, take
 
 
 @dataclass
@@ -496,7 +496,7 @@ async def test_default_tools_say_to_add_localhost(demo: Demo, http: aiohttp.Clie
     echo = await asyncio.to_thread(cli, "topic", "echo", "/robot1/odom", "--once")
     assert echo.returncode == 1 and "add `--localhost`" in echo.stderr, echo.stderr
     assert "Traceback" not in echo.stderr
-    nodes = await asyncio.to_thread(cli, "--localhost", "node", "list")
+    nodes = await asyncio.to_thread(cli, "--localhost", "node", "list", *SPIN)
     assert "/robot1/sim_robot" in nodes.stdout and "--localhost" not in nodes.stderr
     pub = await asyncio.to_thread(cli, "--localhost", "topic", "pub", "/robot1/cmd_vel",
                                   "geometry_msgs/msg/Twist", "{linear: {x: 0.1}}", "-t", "3",

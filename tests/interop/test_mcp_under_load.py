@@ -21,14 +21,13 @@ from waiting import eventually
 
 from tests.interop.test_demo import Demo, call, wait_status
 from tests.interop.test_mcp_sim import AGENT, agent, data, entries
-from tests.interop.test_stops_under_load import cpu_load  # noqa: F401 (a fixture)
 
 ROUNDS = 20
 
 
 @pytest.mark.slow
 async def test_fresh_agents_stop_clear_and_move_every_round_under_cpu_load(
-        sim: Demo, tmp_path: Path, cpu_load: None) -> None:  # noqa: F811
+        sim: Demo, tmp_path: Path, cpu_load: None) -> None:
     lost: dict[str, int] = {"estop": 0, "clear": 0, "move": 0}
     async with aiohttp.ClientSession() as http:
         await wait_status(http, sim, lambda s: s["ros"]["connected"], timeout=60)

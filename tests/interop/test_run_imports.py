@@ -34,6 +34,15 @@ NOT_FOR_A_RUN = {
     "rcan_rtps.api._openapi",  # until /api/openapi.json is asked for
     "difflib",  # "did you mean" hints of config and type errors
     "rcan_rtps.mcp_server", "mcp", "mcp_types",  # `rcan-rtps mcp` (the `mcp` extra)
+    # issue 27 (idle footprint): loaded by the first request that needs them
+    "rcan_rtps.api._asgi", "rcan_rtps.api._local",  # /mcp
+    "rcan_rtps.api._safety_manifest",  # /api/safety/manifest, /mcp
+    "rcan_rtps.api._audit_export", "csv",  # /api/v1/audit
+    "importlib.resources", "zipfile",  # the console's files (/console/)
+    "cryptography.hazmat.primitives.asymmetric.mldsa",  # a principal's ML-DSA key
+    "pkgutil",  # the action registry lists its folder itself
+    "encodings.idna", "stringprep",  # the API's address is resolved as bytes
+    "rcan_rtps.governance.logcheck",  # GET /api/audit/verify's worker process
 }
 
 

@@ -109,5 +109,8 @@ def test_ctrl_c_while_loading_is_one_line(tmp_path: Path, domain_id: int) -> Non
     finally:
         proc.kill()
     log = errors.read_text()
-    assert "Traceback" not in log and len(log.splitlines()) <= 1, log
-    assert "ready" not in out
+    assert "Traceback" not in log and "ready" not in out, log
+    # On a busy machine (the suite's workers beside it) the 0.3 s can end later, once the
+    # command took Ctrl-C over: then it is the stop during start (the test above).
+    if "SIGINT: shutting down" not in log:
+        assert len(log.splitlines()) <= 1, log

@@ -35,6 +35,9 @@ from waiting import eventually
 
 from .run_process import RunProcess, child_env, state_args
 
+# mDNS on, under the demo's name: like every test that advertises, in the serial phase
+# (tests/bridge/test_mdns.py).
+pytestmark = pytest.mark.serial
 EXIT_TIMEOUT = 60.0  # s; generous: the bounded stop gives up after 10 s
 CMD_VEL = "/robot1/cmd_vel"
 GOAL_STATUS = "/robot1/navigate_to_pose/_action/status"
@@ -72,6 +75,7 @@ class Client:
         self.visited: set[tuple[str, str]] = set()
         self.unblocked: dict[str, list[str]] = {}
         self.sockets: list[aiohttp.ClientWebSocketResponse] = []  # open until the end
+        self.last_headers: Any = {}
 
     def _after(self, method: str, route: str) -> None:
         self.visited.add((method, route))
@@ -80,13 +84,18 @@ class Client:
             self.unblocked[f"{method} {route}"] = threads
 
     async def call(self, method: str, path: str, token: str, body: Any = None, *,
-                   route: str | None = None) -> tuple[int, Any]:
+                   route: str | None = None, headers: dict[str, str] | None = None
+                   ) -> tuple[int, Any]:
+        sent = {"Authorization": f"Bearer {token}", **(headers or {})}
         async with self.http.request(method, self.proc.url + path, json=body,
-                                     headers={"Authorization": f"Bearer {token}"}) as resp:
+                                     headers=sent) as resp:
             data = await resp.read()
             status, ctype = resp.status, resp.content_type
+            self.last_headers = resp.headers
         self._after(method.lower(), route or path.split("?")[0])
-        return status, (json.loads(data) if ctype == "application/json" else data.decode())
+        if ctype == "application/json":
+            return status, json.loads(data) if data else None
+        return status, data if ctype.startswith("image/") else data.decode()
 
     async def command(self, token: str, body: dict[str, Any]) -> dict[str, Any]:
         status, reply = await self.call("POST", "/api/command", token, body)
@@ -170,7 +179,34 @@ async def visit_every_route(client: Client, proc: RunProcess) -> str:
     assert status == 200 and '"type":"audit_export"' in export
     status, metrics = await client.call("GET", "/api/metrics", owner)  # after a command too
     assert status == 200 and "rcan" in metrics
+    await visit_the_newer_routes(client, user)
     return goal_id
+
+
+async def visit_the_newer_routes(client: Client, user: str) -> None:
+    """The console's pages and tickets, the caller's own audit, the cameras and MCP."""
+    for path, route in (("/", "/"), ("/console", "/console"), ("/console/", "/console/"),
+                        ("/console/app.js", "/console/{name}"), ("/api/whoami", None),
+                        ("/api/audit/mine?last=5", None), ("/api/images", None)):
+        status, _ = await client.call("GET", path, user, route=route)
+        assert status == 200, path
+    status, _ = await client.call("POST", "/api/ws-ticket", user)
+    assert status == 200
+    status, _ = await client.call("GET", "/api/images/overhead", user,
+                                  route="/api/images/{name}")
+    assert status in (200, 503)  # a frame, or none yet
+    mcp = {"Accept": "application/json, text/event-stream", "RCAN-AI-Model": "m"}
+    status, opened = await client.call("POST", "/mcp", user, {
+        "jsonrpc": "2.0", "id": 1, "method": "initialize", "params": {
+            "protocolVersion": "2025-06-18", "capabilities": {},
+            "clientInfo": {"name": "routes", "version": "1"}}}, headers=mcp)
+    assert status == 200 and "result" in opened, opened
+    session = {**mcp, "Mcp-Session-Id": client.last_headers["Mcp-Session-Id"],
+               "Mcp-Protocol-Version": "2025-06-18"}
+    status, _ = await client.call("GET", "/mcp", user, headers=mcp)  # no session: refused
+    assert status == 400
+    status, _ = await client.call("DELETE", "/mcp", user, headers=session)
+    assert status == 200
 
 
 def _served_routes(document: dict[str, Any]) -> set[tuple[str, str]]:

@@ -1,20 +1,20 @@
 """Every stop stops on a busy robot computer: e-stops with junk in them, repeated with the CPU
-saturated by a load generator, each checked on the wire by an rclpy (Fast DDS) subscriber.
+saturated by a load generator (cpu_load.py), each checked on the wire by an rclpy subscriber
+on Fast DDS and on Cyclone DDS.
 
-Losses are counted over all rounds and must be zero: the e-stop Bool must arrive, and once a
-zero Twist arrived no non-zero one may follow until the clear.
+Losses are counted over all rounds, printed, and must be zero: the e-stop Bool must arrive, the
+zero Twist too (issue 27: it was once missing after an e-stop, docs/design/zero-loss.md), and
+once a zero Twist arrived no non-zero one may follow until the clear.
 """
 
 from __future__ import annotations
 
 import asyncio
-import os
-import subprocess
-import sys
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
+from oracle.client import OracleEnv, both_rmws
 from waiting import eventually, take
 
 from rcan_rtps.rcan import validate_command
@@ -22,7 +22,7 @@ from rcan_rtps.rcan import validate_command
 from .bridge_rig import AGENT, OPS, VIEWER, Rig, bridge_config, close_rig, make_rig
 from .test_bridge_ros import CMD_VEL, TWIST, subscribe, xs
 
-ROUNDS = 20
+ROUNDS = 100
 ESTOP = "/robot1/emergency_stop"
 JUNK = [
     b'{"action": "estop", "params": {"reason": "load", "speed": 0}}',
@@ -30,26 +30,12 @@ JUNK = [
     b'{"message_type": 6, "safety_event": "ESTOP", "message_id": "x", "extra": 1}',
     b'{"action": "ESTOP", "message_id": 12, "confidence": "high"}',
 ]
-_BURN = "import itertools\nfor _ in itertools.count(): pass\n"
 
 
 @pytest.fixture
-def cpu_load() -> Iterator[None]:
-    """One busy process per core for the test's duration."""
-    burners = [subprocess.Popen([sys.executable, "-c", _BURN])
-               for _ in range(os.cpu_count() or 2)]
-    try:
-        yield
-    finally:
-        for burner in burners:
-            burner.kill()
-            burner.wait()
-
-
-@pytest.fixture
-async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Rig]:
+async def rig(tmp_path: Path, jazzy_oracle: OracleEnv, domain_id: int) -> AsyncIterator[Rig]:
     config = bridge_config(tmp_path, domain_id, extra_ros2="cmd_rate_hz: 20\n")
-    r = await make_rig(config, jazzy_python, domain_id)
+    r = await make_rig(config, jazzy_oracle, domain_id)
     yield r
     await close_rig(r)
 
@@ -61,6 +47,7 @@ async def _beat(rig: Rig) -> None:
 
 
 @pytest.mark.slow
+@both_rmws
 async def test_junk_estops_stop_the_robot_every_time_under_cpu_load(
         rig: Rig, cpu_load: None) -> None:
     await subscribe(rig, ESTOP, "std_msgs/msg/Bool")
@@ -94,6 +81,8 @@ async def test_junk_estops_stop_the_robot_every_time_under_cpu_load(
             moved_after_zero += any(x != 0.0 for x in since_zero)
     finally:
         beating.cancel()
+    print(f"{rig.oracle.rmw}: {ROUNDS} e-stops under CPU load: {lost_bools} Bools lost, "
+          f"{lost_zeros} zero Twists lost, {moved_after_zero} moved after the zero")
     assert (lost_bools, lost_zeros, moved_after_zero) == (0, 0, 0), (
         f"over {ROUNDS} rounds: {lost_bools} e-stop Bools lost, {lost_zeros} zero Twists "
         f"lost, {moved_after_zero} rounds moved after the zero")

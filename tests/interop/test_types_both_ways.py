@@ -29,14 +29,14 @@ QOS = {"default": qos.DEFAULT, "sensor": qos.SENSOR_DATA}
 
 
 @pytest.fixture(scope="module")
-def oracle(jazzy_python: Path) -> Iterator[RclpyOracle]:
-    with RclpyOracle(jazzy_python, "types_oracle", domain_id=39) as agent:
+def oracle(jazzy_python: Path, module_domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_python, "types_oracle", domain_id=module_domain_id) as agent:
         yield agent
 
 
 @pytest.fixture(scope="module")
-def node() -> Iterator[RosNode]:
-    with RosNode("types_peer", domain_id=39, idl_paths=[TEST_IDL]) as n:
+def node(module_domain_id: int) -> Iterator[RosNode]:
+    with RosNode("types_peer", domain_id=module_domain_id, idl_paths=[TEST_IDL]) as n:
         yield n
 
 

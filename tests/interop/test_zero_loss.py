@@ -24,6 +24,8 @@ from rcan_rtps.ros.errors import ServiceTimeout
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import ServiceClient
 
+from .cpu_load import burning_cpus
+
 ECHO = "test_msgs/srv/BasicTypes"
 FIB = "test_msgs/action/Fibonacci"
 # Counts can be raised to hunt rarer losses: RCAN_RTPS_ZERO_LOSS_SCALE=5
@@ -32,6 +34,7 @@ CALLS_PER_CLIENT = int(200 * SCALE)  # fresh ServiceClient each, one node
 CALLS_PER_NODE = int(25 * SCALE)  # fresh RosNode (participant) each
 GOALS = int(100 * SCALE)  # fresh ActionClient each, one node
 GOALS_PER_NODE = int(15 * SCALE)  # fresh RosNode each
+LOADED_GOALS = int(100 * SCALE)  # fresh ActionClient each, the CPU busy
 CLI_CALLS = int(20 * SCALE)  # fresh `rcan-rtps service call` processes
 REPLY_TIMEOUT = 5.0
 
@@ -87,6 +90,10 @@ def fib_client(node: RosNode) -> ActionClient:
     return ActionClient(node, "/fib", FIB)
 
 
+def burst_client(node: RosNode) -> ActionClient:
+    return ActionClient(node, "/fib_burst", FIB)
+
+
 def request_of(i: int) -> dict[str, object]:
     return {"string_value": f"call {i}", "int64_value": i, "uint32_value": 7 * i}
 
@@ -135,12 +142,13 @@ async def test_fresh_nodes_lose_no_reply(oracle: RclpyOracle, domain_id: int,
 class GoalTally:
     """Outcomes of repeated goals: first feedback missing, wrong result."""
 
-    def __init__(self) -> None:
+    def __init__(self, order: Callable[[int], int] = lambda i: 2 + i % 4) -> None:
+        self.order = order  # by default the result tells one goal from the next
         self.no_first_feedback: list[int] = []
         self.wrong: list[tuple[int, object]] = []
 
     async def run(self, client: ActionClient, i: int) -> None:
-        order = 2 + i % 4  # the result tells one goal from another
+        order = self.order(i)
         goal = await client.send_goal({"order": order}, timeout=10)
         assert goal.accepted, f"goal {i} not accepted"
         first = await _first_feedback(goal)
@@ -169,6 +177,20 @@ async def test_fresh_action_clients_get_every_first_feedback(oracle: RclpyOracle
     tally = GoalTally()
     await each_fresh(GOALS, on_node(node, fib_client), tally.run)
     tally.assert_clean(GOALS)
+
+
+@both_rmws
+async def test_every_first_feedback_under_cpu_load(oracle: RclpyOracle, node: RosNode) -> None:
+    """Issue 27: under load the goal's terminal status could be handed over before the
+    feedback sent ahead of it, and `feedback()` ended empty. Order 2 and no pause: one feedback,
+    then at once the end: both come in one wake-up of our reader thread as often as can be."""
+    await oracle.acall("action_server", name="/fib_burst", period=0.0)
+    tally = GoalTally(order=lambda i: 2)
+    with burning_cpus() as burners:
+        await each_fresh(LOADED_GOALS, on_node(node, burst_client), tally.run)
+    print(f"{oracle.rmw}, {burners} CPU burners: {LOADED_GOALS} goals, "
+          f"{len(tally.no_first_feedback)} first feedbacks lost, {len(tally.wrong)} wrong results")
+    tally.assert_clean(LOADED_GOALS)
 
 
 @both_rmws

@@ -341,3 +341,34 @@ async def test_a_publishers_matched_count_follows_subscriptions_coming_and_going
         late.close()
         await eventually(lambda: pub.matched_count() == 0 == _dds_matched(pub),
                          what=f"cycle {cycle}: all left")
+
+
+async def test_delivered_returns_after_every_sample_held_was_handed_over(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """Issue 27: a goal's end must not be concluded while its feedback is still on the way
+    from the reader thread (actions.py). Samples delivered in-process are in the reader when
+    `publish` returns; a slow callback keeps the thread busy with them meanwhile."""
+    a, b = nodes
+    loop = asyncio.get_running_loop()
+    got: list[str] = []
+
+    def slow_hop(m: Any) -> None:
+        time.sleep(0.001)
+        loop.call_soon_threadsafe(got.append, m.data)
+
+    a.create_subscription("chatter", STRING, DEEP, callback=slow_hop)
+    pub = b.create_publisher("chatter", STRING, DEEP)
+    await pub.wait_for_subscribers()
+    for rounds in range(20):
+        for i in range(20):
+            pub.publish({"data": f"{rounds}.{i}"})
+        await a.delivered()
+        assert got[-1:] == [f"{rounds}.19"], f"round {rounds}: {got[-3:]}"
+
+
+async def test_delivered_returns_on_a_node_without_readers_or_closed(domain_id: int) -> None:
+    node = RosNode("no_readers", "/rt", domain_id=domain_id, localhost=True)
+    await node.delivered()  # no reader thread: nothing to wait for
+    node.create_subscription("chatter", STRING)
+    node.close()
+    await node.delivered()

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator, Callable, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 
 import msgspec
 from aiohttp import WSCloseCode, web
@@ -13,7 +13,7 @@ from rcan_rtps.governance.replay import ReplayWindow
 from rcan_rtps.governance.signatures import Signatures
 from rcan_rtps.rcan import Role
 
-from . import _audit_export, _mcp, _node_manifest, _safety_manifest
+from . import _mcp, _node_manifest
 from . import _routes as r
 from ._approvals import ApprovalsFeed
 from ._conn import ConnectionDeadlines, track_requests
@@ -51,6 +51,8 @@ from ._tickets import WsTickets
 from ._tls import cert_principals as config_cert_principals
 from ._ws import websocket
 from .ports import ImageSource, RobotView
+
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 
 def settings_from_config(config: RcanConfig) -> ApiSettings:
@@ -165,10 +167,10 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     # RCAN 3.x: §17 node manifest (public), Protocol 66 safety manifest, §20 audit export.
     app.router.add_get(_node_manifest.PATH, _node_manifest.handler(
         config, governor.audit.public_key), allow_head=False)
-    app.router.add_get(_safety_manifest.PATH, _safety_manifest.handler(config),
-                       allow_head=False)
-    app.router.add_get(_audit_export.PATH, _audit_export.handler(
-        governor, settings.audit_read_role), allow_head=False)
+    app.router.add_get(_node_manifest.SAFETY_MANIFEST, on_first_request(
+        lambda: _safety_manifest_handler(config)), allow_head=False)
+    app.router.add_get(_node_manifest.AUDIT_EXPORT, on_first_request(
+        lambda: _audit_export_handler(governor, settings.audit_read_role)), allow_head=False)
     mcp = McpEndpoint(config)
     for method in ("POST", "GET", "DELETE"):  # streamable HTTP's three
         app.router.add_route(method, _mcp.PATH, mcp.handle)
@@ -185,6 +187,32 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
 
     app.on_cleanup.append(close_reads)
     return app
+
+
+def on_first_request(build: Callable[[], Handler]) -> Handler:
+    """A route whose handler, and the modules it needs, are made by its first request: most
+    runs are never asked for the manifests or an audit export, and a module not imported is
+    idle memory not spent (issue 27). `build` runs on the loop, once."""
+    built: list[Handler] = []
+
+    async def handle(request: web.Request) -> web.StreamResponse:
+        if not built:
+            built.append(build())
+        return await built[0](request)
+
+    return handle
+
+
+def _safety_manifest_handler(config: RcanConfig) -> Handler:
+    from . import _safety_manifest
+
+    return _safety_manifest.handler(config)
+
+
+def _audit_export_handler(governor: Governor, read_role: Role) -> Handler:
+    from . import _audit_export  # and csv
+
+    return _audit_export.handler(governor, read_role)
 
 
 def _status_owner(status: StatusHub, governor: Governor, robot: RobotView

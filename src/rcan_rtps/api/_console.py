@@ -58,11 +58,13 @@ class WhoAmI(msgspec.Struct, kw_only=True):
 
 
 def add_console(app: web.Application) -> None:
-    names = asset_names()
+    names: list[frozenset[str]] = []  # listed on the first request for the console
     cache: dict[str, bytes] = {}
 
     def serve(name: str) -> web.Response:
-        if name not in names:
+        if not names:
+            names.append(asset_names())
+        if name not in names[0]:
             return error_response(404, "NOT_FOUND", reason="no_such_asset", headers=HEADERS)
         body = cache.get(name)
         if body is None:

@@ -23,12 +23,9 @@ from aiohttp import web
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import Principal
 
-from . import _asgi
 from ._bodies import error_response, json_response
 from ._commands import read_limited, too_large
 from ._keys import GOVERNOR, PRINCIPAL, SETTINGS
-from ._local import LocalApi
-from ._safety_manifest import static_part
 
 if TYPE_CHECKING:
     from rcan_rtps.mcp_server.http import HttpMcp
@@ -68,6 +65,10 @@ class McpEndpoint:
         self._keepalives: dict[str, Keepalive] = {}
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
+        # What serves MCP (here and in the SDK) is imported by the first request to /mcp:
+        # a bridge nobody asks for MCP keeps its idle memory (issue 27).
+        from . import _asgi
+
         server = await self._started(request.app)
         if server is None:
             return error_response(501, "NOT_IMPLEMENTED", reason=EXTRA_HINT)
@@ -94,6 +95,8 @@ class McpEndpoint:
               session: str | None) -> Seat:
         from rcan_rtps.mcp_server.keepalive import Keepalive
         from rcan_rtps.mcp_server.seat import Seat
+
+        from ._local import LocalApi
 
         assert self._fixed is not None
         api = LocalApi(app, principal, self._fixed)
@@ -131,6 +134,8 @@ class McpEndpoint:
             log.warning("a client asked for %s: %s", PATH, EXTRA_HINT)
             self._missing = True
             return None
+        from ._safety_manifest import static_part
+
         self._fixed = static_part(self._config)
         server = HttpMcp(self._fixed, max_body_bytes=app[SETTINGS].max_body_bytes)
         # The SDK's modules (pydantic's schemas: tens of thousands of objects) live as long as

@@ -37,8 +37,6 @@ from typing import Any, TypeVar
 import msgspec
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
-from rcan_rtps.governance.logcheck import check_log
-
 from ._bodies import VerifyReport
 from ._errors import ReadsBusy
 
@@ -116,6 +114,9 @@ def last_line(path: Path, block: int = 4096) -> bytes | None:
 def verify_file(path: str, public_key: bytes) -> VerifyReport:
     """Chain, signatures, tree heads and start-up checkpoint of what is on disk, as
     `rcan-rtps audit verify` checks them (runs in the worker process)."""
+    # Imported here, in the worker process: the bridge itself never checks its whole log.
+    from rcan_rtps.governance.logcheck import check_log
+
     key = Ed25519PublicKey.from_public_bytes(public_key)
     report = check_log(Path(path), key, live=True)
     newest = report.newest.tree_size if report.newest is not None else None

@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import faulthandler
+import linecache
 import logging
 import os
 import signal
@@ -54,6 +55,9 @@ def thread_stacks() -> str:
             continue
         stack = "".join(traceback.format_stack(frame))
         parts.append(f"Thread {names.get(ident, '?')} ({ident}):\n{stack}")
+    # The source lines read for the report are not kept: a stall once at start-up would
+    # otherwise hold every file on the stacks in memory for good (~1 MB, issue 27).
+    linecache.clearcache()
     return "\n".join(parts)
 
 

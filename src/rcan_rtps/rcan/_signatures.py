@@ -18,17 +18,21 @@ import base64
 import binascii
 import json
 import re
-from typing import Any, Final, Literal
+from typing import TYPE_CHECKING, Any, Final, Literal, TypeAlias
 
 from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
-from cryptography.hazmat.primitives.asymmetric.mldsa import MLDSA65PublicKey
 
 from ._errors import RcanError
 
+if TYPE_CHECKING:
+    # Imported where an ML-DSA key is loaded: a run whose principals have none never pays
+    # for the module (idle memory, issue 27).
+    from cryptography.hazmat.primitives.asymmetric.mldsa import MLDSA65PublicKey
+
 Algorithm = Literal["ml-dsa-65", "ed25519"]
 ALGORITHMS: Final[tuple[Algorithm, ...]] = ("ml-dsa-65", "ed25519")
-PublicKey = MLDSA65PublicKey | Ed25519PublicKey
+PublicKey: TypeAlias = "MLDSA65PublicKey | Ed25519PublicKey"
 # Raw sizes (FIPS 204 table 2; RFC 8032): a key or signature of another length is not one.
 KEY_BYTES: Final[dict[Algorithm, int]] = {"ml-dsa-65": 1952, "ed25519": 32}
 SIGNATURE_BYTES: Final[dict[Algorithm, int]] = {"ml-dsa-65": 3309, "ed25519": 64}
@@ -84,7 +88,7 @@ def verifies(key: PublicKey, message: bytes, signature: bytes) -> bool:
 
 
 def algorithm_of(key: PublicKey) -> Algorithm:
-    return "ml-dsa-65" if isinstance(key, MLDSA65PublicKey) else "ed25519"
+    return "ed25519" if isinstance(key, Ed25519PublicKey) else "ml-dsa-65"
 
 
 def load_public_key(alg: Algorithm, data: bytes) -> PublicKey:
@@ -93,6 +97,7 @@ def load_public_key(alg: Algorithm, data: bytes) -> PublicKey:
     if len(data) == KEY_BYTES[alg]:
         return _from_raw(alg, data)
     from cryptography.hazmat.primitives import serialization  # key files only: not for a run
+    from cryptography.hazmat.primitives.asymmetric.mldsa import MLDSA65PublicKey
 
     try:
         if data.lstrip().startswith(b"-----BEGIN"):
@@ -126,6 +131,8 @@ def load_inline_key(alg: Algorithm, text: str) -> PublicKey:
 def _from_raw(alg: Algorithm, raw: bytes) -> PublicKey:
     try:
         if alg == "ml-dsa-65":
+            from cryptography.hazmat.primitives.asymmetric.mldsa import MLDSA65PublicKey
+
             return MLDSA65PublicKey.from_public_bytes(raw)
         return Ed25519PublicKey.from_public_bytes(raw)
     except UnsupportedAlgorithm as exc:  # an OpenSSL before 3.5 under cryptography

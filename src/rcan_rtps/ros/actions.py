@@ -100,11 +100,19 @@ class ClientGoal:
         """Feedback messages (the `feedback` part) until the goal ends."""
         loop = asyncio.get_running_loop()
         deadline = None if timeout is None else loop.time() + timeout
+        settled = False
         while True:
             if not self._feedback.empty():
                 yield self._feedback.get_nowait()
                 continue
             self.client.check_server()
+            if self.state.terminal and not settled:
+                # The terminal status comes on another reader than the feedback sent before
+                # it: both can arrive in one wake-up of the node's reader thread, which hands
+                # the status over first (docs/design/zero-loss.md). Let it finish.
+                settled = True
+                await self.client.node.delivered()
+                continue
             if self.state.terminal or (deadline is not None and loop.time() >= deadline):
                 return
             try:

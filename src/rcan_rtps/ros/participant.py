@@ -289,6 +289,11 @@ class RosSubscription:
             self.reader.__del__()
 
 
+def _settle(done: asyncio.Future[None]) -> None:
+    if not done.done():
+        done.set_result(None)
+
+
 async def _wait_count(current: Callable[[], int], count: int, timeout: float,
                       message: str) -> int:
     loop = asyncio.get_running_loop()
@@ -440,6 +445,20 @@ class RosNode:
     def unwatch(self, watch: Watch | WriterWatch) -> None:
         """No delivery to `watch` starts after this returns."""
         self.reader_thread.remove(watch)
+
+    async def delivered(self) -> None:
+        """Returns once every sample our readers held when it was called has been handed to
+        its callback — and, for callbacks that hop to this event loop with
+        `call_soon_threadsafe`, once those hops have run (they were queued before ours)."""
+        loop = asyncio.get_running_loop()
+        done: asyncio.Future[None] = loop.create_future()
+
+        def wake() -> None:  # on the reader thread (or here, if it is not running)
+            with contextlib.suppress(RuntimeError):  # the loop has closed
+                loop.call_soon_threadsafe(_settle, done)
+
+        self.reader_thread.after_next_pass(wake)
+        await done
 
     def forget_reader(self, reader: Any) -> None:
         with self._lock:

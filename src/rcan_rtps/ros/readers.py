@@ -137,6 +137,7 @@ class ReaderThread:
         self._watches: list[AnyWatch] = []
         self._attach: list[AnyWatch] = []
         self._detach: list[tuple[AnyWatch, threading.Event]] = []
+        self._after_pass: list[Callable[[], None]] = []
         self._closing = False
         self._thread: threading.Thread | None = None
         self._waitset: WaitSet | None = None
@@ -176,6 +177,20 @@ class ReaderThread:
             log.warning("%s: still busy after %.0f s; %s detached late", self.name,
                         REMOVE_WAIT, watch.label)
 
+    def after_next_pass(self, done: Callable[[], None]) -> None:
+        """Calls `done()` on this thread once every reader has been serviced in a pass that
+        starts after this call: whatever any reader held now (and every sample delivered in
+        the pass running now) has been delivered before `done` runs. If the thread is not
+        running, `done()` is called at once (there is nothing to deliver)."""
+        with self._lock:
+            running = self._thread is not None and not self._closing
+            if running:
+                self._after_pass.append(done)
+        if not running:
+            done()
+            return
+        self._wake()
+
     def close(self) -> None:
         """Stops the thread and releases its conditions (idempotent). Callbacks in flight
         finish first; none starts afterwards."""
@@ -211,11 +226,17 @@ class ReaderThread:
         try:
             while True:
                 guard.take()  # before the changes: a wake-up after this is not lost
+                with self._lock:
+                    after_pass, self._after_pass = self._after_pass, []
                 if not self._apply_changes(waitset):
+                    for call in after_pass:
+                        self._call_plain(call)
                     return
                 for watch in list(self._watches):
                     if not watch.closed:
                         self._service(watch)
+                for call in after_pass:
+                    self._call_plain(call)
                 # The GIL is released while this waits (ctypes).
                 waitset.wait(dds_infinity)
         except DDSException as exc:  # the participant was deleted under us
@@ -300,11 +321,21 @@ class ReaderThread:
             self.errors += 1
             log.exception("%s: delivery failed", watch.label)
 
+    def _call_plain(self, fn: Callable[[], None]) -> None:
+        try:
+            fn()
+        except Exception:
+            self.errors += 1
+            log.exception("%s: an after-pass callback failed", self.name)
+
     def _cleanup(self, waitset: WaitSet, guard: GuardCondition) -> None:
         with self._lock:
             self._closing = True
             pending, self._detach = self._detach, []
+            after_pass, self._after_pass = self._after_pass, []
             self._attach = []
+        for call in after_pass:
+            self._call_plain(call)
         for watch in list(self._watches):
             watch.closed = True
             self._drop(waitset, watch)

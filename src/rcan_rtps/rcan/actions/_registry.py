@@ -7,7 +7,8 @@ the e-stop lane, mDNS `caps`, metrics, docs) is derived from what is found here.
 from __future__ import annotations
 
 import importlib
-import pkgutil
+import importlib.machinery
+import os
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -46,17 +47,35 @@ def collect_goal_routes(found: Iterable[ActionSpec[Any]]) -> tuple[GoalRoute, ..
     return tuple(routes.values())
 
 
+def module_names(folders: Iterable[str]) -> list[str]:
+    """The modules and sub-packages in a package's folders, sorted: what
+    `pkgutil.iter_modules` names, without importing pkgutil, which a bridge run would keep
+    for good (idle memory, issue 27)."""
+    suffixes = importlib.machinery.all_suffixes()  # .py first, then .pyc, extensions
+    names: set[str] = set()
+    for folder in folders:
+        with os.scandir(folder) as entries:
+            for entry in entries:
+                if entry.is_dir():
+                    if os.path.isfile(os.path.join(entry.path, "__init__.py")):
+                        names.add(entry.name)
+                    continue
+                suffix = next((s for s in suffixes if entry.name.endswith(s)), None)
+                if suffix is not None:
+                    names.add(entry.name[:-len(suffix)])
+    return sorted(n for n in names if n.isidentifier() and n != "__init__")
+
+
 def _discover() -> dict[str, ActionSpec[Any]]:
     found: dict[str, ActionSpec[Any]] = {}
     package = __name__.rsplit(".", 1)[0]
-    for info in sorted(pkgutil.iter_modules(importlib.import_module(package).__path__),
-                       key=lambda i: i.name):
-        if info.name.startswith("_"):
+    for name in module_names(importlib.import_module(package).__path__):
+        if name.startswith("_"):
             continue
-        spec = getattr(importlib.import_module(f"{package}.{info.name}"), "SPEC", None)
+        spec = getattr(importlib.import_module(f"{package}.{name}"), "SPEC", None)
         if not isinstance(spec, ActionSpec):
-            raise TypeError(f"{package}.{info.name} declares no ActionSpec named SPEC")
-        if spec.name in found or spec.name != info.name:
+            raise TypeError(f"{package}.{name} declares no ActionSpec named SPEC")
+        if spec.name in found or spec.name != name:
             raise ValueError(f"action {spec.name!r} must be declared once, by a module of "
                              "that name")
         found[spec.name] = spec

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[2]
 HARNESS = ROOT / "scripts" / "aarch64-emulated.sh"
 ON_CI_AS_ROOT = os.environ.get("CI") == "true" and sys.platform == "linux" and os.geteuid() == 0
 
-# serial: the xdist branch runs these alone, after the parallel phase (qemu takes both cores)
+# serial: alone, after the parallel phase (scripts/pytest_phases.sh): qemu takes both cores
 pytestmark = [pytest.mark.slow, pytest.mark.serial]
 
 UNAVAILABLE = 3  # the harness's exit status when arm64 programs cannot run here

@@ -173,8 +173,9 @@ class RcanAdvertiser:
                 await asyncio.sleep(interval_s)
                 try:
                     await self.update(provider())
-                except Exception:
-                    log.exception("mDNS re-announcement failed")
+                except Exception as exc:  # the next round tries again
+                    log.warning("mDNS re-announcement failed (%s: %s)", type(exc).__name__, exc)
+                    log.debug("mDNS re-announcement failure", exc_info=True)
 
         self._follower = asyncio.create_task(loop())
 

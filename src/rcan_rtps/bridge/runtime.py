@@ -374,7 +374,9 @@ class Bridge:
         self.advertiser = RcanAdvertiser(current(), interfaces=opts.mdns_interfaces)
         try:
             await self.advertiser.start()
-        except Exception:  # no multicast here: the robot is still commandable by URL
-            log.exception("mDNS advertisement failed")
+        except Exception as exc:  # no multicast here: the robot is still commandable by URL
+            log.warning("mDNS advertisement failed (%s: %s): the API is still at %s",
+                        type(exc).__name__, exc, self.url)
+            log.debug("mDNS advertisement failure", exc_info=True)
             return
         self.advertiser.follow(current)  # re-announce when the address changes

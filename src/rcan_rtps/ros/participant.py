@@ -42,11 +42,13 @@ log = logging.getLogger(__name__)
 
 DISCOVERY_TOPIC = "ros_discovery_info"
 DISCOVERY_TYPE = "rmw_dds_common/msg/ParticipantEntitiesInfo"
+# The peer by address, not name: Cyclone aborts the process when a peer name does not
+# resolve (a container without /etc/hosts), and loopback discovery needs no resolver.
 _LOCALHOST_CONFIG = """<CycloneDDS><Domain Id="any"><General>
 <Interfaces><NetworkInterface address="127.0.0.1" multicast="false"/></Interfaces>
 <AllowMulticast>false</AllowMulticast></General>
 <Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>32</MaxAutoParticipantIndex>
-<Peers><Peer address="localhost"/></Peers></Discovery></Domain></CycloneDDS>"""
+<Peers><Peer address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>"""
 # ROS matches endpoints by type name (the hash travels in USER_DATA), never by XTypes. Fast DDS 3
 # (Kilted) sends type objects Cyclone rejects, which left every endpoint with a sequence of
 # strings or structs unmatched; so type information from Fast DDS (vendor 1.15) is ignored.

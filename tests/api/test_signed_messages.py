@@ -37,10 +37,10 @@ def signatures_config(tmp: Path) -> dict[str, str]:
     OPS_KEY.save_public(tmp / "ops.pub")
     ed = base64.b64encode(OPS_ED.public_key().public_bytes_raw()).decode()
     return {
-        "planner": f"signatures: {{keys: [{{kid: {PLANNER_KEY.key_id}, "
+        "planner": f"signatures: {{keys: [{{kid: '{PLANNER_KEY.key_id}', "
                    f"public_key_file: {tmp / 'planner.pub'}}}]}}",
         "ops": f"signatures: {{policy: required, keys: [{{kid: ops-ed, alg: ed25519, "
-               f"public_key: {ed}}}, {{kid: {OPS_KEY.key_id}, "
+               f"public_key: {ed}}}, {{kid: '{OPS_KEY.key_id}', "
                f"public_key_file: {tmp / 'ops.pub'}}}]}}",
     }
 

@@ -290,7 +290,9 @@ def test_huge_integers_are_range_checked() -> None:
         ("port: 8765.0", "Expected `int`, got `float`"),
         ("port: null", "Expected `int`, got `null`"),
         ("port: {n: 1}", "Expected `int`, got `object`"),
-        ("host: 127", "Expected `str`, got `int`"),
+        ("host: 127", "Expected `str`, got `int`: YAML reads the unquoted 127 as a number; "
+                      "quote it ('127') to mean the text"),
+        ("host: yes", "YAML reads the unquoted yes as a boolean; quote it ('yes')"),
         ("host: 2024-01-01", "Expected `str`, got `date`"),
         ("tls: cert.pem", "Expected `object | null`, got `str`"),
         ("principals: {}", "Expected `array`, got `object`"),

@@ -34,7 +34,7 @@ def signed_demo_config(tmp_path: Path, domain_id: int) -> Path:
     assert operator in text
     text = text.replace(operator, (
         f"{{name: operator, role: USER, token_env: {USER_TOKEN_ENV}, signatures: "
-        f"{{policy: required, keys: [{{kid: {KEY.key_id}, public_key_file: operator.pub}}]}}}}"))
+        f"{{policy: required, keys: [{{kid: '{KEY.key_id}', public_key_file: operator.pub}}]}}}}"))
     path = tmp_path / "signed.rcan.yaml"
     path.write_text(text)
     return path

@@ -239,6 +239,12 @@ class Walker:
         if value is INVALID:
             return INVALID
         value, problem = _scalar_problem(value, info)
+        if problem is not None and _expected(info) == "str" and node.style is None:
+            # `kid: 12345678` (an SDK key id that happens to be all digits), `name: yes`, ...
+            read_as = {"int": "a number", "float": "a number", "bool": "a boolean"}.get(
+                _kind_of(value), _kind_of(value))
+            problem += (f": YAML reads the unquoted {node.value} as {read_as}; "
+                        f"quote it ('{node.value}') to mean the text")
         return value if problem is None else self.fail(at, problem)
 
     def _construct(self, node: yaml.Node, at: Where) -> Any:

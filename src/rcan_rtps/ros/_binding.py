@@ -10,7 +10,6 @@ one fails. None of them opens a participant or sends anything.
 from __future__ import annotations
 
 import ctypes
-import importlib.metadata
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -37,6 +36,10 @@ _MATCHED_CALLS = (
 
 def binding_version() -> str:
     """The installed binding's distribution version ('unknown' without pip's metadata)."""
+    # Here, not at import: importlib.metadata loads csv, zipfile and importlib.resources,
+    # which a run never needs (~0.5 MB; tests/interop/test_run_imports.py).
+    import importlib.metadata
+
     try:
         return importlib.metadata.version("cyclonedds")
     except importlib.metadata.PackageNotFoundError:

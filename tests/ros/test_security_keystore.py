@@ -16,20 +16,12 @@ import pytest
 from rcan_rtps.cli.main import main as cli
 from rcan_rtps.ros.security import KeystoreError, PolicyError, SignatureError, keystore, smime
 from rcan_rtps.ros.security.documents import read_policy
+from tests.ros.security_store import ENCLAVE
 
 pytestmark = pytest.mark.offline
 OPENSSL = shutil.which("openssl")
 needs_openssl = pytest.mark.skipif(OPENSSL is None and os.environ.get("CI") is None,
                                    reason="the openssl command line (Debian: openssl)")
-ENCLAVE = "/robot1/rcan_bridge"
-
-
-@pytest.fixture
-def store(tmp_path: Path) -> Path:
-    root = tmp_path / "ks"
-    keystore.create_keystore(root, domain_id=7)
-    keystore.create_enclave(root, ENCLAVE, domain_id=7)
-    return root
 
 
 def links(root: Path) -> dict[str, str]:

@@ -20,18 +20,10 @@ from rcan_rtps.ros.security import (
     settings,
 )
 from rcan_rtps.ros.security.settings import EnclaveFiles, check, participant_security
+from tests.ros.security_store import ENCLAVE
 
 pytestmark = pytest.mark.offline
-ENCLAVE = "/robot1/rcan_bridge"
 UTC = datetime.timezone.utc
-
-
-@pytest.fixture
-def store(tmp_path: Path) -> Path:
-    root = tmp_path / "ks"
-    keystore.create_keystore(root, domain_id=7)
-    keystore.create_enclave(root, ENCLAVE, domain_id=7)
-    return root
 
 
 def env(store: Path, **more: str) -> dict[str, str]:

@@ -2,17 +2,15 @@
 saying how to get 11.x (docs/compatibility.md, 'Cyclone DDS lines').
 
 The refusal is shown against the real cyclonedds 0.10.5 from PyPI, in a venv of its own under
-.cache/cyclonedds-0.10 (made once, stamped like the ROS oracles). PyPI has 0.10.5 wheels up to
-CPython 3.10 only, so that venv runs Python 3.10 (the machines' pyenv has it, or
-RCAN_RTPS_PYTHON310 names one); under CI=true a missing interpreter or a failed install fails.
+.cache/cyclonedds-0.10 that scripts/test.sh makes during set-up (scripts/cyclonedds_010_venv.py:
+Python 3.10, as PyPI's 0.10.5 wheels stop there); under CI=true a venv not made fails.
 """
 
 from __future__ import annotations
 
-import glob
 import os
-import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -20,10 +18,11 @@ import tomllib
 
 from rcan_rtps.ros import UnsupportedBindingError, WireError, _binding
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+import cyclonedds_010_venv as old_venv
+
 ROOT = Path(__file__).resolve().parents[2]
 ON_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
-OLD_LINE = "cyclonedds==0.10.5"
-VENV = ROOT / ".cache" / "cyclonedds-0.10"
 # One phrase per gap the issue found on 0.10.5 (the message names each).
 GAPS = ("cyclonedds.idl.types.byte", "DataWriter.get_publication_matched_status()",
         "DataReader.get_requested_incompatible_qos_status()",
@@ -43,25 +42,6 @@ def test_the_pin_admits_the_11_line_only() -> None:
     assert pins == ["cyclonedds>=11,<12"]
 
 
-def _python310() -> str | None:
-    candidates = [os.environ.get("RCAN_RTPS_PYTHON310", ""), shutil.which("python3.10") or ""]
-    pyenv_root = os.environ.get("PYENV_ROOT", str(Path.home() / ".pyenv"))
-    candidates += sorted(glob.glob(f"{pyenv_root}/versions/3.10.*/bin/python3.10"), reverse=True)
-    candidates.append("/usr/bin/python3.10")
-    for candidate in filter(None, candidates):
-        done = subprocess.run([candidate, "-c", "import sys, venv; print(sys.version_info[:2])"],
-                              capture_output=True, text=True)
-        if done.returncode == 0 and done.stdout.strip() == "(3, 10)":
-            return candidate
-    return None
-
-
-def _requirements() -> list[str]:
-    """0.10.5 and every other dependency of ours, so the CLI gets as far as it would."""
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    return [OLD_LINE, *(d for d in project["dependencies"] if not d.startswith("cyclonedds"))]
-
-
 def _unavailable(why: str) -> None:
     if ON_CI:
         pytest.fail(f"the cyclonedds 0.10.5 venv is needed under CI: {why}")
@@ -70,26 +50,14 @@ def _unavailable(why: str) -> None:
 
 @pytest.fixture(scope="module")
 def old_line_python() -> Path:
-    python = _python310()
+    """The venv scripts/test.sh makes (scripts/cyclonedds_010_venv.py, with the network the
+    tests run without)."""
+    python = old_venv.ready()
     if python is None:
-        _unavailable("no Python 3.10 (PyPI's cyclonedds 0.10.5 wheels stop at CPython 3.10); "
-                     "set RCAN_RTPS_PYTHON310")
+        _unavailable(f"{old_venv.VENV} is not made for this tree: run "
+                     "`.venv/bin/python scripts/cyclonedds_010_venv.py` (scripts/test.sh does)")
     assert python is not None
-    requirements = _requirements()
-    stamp = "\n".join([python, *requirements])
-    if (VENV / ".stamp").is_file() and (VENV / ".stamp").read_text() == stamp:
-        return VENV / "bin" / "python"
-    shutil.rmtree(VENV, ignore_errors=True)  # no stamp: made anew (a failed try leaves none)
-    made = subprocess.run([python, "-m", "venv", str(VENV)], capture_output=True, text=True)
-    installed = made.returncode == 0 and subprocess.run(
-        [str(VENV / "bin" / "pip"), "install", "-q", *requirements],
-        capture_output=True, text=True, timeout=600)
-    if not installed or installed.returncode != 0:
-        shutil.rmtree(VENV, ignore_errors=True)
-        _unavailable(f"could not install {OLD_LINE}: "
-                     f"{(installed.stderr if installed else made.stderr)[-800:]}")
-    (VENV / ".stamp").write_text(stamp)
-    return VENV / "bin" / "python"
+    return python
 
 
 def _run(python: Path, *args: str) -> subprocess.CompletedProcess[str]:

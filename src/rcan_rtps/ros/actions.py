@@ -32,7 +32,7 @@ from typing import Any
 from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
-from .errors import ActionError, seconds
+from .errors import ActionError, WireError, seconds
 from .graph import Direction
 from .handshake import matched_writers, writers_ready
 from .names import action_names, mangle_topic
@@ -48,6 +48,7 @@ UUID_TYPE = "unique_identifier_msgs/msg/UUID"
 REJECT_GRACE = 0.5  # s: a "rejected" reply is ours only if our goal does not show up by then
 LOST_GRACE = 0.5  # s without a status writer before open goals count as lost
 POLL = 0.02
+SETTLE_S = 5.0  # s: how long a finished goal's feedback waits for its result (see `feedback`)
 
 
 class GoalState(enum.IntEnum):
@@ -109,8 +110,15 @@ class ClientGoal:
             if self.state.terminal and not settled:
                 # The terminal status comes on another reader than the feedback sent before
                 # it: both can arrive in one wake-up of the node's reader thread, which hands
-                # the status over first (docs/design/zero-loss.md). Let it finish.
+                # the status over first, and on a busy machine Cyclone may hand the feedback
+                # to a delivery queue of its own, later still (docs/design/zero-loss.md). The
+                # result is asked for only now, and its reply leaves the server after that
+                # feedback: wait for it (bounded; whoever asks `result()` gets it cached, or
+                # asks again), then for one more pass of the reader thread.
                 settled = True
+                with contextlib.suppress(WireError):
+                    await self.result(timeout=SETTLE_S if deadline is None
+                                      else max(0.1, min(SETTLE_S, deadline - loop.time())))
                 await self.client.node.delivered()
                 continue
             if self.state.terminal or (deadline is not None and loop.time() >= deadline):

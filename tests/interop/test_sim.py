@@ -124,37 +124,44 @@ async def test_battery_drains_with_motion(sim: SimRobot) -> None:
     assert moving_before - sim.state.energy_wh > idle_use > 0
 
 
-def test_sim_command_is_a_node_rclpy_sees(jazzy_python: Path, domain_id: int) -> None:
+@pytest.fixture
+def sim_process(domain_id: int) -> Iterator[subprocess.Popen[str]]:
+    """`rcan-rtps sim --namespace /bot`, ready; it must end cleanly when terminated."""
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
     proc = subprocess.Popen([sys.executable, "-m", "rcan_rtps", "sim", "--namespace", "/bot"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
         assert proc.stdout is not None
         assert "rcan-rtps sim ready node=/bot/sim_robot" in proc.stdout.readline()
-        with RclpyOracle(jazzy_python, "watcher", domain_id=domain_id) as oracle:
-            oracle.call("subscribe", topic="/bot/odom", type="nav_msgs/msg/Odometry")
-            eventually_sync(lambda: ["sim_robot", "/bot"] in oracle.call("node_names"))
-            topics = dict((n, t) for n, t in oracle.call("topic_names"))
-            for topic, type_name in (("/bot/odom", "nav_msgs/msg/Odometry"),
-                                     ("/bot/joint_states", "sensor_msgs/msg/JointState"),
-                                     ("/bot/battery_state", "sensor_msgs/msg/BatteryState"),
-                                     ("/bot/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")):
-                assert topics.get(topic) == [type_name], topics
-            eventually_sync(lambda: oracle.call("take", topic="/bot/odom"),
-                            what="odometry from the sim")
-            # its goal servers: nav2 NavigateToPose and DockRobot, as rclpy lists them
-            def action_servers() -> dict[str, list[str]] | None:
-                info = oracle.call("node_info", name="sim_robot", namespace="/bot")
-                found = {n: t for n, t in info["Action Servers"]}
-                return found if len(found) >= 2 else None
-
-            servers = eventually_sync(action_servers, what="the sim's two action servers")
-            assert servers == {"/bot/navigate_to_pose": ["nav2_msgs/action/NavigateToPose"],
-                               "/bot/dock_robot": ["nav2_msgs/action/DockRobot"]}, servers
+        yield proc
     finally:
         proc.terminate()
         proc.wait(timeout=10)
     assert proc.returncode == 0
+
+
+def test_sim_command_is_a_node_rclpy_sees(sim_process: subprocess.Popen[str],
+                                         jazzy_python: Path, domain_id: int) -> None:
+    with RclpyOracle(jazzy_python, "watcher", domain_id=domain_id) as oracle:
+        oracle.call("subscribe", topic="/bot/odom", type="nav_msgs/msg/Odometry")
+        eventually_sync(lambda: ["sim_robot", "/bot"] in oracle.call("node_names"))
+        topics = dict((n, t) for n, t in oracle.call("topic_names"))
+        for topic, type_name in (("/bot/odom", "nav_msgs/msg/Odometry"),
+                                 ("/bot/joint_states", "sensor_msgs/msg/JointState"),
+                                 ("/bot/battery_state", "sensor_msgs/msg/BatteryState"),
+                                 ("/bot/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")):
+            assert topics.get(topic) == [type_name], topics
+        eventually_sync(lambda: oracle.call("take", topic="/bot/odom"),
+                        what="odometry from the sim")
+        # its goal servers: nav2 NavigateToPose and DockRobot, as rclpy lists them
+        def action_servers() -> dict[str, list[str]] | None:
+            info = oracle.call("node_info", name="sim_robot", namespace="/bot")
+            found = {n: t for n, t in info["Action Servers"]}
+            return found if len(found) >= 2 else None
+
+        servers = eventually_sync(action_servers, what="the sim's two action servers")
+        assert servers == {"/bot/navigate_to_pose": ["nav2_msgs/action/NavigateToPose"],
+                           "/bot/dock_robot": ["nav2_msgs/action/DockRobot"]}, servers
 
 
 # -- docking (issue 23, item 4): the sim serves nav2 DockRobot ------------------------------
@@ -226,20 +233,6 @@ def _cli(domain_id: int, *args: str) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
     return subprocess.run([sys.executable, "-m", "rcan_rtps", *args], capture_output=True,
                           text=True, env=env, timeout=60)
-
-
-@pytest.fixture
-def sim_process(domain_id: int) -> Iterator[subprocess.Popen[str]]:
-    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
-    proc = subprocess.Popen([sys.executable, "-m", "rcan_rtps", "sim", "--namespace", "/bot"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    try:
-        assert proc.stdout is not None
-        assert "rcan-rtps sim ready node=/bot/sim_robot" in proc.stdout.readline()
-        yield proc
-    finally:
-        proc.terminate()
-        proc.wait(timeout=10)
 
 
 def test_the_sim_serves_its_parameters(sim_process: subprocess.Popen[str],

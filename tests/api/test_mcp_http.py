@@ -263,8 +263,9 @@ async def test_closing_the_session_stops_the_move_it_started(api: Api) -> None:
         done = await client.call_tool("move", {"linear_x": 0.2, "duration_s": 20.0,
                                                "confidence": 0.9})
         assert data(done)["outcome"] == "executed"
-    # the client's DELETE ended its session while the 20 s move ran
-    stops = commands(api, "stop")
+    # The client's DELETE ended its session while the 20 s move ran. The SDK's client may
+    # hang up before the answer (its exit cancelled under load): the stop goes on regardless.
+    stops = await eventually(lambda: commands(api, "stop"), what="the session's stop")
     assert [e["params"]["reason"] for e in stops] == ["MCP session closed"], stops
     assert stops[0]["principal"] == "planner" and stops[0]["ai"]["model"] == "planner-7b"
 

@@ -63,6 +63,7 @@ class McpEndpoint:
         self._serving: asyncio.Task[None] | None = None
         self._beating: list[asyncio.Task[None]] = []
         self._keepalives: dict[str, Keepalive] = {}
+        self._stopping: set[asyncio.Task[None]] = set()
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
         # What serves MCP (here and in the SDK) is imported by the first request to /mcp:
@@ -113,7 +114,13 @@ class McpEndpoint:
 
         assert seat.session is not None
         if seat.keepalive.release_session(seat.session):
-            await stop_left_running(seat, "MCP session closed")
+            # A client may hang up before the DELETE is answered (the SDK's does, when its exit
+            # is cancelled): the stop is the door's task, not the request's, so it goes on.
+            stopping = asyncio.create_task(stop_left_running(seat, "MCP session closed"),
+                                           name="mcp-session-closed-stop")
+            self._stopping.add(stopping)
+            stopping.add_done_callback(self._stopping.discard)
+            await asyncio.shield(stopping)
 
     async def _started(self, app: web.Application) -> HttpMcp | None:
         if self._server is not None or self._missing:
@@ -155,6 +162,8 @@ class McpEndpoint:
         """End every session (their streams close), then the heartbeats: the bridge is
         shutting down, and stops the robot itself."""
         self._stop.set()
+        if self._stopping:  # a closed session's stop still on its way
+            await asyncio.wait(list(self._stopping))
         if self._serving is not None:
             await asyncio.wait([self._serving])
         for task in self._beating:

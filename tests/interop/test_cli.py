@@ -123,10 +123,11 @@ def test_topic_hz_measures_a_rate(oracle: RclpyOracle, domain_id: int) -> None:
     try:
         # Through all of hz's 4 s, which start once it subscribed: on a busy machine that can
         # be after a fixed burst of messages has long been sent.
-        deadline = time.monotonic() + 60
+        deadline, published = time.monotonic() + 60, 0
         while hz.poll() is None and time.monotonic() < deadline:
             oracle.call("publish", topic="/tick", type="std_msgs/msg/Empty", value={}, count=10,
                         period=0.05, timeout=60)
+            published += 10
         out, err = hz.communicate(timeout=30)
     finally:
         hz.kill()
@@ -136,7 +137,8 @@ def test_topic_hz_measures_a_rate(oracle: RclpyOracle, domain_id: int) -> None:
     reports = re.findall(r"average rate: ([\d.]+)\n\tmin: [\d.]+s max: [\d.]+s "
                          r"std dev: [\d.]+s window: (\d+)", out)
     assert reports and all(float(rate) > 0 for rate, _ in reports)
-    assert 2 <= max(int(window) for _, window in reports) <= 60, out
+    # Never more in a window than rclpy sent (the count, not this machine's speed, bounds it).
+    assert 2 <= max(int(window) for _, window in reports) <= published, (published, out)
 
 
 def test_bad_values_name_the_field_path(domain_id: int) -> None:

@@ -1,6 +1,6 @@
 """One process of the related-sample-identity measurement (test_rpc_identity.py).
 
-A fresh node with Cyclone's packet capture on (rtps_capture.IdentityCapture) calls /echo (an
+A fresh node, whose domain has Cyclone's packet capture on (rtps_capture.py), calls /echo (an
 rclpy Fast DDS echo server) `calls` times, one after another, with plain requests as
 rmw_fastrtps' clients send them. For every reply sample its reader gets (a Fast DDS server
 sends each reply to every client's reply reader), it looks up the related sample identity
@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import sys
 from collections import Counter
 from typing import Any
@@ -28,21 +27,20 @@ from typing import Any
 from rcan_rtps.ros import qos as qos_mod
 from rcan_rtps.ros.names import mangle_service
 from rcan_rtps.ros.participant import RosNode
-from rcan_rtps.ros.rtps_capture import IdentityCapture
 from rcan_rtps.ros.services import RequestMapping, _Pair
 
 ECHO = "test_msgs/srv/BasicTypes"
 
 
 async def main(tag: str, calls: int, domain_id: int, share: str) -> None:
-    capture = IdentityCapture()
-    os.environ["CYCLONEDDS_URI"] = capture.config  # the node's domain is made with it
     tally: Counter[str] = Counter()
     answered: dict[int, asyncio.Future[Any]] = {}
     lost: list[int] = []
     with RosNode(f"idcaller_{tag}", "/", domain_id=domain_id, distro="jazzy",
                  idl_paths=[share]) as node:
-        capture.start()
+        capture = node.identities  # the domain's packet capture (participant.py)
+        assert capture is not None, "the packet capture is off (RCAN_RTPS_RPC_IDENTITY)"
+        capture.use()  # parse, not only skip, what it records
         request_topic, reply_topic = mangle_service("/echo")
         srv = node.store.service(ECHO)
 
@@ -53,10 +51,6 @@ async def main(tag: str, calls: int, domain_id: int, share: str) -> None:
                 writer = pair.reader.get_matched_publication_data(info.publication_handle)
                 guid = bytes(writer.key.bytes) if writer is not None else b""
                 seen, related = capture.lookup(guid, info.source_timestamp)
-                if os.environ.get("IDDEBUG"):
-                    print("DBG", guid.hex(), info.source_timestamp, seen, related,
-                          sample.string_value, mine.hex(), capture.datagrams,
-                          capture.data_submessages, list(capture._known)[-3:], file=sys.stderr)
                 if not seen:
                     tally["unseen"] += 1
                 elif related is None:
@@ -91,7 +85,6 @@ async def main(tag: str, calls: int, domain_id: int, share: str) -> None:
         await asyncio.sleep(0.5)  # late copies of others' replies still get tallied
         pair.close()
     stats = {"datagrams": capture.datagrams, "data": capture.data_submessages}
-    capture.close()
     print(json.dumps({"tally": dict(tally), "lost": lost, **stats}), flush=True)
 
 

@@ -104,7 +104,7 @@ def _inline_related(body: memoryview, start: int, order: str) -> SampleIdentity 
 
 def parse_rtps(message: memoryview) -> Iterator[ReceivedData]:
     """The DATA and first DATA_FRAG submessages of one RTPS message, in order."""
-    if len(message) < RTPS_HEADER_SIZE or message[:4] != b"RTPS":
+    if len(message) < RTPS_HEADER_SIZE or bytes(message[:4]) != b"RTPS":
         return
     prefix = bytes(message[8:20])
     timestamp: int | None = None
@@ -199,12 +199,23 @@ class IdentityCapture:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._users = 0  # clients that need identities; with none, records are only skipped
         self.datagrams = 0  # received datagrams parsed so far
         self.data_submessages = 0
 
+    def use(self) -> None:
+        """A client needs identities from now on (until `unuse`)."""
+        with self._lock:
+            self._users += 1
+
+    def unuse(self) -> None:
+        with self._lock:
+            self._users = max(0, self._users - 1)
+
     def start(self) -> None:
         """Opens the capture (Cyclone must have created it) and drains it in the background."""
-        self._file = os.open(self.path, os.O_RDWR)
+        # Created if Cyclone has not opened it yet; its fopen("wb") then keeps this inode.
+        self._file = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
         self._thread = threading.Thread(target=self._run, name="rtps-capture", daemon=True)
         self._thread.start()
 
@@ -236,7 +247,7 @@ class IdentityCapture:
             del self._pending[:PCAP_HEADER_SIZE]
         # Parsed from an immutable copy: views into the bytearray would pin its size.
         datagrams, used = parse_records(bytes(self._pending), self._little)
-        for datagram in datagrams:
+        for datagram in datagrams if self._users else ():
             self.datagrams += 1
             for data in parse_rtps(datagram):
                 self.data_submessages += 1
@@ -250,7 +261,8 @@ class IdentityCapture:
         while len(self._known) > KEPT_IDENTITIES:
             self._known.popitem(last=False)
 
-    def lookup(self, writer_guid: bytes, source_timestamp: int) -> tuple[bool, SampleIdentity | None]:
+    def lookup(self, writer_guid: bytes,
+               source_timestamp: int) -> tuple[bool, SampleIdentity | None]:
         """(seen, related identity) of the sample `writer_guid` wrote at `source_timestamp`.
         Call it after the sample was taken: its datagram is then in the capture or in the
         capture's C buffer, which this flushes. `seen` is False only if the datagram is not

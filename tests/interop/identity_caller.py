@@ -9,8 +9,8 @@ that the reply carried in its inline QoS and tallies:
     ours     identity = (our request writer, k) and the reply echoes our request k
     mixed    identity = ours but the reply echoes something else (the identity lies)
     foreign  identity names another writer, and the reply is not an echo of ours
-    unseen   the reply's datagram was not found in the capture
-    blank    the datagram was found but carried no related sample identity
+    unknown  no related sample identity found for the reply (its datagram not in the
+             capture, or it carried none)
 
 A call waits for the reply whose identity is its own request's, so the tally also shows
 whether identity alone gets every call its own answer. It prints a JSON tally.
@@ -50,11 +50,9 @@ async def main(tag: str, calls: int, domain_id: int, share: str) -> None:
                 info = sample.sample_info
                 writer = pair.reader.get_matched_publication_data(info.publication_handle)
                 guid = bytes(writer.key.bytes) if writer is not None else b""
-                seen, related = capture.lookup(guid, info.source_timestamp)
-                if not seen:
-                    tally["unseen"] += 1
-                elif related is None:
-                    tally["blank"] += 1
+                related = capture.lookup(guid, info.source_timestamp)
+                if related is None:
+                    tally["unknown"] += 1
                 elif related.writer_guid == mine:
                     echoes = sample.string_value == f"{tag}:{related.seq}"
                     tally["ours" if echoes else "mixed"] += 1
@@ -84,7 +82,7 @@ async def main(tag: str, calls: int, domain_id: int, share: str) -> None:
                 lost.append(k)
         await asyncio.sleep(0.5)  # late copies of others' replies still get tallied
         pair.close()
-    stats = {"datagrams": capture.datagrams, "data": capture.data_submessages}
+    stats = {"datagrams": capture.datagrams, "identified": capture.identified}
     print(json.dumps({"tally": dict(tally), "lost": lost, **stats}), flush=True)
 
 

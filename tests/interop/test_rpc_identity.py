@@ -53,11 +53,11 @@ def _run_callers(processes: int, calls: int, domain_id: int, share: Path) -> lis
 
 def _check(tallies: list[dict], processes: int, calls: int) -> None:
     counts = {kind: sum(t["tally"].get(kind, 0) for t in tallies)
-              for kind in ("ours", "foreign", "mixed", "unseen", "blank")}
+              for kind in ("ours", "foreign", "mixed", "unknown")}
     lost = sum(len(t["lost"]) for t in tallies)
     print(f"{processes} processes x {calls} calls: {counts}, lost {lost}")
     assert counts["ours"] == processes * calls, counts
-    assert (counts["mixed"], counts["unseen"], counts["blank"], lost) == (0, 0, 0, 0), counts
+    assert (counts["mixed"], counts["unknown"], lost) == (0, 0, 0), counts
 
 
 @pytest.mark.parametrize("processes", [4, 6])

@@ -59,7 +59,8 @@ _COMPAT_CONFIG = """<CycloneDDS><Domain Id="any"><Compatibility>
 _domains: dict[int, tuple[Domain, int]] = {}  # domain id → (configured domain, nodes using it)
 _domains_lock = threading.Lock()
 # Per domain: Cyclone's packet capture, read for the request identity in Fast DDS replies
-# (rtps_capture.py). RCAN_RTPS_RPC_IDENTITY=off leaves it out.
+# (rtps_capture.py). RCAN_RTPS_RPC_IDENTITY=off leaves it out; RCAN_RTPS_CAPTURE_DIR says
+# where its file is made (it loses its name as soon as Cyclone has opened it).
 _captures: dict[int, IdentityCapture] = {}
 
 
@@ -116,9 +117,12 @@ def _acquire_domain(domain_id: int, localhost: bool) -> None:
                 log.warning("Cyclone DDS does not know <Compatibility>; Fast DDS 3 peers may "
                             "not match endpoints with sequences")
                 domain = Domain(domain_id, ",".join(filter(None, [user, *local])) or None)
-            if capture is not None:
-                capture.start()
+            if capture is not None and capture.start():
                 _captures[domain_id] = capture
+            elif capture is not None:
+                log.warning("Cyclone DDS made no packet capture: Fast DDS replies stay "
+                            "unnamed")
+                capture.close()
         except BaseException:
             if capture is not None:
                 capture.close()

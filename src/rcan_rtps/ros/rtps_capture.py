@@ -10,12 +10,15 @@ time a sample can be taken from a reader, the datagram that carried it is in tha
 in the C library's buffer of that file: `flush` pushes it out).
 
 `IdentityCapture` tails that file (a regular file, so Cyclone's threads never wait for us:
-a pipe could fill and block a DDS write that holds the GIL), parses the received DATA and
-DATA_FRAG submessages that carry a related sample identity, and keeps
-`(writer GUID, source timestamp) -> related identity`. A reader takes a sample, then asks
+a pipe could fill and block a DDS write that holds the GIL) through a read-only mapping, so
+nothing is copied. While no client needs identities it only steps over record headers;
+while one does, it walks the submessages of received datagrams and keeps
+`(writer GUID, source timestamp) -> related identity` for the DATA and first DATA_FRAG
+submessages whose inline QoS carries one. A reader takes a sample, then asks
 `lookup(writer_guid, source_timestamp)`. The consumed part of the file is given back to the
 system (a hole punched in the tmpfs file), so memory stays bounded by what arrived since
-the last drain. Limits: UDPv4 only (Cyclone's capture is), and nothing under DDS-Security
+the last drain; the file has no name once Cyclone has opened it, so a killed process leaves
+nothing behind. Limits: UDPv4 only (Cyclone's capture is), and nothing under DDS-Security
 payload or submessage protection can be read.
 """
 
@@ -24,31 +27,41 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import logging
+import mmap
 import os
 import struct
 import tempfile
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+log = logging.getLogger(__name__)
+
 PID_SENTINEL = 0x0001
-PID_PAD = 0x0000
 PID_RELATED_SAMPLE_IDENTITY = 0x0083  # OMG DDS-RPC
 PID_FASTDDS_RELATED_SAMPLE_IDENTITY = 0x800F  # Fast DDS' older vendor-specific id
 RELATED_PIDS = (PID_RELATED_SAMPLE_IDENTITY, PID_FASTDDS_RELATED_SAMPLE_IDENTITY)
 
-INFO_TS, INFO_SRC, DATA, DATA_FRAG = 0x09, 0x0C, 0x15, 0x16
+PAD, INFO_TS, INFO_SRC, DATA, DATA_FRAG = 0x01, 0x09, 0x0C, 0x15, 0x16
 FLAG_LITTLE, FLAG_INLINE_QOS, FLAG_INVALIDATE = 0x01, 0x02, 0x02
 RTPS_HEADER_SIZE = 20
 IP_UDP_SIZE = 28  # Cyclone's capture writes a made-up IPv4 + UDP header before each datagram
-RECEIVED_TTL = 128  # ... with TTL 128 on received datagrams, 255 on sent ones
+TTL_OFFSET = 8  # ... whose TTL is 128 on received datagrams, 255 on sent ones
+RECEIVED_TTL = 128
 PCAP_HEADER_SIZE, RECORD_HEADER_SIZE = 24, 16
+PCAP_MAGICS = {b"\xd4\xc3\xb2\xa1": True, b"\xa1\xb2\xc3\xd4": False}  # → little-endian
 
-KEPT_IDENTITIES = 65536  # newest samples remembered; far more than a reader keeps
+KEPT_IDENTITIES = 8192  # newest identified samples remembered; far more than a reader keeps
 DRAIN_PERIOD = 0.05  # s between background drains of the capture file
+CHUNK = 1 << 20  # bytes of records consumed per hold of the lock
+MISS_BUDGET = 8 << 20  # bytes a lookup that missed may consume itself before answering
 PUNCH_AFTER = 1 << 20  # bytes consumed before they are given back
+
+_SUBMESSAGE = struct.Struct("<BBH")
 
 
 @dataclass(frozen=True)
@@ -61,12 +74,12 @@ class SampleIdentity:
 
 @dataclass(frozen=True)
 class ReceivedData:
-    """What one received DATA (or first DATA_FRAG) submessage says about its sample."""
+    """A received DATA (or first DATA_FRAG) submessage that names a related sample."""
 
     writer_guid: bytes
     seq: int
-    source_timestamp: int | None  # ns since the epoch, converted as Cyclone does
-    related: SampleIdentity | None
+    source_timestamp: int  # ns since the epoch, converted as Cyclone does
+    related: SampleIdentity
 
 
 def capture_config(path: str | Path) -> str:
@@ -80,81 +93,65 @@ def nanoseconds(seconds: int, fraction: int) -> int:
     return seconds * 1_000_000_000 + ((1 << 31) + fraction * 1_000_000_000 >> 32)
 
 
-def _related(value: memoryview, order: str) -> SampleIdentity | None:
-    if len(value) < 24:
-        return None
-    high, low = struct.unpack_from(order + "iI", value, 16)
-    return SampleIdentity(bytes(value[:16]), (high << 32) | low)
-
-
-def _inline_related(body: memoryview, start: int, order: str) -> SampleIdentity | None:
-    """The related sample identity in a parameter list starting at `start`, if any."""
-    offset = start
-    while offset + 4 <= len(body):
-        pid, length = struct.unpack_from(order + "HH", body, offset)
+def _inline_related(buf: bytes | mmap.mmap, offset: int, end: int,
+                    order: str) -> SampleIdentity | None:
+    """The related sample identity in a parameter list from `offset` to `end`, if any."""
+    while offset + 4 <= end:
+        pid, length = struct.unpack_from(order + "HH", buf, offset)
         offset += 4
         pid &= 0x3FFF if pid & 0x8000 == 0 else 0xFFFF  # drop the must-understand bit
         if pid == PID_SENTINEL:
             return None
         if pid in RELATED_PIDS:
-            return _related(body[offset:offset + length], order)
+            if length < 24 or offset + 24 > end:
+                return None
+            high, low = struct.unpack_from(order + "iI", buf, offset + 16)
+            return SampleIdentity(bytes(buf[offset:offset + 16]), (high << 32) | low)
         offset += length
     return None
 
 
-def parse_rtps(message: memoryview) -> Iterator[ReceivedData]:
-    """The DATA and first DATA_FRAG submessages of one RTPS message, in order."""
-    if len(message) < RTPS_HEADER_SIZE or bytes(message[:4]) != b"RTPS":
+def parse_rtps(buf: bytes | mmap.mmap, start: int = 0,
+               end: int | None = None) -> Iterator[ReceivedData]:
+    """The DATA and first DATA_FRAG submessages naming a related sample in the RTPS message
+    `buf[start:end]`, in order. Other submessages cost one header read each."""
+    end = len(buf) if end is None else end
+    if end - start < RTPS_HEADER_SIZE or buf[start:start + 4] != b"RTPS":
         return
-    prefix = bytes(message[8:20])
+    prefix = bytes(buf[start + 8:start + 20])
     timestamp: int | None = None
-    offset = RTPS_HEADER_SIZE
-    while offset + 4 <= len(message):
-        kind, flags = message[offset], message[offset + 1]
-        order = "<" if flags & FLAG_LITTLE else ">"
-        (length,) = struct.unpack_from(order + "H", message, offset + 2)
-        start = offset + 4
-        end = len(message) if length == 0 and kind not in (INFO_TS, 0x01) else start + length
-        body = message[start:end]
-        if kind == INFO_TS:
-            timestamp = None if flags & FLAG_INVALIDATE or len(body) < 8 else \
-                nanoseconds(*struct.unpack_from(order + "iI", body, 0))
-        elif kind == INFO_SRC and len(body) >= 20:
-            prefix = bytes(body[8:20])
-        elif kind in (DATA, DATA_FRAG) and len(body) >= 20:
-            found = _data(body, flags, order, kind, prefix, timestamp)
-            if found is not None:
-                yield found
-        offset = end
+    offset = start + RTPS_HEADER_SIZE
+    while offset + 4 <= end:
+        kind, flags, length = _SUBMESSAGE.unpack_from(buf, offset)
+        little = flags & FLAG_LITTLE
+        if not little:
+            length = (length & 0xFF) << 8 | length >> 8
+        body = offset + 4
+        stop = end if length == 0 and kind not in (INFO_TS, PAD) else min(end, body + length)
+        if kind in (DATA, DATA_FRAG):
+            if flags & FLAG_INLINE_QOS and timestamp is not None and stop - body >= 24:
+                found = _data(buf, body, stop, "<" if little else ">", kind, prefix, timestamp)
+                if found is not None:
+                    yield found
+        elif kind == INFO_TS:
+            timestamp = None if flags & FLAG_INVALIDATE or stop - body < 8 else \
+                nanoseconds(*struct.unpack_from("<iI" if little else ">iI", buf, body))
+        elif kind == INFO_SRC and stop - body >= 20:
+            prefix = bytes(buf[body + 8:body + 20])
+        offset = stop
 
 
-def _data(body: memoryview, flags: int, order: str, kind: int, prefix: bytes,
-          timestamp: int | None) -> ReceivedData | None:
-    to_inline_qos, = struct.unpack_from(order + "H", body, 2)
-    high, low = struct.unpack_from(order + "iI", body, 12)
-    if kind == DATA_FRAG and struct.unpack_from(order + "I", body, 20)[0] != 1:
+def _data(buf: bytes | mmap.mmap, body: int, stop: int, order: str, kind: int, prefix: bytes,
+          timestamp: int) -> ReceivedData | None:
+    if kind == DATA_FRAG and struct.unpack_from(order + "I", buf, body + 20)[0] != 1:
         return None  # inline QoS travels with the first fragment only
-    related = _inline_related(body, 4 + to_inline_qos, order) \
-        if flags & FLAG_INLINE_QOS else None
-    return ReceivedData(prefix + bytes(body[8:12]), (high << 32) | low, timestamp, related)
-
-
-def parse_records(buffer: bytes, little: bool) -> tuple[list[memoryview], int]:
-    """The received datagrams among the whole pcap records at the front of `buffer`, and
-    how many bytes those records take (a partial record stays for the next read)."""
-    order = "<" if little else ">"
-    offset, found = 0, []
-    view = memoryview(buffer)
-    while offset + RECORD_HEADER_SIZE <= len(buffer):
-        (size,) = struct.unpack_from(order + "I", buffer, offset + 8)
-        end = offset + RECORD_HEADER_SIZE + size
-        if end > len(buffer):
-            break
-        packet = view[offset + RECORD_HEADER_SIZE:end]
-        if size > IP_UDP_SIZE and packet[8] == RECEIVED_TTL:
-            found.append(packet[IP_UDP_SIZE:])
-        offset = end
-    return found, offset
+    (to_inline_qos,) = struct.unpack_from(order + "H", buf, body + 2)
+    related = _inline_related(buf, body + 4 + to_inline_qos, stop, order)
+    if related is None:
+        return None
+    high, low = struct.unpack_from(order + "iI", buf, body + 12)
+    return ReceivedData(prefix + bytes(buf[body + 8:body + 12]), (high << 32) | low,
+                        timestamp, related)
 
 
 class _Libc:
@@ -178,6 +175,13 @@ class _Libc:
             self._punch(fd, 0x02 | 0x01, offset, length)
 
 
+def capture_directory() -> str | None:
+    """Where capture files go: $RCAN_RTPS_CAPTURE_DIR, else /dev/shm (tmpfs), else the
+    system's temporary directory."""
+    chosen = os.environ.get("RCAN_RTPS_CAPTURE_DIR")
+    return chosen or ("/dev/shm" if os.path.isdir("/dev/shm") else None)
+
+
 class IdentityCapture:
     """Tails a Cyclone packet capture and answers `lookup(writer_guid, source_timestamp)`.
 
@@ -185,23 +189,22 @@ class IdentityCapture:
     `config` to the domain, `start()` it once the domain exists, `close()` it after."""
 
     def __init__(self, directory: str | Path | None = None) -> None:
-        base = directory or ("/dev/shm" if os.path.isdir("/dev/shm") else None)
-        self._dir = tempfile.mkdtemp(prefix="rcan-rtps-capture-", dir=base)
+        self._dir = tempfile.mkdtemp(prefix="rcan-rtps-capture-",
+                                     dir=directory or capture_directory())
         self.path = Path(self._dir) / "domain.pcap"
         self.config = capture_config(self.path)
         self._libc = _Libc()
         self._file: int | None = None
-        self._offset = 0  # bytes of the file consumed
+        self._offset = 0  # bytes of the file consumed (whole records only)
         self._punched = 0
-        self._pending = bytearray()
-        self._little: bool | None = None
-        self._known: OrderedDict[tuple[bytes, int], SampleIdentity | None] = OrderedDict()
+        self._record_size = struct.Struct("<I")
+        self._known: OrderedDict[tuple[bytes, int], SampleIdentity] = OrderedDict()
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._users = 0  # clients that need identities; with none, records are only skipped
         self.datagrams = 0  # received datagrams parsed so far
-        self.data_submessages = 0
+        self.identified = 0  # DATA submessages found naming a related sample
 
     def use(self) -> None:
         """A client needs identities from now on (until `unuse`)."""
@@ -212,73 +215,121 @@ class IdentityCapture:
         with self._lock:
             self._users = max(0, self._users - 1)
 
-    def start(self) -> None:
-        """Opens the capture (Cyclone must have created it) and drains it in the background."""
-        # Created if Cyclone has not opened it yet; its fopen("wb") then keeps this inode.
-        self._file = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+    def start(self) -> bool:
+        """Opens the capture Cyclone has made, drops its name and drains it in the
+        background. False (and nothing runs) if Cyclone has not made it."""
+        try:
+            self._file = os.open(self.path, os.O_RDWR)
+        except FileNotFoundError:
+            return False
+        # Cyclone wrote the pcap header when it opened the file (fopen "wb"; buffered, hence
+        # the flush): seeing it proves Cyclone holds this very inode open.
+        self._libc.flush_all()
+        little = PCAP_MAGICS.get(os.pread(self._file, 4, 0))
+        if little is None:
+            os.close(self._file)
+            self._file = None
+            return False
+        self._record_size = struct.Struct("<I" if little else ">I")
+        self._offset = PCAP_HEADER_SIZE
+        # Both descriptors keep the inode: without a name, a killed process leaves nothing.
+        self._remove_names()
         self._thread = threading.Thread(target=self._run, name="rtps-capture", daemon=True)
         self._thread.start()
+        return True
+
+    def _remove_names(self) -> None:
+        with contextlib.suppress(OSError):
+            self.path.unlink()
+        with contextlib.suppress(OSError):
+            os.rmdir(self._dir)
 
     def _run(self) -> None:
         while not self._stop.wait(DRAIN_PERIOD):
             self.drain()
 
     def drain(self) -> None:
-        """Reads and parses everything the file holds now."""
+        """Consumes the records the file holds now, a chunk per hold of the lock, so a
+        `lookup` never waits for more than one chunk."""
+        while True:
+            with self._lock:
+                if self._file is None or not self._consume(CHUNK):
+                    return
+            time.sleep(0)  # a waiting lookup gets the lock (and the GIL) between chunks
+
+    def _consume(self, limit: int) -> int:
+        """Steps over about `limit` bytes of whole records (parsing the received datagrams
+        while a client needs identities), gives back what is consumed; bytes consumed."""
+        assert self._file is not None
+        size = os.fstat(self._file).st_size
+        if size - self._offset < RECORD_HEADER_SIZE:
+            return 0
+        base = self._offset & ~(mmap.ALLOCATIONGRANULARITY - 1)
+        with mmap.mmap(self._file, size - base, access=mmap.ACCESS_READ, offset=base) as buf:
+            start = offset = self._offset - base
+            available, stop = size - base, offset + limit
+            parse, record_size = self._users > 0, self._record_size.unpack_from
+            while offset < stop and offset + RECORD_HEADER_SIZE <= available:
+                (length,) = record_size(buf, offset + 8)
+                end = offset + RECORD_HEADER_SIZE + length
+                if end > available:
+                    break  # Cyclone has not written all of it yet
+                packet = offset + RECORD_HEADER_SIZE
+                if parse and length > IP_UDP_SIZE and buf[packet + TTL_OFFSET] == RECEIVED_TTL:
+                    self._parse(buf, packet + IP_UDP_SIZE, end)
+                offset = end
+        self._offset = base + offset
+        if self._offset - self._punched >= PUNCH_AFTER:
+            # Page-aligned, below what was consumed: the hole never touches unread bytes.
+            punch_to = self._offset & ~0xFFF
+            with contextlib.suppress(OSError):
+                self._libc.punch_hole(self._file, self._punched, punch_to - self._punched)
+            self._punched = punch_to
+        return offset - start
+
+    def _parse(self, buf: mmap.mmap, start: int, end: int) -> None:
+        self.datagrams += 1
+        for data in parse_rtps(buf, start, end):
+            self.identified += 1
+            key = (data.writer_guid, data.source_timestamp)
+            self._known[key] = data.related
+            self._known.move_to_end(key)
+            if len(self._known) > KEPT_IDENTITIES:
+                self._known.popitem(last=False)
+
+    def lookup(self, writer_guid: bytes, source_timestamp: int) -> SampleIdentity | None:
+        """The related identity of the sample `writer_guid` wrote at `source_timestamp`, or
+        None: unknown (the sample named none, or its datagram is not in the capture: not
+        UDPv4, protected, the capture is off or further behind than MISS_BUDGET).
+
+        Call it after the sample was taken: its datagram is then in the capture or in the
+        capture's C buffer, which a miss flushes before reading the file up to its end
+        (in chunks, so the drain thread never holds it up for more than one)."""
+        key = (writer_guid, source_timestamp)
+        with self._lock:
+            if key in self._known:
+                return self._known[key]
+        self._libc.flush_all()
         with self._lock:
             if self._file is None:
-                return
-            while chunk := os.pread(self._file, 1 << 20, self._offset):
-                self._offset += len(chunk)
-                self._pending += chunk
-            self._parse()
-            if self._offset - self._punched >= PUNCH_AFTER:
-                # Page-aligned, below what was consumed: the hole never touches unread bytes.
-                end = self._offset & ~0xFFF
-                with contextlib.suppress(OSError):
-                    self._libc.punch_hole(self._file, self._punched, end - self._punched)
-                self._punched = end
-
-    def _parse(self) -> None:
-        if self._little is None:
-            if len(self._pending) < PCAP_HEADER_SIZE:
-                return
-            self._little = self._pending[:4] == b"\xd4\xc3\xb2\xa1"
-            del self._pending[:PCAP_HEADER_SIZE]
-        # Parsed from an immutable copy: views into the bytearray would pin its size.
-        datagrams, used = parse_records(bytes(self._pending), self._little)
-        for datagram in datagrams if self._users else ():
-            self.datagrams += 1
-            for data in parse_rtps(datagram):
-                self.data_submessages += 1
-                if data.source_timestamp is not None:
-                    self._remember((data.writer_guid, data.source_timestamp), data.related)
-        del self._pending[:used]
-
-    def _remember(self, key: tuple[bytes, int], related: SampleIdentity | None) -> None:
-        self._known[key] = related
-        self._known.move_to_end(key)
-        while len(self._known) > KEPT_IDENTITIES:
-            self._known.popitem(last=False)
-
-    def lookup(self, writer_guid: bytes,
-               source_timestamp: int) -> tuple[bool, SampleIdentity | None]:
-        """(seen, related identity) of the sample `writer_guid` wrote at `source_timestamp`.
-        Call it after the sample was taken: its datagram is then in the capture or in the
-        capture's C buffer, which this flushes. `seen` is False only if the datagram is not
-        in the capture at all (not UDPv4, protected, or the capture is off)."""
-        key = (writer_guid, source_timestamp)
-        for attempt in range(2):
+                return None
+            target = os.fstat(self._file).st_size
+        budget = MISS_BUDGET
+        while budget > 0:
             with self._lock:
                 if key in self._known:
-                    return True, self._known[key]
-            if attempt == 0:
-                self._libc.flush_all()
-                self.drain()
-        return False, None
+                    return self._known[key]
+                if self._file is None or self._offset >= target:
+                    return None
+                used = self._consume(min(CHUNK, budget))
+            if not used:
+                break
+            budget -= used
+        with self._lock:
+            return self._known.get(key)
 
     def close(self) -> None:
-        """Stops the drain and removes the capture file (Cyclone may still hold it open)."""
+        """Stops the drain and closes the capture (removing its name if it still has one)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
@@ -286,7 +337,4 @@ class IdentityCapture:
             if self._file is not None:
                 os.close(self._file)
                 self._file = None
-        with contextlib.suppress(OSError):
-            self.path.unlink()
-        with contextlib.suppress(OSError):
-            os.rmdir(self._dir)
+        self._remove_names()

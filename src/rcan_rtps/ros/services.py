@@ -187,7 +187,7 @@ class _Pair:
             if found is None:
                 return None
             guid = self._writer_guids[info.publication_handle] = bytes(found.key.bytes)
-        return capture.lookup(guid, info.source_timestamp)[1]
+        return capture.lookup(guid, info.source_timestamp)
 
     def matched(self) -> bool:
         return bool(self.writer.get_publication_matched_status().current_count and

@@ -297,6 +297,11 @@ class IdentityCapture:
             if len(self._known) > KEPT_IDENTITIES:
                 self._known.popitem(last=False)
 
+    def held(self) -> int:
+        """Bytes of the capture file in memory now (tmpfs pages not yet given back)."""
+        with self._lock:
+            return 0 if self._file is None else os.fstat(self._file).st_blocks * 512
+
     def lookup(self, writer_guid: bytes, source_timestamp: int) -> SampleIdentity | None:
         """The related identity of the sample `writer_guid` wrote at `source_timestamp`, or
         None: unknown (the sample named none, or its datagram is not in the capture: not

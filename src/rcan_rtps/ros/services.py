@@ -243,6 +243,7 @@ class ServiceClient:
                 if e.dds_topic == self.request_topic and e.direction is Direction.SUBSCRIPTION]
 
     def _reply_writer_known(self) -> bool:
+        self._graph.refresh()  # with a configured mapping, nothing else refreshes it
         return any(e.dds_topic == self.reply_topic and e.direction is Direction.PUBLISHER
                    for e in self._graph.endpoints())
 

@@ -25,6 +25,7 @@ import os
 import statistics
 import subprocess
 import sys
+import threading
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -53,6 +54,15 @@ def _status(field: str) -> int:
     return 0
 
 
+def _thread_cpu(thread: threading.Thread | None) -> float:
+    """User + sys seconds of one thread of this process (Linux /proc)."""
+    if thread is None or thread.native_id is None:
+        return 0.0
+    stat = Path(f"/proc/self/task/{thread.native_id}/stat").read_text()
+    fields = stat.rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 # -- the measured process: `--receive` ----------------------------------------------------------
 async def receive(seconds: float, client_alive: bool, share: Path) -> dict[str, Any]:
     counts: Counter[str] = Counter()
@@ -69,6 +79,7 @@ async def receive(seconds: float, client_alive: bool, share: Path) -> dict[str, 
         await asyncio.sleep(WARMUP)
         loop = asyncio.get_running_loop()
         counts.clear()
+        drain_before = _thread_cpu(node.identities._thread) if node.identities else 0.0
         before, end = os.times(), loop.time() + seconds
         while loop.time() < end:
             if client is not None:
@@ -77,9 +88,10 @@ async def receive(seconds: float, client_alive: bool, share: Path) -> dict[str, 
             await asyncio.sleep(CALL_PERIOD)
         after = os.times()
         capture = node.identities
+        drain = _thread_cpu(capture._thread) if capture else 0.0
         return {"cpu": after.user - before.user + after.system - before.system,
                 "rss_kib": _status("VmRSS"), "hwm_kib": _status("VmHWM"),
-                "held": capture.held() if capture else 0,
+                "drain_cpu": drain - drain_before, "held": capture.held() if capture else 0,
                 "identified": capture.identified if capture else 0, **counts}
 
 

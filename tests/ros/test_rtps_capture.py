@@ -58,7 +58,10 @@ def rtps_message(seq: int, related: SampleIdentity | None, *, little: bool = Tru
 
 
 def pcap_record(message: bytes, ttl: int = 128) -> bytes:
-    ip_udp = bytes(8) + bytes([ttl]) + bytes(19)
+    """A record as Cyclone writes it: pcap header, made-up IPv4 and UDP headers, datagram."""
+    total = 28 + len(message)
+    ip_udp = struct.pack(">BBHIBBH4s4sHHHH", 0x45, 0, total, 0, ttl, 17, 0, bytes([127, 0, 0, 1]),
+                         bytes([239, 255, 0, 1]), 7400, 7401, total - 20, 0)
     packet = ip_udp + message
     return struct.pack("<IIII", 1, 2, len(packet), len(packet)) + packet
 
@@ -79,7 +82,8 @@ def test_parse_finds_only_data_naming_a_related_sample() -> None:
 
 @pytest.fixture
 def capture(tmp_path: Path) -> Iterator[tuple[IdentityCapture, int]]:
-    """A started capture and a descriptor that appends to its file as Cyclone does."""
+    """A started capture and a descriptor that appends to its file as Cyclone's does (and
+    is redirected as Cyclone's is: the only other descriptor of the file)."""
     capture = IdentityCapture(tmp_path)
     writer = os.open(capture.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
     os.write(writer, PCAP_HEADER)
@@ -94,25 +98,34 @@ def test_the_file_loses_its_name_once_opened(tmp_path: Path,
     assert list(tmp_path.iterdir()) == []
 
 
-def test_idle_capture_skips_and_a_user_gets_identities(
+def test_idle_capture_writes_nothing_and_a_user_gets_identities(
         capture: tuple[IdentityCapture, int]) -> None:
     tail, writer = capture
     stamp = nanoseconds(1_700_000_000, 1 << 31)
-    os.write(writer, pcap_record(rtps_message(1, SampleIdentity(REQUEST_WRITER, 1))) * 50)
-    tail.drain()
-    assert (tail.datagrams, tail.identified) == (0, 0)  # nobody asked: headers only
-    assert tail.lookup(SERVER + b"", stamp) is None  # skipped, so unknown
+    big = bytes(1000)
+    os.write(writer, pcap_record(rtps_message(1, SampleIdentity(REQUEST_WRITER, 1),
+                                              payload=big)) * 50)
+    assert tail.held() <= 4096  # nobody needs identities: Cyclone's writes go to /dev/null
+    assert tail.lookup(SERVER, stamp) is None
+    assert (tail.datagrams, tail.identified) == (0, 0)
 
-    tail.use()
     mine = SampleIdentity(REQUEST_WRITER, 2)
+    cut = pcap_record(rtps_message(1, mine))
+    os.write(writer, cut[:30])  # the switch cuts a record: its head went to /dev/null ...
+    tail.use()
+    os.write(writer, cut[30:])  # ... its tail reaches the file, and is skipped
     record = pcap_record(rtps_message(2, mine, stamp=(1_700_000_001, 0)))
     os.write(writer, pcap_record(rtps_message(9, mine), ttl=255))  # one we sent: not parsed
-    os.write(writer, record[:30])  # Cyclone has written a part of it so far
+    os.write(writer, record[:50])  # Cyclone has written a part of it so far
     tail.drain()
-    os.write(writer, record[30:])
+    os.write(writer, record[50:])
     assert tail.lookup(SERVER, nanoseconds(1_700_000_001, 0)) == mine  # the miss drains
     assert tail.lookup(SERVER, nanoseconds(1_700_000_002, 0)) is None
     assert (tail.datagrams, tail.identified) == (1, 1)
+
+    tail.unuse()
+    os.write(writer, pcap_record(rtps_message(3, mine, stamp=(1_700_000_003, 0))))
+    assert tail.lookup(SERVER, nanoseconds(1_700_000_003, 0)) is None
 
 
 def test_no_identity_is_kept_for_data_without_one(capture: tuple[IdentityCapture, int]) -> None:

@@ -141,9 +141,9 @@ def _release_domain(domain_id: int) -> None:
             return
         del _domains[domain_id]
         capture = _captures.pop(domain_id, None)
-    domain.__del__()
-    if capture is not None:
+    if capture is not None:  # first: it may redirect Cyclone's descriptor while it lives
         capture.close()
+    domain.__del__()
 
 
 def _security_properties(enclave: str, domain_id: int) -> list[Policy.Property]:

@@ -203,6 +203,13 @@ class IdentityCapture:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._users = 0  # clients that need identities; with none, records are only skipped
+        # Cyclone's descriptor of the capture, pointed at /dev/null while nobody needs
+        # identities (writing ~all traffic to tmpfs is most of the cost) and back at the
+        # file (opened for appending) when someone does: see `_route`.
+        self._cyclone_fd: int | None = None
+        self._sink: int | None = None
+        self._appender: int | None = None
+        self._resync_at: int | None = None  # file offset where writing resumed mid-stream
         self.datagrams = 0  # received datagrams parsed so far
         self.identified = 0  # DATA submessages found naming a related sample
 
@@ -210,10 +217,44 @@ class IdentityCapture:
         """A client needs identities from now on (until `unuse`)."""
         with self._lock:
             self._users += 1
+            if self._users == 1:
+                self._route(True)
 
     def unuse(self) -> None:
         with self._lock:
             self._users = max(0, self._users - 1)
+            if self._users == 0:
+                self._route(False)
+
+    def _route(self, to_file: bool) -> None:
+        """Points Cyclone's capture descriptor at the file or at /dev/null (under the lock).
+
+        Cyclone writes each record with buffered fwrite and never flushes, so a switch cuts
+        its byte stream anywhere: the file may end in a partial record, and what is written
+        after the switch may start in the middle of one. The drain therefore drops a record
+        crossing the switch point and looks for the next record header after it (`_resync`).
+        A client's request is written after `use()`, so the replies it waits for are whole."""
+        if self._cyclone_fd is None or self._file is None:
+            return
+        if to_file:
+            assert self._appender is not None
+            self._resync_at = os.fstat(self._file).st_size
+            os.dup2(self._appender, self._cyclone_fd)
+        else:
+            assert self._sink is not None
+            self._libc.flush_all()  # what Cyclone buffered still goes to the file
+            os.dup2(self._sink, self._cyclone_fd)
+
+    def _find_cyclone_fd(self) -> int | None:
+        """Cyclone's descriptor of the capture file (Linux: the only other link to it)."""
+        found = []
+        with contextlib.suppress(OSError):
+            for name in os.listdir("/proc/self/fd"):
+                with contextlib.suppress(OSError, ValueError):
+                    if int(name) != self._file and \
+                            os.readlink(f"/proc/self/fd/{name}") == str(self.path):
+                        found.append(int(name))
+        return found[0] if len(found) == 1 else None
 
     def start(self) -> bool:
         """Opens the capture Cyclone has made, drops its name and drains it in the
@@ -232,6 +273,12 @@ class IdentityCapture:
             return False
         self._record_size = struct.Struct("<I" if little else ">I")
         self._offset = PCAP_HEADER_SIZE
+        self._cyclone_fd = self._find_cyclone_fd()  # by name: before the name goes
+        if self._cyclone_fd is not None:
+            self._appender = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+            self._sink = os.open(os.devnull, os.O_WRONLY)
+            with self._lock:
+                self._route(self._users > 0)
         # Both descriptors keep the inode: without a name, a killed process leaves nothing.
         self._remove_names()
         self._thread = threading.Thread(target=self._run, name="rtps-capture", daemon=True)
@@ -269,9 +316,20 @@ class IdentityCapture:
             start = offset = self._offset - base
             available, stop = size - base, offset + limit
             parse, record_size = self._users > 0, self._record_size.unpack_from
-            while offset < stop and offset + RECORD_HEADER_SIZE <= available:
+            mark = None if self._resync_at is None else self._resync_at - base
+            while offset < stop:
+                if mark is not None and offset + RECORD_HEADER_SIZE > mark:
+                    offset = self._resync(buf, max(offset, mark), available)
+                    if self._resync_at is not None:
+                        break  # no whole header after the switch yet
+                    mark = None
+                if offset + RECORD_HEADER_SIZE > available:
+                    break
                 (length,) = record_size(buf, offset + 8)
                 end = offset + RECORD_HEADER_SIZE + length
+                if mark is not None and end > mark:
+                    offset = mark  # its tail went to /dev/null
+                    continue
                 if end > available:
                     break  # Cyclone has not written all of it yet
                 packet = offset + RECORD_HEADER_SIZE
@@ -286,6 +344,26 @@ class IdentityCapture:
                 self._libc.punch_hole(self._file, self._punched, punch_to - self._punched)
             self._punched = punch_to
         return offset - start
+
+    def _resync(self, buf: mmap.mmap, offset: int, available: int) -> int:
+        """The first record header at or after `offset` (clearing the switch mark), or
+        where to look again once more is written. A header is recognised by Cyclone's
+        made-up IPv4 header: version/IHL 0x45, TOS 0, total length = captured length =
+        original length, protocol UDP."""
+        while True:
+            found = buf.find(b"\x45\x00", offset + RECORD_HEADER_SIZE, available)
+            if found < 0:
+                return max(offset, available - RECORD_HEADER_SIZE - 1)
+            start = found - RECORD_HEADER_SIZE
+            if found + IP_UDP_SIZE > available:
+                return start
+            captured, original = struct.unpack_from(self._record_size.format[0] + "II",
+                                                    buf, start + 8)
+            (total,) = struct.unpack_from(">H", buf, found + 2)
+            if captured == original == total > IP_UDP_SIZE and buf[found + 9] == 17:
+                self._resync_at = None
+                return start
+            offset = start + 1
 
     def _parse(self, buf: mmap.mmap, start: int, end: int) -> None:
         self.datagrams += 1
@@ -339,7 +417,13 @@ class IdentityCapture:
         if self._thread is not None:
             self._thread.join()
         with self._lock:
-            if self._file is not None:
-                os.close(self._file)
-                self._file = None
+            # Cyclone's descriptor is left on /dev/null, and never touched again: once the
+            # domain is gone its number may be anyone's.
+            if self._users:
+                self._route(False)
+            self._cyclone_fd = None
+            for fd in (self._file, self._appender, self._sink):
+                if fd is not None:
+                    os.close(fd)
+            self._file = self._appender = self._sink = None
         self._remove_names()

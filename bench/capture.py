@@ -151,9 +151,10 @@ def render(runs: dict[tuple[str, bool], list[dict[str, Any]]], args: argparse.Na
         "holds at the end (not counted in RSS). Client: a Fast DDS-mapping `ServiceClient` "
         f"calling an rclpy echo server every {CALL_PERIOD * 1e3:.0f} ms. All processes share "
         "2 cores.", "",
-        "| Fast DDS client | capture | CPU (s per s) | vs off | RSS / peak (MB) | "
-        "RSS vs off | tmpfs (MB) | images / twists per s | calls right / wrong |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| Fast DDS client | capture | CPU (s per s; runs' range) | vs off | of it: drain thread "
+        "| RSS / peak (MB) | RSS vs off | tmpfs (MB) | images / twists per s | "
+        "calls right / wrong |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for client in (False, True):
         off = runs[("off", client)]
@@ -161,8 +162,11 @@ def render(runs: dict[tuple[str, bool], list[dict[str, Any]]], args: argparse.Na
             got = runs[(capture, client)]
             cpu, rss = _median(got, "cpu") / args.seconds, _median(got, "rss_kib") / 1024
             lines.append(
-                f"| {'alive' if client else 'none'} | {capture} | {cpu:.3f} | "
+                f"| {'alive' if client else 'none'} | {capture} | {cpu:.3f} "
+                f"({min(r['cpu'] for r in got) / args.seconds:.3f}–"
+                f"{max(r['cpu'] for r in got) / args.seconds:.3f}) | "
                 f"{cpu / (_median(off, 'cpu') / args.seconds):.2f}× | "
+                f"{_median(got, 'drain_cpu') / args.seconds:.3f} | "
                 f"{rss:.1f} / {_median(got, 'hwm_kib') / 1024:.1f} | "
                 f"{rss - _median(off, 'rss_kib') / 1024:+.1f} MB | "
                 f"{_median(got, 'held') / 1e6:.1f} | "

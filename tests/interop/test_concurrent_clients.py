@@ -1,11 +1,12 @@
 """Clients in different processes calling one rclpy (Fast DDS) server at the same moment.
 
-A known limit, kept as a strict xfail so it is seen (and fails the day it is fixed): a Fast
-DDS server writes every reply to every client's reply reader, naming the request only in the
-RTPS inline QoS (related sample identity), which the cyclonedds API cannot read. So two
-processes calling one Fast DDS server at the same moment swap replies (measured: most of the
-150 calls of 6 processes x 25 sequential calls). Against an rclpy server on Cyclone DDS (its replies
-carry the client's id in-band) the same load must be exact, and is. Sequential calls and
+A Fast DDS server writes every reply to every client's reply reader, naming the request only
+in the RTPS inline QoS (related sample identity), which the cyclonedds API cannot read; before
+the client read it from Cyclone's packet capture (rtps_capture.py), processes calling one
+Fast DDS server at the same moment swapped replies (most of the 150 calls of 6 processes x 25
+sequential calls). Against an rclpy server on Cyclone DDS (its replies carry the client's id
+in-band) the same load must be exact too. The same with a CPU load generator running:
+test_rpc_identity.py. Sequential calls and
 fresh clients are exact on both (test_zero_loss.py). Weighed and refused: reading the request
 topic to count outstanding requests (that reader would look like a server to every ROS tool).
 """
@@ -22,6 +23,8 @@ from pathlib import Path
 import pytest
 from oracle.client import RMWS, OracleEnv, RclpyOracle
 
+from tests.interop.cpu_load import burning_cpus
+
 PROCESSES = 6
 CALLS_EACH = 25
 CALLER = Path(__file__).with_name("concurrent_caller.py")
@@ -34,15 +37,20 @@ def oracle(jazzy_oracle: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
         yield agent
 
 
-FAST_DDS_LIMIT = pytest.mark.xfail(
-    strict=True, reason="Fast DDS names a reply's request only in inline QoS, which cyclonedds "
-    "cannot read: concurrent processes can swap replies")
-
-
-@pytest.mark.parametrize("oracle_rmw", [
-    pytest.param(rmw, marks=FAST_DDS_LIMIT if rmw == "fastrtps" else ()) for rmw in RMWS])
+@pytest.mark.parametrize("oracle_rmw", RMWS)
 def test_processes_calling_at_once_never_swap_or_lose_replies(
         oracle: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
+    _call_at_once(oracle, domain_id, jazzy_share)
+
+
+@pytest.mark.parametrize("oracle_rmw", RMWS)
+def test_processes_calling_at_once_under_cpu_load(
+        oracle: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
+    with burning_cpus():
+        _call_at_once(oracle, domain_id, jazzy_share)
+
+
+def _call_at_once(oracle: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     callers = [subprocess.Popen(
         [sys.executable, str(CALLER), f"p{n}", str(CALLS_EACH), str(domain_id),
@@ -62,6 +70,7 @@ def test_processes_calling_at_once_never_swap_or_lose_replies(
             caller.kill()
     lost = sum(len(t["lost"]) for t in tallies)
     wrong = [w for t in tallies for w in t["wrong"]]
+    print(f"{PROCESSES} processes x {CALLS_EACH} calls: {len(wrong)} misattributed, {lost} lost")
     assert (lost, wrong) == (0, []), \
         f"of {PROCESSES * CALLS_EACH} calls: {lost} lost, misattributed {wrong}"
     served = oracle.call("service_requests", name="/echo")

@@ -42,6 +42,17 @@ async def test_trigger_against_rclpy_server(oracle: RclpyOracle, node: RosNode) 
 
 
 @both_rmws
+async def test_a_configured_mapping_finds_the_server(oracle: RclpyOracle, node: RosNode) -> None:
+    """With the mapping set (a `services:` override), nothing else refreshes the graph the
+    client waits on: it must still see the server's reply writer appear."""
+    await oracle.acall("service_server", name="/trigger", type="std_srvs/srv/Trigger")
+    client = ServiceClient(node, "/trigger", "std_srvs/srv/Trigger",
+                           mapping=MAPPING_OF_RMW[oracle.rmw])
+    reply = await client.call({}, timeout=15)
+    assert (reply.success, reply.message) == (True, "triggered #1")
+
+
+@both_rmws
 async def test_setbool_against_rclpy_server(oracle: RclpyOracle, node: RosNode) -> None:
     await oracle.acall("service_server", name="/enable", type="std_srvs/srv/SetBool")
     client = ServiceClient(node, "enable", "std_srvs/srv/SetBool")

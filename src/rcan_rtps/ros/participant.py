@@ -33,6 +33,7 @@ from .errors import GraphTimeout, WireError, seconds
 from .names import expand_topic_name, mangle_topic, normalize_namespace, validate_node_name
 from .qos import QosProfile
 from .readers import Decode, ReaderThread, Watch, WriterWatch
+from .rtps_capture import IdentityCapture
 from .typesys.cdr import CdrCodecs
 from .typesys.ddstypes import DdsTypes
 from .typesys.store import TypeStore, env_idl_paths
@@ -57,6 +58,20 @@ _COMPAT_CONFIG = """<CycloneDDS><Domain Id="any"><Compatibility>
 
 _domains: dict[int, tuple[Domain, int]] = {}  # domain id → (configured domain, nodes using it)
 _domains_lock = threading.Lock()
+# Per domain: Cyclone's packet capture, read for the request identity in Fast DDS replies
+# (rtps_capture.py). RCAN_RTPS_RPC_IDENTITY=off leaves it out; RCAN_RTPS_CAPTURE_DIR says
+# where its file is made (it loses its name as soon as Cyclone has opened it).
+_captures: dict[int, IdentityCapture] = {}
+
+
+def _new_capture() -> IdentityCapture | None:
+    if os.environ.get("RCAN_RTPS_RPC_IDENTITY", "").lower() in ("off", "0", "false"):
+        return None
+    try:
+        return IdentityCapture()
+    except OSError as exc:  # no writable temporary directory: replies stay unnamed
+        log.warning("no packet capture for Fast DDS request identities: %s", exc)
+        return None
 
 
 def resolve_domain_id(explicit: int | None = None,
@@ -92,14 +107,26 @@ def _acquire_domain(domain_id: int, localhost: bool) -> None:
             _domains[domain_id] = (domain, users + 1)
             return
         user = os.environ.get("CYCLONEDDS_URI", "").strip()
-        ours = [_COMPAT_CONFIG, *([_LOCALHOST_CONFIG] if localhost else [])]
+        capture = _new_capture()
+        local = [*([_LOCALHOST_CONFIG] if localhost else []),
+                 *([capture.config] if capture else [])]
         try:
-            domain = Domain(domain_id, ",".join(filter(None, [user, *ours])))
-        except DDSException:  # an older Cyclone without <Compatibility>: do without it
-            log.warning("Cyclone DDS does not know <Compatibility>; Fast DDS 3 peers may not "
-                        "match endpoints with sequences")
-            fallback = [user, *([_LOCALHOST_CONFIG] if localhost else [])]
-            domain = Domain(domain_id, ",".join(filter(None, fallback)) or None)
+            try:
+                domain = Domain(domain_id, ",".join(filter(None, [user, _COMPAT_CONFIG, *local])))
+            except DDSException:  # an older Cyclone without <Compatibility>: do without it
+                log.warning("Cyclone DDS does not know <Compatibility>; Fast DDS 3 peers may "
+                            "not match endpoints with sequences")
+                domain = Domain(domain_id, ",".join(filter(None, [user, *local])) or None)
+            if capture is not None and capture.start():
+                _captures[domain_id] = capture
+            elif capture is not None:
+                log.warning("Cyclone DDS made no packet capture: Fast DDS replies stay "
+                            "unnamed")
+                capture.close()
+        except BaseException:
+            if capture is not None:
+                capture.close()
+            raise
         _domains[domain_id] = (domain, 1)
 
 
@@ -113,6 +140,9 @@ def _release_domain(domain_id: int) -> None:
             _domains[domain_id] = (domain, users - 1)
             return
         del _domains[domain_id]
+        capture = _captures.pop(domain_id, None)
+    if capture is not None:  # first: it may redirect Cyclone's descriptor while it lives
+        capture.close()
     domain.__del__()
 
 
@@ -341,6 +371,8 @@ class RosNode:
             _release_domain(self.domain_id)
             raise
         self.secured = bool(security)
+        # Request identities of Fast DDS replies, or None (capture off; see rtps_capture.py).
+        self.identities = _captures.get(self.domain_id)
         self._topics: dict[str, Topic[Any]] = {}
         self._readers: list[Any] = []
         self._writers: list[Any] = []

@@ -2,18 +2,23 @@
 
     RequestMapping.CYCLONE  rmw_cyclonedds: a 16-byte in-band header (client guid, seq) in
                             every request and reply, so replies correlate exactly.
-    RequestMapping.FASTDDS  rmw_fastrtps: plain samples; the client's identity travels as RTPS
-                            sample identity, which the cyclonedds API can neither read nor write.
+    RequestMapping.FASTDDS  rmw_fastrtps: plain samples; a reply names its request (request
+                            writer GUID, sequence number) only as the RTPS related sample
+                            identity in its inline QoS, which the cyclonedds API can neither
+                            read nor write; we read it from Cyclone's packet capture
+                            (rtps_capture.py, docs/design/rpc-identity.md).
     RequestMapping.AUTO     chosen per call from the vendor of the server's request reader
                             (GUID prefix 01.10 Cyclone; anything else gets plain requests).
 
-With a Fast DDS server nothing in a reply names its request, and the server's reply writer
-sends each client's replies to every reply reader. So a client keeps one request
-outstanding per endpoint and queues the rest, drops replies that arrive while nothing is
-outstanding or that fail the caller's `accept` check, and after a timeout lets a late reply
-drain before its next request. What it cannot do is tell our reply from that of another
-process calling the same server at the same moment; actions cross-check goal ids on the
-status topic for that reason (see `actions.py`).
+A Fast DDS server's reply writer sends each client's replies to every reply reader. A
+client keeps one request outstanding per endpoint and queues the rest; a reply whose related
+sample identity names another request (another client's, or one we gave up on) is dropped.
+Without the packet capture (RCAN_RTPS_RPC_IDENTITY=off), or for a server whose replies carry
+no identity, the client drops replies that arrive while nothing is outstanding or that fail
+the caller's `accept` check, and after a timeout lets a late reply drain before its next
+request — but then it cannot tell our reply from that of another process calling the same
+server at the same moment; actions cross-check goal ids on the status topic for that reason
+(see `actions.py`).
 
 `ServiceServer` speaks the Cyclone mapping only. Fast DDS clients cannot use it: they drop
 every reply without the RTPS related-sample identity, which cyclonedds cannot set, and their
@@ -48,6 +53,7 @@ from .names import mangle_service
 from .participant import RosNode
 from .qos import QosProfile
 from .readers import Decode
+from .rtps_capture import SampleIdentity
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +145,11 @@ class _Pair:
         self.out_codec = node.codecs.of(out[1])
         # rmw_cyclonedds names a client in the header by its request writer's handle.
         self.guid = int(self.writer.get_instance_handle()) & 0xFFFF_FFFF_FFFF_FFFF
+        # RTPS names a sample (writer GUID, sequence number); Cyclone numbers a writer's
+        # samples 1, 2, ... and this writer writes nothing but requests or replies.
+        self.writer_guid = bytes(self.writer.guid.bytes)
+        self.written = 0
+        self._writer_guids: dict[int, bytes] = {}
         self.watch = node.watch(self.reader, self._on_samples, f"{into[0]} ({mapping.value})",
                                 decode=decode)
         self.ready: set[int] = set()  # server writers whose next reply will reach us
@@ -161,6 +172,22 @@ class _Pair:
         """Sends one request or reply (with the in-band header in the Cyclone mapping)."""
         data = self.out_codec.encode(message)
         raw_cdr.write(self.writer, data if header is None else cyclone.wrap_cdr(header, data))
+        self.written += 1
+
+    def related_identity(self, sample: Any) -> SampleIdentity | None:
+        """The request a received sample answers, from its RTPS inline QoS (None: unknown —
+        no capture, not in it, or the writer sent none)."""
+        capture = self._node.identities
+        if capture is None:
+            return None
+        info = sample.sample_info
+        guid = self._writer_guids.get(info.publication_handle)
+        if guid is None:
+            found = self.reader.get_matched_publication_data(info.publication_handle)
+            if found is None:
+                return None
+            guid = self._writer_guids[info.publication_handle] = bytes(found.key.bytes)
+        return capture.lookup(guid, info.source_timestamp)
 
     def matched(self) -> bool:
         return bool(self.writer.get_publication_matched_status().current_count and
@@ -198,7 +225,9 @@ class ServiceClient:
         self._seq = itertools.count(1)
         self._pending: dict[int, asyncio.Future[IdlStruct]] = {}
         self._plain_lock = asyncio.Lock()
-        self._plain_waiter: tuple[asyncio.Future[IdlStruct], Accept | None] | None = None
+        # The outstanding Fast DDS request: its reply, the caller's check, its identity.
+        self._plain_waiter: tuple[asyncio.Future[IdlStruct], Accept | None,
+                                  SampleIdentity] | None = None
         self._stale = False
         self.closed = False
         self.dropped_replies = 0  # replies not ours: foreign guid, unsolicited, not accepted
@@ -214,6 +243,7 @@ class ServiceClient:
                 if e.dds_topic == self.request_topic and e.direction is Direction.SUBSCRIPTION]
 
     def _reply_writer_known(self) -> bool:
+        self._graph.refresh()  # with a configured mapping, nothing else refreshes it
         return any(e.dds_topic == self.reply_topic and e.direction is Direction.PUBLISHER
                    for e in self._graph.endpoints())
 
@@ -236,6 +266,8 @@ class ServiceClient:
                 self.node, mapping, (self.request_topic, self.request_type),
                 (self.reply_topic, self.response_type), self._qos,
                 f"clientid={format_endpoint_id(self.id)};", self._deliver)
+            if mapping is RequestMapping.FASTDDS and self.node.identities is not None:
+                self.node.identities.use()
         return pair
 
     async def wait_for_service(self, timeout: float = 5.0) -> _Pair:
@@ -312,8 +344,8 @@ class ServiceClient:
                 await asyncio.sleep(max(0.0, min(STALE_REPLY_GRACE, deadline - loop.time())))
                 self._stale = False
             future: asyncio.Future[IdlStruct] = loop.create_future()
-            self._plain_waiter = (future, accept)
             pair.write(message)
+            self._plain_waiter = (future, accept, SampleIdentity(pair.writer_guid, pair.written))
             try:
                 return await asyncio.wait_for(future, max(0.0, deadline - loop.time()))
             except asyncio.TimeoutError:
@@ -336,9 +368,13 @@ class ServiceClient:
                     self.dropped_replies += 1
                 continue
             waiter = self._plain_waiter
-            if waiter is None or waiter[0].done() or \
-                    (waiter[1] is not None and not waiter[1](sample)):
+            if waiter is None or waiter[0].done():
                 self.dropped_replies += 1
+                continue
+            related = pair.related_identity(sample)
+            if (related is not None and related != waiter[2]) or \
+                    (waiter[1] is not None and not waiter[1](sample)):
+                self.dropped_replies += 1  # names another request, or the caller refused it
                 continue
             waiter[0].set_result(sample)
 
@@ -353,8 +389,10 @@ class ServiceClient:
         for future in waiting:
             if not future.done():
                 future.set_exception(ServiceUnavailable(f"the client of {self.name} closed"))
-        for pair in self._pairs.values():
+        for mapping, pair in self._pairs.items():
             pair.close()
+            if mapping is RequestMapping.FASTDDS and self.node.identities is not None:
+                self.node.identities.unuse()
 
 
 class ServiceServer:

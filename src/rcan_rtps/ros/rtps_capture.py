@@ -1,0 +1,429 @@
+"""The RTPS related sample identity of received samples, read from Cyclone's packet capture.
+
+rmw_fastrtps names the request a reply answers only in the reply's RTPS inline QoS
+(PID_RELATED_SAMPLE_IDENTITY 0x0083, and Fast DDS' own 0x800f: request writer GUID and
+request sequence number). Cyclone DDS 11 parses inline QoS but keeps nothing of it but
+status info and key hash, so no API shows it (docs/design/rpc-identity.md). What Cyclone 11
+does have is `Tracing/PacketCaptureFile`: it writes every UDP datagram it sends or receives,
+whole, to a pcap file, from the socket thread, before the datagram is processed. So by the
+time a sample can be taken from a reader, the datagram that carried it is in that file (or
+in the C library's buffer of that file: `flush` pushes it out).
+
+`IdentityCapture` tails that file (a regular file, so Cyclone's threads never wait for us:
+a pipe could fill and block a DDS write that holds the GIL) through a read-only mapping, so
+nothing is copied. While no client needs identities it only steps over record headers;
+while one does, it walks the submessages of received datagrams and keeps
+`(writer GUID, source timestamp) -> related identity` for the DATA and first DATA_FRAG
+submessages whose inline QoS carries one. A reader takes a sample, then asks
+`lookup(writer_guid, source_timestamp)`. The consumed part of the file is given back to the
+system (a hole punched in the tmpfs file), so memory stays bounded by what arrived since
+the last drain; the file has no name once Cyclone has opened it, so a killed process leaves
+nothing behind. Limits: UDPv4 only (Cyclone's capture is), and nothing under DDS-Security
+payload or submessage protection can be read.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import ctypes.util
+import logging
+import mmap
+import os
+import struct
+import tempfile
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+PID_SENTINEL = 0x0001
+PID_RELATED_SAMPLE_IDENTITY = 0x0083  # OMG DDS-RPC
+PID_FASTDDS_RELATED_SAMPLE_IDENTITY = 0x800F  # Fast DDS' older vendor-specific id
+RELATED_PIDS = (PID_RELATED_SAMPLE_IDENTITY, PID_FASTDDS_RELATED_SAMPLE_IDENTITY)
+
+PAD, INFO_TS, INFO_SRC, DATA, DATA_FRAG = 0x01, 0x09, 0x0C, 0x15, 0x16
+FLAG_LITTLE, FLAG_INLINE_QOS, FLAG_INVALIDATE = 0x01, 0x02, 0x02
+RTPS_HEADER_SIZE = 20
+IP_UDP_SIZE = 28  # Cyclone's capture writes a made-up IPv4 + UDP header before each datagram
+TTL_OFFSET = 8  # ... whose TTL is 128 on received datagrams, 255 on sent ones
+RECEIVED_TTL = 128
+PCAP_HEADER_SIZE, RECORD_HEADER_SIZE = 24, 16
+PCAP_MAGICS = {b"\xd4\xc3\xb2\xa1": True, b"\xa1\xb2\xc3\xd4": False}  # → little-endian
+
+KEPT_IDENTITIES = 8192  # newest identified samples remembered; far more than a reader keeps
+DRAIN_PERIOD = 0.05  # s between background drains of the capture file
+CHUNK = 1 << 20  # bytes of records consumed per hold of the lock
+MISS_BUDGET = 8 << 20  # bytes a lookup that missed may consume itself before answering
+PUNCH_AFTER = 1 << 20  # bytes consumed before they are given back
+
+_SUBMESSAGE = struct.Struct("<BBH")
+
+
+@dataclass(frozen=True)
+class SampleIdentity:
+    """A DDS sample's identity: its writer's GUID (16 bytes) and its sequence number."""
+
+    writer_guid: bytes
+    seq: int
+
+
+@dataclass(frozen=True)
+class ReceivedData:
+    """A received DATA (or first DATA_FRAG) submessage that names a related sample."""
+
+    writer_guid: bytes
+    seq: int
+    source_timestamp: int  # ns since the epoch, converted as Cyclone does
+    related: SampleIdentity
+
+
+def capture_config(path: str | Path) -> str:
+    """The Cyclone configuration fragment that captures the domain's traffic into `path`."""
+    return ("<CycloneDDS><Domain Id=\"any\"><Tracing><PacketCaptureFile>"
+            f"{path}</PacketCaptureFile></Tracing></Domain></CycloneDDS>")
+
+
+def nanoseconds(seconds: int, fraction: int) -> int:
+    """An RTPS Time_t as Cyclone 11 converts it (rounding the 2^-32 s fraction to nearest)."""
+    return seconds * 1_000_000_000 + ((1 << 31) + fraction * 1_000_000_000 >> 32)
+
+
+def _inline_related(buf: bytes | mmap.mmap, offset: int, end: int,
+                    order: str) -> SampleIdentity | None:
+    """The related sample identity in a parameter list from `offset` to `end`, if any."""
+    while offset + 4 <= end:
+        pid, length = struct.unpack_from(order + "HH", buf, offset)
+        offset += 4
+        pid &= 0x3FFF if pid & 0x8000 == 0 else 0xFFFF  # drop the must-understand bit
+        if pid == PID_SENTINEL:
+            return None
+        if pid in RELATED_PIDS:
+            if length < 24 or offset + 24 > end:
+                return None
+            high, low = struct.unpack_from(order + "iI", buf, offset + 16)
+            return SampleIdentity(bytes(buf[offset:offset + 16]), (high << 32) | low)
+        offset += length
+    return None
+
+
+def parse_rtps(buf: bytes | mmap.mmap, start: int = 0,
+               end: int | None = None) -> Iterator[ReceivedData]:
+    """The DATA and first DATA_FRAG submessages naming a related sample in the RTPS message
+    `buf[start:end]`, in order. Other submessages cost one header read each."""
+    end = len(buf) if end is None else end
+    if end - start < RTPS_HEADER_SIZE or buf[start:start + 4] != b"RTPS":
+        return
+    prefix = bytes(buf[start + 8:start + 20])
+    timestamp: int | None = None
+    offset = start + RTPS_HEADER_SIZE
+    while offset + 4 <= end:
+        kind, flags, length = _SUBMESSAGE.unpack_from(buf, offset)
+        little = flags & FLAG_LITTLE
+        if not little:
+            length = (length & 0xFF) << 8 | length >> 8
+        body = offset + 4
+        stop = end if length == 0 and kind not in (INFO_TS, PAD) else min(end, body + length)
+        if kind in (DATA, DATA_FRAG):
+            if flags & FLAG_INLINE_QOS and timestamp is not None and stop - body >= 24:
+                found = _data(buf, body, stop, "<" if little else ">", kind, prefix, timestamp)
+                if found is not None:
+                    yield found
+        elif kind == INFO_TS:
+            timestamp = None if flags & FLAG_INVALIDATE or stop - body < 8 else \
+                nanoseconds(*struct.unpack_from("<iI" if little else ">iI", buf, body))
+        elif kind == INFO_SRC and stop - body >= 20:
+            prefix = bytes(buf[body + 8:body + 20])
+        offset = stop
+
+
+def _data(buf: bytes | mmap.mmap, body: int, stop: int, order: str, kind: int, prefix: bytes,
+          timestamp: int) -> ReceivedData | None:
+    if kind == DATA_FRAG and struct.unpack_from(order + "I", buf, body + 20)[0] != 1:
+        return None  # inline QoS travels with the first fragment only
+    (to_inline_qos,) = struct.unpack_from(order + "H", buf, body + 2)
+    related = _inline_related(buf, body + 4 + to_inline_qos, stop, order)
+    if related is None:
+        return None
+    high, low = struct.unpack_from(order + "iI", buf, body + 12)
+    return ReceivedData(prefix + bytes(buf[body + 8:body + 12]), (high << 32) | low,
+                        timestamp, related)
+
+
+class _Libc:
+    """The two C library calls the capture needs, if this platform has them."""
+
+    def __init__(self) -> None:
+        name = ctypes.util.find_library("c")
+        self._lib = ctypes.CDLL(name) if name else None
+        self._punch = getattr(self._lib, "fallocate", None)
+        if self._punch is not None:
+            self._punch.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
+
+    def flush_all(self) -> None:
+        """fflush(NULL): pushes out what Cyclone's capture FILE holds (ctypes drops the GIL)."""
+        if self._lib is not None:
+            self._lib.fflush(None)
+
+    def punch_hole(self, fd: int, offset: int, length: int) -> None:
+        """Frees a consumed range of the capture file (FALLOC_FL_PUNCH_HOLE|KEEP_SIZE)."""
+        if self._punch is not None:
+            self._punch(fd, 0x02 | 0x01, offset, length)
+
+
+def capture_directory() -> str | None:
+    """Where capture files go: $RCAN_RTPS_CAPTURE_DIR, else /dev/shm (tmpfs), else the
+    system's temporary directory."""
+    chosen = os.environ.get("RCAN_RTPS_CAPTURE_DIR")
+    return chosen or ("/dev/shm" if os.path.isdir("/dev/shm") else None)
+
+
+class IdentityCapture:
+    """Tails a Cyclone packet capture and answers `lookup(writer_guid, source_timestamp)`.
+
+    Make it before the domain (Cyclone opens the file when the domain starts), pass
+    `config` to the domain, `start()` it once the domain exists, `close()` it after."""
+
+    def __init__(self, directory: str | Path | None = None) -> None:
+        self._dir = tempfile.mkdtemp(prefix="rcan-rtps-capture-",
+                                     dir=directory or capture_directory())
+        self.path = Path(self._dir) / "domain.pcap"
+        self.config = capture_config(self.path)
+        self._libc = _Libc()
+        self._file: int | None = None
+        self._offset = 0  # bytes of the file consumed (whole records only)
+        self._punched = 0
+        self._record_size = struct.Struct("<I")
+        self._known: OrderedDict[tuple[bytes, int], SampleIdentity] = OrderedDict()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._users = 0  # clients that need identities; with none, records are only skipped
+        # Cyclone's descriptor of the capture, pointed at /dev/null while nobody needs
+        # identities (writing ~all traffic to tmpfs is most of the cost) and back at the
+        # file (opened for appending) when someone does: see `_route`.
+        self._cyclone_fd: int | None = None
+        self._sink: int | None = None
+        self._appender: int | None = None
+        self._resync_at: int | None = None  # file offset where writing resumed mid-stream
+        self.datagrams = 0  # received datagrams parsed so far
+        self.identified = 0  # DATA submessages found naming a related sample
+
+    def use(self) -> None:
+        """A client needs identities from now on (until `unuse`)."""
+        with self._lock:
+            self._users += 1
+            if self._users == 1:
+                self._route(True)
+
+    def unuse(self) -> None:
+        with self._lock:
+            self._users = max(0, self._users - 1)
+            if self._users == 0:
+                self._route(False)
+
+    def _route(self, to_file: bool) -> None:
+        """Points Cyclone's capture descriptor at the file or at /dev/null (under the lock).
+
+        Cyclone writes each record with buffered fwrite and never flushes, so a switch cuts
+        its byte stream anywhere: the file may end in a partial record, and what is written
+        after the switch may start in the middle of one. The drain therefore drops a record
+        crossing the switch point and looks for the next record header after it (`_resync`).
+        A client's request is written after `use()`, so the replies it waits for are whole."""
+        if self._cyclone_fd is None or self._file is None:
+            return
+        if to_file:
+            assert self._appender is not None
+            self._resync_at = os.fstat(self._file).st_size
+            os.dup2(self._appender, self._cyclone_fd)
+        else:
+            assert self._sink is not None
+            self._libc.flush_all()  # what Cyclone buffered still goes to the file
+            os.dup2(self._sink, self._cyclone_fd)
+
+    def _find_cyclone_fd(self) -> int | None:
+        """Cyclone's descriptor of the capture file (Linux: the only other link to it)."""
+        found = []
+        with contextlib.suppress(OSError):
+            for name in os.listdir("/proc/self/fd"):
+                with contextlib.suppress(OSError, ValueError):
+                    if int(name) != self._file and \
+                            os.readlink(f"/proc/self/fd/{name}") == str(self.path):
+                        found.append(int(name))
+        return found[0] if len(found) == 1 else None
+
+    def start(self) -> bool:
+        """Opens the capture Cyclone has made, drops its name and drains it in the
+        background. False (and nothing runs) if Cyclone has not made it."""
+        try:
+            self._file = os.open(self.path, os.O_RDWR)
+        except FileNotFoundError:
+            return False
+        # Cyclone wrote the pcap header when it opened the file (fopen "wb"; buffered, hence
+        # the flush): seeing it proves Cyclone holds this very inode open.
+        self._libc.flush_all()
+        little = PCAP_MAGICS.get(os.pread(self._file, 4, 0))
+        if little is None:
+            os.close(self._file)
+            self._file = None
+            return False
+        self._record_size = struct.Struct("<I" if little else ">I")
+        self._offset = PCAP_HEADER_SIZE
+        self._cyclone_fd = self._find_cyclone_fd()  # by name: before the name goes
+        if self._cyclone_fd is not None:
+            self._appender = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+            self._sink = os.open(os.devnull, os.O_WRONLY)
+            with self._lock:
+                self._route(self._users > 0)
+        # Both descriptors keep the inode: without a name, a killed process leaves nothing.
+        self._remove_names()
+        self._thread = threading.Thread(target=self._run, name="rtps-capture", daemon=True)
+        self._thread.start()
+        return True
+
+    def _remove_names(self) -> None:
+        with contextlib.suppress(OSError):
+            self.path.unlink()
+        with contextlib.suppress(OSError):
+            os.rmdir(self._dir)
+
+    def _run(self) -> None:
+        while not self._stop.wait(DRAIN_PERIOD):
+            self.drain()
+
+    def drain(self) -> None:
+        """Consumes the records the file holds now, a chunk per hold of the lock, so a
+        `lookup` never waits for more than one chunk."""
+        while True:
+            with self._lock:
+                if self._file is None or not self._consume(CHUNK):
+                    return
+            time.sleep(0)  # a waiting lookup gets the lock (and the GIL) between chunks
+
+    def _consume(self, limit: int) -> int:
+        """Steps over about `limit` bytes of whole records (parsing the received datagrams
+        while a client needs identities), gives back what is consumed; bytes consumed."""
+        assert self._file is not None
+        size = os.fstat(self._file).st_size
+        if size - self._offset < RECORD_HEADER_SIZE:
+            return 0
+        base = self._offset & ~(mmap.ALLOCATIONGRANULARITY - 1)
+        with mmap.mmap(self._file, size - base, access=mmap.ACCESS_READ, offset=base) as buf:
+            start = offset = self._offset - base
+            available, stop = size - base, offset + limit
+            parse, record_size = self._users > 0, self._record_size.unpack_from
+            mark = None if self._resync_at is None else self._resync_at - base
+            while offset < stop:
+                if mark is not None and offset + RECORD_HEADER_SIZE > mark:
+                    offset = self._resync(buf, max(offset, mark), available)
+                    if self._resync_at is not None:
+                        break  # no whole header after the switch yet
+                    mark = None
+                if offset + RECORD_HEADER_SIZE > available:
+                    break
+                (length,) = record_size(buf, offset + 8)
+                end = offset + RECORD_HEADER_SIZE + length
+                if mark is not None and end > mark:
+                    offset = mark  # its tail went to /dev/null
+                    continue
+                if end > available:
+                    break  # Cyclone has not written all of it yet
+                packet = offset + RECORD_HEADER_SIZE
+                if parse and length > IP_UDP_SIZE and buf[packet + TTL_OFFSET] == RECEIVED_TTL:
+                    self._parse(buf, packet + IP_UDP_SIZE, end)
+                offset = end
+        self._offset = base + offset
+        if self._offset - self._punched >= PUNCH_AFTER:
+            # Page-aligned, below what was consumed: the hole never touches unread bytes.
+            punch_to = self._offset & ~0xFFF
+            with contextlib.suppress(OSError):
+                self._libc.punch_hole(self._file, self._punched, punch_to - self._punched)
+            self._punched = punch_to
+        return offset - start
+
+    def _resync(self, buf: mmap.mmap, offset: int, available: int) -> int:
+        """The first record header at or after `offset` (clearing the switch mark), or
+        where to look again once more is written. A header is recognised by Cyclone's
+        made-up IPv4 header: version/IHL 0x45, TOS 0, total length = captured length =
+        original length, protocol UDP."""
+        while True:
+            found = buf.find(b"\x45\x00", offset + RECORD_HEADER_SIZE, available)
+            if found < 0:
+                return max(offset, available - RECORD_HEADER_SIZE - 1)
+            start = found - RECORD_HEADER_SIZE
+            if found + IP_UDP_SIZE > available:
+                return start
+            captured, original = struct.unpack_from(self._record_size.format[0] + "II",
+                                                    buf, start + 8)
+            (total,) = struct.unpack_from(">H", buf, found + 2)
+            if captured == original == total > IP_UDP_SIZE and buf[found + 9] == 17:
+                self._resync_at = None
+                return start
+            offset = start + 1
+
+    def _parse(self, buf: mmap.mmap, start: int, end: int) -> None:
+        self.datagrams += 1
+        for data in parse_rtps(buf, start, end):
+            self.identified += 1
+            key = (data.writer_guid, data.source_timestamp)
+            self._known[key] = data.related
+            self._known.move_to_end(key)
+            if len(self._known) > KEPT_IDENTITIES:
+                self._known.popitem(last=False)
+
+    def held(self) -> int:
+        """Bytes of the capture file in memory now (tmpfs pages not yet given back)."""
+        with self._lock:
+            return 0 if self._file is None else os.fstat(self._file).st_blocks * 512
+
+    def lookup(self, writer_guid: bytes, source_timestamp: int) -> SampleIdentity | None:
+        """The related identity of the sample `writer_guid` wrote at `source_timestamp`, or
+        None: unknown (the sample named none, or its datagram is not in the capture: not
+        UDPv4, protected, the capture is off or further behind than MISS_BUDGET).
+
+        Call it after the sample was taken: its datagram is then in the capture or in the
+        capture's C buffer, which a miss flushes before reading the file up to its end
+        (in chunks, so the drain thread never holds it up for more than one)."""
+        key = (writer_guid, source_timestamp)
+        with self._lock:
+            if key in self._known:
+                return self._known[key]
+        self._libc.flush_all()
+        with self._lock:
+            if self._file is None:
+                return None
+            target = os.fstat(self._file).st_size
+        budget = MISS_BUDGET
+        while budget > 0:
+            with self._lock:
+                if key in self._known:
+                    return self._known[key]
+                if self._file is None or self._offset >= target:
+                    return None
+                used = self._consume(min(CHUNK, budget))
+            if not used:
+                break
+            budget -= used
+        with self._lock:
+            return self._known.get(key)
+
+    def close(self) -> None:
+        """Stops the drain and closes the capture (removing its name if it still has one)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        with self._lock:
+            # Cyclone's descriptor is left on /dev/null, and never touched again: once the
+            # domain is gone its number may be anyone's.
+            if self._users:
+                self._route(False)
+            self._cyclone_fd = None
+            for fd in (self._file, self._appender, self._sink):
+                if fd is not None:
+                    os.close(fd)
+            self._file = self._appender = self._sink = None
+        self._remove_names()

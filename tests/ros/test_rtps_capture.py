@@ -1,0 +1,163 @@
+"""Cyclone's packet capture as the source of RTPS related sample identities (rtps_capture.py).
+
+The parser and the tailing run on capture files written here the way Cyclone writes them
+(pcap records with a made-up IPv4/UDP header, TTL 128 for received datagrams); the crash
+test runs a real domain in a child process and kills it.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import struct
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from rcan_rtps.ros.rtps_capture import (
+    IdentityCapture,
+    ReceivedData,
+    SampleIdentity,
+    nanoseconds,
+    parse_rtps,
+)
+
+PREFIX = bytes(range(1, 13))
+WRITER_ID = b"\x00\x00\x12\x03"
+SERVER = PREFIX + WRITER_ID
+REQUEST_WRITER = bytes(range(100, 116))
+
+
+def rtps_message(seq: int, related: SampleIdentity | None, *, little: bool = True,
+                 frag: int | None = None, stamp: tuple[int, int] = (1_700_000_000, 1 << 31),
+                 payload: bytes = b"\x00\x01\x00\x00hello!!\x00") -> bytes:
+    """An RTPS message: INFO_TS, then one DATA (or DATA_FRAG number `frag`) whose inline QoS
+    names `related` (PID 0x0083) if given."""
+    o = "<" if little else ">"
+    e = 0x01 if little else 0x00
+    info_ts = struct.pack(o + "BBHiI", 0x09, e, 8, *stamp)
+    qos = b""
+    if related is not None:
+        qos = struct.pack(o + "HH", 0x0083, 24) + related.writer_guid + \
+            struct.pack(o + "iI", related.seq >> 32, related.seq & 0xFFFFFFFF) + \
+            struct.pack(o + "HH", 0x0001, 0)
+    flags = e | (0x02 if qos else 0)
+    head = struct.pack(o + "HH", 0, 16 if frag is None else 28) + b"\x00\x00\x12\x04" + \
+        WRITER_ID + struct.pack(o + "iI", seq >> 32, seq & 0xFFFFFFFF)
+    if frag is None:
+        body = head + qos + payload
+        sub = struct.pack(o + "BBH", 0x15, flags | 0x04, len(body)) + body
+    else:
+        body = head + struct.pack(o + "IHHI", frag, 1, len(payload), 4 * len(payload)) + \
+            qos + payload
+        sub = struct.pack(o + "BBH", 0x16, flags, len(body)) + body
+    return b"RTPS\x02\x03\x01\x0f" + PREFIX + info_ts + sub
+
+
+def pcap_record(message: bytes, ttl: int = 128) -> bytes:
+    """A record as Cyclone writes it: pcap header, made-up IPv4 and UDP headers, datagram."""
+    total = 28 + len(message)
+    ip_udp = struct.pack(">BBHIBBH4s4sHHHH", 0x45, 0, total, 0, ttl, 17, 0, bytes([127, 0, 0, 1]),
+                         bytes([239, 255, 0, 1]), 7400, 7401, total - 20, 0)
+    packet = ip_udp + message
+    return struct.pack("<IIII", 1, 2, len(packet), len(packet)) + packet
+
+
+PCAP_HEADER = struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 65535, 1)
+
+
+def test_parse_finds_only_data_naming_a_related_sample() -> None:
+    related = SampleIdentity(REQUEST_WRITER, 7)
+    stamp = nanoseconds(1_700_000_000, 1 << 31)
+    for little in (True, False):
+        found = list(parse_rtps(rtps_message(3, related, little=little)))
+        assert found == [ReceivedData(SERVER, 3, stamp, related)]
+    assert list(parse_rtps(rtps_message(3, None))) == []
+    assert [d.related for d in parse_rtps(rtps_message(4, related, frag=1))] == [related]
+    assert list(parse_rtps(rtps_message(4, related, frag=2))) == []
+
+
+@pytest.fixture
+def capture(tmp_path: Path) -> Iterator[tuple[IdentityCapture, int]]:
+    """A started capture and a descriptor that appends to its file as Cyclone's does (and
+    is redirected as Cyclone's is: the only other descriptor of the file)."""
+    capture = IdentityCapture(tmp_path)
+    writer = os.open(capture.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+    os.write(writer, PCAP_HEADER)
+    assert capture.start()
+    yield capture, writer
+    capture.close()
+    os.close(writer)
+
+
+def test_the_file_loses_its_name_once_opened(tmp_path: Path,
+                                             capture: tuple[IdentityCapture, int]) -> None:
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_idle_capture_writes_nothing_and_a_user_gets_identities(
+        capture: tuple[IdentityCapture, int]) -> None:
+    tail, writer = capture
+    stamp = nanoseconds(1_700_000_000, 1 << 31)
+    big = bytes(1000)
+    os.write(writer, pcap_record(rtps_message(1, SampleIdentity(REQUEST_WRITER, 1),
+                                              payload=big)) * 50)
+    assert tail.held() <= 4096  # nobody needs identities: Cyclone's writes go to /dev/null
+    assert tail.lookup(SERVER, stamp) is None
+    assert (tail.datagrams, tail.identified) == (0, 0)
+
+    mine = SampleIdentity(REQUEST_WRITER, 2)
+    cut = pcap_record(rtps_message(1, mine))
+    os.write(writer, cut[:30])  # the switch cuts a record: its head went to /dev/null ...
+    tail.use()
+    os.write(writer, cut[30:])  # ... its tail reaches the file, and is skipped
+    record = pcap_record(rtps_message(2, mine, stamp=(1_700_000_001, 0)))
+    os.write(writer, pcap_record(rtps_message(9, mine), ttl=255))  # one we sent: not parsed
+    os.write(writer, record[:50])  # Cyclone has written a part of it so far
+    tail.drain()
+    os.write(writer, record[50:])
+    assert tail.lookup(SERVER, nanoseconds(1_700_000_001, 0)) == mine  # the miss drains
+    assert tail.lookup(SERVER, nanoseconds(1_700_000_002, 0)) is None
+    assert (tail.datagrams, tail.identified) == (1, 1)
+
+    tail.unuse()
+    os.write(writer, pcap_record(rtps_message(3, mine, stamp=(1_700_000_003, 0))))
+    assert tail.lookup(SERVER, nanoseconds(1_700_000_003, 0)) is None
+
+
+def test_no_identity_is_kept_for_data_without_one(capture: tuple[IdentityCapture, int]) -> None:
+    tail, writer = capture
+    tail.use()
+    os.write(writer, pcap_record(rtps_message(5, None)))
+    assert tail.lookup(SERVER, nanoseconds(1_700_000_000, 1 << 31)) is None
+    assert (tail.datagrams, tail.identified) == (1, 0)
+
+
+CHILD = """
+import sys, time
+from rcan_rtps.ros.participant import RosNode
+with RosNode("capture_crash", "/", domain_id=int(sys.argv[1])) as node:
+    assert node.identities is not None
+    print(node.identities.path, flush=True)
+    time.sleep(60)
+"""
+
+
+def test_a_killed_process_leaves_no_capture_behind(tmp_path: Path, domain_id: int) -> None:
+    env = {**os.environ, "RCAN_RTPS_CAPTURE_DIR": str(tmp_path),
+           "PYTHONPATH": os.pathsep.join(sys.path)}
+    env.pop("RCAN_RTPS_RPC_IDENTITY", None)
+    child = subprocess.Popen([sys.executable, "-c", CHILD, str(domain_id)],
+                             stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert child.stdout is not None
+        made = Path(child.stdout.readline().strip())
+        assert made.parent.parent == tmp_path  # the capture was made where we said
+        os.kill(child.pid, signal.SIGKILL)
+        assert child.wait(30) == -signal.SIGKILL
+    finally:
+        child.kill()
+    assert [p.name for p in tmp_path.glob("rcan-rtps-capture-*")] == []

@@ -12,6 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from oracle.client import RMWS, OracleEnv  # noqa: E402
+from shm_sweep import segments, sweep  # noqa: E402
 
 ON_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
@@ -191,3 +192,20 @@ def pytest_configure(config: pytest.Config) -> None:
     # Whatever starts a DDS participant without naming a domain joins this worker's own, not
     # domain 0 shared with every other worker.
     os.environ["ROS_DOMAIN_ID"] = str(_DEFAULT_DOMAIN)
+
+
+_SHM_BEFORE = "_rcan_rtps_shm_before"
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    if not hasattr(session.config, "workerinput"):  # the run's controller, not a worker
+        setattr(session.config, _SHM_BEFORE, segments())
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    before = getattr(session.config, _SHM_BEFORE, None)
+    if before is not None:  # after every worker ended: their killed peers' segments
+        removed = sweep(before)
+        if removed:
+            print(f"\nremoved {len(removed)} Fast DDS shared-memory files that killed "
+                  "rclpy peers left in /dev/shm")

@@ -15,8 +15,8 @@ from ._approvals import ApprovalsFeed
 from ._conn import ConnectionDeadlines
 from ._goal_events import GoalEvents
 from ._intake import Checks
-from ._invoke import Invocations
 from ._reads import AuditReads
+from ._skills import Skills
 from ._status import StatusHub
 from ._tickets import WsTickets
 from .ports import ImageSource, RobotView
@@ -64,7 +64,7 @@ DEADLINES = web.AppKey("connection_deadlines", ConnectionDeadlines)
 READS = web.AppKey("audit_reads", AuditReads)
 CHECKS = web.AppKey("message_checks", Checks)  # §8.3 (and signatures) of RCAN 3.x messages
 IMAGES = web.AppKey("images", ImageSource)  # bridge.ros2.images (none: an empty source)
-INVOCATIONS = web.AppKey("invocations", Invocations)  # bridge.skills and INVOKEs under way
+INVOCATIONS = web.AppKey("invocations", Skills)  # bridge.skills and INVOKEs under way
 WS_TICKETS = web.AppKey("ws_tickets", WsTickets)  # how a browser opens the WebSocket
 APPROVALS = web.AppKey("approvals", ApprovalsFeed)  # held commands, for approvers' sockets
 # Seconds per decided command, reported to the metrics (a no-op where there are none).

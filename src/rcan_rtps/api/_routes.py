@@ -111,7 +111,7 @@ async def get_goal(request: web.Request) -> web.Response:
 async def get_skills(request: web.Request) -> web.Response:
     """The skills an INVOKE may name (RCAN §18/§19.7), any principal: a client must not invoke
     an unlisted skill, and the conformance runner picks one to invoke from here."""
-    return json_response(request.app[INVOCATIONS].listed(request.app[GOVERNOR]))
+    return json_response(request.app[INVOCATIONS].invocations().listed(request.app[GOVERNOR]))
 
 
 async def get_images(request: web.Request) -> web.Response:

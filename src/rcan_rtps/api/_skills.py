@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 from rcan_rtps.config import SkillConfig
 
-from .ports import RobotView
+from .ports import GoalView, RobotView
 
 if TYPE_CHECKING:
     from ._invoke import Invocations
@@ -27,6 +27,12 @@ class Skills:
         self._skills = dict(skills)
         self._robot = robot
         self._made: Invocations | None = None
+        if robot is not None:  # now: the robot's channels take no subscriber once started
+            robot.watch_goals(self._goal_changed)
+
+    def _goal_changed(self, view: GoalView) -> None:
+        if self._made is not None:  # else no INVOKE is waiting for any goal
+            self._made.goal_changed(view)
 
     def invocations(self) -> Invocations:
         if self._made is None:

@@ -49,6 +49,7 @@ NOT_FOR_A_RUN = {
     "rcan_rtps.api._console_pages", "rcan_rtps.console",  # the console and its API calls
     "rcan_rtps.api._invoke",  # INVOKE, INVOKE_CANCEL, AUTHORIZE, GET /api/skills
     "rcan_rtps.governance.thoughts",  # an AI command, GET /api/thoughts/{id}
+    "rcan_rtps.governance.jwt",  # bridge.api.jwt
 }
 
 

@@ -50,6 +50,7 @@ NOT_FOR_A_RUN = {
     "rcan_rtps.api._invoke",  # INVOKE, INVOKE_CANCEL, AUTHORIZE, GET /api/skills
     "rcan_rtps.governance.thoughts",  # an AI command, GET /api/thoughts/{id}
     "rcan_rtps.governance.jwt",  # bridge.api.jwt
+    "rcan_rtps.api._reads",  # GET /api/audit, /api/audit/mine, /api/audit/verify
 }
 
 
@@ -59,6 +60,7 @@ FIRST_USE = {
     "/api/whoami": {"rcan_rtps.api._console_pages"},
     "/api/skills": {"rcan_rtps.api._invoke"},
     "/api/thoughts/no-such-thought": {"rcan_rtps.governance.thoughts"},
+    "/api/audit/mine?last=5": {"rcan_rtps.api._reads"},
 }
 
 
@@ -127,6 +129,8 @@ def test_the_lazy_doors_answer_their_first_request(tmp_path: Path, domain_id: in
     assert status == 200 and json.loads(who)["principal"] == "operator", answers
     status, skills = answers["/api/skills"]
     assert status == 200 and "invoke" in json.loads(skills)["caps"], answers
+    status, mine = answers["/api/audit/mine?last=5"]
+    assert status == 200 and json.loads(mine)["entries"] == [], answers  # commanded nothing
     status, thought = answers["/api/thoughts/no-such-thought"]
     assert status == 404 and json.loads(thought)["reason"] == "thought_not_found", answers
     modules = imported(proc.stderr)

@@ -42,10 +42,9 @@ from ._keys import (
     ApiSettings,
     Authenticator,
 )
-from ._lazy import Handler, on_first_request
+from ._lazy import FirstUse, Handler, on_first_request
 from ._metrics import Metrics
 from ._middlewares import authenticate, last_resort
-from ._reads import AuditReads
 from ._skills import Skills
 from ._status import StatusHub
 from ._tickets import WsTickets
@@ -54,6 +53,7 @@ from .ports import ImageSource, RobotView
 
 if TYPE_CHECKING:
     from ._mcp import McpEndpoint
+    from ._reads import AuditReads
 
 MCP_PATH = "/mcp"  # the MCP streamable-HTTP door (`_mcp`)
 
@@ -116,9 +116,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
                                 else cert_principals)
     sockets: set[web.WebSocketResponse] = set()
     app[SOCKETS] = sockets
-    reads = AuditReads(governor.audit.path, governor.audit.public_key,
-                       backlog=settings.audit_read_backlog)
-    app[READS] = reads
+    app[READS] = reads = FirstUse(lambda: _audit_reads(governor, settings))
     app[STATUS] = status = StatusHub(
         lambda: robot.status(pending_auth=len(governor.pending())),
         period_s=1.0 / settings.telemetry_rate_hz)
@@ -186,7 +184,8 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.on_shutdown.append(close_mcp)
 
     async def close_reads(app: web.Application) -> None:
-        await reads.close()
+        if reads.made is not None:
+            await reads.made.close()
 
     app.on_cleanup.append(close_reads)
     return app
@@ -210,6 +209,13 @@ class McpDoor:
     async def close(self) -> None:
         if self.endpoint is not None:
             await self.endpoint.close()
+
+
+def _audit_reads(governor: Governor, settings: ApiSettings) -> AuditReads:
+    from ._reads import AuditReads
+
+    return AuditReads(governor.audit.path, governor.audit.public_key,
+                      backlog=settings.audit_read_backlog)
 
 
 def _websocket_handler() -> Handler:

@@ -8,10 +8,26 @@ the import (a few ms, on the loop, once); every later one finds the handler made
 from __future__ import annotations
 
 from collections.abc import Awaitable, Callable
+from typing import Generic, TypeVar
 
 from aiohttp import web
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+T = TypeVar("T")
+
+
+class FirstUse(Generic[T]):
+    """An object its first user makes (`get`), with the modules `make` imports; `made` is
+    None until then (so a shutdown closes only what was made)."""
+
+    def __init__(self, make: Callable[[], T]) -> None:
+        self._make = make
+        self.made: T | None = None
+
+    def get(self) -> T:
+        if self.made is None:
+            self.made = self._make()
+        return self.made
 
 
 def on_first_request(build: Callable[[], Handler]) -> Handler:

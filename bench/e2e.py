@@ -779,9 +779,12 @@ async def footprint_only(args: argparse.Namespace) -> str:
                     ours.setdefault((label, mdns), []).append(rss - floor)
     med = statistics.median
     lines = ["| idle RSS over the library floor (MB, median of "
-             f"{args.rounds}) | mDNS on | `--no-mdns` |", "|---|---|---|"]
-    lines += [f"| {label} | {med(ours[label, True]):.2f} | {med(ours[label, False]):.2f} |"
-              for label in sides]
+             f"{args.rounds}) | mDNS on | `--no-mdns` | target | verdict |",
+             "|---|---|---|---|---|"]
+    for label in sides:
+        on, off = med(ours[label, True]), med(ours[label, False])
+        met = verdict(max(on, off) <= 4.0) if label == "after" else "—"
+        lines.append(f"| {label} | {on:.2f} | {off:.2f} | ≤ 4 MB | {met} |")
     return "\n".join(lines)
 
 

@@ -39,7 +39,7 @@ async def _grow(api: Api, n: int) -> None:
 
 def _reads_of(api: Api) -> AuditReads:
     assert api.app is not None
-    return api.app[READS]
+    return api.app[READS].get()  # the readers the app makes on first use
 
 
 @pytest.mark.slow

@@ -208,7 +208,7 @@ def _endpoint(api: Api) -> Any:
     assert api.app is not None
     for route in api.app.router.routes():
         if route.resource is not None and route.resource.canonical == "/mcp":
-            return route.handler.__self__  # type: ignore[attr-defined]
+            return route.handler.__self__.endpoint  # type: ignore[attr-defined]
     raise AssertionError("no /mcp route")
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import re
 import signal
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -43,12 +44,38 @@ NOT_FOR_A_RUN = {
     "pkgutil",  # the action registry lists its folder itself
     "encodings.idna", "stringprep",  # the API's address is resolved as bytes
     "rcan_rtps.governance.logcheck",  # GET /api/audit/verify's worker process
+    "rcan_rtps.api._ws",  # GET /api/ws
+    "rcan_rtps.api._mcp",  # /mcp (McpDoor)
+    "rcan_rtps.api._console_pages", "rcan_rtps.console",  # the console and its API calls
+    "rcan_rtps.api._invoke",  # INVOKE, INVOKE_CANCEL, AUTHORIZE, GET /api/skills
+    "rcan_rtps.governance.thoughts",  # an AI command, GET /api/thoughts/{id}
+    "rcan_rtps.governance.jwt",  # bridge.api.jwt
+    "rcan_rtps.api._reads",  # GET /api/audit, /api/audit/mine, /api/audit/verify
+}
+
+
+# Each lazily loaded door, the request that opens it and the modules that request loads.
+FIRST_USE = {
+    "/console/": {"rcan_rtps.api._console_pages", "rcan_rtps.console"},
+    "/api/whoami": {"rcan_rtps.api._console_pages"},
+    "/api/skills": {"rcan_rtps.api._invoke"},
+    "/api/thoughts/no-such-thought": {"rcan_rtps.governance.thoughts"},
+    "/api/audit/mine?last=5": {"rcan_rtps.api._reads"},
 }
 
 
 def imported(stderr: list[str]) -> set[str]:
     found = (re.match(r"import time:\s+\d+ \|\s+\d+ \|\s*(\S+)", line) for line in stderr)
     return {m.group(1) for m in found if m}
+
+
+def get(url: str, token: str) -> tuple[int, bytes]:
+    request = urllib.request.Request(url, headers={"Authorization": f"Bearer {token}"})
+    try:
+        with urllib.request.urlopen(request, timeout=30) as reply:
+            return int(reply.status), reply.read()
+    except urllib.error.HTTPError as error:
+        return error.code, error.read()
 
 
 def command(url: str, token: str) -> int:
@@ -82,3 +109,30 @@ def test_a_bridge_run_leaves_cli_only_modules_unimported(tmp_path: Path, domain_
         assert not loaded, f"a bridge run imported {sorted(loaded)}"
     finally:
         proc.kill()
+
+
+def test_the_lazy_doors_answer_their_first_request(tmp_path: Path, domain_id: int) -> None:
+    """What a run leaves unimported is loaded by the first request that needs it, and that
+    request is answered as it would have been (issue 27)."""
+    env = child_env(domain_id, PYTHONPROFILEIMPORTTIME="1")
+    proc = RunProcess(["run", "--sim", "--port", "0", "--no-mdns",
+                       *state_args(tmp_path, "state")], env, demo=True)
+    try:
+        answers = {path: get(proc.url + path, proc.user) for path in FIRST_USE}
+        proc.signal(signal.SIGINT)
+        assert proc.wait(EXIT_TIMEOUT) == 0, proc.output()
+    finally:
+        proc.kill()
+    status, page = answers["/console/"]
+    assert status == 200 and b"<html" in page.lower(), answers
+    status, who = answers["/api/whoami"]
+    assert status == 200 and json.loads(who)["principal"] == "operator", answers
+    status, skills = answers["/api/skills"]
+    assert status == 200 and "invoke" in json.loads(skills)["caps"], answers
+    status, mine = answers["/api/audit/mine?last=5"]
+    assert status == 200 and json.loads(mine)["entries"] == [], answers  # commanded nothing
+    status, thought = answers["/api/thoughts/no-such-thought"]
+    assert status == 404 and json.loads(thought)["reason"] == "thought_not_found", answers
+    modules = imported(proc.stderr)
+    missing = {m for needed in FIRST_USE.values() for m in needed} - modules
+    assert not missing, f"first requests answered without loading {sorted(missing)}"

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
+from collections.abc import AsyncIterator, Callable, Mapping
+from typing import TYPE_CHECKING
 
 import msgspec
 from aiohttp import WSCloseCode, web
@@ -13,7 +14,7 @@ from rcan_rtps.governance.replay import ReplayWindow
 from rcan_rtps.governance.signatures import Signatures
 from rcan_rtps.rcan import Role
 
-from . import _mcp, _node_manifest
+from . import _node_manifest
 from . import _routes as r
 from ._approvals import ApprovalsFeed
 from ._conn import ConnectionDeadlines, track_requests
@@ -21,7 +22,6 @@ from ._console import add_console, is_console_path
 from ._goal_events import GoalEvents
 from ._images import NO_IMAGES
 from ._intake import Checks
-from ._invoke import Invocations
 from ._keys import (
     APPROVALS,
     AUTHENTICATOR,
@@ -42,17 +42,20 @@ from ._keys import (
     ApiSettings,
     Authenticator,
 )
-from ._mcp import McpEndpoint
+from ._lazy import FirstUse, Handler, on_first_request
 from ._metrics import Metrics
 from ._middlewares import authenticate, last_resort
-from ._reads import AuditReads
+from ._skills import Skills
 from ._status import StatusHub
 from ._tickets import WsTickets
 from ._tls import cert_principals as config_cert_principals
-from ._ws import websocket
 from .ports import ImageSource, RobotView
 
-Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+if TYPE_CHECKING:
+    from ._mcp import McpEndpoint
+    from ._reads import AuditReads
+
+MCP_PATH = "/mcp"  # the MCP streamable-HTTP door (`_mcp`)
 
 
 def settings_from_config(config: RcanConfig) -> ApiSettings:
@@ -113,16 +116,14 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
                                 else cert_principals)
     sockets: set[web.WebSocketResponse] = set()
     app[SOCKETS] = sockets
-    reads = AuditReads(governor.audit.path, governor.audit.public_key,
-                       backlog=settings.audit_read_backlog)
-    app[READS] = reads
+    app[READS] = reads = FirstUse(lambda: _audit_reads(governor, settings))
     app[STATUS] = status = StatusHub(
         lambda: robot.status(pending_auth=len(governor.pending())),
         period_s=1.0 / settings.telemetry_rate_hz)
     app.cleanup_ctx.append(_status_owner(status, governor, robot))
     app[GOAL_EVENTS] = goal_events = GoalEvents()
     robot.watch_goals(goal_events.offer)
-    app[INVOCATIONS] = Invocations(config.bridge.skills, robot)
+    app[INVOCATIONS] = Skills(config.bridge.skills, robot)
     app[IMAGES] = images or NO_IMAGES
     app[WS_TICKETS] = WsTickets((clock or SystemClock()).monotonic)
     app[APPROVALS] = approvals = ApprovalsFeed(governor.pending)
@@ -162,7 +163,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_get("/api/audit/verify", r.get_audit_verify, allow_head=False)
     app.router.add_get("/api/audit/mine", r.get_my_audit, allow_head=False)
     app.router.add_get("/api/openapi.json", get_openapi, allow_head=False)
-    app.router.add_get("/api/ws", websocket, allow_head=False)
+    app.router.add_get("/api/ws", on_first_request(_websocket_handler), allow_head=False)
     app.router.add_get("/api/metrics", get_metrics, allow_head=False)
     # RCAN 3.x: §17 node manifest (public), Protocol 66 safety manifest, §20 audit export.
     app.router.add_get(_node_manifest.PATH, _node_manifest.handler(
@@ -171,9 +172,9 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
         lambda: _safety_manifest_handler(config)), allow_head=False)
     app.router.add_get(_node_manifest.AUDIT_EXPORT, on_first_request(
         lambda: _audit_export_handler(governor, settings.audit_read_role)), allow_head=False)
-    mcp = McpEndpoint(config)
+    mcp = McpDoor(config)
     for method in ("POST", "GET", "DELETE"):  # streamable HTTP's three
-        app.router.add_route(method, _mcp.PATH, mcp.handle)
+        app.router.add_route(method, MCP_PATH, mcp.handle)
 
     async def close_mcp(app: web.Application) -> None:
         await mcp.close()
@@ -183,24 +184,44 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.on_shutdown.append(close_mcp)
 
     async def close_reads(app: web.Application) -> None:
-        await reads.close()
+        if reads.made is not None:
+            await reads.made.close()
 
     app.on_cleanup.append(close_reads)
     return app
 
 
-def on_first_request(build: Callable[[], Handler]) -> Handler:
-    """A route whose handler, and the modules it needs, are made by its first request: most
-    runs are never asked for the manifests or an audit export, and a module not imported is
-    idle memory not spent (issue 27). `build` runs on the loop, once."""
-    built: list[Handler] = []
+class McpDoor:
+    """/mcp: its endpoint (`_mcp`), and the modules serving it, are made by the first request
+    (most runs are never asked for MCP); `close` at shutdown closes it if it was."""
 
-    async def handle(request: web.Request) -> web.StreamResponse:
-        if not built:
-            built.append(build())
-        return await built[0](request)
+    def __init__(self, config: RcanConfig) -> None:
+        self._config = config
+        self.endpoint: McpEndpoint | None = None
 
-    return handle
+    async def handle(self, request: web.Request) -> web.StreamResponse:
+        if self.endpoint is None:
+            from ._mcp import McpEndpoint
+
+            self.endpoint = McpEndpoint(self._config)
+        return await self.endpoint.handle(request)
+
+    async def close(self) -> None:
+        if self.endpoint is not None:
+            await self.endpoint.close()
+
+
+def _audit_reads(governor: Governor, settings: ApiSettings) -> AuditReads:
+    from ._reads import AuditReads
+
+    return AuditReads(governor.audit.path, governor.audit.public_key,
+                      backlog=settings.audit_read_backlog)
+
+
+def _websocket_handler() -> Handler:
+    from ._ws import websocket  # most runs never open a WebSocket
+
+    return websocket
 
 
 def _safety_manifest_handler(config: RcanConfig) -> Handler:

@@ -158,7 +158,7 @@ async def _on_reader(request: web.Request, fn: Callable[..., Any], *args: Any) -
     started answering cannot turn into a 429)."""
     while True:
         try:
-            return await request.app[READS].read(fn, *args)
+            return await request.app[READS].get().read(fn, *args)
         except ReadsBusy:
             await asyncio.sleep(0.05)
 

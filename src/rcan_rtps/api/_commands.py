@@ -19,7 +19,7 @@ from rcan_rtps.rcan import ErrorCode, convert_at, decode_object
 from ._bodies import error_body
 from ._errors import BodyTimeout
 from ._intake import NO_CHECKS, Checks, Observe, Reply, decide, intake
-from ._invoke import Invocations
+from ._skills import Skills
 
 T = TypeVar("T")
 
@@ -70,7 +70,7 @@ async def schema_failure(governor: Governor, principal: Principal, path: str,
 
 async def run_command(governor: Governor, principal: Principal, raw: bytes,
                       observe: Observe | None = None, checks: Checks = NO_CHECKS,
-                      invocations: Invocations | None = None) -> Reply:
+                      invocations: Skills | None = None) -> Reply:
     """A whole body, already within the size limit, to its reply (an INVOKE of a goal: when
     the goal has ended)."""
     return await decide(governor, principal, intake(raw, len(raw), checks, principal.name),

@@ -1,39 +1,24 @@
-"""The console's routes: its static page, who the caller is, and WebSocket tickets.
+"""The console's routes (the page, `/api/whoami`, `/api/ws-ticket`; see `_console_pages`).
 
-- `GET /` redirects to `/console/`; `GET /console/` is the page, `GET /console/<file>` its
-  assets (`rcan_rtps.console`). No principal needed: they hold no data. Each response carries
-  a strict Content-Security-Policy (no inline script or style, same origin only, never
-  framed) and `nosniff`; nothing is cached without revalidation (an upgraded bridge serves
-  its own page).
-- `GET /api/whoami`: the caller's principal and role, and what the console should offer it
-  (the API decides either way: hiding a button is no permission check).
-- `POST /api/ws-ticket`: a single-use ticket for `GET /api/ws?ticket=` (see `_tickets`).
+Registered at start; their handlers, the page's files and the modules serving them are made
+by the first request for any of them: most runs are never opened in a browser (issue 27).
 """
 
 from __future__ import annotations
 
-import msgspec
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
 from aiohttp import web
 
-from rcan_rtps.console import CONTENT_TYPES, CSP, asset, asset_names
-from rcan_rtps.rcan import ErrorCode, Role
+from ._lazy import Handler
 
-from ._bodies import error_response, json_response
-from ._keys import GOVERNOR, PRINCIPAL, SETTINGS, WS_TICKETS
-from ._tickets import TicketReply
+if TYPE_CHECKING:
+    from ._console_pages import ConsolePages
 
 PREFIX = "/console/"
-INDEX = "index.html"
 WHOAMI_PATH = "/api/whoami"
-HEADERS = {
-    "Content-Security-Policy": CSP,
-    "X-Content-Type-Options": "nosniff",
-    "X-Frame-Options": "DENY",
-    "Referrer-Policy": "no-referrer",
-    "Cross-Origin-Opener-Policy": "same-origin",
-    "Cross-Origin-Resource-Policy": "same-origin",
-    "Cache-Control": "no-cache",
-}
+TICKET_PATH = "/api/ws-ticket"
 
 
 def is_console_path(path: str) -> bool:
@@ -41,73 +26,23 @@ def is_console_path(path: str) -> bool:
     return path in ("/", PREFIX.rstrip("/")) or path.startswith(PREFIX)
 
 
-class May(msgspec.Struct, kw_only=True):
-    command: bool  # motion (`move`)
-    approve: bool  # some held command could be this principal's to review
-    clear_estop: bool
-    read_audit: bool
-
-
-class WhoAmI(msgspec.Struct, kw_only=True):
-    principal: str
-    role: str
-    # The roles this one acts for (itself and every lower one): a held command whose
-    # `requires_auth_from_role` is among them is this principal's to approve.
-    covers: list[str]
-    may: May
-
-
 def add_console(app: web.Application) -> None:
-    names: list[frozenset[str]] = []  # listed on the first request for the console
-    cache: dict[str, bytes] = {}
+    made: list[ConsolePages] = []
 
-    def serve(name: str) -> web.Response:
-        if not names:
-            names.append(asset_names())
-        if name not in names[0]:
-            return error_response(404, "NOT_FOUND", reason="no_such_asset", headers=HEADERS)
-        body = cache.get(name)
-        if body is None:
-            body = cache[name] = asset(name)
-        suffix = name[name.rindex("."):]
-        return web.Response(body=body, headers={**HEADERS, "Content-Type": CONTENT_TYPES[suffix]})
+    def route(pick: Callable[[ConsolePages], Handler]) -> Handler:
+        async def handle(request: web.Request) -> web.StreamResponse:
+            if not made:
+                from ._console_pages import ConsolePages
 
-    async def to_console(request: web.Request) -> web.Response:
-        return web.Response(status=302, headers={**HEADERS, "Location": PREFIX})
+                made.append(ConsolePages())
+            return await pick(made[0])(request)
 
-    async def page(request: web.Request) -> web.Response:
-        return serve(INDEX)
+        return handle
 
-    async def file(request: web.Request) -> web.Response:
-        return serve(request.match_info["name"])
-
-    app.router.add_get("/", to_console, allow_head=False)
-    app.router.add_get(PREFIX.rstrip("/"), to_console, allow_head=False)
-    app.router.add_get(PREFIX, page, allow_head=False)
-    app.router.add_get(PREFIX + "{name}", file, allow_head=False)
-    app.router.add_get(WHOAMI_PATH, get_whoami, allow_head=False)
-    app.router.add_post("/api/ws-ticket", post_ws_ticket)
-
-
-async def get_whoami(request: web.Request) -> web.Response:
-    principal, governor = request[PRINCIPAL], request.app[GOVERNOR]
-    settings, role = request.app[SETTINGS], request[PRINCIPAL].role
-    covers = sorted({r for r in Role if r <= role}, key=int)
-    return json_response(WhoAmI(
-        principal=principal.name, role=role.name, covers=[r.name for r in covers],
-        may=May(command=role >= governor.role_for("move"),
-                approve=role >= settings.hitl_list_role,
-                clear_estop=role >= governor.role_for("clear_estop"),
-                read_audit=role >= settings.audit_read_role)))
-
-
-async def post_ws_ticket(request: web.Request) -> web.Response:
-    """A ticket for the caller's own WebSocket (any authenticated principal)."""
-    tickets, principal = request.app[WS_TICKETS], request[PRINCIPAL]
-    ticket = tickets.issue(principal)
-    if ticket is None:
-        return error_response(429, ErrorCode.RATE_LIMITED, reason="too_many_tickets",
-                              headers={"Retry-After": "1"})
-    return json_response(TicketReply(ticket=ticket, expires_in_s=tickets.ttl_s,
-                                     principal=principal.name),
-                         headers={"Cache-Control": "no-store"})
+    app.router.add_get("/", route(lambda pages: pages.to_console), allow_head=False)
+    app.router.add_get(PREFIX.rstrip("/"), route(lambda pages: pages.to_console),
+                       allow_head=False)
+    app.router.add_get(PREFIX, route(lambda pages: pages.page), allow_head=False)
+    app.router.add_get(PREFIX + "{name}", route(lambda pages: pages.file), allow_head=False)
+    app.router.add_get(WHOAMI_PATH, route(lambda pages: pages.whoami), allow_head=False)
+    app.router.add_post(TICKET_PATH, route(lambda pages: pages.ws_ticket))

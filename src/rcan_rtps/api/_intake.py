@@ -50,7 +50,7 @@ from rcan_rtps.rcan import (
 )
 
 from ._bodies import HeartbeatReply, error_body, failure_reply
-from ._invoke import NO_SKILLS, Invocations, authorize
+from ._skills import NO_SKILLS, Skills
 
 log = logging.getLogger(__name__)
 
@@ -186,7 +186,7 @@ def _replay_refusal(message: NormalizedCommand | Heartbeat | Invoke | InvokeCanc
 
 async def decide(governor: Governor, principal: Principal, item: Intake,
                  observe: Observe | None = None,
-                 invocations: Invocations | None = None) -> Reply:
+                 invocations: Skills | None = None) -> Reply:
     """The decision for one intake; pre-command refusals are audited for the principal. An
     INVOKE of a goal is answered when the goal ends (`_invoke`)."""
     started = time.perf_counter()
@@ -220,12 +220,14 @@ async def decide(governor: Governor, principal: Principal, item: Intake,
 
 async def _message3(governor: Governor, principal: Principal,
                     message: Invoke | InvokeCancel | Authorization,
-                    invocations: Invocations) -> Reply:
+                    skills: Skills) -> Reply:
     if isinstance(message, Authorization):
+        from ._invoke import authorize  # with the INVOKEs: see `_skills`
+
         return await authorize(governor, principal, message)
     if isinstance(message, InvokeCancel):
-        return await invocations.cancel(governor, principal, message)
-    started = await invocations.start(governor, principal, message)
+        return await skills.invocations().cancel(governor, principal, message)
+    started = await skills.invocations().start(governor, principal, message)
     if started.finish is not None:
         return await started.finish()
     assert started.reply is not None
@@ -249,7 +251,7 @@ def heartbeat(governor: Governor, principal: Principal, beat: Heartbeat) -> Hear
 
 async def decide_safely(governor: Governor, principal: Principal, item: Intake,
                         observe: Observe | None = None,
-                        invocations: Invocations | None = None) -> Reply:
+                        invocations: Skills | None = None) -> Reply:
     """`decide` for transports without a last-resort middleware: an exception is an answer
     (503, as REST gives), never the end of the connection's command handling."""
     try:

@@ -91,7 +91,8 @@ class Started:
 
 
 class Invocations:
-    """The skills the config declares, and the INVOKEs under way, by (principal, msg_id)."""
+    """The skills the config declares, and the INVOKEs under way, by (principal, msg_id).
+    Made by the first use (`_skills.Skills`, which hands it each goal change)."""
 
     def __init__(self, skills: Mapping[str, SkillConfig], robot: RobotView | None) -> None:
         self.skills = dict(skills)
@@ -99,8 +100,6 @@ class Invocations:
         self._running: dict[tuple[str, str], _Running] = {}
         self._by_goal: dict[str, _Running] = {}
         self._finished: OrderedDict[tuple[str, str], InvokeResult] = OrderedDict()
-        if robot is not None:
-            robot.watch_goals(self._goal_changed)
 
     def listed(self, governor: Governor) -> SkillList:
         """What GET /api/skills says: the §18/§19.7 `invoke` capability and each skill."""
@@ -167,7 +166,7 @@ class Invocations:
         self._by_goal[decision.goal_id] = running
         view = None if self._robot is None else self._robot.goal(decision.goal_id)
         if view is not None:
-            self._goal_changed(view)
+            self.goal_changed(view)
         if running.cancelled:  # cancelled while its goal was being sent
             await governor.cancel_goal(decision.goal_id, principal, message_id=None,
                                        why="INVOKE_CANCEL")
@@ -204,7 +203,8 @@ class Invocations:
         why = f"goal {view.state}" + (f": {view.detail}" if view.detail else "")
         return self._result(running, decision, "failure", why, result=view.result)
 
-    def _goal_changed(self, view: GoalView) -> None:
+    def goal_changed(self, view: GoalView) -> None:
+        """Each change of a goal (`RobotView.watch_goals`, through `_skills.Skills`)."""
         running = self._by_goal.get(view.goal_id)
         if running is not None and view.state in TERMINAL and not running.ended.done():
             running.ended.set_result(view)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import msgspec
 from aiohttp import web
@@ -15,11 +15,14 @@ from ._approvals import ApprovalsFeed
 from ._conn import ConnectionDeadlines
 from ._goal_events import GoalEvents
 from ._intake import Checks
-from ._invoke import Invocations
-from ._reads import AuditReads
+from ._lazy import FirstUse
+from ._skills import Skills
 from ._status import StatusHub
 from ._tickets import WsTickets
 from .ports import ImageSource, RobotView
+
+if TYPE_CHECKING:
+    from ._reads import AuditReads
 
 
 class Authenticator(Protocol):
@@ -61,10 +64,11 @@ CERT_PRINCIPALS = web.AppKey("cert_principals", Mapping[str, Principal])
 SETTINGS = web.AppKey("settings", ApiSettings)
 SOCKETS = web.AppKey("sockets", set[web.WebSocketResponse])
 DEADLINES = web.AppKey("connection_deadlines", ConnectionDeadlines)
-READS = web.AppKey("audit_reads", AuditReads)
+# The audit log's readers (`_reads`), made by the first read: most runs are never asked.
+READS: web.AppKey[FirstUse[AuditReads]] = web.AppKey("audit_reads")
 CHECKS = web.AppKey("message_checks", Checks)  # §8.3 (and signatures) of RCAN 3.x messages
 IMAGES = web.AppKey("images", ImageSource)  # bridge.ros2.images (none: an empty source)
-INVOCATIONS = web.AppKey("invocations", Invocations)  # bridge.skills and INVOKEs under way
+INVOCATIONS = web.AppKey("invocations", Skills)  # bridge.skills and INVOKEs under way
 WS_TICKETS = web.AppKey("ws_tickets", WsTickets)  # how a browser opens the WebSocket
 APPROVALS = web.AppKey("approvals", ApprovalsFeed)  # held commands, for approvers' sockets
 # Seconds per decided command, reported to the metrics (a no-op where there are none).

@@ -33,7 +33,6 @@ if TYPE_CHECKING:
     from rcan_rtps.mcp_server.seat import Agent, Seat
 
 log = logging.getLogger(__name__)
-PATH = "/mcp"
 SESSION_HEADER = "Mcp-Session-Id"
 IDENTITY_MAX = 256
 EXTRA_HINT = "MCP needs the SDK on the bridge: pip install 'rcan-rtps[mcp]'"
@@ -138,7 +137,7 @@ class McpEndpoint:
         except ModuleNotFoundError as exc:
             if exc.name is None or exc.name.split(".")[0] not in ("mcp", "mcp_types"):
                 raise
-            log.warning("a client asked for %s: %s", PATH, EXTRA_HINT)
+            log.warning("a client asked for MCP: %s", EXTRA_HINT)
             self._missing = True
             return None
         from ._safety_manifest import static_part

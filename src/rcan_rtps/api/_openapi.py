@@ -21,7 +21,7 @@ from ._bodies import (
     VerifyReport,
     WsFrame,
 )
-from ._console import WhoAmI
+from ._console_pages import WhoAmI
 from ._protocol import HEAD_TOO_LARGE, MAX_FIELDS, MAX_LINE
 from ._tickets import TicketReply
 from .ports import GoalView

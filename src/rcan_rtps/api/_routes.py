@@ -36,7 +36,6 @@ from ._keys import (
     SETTINGS,
     STATUS,
 )
-from ._reads import entries_of, line_seq
 from .ports import GoalView, ImageFrame, ImageSource, ImageUnavailable, RobotView
 
 _WALL = SystemClock()
@@ -111,7 +110,7 @@ async def get_goal(request: web.Request) -> web.Response:
 async def get_skills(request: web.Request) -> web.Response:
     """The skills an INVOKE may name (RCAN §18/§19.7), any principal: a client must not invoke
     an unlisted skill, and the conformance runner picks one to invoke from here."""
-    return json_response(request.app[INVOCATIONS].listed(request.app[GOVERNOR]))
+    return json_response(request.app[INVOCATIONS].invocations().listed(request.app[GOVERNOR]))
 
 
 async def get_images(request: web.Request) -> web.Response:
@@ -232,6 +231,8 @@ def _paging(request: web.Request) -> tuple[int, int]:
 def _page_body(app: web.Application, lines: list[bytes], since: int) -> bytes:
     """An AuditPage with the entries passed on byte for byte, so a client can re-hash and
     re-verify each."""
+    from ._reads import line_seq  # loaded by the first audit read, as the readers are
+
     last = line_seq(lines[-1]) if lines else since
     page = AuditPage(entries=[], next_since=last, head_seq=app[GOVERNOR].audit.head.last_seq)
     head = msgspec.json.encode(page)
@@ -250,7 +251,7 @@ async def get_audit(request: web.Request) -> web.Response:
     except SchemaValidationError as exc:
         return error_response(400, ErrorCode.SCHEMA_VALIDATION_FAILED, reason=exc.detail,
                               path=exc.path)
-    lines = await request.app[READS].page(since, limit)
+    lines = await request.app[READS].get().page(since, limit)
     if lines is None:  # the reader is busy: a bound, not a fault; try again shortly
         return json_response(_READS_BUSY[1], _READS_BUSY[0], {"Retry-After": "1"})
     return web.Response(body=_page_body(request.app, lines, since),
@@ -260,9 +261,11 @@ async def get_audit(request: web.Request) -> web.Response:
 async def my_audit(app: web.Application, principal: Principal, since: int, limit: int,
                    last: bool) -> tuple[int, bytes | ApiError]:
     """The caller's own entries (any role: what it did, never anyone else's)."""
+    from ._reads import entries_of
+
     try:
-        lines = await app[READS].read(entries_of, app[GOVERNOR].audit.path, principal.name,
-                                      since, limit, last)
+        lines = await app[READS].get().read(entries_of, app[GOVERNOR].audit.path,
+                                            principal.name, since, limit, last)
     except ReadsBusy:
         return _READS_BUSY
     return 200, _page_body(app, lines, since)
@@ -288,4 +291,4 @@ async def get_audit_verify(request: web.Request) -> web.Response:
     refused = _forbidden(request, request.app[SETTINGS].audit_read_role)
     if refused is not None:
         return refused
-    return json_response(await request.app[READS].verify())
+    return json_response(await request.app[READS].get().verify())

@@ -121,7 +121,7 @@ async def live_part(app: web.Application, governor: Governor) -> dict[str, Any]:
     from rcan_rtps.governance.timesync import clock_status  # ctypes: only once asked
 
     audit = governor.audit
-    tail, tree_head = await app[READS].read(_audit_tails, audit.path)
+    tail, tree_head = await app[READS].get().read(_audit_tails, audit.path)
     clock = clock_status()
     head = audit.head
     return {

@@ -45,7 +45,6 @@ from ._intake import (
     decide_safely,
     intake,
 )
-from ._invoke import Invocations
 from ._keys import (
     APPROVALS,
     CHECKS,
@@ -59,6 +58,7 @@ from ._keys import (
     STATUS,
     ApiSettings,
 )
+from ._skills import Skills
 
 log = logging.getLogger(__name__)
 _CLOSING = (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED, WSMsgType.ERROR)
@@ -105,7 +105,7 @@ class _Commands:
 
     def __init__(self, ws: web.WebSocketResponse, governor: Governor, principal: Principal,
                  settings: ApiSettings, observe: Observe | None = None,
-                 checks: Checks = NO_CHECKS, invocations: Invocations | None = None) -> None:
+                 checks: Checks = NO_CHECKS, invocations: Skills | None = None) -> None:
         self._ws = ws
         self._checks = checks
         self._invocations = invocations
@@ -152,11 +152,12 @@ class _Commands:
                 log.exception("WebSocket command of %s failed", self._principal.name,
                               extra={"principal": self._principal.name})
 
-    async def _invoke(self, invoke: Invoke, invocations: Invocations) -> None:
+    async def _invoke(self, invoke: Invoke, skills: Skills) -> None:
         """Decided in order like any command; an INVOKE whose goal is under way is answered
         when it ends, while the frames behind it go on being decided."""
         try:
-            started = await invocations.start(self._governor, self._principal, invoke)
+            started = await skills.invocations().start(self._governor, self._principal,
+                                                       invoke)
         except Exception as exc:  # answered as REST would (503), never the socket's end
             log.exception("an INVOKE of %s failed", self._principal.name,
                           extra={"principal": self._principal.name})

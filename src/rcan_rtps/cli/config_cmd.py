@@ -133,7 +133,7 @@ def jwt_problems(config: RcanConfig) -> list[str]:
     if jwt is None:
         return []
     from rcan_rtps.governance import AuthConfigError
-    from rcan_rtps.governance.rbac import load_jwks, load_pem_key
+    from rcan_rtps.governance.jwt import load_jwks, load_pem_key
 
     try:
         if jwt.jwks is not None:

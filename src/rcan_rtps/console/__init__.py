@@ -2,7 +2,7 @@
 `/console/`, shipped inside the wheel and never built at install time (no bundler, no CDN,
 no framework: a robot's network is often offline).
 
-This module only finds the files; `rcan_rtps.api._console` serves them, with the headers that
+This module only finds the files; `rcan_rtps.api._console_pages` serves them, with the headers that
 keep the page to its own origin. What the page shows comes from `/api/*`, with the bearer
 token the operator signs in with (kept in the tab's sessionStorage); see docs/console.md.
 """

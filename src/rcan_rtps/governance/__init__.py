@@ -10,6 +10,8 @@ Public API: the governor (`Governor`, `Dispatcher`, `Decision`); policies (`Role
 (see `errors`).
 """
 
+import typing as _typing
+
 from .audit import (
     GENESIS,
     AuditEvent,
@@ -56,13 +58,26 @@ from .rbac import (
     DEFAULT_ACTION_ROLES,
     DEFAULT_RATE_LIMITS,
     SCOPES,
-    JwtVerifier,
     Principal,
     RateLimiter,
     RolePolicy,
     TokenAuthenticator,
     has_scope,
 )
+
+if _typing.TYPE_CHECKING:
+    from .jwt import JwtVerifier
+
+
+def __getattr__(name: str) -> _typing.Any:
+    # JwtVerifier, with its module, only when asked for: a bridge without `bridge.api.jwt`
+    # never needs it (issue 27: idle memory).
+    if name == "JwtVerifier":
+        from .jwt import JwtVerifier
+
+        return JwtVerifier
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "DEFAULT_ACTION_ROLES",

@@ -22,7 +22,7 @@ import functools
 import logging
 from collections.abc import Coroutine, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 
@@ -68,7 +68,9 @@ from .steps import (
     refused_event,
 )
 from .streams import AccelLimits, EndReason, HeldGoal, VelocityStreams
-from .thoughts import ThoughtLog
+
+if TYPE_CHECKING:
+    from .thoughts import ThoughtLog
 
 __all__ = ["MAX_IN_FLIGHT", "Decision", "DispatchResult", "Dispatcher", "Governor"]
 
@@ -110,7 +112,7 @@ class Governor:
         self._latch_file_missing = latch.file.missing()
         self._sessions = Sessions(clock, session_timeout_s, unattended_move_s)
         self._robot = parse_ruri(robot_ruri).robot if robot_ruri else None
-        self.thoughts = ThoughtLog()  # §16.5: what each AI thought led to
+        self._thoughts: ThoughtLog | None = None  # §16.5: made by the first AI command
         self._admission = asyncio.Semaphore(MAX_IN_FLIGHT)
         self._sweeper: asyncio.Task[None] | None = None
         self.started = False  # BRIDGE_STARTED is durable
@@ -231,6 +233,16 @@ class Governor:
         if command.warnings:  # executed anyway: the caller learns what was wrong
             return msgspec.structs.replace(decided, warnings=list(command.warnings))
         return decided
+
+    @property
+    def thoughts(self) -> ThoughtLog:
+        """What each AI thought led to (§16.5). Made, and its module imported, by the first
+        AI command or read: most runs have none (issue 27: idle memory)."""
+        if self._thoughts is None:
+            from .thoughts import ThoughtLog
+
+            self._thoughts = ThoughtLog()
+        return self._thoughts
 
     def _remember_thought(self, command: NormalizedCommand, principal: Principal,
                           decided: Decision) -> None:

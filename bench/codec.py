@@ -26,7 +26,6 @@ import math
 import os
 import platform
 import statistics
-import struct
 import subprocess
 import sys
 import sysconfig
@@ -305,6 +304,7 @@ def cydr_schema(type_name: str) -> dict[str, Any]:
 
     import cydr.types as ct
     import nptyping as npt
+
     from rcan_rtps.ros.serialization import default_codec
     from rcan_rtps.ros.typesys import Collection, Primitive
 

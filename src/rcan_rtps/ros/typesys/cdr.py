@@ -24,7 +24,7 @@ from cyclonedds.idl import IdlStruct
 
 from ..errors import CdrDecodeError, ValueFitError
 from .cdr_decode import DecoderSource
-from .cdr_encode import INTS, NUMBERS, EncoderSource, Slow
+from .cdr_encode import BIG, INTS, NUMBERS, EncoderSource, Slow
 from .cdr_layout import HEADER_SIZE, LITTLE_HEADER, Item, by_residue
 from .cdr_source import Source
 from .ddstypes import DdsTypes
@@ -89,6 +89,20 @@ def _octets(value: Any) -> Any:
     return bytes(value)  # a list of ints, or an array: bytes() checks 0..255
 
 
+def _join_big(buf: bytearray, big: list[tuple[int, Any]]) -> bytes:
+    """The message's bytes: `buf` with each large block in place of the placeholder noted at
+    its offset (as many bytes as the block's length mod 8), in one copy of each block."""
+    if not big:
+        return bytes(buf)
+    view, at = memoryview(buf), 0
+    parts: list[Any] = []
+    for offset, block in big:
+        parts += (view[at:offset], block)
+        at = offset + (memoryview(block).nbytes & 7)
+    parts.append(view[at:])
+    return b"".join(parts)
+
+
 def _to_array(code: str, raw: memoryview, swap: bool) -> array[Any]:
     values = array(code)
     values.frombytes(raw)
@@ -104,7 +118,10 @@ HELPERS: dict[str, Any] = {
     "to_array": _to_array,
     "wide_to_str": wide_to_str, "truncated": _truncated, "over_bound": _over_bound,
     "length_error": _length_error, "EMPTY_OCTETS": memoryview(b"").toreadonly(),
+    "new": object.__new__, "HEADER": LITTLE_HEADER, "BIG": BIG, "join_big": _join_big,
+    "ZEROS": tuple(bytes(n) for n in range(8)),
 }
+_LITTLE_START = LITTLE_HEADER[:2]
 
 
 def byte_order(mv: memoryview, type_name: str) -> str:
@@ -136,26 +153,25 @@ class MessageCodec:
         self._encode_plain = codecs.encoder(type_name, plain=True)
         self._decode = codecs.decoder(type_name, plain=False, order="<")
         self._decode_plain = codecs.decoder(type_name, plain=True, order="<")
+        self._views = codecs.slices_blocks(type_name)
 
     def encode(self, message: Any) -> bytes:
         """CDR of a typed message (any object with the type's attributes)."""
-        buf = bytearray(LITTLE_HEADER)
-        self._encode(message, buf)
-        return bytes(buf)
+        return self._encode(message)
 
     def encode_plain(self, value: Any) -> bytes:
         """CDR of plain values; errors name the field like `MessageValues.build`."""
-        buf = bytearray(LITTLE_HEADER)
         try:
-            self._encode_plain(value, buf)
+            return self._encode_plain(value)
         except Exception:  # doubt: the validator decides, and names the field
             self.fallbacks += 1
             return self.encode(self._codecs.values.build(self.type_name, value))
-        return bytes(buf)
 
     def encode_value(self, value: Any) -> bytes:
         """CDR of a typed message of this type (another struct is a TypeError) or of plain
         values."""
+        if value.__class__ is dict:
+            return self.encode_plain(value)
         if isinstance(value, IdlStruct):
             if type(value) is not self.struct:
                 raise TypeError(f"a {type(value).__name__} is not a {self.type_name} message")
@@ -166,10 +182,26 @@ class MessageCodec:
                offset: int = HEADER_SIZE) -> IdlStruct:
         """The typed message in `data`, its body starting at `offset` (after the header, or
         after an in-band prefix whose size keeps the body's alignment)."""
+        if data.__class__ is bytes and data[:2] == _LITTLE_START:  # what rmw sends: no checks
+            try:  # a memoryview only where blocks are sliced out (no copy of byte fields)
+                value, _ = self._decode(memoryview(data) if self._views else data, offset)
+            except (struct.error, ValueError) as exc:
+                raise self._undecodable(len(data), exc) from exc
+            return value  # type: ignore[no-any-return]
         return self._run(False, data, offset)  # type: ignore[no-any-return]
 
     def decode_plain(self, data: bytes | bytearray | memoryview) -> dict[str, Any]:
+        if data.__class__ is bytes and data[:2] == _LITTLE_START:
+            try:
+                value, _ = self._decode_plain(data, HEADER_SIZE)
+            except (struct.error, ValueError) as exc:
+                raise self._undecodable(len(data), exc) from exc
+            return value  # type: ignore[no-any-return]
         return self._run(True, data, HEADER_SIZE)  # type: ignore[no-any-return]
+
+    def _undecodable(self, size: int, exc: Exception) -> CdrDecodeError:
+        """Truncated, over a bound, bad UTF-8."""
+        return CdrDecodeError(f"{self.type_name}: {size} bytes do not decode ({exc})")
 
     def _run(self, plain: bool, data: bytes | bytearray | memoryview, offset: int) -> Any:
         mv = memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
@@ -179,9 +211,8 @@ class MessageCodec:
             decoder = self._codecs.decoder(self.type_name, plain=plain, order=">")
         try:
             value, _ = decoder(mv, offset)
-        except (struct.error, ValueError) as exc:  # truncated, over a bound, bad UTF-8
-            raise CdrDecodeError(f"{self.type_name}: {len(mv)} bytes do not decode "
-                                 f"({exc})") from exc
+        except (struct.error, ValueError) as exc:
+            raise self._undecodable(len(mv), exc) from exc
         return value
 
 
@@ -191,28 +222,36 @@ class CdrCodecs:
     def __init__(self, types: DdsTypes, values: MessageValues | None = None) -> None:
         self.types = types
         self.values = values or MessageValues(types)
-        self._codecs: dict[str, MessageCodec] = {}
+        self.known: dict[str, MessageCodec] = {}  # by every name asked for (read lock-free)
         self._functions: dict[tuple[str, bool, str], Callable[..., Any]] = {}
+        self._views: dict[str, bool] = {}  # type → its typed decoders slice blocks
         self._lock = threading.RLock()
 
     def of(self, type_name: str) -> MessageCodec:
-        found = self._codecs.get(type_name)
+        found = self.known.get(type_name)
         if found is not None:
             return found
         name = self.types.store.message(type_name).name  # normalizes `pkg/Name`
         with self._lock:
-            found = self._codecs.get(name)
+            found = self.known.get(name)
             if found is None:
                 found = MessageCodec(self, name)
-                self._codecs[name] = found
-            self._codecs[type_name] = found
+                self.known[name] = found
+            self.known[type_name] = found
             return found
 
-    def encoder(self, type_name: str, *, plain: bool) -> Callable[[Any, bytearray], None]:
+    def encoder(self, type_name: str, *, plain: bool) -> Callable[[Any], bytes]:
         return self._function(type_name, plain, "enc")
 
     def decoder(self, type_name: str, *, plain: bool, order: str) -> Callable[..., Any]:
         return self._function(type_name, plain, order)
+
+    def slices_blocks(self, type_name: str) -> bool:
+        """Whether the typed little-endian decoder slices blocks out of its buffer (then it
+        is given a memoryview: arrays are copied once, byte fields not at all); else it reads
+        `bytes` as they come."""
+        self.decoder(type_name, plain=False, order="<")
+        return self._views[type_name]
 
     def _function(self, type_name: str, plain: bool, kind: str) -> Callable[..., Any]:
         key = (type_name, plain, kind)
@@ -229,7 +268,9 @@ class CdrCodecs:
             entry = EncoderSource(self.types.store, source, plain=plain).function(
                 type_name, top=True)
         else:
-            entry = DecoderSource(self.types, source, plain=plain, order=kind).function(
-                type_name, top=True)
+            writer = DecoderSource(self.types, source, plain=plain, order=kind)
+            entry = writer.function(type_name, top=True)
+            if not plain:
+                self._views[type_name] = writer.views
         label = f"{type_name} {'plain' if plain else 'typed'} {kind}"
         return _compile(source, label)[entry]  # type: ignore[no-any-return]

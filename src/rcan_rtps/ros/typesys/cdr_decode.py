@@ -31,6 +31,8 @@ class DecoderSource(FunctionWriter):
         self.swap = (order == "<") != NATIVE_LITTLE
         self._run: list[tuple[Item, str]] = []
         self._known: int | None = None
+        self._builds: list[str] = []  # typed structs to build once the run is unpacked
+        self.views = False  # whether the code slices blocks out of `mv` (needs a memoryview)
 
     def body(self, name: str, msg: MessageType, top: bool) -> None:
         self.src.emit(0, f"def {name}(mv, p):")
@@ -46,8 +48,15 @@ class DecoderSource(FunctionWriter):
         parts = [(f.name, self._field(f.type, ind)) for f in msg.fields]
         if self.plain:
             return "{" + ", ".join(f"{n!r}: {v}" for n, v in parts if n != PLACEHOLDER) + "}"
-        cls = self.src.const(self.types.struct(msg.name), "C")
-        return f"{cls}(" + ", ".join(v for _, v in parts) + ")"
+        # `object.__new__` and attribute stores in line: what the struct's generated
+        # `__init__` does, without the call through the class (a third of a Twist's decode)
+        cls, obj = self.src.const(self.types.struct(msg.name), "C"), self.src.name("m")
+        build = "; ".join([f"{obj} = new({cls})", *(f"{obj}.{n} = {v}" for n, v in parts)])
+        if self._run:
+            self._builds.append(build)  # its fields are read by the run's unpack
+        else:
+            self.src.emit(ind, build)
+        return obj
 
     def _field(self, ftype: FieldType, ind: int) -> str:
         if ftype.collection is Collection.SINGLE:
@@ -156,9 +165,10 @@ class DecoderSource(FunctionWriter):
         return value
 
     def _slice(self, prim: Primitive, byte_like: bool, end: str) -> str:
+        self.views = True
         raw = f"mv[p:{end}]"
         if byte_like:
-            return f"list({raw}.tobytes())" if self.plain else f"{raw}.toreadonly()"
+            return f"list({raw})" if self.plain else f"{raw}.toreadonly()"
         if prim is Primitive.BOOLEAN:
             return f"[b != 0 for b in {raw}]"
         code = ARRAY_CODES[prim]
@@ -188,6 +198,7 @@ class DecoderSource(FunctionWriter):
             self.src.emit(ind, f"{targets} = {name}.unpack_from(mv, p)")
             self.src.emit(ind, f"p += {reader.size}")
             self._known = end
+            self._emit_builds(ind)
             return
         table, after = by_residue(items, self.order)
         name, chosen = self.src.const(table, "T"), self.src.name("r")
@@ -195,3 +206,9 @@ class DecoderSource(FunctionWriter):
         self.src.emit(ind, f"{targets} = {chosen}.unpack_from(mv, p)")
         self.src.emit(ind, f"p += {chosen}.size")
         self._known = after
+        self._emit_builds(ind)
+
+    def _emit_builds(self, ind: int) -> None:
+        for build in self._builds:
+            self.src.emit(ind, build)
+        self._builds = []

@@ -124,6 +124,17 @@ HELPERS: dict[str, Any] = {
 _LITTLE_START = LITTLE_HEADER[:2]
 
 
+def _bytes_of(data: bytes | bytearray | memoryview, mv: memoryview) -> bytes | bytearray:
+    """`data` as bytes or a bytearray with the same offsets (strings are decoded from it):
+    itself, or the object under a memoryview of all of it, else a copy."""
+    if isinstance(data, (bytes, bytearray)):
+        return data
+    under = mv.obj
+    if isinstance(under, (bytes, bytearray)) and len(under) == mv.nbytes and mv.c_contiguous:
+        return under
+    return mv.tobytes()
+
+
 def byte_order(mv: memoryview, type_name: str) -> str:
     """`<` or `>` from a plain-CDR encapsulation header; anything else is a CdrDecodeError."""
     header = bytes(mv[:HEADER_SIZE])
@@ -184,7 +195,7 @@ class MessageCodec:
         after an in-band prefix whose size keeps the body's alignment)."""
         if data.__class__ is bytes and data[:2] == _LITTLE_START:  # what rmw sends: no checks
             try:  # a memoryview only where blocks are sliced out (no copy of byte fields)
-                value, _ = self._decode(memoryview(data) if self._views else data, offset)
+                value = self._decode(data, memoryview(data) if self._views else data, offset)
             except (struct.error, ValueError) as exc:
                 raise self._undecodable(len(data), exc) from exc
             return value  # type: ignore[no-any-return]
@@ -193,7 +204,7 @@ class MessageCodec:
     def decode_plain(self, data: bytes | bytearray | memoryview) -> dict[str, Any]:
         if data.__class__ is bytes and data[:2] == _LITTLE_START:
             try:
-                value, _ = self._decode_plain(data, HEADER_SIZE)
+                value = self._decode_plain(data, data, HEADER_SIZE)
             except (struct.error, ValueError) as exc:
                 raise self._undecodable(len(data), exc) from exc
             return value  # type: ignore[no-any-return]
@@ -210,7 +221,7 @@ class MessageCodec:
         else:
             decoder = self._codecs.decoder(self.type_name, plain=plain, order=">")
         try:
-            value, _ = decoder(mv, offset)
+            value = decoder(_bytes_of(data, mv), mv, offset)
         except (struct.error, ValueError) as exc:
             raise self._undecodable(len(mv), exc) from exc
         return value

@@ -18,8 +18,15 @@ from .values import PLACEHOLDER
 
 
 class DecoderSource(FunctionWriter):
-    """Emits `dec_<n>(mv, p)` functions returning `(value, next offset)`; `p` counts from the
-    start of the buffer, encapsulation header included."""
+    """Emits `dec_<n>(b, mv, p)` functions returning `(value, next offset)`; `p` counts from
+    the start of the buffer, encapsulation header included. `b` is the sample as bytes (or a
+    bytearray: strings are sliced and decoded from it), `mv` the same sample as a memoryview
+    where blocks are sliced out of it (`views`), else `b` again.
+
+    Lengths are not checked one by one: a slice past the end is short, and every read of a
+    fixed-size field past the end fails, so the top function checks once, at its end, that
+    it did not run past the data (unless a fixed-size read came last). It returns the value
+    alone; the others, `(value, next offset)`."""
 
     prefix = "dec_"
 
@@ -33,13 +40,20 @@ class DecoderSource(FunctionWriter):
         self._known: int | None = None
         self._builds: list[str] = []  # typed structs to build once the run is unpacked
         self.views = False  # whether the code slices blocks out of `mv` (needs a memoryview)
+        self._sliced = False  # a slice may have run past the end since the last fixed read
 
     def body(self, name: str, msg: MessageType, top: bool) -> None:
-        self.src.emit(0, f"def {name}(mv, p):")
+        self.src.emit(0, f"def {name}(b, mv, p):")
         self._known = 0 if top else None
+        self._sliced = False
         result = self._struct(msg, 1)
         self._flush(1)
-        self.src.emit(1, f"return {result}, p")
+        if not top:
+            self.src.emit(1, f"return {result}, p")
+        else:
+            if self._sliced:
+                self.src.emit(1, "if p > len(b): raise truncated(p, len(b))")
+            self.src.emit(1, f"return {result}")
         self.src.emit(0, "")
 
     # -- fields ------------------------------------------------------------------------
@@ -98,8 +112,9 @@ class DecoderSource(FunctionWriter):
         self._flush(ind)
         value, end = self.src.name("s"), self.src.name("q")
         self.src.emit(ind, f"{end} = p + {count}")
-        self.src.emit(ind, f"if {end} > len(mv): raise truncated({end}, len(mv))")
-        self.src.emit(ind, f"{value} = str(mv[p:{end} - 1], 'utf-8') if {count} else ''")
+        # a length of 0 (no NUL: not what rmw writes) slices to b'' as well
+        self.src.emit(ind, f"{value} = b[p:{end} - 1].decode()")
+        self._sliced = True
         self.src.emit(ind, f"p = {end}")
         self._known = None
         return value
@@ -113,9 +128,10 @@ class DecoderSource(FunctionWriter):
             value, item = self.src.name("l"), self.src.name("o")
             self.src.emit(ind, f"{value} = []")
             self.src.emit(ind, f"for _ in range({count}):")
-            self.src.emit(ind + 1, f"{item}, p = {inner}(mv, p)")
+            self.src.emit(ind + 1, f"{item}, p = {inner}(b, mv, p)")
             self.src.emit(ind + 1, f"{value}.append({item})")
             self._known = None
+            self._sliced = True  # the element's function may end with a slice
             return value
         prim = element.primitive
         assert prim is not None
@@ -131,6 +147,16 @@ class DecoderSource(FunctionWriter):
         value = self.src.name("l")
         self.src.emit(ind, f"{value} = []")
         self.src.emit(ind, f"for _ in range({count}):")
+        if element.primitive is Primitive.STRING:  # the loop's body as short as it goes
+            length = self.src.const(struct.Struct(self.order + "I").unpack_from, "U")
+            end = self.src.name("q")
+            self.src.emit(ind + 1, "p += -p & 3")  # -p & 3: the header's 4 keep p's residue
+            self.src.emit(ind + 1, f"{end} = p + 4 + {length}(mv, p)[0]")
+            self.src.emit(ind + 1, f"{value}.append(b[p + 4:{end} - 1].decode())")
+            self.src.emit(ind + 1, f"p = {end}")
+            self._known = None
+            self._sliced = True
+            return value
         self._known = None
         item = self._single(element, ind + 1)
         self._flush(ind + 1)
@@ -150,8 +176,14 @@ class DecoderSource(FunctionWriter):
         if size > 1:
             self._align(size, inner)
         self.src.emit(inner, f"{end} = p + {count} * {size}")
-        self.src.emit(inner, f"if {end} > len(mv): raise truncated({end}, len(mv))")
-        self.src.emit(inner, f"{value} = {self._slice(prim, byte_like, end)}")
+        if byte_like or prim is Primitive.BOOLEAN or self.plain:
+            self.src.emit(inner, f"{value} = {self._slice(prim, byte_like, end)}")
+        else:  # one copy, in line (a function call costs as much as a short copy)
+            self.views = self._sliced = True
+            self.src.emit(inner, f"{value} = ARRAY({ARRAY_CODES[prim]!r}); "
+                                 f"{value}.frombytes(mv[p:{end}])")
+            if self.swap:
+                self.src.emit(inner, f"{value}.byteswap()")
         self.src.emit(inner, f"p = {end}")
         if static:
             if self._known is not None:
@@ -165,13 +197,15 @@ class DecoderSource(FunctionWriter):
         return value
 
     def _slice(self, prim: Primitive, byte_like: bool, end: str) -> str:
-        self.views = True
+        self.views = self._sliced = True
         raw = f"mv[p:{end}]"
         if byte_like:
             return f"list({raw})" if self.plain else f"{raw}.toreadonly()"
         if prim is Primitive.BOOLEAN:
             return f"[b != 0 for b in {raw}]"
         code = ARRAY_CODES[prim]
+        if self.plain and not self.swap:  # from `b`, bytes or bytearray: read as by frombytes
+            return f"ARRAY({code!r}, b[p:{end}]).tolist()"
         call = f"to_array({code!r}, {raw}, {self.swap})"
         return f"{call}.tolist()" if self.plain else call
 
@@ -198,6 +232,7 @@ class DecoderSource(FunctionWriter):
             self.src.emit(ind, f"{targets} = {name}.unpack_from(mv, p)")
             self.src.emit(ind, f"p += {reader.size}")
             self._known = end
+            self._sliced = False
             self._emit_builds(ind)
             return
         table, after = by_residue(items, self.order)
@@ -206,6 +241,7 @@ class DecoderSource(FunctionWriter):
         self.src.emit(ind, f"{targets} = {chosen}.unpack_from(mv, p)")
         self.src.emit(ind, f"p += {chosen}.size")
         self._known = after
+        self._sliced = False
         self._emit_builds(ind)
 
     def _emit_builds(self, ind: int) -> None:

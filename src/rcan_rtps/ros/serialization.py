@@ -45,7 +45,7 @@ class Codec:
     def deserialize(self, type_name: str, data: bytes | bytearray | memoryview, *,
                     plain: bool = False) -> Any:
         codec = self._known.get(type_name) or self.codecs.of(type_name)
-        return codec.decode_plain(data) if plain else codec.decode(data)
+        return codec.read_plain(data) if plain else codec.read(data)  # decode(_plain) itself
 
 
 _default: Codec | None = None

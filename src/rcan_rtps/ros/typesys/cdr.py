@@ -89,6 +89,11 @@ def _octets(value: Any) -> Any:
     return bytes(value)  # a list of ints, or an array: bytes() checks 0..255
 
 
+def _undecodable(type_name: str, size: int, exc: Exception) -> CdrDecodeError:
+    """Bad data (truncated, over a bound, bad UTF-8) as the error decoders raise."""
+    return CdrDecodeError(f"{type_name}: {size} bytes do not decode ({exc})")
+
+
 def _join_big(buf: bytearray, big: list[tuple[int, Any]]) -> bytes:
     """The message's bytes: `buf` with each large block in place of the placeholder noted at
     its offset (as many bytes as the block's length mod 8), in one copy of each block."""
@@ -119,9 +124,9 @@ HELPERS: dict[str, Any] = {
     "wide_to_str": wide_to_str, "truncated": _truncated, "over_bound": _over_bound,
     "length_error": _length_error, "EMPTY_OCTETS": memoryview(b"").toreadonly(),
     "new": object.__new__, "HEADER": LITTLE_HEADER, "BIG": BIG, "join_big": _join_big,
-    "ZEROS": tuple(bytes(n) for n in range(8)),
+    "ZEROS": tuple(bytes(n) for n in range(8)), "LITTLE_START": LITTLE_HEADER[:2],
+    "STRUCT_ERROR": struct.error, "undecodable": _undecodable,
 }
-_LITTLE_START = LITTLE_HEADER[:2]
 
 
 def _bytes_of(data: bytes | bytearray | memoryview, mv: memoryview) -> bytes | bytearray:
@@ -162,9 +167,12 @@ class MessageCodec:
         self.fallbacks = 0  # plain values the fast path left to the validator (tests watch it)
         self._encode = codecs.encoder(type_name, plain=False)
         self._encode_plain = codecs.encoder(type_name, plain=True)
-        self._decode = codecs.decoder(type_name, plain=False, order="<")
-        self._decode_plain = codecs.decoder(type_name, plain=True, order="<")
-        self._views = codecs.slices_blocks(type_name)
+        # the generated entry points themselves, for callers that count nanoseconds
+        # (Codec.deserialize): `read(data)` is `decode(data)`, `read_plain` `decode_plain`
+        self.read: Callable[[bytes | bytearray | memoryview], Any] = codecs.decoder(
+            type_name, plain=False, order="<")
+        self.read_plain: Callable[[bytes | bytearray | memoryview], Any] = codecs.decoder(
+            type_name, plain=True, order="<")
 
     def encode(self, message: Any) -> bytes:
         """CDR of a typed message (any object with the type's attributes)."""
@@ -193,38 +201,20 @@ class MessageCodec:
                offset: int = HEADER_SIZE) -> IdlStruct:
         """The typed message in `data`, its body starting at `offset` (after the header, or
         after an in-band prefix whose size keeps the body's alignment)."""
-        if data.__class__ is bytes and data[:2] == _LITTLE_START:  # what rmw sends: no checks
-            try:  # a memoryview only where blocks are sliced out (no copy of byte fields)
-                value = self._decode(data, memoryview(data) if self._views else data, offset)
-            except (struct.error, ValueError) as exc:
-                raise self._undecodable(len(data), exc) from exc
-            return value  # type: ignore[no-any-return]
-        return self._run(False, data, offset)  # type: ignore[no-any-return]
+        return self.read(data, None, offset)  # type: ignore[call-arg,no-any-return]
 
     def decode_plain(self, data: bytes | bytearray | memoryview) -> dict[str, Any]:
-        if data.__class__ is bytes and data[:2] == _LITTLE_START:
-            try:
-                value = self._decode_plain(data, data, HEADER_SIZE)
-            except (struct.error, ValueError) as exc:
-                raise self._undecodable(len(data), exc) from exc
-            return value  # type: ignore[no-any-return]
-        return self._run(True, data, HEADER_SIZE)  # type: ignore[no-any-return]
+        return self.read_plain(data)  # type: ignore[no-any-return]
 
-    def _undecodable(self, size: int, exc: Exception) -> CdrDecodeError:
-        """Truncated, over a bound, bad UTF-8."""
-        return CdrDecodeError(f"{self.type_name}: {size} bytes do not decode ({exc})")
-
-    def _run(self, plain: bool, data: bytes | bytearray | memoryview, offset: int) -> Any:
+    def run(self, plain: bool, data: bytes | bytearray | memoryview, offset: int) -> Any:
+        """What the entry points leave to `slow`: big-endian CDR, a bytearray or memoryview,
+        a header that is not plain CDR."""
         mv = memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
         if byte_order(mv, self.type_name) == "<":
-            decoder = self._decode_plain if plain else self._decode
+            decoder = self.read_plain if plain else self.read
         else:
             decoder = self._codecs.decoder(self.type_name, plain=plain, order=">")
-        try:
-            value = decoder(_bytes_of(data, mv), mv, offset)
-        except (struct.error, ValueError) as exc:
-            raise self._undecodable(len(mv), exc) from exc
-        return value
+        return decoder(_bytes_of(data, mv), mv, offset)  # type: ignore[call-arg]
 
 
 class CdrCodecs:
@@ -235,7 +225,6 @@ class CdrCodecs:
         self.values = values or MessageValues(types)
         self.known: dict[str, MessageCodec] = {}  # by every name asked for (read lock-free)
         self._functions: dict[tuple[str, bool, str], Callable[..., Any]] = {}
-        self._views: dict[str, bool] = {}  # type → its typed decoders slice blocks
         self._lock = threading.RLock()
 
     def of(self, type_name: str) -> MessageCodec:
@@ -257,13 +246,6 @@ class CdrCodecs:
     def decoder(self, type_name: str, *, plain: bool, order: str) -> Callable[..., Any]:
         return self._function(type_name, plain, order)
 
-    def slices_blocks(self, type_name: str) -> bool:
-        """Whether the typed little-endian decoder slices blocks out of its buffer (then it
-        is given a memoryview: arrays are copied once, byte fields not at all); else it reads
-        `bytes` as they come."""
-        self.decoder(type_name, plain=False, order="<")
-        return self._views[type_name]
-
     def _function(self, type_name: str, plain: bool, kind: str) -> Callable[..., Any]:
         key = (type_name, plain, kind)
         with self._lock:
@@ -279,9 +261,10 @@ class CdrCodecs:
             entry = EncoderSource(self.types.store, source, plain=plain).function(
                 type_name, top=True)
         else:
-            writer = DecoderSource(self.types, source, plain=plain, order=kind)
-            entry = writer.function(type_name, top=True)
-            if not plain:
-                self._views[type_name] = writer.views
+            entry = DecoderSource(self.types, source, plain=plain, order=kind).function(
+                type_name, top=True)
+            name = self.types.store.message(type_name).name
+            # the entry point's way round (`MessageCodec.run`), looked up on use
+            source.namespace["slow"] = lambda data, offset: self.of(name).run(plain, data, offset)
         label = f"{type_name} {'plain' if plain else 'typed'} {kind}"
         return _compile(source, label)[entry]  # type: ignore[no-any-return]

@@ -10,7 +10,16 @@ from __future__ import annotations
 
 import struct
 
-from .cdr_layout import ARRAY_CODES, FORMATS, NATIVE_LITTLE, Item, by_residue, layout, size_of
+from .cdr_layout import (
+    ARRAY_CODES,
+    FORMATS,
+    HEADER_SIZE,
+    NATIVE_LITTLE,
+    Item,
+    by_residue,
+    layout,
+    size_of,
+)
 from .cdr_source import FunctionWriter, Source
 from .ddstypes import DdsTypes, is_byte_like
 from .model import Collection, FieldType, MessageType, Primitive
@@ -25,8 +34,14 @@ class DecoderSource(FunctionWriter):
 
     Lengths are not checked one by one: a slice past the end is short, and every read of a
     fixed-size field past the end fails, so the top function checks once, at its end, that
-    it did not run past the data (unless a fixed-size read came last). It returns the value
-    alone; the others, `(value, next offset)`."""
+    it did not run past the data (unless a fixed-size read came last).
+
+    The top function, `dec_<n>(b, mv=None, p=4)`, is also the entry point: given bytes that
+    start like little-endian plain CDR and no `mv`, it makes `mv` itself; anything else goes
+    to `slow(b, p)` (which checks the header, casts memoryviews and picks the byte order,
+    then calls it again with `mv`). It returns the value alone, and turns the errors of bad
+    data (struct.error, ValueError: truncated, over a bound, bad UTF-8) into
+    `CdrDecodeError`s; the others return `(value, next offset)`."""
 
     prefix = "dec_"
 
@@ -41,19 +56,44 @@ class DecoderSource(FunctionWriter):
         self._builds: list[str] = []  # typed structs to build once the run is unpacked
         self.views = False  # whether the code slices blocks out of `mv` (needs a memoryview)
         self._sliced = False  # a slice may have run past the end since the last fixed read
+        self._view_line: int | None = None  # where the entry point makes `mv`
+
+    def function(self, type_name: str, *, top: bool = False) -> str:
+        name = super().function(type_name, top=top)
+        if top and self.views and self._view_line is not None:  # all bodies written now
+            self.src.lines[self._view_line] = self._view_line_text("memoryview(b)")
+        return name
+
+    @staticmethod
+    def _view_line_text(value: str) -> str:
+        return f"        mv = {value}"
 
     def body(self, name: str, msg: MessageType, top: bool) -> None:
-        self.src.emit(0, f"def {name}(b, mv, p):")
-        self._known = 0 if top else None
         self._sliced = False
-        result = self._struct(msg, 1)
-        self._flush(1)
         if not top:
+            self.src.emit(0, f"def {name}(b, mv, p):")
+            self._known = None
+            result = self._struct(msg, 1)
+            self._flush(1)
             self.src.emit(1, f"return {result}, p")
-        else:
-            if self._sliced:
-                self.src.emit(1, "if p > len(b): raise truncated(p, len(b))")
-            self.src.emit(1, f"return {result}")
+            self.src.emit(0, "")
+            return
+        self.src.emit(0, f"def {name}(b, mv=None, p={HEADER_SIZE}):")
+        self.src.emit(1, "if mv is None:  # a call from outside")
+        self.src.emit(2, "if b.__class__ is not bytes or b[:2] != LITTLE_START: "
+                         "return slow(b, p)")
+        self._view_line = len(self.src.lines)
+        self.src.lines.append(self._view_line_text("b"))  # a memoryview if blocks are sliced
+        self.src.emit(1, "try:")
+        self._known = 0
+        result = self._struct(msg, 2)
+        self._flush(2)
+        if self._sliced:
+            self.src.emit(2, "if p > len(b): raise truncated(p, len(b))")
+        self.src.emit(2, f"return {result}")
+        type_name = self.src.const(msg.name, "TYPE")
+        self.src.emit(1, "except (STRUCT_ERROR, ValueError) as exc:")
+        self.src.emit(2, f"raise undecodable({type_name}, len(b), exc) from exc")
         self.src.emit(0, "")
 
     # -- fields ------------------------------------------------------------------------

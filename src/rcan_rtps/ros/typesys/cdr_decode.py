@@ -9,6 +9,7 @@ against the buffer before anything is sliced, so truncated data raises instead o
 from __future__ import annotations
 
 import struct
+from array import array
 
 from .cdr_layout import (
     ARRAY_CODES,
@@ -117,13 +118,12 @@ class DecoderSource(FunctionWriter):
             return self._single(ftype, ind)
         if ftype.collection is Collection.ARRAY:
             return self._elements(ftype, str(ftype.size), ind)
-        self._flush(ind)
-        count = self._read("I", ind)
+        count = self._read("I", ind)  # read with the fixed fields before it, in one unpack
         self._flush(ind)
         if ftype.collection is Collection.BOUNDED_SEQUENCE:
             self.src.emit(ind, f"if {count} > {ftype.size}: raise over_bound({count}, "
                                f"{ftype.size})")
-        value = self._elements(ftype, count, ind)
+        value = self._elements(ftype, count, ind, after_count=True)
         self._known = None
         return value
 
@@ -159,8 +159,10 @@ class DecoderSource(FunctionWriter):
         self._known = None
         return value
 
-    def _elements(self, ftype: FieldType, count: str, ind: int) -> str:
-        """`count` elements; a fixed array keeps the known residue where it can."""
+    def _elements(self, ftype: FieldType, count: str, ind: int, *,
+                  after_count: bool = False) -> str:
+        """`count` elements; a fixed array keeps the known residue where it can. Right
+        after a sequence's count, p is a multiple of 4 in the body: no padding below 8."""
         element = ftype.element
         if element.nested is not None:
             self._flush(ind)
@@ -180,7 +182,7 @@ class DecoderSource(FunctionWriter):
         if ftype.collection is Collection.ARRAY and is_byte_like(ftype):
             octets = self._read(f"{ftype.size}s", ind, align=1)
             return f"list({octets})" if self.plain else octets
-        return self._block(prim, is_byte_like(ftype), count, ind)
+        return self._block(prim, is_byte_like(ftype), count, ind, after_count)
 
     def _strings(self, element: FieldType, count: str, ind: int) -> str:
         self._flush(ind)
@@ -204,7 +206,8 @@ class DecoderSource(FunctionWriter):
         self._known = None
         return value
 
-    def _block(self, prim: Primitive, byte_like: bool, count: str, ind: int) -> str:
+    def _block(self, prim: Primitive, byte_like: bool, count: str, ind: int,
+               after_count: bool) -> str:
         """`count` primitives read in one slice; a fixed array keeps the known residue."""
         self._flush(ind)
         size = size_of(FORMATS[prim])
@@ -213,15 +216,15 @@ class DecoderSource(FunctionWriter):
         inner = ind if static else ind + 1
         if not static:
             self.src.emit(ind, f"if {count}:")
-        if size > 1:
+        if size > 4 or (size > 1 and not after_count):
             self._align(size, inner)
         self.src.emit(inner, f"{end} = p + {count} * {size}")
         if byte_like or prim is Primitive.BOOLEAN or self.plain:
             self.src.emit(inner, f"{value} = {self._slice(prim, byte_like, end)}")
         else:  # one copy, in line (a function call costs as much as a short copy)
             self.views = self._sliced = True
-            self.src.emit(inner, f"{value} = ARRAY({ARRAY_CODES[prim]!r}); "
-                                 f"{value}.frombytes(mv[p:{end}])")
+            empty = self._empty_array(prim)  # copying an empty array beats making one
+            self.src.emit(inner, f"{value} = {empty}[:]; {value}.frombytes(mv[p:{end}])")
             if self.swap:
                 self.src.emit(inner, f"{value}.byteswap()")
         self.src.emit(inner, f"p = {end}")
@@ -231,7 +234,7 @@ class DecoderSource(FunctionWriter):
             return value
         self.src.emit(ind, "else:")
         empty = "[]" if self.plain or prim is Primitive.BOOLEAN else (
-            "EMPTY_OCTETS" if byte_like else f"ARRAY({ARRAY_CODES[prim]!r})")
+            "EMPTY_OCTETS" if byte_like else f"{self._empty_array(prim)}[:]")
         self.src.emit(ind + 1, f"{value} = {empty}")
         self._known = None
         return value
@@ -268,21 +271,25 @@ class DecoderSource(FunctionWriter):
         if self._known is not None:
             fmt, end = layout(self._known, items, self.order)
             reader = struct.Struct(fmt)
-            name = self.src.const(reader, "S")
-            self.src.emit(ind, f"{targets} = {name}.unpack_from(mv, p)")
+            name = self.src.const(reader.unpack_from, "S")  # bound once, not per call
+            self.src.emit(ind, f"{targets} = {name}(mv, p)")
             self.src.emit(ind, f"p += {reader.size}")
             self._known = end
             self._sliced = False
             self._emit_builds(ind)
             return
         table, after = by_residue(items, self.order)
-        name, chosen = self.src.const(table, "T"), self.src.name("r")
-        self.src.emit(ind, f"{chosen} = {name}[p & 7]")
-        self.src.emit(ind, f"{targets} = {chosen}.unpack_from(mv, p)")
-        self.src.emit(ind, f"p += {chosen}.size")
+        name = self.src.const(tuple((s.unpack_from, s.size) for s in table), "T")
+        chosen, size = self.src.name("r"), self.src.name("z")
+        self.src.emit(ind, f"{chosen}, {size} = {name}[p & 7]")
+        self.src.emit(ind, f"{targets} = {chosen}(mv, p)")
+        self.src.emit(ind, f"p += {size}")
         self._known = after
         self._sliced = False
         self._emit_builds(ind)
+
+    def _empty_array(self, prim: Primitive) -> str:
+        return self.src.const(array(ARRAY_CODES[prim]), "E")
 
     def _emit_builds(self, ind: int) -> None:
         for build in self._builds:

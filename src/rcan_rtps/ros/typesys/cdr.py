@@ -108,6 +108,20 @@ def _join_big(buf: bytearray, big: list[tuple[int, Any]]) -> bytes:
     return b"".join(parts)
 
 
+_PACKERS: dict[tuple[str, int], Callable[..., bytes]] = {}
+
+
+def _packer(fmt: str, count: int) -> Callable[..., bytes]:
+    """`Struct(f"<{count}{fmt}").pack`, kept: a long sequence packs faster through a Struct
+    than through struct.pack's format cache (720 floats: 4.7 µs against 5.9)."""
+    found = _PACKERS.get((fmt, count))
+    if found is None:
+        if len(_PACKERS) > 256:  # sequences of many lengths: start again
+            _PACKERS.clear()
+        found = _PACKERS[(fmt, count)] = struct.Struct(f"<{count}{fmt}").pack
+    return found
+
+
 def _to_array(code: str, raw: memoryview, swap: bool) -> array[Any]:
     values = array(code)
     values.frombytes(raw)
@@ -118,7 +132,7 @@ def _to_array(code: str, raw: memoryview, swap: bool) -> array[Any]:
 
 HELPERS: dict[str, Any] = {
     "Slow": Slow, "NUMBERS": NUMBERS, "INTS": INTS, "ARRAY": array,
-    "pack": struct.pack, "put_wide": _put_wide, "get_wide": _get_wide,
+    "packer": _packer, "put_wide": _put_wide, "get_wide": _get_wide,
     "plain_wide": _plain_wide, "plain_octets": _plain_octets, "octets": _octets,
     "to_array": _to_array,
     "wide_to_str": wide_to_str, "truncated": _truncated, "over_bound": _over_bound,

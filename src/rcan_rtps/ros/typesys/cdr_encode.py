@@ -235,7 +235,7 @@ class EncoderSource(FunctionWriter):
             self.src.emit(ind + 2, f"if {value}.typecode != {code!r}: raise Slow")
             self.src.emit(ind + 1, f"elif not {_all_of(prim, value)}: raise Slow")
         block = self.src.name("b")
-        packed = f"pack(f'<{{{count}}}{fmt}', *{value})"
+        packed = f"packer({fmt!r}, {count})(*{value})"
         if NATIVE_LITTLE:  # an array of the field's type is its wire bytes already
             self.src.emit(ind + 1, f"{block} = {value} if {value}.__class__ is ARRAY and "
                                    f"{value}.typecode == {code!r} else {packed}")
@@ -255,10 +255,10 @@ class EncoderSource(FunctionWriter):
         starts the body and nothing follows it)."""
         if result:
             fmt, _ = layout(0, [item for item, _ in self._run])
-            packer = self.src.const(struct.Struct("<4s" + fmt[1:]), "S")
+            packer = self.src.const(struct.Struct("<4s" + fmt[1:]).pack, "S")
             args = "".join(f", {arg}" for _, arg in self._run)
             self._run = []
-            self.src.emit(ind, f"return {packer}.pack(HEADER{args})")
+            self.src.emit(ind, f"return {packer}(HEADER{args})")
             return
         if not self._run:
             return
@@ -267,13 +267,13 @@ class EncoderSource(FunctionWriter):
         self._run = []
         if self._known is not None:
             fmt, end = layout(self._known, items)
-            packer = self.src.const(struct.Struct(fmt), "S")
-            self.src.emit(ind, f"buf += {packer}.pack({args})")
+            packer = self.src.const(struct.Struct(fmt).pack, "S")  # bound once, not per call
+            self.src.emit(ind, f"buf += {packer}({args})")
             self._known = end
             return
         table, after = by_residue(items)
-        packers = self.src.const(table, "T")
-        self.src.emit(ind, f"buf += {packers}[len(buf) & 7].pack({args})")
+        packers = self.src.const(tuple(s.pack for s in table), "T")
+        self.src.emit(ind, f"buf += {packers}[len(buf) & 7]({args})")
         self._known = after
 
 

@@ -205,6 +205,8 @@ class MessageCodec:
         values."""
         if value.__class__ is dict:
             return self.encode_plain(value)
+        if value.__class__ is self.struct:
+            return self._encode(value)
         if isinstance(value, IdlStruct):
             if type(value) is not self.struct:
                 raise TypeError(f"a {type(value).__name__} is not a {self.type_name} message")

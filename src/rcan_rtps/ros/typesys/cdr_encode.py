@@ -135,7 +135,8 @@ class EncoderSource(FunctionWriter):
         if prim is Primitive.BOOLEAN:
             self.src.emit(ind, f"if {value}.__class__ is not bool: raise Slow")
         elif prim.is_float:
-            self.src.emit(ind, f"if {value}.__class__ not in NUMBERS: raise Slow")
+            self.src.emit(ind, f"if {value}.__class__ is not float and {value}.__class__ is "
+                               "not int: raise Slow")  # two identity tests beat a set's
         else:
             self.src.emit(ind, f"if {value}.__class__ is not int: raise Slow")
 

@@ -111,6 +111,10 @@ class EncoderSource(FunctionWriter):
         elif ftype.collection is Collection.ARRAY and _fixed_element(ftype):
             self._fixed_array(ftype, value, ind)
         else:
+            if not self.plain:  # read several times below: one attribute lookup
+                local = self.src.name("v")
+                self.src.emit(ind, f"{local} = {value}")
+                value = local
             self._repeated(ftype, value, ind)
 
     def _single(self, ftype: FieldType, value: str, ind: int) -> None:

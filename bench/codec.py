@@ -8,8 +8,9 @@ re-executes itself there and appends our `src` and our venv's site-packages (cyc
 msgspec, the peer libraries of the `test` extra, ...) after the oracle's own paths, so
 rclpy's packages win any name both have.
 
-Per round, for every row: N calls of one library back to back, then N of the next, the
-order rotating per round; the garbage collector is off inside a batch (as in `timeit`).
+Per round, for every row: N calls of one library back to back, then N of the next, in an
+order shuffled per round (seeded: runs repeat); the garbage collector is off inside a
+batch (as in `timeit`).
 Reported: median µs per sample over the rounds, and ours over the best peer's median. Every
 round checks that every encoder's bytes carry the same values as ours.
 
@@ -25,6 +26,7 @@ import gc
 import math
 import os
 import platform
+import random
 import statistics
 import subprocess
 import sys
@@ -463,9 +465,10 @@ def padding_diff(mine: bytes, theirs: bytes, reencode: Fn) -> int | None:
 def run_round(rows: list[Row], reencoders: dict[str, Fn], turn: int) -> None:
     for row in rows:
         timed = list(row.timed().items())
-        shift = turn % len(timed)
+        # shuffled, not rotated: a rotation keeps each library after the same neighbour,
+        # whose allocations (numpy's, rclpy's) leave the heap in the same state every round
         outs: dict[str, Any] = {}
-        for lib, call in timed[shift:] + timed[:shift]:
+        for lib, call in random.Random(turn).sample(timed, len(timed)):
             us, outs[lib] = batch(call, row.n)
             row.samples.setdefault(lib, []).append(us)
         if row.direction == "encode":
@@ -689,7 +692,7 @@ def report(rows: list[Row], rounds: int, budget_ms: float, note: str,
         "mcap-ros2-support-fast (pure Python, generated code), rosbags (`rosbags.typesys`, "
         "generated Python over numpy) and cydr (Cython compiled per schema) in one process, "
         f"{rounds} rounds; each round times a batch of N calls of each library back to back, "
-        "the order rotating per round (N per row: the slowest library's batch takes about "
+        "in an order shuffled per round (N per row: the slowest library's batch takes about "
         f"{budget_ms:g} ms). Cells: median µs per sample over the rounds; lower is better. "
         "Ratio = ours / the best peer's median; the target is at or below the best peer, "
         f"within a 5 % tie band (≤ {TIE:.2f}×). Machine: {machine()}; load average "

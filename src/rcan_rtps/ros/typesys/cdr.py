@@ -94,16 +94,16 @@ def _undecodable(type_name: str, size: int, exc: Exception) -> CdrDecodeError:
     return CdrDecodeError(f"{type_name}: {size} bytes do not decode ({exc})")
 
 
-def _join_big(buf: bytearray, big: list[tuple[int, Any]]) -> bytes:
+def _join_big(buf: bytearray, big: list[tuple[int, Any, int]]) -> bytes:
     """The message's bytes: `buf` with each large block in place of the placeholder noted at
     its offset (as many bytes as the block's length mod 8), in one copy of each block."""
     if not big:
         return bytes(buf)
     view, at = memoryview(buf), 0
     parts: list[Any] = []
-    for offset, block in big:
+    for offset, block, size in big:
         parts += (view[at:offset], block)
-        at = offset + (memoryview(block).nbytes & 7)
+        at = offset + (size & 7)
     parts.append(view[at:])
     return b"".join(parts)
 

@@ -250,7 +250,7 @@ class EncoderSource(FunctionWriter):
 
     def _append_block(self, block: str, size: str, ind: int) -> None:
         """Appends a bytes-like block of `size` bytes, or notes it in `big` if large."""
-        self.src.emit(ind, f"if {size} > BIG: big.append((len(buf), {block})); "
+        self.src.emit(ind, f"if {size} > BIG: big.append((len(buf), {block}, {size})); "
                            f"buf += ZEROS[{size} & 7]")
         self.src.emit(ind, f"else: buf += {block}")
 

@@ -32,18 +32,20 @@ class Codec:
         self.types = DdsTypes(self.store)
         self.values = MessageValues(self.types)
         self.codecs = CdrCodecs(self.types, self.values)
+        self._known = self.codecs.known  # the per-call lookup, without a method call
 
     def of(self, type_name: str) -> MessageCodec:
         """The generated codec of one type, for callers that encode many messages."""
         return self.codecs.of(type_name)
 
     def serialize(self, type_name: str, value: Any) -> bytes:
-        return self.codecs.of(type_name).encode_value(value)
+        codec = self._known.get(type_name) or self.codecs.of(type_name)
+        return codec.encode_value(value)
 
     def deserialize(self, type_name: str, data: bytes | bytearray | memoryview, *,
                     plain: bool = False) -> Any:
-        codec = self.codecs.of(type_name)
-        return codec.decode_plain(data) if plain else codec.decode(data)
+        codec = self._known.get(type_name) or self.codecs.of(type_name)
+        return codec.read_plain(data) if plain else codec.read(data)  # decode(_plain) itself
 
 
 _default: Codec | None = None
@@ -53,6 +55,8 @@ _default_lock = threading.Lock()
 def default_codec() -> Codec:
     """The codec of the bundle's default distro, made once."""
     global _default
+    if _default is not None:  # made: no lock per message
+        return _default
     with _default_lock:
         if _default is None:
             _default = Codec()

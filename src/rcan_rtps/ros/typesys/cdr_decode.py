@@ -9,8 +9,18 @@ against the buffer before anything is sliced, so truncated data raises instead o
 from __future__ import annotations
 
 import struct
+from array import array
 
-from .cdr_layout import ARRAY_CODES, FORMATS, NATIVE_LITTLE, Item, by_residue, layout, size_of
+from .cdr_layout import (
+    ARRAY_CODES,
+    FORMATS,
+    HEADER_SIZE,
+    NATIVE_LITTLE,
+    Item,
+    by_residue,
+    layout,
+    size_of,
+)
 from .cdr_source import FunctionWriter, Source
 from .ddstypes import DdsTypes, is_byte_like
 from .model import Collection, FieldType, MessageType, Primitive
@@ -18,8 +28,21 @@ from .values import PLACEHOLDER
 
 
 class DecoderSource(FunctionWriter):
-    """Emits `dec_<n>(mv, p)` functions returning `(value, next offset)`; `p` counts from the
-    start of the buffer, encapsulation header included."""
+    """Emits `dec_<n>(b, mv, p)` functions returning `(value, next offset)`; `p` counts from
+    the start of the buffer, encapsulation header included. `b` is the sample as bytes (or a
+    bytearray: strings are sliced and decoded from it), `mv` the same sample as a memoryview
+    where blocks are sliced out of it (`views`), else `b` again.
+
+    Lengths are not checked one by one: a slice past the end is short, and every read of a
+    fixed-size field past the end fails, so the top function checks once, at its end, that
+    it did not run past the data (unless a fixed-size read came last).
+
+    The top function, `dec_<n>(b, mv=None, p=4)`, is also the entry point: given bytes that
+    start like little-endian plain CDR and no `mv`, it makes `mv` itself; anything else goes
+    to `slow(b, p)` (which checks the header, casts memoryviews and picks the byte order,
+    then calls it again with `mv`). It returns the value alone, and turns the errors of bad
+    data (struct.error, ValueError: truncated, over a bound, bad UTF-8) into
+    `CdrDecodeError`s; the others return `(value, next offset)`."""
 
     prefix = "dec_"
 
@@ -31,13 +54,47 @@ class DecoderSource(FunctionWriter):
         self.swap = (order == "<") != NATIVE_LITTLE
         self._run: list[tuple[Item, str]] = []
         self._known: int | None = None
+        self._builds: list[str] = []  # typed structs to build once the run is unpacked
+        self.views = False  # whether the code slices blocks out of `mv` (needs a memoryview)
+        self._sliced = False  # a slice may have run past the end since the last fixed read
+        self._view_line: int | None = None  # where the entry point makes `mv`
+
+    def function(self, type_name: str, *, top: bool = False) -> str:
+        name = super().function(type_name, top=top)
+        if top and self.views and self._view_line is not None:  # all bodies written now
+            self.src.lines[self._view_line] = self._view_line_text("memoryview(b)")
+        return name
+
+    @staticmethod
+    def _view_line_text(value: str) -> str:
+        return f"        mv = {value}"
 
     def body(self, name: str, msg: MessageType, top: bool) -> None:
-        self.src.emit(0, f"def {name}(mv, p):")
-        self._known = 0 if top else None
-        result = self._struct(msg, 1)
-        self._flush(1)
-        self.src.emit(1, f"return {result}, p")
+        self._sliced = False
+        if not top:
+            self.src.emit(0, f"def {name}(b, mv, p):")
+            self._known = None
+            result = self._struct(msg, 1)
+            self._flush(1)
+            self.src.emit(1, f"return {result}, p")
+            self.src.emit(0, "")
+            return
+        self.src.emit(0, f"def {name}(b, mv=None, p={HEADER_SIZE}):")
+        self.src.emit(1, "if mv is None:  # a call from outside")
+        self.src.emit(2, "if b.__class__ is not bytes or b[:2] != LITTLE_START: "
+                         "return slow(b, p)")
+        self._view_line = len(self.src.lines)
+        self.src.lines.append(self._view_line_text("b"))  # a memoryview if blocks are sliced
+        self.src.emit(1, "try:")
+        self._known = 0
+        result = self._struct(msg, 2)
+        self._flush(2)
+        if self._sliced:
+            self.src.emit(2, "if p > len(b): raise truncated(p, len(b))")
+        self.src.emit(2, f"return {result}")
+        type_name = self.src.const(msg.name, "TYPE")
+        self.src.emit(1, "except (STRUCT_ERROR, ValueError) as exc:")
+        self.src.emit(2, f"raise undecodable({type_name}, len(b), exc) from exc")
         self.src.emit(0, "")
 
     # -- fields ------------------------------------------------------------------------
@@ -46,21 +103,27 @@ class DecoderSource(FunctionWriter):
         parts = [(f.name, self._field(f.type, ind)) for f in msg.fields]
         if self.plain:
             return "{" + ", ".join(f"{n!r}: {v}" for n, v in parts if n != PLACEHOLDER) + "}"
-        cls = self.src.const(self.types.struct(msg.name), "C")
-        return f"{cls}(" + ", ".join(v for _, v in parts) + ")"
+        # `object.__new__` and attribute stores in line: what the struct's generated
+        # `__init__` does, without the call through the class (a third of a Twist's decode)
+        cls, obj = self.src.const(self.types.struct(msg.name), "C"), self.src.name("m")
+        build = "; ".join([f"{obj} = new({cls})", *(f"{obj}.{n} = {v}" for n, v in parts)])
+        if self._run:
+            self._builds.append(build)  # its fields are read by the run's unpack
+        else:
+            self.src.emit(ind, build)
+        return obj
 
     def _field(self, ftype: FieldType, ind: int) -> str:
         if ftype.collection is Collection.SINGLE:
             return self._single(ftype, ind)
         if ftype.collection is Collection.ARRAY:
             return self._elements(ftype, str(ftype.size), ind)
-        self._flush(ind)
-        count = self._read("I", ind)
+        count = self._read("I", ind)  # read with the fixed fields before it, in one unpack
         self._flush(ind)
         if ftype.collection is Collection.BOUNDED_SEQUENCE:
             self.src.emit(ind, f"if {count} > {ftype.size}: raise over_bound({count}, "
                                f"{ftype.size})")
-        value = self._elements(ftype, count, ind)
+        value = self._elements(ftype, count, ind, after_count=True)
         self._known = None
         return value
 
@@ -89,14 +152,17 @@ class DecoderSource(FunctionWriter):
         self._flush(ind)
         value, end = self.src.name("s"), self.src.name("q")
         self.src.emit(ind, f"{end} = p + {count}")
-        self.src.emit(ind, f"if {end} > len(mv): raise truncated({end}, len(mv))")
-        self.src.emit(ind, f"{value} = str(mv[p:{end} - 1], 'utf-8') if {count} else ''")
+        # a length of 0 (no NUL: not what rmw writes) slices to b'' as well
+        self.src.emit(ind, f"{value} = b[p:{end} - 1].decode()")
+        self._sliced = True
         self.src.emit(ind, f"p = {end}")
         self._known = None
         return value
 
-    def _elements(self, ftype: FieldType, count: str, ind: int) -> str:
-        """`count` elements; a fixed array keeps the known residue where it can."""
+    def _elements(self, ftype: FieldType, count: str, ind: int, *,
+                  after_count: bool = False) -> str:
+        """`count` elements; a fixed array keeps the known residue where it can. Right
+        after a sequence's count, p is a multiple of 4 in the body: no padding below 8."""
         element = ftype.element
         if element.nested is not None:
             self._flush(ind)
@@ -104,9 +170,10 @@ class DecoderSource(FunctionWriter):
             value, item = self.src.name("l"), self.src.name("o")
             self.src.emit(ind, f"{value} = []")
             self.src.emit(ind, f"for _ in range({count}):")
-            self.src.emit(ind + 1, f"{item}, p = {inner}(mv, p)")
+            self.src.emit(ind + 1, f"{item}, p = {inner}(b, mv, p)")
             self.src.emit(ind + 1, f"{value}.append({item})")
             self._known = None
+            self._sliced = True  # the element's function may end with a slice
             return value
         prim = element.primitive
         assert prim is not None
@@ -115,13 +182,23 @@ class DecoderSource(FunctionWriter):
         if ftype.collection is Collection.ARRAY and is_byte_like(ftype):
             octets = self._read(f"{ftype.size}s", ind, align=1)
             return f"list({octets})" if self.plain else octets
-        return self._block(prim, is_byte_like(ftype), count, ind)
+        return self._block(prim, is_byte_like(ftype), count, ind, after_count)
 
     def _strings(self, element: FieldType, count: str, ind: int) -> str:
         self._flush(ind)
         value = self.src.name("l")
         self.src.emit(ind, f"{value} = []")
         self.src.emit(ind, f"for _ in range({count}):")
+        if element.primitive is Primitive.STRING:  # the loop's body as short as it goes
+            length = self.src.const(struct.Struct(self.order + "I").unpack_from, "U")
+            end = self.src.name("q")
+            self.src.emit(ind + 1, "p += -p & 3")  # -p & 3: the header's 4 keep p's residue
+            self.src.emit(ind + 1, f"{end} = p + 4 + {length}(mv, p)[0]")
+            self.src.emit(ind + 1, f"{value}.append(b[p + 4:{end} - 1].decode())")
+            self.src.emit(ind + 1, f"p = {end}")
+            self._known = None
+            self._sliced = True
+            return value
         self._known = None
         item = self._single(element, ind + 1)
         self._flush(ind + 1)
@@ -129,7 +206,8 @@ class DecoderSource(FunctionWriter):
         self._known = None
         return value
 
-    def _block(self, prim: Primitive, byte_like: bool, count: str, ind: int) -> str:
+    def _block(self, prim: Primitive, byte_like: bool, count: str, ind: int,
+               after_count: bool) -> str:
         """`count` primitives read in one slice; a fixed array keeps the known residue."""
         self._flush(ind)
         size = size_of(FORMATS[prim])
@@ -138,11 +216,17 @@ class DecoderSource(FunctionWriter):
         inner = ind if static else ind + 1
         if not static:
             self.src.emit(ind, f"if {count}:")
-        if size > 1:
+        if size > 4 or (size > 1 and not after_count):
             self._align(size, inner)
         self.src.emit(inner, f"{end} = p + {count} * {size}")
-        self.src.emit(inner, f"if {end} > len(mv): raise truncated({end}, len(mv))")
-        self.src.emit(inner, f"{value} = {self._slice(prim, byte_like, end)}")
+        if byte_like or prim is Primitive.BOOLEAN or self.plain:
+            self.src.emit(inner, f"{value} = {self._slice(prim, byte_like, end)}")
+        else:  # one copy, in line (a function call costs as much as a short copy)
+            self.views = self._sliced = True
+            empty = self._empty_array(prim)  # copying an empty array beats making one
+            self.src.emit(inner, f"{value} = {empty}[:]; {value}.frombytes(mv[p:{end}])")
+            if self.swap:
+                self.src.emit(inner, f"{value}.byteswap()")
         self.src.emit(inner, f"p = {end}")
         if static:
             if self._known is not None:
@@ -150,18 +234,21 @@ class DecoderSource(FunctionWriter):
             return value
         self.src.emit(ind, "else:")
         empty = "[]" if self.plain or prim is Primitive.BOOLEAN else (
-            "EMPTY_OCTETS" if byte_like else f"ARRAY({ARRAY_CODES[prim]!r})")
+            "EMPTY_OCTETS" if byte_like else f"{self._empty_array(prim)}[:]")
         self.src.emit(ind + 1, f"{value} = {empty}")
         self._known = None
         return value
 
     def _slice(self, prim: Primitive, byte_like: bool, end: str) -> str:
+        self.views = self._sliced = True
         raw = f"mv[p:{end}]"
         if byte_like:
-            return f"list({raw}.tobytes())" if self.plain else f"{raw}.toreadonly()"
+            return f"list({raw})" if self.plain else f"{raw}.toreadonly()"
         if prim is Primitive.BOOLEAN:
             return f"[b != 0 for b in {raw}]"
         code = ARRAY_CODES[prim]
+        if self.plain and not self.swap:  # from `b`, bytes or bytearray: read as by frombytes
+            return f"ARRAY({code!r}, b[p:{end}]).tolist()"
         call = f"to_array({code!r}, {raw}, {self.swap})"
         return f"{call}.tolist()" if self.plain else call
 
@@ -184,14 +271,27 @@ class DecoderSource(FunctionWriter):
         if self._known is not None:
             fmt, end = layout(self._known, items, self.order)
             reader = struct.Struct(fmt)
-            name = self.src.const(reader, "S")
-            self.src.emit(ind, f"{targets} = {name}.unpack_from(mv, p)")
+            name = self.src.const(reader.unpack_from, "S")  # bound once, not per call
+            self.src.emit(ind, f"{targets} = {name}(mv, p)")
             self.src.emit(ind, f"p += {reader.size}")
             self._known = end
+            self._sliced = False
+            self._emit_builds(ind)
             return
         table, after = by_residue(items, self.order)
-        name, chosen = self.src.const(table, "T"), self.src.name("r")
-        self.src.emit(ind, f"{chosen} = {name}[p & 7]")
-        self.src.emit(ind, f"{targets} = {chosen}.unpack_from(mv, p)")
-        self.src.emit(ind, f"p += {chosen}.size")
+        name = self.src.const(tuple((s.unpack_from, s.size) for s in table), "T")
+        chosen, size = self.src.name("r"), self.src.name("z")
+        self.src.emit(ind, f"{chosen}, {size} = {name}[p & 7]")
+        self.src.emit(ind, f"{targets} = {chosen}(mv, p)")
+        self.src.emit(ind, f"p += {size}")
         self._known = after
+        self._sliced = False
+        self._emit_builds(ind)
+
+    def _empty_array(self, prim: Primitive) -> str:
+        return self.src.const(array(ARRAY_CODES[prim]), "E")
+
+    def _emit_builds(self, ind: int) -> None:
+        for build in self._builds:
+            self.src.emit(ind, build)
+        self._builds = []

@@ -7,12 +7,17 @@ it either raises the precise `ValueFitError` or builds a typed message (coercing
 integral float into an int field), which the typed encoder then writes. So the fast path
 never accepts what the validator rejects, and errors read the same as before.
 
-Nested structs are inlined, so a Twist is one `Struct.pack`; sequences of structs call the
-element's own function in a loop.
+Nested structs are inlined, so a Twist is one `Struct.pack` (header included: a message of
+fixed size is that one call); sequences of structs call the element's own function in a loop.
+A large block (an image's bytes, a point cloud, a long numeric sequence) is not appended: it
+is noted in `big` with its offset, a few placeholder bytes keep the buffer's length at the
+right residue mod 8 for the alignment that follows, and `join_big` copies it once, straight
+into the result, with the small pieces around it.
 """
 
 from __future__ import annotations
 
+import re
 import struct
 from typing import Any
 
@@ -41,8 +46,14 @@ NUMBERS = frozenset({int, float})
 INTS = frozenset({int})
 
 
+_WRITES = re.compile(r"(?<![.\w])buf\b")  # generated code touching the buffer (not m.buf)
+BIG = 16 * 1024  # bytes of a block that goes into `big` rather than into the bytearray
+
+
 class EncoderSource(FunctionWriter):
-    """Emits `enc_<n>(m, buf)` functions that append a struct's CDR body to a bytearray."""
+    """Emits `enc_<n>(m, buf, big)` functions that append a struct's CDR body to a bytearray
+    (blocks of more than BIG bytes to `big`), and the top function `enc_<n>(m)` that returns
+    the message's CDR, encapsulation header included."""
 
     prefix = "enc_"
 
@@ -53,11 +64,25 @@ class EncoderSource(FunctionWriter):
         self._known: int | None = None
 
     def body(self, name: str, msg: MessageType, top: bool) -> None:
-        self.src.emit(0, f"def {name}(m, buf):")
-        self._known = 0 if top else None
+        if not top:
+            self.src.emit(0, f"def {name}(m, buf, big):")
+            self._known = None
+            self._struct(msg, "m", 1)
+            self._flush(1)
+            self.src.emit(1, "return")
+            self.src.emit(0, "")
+            return
+        self.src.emit(0, f"def {name}(m):")
+        self.src.emit(1, "buf = bytearray(HEADER); big = []")
+        start = len(self.src.lines)
+        self._known = 0
         self._struct(msg, "m", 1)
-        self._flush(1)
-        self.src.emit(1, "return")
+        if not any(_WRITES.search(line) for line in self.src.lines[start:]):  # fixed size
+            del self.src.lines[start - 1]
+            self._flush(1, result=True)
+        else:
+            self._flush(1)
+            self.src.emit(1, "return join_big(buf, big)")
         self.src.emit(0, "")
 
     # -- fields ------------------------------------------------------------------------
@@ -86,6 +111,10 @@ class EncoderSource(FunctionWriter):
         elif ftype.collection is Collection.ARRAY and _fixed_element(ftype):
             self._fixed_array(ftype, value, ind)
         else:
+            if not self.plain:  # read several times below: one attribute lookup
+                local = self.src.name("v")
+                self.src.emit(ind, f"{local} = {value}")
+                value = local
             self._repeated(ftype, value, ind)
 
     def _single(self, ftype: FieldType, value: str, ind: int) -> None:
@@ -110,7 +139,8 @@ class EncoderSource(FunctionWriter):
         if prim is Primitive.BOOLEAN:
             self.src.emit(ind, f"if {value}.__class__ is not bool: raise Slow")
         elif prim.is_float:
-            self.src.emit(ind, f"if {value}.__class__ not in NUMBERS: raise Slow")
+            self.src.emit(ind, f"if {value}.__class__ is not float and {value}.__class__ is "
+                               "not int: raise Slow")  # two identity tests beat a set's
         else:
             self.src.emit(ind, f"if {value}.__class__ is not int: raise Slow")
 
@@ -173,9 +203,9 @@ class EncoderSource(FunctionWriter):
             inner = self.function(element.nested)
             item = self.src.name("e")
             self.src.emit(ind, f"for {item} in {value}:")
-            self.src.emit(ind + 1, f"{inner}({item}, buf)")
+            self.src.emit(ind + 1, f"{inner}({item}, buf, big)")
         elif is_byte_like(ftype):
-            self.src.emit(ind, f"buf += {value}")
+            self._append_block(value, count, ind)
         else:
             assert element.primitive is not None
             self._repeated_primitive(element, value, count, ind)
@@ -209,17 +239,32 @@ class EncoderSource(FunctionWriter):
             self.src.emit(ind + 1, f"if {value}.__class__ is ARRAY:")
             self.src.emit(ind + 2, f"if {value}.typecode != {code!r}: raise Slow")
             self.src.emit(ind + 1, f"elif not {_all_of(prim, value)}: raise Slow")
-        if NATIVE_LITTLE:
-            self.src.emit(ind + 1, f"if {value}.__class__ is ARRAY and "
-                                   f"{value}.typecode == {code!r}:")
-            self.src.emit(ind + 2, f"buf += {value}")
-            self.src.emit(ind + 1, "else:")
-            self.src.emit(ind + 2, f"buf += pack(f'<{{{count}}}{fmt}', *{value})")
+        block = self.src.name("b")
+        packed = f"packer({fmt!r}, {count})(*{value})"
+        if NATIVE_LITTLE:  # an array of the field's type is its wire bytes already
+            self.src.emit(ind + 1, f"{block} = {value} if {value}.__class__ is ARRAY and "
+                                   f"{value}.typecode == {code!r} else {packed}")
         else:
-            self.src.emit(ind + 1, f"buf += pack(f'<{{{count}}}{fmt}', *{value})")
+            self.src.emit(ind + 1, f"{block} = {packed}")
+        self._append_block(block, f"{count} * {align}", ind + 1)
+
+    def _append_block(self, block: str, size: str, ind: int) -> None:
+        """Appends a bytes-like block of `size` bytes, or notes it in `big` if large."""
+        self.src.emit(ind, f"if {size} > BIG: big.append((len(buf), {block}, {size})); "
+                           f"buf += ZEROS[{size} & 7]")
+        self.src.emit(ind, f"else: buf += {block}")
 
     # -- runs ---------------------------------------------------------------------------
-    def _flush(self, ind: int) -> None:
+    def _flush(self, ind: int, *, result: bool = False) -> None:
+        """Writes the pending run; with `result`, returns it as the whole message (the run
+        starts the body and nothing follows it)."""
+        if result:
+            fmt, _ = layout(0, [item for item, _ in self._run])
+            packer = self.src.const(struct.Struct("<4s" + fmt[1:]).pack, "S")
+            args = "".join(f", {arg}" for _, arg in self._run)
+            self._run = []
+            self.src.emit(ind, f"return {packer}(HEADER{args})")
+            return
         if not self._run:
             return
         items = [item for item, _ in self._run]
@@ -227,13 +272,13 @@ class EncoderSource(FunctionWriter):
         self._run = []
         if self._known is not None:
             fmt, end = layout(self._known, items)
-            packer = self.src.const(struct.Struct(fmt), "S")
-            self.src.emit(ind, f"buf += {packer}.pack({args})")
+            packer = self.src.const(struct.Struct(fmt).pack, "S")  # bound once, not per call
+            self.src.emit(ind, f"buf += {packer}({args})")
             self._known = end
             return
         table, after = by_residue(items)
-        packers = self.src.const(table, "T")
-        self.src.emit(ind, f"buf += {packers}[len(buf) & 7].pack({args})")
+        packers = self.src.const(tuple(s.pack for s in table), "T")
+        self.src.emit(ind, f"buf += {packers}[len(buf) & 7]({args})")
         self._known = after
 
 

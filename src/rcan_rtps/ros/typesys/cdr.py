@@ -122,6 +122,45 @@ def _packer(fmt: str, count: int) -> Callable[..., bytes]:
     return found
 
 
+_LENGTH, _PAD4 = struct.Struct("<I"), (b"", b"\0", b"\0\0", b"\0\0\0")
+_STRING_BLOCKS: dict[tuple[Any, ...], bytes] = {}
+STRING_BLOCKS_KEPT = 64  # distinct name lists remembered (a robot has a handful)
+STRING_BLOCK_MAX = 4096  # bytes: longer lists are built every time, never kept
+
+
+def _string_block(items: Any, plain: bool) -> bytes:
+    """The elements of a sequence of (unbounded) strings as CDR, from the 4-aligned position
+    right after its count: length, UTF-8, NUL, padding before the next length. The block
+    depends on nothing else, so the same list — a robot's joint names, in every JointState
+    — is built once and then found by its tuple (hashing strings that cache their hash)."""
+    key = items if items.__class__ is tuple else tuple(items)
+    try:
+        found = _STRING_BLOCKS.get(key)
+    except TypeError:  # an unhashable item: not a string, said by the build below
+        found = None
+    if found is not None:
+        return found
+    block = _build_strings(key, plain)
+    if len(block) <= STRING_BLOCK_MAX:
+        if len(_STRING_BLOCKS) >= STRING_BLOCKS_KEPT:  # many lists: start again
+            _STRING_BLOCKS.clear()
+        _STRING_BLOCKS[key] = block
+    return block
+
+
+def _build_strings(items: tuple[Any, ...], plain: bool) -> bytes:
+    out = bytearray()
+    for item in items:
+        if plain and item.__class__ is not str:
+            raise Slow
+        raw = item.encode()
+        out += _PAD4[-len(out) & 3]
+        out += _LENGTH.pack(len(raw) + 1)
+        out += raw
+        out.append(0)
+    return bytes(out)
+
+
 def _to_array(code: str, raw: memoryview, swap: bool) -> array[Any]:
     values = array(code)
     values.frombytes(raw)
@@ -134,6 +173,7 @@ HELPERS: dict[str, Any] = {
     "Slow": Slow, "NUMBERS": NUMBERS, "INTS": INTS, "ARRAY": array,
     "packer": _packer, "put_wide": _put_wide, "get_wide": _get_wide,
     "plain_wide": _plain_wide, "plain_octets": _plain_octets, "octets": _octets,
+    "string_block": _string_block,
     "to_array": _to_array,
     "wide_to_str": wide_to_str, "truncated": _truncated, "over_bound": _over_bound,
     "length_error": _length_error, "EMPTY_OCTETS": memoryview(b"").toreadonly(),

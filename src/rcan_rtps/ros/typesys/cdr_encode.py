@@ -208,7 +208,11 @@ class EncoderSource(FunctionWriter):
             self._append_block(value, count, ind)
         else:
             assert element.primitive is not None
-            self._repeated_primitive(element, value, count, ind)
+            if element.primitive is Primitive.STRING and not element.string_bound and \
+                    ftype.collection is not Collection.ARRAY:  # right after a count
+                self.src.emit(ind, f"buf += string_block({value}, {self.plain})")
+            else:
+                self._repeated_primitive(element, value, count, ind)
         self._known = None
 
     def _repeated_primitive(self, element: FieldType, value: str, count: str, ind: int) -> None:

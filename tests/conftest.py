@@ -192,6 +192,10 @@ def pytest_configure(config: pytest.Config) -> None:
     # Whatever starts a DDS participant without naming a domain joins this worker's own, not
     # domain 0 shared with every other worker.
     os.environ["ROS_DOMAIN_ID"] = str(_DEFAULT_DOMAIN)
+    # Outside a private network namespace (a run by hand without scripts/netns), every
+    # participant of ours and of the rclpy peers stays on loopback: none reaches a network.
+    if not os.environ.get("RCAN_RTPS_IN_NETNS"):
+        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 
 _SHM_BEFORE = "_rcan_rtps_shm_before"

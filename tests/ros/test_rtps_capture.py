@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from rcan_rtps.ros import participant, rtps_capture
 from rcan_rtps.ros.rtps_capture import (
     IdentityCapture,
     ReceivedData,
@@ -83,8 +84,11 @@ def test_parse_finds_only_data_naming_a_related_sample() -> None:
 @pytest.fixture
 def capture(tmp_path: Path) -> Iterator[tuple[IdentityCapture, int]]:
     """A started capture and a descriptor that appends to its file as Cyclone's does (and
-    is redirected as Cyclone's is: the only other descriptor of the file)."""
-    capture = IdentityCapture(tmp_path)
+    is redirected as Cyclone's is: the only other descriptor of the file). Made in a
+    symlinked directory: Cyclone's descriptor is found by its inode, not by a name."""
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    capture = IdentityCapture(tmp_path / "link")
     writer = os.open(capture.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
     os.write(writer, PCAP_HEADER)
     assert capture.start()
@@ -95,7 +99,7 @@ def capture(tmp_path: Path) -> Iterator[tuple[IdentityCapture, int]]:
 
 def test_the_file_loses_its_name_once_opened(tmp_path: Path,
                                              capture: tuple[IdentityCapture, int]) -> None:
-    assert list(tmp_path.iterdir()) == []
+    assert list((tmp_path / "real").iterdir()) == []
 
 
 def test_idle_capture_writes_nothing_and_a_user_gets_identities(
@@ -161,3 +165,29 @@ def test_a_killed_process_leaves_no_capture_behind(tmp_path: Path, domain_id: in
     finally:
         child.kill()
     assert [p.name for p in tmp_path.glob("rcan-rtps-capture-*")] == []
+
+
+def test_a_file_system_that_cannot_give_bytes_back_ends_the_capture(
+        capture: tuple[IdentityCapture, int], monkeypatch: pytest.MonkeyPatch) -> None:
+    tail, writer = capture
+    # what fallocate(PUNCH_HOLE) answers on a file system without it (EOPNOTSUPP)
+    monkeypatch.setattr(tail._libc, "punch_hole", lambda fd, offset, length: False)
+    tail.use()
+    mine = SampleIdentity(REQUEST_WRITER, 3)
+    record = pcap_record(rtps_message(1, mine, payload=bytes(1000)))
+    os.write(writer, record * (rtps_capture.PUNCH_AFTER // len(record) + 2))
+    tail.drain()  # consumed past PUNCH_AFTER: the hole is refused, the capture gives up
+    before = tail.held()
+    os.write(writer, record * 100)  # Cyclone's writes now go to /dev/null
+    assert tail.held() == before
+    tail.use()  # and nobody turns it back on
+    os.write(writer, pcap_record(rtps_message(2, mine, stamp=(1_700_000_005, 0))))
+    assert tail.lookup(SERVER, nanoseconds(1_700_000_005, 0)) is None
+    assert tail.held() == before
+
+
+def test_no_capture_where_it_could_not_be_kept_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert rtps_capture.capture_supported()  # this machine: Linux, /proc, fallocate
+    monkeypatch.setattr(rtps_capture.sys, "platform", "darwin")
+    assert not rtps_capture.capture_supported()
+    assert participant._new_capture() is None  # Cyclone is given no capture at all

@@ -33,7 +33,7 @@ from .errors import GraphTimeout, WireError, seconds
 from .names import expand_topic_name, mangle_topic, normalize_namespace, validate_node_name
 from .qos import QosProfile
 from .readers import Decode, ReaderThread, Watch, WriterWatch
-from .rtps_capture import IdentityCapture
+from .rtps_capture import IdentityCapture, capture_supported
 from .typesys.cdr import CdrCodecs
 from .typesys.ddstypes import DdsTypes
 from .typesys.store import TypeStore, env_idl_paths
@@ -66,6 +66,9 @@ _captures: dict[int, IdentityCapture] = {}
 
 def _new_capture() -> IdentityCapture | None:
     if os.environ.get("RCAN_RTPS_RPC_IDENTITY", "").lower() in ("off", "0", "false"):
+        return None
+    if not capture_supported():  # it could not be kept bounded here (not Linux)
+        log.debug("no packet capture for Fast DDS request identities on this platform")
         return None
     try:
         return IdentityCapture()

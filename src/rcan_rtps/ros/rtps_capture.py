@@ -31,6 +31,7 @@ import logging
 import mmap
 import os
 import struct
+import sys
 import tempfile
 import threading
 import time
@@ -169,10 +170,23 @@ class _Libc:
         if self._lib is not None:
             self._lib.fflush(None)
 
-    def punch_hole(self, fd: int, offset: int, length: int) -> None:
-        """Frees a consumed range of the capture file (FALLOC_FL_PUNCH_HOLE|KEEP_SIZE)."""
-        if self._punch is not None:
-            self._punch(fd, 0x02 | 0x01, offset, length)
+    @property
+    def can_punch(self) -> bool:
+        return self._punch is not None
+
+    def punch_hole(self, fd: int, offset: int, length: int) -> bool:
+        """Frees a consumed range of the capture file (FALLOC_FL_PUNCH_HOLE|KEEP_SIZE);
+        False if the file system (or platform) cannot."""
+        return self._punch is not None and self._punch(fd, 0x02 | 0x01, offset, length) == 0
+
+
+def capture_supported() -> bool:
+    """Whether a capture stays bounded here: consumed bytes given back (fallocate) and
+    Cyclone's descriptor found (/proc) to point it at /dev/null while nobody reads. Linux
+    only: elsewhere (macOS) Cyclone would write all the domain's traffic to a file that
+    only grows, so no capture is configured at all."""
+    return sys.platform.startswith("linux") and os.path.isdir("/proc/self/fd") and \
+        _Libc().can_punch
 
 
 def capture_directory() -> str | None:
@@ -210,12 +224,15 @@ class IdentityCapture:
         self._sink: int | None = None
         self._appender: int | None = None
         self._resync_at: int | None = None  # file offset where writing resumed mid-stream
+        self._broken = False  # given up (the file could not be kept bounded)
         self.datagrams = 0  # received datagrams parsed so far
         self.identified = 0  # DATA submessages found naming a related sample
 
     def use(self) -> None:
         """A client needs identities from now on (until `unuse`)."""
         with self._lock:
+            if self._broken:
+                return
             self._users += 1
             if self._users == 1:
                 self._route(True)
@@ -246,13 +263,17 @@ class IdentityCapture:
             os.dup2(self._sink, self._cyclone_fd)
 
     def _find_cyclone_fd(self) -> int | None:
-        """Cyclone's descriptor of the capture file (Linux: the only other link to it)."""
+        """Cyclone's descriptor of the capture file (Linux: the only other descriptor of
+        its inode; by inode, not by name, which a symlinked directory would change)."""
+        assert self._file is not None
+        ours = os.fstat(self._file)
         found = []
         with contextlib.suppress(OSError):
             for name in os.listdir("/proc/self/fd"):
                 with contextlib.suppress(OSError, ValueError):
+                    other = os.stat(f"/proc/self/fd/{name}")
                     if int(name) != self._file and \
-                            os.readlink(f"/proc/self/fd/{name}") == str(self.path):
+                            (other.st_dev, other.st_ino) == (ours.st_dev, ours.st_ino):
                         found.append(int(name))
         return found[0] if len(found) == 1 else None
 
@@ -340,10 +361,24 @@ class IdentityCapture:
         if self._offset - self._punched >= PUNCH_AFTER:
             # Page-aligned, below what was consumed: the hole never touches unread bytes.
             punch_to = self._offset & ~0xFFF
-            with contextlib.suppress(OSError):
-                self._libc.punch_hole(self._file, self._punched, punch_to - self._punched)
+            if not self._libc.punch_hole(self._file, self._punched, punch_to - self._punched):
+                self._give_up("the capture's file system cannot give consumed bytes back")
+                return offset - start
             self._punched = punch_to
         return offset - start
+
+    def _give_up(self, why: str) -> None:
+        """Stops capturing for good (under the lock): Cyclone's descriptor to /dev/null,
+        lookups answer unknown, so clients keep the rule for unnamed replies."""
+        log.warning("Fast DDS request identities off: %s", why)
+        self._users = 0
+        if self._cyclone_fd is not None:
+            self._route(False)
+        else:
+            log.error("the packet capture cannot be stopped and will grow: set "
+                      "RCAN_RTPS_RPC_IDENTITY=off")
+        self._known.clear()
+        self._broken = True
 
     def _resync(self, buf: mmap.mmap, offset: int, available: int) -> int:
         """The first record header at or after `offset` (clearing the switch mark), or

@@ -71,7 +71,7 @@ def wrap_cdr(header: RequestHeader, data: bytes) -> bytes:
 def decoder(node: RosNode, type_name: str) -> Callable[[bytes], Wrapped]:
     """Reads wrapped samples of `type_name`: the header, then the plain body decoded in place
     (16 header bytes keep every later field's alignment, so the body decodes as it stands)."""
-    codec = node.codecs.of(type_name)
+    codec = node.codecs.of(type_name).prepare_decoder()
 
     def decode(data: bytes) -> Wrapped:
         mv = memoryview(data)

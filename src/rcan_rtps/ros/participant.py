@@ -174,7 +174,7 @@ def gid_bytes(entity: Any, size: int) -> bytes:
 class RosPublisher:
     def __init__(self, node: RosNode, topic: str, type_name: str, writer: DataWriter[Any]) -> None:
         self.node, self.topic, self.type_name, self.writer = node, topic, type_name, writer
-        self.codec = node.codecs.of(type_name)
+        self.codec = node.codecs.of(type_name).prepare_encoders()
         self.closed = False
         self.incompatible_qos_events = 0
         # The matched count is kept by the node's reader thread from PUBLICATION_MATCHED, so
@@ -464,7 +464,7 @@ class RosNode:
         """The generated decoder of a topic type this node made, or None for other structs
         (the Cyclone request wrappers), which decode themselves."""
         name = self.types.name_of(data_type)
-        return None if name is None else self.codecs.of(name).decode
+        return None if name is None else self.codecs.of(name).prepare_decoder().decode
 
     def watch_writer(self, writer: DataWriter[Any], on_incompatible_qos: Callable[[Any], None],
                      label: str, *, on_matched: Callable[[int], None] | None = None

@@ -142,7 +142,7 @@ class _Pair:
             self.writer = node.create_writer(*out, qos, extra_user_data=user)
             self.reader = node.create_reader(*into, qos, extra_user_data=user)
             decode = None  # the plain type's own generated decoder
-        self.out_codec = node.codecs.of(out[1])
+        self.out_codec = node.codecs.of(out[1]).prepare_encoders()
         # rmw_cyclonedds names a client in the header by its request writer's handle.
         self.guid = int(self.writer.get_instance_handle()) & 0xFFFF_FFFF_FFFF_FFFF
         # RTPS names a sample (writer GUID, sequence number); Cyclone numbers a writer's

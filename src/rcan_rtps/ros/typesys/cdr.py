@@ -14,6 +14,7 @@ cyclonedds type would write (tests hold both, and rclpy, to it).
 
 from __future__ import annotations
 
+import functools
 import struct
 import threading
 from array import array
@@ -219,14 +220,37 @@ class MessageCodec:
         self.struct = codecs.types.struct(type_name)
         self._codecs = codecs
         self.fallbacks = 0  # plain values the fast path left to the validator (tests watch it)
-        self._encode = codecs.encoder(type_name, plain=False)
-        self._encode_plain = codecs.encoder(type_name, plain=True)
-        # the generated entry points themselves, for callers that count nanoseconds
-        # (Codec.deserialize): `read(data)` is `decode(data)`, `read_plain` `decode_plain`
-        self.read: Callable[[bytes | bytearray | memoryview], Any] = codecs.decoder(
-            type_name, plain=False, order="<")
-        self.read_plain: Callable[[bytes | bytearray | memoryview], Any] = codecs.decoder(
-            type_name, plain=True, order="<")
+
+    # Each generated function is made on first use (a type only read never holds encoders:
+    # about 20 kB each); endpoints make theirs when they are created (`prepare_*`), so that
+    # no message, a stop least of all, waits for code generation.
+    @functools.cached_property
+    def _encode(self) -> Callable[[Any], bytes]:
+        return self._codecs.encoder(self.type_name, plain=False)
+
+    @functools.cached_property
+    def _encode_plain(self) -> Callable[[Any], bytes]:
+        return self._codecs.encoder(self.type_name, plain=True)
+
+    # the generated entry points themselves, for callers that count nanoseconds
+    # (Codec.deserialize): `read(data)` is `decode(data)`, `read_plain` `decode_plain`
+    @functools.cached_property
+    def read(self) -> Callable[[bytes | bytearray | memoryview], Any]:
+        return self._codecs.decoder(self.type_name, plain=False, order="<")
+
+    @functools.cached_property
+    def read_plain(self) -> Callable[[bytes | bytearray | memoryview], Any]:
+        return self._codecs.decoder(self.type_name, plain=True, order="<")
+
+    def prepare_encoders(self) -> MessageCodec:
+        """Makes both encoders now (a writer's: typed messages and plain values)."""
+        self._encode, self._encode_plain  # noqa: B018  (made by the lookups)
+        return self
+
+    def prepare_decoder(self) -> MessageCodec:
+        """Makes the typed decoder now (a reader's)."""
+        self.read  # noqa: B018
+        return self
 
     def encode(self, message: Any) -> bytes:
         """CDR of a typed message (any object with the type's attributes)."""

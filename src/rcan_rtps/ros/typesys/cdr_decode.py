@@ -8,7 +8,6 @@ against the buffer before anything is sliced, so truncated data raises instead o
 
 from __future__ import annotations
 
-import struct
 from array import array
 
 from .cdr_layout import (
@@ -19,6 +18,7 @@ from .cdr_layout import (
     Item,
     by_residue,
     layout,
+    shared_struct,
     size_of,
 )
 from .cdr_source import FunctionWriter, Source
@@ -190,7 +190,7 @@ class DecoderSource(FunctionWriter):
         self.src.emit(ind, f"{value} = []")
         self.src.emit(ind, f"for _ in range({count}):")
         if element.primitive is Primitive.STRING:  # the loop's body as short as it goes
-            length = self.src.const(struct.Struct(self.order + "I").unpack_from, "U")
+            length = self.src.const(shared_struct(self.order + "I").unpack_from, "U")
             end = self.src.name("q")
             self.src.emit(ind + 1, "p += -p & 3")  # -p & 3: the header's 4 keep p's residue
             self.src.emit(ind + 1, f"{end} = p + 4 + {length}(mv, p)[0]")
@@ -272,7 +272,7 @@ class DecoderSource(FunctionWriter):
         self._run = []
         if self._known is not None:
             fmt, end = layout(self._known, items, self.order)
-            reader = struct.Struct(fmt)
+            reader = shared_struct(fmt)
             name = self.src.const(reader.unpack_from, "S")  # bound once, not per call
             self.src.emit(ind, f"{targets} = {name}(mv, p)")
             self.src.emit(ind, f"p += {reader.size}")

@@ -18,7 +18,6 @@ into the result, with the small pieces around it.
 from __future__ import annotations
 
 import re
-import struct
 from typing import Any
 
 from ..errors import WireError
@@ -30,6 +29,7 @@ from .cdr_layout import (
     by_residue,
     layout,
     pad_table,
+    shared_struct,
     size_of,
 )
 from .cdr_source import FunctionWriter, Source
@@ -264,7 +264,7 @@ class EncoderSource(FunctionWriter):
         starts the body and nothing follows it)."""
         if result:
             fmt, _ = layout(0, [item for item, _ in self._run])
-            packer = self.src.const(struct.Struct("<4s" + fmt[1:]).pack, "S")
+            packer = self.src.const(shared_struct("<4s" + fmt[1:]).pack, "S")
             args = "".join(f", {arg}" for _, arg in self._run)
             self._run = []
             self.src.emit(ind, f"return {packer}(HEADER{args})")
@@ -276,7 +276,7 @@ class EncoderSource(FunctionWriter):
         self._run = []
         if self._known is not None:
             fmt, end = layout(self._known, items)
-            packer = self.src.const(struct.Struct(fmt).pack, "S")  # bound once, not per call
+            packer = self.src.const(shared_struct(fmt).pack, "S")  # bound once, not per call
             self.src.emit(ind, f"buf += {packer}({args})")
             self._known = end
             return

@@ -68,13 +68,25 @@ def layout(start: int, items: list[Item], order: str = "<") -> tuple[str, int]:
     return "".join(parts), pos % 8
 
 
+_STRUCTS: dict[str, struct.Struct] = {}
+
+
+def shared_struct(fmt: str) -> struct.Struct:
+    """One Struct per format for every codec: the same runs recur across types and residues
+    (a Vector3 in a Twist, an Odometry, an Imu ...), and each Struct keeps its compiled codes."""
+    found = _STRUCTS.get(fmt)
+    if found is None:
+        found = _STRUCTS.setdefault(fmt, struct.Struct(fmt))
+    return found
+
+
 def by_residue(items: list[Item], order: str = "<") -> tuple[tuple[struct.Struct, ...], int | None]:
     """8 Structs indexed by `(HEADER_SIZE + body offset) & 7`, and the residue after the run
     when it does not depend on where the run starts (else None)."""
     structs, ends = [], set()
     for index in range(8):
         fmt, end = layout((index - HEADER_SIZE) % 8, items, order)
-        structs.append(struct.Struct(fmt))
+        structs.append(shared_struct(fmt))
         ends.add(end)
     return tuple(structs), (ends.pop() if len(ends) == 1 else None)
 

@@ -137,6 +137,10 @@ class RclpyOracle:
                 self.proc.wait()
         self._stderr_done.join(timeout=5)
         self._selector.close()
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+        if self.proc.stderr is not None and not self._stderr_done.is_alive():
+            self.proc.stderr.close()  # (its reader thread has seen the end of it)
 
     def __enter__(self) -> RclpyOracle:
         return self

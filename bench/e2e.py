@@ -407,13 +407,18 @@ uvloop.run(main())
 
 async def library_floor_rss(mdns: bool) -> float:
     """Idle RSS (MB) of `LIBRARY_FLOOR`, read after the same settling time as a bridge's."""
+    return await settled_rss(LIBRARY_FLOOR, mdns, "the library floor process")
+
+
+async def settled_rss(code: str, mdns: bool, what: str) -> float:
+    """Idle RSS (MB) of a process running a floor's `code`, 1 s after its "ready" line."""
     proc = subprocess.Popen(
-        [sys.executable, "-c", LIBRARY_FLOOR, str(DOMAIN), "mdns" if mdns else "no-mdns"],
+        [sys.executable, "-c", code, str(DOMAIN), "mdns" if mdns else "no-mdns"],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
-        assert proc.stdout is not None and proc.stdin is not None
+        assert proc.stdout is not None
         if proc.stdout.readline().strip() != "ready":
-            raise RuntimeError("the library floor process did not start")
+            raise RuntimeError(f"{what} did not start")
         await asyncio.sleep(1.0)
         return rss_mb(proc.pid)
     finally:
@@ -663,17 +668,7 @@ gc.freeze()
 async def floor_importing(modules: list[str]) -> float:
     code = LIBRARY_FLOOR.replace("participant = ", IMPORTING.format(modules=modules)
                                  + "participant = ", 1)
-    proc = subprocess.Popen([sys.executable, "-c", code, str(DOMAIN), "mdns"],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout is not None
-        if proc.stdout.readline().strip() != "ready":
-            raise RuntimeError("the floor importing our modules did not start")
-        await asyncio.sleep(1.0)
-        return rss_mb(proc.pid)
-    finally:
-        proc.kill()
-        proc.wait()
+    return await settled_rss(code, True, "the floor importing our modules")
 
 
 def by_package(modules: list[str]) -> list[tuple[str, list[str]]]:

@@ -13,61 +13,34 @@ topic to count outstanding requests (that reader would look like a server to eve
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from oracle.client import RMWS, OracleEnv, RclpyOracle
+from oracle.client import RMWS, RclpyOracle
 
 from tests.interop.cpu_load import burning_cpus
+from tests.interop.echo_callers import run_callers
 
 PROCESSES = 6
 CALLS_EACH = 25
 CALLER = Path(__file__).with_name("concurrent_caller.py")
 
 
-@pytest.fixture
-def oracle(jazzy_oracle: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
-    with RclpyOracle(jazzy_oracle, "echo_host", "/", domain_id=domain_id) as agent:
-        agent.call("echo_server", name="/echo")
-        yield agent
-
-
 @pytest.mark.parametrize("oracle_rmw", RMWS)
 def test_processes_calling_at_once_never_swap_or_lose_replies(
-        oracle: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
-    _call_at_once(oracle, domain_id, jazzy_share)
+        echo_server: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
+    _call_at_once(echo_server, domain_id, jazzy_share)
 
 
 @pytest.mark.parametrize("oracle_rmw", RMWS)
 def test_processes_calling_at_once_under_cpu_load(
-        oracle: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
+        echo_server: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
     with burning_cpus():
-        _call_at_once(oracle, domain_id, jazzy_share)
+        _call_at_once(echo_server, domain_id, jazzy_share)
 
 
 def _call_at_once(oracle: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-    callers = [subprocess.Popen(
-        [sys.executable, str(CALLER), f"p{n}", str(CALLS_EACH), str(domain_id),
-         str(jazzy_share)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
-        for n in range(PROCESSES)]
-    try:
-        for caller in callers:  # all matched before anyone calls
-            assert caller.stdout is not None and caller.stdout.readline().strip() == "ready"
-        for caller in callers:
-            assert caller.stdin is not None
-            caller.stdin.write("go\n")
-            caller.stdin.flush()
-        tallies = [json.loads(caller.communicate(timeout=120)[0].splitlines()[-1])
-                   for caller in callers]
-    finally:
-        for caller in callers:
-            caller.kill()
+    tallies = run_callers(CALLER, PROCESSES, CALLS_EACH, domain_id, jazzy_share, timeout=120)
     lost = sum(len(t["lost"]) for t in tallies)
     wrong = [w for t in tallies for w in t["wrong"]]
     print(f"{PROCESSES} processes x {CALLS_EACH} calls: {len(wrong)} misattributed, {lost} lost")

@@ -14,6 +14,8 @@ import sys
 import time
 from pathlib import Path
 
+from waiting import eventually_sync
+
 from .run_process import RunProcess, child_env, state_args
 
 EXIT_TIMEOUT = 60.0  # s; generous: the shutdown bound is 10 s
@@ -80,10 +82,8 @@ def _spawn(tmp_path: Path, domain_id: int, **env: str) -> tuple[subprocess.Popen
 
 
 def _wait_for_line(path: Path, text: str, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while text not in path.read_text():
-        assert time.monotonic() < deadline, f"no {text!r} in:\n{path.read_text()}"
-        time.sleep(0.05)
+    eventually_sync(lambda: text in path.read_text(), timeout=timeout,
+                    what=lambda: f"{text!r} in:\n{path.read_text()}")
 
 
 def test_ctrl_c_during_start_stops_without_banner(tmp_path: Path, domain_id: int) -> None:

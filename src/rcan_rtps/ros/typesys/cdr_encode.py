@@ -43,6 +43,7 @@ class Slow(WireError):
 
 
 NUMBERS = frozenset({int, float})
+FLOAT64_MARK = b"\xcb"  # MessagePack's float 64: the mark, then 8 bytes (see cdr.all_floats)
 INTS = frozenset({int})
 
 
@@ -172,9 +173,19 @@ class EncoderSource(FunctionWriter):
             return
         if self.plain:
             self.src.emit(ind, f"if {value}.__class__ is not list or "
-                               f"not {_all_of(prim, value)}: raise Slow")
+                               f"not {self._fixed_all_of(prim, value, n)}: raise Slow")
         fmt = FORMATS[prim]
         self._run.append((Item(f"{n}{fmt}", size_of(fmt)), f"*{value}"))
+
+    def _fixed_all_of(self, prim: Primitive, value: str, size: int) -> str:
+        """`_all_of` for an array of `size` items: for floats, `all_floats` written out with
+        its constants (a list of another length fails the pack that follows)."""
+        if not prim.is_float:
+            return _all_of(prim, value)
+        head = 1 if size < 16 else 3 if size < 65536 else 5
+        marks = self.src.const(FLOAT64_MARK * size, "MARKS")
+        return (f"(to_msgpack({value})[{head}::9] == {marks} or "
+                f"NUMBERS.issuperset(map(type, {value})))")
 
     def _repeated(self, ftype: FieldType, value: str, ind: int) -> None:
         self._flush(ind)
@@ -288,11 +299,13 @@ class EncoderSource(FunctionWriter):
 
 def _all_of(prim: Primitive, value: str) -> str:
     """Source of a check that every item of the list `value` fits `prim` by type (ranges
-    are struct's to check). Counting one exact type is the fast case: floats in a float
-    list; ints there too, and bools nowhere else, send it to the exact (slower) test."""
-    exact = "bool" if prim is Primitive.BOOLEAN else ("float" if prim.is_float else "int")
-    fast = f"list(map(type, {value})).count({exact}) == len({value})"
-    return f"({fast} or NUMBERS.issuperset(map(type, {value})))" if prim.is_float else fast
+    are struct's to check). One exact type is the fast case: floats in a float list (checked
+    in C, `all_floats`); ints there too, and bools nowhere else, send it to the exact
+    (slower) test."""
+    if prim.is_float:
+        return f"(all_floats({value}) or NUMBERS.issuperset(map(type, {value})))"
+    exact = "bool" if prim is Primitive.BOOLEAN else "int"
+    return f"list(map(type, {value})).count({exact}) == len({value})"
 
 
 def _fixed_element(ftype: FieldType) -> bool:

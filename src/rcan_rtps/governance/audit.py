@@ -55,6 +55,7 @@ from ..events import Channel
 from ._durable import atomic_write, fsync_dir, full_fsync, write_all
 from .clock import Clock, SystemClock
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
+from .keyfacts import read_public_pem
 from .merkle import CompactTree, leaf_hash
 from .treehead import TreeHead, TreeHeadFile, public_key_path, sign_tree_head, tree_head_path
 
@@ -297,15 +298,10 @@ def public_key_pem(key: Ed25519PrivateKey) -> bytes:
 
 
 def load_public_key(path: str | os.PathLike[str]) -> Ed25519PublicKey:
-    from cryptography.hazmat.primitives import serialization
-
     try:
-        key = serialization.load_pem_public_key(Path(path).read_bytes())
-    except (OSError, ValueError) as exc:
-        raise AuditKeyError(f"cannot load public key {path}: {exc}") from exc
-    if not isinstance(key, Ed25519PublicKey):
-        raise AuditKeyError(f"{path} is not an Ed25519 public key")
-    return key
+        return read_public_pem(path)
+    except ValueError as exc:
+        raise AuditKeyError(str(exc)) from exc
 
 
 # -- verification ---------------------------------------------------------------------------

@@ -24,6 +24,7 @@ from rcan_rtps.rcan import JWT_LEVELS, M2M_TRUSTED, M2M_TRUSTED_LEVEL, Role
 
 from .clock import Clock
 from .errors import AuthConfigError, AuthenticationError
+from .keyfacts import read_public_pem
 from .rbac import DEFAULT_RATE_LIMITS, Principal
 
 _MAX_JWT = 8192
@@ -105,15 +106,10 @@ JwtKeys = Ed25519PublicKey | Mapping[str, Ed25519PublicKey]
 
 
 def load_pem_key(path: str) -> Ed25519PublicKey:
-    from cryptography.hazmat.primitives import serialization  # JWT configs only
-
     try:
-        key = serialization.load_pem_public_key(Path(path).read_bytes())
-    except (OSError, ValueError) as exc:
-        raise AuthConfigError(f"cannot load JWT public key {path}: {exc}") from exc
-    if not isinstance(key, Ed25519PublicKey):
-        raise AuthConfigError(f"JWT public key {path} is not Ed25519")
-    return key
+        return read_public_pem(path)
+    except ValueError as exc:
+        raise AuthConfigError(f"{exc} (the JWT public key)") from exc
 
 
 def load_jwks(path: str) -> dict[str, Ed25519PublicKey]:

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import os
+from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
@@ -33,3 +35,17 @@ class KeyFacts:
 def signature_text(signature: bytes) -> str:
     """`ed25519:<base64>`, as rcan-spec writes Ed25519 signatures (§17, §20 headers)."""
     return "ed25519:" + base64.b64encode(signature).decode()
+
+
+def read_public_pem(path: str | os.PathLike[str]) -> Ed25519PublicKey:
+    """The Ed25519 public key in a PEM file; a ValueError says what is wrong with it (callers
+    raise it as their own configuration error, naming what the key is for)."""
+    from cryptography.hazmat.primitives import serialization  # verifiers only, not a run
+
+    try:
+        key = serialization.load_pem_public_key(Path(path).read_bytes())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"cannot load {path}: {exc}") from exc
+    if not isinstance(key, Ed25519PublicKey):
+        raise ValueError(f"{path} is not an Ed25519 public key")
+    return key

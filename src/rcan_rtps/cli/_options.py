@@ -31,3 +31,10 @@ def merge_global_options(args: argparse.Namespace) -> argparse.Namespace:
     """One `idl_path` list: the directories given before the verb, then those after it."""
     args.idl_path = [*args.idl_path, *vars(args).pop(IDL_PATH_AFTER_VERB, [])]
     return args
+
+
+def add_spin_time(parser: argparse.ArgumentParser, default: float = 1.5) -> None:
+    """`--spin-time`: how long a graph command listens before it answers."""
+    parser.add_argument("--spin-time", type=float, default=default,
+                        help=f"seconds to listen for the graph before answering "
+                             f"(default {default:g})")

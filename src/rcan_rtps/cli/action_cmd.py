@@ -14,6 +14,7 @@ from ..ros.graph import Direction, RosGraph, node_fqn
 from ..ros.names import EndpointKind, action_names
 from ..ros.services import RequestMapping
 from ._common import VALUES_HELP, dump, make_node, parse_values, warn_if_alone
+from ._options import add_spin_time
 from .service_cmd import MAPPING_HELP, MAPPINGS
 
 EXIT_INTERRUPTED = 130
@@ -26,14 +27,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     listing = actions.add_parser("list", help="actions on the graph")
     listing.add_argument("-t", "--show-types", action="store_true",
                          help="show each action's type")
-    listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
+    add_spin_time(listing)
     listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
 
     info = actions.add_parser("info", help="servers and clients of an action")
     info.add_argument("action", metavar="NAME", help="action name, e.g. /robot1/navigate_to_pose")
     info.add_argument("-t", "--show-types", action="store_true",
                       help="show the action type of each server and client")
-    info.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
+    add_spin_time(info)
     info.set_defaults(func=lambda a: asyncio.run(_info(a)))
 
     send = actions.add_parser("send_goal", help="send a goal and wait for its result "

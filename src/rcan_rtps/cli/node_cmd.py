@@ -8,6 +8,7 @@ import asyncio
 from ..ros.graph import Direction, Endpoint, RosGraph, node_fqn
 from ..ros.names import EndpointKind, action_of, is_hidden
 from ._common import make_node, warn_if_alone
+from ._options import add_spin_time
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -15,14 +16,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     actions = parser.add_subparsers(dest="node_command", required=True)
     listing = actions.add_parser("list", help="every node announced on the graph")
     listing.add_argument("-a", "--all", action="store_true", help="include hidden nodes")
-    listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
+    add_spin_time(listing)
     listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
     info = actions.add_parser("info", help="endpoints of a node, grouped like ros2 node info")
     info.add_argument("node", metavar="NODE_NAME", help="the node, e.g. /robot1/rcan_bridge")
     info.add_argument("--include-hidden", action="store_true",
                       help="show hidden topics, services and actions too")
-    info.add_argument("--spin-time", type=float, default=1.5,
-                      help="seconds to listen for the graph before answering (default 1.5)")
+    add_spin_time(info)
     info.set_defaults(func=lambda a: asyncio.run(_info(a)))
 
 

@@ -13,6 +13,7 @@ from ..ros.participant import RosNode
 from ..ros.services import RequestMapping, ServiceClient
 from ..ros.typesys.store import normalize_name
 from ._common import VALUES_HELP, alone_hint, dump, make_node, parse_values, warn_if_alone
+from ._options import add_spin_time
 
 # How long `call` looks for a server on the graph before saying there is none (discovery
 # on a quiet domain takes well under a second; --timeout, when shorter, wins).
@@ -32,21 +33,19 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                          help="show each service's type")
     listing.add_argument("--include-hidden-services", action="store_true",
                          help="include services whose name has a part starting with '_'")
-    listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
+    add_spin_time(listing)
     listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
 
     kind = actions.add_parser("type", help="type of a service")
     kind.add_argument("service", metavar="NAME", help="the service, e.g. /robot1/get_parameters")
-    kind.add_argument("--spin-time", type=float, default=1.5,
-                      help="seconds to listen for the graph before answering (default 1.5)")
+    add_spin_time(kind)
     kind.set_defaults(func=lambda a: asyncio.run(_type(a)))
 
     find = actions.add_parser("find", help="services of a type")
     find.add_argument("type", metavar="TYPE", help="a service type, e.g. std_srvs/srv/Trigger")
     find.add_argument("--include-hidden-services", action="store_true",
                       help="also services whose name has a part starting with `_`")
-    find.add_argument("--spin-time", type=float, default=1.5,
-                      help="seconds to listen for the graph before answering (default 1.5)")
+    add_spin_time(find)
     find.set_defaults(func=lambda a: asyncio.run(_find(a)))
 
     call = actions.add_parser("call", help="call a service with a request built from YAML")

@@ -28,6 +28,7 @@ from ._common import (
     warn_if_alone,
 )
 from ._echo import EchoFormat, adapted_qos, add_qos_options, chosen_qos
+from ._options import add_spin_time
 
 SUBSCRIBER_PATIENCE = 5.0  # s `pub --once/--times` waits for subscriptions to match
 
@@ -41,14 +42,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                          help="show each topic's ROS type(s)")
     listing.add_argument("--include-hidden-topics", action="store_true",
                          help="include topics whose name has a part starting with '_'")
-    listing.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
+    add_spin_time(listing)
     listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
 
     info = actions.add_parser("info", help="type and endpoints of a topic")
     info.add_argument("topic", metavar="TOPIC", help=TOPIC_HELP)
     info.add_argument("-v", "--verbose", action="store_true",
                       help="list every endpoint: node, QoS, type hash, GID, DDS vendor")
-    info.add_argument("--spin-time", type=float, default=1.5, help="discovery wait (s)")
+    add_spin_time(info)
     info.set_defaults(func=lambda a: asyncio.run(_info(a)))
 
     echo = actions.add_parser("echo", help="print messages of a topic")
@@ -88,16 +89,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
     kind = actions.add_parser("type", help="type of a topic")
     kind.add_argument("topic", metavar="TOPIC", help="the topic, e.g. /robot1/odom")
-    kind.add_argument("--spin-time", type=float, default=1.5,
-                      help="seconds to listen for the graph before answering (default 1.5)")
+    add_spin_time(kind)
     kind.set_defaults(func=lambda a: asyncio.run(_type(a)))
 
     find = actions.add_parser("find", help="topics of a type")
     find.add_argument("type", metavar="TYPE", help="a message type, e.g. nav_msgs/msg/Odometry")
     find.add_argument("--include-hidden-topics", action="store_true",
                       help="also topics whose name has a part starting with `_`")
-    find.add_argument("--spin-time", type=float, default=1.5,
-                      help="seconds to listen for the graph before answering (default 1.5)")
+    add_spin_time(find)
     find.set_defaults(func=lambda a: asyncio.run(_find(a)))
 
     hz = actions.add_parser("hz", help="rate of a topic")

@@ -89,6 +89,28 @@ def _first_duplicate(top: _Pairs) -> Duplicate | None:
     return None
 
 
+def nonfinite_stop(raw: bytes, problem: str) -> tuple[str, dict[str, Any], list[str]] | None:
+    """(stop, object, problems) of a body that is JSON but for NaN/Infinity tokens, which
+    Python's `json.dumps` (and so the `rcan` SDK's `to_json`) writes, when it says stop; else
+    None. The tokens are read as null: no non-finite number reaches the audit."""
+    try:
+        text = raw.decode("utf-8")
+        obj = json.loads(text, parse_constant=lambda _token: None)
+        top = json.loads(text, parse_constant=lambda _token: None, object_pairs_hook=_Pairs)
+    except (ValueError, RecursionError):  # not JSON even so (UnicodeDecodeError is one)
+        return None
+    if not isinstance(obj, dict) or not isinstance(top, _Pairs):
+        return None
+    stop = stop_intent(top)
+    if stop is None:
+        return None
+    problems = [f"{problem} (read as Python's json reads it, NaN and Infinity as null)"]
+    duplicate = _first_duplicate(top)
+    if duplicate is not None:
+        problems.append(f"{duplicate.path}: duplicate key {duplicate.key!r}")
+    return stop, obj, problems
+
+
 def stop_intent(pairs: Iterable[tuple[str, Any]]) -> str | None:
     """`estop` if any value of the body says e-stop, else `stop` if any says stop, else None.
 

@@ -42,6 +42,9 @@ JUNK_STOPS: list[tuple[str, bytes]] = [
     ("a NaN parameter", b'{"action": "estop", "params": {"speed": NaN}}'),
     ("an Infinity timestamp", b'{"message_type": 6, "safety_event": "ESTOP", '
                               b'"timestamp_ms": Infinity, "action": "estop", "action": "move"}'),
+    # An unpaired surrogate escape is legal JSON text but no UTF-8: answered 400 on 9523eb7.
+    ("an unpaired surrogate", rb'{"action": "estop", "params": {"reason": "\ud800"}, '
+                              rb'"\udfff": "\udc00"}'),
 ]
 
 
@@ -72,6 +75,14 @@ async def test_a_stop_with_anything_wrong_still_stops(api: Api) -> None:
     assert [a for a, _ in api.dispatcher.calls] == ["stop"]
     assert any("message_id 'x'" in w for w in body["warnings"])
     assert api.entry(body["audit_id"])["warnings"] == body["warnings"]
+
+
+async def test_a_stop_with_an_unpaired_surrogate_stops_and_is_audited(api: Api) -> None:
+    status, body = await api.command(
+        "planner", raw=rb'{"action": "stop", "params": {"reason": "\udfff halt \ud800"}}')
+    _warned(status, body)
+    assert [a for a, _ in api.dispatcher.calls] == ["stop"]
+    assert api.entry(body["audit_id"])["params"] == {"reason": "\ufffd halt \ufffd"}
 
 
 @pytest.mark.parametrize("raw", [

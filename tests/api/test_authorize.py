@@ -65,6 +65,31 @@ async def test_authorize_by_thought_id_and_reject(api: Api) -> None:
     assert api.dispatcher.calls == []
 
 
+async def test_a_thought_id_once_held_by_another_command_approves_nothing(api: Api) -> None:
+    """Bait and switch: the owner reviews a slow move held under a thought id; its issuer
+    withdraws it and holds a fast one under the same id; the owner's AUTHORIZE, naming the
+    thought it reviewed, ran the fast move on 9523eb7. A thought id that named another held
+    command names none (a pending_id is never reused)."""
+    def held(linear_x: float) -> dict[str, Any]:
+        return {"action": "move", "params": {"linear_x": linear_x, "duration_s": 1},
+                "ai_model": "planner-7b", "confidence": 0.2,
+                "thought_id": "thought_abc123def456"}
+
+    status, bait = await api.command("planner", held(0.1))  # below the confidence gate
+    assert status == 202, bait
+    await api.call("POST", "/api/hitl/withdraw", "planner", body={"pending_id": bait["pending_id"]})
+    status, switch = await api.command("planner", held(1.0))
+    assert status == 202, switch
+    status, body = await api.command("ops", authorize("APPROVE", principal_id="ops"))
+    assert (status, body["reason"]) == (404, "pending_not_found"), body
+    assert api.dispatcher.calls == [] and [p.pending_id for p in api.gov.pending()] == [
+        switch["pending_id"]]
+    message = authorize("APPROVE", principal_id="ops", thought_id=None,
+                        pending_id=switch["pending_id"])
+    status, body = await api.command("ops", message)  # named by its own id, it may be approved
+    assert (status, body["outcome"]) == (200, "executed"), body
+
+
 async def test_authorize_names_its_sender_truly(api: Api) -> None:
     await api.command("planner", ARM)
     message = authorize("APPROVE", thought_id=None, pending_id=api.gov.pending()[0].pending_id)

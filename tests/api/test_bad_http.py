@@ -204,3 +204,49 @@ async def test_a_connection_error_of_the_bridge_itself_is_still_an_error(
     status, body = await api.call("POST", "/api/heartbeat", "planner")
     assert (status, body["reason"]) == (503, "internal_error"), body
     assert any(r.levelno == logging.ERROR and r.exc_info for r in log.records)
+
+
+# -- header bytes that are not UTF-8 (aiohttp keeps them as surrogate escapes) -----------------
+
+
+def _post(target: bytes, body: bytes, *fields: bytes) -> bytes:
+    return (b"POST " + target + b" HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+            + b"".join(f + b"\r\n" for f in fields)
+            + b"Content-Length: %d\r\nConnection: close\r\n\r\n" % len(body) + body)
+
+
+async def test_a_token_that_is_not_utf8_is_a_401(served: Served,
+                                                 log: pytest.LogCaptureFixture) -> None:
+    """On 9523eb7: 503 internal_error, an ERROR with a traceback (the digest's encode)."""
+    token = b"\xff\xfe" + TOKENS["viewer"].encode()
+    status, headers, body = await _exchange(
+        served, _post(b"/api/command", b'{"action": "estop"}', b"Authorization: Bearer " + token))
+    assert (status, _json(headers, body)["error_code"]) == (401, "UNAUTHENTICATED"), body
+    assert not served.api.gov.latch.latched
+    _assert_quiet(log)
+
+
+async def test_an_mcp_estop_with_a_model_header_that_is_not_utf8_latches(
+        served: Served, log: pytest.LogCaptureFixture) -> None:
+    """On 9523eb7 the tool failed (INTERNAL_ERROR, a traceback): the model's surrogate escape
+    could not be encoded into the command. A name that is not text is no name: stops are
+    exempt from naming one."""
+    fields = (f"Authorization: Bearer {TOKENS['viewer']}".encode(),
+              b"Accept: application/json, text/event-stream",
+              b"MCP-Protocol-Version: 2025-06-18", b"RCAN-AI-Model: planner-\xff")
+    init = json.dumps({"jsonrpc": "2.0", "id": 1, "method": "initialize", "params": {
+        "protocolVersion": "2025-06-18", "capabilities": {},
+        "clientInfo": {"name": "agent", "version": "1"}}}).encode()
+    status, headers, body = await _exchange(served, _post(b"/mcp", init, *fields))
+    assert status == 200, body
+    session = b"Mcp-Session-Id: " + headers["mcp-session-id"].encode()
+    await _exchange(served, _post(b"/mcp", json.dumps(
+        {"jsonrpc": "2.0", "method": "notifications/initialized"}).encode(), *fields, session))
+    call = json.dumps({"jsonrpc": "2.0", "id": 2, "method": "tools/call", "params": {
+        "name": "estop", "arguments": {"reason": "person"}}}).encode()
+    status, headers, body = await _exchange(served, _post(b"/mcp", call, *fields, session))
+    assert status == 200, body
+    result = _json(headers, body)["result"]
+    assert not result["isError"] and result["structuredContent"]["outcome"] == "executed", result
+    assert served.api.gov.latch.latched
+    _assert_quiet(log)

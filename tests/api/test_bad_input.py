@@ -63,6 +63,13 @@ async def test_not_an_object(api: Api, raw: bytes) -> None:
     ({"message_type": 1, "ruri": 7, "action": "move"}, "$.ruri"),
     ({"action": "move", "bogus": 1}, "$"),
     ({"action": "move", "params": {"linear_z": 1}}, "$.params"),
+    # A name with a trailing newline: Python's `$` matched before it (to the robot on 9523eb7).
+    ({"action": "arm_joint", "params": {"joints": ["elbow\n"], "positions": [0.5],
+                                        "duration_s": 1}}, "$.params.joints[0]"),
+    ({"action": "arm_joint", "params": {"joints": ["elbow"], "positions": [0.5],
+                                        "duration_s": 1, "group": "arm\n"}}, "$.params.group"),
+    ({"action": "lock", "params": {"name": "door\n"}}, "$.params.name"),
+    ({"rcan": "3.2", "cmd": "move", "msg_id": "m-1\n", "params": {}}, "$.msg_id"),
 ], ids=lambda v: v if isinstance(v, str) else None)
 async def test_wrong_types(api: Api, body: dict[str, Any], path: str) -> None:
     await _schema_refusal(api, json.dumps(body).encode(), path)

@@ -14,9 +14,11 @@ import uuid
 from typing import Any
 
 import pytest
+from rcan.message import RCANMessage
 from rcan.safety import make_estop_message, make_resume_message, make_stop_message
 
 from tests.api.apihelpers import RURI, Api, auth
+from tests.api.test_rcan3_messages import TARGET
 from tests.api.test_stop_lane import _outcome
 
 # Each was answered 400 on 599eb3c and the robot kept moving.
@@ -36,6 +38,13 @@ JUNK_STOPS: list[tuple[str, bytes]] = [
     ("shouting", b'{"action": " ESTOP "}'),
     ("RCAN 3 `cmd`", b'{"rcan": "3.2", "cmd": "estop", "params": {}}'),
     ("a SAFETY message with junk", b'{"message_type": 6, "safety_event": "ESTOP", "x": 1}'),
+    # Python's json.dumps writes NaN and Infinity (not JSON): answered 400 on 9523eb7.
+    ("a NaN parameter", b'{"action": "estop", "params": {"speed": NaN}}'),
+    ("an Infinity timestamp", b'{"message_type": 6, "safety_event": "ESTOP", '
+                              b'"timestamp_ms": Infinity, "action": "estop", "action": "move"}'),
+    # An unpaired surrogate escape is legal JSON text but no UTF-8: answered 400 on 9523eb7.
+    ("an unpaired surrogate", rb'{"action": "estop", "params": {"reason": "\ud800"}, '
+                              rb'"\udfff": "\udc00"}'),
 ]
 
 
@@ -66,6 +75,14 @@ async def test_a_stop_with_anything_wrong_still_stops(api: Api) -> None:
     assert [a for a, _ in api.dispatcher.calls] == ["stop"]
     assert any("message_id 'x'" in w for w in body["warnings"])
     assert api.entry(body["audit_id"])["warnings"] == body["warnings"]
+
+
+async def test_a_stop_with_an_unpaired_surrogate_stops_and_is_audited(api: Api) -> None:
+    status, body = await api.command(
+        "planner", raw=rb'{"action": "stop", "params": {"reason": "\udfff halt \ud800"}}')
+    _warned(status, body)
+    assert [a for a, _ in api.dispatcher.calls] == ["stop"]
+    assert api.entry(body["audit_id"])["params"] == {"reason": "\ufffd halt \ufffd"}
 
 
 @pytest.mark.parametrize("raw", [
@@ -109,6 +126,25 @@ async def test_the_sdks_safety_messages_stop(api: Api, make: Any) -> None:
     assert api.gov.latch.latched is (action == "estop")
     entry = api.entry(body["audit_id"])
     assert entry["params"] == {"reason": "operator pressed the pendant"}
+
+
+async def test_the_sdks_to_json_of_an_estop_with_a_nan_latches(api: Api) -> None:
+    """`RCANMessage.to_json` is `json.dumps`: a NaN anywhere in it is written as `NaN`."""
+    msg = RCANMessage(cmd="estop", target=TARGET, params={"speed": float("nan")},
+                      timestamp=api.clock.time())
+    status, body = await api.command("viewer", raw=msg.to_json().encode())
+    _warned(status, body)
+    assert (body["msg_id"], body["status"]) == (msg.msg_id, "ok")
+    assert api.gov.latch.latched
+    assert api.entry(body["audit_id"])["params"] == {"speed": None}
+
+
+async def test_a_nan_in_anything_but_a_stop_is_still_refused(api: Api) -> None:
+    msg = RCANMessage(cmd="move", target=TARGET, params={"linear_x": float("nan")},
+                      timestamp=api.clock.time())
+    status, body = await api.command("planner", raw=msg.to_json().encode())
+    assert (status, body["error_code"], body["path"]) == (400, "SCHEMA_VALIDATION_FAILED", "$")
+    assert api.dispatcher.calls == []
 
 
 async def test_the_sdks_estop_latches_for_a_guest_even_for_another_robot(api: Api) -> None:

@@ -152,6 +152,10 @@ def test_each_kind_of_value_error(extra: str, path: str, words: str) -> None:
         ("request_mappings: [nav]", "request_mappings", "Expected `object`, got `array`"),
         ("request_mappings: {'': auto}", "request_mappings.", "of length >= 1"),
         ("arms: {Left: {topic: l}}", "arms.Left", "matching regex"),
+        # Python's `$` matches before a last newline: these passed on 9523eb7.
+        ('arms: {"left\\n": {topic: l}}', "arms.left\n", "matching regex"),
+        ('arms: {left: {topic: l, joints: ["elbow\\n"]}}', "arms.left.joints[0]",
+         "matching regex"),
         ("arms: {left: {topic: 'a b'}}", "arms.left.topic", "is not a valid ROS name"),
         ("arms: {left: {topic: l, joints: [a, a]}}", "arms.left.joints",
          "lists a joint more than once"),

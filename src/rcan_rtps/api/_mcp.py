@@ -44,7 +44,10 @@ def agent_of(request: web.Request) -> Agent:
 
     def named(header: str, query: str) -> str | None:
         value = request.headers.get(header) or request.query.get(query)
-        return value if value and value.strip() and len(value) <= IDENTITY_MAX else None
+        # Not UTF-8 (aiohttp keeps such bytes as surrogates, which no audit line can hold) or
+        # unprintable: no name at all, so the command is refused as naming no model.
+        usable = value and value.strip() and value.isprintable() and len(value) <= IDENTITY_MAX
+        return value if usable else None
 
     return Agent(named("RCAN-AI-Provider", "ai_provider"), named("RCAN-AI-Model", "ai_model"))
 

@@ -25,6 +25,7 @@ from rcan_rtps.rcan import (
     InvalidRuriError,
     Role,
     parse_ruri,
+    whole,
 )
 from rcan_rtps.rcan.actions import GoalRoute, goal_routes, with_effect
 
@@ -100,16 +101,16 @@ class RobotConfig(_Section, frozen=True, kw_only=True):
     operator: Annotated[str, msgspec.Meta(max_length=256)] = ""
 
 
-ArmName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,63}$")]
+ArmName = Annotated[str, msgspec.Meta(pattern=whole(r"[a-z][a-z0-9_]{0,63}"))]
 JointName = Annotated[str, msgspec.Meta(min_length=1, max_length=128,
-                                        pattern=r"^[A-Za-z0-9_./-]+$")]
+                                        pattern=whole(r"[A-Za-z0-9_./-]+"))]
 
 
 def _repeated_joint_problem(joints: list[str]) -> str | None:
     return "lists a joint more than once" if len(set(joints)) != len(joints) else None
 
 
-ImageName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,63}$")]
+ImageName = Annotated[str, msgspec.Meta(pattern=whole(r"[a-z][a-z0-9_]{0,63}"))]
 
 
 class ImageFeedConfig(_Section, frozen=True, kw_only=True):
@@ -227,7 +228,7 @@ def _authorize_endpoint_problem(path: str) -> str | None:
 
 
 class HitlConfig(_Section, frozen=True, kw_only=True):
-    notify_webhook: Annotated[str, msgspec.Meta(pattern=r"^https?://\S+$")] | None = None
+    notify_webhook: Annotated[str, msgspec.Meta(pattern=whole(r"https?://\S+"))] | None = None
     timeout_seconds: Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)] = 300.0
     confidence_gate: ConfidenceGate | None = None
     gates: Annotated[list[HitlGate], _check(_repeated_gate_problem)] = []
@@ -237,7 +238,7 @@ class HitlConfig(_Section, frozen=True, kw_only=True):
 
 
 KeyId = Annotated[str, msgspec.Meta(min_length=1, max_length=128,
-                                    pattern=r"^[A-Za-z0-9._:-]+$")]
+                                    pattern=whole(r"[A-Za-z0-9._:-]+"))]
 # off: a `sig` is recorded, not checked; verify: a `sig` must verify with one of the
 # principal's keys, unsigned messages pass; required: every command but a stop must be signed.
 SignaturePolicy = Literal["off", "verify", "required"]
@@ -274,7 +275,7 @@ class PrincipalConfig(_Section, frozen=True, kw_only=True):
     name: Annotated[str, msgspec.Meta(pattern=_PRINCIPAL)]
     role: AnyRoleName  # the profile's names or RCAN v2's (OPERATOR = USER, …; see Role)
     token_env: EnvName | None = None
-    token_sha256: Annotated[str, msgspec.Meta(pattern=r"^[0-9a-fA-F]{64}$")] | None = None
+    token_sha256: Annotated[str, msgspec.Meta(pattern=whole(r"[0-9a-fA-F]{64}"))] | None = None
     rate_limit_per_min: Annotated[int, msgspec.Meta(ge=1)] | None = None
     # Signed messages; absent: policy off (a `sig` is recorded, not checked).
     signatures: SignaturesConfig | None = None
@@ -446,7 +447,8 @@ Priority = Annotated[int, msgspec.Meta(ge=0, le=1_000_000)]
 
 
 class MotionLock(_Section, frozen=True, kw_only=True):
-    name: Annotated[str, msgspec.Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
+    name: Annotated[str, msgspec.Meta(min_length=1, max_length=64,
+                                      pattern=whole(r"[A-Za-z0-9_.-]+"))]
     priority: Priority
 
 
@@ -478,7 +480,7 @@ class SecurityConfig(_Section, frozen=True, kw_only=True):
 
 ParamName = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
 SkillName = Annotated[str, msgspec.Meta(
-    min_length=1, max_length=128, pattern=r"^[a-z][a-z0-9_]*(\.[a-z][a-z0-9_]*)*$")]
+    min_length=1, max_length=128, pattern=whole(r"[a-z][a-z0-9_]*(\.[a-z][a-z0-9_]*)*"))]
 
 
 class SkillConfig(_Section, frozen=True, kw_only=True):

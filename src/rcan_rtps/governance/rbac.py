@@ -68,8 +68,14 @@ class RolePolicy:
 # -- authentication -------------------------------------------------------------------------
 
 
+def _bytes(token: str) -> bytes:
+    """The token's bytes as sent: aiohttp (and os.environ) keep bytes that are not UTF-8 as
+    surrogate escapes, which plain UTF-8 cannot encode (a 500 with a traceback, not a 401)."""
+    return token.encode("utf-8", "surrogateescape")
+
+
 def _digest(token: str) -> bytes:
-    return hashlib.sha256(token.encode("utf-8")).digest()
+    return hashlib.sha256(_bytes(token)).digest()
 
 
 class TokenAuthenticator:
@@ -117,7 +123,7 @@ class TokenAuthenticator:
 
 def _env_digest(name: str, env: Mapping[str, str]) -> bytes:
     token = env.get(name, "")
-    if len(token.encode()) < MIN_TOKEN_BYTES:
+    if len(_bytes(token)) < MIN_TOKEN_BYTES:
         raise AuthConfigError(
             f"${name} must hold a token of at least {MIN_TOKEN_BYTES} bytes"
             + ("" if token else " (it is unset or empty)")

@@ -72,6 +72,9 @@ class HitlDesk:
         self._run_approved = run_approved
         self._pending = PendingStore()
         self._resolved: OrderedDict[str, PendingRecord] = OrderedDict()
+        # The thought id of each resolved command still kept: one that named another held
+        # command (withdrawn, denied, expired) is ambiguous for an AUTHORIZE that names it.
+        self._resolved_thoughts: dict[str, str] = {}
 
     def pending(self) -> list[PendingAuth]:
         return [held.message() for held in self._pending.list()]
@@ -89,15 +92,22 @@ class HitlDesk:
         self._resolved[pending.pending_id] = PendingRecord(
             held.message(), pending.issuer.name, pending.approver_role, decision=decided)
         self._resolved.move_to_end(pending.pending_id)
+        thought = _thought_of(pending.command)
+        if thought is not None:
+            self._resolved_thoughts[pending.pending_id] = thought
         while len(self._resolved) > KEPT_RESOLVED:
-            self._resolved.popitem(last=False)
+            gone, _ = self._resolved.popitem(last=False)
+            self._resolved_thoughts.pop(gone, None)
 
     def for_thought(self, thought_id: str) -> str | None:
         """The held command whose AI `thought_id` this is (an AUTHORIZE names it so, §16.4),
-        or None when none or more than one has it."""
+        or None when none or more than one has it — or one resolved had it: the issuer could
+        withdraw what an approver reviewed and hold another command under the same id (a
+        pending_id, made here, is never reused)."""
         found = [held.pending.pending_id for held in self._pending.list()
-                 if held.pending.command.ai is not None
-                 and held.pending.command.ai.thought_id == thought_id]
+                 if _thought_of(held.pending.command) == thought_id]
+        if thought_id in self._resolved_thoughts.values():
+            return None
         return found[0] if len(found) == 1 else None
 
     async def hold(self, command: NormalizedCommand, principal: Principal,
@@ -138,6 +148,7 @@ class HitlDesk:
             decided = await self._decide(command, reviewer, pending, verdict)
         except BaseException:
             self._resolved.pop(pending.pending_id, None)  # never "being decided" for good
+            self._resolved_thoughts.pop(pending.pending_id, None)
             raise
         self._resolving(held, decided)
         return decided
@@ -231,3 +242,7 @@ class HitlDesk:
                 event=AuditEvent.HITL_EXPIRED, pending_id=p.pending_id))
             self._resolving(held, decisions[-1])
         return decisions
+
+
+def _thought_of(command: NormalizedCommand) -> str | None:
+    return command.ai.thought_id if command.ai is not None else None

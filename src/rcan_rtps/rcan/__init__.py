@@ -61,7 +61,7 @@ from ._messages import (
 )
 from ._ruri import RobotId, Ruri, parse_ruri
 from ._schema import openapi_schemas
-from ._types import ActionParams
+from ._types import ActionParams, whole
 from ._v3 import SPOKEN, STATUS_OF, Envelope, Heartbeat, RcanCommand, Signature
 from ._validate import (
     convert_at,
@@ -153,4 +153,5 @@ __all__ = [
     "validate_command",
     "validate_message",
     "validation_path",
+    "whole",
 ]

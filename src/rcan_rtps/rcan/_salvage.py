@@ -11,6 +11,7 @@ each with its warning.
 from __future__ import annotations
 
 import json
+import re
 import uuid
 from collections.abc import Callable, Iterable
 from typing import Any, NamedTuple
@@ -27,6 +28,7 @@ _ACTION_KEYS = ("action", "cmd")
 _ACTION_EFFECTS = {with_effect(e).name: e for e in (Effect.ESTOP, Effect.HALT)}
 _SAFETY_EFFECTS = {"ESTOP": Effect.ESTOP, "STOP": Effect.HALT}  # RCAN SAFETY safety_event
 _ROLE_CLAIMS = ("role", "role_level")
+_SURROGATE = re.compile("[\ud800-\udfff]")
 # A body of the RCAN 3.x generation: its reply carries msg_id and status, salvaged or not.
 _V3_MARKS = ("rcan", "rcan_version", "cmd", "msg_id")
 _V3_TYPES = (4, 6, 11, 13, 45)  # HEARTBEAT, SAFETY, INVOKE, INVOKE_CANCEL, AUTHORIZE
@@ -87,6 +89,44 @@ def _first_duplicate(top: _Pairs) -> Duplicate | None:
         elif isinstance(item, list):
             todo.extend((f"{path}[{i}]", value) for i, value in enumerate(item))
     return None
+
+
+def nonfinite_stop(raw: bytes, problem: str) -> tuple[str, dict[str, Any], list[str]] | None:
+    """(stop, object, problems) of a body that is JSON but for NaN/Infinity tokens, which
+    Python's `json.dumps` (and so the `rcan` SDK's `to_json`) writes, when it says stop; else
+    None. The tokens are read as null: no non-finite number reaches the audit."""
+    try:
+        text = raw.decode("utf-8")
+        obj = _clean(json.loads(text, parse_constant=lambda _token: None))
+        top = _clean(json.loads(text, parse_constant=lambda _token: None,
+                                object_pairs_hook=_Pairs))
+    except (ValueError, RecursionError):  # not JSON even so (UnicodeDecodeError is one)
+        return None
+    if not isinstance(obj, dict) or not isinstance(top, _Pairs):
+        return None
+    stop = stop_intent(top)
+    if stop is None:
+        return None
+    problems = [f"{problem} (read leniently: NaN and Infinity as null, an unpaired "
+                "surrogate escape as U+FFFD)"]
+    duplicate = _first_duplicate(top)
+    if duplicate is not None:
+        problems.append(f"{duplicate.path}: duplicate key {duplicate.key!r}")
+    return stop, obj, problems
+
+
+def _clean(value: Any) -> Any:
+    """`value` with every unpaired surrogate (a `\\ud800` escape Python's json lets through,
+    which no UTF-8 audit line can hold) replaced by U+FFFD, in keys and strings alike."""
+    if isinstance(value, str):
+        return _SURROGATE.sub("\ufffd", value)
+    if isinstance(value, _Pairs):
+        return _Pairs((_clean(k), _clean(v)) for k, v in value)
+    if isinstance(value, dict):
+        return {_clean(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_clean(v) for v in value]
+    return value
 
 
 def stop_intent(pairs: Iterable[tuple[str, Any]]) -> str | None:

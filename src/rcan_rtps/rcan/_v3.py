@@ -24,7 +24,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from ._errors import SchemaValidationError, VersionIncompatibleError
-from ._types import Confidence, Strict
+from ._types import Confidence, Strict, whole
 
 SPOKEN = ("1.2", "3.2")  # what mDNS and the node manifest announce
 _MAJORS = {1: 2, 3: 2}  # MAJOR → the highest MINOR of it this bridge knows
@@ -34,7 +34,8 @@ _VERSION = re.compile(r"([0-9]{1,4})(?:\.([0-9]{1,4}))?(?:\.[0-9]{1,4})?")
 VersionText = Annotated[str, msgspec.Meta(min_length=1, max_length=16)]
 # The SDK's ids are UUIDs; other senders' may be any short token (never free text: they end up
 # in replies and audit entries).
-MsgId = Annotated[str, msgspec.Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9._:-]+$")]
+MsgId = Annotated[str, msgspec.Meta(min_length=1, max_length=64,
+                                    pattern=whole(r"[A-Za-z0-9._:-]+"))]
 Text = Annotated[str, msgspec.Meta(max_length=512)]
 
 

@@ -28,7 +28,7 @@ from ._invoke import (
 )
 from ._messages import AiInfo, EnvelopeCommand, NormalizedCommand, SafetyMessage, ShortCommand
 from ._ruri import parse_ruri
-from ._salvage import duplicate_key, salvage_stop, stop_intent
+from ._salvage import duplicate_key, nonfinite_stop, salvage_stop, stop_intent
 from ._signatures import signed_bytes
 from ._types import ActionParams, Confidence, Strict
 from ._v3 import (
@@ -139,7 +139,13 @@ def validate_message(
     ignored field of a newer MINOR, say) is that stop too. Any other body with a duplicate key
     is refused: which value counts would be the parser's guess.
     """
-    obj = _decode(raw)
+    try:
+        obj = _decode(raw)
+    except SchemaValidationError as exc:
+        salvaged = nonfinite_stop(raw, _problem(exc))  # Python's json.dumps writes NaN
+        if salvaged is None:
+            raise
+        return salvage_stop(*salvaged, new_id)
     duplicate = duplicate_key(raw, obj)
     stop = stop_intent(obj.items() if duplicate is None else duplicate.top)
     if duplicate is not None:

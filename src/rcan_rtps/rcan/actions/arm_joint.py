@@ -15,13 +15,13 @@ from typing import Annotated, Any
 import msgspec
 
 from .._enums import Role
-from .._types import ActionParams, Finite, JointName, Strict
+from .._types import ActionParams, Finite, JointName, Strict, whole
 from ._spec import ActionSpec, Effect, Invariant, MessageKit, Publish
 
 TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
 MAX_JOINTS = 64
 MAX_POINTS = 1000
-GroupName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_]{0,63}$")]
+GroupName = Annotated[str, msgspec.Meta(pattern=whole(r"[a-z][a-z0-9_]{0,63}"))]
 Seconds = Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)]
 Values = Annotated[list[Finite], msgspec.Meta(min_length=1, max_length=MAX_JOINTS)]
 

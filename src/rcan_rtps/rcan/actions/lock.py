@@ -11,10 +11,11 @@ from typing import Annotated
 import msgspec
 
 from .._enums import Role
-from .._types import ActionParams
+from .._types import ActionParams, whole
 from ._spec import ActionSpec, Effect, Invariant, NoRoute
 
-LockName = Annotated[str, msgspec.Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
+LockName = Annotated[str, msgspec.Meta(min_length=1, max_length=64,
+                                       pattern=whole(r"[A-Za-z0-9_.-]+"))]
 
 
 class LockParams(ActionParams, frozen=True):

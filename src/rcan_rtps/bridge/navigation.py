@@ -127,6 +127,10 @@ class GoalTracker:
         except (WireError, OSError) as exc:
             self._update(goal_id, "unknown", detail=str(exc))
             return
+        except Exception as exc:  # what a broken server sent: the goal must not vanish
+            log.warning("goal %s on %s: %s", goal_id, self.client.name, exc)
+            self._update(goal_id, "unknown", detail=f"{type(exc).__name__}: {exc}")
+            return
         result = None
         if outcome.result is not None:
             result = values.to_plain(self.client.types.result.name, outcome.result)

@@ -4,7 +4,7 @@ Subscriptions keep the latest odometry, joint states, diagnostics and battery; `
 derives the state machine from them:
 
     estop      the governor's e-stop latch is engaged
-    fault      any DiagnosticStatus is ERROR
+    fault      any DiagnosticStatus is ERROR (or has a level DiagnosticStatus does not define)
     offline    no telemetry for `telemetry_stale_s` (or none yet)
     safe_stop  a control session was lost, until the next command
     executing  a goal (navigation, docking) is active
@@ -40,6 +40,7 @@ from ..ros.rostime import quaternion_to_yaw
 from .hostcpu import CpuMeter
 
 log = logging.getLogger(__name__)
+_OK = 0
 _LEVELS = {1: "WARN", 2: "ERROR", 3: "STALE"}
 _MOVING_EPS = 1e-3  # m/s or rad/s below which the robot counts as still
 
@@ -141,11 +142,15 @@ class TelemetryState:
             before = dict(self._faults)
             for status in statuses:
                 level = _level(status.level)
-                if level in _LEVELS:
+                if level == _OK:  # OK clears what this component reported before
+                    self._faults.pop(status.name, None)
+                elif level in _LEVELS:
                     self._faults[status.name] = Fault(status.name, status.message,
                                                       _LEVELS[level])  # type: ignore[arg-type]
-                else:  # OK clears what this component reported before
-                    self._faults.pop(status.name, None)
+                else:  # a level DiagnosticStatus does not define is not "fine": fail closed
+                    self._faults[status.name] = Fault(
+                        status.name, f"unknown diagnostic level {level}: {status.message}",
+                        "ERROR")
             changed = self._touch() or before != self._faults
         self._tell(changed)
 
@@ -217,4 +222,6 @@ def _position(telemetry: Telemetry) -> RobotPosition | None:
 
 
 def _moving(v: Velocity | None) -> bool:
-    return v is not None and (abs(v.linear_x) > _MOVING_EPS or abs(v.angular_z) > _MOVING_EPS)
+    # A velocity that is not a number (NaN) is not "still": only one known small is.
+    return v is not None and not (abs(v.linear_x) <= _MOVING_EPS and
+                                  abs(v.angular_z) <= _MOVING_EPS)

@@ -70,6 +70,10 @@ class GoalState(enum.IntEnum):
                         GoalState.REJECTED, GoalState.SERVER_LOST)
 
 
+# the values a GoalStatus may carry on the wire (REJECTED and SERVER_LOST are ours alone)
+_WIRE_STATES = frozenset(int(s) for s in GoalState if s < GoalState.REJECTED)
+
+
 @dataclass(frozen=True)
 class GoalResult:
     state: GoalState
@@ -161,7 +165,8 @@ class ActionClient:
         self._cancel_srv = ServiceClient(node, names["cancel_goal"], CANCEL_TYPE,
                                          mapping=mapping)
         self._goals: dict[bytes, ClientGoal] = {}
-        self._status_seen: dict[bytes, tuple[GoalState, tuple[int, int]]] = {}
+        self._status_seen: dict[bytes, tuple[GoalState, tuple[int, int]]] = {}  # our goals'
+        self._unknown_status_logged = False
         self._server_seen = False
         self._lost_since: float | None = None
         self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
@@ -312,7 +317,13 @@ class ActionClient:
         request = {"goal_id": {"uuid": goal.goal_id}}
         reply: Any = await self._get.call(request, max(0.1, deadline - loop.time()),
                                           accept=ours)
-        return GoalResult(GoalState(int(reply.status)), reply.result)
+        value = int(reply.status)
+        if value not in _WIRE_STATES or not GoalState(value).terminal:
+            # A result is asked for once the goal ended: a reply naming no end (or a value
+            # action_msgs does not define) keeps the end the status topic showed.
+            return GoalResult(final, reply.result,
+                              f"the server's result named status {value}; kept {final.name}")
+        return GoalResult(GoalState(value), reply.result)
 
     async def _cancel(self, goal: ClientGoal, timeout: float) -> bool:
         request = {"goal_info": {"goal_id": {"uuid": goal.goal_id}}}
@@ -347,12 +358,25 @@ class ActionClient:
 
     # -- topics ---------------------------------------------------------------------
     def _on_status(self, array: IdlStruct) -> None:
+        # Any peer may write to the status topic: only our goals are noted (another's
+        # thousands of goal ids would be kept for good), and a status value action_msgs does
+        # not define leaves the goal as it was (it tells us nothing, and must not end it).
         for status in array.status_list:  # type: ignore[attr-defined]
             goal_id = bytes(status.goal_info.goal_id.uuid)
-            state = GoalState(int(status.status))
-            self._status_seen[goal_id] = (state, _stamp(status.goal_info.stamp))
             goal = self._goals.get(goal_id)
-            if goal is not None and not goal.state.terminal:
+            if goal is None:
+                continue
+            value = int(status.status)
+            if value not in _WIRE_STATES:
+                if not self._unknown_status_logged:
+                    self._unknown_status_logged = True
+                    log.warning("action %s: goal %s has status %d, which action_msgs does not "
+                                "define; ignored (logged once)", self.name,
+                                uuid.UUID(bytes=goal_id), value)
+                continue
+            state = GoalState(value)
+            self._status_seen[goal_id] = (state, _stamp(status.goal_info.stamp))
+            if not goal.state.terminal:
                 goal.state = state
 
     def _on_feedback(self, message: IdlStruct) -> None:

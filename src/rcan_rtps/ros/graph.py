@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import enum
+import logging
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,10 +21,14 @@ from cyclonedds.builtin import (
 from cyclonedds.core import InstanceState
 
 from . import qos as qos_mod
+from . import raw_cdr
 from .names import EndpointKind, action_of, demangle, is_hidden
-from .participant import RosNode
+from .participant import DISCOVERY_TYPE, RosNode
 from .qos import QosProfile
+from .readers import ANY_SAMPLE
 from .typesys.store import normalize_name
+
+log = logging.getLogger(__name__)
 
 VENDORS = {
     b"\x01\x01": "RTI Connext DDS",
@@ -81,8 +86,10 @@ class RosGraph:
         self._pubs = BuiltinDataReader(node.participant, BuiltinTopicDcpsPublication)
         self._subs = BuiltinDataReader(node.participant, BuiltinTopicDcpsSubscription)
         self._info = node.discovery_reader()
+        self._decode_info = node.codecs.of(DISCOVERY_TYPE).prepare_decoder().decode
         self._endpoints: dict[bytes, tuple[Direction, Any]] = {}
         self._node_infos: dict[bytes, Any] = {}
+        self.bad_infos = 0  # ros_discovery_info samples that did not decode (dropped)
 
     def refresh(self) -> None:
         for direction, reader in ((Direction.PUBLISHER, self._pubs),
@@ -93,13 +100,31 @@ class RosGraph:
                     self._endpoints[key] = (direction, sample)
                 else:
                     self._endpoints.pop(key, None)
-        for info in self._info.take(N=10_000):
-            gid = bytes(info.gid.data)[:16]
-            if info.sample_info.instance_state == InstanceState.Alive and \
-                    info.sample_info.valid_data:
+        self._take_node_infos()
+
+    def _take_node_infos(self) -> None:
+        """Each participant's nodes from ros_discovery_info. Any peer may write there: a
+        sample that does not decode is dropped alone (the others taken with it are kept),
+        and never fails the refresh (services and actions refresh before each call, a
+        stop's goal cancel included)."""
+        bad = 0
+        for data, sample_info in raw_cdr.take(self._info, ANY_SAMPLE, 10_000):
+            if not sample_info.valid_data:
+                continue  # keyless: an invalid sample names no participant
+            try:
+                info: Any = self._decode_info(data)
+                gid = bytes(info.gid.data)[:16]
+            except Exception:
+                bad += 1
+                continue
+            if sample_info.instance_state == InstanceState.Alive:
                 self._node_infos[gid] = info
             else:
                 self._node_infos.pop(gid, None)
+        if bad:
+            self.bad_infos += bad
+            log.warning("dropped %d ros_discovery_info sample(s) that do not decode "
+                        "(%d in all)", bad, self.bad_infos)
 
     async def settle(self, seconds: float = 1.0, patience: float = 4.0) -> None:
         """Lets discovery run for `seconds`, then up to `patience` more until every

@@ -31,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -58,6 +59,7 @@ OFFERED_INCOMPATIBLE_QOS = DDSStatus.OfferedIncompatibleQos
 PUBLICATION_MATCHED = DDSStatus.PublicationMatched
 BATCH = 256  # samples taken per reader per wake-up; the rest stays triggered for the next
 REMOVE_WAIT = 10.0  # s `remove` waits for the thread to drop a reader before giving up
+BAD_LOG_S = 10.0  # s between two warnings of one reader's undecodable samples
 
 Deliver = Callable[[list[Any]], None]
 OnIncompatible = Callable[[Any], None]
@@ -81,6 +83,7 @@ class Watch:
             reader.set_status_mask(INCOMPATIBLE_QOS)  # the reader triggers on this status only
         self.closed = False
         self.bad_samples = 0
+        self.bad_logged_at: float | None = None  # monotonic time of the last such warning
 
 
 class WriterWatch:
@@ -117,14 +120,28 @@ def take_valid(reader: DataReader[Any], n: int = BATCH,
         try:
             sample = decode(data)
         except Exception:
-            if watch is not None:
-                watch.bad_samples += 1
-            log.warning("%s: dropped a sample that does not decode",
-                        watch.label if watch else reader, exc_info=log.isEnabledFor(10))
+            _bad_sample(reader, watch)
             continue
         sample.sample_info = info
         valid.append(sample)
     return valid, len(raw)
+
+
+def _bad_sample(reader: DataReader[Any], watch: Watch | None) -> None:
+    """Counts and logs a sample that does not decode. A peer may send thousands a second:
+    a reader logs at most one warning per BAD_LOG_S, with the count so far."""
+    if watch is None:
+        log.warning("%s: dropped a sample that does not decode", reader,
+                    exc_info=log.isEnabledFor(logging.DEBUG))
+        return
+    watch.bad_samples += 1
+    now = time.monotonic()
+    if watch.bad_logged_at is not None and now - watch.bad_logged_at < BAD_LOG_S:
+        return
+    watch.bad_logged_at = now
+    log.warning("%s: dropped a sample that does not decode (%d so far; logged at most every "
+                "%.0f s)", watch.label, watch.bad_samples, BAD_LOG_S,
+                exc_info=log.isEnabledFor(logging.DEBUG))
 
 
 class ReaderThread:

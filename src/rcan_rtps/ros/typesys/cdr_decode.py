@@ -152,8 +152,9 @@ class DecoderSource(FunctionWriter):
         self._flush(ind)
         value, end = self.src.name("s"), self.src.name("q")
         self.src.emit(ind, f"{end} = p + {count}")
-        # a length of 0 (no NUL: not what rmw writes) slices to b'' as well
-        self.src.emit(ind, f"{value} = b[p:{end} - 1].decode()")
+        # a length of 0 (no NUL: not what rmw writes) slices to b'' as well; bytes that are
+        # not UTF-8 read as U+FFFD, as rclpy reads them (the sample is not lost)
+        self.src.emit(ind, f"{value} = b[p:{end} - 1].decode('utf-8', 'replace')")
         self._sliced = True
         self.src.emit(ind, f"p = {end}")
         self._known = None
@@ -194,7 +195,8 @@ class DecoderSource(FunctionWriter):
             end = self.src.name("q")
             self.src.emit(ind + 1, "p += -p & 3")  # -p & 3: the header's 4 keep p's residue
             self.src.emit(ind + 1, f"{end} = p + 4 + {length}(mv, p)[0]")
-            self.src.emit(ind + 1, f"{value}.append(b[p + 4:{end} - 1].decode())")
+            self.src.emit(ind + 1, f"{value}.append(b[p + 4:{end} - 1]"
+                                   ".decode('utf-8', 'replace'))")
             self.src.emit(ind + 1, f"p = {end}")
             self._known = None
             self._sliced = True

@@ -1,0 +1,237 @@
+"""What a hostile or broken peer on the ROS 2 graph can write, and the bridge's answer.
+
+Each peer here is real DDS: an rclpy node (the oracle), or a participant of our own writing
+well-formed CDR with values no well-behaved node sends (Cyclone checks the CDR itself, so
+malformed bytes never reach Python: what gets through is well-formed CDR with bad values).
+The bridge must not crash, lose the other samples, show what it cannot read as fine, or
+stop stopping.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import uuid
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from oracle.client import OracleEnv, RclpyOracle
+from waiting import eventually, take
+
+from rcan_rtps.ros import qos, raw_cdr
+from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
+from rcan_rtps.ros.graph import RosGraph
+from rcan_rtps.ros.participant import DISCOVERY_TYPE, RosNode
+
+from .bridge_rig import VIEWER, Rig, bridge_config, close_rig, make_rig
+
+FIB = "test_msgs/action/Fibonacci"
+DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
+TWIST = "geometry_msgs/msg/Twist"
+
+
+def tracebacks(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.exc_info or r.levelno >= logging.ERROR]
+
+
+@pytest.fixture
+def hostile(domain_id: int, jazzy_share: Path) -> Iterator[RosNode]:
+    with RosNode("hostile", "/robot1", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as node:
+        yield node
+
+
+@pytest.fixture
+async def victim(domain_id: int, jazzy_share: Path) -> AsyncIterator[RosNode]:
+    with RosNode("victim", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as node:
+        yield node
+
+
+@pytest.fixture
+def fib_server(jazzy_oracle: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
+    with RclpyOracle(jazzy_oracle, "fib_server", "/", domain_id=domain_id) as agent:
+        agent.call("action_server", name="/fib", mode="slow")
+        yield agent
+
+
+@pytest.fixture
+async def rig(tmp_path: Path, jazzy_oracle: OracleEnv, domain_id: int) -> AsyncIterator[Rig]:
+    r = await make_rig(bridge_config(tmp_path, domain_id), jazzy_oracle, domain_id)
+    yield r
+    await close_rig(r)
+
+
+def not_utf8(codec: Any, value: dict[str, Any], marker: bytes) -> bytes:
+    """`value`'s CDR with `marker` (ASCII, in one of its strings) made invalid UTF-8."""
+    data = bytes(codec.encode_value(value))
+    assert data.count(marker) == 1
+    return data.replace(marker, b"\xff" * len(marker))
+
+
+async def still_stops(rig: Rig) -> None:
+    """After whatever the graph did: an e-stop latches and a zero Twist reaches rclpy."""
+    await rig.oracle.acall("subscribe", topic="/robot1/cmd_vel", type=TWIST)
+    assert await rig.oracle.acall("wait_matched", topic="/robot1/cmd_vel") >= 1
+    estop = await rig.command(VIEWER, {"action": "estop"})
+    assert estop.http_status == 200 and rig.governor.latch.latched
+    await take(rig.oracle, "/robot1/cmd_vel",
+               until=lambda got: any(t["linear"]["x"] == 0.0 for t in got))
+
+
+# -- the graph -------------------------------------------------------------------------
+async def test_bad_discovery_info_does_not_stop_a_goal_cancel(
+        fib_server: RclpyOracle, victim: RosNode, hostile: RosNode,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Services and actions read ros_discovery_info before each call: a node name that is
+    not UTF-8 failed that read (UnicodeDecodeError), so a stop could not cancel a goal
+    while a peer wrote such samples, and the good samples read with it were lost."""
+    client = ActionClient(victim, "/fib", FIB)
+    goal = await client.send_goal({"order": 40}, timeout=20)
+    async for _ in goal.feedback(timeout=20):
+        break  # running
+    info = not_utf8(hostile.codecs.of(DISCOVERY_TYPE), {
+        "gid": {"data": hostile.participant.guid.bytes},
+        "node_entities_info_seq": [{"node_namespace": "/", "node_name": "evil_node"}]},
+        b"_node")
+    raw_cdr.write(hostile._info_writer, info)
+    await asyncio.sleep(0.5)  # in the victim's reader, unread
+    assert await client.cancel_all(timeout=10, server_wide=True) >= 1
+    assert (await goal.result(timeout=30)).state is GoalState.CANCELED
+    graph = RosGraph(victim)
+    await graph.settle(0.5)
+    assert ("/", "fib_server") in graph.nodes()
+    assert ("/", "evil\ufffd\ufffd\ufffd\ufffd\ufffd") in graph.nodes()
+    assert not tracebacks(caplog)
+
+
+# -- actions ---------------------------------------------------------------------------
+async def test_a_foreign_status_writer_is_ignored(
+        fib_server: RclpyOracle, victim: RosNode, hostile: RosNode,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A second writer on an action's status topic: a status value action_msgs does not
+    define (it raised in the event loop: a traceback, and the array's later entries
+    unread), and thousands of other goal ids (each kept for good)."""
+    client = ActionClient(victim, "/fib", FIB)
+    status = hostile.create_publisher("/fib/_action/status", "action_msgs/msg/GoalStatusArray",
+                                      qos.ACTION_STATUS)
+    goal = await client.send_goal({"order": 6}, timeout=20)
+    await status.wait_for_subscribers(1, timeout=10)
+    ours = {"goal_info": {"goal_id": {"uuid": goal.goal_id}}, "status": 50}
+    for _ in range(3):
+        status.publish({"status_list": [ours, *(
+            {"goal_info": {"goal_id": {"uuid": uuid.uuid4().bytes}}, "status": 2}
+            for _ in range(2000))]})
+    outcome = await goal.result(timeout=30)
+    assert outcome.state is GoalState.SUCCEEDED
+    assert list(client._status_seen) == [goal.goal_id]
+    assert not tracebacks(caplog)
+
+
+class _BrokenResults(ActionServer):
+    """An action server whose result replies name a status no goal ends with."""
+
+    status = 50
+
+    async def _on_get_result(self, request: Any) -> Any:
+        reply = await super()._on_get_result(request)
+        reply.status = self.status
+        return reply
+
+
+@pytest.mark.parametrize("status", [50, int(GoalState.EXECUTING)])
+async def test_a_result_naming_no_end_keeps_the_end_the_status_showed(
+        victim: RosNode, hostile: RosNode, status: int) -> None:
+    """The result is asked for once the status topic showed the goal's end; a reply with
+    a value action_msgs does not define raised ValueError out of `result()` (the bridge's
+    goal watcher died, the goal shown as running for good), one naming a running state
+    ended the goal as running."""
+    async def execute(goal: ServerGoal) -> dict[str, Any]:
+        return {"sequence": [0, 1, 1]}
+
+    server = _BrokenResults(hostile, "/fib", FIB, execute)
+    server.status = status
+    try:
+        client = ActionClient(victim, "/fib", FIB)
+        goal = await client.send_goal({"order": 2}, timeout=20)
+        outcome = await goal.result(timeout=20)
+        assert outcome.state is GoalState.SUCCEEDED
+        assert f"status {status}" in outcome.detail
+        assert outcome.result is not None and list(outcome.result.sequence) == [0, 1, 1]
+    finally:
+        await server.close()
+
+
+# -- telemetry → STATUS -----------------------------------------------------------------
+async def test_a_diagnostic_level_outside_the_enum_is_a_fault(rig: Rig) -> None:
+    """DiagnosticStatus levels are 0-3; any other level was read as OK, so it cleared the
+    component's ERROR and STATUS showed the robot fine."""
+    await rig.oracle.acall("publisher", topic="/robot1/diagnostics", type=DIAGNOSTICS)
+    await rig.telemetry.subscriptions[2].wait_for_publishers(1, timeout=15)
+    assert await rig.oracle.acall("wait_subscribers", topic="/robot1/diagnostics") >= 1
+
+    async def send(level: int, message: str) -> None:
+        await rig.oracle.acall("publish", topic="/robot1/diagnostics", type=DIAGNOSTICS,
+                               value={"status": [{"level": level, "name": "motor",
+                                                  "message": message}]}, count=2)
+
+    await send(2, "overheat")
+    await eventually(lambda: rig.telemetry.status(pending_auth=0).state == "fault")
+    await send(7, "what is this")
+    await eventually(lambda: "what is this" in rig.telemetry.status(pending_auth=0)
+                     .faults[0].message)
+    status = rig.telemetry.status(pending_auth=0)
+    assert status.state == "fault" and status.faults[0].level == "ERROR"
+    assert "7" in status.faults[0].message
+    await send(0, "ok")
+    await eventually(lambda: not rig.telemetry.status(pending_auth=0).faults)
+
+
+async def test_strings_that_are_not_utf8_are_read_as_rclpy_reads_them(
+        rig: Rig, hostile: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    """A diagnostic whose text is not UTF-8 (a Latin-1 `°C` from a driver) was dropped as
+    undecodable, so the robot's ERROR never showed; rclpy reads such bytes as U+FFFD."""
+    diagnostics = hostile.create_publisher("/robot1/diagnostics", DIAGNOSTICS, qos.DEFAULT)
+    await diagnostics.wait_for_subscribers(1, timeout=10)
+    diagnostics.publish_cdr(not_utf8(diagnostics.codec, {"status": [
+        {"level": 2, "name": "motor", "message": "overheat: 95 DEGC"}]}, b"DEG"))
+    await eventually(lambda: rig.telemetry.status(pending_auth=0).state == "fault")
+    assert rig.telemetry.status(pending_auth=0).faults[0].message == \
+        "overheat: 95 \ufffd\ufffd\ufffdC"
+    assert not tracebacks(caplog)
+    await still_stops(rig)
+
+
+async def test_a_velocity_that_is_not_a_number_is_not_idle(rig: Rig, hostile: RosNode) -> None:
+    """Odometry with a NaN velocity showed `idle` (NaN compares false with everything):
+    a motion the bridge cannot read is not stillness."""
+    odom = hostile.create_publisher("/robot1/odom", "nav_msgs/msg/Odometry", qos.DEFAULT)
+    await odom.wait_for_subscribers(1, timeout=10)
+    odom.publish({"twist": {"twist": {"linear": {"x": math.nan}}}})
+    await eventually(lambda: rig.telemetry.status(pending_auth=0).ros.connected)
+    assert rig.telemetry.status(pending_auth=0).state == "moving"
+    odom.publish({"twist": {"twist": {"linear": {"x": 0.0}}}})
+    await eventually(lambda: rig.telemetry.status(pending_auth=0).state == "idle")
+
+
+# -- any topic -------------------------------------------------------------------------
+async def test_a_flood_of_undecodable_samples_is_logged_once(
+        victim: RosNode, hostile: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    """Well-formed samples the codec refuses (XCDR2 encapsulation: Cyclone passes it on)
+    were each logged: a peer sending them fast filled the bridge's log."""
+    caplog.set_level(logging.WARNING, logger="rcan_rtps.ros.readers")
+    deep = qos.DEFAULT.with_(depth=1000)  # every sample kept: none lost to history
+    sub = victim.create_subscription("/flood", TWIST, deep, maxsize=1000)
+    pub = hostile.create_publisher("/flood", TWIST, deep)
+    await pub.wait_for_subscribers(1, timeout=10)
+    xcdr2 = b"\x00\x07\x00\x00" + bytes(48)
+    for _ in range(300):
+        pub.publish_cdr(xcdr2)
+    pub.publish({"linear": {"x": 0.5}})
+    assert (await asyncio.wait_for(sub.get(), 10)).linear.x == 0.5
+    assert sub._watch.bad_samples == 300
+    warnings = [r for r in caplog.records if r.name == "rcan_rtps.ros.readers"]
+    assert len(warnings) == 1

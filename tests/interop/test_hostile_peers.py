@@ -235,3 +235,14 @@ async def test_a_flood_of_undecodable_samples_is_logged_once(
     assert sub._watch.bad_samples == 300
     warnings = [r for r in caplog.records if r.name == "rcan_rtps.ros.readers"]
     assert len(warnings) == 1
+
+
+async def test_a_node_that_left_is_not_listed(victim: RosNode, domain_id: int) -> None:
+    """ros_discovery_info is keyless: a participant's last sample stayed behind after it
+    left (while any other participant remained), so its nodes were listed for good."""
+    graph = RosGraph(victim)
+    with RosNode("stayer", "/", domain_id=domain_id):
+        with RosNode("leaver", "/", domain_id=domain_id):
+            await eventually(lambda: (graph.refresh(), ("/", "leaver") in graph.nodes())[1])
+        await eventually(lambda: (graph.refresh(), ("/", "leaver") not in graph.nodes())[1])
+        assert ("/", "stayer") in graph.nodes()

@@ -15,6 +15,7 @@ from typing import Any
 
 from cyclonedds.builtin import (
     BuiltinDataReader,
+    BuiltinTopicDcpsParticipant,
     BuiltinTopicDcpsPublication,
     BuiltinTopicDcpsSubscription,
 )
@@ -85,6 +86,7 @@ class RosGraph:
         self.node = node
         self._pubs = BuiltinDataReader(node.participant, BuiltinTopicDcpsPublication)
         self._subs = BuiltinDataReader(node.participant, BuiltinTopicDcpsSubscription)
+        self._participants = BuiltinDataReader(node.participant, BuiltinTopicDcpsParticipant)
         self._info = node.discovery_reader()
         self._decode_info = node.codecs.of(DISCOVERY_TYPE).prepare_decoder().decode
         self._endpoints: dict[bytes, tuple[Direction, Any]] = {}
@@ -101,6 +103,11 @@ class RosGraph:
                 else:
                     self._endpoints.pop(key, None)
         self._take_node_infos()
+        # ros_discovery_info is keyless: a participant that leaves leaves its last sample
+        # behind while any other writer remains. Its nodes go with it, as in rmw's graph.
+        for participant in self._participants.take(N=10_000):
+            if participant.sample_info.instance_state != InstanceState.Alive:
+                self._node_infos.pop(participant.key.bytes, None)
 
     def _take_node_infos(self) -> None:
         """Each participant's nodes from ros_discovery_info. Any peer may write there: a

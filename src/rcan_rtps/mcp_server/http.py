@@ -100,6 +100,7 @@ class HttpMcp:
         return await self._tools.stop(seat, params["name"], args if isinstance(args, dict)
                                       else {}, "unknown")
 
+
 def _error(request_id: Any, message: str) -> dict[str, Any]:
     return {"jsonrpc": "2.0", "id": request_id,
             "error": {"code": INVALID_REQUEST, "message": message}}

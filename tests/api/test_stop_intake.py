@@ -45,6 +45,9 @@ JUNK_STOPS: list[tuple[str, bytes]] = [
     # An unpaired surrogate escape is legal JSON text but no UTF-8: answered 400 on 9523eb7.
     ("an unpaired surrogate", rb'{"action": "estop", "params": {"reason": "\ud800"}, '
                               rb'"\udfff": "\udc00"}'),
+    # More digits than Python's int() reads, so the lenient reader refused it too: answered
+    # 400 on 7124936.
+    ("a 5000-digit number", b'{"action": "estop", "params": {"speed": ' + b"9" * 5000 + b"}}"),
 ]
 
 

@@ -18,7 +18,7 @@ from rcan_rtps.rcan import ErrorCode, convert_at, decode_object
 
 from ._bodies import error_body
 from ._errors import BodyTimeout
-from ._intake import NO_CHECKS, Checks, Observe, Reply, decide, intake
+from ._intake import NO_CHECKS, Checks, Observe, Reply, decide, intake, with_warnings
 from ._skills import Skills
 
 T = TypeVar("T")
@@ -70,11 +70,13 @@ async def schema_failure(governor: Governor, principal: Principal, path: str,
 
 async def run_command(governor: Governor, principal: Principal, raw: bytes,
                       observe: Observe | None = None, checks: Checks = NO_CHECKS,
-                      invocations: Skills | None = None) -> Reply:
+                      invocations: Skills | None = None,
+                      warnings: tuple[str, ...] = ()) -> Reply:
     """A whole body, already within the size limit, to its reply (an INVOKE of a goal: when
-    the goal has ended)."""
-    return await decide(governor, principal, intake(raw, len(raw), checks, principal.name),
-                        observe, invocations)
+    the goal has ended). `warnings`: what the transport found wrong around the body, which
+    a stop carries (`with_warnings`)."""
+    item = with_warnings(intake(raw, len(raw), checks, principal.name), warnings)
+    return await decide(governor, principal, item, observe, invocations)
 
 
 def decode_as(raw: bytes, kind: type[T]) -> T:

@@ -176,6 +176,15 @@ def _checked(command: NormalizedCommand, checks: Checks, principal: str | None) 
     return Intake(refusal=refusals[0], msg_id=envelope.msg_id, rcan=envelope.audit_facts())
 
 
+def with_warnings(item: Intake, warnings: tuple[str, ...]) -> Intake:
+    """A stop's intake with what its transport found wrong before the body (a JSON-RPC
+    envelope read leniently, say) as its first warnings; any other intake as it is."""
+    if not warnings or item.command is None or not item.command.spec.stopping:
+        return item
+    return Intake(command=msgspec.structs.replace(
+        item.command, warnings=(*warnings, *item.command.warnings)))
+
+
 def _replay_refusal(message: NormalizedCommand | Heartbeat | Invoke | InvokeCancel
                     | Authorization, window: ReplayWindow | None) -> Rejection | None:
     envelope = message.envelope

@@ -17,7 +17,7 @@ from rcan_rtps.governance import Principal
 
 from . import _routes as r
 from ._bodies import GoalList, PendingList
-from ._commands import run_command, too_large
+from ._commands import run_command, schema_failure, too_large
 from ._images import image_list
 from ._keys import CHECKS, GOVERNOR, IMAGES, INVOCATIONS, OBSERVE, ROBOT, SETTINGS, STATUS
 from ._safety_manifest import manifest_reply
@@ -25,6 +25,8 @@ from .ports import ImageFrame
 
 if TYPE_CHECKING:
     from rcan_rtps.mcp_server.ports import Blob, Reply
+
+NOT_TEXT = "a string holds an unpaired surrogate: not Unicode text"
 
 
 def _reply(status: int, body: Any) -> Reply:
@@ -36,21 +38,26 @@ def _reply(status: int, body: Any) -> Reply:
 
 
 class LocalApi:
-    """`mcp_server.ports.RobotApi` inside the bridge, as `principal`."""
+    """`mcp_server.ports.RobotApi` inside the bridge, as `principal`; `warnings`: what the
+    request was found wrong with before it reached a tool, which its stops carry."""
 
     def __init__(self, app: web.Application, principal: Principal,
-                 fixed_manifest: dict[str, Any]) -> None:
+                 fixed_manifest: dict[str, Any], warnings: tuple[str, ...] = ()) -> None:
         self._app = app
         self._principal = principal
         self._manifest = fixed_manifest
+        self._warnings = warnings
 
     async def command(self, body: dict[str, Any]) -> Reply:
         app, governor = self._app, self._app[GOVERNOR]
-        raw = msgspec.json.encode(body)
+        try:
+            raw = msgspec.json.encode(body)
+        except UnicodeEncodeError:  # an unpaired surrogate (from an agent's JSON): no text
+            return _reply(*await schema_failure(governor, self._principal, "$", NOT_TEXT))
         if len(raw) > app[SETTINGS].max_body_bytes:
             return _reply(*await too_large(governor, self._principal))
         return _reply(*await run_command(governor, self._principal, raw, app[OBSERVE],
-                                         app[CHECKS], app[INVOCATIONS]))
+                                         app[CHECKS], app[INVOCATIONS], self._warnings))
 
     async def heartbeat(self) -> Reply:
         return _reply(200, r.heartbeat(self._app[GOVERNOR], self._principal))

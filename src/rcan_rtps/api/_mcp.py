@@ -8,6 +8,14 @@ own functions), naming the agent's model from its `RCAN-AI-Provider` and `RCAN-A
 headers (or the `ai_provider` and `ai_model` query parameters, for clients that can set no
 header but `Authorization`). A principal's timed moves and goals are held by heartbeats
 while they run; a session the client closes (DELETE) stops what it left running.
+
+A stop stops whatever else is wrong with its request (`stop_rescue`): a `tools/call` of a
+stopping tool (`estop`, `stop`: the registry's ESTOP and HALT actions) whose body the SDK's
+JSON parser refuses (an unpaired surrogate escape, an integer of more digits than Python
+reads) is read leniently (`rcan._salvage.read_leniently`) and handed to the SDK as strict
+JSON; the stops of a JSON-RPC batch (which the SDK refuses whole) are run here. Either way
+the stop carries what was wrong as `warnings`, in its tool result and its audit entry. Any
+other body the SDK answers as it would.
 """
 
 from __future__ import annotations
@@ -16,12 +24,15 @@ import asyncio
 import contextlib
 import gc
 import logging
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
+import msgspec
 from aiohttp import web
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import Principal
+from rcan_rtps.rcan._salvage import read_leniently
+from rcan_rtps.rcan.actions import specs
 
 from ._bodies import error_response, json_response
 from ._commands import read_limited, too_large
@@ -50,6 +61,46 @@ def agent_of(request: web.Request) -> Agent:
         return value if usable else None
 
     return Agent(named("RCAN-AI-Provider", "ai_provider"), named("RCAN-AI-Model", "ai_model"))
+
+
+class Rescue(NamedTuple):
+    """A request that says stop though the SDK would not run it: the body to hand the SDK
+    (strict JSON), what was wrong (the stops' warnings), and a batch's members (run here)."""
+
+    body: bytes
+    warnings: tuple[str, ...]
+    batch: list[Any] | None = None
+
+
+def stop_rescue(body: bytes) -> Rescue | None:
+    """What makes the stop in `body` stop; None when the SDK runs it as it is (or it holds
+    no stop, and the SDK answers it as it would: -32700 for what it cannot parse)."""
+    warnings: tuple[str, ...] = ()
+    try:
+        message = msgspec.json.decode(body)
+    except (msgspec.DecodeError, ValueError, RecursionError):  # ValueError: not UTF-8
+        read = read_leniently(body)
+        if read is None:
+            return None
+        message = read.value
+        warnings = (read.problem("$: the JSON-RPC body is not strict JSON"),)
+    if isinstance(message, list):
+        if not any(_calls_a_stop(member) for member in message):
+            return None
+        return Rescue(body, (*warnings, "$: a JSON-RPC batch: only its stops were run"),
+                      message)
+    if not warnings or not _calls_a_stop(message):
+        return None
+    return Rescue(msgspec.json.encode(message), warnings)
+
+
+def _calls_a_stop(message: Any) -> bool:
+    """A JSON-RPC `tools/call` of a stopping tool (each registry action is its tool)."""
+    if not isinstance(message, dict) or message.get("method") != "tools/call":
+        return False
+    params = message.get("params")
+    name = params.get("name") if isinstance(params, dict) else None
+    return any(spec.stopping and spec.name == name for spec in specs())
 
 
 class McpEndpoint:
@@ -81,7 +132,14 @@ class McpEndpoint:
         if body is None:
             status, refused = await too_large(app[GOVERNOR], principal)
             return json_response(refused, status)
-        seat = self._seat(app, principal, agent_of(request), request.headers.get(SESSION_HEADER))
+        rescue = stop_rescue(body) if request.method == "POST" else None
+        seat = self._seat(app, principal, agent_of(request), request.headers.get(SESSION_HEADER),
+                          () if rescue is None else rescue.warnings)
+        if rescue is not None:
+            if rescue.batch is not None:
+                replies = await server.stop_batch(seat, rescue.batch)
+                return json_response(replies) if replies else web.Response(status=202)
+            body = rescue.body
 
         async def run(scope: Any, receive: Any, send: Any) -> None:
             await server.handle(scope, receive, send, seat, principal.name, principal.role.name)
@@ -95,17 +153,18 @@ class McpEndpoint:
         return response
 
     def _seat(self, app: web.Application, principal: Principal, agent: Agent,
-              session: str | None) -> Seat:
+              session: str | None, warnings: tuple[str, ...]) -> Seat:
         from rcan_rtps.mcp_server.keepalive import Keepalive
         from rcan_rtps.mcp_server.seat import Seat
 
         from ._local import LocalApi
 
         assert self._fixed is not None
-        api = LocalApi(app, principal, self._fixed)
+        api = LocalApi(app, principal, self._fixed, warnings)
         keepalive = self._keepalives.get(principal.name)
         if keepalive is None:  # one per principal: heartbeats are a principal's
-            keepalive = self._keepalives[principal.name] = Keepalive(api)
+            keepalive = self._keepalives[principal.name] = Keepalive(LocalApi(
+                app, principal, self._fixed))
             self._beating.append(asyncio.create_task(keepalive.run(),
                                                      name=f"mcp-keepalive-{principal.name}"))
         return Seat(api, agent, keepalive, session)

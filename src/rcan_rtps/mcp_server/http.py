@@ -17,15 +17,19 @@ import logging
 from collections.abc import Mapping
 from typing import Any
 
+import mcp_types as types
 from mcp.server.auth.middleware.bearer_auth import AuthenticatedUser
 from mcp.server.auth.provider import AccessToken
 from mcp.server.context import ServerRequestContext
 from mcp.server.streamable_http_manager import StreamableHTTPSessionManager
+from mcp_types.jsonrpc import INVALID_REQUEST
 
 from .seat import Seat
 from .server import RobotTools, build_server
 
 SEAT = "rcan.seat"  # the ASGI scope key of a request's seat
+NOT_SERVED = ("a JSON-RPC batch is not served (MCP has had none since 2025-06-18): only the "
+              "stops in it were run")
 MAX_SESSIONS = 256
 SESSION_IDLE_S = 30 * 60.0
 Asgi = Any  # the ASGI callables, typed by the caller
@@ -48,7 +52,8 @@ class HttpMcp:
         sdk_log = logging.getLogger("mcp")
         if sdk_log.level == logging.NOTSET:
             sdk_log.setLevel(logging.WARNING)
-        server = build_server(RobotTools(seat_of, manifest=manifest))
+        self._tools = RobotTools(seat_of, manifest=manifest)
+        server = build_server(self._tools)
         self._manager = StreamableHTTPSessionManager(
             server, json_response=True, session_idle_timeout=SESSION_IDLE_S,
             max_request_body_size=max_body_bytes, max_sessions=MAX_SESSIONS)
@@ -64,3 +69,38 @@ class HttpMcp:
         # The SDK binds a session to the credential that opened it (here: the principal).
         user = AuthenticatedUser(AccessToken(token="-", client_id=principal, scopes=[role]))
         await self._manager.handle_request({**scope, "user": user, SEAT: seat}, receive, send)
+
+    async def stop_batch(self, seat: Seat, batch: list[Any]) -> list[dict[str, Any]]:
+        """A JSON-RPC batch's replies, in order: each stopping tool call run as its tool runs
+        it and answered with the tool's result; every other request refused (the SDK refuses
+        a batch whole, and a stop in one must still stop). A notification gets no reply,
+        though a stop in one is run."""
+        replies: list[dict[str, Any]] = []
+        for member in batch:
+            done = await self._batched_stop(seat, member)
+            if not isinstance(member, dict) or "id" not in member:
+                if not isinstance(member, dict):  # not even a message: JSON-RPC's -32600
+                    replies.append(_error(None, NOT_SERVED))
+                continue
+            if done is None:
+                replies.append(_error(member["id"], NOT_SERVED))
+            else:
+                replies.append({"jsonrpc": "2.0", "id": member["id"], "result": done.model_dump(
+                    mode="json", by_alias=True, exclude_none=True)})
+        return replies
+
+    async def _batched_stop(self, seat: Seat, member: Any) -> types.CallToolResult | None:
+        """The result of `member` if it is a stopping tool's call (run), else None."""
+        if not isinstance(member, dict) or member.get("method") != "tools/call":
+            return None
+        params = member.get("params")
+        if not isinstance(params, dict) or not isinstance(params.get("name"), str):
+            return None
+        args = params.get("arguments")
+        return await self._tools.stop(seat, params["name"], args if isinstance(args, dict)
+                                      else {}, "unknown")
+
+
+def _error(request_id: Any, message: str) -> dict[str, Any]:
+    return {"jsonrpc": "2.0", "id": request_id,
+            "error": {"code": INVALID_REQUEST, "message": message}}

@@ -16,7 +16,7 @@ import gc
 import json
 import logging
 import uuid
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from typing import Any
 
 import anyio
@@ -155,17 +155,23 @@ class RobotTools:
         if tool is None:
             return failure(f"no tool named {params.name!r}", "UNKNOWN_TOOL")
         args = dict(params.arguments or {})
-        try:
+
+        async def call() -> types.CallToolResult:
             seat = self._seat_of(ctx)
             if tool.action is not None:
                 return await self._command(seat, tool, args, client_of(ctx))
             return await self._read(seat, tool.name, args)
-        except BridgeUnavailable as exc:
-            return failure(str(exc), "BRIDGE_UNAVAILABLE")
-        except Exception:  # a tool error, never a traceback to the agent: the log has it
-            log.exception("tool %s failed", tool.name)
-            return failure(f"{tool.name} failed inside the MCP server (see its log)",
-                           "INTERNAL_ERROR")
+
+        return await _guarded(tool.name, call)
+
+    async def stop(self, seat: Seat, name: str, args: dict[str, Any],
+                   client: str) -> types.CallToolResult | None:
+        """A stopping tool's call that no MCP session carries (the bridge's `/mcp` runs the
+        stops of a JSON-RPC batch itself): as `call_tool` runs it. None: no stopping tool."""
+        tool = self._tools.get(name)
+        if tool is None or tool.action is None or not tool.action.stopping:
+            return None
+        return await _guarded(name, lambda: self._command(seat, tool, dict(args), client))
 
     # -- actions --------------------------------------------------------------------------
 
@@ -306,6 +312,18 @@ class RobotTools:
         assert resource is not None
         return types.ReadResourceResult(contents=[types.TextResourceContents(
             uri=uri, mime_type=JSON_TYPE, text=json.dumps(resource.shape(reply.body)))])
+
+
+async def _guarded(name: str, call: Callable[[], Awaitable[types.CallToolResult]]
+                   ) -> types.CallToolResult:
+    """`call`'s result; what it raises as a tool error, never a traceback to the agent."""
+    try:
+        return await call()
+    except BridgeUnavailable as exc:
+        return failure(str(exc), "BRIDGE_UNAVAILABLE")
+    except Exception:  # the log has it
+        log.exception("tool %s failed", name)
+        return failure(f"{name} failed inside the MCP server (see its log)", "INTERNAL_ERROR")
 
 
 def refused(reply: Reply) -> MCPError:

@@ -11,6 +11,7 @@ each with its warning.
 from __future__ import annotations
 
 import json
+import math
 import re
 import uuid
 from collections.abc import Callable, Iterable
@@ -91,41 +92,97 @@ def _first_duplicate(top: _Pairs) -> Duplicate | None:
     return None
 
 
-def nonfinite_stop(raw: bytes, problem: str) -> tuple[str, dict[str, Any], list[str]] | None:
-    """(stop, object, problems) of a body that is JSON but for NaN/Infinity tokens, which
-    Python's `json.dumps` (and so the `rcan` SDK's `to_json`) writes, when it says stop; else
-    None. The tokens are read as null: no non-finite number reaches the audit."""
-    try:
-        text = raw.decode("utf-8")
-        obj = _clean(json.loads(text, parse_constant=lambda _token: None))
-        top = _clean(json.loads(text, parse_constant=lambda _token: None,
-                                object_pairs_hook=_Pairs))
-    except (ValueError, RecursionError):  # not JSON even so (UnicodeDecodeError is one)
+class Lenient(NamedTuple):
+    """JSON read as forgivingly as it can be, and what was read otherwise than written."""
+
+    value: Any
+    replaced: tuple[str, ...]
+
+    def problem(self, problem: str) -> str:
+        """`problem` (why the strict reader refused it), saying how it was read instead."""
+        how = ", ".join(self.replaced) if self.replaced else "by Python's json"
+        return f"{problem} (read leniently: {how})"
+
+
+class _Reader:
+    """json.loads's hooks for what a strict reader refuses, each noting what it replaced."""
+
+    def __init__(self) -> None:
+        self.replaced: dict[str, None] = {}  # in order, each once
+
+    def constant(self, token: str) -> None:  # NaN, Infinity, -Infinity
+        self.replaced[f"{token} as null"] = None
+
+    def integer(self, digits: str) -> int | None:
+        try:
+            return int(digits)
+        except ValueError:  # more digits than Python converts (sys.get_int_max_str_digits)
+            self.replaced[f"an integer of {len(digits.lstrip('-'))} digits as null"] = None
+            return None
+
+    def real(self, text: str) -> float | None:
+        value = float(text)
+        if math.isfinite(value):
+            return value
+        self.replaced[f"{text[:24]}{'...' if len(text) > 24 else ''} (out of range) as "
+                      "null"] = None
         return None
+
+
+def read_leniently(raw: bytes, *, pairs: bool = False) -> Lenient | None:
+    """`raw` as JSON, with what strict readers refuse read as something: NaN, Infinity and
+    numbers out of range as null, an unpaired surrogate escape as U+FFFD (`pairs`: objects as
+    `_Pairs`, every occurrence of a key kept). None: not JSON even so."""
+    reader = _Reader()
+    try:
+        value = json.loads(raw.decode("utf-8"), parse_constant=reader.constant,
+                           parse_int=reader.integer, parse_float=reader.real,
+                           object_pairs_hook=_Pairs if pairs else None)
+    except (ValueError, RecursionError):  # not JSON (UnicodeDecodeError is a ValueError)
+        return None
+    surrogates: list[bool] = []
+    value = _clean(value, surrogates)
+    if surrogates:
+        reader.replaced["an unpaired surrogate escape as U+FFFD"] = None
+    return Lenient(value, tuple(reader.replaced))
+
+
+def nonfinite_stop(raw: bytes, problem: str) -> tuple[str, dict[str, Any], list[str]] | None:
+    """(stop, object, problems) of a body that is JSON but for what `read_leniently` forgives
+    (NaN/Infinity tokens, which Python's `json.dumps` and so the `rcan` SDK's `to_json` writes;
+    numbers out of range; unpaired surrogate escapes), when it says stop; else None. No
+    non-finite number reaches the audit."""
+    read, paired = read_leniently(raw), read_leniently(raw, pairs=True)
+    if read is None or paired is None:
+        return None
+    obj, top = read.value, paired.value
     if not isinstance(obj, dict) or not isinstance(top, _Pairs):
         return None
     stop = stop_intent(top)
     if stop is None:
         return None
-    problems = [f"{problem} (read leniently: NaN and Infinity as null, an unpaired "
-                "surrogate escape as U+FFFD)"]
+    problems = [read.problem(problem)]
     duplicate = _first_duplicate(top)
     if duplicate is not None:
         problems.append(f"{duplicate.path}: duplicate key {duplicate.key!r}")
     return stop, obj, problems
 
 
-def _clean(value: Any) -> Any:
+def _clean(value: Any, found: list[bool]) -> Any:
     """`value` with every unpaired surrogate (a `\\ud800` escape Python's json lets through,
-    which no UTF-8 audit line can hold) replaced by U+FFFD, in keys and strings alike."""
+    which no UTF-8 audit line can hold) replaced by U+FFFD, in keys and strings alike; each
+    string changed is noted in `found`."""
     if isinstance(value, str):
-        return _SURROGATE.sub("\ufffd", value)
+        cleaned = _SURROGATE.sub("\ufffd", value)
+        if cleaned != value:
+            found.append(True)
+        return cleaned
     if isinstance(value, _Pairs):
-        return _Pairs((_clean(k), _clean(v)) for k, v in value)
+        return _Pairs((_clean(k, found), _clean(v, found)) for k, v in value)
     if isinstance(value, dict):
-        return {_clean(k): _clean(v) for k, v in value.items()}
+        return {_clean(k, found): _clean(v, found) for k, v in value.items()}
     if isinstance(value, list):
-        return [_clean(v) for v in value]
+        return [_clean(v, found) for v in value]
     return value
 
 

@@ -161,3 +161,130 @@ async def test_an_unauthenticated_malformed_estop_is_refused(api: Api) -> None:
     status, body = await post(api, call("estop", SURROGATE, LEGACY), sent)
     assert (status, body["error_code"]) == (401, "UNAUTHENTICATED"), body
     assert not api.gov.latch.latched and api.dispatcher.calls == []
+
+
+# -- a stop the SDK would refuse for what is around it: its session, its arguments, its name --
+
+def tool_call(name: str, arguments: bytes, protocol: str, request_id: int | None = 2) -> bytes:
+    """A tools/call of `name` (as written) with `arguments` (any JSON, as written); without
+    `request_id`, a notification."""
+    meta = b', "_meta": ' + json.dumps(META).encode() if protocol == MODERN else b""
+    head = b'{"jsonrpc": "2.0", ' + (b'"id": %d, ' % request_id if request_id else b"")
+    return head + (b'"method": "tools/call", "params": {"name": %s, "arguments": %s%s}}'
+                   % (json.dumps(name).encode(), arguments, meta))
+
+
+def warned(data: dict[str, Any], *said: str) -> str:
+    """The stop's warning that says all of `said` (in any case)."""
+    found = [w for w in data.get("warnings") or ()
+             if all(s.lower() in w.lower() for s in said)]
+    assert found, data
+    return found[0]
+
+
+SESSIONS = ["missing", "unknown", "another principal's"]
+
+
+@pytest.mark.parametrize("session", SESSIONS)
+@pytest.mark.parametrize("tool", ["estop", "stop"])
+async def test_a_stop_without_a_valid_session_stops(api: Api, log: pytest.LogCaptureFixture,
+                                                    session: str, tool: str) -> None:
+    """The SDK refused it (400 without a session id, 404 for one it does not know or that is
+    another credential's) and the robot was not stopped."""
+    who = "viewer" if tool == "estop" else "planner"  # a guest may e-stop, not halt
+    sent = await headers(api, who, LEGACY, tool)
+    if session == "missing":
+        del sent["Mcp-Session-Id"]
+    elif session == "unknown":
+        sent["Mcp-Session-Id"] = "0123456789abcdef0123456789abcdef"
+    else:
+        sent["Mcp-Session-Id"] = (await headers(api, "ops", LEGACY))["Mcp-Session-Id"]
+    status, reply = await post(api, tool_call(tool, b'{"reason": "r"}', LEGACY), sent)
+    assert status == 200, reply
+    data = stopped(reply)
+    assert [a for a, _ in api.dispatcher.calls] == [tool]
+    assert api.gov.latch.latched == (tool == "estop")
+    warning = warned(data, "session")
+    assert ("400" if session == "missing" else "404") in warning, warning
+    entry = api.entry(data["audit_id"])
+    assert (entry["principal"], entry["params"]) == (who, {"reason": "r"})
+    assert entry["warnings"] == data["warnings"]
+    # Anything else is answered as the SDK answers it: refused, nothing moves.
+    move = tool_call("move", b'{"linear_x": 0.1, "duration_s": 1, "confidence": 0.9}', LEGACY)
+    status, refused = await post(api, move, sent)
+    assert (status, refused["id"], refused["error"]["code"]) == (
+        400 if session == "missing" else 404, None, -32600), refused
+    assert [a for a, _ in api.dispatcher.calls] == [tool]
+    no_traceback(log)
+
+
+@pytest.mark.parametrize("protocol", [LEGACY, MODERN])
+@pytest.mark.parametrize("arguments", [b'"junk"', b"[1, 2]", b"5"], ids=["str", "list", "int"])
+async def test_an_estop_whose_arguments_are_no_object_stops(
+        api: Api, log: pytest.LogCaptureFixture, protocol: str, arguments: bytes) -> None:
+    """The SDK answered -32602 and the robot was not stopped."""
+    status, reply = await post(api, tool_call("estop", arguments, protocol),
+                               await headers(api, "viewer", protocol))
+    assert status == 200, reply
+    data = stopped(reply)
+    assert api.gov.latch.latched and [a for a, _ in api.dispatcher.calls] == ["estop"]
+    warned(data, "arguments", "not an object", "ignored")
+    assert api.entry(data["audit_id"])["warnings"] == data["warnings"]
+    no_traceback(log)
+
+
+@pytest.mark.parametrize("protocol", [LEGACY, MODERN])
+@pytest.mark.parametrize(("name", "tool"), [("ESTOP", "estop"), (" estop ", "estop"),
+                                            ("Stop", "stop"), ("STOP\t", "stop")])
+async def test_a_stop_spelt_otherwise_stops(api: Api, log: pytest.LogCaptureFixture,
+                                            protocol: str, name: str, tool: str) -> None:
+    """Stops forgive case and blanks over REST; at /mcp the name was UNKNOWN_TOOL. Other
+    tools' names stay exact."""
+    move = tool_call("MOVE", b'{"linear_x": 0.1, "duration_s": 1, "confidence": 0.9}',
+                     protocol, 3)
+    status, reply = await post(api, move, await headers(api, "planner", protocol, "MOVE"))
+    assert reply["result"]["isError"] is True, reply
+    assert reply["result"]["structuredContent"]["error_code"] == "UNKNOWN_TOOL"
+    assert api.dispatcher.calls == []
+    status, reply = await post(api, tool_call(name, b"{}", protocol),
+                               await headers(api, "planner", protocol, name))
+    assert status == 200, reply
+    data = stopped(reply)
+    assert [a for a, _ in api.dispatcher.calls] == [tool]
+    warned(data, repr(name), repr(tool))
+    assert api.entry(data["audit_id"])["warnings"] == data["warnings"]
+    no_traceback(log)
+
+
+@pytest.mark.parametrize("protocol", [LEGACY, MODERN])
+async def test_an_estop_notification_stops(api: Api, log: pytest.LogCaptureFixture,
+                                           protocol: str) -> None:
+    """A tools/call without an id: JSON-RPC allows no reply, the stop runs all the same."""
+    sent = await headers(api, "viewer", protocol)
+    async with api.http.post("/mcp", data=tool_call("estop", b"{}", protocol, None),
+                             headers=sent) as resp:
+        assert resp.status == 202, await resp.text()
+        assert await resp.read() == b""
+    assert api.gov.latch.latched and [a for a, _ in api.dispatcher.calls] == ["estop"]
+    [entry] = [e for e in api.entries if e["event"] == "ESTOP"]
+    assert any("notification" in w for w in entry["warnings"]), entry
+    no_traceback(log)
+
+
+@pytest.mark.parametrize("mode", ["auto", "legacy"])
+async def test_the_sdk_clients_stop_spelt_otherwise_stops(api: Api, log: pytest.LogCaptureFixture,
+                                                          mode: str) -> None:
+    """The official client, over both protocols (a session over 2025-06-18): `Stop` halts,
+    with its warning; the same client's `stop` is the SDK's to run, as before (no warning)."""
+    from tests.api.test_mcp_http import agent, data
+
+    async with agent(api, mode=mode) as client:
+        plain = data(await client.call_tool("stop", {"reason": "a"}))
+        respelt = data(await client.call_tool("Stop", {"reason": "b"}))
+    assert (plain["outcome"], respelt["outcome"]) == ("executed", "executed")
+    assert "warnings" not in plain, plain
+    assert respelt["warnings"] == ["$.params.name: 'Stop' is the tool 'stop' (spelt otherwise)"]
+    assert [a for a, _ in api.dispatcher.calls] == ["stop", "stop"]
+    assert api.entry(respelt["audit_id"])["warnings"] == respelt["warnings"]
+    assert api.entry(respelt["audit_id"])["ai"]["client"] == "test-agent/1.2"  # the SDK ran it
+    no_traceback(log)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Awaitable, Callable, MutableMapping
-from typing import Any
+from typing import Any, NamedTuple
 
 from aiohttp import web
 
@@ -23,6 +23,7 @@ Receive = Callable[[], Awaitable[Message]]
 Send = Callable[[Message], Awaitable[None]]
 AsgiApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 GONE_POLL_S = 1.0  # how often a waiting `receive()` looks whether the client is still there
+FRAMING = ("content-length", "transfer-encoding")
 
 
 def scope_of(request: web.Request, extra: dict[str, Any]) -> Scope:
@@ -94,3 +95,52 @@ async def serve(app: AsgiApp, request: web.Request, body: bytes,
     finally:
         exchange.finish()
     return exchange.response
+
+
+class Answer(NamedTuple):
+    """An application's whole response, held back from the client."""
+
+    status: int
+    headers: list[tuple[str, str]]
+    body: bytes
+
+    def response(self) -> web.Response:
+        response = web.Response(status=self.status, body=self.body)
+        response.headers.clear()  # the application's own, not aiohttp's defaults
+        for name, value in self.headers:
+            if name.lower() not in FRAMING:  # aiohttp frames the body it sends
+                response.headers.add(name, value)
+        return response
+
+
+class _Holding(_Exchange):
+    """An exchange whose response is kept (`answer`) instead of sent."""
+
+    def __init__(self, request: web.Request, body: bytes) -> None:
+        super().__init__(request, body)
+        self.answer: Answer | None = None
+
+    async def send(self, message: Message) -> None:
+        if message["type"] == "http.response.start":
+            headers = [(k.decode("latin-1"), v.decode("latin-1"))
+                       for k, v in message.get("headers", ())]
+            self.answer = Answer(int(message["status"]), headers, b"")
+        elif message["type"] == "http.response.body":
+            if self.answer is None:
+                raise RuntimeError("ASGI body before its start")
+            self.answer = self.answer._replace(body=self.answer.body + message.get("body", b""))
+            if not message.get("more_body", False):
+                self._done.set()
+
+
+async def answer(app: AsgiApp, request: web.Request, body: bytes,
+                 extra: dict[str, Any]) -> Answer | None:
+    """Run `app` on this request to the end of its response, and return that response
+    unsent (for a response of one body: never an event stream that stays open); None if it
+    sent none."""
+    exchange = _Holding(request, body)
+    try:
+        await app(scope_of(request, extra), exchange.receive, exchange.send)
+    finally:
+        exchange.finish()
+    return exchange.answer

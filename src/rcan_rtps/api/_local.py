@@ -39,7 +39,8 @@ def _reply(status: int, body: Any) -> Reply:
 
 class LocalApi:
     """`mcp_server.ports.RobotApi` inside the bridge, as `principal`; `warnings`: what the
-    request was found wrong with before it reached a tool, which its stops carry."""
+    request was found wrong with before it reached a tool, which its stops carry;
+    `commanded`: whether a command was sent through it (a stop the SDK did run)."""
 
     def __init__(self, app: web.Application, principal: Principal,
                  fixed_manifest: dict[str, Any], warnings: tuple[str, ...] = ()) -> None:
@@ -47,8 +48,10 @@ class LocalApi:
         self._principal = principal
         self._manifest = fixed_manifest
         self._warnings = warnings
+        self.commanded = False
 
     async def command(self, body: dict[str, Any]) -> Reply:
+        self.commanded = True
         app, governor = self._app, self._app[GOVERNOR]
         try:
             raw = msgspec.json.encode(body)

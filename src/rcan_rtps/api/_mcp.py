@@ -9,13 +9,16 @@ headers (or the `ai_provider` and `ai_model` query parameters, for clients that 
 header but `Authorization`). A principal's timed moves and goals are held by heartbeats
 while they run; a session the client closes (DELETE) stops what it left running.
 
-A stop stops whatever else is wrong with its request (`stop_rescue`): a `tools/call` of a
-stopping tool (`estop`, `stop`: the registry's ESTOP and HALT actions) whose body the SDK's
-JSON parser refuses (an unpaired surrogate escape, an integer of more digits than Python
-reads) is read leniently (`rcan._salvage.read_leniently`) and handed to the SDK as strict
-JSON; the stops of a JSON-RPC batch (which the SDK refuses whole) are run here. Either way
-the stop carries what was wrong as `warnings`, in its tool result and its audit entry. Any
-other body the SDK answers as it would.
+A stop stops whatever else is wrong with its request (`_mcp_stop.stop_rescue`): a `tools/call`
+that says stop (`estop`, `stop`: the registry's ESTOP and HALT actions, spelt as REST forgives)
+is handed to the SDK as it takes it — strict JSON (`rcan._salvage.read_leniently` reads what
+its parser refuses), the tool's own name, object arguments — and its answer held back: if the
+stop did not reach the bridge (the SDK refused it: no valid session over the 2025 protocol, a
+header that disagrees with the body, ...), it is run here, as the authenticated principal,
+and answered with its tool result. A notification's stop and the stops of a JSON-RPC batch
+(which the SDK refuses whole) are run here too. The stop carries what was wrong as
+`warnings`, in its tool result and its audit entry. Any other body the SDK answers as it
+would, its session checks included.
 """
 
 from __future__ import annotations
@@ -23,20 +26,19 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
+import json
 import logging
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
-import msgspec
 from aiohttp import web
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import Principal
-from rcan_rtps.rcan._salvage import read_leniently
-from rcan_rtps.rcan.actions import specs
 
 from ._bodies import error_response, json_response
 from ._commands import read_limited, too_large
 from ._keys import GOVERNOR, PRINCIPAL, SETTINGS
+from ._mcp_stop import Rescue, StopCall, stop_call, stop_rescue
 
 if TYPE_CHECKING:
     from rcan_rtps.mcp_server.http import HttpMcp
@@ -63,44 +65,23 @@ def agent_of(request: web.Request) -> Agent:
     return Agent(named("RCAN-AI-Provider", "ai_provider"), named("RCAN-AI-Model", "ai_model"))
 
 
-class Rescue(NamedTuple):
-    """A request that says stop though the SDK would not run it: the body to hand the SDK
-    (strict JSON), what was wrong (the stops' warnings), and a batch's members (run here)."""
-
-    body: bytes
-    warnings: tuple[str, ...]
-    batch: list[Any] | None = None
+def _named(request: web.Request, name: str) -> list[tuple[bytes, bytes]]:
+    """The request's headers (as ASGI has them) with `Mcp-Name`, if sent, naming the tool as
+    the body now does (the SDK refuses a call whose header and body disagree)."""
+    return [(k.lower(), name.encode() if k.lower() == b"mcp-name" else v)
+            for k, v in request.raw_headers]
 
 
-def stop_rescue(body: bytes) -> Rescue | None:
-    """What makes the stop in `body` stop; None when the SDK runs it as it is (or it holds
-    no stop, and the SDK answers it as it would: -32700 for what it cannot parse)."""
-    warnings: tuple[str, ...] = ()
-    try:
-        message = msgspec.json.decode(body)
-    except (msgspec.DecodeError, ValueError, RecursionError):  # ValueError: not UTF-8
-        read = read_leniently(body)
-        if read is None:
-            return None
-        message = read.value
-        warnings = (read.problem("$: the JSON-RPC body is not strict JSON"),)
-    if isinstance(message, list):
-        if not any(_calls_a_stop(member) for member in message):
-            return None
-        return Rescue(body, (*warnings, "$: a JSON-RPC batch: only its stops were run"),
-                      message)
-    if not warnings or not _calls_a_stop(message):
-        return None
-    return Rescue(msgspec.json.encode(message), warnings)
-
-
-def _calls_a_stop(message: Any) -> bool:
-    """A JSON-RPC `tools/call` of a stopping tool (each registry action is its tool)."""
-    if not isinstance(message, dict) or message.get("method") != "tools/call":
-        return False
-    params = message.get("params")
-    name = params.get("name") if isinstance(params, dict) else None
-    return any(spec.stopping and spec.name == name for spec in specs())
+def _refusal(answered: Any) -> str:
+    """What the SDK answered a stop it did not run, as the stop's warning."""
+    if answered is None:
+        return "$: the MCP server did not answer the call: the bridge ran the stop"
+    error = None
+    with contextlib.suppress(ValueError):
+        error = json.loads(answered.body).get("error")
+    said = f": {error.get('message')}" if isinstance(error, dict) else ""
+    return (f"$: the MCP server refused the call (HTTP {answered.status}{said}): the bridge "
+            "ran the stop")
 
 
 class McpEndpoint:
@@ -133,13 +114,9 @@ class McpEndpoint:
             status, refused = await too_large(app[GOVERNOR], principal)
             return json_response(refused, status)
         rescue = stop_rescue(body) if request.method == "POST" else None
-        seat = self._seat(app, principal, agent_of(request), request.headers.get(SESSION_HEADER),
-                          () if rescue is None else rescue.warnings)
         if rescue is not None:
-            if rescue.batch is not None:
-                replies = await server.stop_batch(seat, rescue.batch)
-                return json_response(replies) if replies else web.Response(status=202)
-            body = rescue.body
+            return await self._stopping_call(server, request, rescue)
+        seat = self._seat(app, principal, agent_of(request), request.headers.get(SESSION_HEADER))
 
         async def run(scope: Any, receive: Any, send: Any) -> None:
             await server.handle(scope, receive, send, seat, principal.name, principal.role.name)
@@ -152,8 +129,67 @@ class McpEndpoint:
             await self._session_closed(seat)
         return response
 
+    async def _stopping_call(self, server: HttpMcp, request: web.Request,
+                             rescue: Rescue) -> web.StreamResponse:
+        """A body that says stop: it stops, whatever the SDK would make of it. A stop the SDK
+        can run (in a valid session, or sessionless) it runs and answers; one it refuses or
+        cannot take (a notification) the door runs as its tool runs it, the refusal its
+        warning; a batch's stops the door runs."""
+        if rescue.batch is not None:
+            return await self._stop_batch(server, request, rescue.warnings, rescue.batch)
+        call = rescue.call
+        assert call is not None
+        warnings = (*rescue.warnings, *call.warnings)
+        if call.notification:  # the SDK would take it as an unknown notification: no stop
+            await self._stop_at_door(server, request, call, (
+                *warnings, "$: a notification (no id): run, and not answered"))
+            return web.Response(status=202)
+        from . import _asgi
+        from ._local import LocalApi
+
+        principal = request[PRINCIPAL]
+        seat = self._seat(request.app, principal, agent_of(request),
+                          request.headers.get(SESSION_HEADER), warnings)
+
+        async def run(scope: Any, receive: Any, send: Any) -> None:
+            await server.handle(scope, receive, send, seat, principal.name, principal.role.name)
+
+        extra = {"headers": _named(request, call.name)} if call.warnings else {}
+        answered = await _asgi.answer(run, request, rescue.body, extra)
+        if answered is not None and isinstance(seat.api, LocalApi) and seat.api.commanded:
+            return answered.response()  # the SDK ran it (and answered it: stopped or not)
+        reply = await self._stop_at_door(server, request, call, (*warnings, _refusal(answered)))
+        return json_response(reply)
+
+    async def _stop_batch(self, server: HttpMcp, request: web.Request,
+                          warnings: tuple[str, ...], batch: list[Any]) -> web.Response:
+        """A JSON-RPC batch's replies, in order: each stop's call run and answered with its
+        tool result, every other request refused; a notification gets no reply, though a
+        stop in one is run."""
+        from rcan_rtps.mcp_server.http import not_served
+
+        replies = []
+        for member in batch:
+            call = stop_call(member)
+            if call is None:
+                reply = not_served(member)
+            else:
+                reply = await self._stop_at_door(server, request, call,
+                                                 (*warnings, *call.warnings))
+                reply = None if call.notification else reply
+            if reply is not None:
+                replies.append(reply)
+        return json_response(replies) if replies else web.Response(status=202)
+
+    async def _stop_at_door(self, server: HttpMcp, request: web.Request, call: StopCall,
+                            warnings: tuple[str, ...]) -> dict[str, Any]:
+        """`call` run by the bridge, as the authenticated principal (no MCP session)."""
+        seat = self._seat(request.app, request[PRINCIPAL], agent_of(request), None, warnings)
+        return await server.run_stop(seat, call.name, call.arguments, call.request_id,
+                                     list(request.raw_headers))
+
     def _seat(self, app: web.Application, principal: Principal, agent: Agent,
-              session: str | None, warnings: tuple[str, ...]) -> Seat:
+              session: str | None, warnings: tuple[str, ...] = ()) -> Seat:
         from rcan_rtps.mcp_server.keepalive import Keepalive
         from rcan_rtps.mcp_server.seat import Seat
 

@@ -17,12 +17,12 @@ import logging
 from collections.abc import Mapping
 from typing import Any
 
-import mcp_types as types
 from mcp.server.auth.middleware.bearer_auth import AuthenticatedUser
 from mcp.server.auth.provider import AccessToken
 from mcp.server.context import ServerRequestContext
 from mcp.server.streamable_http_manager import StreamableHTTPSessionManager
 from mcp_types.jsonrpc import INVALID_REQUEST
+from mcp_types.version import HANDSHAKE_PROTOCOL_VERSIONS
 
 from .seat import Seat
 from .server import RobotTools, build_server
@@ -70,35 +70,34 @@ class HttpMcp:
         user = AuthenticatedUser(AccessToken(token="-", client_id=principal, scopes=[role]))
         await self._manager.handle_request({**scope, "user": user, SEAT: seat}, receive, send)
 
-    async def stop_batch(self, seat: Seat, batch: list[Any]) -> list[dict[str, Any]]:
-        """A JSON-RPC batch's replies, in order: each stopping tool call run as its tool runs
-        it and answered with the tool's result; every other request refused (the SDK refuses
-        a batch whole, and a stop in one must still stop). A notification gets no reply,
-        though a stop in one is run."""
-        replies: list[dict[str, Any]] = []
-        for member in batch:
-            done = await self._batched_stop(seat, member)
-            if not isinstance(member, dict) or "id" not in member:
-                if not isinstance(member, dict):  # not even a message: JSON-RPC's -32600
-                    replies.append(_error(None, NOT_SERVED))
-                continue
-            if done is None:
-                replies.append(_error(member["id"], NOT_SERVED))
-            else:
-                replies.append({"jsonrpc": "2.0", "id": member["id"], "result": done.model_dump(
-                    mode="json", by_alias=True, exclude_none=True)})
-        return replies
+    async def run_stop(self, seat: Seat, name: str, arguments: dict[str, Any],
+                       request_id: Any, scope_headers: list[tuple[bytes, bytes]]
+                       ) -> dict[str, Any]:
+        """The JSON-RPC reply to a stopping tool's call run by the bridge's door (not in an MCP
+        session: the SDK would not run it), as the tool runs it. A reply of the 2026-07-28
+        protocol says its result is complete, as the SDK's own do."""
+        done = await self._tools.stop(seat, name, arguments, "unknown")
+        if done is None:  # not a stopping tool: only the door's stops come here
+            raise ValueError(f"{name!r} is no stopping tool")
+        result = done.model_dump(mode="json", by_alias=True, exclude_none=True)
+        if _modern(scope_headers):
+            result["resultType"] = "complete"
+        return {"jsonrpc": "2.0", "id": request_id, "result": result}
 
-    async def _batched_stop(self, seat: Seat, member: Any) -> types.CallToolResult | None:
-        """The result of `member` if it is a stopping tool's call (run), else None."""
-        if not isinstance(member, dict) or member.get("method") != "tools/call":
-            return None
-        params = member.get("params")
-        if not isinstance(params, dict) or not isinstance(params.get("name"), str):
-            return None
-        args = params.get("arguments")
-        return await self._tools.stop(seat, params["name"], args if isinstance(args, dict)
-                                      else {}, "unknown")
+
+def not_served(member: Any) -> dict[str, Any] | None:
+    """The reply to a batch's member that is no stop: refused (the SDK refuses a batch whole,
+    the bridge serves only its stops); none to a notification."""
+    if isinstance(member, dict) and "id" not in member:
+        return None
+    return _error(member.get("id") if isinstance(member, dict) else None, NOT_SERVED)
+
+
+def _modern(headers: list[tuple[bytes, bytes]]) -> bool:
+    """A request of a sessionless protocol (2026-07-28 on), as the SDK routes requests."""
+    version = next((v.decode("latin-1") for k, v in headers
+                    if k.lower() == b"mcp-protocol-version"), None)
+    return version is not None and version not in HANDSHAKE_PROTOCOL_VERSIONS
 
 
 def _error(request_id: Any, message: str) -> dict[str, Any]:

@@ -1,0 +1,92 @@
+"""What in a `/mcp` body says stop, and what the SDK would refuse in it (`_mcp.McpEndpoint`).
+
+A request that says stop, stops, whatever else is wrong with it. The SDK refuses a JSON-RPC
+body it cannot parse strictly (an unpaired surrogate escape, an integer of more digits than
+Python reads), a batch, a `tools/call` whose `arguments` are not an object, and knows tools by
+their exact names: such a stop is found here, with what was wrong as its warnings. A tool name
+says stop as an RCAN `action` does over REST (`rcan._salvage.stop_intent`: case and blanks
+forgiven); any other tool's name stays exact.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import msgspec
+
+from rcan_rtps.rcan._salvage import read_leniently, stop_intent
+
+
+class StopCall(NamedTuple):
+    """A JSON-RPC `tools/call` that says stop: the stopping tool's own name, the arguments it
+    is run with, its request id (None: a notification) and what the SDK would not take as
+    written (each a warning)."""
+
+    name: str
+    arguments: dict[str, Any]
+    request_id: Any
+    notification: bool
+    warnings: tuple[str, ...]
+
+    def as_message(self, message: dict[str, Any]) -> dict[str, Any]:
+        """`message` (this call's) as the SDK takes it: the tool's own name, object arguments."""
+        params = {**message["params"], "name": self.name, "arguments": self.arguments}
+        return {**message, "params": params}
+
+
+def stop_call(message: Any) -> StopCall | None:
+    """`message` as a stop's tool call; None when it is none."""
+    if not isinstance(message, dict) or message.get("method") != "tools/call":
+        return None
+    params = message.get("params")
+    name = params.get("name") if isinstance(params, dict) else None
+    tool = stop_intent([("action", name)])
+    if tool is None or not isinstance(params, dict):
+        return None
+    warnings: list[str] = []
+    if name != tool:
+        warnings.append(f"$.params.name: {name!r} is the tool {tool!r} (spelt otherwise)")
+    arguments = params.get("arguments")
+    if arguments is None:
+        arguments = {}
+    elif not isinstance(arguments, dict):
+        warnings.append(f"$.params.arguments: not an object ({type(arguments).__name__}): "
+                        "ignored")
+        arguments = {}
+    return StopCall(tool, arguments, message.get("id"), "id" not in message, tuple(warnings))
+
+
+class Rescue(NamedTuple):
+    """A POST body that says stop: the body to hand the SDK (strict JSON), what was wrong with
+    it as JSON-RPC (every stop's warnings), and either its one stop's call or a batch's
+    members (whose stops the bridge runs: the SDK refuses a batch whole)."""
+
+    body: bytes
+    warnings: tuple[str, ...]
+    call: StopCall | None = None
+    batch: list[Any] | None = None
+
+
+def stop_rescue(body: bytes) -> Rescue | None:
+    """The stop in `body`; None when it holds none (the SDK answers it as it would: -32700
+    for what it cannot parse)."""
+    warnings: tuple[str, ...] = ()
+    try:
+        message = msgspec.json.decode(body)
+    except (msgspec.DecodeError, ValueError, RecursionError):  # ValueError: not UTF-8
+        read = read_leniently(body)
+        if read is None:
+            return None
+        message = read.value
+        warnings = (read.problem("$: the JSON-RPC body is not strict JSON"),)
+    if isinstance(message, list):
+        if not any(stop_call(member) for member in message):
+            return None
+        return Rescue(body, (*warnings, "$: a JSON-RPC batch: only its stops were run"),
+                      batch=message)
+    call = stop_call(message)
+    if call is None:
+        return None
+    if not warnings and not call.warnings:  # as written: the SDK takes the very body
+        return Rescue(body, (), call)
+    return Rescue(msgspec.json.encode(call.as_message(message)), warnings, call)

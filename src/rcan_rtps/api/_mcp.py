@@ -156,8 +156,11 @@ class McpEndpoint:
 
         extra = {"headers": _named(request, call.name)} if call.warnings else {}
         answered = await _asgi.answer(run, request, rescue.body, extra)
-        if answered is not None and isinstance(seat.api, LocalApi) and seat.api.commanded:
-            return answered.response()  # the SDK ran it (and answered it: stopped or not)
+        if isinstance(seat.api, LocalApi) and seat.api.commanded:  # the SDK ran it
+            if answered is None:
+                return error_response(503, "ROBOT_UNAVAILABLE", outcome="failed",
+                                      reason="mcp_no_response")
+            return answered.response()
         reply = await self._stop_at_door(server, request, call, (*warnings, _refusal(answered)))
         return json_response(reply)
 

@@ -200,6 +200,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "ErrorBody",
         "ErrorCode",
         "Fault",
+        "ForeignPublisher",
         "GateableName",
         "InvalidRuriError",
         "Invariant",

@@ -122,6 +122,24 @@ class RosDispatcher:
         # ungrouped actions are found once, here.
         self._direct = {spec.name: self._route_of(spec) for spec in specs()
                         if spec.ros.publishes() and not spec.ros.publishes()[0].group_key}
+        self._command_topics = self._topics_by_motion()
+
+    def _topics_by_motion(self) -> dict[str, bool]:
+        topics: dict[str, bool] = {self.cmd_vel.topic: True, self.estop.topic: False}
+        for spec in specs():
+            for publish in spec.ros.publishes():
+                routes = [r for (key, _), r in self._grouped.items() if key == id(publish)]
+                if id(publish) in self._routes:
+                    routes.append(self._routes[id(publish)])
+                for route in routes:
+                    topic = route.publisher.topic
+                    topics[topic] = topics.get(topic, False) or spec.motion
+        return topics
+
+    def command_topics(self) -> dict[str, bool]:
+        """Every topic the bridge commands the robot on (fully qualified) → whether what
+        goes there moves the robot (velocity, trajectories) rather than signals (e-stop)."""
+        return dict(self._command_topics)
 
     def _groups(self, publish: Publish[Any]) -> dict[str, Any]:
         return dict(getattr(self.ros2, publish.group_key)) if publish.group_key else {}

@@ -4,9 +4,11 @@
            anything touches the robot: a start that fails here leaves no trace on the graph
            and writes no audit entry
     start: ROS node → audit log → goal action clients → dispatcher → governor → telemetry
-           → governor started (BRIDGE_STARTED) → HTTP API → mDNS advert
-    stop:  mDNS withdrawn → API closed (no new commands) → velocity streams ended → robot
-           halted (zero velocity, goals cancelled) → telemetry → governor (BRIDGE_STOPPED)
+           → governor started (BRIDGE_STARTED) → watch for other publishers on the command
+           topics → HTTP API → mDNS advert
+    stop:  mDNS withdrawn → API closed (no new commands) → watch ended → velocity streams
+           ended → robot halted (zero velocity, goals cancelled) → telemetry → governor
+           (BRIDGE_STOPPED)
            → goal action clients → audit closed → ROS node left → API port released
 
 Each resource's cleanup goes on an `AsyncExitStack` as soon as the resource exists, so stop
@@ -51,6 +53,7 @@ from ..governance.signatures import Signatures
 from ..rcan import Status
 from ..ros.participant import RosNode
 from ..ros.services import RequestMapping
+from .commanders import POLL_S, CommanderWatch
 from .commands import RosDispatcher
 from .errors import BridgeStateError
 from .goals import GoalRoutes, route_mapping
@@ -88,6 +91,16 @@ def wire_robot_side(events: Events, governor: Governor, telemetry: TelemetryStat
             lambda p: goals.warn_cancelling(f"control session of '{p.name}' lost"))
     if diagnostics is not None:
         events.governance.subscribe(lambda: diagnostics.pending_changed(len(governor.pending())))
+
+
+def watch_commanders(node: RosNode, governor: Governor, dispatcher: RosDispatcher,
+                     telemetry: TelemetryState, interval: float = POLL_S) -> CommanderWatch:
+    """Other publishers on the topics the dispatcher commands the robot on: shown in STATUS,
+    logged, audited; started (on the running loop)."""
+    watch = CommanderWatch(node, dispatcher.command_topics(), show=telemetry.foreign_publishers,
+                           audit=governor.foreign_publisher, interval=interval)
+    watch.start()
+    return watch
 
 
 class BridgeView:
@@ -159,6 +172,7 @@ class Bridge:
         self.events = Events()  # who is told what; frozen once the API serves
         self._diagnostics: DiagnosticsNotifier | None = None
         self.telemetry: TelemetryState | None = None
+        self.commanders: CommanderWatch | None = None
         self.images: ImageSource | None = None  # bridge.ros2.images, when any
         self.server: ApiServer | None = None
         self.advertiser: RcanAdvertiser | None = None
@@ -268,6 +282,7 @@ class Bridge:
         goals, dispatcher = self._robot_side(node)
         governor, telemetry = self._governance(node, audit, goals, dispatcher)
         await self._start_governor(governor, dispatcher)
+        self._watch_commanders(node, governor, dispatcher, telemetry)
         await self._serve(governor, telemetry, goals)
         self.events.freeze()  # every listener is wired: none may be added from now on
         if self.options.mdns:
@@ -324,6 +339,11 @@ class Bridge:
         self._on_stop("halting the robot", dispatcher.halt)
         # Before the halt: a velocity stream still sending would undo its zero.
         self._on_stop("ending velocity streams", governor.end_streams)
+
+    def _watch_commanders(self, node: RosNode, governor: Governor, dispatcher: RosDispatcher,
+                          telemetry: TelemetryState) -> None:
+        watch = self.commanders = watch_commanders(node, governor, dispatcher, telemetry)
+        self._on_stop("watching the command topics", watch.close)
 
     def _telemetry_age(self) -> float | None:
         return self.telemetry.age_s() if self.telemetry is not None else None

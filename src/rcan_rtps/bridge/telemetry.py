@@ -4,12 +4,19 @@ Subscriptions keep the latest odometry, joint states, diagnostics and battery; `
 derives the state machine from them:
 
     estop      the governor's e-stop latch is engaged
-    fault      any DiagnosticStatus is ERROR (or has a level DiagnosticStatus does not define)
+    fault      any DiagnosticStatus is ERROR (or has a level DiagnosticStatus does not define),
+               or more components are in fault than STATUS lists (bridge/faults.py)
     offline    no telemetry for `telemetry_stale_s` (or none yet)
     safe_stop  a control session was lost, until the next command
     executing  a goal (navigation, docking) is active
     moving     odometry reports motion
     idle       otherwise
+
+What it copies is bounded, whatever the robot's nodes send: faults (`faults.FaultTable`),
+joints (`joints.bounded_joints`), other publishers on the command topics (`MAX_FOREIGN`,
+told by `commanders.CommanderWatch`). Another publisher on a topic the bridge commands the
+robot on is a WARN fault of that topic; one on a motion topic while the e-stop is latched an
+ERROR (`ESTOP_NOT_HOLDING`): the robot obeys it, and the latch cannot hold it.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from ..config import RcanConfig
 from ..events import Events
 from ..rcan import (
     Fault,
+    ForeignPublisher,
     Joints,
     Navigation,
     Position,
@@ -37,11 +45,16 @@ from ..rcan import (
 from ..ros import qos
 from ..ros.participant import RosNode
 from ..ros.rostime import quaternion_to_yaw
+from .faults import FaultTable, Level
 from .hostcpu import CpuMeter
+from .joints import bounded_joints
 
 log = logging.getLogger(__name__)
 _OK = 0
-_LEVELS = {1: "WARN", 2: "ERROR", 3: "STALE"}
+_LEVELS: dict[int, Level] = {1: "WARN", 2: "ERROR", 3: "STALE"}
+MAX_FOREIGN = 32  # other publishers STATUS lists (all are counted)
+ESTOP_NOT_HOLDING = "rcan_rtps/estop_not_holding"
+FOREIGN_PUBLISHER = "rcan_rtps/foreign_publisher"  # + the topic
 _MOVING_EPS = 1e-3  # m/s or rad/s below which the robot counts as still
 
 
@@ -74,7 +87,12 @@ class TelemetryState:
         self._joints: Joints | None = None
         self._battery: float | None = None
         self._battery_v: float | None = None
-        self._faults: dict[str, Fault] = {}
+        self._faults = FaultTable()
+        self._foreign: list[ForeignPublisher] = []
+        self._foreign_motion: list[str] = []  # motion topics among theirs
+        # The joints the bridge commands: listed first when a JointState is cut.
+        self._commanded_joints = frozenset(
+            j for arm in config.bridge.ros2.arms.values() for j in arm.joints)
         self.safe_stopped = False
         self._started = monotonic()
         self._cpu = CpuMeter()
@@ -128,7 +146,8 @@ class TelemetryState:
 
     def _on_joints(self, msg: Any) -> None:
         with self._lock:
-            self._joints = Joints(list(msg.name), list(msg.position), list(msg.velocity))
+            self._joints = bounded_joints(msg.name, msg.position, msg.velocity,
+                                          self._commanded_joints)
             changed = self._touch()
         self._tell(changed)
 
@@ -139,19 +158,18 @@ class TelemetryState:
         if not statuses:
             return
         with self._lock:
-            before = dict(self._faults)
+            before = self._faults.faults()
             for status in statuses:
                 level = _level(status.level)
                 if level == _OK:  # OK clears what this component reported before
-                    self._faults.pop(status.name, None)
+                    self._faults.report(status.name, None, status.message)
                 elif level in _LEVELS:
-                    self._faults[status.name] = Fault(status.name, status.message,
-                                                      _LEVELS[level])  # type: ignore[arg-type]
+                    self._faults.report(status.name, _LEVELS[level], status.message)
                 else:  # a level DiagnosticStatus does not define is not "fine": fail closed
-                    self._faults[status.name] = Fault(
-                        status.name, f"unknown diagnostic level {level}: {status.message}",
-                        "ERROR")
-            changed = self._touch() or before != self._faults
+                    self._faults.report(
+                        status.name, "ERROR",
+                        f"unknown diagnostic level {level}: {status.message}")
+            changed = self._touch() or before != self._faults.faults()
         self._tell(changed)
 
     def _on_battery(self, msg: Any) -> None:
@@ -161,6 +179,16 @@ class TelemetryState:
             self._battery = None if pct is None else max(0.0, min(100.0, pct * 100.0))
             self._battery_v = _finite_or_none(float(msg.voltage))
             changed = self._touch() or before != self._battery
+        self._tell(changed)
+
+    def foreign_publishers(self, found: list[ForeignPublisher], motion_topics: set[str]) -> None:
+        """Other participants now publishing on the command topics (`motion_topics`: those
+        that move the robot); called from the loop, never holding a DDS call."""
+        found = sorted(found, key=lambda f: (f.topic, f.node or "", f.participant))
+        motion = sorted({f.topic for f in found if f.topic in motion_topics})
+        with self._lock:
+            changed = found != self._foreign or motion != self._foreign_motion
+            self._foreign, self._foreign_motion = found, motion
         self._tell(changed)
 
     def mark_safe_stop(self) -> None:
@@ -178,7 +206,8 @@ class TelemetryState:
     def status(self, *, pending_auth: int) -> Status:
         with self._lock:
             age = self.age_s()
-            faults = sorted(self._faults.values(), key=lambda f: f.name)
+            faults = self._faults.faults()
+            foreign, foreign_motion = self._foreign, self._foreign_motion
             telemetry = Telemetry(self._position, self._yaw, self._velocity, self._joints)
             battery, volts = self._battery, self._battery_v
             self._seq += 1
@@ -188,6 +217,7 @@ class TelemetryState:
         navigation = self._navigation() if goals else None
         stale = age is None or age > self.config.bridge.ros2.telemetry_stale_s
         estop = self._estop_latched()
+        faults = _commander_faults(estop, foreign, foreign_motion) + faults
         return Status(
             ruri=self.config.robot.ruri, state=self._state(estop, faults, stale, goals, telemetry),
             estop=estop, battery_pct=battery, telemetry=telemetry, faults=faults,
@@ -198,6 +228,7 @@ class TelemetryState:
             battery_percent=battery, battery_v=volts, cpu_percent=self._cpu.percent(),
             uptime_ms=int((self._monotonic() - self._started) * 1000), seq=seq,
             timestamp_us=now_us, position=_position(telemetry),
+            foreign_publishers=foreign[:MAX_FOREIGN], foreign_publishers_count=len(foreign),
         )
 
     def _state(self, estop: bool, faults: list[Fault], stale: bool, goals: list[str],
@@ -213,6 +244,29 @@ class TelemetryState:
         if goals:
             return "executing"
         return "moving" if _moving(telemetry.velocity) else "idle"
+
+
+def _commander_faults(estop: bool, foreign: list[ForeignPublisher],
+                      motion: list[str]) -> list[Fault]:
+    """What other publishers on the command topics mean for the robot: first, while the
+    e-stop is latched and one publishes motion, that the latch cannot hold the robot."""
+    faults = []
+    if estop and motion:
+        faults.append(Fault(ESTOP_NOT_HOLDING, (
+            f"e-stop latched, but another participant publishes on {', '.join(motion)}: the "
+            f"robot obeys it, and the e-stop cannot hold the robot against it "
+            f"({_who(foreign, set(motion))})"), "ERROR"))
+    for topic in sorted({f.topic for f in foreign}):
+        faults.append(Fault(f"{FOREIGN_PUBLISHER}:{topic}", (
+            f"another participant publishes on {topic}, which the bridge commands the robot "
+            f"on: the robot obeys it too ({_who(foreign, {topic})})"), "WARN"))
+    return faults
+
+
+def _who(foreign: list[ForeignPublisher], topics: set[str]) -> str:
+    names = [f.node or f"participant {f.participant}" for f in foreign if f.topic in topics]
+    shown = ", ".join(dict.fromkeys(names[:4]))
+    return shown + (f" and {len(names) - 4} more" if len(names) > 4 else "")
 
 
 def _position(telemetry: Telemetry) -> RobotPosition | None:

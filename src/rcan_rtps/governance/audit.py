@@ -94,6 +94,10 @@ class AuditEvent(str, enum.Enum):
     GOAL_FINISHED = "GOAL_FINISHED"  # a goal the bridge sent ended; `outcome` says how
     STREAM_ENDED = "STREAM_ENDED"  # a velocity stream stopped sending (params.reason says why)
     INVOKE_RESULT = "INVOKE_RESULT"  # an RCAN INVOKE's result (§19.3), once decided
+    # Another participant began / stopped publishing on a topic the bridge commands the robot
+    # on (params: topic, type, participant, node, writers).
+    FOREIGN_PUBLISHER = "FOREIGN_PUBLISHER"
+    FOREIGN_PUBLISHER_GONE = "FOREIGN_PUBLISHER_GONE"
     BRIDGE_STARTED = "BRIDGE_STARTED"
     BRIDGE_STOPPED = "BRIDGE_STOPPED"
     AUDIT_TAIL_RECOVERED = "AUDIT_TAIL_RECOVERED"

@@ -466,6 +466,18 @@ class Governor:
                             deny_reason=detail, ros2_topic=server)
         self._steps.spawn(self._steps.record_event(entry))
 
+    def foreign_publisher(self, facts: dict[str, Any], *, gone: bool = False) -> None:
+        """Another participant began (or, `gone`, stopped) publishing on a topic the bridge
+        commands the robot on: audited (FOREIGN_PUBLISHER, FOREIGN_PUBLISHER_GONE). `facts`:
+        its topic, type, participant, node and writers."""
+        event = AuditEvent.FOREIGN_PUBLISHER_GONE if gone else AuditEvent.FOREIGN_PUBLISHER
+        if self._stopped:  # BRIDGE_STOPPED is the last entry
+            log.info("%s on %s after the bridge stopped: not audited", event.value,
+                     facts.get("topic"))
+            return
+        entry = AuditRecord(event=event, params=facts, ros2_topic=facts.get("topic"))
+        self._steps.spawn(self._steps.record_event(entry))
+
     async def invoke_result(self, principal: Principal, *, invoke_id: str, status: str,
                             outcome: str | None, facts: dict[str, Any],
                             detail: str | None = None) -> None:

@@ -183,15 +183,29 @@ class Velocity(msgspec.Struct):
 
 
 class Joints(msgspec.Struct):
+    """The robot's JointState: at most 64 joints are listed (the commanded arms' first)."""
+
     names: list[str]
     positions: list[float]
     velocities: list[float]
+    count: int | None = None  # joints the JointState had (more than listed when it was cut)
 
 
 class Fault(msgspec.Struct):
     name: str
     message: str
     level: Literal["WARN", "ERROR", "STALE"]
+
+
+class ForeignPublisher(msgspec.Struct, kw_only=True):
+    """Another participant publishing on a topic the bridge commands the robot on: the robot
+    obeys it too, between the bridge's samples, and an e-stop cannot hold against it."""
+
+    topic: str
+    type: str
+    participant: str  # its participant's GUID prefix (12 bytes, hex, dotted)
+    node: str | None = None  # the node's fully qualified name, if its participant names it
+    writers: int = 1  # its writers on this topic
 
 
 class Telemetry(msgspec.Struct):
@@ -254,3 +268,7 @@ class Status(msgspec.Struct, kw_only=True):
     seq: int | None = None  # grows with every STATUS computed
     timestamp_us: int | None = None  # µs since the epoch, increasing within a run
     position: RobotPosition | None = None  # from odometry
+    # Other participants publishing on the topics the bridge commands the robot on (at most
+    # 32 listed; `foreign_publishers_count` says how many there are).
+    foreign_publishers: list[ForeignPublisher] = []
+    foreign_publishers_count: int = 0

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import enum
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,13 +24,17 @@ from cyclonedds.core import InstanceState
 
 from . import qos as qos_mod
 from . import raw_cdr
-from .names import EndpointKind, action_of, demangle, is_hidden
+from .names import EndpointKind, action_of, demangle, is_hidden, mangle_topic
 from .participant import DISCOVERY_TYPE, RosNode
 from .qos import QosProfile
 from .readers import ANY_SAMPLE
 from .typesys.store import normalize_name
 
 log = logging.getLogger(__name__)
+
+# ros_discovery_info entries kept for participants discovery has not (yet) announced: any peer
+# may write any gid there, so what names no live participant is bounded, then let go.
+MAX_UNKNOWN_INFOS = 256
 
 VENDORS = {
     b"\x01\x01": "RTI Connext DDS",
@@ -91,31 +96,46 @@ class RosGraph:
         self._decode_info = node.codecs.of(DISCOVERY_TYPE).prepare_decoder().decode
         self._endpoints: dict[bytes, tuple[Direction, Any]] = {}
         self._node_infos: dict[bytes, Any] = {}
+        self._alive: set[bytes] = set()  # participants discovery knows (this one included)
         self.bad_infos = 0  # ros_discovery_info samples that did not decode (dropped)
+        # Grows whenever a refresh took anything: a view computed at one generation is
+        # still current while it has not moved.
+        self.generation = 0
 
     def refresh(self) -> None:
+        taken = 0
         for direction, reader in ((Direction.PUBLISHER, self._pubs),
                                   (Direction.SUBSCRIPTION, self._subs)):
             for sample in reader.take(N=100_000):
+                taken += 1
                 key = sample.key.bytes
                 if sample.sample_info.instance_state == InstanceState.Alive:
                     self._endpoints[key] = (direction, sample)
                 else:
                     self._endpoints.pop(key, None)
-        self._take_node_infos()
+        # Participants before their nodes: an info is kept by its participant being alive.
         # ros_discovery_info is keyless: a participant that leaves leaves its last sample
         # behind while any other writer remains. Its nodes go with it, as in rmw's graph.
         for participant in self._participants.take(N=10_000):
-            if participant.sample_info.instance_state != InstanceState.Alive:
-                self._node_infos.pop(participant.key.bytes, None)
+            taken += 1
+            key = participant.key.bytes
+            if participant.sample_info.instance_state == InstanceState.Alive:
+                self._alive.add(key)
+            else:
+                self._alive.discard(key)
+                self._node_infos.pop(key, None)
+        taken += self._take_node_infos()
+        if taken:
+            self.generation += 1
 
-    def _take_node_infos(self) -> None:
-        """Each participant's nodes from ros_discovery_info. Any peer may write there: a
-        sample that does not decode is dropped alone (the others taken with it are kept),
-        and never fails the refresh (services and actions refresh before each call, a
-        stop's goal cancel included)."""
-        bad = 0
+    def _take_node_infos(self) -> int:
+        """Each participant's nodes from ros_discovery_info; how many samples were taken.
+        Any peer may write there: a sample that does not decode is dropped alone (the
+        others taken with it are kept), and never fails the refresh (services and actions
+        refresh before each call, a stop's goal cancel included)."""
+        bad = taken = 0
         for data, sample_info in raw_cdr.take(self._info, ANY_SAMPLE, 10_000):
+            taken += 1
             if not sample_info.valid_data:
                 continue  # keyless: an invalid sample names no participant
             try:
@@ -132,6 +152,19 @@ class RosGraph:
             self.bad_infos += bad
             log.warning("dropped %d ros_discovery_info sample(s) that do not decode "
                         "(%d in all)", bad, self.bad_infos)
+        self._bound_unknown_infos()
+        return taken
+
+    def _bound_unknown_infos(self) -> None:
+        """An info may come before its participant is discovered, so one naming no live
+        participant is kept (never listed) — but only so many: ids that never match a
+        participant (a peer writing made-up gids) would otherwise pile up for good."""
+        unknown = [gid for gid in self._node_infos if gid not in self._alive]
+        for gid in unknown[:max(0, len(unknown) - MAX_UNKNOWN_INFOS)]:  # oldest first
+            del self._node_infos[gid]
+
+    def _live_infos(self) -> list[Any]:
+        return [info for gid, info in self._node_infos.items() if gid in self._alive]
 
     async def settle(self, seconds: float = 1.0, patience: float = 4.0) -> None:
         """Lets discovery run for `seconds`, then up to `patience` more until every
@@ -153,27 +186,47 @@ class RosGraph:
         return ros_participants - set(self._node_infos)
 
     # -- views -----------------------------------------------------------------
-    def _owners(self) -> dict[bytes, tuple[str, str]]:
-        owners: dict[bytes, tuple[str, str]] = {}
-        for info in self._node_infos.values():
+    def _owners(self) -> dict[tuple[bytes, bytes], tuple[str, str]]:
+        """(participant, endpoint) → its node. An endpoint's node is looked for in its own
+        participant's info only (as rmw's graph cache does): another peer's info cannot
+        claim it."""
+        owners: dict[tuple[bytes, bytes], tuple[str, str]] = {}
+        for gid, info in self._node_infos.items():
+            if gid not in self._alive:
+                continue
             for n in info.node_entities_info_seq:
                 for g in [*n.reader_gid_seq, *n.writer_gid_seq]:
-                    owners[bytes(g.data)[:16]] = (n.node_namespace, n.node_name)
+                    owners[(gid, bytes(g.data)[:16])] = (n.node_namespace, n.node_name)
         return owners
 
     def endpoints(self) -> list[Endpoint]:
+        return self._endpoints_where(lambda _direction, _dds_topic: True)
+
+    def publishers_on(self, topics: set[str]) -> list[Endpoint]:
+        """The publishers of these ROS topics (fully qualified names), of any participant.
+        Costs a set lookup per endpoint of the graph, not a demangle."""
+        wanted = {mangle_topic(t) for t in topics}
+        return self._endpoints_where(
+            lambda direction, dds_topic: direction is Direction.PUBLISHER
+            and dds_topic in wanted)
+
+    def _endpoints_where(self, keep: Callable[[Direction, str], bool]) -> list[Endpoint]:
         owners = self._owners()
         found = []
         for key, (direction, sample) in self._endpoints.items():
+            if not keep(direction, sample.topic_name):
+                continue
             mangled = demangle(sample.topic_name)
             if mangled is None:
                 continue
             user_data = qos_mod.user_data_of(sample.qos)
-            namespace, name = owners.get(key, ("_NODE_NAMESPACE_UNKNOWN_", "_NODE_NAME_UNKNOWN_"))
+            participant = sample.participant_key.bytes
+            namespace, name = owners.get((participant, key),
+                                         ("_NODE_NAMESPACE_UNKNOWN_", "_NODE_NAME_UNKNOWN_"))
             found.append(Endpoint(
                 direction, mangled.kind, mangled.name,
                 ros_type_of(sample.type_name, mangled.kind), sample.topic_name,
-                sample.type_name, key, sample.participant_key.bytes,
+                sample.type_name, key, participant,
                 qos_mod.from_dds(sample.qos), user_data.get("typehash", ""),
                 vendor_of(key), name, namespace,
                 user_data.get("serviceid") or user_data.get("clientid") or "",
@@ -211,9 +264,10 @@ class RosGraph:
         return {name: sorted(types) for name, types in sorted(actions.items())}
 
     def nodes(self) -> list[tuple[str, str]]:
-        """(namespace, name) of every node announced by another or this participant."""
+        """(namespace, name) of every node announced by a participant discovery knows
+        alive, another or this one (an info naming no such participant names no node)."""
         found = {(n.node_namespace, n.node_name)
-                 for info in self._node_infos.values() for n in info.node_entities_info_seq}
+                 for info in self._live_infos() for n in info.node_entities_info_seq}
         return sorted(found)
 
 

@@ -1,0 +1,174 @@
+"""Other commanders: participants that publish on the topics the bridge commands the robot on.
+
+A second node publishing on the bridge's velocity or trajectory topic makes the robot obey it
+between the bridge's samples, and an e-stop cannot hold the robot against it. The bridge
+cannot stop such a peer; it makes it seen. `CommanderWatch` reads the graph (the builtin
+publication topic, `ros.graph.RosGraph`) every `interval` seconds and, for each participant
+other than the bridge's own publishing on a command topic:
+
+- STATUS lists it (`foreign_publishers`; telemetry.py turns it into faults),
+- a WARNING is logged when it appears and when it goes (once each),
+- the audit records each appearance and disappearance (FOREIGN_PUBLISHER, _GONE).
+
+A participant counts once per topic, however many writers it has there. Its appearance is
+logged and audited once its node is named (ros_discovery_info may come after the endpoint:
+Fast DDS sends it to a new reader on its next heartbeat), or after `NAME_GRACE_S` unnamed;
+STATUS lists it at once. At most
+`MAX_REPORTED` appearances (and as many disappearances) are logged and audited one by one per
+poll; more are summed up in one line and one entry, so a peer churning participants cannot
+flood the log.
+
+Cost: a poll takes what discovery changed since the last one (nothing, on a quiet graph) and
+only then looks at the publishers of the command topics: a set lookup per endpoint of the
+graph. No lock of the bridge is held while DDS is called.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+from ..rcan import ForeignPublisher
+from ..ros.graph import Endpoint, RosGraph, node_fqn, short_gid
+from ..ros.participant import RosNode
+
+log = logging.getLogger(__name__)
+
+POLL_S = 1.0
+MAX_REPORTED = 8
+NAME_GRACE_S = 4.0
+_UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
+
+Key = tuple[str, bytes]  # (topic, participant GUID)
+Audit = Callable[..., None]  # Governor.foreign_publisher(facts, gone=...)
+
+
+def _facts(publisher: ForeignPublisher) -> dict[str, Any]:
+    return {"topic": publisher.topic, "type": publisher.type,
+            "participant": publisher.participant, "node": publisher.node,
+            "writers": publisher.writers}
+
+
+def _describe(publisher: ForeignPublisher) -> str:
+    who = publisher.node or "an unnamed node"
+    return (f"{who} (participant {publisher.participant}, {publisher.writers} writer(s), "
+            f"{publisher.type})")
+
+
+def foreign_publishers(endpoints: list[Endpoint], own: bytes) -> dict[Key, ForeignPublisher]:
+    """Each participant other than `own` publishing on these endpoints' topics, once per
+    topic (its writers counted; named by the node of its first named writer)."""
+    found: dict[Key, ForeignPublisher] = {}
+    for e in endpoints:
+        if e.participant_gid == own:
+            continue
+        key = (e.ros_name, e.participant_gid)
+        node = None if e.node_name == _UNKNOWN_NODE else node_fqn(e.node_namespace, e.node_name)
+        seen = found.get(key)
+        if seen is None:
+            found[key] = ForeignPublisher(topic=e.ros_name, type=e.ros_type,
+                                          participant=short_gid(e.participant_gid[:12]),
+                                          node=node)
+        else:
+            seen.writers += 1
+            seen.node = seen.node or node
+    return found
+
+
+class CommanderWatch:
+    """Polls the graph for other publishers on the command topics; tells STATUS, the log and
+    the audit. `start()` on the loop; `close()` stops it."""
+
+    def __init__(self, node: RosNode, topics: dict[str, bool], *,
+                 show: Callable[[list[ForeignPublisher], set[str]], None], audit: Audit,
+                 interval: float = POLL_S,
+                 monotonic: Callable[[], float] = time.monotonic) -> None:
+        self._graph = RosGraph(node)
+        self._own = node.participant.guid.bytes
+        self._topics = set(topics)
+        self._motion = {t for t, moves in topics.items() if moves}
+        self._show, self._audit, self.interval = show, audit, interval
+        self._known: dict[Key, ForeignPublisher] = {}
+        self._unreported: dict[Key, float] = {}  # seen, not yet logged: since when
+        self._monotonic = monotonic
+        self._generation = -1
+        self._task: asyncio.Task[None] | None = None
+        self._failed = False
+
+    def start(self) -> None:
+        self._task = asyncio.get_running_loop().create_task(self._run(), name="commander-watch")
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+
+    async def _run(self) -> None:
+        while True:
+            try:
+                self.poll()
+                self._failed = False
+            except Exception as exc:  # the watch fails alone, logged once until it works
+                if not self._failed:
+                    log.warning("watching the command topics for other publishers failed "
+                                "(%s: %s); retrying", type(exc).__name__, exc)
+                self._failed = True
+            await asyncio.sleep(self.interval)
+
+    def poll(self) -> None:
+        """One look at the graph: what appeared and what went since the last."""
+        self._graph.refresh()
+        if self._graph.generation != self._generation:  # else nothing came or went
+            self._generation = self._graph.generation
+            self._update(foreign_publishers(self._graph.publishers_on(self._topics), self._own))
+        self._report(self._due(), gone=False)
+
+    def _update(self, now: dict[Key, ForeignPublisher]) -> None:
+        clock = self._monotonic()
+        for key in now.keys() - self._known.keys():
+            self._unreported[key] = clock
+        gone = [p for k, p in self._known.items() if k not in now]
+        # One that came and went between two reports: its appearance is recorded too.
+        self._report([self._known[k] for k in self._unreported if k not in now], gone=False)
+        self._unreported = {k: t for k, t in self._unreported.items() if k in now}
+        self._known = now
+        self._report(gone, gone=True)
+        self._show(list(now.values()), self._motion)
+
+    def _due(self) -> list[ForeignPublisher]:
+        """Appearances to report now: named, or unnamed for `NAME_GRACE_S`."""
+        clock = self._monotonic()
+        due = [k for k, since in self._unreported.items()
+               if self._known[k].node is not None or clock - since >= NAME_GRACE_S]
+        for key in due:
+            del self._unreported[key]
+        return [self._known[k] for k in due]
+
+    def _report(self, publishers: list[ForeignPublisher], *, gone: bool) -> None:
+        if not publishers:
+            return
+        publishers = sorted(publishers, key=lambda p: (p.topic, p.node or "", p.participant))
+        for p in publishers[:MAX_REPORTED]:
+            if gone:
+                log.warning("%s no longer publishes on %s", _describe(p), p.topic)
+            else:
+                log.warning("%s publishes on %s, a topic the bridge commands the robot on: "
+                            "the robot obeys it too%s", _describe(p), p.topic,
+                            ", and an e-stop cannot hold it" if p.topic in self._motion else "")
+            self._audit(_facts(p), gone=gone)
+        rest = publishers[MAX_REPORTED:]
+        if rest:
+            topics = sorted({p.topic for p in rest})
+            log.warning("and %d more participant(s) %s on %s", len(rest),
+                        "stopped publishing" if gone else "publish", ", ".join(topics))
+            self._audit({"topic": topics[0], "topics": topics, "more": len(rest)}, gone=gone)
+
+    @property
+    def known(self) -> list[ForeignPublisher]:
+        return list(self._known.values())

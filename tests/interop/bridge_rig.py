@@ -11,10 +11,11 @@ from typing import Any
 
 from oracle.client import OracleEnv, RclpyOracle
 
+from rcan_rtps.bridge.commanders import CommanderWatch
 from rcan_rtps.bridge.commands import RosDispatcher
 from rcan_rtps.bridge.goals import GoalRoutes
 from rcan_rtps.bridge.notify import DiagnosticsNotifier
-from rcan_rtps.bridge.runtime import wire_robot_side
+from rcan_rtps.bridge.runtime import watch_commanders, wire_robot_side
 from rcan_rtps.bridge.telemetry import TelemetryState
 from rcan_rtps.config import RcanConfig, loads_config
 from rcan_rtps.events import Events
@@ -71,6 +72,7 @@ class Rig:
     audit_path: Path
     goals: GoalRoutes | None = None
     notifier: DiagnosticsNotifier | None = None
+    commanders: CommanderWatch | None = None
 
     async def command(self, principal: Principal, body: dict[str, Any]) -> Decision:
         return await self.governor.decide(validate_command(json.dumps(body).encode()), principal)
@@ -81,7 +83,8 @@ class Rig:
 
 
 async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id: int,
-                   *, navigation: bool = False) -> Rig:
+                   *, navigation: bool = False, watch_s: float | None = None) -> Rig:
+    """`watch_s`: watch the command topics for other publishers, polling so often."""
     ros2 = config.bridge.ros2
     node = RosNode(ros2.node_name, ros2.namespace, domain_id=domain_id, distro=ros2.distro)
     events = Events()
@@ -100,12 +103,16 @@ async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id
     wire_robot_side(events, governor, telemetry, goals, notifier)
     events.freeze()
     await governor.start()
+    commanders = (None if watch_s is None else
+                  watch_commanders(node, governor, dispatcher, telemetry, watch_s))
     oracle = RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id)
     return Rig(node, governor, telemetry, dispatcher, oracle, Path(config.bridge.audit.path),
-               goals, notifier)
+               goals, notifier, commanders)
 
 
 async def close_rig(rig: Rig) -> None:
+    if rig.commanders is not None:
+        await rig.commanders.close()
     if rig.goals is not None:
         await rig.goals.close()
     if rig.notifier is not None:

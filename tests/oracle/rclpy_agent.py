@@ -157,6 +157,10 @@ class Agent:
         self.publishers[topic] = self.node.create_publisher(load_type(type), topic, make_qos(qos))
         return True
 
+    def op_unpublish(self, topic: str) -> bool:
+        """Destroys our publisher on `topic` (a clean leave: readers see the writer go)."""
+        return bool(self.node.destroy_publisher(self.publishers.pop(topic)))
+
     def op_publish(self, topic: str, type: str, value: dict[str, Any], count: int = 1,
                    period: float = 0.05) -> int:
         pub = self.publishers[topic]

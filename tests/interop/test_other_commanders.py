@@ -1,0 +1,141 @@
+"""Another publisher on a topic the bridge commands the robot on (bridge/commanders.py).
+
+The robot obeys a second node on its cmd_vel or trajectory topic between the bridge's samples,
+and an e-stop cannot hold it against one. The bridge cannot stop such a peer: it must show it
+(STATUS), say so once in its log when it appears and once when it goes, and audit both.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.pub import DataWriter
+from cyclonedds.topic import Topic
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
+from waiting import eventually
+
+from rcan_rtps.bridge.telemetry import ESTOP_NOT_HOLDING, FOREIGN_PUBLISHER
+from rcan_rtps.rcan import ForeignPublisher, Status
+from rcan_rtps.ros import qos
+from rcan_rtps.ros.participant import RosNode
+
+from .bridge_rig import VIEWER, Rig, bridge_config, close_rig, make_rig
+
+TWIST = "geometry_msgs/msg/Twist"
+TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
+CMD_VEL = "/robot1/cmd_vel"
+ARM = "/robot1/joint_trajectory_controller/joint_trajectory"
+
+
+@pytest.fixture
+async def rig(tmp_path: Path, jazzy_oracle: OracleEnv, domain_id: int) -> AsyncIterator[Rig]:
+    r = await make_rig(bridge_config(tmp_path, domain_id), jazzy_oracle, domain_id, watch_s=0.2)
+    yield r
+    await close_rig(r)
+
+
+def status(rig: Rig) -> Status:
+    return rig.telemetry.status(pending_auth=0)
+
+
+def listed(rig: Rig) -> list[ForeignPublisher]:
+    return status(rig).foreign_publishers
+
+
+def warnings(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records
+            if r.name == "rcan_rtps.bridge.commanders" and r.levelno == logging.WARNING]
+
+
+def entries(rig: Rig, event: str) -> list[dict[str, Any]]:
+    return [e for e in rig.entries() if e["event"] == event]
+
+
+@both_rmws
+async def test_a_second_publisher_on_cmd_vel_is_shown_logged_and_audited(
+        rig: Rig, jazzy_oracle: OracleEnv, domain_id: int,
+        caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, logger="rcan_rtps.bridge.commanders")
+    # The robot's own subscription, and the bridge's own writers, are nobody's business.
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    assert await rig.oracle.acall("wait_matched", topic=CMD_VEL) >= 1
+    assert listed(rig) == []
+    with RclpyOracle(jazzy_oracle, "teleop", "/", domain_id=domain_id) as teleop:
+        teleop.call("publisher", topic=CMD_VEL, type=TWIST)
+        await eventually(lambda: [p.node for p in listed(rig)] == ["/teleop"],
+                         what="the teleop node listed by name")
+        (shown,) = listed(rig)
+        assert (shown.topic, shown.type, shown.writers) == (CMD_VEL, TWIST, 1)
+        assert len(shown.participant.split(".")) == 12
+        faults = {f.name: f for f in status(rig).faults}
+        assert faults[f"{FOREIGN_PUBLISHER}:{CMD_VEL}"].level == "WARN"
+        assert "/teleop" in faults[f"{FOREIGN_PUBLISHER}:{CMD_VEL}"].message
+        assert status(rig).state != "fault"  # shown, not a fault of the robot's
+
+        # Latched, the e-stop cannot hold the robot against it: the first fault says so.
+        assert (await rig.command(VIEWER, {"action": "estop"})).http_status == 200
+        first = status(rig).faults[0]
+        assert (first.name, first.level) == (ESTOP_NOT_HOLDING, "ERROR")
+        assert CMD_VEL in first.message and "/teleop" in first.message
+        assert status(rig).state == "estop"
+
+        await eventually(lambda: entries(rig, "FOREIGN_PUBLISHER"))
+        (seen,) = entries(rig, "FOREIGN_PUBLISHER")
+        assert seen["ros2_topic"] == CMD_VEL
+        assert seen["params"]["node"] == "/teleop" and seen["params"]["type"] == TWIST
+        teleop.call("unpublish", topic=CMD_VEL)
+        await eventually(lambda: listed(rig) == [], what="the teleop node gone from STATUS")
+        assert not any(f.name == ESTOP_NOT_HOLDING for f in status(rig).faults)
+        await eventually(lambda: entries(rig, "FOREIGN_PUBLISHER_GONE"))
+        (left,) = entries(rig, "FOREIGN_PUBLISHER_GONE")
+        assert left["params"]["participant"] == seen["params"]["participant"]
+    said = warnings(caplog)
+    assert len(said) == 2, said
+    assert "/teleop" in said[0] and "cannot hold" in said[0] and "no longer" in said[1]
+    assert len(entries(rig, "FOREIGN_PUBLISHER")) == 1  # once, though polled many times
+
+
+@pytest.fixture
+def hostile(domain_id: int, jazzy_share: Path) -> Iterator[RosNode]:
+    with RosNode("hostile", "/robot1", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as node:
+        yield node
+
+
+async def test_the_arm_topic_is_watched_too(rig: Rig, hostile: RosNode) -> None:
+    """Every topic the registry's actions publish to, not only the velocity."""
+    arm = hostile.create_publisher(ARM, TRAJECTORY, qos.DEFAULT)
+    await eventually(lambda: [(p.topic, p.node) for p in listed(rig)] == [
+        (ARM, "/robot1/hostile")])
+    await rig.command(VIEWER, {"action": "estop"})  # no robot here to tell: latched still
+    assert rig.governor.latch.latched
+    assert status(rig).faults[0].name == ESTOP_NOT_HOLDING
+    assert ARM in status(rig).faults[0].message
+    arm.close()
+    await eventually(lambda: listed(rig) == [])
+
+
+async def test_a_publisher_that_names_no_node_is_shown_by_its_participant(
+        rig: Rig, domain_id: int, caplog: pytest.LogCaptureFixture) -> None:
+    """A plain DDS participant (no ros_discovery_info) writing the mangled topic: named by
+    its GUID prefix; its two writers count as one publisher."""
+    caplog.set_level(logging.WARNING, logger="rcan_rtps.bridge.commanders")
+    participant = DomainParticipant(domain_id)
+    topic = Topic(participant, "rt/robot1/cmd_vel", rig.node.types.struct(TWIST))
+    writers = [DataWriter(participant, topic), DataWriter(participant, topic)]
+    try:
+        await eventually(lambda: [p.writers for p in listed(rig)] == [2])
+        (shown,) = listed(rig)
+        assert shown.node is None
+        assert shown.participant == ".".join(f"{b:02x}" for b in participant.guid.bytes[:12])
+        # Logged and audited once no name came for the grace period, unnamed.
+        await eventually(lambda: entries(rig, "FOREIGN_PUBLISHER"), timeout=15)
+        assert entries(rig, "FOREIGN_PUBLISHER")[0]["params"]["node"] is None
+        assert "an unnamed node" in warnings(caplog)[0]
+    finally:
+        del writers, topic, participant

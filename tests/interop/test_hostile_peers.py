@@ -12,18 +12,21 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import re
 import uuid
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import pytest
 from oracle.client import OracleEnv, RclpyOracle
 from waiting import eventually, take
 
+from rcan_rtps.bridge.faults import UNLISTED
 from rcan_rtps.ros import qos, raw_cdr
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
-from rcan_rtps.ros.graph import RosGraph
+from rcan_rtps.ros.graph import MAX_UNKNOWN_INFOS, RosGraph
 from rcan_rtps.ros.participant import DISCOVERY_TYPE, RosNode
 
 from .bridge_rig import VIEWER, Rig, bridge_config, close_rig, make_rig
@@ -205,6 +208,48 @@ async def test_strings_that_are_not_utf8_are_read_as_rclpy_reads_them(
     await still_stops(rig)
 
 
+async def test_a_flood_of_diagnostic_components_is_bounded_and_stays_a_fault(
+        rig: Rig, hostile: RosNode) -> None:
+    """Unique component names each stayed in the fault table for good: 4 s of them made a
+    4.7 MB STATUS. At most 256 are listed, an ERROR before any WARN, and one ERROR says how
+    many are not, so nobody reads "fine"."""
+    diagnostics = hostile.create_publisher("/robot1/diagnostics", DIAGNOSTICS,
+                                           qos.DEFAULT.with_(depth=100))
+    await diagnostics.wait_for_subscribers(1, timeout=10)
+    diagnostics.publish({"status": [{"level": 2, "name": "motor", "message": "overheat"}]})
+    for batch in range(5):
+        diagnostics.publish({"status": [
+            {"level": 1, "name": f"flood/{batch}/{i}", "message": "m" * 2000}
+            for i in range(400)]})
+    await eventually(lambda: any(
+        f.name == UNLISTED for f in rig.telemetry.status(pending_auth=0).faults))
+    status = rig.telemetry.status(pending_auth=0)
+    # At most 2000 warnings and an error (best effort: a large sample may be lost).
+    assert re.match(r"\d+ more", status.faults[-1].message), status.faults[-1]
+    assert status.state == "fault"
+    assert len(status.faults) == 257
+    assert any(f.name == "motor" and f.level == "ERROR" for f in status.faults)
+    assert all(len(f.message) <= 512 for f in status.faults)
+    assert len(msgspec.json.encode(status)) < 200_000
+
+
+async def test_a_huge_joint_state_is_cut_in_status(rig: Rig) -> None:
+    """A JointState's size is bounded only by its sender, and STATUS copied it whole."""
+    await rig.oracle.acall("publisher", topic="/robot1/joint_states",
+                           type="sensor_msgs/msg/JointState")
+    await rig.telemetry.subscriptions[1].wait_for_publishers(1, timeout=15)
+    n = 5000
+    await rig.oracle.acall("publish", topic="/robot1/joint_states",
+                           type="sensor_msgs/msg/JointState", count=2, value={
+                               "name": [f"joint_{i}" for i in range(n)],
+                               "position": [float(i) for i in range(n)]})
+    await eventually(lambda: rig.telemetry.status(pending_auth=0).telemetry.joints)
+    joints = rig.telemetry.status(pending_auth=0).telemetry.joints
+    assert joints is not None and joints.count == n
+    assert joints.names[:2] == ["joint_0", "joint_1"] and len(joints.names) == 64
+    assert joints.positions == [float(i) for i in range(64)]
+
+
 async def test_a_velocity_that_is_not_a_number_is_not_idle(rig: Rig, hostile: RosNode) -> None:
     """Odometry with a NaN velocity showed `idle` (NaN compares false with everything):
     a motion the bridge cannot read is not stillness."""
@@ -246,3 +291,22 @@ async def test_a_node_that_left_is_not_listed(victim: RosNode, domain_id: int) -
             await eventually(lambda: (graph.refresh(), ("/", "leaver") in graph.nodes())[1])
         await eventually(lambda: (graph.refresh(), ("/", "leaver") not in graph.nodes())[1])
         assert ("/", "stayer") in graph.nodes()
+
+
+async def test_made_up_participants_in_discovery_info_name_no_node(
+        victim: RosNode, hostile: RosNode) -> None:
+    """ros_discovery_info entries naming a gid no live participant has were kept for good
+    and listed by nodes(); now they are never listed, and only so many are kept."""
+    graph = RosGraph(victim)
+    codec = hostile.codecs.of(DISCOVERY_TYPE)
+    for i in range(400):
+        raw_cdr.write(hostile._info_writer, bytes(codec.encode_value({
+            "gid": {"data": uuid.uuid4().bytes},
+            "node_entities_info_seq": [{"node_namespace": "/", "node_name": f"ghost_{i}"}]})))
+    hostile.announce()  # its own, real info last
+    await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1])
+    await asyncio.sleep(0.5)
+    graph.refresh()
+    assert not [n for n in graph.nodes() if n[1].startswith("ghost_")]
+    assert ("/", "victim") in graph.nodes()
+    assert len(graph._node_infos) <= MAX_UNKNOWN_INFOS + 2

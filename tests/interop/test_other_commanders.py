@@ -7,11 +7,13 @@ and an e-stop cannot hold it against one. The bridge cannot stop such a peer: it
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
+import aiohttp
 import pytest
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
@@ -25,6 +27,7 @@ from rcan_rtps.ros import qos
 from rcan_rtps.ros.participant import RosNode
 
 from .bridge_rig import VIEWER, Rig, bridge_config, close_rig, make_rig
+from .test_demo import Demo, call, wait_status
 
 TWIST = "geometry_msgs/msg/Twist"
 TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
@@ -139,3 +142,29 @@ async def test_a_publisher_that_names_no_node_is_shown_by_its_participant(
         assert "an unnamed node" in warnings(caplog)[0]
     finally:
         del writers, topic, participant
+
+
+@pytest.fixture
+async def http() -> AsyncIterator[aiohttp.ClientSession]:
+    async with aiohttp.ClientSession() as session:
+        yield session
+
+
+async def test_the_running_bridge_shows_it_in_api_status(
+        sim: Demo, http: aiohttp.ClientSession, jazzy_oracle: OracleEnv) -> None:
+    """`rcan-rtps run --sim` as a user starts it: GET /api/status lists the other publisher,
+    and its audit log has both entries (the demo's own sim robot publishes none)."""
+    _, quiet = await call(http, sim, sim.user, "GET", "/api/status")
+    assert quiet["foreign_publishers"] == [] and quiet["foreign_publishers_count"] == 0
+    with RclpyOracle(jazzy_oracle, "teleop", "/robot1", domain_id=sim.domain_id,
+                     env={"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}) as teleop:
+        teleop.call("publisher", topic=CMD_VEL, type=TWIST)
+        status = await wait_status(http, sim, lambda s: [
+            p["node"] for p in s["foreign_publishers"]] == ["/robot1/teleop"])
+        assert status["foreign_publishers"][0]["topic"] == CMD_VEL
+        assert status["foreign_publishers_count"] == 1
+        teleop.call("unpublish", topic=CMD_VEL)
+        await wait_status(http, sim, lambda s: not s["foreign_publishers"])
+    events = [json.loads(line)["event"] for line in sim.audit.read_text().splitlines()]
+    assert events.count("FOREIGN_PUBLISHER") == 1
+    assert events.count("FOREIGN_PUBLISHER_GONE") == 1

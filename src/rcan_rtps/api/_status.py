@@ -1,9 +1,10 @@
 """The one owner of STATUS for every transport (REST, WebSocket, metrics, and what comes later).
 
 It holds a read-only snapshot and pushes it to subscribers: at once when something that matters
-changes (state, e-stop, faults, pending approvals, goals, connectivity, battery), and at the
-telemetry rate. Nobody polls: a transport subscribes and sends what it is handed. A subscriber
-that cannot keep up only ever gets the newest snapshot, so memory stays bounded.
+changes (state, e-stop, faults, pending approvals, goals, connectivity, battery, other
+publishers on the command topics), and at the telemetry rate. Nobody polls: a transport
+subscribes and sends what it is handed. A subscriber that cannot keep up only ever gets the
+newest snapshot, so memory stays bounded.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ def _what_matters(status: Status) -> tuple[Any, ...]:
     """The parts of STATUS whose change is pushed at once (positions wait for the tick)."""
     return (status.state, status.estop, tuple((f.name, f.level, f.message) for f in status.faults),
             status.pending_auth, tuple(status.active_goals), status.ros.connected,
-            status.battery_pct, _navigation_matters(status))
+            status.battery_pct, _navigation_matters(status), status.foreign_publishers_count,
+            tuple((f.topic, f.participant, f.node) for f in status.foreign_publishers))
 
 
 def _navigation_matters(status: Status) -> tuple[Any, ...] | None:

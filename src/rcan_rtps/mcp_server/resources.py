@@ -28,7 +28,8 @@ IMAGE_TEMPLATE = IMAGE_PREFIX + "{name}"
 IMAGE_DESCRIPTION = ("The newest frame of the robot's camera `{name}`: a PNG (a raw frame, "
                      "shown losslessly) or the JPEG the camera sent.")
 TELEMETRY_FIELDS = ("state", "estop", "battery_pct", "battery_v", "telemetry", "position",
-                    "faults", "navigation", "active_goals", "timestamp_ms")
+                    "faults", "navigation", "active_goals", "foreign_publishers",
+                    "foreign_publishers_count", "timestamp_ms")
 
 
 def _as_is(body: dict[str, Any]) -> Any:
@@ -59,7 +60,8 @@ RESOURCES: Mapping[str, ResourceDef] = {r.uri: r for r in (
                 lambda api: api.status()),
     ResourceDef("robot://telemetry", "telemetry",
                 "A snapshot of the robot's body: state, e-stop, pose (m, rad), velocity "
-                "(m/s, rad/s), joints, battery (%, V), faults, the navigation in progress.",
+                "(m/s, rad/s), joints, battery (%, V), faults, the navigation in progress, other "
+                "publishers on the robot's command topics.",
                 lambda api: api.status(), _telemetry),
     ResourceDef("robot://safety-manifest", "safety manifest",
                 "The limits every command is held to (speeds, durations, accelerations), the "

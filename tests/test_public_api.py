@@ -231,6 +231,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "parse_ruri",
         "validate_command",
         "validation_path",
+        "whole",  # a msgspec pattern matched whole (config and the registry use it)
     },
     "rcan_rtps.rcan.actions": {
         "ACTIONS",

@@ -35,7 +35,7 @@ from .qos import QosProfile
 from .readers import Decode, ReaderThread, Watch, WriterWatch
 from .rtps_capture import IdentityCapture, capture_supported
 from .typesys.cdr import CdrCodecs
-from .typesys.ddstypes import DdsTypes
+from .typesys.ddstypes import DdsTypes, make_topic
 from .typesys.store import TypeStore, env_idl_paths
 from .typesys.values import MessageValues
 
@@ -405,7 +405,7 @@ class RosNode:
         with self._lock:
             found = self._topics.get(dds_name)
             if found is None:
-                found = Topic(self.participant, dds_name, self.types.struct(type_name))
+                found = make_topic(self.participant, dds_name, self.types.struct(type_name))
                 self._topics[dds_name] = found
             return found
 

@@ -39,6 +39,40 @@ def test_a_topic_keeps_no_xtypes_objects_after_it_is_made(
     assert XTBuilder._type_hash_db == {}
 
 
+def test_a_topic_keeps_no_cyclonedds_serializer_of_its_types(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """Nor the serializer machines of the type and the types in it (the node's own
+    ros_discovery_info types included: announced through the generated codec)."""
+    node, _ = nodes
+    node.topic("rt/idle/odom", ODOM)
+    made = {name: node.types.struct(name) for name in (
+        ODOM, "std_msgs/msg/Header", "builtin_interfaces/msg/Time",
+        "geometry_msgs/msg/PoseWithCovariance", "geometry_msgs/msg/Vector3",
+        "rmw_dds_common/msg/ParticipantEntitiesInfo", "rmw_dds_common/msg/Gid")}
+    kept = [name for name, cls in made.items() if cls.__idl__.v1_machine is not None]
+    assert kept == []
+
+
+def test_cyclonedds_own_codec_is_rebuilt_the_same_when_asked_for(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """raw_cdr.py's and readers.py's public-API fallbacks use cyclonedds' codec: rebuilt on
+    demand, it writes the generated codec's bytes; a type whose byte sequences use the
+    one-copy bytes codec keeps its adjusted serializer (bytes in, bytes out)."""
+    node, _ = nodes
+    node.topic("rt/idle/odom", ODOM)
+    message = node.values.build(ODOM, {"child_frame_id": "base",
+                                       "pose": {"pose": {"position": {"x": 1.5}}}})
+    assert message.serialize() == node.codecs.of(ODOM).encode(message)
+    image = "sensor_msgs/msg/Image"
+    node.topic("rt/idle/image", image)
+    assert node.types.struct(image).__idl__.v1_machine is not None
+    frame = node.values.build(image, {"height": 1, "width": 3, "encoding": "mono8",
+                                      "step": 3, "data": b"abc"})
+    data = frame.serialize()
+    assert data == node.codecs.of(image).encode(frame)
+    assert type(frame).deserialize(data).data == b"abc"
+
+
 async def test_peers_match_after_the_description_was_let_go_of(
         nodes: tuple[RosNode, RosNode]) -> None:
     """The second node describes the type again (the first one's objects are gone): the same

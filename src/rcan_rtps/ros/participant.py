@@ -548,7 +548,9 @@ class RosNode:
         with self._lock:
             readers = [{"data": gid_bytes(r, size)} for r in self._readers]
             writers = [{"data": gid_bytes(w, size)} for w in self._writers]
-        info = self.values.build(DISCOVERY_TYPE, {
+        # Through the generated codec, as every writer of ours: cyclonedds' own would rebuild
+        # the Python serializer `make_topic` let go of (and is slower).
+        info = self.codecs.of(DISCOVERY_TYPE).encode_plain({
             "gid": {"data": gid_bytes(self.participant, size)},
             "node_entities_info_seq": [{
                 "node_namespace": self.namespace,
@@ -557,7 +559,7 @@ class RosNode:
                 "writer_gid_seq": writers,
             }],
         })
-        self._info_writer.write(info)
+        raw_cdr.write(self._info_writer, info)
 
     def close(self) -> None:
         """Leaves the graph: deleting the participant withdraws every endpoint. The reader

@@ -19,9 +19,9 @@ import threading
 import typing
 import weakref
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
+import msgspec
 from cyclonedds.core import Policy
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl import types as t
@@ -45,8 +45,7 @@ _HEADER = struct.Struct("<Qq")  # after the encapsulation, in the sample's byte 
 _HEADER_BIG = struct.Struct(">Qq")
 
 
-@dataclass(frozen=True)
-class RequestHeader:
+class RequestHeader(msgspec.Struct, frozen=True):
     client_guid: int  # rmw_cyclonedds uses the request writer's instance handle
     seq: int  # per-client sequence number, echoed in the reply
 

@@ -405,7 +405,10 @@ class RosNode:
         with self._lock:
             found = self._topics.get(dds_name)
             if found is None:
-                found = make_topic(self.participant, dds_name, self.types.struct(type_name))
+                # ros_discovery_info is read by cyclonedds' typed readers (graph.py,
+                # handshake.py), on the way to a service call: its serializer stays built.
+                found = make_topic(self.participant, dds_name, self.types.struct(type_name),
+                                   keep_serializer=dds_name == DISCOVERY_TOPIC)
                 self._topics[dds_name] = found
             return found
 

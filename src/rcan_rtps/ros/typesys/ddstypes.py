@@ -73,7 +73,8 @@ _ADJUSTED: weakref.WeakSet[type[IdlStruct]] = weakref.WeakSet()
 _TOPIC_LOCK = threading.Lock()
 
 
-def make_topic(participant: DomainParticipant, dds_name: str, cls: type[IdlStruct]) -> Topic[Any]:
+def make_topic(participant: DomainParticipant, dds_name: str, cls: type[IdlStruct], *,
+               keep_serializer: bool = False) -> Topic[Any]:
     """A Cyclone topic of `cls`, without the Python state cyclonedds builds to make it.
 
     Making a topic has cyclonedds build, for the type and every struct type in it, its Python
@@ -86,7 +87,9 @@ def make_topic(participant: DomainParticipant, dds_name: str, cls: type[IdlStruc
     bridge's dozen types, reused by the next type's build): cyclonedds rebuilds a part where
     it needs it again (a later topic of the type; its own codec, which only the public-API
     fallbacks of raw_cdr.py and readers.py use), to the same result. The machines of a class
-    `use_bytes_codec` changed are kept (a rebuild would lose the change)."""
+    `use_bytes_codec` changed are kept (a rebuild would lose the change), and all of them with
+    `keep_serializer` (a topic read through cyclonedds' typed reader: no first sample should
+    wait for a rebuild)."""
     with _TOPIC_LOCK:
         try:
             return Topic(participant, dds_name, cls)
@@ -94,7 +97,7 @@ def make_topic(participant: DomainParticipant, dds_name: str, cls: type[IdlStruc
             idl: Any = cls.__idl__
             idl._xt_data = idl._xt_bytedata = (None, None)  # as before fill_type_data
             XTBuilder._type_hash_db.clear()
-            for struct in _structs_in(cls):
+            for struct in [] if keep_serializer else _structs_in(cls):
                 if struct not in _ADJUSTED:
                     _forget_machines(struct)
 

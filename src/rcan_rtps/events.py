@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Generic, ParamSpec
+
+import msgspec
 
 if TYPE_CHECKING:  # types only: governance and api import this module, never the reverse
     from .api.ports import GoalView
@@ -67,30 +68,30 @@ def _channel(name: str) -> Callable[[], Channel[...]]:
     return lambda: Channel(name)
 
 
-@dataclass(frozen=True, slots=True)
-class Events:
+class Events(msgspec.Struct, frozen=True):
     # What STATUS shows of governance changed: the latch flipped, approvals pending changed.
-    governance: Channel[[]] = field(default_factory=_channel("governance"))
+    governance: Channel[[]] = msgspec.field(default_factory=_channel("governance"))
     # A lost control session is about to halt the robot (its goals are still active).
-    session_lost: Channel[[Principal]] = field(default_factory=_channel("session lost"))
+    session_lost: Channel[[Principal]] = msgspec.field(default_factory=_channel("session lost"))
     # A lost control session halted the robot (STATUS shows `safe_stop`).
-    safe_stop: Channel[[Principal]] = field(default_factory=_channel("safe stop"))
+    safe_stop: Channel[[Principal]] = msgspec.field(default_factory=_channel("safe stop"))
     # An entry is durable (metrics, the log line per decision).
-    audited: Channel[[AuditRecord, AuditReceipt]] = field(default_factory=_channel("audit"))
+    audited: Channel[[AuditRecord, AuditReceipt]] = msgspec.field(default_factory=_channel("audit"))
     # A command reached the robot (STATUS leaves `safe_stop`).
-    command_sent: Channel[[]] = field(default_factory=_channel("command sent"))
+    command_sent: Channel[[]] = msgspec.field(default_factory=_channel("command sent"))
     # What STATUS shows of the robot may have changed: telemetry, the active goals. Any thread.
-    robot: Channel[[]] = field(default_factory=_channel("robot"))
+    robot: Channel[[]] = msgspec.field(default_factory=_channel("robot"))
     # A goal changed (feedback, state, its end): a copy of its view, on the event loop.
-    goal: Channel[[GoalView]] = field(default_factory=_channel("goal"))
+    goal: Channel[[GoalView]] = msgspec.field(default_factory=_channel("goal"))
     # A goal ended, once per goal (the audit's GOAL_FINISHED).
-    goal_finished: Channel[[GoalFinished]] = field(default_factory=_channel("goal finished"))
+    goal_finished: Channel[[GoalFinished]] = msgspec.field(
+        default_factory=_channel("goal finished"))
 
     def freeze(self) -> None:
         """From now on the subscribers are fixed."""
-        for f in fields(self):
-            getattr(self, f.name).freeze()
+        for name in self.__struct_fields__:
+            getattr(self, name).freeze()
 
     @property
     def frozen(self) -> bool:
-        return all(getattr(self, f.name)._frozen for f in fields(self))
+        return all(getattr(self, name)._frozen for name in self.__struct_fields__)

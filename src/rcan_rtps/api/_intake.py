@@ -22,7 +22,6 @@ import asyncio
 import logging
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from typing import Any
 
 import msgspec
@@ -64,8 +63,7 @@ _INTERNAL = Rejection(503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE, "interna
 _WALL = SystemClock()
 
 
-@dataclass(frozen=True)
-class Checks:
+class Checks(msgspec.Struct, frozen=True):
     """What every transport checks of a message beyond its schema: signatures (per principal)
     and the §8.3 replay window."""
 
@@ -76,8 +74,7 @@ class Checks:
 NO_CHECKS = Checks()
 
 
-@dataclass(frozen=True)
-class Intake:
+class Intake(msgspec.Struct, frozen=True):
     """A validated command, HEARTBEAT, INVOKE, INVOKE_CANCEL or AUTHORIZE, or the pre-command
     refusal its body earned (with schema detail, and the message's id where an RCAN 3.x reply
     needs it)."""

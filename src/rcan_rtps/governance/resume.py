@@ -16,9 +16,10 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import msgspec
 
 from rcan_rtps.rcan import Effect
 from rcan_rtps.rcan.actions import with_effect
@@ -28,13 +29,12 @@ _ENGAGED = ("ESTOP", "ESTOP_REPEATED")
 _BOUNDARIES = ("BRIDGE_STARTED", "BRIDGE_STOPPED")
 
 
-@dataclass
-class Resumed:
+class Resumed(msgspec.Struct):
     """The log's last word: `latched` None when it never spoke of the e-stop."""
 
     latched: bool | None = None
     latched_by: str | None = None
-    locks: dict[str, str] = field(default_factory=dict)  # name → who engaged it
+    locks: dict[str, str] = msgspec.field(default_factory=dict)  # name → who engaged it
 
 
 def resume(path: Path | str) -> Resumed:

@@ -17,8 +17,9 @@ from __future__ import annotations
 import uuid
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from typing import Literal, cast
+
+import msgspec
 
 from rcan_rtps.rcan import Approval, NormalizedCommand, Outcome, PendingAuth, Role, RoleName
 
@@ -36,8 +37,7 @@ KEPT_RESOLVED = 1024
 PendingState = Literal["pending", "resolving", "resolved"]
 
 
-@dataclass(frozen=True)
-class PendingRecord:
+class PendingRecord(msgspec.Struct, frozen=True):
     """A held command as its issuer or an approver may read it: its PENDING_AUTH (`held`),
     and whether it still waits (`waiting`), is being decided (neither) or was (`decision`)."""
 

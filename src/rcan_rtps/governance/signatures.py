@@ -22,7 +22,6 @@ for its signature does not use up its `msg_id`.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 
 import msgspec
@@ -47,15 +46,13 @@ from .outcomes import Rejection
 SIGNATURE_STATUS = 403
 
 
-@dataclass(frozen=True)
-class TrustedKey:
+class TrustedKey(msgspec.Struct, frozen=True):
     kid: str
     alg: Algorithm
     key: PublicKey
 
 
-@dataclass(frozen=True)
-class Signer:
+class Signer(msgspec.Struct, frozen=True):
     """One principal's policy and the keys it signs with, by kid."""
 
     policy: SignaturePolicy

@@ -32,8 +32,9 @@ import enum
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import NamedTuple, Protocol
+
+import msgspec
 
 from rcan_rtps.rcan.actions import MoveParams
 
@@ -60,8 +61,7 @@ class Velocity(NamedTuple):
 ZERO = Velocity()
 
 
-@dataclass(frozen=True)
-class AccelLimits:
+class AccelLimits(msgspec.Struct, frozen=True):
     """m/s² and rad/s²; None: unlimited (a step goes straight to the target)."""
 
     linear: float | None = None
@@ -98,8 +98,7 @@ class EndReason(str, enum.Enum):
     BRIDGE_STOPPED = "bridge_stopped"
 
 
-@dataclass
-class Stream:
+class Stream(msgspec.Struct):
     action: str
     owner: str  # the principal whose command it is
     priority: int
@@ -111,8 +110,7 @@ class Stream:
     samples: int = 0
 
 
-@dataclass(frozen=True)
-class StreamEnded:
+class StreamEnded(msgspec.Struct, frozen=True):
     stream: Stream
     reason: EndReason
     by: str | None  # who ended it, when someone did
@@ -133,8 +131,7 @@ class Replaces(NamedTuple):
         return {"message_id": self.message_id, "reason": self.reason.value}
 
 
-@dataclass(frozen=True)
-class HeldGoal:
+class HeldGoal(msgspec.Struct, frozen=True):
     """A goal the bridge sent, holding the base until it ends."""
 
     goal_id: str

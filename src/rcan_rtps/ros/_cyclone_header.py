@@ -19,9 +19,9 @@ import threading
 import typing
 import weakref
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
+import msgspec
 from cyclonedds.core import Policy
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl import types as t
@@ -34,7 +34,7 @@ from .errors import WireError
 from .participant import RosNode
 from .qos import QosProfile
 from .typesys.cdr import byte_order
-from .typesys.ddstypes import use_bytes_codec
+from .typesys.ddstypes import make_topic, use_bytes_codec
 
 ENCAPSULATION_SIZE = 4
 HEADER_SIZE = 16  # uint64 client_guid at offset 4, int64 seq at offset 12 (after encapsulation)
@@ -45,8 +45,7 @@ _HEADER = struct.Struct("<Qq")  # after the encapsulation, in the sample's byte 
 _HEADER_BIG = struct.Struct(">Qq")
 
 
-@dataclass(frozen=True)
-class RequestHeader:
+class RequestHeader(msgspec.Struct, frozen=True):
     client_guid: int  # rmw_cyclonedds uses the request writer's instance handle
     seq: int  # per-client sequence number, echoed in the reply
 
@@ -118,7 +117,7 @@ def wrapper_topic(node: RosNode, dds_topic: str, type_name: str) -> Topic[Any]:
         found = topics.get(dds_topic)
     if found is None:
         try:
-            found = Topic(node.participant, dds_topic, wrapper_struct(node, type_name))
+            found = make_topic(node.participant, dds_topic, wrapper_struct(node, type_name))
         except Exception as exc:  # cyclonedds raises a bare DDSException
             raise WireError(f"cannot create {dds_topic} with the Cyclone request header in "
                             f"this participant (a plain one exists?): {exc}") from exc

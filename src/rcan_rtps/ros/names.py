@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import enum
 import re
-from dataclasses import dataclass
+
+import msgspec
 
 from .errors import InvalidNameError
 
@@ -149,8 +150,7 @@ class EndpointKind(enum.Enum):
     REPLY = "reply"
 
 
-@dataclass(frozen=True)
-class Demangled:
+class Demangled(msgspec.Struct, frozen=True):
     kind: EndpointKind
     name: str  # the ROS name: topic or service
 

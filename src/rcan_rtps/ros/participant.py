@@ -35,7 +35,7 @@ from .qos import QosProfile
 from .readers import Decode, ReaderThread, Watch, WriterWatch
 from .rtps_capture import IdentityCapture, capture_supported
 from .typesys.cdr import CdrCodecs
-from .typesys.ddstypes import DdsTypes
+from .typesys.ddstypes import DdsTypes, make_topic
 from .typesys.store import TypeStore, env_idl_paths
 from .typesys.values import MessageValues
 
@@ -405,7 +405,10 @@ class RosNode:
         with self._lock:
             found = self._topics.get(dds_name)
             if found is None:
-                found = Topic(self.participant, dds_name, self.types.struct(type_name))
+                # ros_discovery_info is read by cyclonedds' typed readers (graph.py,
+                # handshake.py), on the way to a service call: its serializer stays built.
+                found = make_topic(self.participant, dds_name, self.types.struct(type_name),
+                                   keep_serializer=dds_name == DISCOVERY_TOPIC)
                 self._topics[dds_name] = found
             return found
 
@@ -548,7 +551,9 @@ class RosNode:
         with self._lock:
             readers = [{"data": gid_bytes(r, size)} for r in self._readers]
             writers = [{"data": gid_bytes(w, size)} for w in self._writers]
-        info = self.values.build(DISCOVERY_TYPE, {
+        # Through the generated codec, as every writer of ours: cyclonedds' own would rebuild
+        # the Python serializer `make_topic` let go of (and is slower).
+        info = self.codecs.of(DISCOVERY_TYPE).encode_plain({
             "gid": {"data": gid_bytes(self.participant, size)},
             "node_entities_info_seq": [{
                 "node_namespace": self.namespace,
@@ -557,7 +562,7 @@ class RosNode:
                 "writer_gid_seq": writers,
             }],
         })
-        self._info_writer.write(info)
+        raw_cdr.write(self._info_writer, info)
 
     def close(self) -> None:
         """Leaves the graph: deleting the participant withdraws every endpoint. The reader

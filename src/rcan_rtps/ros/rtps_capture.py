@@ -37,8 +37,9 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
+
+import msgspec
 
 log = logging.getLogger(__name__)
 
@@ -65,16 +66,14 @@ PUNCH_AFTER = 1 << 20  # bytes consumed before they are given back
 _SUBMESSAGE = struct.Struct("<BBH")
 
 
-@dataclass(frozen=True)
-class SampleIdentity:
+class SampleIdentity(msgspec.Struct, frozen=True):
     """A DDS sample's identity: its writer's GUID (16 bytes) and its sequence number."""
 
     writer_guid: bytes
     seq: int
 
 
-@dataclass(frozen=True)
-class ReceivedData:
+class ReceivedData(msgspec.Struct, frozen=True):
     """A received DATA (or first DATA_FRAG) submessage that names a related sample."""
 
     writer_guid: bytes

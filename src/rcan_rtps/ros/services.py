@@ -35,9 +35,9 @@ import itertools
 import logging
 import weakref
 from collections.abc import Awaitable, Callable, Mapping
-from dataclasses import dataclass, field
 from typing import Any
 
+import msgspec
 from cyclonedds.core import DDSException
 from cyclonedds.idl import IdlStruct
 from cyclonedds.pub import DataWriter
@@ -71,12 +71,11 @@ class RequestMapping(enum.Enum):
     FASTDDS = "fastdds"
 
 
-@dataclass(frozen=True)
-class MappingPolicy:
+class MappingPolicy(msgspec.Struct, frozen=True):
     """The mapping per service: a default plus per-service overrides (from configuration)."""
 
     default: RequestMapping = RequestMapping.AUTO
-    services: Mapping[str, RequestMapping] = field(default_factory=dict)
+    services: Mapping[str, RequestMapping] = msgspec.field(default_factory=dict)
 
     def for_service(self, name: str) -> RequestMapping:
         return self.services.get(name, self.default)

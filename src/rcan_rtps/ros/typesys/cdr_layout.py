@@ -12,7 +12,8 @@ from __future__ import annotations
 import struct
 import sys
 from array import array
-from dataclasses import dataclass
+
+import msgspec
 
 from .model import Primitive
 
@@ -49,8 +50,7 @@ def size_of(fmt: str) -> int:
     return struct.calcsize("<" + fmt)
 
 
-@dataclass(frozen=True)
-class Item:
+class Item(msgspec.Struct, frozen=True):
     """One fixed-size piece of a run: a struct format (`d`, `36d`, `12s`) and its alignment."""
 
     fmt: str

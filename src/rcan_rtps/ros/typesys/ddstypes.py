@@ -13,11 +13,16 @@ how rmw_fastrtps puts it on the wire (uint32 count of UTF-16 code units, then ea
 from __future__ import annotations
 
 import threading
+import typing
+import weakref
 from typing import Any
 
+from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl import types as t
 from cyclonedds.idl._machinery import BytesMachine
+from cyclonedds.idl._xt_builder import XTBuilder
+from cyclonedds.topic import Topic
 
 from ..errors import UnsupportedTypeError
 from .model import Collection, FieldType, MessageType, Primitive
@@ -57,6 +62,78 @@ def use_bytes_codec(cls: type[IdlStruct], msg: MessageType) -> None:
     for machine in (cls.__idl__.v1_machine, cls.__idl__.v2_machine):
         for f in byte_sequences:
             machine.members_machines[f.name] = BytesMachine(f.type.size or None)  # type: ignore[attr-defined]
+    _ADJUSTED.add(cls)  # its machines are not cyclonedds' to rebuild (`make_topic`)
+
+
+# Classes whose serializer machines `use_bytes_codec` changed: kept when a topic is made.
+_ADJUSTED: weakref.WeakSet[type[IdlStruct]] = weakref.WeakSet()
+
+
+# One topic made at a time: XTBuilder's cache is a class attribute, emptied after each.
+_TOPIC_LOCK = threading.Lock()
+
+
+def make_topic(participant: DomainParticipant, dds_name: str, cls: type[IdlStruct], *,
+               keep_serializer: bool = False) -> Topic[Any]:
+    """A Cyclone topic of `cls`, without the Python state cyclonedds builds to make it.
+
+    Making a topic has cyclonedds build, for the type and every struct type in it, its Python
+    serializer (`__idl__`'s "machines") and an XTypes description (TypeInformation,
+    TypeMapping, as Python objects and serialized), caching every type described in a class
+    attribute, `XTBuilder._type_hash_db`, for good. Cyclone's C side copies the serialized
+    description and a few flags when the topic is made and never asks the Python side again;
+    samples travel as raw CDR through our generated codecs (raw_cdr.py). So all of it is let
+    go of here, each part back to its state before it was built (~0.6 MB traced for a
+    bridge's dozen types, reused by the next type's build): cyclonedds rebuilds a part where
+    it needs it again (a later topic of the type; its own codec, which only the public-API
+    fallbacks of raw_cdr.py and readers.py use), to the same result. The machines of a class
+    `use_bytes_codec` changed are kept (a rebuild would lose the change), and all of them with
+    `keep_serializer` (a topic read through cyclonedds' typed reader: no first sample should
+    wait for a rebuild)."""
+    with _TOPIC_LOCK:
+        try:
+            return Topic(participant, dds_name, cls)
+        finally:
+            idl: Any = cls.__idl__
+            idl._xt_data = idl._xt_bytedata = (None, None)  # as before fill_type_data
+            XTBuilder._type_hash_db.clear()
+            for struct in [] if keep_serializer else _structs_in(cls):
+                if struct not in _ADJUSTED:
+                    _forget_machines(struct)
+
+
+def _structs_in(cls: type[IdlStruct]) -> list[type[IdlStruct]]:
+    """`cls` and every struct type its fields use, at any depth, each once."""
+    found: dict[type[IdlStruct], None] = {}
+
+    def visit(annotation: Any) -> None:
+        if isinstance(annotation, type) and issubclass(annotation, IdlStruct):
+            if annotation in found:
+                return
+            found[annotation] = None
+            for field in vars(annotation).get("__annotations__", {}).values():
+                visit(field)
+            return
+        for inner in typing.get_args(annotation):  # Annotated[Sequence[T], sequence[T]]…
+            visit(inner)
+        subtype = getattr(annotation, "subtype", None)  # cyclonedds' sequence / array
+        if subtype is not None:
+            visit(subtype)
+
+    visit(cls)
+    return list(found)
+
+
+def _forget_machines(cls: type[IdlStruct]) -> None:
+    """`cls.__idl__` back to unpopulated: what `populate()` and cyclonedds' field-type
+    normalization built is rebuilt by them, the same, when next needed."""
+    idl: Any = cls.__idl__
+    with idl._lock:
+        idl.v1_machine = idl.v2_machine = None
+        idl.v1_keyresult = idl.v2_keyresult = None
+        idl._populated = idl._populating = False
+    if "__idl_type_annotations__" in vars(cls):  # made again by get_extended_type_hints
+        delattr(cls, "__idl_type_annotations__")
 
 
 class DdsTypes:

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import ast
 import re
-from dataclasses import dataclass
+
+import msgspec
 
 from ..errors import IdlSyntaxError
 from .model import (
@@ -69,8 +70,7 @@ _PRIMITIVE_WORDS: dict[tuple[str, ...], Primitive] = {
 _MAX_WORDS = 3
 
 
-@dataclass
-class _Tok:
+class _Tok(msgspec.Struct):
     kind: str
     text: str
     line: int

@@ -97,29 +97,34 @@ class TypeStore:
             roots += [bundle / "_distro" / self.distro, bundle]
         self.roots = roots
         self._types: dict[str, MessageType] = {}
-        # name -> file, kept as text: 364 bundled files' Path objects held ~100 kB at idle
-        self._files: dict[str, str] | None = None
         self._lock = threading.RLock()
 
-    # -- file index -----------------------------------------------------------
-    def _index(self) -> dict[str, str]:
-        if self._files is None:
-            files: dict[str, str] = {}
-            for root in self.roots:
-                for name, path in _scan(root):
-                    files.setdefault(name, str(path))
-            self._files = files
-        return self._files
+    # -- files ------------------------------------------------------------------
+    def _path_of(self, interface: str) -> Path | None:
+        """The file of `interface` (`pkg/kind/T`): the first root that holds it, as the full
+        scan (`interface_names`) would find it. Looked up, not indexed: a run needs a dozen of
+        the ~360 bundled files, and an index of them all held ~85 kB at idle."""
+        parts = interface.split("/")
+        if len(parts) != 3 or parts[1] not in KINDS:
+            return None
+        pkg, kind, name = parts
+        if not pkg or pkg.startswith(("_", ".")) or not name or name.startswith("."):
+            return None
+        for root in self.roots:
+            package = _package_dir(root, pkg)
+            if package is not None and (package / kind / f"{name}.idl").is_file():
+                return package / kind / f"{name}.idl"
+        return None
 
     def interface_names(self) -> list[str]:
         """Every interface (`pkg/msg/T`, `pkg/srv/S`, `pkg/action/A`) found on the paths."""
-        return sorted(self._index())
+        return sorted({name for root in self.roots for name, _ in _scan(root)})
 
     def source_of(self, interface: str) -> Path:
-        path = self._index().get(normalize_name(interface))
+        path = self._path_of(normalize_name(interface))
         if path is None:
             raise UnknownTypeError(interface, self.interface_names())
-        return Path(path)
+        return path
 
     # -- lookups --------------------------------------------------------------
     def message(self, name: str) -> MessageType:
@@ -170,15 +175,15 @@ class TypeStore:
             self._types[msg.name] = msg
 
     def _known_names(self) -> list[str]:
-        return sorted(set(self._index()) | set(self._types))
+        return sorted(set(self.interface_names()) | set(self._types))
 
     # -- loading ----------------------------------------------------------------
     def _load_for(self, name: str) -> None:
         interface = _interface_of(name)
-        path = self._index().get(interface)
+        path = self._path_of(interface)
         if path is None:
             return
-        parsed = parse_idl(Path(path).read_text(encoding="utf-8"), path)
+        parsed = parse_idl(path.read_text(encoding="utf-8"), str(path))
         for struct in parsed.structs.values():
             self._types.setdefault(struct.name, struct)
         kind = interface.split("/")[1]
@@ -242,6 +247,13 @@ def _interface_of(name: str) -> str:
         if short.endswith(suffix):
             return f"{pkg}/{kind}/{short[: -len(suffix)]}"
     return name
+
+
+def _package_dir(root: Path, pkg: str) -> Path | None:
+    """Where package `pkg` is under `root`, scanned as `_scan` does."""
+    if any((root / kind).is_dir() for kind in KINDS):  # a single package directory
+        return root if root.name == pkg else None
+    return root / pkg if (root / pkg).is_dir() else None
 
 
 def _scan(root: Path) -> Iterator[tuple[str, Path]]:

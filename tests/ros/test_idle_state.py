@@ -1,0 +1,129 @@
+"""What the wire layer keeps after a start, and what it lets go of (issue 27: idle footprint).
+
+A topic's XTypes description is cyclonedds' Python objects only until Cyclone's C side has
+copied its bytes; the type store looks its files up rather than holding an index of all.
+Each check is of behaviour (what is held, what is found, that peers still match), not of a
+memory figure."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from cyclonedds.idl._xt_builder import XTBuilder
+from waiting import eventually
+
+from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.typesys.store import TypeStore
+
+TWIST = "geometry_msgs/msg/Twist"
+ODOM = "nav_msgs/msg/Odometry"
+
+
+@pytest.fixture
+def nodes(domain_id: int) -> Iterator[tuple[RosNode, RosNode]]:
+    with RosNode("idle_a", "/idle", domain_id=domain_id, localhost=True) as a, \
+            RosNode("idle_b", "/idle", domain_id=domain_id, localhost=True) as b:
+        yield a, b
+
+
+def test_a_topic_keeps_no_xtypes_objects_after_it_is_made(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    node, _ = nodes
+    node.topic("rt/idle/odom", ODOM)  # nested types: Header, Pose…, Twist…
+    struct = node.types.struct(ODOM)
+    assert struct.__idl__._xt_data == (None, None)
+    assert struct.__idl__._xt_bytedata == (None, None)
+    assert XTBuilder._type_hash_db == {}
+
+
+def test_a_topic_keeps_no_cyclonedds_serializer_of_its_types(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """Nor the serializer machines of the type and the types in it, but for
+    ros_discovery_info's: cyclonedds' typed readers take it (graph.py, handshake.py), and a
+    service call must not wait for a rebuild."""
+    node, _ = nodes
+    node.topic("rt/idle/odom", ODOM)
+    made = {name: node.types.struct(name) for name in (
+        ODOM, "std_msgs/msg/Header", "builtin_interfaces/msg/Time",
+        "geometry_msgs/msg/PoseWithCovariance", "geometry_msgs/msg/Vector3",
+        "rmw_dds_common/msg/ParticipantEntitiesInfo", "rmw_dds_common/msg/Gid")}
+    kept = [name for name, cls in made.items() if cls.__idl__.v1_machine is not None]
+    assert kept == ["rmw_dds_common/msg/ParticipantEntitiesInfo", "rmw_dds_common/msg/Gid"]
+
+
+def test_cyclonedds_own_codec_is_rebuilt_the_same_when_asked_for(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """raw_cdr.py's and readers.py's public-API fallbacks use cyclonedds' codec: rebuilt on
+    demand, it writes the generated codec's bytes; a type whose byte sequences use the
+    one-copy bytes codec keeps its adjusted serializer (bytes in, bytes out)."""
+    node, _ = nodes
+    node.topic("rt/idle/odom", ODOM)
+    message = node.values.build(ODOM, {"child_frame_id": "base",
+                                       "pose": {"pose": {"position": {"x": 1.5}}}})
+    assert message.serialize() == node.codecs.of(ODOM).encode(message)
+    image = "sensor_msgs/msg/Image"
+    node.topic("rt/idle/image", image)
+    assert node.types.struct(image).__idl__.v1_machine is not None
+    frame = node.values.build(image, {"height": 1, "width": 3, "encoding": "mono8",
+                                      "step": 3, "data": b"abc"})
+    data = frame.serialize()
+    assert data == node.codecs.of(image).encode(frame)
+    assert type(frame).deserialize(data).data == b"abc"
+
+
+async def test_peers_match_after_the_description_was_let_go_of(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """The second node describes the type again (the first one's objects are gone): the same
+    bytes, so Cyclone matches them and a message goes through."""
+    a, b = nodes
+    pub = a.create_publisher("/idle/odom", ODOM)
+    sub = b.create_subscription("/idle/odom", ODOM)
+    await eventually(lambda: pub.matched_count() == 1 and sub.matched_count() == 1,
+                     timeout=10.0, what="the two nodes' Odometry endpoints to match")
+    pub.publish({"child_frame_id": "base", "twist": {"twist": {"linear": {"x": 0.5}}}})
+    got = await asyncio.wait_for(sub.get(), 10.0)
+    assert got.child_frame_id == "base"
+    assert got.twist.twist.linear.x == 0.5
+
+
+def _package(root: Path, pkg: str, kind: str, name: str, text: str) -> None:
+    (root / pkg / kind).mkdir(parents=True, exist_ok=True)
+    (root / pkg / kind / f"{name}.idl").write_text(text)
+
+
+IDL = """module {pkg} {{ module msg {{ struct {name} {{ {field}; }}; }}; }};"""
+
+
+def test_the_store_finds_a_file_added_after_its_first_lookup(tmp_path: Path) -> None:
+    """No index is held: a lookup looks at the paths as they are (an index made by the first
+    lookup missed files added later)."""
+    _package(tmp_path, "idle_pkg", "msg", "First", IDL.format(
+        pkg="idle_pkg", name="First", field="int32 a"))
+    store = TypeStore([tmp_path], include_bundle=False)
+    assert [f.name for f in store.message("idle_pkg/msg/First").fields] == ["a"]
+    _package(tmp_path, "idle_pkg", "msg", "Later", IDL.format(
+        pkg="idle_pkg", name="Later", field="double b"))
+    assert [f.name for f in store.message("idle_pkg/msg/Later").fields] == ["b"]
+    assert store.interface_names() == ["idle_pkg/msg/First", "idle_pkg/msg/Later"]
+
+
+def test_the_first_path_holding_a_type_wins_and_odd_names_are_not_found(
+        tmp_path: Path) -> None:
+    first, second = tmp_path / "first", tmp_path / "second"
+    _package(first, "idle_pkg", "msg", "T", IDL.format(pkg="idle_pkg", name="T", field="int8 x"))
+    _package(second, "idle_pkg", "msg", "T", IDL.format(pkg="idle_pkg", name="T",
+                                                        field="int8 y"))
+    _package(second, "_hidden", "msg", "T", IDL.format(pkg="_hidden", name="T", field="int8 z"))
+    store = TypeStore([first, second], include_bundle=False)
+    assert [f.name for f in store.message("idle_pkg/msg/T").fields] == ["x"]
+    assert store.source_of("idle_pkg/msg/T") == first / "idle_pkg" / "msg" / "T.idl"
+    for name in ("_hidden/msg/T", "idle_pkg/msg/.T", "idle_pkg/nope/T", "idle_pkg/msg/T/x"):
+        with pytest.raises(Exception, match="T"):
+            store.source_of(name)
+    # a root that is itself one package
+    single = TypeStore([first / "idle_pkg"], include_bundle=False)
+    assert single.source_of("idle_pkg/msg/T") == first / "idle_pkg" / "msg" / "T.idl"
+    assert single.interface_names() == ["idle_pkg/msg/T"]

@@ -124,6 +124,7 @@ def _packer(fmt: str, count: int) -> Callable[..., bytes]:
     return found
 
 
+LENIENT = "~"  # a decoder kind's mark: strings read with errors="replace"
 _TO_MSGPACK = msgspec.msgpack.Encoder().encode
 
 
@@ -361,10 +362,14 @@ class CdrCodecs:
             entry = EncoderSource(self.types.store, source, plain=plain).function(
                 type_name, top=True)
         else:
-            entry = DecoderSource(self.types, source, plain=plain, order=kind).function(
-                type_name, top=True)
+            order, lenient = kind[0], kind.endswith(LENIENT)
+            entry = DecoderSource(self.types, source, plain=plain, order=order,
+                                  lenient=lenient).function(type_name, top=True)
             name = self.types.store.message(type_name).name
             # the entry point's way round (`MessageCodec.run`), looked up on use
             source.namespace["slow"] = lambda data, offset: self.of(name).run(plain, data, offset)
+            # its twin for a sample with bytes that are not UTF-8, made on first use
+            source.namespace["lenient"] = lambda data, mv, offset: self._function(
+                name, plain, order + LENIENT)(data, mv, offset)
         label = f"{type_name} {'plain' if plain else 'typed'} {kind}"
         return _compile(source, label)[entry]  # type: ignore[no-any-return]

@@ -46,11 +46,14 @@ class DecoderSource(FunctionWriter):
 
     prefix = "dec_"
 
-    def __init__(self, types: DdsTypes, source: Source, *, plain: bool, order: str) -> None:
+    def __init__(self, types: DdsTypes, source: Source, *, plain: bool, order: str,
+                 lenient: bool = False) -> None:
         super().__init__(types.store, source)
         self.types = types
         self.plain = plain
         self.order = order
+        self.lenient = lenient
+        self.texts = False  # whether the code decodes UTF-8 (then a bad byte goes `lenient`)
         self.swap = (order == "<") != NATIVE_LITTLE
         self._run: list[tuple[Item, str]] = []
         self._known: int | None = None
@@ -64,6 +67,15 @@ class DecoderSource(FunctionWriter):
         if top and self.views and self._view_line is not None:  # all bodies written now
             self.src.lines[self._view_line] = self._view_line_text("memoryview(b)")
         return name
+
+    @property
+    def _utf8(self) -> str:
+        """The call that makes text of a string's bytes. Strict first (a bad byte raises, and
+        the entry point hands the sample to its `lenient` twin): bytes that are not UTF-8 are
+        read as U+FFFD, as rclpy reads them, and the sample is not lost; no string of a good
+        sample pays for the error handler's argument parsing."""
+        self.texts = True
+        return "decode('utf-8', 'replace')" if self.lenient else "decode()"
 
     @staticmethod
     def _view_line_text(value: str) -> str:
@@ -85,6 +97,7 @@ class DecoderSource(FunctionWriter):
                          "return slow(b, p)")
         self._view_line = len(self.src.lines)
         self.src.lines.append(self._view_line_text("b"))  # a memoryview if blocks are sliced
+        start_line = len(self.src.lines)
         self.src.emit(1, "try:")
         self._known = 0
         result = self._struct(msg, 2)
@@ -93,6 +106,10 @@ class DecoderSource(FunctionWriter):
             self.src.emit(2, "if p > len(b): raise truncated(p, len(b))")
         self.src.emit(2, f"return {result}")
         type_name = self.src.const(msg.name, "TYPE")
+        if self.texts and not self.lenient:  # `p` moves on: the start is kept for the twin
+            self.src.lines.insert(start_line, "    start = p")
+            self.src.emit(1, "except UnicodeDecodeError:")
+            self.src.emit(2, "return lenient(b, mv, start)")
         self.src.emit(1, "except (STRUCT_ERROR, ValueError) as exc:")
         self.src.emit(2, f"raise undecodable({type_name}, len(b), exc) from exc")
         self.src.emit(0, "")
@@ -154,7 +171,7 @@ class DecoderSource(FunctionWriter):
         self.src.emit(ind, f"{end} = p + {count}")
         # a length of 0 (no NUL: not what rmw writes) slices to b'' as well; bytes that are
         # not UTF-8 read as U+FFFD, as rclpy reads them (the sample is not lost)
-        self.src.emit(ind, f"{value} = b[p:{end} - 1].decode('utf-8', 'replace')")
+        self.src.emit(ind, f"{value} = b[p:{end} - 1].{self._utf8}")
         self._sliced = True
         self.src.emit(ind, f"p = {end}")
         self._known = None
@@ -195,8 +212,7 @@ class DecoderSource(FunctionWriter):
             end = self.src.name("q")
             self.src.emit(ind + 1, "p += -p & 3")  # -p & 3: the header's 4 keep p's residue
             self.src.emit(ind + 1, f"{end} = p + 4 + {length}(mv, p)[0]")
-            self.src.emit(ind + 1, f"{value}.append(b[p + 4:{end} - 1]"
-                                   ".decode('utf-8', 'replace'))")
+            self.src.emit(ind + 1, f"{value}.append(b[p + 4:{end} - 1].{self._utf8})")
             self.src.emit(ind + 1, f"p = {end}")
             self._known = None
             self._sliced = True

@@ -57,3 +57,14 @@ def test_an_offset_start_is_kept_for_the_lenient_read() -> None:
     padded = bad[:4] + b"\x00" * 8 + bad[4:]  # an in-band prefix: the body starts at 12
     message = CODEC.of(DIAGNOSTICS).decode(padded, offset=12)
     assert message.header.frame_id == "b\ufffdse"
+
+
+def test_a_type_whose_only_strings_are_nested_reads_them_leniently() -> None:
+    """rmw's ros_discovery_info: its strings are in the elements of a sequence only (the
+    nested functions are written after the entry point's)."""
+    codec = CODEC.of("rmw_dds_common/msg/ParticipantEntitiesInfo")
+    good = codec.encode_plain({"node_entities_info_seq": [
+        {"node_namespace": "/", "node_name": "evil_node"}]})
+    bad = spoiled(good, b"_node")
+    assert codec.decode(bad).node_entities_info_seq[0].node_name == "evil_\ufffdode"
+    assert codec.decode_plain(bad)["node_entities_info_seq"][0]["node_name"] == "evil_\ufffdode"

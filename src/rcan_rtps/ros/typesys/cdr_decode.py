@@ -53,7 +53,6 @@ class DecoderSource(FunctionWriter):
         self.plain = plain
         self.order = order
         self.lenient = lenient
-        self.texts = False  # whether the code decodes UTF-8 (then a bad byte goes `lenient`)
         self.swap = (order == "<") != NATIVE_LITTLE
         self._run: list[tuple[Item, str]] = []
         self._known: int | None = None
@@ -74,8 +73,20 @@ class DecoderSource(FunctionWriter):
         the entry point hands the sample to its `lenient` twin): bytes that are not UTF-8 are
         read as U+FFFD, as rclpy reads them, and the sample is not lost; no string of a good
         sample pays for the error handler's argument parsing."""
-        self.texts = True
         return "decode('utf-8', 'replace')" if self.lenient else "decode()"
+
+    def _has_text(self, msg: MessageType, seen: frozenset[str] = frozenset()) -> bool:
+        """Whether `msg` holds a (UTF-8) string at any depth: its decoder may meet bad
+        bytes. Nested types' functions are written after the top one, so this asks the
+        type model rather than the code written so far."""
+        for f in msg.fields:
+            element = f.type.element
+            if element.primitive is Primitive.STRING:
+                return True
+            if element.nested is not None and element.nested not in seen and self._has_text(
+                    self.store.message(element.nested), seen | {msg.name}):
+                return True
+        return False
 
     @staticmethod
     def _view_line_text(value: str) -> str:
@@ -106,7 +117,7 @@ class DecoderSource(FunctionWriter):
             self.src.emit(2, "if p > len(b): raise truncated(p, len(b))")
         self.src.emit(2, f"return {result}")
         type_name = self.src.const(msg.name, "TYPE")
-        if self.texts and not self.lenient:  # `p` moves on: the start is kept for the twin
+        if not self.lenient and self._has_text(msg):  # `p` moves on: kept for the twin
             self.src.lines.insert(start_line, "    start = p")
             self.src.emit(1, "except UnicodeDecodeError:")
             self.src.emit(2, "return lenient(b, mv, start)")

@@ -69,7 +69,11 @@ def use_bytes_codec(cls: type[IdlStruct], msg: MessageType) -> None:
 _ADJUSTED: weakref.WeakSet[type[IdlStruct]] = weakref.WeakSet()
 
 
-# One topic made at a time: XTBuilder's cache is a class attribute, emptied after each.
+# One topic made at a time: XTBuilder's cache is a class attribute, emptied after each, and
+# cyclonedds reads it check-then-get (a clear in between would be a KeyError). It is held
+# across `dds_create_topic`, which calls back into Python only on this thread (to drop its
+# reference to a sertype's type when an equal one exists); no DDS thread runs our code, and
+# a thread waiting for the lock releases the GIL, so it cannot close a deadlock.
 _TOPIC_LOCK = threading.Lock()
 
 

@@ -90,11 +90,17 @@ async def serve(app: AsgiApp, request: web.Request, body: bytes,
                 extra: dict[str, Any]) -> web.StreamResponse | None:
     """Run `app` on this request; its response, or None if it sent none."""
     exchange = _Exchange(request, body)
+    await _run(app, request, extra, exchange)
+    return exchange.response
+
+
+async def _run(app: AsgiApp, request: web.Request, extra: dict[str, Any],
+               exchange: _Exchange) -> None:
+    """`app` on this request, talking through `exchange` (finished, whatever happens)."""
     try:
         await app(scope_of(request, extra), exchange.receive, exchange.send)
     finally:
         exchange.finish()
-    return exchange.response
 
 
 class Answer(NamedTuple):
@@ -139,8 +145,5 @@ async def answer(app: AsgiApp, request: web.Request, body: bytes,
     unsent (for a response of one body: never an event stream that stays open); None if it
     sent none."""
     exchange = _Holding(request, body)
-    try:
-        await app(scope_of(request, extra), exchange.receive, exchange.send)
-    finally:
-        exchange.finish()
+    await _run(app, request, extra, exchange)
     return exchange.answer

@@ -23,6 +23,7 @@ from .cdr_layout import (
 )
 from .cdr_source import FunctionWriter, Source
 from .ddstypes import DdsTypes, is_byte_like
+from .hashing import referenced_types
 from .model import Collection, FieldType, MessageType, Primitive
 from .values import PLACEHOLDER
 
@@ -75,18 +76,12 @@ class DecoderSource(FunctionWriter):
         sample pays for the error handler's argument parsing."""
         return "decode('utf-8', 'replace')" if self.lenient else "decode()"
 
-    def _has_text(self, msg: MessageType, seen: frozenset[str] = frozenset()) -> bool:
+    def _has_text(self, msg: MessageType) -> bool:
         """Whether `msg` holds a (UTF-8) string at any depth: its decoder may meet bad
         bytes. Nested types' functions are written after the top one, so this asks the
         type model rather than the code written so far."""
-        for f in msg.fields:
-            element = f.type.element
-            if element.primitive is Primitive.STRING:
-                return True
-            if element.nested is not None and element.nested not in seen and self._has_text(
-                    self.store.message(element.nested), seen | {msg.name}):
-                return True
-        return False
+        return any(f.type.element.primitive is Primitive.STRING
+                   for m in (msg, *referenced_types(msg, self.store.message)) for f in m.fields)
 
     @staticmethod
     def _view_line_text(value: str) -> str:

@@ -86,7 +86,9 @@ def test_every_in_scope_case_passes_against_the_simulator(sim: Sim) -> None:
     done = _conformance(sim)
     verdicts = _lines(done.stdout)
     suite = load_suite()
-    assert set(verdicts) == {c.id for c in suite.cases}, done.stdout  # one line per case
+    # one line per case (stderr and the exit status too: a run that printed none says why there)
+    assert set(verdicts) == {c.id for c in suite.cases}, \
+        f"exit {done.returncode}\n{done.stdout}{done.stderr}"
     failing = {case: word for case, word in verdicts.items() if word == "FAIL"}
     assert failing == {}, done.stdout
     assert done.returncode == 0, done.stdout + done.stderr

@@ -68,9 +68,11 @@ class Sim:
         return [json.loads(line) for line in self.audit.read_text().splitlines()]
 
 
-def run_sim(tmp_path: Path, domain_id: int) -> Iterator[Sim]:
+def run_sim(tmp_path: Path, domain_id: int, *extra: str) -> Iterator[Sim]:
+    """`run --sim`; `extra` arguments (a `--config`: the port it names is overridden) after
+    the others."""
     process = RunProcess(["run", "--sim", "--port", "0", "--no-mdns", "--state-dir",
-                          str(tmp_path / "state")], child_env(domain_id), demo=True)
+                          str(tmp_path / "state"), *extra], child_env(domain_id), demo=True)
     try:
         viewer = process.wait_for(r"GUEST \(viewer\)\s+(\S+)", 10).group(1)
         audit = Path(process.wait_for(r"audit log: (\S+)", 10).group(1))

@@ -209,3 +209,63 @@ def test_estop_from_the_page_reaches_ros_and_only_an_owner_clears_it(
                         what=lambda: f"emergency_stop false on ROS (seen {seen})")
         assert not sim.status()["estop"]
         assert page.console_errors() == []
+
+
+def test_other_publishers_on_the_command_topics_are_shown_expected_or_not(
+        browser: Any, tmp_path: Path, domain_id: int, jazzy_python: Path) -> None:
+    """The demo's config declaring nav2's controller_server on cmd_vel: it and a teleop node
+    (rclpy, publishing there too) are listed on the page by node and topic, one expected, the
+    other not (and only the other is a fault)."""
+    from oracle.client import RclpyOracle
+
+    from rcan_rtps.bridge.demo import DEMO_YAML, OWNER_TOKEN_ENV, USER_TOKEN_ENV, VIEWER_TOKEN_ENV
+
+    text = DEMO_YAML.format(namespace="/robot1", domain_id=domain_id, port=8765,
+                            state=tmp_path / "state", viewer=VIEWER_TOKEN_ENV,
+                            user=USER_TOKEN_ENV, owner=OWNER_TOKEN_ENV)
+    declared = "    foreign_publishers: {expected: {cmd_vel: [/robot1/controller_server]}}\n"
+    config = tmp_path / "expecting.rcan.yaml"
+    config.write_text(text.replace("    nav_frame_id: map\n", "    nav_frame_id: map\n" + declared))
+    sims = run_sim(tmp_path, domain_id, "--config", str(config))
+    sim = next(sims)
+    env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    try:
+        with RclpyOracle(jazzy_python, "controller_server", "/robot1", domain_id=domain_id,
+                         env=env) as nav2, \
+                RclpyOracle(jazzy_python, "teleop", "/robot1", domain_id=domain_id,
+                            env=env) as teleop:
+            page = page_for(browser, sim, "operator")
+            page.sign_in(sim.user)
+            page.signed_in_as("operator (USER)")
+            page.wait("return document.querySelector('#foreign li.empty') !== null",
+                      "no other publisher listed yet")
+            for oracle in (nav2, teleop):
+                oracle.call("publisher", topic="/robot1/cmd_vel",
+                            type="geometry_msgs/msg/Twist")
+            shown = ("return [...document.querySelectorAll('#foreign li[data-foreign]')].map("
+                     "li => [li.dataset.expected, li.textContent])")
+            # Unnamed until its ros_discovery_info comes, a node is not yet expected.
+            page.wait(shown + ".filter(([expected, text]) => expected === 'true' || "
+                      "text.startsWith('/robot1/teleop')).length === 2",
+                      "both publishers on the page, named")
+            rows = sorted(page.js(shown))
+            assert [row[0] for row in rows] == ["false", "true"]
+            (_, surprise), (_, design) = rows
+            assert surprise.startswith("/robot1/teleop on /robot1/cmd_vel") and \
+                surprise.endswith("not expected"), surprise
+            assert design.startswith("/robot1/controller_server on /robot1/cmd_vel") and \
+                design.endswith(" expected") and "not expected" not in design, design
+            assert "geometry_msgs/msg/Twist, 1 writer(s)" in design
+            faults = page.js("return [...document.querySelectorAll('#faults li')]"
+                             ".map(li => li.textContent)")
+            (warning,) = [f for f in faults if "foreign_publisher" in f]
+            assert warning.startswith("WARN") and "/robot1/teleop" in warning
+            assert "controller_server" not in warning
+            page.screenshot("other-publishers")
+            teleop.call("unpublish", topic="/robot1/cmd_vel")
+            page.wait("return document.querySelectorAll('#foreign li[data-foreign]').length"
+                      " === 1 && document.querySelector('#foreign li[data-expected=true]')"
+                      " !== null", "the teleop node gone from the page")
+            assert page.console_errors() == []
+    finally:
+        sims.close()

@@ -83,8 +83,10 @@ class Rig:
 
 
 async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id: int,
-                   *, navigation: bool = False, watch_s: float | None = None) -> Rig:
-    """`watch_s`: watch the command topics for other publishers, polling so often."""
+                   *, navigation: bool = False, watch_s: float | None = None,
+                   watch: bool = False) -> Rig:
+    """`watch_s`: watch the command topics for other publishers, polling so often; `watch`:
+    as often as the config says."""
     ros2 = config.bridge.ros2
     node = RosNode(ros2.node_name, ros2.namespace, domain_id=domain_id, distro=ros2.distro)
     events = Events()
@@ -103,7 +105,7 @@ async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id
     wire_robot_side(events, governor, telemetry, goals, notifier)
     events.freeze()
     await governor.start()
-    commanders = (None if watch_s is None else
+    commanders = (None if watch_s is None and not watch else
                   watch_commanders(node, governor, dispatcher, telemetry, watch_s))
     oracle = RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id)
     return Rig(node, governor, telemetry, dispatcher, oracle, Path(config.bridge.audit.path),

@@ -103,6 +103,90 @@ async def test_a_second_publisher_on_cmd_vel_is_shown_logged_and_audited(
     assert len(entries(rig, "FOREIGN_PUBLISHER")) == 1  # once, though polled many times
 
 
+ODOM = "nav_msgs/msg/Odometry"
+EXPECTED = """\
+foreign_publishers:
+  poll_s: 0.2
+  expected: {cmd_vel: [/robot1/controller_server]}
+"""
+
+
+def odometry(linear_x: float) -> dict[str, Any]:
+    return {"header": {"frame_id": "odom"}, "twist": {"twist": {"linear": {"x": linear_x}}}}
+
+
+def faults_of(rig: Rig) -> dict[str, tuple[str, str]]:
+    return {f.name: (f.level, f.message) for f in status(rig).faults}
+
+
+@both_rmws
+async def test_an_expected_publisher_is_listed_and_audited_and_the_estop_fault_stays(
+        tmp_path: Path, jazzy_oracle: OracleEnv, domain_id: int,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """nav2's controller_server on cmd_vel, declared in the config: listed (expected), audited,
+    no WARN fault. Latched, the e-stop still cannot hold the robot against it: a WARN while
+    the robot's odometry says it is still, an ERROR while it does not (or says nothing)."""
+    caplog.set_level(logging.INFO, logger="rcan_rtps.bridge.commanders")
+    config = bridge_config(tmp_path, domain_id, extra_ros2=EXPECTED)
+    rig = await make_rig(config, jazzy_oracle, domain_id, watch=True)
+    try:
+        assert rig.commanders is not None and rig.commanders.interval == 0.2  # the config's
+        await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)  # the robot
+        assert await rig.oracle.acall("wait_matched", topic=CMD_VEL) >= 1
+        with RclpyOracle(jazzy_oracle, "controller_server", "/robot1",
+                         domain_id=domain_id) as nav2:
+            nav2.call("publisher", topic=CMD_VEL, type=TWIST)
+            await eventually(lambda: [(p.node, p.expected) for p in listed(rig)] == [
+                ("/robot1/controller_server", True)], what="the controller listed, expected")
+            assert faults_of(rig) == {} and status(rig).state != "fault"
+            await eventually(lambda: entries(rig, "FOREIGN_PUBLISHER"))
+            (seen,) = entries(rig, "FOREIGN_PUBLISHER")
+            assert seen["params"]["node"] == "/robot1/controller_server"
+            assert seen["params"]["expected"] is True
+            assert warnings(caplog) == []  # the robot's design, told at INFO
+            assert any("/robot1/controller_server (expected)" in r.getMessage()
+                       for r in caplog.records if r.levelno == logging.INFO)
+
+            assert (await rig.command(VIEWER, {"action": "estop"})).http_status == 200
+            # No odometry yet: the robot is not seen still.
+            level, message = faults_of(rig)[ESTOP_NOT_HOLDING]
+            assert level == "ERROR" and "not seen still" in message
+            assert status(rig).faults[0].name == ESTOP_NOT_HOLDING
+            await rig.oracle.acall("publisher", topic="/robot1/odom", type=ODOM)
+            await rig.oracle.acall("publish_periodic", topic="/robot1/odom", type=ODOM,
+                                   value=odometry(0.0), rate=20.0)
+            await eventually(lambda: faults_of(rig)[ESTOP_NOT_HOLDING][0] == "WARN",
+                             what="a WARN once the robot is seen still")
+            level, message = faults_of(rig)[ESTOP_NOT_HOLDING]
+            assert "cannot hold" in message and "/robot1/controller_server (expected)" in message
+            assert status(rig).state == "estop"
+            await rig.oracle.acall("stop_periodic", topic="/robot1/odom")
+            await rig.oracle.acall("publish_periodic", topic="/robot1/odom", type=ODOM,
+                                   value=odometry(0.4), rate=20.0)
+            await eventually(lambda: faults_of(rig)[ESTOP_NOT_HOLDING][0] == "ERROR",
+                             what="an ERROR again while the robot moves")
+
+            # A publisher whose node cannot be learned never matches the list.
+            participant = DomainParticipant(domain_id)
+            topic = Topic(participant, "rt/robot1/cmd_vel", rig.node.types.struct(TWIST))
+            writer = DataWriter(participant, topic)
+            try:
+                await eventually(lambda: len(listed(rig)) == 2)
+                unnamed = next(p for p in listed(rig) if p.node is None)
+                assert not unnamed.expected
+                assert faults_of(rig)[f"{FOREIGN_PUBLISHER}:{CMD_VEL}"][0] == "WARN"
+            finally:
+                del writer, topic, participant
+            await rig.oracle.acall("stop_periodic", topic="/robot1/odom")
+            nav2.call("unpublish", topic=CMD_VEL)
+            await eventually(lambda: listed(rig) == [])
+            assert ESTOP_NOT_HOLDING not in faults_of(rig)
+            await eventually(lambda: [e["params"]["expected"] for e in entries(
+                rig, "FOREIGN_PUBLISHER_GONE") if e["params"]["node"]] == [True])
+    finally:
+        await close_rig(rig)
+
+
 @pytest.fixture
 def hostile(domain_id: int, jazzy_share: Path) -> Iterator[RosNode]:
     with RosNode("hostile", "/robot1", domain_id=domain_id, distro="jazzy",

@@ -26,7 +26,8 @@ def _what_matters(status: Status) -> tuple[Any, ...]:
     return (status.state, status.estop, tuple((f.name, f.level, f.message) for f in status.faults),
             status.pending_auth, tuple(status.active_goals), status.ros.connected,
             status.battery_pct, _navigation_matters(status), status.foreign_publishers_count,
-            tuple((f.topic, f.participant, f.node) for f in status.foreign_publishers))
+            tuple((f.topic, f.participant, f.node, f.expected)
+                  for f in status.foreign_publishers))
 
 
 def _navigation_matters(status: Status) -> tuple[Any, ...] | None:

@@ -10,6 +10,13 @@ other than the bridge's own publishing on a command topic:
 - a WARNING is logged when it appears and when it goes (once each),
 - the audit records each appearance and disappearance (FOREIGN_PUBLISHER, _GONE).
 
+The operator may declare the nodes meant to publish there too (nav2's controller_server or
+velocity_smoother on cmd_vel: `bridge.ros2.foreign_publishers.expected`). A participant is
+`expected` on a topic when every one of its writers there belongs to a node named on that
+topic's list; one writer of an unnamed node (no ros_discovery_info) or of another node makes
+it unexpected. An expected one is listed, audited and logged (at INFO) all the same; what it
+changes is telemetry.py's faults.
+
 A participant counts once per topic, however many writers it has there. Its appearance is
 logged and audited once its node is named (ros_discovery_info may come after the endpoint:
 Fast DDS sends it to a new reader on its next heartbeat), or after `NAME_GRACE_S` unnamed;
@@ -47,35 +54,47 @@ Key = tuple[str, bytes]  # (topic, participant GUID)
 Audit = Callable[..., None]  # Governor.foreign_publisher(facts, gone=...)
 
 
+Expected = dict[str, frozenset[str]]  # topic → the nodes declared to publish there
+
+
 def _facts(publisher: ForeignPublisher) -> dict[str, Any]:
     return {"topic": publisher.topic, "type": publisher.type,
             "participant": publisher.participant, "node": publisher.node,
-            "writers": publisher.writers}
+            "writers": publisher.writers, "expected": publisher.expected}
 
 
 def _describe(publisher: ForeignPublisher) -> str:
     who = publisher.node or "an unnamed node"
-    return (f"{who} (participant {publisher.participant}, {publisher.writers} writer(s), "
-            f"{publisher.type})")
+    return (f"{who}{' (expected)' if publisher.expected else ''} (participant "
+            f"{publisher.participant}, {publisher.writers} writer(s), {publisher.type})")
 
 
-def foreign_publishers(endpoints: list[Endpoint], own: bytes) -> dict[Key, ForeignPublisher]:
+def foreign_publishers(endpoints: list[Endpoint], own: bytes,
+                       expected: Expected | None = None) -> dict[Key, ForeignPublisher]:
     """Each participant other than `own` publishing on these endpoints' topics, once per
-    topic (its writers counted; named by the node of its first named writer)."""
+    topic (its writers counted), marked `expected` when each of its writers there is of a
+    node `expected` lists for the topic. It is named by the node of its first named writer
+    that is not expected, else of its first named writer."""
+    expected = expected or {}
     found: dict[Key, ForeignPublisher] = {}
+    nodes: dict[Key, list[str | None]] = {}
     for e in endpoints:
         if e.participant_gid == own:
             continue
         key = (e.ros_name, e.participant_gid)
         node = None if e.node_name == _UNKNOWN_NODE else node_fqn(e.node_namespace, e.node_name)
-        seen = found.get(key)
-        if seen is None:
+        if key not in found:
             found[key] = ForeignPublisher(topic=e.ros_name, type=e.ros_type,
-                                          participant=short_gid(e.participant_gid[:12]),
-                                          node=node)
+                                          participant=short_gid(e.participant_gid[:12]))
         else:
-            seen.writers += 1
-            seen.node = seen.node or node
+            found[key].writers += 1
+        nodes.setdefault(key, []).append(node)
+    for key, publisher in found.items():
+        declared = expected.get(publisher.topic, frozenset())
+        named = [n for n in nodes[key] if n is not None]
+        publisher.expected = len(named) == len(nodes[key]) and all(n in declared for n in named)
+        shown = [n for n in named if n not in declared] or named
+        publisher.node = shown[0] if shown else None
     return found
 
 
@@ -85,11 +104,12 @@ class CommanderWatch:
 
     def __init__(self, node: RosNode, topics: dict[str, bool], *,
                  show: Callable[[list[ForeignPublisher], set[str]], None], audit: Audit,
-                 interval: float = POLL_S,
+                 interval: float = POLL_S, expected: Expected | None = None,
                  monotonic: Callable[[], float] = time.monotonic) -> None:
         self._graph = RosGraph(node)
         self._own = node.participant.guid.bytes
         self._topics = set(topics)
+        self._expected = dict(expected or {})
         self._motion = {t for t, moves in topics.items() if moves}
         self._show, self._audit, self.interval = show, audit, interval
         self._known: dict[Key, ForeignPublisher] = {}
@@ -126,7 +146,8 @@ class CommanderWatch:
         self._graph.refresh()
         if self._graph.generation != self._generation:  # else nothing came or went
             self._generation = self._graph.generation
-            self._update(foreign_publishers(self._graph.publishers_on(self._topics), self._own))
+            self._update(foreign_publishers(self._graph.publishers_on(self._topics), self._own,
+                                            self._expected))
         self._report(self._due(), gone=False)
 
     def _update(self, now: dict[Key, ForeignPublisher]) -> None:
@@ -155,12 +176,14 @@ class CommanderWatch:
             return
         publishers = sorted(publishers, key=lambda p: (p.topic, p.node or "", p.participant))
         for p in publishers[:MAX_REPORTED]:
+            # A declared one is the robot's design, not news: told at INFO.
+            level = logging.INFO if p.expected else logging.WARNING
             if gone:
-                log.warning("%s no longer publishes on %s", _describe(p), p.topic)
+                log.log(level, "%s no longer publishes on %s", _describe(p), p.topic)
             else:
-                log.warning("%s publishes on %s, a topic the bridge commands the robot on: "
-                            "the robot obeys it too%s", _describe(p), p.topic,
-                            ", and an e-stop cannot hold it" if p.topic in self._motion else "")
+                log.log(level, "%s publishes on %s, a topic the bridge commands the robot on: "
+                        "the robot obeys it too%s", _describe(p), p.topic,
+                        ", and an e-stop cannot hold it" if p.topic in self._motion else "")
             self._audit(_facts(p), gone=gone)
         rest = publishers[MAX_REPORTED:]
         if rest:

@@ -53,7 +53,7 @@ from ..governance.signatures import Signatures
 from ..rcan import Status
 from ..ros.participant import RosNode
 from ..ros.services import RequestMapping
-from .commanders import POLL_S, CommanderWatch
+from .commanders import CommanderWatch
 from .commands import RosDispatcher
 from .errors import BridgeStateError
 from .goals import GoalRoutes, route_mapping
@@ -94,11 +94,15 @@ def wire_robot_side(events: Events, governor: Governor, telemetry: TelemetryStat
 
 
 def watch_commanders(node: RosNode, governor: Governor, dispatcher: RosDispatcher,
-                     telemetry: TelemetryState, interval: float = POLL_S) -> CommanderWatch:
+                     telemetry: TelemetryState, interval: float | None = None) -> CommanderWatch:
     """Other publishers on the topics the dispatcher commands the robot on: shown in STATUS,
-    logged, audited; started (on the running loop)."""
+    logged, audited; started (on the running loop). Polled every `interval` seconds
+    (default: `bridge.ros2.foreign_publishers.poll_s`)."""
+    ros2 = dispatcher.ros2
+    every = ros2.foreign_publishers.poll_s if interval is None else interval
     watch = CommanderWatch(node, dispatcher.command_topics(), show=telemetry.foreign_publishers,
-                           audit=governor.foreign_publisher, interval=interval)
+                           audit=governor.foreign_publisher, interval=every,
+                           expected=ros2.expected_publishers())
     watch.start()
     return watch
 

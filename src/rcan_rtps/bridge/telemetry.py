@@ -15,8 +15,14 @@ derives the state machine from them:
 What it copies is bounded, whatever the robot's nodes send: faults (`faults.FaultTable`),
 joints (`joints.bounded_joints`), other publishers on the command topics (`MAX_FOREIGN`,
 told by `commanders.CommanderWatch`). Another publisher on a topic the bridge commands the
-robot on is a WARN fault of that topic; one on a motion topic while the e-stop is latched an
-ERROR (`ESTOP_NOT_HOLDING`): the robot obeys it, and the latch cannot hold it.
+robot on is a WARN fault of that topic, unless it is expected (declared in
+`bridge.ros2.foreign_publishers.expected`). One on a motion topic while the e-stop is latched
+is the fault `ESTOP_NOT_HOLDING`, first: the robot obeys it, and the latch cannot hold it.
+That fault is never left out; it is an ERROR unless every such publisher is expected *and*
+the robot is seen still (fresh odometry at rest, and, for a publisher on a trajectory
+topic, every joint's reported velocity at rest), when it is a WARN that says the same (the
+operator declared them, and nothing moves the robot now; the moment it moves, or its
+telemetry goes stale, it is an ERROR again).
 """
 
 from __future__ import annotations
@@ -93,6 +99,7 @@ class TelemetryState:
         # The joints the bridge commands: listed first when a JointState is cut.
         self._commanded_joints = frozenset(
             j for arm in config.bridge.ros2.arms.values() for j in arm.joints)
+        self._base_topic = config.bridge.ros2.resolve(config.bridge.ros2.cmd_vel_topic)
         self.safe_stopped = False
         self._started = monotonic()
         self._cpu = CpuMeter()
@@ -217,7 +224,8 @@ class TelemetryState:
         navigation = self._navigation() if goals else None
         stale = age is None or age > self.config.bridge.ros2.telemetry_stale_s
         estop = self._estop_latched()
-        faults = _commander_faults(estop, foreign, foreign_motion) + faults
+        still = _Stillness(stale, telemetry, self._base_topic)
+        faults = _commander_faults(estop, foreign, foreign_motion, still) + faults
         return Status(
             ruri=self.config.robot.ruri, state=self._state(estop, faults, stale, goals, telemetry),
             estop=estop, battery_pct=battery, telemetry=telemetry, faults=faults,
@@ -246,25 +254,65 @@ class TelemetryState:
         return "moving" if _moving(telemetry.velocity) else "idle"
 
 
-def _commander_faults(estop: bool, foreign: list[ForeignPublisher],
-                      motion: list[str]) -> list[Fault]:
+class _Stillness:
+    """Whether the robot is seen at rest, for the motion topics some publishers are on:
+    fresh odometry at rest for the velocity topic; for any other (a trajectory topic) also a
+    JointState whose every listed joint reports a velocity at rest. What is not known is not
+    still."""
+
+    def __init__(self, stale: bool, telemetry: Telemetry, base_topic: str) -> None:
+        self.stale, self.telemetry, self.base_topic = stale, telemetry, base_topic
+
+    def __call__(self, topics: set[str]) -> bool:
+        velocity, joints = self.telemetry.velocity, self.telemetry.joints
+        if self.stale or velocity is None or _moving(velocity):
+            return False
+        if topics <= {self.base_topic}:
+            return True
+        return (joints is not None and len(joints.velocities) == len(joints.names) > 0
+                and all(abs(v) <= _MOVING_EPS for v in joints.velocities))
+
+
+def _commander_faults(estop: bool, foreign: list[ForeignPublisher], motion: list[str],
+                      still: Callable[[set[str]], bool]) -> list[Fault]:
     """What other publishers on the command topics mean for the robot: first, while the
-    e-stop is latched and one publishes motion, that the latch cannot hold the robot."""
+    e-stop is latched and one publishes motion, that the latch cannot hold the robot; then a
+    WARN per topic with an unexpected one."""
     faults = []
     if estop and motion:
-        faults.append(Fault(ESTOP_NOT_HOLDING, (
-            f"e-stop latched, but another participant publishes on {', '.join(motion)}: the "
-            f"robot obeys it, and the e-stop cannot hold the robot against it "
-            f"({_who(foreign, set(motion))})"), "ERROR"))
-    for topic in sorted({f.topic for f in foreign}):
+        faults.append(_estop_not_holding(foreign, set(motion), still))
+    surprising = [f for f in foreign if not f.expected]
+    for topic in sorted({f.topic for f in surprising}):
         faults.append(Fault(f"{FOREIGN_PUBLISHER}:{topic}", (
             f"another participant publishes on {topic}, which the bridge commands the robot "
-            f"on: the robot obeys it too ({_who(foreign, {topic})})"), "WARN"))
+            f"on: the robot obeys it too ({_who(surprising, {topic})})"), "WARN"))
     return faults
 
 
+def _estop_not_holding(foreign: list[ForeignPublisher], motion: set[str],
+                       still: Callable[[set[str]], bool]) -> Fault:
+    """ERROR, unless every publisher on a motion topic is expected and the robot is seen
+    still; then a WARN saying the same (the e-stop still cannot hold the robot)."""
+    topics = ", ".join(sorted(motion))
+    who = _who(foreign, motion)
+    if any(not f.expected for f in foreign if f.topic in motion):
+        return Fault(ESTOP_NOT_HOLDING, (
+            f"e-stop latched, but another participant publishes on {topics}: the robot obeys "
+            f"it, and the e-stop cannot hold the robot against it ({who})"), "ERROR")
+    if not still(motion):
+        return Fault(ESTOP_NOT_HOLDING, (
+            f"e-stop latched, but the robot is not seen still and expected publishers are on "
+            f"{topics} ({who}): the robot obeys them, and the e-stop cannot hold the robot "
+            f"against them"), "ERROR")
+    return Fault(ESTOP_NOT_HOLDING, (
+        f"e-stop latched; expected publishers are on {topics} ({who}): the robot obeys them, "
+        f"and the e-stop cannot hold the robot against them. The robot is still now; this is "
+        f"an ERROR again if it moves"), "WARN")
+
+
 def _who(foreign: list[ForeignPublisher], topics: set[str]) -> str:
-    names = [f.node or f"participant {f.participant}" for f in foreign if f.topic in topics]
+    names = [(f.node or f"participant {f.participant}") + (" (expected)" if f.expected else "")
+             for f in foreign if f.topic in topics]
     shown = ", ".join(dict.fromkeys(names[:4]))
     return shown + (f" and {len(names) - 4} more" if len(names) > 4 else "")
 

@@ -27,7 +27,7 @@ from rcan_rtps.rcan import (
     parse_ruri,
     whole,
 )
-from rcan_rtps.rcan.actions import GoalRoute, goal_routes, with_effect
+from rcan_rtps.rcan.actions import GoalRoute, goal_routes, specs, with_effect
 
 from ._skills import skill_problem
 
@@ -129,6 +129,38 @@ class ArmConfig(_Section, frozen=True, kw_only=True):
     joints: Annotated[list[JointName], _check(_repeated_joint_problem)] = []
 
 
+_NODE_FQN = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
+
+
+def _expected_problem(expected: dict[str, list[str]]) -> str | None:
+    """Each topic's expected publishers: fully qualified node names, each once."""
+    for topic, nodes in expected.items():
+        for node in nodes:
+            if not _NODE_FQN.fullmatch(node):
+                return (f"{topic}: {node!r} is not a fully qualified node name (as `ros2 node "
+                        f"list` prints it, e.g. /controller_server or /robot1/velocity_smoother)")
+        if len(set(nodes)) != len(nodes):
+            return f"{topic}: lists a node more than once"
+    return None
+
+
+class ForeignPublishersConfig(_Section, frozen=True, kw_only=True):
+    """Other publishers on the topics the bridge commands the robot on (bridge/commanders.py).
+
+    `expected`: command topic (resolved like the other topics) → the fully qualified names of
+    the nodes meant to publish there too (nav2's controller_server, velocity_smoother,
+    collision_monitor, a twist_mux). They are still listed, logged and audited, marked
+    expected, but raise no WARN fault; while the e-stop is latched one on a motion topic is
+    still reported as a fault (docs/governance.md says which level, and why). A publisher
+    whose node cannot be learned (no ros_discovery_info) is never expected."""
+
+    poll_s: Annotated[float, msgspec.Meta(ge=0.1, le=10.0)] = 1.0  # how often the graph is read
+    expected: Annotated[
+        dict[RosTopic, Annotated[list[Annotated[str, msgspec.Meta(max_length=256)]],
+                                 msgspec.Meta(min_length=1, max_length=64)]],
+        _check(_expected_problem)] = {}
+
+
 class Ros2Config(_Section, frozen=True, kw_only=True):
     namespace: Annotated[str, _check(_namespace_problem)] = ""
     node_name: Annotated[str, msgspec.Meta(pattern=_NODE_NAME)] = "rcan_bridge"
@@ -162,12 +194,30 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     # (Cyclone's in-band header, or Fast DDS's plain requests); per-name overrides win.
     request_mapping: Literal["auto", "cyclone", "fastdds"] = "auto"
     request_mappings: dict[RosName, Literal["auto", "cyclone", "fastdds"]] = {}
+    foreign_publishers: ForeignPublishersConfig = ForeignPublishersConfig()
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        problem = goal_routes_problem(self, goal_routes())
+        problem = goal_routes_problem(self, goal_routes()) or expected_topics_problem(self)
         if problem is not None:
             raise ValueError(problem)
+
+    def command_topics(self) -> set[str]:
+        """Every topic the registry's actions publish to, resolved (as RosDispatcher binds
+        them: a grouped route on each group's topic, else on its key's)."""
+        topics: set[str] = set()
+        for spec in specs():
+            for publish in spec.ros.publishes():
+                groups = getattr(self, publish.group_key) if publish.group_key else {}
+                names = ([g.topic for g in groups.values()] if groups
+                         else [getattr(self, publish.topic_key)])
+                topics.update(self.resolve(name) for name in names)
+        return topics
+
+    def expected_publishers(self) -> dict[str, frozenset[str]]:
+        """`foreign_publishers.expected` by resolved topic."""
+        expected = self.foreign_publishers.expected
+        return {self.resolve(topic): frozenset(nodes) for topic, nodes in expected.items()}
 
     def resolve(self, name: str) -> str:
         """The fully qualified name of a configured topic or action, as the node resolves it:
@@ -178,6 +228,23 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
         if name.startswith("~"):
             return f"{namespace}/{self.node_name}{name[1:]}"
         return f"{namespace}/{name}"
+
+
+def expected_topics_problem(ros2: Ros2Config) -> str | None:
+    """An expected publisher declared on a topic the bridge does not command the robot on
+    would never be looked at: a typo, said at once."""
+    commanded = ros2.command_topics()
+    resolved: dict[str, str] = {}
+    for topic in ros2.foreign_publishers.expected:
+        full = ros2.resolve(topic)
+        if full not in commanded:
+            return (f"`foreign_publishers.expected` names {topic!r} ({full}), which is not a "
+                    f"topic the bridge commands the robot on: {', '.join(sorted(commanded))}")
+        other = resolved.setdefault(full, topic)
+        if other != topic:
+            return (f"`foreign_publishers.expected` names {full} twice ({other!r} and "
+                    f"{topic!r}): list its nodes once")
+    return None
 
 
 def goal_routes_problem(ros2: Ros2Config, routes: tuple[GoalRoute, ...]) -> str | None:

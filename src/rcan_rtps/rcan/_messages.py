@@ -206,6 +206,9 @@ class ForeignPublisher(msgspec.Struct, kw_only=True):
     participant: str  # its participant's GUID prefix (12 bytes, hex, dotted)
     node: str | None = None  # the node's fully qualified name, if its participant names it
     writers: int = 1  # its writers on this topic
+    # Declared in `bridge.ros2.foreign_publishers.expected` for this topic: every one of its
+    # writers here belongs to a named node listed there (an unnamed one never does).
+    expected: bool = False
 
 
 class Telemetry(msgspec.Struct):

@@ -30,12 +30,27 @@ export function renderStatus(status) {
   put(byId("faults"), ...(faults.length ? faults.map((f) =>
     h("li", { "data-tone": f.level === "WARN" ? "warn" : "bad" },
       `${f.level} ${f.name}: ${f.message}`)) : [h("li", { class: "empty" }, "none")]));
+  renderForeign(status.foreign_publishers || [], status.foreign_publishers_count || 0);
   const joints = t.joints;
   const rows = joints ? joints.names.map((name, i) => h("tr", {},
     h("td", {}, name), h("td", {}, fmt(joints.positions[i], 3)),
     h("td", {}, fmt((joints.velocities || [])[i], 3)))) : [];
   put(byId("joints").tBodies[0], ...rows);
   document.body.dataset.estop = status.estop ? "latched" : "released";
+}
+
+/** Other nodes publishing where the bridge commands the robot: the robot obeys them too.
+ *  Those the config declares (`expected`) are the robot's design; the others are a warning. */
+function renderForeign(listed, count) {
+  const items = listed.map((p) => h("li", {
+    "data-foreign": `${p.topic} ${p.participant}`, "data-expected": String(!!p.expected),
+    "data-tone": p.expected ? null : "warn" },
+  h("strong", {}, p.node || `unnamed node (participant ${p.participant})`),
+  ` on ${p.topic}`, h("span", { class: "mono" }, ` ${p.type}, ${p.writers} writer(s)`), " ",
+  h("span", { "data-tone": p.expected ? "ok" : "warn" },
+    p.expected ? "expected" : "not expected")));
+  if (count > listed.length) items.push(h("li", {}, `and ${count - listed.length} more`));
+  put(byId("foreign"), ...(items.length ? items : [h("li", { class: "empty" }, "none")]));
 }
 
 /** Goals as their frames tell them; the active ones first, then the last few finished. */

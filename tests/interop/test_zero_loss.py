@@ -23,6 +23,7 @@ from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.errors import ServiceTimeout
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import ServiceClient
+from rcan_rtps.ros.udp_drops import socket_drops
 
 from .cpu_load import burning_cpus
 
@@ -35,6 +36,10 @@ CALLS_PER_NODE = int(25 * SCALE)  # fresh RosNode (participant) each
 GOALS = int(100 * SCALE)  # fresh ActionClient each, one node
 GOALS_PER_NODE = int(15 * SCALE)  # fresh RosNode each
 LOADED_GOALS = int(100 * SCALE)  # fresh ActionClient each, the CPU busy
+DROPPED_GOALS = int(200 * SCALE)  # fresh ActionClient each, datagrams dropped at our socket
+# Our participant's socket receive buffer, shrunk so that the kernel drops datagrams at it, as
+# it does on a busy host whose buffer is full: 3 kB holds about two of the server's datagrams.
+SMALL_RCVBUF = "3kB"
 CLI_CALLS = int(20 * SCALE)  # fresh `rcan-rtps service call` processes
 REPLY_TIMEOUT = 5.0
 
@@ -50,6 +55,17 @@ def oracle(jazzy_oracle: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
 @pytest.fixture
 async def node(domain_id: int, jazzy_share: Path) -> AsyncIterator[RosNode]:
     with RosNode("zero_loss_client", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as n:
+        yield n
+
+
+@pytest.fixture
+async def dropping_node(oracle: RclpyOracle, domain_id: int, jazzy_share: Path,
+                        monkeypatch: pytest.MonkeyPatch) -> AsyncIterator[RosNode]:
+    """A node whose sockets drop datagrams (the oracle, started first, keeps its buffers)."""
+    monkeypatch.setenv("CYCLONEDDS_URI", f'<Internal><SocketReceiveBufferSize '
+                                         f'min="{SMALL_RCVBUF}" max="{SMALL_RCVBUF}"/></Internal>')
+    with RosNode("zero_loss_dropping", "/", domain_id=domain_id, distro="jazzy",
                  idl_paths=[jazzy_share]) as n:
         yield n
 
@@ -191,6 +207,27 @@ async def test_every_first_feedback_under_cpu_load(oracle: RclpyOracle, node: Ro
     print(f"{oracle.rmw}, {burners} CPU burners: {LOADED_GOALS} goals, "
           f"{len(tally.no_first_feedback)} first feedbacks lost, {len(tally.wrong)} wrong results")
     tally.assert_clean(LOADED_GOALS)
+
+
+@both_rmws
+async def test_a_first_feedback_dropped_at_our_socket_still_comes(
+        oracle: RclpyOracle, dropping_node: RosNode) -> None:
+    """Issue 27: a feedback whose datagram the kernel dropped at our socket is sent again only
+    on the server writer's next HEARTBEAT (Cyclone 0.1 s, Fast DDS 3 s), after the goal's
+    status and result, which come from other writers: `feedback()` waits for it when our
+    sockets dropped anything since the goal was sent."""
+    await oracle.acall("action_server", name="/fib_burst", period=0.0)
+    tally = GoalTally(order=lambda i: 2)
+    drops = socket_drops()
+    assert drops is not None, "the kernel's drop counts are needed (Linux /proc)"
+    with burning_cpus() as burners:
+        await each_fresh(DROPPED_GOALS, on_node(dropping_node, burst_client), tally.run)
+    dropped = (socket_drops() or 0) - drops
+    print(f"{oracle.rmw}, {burners} CPU burners, {SMALL_RCVBUF} receive buffer: "
+          f"{DROPPED_GOALS} goals, {dropped} datagrams dropped at our sockets, "
+          f"{len(tally.no_first_feedback)} lost, {len(tally.wrong)} wrong results")
+    assert dropped > 0, "no datagram was dropped at our sockets: nothing was shown"
+    tally.assert_clean(DROPPED_GOALS)
 
 
 @both_rmws

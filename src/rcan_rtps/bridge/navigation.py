@@ -108,21 +108,19 @@ class GoalTracker:
                                         state="accepted", created_ms=now, updated_ms=now)
         self._message_ids[goal_id] = message_id
         self._handles[goal_id] = handle
-        task = asyncio.create_task(self._watch(goal_id, handle))
-        self._watchers.add(task)
-        task.add_done_callback(self._watchers.discard)
+        self._track(asyncio.create_task(self._watch(goal_id, handle)))
         self._forget_old()
         self._tell()
         self._tell_event(self._views[goal_id])
         return goal_id
 
     async def _watch(self, goal_id: str, handle: ClientGoal) -> None:
-        values = self.node.values
-        feedback_type = self.client.types.feedback.name
+        """Follows a goal: its feedback (on a task of its own, as feedback sent before the end
+        may come after it, docs/design/zero-loss.md) and its end, shown with its result as
+        soon as the server has it."""
+        self._track(asyncio.create_task(self._follow_feedback(goal_id, handle)))
         try:
-            async for feedback in handle.feedback():
-                self._update(goal_id, self._in_progress(goal_id, handle),
-                             feedback=values.to_plain(feedback_type, feedback))
+            await handle.ended()
             outcome = await handle.result(timeout=RESULT_TIMEOUT_S)
         except (WireError, OSError) as exc:
             self._update(goal_id, "unknown", detail=str(exc))
@@ -133,8 +131,24 @@ class GoalTracker:
             return
         result = None
         if outcome.result is not None:
-            result = values.to_plain(self.client.types.result.name, outcome.result)
+            result = self.node.values.to_plain(self.client.types.result.name, outcome.result)
         self._update(goal_id, _STATES[outcome.state], result=result, detail=outcome.detail or None)
+
+    async def _follow_feedback(self, goal_id: str, handle: ClientGoal) -> None:
+        values, feedback_type = self.node.values, self.client.types.feedback.name
+        try:
+            async for feedback in handle.feedback():
+                self._update(goal_id, self._in_progress(goal_id, handle),
+                             feedback=values.to_plain(feedback_type, feedback))
+        except (WireError, OSError) as exc:  # the goal's end says what became of it
+            log.info("goal %s on %s: feedback ended: %s", goal_id, self.client.name, exc)
+        except Exception as exc:  # a feedback a broken server sent; its end still counts
+            log.warning("goal %s on %s: feedback: %s: %s", goal_id, self.client.name,
+                        type(exc).__name__, exc)
+
+    def _track(self, task: asyncio.Task[None]) -> None:
+        self._watchers.add(task)
+        task.add_done_callback(self._watchers.discard)
 
     def _in_progress(self, goal_id: str, handle: ClientGoal) -> GoalState:
         """The state to show with feedback: a goal's end is shown with its result (and

@@ -32,13 +32,14 @@ from typing import Any
 from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
-from .errors import ActionError, WireError, seconds
+from .errors import ActionError, ServiceTimeout, WireError, seconds
 from .graph import Direction
 from .handshake import matched_writers, writers_ready
 from .names import action_names, mangle_topic
 from .participant import RosNode, RosSubscription
 from .rostime import now_msg
 from .services import RequestMapping, ServiceClient, ServiceServer, shared_graph
+from .udp_drops import socket_drops
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +50,12 @@ REJECT_GRACE = 0.5  # s: a "rejected" reply is ours only if our goal does not sh
 LOST_GRACE = 0.5  # s without a status writer before open goals count as lost
 POLL = 0.02
 SETTLE_S = 5.0  # s: how long a finished goal's feedback waits for its result (see `feedback`)
+# s: how long a dropped feedback datagram can take to come again, by the server's request
+# mapping (its RMW): Cyclone's writers send a HEARTBEAT every 100 ms while a reader owes an
+# ACK, Fast DDS's every 3 s (measured: 0.07-0.18 s and 0.01-2.94 s under load,
+# docs/design/zero-loss.md), with margin for a busy host.
+REPAIR_S = {RequestMapping.CYCLONE: 1.0, RequestMapping.FASTDDS: 4.0}
+RESULT_ASK_S = 5.0  # s: a get_result request unanswered this long is sent again (`_ask_result`)
 
 
 class GoalState(enum.IntEnum):
@@ -97,40 +104,65 @@ class ClientGoal:
         self.state = GoalState.UNKNOWN
         self._feedback: asyncio.Queue[IdlStruct] = asyncio.Queue(maxsize=1000)
         self._result: GoalResult | None = None
+        self._drops = socket_drops()  # datagrams our sockets dropped before the goal was sent
 
     def __repr__(self) -> str:
         return f"<ClientGoal {uuid.UUID(bytes=self.goal_id)} {self.state.name}>"
 
     async def feedback(self, timeout: float | None = None) -> AsyncIterator[IdlStruct]:
-        """Feedback messages (the `feedback` part) until the goal ends."""
+        """Feedback messages (the `feedback` part) until the goal has ended and no feedback
+        sent before its end can still be on its way."""
         loop = asyncio.get_running_loop()
         deadline = None if timeout is None else loop.time() + timeout
-        settled = False
+        until: float | None = None  # once the end has settled: how long feedback may still come
         while True:
             if not self._feedback.empty():
                 yield self._feedback.get_nowait()
                 continue
             self.client.check_server()
-            if self.state.terminal and not settled:
-                # The terminal status comes on another reader than the feedback sent before
-                # it: both can arrive in one wake-up of the node's reader thread, which hands
-                # the status over first, and on a busy machine Cyclone may hand the feedback
-                # to a delivery queue of its own, later still (docs/design/zero-loss.md). The
-                # result is asked for only now, and its reply leaves the server after that
-                # feedback: wait for it (bounded; whoever asks `result()` gets it cached, or
-                # asks again), then for one more pass of the reader thread.
-                settled = True
-                with contextlib.suppress(WireError):
-                    await self.result(timeout=SETTLE_S if deadline is None
-                                      else max(0.1, min(SETTLE_S, deadline - loop.time())))
-                await self.client.node.delivered()
+            if self.state.terminal and until is None:
+                until = await self._settle(deadline)
                 continue
-            if self.state.terminal or (deadline is not None and loop.time() >= deadline):
+            now = loop.time()
+            ends = [t for t in (until, deadline) if t is not None]
+            if ends and now >= min(ends):
                 return
             try:
-                yield await asyncio.wait_for(self._feedback.get(), 0.1)
+                yield await asyncio.wait_for(self._feedback.get(),
+                                             min([0.1, *(t - now for t in ends)]))
             except asyncio.TimeoutError:
                 continue
+
+    async def ended(self) -> GoalState:
+        """Waits until the goal has ended (or its server has left the graph)."""
+        while not self.state.terminal:
+            self.client.check_server()
+            await asyncio.sleep(POLL)
+        return self.state
+
+    async def _settle(self, deadline: float | None) -> float:
+        """Once the goal is terminal: until when feedback sent before its end may still come.
+
+        The terminal status comes on another reader than the feedback sent before it: both
+        can arrive in one wake-up of the node's reader thread, which hands the status over
+        first, and on a busy machine Cyclone may hand the feedback to a delivery queue of its
+        own, later still. The result is asked for only now, and its reply leaves the server
+        after that feedback: wait for it (bounded; whoever asks `result()` gets it cached, or
+        asks again), then for one more pass of the reader thread. A feedback whose datagram
+        the kernel dropped at our socket comes only once the writer's next HEARTBEAT asks for
+        it to be sent again: if this process's sockets dropped anything since the goal was
+        sent (or that cannot be known), wait as long as the server's repair can take.
+        docs/design/zero-loss.md has the evidence for each step."""
+        loop = asyncio.get_running_loop()
+        with contextlib.suppress(WireError):
+            await self.result(timeout=SETTLE_S if deadline is None
+                              else max(0.1, min(SETTLE_S, deadline - loop.time())))
+        await self.client.node.delivered()
+        drops = socket_drops()
+        if self.state in (GoalState.REJECTED, GoalState.SERVER_LOST) or \
+                (drops is not None and drops == self._drops):
+            return loop.time()
+        return loop.time() + self.client.repair_time()
 
     async def result(self, timeout: float = 60.0) -> GoalResult:
         """Waits for the goal to end and fetches its result (once)."""
@@ -230,6 +262,15 @@ class ActionClient:
                 callback=self._feedback_callback)
         return self._feedback
 
+    def repair_time(self) -> float:
+        """How long a reliable sample of this server's can take to be sent again (REPAIR_S);
+        the longest while its RMW is not known."""
+        try:
+            mapping = self._get.resolve_mapping()
+        except WireError:
+            mapping = None
+        return REPAIR_S[mapping] if mapping in REPAIR_S else max(REPAIR_S.values())
+
     def server_present(self) -> bool:
         """Whether an action server is on the graph now (its status writer is matched)."""
         return self._status.matched_count() > 0
@@ -265,15 +306,27 @@ class ActionClient:
         request_cls: Any = self.node.types.struct(self.types.send_goal.request.name)
         request = request_cls(goal_id=values.build(UUID_TYPE, {"uuid": handle.goal_id}),
                               goal=message)
-        reply: Any = await self._send.call(request, max(0.0, deadline - loop.time()))
-        if self._send.resolve_mapping() is RequestMapping.CYCLONE:
+        try:
+            reply: Any = await self._send.call(request, max(0.0, deadline - loop.time()))
+        except ServiceTimeout:
+            # The reply can be lost for good when datagrams are dropped at our socket (see
+            # `_ask_result`); the status topic names the goals the server accepted.
+            if handle.goal_id not in self._status_seen:
+                raise
+            log.info("action %s: no reply to goal %s, which the status topic lists: accepted",
+                     self.name, uuid.UUID(bytes=handle.goal_id))
+            reply = None
+        if reply is None:
+            accepted = True
+        elif self._send.resolve_mapping() is RequestMapping.CYCLONE:
             accepted = bool(reply.accepted)
         else:
             accepted = await self._confirm(handle, bool(reply.accepted), deadline)
         handle.accepted = accepted
         if accepted:
-            handle.stamp = self._status_seen.get(handle.goal_id, (GoalState.ACCEPTED,
-                                                                  _stamp(reply.stamp)))[1]
+            stamp = (0, 0) if reply is None else _stamp(reply.stamp)
+            handle.stamp = self._status_seen.get(handle.goal_id,
+                                                 (GoalState.ACCEPTED, stamp))[1]
             handle.state = max(handle.state, GoalState.ACCEPTED)
         else:
             handle.state = GoalState.REJECTED
@@ -314,9 +367,7 @@ class ActionClient:
         def ours(reply: Any) -> bool:  # Fast DDS: another goal's result has another status
             return int(reply.status) == int(final)
 
-        request = {"goal_id": {"uuid": goal.goal_id}}
-        reply: Any = await self._get.call(request, max(0.1, deadline - loop.time()),
-                                          accept=ours)
+        reply = await self._ask_result(goal, ours, deadline)
         value = int(reply.status)
         if value not in _WIRE_STATES or not GoalState(value).terminal:
             # A result is asked for once the goal ended: a reply naming no end (or a value
@@ -324,6 +375,23 @@ class ActionClient:
             return GoalResult(final, reply.result,
                               f"the server's result named status {value}; kept {final.name}")
         return GoalResult(GoalState(value), reply.result)
+
+    async def _ask_result(self, goal: ClientGoal, ours: Callable[[Any], bool],
+                          deadline: float) -> Any:
+        """The get_result reply, asked for again every RESULT_ASK_S until `deadline`: asking
+        is idempotent, and a reply can be lost for good when datagrams are dropped at our
+        socket (seen with Fast DDS servers, docs/design/zero-loss.md)."""
+        loop = asyncio.get_running_loop()
+        request = {"goal_id": {"uuid": goal.goal_id}}
+        while True:
+            left = max(0.1, deadline - loop.time())
+            try:
+                return await self._get.call(request, min(RESULT_ASK_S, left), accept=ours)
+            except ServiceTimeout:
+                if left <= RESULT_ASK_S:
+                    raise
+                log.info("action %s: no result for goal %s yet; asking again", self.name,
+                         uuid.UUID(bytes=goal.goal_id))
 
     async def _cancel(self, goal: ClientGoal, timeout: float) -> bool:
         request = {"goal_info": {"goal_id": {"uuid": goal.goal_id}}}

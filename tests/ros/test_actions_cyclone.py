@@ -8,6 +8,7 @@ from typing import Any
 
 import pytest
 
+from rcan_rtps.ros import actions
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import RequestMapping
@@ -109,3 +110,52 @@ async def test_server_vanishing_mid_goal(domain_id: int) -> None:
         server_node.close()  # the robot process is gone mid-goal
         outcome = await goal.result(timeout=30)
         assert outcome.state is GoalState.SERVER_LOST and outcome.result is None
+
+
+class LosingServer(ActionServer):
+    """Our server, but the first reply of one kind never leaves (what a reply lost for good
+    looks like to the client: docs/design/zero-loss.md)."""
+
+    def __init__(self, *args: Any, lose: str, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.lose, self.asked = lose, {"send_goal": 0, "get_result": 0}
+
+    async def _lost(self, kind: str) -> bool:
+        self.asked[kind] += 1
+        if kind == self.lose and self.asked[kind] == 1:
+            await asyncio.Event().wait()  # never answered
+        return False
+
+    async def _on_send_goal(self, request: Any) -> dict[str, Any]:
+        reply = await super()._on_send_goal(request)
+        await self._lost("send_goal")
+        return reply
+
+    async def _on_get_result(self, request: Any) -> Any:
+        await self._lost("get_result")
+        return await super()._on_get_result(request)
+
+
+async def test_a_lost_result_reply_is_asked_for_again(
+        nodes: tuple[RosNode, RosNode], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(actions, "RESULT_ASK_S", 0.5)
+    server_node, client_node = nodes
+    server = LosingServer(server_node, "navigate_to_pose", NAV, navigate, lose="get_result")
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    goal = await client.send_goal(GOAL, timeout=20)
+    outcome = await goal.result(timeout=20)
+    assert outcome.state is GoalState.SUCCEEDED and server.asked["get_result"] >= 2
+    await server.close()
+
+
+async def test_a_lost_goal_reply_is_read_from_the_status_topic(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    server_node, client_node = nodes
+    server = LosingServer(server_node, "navigate_to_pose", NAV, navigate, lose="send_goal")
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    goal = await client.send_goal(GOAL, timeout=3)
+    assert goal.accepted and server.asked["send_goal"] == 1
+    remaining = [round(f.distance_remaining, 3) async for f in goal.feedback(timeout=20)]
+    assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
+    assert remaining[-1] == 0.0
+    await server.close()

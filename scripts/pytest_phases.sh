@@ -18,12 +18,23 @@ cd "$(dirname "$0")/.."
 PY=${RCAN_RTPS_TEST_PYTHON:-.venv/bin/python}
 workers=${RCAN_RTPS_TEST_WORKERS:-$(( 2 * $(nproc 2>/dev/null || echo 1) ))}
 
+# The namespace's UDP counters after each phase (cumulative): a loss in a test is then told from a datagram
+# the kernel dropped (RcvbufErrors) or not (docs/design/zero-loss.md).
+udp_counters() {
+  [ -n "${RCAN_RTPS_IN_NETNS:-}" ] && [ -r /proc/net/snmp ] &&
+    echo "-- UDP counters of the test network namespace: $(grep '^Udp:' /proc/net/snmp |
+      awk 'NR==1{for(i=2;i<=NF;i++)h[i]=$i} NR==2{for(i=2;i<=NF;i++)printf "%s=%s ", h[i], $i}')"
+  return 0
+}
+
 echo "-- phase 1: in parallel ($workers workers), all but the serial tests"
 "$PY" -m pytest -n "$workers" --dist worksteal -m "not serial" "$@"
 first=$?
+udp_counters
 echo "-- phase 2: the serial tests, alone"
 "$PY" -m pytest -n 0 -m serial "$@"
 second=$?
+udp_counters
 
 if [ "$first" -eq 5 ] && [ "$second" -eq 5 ]; then exit 5; fi
 [ "$first" -eq 5 ] && first=0

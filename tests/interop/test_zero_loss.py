@@ -160,6 +160,7 @@ class GoalTally:
 
     def __init__(self, order: Callable[[int], int] = lambda i: 2 + i % 4) -> None:
         self.order = order  # by default the result tells one goal from the next
+        self.drops = socket_drops()  # what our sockets dropped before: told with a failure
         self.no_first_feedback: list[int] = []
         self.wrong: list[tuple[int, object]] = []
 
@@ -176,9 +177,11 @@ class GoalTally:
             self.wrong.append((i, outcome))
 
     def assert_clean(self, total: int) -> None:
+        now = socket_drops()
+        dropped = "unknown" if now is None or self.drops is None else now - self.drops
         assert (self.no_first_feedback, self.wrong) == ([], []), \
             f"of {total} goals: first feedback lost for {self.no_first_feedback}, " \
-            f"wrong results {self.wrong}"
+            f"wrong results {self.wrong}; datagrams dropped at our sockets meanwhile: {dropped}"
 
 
 async def _first_feedback(goal: object) -> list[int] | None:

@@ -8,14 +8,18 @@ memory figure."""
 from __future__ import annotations
 
 import asyncio
+import gc
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from cyclonedds.idl._xt_builder import XTBuilder
+from cyclonedds.qos import Qos
 from waiting import eventually
 
+from rcan_rtps.ros.graph import Direction, Endpoint, RosGraph
 from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.qos import Durability, History, QosProfile
 from rcan_rtps.ros.typesys.store import TypeStore
 
 TWIST = "geometry_msgs/msg/Twist"
@@ -127,3 +131,33 @@ def test_the_first_path_holding_a_type_wins_and_odd_names_are_not_found(
     single = TypeStore([first / "idle_pkg"], include_bundle=False)
     assert single.source_of("idle_pkg/msg/T") == first / "idle_pkg" / "msg" / "T.idl"
     assert single.interface_names() == ["idle_pkg/msg/T"]
+
+
+async def test_the_graph_keeps_each_endpoint_as_its_ros_view_with_shared_profiles(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """A discovered endpoint is kept as what the views show of it, not as its builtin sample
+    (a `Qos` of policy objects, ~2 kB each, for every endpoint of the domain): the peer's
+    endpoints are described as before, and endpoints of equal QoS share one profile."""
+    a, b = nodes
+    keep_all = QosProfile(history=History.KEEP_ALL, durability=Durability.TRANSIENT_LOCAL)
+    b.create_publisher("/idle/one", TWIST, keep_all)
+    b.create_publisher("/idle/two", TWIST, keep_all)
+    b.create_subscription("/idle/three", ODOM)
+    graph = RosGraph(a)
+
+    def seen() -> list[Endpoint]:
+        graph.refresh()
+        return [e for e in graph.endpoints()
+                if e.ros_name in ("/idle/one", "/idle/two", "/idle/three")]
+
+    await eventually(lambda: len(seen()) == 3, timeout=10.0, what="b's three endpoints")
+    one, three, two = sorted(seen(), key=lambda e: e.ros_name)
+    assert (one.ros_name, one.ros_type, one.direction) == ("/idle/one", TWIST,
+                                                           Direction.PUBLISHER)
+    assert (three.ros_type, three.direction) == (ODOM, Direction.SUBSCRIPTION)
+    assert one.qos == two.qos == keep_all.with_(depth=one.qos.depth)
+    assert one.qos is two.qos  # one object per distinct profile
+    assert (three.qos.history, three.qos.depth) == (History.KEEP_LAST, 10)
+    assert one.type_hash == a.store.hash_of(TWIST)
+    assert one.dds_type == "geometry_msgs::msg::dds_::Twist_"
+    assert not any(isinstance(held, Qos) for held in gc.get_referents(*graph._endpoints.values()))

@@ -10,10 +10,12 @@ from __future__ import annotations
 import asyncio
 import enum
 import logging
+import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
+import msgspec
 from cyclonedds.builtin import (
     BuiltinDataReader,
     BuiltinTopicDcpsParticipant,
@@ -71,6 +73,20 @@ class Endpoint:
     service_id: str = ""
 
 
+class _Seen(msgspec.Struct, frozen=True):
+    """What the views need of a discovered endpoint, taken from its builtin sample when it
+    arrives. The sample itself (its `Qos` a dict of policy objects, ~2 kB) is not kept: a
+    graph holds one per endpoint of the domain, its own included, for as long as it lives."""
+
+    direction: Direction
+    topic_name: str
+    type_name: str
+    participant: bytes
+    qos: QosProfile  # one object per distinct profile (`RosGraph._profiles`)
+    type_hash: str
+    service_id: str
+
+
 def vendor_of(gid: bytes) -> str:
     return VENDORS.get(gid[:2], f"unknown vendor {gid[:2].hex('.')}")
 
@@ -94,7 +110,9 @@ class RosGraph:
         self._participants = BuiltinDataReader(node.participant, BuiltinTopicDcpsParticipant)
         self._info = node.discovery_reader()
         self._decode_info = node.codecs.of(DISCOVERY_TYPE).prepare_decoder().decode
-        self._endpoints: dict[bytes, tuple[Direction, Any]] = {}
+        self._endpoints: dict[bytes, _Seen] = {}
+        # Discovered QoS profiles, each kept once: a graph's endpoints share a handful.
+        self._profiles: dict[QosProfile, QosProfile] = {}
         self._node_infos: dict[bytes, Any] = {}
         self._alive: set[bytes] = set()  # participants discovery knows (this one included)
         self.bad_infos = 0  # ros_discovery_info samples that did not decode (dropped)
@@ -110,7 +128,7 @@ class RosGraph:
                 taken += 1
                 key = sample.key.bytes
                 if sample.sample_info.instance_state == InstanceState.Alive:
-                    self._endpoints[key] = (direction, sample)
+                    self._endpoints[key] = self._seen(direction, sample)
                 else:
                     self._endpoints.pop(key, None)
         # Participants before their nodes: an info is kept by its participant being alive.
@@ -127,6 +145,14 @@ class RosGraph:
         taken += self._take_node_infos()
         if taken:
             self.generation += 1
+
+    def _seen(self, direction: Direction, sample: Any) -> _Seen:
+        user_data = qos_mod.user_data_of(sample.qos)
+        profile = qos_mod.from_dds(sample.qos)
+        return _Seen(direction, sys.intern(sample.topic_name), sys.intern(sample.type_name),
+                     sample.participant_key.bytes, self._profiles.setdefault(profile, profile),
+                     user_data.get("typehash", ""),
+                     user_data.get("serviceid") or user_data.get("clientid") or "")
 
     def _take_node_infos(self) -> int:
         """Each participant's nodes from ros_discovery_info; how many samples were taken.
@@ -180,9 +206,8 @@ class RosGraph:
             await asyncio.sleep(0.1)
 
     def _unannounced(self) -> set[bytes]:
-        ros_participants = {sample.participant_key.bytes
-                            for _, sample in self._endpoints.values()
-                            if demangle(sample.topic_name) is not None}
+        ros_participants = {seen.participant for seen in self._endpoints.values()
+                            if demangle(seen.topic_name) is not None}
         return ros_participants - set(self._node_infos)
 
     # -- views -----------------------------------------------------------------
@@ -207,31 +232,25 @@ class RosGraph:
         """The publishers of these ROS topics (fully qualified names), of any participant.
         Costs a set lookup per endpoint of the graph; only theirs are described."""
         wanted = {mangle_topic(t) for t in topics}
-        chosen = [(key, (direction, sample))
-                  for key, (direction, sample) in self._endpoints.items()
-                  if direction is Direction.PUBLISHER and sample.topic_name in wanted]
-        return self._described(chosen, self._owners(
-            {sample.participant_key.bytes for _, (_, sample) in chosen}))
+        chosen = [(key, seen) for key, seen in self._endpoints.items()
+                  if seen.direction is Direction.PUBLISHER and seen.topic_name in wanted]
+        return self._described(chosen, self._owners({seen.participant for _, seen in chosen}))
 
     @staticmethod
-    def _described(chosen: Iterable[tuple[bytes, tuple[Direction, Any]]],
+    def _described(chosen: Iterable[tuple[bytes, _Seen]],
                    owners: dict[tuple[bytes, bytes], tuple[str, str]]) -> list[Endpoint]:
         found = []
-        for key, (direction, sample) in chosen:
-            mangled = demangle(sample.topic_name)
+        for key, seen in chosen:
+            mangled = demangle(seen.topic_name)
             if mangled is None:
                 continue
-            user_data = qos_mod.user_data_of(sample.qos)
-            participant = sample.participant_key.bytes
-            namespace, name = owners.get((participant, key),
+            namespace, name = owners.get((seen.participant, key),
                                          ("_NODE_NAMESPACE_UNKNOWN_", "_NODE_NAME_UNKNOWN_"))
             found.append(Endpoint(
-                direction, mangled.kind, mangled.name,
-                ros_type_of(sample.type_name, mangled.kind), sample.topic_name,
-                sample.type_name, key, participant,
-                qos_mod.from_dds(sample.qos), user_data.get("typehash", ""),
-                vendor_of(key), name, namespace,
-                user_data.get("serviceid") or user_data.get("clientid") or "",
+                seen.direction, mangled.kind, mangled.name,
+                ros_type_of(seen.type_name, mangled.kind), seen.topic_name,
+                seen.type_name, key, seen.participant, seen.qos, seen.type_hash,
+                vendor_of(key), name, namespace, seen.service_id,
             ))
         return sorted(found, key=lambda e: (e.ros_name, e.direction.value, e.node_name))
 

@@ -31,7 +31,7 @@ def dropping_socket() -> Iterator[None]:
             socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
         receiver.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
         receiver.bind(("127.0.0.1", 0))
-        for _ in range(50):
+        for _ in range(10):
             sender.sendto(b"x" * 1000, receiver.getsockname())
         yield
 

@@ -20,10 +20,10 @@ def test_counts_what_a_full_receive_buffer_dropped() -> None:
             socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
         receiver.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)  # the kernel's least
         receiver.bind(("127.0.0.1", 0))
-        for _ in range(200):  # nobody reads: the buffer fills, the rest is dropped
+        for _ in range(30):  # nobody reads: the buffer fills, the rest is dropped
             sender.sendto(b"x" * 1000, receiver.getsockname())
         during = socket_drops()
-    assert during is not None and during - before >= 150
+    assert during is not None and during - before >= 20
 
 
 CHILD = """
@@ -32,7 +32,7 @@ receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
 receiver.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
 receiver.bind(("127.0.0.1", 0))
 sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-for _ in range(200):
+for _ in range(30):
     sender.sendto(b"x" * 1000, receiver.getsockname())
 print("dropped", flush=True)
 sys.stdin.read()
@@ -44,7 +44,7 @@ def test_another_process_s_drops_are_not_counted() -> None:
     with subprocess.Popen([sys.executable, "-c", CHILD], stdin=subprocess.PIPE,
                           stdout=subprocess.PIPE, text=True) as child:
         assert child.stdout is not None and child.stdout.readline() == "dropped\n"
-        assert _table_drops() >= 150  # the kernel counted them, for the child's socket
+        assert _table_drops() >= 20  # the kernel counted them, for the child's socket
         assert socket_drops() == before
         child.communicate("")
 

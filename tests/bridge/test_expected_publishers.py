@@ -85,7 +85,7 @@ def publisher(topic: str, node: str, expected: bool) -> ForeignPublisher:
 def faults(estop: bool, foreign: list[ForeignPublisher], telemetry: Telemetry = STILL,
            stale: bool = False) -> list[Fault]:
     motion = sorted({f.topic for f in foreign if f.topic in (CMD_VEL, ARM)})
-    return _commander_faults(estop, foreign, motion, _Stillness(stale, telemetry, CMD_VEL))
+    return _commander_faults(estop, foreign, motion, _Stillness(stale, stale, telemetry, CMD_VEL))
 
 
 def levels(found: list[Fault]) -> dict[str, str]:

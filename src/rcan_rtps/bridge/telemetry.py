@@ -87,6 +87,10 @@ class TelemetryState:
         self._monotonic = monotonic
         self._lock = threading.Lock()
         self._last_rx: float | None = None
+        # When odometry and a JointState last came: "seen still" needs them fresh, whatever
+        # else the robot's nodes keep sending (`_Stillness`).
+        self._odom_rx: float | None = None
+        self._joints_rx: float | None = None
         self._position: Position | None = None
         self._yaw: float | None = None
         self._velocity: Velocity | None = None
@@ -148,6 +152,7 @@ class TelemetryState:
             self._position = Position(p.position.x, p.position.y, p.position.z)
             self._yaw = quaternion_to_yaw(p.orientation)
             self._velocity = Velocity(twist.linear.x, twist.angular.z)
+            self._odom_rx = self._monotonic()
             changed = self._touch() or was_moving != _moving(self._velocity)
         self._tell(changed)
 
@@ -155,6 +160,7 @@ class TelemetryState:
         with self._lock:
             self._joints = bounded_joints(msg.name, msg.position, msg.velocity,
                                           self._commanded_joints)
+            self._joints_rx = self._monotonic()
             changed = self._touch()
         self._tell(changed)
 
@@ -207,6 +213,9 @@ class TelemetryState:
         self._tell(changed)
 
     # -- API side --------------------------------------------------------------------------
+    def _stale(self, last: float | None) -> bool:
+        return last is None or self._monotonic() - last > self.config.bridge.ros2.telemetry_stale_s
+
     def age_s(self) -> float | None:
         return None if self._last_rx is None else self._monotonic() - self._last_rx
 
@@ -220,11 +229,12 @@ class TelemetryState:
             self._seq += 1
             now_us = self._last_us = max(time.time_ns() // 1000, self._last_us + 1)
             seq = self._seq
+            odom_stale, joints_stale = self._stale(self._odom_rx), self._stale(self._joints_rx)
         goals = self._active_goals()
         navigation = self._navigation() if goals else None
         stale = age is None or age > self.config.bridge.ros2.telemetry_stale_s
         estop = self._estop_latched()
-        still = _Stillness(stale, telemetry, self._base_topic)
+        still = _Stillness(odom_stale, joints_stale, telemetry, self._base_topic)
         faults = _commander_faults(estop, foreign, foreign_motion, still) + faults
         return Status(
             ruri=self.config.robot.ruri, state=self._state(estop, faults, stale, goals, telemetry),
@@ -257,19 +267,23 @@ class TelemetryState:
 class _Stillness:
     """Whether the robot is seen at rest, for the motion topics some publishers are on:
     fresh odometry at rest for the velocity topic; for any other (a trajectory topic) also a
-    JointState whose every listed joint reports a velocity at rest. What is not known is not
-    still."""
+    fresh JointState whose every listed joint reports a velocity at rest. What is not known is
+    not still, and each is fresh by its own age: diagnostics or a battery still coming say
+    nothing of a robot whose odometry has stopped."""
 
-    def __init__(self, stale: bool, telemetry: Telemetry, base_topic: str) -> None:
-        self.stale, self.telemetry, self.base_topic = stale, telemetry, base_topic
+    def __init__(self, odom_stale: bool, joints_stale: bool, telemetry: Telemetry,
+                 base_topic: str) -> None:
+        self.odom_stale, self.joints_stale = odom_stale, joints_stale
+        self.telemetry, self.base_topic = telemetry, base_topic
 
     def __call__(self, topics: set[str]) -> bool:
         velocity, joints = self.telemetry.velocity, self.telemetry.joints
-        if self.stale or velocity is None or _moving(velocity):
+        if self.odom_stale or velocity is None or _moving(velocity):
             return False
         if topics <= {self.base_topic}:
             return True
-        return (joints is not None and len(joints.velocities) == len(joints.names) > 0
+        return (not self.joints_stale and joints is not None
+                and len(joints.velocities) == len(joints.names) > 0
                 and all(abs(v) <= _MOVING_EPS for v in joints.velocities))
 
 

@@ -15,7 +15,9 @@ velocity_smoother on cmd_vel: `bridge.ros2.foreign_publishers.expected`). A part
 `expected` on a topic when every one of its writers there belongs to a node named on that
 topic's list; one writer of an unnamed node (no ros_discovery_info) or of another node makes
 it unexpected. An expected one is listed, audited and logged (at INFO) all the same; what it
-changes is telemetry.py's faults.
+changes is telemetry.py's faults. One reported that turns unexpected (or expected) is logged and
+audited again, as an appearance with its new facts: the audit never ends on "expected" for a
+participant whose writers are no longer all declared.
 
 A participant counts once per topic, however many writers it has there. Its appearance is
 logged and audited once its node is named (ros_discovery_info may come after the endpoint:
@@ -157,6 +159,10 @@ class CommanderWatch:
         gone = [p for k, p in self._known.items() if k not in now]
         # One that came and went between two reports: its appearance is recorded too.
         self._report([self._known[k] for k in self._unreported if k not in now], gone=False)
+        # One reported that is now expected where it was not, or the reverse (a writer of
+        # another node joined it, or left): told again, as it is now.
+        self._report([p for k, p in now.items() if k in self._known and k not in
+                      self._unreported and p.expected != self._known[k].expected], gone=False)
         self._unreported = {k: t for k, t in self._unreported.items() if k in now}
         self._known = now
         self._report(gone, gone=True)

@@ -119,10 +119,12 @@ class ClientGoal:
             if not self._feedback.empty():
                 yield self._feedback.get_nowait()
                 continue
-            self.client.check_server()
+            present = self.client.check_server()
             if self.state.terminal and until is None:
                 until = await self._settle(deadline)
                 continue
+            if until is not None and not present:
+                return  # the server has left: no datagram of its can be sent again
             now = loop.time()
             ends = [t for t in (until, deadline) if t is not None]
             if ends and now >= min(ends):
@@ -201,6 +203,7 @@ class ActionClient:
         self._unknown_status_logged = False
         self._server_seen = False
         self._lost_since: float | None = None
+        self._closed = False
         self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
         loop = asyncio.get_running_loop()
 
@@ -272,11 +275,15 @@ class ActionClient:
         return REPAIR_S[mapping] if mapping in REPAIR_S else max(REPAIR_S.values())
 
     def server_present(self) -> bool:
-        """Whether an action server is on the graph now (its status writer is matched)."""
-        return self._status.matched_count() > 0
+        """Whether an action server is on the graph now (its status writer is matched);
+        False once this client is closed."""
+        return not self._closed and self._status.matched_count() > 0
 
     def check_server(self) -> bool:
-        """False once the server has left the graph; its open goals then end as lost."""
+        """False once the server has left the graph; its open goals then end as lost.
+        Raises ActionError once this client is closed (whoever waits on a goal is told)."""
+        if self._closed:
+            raise ActionError(f"the action client of {self.name} is closed")
         if self._status.matched_count() > 0:
             self._server_seen, self._lost_since = True, None
             return True
@@ -418,6 +425,7 @@ class ActionClient:
 
     def close(self) -> None:
         """Deletes the endpoints; calls still waiting fail. Idempotent."""
+        self._closed = True
         for client in (self._send, self._get, self._cancel_srv):
             client.close()
         self._status.close()

@@ -31,7 +31,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from ..config import RcanConfig
@@ -104,6 +104,8 @@ class TelemetryState:
         self._commanded_joints = frozenset(
             j for arm in config.bridge.ros2.arms.values() for j in arm.joints)
         self._base_topic = config.bridge.ros2.resolve(config.bridge.ros2.cmd_vel_topic)
+        self._arm_joints = {config.bridge.ros2.resolve(arm.topic): frozenset(arm.joints)
+                            for arm in config.bridge.ros2.arms.values()}
         self.safe_stopped = False
         self._started = monotonic()
         self._cpu = CpuMeter()
@@ -234,7 +236,8 @@ class TelemetryState:
         navigation = self._navigation() if goals else None
         stale = age is None or age > self.config.bridge.ros2.telemetry_stale_s
         estop = self._estop_latched()
-        still = _Stillness(odom_stale, joints_stale, telemetry, self._base_topic)
+        still = _Stillness(odom_stale, joints_stale, telemetry, self._base_topic,
+                           self._arm_joints)
         faults = _commander_faults(estop, foreign, foreign_motion, still) + faults
         return Status(
             ruri=self.config.robot.ruri, state=self._state(estop, faults, stale, goals, telemetry),
@@ -267,14 +270,17 @@ class TelemetryState:
 class _Stillness:
     """Whether the robot is seen at rest, for the motion topics some publishers are on:
     fresh odometry at rest for the velocity topic; for any other (a trajectory topic) also a
-    fresh JointState whose every listed joint reports a velocity at rest. What is not known is
-    not still, and each is fresh by its own age: diagnostics or a battery still coming say
-    nothing of a robot whose odometry has stopped."""
+    fresh JointState whose every listed joint reports a velocity at rest, and which lists the
+    joints of the arms on those topics (`arm_joints`: resolved topic -> the arm's configured
+    joints; an arm with none, or a topic of no arm, needs every joint of the JointState, so
+    one cut short is not enough). What is not known is not still, and each is fresh by its
+    own age: diagnostics or a battery still coming say nothing of a robot whose odometry has
+    stopped."""
 
     def __init__(self, odom_stale: bool, joints_stale: bool, telemetry: Telemetry,
-                 base_topic: str) -> None:
+                 base_topic: str, arm_joints: Mapping[str, frozenset[str]]) -> None:
         self.odom_stale, self.joints_stale = odom_stale, joints_stale
-        self.telemetry, self.base_topic = telemetry, base_topic
+        self.telemetry, self.base_topic, self.arm_joints = telemetry, base_topic, arm_joints
 
     def __call__(self, topics: set[str]) -> bool:
         velocity, joints = self.telemetry.velocity, self.telemetry.joints
@@ -282,9 +288,14 @@ class _Stillness:
             return False
         if topics <= {self.base_topic}:
             return True
-        return (not self.joints_stale and joints is not None
-                and len(joints.velocities) == len(joints.names) > 0
-                and all(abs(v) <= _MOVING_EPS for v in joints.velocities))
+        if self.joints_stale or joints is None or \
+                not len(joints.velocities) == len(joints.names) > 0 or \
+                not all(abs(v) <= _MOVING_EPS for v in joints.velocities):
+            return False
+        arms = [self.arm_joints.get(t, frozenset()) for t in topics - {self.base_topic}]
+        if any(not arm for arm in arms):  # any joint may be the arm's: all must be seen
+            return joints.count is None or joints.count == len(joints.names)
+        return frozenset().union(*arms) <= set(joints.names)
 
 
 def _commander_faults(estop: bool, foreign: list[ForeignPublisher], motion: list[str],

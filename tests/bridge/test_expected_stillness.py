@@ -9,7 +9,7 @@ from pathlib import Path
 
 from interop.bridge_rig import bridge_config
 
-from rcan_rtps.bridge.telemetry import ESTOP_NOT_HOLDING, TelemetryState
+from rcan_rtps.bridge.telemetry import ESTOP_NOT_HOLDING, MAX_FOREIGN, TelemetryState
 from rcan_rtps.rcan import ForeignPublisher
 from rcan_rtps.ros.participant import RosNode
 
@@ -85,5 +85,28 @@ async def test_a_stale_joint_state_is_not_still_for_a_trajectory_topic(
             assert estop_level(telemetry) == "ERROR"
             telemetry._on_joints(resting)
             assert estop_level(telemetry) == "WARN"
+        finally:
+            telemetry.close()
+
+
+async def test_status_lists_the_unexpected_publishers_before_the_expected(
+        tmp_path: Path, domain_id: int) -> None:
+    """STATUS lists MAX_FOREIGN of them: participants claiming an expected node's name
+    (any may) must not push an unexpected one out of the list."""
+    config = bridge_config(tmp_path, domain_id)
+    with RosNode("foreign_order", "/robot1", domain_id=domain_id) as node:
+        telemetry = TelemetryState(node, config, estop_latched=lambda: False,
+                                   active_goals=list)
+        try:
+            claimed = [ForeignPublisher(topic=CMD_VEL, type="geometry_msgs/msg/Twist",
+                                        participant=f"{i:02x}", node="/controller_server",
+                                        expected=True) for i in range(MAX_FOREIGN + 8)]
+            teleop = ForeignPublisher(topic=CMD_VEL, type="geometry_msgs/msg/Twist",
+                                      participant="ff", node="/teleop")
+            telemetry.foreign_publishers([*claimed, teleop], {CMD_VEL})
+            status = telemetry.status(pending_auth=0)
+            assert status.foreign_publishers_count == MAX_FOREIGN + 9
+            assert len(status.foreign_publishers) == MAX_FOREIGN
+            assert status.foreign_publishers[0].node == "/teleop"
         finally:
             telemetry.close()

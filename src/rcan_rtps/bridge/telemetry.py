@@ -198,8 +198,10 @@ class TelemetryState:
 
     def foreign_publishers(self, found: list[ForeignPublisher], motion_topics: set[str]) -> None:
         """Other participants now publishing on the command topics (`motion_topics`: those
-        that move the robot); called from the loop, never holding a DDS call."""
-        found = sorted(found, key=lambda f: (f.topic, f.node or "", f.participant))
+        that move the robot); called from the loop, never holding a DDS call. The unexpected
+        ones first: STATUS lists MAX_FOREIGN, and any participant may claim an expected
+        node's name (governance.md), so those must not push an unexpected one out."""
+        found = sorted(found, key=lambda f: (f.expected, f.topic, f.node or "", f.participant))
         motion = sorted({f.topic for f in found if f.topic in motion_topics})
         with self._lock:
             changed = found != self._foreign or motion != self._foreign_motion

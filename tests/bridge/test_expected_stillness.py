@@ -110,3 +110,26 @@ async def test_status_lists_the_unexpected_publishers_before_the_expected(
             assert status.foreign_publishers[0].node == "/teleop"
         finally:
             telemetry.close()
+
+
+async def test_a_holonomic_base_moving_sideways_is_not_still(
+        tmp_path: Path, domain_id: int) -> None:
+    """STATUS's velocity is linear x and angular z; a mecanum base driven by nav2's
+    holonomic controllers moves along y too (and odometry can say anything of the rest):
+    seen still is the whole twist at rest."""
+    config = bridge_config(tmp_path, domain_id)
+    with RosNode("stillness_holonomic", "/robot1", domain_id=domain_id) as node:
+        telemetry = TelemetryState(node, config, estop_latched=lambda: True,
+                                   active_goals=list)
+        try:
+            telemetry.foreign_publishers([ForeignPublisher(
+                topic=CMD_VEL, type="geometry_msgs/msg/Twist", participant="01",
+                node="/controller_server", expected=True)], {CMD_VEL})
+            for twist in ({"linear": {"y": 0.4}}, {"linear": {"z": float("nan")}},
+                          {"angular": {"x": 0.5}}):
+                telemetry._on_odom(node.values.build(ODOM, {"twist": {"twist": twist}}))
+                assert estop_level(telemetry) == "ERROR", twist
+            telemetry._on_odom(node.values.build(ODOM, {}))
+            assert estop_level(telemetry) == "WARN"
+        finally:
+            telemetry.close()

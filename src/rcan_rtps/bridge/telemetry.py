@@ -90,6 +90,7 @@ class TelemetryState:
         # When odometry and a JointState last came: "seen still" needs them fresh, whatever
         # else the robot's nodes keep sending (`_Stillness`).
         self._odom_rx: float | None = None
+        self._twist_at_rest = False  # the last odometry's whole twist (not only x and yaw)
         self._joints_rx: float | None = None
         self._position: Position | None = None
         self._yaw: float | None = None
@@ -154,6 +155,7 @@ class TelemetryState:
             self._position = Position(p.position.x, p.position.y, p.position.z)
             self._yaw = quaternion_to_yaw(p.orientation)
             self._velocity = Velocity(twist.linear.x, twist.angular.z)
+            self._twist_at_rest = _at_rest(twist)
             self._odom_rx = self._monotonic()
             changed = self._touch() or was_moving != _moving(self._velocity)
         self._tell(changed)
@@ -234,12 +236,13 @@ class TelemetryState:
             now_us = self._last_us = max(time.time_ns() // 1000, self._last_us + 1)
             seq = self._seq
             odom_stale, joints_stale = self._stale(self._odom_rx), self._stale(self._joints_rx)
+            twist_at_rest = self._twist_at_rest
         goals = self._active_goals()
         navigation = self._navigation() if goals else None
         stale = age is None or age > self.config.bridge.ros2.telemetry_stale_s
         estop = self._estop_latched()
-        still = _Stillness(odom_stale, joints_stale, telemetry, self._base_topic,
-                           self._arm_joints)
+        still = _Stillness(odom_stale or not twist_at_rest, joints_stale, telemetry,
+                           self._base_topic, self._arm_joints)
         faults = _commander_faults(estop, foreign, foreign_motion, still) + faults
         return Status(
             ruri=self.config.robot.ruri, state=self._state(estop, faults, stale, goals, telemetry),
@@ -271,13 +274,14 @@ class TelemetryState:
 
 class _Stillness:
     """Whether the robot is seen at rest, for the motion topics some publishers are on:
-    fresh odometry at rest for the velocity topic; for any other (a trajectory topic) also a
-    fresh JointState whose every listed joint reports a velocity at rest, and which lists the
-    joints of the arms on those topics (`arm_joints`: resolved topic -> the arm's configured
-    joints; an arm with none, or a topic of no arm, needs every joint of the JointState, so
-    one cut short is not enough). What is not known is not still, and each is fresh by its
-    own age: diagnostics or a battery still coming say nothing of a robot whose odometry has
-    stopped."""
+    fresh odometry at rest for the velocity topic (`odom_stale` is also true when its twist
+    is not wholly at rest, which `telemetry.velocity` does not show); for any other (a
+    trajectory topic) also a fresh JointState whose every listed joint reports a velocity at
+    rest, and which lists the joints of the arms on those topics (`arm_joints`: resolved
+    topic -> the arm's configured joints; an arm with none, or a topic of no arm, needs every
+    joint of the JointState, so one cut short is not enough). What is not known is not
+    still, and each is fresh by its own age: diagnostics or a battery still coming say
+    nothing of a robot whose odometry has stopped."""
 
     def __init__(self, odom_stale: bool, joints_stale: bool, telemetry: Telemetry,
                  base_topic: str, arm_joints: Mapping[str, frozenset[str]]) -> None:
@@ -348,6 +352,13 @@ def _position(telemetry: Telemetry) -> RobotPosition | None:
     """§20.3's position from the odometry's."""
     p = telemetry.position
     return None if p is None else RobotPosition(p.x, p.y, telemetry.yaw)
+
+
+def _at_rest(twist: Any) -> bool:
+    """Every component of an odometry twist at rest: a holonomic base moves along y, which
+    STATUS's velocity (linear x, angular z) does not show; not a number is not at rest."""
+    return all(abs(float(getattr(vector, axis))) <= _MOVING_EPS
+               for vector in (twist.linear, twist.angular) for axis in "xyz")
 
 
 def _moving(v: Velocity | None) -> bool:

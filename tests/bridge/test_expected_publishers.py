@@ -3,7 +3,7 @@ and what they mean for STATUS's faults (telemetry): no DDS, the graph's endpoint
 
 from __future__ import annotations
 
-from rcan_rtps.bridge.commanders import foreign_publishers
+from rcan_rtps.bridge.commanders import MAX_NODE_NAME, foreign_publishers
 from rcan_rtps.bridge.telemetry import (
     ESTOP_NOT_HOLDING,
     FOREIGN_PUBLISHER,
@@ -157,3 +157,14 @@ def test_an_arm_is_seen_still_only_by_its_own_joints() -> None:
         ESTOP_NOT_HOLDING: "ERROR"}
     assert levels(faults(True, moveit, Telemetry(velocity=Velocity(0, 0), joints=cut),
                          arm_joints=frozenset({"j3"}))) == {ESTOP_NOT_HOLDING: "WARN"}
+
+
+def test_a_node_name_over_the_idl_bound_is_cut_and_never_expected() -> None:
+    """ros_discovery_info's names are bounded (256 characters each) by its IDL, not by what
+    a peer writes: a 100,000-character name went as is into STATUS (32 listed), the faults'
+    messages, the log and the audit."""
+    huge = "/" + "n" * 100_000
+    (publisher,) = foreign_publishers([writer(CMD_VEL, 1, huge)], OWN,
+                                      {CMD_VEL: frozenset({huge})}).values()
+    assert publisher.node is not None and len(publisher.node) <= MAX_NODE_NAME
+    assert publisher.node.startswith("/nnn") and not publisher.expected

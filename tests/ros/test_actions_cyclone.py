@@ -216,3 +216,27 @@ async def test_a_closed_client_says_so_to_whoever_waits_on_its_goal(
             await waiting
     assert not client.server_present()
     await server.close()
+
+
+async def test_a_server_that_leaves_before_its_result_reply_ends_the_goal_as_its_status_said(
+        domain_id: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The status topic said SUCCEEDED, the result reply never came, and the server left:
+    nobody can answer any more. result() raised ServiceUnavailable, and the bridge showed
+    the goal 'unknown', among the active goals for good. The end is the status topic's,
+    without a result, and the detail says why."""
+    monkeypatch.setattr(actions, "RESULT_ASK_S", 0.5)
+    with RosNode("rcan_bridge", "/", domain_id=domain_id) as client_node:
+        server_node = RosNode("robot_sim", "/", domain_id=domain_id)
+        server = LosingServer(server_node, "/nav", NAV, navigate, lose="get_result")
+        client = ActionClient(client_node, "/nav", NAV)
+        goal = await client.send_goal(GOAL, timeout=20)
+        assert await goal.ended() is GoalState.SUCCEEDED
+        asking = asyncio.create_task(goal.result(timeout=30))
+        while server.asked["get_result"] == 0:
+            await asyncio.sleep(0.02)
+        await server.close()
+        server_node.close()
+        outcome = await asking
+        assert outcome.state is GoalState.SUCCEEDED and outcome.result is None
+        assert "left the graph" in outcome.detail
+        client.close()

@@ -32,7 +32,7 @@ from typing import Any
 from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
-from .errors import ActionError, ServiceTimeout, WireError, seconds
+from .errors import ActionError, ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction
 from .handshake import matched_writers, writers_ready
 from .names import action_names, mangle_topic
@@ -375,6 +375,9 @@ class ActionClient:
             return int(reply.status) == int(final)
 
         reply = await self._ask_result(goal, ours, deadline)
+        if reply is None:
+            return GoalResult(final, None, f"action server {self.name} left the graph before "
+                              f"the result was fetched; the end is its status topic's")
         value = int(reply.status)
         if value not in _WIRE_STATES or not GoalState(value).terminal:
             # A result is asked for once the goal ended: a reply naming no end (or a value
@@ -387,14 +390,17 @@ class ActionClient:
                           deadline: float) -> Any:
         """The get_result reply, asked for again every RESULT_ASK_S until `deadline`: asking
         is idempotent, and a reply can be lost for good when datagrams are dropped at our
-        socket (seen with Fast DDS servers, docs/design/zero-loss.md)."""
+        socket (seen with Fast DDS servers, docs/design/zero-loss.md). None once the server
+        has left the graph: nobody can answer any more."""
         loop = asyncio.get_running_loop()
         request = {"goal_id": {"uuid": goal.goal_id}}
         while True:
             left = max(0.1, deadline - loop.time())
             try:
                 return await self._get.call(request, min(RESULT_ASK_S, left), accept=ours)
-            except ServiceTimeout:
+            except (ServiceTimeout, ServiceUnavailable):
+                if not self.check_server():
+                    return None
                 if left <= RESULT_ASK_S:
                     raise
                 log.info("action %s: no result for goal %s yet; asking again", self.name,

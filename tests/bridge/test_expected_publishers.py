@@ -3,7 +3,7 @@ and what they mean for STATUS's faults (telemetry): no DDS, the graph's endpoint
 
 from __future__ import annotations
 
-from rcan_rtps.bridge.commanders import foreign_publishers
+from rcan_rtps.bridge.commanders import MAX_NODE_NAME, foreign_publishers
 from rcan_rtps.bridge.telemetry import (
     ESTOP_NOT_HOLDING,
     FOREIGN_PUBLISHER,
@@ -83,9 +83,10 @@ def publisher(topic: str, node: str, expected: bool) -> ForeignPublisher:
 
 
 def faults(estop: bool, foreign: list[ForeignPublisher], telemetry: Telemetry = STILL,
-           stale: bool = False) -> list[Fault]:
+           stale: bool = False, arm_joints: frozenset[str] = frozenset()) -> list[Fault]:
     motion = sorted({f.topic for f in foreign if f.topic in (CMD_VEL, ARM)})
-    return _commander_faults(estop, foreign, motion, _Stillness(stale, telemetry, CMD_VEL))
+    return _commander_faults(estop, foreign, motion, _Stillness(
+        stale, stale, telemetry, CMD_VEL, {ARM: arm_joints}))
 
 
 def levels(found: list[Fault]) -> dict[str, str]:
@@ -137,3 +138,33 @@ def test_an_expected_trajectory_publisher_needs_the_joints_seen_still() -> None:
                    Joints(["elbow", "wrist"], [0.1, 0.2], [])):  # velocities not reported
         telemetry = Telemetry(velocity=Velocity(0, 0), joints=joints)
         assert levels(faults(True, moveit, telemetry)) == {ESTOP_NOT_HOLDING: "ERROR"}
+
+
+def test_an_arm_is_seen_still_only_by_its_own_joints() -> None:
+    """A JointState that does not list the arm's configured joints (only the wheels', the
+    arm's own coming on another topic) says nothing of the arm; nor does one cut short when
+    the arm's joints are not configured (any joint may be the arm's)."""
+    moveit = [publisher(ARM, "/move_group", True)]
+    arm = frozenset({"shoulder", "elbow"})
+    wheels = Joints(["wheel_left", "wheel_right"], [0.0, 0.0], [0.0, 0.0])
+    assert levels(faults(True, moveit, Telemetry(velocity=Velocity(0, 0), joints=wheels),
+                         arm_joints=arm)) == {ESTOP_NOT_HOLDING: "ERROR"}
+    both = Joints(["wheel_left", "shoulder", "elbow"], [0.0] * 3, [0.0] * 3)
+    assert levels(faults(True, moveit, Telemetry(velocity=Velocity(0, 0), joints=both),
+                         arm_joints=arm)) == {ESTOP_NOT_HOLDING: "WARN"}
+    cut = Joints([f"j{i}" for i in range(64)], [0.0] * 64, [0.0] * 64, count=100)
+    assert levels(faults(True, moveit, Telemetry(velocity=Velocity(0, 0), joints=cut))) == {
+        ESTOP_NOT_HOLDING: "ERROR"}
+    assert levels(faults(True, moveit, Telemetry(velocity=Velocity(0, 0), joints=cut),
+                         arm_joints=frozenset({"j3"}))) == {ESTOP_NOT_HOLDING: "WARN"}
+
+
+def test_a_node_name_over_the_idl_bound_is_cut_and_never_expected() -> None:
+    """ros_discovery_info's names are bounded (256 characters each) by its IDL, not by what
+    a peer writes: a 100,000-character name went as is into STATUS (32 listed), the faults'
+    messages, the log and the audit."""
+    huge = "/" + "n" * 100_000
+    (publisher,) = foreign_publishers([writer(CMD_VEL, 1, huge)], OWN,
+                                      {CMD_VEL: frozenset({huge})}).values()
+    assert publisher.node is not None and len(publisher.node) <= MAX_NODE_NAME
+    assert publisher.node.startswith("/nnn") and not publisher.expected

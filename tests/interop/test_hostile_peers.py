@@ -13,6 +13,7 @@ import asyncio
 import logging
 import math
 import re
+import struct
 import uuid
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
@@ -23,6 +24,7 @@ import pytest
 from oracle.client import OracleEnv, RclpyOracle
 from waiting import eventually, take
 
+from rcan_rtps.bridge.commanders import MAX_NODE_NAME, foreign_publishers
 from rcan_rtps.bridge.faults import UNLISTED
 from rcan_rtps.ros import qos, raw_cdr
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
@@ -109,6 +111,32 @@ async def test_bad_discovery_info_does_not_stop_a_goal_cancel(
     assert ("/", "fib_server") in graph.nodes()
     assert ("/", "evil\ufffd\ufffd\ufffd\ufffd\ufffd") in graph.nodes()
     assert not tracebacks(caplog)
+
+
+async def test_a_node_name_past_its_bound_is_cut_in_the_other_publishers(
+        victim: RosNode, hostile: RosNode) -> None:
+    """ros_discovery_info bounds a node's name to 256 characters; a peer writing 100,000
+    (well-formed CDR, the bound not kept) named its cmd_vel writer so in STATUS's list, its
+    faults' messages, the log and the audit: it is cut to MAX_NODE_NAME."""
+    publisher = hostile.create_publisher("/robot1/cmd_vel", TWIST)
+    data = bytes(hostile.codecs.of(DISCOVERY_TYPE).encode_value({
+        "gid": {"data": hostile.participant.guid.bytes},
+        "node_entities_info_seq": [{"node_namespace": "/", "node_name": "Q" * 256,
+                                    "writer_gid_seq": [{"data": publisher.writer.guid.bytes}]}]}))
+    at_bound = struct.pack("<I", 257) + b"Q" * 256 + b"\0"  # its length, chars, NUL
+    assert data.count(at_bound) == 1
+    data = data.replace(at_bound, struct.pack("<I", 100_001) + b"n" * 100_000 + b"\0")
+    graph = RosGraph(victim)
+
+    def named() -> list[str]:
+        raw_cdr.write(hostile._info_writer, data)
+        graph.refresh()
+        found = foreign_publishers(graph.publishers_on({"/robot1/cmd_vel"}),
+                                   victim.participant.guid.bytes)
+        return [p.node for p in found.values() if p.node and p.node.startswith("/nnn")]
+
+    (name,) = await eventually(named, timeout=20)
+    assert len(name) <= MAX_NODE_NAME
 
 
 # -- actions ---------------------------------------------------------------------------

@@ -10,6 +10,7 @@ import pytest
 
 from rcan_rtps.ros import actions
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
+from rcan_rtps.ros.errors import ActionError
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import RequestMapping
 
@@ -159,3 +160,83 @@ async def test_a_lost_goal_reply_is_read_from_the_status_topic(
     assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
     assert remaining[-1] == 0.0
     await server.close()
+
+
+async def test_feedback_stops_waiting_for_a_repair_once_the_server_has_left(
+        domain_id: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After a goal's end, feedback() waits for a dropped datagram to be sent again only
+    while the server that would send it is there: once it has left the graph, nothing more
+    can come. (Our sockets' drop count is made to change, as on a busy host; the repair
+    time made long, so that waiting it out would show.)"""
+    drops = iter(range(1_000_000))
+    monkeypatch.setattr(actions, "socket_drops", lambda: next(drops))
+    monkeypatch.setattr(actions, "REPAIR_S", {m: 600.0 for m in actions.REPAIR_S})
+    with RosNode("rcan_bridge", "/", domain_id=domain_id) as client_node:
+        server_node = RosNode("robot_sim", "/", domain_id=domain_id)
+        server = ActionServer(server_node, "/nav", NAV, navigate)
+        client = ActionClient(client_node, "/nav", NAV)
+        goal = await client.send_goal(GOAL, timeout=20)
+        remaining: list[float] = []
+
+        async def follow() -> None:
+            async for feedback in goal.feedback():
+                remaining.append(round(feedback.distance_remaining, 3))
+
+        following = asyncio.create_task(follow())
+        assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
+        await server.close()
+        server_node.close()
+        await asyncio.wait_for(following, 30)
+        assert remaining[-1] == 0.0
+        client.close()
+
+
+async def test_a_closed_client_says_so_to_whoever_waits_on_its_goal(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    server_node, client_node = nodes
+
+    async def slow(goal: ServerGoal) -> dict[str, Any]:
+        await asyncio.sleep(3)
+        return await navigate(goal)
+
+    server = ActionServer(server_node, "navigate_to_pose", NAV, slow)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    goal = await client.send_goal(GOAL, timeout=20)
+    ending = asyncio.create_task(goal.ended())
+
+    async def follow() -> None:
+        async for _ in goal.feedback():
+            pass
+
+    following = asyncio.create_task(follow())
+    await asyncio.sleep(0.2)
+    client.close()
+    for waiting in (ending, following):
+        with pytest.raises(ActionError, match="closed"):
+            await waiting
+    assert not client.server_present()
+    await server.close()
+
+
+async def test_a_server_that_leaves_before_its_result_reply_ends_the_goal_as_its_status_said(
+        domain_id: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The status topic said SUCCEEDED, the result reply never came, and the server left:
+    nobody can answer any more. result() raised ServiceUnavailable, and the bridge showed
+    the goal 'unknown', among the active goals for good. The end is the status topic's,
+    without a result, and the detail says why."""
+    monkeypatch.setattr(actions, "RESULT_ASK_S", 0.5)
+    with RosNode("rcan_bridge", "/", domain_id=domain_id) as client_node:
+        server_node = RosNode("robot_sim", "/", domain_id=domain_id)
+        server = LosingServer(server_node, "/nav", NAV, navigate, lose="get_result")
+        client = ActionClient(client_node, "/nav", NAV)
+        goal = await client.send_goal(GOAL, timeout=20)
+        assert await goal.ended() is GoalState.SUCCEEDED
+        asking = asyncio.create_task(goal.result(timeout=30))
+        while server.asked["get_result"] == 0:
+            await asyncio.sleep(0.02)
+        await server.close()
+        server_node.close()
+        outcome = await asking
+        assert outcome.state is GoalState.SUCCEEDED and outcome.result is None
+        assert "left the graph" in outcome.detail
+        client.close()

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
+from rcan_rtps.ros import udp_drops
 from rcan_rtps.ros.udp_drops import socket_drops
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="the count is Linux's /proc")
@@ -52,3 +55,23 @@ def test_another_process_s_drops_are_not_counted() -> None:
 def _table_drops() -> int:
     with open("/proc/self/net/udp", encoding="ascii") as rows:
         return sum(int(row.split()[12]) for row in list(rows)[1:])
+
+
+def test_a_table_that_cannot_be_read_makes_the_count_unknown(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Only a table that is not there (no IPv6) is left out: the IPv4 table unreadable (a
+    directory stands for it here, as root reads any file) or in a format we do not know
+    must not leave the IPv6 table's count standing for all (Cyclone's sockets are IPv4: a
+    drop there would go unseen, and feedback() would not wait for its repair)."""
+    assert socket_drops() is not None
+    monkeypatch.setattr(udp_drops, "_TABLES", ("/proc/self/net/udp", str(tmp_path / "none")))
+    assert socket_drops() is not None  # no such table: no IPv6
+    monkeypatch.setattr(udp_drops, "_TABLES", (str(tmp_path), "/proc/self/net/udp6"))
+    assert socket_drops() is None
+    unknown = tmp_path / "udp"
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as ours:
+        ours.bind(("127.0.0.1", 0))
+        inode = os.fstat(ours.fileno()).st_ino
+        unknown.write_text(f"header\n 0: 0100007F:1 00000000:0 07 0:0 0:0 0 0 0 {inode}\n")
+        monkeypatch.setattr(udp_drops, "_TABLES", (str(unknown), "/proc/self/net/udp6"))
+        assert socket_drops() is None

@@ -15,7 +15,9 @@ velocity_smoother on cmd_vel: `bridge.ros2.foreign_publishers.expected`). A part
 `expected` on a topic when every one of its writers there belongs to a node named on that
 topic's list; one writer of an unnamed node (no ros_discovery_info) or of another node makes
 it unexpected. An expected one is listed, audited and logged (at INFO) all the same; what it
-changes is telemetry.py's faults.
+changes is telemetry.py's faults. One reported that turns unexpected (or expected) is logged and
+audited again, as an appearance with its new facts: the audit never ends on "expected" for a
+participant whose writers are no longer all declared.
 
 A participant counts once per topic, however many writers it has there. Its appearance is
 logged and audited once its node is named (ros_discovery_info may come after the endpoint:
@@ -42,6 +44,7 @@ from typing import Any
 from ..rcan import ForeignPublisher
 from ..ros.graph import Endpoint, RosGraph, node_fqn, short_gid
 from ..ros.participant import RosNode
+from .faults import cut_text
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +52,9 @@ POLL_S = 1.0
 MAX_REPORTED = 8
 NAME_GRACE_S = 4.0
 _UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
+# A node's fully qualified name as ros_discovery_info bounds it (namespace and name 256
+# characters each): what a peer writes past that is cut, and never matches.
+MAX_NODE_NAME = 2 * 256 + 1
 
 Key = tuple[str, bytes]  # (topic, participant GUID)
 Audit = Callable[..., None]  # Governor.foreign_publisher(facts, gone=...)
@@ -82,7 +88,8 @@ def foreign_publishers(endpoints: list[Endpoint], own: bytes,
         if e.participant_gid == own:
             continue
         key = (e.ros_name, e.participant_gid)
-        node = None if e.node_name == _UNKNOWN_NODE else node_fqn(e.node_namespace, e.node_name)
+        node = None if e.node_name == _UNKNOWN_NODE else \
+            cut_text(node_fqn(e.node_namespace, e.node_name), MAX_NODE_NAME)
         if key not in found:
             found[key] = ForeignPublisher(topic=e.ros_name, type=e.ros_type,
                                           participant=short_gid(e.participant_gid[:12]))
@@ -157,6 +164,10 @@ class CommanderWatch:
         gone = [p for k, p in self._known.items() if k not in now]
         # One that came and went between two reports: its appearance is recorded too.
         self._report([self._known[k] for k in self._unreported if k not in now], gone=False)
+        # One reported that is now expected where it was not, or the reverse (a writer of
+        # another node joined it, or left): told again, as it is now.
+        self._report([p for k, p in now.items() if k in self._known and k not in
+                      self._unreported and p.expected != self._known[k].expected], gone=False)
         self._unreported = {k: t for k, t in self._unreported.items() if k in now}
         self._known = now
         self._report(gone, gone=True)

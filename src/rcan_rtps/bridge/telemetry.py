@@ -31,7 +31,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from ..config import RcanConfig
@@ -87,6 +87,11 @@ class TelemetryState:
         self._monotonic = monotonic
         self._lock = threading.Lock()
         self._last_rx: float | None = None
+        # When odometry and a JointState last came: "seen still" needs them fresh, whatever
+        # else the robot's nodes keep sending (`_Stillness`).
+        self._odom_rx: float | None = None
+        self._twist_at_rest = False  # the last odometry's whole twist (not only x and yaw)
+        self._joints_rx: float | None = None
         self._position: Position | None = None
         self._yaw: float | None = None
         self._velocity: Velocity | None = None
@@ -100,6 +105,8 @@ class TelemetryState:
         self._commanded_joints = frozenset(
             j for arm in config.bridge.ros2.arms.values() for j in arm.joints)
         self._base_topic = config.bridge.ros2.resolve(config.bridge.ros2.cmd_vel_topic)
+        self._arm_joints = {config.bridge.ros2.resolve(arm.topic): frozenset(arm.joints)
+                            for arm in config.bridge.ros2.arms.values()}
         self.safe_stopped = False
         self._started = monotonic()
         self._cpu = CpuMeter()
@@ -148,6 +155,8 @@ class TelemetryState:
             self._position = Position(p.position.x, p.position.y, p.position.z)
             self._yaw = quaternion_to_yaw(p.orientation)
             self._velocity = Velocity(twist.linear.x, twist.angular.z)
+            self._twist_at_rest = _at_rest(twist)
+            self._odom_rx = self._monotonic()
             changed = self._touch() or was_moving != _moving(self._velocity)
         self._tell(changed)
 
@@ -155,6 +164,7 @@ class TelemetryState:
         with self._lock:
             self._joints = bounded_joints(msg.name, msg.position, msg.velocity,
                                           self._commanded_joints)
+            self._joints_rx = self._monotonic()
             changed = self._touch()
         self._tell(changed)
 
@@ -190,8 +200,10 @@ class TelemetryState:
 
     def foreign_publishers(self, found: list[ForeignPublisher], motion_topics: set[str]) -> None:
         """Other participants now publishing on the command topics (`motion_topics`: those
-        that move the robot); called from the loop, never holding a DDS call."""
-        found = sorted(found, key=lambda f: (f.topic, f.node or "", f.participant))
+        that move the robot); called from the loop, never holding a DDS call. The unexpected
+        ones first: STATUS lists MAX_FOREIGN, and any participant may claim an expected
+        node's name (governance.md), so those must not push an unexpected one out."""
+        found = sorted(found, key=lambda f: (f.expected, f.topic, f.node or "", f.participant))
         motion = sorted({f.topic for f in found if f.topic in motion_topics})
         with self._lock:
             changed = found != self._foreign or motion != self._foreign_motion
@@ -207,6 +219,9 @@ class TelemetryState:
         self._tell(changed)
 
     # -- API side --------------------------------------------------------------------------
+    def _stale(self, last: float | None) -> bool:
+        return last is None or self._monotonic() - last > self.config.bridge.ros2.telemetry_stale_s
+
     def age_s(self) -> float | None:
         return None if self._last_rx is None else self._monotonic() - self._last_rx
 
@@ -220,11 +235,14 @@ class TelemetryState:
             self._seq += 1
             now_us = self._last_us = max(time.time_ns() // 1000, self._last_us + 1)
             seq = self._seq
+            odom_stale, joints_stale = self._stale(self._odom_rx), self._stale(self._joints_rx)
+            twist_at_rest = self._twist_at_rest
         goals = self._active_goals()
         navigation = self._navigation() if goals else None
         stale = age is None or age > self.config.bridge.ros2.telemetry_stale_s
         estop = self._estop_latched()
-        still = _Stillness(stale, telemetry, self._base_topic)
+        still = _Stillness(odom_stale or not twist_at_rest, joints_stale, telemetry,
+                           self._base_topic, self._arm_joints)
         faults = _commander_faults(estop, foreign, foreign_motion, still) + faults
         return Status(
             ruri=self.config.robot.ruri, state=self._state(estop, faults, stale, goals, telemetry),
@@ -256,21 +274,34 @@ class TelemetryState:
 
 class _Stillness:
     """Whether the robot is seen at rest, for the motion topics some publishers are on:
-    fresh odometry at rest for the velocity topic; for any other (a trajectory topic) also a
-    JointState whose every listed joint reports a velocity at rest. What is not known is not
-    still."""
+    fresh odometry at rest for the velocity topic (`odom_stale` is also true when its twist
+    is not wholly at rest, which `telemetry.velocity` does not show); for any other (a
+    trajectory topic) also a fresh JointState whose every listed joint reports a velocity at
+    rest, and which lists the joints of the arms on those topics (`arm_joints`: resolved
+    topic -> the arm's configured joints; an arm with none, or a topic of no arm, needs every
+    joint of the JointState, so one cut short is not enough). What is not known is not
+    still, and each is fresh by its own age: diagnostics or a battery still coming say
+    nothing of a robot whose odometry has stopped."""
 
-    def __init__(self, stale: bool, telemetry: Telemetry, base_topic: str) -> None:
-        self.stale, self.telemetry, self.base_topic = stale, telemetry, base_topic
+    def __init__(self, odom_stale: bool, joints_stale: bool, telemetry: Telemetry,
+                 base_topic: str, arm_joints: Mapping[str, frozenset[str]]) -> None:
+        self.odom_stale, self.joints_stale = odom_stale, joints_stale
+        self.telemetry, self.base_topic, self.arm_joints = telemetry, base_topic, arm_joints
 
     def __call__(self, topics: set[str]) -> bool:
         velocity, joints = self.telemetry.velocity, self.telemetry.joints
-        if self.stale or velocity is None or _moving(velocity):
+        if self.odom_stale or velocity is None or _moving(velocity):
             return False
         if topics <= {self.base_topic}:
             return True
-        return (joints is not None and len(joints.velocities) == len(joints.names) > 0
-                and all(abs(v) <= _MOVING_EPS for v in joints.velocities))
+        if self.joints_stale or joints is None or \
+                not len(joints.velocities) == len(joints.names) > 0 or \
+                not all(abs(v) <= _MOVING_EPS for v in joints.velocities):
+            return False
+        arms = [self.arm_joints.get(t, frozenset()) for t in topics - {self.base_topic}]
+        if any(not arm for arm in arms):  # any joint may be the arm's: all must be seen
+            return joints.count is None or joints.count == len(joints.names)
+        return frozenset().union(*arms) <= set(joints.names)
 
 
 def _commander_faults(estop: bool, foreign: list[ForeignPublisher], motion: list[str],
@@ -321,6 +352,13 @@ def _position(telemetry: Telemetry) -> RobotPosition | None:
     """§20.3's position from the odometry's."""
     p = telemetry.position
     return None if p is None else RobotPosition(p.x, p.y, telemetry.yaw)
+
+
+def _at_rest(twist: Any) -> bool:
+    """Every component of an odometry twist at rest: a holonomic base moves along y, which
+    STATUS's velocity (linear x, angular z) does not show; not a number is not at rest."""
+    return all(abs(float(getattr(vector, axis))) <= _MOVING_EPS
+               for vector in (twist.linear, twist.angular) for axis in "xyz")
 
 
 def _moving(v: Velocity | None) -> bool:

@@ -32,7 +32,7 @@ from typing import Any
 from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
-from .errors import ActionError, ServiceTimeout, WireError, seconds
+from .errors import ActionError, ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction
 from .handshake import matched_writers, writers_ready
 from .names import action_names, mangle_topic
@@ -119,10 +119,12 @@ class ClientGoal:
             if not self._feedback.empty():
                 yield self._feedback.get_nowait()
                 continue
-            self.client.check_server()
+            present = self.client.check_server()
             if self.state.terminal and until is None:
                 until = await self._settle(deadline)
                 continue
+            if until is not None and not present:
+                return  # the server has left: no datagram of its can be sent again
             now = loop.time()
             ends = [t for t in (until, deadline) if t is not None]
             if ends and now >= min(ends):
@@ -201,6 +203,7 @@ class ActionClient:
         self._unknown_status_logged = False
         self._server_seen = False
         self._lost_since: float | None = None
+        self._closed = False
         self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
         loop = asyncio.get_running_loop()
 
@@ -272,11 +275,15 @@ class ActionClient:
         return REPAIR_S[mapping] if mapping in REPAIR_S else max(REPAIR_S.values())
 
     def server_present(self) -> bool:
-        """Whether an action server is on the graph now (its status writer is matched)."""
-        return self._status.matched_count() > 0
+        """Whether an action server is on the graph now (its status writer is matched);
+        False once this client is closed."""
+        return not self._closed and self._status.matched_count() > 0
 
     def check_server(self) -> bool:
-        """False once the server has left the graph; its open goals then end as lost."""
+        """False once the server has left the graph; its open goals then end as lost.
+        Raises ActionError once this client is closed (whoever waits on a goal is told)."""
+        if self._closed:
+            raise ActionError(f"the action client of {self.name} is closed")
         if self._status.matched_count() > 0:
             self._server_seen, self._lost_since = True, None
             return True
@@ -368,6 +375,9 @@ class ActionClient:
             return int(reply.status) == int(final)
 
         reply = await self._ask_result(goal, ours, deadline)
+        if reply is None:
+            return GoalResult(final, None, f"action server {self.name} left the graph before "
+                              f"the result was fetched; the end is its status topic's")
         value = int(reply.status)
         if value not in _WIRE_STATES or not GoalState(value).terminal:
             # A result is asked for once the goal ended: a reply naming no end (or a value
@@ -380,14 +390,17 @@ class ActionClient:
                           deadline: float) -> Any:
         """The get_result reply, asked for again every RESULT_ASK_S until `deadline`: asking
         is idempotent, and a reply can be lost for good when datagrams are dropped at our
-        socket (seen with Fast DDS servers, docs/design/zero-loss.md)."""
+        socket (seen with Fast DDS servers, docs/design/zero-loss.md). None once the server
+        has left the graph: nobody can answer any more."""
         loop = asyncio.get_running_loop()
         request = {"goal_id": {"uuid": goal.goal_id}}
         while True:
             left = max(0.1, deadline - loop.time())
             try:
                 return await self._get.call(request, min(RESULT_ASK_S, left), accept=ours)
-            except ServiceTimeout:
+            except (ServiceTimeout, ServiceUnavailable):
+                if not self.check_server():
+                    return None
                 if left <= RESULT_ASK_S:
                     raise
                 log.info("action %s: no result for goal %s yet; asking again", self.name,
@@ -418,6 +431,7 @@ class ActionClient:
 
     def close(self) -> None:
         """Deletes the endpoints; calls still waiting fail. Idempotent."""
+        self._closed = True
         for client in (self._send, self._get, self._cancel_srv):
             client.close()
         self._status.close()

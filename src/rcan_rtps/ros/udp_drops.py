@@ -35,20 +35,31 @@ def _socket_inodes() -> set[str] | None:
 
 def socket_drops() -> int | None:
     """Datagrams dropped so far on this process's UDP sockets (IPv4 and IPv6); None where
-    the kernel does not say (not Linux, no /proc)."""
+    the kernel does not say (not Linux, no /proc) or not all of it: a table there but not
+    readable, or in a format we do not know (only one not there, no IPv6, is left out)."""
     inodes = _socket_inodes()
     if inodes is None:
         return None
     total, tables = 0, 0
     for table in _TABLES:
         try:
-            with open(table, encoding="ascii") as rows:
-                next(rows, None)  # the header
-                for row in rows:
-                    fields = row.split()
-                    if len(fields) > _DROPS and fields[_INODE] in inodes:
-                        total += int(fields[_DROPS])
-        except (OSError, ValueError):  # no IPv6, or a format we do not know
+            total += _table_drops(table, inodes)
+        except FileNotFoundError:  # no IPv6
             continue
+        except (OSError, ValueError):
+            return None
         tables += 1
     return total if tables else None
+
+
+def _table_drops(table: str, inodes: set[str]) -> int:
+    total = 0
+    with open(table, encoding="ascii") as rows:
+        next(rows, None)  # the header
+        for row in rows:
+            fields = row.split()
+            if len(fields) <= _DROPS:
+                raise ValueError(f"{table}: a row of {len(fields)} fields")
+            if fields[_INODE] in inodes:
+                total += int(fields[_DROPS])
+    return total

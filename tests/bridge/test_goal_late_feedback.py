@@ -5,12 +5,10 @@ feedback stream still waits for samples the server may have to send again
 from __future__ import annotations
 
 import asyncio
-import socket
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any
 
 import pytest
+from dropping import flood, small_buffers
 from waiting import eventually
 
 from rcan_rtps.bridge.navigation import GoalTracker
@@ -23,22 +21,10 @@ GOAL = {"pose": {"header": {"frame_id": "map"}, "pose": {"position": {"x": 1.0}}
         "behavior_tree": ""}
 
 
-@contextmanager
-def dropping_socket() -> Iterator[None]:
-    """A socket of this process at which the kernel drops datagrams (kept open: the count is
-    of open sockets)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as receiver, \
-            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
-        receiver.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
-        receiver.bind(("127.0.0.1", 0))
-        for _ in range(10):
-            sender.sendto(b"x" * 1000, receiver.getsockname())
-        yield
-
-
 async def test_a_goal_s_end_is_shown_while_its_feedback_waits_for_a_repair(
         domain_id: int, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(actions, "REPAIR_S", dict.fromkeys(actions.REPAIR_S, 60.0))
+    small_buffers(monkeypatch)
     go = asyncio.Event()
 
     async def execute(goal: ServerGoal) -> dict[str, Any]:
@@ -51,11 +37,11 @@ async def test_a_goal_s_end_is_shown_while_its_feedback_waits_for_a_repair(
         server = ActionServer(robot, "navigate_to_pose", NAV, execute)
         tracker = GoalTracker(bridge, "/robot1/navigate_to_pose")
         goal_id = await tracker.send(GOAL, timeout=20)
-        with dropping_socket():  # after the goal was sent: its feedback may be owed
-            go.set()
-            await eventually(lambda: (v := tracker.goal(goal_id)) is not None
-                                    and v.state == "succeeded")
-            assert any(not task.done() for task in tracker._watchers), \
-                "the feedback stream was expected to be waiting out the repair time"
+        flood(bridge)  # after the goal was sent: its feedback may be owed
+        go.set()
+        await eventually(lambda: (v := tracker.goal(goal_id)) is not None
+                         and v.state == "succeeded")
+        assert any(not task.done() for task in tracker._watchers), \
+            "the feedback stream was expected to be waiting out the repair time"
         await tracker.close()
         await server.close()

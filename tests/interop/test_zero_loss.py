@@ -17,13 +17,13 @@ from pathlib import Path
 from typing import TypeVar
 
 import pytest
+from dropping import small_buffers
 from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
 
 from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.errors import ServiceTimeout
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import ServiceClient
-from rcan_rtps.ros.udp_drops import socket_drops
 
 from .cpu_load import burning_cpus
 
@@ -63,8 +63,7 @@ async def node(domain_id: int, jazzy_share: Path) -> AsyncIterator[RosNode]:
 async def dropping_node(oracle: RclpyOracle, domain_id: int, jazzy_share: Path,
                         monkeypatch: pytest.MonkeyPatch) -> AsyncIterator[RosNode]:
     """A node whose sockets drop datagrams (the oracle, started first, keeps its buffers)."""
-    monkeypatch.setenv("CYCLONEDDS_URI", f'<Internal><SocketReceiveBufferSize '
-                                         f'min="{SMALL_RCVBUF}" max="{SMALL_RCVBUF}"/></Internal>')
+    small_buffers(monkeypatch, SMALL_RCVBUF)
     with RosNode("zero_loss_dropping", "/", domain_id=domain_id, distro="jazzy",
                  idl_paths=[jazzy_share]) as n:
         yield n
@@ -160,12 +159,23 @@ class GoalTally:
 
     def __init__(self, order: Callable[[int], int] = lambda i: 2 + i % 4) -> None:
         self.order = order  # by default the result tells one goal from the next
-        self.drops = socket_drops()  # what our sockets dropped before: told with a failure
+        self.dropped: int | None = 0  # at our DDS sockets while the goals ran (None: unknown)
         self.no_first_feedback: list[int] = []
         self.wrong: list[tuple[int, object]] = []
 
     async def run(self, client: ActionClient, i: int) -> None:
         order = self.order(i)
+        drops = client.node.udp_drops()
+        try:
+            await self._run(client, i, order)
+        finally:
+            now = client.node.udp_drops()
+            if drops is None or now is None or self.dropped is None:
+                self.dropped = None
+            else:
+                self.dropped += now - drops
+
+    async def _run(self, client: ActionClient, i: int, order: int) -> None:
         goal = await client.send_goal({"order": order}, timeout=10)
         assert goal.accepted, f"goal {i} not accepted"
         first = await _first_feedback(goal)
@@ -177,8 +187,7 @@ class GoalTally:
             self.wrong.append((i, outcome))
 
     def assert_clean(self, total: int) -> None:
-        now = socket_drops()
-        dropped = "unknown" if now is None or self.drops is None else now - self.drops
+        dropped = "unknown" if self.dropped is None else self.dropped
         assert (self.no_first_feedback, self.wrong) == ([], []), \
             f"of {total} goals: first feedback lost for {self.no_first_feedback}, " \
             f"wrong results {self.wrong}; datagrams dropped at our sockets meanwhile: {dropped}"
@@ -221,15 +230,14 @@ async def test_a_first_feedback_dropped_at_our_socket_still_comes(
     sockets dropped anything since the goal was sent."""
     await oracle.acall("action_server", name="/fib_burst", period=0.0)
     tally = GoalTally(order=lambda i: 2)
-    drops = socket_drops()
-    assert drops is not None, "the kernel's drop counts are needed (Linux /proc)"
+    assert dropping_node.udp_drops() is not None, "the kernel's drop counts are needed (Linux)"
     with burning_cpus() as burners:
         await each_fresh(DROPPED_GOALS, on_node(dropping_node, burst_client), tally.run)
-    dropped = (socket_drops() or 0) - drops
+    dropped = tally.dropped
     print(f"{oracle.rmw}, {burners} CPU burners, {SMALL_RCVBUF} receive buffer: "
           f"{DROPPED_GOALS} goals, {dropped} datagrams dropped at our sockets, "
           f"{len(tally.no_first_feedback)} lost, {len(tally.wrong)} wrong results")
-    assert dropped > 0, "no datagram was dropped at our sockets: nothing was shown"
+    assert dropped, "no datagram was dropped at our sockets: nothing was shown"
     tally.assert_clean(DROPPED_GOALS)
 
 

@@ -7,6 +7,7 @@ from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
+from dropping import flood, small_buffers
 
 from rcan_rtps.ros import actions
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
@@ -166,16 +167,16 @@ async def test_feedback_stops_waiting_for_a_repair_once_the_server_has_left(
         domain_id: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """After a goal's end, feedback() waits for a dropped datagram to be sent again only
     while the server that would send it is there: once it has left the graph, nothing more
-    can come. (Our sockets' drop count is made to change, as on a busy host; the repair
-    time made long, so that waiting it out would show.)"""
-    drops = iter(range(1_000_000))
-    monkeypatch.setattr(actions, "socket_drops", lambda: next(drops))
+    can come. (Datagrams are dropped at our sockets, as on a busy host; the repair time is
+    made long, so that waiting it out would show.)"""
     monkeypatch.setattr(actions, "REPAIR_S", {m: 600.0 for m in actions.REPAIR_S})
+    small_buffers(monkeypatch)
     with RosNode("rcan_bridge", "/", domain_id=domain_id) as client_node:
         server_node = RosNode("robot_sim", "/", domain_id=domain_id)
         server = ActionServer(server_node, "/nav", NAV, navigate)
         client = ActionClient(client_node, "/nav", NAV)
         goal = await client.send_goal(GOAL, timeout=20)
+        flood(client_node)
         remaining: list[float] = []
 
         async def follow() -> None:

@@ -39,7 +39,6 @@ from .names import action_names, mangle_topic
 from .participant import RosNode, RosSubscription
 from .rostime import now_msg
 from .services import RequestMapping, ServiceClient, ServiceServer, shared_graph
-from .udp_drops import socket_drops
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +103,7 @@ class ClientGoal:
         self.state = GoalState.UNKNOWN
         self._feedback: asyncio.Queue[IdlStruct] = asyncio.Queue(maxsize=1000)
         self._result: GoalResult | None = None
-        self._drops = socket_drops()  # datagrams our sockets dropped before the goal was sent
+        self._drops = client.node.udp_drops()  # dropped at our sockets before it was sent
 
     def __repr__(self) -> str:
         return f"<ClientGoal {uuid.UUID(bytes=self.goal_id)} {self.state.name}>"
@@ -152,7 +151,7 @@ class ClientGoal:
         after that feedback: wait for it (bounded; whoever asks `result()` gets it cached, or
         asks again), then for one more pass of the reader thread. A feedback whose datagram
         the kernel dropped at our socket comes only once the writer's next HEARTBEAT asks for
-        it to be sent again: if this process's sockets dropped anything since the goal was
+        it to be sent again: if our DDS sockets dropped anything since the goal was
         sent (or that cannot be known), wait as long as the server's repair can take.
         docs/design/zero-loss.md has the evidence for each step."""
         loop = asyncio.get_running_loop()
@@ -160,7 +159,7 @@ class ClientGoal:
             await self.result(timeout=SETTLE_S if deadline is None
                               else max(0.1, min(SETTLE_S, deadline - loop.time())))
         await self.client.node.delivered()
-        drops = socket_drops()
+        drops = self.client.node.udp_drops()
         if self.state in (GoalState.REJECTED, GoalState.SERVER_LOST) or \
                 (drops is not None and drops == self._drops):
             return loop.time()

@@ -38,6 +38,7 @@ from .typesys.cdr import CdrCodecs
 from .typesys.ddstypes import DdsTypes, make_topic
 from .typesys.store import TypeStore, env_idl_paths
 from .typesys.values import MessageValues
+from .udp_drops import dropped_at, made_between, udp_socket_inodes
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +63,8 @@ _domains_lock = threading.Lock()
 # (rtps_capture.py). RCAN_RTPS_RPC_IDENTITY=off leaves it out; RCAN_RTPS_CAPTURE_DIR says
 # where its file is made (it loses its name as soon as Cyclone has opened it).
 _captures: dict[int, IdentityCapture] = {}
+# domain id → the UDP sockets Cyclone made for it (None: not known; see udp_drops.py)
+_domain_sockets: dict[int, frozenset[str] | None] = {}
 
 
 def _new_capture() -> IdentityCapture | None:
@@ -113,6 +116,7 @@ def _acquire_domain(domain_id: int, localhost: bool) -> None:
         capture = _new_capture()
         local = [*([_LOCALHOST_CONFIG] if localhost else []),
                  *([capture.config] if capture else [])]
+        before = udp_socket_inodes()
         try:
             try:
                 domain = Domain(domain_id, ",".join(filter(None, [user, _COMPAT_CONFIG, *local])))
@@ -131,6 +135,7 @@ def _acquire_domain(domain_id: int, localhost: bool) -> None:
                 capture.close()
             raise
         _domains[domain_id] = (domain, 1)
+        _domain_sockets[domain_id] = made_between(before, udp_socket_inodes())
 
 
 def _release_domain(domain_id: int) -> None:
@@ -143,6 +148,7 @@ def _release_domain(domain_id: int) -> None:
             _domains[domain_id] = (domain, users - 1)
             return
         del _domains[domain_id]
+        _domain_sockets.pop(domain_id, None)
         capture = _captures.pop(domain_id, None)
     if capture is not None:  # first: it may redirect Cyclone's descriptor while it lives
         capture.close()
@@ -358,6 +364,7 @@ class RosNode:
         self.localhost = localhost_requested(localhost)
         security = _security_properties(enclave, self.domain_id)
         _acquire_domain(self.domain_id, self.localhost)
+        before = udp_socket_inodes()
         try:
             self.participant = DomainParticipant(self.domain_id, qos=Qos(
                 Policy.Userdata(f"enclave={enclave};".encode()), *security))
@@ -374,6 +381,10 @@ class RosNode:
             _release_domain(self.domain_id)
             raise
         self.secured = bool(security)
+        # The domain's sockets and any the participant made (<ManySocketsMode> many).
+        mine = made_between(before, udp_socket_inodes())
+        shared = _domain_sockets.get(self.domain_id)
+        self._sockets = None if mine is None or shared is None else shared | mine
         # Request identities of Fast DDS replies, or None (capture off; see rtps_capture.py).
         self.identities = _captures.get(self.domain_id)
         self._topics: dict[str, Topic[Any]] = {}
@@ -485,6 +496,11 @@ class RosNode:
     def unwatch(self, watch: Watch | WriterWatch) -> None:
         """No delivery to `watch` starts after this returns."""
         self.reader_thread.remove(watch)
+
+    def udp_drops(self) -> int | None:
+        """Datagrams the kernel has dropped so far at this node's DDS sockets (full receive
+        buffers); None where that is not known (not Linux; see udp_drops.py)."""
+        return None if not self._sockets else dropped_at(self._sockets)
 
     async def delivered(self) -> None:
         """Returns once every sample our readers held when it was called has been handed to

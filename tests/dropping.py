@@ -1,0 +1,39 @@
+"""Making the kernel drop datagrams at a node's DDS sockets, as it does on a busy host whose
+receive buffers are full (docs/design/zero-loss.md)."""
+
+from __future__ import annotations
+
+import socket
+
+import pytest
+
+from rcan_rtps.ros.participant import RosNode
+
+# A domain whose sockets' receive buffers hold about two datagrams (put in CYCLONEDDS_URI
+# before the domain's first node is made: the first node of a domain fixes its config).
+SMALL_BUFFERS = '<Internal><SocketReceiveBufferSize min="{size}" max="{size}"/></Internal>'
+
+
+def small_buffers(monkeypatch: pytest.MonkeyPatch, size: str = "3kB") -> None:
+    monkeypatch.setenv("CYCLONEDDS_URI", SMALL_BUFFERS.format(size=size))
+
+
+def ports_of(node: RosNode) -> list[int]:
+    """The UDP ports of the node's DDS sockets (the kernel's table, by their inodes)."""
+    sockets = node._sockets or frozenset()
+    ports = []
+    with open("/proc/self/net/udp", encoding="ascii") as rows:
+        for row in list(rows)[1:]:
+            fields = row.split()
+            if fields[9] in sockets:
+                ports.append(int(fields[1].split(":")[1], 16))
+    return ports
+
+
+def flood(node: RosNode, datagrams: int = 200, size: int = 30_000) -> None:
+    """Junk datagrams at each of the node's DDS sockets, faster than Cyclone reads them
+    (Cyclone drops what is not RTPS); with small buffers the kernel drops most."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+        for port in ports_of(node):
+            for _ in range(datagrams):
+                sender.sendto(b"\0" * size, ("127.0.0.1", port))

@@ -42,9 +42,8 @@ from collections.abc import Callable
 from typing import Any
 
 from ..rcan import ForeignPublisher
-from ..ros.graph import Endpoint, RosGraph, node_fqn, short_gid
+from ..ros.graph import MAX_NODE_FQN, Endpoint, RosGraph, node_fqn, short_gid
 from ..ros.participant import RosNode
-from .faults import cut_text
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +52,9 @@ MAX_REPORTED = 8
 NAME_GRACE_S = 4.0
 _UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
 # A node's fully qualified name as ros_discovery_info bounds it (namespace and name 256
-# characters each): what a peer writes past that is cut, and never matches.
-MAX_NODE_NAME = 2 * 256 + 1
+# characters each): the graph cuts what a peer writes past that where it reads it, and a cut
+# name never matches a declared one (ros.graph.bound_node_name).
+MAX_NODE_NAME = MAX_NODE_FQN
 
 Key = tuple[str, bytes]  # (topic, participant GUID)
 Audit = Callable[..., None]  # Governor.foreign_publisher(facts, gone=...)
@@ -88,8 +88,7 @@ def foreign_publishers(endpoints: list[Endpoint], own: bytes,
         if e.participant_gid == own:
             continue
         key = (e.ros_name, e.participant_gid)
-        node = None if e.node_name == _UNKNOWN_NODE else \
-            cut_text(node_fqn(e.node_namespace, e.node_name), MAX_NODE_NAME)
+        node = None if e.node_name == _UNKNOWN_NODE else node_fqn(e.node_namespace, e.node_name)
         if key not in found:
             found[key] = ForeignPublisher(topic=e.ros_name, type=e.ros_type,
                                           participant=short_gid(e.participant_gid[:12]))

@@ -22,10 +22,17 @@ participant whose writers are no longer all declared.
 A participant counts once per topic, however many writers it has there. Its appearance is
 logged and audited once its node is named (ros_discovery_info may come after the endpoint:
 Fast DDS sends it to a new reader on its next heartbeat), or after `NAME_GRACE_S` unnamed;
-STATUS lists it at once. At most
-`MAX_REPORTED` appearances (and as many disappearances) are logged and audited one by one per
-poll; more are summed up in one line and one entry, so a peer churning participants cannot
-flood the log.
+STATUS lists it at once.
+
+Any participant may appear and leave as often as it likes, unauthenticated, and each told is a
+signed, durable audit entry: what the log and the audit are told has a budget (`ReportBudget`,
+a token bucket per participant on a topic and one for all). An event past it is counted, and
+its participant held: its later events are counted too. Once per `SUMMARY_S`, one entry (and
+one log line) says how many were left out and of whom, and each held participant whose last
+audited state is no longer true is told as it is now (an appearance, with its facts, or its
+going): the audit keeps each participant's first events and its last word, and never ends on
+"present" for one that left, or the reverse. STATUS, and so the e-stop's fault, is told every
+change, never held back.
 
 Cost: a poll takes what discovery changed since the last one (nothing, on a quiet graph) and
 only then looks at the publishers of the command topics: a set lookup per endpoint of the

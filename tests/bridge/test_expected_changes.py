@@ -24,22 +24,22 @@ async def test_an_expected_participant_that_is_no_longer_expected_is_reported(
                                audit=lambda facts, gone: audited.append((facts, gone)),
                                expected=EXPECTED)
         controller = writer(CMD_VEL, 1, "/controller_server")
-        watch._update(foreign_publishers([controller], own, EXPECTED))
-        watch._report(watch._due(), gone=False)
+        watch.update(foreign_publishers([controller], own, EXPECTED))
+        watch.tick()
         assert [(f["node"], f["expected"], gone) for f, gone in audited] == [
             ("/controller_server", True, False)]
         caplog.clear()
         with caplog.at_level(logging.INFO, logger="rcan_rtps.bridge.commanders"):
-            watch._update(foreign_publishers([controller, writer(CMD_VEL, 1, joining, 1)],
+            watch.update(foreign_publishers([controller, writer(CMD_VEL, 1, joining, 1)],
                                              own, EXPECTED))
-            watch._report(watch._due(), gone=False)
+            watch.tick()
         assert [(f["expected"], f["writers"], gone) for f, gone in audited[1:]] == [
             (False, 2, False)]
         assert [r.levelno for r in caplog.records] == [logging.WARNING]
         # Back to its expected writer only: told (at INFO) and audited as expected again.
         caplog.clear()
         with caplog.at_level(logging.INFO, logger="rcan_rtps.bridge.commanders"):
-            watch._update(foreign_publishers([controller], own, EXPECTED))
-            watch._report(watch._due(), gone=False)
+            watch.update(foreign_publishers([controller], own, EXPECTED))
+            watch.tick()
         assert [(f["expected"], gone) for f, gone in audited[2:]] == [(True, False)]
         assert [r.levelno for r in caplog.records] == [logging.INFO]

@@ -12,7 +12,7 @@ from rcan_rtps.bridge.telemetry import (
 )
 from rcan_rtps.rcan import Fault, ForeignPublisher, Joints, Telemetry, Velocity
 from rcan_rtps.ros import qos
-from rcan_rtps.ros.graph import Direction, Endpoint
+from rcan_rtps.ros.graph import Direction, Endpoint, bound_node_name
 from rcan_rtps.ros.names import EndpointKind
 
 CMD_VEL = "/robot1/cmd_vel"
@@ -159,12 +159,14 @@ def test_an_arm_is_seen_still_only_by_its_own_joints() -> None:
                          arm_joints=frozenset({"j3"}))) == {ESTOP_NOT_HOLDING: "WARN"}
 
 
-def test_a_node_name_over_the_idl_bound_is_cut_and_never_expected() -> None:
+def test_a_node_name_cut_at_the_idl_bound_is_never_expected() -> None:
     """ros_discovery_info's names are bounded (256 characters each) by its IDL, not by what
-    a peer writes: a 100,000-character name went as is into STATUS (32 listed), the faults'
-    messages, the log and the audit."""
-    huge = "/" + "n" * 100_000
-    (publisher,) = foreign_publishers([writer(CMD_VEL, 1, huge)], OWN,
-                                      {CMD_VEL: frozenset({huge})}).values()
-    assert publisher.node is not None and len(publisher.node) <= MAX_NODE_NAME
-    assert publisher.node.startswith("/nnn") and not publisher.expected
+    a peer writes: the graph cuts them where it reads them (bound_node_name; a real peer in
+    test_hostile_peers), and a cut name — the declared one and more — is never expected."""
+    declared = "/" + "n" * 300
+    cut = "/" + bound_node_name("n" * 300)
+    (publisher,) = foreign_publishers([writer(CMD_VEL, 1, cut)], OWN,
+                                      {CMD_VEL: frozenset({declared})}).values()
+    assert publisher.node == cut and len(cut) <= MAX_NODE_NAME and not publisher.expected
+    # The config takes no declared name with the cut's mark (test_foreign_publishers_config).
+    assert publisher.node.startswith("/nnn") and "…" in publisher.node

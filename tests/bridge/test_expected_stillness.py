@@ -133,3 +133,46 @@ async def test_a_holonomic_base_moving_sideways_is_not_still(
             assert estop_level(telemetry) == "WARN"
         finally:
             telemetry.close()
+
+
+async def test_status_state_is_moving_for_any_component_of_the_twist(
+        tmp_path: Path, domain_id: int) -> None:
+    """STATUS's `state` reads the whole twist, as the e-stop's stillness does: a holonomic
+    base moving along y is "moving", not "idle"; a component that is not a number is not
+    idle either; only a twist wholly at rest is."""
+    config = bridge_config(tmp_path, domain_id)
+    with RosNode("state_holonomic", "/robot1", domain_id=domain_id) as node:
+        telemetry = TelemetryState(node, config, estop_latched=lambda: False,
+                                   active_goals=list)
+        try:
+            for twist in ({"linear": {"y": 0.4}}, {"linear": {"z": -0.2}},
+                          {"angular": {"x": 0.5}}, {"angular": {"y": float("nan")}},
+                          {"linear": {"x": 0.3}}, {"angular": {"z": float("nan")}}):
+                telemetry._on_odom(node.values.build(ODOM, {"twist": {"twist": twist}}))
+                assert telemetry.status(pending_auth=0).state == "moving", twist
+            telemetry._on_odom(node.values.build(ODOM, {}))
+            assert telemetry.status(pending_auth=0).state == "idle"
+        finally:
+            telemetry.close()
+
+
+async def test_a_sideways_start_tells_the_robot_changed(tmp_path: Path, domain_id: int) -> None:
+    """The robot event (what pushes STATUS to WebSocket clients) fires when the robot starts
+    or stops moving along y, as it does along x."""
+    config = bridge_config(tmp_path, domain_id)
+    with RosNode("state_event", "/robot1", domain_id=domain_id) as node:
+        telemetry = TelemetryState(node, config, estop_latched=lambda: False,
+                                   active_goals=list)
+        told: list[int] = []
+        telemetry.events.robot.subscribe(lambda: told.append(1))
+        try:
+            telemetry._on_odom(node.values.build(ODOM, {}))  # connected: told
+            told.clear()
+            telemetry._on_odom(node.values.build(ODOM, {"twist": {"twist": {
+                "linear": {"y": 0.4}}}}))
+            assert told, "starting to move along y is a change of state"
+            told.clear()
+            telemetry._on_odom(node.values.build(ODOM, {}))
+            assert told, "stopping is a change of state"
+        finally:
+            telemetry.close()

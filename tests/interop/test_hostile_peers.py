@@ -28,7 +28,7 @@ from rcan_rtps.bridge.commanders import MAX_NODE_NAME, foreign_publishers
 from rcan_rtps.bridge.faults import UNLISTED
 from rcan_rtps.ros import qos, raw_cdr
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
-from rcan_rtps.ros.graph import MAX_UNKNOWN_INFOS, RosGraph
+from rcan_rtps.ros.graph import MAX_INFO_NAME, MAX_NODE_FQN, MAX_UNKNOWN_INFOS, RosGraph
 from rcan_rtps.ros.participant import DISCOVERY_TYPE, RosNode
 
 from .bridge_rig import VIEWER, Rig, bridge_config, close_rig, make_rig
@@ -137,6 +137,38 @@ async def test_a_node_name_past_its_bound_is_cut_in_the_other_publishers(
 
     (name,) = await eventually(named, timeout=20)
     assert len(name) <= MAX_NODE_NAME
+
+
+async def test_node_names_past_their_bound_are_cut_in_every_view_of_the_graph(
+        victim: RosNode, hostile: RosNode) -> None:
+    """A peer's ros_discovery_info naming a node with a 100,000-character namespace and name
+    (the IDL's bound, 256, not kept: cyclonedds' reader does not check it) reached `node
+    list`, `node info` and `topic info` as is: the graph cuts each where it reads them."""
+    publisher = hostile.create_publisher("/robot1/chatter", "std_msgs/msg/String")
+    data = bytes(hostile.codecs.of(DISCOVERY_TYPE).encode_value({
+        "gid": {"data": hostile.participant.guid.bytes},
+        "node_entities_info_seq": [{"node_namespace": "/" + "S" * 255, "node_name": "Q" * 256,
+                                    "writer_gid_seq": [{"data": publisher.writer.guid.bytes}]}]}))
+    for char, huge in ((b"S", 100_000), (b"Q", 100_000)):
+        at_bound = struct.pack("<I", 257) + (b"/" if char == b"S" else b"") + \
+            char * (255 if char == b"S" else 256) + b"\0"
+        assert data.count(at_bound) == 1
+        data = data.replace(at_bound, struct.pack("<I", huge + 1) + b"n" * huge + b"\0")
+    graph = RosGraph(victim)
+
+    def hostile_nodes() -> list[tuple[str, str]]:
+        raw_cdr.write(hostile._info_writer, data)
+        graph.refresh()
+        return [(ns, name) for ns, name in graph.nodes() if name.startswith("nnn")]
+
+    [(namespace, name)] = await eventually(hostile_nodes, timeout=20)
+    assert len(namespace) <= MAX_INFO_NAME and len(name) <= MAX_INFO_NAME
+    assert namespace.startswith("nnn") and "(+99744 chars)" in name
+    [chatter] = [e for e in graph.topic_endpoints("/robot1/chatter")
+                 if e.participant_gid == hostile.participant.guid.bytes]
+    assert (chatter.node_namespace, chatter.node_name) == (namespace, name)
+    longest = max(len(e.node_name) + len(e.node_namespace) for e in graph.endpoints())
+    assert longest <= MAX_NODE_FQN
 
 
 # -- actions ---------------------------------------------------------------------------

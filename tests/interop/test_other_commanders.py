@@ -21,6 +21,7 @@ from cyclonedds.topic import Topic
 from oracle.client import OracleEnv, RclpyOracle, both_rmws
 from waiting import eventually
 
+from rcan_rtps.bridge.commanders import KEY_BURST
 from rcan_rtps.bridge.telemetry import ESTOP_NOT_HOLDING, FOREIGN_PUBLISHER
 from rcan_rtps.rcan import ForeignPublisher, Status
 from rcan_rtps.ros import qos
@@ -252,3 +253,33 @@ async def test_the_running_bridge_shows_it_in_api_status(
     events = [json.loads(line)["event"] for line in sim.audit.read_text().splitlines()]
     assert events.count("FOREIGN_PUBLISHER") == 1
     assert events.count("FOREIGN_PUBLISHER_GONE") == 1
+
+
+async def test_a_flapping_publisher_does_not_flood_the_audit(
+        rig: Rig, hostile: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    """A real peer whose cmd_vel writer comes and goes, every change seen by the watch
+    (polling every 0.1 s): STATUS follows each, while the audit and the log hold at its
+    budget (one entry per change, for ever, before: any DDS peer could fill the disk)."""
+    caplog.set_level(logging.INFO, logger="rcan_rtps.bridge.commanders")
+    cycles = 10
+    for _ in range(cycles):
+        publisher = hostile.create_publisher(CMD_VEL, TWIST, qos.DEFAULT)
+        await eventually(lambda: [p.node for p in listed(rig)] == ["/robot1/hostile"],
+                         what="the flapping writer listed")
+        publisher.close()
+        await eventually(lambda: listed(rig) == [], what="the flapping writer gone")
+    publisher = hostile.create_publisher(CMD_VEL, TWIST, qos.DEFAULT)
+    await eventually(lambda: [p.node for p in listed(rig)] == ["/robot1/hostile"])
+    told = [e for e in rig.entries()
+            if e["event"] in ("FOREIGN_PUBLISHER", "FOREIGN_PUBLISHER_GONE")]
+    assert len(told) <= KEY_BURST < 2 * cycles, told  # was one per change: 21
+    assert [e["event"] for e in told] == ["FOREIGN_PUBLISHER", "FOREIGN_PUBLISHER_GONE"] * 2
+    said = [r for r in caplog.records if r.name == "rcan_rtps.bridge.commanders"]
+    assert len(said) <= KEY_BURST
+    # Latched, the e-stop's fault says what is there now, budget or not.
+    await rig.command(VIEWER, {"action": "estop"})  # no robot here to tell: latched still
+    assert rig.governor.latch.latched
+    first = status(rig).faults[0]
+    assert (first.name, first.level) == (ESTOP_NOT_HOLDING, "ERROR")
+    assert "/robot1/hostile" in first.message
+    publisher.close()

@@ -22,10 +22,17 @@ participant whose writers are no longer all declared.
 A participant counts once per topic, however many writers it has there. Its appearance is
 logged and audited once its node is named (ros_discovery_info may come after the endpoint:
 Fast DDS sends it to a new reader on its next heartbeat), or after `NAME_GRACE_S` unnamed;
-STATUS lists it at once. At most
-`MAX_REPORTED` appearances (and as many disappearances) are logged and audited one by one per
-poll; more are summed up in one line and one entry, so a peer churning participants cannot
-flood the log.
+STATUS lists it at once.
+
+Any participant may appear and leave as often as it likes, unauthenticated, and each told is a
+signed, durable audit entry: what the log and the audit are told has a budget (`ReportBudget`,
+a token bucket per participant on a topic and one for all). An event past it is counted, and
+its participant held: its later events are counted too. Once per `SUMMARY_S`, one entry (and
+one log line) says how many were left out and of whom, and each held participant whose last
+audited state is no longer true is told as it is now (an appearance, with its facts, or its
+going): the audit keeps each participant's first events and its last word, and never ends on
+"present" for one that left, or the reverse. STATUS, and so the e-stop's fault, is told every
+change, never held back.
 
 Cost: a poll takes what discovery changed since the last one (nothing, on a quiet graph) and
 only then looks at the publishers of the command topics: a set lookup per endpoint of the
@@ -42,21 +49,32 @@ from collections.abc import Callable
 from typing import Any
 
 from ..rcan import ForeignPublisher
-from ..ros.graph import Endpoint, RosGraph, node_fqn, short_gid
+from ..ros.graph import MAX_NODE_FQN, Endpoint, RosGraph, node_fqn, short_gid
 from ..ros.participant import RosNode
-from .faults import cut_text
+from .report_budget import ReportBudget
 
 log = logging.getLogger(__name__)
 
 POLL_S = 1.0
-MAX_REPORTED = 8
 NAME_GRACE_S = 4.0
+# What the audit is told of other publishers, whatever they do (`report_budget`): a
+# participant's first KEY_BURST events on a topic, then one each KEY_REFILL_S; all together,
+# ALL_BURST, then one each ALL_REFILL_S. What is left out is summed up once each SUMMARY_S,
+# with at most MAX_SETTLE participants told as they are then. Sustained, a domain of
+# flapping peers makes at most ~1 + 6 + 8 entries a minute (was ~600 at poll_s 0.1).
+KEY_BURST, KEY_REFILL_S = 4.0, 60.0
+ALL_BURST, ALL_REFILL_S = 32.0, 10.0
+SUMMARY_S = 60.0
+MAX_SETTLE = 8
+MAX_NAMED = 8  # participants a summary names, with their counts
 _UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
 # A node's fully qualified name as ros_discovery_info bounds it (namespace and name 256
-# characters each): what a peer writes past that is cut, and never matches.
-MAX_NODE_NAME = 2 * 256 + 1
+# characters each): the graph cuts what a peer writes past that where it reads it, and a cut
+# name never matches a declared one (ros.graph.bound_node_name).
+MAX_NODE_NAME = MAX_NODE_FQN
 
 Key = tuple[str, bytes]  # (topic, participant GUID)
+_Event = tuple[Key, ForeignPublisher, bool]  # who, as it is, gone
 Audit = Callable[..., None]  # Governor.foreign_publisher(facts, gone=...)
 
 
@@ -88,8 +106,7 @@ def foreign_publishers(endpoints: list[Endpoint], own: bytes,
         if e.participant_gid == own:
             continue
         key = (e.ros_name, e.participant_gid)
-        node = None if e.node_name == _UNKNOWN_NODE else \
-            cut_text(node_fqn(e.node_namespace, e.node_name), MAX_NODE_NAME)
+        node = None if e.node_name == _UNKNOWN_NODE else node_fqn(e.node_namespace, e.node_name)
         if key not in found:
             found[key] = ForeignPublisher(topic=e.ros_name, type=e.ros_type,
                                           participant=short_gid(e.participant_gid[:12]))
@@ -103,6 +120,34 @@ def foreign_publishers(endpoints: list[Endpoint], own: bytes,
         shown = [n for n in named if n not in declared] or named
         publisher.node = shown[0] if shown else None
     return found
+
+
+class _LeftOut:
+    """What the budget left out since the last summary: how many events, and of whom (the
+    first `MAX_NAMED` participants counted one by one, the rest in all)."""
+
+    def __init__(self) -> None:
+        self.events = 0
+        self.topics: set[str] = set()
+        self.named: dict[Key, tuple[ForeignPublisher, int]] = {}
+        self.others = 0  # events of participants past the first MAX_NAMED
+
+    def add(self, key: Key, publisher: ForeignPublisher) -> None:
+        self.events += 1
+        self.topics.add(publisher.topic)
+        if key in self.named or len(self.named) < MAX_NAMED:
+            self.named[key] = (publisher, self.named.get(key, (publisher, 0))[1] + 1)
+        else:
+            self.others += 1
+
+    def facts(self, window_s: float, unsettled: int) -> dict[str, Any]:
+        topics = sorted(self.topics)
+        who = sorted(self.named.values(), key=lambda pn: -pn[1])
+        return {"topic": topics[0] if topics else None, "topics": topics,
+                "left_out": self.events, "window_s": round(window_s, 3),
+                "of": [{"topic": p.topic, "participant": p.participant, "node": p.node,
+                        "left_out": n} for p, n in who],
+                "others_left_out": self.others, "unsettled": unsettled}
 
 
 class CommanderWatch:
@@ -125,6 +170,16 @@ class CommanderWatch:
         self._generation = -1
         self._task: asyncio.Task[None] | None = None
         self._failed = False
+        now = monotonic()
+        self._budget: ReportBudget[Key] = ReportBudget(
+            key_burst=KEY_BURST, key_refill_s=KEY_REFILL_S, all_burst=ALL_BURST,
+            all_refill_s=ALL_REFILL_S, now=now)
+        # What the audit last said of each participant on a topic (absent: not there), and
+        # those whose events were left out since: each is told as it is at the next summary.
+        self._said: dict[Key, ForeignPublisher] = {}
+        self._held: set[Key] = set()
+        self._left_out = _LeftOut()
+        self._window_start = now
 
     def start(self) -> None:
         self._task = asyncio.get_running_loop().create_task(self._run(), name="commander-watch")
@@ -153,55 +208,107 @@ class CommanderWatch:
         self._graph.refresh()
         if self._graph.generation != self._generation:  # else nothing came or went
             self._generation = self._graph.generation
-            self._update(foreign_publishers(self._graph.publishers_on(self._topics), self._own,
-                                            self._expected))
-        self._report(self._due(), gone=False)
+            self.update(foreign_publishers(self._graph.publishers_on(self._topics), self._own,
+                                           self._expected))
+        self.tick()
 
-    def _update(self, now: dict[Key, ForeignPublisher]) -> None:
+    def tick(self) -> None:
+        """What each poll does after reading the graph: appearances now due are told, and
+        once per `SUMMARY_S` what the budget left out is summed up."""
+        self._tell(self._due())
+        if self._monotonic() - self._window_start >= SUMMARY_S:
+            self._summarize()
+
+    def update(self, now: dict[Key, ForeignPublisher]) -> None:
+        """The publishers on the command topics are now these: STATUS shows them at once;
+        what came, changed and went is told (within the budget)."""
         clock = self._monotonic()
         for key in now.keys() - self._known.keys():
             self._unreported[key] = clock
-        gone = [p for k, p in self._known.items() if k not in now]
+        events: list[_Event] = []
         # One that came and went between two reports: its appearance is recorded too.
-        self._report([self._known[k] for k in self._unreported if k not in now], gone=False)
+        events += [(k, self._known[k], False) for k in self._unreported if k not in now]
         # One reported that is now expected where it was not, or the reverse (a writer of
         # another node joined it, or left): told again, as it is now.
-        self._report([p for k, p in now.items() if k in self._known and k not in
-                      self._unreported and p.expected != self._known[k].expected], gone=False)
+        events += [(k, p, False) for k, p in now.items() if k in self._known and k not in
+                   self._unreported and p.expected != self._known[k].expected]
+        events += [(k, p, True) for k, p in self._known.items() if k not in now]
         self._unreported = {k: t for k, t in self._unreported.items() if k in now}
         self._known = now
-        self._report(gone, gone=True)
         self._show(list(now.values()), self._motion)
+        self._tell(events)
 
-    def _due(self) -> list[ForeignPublisher]:
+    def _due(self) -> list[_Event]:
         """Appearances to report now: named, or unnamed for `NAME_GRACE_S`."""
         clock = self._monotonic()
         due = [k for k, since in self._unreported.items()
                if self._known[k].node is not None or clock - since >= NAME_GRACE_S]
         for key in due:
             del self._unreported[key]
-        return [self._known[k] for k in due]
+        return [(k, self._known[k], False) for k in due]
 
-    def _report(self, publishers: list[ForeignPublisher], *, gone: bool) -> None:
-        if not publishers:
-            return
-        publishers = sorted(publishers, key=lambda p: (p.topic, p.node or "", p.participant))
-        for p in publishers[:MAX_REPORTED]:
-            # A declared one is the robot's design, not news: told at INFO.
-            level = logging.INFO if p.expected else logging.WARNING
-            if gone:
-                log.log(level, "%s no longer publishes on %s", _describe(p), p.topic)
+    def _tell(self, events: list[_Event]) -> None:
+        """Logs and audits each event the budget allows; counts the others. A participant
+        with one left out is held: its later events are counted too until the summary,
+        which tells how it is then — so the audit's last word on each is never one that
+        the left-out events made false."""
+        clock = self._monotonic()
+        for key, publisher, gone in events:
+            if key not in self._held and self._budget.take(key, clock):
+                self._tell_one(key, publisher, gone=gone)
             else:
-                log.log(level, "%s publishes on %s, a topic the bridge commands the robot on: "
-                        "the robot obeys it too%s", _describe(p), p.topic,
-                        ", and an e-stop cannot hold it" if p.topic in self._motion else "")
-            self._audit(_facts(p), gone=gone)
-        rest = publishers[MAX_REPORTED:]
-        if rest:
-            topics = sorted({p.topic for p in rest})
-            log.warning("and %d more participant(s) %s on %s", len(rest),
-                        "stopped publishing" if gone else "publish", ", ".join(topics))
-            self._audit({"topic": topics[0], "topics": topics, "more": len(rest)}, gone=gone)
+                self._held.add(key)
+                self._left_out.add(key, publisher)
+
+    def _tell_one(self, key: Key, p: ForeignPublisher, *, gone: bool) -> None:
+        # A declared one is the robot's design, not news: told at INFO.
+        level = logging.INFO if p.expected else logging.WARNING
+        if gone:
+            log.log(level, "%s no longer publishes on %s", _describe(p), p.topic)
+            self._said.pop(key, None)
+        else:
+            log.log(level, "%s publishes on %s, a topic the bridge commands the robot on: "
+                    "the robot obeys it too%s", _describe(p), p.topic,
+                    ", and an e-stop cannot hold it" if p.topic in self._motion else "")
+            self._said[key] = p
+        self._audit(_facts(p), gone=gone)
+
+    def _unsettled(self) -> list[Key]:
+        """The held participants the audit's last word on is not true of now (the present
+        ones first, the unexpected first among them). One still waiting for its name is
+        told when it is named, as any."""
+        def wrong(key: Key) -> bool:
+            said, now = self._said.get(key), self._known.get(key)
+            return (said is None) != (now is None) or (
+                said is not None and now is not None and said.expected != now.expected)
+        keys = [k for k in self._held if k not in self._unreported and wrong(k)]
+        return sorted(keys, key=lambda k: (k not in self._known, self._known[k].expected
+                                           if k in self._known else True, k))
+
+    def _summarize(self) -> None:
+        """Once per `SUMMARY_S`, when any event was left out: one entry (and one log line)
+        saying how many and of whom, then each held participant as it is now (at most
+        `MAX_SETTLE`; the others at the next summary, counted as `unsettled`)."""
+        clock = self._monotonic()
+        window, self._window_start = clock - self._window_start, clock
+        self._budget.prune(clock)
+        if not self._held and not self._left_out.events:
+            return
+        unsettled = self._unsettled()
+        settle, later = unsettled[:MAX_SETTLE], unsettled[MAX_SETTLE:]
+        left_out, self._left_out = self._left_out, _LeftOut()
+        if left_out.events:
+            facts = left_out.facts(window, len(later))
+            log.warning("%d appearance(s) and disappearance(s) of %d participant(s) on %s in "
+                        "the last %.0f s were not logged or audited one by one (too many); "
+                        "each is recorded as it is now, and STATUS lists those present",
+                        left_out.events, len(left_out.named) + (left_out.others > 0),
+                        ", ".join(facts["topics"]), window)
+            self._audit(facts, gone=False)
+        for key in settle:
+            now = self._known.get(key)
+            self._tell_one(key, now or self._said[key], gone=now is None)
+        self._held = set(later) | {k for k in self._held if k in self._unreported}
 
     @property
     def known(self) -> list[ForeignPublisher]:

@@ -9,7 +9,8 @@ derives the state machine from them:
     offline    no telemetry for `telemetry_stale_s` (or none yet)
     safe_stop  a control session was lost, until the next command
     executing  a goal (navigation, docking) is active
-    moving     odometry reports motion
+    moving     odometry reports motion: any of its twist's six components not at rest (a
+               holonomic base moving along y included; not a number is not at rest)
     idle       otherwise
 
 What it copies is bounded, whatever the robot's nodes send: faults (`faults.FaultTable`),
@@ -151,14 +152,18 @@ class TelemetryState:
     def _on_odom(self, msg: Any) -> None:
         p, twist = msg.pose.pose, msg.twist.twist
         with self._lock:
-            was_moving = _moving(self._velocity)
+            was_moving = self._odom_moving()
             self._position = Position(p.position.x, p.position.y, p.position.z)
             self._yaw = quaternion_to_yaw(p.orientation)
             self._velocity = Velocity(twist.linear.x, twist.angular.z)
             self._twist_at_rest = _at_rest(twist)
             self._odom_rx = self._monotonic()
-            changed = self._touch() or was_moving != _moving(self._velocity)
+            changed = self._touch() or was_moving != self._odom_moving()
         self._tell(changed)
+
+    def _odom_moving(self) -> bool:
+        """The last odometry's whole twist is not at rest (none yet: not moving)."""
+        return self._velocity is not None and not self._twist_at_rest
 
     def _on_joints(self, msg: Any) -> None:
         with self._lock:
@@ -237,6 +242,7 @@ class TelemetryState:
             seq = self._seq
             odom_stale, joints_stale = self._stale(self._odom_rx), self._stale(self._joints_rx)
             twist_at_rest = self._twist_at_rest
+            moving = self._odom_moving()
         goals = self._active_goals()
         navigation = self._navigation() if goals else None
         stale = age is None or age > self.config.bridge.ros2.telemetry_stale_s
@@ -245,7 +251,7 @@ class TelemetryState:
                            self._base_topic, self._arm_joints)
         faults = _commander_faults(estop, foreign, foreign_motion, still) + faults
         return Status(
-            ruri=self.config.robot.ruri, state=self._state(estop, faults, stale, goals, telemetry),
+            ruri=self.config.robot.ruri, state=self._state(estop, faults, stale, goals, moving),
             estop=estop, battery_pct=battery, telemetry=telemetry, faults=faults,
             active_goals=goals, pending_auth=pending_auth,
             ros=RosInfo(self.domain_id, self.distro, not stale,
@@ -258,7 +264,7 @@ class TelemetryState:
         )
 
     def _state(self, estop: bool, faults: list[Fault], stale: bool, goals: list[str],
-               telemetry: Telemetry) -> Any:
+               moving: bool) -> Any:
         if estop:
             return "estop"
         if any(f.level == "ERROR" for f in faults):
@@ -269,7 +275,9 @@ class TelemetryState:
             return "safe_stop"
         if goals:
             return "executing"
-        return "moving" if _moving(telemetry.velocity) else "idle"
+        # The whole twist, as the e-stop's stillness reads it: STATUS's velocity (linear x,
+        # angular z) does not show a holonomic base moving along y.
+        return "moving" if moving else "idle"
 
 
 class _Stillness:

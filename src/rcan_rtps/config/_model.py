@@ -31,7 +31,9 @@ from rcan_rtps.rcan.actions import GoalRoute, goal_routes, specs, with_effect
 
 from ._skills import skill_problem
 
-_ROS_NAME = re.compile(r"^~?/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*$")
+# A relative, absolute or `~/` name of one or more tokens. rcl wants `~` followed by `/` (or
+# alone): `~cmd_vel` would resolve to `/ns/rcan_bridgecmd_vel`, the node's name run into it.
+_ROS_NAME = re.compile(r"^(~/|/)?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*$")
 _NODE_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
 _PRINCIPAL = r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$"
 _ENV_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
@@ -62,10 +64,19 @@ def _field_checks(cls: type[msgspec.Struct]) -> tuple[tuple[str, Problem], ...]:
 
 
 def _ros_name_problem(value: str) -> str | None:
-    return None if _ROS_NAME.fullmatch(value) else f"is not a valid ROS name: {value!r}"
+    if _ROS_NAME.fullmatch(value):
+        return None
+    if value.startswith("~") and not value.startswith("~/"):
+        # rcl lets a two-character `~x` through (its check starts at three): refused all
+        # the same, it is the same mistake.
+        return (f"is not a valid ROS name: {value!r}: '~' must be followed by '/' "
+                f"(write {'~/' + value[1:]!r} for a topic inside the bridge's node)")
+    return f"is not a valid ROS name: {value!r}"
 
 
 def _namespace_problem(value: str) -> str | None:
+    if value.startswith("~"):
+        return f"is not a valid namespace: {value!r}: a namespace has no '~'"
     return None if value in ("", "/") else _ros_name_problem(value)
 
 

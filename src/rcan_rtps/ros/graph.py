@@ -3,6 +3,11 @@
 Endpoints come from the builtin publication/subscription topics (name, type, QoS,
 USER_DATA type hash, vendor from the GUID prefix); nodes and the endpoint → node
 mapping come from other participants' `ros_discovery_info`.
+
+Any peer may write ros_discovery_info, and cyclonedds' reader does not keep the bounds of
+its IDL (`string<256>` for a node's namespace and name): a name is cut to that bound where
+the sample is read (`bound_node_name`), so every view — `node list`, `node info`, `topic
+info`, the bridge's other publishers — shows at most it.
 """
 
 from __future__ import annotations
@@ -37,6 +42,10 @@ log = logging.getLogger(__name__)
 # ros_discovery_info entries kept for participants discovery has not (yet) announced: any peer
 # may write any gid there, so what names no live participant is bounded, then let go.
 MAX_UNKNOWN_INFOS = 256
+# ros_discovery_info's IDL bound for a node's namespace and for its name, each.
+MAX_INFO_NAME = 256
+# A node's fully qualified name made of two names at that bound (`node_fqn`).
+MAX_NODE_FQN = 2 * MAX_INFO_NAME + 1
 
 VENDORS = {
     b"\x01\x01": "RTI Connext DDS",
@@ -71,6 +80,15 @@ class Endpoint:
     # rmw_cyclonedds' `serviceid=`/`clientid=` of a service endpoint: the mark of its
     # request-reply mapping that survives DDS-Security (which rewrites the GUID's vendor bytes)
     service_id: str = ""
+
+
+class _Node(msgspec.Struct, frozen=True):
+    """A node a participant's ros_discovery_info announces: its names (bounded) and the gids
+    of its endpoints. What the views use of the sample, not the decoded sample."""
+
+    namespace: str
+    name: str
+    gids: tuple[bytes, ...]
 
 
 class _Seen(msgspec.Struct, frozen=True):
@@ -113,7 +131,7 @@ class RosGraph:
         self._endpoints: dict[bytes, _Seen] = {}
         # Discovered QoS profiles, each kept once: a graph's endpoints share a handful.
         self._profiles: dict[QosProfile, QosProfile] = {}
-        self._node_infos: dict[bytes, Any] = {}
+        self._node_infos: dict[bytes, tuple[_Node, ...]] = {}
         self._alive: set[bytes] = set()  # participants discovery knows (this one included)
         self.bad_infos = 0  # ros_discovery_info samples that did not decode (dropped)
         # Grows whenever a refresh took anything: a view computed at one generation is
@@ -167,11 +185,12 @@ class RosGraph:
             try:
                 info: Any = self._decode_info(data)
                 gid = bytes(info.gid.data)[:16]
+                nodes = _nodes_of(info)
             except Exception:
                 bad += 1
                 continue
             if sample_info.instance_state == InstanceState.Alive:
-                self._node_infos[gid] = info
+                self._node_infos[gid] = nodes
             else:
                 self._node_infos.pop(gid, None)
         if bad:
@@ -189,8 +208,8 @@ class RosGraph:
         for gid in unknown[:max(0, len(unknown) - MAX_UNKNOWN_INFOS)]:  # oldest first
             del self._node_infos[gid]
 
-    def _live_infos(self) -> list[Any]:
-        return [info for gid, info in self._node_infos.items() if gid in self._alive]
+    def _live_infos(self) -> list[tuple[_Node, ...]]:
+        return [nodes for gid, nodes in self._node_infos.items() if gid in self._alive]
 
     async def settle(self, seconds: float = 1.0, patience: float = 4.0) -> None:
         """Lets discovery run for `seconds`, then up to `patience` more until every
@@ -217,12 +236,12 @@ class RosGraph:
         endpoint's node is looked for in its own participant's info only (as rmw's graph
         cache does): another peer's info cannot claim it."""
         owners: dict[tuple[bytes, bytes], tuple[str, str]] = {}
-        for gid, info in self._node_infos.items():
+        for gid, nodes in self._node_infos.items():
             if gid not in self._alive or (participants is not None and gid not in participants):
                 continue
-            for n in info.node_entities_info_seq:
-                for g in [*n.reader_gid_seq, *n.writer_gid_seq]:
-                    owners[(gid, bytes(g.data)[:16])] = (n.node_namespace, n.node_name)
+            for n in nodes:
+                for g in n.gids:
+                    owners[(gid, g)] = (n.namespace, n.name)
         return owners
 
     def endpoints(self) -> list[Endpoint]:
@@ -287,8 +306,7 @@ class RosGraph:
     def nodes(self) -> list[tuple[str, str]]:
         """(namespace, name) of every node announced by a participant discovery knows
         alive, another or this one (an info naming no such participant names no node)."""
-        found = {(n.node_namespace, n.node_name)
-                 for info in self._live_infos() for n in info.node_entities_info_seq}
+        found = {(n.namespace, n.name) for nodes in self._live_infos() for n in nodes}
         return sorted(found)
 
 
@@ -301,6 +319,22 @@ def _take_all(reader: BuiltinDataReader, batch: int = 256) -> Iterator[Any]:
         yield from samples
         if len(samples) < batch:
             return
+
+
+def bound_node_name(text: str) -> str:
+    """A namespace or node name as ros_discovery_info's IDL bounds it: itself, or its first
+    characters and how many more there were — which no valid name holds, so a cut name never
+    equals one declared (expected publishers)."""
+    if len(text) <= MAX_INFO_NAME:
+        return text
+    more = f"… (+{len(text) - MAX_INFO_NAME} chars)"
+    return text[:MAX_INFO_NAME - len(more)] + more
+
+
+def _nodes_of(info: Any) -> tuple[_Node, ...]:
+    return tuple(_Node(bound_node_name(n.node_namespace), bound_node_name(n.node_name),
+                       tuple(bytes(g.data)[:16] for g in [*n.reader_gid_seq, *n.writer_gid_seq]))
+                 for n in info.node_entities_info_seq)
 
 
 def node_fqn(namespace: str, name: str) -> str:

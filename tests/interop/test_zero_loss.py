@@ -19,6 +19,7 @@ from typing import TypeVar
 import pytest
 from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
 
+from rcan_rtps.ros import qos
 from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.errors import ServiceTimeout
 from rcan_rtps.ros.participant import RosNode
@@ -40,6 +41,11 @@ DROPPED_GOALS = int(200 * SCALE)  # fresh ActionClient each, datagrams dropped a
 # Our participant's socket receive buffer, shrunk so that the kernel drops datagrams at it, as
 # it does on a busy host whose buffer is full: 3 kB holds about two of the server's datagrams.
 SMALL_RCVBUF = "3kB"
+# Fresh ServiceClient each, our buffer smaller still and a stream to it: drops are frequent.
+ANNOUNCED_CALLS = int(150 * SCALE)
+TINY_RCVBUF = "1kB"
+NOISE = "/zero_loss_noise"  # a camera's worth of traffic to our socket: 1 kB messages ...
+NOISE_HZ = 3000.0  # ... as fast as the oracle's Python thread can send them
 CLI_CALLS = int(20 * SCALE)  # fresh `rcan-rtps service call` processes
 REPLY_TIMEOUT = 5.0
 
@@ -68,6 +74,26 @@ async def dropping_node(oracle: RclpyOracle, domain_id: int, jazzy_share: Path,
     with RosNode("zero_loss_dropping", "/", domain_id=domain_id, distro="jazzy",
                  idl_paths=[jazzy_share]) as n:
         yield n
+
+
+@pytest.fixture
+async def noisy_node(oracle: RclpyOracle, domain_id: int, jazzy_share: Path,
+                     monkeypatch: pytest.MonkeyPatch) -> AsyncIterator[RosNode]:
+    """A node whose socket drops datagrams often: a 1 kB receive buffer, and a stream of
+    1 kB messages from the oracle to it."""
+    monkeypatch.setenv("CYCLONEDDS_URI", f'<Internal><SocketReceiveBufferSize '
+                                         f'min="{TINY_RCVBUF}" max="{TINY_RCVBUF}"/></Internal>')
+    with RosNode("zero_loss_noisy", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as n:
+        await oracle.acall("publisher", topic=NOISE, type="std_msgs/msg/String", qos="sensor")
+        n.create_subscription(NOISE, "std_msgs/msg/String", qos.SENSOR_DATA,
+                              callback=lambda message: None)
+        await oracle.acall("publish_periodic", topic=NOISE, type="std_msgs/msg/String",
+                           value={"data": "x" * 1000}, rate=NOISE_HZ)
+        try:
+            yield n
+        finally:
+            await oracle.acall("stop_periodic", topic=NOISE)
 
 
 Client = TypeVar("Client", ServiceClient, ActionClient)
@@ -240,6 +266,31 @@ async def test_fresh_nodes_get_every_first_feedback(oracle: RclpyOracle, domain_
     fresh = on_fresh_node("zero_loss_goal", domain_id, jazzy_share, fib_client)
     await each_fresh(GOALS_PER_NODE, fresh, tally.run)
     tally.assert_clean(GOALS_PER_NODE)
+
+
+@both_rmws
+async def test_a_reply_is_not_lost_when_the_servers_first_heartbeat_was_dropped(
+        oracle: RclpyOracle, noisy_node: RosNode) -> None:
+    """A Fast DDS reply writer announces itself to a new reader with one GAP+HEARTBEAT. When
+    our socket dropped it, the next one came with the reply, ahead of its DATA, and Cyclone
+    took it as the reader's start: the reply was dropped as history and ACKed, lost for good
+    (docs/design/zero-loss.md). The client now waits to hear that HEARTBEAT before its first
+    request, and makes its reader again when it does not come."""
+    drops = socket_drops()
+    assert drops is not None, "the kernel's drop counts are needed (Linux /proc)"
+    calls, renewed = Tally(), 0
+    with burning_cpus() as burners:
+        for i in range(ANNOUNCED_CALLS):
+            with closing(echo_client(noisy_node)) as client:
+                pair = await client.wait_for_service(REPLY_TIMEOUT)
+                await calls.call(client, i)
+                renewed += pair.renewed
+    dropped = (socket_drops() or 0) - drops
+    print(f"{oracle.rmw}, {burners} CPU burners, {TINY_RCVBUF} receive buffer, {NOISE_HZ:.0f} Hz "
+          f"to it: {ANNOUNCED_CALLS} calls from fresh clients, {dropped} datagrams dropped at "
+          f"our sockets, {len(calls.lost)} replies lost, {renewed} reply readers made again")
+    assert dropped > 0, "no datagram was dropped at our sockets: nothing was shown"
+    calls.assert_clean(ANNOUNCED_CALLS)
 
 
 @both_rmws

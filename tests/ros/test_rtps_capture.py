@@ -231,7 +231,9 @@ def test_a_heartbeat_to_our_reader_is_heard_while_a_client_uses_the_capture(
     announce = pcap_record(heartbeat_message(OUR_READER[12:], destination=OUR_PREFIX))
     os.write(writer, announce)  # nobody uses the capture: it went to /dev/null
     assert not tail.heard_heartbeat(SERVER, OUR_READER)
+    assert not tail.reading
     tail.use()
+    assert tail.reading
     other = OUR_PREFIX + b"\x00\x00\x39\x04"
     os.write(writer, pcap_record(heartbeat_message(bytes(4), destination=OUR_PREFIX)))
     os.write(writer, pcap_record(heartbeat_message(other[12:], destination=OUR_PREFIX)))

@@ -254,6 +254,11 @@ class IdentityCapture:
         self.datagrams = 0  # received datagrams parsed so far
         self.identified = 0  # DATA submessages found naming a related sample
 
+    @property
+    def reading(self) -> bool:
+        """Whether received datagrams are being read (started, not given up, a user)."""
+        return self._file is not None and not self._broken and self._users > 0
+
     def use(self) -> None:
         """A client needs identities from now on (until `unuse`)."""
         with self._lock:

@@ -331,7 +331,7 @@ class ServiceClient:
         the next one covers would be dropped as history (handshake.py). Needs the packet
         capture; once per reader, before its first request (never with a reply in flight)."""
         capture = self.node.identities
-        if capture is None or pair.mapping is not RequestMapping.FASTDDS:
+        if capture is None or not capture.reading or pair.mapping is not RequestMapping.FASTDDS:
             return
         loop = asyncio.get_running_loop()
         async with pair.announce_lock:

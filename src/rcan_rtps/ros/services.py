@@ -352,8 +352,8 @@ class ServiceClient:
                     if loop.time() >= until:
                         break
                     await asyncio.sleep(POLL)
-                if loop.time() >= deadline:
-                    break
+                if loop.time() >= deadline or pair.written:
+                    break  # (a reader with a request out is never replaced: see renew_reader)
             pair.announced |= pair.unannounced_writers().keys()  # best effort: once
 
     async def _matched_again(self, pair: _Pair, deadline: float) -> None:

@@ -158,6 +158,7 @@ class _Pair:
         self.announced: set[int] = set()
         self.announce_lock = asyncio.Lock()
         self.renewed = 0  # times the reader was made again (see `renew_reader`)
+        self.unannounced = 0  # writers given up on: the request went out without their HEARTBEAT
 
     def _make_reader(self) -> tuple[DataReader[Any], Any]:
         node, into = self._node, self._into
@@ -354,7 +355,12 @@ class ServiceClient:
                     await asyncio.sleep(POLL)
                 if loop.time() >= deadline or pair.written:
                     break  # (a reader with a request out is never replaced: see renew_reader)
-            pair.announced |= pair.unannounced_writers().keys()  # best effort: once
+            unheard = pair.unannounced_writers()
+            if unheard:
+                log.debug("service %s: no first HEARTBEAT from %d reply writer(s) to our "
+                          "reader; the request goes out without it", self.name, len(unheard))
+            pair.unannounced += len(unheard)
+            pair.announced |= unheard.keys()  # best effort: once
 
     async def _matched_again(self, pair: _Pair, deadline: float) -> None:
         """After `renew_reader`: until the reader matches (our view), then the handshake."""

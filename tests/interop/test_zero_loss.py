@@ -8,6 +8,7 @@ reader, see services.py), and every reply must echo its own request.
 
 from __future__ import annotations
 
+import logging
 import os
 import subprocess
 import sys
@@ -278,7 +279,7 @@ async def test_fresh_nodes_get_every_first_feedback(oracle: RclpyOracle, domain_
 
 @both_rmws
 async def test_a_reply_is_not_lost_when_the_servers_first_heartbeat_was_dropped(
-        oracle: RclpyOracle, noisy_node: RosNode) -> None:
+        oracle: RclpyOracle, noisy_node: RosNode, caplog: pytest.LogCaptureFixture) -> None:
     """A Fast DDS reply writer announces itself to a new reader with one GAP+HEARTBEAT. When
     our socket dropped it, the next one came with the reply, ahead of its DATA, and Cyclone
     took it as the reader's start: the reply was dropped as history and ACKed, lost for good
@@ -286,6 +287,7 @@ async def test_a_reply_is_not_lost_when_the_servers_first_heartbeat_was_dropped(
     request, and makes its reader again when it does not come."""
     drops = socket_drops()
     assert drops is not None, "the kernel's drop counts are needed (Linux /proc)"
+    caplog.set_level(logging.DEBUG, logger="rcan_rtps.ros.services")
     calls, renewed, unannounced = Tally(ANNOUNCED_TIMEOUT), 0, 0
     with burning_cpus() as burners:
         for i in range(ANNOUNCED_CALLS):
@@ -299,6 +301,9 @@ async def test_a_reply_is_not_lost_when_the_servers_first_heartbeat_was_dropped(
           f"to it: {ANNOUNCED_CALLS} calls from fresh clients, {dropped} datagrams dropped at "
           f"our sockets, {len(calls.lost)} replies lost, {len(calls.slow)} sent again (over 1 s), "
           f"{renewed} reply readers made again, {unannounced} requests sent unannounced")
+    for record in caplog.records:
+        if "goes out without it" in record.getMessage():
+            print(record.getMessage())
     assert dropped > 0, "no datagram was dropped at our sockets: nothing was shown"
     calls.assert_clean(ANNOUNCED_CALLS)
 

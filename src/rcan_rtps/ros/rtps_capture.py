@@ -259,6 +259,12 @@ class IdentityCapture:
         """Whether received datagrams are being read (started, not given up, a user)."""
         return self._file is not None and not self._broken and self._users > 0
 
+    def lag(self) -> int:
+        """Bytes Cyclone has written to the capture that are not read yet."""
+        self._libc.flush_all()
+        with self._lock:
+            return 0 if self._file is None else os.fstat(self._file).st_size - self._offset
+
     def use(self) -> None:
         """A client needs identities from now on (until `unuse`)."""
         with self._lock:

@@ -358,7 +358,9 @@ class ServiceClient:
             unheard = pair.unannounced_writers()
             if unheard:
                 log.debug("service %s: no first HEARTBEAT from %d reply writer(s) to our "
-                          "reader; the request goes out without it", self.name, len(unheard))
+                          "reader after %d readers (capture %d bytes behind); the request "
+                          "goes out without it", self.name, len(unheard), pair.renewed + 1,
+                          capture.lag())
             pair.unannounced += len(unheard)
             pair.announced |= unheard.keys()  # best effort: once
 

@@ -19,6 +19,8 @@ import pytest
 
 from rcan_rtps.ros import participant, rtps_capture
 from rcan_rtps.ros.rtps_capture import (
+    UNKNOWN_PREFIX,
+    DirectedHeartbeat,
     IdentityCapture,
     ReceivedData,
     SampleIdentity,
@@ -58,6 +60,26 @@ def rtps_message(seq: int, related: SampleIdentity | None, *, little: bool = Tru
     return b"RTPS\x02\x03\x01\x0f" + PREFIX + info_ts + sub
 
 
+OUR_PREFIX = bytes(range(40, 52))
+OUR_READER = OUR_PREFIX + b"\x00\x00\x36\x04"
+
+
+def heartbeat_message(reader_id: bytes, *, destination: bytes | None = None,
+                      little: bool = True) -> bytes:
+    """An RTPS message from SERVER's participant: INFO_DST (if given), then a GAP and a
+    HEARTBEAT addressed to `reader_id` (ENTITYID_UNKNOWN: to every reader), as a Fast DDS
+    writer announces itself to a new reader."""
+    o = "<" if little else ">"
+    e = 0x01 if little else 0x00
+    info_dst = b"" if destination is None else struct.pack(o + "BBH", 0x0E, e, 12) + destination
+    gap_body = reader_id + WRITER_ID + struct.pack(o + "iI", 0, 6) + \
+        struct.pack(o + "iII", 0, 15, 0)
+    gap = struct.pack(o + "BBH", 0x08, e, len(gap_body)) + gap_body
+    hb_body = reader_id + WRITER_ID + struct.pack(o + "iIiIi", 0, 6, 0, 15, 21)
+    hb = struct.pack(o + "BBH", 0x07, e, len(hb_body)) + hb_body
+    return b"RTPS\x02\x03\x01\x0f" + PREFIX + info_dst + gap + hb
+
+
 def pcap_record(message: bytes, ttl: int = 128) -> bytes:
     """A record as Cyclone writes it: pcap header, made-up IPv4 and UDP headers, datagram."""
     total = 28 + len(message)
@@ -79,6 +101,16 @@ def test_parse_finds_only_data_naming_a_related_sample() -> None:
     assert list(parse_rtps(rtps_message(3, None))) == []
     assert [d.related for d in parse_rtps(rtps_message(4, related, frag=1))] == [related]
     assert list(parse_rtps(rtps_message(4, related, frag=2))) == []
+
+
+def test_parse_finds_heartbeats_addressed_to_one_reader() -> None:
+    for little in (True, False):
+        found = list(parse_rtps(heartbeat_message(OUR_READER[12:], destination=OUR_PREFIX,
+                                                  little=little)))
+        assert found == [DirectedHeartbeat(SERVER, OUR_READER)]
+    assert list(parse_rtps(heartbeat_message(OUR_READER[12:]))) == \
+        [DirectedHeartbeat(SERVER, UNKNOWN_PREFIX + OUR_READER[12:])]
+    assert list(parse_rtps(heartbeat_message(bytes(4), destination=OUR_PREFIX))) == []
 
 
 @pytest.fixture
@@ -191,3 +223,26 @@ def test_no_capture_where_it_could_not_be_kept_bounded(monkeypatch: pytest.Monke
     monkeypatch.setattr(rtps_capture.sys, "platform", "darwin")
     assert not rtps_capture.capture_supported()
     assert participant._new_capture() is None  # Cyclone is given no capture at all
+
+
+def test_a_heartbeat_to_our_reader_is_heard_while_a_client_uses_the_capture(
+        capture: tuple[IdentityCapture, int]) -> None:
+    tail, writer = capture
+    announce = pcap_record(heartbeat_message(OUR_READER[12:], destination=OUR_PREFIX))
+    os.write(writer, announce)  # nobody uses the capture: it went to /dev/null
+    assert not tail.heard_heartbeat(SERVER, OUR_READER)
+    assert not tail.reading
+    tail.use()
+    assert tail.reading
+    other = OUR_PREFIX + b"\x00\x00\x39\x04"
+    os.write(writer, pcap_record(heartbeat_message(bytes(4), destination=OUR_PREFIX)))
+    os.write(writer, pcap_record(heartbeat_message(other[12:], destination=OUR_PREFIX)))
+    assert not tail.heard_heartbeat(SERVER, OUR_READER)  # to every reader, or to another one
+    assert tail.heard_heartbeat(SERVER, other)
+    os.write(writer, pcap_record(heartbeat_message(OUR_READER[12:], destination=OUR_PREFIX),
+                                 ttl=255))  # one we sent: not parsed
+    assert not tail.heard_heartbeat(SERVER, OUR_READER)
+    os.write(writer, announce)
+    assert tail.heard_heartbeat(SERVER, OUR_READER)  # the miss reads the file to its end
+    assert not tail.heard_heartbeat(PREFIX + b"\x00\x00\x14\x03", OUR_READER)
+    tail.unuse()

@@ -14,6 +14,13 @@ Two things can make a volatile writer's sample miss a reader that is matched in 
    reader before we knew its writer, that HEARTBEAT was dropped, the next one came with
    the reply, and the reply was dropped (traced; issue 12: 5 of 118 fresh CLI calls). So
    clients make a reader only once discovery shows the writer it waits for.
+3. The same when our socket drops that one GAP+HEARTBEAT (its receive buffer full). The
+   writer's next HEARTBEAT, sent with the reply and ahead of its DATA, names the reply as
+   its last sample; being the first Cyclone hears from that writer since none of our
+   readers was matched with it (`ddsi_receive.c`, `handle_Heartbeat`), it makes Cyclone
+   drop the reply as history and ACK it: lost for good (traced, docs/design/zero-loss.md).
+   So a client hears that HEARTBEAT in the packet capture before its first request, and
+   makes its reader again when it does not come (`ServiceClient._await_announced`).
 
 Against 1: discovery sends our readers to a peer on one reliable stream (SEDP
 subscriptions) in creation order, and the peer matches them in that order. A fresh

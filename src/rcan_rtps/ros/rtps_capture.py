@@ -20,6 +20,10 @@ system (a hole punched in the tmpfs file), so memory stays bounded by what arriv
 the last drain; the file has no name once Cyclone has opened it, so a killed process leaves
 nothing behind. Limits: UDPv4 only (Cyclone's capture is), and nothing under DDS-Security
 payload or submessage protection can be read.
+
+It also notes which HEARTBEATs addressed to one reader arrived (`heard_heartbeat`): a Fast
+DDS writer announces itself to a new reader with one such GAP+HEARTBEAT, and a client whose
+reply reader missed it must not send its request yet (handshake.py).
 """
 
 from __future__ import annotations
@@ -36,19 +40,22 @@ import tempfile
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TypeVar
 
 import msgspec
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 PID_SENTINEL = 0x0001
 PID_RELATED_SAMPLE_IDENTITY = 0x0083  # OMG DDS-RPC
 PID_FASTDDS_RELATED_SAMPLE_IDENTITY = 0x800F  # Fast DDS' older vendor-specific id
 RELATED_PIDS = (PID_RELATED_SAMPLE_IDENTITY, PID_FASTDDS_RELATED_SAMPLE_IDENTITY)
 
-PAD, INFO_TS, INFO_SRC, DATA, DATA_FRAG = 0x01, 0x09, 0x0C, 0x15, 0x16
+PAD, HEARTBEAT, INFO_TS, INFO_SRC, INFO_DST, DATA, DATA_FRAG = \
+    0x01, 0x07, 0x09, 0x0C, 0x0E, 0x15, 0x16
 FLAG_LITTLE, FLAG_INLINE_QOS, FLAG_INVALIDATE = 0x01, 0x02, 0x02
 RTPS_HEADER_SIZE = 20
 IP_UDP_SIZE = 28  # Cyclone's capture writes a made-up IPv4 + UDP header before each datagram
@@ -58,6 +65,9 @@ PCAP_HEADER_SIZE, RECORD_HEADER_SIZE = 24, 16
 PCAP_MAGICS = {b"\xd4\xc3\xb2\xa1": True, b"\xa1\xb2\xc3\xd4": False}  # → little-endian
 
 KEPT_IDENTITIES = 8192  # newest identified samples remembered; far more than a reader keeps
+KEPT_HEARTBEATS = 4096  # newest (writer, reader) pairs a directed HEARTBEAT was heard for
+UNKNOWN_PREFIX = bytes(12)  # no INFO_DST before it: addressed to whoever received it
+ENTITYID_UNKNOWN = bytes(4)
 DRAIN_PERIOD = 0.05  # s between background drains of the capture file
 CHUNK = 1 << 20  # bytes of records consumed per hold of the lock
 MISS_BUDGET = 8 << 20  # bytes a lookup that missed may consume itself before answering
@@ -80,6 +90,13 @@ class ReceivedData(msgspec.Struct, frozen=True):
     seq: int
     source_timestamp: int  # ns since the epoch, converted as Cyclone does
     related: SampleIdentity
+
+
+class DirectedHeartbeat(msgspec.Struct, frozen=True):
+    """A received HEARTBEAT addressed to one reader (not to all of a participant's)."""
+
+    writer_guid: bytes
+    reader_guid: bytes  # the INFO_DST prefix (UNKNOWN_PREFIX if none) + the reader's entity id
 
 
 def capture_config(path: str | Path) -> str:
@@ -111,14 +128,16 @@ def _inline_related(buf: bytes | mmap.mmap, offset: int, end: int,
     return None
 
 
-def parse_rtps(buf: bytes | mmap.mmap, start: int = 0,
-               end: int | None = None) -> Iterator[ReceivedData]:
-    """The DATA and first DATA_FRAG submessages naming a related sample in the RTPS message
-    `buf[start:end]`, in order. Other submessages cost one header read each."""
+def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None
+               ) -> Iterator[ReceivedData | DirectedHeartbeat]:
+    """The DATA and first DATA_FRAG submessages naming a related sample, and the HEARTBEATs
+    addressed to one reader, in the RTPS message `buf[start:end]`, in order. Other
+    submessages cost one header read each."""
     end = len(buf) if end is None else end
     if end - start < RTPS_HEADER_SIZE or buf[start:start + 4] != b"RTPS":
         return
     prefix = bytes(buf[start + 8:start + 20])
+    destination = UNKNOWN_PREFIX
     timestamp: int | None = None
     offset = start + RTPS_HEADER_SIZE
     while offset + 4 <= end:
@@ -136,8 +155,15 @@ def parse_rtps(buf: bytes | mmap.mmap, start: int = 0,
         elif kind == INFO_TS:
             timestamp = None if flags & FLAG_INVALIDATE or stop - body < 8 else \
                 nanoseconds(*struct.unpack_from("<iI" if little else ">iI", buf, body))
+        elif kind == HEARTBEAT and stop - body >= 28:
+            reader = bytes(buf[body:body + 4])
+            if reader != ENTITYID_UNKNOWN:
+                yield DirectedHeartbeat(prefix + bytes(buf[body + 4:body + 8]),
+                                        destination + reader)
         elif kind == INFO_SRC and stop - body >= 20:
             prefix = bytes(buf[body + 8:body + 20])
+        elif kind == INFO_DST and stop - body >= 12:
+            destination = bytes(buf[body:body + 12])
         offset = stop
 
 
@@ -212,6 +238,7 @@ class IdentityCapture:
         self._punched = 0
         self._record_size = struct.Struct("<I")
         self._known: OrderedDict[tuple[bytes, int], SampleIdentity] = OrderedDict()
+        self._heartbeats: OrderedDict[tuple[bytes, bytes], None] = OrderedDict()
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -226,6 +253,17 @@ class IdentityCapture:
         self._broken = False  # given up (the file could not be kept bounded)
         self.datagrams = 0  # received datagrams parsed so far
         self.identified = 0  # DATA submessages found naming a related sample
+
+    @property
+    def reading(self) -> bool:
+        """Whether received datagrams are being read (started, not given up, a user)."""
+        return self._file is not None and not self._broken and self._users > 0
+
+    def lag(self) -> int:
+        """Bytes Cyclone has written to the capture that are not read yet."""
+        self._libc.flush_all()
+        with self._lock:
+            return 0 if self._file is None else os.fstat(self._file).st_size - self._offset
 
     def use(self) -> None:
         """A client needs identities from now on (until `unuse`)."""
@@ -377,6 +415,7 @@ class IdentityCapture:
             log.error("the packet capture cannot be stopped and will grow: set "
                       "RCAN_RTPS_RPC_IDENTITY=off")
         self._known.clear()
+        self._heartbeats.clear()
         self._broken = True
 
     def _resync(self, buf: mmap.mmap, offset: int, available: int) -> int:
@@ -402,6 +441,13 @@ class IdentityCapture:
     def _parse(self, buf: mmap.mmap, start: int, end: int) -> None:
         self.datagrams += 1
         for data in parse_rtps(buf, start, end):
+            if isinstance(data, DirectedHeartbeat):
+                pair = (data.writer_guid, data.reader_guid)
+                self._heartbeats[pair] = None
+                self._heartbeats.move_to_end(pair)
+                if len(self._heartbeats) > KEPT_HEARTBEATS:
+                    self._heartbeats.popitem(last=False)
+                continue
             self.identified += 1
             key = (data.writer_guid, data.source_timestamp)
             self._known[key] = data.related
@@ -423,9 +469,23 @@ class IdentityCapture:
         capture's C buffer, which a miss flushes before reading the file up to its end
         (in chunks, so the drain thread never holds it up for more than one)."""
         key = (writer_guid, source_timestamp)
+        return self._find(lambda: self._known.get(key))
+
+    def heard_heartbeat(self, writer_guid: bytes, reader_guid: bytes) -> bool:
+        """Whether a HEARTBEAT of `writer_guid` addressed to the reader `reader_guid` has
+        reached our socket while a client needed identities (`use`); the file is first
+        flushed and read up to its end, as by a `lookup` that missed."""
+        pairs = ((writer_guid, reader_guid), (writer_guid, UNKNOWN_PREFIX + reader_guid[12:]))
+        return self._find(lambda: True if any(p in self._heartbeats for p in pairs)
+                          else None) is True
+
+    def _find(self, found: Callable[[], T | None]) -> T | None:
+        """`found()` (called under the lock), else again while the file is read up to the
+        end it has after a flush (at most MISS_BUDGET bytes, a chunk per hold of the lock)."""
         with self._lock:
-            if key in self._known:
-                return self._known[key]
+            answer = found()
+            if answer is not None:
+                return answer
         self._libc.flush_all()
         with self._lock:
             if self._file is None:
@@ -434,16 +494,15 @@ class IdentityCapture:
         budget = MISS_BUDGET
         while budget > 0:
             with self._lock:
-                if key in self._known:
-                    return self._known[key]
-                if self._file is None or self._offset >= target:
-                    return None
+                answer = found()
+                if answer is not None or self._file is None or self._offset >= target:
+                    return answer
                 used = self._consume(min(CHUNK, budget))
             if not used:
                 break
             budget -= used
         with self._lock:
-            return self._known.get(key)
+            return found()
 
     def close(self) -> None:
         """Stops the drain and closes the capture (removing its name if it still has one)."""

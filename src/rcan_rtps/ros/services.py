@@ -48,7 +48,7 @@ from . import qos as qos_mod
 from . import raw_cdr
 from .errors import ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction, Endpoint, RosGraph
-from .handshake import matched_subscriptions, matched_writers, writers_ready
+from .handshake import POLL, matched_subscriptions, matched_writers, writers_ready
 from .names import mangle_service
 from .participant import RosNode
 from .qos import QosProfile
@@ -58,8 +58,13 @@ from .rtps_capture import SampleIdentity
 log = logging.getLogger(__name__)
 
 CYCLONE_VENDOR = b"\x01\x10"
+FASTDDS_VENDOR = b"\x01\x0f"  # eProsima: its writers announce themselves once (handshake.py)
 STALE_REPLY_GRACE = 0.5  # s a timed-out Fast DDS request's late reply gets to arrive and be dropped
 CLIENT_READER_WAIT = 1.0  # s a server waits for the client's reply reader (rmw_cyclonedds: 0.1)
+# How long after the handshake a Fast DDS reply writer's first HEARTBEAT to our new reply
+# reader may take to show in the capture before the reader is made again, and how many times.
+ANNOUNCE_WAIT = 0.3
+ANNOUNCE_TRIES = 4
 
 Accept = Callable[[IdlStruct], bool]
 Handler = Callable[[IdlStruct], Awaitable["IdlStruct | Mapping[str, Any]"]]
@@ -131,16 +136,15 @@ class _Pair:
         self._deliver = deliver
         self._loop = asyncio.get_running_loop()
         self._node = node
+        self._into, self._qos, self._user = into, qos, user
         self.writer: DataWriter[Any]
-        self.reader: DataReader[Any]
         if mapping is RequestMapping.CYCLONE:
             self.writer = cyclone.create_writer(node, *out, qos, user)
-            self.reader = cyclone.create_reader(node, *into, qos, user)
-            decode: Decode | None = cyclone.decoder(node, into[1])
+            self._decode: Decode | None = cyclone.decoder(node, into[1])
         else:
             self.writer = node.create_writer(*out, qos, extra_user_data=user)
-            self.reader = node.create_reader(*into, qos, extra_user_data=user)
-            decode = None  # the plain type's own generated decoder
+            self._decode = None  # the plain type's own generated decoder
+        self.reader, self.watch = self._make_reader()
         self.out_codec = node.codecs.of(out[1]).prepare_encoders()
         # rmw_cyclonedds names a client in the header by its request writer's handle.
         self.guid = int(self.writer.get_instance_handle()) & 0xFFFF_FFFF_FFFF_FFFF
@@ -149,13 +153,49 @@ class _Pair:
         self.writer_guid = bytes(self.writer.guid.bytes)
         self.written = 0
         self._writer_guids: dict[int, bytes] = {}
-        self.watch = node.watch(self.reader, self._on_samples, f"{into[0]} ({mapping.value})",
-                                decode=decode)
         self.ready: set[int] = set()  # server writers whose next reply will reach us
+        # Server writers whose first HEARTBEAT to this reader was heard (or given up on).
+        self.announced: set[int] = set()
+        self.announce_lock = asyncio.Lock()
+        self.renewed = 0  # times the reader was made again (see `renew_reader`)
+        self.unannounced = 0  # writers given up on: the request went out without their HEARTBEAT
+
+    def _make_reader(self) -> tuple[DataReader[Any], Any]:
+        node, into = self._node, self._into
+        if self.mapping is RequestMapping.CYCLONE:
+            reader = cyclone.create_reader(node, *into, self._qos, self._user)
+        else:
+            reader = node.create_reader(*into, self._qos, extra_user_data=self._user)
+
+        def on_samples(samples: list[Any]) -> None:  # on the node's reader thread
+            if reader is self.reader:  # not a renewed reader's last batch
+                self._on_samples(samples)
+        return reader, node.watch(reader, on_samples, f"{into[0]} ({self.mapping.value})",
+                                  decode=self._decode)
+
+    def renew_reader(self) -> None:
+        """Replaces the reply reader with a new one, which the servers' writers will match
+        and announce themselves to afresh (see `ServiceClient._await_announced`). Only
+        before a request was sent on this pair: a reply in flight would miss the new one."""
+        old, watch = self.reader, self.watch
+        self._node.unwatch(watch)
+        self._node.forget_reader(old)
+        with contextlib.suppress(DDSException):
+            old.__del__()
+        self.reader, self.watch = self._make_reader()
+        self.ready.clear()
+        self.announced.clear()
+        self.renewed += 1
 
     def unready_writers(self) -> dict[int, bytes]:
         """The matched server reply writers not yet made ready (see `handshake.py`)."""
         return {h: g for h, g in matched_writers(self.reader).items() if h not in self.ready}
+
+    def unannounced_writers(self) -> dict[int, bytes]:
+        """The matched Fast DDS reply writers whose first HEARTBEAT to this reader was not
+        heard yet."""
+        return {h: g for h, g in matched_writers(self.reader).items()
+                if h not in self.announced and g[:2] == FASTDDS_VENDOR}
 
     def _on_samples(self, samples: list[Any]) -> None:  # on the node's reader thread
         try:
@@ -261,12 +301,13 @@ class ServiceClient:
         # different types on the wire, so one reader cannot serve both.
         pair = self._pairs.get(mapping)
         if pair is None:
+            # The capture is on before the reader exists: its first HEARTBEAT is looked for.
+            if mapping is RequestMapping.FASTDDS and self.node.identities is not None:
+                self.node.identities.use()
             pair = self._pairs[mapping] = _Pair(
                 self.node, mapping, (self.request_topic, self.request_type),
                 (self.reply_topic, self.response_type), self._qos,
                 f"clientid={format_endpoint_id(self.id)};", self._deliver)
-            if mapping is RequestMapping.FASTDDS and self.node.identities is not None:
-                self.node.identities.use()
         return pair
 
     async def wait_for_service(self, timeout: float = 5.0) -> _Pair:
@@ -280,7 +321,58 @@ class ServiceClient:
         if writers:
             await writers_ready(self.node, writers, max(0.0, deadline - loop.time()))
             pair.ready |= writers.keys()  # ready, or best effort past the timeout: once
+        await self._await_announced(pair, deadline)
         return pair
+
+    async def _await_announced(self, pair: _Pair, deadline: float) -> None:
+        """Waits until every Fast DDS reply writer's first HEARTBEAT to our reply reader has
+        reached our socket, making the reader again (at most ANNOUNCE_TRIES times, within the
+        deadline) when it did not come: the writer sends it once, when it matches the reader,
+        and Cyclone takes the first HEARTBEAT it hears as the reader's start, so a reply that
+        the next one covers would be dropped as history (handshake.py). Needs the packet
+        capture; once per reader, before its first request (never with a reply in flight)."""
+        capture = self.node.identities
+        if capture is None or not capture.reading or pair.mapping is not RequestMapping.FASTDDS:
+            return
+        loop = asyncio.get_running_loop()
+        async with pair.announce_lock:
+            for attempt in range(ANNOUNCE_TRIES):
+                if attempt:  # a new reader: the servers match it and announce themselves
+                    pair.renew_reader()
+                    log.debug("service %s: a reply writer's first HEARTBEAT to our reader did "
+                              "not come; reader made again", self.name)
+                    await self._matched_again(pair, deadline)
+                until = min(deadline, loop.time() + ANNOUNCE_WAIT)
+                while True:
+                    reader_guid = bytes(pair.reader.guid.bytes)
+                    waiting = pair.unannounced_writers()
+                    pair.announced |= {h for h, g in waiting.items()
+                                       if capture.heard_heartbeat(g, reader_guid)}
+                    if not pair.unannounced_writers():
+                        return
+                    if loop.time() >= until:
+                        break
+                    await asyncio.sleep(POLL)
+                if loop.time() >= deadline or pair.written:
+                    break  # (a reader with a request out is never replaced: see renew_reader)
+            unheard = pair.unannounced_writers()
+            if unheard:
+                log.debug("service %s: no first HEARTBEAT from %d reply writer(s) to our "
+                          "reader after %d readers (capture %d bytes behind); the request "
+                          "goes out without it", self.name, len(unheard), pair.renewed + 1,
+                          capture.lag())
+            pair.unannounced += len(unheard)
+            pair.announced |= unheard.keys()  # best effort: once
+
+    async def _matched_again(self, pair: _Pair, deadline: float) -> None:
+        """After `renew_reader`: until the reader matches (our view), then the handshake."""
+        loop = asyncio.get_running_loop()
+        while not pair.matched() and loop.time() < deadline:
+            await asyncio.sleep(POLL)
+        writers = pair.unready_writers()
+        if writers:
+            await writers_ready(self.node, writers, max(0.0, deadline - loop.time()))
+            pair.ready |= writers.keys()
 
     async def wait_matched(self, timeout: float = 5.0) -> _Pair:
         """Waits until our request writer and reply reader match a server's (our view)."""

@@ -53,7 +53,7 @@ SETTLE_S = 5.0  # s: how long a finished goal's feedback waits for its result (s
 # mapping (its RMW): Cyclone's writers send a HEARTBEAT every 100 ms while a reader owes an
 # ACK, Fast DDS's every 3 s (measured: 0.07-0.18 s and 0.01-2.94 s under load,
 # docs/design/zero-loss.md), with margin for a busy host.
-REPAIR_S = {RequestMapping.CYCLONE: 1.0, RequestMapping.FASTDDS: 4.0}
+REPAIR_S = {RequestMapping.CYCLONE: 2.0, RequestMapping.FASTDDS: 4.0}
 RESULT_ASK_S = 5.0  # s: a get_result request unanswered this long is sent again (`_ask_result`)
 
 

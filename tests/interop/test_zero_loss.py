@@ -45,6 +45,7 @@ DROPPED_GOALS = int(150 * SCALE)  # fresh ActionClient each, datagrams dropped a
 SMALL_RCVBUF = "3kB"
 # Fresh ServiceClient each, our buffer smaller still and a stream to it: drops are frequent.
 ANNOUNCED_CALLS = int(150 * SCALE)
+ANNOUNCED_GOALS = int(50 * SCALE)
 TINY_RCVBUF = "1kB"
 NOISE = "/zero_loss_noise"  # a camera's worth of traffic to our socket: 1 kB messages ...
 NOISE_HZ = 3000.0  # ... as fast as the oracle's Python thread can send them
@@ -320,6 +321,37 @@ async def test_a_reply_is_not_lost_when_the_servers_first_heartbeat_was_dropped(
     assert len(calls.lost) <= unannounced, \
         f"of {ANNOUNCED_CALLS} calls, {len(calls.lost)} lost {calls.lost}, but only " \
         f"{unannounced} requests went out unannounced"
+
+
+@both_rmws
+async def test_a_first_feedback_is_not_lost_when_the_feedback_writer_s_first_heartbeat_was_dropped(
+        oracle: RclpyOracle, noisy_node: RosNode) -> None:
+    """The same announcement, for an action's feedback: a fresh client's feedback reader hears
+    the Fast DDS feedback writer's first HEARTBEAT before its first goal, or is made again."""
+    await oracle.acall("action_server", name="/fib_burst", period=0.0)
+    tally = GoalTally(order=lambda i: 2)
+    renewed = unannounced = 0
+
+    async def run(client: ActionClient, i: int) -> None:
+        nonlocal renewed, unannounced
+        try:
+            await tally.run(client, i)
+        finally:
+            renewed += client.feedback_renewed
+            unannounced += client.feedback_unannounced
+
+    with burning_cpus() as burners:
+        await each_fresh(ANNOUNCED_GOALS, on_node(noisy_node, burst_client), run)
+    print(f"{oracle.rmw}, {burners} CPU burners, {TINY_RCVBUF} receive buffer, {NOISE_HZ:.0f} Hz "
+          f"to it: {ANNOUNCED_GOALS} goals from fresh clients, {tally.dropped} datagrams dropped "
+          f"at our sockets, {len(tally.no_first_feedback)} first feedbacks lost, "
+          f"{len(tally.wrong)} wrong results, {renewed} feedback readers made again, "
+          f"{unannounced} clients sent goals unannounced")
+    assert tally.dropped, "no datagram was dropped at our sockets: nothing was shown"
+    assert tally.wrong == [], f"wrong results: {tally.wrong}"
+    assert len(tally.no_first_feedback) <= unannounced, \
+        f"of {ANNOUNCED_GOALS} goals, first feedback lost for {tally.no_first_feedback}, but " \
+        f"only {unannounced} clients sent goals unannounced"
 
 
 @both_rmws

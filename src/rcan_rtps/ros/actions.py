@@ -38,7 +38,15 @@ from .handshake import matched_writers, writers_ready
 from .names import action_names, mangle_topic
 from .participant import RosNode, RosSubscription
 from .rostime import now_msg
-from .services import RequestMapping, ServiceClient, ServiceServer, shared_graph
+from .services import (
+    ANNOUNCE_TRIES,
+    ANNOUNCE_WAIT,
+    FASTDDS_VENDOR,
+    RequestMapping,
+    ServiceClient,
+    ServiceServer,
+    shared_graph,
+)
 
 log = logging.getLogger(__name__)
 
@@ -204,6 +212,9 @@ class ActionClient:
         self._lost_since: float | None = None
         self._closed = False
         self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
+        self._feedback_announced = False  # see `_await_feedback_announced`
+        self.feedback_renewed = 0  # feedback readers made again (their announcement unheard)
+        self.feedback_unannounced = 0  # 1 when goals went out with the announcement unheard
         loop = asyncio.get_running_loop()
 
         def on_loop(handler: Callable[[Any], None]) -> Callable[[IdlStruct], None]:
@@ -244,7 +255,57 @@ class ActionClient:
             for pair in pairs:
                 pair.ready |= writers.keys()
             self._feedback_ready |= writers.keys()
+        await self._await_feedback_announced(deadline)
         self._server_seen = True
+
+    async def _await_feedback_announced(self, deadline: float) -> None:
+        """As `ServiceClient._await_announced`, for the feedback reader: a Fast DDS feedback
+        writer announces itself to a new reader once, and when that HEARTBEAT was dropped at
+        our socket, Cyclone takes the next one, sent ahead of the first feedback, as the
+        reader's start: that feedback is dropped as history (handshake.py). So, once, before
+        the first goal: hear it in the packet capture, or make the reader again (at most
+        ANNOUNCE_TRIES readers within the deadline). Needs the capture."""
+        capture = self.node.identities
+        if self._feedback_announced or capture is None or not capture.reading or self._goals:
+            return
+        loop = asyncio.get_running_loop()
+        for attempt in range(ANNOUNCE_TRIES):
+            if attempt:
+                await self._renew_feedback_reader(deadline)
+            feedback = self._feedback
+            if feedback is None:
+                return
+            until = min(deadline, loop.time() + ANNOUNCE_WAIT)
+            while True:
+                reader = bytes(feedback.reader.guid.bytes)
+                unheard = [g for g in matched_writers(feedback.reader).values()
+                           if g[:2] == FASTDDS_VENDOR and not capture.heard_heartbeat(g, reader)]
+                if not unheard:
+                    self._feedback_announced = True
+                    return
+                if loop.time() >= until:
+                    break
+                await asyncio.sleep(POLL)
+            if loop.time() >= deadline:
+                break
+        log.debug("action %s: no first HEARTBEAT from the feedback writer to our reader after "
+                  "%d readers; goals go out without it", self.name, ANNOUNCE_TRIES)
+        self.feedback_unannounced += 1
+        self._feedback_announced = True  # best effort: once
+
+    async def _renew_feedback_reader(self, deadline: float) -> None:
+        """A new feedback reader (before any goal: none can miss its feedback), matched and
+        handshaken like the first."""
+        loop = asyncio.get_running_loop()
+        if self._feedback is not None:
+            self._feedback.close()
+            self._feedback = None
+        self.feedback_renewed += 1
+        feedback = await self._feedback_subscription(max(0.0, deadline - loop.time()))
+        await feedback.wait_for_publishers(1, max(0.0, deadline - loop.time()))
+        writers = matched_writers(feedback.reader)
+        if writers:
+            await writers_ready(self.node, writers, max(0.0, deadline - loop.time()))
 
     async def _feedback_subscription(self, timeout: float) -> RosSubscription:
         """The feedback subscription, made once discovery shows the server's feedback

@@ -39,13 +39,13 @@ CALLS_PER_NODE = int(25 * SCALE)  # fresh RosNode (participant) each
 GOALS = int(100 * SCALE)  # fresh ActionClient each, one node
 GOALS_PER_NODE = int(15 * SCALE)  # fresh RosNode each
 LOADED_GOALS = int(100 * SCALE)  # fresh ActionClient each, the CPU busy
-DROPPED_GOALS = int(150 * SCALE)  # fresh ActionClient each, datagrams dropped at our socket
+DROPPED_GOALS = int(100 * SCALE)  # fresh ActionClient each, datagrams dropped at our socket
 # Our participant's socket receive buffer, shrunk so that the kernel drops datagrams at it, as
 # it does on a busy host whose buffer is full: 3 kB holds about two of the server's datagrams.
 SMALL_RCVBUF = "3kB"
 # Fresh ServiceClient each, our buffer smaller still and a stream to it: drops are frequent.
-ANNOUNCED_CALLS = int(150 * SCALE)
-ANNOUNCED_GOALS = int(50 * SCALE)
+ANNOUNCED_CALLS = int(100 * SCALE)
+ANNOUNCED_GOALS = int(40 * SCALE)
 TINY_RCVBUF = "1kB"
 NOISE = "/zero_loss_noise"  # a camera's worth of traffic to our socket: 1 kB messages ...
 NOISE_HZ = 3000.0  # ... as fast as the oracle's Python thread can send them

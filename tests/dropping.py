@@ -30,10 +30,19 @@ def ports_of(node: RosNode) -> list[int]:
     return ports
 
 
-def flood(node: RosNode, datagrams: int = 200, size: int = 30_000) -> None:
-    """Junk datagrams at each of the node's DDS sockets, faster than Cyclone reads them
-    (Cyclone drops what is not RTPS); with small buffers the kernel drops most."""
+def flood(node: RosNode, size: int = 30_000, batches: int = 200) -> int:
+    """Junk datagrams at each of the node's DDS sockets (Cyclone drops what is not RTPS),
+    batch after batch until the kernel has dropped some there (with small buffers, soon:
+    Cyclone's receive thread reads quickly, so one batch is not always enough). Returns how
+    many it dropped."""
+    before = node.udp_drops()
+    assert before is not None, "the kernel's drop counts are needed (Linux /proc)"
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
-        for port in ports_of(node):
-            for _ in range(datagrams):
-                sender.sendto(b"\0" * size, ("127.0.0.1", port))
+        for _ in range(batches):
+            for port in ports_of(node):
+                for _ in range(50):
+                    sender.sendto(b"\0" * size, ("127.0.0.1", port))
+            now = node.udp_drops()
+            if now is not None and now > before:
+                return now - before
+    raise AssertionError(f"{batches} batches of junk and no datagram dropped at the node's sockets")

@@ -73,11 +73,15 @@ def default_state_dir() -> Path:
 
 def demo_tokens(env: Mapping[str, str]) -> dict[str, str]:
     """Fresh tokens for the demo principals; RCAN_BRIDGE_TOKEN, when set, is the owner's."""
-    return {
-        VIEWER_TOKEN_ENV: env.get(VIEWER_TOKEN_ENV) or secrets.token_urlsafe(24),
-        USER_TOKEN_ENV: env.get(USER_TOKEN_ENV) or secrets.token_urlsafe(24),
-        OWNER_TOKEN_ENV: env.get(OWNER_TOKEN_ENV) or secrets.token_urlsafe(24),
-    }
+    return {name: env.get(name) or fresh_demo_token()
+            for name in (VIEWER_TOKEN_ENV, USER_TOKEN_ENV, OWNER_TOKEN_ENV)}
+
+
+def fresh_demo_token() -> str:
+    """A random token to print for pasting: the prefix keeps it from beginning with `-`
+    (1 in 64 url-safe tokens do, and `--token -x…` then reads as an option) and names it
+    for secret scanners."""
+    return "rcan_" + secrets.token_urlsafe(24)
 
 
 def demo_config(*, state_dir: Path, port: int, domain_id: int, namespace: str,

@@ -1,5 +1,5 @@
-"""`rcan-rtps conformance --url URL --token T [--level L1|L2|L3]`: the published RCAN
-conformance suite's cases against a running bridge, one line per case.
+"""`rcan-rtps conformance --url URL --token T|--token-env VAR [--level L1|L2|L3]`: the
+published RCAN conformance suite's cases against a running bridge, one line per case.
 
 It commands the robot: zero-velocity moves, an arm trajectory to where the arm already is,
 an e-stop it clears again, and INVOKEs of one skill the bridge lists (GET /api/skills): by
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import sys
 
 _ROLES = ("GUEST", "USER", "LEASEE", "OWNER", "CREATOR")
@@ -22,9 +23,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "conformance", help="run the published RCAN conformance suite against a bridge",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--url", required=True, help="the bridge's API, e.g. http://127.0.0.1:8765")
-    parser.add_argument("--token", required=True,
-                        help="an OWNER's bearer token (reads the audit, approves, clears "
-                             "the e-stops the safety cases raise)")
+    owner = parser.add_mutually_exclusive_group(required=True)
+    owner.add_argument("--token", help="an OWNER's bearer token (reads the audit, approves, "
+                       "clears the e-stops the safety cases raise); --token=T if T begins "
+                       "with '-'")
+    owner.add_argument("--token-env", metavar="VAR", help="the environment variable holding "
+                       "the OWNER's token (keeps it off the command line other users can see)")
     parser.add_argument("--token-for", metavar="ROLE=TOKEN", action="append", default=[],
                         type=_role_token, help="a token of another role the cases need "
                         "(GUEST, USER); repeatable")
@@ -51,7 +55,12 @@ def _conformance(args: argparse.Namespace) -> int:
     source = suite.vendored.source
     print(f"RCAN conformance suite v{suite.version} ({source.repository}, {source.path} at "
           f"{source.snapshot_commit[:12]}), up to {args.level}, against {args.url}")
-    tokens = {"OWNER": args.token, **dict(args.token_for)}
+    owner = args.token if args.token is not None else os.environ.get(args.token_env, "")
+    if not owner:
+        print(f"rcan-rtps conformance: --token-env {args.token_env}: that variable is not set "
+              "(it must hold an OWNER's bearer token)", file=sys.stderr)
+        return 2
+    tokens = {"OWNER": owner, **dict(args.token_for)}
     results = asyncio.run(run_suite(suite, args.level, args.url, tokens, skill=args.skill,
                                     report=lambda r: print(r.line(), flush=True)))
     counts = {o: sum(r.outcome == o for r in results)

@@ -25,6 +25,7 @@ from collections import Counter
 from typing import Any
 
 from rcan_rtps.ros import qos as qos_mod
+from rcan_rtps.ros.handshake import hear_announcements
 from rcan_rtps.ros.names import mangle_service
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import RequestMapping, _Pair
@@ -67,9 +68,20 @@ async def main(tag: str, calls: int, domain_id: int, share: str) -> None:
                      (reply_topic, srv.response.name), qos_mod.SERVICES, "", deliver)
         loop = asyncio.get_running_loop()
         deadline = loop.time() + 30
-        while not pair.matched() and loop.time() < deadline:
-            await asyncio.sleep(0.05)
-        await asyncio.sleep(1.0)  # the server's reply writer matched our reader too
+
+        async def matched() -> None:
+            while not pair.matched() and loop.time() < deadline:
+                await asyncio.sleep(0.05)
+            await asyncio.sleep(1.0)  # the server's reply writer matched our reader too
+
+        async def renew() -> None:
+            pair.renew_reader()
+            await matched()
+
+        await matched()
+        # As the product's clients do (ServiceClient._await_announced): the first reply must
+        # not be dropped as history because the writer's announcement to our reader was lost.
+        _, unheard = await hear_announcements(capture, lambda: pair.reader, renew, deadline)
         print("ready", flush=True)
         await loop.run_in_executor(None, sys.stdin.readline)
         for k in range(1, calls + 1):  # the writer's k-th sample has sequence number k
@@ -82,7 +94,8 @@ async def main(tag: str, calls: int, domain_id: int, share: str) -> None:
                 lost.append(k)
         await asyncio.sleep(0.5)  # late copies of others' replies still get tallied
         pair.close()
-    stats = {"datagrams": capture.datagrams, "identified": capture.identified}
+    stats = {"datagrams": capture.datagrams, "identified": capture.identified,
+             "renewed": pair.renewed, "unannounced": len(unheard)}
     print(json.dumps({"tally": dict(tally), "lost": lost, **stats}), flush=True)
 
 

@@ -28,9 +28,14 @@ def _check(tallies: list[dict], processes: int, calls: int) -> None:
     counts = {kind: sum(t["tally"].get(kind, 0) for t in tallies)
               for kind in ("ours", "foreign", "mixed", "unknown")}
     lost = sum(len(t["lost"]) for t in tallies)
-    print(f"{processes} processes x {calls} calls: {counts}, lost {lost}")
-    assert counts["ours"] == processes * calls, counts
-    assert (counts["mixed"], counts["unknown"], lost) == (0, 0, 0), counts
+    renewed, unannounced = (sum(t[k] for t in tallies) for k in ("renewed", "unannounced"))
+    print(f"{processes} processes x {calls} calls: {counts}, lost {lost}; {renewed} reply "
+          f"readers made again, {unannounced} processes called unannounced")
+    # A reader the server's writer was not heard announcing itself to can lose its first
+    # reply as history (handshake.py, 3.): the only loss allowed, and only to those.
+    excused = [t["lost"] for t in tallies if t["unannounced"] and t["lost"] == [1]]
+    assert counts["ours"] == processes * calls - len(excused), (counts, lost, unannounced)
+    assert (counts["mixed"], counts["unknown"], lost) == (0, 0, len(excused)), counts
 
 
 @pytest.mark.parametrize("processes", [4, 6])

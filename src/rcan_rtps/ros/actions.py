@@ -34,14 +34,11 @@ from cyclonedds.idl import IdlStruct
 from . import qos as qos_mod
 from .errors import ActionError, ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction
-from .handshake import matched_writers, writers_ready
+from .handshake import hear_announcements, matched_writers, writers_ready
 from .names import action_names, mangle_topic
 from .participant import RosNode, RosSubscription
 from .rostime import now_msg
 from .services import (
-    ANNOUNCE_TRIES,
-    ANNOUNCE_WAIT,
-    FASTDDS_VENDOR,
     RequestMapping,
     ServiceClient,
     ServiceServer,
@@ -264,34 +261,22 @@ class ActionClient:
         our socket, Cyclone takes the next one, sent ahead of the first feedback, as the
         reader's start: that feedback is dropped as history (handshake.py). So, once, before
         the first goal: hear it in the packet capture, or make the reader again (at most
-        ANNOUNCE_TRIES readers within the deadline). Needs the capture."""
+        ANNOUNCE_TRIES readers within the deadline: `hear_announcements`). Needs the capture."""
         capture = self.node.identities
         if self._feedback_announced or capture is None or not capture.reading or self._goals:
             return
-        loop = asyncio.get_running_loop()
-        for attempt in range(ANNOUNCE_TRIES):
-            if attempt:
-                await self._renew_feedback_reader(deadline)
-            feedback = self._feedback
-            if feedback is None:
-                return
-            until = min(deadline, loop.time() + ANNOUNCE_WAIT)
-            while True:
-                reader = bytes(feedback.reader.guid.bytes)
-                unheard = [g for g in matched_writers(feedback.reader).values()
-                           if g[:2] == FASTDDS_VENDOR and not capture.heard_heartbeat(g, reader)]
-                if not unheard:
-                    self._feedback_announced = True
-                    return
-                if loop.time() >= until:
-                    break
-                await asyncio.sleep(POLL)
-            if loop.time() >= deadline:
-                break
-        log.debug("action %s: no first HEARTBEAT from the feedback writer to our reader after "
-                  "%d readers; goals go out without it", self.name, ANNOUNCE_TRIES)
-        self.feedback_unannounced += 1
-        self._feedback_announced = True  # best effort: once
+        feedback = self._feedback
+        if feedback is None:
+            return
+        _, unheard = await hear_announcements(
+            capture, lambda: (self._feedback or feedback).reader,
+            lambda: self._renew_feedback_reader(deadline), deadline)
+        if unheard:
+            log.debug("action %s: no first HEARTBEAT from the feedback writer to our reader "
+                      "after %d readers; goals go out without it", self.name,
+                      self.feedback_renewed + 1)
+            self.feedback_unannounced += 1
+        self._feedback_announced = True  # heard, or given up on (best effort: once)
 
     async def _renew_feedback_reader(self, deadline: float) -> None:
         """A new feedback reader (before any goal: none can miss its feedback), matched and

@@ -34,8 +34,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Iterable, Mapping
-from typing import Any
+from collections.abc import Awaitable, Callable, Collection, Iterable, Mapping
+from typing import TYPE_CHECKING, Any
 
 from cyclonedds.core import DDSException
 from cyclonedds.pub import DataWriter
@@ -43,9 +43,17 @@ from cyclonedds.sub import DataReader
 
 from .participant import RosNode
 
+if TYPE_CHECKING:
+    from .rtps_capture import IdentityCapture
+
 log = logging.getLogger(__name__)
 
 POLL = 0.01
+FASTDDS_VENDOR = b"\x01\x0f"  # eProsima: its writers announce themselves once (3. above)
+# How long after the handshake a Fast DDS writer's first HEARTBEAT to our new reader may take
+# to show in the capture before the reader is made again, and how many readers at most.
+ANNOUNCE_WAIT = 0.3
+ANNOUNCE_TRIES = 4
 
 
 def participant_prefix(guid: bytes) -> bytes:
@@ -130,3 +138,38 @@ async def _await_latched(probe: DataReader[Any], wanted: set[bytes],
                       [p.hex() for p in waiting], timeout)
             return wanted & heard
         await asyncio.sleep(POLL)
+
+
+def fastdds_writers(reader: DataReader[Any], skip: Collection[int] = ()) -> dict[int, bytes]:
+    """The Fast DDS writers matched with `reader` (handle → GUID), but for `skip`."""
+    return {h: g for h, g in matched_writers(reader).items()
+            if h not in skip and g[:2] == FASTDDS_VENDOR}
+
+
+async def hear_announcements(capture: IdentityCapture, reader: Callable[[], DataReader[Any]],
+                             renew: Callable[[], Awaitable[None]], deadline: float, *,
+                             skip: Callable[[], Collection[int]] = frozenset,
+                             may_renew: Callable[[], bool] = lambda: True
+                             ) -> tuple[set[int], dict[int, bytes]]:
+    """Waits until every matched Fast DDS writer's first HEARTBEAT to `reader()` was heard
+    in the packet capture (3. above); when one has not come within ANNOUNCE_WAIT, `renew()`
+    makes the reader again (matched and handshaken), which the writers announce themselves
+    to afresh. At most ANNOUNCE_TRIES readers, within `deadline` (loop time), while
+    `may_renew()`. Returns the writers (handles) heard, and those still unheard (handle →
+    GUID) when it gave up, of the last reader."""
+    loop = asyncio.get_running_loop()
+    for attempt in range(ANNOUNCE_TRIES):
+        if attempt:
+            await renew()
+        until = min(deadline, loop.time() + ANNOUNCE_WAIT)
+        while True:
+            current = reader()
+            guid = bytes(current.guid.bytes)
+            writers = fastdds_writers(current, skip())
+            unheard = {h: g for h, g in writers.items() if not capture.heard_heartbeat(g, guid)}
+            if not unheard or loop.time() >= until:
+                break
+            await asyncio.sleep(POLL)
+        if not unheard or loop.time() >= deadline or not may_renew():
+            break
+    return writers.keys() - unheard.keys(), unheard

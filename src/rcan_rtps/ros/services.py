@@ -48,7 +48,14 @@ from . import qos as qos_mod
 from . import raw_cdr
 from .errors import ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction, Endpoint, RosGraph
-from .handshake import POLL, matched_subscriptions, matched_writers, writers_ready
+from .handshake import (
+    POLL,
+    fastdds_writers,
+    hear_announcements,
+    matched_subscriptions,
+    matched_writers,
+    writers_ready,
+)
 from .names import mangle_service
 from .participant import RosNode
 from .qos import QosProfile
@@ -58,13 +65,8 @@ from .rtps_capture import SampleIdentity
 log = logging.getLogger(__name__)
 
 CYCLONE_VENDOR = b"\x01\x10"
-FASTDDS_VENDOR = b"\x01\x0f"  # eProsima: its writers announce themselves once (handshake.py)
 STALE_REPLY_GRACE = 0.5  # s a timed-out Fast DDS request's late reply gets to arrive and be dropped
 CLIENT_READER_WAIT = 1.0  # s a server waits for the client's reply reader (rmw_cyclonedds: 0.1)
-# How long after the handshake a Fast DDS reply writer's first HEARTBEAT to our new reply
-# reader may take to show in the capture before the reader is made again, and how many times.
-ANNOUNCE_WAIT = 0.3
-ANNOUNCE_TRIES = 4
 
 Accept = Callable[[IdlStruct], bool]
 Handler = Callable[[IdlStruct], Awaitable["IdlStruct | Mapping[str, Any]"]]
@@ -194,8 +196,7 @@ class _Pair:
     def unannounced_writers(self) -> dict[int, bytes]:
         """The matched Fast DDS reply writers whose first HEARTBEAT to this reader was not
         heard yet."""
-        return {h: g for h, g in matched_writers(self.reader).items()
-                if h not in self.announced and g[:2] == FASTDDS_VENDOR}
+        return fastdds_writers(self.reader, self.announced)
 
     def _on_samples(self, samples: list[Any]) -> None:  # on the node's reader thread
         try:
@@ -334,35 +335,26 @@ class ServiceClient:
         capture = self.node.identities
         if capture is None or not capture.reading or pair.mapping is not RequestMapping.FASTDDS:
             return
-        loop = asyncio.get_running_loop()
+
+        async def renew() -> None:
+            pair.renew_reader()
+            log.debug("service %s: a reply writer's first HEARTBEAT to our reader did not "
+                      "come; reader made again", self.name)
+            await self._matched_again(pair, deadline)
+
         async with pair.announce_lock:
-            for attempt in range(ANNOUNCE_TRIES):
-                if attempt:  # a new reader: the servers match it and announce themselves
-                    pair.renew_reader()
-                    log.debug("service %s: a reply writer's first HEARTBEAT to our reader did "
-                              "not come; reader made again", self.name)
-                    await self._matched_again(pair, deadline)
-                until = min(deadline, loop.time() + ANNOUNCE_WAIT)
-                while True:
-                    reader_guid = bytes(pair.reader.guid.bytes)
-                    waiting = pair.unannounced_writers()
-                    pair.announced |= {h for h, g in waiting.items()
-                                       if capture.heard_heartbeat(g, reader_guid)}
-                    if not pair.unannounced_writers():
-                        return
-                    if loop.time() >= until:
-                        break
-                    await asyncio.sleep(POLL)
-                if loop.time() >= deadline or pair.written:
-                    break  # (a reader with a request out is never replaced: see renew_reader)
-            unheard = pair.unannounced_writers()
+            if not pair.unannounced_writers():
+                return
+            heard, unheard = await hear_announcements(
+                capture, lambda: pair.reader, renew, deadline, skip=lambda: pair.announced,
+                may_renew=lambda: not pair.written)  # never with a request out: renew_reader
             if unheard:
                 log.debug("service %s: no first HEARTBEAT from %d reply writer(s) to our "
                           "reader after %d readers (capture %d bytes behind); the request "
                           "goes out without it", self.name, len(unheard), pair.renewed + 1,
                           capture.lag())
             pair.unannounced += len(unheard)
-            pair.announced |= unheard.keys()  # best effort: once
+            pair.announced |= heard | unheard.keys()  # the unheard: best effort, once
 
     async def _matched_again(self, pair: _Pair, deadline: float) -> None:
         """After `renew_reader`: until the reader matches (our view), then the handshake."""

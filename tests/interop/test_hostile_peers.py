@@ -28,7 +28,14 @@ from rcan_rtps.bridge.commanders import MAX_NODE_NAME, foreign_publishers
 from rcan_rtps.bridge.faults import UNLISTED
 from rcan_rtps.ros import qos, raw_cdr
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
-from rcan_rtps.ros.graph import MAX_INFO_NAME, MAX_NODE_FQN, MAX_UNKNOWN_INFOS, RosGraph
+from rcan_rtps.ros.graph import (
+    MAX_INFO_BYTES,
+    MAX_INFO_NAME,
+    MAX_NODE_FQN,
+    MAX_UNKNOWN_INFO_BYTES,
+    MAX_UNKNOWN_INFOS,
+    RosGraph,
+)
 from rcan_rtps.ros.participant import DISCOVERY_TYPE, RosNode
 
 from .bridge_rig import VIEWER, Rig, bridge_config, close_rig, make_rig
@@ -375,3 +382,45 @@ async def test_made_up_participants_in_discovery_info_name_no_node(
     assert not [n for n in graph.nodes() if n[1].startswith("ghost_")]
     assert ("/", "victim") in graph.nodes()
     assert len(graph._node_infos) <= MAX_UNKNOWN_INFOS + 2
+
+
+def _info(codec: Any, gid: bytes, name: str, endpoints: int) -> bytes:
+    """A ros_discovery_info sample naming one node with `endpoints` made-up endpoint gids."""
+    gids = [{"data": uuid.uuid4().bytes} for _ in range(endpoints)]
+    return bytes(codec.encode_value({"gid": {"data": gid}, "node_entities_info_seq": [
+        {"node_namespace": "/", "node_name": name, "writer_gid_seq": gids}]}))
+
+
+async def test_a_discovery_info_past_the_size_bound_is_dropped_undecoded(
+        victim: RosNode, hostile: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    """The IDL bounds no sequence of an info: a peer's sample of 160,000 endpoint gids
+    (2.6 MB) was decoded and kept while the peer lived (~4 times its size in objects); now
+    it is dropped undecoded with a warning, and the peer's next, honest info is read."""
+    graph = RosGraph(victim)
+    codec = hostile.codecs.of(DISCOVERY_TYPE)
+    huge = _info(codec, hostile.participant.guid.bytes, "huge", 160_000)
+    assert len(huge) > MAX_INFO_BYTES
+    raw_cdr.write(hostile._info_writer, huge)
+    hostile.announce()  # its own, real info after it
+    await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1])
+    assert ("/", "huge") not in graph.nodes() and graph.large_infos == 1
+    assert [r.getMessage() for r in caplog.records if "larger than" in r.getMessage()]
+    assert not tracebacks(caplog)
+
+
+async def test_infos_of_made_up_participants_share_a_byte_budget(
+        victim: RosNode, hostile: RosNode) -> None:
+    """The 256 infos kept for participants not (yet) discovered could each be up to the
+    size bound (~0.5 GB of objects): they also share MAX_UNKNOWN_INFO_BYTES, the oldest
+    going first."""
+    graph = RosGraph(victim)
+    codec = hostile.codecs.of(DISCOVERY_TYPE)
+    samples = [_info(codec, uuid.uuid4().bytes, f"ghost_{i}", 90_000) for i in range(8)]
+    for data in samples:
+        raw_cdr.write(hostile._info_writer, data)
+    hostile.announce()
+    await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1])
+    kept = [gid for gid in graph._node_infos if gid not in graph._alive]
+    assert 0 < len(kept) <= MAX_UNKNOWN_INFO_BYTES // len(samples[0]) < len(samples)
+    newest = bytes(samples[-1][4:20])  # the gid, after the 4-byte CDR header
+    assert newest in kept

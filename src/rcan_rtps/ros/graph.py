@@ -42,6 +42,12 @@ log = logging.getLogger(__name__)
 # ros_discovery_info entries kept for participants discovery has not (yet) announced: any peer
 # may write any gid there, so what names no live participant is bounded, then let go.
 MAX_UNKNOWN_INFOS = 256
+# The IDL bounds no sequence of an info, and decoding one costs ~4 times its size in Python
+# objects, kept while its participant lives: a sample larger than this is dropped undecoded
+# (a participant of 1,000 nodes with 60 endpoints each needs ~1 MB of it), and the kept infos
+# of participants not (yet) discovered share a budget as well as a count.
+MAX_INFO_BYTES = 2 << 20
+MAX_UNKNOWN_INFO_BYTES = 8 << 20
 # ros_discovery_info's IDL bound for a node's namespace and for its name, each.
 MAX_INFO_NAME = 256
 # A node's fully qualified name made of two names at that bound (`node_fqn`).
@@ -132,8 +138,10 @@ class RosGraph:
         # Discovered QoS profiles, each kept once: a graph's endpoints share a handful.
         self._profiles: dict[QosProfile, QosProfile] = {}
         self._node_infos: dict[bytes, tuple[_Node, ...]] = {}
+        self._info_sizes: dict[bytes, int] = {}  # bytes of each kept info's sample
         self._alive: set[bytes] = set()  # participants discovery knows (this one included)
         self.bad_infos = 0  # ros_discovery_info samples that did not decode (dropped)
+        self.large_infos = 0  # and those larger than MAX_INFO_BYTES (dropped undecoded)
         # Grows whenever a refresh took anything: a view computed at one generation is
         # still current while it has not moved.
         self.generation = 0
@@ -159,7 +167,7 @@ class RosGraph:
                 self._alive.add(key)
             else:
                 self._alive.discard(key)
-                self._node_infos.pop(key, None)
+                self._forget_info(key)
         taken += self._take_node_infos()
         if taken:
             self.generation += 1
@@ -177,11 +185,14 @@ class RosGraph:
         Any peer may write there: a sample that does not decode is dropped alone (the
         others taken with it are kept), and never fails the refresh (services and actions
         refresh before each call, a stop's goal cancel included)."""
-        bad = taken = 0
+        bad = large = taken = 0
         for data, sample_info in raw_cdr.take(self._info, ANY_SAMPLE, 10_000):
             taken += 1
             if not sample_info.valid_data:
                 continue  # keyless: an invalid sample names no participant
+            if len(data) > MAX_INFO_BYTES:
+                large += 1
+                continue
             try:
                 info: Any = self._decode_info(data)
                 gid = bytes(info.gid.data)[:16]
@@ -190,23 +201,41 @@ class RosGraph:
                 bad += 1
                 continue
             if sample_info.instance_state == InstanceState.Alive:
-                self._node_infos[gid] = nodes
+                self._node_infos.pop(gid, None)  # re-inserted: the newest last
+                self._node_infos[gid], self._info_sizes[gid] = nodes, len(data)
             else:
-                self._node_infos.pop(gid, None)
+                self._forget_info(gid)
+        self._report_dropped(bad, large)
+        self._bound_unknown_infos()
+        return taken
+
+    def _report_dropped(self, bad: int, large: int) -> None:
         if bad:
             self.bad_infos += bad
             log.warning("dropped %d ros_discovery_info sample(s) that do not decode "
                         "(%d in all)", bad, self.bad_infos)
-        self._bound_unknown_infos()
-        return taken
+        if large:
+            self.large_infos += large
+            log.warning("dropped %d ros_discovery_info sample(s) larger than %d bytes, "
+                        "undecoded: their nodes are not shown (%d in all)", large,
+                        MAX_INFO_BYTES, self.large_infos)
+
+    def _forget_info(self, gid: bytes) -> None:
+        self._node_infos.pop(gid, None)
+        self._info_sizes.pop(gid, None)
 
     def _bound_unknown_infos(self) -> None:
         """An info may come before its participant is discovered, so one naming no live
-        participant is kept (never listed) — but only so many: ids that never match a
-        participant (a peer writing made-up gids) would otherwise pile up for good."""
+        participant is kept (never listed) — but only so many, and so many bytes: ids that
+        never match a participant (a peer writing made-up gids) would otherwise pile up for
+        good. The oldest go first."""
         unknown = [gid for gid in self._node_infos if gid not in self._alive]
-        for gid in unknown[:max(0, len(unknown) - MAX_UNKNOWN_INFOS)]:  # oldest first
-            del self._node_infos[gid]
+        size = sum(self._info_sizes.get(gid, 0) for gid in unknown)
+        for n, gid in enumerate(unknown):
+            if len(unknown) - n <= MAX_UNKNOWN_INFOS and size <= MAX_UNKNOWN_INFO_BYTES:
+                break
+            size -= self._info_sizes.get(gid, 0)
+            self._forget_info(gid)
 
     def _live_infos(self) -> list[tuple[_Node, ...]]:
         return [nodes for gid, nodes in self._node_infos.items() if gid in self._alive]

@@ -48,13 +48,26 @@ def parameters() -> dict[str, Any]:
     return {"parameters": [{"name": f"p{i}", "value": value(i)} for i in range(3)]}
 
 
+def image(size: int) -> dict[str, Any]:
+    return {"height": 1, "width": size, "encoding": "mono8", "step": size,
+            "data": bytes(i % 253 for i in range(size))}
+
+
+# one block that ends the message (joined without memoryviews), with and without a
+# placeholder to drop, and one that does not (a PointCloud2's data, then is_dense)
 CASES = [("test_msgs/msg/UnboundedSequences", sequences()),
          ("rcl_interfaces/srv/SetParameters_Request", parameters()),
          ("sensor_msgs/msg/Image", {"height": 480, "width": 640, "encoding": "rgb8",
-                                    "step": 1920, "data": bytes(range(256)) * 3600})]
+                                    "step": 1920, "data": bytes(range(256)) * 3600}),
+         ("sensor_msgs/msg/Image", image(ODD)),
+         ("sensor_msgs/msg/PointCloud2", {"height": 1, "width": ODD, "point_step": 1,
+                                          "row_step": ODD, "data": image(ODD)["data"],
+                                          "is_dense": True})]
+IDS = ["UnboundedSequences", "SetParameters_Request", "Image 640x480", "Image odd size",
+       "PointCloud2 odd size"]
 
 
-@pytest.mark.parametrize(("type_name", "value"), CASES, ids=[c[0] for c in CASES])
+@pytest.mark.parametrize(("type_name", "value"), CASES, ids=IDS)
 def test_big_blocks_encode_as_cyclonedds_does(type_name: str, value: dict[str, Any]) -> None:
     codec = default_codec()
     message = codec.values.build(type_name, value)

@@ -29,8 +29,11 @@ def _check(tallies: list[dict], processes: int, calls: int) -> None:
               for kind in ("ours", "foreign", "mixed", "unknown")}
     lost = sum(len(t["lost"]) for t in tallies)
     renewed, unannounced = (sum(t[k] for t in tallies) for k in ("renewed", "unannounced"))
-    print(f"{processes} processes x {calls} calls: {counts}, lost {lost}; {renewed} reply "
-          f"readers made again, {unannounced} processes called unannounced")
+    losses = {f"p{n}": (t["lost"], t["lost_in_capture"]) for n, t in enumerate(tallies)
+              if t["lost"]}
+    print(f"{processes} processes x {calls} calls: {counts}, lost {lost} {losses} (calls, of "
+          f"them reached our socket); {renewed} reply readers made again, "
+          f"{unannounced} processes called unannounced")
     # A reader the server's writer was not heard announcing itself to can lose its first
     # reply as history (handshake.py, 3.): the only loss allowed, and only to those.
     excused = [t["lost"] for t in tallies if t["unannounced"] and t["lost"] == [1]]

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import asyncio
+import threading
 from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
 from dropping import flood, small_buffers
 
-from rcan_rtps.ros import actions
+from rcan_rtps.ros import actions, qos
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
 from rcan_rtps.ros.errors import ActionError
+from rcan_rtps.ros.names import mangle_topic
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import RequestMapping
 
@@ -241,3 +243,48 @@ async def test_a_server_that_leaves_before_its_result_reply_ends_the_goal_as_its
         assert outcome.state is GoalState.SUCCEEDED and outcome.result is None
         assert "left the graph" in outcome.detail
         client.close()
+
+
+async def test_a_goal_s_feedback_outlasts_other_goals_feedback_while_the_reader_thread_waits(
+        nodes: tuple[RosNode, RosNode], domain_id: int) -> None:
+    """Every goal's feedback reaches every client's feedback reader. Ours kept the default
+    profile's 10 samples: while the node's reader thread waited for a core, ten feedbacks of
+    other clients' goals pushed our goal's out of the reader's history, lost for good (and a
+    client whose thread was free kept 10 of the 30 its goal's burst sent)."""
+    server_node, client_node = nodes
+    ours_may_go = asyncio.Event()
+
+    async def serve(goal: ServerGoal) -> dict[str, Any]:
+        target: Any = goal.goal
+        if target.behavior_tree == "ours":
+            await ours_may_go.wait()
+        for step in range(1 if target.behavior_tree == "ours" else 30):
+            goal.publish_feedback({"distance_remaining": float(step),
+                                   "number_of_recoveries": 7 if target.behavior_tree == "ours"
+                                   else 0})
+        return {"error_code": 0, "error_msg": ""}
+
+    server = ActionServer(server_node, "navigate_to_pose", NAV, serve)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    ours = await client.send_goal({**GOAL, "behavior_tree": "ours"}, timeout=20)
+    held, release = threading.Event(), threading.Event()
+    hold = client_node.create_reader(mangle_topic("/hold"), "std_msgs/msg/Empty", qos.DEFAULT)
+    client_node.watch(hold, lambda _: (held.set(), release.wait(60)), "hold")
+    with RosNode("other_client", "/", domain_id=domain_id, distro="jazzy") as other_node:
+        other = ActionClient(other_node, "/robot1/navigate_to_pose", NAV)
+        await other.wait_for_server(20)
+        holder = server_node.create_publisher("/hold", "std_msgs/msg/Empty")
+        await holder.wait_for_subscribers(1, 15)
+        holder.publish({})
+        try:
+            assert await asyncio.to_thread(held.wait, 15), "the reader thread was not held"
+            ours_may_go.set()
+            await asyncio.sleep(0.5)  # our feedback waits in our reader's history
+            theirs = await other.send_goal(GOAL, timeout=20)
+            assert len([f async for f in theirs.feedback(timeout=20)]) == 30
+        finally:
+            release.set()
+        recoveries = [f.number_of_recoveries async for f in ours.feedback(timeout=20)]
+        other.close()
+    assert recoveries == [7]
+    await server.close()

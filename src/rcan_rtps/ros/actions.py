@@ -39,6 +39,7 @@ from .names import action_names, mangle_topic
 from .participant import RosNode, RosSubscription
 from .rostime import now_msg
 from .services import (
+    PAIR_READER_DEPTH,
     RequestMapping,
     ServiceClient,
     ServiceServer,
@@ -306,7 +307,8 @@ class ActionClient:
                     break
                 await asyncio.sleep(POLL)
             self._feedback = self.node.create_subscription(
-                self._feedback_topic, self.type_name + "_FeedbackMessage", qos_mod.DEFAULT,
+                self._feedback_topic, self.type_name + "_FeedbackMessage",
+                qos_mod.DEFAULT.keeping(PAIR_READER_DEPTH),  # every goal's feedback comes
                 callback=self._feedback_callback)
         return self._feedback
 

@@ -63,6 +63,13 @@ class QosProfile:
     def with_(self, **changes: Any) -> QosProfile:
         return replace(self, **changes)
 
+    def keeping(self, depth: int) -> QosProfile:
+        """This profile keeping at least `depth` samples (keep-all keeps them already). A
+        reader's depth is its own: no peer matches on it."""
+        if self.history is History.KEEP_ALL or self.depth >= depth:
+            return self
+        return replace(self, depth=depth)
+
     def describe(self) -> str:
         hist = f"keep_last({self.depth})" if self.history is History.KEEP_LAST else "keep_all"
         return f"{self.reliability.value}, {self.durability.value}, {hist}"

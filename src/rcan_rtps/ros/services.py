@@ -68,6 +68,11 @@ CYCLONE_VENDOR = b"\x01\x10"
 STALE_REPLY_GRACE = 0.5  # s a timed-out Fast DDS request's late reply gets to arrive and be dropped
 CLIENT_READER_WAIT = 1.0  # s a server waits for the client's reply reader (rmw_cyclonedds: 0.1)
 
+# A server's replies reach every client's reply reader, and every client's requests every
+# server's request reader: a reader keeps this many while the node's reader thread waits for
+# a core, so that others' samples cannot push ours out (the services profile keeps 10).
+PAIR_READER_DEPTH = 1000
+
 Accept = Callable[[IdlStruct], bool]
 Handler = Callable[[IdlStruct], Awaitable["IdlStruct | Mapping[str, Any]"]]
 
@@ -163,11 +168,11 @@ class _Pair:
         self.unannounced = 0  # writers given up on: the request went out without their HEARTBEAT
 
     def _make_reader(self) -> tuple[DataReader[Any], Any]:
-        node, into = self._node, self._into
+        node, into, qos = self._node, self._into, self._qos.keeping(PAIR_READER_DEPTH)
         if self.mapping is RequestMapping.CYCLONE:
-            reader = cyclone.create_reader(node, *into, self._qos, self._user)
+            reader = cyclone.create_reader(node, *into, qos, self._user)
         else:
-            reader = node.create_reader(*into, self._qos, extra_user_data=self._user)
+            reader = node.create_reader(*into, qos, extra_user_data=self._user)
 
         def on_samples(samples: list[Any]) -> None:  # on the node's reader thread
             if reader is self.reader:  # not a renewed reader's last batch

@@ -4,6 +4,7 @@ receive buffers are full (docs/design/zero-loss.md)."""
 from __future__ import annotations
 
 import socket
+from typing import Any
 
 import pytest
 
@@ -46,3 +47,20 @@ def flood(node: RosNode, size: int = 30_000, batches: int = 200) -> int:
             if now is not None and now > before:
                 return now - before
     raise AssertionError(f"{batches} batches of junk and no datagram dropped at the node's sockets")
+
+
+class DeafCapture:
+    """A node's packet capture (rtps_capture.py) in which no HEARTBEAT addressed to one of
+    our readers ever shows, as when our socket dropped each Fast DDS writer's announcement:
+    clients then wait for it and make their readers again (handshake.hear_announcements).
+    Everything else is the real capture's. Install with `node.identities = DeafCapture(...)`."""
+
+    def __init__(self, real: Any) -> None:
+        assert real is not None, "the packet capture is needed (Linux, RCAN_RTPS_RPC_IDENTITY)"
+        self._real = real
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._real, name)
+
+    def heard_heartbeat(self, writer_guid: bytes, reader_guid: bytes) -> bool:
+        return False

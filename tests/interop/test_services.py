@@ -8,6 +8,7 @@ import threading
 from collections.abc import AsyncIterator, Iterator
 
 import pytest
+from dropping import DeafCapture
 from oracle.client import OracleEnv, RclpyOracle, both_rmws
 
 from rcan_rtps.ros import qos
@@ -176,3 +177,48 @@ async def test_our_reply_outlasts_other_clients_replies_while_the_reader_thread_
         reply = await ours
     assert (reply.success, reply.message) == (True, "triggered #1")
     assert [r.message for r in others] == [f"triggered #{n}" for n in range(2, 32)]
+
+
+async def _renewed(client: ServiceClient, times: int) -> None:
+    """Until the client's Fast DDS reply reader was made again `times` times."""
+    while (pair := client._pairs.get(RequestMapping.FASTDDS)) is None or pair.renewed < times:
+        await asyncio.sleep(0.01)
+
+
+async def test_a_client_closed_while_it_waits_for_the_announcement_says_so(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """Fast DDS: before its first request a call waits to hear the reply writer's first
+    HEARTBEAT to our reader, making the reader again when it does not come. A client
+    closed meanwhile made `call` raise the binding's DDSException (the deleted reader's
+    GUID asked for), not ServiceUnavailable."""
+    await oracle.acall("service_server", name="/trigger", type="std_srvs/srv/Trigger")
+    node.identities = DeafCapture(node.identities)  # no announcement is ever heard
+    for renewed in (0, 1):  # in the first reader's wait, in the second's
+        client = ServiceClient(node, "/trigger", "std_srvs/srv/Trigger")
+        call = asyncio.ensure_future(client.call({}, timeout=20))
+        await asyncio.wait_for(_renewed(client, renewed), 15)
+        await asyncio.sleep(0.1)
+        client.close()
+        with pytest.raises(ServiceUnavailable, match="closed"):
+            await asyncio.wait_for(call, 15)
+
+
+async def test_a_call_queued_behind_another_when_the_client_closes_says_so(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """Fast DDS: one request at a time, the others queued. Closing the client failed the
+    outstanding call with ServiceUnavailable, but the queued one then wrote on the
+    deleted writer and raised the binding's DDSException."""
+    await oracle.acall("service_server", name="/trigger", type="std_srvs/srv/Trigger", delay=2)
+    client = ServiceClient(node, "/trigger", "std_srvs/srv/Trigger")
+    await client.wait_for_service(15)
+    calls = [asyncio.ensure_future(client.call({}, timeout=20)) for _ in range(2)]
+    await asyncio.wait_for(_requested(oracle, "/trigger"), 15)
+    client.close()
+    for call in calls:
+        with pytest.raises(ServiceUnavailable, match="closed"):
+            await asyncio.wait_for(call, 15)
+
+
+async def _requested(oracle: RclpyOracle, name: str) -> None:
+    while not await oracle.acall("service_requests", name=name):
+        await asyncio.sleep(0.05)

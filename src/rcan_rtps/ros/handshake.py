@@ -149,20 +149,26 @@ def fastdds_writers(reader: DataReader[Any], skip: Collection[int] = ()) -> dict
 async def hear_announcements(capture: IdentityCapture, reader: Callable[[], DataReader[Any]],
                              renew: Callable[[], Awaitable[None]], deadline: float, *,
                              skip: Callable[[], Collection[int]] = frozenset,
-                             may_renew: Callable[[], bool] = lambda: True
+                             may_renew: Callable[[], bool] = lambda: True,
+                             closed: Callable[[], bool] = lambda: False,
                              ) -> tuple[set[int], dict[int, bytes]]:
     """Waits until every matched Fast DDS writer's first HEARTBEAT to `reader()` was heard
     in the packet capture (3. above); when one has not come within ANNOUNCE_WAIT, `renew()`
     makes the reader again (matched and handshaken), which the writers announce themselves
     to afresh. At most ANNOUNCE_TRIES readers, within `deadline` (loop time), while
     `may_renew()`. Returns the writers (handles) heard, and those still unheard (handle →
-    GUID) when it gave up, of the last reader."""
+    GUID) when it gave up, of the last reader; nothing at once when its owner is `closed()`
+    (its reader deleted: the caller says so)."""
     loop = asyncio.get_running_loop()
+    writers: dict[int, bytes] = {}
+    unheard: dict[int, bytes] = {}
     for attempt in range(ANNOUNCE_TRIES):
-        if attempt:
+        if attempt and not closed():
             await renew()
         until = min(deadline, loop.time() + ANNOUNCE_WAIT)
         while True:
+            if closed():
+                return set(), {}
             current = reader()
             guid = bytes(current.guid.bytes)
             writers = fastdds_writers(current, skip())

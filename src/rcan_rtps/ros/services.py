@@ -328,7 +328,12 @@ class ServiceClient:
             await writers_ready(self.node, writers, max(0.0, deadline - loop.time()))
             pair.ready |= writers.keys()  # ready, or best effort past the timeout: once
         await self._await_announced(pair, deadline)
+        self._check_open()  # closed while it waited: its endpoints are deleted
         return pair
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise ServiceUnavailable(f"the client of {self.name} is closed")
 
     async def _await_announced(self, pair: _Pair, deadline: float) -> None:
         """Waits until every Fast DDS reply writer's first HEARTBEAT to our reply reader has
@@ -338,7 +343,8 @@ class ServiceClient:
         the next one covers would be dropped as history (handshake.py). Needs the packet
         capture; once per reader, before its first request (never with a reply in flight)."""
         capture = self.node.identities
-        if capture is None or not capture.reading or pair.mapping is not RequestMapping.FASTDDS:
+        if capture is None or not capture.reading or pair.mapping is not RequestMapping.FASTDDS \
+                or self.closed:
             return
 
         async def renew() -> None:
@@ -348,11 +354,14 @@ class ServiceClient:
             await self._matched_again(pair, deadline)
 
         async with pair.announce_lock:
-            if not pair.unannounced_writers():
+            if self.closed or not pair.unannounced_writers():
                 return
             heard, unheard = await hear_announcements(
                 capture, lambda: pair.reader, renew, deadline, skip=lambda: pair.announced,
-                may_renew=lambda: not pair.written)  # never with a request out: renew_reader
+                may_renew=lambda: not pair.written,  # never with a request out: renew_reader
+                closed=lambda: self.closed)
+            if self.closed:
+                return
             if unheard:
                 log.debug("service %s: no first HEARTBEAT from %d reply writer(s) to our "
                           "reader after %d readers (capture %d bytes behind); the request "
@@ -364,8 +373,10 @@ class ServiceClient:
     async def _matched_again(self, pair: _Pair, deadline: float) -> None:
         """After `renew_reader`: until the reader matches (our view), then the handshake."""
         loop = asyncio.get_running_loop()
-        while not pair.matched() and loop.time() < deadline:
+        while not self.closed and not pair.matched() and loop.time() < deadline:
             await asyncio.sleep(POLL)
+        if self.closed:
+            return
         writers = pair.unready_writers()
         if writers:
             await writers_ready(self.node, writers, max(0.0, deadline - loop.time()))
@@ -431,6 +442,7 @@ class ServiceClient:
             if self._stale:  # let a late reply to a timed-out request arrive and be dropped
                 await asyncio.sleep(max(0.0, min(STALE_REPLY_GRACE, deadline - loop.time())))
                 self._stale = False
+            self._check_open()  # closed while this call was queued
             future: asyncio.Future[IdlStruct] = loop.create_future()
             pair.write(message)
             self._plain_waiter = (future, accept, SampleIdentity(pair.writer_guid, pair.written))

@@ -8,10 +8,12 @@ from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import pytest
+from dropping import DeafCapture
 from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
 
 from rcan_rtps.ros.actions import ActionClient, GoalState
-from rcan_rtps.ros.errors import ServiceUnavailable, ValueFitError
+from rcan_rtps.ros.errors import ServiceUnavailable, ValueFitError, WireError
+from rcan_rtps.ros.handshake import ANNOUNCE_TRIES
 from rcan_rtps.ros.participant import RosNode
 
 FIB = "test_msgs/action/Fibonacci"
@@ -133,3 +135,70 @@ async def test_malformed_goal_names_the_field(node: RosNode) -> None:
     client = ActionClient(node, "/fib", FIB)
     with pytest.raises(ValueFitError, match=r"^order: 3000000000 is out of range"):
         await client.send_goal({"order": 3_000_000_000}, timeout=1.0)
+
+
+async def _feedback_renewed(client: ActionClient, times: int) -> None:
+    while client.feedback_renewed < times:
+        await asyncio.sleep(0.01)
+
+
+async def _announced_services(client: ActionClient) -> None:
+    """The three services' reply readers past their announcement wait (capture not deaf)."""
+    for service in (client._send, client._get, client._cancel_srv):
+        await service.wait_for_service(15)
+
+
+async def test_an_action_client_closed_while_it_waits_for_the_announcement_says_so(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """Fast DDS: before the first goal the client waits to hear the feedback writer's first
+    HEARTBEAT to our reader, making the reader again when it does not come. Closed
+    meanwhile, `send_goal` raised the binding's DDSException (the deleted reader's GUID
+    asked for) instead of saying the client is closed, and a renewal under way made a
+    feedback reader for the closed client."""
+    await oracle.acall("action_server", name="/fib")
+    for renewed in (0, 1):  # in the first reader's wait, in the second's
+        client = ActionClient(node, "/fib", FIB)
+        await _announced_services(client)
+        real, node.identities = node.identities, DeafCapture(node.identities)
+        try:
+            goal = asyncio.ensure_future(client.send_goal({"order": 3}, timeout=20))
+            await asyncio.wait_for(_feedback_renewed(client, renewed), 15)
+            await asyncio.sleep(0.1)
+            client.close()
+            with pytest.raises(WireError, match="closed"):
+                await asyncio.wait_for(goal, 15)
+            assert client._feedback is None or client._feedback._closed
+        finally:
+            node.identities = real
+
+
+async def test_goals_sent_at_once_share_one_announcement_wait(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """Fast DDS: each send_goal waited for the feedback writer's announcement on its own,
+    so two goals sent at once made the feedback reader again twice as often, and the later
+    one's wait went on making it again after the first goal was out: a feedback reader
+    replaced with a goal's feedback on its way (the reader is made again only before any
+    goal, `_renew_feedback_reader`)."""
+    await oracle.acall("action_server", name="/fib", mode="slow")
+    client = ActionClient(node, "/fib", FIB)
+    await _announced_services(client)
+    real, node.identities = node.identities, DeafCapture(node.identities)
+    readers_with_a_goal_out: list[object] = []
+
+    async def first() -> object:
+        goal = await client.send_goal({"order": 12}, timeout=20)
+        readers_with_a_goal_out.append(client._feedback)
+        return goal
+
+    async def second() -> object:  # once the first one's wait has made its reader again
+        await asyncio.wait_for(_feedback_renewed(client, 2), 15)
+        return await client.send_goal({"order": 3}, timeout=20)
+
+    try:
+        await asyncio.gather(first(), second())
+    finally:
+        node.identities = real
+        readers_with_a_goal_out.append(client._feedback)
+        client.close()
+    assert client.feedback_renewed == ANNOUNCE_TRIES - 1
+    assert readers_with_a_goal_out[0] is readers_with_a_goal_out[1]

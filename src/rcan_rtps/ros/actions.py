@@ -29,6 +29,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from cyclonedds.core import DDSException
 from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
@@ -38,6 +39,7 @@ from .handshake import hear_announcements, matched_writers, writers_ready
 from .names import action_names, mangle_topic
 from .participant import RosNode, RosSubscription
 from .rostime import now_msg
+from .rtps_capture import IdentityCapture
 from .services import (
     PAIR_READER_DEPTH,
     RequestMapping,
@@ -211,6 +213,7 @@ class ActionClient:
         self._closed = False
         self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
         self._feedback_announced = False  # see `_await_feedback_announced`
+        self._announce_lock = asyncio.Lock()  # one such wait for goals sent at once
         self.feedback_renewed = 0  # feedback readers made again (their announcement unheard)
         self.feedback_unannounced = 0  # 1 when goals went out with the announcement unheard
         loop = asyncio.get_running_loop()
@@ -262,16 +265,31 @@ class ActionClient:
         our socket, Cyclone takes the next one, sent ahead of the first feedback, as the
         reader's start: that feedback is dropped as history (handshake.py). So, once, before
         the first goal: hear it in the packet capture, or make the reader again (at most
-        ANNOUNCE_TRIES readers within the deadline: `hear_announcements`). Needs the capture."""
+        ANNOUNCE_TRIES readers within the deadline: `hear_announcements`). Needs the capture.
+        Goals sent at once share the one wait: another's would renew the reader with the
+        first goal's feedback on its way."""
         capture = self.node.identities
         if self._feedback_announced or capture is None or not capture.reading or self._goals:
             return
-        feedback = self._feedback
-        if feedback is None:
-            return
+        async with self._announce_lock:
+            if self._feedback_announced or self._goals or self._feedback is None:
+                return
+            await self._hear_feedback_announced(capture, deadline)
+
+    async def _hear_feedback_announced(self, capture: IdentityCapture, deadline: float) -> None:
+        feedback: RosSubscription | None = self._feedback
+
+        def reader() -> Any:  # the current reader (None only within a renewal)
+            nonlocal feedback
+            feedback = self._feedback or feedback
+            assert feedback is not None
+            return feedback.reader
+
         _, unheard = await hear_announcements(
-            capture, lambda: (self._feedback or feedback).reader,
-            lambda: self._renew_feedback_reader(deadline), deadline)
+            capture, reader, lambda: self._renew_feedback_reader(deadline), deadline,
+            may_renew=lambda: not self._goals, closed=lambda: self._closed)
+        if self._closed:
+            return  # send_goal's service call says so
         if unheard:
             log.debug("action %s: no first HEARTBEAT from the feedback writer to our reader "
                       "after %d readers; goals go out without it", self.name,
@@ -287,15 +305,22 @@ class ActionClient:
             self._feedback.close()
             self._feedback = None
         self.feedback_renewed += 1
-        feedback = await self._feedback_subscription(max(0.0, deadline - loop.time()))
-        await feedback.wait_for_publishers(1, max(0.0, deadline - loop.time()))
-        writers = matched_writers(feedback.reader)
+        try:
+            feedback = await self._feedback_subscription(max(0.0, deadline - loop.time()))
+            await feedback.wait_for_publishers(1, max(0.0, deadline - loop.time()))
+            writers = matched_writers(feedback.reader)
+        except DDSException:  # the reader deleted by close() meanwhile: send_goal says so
+            if self._closed:
+                return
+            raise
         if writers:
             await writers_ready(self.node, writers, max(0.0, deadline - loop.time()))
 
     async def _feedback_subscription(self, timeout: float) -> RosSubscription:
         """The feedback subscription, made once discovery shows the server's feedback
         writer (or at the timeout, for `wait_for_publishers` to report)."""
+        if self._feedback is None and self._closed:
+            raise ActionError(f"the action client of {self.name} is closed")
         if self._feedback is None:
             graph, topic = shared_graph(self.node), mangle_topic(self._feedback_topic)
             loop = asyncio.get_running_loop()
@@ -306,6 +331,8 @@ class ActionClient:
                        for e in graph.endpoints()):
                     break
                 await asyncio.sleep(POLL)
+            if self._closed:  # while it waited: no reader for a closed client
+                raise ActionError(f"the action client of {self.name} is closed")
             self._feedback = self.node.create_subscription(
                 self._feedback_topic, self.type_name + "_FeedbackMessage",
                 qos_mod.DEFAULT.keeping(PAIR_READER_DEPTH),  # every goal's feedback comes

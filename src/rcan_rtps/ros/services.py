@@ -359,9 +359,7 @@ class ServiceClient:
             heard, unheard = await hear_announcements(
                 capture, lambda: pair.reader, renew, deadline, skip=lambda: pair.announced,
                 may_renew=lambda: not pair.written,  # never with a request out: renew_reader
-                closed=lambda: self.closed)
-            if self.closed:
-                return
+                closed=lambda: self.closed)  # then nothing heard, nothing unheard
             if unheard:
                 log.debug("service %s: no first HEARTBEAT from %d reply writer(s) to our "
                           "reader after %d readers (capture %d bytes behind); the request "

@@ -424,3 +424,34 @@ async def test_infos_of_made_up_participants_share_a_byte_budget(
     assert 0 < len(kept) <= MAX_UNKNOWN_INFO_BYTES // len(samples[0]) < len(samples)
     newest = bytes(samples[-1][4:20])  # the gid, after the 4-byte CDR header
     assert newest in kept
+
+
+async def test_discovery_infos_dropped_at_every_refresh_are_logged_at_a_bounded_rate(
+        victim: RosNode, hostile: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    """A ros_discovery_info sample past the size bound (or one that does not decode) was
+    logged by each refresh that took one; services, actions and the bridge's polls refresh
+    often, so a peer writing one now and then filled the log as fast as we refreshed."""
+    caplog.set_level(logging.WARNING, logger="rcan_rtps.ros.graph")
+    graph = RosGraph(victim)
+    huge = _info(hostile.codecs.of(DISCOVERY_TYPE), uuid.uuid4().bytes, "huge", 160_000)
+    for n in range(1, 5):
+        raw_cdr.write(hostile._info_writer, huge)
+        await eventually(lambda n=n: (graph.refresh(), graph.large_infos == n)[1])
+    assert len([r for r in caplog.records if "larger than" in r.getMessage()]) == 1
+
+
+async def test_a_discovery_info_past_the_size_bound_leaves_no_stale_nodes(
+        victim: RosNode, hostile: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    """A participant's info past the size bound is dropped undecoded, and the warning says
+    its nodes are not shown; but the info it replaced stayed, so the nodes the participant
+    named before (and may no longer have) were listed as its nodes."""
+    graph = RosGraph(victim)
+    await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1])
+    codec = hostile.codecs.of(DISCOVERY_TYPE)
+    huge = _info(codec, hostile.participant.guid.bytes, "huge", 160_000)
+    raw_cdr.write(hostile._info_writer, huge)
+    await eventually(lambda: (graph.refresh(), graph.large_infos == 1)[1])
+    assert ("/robot1", "hostile") not in graph.nodes() and ("/", "huge") not in graph.nodes()
+    assert ("/", "victim") in graph.nodes()
+    hostile.announce()  # its next info, within the bound: listed again
+    await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1])

@@ -16,6 +16,7 @@ import asyncio
 import enum
 import logging
 import sys
+import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -34,7 +35,7 @@ from . import raw_cdr
 from .names import EndpointKind, action_of, demangle, is_hidden, mangle_topic
 from .participant import DISCOVERY_TYPE, RosNode
 from .qos import QosProfile
-from .readers import ANY_SAMPLE
+from .readers import ANY_SAMPLE, BAD_LOG_S
 from .typesys.store import normalize_name
 
 log = logging.getLogger(__name__)
@@ -48,6 +49,9 @@ MAX_UNKNOWN_INFOS = 256
 # of participants not (yet) discovered share a budget as well as a count.
 MAX_INFO_BYTES = 2 << 20
 MAX_UNKNOWN_INFO_BYTES = 8 << 20
+# An info's gid, in its first 16 bytes after the 4-byte CDR header (octets: no alignment),
+# read there from a sample too large to decode.
+INFO_GID = slice(4, 20)
 # ros_discovery_info's IDL bound for a node's namespace and for its name, each.
 MAX_INFO_NAME = 256
 # A node's fully qualified name made of two names at that bound (`node_fqn`).
@@ -142,6 +146,8 @@ class RosGraph:
         self._alive: set[bytes] = set()  # participants discovery knows (this one included)
         self.bad_infos = 0  # ros_discovery_info samples that did not decode (dropped)
         self.large_infos = 0  # and those larger than MAX_INFO_BYTES (dropped undecoded)
+        # monotonic time each kind of those was last logged: at most one per BAD_LOG_S
+        self._dropped_logged_at: dict[str, float] = {}
         # Grows whenever a refresh took anything: a view computed at one generation is
         # still current while it has not moved.
         self.generation = 0
@@ -192,6 +198,8 @@ class RosGraph:
                 continue  # keyless: an invalid sample names no participant
             if len(data) > MAX_INFO_BYTES:
                 large += 1
+                # Its participant's nodes are not known now: the info it replaces is stale.
+                self._forget_info(bytes(data[INFO_GID]))
                 continue
             try:
                 info: Any = self._decode_info(data)
@@ -210,15 +218,25 @@ class RosGraph:
         return taken
 
     def _report_dropped(self, bad: int, large: int) -> None:
-        if bad:
-            self.bad_infos += bad
-            log.warning("dropped %d ros_discovery_info sample(s) that do not decode "
-                        "(%d in all)", bad, self.bad_infos)
-        if large:
-            self.large_infos += large
-            log.warning("dropped %d ros_discovery_info sample(s) larger than %d bytes, "
-                        "undecoded: their nodes are not shown (%d in all)", large,
-                        MAX_INFO_BYTES, self.large_infos)
+        """Counts the samples dropped; a peer may write them as often as we refresh (before
+        each call, at each poll): each kind is logged at most once per BAD_LOG_S."""
+        self.bad_infos += bad
+        self.large_infos += large
+        if bad and self._may_log("bad"):
+            log.warning("dropped ros_discovery_info sample(s) that do not decode (%d so far; "
+                        "logged at most every %.0f s)", self.bad_infos, BAD_LOG_S)
+        if large and self._may_log("large"):
+            log.warning("dropped ros_discovery_info sample(s) larger than %d bytes, "
+                        "undecoded: their participants' nodes are not shown (%d so far; "
+                        "logged at most every %.0f s)", MAX_INFO_BYTES, self.large_infos,
+                        BAD_LOG_S)
+
+    def _may_log(self, kind: str) -> bool:
+        now, last = time.monotonic(), self._dropped_logged_at.get(kind)
+        if last is not None and now - last < BAD_LOG_S:
+            return False
+        self._dropped_logged_at[kind] = now
+        return True
 
     def _forget_info(self, gid: bytes) -> None:
         self._node_infos.pop(gid, None)

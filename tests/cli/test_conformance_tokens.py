@@ -42,3 +42,29 @@ def test_demo_tokens_never_begin_with_a_dash_and_keep_a_given_one() -> None:
     assert len(set(fresh_demo_token() for _ in range(100))) == 100
     given = demo_tokens({"RCAN_BRIDGE_TOKEN": "-mine-0123456789abcdef"})
     assert "-mine-0123456789abcdef" in given.values()
+
+
+def test_an_empty_token_is_named_as_given(capsys: pytest.CaptureFixture[str]) -> None:
+    """`--token ''` was reported as `--token-env None: that variable is not set`."""
+    args = parse_args(["conformance", "--url", "http://127.0.0.1:1", "--token", ""])
+    assert _conformance(args) == 2
+    err = capsys.readouterr().err
+    assert "--token: empty" in err and "None" not in err
+
+
+@pytest.mark.parametrize("given", [["--token", "rcan_abc\n"], ["--token-env", "RCAN_TEST_TOKEN"],
+                                   ["--token", "t", "--token-for", "USER=rcan_def\r\n"]])
+def test_a_token_with_a_line_end_is_a_clear_error(
+        given: list[str], monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A token read with its line end (a variable filled from a file) crashed the command
+    with aiohttp's ValueError (header injection) at the first request, a traceback."""
+    monkeypatch.setenv("RCAN_TEST_TOKEN", "rcan_abc\n")
+    try:
+        args = parse_args(["conformance", "--url", "http://127.0.0.1:1", *given])
+    except SystemExit as exit_:  # --token-for: argparse's own error
+        assert exit_.code == 2
+    else:
+        assert _conformance(args) == 2
+    err = capsys.readouterr().err
+    assert "control character" in err and "rcan_abc" not in err and "rcan_def" not in err

@@ -45,7 +45,33 @@ def _role_token(text: str) -> tuple[str, str]:
     role, sep, token = text.partition("=")
     if not sep or role.upper() not in _ROLES or not token:
         raise argparse.ArgumentTypeError(f"expected ROLE=TOKEN with ROLE one of {_ROLES}")
+    if _has_control(token):
+        raise argparse.ArgumentTypeError(f"{role.upper()}'s token {_CONTROL}")
     return role.upper(), token
+
+
+# A token goes in an HTTP header, which aiohttp refuses (ValueError) with a line end in it.
+_CONTROL = "has a control character (a line end read with it?): a bearer token is one line"
+
+
+def _has_control(token: str) -> bool:
+    return any(ord(c) < 32 or ord(c) == 127 for c in token)
+
+
+def _owner_token(args: argparse.Namespace) -> str | None:
+    """The OWNER's token, or None once the reason it is unusable was printed."""
+    owner: str | None
+    if args.token is not None:
+        source, owner = "--token", str(args.token)
+    else:
+        source, owner = f"--token-env {args.token_env}", os.environ.get(args.token_env)
+    problem = ("that variable is not set" if owner is None else
+               "empty" if not owner else _CONTROL if _has_control(owner) else None)
+    if problem is None:
+        return owner
+    print(f"rcan-rtps conformance: {source}: {problem} (it must hold an OWNER's bearer "
+          "token)", file=sys.stderr)
+    return None
 
 
 def _conformance(args: argparse.Namespace) -> int:
@@ -55,10 +81,8 @@ def _conformance(args: argparse.Namespace) -> int:
     source = suite.vendored.source
     print(f"RCAN conformance suite v{suite.version} ({source.repository}, {source.path} at "
           f"{source.snapshot_commit[:12]}), up to {args.level}, against {args.url}")
-    owner = args.token if args.token is not None else os.environ.get(args.token_env, "")
-    if not owner:
-        print(f"rcan-rtps conformance: --token-env {args.token_env}: that variable is not set "
-              "(it must hold an OWNER's bearer token)", file=sys.stderr)
+    owner = _owner_token(args)
+    if owner is None:
         return 2
     tokens = {"OWNER": owner, **dict(args.token_for)}
     results = asyncio.run(run_suite(suite, args.level, args.url, tokens, skill=args.skill,

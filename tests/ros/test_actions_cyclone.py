@@ -288,3 +288,29 @@ async def test_a_goal_s_feedback_outlasts_other_goals_feedback_while_the_reader_
         other.close()
     assert recoveries == [7]
     await server.close()
+
+
+async def test_a_client_closed_while_it_waits_for_the_feedback_writer_says_so(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """`send_goal` waits until the server's feedback writer matches our reader; closed
+    meanwhile, it raised the binding's DDSException (the deleted reader's matched status
+    asked for) instead of saying the client is closed."""
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "navigate_to_pose", NAV, navigate)
+    server._feedback.close()  # a feedback writer that never matches our (reliable) reader
+    server._feedback = server_node.create_publisher(
+        "navigate_to_pose/_action/feedback", NAV + "_FeedbackMessage",
+        qos.DEFAULT.with_(reliability=qos.Reliability.BEST_EFFORT))
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    try:
+        goal = asyncio.ensure_future(client.send_goal(GOAL, timeout=30))
+        while client._feedback is None or client._status.matched_count() == 0:
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.2)
+        assert not goal.done()  # still waiting for the feedback writer
+        client.close()
+        with pytest.raises(ActionError, match="closed"):
+            await asyncio.wait_for(goal, 10)
+    finally:
+        client.close()
+        await server.close()

@@ -236,6 +236,14 @@ class ActionClient:
         """Waits like rcl's action server check: all three services matched both ways and
         the status and feedback writers matched with our readers; then until the server's
         replies and first feedback cannot be lost (see `handshake.py`)."""
+        try:
+            await self._wait_for_server(timeout)
+        except DDSException:  # a reader of ours deleted by close() meanwhile
+            if self._closed:
+                raise ActionError(f"the action client of {self.name} is closed") from None
+            raise
+
+    async def _wait_for_server(self, timeout: float) -> None:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
 
@@ -305,14 +313,9 @@ class ActionClient:
             self._feedback.close()
             self._feedback = None
         self.feedback_renewed += 1
-        try:
-            feedback = await self._feedback_subscription(max(0.0, deadline - loop.time()))
-            await feedback.wait_for_publishers(1, max(0.0, deadline - loop.time()))
-            writers = matched_writers(feedback.reader)
-        except DDSException:  # the reader deleted by close() meanwhile: send_goal says so
-            if self._closed:
-                return
-            raise
+        feedback = await self._feedback_subscription(max(0.0, deadline - loop.time()))
+        await feedback.wait_for_publishers(1, max(0.0, deadline - loop.time()))
+        writers = matched_writers(feedback.reader)
         if writers:
             await writers_ready(self.node, writers, max(0.0, deadline - loop.time()))
 

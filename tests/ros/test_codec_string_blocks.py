@@ -2,7 +2,9 @@
 joint names are the same in every JointState). Against cyclonedds' own codec: names of every
 length mod 4 (the padding between them), non-ASCII, a second list after the first, lists
 after a field that leaves the buffer unaligned; fixed arrays and bounded sequences of
-strings keep their own path; bad items in a plain list are still named, never crash."""
+strings keep their own path; bad items in a plain list are still named, never crash.
+Decoders keep the last block of each count too: the list they give is the caller's, a
+truncated sample's block is never kept, and a hostile stream of counts keeps a few."""
 
 from __future__ import annotations
 
@@ -10,9 +12,9 @@ from typing import Any
 
 import pytest
 
-from rcan_rtps.ros.errors import ValueFitError
-from rcan_rtps.ros.serialization import default_codec
-from rcan_rtps.ros.typesys import cdr
+from rcan_rtps.ros.errors import CdrDecodeError, ValueFitError
+from rcan_rtps.ros.serialization import Codec, default_codec
+from rcan_rtps.ros.typesys import cdr, cdr_decode
 
 pytestmark = pytest.mark.offline
 
@@ -91,3 +93,52 @@ def test_the_kept_blocks_are_bounded() -> None:
     huge = ["n" * 1000] * 8  # more than STRING_BLOCK_MAX bytes: built, never kept
     generated.encode_plain(joint_state(huge))
     assert tuple(huge) not in cdr._STRING_BLOCKS
+
+
+TWELVE = [f"joint_{i}" for i in range(12)]
+
+
+@pytest.mark.parametrize("plain", [False, True], ids=["typed", "plain"])
+def test_a_decoded_list_of_names_is_the_callers(plain: bool) -> None:
+    generated = Codec().of(JOINTS)  # its own decoders: nothing kept from other tests
+    data = generated.encode_plain(joint_state(TWELVE))
+    read = generated.read_plain if plain else generated.read
+    for _ in range(2):  # read, then found
+        first = read(data)
+        names = first["name"] if plain else first.name
+        names[0] = "changed"
+        names.append("more")
+    again = read(data)
+    assert (again["name"] if plain else again.name) == TWELVE
+
+
+def test_a_truncated_samples_names_are_not_kept() -> None:
+    generated = Codec().of(JOINTS)
+    data = generated.encode_plain(joint_state(TWELVE))
+    cut = data[:data.index(b"joint_11") + 3]  # inside the last name
+    with pytest.raises(CdrDecodeError, match="JointState"):
+        generated.decode(cut)
+    assert generated.decode(data).name == TWELVE
+    assert generated.decode_plain(data)["name"] == TWELVE
+
+
+def test_lists_of_the_same_count_and_of_others_read_as_they_are() -> None:
+    generated = Codec().of(JOINTS)
+    arm, gripper = ["shoulder", "elbow"], ["left", "right"]
+    samples = [generated.encode_plain(joint_state(names))
+               for names in (arm, gripper, ["solo"], arm, gripper, [], arm)]
+    assert [generated.decode(data).name for data in samples] == [
+        arm, gripper, ["solo"], arm, gripper, [], arm]
+
+
+def test_the_blocks_a_decoder_keeps_are_bounded() -> None:
+    generated = Codec().of(JOINTS)
+    for count in range(3 * cdr_decode.STRING_BLOCKS_KEPT):
+        names = [f"n{i}" for i in range(count)]
+        assert generated.decode(generated.encode_plain(joint_state(names))).name == names
+    kept = [value for name, value in generated.read.__globals__.items()
+            if name.startswith("N") and isinstance(value, dict)]
+    assert len(kept) == 1 and 0 < len(kept[0]) <= cdr_decode.STRING_BLOCKS_KEPT
+    huge = ["n" * 1000] * 8  # more than STRING_BLOCK_MAX bytes: read, never kept
+    assert generated.decode(generated.encode_plain(joint_state(huge))).name == huge
+    assert all(len(block) <= cdr_decode.STRING_BLOCK_MAX for block, _, _ in kept[0].values())

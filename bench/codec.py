@@ -744,7 +744,13 @@ def report(rows: list[Row], rounds: int, budget_ms: float, note: str,
         "- decode typed: ours an `IdlStruct` (numeric sequences as `array.array`, one copy; "
         "byte sequences as read-only memoryviews over `data`, none); mcap-fast: its objects, "
         "numeric sequences as memoryviews cast over `data` (no copy), byte sequences copied "
-        "to bytes; rosbags: its dataclasses, numpy arrays; cydr: nested dicts, numpy arrays.",
+        "to bytes; rosbags: its dataclasses, numpy arrays; cydr: nested dicts, numpy arrays, "
+        "strings left as UTF-8 bytes (undecoded). Ours, typed and plain, keeps each field's "
+        "last list of strings per length and copies it when a sample repeats its bytes (a "
+        "robot's joint names come in every JointState, and every round here decodes the same "
+        "sample): names new in every sample are read one by one, about 1.1× the old decoder "
+        "and 1.2× cydr for JointState(12) (measured apart, 21 interleaved rounds; not a row "
+        "here).",
         "- decode plain: ours dicts and lists, as JSON would hold them; rclpy: see above.",
         "- n/a: the library has no such call:", *why_absent(rows),
         "- Wire check: every round, every encoder's bytes are compared with ours; bytes that "

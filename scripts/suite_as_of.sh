@@ -3,16 +3,13 @@
 # (scripts/pytest_phases.sh: same two phases, markers and workers, in the test network
 # namespace), and prints each phase's wall time: "the suite as of issue N" timed on today's code.
 #   CI=true scripts/suite_as_of.sh 599eb3c [pytest args...]
+# Needs what scripts/test.sh set up (.venv, .cache); builds this tree's wheel as it does.
 # COMMIT's node ids are collected once from its own sources (cached in .cache/suite-as-of/).
 # An id kept today runs as is; one whose file moved runs under its new file when its
 # Class::test[params] is unique today; the rest (renamed or dropped) are listed as gone.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 [ $# -ge 1 ] || { echo "usage: $0 COMMIT [pytest args...]" >&2; exit 2; }
-if [ "$(uname -s)" = Linux ] && [ "$(id -u)" = 0 ] && [ -z "${RCAN_RTPS_IN_NETNS:-}" ]; then
-  exec scripts/netns bash scripts/suite_as_of.sh "$@"
-fi
-[ -n "${RCAN_RTPS_IN_NETNS:-}" ] || export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 PY=${RCAN_RTPS_TEST_PYTHON:-.venv/bin/python}
 [[ $PY = /* ]] || PY=$PWD/$PY
 sha=$(git rev-parse --verify "$1^{commit}") || exit 2
@@ -51,7 +48,20 @@ awk -v gone="$tmp/gone.ids" '
           FNR, same, moved, lost > "/dev/stderr" }' "$tmp/today.ids" "$cache/$sha.ids" >"$run"
 sed 's/^/   gone: /' "$tmp/gone.ids"
 
-bash scripts/pytest_phases.sh "@$run" "$@" | {
+if [ -z "${RCAN_RTPS_WHEEL_DIR:-}" ]; then  # the packaging tests install this tree's wheel
+  export RCAN_RTPS_WHEEL_DIR=$tmp/dist
+  "$PY" -m pip wheel -q --no-deps -w "$RCAN_RTPS_WHEEL_DIR" . >"$tmp/wheel.log" 2>&1 ||
+    { cat "$tmp/wheel.log" >&2; exit 1; }
+fi
+
+# In the test network namespace as scripts/test.sh enters it, else loopback discovery only
+phases=(bash scripts/pytest_phases.sh "@$run" "$@")
+if [ "$(uname -s)" = Linux ] && [ "$(id -u)" = 0 ] && [ -z "${RCAN_RTPS_IN_NETNS:-}" ]; then
+  phases=(scripts/netns "${phases[@]}")
+else
+  export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+fi
+"${phases[@]}" | {
   results=()
   while IFS= read -r line; do
     printf '%s\n' "$line"

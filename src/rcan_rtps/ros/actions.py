@@ -285,13 +285,9 @@ class ActionClient:
             await self._hear_feedback_announced(capture, deadline)
 
     async def _hear_feedback_announced(self, capture: IdentityCapture, deadline: float) -> None:
-        feedback: RosSubscription | None = self._feedback
-
-        def reader() -> Any:  # the current reader (None only within a renewal)
-            nonlocal feedback
-            feedback = self._feedback or feedback
-            assert feedback is not None
-            return feedback.reader
+        def reader() -> Any:  # the current one: a renewal makes a new one or raises
+            assert self._feedback is not None
+            return self._feedback.reader
 
         _, unheard = await hear_announcements(
             capture, reader, lambda: self._renew_feedback_reader(deadline), deadline,

@@ -4,16 +4,14 @@ against our server. rclpy clients on Cyclone calling our servers: test_rmw_cyclo
 from __future__ import annotations
 
 import asyncio
-import threading
 from collections.abc import AsyncIterator, Iterator
 
 import pytest
 from dropping import DeafCapture
+from holding import reader_thread_held
 from oracle.client import OracleEnv, RclpyOracle, both_rmws
 
-from rcan_rtps.ros import qos
 from rcan_rtps.ros.errors import ServiceTimeout, ServiceUnavailable, ValueFitError
-from rcan_rtps.ros.names import mangle_topic
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import RequestMapping, ServiceClient, ServiceServer
 
@@ -158,22 +156,13 @@ async def test_our_reply_outlasts_other_clients_replies_while_the_reader_thread_
     await oracle.acall("service_server", name="/trigger", type="std_srvs/srv/Trigger")
     client = ServiceClient(node, "/trigger", "std_srvs/srv/Trigger")
     await client.wait_for_service(15)
-    held, release = threading.Event(), threading.Event()
-    hold = node.create_reader(mangle_topic("/hold"), "std_msgs/msg/Empty", qos.DEFAULT)
-    node.watch(hold, lambda _: (held.set(), release.wait(60)), "hold")
     with RosNode("other_client", "/", domain_id=domain_id, distro="jazzy") as other_node:
         other = ServiceClient(other_node, "/trigger", "std_srvs/srv/Trigger")
         await other.wait_for_service(15)
-        holder = other_node.create_publisher("/hold", "std_msgs/msg/Empty")
-        await holder.wait_for_subscribers(1, 15)
-        holder.publish({})
-        try:
-            assert await asyncio.to_thread(held.wait, 15), "the reader thread was not held"
+        async with reader_thread_held(node, other_node):
             ours = asyncio.ensure_future(client.call({}, timeout=30))
             await asyncio.sleep(1.0)  # answered: the reply waits in our reader's history
             others = [await other.call({}, timeout=15) for _ in range(30)]
-        finally:
-            release.set()
         reply = await ours
     assert (reply.success, reply.message) == (True, "triggered #1")
     assert [r.message for r in others] == [f"triggered #{n}" for n in range(2, 32)]

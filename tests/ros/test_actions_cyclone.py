@@ -3,17 +3,16 @@
 from __future__ import annotations
 
 import asyncio
-import threading
 from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
 from dropping import flood, small_buffers
+from holding import reader_thread_held
 
 from rcan_rtps.ros import actions, qos
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
 from rcan_rtps.ros.errors import ActionError
-from rcan_rtps.ros.names import mangle_topic
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import RequestMapping
 
@@ -267,23 +266,14 @@ async def test_a_goal_s_feedback_outlasts_other_goals_feedback_while_the_reader_
     server = ActionServer(server_node, "navigate_to_pose", NAV, serve)
     client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
     ours = await client.send_goal({**GOAL, "behavior_tree": "ours"}, timeout=20)
-    held, release = threading.Event(), threading.Event()
-    hold = client_node.create_reader(mangle_topic("/hold"), "std_msgs/msg/Empty", qos.DEFAULT)
-    client_node.watch(hold, lambda _: (held.set(), release.wait(60)), "hold")
     with RosNode("other_client", "/", domain_id=domain_id, distro="jazzy") as other_node:
         other = ActionClient(other_node, "/robot1/navigate_to_pose", NAV)
         await other.wait_for_server(20)
-        holder = server_node.create_publisher("/hold", "std_msgs/msg/Empty")
-        await holder.wait_for_subscribers(1, 15)
-        holder.publish({})
-        try:
-            assert await asyncio.to_thread(held.wait, 15), "the reader thread was not held"
+        async with reader_thread_held(client_node, server_node):
             ours_may_go.set()
             await asyncio.sleep(0.5)  # our feedback waits in our reader's history
             theirs = await other.send_goal(GOAL, timeout=20)
             assert len([f async for f in theirs.feedback(timeout=20)]) == 30
-        finally:
-            release.set()
         recoveries = [f.number_of_recoveries async for f in ours.feedback(timeout=20)]
         other.close()
     assert recoveries == [7]

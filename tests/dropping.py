@@ -62,5 +62,5 @@ class DeafCapture:
     def __getattr__(self, name: str) -> Any:
         return getattr(self._real, name)
 
-    def heard_heartbeat(self, writer_guid: bytes, reader_guid: bytes) -> bool:
+    def heard_heartbeat(self, writer_guid: bytes, reader_guid: bytes, since: int = 0) -> bool:
         return False

@@ -81,7 +81,8 @@ async def main(tag: str, calls: int, domain_id: int, share: str) -> None:
         await matched()
         # As the product's clients do (ServiceClient._await_announced): the first reply must
         # not be dropped as history because the writer's announcement to our reader was lost.
-        _, unheard = await hear_announcements(capture, lambda: pair.reader, renew, deadline)
+        _, unheard = await hear_announcements(capture, lambda: pair.reader, lambda: pair.since,
+                                              renew, deadline)
         print("ready", flush=True)
         await loop.run_in_executor(None, sys.stdin.readline)
         for k in range(1, calls + 1):  # the writer's k-th sample has sequence number k
@@ -94,7 +95,7 @@ async def main(tag: str, calls: int, domain_id: int, share: str) -> None:
                 lost.append(k)
         await asyncio.sleep(0.5)  # late copies of others' replies still get tallied
         pair.close()
-        capture.heard_heartbeat(bytes(16), bytes(16))  # (reads the capture up to its end)
+        capture.heard_heartbeat(bytes(16), bytes(16), 0)  # (reads the capture up to its end)
         # A lost reply whose DATA reached our socket was dropped by Cyclone, not the kernel.
         in_capture = [k for k in lost if any(
             i.writer_guid == pair.writer_guid and i.seq == k for i in capture._known.values())]

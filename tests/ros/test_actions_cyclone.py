@@ -304,3 +304,18 @@ async def test_a_client_closed_while_it_waits_for_the_feedback_writer_says_so(
     finally:
         client.close()
         await server.close()
+
+
+async def test_a_server_in_this_process_is_not_waited_for(nodes: tuple[RosNode, RosNode]) -> None:
+    """Cyclone hands the samples of a writer of this process to our readers directly: no
+    HEARTBEAT comes from it, and none is needed. A client of such a server neither makes its
+    feedback reader again waiting for one (handshake.py, 4.) nor waits for a repair after a
+    goal's end; another node of the process is such a server too."""
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "/nav", NAV, navigate)
+    client = ActionClient(client_node, "/nav", NAV)
+    await client.wait_for_server(10)
+    assert client.feedback_renewed == 0 and client.feedback_unannounced == 0
+    assert client.feedback_in_sync()
+    client.close()
+    await server.close()

@@ -20,9 +20,9 @@ import pytest
 from rcan_rtps.ros import participant, rtps_capture
 from rcan_rtps.ros.rtps_capture import (
     UNKNOWN_PREFIX,
-    DirectedHeartbeat,
     IdentityCapture,
     ReceivedData,
+    ReceivedHeartbeat,
     SampleIdentity,
     nanoseconds,
     parse_rtps,
@@ -103,14 +103,15 @@ def test_parse_finds_only_data_naming_a_related_sample() -> None:
     assert list(parse_rtps(rtps_message(4, related, frag=2))) == []
 
 
-def test_parse_finds_heartbeats_addressed_to_one_reader() -> None:
+def test_parse_finds_heartbeats_and_whom_they_address() -> None:
     for little in (True, False):
         found = list(parse_rtps(heartbeat_message(OUR_READER[12:], destination=OUR_PREFIX,
                                                   little=little)))
-        assert found == [DirectedHeartbeat(SERVER, OUR_READER)]
+        assert found == [ReceivedHeartbeat(SERVER, OUR_READER)]
     assert list(parse_rtps(heartbeat_message(OUR_READER[12:]))) == \
-        [DirectedHeartbeat(SERVER, UNKNOWN_PREFIX + OUR_READER[12:])]
-    assert list(parse_rtps(heartbeat_message(bytes(4), destination=OUR_PREFIX))) == []
+        [ReceivedHeartbeat(SERVER, UNKNOWN_PREFIX + OUR_READER[12:])]
+    assert list(parse_rtps(heartbeat_message(bytes(4), destination=OUR_PREFIX))) == \
+        [ReceivedHeartbeat(SERVER, OUR_PREFIX + bytes(4))]  # to all our readers
 
 
 @pytest.fixture
@@ -230,19 +231,40 @@ def test_a_heartbeat_to_our_reader_is_heard_while_a_client_uses_the_capture(
     tail, writer = capture
     announce = pcap_record(heartbeat_message(OUR_READER[12:], destination=OUR_PREFIX))
     os.write(writer, announce)  # nobody uses the capture: it went to /dev/null
-    assert not tail.heard_heartbeat(SERVER, OUR_READER)
+    assert not tail.heard_heartbeat(SERVER, OUR_READER, 0)
     assert not tail.reading
     tail.use()
     assert tail.reading
     other = OUR_PREFIX + b"\x00\x00\x39\x04"
-    os.write(writer, pcap_record(heartbeat_message(bytes(4), destination=OUR_PREFIX)))
     os.write(writer, pcap_record(heartbeat_message(other[12:], destination=OUR_PREFIX)))
-    assert not tail.heard_heartbeat(SERVER, OUR_READER)  # to every reader, or to another one
-    assert tail.heard_heartbeat(SERVER, other)
+    assert not tail.heard_heartbeat(SERVER, OUR_READER, 0)  # to another reader
+    assert tail.heard_heartbeat(SERVER, other, 0)
     os.write(writer, pcap_record(heartbeat_message(OUR_READER[12:], destination=OUR_PREFIX),
                                  ttl=255))  # one we sent: not parsed
-    assert not tail.heard_heartbeat(SERVER, OUR_READER)
+    assert not tail.heard_heartbeat(SERVER, OUR_READER, 0)
     os.write(writer, announce)
-    assert tail.heard_heartbeat(SERVER, OUR_READER)  # the miss reads the file to its end
-    assert not tail.heard_heartbeat(PREFIX + b"\x00\x00\x14\x03", OUR_READER)
+    assert tail.heard_heartbeat(SERVER, OUR_READER, 0)  # the miss reads the file to its end
+    assert not tail.heard_heartbeat(PREFIX + b"\x00\x00\x14\x03", OUR_READER, 0)
+    tail.unuse()
+
+
+@pytest.mark.parametrize("destination", [OUR_PREFIX, None])
+def test_a_heartbeat_to_every_reader_counts_only_after_the_reader_was_made(
+        capture: tuple[IdentityCapture, int], destination: bytes | None) -> None:
+    """A Cyclone writer that matches a new reader sends a HEARTBEAT to all of the
+    participant's readers (reader id unknown), which Cyclone applies to the readers matched
+    with the writer then: one that came before our reader was made was not applied to it."""
+    tail, writer = capture
+    tail.use()
+    to_all = pcap_record(heartbeat_message(bytes(4), destination=destination))
+    os.write(writer, to_all)
+    made = tail.mark()  # our reader is made now
+    assert not tail.heard_heartbeat(SERVER, OUR_READER, made)
+    assert tail.heard_heartbeat(SERVER, OUR_READER, 0)  # it would do for an older reader
+    other_participant = bytes(range(60, 72))
+    os.write(writer, pcap_record(heartbeat_message(bytes(4), destination=other_participant)))
+    assert not tail.heard_heartbeat(SERVER, OUR_READER, made)
+    os.write(writer, to_all)
+    assert tail.heard_heartbeat(SERVER, OUR_READER, made)
+    assert not tail.heard_heartbeat(SERVER, OUR_READER, tail.mark())  # nor for a newer one
     tail.unuse()

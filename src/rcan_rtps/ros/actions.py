@@ -35,7 +35,14 @@ from cyclonedds.idl import IdlStruct
 from . import qos as qos_mod
 from .errors import ActionError, ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction
-from .handshake import hear_announcements, matched_writers, writers_ready
+from .handshake import (
+    CYCLONE_VENDOR,
+    FASTDDS_VENDOR,
+    hear_announcements,
+    matched_writers,
+    writers_of,
+    writers_ready,
+)
 from .names import action_names, mangle_topic
 from .participant import RosNode, RosSubscription
 from .rostime import now_msg
@@ -112,6 +119,9 @@ class ClientGoal:
         self._feedback: asyncio.Queue[IdlStruct] = asyncio.Queue(maxsize=1000)
         self._result: GoalResult | None = None
         self._drops = client.node.udp_drops()  # dropped at our sockets before it was sent
+        # Sent before our feedback reader was known to be in sync with a Cyclone feedback
+        # writer: its first feedback may come only with the writer's next HEARTBEAT.
+        self._unsynced = not client.feedback_in_sync()
 
     def __repr__(self) -> str:
         return f"<ClientGoal {uuid.UUID(bytes=self.goal_id)} {self.state.name}>"
@@ -160,8 +170,9 @@ class ClientGoal:
         asks again), then for one more pass of the reader thread. A feedback whose datagram
         the kernel dropped at our socket comes only once the writer's next HEARTBEAT asks for
         it to be sent again: if our DDS sockets dropped anything since the goal was
-        sent (or that cannot be known), wait as long as the server's repair can take.
-        docs/design/zero-loss.md has the evidence for each step."""
+        sent (or that cannot be known), or if the goal went out before our feedback reader
+        was known to be in sync with the writer (handshake.py, 4.), wait as long as the
+        server's repair can take. docs/design/zero-loss.md has the evidence for each step."""
         loop = asyncio.get_running_loop()
         with contextlib.suppress(WireError):
             await self.result(timeout=SETTLE_S if deadline is None
@@ -169,7 +180,7 @@ class ClientGoal:
         await self.client.node.delivered()
         drops = self.client.node.udp_drops()
         if self.state in (GoalState.REJECTED, GoalState.SERVER_LOST) or \
-                (drops is not None and drops == self._drops):
+                (drops is not None and drops == self._drops and not self._unsynced):
             return loop.time()
         return loop.time() + self.client.repair_time()
 
@@ -213,6 +224,10 @@ class ActionClient:
         self._closed = False
         self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
         self._feedback_announced = False  # see `_await_feedback_announced`
+        self._feedback_heard = False  # ... and every feedback writer's HEARTBEAT was heard
+        self._feedback_since = 0  # the capture's mark before the feedback reader was made
+        self._feedback_reader_no = 0  # feedback readers made so far (renewals make more)
+        self._feedback_delivered = False  # the current feedback reader has taken a sample
         self._announce_lock = asyncio.Lock()  # one such wait for goals sent at once
         self.feedback_renewed = 0  # feedback readers made again (their announcement unheard)
         self.feedback_unannounced = 0  # 1 when goals went out with the announcement unheard
@@ -229,7 +244,7 @@ class ActionClient:
         # Made once the server's feedback writer is known (wait_for_server, handshake.py).
         self._feedback: RosSubscription | None = None
         self._feedback_topic = names["feedback"]
-        self._feedback_callback = on_loop(self._on_feedback)
+        self._on_loop = on_loop
 
     # -- graph ----------------------------------------------------------------------
     async def wait_for_server(self, timeout: float = 5.0) -> None:
@@ -250,6 +265,21 @@ class ActionClient:
         def left() -> float:
             return max(0.0, deadline - loop.time())
 
+        # The capture reads from before a new feedback reader is made until it was heard.
+        capture = self.node.identities
+        if capture is not None and (self._feedback_announced or self._goals):
+            capture = None
+        if capture is not None:
+            capture.use()
+        try:
+            await self._wait_for_server_endpoints(left, deadline)
+        finally:
+            if capture is not None:
+                capture.unuse()
+        self._server_seen = True
+
+    async def _wait_for_server_endpoints(self, left: Callable[[], float],
+                                         deadline: float) -> None:
         pairs = [await client.wait_matched(left())
                  for client in (self._send, self._get, self._cancel_srv)]
         await self._status.wait_for_publishers(1, left())
@@ -265,17 +295,18 @@ class ActionClient:
                 pair.ready |= writers.keys()
             self._feedback_ready |= writers.keys()
         await self._await_feedback_announced(deadline)
-        self._server_seen = True
 
     async def _await_feedback_announced(self, deadline: float) -> None:
         """As `ServiceClient._await_announced`, for the feedback reader: a Fast DDS feedback
         writer announces itself to a new reader once, and when that HEARTBEAT was dropped at
         our socket, Cyclone takes the next one, sent ahead of the first feedback, as the
-        reader's start: that feedback is dropped as history (handshake.py). So, once, before
-        the first goal: hear it in the packet capture, or make the reader again (at most
-        ANNOUNCE_TRIES readers within the deadline: `hear_announcements`). Needs the capture.
-        Goals sent at once share the one wait: another's would renew the reader with the
-        first goal's feedback on its way."""
+        reader's start: that feedback is dropped as history (handshake.py, 3.); and our
+        reader takes nothing from a Cyclone feedback writer before one of its HEARTBEATs
+        (4.). So, once, before the first goal: hear one in the packet capture, or make the
+        reader again (at most ANNOUNCE_TRIES readers within the deadline:
+        `hear_announcements`). Needs the capture; goals sent without it wait for feedback
+        longer after their end (`feedback_in_sync`). Goals sent at once share the one wait:
+        another's would renew the reader with the first goal's feedback on its way."""
         capture = self.node.identities
         if self._feedback_announced or capture is None or not capture.reading or self._goals:
             return
@@ -290,7 +321,9 @@ class ActionClient:
             return self._feedback.reader
 
         _, unheard = await hear_announcements(
-            capture, reader, lambda: self._renew_feedback_reader(deadline), deadline,
+            capture, reader, lambda: self._feedback_since,
+            lambda: self._renew_feedback_reader(deadline), deadline,
+            vendors=(FASTDDS_VENDOR, CYCLONE_VENDOR), skip=self._in_process_feedback_writers,
             may_renew=lambda: not self._goals, closed=lambda: self._closed)
         if self._closed:
             return  # send_goal's service call says so
@@ -299,7 +332,26 @@ class ActionClient:
                       "after %d readers; goals go out without it", self.name,
                       self.feedback_renewed + 1)
             self.feedback_unannounced += 1
+        self._feedback_heard = not unheard
         self._feedback_announced = True  # heard, or given up on (best effort: once)
+
+    def feedback_in_sync(self) -> bool:
+        """Whether a goal sent now gets its first feedback as soon as it arrives: our
+        feedback reader has heard a HEARTBEAT of each feedback writer (in the capture) or
+        has taken a sample, or no Cyclone writer is matched with it (handshake.py, 4.)."""
+        if self._feedback_heard or self._feedback_delivered or self._feedback is None or \
+                self._closed:  # (its reader deleted; the goal's call says it is closed)
+            return True
+        return not writers_of(self._feedback.reader, (CYCLONE_VENDOR,),
+                              self._in_process_feedback_writers())
+
+    def _in_process_feedback_writers(self) -> set[int]:
+        """Feedback writers of this process's participants: no HEARTBEAT comes from them, and
+        none is needed (Cyclone delivers their samples directly)."""
+        if self._feedback is None:
+            return set()
+        return {h for h, g in matched_writers(self._feedback.reader).items()
+                if self.node.in_process(g)}
 
     async def _renew_feedback_reader(self, deadline: float) -> None:
         """A new feedback reader (before any goal: none can miss its feedback), matched and
@@ -332,11 +384,22 @@ class ActionClient:
                 await asyncio.sleep(POLL)
             if self._closed:  # while it waited: no reader for a closed client
                 raise ActionError(f"the action client of {self.name} is closed")
+            capture = self.node.identities
+            self._feedback_since = 0 if capture is None else capture.mark()
+            self._feedback_reader_no += 1
+            self._feedback_delivered = False
             self._feedback = self.node.create_subscription(
                 self._feedback_topic, self.type_name + "_FeedbackMessage",
                 qos_mod.DEFAULT.keeping(PAIR_READER_DEPTH),  # every goal's feedback comes
-                callback=self._feedback_callback)
+                callback=self._on_loop(self._feedback_taker(self._feedback_reader_no)))
         return self._feedback
+
+    def _feedback_taker(self, number: int) -> Callable[[IdlStruct], None]:
+        def on_feedback(message: IdlStruct) -> None:  # on the loop
+            if number == self._feedback_reader_no:  # not a renewed reader's last sample
+                self._feedback_delivered = True
+            self._on_feedback(message)
+        return on_feedback
 
     def repair_time(self) -> float:
         """How long a reliable sample of this server's can take to be sent again (REPAIR_S);

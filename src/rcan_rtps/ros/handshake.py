@@ -21,6 +21,13 @@ Two things can make a volatile writer's sample miss a reader that is matched in 
    drop the reply as history and ACK it: lost for good (traced, docs/design/zero-loss.md).
    So a client hears that HEARTBEAT in the packet capture before its first request, and
    makes its reader again when it does not come (`ServiceClient._await_announced`).
+4. A reader of a Cyclone writer starts out of sync and takes nothing from it before a
+   HEARTBEAT: the writer sends one to our participant when it matches our reader, but from
+   a timer thread, rate-limited per writer, while a sample it writes goes out at once. A
+   first feedback that overtakes it is not taken, and comes again only with the writer's
+   next periodic HEARTBEAT, ~0.1-0.2 s later: after the goal's end (seen under CPU load,
+   docs/design/zero-loss.md). So an action client hears a HEARTBEAT of each feedback writer
+   applied to its new reader before its first goal, as in 3.
 
 Against 1: discovery sends our readers to a peer on one reliable stream (SEDP
 subscriptions) in creation order, and the peer matches them in that order. A fresh
@@ -50,8 +57,9 @@ log = logging.getLogger(__name__)
 
 POLL = 0.01
 FASTDDS_VENDOR = b"\x01\x0f"  # eProsima: its writers announce themselves once (3. above)
-# How long after the handshake a Fast DDS writer's first HEARTBEAT to our new reader may take
-# to show in the capture before the reader is made again, and how many readers at most.
+CYCLONE_VENDOR = b"\x01\x10"  # Eclipse: its readers take nothing before a HEARTBEAT (4.)
+# How long after the handshake a writer's first HEARTBEAT to our new reader may take to show
+# in the capture before the reader is made again, and how many readers at most.
 ANNOUNCE_WAIT = 0.3
 ANNOUNCE_TRIES = 4
 
@@ -142,18 +150,27 @@ async def _await_latched(probe: DataReader[Any], wanted: set[bytes],
 
 def fastdds_writers(reader: DataReader[Any], skip: Collection[int] = ()) -> dict[int, bytes]:
     """The Fast DDS writers matched with `reader` (handle → GUID), but for `skip`."""
+    return writers_of(reader, (FASTDDS_VENDOR,), skip)
+
+
+def writers_of(reader: DataReader[Any], vendors: Collection[bytes],
+               skip: Collection[int] = ()) -> dict[int, bytes]:
+    """The writers of these vendors matched with `reader` (handle → GUID), but for `skip`."""
     return {h: g for h, g in matched_writers(reader).items()
-            if h not in skip and g[:2] == FASTDDS_VENDOR}
+            if h not in skip and g[:2] in vendors}
 
 
 async def hear_announcements(capture: IdentityCapture, reader: Callable[[], DataReader[Any]],
+                             since: Callable[[], int],
                              renew: Callable[[], Awaitable[None]], deadline: float, *,
+                             vendors: Collection[bytes] = (FASTDDS_VENDOR,),
                              skip: Callable[[], Collection[int]] = frozenset,
                              may_renew: Callable[[], bool] = lambda: True,
                              closed: Callable[[], bool] = lambda: False,
                              ) -> tuple[set[int], dict[int, bytes]]:
-    """Waits until every matched Fast DDS writer's first HEARTBEAT to `reader()` was heard
-    in the packet capture (3. above); when one has not come within ANNOUNCE_WAIT, `renew()`
+    """Waits until a HEARTBEAT of every matched writer of `vendors` applied to `reader()`
+    was heard in the packet capture (3. and 4. above; `since()`: the capture's mark taken
+    before that reader was made); when one has not come within ANNOUNCE_WAIT, `renew()`
     makes the reader again (matched and handshaken), which the writers announce themselves
     to afresh. At most ANNOUNCE_TRIES readers, within `deadline` (loop time), while
     `may_renew()`. Returns the writers (handles) heard, and those still unheard (handle →
@@ -171,8 +188,9 @@ async def hear_announcements(capture: IdentityCapture, reader: Callable[[], Data
                 return set(), {}
             current = reader()
             guid = bytes(current.guid.bytes)
-            writers = fastdds_writers(current, skip())
-            unheard = {h: g for h, g in writers.items() if not capture.heard_heartbeat(g, guid)}
+            writers, mark = writers_of(current, vendors, skip()), since()
+            unheard = {h: g for h, g in writers.items()
+                       if not capture.heard_heartbeat(g, guid, mark)}
             if not unheard or loop.time() >= until:
                 break
             await asyncio.sleep(POLL)

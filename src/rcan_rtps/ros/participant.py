@@ -65,6 +65,9 @@ _domains_lock = threading.Lock()
 _captures: dict[int, IdentityCapture] = {}
 # domain id → the UDP sockets Cyclone made for it (None: not known; see udp_drops.py)
 _domain_sockets: dict[int, frozenset[str] | None] = {}
+# Per domain: the GUID prefixes of this process's participants. Cyclone hands samples between
+# them directly, without RTPS (no HEARTBEAT, nothing to be in sync with: handshake.py).
+_local_prefixes: dict[int, set[bytes]] = {}
 
 
 def _new_capture() -> IdentityCapture | None:
@@ -381,6 +384,9 @@ class RosNode:
             _release_domain(self.domain_id)
             raise
         self.secured = bool(security)
+        self._prefix = bytes(self.participant.guid.bytes[:12])
+        with _domains_lock:
+            _local_prefixes.setdefault(self.domain_id, set()).add(self._prefix)
         # The domain's sockets and any the participant made (<ManySocketsMode> many).
         mine = made_between(before, udp_socket_inodes())
         shared = _domain_sockets.get(self.domain_id)
@@ -594,7 +600,15 @@ class RosNode:
             self._subscriptions.clear()
         self.__dict__.pop("_info_writer", None)  # announce() does nothing from here on
         self.participant.__del__()
+        with _domains_lock:
+            _local_prefixes.get(self.domain_id, set()).discard(self._prefix)
         _release_domain(self.domain_id)
+
+    def in_process(self, guid: bytes) -> bool:
+        """Whether the endpoint `guid` belongs to a participant of this process in our
+        domain (Cyclone delivers its samples to us directly)."""
+        with _domains_lock:
+            return bytes(guid[:12]) in _local_prefixes.get(self.domain_id, ())
 
     def __enter__(self) -> RosNode:
         return self

@@ -21,9 +21,11 @@ the last drain; the file has no name once Cyclone has opened it, so a killed pro
 nothing behind. Limits: UDPv4 only (Cyclone's capture is), and nothing under DDS-Security
 payload or submessage protection can be read.
 
-It also notes which HEARTBEATs addressed to one reader arrived (`heard_heartbeat`): a Fast
-DDS writer announces itself to a new reader with one such GAP+HEARTBEAT, and a client whose
-reply reader missed it must not send its request yet (handshake.py).
+It also notes the HEARTBEATs that arrived, by writer and addressee, and where in the capture
+(`heard_heartbeat`): the first one Cyclone applies to a new reader decides which of the
+writer's samples that reader takes (a Fast DDS writer announces itself to a new reader with
+one GAP+HEARTBEAT; a Cyclone writer's reader takes nothing before one), and a client whose
+reader has not heard one must not send its request or goal yet (handshake.py).
 """
 
 from __future__ import annotations
@@ -65,7 +67,7 @@ PCAP_HEADER_SIZE, RECORD_HEADER_SIZE = 24, 16
 PCAP_MAGICS = {b"\xd4\xc3\xb2\xa1": True, b"\xa1\xb2\xc3\xd4": False}  # → little-endian
 
 KEPT_IDENTITIES = 8192  # newest identified samples remembered; far more than a reader keeps
-KEPT_HEARTBEATS = 4096  # newest (writer, reader) pairs a directed HEARTBEAT was heard for
+KEPT_HEARTBEATS = 4096  # newest (writer, addressee) pairs a HEARTBEAT was heard for
 UNKNOWN_PREFIX = bytes(12)  # no INFO_DST before it: addressed to whoever received it
 ENTITYID_UNKNOWN = bytes(4)
 DRAIN_PERIOD = 0.05  # s between background drains of the capture file
@@ -92,11 +94,13 @@ class ReceivedData(msgspec.Struct, frozen=True):
     related: SampleIdentity
 
 
-class DirectedHeartbeat(msgspec.Struct, frozen=True):
-    """A received HEARTBEAT addressed to one reader (not to all of a participant's)."""
+class ReceivedHeartbeat(msgspec.Struct, frozen=True):
+    """A received HEARTBEAT: its writer, and to whom it is addressed."""
 
     writer_guid: bytes
-    reader_guid: bytes  # the INFO_DST prefix (UNKNOWN_PREFIX if none) + the reader's entity id
+    # The INFO_DST prefix (UNKNOWN_PREFIX if none: to whoever received it) + the reader's
+    # entity id (ENTITYID_UNKNOWN: to every reader of that participant matched with the writer)
+    reader_guid: bytes
 
 
 def capture_config(path: str | Path) -> str:
@@ -129,10 +133,10 @@ def _inline_related(buf: bytes | mmap.mmap, offset: int, end: int,
 
 
 def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None
-               ) -> Iterator[ReceivedData | DirectedHeartbeat]:
-    """The DATA and first DATA_FRAG submessages naming a related sample, and the HEARTBEATs
-    addressed to one reader, in the RTPS message `buf[start:end]`, in order. Other
-    submessages cost one header read each."""
+               ) -> Iterator[ReceivedData | ReceivedHeartbeat]:
+    """The DATA and first DATA_FRAG submessages naming a related sample, and the HEARTBEATs,
+    in the RTPS message `buf[start:end]`, in order. Other submessages cost one header read
+    each."""
     end = len(buf) if end is None else end
     if end - start < RTPS_HEADER_SIZE or buf[start:start + 4] != b"RTPS":
         return
@@ -156,10 +160,8 @@ def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None
             timestamp = None if flags & FLAG_INVALIDATE or stop - body < 8 else \
                 nanoseconds(*struct.unpack_from("<iI" if little else ">iI", buf, body))
         elif kind == HEARTBEAT and stop - body >= 28:
-            reader = bytes(buf[body:body + 4])
-            if reader != ENTITYID_UNKNOWN:
-                yield DirectedHeartbeat(prefix + bytes(buf[body + 4:body + 8]),
-                                        destination + reader)
+            yield ReceivedHeartbeat(prefix + bytes(buf[body + 4:body + 8]),
+                                    destination + bytes(buf[body:body + 4]))
         elif kind == INFO_SRC and stop - body >= 20:
             prefix = bytes(buf[body + 8:body + 20])
         elif kind == INFO_DST and stop - body >= 12:
@@ -238,7 +240,8 @@ class IdentityCapture:
         self._punched = 0
         self._record_size = struct.Struct("<I")
         self._known: OrderedDict[tuple[bytes, int], SampleIdentity] = OrderedDict()
-        self._heartbeats: OrderedDict[tuple[bytes, bytes], None] = OrderedDict()
+        # (writer, addressee) → file offset of the newest record with such a HEARTBEAT
+        self._heartbeats: OrderedDict[tuple[bytes, bytes], int] = OrderedDict()
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -392,7 +395,7 @@ class IdentityCapture:
                     break  # Cyclone has not written all of it yet
                 packet = offset + RECORD_HEADER_SIZE
                 if parse and length > IP_UDP_SIZE and buf[packet + TTL_OFFSET] == RECEIVED_TTL:
-                    self._parse(buf, packet + IP_UDP_SIZE, end)
+                    self._parse(buf, packet + IP_UDP_SIZE, end, base + offset)
                 offset = end
         self._offset = base + offset
         if self._offset - self._punched >= PUNCH_AFTER:
@@ -438,12 +441,12 @@ class IdentityCapture:
                 return start
             offset = start + 1
 
-    def _parse(self, buf: mmap.mmap, start: int, end: int) -> None:
+    def _parse(self, buf: mmap.mmap, start: int, end: int, at: int) -> None:
         self.datagrams += 1
         for data in parse_rtps(buf, start, end):
-            if isinstance(data, DirectedHeartbeat):
+            if isinstance(data, ReceivedHeartbeat):
                 pair = (data.writer_guid, data.reader_guid)
-                self._heartbeats[pair] = None
+                self._heartbeats[pair] = at
                 self._heartbeats.move_to_end(pair)
                 if len(self._heartbeats) > KEPT_HEARTBEATS:
                     self._heartbeats.popitem(last=False)
@@ -471,13 +474,29 @@ class IdentityCapture:
         key = (writer_guid, source_timestamp)
         return self._find(lambda: self._known.get(key))
 
-    def heard_heartbeat(self, writer_guid: bytes, reader_guid: bytes) -> bool:
-        """Whether a HEARTBEAT of `writer_guid` addressed to the reader `reader_guid` has
-        reached our socket while a client needed identities (`use`); the file is first
-        flushed and read up to its end, as by a `lookup` that missed."""
-        pairs = ((writer_guid, reader_guid), (writer_guid, UNKNOWN_PREFIX + reader_guid[12:]))
-        return self._find(lambda: True if any(p in self._heartbeats for p in pairs)
-                          else None) is True
+    def mark(self) -> int:
+        """Where the capture is now: a datagram received after this call is at or after it
+        (see `heard_heartbeat`)."""
+        self._libc.flush_all()
+        with self._lock:
+            return 0 if self._file is None else os.fstat(self._file).st_size
+
+    def heard_heartbeat(self, writer_guid: bytes, reader_guid: bytes, since: int) -> bool:
+        """Whether a HEARTBEAT of `writer_guid` that Cyclone applies to the reader
+        `reader_guid` has reached our socket while a client needed identities (`use`):
+        one addressed to that reader, or one addressed to all readers (of our participant, or
+        of whoever received it) at or after `since` (a `mark` taken before the reader was
+        made: an earlier one was not applied to it). The file is first flushed and read up
+        to its end, as by a `lookup` that missed."""
+        entity, ours = reader_guid[12:], reader_guid[:12]
+        pairs = ((writer_guid, reader_guid, 0), (writer_guid, UNKNOWN_PREFIX + entity, 0),
+                 (writer_guid, ours + ENTITYID_UNKNOWN, since),
+                 (writer_guid, UNKNOWN_PREFIX + ENTITYID_UNKNOWN, since))
+
+        def heard() -> bool | None:
+            return True if any(self._heartbeats.get((w, r), -1) >= at for w, r, at in pairs) \
+                else None
+        return self._find(heard) is True
 
     def _find(self, found: Callable[[], T | None]) -> T | None:
         """`found()` (called under the lock), else again while the file is read up to the

@@ -169,6 +169,8 @@ class _Pair:
 
     def _make_reader(self) -> tuple[DataReader[Any], Any]:
         node, into, qos = self._node, self._into, self._qos.keeping(PAIR_READER_DEPTH)
+        # Where the packet capture was before the reader existed (handshake.hear_announcements)
+        self.since = 0 if node.identities is None else node.identities.mark()
         if self.mapping is RequestMapping.CYCLONE:
             reader = cyclone.create_reader(node, *into, qos, self._user)
         else:
@@ -357,7 +359,8 @@ class ServiceClient:
             if self.closed or not pair.unannounced_writers():
                 return
             heard, unheard = await hear_announcements(
-                capture, lambda: pair.reader, renew, deadline, skip=lambda: pair.announced,
+                capture, lambda: pair.reader, lambda: pair.since, renew, deadline,
+                skip=lambda: pair.announced,
                 may_renew=lambda: not pair.written,  # never with a request out: renew_reader
                 closed=lambda: self.closed)  # then nothing heard, nothing unheard
             if unheard:

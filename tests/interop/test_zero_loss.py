@@ -423,9 +423,13 @@ async def test_a_goal_sent_before_the_sync_was_heard_waits_for_its_feedback_to_b
     real, node.identities = node.identities, DeafCapture(node.identities)
     try:
         client = burst_client(node)
-        goal = await client.send_goal({"order": 2}, timeout=20)
+        await client.wait_for_server(20)
     finally:
         node.identities = real
+    assert client.feedback_unannounced == 1  # nothing heard after ANNOUNCE_TRIES readers
+    # A Fast DDS writer's samples are taken before any HEARTBEAT: nothing to wait for.
+    assert client.feedback_in_sync() is (oracle.rmw == "fastrtps")
+    goal = await client.send_goal({"order": 2}, timeout=20)
     got: list[list[int]] = []
 
     async def follow() -> None:
@@ -434,14 +438,17 @@ async def test_a_goal_sent_before_the_sync_was_heard_waits_for_its_feedback_to_b
 
     following = asyncio.create_task(follow())
     assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
+    if oracle.rmw == "fastrtps":  # (whether it waits then depends on drops at our socket)
+        following.cancel()
+        client.close()
+        return
     await node.delivered()
     await asyncio.sleep(0.5)  # feedback() has looked at the goal's end
-    if oracle.rmw == "cyclonedds":
-        assert client.feedback_unannounced == 1 and not following.done()
-        client.close()  # (as the server leaving does: nothing more can come)
-        with pytest.raises(ActionError):
-            await asyncio.wait_for(following, 30)
-    else:
+    for _ in range(300):  # the first feedback (sent again, if it was dropped) is yielded
+        if got or following.done():
+            break
+        await asyncio.sleep(0.1)
+    assert got[:1] == [fibonacci(2)] and not following.done()
+    client.close()  # (as the server leaving does: nothing more can come)
+    with pytest.raises(ActionError):
         await asyncio.wait_for(following, 30)
-        client.close()
-    assert got[:1] == [fibonacci(2)]

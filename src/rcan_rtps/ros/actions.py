@@ -25,7 +25,7 @@ import enum
 import logging
 import time
 import uuid
-from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,7 +35,7 @@ from cyclonedds.idl import IdlStruct
 from . import qos as qos_mod
 from .errors import ActionError, ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction
-from .handshake import hear_announcements, matched_writers, writers_ready
+from .handshake import acquire_by, hear_announcements, matched_writers, writers_ready
 from .names import action_names, mangle_topic
 from .participant import RosNode, RosSubscription
 from .rostime import now_msg
@@ -236,12 +236,33 @@ class ActionClient:
         """Waits like rcl's action server check: all three services matched both ways and
         the status and feedback writers matched with our readers; then until the server's
         replies and first feedback cannot be lost (see `handshake.py`)."""
-        try:
+        with self._closed_said():
             await self._wait_for_server(timeout)
-        except DDSException:  # a reader of ours deleted by close() meanwhile
-            if self._closed:
-                raise ActionError(f"the action client of {self.name} is closed") from None
-            raise
+
+    def _gone(self) -> bool:
+        """Closed, or its node closed: its endpoints are deleted, or about to be."""
+        return self._closed or self.node.closed
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ActionError(f"the action client of {self.name} is closed")
+        if self.node.closed:
+            raise ActionError(f"the action client of {self.name} is closed: its node "
+                              f"{self.node.fqn} was closed")
+
+    @contextlib.contextmanager
+    def _closed_said(self) -> Iterator[None]:
+        """What a wait says when an endpoint of ours was deleted meanwhile (this client or
+        its node closed): the binding's DDSException, or the ServiceUnavailable of one of
+        the action's services, becomes ActionError, saying so."""
+        try:
+            yield
+        except (DDSException, ServiceUnavailable):
+            if not self._gone():
+                raise
+        else:
+            return
+        self._check_open()  # raises; out of the handler, so not chained to the binding's
 
     async def _wait_for_server(self, timeout: float) -> None:
         loop = asyncio.get_running_loop()
@@ -275,14 +296,19 @@ class ActionClient:
         the first goal: hear it in the packet capture, or make the reader again (at most
         ANNOUNCE_TRIES readers within the deadline: `hear_announcements`). Needs the capture.
         Goals sent at once share the one wait: another's would renew the reader with the
-        first goal's feedback on its way."""
+        first goal's feedback on its way (bounded by that goal's deadline, not ours)."""
         capture = self.node.identities
         if self._feedback_announced or capture is None or not capture.reading or self._goals:
             return
-        async with self._announce_lock:
+        if not await acquire_by(self._announce_lock, deadline):
+            raise ServiceTimeout(f"action {self.name}: timed out waiting behind another goal "
+                                 "for the server's feedback writer to announce itself")
+        try:
             if self._feedback_announced or self._goals or self._feedback is None:
                 return
             await self._hear_feedback_announced(capture, deadline)
+        finally:
+            self._announce_lock.release()
 
     async def _hear_feedback_announced(self, capture: IdentityCapture, deadline: float) -> None:
         def reader() -> Any:  # the current one: a renewal makes a new one or raises
@@ -291,9 +317,9 @@ class ActionClient:
 
         _, unheard = await hear_announcements(
             capture, reader, lambda: self._renew_feedback_reader(deadline), deadline,
-            may_renew=lambda: not self._goals, closed=lambda: self._closed)
-        if self._closed:
-            return  # send_goal's service call says so
+            may_renew=lambda: not self._goals, closed=self._gone)
+        if self._gone():
+            return  # wait_for_server says so
         if unheard:
             log.debug("action %s: no first HEARTBEAT from the feedback writer to our reader "
                       "after %d readers; goals go out without it", self.name,
@@ -318,8 +344,8 @@ class ActionClient:
     async def _feedback_subscription(self, timeout: float) -> RosSubscription:
         """The feedback subscription, made once discovery shows the server's feedback
         writer (or at the timeout, for `wait_for_publishers` to report)."""
-        if self._feedback is None and self._closed:
-            raise ActionError(f"the action client of {self.name} is closed")
+        if self._feedback is None:
+            self._check_open()
         if self._feedback is None:
             graph, topic = shared_graph(self.node), mangle_topic(self._feedback_topic)
             loop = asyncio.get_running_loop()
@@ -330,8 +356,7 @@ class ActionClient:
                        for e in graph.endpoints()):
                     break
                 await asyncio.sleep(POLL)
-            if self._closed:  # while it waited: no reader for a closed client
-                raise ActionError(f"the action client of {self.name} is closed")
+            self._check_open()  # closed while it waited: no reader for a closed client
             self._feedback = self.node.create_subscription(
                 self._feedback_topic, self.type_name + "_FeedbackMessage",
                 qos_mod.DEFAULT.keeping(PAIR_READER_DEPTH),  # every goal's feedback comes
@@ -343,20 +368,20 @@ class ActionClient:
         the longest while its RMW is not known."""
         try:
             mapping = self._get.resolve_mapping()
-        except WireError:
+        except (WireError, DDSException):  # both mappings; or its node closed meanwhile
             mapping = None
         return REPAIR_S[mapping] if mapping in REPAIR_S else max(REPAIR_S.values())
 
     def server_present(self) -> bool:
         """Whether an action server is on the graph now (its status writer is matched);
         False once this client is closed."""
-        return not self._closed and self._status.matched_count() > 0
+        return not self._gone() and self._status.matched_count() > 0
 
     def check_server(self) -> bool:
         """False once the server has left the graph; its open goals then end as lost.
-        Raises ActionError once this client is closed (whoever waits on a goal is told)."""
-        if self._closed:
-            raise ActionError(f"the action client of {self.name} is closed")
+        Raises ActionError once this client (or its node) is closed (whoever waits on a goal
+        is told)."""
+        self._check_open()
         if self._status.matched_count() > 0:
             self._server_seen, self._lost_since = True, None
             return True
@@ -378,9 +403,14 @@ class ActionClient:
         values = self.node.values
         message = goal if isinstance(goal, IdlStruct) else \
             values.build(self.types.goal.name, goal)
+        with self._closed_said():
+            return await self._send_goal(message, timeout)
+
+    async def _send_goal(self, message: IdlStruct, timeout: float) -> ClientGoal:
+        values = self.node.values
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
-        await self.wait_for_server(timeout)
+        await self._wait_for_server(timeout)
         handle = ClientGoal(self, uuid.uuid4().bytes)
         self._goals[handle.goal_id] = handle  # before sending: feedback may come quickly
         request_cls: Any = self.node.types.struct(self.types.send_goal.request.name)
@@ -486,7 +516,8 @@ class ActionClient:
             return _names_goal(reply, goal.goal_id) or (
                 int(reply.return_code) != 0 and not reply.goals_canceling)
 
-        reply: Any = await self._cancel_srv.call(request, timeout, accept=ours)
+        with self._closed_said():
+            reply: Any = await self._cancel_srv.call(request, timeout, accept=ours)
         canceling = _names_goal(reply, goal.goal_id)
         if canceling and not goal.state.terminal:
             goal.state = GoalState.CANCELING
@@ -496,7 +527,8 @@ class ActionClient:
         """Cancels this client's open goals (or, `server_wide`, every goal of the server,
         whoever sent it: zero goal id and stamp). Returns how many goals are canceling."""
         if server_wide:
-            reply: Any = await self._cancel_srv.call({}, timeout)
+            with self._closed_said():
+                reply: Any = await self._cancel_srv.call({}, timeout)
             return len(reply.goals_canceling)
         open_goals = [g for g in self._goals.values() if g.accepted and not g.state.terminal]
         results = await asyncio.gather(*(g.cancel(timeout) for g in open_goals))

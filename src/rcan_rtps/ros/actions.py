@@ -112,13 +112,17 @@ class ClientGoal:
         self._feedback: asyncio.Queue[IdlStruct] = asyncio.Queue(maxsize=1000)
         self._result: GoalResult | None = None
         self._drops = client.node.udp_drops()  # dropped at our sockets before it was sent
+        # Set by `feedback()` once the goal has ended, its result is in (or was given up on)
+        # and every feedback that had reached us by then was yielded: what it yields after is
+        # feedback whose dropped datagram came again, in the repair window.
+        self.end_settled = asyncio.Event()
 
     def __repr__(self) -> str:
         return f"<ClientGoal {uuid.UUID(bytes=self.goal_id)} {self.state.name}>"
 
     async def feedback(self, timeout: float | None = None) -> AsyncIterator[IdlStruct]:
         """Feedback messages (the `feedback` part) until the goal has ended and no feedback
-        sent before its end can still be on its way."""
+        sent before its end can still be on its way (`end_settled` is set in between)."""
         loop = asyncio.get_running_loop()
         deadline = None if timeout is None else loop.time() + timeout
         until: float | None = None  # once the end has settled: how long feedback may still come
@@ -130,8 +134,10 @@ class ClientGoal:
             if self.state.terminal and until is None:
                 until = await self._settle(deadline)
                 continue
-            if until is not None and not present:
-                return  # the server has left: no datagram of its can be sent again
+            if until is not None:
+                self.end_settled.set()
+                if not present:
+                    return  # the server has left: no datagram of its can be sent again
             now = loop.time()
             ends = [t for t in (until, deadline) if t is not None]
             if ends and now >= min(ends):

@@ -352,7 +352,6 @@ class ActionClient:
         writer (or at the timeout, for `wait_for_publishers` to report)."""
         if self._feedback is None:
             self._check_open()
-        if self._feedback is None:
             graph, topic = shared_graph(self.node), mangle_topic(self._feedback_topic)
             loop = asyncio.get_running_loop()
             deadline = loop.time() + timeout

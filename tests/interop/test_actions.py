@@ -12,7 +12,7 @@ from dropping import DeafCapture
 from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
 
 from rcan_rtps.ros.actions import ActionClient, GoalState
-from rcan_rtps.ros.errors import ServiceUnavailable, ValueFitError, WireError
+from rcan_rtps.ros.errors import ServiceTimeout, ServiceUnavailable, ValueFitError, WireError
 from rcan_rtps.ros.handshake import ANNOUNCE_TRIES
 from rcan_rtps.ros.participant import RosNode
 
@@ -202,3 +202,33 @@ async def test_goals_sent_at_once_share_one_announcement_wait(
         client.close()
     assert client.feedback_renewed == ANNOUNCE_TRIES - 1
     assert readers_with_a_goal_out[0] is readers_with_a_goal_out[1]
+
+
+async def test_a_goal_behind_another_s_announcement_wait_ends_at_its_own_deadline(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """Fast DDS: goals sent at once share one wait for the feedback writer's announcement,
+    bounded by the deadline of the goal that waits for it. Another goal waited for its turn
+    past its own deadline, until that wait was over."""
+    await oracle.acall("action_server", name="/fib")
+    client = ActionClient(node, "/fib", FIB)
+    await _announced_services(client)
+    real, node.identities = node.identities, DeafCapture(node.identities)
+    try:
+        first = asyncio.ensure_future(client.send_goal({"order": 3}, timeout=20))
+        await asyncio.wait_for(_announcing(client), 15)
+        with pytest.raises(ServiceTimeout, match="behind another goal"):
+            await asyncio.wait_for(client.send_goal({"order": 3}, timeout=0.2), 15)
+        assert not client._feedback_announced and not first.done()  # its wait goes on
+        goal = await asyncio.wait_for(first, 30)
+    finally:
+        node.identities = real
+    assert goal.accepted and client.feedback_unannounced == 1
+    assert client.feedback_renewed == ANNOUNCE_TRIES - 1
+    assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
+    client.close()
+
+
+async def _announcing(client: ActionClient) -> None:
+    """Until a goal's wait for the feedback writer's announcement is under way."""
+    while not client._announce_lock.locked():
+        await asyncio.sleep(0.01)

@@ -3,6 +3,7 @@ Fast DDS and on Cyclone DDS)."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import selectors
 import signal
@@ -11,10 +12,15 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
+from dropping import SMALL_BUFFERS, flood_process
 from oracle.client import OracleEnv, RclpyOracle, both_rmws
 from waiting import SPIN
+
+from rcan_rtps.ros.actions import ActionServer, ServerGoal
+from rcan_rtps.ros.participant import RosNode
 
 
 def cli(domain_id: int, *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
@@ -100,3 +106,65 @@ def test_send_goal_ctrl_c_cancels_the_goal(oracle: RclpyOracle, domain_id: int,
     assert proc.returncode == 130, err
     assert "Goal canceled." in out and "Goal finished with status: CANCELED" in out
     assert "Traceback" not in err
+
+
+NAV = "nav2_msgs/action/NavigateToPose"
+# The command with a repair window that cannot end before the test does: what it prints
+# before its server leaves is printed before the window ends.
+LONG_REPAIR = ("import sys; from rcan_rtps.ros import actions; "
+               "actions.REPAIR_S = {m: 600.0 for m in actions.REPAIR_S}; "
+               "from rcan_rtps.cli.main import main; sys.exit(main(sys.argv[1:]))")
+
+
+async def _line_with(stream: asyncio.StreamReader, text: str, seen: list[str]) -> None:
+    while not seen or text not in seen[-1]:
+        line = await stream.readline()
+        assert line, f"the command ended before printing {text!r}: {''.join(seen)}"
+        seen.append(line.decode())
+
+
+async def test_send_goal_prints_the_result_before_the_repair_window_ends(
+        domain_id: int) -> None:
+    """After a datagram was dropped at its sockets, `send_goal -f` waits, once the goal has
+    ended, for as long as the server's repair of a dropped feedback can take (REPAIR_S); it
+    printed the result only after that. The result comes as soon as it is in, feedback the
+    window brings after it, and the status line last."""
+    with RosNode("robot_sim", "/", domain_id=domain_id) as server_node:
+        go = asyncio.Event()
+        goals: list[ServerGoal] = []
+
+        async def execute(goal: ServerGoal) -> dict[str, Any]:
+            goals.append(goal)
+            goal.publish_feedback({"distance_remaining": 2.0})
+            await go.wait()
+            goal.publish_feedback({"distance_remaining": 1.0})
+            return {"error_code": 0, "error_msg": "arrived"}
+
+        server = ActionServer(server_node, "/nav", NAV, execute)
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-c", LONG_REPAIR, "action", "send_goal", "/nav", NAV, "{}", "-f",
+            "--timeout", "30", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+            env={**os.environ, "ROS_DOMAIN_ID": str(domain_id),
+                 "CYCLONEDDS_URI": SMALL_BUFFERS.format(size="3kB")})
+        try:
+            assert proc.stdout is not None
+            seen: list[str] = []
+            await asyncio.wait_for(_line_with(proc.stdout, "Goal accepted", seen), 60)
+            await asyncio.to_thread(flood_process, proc.pid)  # after the goal was sent
+            go.set()
+            await asyncio.wait_for(_line_with(proc.stdout, "Result:", seen), 60)
+            assert proc.returncode is None  # in the repair window, still
+            goals[0].publish_feedback({"distance_remaining": 0.5})  # as a repair brings it
+            await asyncio.wait_for(_line_with(proc.stdout, "distance_remaining: 0.5", seen), 60)
+            assert proc.returncode is None
+            await server.close()  # its server gone, nothing more can come: the command ends
+            server_node.close()
+            rest, err = await asyncio.wait_for(proc.communicate(), 60)
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+    out = "".join(seen) + rest.decode()
+    assert proc.returncode == 0, err.decode()
+    assert out.index("distance_remaining: 1.0") < out.index("Result:\n  error_code: 0") \
+        < out.index("distance_remaining: 0.5")
+    assert out.rstrip().endswith("Goal finished with status: SUCCEEDED")

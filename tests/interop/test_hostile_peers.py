@@ -14,6 +14,7 @@ import logging
 import math
 import re
 import struct
+import tracemalloc
 import uuid
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
@@ -29,6 +30,7 @@ from rcan_rtps.bridge.faults import UNLISTED
 from rcan_rtps.ros import qos, raw_cdr
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
 from rcan_rtps.ros.graph import (
+    INFO_BATCH,
     MAX_INFO_BYTES,
     MAX_INFO_NAME,
     MAX_NODE_FQN,
@@ -36,7 +38,7 @@ from rcan_rtps.ros.graph import (
     MAX_UNKNOWN_INFOS,
     RosGraph,
 )
-from rcan_rtps.ros.participant import DISCOVERY_TYPE, RosNode
+from rcan_rtps.ros.participant import DISCOVERY_TOPIC, DISCOVERY_TYPE, RosNode
 
 from .bridge_rig import VIEWER, Rig, bridge_config, close_rig, make_rig
 
@@ -406,6 +408,34 @@ async def test_a_discovery_info_past_the_size_bound_is_dropped_undecoded(
     assert ("/", "huge") not in graph.nodes() and graph.large_infos == 1
     assert [r.getMessage() for r in caplog.records if "larger than" in r.getMessage()]
     assert not tracebacks(caplog)
+
+
+async def test_a_flood_of_discovery_infos_past_the_size_bound_is_held_a_few_at_a_time(
+        victim: RosNode, hostile: RosNode) -> None:
+    """A sample's size is known only once the binding has copied it out: a refresh took every
+    waiting ros_discovery_info sample (up to the reader's 1,000) into memory at once before
+    dropping those past the bound — 1,000 × 2 MiB for a peer writing them as fast as it can.
+    Here 24 such samples wait in the graph's reader; the refresh's peak of traced memory
+    must stay within a few samples' worth."""
+    graph = RosGraph(victim)
+    graph.refresh()
+    flood = 24
+    assert flood > 2 * INFO_BATCH
+    writer = hostile.create_writer(DISCOVERY_TOPIC, DISCOVERY_TYPE,
+                                   qos.DISCOVERY_INFO.with_(depth=flood))
+    await eventually(lambda: writer.get_publication_matched_status().current_count >= 1)
+    huge = _info(hostile.codecs.of(DISCOVERY_TYPE), uuid.uuid4().bytes, "huge", 140_000)
+    assert MAX_INFO_BYTES < len(huge) < MAX_INFO_BYTES + (1 << 20)
+    for _ in range(flood):
+        raw_cdr.write(writer, huge)
+    assert await asyncio.to_thread(writer.wait_for_acks, 60 * 10**9)  # all in our reader
+    tracemalloc.start()
+    try:  # acknowledged samples may still be on their way into the reader: refresh till in
+        await eventually(lambda: (graph.refresh(), graph.large_infos == flood)[1])
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < (INFO_BATCH + 2) * len(huge), f"{peak / len(huge):.1f} samples' worth held"
 
 
 async def test_infos_of_made_up_participants_share_a_byte_budget(

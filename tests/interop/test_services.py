@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Iterator
+from typing import Any
 
 import pytest
 from dropping import DeafCapture
@@ -12,6 +13,7 @@ from holding import reader_thread_held
 from oracle.client import OracleEnv, RclpyOracle, both_rmws
 
 from rcan_rtps.ros.errors import ServiceTimeout, ServiceUnavailable, ValueFitError
+from rcan_rtps.ros.handshake import ANNOUNCE_TRIES
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.services import RequestMapping, ServiceClient, ServiceServer
 
@@ -211,3 +213,62 @@ async def test_a_call_queued_behind_another_when_the_client_closes_says_so(
 async def _requested(oracle: RclpyOracle, name: str) -> None:
     while not await oracle.acall("service_requests", name=name):
         await asyncio.sleep(0.05)
+
+
+async def _announcing(client: ServiceClient) -> Any:
+    """Until a call on the client waits to hear the Fast DDS reply writer's announcement."""
+    while (pair := client._pairs.get(RequestMapping.FASTDDS)) is None \
+            or not pair.announce_lock.locked():
+        await asyncio.sleep(0.01)
+    return pair
+
+
+async def test_a_call_behind_another_s_announcement_wait_ends_at_its_own_deadline(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """Fast DDS: calls made at once share one wait for the reply writer's announcement, which
+    is bounded by the deadline of the call that waits for it (up to ANNOUNCE_TRIES readers).
+    Another call waited for its turn past its own deadline, until that wait was over."""
+    await oracle.acall("service_server", name="/trigger", type="std_srvs/srv/Trigger")
+    node.identities = DeafCapture(node.identities)  # no announcement is ever heard
+    client = ServiceClient(node, "/trigger", "std_srvs/srv/Trigger")
+    first = asyncio.ensure_future(client.call({}, timeout=20))
+    pair = await asyncio.wait_for(_announcing(client), 15)
+    with pytest.raises(ServiceTimeout, match="behind another call"):
+        await asyncio.wait_for(client.call({}, timeout=0.2), 15)
+    assert pair.unannounced == 0 and not first.done()  # the first one's wait goes on
+    reply = await asyncio.wait_for(first, 30)
+    assert reply.success and pair.unannounced == 1 and pair.renewed == ANNOUNCE_TRIES - 1
+
+
+async def test_a_call_waiting_for_its_reply_when_the_node_closes_says_so(
+        domain_id: int, node: RosNode) -> None:
+    """Closing the node (not the client) while a call waited for its reply left the call
+    waiting out its timeout, then reporting that no reply came in time."""
+    asked = asyncio.Event()
+
+    async def hang(request: object) -> dict[str, object]:
+        asked.set()
+        await asyncio.sleep(3600)
+        return {}
+
+    with RosNode("rcan_server", "/", domain_id=domain_id) as server_node:
+        server = ServiceServer(server_node, "/slow", "std_srvs/srv/Trigger", hang)
+        client = ServiceClient(node, "/slow", "std_srvs/srv/Trigger")
+        call = asyncio.ensure_future(client.call({}, timeout=600))
+        await asyncio.wait_for(asked.wait(), 15)
+        node.close()
+        with pytest.raises(ServiceUnavailable, match="its node /rcan_client was closed"):
+            await asyncio.wait_for(call, 15)
+        await server.close()
+
+
+async def test_a_call_waiting_for_its_server_when_the_node_closes_says_so(
+        node: RosNode) -> None:
+    """Closing the node while a call waited for a server raised the binding's DDSException
+    (the graph's deleted discovery readers read) out of the call."""
+    client = ServiceClient(node, "/nobody", "std_srvs/srv/Trigger")
+    call = asyncio.ensure_future(client.call({}, timeout=600))
+    await asyncio.sleep(0.2)  # polling the graph
+    node.close()
+    with pytest.raises(ServiceUnavailable, match="its node /rcan_client was closed"):
+        await asyncio.wait_for(call, 15)

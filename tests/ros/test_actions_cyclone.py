@@ -220,6 +220,47 @@ async def test_a_closed_client_says_so_to_whoever_waits_on_its_goal(
     await server.close()
 
 
+async def test_closing_the_node_says_so_to_whoever_waits_on_a_goal(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """Closing the node (not the client) with a goal running raised the binding's
+    DDSException (a deleted reader's matched status asked for) out of every wait on it."""
+    server_node, client_node = nodes
+    release = asyncio.Event()
+
+    async def held(goal: ServerGoal) -> dict[str, Any]:
+        goal.publish_feedback({"distance_remaining": 1.0})
+        await release.wait()
+        return await navigate(goal)
+
+    server = ActionServer(server_node, "navigate_to_pose", NAV, held)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    goal = await client.send_goal(GOAL, timeout=20)
+    feedback = goal.feedback()
+    await asyncio.wait_for(anext(feedback), 15)  # running
+    waits = [asyncio.ensure_future(w) for w in (goal.ended(), goal.result(timeout=60),
+                                               anext(feedback))]
+    await asyncio.sleep(0.2)
+    client_node.close()
+    for waiting in waits:
+        with pytest.raises(ActionError, match="its node /rcan_bridge was closed"):
+            await asyncio.wait_for(waiting, 15)
+    release.set()
+    await server.close()
+
+
+async def test_closing_the_node_says_so_to_a_goal_waiting_for_its_server(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """...and out of send_goal while it waited for a server (the graph's deleted discovery
+    readers read)."""
+    _, client_node = nodes
+    client = ActionClient(client_node, "/nobody", NAV)
+    sending = asyncio.ensure_future(client.send_goal(GOAL, timeout=600))
+    await asyncio.sleep(0.2)  # polling the graph
+    client_node.close()
+    with pytest.raises(ActionError, match="its node /rcan_bridge was closed"):
+        await asyncio.wait_for(sending, 15)
+
+
 async def test_a_server_that_leaves_before_its_result_reply_ends_the_goal_as_its_status_said(
         domain_id: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """The status topic said SUCCEEDED, the result reply never came, and the server left:

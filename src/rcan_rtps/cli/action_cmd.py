@@ -118,19 +118,35 @@ async def _send_goal(args: argparse.Namespace) -> int:
 
 
 async def _follow(client: ActionClient, goal: ClientGoal, feedback: bool) -> int:
-    if feedback:
-        feedback_type = client.types.feedback.name
-        async for message in goal.feedback():
-            plain = client.node.values.to_plain(feedback_type, message)
-            print("Feedback:\n" + _indent(dump(plain)) + "\n", flush=True)
-    outcome = await goal.result(timeout=365 * 24 * 3600.0)  # a goal may run for long
-    if outcome.result is not None:
-        plain = client.node.values.to_plain(client.types.result.name, outcome.result)
-        print("Result:\n" + _indent(dump(plain)) + "\n", flush=True)
-    elif outcome.detail:
-        print(outcome.detail, flush=True)
+    """Prints the feedback (with `feedback`) and the result, as soon as it is in: after the
+    feedback that came before the goal's end, before what a dropped datagram's repair brings
+    after it (`feedback()` waits for that, up to REPAIR_S); the status line comes last."""
+    printing = asyncio.ensure_future(_print_feedback(client, goal)) if feedback else None
+    try:
+        if printing is not None:
+            settled = asyncio.ensure_future(goal.end_settled.wait())
+            await asyncio.wait({printing, settled}, return_when=asyncio.FIRST_COMPLETED)
+            settled.cancel()
+        outcome = await goal.result(timeout=365 * 24 * 3600.0)  # a goal may run for long
+        if outcome.result is not None:
+            plain = client.node.values.to_plain(client.types.result.name, outcome.result)
+            print("Result:\n" + _indent(dump(plain)) + "\n", flush=True)
+        elif outcome.detail:
+            print(outcome.detail, flush=True)
+        if printing is not None:
+            await printing
+    finally:
+        if printing is not None:
+            printing.cancel()  # Ctrl-C: the goal is canceled, its feedback no longer printed
     print(f"Goal finished with status: {outcome.state.name}", flush=True)
     return 0 if outcome.state is GoalState.SUCCEEDED else 1
+
+
+async def _print_feedback(client: ActionClient, goal: ClientGoal) -> None:
+    feedback_type = client.types.feedback.name
+    async for message in goal.feedback():
+        plain = client.node.values.to_plain(feedback_type, message)
+        print("Feedback:\n" + _indent(dump(plain)) + "\n", flush=True)
 
 
 def _indent(text: str) -> str:

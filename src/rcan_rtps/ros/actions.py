@@ -25,7 +25,7 @@ import enum
 import logging
 import time
 import uuid
-from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +38,7 @@ from .graph import Direction
 from .handshake import (
     CYCLONE_VENDOR,
     FASTDDS_VENDOR,
+    acquire_by,
     hear_announcements,
     matched_writers,
     writers_of,
@@ -122,13 +123,17 @@ class ClientGoal:
         # Sent before our feedback reader was known to be in sync with a Cyclone feedback
         # writer: its first feedback may come only with the writer's next HEARTBEAT.
         self._unsynced = not client.feedback_in_sync()
+        # Set by `feedback()` once the goal has ended, its result is in (or was given up on)
+        # and every feedback that had reached us by then was yielded: what it yields after is
+        # feedback whose dropped datagram came again, in the repair window.
+        self.end_settled = asyncio.Event()
 
     def __repr__(self) -> str:
         return f"<ClientGoal {uuid.UUID(bytes=self.goal_id)} {self.state.name}>"
 
     async def feedback(self, timeout: float | None = None) -> AsyncIterator[IdlStruct]:
         """Feedback messages (the `feedback` part) until the goal has ended and no feedback
-        sent before its end can still be on its way."""
+        sent before its end can still be on its way (`end_settled` is set in between)."""
         loop = asyncio.get_running_loop()
         deadline = None if timeout is None else loop.time() + timeout
         until: float | None = None  # once the end has settled: how long feedback may still come
@@ -140,8 +145,10 @@ class ClientGoal:
             if self.state.terminal and until is None:
                 until = await self._settle(deadline)
                 continue
-            if until is not None and not present:
-                return  # the server has left: no datagram of its can be sent again
+            if until is not None:
+                self.end_settled.set()
+                if not present:
+                    return  # the server has left: no datagram of its can be sent again
             now = loop.time()
             ends = [t for t in (until, deadline) if t is not None]
             if ends and now >= min(ends):
@@ -251,12 +258,33 @@ class ActionClient:
         """Waits like rcl's action server check: all three services matched both ways and
         the status and feedback writers matched with our readers; then until the server's
         replies and first feedback cannot be lost (see `handshake.py`)."""
-        try:
+        with self._closed_said():
             await self._wait_for_server(timeout)
-        except DDSException:  # a reader of ours deleted by close() meanwhile
-            if self._closed:
-                raise ActionError(f"the action client of {self.name} is closed") from None
-            raise
+
+    def _gone(self) -> bool:
+        """Closed, or its node closed: its endpoints are deleted, or about to be."""
+        return self._closed or self.node.closed
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ActionError(f"the action client of {self.name} is closed")
+        if self.node.closed:
+            raise ActionError(f"the action client of {self.name} is closed: its node "
+                              f"{self.node.fqn} was closed")
+
+    @contextlib.contextmanager
+    def _closed_said(self) -> Iterator[None]:
+        """What a wait says when an endpoint of ours was deleted meanwhile (this client or
+        its node closed): the binding's DDSException, or the ServiceUnavailable of one of
+        the action's services, becomes ActionError, saying so."""
+        try:
+            yield
+        except (DDSException, ServiceUnavailable):
+            if not self._gone():
+                raise
+        else:
+            return
+        self._check_open()  # raises; out of the handler, so not chained to the binding's
 
     async def _wait_for_server(self, timeout: float) -> None:
         loop = asyncio.get_running_loop()
@@ -306,14 +334,20 @@ class ActionClient:
         reader again (at most ANNOUNCE_TRIES readers within the deadline:
         `hear_announcements`). Needs the capture; goals sent without it wait for feedback
         longer after their end (`feedback_in_sync`). Goals sent at once share the one wait:
-        another's would renew the reader with the first goal's feedback on its way."""
+        another's would renew the reader with the first goal's feedback on its way
+        (bounded by that goal's deadline, not ours)."""
         capture = self.node.identities
         if self._feedback_announced or capture is None or not capture.reading or self._goals:
             return
-        async with self._announce_lock:
+        if not await acquire_by(self._announce_lock, deadline):
+            raise ServiceTimeout(f"action {self.name}: timed out waiting behind another goal "
+                                 "for the server's feedback writer to announce itself")
+        try:
             if self._feedback_announced or self._goals or self._feedback is None:
                 return
             await self._hear_feedback_announced(capture, deadline)
+        finally:
+            self._announce_lock.release()
 
     async def _hear_feedback_announced(self, capture: IdentityCapture, deadline: float) -> None:
         def reader() -> Any:  # the current one: a renewal makes a new one or raises
@@ -324,9 +358,9 @@ class ActionClient:
             capture, reader, lambda: self._feedback_since,
             lambda: self._renew_feedback_reader(deadline), deadline,
             vendors=(FASTDDS_VENDOR, CYCLONE_VENDOR), skip=self._in_process_feedback_writers,
-            may_renew=lambda: not self._goals, closed=lambda: self._closed)
-        if self._closed:
-            return  # send_goal's service call says so
+            may_renew=lambda: not self._goals, closed=self._gone)
+        if self._gone():
+            return  # wait_for_server says so
         if unheard:
             log.debug("action %s: no first HEARTBEAT from the feedback writer to our reader "
                       "after %d readers; goals go out without it", self.name,
@@ -340,7 +374,7 @@ class ActionClient:
         feedback reader has heard a HEARTBEAT of each feedback writer (in the capture) or
         has taken a sample, or no Cyclone writer is matched with it (handshake.py, 4.)."""
         if self._feedback_heard or self._feedback_delivered or self._feedback is None or \
-                self._closed:  # (its reader deleted; the goal's call says it is closed)
+                self._gone():  # (its reader deleted; the goal's call says it is closed)
             return True
         return not writers_of(self._feedback.reader, (CYCLONE_VENDOR,),
                               self._in_process_feedback_writers())
@@ -370,9 +404,8 @@ class ActionClient:
     async def _feedback_subscription(self, timeout: float) -> RosSubscription:
         """The feedback subscription, made once discovery shows the server's feedback
         writer (or at the timeout, for `wait_for_publishers` to report)."""
-        if self._feedback is None and self._closed:
-            raise ActionError(f"the action client of {self.name} is closed")
         if self._feedback is None:
+            self._check_open()
             graph, topic = shared_graph(self.node), mangle_topic(self._feedback_topic)
             loop = asyncio.get_running_loop()
             deadline = loop.time() + timeout
@@ -382,8 +415,7 @@ class ActionClient:
                        for e in graph.endpoints()):
                     break
                 await asyncio.sleep(POLL)
-            if self._closed:  # while it waited: no reader for a closed client
-                raise ActionError(f"the action client of {self.name} is closed")
+            self._check_open()  # closed while it waited: no reader for a closed client
             capture = self.node.identities
             self._feedback_since = 0 if capture is None else capture.mark()
             self._feedback_reader_no += 1
@@ -406,20 +438,20 @@ class ActionClient:
         the longest while its RMW is not known."""
         try:
             mapping = self._get.resolve_mapping()
-        except WireError:
+        except (WireError, DDSException):  # both mappings; or its node closed meanwhile
             mapping = None
         return REPAIR_S[mapping] if mapping in REPAIR_S else max(REPAIR_S.values())
 
     def server_present(self) -> bool:
         """Whether an action server is on the graph now (its status writer is matched);
         False once this client is closed."""
-        return not self._closed and self._status.matched_count() > 0
+        return not self._gone() and self._status.matched_count() > 0
 
     def check_server(self) -> bool:
         """False once the server has left the graph; its open goals then end as lost.
-        Raises ActionError once this client is closed (whoever waits on a goal is told)."""
-        if self._closed:
-            raise ActionError(f"the action client of {self.name} is closed")
+        Raises ActionError once this client (or its node) is closed (whoever waits on a goal
+        is told)."""
+        self._check_open()
         if self._status.matched_count() > 0:
             self._server_seen, self._lost_since = True, None
             return True
@@ -441,9 +473,14 @@ class ActionClient:
         values = self.node.values
         message = goal if isinstance(goal, IdlStruct) else \
             values.build(self.types.goal.name, goal)
+        with self._closed_said():
+            return await self._send_goal(message, timeout)
+
+    async def _send_goal(self, message: IdlStruct, timeout: float) -> ClientGoal:
+        values = self.node.values
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
-        await self.wait_for_server(timeout)
+        await self._wait_for_server(timeout)
         handle = ClientGoal(self, uuid.uuid4().bytes)
         self._goals[handle.goal_id] = handle  # before sending: feedback may come quickly
         request_cls: Any = self.node.types.struct(self.types.send_goal.request.name)
@@ -549,7 +586,8 @@ class ActionClient:
             return _names_goal(reply, goal.goal_id) or (
                 int(reply.return_code) != 0 and not reply.goals_canceling)
 
-        reply: Any = await self._cancel_srv.call(request, timeout, accept=ours)
+        with self._closed_said():
+            reply: Any = await self._cancel_srv.call(request, timeout, accept=ours)
         canceling = _names_goal(reply, goal.goal_id)
         if canceling and not goal.state.terminal:
             goal.state = GoalState.CANCELING
@@ -559,7 +597,8 @@ class ActionClient:
         """Cancels this client's open goals (or, `server_wide`, every goal of the server,
         whoever sent it: zero goal id and stamp). Returns how many goals are canceling."""
         if server_wide:
-            reply: Any = await self._cancel_srv.call({}, timeout)
+            with self._closed_said():
+                reply: Any = await self._cancel_srv.call({}, timeout)
             return len(reply.goals_canceling)
         open_goals = [g for g in self._goals.values() if g.accepted and not g.state.terminal]
         results = await asyncio.gather(*(g.cancel(timeout) for g in open_goals))

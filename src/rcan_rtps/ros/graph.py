@@ -49,6 +49,10 @@ MAX_UNKNOWN_INFOS = 256
 # of participants not (yet) discovered share a budget as well as a count.
 MAX_INFO_BYTES = 2 << 20
 MAX_UNKNOWN_INFO_BYTES = 8 << 20
+# ros_discovery_info samples taken at a time. The binding copies each one out whole, so its
+# size is known only once it is in memory: a peer flooding samples past MAX_INFO_BYTES (the
+# reader keeps up to 1,000) is held this many at a time, not all at once (~2 GB).
+INFO_BATCH = 4
 # An info's gid, in its first 16 bytes after the 4-byte CDR header (octets: no alignment),
 # read there from a sample too large to decode.
 INFO_GID = slice(4, 20)
@@ -192,7 +196,7 @@ class RosGraph:
         others taken with it are kept), and never fails the refresh (services and actions
         refresh before each call, a stop's goal cancel included)."""
         bad = large = taken = 0
-        for data, sample_info in raw_cdr.take(self._info, ANY_SAMPLE, 10_000):
+        for data, sample_info in _take_raw(self._info, INFO_BATCH):
             taken += 1
             if not sample_info.valid_data:
                 continue  # keyless: an invalid sample names no participant
@@ -365,6 +369,18 @@ def _take_all(reader: BuiltinDataReader, batch: int = 256) -> Iterator[Any]:
         samples = reader.take(N=batch)
         yield from samples
         if len(samples) < batch:
+            return
+
+
+def _take_raw(reader: Any, batch: int) -> Iterator[raw_cdr.RawSample]:
+    """Every sample waiting (as CDR bytes, SampleInfo), `batch` at a time: a batch is let go
+    of before the next is taken."""
+    while True:
+        samples = raw_cdr.take(reader, ANY_SAMPLE, batch)
+        count = len(samples)
+        yield from samples
+        del samples
+        if count < batch:
             return
 
 

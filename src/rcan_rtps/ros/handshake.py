@@ -148,6 +148,22 @@ async def _await_latched(probe: DataReader[Any], wanted: set[bytes],
         await asyncio.sleep(POLL)
 
 
+async def acquire_by(lock: asyncio.Lock, deadline: float) -> bool:
+    """Takes `lock`, waiting for it at most until `deadline` (loop time); False when another
+    still held it then. A free lock is taken at once, whatever the deadline. The announcement
+    wait a lock holder does (`hear_announcements`) is bounded by the holder's deadline, not by
+    a waiter's: without this a call waiting its turn ran up to ~1.2 s past its own."""
+    if not lock.locked():
+        await lock.acquire()  # free: taken without suspending
+        return True
+    loop = asyncio.get_running_loop()
+    try:
+        await asyncio.wait_for(lock.acquire(), max(0.0, deadline - loop.time()))
+    except asyncio.TimeoutError:
+        return False
+    return True
+
+
 def fastdds_writers(reader: DataReader[Any], skip: Collection[int] = ()) -> dict[int, bytes]:
     """The Fast DDS writers matched with `reader` (handle → GUID), but for `skip`."""
     return writers_of(reader, (FASTDDS_VENDOR,), skip)

@@ -34,7 +34,7 @@ import enum
 import itertools
 import logging
 import weakref
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Iterator, Mapping
 from typing import Any
 
 import msgspec
@@ -50,6 +50,7 @@ from .errors import ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction, Endpoint, RosGraph
 from .handshake import (
     POLL,
+    acquire_by,
     fastdds_writers,
     hear_announcements,
     matched_subscriptions,
@@ -60,13 +61,16 @@ from .names import mangle_service
 from .participant import RosNode
 from .qos import QosProfile
 from .readers import Decode
-from .rtps_capture import SampleIdentity
+from .rtps_capture import IdentityCapture, SampleIdentity
 
 log = logging.getLogger(__name__)
 
 CYCLONE_VENDOR = b"\x01\x10"
 STALE_REPLY_GRACE = 0.5  # s a timed-out Fast DDS request's late reply gets to arrive and be dropped
 CLIENT_READER_WAIT = 1.0  # s a server waits for the client's reply reader (rmw_cyclonedds: 0.1)
+# s between looks, while a call waits for its reply, at whether its node was closed (then no
+# reply can reach it: the node's reader thread has stopped)
+NODE_CLOSED_POLL = 0.1
 
 # A server's replies reach every client's reply reader, and every client's requests every
 # server's request reader: a reader keeps this many while the node's reader thread waits for
@@ -322,6 +326,10 @@ class ServiceClient:
         """Waits until a request can be answered: our request writer and reply reader are
         matched with the server's endpoints, and the server has matched our reply reader
         too, and its reply cannot be dropped on arrival (see `handshake.py`)."""
+        with self._closed_said():
+            return await self._wait_for_service(timeout)
+
+    async def _wait_for_service(self, timeout: float) -> _Pair:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
         pair = await self.wait_matched(timeout)
@@ -336,6 +344,26 @@ class ServiceClient:
     def _check_open(self) -> None:
         if self.closed:
             raise ServiceUnavailable(f"the client of {self.name} is closed")
+        if self.node.closed:
+            raise ServiceUnavailable(f"the client of {self.name} is closed: its node "
+                                     f"{self.node.fqn} was closed")
+
+    def _gone(self) -> bool:
+        """Closed, or its node closed: its endpoints are deleted, or about to be."""
+        return self.closed or self.node.closed
+
+    @contextlib.contextmanager
+    def _closed_said(self) -> Iterator[None]:
+        """The binding's DDSException from an endpoint deleted meanwhile (this client or its
+        node closed while a call waited) becomes ServiceUnavailable, saying so."""
+        try:
+            yield
+        except DDSException:
+            if not self._gone():
+                raise
+        else:
+            return
+        self._check_open()  # raises; out of the handler, so not chained to the binding's
 
     async def _await_announced(self, pair: _Pair, deadline: float) -> None:
         """Waits until every Fast DDS reply writer's first HEARTBEAT to our reply reader has
@@ -346,7 +374,21 @@ class ServiceClient:
         capture; once per reader, before its first request (never with a reply in flight)."""
         capture = self.node.identities
         if capture is None or not capture.reading or pair.mapping is not RequestMapping.FASTDDS \
-                or self.closed:
+                or self._gone():
+            return
+        # Calls made at once share one wait; another's, under way, is bounded by its
+        # deadline, not ours.
+        if not await acquire_by(pair.announce_lock, deadline):
+            raise ServiceTimeout(f"service {self.name}: timed out waiting behind another call "
+                                 "for the server's reply writer to announce itself")
+        try:
+            await self._hear_announced(pair, capture, deadline)
+        finally:
+            pair.announce_lock.release()
+
+    async def _hear_announced(self, pair: _Pair, capture: IdentityCapture,
+                              deadline: float) -> None:
+        if self._gone() or not pair.unannounced_writers():
             return
 
         async def renew() -> None:
@@ -355,28 +397,25 @@ class ServiceClient:
                       "come; reader made again", self.name)
             await self._matched_again(pair, deadline)
 
-        async with pair.announce_lock:
-            if self.closed or not pair.unannounced_writers():
-                return
-            heard, unheard = await hear_announcements(
-                capture, lambda: pair.reader, lambda: pair.since, renew, deadline,
-                skip=lambda: pair.announced,
-                may_renew=lambda: not pair.written,  # never with a request out: renew_reader
-                closed=lambda: self.closed)  # then nothing heard, nothing unheard
-            if unheard:
-                log.debug("service %s: no first HEARTBEAT from %d reply writer(s) to our "
-                          "reader after %d readers (capture %d bytes behind); the request "
-                          "goes out without it", self.name, len(unheard), pair.renewed + 1,
-                          capture.lag())
-            pair.unannounced += len(unheard)
-            pair.announced |= heard | unheard.keys()  # the unheard: best effort, once
+        heard, unheard = await hear_announcements(
+            capture, lambda: pair.reader, lambda: pair.since, renew, deadline,
+            skip=lambda: pair.announced,
+            may_renew=lambda: not pair.written,  # never with a request out: renew_reader
+            closed=self._gone)  # then nothing heard, nothing unheard
+        if unheard:
+            log.debug("service %s: no first HEARTBEAT from %d reply writer(s) to our "
+                      "reader after %d readers (capture %d bytes behind); the request "
+                      "goes out without it", self.name, len(unheard), pair.renewed + 1,
+                      capture.lag())
+        pair.unannounced += len(unheard)
+        pair.announced |= heard | unheard.keys()  # the unheard: best effort, once
 
     async def _matched_again(self, pair: _Pair, deadline: float) -> None:
         """After `renew_reader`: until the reader matches (our view), then the handshake."""
         loop = asyncio.get_running_loop()
-        while not self.closed and not pair.matched() and loop.time() < deadline:
+        while not self._gone() and not pair.matched() and loop.time() < deadline:
             await asyncio.sleep(POLL)
-        if self.closed:
+        if self._gone():
             return
         writers = pair.unready_writers()
         if writers:
@@ -388,20 +427,27 @@ class ServiceClient:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
         while True:
-            if self.closed:
-                raise ServiceUnavailable(f"the client of {self.name} is closed")
-            mapping = self.resolve_mapping()
-            # Our reply reader is made only once we know a server's reply writer, so that
-            # we hear the HEARTBEAT it sends when it matches the reader (handshake.py).
-            if mapping is not None and (mapping in self._pairs or self._reply_writer_known()):
-                pair = self._pair(mapping)
-                if pair.matched():
-                    return pair
+            self._check_open()
+            with self._closed_said():
+                pair = self._matched_pair()
+            if pair is not None:
+                return pair
             if loop.time() >= deadline:
                 raise ServiceUnavailable(
                     f"no server for service {self.name} ({self.type_name}) "
                     f"within {seconds(timeout)}")
             await asyncio.sleep(0.05)
+
+    def _matched_pair(self) -> _Pair | None:
+        """The pair of the servers' mapping, once it matches a server (our view)."""
+        mapping = self.resolve_mapping()
+        # Our reply reader is made only once we know a server's reply writer, so that
+        # we hear the HEARTBEAT it sends when it matches the reader (handshake.py).
+        if mapping is not None and (mapping in self._pairs or self._reply_writer_known()):
+            pair = self._pair(mapping)
+            if pair.matched():
+                return pair
+        return None
 
     # -- calls ------------------------------------------------------------------
     async def call(self, request: IdlStruct | Mapping[str, Any] | None = None,
@@ -412,10 +458,25 @@ class ServiceClient:
             self.node.values.build(self.request_type, request)
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
-        pair = await self.wait_for_service(timeout)
-        if pair.mapping is RequestMapping.CYCLONE:
-            return await self._call_cyclone(pair, message, deadline)
-        return await self._call_plain(pair, message, deadline, accept)
+        with self._closed_said():
+            pair = await self._wait_for_service(timeout)
+            if pair.mapping is RequestMapping.CYCLONE:
+                return await self._call_cyclone(pair, message, deadline)
+            return await self._call_plain(pair, message, deadline, accept)
+
+    async def _reply(self, future: asyncio.Future[IdlStruct], deadline: float) -> IdlStruct:
+        """The reply `future` brings, or asyncio.TimeoutError at `deadline`; as soon as the
+        node is closed, ServiceUnavailable (nothing can bring it any more: the client's
+        own close fails the future itself)."""
+        loop = asyncio.get_running_loop()
+        while not future.done():
+            left = deadline - loop.time()
+            if left <= 0:
+                raise asyncio.TimeoutError
+            await asyncio.wait((future,), timeout=min(left, NODE_CLOSED_POLL))
+            if not future.done():
+                self._check_open()
+        return future.result()
 
     async def _call_cyclone(self, pair: _Pair, message: IdlStruct,
                             deadline: float) -> IdlStruct:
@@ -425,7 +486,7 @@ class ServiceClient:
         self._pending[seq] = future
         try:
             pair.write(message, cyclone.RequestHeader(pair.guid, seq))
-            return await asyncio.wait_for(future, max(0.0, deadline - loop.time()))
+            return await self._reply(future, deadline)
         except asyncio.TimeoutError:
             raise ServiceTimeout(f"service {self.name}: no reply within the timeout") from None
         finally:
@@ -448,7 +509,7 @@ class ServiceClient:
             pair.write(message)
             self._plain_waiter = (future, accept, SampleIdentity(pair.writer_guid, pair.written))
             try:
-                return await asyncio.wait_for(future, max(0.0, deadline - loop.time()))
+                return await self._reply(future, deadline)
             except asyncio.TimeoutError:
                 self._stale = True
                 raise ServiceTimeout(

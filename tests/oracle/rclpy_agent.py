@@ -228,14 +228,16 @@ class Agent:
         return self.matched.get(topic, 0)
 
     def op_subscribe_timed(self, topic: str, type: str, field: str = "linear.x",
-                           qos: str = "default") -> bool:
+                           qos: str = "default", clock: str = "arrival") -> bool:
         """Records (CLOCK_MONOTONIC ns at arrival, value of `field`) per message: latency
-        benchmarks compare it with the sender's monotonic clock (same host)."""
+        benchmarks compare it with the sender's monotonic clock (same host). `clock="source"`:
+        the writer's source timestamp (ns since the epoch) instead, when it wrote the sample,
+        whatever delayed its delivery here."""
         self.received.setdefault(topic, [])
         path = field.split(".")
 
-        def on_message(msg: Any, topic: str = topic) -> None:
-            arrived = time.monotonic_ns()
+        def on_message(msg: Any, info: Any, topic: str = topic) -> None:
+            arrived = info["source_timestamp"] if clock == "source" else time.monotonic_ns()
             value = msg
             for part in path:
                 value = getattr(value, part)

@@ -65,7 +65,7 @@ CONFIG = """\
 robot:
   ruri: rcan://registry.local/bench/rover/bench-0001
 bridge:
-  ros2: {{namespace: /bench, node_name: rcan_bridge, domain_id: {domain}}}
+  ros2: {{namespace: /bench, node_name: rcan_bridge, domain_id: {domain}{ros2_extra}}}
   api:
     host: 127.0.0.1
     port: {port}
@@ -92,18 +92,20 @@ def free_port() -> int:
 class BridgeProcess:
     """`src`: run the bridge of that source tree (PYTHONPATH) instead of the installed one;
     `extra`: more `run` options; `audit_dir`: where the audit log is (default `state`);
-    `latch_path`: the e-stop latch file (`safety.estop_state_path`; default beside the log)."""
+    `latch_path`: the e-stop latch file (`safety.estop_state_path`; default beside the log);
+    `ros2_extra`: more `bridge.ros2` keys, flow style (", key: value")."""
 
     def __init__(self, state: Path, src: Path | None = None, extra: tuple[str, ...] = (), *,
                  audit_dir: Path | None = None, latch_path: Path | None = None,
-                 import_log: bool = False) -> None:
+                 import_log: bool = False, ros2_extra: str = "") -> None:
         self.port = free_port()
         state.mkdir(parents=True, exist_ok=True)
         self.config = state / "bench.rcan.yaml"
         latch = "" if latch_path is None else f", estop_state_path: {latch_path}"
         self.config.write_text(CONFIG.format(domain=DOMAIN, port=self.port,
                                              audit=audit_dir or state,
-                                             session=SESSION_TIMEOUT_S, latch=latch))
+                                             session=SESSION_TIMEOUT_S, latch=latch,
+                                             ros2_extra=ros2_extra))
         env = {**os.environ, "RCAN_BENCH_TOKEN": TOKEN, "ROS_DOMAIN_ID": str(DOMAIN)}
         if import_log:  # a line per imported module in the log (`imported_modules`)
             env["PYTHONPROFILEIMPORTTIME"] = "1"
@@ -640,8 +642,9 @@ def parse_args() -> argparse.Namespace:
     return parser.parse_args()
 
 
-async def idle_rss(state: Path, src: Path | None, extra: tuple[str, ...] = ()) -> float:
-    bridge = BridgeProcess(state, src, extra)
+async def idle_rss(state: Path, src: Path | None, extra: tuple[str, ...] = (),
+                   ros2_extra: str = "") -> float:
+    bridge = BridgeProcess(state, src, extra, ros2_extra=ros2_extra)
     try:
         await asyncio.sleep(1.0)  # the floor's settling time too
         return bridge.rss_mb()
@@ -741,6 +744,10 @@ async def footprint_section(args: argparse.Namespace) -> str:
         "~1.5 MB, is the library's, the same for any user) — measured in each round. Both "
         "trees byte-compiled first, rounds interleaved in alternating order. Target: ≤ 4 MB.",
         "", compared, "",
+        "The last row is this tree again, the bench config naming no goal server "
+        "(`nav_action: null, dock_action: null`): no action client is made and its modules "
+        "are not imported; the bench config itself names the default two, as a robot with "
+        "nav2 does.", "",
         "This tree's share, a package at a time: the floor importing the modules of ours an "
         "idle run has imported (from its own import log), one package more per step, collected "
         "and trimmed as a run is before its ready line; the rest is what starting the bridge "
@@ -749,6 +756,10 @@ async def footprint_section(args: argparse.Namespace) -> str:
         f"project's 2-core machine; 1-minute load average {load_start:.2f} as it started and "
         f"{os.getloadavg()[0]:.2f} as it ended.",
     ])
+
+
+NO_GOALS = ", nav_action: null, dock_action: null"
+NO_GOALS_LABEL = "after, `nav_action`/`dock_action: null` (no goal server)"
 
 
 async def footprint_only(args: argparse.Namespace) -> str:
@@ -763,20 +774,25 @@ async def footprint_only(args: argparse.Namespace) -> str:
         for src in sides.values():
             subprocess.run([sys.executable, "-m", "compileall", "-q", str(src)],
                            check=True, stdout=subprocess.DEVNULL)
+        # This tree again, its config naming no goal server (a robot without nav2 or a dock):
+        # no action client is made, nor its modules imported. Not the bench config: a row of
+        # its own, so that the rows above stay comparable with earlier runs.
+        runs = {**sides, NO_GOALS_LABEL: ROOT / "src"}
         for i in range(args.rounds):
-            order = list(sides.items()) if i % 2 == 0 else list(sides.items())[::-1]
+            order = list(runs.items()) if i % 2 == 0 else list(runs.items())[::-1]
             for mdns in (True, False):
                 floor = await library_floor_rss(mdns)
                 for k, (label, src) in enumerate(order):
                     rss = await idle_rss(Path(state) / f"r{i}-{k}-{mdns}",
-                                         None if label == "after" else src,
-                                         () if mdns else ("--no-mdns",))
+                                         src if label.startswith("before") else None,
+                                         () if mdns else ("--no-mdns",),
+                                         NO_GOALS if label == NO_GOALS_LABEL else "")
                     ours.setdefault((label, mdns), []).append(rss - floor)
     med = statistics.median
     lines = ["| idle RSS over the library floor (MB, median of "
              f"{args.rounds}) | mDNS on | `--no-mdns` | target | verdict |",
              "|---|---|---|---|---|"]
-    for label in sides:
+    for label in runs:
         on, off = med(ours[label, True]), med(ours[label, False])
         met = verdict(max(on, off) <= 4.0) if label == "after" else "—"
         lines.append(f"| {label} | {on:.2f} | {off:.2f} | ≤ 4 MB | {met} |")

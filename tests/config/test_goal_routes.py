@@ -52,6 +52,15 @@ def test_the_registry_declares_a_route_per_goal_action() -> None:
         name for name, spec in ACTIONS.items() if spec.starts_goal}
 
 
+def test_a_goal_server_set_to_null_is_no_server() -> None:
+    """A robot without nav2 or a dock says so (issue 27: then no action client is made)."""
+    ros2 = load("    nav_action: null\n    dock_action: null").bridge.ros2
+    assert (ros2.nav_action, ros2.dock_action) == (None, None)
+    assert goal_routes_problem(ros2, goal_routes()) is None
+    # The text "null", quoted, is still a name.
+    assert load("    nav_action: 'null'").bridge.ros2.nav_action == "null"
+
+
 def test_the_default_config_gives_each_goal_action_its_own_server() -> None:
     ros2 = load("").bridge.ros2
     assert (ros2.resolve(ros2.nav_action), ros2.resolve(ros2.dock_action)) == (

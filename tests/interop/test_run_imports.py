@@ -7,11 +7,15 @@ figure is asserted, only which modules were loaded.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 import signal
+import subprocess
+import sys
 import urllib.error
 import urllib.request
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -79,12 +83,18 @@ def get(url: str, token: str) -> tuple[int, bytes]:
 
 
 def command(url: str, token: str) -> int:
-    body = json.dumps({"action": "move", "params": {"linear_x": 0.1, "duration_s": 0.2}})
+    return post(url, token, {"action": "move", "params": {"linear_x": 0.1, "duration_s": 0.2}})[0]
+
+
+def post(url: str, token: str, body: dict[str, object]) -> tuple[int, dict[str, object]]:
     request = urllib.request.Request(
-        f"{url}/api/command", data=body.encode(), method="POST",
+        f"{url}/api/command", data=json.dumps(body).encode(), method="POST",
         headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"})
-    with urllib.request.urlopen(request, timeout=30) as reply:
-        return int(reply.status)
+    try:
+        with urllib.request.urlopen(request, timeout=60) as reply:
+            return int(reply.status), json.loads(reply.read())
+    except urllib.error.HTTPError as error:
+        return error.code, json.loads(error.read())
 
 
 @pytest.mark.parametrize("start", ["first", "later"])
@@ -136,3 +146,96 @@ def test_the_lazy_doors_answer_their_first_request(tmp_path: Path, domain_id: in
     modules = imported(proc.stderr)
     missing = {m for needed in FIRST_USE.values() for m in needed} - modules
     assert not missing, f"first requests answered without loading {sorted(missing)}"
+
+
+# What only a goal action client needs (issue 27, item 6): loaded at start when the config
+# names a goal server (the stop path cancels its goals: no import may wait there), never when
+# it names none.
+GOAL_CLIENT = {"rcan_rtps.bridge.navigation", "rcan_rtps.ros.actions", "rcan_rtps.ros.services",
+               "rcan_rtps.ros.handshake", "rcan_rtps.ros._cyclone_header"}
+TOKEN = "run-imports-token-0123456789abcdef"
+NO_GOAL_SERVERS = ", nav_action: null, dock_action: null"
+
+
+def config_run(tmp_path: Path, domain_id: int, ros2_extra: str = "") -> RunProcess:
+    """`run --config` of a robot on /robot1 (no --sim: the simulator serves goals itself)."""
+    state = tmp_path / "state"
+    state.mkdir(mode=0o700)
+    config = tmp_path / "robot.rcan.yaml"
+    config.write_text(
+        "robot: {ruri: rcan://registry.local/acme/rover/unit-0001}\n"
+        "bridge:\n"
+        f"  ros2: {{namespace: /robot1, domain_id: {domain_id}"
+        f"{ros2_extra}}}\n"
+        "  api: {auth_token_env: RCAN_BRIDGE_TOKEN}\n"
+        "  safety: {max_linear_vel: 1.0, max_angular_vel: 1.0, session_timeout_s: 3600}\n"
+        f"  audit: {{path: {state / 'audit.jsonl'}, key_path: {state / 'audit.key'}}}\n")
+    env = child_env(domain_id, PYTHONPROFILEIMPORTTIME="1", RCAN_BRIDGE_TOKEN=TOKEN)
+    return RunProcess(["run", "--config", str(config), "--port", "0", "--no-mdns"], env,
+                      demo=False)
+
+
+def start_and_serving(proc: RunProcess) -> tuple[set[str], set[str]]:
+    """Of an ended run: the modules imported before the bridge said it runs (its last line
+    before the ready line), and those imported while it served, up to its shutdown."""
+    lines = list(proc.stderr)
+    running = next(i for i, line in enumerate(lines) if "bridge running" in line)
+    stopping = next(i for i, line in enumerate(lines) if "shutting down" in line)
+    return imported(lines[:running]), imported(lines[running:stopping])
+
+
+@contextlib.contextmanager
+def sim_robot(domain_id: int) -> Iterator[None]:
+    """`rcan-rtps sim` on /robot1, in a process of its own: a robot with both goal servers."""
+    sim = subprocess.Popen([sys.executable, "-m", "rcan_rtps", "sim", "--namespace", "/robot1"],
+                           stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                           env=child_env(domain_id), start_new_session=True)
+    try:
+        assert sim.stdout is not None and "sim ready" in sim.stdout.readline()
+        yield
+    finally:
+        sim.terminate()
+        sim.wait(30)
+
+
+def test_a_bridge_naming_no_goal_server_loads_no_action_client(tmp_path: Path,
+                                                               domain_id: int) -> None:
+    with sim_robot(domain_id):
+        proc = config_run(tmp_path, domain_id, NO_GOAL_SERVERS)
+        try:
+            stopped = post(proc.url, TOKEN, {"action": "stop"})
+            navigated = post(proc.url, TOKEN, {"action": "navigate",
+                                               "params": {"x": 1.0, "y": 0.0, "yaw": 0.0}})
+            proc.signal(signal.SIGINT)
+            assert proc.wait(EXIT_TIMEOUT) == 0, proc.output()
+        finally:
+            proc.kill()
+    assert stopped[0] == 200, (stopped, proc.output())
+    # Refused, though the robot serves it: the config names no NavigateToPose server.
+    assert navigated[0] != 200 and "NavigateToPose is not available" in json.dumps(navigated), \
+        navigated
+    modules = imported(proc.stderr)
+    assert "rcan_rtps.bridge.goals" in modules  # the import log is complete
+    assert not GOAL_CLIENT & modules, f"imported {sorted(GOAL_CLIENT & modules)}"
+
+
+def test_with_goal_servers_the_stop_path_is_loaded_before_ready(tmp_path: Path,
+                                                                domain_id: int) -> None:
+    """The default config names both goal servers: their clients' modules are imported while
+    the bridge starts, and a goal and the stop that cancels it import nothing of ours."""
+    with sim_robot(domain_id):
+        proc = config_run(tmp_path, domain_id)
+        try:
+            sent = post(proc.url, TOKEN, {"action": "navigate",
+                                          "params": {"x": 1.0, "y": 0.0, "yaw": 0.0}})
+            stopped = post(proc.url, TOKEN, {"action": "stop"})
+            proc.signal(signal.SIGINT)
+            assert proc.wait(EXIT_TIMEOUT) == 0, proc.output()
+        finally:
+            proc.kill()
+    started, later = start_and_serving(proc)
+    assert not GOAL_CLIENT - started, f"not imported at start: {sorted(GOAL_CLIENT - started)}"
+    assert sent[0] == 200 and sent[1].get("goal_id"), sent  # accepted: the server is there
+    assert stopped[0] == 200, stopped
+    ours = {m for m in later if m.startswith("rcan_rtps")}
+    assert not ours, f"a goal or a stop imported {sorted(ours)}"

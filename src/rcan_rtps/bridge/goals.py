@@ -3,7 +3,9 @@
 One `GoalTracker` (one action client) per distinct (configured action name, action type) of
 the registry's `SendGoal` routes: `navigate` reaches the NavigateToPose server named by
 `bridge.ros2.nav_action`, `dock` the DockRobot server named by `dock_action`. The config has
-already refused two types on one server (`config._model.goal_routes_problem`).
+already refused two types on one server (`config._model.goal_routes_problem`). A key set to
+null names no server: that route has no tracker (its goals are refused), and with no tracker
+at all the action client's modules are never imported.
 
 What concerns goals as a whole spans every tracker: a stop cancels goals on every server, the
 API lists every goal, and listeners (STATUS, WebSocket goal events, the audit's GOAL_FINISHED)
@@ -15,22 +17,27 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..api.ports import GoalView
 from ..config import Ros2Config
 from ..events import Events
 from ..rcan import Navigation
 from ..rcan.actions import GoalRoute, goal_routes
+from ..rcan.actions.navigate import NAVIGATE_TO_POSE
 from ..ros.participant import RosNode
-from ..ros.services import RequestMapping
-from .navigation import NAVIGATE_TO_POSE, GoalTracker, navigation_summary
+
+if TYPE_CHECKING:
+    from ..ros.services import RequestMapping
+    from .navigation import GoalTracker
 
 log = logging.getLogger(__name__)
 
 
 def route_mapping(ros2: Ros2Config, action_key: str) -> RequestMapping:
     """The configured request-reply mapping of a goal route (its name's override first)."""
+    from ..ros.services import RequestMapping
+
     name = getattr(ros2, action_key)
     return RequestMapping(ros2.request_mappings.get(name, ros2.request_mapping))
 
@@ -45,7 +52,12 @@ class GoalRoutes:
         self.events = events or Events()
         self._by_key: dict[str, GoalTracker] = {}
         trackers: dict[tuple[str, str], GoalTracker] = {}
-        for route in goal_routes() if routes is None else routes:
+        named = [r for r in (goal_routes() if routes is None else routes)
+                 if getattr(ros2, r.action_key) is not None]  # null: the robot has no such server
+        if named:
+            # Here, at start: the stop path (`cancel_all`) never waits for an import.
+            from .navigation import GoalTracker
+        for route in named:
             server = (ros2.resolve(getattr(ros2, route.action_key)), route.type_name)
             tracker = trackers.get(server)
             if tracker is None:
@@ -96,7 +108,11 @@ class GoalRoutes:
     def navigation(self) -> Navigation | None:
         """STATUS `navigation`: the newest active NavigateToPose goal and its progress."""
         navigating = self._active_views(lambda t: t.type_name == NAVIGATE_TO_POSE)
-        return navigation_summary(navigating[-1]) if navigating else None
+        if not navigating:
+            return None
+        from .navigation import navigation_summary  # imported with the trackers
+
+        return navigation_summary(navigating[-1])
 
     def active(self) -> list[str]:
         """The goals not yet ended, on every server, oldest first."""

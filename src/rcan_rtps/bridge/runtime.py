@@ -52,7 +52,6 @@ from ..governance.decision_log import log_entry
 from ..governance.signatures import Signatures
 from ..rcan import Status
 from ..ros.participant import RosNode
-from ..ros.services import RequestMapping
 from .commanders import CommanderWatch
 from .commands import RosDispatcher
 from .errors import BridgeStateError
@@ -61,6 +60,7 @@ from .notify import DiagnosticsNotifier, FanOutNotifier
 from .telemetry import TelemetryState
 
 if TYPE_CHECKING:
+    from ..ros.services import RequestMapping
     from .mdns import Advert, RcanAdvertiser  # imported when advertising: zeroconf is large
 
 log = logging.getLogger(__name__)

@@ -255,16 +255,20 @@ def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: 
                        distro=ros2.distro, localhost=localhost)
     parts.callback(sim_node.close)
     robot = SimRobot(sim_node, cmd_vel_type=ros2.cmd_vel_type)
-    nav = NavigationServer(robot, ros2.nav_action)
-    docking = DockingServer(robot, ros2.dock_action)
+    # A goal server the config names none of (null) is not simulated either.
+    servers: list[NavigationServer | DockingServer] = []
+    if ros2.nav_action is not None:
+        servers.append(NavigationServer(robot, ros2.nav_action))
+    if ros2.dock_action is not None:
+        servers.append(DockingServer(robot, ros2.dock_action))
     parameters = serve_parameters(robot)
     sim_task = asyncio.create_task(robot.run(stop))
     camera_task = asyncio.create_task(SimCamera(sim_node, robot).run(stop))
 
     async def stop_sim() -> None:
         stop.set()
-        await nav.close()
-        await docking.close()
+        for server in servers:
+            await server.close()
         await parameters.close()
         await sim_task
         await camera_task

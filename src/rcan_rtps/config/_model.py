@@ -186,8 +186,10 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     joint_trajectory_topic: RosTopic = "joint_trajectory_controller/joint_trajectory"
     # Several arms: `arm_joint` names one by `group`; then joint_trajectory_topic is unused.
     arms: dict[ArmName, ArmConfig] = {}
-    nav_action: RosTopic = "navigate_to_pose"  # nav2 NavigateToPose (`navigate`)
-    dock_action: RosTopic = "dock_robot"  # nav2 DockRobot, opennav_docking's server (`dock`)
+    # Goal action servers; null: the robot has none (its goals are refused, and the bridge
+    # makes no action client for it, nor loads the modules of one: idle memory, issue 27).
+    nav_action: RosTopic | None = "navigate_to_pose"  # nav2 NavigateToPose (`navigate`)
+    dock_action: RosTopic | None = "dock_robot"  # nav2 DockRobot, opennav_docking's (`dock`)
     odom_topic: RosTopic = "odom"
     diagnostics_topic: RosTopic = "diagnostics"
     battery_topic: RosTopic = "battery_state"
@@ -265,9 +267,12 @@ def goal_routes_problem(ros2: Ros2Config, routes: tuple[GoalRoute, ...]) -> str 
     servers: dict[str, GoalRoute] = {}
     for route in routes:
         name = getattr(ros2, route.action_key, None)
-        if not isinstance(name, str) or route.action_key not in Ros2Config.__struct_fields__:
+        if route.action_key not in Ros2Config.__struct_fields__ or not (
+                name is None or isinstance(name, str)):
             return (f"action {', '.join(route.actions)} sends {route.type_name} goals to the "
                     f"server named by `{route.action_key}`, which bridge.ros2 does not have")
+        if name is None:
+            continue  # no such server: its goals are refused
         resolved = ros2.resolve(name)
         seen = servers.setdefault(resolved, route)
         if seen.type_name != route.type_name:

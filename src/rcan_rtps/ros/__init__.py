@@ -16,11 +16,13 @@ Importing it checks the installed cyclonedds binding first (`_binding`): on one 
 run it (the 0.10 line) the import raises UnsupportedBindingError, saying how to get 11.x.
 """
 
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from ._binding import require_supported_binding
 
 require_supported_binding()  # before the modules below touch what a 0.10 binding lacks
 
-from .actions import ActionClient, ActionServer, ClientGoal, GoalResult, GoalState, ServerGoal
 from .errors import (
     ActionError,
     CdrDecodeError,
@@ -37,12 +39,43 @@ from .errors import (
     ValueFitError,
     WireError,
 )
-from .graph import Direction, Endpoint, RosGraph
-from .participant import RosNode, RosPublisher, RosSubscription
-from .qos import Durability, History, QosProfile, Reliability
-from .serialization import Codec, deserialize, serialize
-from .services import RequestMapping, ServiceClient, ServiceServer
-from .typesys import TypeStore
+
+if TYPE_CHECKING:
+    from .actions import ActionClient, ActionServer, ClientGoal, GoalResult, GoalState, ServerGoal
+    from .graph import Direction, Endpoint, RosGraph
+    from .participant import RosNode, RosPublisher, RosSubscription
+    from .qos import Durability, History, QosProfile, Reliability
+    from .serialization import Codec, deserialize, serialize
+    from .services import RequestMapping, ServiceClient, ServiceServer
+    from .typesys import TypeStore
+
+# The rest of the public names, each imported with its module on first use (PEP 562): a
+# process that needs topics only (a bridge run whose config names no goal server, `topic
+# echo`) never loads the services and actions (issue 27: idle memory).
+_LAZY = {
+    **dict.fromkeys(("ActionClient", "ActionServer", "ClientGoal", "GoalResult", "GoalState",
+                     "ServerGoal"), "actions"),
+    **dict.fromkeys(("Direction", "Endpoint", "RosGraph"), "graph"),
+    **dict.fromkeys(("RosNode", "RosPublisher", "RosSubscription"), "participant"),
+    **dict.fromkeys(("Durability", "History", "QosProfile", "Reliability"), "qos"),
+    **dict.fromkeys(("Codec", "deserialize", "serialize"), "serialization"),
+    **dict.fromkeys(("RequestMapping", "ServiceClient", "ServiceServer"), "services"),
+    "TypeStore": "typesys",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value  # once: later reads are plain attribute reads
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})
+
 
 __all__ = [
     "ActionClient",

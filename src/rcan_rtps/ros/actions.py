@@ -416,6 +416,8 @@ class ActionClient:
                     break
                 await asyncio.sleep(POLL)
             self._check_open()  # closed while it waited: no reader for a closed client
+            if self._feedback is not None:  # another wait made it meanwhile: one reader
+                return self._feedback
             capture = self.node.identities
             self._feedback_since = 0 if capture is None else capture.mark()
             self._feedback_reader_no += 1

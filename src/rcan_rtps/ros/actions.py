@@ -231,10 +231,11 @@ class ActionClient:
         self._closed = False
         self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
         self._feedback_announced = False  # see `_await_feedback_announced`
-        self._feedback_heard = False  # ... and every feedback writer's HEARTBEAT was heard
         self._feedback_since = 0  # the capture's mark before the feedback reader was made
         self._feedback_reader_no = 0  # feedback readers made so far (renewals make more)
-        self._feedback_delivered = False  # the current feedback reader has taken a sample
+        # Feedback writers (handles) the current reader is known to be in sync with: one of
+        # their HEARTBEATs was heard, or it took a sample of theirs (`feedback_in_sync`).
+        self._feedback_synced: set[int] = set()
         self._announce_lock = asyncio.Lock()  # one such wait for goals sent at once
         self.feedback_renewed = 0  # feedback readers made again (their announcement unheard)
         self.feedback_unannounced = 0  # 1 when goals went out with the announcement unheard
@@ -354,7 +355,7 @@ class ActionClient:
             assert self._feedback is not None
             return self._feedback.reader
 
-        _, unheard = await hear_announcements(
+        heard, unheard = await hear_announcements(
             capture, reader, lambda: self._feedback_since,
             lambda: self._renew_feedback_reader(deadline), deadline,
             vendors=(FASTDDS_VENDOR, CYCLONE_VENDOR), skip=self._in_process_feedback_writers,
@@ -366,18 +367,18 @@ class ActionClient:
                       "after %d readers; goals go out without it", self.name,
                       self.feedback_renewed + 1)
             self.feedback_unannounced += 1
-        self._feedback_heard = not unheard
+        self._feedback_synced |= heard
         self._feedback_announced = True  # heard, or given up on (best effort: once)
 
     def feedback_in_sync(self) -> bool:
         """Whether a goal sent now gets its first feedback as soon as it arrives: our
-        feedback reader has heard a HEARTBEAT of each feedback writer (in the capture) or
-        has taken a sample, or no Cyclone writer is matched with it (handshake.py, 4.)."""
-        if self._feedback_heard or self._feedback_delivered or self._feedback is None or \
-                self._gone():  # (its reader deleted; the goal's call says it is closed)
-            return True
+        feedback reader has heard a HEARTBEAT of each Cyclone feedback writer matched with it
+        (in the capture) or has taken a sample of it (handshake.py, 4.). Per writer: a server
+        that restarts has a new writer, out of sync with the reader made for the old one."""
+        if self._feedback is None or self._gone():  # (its reader deleted; the goal's call
+            return True                              # says it is closed)
         return not writers_of(self._feedback.reader, (CYCLONE_VENDOR,),
-                              self._in_process_feedback_writers())
+                              self._feedback_synced | self._in_process_feedback_writers())
 
     def _in_process_feedback_writers(self) -> set[int]:
         """Feedback writers of this process's participants: no HEARTBEAT comes from them, and
@@ -421,7 +422,7 @@ class ActionClient:
             capture = self.node.identities
             self._feedback_since = 0 if capture is None else capture.mark()
             self._feedback_reader_no += 1
-            self._feedback_delivered = False
+            self._feedback_synced = set()
             self._feedback = self.node.create_subscription(
                 self._feedback_topic, self.type_name + "_FeedbackMessage",
                 qos_mod.DEFAULT.keeping(PAIR_READER_DEPTH),  # every goal's feedback comes
@@ -430,8 +431,9 @@ class ActionClient:
 
     def _feedback_taker(self, number: int) -> Callable[[IdlStruct], None]:
         def on_feedback(message: IdlStruct) -> None:  # on the loop
-            if number == self._feedback_reader_no:  # not a renewed reader's last sample
-                self._feedback_delivered = True
+            info = getattr(message, "sample_info", None)
+            if number == self._feedback_reader_no and info is not None:  # not a renewed
+                self._feedback_synced.add(int(info.publication_handle))  # reader's last
             self._on_feedback(message)
         return on_feedback
 

@@ -121,8 +121,11 @@ class ClientGoal:
         self._result: GoalResult | None = None
         self._drops = client.node.udp_drops()  # dropped at our sockets before it was sent
         # Sent before our feedback reader was known to be in sync with a Cyclone feedback
-        # writer: its first feedback may come only with the writer's next HEARTBEAT.
+        # writer: its first feedback may come only with the writer's next HEARTBEAT. Once a
+        # feedback of this goal was taken, its first one was too (or is lost for good): the
+        # reader takes a writer's samples in order.
         self._unsynced = not client.feedback_in_sync()
+        self._fed = False
         # Set by `feedback()` once the goal has ended, its result is in (or was given up on)
         # and every feedback that had reached us by then was yielded: what it yields after is
         # feedback whose dropped datagram came again, in the repair window.
@@ -178,8 +181,9 @@ class ClientGoal:
         the kernel dropped at our socket comes only once the writer's next HEARTBEAT asks for
         it to be sent again: if our DDS sockets dropped anything since the goal was
         sent (or that cannot be known), or if the goal went out before our feedback reader
-        was known to be in sync with the writer (handshake.py, 4.), wait as long as the
-        server's repair can take. docs/design/zero-loss.md has the evidence for each step."""
+        was known to be in sync with the writer (handshake.py, 4.) and none of its feedback
+        has come, wait as long as the server's repair can take. docs/design/zero-loss.md
+        has the evidence for each step."""
         loop = asyncio.get_running_loop()
         with contextlib.suppress(WireError):
             await self.result(timeout=SETTLE_S if deadline is None
@@ -187,7 +191,8 @@ class ClientGoal:
         await self.client.node.delivered()
         drops = self.client.node.udp_drops()
         if self.state in (GoalState.REJECTED, GoalState.SERVER_LOST) or \
-                (drops is not None and drops == self._drops and not self._unsynced):
+                (drops is not None and drops == self._drops and
+                 not (self._unsynced and not self._fed)):
             return loop.time()
         return loop.time() + self.client.repair_time()
 
@@ -202,6 +207,7 @@ class ClientGoal:
         return await self.client._cancel(self, timeout)
 
     def _on_feedback(self, feedback: IdlStruct) -> None:
+        self._fed = True
         if self._feedback.full():  # keep the newest
             self._feedback.get_nowait()
         self._feedback.put_nowait(feedback)
@@ -417,8 +423,9 @@ class ActionClient:
                     break
                 await asyncio.sleep(POLL)
             self._check_open()  # closed while it waited: no reader for a closed client
-            if self._feedback is not None:  # another wait made it meanwhile: one reader
-                return self._feedback
+            made = self._current_feedback()  # another wait made it meanwhile: one reader
+            if made is not None:
+                return made
             capture = self.node.identities
             self._feedback_since = 0 if capture is None else capture.mark()
             self._feedback_reader_no += 1
@@ -427,6 +434,9 @@ class ActionClient:
                 self._feedback_topic, self.type_name + "_FeedbackMessage",
                 qos_mod.DEFAULT.keeping(PAIR_READER_DEPTH),  # every goal's feedback comes
                 callback=self._on_loop(self._feedback_taker(self._feedback_reader_no)))
+        return self._feedback
+
+    def _current_feedback(self) -> RosSubscription | None:
         return self._feedback
 
     def _feedback_taker(self, number: int) -> Callable[[IdlStruct], None]:

@@ -41,7 +41,6 @@ from .handshake import (
     acquire_by,
     hear_announcements,
     matched_writers,
-    writers_of,
     writers_ready,
 )
 from .names import action_names, mangle_topic
@@ -383,8 +382,9 @@ class ActionClient:
         that restarts has a new writer, out of sync with the reader made for the old one."""
         if self._feedback is None or self._gone():  # (its reader deleted; the goal's call
             return True                              # says it is closed)
-        return not writers_of(self._feedback.reader, (CYCLONE_VENDOR,),
-                              self._feedback_synced | self._in_process_feedback_writers())
+        return not any(g[:2] == CYCLONE_VENDOR and h not in self._feedback_synced and
+                       not self.node.in_process(g)  # (one DDS query per goal)
+                       for h, g in matched_writers(self._feedback.reader).items())
 
     def _in_process_feedback_writers(self) -> set[int]:
         """Feedback writers of this process's participants: no HEARTBEAT comes from them, and

@@ -360,3 +360,26 @@ async def test_a_server_in_this_process_is_not_waited_for(nodes: tuple[RosNode, 
     assert client.feedback_in_sync()
     client.close()
     await server.close()
+
+
+async def test_waits_at_once_on_a_fresh_client_make_one_feedback_reader(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """Two waits for the server at once (goals sent at once by a fresh client: the bridge's
+    first commands) that both looked for the server's feedback writer before discovery showed
+    it each made a feedback reader: the first was replaced, never closed, and every feedback
+    then reached the goal twice, for the client's life."""
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "/nav", NAV, navigate)
+    server._feedback.close()  # its feedback writer shows only once both waits look for it
+    client = ActionClient(client_node, "/nav", NAV)
+    waits = asyncio.gather(client.wait_for_server(20), client.wait_for_server(20))
+    await asyncio.sleep(1.0)
+    server._feedback = server_node.create_publisher(
+        "/nav/_action/feedback", NAV + "_FeedbackMessage", qos.DEFAULT)
+    await waits
+    goal = await client.send_goal(GOAL, timeout=20)
+    remaining = [round(f.distance_remaining, 3) async for f in goal.feedback(timeout=20)]
+    assert remaining == [2.5, 2.0, 1.5, 1.0, 0.5, 0.0]
+    assert server._feedback.matched_count() == 1
+    client.close()
+    await server.close()

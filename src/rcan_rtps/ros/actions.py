@@ -41,7 +41,6 @@ from .handshake import (
     acquire_by,
     hear_announcements,
     matched_writers,
-    writers_of,
     writers_ready,
 )
 from .names import action_names, mangle_topic
@@ -121,8 +120,11 @@ class ClientGoal:
         self._result: GoalResult | None = None
         self._drops = client.node.udp_drops()  # dropped at our sockets before it was sent
         # Sent before our feedback reader was known to be in sync with a Cyclone feedback
-        # writer: its first feedback may come only with the writer's next HEARTBEAT.
+        # writer: its first feedback may come only with the writer's next HEARTBEAT. Once a
+        # feedback of this goal was taken, its first one was too (or is lost for good): the
+        # reader takes a writer's samples in order.
         self._unsynced = not client.feedback_in_sync()
+        self._fed = False
         # Set by `feedback()` once the goal has ended, its result is in (or was given up on)
         # and every feedback that had reached us by then was yielded: what it yields after is
         # feedback whose dropped datagram came again, in the repair window.
@@ -178,8 +180,9 @@ class ClientGoal:
         the kernel dropped at our socket comes only once the writer's next HEARTBEAT asks for
         it to be sent again: if our DDS sockets dropped anything since the goal was
         sent (or that cannot be known), or if the goal went out before our feedback reader
-        was known to be in sync with the writer (handshake.py, 4.), wait as long as the
-        server's repair can take. docs/design/zero-loss.md has the evidence for each step."""
+        was known to be in sync with the writer (handshake.py, 4.) and none of its feedback
+        has come, wait as long as the server's repair can take. docs/design/zero-loss.md
+        has the evidence for each step."""
         loop = asyncio.get_running_loop()
         with contextlib.suppress(WireError):
             await self.result(timeout=SETTLE_S if deadline is None
@@ -187,7 +190,8 @@ class ClientGoal:
         await self.client.node.delivered()
         drops = self.client.node.udp_drops()
         if self.state in (GoalState.REJECTED, GoalState.SERVER_LOST) or \
-                (drops is not None and drops == self._drops and not self._unsynced):
+                (drops is not None and drops == self._drops and
+                 not (self._unsynced and not self._fed)):
             return loop.time()
         return loop.time() + self.client.repair_time()
 
@@ -202,6 +206,7 @@ class ClientGoal:
         return await self.client._cancel(self, timeout)
 
     def _on_feedback(self, feedback: IdlStruct) -> None:
+        self._fed = True
         if self._feedback.full():  # keep the newest
             self._feedback.get_nowait()
         self._feedback.put_nowait(feedback)
@@ -231,10 +236,11 @@ class ActionClient:
         self._closed = False
         self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
         self._feedback_announced = False  # see `_await_feedback_announced`
-        self._feedback_heard = False  # ... and every feedback writer's HEARTBEAT was heard
         self._feedback_since = 0  # the capture's mark before the feedback reader was made
         self._feedback_reader_no = 0  # feedback readers made so far (renewals make more)
-        self._feedback_delivered = False  # the current feedback reader has taken a sample
+        # Feedback writers (handles) the current reader is known to be in sync with: one of
+        # their HEARTBEATs was heard, or it took a sample of theirs (`feedback_in_sync`).
+        self._feedback_synced: set[int] = set()
         self._announce_lock = asyncio.Lock()  # one such wait for goals sent at once
         self.feedback_renewed = 0  # feedback readers made again (their announcement unheard)
         self.feedback_unannounced = 0  # 1 when goals went out with the announcement unheard
@@ -354,7 +360,7 @@ class ActionClient:
             assert self._feedback is not None
             return self._feedback.reader
 
-        _, unheard = await hear_announcements(
+        heard, unheard = await hear_announcements(
             capture, reader, lambda: self._feedback_since,
             lambda: self._renew_feedback_reader(deadline), deadline,
             vendors=(FASTDDS_VENDOR, CYCLONE_VENDOR), skip=self._in_process_feedback_writers,
@@ -366,18 +372,19 @@ class ActionClient:
                       "after %d readers; goals go out without it", self.name,
                       self.feedback_renewed + 1)
             self.feedback_unannounced += 1
-        self._feedback_heard = not unheard
+        self._feedback_synced |= heard
         self._feedback_announced = True  # heard, or given up on (best effort: once)
 
     def feedback_in_sync(self) -> bool:
         """Whether a goal sent now gets its first feedback as soon as it arrives: our
-        feedback reader has heard a HEARTBEAT of each feedback writer (in the capture) or
-        has taken a sample, or no Cyclone writer is matched with it (handshake.py, 4.)."""
-        if self._feedback_heard or self._feedback_delivered or self._feedback is None or \
-                self._gone():  # (its reader deleted; the goal's call says it is closed)
-            return True
-        return not writers_of(self._feedback.reader, (CYCLONE_VENDOR,),
-                              self._in_process_feedback_writers())
+        feedback reader has heard a HEARTBEAT of each Cyclone feedback writer matched with it
+        (in the capture) or has taken a sample of it (handshake.py, 4.). Per writer: a server
+        that restarts has a new writer, out of sync with the reader made for the old one."""
+        if self._feedback is None or self._gone():  # (its reader deleted; the goal's call
+            return True                              # says it is closed)
+        return not any(g[:2] == CYCLONE_VENDOR and h not in self._feedback_synced and
+                       not self.node.in_process(g)  # (one DDS query per goal)
+                       for h, g in matched_writers(self._feedback.reader).items())
 
     def _in_process_feedback_writers(self) -> set[int]:
         """Feedback writers of this process's participants: no HEARTBEAT comes from them, and
@@ -416,20 +423,27 @@ class ActionClient:
                     break
                 await asyncio.sleep(POLL)
             self._check_open()  # closed while it waited: no reader for a closed client
+            made = self._current_feedback()  # another wait made it meanwhile: one reader
+            if made is not None:
+                return made
             capture = self.node.identities
             self._feedback_since = 0 if capture is None else capture.mark()
             self._feedback_reader_no += 1
-            self._feedback_delivered = False
+            self._feedback_synced = set()
             self._feedback = self.node.create_subscription(
                 self._feedback_topic, self.type_name + "_FeedbackMessage",
                 qos_mod.DEFAULT.keeping(PAIR_READER_DEPTH),  # every goal's feedback comes
                 callback=self._on_loop(self._feedback_taker(self._feedback_reader_no)))
         return self._feedback
 
+    def _current_feedback(self) -> RosSubscription | None:
+        return self._feedback
+
     def _feedback_taker(self, number: int) -> Callable[[IdlStruct], None]:
         def on_feedback(message: IdlStruct) -> None:  # on the loop
-            if number == self._feedback_reader_no:  # not a renewed reader's last sample
-                self._feedback_delivered = True
+            info = getattr(message, "sample_info", None)
+            if number == self._feedback_reader_no and info is not None:  # not a renewed
+                self._feedback_synced.add(int(info.publication_handle))  # reader's last
             self._on_feedback(message)
         return on_feedback
 

@@ -148,9 +148,14 @@ def test_an_owner_approves_one_held_command_and_denies_another(browser: Any, sim
     page.element(f"{card} button[data-verdict=deny]").click()
     page.wait("return document.querySelector(arguments[0]) === null", "the denied one gone",
               card)
-    denied = [e for e in sim.entries() if e["event"] == "HITL_DENIED"]
-    assert [(e["pending_id"], e["approvals"][-1]["reason"]) for e in denied] == [
-        (pending, "not now")]
+
+    def denials() -> list[tuple[str, str]]:
+        return [(e["pending_id"], e["approvals"][-1]["reason"]) for e in sim.entries()
+                if e["event"] == "HITL_DENIED"]
+    # The card goes once the command is out of the store, its audit entry right after (a
+    # denial moves nothing: no entry has to be durable before it).
+    eventually_sync(lambda: denials() != [], timeout=30, what="the denial in the audit log")
+    assert denials() == [(pending, "not now")]
     assert abs(sim.status()["telemetry"]["position"]["x"] - before) < 0.05
 
     page.wait("return document.getElementById('verify').dataset.state === 'ok'",

@@ -41,6 +41,7 @@ from .handshake import (
     acquire_by,
     hear_announcements,
     matched_writers,
+    writer_handle,
     writers_ready,
 )
 from .names import action_names, mangle_topic
@@ -442,8 +443,9 @@ class ActionClient:
     def _feedback_taker(self, number: int) -> Callable[[IdlStruct], None]:
         def on_feedback(message: IdlStruct) -> None:  # on the loop
             info = getattr(message, "sample_info", None)
-            if number == self._feedback_reader_no and info is not None:  # not a renewed
-                self._feedback_synced.add(int(info.publication_handle))  # reader's last
+            # (not the last sample of a reader made again since)
+            if number == self._feedback_reader_no and info is not None:
+                self._feedback_synced.add(writer_handle(info.publication_handle))
             self._on_feedback(message)
         return on_feedback
 

@@ -94,13 +94,23 @@ def matched_subscriptions(writer: DataWriter[Any]) -> list[int]:
     return []
 
 
+HANDLE_MASK = 0xFFFF_FFFF_FFFF_FFFF
+
+
+def writer_handle(handle: int) -> int:
+    """A writer's instance handle as one number: the binding gives the matched-publication
+    list's as signed 64-bit integers and a sample's `publication_handle` as unsigned."""
+    return int(handle) & HANDLE_MASK
+
+
 def matched_writers(reader: DataReader[Any]) -> dict[int, bytes]:
-    """The writers `reader` is matched with (our view): instance handle → GUID."""
+    """The writers `reader` is matched with (our view): instance handle (`writer_handle`)
+    → GUID."""
     found = {}
     for handle in matched_publications(reader):
         data = reader.get_matched_publication_data(handle)
         if data is not None:
-            found[int(handle)] = bytes(data.key.bytes)
+            found[writer_handle(handle)] = bytes(data.key.bytes)
     return found
 
 

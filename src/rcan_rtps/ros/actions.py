@@ -427,14 +427,15 @@ class ActionClient:
             made = self._current_feedback()  # another wait made it meanwhile: one reader
             if made is not None:
                 return made
-            capture = self.node.identities
-            self._feedback_since = 0 if capture is None else capture.mark()
             self._feedback_reader_no += 1
             self._feedback_synced = set()
             self._feedback = self.node.create_subscription(
                 self._feedback_topic, self.type_name + "_FeedbackMessage",
                 qos_mod.DEFAULT.keeping(PAIR_READER_DEPTH),  # every goal's feedback comes
                 callback=self._on_loop(self._feedback_taker(self._feedback_reader_no)))
+            # Once the reader is there: a HEARTBEAT captured after this was applied to it.
+            capture = self.node.identities
+            self._feedback_since = 0 if capture is None else capture.mark()
         return self._feedback
 
     def _current_feedback(self) -> RosSubscription | None:

@@ -196,7 +196,7 @@ async def hear_announcements(capture: IdentityCapture, reader: Callable[[], Data
                              ) -> tuple[set[int], dict[int, bytes]]:
     """Waits until a HEARTBEAT of every matched writer of `vendors` applied to `reader()`
     was heard in the packet capture (3. and 4. above; `since()`: the capture's mark taken
-    before that reader was made); when one has not come within ANNOUNCE_WAIT, `renew()`
+    once that reader was made); when one has not come within ANNOUNCE_WAIT, `renew()`
     makes the reader again (matched and handshaken), which the writers announce themselves
     to afresh. At most ANNOUNCE_TRIES readers, within `deadline` (loop time), while
     `may_renew()`. Returns the writers (handles) heard, and those still unheard (handle →

@@ -485,9 +485,12 @@ class IdentityCapture:
         """Whether a HEARTBEAT of `writer_guid` that Cyclone applies to the reader
         `reader_guid` has reached our socket while a client needed identities (`use`):
         one addressed to that reader, or one addressed to all readers (of our participant, or
-        of whoever received it) at or after `since` (a `mark` taken before the reader was
-        made: an earlier one was not applied to it). The file is first flushed and read up
-        to its end, as by a `lookup` that missed."""
+        of whoever received it) at or after `since`: a `mark` taken once the reader was made
+        (and matched: Cyclone matches a new reader with the writers it knows as it makes it).
+        Cyclone writes a datagram here before it processes it, so one after the mark was
+        processed after the reader was there; one before it may have been processed before,
+        and not applied to the reader (it then costs the caller a wait, never a false "heard").
+        The file is first flushed and read up to its end, as by a `lookup` that missed."""
         entity, ours = reader_guid[12:], reader_guid[:12]
         pairs = ((writer_guid, reader_guid, 0), (writer_guid, UNKNOWN_PREFIX + entity, 0),
                  (writer_guid, ours + ENTITYID_UNKNOWN, since),

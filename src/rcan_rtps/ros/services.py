@@ -173,12 +173,12 @@ class _Pair:
 
     def _make_reader(self) -> tuple[DataReader[Any], Any]:
         node, into, qos = self._node, self._into, self._qos.keeping(PAIR_READER_DEPTH)
-        # Where the packet capture was before the reader existed (handshake.hear_announcements)
-        self.since = 0 if node.identities is None else node.identities.mark()
         if self.mapping is RequestMapping.CYCLONE:
             reader = cyclone.create_reader(node, *into, qos, self._user)
         else:
             reader = node.create_reader(*into, qos, extra_user_data=self._user)
+        # Where the packet capture was once the reader existed (handshake.hear_announcements)
+        self.since = 0 if node.identities is None else node.identities.mark()
 
         def on_samples(samples: list[Any]) -> None:  # on the node's reader thread
             if reader is self.reader:  # not a renewed reader's last batch

@@ -423,12 +423,7 @@ async def test_a_goal_sent_before_the_sync_was_heard_waits_for_its_feedback_to_b
     HEARTBEAT: no such wait. (The repair time is made long, so that waiting it out shows.)"""
     monkeypatch.setattr(actions, "REPAIR_S", dict.fromkeys(actions.REPAIR_S, 600.0))
     await oracle.acall("action_server", name="/fib_burst", period=0.0)
-    real, node.identities = node.identities, DeafCapture(node.identities)
-    try:
-        client = burst_client(node)
-        await client.wait_for_server(20)
-    finally:
-        node.identities = real
+    client = await deaf_burst_client(node)
     assert client.feedback_unannounced == 1  # nothing heard after ANNOUNCE_TRIES readers
     # A Fast DDS writer's samples are taken before any HEARTBEAT: nothing to wait for.
     assert client.feedback_in_sync() is (oracle.rmw == "fastrtps")
@@ -443,12 +438,7 @@ async def test_a_goal_sent_before_the_sync_was_heard_waits_for_its_feedback_to_b
     # A Cyclone writer's sample taken: in sync. Another fresh client, still unsynced, whose
     # goal of order 1 has no feedback: it waits the repair time for what may be on its way.
     client.close()
-    real, node.identities = node.identities, DeafCapture(node.identities)
-    try:
-        client = burst_client(node)
-        await client.wait_for_server(20)
-    finally:
-        node.identities = real
+    client = await deaf_burst_client(node)
     unfed = await client.send_goal({"order": 1}, timeout=20)
     assert unfed._unsynced
     following = asyncio.create_task(_drain(unfed.feedback()))
@@ -459,6 +449,18 @@ async def test_a_goal_sent_before_the_sync_was_heard_waits_for_its_feedback_to_b
     client.close()  # (as the server leaving does: nothing more can come)
     with pytest.raises(ActionError):
         await asyncio.wait_for(following, 30)
+
+
+async def deaf_burst_client(node: RosNode) -> ActionClient:
+    """A fresh client of /fib_burst, ready, whose wait heard no feedback writer's HEARTBEAT
+    (its capture deaf to them while it waited: it made its reader again and gave up)."""
+    real, node.identities = node.identities, DeafCapture(node.identities)
+    try:
+        client = burst_client(node)
+        await client.wait_for_server(20)
+    finally:
+        node.identities = real
+    return client
 
 
 async def _within(feedback: AsyncIterator[Any], timeout: float) -> AsyncIterator[Any]:

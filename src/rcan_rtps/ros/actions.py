@@ -237,7 +237,7 @@ class ActionClient:
         self._closed = False
         self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
         self._feedback_announced = False  # see `_await_feedback_announced`
-        self._feedback_since = 0  # the capture's mark before the feedback reader was made
+        self._feedback_since = 0  # the capture's mark once the feedback reader was made
         self._feedback_reader_no = 0  # feedback readers made so far (renewals make more)
         # Feedback writers (handles) the current reader is known to be in sync with: one of
         # their HEARTBEATs was heard, or it took a sample of theirs (`feedback_in_sync`).

@@ -21,13 +21,14 @@ Two things can make a volatile writer's sample miss a reader that is matched in 
    drop the reply as history and ACK it: lost for good (traced, docs/design/zero-loss.md).
    So a client hears that HEARTBEAT in the packet capture before its first request, and
    makes its reader again when it does not come (`ServiceClient._await_announced`).
-4. A reader of a Cyclone writer starts out of sync and takes nothing from it before a
-   HEARTBEAT: the writer sends one to our participant when it matches our reader, but from
-   a timer thread, rate-limited per writer, while a sample it writes goes out at once. A
-   first feedback that overtakes it is not taken, and comes again only with the writer's
-   next periodic HEARTBEAT, ~0.1-0.2 s later: after the goal's end (seen under CPU load,
-   docs/design/zero-loss.md). So an action client hears a HEARTBEAT of each feedback writer
-   applied to its new reader before its first goal, as in 3.
+4. Cyclone drops a Cyclone writer's DATA while it has seen no HEARTBEAT of that writer
+   since a reliable reader of ours matched it (`ddsi_receive.c`: "no heartbeat seen yet"):
+   the writer sends one to our participant when it matches our reader, but from a timer
+   thread, rate-limited per writer, while a sample it writes goes out at once. A first
+   feedback that overtakes it is dropped, and comes again only once the writer has our
+   NACK: on a busy machine after the goal's end (docs/design/zero-loss.md). So an action
+   client hears a HEARTBEAT of each feedback writer applied to its new reader before its
+   first goal, as in 3.
 
 Against 1: discovery sends our readers to a peer on one reliable stream (SEDP
 subscriptions) in creation order, and the peer matches them in that order. A fresh

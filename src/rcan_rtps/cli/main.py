@@ -98,13 +98,37 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return _main(argv)
     except KeyboardInterrupt:  # before a command took Ctrl-C over (loading, parsing)
-        print("rcan-rtps: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _interrupted()
     except ImportError as exc:  # no usable cyclonedds: missing, or a line the wire refuses
+        if caused_by_interrupt(exc):
+            return _interrupted()
         if exc.name != "cyclonedds":
             raise
         print(f"rcan-rtps: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
+    except Exception as exc:
+        if caused_by_interrupt(exc):
+            return _interrupted()
+        raise
+
+
+def caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether a Ctrl-C is what `exc` wraps. Python 3.11 wraps an exception raised in a
+    class body's `__set_name__` in a RuntimeError: a Ctrl-C landing while cyclonedds
+    builds its classes (at import) comes out as one."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
+
+
+def _interrupted() -> int:
+    print("rcan-rtps: interrupted", file=sys.stderr)
+    return EXIT_INTERRUPTED
 
 
 def _main(argv: Sequence[str] | None) -> int:

@@ -31,7 +31,7 @@ mirror=http://deb.debian.org/debian
 # what a robot computer has for install-aarch64.sh once Cyclone C is built (libssl-dev: the
 # cross build's OpenSSL), and curl for the tour
 packages=python3,python3-venv,python3-dev,gcc,libc6-dev,libssl-dev,curl,ca-certificates
-host_packages=(qemu-user-static binfmt-support mmdebstrap zstd cmake make
+host_packages=(qemu-user-static binfmt-support mmdebstrap arch-test zstd cmake make
   gcc-aarch64-linux-gnu g++-aarch64-linux-gnu)
 
 say() { printf 'aarch64: %s\n' "$*"; }

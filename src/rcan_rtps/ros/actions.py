@@ -41,6 +41,7 @@ from .handshake import (
     acquire_by,
     hear_announcements,
     matched_writers,
+    may_withhold_before_heartbeat,
     writer_handle,
     writers_ready,
 )
@@ -134,7 +135,8 @@ class ClientGoal:
         self._result: GoalResult | None = None
         self._drops = client.node.udp_drops()  # dropped at our sockets before it was sent
         # Sent before our feedback reader was known to be in sync with a Cyclone feedback
-        # writer: its first feedback may come only with the writer's next HEARTBEAT. Once a
+        # writer (or one whose vendor cannot be told, as under DDS-Security): its first
+        # feedback may come only with the writer's next HEARTBEAT. Once a
         # feedback of this goal was taken, its first one was too (or is lost for good): the
         # reader takes a writer's samples in order.
         self._unsynced = not client.feedback_in_sync()
@@ -426,11 +428,13 @@ class ActionClient:
         """Whether a goal sent now gets its first feedback as soon as it arrives: our
         feedback reader has heard a HEARTBEAT of each Cyclone feedback writer matched with it
         (in the capture) or has taken a sample of it (handshake.py, 4.). Per writer: a server
-        that restarts has a new writer, out of sync with the reader made for the old one."""
+        that restarts has a new writer, out of sync with the reader made for the old one. A
+        writer whose vendor cannot be told (DDS-Security) counts as a Cyclone one, unless it
+        is in this process (`may_withhold_before_heartbeat`)."""
         if self._feedback is None or self._gone():  # (its reader deleted; the goal's call
             return True                              # says it is closed)
-        return not any(g[:2] == CYCLONE_VENDOR and h not in self._feedback_synced and
-                       not self.node.in_process(g)  # (one DDS query per goal)
+        return not any(may_withhold_before_heartbeat(g) and h not in self._feedback_synced
+                       and not self.node.in_process(g)  # (one DDS query per goal)
                        for h, g in matched_writers(self._feedback.reader).items())
 
     def _in_process_feedback_writers(self) -> set[int]:

@@ -412,3 +412,25 @@ async def test_a_long_lived_client_lets_go_of_ended_goals_but_never_of_one_still
     assert await client.cancel_all(timeout=10) == 1
     assert (await running.result(timeout=20)).state is GoalState.CANCELED
     await server.close()
+
+
+async def test_a_server_keeps_the_newest_ended_goals_and_every_running_one(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """An ended goal was kept for the whole result timeout (15 minutes), each one listed in
+    every status the server published: a burst of goals held thousands. The oldest ended
+    goals go first, past `keep_finished`; a running goal is never let go of."""
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "/robot1/navigate_to_pose", NAV, navigate,
+                          keep_finished=3)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    running = await client.send_goal({**GOAL, "pose": {"pose": {"position": {"x": 500.0}}}},
+                                     timeout=20)
+    near = {**GOAL, "pose": {"pose": {"position": {"x": 0.5}}}}
+    for _ in range(10):
+        goal = await client.send_goal(near, timeout=20)
+        assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
+        assert server.goals_kept <= 4  # the running goal and the 3 newest ended
+    assert server.goals_kept == 4
+    assert await running.cancel(timeout=10)
+    assert (await running.result(timeout=20)).state is GoalState.CANCELED
+    await server.close()

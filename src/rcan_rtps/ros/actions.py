@@ -72,6 +72,9 @@ SETTLE_S = 5.0  # s: how long a finished goal's feedback waits for its result (s
 # docs/design/zero-loss.md), with margin for a busy host.
 REPAIR_S = {RequestMapping.CYCLONE: 2.0, RequestMapping.FASTDDS: 4.0}
 RESULT_ASK_S = 5.0  # s: a get_result request unanswered this long is sent again (`_ask_result`)
+# Ended goals a server keeps (for get_result and its status list) besides its result timeout:
+# a burst of goals must not hold thousands for 15 minutes, each one listed in every status.
+KEEP_FINISHED = 1000
 
 
 def forget_after() -> float:
@@ -778,7 +781,7 @@ class ActionServer:
 
     def __init__(self, node: RosNode, action: str, type_name: str, execute: Execute, *,
                  accept: Callable[[IdlStruct], Awaitable[bool]] | None = None,
-                 result_timeout: float = 900.0) -> None:
+                 result_timeout: float = 900.0, keep_finished: int = KEEP_FINISHED) -> None:
         self.node = node
         self.name = node.resolve(action)
         self.types = node.store.action(type_name)
@@ -786,7 +789,9 @@ class ActionServer:
         self._execute = execute
         self._accept = accept
         self._result_timeout = result_timeout
+        self._keep_finished = keep_finished
         self._goals: dict[bytes, ServerGoal] = {}
+        self._finished: dict[bytes, None] = {}  # ended goals still kept, oldest first
         self._tasks: set[asyncio.Task[None]] = set()
         self._closed = False
         names = action_names(self.name)
@@ -833,12 +838,25 @@ class ActionServer:
             self.node.values.build(self.types.result.name, result or {})
         goal.state = end
         goal.done.set_result(message)
+        self._finished[goal.goal_id] = None
+        while len(self._finished) > self._keep_finished:  # the oldest ended go first
+            self._forget(next(iter(self._finished)))
         self._publish_status()
         asyncio.get_running_loop().call_later(self._result_timeout, self._expire, goal.goal_id)
 
     def _expire(self, goal_id: bytes) -> None:
+        if goal_id in self._finished:  # (not let go of already)
+            self._forget(goal_id)
+            self._publish_status()
+
+    def _forget(self, goal_id: bytes) -> None:
+        del self._finished[goal_id]
         self._goals.pop(goal_id, None)
-        self._publish_status()
+
+    @property
+    def goals_kept(self) -> int:
+        """Goals the server still knows: those running, and the newest ended ones."""
+        return len(self._goals)
 
     async def _on_get_result(self, request: Any) -> Any:
         response: Any = self.node.types.struct(self.types.get_result.response.name)

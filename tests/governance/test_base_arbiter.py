@@ -277,3 +277,21 @@ async def test_cancelled_goals_that_never_end_are_not_remembered_forever(tmp_pat
     assert len(gov._base._ended_by) == ENDED_BY_KEPT
     assert gov._base.goal_ended("lost-0") is None  # the oldest were let go
     assert gov._base.goal_ended(f"lost-{len(goals) - 1}") == "preempted by ops"
+
+
+async def test_goals_cancelled_at_their_sender_s_request_are_not_remembered_forever(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same bound for a goal cancelled at its sender's request (INVOKE_CANCEL, an
+    INVOKE's timeout): its end was remembered with no bound at all."""
+    from rcan_rtps.governance import arbiter
+
+    monkeypatch.setattr(arbiter, "ENDED_BY_KEPT", 8)
+    gov, wire, _, _ = await stream_governor(tmp_path)
+    for n in range(20):
+        decided = await gov._base.cancel_requested(f"lost-{n}", OPS, message_id=f"m{n}",
+                                                   why="invoke_cancel")
+        assert decided.outcome is Outcome.EXECUTED
+    assert len(wire.cancelled) == 20  # every one was still cancelled
+    assert len(gov._base._ended_by) == 8
+    assert gov._base.goal_ended("lost-0") is None  # the oldest were let go
+    assert gov._base.goal_ended("lost-19") == "invoke_cancel by ops"

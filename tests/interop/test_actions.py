@@ -4,6 +4,7 @@ Cyclone DDS). rclpy's client on Cyclone against our server: test_rmw_cyclonedds.
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
@@ -232,3 +233,28 @@ async def _announcing(client: ActionClient) -> None:
     """Until a goal's wait for the feedback writer's announcement is under way."""
     while not client._announce_lock.locked():
         await asyncio.sleep(0.01)
+
+
+LONG_LIVED_GOALS = 200
+
+
+@both_rmws
+async def test_a_long_lived_client_keeps_a_bounded_number_of_goals(
+        oracle: RclpyOracle, node: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    """The bridge keeps one client per server for its whole life: each goal followed to the
+    end of its feedback is let go of, so the client's goals do not grow with the goals sent.
+    rclpy's status topic lists each ended goal for 15 minutes more: what it says of goals let
+    go of is ignored, and quietly."""
+    await oracle.acall("action_server", name="/fib_fast", period=0.0)
+    client = ActionClient(node, "/fib_fast", FIB)
+    tracked = []
+    with caplog.at_level(logging.INFO, "rcan_rtps.ros.actions"):
+        for _ in range(LONG_LIVED_GOALS):
+            goal = await client.send_goal({"order": 2}, timeout=20)
+            tracked.append(client.goals_tracked)
+            feedback = [list(f.sequence) async for f in goal.feedback(timeout=20)]
+            outcome = await goal.result(timeout=20)
+            assert outcome.state is GoalState.SUCCEEDED and feedback == [fibonacci(2)]
+    assert max(tracked) == 1 and client.goals_tracked == 0, \
+        f"goals tracked at each send: {tracked}"
+    assert not [r.message for r in caplog.records if r.name == "rcan_rtps.ros.actions"]

@@ -4,7 +4,7 @@
 The robot side is a second DDS participant serving nav2 NavigateToPose on
 `/robot1/navigate_to_pose` and DockRobot on `/robot1/dock_robot`; each server records every
 goal it receives. A goal's x (navigate) or dock id (dock) picks how it ends: 1.0 / `home`
-succeed after a few feedback steps, 3.0 / `far` run until cancelled.
+succeed after a few feedback steps, 0.5 after one, 3.0 / `far` run until cancelled.
 """
 
 from __future__ import annotations
@@ -45,9 +45,9 @@ class Robot:
     async def navigate(self, goal: ServerGoal) -> dict[str, Any]:
         x = float(goal.goal.pose.pose.position.x)
         self.navigated.append(x)
-        return await _run(goal, x == 1.0, lambda step: {
+        return await _run(goal, x in (1.0, 0.5), lambda step: {
             "distance_remaining": max(0.0, 1.0 - 0.2 * step),
-            "navigation_time": duration_msg(0.05 * step)}, {})
+            "navigation_time": duration_msg(0.05 * step)}, {}, steps=0 if x == 0.5 else 5)
 
     async def dock(self, goal: ServerGoal) -> dict[str, Any]:
         self.docked.append(str(goal.goal.dock_id))
@@ -57,13 +57,13 @@ class Robot:
 
 
 async def _run(goal: ServerGoal, succeeds: bool, feedback: Any,
-               result: dict[str, Any]) -> dict[str, Any]:
+               result: dict[str, Any], steps: int = 5) -> dict[str, Any]:
     for step in range(100_000):
         if goal.cancel_requested.is_set():
             goal.canceled()
             return {}
         goal.publish_feedback(feedback(step))
-        if succeeds and step == 5:
+        if succeeds and step == steps:
             return result
         await asyncio.sleep(0.05)
     raise AssertionError("the goal was never cancelled")
@@ -206,3 +206,25 @@ async def test_stop_cancels_goals_on_every_goal_server(live: Live) -> None:
         assert live.robot.navigated == [3.0] and live.robot.docked == ["far", "far"]
     finally:
         other.close()
+
+
+MANY_GOALS = 60
+
+
+async def test_the_bridge_s_per_goal_state_stays_bounded(live: Live) -> None:
+    """The bridge keeps one action client per goal server for its whole life: what it holds
+    per goal must not grow with the goals sent. Every goal here reached its end and its
+    feedback stream ended: the client lets go of each, the tracker keeps its view (the
+    newest `keep`) and nothing else."""
+    sent = []
+    for _ in range(MANY_GOALS):
+        nav = await live.command({"action": "navigate", "params": {"x": 0.5, "y": 0, "yaw": 0}})
+        await _goal(live, nav["goal_id"], "succeeded")
+        sent.append(nav["goal_id"])
+    assert live.bridge.goals is not None
+    tracker = live.bridge.goals.tracker("nav_action")
+    assert tracker is not None
+    await eventually(lambda: not tracker._watchers, what="every goal's feedback stream ended")
+    assert tracker.client.goals_tracked == 0
+    assert not tracker._handles and set(tracker._message_ids) == set(sent)
+    assert len(live.robot.navigated) == MANY_GOALS

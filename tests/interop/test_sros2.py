@@ -31,6 +31,7 @@ from rcan_rtps.ros.security import SecurityUnavailable, SignatureError, keystore
 
 ROOT = Path(__file__).resolve().parents[2]
 PEER = Path(__file__).with_name("sros2_peer.py")
+FEEDBACK_PEER = Path(__file__).with_name("sros2_feedback_peer.py")
 STRING, TRIGGER = "std_msgs/msg/String", "std_srvs/srv/Trigger"
 ENCLAVES = ("/rclpy/talker", "/rclpy/listener", "/rcan_rtps/peer")
 
@@ -203,6 +204,30 @@ def test_our_secured_node_publishes_subscribes_calls_an_outsider_sees_nothing(
             peer.kill()
         assert heard == {"from secured rclpy"}  # the intruder was never heard
         assert outsider.call("stop_periodic", topic="/from_rclpy") > 0
+
+
+def test_a_secured_cyclone_feedback_writer_is_not_taken_for_in_sync(
+        cyclone: OracleEnv, store: Path, domain_id: int,
+        secure_cyclone: tuple[Path, Path]) -> None:
+    """Under DDS-Security a GUID carries no vendor id, so a secured rmw_cyclonedds server's
+    feedback writer was not recognised as Cyclone's: a fresh client counted its reader in sync
+    and a goal's feedback stream ended with its result, although Cyclone holds a Cyclone
+    writer's first feedback back until a HEARTBEAT (handshake.py, 4.; SROS2 encrypts the
+    HEARTBEATs, so the capture cannot hear them). A writer of unknown vendor now needs the
+    sync: the goal waits out the repair time; a taken feedback syncs it; our own server in
+    this process is still not waited for."""
+    python, home = secure_cyclone
+    with RclpyOracle(cyclone, "talker", domain_id=domain_id,
+                     env=secured(store, "/rclpy/talker")) as rclpy_node:
+        rclpy_node.call("action_server", name="/fib", period=0.01)
+        done = subprocess.run(
+            [str(python), str(FEEDBACK_PEER), str(domain_id)], capture_output=True, text=True,
+            timeout=180, env={**os.environ, **secured(store, "/rcan_rtps/peer"),
+                              "CYCLONEDDS_HOME": str(home), "PYTHONPATH": str(ROOT / "src")})
+    said = json.loads(done.stdout.splitlines()[-1]) if done.stdout else {"error": done.stderr}
+    assert said == {"fresh_in_sync": False, "open_after_end_settled": True,
+                    "in_sync_after_a_feedback": True, "own_server_in_sync": True}, \
+        f"{said}; stderr: {done.stderr[-2000:]}"
 
 
 def test_our_node_without_security_refuses_enforce(store: Path, domain_id: int,

@@ -383,3 +383,54 @@ async def test_waits_at_once_on_a_fresh_client_make_one_feedback_reader(
     assert server._feedback.matched_count() == 1
     client.close()
     await server.close()
+
+
+async def test_a_long_lived_client_lets_go_of_ended_goals_but_never_of_one_still_running(
+        nodes: tuple[RosNode, RosNode], monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bridge keeps one client per server for its whole life: an ended goal is let go of
+    once nothing more can come for it — at once when its feedback was followed to its end,
+    else `forget_after()` after its end (0 here) — while a running goal is kept, and a stop
+    (`cancel_all`) still cancels it."""
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "/robot1/navigate_to_pose", NAV, navigate)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    running = await client.send_goal({**GOAL, "pose": {"pose": {"position": {"x": 500.0}}}},
+                                     timeout=20)
+    near = {**GOAL, "pose": {"pose": {"position": {"x": 0.5}}}}
+    for _ in range(30):  # followed to the end of their feedback
+        goal = await client.send_goal(near, timeout=20)
+        assert [f async for f in goal.feedback(timeout=20)]
+        assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
+        assert client.goals_tracked == 1  # the running goal alone
+    monkeypatch.setattr(actions, "SETTLE_S", 0.0)
+    monkeypatch.setattr(actions, "REPAIR_S", dict.fromkeys(actions.REPAIR_S, 0.0))
+    for _ in range(30):  # only their results asked for
+        goal = await client.send_goal(near, timeout=20)
+        assert client.goals_tracked <= 3  # the running one, the one before, this one
+        assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
+    assert not running.state.terminal
+    assert await client.cancel_all(timeout=10) == 1
+    assert (await running.result(timeout=20)).state is GoalState.CANCELED
+    await server.close()
+
+
+async def test_a_server_keeps_the_newest_ended_goals_and_every_running_one(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """An ended goal was kept for the whole result timeout (15 minutes), each one listed in
+    every status the server published: a burst of goals held thousands. The oldest ended
+    goals go first, past `keep_finished`; a running goal is never let go of."""
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "/robot1/navigate_to_pose", NAV, navigate,
+                          keep_finished=3)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    running = await client.send_goal({**GOAL, "pose": {"pose": {"position": {"x": 500.0}}}},
+                                     timeout=20)
+    near = {**GOAL, "pose": {"pose": {"position": {"x": 0.5}}}}
+    for _ in range(10):
+        goal = await client.send_goal(near, timeout=20)
+        assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
+        assert server.goals_kept <= 4  # the running goal and the 3 newest ended
+    assert server.goals_kept == 4
+    assert await running.cancel(timeout=10)
+    assert (await running.result(timeout=20)).state is GoalState.CANCELED
+    await server.close()

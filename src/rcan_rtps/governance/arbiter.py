@@ -99,9 +99,7 @@ class BaseArbiter:
         GOAL_FINISHED entries say by whom."""
         for goal in goals:
             reason = why if goal.owner == by.name or why != "replaced" else "preempted"
-            self._ended_by[goal.goal_id] = f"{reason} by {by.name}"
-            while len(self._ended_by) > ENDED_BY_KEPT:
-                self._ended_by.popitem(last=False)
+            self._remember_end(goal.goal_id, f"{reason} by {by.name}")
             log.warning("cancelling goal %s of %s: %s by %s", goal.goal_id, goal.owner,
                         reason, by.name, extra={"principal": by.name})
             self._steps.spawn(self._cancel_goal(goal.goal_id))
@@ -118,7 +116,7 @@ class BaseArbiter:
         receipt = await self._steps.write_ahead(entry)
         if receipt is None:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=message_id)
-        self._ended_by[goal_id] = f"{why} by {principal.name}"
+        self._remember_end(goal_id, f"{why} by {principal.name}")
         try:
             cancelling = await self._steps.dispatcher.cancel_goal(goal_id)
         except Exception:
@@ -135,6 +133,14 @@ class BaseArbiter:
             return decision(failed, message_id=message_id)
         return Decision(outcome=Outcome.EXECUTED, http_status=200, audit_id=receipt.audit_id,
                         message_id=message_id, goal_id=goal_id)
+
+    def _remember_end(self, goal_id: str, by: str) -> None:
+        """Who ended a goal, for its GOAL_FINISHED; the oldest let go past ENDED_BY_KEPT (a
+        goal whose server vanished never reports its end)."""
+        self._ended_by[goal_id] = by
+        self._ended_by.move_to_end(goal_id)
+        while len(self._ended_by) > ENDED_BY_KEPT:
+            self._ended_by.popitem(last=False)
 
     async def _cancel_goal(self, goal_id: str) -> None:
         try:

@@ -41,6 +41,7 @@ from .handshake import (
     acquire_by,
     hear_announcements,
     matched_writers,
+    may_withhold_before_heartbeat,
     writer_handle,
     writers_ready,
 )
@@ -71,6 +72,16 @@ SETTLE_S = 5.0  # s: how long a finished goal's feedback waits for its result (s
 # docs/design/zero-loss.md), with margin for a busy host.
 REPAIR_S = {RequestMapping.CYCLONE: 2.0, RequestMapping.FASTDDS: 4.0}
 RESULT_ASK_S = 5.0  # s: a get_result request unanswered this long is sent again (`_ask_result`)
+# Ended goals a server keeps (for get_result and its status list) besides its result timeout:
+# a burst of goals must not hold thousands for 15 minutes, each one listed in every status.
+KEEP_FINISHED = 1000
+
+
+def forget_after() -> float:
+    """s after its end a goal nobody follows the feedback of is let go of: by then a
+    `feedback()` begun at its end has waited for its result (SETTLE_S) and for the longest
+    repair (REPAIR_S), so nothing sent for it before its end can still come."""
+    return SETTLE_S + max(REPAIR_S.values())
 
 
 class GoalState(enum.IntEnum):
@@ -116,12 +127,19 @@ class ClientGoal:
         self.goal_id = goal_id
         self.accepted = False
         self.stamp: tuple[int, int] = (0, 0)
-        self.state = GoalState.UNKNOWN
+        self._state = GoalState.UNKNOWN
+        self._ended_at: float | None = None  # monotonic time it was first seen terminal
+        # Its state and stamp as the status topic last listed them (None: not yet).
+        self._listed: tuple[GoalState, tuple[int, int]] | None = None
+        self._sending = True  # until `send_goal` has returned it (or failed)
+        # A `feedback()` waited out its end: nothing sent before the end can come any more.
+        self._window_closed = False
         self._feedback: asyncio.Queue[IdlStruct] = asyncio.Queue(maxsize=1000)
         self._result: GoalResult | None = None
         self._drops = client.node.udp_drops()  # dropped at our sockets before it was sent
         # Sent before our feedback reader was known to be in sync with a Cyclone feedback
-        # writer: its first feedback may come only with the writer's next HEARTBEAT. Once a
+        # writer (or one whose vendor cannot be told, as under DDS-Security): its first
+        # feedback may come only with the writer's next HEARTBEAT. Once a
         # feedback of this goal was taken, its first one was too (or is lost for good): the
         # reader takes a writer's samples in order.
         self._unsynced = not client.feedback_in_sync()
@@ -133,6 +151,26 @@ class ClientGoal:
 
     def __repr__(self) -> str:
         return f"<ClientGoal {uuid.UUID(bytes=self.goal_id)} {self.state.name}>"
+
+    @property
+    def state(self) -> GoalState:
+        return self._state
+
+    @state.setter
+    def state(self, state: GoalState) -> None:
+        if state.terminal and self._ended_at is None:
+            self._ended_at = time.monotonic()
+        self._state = state
+
+    def forgettable(self, now: float) -> bool:
+        """Whether its client may let go of it: it has ended, `send_goal` is done with it,
+        and nothing that anyone waits on can still come for it (a rejected goal has no
+        feedback; otherwise a `feedback()` waited out its end, or `forget_after()` has
+        passed since). Its result needs nothing of the client's tables."""
+        if self._sending or self._ended_at is None:
+            return False
+        return self.state is GoalState.REJECTED or self._window_closed or \
+            now - self._ended_at >= forget_after()
 
     async def feedback(self, timeout: float | None = None) -> AsyncIterator[IdlStruct]:
         """Feedback messages (the `feedback` part) until the goal has ended and no feedback
@@ -151,16 +189,25 @@ class ClientGoal:
             if until is not None:
                 self.end_settled.set()
                 if not present:
+                    self._close_window()
                     return  # the server has left: no datagram of its can be sent again
             now = loop.time()
-            ends = [t for t in (until, deadline) if t is not None]
-            if ends and now >= min(ends):
+            if until is not None and now >= until:
+                self._close_window()
                 return
+            if deadline is not None and now >= deadline:
+                return
+            ends = [t for t in (until, deadline) if t is not None]
             try:
                 yield await asyncio.wait_for(self._feedback.get(),
                                              min([0.1, *(t - now for t in ends)]))
             except asyncio.TimeoutError:
                 continue
+
+    def _close_window(self) -> None:
+        """Nothing sent before the end can come any more: the client lets go of it."""
+        self._window_closed = True
+        self.client._forget(self)
 
     async def ended(self) -> GoalState:
         """Waits until the goal has ended (or its server has left the graph)."""
@@ -229,8 +276,11 @@ class ActionClient:
                                   mapping=mapping)
         self._cancel_srv = ServiceClient(node, names["cancel_goal"], CANCEL_TYPE,
                                          mapping=mapping)
+        # Our goals the status and feedback topics may still speak of: those ended are let go
+        # of once nothing more can come for them (`ClientGoal.forgettable`), so a client
+        # that lives for weeks keeps only the goals of the last moments.
         self._goals: dict[bytes, ClientGoal] = {}
-        self._status_seen: dict[bytes, tuple[GoalState, tuple[int, int]]] = {}  # our goals'
+        self.goals_sent = 0
         self._unknown_status_logged = False
         self._server_seen = False
         self._lost_since: float | None = None
@@ -302,7 +352,7 @@ class ActionClient:
 
         # The capture reads from before a new feedback reader is made until it was heard.
         capture = self.node.identities
-        if capture is not None and (self._feedback_announced or self._goals):
+        if capture is not None and (self._feedback_announced or self.goals_sent):
             capture = None
         if capture is not None:
             capture.use()
@@ -344,13 +394,14 @@ class ActionClient:
         another's would renew the reader with the first goal's feedback on its way
         (bounded by that goal's deadline, not ours)."""
         capture = self.node.identities
-        if self._feedback_announced or capture is None or not capture.reading or self._goals:
+        if self._feedback_announced or capture is None or not capture.reading or \
+                self.goals_sent:
             return
         if not await acquire_by(self._announce_lock, deadline):
             raise ServiceTimeout(f"action {self.name}: timed out waiting behind another goal "
                                  "for the server's feedback writer to announce itself")
         try:
-            if self._feedback_announced or self._goals or self._feedback is None:
+            if self._feedback_announced or self.goals_sent or self._feedback is None:
                 return
             await self._hear_feedback_announced(capture, deadline)
         finally:
@@ -365,7 +416,7 @@ class ActionClient:
             capture, reader, lambda: self._feedback_since,
             lambda: self._renew_feedback_reader(deadline), deadline,
             vendors=(FASTDDS_VENDOR, CYCLONE_VENDOR), skip=self._in_process_feedback_writers,
-            may_renew=lambda: not self._goals, closed=self._gone)
+            may_renew=lambda: not self.goals_sent, closed=self._gone)
         if self._gone():
             return  # wait_for_server says so
         if unheard:
@@ -380,11 +431,13 @@ class ActionClient:
         """Whether a goal sent now gets its first feedback as soon as it arrives: our
         feedback reader has heard a HEARTBEAT of each Cyclone feedback writer matched with it
         (in the capture) or has taken a sample of it (handshake.py, 4.). Per writer: a server
-        that restarts has a new writer, out of sync with the reader made for the old one."""
+        that restarts has a new writer, out of sync with the reader made for the old one. A
+        writer whose vendor cannot be told (DDS-Security) counts as a Cyclone one, unless it
+        is in this process (`may_withhold_before_heartbeat`)."""
         if self._feedback is None or self._gone():  # (its reader deleted; the goal's call
             return True                              # says it is closed)
-        return not any(g[:2] == CYCLONE_VENDOR and h not in self._feedback_synced and
-                       not self.node.in_process(g)  # (one DDS query per goal)
+        return not any(may_withhold_before_heartbeat(g) and h not in self._feedback_synced
+                       and not self.node.in_process(g)  # (one DDS query per goal)
                        for h, g in matched_writers(self._feedback.reader).items())
 
     def _in_process_feedback_writers(self) -> set[int]:
@@ -498,17 +551,31 @@ class ActionClient:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
         await self._wait_for_server(timeout)
+        self._forget_ended()
         handle = ClientGoal(self, uuid.uuid4().bytes)
         self._goals[handle.goal_id] = handle  # before sending: feedback may come quickly
+        self.goals_sent += 1
         request_cls: Any = self.node.types.struct(self.types.send_goal.request.name)
         request = request_cls(goal_id=values.build(UUID_TYPE, {"uuid": handle.goal_id}),
                               goal=message)
+        try:
+            return await self._sent(handle, request, deadline)
+        except BaseException:
+            # Nobody has it: the caller is told it failed. (A stop cancels every goal of the
+            # server, whoever sent it: GoalTracker.cancel_all.)
+            self._goals.pop(handle.goal_id, None)
+            raise
+        finally:
+            handle._sending = False
+
+    async def _sent(self, handle: ClientGoal, request: Any, deadline: float) -> ClientGoal:
+        loop = asyncio.get_running_loop()
         try:
             reply: Any = await self._send.call(request, max(0.0, deadline - loop.time()))
         except ServiceTimeout:
             # The reply can be lost for good when datagrams are dropped at our socket (see
             # `_ask_result`); the status topic names the goals the server accepted.
-            if handle.goal_id not in self._status_seen:
+            if handle._listed is None:
                 raise
             log.info("action %s: no reply to goal %s, which the status topic lists: accepted",
                      self.name, uuid.UUID(bytes=handle.goal_id))
@@ -522,8 +589,7 @@ class ActionClient:
         handle.accepted = accepted
         if accepted:
             stamp = (0, 0) if reply is None else _stamp(reply.stamp)
-            handle.stamp = self._status_seen.get(handle.goal_id,
-                                                 (GoalState.ACCEPTED, stamp))[1]
+            handle.stamp = stamp if handle._listed is None else handle._listed[1]
             handle.state = max(handle.state, GoalState.ACCEPTED)
         else:
             handle.state = GoalState.REJECTED
@@ -533,7 +599,7 @@ class ActionClient:
         """Fast DDS: the reply may be another client's; the status topic decides."""
         loop = asyncio.get_running_loop()
         until = deadline if accepted else min(deadline, loop.time() + REJECT_GRACE)
-        while goal.goal_id not in self._status_seen:
+        while goal._listed is None:
             if loop.time() >= until:
                 if accepted:
                     raise ActionError(
@@ -638,7 +704,7 @@ class ActionClient:
         for status in array.status_list:  # type: ignore[attr-defined]
             goal_id = bytes(status.goal_info.goal_id.uuid)
             goal = self._goals.get(goal_id)
-            if goal is None:
+            if goal is None:  # another client's, or one of ours let go of: nothing to us
                 continue
             value = int(status.status)
             if value not in _WIRE_STATES:
@@ -649,14 +715,33 @@ class ActionClient:
                                 uuid.UUID(bytes=goal_id), value)
                 continue
             state = GoalState(value)
-            self._status_seen[goal_id] = (state, _stamp(status.goal_info.stamp))
+            goal._listed = (state, _stamp(status.goal_info.stamp))
             if not goal.state.terminal:
                 goal.state = state
 
     def _on_feedback(self, message: IdlStruct) -> None:
+        # (None: another client's goal, or one of ours let go of, whose feedback nobody waits
+        # for any more)
         goal = self._goals.get(bytes(message.goal_id.uuid))  # type: ignore[attr-defined]
         if goal is not None:
             goal._on_feedback(message.feedback)  # type: ignore[attr-defined]
+
+    @property
+    def goals_tracked(self) -> int:
+        """Goals the client still routes status and feedback to (sent or ended lately)."""
+        return len(self._goals)
+
+    def _forget(self, goal: ClientGoal) -> None:
+        if goal.forgettable(time.monotonic()) and self._goals.get(goal.goal_id) is goal:
+            del self._goals[goal.goal_id]
+
+    def _forget_ended(self) -> None:
+        """Lets go of the goals nothing more can come for (`ClientGoal.forgettable`); one
+        look at each tracked goal per goal sent. A goal not yet ended is always kept: a stop
+        (`cancel_all`) cancels every one."""
+        now = time.monotonic()
+        for goal in [g for g in self._goals.values() if g.forgettable(now)]:
+            del self._goals[goal.goal_id]
 
 
 def _names_goal(reply: Any, goal_id: bytes) -> bool:
@@ -696,7 +781,7 @@ class ActionServer:
 
     def __init__(self, node: RosNode, action: str, type_name: str, execute: Execute, *,
                  accept: Callable[[IdlStruct], Awaitable[bool]] | None = None,
-                 result_timeout: float = 900.0) -> None:
+                 result_timeout: float = 900.0, keep_finished: int = KEEP_FINISHED) -> None:
         self.node = node
         self.name = node.resolve(action)
         self.types = node.store.action(type_name)
@@ -704,7 +789,9 @@ class ActionServer:
         self._execute = execute
         self._accept = accept
         self._result_timeout = result_timeout
+        self._keep_finished = keep_finished
         self._goals: dict[bytes, ServerGoal] = {}
+        self._finished: dict[bytes, None] = {}  # ended goals still kept, oldest first
         self._tasks: set[asyncio.Task[None]] = set()
         self._closed = False
         names = action_names(self.name)
@@ -751,12 +838,25 @@ class ActionServer:
             self.node.values.build(self.types.result.name, result or {})
         goal.state = end
         goal.done.set_result(message)
+        self._finished[goal.goal_id] = None
+        while len(self._finished) > self._keep_finished:  # the oldest ended go first
+            self._forget(next(iter(self._finished)))
         self._publish_status()
         asyncio.get_running_loop().call_later(self._result_timeout, self._expire, goal.goal_id)
 
     def _expire(self, goal_id: bytes) -> None:
+        if goal_id in self._finished:  # (not let go of already)
+            self._forget(goal_id)
+            self._publish_status()
+
+    def _forget(self, goal_id: bytes) -> None:
+        del self._finished[goal_id]
         self._goals.pop(goal_id, None)
-        self._publish_status()
+
+    @property
+    def goals_kept(self) -> int:
+        """Goals the server still knows: those running, and the newest ended ones."""
+        return len(self._goals)
 
     async def _on_get_result(self, request: Any) -> Any:
         response: Any = self.node.types.struct(self.types.get_result.response.name)

@@ -175,6 +175,19 @@ async def acquire_by(lock: asyncio.Lock, deadline: float) -> bool:
     return True
 
 
+def may_withhold_before_heartbeat(guid: bytes) -> bool:
+    """Whether our reader may drop this writer's samples until it has heard one of its
+    HEARTBEATs (4. above): a Cyclone writer — or one whose vendor its GUID does not tell.
+    Under DDS-Security (SROS2) a GUID prefix is derived from the participant's certificate
+    and carries no vendor id, while Cyclone still knows the vendor (the RTPS header, SPDP's
+    PID_VENDORID) and holds a Cyclone writer's DATA back all the same; the binding shows
+    neither, and SROS2's metadata protection encrypts the HEARTBEATs the capture would hear.
+    So only a writer known to be Fast DDS's (whose samples Cyclone takes before any
+    HEARTBEAT) is not waited for: not knowing fails closed (a repair wait, not a lost
+    feedback)."""
+    return bytes(guid[:2]) != FASTDDS_VENDOR
+
+
 def fastdds_writers(reader: DataReader[Any], skip: Collection[int] = ()) -> dict[int, bytes]:
     """The Fast DDS writers matched with `reader` (handle → GUID), but for `skip`."""
     return writers_of(reader, (FASTDDS_VENDOR,), skip)

@@ -17,6 +17,7 @@ from cyclonedds.idl._xt_builder import XTBuilder
 from cyclonedds.qos import Qos
 from waiting import eventually
 
+from rcan_rtps.ros import graph as graph_mod
 from rcan_rtps.ros.graph import Direction, Endpoint, RosGraph
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.qos import Durability, History, QosProfile
@@ -161,3 +162,35 @@ async def test_the_graph_keeps_each_endpoint_as_its_ros_view_with_shared_profile
     assert one.type_hash == a.store.hash_of(TWIST)
     assert one.dds_type == "geometry_msgs::msg::dds_::Twist_"
     assert not any(isinstance(held, Qos) for held in gc.get_referents(*graph._endpoints.values()))
+
+
+async def test_profiles_no_endpoint_uses_are_let_go_of(
+        nodes: tuple[RosNode, RosNode], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A peer making endpoints of ever new QoS (here a history depth each) and deleting them does
+    not grow the graph's shared profiles for good; the profile an endpoint still uses is kept
+    and still shared."""
+    monkeypatch.setattr(graph_mod, "PROFILES_KEPT", 4, raising=False)
+    a, b = nodes
+    graph = RosGraph(a)
+    kept = QosProfile(depth=99)
+    b.create_publisher("/idle/kept", TWIST, kept)
+    for n in range(12):
+        writer = b.create_publisher(f"/idle/churn{n}", TWIST, QosProfile(depth=100 + n))
+
+        def churn_seen(name: str = f"/idle/churn{n}") -> bool:
+            graph.refresh()
+            return any(e.ros_name == name for e in graph.endpoints())
+
+        await eventually(churn_seen, timeout=10.0, what=f"churn{n}")
+        writer.close()
+    await eventually(lambda: not churn_seen("/idle/churn11"), timeout=10.0, what="churn gone")
+    assert len(graph._profiles) <= 2 * 4, graph._profiles
+    b.create_publisher("/idle/kept2", TWIST, kept)
+
+    def both() -> list[Endpoint]:
+        graph.refresh()
+        return [e for e in graph.endpoints() if e.ros_name in ("/idle/kept", "/idle/kept2")]
+
+    await eventually(lambda: len(both()) == 2, timeout=10.0, what="both kept endpoints")
+    first, second = both()
+    assert first.qos is second.qos and first.qos.depth == 99

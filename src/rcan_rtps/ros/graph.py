@@ -53,6 +53,8 @@ MAX_UNKNOWN_INFO_BYTES = 8 << 20
 # size is known only once it is in memory: a peer flooding samples past MAX_INFO_BYTES (the
 # reader keeps up to 1,000) is held this many at a time, not all at once (~2 GB).
 INFO_BATCH = 4
+# Distinct QoS profiles kept before those no endpoint uses are let go of (RosGraph._shared).
+PROFILES_KEPT = 64
 # An info's gid, in its first 16 bytes after the 4-byte CDR header (octets: no alignment),
 # read there from a sample too large to decode.
 INFO_GID = slice(4, 20)
@@ -143,8 +145,11 @@ class RosGraph:
         self._info = node.discovery_reader()
         self._decode_info = node.codecs.of(DISCOVERY_TYPE).prepare_decoder().decode
         self._endpoints: dict[bytes, _Seen] = {}
-        # Discovered QoS profiles, each kept once: a graph's endpoints share a handful.
+        # Discovered QoS profiles, each kept once: a graph's endpoints share a handful. Those
+        # no endpoint uses any more are let go of once the table doubled (`_shared`): a peer
+        # making endpoints of ever new QoS (a deadline per run) must not grow it for good.
         self._profiles: dict[QosProfile, QosProfile] = {}
+        self._profiles_bound = PROFILES_KEPT
         self._node_infos: dict[bytes, tuple[_Node, ...]] = {}
         self._info_sizes: dict[bytes, int] = {}  # bytes of each kept info's sample
         self._alive: set[bytes] = set()  # participants discovery knows (this one included)
@@ -186,9 +191,18 @@ class RosGraph:
         user_data = qos_mod.user_data_of(sample.qos)
         profile = qos_mod.from_dds(sample.qos)
         return _Seen(direction, sys.intern(sample.topic_name), sys.intern(sample.type_name),
-                     sample.participant_key.bytes, self._profiles.setdefault(profile, profile),
+                     sample.participant_key.bytes, self._shared(profile),
                      user_data.get("typehash", ""),
                      user_data.get("serviceid") or user_data.get("clientid") or "")
+
+    def _shared(self, profile: QosProfile) -> QosProfile:
+        """The one object kept for profiles equal to `profile`."""
+        if profile not in self._profiles and len(self._profiles) >= self._profiles_bound:
+            in_use = {seen.qos: seen.qos for seen in self._endpoints.values()}
+            self._profiles = in_use
+            # (doubling what is in use: rebuilding costs one pass per as many new profiles)
+            self._profiles_bound = max(PROFILES_KEPT, 2 * len(in_use))
+        return self._profiles.setdefault(profile, profile)
 
     def _take_node_infos(self) -> int:
         """Each participant's nodes from ros_discovery_info; how many samples were taken.

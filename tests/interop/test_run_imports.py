@@ -22,6 +22,7 @@ import pytest
 
 from rcan_rtps.cli.main import COMMANDS
 from rcan_rtps.governance.audit import load_or_create_key
+from rcan_rtps.ros import ActionServer, ServerGoal, ServiceServer
 
 from .run_process import RunProcess, child_env, state_args
 
@@ -153,6 +154,9 @@ def test_the_lazy_doors_answer_their_first_request(tmp_path: Path, domain_id: in
 # it names none.
 GOAL_CLIENT = {"rcan_rtps.bridge.navigation", "rcan_rtps.ros.actions", "rcan_rtps.ros.services",
                "rcan_rtps.ros.handshake", "rcan_rtps.ros._cyclone_header"}
+# The server sides of actions and services: a bridge sends goals and calls services, it never
+# serves one (only `--sim`'s robot does), so no run of it loads them (issue 27, item 6).
+SERVER_SIDE = {"rcan_rtps.ros.action_server", "rcan_rtps.ros.service_server"}
 TOKEN = "run-imports-token-0123456789abcdef"
 NO_GOAL_SERVERS = ", nav_action: null, dock_action: null"
 
@@ -222,7 +226,8 @@ def test_a_bridge_naming_no_goal_server_loads_no_action_client(tmp_path: Path,
 def test_with_goal_servers_the_stop_path_is_loaded_before_ready(tmp_path: Path,
                                                                 domain_id: int) -> None:
     """The default config names both goal servers: their clients' modules are imported while
-    the bridge starts, and a goal and the stop that cancels it import nothing of ours."""
+    the bridge starts, and a goal and the stop that cancels it import nothing of ours; the
+    server side of actions and services is never loaded."""
     with sim_robot(domain_id):
         proc = config_run(tmp_path, domain_id)
         try:
@@ -239,3 +244,7 @@ def test_with_goal_servers_the_stop_path_is_loaded_before_ready(tmp_path: Path,
     assert stopped[0] == 200, stopped
     ours = {m for m in later if m.startswith("rcan_rtps")}
     assert not ours, f"a goal or a stop imported {sorted(ours)}"
+    # Where the server side lives, and that the run never loaded it.
+    assert {c.__module__ for c in (ActionServer, ServerGoal, ServiceServer)} <= SERVER_SIDE
+    served = SERVER_SIDE & (started | later)
+    assert not served, f"a bridge imported {sorted(served)}"

@@ -41,25 +41,28 @@ from .errors import (
 )
 
 if TYPE_CHECKING:
-    from .actions import ActionClient, ActionServer, ClientGoal, GoalResult, GoalState, ServerGoal
+    from .action_server import ActionServer, ServerGoal
+    from .actions import ActionClient, ClientGoal, GoalResult, GoalState
     from .graph import Direction, Endpoint, RosGraph
     from .participant import RosNode, RosPublisher, RosSubscription
     from .qos import Durability, History, QosProfile, Reliability
     from .serialization import Codec, deserialize, serialize
-    from .services import RequestMapping, ServiceClient, ServiceServer
+    from .service_server import ServiceServer
+    from .services import RequestMapping, ServiceClient
     from .typesys import TypeStore
 
 # The rest of the public names, each imported with its module on first use (PEP 562): a
 # process that needs topics only (a bridge run whose config names no goal server, `topic
 # echo`) never loads the services and actions (issue 27: idle memory).
 _LAZY = {
-    **dict.fromkeys(("ActionClient", "ActionServer", "ClientGoal", "GoalResult", "GoalState",
-                     "ServerGoal"), "actions"),
+    **dict.fromkeys(("ActionClient", "ClientGoal", "GoalResult", "GoalState"), "actions"),
+    **dict.fromkeys(("ActionServer", "ServerGoal"), "action_server"),
     **dict.fromkeys(("Direction", "Endpoint", "RosGraph"), "graph"),
     **dict.fromkeys(("RosNode", "RosPublisher", "RosSubscription"), "participant"),
     **dict.fromkeys(("Durability", "History", "QosProfile", "Reliability"), "qos"),
     **dict.fromkeys(("Codec", "deserialize", "serialize"), "serialization"),
-    **dict.fromkeys(("RequestMapping", "ServiceClient", "ServiceServer"), "services"),
+    **dict.fromkeys(("RequestMapping", "ServiceClient"), "services"),
+    "ServiceServer": "service_server",
     "TypeStore": "typesys",
 }
 

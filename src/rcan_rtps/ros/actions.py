@@ -13,8 +13,8 @@ goals by id:
 - a cancel reply is ours only if it lists our goal id (or refuses, naming no goal).
 A server that leaves the graph ends its open goals with `GoalState.SERVER_LOST`.
 
-`ActionServer` speaks the Cyclone mapping (like `ServiceServer`); the simulated robot
-serves nav2 `NavigateToPose` with it.
+`ActionServer` (in `action_server`, still importable from here) speaks the Cyclone mapping
+(like `ServiceServer`); the simulated robot serves nav2 `NavigateToPose` with it.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import enum
 import logging
 import time
 import uuid
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Mapping
+from collections.abc import AsyncIterator, Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -47,13 +47,11 @@ from .handshake import (
 )
 from .names import action_names, mangle_topic
 from .participant import RosNode, RosSubscription
-from .rostime import now_msg
 from .rtps_capture import IdentityCapture
 from .services import (
     PAIR_READER_DEPTH,
     RequestMapping,
     ServiceClient,
-    ServiceServer,
     shared_graph,
 )
 
@@ -748,168 +746,14 @@ def _names_goal(reply: Any, goal_id: bytes) -> bool:
     return any(bytes(info.goal_id.uuid) == goal_id for info in reply.goals_canceling)
 
 
-# -- server -------------------------------------------------------------------------
-class ServerGoal:
-    """A goal being executed by an `ActionServer`."""
-
-    def __init__(self, server: ActionServer, goal_id: bytes, goal: IdlStruct) -> None:
-        self.server = server
-        self.goal_id = goal_id
-        self.goal = goal
-        self.stamp = now_msg()
-        self.state = GoalState.ACCEPTED
-        self.cancel_requested = asyncio.Event()
-        self.done: asyncio.Future[IdlStruct] = asyncio.get_running_loop().create_future()
-        self._end: GoalState | None = None
-
-    def publish_feedback(self, feedback: IdlStruct | Mapping[str, Any]) -> None:
-        self.server._publish_feedback(self, feedback)
-
-    def abort(self) -> None:
-        self._end = GoalState.ABORTED
-
-    def canceled(self) -> None:
-        self._end = GoalState.CANCELED
+_SERVER_SIDE = ("ActionServer", "Execute", "ServerGoal")
 
 
-Execute = Callable[[ServerGoal], Awaitable["IdlStruct | Mapping[str, Any] | None"]]
+def __getattr__(name: str) -> Any:
+    """The server side, from its own module (`action_server`) on first use: a bridge only
+    sends goals, and never loads it (issue 27, idle memory)."""
+    if name in _SERVER_SIDE:
+        from . import action_server
 
-
-class ActionServer:
-    """Serves one action (Cyclone mapping). `execute(goal)` returns the result; call
-    `goal.abort()` or `goal.canceled()` before returning to end it otherwise."""
-
-    def __init__(self, node: RosNode, action: str, type_name: str, execute: Execute, *,
-                 accept: Callable[[IdlStruct], Awaitable[bool]] | None = None,
-                 result_timeout: float = 900.0, keep_finished: int = KEEP_FINISHED) -> None:
-        self.node = node
-        self.name = node.resolve(action)
-        self.types = node.store.action(type_name)
-        self.type_name = self.types.name
-        self._execute = execute
-        self._accept = accept
-        self._result_timeout = result_timeout
-        self._keep_finished = keep_finished
-        self._goals: dict[bytes, ServerGoal] = {}
-        self._finished: dict[bytes, None] = {}  # ended goals still kept, oldest first
-        self._tasks: set[asyncio.Task[None]] = set()
-        self._closed = False
-        names = action_names(self.name)
-        self._status = node.create_publisher(names["status"], STATUS_TYPE, qos_mod.ACTION_STATUS)
-        self._feedback = node.create_publisher(
-            names["feedback"], self.type_name + "_FeedbackMessage", qos_mod.DEFAULT)
-        self._services = [
-            ServiceServer(node, names["send_goal"], self.type_name + "_SendGoal",
-                          self._on_send_goal),
-            ServiceServer(node, names["get_result"], self.type_name + "_GetResult",
-                          self._on_get_result),
-            ServiceServer(node, names["cancel_goal"], CANCEL_TYPE, self._on_cancel),
-        ]
-        self._publish_status()
-
-    async def _on_send_goal(self, request: Any) -> dict[str, Any]:
-        goal_id = bytes(request.goal_id.uuid)
-        accepted = goal_id not in self._goals and (
-            self._accept is None or await self._accept(request.goal))
-        if not accepted:
-            return {"accepted": False}
-        goal = self._goals[goal_id] = ServerGoal(self, goal_id, request.goal)
-        self._publish_status()
-        # Executes after this reply is written, like rclpy.
-        task = asyncio.get_running_loop().create_task(self._run(goal))
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-        return {"accepted": True, "stamp": goal.stamp}
-
-    async def _run(self, goal: ServerGoal) -> None:
-        await asyncio.sleep(0)
-        if goal.state is GoalState.ACCEPTED:
-            goal.state = GoalState.EXECUTING
-            self._publish_status()
-        try:
-            result = await self._execute(goal)
-            end = goal._end or GoalState.SUCCEEDED
-        except asyncio.CancelledError:
-            raise
-        except Exception:
-            log.exception("action %s: execute failed; the goal is aborted", self.name)
-            result, end = None, GoalState.ABORTED
-        message = result if isinstance(result, IdlStruct) else \
-            self.node.values.build(self.types.result.name, result or {})
-        goal.state = end
-        goal.done.set_result(message)
-        self._finished[goal.goal_id] = None
-        while len(self._finished) > self._keep_finished:  # the oldest ended go first
-            self._forget(next(iter(self._finished)))
-        self._publish_status()
-        asyncio.get_running_loop().call_later(self._result_timeout, self._expire, goal.goal_id)
-
-    def _expire(self, goal_id: bytes) -> None:
-        if goal_id in self._finished:  # (not let go of already)
-            self._forget(goal_id)
-            self._publish_status()
-
-    def _forget(self, goal_id: bytes) -> None:
-        del self._finished[goal_id]
-        self._goals.pop(goal_id, None)
-
-    @property
-    def goals_kept(self) -> int:
-        """Goals the server still knows: those running, and the newest ended ones."""
-        return len(self._goals)
-
-    async def _on_get_result(self, request: Any) -> Any:
-        response: Any = self.node.types.struct(self.types.get_result.response.name)
-        goal = self._goals.get(bytes(request.goal_id.uuid))
-        if goal is None:
-            return response(status=int(GoalState.UNKNOWN),
-                            result=self.node.values.build(self.types.result.name, {}))
-        result = await goal.done
-        return response(status=int(goal.state), result=result)
-
-    async def _on_cancel(self, request: Any) -> dict[str, Any]:
-        goal_id = bytes(request.goal_info.goal_id.uuid)
-        stamp = _stamp(request.goal_info.stamp)
-        if any(goal_id):
-            chosen = [g for g in (self._goals.get(goal_id),) if g is not None]
-        else:  # zero id: every goal, or those accepted at or before a non-zero stamp
-            chosen = [g for g in self._goals.values()
-                      if stamp == (0, 0) or (g.stamp["sec"], g.stamp["nanosec"]) <= stamp]
-        if not chosen:
-            return {"return_code": 2 if any(goal_id) else 0}  # ERROR_UNKNOWN_GOAL_ID
-        canceling = [g for g in chosen if not g.state.terminal]
-        for goal in canceling:
-            goal.state = GoalState.CANCELING
-            goal.cancel_requested.set()
-        if canceling:
-            self._publish_status()
-            return {"return_code": 0, "goals_canceling": [
-                {"goal_id": {"uuid": g.goal_id}, "stamp": g.stamp} for g in canceling]}
-        return {"return_code": 3}  # ERROR_GOAL_TERMINATED
-
-    def _publish_feedback(self, goal: ServerGoal, feedback: IdlStruct | Mapping[str, Any]
-                          ) -> None:
-        body = feedback if isinstance(feedback, IdlStruct) else \
-            self.node.values.build(self.types.feedback.name, feedback)
-        message_cls: Any = self.node.types.struct(self.types.feedback_message.name)
-        message = message_cls(goal_id=self.node.values.build(UUID_TYPE, {"uuid": goal.goal_id}),
-                              feedback=body)
-        self._feedback.publish(message)
-
-    def _publish_status(self) -> None:
-        if self._closed:  # a result expiring after close
-            return
-        self._status.publish({"status_list": [
-            {"goal_info": {"goal_id": {"uuid": g.goal_id}, "stamp": g.stamp},
-             "status": int(g.state)} for g in self._goals.values()]})
-
-    async def close(self) -> None:
-        """Cancels the goals being executed, then deletes the endpoints; idempotent."""
-        self._closed = True
-        for task in list(self._tasks):
-            task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
-        for service in self._services:
-            await service.close()
-        self._status.close()
-        self._feedback.close()
+        return getattr(action_server, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

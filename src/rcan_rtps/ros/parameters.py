@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .participant import RosNode
-from .services import ServiceServer
+from .service_server import ServiceServer
 
 # rcl_interfaces/msg/ParameterType, and the ParameterValue field of each.
 NOT_SET, BOOL, INTEGER, DOUBLE, STRING = 0, 1, 2, 3, 4

@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from ..ros.actions import ActionServer, ServerGoal
+from ..ros.action_server import ActionServer, ServerGoal
 from ..ros.rostime import duration_msg, quaternion_to_yaw
 from .navigation import CONTROL_HZ, steer
 from .robot import SimRobot

@@ -12,7 +12,7 @@ import math
 import time
 from typing import Any
 
-from ..ros.actions import ActionServer, ServerGoal
+from ..ros.action_server import ActionServer, ServerGoal
 from ..ros.rostime import duration_msg, now_msg, quaternion_to_yaw, yaw_to_quaternion
 from .robot import SimRobot, SimState
 

@@ -228,3 +228,69 @@ async def test_the_bridge_s_per_goal_state_stays_bounded(live: Live) -> None:
     assert tracker.client.goals_tracked == 0
     assert not tracker._handles and set(tracker._message_ids) == set(sent)
     assert len(live.robot.navigated) == MANY_GOALS
+
+
+def _cancel_pairs(live: Live, key: str) -> dict[Any, Any]:
+    assert live.bridge.goals is not None
+    tracker = live.bridge.goals.tracker(key)
+    assert tracker is not None
+    return tracker.client._cancel_srv._pairs
+
+
+async def test_a_stop_s_cancel_client_is_ready_before_the_first_stop(live: Live) -> None:
+    """A stop cancels every goal on a server, whoever sent it. The bridge here has sent no
+    goal: the cancel client's endpoints were made (and matched) as the servers appeared,
+    not by the stop — whose cancel would otherwise wait for discovery while another
+    client's goal drives on."""
+    assert live.robot.node is not None and live.bridge.goals is not None
+    for key in ("nav_action", "dock_action"):
+        await eventually(lambda key=key: bool(_cancel_pairs(live, key)), timeout=15,
+                         what=f"{key}'s cancel client made before any stop")
+    nav = live.bridge.goals.tracker("nav_action")
+    assert nav is not None
+    await eventually(lambda: nav.cancel_ready, timeout=15, what="nav's cancel client ready")
+    made = dict(_cancel_pairs(live, "nav_action"))
+    other = ActionClient(live.robot.node, NAV_SERVER, NAV)
+    try:
+        elsewhere = await other.send_goal({"pose": {"pose": {"position": {"x": 3.0}}}},
+                                          timeout=15)
+        assert elsewhere.accepted
+        await live.command({"action": "stop"})
+        assert (await elsewhere.result(timeout=15)).state is GoalState.CANCELED
+        assert _cancel_pairs(live, "nav_action") == made  # the stop made no endpoints
+        assert live.bridge.goals.goals() == []  # the bridge sent none
+    finally:
+        other.close()
+
+
+async def test_a_server_that_comes_back_gets_its_cancel_client_ready_again(
+        domain_id: int) -> None:
+    from rcan_rtps.bridge.navigation import GoalTracker
+
+    async def never_ends(goal: ServerGoal) -> dict[str, Any]:
+        await goal.cancel_requested.wait()
+        goal.canceled()
+        return {}
+
+    with RosNode("bridge", "/", domain_id=domain_id) as ours, \
+            RosNode("robot", "/robot1", domain_id=domain_id) as robot:
+        tracker = GoalTracker(ours, NAV_SERVER, NAV)
+        tracker.keep_cancel_ready(period=0.1)
+        try:
+            first = ActionServer(robot, "navigate_to_pose", NAV, never_ends)
+            await eventually(lambda: tracker.cancel_ready, timeout=15, what="first server")
+            await first.close()
+            await eventually(lambda: not tracker.client.server_present(), timeout=15,
+                             what="the first server gone")
+            second = ActionServer(robot, "navigate_to_pose", NAV, never_ends)
+            await eventually(lambda: tracker.client.status_matches() == 2, timeout=15,
+                             what="the second server matched")
+            await eventually(lambda: tracker.cancel_ready, timeout=15, what="second server")
+            other = ActionClient(robot, NAV_SERVER, NAV)
+            goal = await other.send_goal({}, timeout=15)
+            assert await tracker.cancel_all() == 1
+            assert (await goal.result(timeout=15)).state is GoalState.CANCELED
+            other.close()
+            await second.close()
+        finally:
+            await tracker.close()

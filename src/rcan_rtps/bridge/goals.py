@@ -133,6 +133,11 @@ class GoalRoutes:
         """Every goal tracked, on every server, oldest first."""
         return sorted((v for t in self.trackers for v in t.goals()), key=lambda v: v.created_ms)
 
+    def start(self) -> None:
+        """Each server's cancel client is made ready as the server appears (the stop path)."""
+        for tracker in self.trackers:
+            tracker.keep_cancel_ready()
+
     async def close(self) -> None:
         """Stops following goals (they go on on their servers) and leaves; idempotent."""
         await asyncio.gather(*(t.close() for t in self.trackers))

@@ -37,6 +37,7 @@ _STATES: dict[RosGoalState, GoalState] = {
 }
 _TERMINAL = {"succeeded", "canceled", "aborted", "rejected", "lost"}
 RESULT_TIMEOUT_S = 3600.0
+CANCEL_READY_PERIOD_S = 1.0  # s: how often a tracker looks whether a server (re)appeared
 
 
 def _ms() -> int:
@@ -85,6 +86,8 @@ class GoalTracker:
         # Told when the active goals change (`robot`), of any change (`goal`, a copy) and of
         # each goal's end, once (`goal_finished`).
         self.events = events or Events()
+        self._cancel_ready_for = 0  # the server match the cancel client was prepared for
+        self._preparing: asyncio.Task[None] | None = None
 
     @property
     def action_name(self) -> str:
@@ -236,8 +239,36 @@ class GoalTracker:
             self._message_ids.pop(goal_id, None)
             self._handles.pop(goal_id, None)
 
+    def keep_cancel_ready(self, period: float = CANCEL_READY_PERIOD_S) -> None:
+        """From now on, whenever a server appears (or comes back), makes its cancel client
+        ready, so that a stop's server-wide cancel makes no endpoints and waits for no
+        discovery: goals sent by others (RViz, a script) are cancelled by a stop, and the
+        first stop after a server appeared must not be its cancel client's first use."""
+        if self._preparing is None:
+            self._preparing = asyncio.get_running_loop().create_task(
+                self._keep_cancel_ready(period))
+
+    async def _keep_cancel_ready(self, period: float) -> None:
+        while True:
+            matches = self.client.status_matches()  # one C call: cheap at idle
+            if matches != self._cancel_ready_for and self.client.server_present():
+                try:
+                    await self.client.prepare_cancel()
+                    self._cancel_ready_for = matches
+                except WireError as exc:  # not answered in time: tried again next period
+                    log.debug("%s: cancel client not ready yet: %s", self.client.name, exc)
+            await asyncio.sleep(period)
+
+    @property
+    def cancel_ready(self) -> bool:
+        """Whether the cancel client was made ready for the server now on the graph."""
+        return self._cancel_ready_for == self.client.status_matches() != 0
+
     async def close(self) -> None:
         """Stops following goals (they go on on the server) and leaves; idempotent."""
+        if self._preparing is not None:
+            self._preparing.cancel()
+            await asyncio.gather(self._preparing, return_exceptions=True)
         for task in list(self._watchers):
             task.cancel()
         await asyncio.gather(*self._watchers, return_exceptions=True)

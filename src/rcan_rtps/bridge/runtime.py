@@ -313,6 +313,7 @@ class Bridge:
         ros2 = self.config.bridge.ros2
         goals = self.goals = GoalRoutes(node, ros2, events=self.events)  # a client per route
         self._on_stop("goal action clients", goals.close)
+        goals.start()
         self.dispatcher = RosDispatcher(node, ros2, goals, telemetry_age=self._telemetry_age,
                                         events=self.events)
         return goals, self.dispatcher

@@ -510,6 +510,22 @@ class ActionClient:
             mapping = None
         return REPAIR_S[mapping] if mapping in REPAIR_S else max(REPAIR_S.values())
 
+    async def prepare_cancel(self, timeout: float = 5.0) -> None:
+        """Makes the cancel service's endpoints and waits until they are matched with the
+        server's and can be answered, as a first goal's `wait_for_server` does: so that a
+        server-wide cancel (a stop, for goals others sent) neither makes endpoints nor waits
+        for discovery."""
+        self._check_open()
+        with self._closed_said():
+            await self._cancel_srv.wait_for_service(timeout)
+
+    def status_matches(self) -> int:
+        """How many times a status writer has matched our reader (a server appeared, or
+        came back); 0 once closed."""
+        if self._gone():
+            return 0
+        return int(self._status.reader.get_subscription_matched_status().total_count)
+
     def server_present(self) -> bool:
         """Whether an action server is on the graph now (its status writer is matched);
         False once this client is closed."""

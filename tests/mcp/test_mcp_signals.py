@@ -48,3 +48,31 @@ def test_a_signal_ends_the_stdio_server_while_stdin_is_open(sig: int) -> None:
         proc.kill()
         proc.wait()
         proc.stdin.close()
+
+
+def test_a_client_that_closed_its_end_of_stdout_is_a_disconnect() -> None:
+    """The reply to a client that closed its reader (it went away) hits a broken pipe: the
+    server ends as when stdin closes, exit 0 and no traceback. The error came out of the
+    SDK's task groups wrapped in exception groups, which the command line's handler of a
+    broken pipe does not see: a traceback, exit 1."""
+    reader, writer = os.pipe()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rcan_rtps", "mcp", "--url", f"http://127.0.0.1:{closed_port()}",
+         "--token-env", "AGENT_TOKEN", "--ai-provider", "acme", "--ai-model", "m1"],
+        stdin=subprocess.PIPE, stdout=writer, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "AGENT_TOKEN": "a" * 32})
+    os.close(writer)
+    os.close(reader)  # the client's reader gone before the reply
+    assert proc.stdin is not None
+    try:
+        proc.stdin.write(json.dumps(INITIALIZE) + "\n")
+        proc.stdin.flush()
+        proc.wait(EXIT_TIMEOUT)  # stdin still open: the broken pipe alone ends it
+    finally:
+        proc.kill()
+        proc.wait()
+        proc.stdin.close()
+    assert proc.stderr is not None
+    err = proc.stderr.read()
+    assert "Traceback" not in err, err
+    assert proc.returncode == 0, err

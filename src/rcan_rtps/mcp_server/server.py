@@ -350,7 +350,8 @@ def build_server(tools: RobotTools) -> Server[Any]:
 async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:
     """Serve MCP on stdin/stdout until the client closes them, or SIGINT, SIGTERM or SIGHUP;
     then stop what is still running that this server started (an agent gone must not leave
-    the robot moving). The signal that ended it, if one did."""
+    the robot moving). The signal that ended it, if one did. A client that closed its end of
+    stdout has gone, as one that closed stdin."""
     async with BridgeClient(url, token) as bridge:
         seat = Seat(bridge, agent, Keepalive(bridge))
         server = build_server(RobotTools(lambda ctx: seat))
@@ -359,17 +360,31 @@ async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:
         # iterates what it is given.)
         stdin = cast("anyio.AsyncFile[str]", StdinLines(sys.stdin.fileno()))
         with anyio.CancelScope() as serving, ending_on_signals(serving) as signals:
-            async with stdio_server(stdin=stdin) as (read, write), \
-                    anyio.create_task_group() as group:
-                group.start_soon(seat.keepalive.run)
-                await server.run(read, write, server.create_initialization_options())
-                group.cancel_scope.cancel()
+            try:
+                async with stdio_server(stdin=stdin) as (read, write), \
+                        anyio.create_task_group() as group:
+                    group.start_soon(seat.keepalive.run)
+                    await server.run(read, write, server.create_initialization_options())
+                    group.cancel_scope.cancel()
+            except Exception as exc:
+                if not client_gone(exc):
+                    raise
         ended_by = signals[0] if signals else None
         if seat.keepalive.holding:
             why = "MCP client disconnected" if ended_by is None else \
                 f"MCP server ended by {signal.Signals(ended_by).name}"
             await stop_left_running(seat, why)
     return ended_by
+
+
+def client_gone(exc: BaseException) -> bool:
+    """Whether `exc` says only that the client closed its end of stdout (a broken pipe),
+    wrapped in the task groups' exception groups as it comes out: a disconnect, not an error
+    (it printed a traceback)."""
+    inner = getattr(exc, "exceptions", None)  # an ExceptionGroup (a backport's on 3.10)
+    if inner is not None:
+        return bool(inner) and all(client_gone(e) for e in inner)
+    return isinstance(exc, (BrokenPipeError, ConnectionResetError))
 
 
 async def stop_left_running(seat: Seat, reason: str) -> None:

@@ -78,7 +78,7 @@ if extras != set(project["optional-dependencies"]):
     problems.append(f"Provides-Extra {sorted(extras)}, expected "
                     f"{sorted(project['optional-dependencies'])}")
 entry = wheel.read(f"{info}/entry_points.txt").decode()
-if "rcan-rtps = rcan_rtps.cli.main:main" not in entry:
+if "rcan-rtps = rcan_rtps._launch:main" not in entry:
     problems.append("no rcan-rtps console script")
 
 src = root / "src"

@@ -1,3 +1,3 @@
-from rcan_rtps.cli.main import main
+from rcan_rtps._launch import main
 
 raise SystemExit(main())

@@ -135,7 +135,7 @@ sys.exit(code)
 
 
 @pytest.mark.parametrize("loop", ["asyncio", "uvloop"])
-@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT", "SIGHUP"])
 def test_a_signal_taken_by_a_thread_that_unblocked_it_still_stops_in_order(
         sig: str, loop: str) -> None:
     """The first signal reaches the stopper's graceful path (not SIGTERM's default action,

@@ -263,3 +263,37 @@ def test_a_recorder_killed_after_2_s_leaves_a_bag_mcap_and_rosbags_read(
     info = cli(domain_id, "bag", "info", str(bag))
     assert info.returncode == 0, info.stderr
     assert "Messages:          5" in info.stdout.splitlines()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
+def test_a_recorder_ended_by_a_signal_closes_a_complete_bag(
+        oracle: RclpyOracle, domain_id: int, tmp_path: Path, sig: signal.Signals) -> None:
+    """SIGTERM (a supervisor) or SIGHUP (its terminal or ssh session closed) ends `record`
+    as Ctrl-C does: the bag closed, complete, read by `bag info` and the mcap library with no
+    `bag reindex`. SIGHUP used to kill the recorder, leaving a bag without its summary."""
+    oracle.call("publisher", topic="/hup/chatter", type="std_msgs/msg/String")
+    bag = tmp_path / "ended"
+    recorder = cli_start(domain_id, "bag", "record", "/hup/chatter", "-o", str(bag))
+    try:
+        wait_for_lines(recorder, {"Subscribed to topic '/hup/chatter'"}, timeout=30)
+        oracle.call("wait_subscribers", topic="/hup/chatter")
+        time.sleep(0.5)  # the subscription's DDS match with Fast DDS, as above
+        oracle.call("publish", topic="/hup/chatter", type="std_msgs/msg/String",
+                    value={"data": "before the signal"}, count=3, period=0.05)
+        deadline = time.monotonic() + 20  # until the recorder has them (metadata.yaml says)
+        while time.monotonic() < deadline:
+            meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+            if meta["rosbag2_bagfile_information"]["message_count"] == 3:
+                break
+            time.sleep(0.1)
+        recorder.send_signal(sig)
+        _, err = recorder.communicate(timeout=30)
+    finally:
+        if recorder.poll() is None:
+            recorder.kill()
+    assert recorder.returncode == 0, (recorder.returncode, err)
+    info = cli(domain_id, "bag", "info", str(bag))
+    assert info.returncode == 0, info.stderr
+    assert "Topic: /hup/chatter | Type: std_msgs/msg/String | Count: 3 |" in info.stdout
+    _, messages = read_bag(bag)
+    assert [m.data for _, m in messages["/hup/chatter"]] == ["before the signal"] * 3

@@ -80,9 +80,13 @@ def test_action_list_info_and_send_goal(oracle: RclpyOracle, domain_id: int,
     assert out.rstrip().endswith("Goal finished with status: SUCCEEDED")
 
 
+# SIGTERM and SIGHUP (its terminal closed) used to kill the command and leave the goal running.
 @both_rmws
-def test_send_goal_ctrl_c_cancels_the_goal(oracle: RclpyOracle, domain_id: int,
-                                          jazzy_share: Path) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],
+                         ids=lambda s: s.name)
+def test_send_goal_ended_by_a_signal_cancels_the_goal(oracle: RclpyOracle, domain_id: int,
+                                                      jazzy_share: Path,
+                                                      sig: signal.Signals) -> None:
     oracle.call("action_server", name="/demo/fibonacci", mode="slow")
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
     proc = subprocess.Popen(
@@ -99,11 +103,11 @@ def test_send_goal_ctrl_c_cancels_the_goal(oracle: RclpyOracle, domain_id: int,
                 if sel.select(1.0):
                     seen += proc.stdout.readline()
         assert "Feedback:" in seen, seen
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         out, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
-    assert proc.returncode == 130, err
+    assert proc.returncode == 128 + sig, err
     assert "Goal canceled." in out and "Goal finished with status: CANCELED" in out
     assert "Traceback" not in err
 

@@ -15,6 +15,8 @@ import contextlib
 import json
 import os
 import re
+import signal
+import subprocess
 import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -236,6 +238,54 @@ async def test_an_agent_gone_mid_move_stops_it(sim: Demo, http: aiohttp.ClientSe
     # the client closed the server's stdin: it stopped what it had started, at once
     stops = [e for e in entries(sim) if e.get("action_type") == "stop"]
     assert [e["params"].get("reason") for e in stops] == ["MCP client disconnected"], stops
+    await wait_status(http, sim, lambda s: s["telemetry"]["velocity"]["linear_x"] == 0.0)
+
+
+def _rpc(proc: subprocess.Popen[str], message: dict[str, Any]) -> dict[str, Any] | None:
+    """One JSON-RPC message to the stdio server; its reply when it is a request."""
+    assert proc.stdin is not None and proc.stdout is not None
+    proc.stdin.write(json.dumps({"jsonrpc": "2.0", **message}) + "\n")
+    proc.stdin.flush()
+    if "id" not in message:
+        return None
+    reply: dict[str, Any] = json.loads(proc.stdout.readline())
+    assert reply.get("id") == message["id"] and "result" in reply, reply
+    return reply
+
+
+async def test_an_agent_server_terminated_mid_move_stops_it(
+        sim: Demo, http: aiohttp.ClientSession, tmp_path: Path) -> None:
+    """SIGTERM (a supervisor ending the agent's server; SIGINT and SIGHUP likewise) while
+    its move runs: the server stops the move before it exits, as when its client goes.
+    Before, SIGTERM killed it on the spot and the robot drove on to the move's end."""
+    await wait_status(http, sim, lambda s: s["ros"]["connected"])
+    with (tmp_path / "mcp.err").open("w") as errlog:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "rcan_rtps", "mcp", "--url", sim.url, "--token-env",
+             "AGENT_TOKEN", "--ai-provider", AGENT["provider"], "--ai-model", AGENT["model"]],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=errlog, text=True,
+            env={**os.environ, "AGENT_TOKEN": sim.user})
+    try:
+        _rpc(proc, {"id": 1, "method": "initialize", "params": {
+            "protocolVersion": "2025-06-18", "capabilities": {},
+            "clientInfo": {"name": "test-agent", "version": "1.2"}}})
+        _rpc(proc, {"method": "notifications/initialized"})
+        done = _rpc(proc, {"id": 2, "method": "tools/call", "params": {
+            "name": "move", "arguments": {"linear_x": 0.2, "duration_s": 30.0,
+                                          "confidence": 0.9}}})
+        assert done is not None and done["result"]["structuredContent"]["outcome"] == \
+            "executed", done
+        await wait_status(http, sim, lambda s: s["state"] == "moving")
+        proc.send_signal(signal.SIGTERM)
+        code = await asyncio.to_thread(proc.wait, 60)
+    finally:
+        proc.kill()
+        proc.wait()
+        assert proc.stdin is not None
+        proc.stdin.close()
+    assert code == 128 + signal.SIGTERM, (tmp_path / "mcp.err").read_text()
+    stops = [e for e in entries(sim) if e.get("action_type") == "stop"]
+    assert [e["params"].get("reason") for e in stops] == ["MCP server ended by SIGTERM"], stops
     await wait_status(http, sim, lambda s: s["telemetry"]["velocity"]["linear_x"] == 0.0)
 
 

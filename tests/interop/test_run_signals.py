@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 from waiting import eventually_sync
 
 from .run_process import RunProcess, child_env, state_args
@@ -58,10 +59,14 @@ def test_a_second_sigint_exits_at_once(tmp_path: Path, domain_id: int) -> None:
         proc.kill()
 
 
-def test_sigterm_stops_a_healthy_run_gracefully(tmp_path: Path, domain_id: int) -> None:
+# SIGHUP: its terminal (or ssh session) closed. It used to kill the bridge on the spot: no
+# zero velocity, no BRIDGE_STOPPED.
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
+def test_a_signal_stops_a_healthy_run_gracefully(tmp_path: Path, domain_id: int,
+                                                 sig: signal.Signals) -> None:
     proc = _run_sim(tmp_path, domain_id)
     try:
-        proc.signal(signal.SIGTERM)
+        proc.signal(sig)
         rc = proc.wait(EXIT_TIMEOUT)
         assert rc == 0, f"rc={rc}\n{proc.output()}"
         audit = (tmp_path / "state" / "audit.jsonl").read_text()

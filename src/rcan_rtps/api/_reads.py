@@ -17,8 +17,8 @@ from the audit writer, with bounded concurrency.
   multiprocessing's resource tracker unblocks SIGINT and SIGTERM there, and `rcan-rtps run`
   keeps them blocked in every thread (one thread takes them with sigwait and stops the robot
   in order; a SIGTERM delivered anywhere else would kill the bridge on the spot). The worker
-  itself ignores SIGINT (a Ctrl-C reaches the whole process group; the bridge ends the
-  worker) and takes SIGTERM, which is how the bridge ends it.
+  itself ignores SIGINT and SIGHUP (a Ctrl-C or a hangup reaches the whole process group;
+  the bridge ends the worker) and takes SIGTERM, which is how the bridge ends it.
 """
 
 from __future__ import annotations
@@ -128,12 +128,14 @@ def verify_file(path: str, public_key: bytes) -> VerifyReport:
 
 
 def _worker_start() -> None:
-    """In the worker process: below the bridge's priority; SIGINT ignored, SIGTERM taken
-    (the worker inherits whatever mask the thread that spawned it had)."""
+    """In the worker process: below the bridge's priority; SIGINT and SIGHUP ignored (they
+    reach the whole process group: the bridge ends the worker), SIGTERM taken (the worker
+    inherits whatever mask the thread that spawned it had)."""
     with contextlib.suppress(OSError, AttributeError):
         os.nice(_NICE)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+    for ignored in (signal.SIGINT, signal.SIGHUP):
+        signal.signal(ignored, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
 
 
 @contextlib.contextmanager

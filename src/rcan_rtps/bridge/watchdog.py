@@ -4,7 +4,8 @@
 `stall_after / 4` s. With none for `stall_after` s it logs the stall once, with every
 thread's stack, and logs the recovery when heartbeats resume.
 
-`SignalStopper` blocks SIGINT and SIGTERM in the calling (main) thread before any other
+`SignalStopper` blocks SIGINT, SIGTERM and SIGHUP (a closed terminal or ssh session: the
+robot must be stopped in order then too) in the calling (main) thread before any other
 thread exists, so every later thread inherits the block, and a dedicated thread takes them
 with `sigwait`: the first asks the loop to shut down gracefully and, if that has not
 finished within `bound` s, logs the stacks and `os._exit`s; a second one exits at once. As
@@ -41,7 +42,7 @@ DEFAULT_STALL_S = 2.0
 DEFAULT_SHUTDOWN_BOUND_S = 10.0
 EXIT_STUCK = 1
 EXIT_SECOND_SIGNAL = 130
-SIGNALS = (signal.SIGINT, signal.SIGTERM)
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def thread_stacks() -> str:
@@ -109,7 +110,7 @@ class LoopWatchdog:
 
 
 class SignalStopper:
-    """SIGINT/SIGTERM through `sigwait` on a thread of its own; see the module docs.
+    """SIGINT/SIGTERM/SIGHUP through `sigwait` on a thread of its own; see the module docs.
 
     Create it on the main thread, before any other thread starts; `finished` when done."""
 

@@ -17,7 +17,10 @@ from ._common import VALUES_HELP, dump, make_node, parse_values, warn_if_alone
 from ._options import add_spin_time
 from .service_cmd import MAPPING_HELP, MAPPINGS
 
-EXIT_INTERRUPTED = 130
+# Each cancels the goal on the server before the command ends (exit 128 + the signal, as the
+# shell reports it): a closed terminal (SIGHUP) or a supervisor (SIGTERM) must not leave the
+# robot driving to a goal nobody follows. A second one ends the command at once.
+CANCEL_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -38,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     info.set_defaults(func=lambda a: asyncio.run(_info(a)))
 
     send = actions.add_parser("send_goal", help="send a goal and wait for its result "
-                                                "(Ctrl-C cancels the goal)")
+                                                "(Ctrl-C, SIGTERM or SIGHUP cancels the goal)")
     send.add_argument("action", metavar="NAME", help="action name, e.g. /robot1/navigate_to_pose")
     send.add_argument("type", metavar="TYPE",
                       help="action type, e.g. nav2_msgs/action/NavigateToPose")
@@ -86,9 +89,7 @@ async def _info(args: argparse.Namespace) -> int:
 async def _send_goal(args: argparse.Namespace) -> int:
     values = parse_values(args.values)
     interrupted = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    with contextlib.suppress(NotImplementedError):  # not on Windows
-        loop.add_signal_handler(signal.SIGINT, interrupted.set)
+    received = _cancel_on_signals(interrupted)
     with make_node(args) as node:
         client = ActionClient(node, args.action, args.type, mapping=RequestMapping(args.mapping))
         goal_type = client.types.goal.name
@@ -112,9 +113,27 @@ async def _send_goal(args: argparse.Namespace) -> int:
             print("Goal canceled." if canceling else "Cancel request refused.", flush=True)
             outcome = await goal.result(args.timeout)
             print(f"Goal finished with status: {outcome.state.name}", flush=True)
-            return EXIT_INTERRUPTED
+            return 128 + received[0]
         stop.cancel()
         return follow.result()
+
+
+def _cancel_on_signals(interrupted: asyncio.Event) -> list[int]:
+    """CANCEL_SIGNALS set `interrupted`; the list returned holds the one received. The first
+    puts the default actions back, so a second ends the command at once."""
+    loop = asyncio.get_running_loop()
+    received: list[int] = []
+
+    def on_signal(sig: int) -> None:
+        received.append(sig)
+        interrupted.set()
+        for each in CANCEL_SIGNALS:
+            loop.remove_signal_handler(each)
+
+    for sig in CANCEL_SIGNALS:
+        with contextlib.suppress(NotImplementedError):  # not on Windows
+            loop.add_signal_handler(sig, on_signal, sig)
+    return received
 
 
 async def _follow(client: ActionClient, goal: ClientGoal, feedback: bool) -> int:

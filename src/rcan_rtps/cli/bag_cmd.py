@@ -61,7 +61,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     record.add_argument("-s", "--storage", default="mcap", choices=("mcap",),
                         help="storage format (MCAP, the ROS 2 default since Iron)")
     record.add_argument("--duration", type=float, default=0.0,
-                        help="stop after S seconds (default: until Ctrl-C or SIGTERM)")
+                        help="stop after S seconds (default: until Ctrl-C, SIGTERM or "
+                        "SIGHUP)")
     record.set_defaults(func=lambda a: asyncio.run(_record(a)))
 
     play = actions.add_parser("play", help="republish a bag with its original timing")
@@ -153,8 +154,10 @@ class _Recorder:
 
 
 def _stop_on_signals(stop: asyncio.Event) -> None:
+    """Each ends the recording with the bag closed: SIGHUP too (a terminal or ssh session
+    closed), which would otherwise kill the recorder and leave the bag to `bag reindex`."""
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         with contextlib.suppress(NotImplementedError, RuntimeError):
             loop.add_signal_handler(sig, stop.set)
 
@@ -163,11 +166,11 @@ async def _record(args: argparse.Namespace) -> int:
     output = Path(args.output or _default_output())
     with make_node(args) as node:
         selection = _Selection(node, args)
+        stop = asyncio.Event()
+        _stop_on_signals(stop)  # before the bag exists: from then on it is always closed
         writer = BagWriter(output, node.store)
         recorder = _Recorder(node, writer)
         graph = RosGraph(node)
-        stop = asyncio.Event()
-        _stop_on_signals(stop)
         deadline = time.monotonic() + args.duration if args.duration > 0 else None
         print(f"Recording to '{output}'...", flush=True)
         try:

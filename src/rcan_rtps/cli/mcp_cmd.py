@@ -51,6 +51,6 @@ def run(args: argparse.Namespace) -> int:
     from ..mcp_server.bridge import check_url
     from ..mcp_server.seat import Agent
 
-    asyncio.run(serve_stdio(check_url(args.url), token,
-                            Agent(args.ai_provider, args.ai_model)))
-    return 0
+    ended_by = asyncio.run(serve_stdio(check_url(args.url), token,
+                                       Agent(args.ai_provider, args.ai_model)))
+    return 0 if ended_by is None else 128 + ended_by  # as the shell reports a signal's end

@@ -67,7 +67,7 @@ SLOW_START_HOOK_ENV = "RCAN_RTPS_TEST_SLOW_START_S"  # tests only: a start this 
 
 
 def _main(args: argparse.Namespace) -> int:
-    # First, before any thread exists: SIGINT/SIGTERM always end the process, even with the
+    # First, before any thread exists: SIGINT/SIGTERM/SIGHUP always end the process, even with the
     # event loop stuck (graceful stop, bounded; a second signal exits at once).
     stopper = SignalStopper()
     try:
@@ -191,7 +191,7 @@ async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
         parts.push_async_callback(bridge.stop)  # again (idempotent): before the sim stops
         url = await _start_unless_stopped(bridge, stop, env)
         if url is None:
-            return 0  # Ctrl-C (or SIGTERM) during start: no banner, no tokens
+            return 0  # Ctrl-C (or SIGTERM, SIGHUP) during start: no banner, no tokens
         release_free_memory()
         # What start-up built lives as long as the process: out of the collector's sight, so a
         # collection during a command scans only what commands allocate (ms → µs pauses).

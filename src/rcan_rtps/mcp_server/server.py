@@ -15,9 +15,11 @@ import base64
 import gc
 import json
 import logging
+import signal
+import sys
 import uuid
 from collections.abc import Awaitable, Callable, Mapping
-from typing import Any
+from typing import Any, cast
 
 import anyio
 import mcp_types as types
@@ -41,6 +43,7 @@ from .resources import (
     RESOURCES,
 )
 from .seat import Agent, Seat
+from .stdio import StdinLines, ending_on_signals
 from .tools import DURATION, WAIT_MAX_S, ToolDef, derive_tools
 
 log = logging.getLogger(__name__)
@@ -344,19 +347,44 @@ def build_server(tools: RobotTools) -> Server[Any]:
                   on_read_resource=tools.read_resource)
 
 
-async def serve_stdio(url: str, token: str, agent: Agent) -> None:
-    """Serve MCP on stdin/stdout until the client closes them; then stop what is still
-    running that this server started (an agent gone must not leave the robot moving)."""
+async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:
+    """Serve MCP on stdin/stdout until the client closes them, or SIGINT, SIGTERM or SIGHUP;
+    then stop what is still running that this server started (an agent gone must not leave
+    the robot moving). The signal that ended it, if one did. A client that closed its end of
+    stdout has gone, as one that closed stdin."""
     async with BridgeClient(url, token) as bridge:
         seat = Seat(bridge, agent, Keepalive(bridge))
         server = build_server(RobotTools(lambda ctx: seat))
         gc.freeze()  # the SDK's modules live as long as the process: no collection scans them
-        async with stdio_server() as (read, write), anyio.create_task_group() as group:
-            group.start_soon(seat.keepalive.run)
-            await server.run(read, write, server.create_initialization_options())
-            group.cancel_scope.cancel()
+        # The SDK's own stdin reader cannot be cancelled: see stdio.py. (The SDK only
+        # iterates what it is given.)
+        stdin = cast("anyio.AsyncFile[str]", StdinLines(sys.stdin.fileno()))
+        with anyio.CancelScope() as serving, ending_on_signals(serving) as signals:
+            try:
+                async with stdio_server(stdin=stdin) as (read, write), \
+                        anyio.create_task_group() as group:
+                    group.start_soon(seat.keepalive.run)
+                    await server.run(read, write, server.create_initialization_options())
+                    group.cancel_scope.cancel()
+            except Exception as exc:
+                if not client_gone(exc):
+                    raise
+        ended_by = signals[0] if signals else None
         if seat.keepalive.holding:
-            await stop_left_running(seat, "MCP client disconnected")
+            why = "MCP client disconnected" if ended_by is None else \
+                f"MCP server ended by {signal.Signals(ended_by).name}"
+            await stop_left_running(seat, why)
+    return ended_by
+
+
+def client_gone(exc: BaseException) -> bool:
+    """Whether `exc` says only that the client closed its end of stdout (a broken pipe),
+    wrapped in the task groups' exception groups as it comes out: a disconnect, not an error
+    (it printed a traceback)."""
+    inner = getattr(exc, "exceptions", None)  # an ExceptionGroup (a backport's on 3.10)
+    if inner is not None:
+        return bool(inner) and all(client_gone(e) for e in inner)
+    return isinstance(exc, (BrokenPipeError, ConnectionResetError))
 
 
 async def stop_left_running(seat: Seat, reason: str) -> None:

@@ -1,0 +1,103 @@
+"""What `rcan-rtps mcp` needs around the SDK's stdio transport to end on a signal.
+
+The SDK reads stdin in one of anyio's worker threads, blocked in `readline`: no cancellation
+interrupts it, and it is not a daemon, so the interpreter waits for it at exit. A Ctrl-C, a
+SIGTERM or SIGHUP left the server hanging for as long as its client kept stdin open (and,
+had it ended, it would have skipped stopping the motion its agent had started).
+
+- `StdinLines`: stdin's lines, read by a daemon thread that hands each over and waits until
+  it is taken (the SDK's own pace); a cancelled reader leaves the thread blocked, harmlessly.
+- `ending_on_signals`: SIGINT, SIGTERM and SIGHUP cancel the serving scope (so the server
+  then stops what it started, as when the client goes) and are remembered for the exit code.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import os
+import signal
+import threading
+from collections.abc import AsyncIterator, Iterator
+
+import anyio
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+READ_SIZE = 65536
+
+
+class StdinLines:
+    """An async iterable of the text lines read from file descriptor `fd` (UTF-8;
+    undecodable bytes replaced, as the SDK does). Iterate it once.
+
+    The thread reads with os.read, holding no lock: a buffered reader's lock, held by a
+    daemon thread blocked in a read, aborts the interpreter at exit (sys.stdin's is closed
+    there)."""
+
+    def __init__(self, fd: int) -> None:
+        self._fd = fd
+
+    async def __aiter__(self) -> AsyncIterator[str]:
+        loop = asyncio.get_running_loop()
+        lines: asyncio.Queue[str] = asyncio.Queue(maxsize=1)
+        thread = threading.Thread(target=self._read, args=(loop, lines), name="mcp-stdin",
+                                  daemon=True)
+        thread.start()
+        while line := await lines.get():
+            yield line
+
+    def _read(self, loop: asyncio.AbstractEventLoop, lines: asyncio.Queue[str]) -> None:
+        for raw in _raw_lines(self._fd):
+            if not _hand_over(loop, lines, raw.decode("utf-8", errors="replace")):
+                return
+        _hand_over(loop, lines, "")  # the end
+
+
+def _raw_lines(fd: int) -> Iterator[bytes]:
+    """The lines (each with its b"\\n", the last maybe without) until end of file, or an
+    error reading (stdin closed under us: as an end)."""
+    pending = bytearray()
+    while True:
+        try:
+            chunk = os.read(fd, READ_SIZE)
+        except OSError:
+            chunk = b""
+        if not chunk:
+            if pending:
+                yield bytes(pending)
+            return
+        pending += chunk
+        if b"\n" in chunk:  # only the new bytes looked at: a long line costs no more
+            *complete, rest = bytes(pending).split(b"\n")
+            yield from (line + b"\n" for line in complete)
+            pending[:] = rest
+
+
+def _hand_over(loop: asyncio.AbstractEventLoop, lines: asyncio.Queue[str], line: str) -> bool:
+    """Whether `line` was taken; False once nobody reads any more (the loop is closed)."""
+    try:
+        asyncio.run_coroutine_threadsafe(lines.put(line), loop).result()
+    except (RuntimeError, concurrent.futures.CancelledError):
+        return False
+    return True
+
+
+@contextlib.contextmanager
+def ending_on_signals(scope: anyio.CancelScope) -> Iterator[list[int]]:
+    """Within: a STOP_SIGNALS signal cancels `scope`; the list yielded holds the signals
+    received. Call on the event loop's thread."""
+    loop = asyncio.get_running_loop()
+    received: list[int] = []
+
+    def on_signal(sig: int) -> None:
+        received.append(sig)
+        scope.cancel()
+
+    for sig in STOP_SIGNALS:
+        loop.add_signal_handler(sig, on_signal, sig)
+    try:
+        yield received
+    finally:
+        for sig in STOP_SIGNALS:
+            loop.remove_signal_handler(sig)

@@ -26,6 +26,10 @@ It also notes the HEARTBEATs that arrived, by writer and addressee, and where in
 writer's samples that reader takes (a Fast DDS writer announces itself to a new reader with
 one GAP+HEARTBEAT; a Cyclone writer's reader takes nothing before one), and a client whose
 reader has not heard one must not send its request or goal yet (handshake.py).
+
+And it keeps the payload of the reply a call expects (`expect_reply`: its request's identity
+and the reply writers matched with its reader; captured_replies.py), so that a reply Cyclone
+dropped as history after it reached our socket can still be delivered (`captured_reply`).
 """
 
 from __future__ import annotations

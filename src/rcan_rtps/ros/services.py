@@ -6,7 +6,9 @@
                             writer GUID, sequence number) only as the RTPS related sample
                             identity in its inline QoS, which the cyclonedds API can neither
                             read nor write; we read it from Cyclone's packet capture
-                            (rtps_capture.py, docs/design/rpc-identity.md).
+                            (rtps_capture.py, docs/design/rpc-identity.md). A
+                            reply Cyclone dropped as history (it reached our socket,
+                            never our reader) is taken from that capture too.
     RequestMapping.AUTO     chosen per call from the vendor of the server's request reader
                             (GUID prefix 01.10 Cyclone; anything else gets plain requests).
 
@@ -71,10 +73,12 @@ CLIENT_READER_WAIT = 1.0  # s a server waits for the client's reply reader (rmw_
 # s between looks, while a call waits for its reply, at whether its node was closed (then no
 # reply can reach it: the node's reader thread has stopped)
 NODE_CLOSED_POLL = 0.1
-# s after a Fast DDS request before its reply is looked for in the packet capture, and again
-# once found there before it is delivered from it (the reader's turn first), and between looks
+# s after a Fast DDS request before its reply is looked for in the packet capture, between
+# looks, and once found there before it is delivered from it (the reader's turn first: Cyclone
+# processes a datagram right after writing it to the capture)
 CAPTURE_REPLY_AFTER = 0.5
 CAPTURE_POLL = 0.1
+CAPTURE_SETTLE = 0.2
 
 # A server's replies reach every client's reply reader, and every client's requests every
 # server's request reader: a reader keeps this many while the node's reader thread waits for
@@ -552,12 +556,12 @@ class ServiceClient:
         as our reader's start: docs/design/zero-loss.md), and nothing sends it again. Only
         the reply naming our request exactly, from a reply writer matched with our reader
         (`IdentityCapture.expect_reply`); the reader gets its turn first (CAPTURE_REPLY_AFTER,
-        then the reader thread's barrier), and whichever delivers first wins."""
+        CAPTURE_SETTLE, then the reader thread's barrier), and whichever delivers first wins."""
         await asyncio.sleep(CAPTURE_REPLY_AFTER)
         while not future.done():
             data = capture.captured_reply(identity)
             if data is not None:
-                await asyncio.sleep(CAPTURE_REPLY_AFTER)  # it may just have come: reader first
+                await asyncio.sleep(CAPTURE_SETTLE)  # it may just have come: reader first
                 await self.node.delivered()
                 if not future.done():
                     self._deliver_captured(pair, data, future, accept)

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from rcan_rtps.ros import participant, rtps_capture
+from rcan_rtps.ros import captured_replies, participant, rtps_capture
 from rcan_rtps.ros.rtps_capture import (
     UNKNOWN_PREFIX,
     IdentityCapture,
@@ -267,4 +267,136 @@ def test_a_heartbeat_to_every_reader_counts_only_after_the_reader_was_made(
     os.write(writer, to_all)
     assert tail.heard_heartbeat(SERVER, OUR_READER, made)
     assert not tail.heard_heartbeat(SERVER, OUR_READER, tail.mark())  # nor for a newer one
+    tail.unuse()
+
+
+OTHER_WRITER = PREFIX + b"\x00\x00\x13\x03"  # another writer of the server's participant
+OTHER_CLIENT = bytes(range(120, 136))  # another client's request writer
+
+
+def related_qos(related: SampleIdentity, o: str) -> bytes:
+    return struct.pack(o + "HH", 0x800F, 24) + related.writer_guid + \
+        struct.pack(o + "iI", related.seq >> 32, related.seq & 0xFFFFFFFF) + \
+        struct.pack(o + "HH", 0x0001, 0)
+
+
+def data_message(writer: bytes, seq: int, related: SampleIdentity | None, payload: bytes, *,
+                 little: bool = True) -> bytes:
+    """One DATA of `writer` (in its participant's message) whose inline QoS names `related`
+    (Fast DDS' PID 0x800f) if given, carrying `payload`."""
+    o, e = ("<", 0x01) if little else (">", 0x00)
+    qos = b"" if related is None else related_qos(related, o)
+    body = struct.pack(o + "HH", 0, 16) + b"\x00\x00\x12\x04" + writer[12:] + \
+        struct.pack(o + "iI", seq >> 32, seq & 0xFFFFFFFF) + qos + payload
+    flags = e | 0x04 | (0x02 if qos else 0)
+    info_ts = struct.pack(o + "BBHiI", 0x09, e, 8, 1_700_000_000, 0)
+    return b"RTPS\x02\x03\x01\x0f" + writer[:12] + info_ts + \
+        struct.pack(o + "BBH", 0x15, flags, len(body)) + body
+
+
+def fragment_messages(writer: bytes, seq: int, related: SampleIdentity, payload: bytes,
+                      size: int, *, little: bool = True) -> list[bytes]:
+    """The DATA_FRAGs of `payload` in fragments of `size` bytes, one per message; the first
+    names `related` in its inline QoS (as Fast DDS sends them)."""
+    o, e = ("<", 0x01) if little else (">", 0x00)
+    messages = []
+    for number, at in enumerate(range(0, len(payload), size), start=1):
+        qos = related_qos(related, o) if number == 1 else b""
+        body = struct.pack(o + "HH", 0, 28) + b"\x00\x00\x12\x04" + writer[12:] + \
+            struct.pack(o + "iI", seq >> 32, seq & 0xFFFFFFFF) + \
+            struct.pack(o + "IHHI", number, 1, size, len(payload)) + qos + \
+            payload[at:at + size]
+        messages.append(b"RTPS\x02\x03\x01\x0f" + writer[:12] +
+                        struct.pack(o + "BBH", 0x16, e | (0x02 if qos else 0), len(body)) + body)
+    return messages
+
+
+def test_an_expected_reply_is_kept_only_from_its_writer_and_for_its_identity(
+        capture: tuple[IdentityCapture, int]) -> None:
+    """A reply Cyclone dropped as history is still in the capture: a call that expects it
+    (its request's identity, the reply writers matched with its reader) can take it there.
+    Nothing else is kept: not another request's reply, not a reply from another writer."""
+    tail, writer = capture
+    ours, reply = SampleIdentity(REQUEST_WRITER, 3), b"\x00\x01\x00\x00ours...."
+    os.write(writer, pcap_record(data_message(SERVER, 1, ours, reply)))
+    assert not tail.expect_reply(ours, [SERVER])  # nobody uses the capture: nothing read
+    tail.use()
+    assert tail.expect_reply(ours, [SERVER])
+    assert tail.captured_reply(ours) is None  # what came before is not looked at
+    for little in (True, False):
+        os.write(writer, pcap_record(data_message(OTHER_WRITER, 2, ours, b"\x00\x01\x00\x00x",
+                                                  little=little)))  # not the matched writer
+        os.write(writer, pcap_record(data_message(SERVER, 3, SampleIdentity(OTHER_CLIENT, 3),
+                                                  b"\x00\x01\x00\x00y", little=little)))
+        os.write(writer, pcap_record(data_message(SERVER, 4, SampleIdentity(REQUEST_WRITER, 2),
+                                                  b"\x00\x01\x00\x00z", little=little)))
+        os.write(writer, pcap_record(data_message(SERVER, 5, None, b"\x00\x01\x00\x00w",
+                                                  little=little)))
+    assert tail.captured_reply(ours) is None
+    os.write(writer, pcap_record(data_message(SERVER, 6, ours, reply), ttl=255))  # one we sent
+    assert tail.captured_reply(ours) is None
+    os.write(writer, pcap_record(data_message(SERVER, 6, ours, reply, little=False)))
+    os.write(writer, pcap_record(data_message(SERVER, 6, ours, b"\x00\x01\x00\x00again")))
+    assert tail.captured_reply(ours) == reply  # the first one
+    assert tail._replies.held == len(reply)
+    tail.forget_reply(ours)
+    assert tail.captured_reply(ours) is None
+    assert tail._replies.held == 0
+    tail.unuse()
+
+
+def test_a_fragmented_reply_is_put_together_from_its_pieces(
+        capture: tuple[IdentityCapture, int]) -> None:
+    tail, writer = capture
+    tail.use()
+    ours, theirs = SampleIdentity(REQUEST_WRITER, 1), SampleIdentity(OTHER_CLIENT, 1)
+    reply = b"\x00\x01\x00\x00" + bytes(range(256)) * 11 + b"end"
+    assert tail.expect_reply(ours, [SERVER])
+    mine = fragment_messages(SERVER, 7, ours, reply, 1000)
+    other = fragment_messages(SERVER, 8, theirs, reply[::-1], 1000)
+    elsewhere = fragment_messages(OTHER_WRITER, 7, ours, bytes(len(reply)), 1000)
+    assert len(mine) == 3
+    # The later pieces first (the first one was dropped at our socket and sent again),
+    # interleaved with another client's reply and another writer's sample naming ours.
+    for message in [mine[2], other[1], elsewhere[0], other[0], mine[1], elsewhere[1], other[2]]:
+        os.write(writer, pcap_record(message))
+    assert tail.captured_reply(ours) is None
+    assert tail._replies.held == len(reply)  # ours being put together; theirs let go of
+    os.write(writer, pcap_record(mine[0]))
+    assert tail.captured_reply(ours) == reply
+    tail.forget_reply(ours)
+    assert tail._replies.held == 0
+    theirs_expected = SampleIdentity(REQUEST_WRITER, 2)
+    assert tail.expect_reply(theirs_expected, [SERVER])
+    for message in fragment_messages(SERVER, 9, theirs_expected, reply, 512, little=False):
+        os.write(writer, pcap_record(message))
+    assert tail.captured_reply(theirs_expected) == reply
+    tail.forget_reply(theirs_expected)
+    tail.unuse()
+
+
+def test_captured_replies_stay_bounded(capture: tuple[IdentityCapture, int],
+                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """A reply bigger than MAX_SAMPLE is not put together, and pieces of samples whose first
+    fragment has not come are let go of, oldest first, to stay within HELD_BUDGET."""
+    monkeypatch.setattr(captured_replies, "MAX_SAMPLE", 4000)
+    monkeypatch.setattr(captured_replies, "HELD_BUDGET", 6000)
+    tail, writer = capture
+    tail.use()
+    ours = SampleIdentity(REQUEST_WRITER, 1)
+    assert tail.expect_reply(ours, [SERVER])
+    for message in fragment_messages(SERVER, 1, ours, bytes(5000), 1000):
+        os.write(writer, pcap_record(message))
+    assert tail.captured_reply(ours) is None
+    assert tail._replies.held == 0
+    for seq in range(2, 12):  # later pieces of samples whose first fragment never came
+        os.write(writer, pcap_record(fragment_messages(SERVER, seq, ours, bytes(3000), 1000)[1]))
+    tail.drain()
+    assert tail._replies.held <= 6000
+    reply = b"\x00\x01\x00\x00" + b"r" * 2996
+    for message in fragment_messages(SERVER, 20, ours, reply, 1000):
+        os.write(writer, pcap_record(message))
+    assert tail.captured_reply(ours) == reply  # room made for it
+    tail.forget_reply(ours)
+    assert tail._replies.held == 0
     tail.unuse()

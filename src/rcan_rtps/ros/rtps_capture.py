@@ -26,6 +26,10 @@ It also notes the HEARTBEATs that arrived, by writer and addressee, and where in
 writer's samples that reader takes (a Fast DDS writer announces itself to a new reader with
 one GAP+HEARTBEAT; a Cyclone writer's reader takes nothing before one), and a client whose
 reader has not heard one must not send its request or goal yet (handshake.py).
+
+And it keeps the payload of the reply a call expects (`expect_reply`: its request's identity
+and the reply writers matched with its reader; captured_replies.py), so that a reply Cyclone
+dropped as history after it reached our socket can still be delivered (`captured_reply`).
 """
 
 from __future__ import annotations
@@ -42,11 +46,13 @@ import tempfile
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Container, Iterator
 from pathlib import Path
 from typing import TypeVar
 
 import msgspec
+
+from .captured_replies import ReplyCollector
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -59,6 +65,7 @@ RELATED_PIDS = (PID_RELATED_SAMPLE_IDENTITY, PID_FASTDDS_RELATED_SAMPLE_IDENTITY
 PAD, HEARTBEAT, INFO_TS, INFO_SRC, INFO_DST, DATA, DATA_FRAG = \
     0x01, 0x07, 0x09, 0x0C, 0x0E, 0x15, 0x16
 FLAG_LITTLE, FLAG_INLINE_QOS, FLAG_INVALIDATE = 0x01, 0x02, 0x02
+FLAG_DATA, FLAG_FRAG_KEY = 0x04, 0x04  # DATA: has data; DATA_FRAG: carries a key
 RTPS_HEADER_SIZE = 20
 IP_UDP_SIZE = 28  # Cyclone's capture writes a made-up IPv4 + UDP header before each datagram
 TTL_OFFSET = 8  # ... whose TTL is 128 on received datagrams, 255 on sent ones
@@ -132,11 +139,32 @@ def _inline_related(buf: bytes | mmap.mmap, offset: int, end: int,
     return None
 
 
-def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None
-               ) -> Iterator[ReceivedData | ReceivedHeartbeat]:
+class ReceivedPiece(msgspec.Struct, frozen=True):
+    """Where a received DATA's serialized payload, or a DATA_FRAG's fragments, lie in the
+    buffer parsed (`buf[start:end]`, `at` bytes into the sample of `sample_size` bytes), for
+    writers whose samples someone waits for (see captured_replies.py)."""
+
+    writer_guid: bytes
+    seq: int
+    related: SampleIdentity | None  # from the inline QoS (a DATA_FRAG's first fragment only)
+    start: int
+    end: int
+    at: int
+    sample_size: int
+    fragment_size: int = 0  # 0: a whole DATA
+    first_fragment: int = 0  # fragment numbers first_fragment .. + fragments - 1
+    fragments: int = 0
+
+
+Received = ReceivedData | ReceivedHeartbeat | ReceivedPiece
+
+
+def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None,
+               pieces_of: Container[bytes] = ()) -> Iterator[Received]:
     """The DATA and first DATA_FRAG submessages naming a related sample, and the HEARTBEATs,
-    in the RTPS message `buf[start:end]`, in order. Other submessages cost one header read
-    each."""
+    in the RTPS message `buf[start:end]`, in order; for DATA and DATA_FRAG of the writers in
+    `pieces_of`, also where their payload lies (after the ReceivedData of the same
+    submessage, if any). Other submessages cost one header read each."""
     end = len(buf) if end is None else end
     if end - start < RTPS_HEADER_SIZE or buf[start:start + 4] != b"RTPS":
         return
@@ -152,10 +180,17 @@ def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None
         body = offset + 4
         stop = end if length == 0 and kind not in (INFO_TS, PAD) else min(end, body + length)
         if kind in (DATA, DATA_FRAG):
+            order = "<" if little else ">"
+            found = None
             if flags & FLAG_INLINE_QOS and timestamp is not None and stop - body >= 24:
-                found = _data(buf, body, stop, "<" if little else ">", kind, prefix, timestamp)
+                found = _data(buf, body, stop, order, kind, prefix, timestamp)
                 if found is not None:
                     yield found
+            if pieces_of and stop - body >= 24 and \
+                    prefix + bytes(buf[body + 8:body + 12]) in pieces_of:
+                piece = _piece(buf, body, stop, order, kind, flags, prefix)
+                if piece is not None:
+                    yield piece
         elif kind == INFO_TS:
             timestamp = None if flags & FLAG_INVALIDATE or stop - body < 8 else \
                 nanoseconds(*struct.unpack_from("<iI" if little else ">iI", buf, body))
@@ -180,6 +215,54 @@ def _data(buf: bytes | mmap.mmap, body: int, stop: int, order: str, kind: int, p
     high, low = struct.unpack_from(order + "iI", buf, body + 12)
     return ReceivedData(prefix + bytes(buf[body + 8:body + 12]), (high << 32) | low,
                         timestamp, related)
+
+
+def _parameters_end(buf: bytes | mmap.mmap, offset: int, end: int, order: str) -> int | None:
+    """Where the parameter list from `offset` ends (past its sentinel); None if it does not
+    end before `end`."""
+    while offset + 4 <= end:
+        pid, length = struct.unpack_from(order + "HH", buf, offset)
+        offset += 4
+        if pid & 0x3FFF == PID_SENTINEL:
+            return offset
+        offset += length
+    return None
+
+
+def _piece(buf: bytes | mmap.mmap, body: int, stop: int, order: str, kind: int, flags: int,
+           prefix: bytes) -> ReceivedPiece | None:
+    """Where a DATA's or DATA_FRAG's serialized payload lies; None for a key, a DATA without
+    data (a dispose), or a submessage shorter than it says."""
+    frag = kind == DATA_FRAG
+    if flags & FLAG_FRAG_KEY if frag else not flags & FLAG_DATA:
+        return None
+    if frag and stop - body < 32:
+        return None
+    (to_inline_qos,) = struct.unpack_from(order + "H", buf, body + 2)
+    payload = body + 4 + to_inline_qos
+    related = None
+    if flags & FLAG_INLINE_QOS:
+        related = _inline_related(buf, payload, stop, order)
+        found = _parameters_end(buf, payload, stop, order)
+        if found is None:
+            return None
+        payload = found
+    if payload > stop:
+        return None
+    writer = prefix + bytes(buf[body + 8:body + 12])
+    high, low = struct.unpack_from(order + "iI", buf, body + 12)
+    seq = (high << 32) | low
+    if not frag:
+        return ReceivedPiece(writer, seq, related, payload, stop, 0, stop - payload)
+    first, count, size, sample_size = struct.unpack_from(order + "IHHI", buf, body + 20)
+    if first < 1 or count < 1 or size < 1:
+        return None
+    at = (first - 1) * size
+    length = min(count * size, sample_size - at)
+    if length <= 0 or payload + length > stop:
+        return None
+    return ReceivedPiece(writer, seq, related, payload, payload + length, at, sample_size,
+                         size, first, count)
 
 
 class _Libc:
@@ -242,6 +325,7 @@ class IdentityCapture:
         self._known: OrderedDict[tuple[bytes, int], SampleIdentity] = OrderedDict()
         # (writer, addressee) → file offset of the newest record with such a HEARTBEAT
         self._heartbeats: OrderedDict[tuple[bytes, bytes], int] = OrderedDict()
+        self._replies = ReplyCollector()  # payloads of replies calls wait for (`expect_reply`)
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -419,6 +503,7 @@ class IdentityCapture:
                       "RCAN_RTPS_RPC_IDENTITY=off")
         self._known.clear()
         self._heartbeats.clear()
+        self._replies = ReplyCollector()
         self._broken = True
 
     def _resync(self, buf: mmap.mmap, offset: int, available: int) -> int:
@@ -443,7 +528,10 @@ class IdentityCapture:
 
     def _parse(self, buf: mmap.mmap, start: int, end: int, at: int) -> None:
         self.datagrams += 1
-        for data in parse_rtps(buf, start, end):
+        for data in parse_rtps(buf, start, end, self._replies.writers):
+            if isinstance(data, ReceivedPiece):
+                self._replies.piece(data, buf)
+                continue
             if isinstance(data, ReceivedHeartbeat):
                 pair = (data.writer_guid, data.reader_guid)
                 self._heartbeats[pair] = at
@@ -473,6 +561,28 @@ class IdentityCapture:
         (in chunks, so the drain thread never holds it up for more than one)."""
         key = (writer_guid, source_timestamp)
         return self._find(lambda: self._known.get(key))
+
+    def expect_reply(self, identity: SampleIdentity, writers: Collection[bytes]) -> bool:
+        """Keeps, from now on, the payload of a received sample of one of `writers` whose
+        related sample identity is `identity` (a DATA, or DATA_FRAGs put together; bounded:
+        captured_replies.py), for `captured_reply`, until `forget_reply`. Call it before the
+        request goes out: its reply is then in the part of the capture not read yet. False
+        (nothing kept) while the capture is not reading."""
+        with self._lock:
+            if not self.reading or not writers:
+                return False
+            self._replies.expect(identity, writers)
+            return True
+
+    def captured_reply(self, identity: SampleIdentity) -> bytes | None:
+        """The serialized payload (encapsulation header and body) of the expected reply
+        naming `identity`, once its datagram has reached our socket — delivered to our reader
+        or not. A miss flushes and reads the capture to its end first, as `lookup` does."""
+        return self._find(lambda: self._replies.take(identity))
+
+    def forget_reply(self, identity: SampleIdentity) -> None:
+        with self._lock:
+            self._replies.forget(identity)
 
     def mark(self) -> int:
         """Where the capture is now: a datagram received after this call is at or after it

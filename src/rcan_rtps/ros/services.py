@@ -6,7 +6,9 @@
                             writer GUID, sequence number) only as the RTPS related sample
                             identity in its inline QoS, which the cyclonedds API can neither
                             read nor write; we read it from Cyclone's packet capture
-                            (rtps_capture.py, docs/design/rpc-identity.md).
+                            (rtps_capture.py, docs/design/rpc-identity.md). A
+                            reply Cyclone dropped as history (it reached our socket,
+                            never our reader) is taken from that capture too.
     RequestMapping.AUTO     chosen per call from the vendor of the server's request reader
                             (GUID prefix 01.10 Cyclone; anything else gets plain requests).
 
@@ -69,6 +71,12 @@ STALE_REPLY_GRACE = 0.5  # s a timed-out Fast DDS request's late reply gets to a
 # s between looks, while a call waits for its reply, at whether its node was closed (then no
 # reply can reach it: the node's reader thread has stopped)
 NODE_CLOSED_POLL = 0.1
+# s after a Fast DDS request before its reply is looked for in the packet capture, between
+# looks, and once found there before it is delivered from it (the reader's turn first: Cyclone
+# processes a datagram right after writing it to the capture)
+CAPTURE_REPLY_AFTER = 0.5
+CAPTURE_POLL = 0.1
+CAPTURE_SETTLE = 0.2
 
 # A server's replies reach every client's reply reader, and every client's requests every
 # server's request reader: a reader keeps this many while the node's reader thread waits for
@@ -167,6 +175,7 @@ class _Pair:
         self.announce_lock = asyncio.Lock()
         self.renewed = 0  # times the reader was made again (see `renew_reader`)
         self.unannounced = 0  # writers given up on: the request went out without their HEARTBEAT
+        self.from_capture = 0  # replies our reader never delivered, taken from the capture
 
     def _make_reader(self) -> tuple[DataReader[Any], Any]:
         node, into, qos = self._node, self._into, self._qos.keeping(PAIR_READER_DEPTH)
@@ -502,18 +511,76 @@ class ServiceClient:
                 await asyncio.sleep(max(0.0, min(STALE_REPLY_GRACE, deadline - loop.time())))
                 self._stale = False
             self._check_open()  # closed while this call was queued
-            future: asyncio.Future[IdlStruct] = loop.create_future()
-            pair.write(message)
-            self._plain_waiter = (future, accept, SampleIdentity(pair.writer_guid, pair.written))
-            try:
-                return await self._reply(future, deadline)
-            except asyncio.TimeoutError:
-                self._stale = True
-                raise ServiceTimeout(
-                    f"service {self.name}: no reply within the timeout") from None
+            return await self._send_plain(pair, message, deadline, accept)
         finally:
             self._plain_waiter = None
             self._plain_lock.release()
+
+    async def _send_plain(self, pair: _Pair, message: IdlStruct, deadline: float,
+                          accept: Accept | None) -> IdlStruct:
+        """Sends the request and waits for its reply: from the reader, or, if the reader
+        never delivers it, from the packet capture (`_reply_from_capture`)."""
+        future: asyncio.Future[IdlStruct] = asyncio.get_running_loop().create_future()
+        identity = SampleIdentity(pair.writer_guid, pair.written + 1)
+        capture = self.node.identities
+        # Before the request goes out, so that its reply is in what the capture has not read.
+        captured = capture is not None and capture.expect_reply(
+            identity, matched_writers(pair.reader).values())
+        fallback = None
+        try:
+            pair.write(message)
+            self._plain_waiter = (future, accept, identity)
+            if captured:
+                assert capture is not None
+                fallback = asyncio.create_task(
+                    self._reply_from_capture(pair, capture, identity, future, accept))
+            return await self._reply(future, deadline)
+        except asyncio.TimeoutError:
+            self._stale = True
+            raise ServiceTimeout(f"service {self.name}: no reply within the timeout") from None
+        finally:
+            if fallback is not None:
+                fallback.cancel()
+            if captured:
+                assert capture is not None
+                capture.forget_reply(identity)
+
+    async def _reply_from_capture(self, pair: _Pair, capture: IdentityCapture,
+                                  identity: SampleIdentity, future: asyncio.Future[IdlStruct],
+                                  accept: Accept | None) -> None:
+        """Delivers the reply from the packet capture when the reader has not: its DATA
+        reached our socket, but Cyclone dropped it as history (a HEARTBEAT ahead of it taken
+        as our reader's start: docs/design/zero-loss.md), and nothing sends it again. Only
+        the reply naming our request exactly, from a reply writer matched with our reader
+        (`IdentityCapture.expect_reply`); the reader gets its turn first (CAPTURE_REPLY_AFTER,
+        CAPTURE_SETTLE, then the reader thread's barrier), and whichever delivers first wins."""
+        await asyncio.sleep(CAPTURE_REPLY_AFTER)
+        while not future.done():
+            data = capture.captured_reply(identity)
+            if data is not None:
+                await asyncio.sleep(CAPTURE_SETTLE)  # it may just have come: reader first
+                await self.node.delivered()
+                if not future.done():
+                    self._deliver_captured(pair, data, future, accept)
+                return
+            await asyncio.sleep(CAPTURE_POLL)
+
+    def _deliver_captured(self, pair: _Pair, data: bytes, future: asyncio.Future[IdlStruct],
+                          accept: Accept | None) -> None:
+        try:
+            reply: Any = self.node.codecs.of(self.response_type).prepare_decoder().decode(data)
+        except Exception as exc:  # bad input from the wire: said, not raised
+            log.warning("service %s: our reply, found in the packet capture, does not "
+                        "decode: %s", self.name, exc)
+            return
+        reply.sample_info = None  # (not taken from a reader)
+        if accept is not None and not accept(reply):
+            self.dropped_replies += 1
+            return
+        pair.from_capture += 1
+        log.info("service %s: our reply reached our socket but not our reader (dropped as "
+                 "history); taken from the packet capture", self.name)
+        future.set_result(reply)
 
     def _deliver(self, pair: _Pair, samples: list[Any]) -> None:
         for sample in samples:

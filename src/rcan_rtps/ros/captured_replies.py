@@ -1,0 +1,176 @@
+"""Replies kept from the packet capture for the calls that wait for them.
+
+A Fast DDS server's reply can reach our socket and still never reach our reader: when
+Cyclone took the HEARTBEAT ahead of it as the reader's start, it drops the reply as history
+and ACKs it (docs/design/zero-loss.md), and nothing sends it again. The datagram is in our
+packet capture all the same (rtps_capture.py). `ReplyCollector` keeps the serialized payload
+of such a reply — a DATA, or the DATA_FRAG pieces of one, put together — for the calls that
+said they wait for it (`expect`: the request's identity and the reply writers matched with
+the caller's reader), so that a call whose reader never delivered can take it (`take`).
+
+Only what was asked for is kept, and bounded: a payload only for an expected identity (the
+related sample identity must name our request exactly) from one of the writers given with it;
+fragments only of those writers, at most HELD_BUDGET bytes in all (pieces of a sample whose
+first fragment has not come yet are let go of first), no sample over MAX_SAMPLE bytes, at most
+MAX_EXPECTED identities. Methods are called under the capture's lock.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter, OrderedDict
+from collections.abc import Collection
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from mmap import mmap
+
+    from .rtps_capture import ReceivedPiece, SampleIdentity
+
+log = logging.getLogger(__name__)
+
+MAX_EXPECTED = 1024  # identities waited for at once (one per Fast DDS call in flight)
+MAX_SAMPLE = 16 << 20  # bytes: a bigger reply is not put together (its reader's own path only)
+HELD_BUDGET = 32 << 20  # bytes of payloads and fragments held at most
+FOREIGN_KEPT = 1024  # (writer, seq) of fragmented samples known to be another's
+
+
+class _Assembly:
+    """The fragments of one sample received so far."""
+
+    def __init__(self, sample_size: int, fragment_size: int) -> None:
+        self.data = bytearray(sample_size)
+        self.fragment_size = fragment_size
+        self.have: set[int] = set()
+        self.needed = -(-sample_size // fragment_size)
+        self.related: SampleIdentity | None = None
+
+    def add(self, piece: ReceivedPiece, buf: bytes | mmap) -> None:
+        self.data[piece.at:piece.at + piece.end - piece.start] = buf[piece.start:piece.end]
+        last = min(piece.first_fragment + piece.fragments, self.needed + 1)
+        self.have.update(range(piece.first_fragment, last))
+
+    @property
+    def complete(self) -> bool:
+        return len(self.have) == self.needed
+
+
+class ReplyCollector:
+    """Payloads of expected replies, found in received datagrams (see the module doc)."""
+
+    def __init__(self) -> None:
+        self._expected: OrderedDict[SampleIdentity, frozenset[bytes]] = OrderedDict()
+        self._writers: Counter[bytes] = Counter()  # writers of the expected, with multiplicity
+        self._found: dict[SampleIdentity, bytes] = {}
+        self._assemblies: OrderedDict[tuple[bytes, int], _Assembly] = OrderedDict()
+        self._foreign: OrderedDict[tuple[bytes, int], None] = OrderedDict()
+        self._held = 0  # bytes in _found and _assemblies
+
+    @property
+    def writers(self) -> Collection[bytes]:
+        """The writers whose DATA and DATA_FRAG the capture must show (`piece`)."""
+        return self._writers.keys()
+
+    @property
+    def held(self) -> int:
+        return self._held
+
+    def expect(self, identity: SampleIdentity, writers: Collection[bytes]) -> None:
+        """Keeps the payload of a sample naming `identity` that one of `writers` sends."""
+        self.forget(identity)
+        if len(self._expected) >= MAX_EXPECTED:
+            self.forget(next(iter(self._expected)))
+        chosen = frozenset(bytes(w) for w in writers)
+        self._expected[identity] = chosen
+        self._writers.update(chosen)
+
+    def forget(self, identity: SampleIdentity) -> None:
+        """No longer waited for: whatever was kept for it goes."""
+        writers = self._expected.pop(identity, None)
+        if writers is None:
+            return
+        self._writers.subtract(writers)
+        self._writers += Counter()  # drops the writers no longer counted
+        found = self._found.pop(identity, None)
+        if found is not None:
+            self._held -= len(found)
+        for key, assembly in list(self._assemblies.items()):
+            if assembly.related == identity:
+                self._drop(key)
+        if not self._expected:  # nothing waited for: nothing kept
+            for key in list(self._assemblies):
+                self._drop(key)
+            self._foreign.clear()
+
+    def take(self, identity: SampleIdentity) -> bytes | None:
+        """The payload (encapsulation header and body) of the reply naming `identity`, if
+        it has come; it is kept until `forget`."""
+        return self._found.get(identity)
+
+    def piece(self, piece: ReceivedPiece, buf: bytes | mmap) -> None:
+        """A DATA or DATA_FRAG of one of `writers`, where its payload lies in `buf`."""
+        if piece.fragment_size == 0:
+            if piece.related is not None and self._wanted(piece.related, piece.writer_guid):
+                self._keep(piece.related, bytes(buf[piece.start:piece.end]))
+            return
+        key = (piece.writer_guid, piece.seq)
+        if key in self._foreign or piece.sample_size > MAX_SAMPLE:
+            return
+        if piece.related is not None and not self._wanted(piece.related, piece.writer_guid):
+            self._foreign[key] = None  # another's (or another request's) reply
+            if len(self._foreign) > FOREIGN_KEPT:
+                self._foreign.popitem(last=False)
+            self._drop(key)
+            return
+        assembly = self._assembly(key, piece)
+        if assembly is None:
+            return
+        if piece.related is not None:
+            assembly.related = piece.related
+        assembly.add(piece, buf)
+        if assembly.complete and assembly.related is not None:
+            data = bytes(assembly.data)
+            self._drop(key)
+            self._keep(assembly.related, data)
+
+    def _wanted(self, related: SampleIdentity, writer: bytes) -> bool:
+        writers = self._expected.get(related)
+        return writers is not None and writer in writers and related not in self._found
+
+    def _keep(self, identity: SampleIdentity, data: bytes) -> None:
+        if identity in self._found or not self._room(len(data)):
+            return
+        self._found[identity] = data  # the first wins: a repair of it is the same sample
+        self._held += len(data)
+
+    def _assembly(self, key: tuple[bytes, int], piece: ReceivedPiece) -> _Assembly | None:
+        """The sample's assembly, made if there is room; None if the piece does not fit it
+        (another fragment size or sample size: a malformed stream)."""
+        assembly = self._assemblies.get(key)
+        if assembly is None:
+            if not self._room(piece.sample_size):
+                return None
+            assembly = self._assemblies[key] = _Assembly(piece.sample_size, piece.fragment_size)
+            self._held += piece.sample_size
+        if assembly.fragment_size != piece.fragment_size or \
+                len(assembly.data) != piece.sample_size:
+            self._drop(key)
+            return None
+        return assembly
+
+    def _room(self, size: int) -> bool:
+        """Whether `size` more bytes fit HELD_BUDGET, after letting go of the oldest
+        assemblies whose first fragment (naming whom they are for) has not come."""
+        for key in [k for k, a in self._assemblies.items() if a.related is None]:
+            if self._held + size <= HELD_BUDGET:
+                break
+            self._drop(key)
+        if self._held + size > HELD_BUDGET:
+            log.debug("captured replies: %d bytes more would exceed the budget", size)
+            return False
+        return True
+
+    def _drop(self, key: tuple[bytes, int]) -> None:
+        assembly = self._assemblies.pop(key, None)
+        if assembly is not None:
+            self._held -= len(assembly.data)

@@ -204,6 +204,9 @@ async def test_bounded_string_counts_characters_like_rclpy(
         await pub.wait_for_subscribers(1, timeout=15)
         await sub.wait_for_publishers(1, timeout=15)
         assert await oracle.acall("wait_matched", topic="/to_rclpy") >= 1
+        # (our reader saw their writer; their writer must have matched our reader too, or its
+        # one volatile sample goes to nobody: CI lost it once on a busy machine)
+        assert await oracle.acall("wait_subscribers_matched", topic="/to_us") >= 1
         pub.publish(value)
         await oracle.acall("publish", topic="/to_us", type="test_msgs/msg/Strings", value=value)
         (theirs,) = await take(oracle, "/to_rclpy")

@@ -21,7 +21,7 @@ from typing import Any
 import rclpy
 from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
@@ -123,6 +123,7 @@ class Agent:
         self.lock = threading.Lock()
         self.received: dict[str, list[Any]] = {}
         self.matched: dict[str, int] = {}
+        self.subscribers_matched: dict[str, int] = {}  # our publishers' matched readers
         self.publishers: dict[str, Any] = {}
         self.periodic: dict[str, threading.Event] = {}
         self.published: dict[str, int] = {}
@@ -154,8 +155,28 @@ class Agent:
         return plain(fill(load_type(type)(), value))
 
     def op_publisher(self, topic: str, type: str, qos: str = "default") -> bool:
-        self.publishers[topic] = self.node.create_publisher(load_type(type), topic, make_qos(qos))
+        def on_matched(status: Any, topic: str = topic) -> None:
+            with self.lock:
+                self.subscribers_matched[topic] = status.current_count
+
+        self.publishers[topic] = self.node.create_publisher(
+            load_type(type), topic, make_qos(qos),
+            event_callbacks=PublisherEventCallbacks(matched=on_matched))
         return True
+
+    def op_wait_subscribers_matched(self, topic: str, count: int = 1,
+                                    timeout: float = 15.0) -> int:
+        """Subscriptions matched by our publisher on `topic` at the DDS level: only then does a
+        one-shot, volatile message reach them (a reader that matched our writer may not yet
+        be matched by it; `wait_subscribers` counts them on the graph)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                n = self.subscribers_matched.get(topic, 0)
+            if n >= count:
+                return n
+            time.sleep(0.02)
+        return self.subscribers_matched.get(topic, 0)
 
     def op_unpublish(self, topic: str) -> bool:
         """Destroys our publisher on `topic` (a clean leave: readers see the writer go)."""

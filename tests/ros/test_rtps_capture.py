@@ -400,3 +400,40 @@ def test_captured_replies_stay_bounded(capture: tuple[IdentityCapture, int],
     tail.forget_reply(ours)
     assert tail._replies.held == 0
     tail.unuse()
+
+
+def data_with_qos(qos: bytes, payload: bytes, *, claimed_extra: int = 0) -> bytes:
+    """One little-endian DATA of SERVER with inline QoS `qos` (as given: parameters and
+    sentinel) and `payload`, whose submessage header claims `claimed_extra` bytes more than
+    the message holds."""
+    body = struct.pack("<HH", 0, 16) + b"\x00\x00\x12\x04" + WRITER_ID + \
+        struct.pack("<iI", 0, 1) + qos + payload
+    info_ts = struct.pack("<BBHiI", 0x09, 0x01, 8, 1_700_000_000, 0)
+    return b"RTPS\x02\x03\x01\x0f" + PREFIX + info_ts + \
+        struct.pack("<BBH", 0x15, 0x01 | 0x02 | 0x04, len(body) + claimed_extra) + body
+
+
+def test_a_reply_is_taken_only_from_what_cyclone_accepts_as_well_formed(
+        capture: tuple[IdentityCapture, int]) -> None:
+    """The payload starts after the inline QoS' sentinel (PID 0x0001 exactly: a vendor's
+    0x8001 is just a parameter); a parameter list with a length not a multiple of 4, or a
+    DATA whose submessage claims more bytes than its message holds, is malformed (Cyclone
+    drops it: DDSI 9.4.2.11) and never taken as our reply, cut short or shifted."""
+    tail, writer = capture
+    tail.use()
+    ours, reply = SampleIdentity(REQUEST_WRITER, 1), b"\x00\x01\x00\x00ours...."
+    vendor = struct.pack("<HH", 0x8001, 4) + b"\x00\x01\x00\x00"  # looks like a header
+    assert tail.expect_reply(ours, [SERVER])
+    os.write(writer, pcap_record(data_with_qos(vendor + related_qos(ours, "<"), reply)))
+    assert tail.captured_reply(ours) == reply
+    tail.forget_reply(ours)
+
+    odd = struct.pack("<HH", 0x0070, 3) + b"abc"
+    for message in (data_with_qos(odd + related_qos(ours, "<"), reply),
+                    data_with_qos(related_qos(ours, "<"), reply, claimed_extra=8)):
+        assert tail.expect_reply(ours, [SERVER])
+        os.write(writer, pcap_record(message))
+        assert tail.captured_reply(ours) is None
+        tail.forget_reply(ours)
+    tail.unuse()
+

@@ -178,7 +178,9 @@ def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None,
         if not little:
             length = (length & 0xFF) << 8 | length >> 8
         body = offset + 4
-        stop = end if length == 0 and kind not in (INFO_TS, PAD) else min(end, body + length)
+        if body + length > end:
+            return  # it claims more than the message holds: malformed, the rest too (Cyclone)
+        stop = end if length == 0 and kind not in (INFO_TS, PAD) else body + length
         if kind in (DATA, DATA_FRAG):
             order = "<" if little else ">"
             found = None
@@ -223,8 +225,10 @@ def _parameters_end(buf: bytes | mmap.mmap, offset: int, end: int, order: str) -
     while offset + 4 <= end:
         pid, length = struct.unpack_from(order + "HH", buf, offset)
         offset += 4
-        if pid & 0x3FFF == PID_SENTINEL:
+        if pid == PID_SENTINEL:  # exactly: a vendor's 0x8001 is just another parameter
             return offset
+        if length % 4:  # malformed (DDSI 9.4.2.11): Cyclone drops the submessage
+            return None
         offset += length
     return None
 

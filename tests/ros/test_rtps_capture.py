@@ -12,7 +12,8 @@ import signal
 import struct
 import subprocess
 import sys
-from collections.abc import Iterator
+import tracemalloc
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -361,7 +362,8 @@ def test_a_fragmented_reply_is_put_together_from_its_pieces(
     for message in [mine[2], other[1], elsewhere[0], other[0], mine[1], elsewhere[1], other[2]]:
         os.write(writer, pcap_record(message))
     assert tail.captured_reply(ours) is None
-    assert tail._replies.held == len(reply)  # ours being put together; theirs let go of
+    # ours being put together (its bytes, a byte a fragment, its objects); theirs let go of
+    assert tail._replies.held == len(reply) + 3 + captured_replies.ASSEMBLY_OVERHEAD
     os.write(writer, pcap_record(mine[0]))
     assert tail.captured_reply(ours) == reply
     tail.forget_reply(ours)
@@ -437,3 +439,56 @@ def test_a_reply_is_taken_only_from_what_cyclone_accepts_as_well_formed(
         tail.forget_reply(ours)
     tail.unuse()
 
+
+def fragment_piece(seq: int, first: int, count: int, size: int, sample_size: int,
+                   related: SampleIdentity | None = None) -> bytes:
+    """One DATA_FRAG of SERVER carrying fragments first .. first + count - 1 (zeros)."""
+    qos = b"" if related is None else related_qos(related, "<")
+    length = min(count * size, sample_size - (first - 1) * size)
+    body = struct.pack("<HH", 0, 28) + b"\x00\x00\x12\x04" + WRITER_ID + \
+        struct.pack("<iI", 0, seq) + struct.pack("<IHHI", first, count, size, sample_size) + \
+        qos + bytes(length)
+    return b"RTPS\x02\x03\x01\x0f" + PREFIX + \
+        struct.pack("<BBH", 0x16, 0x01 | (0x02 if qos else 0), len(body)) + body
+
+
+def feed(collector: captured_replies.ReplyCollector, message: bytes) -> None:
+    for piece in parse_rtps(message, 0, None, collector.writers):
+        if isinstance(piece, rtps_capture.ReceivedPiece):
+            collector.piece(piece, message)
+
+
+def traced_while(action: Callable[[], object]) -> int:
+    """Bytes allocated by `action` and still held after it."""
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        action()
+        return tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+
+
+def test_fragments_cost_no_more_memory_than_is_counted_as_held() -> None:
+    """What the collector holds is what its budget counts, whatever the fragments claim:
+    1-byte fragments (a million fragment numbers for one sample), or a flood of tiny samples
+    whose first fragment never comes."""
+    collector = captured_replies.ReplyCollector()
+    collector.expect(SampleIdentity(REQUEST_WRITER, 1), [SERVER])
+    sample_size = 1 << 20
+    messages = [fragment_piece(1, first, 0xFF00, 1, sample_size)
+                for first in range(2, sample_size, 0xFF00)]
+
+    def pieces() -> None:
+        for message in messages:
+            feed(collector, message)
+    assert traced_while(pieces) <= collector.held + (64 << 10)
+
+    flood = captured_replies.ReplyCollector()
+    flood.expect(SampleIdentity(REQUEST_WRITER, 1), [SERVER])
+    tiny = [fragment_piece(seq, 2, 1, 1, 2) for seq in range(2, 20_002)]
+
+    def samples() -> None:
+        for message in tiny:
+            feed(flood, message)
+    assert traced_while(samples) <= flood.held + (64 << 10)

@@ -11,7 +11,8 @@ the caller's reader), so that a call whose reader never delivered can take it (`
 Only what was asked for is kept, and bounded: a payload only for an expected identity (the
 related sample identity must name our request exactly) from one of the writers given with it;
 fragments only of those writers, at most HELD_BUDGET bytes in all (pieces of a sample whose
-first fragment has not come yet are let go of first), no sample over MAX_SAMPLE bytes, at most
+first fragment has not come yet are let go of first; an assembly counted with its bookkeeping),
+at most MAX_ASSEMBLIES samples put together at once, no sample over MAX_SAMPLE bytes, at most
 MAX_EXPECTED identities. Methods are called under the capture's lock.
 """
 
@@ -33,6 +34,10 @@ MAX_EXPECTED = 1024  # identities waited for at once (one per Fast DDS call in f
 MAX_SAMPLE = 16 << 20  # bytes: a bigger reply is not put together (its reader's own path only)
 HELD_BUDGET = 32 << 20  # bytes of payloads and fragments held at most
 FOREIGN_KEPT = 1024  # (writer, seq) of fragmented samples known to be another's
+MAX_ASSEMBLIES = 64  # samples put together at once (one per call in flight, and others' replies)
+# bytes an assembly is counted for beyond its sample and its one byte a fragment: its objects
+# (a flood of tiny samples must not cost more than the budget counts)
+ASSEMBLY_OVERHEAD = 512
 
 
 class _Assembly:
@@ -41,18 +46,27 @@ class _Assembly:
     def __init__(self, sample_size: int, fragment_size: int) -> None:
         self.data = bytearray(sample_size)
         self.fragment_size = fragment_size
-        self.have: set[int] = set()
-        self.needed = -(-sample_size // fragment_size)
+        # one byte a fragment, 1 once received: bounded by the sample (a set of fragment
+        # numbers cost some 60 bytes each: 1-byte fragments made it 60 times the sample)
+        self.received = bytearray(-(-sample_size // fragment_size))
+        self.missing = len(self.received)
         self.related: SampleIdentity | None = None
+
+    @property
+    def cost(self) -> int:
+        """Bytes it is counted for in the budget."""
+        return len(self.data) + len(self.received) + ASSEMBLY_OVERHEAD
 
     def add(self, piece: ReceivedPiece, buf: bytes | mmap) -> None:
         self.data[piece.at:piece.at + piece.end - piece.start] = buf[piece.start:piece.end]
-        last = min(piece.first_fragment + piece.fragments, self.needed + 1)
-        self.have.update(range(piece.first_fragment, last))
+        first = piece.first_fragment - 1
+        last = min(first + piece.fragments, len(self.received))
+        self.missing -= self.received.count(0, first, last)
+        self.received[first:last] = b"\x01" * (last - first)
 
     @property
     def complete(self) -> bool:
-        return len(self.have) == self.needed
+        return self.missing == 0
 
 
 class ReplyCollector:
@@ -128,10 +142,11 @@ class ReplyCollector:
         if piece.related is not None:
             assembly.related = piece.related
         assembly.add(piece, buf)
-        if assembly.complete and assembly.related is not None:
-            data = bytes(assembly.data)
+        if assembly.complete:  # (without a related identity: nobody's, let go of)
+            data, related = bytes(assembly.data), assembly.related
             self._drop(key)
-            self._keep(assembly.related, data)
+            if related is not None:
+                self._keep(related, data)
 
     def _wanted(self, related: SampleIdentity, writer: bytes) -> bool:
         writers = self._expected.get(related)
@@ -148,10 +163,13 @@ class ReplyCollector:
         (another fragment size or sample size: a malformed stream)."""
         assembly = self._assemblies.get(key)
         if assembly is None:
-            if not self._room(piece.sample_size):
+            if len(self._assemblies) >= MAX_ASSEMBLIES:
+                self._drop(self._oldest())
+            made = _Assembly(piece.sample_size, piece.fragment_size)
+            if not self._room(made.cost):
                 return None
-            assembly = self._assemblies[key] = _Assembly(piece.sample_size, piece.fragment_size)
-            self._held += piece.sample_size
+            assembly = self._assemblies[key] = made
+            self._held += made.cost
         if assembly.fragment_size != piece.fragment_size or \
                 len(assembly.data) != piece.sample_size:
             self._drop(key)
@@ -170,7 +188,13 @@ class ReplyCollector:
             return False
         return True
 
+    def _oldest(self) -> tuple[bytes, int]:
+        """The assembly to let go of first: the oldest whose first fragment has not come,
+        else the oldest."""
+        unlinked = (k for k, a in self._assemblies.items() if a.related is None)
+        return next(unlinked, next(iter(self._assemblies)))
+
     def _drop(self, key: tuple[bytes, int]) -> None:
         assembly = self._assemblies.pop(key, None)
         if assembly is not None:
-            self._held -= len(assembly.data)
+            self._held -= assembly.cost

@@ -13,7 +13,7 @@ import struct
 import subprocess
 import sys
 import tracemalloc
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Container, Iterator
 from pathlib import Path
 
 import pytest
@@ -492,3 +492,27 @@ def test_fragments_cost_no_more_memory_than_is_counted_as_held() -> None:
         for message in tiny:
             feed(flood, message)
     assert traced_while(samples) <= flood.held + (64 << 10)
+
+
+def test_a_datagram_the_parser_fails_on_is_skipped_and_the_capture_goes_on(
+        capture: tuple[IdentityCapture, int], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Whatever a datagram makes the parser raise, the capture skips that datagram (counted,
+    said once) and goes on: no exception out of a drain or a lookup, none killing the drain
+    thread, nothing left unconsumed to fail again on every drain."""
+    parse = rtps_capture.parse_rtps
+
+    def fails_on_poison(buf: bytes, start: int = 0, end: int | None = None,
+                        pieces_of: Container[bytes] = ()) -> Iterator[rtps_capture.Received]:
+        if b"poison" in bytes(buf[start:end]):
+            raise ValueError("a parser bug")
+        return parse(buf, start, end, pieces_of)
+    monkeypatch.setattr(rtps_capture, "parse_rtps", fails_on_poison)
+    tail, writer = capture
+    tail.use()
+    mine = SampleIdentity(REQUEST_WRITER, 2)
+    os.write(writer, pcap_record(rtps_message(1, mine, payload=b"\x00\x01\x00\x00poison")) * 2)
+    os.write(writer, pcap_record(rtps_message(2, mine, stamp=(1_700_000_001, 0))))
+    tail.drain()
+    assert tail.lookup(SERVER, nanoseconds(1_700_000_001, 0)) == mine
+    assert tail.unparsed == 2
+    tail.unuse()

@@ -344,6 +344,7 @@ class IdentityCapture:
         self._broken = False  # given up (the file could not be kept bounded)
         self.datagrams = 0  # received datagrams parsed so far
         self.identified = 0  # DATA submessages found naming a related sample
+        self.unparsed = 0  # received datagrams skipped: the parser failed on them
 
     @property
     def reading(self) -> bool:
@@ -483,7 +484,7 @@ class IdentityCapture:
                     break  # Cyclone has not written all of it yet
                 packet = offset + RECORD_HEADER_SIZE
                 if parse and length > IP_UDP_SIZE and buf[packet + TTL_OFFSET] == RECEIVED_TTL:
-                    self._parse(buf, packet + IP_UDP_SIZE, end, base + offset)
+                    self._parse_or_skip(buf, packet + IP_UDP_SIZE, end, base + offset)
                 offset = end
         self._offset = base + offset
         if self._offset - self._punched >= PUNCH_AFTER:
@@ -529,6 +530,17 @@ class IdentityCapture:
                 self._resync_at = None
                 return start
             offset = start + 1
+
+    def _parse_or_skip(self, buf: mmap.mmap, start: int, end: int, at: int) -> None:
+        """`_parse`, skipping a datagram it fails on: a datagram from the wire must not stop
+        the drain thread, raise out of a lookup, or stay unconsumed to fail every drain."""
+        try:
+            self._parse(buf, start, end, at)
+        except Exception as exc:  # bad input (or a parser bug): said once, counted
+            self.unparsed += 1
+            if self.unparsed == 1:
+                log.warning("packet capture: a received datagram could not be read, skipped "
+                            "(%s: %s); later ones are only counted", type(exc).__name__, exc)
 
     def _parse(self, buf: mmap.mmap, start: int, end: int, at: int) -> None:
         self.datagrams += 1

@@ -516,3 +516,21 @@ def test_a_datagram_the_parser_fails_on_is_skipped_and_the_capture_goes_on(
     assert tail.lookup(SERVER, nanoseconds(1_700_000_001, 0)) == mine
     assert tail.unparsed == 2
     tail.unuse()
+
+
+def test_a_sample_that_does_not_fit_the_budget_is_never_allocated(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fragment claiming a sample the budget has no room for costs nothing (checked before
+    anything is made: each such 57-byte datagram cost 15 ms of zeroing otherwise)."""
+    monkeypatch.setattr(captured_replies, "HELD_BUDGET", 1 << 20)
+    collector = captured_replies.ReplyCollector()
+    collector.expect(SampleIdentity(REQUEST_WRITER, 1), [SERVER])
+    message = fragment_piece(2, 2, 1, 1, 8 << 20)
+    tracemalloc.start()
+    try:
+        feed(collector, message)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert collector.held == 0
+    assert peak < 1 << 20

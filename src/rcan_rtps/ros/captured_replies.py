@@ -55,7 +55,11 @@ class _Assembly:
     @property
     def cost(self) -> int:
         """Bytes it is counted for in the budget."""
-        return len(self.data) + len(self.received) + ASSEMBLY_OVERHEAD
+        return self.cost_of(len(self.data), self.fragment_size)
+
+    @staticmethod
+    def cost_of(sample_size: int, fragment_size: int) -> int:
+        return sample_size + -(-sample_size // fragment_size) + ASSEMBLY_OVERHEAD
 
     def add(self, piece: ReceivedPiece, buf: bytes | mmap) -> None:
         self.data[piece.at:piece.at + piece.end - piece.start] = buf[piece.start:piece.end]
@@ -165,11 +169,12 @@ class ReplyCollector:
         if assembly is None:
             if len(self._assemblies) >= MAX_ASSEMBLIES:
                 self._drop(self._oldest())
-            made = _Assembly(piece.sample_size, piece.fragment_size)
-            if not self._room(made.cost):
+            # Room first: a sample that cannot be held is never allocated (nor zeroed).
+            cost = _Assembly.cost_of(piece.sample_size, piece.fragment_size)
+            if not self._room(cost):
                 return None
-            assembly = self._assemblies[key] = made
-            self._held += made.cost
+            assembly = self._assemblies[key] = _Assembly(piece.sample_size, piece.fragment_size)
+            self._held += cost
         if assembly.fragment_size != piece.fragment_size or \
                 len(assembly.data) != piece.sample_size:
             self._drop(key)

@@ -308,6 +308,23 @@ async def test_a_reply_our_reader_never_delivers_is_taken_from_the_capture(
         assert pair.from_capture == 2
 
 
+@pytest.mark.parametrize("oracle_rmw", ["fastrtps"])
+async def test_a_fragmented_reply_our_reader_never_delivers_is_put_together_from_the_capture(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """The same, for a reply Fast DDS sends in DATA_FRAGs (a 200 kB string): its pieces are
+    put together from the capture, and the call gets it whole; the capture then holds
+    nothing."""
+    with closing(echo_client(node)) as ours:
+        pair = await ours.wait_for_service(REPLY_TIMEOUT)
+        node.unwatch(pair.watch)
+        big = "".join(f"{i:07d}" for i in range(200_000 // 7))
+        reply = await ours.call({"string_value": big, "int64_value": 5},
+                                timeout=ANNOUNCED_TIMEOUT)
+        assert (reply.string_value, reply.int64_value) == (big, 5)
+        assert pair.from_capture == 1
+        assert node.identities is not None and node.identities._replies.held == 0
+
+
 @both_rmws
 async def test_a_first_feedback_is_not_lost_when_the_feedback_writer_s_first_heartbeat_was_dropped(
         oracle: RclpyOracle, noisy_node: RosNode) -> None:

@@ -534,3 +534,18 @@ def test_a_sample_that_does_not_fit_the_budget_is_never_allocated(
         tracemalloc.stop()
     assert collector.held == 0
     assert peak < 1 << 20
+
+
+def test_a_fragment_sent_again_after_its_sample_was_put_together_is_not_kept() -> None:
+    """A repair of a fragment of a sample already put together (sent again on a NACK) starts
+    no new assembly: it would hold the whole sample's room for nothing."""
+    collector = captured_replies.ReplyCollector()
+    ours = SampleIdentity(REQUEST_WRITER, 1)
+    collector.expect(ours, [SERVER])
+    reply = b"\x00\x01\x00\x00" + bytes(2996)
+    pieces = fragment_messages(SERVER, 7, ours, reply, 1000)
+    for message in pieces:
+        feed(collector, message)
+    assert collector.take(ours) == reply
+    feed(collector, pieces[1])
+    assert collector.held == len(reply)

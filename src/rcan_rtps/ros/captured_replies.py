@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 MAX_EXPECTED = 1024  # identities waited for at once (one per Fast DDS call in flight)
 MAX_SAMPLE = 16 << 20  # bytes: a bigger reply is not put together (its reader's own path only)
 HELD_BUDGET = 32 << 20  # bytes of payloads and fragments held at most
-FOREIGN_KEPT = 1024  # (writer, seq) of fragmented samples known to be another's
+SETTLED_KEPT = 1024  # (writer, seq) of fragmented samples not to put together (again)
 MAX_ASSEMBLIES = 64  # samples put together at once (one per call in flight, and others' replies)
 # bytes an assembly is counted for beyond its sample and its one byte a fragment: its objects
 # (a flood of tiny samples must not cost more than the budget counts)
@@ -81,7 +81,8 @@ class ReplyCollector:
         self._writers: Counter[bytes] = Counter()  # writers of the expected, with multiplicity
         self._found: dict[SampleIdentity, bytes] = {}
         self._assemblies: OrderedDict[tuple[bytes, int], _Assembly] = OrderedDict()
-        self._foreign: OrderedDict[tuple[bytes, int], None] = OrderedDict()
+        # another's (or another request's) reply, or ours already put together
+        self._settled: OrderedDict[tuple[bytes, int], None] = OrderedDict()
         self._held = 0  # bytes in _found and _assemblies
 
     @property
@@ -118,7 +119,7 @@ class ReplyCollector:
         if not self._expected:  # nothing waited for: nothing kept
             for key in list(self._assemblies):
                 self._drop(key)
-            self._foreign.clear()
+            self._settled.clear()
 
     def take(self, identity: SampleIdentity) -> bytes | None:
         """The payload (encapsulation header and body) of the reply naming `identity`, if
@@ -132,13 +133,10 @@ class ReplyCollector:
                 self._keep(piece.related, bytes(buf[piece.start:piece.end]))
             return
         key = (piece.writer_guid, piece.seq)
-        if key in self._foreign or piece.sample_size > MAX_SAMPLE:
+        if key in self._settled or piece.sample_size > MAX_SAMPLE:
             return
         if piece.related is not None and not self._wanted(piece.related, piece.writer_guid):
-            self._foreign[key] = None  # another's (or another request's) reply
-            if len(self._foreign) > FOREIGN_KEPT:
-                self._foreign.popitem(last=False)
-            self._drop(key)
+            self._settle(key)  # another's (or another request's) reply
             return
         assembly = self._assembly(key, piece)
         if assembly is None:
@@ -148,9 +146,16 @@ class ReplyCollector:
         assembly.add(piece, buf)
         if assembly.complete:  # (without a related identity: nobody's, let go of)
             data, related = bytes(assembly.data), assembly.related
-            self._drop(key)
+            self._settle(key)  # a fragment sent again later starts nothing
             if related is not None:
                 self._keep(related, data)
+
+    def _settle(self, key: tuple[bytes, int]) -> None:
+        """No piece of this sample is kept from now on."""
+        self._settled[key] = None
+        if len(self._settled) > SETTLED_KEPT:
+            self._settled.popitem(last=False)
+        self._drop(key)
 
     def _wanted(self, related: SampleIdentity, writer: bytes) -> bool:
         writers = self._expected.get(related)

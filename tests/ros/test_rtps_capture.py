@@ -420,7 +420,9 @@ def test_a_reply_is_taken_only_from_what_cyclone_accepts_as_well_formed(
     """The payload starts after the inline QoS' sentinel (PID 0x0001 exactly: a vendor's
     0x8001 is just a parameter); a parameter list with a length not a multiple of 4, or a
     DATA whose submessage claims more bytes than its message holds, is malformed (Cyclone
-    drops it: DDSI 9.4.2.11) and never taken as our reply, cut short or shifted."""
+    drops it: DDSI 9.4.2.11) and never taken as our reply, cut short or shifted; so is a DATA
+    whose payload has no room for its 4-byte encapsulation header (it would block the real
+    reply: the first one kept wins)."""
     tail, writer = capture
     tail.use()
     ours, reply = SampleIdentity(REQUEST_WRITER, 1), b"\x00\x01\x00\x00ours...."
@@ -432,7 +434,8 @@ def test_a_reply_is_taken_only_from_what_cyclone_accepts_as_well_formed(
 
     odd = struct.pack("<HH", 0x0070, 3) + b"abc"
     for message in (data_with_qos(odd + related_qos(ours, "<"), reply),
-                    data_with_qos(related_qos(ours, "<"), reply, claimed_extra=8)):
+                    data_with_qos(related_qos(ours, "<"), reply, claimed_extra=8),
+                    data_with_qos(related_qos(ours, "<"), b"\x00\x01")):  # no room for a header
         assert tail.expect_reply(ours, [SERVER])
         os.write(writer, pcap_record(message))
         assert tail.captured_reply(ours) is None

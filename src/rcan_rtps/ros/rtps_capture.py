@@ -256,10 +256,11 @@ def _piece(buf: bytes | mmap.mmap, body: int, stop: int, order: str, kind: int, 
     writer = prefix + bytes(buf[body + 8:body + 12])
     high, low = struct.unpack_from(order + "iI", buf, body + 12)
     seq = (high << 32) | low
-    if not frag:
-        return ReceivedPiece(writer, seq, related, payload, stop, 0, stop - payload)
+    if not frag:  # malformed without room for the encapsulation header (Cyclone drops it)
+        return None if stop - payload < 4 else \
+            ReceivedPiece(writer, seq, related, payload, stop, 0, stop - payload)
     first, count, size, sample_size = struct.unpack_from(order + "IHHI", buf, body + 20)
-    if first < 1 or count < 1 or size < 1:
+    if first < 1 or count < 1 or size < 1 or (first == 1 and stop - payload < 4):
         return None
     at = (first - 1) * size
     length = min(count * size, sample_size - at)

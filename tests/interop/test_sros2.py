@@ -305,3 +305,22 @@ def test_credentials_that_are_wrong_are_refused_under_permissive_too(
     said = probe(secure_cyclone, store, domain_id + 1, "Permissive")
     assert said["error"] == "KeystoreError"
     assert f"not domain {domain_id + 1}" in said["message"]
+
+
+def test_under_security_no_reply_is_taken_from_the_packet_capture(
+        store: Path, domain_id: int, secure_cyclone: tuple[Path, Path]) -> None:
+    """The packet capture sees only what travels in clear: under DDS-Security a forged
+    plaintext DATA naming a protected server's writer, which Cyclone refuses, is all it could
+    take as a reply. A secured node's plain calls (a Fast DDS server's mapping) never have it
+    keep one; a node without security does (the same probe, as a check that it can fail)."""
+    python, home = secure_cyclone
+    for env, kept in ((secured(store, "/rcan_rtps/peer"), []), ({}, [True])):
+        done = subprocess.run(
+            [str(python), str(Path(__file__).with_name("sros2_capture_probe.py")),
+             str(domain_id)], capture_output=True, text=True, timeout=120,
+            env={**os.environ, **env, "CYCLONEDDS_HOME": str(home),
+                 "PYTHONPATH": str(ROOT / "src")})
+        said = json.loads(done.stdout.splitlines()[-1]) if done.stdout else {"error": done.stderr}
+        assert "error" not in said, f"{said['error']}; stderr: {done.stderr}"
+        assert (said["secured"], said["capture"]) == (bool(env), True)
+        assert said["kept"] == kept

@@ -23,11 +23,12 @@ import pytest
 from dropping import DeafCapture, small_buffers
 from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
 
-from rcan_rtps.ros import actions, qos
+from rcan_rtps.ros import actions, qos, services
 from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.errors import ActionError, ServiceTimeout
 from rcan_rtps.ros.handshake import matched_writers
 from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.rtps_capture import SampleIdentity
 from rcan_rtps.ros.services import ServiceClient
 
 from .cpu_load import burning_cpus
@@ -306,6 +307,54 @@ async def test_a_reply_our_reader_never_delivers_is_taken_from_the_capture(
             assert (reply.string_value, reply.int64_value) == (f"call {i}", i)
         assert (await theirs).string_value == "call 1"
         assert pair.from_capture == 2
+
+
+@pytest.mark.parametrize("oracle_rmw", ["fastrtps"])
+async def test_a_fragmented_reply_our_reader_never_delivers_is_put_together_from_the_capture(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """The same, for a reply Fast DDS sends in DATA_FRAGs (a 200 kB string): its pieces are
+    put together from the capture, and the call gets it whole; the capture then holds
+    nothing."""
+    with closing(echo_client(node)) as ours:
+        pair = await ours.wait_for_service(REPLY_TIMEOUT)
+        node.unwatch(pair.watch)
+        big = "".join(f"{i:07d}" for i in range(200_000 // 7))
+        reply = await ours.call({"string_value": big, "int64_value": 5},
+                                timeout=ANNOUNCED_TIMEOUT)
+        assert (reply.string_value, reply.int64_value) == (big, 5)
+        assert pair.from_capture == 1
+        assert node.identities is not None and node.identities._replies.held == 0
+
+
+@pytest.mark.parametrize("oracle_rmw", ["fastrtps"])
+async def test_a_call_cancelled_or_timed_out_while_its_reply_waits_in_the_capture(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """A call cancelled while its reply waits in the capture for its turn, or timed out, leaves
+    nothing expected or kept behind, and its reply never reaches the next call."""
+    capture = node.identities
+    assert capture is not None
+    with closing(echo_client(node)) as ours:
+        pair = await ours.wait_for_service(REPLY_TIMEOUT)
+        node.unwatch(pair.watch)
+        call = asyncio.create_task(ours.call(request_of(1), timeout=ANNOUNCED_TIMEOUT))
+        for _ in range(500):  # (at most 5 s)
+            if capture.captured_reply(SampleIdentity(pair.writer_guid, 1)) is not None:
+                break
+            await asyncio.sleep(0.01)
+        else:
+            pytest.fail("the reply never reached the capture")
+        # past the first look: the call has found it and gives the reader its turn
+        await asyncio.sleep(services.CAPTURE_REPLY_AFTER + services.CAPTURE_SETTLE / 4)
+        call.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await call
+        assert (dict(capture._replies._expected), capture._replies.held) == ({}, 0)
+        with pytest.raises(ServiceTimeout):
+            await ours.call(request_of(2), timeout=0.1)
+        assert (dict(capture._replies._expected), capture._replies.held) == ({}, 0)
+        reply = await ours.call(request_of(3), timeout=ANNOUNCED_TIMEOUT)
+        assert (reply.string_value, reply.int64_value) == ("call 3", 3)
+        assert pair.from_capture == 1
 
 
 @both_rmws

@@ -12,7 +12,8 @@ import signal
 import struct
 import subprocess
 import sys
-from collections.abc import Iterator
+import tracemalloc
+from collections.abc import Callable, Container, Iterator
 from pathlib import Path
 
 import pytest
@@ -361,7 +362,8 @@ def test_a_fragmented_reply_is_put_together_from_its_pieces(
     for message in [mine[2], other[1], elsewhere[0], other[0], mine[1], elsewhere[1], other[2]]:
         os.write(writer, pcap_record(message))
     assert tail.captured_reply(ours) is None
-    assert tail._replies.held == len(reply)  # ours being put together; theirs let go of
+    # ours being put together (its bytes, a byte a fragment, its objects); theirs let go of
+    assert tail._replies.held == len(reply) + 3 + captured_replies.ASSEMBLY_OVERHEAD
     os.write(writer, pcap_record(mine[0]))
     assert tail.captured_reply(ours) == reply
     tail.forget_reply(ours)
@@ -400,3 +402,153 @@ def test_captured_replies_stay_bounded(capture: tuple[IdentityCapture, int],
     tail.forget_reply(ours)
     assert tail._replies.held == 0
     tail.unuse()
+
+
+def data_with_qos(qos: bytes, payload: bytes, *, claimed_extra: int = 0) -> bytes:
+    """One little-endian DATA of SERVER with inline QoS `qos` (as given: parameters and
+    sentinel) and `payload`, whose submessage header claims `claimed_extra` bytes more than
+    the message holds."""
+    body = struct.pack("<HH", 0, 16) + b"\x00\x00\x12\x04" + WRITER_ID + \
+        struct.pack("<iI", 0, 1) + qos + payload
+    info_ts = struct.pack("<BBHiI", 0x09, 0x01, 8, 1_700_000_000, 0)
+    return b"RTPS\x02\x03\x01\x0f" + PREFIX + info_ts + \
+        struct.pack("<BBH", 0x15, 0x01 | 0x02 | 0x04, len(body) + claimed_extra) + body
+
+
+def test_a_reply_is_taken_only_from_what_cyclone_accepts_as_well_formed(
+        capture: tuple[IdentityCapture, int]) -> None:
+    """The payload starts after the inline QoS' sentinel (PID 0x0001 exactly: a vendor's
+    0x8001 is just a parameter); a parameter list with a length not a multiple of 4, or a
+    DATA whose submessage claims more bytes than its message holds, is malformed (Cyclone
+    drops it: DDSI 9.4.2.11) and never taken as our reply, cut short or shifted; so is a DATA
+    whose payload has no room for its 4-byte encapsulation header (it would block the real
+    reply: the first one kept wins)."""
+    tail, writer = capture
+    tail.use()
+    ours, reply = SampleIdentity(REQUEST_WRITER, 1), b"\x00\x01\x00\x00ours...."
+    vendor = struct.pack("<HH", 0x8001, 4) + b"\x00\x01\x00\x00"  # looks like a header
+    assert tail.expect_reply(ours, [SERVER])
+    os.write(writer, pcap_record(data_with_qos(vendor + related_qos(ours, "<"), reply)))
+    assert tail.captured_reply(ours) == reply
+    tail.forget_reply(ours)
+
+    odd = struct.pack("<HH", 0x0070, 3) + b"abc"
+    for message in (data_with_qos(odd + related_qos(ours, "<"), reply),
+                    data_with_qos(related_qos(ours, "<"), reply, claimed_extra=8),
+                    data_with_qos(related_qos(ours, "<"), b"\x00\x01")):  # no room for a header
+        assert tail.expect_reply(ours, [SERVER])
+        os.write(writer, pcap_record(message))
+        assert tail.captured_reply(ours) is None
+        tail.forget_reply(ours)
+    tail.unuse()
+
+
+def fragment_piece(seq: int, first: int, count: int, size: int, sample_size: int,
+                   related: SampleIdentity | None = None) -> bytes:
+    """One DATA_FRAG of SERVER carrying fragments first .. first + count - 1 (zeros)."""
+    qos = b"" if related is None else related_qos(related, "<")
+    length = min(count * size, sample_size - (first - 1) * size)
+    body = struct.pack("<HH", 0, 28) + b"\x00\x00\x12\x04" + WRITER_ID + \
+        struct.pack("<iI", 0, seq) + struct.pack("<IHHI", first, count, size, sample_size) + \
+        qos + bytes(length)
+    return b"RTPS\x02\x03\x01\x0f" + PREFIX + \
+        struct.pack("<BBH", 0x16, 0x01 | (0x02 if qos else 0), len(body)) + body
+
+
+def feed(collector: captured_replies.ReplyCollector, message: bytes) -> None:
+    for piece in parse_rtps(message, 0, None, collector.writers):
+        if isinstance(piece, rtps_capture.ReceivedPiece):
+            collector.piece(piece, message)
+
+
+def traced_while(action: Callable[[], object]) -> int:
+    """Bytes allocated by `action` and still held after it."""
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        action()
+        return tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+
+
+def test_fragments_cost_no_more_memory_than_is_counted_as_held() -> None:
+    """What the collector holds is what its budget counts, whatever the fragments claim:
+    1-byte fragments (a million fragment numbers for one sample), or a flood of tiny samples
+    whose first fragment never comes."""
+    collector = captured_replies.ReplyCollector()
+    collector.expect(SampleIdentity(REQUEST_WRITER, 1), [SERVER])
+    sample_size = 1 << 20
+    messages = [fragment_piece(1, first, 0xFF00, 1, sample_size)
+                for first in range(2, sample_size, 0xFF00)]
+
+    def pieces() -> None:
+        for message in messages:
+            feed(collector, message)
+    assert traced_while(pieces) <= collector.held + (64 << 10)
+
+    flood = captured_replies.ReplyCollector()
+    flood.expect(SampleIdentity(REQUEST_WRITER, 1), [SERVER])
+    tiny = [fragment_piece(seq, 2, 1, 1, 2) for seq in range(2, 20_002)]
+
+    def samples() -> None:
+        for message in tiny:
+            feed(flood, message)
+    assert traced_while(samples) <= flood.held + (64 << 10)
+
+
+def test_a_datagram_the_parser_fails_on_is_skipped_and_the_capture_goes_on(
+        capture: tuple[IdentityCapture, int], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Whatever a datagram makes the parser raise, the capture skips that datagram (counted,
+    said once) and goes on: no exception out of a drain or a lookup, none killing the drain
+    thread, nothing left unconsumed to fail again on every drain."""
+    parse = rtps_capture.parse_rtps
+
+    def fails_on_poison(buf: bytes, start: int = 0, end: int | None = None,
+                        pieces_of: Container[bytes] = ()) -> Iterator[rtps_capture.Received]:
+        if b"poison" in bytes(buf[start:end]):
+            raise ValueError("a parser bug")
+        return parse(buf, start, end, pieces_of)
+    monkeypatch.setattr(rtps_capture, "parse_rtps", fails_on_poison)
+    tail, writer = capture
+    tail.use()
+    mine = SampleIdentity(REQUEST_WRITER, 2)
+    os.write(writer, pcap_record(rtps_message(1, mine, payload=b"\x00\x01\x00\x00poison")) * 2)
+    os.write(writer, pcap_record(rtps_message(2, mine, stamp=(1_700_000_001, 0))))
+    tail.drain()
+    assert tail.lookup(SERVER, nanoseconds(1_700_000_001, 0)) == mine
+    assert tail.unparsed == 2
+    tail.unuse()
+
+
+def test_a_sample_that_does_not_fit_the_budget_is_never_allocated(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fragment claiming a sample the budget has no room for costs nothing (checked before
+    anything is made: each such 57-byte datagram cost 15 ms of zeroing otherwise)."""
+    monkeypatch.setattr(captured_replies, "HELD_BUDGET", 1 << 20)
+    collector = captured_replies.ReplyCollector()
+    collector.expect(SampleIdentity(REQUEST_WRITER, 1), [SERVER])
+    message = fragment_piece(2, 2, 1, 1, 8 << 20)
+    tracemalloc.start()
+    try:
+        feed(collector, message)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert collector.held == 0
+    assert peak < 1 << 20
+
+
+def test_a_fragment_sent_again_after_its_sample_was_put_together_is_not_kept() -> None:
+    """A repair of a fragment of a sample already put together (sent again on a NACK) starts
+    no new assembly: it would hold the whole sample's room for nothing."""
+    collector = captured_replies.ReplyCollector()
+    ours = SampleIdentity(REQUEST_WRITER, 1)
+    collector.expect(ours, [SERVER])
+    reply = b"\x00\x01\x00\x00" + bytes(2996)
+    pieces = fragment_messages(SERVER, 7, ours, reply, 1000)
+    for message in pieces:
+        feed(collector, message)
+    assert collector.take(ours) == reply
+    feed(collector, pieces[1])
+    assert collector.held == len(reply)

@@ -11,7 +11,8 @@ the caller's reader), so that a call whose reader never delivered can take it (`
 Only what was asked for is kept, and bounded: a payload only for an expected identity (the
 related sample identity must name our request exactly) from one of the writers given with it;
 fragments only of those writers, at most HELD_BUDGET bytes in all (pieces of a sample whose
-first fragment has not come yet are let go of first), no sample over MAX_SAMPLE bytes, at most
+first fragment has not come yet are let go of first; an assembly counted with its bookkeeping),
+at most MAX_ASSEMBLIES samples put together at once, no sample over MAX_SAMPLE bytes, at most
 MAX_EXPECTED identities. Methods are called under the capture's lock.
 """
 
@@ -32,7 +33,11 @@ log = logging.getLogger(__name__)
 MAX_EXPECTED = 1024  # identities waited for at once (one per Fast DDS call in flight)
 MAX_SAMPLE = 16 << 20  # bytes: a bigger reply is not put together (its reader's own path only)
 HELD_BUDGET = 32 << 20  # bytes of payloads and fragments held at most
-FOREIGN_KEPT = 1024  # (writer, seq) of fragmented samples known to be another's
+SETTLED_KEPT = 1024  # (writer, seq) of fragmented samples not to put together (again)
+MAX_ASSEMBLIES = 64  # samples put together at once (one per call in flight, and others' replies)
+# bytes an assembly is counted for beyond its sample and its one byte a fragment: its objects
+# (a flood of tiny samples must not cost more than the budget counts)
+ASSEMBLY_OVERHEAD = 512
 
 
 class _Assembly:
@@ -41,18 +46,31 @@ class _Assembly:
     def __init__(self, sample_size: int, fragment_size: int) -> None:
         self.data = bytearray(sample_size)
         self.fragment_size = fragment_size
-        self.have: set[int] = set()
-        self.needed = -(-sample_size // fragment_size)
+        # one byte a fragment, 1 once received: bounded by the sample (a set of fragment
+        # numbers cost some 60 bytes each: 1-byte fragments made it 60 times the sample)
+        self.received = bytearray(-(-sample_size // fragment_size))
+        self.missing = len(self.received)
         self.related: SampleIdentity | None = None
+
+    @property
+    def cost(self) -> int:
+        """Bytes it is counted for in the budget."""
+        return self.cost_of(len(self.data), self.fragment_size)
+
+    @staticmethod
+    def cost_of(sample_size: int, fragment_size: int) -> int:
+        return sample_size + -(-sample_size // fragment_size) + ASSEMBLY_OVERHEAD
 
     def add(self, piece: ReceivedPiece, buf: bytes | mmap) -> None:
         self.data[piece.at:piece.at + piece.end - piece.start] = buf[piece.start:piece.end]
-        last = min(piece.first_fragment + piece.fragments, self.needed + 1)
-        self.have.update(range(piece.first_fragment, last))
+        first = piece.first_fragment - 1
+        last = min(first + piece.fragments, len(self.received))
+        self.missing -= self.received.count(0, first, last)
+        self.received[first:last] = b"\x01" * (last - first)
 
     @property
     def complete(self) -> bool:
-        return len(self.have) == self.needed
+        return self.missing == 0
 
 
 class ReplyCollector:
@@ -63,7 +81,8 @@ class ReplyCollector:
         self._writers: Counter[bytes] = Counter()  # writers of the expected, with multiplicity
         self._found: dict[SampleIdentity, bytes] = {}
         self._assemblies: OrderedDict[tuple[bytes, int], _Assembly] = OrderedDict()
-        self._foreign: OrderedDict[tuple[bytes, int], None] = OrderedDict()
+        # another's (or another request's) reply, or ours already put together
+        self._settled: OrderedDict[tuple[bytes, int], None] = OrderedDict()
         self._held = 0  # bytes in _found and _assemblies
 
     @property
@@ -100,7 +119,7 @@ class ReplyCollector:
         if not self._expected:  # nothing waited for: nothing kept
             for key in list(self._assemblies):
                 self._drop(key)
-            self._foreign.clear()
+            self._settled.clear()
 
     def take(self, identity: SampleIdentity) -> bytes | None:
         """The payload (encapsulation header and body) of the reply naming `identity`, if
@@ -114,13 +133,10 @@ class ReplyCollector:
                 self._keep(piece.related, bytes(buf[piece.start:piece.end]))
             return
         key = (piece.writer_guid, piece.seq)
-        if key in self._foreign or piece.sample_size > MAX_SAMPLE:
+        if key in self._settled or piece.sample_size > MAX_SAMPLE:
             return
         if piece.related is not None and not self._wanted(piece.related, piece.writer_guid):
-            self._foreign[key] = None  # another's (or another request's) reply
-            if len(self._foreign) > FOREIGN_KEPT:
-                self._foreign.popitem(last=False)
-            self._drop(key)
+            self._settle(key)  # another's (or another request's) reply
             return
         assembly = self._assembly(key, piece)
         if assembly is None:
@@ -128,10 +144,18 @@ class ReplyCollector:
         if piece.related is not None:
             assembly.related = piece.related
         assembly.add(piece, buf)
-        if assembly.complete and assembly.related is not None:
-            data = bytes(assembly.data)
-            self._drop(key)
-            self._keep(assembly.related, data)
+        if assembly.complete:  # (without a related identity: nobody's, let go of)
+            data, related = bytes(assembly.data), assembly.related
+            self._settle(key)  # a fragment sent again later starts nothing
+            if related is not None:
+                self._keep(related, data)
+
+    def _settle(self, key: tuple[bytes, int]) -> None:
+        """No piece of this sample is kept from now on."""
+        self._settled[key] = None
+        if len(self._settled) > SETTLED_KEPT:
+            self._settled.popitem(last=False)
+        self._drop(key)
 
     def _wanted(self, related: SampleIdentity, writer: bytes) -> bool:
         writers = self._expected.get(related)
@@ -148,10 +172,14 @@ class ReplyCollector:
         (another fragment size or sample size: a malformed stream)."""
         assembly = self._assemblies.get(key)
         if assembly is None:
-            if not self._room(piece.sample_size):
+            if len(self._assemblies) >= MAX_ASSEMBLIES:
+                self._drop(self._oldest())
+            # Room first: a sample that cannot be held is never allocated (nor zeroed).
+            cost = _Assembly.cost_of(piece.sample_size, piece.fragment_size)
+            if not self._room(cost):
                 return None
             assembly = self._assemblies[key] = _Assembly(piece.sample_size, piece.fragment_size)
-            self._held += piece.sample_size
+            self._held += cost
         if assembly.fragment_size != piece.fragment_size or \
                 len(assembly.data) != piece.sample_size:
             self._drop(key)
@@ -170,7 +198,13 @@ class ReplyCollector:
             return False
         return True
 
+    def _oldest(self) -> tuple[bytes, int]:
+        """The assembly to let go of first: the oldest whose first fragment has not come,
+        else the oldest."""
+        unlinked = (k for k, a in self._assemblies.items() if a.related is None)
+        return next(unlinked, next(iter(self._assemblies)))
+
     def _drop(self, key: tuple[bytes, int]) -> None:
         assembly = self._assemblies.pop(key, None)
         if assembly is not None:
-            self._held -= len(assembly.data)
+            self._held -= assembly.cost

@@ -178,7 +178,9 @@ def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None,
         if not little:
             length = (length & 0xFF) << 8 | length >> 8
         body = offset + 4
-        stop = end if length == 0 and kind not in (INFO_TS, PAD) else min(end, body + length)
+        if body + length > end:
+            return  # it claims more than the message holds: malformed, the rest too (Cyclone)
+        stop = end if length == 0 and kind not in (INFO_TS, PAD) else body + length
         if kind in (DATA, DATA_FRAG):
             order = "<" if little else ">"
             found = None
@@ -223,8 +225,10 @@ def _parameters_end(buf: bytes | mmap.mmap, offset: int, end: int, order: str) -
     while offset + 4 <= end:
         pid, length = struct.unpack_from(order + "HH", buf, offset)
         offset += 4
-        if pid & 0x3FFF == PID_SENTINEL:
+        if pid == PID_SENTINEL:  # exactly: a vendor's 0x8001 is just another parameter
             return offset
+        if length % 4:  # malformed (DDSI 9.4.2.11): Cyclone drops the submessage
+            return None
         offset += length
     return None
 
@@ -252,10 +256,11 @@ def _piece(buf: bytes | mmap.mmap, body: int, stop: int, order: str, kind: int, 
     writer = prefix + bytes(buf[body + 8:body + 12])
     high, low = struct.unpack_from(order + "iI", buf, body + 12)
     seq = (high << 32) | low
-    if not frag:
-        return ReceivedPiece(writer, seq, related, payload, stop, 0, stop - payload)
+    if not frag:  # malformed without room for the encapsulation header (Cyclone drops it)
+        return None if stop - payload < 4 else \
+            ReceivedPiece(writer, seq, related, payload, stop, 0, stop - payload)
     first, count, size, sample_size = struct.unpack_from(order + "IHHI", buf, body + 20)
-    if first < 1 or count < 1 or size < 1:
+    if first < 1 or count < 1 or size < 1 or (first == 1 and stop - payload < 4):
         return None
     at = (first - 1) * size
     length = min(count * size, sample_size - at)
@@ -340,6 +345,7 @@ class IdentityCapture:
         self._broken = False  # given up (the file could not be kept bounded)
         self.datagrams = 0  # received datagrams parsed so far
         self.identified = 0  # DATA submessages found naming a related sample
+        self.unparsed = 0  # received datagrams skipped: the parser failed on them
 
     @property
     def reading(self) -> bool:
@@ -479,7 +485,7 @@ class IdentityCapture:
                     break  # Cyclone has not written all of it yet
                 packet = offset + RECORD_HEADER_SIZE
                 if parse and length > IP_UDP_SIZE and buf[packet + TTL_OFFSET] == RECEIVED_TTL:
-                    self._parse(buf, packet + IP_UDP_SIZE, end, base + offset)
+                    self._parse_or_skip(buf, packet + IP_UDP_SIZE, end, base + offset)
                 offset = end
         self._offset = base + offset
         if self._offset - self._punched >= PUNCH_AFTER:
@@ -525,6 +531,17 @@ class IdentityCapture:
                 self._resync_at = None
                 return start
             offset = start + 1
+
+    def _parse_or_skip(self, buf: mmap.mmap, start: int, end: int, at: int) -> None:
+        """`_parse`, skipping a datagram it fails on: a datagram from the wire must not stop
+        the drain thread, raise out of a lookup, or stay unconsumed to fail every drain."""
+        try:
+            self._parse(buf, start, end, at)
+        except Exception as exc:  # bad input (or a parser bug): said once, counted
+            self.unparsed += 1
+            if self.unparsed == 1:
+                log.warning("packet capture: a received datagram could not be read, skipped "
+                            "(%s: %s); later ones are only counted", type(exc).__name__, exc)
 
     def _parse(self, buf: mmap.mmap, start: int, end: int, at: int) -> None:
         self.datagrams += 1

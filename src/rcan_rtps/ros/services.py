@@ -522,7 +522,10 @@ class ServiceClient:
         never delivers it, from the packet capture (`_reply_from_capture`)."""
         future: asyncio.Future[IdlStruct] = asyncio.get_running_loop().create_future()
         identity = SampleIdentity(pair.writer_guid, pair.written + 1)
-        capture = self.node.identities
+        # Never under DDS-Security (fails closed): the capture sees only what travels in
+        # clear, so all it could take is a plaintext DATA Cyclone refuses from a protected
+        # writer — a forged reply.
+        capture = None if self.node.secured else self.node.identities
         # Before the request goes out, so that its reply is in what the capture has not read.
         captured = capture is not None and capture.expect_reply(
             identity, matched_writers(pair.reader).values())

@@ -23,6 +23,7 @@ import json
 import platform
 import re
 import signal
+import time
 import uuid
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -44,6 +45,9 @@ GOAL_STATUS = "/robot1/navigate_to_pose/_action/status"
 CANCELING, CANCELED = 3, 5  # action_msgs/msg/GoalStatus
 SPEED = 0.3
 _RT_SIGTIMEDWAIT = {"x86_64": 128, "aarch64": 137}  # syscall numbers
+
+
+RESAMPLES = 3  # looks again at a thread that seemed to take the stop signals (`Client._after`)
 
 
 def _takes_stop_signals(pid: int) -> list[str]:
@@ -79,9 +83,18 @@ class Client:
 
     def _after(self, method: str, route: str) -> None:
         self.visited.add((method, route))
-        threads = _takes_stop_signals(self.proc.proc.pid)
+        threads = set(_takes_stop_signals(self.proc.proc.pid))
+        # A thread seen so must be seen so again: the sigwait thread, woken for a moment (a
+        # SIGCHLD may pick it), shows the mask sigwait lowered while it is no longer in the
+        # call (CI once: after `get /api/safety/manifest`). A thread that really unblocked
+        # them stays so; one in that moment is back in sigwait a few ms later.
+        for _ in range(RESAMPLES):
+            if not threads:
+                return
+            time.sleep(0.02)
+            threads &= set(_takes_stop_signals(self.proc.proc.pid))
         if threads:
-            self.unblocked[f"{method} {route}"] = threads
+            self.unblocked[f"{method} {route}"] = sorted(threads)
 
     async def call(self, method: str, path: str, token: str, body: Any = None, *,
                    route: str | None = None, headers: dict[str, str] | None = None

@@ -207,6 +207,17 @@ def test_a_bag_written_by_rosbags_plays_to_rclpy(oracle: RclpyOracle, domain_id:
     assert_paced_like([written for written, _ in twice_as_fast], stamps, rate=2.0)
 
 
+def _wait_until_counted(bag: Path, count: int, timeout: float = 20.0) -> None:
+    """Until a recording's metadata.yaml counts `count` messages (or `timeout` passed: the
+    test's own checks then say what is missing)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+        if meta["rosbag2_bagfile_information"]["message_count"] == count:
+            return
+        time.sleep(0.1)
+
+
 def test_a_recorder_killed_after_2_s_leaves_a_bag_mcap_and_rosbags_read(
         oracle: RclpyOracle, domain_id: int, tmp_path: Path) -> None:
     """SIGKILL, no clean exit: the bag holds what was recorded until the last flush (at most
@@ -227,13 +238,7 @@ def test_a_recorder_killed_after_2_s_leaves_a_bag_mcap_and_rosbags_read(
         oracle.call("publish", topic="/crash/chatter", type="std_msgs/msg/String",
                     value={"data": "before the kill"}, count=5, period=0.05)
         time.sleep(max(0.0, 2.0 - (time.monotonic() - started)))
-        # what metadata.yaml counts is in the file: wait for the five to be counted
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:
-            meta = yaml.safe_load((bag / "metadata.yaml").read_text())
-            if meta["rosbag2_bagfile_information"]["message_count"] == 5:
-                break
-            time.sleep(0.1)
+        _wait_until_counted(bag, 5)  # what metadata.yaml counts is in the file
         recorder.send_signal(signal.SIGKILL)
         recorder.communicate(timeout=30)
     finally:
@@ -280,12 +285,7 @@ def test_a_recorder_ended_by_a_signal_closes_a_complete_bag(
         time.sleep(0.5)  # the subscription's DDS match with Fast DDS, as above
         oracle.call("publish", topic="/hup/chatter", type="std_msgs/msg/String",
                     value={"data": "before the signal"}, count=3, period=0.05)
-        deadline = time.monotonic() + 20  # until the recorder has them (metadata.yaml says)
-        while time.monotonic() < deadline:
-            meta = yaml.safe_load((bag / "metadata.yaml").read_text())
-            if meta["rosbag2_bagfile_information"]["message_count"] == 3:
-                break
-            time.sleep(0.1)
+        _wait_until_counted(bag, 3)  # until the recorder has them
         recorder.send_signal(sig)
         _, err = recorder.communicate(timeout=30)
     finally:

@@ -169,14 +169,7 @@ class Agent:
         """Subscriptions matched by our publisher on `topic` at the DDS level: only then does a
         one-shot, volatile message reach them (a reader that matched our writer may not yet
         be matched by it; `wait_subscribers` counts them on the graph)."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            with self.lock:
-                n = self.subscribers_matched.get(topic, 0)
-            if n >= count:
-                return n
-            time.sleep(0.02)
-        return self.subscribers_matched.get(topic, 0)
+        return self._wait_count(self.subscribers_matched, topic, count, timeout)
 
     def op_unpublish(self, topic: str) -> bool:
         """Destroys our publisher on `topic` (a clean leave: readers see the writer go)."""
@@ -239,14 +232,21 @@ class Agent:
     def op_wait_matched(self, topic: str, count: int = 1, timeout: float = 15.0) -> int:
         """Publishers matched by our subscription at the DDS level (not just on the graph):
         only then is a one-shot, volatile message sure to reach it."""
+        return self._wait_count(self.matched, topic, count, timeout)
+
+    def _wait_count(self, counts: dict[str, int], topic: str, count: int,
+                    timeout: float) -> int:
+        """`counts[topic]` (kept by match callbacks, under the lock) once it reaches `count`,
+        or as it is at `timeout`."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             with self.lock:
-                n = self.matched.get(topic, 0)
+                n = counts.get(topic, 0)
             if n >= count:
                 return n
             time.sleep(0.02)
-        return self.matched.get(topic, 0)
+        with self.lock:
+            return counts.get(topic, 0)
 
     def op_subscribe_timed(self, topic: str, type: str, field: str = "linear.x",
                            qos: str = "default", clock: str = "arrival") -> bool:

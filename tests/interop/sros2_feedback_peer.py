@@ -15,18 +15,15 @@ An error ends it with {"error": "..."} (exit 1).
 from __future__ import annotations
 
 import asyncio
-import json
 import sys
 from typing import Any
+
+from sros2_peer_io import run_peer, say
 
 from rcan_rtps.ros.actions import ActionClient, ActionServer, ClientGoal, ServerGoal
 from rcan_rtps.ros.participant import RosNode
 
 FIB = "test_msgs/action/Fibonacci"
-
-
-def say(**what: Any) -> None:
-    print(json.dumps(what), flush=True)
 
 
 async def open_after_end_settled(goal: ClientGoal) -> bool:
@@ -68,14 +65,5 @@ async def run(domain_id: int) -> None:
         await server.close()
 
 
-def main() -> int:
-    try:
-        asyncio.run(run(int(sys.argv[1])))
-    except Exception as e:  # the test reads the reason
-        say(error=f"{type(e).__name__}: {e}")
-        return 1
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_peer(run))

@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import sys
 from typing import Any
+
+from sros2_peer_io import run_peer, say
 
 from rcan_rtps.ros.actions import ActionClient
 from rcan_rtps.ros.participant import RosNode
@@ -27,10 +28,6 @@ from rcan_rtps.ros.services import ServiceClient, ServiceServer
 
 STRING, TRIGGER = "std_msgs/msg/String", "std_srvs/srv/Trigger"
 FIB = "test_msgs/action/Fibonacci"
-
-
-def say(**what: Any) -> None:
-    print(json.dumps(what), flush=True)
 
 
 async def run(domain_id: int) -> None:
@@ -70,14 +67,5 @@ async def run(domain_id: int) -> None:
         say(heard=heard)
 
 
-def main() -> int:
-    try:
-        asyncio.run(run(int(sys.argv[1])))
-    except Exception as e:  # the test reads the reason
-        say(error=f"{type(e).__name__}: {e}")
-        return 1
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_peer(run))

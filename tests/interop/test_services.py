@@ -4,13 +4,16 @@ against our server. rclpy clients on Cyclone calling our servers: test_rmw_cyclo
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Iterator
+import contextlib
+import logging
+from collections.abc import AsyncIterator, Callable, Iterator
 from typing import Any
 
 import pytest
 from dropping import DeafCapture
 from holding import reader_thread_held
 from oracle.client import OracleEnv, RclpyOracle, both_rmws
+from waiting import eventually
 
 from rcan_rtps.ros.errors import ServiceTimeout, ServiceUnavailable, ValueFitError
 from rcan_rtps.ros.handshake import ANNOUNCE_TRIES
@@ -272,3 +275,53 @@ async def test_a_call_waiting_for_its_server_when_the_node_closes_says_so(
     node.close()
     with pytest.raises(ServiceUnavailable, match="its node /rcan_client was closed"):
         await asyncio.wait_for(call, 15)
+
+
+
+FRESH_PEERS = 12  # peers that come and go, one at a time (each `ros2 service call` is one)
+SET_PARAMETERS = "rcl_interfaces/srv/SetParameters"
+# A Fast DDS request our server can read at all: Cyclone checks it against the header-wrapped
+# type. Plain, it is [count 1]["abc"][type, bool, padding][int64 0]...: from byte 16 on, where
+# the wrapped fields start after the 16 header bytes, the int64's low half reads as an empty
+# list (a header-less Trigger or SetBool request is too short and never delivered).
+READABLE_PLAIN_REQUEST = {"parameters": [{"name": "abc", "value": {"integer_value": 0}}]}
+
+
+async def _warned_of(oracle: RclpyOracle, key: str, warnings: Callable[[], int],
+                     before: int) -> None:
+    """Sends requests with the oracle's client `key` until our server has warned of it
+    (a request sent before the client's writer matched our reader is not delivered)."""
+    while warnings() == before:
+        await oracle.acall("client_send", key=key, type=SET_PARAMETERS,
+                           value=READABLE_PLAIN_REQUEST)
+        with contextlib.suppress(AssertionError):
+            await eventually(lambda: warnings() > before, timeout=2.0)
+
+
+async def test_a_long_lived_server_forgets_the_fast_dds_clients_that_left(
+        oracle: RclpyOracle, node: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    """Our server ignores a Fast DDS client's requests and says so once per client. It
+    remembered every client it had warned of for good: a bridge that runs for weeks beside
+    `ros2 service call`s (a fresh client each) grew without bound. Now it remembers the
+    clients still matched, and still says it once per client."""
+    handled: list[object] = []
+
+    async def handle(request: object) -> dict[str, object]:
+        handled.append(request)
+        return {}
+
+    server = ServiceServer(node, "/ours", SET_PARAMETERS, handle)
+
+    def warnings() -> int:
+        return sum("ignoring requests of a" in r.getMessage() for r in caplog.records)
+
+    remembered = []
+    with caplog.at_level(logging.WARNING, "rcan_rtps.ros.service_server"):
+        for fresh in range(FRESH_PEERS):
+            assert await oracle.acall("client", key="fresh", name="/ours", type=SET_PARAMETERS)
+            await asyncio.wait_for(_warned_of(oracle, "fresh", warnings, fresh), 30)
+            remembered.append(len(server._warned))
+            await oracle.acall("destroy_client", key="fresh")
+    assert warnings() == FRESH_PEERS and handled == []
+    assert max(remembered) <= 2, f"clients remembered after each one's warning: {remembered}"
+    await server.close()

@@ -15,7 +15,7 @@ from typing import Any
 from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
-from .handshake import matched_subscriptions
+from .handshake import matched_subscriptions, matched_writers
 from .names import mangle_service
 from .participant import RosNode
 from .qos import QosProfile
@@ -67,10 +67,7 @@ class ServiceServer:
         guid = bytes(client.key.bytes)
         if mapping_of_vendor(guid, _user_data(client).get("clientid", "")) \
                 is not RequestMapping.CYCLONE:
-            if guid not in self._warned:
-                self._warned.add(guid)
-                log.warning("service %s: ignoring requests of a %s client; it cannot use the "
-                            "Cyclone request-reply mapping", self.name, guid[:2].hex("."))
+            self._warn_once(guid)
             return
         header, request = sample.header, sample.payload
         try:
@@ -82,6 +79,19 @@ class ServiceServer:
             return
         if await self._client_reader_ready(_user_data(client).get("clientid"), writer_handle):
             self._pair.write(response, header)
+
+    def _warn_once(self, guid: bytes) -> None:
+        """Says once per client request writer that its requests are ignored. Only the
+        writers still matched are remembered (looked at when a new one comes): each `ros2
+        service call` is a new one, and a server that runs for weeks must not keep them all.
+        A request of a writer gone is dropped before this (`_serve`), so forgetting it costs
+        at most a second warning."""
+        if guid in self._warned:
+            return
+        self._warned &= set(matched_writers(self._pair.reader).values())
+        self._warned.add(guid)
+        log.warning("service %s: ignoring requests of a %s client; it cannot use the "
+                    "Cyclone request-reply mapping", self.name, guid[:2].hex("."))
 
     async def _client_reader_ready(self, client_id: str | None, writer_handle: int) -> bool:
         """Like rmw_cyclonedds: wait briefly until the client's reply reader is matched, so

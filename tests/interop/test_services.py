@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 from collections.abc import AsyncIterator, Callable, Iterator
 from typing import Any
@@ -18,7 +19,7 @@ from waiting import eventually
 from rcan_rtps.ros.errors import ServiceTimeout, ServiceUnavailable, ValueFitError
 from rcan_rtps.ros.handshake import ANNOUNCE_TRIES
 from rcan_rtps.ros.participant import RosNode
-from rcan_rtps.ros.services import RequestMapping, ServiceClient, ServiceServer
+from rcan_rtps.ros.services import RequestMapping, ServiceClient, ServiceServer, _Pair
 
 
 @pytest.fixture
@@ -279,6 +280,7 @@ async def test_a_call_waiting_for_its_server_when_the_node_closes_says_so(
 
 
 FRESH_PEERS = 12  # peers that come and go, one at a time (each `ros2 service call` is one)
+TRIGGER = "std_srvs/srv/Trigger"
 SET_PARAMETERS = "rcl_interfaces/srv/SetParameters"
 # A Fast DDS request our server can read at all: Cyclone checks it against the header-wrapped
 # type. Plain, it is [count 1]["abc"][type, bool, padding][int64 0]...: from byte 16 on, where
@@ -325,3 +327,28 @@ async def test_a_long_lived_server_forgets_the_fast_dds_clients_that_left(
     assert warnings() == FRESH_PEERS and handled == []
     assert max(remembered) <= 2, f"clients remembered after each one's warning: {remembered}"
     await server.close()
+
+
+def _unmatched(pair: _Pair) -> bool:
+    return not pair.matched()
+
+
+async def test_a_long_lived_client_forgets_the_fast_dds_servers_that_left(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """A Fast DDS client names each reply writer by its GUID (to look its replies' request
+    identities up in the packet capture), and kept every one it had met for good: a bridge
+    whose robot restarts its servers grew without bound. Now a writer gone is let go of
+    (once what it sent before it left has been delivered)."""
+    client = ServiceClient(node, "/trigger", TRIGGER)
+    remembered = []
+    for _ in range(FRESH_PEERS):
+        await oracle.acall("service_server", name="/trigger", type=TRIGGER)
+        reply = await client.call({}, timeout=20)
+        assert (reply.success, reply.message) == (True, "triggered #1")
+        pair = client._pairs[RequestMapping.FASTDDS]
+        remembered.append(len(pair._writer_guids))
+        await oracle.acall("unserve", name="/trigger")
+        # gone from our view: the next call waits for its own server
+        await eventually(functools.partial(_unmatched, pair), timeout=15)
+    await node.delivered()
+    assert max(remembered) <= 2, f"reply writers remembered after each call: {remembered}"

@@ -16,16 +16,15 @@ from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
 from .handshake import matched_subscriptions, matched_writers
-from .names import mangle_service
 from .participant import RosNode
 from .qos import QosProfile
 from .services import (
     RequestMapping,
     _Pair,
+    _Role,
+    _ServiceEnd,
     _user_data,
-    format_endpoint_id,
     mapping_of_vendor,
-    new_endpoint_id,
 )
 
 log = logging.getLogger(__name__)
@@ -34,24 +33,18 @@ CLIENT_READER_WAIT = 1.0  # s a server waits for the client's reply reader (rmw_
 Handler = Callable[[IdlStruct], Awaitable["IdlStruct | Mapping[str, Any]"]]
 
 
-class ServiceServer:
+class ServiceServer(_ServiceEnd):
     """Serves one service with an async handler (Cyclone mapping; see the module docs)."""
+
+    _ROLE = _Role.SERVER
 
     def __init__(self, node: RosNode, service: str, type_name: str, handler: Handler, *,
                  qos: QosProfile = qos_mod.SERVICES) -> None:
-        self.node = node
-        self.name = node.resolve(service)
-        srv = node.store.service(type_name)
-        self.type_name = srv.name
-        self.request_type, self.response_type = srv.request.name, srv.response.name
-        request_topic, reply_topic = mangle_service(self.name)
-        self.id = new_endpoint_id(node)
+        super().__init__(node, service, type_name, qos)
         self._handler = handler
         self._tasks: set[asyncio.Task[None]] = set()
         self._warned: set[bytes] = set()
-        self._pair = _Pair(node, RequestMapping.CYCLONE, (reply_topic, self.response_type),
-                           (request_topic, self.request_type), qos,
-                           f"serviceid={format_endpoint_id(self.id)};", self._deliver)
+        self._pair = self._make_pair(RequestMapping.CYCLONE, self._deliver)
 
     def _deliver(self, pair: _Pair, samples: list[Any]) -> None:
         for sample in samples:

@@ -37,7 +37,7 @@ import itertools
 import logging
 import weakref
 from collections.abc import Callable, Iterator, Mapping
-from typing import Any
+from typing import Any, ClassVar
 
 import msgspec
 from cyclonedds.core import DDSException
@@ -292,21 +292,50 @@ class _Pair:
                 entity.__del__()
 
 
-class ServiceClient:
-    """Calls one service; `await call(request)` returns the response."""
+class _Role(enum.Enum):
+    """Which end of a service; the value is the key rmw_cyclonedds gives its id in the
+    endpoints' USER_DATA."""
 
-    def __init__(self, node: RosNode, service: str, type_name: str, *,
-                 mapping: RequestMapping = RequestMapping.AUTO,
-                 qos: QosProfile = qos_mod.SERVICES) -> None:
+    CLIENT = "clientid"  # writes requests, reads replies
+    SERVER = "serviceid"  # writes replies, reads requests
+
+
+class _ServiceEnd:
+    """What a client and a server of a service both set up: the resolved name, the service
+    type's request and response type names, the two DDS topics, an rmw_cyclonedds-style id,
+    the QoS; and `_make_pair`, their writer and reader in one mapping."""
+
+    _ROLE: ClassVar[_Role]
+
+    def __init__(self, node: RosNode, service: str, type_name: str, qos: QosProfile) -> None:
         self.node = node
         self.name = node.resolve(service)
         srv = node.store.service(type_name)
         self.type_name = srv.name
         self.request_type, self.response_type = srv.request.name, srv.response.name
         self.request_topic, self.reply_topic = mangle_service(self.name)
-        self.mapping = mapping
         self.id = new_endpoint_id(node)
         self._qos = qos
+
+    def _make_pair(self, mapping: RequestMapping,
+                   deliver: Callable[[_Pair, list[Any]], None]) -> _Pair:
+        requests = (self.request_topic, self.request_type)
+        replies = (self.reply_topic, self.response_type)
+        out, into = (requests, replies) if self._ROLE is _Role.CLIENT else (replies, requests)
+        return _Pair(self.node, mapping, out, into, self._qos,
+                     f"{self._ROLE.value}={format_endpoint_id(self.id)};", deliver)
+
+
+class ServiceClient(_ServiceEnd):
+    """Calls one service; `await call(request)` returns the response."""
+
+    _ROLE = _Role.CLIENT
+
+    def __init__(self, node: RosNode, service: str, type_name: str, *,
+                 mapping: RequestMapping = RequestMapping.AUTO,
+                 qos: QosProfile = qos_mod.SERVICES) -> None:
+        super().__init__(node, service, type_name, qos)
+        self.mapping = mapping
         self._graph = shared_graph(node)
         self._pairs: dict[RequestMapping, _Pair] = {}
         self._seq = itertools.count(1)
@@ -352,10 +381,7 @@ class ServiceClient:
             # The capture is on before the reader exists: its first HEARTBEAT is looked for.
             if mapping is RequestMapping.FASTDDS and self.node.identities is not None:
                 self.node.identities.use()
-            pair = self._pairs[mapping] = _Pair(
-                self.node, mapping, (self.request_topic, self.request_type),
-                (self.reply_topic, self.response_type), self._qos,
-                f"clientid={format_endpoint_id(self.id)};", self._deliver)
+            pair = self._pairs[mapping] = self._make_pair(mapping, self._deliver)
         return pair
 
     async def wait_for_service(self, timeout: float = 5.0) -> _Pair:

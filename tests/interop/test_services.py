@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import functools
 import logging
+import threading
 from collections.abc import AsyncIterator, Callable, Iterator
 from typing import Any
 
@@ -19,6 +20,7 @@ from waiting import eventually
 from rcan_rtps.ros.errors import ServiceTimeout, ServiceUnavailable, ValueFitError
 from rcan_rtps.ros.handshake import ANNOUNCE_TRIES
 from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.rtps_capture import SampleIdentity
 from rcan_rtps.ros.services import RequestMapping, ServiceClient, ServiceServer, _Pair
 
 
@@ -352,3 +354,28 @@ async def test_a_long_lived_client_forgets_the_fast_dds_servers_that_left(
         await eventually(functools.partial(_unmatched, pair), timeout=15)
     await node.delivered()
     assert max(remembered) <= 2, f"reply writers remembered after each call: {remembered}"
+
+
+async def test_a_late_reply_is_looked_for_in_the_capture_off_the_event_loop(
+        oracle: RclpyOracle, node: RosNode, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A Fast DDS call whose reply has not come after CAPTURE_REPLY_AFTER looks for it in
+    the packet capture every CAPTURE_POLL; a look that misses reads the capture to its end
+    (up to MISS_BUDGET bytes: 250-440 ms of parsing when they are small datagrams, measured
+    in bench/capture_lag.py). It ran on the event loop, which stood still meanwhile; now in
+    a worker thread."""
+    await oracle.acall("service_server", name="/late", type=TRIGGER, delay=1.5)
+    capture = node.identities
+    assert capture is not None
+    looked_on: list[int] = []
+    captured_reply = capture.captured_reply
+
+    def noted(identity: SampleIdentity) -> bytes | None:
+        looked_on.append(threading.get_ident())
+        return captured_reply(identity)
+
+    monkeypatch.setattr(capture, "captured_reply", noted)
+    client = ServiceClient(node, "/late", TRIGGER)
+    reply = await client.call({}, timeout=20)
+    assert (reply.success, reply.message) == (True, "triggered #1")
+    assert looked_on, "the call never looked in the capture"
+    assert threading.get_ident() not in looked_on

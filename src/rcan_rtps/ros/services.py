@@ -254,11 +254,11 @@ class _Pair:
 
     def _let_go_of_gone_writers(self) -> None:
         """Lets go of the GUIDs of the writers no longer matched (looked at when a new one
-        comes: a robot that restarts its servers brings new ones for as long as we run) —
-        once the node has delivered what they sent: a reply a writer sent just before it
-        left can still be on its way to `deliver`, and its identity is known only through
-        its writer's GUID, which no longer matched writer tells (without it the reply could
-        be taken for the one outstanding request's)."""
+        comes: a robot that restarts its servers brings new ones for as long as we run),
+        once the node has delivered what they sent. Not at once: a reply its writer sent
+        just before it left can still be on its way to `deliver`, its request identity is
+        found only through that GUID, and the reader no longer tells it; unknown, the reply
+        could pass for the outstanding request's."""
         if self._letting_go is not None:
             return  # the next new writer looks again
         matched = {writer_handle(h) for h in matched_publications(self.reader)}
@@ -612,10 +612,14 @@ class ServiceClient(_ServiceEnd):
         as our reader's start: docs/design/zero-loss.md), and nothing sends it again. Only
         the reply naming our request exactly, from a reply writer matched with our reader
         (`IdentityCapture.expect_reply`); the reader gets its turn first (CAPTURE_REPLY_AFTER,
-        CAPTURE_SETTLE, then the reader thread's barrier), and whichever delivers first wins."""
+        CAPTURE_SETTLE, then the reader thread's barrier), and whichever delivers first wins.
+        Each look runs in a worker thread: one that misses reads the capture to its end, up to
+        MISS_BUDGET bytes, which held the event loop 250-440 ms when they were small datagrams
+        (docs/design/rpc-identity.md, "The event loop"); the capture's lock is taken a chunk
+        at a time there, and no lock of ours is held meanwhile."""
         await asyncio.sleep(CAPTURE_REPLY_AFTER)
         while not future.done():
-            data = capture.captured_reply(identity)
+            data = await asyncio.to_thread(capture.captured_reply, identity)
             if data is not None:
                 await asyncio.sleep(CAPTURE_SETTLE)  # it may just have come: reader first
                 await self.node.delivered()

@@ -4,18 +4,24 @@ against our server. rclpy clients on Cyclone calling our servers: test_rmw_cyclo
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Iterator
+import contextlib
+import functools
+import logging
+import threading
+from collections.abc import AsyncIterator, Callable, Iterator
 from typing import Any
 
 import pytest
 from dropping import DeafCapture
 from holding import reader_thread_held
 from oracle.client import OracleEnv, RclpyOracle, both_rmws
+from waiting import eventually
 
 from rcan_rtps.ros.errors import ServiceTimeout, ServiceUnavailable, ValueFitError
 from rcan_rtps.ros.handshake import ANNOUNCE_TRIES
 from rcan_rtps.ros.participant import RosNode
-from rcan_rtps.ros.services import RequestMapping, ServiceClient, ServiceServer
+from rcan_rtps.ros.rtps_capture import SampleIdentity
+from rcan_rtps.ros.services import RequestMapping, ServiceClient, ServiceServer, _Pair
 
 
 @pytest.fixture
@@ -272,3 +278,104 @@ async def test_a_call_waiting_for_its_server_when_the_node_closes_says_so(
     node.close()
     with pytest.raises(ServiceUnavailable, match="its node /rcan_client was closed"):
         await asyncio.wait_for(call, 15)
+
+
+
+FRESH_PEERS = 12  # peers that come and go, one at a time (each `ros2 service call` is one)
+TRIGGER = "std_srvs/srv/Trigger"
+SET_PARAMETERS = "rcl_interfaces/srv/SetParameters"
+# A Fast DDS request our server can read at all: Cyclone checks it against the header-wrapped
+# type. Plain, it is [count 1]["abc"][type, bool, padding][int64 0]...: from byte 16 on, where
+# the wrapped fields start after the 16 header bytes, the int64's low half reads as an empty
+# list (a header-less Trigger or SetBool request is too short and never delivered).
+READABLE_PLAIN_REQUEST = {"parameters": [{"name": "abc", "value": {"integer_value": 0}}]}
+
+
+async def _warned_of(oracle: RclpyOracle, key: str, warnings: Callable[[], int],
+                     before: int) -> None:
+    """Sends requests with the oracle's client `key` until our server has warned of it
+    (a request sent before the client's writer matched our reader is not delivered)."""
+    while warnings() == before:
+        await oracle.acall("client_send", key=key, type=SET_PARAMETERS,
+                           value=READABLE_PLAIN_REQUEST)
+        with contextlib.suppress(AssertionError):
+            await eventually(lambda: warnings() > before, timeout=2.0)
+
+
+async def test_a_long_lived_server_forgets_the_fast_dds_clients_that_left(
+        oracle: RclpyOracle, node: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    """Our server ignores a Fast DDS client's requests and says so once per client. It
+    remembered every client it had warned of for good: a bridge that runs for weeks beside
+    `ros2 service call`s (a fresh client each) grew without bound. Now it remembers the
+    clients still matched, and still says it once per client."""
+    handled: list[object] = []
+
+    async def handle(request: object) -> dict[str, object]:
+        handled.append(request)
+        return {}
+
+    server = ServiceServer(node, "/ours", SET_PARAMETERS, handle)
+
+    def warnings() -> int:
+        return sum("ignoring requests of a" in r.getMessage() for r in caplog.records)
+
+    remembered = []
+    with caplog.at_level(logging.WARNING, "rcan_rtps.ros.service_server"):
+        for fresh in range(FRESH_PEERS):
+            assert await oracle.acall("client", key="fresh", name="/ours", type=SET_PARAMETERS)
+            await asyncio.wait_for(_warned_of(oracle, "fresh", warnings, fresh), 30)
+            remembered.append(len(server._warned))
+            await oracle.acall("destroy_client", key="fresh")
+    assert warnings() == FRESH_PEERS and handled == []
+    assert max(remembered) <= 2, f"clients remembered after each one's warning: {remembered}"
+    await server.close()
+
+
+def _unmatched(pair: _Pair) -> bool:
+    return not pair.matched()
+
+
+async def test_a_long_lived_client_forgets_the_fast_dds_servers_that_left(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """A Fast DDS client names each reply writer by its GUID (to look its replies' request
+    identities up in the packet capture), and kept every one it had met for good: a bridge
+    whose robot restarts its servers grew without bound. Now a writer gone is let go of
+    (once what it sent before it left has been delivered)."""
+    client = ServiceClient(node, "/trigger", TRIGGER)
+    remembered = []
+    for _ in range(FRESH_PEERS):
+        await oracle.acall("service_server", name="/trigger", type=TRIGGER)
+        reply = await client.call({}, timeout=20)
+        assert (reply.success, reply.message) == (True, "triggered #1")
+        pair = client._pairs[RequestMapping.FASTDDS]
+        remembered.append(len(pair._writer_guids))
+        await oracle.acall("unserve", name="/trigger")
+        # gone from our view: the next call waits for its own server
+        await eventually(functools.partial(_unmatched, pair), timeout=15)
+    await node.delivered()
+    assert max(remembered) <= 2, f"reply writers remembered after each call: {remembered}"
+
+
+async def test_a_late_reply_is_looked_for_in_the_capture_off_the_event_loop(
+        oracle: RclpyOracle, node: RosNode, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A Fast DDS call whose reply has not come after CAPTURE_REPLY_AFTER looks for it in
+    the packet capture every CAPTURE_POLL; a look that misses reads the capture to its end
+    (up to MISS_BUDGET bytes: 250-440 ms of parsing when they are small datagrams, measured
+    in bench/capture_lag.py). It ran on the event loop, which stood still meanwhile; now in
+    a worker thread."""
+    await oracle.acall("service_server", name="/late", type=TRIGGER, delay=1.5)
+    capture = node.identities
+    assert capture is not None
+    looked_on: list[int] = []
+    captured_reply = capture.captured_reply
+
+    def noted(identity: SampleIdentity) -> bytes | None:
+        looked_on.append(threading.get_ident())
+        return captured_reply(identity)
+
+    monkeypatch.setattr(capture, "captured_reply", noted)
+    client = ServiceClient(node, "/late", TRIGGER)
+    reply = await client.call({}, timeout=20)
+    assert (reply.success, reply.message) == (True, "triggered #1")
+    assert looked_on, "the call never looked in the capture"
+    assert threading.get_ident() not in looked_on

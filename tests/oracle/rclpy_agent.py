@@ -132,6 +132,7 @@ class Agent:
         self.service_requests: dict[str, list[Any]] = {}
         self.action_servers: dict[str, Any] = {}
         self.action_clients: dict[str, Any] = {}
+        self.clients: dict[str, Any] = {}  # service clients kept between ops (`client`)
         self.goals: dict[str, dict[str, Any]] = {}
         self.group = ReentrantCallbackGroup()
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
@@ -398,6 +399,26 @@ class Agent:
             return plain(future.result()) if future.done() else {"timeout": True}
         finally:
             self.node.destroy_client(client)
+
+    def op_client(self, key: str, name: str, type: str, wait: float = 10.0) -> bool:
+        """An rclpy client of `name`, kept under `key` until `destroy_client` (a fresh
+        request writer each time); whether it saw the server within `wait` seconds."""
+        client = self.node.create_client(load_type(type), name, callback_group=self.group)
+        self.clients[key] = client
+        return bool(client.wait_for_service(timeout_sec=wait))
+
+    def op_client_send(self, key: str, type: str, value: dict[str, Any]) -> bool:
+        """Sends one request with the client under `key`, without waiting for its reply."""
+        self.clients[key].call_async(fill(load_type(type).Request(), value))
+        return True
+
+    def op_destroy_client(self, key: str) -> bool:
+        """Destroys the client under `key` (a clean leave: its writer and reader go)."""
+        return bool(self.node.destroy_client(self.clients.pop(key)))
+
+    def op_unserve(self, name: str) -> bool:
+        """Destroys our server of `name` (a clean leave: its writer and reader go)."""
+        return bool(self.node.destroy_service(self.services.pop(name)))
 
     def op_action_server(self, name: str, mode: str = "succeed", period: float = 0.05) -> bool:
         """test_msgs/action/Fibonacci; mode: succeed | abort | reject | slow (cancelable)."""

@@ -15,17 +15,16 @@ from typing import Any
 from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
-from .handshake import matched_subscriptions
-from .names import mangle_service
+from .handshake import matched_subscriptions, matched_writers
 from .participant import RosNode
 from .qos import QosProfile
 from .services import (
     RequestMapping,
     _Pair,
+    _Role,
+    _ServiceEnd,
     _user_data,
-    format_endpoint_id,
     mapping_of_vendor,
-    new_endpoint_id,
 )
 
 log = logging.getLogger(__name__)
@@ -34,24 +33,18 @@ CLIENT_READER_WAIT = 1.0  # s a server waits for the client's reply reader (rmw_
 Handler = Callable[[IdlStruct], Awaitable["IdlStruct | Mapping[str, Any]"]]
 
 
-class ServiceServer:
+class ServiceServer(_ServiceEnd):
     """Serves one service with an async handler (Cyclone mapping; see the module docs)."""
+
+    _ROLE = _Role.SERVER
 
     def __init__(self, node: RosNode, service: str, type_name: str, handler: Handler, *,
                  qos: QosProfile = qos_mod.SERVICES) -> None:
-        self.node = node
-        self.name = node.resolve(service)
-        srv = node.store.service(type_name)
-        self.type_name = srv.name
-        self.request_type, self.response_type = srv.request.name, srv.response.name
-        request_topic, reply_topic = mangle_service(self.name)
-        self.id = new_endpoint_id(node)
+        super().__init__(node, service, type_name, qos)
         self._handler = handler
         self._tasks: set[asyncio.Task[None]] = set()
         self._warned: set[bytes] = set()
-        self._pair = _Pair(node, RequestMapping.CYCLONE, (reply_topic, self.response_type),
-                           (request_topic, self.request_type), qos,
-                           f"serviceid={format_endpoint_id(self.id)};", self._deliver)
+        self._pair = self._make_pair(RequestMapping.CYCLONE, self._deliver)
 
     def _deliver(self, pair: _Pair, samples: list[Any]) -> None:
         for sample in samples:
@@ -67,10 +60,7 @@ class ServiceServer:
         guid = bytes(client.key.bytes)
         if mapping_of_vendor(guid, _user_data(client).get("clientid", "")) \
                 is not RequestMapping.CYCLONE:
-            if guid not in self._warned:
-                self._warned.add(guid)
-                log.warning("service %s: ignoring requests of a %s client; it cannot use the "
-                            "Cyclone request-reply mapping", self.name, guid[:2].hex("."))
+            self._warn_once(guid)
             return
         header, request = sample.header, sample.payload
         try:
@@ -82,6 +72,19 @@ class ServiceServer:
             return
         if await self._client_reader_ready(_user_data(client).get("clientid"), writer_handle):
             self._pair.write(response, header)
+
+    def _warn_once(self, guid: bytes) -> None:
+        """Says once per client request writer that its requests are ignored. Only the
+        writers still matched are remembered (looked at when a new one comes): each `ros2
+        service call` is a new one, and a server that runs for weeks must not keep them all.
+        A request of a writer gone is dropped before this (`_serve`), so forgetting it costs
+        at most a second warning."""
+        if guid in self._warned:
+            return
+        self._warned &= set(matched_writers(self._pair.reader).values())
+        self._warned.add(guid)
+        log.warning("service %s: ignoring requests of a %s client; it cannot use the "
+                    "Cyclone request-reply mapping", self.name, guid[:2].hex("."))
 
     async def _client_reader_ready(self, client_id: str | None, writer_handle: int) -> bool:
         """Like rmw_cyclonedds: wait briefly until the client's reply reader is matched, so

@@ -37,7 +37,7 @@ import itertools
 import logging
 import weakref
 from collections.abc import Callable, Iterator, Mapping
-from typing import Any
+from typing import Any, ClassVar
 
 import msgspec
 from cyclonedds.core import DDSException
@@ -55,7 +55,9 @@ from .handshake import (
     acquire_by,
     fastdds_writers,
     hear_announcements,
+    matched_publications,
     matched_writers,
+    writer_handle,
     writers_ready,
 )
 from .names import mangle_service
@@ -168,7 +170,9 @@ class _Pair:
         # samples 1, 2, ... and this writer writes nothing but requests or replies.
         self.writer_guid = bytes(self.writer.guid.bytes)
         self.written = 0
+        # Reply writers' GUIDs by handle (`related_identity`); the gone ones let go of.
         self._writer_guids: dict[int, bytes] = {}
+        self._letting_go: asyncio.Task[None] | None = None
         self.ready: set[int] = set()  # server writers whose next reply will reach us
         # Server writers whose first HEARTBEAT to this reader was heard (or given up on).
         self.announced: set[int] = set()
@@ -238,13 +242,37 @@ class _Pair:
         if capture is None:
             return None
         info = sample.sample_info
-        guid = self._writer_guids.get(info.publication_handle)
+        handle = writer_handle(info.publication_handle)
+        guid = self._writer_guids.get(handle)
         if guid is None:
-            found = self.reader.get_matched_publication_data(info.publication_handle)
+            found = self.reader.get_matched_publication_data(handle)
             if found is None:
                 return None
-            guid = self._writer_guids[info.publication_handle] = bytes(found.key.bytes)
+            guid = self._writer_guids[handle] = bytes(found.key.bytes)
+            self._let_go_of_gone_writers()
         return capture.lookup(guid, info.source_timestamp)
+
+    def _let_go_of_gone_writers(self) -> None:
+        """Lets go of the GUIDs of the writers no longer matched (looked at when a new one
+        comes: a robot that restarts its servers brings new ones for as long as we run),
+        once the node has delivered what they sent. Not at once: a reply its writer sent
+        just before it left can still be on its way to `deliver`, its request identity is
+        found only through that GUID, and the reader no longer tells it; unknown, the reply
+        could pass for the outstanding request's."""
+        if self._letting_go is not None:
+            return  # the next new writer looks again
+        matched = {writer_handle(h) for h in matched_publications(self.reader)}
+        gone = self._writer_guids.keys() - matched
+        if gone:
+            self._letting_go = self._loop.create_task(self._let_go_once_delivered(gone))
+
+    async def _let_go_once_delivered(self, gone: set[int]) -> None:
+        try:
+            await self._node.delivered()
+        finally:
+            self._letting_go = None
+        for handle in gone:
+            self._writer_guids.pop(handle, None)
 
     def matched(self) -> bool:
         return bool(self.writer.get_publication_matched_status().current_count and
@@ -254,6 +282,8 @@ class _Pair:
         """Stops deliveries and deletes both endpoints; idempotent."""
         if self.watch.closed:
             return
+        if self._letting_go is not None:
+            self._letting_go.cancel()
         self._node.unwatch(self.watch)
         self._node.forget_reader(self.reader)
         self._node.forget_writer(self.writer)
@@ -262,21 +292,50 @@ class _Pair:
                 entity.__del__()
 
 
-class ServiceClient:
-    """Calls one service; `await call(request)` returns the response."""
+class _Role(enum.Enum):
+    """Which end of a service; the value is the key rmw_cyclonedds gives its id in the
+    endpoints' USER_DATA."""
 
-    def __init__(self, node: RosNode, service: str, type_name: str, *,
-                 mapping: RequestMapping = RequestMapping.AUTO,
-                 qos: QosProfile = qos_mod.SERVICES) -> None:
+    CLIENT = "clientid"  # writes requests, reads replies
+    SERVER = "serviceid"  # writes replies, reads requests
+
+
+class _ServiceEnd:
+    """What a client and a server of a service both set up: the resolved name, the service
+    type's request and response type names, the two DDS topics, an rmw_cyclonedds-style id,
+    the QoS; and `_make_pair`, their writer and reader in one mapping."""
+
+    _ROLE: ClassVar[_Role]
+
+    def __init__(self, node: RosNode, service: str, type_name: str, qos: QosProfile) -> None:
         self.node = node
         self.name = node.resolve(service)
         srv = node.store.service(type_name)
         self.type_name = srv.name
         self.request_type, self.response_type = srv.request.name, srv.response.name
         self.request_topic, self.reply_topic = mangle_service(self.name)
-        self.mapping = mapping
         self.id = new_endpoint_id(node)
         self._qos = qos
+
+    def _make_pair(self, mapping: RequestMapping,
+                   deliver: Callable[[_Pair, list[Any]], None]) -> _Pair:
+        requests = (self.request_topic, self.request_type)
+        replies = (self.reply_topic, self.response_type)
+        out, into = (requests, replies) if self._ROLE is _Role.CLIENT else (replies, requests)
+        return _Pair(self.node, mapping, out, into, self._qos,
+                     f"{self._ROLE.value}={format_endpoint_id(self.id)};", deliver)
+
+
+class ServiceClient(_ServiceEnd):
+    """Calls one service; `await call(request)` returns the response."""
+
+    _ROLE = _Role.CLIENT
+
+    def __init__(self, node: RosNode, service: str, type_name: str, *,
+                 mapping: RequestMapping = RequestMapping.AUTO,
+                 qos: QosProfile = qos_mod.SERVICES) -> None:
+        super().__init__(node, service, type_name, qos)
+        self.mapping = mapping
         self._graph = shared_graph(node)
         self._pairs: dict[RequestMapping, _Pair] = {}
         self._seq = itertools.count(1)
@@ -322,10 +381,7 @@ class ServiceClient:
             # The capture is on before the reader exists: its first HEARTBEAT is looked for.
             if mapping is RequestMapping.FASTDDS and self.node.identities is not None:
                 self.node.identities.use()
-            pair = self._pairs[mapping] = _Pair(
-                self.node, mapping, (self.request_topic, self.request_type),
-                (self.reply_topic, self.response_type), self._qos,
-                f"clientid={format_endpoint_id(self.id)};", self._deliver)
+            pair = self._pairs[mapping] = self._make_pair(mapping, self._deliver)
         return pair
 
     async def wait_for_service(self, timeout: float = 5.0) -> _Pair:
@@ -556,10 +612,14 @@ class ServiceClient:
         as our reader's start: docs/design/zero-loss.md), and nothing sends it again. Only
         the reply naming our request exactly, from a reply writer matched with our reader
         (`IdentityCapture.expect_reply`); the reader gets its turn first (CAPTURE_REPLY_AFTER,
-        CAPTURE_SETTLE, then the reader thread's barrier), and whichever delivers first wins."""
+        CAPTURE_SETTLE, then the reader thread's barrier), and whichever delivers first wins.
+        Each look runs in a worker thread: one that misses reads the capture to its end, up to
+        MISS_BUDGET bytes, which held the event loop 250-440 ms when they were small datagrams
+        (docs/design/rpc-identity.md, "The event loop"); the capture's lock is taken a chunk
+        at a time there, and no lock of ours is held meanwhile."""
         await asyncio.sleep(CAPTURE_REPLY_AFTER)
         while not future.done():
-            data = capture.captured_reply(identity)
+            data = await asyncio.to_thread(capture.captured_reply, identity)
             if data is not None:
                 await asyncio.sleep(CAPTURE_SETTLE)  # it may just have come: reader first
                 await self.node.delivered()

@@ -13,18 +13,21 @@ import asyncio
 import logging
 import time
 import uuid
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 
 from ..api.ports import GoalState, GoalView
 from ..events import Events
 from ..rcan import Navigation
-from ..ros.actions import ActionClient, ClientGoal
+from ..ros.actions import ActionClient
 from ..ros.actions import GoalState as RosGoalState
 from ..ros.errors import ActionError, WireError
 from ..ros.participant import RosNode
 from ..ros.services import RequestMapping
+
+if TYPE_CHECKING:
+    from ..ros.action_goals import ClientGoal  # loaded by the first goal
 
 log = logging.getLogger(__name__)
 NAVIGATE_TO_POSE = "nav2_msgs/action/NavigateToPose"

@@ -259,6 +259,12 @@ async def test_a_stop_s_cancel_client_is_ready_before_the_first_stop(live: Live)
         assert (await elsewhere.result(timeout=15)).state is GoalState.CANCELED
         assert _cancel_pairs(live, "nav_action") == made  # the stop made no endpoints
         assert live.bridge.goals.goals() == []  # the bridge sent none
+        # Nor did the stop make the goal-sending side, or parse the actions (issue 27: both
+        # wait for the first goal).
+        assert all(t.client._sending is None for t in live.bridge.goals.trackers)
+        assert live.bridge.node is not None
+        parsed = [n for n in live.bridge.node.store._types if n.startswith((NAV, DOCK))]
+        assert not parsed, parsed
     finally:
         other.close()
 

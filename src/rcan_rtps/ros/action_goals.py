@@ -48,7 +48,7 @@ from .handshake import (
 from .names import action_names, mangle_topic
 from .participant import RosSubscription
 from .rtps_capture import IdentityCapture
-from .services import PAIR_READER_DEPTH, RequestMapping, shared_graph
+from .services import PAIR_READER_DEPTH, RequestMapping, ServiceClient, shared_graph
 
 if TYPE_CHECKING:
     from .actions import ActionClient
@@ -230,14 +230,19 @@ class ClientGoal:
 
 class GoalSender:
     """The goal-sending half of `client`: its goal and result services, its feedback reader
-    and the goals it sent. It shares the client's cancel service, status reader and
-    closed state (`ActionClient._goal_side` makes it)."""
+    and the goals it sent, and the action's definition (parsed when this is made). It shares
+    the client's cancel service, status reader and closed state (`ActionClient._goal_side`
+    makes it)."""
 
     def __init__(self, client: ActionClient) -> None:
         self.client = client
         self.node, self.name = client.node, client.name
-        self.types, self.type_name = client.types, client.type_name
-        self._send, self._get = client._send, client._get
+        self.types, self.type_name = client.types, client.type_name  # parses the action
+        names = action_names(self.name)
+        self._send = ServiceClient(self.node, names["send_goal"], self.type_name + "_SendGoal",
+                                   mapping=client.mapping)
+        self._get = ServiceClient(self.node, names["get_result"], self.type_name + "_GetResult",
+                                  mapping=client.mapping)
         # Our goals the status and feedback topics may still speak of: those ended are let go
         # of once nothing more can come for them (`ClientGoal.forgettable`), so a client
         # that lives for weeks keeps only the goals of the last moments.
@@ -258,7 +263,7 @@ class GoalSender:
         self.feedback_unannounced = 0  # 1 when goals went out with the announcement unheard
         # Made once the server's feedback writer is known (wait_for_server, handshake.py).
         self._feedback: RosSubscription | None = None
-        self._feedback_topic = action_names(self.name)["feedback"]
+        self._feedback_topic = names["feedback"]
 
     async def wait_for_server(self, timeout: float = 5.0) -> None:
         """Waits like rcl's action server check: all three services matched both ways and

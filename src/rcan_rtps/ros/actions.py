@@ -35,6 +35,7 @@ from .services import RequestMapping, ServiceClient
 
 if TYPE_CHECKING:
     from .action_goals import ClientGoal, GoalSender
+    from .typesys.model import ActionType
 
 log = logging.getLogger(__name__)
 
@@ -77,13 +78,13 @@ class ActionClient:
                  mapping: RequestMapping = RequestMapping.AUTO) -> None:
         self.node = node
         self.name = node.resolve(action)
-        self.types = node.store.action(type_name)
-        self.type_name = self.types.name
+        # The action's own definition is parsed by its first use (`types`: the first goal);
+        # canceling needs only CancelGoal and the status type. An unknown action still fails
+        # here.
+        self.type_name = node.store.require(type_name)
+        self._types: ActionType | None = None
+        self.mapping = mapping
         names = action_names(self.name)
-        self._send = ServiceClient(node, names["send_goal"], self.type_name + "_SendGoal",
-                                   mapping=mapping)
-        self._get = ServiceClient(node, names["get_result"], self.type_name + "_GetResult",
-                                  mapping=mapping)
         self._cancel_srv = ServiceClient(node, names["cancel_goal"], CANCEL_TYPE,
                                          mapping=mapping)
         self._sending: GoalSender | None = None  # the goal side, made by the first goal
@@ -99,6 +100,13 @@ class ActionClient:
         self._status = node.create_subscription(
             names["status"], STATUS_TYPE, qos_mod.ACTION_STATUS, callback=on_loop(self._on_status))
         self._on_loop = on_loop
+
+    @property
+    def types(self) -> ActionType:
+        """The action's types, its definition parsed by the first call."""
+        if self._types is None:
+            self._types = self.node.store.action(self.type_name)
+        return self._types
 
     def _goal_side(self) -> GoalSender:
         """The goal-sending half (action_goals.py), made by the first goal or wait for the
@@ -206,9 +214,6 @@ class ActionClient:
         self._status.close()
         if self._sending is not None:
             self._sending.close()
-        else:
-            for client in (self._send, self._get):
-                client.close()
 
     def _on_status(self, array: IdlStruct) -> None:
         if self._sending is not None:  # else no goal of ours is there to note

@@ -41,7 +41,8 @@ async def test_a_goal_s_end_is_shown_while_its_feedback_waits_for_a_repair(
         go.set()
         await eventually(lambda: (v := tracker.goal(goal_id)) is not None
                          and v.state == "succeeded")
-        assert any(not task.done() for task in tracker._watchers), \
+        assert tracker._sent is not None
+        assert any(not task.done() for task in tracker._sent._watchers), \
             "the feedback stream was expected to be waiting out the repair time"
         await tracker.close()
         await server.close()

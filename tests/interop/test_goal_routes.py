@@ -224,9 +224,11 @@ async def test_the_bridge_s_per_goal_state_stays_bounded(live: Live) -> None:
     assert live.bridge.goals is not None
     tracker = live.bridge.goals.tracker("nav_action")
     assert tracker is not None
-    await eventually(lambda: not tracker._watchers, what="every goal's feedback stream ended")
+    sent_goals = tracker._sent
+    assert sent_goals is not None
+    await eventually(lambda: not sent_goals._watchers, what="every goal's feedback stream ended")
     assert tracker.client.goals_tracked == 0
-    assert not tracker._handles and set(tracker._message_ids) == set(sent)
+    assert not sent_goals._handles and set(sent_goals._message_ids) == set(sent)
     assert len(live.robot.navigated) == MANY_GOALS
 
 

@@ -156,7 +156,7 @@ GOAL_CLIENT = {"rcan_rtps.bridge.navigation", "rcan_rtps.ros.actions", "rcan_rtp
                "rcan_rtps.ros.handshake", "rcan_rtps.ros._cyclone_header"}
 # The goal-sending side of an action client (issue 27, item 6): no stop needs it, so a run
 # loads it with its first goal (`navigate`, `dock`), never at start.
-GOAL_SENDING = {"rcan_rtps.ros.action_goals"}
+GOAL_SENDING = {"rcan_rtps.ros.action_goals", "rcan_rtps.bridge.sent_goals"}
 # The server sides of actions and services: a bridge sends goals and calls services, it never
 # serves one (only `--sim`'s robot does), so no run of it loads them (issue 27, item 6).
 SERVER_SIDE = {"rcan_rtps.ros.action_server", "rcan_rtps.ros.service_server"}

@@ -56,6 +56,8 @@ NOT_FOR_A_RUN = {
     "rcan_rtps.governance.thoughts",  # an AI command, GET /api/thoughts/{id}
     "rcan_rtps.governance.jwt",  # bridge.api.jwt
     "rcan_rtps.api._reads",  # GET /api/audit, /api/audit/mine, /api/audit/verify
+    # HiTL review, audit reads, images, thoughts, skills (api._app.RARE_ROUTES)
+    "rcan_rtps.api._rare_routes",
 }
 
 
@@ -63,9 +65,11 @@ NOT_FOR_A_RUN = {
 FIRST_USE = {
     "/console/": {"rcan_rtps.api._console_pages", "rcan_rtps.console"},
     "/api/whoami": {"rcan_rtps.api._console_pages"},
-    "/api/skills": {"rcan_rtps.api._invoke"},
+    "/api/skills": {"rcan_rtps.api._invoke", "rcan_rtps.api._rare_routes"},
     "/api/thoughts/no-such-thought": {"rcan_rtps.governance.thoughts"},
     "/api/audit/mine?last=5": {"rcan_rtps.api._reads"},
+    "/api/hitl/pending?mine=true": set(),
+    "/api/images": set(),
 }
 
 
@@ -144,6 +148,10 @@ def test_the_lazy_doors_answer_their_first_request(tmp_path: Path, domain_id: in
     assert status == 200 and json.loads(mine)["entries"] == [], answers  # commanded nothing
     status, thought = answers["/api/thoughts/no-such-thought"]
     assert status == 404 and json.loads(thought)["reason"] == "thought_not_found", answers
+    status, pending = answers["/api/hitl/pending?mine=true"]
+    assert status == 200 and json.loads(pending)["pending"] == [], answers
+    status, images = answers["/api/images"]
+    assert status == 200 and "images" in json.loads(images), answers
     modules = imported(proc.stderr)
     missing = {m for needed in FIRST_USE.values() for m in needed} - modules
     assert not missing, f"first requests answered without loading {sorted(missing)}"

@@ -21,7 +21,7 @@ import msgspec
 
 if TYPE_CHECKING:  # types only: governance and api import this module, never the reverse
     from .api.ports import GoalView
-    from .bridge.navigation import GoalFinished
+    from .bridge.sent_goals import GoalFinished
     from .governance.audit import AuditReceipt, AuditRecord
     from .governance.rbac import Principal
 

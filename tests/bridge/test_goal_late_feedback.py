@@ -12,7 +12,7 @@ from dropping import flood, small_buffers
 from waiting import eventually
 
 from rcan_rtps.bridge.navigation import GoalTracker
-from rcan_rtps.ros import actions
+from rcan_rtps.ros import action_goals
 from rcan_rtps.ros.actions import ActionServer, ServerGoal
 from rcan_rtps.ros.participant import RosNode
 
@@ -23,7 +23,7 @@ GOAL = {"pose": {"header": {"frame_id": "map"}, "pose": {"position": {"x": 1.0}}
 
 async def test_a_goal_s_end_is_shown_while_its_feedback_waits_for_a_repair(
         domain_id: int, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(actions, "REPAIR_S", dict.fromkeys(actions.REPAIR_S, 60.0))
+    monkeypatch.setattr(action_goals, "REPAIR_S", dict.fromkeys(action_goals.REPAIR_S, 60.0))
     small_buffers(monkeypatch)
     go = asyncio.Event()
 
@@ -41,7 +41,8 @@ async def test_a_goal_s_end_is_shown_while_its_feedback_waits_for_a_repair(
         go.set()
         await eventually(lambda: (v := tracker.goal(goal_id)) is not None
                          and v.state == "succeeded")
-        assert any(not task.done() for task in tracker._watchers), \
+        assert tracker._sent is not None
+        assert any(not task.done() for task in tracker._sent._watchers), \
             "the feedback stream was expected to be waiting out the repair time"
         await tracker.close()
         await server.close()

@@ -145,7 +145,7 @@ async def _feedback_renewed(client: ActionClient, times: int) -> None:
 
 async def _announced_services(client: ActionClient) -> None:
     """The three services' reply readers past their announcement wait (capture not deaf)."""
-    for service in (client._send, client._get, client._cancel_srv):
+    for service in (client._goal_side()._send, client._goal_side()._get, client._cancel_srv):
         await service.wait_for_service(15)
 
 
@@ -168,7 +168,8 @@ async def test_an_action_client_closed_while_it_waits_for_the_announcement_says_
             client.close()
             with pytest.raises(WireError, match="closed"):
                 await asyncio.wait_for(goal, 15)
-            assert client._feedback is None or client._feedback._closed
+            feedback = client._sending and client._sending._feedback
+            assert not feedback or feedback._closed
         finally:
             node.identities = real
 
@@ -188,7 +189,7 @@ async def test_goals_sent_at_once_share_one_announcement_wait(
 
     async def first() -> object:
         goal = await client.send_goal({"order": 12}, timeout=20)
-        readers_with_a_goal_out.append(client._feedback)
+        readers_with_a_goal_out.append(client._goal_side()._feedback)
         return goal
 
     async def second() -> object:  # once the first one's wait has made its reader again
@@ -199,7 +200,7 @@ async def test_goals_sent_at_once_share_one_announcement_wait(
         await asyncio.gather(first(), second())
     finally:
         node.identities = real
-        readers_with_a_goal_out.append(client._feedback)
+        readers_with_a_goal_out.append(client._goal_side()._feedback)
         client.close()
     assert client.feedback_renewed == ANNOUNCE_TRIES - 1
     assert readers_with_a_goal_out[0] is readers_with_a_goal_out[1]
@@ -219,7 +220,7 @@ async def test_a_goal_behind_another_s_announcement_wait_ends_at_its_own_deadlin
         await asyncio.wait_for(_announcing(client), 15)
         with pytest.raises(ServiceTimeout, match="behind another goal"):
             await asyncio.wait_for(client.send_goal({"order": 3}, timeout=0.2), 15)
-        assert not client._feedback_announced and not first.done()  # its wait goes on
+        assert not client._goal_side()._feedback_announced and not first.done()  # its wait goes on
         goal = await asyncio.wait_for(first, 30)
     finally:
         node.identities = real
@@ -231,7 +232,7 @@ async def test_a_goal_behind_another_s_announcement_wait_ends_at_its_own_deadlin
 
 async def _announcing(client: ActionClient) -> None:
     """Until a goal's wait for the feedback writer's announcement is under way."""
-    while not client._announce_lock.locked():
+    while not client._goal_side()._announce_lock.locked():
         await asyncio.sleep(0.01)
 
 

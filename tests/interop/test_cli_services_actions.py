@@ -115,8 +115,8 @@ def test_send_goal_ended_by_a_signal_cancels_the_goal(oracle: RclpyOracle, domai
 NAV = "nav2_msgs/action/NavigateToPose"
 # The command with a repair window that cannot end before the test does: what it prints
 # before its server leaves is printed before the window ends.
-LONG_REPAIR = ("import sys; from rcan_rtps.ros import actions; "
-               "actions.REPAIR_S = {m: 600.0 for m in actions.REPAIR_S}; "
+LONG_REPAIR = ("import sys; from rcan_rtps.ros import action_goals; "
+               "action_goals.REPAIR_S = {m: 600.0 for m in action_goals.REPAIR_S}; "
                "from rcan_rtps.cli.main import main; sys.exit(main(sys.argv[1:]))")
 
 

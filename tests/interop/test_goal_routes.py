@@ -224,9 +224,11 @@ async def test_the_bridge_s_per_goal_state_stays_bounded(live: Live) -> None:
     assert live.bridge.goals is not None
     tracker = live.bridge.goals.tracker("nav_action")
     assert tracker is not None
-    await eventually(lambda: not tracker._watchers, what="every goal's feedback stream ended")
+    sent_goals = tracker._sent
+    assert sent_goals is not None
+    await eventually(lambda: not sent_goals._watchers, what="every goal's feedback stream ended")
     assert tracker.client.goals_tracked == 0
-    assert not tracker._handles and set(tracker._message_ids) == set(sent)
+    assert not sent_goals._handles and set(sent_goals._message_ids) == set(sent)
     assert len(live.robot.navigated) == MANY_GOALS
 
 
@@ -259,6 +261,12 @@ async def test_a_stop_s_cancel_client_is_ready_before_the_first_stop(live: Live)
         assert (await elsewhere.result(timeout=15)).state is GoalState.CANCELED
         assert _cancel_pairs(live, "nav_action") == made  # the stop made no endpoints
         assert live.bridge.goals.goals() == []  # the bridge sent none
+        # Nor did the stop make the goal-sending side, or parse the actions (issue 27: both
+        # wait for the first goal).
+        assert all(t.client._sending is None for t in live.bridge.goals.trackers)
+        assert live.bridge.node is not None
+        parsed = [n for n in live.bridge.node.store._types if n.startswith((NAV, DOCK))]
+        assert not parsed, parsed
     finally:
         other.close()
 

@@ -56,6 +56,8 @@ NOT_FOR_A_RUN = {
     "rcan_rtps.governance.thoughts",  # an AI command, GET /api/thoughts/{id}
     "rcan_rtps.governance.jwt",  # bridge.api.jwt
     "rcan_rtps.api._reads",  # GET /api/audit, /api/audit/mine, /api/audit/verify
+    # HiTL review, audit reads, images, thoughts, skills (api._app.RARE_ROUTES)
+    "rcan_rtps.api._rare_routes",
 }
 
 
@@ -63,9 +65,11 @@ NOT_FOR_A_RUN = {
 FIRST_USE = {
     "/console/": {"rcan_rtps.api._console_pages", "rcan_rtps.console"},
     "/api/whoami": {"rcan_rtps.api._console_pages"},
-    "/api/skills": {"rcan_rtps.api._invoke"},
+    "/api/skills": {"rcan_rtps.api._invoke", "rcan_rtps.api._rare_routes"},
     "/api/thoughts/no-such-thought": {"rcan_rtps.governance.thoughts"},
     "/api/audit/mine?last=5": {"rcan_rtps.api._reads"},
+    "/api/hitl/pending?mine=true": set(),
+    "/api/images": set(),
 }
 
 
@@ -144,6 +148,10 @@ def test_the_lazy_doors_answer_their_first_request(tmp_path: Path, domain_id: in
     assert status == 200 and json.loads(mine)["entries"] == [], answers  # commanded nothing
     status, thought = answers["/api/thoughts/no-such-thought"]
     assert status == 404 and json.loads(thought)["reason"] == "thought_not_found", answers
+    status, pending = answers["/api/hitl/pending?mine=true"]
+    assert status == 200 and json.loads(pending)["pending"] == [], answers
+    status, images = answers["/api/images"]
+    assert status == 200 and "images" in json.loads(images), answers
     modules = imported(proc.stderr)
     missing = {m for needed in FIRST_USE.values() for m in needed} - modules
     assert not missing, f"first requests answered without loading {sorted(missing)}"
@@ -154,6 +162,9 @@ def test_the_lazy_doors_answer_their_first_request(tmp_path: Path, domain_id: in
 # it names none.
 GOAL_CLIENT = {"rcan_rtps.bridge.navigation", "rcan_rtps.ros.actions", "rcan_rtps.ros.services",
                "rcan_rtps.ros.handshake", "rcan_rtps.ros._cyclone_header"}
+# The goal-sending side of an action client (issue 27, item 6): no stop needs it, so a run
+# loads it with its first goal (`navigate`, `dock`), never at start.
+GOAL_SENDING = {"rcan_rtps.ros.action_goals", "rcan_rtps.bridge.sent_goals"}
 # The server sides of actions and services: a bridge sends goals and calls services, it never
 # serves one (only `--sim`'s robot does), so no run of it loads them (issue 27, item 6).
 SERVER_SIDE = {"rcan_rtps.ros.action_server", "rcan_rtps.ros.service_server"}
@@ -223,14 +234,22 @@ def test_a_bridge_naming_no_goal_server_loads_no_action_client(tmp_path: Path,
     assert not GOAL_CLIENT & modules, f"imported {sorted(GOAL_CLIENT & modules)}"
 
 
+def outcome_lines(lines: list[str], action: str) -> list[int]:
+    """Where the run logged the outcome of each `action` command (its audit entry, written
+    once the command was dispatched: what dispatching it imported is above the line)."""
+    return [i for i, line in enumerate(lines) if re.search(rf"\b{action} -> ", line)]
+
+
 def test_with_goal_servers_the_stop_path_is_loaded_before_ready(tmp_path: Path,
                                                                 domain_id: int) -> None:
-    """The default config names both goal servers: their clients' modules are imported while
-    the bridge starts, and a goal and the stop that cancels it import nothing of ours; the
-    server side of actions and services is never loaded."""
+    """The default config names both goal servers: their clients' cancel side is imported
+    while the bridge starts, and a stop imports nothing of ours, before a goal or after one;
+    the goal-sending side is loaded by the first goal (a move, not a stop: issue 27), and
+    the server side of actions and services is never loaded."""
     with sim_robot(domain_id):
         proc = config_run(tmp_path, domain_id)
         try:
+            first_stop = post(proc.url, TOKEN, {"action": "stop"})
             sent = post(proc.url, TOKEN, {"action": "navigate",
                                           "params": {"x": 1.0, "y": 0.0, "yaw": 0.0}})
             stopped = post(proc.url, TOKEN, {"action": "stop"})
@@ -238,13 +257,26 @@ def test_with_goal_servers_the_stop_path_is_loaded_before_ready(tmp_path: Path,
             assert proc.wait(EXIT_TIMEOUT) == 0, proc.output()
         finally:
             proc.kill()
-    started, later = start_and_serving(proc)
-    assert not GOAL_CLIENT - started, f"not imported at start: {sorted(GOAL_CLIENT - started)}"
+    assert first_stop[0] == 200 and stopped[0] == 200, (first_stop, stopped)
     assert sent[0] == 200 and sent[1].get("goal_id"), sent  # accepted: the server is there
-    assert stopped[0] == 200, stopped
-    ours = {m for m in later if m.startswith("rcan_rtps")}
-    assert not ours, f"a goal or a stop imported {sorted(ours)}"
+    started, serving = start_and_serving(proc)
+    assert not GOAL_CLIENT - started, f"not imported at start: {sorted(GOAL_CLIENT - started)}"
+    assert not GOAL_SENDING & started, f"imported at start: {sorted(GOAL_SENDING & started)}"
+    lines = list(proc.stderr)
+    running = next(i for i, line in enumerate(lines) if "bridge running" in line)
+    (stop_1, stop_2), (goal,) = outcome_lines(lines, "stop"), outcome_lines(lines, "navigate")
+    assert stop_1 < goal < stop_2, lines[stop_1:]
+    before_goal, with_goal = imported(lines[running:stop_1]), imported(lines[stop_1:goal])
+    assert not ours(before_goal), f"a stop before any goal imported {sorted(ours(before_goal))}"
+    assert not GOAL_SENDING - with_goal, \
+        f"the first goal did not load {sorted(GOAL_SENDING - with_goal)}"
+    after_goal = imported(lines[goal:])
+    assert not ours(after_goal), f"after the goal, a stop imported {sorted(ours(after_goal))}"
     # Where the server side lives, and that the run never loaded it.
     assert {c.__module__ for c in (ActionServer, ServerGoal, ServiceServer)} <= SERVER_SIDE
-    served = SERVER_SIDE & (started | later)
+    served = SERVER_SIDE & (started | serving)
     assert not served, f"a bridge imported {sorted(served)}"
+
+
+def ours(modules: set[str]) -> set[str]:
+    return {m for m in modules if m.startswith("rcan_rtps")}

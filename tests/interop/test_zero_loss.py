@@ -23,7 +23,7 @@ import pytest
 from dropping import DeafCapture, small_buffers
 from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
 
-from rcan_rtps.ros import actions, qos, services
+from rcan_rtps.ros import action_goals, qos, services
 from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.errors import ActionError, ServiceTimeout
 from rcan_rtps.ros.handshake import matched_writers
@@ -459,8 +459,9 @@ async def test_no_first_feedback_reaches_a_reader_that_has_not_heard_its_cyclone
                     await tally.run(client, i)
                 finally:
                     renewed += client.feedback_renewed
-                    if client._feedback is not None:
-                        writers |= set(matched_writers(client._feedback.reader).values())
+                    feedback = client._sending and client._sending._feedback
+                    if feedback:
+                        writers |= set(matched_writers(feedback.reader).values())
             await other.acall("unsubscribe", topic=FEEDBACK)
     names = {cyclone_guid(w) for w in writers}
     dropped = [line for line in trace.read_text(errors="replace").splitlines()
@@ -487,7 +488,7 @@ async def test_a_goal_sent_before_the_sync_was_heard_waits_for_its_feedback_to_b
     feedback came too (every fresh client waited 2 s more without a capture: macOS,
     RCAN_RTPS_RPC_IDENTITY=off). A Fast DDS writer's samples are taken before any
     HEARTBEAT: no such wait. (The repair time is made long, so that waiting it out shows.)"""
-    monkeypatch.setattr(actions, "REPAIR_S", dict.fromkeys(actions.REPAIR_S, 600.0))
+    monkeypatch.setattr(action_goals, "REPAIR_S", dict.fromkeys(action_goals.REPAIR_S, 600.0))
     await oracle.acall("action_server", name="/fib_burst", period=0.0)
     client = await deaf_burst_client(node)
     assert client.feedback_unannounced == 1  # nothing heard after ANNOUNCE_TRIES readers
@@ -560,8 +561,9 @@ async def test_a_restarted_cyclone_server_s_feedback_writer_is_not_taken_for_in_
             with RclpyOracle(jazzy_oracle, f"{run}_server", "/", domain_id=domain_id) as server:
                 await server.acall("action_server", name="/fib_burst", period=0.0)
                 await client.wait_for_server(20)
-                assert client._feedback is not None
-                while len(matched_writers(client._feedback.reader)) != 1:  # the old one gone
+                feedback = client._goal_side()._feedback
+                assert feedback is not None
+                while len(matched_writers(feedback.reader)) != 1:  # the old one gone
                     await asyncio.sleep(0.05)
                 if run == "second":
                     assert not client.feedback_in_sync(), "a writer never heard nor taken from"

@@ -10,7 +10,7 @@ import pytest
 from dropping import flood, small_buffers
 from holding import reader_thread_held
 
-from rcan_rtps.ros import actions, qos
+from rcan_rtps.ros import action_goals, qos
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
 from rcan_rtps.ros.errors import ActionError
 from rcan_rtps.ros.participant import RosNode
@@ -53,7 +53,7 @@ async def test_navigate_to_pose_goal_feedback_result(nodes: tuple[RosNode, RosNo
     server = ActionServer(server_node, "navigate_to_pose", NAV, navigate)
     client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
     goal = await client.send_goal(GOAL, timeout=20)
-    assert client._send.resolve_mapping() is RequestMapping.CYCLONE
+    assert client._goal_side()._send.resolve_mapping() is RequestMapping.CYCLONE
     assert goal.accepted and goal.stamp != (0, 0)
     remaining = [round(f.distance_remaining, 3) async for f in goal.feedback(timeout=20)]
     outcome = await goal.result(timeout=20)
@@ -141,7 +141,7 @@ class LosingServer(ActionServer):
 
 async def test_a_lost_result_reply_is_asked_for_again(
         nodes: tuple[RosNode, RosNode], monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(actions, "RESULT_ASK_S", 0.5)
+    monkeypatch.setattr(action_goals, "RESULT_ASK_S", 0.5)
     server_node, client_node = nodes
     server = LosingServer(server_node, "navigate_to_pose", NAV, navigate, lose="get_result")
     client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
@@ -170,7 +170,7 @@ async def test_feedback_stops_waiting_for_a_repair_once_the_server_has_left(
     while the server that would send it is there: once it has left the graph, nothing more
     can come. (Datagrams are dropped at our sockets, as on a busy host; the repair time is
     made long, so that waiting it out would show.)"""
-    monkeypatch.setattr(actions, "REPAIR_S", {m: 600.0 for m in actions.REPAIR_S})
+    monkeypatch.setattr(action_goals, "REPAIR_S", {m: 600.0 for m in action_goals.REPAIR_S})
     small_buffers(monkeypatch)
     with RosNode("rcan_bridge", "/", domain_id=domain_id) as client_node:
         server_node = RosNode("robot_sim", "/", domain_id=domain_id)
@@ -267,7 +267,7 @@ async def test_a_server_that_leaves_before_its_result_reply_ends_the_goal_as_its
     nobody can answer any more. result() raised ServiceUnavailable, and the bridge showed
     the goal 'unknown', among the active goals for good. The end is the status topic's,
     without a result, and the detail says why."""
-    monkeypatch.setattr(actions, "RESULT_ASK_S", 0.5)
+    monkeypatch.setattr(action_goals, "RESULT_ASK_S", 0.5)
     with RosNode("rcan_bridge", "/", domain_id=domain_id) as client_node:
         server_node = RosNode("robot_sim", "/", domain_id=domain_id)
         server = LosingServer(server_node, "/nav", NAV, navigate, lose="get_result")
@@ -335,7 +335,7 @@ async def test_a_client_closed_while_it_waits_for_the_feedback_writer_says_so(
     client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
     try:
         goal = asyncio.ensure_future(client.send_goal(GOAL, timeout=30))
-        while client._feedback is None or client._status.matched_count() == 0:
+        while client._goal_side()._feedback is None or client._status.matched_count() == 0:
             await asyncio.sleep(0.01)
         await asyncio.sleep(0.2)
         assert not goal.done()  # still waiting for the feedback writer
@@ -402,8 +402,8 @@ async def test_a_long_lived_client_lets_go_of_ended_goals_but_never_of_one_still
         assert [f async for f in goal.feedback(timeout=20)]
         assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
         assert client.goals_tracked == 1  # the running goal alone
-    monkeypatch.setattr(actions, "SETTLE_S", 0.0)
-    monkeypatch.setattr(actions, "REPAIR_S", dict.fromkeys(actions.REPAIR_S, 0.0))
+    monkeypatch.setattr(action_goals, "SETTLE_S", 0.0)
+    monkeypatch.setattr(action_goals, "REPAIR_S", dict.fromkeys(action_goals.REPAIR_S, 0.0))
     for _ in range(30):  # only their results asked for
         goal = await client.send_goal(near, timeout=20)
         assert client.goals_tracked <= 3  # the running one, the one before, this one

@@ -18,6 +18,8 @@ from cyclonedds.qos import Qos
 from waiting import eventually
 
 from rcan_rtps.ros import graph as graph_mod
+from rcan_rtps.ros.actions import ActionClient
+from rcan_rtps.ros.errors import UnknownTypeError
 from rcan_rtps.ros.graph import Direction, Endpoint, RosGraph
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.qos import Durability, History, QosProfile
@@ -25,6 +27,7 @@ from rcan_rtps.ros.typesys.store import TypeStore
 
 TWIST = "geometry_msgs/msg/Twist"
 ODOM = "nav_msgs/msg/Odometry"
+NAV = "nav2_msgs/action/NavigateToPose"
 
 
 @pytest.fixture
@@ -194,3 +197,20 @@ async def test_profiles_no_endpoint_uses_are_let_go_of(
     await eventually(lambda: len(both()) == 2, timeout=10.0, what="both kept endpoints")
     first, second = both()
     assert first.qos is second.qos and first.qos.depth == 99
+
+
+async def test_an_action_client_parses_its_action_at_its_first_use(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """A bridge's goal clients only cancel until their first goal: the action's own
+    definition (goal, result, feedback and the types derived from them) is parsed then, not
+    when the client is made; an unknown action still fails when it is made."""
+    node, _ = nodes
+    client = ActionClient(node, "navigate_to_pose", NAV)
+    try:
+        assert not [n for n in node.store._types if n.startswith(NAV)]
+        assert client.types.goal.name == NAV + "_Goal"
+        assert NAV + "_SendGoal_Request" in node.store._types
+    finally:
+        client.close()
+    with pytest.raises(UnknownTypeError, match="NavigateToPoze"):
+        ActionClient(node, "navigate_to_pose", "nav2_msgs/action/NavigateToPoze")

@@ -56,6 +56,22 @@ if TYPE_CHECKING:
     from ._reads import AuditReads
 
 MCP_PATH = "/mcp"  # the MCP streamable-HTTP door (`_mcp`)
+# Routes an idle bridge is rarely asked for, and that no command or stop takes: their
+# handlers (`_rare_routes`) are loaded by the first request to any of them (issue 27).
+RARE_ROUTES = (
+    ("GET", "/api/skills", "get_skills"),
+    ("GET", "/api/images", "get_images"),
+    ("GET", "/api/images/{name}", "get_image"),
+    ("GET", "/api/thoughts/{thought_id}", "get_thought"),
+    ("GET", "/api/hitl/pending", "get_pending"),
+    ("GET", "/api/hitl/pending/{pending_id}", "get_pending_one"),
+    ("POST", "/api/hitl/authorize", "post_authorize"),
+    ("POST", "/api/hitl/deny", "post_deny"),
+    ("POST", "/api/hitl/withdraw", "post_withdraw"),
+    ("GET", "/api/audit", "get_audit"),
+    ("GET", "/api/audit/verify", "get_audit_verify"),
+    ("GET", "/api/audit/mine", "get_my_audit"),
+)
 
 
 def settings_from_config(config: RcanConfig) -> ApiSettings:
@@ -150,18 +166,8 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.router.add_post("/api/heartbeat", r.post_heartbeat)
     app.router.add_get("/api/goals", r.get_goals, allow_head=False)
     app.router.add_get("/api/goals/{goal_id}", r.get_goal, allow_head=False)
-    app.router.add_get("/api/skills", r.get_skills, allow_head=False)
-    app.router.add_get("/api/images", r.get_images, allow_head=False)
-    app.router.add_get("/api/images/{name}", r.get_image, allow_head=False)
-    app.router.add_get("/api/thoughts/{thought_id}", r.get_thought, allow_head=False)
-    app.router.add_get("/api/hitl/pending", r.get_pending, allow_head=False)
-    app.router.add_get("/api/hitl/pending/{pending_id}", r.get_pending_one, allow_head=False)
-    app.router.add_post("/api/hitl/authorize", r.post_authorize)
-    app.router.add_post("/api/hitl/deny", r.post_deny)
-    app.router.add_post("/api/hitl/withdraw", r.post_withdraw)
-    app.router.add_get("/api/audit", r.get_audit, allow_head=False)
-    app.router.add_get("/api/audit/verify", r.get_audit_verify, allow_head=False)
-    app.router.add_get("/api/audit/mine", r.get_my_audit, allow_head=False)
+    for method, path, name in RARE_ROUTES:
+        app.router.add_route(method, path, _rare(name))
     app.router.add_get("/api/openapi.json", get_openapi, allow_head=False)
     app.router.add_get("/api/ws", on_first_request(_websocket_handler), allow_head=False)
     app.router.add_get("/api/metrics", get_metrics, allow_head=False)
@@ -216,6 +222,17 @@ def _audit_reads(governor: Governor, settings: ApiSettings) -> AuditReads:
 
     return AuditReads(governor.audit.path, governor.audit.public_key,
                       backlog=settings.audit_read_backlog)
+
+
+def _rare(name: str) -> Handler:
+    """The handler `name` of `_rare_routes`, made by its first request."""
+    def build() -> Handler:
+        from . import _rare_routes
+
+        handler: Handler = getattr(_rare_routes, name)
+        return handler
+
+    return on_first_request(build)
 
 
 def _websocket_handler() -> Handler:

@@ -1,8 +1,9 @@
 """The API as one principal sees it, called in process: what the bridge's `/mcp` tools use.
 
-Each method is its REST route's function (`_routes`, `_commands`, `_safety_manifest`) with the
-principal that authenticated the MCP request — the same intake, governance, audit and replies,
-without a second HTTP round trip. Replies are the JSON the route would have sent.
+Each method is its REST route's function (`_routes`, `_rare_routes`, `_commands`,
+`_safety_manifest`) with the principal that authenticated the MCP request — the same intake,
+governance, audit and replies, without a second HTTP round trip. Replies are the JSON the
+route would have sent.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from aiohttp import web
 
 from rcan_rtps.governance import Principal
 
+from . import _rare_routes as rare
 from . import _routes as r
 from ._bodies import GoalList, PendingList
 from ._commands import run_command, schema_failure, too_large
@@ -75,15 +77,15 @@ class LocalApi:
         return _reply(*r.goal_view(self._app[ROBOT], goal_id))
 
     async def pending(self, pending_id: str) -> Reply:
-        return _reply(*await r.pending_view(self._app[GOVERNOR], self._principal, pending_id))
+        return _reply(*await rare.pending_view(self._app[GOVERNOR], self._principal, pending_id))
 
     async def my_pending(self) -> Reply:
         governor = self._app[GOVERNOR]
         await governor.expire_pending()
-        return _reply(200, PendingList(pending=r.own_pending(governor, self._principal)))
+        return _reply(200, PendingList(pending=rare.own_pending(governor, self._principal)))
 
     async def my_audit(self, last: int) -> Reply:
-        return _reply(*await r.my_audit(self._app, self._principal, 0, last, True))
+        return _reply(*await rare.my_audit(self._app, self._principal, 0, last, True))
 
     async def safety_manifest(self) -> Reply:
         return _reply(*await manifest_reply(self._app, self._manifest))
@@ -94,7 +96,7 @@ class LocalApi:
     async def image(self, name: str) -> Reply | Blob:
         from rcan_rtps.mcp_server.ports import Blob
 
-        status, frame = await r.image_reply(self._app[IMAGES], name)
+        status, frame = await rare.image_reply(self._app[IMAGES], name)
         if isinstance(frame, ImageFrame):
             return Blob(frame.mime, frame.data)
         return _reply(status, frame)

@@ -110,7 +110,7 @@ class GoalRoutes:
         navigating = self._active_views(lambda t: t.type_name == NAVIGATE_TO_POSE)
         if not navigating:
             return None
-        from .navigation import navigation_summary  # imported with the trackers
+        from .sent_goals import navigation_summary  # loaded by the first goal
 
         return navigation_summary(navigating[-1])
 

@@ -9,7 +9,8 @@ import signal
 import sys
 import uuid
 
-from ..ros.actions import ActionClient, ClientGoal, GoalState
+from ..ros.action_goals import ClientGoal
+from ..ros.actions import ActionClient, GoalState
 from ..ros.graph import Direction, RosGraph, node_fqn
 from ..ros.names import EndpointKind, action_names
 from ..ros.services import RequestMapping

@@ -41,8 +41,9 @@ from .errors import (
 )
 
 if TYPE_CHECKING:
+    from .action_goals import ClientGoal, GoalResult
     from .action_server import ActionServer, ServerGoal
-    from .actions import ActionClient, ClientGoal, GoalResult, GoalState
+    from .actions import ActionClient, GoalState
     from .graph import Direction, Endpoint, RosGraph
     from .participant import RosNode, RosPublisher, RosSubscription
     from .qos import Durability, History, QosProfile, Reliability
@@ -55,7 +56,8 @@ if TYPE_CHECKING:
 # process that needs topics only (a bridge run whose config names no goal server, `topic
 # echo`) never loads the services and actions (issue 27: idle memory).
 _LAZY = {
-    **dict.fromkeys(("ActionClient", "ClientGoal", "GoalResult", "GoalState"), "actions"),
+    **dict.fromkeys(("ActionClient", "GoalState"), "actions"),
+    **dict.fromkeys(("ClientGoal", "GoalResult"), "action_goals"),
     **dict.fromkeys(("ActionServer", "ServerGoal"), "action_server"),
     **dict.fromkeys(("Direction", "Endpoint", "RosGraph"), "graph"),
     **dict.fromkeys(("RosNode", "RosPublisher", "RosSubscription"), "participant"),

@@ -3,15 +3,13 @@
 Action `/x` is three services (`/x/_action/send_goal`, `get_result`, `cancel_goal`) and two
 topics (`feedback`, `status`); see `services.py` for the two request-reply mappings.
 
-With a Fast DDS server a reply cannot be tied to its request (replies to every client
-reach every client), so the client cross-checks against the status topic, which names
-goals by id:
-- "accepted" counts only once the status topic lists our goal id; "rejected" only if our
-  id has not appeared there within a short grace period;
-- the result is requested only once the status topic shows our goal terminal, and a reply
-  is ours only if its status is that terminal status;
-- a cancel reply is ours only if it lists our goal id (or refuses, naming no goal).
-A server that leaves the graph ends its open goals with `GoalState.SERVER_LOST`.
+An `ActionClient` is made in two halves. This module holds what a client needs before it
+has sent a goal: the cancel service (a server-wide cancel: a bridge's stop) and the status
+reader, made with the client and made ready at start. The goal-sending half — goals, their
+feedback and results, the goal and result services (`action_goals.GoalSender`, with
+`ClientGoal` and `GoalResult`, still importable from here) — is loaded by the client's first
+goal or `wait_for_server`: a bridge that is never asked to `navigate` never loads it (issue
+27: idle memory), and nothing a stop runs is in it.
 
 `ActionServer` (in `action_server`, still importable from here) speaks the Cyclone mapping
 (like `ServiceServer`); the simulated robot serves nav2 `NavigateToPose` with it.
@@ -23,63 +21,30 @@ import asyncio
 import contextlib
 import enum
 import logging
-import time
-import uuid
-from collections.abc import AsyncIterator, Callable, Iterator, Mapping
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Callable, Iterator, Mapping
+from typing import TYPE_CHECKING, Any
 
 from cyclonedds.core import DDSException
 from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
-from .errors import ActionError, ServiceTimeout, ServiceUnavailable, WireError, seconds
-from .graph import Direction
-from .handshake import (
-    CYCLONE_VENDOR,
-    FASTDDS_VENDOR,
-    acquire_by,
-    hear_announcements,
-    matched_writers,
-    may_withhold_before_heartbeat,
-    writer_handle,
-    writers_ready,
-)
-from .names import action_names, mangle_topic
-from .participant import RosNode, RosSubscription
-from .rtps_capture import IdentityCapture
-from .services import (
-    PAIR_READER_DEPTH,
-    RequestMapping,
-    ServiceClient,
-    shared_graph,
-)
+from .errors import ActionError, ServiceUnavailable
+from .names import action_names
+from .participant import RosNode
+from .services import RequestMapping, ServiceClient
+
+if TYPE_CHECKING:
+    from .action_goals import ClientGoal, GoalSender
+    from .typesys.model import ActionType
 
 log = logging.getLogger(__name__)
 
 STATUS_TYPE = "action_msgs/msg/GoalStatusArray"
 CANCEL_TYPE = "action_msgs/srv/CancelGoal"
 UUID_TYPE = "unique_identifier_msgs/msg/UUID"
-REJECT_GRACE = 0.5  # s: a "rejected" reply is ours only if our goal does not show up by then
-LOST_GRACE = 0.5  # s without a status writer before open goals count as lost
-POLL = 0.02
-SETTLE_S = 5.0  # s: how long a finished goal's feedback waits for its result (see `feedback`)
-# s: how long a dropped feedback datagram can take to come again, by the server's request
-# mapping (its RMW): Cyclone's writers send a HEARTBEAT every 100 ms while a reader owes an
-# ACK, Fast DDS's every 3 s (measured: 0.07-0.18 s and 0.01-2.94 s under load,
-# docs/design/zero-loss.md), with margin for a busy host.
-REPAIR_S = {RequestMapping.CYCLONE: 2.0, RequestMapping.FASTDDS: 4.0}
-RESULT_ASK_S = 5.0  # s: a get_result request unanswered this long is sent again (`_ask_result`)
 # Ended goals a server keeps (for get_result and its status list) besides its result timeout:
 # a burst of goals must not hold thousands for 15 minutes, each one listed in every status.
 KEEP_FINISHED = 1000
-
-
-def forget_after() -> float:
-    """s after its end a goal nobody follows the feedback of is let go of: by then a
-    `feedback()` begun at its end has waited for its result (SETTLE_S) and for the longest
-    repair (REPAIR_S), so nothing sent for it before its end can still come."""
-    return SETTLE_S + max(REPAIR_S.values())
 
 
 class GoalState(enum.IntEnum):
@@ -101,198 +66,29 @@ class GoalState(enum.IntEnum):
                         GoalState.REJECTED, GoalState.SERVER_LOST)
 
 
-# the values a GoalStatus may carry on the wire (REJECTED and SERVER_LOST are ours alone)
-_WIRE_STATES = frozenset(int(s) for s in GoalState if s < GoalState.REJECTED)
-
-
-@dataclass(frozen=True)
-class GoalResult:
-    state: GoalState
-    result: IdlStruct | None
-    detail: str = ""
-
-
 def _stamp(msg: Any) -> tuple[int, int]:
     return int(msg.sec), int(msg.nanosec)
 
 
-# -- client -------------------------------------------------------------------------
-class ClientGoal:
-    """One goal sent by an `ActionClient`."""
-
-    def __init__(self, client: ActionClient, goal_id: bytes) -> None:
-        self.client = client
-        self.goal_id = goal_id
-        self.accepted = False
-        self.stamp: tuple[int, int] = (0, 0)
-        self._state = GoalState.UNKNOWN
-        self._ended_at: float | None = None  # monotonic time it was first seen terminal
-        # Its state and stamp as the status topic last listed them (None: not yet).
-        self._listed: tuple[GoalState, tuple[int, int]] | None = None
-        self._sending = True  # until `send_goal` has returned it (or failed)
-        # A `feedback()` waited out its end: nothing sent before the end can come any more.
-        self._window_closed = False
-        self._feedback: asyncio.Queue[IdlStruct] = asyncio.Queue(maxsize=1000)
-        self._result: GoalResult | None = None
-        self._drops = client.node.udp_drops()  # dropped at our sockets before it was sent
-        # Sent before our feedback reader was known to be in sync with a Cyclone feedback
-        # writer (or one whose vendor cannot be told, as under DDS-Security): its first
-        # feedback may come only with the writer's next HEARTBEAT. Once a
-        # feedback of this goal was taken, its first one was too (or is lost for good): the
-        # reader takes a writer's samples in order.
-        self._unsynced = not client.feedback_in_sync()
-        self._fed = False
-        # Set by `feedback()` once the goal has ended, its result is in (or was given up on)
-        # and every feedback that had reached us by then was yielded: what it yields after is
-        # feedback whose dropped datagram came again, in the repair window.
-        self.end_settled = asyncio.Event()
-
-    def __repr__(self) -> str:
-        return f"<ClientGoal {uuid.UUID(bytes=self.goal_id)} {self.state.name}>"
-
-    @property
-    def state(self) -> GoalState:
-        return self._state
-
-    @state.setter
-    def state(self, state: GoalState) -> None:
-        if state.terminal and self._ended_at is None:
-            self._ended_at = time.monotonic()
-        self._state = state
-
-    def forgettable(self, now: float) -> bool:
-        """Whether its client may let go of it: it has ended, `send_goal` is done with it,
-        and nothing that anyone waits on can still come for it (a rejected goal has no
-        feedback; otherwise a `feedback()` waited out its end, or `forget_after()` has
-        passed since). Its result needs nothing of the client's tables."""
-        if self._sending or self._ended_at is None:
-            return False
-        return self.state is GoalState.REJECTED or self._window_closed or \
-            now - self._ended_at >= forget_after()
-
-    async def feedback(self, timeout: float | None = None) -> AsyncIterator[IdlStruct]:
-        """Feedback messages (the `feedback` part) until the goal has ended and no feedback
-        sent before its end can still be on its way (`end_settled` is set in between)."""
-        loop = asyncio.get_running_loop()
-        deadline = None if timeout is None else loop.time() + timeout
-        until: float | None = None  # once the end has settled: how long feedback may still come
-        while True:
-            if not self._feedback.empty():
-                yield self._feedback.get_nowait()
-                continue
-            present = self.client.check_server()
-            if self.state.terminal and until is None:
-                until = await self._settle(deadline)
-                continue
-            if until is not None:
-                self.end_settled.set()
-                if not present:
-                    self._close_window()
-                    return  # the server has left: no datagram of its can be sent again
-            now = loop.time()
-            if until is not None and now >= until:
-                self._close_window()
-                return
-            if deadline is not None and now >= deadline:
-                return
-            ends = [t for t in (until, deadline) if t is not None]
-            try:
-                yield await asyncio.wait_for(self._feedback.get(),
-                                             min([0.1, *(t - now for t in ends)]))
-            except asyncio.TimeoutError:
-                continue
-
-    def _close_window(self) -> None:
-        """Nothing sent before the end can come any more: the client lets go of it."""
-        self._window_closed = True
-        self.client._forget(self)
-
-    async def ended(self) -> GoalState:
-        """Waits until the goal has ended (or its server has left the graph)."""
-        while not self.state.terminal:
-            self.client.check_server()
-            await asyncio.sleep(POLL)
-        return self.state
-
-    async def _settle(self, deadline: float | None) -> float:
-        """Once the goal is terminal: until when feedback sent before its end may still come.
-
-        The terminal status comes on another reader than the feedback sent before it: both
-        can arrive in one wake-up of the node's reader thread, which hands the status over
-        first, and on a busy machine Cyclone may hand the feedback to a delivery queue of its
-        own, later still. The result is asked for only now, and its reply leaves the server
-        after that feedback: wait for it (bounded; whoever asks `result()` gets it cached, or
-        asks again), then for one more pass of the reader thread. A feedback whose datagram
-        the kernel dropped at our socket comes only once the writer's next HEARTBEAT asks for
-        it to be sent again: if our DDS sockets dropped anything since the goal was
-        sent (or that cannot be known), or if the goal went out before our feedback reader
-        was known to be in sync with the writer (handshake.py, 4.) and none of its feedback
-        has come, wait as long as the server's repair can take. docs/design/zero-loss.md
-        has the evidence for each step."""
-        loop = asyncio.get_running_loop()
-        with contextlib.suppress(WireError):
-            await self.result(timeout=SETTLE_S if deadline is None
-                              else max(0.1, min(SETTLE_S, deadline - loop.time())))
-        await self.client.node.delivered()
-        drops = self.client.node.udp_drops()
-        if self.state in (GoalState.REJECTED, GoalState.SERVER_LOST) or \
-                (drops is not None and drops == self._drops and
-                 not (self._unsynced and not self._fed)):
-            return loop.time()
-        return loop.time() + self.client.repair_time()
-
-    async def result(self, timeout: float = 60.0) -> GoalResult:
-        """Waits for the goal to end and fetches its result (once)."""
-        if self._result is None:
-            self._result = await self.client._fetch_result(self, timeout)
-        return self._result
-
-    async def cancel(self, timeout: float = 10.0) -> bool:
-        """Asks the server to cancel this goal; True if the server is canceling it."""
-        return await self.client._cancel(self, timeout)
-
-    def _on_feedback(self, feedback: IdlStruct) -> None:
-        self._fed = True
-        if self._feedback.full():  # keep the newest
-            self._feedback.get_nowait()
-        self._feedback.put_nowait(feedback)
-
-
 class ActionClient:
-    """Sends goals to one action and follows them."""
+    """Sends goals to one action and follows them (the goal side: `action_goals`), and
+    cancels every goal of its server."""
 
     def __init__(self, node: RosNode, action: str, type_name: str, *,
                  mapping: RequestMapping = RequestMapping.AUTO) -> None:
         self.node = node
         self.name = node.resolve(action)
-        self.types = node.store.action(type_name)
-        self.type_name = self.types.name
+        # The action's own definition is parsed by its first use (`types`: the first goal);
+        # canceling needs only CancelGoal and the status type. An unknown action still fails
+        # here.
+        self.type_name = node.store.require(type_name)
+        self._types: ActionType | None = None
+        self.mapping = mapping
         names = action_names(self.name)
-        self._send = ServiceClient(node, names["send_goal"], self.type_name + "_SendGoal",
-                                   mapping=mapping)
-        self._get = ServiceClient(node, names["get_result"], self.type_name + "_GetResult",
-                                  mapping=mapping)
         self._cancel_srv = ServiceClient(node, names["cancel_goal"], CANCEL_TYPE,
                                          mapping=mapping)
-        # Our goals the status and feedback topics may still speak of: those ended are let go
-        # of once nothing more can come for them (`ClientGoal.forgettable`), so a client
-        # that lives for weeks keeps only the goals of the last moments.
-        self._goals: dict[bytes, ClientGoal] = {}
-        self.goals_sent = 0
-        self._unknown_status_logged = False
-        self._server_seen = False
-        self._lost_since: float | None = None
+        self._sending: GoalSender | None = None  # the goal side, made by the first goal
         self._closed = False
-        self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
-        self._feedback_announced = False  # see `_await_feedback_announced`
-        self._feedback_since = 0  # the capture's mark once the feedback reader was made
-        self._feedback_reader_no = 0  # feedback readers made so far (renewals make more)
-        # Feedback writers (handles) the current reader is known to be in sync with: one of
-        # their HEARTBEATs was heard, or it took a sample of theirs (`feedback_in_sync`).
-        self._feedback_synced: set[int] = set()
-        self._announce_lock = asyncio.Lock()  # one such wait for goals sent at once
-        self.feedback_renewed = 0  # feedback readers made again (their announcement unheard)
-        self.feedback_unannounced = 0  # 1 when goals went out with the announcement unheard
         loop = asyncio.get_running_loop()
 
         def on_loop(handler: Callable[[Any], None]) -> Callable[[IdlStruct], None]:
@@ -303,18 +99,32 @@ class ActionClient:
 
         self._status = node.create_subscription(
             names["status"], STATUS_TYPE, qos_mod.ACTION_STATUS, callback=on_loop(self._on_status))
-        # Made once the server's feedback writer is known (wait_for_server, handshake.py).
-        self._feedback: RosSubscription | None = None
-        self._feedback_topic = names["feedback"]
         self._on_loop = on_loop
+
+    @property
+    def types(self) -> ActionType:
+        """The action's types, its definition parsed by the first call."""
+        if self._types is None:
+            self._types = self.node.store.action(self.type_name)
+        return self._types
+
+    def _goal_side(self) -> GoalSender:
+        """The goal-sending half (action_goals.py), made by the first goal or wait for the
+        server: a client that only cancels — a bridge's until its first goal, and a stop in
+        any case — never loads it."""
+        if self._sending is None:
+            self._check_open()
+            from .action_goals import GoalSender
+
+            self._sending = GoalSender(self)
+        return self._sending
 
     # -- graph ----------------------------------------------------------------------
     async def wait_for_server(self, timeout: float = 5.0) -> None:
         """Waits like rcl's action server check: all three services matched both ways and
         the status and feedback writers matched with our readers; then until the server's
         replies and first feedback cannot be lost (see `handshake.py`)."""
-        with self._closed_said():
-            await self._wait_for_server(timeout)
+        await self._goal_side().wait_for_server(timeout)
 
     def _gone(self) -> bool:
         """Closed, or its node closed: its endpoints are deleted, or about to be."""
@@ -341,174 +151,14 @@ class ActionClient:
             return
         self._check_open()  # raises; out of the handler, so not chained to the binding's
 
-    async def _wait_for_server(self, timeout: float) -> None:
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
-
-        def left() -> float:
-            return max(0.0, deadline - loop.time())
-
-        # The capture reads from before a new feedback reader is made until it was heard.
-        capture = self.node.identities
-        if capture is not None and (self._feedback_announced or self.goals_sent):
-            capture = None
-        if capture is not None:
-            capture.use()
-        try:
-            await self._wait_for_server_endpoints(left, deadline)
-        finally:
-            if capture is not None:
-                capture.unuse()
-        self._server_seen = True
-
-    async def _wait_for_server_endpoints(self, left: Callable[[], float],
-                                         deadline: float) -> None:
-        pairs = [await client.wait_matched(left())
-                 for client in (self._send, self._get, self._cancel_srv)]
-        await self._status.wait_for_publishers(1, left())
-        feedback = await self._feedback_subscription(left())
-        await feedback.wait_for_publishers(1, left())
-        writers = {h: g for h, g in matched_writers(feedback.reader).items()
-                   if h not in self._feedback_ready}
-        for pair in pairs:
-            writers |= pair.unready_writers()
-        if writers:  # one handshake for all: it proves every reader made before it
-            await writers_ready(self.node, writers, left())
-            for pair in pairs:
-                pair.ready |= writers.keys()
-            self._feedback_ready |= writers.keys()
-        await self._await_feedback_announced(deadline)
-
-    async def _await_feedback_announced(self, deadline: float) -> None:
-        """As `ServiceClient._await_announced`, for the feedback reader: a Fast DDS feedback
-        writer announces itself to a new reader once, and when that HEARTBEAT was dropped at
-        our socket, Cyclone takes the next one, sent ahead of the first feedback, as the
-        reader's start: that feedback is dropped as history (handshake.py, 3.); and our
-        reader takes nothing from a Cyclone feedback writer before one of its HEARTBEATs
-        (4.). So, once, before the first goal: hear one in the packet capture, or make the
-        reader again (at most ANNOUNCE_TRIES readers within the deadline:
-        `hear_announcements`). Needs the capture; goals sent without it wait for feedback
-        longer after their end (`feedback_in_sync`). Goals sent at once share the one wait:
-        another's would renew the reader with the first goal's feedback on its way
-        (bounded by that goal's deadline, not ours)."""
-        capture = self.node.identities
-        if self._feedback_announced or capture is None or not capture.reading or \
-                self.goals_sent:
-            return
-        if not await acquire_by(self._announce_lock, deadline):
-            raise ServiceTimeout(f"action {self.name}: timed out waiting behind another goal "
-                                 "for the server's feedback writer to announce itself")
-        try:
-            if self._feedback_announced or self.goals_sent or self._feedback is None:
-                return
-            await self._hear_feedback_announced(capture, deadline)
-        finally:
-            self._announce_lock.release()
-
-    async def _hear_feedback_announced(self, capture: IdentityCapture, deadline: float) -> None:
-        def reader() -> Any:  # the current one: a renewal makes a new one or raises
-            assert self._feedback is not None
-            return self._feedback.reader
-
-        heard, unheard = await hear_announcements(
-            capture, reader, lambda: self._feedback_since,
-            lambda: self._renew_feedback_reader(deadline), deadline,
-            vendors=(FASTDDS_VENDOR, CYCLONE_VENDOR), skip=self._in_process_feedback_writers,
-            may_renew=lambda: not self.goals_sent, closed=self._gone)
-        if self._gone():
-            return  # wait_for_server says so
-        if unheard:
-            log.debug("action %s: no first HEARTBEAT from the feedback writer to our reader "
-                      "after %d readers; goals go out without it", self.name,
-                      self.feedback_renewed + 1)
-            self.feedback_unannounced += 1
-        self._feedback_synced |= heard
-        self._feedback_announced = True  # heard, or given up on (best effort: once)
-
     def feedback_in_sync(self) -> bool:
-        """Whether a goal sent now gets its first feedback as soon as it arrives: our
-        feedback reader has heard a HEARTBEAT of each Cyclone feedback writer matched with it
-        (in the capture) or has taken a sample of it (handshake.py, 4.). Per writer: a server
-        that restarts has a new writer, out of sync with the reader made for the old one. A
-        writer whose vendor cannot be told (DDS-Security) counts as a Cyclone one, unless it
-        is in this process (`may_withhold_before_heartbeat`)."""
-        if self._feedback is None or self._gone():  # (its reader deleted; the goal's call
-            return True                              # says it is closed)
-        return not any(may_withhold_before_heartbeat(g) and h not in self._feedback_synced
-                       and not self.node.in_process(g)  # (one DDS query per goal)
-                       for h, g in matched_writers(self._feedback.reader).items())
-
-    def _in_process_feedback_writers(self) -> set[int]:
-        """Feedback writers of this process's participants: no HEARTBEAT comes from them, and
-        none is needed (Cyclone delivers their samples directly)."""
-        if self._feedback is None:
-            return set()
-        return {h for h, g in matched_writers(self._feedback.reader).items()
-                if self.node.in_process(g)}
-
-    async def _renew_feedback_reader(self, deadline: float) -> None:
-        """A new feedback reader (before any goal: none can miss its feedback), matched and
-        handshaken like the first."""
-        loop = asyncio.get_running_loop()
-        if self._feedback is not None:
-            self._feedback.close()
-            self._feedback = None
-        self.feedback_renewed += 1
-        feedback = await self._feedback_subscription(max(0.0, deadline - loop.time()))
-        await feedback.wait_for_publishers(1, max(0.0, deadline - loop.time()))
-        writers = matched_writers(feedback.reader)
-        if writers:
-            await writers_ready(self.node, writers, max(0.0, deadline - loop.time()))
-
-    async def _feedback_subscription(self, timeout: float) -> RosSubscription:
-        """The feedback subscription, made once discovery shows the server's feedback
-        writer (or at the timeout, for `wait_for_publishers` to report)."""
-        if self._feedback is None:
-            self._check_open()
-            graph, topic = shared_graph(self.node), mangle_topic(self._feedback_topic)
-            loop = asyncio.get_running_loop()
-            deadline = loop.time() + timeout
-            while loop.time() < deadline:
-                graph.refresh()
-                if any(e.dds_topic == topic and e.direction is Direction.PUBLISHER
-                       for e in graph.endpoints()):
-                    break
-                await asyncio.sleep(POLL)
-            self._check_open()  # closed while it waited: no reader for a closed client
-            made = self._current_feedback()  # another wait made it meanwhile: one reader
-            if made is not None:
-                return made
-            self._feedback_reader_no += 1
-            self._feedback_synced = set()
-            self._feedback = self.node.create_subscription(
-                self._feedback_topic, self.type_name + "_FeedbackMessage",
-                qos_mod.DEFAULT.keeping(PAIR_READER_DEPTH),  # every goal's feedback comes
-                callback=self._on_loop(self._feedback_taker(self._feedback_reader_no)))
-            # Once the reader is there: a HEARTBEAT captured after this was applied to it.
-            capture = self.node.identities
-            self._feedback_since = 0 if capture is None else capture.mark()
-        return self._feedback
-
-    def _current_feedback(self) -> RosSubscription | None:
-        return self._feedback
-
-    def _feedback_taker(self, number: int) -> Callable[[IdlStruct], None]:
-        def on_feedback(message: IdlStruct) -> None:  # on the loop
-            info = getattr(message, "sample_info", None)
-            # (not the last sample of a reader made again since)
-            if number == self._feedback_reader_no and info is not None:
-                self._feedback_synced.add(writer_handle(info.publication_handle))
-            self._on_feedback(message)
-        return on_feedback
+        """Whether a goal sent now gets its first feedback as soon as it arrives
+        (`GoalSender.feedback_in_sync`); True before any goal."""
+        return self._sending is None or self._sending.feedback_in_sync()
 
     def repair_time(self) -> float:
-        """How long a reliable sample of this server's can take to be sent again (REPAIR_S);
-        the longest while its RMW is not known."""
-        try:
-            mapping = self._get.resolve_mapping()
-        except (WireError, DDSException):  # both mappings; or its node closed meanwhile
-            mapping = None
-        return REPAIR_S[mapping] if mapping in REPAIR_S else max(REPAIR_S.values())
+        """How long a reliable sample of this server's can take to be sent again."""
+        return self._goal_side().repair_time()
 
     async def prepare_cancel(self, timeout: float = 5.0) -> None:
         """Makes the cancel service's endpoints and waits until they are matched with the
@@ -534,161 +184,17 @@ class ActionClient:
     def check_server(self) -> bool:
         """False once the server has left the graph; its open goals then end as lost.
         Raises ActionError once this client (or its node) is closed (whoever waits on a goal
-        is told)."""
-        self._check_open()
-        if self._status.matched_count() > 0:
-            self._server_seen, self._lost_since = True, None
+        is told). True before the first goal: no server was waited for yet."""
+        if self._sending is None:
+            self._check_open()
             return True
-        if not self._server_seen:
-            return True  # never there: that is wait_for_server's error to report
-        now = time.monotonic()
-        self._lost_since = self._lost_since or now
-        if now - self._lost_since < LOST_GRACE:
-            return True
-        for goal in self._goals.values():
-            if not goal.state.terminal:
-                goal.state = GoalState.SERVER_LOST
-        return False
+        return self._sending.check_server()
 
     # -- goals ----------------------------------------------------------------------
     async def send_goal(self, goal: IdlStruct | Mapping[str, Any] | None = None,
                         timeout: float = 10.0) -> ClientGoal:
         """Sends a goal; the returned goal says `accepted` (or its state is REJECTED)."""
-        values = self.node.values
-        message = goal if isinstance(goal, IdlStruct) else \
-            values.build(self.types.goal.name, goal)
-        with self._closed_said():
-            return await self._send_goal(message, timeout)
-
-    async def _send_goal(self, message: IdlStruct, timeout: float) -> ClientGoal:
-        values = self.node.values
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
-        await self._wait_for_server(timeout)
-        self._forget_ended()
-        handle = ClientGoal(self, uuid.uuid4().bytes)
-        self._goals[handle.goal_id] = handle  # before sending: feedback may come quickly
-        self.goals_sent += 1
-        request_cls: Any = self.node.types.struct(self.types.send_goal.request.name)
-        request = request_cls(goal_id=values.build(UUID_TYPE, {"uuid": handle.goal_id}),
-                              goal=message)
-        try:
-            return await self._sent(handle, request, deadline)
-        except BaseException:
-            # Nobody has it: the caller is told it failed. (A stop cancels every goal of the
-            # server, whoever sent it: GoalTracker.cancel_all.)
-            self._goals.pop(handle.goal_id, None)
-            raise
-        finally:
-            handle._sending = False
-
-    async def _sent(self, handle: ClientGoal, request: Any, deadline: float) -> ClientGoal:
-        loop = asyncio.get_running_loop()
-        try:
-            reply: Any = await self._send.call(request, max(0.0, deadline - loop.time()))
-        except ServiceTimeout:
-            # The reply can be lost for good when datagrams are dropped at our socket (see
-            # `_ask_result`); the status topic names the goals the server accepted.
-            if handle._listed is None:
-                raise
-            log.info("action %s: no reply to goal %s, which the status topic lists: accepted",
-                     self.name, uuid.UUID(bytes=handle.goal_id))
-            reply = None
-        if reply is None:
-            accepted = True
-        elif self._send.resolve_mapping() is RequestMapping.CYCLONE:
-            accepted = bool(reply.accepted)
-        else:
-            accepted = await self._confirm(handle, bool(reply.accepted), deadline)
-        handle.accepted = accepted
-        if accepted:
-            stamp = (0, 0) if reply is None else _stamp(reply.stamp)
-            handle.stamp = stamp if handle._listed is None else handle._listed[1]
-            handle.state = max(handle.state, GoalState.ACCEPTED)
-        else:
-            handle.state = GoalState.REJECTED
-        return handle
-
-    async def _confirm(self, goal: ClientGoal, accepted: bool, deadline: float) -> bool:
-        """Fast DDS: the reply may be another client's; the status topic decides."""
-        loop = asyncio.get_running_loop()
-        until = deadline if accepted else min(deadline, loop.time() + REJECT_GRACE)
-        while goal._listed is None:
-            if loop.time() >= until:
-                if accepted:
-                    raise ActionError(
-                        f"action {self.name}: the server answered 'accepted' but goal "
-                        f"{uuid.UUID(bytes=goal.goal_id)} never appeared on its status topic "
-                        "(the reply was probably another client's)")
-                return False
-            await asyncio.sleep(POLL)
-        return True
-
-    async def _fetch_result(self, goal: ClientGoal, timeout: float) -> GoalResult:
-        if not goal.accepted:
-            return GoalResult(GoalState.REJECTED, None, "the server rejected the goal")
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
-        while not goal.state.terminal:  # the result is asked for only once the goal ended
-            if not self.check_server():
-                break
-            if loop.time() >= deadline:
-                raise ActionError(f"action {self.name}: goal still {goal.state.name} after "
-                                  f"{seconds(timeout)}")
-            await asyncio.sleep(POLL)
-        if goal.state is GoalState.SERVER_LOST:
-            return GoalResult(GoalState.SERVER_LOST, None,
-                              f"action server {self.name} left the graph before the goal ended")
-        final = goal.state
-
-        def ours(reply: Any) -> bool:  # Fast DDS: another goal's result has another status
-            return int(reply.status) == int(final)
-
-        reply = await self._ask_result(goal, ours, deadline)
-        if reply is None:
-            return GoalResult(final, None, f"action server {self.name} left the graph before "
-                              f"the result was fetched; the end is its status topic's")
-        value = int(reply.status)
-        if value not in _WIRE_STATES or not GoalState(value).terminal:
-            # A result is asked for once the goal ended: a reply naming no end (or a value
-            # action_msgs does not define) keeps the end the status topic showed.
-            return GoalResult(final, reply.result,
-                              f"the server's result named status {value}; kept {final.name}")
-        return GoalResult(GoalState(value), reply.result)
-
-    async def _ask_result(self, goal: ClientGoal, ours: Callable[[Any], bool],
-                          deadline: float) -> Any:
-        """The get_result reply, asked for again every RESULT_ASK_S until `deadline`: asking
-        is idempotent, and a reply can be lost for good when datagrams are dropped at our
-        socket (seen with Fast DDS servers, docs/design/zero-loss.md). None once the server
-        has left the graph: nobody can answer any more."""
-        loop = asyncio.get_running_loop()
-        request = {"goal_id": {"uuid": goal.goal_id}}
-        while True:
-            left = max(0.1, deadline - loop.time())
-            try:
-                return await self._get.call(request, min(RESULT_ASK_S, left), accept=ours)
-            except (ServiceTimeout, ServiceUnavailable):
-                if not self.check_server():
-                    return None
-                if left <= RESULT_ASK_S:
-                    raise
-                log.info("action %s: no result for goal %s yet; asking again", self.name,
-                         uuid.UUID(bytes=goal.goal_id))
-
-    async def _cancel(self, goal: ClientGoal, timeout: float) -> bool:
-        request = {"goal_info": {"goal_id": {"uuid": goal.goal_id}}}
-
-        def ours(reply: Any) -> bool:  # Fast DDS: names our goal, or refuses naming none
-            return _names_goal(reply, goal.goal_id) or (
-                int(reply.return_code) != 0 and not reply.goals_canceling)
-
-        with self._closed_said():
-            reply: Any = await self._cancel_srv.call(request, timeout, accept=ours)
-        canceling = _names_goal(reply, goal.goal_id)
-        if canceling and not goal.state.terminal:
-            goal.state = GoalState.CANCELING
-        return canceling
+        return await self._goal_side().send_goal(goal, timeout)
 
     async def cancel_all(self, timeout: float = 10.0, *, server_wide: bool = False) -> int:
         """Cancels this client's open goals (or, `server_wide`, every goal of the server,
@@ -697,79 +203,57 @@ class ActionClient:
             with self._closed_said():
                 reply: Any = await self._cancel_srv.call({}, timeout)
             return len(reply.goals_canceling)
-        open_goals = [g for g in self._goals.values() if g.accepted and not g.state.terminal]
-        results = await asyncio.gather(*(g.cancel(timeout) for g in open_goals))
-        return sum(results)
+        if self._sending is None:
+            return 0  # it sent no goal
+        return await self._sending.cancel_open(timeout)
 
     def close(self) -> None:
         """Deletes the endpoints; calls still waiting fail. Idempotent."""
         self._closed = True
-        for client in (self._send, self._get, self._cancel_srv):
-            client.close()
+        self._cancel_srv.close()
         self._status.close()
-        if self._feedback is not None:
-            self._feedback.close()
+        if self._sending is not None:
+            self._sending.close()
 
-    # -- topics ---------------------------------------------------------------------
     def _on_status(self, array: IdlStruct) -> None:
-        # Any peer may write to the status topic: only our goals are noted (another's
-        # thousands of goal ids would be kept for good), and a status value action_msgs does
-        # not define leaves the goal as it was (it tells us nothing, and must not end it).
-        for status in array.status_list:  # type: ignore[attr-defined]
-            goal_id = bytes(status.goal_info.goal_id.uuid)
-            goal = self._goals.get(goal_id)
-            if goal is None:  # another client's, or one of ours let go of: nothing to us
-                continue
-            value = int(status.status)
-            if value not in _WIRE_STATES:
-                if not self._unknown_status_logged:
-                    self._unknown_status_logged = True
-                    log.warning("action %s: goal %s has status %d, which action_msgs does not "
-                                "define; ignored (logged once)", self.name,
-                                uuid.UUID(bytes=goal_id), value)
-                continue
-            state = GoalState(value)
-            goal._listed = (state, _stamp(status.goal_info.stamp))
-            if not goal.state.terminal:
-                goal.state = state
+        if self._sending is not None:  # else no goal of ours is there to note
+            self._sending.on_status(array)
 
-    def _on_feedback(self, message: IdlStruct) -> None:
-        # (None: another client's goal, or one of ours let go of, whose feedback nobody waits
-        # for any more)
-        goal = self._goals.get(bytes(message.goal_id.uuid))  # type: ignore[attr-defined]
-        if goal is not None:
-            goal._on_feedback(message.feedback)  # type: ignore[attr-defined]
+    # The goal side's counts, 0 before the first goal.
+    @property
+    def goals_sent(self) -> int:
+        return 0 if self._sending is None else self._sending.goals_sent
 
     @property
     def goals_tracked(self) -> int:
         """Goals the client still routes status and feedback to (sent or ended lately)."""
-        return len(self._goals)
+        return 0 if self._sending is None else self._sending.goals_tracked
 
-    def _forget(self, goal: ClientGoal) -> None:
-        if goal.forgettable(time.monotonic()) and self._goals.get(goal.goal_id) is goal:
-            del self._goals[goal.goal_id]
+    @property
+    def feedback_renewed(self) -> int:
+        """Feedback readers made again (their announcement unheard)."""
+        return 0 if self._sending is None else self._sending.feedback_renewed
 
-    def _forget_ended(self) -> None:
-        """Lets go of the goals nothing more can come for (`ClientGoal.forgettable`); one
-        look at each tracked goal per goal sent. A goal not yet ended is always kept: a stop
-        (`cancel_all`) cancels every one."""
-        now = time.monotonic()
-        for goal in [g for g in self._goals.values() if g.forgettable(now)]:
-            del self._goals[goal.goal_id]
-
-
-def _names_goal(reply: Any, goal_id: bytes) -> bool:
-    return any(bytes(info.goal_id.uuid) == goal_id for info in reply.goals_canceling)
+    @property
+    def feedback_unannounced(self) -> int:
+        """1 when goals went out with the feedback writer's announcement unheard."""
+        return 0 if self._sending is None else self._sending.feedback_unannounced
 
 
 _SERVER_SIDE = ("ActionServer", "Execute", "ServerGoal")
+_GOAL_SIDE = ("ClientGoal", "GoalResult", "GoalSender")
 
 
 def __getattr__(name: str) -> Any:
-    """The server side, from its own module (`action_server`) on first use: a bridge only
-    sends goals, and never loads it (issue 27, idle memory)."""
+    """The server side (`action_server`) and the client's goal side (`action_goals`), from
+    their own modules on first use: a bridge never serves a goal, and sends one only when
+    asked to (issue 27, idle memory)."""
     if name in _SERVER_SIDE:
         from . import action_server
 
         return getattr(action_server, name)
+    if name in _GOAL_SIDE:
+        from . import action_goals
+
+        return getattr(action_goals, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -158,6 +158,16 @@ class TypeStore:
             self.message(name + "_FeedbackMessage"),
         )
 
+    def require(self, name: str) -> str:
+        """`name` normalized, once it is known or its file is found; raises UnknownTypeError.
+        Parses nothing: for a type whose definition is wanted only later (an action client's
+        own action, parsed by its first goal)."""
+        name = normalize_name(name)
+        with self._lock:
+            if name in self._types or self._path_of(_interface_of(name)) is not None:
+                return name
+            raise UnknownTypeError(name, self._known_names())
+
     def hash_of(self, name: str) -> str:
         return rihs01(self.message(name), self.message)
 

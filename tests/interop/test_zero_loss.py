@@ -361,18 +361,22 @@ async def test_a_call_cancelled_or_timed_out_while_its_reply_waits_in_the_captur
 async def test_a_first_feedback_is_not_lost_when_the_feedback_writer_s_first_heartbeat_was_dropped(
         oracle: RclpyOracle, noisy_node: RosNode) -> None:
     """The same announcement, for an action's feedback: a fresh client's feedback reader hears
-    the Fast DDS feedback writer's first HEARTBEAT before its first goal, or is made again."""
+    the Fast DDS feedback writer's first HEARTBEAT before its first goal, or is made again;
+    when it gave up (four readers unheard), or Cyclone dropped the first feedback as history
+    all the same, its DATA still reached our socket, and the goal takes it from the packet
+    capture."""
     await oracle.acall("action_server", name="/fib_burst", period=0.0)
     tally = GoalTally(order=lambda i: 2)
-    renewed = unannounced = 0
+    renewed = unannounced = from_capture = 0
 
     async def run(client: ActionClient, i: int) -> None:
-        nonlocal renewed, unannounced
+        nonlocal renewed, unannounced, from_capture
         try:
             await tally.run(client, i)
         finally:
             renewed += client.feedback_renewed
             unannounced += client.feedback_unannounced
+            from_capture += client.feedback_from_capture
 
     with burning_cpus() as burners:
         await each_fresh(ANNOUNCED_GOALS, on_node(noisy_node, burst_client), run)
@@ -380,16 +384,74 @@ async def test_a_first_feedback_is_not_lost_when_the_feedback_writer_s_first_hea
           f"to it: {ANNOUNCED_GOALS} goals from fresh clients, {tally.dropped} datagrams dropped "
           f"at our sockets, {len(tally.no_first_feedback)} first feedbacks lost, "
           f"{len(tally.wrong)} wrong results, {renewed} feedback readers made again, "
-          f"{unannounced} clients sent goals unannounced")
+          f"{unannounced} clients sent goals unannounced, {from_capture} feedbacks taken from "
+          f"the packet capture")
     assert tally.dropped, "no datagram was dropped at our sockets: nothing was shown"
     assert tally.wrong == [], f"wrong results: {tally.wrong}"
-    # Without the wait 18 % of first feedbacks were lost here (7 of 40 expected); with it, one
-    # lost with every announcement heard was seen in a CI run (a residual not yet explained,
-    # docs/design/zero-loss.md): beyond the clients that gave up, at most 1 in 20.
+    # Without the wait 18 % of first feedbacks were lost here (7 of 40 expected). What is left
+    # with the wait and the capture is a first feedback dropped at our socket whose repair
+    # came after the repair window (5-11 s after the goal's end, REPAIR_S 4 s), or never (the
+    # announcement unheard too): not in the capture in time (docs/design/zero-loss.md,
+    # "first feedback from the capture"). Beyond the clients that gave up, at most 1 in 20.
     slack = ANNOUNCED_GOALS // 20
     assert len(tally.no_first_feedback) <= unannounced + slack, \
         f"of {ANNOUNCED_GOALS} goals, first feedback lost for {tally.no_first_feedback}, with " \
         f"{unannounced} clients sending goals unannounced and {slack} more allowed"
+
+
+@pytest.mark.parametrize("oracle_rmw", ["fastrtps"])
+async def test_a_feedback_our_reader_never_delivers_is_taken_from_the_capture(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """A feedback Cyclone dropped as history never reaches our reader, though its DATA reached
+    our socket: the goal takes it from the packet capture, in the order the server sent it —
+    its own feedback, never that of another client's goal, which reaches the same reader
+    meanwhile. Our reader is made deaf here (what it takes is held back); its copies, handed
+    over late, are not yielded again."""
+    await oracle.acall("action_server", name="/fib_burst", period=0.0)
+    with closing(burst_client(node)) as ours, closing(burst_client(node)) as other:
+        await ours.wait_for_server(REPLY_TIMEOUT)
+        await other.wait_for_server(REPLY_TIMEOUT)
+        held: list[Any] = []
+        sender = ours._goal_side()  # (made by wait_for_server: it takes the feedback)
+        deliver, sender._on_feedback = sender._on_feedback, held.append  # type: ignore[method-assign]
+        theirs = await other.send_goal({"order": 6}, timeout=10)
+        goal = await ours.send_goal({"order": 3}, timeout=10)
+        feedback = goal.feedback(timeout=30)
+        got = [await anext(feedback)]
+        assert any(bytes(m.goal_id.uuid) == goal.goal_id for m in held), "the reader took none"
+        for message in held:  # the reader's own copies, late
+            deliver(message)
+        got += [f async for f in feedback]
+        assert [list(f.sequence) for f in got] == [fibonacci(2), fibonacci(3)]
+        assert ours.feedback_from_capture == 2
+        assert len([f async for f in theirs.feedback(timeout=30)]) == 5
+        assert node.identities is not None and node.identities._replies.held == 0
+
+
+@pytest.mark.parametrize("oracle_rmw", ["fastrtps"])
+async def test_a_first_feedback_our_reader_dropped_comes_before_the_next(
+        oracle: RclpyOracle, node: RosNode) -> None:
+    """Cyclone drops as history what came before the HEARTBEAT it takes as a fresh reader's
+    start, and delivers what comes after: the goal's first feedback missing, the next ones
+    there. The first is taken from the capture and yielded first. (Here our reader's first
+    feedback sample is held back for good.)"""
+    await oracle.acall("action_server", name="/fib_burst", period=0.0)
+    with closing(burst_client(node)) as ours:
+        await ours.wait_for_server(REPLY_TIMEOUT)
+        sender = ours._goal_side()  # (made by wait_for_server: it takes the feedback)
+        deliver, dropped = sender._on_feedback, []
+
+        def drop_the_first(message: Any) -> None:
+            if dropped:
+                deliver(message)
+            else:
+                dropped.append(message)
+        sender._on_feedback = drop_the_first  # type: ignore[method-assign]
+        goal = await ours.send_goal({"order": 4}, timeout=10)
+        got = [list(f.sequence) async for f in goal.feedback(timeout=30)]
+        assert [list(m.feedback.sequence) for m in dropped] == [fibonacci(2)]
+        assert got == [fibonacci(2), fibonacci(3), fibonacci(4)]
+        assert ours.feedback_from_capture == 1
 
 
 @both_rmws

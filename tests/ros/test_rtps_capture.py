@@ -282,32 +282,35 @@ def related_qos(related: SampleIdentity, o: str) -> bytes:
 
 
 def data_message(writer: bytes, seq: int, related: SampleIdentity | None, payload: bytes, *,
-                 little: bool = True) -> bytes:
+                 little: bool = True, stamp: tuple[int, int] = (1_700_000_000, 0)) -> bytes:
     """One DATA of `writer` (in its participant's message) whose inline QoS names `related`
-    (Fast DDS' PID 0x800f) if given, carrying `payload`."""
+    (Fast DDS' PID 0x800f) if given, carrying `payload`, written at `stamp`."""
     o, e = ("<", 0x01) if little else (">", 0x00)
     qos = b"" if related is None else related_qos(related, o)
     body = struct.pack(o + "HH", 0, 16) + b"\x00\x00\x12\x04" + writer[12:] + \
         struct.pack(o + "iI", seq >> 32, seq & 0xFFFFFFFF) + qos + payload
     flags = e | 0x04 | (0x02 if qos else 0)
-    info_ts = struct.pack(o + "BBHiI", 0x09, e, 8, 1_700_000_000, 0)
+    info_ts = struct.pack(o + "BBHiI", 0x09, e, 8, *stamp)
     return b"RTPS\x02\x03\x01\x0f" + writer[:12] + info_ts + \
         struct.pack(o + "BBH", 0x15, flags, len(body)) + body
 
 
-def fragment_messages(writer: bytes, seq: int, related: SampleIdentity, payload: bytes,
-                      size: int, *, little: bool = True) -> list[bytes]:
+def fragment_messages(writer: bytes, seq: int, related: SampleIdentity | None, payload: bytes,
+                      size: int, *, little: bool = True,
+                      stamp: tuple[int, int] | None = None) -> list[bytes]:
     """The DATA_FRAGs of `payload` in fragments of `size` bytes, one per message; the first
-    names `related` in its inline QoS (as Fast DDS sends them)."""
+    names `related` in its inline QoS (as Fast DDS sends them), if given; each message
+    begins with an INFO_TS of `stamp`, if given."""
     o, e = ("<", 0x01) if little else (">", 0x00)
+    info_ts = b"" if stamp is None else struct.pack(o + "BBHiI", 0x09, e, 8, *stamp)
     messages = []
     for number, at in enumerate(range(0, len(payload), size), start=1):
-        qos = related_qos(related, o) if number == 1 else b""
+        qos = related_qos(related, o) if number == 1 and related is not None else b""
         body = struct.pack(o + "HH", 0, 28) + b"\x00\x00\x12\x04" + writer[12:] + \
             struct.pack(o + "iI", seq >> 32, seq & 0xFFFFFFFF) + \
             struct.pack(o + "IHHI", number, 1, size, len(payload)) + qos + \
             payload[at:at + size]
-        messages.append(b"RTPS\x02\x03\x01\x0f" + writer[:12] +
+        messages.append(b"RTPS\x02\x03\x01\x0f" + writer[:12] + info_ts +
                         struct.pack(o + "BBH", 0x16, e | (0x02 if qos else 0), len(body)) + body)
     return messages
 
@@ -552,3 +555,119 @@ def test_a_fragment_sent_again_after_its_sample_was_put_together_is_not_kept() -
     assert collector.take(ours) == reply
     feed(collector, pieces[1])
     assert collector.held == len(reply)
+
+
+GOAL = bytes(range(200, 216))
+OTHER_GOAL = bytes(range(216, 232))
+
+
+def feedback_payload(goal: bytes, body: bytes, *, little: bool = True) -> bytes:
+    """A feedback message's serialized payload: plain CDR, the goal id first."""
+    return (b"\x00\x01\x00\x00" if little else b"\x00\x00\x00\x00") + goal + body
+
+
+def at(second: int) -> tuple[int, int]:
+    return (1_700_000_000 + second, 0)
+
+
+def test_a_goal_s_feedback_is_kept_only_from_its_writers_and_for_its_goal(
+        capture: tuple[IdentityCapture, int]) -> None:
+    """A feedback Cyclone dropped as history is still in the capture: a goal that expects its
+    feedback (its goal id, the feedback writers matched with the client's reader) finds
+    there what came before the first one its reader delivered. Nothing else is kept: not
+    another goal's feedback, not a sample of another writer, not one we sent, not one that
+    came before the goal said it waits; a repair of one kept is not kept twice."""
+    tail, writer = capture
+    first = feedback_payload(GOAL, b"first...")
+    os.write(writer, pcap_record(data_message(SERVER, 1, None, first, stamp=at(1))))
+    assert not tail.expect_feedback(GOAL, [SERVER])  # nobody uses the capture: nothing read
+    tail.use()
+    assert tail.expect_feedback(GOAL, [SERVER])
+    assert tail.captured_feedback(GOAL) == []  # what came before is not looked at
+    for little in (True, False):
+        os.write(writer, pcap_record(data_message(  # not a matched writer
+            OTHER_WRITER, 2, None, feedback_payload(GOAL, b"x", little=little), little=little,
+            stamp=at(2))))
+        os.write(writer, pcap_record(data_message(  # another goal's
+            SERVER, 3, None, feedback_payload(OTHER_GOAL, b"y", little=little), little=little,
+            stamp=at(3))))
+    os.write(writer, pcap_record(data_message(  # not plain CDR (XCDR2): not read
+        SERVER, 4, None, b"\x00\x07\x00\x00" + GOAL + b"z", stamp=at(4))))
+    os.write(writer, pcap_record(data_message(SERVER, 5, None, first, stamp=at(5)),
+                                 ttl=255))  # one we sent
+    assert tail.captured_feedback(GOAL) == []
+    second = feedback_payload(GOAL, b"second", little=False)
+    third = feedback_payload(GOAL, b"third..")
+    os.write(writer, pcap_record(data_message(SERVER, 7, None, second, little=False,
+                                              stamp=at(7))))
+    os.write(writer, pcap_record(data_message(SERVER, 8, None, third, stamp=at(8))))
+    os.write(writer, pcap_record(data_message(SERVER, 7, None, second, stamp=at(7))))  # repair
+    kept = tail.captured_feedback(GOAL)
+    assert [(s.writer_guid, s.seq, s.source_timestamp, s.payload) for s in kept] == \
+        [(SERVER, 7, nanoseconds(*at(7)), second), (SERVER, 8, nanoseconds(*at(8)), third)]
+    assert tail._replies.held == len(second) + len(third)
+    # What came before the one the reader delivered (same writer), and nothing if that one
+    # is not in the capture (nothing can be put before it then)
+    assert [s.seq for s in tail.feedback_before(GOAL, SERVER, nanoseconds(*at(8))) or ()] == [7]
+    assert tail.feedback_before(GOAL, SERVER, nanoseconds(*at(7))) == []
+    assert tail.feedback_before(GOAL, SERVER, nanoseconds(*at(9))) is None
+    assert tail.feedback_before(GOAL, OTHER_WRITER, nanoseconds(*at(2))) is None
+    tail.forget_feedback(GOAL)
+    assert tail.captured_feedback(GOAL) == []
+    assert tail._replies.held == 0
+    tail.unuse()
+
+
+def test_a_fragmented_feedback_is_put_together_from_its_pieces(
+        capture: tuple[IdentityCapture, int]) -> None:
+    """A feedback sent in DATA_FRAGs names its goal in its first fragment: put together from
+    its pieces in any order, interleaved with another goal's; the other goal's let go of."""
+    tail, writer = capture
+    tail.use()
+    assert tail.expect_feedback(GOAL, [SERVER])
+    ours = feedback_payload(GOAL, bytes(range(256)) * 11)
+    theirs = feedback_payload(OTHER_GOAL, bytes(len(ours) - 20))
+    mine = fragment_messages(SERVER, 7, None, ours, 1000, stamp=at(7))
+    other = fragment_messages(SERVER, 8, None, theirs, 1000, stamp=at(8))
+    elsewhere = fragment_messages(OTHER_WRITER, 7, None, ours, 1000, stamp=at(7))
+    assert len(mine) == 3
+    for message in [mine[2], other[0], elsewhere[0], other[1], mine[1], elsewhere[1],
+                    other[2], elsewhere[2]]:
+        os.write(writer, pcap_record(message))
+    assert tail.captured_feedback(GOAL) == []
+    # ours being put together (its bytes, a byte a fragment, its objects); theirs let go of
+    assert tail._replies.held == len(ours) + 3 + captured_replies.ASSEMBLY_OVERHEAD
+    os.write(writer, pcap_record(mine[0]))
+    kept = tail.captured_feedback(GOAL)
+    assert [(s.seq, s.source_timestamp, s.payload) for s in kept] == \
+        [(7, nanoseconds(*at(7)), ours)]
+    assert tail._replies.held == len(ours)
+    tail.forget_feedback(GOAL)
+    assert tail._replies.held == 0
+    tail.unuse()
+
+
+def test_a_goal_s_kept_feedback_stays_bounded(capture: tuple[IdentityCapture, int],
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """At most FEEDBACK_KEPT samples a goal (the ones before its reader's first are what is
+    looked for), within the same budget as replies; a call's reply and a goal's feedback
+    kept side by side go each with its own forget."""
+    monkeypatch.setattr(captured_replies, "FEEDBACK_KEPT", 3)
+    tail, writer = capture
+    tail.use()
+    reply_to = SampleIdentity(REQUEST_WRITER, 1)
+    assert tail.expect_feedback(GOAL, [SERVER])
+    assert tail.expect_reply(reply_to, [OTHER_WRITER])
+    for seq in range(1, 6):
+        os.write(writer, pcap_record(data_message(
+            SERVER, seq, None, feedback_payload(GOAL, b"f%d" % seq), stamp=at(seq))))
+    reply = b"\x00\x01\x00\x00reply"
+    os.write(writer, pcap_record(data_message(OTHER_WRITER, 1, reply_to, reply)))
+    assert [s.seq for s in tail.captured_feedback(GOAL)] == [1, 2, 3]
+    assert tail.captured_reply(reply_to) == reply
+    tail.forget_feedback(GOAL)
+    assert tail.captured_reply(reply_to) == reply
+    assert tail._replies.held == len(reply)
+    tail.forget_reply(reply_to)
+    assert tail._replies.held == 0
+    tail.unuse()

@@ -33,6 +33,7 @@ from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
 from .actions import UUID_TYPE, GoalState, _stamp
+from .captured_replies import CapturedSample
 from .errors import ActionError, ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction
 from .handshake import (
@@ -48,7 +49,13 @@ from .handshake import (
 from .names import action_names, mangle_topic
 from .participant import RosSubscription
 from .rtps_capture import IdentityCapture
-from .services import PAIR_READER_DEPTH, RequestMapping, ServiceClient, shared_graph
+from .services import (
+    CAPTURE_SETTLE,
+    PAIR_READER_DEPTH,
+    RequestMapping,
+    ServiceClient,
+    shared_graph,
+)
 
 if TYPE_CHECKING:
     from .actions import ActionClient
@@ -112,6 +119,12 @@ class ClientGoal:
         # reader takes a writer's samples in order.
         self._unsynced = not sender.feedback_in_sync()
         self._fed = False
+        # Looking in the packet capture for feedback of it that reached our socket but not our
+        # reader (`GoalSender._expect_feedback`), until its first feedback is settled.
+        self._capture: IdentityCapture | None = None
+        # (writer GUID, source timestamp) of the feedback delivered from the capture: the
+        # reader's copy of one, should it come after all, is not yielded again
+        self._from_capture: set[tuple[bytes, int | None]] = set()
         # Set by `feedback()` once the goal has ended, its result is in (or was given up on)
         # and every feedback that had reached us by then was yielded: what it yields after is
         # feedback whose dropped datagram came again, in the repair window.
@@ -204,6 +217,7 @@ class ClientGoal:
             await self.result(timeout=SETTLE_S if deadline is None
                               else max(0.1, min(SETTLE_S, deadline - loop.time())))
         await self._sender.node.delivered()
+        await self._feedback_from_capture()
         drops = self._sender.node.udp_drops()
         if self.state in (GoalState.REJECTED, GoalState.SERVER_LOST) or \
                 (drops is not None and drops == self._drops and
@@ -221,11 +235,85 @@ class ClientGoal:
         """Asks the server to cancel this goal; True if the server is canceling it."""
         return await self._sender.cancel(self, timeout)
 
-    def _on_feedback(self, feedback: IdlStruct) -> None:
+    def _on_feedback(self, feedback: IdlStruct, key: tuple[bytes, int] | None) -> None:
+        """A feedback sample of this goal our reader delivered (`key`: its writer GUID and
+        source timestamp, when known and looked for)."""
+        if key is not None and key in self._from_capture:
+            return  # delivered from the capture already: this is its late copy
+        if self._capture is not None:
+            self._captured_before(key)
+        self._put(feedback)
+
+    def _put(self, feedback: IdlStruct) -> None:
         self._fed = True
         if self._feedback.full():  # keep the newest
             self._feedback.get_nowait()
         self._feedback.put_nowait(feedback)
+
+    def _captured_before(self, key: tuple[bytes, int] | None) -> None:
+        """Before the first feedback our reader delivered: the goal's feedback that reached
+        our socket ahead of it (same writer, lower sequence numbers), which the reader never
+        delivered. Cyclone drops as history only what came before the reader's start, so
+        nothing after this one is looked for."""
+        capture = self._capture
+        if capture is None:
+            return
+        earlier = None if key is None else capture.feedback_before(self.goal_id, *key)
+        self._release_capture()  # (after the look: what it kept goes with it)
+        for sample in sorted(earlier or (), key=lambda s: s.seq):
+            self._deliver_captured(sample)
+
+    async def _feedback_from_capture(self) -> None:
+        """Once the goal has ended and nothing of it came from our reader: its feedback that
+        reached our socket all the same (Cyclone dropped it as history: a Fast DDS writer's
+        HEARTBEAT ahead of it taken as our reader's start, docs/design/zero-loss.md), in the
+        order the writer sent it. The reader gets its turn first (CAPTURE_SETTLE, then the
+        reader thread's barrier); a sample it delivers meanwhile takes the other path
+        (`_captured_before`)."""
+        capture = self._capture
+        if capture is None:
+            return
+        if not capture.captured_feedback(self.goal_id):
+            self._release_capture()
+            return
+        await asyncio.sleep(CAPTURE_SETTLE)  # it may just have come: reader first
+        await self._sender.node.delivered()
+        if self._capture is not capture:
+            return  # the reader delivered one meanwhile, and what came before it was taken
+        kept = capture.captured_feedback(self.goal_id)
+        self._release_capture()
+        for sample in sorted(kept, key=lambda s: (s.writer_guid, s.seq)):
+            self._deliver_captured(sample)
+
+    def _deliver_captured(self, sample: CapturedSample) -> None:
+        sender = self._sender
+        try:
+            message: Any = sender.node.codecs.of(sender.feedback_type).prepare_decoder() \
+                .decode(sample.payload)
+            ours = bytes(message.goal_id.uuid) == self.goal_id
+        except Exception as exc:  # bad input from the wire: said, not raised
+            log.warning("action %s: a feedback of goal %s, found in the packet capture, does "
+                        "not decode: %s", sender.name, uuid.UUID(bytes=self.goal_id), exc)
+            return
+        if not ours:  # (the capture matched its goal id already)
+            return
+        self._from_capture.add((sample.writer_guid, sample.source_timestamp))
+        sender.feedback_from_capture += 1
+        log.info("action %s: a feedback of goal %s reached our socket but not our reader "
+                 "(dropped as history); taken from the packet capture", sender.name,
+                 uuid.UUID(bytes=self.goal_id))
+        self._put(message.feedback)
+
+    def _release_capture(self) -> IdentityCapture | None:
+        """Stops looking in the capture for this goal's feedback (what it kept goes)."""
+        capture, self._capture = self._capture, None
+        if capture is not None:
+            capture.forget_feedback(self.goal_id)
+        return capture
+
+    @property
+    def watching_capture(self) -> bool:
+        return self._capture is not None or bool(self._from_capture)
 
 
 class GoalSender:
@@ -261,6 +349,9 @@ class GoalSender:
         self._announce_lock = asyncio.Lock()  # one such wait for goals sent at once
         self.feedback_renewed = 0  # feedback readers made again (their announcement unheard)
         self.feedback_unannounced = 0  # 1 when goals went out with the announcement unheard
+        self.feedback_from_capture = 0  # feedback samples our reader never delivered, captured
+        self.feedback_type = self.type_name + "_FeedbackMessage"
+        self._feedback_writer_guids: dict[int, bytes] = {}  # of the current feedback reader
         # Made once the server's feedback writer is known (wait_for_server, handshake.py).
         self._feedback: RosSubscription | None = None
         self._feedback_topic = names["feedback"]
@@ -411,8 +502,9 @@ class GoalSender:
                 return made
             self._feedback_reader_no += 1
             self._feedback_synced = set()
+            self._feedback_writer_guids = {}
             self._feedback = self.node.create_subscription(
-                self._feedback_topic, self.type_name + "_FeedbackMessage",
+                self._feedback_topic, self.feedback_type,
                 qos_mod.DEFAULT.keeping(PAIR_READER_DEPTH),  # every goal's feedback comes
                 callback=self.client._on_loop(self._feedback_taker(self._feedback_reader_no)))
             # Once the reader is there: a HEARTBEAT captured after this was applied to it.
@@ -478,6 +570,7 @@ class GoalSender:
         handle = ClientGoal(self, uuid.uuid4().bytes)
         self._goals[handle.goal_id] = handle  # before sending: feedback may come quickly
         self.goals_sent += 1
+        self._expect_feedback(handle)
         request_cls: Any = self.node.types.struct(self.types.send_goal.request.name)
         request = request_cls(goal_id=values.build(UUID_TYPE, {"uuid": handle.goal_id}),
                               goal=message)
@@ -487,6 +580,7 @@ class GoalSender:
             # Nobody has it: the caller is told it failed. (A stop cancels every goal of the
             # server, whoever sent it: GoalTracker.cancel_all.)
             self._goals.pop(handle.goal_id, None)
+            handle._release_capture()
             raise
         finally:
             handle._sending = False
@@ -626,7 +720,39 @@ class GoalSender:
         # for any more)
         goal = self._goals.get(bytes(message.goal_id.uuid))  # type: ignore[attr-defined]
         if goal is not None:
-            goal._on_feedback(message.feedback)  # type: ignore[attr-defined]
+            key = self._sample_key(message) if goal.watching_capture else None
+            goal._on_feedback(message.feedback, key)  # type: ignore[attr-defined]
+
+    def _expect_feedback(self, goal: ClientGoal) -> None:
+        """Before the goal goes out: has the packet capture keep its feedback from the
+        feedback writers matched with our reader, so that a feedback that reaches our socket
+        and is dropped as history still reaches the goal (`ClientGoal._feedback_from_capture`;
+        docs/design/zero-loss.md). Only while the capture reads anyway (a Fast DDS server's
+        services use it), and never under DDS-Security (fails closed): the capture sees only
+        what travels in clear, so all it could take is a plaintext DATA Cyclone refuses from
+        a protected writer — a forged feedback."""
+        capture = None if self.node.secured else self.node.identities
+        if capture is None or not capture.reading or self._feedback is None:
+            return
+        writers = [g for g in matched_writers(self._feedback.reader).values()
+                   if not self.node.in_process(g)]  # (their samples travel in no datagram)
+        if capture.expect_feedback(goal.goal_id, writers):
+            goal._capture = capture
+
+    def _sample_key(self, message: IdlStruct) -> tuple[bytes, int] | None:
+        """A feedback sample's writer GUID and source timestamp (how the capture knows it)."""
+        info = getattr(message, "sample_info", None)
+        if info is None or self._feedback is None:
+            return None
+        handle = writer_handle(info.publication_handle)
+        guid = self._feedback_writer_guids.get(handle)
+        if guid is None:
+            with contextlib.suppress(DDSException):  # (its reader deleted meanwhile)
+                found = self._feedback.reader.get_matched_publication_data(
+                    info.publication_handle)
+                if found is not None:
+                    guid = self._feedback_writer_guids[handle] = bytes(found.key.bytes)
+        return None if guid is None else (guid, int(info.source_timestamp))
 
     @property
     def goals_tracked(self) -> int:
@@ -636,6 +762,7 @@ class GoalSender:
     def forget(self, goal: ClientGoal) -> None:
         if goal.forgettable(time.monotonic()) and self._goals.get(goal.goal_id) is goal:
             del self._goals[goal.goal_id]
+            goal._release_capture()
 
     def _forget_ended(self) -> None:
         """Lets go of the goals nothing more can come for (`ClientGoal.forgettable`); one
@@ -644,9 +771,12 @@ class GoalSender:
         now = time.monotonic()
         for goal in [g for g in self._goals.values() if g.forgettable(now)]:
             del self._goals[goal.goal_id]
+            goal._release_capture()
 
     def close(self) -> None:
         """Deletes the goal and result services' endpoints and the feedback reader."""
+        for goal in self._goals.values():
+            goal._release_capture()
         for client in (self._send, self._get):
             client.close()
         if self._feedback is not None:

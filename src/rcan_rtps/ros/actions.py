@@ -239,6 +239,11 @@ class ActionClient:
         """1 when goals went out with the feedback writer's announcement unheard."""
         return 0 if self._sending is None else self._sending.feedback_unannounced
 
+    @property
+    def feedback_from_capture(self) -> int:
+        """Feedback samples our reader never delivered, taken from the packet capture."""
+        return 0 if self._sending is None else self._sending.feedback_from_capture
+
 
 _SERVER_SIDE = ("ActionServer", "Execute", "ServerGoal")
 _GOAL_SIDE = ("ClientGoal", "GoalResult", "GoalSender")

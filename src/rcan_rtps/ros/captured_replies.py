@@ -1,4 +1,5 @@
-"""Replies kept from the packet capture for the calls that wait for them.
+"""Replies and first feedback kept from the packet capture for the calls and goals that wait
+for them.
 
 A Fast DDS server's reply can reach our socket and still never reach our reader: when
 Cyclone took the HEARTBEAT ahead of it as the reader's start, it drops the reply as history
@@ -14,6 +15,14 @@ fragments only of those writers, at most HELD_BUDGET bytes in all (pieces of a s
 first fragment has not come yet are let go of first; an assembly counted with its bookkeeping),
 at most MAX_ASSEMBLIES samples put together at once, no sample over MAX_SAMPLE bytes, at most
 MAX_EXPECTED identities. Methods are called under the capture's lock.
+
+An action goal's first feedback is exposed the same way (a Fast DDS feedback writer's
+HEARTBEAT ahead of it taken as a fresh reader's start), so the collector also keeps, for a
+goal that said it waits (`expect_feedback`: its goal id and the feedback writers matched with
+the client's reader), the feedback samples of those writers whose goal_id field (the first
+16 bytes of the plain-CDR body) is that goal id: at most FEEDBACK_KEPT a goal, each with its
+writer, sequence number and source timestamp (`CapturedSample`), so that the client can tell
+which ones came before the first its reader delivered. Same budget, same fragment rules.
 """
 
 from __future__ import annotations
@@ -22,6 +31,8 @@ import logging
 from collections import Counter, OrderedDict
 from collections.abc import Collection
 from typing import TYPE_CHECKING
+
+import msgspec
 
 if TYPE_CHECKING:
     from mmap import mmap
@@ -38,6 +49,31 @@ MAX_ASSEMBLIES = 64  # samples put together at once (one per call in flight, and
 # bytes an assembly is counted for beyond its sample and its one byte a fragment: its objects
 # (a flood of tiny samples must not cost more than the budget counts)
 ASSEMBLY_OVERHEAD = 512
+# feedback samples kept a goal: those before the first one its reader delivers are looked for
+# among them (Cyclone drops as history only what came before the reader's first HEARTBEAT)
+FEEDBACK_KEPT = 32
+PLAIN_CDR = (b"\x00\x00", b"\x00\x01")  # encapsulations whose body the goal id begins
+GOAL_ID_END = 20  # the goal id: bytes 4..20 of the payload (after the encapsulation header)
+
+
+class CapturedSample(msgspec.Struct, frozen=True):
+    """A feedback sample kept from the capture: its writer, sequence number, source
+    timestamp (ns, as Cyclone converts it; None if its message had none) and serialized
+    payload (encapsulation header and body)."""
+
+    writer_guid: bytes
+    seq: int
+    source_timestamp: int | None
+    payload: bytes
+
+
+def goal_named(piece: ReceivedPiece, buf: bytes | mmap) -> bytes | None:
+    """The goal id a feedback sample's payload begins with, if this piece holds its start
+    (a DATA, or the first fragment) in plain CDR."""
+    if piece.at != 0 or piece.end - piece.start < GOAL_ID_END or \
+            bytes(buf[piece.start:piece.start + 2]) not in PLAIN_CDR:
+        return None
+    return bytes(buf[piece.start + 4:piece.start + GOAL_ID_END])
 
 
 class _Assembly:
@@ -50,7 +86,9 @@ class _Assembly:
         # numbers cost some 60 bytes each: 1-byte fragments made it 60 times the sample)
         self.received = bytearray(-(-sample_size // fragment_size))
         self.missing = len(self.received)
-        self.related: SampleIdentity | None = None
+        # whom it is for: the related identity of a reply, the goal id of a feedback sample
+        self.related: SampleIdentity | bytes | None = None
+        self.source_timestamp: int | None = None
 
     @property
     def cost(self) -> int:
@@ -83,11 +121,15 @@ class ReplyCollector:
         self._assemblies: OrderedDict[tuple[bytes, int], _Assembly] = OrderedDict()
         # another's (or another request's) reply, or ours already put together
         self._settled: OrderedDict[tuple[bytes, int], None] = OrderedDict()
-        self._held = 0  # bytes in _found and _assemblies
+        self._held = 0  # bytes in _found, _feedback_found and _assemblies
+        self._feedback_expected: OrderedDict[bytes, frozenset[bytes]] = OrderedDict()
+        self._feedback_writers: Counter[bytes] = Counter()
+        self._feedback_found: dict[bytes, list[CapturedSample]] = {}
 
     @property
     def writers(self) -> Collection[bytes]:
-        """The writers whose DATA and DATA_FRAG the capture must show (`piece`)."""
+        """The writers whose DATA and DATA_FRAG the capture must show (`piece`): reply and
+        feedback writers both (counted in one table: this is asked once a datagram)."""
         return self._writers.keys()
 
     @property
@@ -108,18 +150,47 @@ class ReplyCollector:
         writers = self._expected.pop(identity, None)
         if writers is None:
             return
-        self._writers.subtract(writers)
-        self._writers += Counter()  # drops the writers no longer counted
         found = self._found.pop(identity, None)
         if found is not None:
             self._held -= len(found)
+        self._forgotten(writers, identity)
+
+    def _forgotten(self, writers: frozenset[bytes], named: SampleIdentity | bytes) -> None:
+        self._writers.subtract(writers)
+        self._writers += Counter()  # drops the writers no longer counted
         for key, assembly in list(self._assemblies.items()):
-            if assembly.related == identity:
+            if assembly.related == named:
                 self._drop(key)
-        if not self._expected:  # nothing waited for: nothing kept
+        if not self._expected and not self._feedback_expected:  # nothing waited for
             for key in list(self._assemblies):
                 self._drop(key)
             self._settled.clear()
+
+    def expect_feedback(self, goal_id: bytes, writers: Collection[bytes]) -> None:
+        """Keeps the feedback samples of goal `goal_id` that one of `writers` sends."""
+        self.forget_feedback(goal_id)
+        if len(self._feedback_expected) >= MAX_EXPECTED:
+            self.forget_feedback(next(iter(self._feedback_expected)))
+        chosen = frozenset(bytes(w) for w in writers)
+        self._feedback_expected[bytes(goal_id)] = chosen
+        self._feedback_found[bytes(goal_id)] = []
+        self._writers.update(chosen)
+        self._feedback_writers.update(chosen)
+
+    def forget_feedback(self, goal_id: bytes) -> None:
+        """The goal's feedback is no longer looked for: what was kept of it goes."""
+        writers = self._feedback_expected.pop(goal_id, None)
+        if writers is None:
+            return
+        for sample in self._feedback_found.pop(goal_id, []):
+            self._held -= len(sample.payload)
+        self._feedback_writers.subtract(writers)
+        self._feedback_writers += Counter()
+        self._forgotten(writers, goal_id)
+
+    def feedback(self, goal_id: bytes) -> list[CapturedSample]:
+        """The goal's feedback samples kept so far, in the order they were received."""
+        return list(self._feedback_found.get(goal_id, ()))
 
     def take(self, identity: SampleIdentity) -> bytes | None:
         """The payload (encapsulation header and body) of the reply naming `identity`, if
@@ -128,27 +199,35 @@ class ReplyCollector:
 
     def piece(self, piece: ReceivedPiece, buf: bytes | mmap) -> None:
         """A DATA or DATA_FRAG of one of `writers`, where its payload lies in `buf`."""
+        # A feedback writer's sample names its goal in its payload; a reply its request in
+        # the inline QoS.
+        named = goal_named(piece, buf) if piece.writer_guid in self._feedback_writers \
+            else piece.related
         if piece.fragment_size == 0:
-            if piece.related is not None and self._wanted(piece.related, piece.writer_guid):
-                self._keep(piece.related, bytes(buf[piece.start:piece.end]))
+            if named is not None and self._wanted(named, piece.writer_guid):
+                self._keep(named, piece.writer_guid, piece.seq, piece.source_timestamp,
+                           bytes(buf[piece.start:piece.end]))
             return
         key = (piece.writer_guid, piece.seq)
         if key in self._settled or piece.sample_size > MAX_SAMPLE:
             return
-        if piece.related is not None and not self._wanted(piece.related, piece.writer_guid):
-            self._settle(key)  # another's (or another request's) reply
+        if named is not None and not self._wanted(named, piece.writer_guid):
+            self._settle(key)  # another's (or another request's) reply, another goal's feedback
             return
         assembly = self._assembly(key, piece)
         if assembly is None:
             return
-        if piece.related is not None:
-            assembly.related = piece.related
+        if named is not None:
+            assembly.related = named
+        if assembly.source_timestamp is None:
+            assembly.source_timestamp = piece.source_timestamp
         assembly.add(piece, buf)
         if assembly.complete:  # (without a related identity: nobody's, let go of)
             data, related = bytes(assembly.data), assembly.related
             self._settle(key)  # a fragment sent again later starts nothing
             if related is not None:
-                self._keep(related, data)
+                self._keep(related, piece.writer_guid, piece.seq, assembly.source_timestamp,
+                           data)
 
     def _settle(self, key: tuple[bytes, int]) -> None:
         """No piece of this sample is kept from now on."""
@@ -157,14 +236,27 @@ class ReplyCollector:
             self._settled.popitem(last=False)
         self._drop(key)
 
-    def _wanted(self, related: SampleIdentity, writer: bytes) -> bool:
-        writers = self._expected.get(related)
-        return writers is not None and writer in writers and related not in self._found
+    def _wanted(self, named: SampleIdentity | bytes, writer: bytes) -> bool:
+        if isinstance(named, bytes):  # a goal id
+            writers = self._feedback_expected.get(named)
+            return writers is not None and writer in writers and \
+                len(self._feedback_found[named]) < FEEDBACK_KEPT
+        writers = self._expected.get(named)
+        return writers is not None and writer in writers and named not in self._found
 
-    def _keep(self, identity: SampleIdentity, data: bytes) -> None:
-        if identity in self._found or not self._room(len(data)):
-            return
-        self._found[identity] = data  # the first wins: a repair of it is the same sample
+    def _keep(self, named: SampleIdentity | bytes, writer: bytes, seq: int,
+              source_timestamp: int | None, data: bytes) -> None:
+        if isinstance(named, bytes):
+            kept = self._feedback_found[named]
+            # a repair of one kept is the same sample
+            if any(s.writer_guid == writer and s.seq == seq for s in kept) or \
+                    not self._room(len(data)):
+                return
+            kept.append(CapturedSample(writer, seq, source_timestamp, data))
+        else:
+            if named in self._found or not self._room(len(data)):
+                return
+            self._found[named] = data  # the first wins: a repair of it is the same sample
         self._held += len(data)
 
     def _assembly(self, key: tuple[bytes, int], piece: ReceivedPiece) -> _Assembly | None:

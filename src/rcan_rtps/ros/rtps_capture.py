@@ -29,7 +29,10 @@ reader has not heard one must not send its request or goal yet (handshake.py).
 
 And it keeps the payload of the reply a call expects (`expect_reply`: its request's identity
 and the reply writers matched with its reader; captured_replies.py), so that a reply Cyclone
-dropped as history after it reached our socket can still be delivered (`captured_reply`).
+dropped as history after it reached our socket can still be delivered (`captured_reply`);
+likewise an action goal's feedback samples (`expect_feedback`: its goal id and the feedback
+writers matched with the client's reader), so that a first feedback dropped so still reaches
+the goal, before the feedback the reader did deliver (`feedback_before`, `captured_feedback`).
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ from typing import TypeVar
 
 import msgspec
 
-from .captured_replies import ReplyCollector
+from .captured_replies import CapturedSample, ReplyCollector
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -154,6 +157,7 @@ class ReceivedPiece(msgspec.Struct, frozen=True):
     fragment_size: int = 0  # 0: a whole DATA
     first_fragment: int = 0  # fragment numbers first_fragment .. + fragments - 1
     fragments: int = 0
+    source_timestamp: int | None = None  # ns, from the INFO_TS before it (None: none)
 
 
 Received = ReceivedData | ReceivedHeartbeat | ReceivedPiece
@@ -190,7 +194,7 @@ def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None,
                     yield found
             if pieces_of and stop - body >= 24 and \
                     prefix + bytes(buf[body + 8:body + 12]) in pieces_of:
-                piece = _piece(buf, body, stop, order, kind, flags, prefix)
+                piece = _piece(buf, body, stop, order, kind, flags, prefix, timestamp)
                 if piece is not None:
                     yield piece
         elif kind == INFO_TS:
@@ -234,7 +238,7 @@ def _parameters_end(buf: bytes | mmap.mmap, offset: int, end: int, order: str) -
 
 
 def _piece(buf: bytes | mmap.mmap, body: int, stop: int, order: str, kind: int, flags: int,
-           prefix: bytes) -> ReceivedPiece | None:
+           prefix: bytes, timestamp: int | None) -> ReceivedPiece | None:
     """Where a DATA's or DATA_FRAG's serialized payload lies; None for a key, a DATA without
     data (a dispose), or a submessage shorter than it says."""
     frag = kind == DATA_FRAG
@@ -258,7 +262,8 @@ def _piece(buf: bytes | mmap.mmap, body: int, stop: int, order: str, kind: int, 
     seq = (high << 32) | low
     if not frag:  # malformed without room for the encapsulation header (Cyclone drops it)
         return None if stop - payload < 4 else \
-            ReceivedPiece(writer, seq, related, payload, stop, 0, stop - payload)
+            ReceivedPiece(writer, seq, related, payload, stop, 0, stop - payload,
+                          source_timestamp=timestamp)
     first, count, size, sample_size = struct.unpack_from(order + "IHHI", buf, body + 20)
     if first < 1 or count < 1 or size < 1 or (first == 1 and stop - payload < 4):
         return None
@@ -267,7 +272,7 @@ def _piece(buf: bytes | mmap.mmap, body: int, stop: int, order: str, kind: int, 
     if length <= 0 or payload + length > stop:
         return None
     return ReceivedPiece(writer, seq, related, payload, payload + length, at, sample_size,
-                         size, first, count)
+                         size, first, count, timestamp)
 
 
 class _Libc:
@@ -600,6 +605,42 @@ class IdentityCapture:
     def forget_reply(self, identity: SampleIdentity) -> None:
         with self._lock:
             self._replies.forget(identity)
+
+    def expect_feedback(self, goal_id: bytes, writers: Collection[bytes]) -> bool:
+        """Keeps, from now on, the feedback samples of goal `goal_id` that one of `writers`
+        sends (captured_replies.py), for `feedback_before` and `captured_feedback`, until
+        `forget_feedback`. Call it before the goal goes out. False (nothing kept) while the
+        capture is not reading."""
+        with self._lock:
+            if not self.reading or not writers:
+                return False
+            self._replies.expect_feedback(goal_id, writers)
+            return True
+
+    def feedback_before(self, goal_id: bytes, writer_guid: bytes,
+                        source_timestamp: int) -> list[CapturedSample] | None:
+        """The goal's kept feedback samples of `writer_guid` that it sent before the one it
+        wrote at `source_timestamp` (which a reader delivered: its datagram is in the capture
+        or its C buffer, so a miss flushes and reads to the end first, as `lookup` does);
+        None if that one is not in the capture (then nothing can be put before it)."""
+        def earlier() -> list[CapturedSample] | None:
+            kept = [s for s in self._replies.feedback(goal_id) if s.writer_guid == writer_guid]
+            at = min((s.seq for s in kept if s.source_timestamp == source_timestamp),
+                     default=None)
+            return None if at is None else [s for s in kept if s.seq < at]
+        return self._find(earlier)
+
+    def captured_feedback(self, goal_id: bytes) -> list[CapturedSample]:
+        """The goal's feedback samples that have reached our socket, delivered to our reader
+        or not, once the capture is read to its end (after a flush, as by a `lookup` that
+        missed)."""
+        self._find(lambda: None)  # (nothing short of the end will do)
+        with self._lock:
+            return self._replies.feedback(goal_id)
+
+    def forget_feedback(self, goal_id: bytes) -> None:
+        with self._lock:
+            self._replies.forget_feedback(goal_id)
 
     def mark(self) -> int:
         """Where the capture is now: a datagram received after this call is at or after it

@@ -96,7 +96,7 @@ def add_logging_options(parser: argparse.ArgumentParser, *, after_verb: bool = F
 
 def main(argv: Sequence[str] | None = None) -> int:
     # SIGTERM and SIGHUP (a closed terminal or ssh session) end every command as Ctrl-C does.
-    with _stop_signals.taken_like_ctrl_c():
+    with _stop_signals.stop_rules():
         return _guarded_main(argv)
 
 

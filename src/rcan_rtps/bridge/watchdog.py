@@ -8,9 +8,12 @@ thread's stack, and logs the recovery when heartbeats resume.
 robot must be stopped in order then too) in the calling (main) thread before any other
 thread exists, so every later thread inherits the block, and a dedicated thread takes them
 with `sigwait`: the first asks the loop to shut down gracefully and, if that has not
-finished within `bound` s, logs the stacks and `os._exit`s; a second one exits at once. As
-a backstop that needs no GIL, the first signal also arms faulthandler to dump the stacks
-and exit a few seconds after the bound.
+finished within `bound` s, logs the stacks and `os._exit`s; a second SIGINT or SIGTERM exits
+at once, a second SIGHUP is ignored (a closed terminal sends two). A signal the process was
+started ignoring (`nohup`) stays ignored. These are every command's rules
+(`rcan_rtps._stop_signals`); `run` takes the signals on a thread because its loop may be
+stuck. As a backstop that needs no GIL, the first signal also arms faulthandler to dump the
+stacks and exit a few seconds after the bound.
 
 Whatever a thread later unblocks (multiprocessing's resource tracker unblocks both in the
 thread that starts it; the API's audit verifier puts that mask back), a signal the kernel
@@ -36,13 +39,14 @@ import traceback
 from collections.abc import Callable
 from types import FrameType
 
+from .. import _stop_signals
+
 log = logging.getLogger(__name__)
 
 DEFAULT_STALL_S = 2.0
 DEFAULT_SHUTDOWN_BOUND_S = 10.0
 EXIT_STUCK = 1
 EXIT_SECOND_SIGNAL = 130
-SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def thread_stacks() -> str:
@@ -124,14 +128,15 @@ class SignalStopper:
         self._pending = False  # a signal came before a loop was attached
         self._done = threading.Event()
         self.received: list[int] = []
+        self._signals = _stop_signals.taken()
         # Before any thread starts: threads inherit the mask, so none of them (Cyclone's
         # included) runs a handler for these; only the sigwait below sees them.
-        self._old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
+        self._old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, self._signals)
         self._thread = threading.Thread(target=self._wait, name="signals", daemon=True)
         self._thread.start()
         # The backstop (module docs). It also keeps asyncio.Runner from installing its own
         # SIGINT handler, which would cancel the main task instead of stopping in order.
-        self._old_handlers = {sig: signal.signal(sig, self._forward) for sig in SIGNALS}
+        self._old_handlers = {sig: signal.signal(sig, self._forward) for sig in self._signals}
 
     def attach(self, loop: asyncio.AbstractEventLoop, request_stop: Callable[[], None]) -> None:
         """`request_stop` runs on `loop` when the first signal arrives. Call on the loop's
@@ -144,7 +149,7 @@ class SignalStopper:
         # The backstop through the loop from here on: a plain Python handler runs only when
         # the main thread next runs Python, and an idle loop may sleep in epoll for long; the
         # loop's own signal handling wakes it. (Closing the loop removes these handlers.)
-        for sig in SIGNALS:
+        for sig in self._signals:
             with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                 loop.add_signal_handler(sig, self._forward, sig, None)
 
@@ -155,6 +160,8 @@ class SignalStopper:
         faulthandler.cancel_dump_traceback_later()
         for sig, handler in self._old_handlers.items():
             signal.signal(sig, handler)
+        if self.received:  # e.g. a closed terminal's second SIGHUP, still to come: ignored
+            _stop_signals.stopped_elsewhere(self.received[0])
         signal.pthread_sigmask(signal.SIG_SETMASK, self._old_mask)
 
     def _forward(self, signum: int, frame: FrameType | None) -> None:
@@ -165,12 +172,14 @@ class SignalStopper:
                 signal.pthread_kill(ident, signum)
 
     def _wait(self) -> None:
-        self._first(signal.sigwait(SIGNALS))
-        self._again(signal.sigwait(SIGNALS))
+        self._first(signal.sigwait(self._signals))
+        while not _stop_signals.insists(again := signal.sigwait(self._signals)):
+            pass  # SIGHUP again: one closed terminal sends two; the stop goes on
+        self._again(again)
 
     def _first(self, sig: int) -> None:
         self.received.append(sig)
-        log.warning("%s: shutting down (a second signal exits at once)",
+        log.warning("%s: shutting down (a second Ctrl-C or SIGTERM exits at once)",
                     signal.Signals(sig).name)
         # Without the GIL, should Python never run again: dump and exit after the bound.
         faulthandler.dump_traceback_later(self.bound + 5.0, exit=True)

@@ -13,6 +13,7 @@ from typing import Any
 
 from cyclonedds.idl import IdlStruct
 
+from .. import _stop_signals as stop_signals
 from ..ros import qos as qos_mod
 from ..ros.errors import WireError
 from ..ros.graph import RosGraph
@@ -27,11 +28,11 @@ HEADER_TYPE = "std_msgs/msg/Header"
 def register(actions: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     bw = actions.add_parser("bw", help="bandwidth used by a topic")
     _add_common(bw, BW_WINDOW)
-    bw.set_defaults(func=lambda a: asyncio.run(_bw(a)))
+    bw.set_defaults(func=lambda a: stop_signals.run(_bw(a)))
 
     delay = actions.add_parser("delay", help="delay between now and each message's header stamp")
     _add_common(delay, DELAY_WINDOW)
-    delay.set_defaults(func=lambda a: asyncio.run(_delay(a)))
+    delay.set_defaults(func=lambda a: stop_signals.run(_delay(a)))
 
 
 def _add_common(parser: argparse.ArgumentParser, window: int) -> None:

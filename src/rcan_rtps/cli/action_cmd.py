@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
-import signal
 import sys
 import uuid
+from typing import Any
 
+from .. import _stop_signals as stop_signals
 from ..ros.action_goals import ClientGoal
 from ..ros.actions import ActionClient, GoalState
 from ..ros.graph import Direction, RosGraph, node_fqn
@@ -17,11 +17,6 @@ from ..ros.services import RequestMapping
 from ._common import VALUES_HELP, dump, make_node, parse_values, warn_if_alone
 from ._options import add_spin_time
 from .service_cmd import MAPPING_HELP, MAPPINGS
-
-# Each cancels the goal on the server before the command ends (exit 128 + the signal, as the
-# shell reports it): a closed terminal (SIGHUP) or a supervisor (SIGTERM) must not leave the
-# robot driving to a goal nobody follows. A second one ends the command at once.
-CANCEL_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -32,14 +27,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     listing.add_argument("-t", "--show-types", action="store_true",
                          help="show each action's type")
     add_spin_time(listing)
-    listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
+    listing.set_defaults(func=lambda a: stop_signals.run(_list(a)))
 
     info = actions.add_parser("info", help="servers and clients of an action")
     info.add_argument("action", metavar="NAME", help="action name, e.g. /robot1/navigate_to_pose")
     info.add_argument("-t", "--show-types", action="store_true",
                       help="show the action type of each server and client")
     add_spin_time(info)
-    info.set_defaults(func=lambda a: asyncio.run(_info(a)))
+    info.set_defaults(func=lambda a: stop_signals.run(_info(a)))
 
     send = actions.add_parser("send_goal", help="send a goal and wait for its result "
                                                 "(Ctrl-C, SIGTERM or SIGHUP cancels the goal)")
@@ -51,7 +46,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     send.add_argument("--timeout", type=float, default=10.0,
                       help="seconds to find the server and have the goal answered")
     send.add_argument("--mapping", choices=MAPPINGS, default="auto", help=MAPPING_HELP)
-    send.set_defaults(func=lambda a: asyncio.run(_send_goal(a)))
+    send.set_defaults(func=lambda a: stop_signals.run(_send_goal(a)))
 
 
 async def _list(args: argparse.Namespace) -> int:
@@ -89,52 +84,44 @@ async def _info(args: argparse.Namespace) -> int:
 
 async def _send_goal(args: argparse.Namespace) -> int:
     values = parse_values(args.values)
-    interrupted = asyncio.Event()
-    received = _cancel_on_signals(interrupted)
     with make_node(args) as node:
         client = ActionClient(node, args.action, args.type, mapping=RequestMapping(args.mapping))
         goal_type = client.types.goal.name
         message = node.values.build(goal_type, values)  # bad values fail before the graph
         print("Waiting for an action server to become available...", flush=True)
-        await client.wait_for_server(args.timeout)
+        await client.wait_for_server(args.timeout)  # a stop until here ends it: nothing sent
         print("Sending goal:\n" + _indent(dump(node.values.to_plain(goal_type, message))),
               flush=True)
-        goal = await client.send_goal(message, args.timeout)
-        if not goal.accepted:
-            print("Goal was rejected.", flush=True)
-            return 1
-        print(f"Goal accepted with ID: {uuid.UUID(bytes=goal.goal_id).hex}\n", flush=True)
-        follow = asyncio.ensure_future(_follow(client, goal, args.feedback))
-        stop = asyncio.ensure_future(interrupted.wait())
-        await asyncio.wait({follow, stop}, return_when=asyncio.FIRST_COMPLETED)
-        if not follow.done():  # Ctrl-C: cancel the goal on the server, then report
-            follow.cancel()
-            print("Canceling goal...", flush=True)
-            canceling = await goal.cancel(args.timeout)
-            print("Goal canceled." if canceling else "Cancel request refused.", flush=True)
-            outcome = await goal.result(args.timeout)
-            print(f"Goal finished with status: {outcome.state.name}", flush=True)
-            return 128 + received[0]
-        stop.cancel()
+        # From here a goal may be running on the server: Ctrl-C, SIGTERM or SIGHUP (its
+        # terminal closed) must not leave the robot driving to a goal nobody follows. Each
+        # cancels it on the server before the command ends (exit 128 + the signal).
+        interrupted = asyncio.Event()
+        with stop_signals.taking_over(lambda sig: interrupted.set()) as stopping:
+            code = await _goal(args, client, message, interrupted)
+            return code if stopping.received is None else 128 + stopping.received
+
+
+async def _goal(args: argparse.Namespace, client: ActionClient, message: Any,
+                interrupted: asyncio.Event) -> int:
+    """Sends the goal and follows it to its end, or cancels it once `interrupted`."""
+    goal = await client.send_goal(message, args.timeout)
+    if not goal.accepted:
+        print("Goal was rejected.", flush=True)
+        return 1
+    print(f"Goal accepted with ID: {uuid.UUID(bytes=goal.goal_id).hex}\n", flush=True)
+    follow = asyncio.ensure_future(_follow(client, goal, args.feedback))
+    stop = asyncio.ensure_future(interrupted.wait())
+    await asyncio.wait({follow, stop}, return_when=asyncio.FIRST_COMPLETED)
+    stop.cancel()
+    if follow.done():
         return follow.result()
-
-
-def _cancel_on_signals(interrupted: asyncio.Event) -> list[int]:
-    """CANCEL_SIGNALS set `interrupted`; the list returned holds the one received. The first
-    puts the default actions back, so a second ends the command at once."""
-    loop = asyncio.get_running_loop()
-    received: list[int] = []
-
-    def on_signal(sig: int) -> None:
-        received.append(sig)
-        interrupted.set()
-        for each in CANCEL_SIGNALS:
-            loop.remove_signal_handler(each)
-
-    for sig in CANCEL_SIGNALS:
-        with contextlib.suppress(NotImplementedError):  # not on Windows
-            loop.add_signal_handler(sig, on_signal, sig)
-    return received
+    follow.cancel()
+    print("Canceling goal...", flush=True)
+    canceling = await goal.cancel(args.timeout)
+    print("Goal canceled." if canceling else "Cancel request refused.", flush=True)
+    outcome = await goal.result(args.timeout)
+    print(f"Goal finished with status: {outcome.state.name}", flush=True)
+    return 1
 
 
 async def _follow(client: ActionClient, goal: ClientGoal, feedback: bool) -> int:

@@ -6,7 +6,6 @@ import argparse
 import asyncio
 import contextlib
 import re
-import signal
 import sys
 import time
 from collections.abc import Iterable, Iterator
@@ -14,6 +13,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from .. import _stop_signals as stop_signals
 from ..ros import qos as qos_mod
 from ..ros.bag import (
     BagMessage,
@@ -63,7 +63,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     record.add_argument("--duration", type=float, default=0.0,
                         help="stop after S seconds (default: until Ctrl-C, SIGTERM or "
                         "SIGHUP)")
-    record.set_defaults(func=lambda a: asyncio.run(_record(a)))
+    record.set_defaults(func=lambda a: stop_signals.run(_record(a)))
 
     play = actions.add_parser("play", help="republish a bag with its original timing")
     play.add_argument("bag", metavar="BAG", help="bag folder or .mcap file")
@@ -80,7 +80,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                       help="play at most S seconds of the bag (default: all)")
     play.add_argument("-m", "--remap", nargs="+", default=[], metavar="FROM:=TO",
                       help="publish topic FROM under the name TO")
-    play.set_defaults(func=lambda a: asyncio.run(_play(a)))
+    play.set_defaults(func=lambda a: stop_signals.run(_play(a)))
 
     info = actions.add_parser("info", help="summary of a bag")
     info.add_argument("bag", metavar="BAG", help="bag folder or .mcap file")
@@ -153,39 +153,40 @@ class _Recorder:
                 sub.close()
 
 
-def _stop_on_signals(stop: asyncio.Event) -> None:
-    """Each ends the recording with the bag closed: SIGHUP too (a terminal or ssh session
-    closed), which would otherwise kill the recorder and leave the bag to `bag reindex`."""
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        with contextlib.suppress(NotImplementedError, RuntimeError):
-            loop.add_signal_handler(sig, stop.set)
-
-
 async def _record(args: argparse.Namespace) -> int:
     output = Path(args.output or _default_output())
     with make_node(args) as node:
         selection = _Selection(node, args)
         stop = asyncio.Event()
-        _stop_on_signals(stop)  # before the bag exists: from then on it is always closed
-        writer = BagWriter(output, node.store)
-        recorder = _Recorder(node, writer)
-        graph = RosGraph(node)
-        deadline = time.monotonic() + args.duration if args.duration > 0 else None
-        print(f"Recording to '{output}'...", flush=True)
-        try:
-            while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
-                graph.refresh()
-                for topic, pubs in _publishers_by_topic(graph).items():
-                    if selection.wants(topic):
-                        recorder.follow(topic, pubs)
-                with contextlib.suppress(asyncio.TimeoutError):
-                    await asyncio.wait_for(stop.wait(), DISCOVERY_PERIOD)
-        finally:
-            recorder.close()
-            writer.close()
+        # From before the bag exists: Ctrl-C, SIGTERM or SIGHUP (its terminal or ssh session
+        # closed) end the recording with the bag closed, complete, exit 0; killed, it would
+        # be left to `bag reindex`.
+        with stop_signals.taking_over(lambda sig: stop.set()):
+            writer = await _recorded(node, selection, output, stop, args.duration)
         print(f"Recorded {writer.message_count} messages to '{output}'", flush=True)
     return 0
+
+
+async def _recorded(node: RosNode, selection: _Selection, output: Path, stop: asyncio.Event,
+                    duration: float) -> BagWriter:
+    """The bag, written until `stop` or `duration` s (0: no limit), then closed."""
+    writer = BagWriter(output, node.store)
+    recorder = _Recorder(node, writer)
+    graph = RosGraph(node)
+    deadline = time.monotonic() + duration if duration > 0 else None
+    print(f"Recording to '{output}'...", flush=True)
+    try:
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            graph.refresh()
+            for topic, pubs in _publishers_by_topic(graph).items():
+                if selection.wants(topic):
+                    recorder.follow(topic, pubs)
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(stop.wait(), DISCOVERY_PERIOD)
+    finally:
+        recorder.close()
+        writer.close()
+    return writer
 
 
 def _publishers_by_topic(graph: RosGraph) -> dict[str, list[Endpoint]]:
@@ -293,8 +294,9 @@ async def _play_once(node: RosNode, reader: BagReader, summary: BagSummary,
     start = time.monotonic()
     for offset, message in playback(reader.messages(set(publishers)), begin_ns, end_ns,
                                     args.rate):
-        if (wait := start + offset - time.monotonic()) > 0:
-            await asyncio.sleep(wait)
+        # Awaited even when late (0 s): a stop signal lands here, between two messages, also
+        # when the bag is played faster than it can be.
+        await asyncio.sleep(max(0.0, start + offset - time.monotonic()))
         pub = publishers[message.topic]
         pub.publish_cdr(message.data)
 

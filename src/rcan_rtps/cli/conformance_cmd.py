@@ -11,9 +11,10 @@ against a simulator or a robot that may be stopped.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import os
 import sys
+
+from .. import _stop_signals as stop_signals
 
 _ROLES = ("GUEST", "USER", "LEASEE", "OWNER", "CREATOR")
 
@@ -85,8 +86,9 @@ def _conformance(args: argparse.Namespace) -> int:
     if owner is None:
         return 2
     tokens = {"OWNER": owner, **dict(args.token_for)}
-    results = asyncio.run(run_suite(suite, args.level, args.url, tokens, skill=args.skill,
-                                    report=lambda r: print(r.line(), flush=True)))
+    results = stop_signals.run(run_suite(suite, args.level, args.url, tokens,
+                                         skill=args.skill,
+                                         report=lambda r: print(r.line(), flush=True)))
     counts = {o: sum(r.outcome == o for r in results)
               for o in ("pass", "fail", "n/a", "out of scope")}
     print(", ".join(f"{n} {o}" for o, n in counts.items()))

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
+
+from .. import _stop_signals as stop_signals
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -14,7 +15,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--json", action="store_true", help="one JSON object per robot")
     parser.add_argument("--interface", action="append", default=None, metavar="IP",
                         help="only this interface address (repeatable; default: all)")
-    parser.set_defaults(func=lambda a: asyncio.run(_discover(a)))
+    parser.set_defaults(func=lambda a: stop_signals.run(_discover(a)))
 
 
 async def _discover(args: argparse.Namespace) -> int:

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import os
 import platform
 import socket
@@ -18,6 +17,7 @@ import ifaddr
 from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsParticipant
 from cyclonedds.core import DDSException
 
+from .. import _stop_signals as stop_signals
 from ..ros import qos as qos_mod
 from ..ros._binding import binding_location, binding_version
 from ..ros.errors import WireError
@@ -50,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         help="also print what every check found, section by section")
     parser.add_argument("--spin-time", type=float, default=2.0,
                         help="seconds to listen for other participants (default 2)")
-    parser.set_defaults(func=lambda a: asyncio.run(_doctor(a)))
+    parser.set_defaults(func=lambda a: stop_signals.run(_doctor(a)))
 
 
 async def _doctor(args: argparse.Namespace) -> int:

@@ -9,7 +9,7 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from .. import __version__
+from .. import __version__, _stop_signals
 from . import _logging
 
 EXIT_ERROR = 1
@@ -95,40 +95,46 @@ def add_logging_options(parser: argparse.ArgumentParser, *, after_verb: bool = F
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # SIGTERM and SIGHUP (a closed terminal or ssh session) end every command as Ctrl-C does.
+    with _stop_signals.stop_rules():
+        return _guarded_main(argv)
+
+
+def _guarded_main(argv: Sequence[str] | None) -> int:
     try:
         return _main(argv)
-    except KeyboardInterrupt:  # before a command took Ctrl-C over (loading, parsing)
-        return _interrupted()
+    except KeyboardInterrupt as exc:  # before a command took the signals over (loading, parsing)
+        return _interrupted(exc)
     except ImportError as exc:  # no usable cyclonedds: missing, or a line the wire refuses
-        if caused_by_interrupt(exc):
-            return _interrupted()
+        if (interrupt := caused_by_interrupt(exc)) is not None:
+            return _interrupted(interrupt)
         if exc.name != "cyclonedds":
             raise
         print(f"rcan-rtps: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
     except Exception as exc:
-        if caused_by_interrupt(exc):
-            return _interrupted()
+        if (interrupt := caused_by_interrupt(exc)) is not None:
+            return _interrupted(interrupt)
         raise
 
 
-def caused_by_interrupt(exc: BaseException) -> bool:
-    """Whether a Ctrl-C is what `exc` wraps. Python 3.11 wraps an exception raised in a
-    class body's `__set_name__` in a RuntimeError: a Ctrl-C landing while cyclonedds
-    builds its classes (at import) comes out as one."""
+def caused_by_interrupt(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C (or other stop signal) `exc` wraps, if any. Python 3.11 wraps an exception
+    raised in a class body's `__set_name__` in a RuntimeError: a Ctrl-C landing while
+    cyclonedds builds its classes (at import) comes out as one."""
     seen: set[int] = set()
     cause: BaseException | None = exc
     while cause is not None and id(cause) not in seen:
         if isinstance(cause, KeyboardInterrupt):
-            return True
+            return cause
         seen.add(id(cause))
         cause = cause.__cause__ or cause.__context__
-    return False
+    return None
 
 
-def _interrupted() -> int:
+def _interrupted(interrupt: KeyboardInterrupt) -> int:
     print("rcan-rtps: interrupted", file=sys.stderr)
-    return EXIT_INTERRUPTED
+    return _stop_signals.exit_status(interrupt)
 
 
 def _main(argv: Sequence[str] | None) -> int:
@@ -142,8 +148,8 @@ def _main(argv: Sequence[str] | None) -> int:
 
     try:
         return int(args.func(args))
-    except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as exc:  # the command unwound in order (`_stop_signals.run`)
+        return _stop_signals.exit_status(exc)
     except BrokenPipeError:  # `… | head`: the reader has what it wanted
         _quiet_stdout()
         return 0

@@ -8,8 +8,9 @@ imported only here and only when the command runs.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import os
+
+from .. import _stop_signals as stop_signals
 
 DEFAULT_URL = "http://127.0.0.1:8765"
 EXTRA_HINT = "`rcan-rtps mcp` needs the MCP SDK: pip install 'rcan-rtps[mcp]'"
@@ -51,6 +52,6 @@ def run(args: argparse.Namespace) -> int:
     from ..mcp_server.bridge import check_url
     from ..mcp_server.seat import Agent
 
-    ended_by = asyncio.run(serve_stdio(check_url(args.url), token,
-                                       Agent(args.ai_provider, args.ai_model)))
+    ended_by = stop_signals.run(serve_stdio(check_url(args.url), token,
+                                            Agent(args.ai_provider, args.ai_model)))
     return 0 if ended_by is None else 128 + ended_by  # as the shell reports a signal's end

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 
+from .. import _stop_signals as stop_signals
 from ..ros.graph import Direction, Endpoint, RosGraph, node_fqn
 from ..ros.names import EndpointKind, action_of, is_hidden
 from ._common import make_node, warn_if_alone
@@ -17,13 +17,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     listing = actions.add_parser("list", help="every node announced on the graph")
     listing.add_argument("-a", "--all", action="store_true", help="include hidden nodes")
     add_spin_time(listing)
-    listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
+    listing.set_defaults(func=lambda a: stop_signals.run(_list(a)))
     info = actions.add_parser("info", help="endpoints of a node, grouped like ros2 node info")
     info.add_argument("node", metavar="NODE_NAME", help="the node, e.g. /robot1/rcan_bridge")
     info.add_argument("--include-hidden", action="store_true",
                       help="show hidden topics, services and actions too")
     add_spin_time(info)
-    info.set_defaults(func=lambda a: asyncio.run(_info(a)))
+    info.set_defaults(func=lambda a: stop_signals.run(_info(a)))
 
 
 async def _list(args: argparse.Namespace) -> int:

@@ -4,12 +4,12 @@ services every ROS 2 node serves (`<node>/list_parameters`, `get_parameters`, â€
 from __future__ import annotations
 
 import argparse
-import asyncio
 import re
 from typing import Any
 
 import yaml
 
+from .. import _stop_signals as stop_signals
 from ..ros.parameters import (
     BOOL,
     BOOL_ARRAY,
@@ -44,26 +44,26 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     listing.add_argument("node", metavar="NODE_NAME", help="the node, e.g. /robot1/controller")
     listing.add_argument("--filter", default="", help="only names matching this regex")
     _common_options(listing)
-    listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
+    listing.set_defaults(func=lambda a: stop_signals.run(_list(a)))
 
     get = actions.add_parser("get", help="value of a parameter")
     get.add_argument("node", metavar="NODE_NAME", help="the node, e.g. /robot1/controller")
     get.add_argument("name", metavar="PARAMETER_NAME", help="the parameter (dotted for nested)")
     get.add_argument("--hide-type", action="store_true", help="print the value only")
     _common_options(get)
-    get.set_defaults(func=lambda a: asyncio.run(_get(a)))
+    get.set_defaults(func=lambda a: stop_signals.run(_get(a)))
 
     set_ = actions.add_parser("set", help="set a parameter (VALUE is YAML)")
     set_.add_argument("node", metavar="NODE_NAME", help="the node, e.g. /robot1/controller")
     set_.add_argument("name", metavar="PARAMETER_NAME", help="the parameter (dotted for nested)")
     set_.add_argument("value", metavar="VALUE", help="a YAML value: 0.5, true, hello, [1, 2]")
     _common_options(set_)
-    set_.set_defaults(func=lambda a: asyncio.run(_set(a)))
+    set_.set_defaults(func=lambda a: stop_signals.run(_set(a)))
 
     dump = actions.add_parser("dump", help="every parameter of a node, as a params file")
     dump.add_argument("node", metavar="NODE_NAME", help="the node, e.g. /robot1/controller")
     _common_options(dump)
-    dump.set_defaults(func=lambda a: asyncio.run(_dump(a)))
+    dump.set_defaults(func=lambda a: stop_signals.run(_dump(a)))
 
 
 def _common_options(parser: argparse.ArgumentParser) -> None:

@@ -68,7 +68,7 @@ SLOW_START_HOOK_ENV = "RCAN_RTPS_TEST_SLOW_START_S"  # tests only: a start this 
 
 def _main(args: argparse.Namespace) -> int:
     # First, before any thread exists: SIGINT/SIGTERM/SIGHUP always end the process, even with the
-    # event loop stuck (graceful stop, bounded; a second signal exits at once).
+    # event loop stuck (graceful stop, bounded; a second SIGINT or SIGTERM exits at once).
     stopper = SignalStopper()
     try:
         return run_loop(_run(args, stopper))

@@ -7,6 +7,7 @@ import asyncio
 import re
 import time
 
+from .. import _stop_signals as stop_signals
 from ..ros.errors import ServiceUnavailable, seconds
 from ..ros.graph import RosGraph
 from ..ros.participant import RosNode
@@ -34,19 +35,19 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     listing.add_argument("--include-hidden-services", action="store_true",
                          help="include services whose name has a part starting with '_'")
     add_spin_time(listing)
-    listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
+    listing.set_defaults(func=lambda a: stop_signals.run(_list(a)))
 
     kind = actions.add_parser("type", help="type of a service")
     kind.add_argument("service", metavar="NAME", help="the service, e.g. /robot1/get_parameters")
     add_spin_time(kind)
-    kind.set_defaults(func=lambda a: asyncio.run(_type(a)))
+    kind.set_defaults(func=lambda a: stop_signals.run(_type(a)))
 
     find = actions.add_parser("find", help="services of a type")
     find.add_argument("type", metavar="TYPE", help="a service type, e.g. std_srvs/srv/Trigger")
     find.add_argument("--include-hidden-services", action="store_true",
                       help="also services whose name has a part starting with `_`")
     add_spin_time(find)
-    find.set_defaults(func=lambda a: asyncio.run(_find(a)))
+    find.set_defaults(func=lambda a: stop_signals.run(_find(a)))
 
     call = actions.add_parser("call", help="call a service with a request built from YAML")
     call.add_argument("service", metavar="NAME", help="service name, e.g. /reset")
@@ -56,7 +57,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     call.add_argument("values", metavar="VALUES", nargs="?", default=None, help=VALUES_HELP)
     call.add_argument("--timeout", type=float, default=10.0, help="seconds (default 10)")
     call.add_argument("--mapping", choices=MAPPINGS, default="auto", help=MAPPING_HELP)
-    call.set_defaults(func=lambda a: asyncio.run(_call(a)))
+    call.set_defaults(func=lambda a: stop_signals.run(_call(a)))
 
 
 async def _list(args: argparse.Namespace) -> int:

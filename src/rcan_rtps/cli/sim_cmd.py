@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import signal
 
+from .. import _stop_signals as stop_signals
 from ..ros.participant import RosNode
 from ..sim.docking import DockingServer
 from ..sim.navigation import NavigationServer
@@ -29,16 +29,16 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         help="its nav2 NavigateToPose server (default navigate_to_pose)")
     parser.add_argument("--dock-action", default="dock_robot",
                         help="its nav2 DockRobot server, dock id `home` (default dock_robot)")
-    parser.set_defaults(func=lambda a: asyncio.run(_run(a)))
+    parser.set_defaults(func=lambda a: stop_signals.run(_run(a)))
 
 
 async def _run(args: argparse.Namespace) -> int:
     stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    with RosNode(args.node_name, args.namespace, domain_id=args.domain_id,
-                 localhost=args.localhost, store=make_store(args)) as node:
+    # Ctrl-C, SIGTERM or SIGHUP: the robot's loop ends, its servers close, its node leaves
+    # the graph; a stop it was made for, so exit 0 (as `run`).
+    with stop_signals.taking_over(lambda sig: stop.set()), \
+            RosNode(args.node_name, args.namespace, domain_id=args.domain_id,
+                    localhost=args.localhost, store=make_store(args)) as node:
         robot = SimRobot(node, cmd_vel_type=args.cmd_vel_type,
                          params=SimParams(rate_hz=args.rate, cmd_timeout_s=args.cmd_timeout))
         nav = NavigationServer(robot, args.nav_action)

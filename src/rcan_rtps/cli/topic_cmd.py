@@ -10,6 +10,7 @@ import sys
 import time
 from typing import Any
 
+from .. import _stop_signals as stop_signals
 from ..ros import qos as qos_mod
 from ..ros.errors import GraphTimeout, seconds
 from ..ros.graph import Direction, Endpoint, RosGraph, short_gid
@@ -43,14 +44,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     listing.add_argument("--include-hidden-topics", action="store_true",
                          help="include topics whose name has a part starting with '_'")
     add_spin_time(listing)
-    listing.set_defaults(func=lambda a: asyncio.run(_list(a)))
+    listing.set_defaults(func=lambda a: stop_signals.run(_list(a)))
 
     info = actions.add_parser("info", help="type and endpoints of a topic")
     info.add_argument("topic", metavar="TOPIC", help=TOPIC_HELP)
     info.add_argument("-v", "--verbose", action="store_true",
                       help="list every endpoint: node, QoS, type hash, GID, DDS vendor")
     add_spin_time(info)
-    info.set_defaults(func=lambda a: asyncio.run(_info(a)))
+    info.set_defaults(func=lambda a: stop_signals.run(_info(a)))
 
     echo = actions.add_parser("echo", help="print messages of a topic")
     echo.add_argument("topic", metavar="TOPIC", help=TOPIC_HELP)
@@ -69,7 +70,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                       help="print arrays and sequences as a placeholder with type and length")
     echo.add_argument("--timeout", type=float, default=0.0, help="give up after S seconds")
     add_qos_options(echo)
-    echo.set_defaults(func=lambda a: asyncio.run(_echo(a)))
+    echo.set_defaults(func=lambda a: stop_signals.run(_echo(a)))
 
     pub = actions.add_parser("pub", help="publish messages built from YAML values")
     pub.add_argument("topic", metavar="TOPIC", help=TOPIC_HELP)
@@ -85,19 +86,19 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                      "--times, else 0)")
     pub.add_argument("--qos-profile", default="default", choices=sorted(qos_mod.PRESETS),
                      help="QoS preset of the publisher (default: default)")
-    pub.set_defaults(func=lambda a: asyncio.run(_pub(a)))
+    pub.set_defaults(func=lambda a: stop_signals.run(_pub(a)))
 
     kind = actions.add_parser("type", help="type of a topic")
     kind.add_argument("topic", metavar="TOPIC", help="the topic, e.g. /robot1/odom")
     add_spin_time(kind)
-    kind.set_defaults(func=lambda a: asyncio.run(_type(a)))
+    kind.set_defaults(func=lambda a: stop_signals.run(_type(a)))
 
     find = actions.add_parser("find", help="topics of a type")
     find.add_argument("type", metavar="TYPE", help="a message type, e.g. nav_msgs/msg/Odometry")
     find.add_argument("--include-hidden-topics", action="store_true",
                       help="also topics whose name has a part starting with `_`")
     add_spin_time(find)
-    find.set_defaults(func=lambda a: asyncio.run(_find(a)))
+    find.set_defaults(func=lambda a: stop_signals.run(_find(a)))
 
     hz = actions.add_parser("hz", help="rate of a topic")
     hz.add_argument("topic", metavar="TOPIC", help=TOPIC_HELP)
@@ -106,7 +107,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     hz.add_argument("--window", type=int, default=10000, metavar="N",
                     help="compute the rate over the last N messages (default 10000)")
     hz.add_argument("--duration", type=float, default=0.0, help="stop after S seconds")
-    hz.set_defaults(func=lambda a: asyncio.run(_hz(a)))
+    hz.set_defaults(func=lambda a: stop_signals.run(_hz(a)))
     _measure.register(actions)
 
 

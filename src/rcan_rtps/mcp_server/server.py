@@ -30,6 +30,7 @@ from mcp.shared.exceptions import MCPError
 from mcp_types.jsonrpc import INTERNAL_ERROR, INVALID_REQUEST
 
 from rcan_rtps import __version__
+from rcan_rtps import _stop_signals as stop_signals
 
 from .bridge import BridgeClient
 from .keepalive import Keepalive
@@ -43,7 +44,7 @@ from .resources import (
     RESOURCES,
 )
 from .seat import Agent, Seat
-from .stdio import StdinLines, ending_on_signals
+from .stdio import StdinLines
 from .tools import DURATION, WAIT_MAX_S, ToolDef, derive_tools
 
 log = logging.getLogger(__name__)
@@ -359,7 +360,8 @@ async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:
         # The SDK's own stdin reader cannot be cancelled: see stdio.py. (The SDK only
         # iterates what it is given.)
         stdin = cast("anyio.AsyncFile[str]", StdinLines(sys.stdin.fileno()))
-        with anyio.CancelScope() as serving, ending_on_signals(serving) as signals:
+        with anyio.CancelScope() as serving, \
+                stop_signals.taking_over(lambda sig: serving.cancel()) as signals:
             try:
                 async with stdio_server(stdin=stdin) as (read, write), \
                         anyio.create_task_group() as group:
@@ -369,7 +371,7 @@ async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:
             except Exception as exc:
                 if not client_gone(exc):
                     raise
-        ended_by = signals[0] if signals else None
+        ended_by = signals.received
         if seat.keepalive.holding:
             why = "MCP client disconnected" if ended_by is None else \
                 f"MCP server ended by {signal.Signals(ended_by).name}"

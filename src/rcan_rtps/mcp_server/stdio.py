@@ -7,23 +7,20 @@ had it ended, it would have skipped stopping the motion its agent had started).
 
 - `StdinLines`: stdin's lines, read by a daemon thread that hands each over and waits until
   it is taken (the SDK's own pace); a cancelled reader leaves the thread blocked, harmlessly.
-- `ending_on_signals`: SIGINT, SIGTERM and SIGHUP cancel the serving scope (so the server
-  then stops what it started, as when the client goes) and are remembered for the exit code.
+
+SIGINT, SIGTERM and SIGHUP cancel the serving scope (`serve_stdio`, through the command
+line's one way of taking them: `rcan_rtps._stop_signals`), so the server then stops what it
+started, as when the client goes.
 """
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
-import contextlib
 import os
-import signal
 import threading
 from collections.abc import AsyncIterator, Iterator
 
-import anyio
-
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 READ_SIZE = 65536
 
 
@@ -81,23 +78,3 @@ def _hand_over(loop: asyncio.AbstractEventLoop, lines: asyncio.Queue[str], line:
     except (RuntimeError, concurrent.futures.CancelledError):
         return False
     return True
-
-
-@contextlib.contextmanager
-def ending_on_signals(scope: anyio.CancelScope) -> Iterator[list[int]]:
-    """Within: a STOP_SIGNALS signal cancels `scope`; the list yielded holds the signals
-    received. Call on the event loop's thread."""
-    loop = asyncio.get_running_loop()
-    received: list[int] = []
-
-    def on_signal(sig: int) -> None:
-        received.append(sig)
-        scope.cancel()
-
-    for sig in STOP_SIGNALS:
-        loop.add_signal_handler(sig, on_signal, sig)
-    try:
-        yield received
-    finally:
-        for sig in STOP_SIGNALS:
-            loop.remove_signal_handler(sig)

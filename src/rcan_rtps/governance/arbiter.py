@@ -78,14 +78,16 @@ class BaseArbiter:
     # -- goals ------------------------------------------------------------------------------
 
     def hold_goal(self, goal_id: str | None, owner: Principal, priority: int,
-                  message_id: str) -> Rejection | None:
+                  message_id: str, stops: int) -> Rejection | None:
         """An accepted goal holds the base: the stream and the goals it replaces end. If a
-        higher stream, goal or lock took the base while it was being sent, it is cancelled
-        (the refusal returned)."""
+        stop came since it was decided (`stops`: `streams.stops` then), or a higher stream,
+        goal or lock took the base while it was being sent, it is cancelled (the refusal
+        returned): a stop's cancel reaches only the goals a server has."""
         if goal_id is None:
             return None
         goal = HeldGoal(goal_id, owner.name, priority, message_id)
-        refused = self.streams.admits(priority)
+        refused = outcomes.STOPPED if self.streams.stopped_since(stops) else \
+            self.streams.admits(priority)
         if refused is not None:
             self.cancel_goals([goal], owner, why=refused.reason or "refused")
             return refused
@@ -158,8 +160,10 @@ class BaseArbiter:
 
     async def stream(self, command: NormalizedCommand, principal: Principal,
                      owner: Principal, params: ActionParams, applied: dict[str, Any],
-                     event: AuditEvent, pending_id: str | None, priority: int) -> Decision:
-        """A move: its write-ahead entry (naming the stream it replaces), then the stream.
+                     event: AuditEvent, pending_id: str | None, priority: int,
+                     stops: int) -> Decision:
+        """A move: its write-ahead entry (naming the stream it replaces), then the stream —
+        unless a stop came since it was decided (`stops`: `streams.stops` then).
 
         The claim is made with no await before the entry is sealed, so claims and entries
         come in the same order; a move that does not start releases its claim."""
@@ -176,13 +180,15 @@ class BaseArbiter:
             # Checked again after the write, with no await between this check and the publish.
             if self._latch.latched:
                 return await steps.failed(command, principal, outcomes.ESTOP_ACTIVE)
-            return await self._start_stream(command, owner, params, priority,
+            if self.streams.stopped_since(stops):
+                return await steps.failed(command, principal, outcomes.STOPPED)
+            return await self._start_stream(command, owner, params, priority, stops,
                                              (applied, receipt), replaces)
         finally:
             self.streams.release(owner.name, command.message_id)
 
     async def _start_stream(self, command: NormalizedCommand, principal: Principal,
-                            params: ActionParams, priority: int,
+                            params: ActionParams, priority: int, stops: int,
                             audited: tuple[dict[str, Any], AuditReceipt],
                             replaces: Replaces | None) -> Decision:
         """After the write-ahead entry: the first sample, then the stream takes over.
@@ -204,7 +210,7 @@ class BaseArbiter:
             return await steps.failed(command, principal, failure)
         stream = Stream(action=command.action, owner=principal.name, priority=priority,
                         target=target, message_id=command.message_id,
-                        duration_s=params.duration_s)
+                        duration_s=params.duration_s, stops=stops)
         refused = self.streams.start(stream, first, by=principal.name, recorded=replaces)
         if refused is not None:
             return await steps.failed(command, principal, refused)

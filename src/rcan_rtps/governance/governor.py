@@ -377,13 +377,16 @@ class Governor:
         """`issuer`: whose command it is, when `principal` approved it (HiTL)."""
         applied = msgspec.structs.asdict(params)
         spec = command.spec
+        # A stop from here on wins over this command: it is decided before the stop, so it
+        # must not reach the robot after it (`VelocityStreams.stopped_since`).
+        stops = self.streams.stops
         if spec.effect is Effect.CLEAR_ESTOP:
             return await self.latch.clear(
                 lambda: self._estops.clear(command, principal, event, pending_id))
         if spec.effect in (Effect.LOCK, Effect.UNLOCK):
             return await self._base.lock(command, principal, params, event, pending_id)
         if spec.effect is Effect.HALT:  # zero at once, before the stop is even audited
-            self.streams.end(EndReason.STOPPED, principal.name)
+            self.streams.halt(principal.name)
             return await self._halt(command, principal, params, event)
         motion = spec.motion
         if motion and self.latch.latched:
@@ -406,7 +409,7 @@ class Governor:
                                       pending_id=pending_id)
         if spec.streamed:
             return await self._base.stream(command, principal, owner, params, applied, event,
-                                      pending_id, priority)
+                                      pending_id, priority, stops)
         entry = record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          pending_id=pending_id, ros2_topic=self._steps.route(command))
         receipt = await self._steps.write_ahead(entry)
@@ -415,6 +418,8 @@ class Governor:
         # Checked again after the write, with no await between this check and the publish.
         if motion and self.latch.latched:
             return await self._steps.failed(command, principal, outcomes.ESTOP_ACTIVE)
+        if motion and self.streams.stopped_since(stops):
+            return await self._steps.failed(command, principal, outcomes.STOPPED)
         if motion:
             self._sending(owner, command)
         result, failure = await self._steps.dispatch(command, params)
@@ -424,7 +429,8 @@ class Governor:
             # Accepted while an e-stop latched: the e-stop's cancel may have missed this goal.
             await self._steps.dispatch(bridge_command(Effect.HALT))
         elif spec.starts_goal:
-            refused = self._base.hold_goal(result.goal_id, owner, priority, command.message_id)
+            refused = self._base.hold_goal(result.goal_id, owner, priority, command.message_id,
+                                           stops)
             if refused is not None:
                 return await self._steps.failed(command, principal, refused)
         return executed(command, applied, receipt, result)

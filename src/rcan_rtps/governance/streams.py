@@ -108,6 +108,7 @@ class Stream(msgspec.Struct):
     started_at: float = 0.0  # loop time
     ends_at: float | None = None
     samples: int = 0
+    stops: int = 0  # `VelocityStreams.stops` when the move was decided
 
 
 class StreamEnded(msgspec.Struct, frozen=True):
@@ -185,6 +186,8 @@ class VelocityStreams:
         self.commanded = ZERO  # the velocity last sent
         self.locks: dict[str, int] = {}  # engaged lock → its priority
         self.goals: dict[str, HeldGoal] = {}  # goals in progress, by id
+        # Stops so far (`halt`): motion decided before one must not start after it.
+        self.stops = 0
         self.on_end: Callable[[StreamEnded], None] = lambda ended: None
         self._handle: Cancellable | None = None
         self._last = ZERO
@@ -263,7 +266,8 @@ class VelocityStreams:
         `recorded`: the stream the new move's audit entry says it replaces; its end needs no
         entry of its own (any other stream it replaces, after a race, gets one)."""
         self.release(stream.owner, stream.message_id)
-        refused = self.admits(stream.priority)
+        refused = outcomes.STOPPED if self.stopped_since(stream.stops) else \
+            self.admits(stream.priority)
         if refused is not None:  # changed since the first sample went: undo it at once
             self._send(self._last if self.active is not None else ZERO)
             return refused
@@ -287,6 +291,16 @@ class VelocityStreams:
         if self._handle is None:
             self._schedule(timer, stream.started_at + self.period)
         return None
+
+    def halt(self, by: str) -> bool:
+        """A stop: the active stream ends (as `end`), and motion decided before this and not
+        yet started never starts (`stopped_since`)."""
+        self.stops += 1
+        return self.end(EndReason.STOPPED, by)
+
+    def stopped_since(self, stops: int) -> bool:
+        """Whether a stop came after `stops` (a value of `self.stops` taken earlier)."""
+        return self.stops != stops
 
     def end(self, reason: EndReason, by: str | None = None) -> bool:
         """End the active stream, if any, sending zero at once (True). Without one (False),

@@ -93,6 +93,8 @@ class Reason(str, enum.Enum):
     ROBOT_SILENT = "robot_silent"
     ESTOP_STATE_UNWRITABLE = "estop_state_unwritable"
     DURATION_LIMIT = "duration_limit"  # duration_s over safety.max_move_duration_s
+    # A stop came after the command was decided and before its motion reached the robot.
+    STOPPED = "stopped"
     LOWER_PRIORITY = "lower_priority"  # a higher-priority velocity stream is running
     MOTION_LOCKED = "motion_locked"  # a motion lock of a higher priority is engaged
     UNKNOWN_LOCK = "unknown_lock"  # not in bridge.motion.locks

@@ -13,6 +13,7 @@ import logging
 import os
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from contextlib import AbstractContextManager, closing, contextmanager
@@ -635,3 +636,36 @@ async def test_a_restarted_cyclone_server_s_feedback_writer_is_not_taken_for_in_
                 assert client.feedback_in_sync()
             while client.server_present():
                 await asyncio.sleep(0.05)
+
+
+@pytest.mark.parametrize("oracle_rmw", ["fastrtps"])
+async def test_a_goal_s_looks_in_the_capture_are_off_the_event_loop(
+        oracle: RclpyOracle, node: RosNode, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A goal looks in the packet capture for its feedback at its first feedback
+    (`feedback_before`) and, when none came, at its end (`captured_feedback`, which reads the
+    capture to its end every time): each look may parse up to MISS_BUDGET bytes (250-440 ms
+    of small datagrams, bench/capture_lag.py), so each is made in a worker thread, as a late
+    reply's is, never on the event loop a stop needs."""
+    await oracle.acall("action_server", name="/fib_burst", period=0.0)
+    capture = node.identities
+    assert capture is not None
+    looked_on: dict[str, list[int]] = {"feedback_before": [], "captured_feedback": []}
+    for name, threads in looked_on.items():
+        monkeypatch.setattr(capture, name, _noting_thread(getattr(capture, name), threads))
+    with closing(burst_client(node)) as ours:
+        fed = await ours.send_goal({"order": 4}, timeout=10)  # feedback: the first one's look
+        assert len([f async for f in fed.feedback(timeout=30)]) == 3
+        bare = await ours.send_goal({"order": 1}, timeout=10)  # none: the look at its end
+        assert [f async for f in bare.feedback(timeout=30)] == []
+    assert all(looked_on.values()), f"not looked: {looked_on}"
+    on_loop = {k: v.count(threading.get_ident()) for k, v in looked_on.items()}
+    assert on_loop == {"feedback_before": 0, "captured_feedback": 0}, \
+        f"looks on the event loop: {on_loop} of {looked_on}"
+    assert capture._replies.held == 0
+
+
+def _noting_thread(look: Callable[..., Any], threads: list[int]) -> Callable[..., Any]:
+    def noted(*args: Any) -> Any:
+        threads.append(threading.get_ident())
+        return look(*args)
+    return noted

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 from ..api.ports import GoalView
 from ..events import Events
 from ..ros.actions import ActionClient
-from ..ros.errors import WireError
+from ..ros.errors import ActionError, WireError
 from ..ros.participant import RosNode
 from ..ros.services import RequestMapping
 
@@ -51,6 +51,8 @@ class GoalTracker:
         self.events = events or Events()
         self._cancel_ready_for = 0  # the server match the cancel client was prepared for
         self._preparing: asyncio.Task[None] | None = None
+        # Stops so far (`cancel_all`): a goal that was being sent across one is cancelled.
+        self._stops = 0
 
     @property
     def action_name(self) -> str:
@@ -64,14 +66,31 @@ class GoalTracker:
                    message_id: str | None = None, command: str | None = None) -> str:
         """Sends a goal (for the command `message_id` of action `command`); its id once
         accepted. Raises on rejection, or when no server answers within `timeout`."""
+        stops = self._stops
         if self._sent is None:
             from .sent_goals import SentGoals  # a goal is a move, never a stop
 
             self._sent = SentGoals(self.client, self._views, self.events, self._keep)
-        return await self._sent.send(goal, timeout, message_id=message_id, command=command)
+        goal_id = await self._sent.send(goal, timeout, message_id=message_id, command=command)
+        if self._stops != stops:
+            await self._stopped_while_sent(goal_id)
+        return goal_id
+
+    async def _stopped_while_sent(self, goal_id: str) -> None:
+        """A stop came while the goal was on its way: its server-wide cancel may have reached
+        the server first (a server cancels only the goals it has), so this one is cancelled
+        now and the command refused (fails closed: the stop wins)."""
+        assert self._sent is not None
+        log.warning("a stop came while goal %s was being sent to %s: cancelling it", goal_id,
+                    self.client.name)
+        if not await self._sent.cancel(goal_id):
+            await self.cancel_all()  # not confirmed: every goal of the server, again
+        raise ActionError(f"a stop came while the goal was being sent to {self.client.name}: "
+                          f"goal {goal_id} cancelled")
 
     async def cancel_all(self) -> int:
         """Cancels every goal on the server, whoever sent it: `stop` means stop."""
+        self._stops += 1  # before any await: a goal being sent now is cancelled once accepted
         if not self.client.server_present():
             return 0  # nothing to cancel, and no reason to wait for a server to appear
         try:

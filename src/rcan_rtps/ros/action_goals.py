@@ -125,6 +125,10 @@ class ClientGoal:
         # (writer GUID, source timestamp) of the feedback delivered from the capture: the
         # reader's copy of one, should it come after all, is not yielded again
         self._from_capture: set[tuple[bytes, int | None]] = set()
+        # The look for what came before the first feedback our reader delivered, and what the
+        # reader delivered meanwhile (yielded after what the look finds).
+        self._looking: asyncio.Task[None] | None = None
+        self._held_back: list[tuple[IdlStruct, tuple[bytes, int] | None]] = []
         # Set by `feedback()` once the goal has ended, its result is in (or was given up on)
         # and every feedback that had reached us by then was yielded: what it yields after is
         # feedback whose dropped datagram came again, in the repair window.
@@ -240,8 +244,11 @@ class ClientGoal:
         source timestamp, when known and looked for)."""
         if key is not None and key in self._from_capture:
             return  # delivered from the capture already: this is its late copy
-        if self._capture is not None:
-            self._captured_before(key)
+        if self._looking is None and self._capture is not None:  # its first: look before it
+            self._looking = asyncio.get_running_loop().create_task(self._captured_before(key))
+        if self._looking is not None:  # after what the look finds
+            self._held_back.append((feedback, key))
+            return
         self._put(feedback)
 
     def _put(self, feedback: IdlStruct) -> None:
@@ -250,18 +257,28 @@ class ClientGoal:
             self._feedback.get_nowait()
         self._feedback.put_nowait(feedback)
 
-    def _captured_before(self, key: tuple[bytes, int] | None) -> None:
+    async def _captured_before(self, key: tuple[bytes, int] | None) -> None:
         """Before the first feedback our reader delivered: the goal's feedback that reached
         our socket ahead of it (same writer, lower sequence numbers), which the reader never
         delivered. Cyclone drops as history only what came before the reader's start, so
-        nothing after this one is looked for."""
-        capture = self._capture
-        if capture is None:
-            return
-        earlier = None if key is None else capture.feedback_before(self.goal_id, *key)
-        self._release_capture()  # (after the look: what it kept goes with it)
-        for sample in sorted(earlier or (), key=lambda s: s.seq):
-            self._deliver_captured(sample)
+        nothing after this one is looked for. The look may read the capture to its end (up
+        to MISS_BUDGET bytes): in a worker thread, not on the loop a stop needs; what the
+        reader delivers meanwhile is held back, and follows what it finds."""
+        capture, earlier = self._capture, None
+        try:
+            if capture is not None and key is not None:
+                earlier = await asyncio.to_thread(capture.feedback_before, self.goal_id, *key)
+        except Exception as exc:  # (the capture closed meanwhile, say): nothing put before
+            log.warning("action %s: looking in the packet capture for feedback of goal %s: "
+                        "%s", self._sender.name, uuid.UUID(bytes=self.goal_id), exc)
+        finally:  # no await from here on: nothing comes in between
+            self._release_capture()  # (after the look: what it kept goes with it)
+            for sample in sorted(earlier or (), key=lambda s: s.seq):
+                self._deliver_captured(sample)
+            held, self._held_back, self._looking = self._held_back, [], None
+            for feedback, its_key in held:
+                if its_key is None or its_key not in self._from_capture:
+                    self._put(feedback)
 
     async def _feedback_from_capture(self) -> None:
         """Once the goal has ended and nothing of it came from our reader: its feedback that
@@ -269,21 +286,29 @@ class ClientGoal:
         HEARTBEAT ahead of it taken as our reader's start, docs/design/zero-loss.md), in the
         order the writer sent it. The reader gets its turn first (CAPTURE_SETTLE, then the
         reader thread's barrier); a sample it delivers meanwhile takes the other path
-        (`_captured_before`)."""
+        (`_captured_before`). Each look reads the capture to its end: in a worker thread."""
         capture = self._capture
         if capture is None:
             return
-        if not capture.captured_feedback(self.goal_id):
-            self._release_capture()
-            return
-        await asyncio.sleep(CAPTURE_SETTLE)  # it may just have come: reader first
-        await self._sender.node.delivered()
-        if self._capture is not capture:
+        kept = await self._look_at_end(capture)
+        if kept:
+            await asyncio.sleep(CAPTURE_SETTLE)  # it may just have come: reader first
+            await self._sender.node.delivered()
+            kept = await self._look_at_end(capture)
+        if kept is None:
             return  # the reader delivered one meanwhile, and what came before it was taken
-        kept = capture.captured_feedback(self.goal_id)
         self._release_capture()
         for sample in sorted(kept, key=lambda s: (s.writer_guid, s.seq)):
             self._deliver_captured(sample)
+
+    async def _look_at_end(self, capture: IdentityCapture) -> list[CapturedSample] | None:
+        """The goal's feedback kept in the capture, read to its end in a worker thread; None
+        if our reader delivered one meanwhile (the look before that one, waited for here,
+        took what came first and let go of the capture)."""
+        kept = await asyncio.to_thread(capture.captured_feedback, self.goal_id)
+        if self._looking is not None:
+            await asyncio.shield(self._looking)
+        return kept if self._capture is capture else None
 
     def _deliver_captured(self, sample: CapturedSample) -> None:
         sender = self._sender

@@ -13,11 +13,13 @@
 After the first, a SIGHUP is ignored: a closed terminal sends its foreground job two (its
 shell hangs up its jobs, then the kernel hangs up the foreground group as the shell, the
 session leader, exits), and the ordered end must be let finish. A SIGINT or SIGTERM then is
-someone insisting: the kernel's default action ends the process at once. A stop signal
-ignored when the process started stays ignored: `nohup rcan-rtps …` outlives its terminal,
-as nohup promises. Before a command's loop runs (the command line loading), SIGTERM and SIGHUP
-take their default action: nothing has started, and an exception thrown into whatever
-Python runs then (imports, logging's locks) is no safer than Ctrl-C's there.
+someone insisting: the kernel's default action ends the process at once. A SIGHUP ignored
+when the process started stays ignored: `nohup rcan-rtps …` outlives its terminal, as nohup
+promises. A SIGINT ignored at start is still a stop: a non-interactive shell starts its
+background jobs (`cmd &`) so, and a script stops them with `kill -INT`. Before a command's
+loop runs (the command line loading), SIGTERM and SIGHUP take their default action: nothing
+has started, and an exception thrown into whatever Python runs then (imports, logging's
+locks) is no safer than Ctrl-C's there.
 
 `rcan-rtps run` takes the same signals on a `sigwait` thread of its own, which works with
 its event loop stuck (`bridge.watchdog.SignalStopper`), by the same rules: `taken()`,
@@ -36,8 +38,10 @@ T = TypeVar("T")
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 RECANCEL_S = 1.0  # s between cancellations of a command that runs on after one (`_cancel`)
 # Read when first imported, before anything of ours replaces a handler (`cli.main` imports
-# this first): what the process was started with.
-_IGNORED_AT_START = frozenset(sig for sig in STOP_SIGNALS
+# this first): whether the process was started with SIGHUP ignored (`nohup`). Only SIGHUP: a
+# non-interactive shell starts its background jobs (`cmd &`) with SIGINT ignored, and a
+# script stops such a job with `kill -INT`; a stop asked for is a stop.
+_IGNORED_AT_START = frozenset(sig for sig in (signal.SIGHUP,)
                               if signal.getsignal(sig) is signal.SIG_IGN)
 
 
@@ -55,7 +59,7 @@ def exit_status(interrupt: KeyboardInterrupt) -> int:
 
 
 def taken() -> tuple[signal.Signals, ...]:
-    """The stop signals this process takes: those it was not started ignoring."""
+    """The stop signals this process takes: all but a SIGHUP it was started ignoring."""
     return tuple(sig for sig in STOP_SIGNALS if sig not in _IGNORED_AT_START)
 
 

@@ -318,3 +318,41 @@ def test_bag_record_under_nohup_outlives_a_hangup(peer: RclpyOracle, domain_id: 
         command.kill()
     assert code == 0, command.output()
     assert "Recorded 3 messages" in "".join(command.stdout), command.output()
+
+
+# -- a background job: SIGINT ignored from the start is still a stop --------------------------
+
+def _sigint_ignored() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a non-interactive shell starts `cmd &`
+
+
+def test_run_started_as_a_background_job_stops_on_sigint(tmp_path: Path, domain_id: int) -> None:
+    """A script's `rcan-rtps run --sim &` starts with SIGINT ignored (bash does that to the
+    background jobs of a non-interactive shell), and `kill -INT` is how such a script stops it
+    (scripts/readme_main.sh does). Only nohup's SIGHUP stays ignored: a SIGINT ignored at
+    start was kept ignored, and the bridge ran on."""
+    command = Command(domain_id, ["run", "--sim", "--port", "0", "--no-mdns",
+                                  *state_args(tmp_path, "state")], preexec_fn=_sigint_ignored)
+    try:
+        command.wait_for(r"^rcan-rtps ready")
+        code = command.end_by(signal.SIGINT)
+    finally:
+        command.kill()
+    assert code == 0, command.output()
+    assert "Traceback" not in command.output(), command.output()
+    audit = (tmp_path / "state" / "audit.jsonl").read_text()
+    assert '"event":"BRIDGE_STOPPED"' in audit
+
+
+def test_topic_pub_started_as_a_background_job_stops_on_sigint(peer: RclpyOracle,
+                                                              domain_id: int) -> None:
+    peer.call("subscribe", topic="/sig/bg", type="std_msgs/msg/String")
+    command = Command(domain_id, ["topic", "pub", "/sig/bg", "std_msgs/msg/String",
+                                  "{data: hello}", "-r", "20"], preexec_fn=_sigint_ignored)
+    try:
+        eventually_sync(lambda: peer.call("take", topic="/sig/bg"), timeout=READY_S,
+                        what=command.output)
+        code = command.end_by(signal.SIGINT)
+    finally:
+        command.kill()
+    assert_ended_in_order(peer, command, code, 128 + signal.SIGINT, command.node_name)

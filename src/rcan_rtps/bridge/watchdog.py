@@ -10,7 +10,7 @@ thread exists, so every later thread inherits the block, and a dedicated thread 
 with `sigwait`: the first asks the loop to shut down gracefully and, if that has not
 finished within `bound` s, logs the stacks and `os._exit`s; a second SIGINT or SIGTERM exits
 at once, a second SIGHUP is ignored (a closed terminal sends two). A signal the process was
-started ignoring (`nohup`) stays ignored. These are every command's rules
+started ignoring (SIGHUP under `nohup`) stays ignored. These are every command's rules
 (`rcan_rtps._stop_signals`); `run` takes the signals on a thread because its loop may be
 stuck. As a backstop that needs no GIL, the first signal also arms faulthandler to dump the
 stacks and exit a few seconds after the bound.

@@ -31,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import signal
+import threading
 from collections.abc import Callable, Coroutine, Iterator
 from typing import Any, TypeVar
 
@@ -105,9 +106,14 @@ def _after_the_first() -> None:
 
 @contextlib.contextmanager
 def stop_rules() -> Iterator[None]:
-    """Within: the module's rules for signals after the first apply. Call on the main thread;
-    the handlers found are put back after."""
+    """Within: the module's rules for signals after the first apply; the handlers found are
+    put back after. Off the main thread (a program calling the command line from a thread of
+    its own) nothing is set: Python lets only the main thread take signals."""
     global _stopping
+    if not _on_main_thread():
+        _stopping = _Stopping()
+        yield
+        return
     _stopping = _Stopping(handling=True)
     before = {sig: signal.getsignal(sig) for sig in taken()}
     try:
@@ -168,13 +174,17 @@ def _on_the_loop(react: Callable[[int], object]) -> Iterator[None]:
     """The loop's own signal handling (it wakes the loop) calls `react` on the first one."""
     loop = asyncio.get_running_loop()
     _stopping.reactions.append(react)
-    if _stopping.received is None:
+    if _stopping.received is None and _on_main_thread():
         for sig in taken():
             loop.add_signal_handler(sig, _first_on_the_loop, sig)
     try:
         yield
     finally:
         _stopping.reactions.pop()
+
+
+def _on_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
 
 
 def _first_on_the_loop(sig: int) -> None:

@@ -86,8 +86,7 @@ class BaseArbiter:
         if goal_id is None:
             return None
         goal = HeldGoal(goal_id, owner.name, priority, message_id)
-        refused = outcomes.STOPPED if self.streams.stopped_since(stops) else \
-            self.streams.admits(priority)
+        refused = self.streams.admits(priority, since=stops)
         if refused is not None:
             self.cancel_goals([goal], owner, why=refused.reason or "refused")
             return refused
@@ -178,10 +177,9 @@ class BaseArbiter:
             if receipt is None:
                 return decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
             # Checked again after the write, with no await between this check and the publish.
-            if self._latch.latched:
-                return await steps.failed(command, principal, outcomes.ESTOP_ACTIVE)
-            if self.streams.stopped_since(stops):
-                return await steps.failed(command, principal, outcomes.STOPPED)
+            halted = self.streams.halted_since(stops)
+            if halted is not None:
+                return await steps.failed(command, principal, halted)
             return await self._start_stream(command, owner, params, priority, stops,
                                              (applied, receipt), replaces)
         finally:

@@ -416,10 +416,9 @@ class Governor:
         if receipt is None:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         # Checked again after the write, with no await between this check and the publish.
-        if motion and self.latch.latched:
-            return await self._steps.failed(command, principal, outcomes.ESTOP_ACTIVE)
-        if motion and self.streams.stopped_since(stops):
-            return await self._steps.failed(command, principal, outcomes.STOPPED)
+        halted = self.streams.halted_since(stops) if motion else None
+        if halted is not None:
+            return await self._steps.failed(command, principal, halted)
         if motion:
             self._sending(owner, command)
         result, failure = await self._steps.dispatch(command, params)

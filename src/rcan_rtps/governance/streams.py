@@ -194,9 +194,11 @@ class VelocityStreams:
         self._claim: _Claim | None = None  # the move that starts next, once audited
 
     # -- admission -----------------------------------------------------------------------
-    def admits(self, priority: int) -> Rejection | None:
+    def admits(self, priority: int, *, since: int | None = None) -> Rejection | None:
         """None if a move or goal of `priority` may start now (no higher stream, goal or
-        lock)."""
+        lock; with `since`, a value of `stops` taken when it was decided: no stop since)."""
+        if since is not None and self.stopped_since(since):
+            return outcomes.STOPPED
         if self._latch.latched:
             return outcomes.ESTOP_ACTIVE
         if any(p > priority for p in self.locks.values()):
@@ -266,8 +268,7 @@ class VelocityStreams:
         `recorded`: the stream the new move's audit entry says it replaces; its end needs no
         entry of its own (any other stream it replaces, after a race, gets one)."""
         self.release(stream.owner, stream.message_id)
-        refused = outcomes.STOPPED if self.stopped_since(stream.stops) else \
-            self.admits(stream.priority)
+        refused = self.admits(stream.priority, since=stream.stops)
         if refused is not None:  # changed since the first sample went: undo it at once
             self._send(self._last if self.active is not None else ZERO)
             return refused
@@ -301,6 +302,14 @@ class VelocityStreams:
     def stopped_since(self, stops: int) -> bool:
         """Whether a stop came after `stops` (a value of `self.stops` taken earlier)."""
         return self.stops != stops
+
+    def halted_since(self, stops: int) -> Rejection | None:
+        """After a motion command's write-ahead entry, just before its first publish: why it
+        must not reach the robot — the e-stop latched, or a stop came since it was decided
+        (`stops`) — or None."""
+        if self._latch.latched:
+            return outcomes.ESTOP_ACTIVE
+        return outcomes.STOPPED if self.stopped_since(stops) else None
 
     def end(self, reason: EndReason, by: str | None = None) -> bool:
         """End the active stream, if any, sending zero at once (True). Without one (False),

@@ -348,7 +348,7 @@ async def test_a_long_lived_client_forgets_the_fast_dds_servers_that_left(
         reply = await client.call({}, timeout=20)
         assert (reply.success, reply.message) == (True, "triggered #1")
         pair = client._pairs[RequestMapping.FASTDDS]
-        remembered.append(len(pair._writer_guids))
+        remembered.append(len(pair.writer_guids))
         await oracle.acall("unserve", name="/trigger")
         # gone from our view: the next call waits for its own server
         await eventually(functools.partial(_unmatched, pair), timeout=15)

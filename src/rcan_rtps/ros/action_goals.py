@@ -39,6 +39,7 @@ from .graph import Direction
 from .handshake import (
     CYCLONE_VENDOR,
     FASTDDS_VENDOR,
+    WriterGuids,
     acquire_by,
     hear_announcements,
     matched_writers,
@@ -329,12 +330,11 @@ class ClientGoal:
                  uuid.UUID(bytes=self.goal_id))
         self._put(message.feedback)
 
-    def _release_capture(self) -> IdentityCapture | None:
+    def _release_capture(self) -> None:
         """Stops looking in the capture for this goal's feedback (what it kept goes)."""
         capture, self._capture = self._capture, None
         if capture is not None:
             capture.forget_feedback(self.goal_id)
-        return capture
 
     @property
     def watching_capture(self) -> bool:
@@ -376,7 +376,7 @@ class GoalSender:
         self.feedback_unannounced = 0  # 1 when goals went out with the announcement unheard
         self.feedback_from_capture = 0  # feedback samples our reader never delivered, captured
         self.feedback_type = self.type_name + "_FeedbackMessage"
-        self._feedback_writer_guids: dict[int, bytes] = {}  # of the current feedback reader
+        self._feedback_writers: WriterGuids | None = None  # of the current feedback reader
         # Made once the server's feedback writer is known (wait_for_server, handshake.py).
         self._feedback: RosSubscription | None = None
         self._feedback_topic = names["feedback"]
@@ -497,9 +497,7 @@ class GoalSender:
         """A new feedback reader (before any goal: none can miss its feedback), matched and
         handshaken like the first."""
         loop = asyncio.get_running_loop()
-        if self._feedback is not None:
-            self._feedback.close()
-            self._feedback = None
+        self._close_feedback()
         self.feedback_renewed += 1
         feedback = await self._feedback_subscription(max(0.0, deadline - loop.time()))
         await feedback.wait_for_publishers(1, max(0.0, deadline - loop.time()))
@@ -527,11 +525,11 @@ class GoalSender:
                 return made
             self._feedback_reader_no += 1
             self._feedback_synced = set()
-            self._feedback_writer_guids = {}
             self._feedback = self.node.create_subscription(
                 self._feedback_topic, self.feedback_type,
                 qos_mod.DEFAULT.keeping(PAIR_READER_DEPTH),  # every goal's feedback comes
                 callback=self.client._on_loop(self._feedback_taker(self._feedback_reader_no)))
+            self._feedback_writers = WriterGuids(self.node, self._feedback.reader)
             # Once the reader is there: a HEARTBEAT captured after this was applied to it.
             capture = self.node.identities
             self._feedback_since = 0 if capture is None else capture.mark()
@@ -767,16 +765,11 @@ class GoalSender:
     def _sample_key(self, message: IdlStruct) -> tuple[bytes, int] | None:
         """A feedback sample's writer GUID and source timestamp (how the capture knows it)."""
         info = getattr(message, "sample_info", None)
-        if info is None or self._feedback is None:
+        if info is None or self._feedback_writers is None:
             return None
-        handle = writer_handle(info.publication_handle)
-        guid = self._feedback_writer_guids.get(handle)
-        if guid is None:
-            with contextlib.suppress(DDSException):  # (its reader deleted meanwhile)
-                found = self._feedback.reader.get_matched_publication_data(
-                    info.publication_handle)
-                if found is not None:
-                    guid = self._feedback_writer_guids[handle] = bytes(found.key.bytes)
+        guid = None
+        with contextlib.suppress(DDSException):  # (its reader deleted meanwhile)
+            guid = self._feedback_writers.of(info.publication_handle)
         return None if guid is None else (guid, int(info.source_timestamp))
 
     @property
@@ -804,8 +797,15 @@ class GoalSender:
             goal._release_capture()
         for client in (self._send, self._get):
             client.close()
+        self._close_feedback()
+
+    def _close_feedback(self) -> None:
         if self._feedback is not None:
             self._feedback.close()
+            self._feedback = None
+        if self._feedback_writers is not None:
+            self._feedback_writers.close()
+            self._feedback_writers = None
 
     async def cancel_open(self, timeout: float) -> int:
         """Cancels the goals this client sent that have not ended; how many are canceling."""

@@ -104,6 +104,56 @@ def writer_handle(handle: int) -> int:
     return int(handle) & HANDLE_MASK
 
 
+class WriterGuids:
+    """The GUIDs of the writers whose samples `reader` takes, by their handle (a sample
+    names its writer by handle only; the capture knows it by GUID). The writers no longer
+    matched are let go of — looked at when a new one comes: a robot that restarts its
+    servers brings new ones for as long as we run — once `node` has delivered what they
+    sent: a sample a writer sent just before it left can still be on its way, and the
+    reader no longer tells that writer's GUID."""
+
+    def __init__(self, node: RosNode, reader: DataReader[Any]) -> None:
+        self._node, self._reader = node, reader
+        self._guids: dict[int, bytes] = {}
+        self._letting_go: asyncio.Task[None] | None = None
+
+    def __len__(self) -> int:
+        return len(self._guids)
+
+    def of(self, publication_handle: int) -> bytes | None:
+        """The GUID of the writer of a sample (its `sample_info.publication_handle`); None
+        if the reader does not know it (not matched). Call on the event loop."""
+        handle = writer_handle(publication_handle)
+        guid = self._guids.get(handle)
+        if guid is None:
+            found = self._reader.get_matched_publication_data(handle)
+            if found is None:
+                return None
+            guid = self._guids[handle] = bytes(found.key.bytes)
+            self._let_go_of_gone_writers()
+        return guid
+
+    def _let_go_of_gone_writers(self) -> None:
+        if self._letting_go is not None:
+            return  # the next new writer looks again
+        gone = self._guids.keys() - {writer_handle(h) for h in matched_publications(self._reader)}
+        if gone:
+            self._letting_go = asyncio.get_running_loop().create_task(
+                self._let_go_once_delivered(gone))
+
+    async def _let_go_once_delivered(self, gone: set[int]) -> None:
+        try:
+            await self._node.delivered()
+        finally:
+            self._letting_go = None
+        for handle in gone:
+            self._guids.pop(handle, None)
+
+    def close(self) -> None:
+        if self._letting_go is not None:
+            self._letting_go.cancel()
+
+
 def matched_writers(reader: DataReader[Any]) -> dict[int, bytes]:
     """The writers `reader` is matched with (our view): instance handle (`writer_handle`)
     → GUID."""

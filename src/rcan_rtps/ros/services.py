@@ -52,12 +52,11 @@ from .errors import ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction, Endpoint, RosGraph
 from .handshake import (
     POLL,
+    WriterGuids,
     acquire_by,
     fastdds_writers,
     hear_announcements,
-    matched_publications,
     matched_writers,
-    writer_handle,
     writers_ready,
 )
 from .names import mangle_service
@@ -171,8 +170,7 @@ class _Pair:
         self.writer_guid = bytes(self.writer.guid.bytes)
         self.written = 0
         # Reply writers' GUIDs by handle (`related_identity`); the gone ones let go of.
-        self._writer_guids: dict[int, bytes] = {}
-        self._letting_go: asyncio.Task[None] | None = None
+        self.writer_guids = WriterGuids(node, self.reader)
         self.ready: set[int] = set()  # server writers whose next reply will reach us
         # Server writers whose first HEARTBEAT to this reader was heard (or given up on).
         self.announced: set[int] = set()
@@ -206,6 +204,8 @@ class _Pair:
         with contextlib.suppress(DDSException):
             old.__del__()
         self.reader, self.watch = self._make_reader()
+        self.writer_guids.close()  # (before any request: nothing of the old one is awaited)
+        self.writer_guids = WriterGuids(self._node, self.reader)
         self.ready.clear()
         self.announced.clear()
         self.renewed += 1
@@ -242,37 +242,10 @@ class _Pair:
         if capture is None:
             return None
         info = sample.sample_info
-        handle = writer_handle(info.publication_handle)
-        guid = self._writer_guids.get(handle)
+        guid = self.writer_guids.of(info.publication_handle)
         if guid is None:
-            found = self.reader.get_matched_publication_data(handle)
-            if found is None:
-                return None
-            guid = self._writer_guids[handle] = bytes(found.key.bytes)
-            self._let_go_of_gone_writers()
+            return None
         return capture.lookup(guid, info.source_timestamp)
-
-    def _let_go_of_gone_writers(self) -> None:
-        """Lets go of the GUIDs of the writers no longer matched (looked at when a new one
-        comes: a robot that restarts its servers brings new ones for as long as we run),
-        once the node has delivered what they sent. Not at once: a reply its writer sent
-        just before it left can still be on its way to `deliver`, its request identity is
-        found only through that GUID, and the reader no longer tells it; unknown, the reply
-        could pass for the outstanding request's."""
-        if self._letting_go is not None:
-            return  # the next new writer looks again
-        matched = {writer_handle(h) for h in matched_publications(self.reader)}
-        gone = self._writer_guids.keys() - matched
-        if gone:
-            self._letting_go = self._loop.create_task(self._let_go_once_delivered(gone))
-
-    async def _let_go_once_delivered(self, gone: set[int]) -> None:
-        try:
-            await self._node.delivered()
-        finally:
-            self._letting_go = None
-        for handle in gone:
-            self._writer_guids.pop(handle, None)
 
     def matched(self) -> bool:
         return bool(self.writer.get_publication_matched_status().current_count and
@@ -282,8 +255,7 @@ class _Pair:
         """Stops deliveries and deletes both endpoints; idempotent."""
         if self.watch.closed:
             return
-        if self._letting_go is not None:
-            self._letting_go.cancel()
+        self.writer_guids.close()
         self._node.unwatch(self.watch)
         self._node.forget_reader(self.reader)
         self._node.forget_writer(self.writer)

@@ -36,12 +36,22 @@ async def node(domain_id: int, jazzy_share: Path) -> AsyncIterator[RosNode]:
         yield n
 
 
+def _goal_requests_written(tracker: GoalTracker) -> int:
+    sender = tracker.client._sending
+    return 0 if sender is None else sum(p.written for p in sender._send._pairs.values())
+
+
 async def _stop_after(tracker: GoalTracker, turns: int) -> None:
-    """Sends a goal and stops after `turns` turns of the loop (the goal on its way): the send
-    is refused and the goal (the tracker's newest) ends cancelled, not running on."""
+    """Sends a goal and stops after `turns` turns of the loop, or as soon as its request is
+    written if that comes first (a later goal can be accepted within ten turns): the goal is
+    on its way, and the send is refused and the goal (the tracker's newest) ends cancelled,
+    not running on."""
+    written = _goal_requests_written(tracker)
     sending = asyncio.create_task(tracker.send(ENDLESS, timeout=20))
     for _ in range(turns):
         await asyncio.sleep(0)
+        if _goal_requests_written(tracker) > written:
+            break
     assert not sending.done()
     await tracker.cancel_all()  # the stop
     with pytest.raises(ActionError, match="a stop came while the goal was being sent"):

@@ -50,7 +50,7 @@ async def run(domain_id: int) -> dict[str, Any]:
             await asyncio.sleep(0.05)
         request = node.values.build(client.request_type, {})
         with contextlib.suppress(ServiceTimeout):
-            await client._send_plain(pair, request, loop.time() + 0.3, None)
+            await client._send_plain(pair, request, loop.time() + 0.3, None, False)
         client.close()
         del writer
         return {"secured": node.secured, "capture": node.identities is not None,

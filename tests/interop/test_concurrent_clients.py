@@ -9,10 +9,16 @@ in-band) the same load must be exact too. The same with a CPU load generator run
 test_rpc_identity.py. Sequential calls and
 fresh clients are exact on both (test_zero_loss.py). Weighed and refused: reading the request
 topic to count outstanding requests (that reader would look like a server to every ROS tool).
+
+Without a readable identity (the capture off here; DDS-Security in practice) a reply is taken
+only while the caller is the service's only client in the graph: with others calling, the
+processes swapped 140 of 150 replies before; now such a call fails with AmbiguousReply, and a
+lone caller still gets every answer.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -39,13 +45,40 @@ def test_processes_calling_at_once_under_cpu_load(
         _call_at_once(echo_server, domain_id, jazzy_share)
 
 
-def _call_at_once(oracle: RclpyOracle, domain_id: int, jazzy_share: Path) -> None:
-    tallies = run_callers(CALLER, PROCESSES, CALLS_EACH, domain_id, jazzy_share, timeout=120)
+@pytest.mark.parametrize("oracle_rmw", RMWS)
+def test_without_request_identity_no_reply_is_taken_for_another(
+        echo_server: RclpyOracle, domain_id: int, jazzy_share: Path,
+        monkeypatch: pytest.MonkeyPatch, oracle_rmw: str) -> None:
+    monkeypatch.setenv("RCAN_RTPS_RPC_IDENTITY", "off")
+    ambiguous = _call_at_once(echo_server, domain_id, jazzy_share, ambiguous_ok=True)
+    if oracle_rmw == "fastrtps":  # its replies reach every client: most are unsure
+        assert ambiguous > 0
+    else:  # rmw_cyclonedds names the client in the reply itself
+        assert ambiguous == 0
+
+
+@pytest.mark.parametrize("oracle_rmw", RMWS)
+def test_without_request_identity_a_lone_client_gets_every_answer(
+        echo_server: RclpyOracle, domain_id: int, jazzy_share: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("RCAN_RTPS_RPC_IDENTITY", "off")
+    assert _call_at_once(echo_server, domain_id, jazzy_share, processes=1) == 0
+
+
+def _call_at_once(oracle: RclpyOracle, domain_id: int, jazzy_share: Path, *,
+                  processes: int = PROCESSES, ambiguous_ok: bool = False) -> int:
+    """Runs the callers; asserts nothing lost or wrong; returns how many were ambiguous."""
+    tallies = run_callers(CALLER, processes, CALLS_EACH, domain_id, jazzy_share, timeout=120)
     lost = sum(len(t["lost"]) for t in tallies)
     wrong = [w for t in tallies for w in t["wrong"]]
-    print(f"{PROCESSES} processes x {CALLS_EACH} calls: {len(wrong)} misattributed, {lost} lost")
+    ambiguous = sum(len(t["ambiguous"]) for t in tallies)
+    identity = os.environ.get("RCAN_RTPS_RPC_IDENTITY", "on")
+    print(f"{processes} processes x {CALLS_EACH} calls (identity capture {identity}): "
+          f"{len(wrong)} misattributed, {lost} lost, {ambiguous} refused as ambiguous")
     assert (lost, wrong) == (0, []), \
-        f"of {PROCESSES * CALLS_EACH} calls: {lost} lost, misattributed {wrong}"
+        f"of {processes * CALLS_EACH} calls: {lost} lost, misattributed {wrong}"
+    assert ambiguous_ok or ambiguous == 0
     served = oracle.call("service_requests", name="/echo")
-    assert sorted(served) == sorted(f"p{n}:{i}" for n in range(PROCESSES)
+    assert sorted(served) == sorted(f"p{n}:{i}" for n in range(processes)
                                     for i in range(CALLS_EACH))
+    return ambiguous

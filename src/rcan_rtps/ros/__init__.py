@@ -25,6 +25,7 @@ require_supported_binding()  # before the modules below touch what a 0.10 bindin
 
 from .errors import (
     ActionError,
+    AmbiguousReply,
     CdrDecodeError,
     GraphTimeout,
     IdlSyntaxError,
@@ -86,6 +87,7 @@ __all__ = [
     "ActionClient",
     "ActionError",
     "ActionServer",
+    "AmbiguousReply",
     "CdrDecodeError",
     "ClientGoal",
     "Codec",

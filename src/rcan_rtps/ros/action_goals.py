@@ -34,7 +34,14 @@ from cyclonedds.idl import IdlStruct
 from . import qos as qos_mod
 from .actions import UUID_TYPE, GoalState, _stamp
 from .captured_replies import CapturedSample
-from .errors import ActionError, ServiceTimeout, ServiceUnavailable, WireError, seconds
+from .errors import (
+    ActionError,
+    AmbiguousReply,
+    ServiceTimeout,
+    ServiceUnavailable,
+    WireError,
+    seconds,
+)
 from .graph import Direction
 from .handshake import (
     CYCLONE_VENDOR,
@@ -611,7 +618,10 @@ class GoalSender:
     async def _sent(self, handle: ClientGoal, request: Any, deadline: float) -> ClientGoal:
         loop = asyncio.get_running_loop()
         try:
-            reply: Any = await self._send.call(request, max(0.0, deadline - loop.time()))
+            # Cross-checked: a Fast DDS reply counts only once the status topic lists the
+            # goal (`_confirm`), so one whose identity cannot be read is still taken.
+            reply: Any = await self._send.call(request, max(0.0, deadline - loop.time()),
+                                               unidentified_ok=True)
         except ServiceTimeout:
             # The reply can be lost for good when datagrams are dropped at our socket (see
             # `_ask_result`); the status topic names the goals the server accepted.
@@ -670,7 +680,10 @@ class GoalSender:
         def ours(reply: Any) -> bool:  # Fast DDS: another goal's result has another status
             return int(reply.status) == int(final)
 
-        reply = await self._ask_result(goal, ours, deadline)
+        try:
+            reply = await self._ask_result(goal, ours, deadline)
+        except AmbiguousReply as exc:  # another client's result may have come: none taken
+            return GoalResult(final, None, f"the end is the status topic's; no result: {exc}")
         if reply is None:
             return GoalResult(final, None, f"action server {self.name} left the graph before "
                               f"the result was fetched; the end is its status topic's")
@@ -710,7 +723,8 @@ class GoalSender:
                 int(reply.return_code) != 0 and not reply.goals_canceling)
 
         with self.client._closed_said():
-            reply: Any = await self.client._cancel_srv.call(request, timeout, accept=ours)
+            reply: Any = await self.client._cancel_srv.call(request, timeout, accept=ours,
+                                                            unidentified_ok=True)
         canceling = _names_goal(reply, goal.goal_id)
         if canceling and not goal.state.terminal:
             goal.state = GoalState.CANCELING

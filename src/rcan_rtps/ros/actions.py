@@ -201,7 +201,9 @@ class ActionClient:
         whoever sent it: zero goal id and stamp). Returns how many goals are canceling."""
         if server_wide:
             with self._closed_said():
-                reply: Any = await self._cancel_srv.call({}, timeout)
+                # The request is what stops; a reply that may be another client's (its identity
+                # unreadable) only miscounts, so it is taken rather than fail the stop.
+                reply: Any = await self._cancel_srv.call({}, timeout, unidentified_ok=True)
             return len(reply.goals_canceling)
         if self._sending is None:
             return 0  # it sent no goal

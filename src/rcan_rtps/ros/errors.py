@@ -135,5 +135,14 @@ class ServiceTimeout(WireError):
     pass
 
 
+class AmbiguousReply(WireError):
+    """A reply came that cannot be told from another client's: the server names the request
+    a reply answers only in RTPS inline QoS, unreadable here, and another client of the
+    service may be calling it. Never taken as ours (a wrong answer delivered as a right one
+    is worse than none); the call may be made again."""
+
+    code = "ambiguous_reply"
+
+
 class ActionError(WireError):
     pass

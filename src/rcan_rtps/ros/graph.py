@@ -320,6 +320,12 @@ class RosGraph:
                   if seen.direction is Direction.PUBLISHER and seen.topic_name in wanted]
         return self._described(chosen, self._owners({seen.participant for _, seen in chosen}))
 
+    def gids_on(self, dds_topic: str, direction: Direction) -> set[bytes]:
+        """The GUIDs of the endpoints on this DDS topic in this direction (none described:
+        a set lookup per endpoint of the graph)."""
+        return {key for key, seen in self._endpoints.items()
+                if seen.direction is direction and seen.topic_name == dds_topic}
+
     @staticmethod
     def _described(chosen: Iterable[tuple[bytes, _Seen]],
                    owners: dict[tuple[bytes, bytes], tuple[str, str]]) -> list[Endpoint]:

@@ -15,12 +15,15 @@
 A Fast DDS server's reply writer sends each client's replies to every reply reader. A
 client keeps one request outstanding per endpoint and queues the rest; a reply whose related
 sample identity names another request (another client's, or one we gave up on) is dropped.
-Without the packet capture (RCAN_RTPS_RPC_IDENTITY=off), or for a server whose replies carry
-no identity, the client drops replies that arrive while nothing is outstanding or that fail
-the caller's `accept` check, and after a timeout lets a late reply drain before its next
-request — but then it cannot tell our reply from that of another process calling the same
-server at the same moment; actions cross-check goal ids on the status topic for that reason
-(see `actions.py`).
+A reply whose identity cannot be read (the capture is off, RCAN_RTPS_RPC_IDENTITY=off; the
+traffic is encrypted, DDS-Security; its datagram not found in the capture) is taken as ours
+only while this client is the service's only one in the graph, when it was sent and when it
+came: otherwise it could be another client's answer, and the call fails with AmbiguousReply
+(`ambiguous_reply`) rather than return it. Actions, which cross-check the reply themselves
+(goal ids on the status topic, in a cancel's answer), and a stop's server-wide cancel, which
+needs no answer, take it still (`unidentified_ok`). Replies
+arriving while nothing is outstanding, or failing the caller's `accept` check, are dropped,
+and after a timeout a late reply gets to drain before the next request.
 
 `ServiceServer` speaks the Cyclone mapping only. Fast DDS clients cannot use it: they drop
 every reply without the RTPS related-sample identity, which cyclonedds cannot set, and their
@@ -37,6 +40,7 @@ import itertools
 import logging
 import weakref
 from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import msgspec
@@ -48,7 +52,7 @@ from cyclonedds.sub import DataReader
 from . import _cyclone_header as cyclone
 from . import qos as qos_mod
 from . import raw_cdr
-from .errors import ServiceTimeout, ServiceUnavailable, WireError, seconds
+from .errors import AmbiguousReply, ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction, Endpoint, RosGraph
 from .handshake import (
     POLL,
@@ -298,6 +302,20 @@ class _ServiceEnd:
                      f"{self._ROLE.value}={format_endpoint_id(self.id)};", deliver)
 
 
+@dataclass(slots=True)
+class _Outstanding:
+    """The one outstanding request in the Fast DDS mapping."""
+
+    future: asyncio.Future[IdlStruct]
+    accept: Accept | None  # the caller's check of a reply
+    identity: SampleIdentity  # the request's (our writer's GUID, its sample number)
+    unidentified_ok: bool  # taken without identity: the caller checks it itself (actions)
+    alone: bool  # no other client of the service was in the graph as it was sent
+
+    def accepts(self, reply: Any) -> bool:
+        return self.accept is None or self.accept(reply)
+
+
 class ServiceClient(_ServiceEnd):
     """Calls one service; `await call(request)` returns the response."""
 
@@ -313,9 +331,7 @@ class ServiceClient(_ServiceEnd):
         self._seq = itertools.count(1)
         self._pending: dict[int, asyncio.Future[IdlStruct]] = {}
         self._plain_lock = asyncio.Lock()
-        # The outstanding Fast DDS request: its reply, the caller's check, its identity.
-        self._plain_waiter: tuple[asyncio.Future[IdlStruct], Accept | None,
-                                  SampleIdentity] | None = None
+        self._plain_waiter: _Outstanding | None = None
         self._stale = False
         self.closed = False
         self.dropped_replies = 0  # replies not ours: foreign guid, unsolicited, not accepted
@@ -334,6 +350,16 @@ class ServiceClient(_ServiceEnd):
         self._graph.refresh()  # with a configured mapping, nothing else refreshes it
         return any(e.dds_topic == self.reply_topic and e.direction is Direction.PUBLISHER
                    for e in self._graph.endpoints())
+
+    def _other_clients(self, pair: _Pair) -> bool:
+        """Whether another client of this service is in the graph (another request writer or
+        reply reader, of any process, this one's included): a reply without a readable
+        identity could then be its answer."""
+        graph = self._graph
+        graph.refresh()
+        clients = graph.gids_on(self.request_topic, Direction.PUBLISHER) \
+            | graph.gids_on(self.reply_topic, Direction.SUBSCRIPTION)
+        return bool(clients - {pair.writer_guid, bytes(pair.reader.guid.bytes)})
 
     def resolve_mapping(self) -> RequestMapping | None:
         """The configured mapping, or the servers' (None while there is no server)."""
@@ -485,9 +511,13 @@ class ServiceClient(_ServiceEnd):
 
     # -- calls ------------------------------------------------------------------
     async def call(self, request: IdlStruct | Mapping[str, Any] | None = None,
-                   timeout: float = 10.0, *, accept: Accept | None = None) -> IdlStruct:
+                   timeout: float = 10.0, *, accept: Accept | None = None,
+                   unidentified_ok: bool = False) -> IdlStruct:
         """Sends one request and returns its response. `accept` may refuse a reply as not
-        ours (actions cross-check Fast DDS replies so); the wait then goes on."""
+        ours; the wait then goes on. A Fast DDS reply whose identity cannot be read while other
+        clients of the service are in the graph is AmbiguousReply, unless `unidentified_ok`:
+        the caller tells its reply from another client's itself (an action: the status
+        topic, the goal ids) or needs none (a stop's server-wide cancel)."""
         message = request if isinstance(request, IdlStruct) else \
             self.node.values.build(self.request_type, request)
         loop = asyncio.get_running_loop()
@@ -496,7 +526,7 @@ class ServiceClient(_ServiceEnd):
             pair = await self._wait_for_service(timeout)
             if pair.mapping is RequestMapping.CYCLONE:
                 return await self._call_cyclone(pair, message, deadline)
-            return await self._call_plain(pair, message, deadline, accept)
+            return await self._call_plain(pair, message, deadline, accept, unidentified_ok)
 
     async def _reply(self, future: asyncio.Future[IdlStruct], deadline: float) -> IdlStruct:
         """The reply `future` brings, or asyncio.TimeoutError at `deadline`; as soon as the
@@ -527,7 +557,7 @@ class ServiceClient(_ServiceEnd):
             self._pending.pop(seq, None)
 
     async def _call_plain(self, pair: _Pair, message: IdlStruct, deadline: float,
-                          accept: Accept | None) -> IdlStruct:
+                          accept: Accept | None, unidentified_ok: bool) -> IdlStruct:
         loop = asyncio.get_running_loop()
         try:
             await asyncio.wait_for(self._plain_lock.acquire(), max(0.0, deadline - loop.time()))
@@ -539,13 +569,13 @@ class ServiceClient(_ServiceEnd):
                 await asyncio.sleep(max(0.0, min(STALE_REPLY_GRACE, deadline - loop.time())))
                 self._stale = False
             self._check_open()  # closed while this call was queued
-            return await self._send_plain(pair, message, deadline, accept)
+            return await self._send_plain(pair, message, deadline, accept, unidentified_ok)
         finally:
             self._plain_waiter = None
             self._plain_lock.release()
 
     async def _send_plain(self, pair: _Pair, message: IdlStruct, deadline: float,
-                          accept: Accept | None) -> IdlStruct:
+                          accept: Accept | None, unidentified_ok: bool) -> IdlStruct:
         """Sends the request and waits for its reply: from the reader, or, if the reader
         never delivers it, from the packet capture (`_reply_from_capture`)."""
         future: asyncio.Future[IdlStruct] = asyncio.get_running_loop().create_future()
@@ -558,9 +588,10 @@ class ServiceClient(_ServiceEnd):
         captured = capture is not None and capture.expect_reply(
             identity, matched_writers(pair.reader).values())
         fallback = None
+        alone = unidentified_ok or not self._other_clients(pair)
         try:
             pair.write(message)
-            self._plain_waiter = (future, accept, identity)
+            self._plain_waiter = _Outstanding(future, accept, identity, unidentified_ok, alone)
             if captured:
                 assert capture is not None
                 fallback = asyncio.create_task(
@@ -569,6 +600,9 @@ class ServiceClient(_ServiceEnd):
         except asyncio.TimeoutError:
             self._stale = True
             raise ServiceTimeout(f"service {self.name}: no reply within the timeout") from None
+        except AmbiguousReply:
+            self._stale = True  # ours may still come: it must not answer the next request
+            raise
         finally:
             if fallback is not None:
                 fallback.cancel()
@@ -629,15 +663,31 @@ class ServiceClient(_ServiceEnd):
                     self.dropped_replies += 1
                 continue
             waiter = self._plain_waiter
-            if waiter is None or waiter[0].done():
+            if waiter is None or waiter.future.done():
                 self.dropped_replies += 1
                 continue
             related = pair.related_identity(sample)
-            if (related is not None and related != waiter[2]) or \
-                    (waiter[1] is not None and not waiter[1](sample)):
+            if (related is not None and related != waiter.identity) or \
+                    not waiter.accepts(sample):
                 self.dropped_replies += 1  # names another request, or the caller refused it
                 continue
-            waiter[0].set_result(sample)
+            if related is None and not waiter.unidentified_ok and \
+                    (not waiter.alone or self._other_clients(pair)):
+                self.dropped_replies += 1
+                waiter.future.set_exception(self._ambiguous())
+                continue
+            waiter.future.set_result(sample)
+
+    def _ambiguous(self) -> AmbiguousReply:
+        node = self.node
+        why = ("the traffic is encrypted (DDS-Security)" if node.secured else
+               "the packet capture is off (RCAN_RTPS_RPC_IDENTITY=off)"
+               if node.identities is None else "its datagram was not in the packet capture")
+        return AmbiguousReply(
+            f"service {self.name}: a reply came that cannot be told from another client's "
+            f"(the server names the request a reply answers only in RTPS inline QoS, and "
+            f"{why}) while other clients of the service are in the graph: not taken as ours "
+            "(ambiguous_reply); the call may be made again")
 
     def close(self) -> None:
         """Deletes the endpoints; calls still waiting fail with ServiceUnavailable.
@@ -645,8 +695,8 @@ class ServiceClient(_ServiceEnd):
         if self.closed:
             return
         self.closed = True
-        waiting = [*self._pending.values(), *([self._plain_waiter[0]] if self._plain_waiter
-                                               else [])]
+        waiting = [*self._pending.values(), *([self._plain_waiter.future]
+                                               if self._plain_waiter else [])]
         for future in waiting:
             if not future.done():
                 future.set_exception(ServiceUnavailable(f"the client of {self.name} closed"))

@@ -1,5 +1,9 @@
 """Several arms (issue 11 item 5): each joint group on its own trajectory topic, multi-point
-trajectories, and refusals that reach no topic. rclpy subscribes to both arms' topics."""
+trajectories, and refusals that reach no topic. rclpy subscribes to both arms' topics.
+
+The bridge makes an arm's writer with the arm's first command (issue 27: idle memory), so the
+rclpy subscriptions are made before any writer of the bridge is there to match them: each
+first trajectory below is sent on a writer made for it, and must arrive all the same."""
 
 from __future__ import annotations
 
@@ -10,9 +14,9 @@ import pytest
 from waiting import take
 
 from .bridge_rig import AGENT, Rig, bridge_config, close_rig, make_rig
-from .test_bridge_ros import subscribe
 
 TRAJ = "trajectory_msgs/msg/JointTrajectory"
+CMD_VEL = "/robot1/cmd_vel"
 LEFT, RIGHT = "/robot1/left_arm/joint_trajectory", "/robot1/right_arm/joint_trajectory"
 ARMS = """\
 arms:
@@ -26,8 +30,8 @@ async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterat
     rig = await make_rig(bridge_config(tmp_path, domain_id, extra_ros2=ARMS), jazzy_python,
                          domain_id)
     try:
-        await subscribe(rig, LEFT, TRAJ)
-        await subscribe(rig, RIGHT, TRAJ)
+        for topic in (LEFT, RIGHT):
+            await rig.oracle.acall("subscribe", topic=topic, type=TRAJ)
         yield rig
     finally:
         await close_rig(rig)
@@ -56,6 +60,21 @@ async def test_each_arm_gets_its_own_multi_point_trajectory(rig: Rig) -> None:
     audited = [e for e in rig.entries() if e["event"] == "COMMAND_DISPATCHED"]
     assert [(e["applied"]["group"], e["ros2_topic"]) for e in audited] == [
         ("left", LEFT), ("right", RIGHT)]
+
+
+async def test_an_arms_writer_is_made_by_its_first_command(rig: Rig) -> None:
+    # Once rclpy sees the bridge's cmd_vel writer it has seen every writer the bridge made at
+    # start (they are announced in the order they were made, the arms' first).
+    assert await rig.oracle.acall("wait_publishers", topic=CMD_VEL) == 1
+    assert await rig.oracle.acall("publishers_info", topic=LEFT) == []
+    assert await rig.oracle.acall("publishers_info", topic=RIGHT) == []
+    left = await rig.command(AGENT, {"action": "arm_joint", "params": {
+        "group": "left", "joints": ["l_elbow"], "positions": [0.2], "duration_s": 1.0}})
+    assert left.http_status == 200, left
+    (first,) = await take(rig.oracle, LEFT)
+    assert first["points"][0]["positions"] == [0.2]
+    assert await rig.oracle.acall("wait_publishers", topic=LEFT) == 1
+    assert await rig.oracle.acall("publishers_info", topic=RIGHT) == []  # not commanded yet
 
 
 async def test_refusals_reach_no_arm(rig: Rig) -> None:

@@ -33,6 +33,7 @@ from ..rcan.actions import (
 from ..ros import qos
 from ..ros.errors import GraphTimeout
 from ..ros.participant import RosNode, RosPublisher
+from ..ros.qos import QosProfile
 from ..ros.rostime import now_msg
 
 log = logging.getLogger(__name__)
@@ -82,10 +83,55 @@ class _Kit:
         return getattr(self._ros2, key)
 
 
+class CommandPublisher(Protocol):
+    """What a route publishes through: a `RosPublisher`, or one made on first use."""
+
+    @property
+    def topic(self) -> str: ...
+
+    def publish(self, message: Any) -> None: ...
+
+    def matched_count(self) -> int: ...
+
+    async def wait_for_subscribers(self, count: int = 1, timeout: float = 5.0) -> int: ...
+
+
+class FirstUsePublisher:
+    """A publisher whose topic, type and writer are made by its first use (issue 27: idle
+    memory): a topic the bridge commands only for a motion no stop sends (an arm's
+    trajectory). Its name is known from the start (the foreign-publisher watch, the audit);
+    the first command on it waits for its robot-side reader as a start-up does
+    (`match_timeout_s`). Never for what a stop or an e-stop publishes: those are made at
+    start, so that no stop waits for a type to be built."""
+
+    def __init__(self, node: RosNode, topic: str, type_name: str, qos: QosProfile) -> None:
+        self._node, self._name, self._type, self._qos = node, topic, type_name, qos
+        self.topic = node.resolve(topic)
+        self._made: RosPublisher | None = None
+
+    @property
+    def made(self) -> bool:
+        return self._made is not None
+
+    def publisher(self) -> RosPublisher:
+        if self._made is None:
+            self._made = self._node.create_publisher(self._name, self._type, self._qos)
+        return self._made
+
+    def publish(self, message: Any) -> None:
+        self.publisher().publish(message)
+
+    def matched_count(self) -> int:
+        return self.publisher().matched_count()
+
+    async def wait_for_subscribers(self, count: int = 1, timeout: float = 5.0) -> int:
+        return await self.publisher().wait_for_subscribers(count, timeout)
+
+
 class _Route:
     """One declared `Publish`, bound to its publisher."""
 
-    def __init__(self, spec: Publish[Any], publisher: RosPublisher, kit: _Kit) -> None:
+    def __init__(self, spec: Publish[Any], publisher: CommandPublisher, kit: _Kit) -> None:
         self.spec, self.publisher, self.kit = spec, publisher, kit
 
     def message(self, params: ActionParams) -> Any:
@@ -104,19 +150,23 @@ class RosDispatcher:
         self.events = events or Events()  # `command_sent`: e.g. leave `safe_stop` state
         self._telemetry_age = telemetry_age  # seconds since the robot last published, if ever
         self._ever_matched: set[str] = set()
-        self._publishers: dict[tuple[str, str, bool], RosPublisher] = {}
+        self._publishers: dict[tuple[str, str, bool], CommandPublisher] = {}
         self._routes: dict[int, _Route] = {}
         self._grouped: dict[tuple[int, str], _Route] = {}  # (route, group) → its own topic
         self._goal_kits: dict[str, _Kit] = {}
         self._direct: dict[str, _Route] = {}
+        # What a stop, an e-stop and a velocity stream publish on is made now; the topics
+        # of other actions (arm trajectories) by their first command (`FirstUsePublisher`).
+        self.cmd_vel = self._made_now(_halt_route().velocity)  # where halting sends zero
+        # Latched (transient-local): a robot node that (re)joins still learns the e-stop state.
+        self.estop = self._made_now(_estop_route().signal)
+        streamed = [s for s in specs() if s.streamed]
+        for spec in streamed:
+            self._made_now(spec.ros.publishes()[0])
         for spec in specs():
             for publish in spec.ros.publishes():
                 self._bind_all(publish)
         self._halt = self._bind(_halt_route().velocity)
-        self.cmd_vel = self._halt.publisher  # where halting publishes zero velocity
-        # Latched (transient-local): a robot node that (re)joins still learns the e-stop state.
-        self.estop = self._bind(_estop_route().signal).publisher
-        streamed = [s for s in specs() if s.streamed]
         self._stream = self._route_of(streamed[0]) if streamed else self._halt
         # Each command looks its route up thrice (audit entry, readiness, send): those of
         # ungrouped actions are found once, here.
@@ -156,18 +206,37 @@ class RosDispatcher:
         route = self._routes.get(id(publish)) if group_topic is None else None
         if route is not None:
             return route
-        topic = group_topic or getattr(self.ros2, publish.topic_key)
-        type_name = publish.type_name or getattr(self.ros2, publish.type_key or "")
+        topic, type_name = self._topic_and_type(publish, group_topic)
         key = (topic, type_name, publish.latched)
         publisher = self._publishers.get(key)
         if publisher is None:
-            publisher = self.node.create_publisher(
-                topic, type_name, ESTOP_QOS if publish.latched else qos.DEFAULT)
+            publisher = FirstUsePublisher(self.node, topic, type_name,
+                                          ESTOP_QOS if publish.latched else qos.DEFAULT)
             self._publishers[key] = publisher
         route = _Route(publish, publisher, _Kit(self.node, self.ros2, type_name))
         if group_topic is None:
             self._routes[id(publish)] = route
         return route
+
+    def _topic_and_type(self, publish: Publish[Any],
+                        group_topic: str | None = None) -> tuple[str, str]:
+        topic = group_topic or getattr(self.ros2, publish.topic_key)
+        return topic, publish.type_name or getattr(self.ros2, publish.type_key or "")
+
+    def _made_now(self, publish: Publish[Any]) -> RosPublisher:
+        """The publisher of `publish`'s own topic, made now (a stop must not wait for it)."""
+        topic, type_name = self._topic_and_type(publish)
+        key = (topic, type_name, publish.latched)
+        made = self._publishers.get(key)
+        if isinstance(made, RosPublisher):
+            return made
+        if isinstance(made, FirstUsePublisher):
+            publisher = made.publisher()
+        else:
+            publisher = self.node.create_publisher(
+                topic, type_name, ESTOP_QOS if publish.latched else qos.DEFAULT)
+        self._publishers[key] = publisher
+        return publisher
 
     def _route_of(self, spec: ActionSpec[Any], params: ActionParams | None = None) -> _Route:
         """The route of an action's own message; for a grouped one, the params' group's."""
@@ -270,7 +339,7 @@ class RosDispatcher:
             return f"robot silent: no telemetry for {age:.1f} s"
         return None
 
-    async def _matched(self, pub: RosPublisher) -> bool:
+    async def _matched(self, pub: CommandPublisher) -> bool:
         if pub.matched_count():
             self._ever_matched.add(pub.topic)
             return True

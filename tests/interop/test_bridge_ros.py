@@ -92,7 +92,8 @@ async def test_clamp_within_ten_percent_and_deny_beyond(rig: Rig) -> None:
 
 async def test_arm_joint_becomes_a_joint_trajectory(rig: Rig) -> None:
     topic = "/robot1/joint_trajectory_controller/joint_trajectory"
-    await subscribe(rig, topic, "trajectory_msgs/msg/JointTrajectory")
+    # Not `subscribe`: the bridge makes this writer with the first arm command (issue 27).
+    await rig.oracle.acall("subscribe", topic=topic, type="trajectory_msgs/msg/JointTrajectory")
     decision = await rig.command(AGENT, {"action": "arm_joint", "params": {
         "joints": ["shoulder", "elbow"], "positions": [0.5, -1.25], "duration_s": 2.5}})
     assert decision.http_status == 200, decision

@@ -16,7 +16,7 @@ from waiting import take
 from .bridge_rig import AGENT, Rig, bridge_config, close_rig, make_rig
 
 TRAJ = "trajectory_msgs/msg/JointTrajectory"
-CMD_VEL = "/robot1/cmd_vel"
+CMD_VEL, TWIST = "/robot1/cmd_vel", "geometry_msgs/msg/Twist"
 LEFT, RIGHT = "/robot1/left_arm/joint_trajectory", "/robot1/right_arm/joint_trajectory"
 ARMS = """\
 arms:
@@ -68,6 +68,13 @@ async def test_an_arms_writer_is_made_by_its_first_command(rig: Rig) -> None:
     assert await rig.oracle.acall("wait_publishers", topic=CMD_VEL) == 1
     assert await rig.oracle.acall("publishers_info", topic=LEFT) == []
     assert await rig.oracle.acall("publishers_info", topic=RIGHT) == []
+    # A stop publishes only on what was made at start: it makes no arm's writer.
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    assert await rig.oracle.acall("wait_matched", topic=CMD_VEL) == 1
+    stopped = await rig.command(AGENT, {"action": "stop"})
+    assert stopped.http_status == 200, stopped
+    await take(rig.oracle, CMD_VEL)  # the zero velocity is out
+    assert await rig.oracle.acall("publishers_info", topic=LEFT) == []
     left = await rig.command(AGENT, {"action": "arm_joint", "params": {
         "group": "left", "joints": ["l_elbow"], "positions": [0.2], "duration_s": 1.0}})
     assert left.http_status == 200, left

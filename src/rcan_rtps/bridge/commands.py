@@ -105,7 +105,8 @@ class FirstUsePublisher:
     start, so that no stop waits for a type to be built."""
 
     def __init__(self, node: RosNode, topic: str, type_name: str, qos: QosProfile) -> None:
-        self._node, self._name, self._type, self._qos = node, topic, type_name, qos
+        self._node, self._name, self._qos = node, topic, qos
+        self._type = node.store.require(type_name)  # an unknown type still fails the start
         self.topic = node.resolve(topic)
         self._made: RosPublisher | None = None
 

@@ -66,6 +66,7 @@ from .steps import (
     executed,
     record,
     refused_event,
+    sent,
 )
 from .streams import AccelLimits, EndReason, HeldGoal, VelocityStreams
 
@@ -436,15 +437,17 @@ class Governor:
 
     async def _halt(self, command: NormalizedCommand, principal: Principal,
                     params: ActionParams, event: AuditEvent) -> Decision:
-        """A stop: zero velocity and goal cancels go out first, its entry is made durable
-        beside them (never before: stopping does not wait for the disk), then the reply."""
+        """A stop: zero velocity and goal cancels go out first, its entry is sealed in this
+        step (after the halt, before any await) and made durable beside them (never before:
+        stopping does not wait for the disk), then the reply."""
         applied: dict[str, Any] = {}  # nothing of the body reaches the robot (a reason is kept)
         entry = record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          ros2_topic=self._steps.route(command), sent_first=True)
         self.streams.take_goals()  # the halt cancels every goal
-        sent, receipt = await asyncio.gather(self._steps.dispatch(command, params),
-                                             self._steps.write_ahead(entry, urgent=True))
-        result, failure = sent
+        # Sealed in this step, with the halt: the log lists it where the robot got it.
+        (dispatched,), receipt = await self._steps.stop(entry,
+                                                       self._steps.dispatch(command, params))
+        result, failure = sent(dispatched)
         if receipt is None:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         if failure is not None:
@@ -587,8 +590,8 @@ class Governor:
         entry = record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
                          applied={}, ros2_topic=self._steps.route(stop), sent_first=True)
         # Halted first, and even if the audit cannot be written: stopping is never held back.
-        (result, failure), receipt = await asyncio.gather(
-            self._steps.dispatch(stop), self._steps.write_ahead(entry, urgent=True))
+        (dispatched,), receipt = await self._steps.stop(entry, self._steps.dispatch(stop))
+        result, failure = sent(dispatched)
         self.events.safe_stop.emit(principal)  # e.g. STATUS shows `safe_stop`
         if receipt is None:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=stop.message_id)
@@ -605,7 +608,7 @@ class Governor:
         applied = {"scope": "own", "goals_cancelled": [g.goal_id for g in goals]}
         entry = record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
                          applied=applied, sent_first=True)
-        receipt = await self._steps.write_ahead(entry, urgent=True)
+        _, receipt = await self._steps.stop(entry)  # sealed with the cancels, not after
         if receipt is None:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=stop.message_id)
         return executed(stop, applied, receipt, DispatchResult(ok=True))

@@ -389,11 +389,25 @@ class Governor:
         if spec.effect is Effect.HALT:  # zero at once, before the stop is even audited
             self.streams.halt(principal.name)
             return await self._halt(command, principal, params, event)
+        owner = issuer or principal  # a stream is its issuer's, at the issuer's priority
+        if not spec.motion:
+            return await self._carry_out(command, principal, owner, params, applied, event,
+                                         pending_id, stops)
+        # Decided: from now on it drives the base for a session loss of someone else's.
+        with self.streams.deciding(owner.name):
+            return await self._carry_out(command, principal, owner, params, applied, event,
+                                         pending_id, stops)
+
+    async def _carry_out(self, command: NormalizedCommand, principal: Principal,
+                         owner: Principal, params: ActionParams, applied: dict[str, Any],
+                         event: AuditEvent, pending_id: str | None, stops: int) -> Decision:
+        """`_execute` of what is neither a stop, a clear nor a lock: checked, written ahead,
+        sent; motion only if no stop came since it was decided (`stops`)."""
+        spec = command.spec
         motion = spec.motion
         if motion and self.latch.latched:
             return await self._steps.refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
                                       pending_id=pending_id)
-        owner = issuer or principal  # a stream is its issuer's, at the issuer's priority
         priority = self._base.priorities.of(owner)
         # Streams and goals both drive the base: the same priorities and locks hold.
         refused = self._base.admits(priority) if spec.streamed or spec.starts_goal else None
@@ -424,11 +438,11 @@ class Governor:
             self._sending(owner, command)
         result, failure = await self._steps.dispatch(command, params)
         if failure is not None:
-            return await self._steps.failed(command, principal, failure)
-        if spec.starts_goal and self.latch.latched:
-            # Accepted while an e-stop latched: the e-stop's cancel may have missed this goal.
-            await self._steps.dispatch(bridge_command(Effect.HALT))
-        elif spec.starts_goal:
+            # A goal the bridge refused because a stop came while it was on its way (it
+            # cancels it: `GoalTracker`) is answered as one this governor cancels: `stopped`.
+            halted = self.streams.halted_since(stops) if spec.starts_goal else None
+            return await self._steps.failed(command, principal, halted or failure)
+        if spec.starts_goal:  # a stop or e-stop since it was decided: cancelled by id
             refused = self._base.hold_goal(result.goal_id, owner, priority, command.message_id,
                                            stops)
             if refused is not None:
@@ -456,7 +470,7 @@ class Governor:
 
     def end_streams(self) -> None:
         """The bridge is stopping: zero now, before the robot is halted and the log closed."""
-        self.streams.end(EndReason.BRIDGE_STOPPED)
+        self.streams.halt(None, EndReason.BRIDGE_STOPPED)  # nothing decided starts after
 
     # -- goals the robot carries out -------------------------------------------------------
 
@@ -584,6 +598,9 @@ class Governor:
             return await self._own_stop(principal, why, own)
         log.warning("control session of '%s' lost (%s): halting the robot (safe stop)",
                     principal.name, why)
+        # A halt of the whole robot: a stop for all motion decided before it (only the
+        # principal's own: nobody else's is on its way, `driven_by_other_than`).
+        self.streams.halt(principal.name, EndReason.SESSION_LOST)
         self.streams.take_goals()  # the halt cancels every goal
         self.events.session_lost.emit(principal)  # e.g. log the goals being cancelled
         stop = bridge_command(Effect.HALT)

@@ -485,3 +485,36 @@ async def test_a_stop_in_a_loop_group_commit_is_not_held(
     await asyncio.gather(audit_log.append(record(6)), _a_turn_later(audit_log, 7, urgent=True))
     assert writes == [2]
     assert verify(audit_log.path, audit_log.public_key).count == 8
+
+
+async def test_a_sealed_entry_is_chained_in_the_call_and_written_after_the_next_step(
+    audit_log: AuditLog, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stop's entry: its place in the chain is fixed by `seal` itself, nothing is written
+    in the call (a task made just before it runs first: the stop's publish), and an append
+    right after it, on an idle fast log that writes inline, does not jump ahead of it."""
+    monkeypatch.setattr(audit_mod, "INLINE_FSYNC_S", 60.0)  # fast: an idle append is inline
+    await audit_log.append(record(0))
+    await asyncio.sleep(0.01)  # idle
+    size = audit_log.path.stat().st_size
+
+    async def publish() -> int:  # the stop's signal, started before its entry is sealed
+        return audit_log.path.stat().st_size
+
+    published = asyncio.ensure_future(publish())
+    durable = audit_log.seal(record(1, action_type="stop"), urgent=True)
+    assert audit_log.head.last_seq == 2 and audit_log.path.stat().st_size == size
+    later = await audit_log.append(record(2))
+    stopped = await durable
+    assert await published == size  # its first step ran before the entry was written
+    assert (stopped.seq, later.seq) == (2, 3)
+    assert [e["message_id"] for e in lines_of(audit_log.path)] == ["m0", "m1", "m2"]
+    assert verify(audit_log.path, audit_log.public_key).count == 3
+
+
+async def test_an_unwritable_log_refuses_to_seal_at_once(
+    audit_log: AuditLog, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    await audit_log.close()
+    with pytest.raises(AuditWriteError):
+        audit_log.seal(record(1), urgent=True)

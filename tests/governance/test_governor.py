@@ -465,13 +465,21 @@ async def test_only_stops_skip_the_held_turn_of_a_group_commit(
     """An e-stop, a `stop` and a session-loss stop reach the robot without waiting for more
     entries to share their fsync; everything else may wait the loop turn."""
     urgent: dict[str, bool] = {}
-    append = gov.audit.append
+    append, seal = gov.audit.append, gov.audit.seal
+
+    def spied(record: Any, kw: dict[str, Any]) -> None:
+        urgent[record.event.value + ":" + str(record.action_type)] = kw.get("urgent", False)
 
     async def spying(record: Any, **kw: Any) -> Any:
-        urgent[record.event.value + ":" + str(record.action_type)] = kw.get("urgent", False)
+        spied(record, kw)
         return await append(record, **kw)
 
+    def spying_seal(record: Any, **kw: Any) -> Any:  # a stop's entry, sealed with its halt
+        spied(record, kw)
+        return seal(record, **kw)
+
     monkeypatch.setattr(gov.audit, "append", spying)
+    monkeypatch.setattr(gov.audit, "seal", spying_seal)
     await gov.decide(command("move", {"linear_x": 0.1}), PLANNER)
     await gov.decide(command("stop"), PLANNER)
     await gov.safe_stop(PLANNER)

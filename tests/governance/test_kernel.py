@@ -127,6 +127,21 @@ async def test_audit_failure_sends_no_motion_but_the_estop_still_goes(harness: H
     gov.audit._fd = -1
 
 
+async def test_a_broken_log_refuses_every_entry_yet_every_stop_still_goes(
+        harness: Harness) -> None:
+    """A log that refuses to seal at all (broken until a restart): a stop, a session-loss
+    stop and an e-stop still reach the robot, each answered audit_unavailable."""
+    gov = await harness.governor()
+    gov.audit._broken = OSError("the tail could not be cut back")
+    stopped = await gov.decide(command("stop"), OPS)
+    lost = await gov.safe_stop(PLANNER)
+    estopped = await gov.decide(command("estop"), VIEWER)
+    assert [a for a, _ in harness.dispatcher.calls] == ["stop", "stop", "estop"]
+    assert [d.reason for d in (stopped, lost, estopped)] == [Reason.AUDIT_UNAVAILABLE.value] * 3
+    assert gov.latch.latched
+    gov.audit._broken = None
+
+
 # -- latch file ---------------------------------------------------------------------------
 
 

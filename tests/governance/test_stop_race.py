@@ -11,7 +11,7 @@ import asyncio
 import random
 from typing import Any
 
-from govhelpers import ADMIN, PLANNER, Harness, command
+from govhelpers import ADMIN, OPS, PLANNER, Harness, command
 
 from rcan_rtps.governance.governor import Decision, Governor
 from rcan_rtps.rcan import Outcome
@@ -75,4 +75,55 @@ async def test_a_goal_decided_before_a_stop_is_cancelled_by_it(harness: Harness)
         await gov.decide(command("stop"), ADMIN)
     assert left_running == [], f"a goal left running after the stop in trials {left_running}"
     assert outcomes.get("executed", 0) > TRIALS // 20 and outcomes.get("stopped", 0), outcomes
+    await gov.stop()
+
+
+async def _goal_on_its_way(gov: Governor, harness: Harness, sender: Any) -> asyncio.Future[Any]:
+    """`sender`'s navigate, decided and held in its dispatch: on its way to its server."""
+    harness.dispatcher.hold = asyncio.Event()
+    harness.dispatcher.entered.clear()
+    sending = asyncio.ensure_future(gov.decide(command("navigate", GOAL), sender))
+    await asyncio.wait_for(harness.dispatcher.entered.wait(), timeout=10)
+    return sending
+
+
+async def test_a_session_loss_does_not_stop_another_principals_goal_on_its_way(
+        harness: Harness) -> None:
+    """PLANNER drives and goes silent while OPS's goal is on its way to its server: only
+    PLANNER's motion stops. A halt of the whole robot (a server-wide cancel, which the bridge
+    also counts against the goal being sent) would cancel OPS's goal for PLANNER's silence."""
+    gov = await harness.governor()
+    await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)  # PLANNER holds a session
+    sending = await _goal_on_its_way(gov, harness, OPS)
+    before = len(harness.dispatcher.calls)
+    lost = await gov.safe_stop(PLANNER, "no command or heartbeat for 2 s")
+    assert lost.outcome is Outcome.EXECUTED
+    assert gov.streams.active is None  # PLANNER's stream ended (zero sent)
+    assert [a for a, _ in harness.dispatcher.calls[before:]] == []  # no robot-wide halt
+    assert harness.dispatcher.hold is not None
+    harness.dispatcher.hold.set()
+    sent = await sending
+    assert sent.outcome is Outcome.EXECUTED and sent.goal_id is not None, sent
+    assert sent.goal_id in gov.streams.goals and harness.dispatcher.cancelled == []
+    [entry] = [e for e in harness.entries if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+    assert entry["applied"]["scope"] == "own"
+    await gov.stop()
+
+
+async def test_an_estop_cleared_while_a_goal_was_on_its_way_still_cancels_it(
+        harness: Harness) -> None:
+    """An e-stop wins over every goal decided before it, even once cleared: a goal accepted
+    after the clear is cancelled and answered `stopped`, as after a `stop`."""
+    gov = await harness.governor()
+    sending = await _goal_on_its_way(gov, harness, PLANNER)
+    await gov.decide(command("estop"), ADMIN)
+    cleared = await gov.decide(command("clear_estop"), ADMIN)
+    assert cleared.outcome is Outcome.EXECUTED and not gov.latch.latched
+    assert harness.dispatcher.hold is not None
+    harness.dispatcher.hold.set()
+    sent = await sending
+    assert (sent.http_status, sent.reason) == (409, "stopped"), sent
+    await asyncio.sleep(0)  # the cancel the arbiter spawned gets its turn
+    assert harness.dispatcher.cancelled == [f"goal-{harness.dispatcher._goals}"]
+    assert gov.streams.goals == {}
     await gov.stop()

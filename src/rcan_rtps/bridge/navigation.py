@@ -52,6 +52,10 @@ class GoalTracker:
         self._cancel_ready_for = 0  # the server match the cancel client was prepared for
         self._preparing: asyncio.Task[None] | None = None
         # Stops so far (`cancel_all`): a goal that was being sent across one is cancelled.
+        # Every server-wide cancel is a stop the governor counts too (`stop`, e-stop, a
+        # session loss that halts the whole robot, shutdown), and it answers the failed send
+        # `stopped`; a session loss while another principal's goal is being sent halts
+        # nothing robot-wide, so it never reaches here.
         self._stops = 0
 
     @property

@@ -43,7 +43,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Awaitable, Callable, Coroutine, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -695,25 +695,49 @@ class AuditLog:
 
         `urgent` (a stop): a group commit it is in does not wait a loop turn for more entries.
         """
+        return await self._enter(record, urgent=urgent, inline=True)
+
+    def seal(self, record: AuditRecord, *, urgent: bool = False) -> Awaitable[AuditReceipt]:
+        """Chain and sign one entry now, in this call, and queue it; the result, awaited,
+        returns once it is fsynced. A stop's: its place in the chain is the moment it took
+        effect (no entry sealed after this call precedes it), and nothing is written in this
+        call (never inline), so what the caller does next (tell the robot) does not wait for
+        the disk. Raises AuditWriteError at once if the log is unwritable; the result must be
+        awaited (or its entry is written without anyone learning whether it was)."""
+        return self._enter(record, urgent=urgent, inline=False)
+
+    def _enter(self, record: AuditRecord, *, urgent: bool, inline: bool
+               ) -> Coroutine[Any, Any, AuditReceipt]:
+        """Seal `record` and write it inline or queue it for a commit, all before returning;
+        the coroutine returned waits for its commit. `inline`: it may be written here."""
         if not self.healthy:
             raise AuditWriteError(f"audit log {self.path} is not writable") from self._broken
         line, receipt = self._seal(record)
-        if self._inline_ok():
+        if inline and self._inline_ok():
             self._write_inline(line, receipt)
+            return self._committed(record, receipt, None)
+        loop = asyncio.get_running_loop()
+        done: asyncio.Future[None] = loop.create_future()
+        if self._loop_batch or self._loop_commit_ok():
+            # A fast disk under load: the entries of this loop turn and the next share
+            # one write+fsync, on the loop (no thread hand-off: cheaper than the thread's).
+            if not self._loop_batch:
+                loop.call_soon(self._commit_next_turn)
+            # Urgent: its batch commits the turn it is due, without a turn more for others.
+            # A sealed entry (not inline) that joins a batch whose commit is queued already
+            # leaves it as it was: commit now would run ahead of its caller's next step.
+            self._urgent = self._urgent or (urgent and (inline or len(self._loop_batch) == 0))
+            self._loop_batch.append((line, receipt, done))
         else:
-            loop = asyncio.get_running_loop()
-            done: asyncio.Future[None] = loop.create_future()
-            if self._loop_batch or self._loop_commit_ok():
-                # A fast disk under load: the entries of this loop turn and the next share
-                # one write+fsync, on the loop (no thread hand-off: cheaper than the thread's).
-                if not self._loop_batch:
-                    loop.call_soon(self._commit_next_turn)
-                self._loop_batch.append((line, receipt, done))
-                self._urgent = self._urgent or urgent
-            else:
-                self._queue.append((line, receipt, done))
-                if self._flusher is None or self._flusher.done():
-                    self._flusher = asyncio.create_task(self._flush())
+            self._queue.append((line, receipt, done))
+            if self._flusher is None or self._flusher.done():
+                self._flusher = asyncio.create_task(self._flush())
+        return self._committed(record, receipt, done)
+
+    async def _committed(self, record: AuditRecord, receipt: AuditReceipt,
+                         done: asyncio.Future[None] | None) -> AuditReceipt:
+        """Waits for the commit of a sealed entry (`done`; None: written inline already)."""
+        if done is not None:
             # A cancelled caller cancels only its wait: the entry is written anyway (its
             # future skipped), so no shield (a future more per entry).
             await done

@@ -5,7 +5,9 @@ transition is persisted, audited, published and acknowledged before the next one
 order of acknowledgements is the audit order. Two rules make an acknowledged e-stop stick:
 
 - an e-stop latches in memory the moment it arrives (before any await), so no motion command
-  passes from then on, even while earlier transitions are still being written;
+  passes from then on, even while earlier transitions are still being written; when no
+  transition is under way its work also begins right there (its audit entry sealed where it
+  took effect: `EstopLane.estop`), else at its turn;
 - a clear unlatches only if no e-stop arrived after it; otherwise that e-stop, next in line,
   keeps the robot stopped (and the superseded clear publishes nothing).
 
@@ -18,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import inspect
 import logging
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -83,7 +86,8 @@ class LatchFile:
         self._writer.shutdown(wait=True)
 
 
-_Job = tuple[Callable[[], Awaitable[Any]], "asyncio.Future[Any]", bool]
+# A transition's work (or, begun at once, its awaitable), its caller's future, engage or not.
+_Job = tuple[Callable[[], Awaitable[Any]] | Awaitable[Any], "asyncio.Future[Any]", bool]
 
 
 class EstopMachine:
@@ -101,6 +105,7 @@ class EstopMachine:
         self._engages_waiting = 0
         self._queue: asyncio.Queue[_Job] | None = None
         self._worker: asyncio.Task[None] | None = None
+        self._unfinished = 0  # transitions submitted and not done
 
     @property
     def latched(self) -> bool:
@@ -108,12 +113,20 @@ class EstopMachine:
         return self._latched
 
     def engage(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
-        """Latch now (synchronously), then run `work` in order."""
+        """Latch now (synchronously), then run `work` in order: at once (`work()` called in
+        this step) if no transition is under way, so what it does before its first await
+        happens with the flip; else at its turn."""
         flipped, self._latched = not self._latched, True
         self._engages_waiting += 1
         if flipped:
             self._tell()
-        return self._submit(work, engage=True)
+        if self._unfinished:
+            return self._submit(work, engage=True)
+        try:
+            begun = work()
+        except Exception as exc:  # the caller gets it; the machine goes on
+            begun = _raise(exc)
+        return self._submit(begun, engage=True)
 
     def clear(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Run `work` in order; it calls `unlatch()` once the clear is durable."""
@@ -163,8 +176,10 @@ class EstopMachine:
                 await worker
         self.file.close()
 
-    def _submit(self, work: Callable[[], Awaitable[T]], *, engage: bool) -> asyncio.Future[T]:
+    def _submit(self, work: Callable[[], Awaitable[T]] | Awaitable[T], *, engage: bool
+                ) -> asyncio.Future[T]:
         loop = asyncio.get_running_loop()
+        self._unfinished += 1
         if self._queue is None:
             self._queue = asyncio.Queue()
         if self._worker is None or self._worker.done():
@@ -180,7 +195,7 @@ class EstopMachine:
             if engage:
                 self._engages_waiting -= 1
             try:
-                result = await work()
+                result = await (work if inspect.isawaitable(work) else work())
             except Exception as exc:  # the caller gets it; the machine goes on
                 if not done.done():
                     done.set_exception(exc)
@@ -188,7 +203,13 @@ class EstopMachine:
                 if not done.done():
                     done.set_result(result)
             finally:
+                self._unfinished -= 1
                 self._queue.task_done()
+
+
+async def _raise(exc: Exception) -> Any:
+    """Work that failed as it began: its failure, in its turn."""
+    raise exc
 
 
 class Tally(msgspec.Struct, kw_only=True):

@@ -9,8 +9,9 @@ together (ESTOP_REPEATED), so a flood of e-stops cannot grow the log one entry e
 
 from __future__ import annotations
 
-import asyncio
 import logging
+from collections.abc import Awaitable
+from typing import Any
 
 import msgspec
 
@@ -49,35 +50,39 @@ class EstopLane:
         # The ESTOP entry holding the latch, while no clear was audited after it.
         self._latched_by: AuditReceipt | None = None
 
-    async def estop(self, command: NormalizedCommand, principal: Principal) -> Decision:
+    def estop(self, command: NormalizedCommand, principal: Principal) -> Awaitable[Decision]:
         """Latched already; tell the robot, with latch file and audit entry made durable
         beside it. An e-stop always reaches the robot: if the latch file or the audit log
         cannot be written, it is still published, and the failure is logged and answered.
-        """
+
+        Begun in the step the latch flipped when no transition was under way (`engage`), so
+        its entry is sealed where the e-stop took effect: a command refused for the latch is
+        listed after it."""
         if self._latched_by is not None:
-            return await self._again(command, principal)
+            return self._again(command, principal)
         steps = self._steps
         entry = record(AuditEvent.ESTOP, command, principal, Outcome.EXECUTED, applied={},
                        ros2_topic=steps.route(command), sent_first=True)
         self._streams.take_goals()  # the e-stop cancels every goal
         # The robot is told first (the dispatch's first step publishes, before any await);
         # latch file and audit entry are made durable beside it, both before the reply.
-        dispatched, persisted, receipt = await asyncio.gather(
-            steps.dispatch(command, command.params),
-            self._latch.file.write(True, principal.name, now_ms(self._clock)),
-            steps.audit.append(entry, urgent=True),
-            return_exceptions=True)
+        stopping = steps.stop(entry, steps.dispatch(command, command.params),
+                              self._latch.file.write(True, principal.name, now_ms(self._clock)))
+        return self._estopped(command, principal, stopping)
+
+    async def _estopped(self, command: NormalizedCommand, principal: Principal,
+                        stopping: Awaitable[tuple[list[Any], AuditReceipt | None]]
+                        ) -> Decision:
+        (dispatched, persisted), receipt = await stopping
         if isinstance(persisted, BaseException):
             log.error("e-stop latched in memory only: %s", persisted,
                       extra={"principal": principal.name})
         result, failure = sent(dispatched)
-        if isinstance(receipt, BaseException):
-            log.error("e-stop sent but not audited: %s", receipt,
-                      extra={"principal": principal.name})
+        if receipt is None:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         self._latched_by = receipt
         if failure is not None:
-            return await steps.failed(command, principal, failure)
+            return await self._steps.failed(command, principal, failure)
         return executed(command, {}, receipt, result)
 
     async def _again(self, command: NormalizedCommand, principal: Principal) -> Decision:

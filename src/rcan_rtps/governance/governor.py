@@ -66,6 +66,7 @@ from .steps import (
     executed,
     record,
     refused_event,
+    sent,
 )
 from .streams import AccelLimits, EndReason, HeldGoal, VelocityStreams
 
@@ -388,11 +389,25 @@ class Governor:
         if spec.effect is Effect.HALT:  # zero at once, before the stop is even audited
             self.streams.halt(principal.name)
             return await self._halt(command, principal, params, event)
+        owner = issuer or principal  # a stream is its issuer's, at the issuer's priority
+        if not spec.motion:
+            return await self._carry_out(command, principal, owner, params, applied, event,
+                                         pending_id, stops)
+        # Decided: from now on it drives the base for a session loss of someone else's.
+        with self.streams.deciding(owner.name):
+            return await self._carry_out(command, principal, owner, params, applied, event,
+                                         pending_id, stops)
+
+    async def _carry_out(self, command: NormalizedCommand, principal: Principal,
+                         owner: Principal, params: ActionParams, applied: dict[str, Any],
+                         event: AuditEvent, pending_id: str | None, stops: int) -> Decision:
+        """`_execute` of what is neither a stop, a clear nor a lock: checked, written ahead,
+        sent; motion only if no stop came since it was decided (`stops`)."""
+        spec = command.spec
         motion = spec.motion
         if motion and self.latch.latched:
             return await self._steps.refuse(command, principal, outcomes.ESTOP_ACTIVE, event=event,
                                       pending_id=pending_id)
-        owner = issuer or principal  # a stream is its issuer's, at the issuer's priority
         priority = self._base.priorities.of(owner)
         # Streams and goals both drive the base: the same priorities and locks hold.
         refused = self._base.admits(priority) if spec.streamed or spec.starts_goal else None
@@ -423,11 +438,11 @@ class Governor:
             self._sending(owner, command)
         result, failure = await self._steps.dispatch(command, params)
         if failure is not None:
-            return await self._steps.failed(command, principal, failure)
-        if spec.starts_goal and self.latch.latched:
-            # Accepted while an e-stop latched: the e-stop's cancel may have missed this goal.
-            await self._steps.dispatch(bridge_command(Effect.HALT))
-        elif spec.starts_goal:
+            # A goal the bridge refused because a stop came while it was on its way (it
+            # cancels it: `GoalTracker`) is answered as one this governor cancels: `stopped`.
+            halted = self.streams.halted_since(stops) if spec.starts_goal else None
+            return await self._steps.failed(command, principal, halted or failure)
+        if spec.starts_goal:  # a stop or e-stop since it was decided: cancelled by id
             refused = self._base.hold_goal(result.goal_id, owner, priority, command.message_id,
                                            stops)
             if refused is not None:
@@ -436,15 +451,17 @@ class Governor:
 
     async def _halt(self, command: NormalizedCommand, principal: Principal,
                     params: ActionParams, event: AuditEvent) -> Decision:
-        """A stop: zero velocity and goal cancels go out first, its entry is made durable
-        beside them (never before: stopping does not wait for the disk), then the reply."""
+        """A stop: zero velocity and goal cancels go out first, its entry is sealed in this
+        step (after the halt, before any await) and made durable beside them (never before:
+        stopping does not wait for the disk), then the reply."""
         applied: dict[str, Any] = {}  # nothing of the body reaches the robot (a reason is kept)
         entry = record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          ros2_topic=self._steps.route(command), sent_first=True)
         self.streams.take_goals()  # the halt cancels every goal
-        sent, receipt = await asyncio.gather(self._steps.dispatch(command, params),
-                                             self._steps.write_ahead(entry, urgent=True))
-        result, failure = sent
+        # Sealed in this step, with the halt: the log lists it where the robot got it.
+        (dispatched,), receipt = await self._steps.stop(entry,
+                                                       self._steps.dispatch(command, params))
+        result, failure = sent(dispatched)
         if receipt is None:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         if failure is not None:
@@ -453,7 +470,7 @@ class Governor:
 
     def end_streams(self) -> None:
         """The bridge is stopping: zero now, before the robot is halted and the log closed."""
-        self.streams.end(EndReason.BRIDGE_STOPPED)
+        self.streams.halt(None, EndReason.BRIDGE_STOPPED)  # nothing decided starts after
 
     # -- goals the robot carries out -------------------------------------------------------
 
@@ -581,14 +598,17 @@ class Governor:
             return await self._own_stop(principal, why, own)
         log.warning("control session of '%s' lost (%s): halting the robot (safe stop)",
                     principal.name, why)
+        # A halt of the whole robot: a stop for all motion decided before it (only the
+        # principal's own: nobody else's is on its way, `driven_by_other_than`).
+        self.streams.halt(principal.name, EndReason.SESSION_LOST)
         self.streams.take_goals()  # the halt cancels every goal
         self.events.session_lost.emit(principal)  # e.g. log the goals being cancelled
         stop = bridge_command(Effect.HALT)
         entry = record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
                          applied={}, ros2_topic=self._steps.route(stop), sent_first=True)
         # Halted first, and even if the audit cannot be written: stopping is never held back.
-        (result, failure), receipt = await asyncio.gather(
-            self._steps.dispatch(stop), self._steps.write_ahead(entry, urgent=True))
+        (dispatched,), receipt = await self._steps.stop(entry, self._steps.dispatch(stop))
+        result, failure = sent(dispatched)
         self.events.safe_stop.emit(principal)  # e.g. STATUS shows `safe_stop`
         if receipt is None:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=stop.message_id)
@@ -605,7 +625,7 @@ class Governor:
         applied = {"scope": "own", "goals_cancelled": [g.goal_id for g in goals]}
         entry = record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
                          applied=applied, sent_first=True)
-        receipt = await self._steps.write_ahead(entry, urgent=True)
+        _, receipt = await self._steps.stop(entry)  # sealed with the cancels, not after
         if receipt is None:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=stop.message_id)
         return executed(stop, applied, receipt, DispatchResult(ok=True))

@@ -11,7 +11,7 @@ import asyncio
 import hashlib
 import logging
 import uuid
-from collections.abc import Coroutine
+from collections.abc import Awaitable, Coroutine, Sequence
 from typing import Any, Protocol
 
 import msgspec
@@ -114,6 +114,27 @@ class Steps:
                           extra={"principal": record.principal})
             return None
 
+    def stop(self, entry: AuditRecord, *signals: Coroutine[Any, Any, Any]
+             ) -> Coroutine[Any, Any, tuple[list[Any], AuditReceipt | None]]:
+        """A stop's signals and its entry (a stop, an e-stop, a safe stop), both under way
+        when this returns — called in the same step as the halt or the latch, no await
+        between them:
+
+        - each of `signals` (the robot told, a latch file written) gets its task first, so
+          its first step (the publish) runs before anything this stop writes to disk;
+        - then `entry` is sealed: its place in the chain is where the stop took effect, so
+          no entry sealed after the halt (a move decided just after it) comes before it;
+        - it is made durable beside the signals, never before them: stopping does not wait
+          for the disk, and is never held back by it (unwritable: logged, receipt None).
+
+        Awaiting the result gives what each signal returned or raised, and the receipt."""
+        started = [asyncio.ensure_future(signal) for signal in signals]
+        try:
+            durable: Awaitable[AuditReceipt] = self.audit.seal(entry, urgent=True)
+        except AuditError as exc:
+            durable = _failed(exc)
+        return _stopped(entry, started, durable)
+
     async def record_event(self, record: AuditRecord) -> None:
         """An entry about something that already happened (nothing waits on it)."""
         try:
@@ -168,6 +189,26 @@ class Steps:
         self.tasks.add(task)
         task.add_done_callback(self.tasks.discard)
         return task
+
+
+async def _failed(exc: AuditError) -> AuditReceipt:
+    """A stop's entry that could not even be sealed (the log is unwritable): its failure,
+    beside the signals that go out anyway."""
+    raise exc
+
+
+async def _stopped(entry: AuditRecord, signals: Sequence[asyncio.Future[Any]],
+                   durable: Awaitable[AuditReceipt]) -> tuple[list[Any], AuditReceipt | None]:
+    """`Steps.stop`'s signals and entry, done: what each signal returned or raised, and the
+    entry's receipt (None: it could not be written; the signals went anyway)."""
+    *sent, receipt = await asyncio.gather(*signals, durable, return_exceptions=True)
+    if isinstance(receipt, AuditError):
+        log.error("audit write failed: the %s went out unaudited (%s)", entry.action_type,
+                  receipt, extra={"principal": entry.principal})
+        return sent, None
+    if isinstance(receipt, BaseException):
+        raise receipt
+    return sent, receipt
 
 
 def record(event: AuditEvent, command: NormalizedCommand, principal: Principal,

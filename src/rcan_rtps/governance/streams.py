@@ -28,10 +28,11 @@ and equal goals it replaces are returned to the governor to cancel (`goal_starte
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import enum
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import NamedTuple, Protocol
 
 import msgspec
@@ -186,8 +187,12 @@ class VelocityStreams:
         self.commanded = ZERO  # the velocity last sent
         self.locks: dict[str, int] = {}  # engaged lock → its priority
         self.goals: dict[str, HeldGoal] = {}  # goals in progress, by id
-        # Stops so far (`halt`): motion decided before one must not start after it.
+        # Stops so far (`halt`, an e-stop latching): motion decided before one must not
+        # start after it.
         self.stops = 0
+        # Motion decided and not yet started or refused, per owner (`deciding`): it drives
+        # the base as much as a running stream does, for a session loss of someone else.
+        self._deciding: dict[str, int] = {}
         self.on_end: Callable[[StreamEnded], None] = lambda ended: None
         self._handle: Cancellable | None = None
         self._last = ZERO
@@ -197,10 +202,10 @@ class VelocityStreams:
     def admits(self, priority: int, *, since: int | None = None) -> Rejection | None:
         """None if a move or goal of `priority` may start now (no higher stream, goal or
         lock; with `since`, a value of `stops` taken when it was decided: no stop since)."""
+        if self._latch.latched:  # first: an e-stop counts as a stop too, and says more
+            return outcomes.ESTOP_ACTIVE
         if since is not None and self.stopped_since(since):
             return outcomes.STOPPED
-        if self._latch.latched:
-            return outcomes.ESTOP_ACTIVE
         if any(p > priority for p in self.locks.values()):
             return outcomes.MOTION_LOCKED
         if self.active is not None and self.active.priority > priority:
@@ -230,10 +235,26 @@ class VelocityStreams:
         return taken
 
     def driven_by_other_than(self, owner: str) -> bool:
-        """Someone else's stream or goal holds the base."""
+        """Someone else's stream or goal holds the base, or motion of theirs decided before
+        now is still on its way (a goal being sent): a halt of the whole robot now would
+        stop it for `owner`'s sake."""
         if self.active is not None and self.active.owner != owner:
             return True
+        if any(name != owner for name in self._deciding):
+            return True
         return any(g.owner != owner for g in self.goals.values())
+
+    @contextlib.contextmanager
+    def deciding(self, owner: str) -> Iterator[None]:
+        """Motion of `owner`'s, from its decision (`stops` taken) until it started or was
+        refused."""
+        self._deciding[owner] = self._deciding.get(owner, 0) + 1
+        try:
+            yield
+        finally:
+            left = self._deciding.pop(owner) - 1
+            if left:
+                self._deciding[owner] = left
 
     def first_sample(self, target: Velocity) -> Velocity:
         return self.accel.step(self.commanded, target, self.period)
@@ -293,11 +314,12 @@ class VelocityStreams:
             self._schedule(timer, stream.started_at + self.period)
         return None
 
-    def halt(self, by: str) -> bool:
-        """A stop: the active stream ends (as `end`), and motion decided before this and not
-        yet started never starts (`stopped_since`)."""
+    def halt(self, by: str | None, reason: EndReason = EndReason.STOPPED) -> bool:
+        """A stop (a `stop`, a session-loss halt of the whole robot, the bridge stopping):
+        the active stream ends (as `end`), and motion decided before this and not yet started
+        never starts (`stopped_since`)."""
         self.stops += 1
-        return self.end(EndReason.STOPPED, by)
+        return self.end(reason, by)
 
     def stopped_since(self, stops: int) -> bool:
         """Whether a stop came after `stops` (a value of `self.stops` taken earlier)."""
@@ -328,9 +350,11 @@ class VelocityStreams:
         return True
 
     def on_latch(self) -> None:
-        """The latch's listener: an e-stop ends the stream before anything else happens."""
+        """The latch's listener: an e-stop ends the stream before anything else happens, and
+        is a stop for motion decided before it (cleared before that motion started, it still
+        does not start)."""
         if self._latch.latched:
-            self.end(EndReason.ESTOPPED)
+            self.halt(None, EndReason.ESTOPPED)
 
     # -- locks -----------------------------------------------------------------------------
     def lock(self, name: str, priority: int, by: str) -> list[HeldGoal]:

@@ -1,0 +1,119 @@
+"""A goal on its way to its server when a stop comes, through governor and bridge together.
+
+A `stop` wins over it: the goal is cancelled and its command answered `stopped` (409), the
+same answer as for a goal the governor cancels itself once accepted. A session loss of
+another principal does not touch it: that principal's motion stops, the goal runs on.
+
+The robot side: a NavigateToPose server of our own on a second DDS participant whose goals
+run until cancelled, and an rclpy subscriber on cmd_vel (a stop's zero is matched at once, so
+its server-wide cancel goes out while the goal is still being sent)."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from waiting import eventually
+
+from rcan_rtps.bridge.navigation import GoalTracker
+from rcan_rtps.governance import Decision
+from rcan_rtps.ros.actions import ActionServer, ServerGoal
+from rcan_rtps.ros.participant import RosNode
+
+from .bridge_rig import AGENT, OPS, Rig, bridge_config, close_rig, make_rig
+
+NAV = "nav2_msgs/action/NavigateToPose"
+MOTION = """\
+motion:
+  role_priorities: {USER: 10, OWNER: 50}
+"""
+GOAL = {"action": "navigate", "params": {"x": 3.0, "y": 0.0, "yaw": 0.0}}
+
+
+async def _until_cancelled(goal: ServerGoal) -> dict[str, Any]:
+    while not goal.cancel_requested.is_set():
+        await asyncio.sleep(0.05)
+    goal.canceled()
+    return {}
+
+
+@pytest.fixture
+async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Rig]:
+    config = bridge_config(tmp_path, domain_id, extra=MOTION)
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node:
+        server = ActionServer(robot_node, "navigate_to_pose", NAV, _until_cancelled)
+        rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
+        try:
+            await rig.oracle.acall("subscribe", topic="/robot1/cmd_vel",
+                                   type="geometry_msgs/msg/Twist")
+            await rig.oracle.acall("wait_matched", topic="/robot1/cmd_vel")
+            await eventually(lambda: rig.dispatcher.cmd_vel.matched_count() > 0,
+                             what="cmd_vel matched")
+            await eventually(_tracker(rig).client.server_present,
+                             what="the NavigateToPose server")
+            yield rig
+        finally:
+            await close_rig(rig)
+            await server.close()
+
+
+def _tracker(rig: Rig) -> GoalTracker:
+    assert rig.goals is not None
+    tracker = rig.goals.tracker("nav_action")
+    assert tracker is not None
+    return tracker
+
+
+def _when_sent(rig: Rig, then: Callable[[], Awaitable[Decision]]
+               ) -> list[asyncio.Future[Decision]]:
+    """The next goal's send, once under way (its request leaving), starts `then` beside it."""
+    tracker = _tracker(rig)
+    send, started = tracker.send, []
+
+    async def sending(*args: Any, **kw: Any) -> str:
+        tracker.send = send  # type: ignore[method-assign]
+        goal = asyncio.ensure_future(send(*args, **kw))
+        await asyncio.sleep(0)  # the goal is on its way
+        started.append(asyncio.ensure_future(then()))
+        return await goal
+
+    tracker.send = sending  # type: ignore[method-assign]
+    return started
+
+
+async def test_a_stop_while_a_goal_is_sent_answers_it_stopped(rig: Rig) -> None:
+    stopping = _when_sent(rig, lambda: rig.command(OPS, {"action": "stop"}))
+    sent = await rig.command(AGENT, GOAL)
+    [stop] = stopping
+    assert (await stop).http_status == 200
+    # Refused as the governor refuses a goal a stop came before: not a robot failure (503).
+    assert (sent.http_status, sent.reason) == (409, "stopped"), sent
+    view = _tracker(rig).goals()[-1]
+    await eventually(lambda: view.state == "canceled", timeout=15,
+                     what=f"goal {view.goal_id} cancelled (now {view.state})")
+    [failed] = [e for e in rig.entries()
+                if e["event"] == "COMMAND_FAILED" and e["message_id"] == sent.message_id]
+    assert failed["deny_reason"].endswith(":stopped"), failed
+
+
+async def test_a_session_loss_leaves_another_principals_goal_on_its_way_running(
+        rig: Rig) -> None:
+    first = await rig.command(AGENT, GOAL)  # AGENT drives: its goal holds a session
+    assert first.http_status == 200 and first.goal_id, first
+    losing = _when_sent(rig, lambda: rig.governor.safe_stop(AGENT, "no heartbeat for 1 s"))
+    sent = await rig.command(OPS, GOAL)
+    [lost] = losing
+    assert (await lost).http_status == 200
+    assert sent.http_status == 200 and sent.goal_id, sent  # OPS's goal was not stopped
+    view = _tracker(rig).goal(sent.goal_id)
+    assert view is not None
+    await asyncio.sleep(1.0)  # a cancel would have reached it by now
+    assert view.state not in ("canceled", "aborted"), view.state
+    assert _tracker(rig).active() == [sent.goal_id]  # AGENT's goal ended (its own / replaced)
+    [entry] = [e for e in rig.entries() if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+    assert entry["applied"]["scope"] == "own"
+    await rig.command(OPS, {"action": "stop"})
+    await eventually(lambda: not _tracker(rig).active(), timeout=15, what="stopped")

@@ -5,9 +5,13 @@ Each test here failed on main (43f1bcd) before its fix; see each test's docstrin
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
+import pytest
+
 from tests.api.apihelpers import Api
+from tests.api.test_mcp_stop_intake import LEGACY, META, MODERN, headers, post, stopped, warned
 from tests.api.test_rcan3_messages import sdk_command
 
 SMALL_WINDOW = "security: {msg_id_cache_size: 100}"
@@ -34,3 +38,35 @@ async def test_a_guest_cannot_fill_the_replay_window_for_everyone(tmp_path: Any)
         assert (status, body["error_code"]) == (409, "REPLAY_DETECTED"), body
     finally:
         await api.close()
+
+
+# -- /mcp: a tools/call whose JSON repeats a key, one of whose values says stop --
+
+MOVE_ARGS = '"arguments": {"linear_x": 0.2, "duration_s": 1.0, "confidence": 0.9}'
+REPEATS = {
+    "name: estop, then move": '{"name": "estop", "name": "move", %s%s}',
+    "name: move, then estop": '{"name": "move", "name": "estop", %s%s}',
+    "params: estop, then move": '{"name": "estop"}, "params": {"name": "move", %s%s}',
+}
+
+
+@pytest.mark.parametrize("header", ["move", "estop"])
+@pytest.mark.parametrize("protocol", [LEGACY, MODERN])
+@pytest.mark.parametrize("repeat", list(REPEATS))
+async def test_an_mcp_call_that_says_estop_twice_over_is_an_estop(
+        api: Api, protocol: str, repeat: str, header: str) -> None:
+    """REST runs a body in which any `action` says estop as the e-stop, duplicated keys and
+    all (`{"action":"estop","action":"move"}` used to run the move). /mcp read such a body as
+    the SDK does, the last key winning: `{"name": "estop", "name": "move", ...}` drove the
+    robot (as the planner's move, the latch unset), and over 2026-07-28 an `Mcp-Name: estop`
+    header with it was refused -32020 — nothing stopped at all."""
+    meta = (', "_meta": ' + json.dumps(META)) if protocol == MODERN else ""
+    params = REPEATS[repeat] % (MOVE_ARGS, meta)
+    raw = b'{"jsonrpc": "2.0", "id": 2, "method": "tools/call", "params": ' + params.encode() + b"}"
+    status, reply = await post(api, raw, await headers(api, "planner", protocol, header))
+    assert status == 200, reply
+    data = stopped(reply)
+    assert api.gov.latch.latched
+    assert [a for a, _ in api.dispatcher.calls] == ["estop"]
+    warned(data, "duplicate key")
+    assert api.entry(data["audit_id"])["warnings"] == data["warnings"]

@@ -154,7 +154,9 @@ class McpEndpoint:
         async def run(scope: Any, receive: Any, send: Any) -> None:
             await server.handle(scope, receive, send, seat, principal.name, principal.role.name)
 
-        extra = {"headers": _named(request, call.name)} if call.warnings else {}
+        # A body rewritten (the tool's own name, a repeated key resolved) names its tool anew.
+        rewritten = call.warnings or rescue.warnings
+        extra = {"headers": _named(request, call.name)} if rewritten else {}
         answered = await _asgi.answer(run, request, rescue.body, extra)
         if isinstance(seat.api, LocalApi) and seat.api.commanded:  # the SDK ran it
             if answered is None:

@@ -51,20 +51,20 @@ def duplicate_key(raw: bytes, obj: dict[str, Any]) -> Duplicate | None:
     Every key in the text is followed by a colon, so when the text holds no more colons
     than `obj` has keys no key can repeat: the usual body costs a count, not a second parse.
     """
-    if raw.count(b":") == _count_keys(obj):
+    if raw.count(b":") == count_keys(obj):
         return None
     try:
-        top = json.loads(raw, object_pairs_hook=_Pairs)
+        top = json.loads(raw, object_pairs_hook=Pairs)
     except RecursionError as exc:  # deeper than this parser goes: nothing is taken on trust
         raise SchemaValidationError("$", "JSON nested too deeply") from exc
-    return _first_duplicate(top)
+    return first_duplicate(top)
 
 
-class _Pairs(list[tuple[str, Any]]):
+class Pairs(list[tuple[str, Any]]):
     """A JSON object as its key/value pairs, every occurrence kept."""
 
 
-def _count_keys(obj: Any) -> int:
+def count_keys(obj: Any) -> int:
     count, todo = 0, [obj]
     while todo:
         item = todo.pop()
@@ -76,11 +76,11 @@ def _count_keys(obj: Any) -> int:
     return count
 
 
-def _first_duplicate(top: _Pairs) -> Duplicate | None:
+def first_duplicate(top: Pairs) -> Duplicate | None:
     todo: list[tuple[str, Any]] = [("$", top)]
     while todo:
         path, item = todo.pop(0)
-        if isinstance(item, _Pairs):
+        if isinstance(item, Pairs):
             seen: set[str] = set()
             for key, value in item:
                 if key in seen:
@@ -132,12 +132,12 @@ class _Reader:
 def read_leniently(raw: bytes, *, pairs: bool = False) -> Lenient | None:
     """`raw` as JSON, with what strict readers refuse read as something: NaN, Infinity and
     numbers out of range as null, an unpaired surrogate escape as U+FFFD (`pairs`: objects as
-    `_Pairs`, every occurrence of a key kept). None: not JSON even so."""
+    `Pairs`, every occurrence of a key kept). None: not JSON even so."""
     reader = _Reader()
     try:
         value = json.loads(raw.decode("utf-8"), parse_constant=reader.constant,
                            parse_int=reader.integer, parse_float=reader.real,
-                           object_pairs_hook=_Pairs if pairs else None)
+                           object_pairs_hook=Pairs if pairs else None)
     except (ValueError, RecursionError):  # not JSON (UnicodeDecodeError is a ValueError)
         return None
     surrogates: list[bool] = []
@@ -156,13 +156,13 @@ def nonfinite_stop(raw: bytes, problem: str) -> tuple[str, dict[str, Any], list[
     if read is None or paired is None:
         return None
     obj, top = read.value, paired.value
-    if not isinstance(obj, dict) or not isinstance(top, _Pairs):
+    if not isinstance(obj, dict) or not isinstance(top, Pairs):
         return None
     stop = stop_intent(top)
     if stop is None:
         return None
     problems = [read.problem(problem)]
-    duplicate = _first_duplicate(top)
+    duplicate = first_duplicate(top)
     if duplicate is not None:
         problems.append(f"{duplicate.path}: duplicate key {duplicate.key!r}")
     return stop, obj, problems
@@ -177,8 +177,8 @@ def _clean(value: Any, found: list[bool]) -> Any:
         if cleaned != value:
             found.append(True)
         return cleaned
-    if isinstance(value, _Pairs):
-        return _Pairs((_clean(k, found), _clean(v, found)) for k, v in value)
+    if isinstance(value, Pairs):
+        return Pairs((_clean(k, found), _clean(v, found)) for k, v in value)
     if isinstance(value, dict):
         return {_clean(k, found): _clean(v, found) for k, v in value.items()}
     if isinstance(value, list):

@@ -6,10 +6,12 @@ Each test here failed on main (43f1bcd) before its fix; see each test's docstrin
 from __future__ import annotations
 
 import json
+import logging
 from typing import Any
 
 import pytest
 
+from rcan_rtps.governance.decision_log import log_entry
 from tests.api.apihelpers import Api
 from tests.api.test_mcp_stop_intake import LEGACY, META, MODERN, headers, post, stopped, warned
 from tests.api.test_rcan3_messages import sdk_command
@@ -70,3 +72,28 @@ async def test_an_mcp_call_that_says_estop_twice_over_is_an_estop(
     assert [a for a, _ in api.dispatcher.calls] == ["estop"]
     warned(data, "duplicate key")
     assert api.entry(data["audit_id"])["warnings"] == data["warnings"]
+
+
+# -- the server's log: a key the client chose reaches a decision's log line --
+
+FORGED = "a\n2026-11-27 07:00:00 WARNING rcan_rtps.decisions ESTOP_CLEARED by ops \u202e"
+
+
+async def test_a_key_the_client_chose_cannot_forge_a_log_line(
+        api: Api, caplog: pytest.LogCaptureFixture) -> None:
+    """A repeated key is refused naming its path (`$.params.<key>`), and that path is the
+    entry's deny_reason, which the decision log line carries: a key holding a newline wrote a
+    forged line ('ESTOP_CLEARED by ops') into the server's log, and a bidi override reversed
+    the rest of the line. The audit entry keeps the path as it was (JSON escapes it)."""
+    caplog.set_level(logging.INFO, logger="rcan_rtps.decisions")
+    api.gov.audit.audited.subscribe(log_entry)
+    key = json.dumps(FORGED)
+    raw = f'{{"action": "move", "params": {{{key}: 1, {key}: 2}}}}'.encode()
+    status, body = await api.command("planner", raw=raw)
+    assert (status, body["path"]) == (400, "$.params." + FORGED), body
+    await api.gov.audit.close()  # runs the listeners still scheduled
+    lines = [r.getMessage() for r in caplog.records if r.name == "rcan_rtps.decisions"]
+    assert len(lines) == 1, lines
+    assert lines[0].isprintable(), lines[0]
+    entry = api.entry(body["audit_id"])
+    assert entry["deny_reason"] == "SCHEMA_VALIDATION_FAILED:$.params." + FORGED

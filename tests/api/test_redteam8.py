@@ -97,3 +97,40 @@ async def test_a_key_the_client_chose_cannot_forge_a_log_line(
     assert lines[0].isprintable(), lines[0]
     entry = api.entry(body["audit_id"])
     assert entry["deny_reason"] == "SCHEMA_VALIDATION_FAILED:$.params." + FORGED
+
+
+# -- a stop nested too deeply for the parsers --
+
+DEEP = b"[" * 5000 + b"]" * 5000
+
+
+async def test_an_estop_with_a_deeply_nested_field_stops(api: Api) -> None:
+    """A JSON object that says estop at its top, beside a field nested 5000 levels deep (11 kB,
+    far below the size limit), was refused 400 'JSON nested too deeply' and nothing stopped:
+    both parsers (msgspec and Python's json, the lenient reader) give up past ~1000 levels."""
+    raw = b'{"action": "estop", "params": {"reason": "deep"}, "x": ' + DEEP + b"}"
+    status, body = await api.command("viewer", raw=raw)
+    assert (status, body["outcome"]) == (200, "executed"), body
+    assert api.gov.latch.latched and [a for a, _ in api.dispatcher.calls] == ["estop"]
+    assert any("nested" in w for w in body["warnings"]), body
+    assert api.entry(body["audit_id"])["params"] == {"reason": "deep"}
+
+
+async def test_a_move_with_a_deeply_nested_field_is_still_refused(api: Api) -> None:
+    raw = b'{"action": "move", "params": {"linear_x": 0.1}, "x": ' + DEEP + b"}"
+    status, body = await api.command("planner", raw=raw)
+    assert (status, body["error_code"]) == (400, "SCHEMA_VALIDATION_FAILED"), body
+    assert api.dispatcher.calls == []
+
+
+@pytest.mark.parametrize("protocol", [LEGACY, MODERN])
+async def test_an_mcp_estop_with_a_deeply_nested_argument_stops(api: Api, protocol: str) -> None:
+    """The SDK's parser refused it (-32700) and the bridge's lenient reader gave up too."""
+    meta = (b', "_meta": ' + json.dumps(META).encode()) if protocol == MODERN else b""
+    raw = (b'{"jsonrpc": "2.0", "id": 2, "method": "tools/call", "params": {"name": "estop", '
+           b'"arguments": {"reason": "deep", "x": ' + DEEP + b"}" + meta + b"}}")
+    status, reply = await post(api, raw, await headers(api, "viewer", protocol))
+    assert status == 200, reply
+    data = stopped(reply)
+    assert api.gov.latch.latched and [a for a, _ in api.dispatcher.calls] == ["estop"]
+    warned(data, "nested")

@@ -12,9 +12,10 @@ from typing import Any
 import pytest
 
 from rcan_rtps.governance.decision_log import log_entry
-from tests.api.apihelpers import Api
+from tests.api.apihelpers import Api, auth
 from tests.api.test_mcp_stop_intake import LEGACY, META, MODERN, headers, post, stopped, warned
 from tests.api.test_rcan3_messages import sdk_command
+from tests.api.test_ws import _frame
 
 SMALL_WINDOW = "security: {msg_id_cache_size: 100}"
 
@@ -114,6 +115,15 @@ async def test_an_estop_with_a_deeply_nested_field_stops(api: Api) -> None:
     assert api.gov.latch.latched and [a for a, _ in api.dispatcher.calls] == ["estop"]
     assert any("nested" in w for w in body["warnings"]), body
     assert api.entry(body["audit_id"])["params"] == {"reason": "deep"}
+
+
+async def test_a_websocket_estop_with_a_deeply_nested_field_stops(api: Api) -> None:
+    raw = b'{"action": "estop", "params": {"reason": "deep"}, "x": ' + DEEP + b"}"
+    async with api.http.ws_connect("/api/ws", headers=auth("viewer")) as ws:
+        await ws.send_bytes(raw)
+        frame = await _frame(ws, "outcome")
+    assert (frame["http_status"], frame["body"]["outcome"]) == (200, "executed"), frame
+    assert api.gov.latch.latched and [a for a, _ in api.dispatcher.calls] == ["estop"]
 
 
 async def test_a_move_with_a_deeply_nested_field_is_still_refused(api: Api) -> None:

@@ -37,6 +37,7 @@ from rcan_rtps.governance import Principal
 
 from ._bodies import error_response, json_response
 from ._commands import read_limited, too_large
+from ._errors import BodyEncoding
 from ._keys import GOVERNOR, PRINCIPAL, SETTINGS
 from ._mcp_stop import Rescue, StopCall, stop_call, stop_rescue
 
@@ -109,7 +110,15 @@ class McpEndpoint:
             return error_response(501, "NOT_IMPLEMENTED", reason=EXTRA_HINT)
         app, principal = request.app, request[PRINCIPAL]
         settings = app[SETTINGS]
-        body = await read_limited(request, settings.max_body_bytes, settings.body_timeout_s)
+        try:
+            body = await read_limited(request, settings.max_body_bytes, settings.body_timeout_s)
+        except BodyEncoding as exc:  # a stop in bytes its header misnames still stops
+            found = stop_rescue(exc.raw) if request.method == "POST" else None
+            if found is None:
+                raise
+            said = f"$: {exc.reason}: read as sent"
+            return await self._stopping_call(server, request, found._replace(
+                warnings=(said, *found.warnings)))
         if body is None:
             status, refused = await too_large(app[GOVERNOR], principal)
             return json_response(refused, status)

@@ -11,8 +11,10 @@ import logging
 import zlib
 from typing import Any
 
+import aiohttp
 import pytest
 
+from rcan_rtps.api import ApiServer
 from rcan_rtps.governance.decision_log import log_entry
 from tests.api.apihelpers import Api, auth
 from tests.api.test_mcp_stop_intake import LEGACY, META, MODERN, headers, post, stopped, warned
@@ -223,4 +225,27 @@ async def test_an_mcp_estop_whose_encoding_lies_stops(
     data = stopped(reply)
     assert api.gov.latch.latched
     warned(data, "gzip")
+    no_traceback(caplog)
+
+
+@pytest.mark.parametrize("who", ["planner", None], ids=["authenticated", "unauthenticated"])
+async def test_the_real_server_answers_a_misencoded_body_quietly(
+        tmp_path: Any, caplog: pytest.LogCaptureFixture, who: str | None) -> None:
+    """The same through `ApiServer`, whose handlers `run` makes with their own arguments (not
+    the app's): a gzip header on a plain body."""
+    caplog.set_level(logging.DEBUG)
+    api = Api(tmp_path)
+    app = await api.build()
+    try:
+        async with ApiServer(app, host="127.0.0.1", port=0) as server, \
+                aiohttp.ClientSession() as session:
+            sent = {"Content-Type": "application/json", "Content-Encoding": "gzip",
+                    **(auth(who) if who else {})}
+            async with session.post(server.url + "/api/command", data=MOVE,
+                                    headers=sent) as resp:
+                status, body = resp.status, await resp.json()
+    finally:
+        await api.close()
+    assert (status, body["outcome"]) == ((400 if who else 401), "denied"), body
+    assert api.dispatcher.calls == []
     no_traceback(caplog)

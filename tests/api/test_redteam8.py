@@ -249,3 +249,16 @@ async def test_the_real_server_answers_a_misencoded_body_quietly(
     assert (status, body["outcome"]) == ((400 if who else 401), "denied"), body
     assert api.dispatcher.calls == []
     no_traceback(caplog)
+
+
+# -- a UTF-8 byte order mark (what Windows PowerShell 5's UTF8 encoding writes first) --
+
+async def test_an_estop_after_a_byte_order_mark_stops(api: Api) -> None:
+    """RFC 8259 lets a parser ignore a BOM; both of ours refuse one, so an e-stop written by
+    a tool that puts one first was refused 400 and nothing stopped. A move stays refused."""
+    status, body = await api.command("viewer", raw=b'\xef\xbb\xbf{"action": "estop"}')
+    assert (status, body["outcome"]) == (200, "executed"), body
+    assert api.gov.latch.latched
+    assert any("byte order mark" in w for w in body["warnings"]), body
+    status, body = await api.command("planner", raw=b"\xef\xbb\xbf" + MOVE)
+    assert (status, body["error_code"]) == (400, "SCHEMA_VALIDATION_FAILED"), body

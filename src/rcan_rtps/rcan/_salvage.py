@@ -139,6 +139,9 @@ def read_leniently(raw: bytes, *, pairs: bool = False) -> Lenient | None:
     except UnicodeDecodeError:
         return None
     reader = _Reader()
+    if text.startswith("\ufeff"):  # RFC 8259 §8.1: a parser may ignore it; Python's refuses
+        text = text[1:]
+        reader.replaced["a byte order mark (U+FEFF) at the start as nothing"] = None
     try:
         try:
             value = json.loads(text, parse_constant=reader.constant, parse_int=reader.integer,
@@ -146,7 +149,6 @@ def read_leniently(raw: bytes, *, pairs: bool = False) -> Lenient | None:
             surrogates: list[bool] = []
             value = _clean(value, surrogates)
         except RecursionError:  # a stop says so near the top: what is deep need not be read
-            reader = _Reader()
             value = _Shallow(text, reader, pairs).read()
             surrogates = []
             value = _clean(value, surrogates)

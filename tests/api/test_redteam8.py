@@ -262,3 +262,26 @@ async def test_an_estop_after_a_byte_order_mark_stops(api: Api) -> None:
     assert any("byte order mark" in w for w in body["warnings"]), body
     status, body = await api.command("planner", raw=b"\xef\xbb\xbf" + MOVE)
     assert (status, body["error_code"]) == (400, "SCHEMA_VALIDATION_FAILED"), body
+
+
+# -- §16.5 thoughts: one principal writing into another's --
+
+@pytest.mark.xfail(strict=True, reason=(
+    "ThoughtLog is keyed by thought_id alone: any principal's command naming another's "
+    "thought_id (a GUEST's refused one too) replaces that thought's model, confidence and "
+    "reasoning as GET /api/thoughts shows them to an OWNER. Which principal a thought id "
+    "belongs to (and what an OWNER reading a shared id is shown) is a design choice left to "
+    "the lead"))
+async def test_a_guest_cannot_rewrite_another_principals_thought(api: Api) -> None:
+    ai = {"ai_provider": "acme", "confidence": 0.9, "thought_id": "th-shared"}
+    own = {"action": "move", "params": {"linear_x": 0.1, "duration_s": 1},
+           "ai_model": "planner-7b", "ai_reasoning": "the user asked for the door", **ai}
+    assert (await api.command("planner", own))[0] == 200
+    forged = {**own, "ai_model": "planner-7b-v2",
+              "ai_reasoning": "ignore the fence, the owner approved it"}
+    status, _ = await api.command("viewer", forged)
+    assert status == 403  # a GUEST may not move: refused, yet remembered in the thought
+    status, thought = await api.call("GET", "/api/thoughts/th-shared", "ops")
+    assert status == 200, thought
+    assert (thought["model"], thought["reasoning"]) == (
+        "planner-7b", "the user asked for the door"), thought

@@ -53,3 +53,19 @@ def test_no_timestamp_is_stale() -> None:
     rejection = ReplayWindow(ManualClock()).check("m", None)
     assert rejection is not None and (rejection.http_status, rejection.reason) == (
         408, "no_timestamp")
+
+
+def test_the_bound_is_per_sender_and_a_replay_is_a_replay_from_anyone() -> None:
+    clock = ManualClock()
+    window = ReplayWindow(clock, max_entries=3)
+    sent = clock.time()
+    for n in range(3):
+        assert window.check(f"g{n}", sent, sender="guest") is None
+    full = window.check("g3", sent, sender="guest")
+    assert full is not None and full.reason == "replay_window_full"
+    assert window.check("p0", sent, sender="planner") is None  # the guest's flood is its own
+    replay = window.check("g0", sent, sender="planner")
+    assert replay is not None and replay.error_code.value == "REPLAY_DETECTED"
+    clock.advance(31)
+    assert window.check("g4", clock.time(), sender="guest") is None
+    assert len(window) == 1

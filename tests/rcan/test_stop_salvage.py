@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rcan_rtps.rcan import SchemaValidationError, validate_command
-from rcan_rtps.rcan._salvage import duplicate_key
+from rcan_rtps.rcan._salvage import Pairs, _Reader, _Shallow, duplicate_key
 
 _scalars = (st.none() | st.booleans() | st.integers()
             | st.floats(allow_nan=False, allow_infinity=False) | st.text(max_size=12))
@@ -119,3 +119,29 @@ def test_a_salvaged_stop_keeps_what_is_valid() -> None:
     assert cmd.ai is not None and (cmd.ai.model, cmd.ai.confidence) == ("planner-7b", 0.4)
     assert cmd.requested == {"reason": "door opened", "bogus": 1}
     assert cmd.warnings == ("$.params: Object contains unknown field `bogus`",)
+
+
+_json_values = st.recursive(
+    _scalars,
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner,
+                                                                max_size=4),
+    max_leaves=30,
+)
+
+
+@settings(max_examples=400, deadline=None)
+@given(value=_json_values, indent=st.sampled_from([None, 0, 2]))
+def test_the_shallow_reader_reads_what_pythons_json_reads(value: Any, indent: int | None) -> None:
+    """`_Shallow` (for what is nested too deeply for Python's json) against json.loads, the
+    reference, on anything shallower than its depth; pairs kept alike."""
+    text = json.dumps(value, indent=indent)
+    assert _Shallow(text, _Reader(), pairs=False).read() == json.loads(text)
+    assert _Shallow(text, _Reader(), pairs=True).read() == json.loads(
+        text, object_pairs_hook=Pairs)
+
+
+@pytest.mark.parametrize("text", ['{"a": 1,}', '{"a" 1}', "[1 2]", '{"a": [}', "[[[", '{"a": 1} x',
+                                  '{"a": ' + "[" * 40 + "]" * 39 + "}", "{'a': 1}"])
+def test_the_shallow_reader_refuses_what_is_not_json(text: str) -> None:
+    with pytest.raises(ValueError):
+        _Shallow(text, _Reader(), pairs=False).read()

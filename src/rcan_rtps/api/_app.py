@@ -121,7 +121,9 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app = web.Application(middlewares=[track_requests(deadlines), last_resort(),
                                        authenticate(frozenset({_node_manifest.PATH}),
                                                     static=is_console_path)],
-                          client_max_size=settings.max_body_bytes)
+                          client_max_size=settings.max_body_bytes,
+                          # Bodies are decoded by `read_limited`, which answers a bad one.
+                          handler_args={"auto_decompress": False})
     app[DEADLINES] = deadlines  # ApiServer serves connections through it
     app[GOVERNOR] = governor
     app[AUTHENTICATOR] = authenticator

@@ -2,6 +2,7 @@
 
     ApiServerError      base of every error the API raises (requests are answered, never raised)
     ├── BodyTimeout     a request body did not arrive in time (answered 408 by a middleware)
+    ├── BodyEncoding    a body not what its Content-Encoding says, or in a coding not taken
     └── ReadsBusy       too many audit reads wait for the reader thread (answered 429)
 
 Binding a socket raises OSError, like the stdlib; misuse (e.g. `ApiServer.url` before start)
@@ -18,6 +19,18 @@ class ApiServerError(Exception):
 class BodyTimeout(ApiServerError):
     """The request body did not arrive within `body_timeout_s` (answered 408, not audited:
     no request was ever complete)."""
+
+
+class BodyEncoding(ApiServerError):
+    """A request body that is not what its Content-Encoding says (400), or in a coding the API
+    does not take (415); answered by a middleware, not audited (like a body timeout: what was
+    sent cannot be read). `raw`: the body as it came, where a stop may still be found."""
+
+    def __init__(self, status: int, reason: str, raw: bytes) -> None:
+        super().__init__(reason)
+        self.status = status
+        self.reason = reason
+        self.raw = raw
 
 
 class ReadsBusy(ApiServerError):

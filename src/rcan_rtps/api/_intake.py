@@ -120,7 +120,7 @@ def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS,
         log.exception("validating a command body failed unexpectedly")
         return Intake(refusal=_INTERNAL)
     if isinstance(message, Heartbeat):  # not a command: no signature policy
-        refusal = _replay_refusal(message, checks.replay)
+        refusal = _replay_refusal(message, checks.replay, principal)
         if refusal is None:
             return Intake(heartbeat=message)
         assert message.envelope is not None  # only envelopes are checked
@@ -139,7 +139,7 @@ def _checked_message3(message: Invoke | InvokeCancel | Authorization, checks: Ch
     if checks.signatures is not None and principal is not None:
         refusal, _ = checks.signatures.check(principal, message.envelope)
     if refusal is None:
-        refusal = _replay_refusal(message, checks.replay)
+        refusal = _replay_refusal(message, checks.replay, principal)
     if refusal is None:
         return Intake(message3=message)
     envelope = message.envelope
@@ -156,7 +156,7 @@ def _checked(command: NormalizedCommand, checks: Checks, principal: str | None) 
             refusals.append(refusal)
     # A message refused for its signature does not use up its msg_id (a stop goes on anyway).
     if not refusals or command.spec.stopping:
-        refusal = _replay_refusal(command, checks.replay)
+        refusal = _replay_refusal(command, checks.replay, principal)
         if refusal is not None:
             refusals.append(refusal)
     if not refusals:
@@ -183,11 +183,13 @@ def with_warnings(item: Intake, warnings: tuple[str, ...]) -> Intake:
 
 
 def _replay_refusal(message: NormalizedCommand | Heartbeat | Invoke | InvokeCancel
-                    | Authorization, window: ReplayWindow | None) -> Rejection | None:
+                    | Authorization, window: ReplayWindow | None,
+                    principal: str | None) -> Rejection | None:
     envelope = message.envelope
     if window is None or envelope is None or not envelope.replay_checked:
         return None
-    return window.check(envelope.msg_id, envelope.sent_at_s, safety=envelope.safety)
+    return window.check(envelope.msg_id, envelope.sent_at_s, safety=envelope.safety,
+                        sender=principal or "")
 
 
 async def decide(governor: Governor, principal: Principal, item: Intake,

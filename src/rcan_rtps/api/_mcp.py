@@ -37,6 +37,7 @@ from rcan_rtps.governance import Principal
 
 from ._bodies import error_response, json_response
 from ._commands import read_limited, too_large
+from ._errors import BodyEncoding
 from ._keys import GOVERNOR, PRINCIPAL, SETTINGS
 from ._mcp_stop import Rescue, StopCall, stop_call, stop_rescue
 
@@ -109,7 +110,15 @@ class McpEndpoint:
             return error_response(501, "NOT_IMPLEMENTED", reason=EXTRA_HINT)
         app, principal = request.app, request[PRINCIPAL]
         settings = app[SETTINGS]
-        body = await read_limited(request, settings.max_body_bytes, settings.body_timeout_s)
+        try:
+            body = await read_limited(request, settings.max_body_bytes, settings.body_timeout_s)
+        except BodyEncoding as exc:  # a stop in bytes its header misnames still stops
+            found = stop_rescue(exc.raw) if request.method == "POST" else None
+            if found is None:
+                raise
+            said = f"$: {exc.reason}: read as sent"
+            return await self._stopping_call(server, request, found._replace(
+                warnings=(said, *found.warnings)))
         if body is None:
             status, refused = await too_large(app[GOVERNOR], principal)
             return json_response(refused, status)
@@ -154,7 +163,9 @@ class McpEndpoint:
         async def run(scope: Any, receive: Any, send: Any) -> None:
             await server.handle(scope, receive, send, seat, principal.name, principal.role.name)
 
-        extra = {"headers": _named(request, call.name)} if call.warnings else {}
+        # A body rewritten (the tool's own name, a repeated key resolved) names its tool anew.
+        rewritten = call.warnings or rescue.warnings
+        extra = {"headers": _named(request, call.name)} if rewritten else {}
         answered = await _asgi.answer(run, request, rescue.body, extra)
         if isinstance(seat.api, LocalApi) and seat.api.commanded:  # the SDK ran it
             if answered is None:

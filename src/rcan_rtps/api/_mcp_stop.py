@@ -5,7 +5,9 @@ body it cannot parse strictly (an unpaired surrogate escape, an integer of more 
 Python reads), a batch, a `tools/call` whose `arguments` are not an object, and knows tools by
 their exact names: such a stop is found here, with what was wrong as its warnings. A tool name
 says stop as an RCAN `action` does over REST (`rcan._salvage.stop_intent`: case and blanks
-forgiven); any other tool's name stays exact.
+forgiven); any other tool's name stays exact. A body that repeats a key says stop when any
+of the values says so (`{"name": "estop", "name": "move"}`), as over REST: the SDK's parser
+would take the last and run the move.
 """
 
 from __future__ import annotations
@@ -14,7 +16,13 @@ from typing import Any, NamedTuple
 
 import msgspec
 
-from rcan_rtps.rcan._salvage import read_leniently, stop_intent
+from rcan_rtps.rcan._salvage import (
+    Pairs,
+    count_keys,
+    first_duplicate,
+    read_leniently,
+    stop_intent,
+)
 
 
 class StopCall(NamedTuple):
@@ -79,6 +87,10 @@ def stop_rescue(body: bytes) -> Rescue | None:
             return None
         message = read.value
         warnings = (read.problem("$: the JSON-RPC body is not strict JSON"),)
+    repeated = _repeated(body, message)
+    if repeated is not None:
+        message, said = repeated
+        warnings = (*warnings, said)
     if isinstance(message, list):
         if not any(stop_call(member) for member in message):
             return None
@@ -90,3 +102,52 @@ def stop_rescue(body: bytes) -> Rescue | None:
     if not warnings and not call.warnings:  # as written: the SDK takes the very body
         return Rescue(body, (), call)
     return Rescue(msgspec.json.encode(call.as_message(message)), warnings, call)
+
+
+def _repeated(body: bytes, message: Any) -> tuple[Any, str] | None:
+    """For a body that repeats a key: the message as a stop reads it (a stop's call, should
+    any of its values say stop) and the warning naming the first repeated key; else None.
+    Every key is followed by a colon: a body with no more colons than keys repeats none."""
+    if body.count(b":") == count_keys(message):
+        return None
+    read = read_leniently(body, pairs=True)
+    if read is None:
+        return None
+    duplicate = first_duplicate(read.value)
+    if duplicate is None:
+        return None
+    said = f"{duplicate.path}: duplicate key {duplicate.key!r}"
+    if isinstance(read.value, list) and not isinstance(read.value, Pairs):  # a batch
+        return [_as_stop(member) for member in read.value], said
+    return _as_stop(read.value), said
+
+
+def _as_stop(member: Any) -> Any:
+    """A JSON-RPC request read with every occurrence of its keys (`Pairs`), as plain dicts:
+    a `tools/call` among its methods whose `params` (any of them) name a stop (any of the
+    names) becomes that call; anything else keeps the last of each key, as the SDK would."""
+    if not isinstance(member, Pairs):
+        return _plain(member)
+    plain = _plain(member)
+    if "tools/call" not in [v for k, v in member if k == "method"]:
+        return plain
+    for key, params in member:
+        if key != "params" or not isinstance(params, Pairs):
+            continue
+        names = [v for k, v in params if k == "name" and isinstance(v, str)]
+        tool = stop_intent(("action", name) for name in names)
+        if tool is not None:
+            name = next(n for n in names if stop_intent([("action", n)]) == tool)
+            return {**plain, "method": "tools/call",
+                    "params": {**_plain(params), "name": name}}
+    return plain
+
+
+def _plain(value: Any) -> Any:
+    """`value` with every `Pairs` a dict (the last occurrence of a key wins)."""
+    if isinstance(value, Pairs):
+        return {k: _plain(v) for k, v in value}
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    return value
+

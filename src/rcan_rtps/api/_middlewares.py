@@ -20,7 +20,7 @@ from rcan_rtps.governance import AuditError, AuthenticationError, Principal, out
 from rcan_rtps.rcan import ErrorCode
 
 from ._bodies import error_response, failure_reply, json_response
-from ._errors import BodyTimeout
+from ._errors import BodyEncoding, BodyTimeout
 from ._keys import AUTHENTICATOR, CERT_PRINCIPALS, GOVERNOR, PRINCIPAL, WS_TICKETS
 from ._tickets import same_origin, ticket_of
 
@@ -50,6 +50,9 @@ def last_resort() -> Middleware:
             return error_response(exc.status, code, reason=exc.reason, headers=headers)
         except BodyTimeout:
             return await _body_timed_out(request)
+        except BodyEncoding as exc:
+            code = "SCHEMA_VALIDATION_FAILED" if exc.status == 400 else "UNSUPPORTED_MEDIA_TYPE"
+            return error_response(exc.status, code, reason=exc.reason)
         except AuditError as exc:
             # Nothing may happen unrecorded: without an audit log the bridge is unavailable.
             log.exception("audit log failed while serving %s %s", request.method, request.path,

@@ -17,6 +17,8 @@ from ._bodies import (
     json_response,
 )
 from ._commands import read_limited, run_command, too_large
+from ._errors import BodyEncoding
+from ._intake import intake
 from ._keys import (
     CHECKS,
     GOVERNOR,
@@ -42,14 +44,21 @@ async def post_command(request: web.Request) -> web.Response:
     # Each request is its own task and no read shares an executor with the audit writer
     # (`_reads`), so nothing queues a REST stop or e-stop behind anything else.
     governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
-    raw = await read_body(request)
+    warnings: tuple[str, ...] = ()
+    try:
+        raw = await read_body(request)
+    except BodyEncoding as exc:
+        # A stop always stops: bytes that say stop, whatever their header says they are.
+        if not intake(exc.raw, len(exc.raw)).stopping:
+            raise
+        raw, warnings = exc.raw, (f"$: {exc.reason}: read as sent",)
     if raw is None:
         status, body = await too_large(governor, principal)
         response = json_response(body, status)
         response.force_close()  # the rest of the body is not worth reading
         return response
     status, body = await run_command(governor, principal, raw, request.app[OBSERVE],
-                                     request.app[CHECKS], request.app[INVOCATIONS])
+                                     request.app[CHECKS], request.app[INVOCATIONS], warnings)
     return json_response(body, status)
 
 

@@ -34,7 +34,17 @@ def describe(record: AuditRecord) -> str:
         parts.append(f"({record.params.get('reason')})")
     if record.ros2_topic:
         parts.append(f"on {record.ros2_topic}")
-    return " ".join(parts)
+    return shown(" ".join(parts))
+
+
+def shown(text: str) -> str:
+    """`text` with what is not printable escaped (`\\n`, `\\u202e`): a deny_reason holds
+    paths through the client's own keys, and a newline or bidi control there would forge or
+    reorder a line of the server's log."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii")
+                   for c in text)
 
 
 def log_entry(record: AuditRecord, receipt: AuditReceipt) -> None:

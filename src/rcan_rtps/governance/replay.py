@@ -4,9 +4,12 @@ A message is stale when its sender's timestamp is more than `window_s` old (`saf
 for SAFETY messages), or more than `ahead_s` in the future (the sender's clock may run a little
 ahead of ours; more than that is not drift). A fresh message whose `msg_id` was seen while that
 id could still be fresh is a replay. Ids are kept until the message they came with goes stale,
-at most `max_entries` of them: when that many fresh ids are held, new messages are refused
-(`replay_window_full`) rather than an id forgotten while a replay of it would still pass —
-stops are never refused (their callers turn any refusal into a warning).
+at most `max_entries` of one sender's: when that many of its fresh ids are held, that sender's
+new messages are refused (`replay_window_full`) rather than an id forgotten while a replay of it
+would still pass — stops are never refused (their callers turn any refusal into a warning).
+The bound is per sender because one window shared by all let any principal, a GUEST whose
+messages are all refused later, fill it and so have every other principal's refused. An id
+seen from any sender is a replay from every sender.
 
 The 1.2 forms and unversioned messages keep the idempotent retry instead (the governor's).
 """
@@ -14,6 +17,7 @@ The 1.2 forms and unversioned messages keep the idempotent retry instead (the go
 from __future__ import annotations
 
 import heapq
+from collections import Counter
 
 from rcan_rtps.rcan import ErrorCode, Outcome
 
@@ -36,16 +40,18 @@ class ReplayWindow:
         self.window_s = window_s
         self.safety_window_s = min(window_s, SAFETY_WINDOW_S)
         self.ahead_s = ahead_s
-        self._max = max_entries
-        self._seen: dict[str, float] = {}  # msg_id → when it goes stale (wall clock)
-        self._expiry: list[tuple[float, str]] = []  # the same, soonest first
+        self._max = max_entries  # per sender
+        self._seen: dict[str, str] = {}  # msg_id → its sender
+        self._held: Counter[str] = Counter()  # sender → how many of its ids are kept
+        self._expiry: list[tuple[float, str]] = []  # (when it goes stale, msg_id), soonest first
 
     def __len__(self) -> int:
         return len(self._seen)
 
     def check(self, msg_id: str | None, sent_at_s: float | None, *,
-              safety: bool = False) -> Rejection | None:
-        """None if the message may go on (its id is then remembered), else why not."""
+              safety: bool = False, sender: str = "") -> Rejection | None:
+        """None if the message may go on (its id is then remembered), else why not.
+        `sender`: the authenticated principal, whose own ids count against its bound."""
         now = self._clock.time()
         window = self.safety_window_s if safety else self.window_s
         if sent_at_s is None:
@@ -59,17 +65,20 @@ class ReplayWindow:
         self._forget_stale(now)
         if msg_id in self._seen:
             return outcomes.REPLAY_DETECTED
-        if len(self._seen) >= self._max:
+        if self._held[sender] >= self._max:
             return WINDOW_FULL
-        expires = sent_at_s + window
-        self._seen[msg_id] = expires
-        heapq.heappush(self._expiry, (expires, msg_id))
+        self._seen[msg_id] = sender
+        self._held[sender] += 1
+        heapq.heappush(self._expiry, (sent_at_s + window, msg_id))
         return None
 
     def _forget_stale(self, now: float) -> None:
         while self._expiry and self._expiry[0][0] < now:
             _, msg_id = heapq.heappop(self._expiry)
-            self._seen.pop(msg_id, None)
+            sender = self._seen.pop(msg_id)
+            self._held[sender] -= 1
+            if not self._held[sender]:
+                del self._held[sender]
 
 
 def _stale(reason: str) -> Rejection:

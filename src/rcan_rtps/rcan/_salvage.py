@@ -51,20 +51,20 @@ def duplicate_key(raw: bytes, obj: dict[str, Any]) -> Duplicate | None:
     Every key in the text is followed by a colon, so when the text holds no more colons
     than `obj` has keys no key can repeat: the usual body costs a count, not a second parse.
     """
-    if raw.count(b":") == _count_keys(obj):
+    if raw.count(b":") == count_keys(obj):
         return None
     try:
-        top = json.loads(raw, object_pairs_hook=_Pairs)
+        top = json.loads(raw, object_pairs_hook=Pairs)
     except RecursionError as exc:  # deeper than this parser goes: nothing is taken on trust
         raise SchemaValidationError("$", "JSON nested too deeply") from exc
-    return _first_duplicate(top)
+    return first_duplicate(top)
 
 
-class _Pairs(list[tuple[str, Any]]):
+class Pairs(list[tuple[str, Any]]):
     """A JSON object as its key/value pairs, every occurrence kept."""
 
 
-def _count_keys(obj: Any) -> int:
+def count_keys(obj: Any) -> int:
     count, todo = 0, [obj]
     while todo:
         item = todo.pop()
@@ -76,11 +76,11 @@ def _count_keys(obj: Any) -> int:
     return count
 
 
-def _first_duplicate(top: _Pairs) -> Duplicate | None:
+def first_duplicate(top: Pairs) -> Duplicate | None:
     todo: list[tuple[str, Any]] = [("$", top)]
     while todo:
         path, item = todo.pop(0)
-        if isinstance(item, _Pairs):
+        if isinstance(item, Pairs):
             seen: set[str] = set()
             for key, value in item:
                 if key in seen:
@@ -131,20 +131,133 @@ class _Reader:
 
 def read_leniently(raw: bytes, *, pairs: bool = False) -> Lenient | None:
     """`raw` as JSON, with what strict readers refuse read as something: NaN, Infinity and
-    numbers out of range as null, an unpaired surrogate escape as U+FFFD (`pairs`: objects as
-    `_Pairs`, every occurrence of a key kept). None: not JSON even so."""
-    reader = _Reader()
+    numbers out of range as null, an unpaired surrogate escape as U+FFFD, what is nested too
+    deeply for Python's json as null (`pairs`: objects as `Pairs`, every occurrence of a key
+    kept). None: not JSON even so."""
     try:
-        value = json.loads(raw.decode("utf-8"), parse_constant=reader.constant,
-                           parse_int=reader.integer, parse_float=reader.real,
-                           object_pairs_hook=_Pairs if pairs else None)
-    except (ValueError, RecursionError):  # not JSON (UnicodeDecodeError is a ValueError)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
         return None
-    surrogates: list[bool] = []
-    value = _clean(value, surrogates)
+    reader = _Reader()
+    if text.startswith("\ufeff"):  # RFC 8259 §8.1: a parser may ignore it; Python's refuses
+        text = text[1:]
+        reader.replaced["a byte order mark (U+FEFF) at the start as nothing"] = None
+    try:
+        try:
+            value = json.loads(text, parse_constant=reader.constant, parse_int=reader.integer,
+                               parse_float=reader.real, object_pairs_hook=Pairs if pairs else None)
+            surrogates: list[bool] = []
+            value = _clean(value, surrogates)
+        except RecursionError:  # a stop says so near the top: what is deep need not be read
+            value = _Shallow(text, reader, pairs).read()
+            surrogates = []
+            value = _clean(value, surrogates)
+    except (ValueError, RecursionError):  # not JSON
+        return None
     if surrogates:
         reader.replaced["an unpaired surrogate escape as U+FFFD"] = None
     return Lenient(value, tuple(reader.replaced))
+
+
+_BLANKS = re.compile(r"[ \t\n\r]*")
+_CLOSERS = {"{": "}", "[": "]"}
+
+
+class _Shallow:
+    """JSON read down to `DEPTH` levels, anything deeper as null (with `reader`'s note): a
+    stop says so at the top (`action`, `safety_event`) or a level below (an MCP call's
+    `params.name`), so a field nested thousands of levels deep, which Python's json and
+    msgspec give up on, must not keep it from being read. Iterative where it is deep."""
+
+    DEPTH = 32
+
+    def __init__(self, text: str, reader: _Reader, pairs: bool) -> None:
+        self._text = text
+        self._reader = reader
+        self._pairs = pairs
+        self._scalars = json.JSONDecoder(parse_constant=reader.constant,
+                                         parse_int=reader.integer, parse_float=reader.real)
+
+    def read(self) -> Any:
+        value, end = self._value(0, 0)
+        if self._blank(end) != len(self._text):
+            raise ValueError("extra data after the JSON value")
+        return value
+
+    def _blank(self, at: int) -> int:
+        match = _BLANKS.match(self._text, at)
+        assert match is not None  # it matches the empty string
+        return match.end()
+
+    def _value(self, at: int, depth: int) -> tuple[Any, int]:
+        at = self._blank(at)
+        opener = self._text[at:at + 1]
+        if opener not in _CLOSERS:
+            value, end = self._scalars.raw_decode(self._text, at)  # ValueError: not JSON
+            if isinstance(value, (dict, list)):  # raw_decode reads containers too
+                raise ValueError("unexpected container")
+            return value, end
+        if depth >= self.DEPTH:
+            self._reader.replaced[f"what is nested more than {self.DEPTH} levels deep as "
+                                  "null"] = None
+            return None, self._past(at)
+        return (self._object if opener == "{" else self._array)(at + 1, depth + 1)
+
+    def _object(self, at: int, depth: int) -> tuple[Any, int]:
+        items: list[tuple[str, Any]] = []
+        at = self._blank(at)
+        if self._text[at:at + 1] != "}":
+            while True:
+                at = self._blank(at)
+                if self._text[at:at + 1] != '"':
+                    raise ValueError("expected a key")
+                key, at = self._scalars.raw_decode(self._text, at)
+                at = self._blank(at)
+                if self._text[at:at + 1] != ":":
+                    raise ValueError("expected ':'")
+                value, at = self._value(at + 1, depth)
+                items.append((key, value))
+                at = self._blank(at)
+                if self._text[at:at + 1] != ",":
+                    break
+                at += 1
+            if self._text[at:at + 1] != "}":
+                raise ValueError("expected ',' or '}'")
+        return (Pairs(items) if self._pairs else dict(items)), at + 1
+
+    def _array(self, at: int, depth: int) -> tuple[Any, int]:
+        items: list[Any] = []
+        at = self._blank(at)
+        if self._text[at:at + 1] != "]":
+            while True:
+                value, at = self._value(at, depth)
+                items.append(value)
+                at = self._blank(at)
+                if self._text[at:at + 1] != ",":
+                    break
+                at += 1
+            if self._text[at:at + 1] != "]":
+                raise ValueError("expected ',' or ']'")
+        return items, at + 1
+
+    def _past(self, at: int) -> int:
+        """Where the container opening at `at` ends: its brackets matched outside strings
+        (its scalars are not checked: they are read as nothing)."""
+        text, expected = self._text, [_CLOSERS[self._text[at]]]
+        at += 1
+        while expected:
+            if at >= len(text):
+                raise ValueError("unterminated")
+            char = text[at]
+            if char == '"':
+                _, at = self._scalars.raw_decode(text, at)
+                continue
+            if char in _CLOSERS:
+                expected.append(_CLOSERS[char])
+            elif char in "]}" and char != expected.pop():
+                raise ValueError("mismatched brackets")
+            at += 1
+        return at
 
 
 def nonfinite_stop(raw: bytes, problem: str) -> tuple[str, dict[str, Any], list[str]] | None:
@@ -156,13 +269,13 @@ def nonfinite_stop(raw: bytes, problem: str) -> tuple[str, dict[str, Any], list[
     if read is None or paired is None:
         return None
     obj, top = read.value, paired.value
-    if not isinstance(obj, dict) or not isinstance(top, _Pairs):
+    if not isinstance(obj, dict) or not isinstance(top, Pairs):
         return None
     stop = stop_intent(top)
     if stop is None:
         return None
     problems = [read.problem(problem)]
-    duplicate = _first_duplicate(top)
+    duplicate = first_duplicate(top)
     if duplicate is not None:
         problems.append(f"{duplicate.path}: duplicate key {duplicate.key!r}")
     return stop, obj, problems
@@ -177,8 +290,8 @@ def _clean(value: Any, found: list[bool]) -> Any:
         if cleaned != value:
             found.append(True)
         return cleaned
-    if isinstance(value, _Pairs):
-        return _Pairs((_clean(k, found), _clean(v, found)) for k, v in value)
+    if isinstance(value, Pairs):
+        return Pairs((_clean(k, found), _clean(v, found)) for k, v in value)
     if isinstance(value, dict):
         return {_clean(k, found): _clean(v, found) for k, v in value.items()}
     if isinstance(value, list):

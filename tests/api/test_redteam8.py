@@ -266,12 +266,6 @@ async def test_an_estop_after_a_byte_order_mark_stops(api: Api) -> None:
 
 # -- §16.5 thoughts: one principal writing into another's --
 
-@pytest.mark.xfail(strict=True, reason=(
-    "ThoughtLog is keyed by thought_id alone: any principal's command naming another's "
-    "thought_id (a GUEST's refused one too) replaces that thought's model, confidence and "
-    "reasoning as GET /api/thoughts shows them to an OWNER. Which principal a thought id "
-    "belongs to (and what an OWNER reading a shared id is shown) is a design choice left to "
-    "the lead"))
 async def test_a_guest_cannot_rewrite_another_principals_thought(api: Api) -> None:
     ai = {"ai_provider": "acme", "confidence": 0.9, "thought_id": "th-shared"}
     own = {"action": "move", "params": {"linear_x": 0.1, "duration_s": 1},
@@ -285,3 +279,13 @@ async def test_a_guest_cannot_rewrite_another_principals_thought(api: Api) -> No
     assert status == 200, thought
     assert (thought["model"], thought["reasoning"]) == (
         "planner-7b", "the user asked for the door"), thought
+    assert (thought["principal"], thought["also_named_by"]) == ("planner", ["viewer"]), thought
+    assert [c["principal"] for c in thought["commands"]] == ["planner"]
+    # The other sender's commands naming the id: a record of their own, asked for by name.
+    status, theirs = await api.call("GET", "/api/thoughts/th-shared?principal=viewer", "ops")
+    assert status == 200, theirs
+    assert (theirs["principal"], theirs["model"], theirs["action"]["outcome"]) == (
+        "viewer", "planner-7b-v2", "denied"), theirs
+    assert theirs["also_named_by"] == ["planner"], theirs
+    status, _ = await api.call("GET", "/api/thoughts/th-shared?principal=nobody", "ops")
+    assert status == 404

@@ -150,9 +150,15 @@ PATHS: dict[str, dict[str, Any]] = {
         {"200": _json("SkillList", "skills"), **_errors()})},
     "/api/thoughts/{thought_id}": {"get": _op(
         "getThought", "What an AI's thought led to (RCAN §16.5): model, confidence, its "
-        "commands and their decisions (GUEST+); `reasoning` only for OWNER+",
+        "commands and their decisions (GUEST+); `reasoning` only for OWNER+. A thought id is "
+        "its first sender's: another principal naming it gets a record of its own "
+        "(`also_named_by` lists them; `?principal=` reads one)",
         {"200": _json("Thought", "the thought"), **_errors(404)},
         parameters=[{"name": "thought_id", "in": "path", "required": True,
+                     "schema": {"type": "string"}},
+                    {"name": "principal", "in": "query", "required": False,
+                     "description": "whose commands naming the id (default: the first "
+                                    "principal's)",
                      "schema": {"type": "string"}}])},
     "/api/hitl/pending": {"get": _op(
         "getPending", "Commands waiting for a human (approvers); with `mine=true`, the caller's "

@@ -39,9 +39,11 @@ def _forbidden(request: web.Request, needed: Role) -> web.Response | None:
 
 
 async def get_thought(request: web.Request) -> web.Response:
-    """§16.5: any authenticated principal (status scope); `reasoning` for OWNER+ only."""
+    """§16.5: any authenticated principal (status scope); `reasoning` for OWNER+ only. The
+    record of the first principal to name the id, or of `?principal=` (another who did)."""
     thought = request.app[GOVERNOR].thoughts.read(request.match_info["thought_id"],
-                                                   request[PRINCIPAL])
+                                                   request[PRINCIPAL],
+                                                   request.query.get("principal"))
     if thought is None:
         return error_response(404, "NOT_FOUND", reason="thought_not_found")
     return json_response(thought)

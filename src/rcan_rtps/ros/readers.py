@@ -167,6 +167,9 @@ class ReaderThread:
             if self._closing:
                 raise DDSException(-9, f"{self.name} is closed")  # ALREADY_DELETED
             if self._thread is None:
+                # DDS calls under our lock, the one place: making a waitset and a guard
+                # condition invokes no listener (nothing calls back into Python), and no
+                # Cyclone thread ever takes this lock, so no wait cycle can run through it.
                 self._waitset = WaitSet(self._participant)
                 self._guard = GuardCondition(self._participant)
                 self._waitset.attach(self._guard)

@@ -76,9 +76,12 @@ POLL = 0.02
 SETTLE_S = 5.0  # s: how long a finished goal's feedback waits for its result (see `feedback`)
 # s: how long a dropped feedback datagram can take to come again, by the server's request
 # mapping (its RMW): Cyclone's writers send a HEARTBEAT every 100 ms while a reader owes an
-# ACK, Fast DDS's every 3 s (measured: 0.07-0.18 s and 0.01-2.94 s under load,
-# docs/design/zero-loss.md), with margin for a busy host.
-REPAIR_S = {RequestMapping.CYCLONE: 2.0, RequestMapping.FASTDDS: 4.0}
+# ACK, Fast DDS's every 3 s; our reader asks again every 100 ms once a HEARTBEAT showed it a
+# sample missing (participant.py). So with Fast DDS the repair comes with the first HEARTBEAT
+# our socket did not drop: measured 0.2-3.4 s after the end, and 5.8-5.9 s where the first
+# was dropped (docs/design/zero-loss.md, "Repairs dropped again"). Two HEARTBEATs, with
+# margin for a busy host.
+REPAIR_S = {RequestMapping.CYCLONE: 2.0, RequestMapping.FASTDDS: 7.0}
 RESULT_ASK_S = 5.0  # s: a get_result request unanswered this long is sent again (`_ask_result`)
 
 

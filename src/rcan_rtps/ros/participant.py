@@ -57,6 +57,16 @@ _LOCALHOST_CONFIG = """<CycloneDDS><Domain Id="any"><General>
 _COMPAT_CONFIG = """<CycloneDDS><Domain Id="any"><Compatibility>
 <IgnoreTypeInformation>1.15</IgnoreTypeInformation></Compatibility></Domain></CycloneDDS>"""
 
+# A reader that asked for a lost sample asks again after AutoReschedNackDelay (Cyclone's
+# default 3 s) unless the writer's next HEARTBEAT comes first (Fast DDS's: 3 s as well), so a
+# repair dropped at our socket again came only 3 s later each time: a first feedback 5-18 s
+# after its goal's end, past the repair window (docs/design/zero-loss.md, "Repairs dropped
+# again"). Asking again every 100 ms (Cyclone's NackDelay, the least it honours) costs an
+# ACKNACK per missing sample's writer per 100 ms, only while a sample is owed. Put before the
+# user's CYCLONEDDS_URI, which may override it.
+_REPAIR_CONFIG = """<CycloneDDS><Domain Id="any"><Internal>
+<AutoReschedNackDelay>100 ms</AutoReschedNackDelay></Internal></Domain></CycloneDDS>"""
+
 _domains: dict[int, tuple[Domain, int]] = {}  # domain id → (configured domain, nodes using it)
 _domains_lock = threading.Lock()
 # Per domain: Cyclone's packet capture, read for the request identity in Fast DDS replies
@@ -109,7 +119,8 @@ def localhost_requested(explicit: bool | None = None) -> bool:
 def _acquire_domain(domain_id: int, localhost: bool) -> None:
     # A Domain object fixes the configuration for every participant of that id in
     # this process, so the first node decides; it must be created before them. The
-    # user's CYCLONEDDS_URI comes first; our fragments refine it.
+    # user's CYCLONEDDS_URI comes after our defaults (_REPAIR_CONFIG), which it may override,
+    # and before our other fragments, which refine it.
     with _domains_lock:
         if domain_id in _domains:
             domain, users = _domains[domain_id]
@@ -122,11 +133,12 @@ def _acquire_domain(domain_id: int, localhost: bool) -> None:
         before = udp_socket_inodes()
         try:
             try:
-                domain = Domain(domain_id, ",".join(filter(None, [user, _COMPAT_CONFIG, *local])))
+                domain = Domain(domain_id, ",".join(
+                    filter(None, [_REPAIR_CONFIG, user, _COMPAT_CONFIG, *local])))
             except DDSException:  # an older Cyclone without <Compatibility>: do without it
                 log.warning("Cyclone DDS does not know <Compatibility>; Fast DDS 3 peers may "
                             "not match endpoints with sequences")
-                domain = Domain(domain_id, ",".join(filter(None, [user, *local])) or None)
+                domain = Domain(domain_id, ",".join(filter(None, [_REPAIR_CONFIG, user, *local])))
             if capture is not None and capture.start():
                 _captures[domain_id] = capture
             elif capture is not None:

@@ -113,7 +113,10 @@ async def test_a_session_loss_leaves_another_principals_goal_on_its_way_running(
     await asyncio.sleep(1.0)  # a cancel would have reached it by now
     assert view.state not in ("canceled", "aborted"), view.state
     assert _tracker(rig).active() == [sent.goal_id]  # AGENT's goal ended (its own / replaced)
-    [entry] = [e for e in rig.entries() if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
-    assert entry["applied"]["scope"] == "own"
+    # AGENT's own session may also run out meanwhile (it sends nothing more): one entry or
+    # two, each a stop of AGENT's own motion only.
+    scopes = [e["applied"]["scope"] for e in rig.entries()
+              if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+    assert scopes and set(scopes) == {"own"}, scopes
     await rig.command(OPS, {"action": "stop"})
     await eventually(lambda: not _tracker(rig).active(), timeout=15, what="stopped")

@@ -21,15 +21,12 @@ from mcp.server.auth.middleware.bearer_auth import AuthenticatedUser
 from mcp.server.auth.provider import AccessToken
 from mcp.server.context import ServerRequestContext
 from mcp.server.streamable_http_manager import StreamableHTTPSessionManager
-from mcp_types.jsonrpc import INVALID_REQUEST
 from mcp_types.version import HANDSHAKE_PROTOCOL_VERSIONS
 
 from .seat import Seat
 from .server import RobotTools, build_server
 
 SEAT = "rcan.seat"  # the ASGI scope key of a request's seat
-NOT_SERVED = ("a JSON-RPC batch is not served (MCP has had none since 2025-06-18): only the "
-              "stops in it were run")
 MAX_SESSIONS = 256
 SESSION_IDLE_S = 30 * 60.0
 Asgi = Any  # the ASGI callables, typed by the caller
@@ -85,21 +82,8 @@ class HttpMcp:
         return {"jsonrpc": "2.0", "id": request_id, "result": result}
 
 
-def not_served(member: Any) -> dict[str, Any] | None:
-    """The reply to a batch's member that is no stop: refused (the SDK refuses a batch whole,
-    the bridge serves only its stops); none to a notification."""
-    if isinstance(member, dict) and "id" not in member:
-        return None
-    return _error(member.get("id") if isinstance(member, dict) else None, NOT_SERVED)
-
-
 def _modern(headers: list[tuple[bytes, bytes]]) -> bool:
     """A request of a sessionless protocol (2026-07-28 on), as the SDK routes requests."""
     version = next((v.decode("latin-1") for k, v in headers
                     if k.lower() == b"mcp-protocol-version"), None)
     return version is not None and version not in HANDSHAKE_PROTOCOL_VERSIONS
-
-
-def _error(request_id: Any, message: str) -> dict[str, Any]:
-    return {"jsonrpc": "2.0", "id": request_id,
-            "error": {"code": INVALID_REQUEST, "message": message}}

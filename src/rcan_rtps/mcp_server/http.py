@@ -25,6 +25,7 @@ from mcp_types.version import HANDSHAKE_PROTOCOL_VERSIONS
 
 from .seat import Seat
 from .server import RobotTools, build_server
+from .stops import StopCall
 
 SEAT = "rcan.seat"  # the ASGI scope key of a request's seat
 MAX_SESSIONS = 256
@@ -73,13 +74,11 @@ class HttpMcp:
         """The JSON-RPC reply to a stopping tool's call run by the bridge's door (not in an MCP
         session: the SDK would not run it), as the tool runs it. A reply of the 2026-07-28
         protocol says its result is complete, as the SDK's own do."""
-        done = await self._tools.stop(seat, name, arguments, "unknown")
-        if done is None:  # not a stopping tool: only the door's stops come here
-            raise ValueError(f"{name!r} is no stopping tool")
-        result = done.model_dump(mode="json", by_alias=True, exclude_none=True)
+        call = StopCall(name, arguments, request_id, False, ())
+        reply = await self._tools.stop_reply(seat, call)  # warnings: the seat's, audited
         if _modern(scope_headers):
-            result["resultType"] = "complete"
-        return {"jsonrpc": "2.0", "id": request_id, "result": result}
+            reply["result"]["resultType"] = "complete"
+        return reply
 
 
 def _modern(headers: list[tuple[bytes, bytes]]) -> bool:

@@ -1,6 +1,8 @@
 """Red team 8: `rcan-rtps mcp` (stdio) against the API, with an e-stop its SDK would not run
 as written. `/mcp` runs each of these as the e-stop (tests/api/test_mcp_stop_intake.py,
-tests/api/test_redteam8.py); the stdio door handed every line to the SDK as it came."""
+tests/api/test_redteam8.py); the stdio door handed every line to the SDK as it came (a
+repeated name ran the move, a surrogate or a 5000-digit integer got no reply, ESTOP was
+UNKNOWN_TOOL, non-object arguments -32602) until it screened each line (`stdio_door`)."""
 
 from __future__ import annotations
 
@@ -8,7 +10,10 @@ import asyncio
 import json
 import os
 import sys
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -30,12 +35,6 @@ ESTOPS = {
 REPLY_TIMEOUT = 30.0  # s; against a hang only (a refused line gets no reply at all)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "the stdio door hands each line to the SDK as written: a repeated name runs the last "
-    "(move), a surrogate or a 5000-digit integer gets no reply at all, ESTOP is "
-    "UNKNOWN_TOOL, non-object arguments -32602; nothing stops. /mcp's stop_rescue is not "
-    "applied to stdin lines (and would need moving out of rcan_rtps.api, whose import costs "
-    "the stdio process ~1 s)"))
 @pytest.mark.parametrize("line", list(ESTOPS.values()), ids=list(ESTOPS))
 async def test_a_malformed_estop_over_stdio_stops(tmp_path: Path, line: bytes) -> None:
     await _estop_over_stdio(tmp_path, line)
@@ -46,7 +45,62 @@ async def test_a_plain_estop_over_stdio_stops(tmp_path: Path) -> None:
     await _estop_over_stdio(tmp_path, CALL % b'"name": "estop", "arguments": {}')
 
 
-async def _estop_over_stdio(tmp_path: Path, line: bytes) -> None:
+async def test_a_stop_read_from_a_repeated_name_says_so(tmp_path: Path) -> None:
+    """The door's warnings come back in the stop's tool result."""
+    reply = await _estop_over_stdio(tmp_path, ESTOPS["a repeated name"])
+    warnings = reply["result"]["structuredContent"]["warnings"]
+    assert any("duplicate key 'name'" in w for w in warnings), warnings
+
+
+async def test_an_estop_sent_as_a_notification_stops_unanswered(tmp_path: Path) -> None:
+    """No id: JSON-RPC answers nothing, but the stop is run (the SDK took it as an unknown
+    notification and ignored it); the next request's reply is the next line out."""
+    async with _stdio(tmp_path) as (api, proc):
+        await _send(proc, b'{"jsonrpc": "2.0", "method": "tools/call", '
+                          b'"params": {"name": "estop", "arguments": {}}}',
+                    b'{"jsonrpc": "2.0", "id": 3, "method": "ping"}')
+        reply = await _reply(proc)
+        assert reply["id"] == 3, reply
+        assert api.gov.latch.latched
+        assert [a for a, _ in api.dispatcher.calls] == ["estop"]
+
+
+async def test_a_batch_with_an_estop_stops_and_refuses_the_rest(tmp_path: Path) -> None:
+    async with _stdio(tmp_path) as (api, proc):
+        await _send(proc, b'[' + CALL % b'"name": "estop", "arguments": {}' + b', '
+                          b'{"jsonrpc": "2.0", "id": 4, "method": "tools/list"}]')
+        replies = [await _reply(proc), await _reply(proc)]
+        assert [r["id"] for r in replies] == [2, 4], replies
+        assert "result" in replies[0] and replies[1]["error"]["code"] == -32600, replies
+        assert api.gov.latch.latched
+        assert [a for a, _ in api.dispatcher.calls] == ["estop"]
+
+
+async def _estop_over_stdio(tmp_path: Path, line: bytes) -> dict[str, Any]:
+    async with _stdio(tmp_path) as (api, proc):
+        await _send(proc, line)
+        reply = await _reply(proc)
+        assert reply["id"] == 2, reply
+        assert api.gov.latch.latched, reply
+        assert [a for a, _ in api.dispatcher.calls] == ["estop"], reply
+        return reply
+
+
+async def _send(proc: asyncio.subprocess.Process, *lines: bytes) -> None:
+    assert proc.stdin is not None
+    proc.stdin.write(b"".join(line + b"\n" for line in lines))
+    await proc.stdin.drain()
+
+
+async def _reply(proc: asyncio.subprocess.Process) -> Any:
+    assert proc.stdout is not None
+    line = await asyncio.wait_for(proc.stdout.readline(), REPLY_TIMEOUT)
+    return json.loads(line)
+
+
+@asynccontextmanager
+async def _stdio(tmp_path: Path) -> AsyncIterator[tuple[Api, asyncio.subprocess.Process]]:
+    """An API and `rcan-rtps mcp` against it, initialized."""
     api = await Api(tmp_path).start()
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "rcan_rtps", "mcp", "--url", str(api.http.make_url("/")),
@@ -54,16 +108,12 @@ async def _estop_over_stdio(tmp_path: Path, line: bytes) -> None:
         stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
         env={**os.environ, "AGENT_TOKEN": TOKENS["planner"]})
-    assert proc.stdin is not None and proc.stdout is not None
+    assert proc.stdin is not None
     try:
-        proc.stdin.write(json.dumps(INITIALIZE).encode() + b"\n")
-        await asyncio.wait_for(proc.stdout.readline(), REPLY_TIMEOUT)
-        proc.stdin.write(b'{"jsonrpc": "2.0", "method": "notifications/initialized"}\n'
-                         + line + b"\n")
-        reply = await asyncio.wait_for(proc.stdout.readline(), REPLY_TIMEOUT)
-        assert json.loads(reply)["id"] == 2, reply
-        assert api.gov.latch.latched, reply
-        assert [a for a, _ in api.dispatcher.calls] == ["estop"], reply
+        await _send(proc, json.dumps(INITIALIZE).encode())
+        await _reply(proc)
+        await _send(proc, b'{"jsonrpc": "2.0", "method": "notifications/initialized"}')
+        yield api, proc
     finally:
         proc.stdin.close()
         try:
@@ -72,4 +122,3 @@ async def _estop_over_stdio(tmp_path: Path, line: bytes) -> None:
             proc.kill()
             await proc.wait()
         await api.close()
-

@@ -9,14 +9,15 @@ headers (or the `ai_provider` and `ai_model` query parameters, for clients that 
 header but `Authorization`). A principal's timed moves and goals are held by heartbeats
 while they run; a session the client closes (DELETE) stops what it left running.
 
-A stop stops whatever else is wrong with its request (`_mcp_stop.stop_rescue`): a `tools/call`
-that says stop (`estop`, `stop`: the registry's ESTOP and HALT actions, spelt as REST forgives)
-is handed to the SDK as it takes it — strict JSON (`rcan._salvage.read_leniently` reads what
-its parser refuses), the tool's own name, object arguments — and its answer held back: if the
-stop did not reach the bridge (the SDK refused it: no valid session over the 2025 protocol, a
-header that disagrees with the body, ...), it is run here, as the authenticated principal,
-and answered with its tool result. A notification's stop and the stops of a JSON-RPC batch
-(which the SDK refuses whole) are run here too. The stop carries what was wrong as
+A stop stops whatever else is wrong with its request (`mcp_server.stops.stop_rescue`, which
+the stdio door shares): a `tools/call` that says stop (`estop`, `stop`: the registry's ESTOP
+and HALT actions, spelt as REST forgives) is handed to the SDK as it takes it — strict JSON
+(`rcan._salvage.read_leniently` reads what its parser refuses), the tool's own name, object
+arguments — and its answer held back: if the stop did not reach the bridge (the SDK refused
+it: no valid session over the 2025 protocol, a header that disagrees with the body, ...), it
+is run here, as the authenticated principal, and answered with its tool result. A
+notification's stop and the stops of a JSON-RPC batch (which the SDK refuses whole) are run
+here too. The stop carries what was wrong as
 `warnings`, in its tool result and its audit entry. Any other body the SDK answers as it
 would, its session checks included.
 """
@@ -34,12 +35,12 @@ from aiohttp import web
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import Principal
+from rcan_rtps.mcp_server.stops import Rescue, StopCall, not_served, stop_call, stop_rescue
 
 from ._bodies import error_response, json_response
 from ._commands import read_limited, too_large
 from ._errors import BodyEncoding
 from ._keys import GOVERNOR, PRINCIPAL, SETTINGS
-from ._mcp_stop import Rescue, StopCall, stop_call, stop_rescue
 
 if TYPE_CHECKING:
     from rcan_rtps.mcp_server.http import HttpMcp
@@ -180,8 +181,6 @@ class McpEndpoint:
         """A JSON-RPC batch's replies, in order: each stop's call run and answered with its
         tool result, every other request refused; a notification gets no reply, though a
         stop in one is run."""
-        from rcan_rtps.mcp_server.http import not_served
-
         replies = []
         for member in batch:
             call = stop_call(member)

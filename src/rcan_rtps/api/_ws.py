@@ -18,6 +18,12 @@ protocol error (RFC 6455 §8.1): aiohttp closes the socket (1007). Any client fr
 pong counts as a heartbeat. When the socket closes, a control session its principal holds ends
 at once: the governor stops the robot (§10.8) after the command in flight and every stop sent
 have been decided; queued commands are dropped.
+
+Outcome frames go out through the socket's outbox (`_Outbox`), never awaited by what reads
+frames: a client that sends and does not read cannot hold up its own later stop. A client that
+leaves more than `OUTBOX_BYTES` of outcomes unread is not reading: its outcomes are dropped,
+only its stops are taken from then on, and once its frames pause (`DEAF_QUIET_S`) its socket
+is closed with 1008 ("outcome frames not read").
 """
 
 from __future__ import annotations
@@ -25,11 +31,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections import deque
 from collections.abc import Callable
 from typing import Literal, Protocol
 
 import msgspec
-from aiohttp import WSMsgType, web
+from aiohttp import WSCloseCode, WSMsgType, web
 
 from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.rcan import ErrorCode, Invoke
@@ -65,6 +72,10 @@ _CLOSING = (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED, WSMsgType.ERRO
 # Hard cap on one frame; frames between the body limit and this get a 413 outcome frame,
 # larger ones close the socket (1009) before they are buffered.
 _FRAME_CAP_FACTOR = 4
+OUTBOX_BYTES = 1 << 20  # outcome frames a client may leave unread before it counts as deaf
+DEAF_QUIET_S = 1.0  # a deaf client's frames paused this long: every stop it sent is read
+CLOSE_S = 5.0  # closing a deaf client's socket (it reads no close frame either)
+NOT_READING = b"outcome frames not read"
 
 
 async def _send(ws: web.WebSocketResponse, frame: WsFrame) -> bool:
@@ -75,6 +86,72 @@ async def _send(ws: web.WebSocketResponse, frame: WsFrame) -> bool:
     except (ConnectionError, RuntimeError):
         return False
     return True
+
+
+class _Outbox:
+    """One socket's outcome frames, sent in order by their own task: whoever has an outcome
+    (the receive loop's 429, the command worker, the stop lane) puts it and goes on, never
+    waiting for the client to read. Beyond `limit` bytes unsent the client is `deaf`: what is
+    queued and whatever comes after is dropped."""
+
+    def __init__(self, ws: web.WebSocketResponse, limit: int = OUTBOX_BYTES) -> None:
+        self._ws = ws
+        self._limit = limit
+        self._frames: deque[str | bytes] = deque()  # bytes: a pong's payload
+        self._size = 0
+        self._ready = asyncio.Event()
+        self.deaf = False
+        self._writer = asyncio.create_task(self._write())
+
+    def put(self, frame: WsFrame) -> None:
+        self._put(msgspec.json.encode(frame).decode())
+
+    def pong(self, payload: bytes) -> None:
+        """A pong, in its turn: a client that pings and does not read is as deaf."""
+        self._put(bytes(payload))  # the ping's payload may come as a bytearray
+
+    def _put(self, text: str | bytes) -> None:
+        if self.deaf or self._ws.closed:
+            return
+        if self._size + len(text) > self._limit:
+            self.deaf = True
+            self._frames.clear()
+            return
+        self._frames.append(text)
+        self._size += len(text)
+        self._ready.set()
+
+    async def _write(self) -> None:
+        while True:
+            await self._ready.wait()
+            self._ready.clear()
+            while self._frames:
+                text = self._frames.popleft()
+                self._size -= len(text)
+                try:
+                    if isinstance(text, bytes):
+                        await self._ws.pong(text)
+                    else:
+                        await self._ws.send_str(text)
+                except (ConnectionError, RuntimeError):  # the socket is closing: nobody reads
+                    return
+                except Exception:  # the log has it; what is left is dropped (deaf, in time)
+                    log.exception("sending a WebSocket frame failed")
+                    return
+
+    async def close(self) -> None:
+        """Send what is queued, if the client takes it within `CLOSE_S`; then stop."""
+        if not self.deaf and self._frames:
+            self._ready.set()
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self._flushed(), CLOSE_S)
+        self._writer.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._writer
+
+    async def _flushed(self) -> None:
+        while self._frames and not self._writer.done():
+            await asyncio.sleep(0.01)
 
 
 class _Feed(Protocol):
@@ -106,7 +183,7 @@ class _Commands:
     def __init__(self, ws: web.WebSocketResponse, governor: Governor, principal: Principal,
                  settings: ApiSettings, observe: Observe | None = None,
                  checks: Checks = NO_CHECKS, invocations: Skills | None = None) -> None:
-        self._ws = ws
+        self._outbox = _Outbox(ws)
         self._checks = checks
         self._invocations = invocations
         self._invoking: set[asyncio.Task[None]] = set()  # INVOKEs waiting for their goals
@@ -120,11 +197,22 @@ class _Commands:
         self._current: asyncio.Future[Reply] | None = None
         self._worker = asyncio.create_task(self._work())
 
+    @property
+    def deaf(self) -> bool:
+        """Whether the client has left more outcomes unread than its outbox holds."""
+        return self._outbox.deaf
+
+    def pong(self, payload: bytes) -> None:
+        self._outbox.pong(payload)
+
     async def take(self, raw: bytes) -> None:
-        """Validate now; a stop is decided at once (never 429), anything else queues."""
+        """Validate now; a stop is decided at once (never 429), anything else queues. A deaf
+        client's other commands are not taken: it would never learn their outcomes."""
         item = intake(raw, self._limit, self._checks, self._principal.name)
         if item.stopping:
             await self._lane.submit(item)
+            return
+        if self.deaf:
             return
         try:
             self._queue.put_nowait(item)
@@ -135,7 +223,7 @@ class _Commands:
 
     async def _deliver(self, reply: Reply) -> None:
         status, body = reply
-        await _send(self._ws, WsFrame(type="outcome", http_status=status, body=body))
+        self._outbox.put(WsFrame(type="outcome", http_status=status, body=body))
 
     async def _work(self) -> None:
         while True:
@@ -191,6 +279,7 @@ class _Commands:
         await self._lane.drain()  # a stop the client sent must never be dropped
         for task in list(self._invoking):  # nobody is left to answer
             task.cancel()
+        await self._outbox.close()
 
 
 async def websocket(request: web.Request) -> web.WebSocketResponse:
@@ -198,6 +287,7 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
     governor, settings = app[GOVERNOR], app[SETTINGS]
     ws = web.WebSocketResponse(autoping=False, heartbeat=None,
                                max_msg_size=settings.max_body_bytes * _FRAME_CAP_FACTOR)
+    transport = request.transport  # cut off if its client does not read (`_cut_off`)
     await ws.prepare(request)
     app[SOCKETS].add(ws)
     commands = _Commands(ws, governor, principal, settings, app[OBSERVE], app[CHECKS],
@@ -208,12 +298,17 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
         pushers.append(asyncio.create_task(_push(ws, app[APPROVALS].subscribe, "approvals")))
     try:
         while True:
-            msg = await ws.receive()
+            try:  # a deaf client's socket is read until its frames pause: its stops count
+                msg = await ws.receive(timeout=DEAF_QUIET_S if commands.deaf else None)
+            except asyncio.TimeoutError:
+                log.warning("WebSocket of %s does not read its outcome frames: closed (1008)",
+                            principal.name, extra={"principal": principal.name})
+                break
             if msg.type in _CLOSING:
                 break
             governor.heartbeat(principal)  # any frame shows the client is there
             if msg.type is WSMsgType.PING:
-                await ws.pong(msg.data)
+                commands.pong(msg.data)
             elif msg.type in (WSMsgType.TEXT, WSMsgType.BINARY):
                 raw = msg.data.encode() if isinstance(msg.data, str) else msg.data
                 await commands.take(raw)
@@ -222,13 +317,28 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
             pusher.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await pusher
-        await _end(ws, governor, principal, commands)
+        await _end(ws, governor, principal, commands,
+                   transport if commands.deaf else None)
         app[SOCKETS].discard(ws)
     return ws
 
 
+def _cut_off(transport: asyncio.Transport | None) -> None:
+    """End the connection of a client that does not read: its close frame (1008) written
+    straight to the transport (the socket's own writer would wait for a drain that never
+    comes), the connection closed once that is sent, cut off if it is not within CLOSE_S."""
+    if transport is None or transport.is_closing():
+        return
+    payload = WSCloseCode.POLICY_VIOLATION.to_bytes(2, "big") + NOT_READING
+    transport.write(bytes([0x88, len(payload)]) + payload)  # FIN + close; server: unmasked
+    transport.close()
+    asyncio.get_running_loop().call_later(CLOSE_S, transport.abort)
+
+
 async def _end(ws: web.WebSocketResponse, governor: Governor, principal: Principal,
-               commands: _Commands) -> None:
+               commands: _Commands, deaf: asyncio.Transport | None) -> None:
+    """The socket's end: its stops decided, its principal's control session ended, the socket
+    closed (`deaf`: the transport of a client that does not read, cut off)."""
     try:
         await commands.close()
     finally:
@@ -242,5 +352,7 @@ async def _end(ws: web.WebSocketResponse, governor: Governor, principal: Princip
                 log.warning("WebSocket of %s closed while it held a control session: "
                             "safe stop (%s)", principal.name, stop.outcome.value,
                             extra={"principal": principal.name, "audit_id": stop.audit_id})
-        if not ws.closed:
+        if deaf is not None:
+            _cut_off(deaf)
+        elif not ws.closed:
             await ws.close()

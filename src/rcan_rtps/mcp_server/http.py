@@ -21,15 +21,13 @@ from mcp.server.auth.middleware.bearer_auth import AuthenticatedUser
 from mcp.server.auth.provider import AccessToken
 from mcp.server.context import ServerRequestContext
 from mcp.server.streamable_http_manager import StreamableHTTPSessionManager
-from mcp_types.jsonrpc import INVALID_REQUEST
 from mcp_types.version import HANDSHAKE_PROTOCOL_VERSIONS
 
 from .seat import Seat
 from .server import RobotTools, build_server
+from .stops import StopCall
 
 SEAT = "rcan.seat"  # the ASGI scope key of a request's seat
-NOT_SERVED = ("a JSON-RPC batch is not served (MCP has had none since 2025-06-18): only the "
-              "stops in it were run")
 MAX_SESSIONS = 256
 SESSION_IDLE_S = 30 * 60.0
 Asgi = Any  # the ASGI callables, typed by the caller
@@ -76,21 +74,11 @@ class HttpMcp:
         """The JSON-RPC reply to a stopping tool's call run by the bridge's door (not in an MCP
         session: the SDK would not run it), as the tool runs it. A reply of the 2026-07-28
         protocol says its result is complete, as the SDK's own do."""
-        done = await self._tools.stop(seat, name, arguments, "unknown")
-        if done is None:  # not a stopping tool: only the door's stops come here
-            raise ValueError(f"{name!r} is no stopping tool")
-        result = done.model_dump(mode="json", by_alias=True, exclude_none=True)
+        call = StopCall(name, arguments, request_id, False, ())
+        reply = await self._tools.stop_reply(seat, call)  # warnings: the seat's, audited
         if _modern(scope_headers):
-            result["resultType"] = "complete"
-        return {"jsonrpc": "2.0", "id": request_id, "result": result}
-
-
-def not_served(member: Any) -> dict[str, Any] | None:
-    """The reply to a batch's member that is no stop: refused (the SDK refuses a batch whole,
-    the bridge serves only its stops); none to a notification."""
-    if isinstance(member, dict) and "id" not in member:
-        return None
-    return _error(member.get("id") if isinstance(member, dict) else None, NOT_SERVED)
+            reply["result"]["resultType"] = "complete"
+        return reply
 
 
 def _modern(headers: list[tuple[bytes, bytes]]) -> bool:
@@ -98,8 +86,3 @@ def _modern(headers: list[tuple[bytes, bytes]]) -> bool:
     version = next((v.decode("latin-1") for k, v in headers
                     if k.lower() == b"mcp-protocol-version"), None)
     return version is not None and version not in HANDSHAKE_PROTOCOL_VERSIONS
-
-
-def _error(request_id: Any, message: str) -> dict[str, Any]:
-    return {"jsonrpc": "2.0", "id": request_id,
-            "error": {"code": INVALID_REQUEST, "message": message}}

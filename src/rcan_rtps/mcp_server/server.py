@@ -27,6 +27,7 @@ from mcp.server.context import ServerRequestContext
 from mcp.server.lowlevel import Server
 from mcp.server.stdio import stdio_server
 from mcp.shared.exceptions import MCPError
+from mcp.shared.message import SessionMessage
 from mcp_types.jsonrpc import INTERNAL_ERROR, INVALID_REQUEST
 
 from rcan_rtps import __version__
@@ -45,6 +46,8 @@ from .resources import (
 )
 from .seat import Agent, Seat
 from .stdio import StdinLines
+from .stdio_door import StdioDoor
+from .stops import StopCall
 from .tools import DURATION, WAIT_MAX_S, ToolDef, derive_tools
 
 log = logging.getLogger(__name__)
@@ -167,6 +170,18 @@ class RobotTools:
             return await self._read(seat, tool.name, args)
 
         return await _guarded(tool.name, call)
+
+    async def stop_reply(self, seat: Seat, call: StopCall, warnings: tuple[str, ...] = ()
+                         ) -> dict[str, Any]:
+        """The JSON-RPC reply to a stop's call a door runs itself (the SDK would not run it
+        as sent); `warnings`, what the door found wrong, lead its result's own."""
+        done = await self.stop(seat, call.name, call.arguments, "unknown")
+        if done is None:  # not a stopping tool: only the doors' stops come here
+            raise ValueError(f"{call.name!r} is no stopping tool")
+        if warnings:
+            done = _warned(done, warnings)
+        result = done.model_dump(mode="json", by_alias=True, exclude_none=True)
+        return {"jsonrpc": "2.0", "id": call.request_id, "result": result}
 
     async def stop(self, seat: Seat, name: str, args: dict[str, Any],
                    client: str) -> types.CallToolResult | None:
@@ -330,6 +345,14 @@ async def _guarded(name: str, call: Callable[[], Awaitable[types.CallToolResult]
         return failure(f"{name} failed inside the MCP server (see its log)", "INTERNAL_ERROR")
 
 
+def _warned(done: types.CallToolResult, warnings: tuple[str, ...]) -> types.CallToolResult:
+    """`done` with `warnings` before those its data has (the bridge's)."""
+    data = dict(done.structured_content or {})
+    data["warnings"] = [*warnings, *(data.get("warnings") or ())]
+    text = next((c.text for c in done.content if isinstance(c, types.TextContent)), "")
+    return tool_result(data, text.split("\n", 1)[0], error=bool(done.is_error))
+
+
 def refused(reply: Reply) -> MCPError:
     """A resource the bridge would not give, as an MCP error naming its RCAN refusal."""
     code = reply.body.get("error_code") or reply.body.get("outcome") or "REFUSED"
@@ -355,16 +378,21 @@ async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:
     stdout has gone, as one that closed stdin."""
     async with BridgeClient(url, token) as bridge:
         seat = Seat(bridge, agent, Keepalive(bridge))
-        server = build_server(RobotTools(lambda ctx: seat))
+        tools = RobotTools(lambda ctx: seat)
+        server = build_server(tools)
         gc.freeze()  # the SDK's modules live as long as the process: no collection scans them
+        replies = Replies()
+        door = StdioDoor(lambda call, warnings: tools.stop_reply(seat, call, warnings),
+                         replies.send)
         # The SDK's own stdin reader cannot be cancelled: see stdio.py. (The SDK only
-        # iterates what it is given.)
-        stdin = cast("anyio.AsyncFile[str]", StdinLines(sys.stdin.fileno()))
+        # iterates what it is given.) Every line is screened for a stop first (stdio_door).
+        stdin = cast("anyio.AsyncFile[str]", StdinLines(sys.stdin.fileno(), door.screen))
         with anyio.CancelScope() as serving, \
                 stop_signals.taking_over(lambda sig: serving.cancel()) as signals:
             try:
                 async with stdio_server(stdin=stdin) as (read, write), \
                         anyio.create_task_group() as group:
+                    replies.open(write)
                     group.start_soon(seat.keepalive.run)
                     await server.run(read, write, server.create_initialization_options())
                     group.cancel_scope.cancel()
@@ -377,6 +405,31 @@ async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:
                 f"MCP server ended by {signal.Signals(ended_by).name}"
             await stop_left_running(seat, why)
     return ended_by
+
+
+class Replies:
+    """The SDK's stream of messages to stdout, once open: the stdio door's answers go out
+    through it, so that stdout has one writer (two would tear lines)."""
+
+    def __init__(self) -> None:
+        self._stream: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+
+    def open(self, stream: Any) -> None:
+        self._stream.set_result(stream)
+
+    async def send(self, reply: dict[str, Any]) -> None:
+        """`reply` written out; logged instead when it cannot be (an id JSON-RPC does not
+        allow, the client gone): the stop it answers has run all the same."""
+        try:
+            message = types.jsonrpc_message_adapter.validate_python(reply)
+        except ValueError as exc:  # pydantic's ValidationError is one
+            log.warning("a stop ran; its reply cannot be sent: %s", exc)
+            return
+        stream = await self._stream
+        try:
+            await stream.send(SessionMessage(message))
+        except (anyio.ClosedResourceError, anyio.BrokenResourceError):
+            log.warning("a stop ran; its client has gone before its reply")
 
 
 def client_gone(exc: BaseException) -> bool:

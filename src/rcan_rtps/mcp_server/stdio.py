@@ -7,6 +7,8 @@ had it ended, it would have skipped stopping the motion its agent had started).
 
 - `StdinLines`: stdin's lines, read by a daemon thread that hands each over and waits until
   it is taken (the SDK's own pace); a cancelled reader leaves the thread blocked, harmlessly.
+  Each line is screened first (`stdio_door.StdioDoor.screen`: a stop is found, and run, in
+  any line the SDK would refuse or misread), as the bridge's `/mcp` screens a body.
 
 SIGINT, SIGTERM and SIGHUP cancel the serving scope (`serve_stdio`, through the command
 line's one way of taking them: `rcan_rtps._stop_signals`), so the server then stops what it
@@ -19,9 +21,10 @@ import asyncio
 import concurrent.futures
 import os
 import threading
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 
 READ_SIZE = 65536
+Screen = Callable[[bytes], Awaitable[bytes | None]]  # a line for the SDK; None: none
 
 
 class StdinLines:
@@ -30,25 +33,29 @@ class StdinLines:
 
     The thread reads with os.read, holding no lock: a buffered reader's lock, held by a
     daemon thread blocked in a read, aborts the interpreter at exit (sys.stdin's is closed
-    there)."""
+    there). `screen` sees each line as read (bytes: a stop is read from what was sent, not
+    from its lossy decoding) and says what of it the SDK gets."""
 
-    def __init__(self, fd: int) -> None:
+    def __init__(self, fd: int, screen: Screen | None = None) -> None:
         self._fd = fd
+        self._screen = screen
 
     async def __aiter__(self) -> AsyncIterator[str]:
         loop = asyncio.get_running_loop()
-        lines: asyncio.Queue[str] = asyncio.Queue(maxsize=1)
+        lines: asyncio.Queue[bytes] = asyncio.Queue(maxsize=1)
         thread = threading.Thread(target=self._read, args=(loop, lines), name="mcp-stdin",
                                   daemon=True)
         thread.start()
-        while line := await lines.get():
-            yield line
+        while raw := await lines.get():
+            line = raw if self._screen is None else await self._screen(raw)
+            if line is not None:
+                yield line.decode("utf-8", errors="replace")
 
-    def _read(self, loop: asyncio.AbstractEventLoop, lines: asyncio.Queue[str]) -> None:
+    def _read(self, loop: asyncio.AbstractEventLoop, lines: asyncio.Queue[bytes]) -> None:
         for raw in _raw_lines(self._fd):
-            if not _hand_over(loop, lines, raw.decode("utf-8", errors="replace")):
+            if not _hand_over(loop, lines, raw):
                 return
-        _hand_over(loop, lines, "")  # the end
+        _hand_over(loop, lines, b"")  # the end
 
 
 def _raw_lines(fd: int) -> Iterator[bytes]:
@@ -71,7 +78,8 @@ def _raw_lines(fd: int) -> Iterator[bytes]:
             pending[:] = rest
 
 
-def _hand_over(loop: asyncio.AbstractEventLoop, lines: asyncio.Queue[str], line: str) -> bool:
+def _hand_over(loop: asyncio.AbstractEventLoop, lines: asyncio.Queue[bytes],
+               line: bytes) -> bool:
     """Whether `line` was taken; False once nobody reads any more (the loop is closed)."""
     try:
         asyncio.run_coroutine_threadsafe(lines.put(line), loop).result()

@@ -1,4 +1,7 @@
-"""What in a `/mcp` body says stop, and what the SDK would refuse in it (`_mcp.McpEndpoint`).
+"""What in an MCP JSON-RPC message says stop, and what the SDK would refuse in it: one reading
+for both doors, the bridge's `/mcp` (`rcan_rtps.api._mcp.McpEndpoint`, a POST body) and
+`rcan-rtps mcp` (`stdio_door.StdioDoor`, a stdin line). No SDK import, nothing of the API:
+the stdio process loads only this and what its tools already need.
 
 A request that says stop, stops, whatever else is wrong with it. The SDK refuses a JSON-RPC
 body it cannot parse strictly (an unpaired surrogate escape, an integer of more digits than
@@ -23,6 +26,10 @@ from rcan_rtps.rcan._salvage import (
     read_leniently,
     stop_intent,
 )
+
+INVALID_REQUEST = -32600  # JSON-RPC's code (the SDK's `mcp_types.jsonrpc.INVALID_REQUEST`)
+NOT_SERVED = ("a JSON-RPC batch is not served (MCP has had none since 2025-06-18): only the "
+              "stops in it were run")
 
 
 class StopCall(NamedTuple):
@@ -62,6 +69,16 @@ def stop_call(message: Any) -> StopCall | None:
                         "ignored")
         arguments = {}
     return StopCall(tool, arguments, message.get("id"), "id" not in message, tuple(warnings))
+
+
+def not_served(member: Any) -> dict[str, Any] | None:
+    """The reply to a batch's member that is no stop: refused (the SDK refuses a batch whole,
+    the doors serve only its stops); none to a notification."""
+    if isinstance(member, dict) and "id" not in member:
+        return None
+    request_id = member.get("id") if isinstance(member, dict) else None
+    return {"jsonrpc": "2.0", "id": request_id,
+            "error": {"code": INVALID_REQUEST, "message": NOT_SERVED}}
 
 
 class Rescue(NamedTuple):

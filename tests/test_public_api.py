@@ -36,6 +36,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
     "rcan_rtps.ros": {
         "ActionClient",
         "ActionError",
+        "AmbiguousReply",
         "ActionServer",
         "CdrDecodeError",
         "ClientGoal",

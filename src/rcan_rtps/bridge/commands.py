@@ -31,12 +31,15 @@ from ..rcan.actions import (
     with_effect,
 )
 from ..ros import qos
-from ..ros.errors import GraphTimeout
+from ..ros.errors import GraphTimeout, seconds
 from ..ros.participant import RosNode, RosPublisher
 from ..ros.qos import QosProfile
 from ..ros.rostime import now_msg
 
 log = logging.getLogger(__name__)
+# s the bridge, stopping, waits for the robot to acknowledge its last zero (within the bounded
+# graceful stop)
+LEAVING_ACK_S = 2.0
 
 ESTOP_QOS = qos.DEFAULT.with_(depth=1, durability=qos.Durability.TRANSIENT_LOCAL)
 
@@ -408,6 +411,16 @@ class RosDispatcher:
             except Exception:
                 log.exception("cancelling goals failed")
         return reached, cancelled
+
+    async def halt_before_leaving(self) -> None:
+        """The bridge is stopping: halt, then wait (at most LEAVING_ACK_S) until the robot's
+        subscriptions acknowledged the zero. A zero dropped at a busy reader is sent again only
+        while our writer lives, and the process exits right after: seen once in CI, a
+        SIGINT during a move left an rclpy subscriber's last Twist the move's."""
+        await self.halt()
+        if not await self.cmd_vel.acknowledged(LEAVING_ACK_S):
+            log.warning("leaving with the zero on %s not acknowledged by every subscriber "
+                        "within %s", self.cmd_vel.topic, seconds(LEAVING_ACK_S))
 
     async def _stop(self) -> DispatchResult:
         reached, cancelled = await self.halt()

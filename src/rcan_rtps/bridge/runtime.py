@@ -341,7 +341,7 @@ class Bridge:
     async def _start_governor(self, governor: Governor, dispatcher: RosDispatcher) -> None:
         await governor.start()
         # Before the governor's BRIDGE_STOPPED: the robot is halted while it is audited.
-        self._on_stop("halting the robot", dispatcher.halt)
+        self._on_stop("halting the robot", dispatcher.halt_before_leaving)
         # Before the halt: a velocity stream still sending would undo its zero.
         self._on_stop("ending velocity streams", governor.end_streams)
 

@@ -237,6 +237,19 @@ class RosPublisher:
         return await _wait_count(self.matched_count, count, timeout,
                                  f"no subscriber matched {self.topic}")
 
+    async def acknowledged(self, timeout: float) -> bool:
+        """Whether every matched reliable subscription acknowledged all that was published,
+        within `timeout` s. What to wait for before the writer is deleted or the process
+        exits: a sample dropped at a reader is sent again only while its writer lives. In a
+        worker thread (the C call blocks; it invokes no listener, and no lock of ours is
+        held)."""
+        if self.closed:
+            return False
+        try:
+            return await asyncio.to_thread(self.writer.wait_for_acks, int(timeout * 1e9))
+        except DDSException:  # deleted meanwhile: nothing more can be acknowledged
+            return False
+
     def close(self) -> None:
         """Deletes the writer (it leaves the graph); idempotent."""
         if self.closed:

@@ -15,7 +15,7 @@ import math
 import re
 import uuid
 from collections.abc import Callable, Iterable
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import msgspec
 
@@ -159,6 +159,7 @@ def read_leniently(raw: bytes, *, pairs: bool = False) -> Lenient | None:
     return Lenient(value, tuple(reader.replaced))
 
 
+T = TypeVar("T")
 _BLANKS = re.compile(r"[ \t\n\r]*")
 _CLOSERS = {"{": "}", "[": "]"}
 
@@ -204,41 +205,41 @@ class _Shallow:
         return (self._object if opener == "{" else self._array)(at + 1, depth + 1)
 
     def _object(self, at: int, depth: int) -> tuple[Any, int]:
-        items: list[tuple[str, Any]] = []
-        at = self._blank(at)
-        if self._text[at:at + 1] != "}":
-            while True:
-                at = self._blank(at)
-                if self._text[at:at + 1] != '"':
-                    raise ValueError("expected a key")
-                key, at = self._scalars.raw_decode(self._text, at)
-                at = self._blank(at)
-                if self._text[at:at + 1] != ":":
-                    raise ValueError("expected ':'")
-                value, at = self._value(at + 1, depth)
-                items.append((key, value))
-                at = self._blank(at)
-                if self._text[at:at + 1] != ",":
-                    break
-                at += 1
-            if self._text[at:at + 1] != "}":
-                raise ValueError("expected ',' or '}'")
-        return (Pairs(items) if self._pairs else dict(items)), at + 1
+        items, end = self._members(at, "}", lambda at: self._member(at, depth))
+        return (Pairs(items) if self._pairs else dict(items)), end
 
     def _array(self, at: int, depth: int) -> tuple[Any, int]:
-        items: list[Any] = []
+        return self._members(at, "]", lambda at: self._value(at, depth))
+
+    def _members(self, at: int, closer: str, member: Callable[[int], tuple[T, int]]
+                 ) -> tuple[list[T], int]:
+        """The comma-separated members of an object or array opened before `at`, each read by
+        `member`, up to `closer`; and where the container ends."""
+        items: list[T] = []
         at = self._blank(at)
-        if self._text[at:at + 1] != "]":
+        if self._text[at:at + 1] != closer:
             while True:
-                value, at = self._value(at, depth)
-                items.append(value)
+                item, at = member(at)
+                items.append(item)
                 at = self._blank(at)
                 if self._text[at:at + 1] != ",":
                     break
                 at += 1
-            if self._text[at:at + 1] != "]":
-                raise ValueError("expected ',' or ']'")
+            if self._text[at:at + 1] != closer:
+                raise ValueError(f"expected ',' or '{closer}'")
         return items, at + 1
+
+    def _member(self, at: int, depth: int) -> tuple[tuple[str, Any], int]:
+        """An object's `"key": value`."""
+        at = self._blank(at)
+        if self._text[at:at + 1] != '"':
+            raise ValueError("expected a key")
+        key, at = self._scalars.raw_decode(self._text, at)
+        at = self._blank(at)
+        if self._text[at:at + 1] != ":":
+            raise ValueError("expected ':'")
+        value, at = self._value(at + 1, depth)
+        return (key, value), at
 
     def _past(self, at: int) -> int:
         """Where the container opening at `at` ends: its brackets matched outside strings

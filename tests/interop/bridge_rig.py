@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 import textwrap
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from oracle.client import OracleEnv, RclpyOracle
+from waiting import eventually
 
 from rcan_rtps.bridge.commanders import CommanderWatch
 from rcan_rtps.bridge.commands import RosDispatcher
 from rcan_rtps.bridge.goals import GoalRoutes
+from rcan_rtps.bridge.navigation import GoalTracker
 from rcan_rtps.bridge.notify import DiagnosticsNotifier
 from rcan_rtps.bridge.runtime import watch_commanders, wire_robot_side
 from rcan_rtps.bridge.telemetry import TelemetryState
@@ -21,6 +25,7 @@ from rcan_rtps.config import RcanConfig, loads_config
 from rcan_rtps.events import Events
 from rcan_rtps.governance import AuditLog, Decision, Governor, Principal
 from rcan_rtps.rcan import Role, validate_command
+from rcan_rtps.ros.action_server import ActionServer, Execute
 from rcan_rtps.ros.participant import RosNode
 
 VIEWER = Principal("viewer", Role.GUEST)
@@ -110,6 +115,35 @@ async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id
     oracle = RclpyOracle(jazzy_python, "robot", "/robot1", domain_id=domain_id)
     return Rig(node, governor, telemetry, dispatcher, oracle, Path(config.bridge.audit.path),
                goals, notifier, commanders)
+
+
+NAV = "nav2_msgs/action/NavigateToPose"
+
+
+@contextlib.asynccontextmanager
+async def navigation_rig(config: RcanConfig, jazzy_python: Path, domain_id: int,
+                         execute: Execute) -> AsyncIterator[Rig]:
+    """A rig with navigation whose robot serves NavigateToPose with `execute` (our own action
+    server, on a participant of its own: the rclpy oracle serves only Fibonacci), yielded once
+    the bridge has discovered that server (before any goal is sent)."""
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node:
+        server = ActionServer(robot_node, "navigate_to_pose", NAV, execute)
+        rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
+        try:
+            await eventually(nav_tracker(rig).client.server_present,
+                             what="the NavigateToPose server")
+            yield rig
+        finally:
+            await close_rig(rig)
+            await server.close()
+
+
+def nav_tracker(rig: Rig) -> GoalTracker:
+    """The tracker of the rig's navigation goals (`nav_action`)."""
+    assert rig.goals is not None
+    tracker = rig.goals.tracker("nav_action")
+    assert tracker is not None
+    return tracker
 
 
 async def close_rig(rig: Rig) -> None:

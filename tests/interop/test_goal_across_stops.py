@@ -18,14 +18,11 @@ from typing import Any
 import pytest
 from waiting import eventually
 
-from rcan_rtps.bridge.navigation import GoalTracker
 from rcan_rtps.governance import Decision
-from rcan_rtps.ros.actions import ActionServer, ServerGoal
-from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.actions import ServerGoal
 
-from .bridge_rig import AGENT, OPS, Rig, bridge_config, close_rig, make_rig
+from .bridge_rig import AGENT, OPS, Rig, bridge_config, nav_tracker, navigation_rig
 
-NAV = "nav2_msgs/action/NavigateToPose"
 MOTION = """\
 motion:
   role_priorities: {USER: 10, OWNER: 50}
@@ -43,34 +40,19 @@ async def _until_cancelled(goal: ServerGoal) -> dict[str, Any]:
 @pytest.fixture
 async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Rig]:
     config = bridge_config(tmp_path, domain_id, extra=MOTION)
-    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node:
-        server = ActionServer(robot_node, "navigate_to_pose", NAV, _until_cancelled)
-        rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
-        try:
-            await rig.oracle.acall("subscribe", topic="/robot1/cmd_vel",
-                                   type="geometry_msgs/msg/Twist")
-            await rig.oracle.acall("wait_matched", topic="/robot1/cmd_vel")
-            await eventually(lambda: rig.dispatcher.cmd_vel.matched_count() > 0,
-                             what="cmd_vel matched")
-            await eventually(_tracker(rig).client.server_present,
-                             what="the NavigateToPose server")
-            yield rig
-        finally:
-            await close_rig(rig)
-            await server.close()
-
-
-def _tracker(rig: Rig) -> GoalTracker:
-    assert rig.goals is not None
-    tracker = rig.goals.tracker("nav_action")
-    assert tracker is not None
-    return tracker
+    async with navigation_rig(config, jazzy_python, domain_id, _until_cancelled) as rig:
+        await rig.oracle.acall("subscribe", topic="/robot1/cmd_vel",
+                               type="geometry_msgs/msg/Twist")
+        await rig.oracle.acall("wait_matched", topic="/robot1/cmd_vel")
+        await eventually(lambda: rig.dispatcher.cmd_vel.matched_count() > 0,
+                         what="cmd_vel matched")
+        yield rig
 
 
 def _when_sent(rig: Rig, then: Callable[[], Awaitable[Decision]]
                ) -> list[asyncio.Future[Decision]]:
     """The next goal's send, once under way (its request leaving), starts `then` beside it."""
-    tracker = _tracker(rig)
+    tracker = nav_tracker(rig)
     send, started = tracker.send, []
 
     async def sending(*args: Any, **kw: Any) -> str:
@@ -91,7 +73,7 @@ async def test_a_stop_while_a_goal_is_sent_answers_it_stopped(rig: Rig) -> None:
     assert (await stop).http_status == 200
     # Refused as the governor refuses a goal a stop came before: not a robot failure (503).
     assert (sent.http_status, sent.reason) == (409, "stopped"), sent
-    view = _tracker(rig).goals()[-1]
+    view = nav_tracker(rig).goals()[-1]
     await eventually(lambda: view.state == "canceled", timeout=15,
                      what=f"goal {view.goal_id} cancelled (now {view.state})")
     [failed] = [e for e in rig.entries()
@@ -108,15 +90,15 @@ async def test_a_session_loss_leaves_another_principals_goal_on_its_way_running(
     [lost] = losing
     assert (await lost).http_status == 200
     assert sent.http_status == 200 and sent.goal_id, sent  # OPS's goal was not stopped
-    view = _tracker(rig).goal(sent.goal_id)
+    view = nav_tracker(rig).goal(sent.goal_id)
     assert view is not None
     await asyncio.sleep(1.0)  # a cancel would have reached it by now
     assert view.state not in ("canceled", "aborted"), view.state
-    assert _tracker(rig).active() == [sent.goal_id]  # AGENT's goal ended (its own / replaced)
+    assert nav_tracker(rig).active() == [sent.goal_id]  # AGENT's goal ended (its own / replaced)
     # AGENT's own session may also run out meanwhile (it sends nothing more): one entry or
     # two, each a stop of AGENT's own motion only.
     scopes = [e["applied"]["scope"] for e in rig.entries()
               if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
     assert scopes and set(scopes) == {"own"}, scopes
     await rig.command(OPS, {"action": "stop"})
-    await eventually(lambda: not _tracker(rig).active(), timeout=15, what="stopped")
+    await eventually(lambda: not nav_tracker(rig).active(), timeout=15, what="stopped")

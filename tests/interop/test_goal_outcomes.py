@@ -16,13 +16,11 @@ from typing import Any
 import pytest
 from waiting import eventually
 
-from rcan_rtps.ros.actions import ActionServer, ServerGoal
-from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.actions import ServerGoal
 from rcan_rtps.ros.rostime import duration_msg
 
-from .bridge_rig import AGENT, OPS, Rig, bridge_config, close_rig, make_rig
+from .bridge_rig import AGENT, OPS, Rig, bridge_config, navigation_rig
 
-NAV = "nav2_msgs/action/NavigateToPose"
 SUCCEED, ABORT, UNTIL_CANCELLED = 1.0, 2.0, 3.0
 
 
@@ -58,13 +56,7 @@ motion:
 @pytest.fixture
 async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Rig]:
     config = bridge_config(tmp_path, domain_id, extra=MOTION)
-    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node:
-        server = ActionServer(robot_node, "navigate_to_pose", NAV, _execute)
-        rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
-        assert rig.goals is not None
-        tracker = rig.goals.tracker("nav_action")
-        assert tracker is not None  # the server is discovered before any goal is sent
-        await eventually(tracker.client.server_present, what="the NavigateToPose server")
+    async with navigation_rig(config, jazzy_python, domain_id, _execute) as rig:
         heartbeat = asyncio.create_task(_hold_session(rig))
         try:
             yield rig
@@ -72,8 +64,6 @@ async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterat
             heartbeat.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await heartbeat
-            await close_rig(rig)
-            await server.close()
 
 
 async def _hold_session(rig: Rig) -> None:

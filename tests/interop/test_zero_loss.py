@@ -46,6 +46,7 @@ LOADED_GOALS = int(100 * SCALE)  # fresh ActionClient each, the CPU busy
 # Fresh ServiceClient each, our buffer smaller still and a stream to it: drops are frequent.
 ANNOUNCED_CALLS = int(100 * SCALE)
 ANNOUNCED_GOALS = int(40 * SCALE)
+OWED_GOALS = 60  # at most, until a first feedback's repair comes after its goal's end
 TINY_RCVBUF = "1kB"
 NOISE = "/zero_loss_noise"  # a camera's worth of traffic to our socket: 1 kB messages ...
 NOISE_HZ = 3000.0  # ... as fast as the oracle's Python thread can send them
@@ -371,16 +372,17 @@ async def test_a_first_feedback_is_not_lost_when_the_feedback_writer_s_first_hea
     await oracle.acall("action_server", name="/fib_burst", period=0.0)
     # (the repair window after the goal's end, REPAIR_S, within the wait for feedback)
     tally = GoalTally(order=lambda i: 2, feedback_timeout=ANNOUNCED_TIMEOUT + 10.0)
-    renewed = unannounced = from_capture = 0
+    renewed = unannounced = from_capture = waited = 0
 
     async def run(client: ActionClient, i: int) -> None:
-        nonlocal renewed, unannounced, from_capture
+        nonlocal renewed, unannounced, from_capture, waited
         try:
             await tally.run(client, i)
         finally:
             renewed += client.feedback_renewed
             unannounced += client.feedback_unannounced
             from_capture += client.feedback_from_capture
+            waited += client.repairs_waited
 
     with burning_cpus() as burners:
         await each_fresh(ANNOUNCED_GOALS, on_node(noisy_node, burst_client), run)
@@ -389,19 +391,45 @@ async def test_a_first_feedback_is_not_lost_when_the_feedback_writer_s_first_hea
           f"at our sockets, {len(tally.no_first_feedback)} first feedbacks lost, "
           f"{len(tally.wrong)} wrong results, {renewed} feedback readers made again, "
           f"{unannounced} clients sent goals unannounced, {from_capture} feedbacks taken from "
-          f"the packet capture")
+          f"the packet capture, {waited} windows kept open for a repair still owed")
     assert tally.dropped, "no datagram was dropped at our sockets: nothing was shown"
     assert tally.wrong == [], f"wrong results: {tally.wrong}"
-    # Without the wait 18 % of first feedbacks were lost here (7 of 40 expected); with it and
-    # the capture, a first feedback dropped at our socket whose repair, dropped again, came
-    # 5-18 s after the goal's end: past the repair window. Our reader now asks again every
-    # 100 ms, and the window covers two Fast DDS HEARTBEATs (docs/design/zero-loss.md,
-    # "Repairs dropped again"); a run beside another such run still lost 2 of 100. Beyond the
-    # clients that gave up hearing their writer's announcement, at most 1 in 20.
-    slack = ANNOUNCED_GOALS // 20
-    assert len(tally.no_first_feedback) <= unannounced + slack, \
+    # Without the wait 18 % of first feedbacks were lost here (7 of 40 expected). With it, the
+    # capture, our reader asking again every 100 ms and the window kept open while the
+    # capture shows the repair owed (a goal whose writer's HEARTBEATs were all dropped at our
+    # socket for 10.9 s after its end was lost before; docs/design/zero-loss.md, "Heartbeats
+    # dropped for the whole window"), what is left is a client that gave up hearing its
+    # writer's announcement: a HEARTBEAT dropped ahead of the feedback's DATA can make Cyclone
+    # take that feedback as history. None lost beyond those.
+    assert len(tally.no_first_feedback) <= unannounced, \
         f"of {ANNOUNCED_GOALS} goals, first feedback lost for {tally.no_first_feedback}, with " \
-        f"{unannounced} clients sending goals unannounced and {slack} more allowed"
+        f"{unannounced} clients sending goals unannounced"
+
+
+@pytest.mark.parametrize("oracle_rmw", ["fastrtps"])
+async def test_a_first_feedback_repaired_after_the_window_still_comes(
+        oracle: RclpyOracle, noisy_node: RosNode, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A first feedback dropped at our socket comes again only after a HEARTBEAT of its
+    writer reaches our socket (a Fast DDS writer's come every 3 s), which the noise may drop
+    too, past any fixed window: the window stays open while the packet capture shows the
+    repair owed. Here the window is 0, so every repair after the goal's end is one the capture
+    kept it open for; goals go out until one was (at most OWED_GOALS)."""
+    monkeypatch.setattr(action_goals, "REPAIR_S", dict.fromkeys(action_goals.REPAIR_S, 0.0))
+    await oracle.acall("action_server", name="/fib_burst", period=0.0)
+    tally, waited, unannounced = GoalTally(order=lambda i: 2, feedback_timeout=30.0), 0, 0
+    with burning_cpus():
+        for i in range(OWED_GOALS):
+            with closing(burst_client(noisy_node)) as client:
+                await tally.run(client, i)
+                waited += getattr(client, "repairs_waited", 0)
+                unannounced += client.feedback_unannounced
+            if waited or len(tally.no_first_feedback) > unannounced:
+                break
+    print(f"{i + 1} goals, {waited} windows kept open for a repair owed, "
+          f"{len(tally.no_first_feedback)} first feedbacks lost, {unannounced} unannounced")
+    assert len(tally.no_first_feedback) <= unannounced, \
+        f"first feedback lost for {tally.no_first_feedback} ({unannounced} unannounced)"
+    assert waited, f"no repair came after the end of {OWED_GOALS} goals: nothing was shown"
 
 
 @pytest.mark.parametrize("oracle_rmw", ["fastrtps"])

@@ -404,6 +404,8 @@ async def test_a_long_lived_client_lets_go_of_ended_goals_but_never_of_one_still
         assert client.goals_tracked == 1  # the running goal alone
     monkeypatch.setattr(action_goals, "SETTLE_S", 0.0)
     monkeypatch.setattr(action_goals, "REPAIR_S", dict.fromkeys(action_goals.REPAIR_S, 0.0))
+    monkeypatch.setattr(action_goals, "OWED_REPAIR_S",
+                        dict.fromkeys(action_goals.OWED_REPAIR_S, 0.0))
     for _ in range(30):  # only their results asked for
         goal = await client.send_goal(near, timeout=20)
         assert client.goals_tracked <= 3  # the running one, the one before, this one

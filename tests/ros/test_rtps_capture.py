@@ -671,3 +671,62 @@ def test_a_goal_s_kept_feedback_stays_bounded(capture: tuple[IdentityCapture, in
     tail.forget_reply(reply_to)
     assert tail._replies.held == 0
     tail.unuse()
+
+
+def acknack_message(reader: bytes, writer: bytes, missing: list[int], *, base: int = 16,
+                    little: bool = True) -> bytes:
+    """An ACKNACK our reader sends `writer` (INFO_DST: the writer's participant): the samples
+    from `base` on that it misses (none: it has everything before `base`)."""
+    o, e = ("<", 0x01) if little else (">", 0x00)
+    bits = max(missing, default=base - 1) - base + 1
+    words = [0] * ((bits + 31) // 32)
+    for seq in missing:
+        words[(seq - base) // 32] |= 1 << (31 - (seq - base) % 32)
+    body = reader[12:] + writer[12:] + struct.pack(o + "iII", 0, base, bits) + \
+        struct.pack(o + f"{len(words)}I", *words) + struct.pack(o + "i", 7)
+    info_dst = struct.pack(o + "BBH", 0x0E, e, 12) + writer[:12]
+    return b"RTPS\x02\x01\x01\x10" + reader[:12] + info_dst + \
+        struct.pack(o + "BBH", 0x06, e | 0x02, len(body)) + body
+
+
+def test_parse_finds_the_acknacks_we_sent_and_whether_they_ask_again() -> None:
+    for little in (True, False):
+        assert list(rtps_capture.parse_acknacks(acknack_message(
+            OUR_READER, SERVER, [16, 40], little=little))) == \
+            [rtps_capture.SentAcknack(OUR_READER, SERVER, True)]
+        assert list(rtps_capture.parse_acknacks(acknack_message(
+            OUR_READER, SERVER, [], little=little))) == \
+            [rtps_capture.SentAcknack(OUR_READER, SERVER, False)]
+
+
+def test_a_repair_is_owed_until_a_heartbeat_since_the_mark_was_answered_asking_nothing(
+        capture: tuple[IdentityCapture, int]) -> None:
+    """A goal's feedback dropped at our socket comes again only after a HEARTBEAT of its
+    writer reached our reader: until one heard after the goal's end (the mark) was answered
+    by an ACKNACK that asks for nothing, the repair may still be owed. Before the mark, a
+    HEARTBEAT may have been sent before the feedback was written; an answer asking for
+    samples again means it is owed; an answer of another reader tells nothing of ours."""
+    tail, writer = capture
+    tail.use()
+    to_us = pcap_record(heartbeat_message(bytes(4), destination=OUR_PREFIX))  # all our readers
+    os.write(writer, to_us)
+    os.write(writer, pcap_record(acknack_message(OUR_READER, SERVER, []), ttl=255))
+    end = tail.mark()
+    assert tail.repair_owed(SERVER, OUR_READER, end)  # heard, answered, but before the end
+    os.write(writer, pcap_record(acknack_message(OUR_READER, SERVER, []), ttl=255))
+    assert tail.repair_owed(SERVER, OUR_READER, end)  # an answer to no HEARTBEAT since
+    os.write(writer, to_us)
+    assert tail.repair_owed(SERVER, OUR_READER, end)  # heard; not answered yet
+    os.write(writer, pcap_record(acknack_message(OUR_READER, SERVER, [16]), ttl=255))
+    assert tail.repair_owed(SERVER, OUR_READER, end)  # it asks for #16 again
+    other = OUR_PREFIX + b"\x00\x00\x39\x04"
+    os.write(writer, pcap_record(acknack_message(other, SERVER, []), ttl=255))
+    assert tail.repair_owed(SERVER, OUR_READER, end)  # another reader's answer
+    os.write(writer, pcap_record(acknack_message(OUR_READER, SERVER, [], base=17), ttl=255))
+    assert not tail.repair_owed(SERVER, OUR_READER, end)  # everything taken
+    assert tail.repair_owed(OTHER_WRITER, OUR_READER, end)  # another writer: never heard
+    os.write(writer, pcap_record(heartbeat_message(OUR_READER[12:], destination=OUR_PREFIX)))
+    os.write(writer, pcap_record(acknack_message(OUR_READER, SERVER, [17]), ttl=255))
+    assert not tail.repair_owed(SERVER, OUR_READER, end)  # later samples are not the goal's
+    assert tail.repair_owed(SERVER, OUR_READER, tail.mark())  # (but a later goal's)
+    tail.unuse()

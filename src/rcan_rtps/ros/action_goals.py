@@ -82,6 +82,14 @@ SETTLE_S = 5.0  # s: how long a finished goal's feedback waits for its result (s
 # was dropped (docs/design/zero-loss.md, "Repairs dropped again"). Two HEARTBEATs, with
 # margin for a busy host.
 REPAIR_S = {RequestMapping.CYCLONE: 2.0, RequestMapping.FASTDDS: 7.0}
+# s past REPAIR_S a window stays open while the packet capture shows the repair still owed
+# (`IdentityCapture.repair_owed`: no HEARTBEAT of the feedback writer has reached our socket
+# since the goal's end, or our reader's answer to the last one asks for samples again). Under
+# a 3 kHz stream to a 1 kB buffer a Fast DDS writer's 3 s HEARTBEATs were all dropped at our
+# socket for 10.9 s after a goal's end (docs/design/zero-loss.md, "Heartbeats dropped for the
+# whole window"). Cyclone's writers send one every 100 ms while a reader owes an ACK: none.
+OWED_REPAIR_S = {RequestMapping.CYCLONE: 0.0, RequestMapping.FASTDDS: 15.0}
+OWED_POLL = 0.25  # s between looks at the capture while a repair is owed
 RESULT_ASK_S = 5.0  # s: a get_result request unanswered this long is sent again (`_ask_result`)
 
 
@@ -89,7 +97,7 @@ def forget_after() -> float:
     """s after its end a goal nobody follows the feedback of is let go of: by then a
     `feedback()` begun at its end has waited for its result (SETTLE_S) and for the longest
     repair (REPAIR_S), so nothing sent for it before its end can still come."""
-    return SETTLE_S + max(REPAIR_S.values())
+    return SETTLE_S + max(REPAIR_S.values()) + max(OWED_REPAIR_S.values())
 
 
 # the values a GoalStatus may carry on the wire (REJECTED and SERVER_LOST are ours alone)
@@ -144,6 +152,11 @@ class ClientGoal:
         # and every feedback that had reached us by then was yielded: what it yields after is
         # feedback whose dropped datagram came again, in the repair window.
         self.end_settled = asyncio.Event()
+        # The packet capture's mark once the goal was seen ended (`_settle`), and until when
+        # (loop time) the window may stay open while it shows a repair still owed.
+        self._end_mark: int | None = None
+        self._owed_until: float | None = None
+        self.waited_owed = False  # its window stayed open past REPAIR_S for an owed repair
 
     def __repr__(self) -> str:
         return f"<ClientGoal {uuid.UUID(bytes=self.goal_id)} {self.state.name}>"
@@ -189,6 +202,9 @@ class ClientGoal:
                     return  # the server has left: no datagram of its can be sent again
             now = loop.time()
             if until is not None and now >= until:
+                if await self._repair_owed(now):
+                    until = now + OWED_POLL
+                    continue
                 self._close_window()
                 return
             if deadline is not None and now >= deadline:
@@ -228,6 +244,10 @@ class ClientGoal:
         has come, wait as long as the server's repair can take. docs/design/zero-loss.md
         has the evidence for each step."""
         loop = asyncio.get_running_loop()
+        capture = self._sender.node.identities
+        # (after the terminal status came: a HEARTBEAT heard after this was sent after the
+        # goal's feedback was written, so it names it)
+        self._end_mark = capture.mark() if capture is not None and capture.reading else None
         with contextlib.suppress(WireError):
             await self.result(timeout=SETTLE_S if deadline is None
                               else max(0.1, min(SETTLE_S, deadline - loop.time())))
@@ -238,7 +258,33 @@ class ClientGoal:
                 (drops is not None and drops == self._drops and
                  not (self._unsynced and not self._fed)):
             return loop.time()
+        owed = self._sender.owed_repair_time()
+        if self._end_mark is not None and owed > 0:
+            self._owed_until = loop.time() + self._sender.repair_time() + owed
         return loop.time() + self._sender.repair_time()
+
+    async def _repair_owed(self, now: float) -> bool:
+        """At the end of the repair window: whether the packet capture shows our feedback
+        reader still owed a sample the feedback writer sent before the goal's end (its
+        HEARTBEATs dropped at our socket since, or our reader's answer asking for samples
+        again), so that the window stays open (at most OWED_REPAIR_S more). The look reads
+        the capture to its end: in a worker thread."""
+        capture, mark = self._sender.node.identities, self._end_mark
+        if capture is None or mark is None or self._owed_until is None or \
+                now >= self._owed_until or not capture.reading:
+            return False
+        sources = self._sender.repair_sources()
+        if sources is None:
+            return False
+        reader, writers = sources
+        owed = await asyncio.to_thread(
+            lambda: any(capture.repair_owed(w, reader, mark) for w in writers))
+        if owed and not self.waited_owed:
+            self.waited_owed = True
+            self._sender.repairs_waited += 1
+            log.debug("action %s: goal %s: a feedback repair is still owed after the repair "
+                      "window; waiting for it", self._sender.name, uuid.UUID(bytes=self.goal_id))
+        return owed
 
     async def result(self, timeout: float = 60.0) -> GoalResult:
         """Waits for the goal to end and fetches its result (once)."""
@@ -385,6 +431,7 @@ class GoalSender:
         self.feedback_renewed = 0  # feedback readers made again (their announcement unheard)
         self.feedback_unannounced = 0  # 1 when goals went out with the announcement unheard
         self.feedback_from_capture = 0  # feedback samples our reader never delivered, captured
+        self.repairs_waited = 0  # goals whose window stayed open for a repair still owed
         self.feedback_type = self.type_name + "_FeedbackMessage"
         self._feedback_writers: WriterGuids | None = None  # of the current feedback reader
         # Made once the server's feedback writer is known (wait_for_server, handshake.py).
@@ -565,6 +612,27 @@ class GoalSender:
         except (WireError, DDSException):  # both mappings; or its node closed meanwhile
             mapping = None
         return REPAIR_S[mapping] if mapping in REPAIR_S else max(REPAIR_S.values())
+
+    def owed_repair_time(self) -> float:
+        """How long past `repair_time` a repair the capture shows owed is waited for."""
+        try:
+            mapping = self._get.resolve_mapping()
+        except (WireError, DDSException):
+            return 0.0
+        return OWED_REPAIR_S.get(mapping, 0.0) if mapping is not None else 0.0
+
+    def repair_sources(self) -> tuple[bytes, list[bytes]] | None:
+        """Our feedback reader's GUID and the feedback writers matched with it that send
+        over the wire (not this process's); None without a reader."""
+        if self._feedback is None:
+            return None
+        try:
+            reader = self._feedback.reader
+            writers = [g for g in matched_writers(reader).values()
+                       if not self.node.in_process(g)]
+            return bytes(reader.guid.bytes), writers
+        except DDSException:  # (deleted meanwhile: the goal's feedback says it is closed)
+            return None
 
     def check_server(self) -> bool:
         """False once the server has left the graph; its open goals then end as lost.

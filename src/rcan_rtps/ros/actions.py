@@ -246,6 +246,12 @@ class ActionClient:
         """Feedback samples our reader never delivered, taken from the packet capture."""
         return 0 if self._sending is None else self._sending.feedback_from_capture
 
+    @property
+    def repairs_waited(self) -> int:
+        """Goals whose feedback window stayed open past the repair time because the packet
+        capture showed a repair still owed (`ClientGoal.waited_owed`)."""
+        return 0 if self._sending is None else self._sending.repairs_waited
+
 
 _SERVER_SIDE = ("ActionServer", "Execute", "ServerGoal")
 _GOAL_SIDE = ("ClientGoal", "GoalResult", "GoalSender")

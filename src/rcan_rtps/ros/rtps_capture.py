@@ -25,7 +25,10 @@ It also notes the HEARTBEATs that arrived, by writer and addressee, and where in
 (`heard_heartbeat`): the first one Cyclone applies to a new reader decides which of the
 writer's samples that reader takes (a Fast DDS writer announces itself to a new reader with
 one GAP+HEARTBEAT; a Cyclone writer's reader takes nothing before one), and a client whose
-reader has not heard one must not send its request or goal yet (handshake.py).
+reader has not heard one must not send its request or goal yet (handshake.py). With the
+ACKNACKs our readers send (the one kind of sent datagram it reads), it tells whether a reader
+may still be owed a sample a writer sent before some point (`repair_owed`): a goal's feedback
+dropped at our socket whose repair waits for a HEARTBEAT that our socket dropped too.
 
 And it keeps the payload of the reply a call expects (`expect_reply`: its request's identity
 and the reply writers matched with its reader; captured_replies.py), so that a reply Cyclone
@@ -65,8 +68,8 @@ PID_RELATED_SAMPLE_IDENTITY = 0x0083  # OMG DDS-RPC
 PID_FASTDDS_RELATED_SAMPLE_IDENTITY = 0x800F  # Fast DDS' older vendor-specific id
 RELATED_PIDS = (PID_RELATED_SAMPLE_IDENTITY, PID_FASTDDS_RELATED_SAMPLE_IDENTITY)
 
-PAD, HEARTBEAT, INFO_TS, INFO_SRC, INFO_DST, DATA, DATA_FRAG = \
-    0x01, 0x07, 0x09, 0x0C, 0x0E, 0x15, 0x16
+PAD, ACKNACK, HEARTBEAT, INFO_TS, INFO_SRC, INFO_DST, DATA, DATA_FRAG = \
+    0x01, 0x06, 0x07, 0x09, 0x0C, 0x0E, 0x15, 0x16
 FLAG_LITTLE, FLAG_INLINE_QOS, FLAG_INVALIDATE = 0x01, 0x02, 0x02
 FLAG_DATA, FLAG_FRAG_KEY = 0x04, 0x04  # DATA: has data; DATA_FRAG: carries a key
 RTPS_HEADER_SIZE = 20
@@ -78,6 +81,7 @@ PCAP_MAGICS = {b"\xd4\xc3\xb2\xa1": True, b"\xa1\xb2\xc3\xd4": False}  # → lit
 
 KEPT_IDENTITIES = 8192  # newest identified samples remembered; far more than a reader keeps
 KEPT_HEARTBEATS = 4096  # newest (writer, addressee) pairs a HEARTBEAT was heard for
+KEPT_ACKNACKS = 4096  # newest (our reader, writer) pairs we sent an ACKNACK for
 UNKNOWN_PREFIX = bytes(12)  # no INFO_DST before it: addressed to whoever received it
 ENTITYID_UNKNOWN = bytes(4)
 DRAIN_PERIOD = 0.05  # s between background drains of the capture file
@@ -161,6 +165,45 @@ class ReceivedPiece(msgspec.Struct, frozen=True):
 
 
 Received = ReceivedData | ReceivedHeartbeat | ReceivedPiece
+
+
+class SentAcknack(msgspec.Struct, frozen=True):
+    """An ACKNACK one of our readers sent: whose, to which writer, and whether it asks for
+    samples to be sent again (a non-empty set: the reader misses them)."""
+
+    reader_guid: bytes
+    writer_guid: bytes
+    missing: bool
+
+
+def parse_acknacks(buf: bytes | mmap.mmap, start: int = 0,
+                   end: int | None = None) -> Iterator[SentAcknack]:
+    """The ACKNACKs in the RTPS message `buf[start:end]` that our participant sent (its
+    GUID prefix in the header; the writer's in the INFO_DST before them)."""
+    end = len(buf) if end is None else end
+    if end - start < RTPS_HEADER_SIZE or buf[start:start + 4] != b"RTPS":
+        return
+    prefix = bytes(buf[start + 8:start + 20])
+    destination = UNKNOWN_PREFIX
+    offset = start + RTPS_HEADER_SIZE
+    while offset + 4 <= end:
+        kind, flags, length = _SUBMESSAGE.unpack_from(buf, offset)
+        little = flags & FLAG_LITTLE
+        if not little:
+            length = (length & 0xFF) << 8 | length >> 8
+        body = offset + 4
+        if body + length > end:
+            return
+        stop = end if length == 0 and kind not in (INFO_TS, PAD) else body + length
+        if kind == INFO_DST and stop - body >= 12:
+            destination = bytes(buf[body:body + 12])
+        elif kind == ACKNACK and stop - body >= 24:
+            (bits,) = struct.unpack_from("<I" if little else ">I", buf, body + 16)
+            words = min((bits + 31) // 32, (stop - body - 20) // 4)
+            asked = any(buf[body + 20:body + 20 + 4 * words])
+            yield SentAcknack(prefix + bytes(buf[body:body + 4]),
+                              destination + bytes(buf[body + 4:body + 8]), bits > 0 and asked)
+        offset = stop
 
 
 def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None,
@@ -335,6 +378,9 @@ class IdentityCapture:
         self._known: OrderedDict[tuple[bytes, int], SampleIdentity] = OrderedDict()
         # (writer, addressee) → file offset of the newest record with such a HEARTBEAT
         self._heartbeats: OrderedDict[tuple[bytes, bytes], int] = OrderedDict()
+        # (our reader, writer) → file offset of the newest HEARTBEAT of that writer applied to
+        # that reader that the reader then answered asking for nothing (`repair_owed`)
+        self._answered: OrderedDict[tuple[bytes, bytes], int] = OrderedDict()
         self._replies = ReplyCollector()  # payloads of replies calls wait for (`expect_reply`)
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -489,8 +535,11 @@ class IdentityCapture:
                 if end > available:
                     break  # Cyclone has not written all of it yet
                 packet = offset + RECORD_HEADER_SIZE
-                if parse and length > IP_UDP_SIZE and buf[packet + TTL_OFFSET] == RECEIVED_TTL:
-                    self._parse_or_skip(buf, packet + IP_UDP_SIZE, end, base + offset)
+                if parse and length > IP_UDP_SIZE:
+                    if buf[packet + TTL_OFFSET] == RECEIVED_TTL:
+                        self._parse_or_skip(buf, packet + IP_UDP_SIZE, end, base + offset)
+                    else:
+                        self._note_acknacks(buf, packet + IP_UDP_SIZE, end, base + offset)
                 offset = end
         self._offset = base + offset
         if self._offset - self._punched >= PUNCH_AFTER:
@@ -514,6 +563,7 @@ class IdentityCapture:
                       "RCAN_RTPS_RPC_IDENTITY=off")
         self._known.clear()
         self._heartbeats.clear()
+        self._answered.clear()
         self._replies = ReplyCollector()
         self._broken = True
 
@@ -567,6 +617,31 @@ class IdentityCapture:
             self._known.move_to_end(key)
             if len(self._known) > KEPT_IDENTITIES:
                 self._known.popitem(last=False)
+
+    def _note_acknacks(self, buf: mmap.mmap, start: int, end: int, at: int) -> None:
+        """Notes, for the ACKNACKs of a datagram we sent that ask for nothing, the newest
+        HEARTBEAT they answer (our own datagram: never malformed; a failure is skipped all
+        the same, as for received ones)."""
+        try:
+            for sent in parse_acknacks(buf, start, end):
+                heard = self._heard_at(sent.writer_guid, sent.reader_guid)
+                if sent.missing or heard < 0:
+                    continue
+                pair = (sent.reader_guid, sent.writer_guid)
+                self._answered[pair] = heard
+                self._answered.move_to_end(pair)
+                if len(self._answered) > KEPT_ACKNACKS:
+                    self._answered.popitem(last=False)
+        except Exception:  # (a parser bug): the question it answers stays "owed"
+            self.unparsed += 1
+
+    def _heard_at(self, writer_guid: bytes, reader_guid: bytes) -> int:
+        """Where the newest HEARTBEAT of `writer_guid` addressed so that Cyclone applies it
+        to `reader_guid` is in the capture (-1: none heard)."""
+        entity, ours = reader_guid[12:], reader_guid[:12]
+        return max(self._heartbeats.get((writer_guid, r), -1)
+                   for r in (reader_guid, UNKNOWN_PREFIX + entity, ours + ENTITYID_UNKNOWN,
+                             UNKNOWN_PREFIX + ENTITYID_UNKNOWN))
 
     def held(self) -> int:
         """Bytes of the capture file in memory now (tmpfs pages not yet given back)."""
@@ -668,6 +743,23 @@ class IdentityCapture:
             return True if any(self._heartbeats.get((w, r), -1) >= at for w, r, at in pairs) \
                 else None
         return self._find(heard) is True
+
+    def repair_owed(self, writer_guid: bytes, reader_guid: bytes, since: int) -> bool:
+        """Whether our reader `reader_guid` may still be owed a sample `writer_guid` wrote
+        before `since` (a `mark`): True until a HEARTBEAT of that writer applied to that
+        reader has reached our socket at or after `since`, and the ACKNACK the reader sent
+        after it asks for nothing. A reader answers every HEARTBEAT that asks for an answer
+        (as Fast DDS's and Cyclone's periodic ones do) and NACKs what it misses of what the
+        HEARTBEAT says was written; once one heard after `since` was answered asking for
+        nothing, what was written before `since` was taken, and later HEARTBEATs change
+        nothing. So a sample written before `since` and dropped at our
+        socket keeps this True until the writer has sent it again and the reader took it.
+        Only while a client uses the capture (`use`); the file is first flushed and read up
+        to its end, as by a `lookup` that missed."""
+        def settled() -> bool | None:
+            return True if self._answered.get((reader_guid, writer_guid), -1) >= since \
+                else None
+        return self._find(settled) is None
 
     def _find(self, found: Callable[[], T | None]) -> T | None:
         """`found()` (called under the lock), else again while the file is read up to the

@@ -13,16 +13,19 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from cyclonedds.idl._typesupport.DDS import XTypes
 from cyclonedds.idl._xt_builder import XTBuilder
 from cyclonedds.qos import Qos
 from waiting import eventually
 
+from rcan_rtps.ros import _cyclone_header as cyclone
 from rcan_rtps.ros import graph as graph_mod
 from rcan_rtps.ros.actions import ActionClient
 from rcan_rtps.ros.errors import UnknownTypeError
 from rcan_rtps.ros.graph import Direction, Endpoint, RosGraph
 from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.qos import Durability, History, QosProfile
+from rcan_rtps.ros.typesys.ddstypes import _forget_machines
 from rcan_rtps.ros.typesys.store import TypeStore
 
 TWIST = "geometry_msgs/msg/Twist"
@@ -40,11 +43,32 @@ def nodes(domain_id: int) -> Iterator[tuple[RosNode, RosNode]]:
 def test_a_topic_keeps_no_xtypes_objects_after_it_is_made(
         nodes: tuple[RosNode, RosNode]) -> None:
     node, _ = nodes
+    XTBuilder._type_hash_db.clear()  # filled by a test's topic made with cyclonedds alone
     node.topic("rt/idle/odom", ODOM)  # nested types: Header, Pose…, Twist…
     struct = node.types.struct(ODOM)
     assert struct.__idl__._xt_data == (None, None)
     assert struct.__idl__._xt_bytedata == (None, None)
     assert XTBuilder._type_hash_db == {}
+
+
+def _xtypes_serializers() -> list[str]:
+    """cyclonedds' XTypes classes whose serializer machines are built."""
+    return [name for name, cls in vars(XTypes).items()
+            if isinstance(cls, type) and getattr(cls, "__idl__", None) is not None
+            and getattr(cls.__idl__, "v1_machine", None) is not None]
+
+
+def test_making_topics_builds_no_serializer_of_cyclonedds_xtypes_classes(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """Topics are described by `xtypes.describe`: cyclonedds' describer, which builds the
+    serializers of some eighty of its own classes once per program and keeps them, never
+    runs; a plain topic and one with the Cyclone request header alike."""
+    node, _ = nodes
+    for name in _xtypes_serializers():  # built by another test of this process
+        _forget_machines(getattr(XTypes, name))
+    node.topic("rt/idle/odom", ODOM)
+    cyclone.wrapper_topic(node, "rq/idle/cancelRequest", "action_msgs/srv/CancelGoal_Request")
+    assert _xtypes_serializers() == []
 
 
 def test_a_topic_keeps_no_cyclonedds_serializer_of_its_types(

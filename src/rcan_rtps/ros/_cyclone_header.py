@@ -35,6 +35,8 @@ from .participant import RosNode
 from .qos import QosProfile
 from .typesys.cdr import byte_order
 from .typesys.ddstypes import make_topic, use_bytes_codec
+from .typesys.model import Field, FieldType, MessageType, Primitive
+from .typesys.xtypes import describe
 
 ENCAPSULATION_SIZE = 4
 HEADER_SIZE = 16  # uint64 client_guid at offset 4, int64 seq at offset 12 (after encapsulation)
@@ -111,13 +113,22 @@ def _build_wrapper(plain: type[IdlStruct], msg: Any) -> type[IdlStruct]:
     return cls
 
 
+def wrapper_model(msg: MessageType) -> MessageType:
+    """`msg` with the request header's fields first, as `wrapper_struct` declares it."""
+    header = (Field(GUID_FIELD, FieldType(Primitive.UINT64)),
+              Field(SEQ_FIELD, FieldType(Primitive.INT64)))
+    return MessageType(msg.name, header + msg.fields, msg.constants, msg.source)
+
+
 def wrapper_topic(node: RosNode, dds_topic: str, type_name: str) -> Topic[Any]:
     with _lock:
         topics = _topics.setdefault(node, {})
         found = topics.get(dds_topic)
     if found is None:
         try:
-            found = make_topic(node.participant, dds_topic, wrapper_struct(node, type_name))
+            found = make_topic(node.participant, dds_topic, wrapper_struct(node, type_name),
+                               describe(wrapper_model(node.store.message(type_name)),
+                                        node.store.message))
         except Exception as exc:  # cyclonedds raises a bare DDSException
             raise WireError(f"cannot create {dds_topic} with the Cyclone request header in "
                             f"this participant (a plain one exists?): {exc}") from exc

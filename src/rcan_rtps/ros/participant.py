@@ -450,6 +450,7 @@ class RosNode:
                 # ros_discovery_info is read by cyclonedds' typed readers (graph.py,
                 # handshake.py), on the way to a service call: its serializer stays built.
                 found = make_topic(self.participant, dds_name, self.types.struct(type_name),
+                                   self.types.description(type_name),
                                    keep_serializer=dds_name == DISCOVERY_TOPIC)
                 self._topics[dds_name] = found
             return found

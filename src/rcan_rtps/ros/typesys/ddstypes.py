@@ -3,7 +3,7 @@
 This is the one place that knows cyclonedds' Python type vocabulary; a faster codec can
 replace it without touching the parser, the store or the hasher. Octet and uint8
 sequences and arrays map to `bytes`, encoded in one copy: the struct is declared with
-`sequence<uint8>` (so cyclonedds can describe the type to XTypes peers) and the
+`sequence<uint8>` (so the type is described to XTypes peers as one, xtypes.py) and the
 member's codec is then swapped for cyclonedds' own bytes codec, which writes the same
 wire format (uint32 length, raw octets). A `wstring` is declared `sequence<uint32>`: that is
 how rmw_fastrtps puts it on the wire (uint32 count of UTF-16 code units, then each unit as a
@@ -21,12 +21,12 @@ from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.idl import types as t
 from cyclonedds.idl._machinery import BytesMachine
-from cyclonedds.idl._xt_builder import XTBuilder
 from cyclonedds.topic import Topic
 
 from ..errors import UnsupportedTypeError
 from .model import Collection, FieldType, MessageType, Primitive
 from .store import TypeStore
+from .xtypes import Description, describe
 
 _PRIMITIVES: dict[Primitive, Any] = {
     Primitive.BOOLEAN: bool,
@@ -69,38 +69,42 @@ def use_bytes_codec(cls: type[IdlStruct], msg: MessageType) -> None:
 _ADJUSTED: weakref.WeakSet[type[IdlStruct]] = weakref.WeakSet()
 
 
-# One topic made at a time: XTBuilder's cache is a class attribute, emptied after each, and
-# cyclonedds reads it check-then-get (a clear in between would be a KeyError). It is held
-# across `dds_create_topic`, which calls back into Python only on this thread (to drop its
-# reference to a sertype's type when an equal one exists); no DDS thread runs our code, and
-# a thread waiting for the lock releases the GIL, so it cannot close a deadlock.
+# One topic made at a time: a class's `__idl__` holds our description only while its topic is
+# made. It is held across `dds_create_topic`, which calls back into Python only on this thread
+# (to drop its reference to a sertype's type when an equal one exists); no DDS thread runs our
+# code, and a thread waiting for the lock releases the GIL, so it cannot close a deadlock.
 _TOPIC_LOCK = threading.Lock()
 
 
-def make_topic(participant: DomainParticipant, dds_name: str, cls: type[IdlStruct], *,
-               keep_serializer: bool = False) -> Topic[Any]:
-    """A Cyclone topic of `cls`, without the Python state cyclonedds builds to make it.
+class _Described:
+    """Stands in `__idl__._xt_data` while a topic is made: cyclonedds' `fill_type_data` sees
+    the type described and leaves the bytes we put in `_xt_bytedata`, which Cyclone copies."""
 
-    Making a topic has cyclonedds build, for the type and every struct type in it, its Python
-    serializer (`__idl__`'s "machines") and an XTypes description (TypeInformation,
-    TypeMapping, as Python objects and serialized), caching every type described in a class
-    attribute, `XTBuilder._type_hash_db`, for good. Cyclone's C side copies the serialized
-    description and a few flags when the topic is made and never asks the Python side again;
-    samples travel as raw CDR through our generated codecs (raw_cdr.py). So all of it is let
-    go of here, each part back to its state before it was built (~0.6 MB traced for a
-    bridge's dozen types, reused by the next type's build): cyclonedds rebuilds a part where
-    it needs it again (a later topic of the type; its own codec, which only the public-API
-    fallbacks of raw_cdr.py and readers.py use), to the same result. The machines of a class
-    `use_bytes_codec` changed are kept (a rebuild would lose the change), and all of them with
-    `keep_serializer` (a topic read through cyclonedds' typed reader: no first sample should
-    wait for a rebuild)."""
+
+def make_topic(participant: DomainParticipant, dds_name: str, cls: type[IdlStruct],
+               description: Description, *, keep_serializer: bool = False) -> Topic[Any]:
+    """A Cyclone topic of `cls`, described by `description` (`xtypes.describe`), without the
+    Python state cyclonedds builds to make one.
+
+    Cyclone's C side reads a type's XTypes description (TypeInformation and TypeMapping,
+    serialized) and a few flags when a topic is made, copies them, and never asks the Python
+    side again; samples travel as raw CDR through our generated codecs (raw_cdr.py). So the
+    description is ours, written from the type model, and cyclonedds' describer
+    (`XTBuilder`) never runs: it would build its TypeInformation objects and, once per program
+    and for good, the serializers of its own XTypes classes (~0.25 MB). The serializer
+    cyclonedds builds for the type and every struct type in it (`__idl__`'s "machines", for
+    the flags) is let go of once the topic is made: cyclonedds rebuilds it, the same, where
+    its own codec is used (only the public-API fallbacks of raw_cdr.py and readers.py). The
+    machines of a class `use_bytes_codec` changed are kept (a rebuild would lose the change),
+    and all of them with `keep_serializer` (a topic read through cyclonedds' typed reader: no
+    first sample should wait for a rebuild)."""
     with _TOPIC_LOCK:
+        idl: Any = cls.__idl__
+        idl._xt_data, idl._xt_bytedata = (_Described, _Described), description
         try:
             return Topic(participant, dds_name, cls)
         finally:
-            idl: Any = cls.__idl__
             idl._xt_data = idl._xt_bytedata = (None, None)  # as before fill_type_data
-            XTBuilder._type_hash_db.clear()
             for struct in [] if keep_serializer else _structs_in(cls):
                 if struct not in _ADJUSTED:
                     _forget_machines(struct)
@@ -164,6 +168,10 @@ class DdsTypes:
                 self._names[cls] = msg.name
             self._by_asked[name] = cls
             return cls
+
+    def description(self, name: str) -> Description:
+        """The XTypes description of a ROS type's topics (`make_topic`)."""
+        return describe(self.store.message(name), self.store.message)
 
     def name_of(self, cls: type[Any]) -> str | None:
         """The ROS name of a struct class this registry made, else None."""

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import os
 import re
 import statistics
@@ -37,7 +36,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -47,7 +45,7 @@ from aiohttp import web
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 from oracle.client import RclpyOracle  # noqa: E402
-from report import write_section  # noqa: E402 (bench/report.py)
+from report import baseline_tree, write_section  # noqa: E402 (bench/report.py)
 
 from rcan_rtps.ros.participant import RosNode  # noqa: E402
 
@@ -339,22 +337,7 @@ def bare_rclpy(oracle_python: Path) -> tuple[float, float]:
     return ready, rss
 
 
-
 # -- before vs after, in one run --------------------------------------------------------------
-@contextlib.contextmanager
-def baseline_tree(ref: str) -> Iterator[Path]:
-    """The `src` directory of `ref`, checked out into a temporary git worktree."""
-    with tempfile.TemporaryDirectory(prefix="rcan-baseline-") as tmp:
-        tree = Path(tmp) / "tree"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "--quiet",
-                        str(tree), ref], check=True)
-        try:
-            yield tree / "src"
-        finally:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)],
-                           check=False)
-
-
 # The HTTP floor of a governed command: an aiohttp server (on uvloop when installed, as the
 # bridge runs) answering each POST /api/command with a small JSON body, nothing else.
 ECHO_SERVER = """

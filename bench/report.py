@@ -1,10 +1,16 @@
-"""Writes one benchmark's section of docs/benchmarks.md, leaving the others as they are."""
+"""Writes one benchmark's section of docs/benchmarks.md, leaving the others as they are; checks
+out a baseline ref for the before-vs-after runs."""
 
 from __future__ import annotations
 
+import contextlib
+import subprocess
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
-BENCHMARKS_MD = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS_MD = ROOT / "docs" / "benchmarks.md"
 
 
 def write_section(title: str, markdown: str, path: Path = BENCHMARKS_MD) -> None:
@@ -17,3 +23,17 @@ def write_section(title: str, markdown: str, path: Path = BENCHMARKS_MD) -> None
     if len(after) > 1:
         parts.append("## " + after[1].rstrip())
     path.write_text("\n\n".join(parts) + "\n")
+
+
+@contextlib.contextmanager
+def baseline_tree(ref: str) -> Iterator[Path]:
+    """The `src` directory of `ref`, checked out into a temporary git worktree."""
+    with tempfile.TemporaryDirectory(prefix="rcan-baseline-") as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "--quiet",
+                        str(tree), ref], check=True)
+        try:
+            yield tree / "src"
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)],
+                           check=False)

@@ -52,6 +52,33 @@ async def test_a_stop_read_from_a_repeated_name_says_so(tmp_path: Path) -> None:
     assert any("duplicate key 'name'" in w for w in warnings), warnings
 
 
+@pytest.mark.parametrize("line", list(ESTOPS.values()), ids=list(ESTOPS))
+async def test_the_doors_warnings_are_in_the_bridges_audit_entry(tmp_path: Path,
+                                                                 line: bytes) -> None:
+    """As at /mcp: what the door found wrong is in the stop's audit entry, and the tool
+    result's warnings are the entry's (the door's marked as the client's)."""
+    async with _stdio(tmp_path) as (api, proc):
+        await _send(proc, line)
+        data = (await _reply(proc))["result"]["structuredContent"]
+        entry = api.entry(data["audit_id"])
+    assert entry["event"] == "ESTOP" and entry["principal"] == "planner", entry
+    assert entry.get("warnings") == data["warnings"], (entry, data)
+    assert any(w.startswith("client: $") for w in entry["warnings"]), entry
+
+
+async def test_a_notified_and_a_batched_stops_warnings_are_audited(tmp_path: Path) -> None:
+    async with _stdio(tmp_path) as (api, proc):
+        await _send(proc, b'{"jsonrpc": "2.0", "method": "tools/call", '
+                          b'"params": {"name": "estop", "arguments": {}}}',
+                    b'[' + CALL % b'"name": "stop", "arguments": {}' + b']')
+        await _reply(proc)
+        stops = [e for e in api.entries if e["event"] in ("ESTOP", "COMMAND_DISPATCHED")
+                 and e.get("action_type") in ("estop", "stop")]
+    assert [s.get("warnings") for s in stops] == [
+        ["client: $: a notification (no id): run, and not answered"],
+        ["client: $: a JSON-RPC batch: only its stops were run"]], stops
+
+
 async def test_an_estop_sent_as_a_notification_stops_unanswered(tmp_path: Path) -> None:
     """No id: JSON-RPC answers nothing, but the stop is run (the SDK took it as an unknown
     notification and ignored it); the next request's reply is the next line out."""

@@ -128,10 +128,21 @@ _COMMAND_DECISION = _DECISION | {"200": {
     "content": {"application/json": {"schema": {
         "oneOf": [_ref("DecisionBody"), _ref("InvokeResult")]}}}}}
 
+# docs/mcp.md, rcan_rtps._transport_warnings: what `rcan-rtps mcp` found wrong with a stop.
+_TRANSPORT_WARNINGS = {
+    "name": "RCAN-Transport-Warnings", "in": "header", "required": False,
+    "description": "What the client's own transport found wrong with a stop (a JSON array of "
+                   "strings): recorded in a stop's audit entry and reply `warnings`, each "
+                   "marked `client: `, at most 8 of at most 500 characters, non-printable "
+                   "characters escaped; dropped for any other command. One that cannot be "
+                   "read so is one warning: the stop stops all the same.",
+    "schema": {"type": "string"}}
+
 PATHS: dict[str, dict[str, Any]] = {
     "/api/command": {"post": _op("postCommand", "Send a COMMAND (any form), SAFETY, HEARTBEAT, "
                                  "INVOKE, INVOKE_CANCEL or AUTHORIZE",
-                                 _COMMAND_DECISION, _COMMAND_BODY)},
+                                 _COMMAND_DECISION, _COMMAND_BODY,
+                                 parameters=[_TRANSPORT_WARNINGS])},
     "/api/status": {"get": _op("getStatus", "The robot's STATUS (GUEST+)",
                                {"200": _json("Status", "STATUS"), **_errors()})},
     "/api/heartbeat": {"post": _op("postHeartbeat", "Keep a control session alive",

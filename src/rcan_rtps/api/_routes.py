@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from aiohttp import web
 
+from rcan_rtps import _transport_warnings as transport
 from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.governance.clock import SystemClock, now_ms
 
@@ -44,14 +45,16 @@ async def post_command(request: web.Request) -> web.Response:
     # Each request is its own task and no read shares an executor with the audit writer
     # (`_reads`), so nothing queues a REST stop or e-stop behind anything else.
     governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
-    warnings: tuple[str, ...] = ()
+    # What the client's transport found wrong with a stop (`rcan-rtps mcp`'s door): a stop's
+    # audit entry records it, bounded and marked as the client's; any other command drops it.
+    warnings = transport.recorded(request.headers.getall(transport.HEADER, ()))
     try:
         raw = await read_body(request)
     except BodyEncoding as exc:
         # A stop always stops: bytes that say stop, whatever their header says they are.
         if not intake(exc.raw, len(exc.raw)).stopping:
             raise
-        raw, warnings = exc.raw, (f"$: {exc.reason}: read as sent",)
+        raw, warnings = exc.raw, (*warnings, f"$: {exc.reason}: read as sent")
     if raw is None:
         status, body = await too_large(governor, principal)
         response = json_response(body, status)

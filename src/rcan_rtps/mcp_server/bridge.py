@@ -9,12 +9,16 @@ bridge's. What is not a reply — the bridge unreachable, a body that is not JSO
 from __future__ import annotations
 
 import asyncio
+import copy
 import json
+from collections.abc import Iterable
 from types import TracebackType
 from typing import Any, overload
 from urllib.parse import quote, urlsplit
 
 import aiohttp
+
+from rcan_rtps import _transport_warnings as transport
 
 from .ports import Blob, BridgeUnavailable, Reply
 
@@ -43,6 +47,16 @@ class BridgeClient:
         self._headers = {"Authorization": f"Bearer {token}"}
         self._timeout = aiohttp.ClientTimeout(total=timeout_s)
         self._http: aiohttp.ClientSession | None = None
+        self._command_headers: dict[str, str] = {}
+
+    def warning(self, warnings: Iterable[str]) -> BridgeClient:
+        """This client (its session shared), its commands carrying `warnings` for their audit
+        entries: what the stdio door found wrong with a stop (`rcan_rtps._transport_warnings`;
+        the bridge records them for a stop only)."""
+        value = transport.header_value(warnings)
+        view = copy.copy(self)
+        view._command_headers = {} if value is None else {transport.HEADER: value}
+        return view
 
     async def __aenter__(self) -> BridgeClient:
         self._http = aiohttp.ClientSession(headers=self._headers, timeout=self._timeout)
@@ -56,7 +70,7 @@ class BridgeClient:
     # -- RobotApi -------------------------------------------------------------------------
 
     async def command(self, body: dict[str, Any]) -> Reply:
-        return await self._request("POST", "/api/command", body)
+        return await self._request("POST", "/api/command", body, headers=self._command_headers)
 
     async def heartbeat(self) -> Reply:
         return await self._request("POST", "/api/heartbeat")
@@ -89,19 +103,22 @@ class BridgeClient:
         return await self._request("GET", f"/api/images/{path_part(name)}", blob=True)
 
     @overload
-    async def _request(self, method: str, path: str, body: Any = None) -> Reply: ...
+    async def _request(self, method: str, path: str, body: Any = None, *,
+                       headers: dict[str, str] | None = None) -> Reply: ...
 
     @overload
     async def _request(self, method: str, path: str, body: Any = None, *,
-                       blob: bool) -> Reply | Blob: ...
+                       headers: dict[str, str] | None = None, blob: bool) -> Reply | Blob: ...
 
     async def _request(self, method: str, path: str, body: Any = None, *,
+                       headers: dict[str, str] | None = None,
                        blob: bool = False) -> Reply | Blob:
         """The reply; with `blob`, a successful reply that is not JSON comes as it is."""
         if self._http is None:
             raise RuntimeError("BridgeClient used outside `async with`")
         try:
-            async with self._http.request(method, self.url + path, json=body) as resp:
+            async with self._http.request(method, self.url + path, json=body,
+                                          headers=headers) as resp:
                 raw = await resp.read()
                 status = resp.status
                 if blob and status == 200 and resp.content_type != "application/json":

@@ -19,6 +19,7 @@ import signal
 import sys
 import uuid
 from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import replace
 from typing import Any, cast
 
 import anyio
@@ -32,6 +33,7 @@ from mcp_types.jsonrpc import INTERNAL_ERROR, INVALID_REQUEST
 
 from rcan_rtps import __version__
 from rcan_rtps import _stop_signals as stop_signals
+from rcan_rtps._transport_warnings import unrecorded
 
 from .bridge import BridgeClient
 from .keepalive import Keepalive
@@ -174,12 +176,15 @@ class RobotTools:
     async def stop_reply(self, seat: Seat, call: StopCall, warnings: tuple[str, ...] = ()
                          ) -> dict[str, Any]:
         """The JSON-RPC reply to a stop's call a door runs itself (the SDK would not run it
-        as sent); `warnings`, what the door found wrong, lead its result's own."""
+        as sent); `warnings`, what the door found wrong, lead its result's own where the
+        bridge's reply (which has those its audit entry recorded) does not carry them."""
         done = await self.stop(seat, call.name, call.arguments, "unknown")
         if done is None:  # not a stopping tool: only the doors' stops come here
             raise ValueError(f"{call.name!r} is no stopping tool")
-        if warnings:
-            done = _warned(done, warnings)
+        answered = (done.structured_content or {}).get("warnings") or ()
+        missing = unrecorded(warnings, answered if isinstance(answered, list) else ())
+        if missing:
+            done = _warned(done, tuple(missing))
         result = done.model_dump(mode="json", by_alias=True, exclude_none=True)
         return {"jsonrpc": "2.0", "id": call.request_id, "result": result}
 
@@ -382,8 +387,9 @@ async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:
         server = build_server(tools)
         gc.freeze()  # the SDK's modules live as long as the process: no collection scans them
         replies = Replies()
-        door = StdioDoor(lambda call, warnings: tools.stop_reply(seat, call, warnings),
-                         replies.send)
+        # A stop's warnings go to the bridge with it (its audit entry), as /mcp's do.
+        door = StdioDoor(lambda call, warnings: tools.stop_reply(
+            replace(seat, api=bridge.warning(warnings)), call, warnings), replies.send)
         # The SDK's own stdin reader cannot be cancelled: see stdio.py. (The SDK only
         # iterates what it is given.) Every line is screened for a stop first (stdio_door).
         stdin = cast("anyio.AsyncFile[str]", StdinLines(sys.stdin.fileno(), door.screen))

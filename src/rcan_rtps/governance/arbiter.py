@@ -226,7 +226,9 @@ class BaseArbiter:
                     "samples": stream.samples,
                     "seconds": round(ended.at - stream.started_at, 3)},
             applied={"last": ended.last._asdict(), "zero_sent": ended.zeroed})
-        self._steps.spawn(self._steps.write_ahead(entry))
+        # Sealed in the step that ended it (a stop's halt, the e-stop's reflex), not a task's
+        # step later: the log lists it where the robot got its zero, before the stop's entry.
+        self._steps.record_now(entry)
 
     # -- locks ------------------------------------------------------------------------------
 

@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -81,6 +82,49 @@ async def test_a_second_stall_is_reported_again(records: _Records) -> None:
             records.stalled.clear()
             records.recovered.clear()
     finally:
+        watchdog.stop()
+
+
+def _blocked_in_stop(ident: int) -> bool:
+    """Whether thread `ident` is inside `LoopWatchdog.stop`, waiting in `threading` (a join)."""
+    frame = sys._current_frames().get(ident)
+    if frame is None or frame.f_code.co_filename != threading.__file__:
+        return False
+    while frame is not None:
+        if frame.f_code is LoopWatchdog.stop.__code__:
+            return True
+        frame = frame.f_back
+    return False
+
+
+async def test_stopping_does_not_wait_for_a_slow_stall_report(records: _Records) -> None:
+    """The shutdown stops the watchdog on the loop's thread, inside its 10 s bound: a stall
+    report still being written (every stack, on a loaded machine) must not hold it. It used
+    to be joined for up to 5 s, and one `run` under load exited 1 for it. The report, slow
+    until the stop returns or is seen waiting for it, says which happened: no timing."""
+    stopping_thread = threading.get_ident()
+    in_report, stop_returned = threading.Event(), threading.Event()
+    stop_waited: list[bool] = []
+
+    def slow_stacks() -> str:
+        in_report.set()
+        for _ in range(6000):  # at most a minute: a hang guard, not a measure
+            if stop_returned.is_set() or _blocked_in_stop(stopping_thread):
+                stop_waited.append(not stop_returned.is_set())
+                break
+            time.sleep(0.01)
+        return "(stacks)"
+
+    watchdog = LoopWatchdog(asyncio.get_running_loop(), stall_after=0.2, stacks=slow_stacks)
+    watchdog.start()
+    try:
+        _blocking_the_loop_until(in_report)  # stalled until its report has begun
+        watchdog.stop()  # as the shutdown does, while the report is being written
+        stop_returned.set()
+        assert await asyncio.to_thread(records.stalled.wait, 60)  # the report still came out
+        assert stop_waited == [False], "stop() waited for the stall report"
+    finally:
+        stop_returned.set()
         watchdog.stop()
 
 

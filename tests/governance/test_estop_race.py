@@ -12,14 +12,18 @@ import json
 import random
 import shutil
 import tempfile
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
+import pytest
 from govhelpers import ADMIN, OPS, PLANNER, VIEWER, Harness, command
 from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
+from rcan_rtps.governance import estop
 from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.governance.governor import Decision, Governor
 from rcan_rtps.rcan import Outcome, Reason
@@ -62,6 +66,15 @@ async def _race(gov: Governor, rng: random.Random, acks: list[str]) -> tuple[Dec
     return e, c
 
 
+def _estop_won(harness: Harness, estopped: Decision, cleared: Decision) -> bool:
+    """Whether the e-stop of a race came last: after the clear in the log, or before the
+    clear was decided (the clear refused then: it cleared nothing)."""
+    if cleared.outcome is not Outcome.EXECUTED:
+        assert (cleared.http_status, cleared.reason) == (409, Reason.ESTOP_ACTIVE.value)
+        return True
+    return _seq(harness, estopped) > _seq(harness, cleared)
+
+
 async def test_estop_and_clear_interleavings_agree_everywhere(harness: Harness) -> None:
     gov = await harness.governor()
     rng = random.Random(20261124)
@@ -69,8 +82,8 @@ async def test_estop_and_clear_interleavings_agree_everywhere(harness: Harness) 
     for trial in range(TRIALS):
         acks: list[str] = []
         e, c = await _race(gov, rng, acks)
-        assert e.outcome is Outcome.EXECUTED and c.outcome is Outcome.EXECUTED, trial
-        estop_last = _seq(harness, e) > _seq(harness, c)
+        assert e.outcome is Outcome.EXECUTED, trial
+        estop_last = _estop_won(harness, e, c)
         outcomes[estop_last] += 1
         # Acknowledgements in audit order; the later transition decides everything.
         assert acks == (["clear", "estop"] if estop_last else ["estop", "clear"]), trial
@@ -83,27 +96,23 @@ async def test_estop_and_clear_interleavings_agree_everywhere(harness: Harness) 
             assert moved.reason == Reason.ESTOP_ACTIVE.value
     assert min(outcomes.values()) > TRIALS // 10  # both orders were really exercised
     await gov.stop()
+    assert _latched_by_the_log(harness.entries) == []
 
 
-async def test_estop_arriving_during_a_clear_wins(harness: Harness) -> None:
-    """The exact shape of the reported bug: clear in progress, e-stop acknowledged after it."""
+async def test_estop_arriving_during_a_clear_wins(harness: Harness,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """The exact shape of the reported bug: clear in progress, e-stop acknowledged after it.
+    The clear's latch file is slow on the disk (its writer thread): the e-stop's, written
+    after it on that thread, is the one that stays."""
     gov = await harness.governor()
     await gov.decide(command("estop"), VIEWER)
-    write, entered, release = gov.latch.file.write, asyncio.Event(), asyncio.Event()
-
-    async def slow_write(latched: bool, by: str, at_ms: int) -> None:
-        if not latched:  # the clear is audited and now being persisted
-            entered.set()
-            await release.wait()
-        await write(latched, by, at_ms)
-
-    gov.latch.file.write = slow_write  # type: ignore[method-assign]
+    held = _HeldClear(harness, monkeypatch, "latch_file")
     clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), OPS))
-    await asyncio.wait_for(entered.wait(), 10)
+    await asyncio.wait_for(held.entered.wait(), 10)
     estopping = asyncio.ensure_future(gov.decide(command("estop"), VIEWER))
     await asyncio.sleep(0.01)
-    assert not estopping.done()  # ordered behind the clear
-    release.set()
+    assert not estopping.done()  # answered after the clear
+    held.release()
     c, e = await clearing, await estopping
     assert _seq(harness, c) < _seq(harness, e)
     assert gov.latch.latched and _persisted(harness) and _published(harness) is True
@@ -147,7 +156,39 @@ class EstopModel(RuleBasedStateMachine):
     @rule()
     def race(self) -> None:
         e, c = self.run(_race(self.gov, self.rng, []))
-        self.latched = _seq(self.harness, e) > _seq(self.harness, c)
+        self.latched = _estop_won(self.harness, e, c)
+
+    @rule(delay=st.floats(min_value=0, max_value=0.004))
+    def race_on_a_slow_disk(self, delay: float) -> None:
+        """An e-stop, a clear and a move 0-6 ms apart, latch files taking `delay` to write: a
+        move refused for the latch after the e-stop came is listed after its ESTOP entry."""
+        write, came = estop.atomic_write, []
+
+        def slow_write(path: Any, data: bytes, *args: Any) -> None:
+            time.sleep(delay)
+            write(path, data, *args)
+
+        async def arriving(what: str, body: Any, who: Any) -> tuple[Decision, bool]:
+            await asyncio.sleep(self.rng.uniform(0, 0.006))
+            after_estop = "estop" in came
+            came.append(what)  # the decision's first step (an e-stop's latch) is this one
+            return await self.gov.decide(body, who), after_estop
+
+        async def race() -> tuple[tuple[Decision, bool], ...]:
+            return tuple(await asyncio.gather(
+                arriving("estop", command("estop"), VIEWER),
+                arriving("clear", command("clear_estop"), OPS),
+                arriving("move", command("move", MOVE), ADMIN)))
+
+        estop.atomic_write = slow_write  # type: ignore[assignment]
+        try:
+            (e, _), (c, _), (m, move_after_estop) = self.run(race())
+        finally:
+            estop.atomic_write = write
+        self.latched = _estop_won(self.harness, e, c)
+        if move_after_estop and m.reason == Reason.ESTOP_ACTIVE.value and e.reason is None:
+            assert _seq(self.harness, e) < _seq(self.harness, m)
+        self.run(self.gov.decide(command("stop"), ADMIN))  # a move that ran is stopped
 
     @rule(x=st.floats(min_value=-1.0, max_value=1.0))
     def move(self, x: float) -> None:
@@ -197,3 +238,99 @@ class EstopModel(RuleBasedStateMachine):
 
 EstopModel.TestCase.settings = settings(max_examples=30, stateful_step_count=25, deadline=None)
 test_estop_model = EstopModel.TestCase
+
+
+# -- an e-stop arriving while a clear is under way ---------------------------------------------
+
+
+def _latched_by_the_log(entries: list[dict[str, Any]]) -> list[int]:
+    """The seqs of commands refused for the latch at a point where the log says it was not
+    latched (the last ESTOP, or a latched start, before them is followed by an ESTOP_CLEARED):
+    none, if the log lists e-stops and refusals where they took effect."""
+    latched, wrong = False, []
+    for entry in entries:
+        if entry["event"] == "BRIDGE_STARTED":  # a latch file lost: latched at start
+            latched = entry["params"]["estop_latched"]
+        elif entry["event"] == "ESTOP":
+            latched = True
+        elif entry["event"] == "ESTOP_CLEARED" and entry["outcome"] == "executed":
+            latched = False
+        elif entry["deny_reason"] == f"COMMAND_REJECTED:{Reason.ESTOP_ACTIVE.value}" and (
+                entry["action_type"] != "clear_estop" and not latched):
+            wrong.append(entry["seq"])
+    return wrong
+
+
+class _HeldClear:
+    """Holds a clear at one point of its transition until released: `ready` (waiting for the
+    robot, not yet decided), `latch_file` (audited, its latch file being written on the
+    writer's thread: a slow disk) or `publish` (unlatched, `false` published and its send not
+    yet returned)."""
+
+    def __init__(self, harness: Harness, monkeypatch: pytest.MonkeyPatch, at: str) -> None:
+        self.entered, self._release = asyncio.Event(), threading.Event()
+        loop, dispatcher = asyncio.get_running_loop(), harness.dispatcher
+        ready, dispatch, write = dispatcher.ready, dispatcher.dispatch, estop.atomic_write
+
+        async def held_ready(command: Any) -> str | None:
+            if command.action == "clear_estop" and at == "ready":
+                await self._held()
+            return await ready(command)
+
+        async def held_dispatch(command: Any, applied: Any) -> Any:
+            result = await dispatch(command, applied)  # published (recorded) first
+            if command.action == "clear_estop" and at == "publish":
+                await self._held()
+            return result
+
+        def held_write(path: Any, data: bytes, *args: Any) -> None:
+            if b'"latched":false' in data and at == "latch_file":
+                loop.call_soon_threadsafe(self.entered.set)
+                assert self._release.wait(60), "never released"
+            write(path, data, *args)
+
+        monkeypatch.setattr(dispatcher, "ready", held_ready)
+        monkeypatch.setattr(dispatcher, "dispatch", held_dispatch)
+        monkeypatch.setattr(estop, "atomic_write", held_write)
+
+    async def _held(self) -> None:
+        self.entered.set()
+        await asyncio.to_thread(self._release.wait, 60)
+
+    def release(self) -> None:
+        self._release.set()
+
+
+@pytest.mark.parametrize("held_at", ["ready", "latch_file", "publish"])
+async def test_an_estop_during_a_clear_wins_and_is_listed_where_it_took_effect(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch, held_at: str) -> None:
+    """A clear under way (held at `held_at`), then an e-stop, then a move (refused: latched).
+    The e-stop wins, whenever it came: latched in memory, in the latch file and on the robot.
+    And the log says so where it happened: came before the clear was decided, the clear is
+    refused (it cleared nothing); after, its ESTOP entry is sealed as it arrives, right after
+    the clear's, before the move's refusal. It was sealed at its turn, once the clear was
+    done: the move's refusal, and whatever else came meanwhile, was listed after
+    ESTOP_CLEARED and before the ESTOP, as if refused while unlatched."""
+    gov = await harness.governor()
+    await gov.decide(command("estop"), VIEWER)
+    held = _HeldClear(harness, monkeypatch, held_at)
+    clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), OPS))
+    await asyncio.wait_for(held.entered.wait(), 60)
+    estopping = asyncio.ensure_future(gov.decide(command("estop"), VIEWER))
+    await asyncio.sleep(0)  # the e-stop has arrived
+    moved = await gov.decide(command("move", MOVE), ADMIN)
+    assert moved.reason == Reason.ESTOP_ACTIVE.value, moved
+    held.release()
+    cleared, estopped = await clearing, await estopping
+    await gov.stop()
+    assert gov.latch.latched and _persisted(harness) and _published(harness) is True
+    assert estopped.outcome is Outcome.EXECUTED, estopped
+    entries = harness.entries
+    assert _latched_by_the_log(entries) == [], [
+        (e["seq"], e["event"], e["action_type"], e["deny_reason"]) for e in entries]
+    if held_at == "ready":  # not decided when the e-stop came: nothing cleared
+        assert (cleared.http_status, cleared.reason) == (409, Reason.ESTOP_ACTIVE.value)
+        assert "ESTOP_CLEARED" not in [e["event"] for e in entries]
+    else:
+        assert cleared.outcome is Outcome.EXECUTED, cleared
+        assert _seq(harness, cleared) < _seq(harness, estopped) < _seq(harness, moved)

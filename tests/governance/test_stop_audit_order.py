@@ -12,15 +12,16 @@ from __future__ import annotations
 
 import asyncio
 import random
+from collections import Counter
 from collections.abc import Awaitable, Callable
 
 import pytest
-from govhelpers import ADMIN, OPS, PLANNER, Harness, command
+from govhelpers import ADMIN, OPS, PLANNER, Harness, command, principal
 
 from rcan_rtps.governance import audit
 from rcan_rtps.governance.governor import Decision, Governor
 from rcan_rtps.governance.rbac import Principal
-from rcan_rtps.rcan import NormalizedCommand, Outcome
+from rcan_rtps.rcan import NormalizedCommand, Outcome, Role
 
 TRIALS = 200
 MOTIONS = {"move": {"linear_x": 0.2}, "navigate": {"x": 1.0, "y": 2.0, "yaw": 0.0}}
@@ -151,3 +152,57 @@ async def test_the_log_lists_an_estop_where_it_latched(
                                 f"a move listed on the wrong side of the e-stop: {out_of_order}")
     assert len(before) > TRIALS // 20 and len(refused) > TRIALS // 20, (len(before),
                                                                         len(refused))
+
+
+DRIVER = principal("driver", Role.OWNER)  # 1000 commands a minute: not rate-limited here
+
+
+async def _estop(gov: Governor) -> Decision:
+    return await gov.decide(command("estop"), ADMIN)
+
+
+async def _driver_lost(gov: Governor) -> Decision:
+    return await asyncio.ensure_future(gov.safe_stop(DRIVER, "its connection closed"))
+
+
+STREAM_STOPS: dict[str, Stop] = {"stop": _stop, "estop": _estop, "session_lost": _driver_lost}
+
+
+@pytest.mark.parametrize("disk", ["fast", "slow"])
+@pytest.mark.parametrize("stop_kind", sorted(STREAM_STOPS))
+async def test_a_stream_a_stop_ends_is_listed_where_its_zero_went(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch, stop_kind: str, disk: str) -> None:
+    """A stop ends a running stream: the stream's zero is the first thing its halt sends, so
+    its STREAM_ENDED comes right before the stop's own entry, ahead of anything decided after
+    the stop (here OPS's move, 0-3 ms later). It was written by a task of its own, sealed a
+    loop step later: after the stop's entry, and after whatever was sealed meanwhile."""
+    if disk == "slow":
+        monkeypatch.setattr(audit, "INLINE_FSYNC_S", 0.0)
+    gov = await harness.governor()
+    stop, rng = STREAM_STOPS[stop_kind], random.Random(20261130)
+    misplaced, after_stop = [], 0
+    for trial in range(TRIALS // 2):
+        driving = await gov.decide(command("move", {"linear_x": 0.2}), DRIVER)
+        assert driving.outcome is Outcome.EXECUTED and gov.streams.active is not None, trial
+        delay = rng.choice([0.0, rng.uniform(0, 0.003)])
+        stopped, moved = await asyncio.gather(
+            stop(gov), _after(delay, gov.decide(command("move", {"linear_x": 0.1}), OPS)))
+        assert stopped.outcome is Outcome.EXECUTED, (trial, stopped)
+        await gov.latch.settled()
+        if gov.latch.latched:
+            await gov.decide(command("clear_estop"), OPS)
+        await gov.decide(command("stop"), ADMIN)  # the next trial starts still
+        await asyncio.gather(*gov._tasks)  # every end written
+        seqs = _seqs(harness)
+        [ended] = [e for e in harness.entries if e["event"] == "STREAM_ENDED"
+                   and e["message_id"] == driving.message_id]
+        stop_seq = seqs[stopped.audit_id]
+        if ended["seq"] != stop_seq - 1:
+            misplaced.append((trial, ended["params"]["reason"], ended["seq"] - stop_seq))
+        after_stop += moved.audit_id is not None and seqs[moved.audit_id] > stop_seq
+    await gov.stop()
+    places = Counter(after for _, _, after in misplaced)  # entries after the stop's: how many
+    assert misplaced == [], (f"{len(misplaced)} of {TRIALS // 2} trials: a stream's end not "
+                             f"listed where the stop sent its zero (this many entries after "
+                             f"the stop's: trials) {dict(places)}: {misplaced[:10]}")
+    assert after_stop > TRIALS // 20, after_stop  # commands were decided right after the stop

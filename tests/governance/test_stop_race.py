@@ -127,3 +127,79 @@ async def test_an_estop_cleared_while_a_goal_was_on_its_way_still_cancels_it(
     assert harness.dispatcher.cancelled == [f"goal-{harness.dispatcher._goals}"]
     assert gov.streams.goals == {}
     await gov.stop()
+
+
+async def test_a_lost_principals_goal_on_its_way_is_cancelled_while_another_drives(
+        harness: Harness) -> None:
+    """OPS drives (its stream holds the base) and PLANNER's goal is on its way to its server
+    when PLANNER's connection closes: the session loss stops PLANNER's motion alone. Its goal,
+    accepted after, is cancelled and answered `stopped`; OPS's stream runs on. It used to be
+    held once accepted — running after its sender was gone, and replacing OPS's stream."""
+    gov = await harness.governor()
+    await gov.decide(command("move", {"linear_x": 0.2}), OPS)
+    sending = await _goal_on_its_way(gov, harness, PLANNER)
+    lost = await gov.end_session(PLANNER)
+    assert lost is not None and lost.outcome is Outcome.EXECUTED
+    assert harness.dispatcher.hold is not None
+    harness.dispatcher.hold.set()
+    sent = await sending
+    assert (sent.http_status, sent.reason) == (409, "stopped"), sent
+    await asyncio.gather(*gov._tasks)  # the cancel the arbiter spawned
+    assert harness.dispatcher.cancelled == [f"goal-{harness.dispatcher._goals}"]
+    assert gov.streams.goals == {}
+    assert gov.streams.active is not None and gov.streams.active.owner == OPS.name
+    await gov.stop()
+
+
+async def test_no_motion_of_a_lost_principal_outlives_its_session_while_another_drives(
+        harness: Harness) -> None:
+    """PLANNER's move or goal (its server answering within 4 ms), and PLANNER's connection
+    closing 0-3 ms later, while OPS's stream holds the base: once all is decided nothing of
+    PLANNER's moves the robot (no stream of its, every goal of its cancelled), and motion of
+    PLANNER's that had not started when its session ended left OPS's stream running."""
+    gov = await harness.governor()
+    rng = random.Random(20261130)
+    dispatch = harness.dispatcher.dispatch
+
+    async def accepted_a_moment_later(command: Any, applied: Any) -> Any:
+        if command.spec.starts_goal:  # a goal server takes its time to answer
+            await asyncio.sleep(rng.uniform(0, 0.004))
+        return await dispatch(command, applied)
+
+    harness.dispatcher.dispatch = accepted_a_moment_later  # type: ignore[method-assign]
+    outliving: list[tuple[int, str]] = []
+    ops_stopped: list[int] = []
+    seen: dict[str, int] = {}
+    for trial in range(TRIALS):
+        harness.clock.advance(60)  # a fresh rate budget (no sweeper runs here)
+        await gov.decide(command("move", {"linear_x": 0.2}), OPS)
+        action = rng.choice(["move", "navigate"])
+        params = GOAL if action == "navigate" else {"linear_x": 0.1}
+        goals_before, calls_before = harness.dispatcher._goals, len(harness.dispatcher.calls)
+        delay = rng.uniform(0, 0.003)
+        moved, lost = await asyncio.gather(gov.decide(command(action, params), PLANNER),
+                                           _after(delay, gov.end_session(PLANNER)))
+        await asyncio.gather(*gov._tasks)  # cancels, STREAM_ENDED entries
+        if lost is None:  # its motion had not reached the robot yet: no session to end
+            await gov.end_session(PLANNER)  # (opened meanwhile: closed for the next trial)
+        else:
+            seen[moved.reason or moved.outcome.value] = seen.get(
+                moved.reason or moved.outcome.value, 0) + 1
+            active = gov.streams.active
+            if active is not None and active.owner == PLANNER.name:
+                outliving.append((trial, "stream"))
+            goals = {f"goal-{k}" for k in range(goals_before + 1, harness.dispatcher._goals + 1)}
+            calls = [a for a, _ in harness.dispatcher.calls[calls_before:]]
+            # A goal that took the base (OPS's stream ended) was cancelled by the robot-wide
+            # halt the loss then was; else by its id.
+            halted = "navigate" in calls and "stop" in calls[calls.index("navigate"):]
+            if goals - set(harness.dispatcher.cancelled) and not halted:
+                outliving.append((trial, "goal"))
+            if moved.reason == "stopped" and (active is None or active.owner != OPS.name):
+                ops_stopped.append(trial)
+        await gov.decide(command("stop"), ADMIN)  # the next trial starts still
+        await asyncio.gather(*gov._tasks)
+    assert outliving == [], f"PLANNER's motion outlived its session: {outliving}"
+    assert ops_stopped == [], f"OPS's stream ended for PLANNER's loss: {ops_stopped}"
+    assert seen.get("stopped", 0) > TRIALS // 20, seen  # motion on its way was exercised
+    await gov.stop()

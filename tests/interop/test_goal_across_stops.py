@@ -102,3 +102,43 @@ async def test_a_session_loss_leaves_another_principals_goal_on_its_way_running(
     assert scopes and set(scopes) == {"own"}, scopes
     await rig.command(OPS, {"action": "stop"})
     await eventually(lambda: not nav_tracker(rig).active(), timeout=15, what="stopped")
+
+
+async def _heartbeats(rig: Rig, principal: Any) -> None:
+    while True:  # well inside the rig's 1 s session timeout
+        rig.governor.heartbeat(principal)
+        await asyncio.sleep(0.2)
+
+
+async def test_a_session_loss_cancels_the_lost_principals_own_goal_on_its_way(
+        rig: Rig) -> None:
+    """AGENT drives (a held move; it heartbeats) when OPS's connection closes while OPS's goal
+    is on its way: OPS's motion alone stops. Its goal is cancelled on the server once accepted
+    and answered `stopped`; AGENT's stream runs on. The goal used to be held once accepted,
+    running after OPS was gone and, higher, ending AGENT's stream."""
+    attended = asyncio.ensure_future(_heartbeats(rig, AGENT))
+    try:
+        moving = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.1}})
+        assert moving.http_status == 200, moving
+
+        async def close_ops_connection() -> Decision:
+            lost = await rig.governor.end_session(OPS)
+            assert lost is not None, "OPS held a control session: its goal was being sent"
+            return lost
+
+        closing = _when_sent(rig, close_ops_connection)
+        sent = await rig.command(OPS, GOAL)
+        [closed] = closing
+        assert (await closed).http_status == 200
+        assert (sent.http_status, sent.reason) == (409, "stopped"), sent
+        view = nav_tracker(rig).goals()[-1]
+        await eventually(lambda: view.state == "canceled", timeout=15,
+                         what=f"goal {view.goal_id} cancelled (now {view.state})")
+        active = rig.governor.streams.active
+        assert active is not None and active.owner == AGENT.name, active
+        [entry] = [e for e in rig.entries() if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+        assert (entry["principal"], entry["applied"]["scope"]) == (OPS.name, "own"), entry
+    finally:
+        attended.cancel()
+    await rig.command(OPS, {"action": "stop"})
+    await eventually(lambda: not nav_tracker(rig).active(), timeout=15, what="stopped")

@@ -79,6 +79,7 @@ class LoopWatchdog:
         self._beat = time.monotonic()
         self._handle: asyncio.TimerHandle | None = None
         self._stop = threading.Event()
+        self._reporting = threading.Event()  # a stall report is being written
         self._thread = threading.Thread(target=self._watch, name="loop-watchdog", daemon=True)
 
     def start(self) -> None:
@@ -97,20 +98,34 @@ class LoopWatchdog:
             if stalled_at is None and now - beat > self.stall_after:
                 stalled_at = beat
                 self.stalls += 1
-                log.error("event loop stalled: no heartbeat for %.1f s; thread stacks:\n%s",
-                          now - beat, self._stacks())
+                self._report(now - beat)
             elif stalled_at is not None and beat > stalled_at:
                 log.warning("event loop recovered after a %.1f s stall", beat - stalled_at)
                 stalled_at = None
 
+    def _report(self, silent_for: float) -> None:
+        self._reporting.set()
+        try:
+            log.error("event loop stalled: no heartbeat for %.1f s; thread stacks:\n%s",
+                      silent_for, self._stacks())
+        finally:
+            self._reporting.clear()
+
     def stop(self) -> None:
-        """Idempotent; call on the loop's thread (or after the loop ended)."""
+        """Idempotent; call on the loop's thread (or after the loop ended).
+
+        Never waits for a stall report being written: it runs on the loop's thread, inside
+        the shutdown's bound, and a report on a loaded machine (every thread's stack, read
+        from source files, then logged) once took the 5 s this used to wait, and the
+        shutdown past its 10 s. The thread is a daemon; it ends once its report is out.
+        Otherwise the thread ends at its next wake-up (within `interval`)."""
         self._stop.set()
         if self._handle is not None:
             self._handle.cancel()
             self._handle = None
-        if self._thread.is_alive() and self._thread is not threading.current_thread():
-            self._thread.join(5.0)
+        if (self._thread.is_alive() and self._thread is not threading.current_thread()
+                and not self._reporting.is_set()):
+            self._thread.join(self.interval)
 
 
 class SignalStopper:

@@ -31,7 +31,16 @@ from .steps import (
     record,
     refused_event,
 )
-from .streams import EndReason, HeldGoal, Replaces, Stream, StreamEnded, Velocity, VelocityStreams
+from .streams import (
+    EndReason,
+    HeldGoal,
+    Replaces,
+    StopMark,
+    Stream,
+    StreamEnded,
+    Velocity,
+    VelocityStreams,
+)
 
 log = logging.getLogger("rcan_rtps.governance.governor")
 Sending = Callable[[Principal, NormalizedCommand], None]
@@ -78,9 +87,9 @@ class BaseArbiter:
     # -- goals ------------------------------------------------------------------------------
 
     def hold_goal(self, goal_id: str | None, owner: Principal, priority: int,
-                  message_id: str, stops: int) -> Rejection | None:
+                  message_id: str, stops: StopMark) -> Rejection | None:
         """An accepted goal holds the base: the stream and the goals it replaces end. If a
-        stop came since it was decided (`stops`: `streams.stops` then), or a higher stream,
+        stop of it came since it was decided (`stops`: its `streams.mark`), or a higher stream,
         goal or lock took the base while it was being sent, it is cancelled (the refusal
         returned): a stop's cancel reaches only the goals a server has."""
         if goal_id is None:
@@ -160,9 +169,9 @@ class BaseArbiter:
     async def stream(self, command: NormalizedCommand, principal: Principal,
                      owner: Principal, params: ActionParams, applied: dict[str, Any],
                      event: AuditEvent, pending_id: str | None, priority: int,
-                     stops: int) -> Decision:
+                     stops: StopMark) -> Decision:
         """A move: its write-ahead entry (naming the stream it replaces), then the stream —
-        unless a stop came since it was decided (`stops`: `streams.stops` then).
+        unless a stop of it came since it was decided (`stops`: its `streams.mark`).
 
         The claim is made with no await before the entry is sealed, so claims and entries
         come in the same order; a move that does not start releases its claim."""
@@ -186,7 +195,7 @@ class BaseArbiter:
             self.streams.release(owner.name, command.message_id)
 
     async def _start_stream(self, command: NormalizedCommand, principal: Principal,
-                            params: ActionParams, priority: int, stops: int,
+                            params: ActionParams, priority: int, stops: StopMark,
                             audited: tuple[dict[str, Any], AuditReceipt],
                             replaces: Replaces | None) -> Decision:
         """After the write-ahead entry: the first sample, then the stream takes over.
@@ -226,7 +235,9 @@ class BaseArbiter:
                     "samples": stream.samples,
                     "seconds": round(ended.at - stream.started_at, 3)},
             applied={"last": ended.last._asdict(), "zero_sent": ended.zeroed})
-        self._steps.spawn(self._steps.write_ahead(entry))
+        # Sealed in the step that ended it (a stop's halt, the e-stop's reflex), not a task's
+        # step later: the log lists it where the robot got its zero, before the stop's entry.
+        self._steps.record_now(entry)
 
     # -- locks ------------------------------------------------------------------------------
 

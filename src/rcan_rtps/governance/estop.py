@@ -6,10 +6,12 @@ order of acknowledgements is the audit order. Two rules make an acknowledged e-s
 
 - an e-stop latches in memory the moment it arrives (before any await), so no motion command
   passes from then on, even while earlier transitions are still being written; when no
-  transition is under way its work also begins right there (its audit entry sealed where it
-  took effect: `EstopLane.estop`), else at its turn;
-- a clear unlatches only if no e-stop arrived after it; otherwise that e-stop, next in line,
-  keeps the robot stopped (and the superseded clear publishes nothing).
+  transition is under way, or only a clear that is decided (its entry sealed: `decided`),
+  its work also begins right there (its audit entry sealed where it took effect, after the
+  clear's: `EstopLane.estop`), else at its turn; its reply comes in order all the same;
+- a clear unlatches only if no e-stop arrived after it; otherwise that e-stop keeps the robot
+  stopped: one that came before the clear was decided gets it refused (`overtaken`), one
+  that came after leaves it audited, publishing nothing.
 
 The latch file fails closed: unreadable means latched, and missing means latched unless the
 audit log is new too (a first start).
@@ -74,6 +76,9 @@ class LatchFile:
         return not self._found_at_load
 
     async def write(self, latched: bool, by: str, at_ms: int) -> None:
+        """Handed to the one writer thread in the call's first step (no await before), so
+        writes land in the order they were called: a clear checks that no e-stop came, then
+        writes `false`, in one step; an e-stop's `true` after that lands after it."""
         data = msgspec.json.encode(LatchState(latched=latched, by=by, at_ms=at_ms))
         try:
             await asyncio.get_running_loop().run_in_executor(
@@ -106,6 +111,7 @@ class EstopMachine:
         self._queue: asyncio.Queue[_Job] | None = None
         self._worker: asyncio.Task[None] | None = None
         self._unfinished = 0  # transitions submitted and not done
+        self._clear_decided = False  # the transition under way is a clear, its entry sealed
 
     @property
     def latched(self) -> bool:
@@ -114,13 +120,14 @@ class EstopMachine:
 
     def engage(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Latch now (synchronously), then run `work` in order: at once (`work()` called in
-        this step) if no transition is under way, so what it does before its first await
-        happens with the flip; else at its turn."""
+        this step) if no transition is under way, or only a decided clear, so what it does
+        before its first await happens with the flip and is sealed after the clear's entry;
+        else at its turn. Its result is returned in order either way."""
         flipped, self._latched = not self._latched, True
         self._engages_waiting += 1
         if flipped:
             self._tell()
-        if self._unfinished:
+        if self._unfinished and not (self._unfinished == 1 and self._clear_decided):
             return self._submit(work, engage=True)
         try:
             begun = work()
@@ -132,13 +139,24 @@ class EstopMachine:
         """Run `work` in order; it calls `unlatch()` once the clear is durable."""
         return self._submit(work, engage=False)
 
+    def decided(self) -> None:
+        """From the clear under way, in the step its entry is sealed: an e-stop arriving from
+        now on begins at once, its entry sealed right there, after the clear's (not at its
+        turn, after the clear's latch file and publish, with other entries sealed between)."""
+        self._clear_decided = True
+
+    def overtaken(self) -> bool:
+        """From the clear under way: an e-stop arrived after it (it wins: the clear must not
+        unlatch; one arriving before the clear is decided gets the clear refused)."""
+        return self._engages_waiting > 0
+
     def then(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Run `work` in order with the transitions, changing nothing of the latch itself."""
         return self._submit(work, engage=False)
 
     def unlatch(self) -> bool:
         """From a clear's work: unlatch unless an e-stop arrived after it (then False)."""
-        if self._engages_waiting:
+        if self.overtaken():
             return False
         self._latched = False
         self.reason = None
@@ -203,6 +221,7 @@ class EstopMachine:
                 if not done.done():
                     done.set_result(result)
             finally:
+                self._clear_decided = False
                 self._unfinished -= 1
                 self._queue.task_done()
 

@@ -114,19 +114,35 @@ class EstopLane:
 
     async def clear(self, command: NormalizedCommand, principal: Principal,
                     event: AuditEvent, pending_id: str | None) -> Decision:
-        """Audited, persisted, unlatched (unless an e-stop came after it), published."""
+        """Audited, persisted, unlatched (unless an e-stop came after it), published.
+
+        Decided when its entry is sealed. An e-stop that arrived before that (while it
+        waited for the robot, or for its turn) wins: the clear is refused (`estop_active`),
+        listed before that e-stop. One that arrives after it wins too: it is sealed in its
+        own step, right after this entry (`EstopMachine.decided`), and this clear neither
+        writes the latch file nor unlatches nor publishes."""
         steps = self._steps
         why = await steps.ready(command)
         if why is not None:
             return await steps.refuse(command, principal, outcomes.robot_unavailable(why),
                                       pending_id=pending_id)
         await self.record_repeats()  # the e-stops it clears come first in the log
+        if self._latch.overtaken():  # an e-stop came while it waited: nothing is cleared
+            return await steps.refuse(command, principal, outcomes.ESTOP_ACTIVE,
+                                      pending_id=pending_id)
         entry = record(AuditEvent.ESTOP_CLEARED, command, principal, Outcome.EXECUTED,
                        applied={}, pending_id=pending_id, ros2_topic=steps.route(command))
+        # Decided: its entry is sealed as the write begins, in this step. An e-stop from now
+        # on is a new one, audited in full, sealed at once after this entry.
+        latched_by, self._latched_by = self._latched_by, None
+        self._latch.decided()
         receipt = await steps.write_ahead(entry)
         if receipt is None:
+            if self._latched_by is None:
+                self._latched_by = latched_by
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
-        self._latched_by = None  # an e-stop after this clear is a new one, audited in full
+        if self._latch.overtaken():  # an e-stop since it was decided: its latch file holds
+            return executed(command, {}, receipt, DispatchResult(ok=True))
         try:
             await self._latch.file.write(False, principal.name, now_ms(self._clock))
         except EstopStateError:

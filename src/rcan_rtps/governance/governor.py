@@ -68,7 +68,7 @@ from .steps import (
     refused_event,
     sent,
 )
-from .streams import AccelLimits, EndReason, HeldGoal, VelocityStreams
+from .streams import AccelLimits, EndReason, HeldGoal, StopMark, VelocityStreams
 
 if TYPE_CHECKING:
     from .thoughts import ThoughtLog
@@ -378,9 +378,6 @@ class Governor:
         """`issuer`: whose command it is, when `principal` approved it (HiTL)."""
         applied = msgspec.structs.asdict(params)
         spec = command.spec
-        # A stop from here on wins over this command: it is decided before the stop, so it
-        # must not reach the robot after it (`VelocityStreams.stopped_since`).
-        stops = self.streams.stops
         if spec.effect is Effect.CLEAR_ESTOP:
             return await self.latch.clear(
                 lambda: self._estops.clear(command, principal, event, pending_id))
@@ -392,15 +389,18 @@ class Governor:
         owner = issuer or principal  # a stream is its issuer's, at the issuer's priority
         if not spec.motion:
             return await self._carry_out(command, principal, owner, params, applied, event,
-                                         pending_id, stops)
-        # Decided: from now on it drives the base for a session loss of someone else's.
-        with self.streams.deciding(owner.name):
+                                         pending_id, self.streams.mark(owner.name))
+        # Decided: from now on it drives the base for a session loss of someone else's, and
+        # a stop of it (everyone's, or its owner's alone) wins over it: decided before the
+        # stop, it must not reach the robot after it (`VelocityStreams.stopped_since`).
+        with self.streams.deciding(owner.name) as stops:
             return await self._carry_out(command, principal, owner, params, applied, event,
                                          pending_id, stops)
 
     async def _carry_out(self, command: NormalizedCommand, principal: Principal,
                          owner: Principal, params: ActionParams, applied: dict[str, Any],
-                         event: AuditEvent, pending_id: str | None, stops: int) -> Decision:
+                         event: AuditEvent, pending_id: str | None, stops: StopMark
+                         ) -> Decision:
         """`_execute` of what is neither a stop, a clear nor a lock: checked, written ahead,
         sent; motion only if no stop came since it was decided (`stops`)."""
         spec = command.spec
@@ -620,6 +620,9 @@ class Governor:
                         goals: list[HeldGoal]) -> Decision:
         log.warning("control session of '%s' lost (%s): its goals cancelled; the base stays "
                     "with who holds it", principal.name, why)
+        # Its motion still on its way (a goal being sent, a move waiting for its entry) is
+        # stopped too, as it comes: refused, or cancelled once its server accepted it.
+        self.streams.own_stop(principal.name)
         self._base.cancel_goals(goals, principal, why="session lost")
         stop = bridge_command(Effect.HALT)
         applied = {"scope": "own", "goals_cancelled": [g.goal_id for g in goals]}

@@ -142,6 +142,18 @@ class Steps:
         except AuditError:
             log.exception("audit write failed: %s not recorded", record.event.value)
 
+    def record_now(self, record: AuditRecord) -> None:
+        """An entry about something that happened in this step (a stream's zero went out),
+        sealed now — its place in the chain is this step: a stop's halt lists the stream it
+        ended before the stop's own entry, where the robot got its zero — and made durable in
+        a task of its own (the bridge's stop waits for it; nobody else does)."""
+        try:
+            durable = self.audit.seal(record)
+        except AuditError:
+            log.exception("audit write failed: %s not recorded", record.event.value)
+            return
+        self.spawn(_recorded(record, durable))
+
     def route(self, command: NormalizedCommand) -> str | None:
         try:
             return self.dispatcher.route(command)
@@ -195,6 +207,13 @@ async def _failed(exc: AuditError) -> AuditReceipt:
     """A stop's entry that could not even be sealed (the log is unwritable): its failure,
     beside the signals that go out anyway."""
     raise exc
+
+
+async def _recorded(record: AuditRecord, durable: Awaitable[AuditReceipt]) -> None:
+    try:
+        await durable
+    except AuditError:
+        log.exception("audit write failed: %s not recorded", record.event.value)
 
 
 async def _stopped(entry: AuditRecord, signals: Sequence[asyncio.Future[Any]],

@@ -99,6 +99,14 @@ class EndReason(str, enum.Enum):
     BRIDGE_STOPPED = "bridge_stopped"
 
 
+class StopMark(NamedTuple):
+    """The stops that apply to `owner`'s motion, counted when it was decided (`mark`): a stop
+    of everyone's (`halt`, an e-stop) or of `owner`'s alone (`own_stop`) changes it."""
+
+    owner: str
+    stops: int
+
+
 class Stream(msgspec.Struct):
     action: str
     owner: str  # the principal whose command it is
@@ -109,7 +117,7 @@ class Stream(msgspec.Struct):
     started_at: float = 0.0  # loop time
     ends_at: float | None = None
     samples: int = 0
-    stops: int = 0  # `VelocityStreams.stops` when the move was decided
+    stops: StopMark | None = None  # `VelocityStreams.mark` when the move was decided
 
 
 class StreamEnded(msgspec.Struct, frozen=True):
@@ -193,15 +201,18 @@ class VelocityStreams:
         # Motion decided and not yet started or refused, per owner (`deciding`): it drives
         # the base as much as a running stream does, for a session loss of someone else.
         self._deciding: dict[str, int] = {}
+        # Stops of one owner's motion alone (`own_stop`), kept while it has motion being
+        # decided (no mark of its is in use otherwise): bounded by `_deciding`.
+        self._own_stops: dict[str, int] = {}
         self.on_end: Callable[[StreamEnded], None] = lambda ended: None
         self._handle: Cancellable | None = None
         self._last = ZERO
         self._claim: _Claim | None = None  # the move that starts next, once audited
 
     # -- admission -----------------------------------------------------------------------
-    def admits(self, priority: int, *, since: int | None = None) -> Rejection | None:
+    def admits(self, priority: int, *, since: StopMark | None = None) -> Rejection | None:
         """None if a move or goal of `priority` may start now (no higher stream, goal or
-        lock; with `since`, a value of `stops` taken when it was decided: no stop since)."""
+        lock; with `since`, its `mark` taken when it was decided: no stop of it since)."""
         if self._latch.latched:  # first: an e-stop counts as a stop too, and says more
             return outcomes.ESTOP_ACTIVE
         if since is not None and self.stopped_since(since):
@@ -245,16 +256,18 @@ class VelocityStreams:
         return any(g.owner != owner for g in self.goals.values())
 
     @contextlib.contextmanager
-    def deciding(self, owner: str) -> Iterator[None]:
-        """Motion of `owner`'s, from its decision (`stops` taken) until it started or was
-        refused."""
+    def deciding(self, owner: str) -> Iterator[StopMark]:
+        """Motion of `owner`'s, from its decision until it started or was refused; yields its
+        mark, for `stopped_since`, to be used only inside this block."""
         self._deciding[owner] = self._deciding.get(owner, 0) + 1
         try:
-            yield
+            yield self.mark(owner)
         finally:
             left = self._deciding.pop(owner) - 1
             if left:
                 self._deciding[owner] = left
+            else:  # none of its marks is in use any more
+                self._own_stops.pop(owner, None)
 
     def first_sample(self, target: Velocity) -> Velocity:
         return self.accel.step(self.commanded, target, self.period)
@@ -321,11 +334,24 @@ class VelocityStreams:
         self.stops += 1
         return self.end(reason, by)
 
-    def stopped_since(self, stops: int) -> bool:
-        """Whether a stop came after `stops` (a value of `self.stops` taken earlier)."""
-        return self.stops != stops
+    def own_stop(self, owner: str) -> None:
+        """A stop of `owner`'s motion alone (its control session lost while another principal
+        drives): what of its motion was decided before this and has not started (a goal
+        being sent, a move waiting for its entry) never starts, or is cancelled once its
+        server accepted it. Nobody else's motion is touched."""
+        if owner in self._deciding:
+            self._own_stops[owner] = self._own_stops.get(owner, 0) + 1
 
-    def halted_since(self, stops: int) -> Rejection | None:
+    def mark(self, owner: str) -> StopMark:
+        """The stops of `owner`'s motion so far: every robot-wide stop, and its own. Both
+        only grow while a mark is in use (inside `deciding`), so the sum changes with each."""
+        return StopMark(owner, self.stops + self._own_stops.get(owner, 0))
+
+    def stopped_since(self, mark: StopMark) -> bool:
+        """Whether a stop of `mark.owner`'s motion came after `mark` was taken."""
+        return self.mark(mark.owner) != mark
+
+    def halted_since(self, stops: StopMark) -> Rejection | None:
         """After a motion command's write-ahead entry, just before its first publish: why it
         must not reach the robot — the e-stop latched, or a stop came since it was decided
         (`stops`) — or None."""

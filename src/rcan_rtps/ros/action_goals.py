@@ -13,8 +13,9 @@ otherwise the client cross-checks against the status topic, which names goals by
 - "accepted" counts only once the status topic lists our goal id; "rejected" only if our
   id has not appeared there within a short grace period;
 - the result is requested once the status topic shows our goal terminal, and a reply
-  is ours only if its status is that terminal status; a goal accepted by a tied reply but
-  not listed after UNLISTED_S asks at once, and takes only a tied reply (`_tied_result`);
+  is ours only if its status is that terminal status; a goal accepted by a tied reply asks
+  earlier when the topic is late (`_status_late`) and takes only a tied reply naming an
+  end (`_tied_result`);
 - a cancel reply is ours only if it lists our goal id (or refuses, naming no goal).
 A server that leaves the graph ends its open goals with `GoalState.SERVER_LOST`.
 """
@@ -93,10 +94,12 @@ REPAIR_S = {RequestMapping.CYCLONE: 2.0, RequestMapping.FASTDDS: 7.0}
 OWED_REPAIR_S = {RequestMapping.CYCLONE: 0.0, RequestMapping.FASTDDS: 15.0}
 OWED_POLL = 0.25  # s between looks at the capture while a repair is owed
 RESULT_ASK_S = 5.0  # s: a get_result request unanswered this long is sent again (`_ask_result`)
-# s after a goal was accepted by a reply tied to our request without the status topic listing
-# it: its result is asked for at once (`fetch_result`), as rclpy does, rather than once the
-# status topic shows its end (its status samples can be dropped at our socket for over 10 s).
+# A goal accepted by a reply tied to our request has its result asked for before the status
+# topic shows its end (`fetch_result`; rclpy asks at once) when the topic has not listed it
+# UNLISTED_S after, or when only LAST_ASK_S of the wait for its end is left: its status
+# samples and their HEARTBEATs were seen dropped at our socket for over 10 s.
 UNLISTED_S = 1.0
+LAST_ASK_S = 5.0
 
 
 def forget_after() -> float:
@@ -765,7 +768,7 @@ class GoalSender:
                 if loop.time() >= deadline:
                     raise ActionError(f"action {self.name}: goal still {goal.state.name} "
                                       f"after {seconds(timeout)}")
-                if early is None and self._listed_late(goal):  # ... or at once (UNLISTED_S)
+                if early is None and self._status_late(goal, deadline):  # ... or earlier
                     early = asyncio.create_task(self._tied_result(goal, deadline))
                 told = early.result() if early is not None and early.done() else None
                 if told is not None:
@@ -798,12 +801,17 @@ class GoalSender:
         return GoalResult(GoalState(value), reply.result)
 
     @staticmethod
-    def _listed_late(goal: ClientGoal) -> bool:
-        """Whether a goal accepted by a reply tied to our request has not been listed on
-        the status topic UNLISTED_S after (its status dropped at our socket)."""
-        if not goal.tied or goal._listed is not None or goal._accepted_at is None:
+    def _status_late(goal: ClientGoal, deadline: float) -> bool:
+        """Whether a goal accepted by a reply tied to our request, whose end the status topic
+        has not shown, asks for its result now: the topic has not listed it UNLISTED_S
+        after, or LAST_ASK_S is all that is left before `deadline` (rather than fail on the
+        topic's silence: its samples may have been dropped at our socket). Not at once: on a
+        Fast DDS server the client has one request out at a time, and a goal may run long."""
+        if not goal.tied or goal._accepted_at is None:
             return False
-        return asyncio.get_running_loop().time() - goal._accepted_at >= UNLISTED_S
+        now = asyncio.get_running_loop().time()
+        return deadline - now <= LAST_ASK_S or \
+            (goal._listed is None and now - goal._accepted_at >= UNLISTED_S)
 
     async def _tied_result(self, goal: ClientGoal, deadline: float) -> GoalResult | None:
         """The goal's result asked for before the status topic showed its end (the server
@@ -821,8 +829,8 @@ class GoalSender:
         state = _ended(reply)
         if not answer.tied or state is None:
             return None
-        log.info("action %s: goal %s never listed on the status topic; its result, tied to "
-                 "our request, says %s", self.name, uuid.UUID(bytes=goal.goal_id), state.name)
+        log.info("action %s: goal %s not shown ended on the status topic; its result, tied "
+                 "to our request, says %s", self.name, uuid.UUID(bytes=goal.goal_id), state.name)
         if not goal.state.terminal:
             goal.state = state
         return GoalResult(state, reply.result)

@@ -724,8 +724,8 @@ class GoalSender:
             # It answers our request (the Cyclone mapping's header, or the related sample
             # identity the capture read): it is ours, whenever the status topic lists the
             # goal. Its status sample and that writer's HEARTBEATs were seen dropped at our
-            # socket for longer than `_confirm` waits (docs/design/zero-loss.md, "The goal
-            # listed late").
+            # socket for longer than `_confirm` waits (docs/design/zero-loss.md, "The goal's
+            # status late").
             accepted = bool(reply.accepted)
         else:
             accepted = await self._confirm(handle, bool(reply.accepted), deadline)

@@ -21,7 +21,8 @@ only while this client is the service's only one in the graph, when it was sent 
 came: otherwise it could be another client's answer, and the call fails with AmbiguousReply
 (`ambiguous_reply`) rather than return it. Actions, which cross-check the reply themselves
 (goal ids on the status topic, in a cancel's answer), and a stop's server-wide cancel, which
-needs no answer, take it still (`unidentified_ok`). Replies
+needs no answer, take it still (`unidentified_ok`); `ServiceClient.answer` tells them whether
+the reply was tied to their request (`Answer`). Replies
 arriving while nothing is outstanding, or failing the caller's `accept` check, are dropped,
 and after a timeout a late reply gets to drain before the next request.
 

@@ -432,6 +432,66 @@ async def test_a_first_feedback_repaired_after_the_window_still_comes(
     assert waited, f"no repair came after the end of {OWED_GOALS} goals: nothing was shown"
 
 
+def status_shows_only(client: ActionClient, shown: Callable[[Any], bool]) -> None:
+    """Our client's status topic shows only the statuses `shown` keeps: the others dropped at
+    our socket, as a whole window of the status writer's samples and HEARTBEATs was under the
+    noise (docs/design/zero-loss.md, "The goal's status late")."""
+    sender = client._goal_side()  # (made by wait_for_server: it takes the status)
+    take = sender.on_status
+
+    def on_status(array: Any) -> None:
+        array.status_list = [s for s in array.status_list if shown(s)]
+        take(array)
+    sender.on_status = on_status  # type: ignore[method-assign]
+
+
+def never_listing(client: ActionClient) -> None:
+    status_shows_only(client, lambda status: False)
+
+
+# s a late status's goal waits for its result: 1 s more than `action_goals.LAST_ASK_S`, so the
+# result is asked for before the wait runs out
+LATE_STATUS_WAIT = 6.0
+# the status topic lists the goal, but never shows it ended
+NOT_ENDED = lambda status: not GoalState(int(status.status)).terminal  # noqa: E731
+
+
+@both_rmws
+@pytest.mark.parametrize("shown", [lambda status: False, NOT_ENDED], ids=["unlisted", "unended"])
+async def test_a_goal_whose_status_is_late_is_accepted_and_ended_by_replies_tied_to_it(
+        oracle: RclpyOracle, node: RosNode, shown: Callable[[Any], bool]) -> None:
+    """A send_goal reply tied to our request (the Cyclone mapping's header; the related
+    sample identity the capture reads for Fast DDS) is ours: the goal is accepted without its
+    listing on the status topic; its result, asked for at once when the listing is late, or
+    before the wait for its end runs out (LAST_ASK_S), tells its end. Before, an unlisted Fast
+    DDS goal failed ("never appeared on its status topic") and the others' results waited for
+    the status topic's end in vain ("goal still ACCEPTED")."""
+    with closing(fib_client(node)) as client:
+        await client.wait_for_server(REPLY_TIMEOUT)
+        status_shows_only(client, shown)
+        goal = await client.send_goal({"order": 3}, timeout=REPLY_TIMEOUT)
+        assert goal.accepted
+        outcome = await goal.result(timeout=LATE_STATUS_WAIT)
+        assert outcome.state is GoalState.SUCCEEDED and outcome.result is not None
+        assert list(outcome.result.sequence) == fibonacci(3)
+        assert goal.state is GoalState.SUCCEEDED
+
+
+@pytest.mark.parametrize("oracle_rmw", ["fastrtps"])
+async def test_without_the_capture_a_goal_never_listed_is_not_taken_as_accepted(
+        oracle: RclpyOracle, domain_id: int, jazzy_share: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Fails closed: a Fast DDS reply whose identity cannot be read may be another client's,
+    so "accepted" still needs the status topic to list the goal."""
+    monkeypatch.setenv("RCAN_RTPS_RPC_IDENTITY", "off")
+    with RosNode("zero_loss_untied", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as untied, closing(fib_client(untied)) as client:
+        await client.wait_for_server(REPLY_TIMEOUT)
+        never_listing(client)
+        with pytest.raises(ActionError, match="never appeared on its status topic"):
+            await client.send_goal({"order": 3}, timeout=2.5)
+
+
 @pytest.mark.parametrize("oracle_rmw", ["fastrtps"])
 async def test_a_feedback_our_reader_never_delivers_is_taken_from_the_capture(
         oracle: RclpyOracle, node: RosNode) -> None:

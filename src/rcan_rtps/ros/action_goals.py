@@ -6,13 +6,16 @@ status topic; that half, in actions.py, is all a bridge loads until its first `n
 (issue 27: idle memory). The cancel client, the status reader and what a stop runs stay
 there, made ready at start: nothing here is on the path of a stop.
 
-With a Fast DDS server a reply cannot be tied to its request (replies to every client
-reach every client), so the client cross-checks against the status topic, which names
-goals by id:
+With a Fast DDS server a reply is tied to its request only where the packet capture reads
+its related sample identity (services.py, `Answer.tied`; replies to every client reach every
+client). A send_goal reply so tied (or any in the Cyclone mapping) is taken as it is;
+otherwise the client cross-checks against the status topic, which names goals by id:
 - "accepted" counts only once the status topic lists our goal id; "rejected" only if our
   id has not appeared there within a short grace period;
-- the result is requested only once the status topic shows our goal terminal, and a reply
-  is ours only if its status is that terminal status;
+- the result is requested once the status topic shows our goal terminal, and a reply
+  is ours only if its status is that terminal status; a goal accepted by a tied reply asks
+  earlier when the topic is late (`_status_late`) and takes only a tied reply naming an
+  end (`_tied_result`);
 - a cancel reply is ours only if it lists our goal id (or refuses, naming no goal).
 A server that leaves the graph ends its open goals with `GoalState.SERVER_LOST`.
 """
@@ -91,6 +94,12 @@ REPAIR_S = {RequestMapping.CYCLONE: 2.0, RequestMapping.FASTDDS: 7.0}
 OWED_REPAIR_S = {RequestMapping.CYCLONE: 0.0, RequestMapping.FASTDDS: 15.0}
 OWED_POLL = 0.25  # s between looks at the capture while a repair is owed
 RESULT_ASK_S = 5.0  # s: a get_result request unanswered this long is sent again (`_ask_result`)
+# A goal accepted by a reply tied to our request has its result asked for before the status
+# topic shows its end (`fetch_result`; rclpy asks at once) when the topic has not listed it
+# UNLISTED_S after, or when only LAST_ASK_S of the wait for its end is left: its status
+# samples and their HEARTBEATs were seen dropped at our socket for over 10 s.
+UNLISTED_S = 1.0
+LAST_ASK_S = 5.0
 
 
 def forget_after() -> float:
@@ -120,6 +129,10 @@ class ClientGoal:
         self._sender = sender
         self.goal_id = goal_id
         self.accepted = False
+        # Accepted by a reply known to answer our request (`Answer.tied`): then its result's
+        # reply is too, and tells its end without the status topic (`fetch_result`).
+        self.tied = False
+        self._accepted_at: float | None = None  # loop time
         self.stamp: tuple[int, int] = (0, 0)
         self._state = GoalState.UNKNOWN
         self._ended_at: float | None = None  # monotonic time it was first seen terminal
@@ -688,11 +701,15 @@ class GoalSender:
 
     async def _sent(self, handle: ClientGoal, request: Any, deadline: float) -> ClientGoal:
         loop = asyncio.get_running_loop()
+        tied = False
         try:
-            # Cross-checked: a Fast DDS reply counts only once the status topic lists the
-            # goal (`_confirm`), so one whose identity cannot be read is still taken.
-            reply: Any = await self._send.call(request, max(0.0, deadline - loop.time()),
-                                               unidentified_ok=True)
+            # Cross-checked: a Fast DDS reply not tied to our request counts only once the
+            # status topic lists the goal (`_confirm`), so one whose identity cannot be read
+            # is still taken.
+            answer = await self._send.answer(request, max(0.0, deadline - loop.time()),
+                                             unidentified_ok=True)
+            reply: Any = answer.reply
+            tied = answer.tied
         except ServiceTimeout:
             # The reply can be lost for good when datagrams are dropped at our socket (see
             # `_ask_result`); the status topic names the goals the server accepted.
@@ -703,11 +720,17 @@ class GoalSender:
             reply = None
         if reply is None:
             accepted = True
-        elif self._send.resolve_mapping() is RequestMapping.CYCLONE:
+        elif tied:
+            # It answers our request (the Cyclone mapping's header, or the related sample
+            # identity the capture read): it is ours, whenever the status topic lists the
+            # goal. Its status sample and that writer's HEARTBEATs were seen dropped at our
+            # socket for longer than `_confirm` waits (docs/design/zero-loss.md, "The goal's
+            # status late").
             accepted = bool(reply.accepted)
         else:
             accepted = await self._confirm(handle, bool(reply.accepted), deadline)
-        handle.accepted = accepted
+        handle.accepted, handle.tied = accepted, tied and accepted
+        handle._accepted_at = loop.time()
         if accepted:
             stamp = (0, 0) if reply is None else _stamp(reply.stamp)
             handle.stamp = stamp if handle._listed is None else handle._listed[1]
@@ -717,7 +740,8 @@ class GoalSender:
         return handle
 
     async def _confirm(self, goal: ClientGoal, accepted: bool, deadline: float) -> bool:
-        """Fast DDS: the reply may be another client's; the status topic decides."""
+        """Fast DDS, a reply not tied to our request: it may be another client's; the status
+        topic decides."""
         loop = asyncio.get_running_loop()
         until = deadline if accepted else min(deadline, loop.time() + REJECT_GRACE)
         while goal._listed is None:
@@ -736,13 +760,23 @@ class GoalSender:
             return GoalResult(GoalState.REJECTED, None, "the server rejected the goal")
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
-        while not goal.state.terminal:  # the result is asked for only once the goal ended
-            if not self.check_server():
-                break
-            if loop.time() >= deadline:
-                raise ActionError(f"action {self.name}: goal still {goal.state.name} after "
-                                  f"{seconds(timeout)}")
-            await asyncio.sleep(POLL)
+        early: asyncio.Task[GoalResult | None] | None = None
+        try:
+            while not goal.state.terminal:  # the result is asked for once the goal ended ...
+                if not self.check_server():
+                    break
+                if loop.time() >= deadline:
+                    raise ActionError(f"action {self.name}: goal still {goal.state.name} "
+                                      f"after {seconds(timeout)}")
+                if early is None and self._status_late(goal, deadline):  # ... or earlier
+                    early = asyncio.create_task(self._tied_result(goal, deadline))
+                told = early.result() if early is not None and early.done() else None
+                if told is not None:
+                    return told
+                await asyncio.sleep(POLL)
+        finally:
+            if early is not None and not early.done():
+                early.cancel()  # (the status topic showed the end: asked for the usual way)
         if goal.state is GoalState.SERVER_LOST:
             return GoalResult(GoalState.SERVER_LOST, None,
                               f"action server {self.name} left the graph before the goal ended")
@@ -765,6 +799,41 @@ class GoalSender:
             return GoalResult(final, reply.result,
                               f"the server's result named status {value}; kept {final.name}")
         return GoalResult(GoalState(value), reply.result)
+
+    @staticmethod
+    def _status_late(goal: ClientGoal, deadline: float) -> bool:
+        """Whether a goal accepted by a reply tied to our request, whose end the status topic
+        has not shown, asks for its result now: the topic has not listed it UNLISTED_S
+        after, or LAST_ASK_S is all that is left before `deadline` (rather than fail on the
+        topic's silence: its samples may have been dropped at our socket). Not at once: on a
+        Fast DDS server the client has one request out at a time, and a goal may run long."""
+        if not goal.tied or goal._accepted_at is None:
+            return False
+        now = asyncio.get_running_loop().time()
+        return deadline - now <= LAST_ASK_S or \
+            (goal._listed is None and now - goal._accepted_at >= UNLISTED_S)
+
+    async def _tied_result(self, goal: ClientGoal, deadline: float) -> GoalResult | None:
+        """The goal's result asked for before the status topic showed its end (the server
+        answers once the goal has ended), taken only from a reply tied to our request that
+        names an end: it tells the goal's end, and ends it here (the status topic, once its
+        samples come, only repeats it). None otherwise: the status topic is waited for."""
+        loop = asyncio.get_running_loop()
+        request = {"goal_id": {"uuid": goal.goal_id}}
+        try:
+            answer = await self._get.answer(request, max(0.1, deadline - loop.time()),
+                                            accept=lambda reply: _ended(reply) is not None)
+        except (WireError, DDSException):  # timed out, ambiguous, its node closed: the usual way
+            return None
+        reply: Any = answer.reply
+        state = _ended(reply)
+        if not answer.tied or state is None:
+            return None
+        log.info("action %s: goal %s not shown ended on the status topic; its result, tied "
+                 "to our request, says %s", self.name, uuid.UUID(bytes=goal.goal_id), state.name)
+        if not goal.state.terminal:
+            goal.state = state
+        return GoalResult(state, reply.result)
 
     async def _ask_result(self, goal: ClientGoal, ours: Callable[[Any], bool],
                           deadline: float) -> Any:
@@ -897,6 +966,12 @@ class GoalSender:
         open_goals = [g for g in self._goals.values() if g.accepted and not g.state.terminal]
         results = await asyncio.gather(*(g.cancel(timeout) for g in open_goals))
         return sum(results)
+
+
+def _ended(reply: Any) -> GoalState | None:
+    """The end a get_result reply names (None: a value that is no end, or unknown)."""
+    value = int(reply.status)
+    return GoalState(value) if value in _WIRE_STATES and GoalState(value).terminal else None
 
 
 def _names_goal(reply: Any, goal_id: bytes) -> bool:

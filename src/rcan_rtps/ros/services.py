@@ -21,7 +21,8 @@ only while this client is the service's only one in the graph, when it was sent 
 came: otherwise it could be another client's answer, and the call fails with AmbiguousReply
 (`ambiguous_reply`) rather than return it. Actions, which cross-check the reply themselves
 (goal ids on the status topic, in a cancel's answer), and a stop's server-wide cancel, which
-needs no answer, take it still (`unidentified_ok`). Replies
+needs no answer, take it still (`unidentified_ok`); `ServiceClient.answer` tells them whether
+the reply was tied to their request (`Answer`). Replies
 arriving while nothing is outstanding, or failing the caller's `accept` check, are dropped,
 and after a timeout a late reply gets to drain before the next request.
 
@@ -311,9 +312,23 @@ class _Outstanding:
     identity: SampleIdentity  # the request's (our writer's GUID, its sample number)
     unidentified_ok: bool  # taken without identity: the caller checks it itself (actions)
     alone: bool  # no other client of the service was in the graph as it was sent
+    tied: bool = False  # the reply taken names this request (see `Answer.tied`)
 
     def accepts(self, reply: Any) -> bool:
         return self.accept is None or self.accept(reply)
+
+
+@dataclass(frozen=True, slots=True)
+class Answer:
+    """A call's reply, and whether it is known to answer this very request (`tied`): the
+    Cyclone mapping's header names it, or the packet capture read the Fast DDS reply's
+    related sample identity and it names our request (not under DDS-Security: there the
+    capture sees only what travels in clear, which a forger could have sent). A reply not
+    tied was taken only because this client was the service's only one in the graph, or
+    because the caller checks it itself (`unidentified_ok`)."""
+
+    reply: IdlStruct
+    tied: bool
 
 
 class ServiceClient(_ServiceEnd):
@@ -518,6 +533,14 @@ class ServiceClient(_ServiceEnd):
         clients of the service are in the graph is AmbiguousReply, unless `unidentified_ok`:
         the caller tells its reply from another client's itself (an action: the status
         topic, the goal ids) or needs none (a stop's server-wide cancel)."""
+        answer = await self.answer(request, timeout, accept=accept,
+                                   unidentified_ok=unidentified_ok)
+        return answer.reply
+
+    async def answer(self, request: IdlStruct | Mapping[str, Any] | None = None,
+                     timeout: float = 10.0, *, accept: Accept | None = None,
+                     unidentified_ok: bool = False) -> Answer:
+        """As `call`, also saying whether the reply is known to answer this request."""
         message = request if isinstance(request, IdlStruct) else \
             self.node.values.build(self.request_type, request)
         loop = asyncio.get_running_loop()
@@ -525,7 +548,7 @@ class ServiceClient(_ServiceEnd):
         with self._closed_said():
             pair = await self._wait_for_service(timeout)
             if pair.mapping is RequestMapping.CYCLONE:
-                return await self._call_cyclone(pair, message, deadline)
+                return Answer(await self._call_cyclone(pair, message, deadline), tied=True)
             return await self._call_plain(pair, message, deadline, accept, unidentified_ok)
 
     async def _reply(self, future: asyncio.Future[IdlStruct], deadline: float) -> IdlStruct:
@@ -557,7 +580,7 @@ class ServiceClient(_ServiceEnd):
             self._pending.pop(seq, None)
 
     async def _call_plain(self, pair: _Pair, message: IdlStruct, deadline: float,
-                          accept: Accept | None, unidentified_ok: bool) -> IdlStruct:
+                          accept: Accept | None, unidentified_ok: bool) -> Answer:
         loop = asyncio.get_running_loop()
         try:
             await asyncio.wait_for(self._plain_lock.acquire(), max(0.0, deadline - loop.time()))
@@ -575,7 +598,7 @@ class ServiceClient(_ServiceEnd):
             self._plain_lock.release()
 
     async def _send_plain(self, pair: _Pair, message: IdlStruct, deadline: float,
-                          accept: Accept | None, unidentified_ok: bool) -> IdlStruct:
+                          accept: Accept | None, unidentified_ok: bool) -> Answer:
         """Sends the request and waits for its reply: from the reader, or, if the reader
         never delivers it, from the packet capture (`_reply_from_capture`)."""
         future: asyncio.Future[IdlStruct] = asyncio.get_running_loop().create_future()
@@ -591,16 +614,18 @@ class ServiceClient(_ServiceEnd):
         alone = unidentified_ok or not self._other_clients(pair)
         try:
             pair.write(message)
-            self._plain_waiter = _Outstanding(future, accept, identity, unidentified_ok, alone)
+            waiter = self._plain_waiter = _Outstanding(future, accept, identity,
+                                                       unidentified_ok, alone)
             if captured:
                 assert capture is not None
                 fallback = asyncio.create_task(
-                    self._reply_from_capture(pair, capture, identity, future, accept))
-            return await self._reply(future, deadline)
+                    self._reply_from_capture(pair, capture, waiter))
+            reply = await self._reply(future, deadline)
+            return Answer(reply, waiter.tied)
         except asyncio.TimeoutError:
             self._stale = True
             raise ServiceTimeout(f"service {self.name}: no reply within the timeout") from None
-        except AmbiguousReply:
+        except (AmbiguousReply, asyncio.CancelledError):
             self._stale = True  # ours may still come: it must not answer the next request
             raise
         finally:
@@ -611,8 +636,7 @@ class ServiceClient(_ServiceEnd):
                 capture.forget_reply(identity)
 
     async def _reply_from_capture(self, pair: _Pair, capture: IdentityCapture,
-                                  identity: SampleIdentity, future: asyncio.Future[IdlStruct],
-                                  accept: Accept | None) -> None:
+                                  waiter: _Outstanding) -> None:
         """Delivers the reply from the packet capture when the reader has not: its DATA
         reached our socket, but Cyclone dropped it as history (a HEARTBEAT ahead of it taken
         as our reader's start: docs/design/zero-loss.md), and nothing sends it again. Only
@@ -623,19 +647,21 @@ class ServiceClient(_ServiceEnd):
         MISS_BUDGET bytes, which held the event loop 250-440 ms when they were small datagrams
         (docs/design/rpc-identity.md, "The event loop"); the capture's lock is taken a chunk
         at a time there, and no lock of ours is held meanwhile."""
+        future = waiter.future
         await asyncio.sleep(CAPTURE_REPLY_AFTER)
         while not future.done():
-            data = await asyncio.to_thread(capture.captured_reply, identity)
+            data = await asyncio.to_thread(capture.captured_reply, waiter.identity)
             if data is not None:
                 await asyncio.sleep(CAPTURE_SETTLE)  # it may just have come: reader first
                 await self.node.delivered()
                 if not future.done():
-                    self._deliver_captured(pair, data, future, accept)
+                    self._deliver_captured(pair, data, waiter)
                 return
             await asyncio.sleep(CAPTURE_POLL)
 
-    def _deliver_captured(self, pair: _Pair, data: bytes, future: asyncio.Future[IdlStruct],
-                          accept: Accept | None) -> None:
+    def _deliver_captured(self, pair: _Pair, data: bytes, waiter: _Outstanding) -> None:
+        """A reply the capture kept because it names our request (never on a secured node)."""
+        future, accept = waiter.future, waiter.accept
         try:
             reply: Any = self.node.codecs.of(self.response_type).prepare_decoder().decode(data)
         except Exception as exc:  # bad input from the wire: said, not raised
@@ -649,6 +675,7 @@ class ServiceClient(_ServiceEnd):
         pair.from_capture += 1
         log.info("service %s: our reply reached our socket but not our reader (dropped as "
                  "history); taken from the packet capture", self.name)
+        waiter.tied = True
         future.set_result(reply)
 
     def _deliver(self, pair: _Pair, samples: list[Any]) -> None:
@@ -676,6 +703,8 @@ class ServiceClient(_ServiceEnd):
                 self.dropped_replies += 1
                 waiter.future.set_exception(self._ambiguous())
                 continue
+            # (read from the clear: not what a secured node trusts, see `Answer`)
+            waiter.tied = related is not None and not self.node.secured
             waiter.future.set_result(sample)
 
     def _ambiguous(self) -> AmbiguousReply:

@@ -18,7 +18,7 @@ from cyclonedds.idl._xt_builder import XTBuilder
 from rcan_rtps.ros import _cyclone_header as cyclone
 from rcan_rtps.ros.errors import UnsupportedTypeError
 from rcan_rtps.ros.typesys.ddstypes import DdsTypes
-from rcan_rtps.ros.typesys.model import Field, FieldType, MessageType, Primitive
+from rcan_rtps.ros.typesys.model import Collection, Field, FieldType, MessageType, Primitive
 from rcan_rtps.ros.typesys.store import TypeStore
 from rcan_rtps.ros.typesys.xtypes import describe
 
@@ -87,3 +87,27 @@ def test_a_type_cyclone_cannot_carry_is_refused_as_ddstypes_refuses_it(
     refused = r"^odd_msgs/msg/Odd\.x: .* is not supported on the wire yet$"
     with pytest.raises(UnsupportedTypeError, match=refused):
         describe(msg, TypeStore().message)
+
+
+def test_a_sequence_bound_cyclonedds_cannot_declare_is_refused_by_both() -> None:
+    # cyclonedds' IDL classes take bounds up to 65535; over it DdsTypes built a class that
+    # failed with a TypeError traceback (`topic pub` of such a type), while describe
+    # described it: both now refuse it with the field named.
+    store = TypeStore()
+    over = FieldType(Primitive.INT32, collection=Collection.BOUNDED_SEQUENCE, size=65536)
+    msg = MessageType("odd_msgs/msg/Long", (Field("v", over),))
+    store.add(msg)
+    refused = r"^odd_msgs/msg/Long\.v: a sequence bound of 65536 .* not supported on the wire yet$"
+    with pytest.raises(UnsupportedTypeError, match=refused):
+        describe(msg, store.message)
+    with pytest.raises(UnsupportedTypeError, match=refused):
+        DdsTypes(store).struct(msg.name)
+
+
+def test_the_largest_sequence_bound_is_described_as_cyclonedds_describes_it() -> None:
+    store = TypeStore()
+    largest = FieldType(Primitive.INT32, collection=Collection.BOUNDED_SEQUENCE, size=65535)
+    msg = MessageType("odd_msgs/msg/Longest", (Field("v", largest),))
+    store.add(msg)
+    assert describe(msg, store.message) \
+        == cyclonedds_description(DdsTypes(store).struct(msg.name))

@@ -26,7 +26,7 @@ from cyclonedds.topic import Topic
 from ..errors import UnsupportedTypeError
 from .model import Collection, FieldType, MessageType, Primitive
 from .store import TypeStore
-from .xtypes import Description, describe
+from .xtypes import Description, describe, refuse_sequence_bound
 
 _PRIMITIVES: dict[Primitive, Any] = {
     Primitive.BOOLEAN: bool,
@@ -191,6 +191,7 @@ class DdsTypes:
         if ftype.collection is Collection.ARRAY:
             return t.array[element, ftype.size]  # type: ignore[misc]
         if ftype.collection is Collection.BOUNDED_SEQUENCE:
+            refuse_sequence_bound(ftype, f"{msg.name}.{fname}")
             return t.sequence[element, ftype.size]  # type: ignore[misc]
         if ftype.collection is Collection.SEQUENCE:
             return t.sequence[element]  # type: ignore[misc]

@@ -270,6 +270,42 @@ async def test_closing_the_session_stops_the_move_it_started(api: Api) -> None:
     assert stops[0]["principal"] == "planner" and stops[0]["ai"]["model"] == "planner-7b"
 
 
+async def test_a_move_not_yet_sent_when_its_session_closes_never_starts(api: Api) -> None:
+    """The session's move waits for the robot (not yet executed: nothing held for it) when
+    its session is closed: the session's stop stops it too — refused `stopped`, nothing
+    reaches the robot — and it is not held for the closed session. It used to start once
+    the robot was ready and be held (heartbeats) for its whole 20 s by a session gone."""
+    release, entered = asyncio.Event(), asyncio.Event()
+    ready = api.dispatcher.ready
+
+    async def held_ready(command: Any) -> str | None:
+        if command.spec.motion:
+            entered.set()
+            await release.wait()
+        return await ready(command)
+
+    api.dispatcher.ready = held_ready  # type: ignore[method-assign]
+    async with agent(api, mode="legacy") as client:
+        moving = asyncio.ensure_future(client.call_tool(
+            "move", {"linear_x": 0.2, "duration_s": 20.0, "confidence": 0.9}))
+        await asyncio.wait_for(entered.wait(), timeout=30)
+        [sid] = await _session_ids(api)
+        headers = {"Authorization": f"Bearer {TOKENS['planner']}", "Mcp-Session-Id": sid,
+                   "Mcp-Protocol-Version": "2025-06-18"}
+        async with api.http.delete("/mcp", headers=headers) as resp:
+            assert resp.status < 300, (resp.status, await resp.text())
+        stops = await eventually(lambda: commands(api, "stop"), what="the session's stop")
+        release.set()
+        with contextlib.suppress(Exception):  # its session is gone: it may get no answer
+            await asyncio.wait_for(moving, timeout=30)
+    [move] = [e for e in api.entries if e.get("action_type") == "move"
+              and e["event"] == "COMMAND_FAILED"]
+    assert move["deny_reason"] == "COMMAND_REJECTED:stopped", move
+    assert [e["params"]["reason"] for e in stops] == ["MCP session closed"], stops
+    assert [a for a, _ in api.dispatcher.calls] == ["stop"]
+    assert not _endpoint(api)._keepalives["planner"].holding
+
+
 async def test_a_session_closed_after_its_move_ended_stops_nothing(api: Api) -> None:
     async with agent(api, mode="legacy") as client:
         done = await client.call_tool("move", {"linear_x": 0.1, "duration_s": 0.2,

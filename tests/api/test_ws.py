@@ -144,6 +144,43 @@ async def test_closing_without_a_session_does_not_stop(api: Api) -> None:
     assert [a for a, _ in api.dispatcher.calls] == ["move", "stop"]
 
 
+async def test_a_move_not_yet_sent_when_its_socket_closes_never_starts(api: Api) -> None:
+    """The socket's move waits for the robot (no session opened yet) when the client closes
+    it: the move is refused `stopped` and nothing reaches the robot. It used to be awaited
+    first and sent, after its connection was gone (then halted: it had opened a session by
+    then), and with another socket of no session, run until its session timed out."""
+    release, entered = asyncio.Event(), asyncio.Event()
+    ready = api.dispatcher.ready
+
+    async def held_ready(command: Any) -> str | None:
+        entered.set()
+        await release.wait()
+        return await ready(command)
+
+    api.dispatcher.ready = held_ready  # type: ignore[method-assign]
+    closed, connection_closed = asyncio.Event(), api.gov.connection_closed
+
+    def seen_closed(principal: Principal) -> bool:
+        closed.set()
+        return connection_closed(principal)
+
+    api.gov.connection_closed = seen_closed  # type: ignore[method-assign]
+    ws = await api.http.ws_connect("/api/ws", headers=auth("planner"))
+    await ws.send_str(json.dumps({"action": "move", "params": {"linear_x": 0.2}}))
+    await asyncio.wait_for(entered.wait(), timeout=30)
+    await ws.close()
+    lost = lambda: [e for e in api.entries if e["event"] == "NETWORK_LOSS_SAFE_STOP"]  # noqa: E731
+    await asyncio.wait_for(closed.wait(), timeout=30)  # the server saw the socket close
+    release.set()
+    await eventually(lambda: bool(lost()), timeout=30)
+    [move] = [e for e in api.entries if e["event"] == "COMMAND_FAILED"]
+    assert (move["action_type"], move["deny_reason"]) == ("move", "COMMAND_REJECTED:stopped"), move
+    assert lost()[0]["applied"] == {"scope": "own", "goals_cancelled": [],
+                                    "before_session": True}
+    assert api.dispatcher.calls == [] and api.dispatcher.samples == []
+    assert await api.gov.end_session(Principal("planner", Role.USER, None)) is None
+
+
 async def test_a_queued_estop_is_decided_even_after_close(api: Api) -> None:
     api.dispatcher.hold = asyncio.Event()
     ws = await api.http.ws_connect("/api/ws", headers=auth("planner"))

@@ -43,44 +43,95 @@ def records() -> Iterator[_Records]:
     logger.removeHandler(handler)
 
 
+class _Clock:
+    """The watchdog's time, passing only when the test advances it: a loaded machine cannot
+    stall the loop behind the test's back (a 0.2 s stall_after on real time once saw a
+    second, genuine stall at load 10). Counts the watchdog thread's looks at it, one a check."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+        self.looks = 0
+        self._looked = threading.Condition()
+
+    def __call__(self) -> float:
+        if threading.current_thread().name == "loop-watchdog":
+            with self._looked:
+                self.looks += 1
+                self._looked.notify_all()
+        return self.now
+
+    def advance(self, seconds: float) -> None:
+        self.now += seconds
+
+    def looked(self, times: int) -> bool:
+        """Wait until the watchdog has checked `times` more times."""
+        with self._looked:
+            target = self.looks + times
+            return self._looked.wait_for(lambda: self.looks >= target, 60)
+
+
+async def _running(watchdog: LoopWatchdog, clock: _Clock, steps: int) -> None:
+    """The loop runs while `steps` heartbeat intervals pass (on the watchdog's clock), each
+    checked by the watchdog: never a heartbeat more than an interval behind."""
+    for _ in range(steps):
+        clock.advance(watchdog.interval)
+        while watchdog._beat < clock.now:  # its heartbeat has seen this time
+            await asyncio.sleep(watchdog.interval / 4)
+        assert await asyncio.to_thread(clock.looked, 1), "the watchdog stopped checking"
+
+
+def _blocking_the_loop_until_reported(watchdog: LoopWatchdog, clock: _Clock,
+                                      records: _Records) -> None:
+    """The loop stuck in here while twice `stall_after` passes, until the watchdog reported
+    it and then checked three more times, the loop still stuck."""
+    clock.advance(2 * watchdog.stall_after)
+    assert records.stalled.wait(60), "the watchdog never reported the stall"
+    assert clock.looked(3), "the watchdog stopped checking"
+
+
 def _blocking_the_loop_until(event: threading.Event) -> None:
     assert event.wait(60), "the watchdog never reported the stall"
 
 
+def _stall_reports(records: _Records) -> list[logging.LogRecord]:
+    return [r for r in records.records if "stalled" in r.getMessage()]
+
+
 async def test_a_stall_is_reported_once_with_stacks_then_the_recovery(records: _Records) -> None:
-    loop = asyncio.get_running_loop()
-    watchdog = LoopWatchdog(loop, stall_after=0.2)
+    clock = _Clock()
+    watchdog = LoopWatchdog(asyncio.get_running_loop(), stall_after=0.2, clock=clock)
     watchdog.start()
     try:
-        await asyncio.sleep(0.5)  # heartbeats flow: nothing to report
+        await _running(watchdog, clock, 20)  # heartbeats flow: nothing to report
         assert not records.stalled.is_set()
-        _blocking_the_loop_until(records.stalled)  # the loop is stuck in here
-        stall_reports = [r for r in records.records if "stalled" in r.getMessage()]
+        _blocking_the_loop_until_reported(watchdog, clock, records)
+        stall_reports = _stall_reports(records)
         assert len(stall_reports) == 1 and stall_reports[0].levelno == logging.ERROR
         text = stall_reports[0].getMessage()
         assert "Thread MainThread" in text
-        assert "_blocking_the_loop_until" in text  # the stuck frame is named
+        assert "_blocking_the_loop_until_reported" in text  # the stuck frame is named
         assert await asyncio.to_thread(records.recovered.wait, 60)
         assert watchdog.stalls == 1
         # Once recovered it stays quiet while the loop runs.
-        await asyncio.sleep(0.5)
-        assert len([r for r in records.records if "stalled" in r.getMessage()]) == 1
+        await _running(watchdog, clock, 20)
+        assert len(_stall_reports(records)) == 1
     finally:
         watchdog.stop()
     watchdog.stop()  # idempotent
 
 
 async def test_a_second_stall_is_reported_again(records: _Records) -> None:
-    loop = asyncio.get_running_loop()
-    watchdog = LoopWatchdog(loop, stall_after=0.2)
+    clock = _Clock()
+    watchdog = LoopWatchdog(asyncio.get_running_loop(), stall_after=0.2, clock=clock)
     watchdog.start()
     try:
         for n in (1, 2):
-            _blocking_the_loop_until(records.stalled)
+            _blocking_the_loop_until_reported(watchdog, clock, records)
             assert await asyncio.to_thread(records.recovered.wait, 60)
-            assert watchdog.stalls == n
+            assert watchdog.stalls == len(_stall_reports(records)) == n
             records.stalled.clear()
             records.recovered.clear()
+            await _running(watchdog, clock, 8)
     finally:
         watchdog.stop()
 

@@ -13,7 +13,7 @@ from typing import Any
 
 from govhelpers import ADMIN, OPS, PLANNER, Harness, command
 
-from rcan_rtps.governance.governor import Decision, Governor
+from rcan_rtps.governance.governor import MAX_IN_FLIGHT, Decision, Governor
 from rcan_rtps.rcan import Outcome
 
 TRIALS = 300
@@ -202,4 +202,24 @@ async def test_no_motion_of_a_lost_principal_outlives_its_session_while_another_
     assert outliving == [], f"PLANNER's motion outlived its session: {outliving}"
     assert ops_stopped == [], f"OPS's stream ended for PLANNER's loss: {ops_stopped}"
     assert seen.get("stopped", 0) > TRIALS // 20, seen  # motion on its way was exercised
+    await gov.stop()
+
+
+async def test_a_move_waiting_its_turn_is_stopped_by_a_stop_before_its_turn(
+        harness: Harness) -> None:
+    """A move that arrived while MAX_IN_FLIGHT commands were being decided, and a `stop`
+    (never queued) before its turn came: it was received before the stop, so it never starts.
+    It used to take its mark only once admitted, after the stop, and drive on."""
+    gov = await harness.governor()
+    for _ in range(MAX_IN_FLIGHT):  # every place taken
+        await gov._admission.acquire()
+    moving = asyncio.ensure_future(gov.decide(command("move", {"linear_x": 0.2}), PLANNER))
+    await asyncio.sleep(0.01)
+    stopped = await gov.decide(command("stop"), ADMIN)
+    assert stopped.outcome is Outcome.EXECUTED and not moving.done()
+    for _ in range(MAX_IN_FLIGHT):
+        gov._admission.release()
+    moved = await moving
+    assert (moved.http_status, moved.reason) == (409, "stopped"), moved
+    assert gov.streams.active is None and harness.dispatcher.samples == []
     await gov.stop()

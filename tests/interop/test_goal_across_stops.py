@@ -142,3 +142,43 @@ async def test_a_session_loss_cancels_the_lost_principals_own_goal_on_its_way(
         attended.cancel()
     await rig.command(OPS, {"action": "stop"})
     await eventually(lambda: not nav_tracker(rig).active(), timeout=15, what="stopped")
+
+
+@pytest.mark.parametrize("body", [{"action": "move", "params": {"linear_x": 0.3}}, GOAL],
+                         ids=["move", "navigate"])
+async def test_motion_waiting_for_its_entry_when_its_connection_closes_never_starts(
+        rig: Rig, body: dict[str, Any]) -> None:
+    """OPS's move or goal waits for its write-ahead entry (no session opened yet) when OPS's
+    connection closes: it is refused `stopped`, and nothing of it reaches the robot — no
+    Twist of the move on cmd_vel, no goal on the server. It used to start after the close."""
+    release, entered = asyncio.Event(), asyncio.Event()
+    write_ahead = rig.governor._steps.write_ahead
+
+    async def held_write(entry: Any, *, urgent: bool = False) -> Any:
+        if entry.action_type == body["action"]:
+            entered.set()
+            await release.wait()
+        return await write_ahead(entry, urgent=urgent)
+
+    rig.governor._steps.write_ahead = held_write  # type: ignore[method-assign]
+    sending = asyncio.ensure_future(rig.command(OPS, body))
+    try:
+        await asyncio.wait_for(entered.wait(), timeout=15)
+        lost = await rig.governor.end_session(OPS)
+    finally:
+        release.set()  # never left holding the entry: the rig's stop waits for it
+    sent = await sending
+    assert lost is not None and lost.http_status == 200, lost
+    assert (sent.http_status, sent.reason) == (409, "stopped"), sent
+    await rig.command(OPS, {"action": "stop"})  # a zero the robot's reader sees last
+    twists: list[dict[str, Any]] = []
+    await eventually(lambda: _took(rig, twists), timeout=15, what="the stop's zero")
+    assert all(t["linear"]["x"] == 0.0 for t in twists), twists
+    assert nav_tracker(rig).goals() == []
+    [entry] = [e for e in rig.entries() if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+    assert entry["applied"]["before_session"] is True, entry
+
+
+async def _took(rig: Rig, into: list[dict[str, Any]]) -> bool:
+    into += await rig.oracle.acall("take", topic="/robot1/cmd_vel")
+    return bool(into)

@@ -339,11 +339,14 @@ async def _end(ws: web.WebSocketResponse, governor: Governor, principal: Princip
                commands: _Commands, deaf: asyncio.Transport | None) -> None:
     """The socket's end: its stops decided, its principal's control session ended, the socket
     closed (`deaf`: the transport of a client that does not read, cut off)."""
+    # First, before its command in flight is awaited: motion that has not started by now
+    # never does (it would start after its connection is gone, with nobody to stop it).
+    on_its_way = governor.connection_closed(principal)
     try:
         await commands.close()
     finally:
         try:
-            stop = await governor.end_session(principal)
+            stop = await governor.end_session(principal, on_its_way=on_its_way)
         except Exception:
             log.exception("safe stop after the WebSocket of %s closed failed", principal.name,
                           extra={"principal": principal.name})

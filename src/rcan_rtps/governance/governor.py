@@ -20,7 +20,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
-from collections.abc import Coroutine, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -227,13 +227,29 @@ class Governor:
         elif effect is Effect.HALT:  # the e-stop lane: no admission queue
             decided = await self._detached(self._decide(command, principal))
         else:
-            async with self._admission:
-                decided = await self._detached(self._decide(command, principal))
+            decided = await self._admitted(command, principal)
         if command.ai is not None:
             self._remember_thought(command, principal, decided)
         if command.warnings:  # executed anyway: the caller learns what was wrong
             return msgspec.structs.replace(decided, warnings=list(command.warnings))
         return decided
+
+    async def _admitted(self, command: NormalizedCommand, principal: Principal) -> Decision:
+        """A command that waits its turn (`MAX_IN_FLIGHT`). Motion is on its way from the
+        moment it arrives: a stop of it that comes while it waits (a `stop`, its connection
+        closing) wins over it as over motion further on (`VelocityStreams.arrived`)."""
+        arrived = self.streams.arrived(principal.name) if command.spec.motion else None
+        done = functools.partial(self.streams.decided, principal.name) if arrived else None
+        try:
+            await self._admission.acquire()
+        except BaseException:  # its caller left before it was decided: nothing on its way
+            if done is not None:
+                done()
+            raise
+        try:  # from here its decision's task holds it on its way, until it is settled
+            return await self._detached(self._decide(command, principal, arrived), then=done)
+        finally:
+            self._admission.release()
 
     @property
     def thoughts(self) -> ThoughtLog:
@@ -292,12 +308,14 @@ class Governor:
         )
         return decision(rejection, await self.audit.append(entry), message_id=message_id)
 
-    async def _decide(self, command: NormalizedCommand, principal: Principal) -> Decision:
+    async def _decide(self, command: NormalizedCommand, principal: Principal,
+                      arrived: StopMark | None = None) -> Decision:
+        """`arrived`: motion's mark, taken as it arrived (`_admitted`)."""
         refused = self._precheck(command, principal)
         if refused is not None:
             return await self._steps.refuse(command, principal, refused)
         if command.spec.effect is Effect.HALT or not command.client_message_id:
-            return await self._govern(command, principal)  # never swallowed, never retried
+            return await self._govern(command, principal, arrived)  # never swallowed or retried
         key = (principal.name, command.message_id)
         earlier = self._idem.claim(key, _fingerprint(command))
         if isinstance(earlier, Conflict):
@@ -305,7 +323,7 @@ class Governor:
         if earlier is not None:  # a retry: the first outcome, nothing executed twice
             return await earlier
         try:
-            decision = await self._govern(command, principal)
+            decision = await self._govern(command, principal, arrived)
         except BaseException as exc:
             self._idem.abandon(key, exc)
             raise
@@ -339,7 +357,8 @@ class Governor:
             return outcomes.invalid_ruri(exc.rule)
         return None
 
-    async def _govern(self, command: NormalizedCommand, principal: Principal) -> Decision:
+    async def _govern(self, command: NormalizedCommand, principal: Principal,
+                      arrived: StopMark | None) -> Decision:
         try:
             applied = self._safety(command, command.params)
         except Violation as violation:
@@ -352,7 +371,7 @@ class Governor:
         # A command still being carried out (waiting for a subscriber, say) is not silence.
         with self._sessions.in_flight(principal):
             decision = await self._execute(command, principal, applied,
-                                           AuditEvent.COMMAND_DISPATCHED)
+                                           AuditEvent.COMMAND_DISPATCHED, arrived=arrived)
         self._opened(principal, command, decision)
         self._sessions.heartbeat(principal)
         return decision
@@ -373,9 +392,10 @@ class Governor:
 
     async def _execute(self, command: NormalizedCommand, principal: Principal,
                        params: ActionParams, event: AuditEvent,
-                       pending_id: str | None = None, issuer: Principal | None = None
-                       ) -> Decision:
-        """`issuer`: whose command it is, when `principal` approved it (HiTL)."""
+                       pending_id: str | None = None, issuer: Principal | None = None,
+                       arrived: StopMark | None = None) -> Decision:
+        """`issuer`: whose command it is, when `principal` approved it (HiTL); `arrived`:
+        motion's mark, on its way since it arrived (`_admitted`)."""
         applied = msgspec.structs.asdict(params)
         spec = command.spec
         if spec.effect is Effect.CLEAR_ESTOP:
@@ -390,6 +410,9 @@ class Governor:
         if not spec.motion:
             return await self._carry_out(command, principal, owner, params, applied, event,
                                          pending_id, self.streams.mark(owner.name))
+        if arrived is not None:  # on its way since it arrived, held so by its task
+            return await self._carry_out(command, principal, owner, params, applied, event,
+                                         pending_id, arrived)
         # Decided: from now on it drives the base for a session loss of someone else's, and
         # a stop of it (everyone's, or its owner's alone) wins over it: decided before the
         # stop, it must not reach the robot after it (`VelocityStreams.stopped_since`).
@@ -624,8 +647,13 @@ class Governor:
         # stopped too, as it comes: refused, or cancelled once its server accepted it.
         self.streams.own_stop(principal.name)
         self._base.cancel_goals(goals, principal, why="session lost")
-        stop = bridge_command(Effect.HALT)
         applied = {"scope": "own", "goals_cancelled": [g.goal_id for g in goals]}
+        return await self._own_stop_recorded(principal, applied)
+
+    async def _own_stop_recorded(self, principal: Principal, applied: dict[str, Any]
+                                 ) -> Decision:
+        """The entry of a stop of `principal`'s motion alone: nothing was sent to the robot."""
+        stop = bridge_command(Effect.HALT)
         entry = record(AuditEvent.NETWORK_LOSS_SAFE_STOP, stop, principal, Outcome.EXECUTED,
                          applied=applied, sent_first=True)
         _, receipt = await self._steps.stop(entry)  # sealed with the cancels, not after
@@ -633,15 +661,36 @@ class Governor:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=stop.message_id)
         return executed(stop, applied, receipt, DispatchResult(ok=True))
 
-    async def end_session(self, principal: Principal) -> Decision | None:
-        """The principal's connection closed: if it held a control session, safe stop now.
+    def connection_closed(self, principal: Principal) -> bool:
+        """The principal's connection closed: its motion that arrived before now and has not
+        started (waiting its turn, for the robot or for its entry: it opened no session yet;
+        a goal being sent) never starts, or is cancelled once its server accepted it; nobody
+        else's is touched. Whether any was on its way. `end_session` does this first; a
+        connection that awaits its command in flight before that calls it before."""
+        return self.streams.own_stop(principal.name)
 
-        Returns the safe stop's decision, or None when there was no session to end.
+    async def end_session(self, principal: Principal, *, on_its_way: bool = False
+                          ) -> Decision | None:
+        """The principal's connection closed: if it held a control session, safe stop now;
+        motion of its that arrived before this and has not started never starts, in any case
+        (`connection_closed`; `on_its_way`: what it said, when called earlier).
+
+        Returns the safe stop's decision, or None when there was nothing to stop.
         """
-        if not self._sessions.end(principal):
-            return None
+        # Now, before any await: its motion on its way must not start after its connection
+        # is gone (before, with no session yet, nothing stopped it: it ran until it timed out).
+        on_its_way = self.connection_closed(principal) or on_its_way
         # Detached: the closing connection's handler may be cancelled; the stop must not be.
-        return await self._detached(self.safe_stop(principal, "its connection closed"))
+        if self._sessions.end(principal):
+            return await self._detached(self.safe_stop(principal, "its connection closed"))
+        if not on_its_way:
+            return None
+        # Nothing of its reached the robot (that opens a session): a stop of its motion
+        # alone, whoever else drives; a halt would stop theirs, or the robot for nothing.
+        log.warning("connection of '%s' closed while motion of its was on its way: that "
+                    "motion is stopped; nothing else", principal.name)
+        applied = {"scope": "own", "goals_cancelled": [], "before_session": True}
+        return await self._detached(self._own_stop_recorded(principal, applied))
 
     async def sweep(self) -> None:
         """One round of housekeeping: expire HiTL requests, stop for lost sessions, record
@@ -664,14 +713,17 @@ class Governor:
             except Exception:
                 log.exception("governance sweep failed")
 
-    def _detached(self, decision: Coroutine[Any, Any, Decision]) -> asyncio.Future[Decision]:
+    def _detached(self, decision: Coroutine[Any, Any, Decision], *,
+                  then: Callable[[], object] | None = None) -> asyncio.Future[Decision]:
         """`decision` in a task of its own, and a future of its outcome to await: a caller that
         is cancelled cancels only that future, never the decision (like `shield(task)`, but the
-        task resolves the future itself: no shield callbacks, two loop turns fewer a command)."""
+        task resolves the future itself: no shield callbacks, two loop turns fewer a command).
+        `then` is called once the task is done, even if it never ran."""
         outcome: asyncio.Future[Decision] = asyncio.get_running_loop().create_future()
         task = asyncio.ensure_future(_resolve_into(decision, outcome))
         self._tasks.add(task)
-        task.add_done_callback(functools.partial(_settled, self._tasks, decision, outcome))
+        task.add_done_callback(functools.partial(_settled, self._tasks, decision, outcome,
+                                                 then))
         return outcome
 
 
@@ -696,8 +748,11 @@ async def _resolve_into(decision: Coroutine[Any, Any, Decision],
 
 
 def _settled(running: set[asyncio.Task[Any]], decision: Coroutine[Any, Any, Decision],
-             outcome: asyncio.Future[Decision], task: asyncio.Task[None]) -> None:
+             outcome: asyncio.Future[Decision], then: Callable[[], object] | None,
+             task: asyncio.Task[None]) -> None:
     running.discard(task)
+    if then is not None:
+        then()
     if not outcome.done():  # cancelled (maybe before it ever ran): the caller must not hang
         outcome.cancel()
         decision.close()  # a no-op once it ran; else no "never awaited" warning

@@ -259,15 +259,25 @@ class VelocityStreams:
     def deciding(self, owner: str) -> Iterator[StopMark]:
         """Motion of `owner`'s, from its decision until it started or was refused; yields its
         mark, for `stopped_since`, to be used only inside this block."""
-        self._deciding[owner] = self._deciding.get(owner, 0) + 1
+        mark = self.arrived(owner)
         try:
-            yield self.mark(owner)
+            yield mark
         finally:
-            left = self._deciding.pop(owner) - 1
-            if left:
-                self._deciding[owner] = left
-            else:  # none of its marks is in use any more
-                self._own_stops.pop(owner, None)
+            self.decided(owner)
+
+    def arrived(self, owner: str) -> StopMark:
+        """`deciding`'s start, for motion whose decision is handed on (to a task of its own):
+        its mark, in use until the matching `decided`, which must follow, whatever happens."""
+        self._deciding[owner] = self._deciding.get(owner, 0) + 1
+        return self.mark(owner)
+
+    def decided(self, owner: str) -> None:
+        """`deciding`'s end: motion of `owner`'s started or was refused."""
+        left = self._deciding.pop(owner) - 1
+        if left:
+            self._deciding[owner] = left
+        else:  # none of its marks is in use any more
+            self._own_stops.pop(owner, None)
 
     def first_sample(self, target: Velocity) -> Velocity:
         return self.accel.step(self.commanded, target, self.period)
@@ -334,13 +344,16 @@ class VelocityStreams:
         self.stops += 1
         return self.end(reason, by)
 
-    def own_stop(self, owner: str) -> None:
+    def own_stop(self, owner: str) -> bool:
         """A stop of `owner`'s motion alone (its control session lost while another principal
-        drives): what of its motion was decided before this and has not started (a goal
-        being sent, a move waiting for its entry) never starts, or is cancelled once its
-        server accepted it. Nobody else's motion is touched."""
-        if owner in self._deciding:
-            self._own_stops[owner] = self._own_stops.get(owner, 0) + 1
+        drives, its connection closed): what of its motion was decided before this and has
+        not started (a goal being sent, a move waiting for the robot or its entry) never
+        starts, or is cancelled once its server accepted it. Nobody else's motion is touched.
+        Whether any such motion was on its way."""
+        if owner not in self._deciding:
+            return False
+        self._own_stops[owner] = self._own_stops.get(owner, 0) + 1
+        return True
 
     def mark(self, owner: str) -> StopMark:
         """The stops of `owner`'s motion so far: every robot-wide stop, and its own. Both

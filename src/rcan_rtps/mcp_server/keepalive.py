@@ -15,8 +15,10 @@ MCP session that started it, so a session that closes can stop what it left runn
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 from .ports import BridgeUnavailable, RobotApi
@@ -43,6 +45,10 @@ class Keepalive:
         self._interval = interval_s
         self._holds: dict[str, Hold] = {}
         self._wake = asyncio.Event()
+        self._calling: dict[str, int] = {}  # commands being decided, per MCP session
+        # Sessions closed while a command of theirs was being decided (until it is): what
+        # it starts is not held for them (`calling`).
+        self._closed: set[str] = set()
 
     @property
     def holding(self) -> bool:
@@ -61,14 +67,39 @@ class Keepalive:
         """The robot was stopped: nothing this server started runs any more."""
         self._holds.clear()
 
+    @contextlib.contextmanager
+    def calling(self, session: str | None) -> Iterator[None]:
+        """A command of `session`'s being decided: motion it may start counts as running for
+        the session's close (`release_session`), from before it is decided."""
+        if session is None:
+            yield
+            return
+        self._calling[session] = self._calling.get(session, 0) + 1
+        try:
+            yield
+        finally:
+            left = self._calling.pop(session) - 1
+            if left:
+                self._calling[session] = left
+            else:
+                self._closed.discard(session)
+
     def release_session(self, session: str) -> bool:
-        """Forget a closed session's holds: whether any of them may still be running."""
+        """Forget a closed session's holds: whether any of them may still be running, or a
+        command of its is being decided (the stop that follows must stop it too: it would
+        start after the session closed, and be held for nobody)."""
         now = time.monotonic()
         mine = [k for k, h in self._holds.items() if h.session == session]
         running = any(self._holds.pop(k).running(now) for k in mine)
+        if session in self._calling:
+            self._closed.add(session)
+            return True
         return running
 
     def _hold(self, key: str, hold: Hold) -> None:
+        if hold.session in self._closed:  # closed while it was decided: stopped, not held
+            log.info("motion of MCP session %s, closed meanwhile: not held", hold.session)
+            return
         self._holds[key] = hold
         self._wake.set()
 

@@ -213,9 +213,10 @@ class RobotTools:
         if tool.timed and args.get(DURATION) is None:
             return failure(f"`{DURATION}` is required: a {tool.name} an agent starts is timed",
                            "SCHEMA_VALIDATION_FAILED")
-        reply = await seat.api.command(body)
-        if reply.ok:
-            self._started(seat, tool, args, reply.body, key=thought_id)
+        with seat.keepalive.calling(seat.session):
+            reply = await seat.api.command(body)
+            if reply.ok:
+                self._started(seat, tool, args, reply.body, key=thought_id)
         return result(reply, _outcome_note(reply.body), thought_id=thought_id)
 
     def _started(self, seat: Seat, tool: ToolDef, params: dict[str, Any],

@@ -181,28 +181,45 @@ def parse_acknacks(buf: bytes | mmap.mmap, start: int = 0,
     """The ACKNACKs in the RTPS message `buf[start:end]` that our participant sent (its
     GUID prefix in the header; the writer's in the INFO_DST before them)."""
     end = len(buf) if end is None else end
-    if end - start < RTPS_HEADER_SIZE or buf[start:start + 4] != b"RTPS":
+    prefix = _sender_prefix(buf, start, end)
+    if prefix is None:
         return
-    prefix = bytes(buf[start + 8:start + 20])
     destination = UNKNOWN_PREFIX
+    for kind, flags, body, stop in _submessages(buf, start, end):
+        if kind == INFO_DST and stop - body >= 12:
+            destination = bytes(buf[body:body + 12])
+        elif kind == ACKNACK and stop - body >= 24:
+            order = "<" if flags & FLAG_LITTLE else ">"
+            (bits,) = struct.unpack_from(order + "I", buf, body + 16)
+            words = min((bits + 31) // 32, (stop - body - 20) // 4)
+            asked = any(buf[body + 20:body + 20 + 4 * words])
+            yield SentAcknack(prefix + bytes(buf[body:body + 4]),
+                              destination + bytes(buf[body + 4:body + 8]), bits > 0 and asked)
+
+
+def _sender_prefix(buf: bytes | mmap.mmap, start: int, end: int) -> bytes | None:
+    """The GUID prefix in the header of the RTPS message `buf[start:end]`; None when it is
+    no RTPS message."""
+    if end - start < RTPS_HEADER_SIZE or buf[start:start + 4] != b"RTPS":
+        return None
+    return bytes(buf[start + 8:start + 20])
+
+
+def _submessages(buf: bytes | mmap.mmap, start: int,
+                 end: int) -> Iterator[tuple[int, int, int, int]]:
+    """Each submessage of the RTPS message `buf[start:end]`, in order: its kind, flags, and
+    where its body starts and stops. Ends at one that claims more than the message holds:
+    malformed, the rest too (Cyclone)."""
     offset = start + RTPS_HEADER_SIZE
     while offset + 4 <= end:
         kind, flags, length = _SUBMESSAGE.unpack_from(buf, offset)
-        little = flags & FLAG_LITTLE
-        if not little:
+        if not flags & FLAG_LITTLE:
             length = (length & 0xFF) << 8 | length >> 8
         body = offset + 4
         if body + length > end:
             return
         stop = end if length == 0 and kind not in (INFO_TS, PAD) else body + length
-        if kind == INFO_DST and stop - body >= 12:
-            destination = bytes(buf[body:body + 12])
-        elif kind == ACKNACK and stop - body >= 24:
-            (bits,) = struct.unpack_from("<I" if little else ">I", buf, body + 16)
-            words = min((bits + 31) // 32, (stop - body - 20) // 4)
-            asked = any(buf[body + 20:body + 20 + 4 * words])
-            yield SentAcknack(prefix + bytes(buf[body:body + 4]),
-                              destination + bytes(buf[body + 4:body + 8]), bits > 0 and asked)
+        yield kind, flags, body, stop
         offset = stop
 
 
@@ -213,21 +230,13 @@ def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None,
     `pieces_of`, also where their payload lies (after the ReceivedData of the same
     submessage, if any). Other submessages cost one header read each."""
     end = len(buf) if end is None else end
-    if end - start < RTPS_HEADER_SIZE or buf[start:start + 4] != b"RTPS":
+    prefix = _sender_prefix(buf, start, end)
+    if prefix is None:
         return
-    prefix = bytes(buf[start + 8:start + 20])
     destination = UNKNOWN_PREFIX
     timestamp: int | None = None
-    offset = start + RTPS_HEADER_SIZE
-    while offset + 4 <= end:
-        kind, flags, length = _SUBMESSAGE.unpack_from(buf, offset)
+    for kind, flags, body, stop in _submessages(buf, start, end):
         little = flags & FLAG_LITTLE
-        if not little:
-            length = (length & 0xFF) << 8 | length >> 8
-        body = offset + 4
-        if body + length > end:
-            return  # it claims more than the message holds: malformed, the rest too (Cyclone)
-        stop = end if length == 0 and kind not in (INFO_TS, PAD) else body + length
         if kind in (DATA, DATA_FRAG):
             order = "<" if little else ">"
             found = None
@@ -250,7 +259,6 @@ def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None,
             prefix = bytes(buf[body + 8:body + 20])
         elif kind == INFO_DST and stop - body >= 12:
             destination = bytes(buf[body:body + 12])
-        offset = stop
 
 
 def _data(buf: bytes | mmap.mmap, body: int, stop: int, order: str, kind: int, prefix: bytes,

@@ -223,11 +223,10 @@ def test_other_publishers_on_the_command_topics_are_shown_expected_or_not(
     other not (and only the other is a fault)."""
     from oracle.client import RclpyOracle
 
-    from rcan_rtps.bridge.demo import DEMO_YAML, OWNER_TOKEN_ENV, USER_TOKEN_ENV, VIEWER_TOKEN_ENV
+    from rcan_rtps.bridge.demo import demo_yaml
 
-    text = DEMO_YAML.format(namespace="/robot1", domain_id=domain_id, port=8765,
-                            state=tmp_path / "state", viewer=VIEWER_TOKEN_ENV,
-                            user=USER_TOKEN_ENV, owner=OWNER_TOKEN_ENV)
+    text = demo_yaml(state_dir=tmp_path / "state", port=8765, domain_id=domain_id,
+                     namespace="/robot1")
     declared = "    foreign_publishers: {expected: {cmd_vel: [/robot1/controller_server]}}\n"
     config = tmp_path / "expecting.rcan.yaml"
     config.write_text(text.replace("    nav_frame_id: map\n", "    nav_frame_id: map\n" + declared))

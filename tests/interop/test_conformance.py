@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from rcan_rtps.bridge.demo import DEMO_YAML, OWNER_TOKEN_ENV, USER_TOKEN_ENV, VIEWER_TOKEN_ENV
+from rcan_rtps.bridge.demo import OWNER_TOKEN_ENV, USER_TOKEN_ENV, VIEWER_TOKEN_ENV, demo_yaml
 from rcan_rtps.conformance import load_suite
 
 # Each simulator advertises over mDNS (L1-MDNS-001) under the demo's name: like every test
@@ -110,9 +110,8 @@ def test_a_level_runs_the_cases_up_to_it(sim: Sim) -> None:
 
 def test_a_bridge_without_its_hitl_gate_fails_l3_hitl_001(tmp_path: Path,
                                                          domain_id: int) -> None:
-    text = DEMO_YAML.format(namespace="/robot1", domain_id=domain_id, port=8765,  # --port 0
-                            state=tmp_path / "state", viewer=VIEWER_TOKEN_ENV,
-                            user=USER_TOKEN_ENV, owner=OWNER_TOKEN_ENV)
+    text = demo_yaml(state_dir=tmp_path / "state", port=8765, domain_id=domain_id,  # --port 0
+                     namespace="/robot1")
     ungated = re.sub(r"    gates:\n      - \{action: arm_joint[^\n]*\n", "", text)
     assert ungated != text
     config = tmp_path / "ungated.rcan.yaml"

@@ -36,7 +36,7 @@ from rcan.message import RCANMessage, RCANResponse
 from rcan.safety import make_estop_message, make_resume_message
 from rcan.version import SPEC_VERSION
 
-from rcan_rtps.bridge.demo import DEMO_YAML, OWNER_TOKEN_ENV, USER_TOKEN_ENV, VIEWER_TOKEN_ENV
+from rcan_rtps.bridge.demo import demo_yaml
 from tests.interop.test_conformance import Sim, _sim
 
 WINDOW = 100  # bridge.security.msg_id_cache_size's least value: ids kept per principal
@@ -46,9 +46,8 @@ WINDOW = 100  # bridge.security.msg_id_cache_size's least value: ids kept per pr
 def small_window_sim(tmp_path: Path, domain_id: int) -> Iterator[Sim]:
     """The demo's config (GUEST viewer, USER operator, OWNER owner), each principal's §8.3
     window holding `WINDOW` ids."""
-    text = DEMO_YAML.format(namespace="/robot1", domain_id=domain_id, port=8765,
-                            state=tmp_path / "state", viewer=VIEWER_TOKEN_ENV,
-                            user=USER_TOKEN_ENV, owner=OWNER_TOKEN_ENV)
+    text = demo_yaml(state_dir=tmp_path / "state", port=8765, domain_id=domain_id,
+                     namespace="/robot1")
     text = text.replace("  safety:\n", f"  security: {{msg_id_cache_size: {WINDOW}}}\n"
                                        "  safety:\n", 1)
     config = tmp_path / "window.rcan.yaml"

@@ -20,7 +20,7 @@ from rcan.identity import Role as SdkRole
 from rcan.message import RCANMessage
 from rcan.safety import make_estop_message, make_resume_message
 
-from rcan_rtps.bridge.demo import DEMO_YAML, OWNER_TOKEN_ENV, USER_TOKEN_ENV, VIEWER_TOKEN_ENV
+from rcan_rtps.bridge.demo import demo_yaml
 from tests.interop.test_conformance import Sim, _sim
 
 KID, AUDIENCE = "idp-1", "rcan-sim"
@@ -33,9 +33,8 @@ def idp_key() -> Ed25519PrivateKey:
 
 @pytest.fixture
 def v2_sim(tmp_path: Path, domain_id: int, idp_key: Ed25519PrivateKey) -> Iterator[Sim]:
-    text = DEMO_YAML.format(namespace="/robot1", domain_id=domain_id, port=8765,
-                            state=tmp_path / "state", viewer=VIEWER_TOKEN_ENV,
-                            user=USER_TOKEN_ENV, owner=OWNER_TOKEN_ENV)
+    text = demo_yaml(state_dir=tmp_path / "state", port=8765, domain_id=domain_id,
+                     namespace="/robot1")
     renamed = (text.replace("role: GUEST", "role: CONTRIBUTOR")
                .replace("role: USER", "role: OPERATOR").replace("role: OWNER", "role: ADMIN"))
     assert renamed.count("CONTRIBUTOR") == renamed.count("OPERATOR") == 1

@@ -19,7 +19,7 @@ from rcan.message import RCANMessage
 from rcan.safety import make_estop_message, make_resume_message
 from rcan.signing import MLDSAKeyPair, sign_message
 
-from rcan_rtps.bridge.demo import DEMO_YAML, OWNER_TOKEN_ENV, USER_TOKEN_ENV, VIEWER_TOKEN_ENV
+from rcan_rtps.bridge.demo import USER_TOKEN_ENV, demo_yaml
 from tests.interop.test_demo import Demo, _run_demo, call, wait_status
 
 KEY = MLDSAKeyPair.generate()
@@ -27,9 +27,8 @@ KEY = MLDSAKeyPair.generate()
 
 def signed_demo_config(tmp_path: Path, domain_id: int) -> Path:
     KEY.save_public(tmp_path / "operator.pub")
-    text = DEMO_YAML.format(namespace="/robot1", domain_id=domain_id, port=8765,
-                            state=tmp_path / "state", viewer=VIEWER_TOKEN_ENV,
-                            user=USER_TOKEN_ENV, owner=OWNER_TOKEN_ENV)
+    text = demo_yaml(state_dir=tmp_path / "state", port=8765, domain_id=domain_id,
+                     namespace="/robot1")
     operator = f"{{name: operator, role: USER, token_env: {USER_TOKEN_ENV}}}"
     assert operator in text
     text = text.replace(operator, (

@@ -84,10 +84,16 @@ def fresh_demo_token() -> str:
     return "rcan_" + secrets.token_urlsafe(24)
 
 
+def demo_yaml(*, state_dir: Path, port: int, domain_id: int, namespace: str) -> str:
+    """The demo's config, as text: its principals' tokens read from the `*_TOKEN_ENV`
+    variables."""
+    return DEMO_YAML.format(namespace=namespace, domain_id=domain_id, port=port,
+                            state=state_dir, viewer=VIEWER_TOKEN_ENV, user=USER_TOKEN_ENV,
+                            owner=OWNER_TOKEN_ENV)
+
+
 def demo_config(*, state_dir: Path, port: int, domain_id: int, namespace: str,
                 env: Mapping[str, str]) -> RcanConfig:
     state_dir.mkdir(parents=True, exist_ok=True)
-    text = DEMO_YAML.format(namespace=namespace, domain_id=domain_id, port=port,
-                            state=state_dir, viewer=VIEWER_TOKEN_ENV, user=USER_TOKEN_ENV,
-                            owner=OWNER_TOKEN_ENV)
+    text = demo_yaml(state_dir=state_dir, port=port, domain_id=domain_id, namespace=namespace)
     return loads_config(text, source="<built-in demo config>", env=env)

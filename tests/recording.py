@@ -1,7 +1,8 @@
 """The one recording `Dispatcher` of the tests: what governance hands the bridge, no DDS.
 
 Records each dispatch as (action, applied parameters as a dict). It can report the robot
-unreachable (`available = False`), raise (`raises`), or hold `move`s until released (`hold`).
+unreachable (`available = False`), raise (`raises`), or hold motion until released: in its
+dispatch (`hold`, then `entered`) or in its readiness check (`hold_ready`, then `ready_entered`).
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ class RecordingDispatcher:
         self.raises: Exception | None = None
         self.hold: asyncio.Event | None = None  # when set: motion waits for it
         self.entered = asyncio.Event()  # a held dispatch has started
+        self.hold_ready: asyncio.Event | None = None  # when set: motion's `ready` waits for it
+        self.ready_entered = asyncio.Event()  # a held readiness check has started
         self.samples: list[MoveParams] = []  # velocity-stream samples after each first one
         self.cancelled: list[str] = []  # goals cancelled one by one (the arbiter's)
         self.signals: list[int] = []  # e-stop signals published as the latch engaged
@@ -33,6 +36,9 @@ class RecordingDispatcher:
         return f"/robot1/{command.action}"
 
     async def ready(self, command: NormalizedCommand) -> str | None:
+        if self.hold_ready is not None and command.spec.motion:
+            self.ready_entered.set()
+            await self.hold_ready.wait()
         return None if self.available else UNAVAILABLE
 
     async def dispatch(self, command: NormalizedCommand,

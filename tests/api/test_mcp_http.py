@@ -275,16 +275,8 @@ async def test_a_move_not_yet_sent_when_its_session_closes_never_starts(api: Api
     its session is closed: the session's stop stops it too — refused `stopped`, nothing
     reaches the robot — and it is not held for the closed session. It used to start once
     the robot was ready and be held (heartbeats) for its whole 20 s by a session gone."""
-    release, entered = asyncio.Event(), asyncio.Event()
-    ready = api.dispatcher.ready
-
-    async def held_ready(command: Any) -> str | None:
-        if command.spec.motion:
-            entered.set()
-            await release.wait()
-        return await ready(command)
-
-    api.dispatcher.ready = held_ready  # type: ignore[method-assign]
+    release = api.dispatcher.hold_ready = asyncio.Event()
+    entered = api.dispatcher.ready_entered
     async with agent(api, mode="legacy") as client:
         moving = asyncio.ensure_future(client.call_tool(
             "move", {"linear_x": 0.2, "duration_s": 20.0, "confidence": 0.9}))

@@ -149,15 +149,8 @@ async def test_a_move_not_yet_sent_when_its_socket_closes_never_starts(api: Api)
     it: the move is refused `stopped` and nothing reaches the robot. It used to be awaited
     first and sent, after its connection was gone (then halted: it had opened a session by
     then), and with another socket of no session, run until its session timed out."""
-    release, entered = asyncio.Event(), asyncio.Event()
-    ready = api.dispatcher.ready
-
-    async def held_ready(command: Any) -> str | None:
-        entered.set()
-        await release.wait()
-        return await ready(command)
-
-    api.dispatcher.ready = held_ready  # type: ignore[method-assign]
+    release = api.dispatcher.hold_ready = asyncio.Event()
+    entered = api.dispatcher.ready_entered
     closed, connection_closed = asyncio.Event(), api.gov.connection_closed
 
     def seen_closed(principal: Principal) -> bool:

@@ -91,3 +91,25 @@ class Harness:
         return audit_entries(self.tmp / "audit.jsonl")
 
 
+class LossTrial:
+    """One trial of a principal's loss racing its motion, as the dispatcher saw it from the
+    trial's start: what of the lost principal's motion outlived the loss."""
+
+    def __init__(self, dispatcher: RecordingDispatcher) -> None:
+        self.dispatcher = dispatcher
+        self.goals_before, self.calls_before = dispatcher._goals, len(dispatcher.calls)
+
+    def outliving(self, gov: Governor, lost: Principal) -> list[str]:
+        """"stream" while `lost`'s stream drives; "goal" for a goal sent in the trial that was
+        neither cancelled by its id nor by a robot-wide halt after it (a goal that took the
+        base was cancelled by the halt the loss then was)."""
+        found: list[str] = []
+        active = gov.streams.active
+        if active is not None and active.owner == lost.name:
+            found.append("stream")
+        goals = {f"goal-{k}" for k in range(self.goals_before + 1, self.dispatcher._goals + 1)}
+        calls = [a for a, _ in self.dispatcher.calls[self.calls_before:]]
+        halted = "navigate" in calls and "stop" in calls[calls.index("navigate"):]
+        if goals - set(self.dispatcher.cancelled) and not halted:
+            found.append("goal")
+        return found

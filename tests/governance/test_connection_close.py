@@ -15,7 +15,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 import pytest
-from govhelpers import ADMIN, OPS, PLANNER, Harness, command
+from govhelpers import ADMIN, OPS, PLANNER, Harness, LossTrial, command
 
 from rcan_rtps.governance.audit import AuditRecord
 from rcan_rtps.governance.governor import MAX_IN_FLIGHT, Decision, Governor
@@ -29,27 +29,20 @@ MOTION = {"move": {"linear_x": 0.2}, "navigate": GOAL}
 def _held_at(gov: Governor, harness: Harness, where: str) -> tuple[asyncio.Event, asyncio.Event]:
     """Motion waits at `where` (`ready`: for the robot; `write_ahead`: for its entry) until
     the first event is set; the second is set once it waits there."""
-    release, entered = asyncio.Event(), asyncio.Event()
+    release = asyncio.Event()
     if where == "ready":
-        ready = harness.dispatcher.ready
+        harness.dispatcher.hold_ready = release
+        return release, harness.dispatcher.ready_entered
+    entered = asyncio.Event()
+    write_ahead = gov._steps.write_ahead
 
-        async def held_ready(cmd: Any) -> str | None:
-            if cmd.spec.motion:
-                entered.set()
-                await release.wait()
-            return await ready(cmd)
+    async def held_write(entry: AuditRecord, *, urgent: bool = False) -> Any:
+        if entry.action_type in MOTION:
+            entered.set()
+            await release.wait()
+        return await write_ahead(entry, urgent=urgent)
 
-        harness.dispatcher.ready = held_ready  # type: ignore[method-assign]
-    else:
-        write_ahead = gov._steps.write_ahead
-
-        async def held_write(entry: AuditRecord, *, urgent: bool = False) -> Any:
-            if entry.action_type in MOTION:
-                entered.set()
-                await release.wait()
-            return await write_ahead(entry, urgent=urgent)
-
-        gov._steps.write_ahead = held_write  # type: ignore[method-assign]
+    gov._steps.write_ahead = held_write  # type: ignore[method-assign]
     return release, entered
 
 
@@ -172,7 +165,7 @@ async def test_no_motion_decided_before_a_connection_closed_outlives_it(
         if others == "ops_drives":
             await gov.decide(command("move", {"linear_x": 0.2}), OPS)
         action = rng.choice(list(MOTION))
-        goals_before, calls_before = harness.dispatcher._goals, len(harness.dispatcher.calls)
+        watched = LossTrial(harness.dispatcher)
         moved, _ = await asyncio.gather(
             gov.decide(command(action, MOTION[action]), PLANNER),
             _ended_after(rng.uniform(0, 0.003), gov))
@@ -180,14 +173,7 @@ async def test_no_motion_decided_before_a_connection_closed_outlives_it(
         key = moved.reason or moved.outcome.value
         seen[key] = seen.get(key, 0) + 1
         active = gov.streams.active
-        if active is not None and active.owner == PLANNER.name:
-            outliving.append((trial, "stream"))
-        goals = {f"goal-{k}" for k in range(goals_before + 1, harness.dispatcher._goals + 1)}
-        calls = [a for a, _ in harness.dispatcher.calls[calls_before:]]
-        # A goal that took the base was cancelled by the robot-wide halt the loss then was.
-        halted = "navigate" in calls and "stop" in calls[calls.index("navigate"):]
-        if goals - set(harness.dispatcher.cancelled) and not halted:
-            outliving.append((trial, "goal"))
+        outliving += [(trial, what) for what in watched.outliving(gov, PLANNER)]
         if others == "ops_drives" and moved.reason == "stopped" and (
                 active is None or active.owner != OPS.name):
             ops_stopped.append(trial)

@@ -11,7 +11,7 @@ import asyncio
 import random
 from typing import Any
 
-from govhelpers import ADMIN, OPS, PLANNER, Harness, command
+from govhelpers import ADMIN, OPS, PLANNER, Harness, LossTrial, command
 
 from rcan_rtps.governance.governor import MAX_IN_FLIGHT, Decision, Governor
 from rcan_rtps.rcan import Outcome
@@ -175,7 +175,7 @@ async def test_no_motion_of_a_lost_principal_outlives_its_session_while_another_
         await gov.decide(command("move", {"linear_x": 0.2}), OPS)
         action = rng.choice(["move", "navigate"])
         params = GOAL if action == "navigate" else {"linear_x": 0.1}
-        goals_before, calls_before = harness.dispatcher._goals, len(harness.dispatcher.calls)
+        watched = LossTrial(harness.dispatcher)
         delay = rng.uniform(0, 0.003)
         moved, lost = await asyncio.gather(gov.decide(command(action, params), PLANNER),
                                            _after(delay, gov.end_session(PLANNER)))
@@ -186,15 +186,7 @@ async def test_no_motion_of_a_lost_principal_outlives_its_session_while_another_
             seen[moved.reason or moved.outcome.value] = seen.get(
                 moved.reason or moved.outcome.value, 0) + 1
             active = gov.streams.active
-            if active is not None and active.owner == PLANNER.name:
-                outliving.append((trial, "stream"))
-            goals = {f"goal-{k}" for k in range(goals_before + 1, harness.dispatcher._goals + 1)}
-            calls = [a for a, _ in harness.dispatcher.calls[calls_before:]]
-            # A goal that took the base (OPS's stream ended) was cancelled by the robot-wide
-            # halt the loss then was; else by its id.
-            halted = "navigate" in calls and "stop" in calls[calls.index("navigate"):]
-            if goals - set(harness.dispatcher.cancelled) and not halted:
-                outliving.append((trial, "goal"))
+            outliving += [(trial, what) for what in watched.outliving(gov, PLANNER)]
             if moved.reason == "stopped" and (active is None or active.owner != OPS.name):
                 ops_stopped.append(trial)
         await gov.decide(command("stop"), ADMIN)  # the next trial starts still

@@ -137,10 +137,7 @@ class Steps:
 
     async def record_event(self, record: AuditRecord) -> None:
         """An entry about something that already happened (nothing waits on it)."""
-        try:
-            await self.audit.append(record)
-        except AuditError:
-            log.exception("audit write failed: %s not recorded", record.event.value)
+        await _recorded(record, self.audit.append(record))
 
     def record_now(self, record: AuditRecord) -> None:
         """An entry about something that happened in this step (a stream's zero went out),
@@ -210,6 +207,7 @@ async def _failed(exc: AuditError) -> AuditReceipt:
 
 
 async def _recorded(record: AuditRecord, durable: Awaitable[AuditReceipt]) -> None:
+    """`durable` awaited; a failure logged (nobody waits on the entry)."""
     try:
         await durable
     except AuditError:

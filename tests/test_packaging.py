@@ -23,7 +23,25 @@ def wheel() -> Path:
         if os.environ.get("CI"):
             pytest.fail("no wheel was built: scripts/test.sh builds it before the tests")
         pytest.skip("no wheel built; run scripts/test.sh")
+    stale = _differing_sources(wheels[-1])
+    if stale:  # built from another state of the tree: its results would not be this tree's
+        why = f"{wheels[-1].name} is stale: {len(stale)} module(s) differ from src/ ({stale[0]})"
+        if os.environ.get("CI"):
+            pytest.fail(why)
+        pytest.skip(f"{why}; run scripts/test.sh")
     return wheels[-1]
+
+
+def _differing_sources(wheel: Path) -> list[str]:
+    """The Python modules of the package whose bytes in `wheel` are not those under src/
+    (or that one side lacks)."""
+    src = ROOT / "src"
+    with zipfile.ZipFile(wheel) as archive:
+        packed = {n: archive.read(n) for n in archive.namelist()
+                  if n.startswith("rcan_rtps/") and n.endswith(".py")}
+    here = {p.relative_to(src).as_posix(): p.read_bytes()
+            for p in (src / "rcan_rtps").rglob("*.py")}
+    return sorted(n for n in packed.keys() | here.keys() if packed.get(n) != here.get(n))
 
 
 def test_wheel_carries_the_idl_bundle(wheel: Path) -> None:

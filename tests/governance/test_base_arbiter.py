@@ -21,9 +21,9 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 from streamhelpers import ManualTimer, stream_governor
 
 from rcan_rtps.governance.clock import ManualClock
-from rcan_rtps.governance.governor import Governor
+from rcan_rtps.governance.governor import MAX_IN_FLIGHT, Governor
 from rcan_rtps.governance.streams import ZERO
-from rcan_rtps.rcan import Outcome, Role
+from rcan_rtps.rcan import ErrorCode, Outcome, Role
 
 LOW = principal("low-agent", Role.USER)
 GOAL = {"x": 1.0, "y": 1.0, "yaw": 0.0}
@@ -149,11 +149,13 @@ async def test_a_heartbeating_timed_move_runs_to_its_end(tmp_path: Path) -> None
 # -- the model --------------------------------------------------------------------------------
 
 WHO = [LOW, PLANNER, OPS, ADMIN]
+MOVERS = set(WHO)  # the principals whose role may move (VIEWER, a GUEST, may not)
 
 
 class BaseModel(RuleBasedStateMachine):
-    """Streams, goals, locks, priorities, e-stop, clear and session loss, in any order: the
-    base never has two owners, and nothing moves while the e-stop is latched."""
+    """Streams, goals, locks, priorities, e-stop, clear and session loss (with moves waiting
+    their turn, or not), in any order: the base never has two owners, and nothing moves while
+    the e-stop is latched."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -226,6 +228,39 @@ class BaseModel(RuleBasedStateMachine):
             await _settled(self.gov)
 
         self.run(passes())
+
+    @rule(lost=st.sampled_from(WHO), waiting=st.sets(st.sampled_from([VIEWER, *WHO])))
+    def a_session_is_lost_while_moves_wait(self, lost: Any, waiting: set[Any]) -> None:
+        """`lost`'s session ends while moves of `waiting` wait their turn: a halt of the whole
+        robot unless someone else's stream or goal holds the base or a move of someone else's
+        whose role may move (not VIEWER's: a GUEST) is on its way. `lost`'s move never starts."""
+        streams = self.gov.streams
+        driving = {g.owner for g in streams.goals.values()}
+        driving |= {streams.active.owner} if streams.active is not None else set()
+        on_its_way = {w.name for w in waiting if w in MOVERS}
+        narrowed = bool((driving | on_its_way) - {lost.name})
+
+        async def lost_while_waiting() -> tuple[bool, dict[str, Any]]:
+            for _ in range(MAX_IN_FLIGHT):  # every place taken: the moves wait their turn
+                await self.gov._admission.acquire()
+            moves = {w.name: asyncio.ensure_future(self.gov.decide(
+                command("move", {"linear_x": 0.1}), w)) for w in waiting}
+            await asyncio.sleep(0)  # each has arrived
+            calls = len(self.wire.calls)
+            await self.gov.safe_stop(lost, "silent")
+            halted = "stop" in [a for a, _ in self.wire.calls[calls:]]
+            for _ in range(MAX_IN_FLIGHT):
+                self.gov._admission.release()
+            decided = {name: await move for name, move in moves.items()}
+            await _settled(self.gov)
+            return halted, decided
+
+        halted, decided = self.run(lost_while_waiting())
+        assert halted is not narrowed, (lost.name, driving, [w.name for w in waiting])
+        if VIEWER in waiting:
+            assert decided[VIEWER.name].error_code is ErrorCode.INSUFFICIENT_PRIVILEGES
+        if lost.name in decided:
+            assert decided[lost.name].outcome is not Outcome.EXECUTED, decided[lost.name]
 
     @invariant()
     def one_owner_of_the_base(self) -> None:

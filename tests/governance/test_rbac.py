@@ -80,6 +80,22 @@ def test_if_a_role_may_act_every_higher_role_may(
         assert has_scope(high, scope)
 
 
+@given(
+    overrides=st.dictionaries(st.sampled_from(ACTIONS), st.sampled_from(list(Role))),
+    action=st.sampled_from(ACTIONS),
+    role=st.sampled_from(list(Role)),
+    unknown=st.text(min_size=1).filter(lambda name: name not in ACTIONS),
+)
+def test_a_policy_refuses_what_it_does_not_allow_and_nothing_it_does_not_know(
+    overrides: dict[str, Role], action: str, role: Role, unknown: str
+) -> None:
+    """`refuses` (the governor's count of motion on its way) is sure of a refusal, or says no:
+    an action the policy does not know is not certainly refused."""
+    policy = RolePolicy(overrides)
+    assert policy.refuses(role, action) is not policy.allows(role, action)
+    assert policy.refuses(role, unknown) is False
+
+
 # -- tokens ---------------------------------------------------------------------------------
 
 

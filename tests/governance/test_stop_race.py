@@ -11,10 +11,11 @@ import asyncio
 import random
 from typing import Any
 
-from govhelpers import ADMIN, OPS, PLANNER, Harness, LossTrial, command
+import pytest
+from govhelpers import ADMIN, OPS, PLANNER, VIEWER, Harness, LossTrial, command
 
 from rcan_rtps.governance.governor import MAX_IN_FLIGHT, Decision, Governor
-from rcan_rtps.rcan import Outcome
+from rcan_rtps.rcan import ErrorCode, Outcome
 
 TRIALS = 300
 GOAL = {"x": 1.0, "y": 2.0, "yaw": 0.0}
@@ -214,4 +215,83 @@ async def test_a_move_waiting_its_turn_is_stopped_by_a_stop_before_its_turn(
     moved = await moving
     assert (moved.http_status, moved.reason) == (409, "stopped"), moved
     assert gov.streams.active is None and harness.dispatcher.samples == []
+    await gov.stop()
+
+
+def _move_held(gov: Governor, harness: Harness, where: str, sender: Any) -> asyncio.Event:
+    """`sender`'s move, held `where`: waiting its turn (MAX_IN_FLIGHT commands being decided),
+    or its entry being written (its decision's, or its refusal's). Set the event to let it go."""
+    release = asyncio.Event()
+    if where == "its_turn":
+        async def every_place_taken() -> None:
+            for _ in range(MAX_IN_FLIGHT):
+                await gov._admission.acquire()
+            await release.wait()
+            for _ in range(MAX_IN_FLIGHT):
+                gov._admission.release()
+
+        gov._steps.spawn(every_place_taken())
+        return release
+    write_ahead = gov._steps.write_ahead
+
+    async def held_write(entry: Any, *, urgent: bool = False) -> Any:
+        if entry.action_type == "move" and entry.principal == sender.name:
+            await release.wait()
+        return await write_ahead(entry, urgent=urgent)
+
+    gov._steps.write_ahead = held_write  # type: ignore[method-assign]
+    return release
+
+
+async def _lost_while_a_move_waits(gov: Governor, harness: Harness, where: str,
+                                   sender: Any) -> tuple[Decision, list[str], Decision]:
+    """PLANNER drives; `sender`'s move is held `where` when PLANNER's session is lost. The
+    loss's decision, what it sent the robot, and the move's decision once let go."""
+    await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)  # PLANNER holds a session
+    release = _move_held(gov, harness, where, sender)
+    await asyncio.sleep(0)  # (every place taken, for `its_turn`)
+    waiting = asyncio.ensure_future(gov.decide(command("move", {"linear_x": 0.1}), sender))
+    await asyncio.sleep(0.01)
+    assert not waiting.done()
+    before = len(harness.dispatcher.calls)
+    lost = await gov.safe_stop(PLANNER, "no command or heartbeat for 2 s")
+    sent = [a for a, _ in harness.dispatcher.calls[before:]]
+    release.set()
+    return lost, sent, await waiting
+
+
+@pytest.mark.parametrize("where", ["its_turn", "its_refusal_entry"])
+async def test_a_move_its_sender_may_not_send_leaves_a_session_loss_a_halt(
+        harness: Harness, where: str) -> None:
+    """A GUEST (whose role may not move) keeps a move waiting — its turn, or its refusal's
+    entry — while PLANNER's session is lost, with nobody else driving: the loss halts the whole
+    robot. The GUEST's move counted as another principal's motion on its way and narrowed the
+    halt to PLANNER's own motion (`applied.scope: own`, nothing sent): by sending refused moves
+    without end, a GUEST could keep every session loss from halting the robot."""
+    gov = await harness.governor()
+    lost, sent, moved = await _lost_while_a_move_waits(gov, harness, where, VIEWER)
+    assert lost.outcome is Outcome.EXECUTED, lost
+    assert sent == ["stop"], sent  # zero published, every goal cancelled
+    [entry] = [e for e in harness.entries if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+    assert entry["applied"] == {}, entry  # not a stop of PLANNER's motion alone
+    assert (moved.http_status, moved.error_code) == (403, ErrorCode.INSUFFICIENT_PRIVILEGES)
+    await asyncio.gather(*gov._tasks)
+    assert gov.streams.active is None and gov.streams._deciding == {}
+    await gov.stop()
+
+
+@pytest.mark.parametrize("where", ["its_turn", "its_refusal_entry"])
+async def test_a_move_its_sender_may_send_still_narrows_a_session_loss(
+        harness: Harness, where: str) -> None:
+    """The same with OPS's move waiting: OPS may move, so its move is on its way from its
+    arrival and PLANNER's loss stops PLANNER's motion alone; OPS's move then starts."""
+    gov = await harness.governor()
+    lost, sent, moved = await _lost_while_a_move_waits(gov, harness, where, OPS)
+    assert lost.outcome is Outcome.EXECUTED, lost
+    assert sent == [], sent  # no halt of the robot
+    [entry] = [e for e in harness.entries if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+    assert entry["applied"]["scope"] == "own", entry
+    assert moved.outcome is Outcome.EXECUTED, moved
+    active = gov.streams.active
+    assert active is not None and active.owner == OPS.name and active.target.linear_x == 0.1
     await gov.stop()

@@ -236,9 +236,11 @@ class Governor:
 
     async def _admitted(self, command: NormalizedCommand, principal: Principal) -> Decision:
         """A command that waits its turn (`MAX_IN_FLIGHT`). Motion is on its way from the
-        moment it arrives: a stop of it that comes while it waits (a `stop`, its connection
-        closing) wins over it as over motion further on (`VelocityStreams.arrived`)."""
-        arrived = self.streams.arrived(principal.name) if command.spec.motion else None
+        moment it arrives (`_on_its_way`): a stop of it that comes while it waits (a `stop`,
+        its connection closing) wins over it as over motion further on
+        (`VelocityStreams.arrived`)."""
+        on_its_way = self._on_its_way(command, principal)  # in this step: no stop between
+        arrived = self.streams.arrived(principal.name) if on_its_way else None
         done = functools.partial(self.streams.decided, principal.name) if arrived else None
         try:
             await self._admission.acquire()
@@ -250,6 +252,24 @@ class Governor:
             return await self._detached(self._decide(command, principal, arrived), then=done)
         finally:
             self._admission.release()
+
+    def _on_its_way(self, command: NormalizedCommand, principal: Principal) -> bool:
+        """Whether `command`, as it arrives, is motion on its way (`_admitted`).
+
+        Not if its sender's role may not issue it at all (a GUEST's move): `_precheck` refuses
+        it first thing, by the same policy (fixed at start), so none of it can run. Counted,
+        it was another principal's motion on its way for every session loss while it waited
+        (`VelocityStreams.driven_by_other_than`) and narrowed the loss's halt of the whole
+        robot to a stop of the lost principal's own motion (`safe_stop`): a GUEST sending
+        refused moves without end kept any session loss from halting the robot.
+
+        Anything else counts, whatever its other checks will say (its sender may move, and
+        could hold the same with moves that run), and so does an action the policy does not
+        know: when unsure, count. Counting motion that is then refused only narrows a halt to
+        the lost principal's own motion, which still all stops; not counting motion that then
+        runs would let a halt, or any stop that comes while it waits, miss it (its mark would
+        be taken only once it is decided, after that stop: `_execute`)."""
+        return command.spec.motion and not self._roles.refuses(principal.role, command.action)
 
     @property
     def thoughts(self) -> ThoughtLog:

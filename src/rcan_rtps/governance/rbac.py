@@ -64,6 +64,12 @@ class RolePolicy:
     def allows(self, role: Role, action: str) -> bool:
         return role >= self._required[action]
 
+    def refuses(self, role: Role, action: str) -> bool:
+        """Whether `role` certainly may not issue `action`: False for an action this policy
+        does not know (`allows` cannot say, so nothing is certain)."""
+        required = self._required.get(action)
+        return required is not None and role < required
+
 
 # -- authentication -------------------------------------------------------------------------
 

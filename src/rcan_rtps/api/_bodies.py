@@ -8,7 +8,7 @@ from typing import Any, Literal
 import msgspec
 from aiohttp import web
 
-from rcan_rtps.governance import AuditError, Decision
+from rcan_rtps.governance import AuditError
 from rcan_rtps.rcan import DecisionBody, ErrorCode, PendingAuth, Reason
 
 from .ports import GoalView
@@ -133,10 +133,6 @@ def json_response(body: Any, status: int = 200,
                   headers: Mapping[str, str] | None = None) -> web.Response:
     return web.Response(body=msgspec.json.encode(body), status=status, content_type=JSON,
                         headers=headers)
-
-
-def decision_response(decision: Decision) -> web.Response:
-    return json_response(decision.body(), decision.http_status)
 
 
 def error_body(code: ErrorCode | str, *, reason: str | None = None, path: str | None = None,

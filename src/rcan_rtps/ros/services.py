@@ -44,7 +44,6 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-import msgspec
 from cyclonedds.core import DDSException
 from cyclonedds.idl import IdlStruct
 from cyclonedds.pub import DataWriter
@@ -96,16 +95,6 @@ class RequestMapping(enum.Enum):
     AUTO = "auto"
     CYCLONE = "cyclone"
     FASTDDS = "fastdds"
-
-
-class MappingPolicy(msgspec.Struct, frozen=True):
-    """The mapping per service: a default plus per-service overrides (from configuration)."""
-
-    default: RequestMapping = RequestMapping.AUTO
-    services: Mapping[str, RequestMapping] = msgspec.field(default_factory=dict)
-
-    def for_service(self, name: str) -> RequestMapping:
-        return self.services.get(name, self.default)
 
 
 def mapping_of_vendor(guid: bytes, service_id: str = "") -> RequestMapping:

@@ -25,7 +25,7 @@ from rcan_rtps.governance import (
     Notifier,
     TokenAuthenticator,
 )
-from rcan_rtps.rcan import Status
+from rcan_rtps.rcan import MoveParams, Status
 from rcan_rtps.rcan._messages import Position, RosInfo, Telemetry
 
 RURI = "rcan://registry.local/clearpath/husky/a200-0001"
@@ -69,6 +69,14 @@ def _principals(extra: Mapping[str, str]) -> str:
         lines.append(f"      - {{name: {name}, role: {role}, token_env: TOK_{name.upper()}"
                      f"{limit}{more}}}")
     return "\n".join(lines)
+
+
+ZERO = MoveParams(linear_x=0.0, linear_y=0.0, angular_z=0.0)  # the sample that stops
+
+
+def own_stops(entries: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The entries of a stop of one principal's motion alone (not of the robot's)."""
+    return [e for e in entries if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
 
 
 def make_config(tmp: Path, *, hitl_extra: str = "", api_extra: str = "",

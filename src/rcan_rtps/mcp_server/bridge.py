@@ -11,7 +11,7 @@ from __future__ import annotations
 import asyncio
 import copy
 import json
-from collections.abc import Iterable
+from collections.abc import Awaitable, Iterable
 from types import TracebackType
 from typing import Any, overload
 from urllib.parse import quote, urlsplit
@@ -71,6 +71,12 @@ class BridgeClient:
 
     async def command(self, body: dict[str, Any]) -> Reply:
         return await self._request("POST", "/api/command", body, headers=self._command_headers)
+
+    async def motion(self, body: dict[str, Any]) -> Reply:
+        return await self.command(body)  # cancelled, its request is cut off (as any command's)
+
+    def cancel_motion(self) -> Awaitable[Reply]:
+        return asyncio.ensure_future(self._request("POST", "/api/command/cancel"))
 
     async def heartbeat(self) -> Reply:
         return await self._request("POST", "/api/heartbeat")

@@ -6,6 +6,7 @@ records what the governor hands to the bridge.
 
 from __future__ import annotations
 
+import asyncio
 import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -25,7 +26,7 @@ from rcan_rtps.governance import (
     Notifier,
     TokenAuthenticator,
 )
-from rcan_rtps.rcan import Status
+from rcan_rtps.rcan import MoveParams, NormalizedCommand, Status
 from rcan_rtps.rcan._messages import Position, RosInfo, Telemetry
 
 RURI = "rcan://registry.local/clearpath/husky/a200-0001"
@@ -69,6 +70,14 @@ def _principals(extra: Mapping[str, str]) -> str:
         lines.append(f"      - {{name: {name}, role: {role}, token_env: TOK_{name.upper()}"
                      f"{limit}{more}}}")
     return "\n".join(lines)
+
+
+ZERO = MoveParams(linear_x=0.0, linear_y=0.0, angular_z=0.0)  # the sample that stops
+
+
+def own_stops(entries: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The entries of a stop of one principal's motion alone (not of the robot's)."""
+    return [e for e in entries if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
 
 
 def make_config(tmp: Path, *, hitl_extra: str = "", api_extra: str = "",
@@ -184,6 +193,25 @@ class Api:
             await self.client.close()
         if self.log is not None:
             await self.log.close()
+
+    def hold_decisions(self, held: Callable[[NormalizedCommand], bool], *, decided: bool
+                       ) -> tuple[asyncio.Event, asyncio.Event]:
+        """The commands `held` picks wait — before the governor has them or, `decided`, once
+        it has decided them (motion started) — until the first event is set; the second is
+        set once one waits. As a busy bridge still taking a request, or answering it."""
+        release, entered = asyncio.Event(), asyncio.Event()
+        decide = self.gov.decide
+
+        async def held_decide(command: NormalizedCommand, principal: Any) -> Any:
+            if not held(command):
+                return await decide(command, principal)
+            done = await decide(command, principal) if decided else None
+            entered.set()
+            await release.wait()
+            return done if done is not None else await decide(command, principal)
+
+        self.gov.decide = held_decide  # type: ignore[method-assign]
+        return release, entered
 
     @property
     def gov(self) -> Governor:

@@ -12,7 +12,8 @@ import rcan_rtps.api as api_pkg
 from rcan_rtps.api import GoalView
 from tests.api.apihelpers import RURI, TOKENS, Api
 
-ROUTES = [("POST", "/api/command"), ("GET", "/api/status"), ("POST", "/api/heartbeat"),
+ROUTES = [("POST", "/api/command"), ("POST", "/api/command/cancel"),
+          ("GET", "/api/status"), ("POST", "/api/heartbeat"),
           ("GET", "/api/skills"),
           ("GET", "/api/goals"), ("GET", "/api/goals/g1"), ("GET", "/api/thoughts/t1"),
           ("GET", "/api/hitl/pending"), ("GET", "/api/hitl/pending/p1"),

@@ -29,8 +29,9 @@ from mcp.shared.exceptions import MCPError
 from mcp_types import CallToolResult, Implementation
 from waiting import eventually
 
+from rcan_rtps.api import _asgi
 from rcan_rtps.rcan.actions import _registry, names
-from tests.api.apihelpers import TOKENS, Api
+from tests.api.apihelpers import TOKENS, ZERO, Api, own_stops
 from tests.api.test_hitl_reviews import review
 from tests.mcp.test_mcp_tools import BEEP, READ_TOOLS
 
@@ -386,3 +387,136 @@ async def test_an_agent_lists_its_own_held_commands_only(api: Api) -> None:
     assert (status, body["path"]) == (400, "$.query.mine")
     status, body = await api.call("GET", "/api/hitl/pending?mine=false", "ops")
     assert status == 200 and len(body["pending"]) == 3
+
+
+# -- a client that cancels a motion call (`notifications/cancelled`) -------------------------
+#
+# The SDK's client cancels a call when the task awaiting it is cancelled: it sends
+# `notifications/cancelled` naming the call (the 2025 protocol: `legacy`). Before, the SDK
+# cancelled the tool's handler, but the governor's decision is detached: the move was decided
+# and ran on until its principal's session lapsed (session_timeout_s; never, on the harness's
+# manual clock). Now the principal's motion on its way never starts and what runs stops.
+
+MOVE = {"linear_x": 0.2, "duration_s": 20.0, "confidence": 0.9}
+NAVIGATE = {"x": 1.0, "y": 2.0, "yaw": 0.0, "confidence": 0.9}
+
+
+def failed(api: Api, action: str) -> list[dict[str, Any]]:
+    return [e for e in api.entries if e.get("action_type") == action
+            and e["event"] == "COMMAND_FAILED"]
+
+
+async def cancelled(call: asyncio.Future[Any]) -> None:
+    """Cancel the client's call (its `notifications/cancelled` goes out) and let it end."""
+    call.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await call
+
+
+def answers_held(api: Api) -> tuple[asyncio.Event, asyncio.Event]:
+    """The governor's decision of a motion command is made (its motion started), and its
+    answer held until the first event is set; the second is set once one is held."""
+    return api.hold_decisions(lambda command: command.spec.motion, decided=True)
+
+
+def replies_held(monkeypatch: pytest.MonkeyPatch, saying: bytes
+                 ) -> tuple[asyncio.Event, asyncio.Event]:
+    """A reply saying `saying` is held on its way out of /mcp (its handler has returned)
+    until the first event is set; the second is set once one is held."""
+    release, answered = asyncio.Event(), asyncio.Event()
+    send = _asgi._Exchange.send
+
+    async def held(exchange: Any, message: Any) -> None:
+        if message["type"] == "http.response.body" and saying in message.get("body", b""):
+            answered.set()
+            await release.wait()
+        await send(exchange, message)
+
+    monkeypatch.setattr(_asgi._Exchange, "send", held)
+    return release, answered
+
+
+@contextlib.asynccontextmanager
+async def cancelling(api: Api, monkeypatch: pytest.MonkeyPatch) -> AsyncIterator[Client]:
+    """The SDK's client (2025 protocol), the replies to its cancelled calls (`Request
+    cancelled`) let out once it has gone: it fails to close when one comes as it closes."""
+    reply, _ = replies_held(monkeypatch, b"Request cancelled")
+    try:
+        async with agent(api, mode="legacy") as client:
+            yield client
+    finally:
+        reply.set()
+
+
+@pytest.mark.parametrize(("tool", "args"), [("move", MOVE), ("navigate", NAVIGATE)])
+async def test_a_motion_call_cancelled_while_it_waits_never_starts(
+        api: Api, monkeypatch: pytest.MonkeyPatch, tool: str, args: dict[str, Any]) -> None:
+    """The call waits for the robot when its client cancels it: refused `stopped`, nothing
+    reaches the robot, and the stop of the principal's own motion says its client cancelled
+    it. Before, it started once the robot was ready and ran on."""
+    release = api.dispatcher.hold_ready = asyncio.Event()
+    async with cancelling(api, monkeypatch) as client:
+        call = asyncio.ensure_future(client.call_tool(tool, args))
+        await asyncio.wait_for(api.dispatcher.ready_entered.wait(), timeout=30)
+        await cancelled(call)
+        [stop] = await eventually(lambda: own_stops(api.entries), what="the cancel's own stop")
+        release.set()
+        [refused] = await eventually(lambda: failed(api, tool), what="its refusal")
+    assert refused["deny_reason"] == "COMMAND_REJECTED:stopped", refused
+    assert stop["principal"] == "planner" and stop["applied"] == {
+        "scope": "own", "cancelled_by_client": True, "on_its_way": True,
+        "stream_ended": None, "goals_cancelled": []}, stop
+    assert api.dispatcher.calls == [] and api.dispatcher.samples == []
+    assert api.gov.streams.active is None and api.gov.streams.goals == {}
+    assert not _endpoint(api)._keepalives["planner"].holding
+
+
+@pytest.mark.parametrize("answer", ["being_made", "on_its_way_out"])
+async def test_a_move_cancelled_after_it_started_is_zeroed(
+        api: Api, monkeypatch: pytest.MonkeyPatch, answer: str) -> None:
+    """The move runs when its client cancels the call: its answer still being made (the
+    SDK cancels the handler), or made and on its way out (the cancel crossed it: the client
+    drops it and never learns the move started). Its stream ends with zero at once — not at
+    its session's timeout, which the harness's manual clock never reaches — audited as its
+    client's cancel; nothing else is halted and nothing holds the move (heartbeats)."""
+    if answer == "being_made":
+        _, held = answers_held(api)  # never released: the cancel interrupts the handler
+    else:  # the answer the client drops goes out once it has gone (`cancelling`)
+        reply, held = replies_held(monkeypatch, b"executed")
+    async with cancelling(api, monkeypatch) as client:
+        call = asyncio.ensure_future(client.call_tool("move", MOVE))
+        await asyncio.wait_for(held.wait(), timeout=30)
+        active = api.gov.streams.active
+        assert active is not None and active.owner == "planner"
+        await cancelled(call)
+        [stop] = await eventually(lambda: own_stops(api.entries), what="the cancel's own stop")
+    if answer == "on_its_way_out":
+        reply.set()
+    assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
+    [ended] = [e for e in api.entries if e["event"] == "STREAM_ENDED"]
+    assert (ended["params"]["reason"], ended["params"]["ended_by"]) == ("cancelled", "planner")
+    assert stop["applied"]["stream_ended"] == active.message_id, stop
+    assert stop["applied"]["cancelled_by_client"] is True
+    assert [a for a, _ in api.dispatcher.calls] == ["move"]  # no stop of the whole robot
+    assert not _endpoint(api)._keepalives["planner"].holding
+
+
+async def test_another_principals_motion_goes_on(api: Api, monkeypatch: pytest.MonkeyPatch
+                                                ) -> None:
+    """OPS drives (over REST) while PLANNER's move waits for the robot and PLANNER's client
+    cancels it: PLANNER's never starts, OPS's stream is neither zeroed nor replaced."""
+    status, body = await api.command("ops", {"action": "move", "params": {"linear_x": 0.3}})
+    assert (status, body["outcome"]) == (200, "executed"), body
+    release = api.dispatcher.hold_ready = asyncio.Event()
+    async with cancelling(api, monkeypatch) as client:
+        call = asyncio.ensure_future(client.call_tool("move", MOVE))
+        await asyncio.wait_for(api.dispatcher.ready_entered.wait(), timeout=30)
+        samples = len(api.dispatcher.samples)
+        await cancelled(call)
+        await eventually(lambda: own_stops(api.entries), what="the cancel's own stop")
+        release.set()
+        await eventually(lambda: failed(api, "move"), what="PLANNER's refusal")
+    active = api.gov.streams.active
+    assert active is not None and (active.owner, active.target.linear_x) == ("ops", 0.3)
+    assert ZERO not in api.dispatcher.samples[samples:]
+    assert [a for a, _ in api.dispatcher.calls] == ["move"]  # OPS's, and no halt

@@ -5,6 +5,7 @@ The dispatcher records what governance would hand to the bridge; governance has 
 
 from __future__ import annotations
 
+import asyncio
 import json
 from collections.abc import Mapping
 from pathlib import Path
@@ -13,12 +14,13 @@ from typing import Any
 from recording import RecordingDispatcher
 
 from rcan_rtps.config import RcanConfig, loads_config
-from rcan_rtps.governance.audit import AuditLog
+from rcan_rtps.governance.audit import AuditLog, AuditRecord
 from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.governance.governor import Governor
 from rcan_rtps.governance.hitl import Notifier
 from rcan_rtps.governance.rbac import DEFAULT_RATE_LIMITS, Principal
 from rcan_rtps.rcan import NormalizedCommand, Role, validate_command
+from rcan_rtps.rcan.actions import specs
 
 RURI = "rcan://registry.local/clearpath/husky/a200-0001"
 ARM_GATE = "[{action: arm_joint, require_auth: true, authorized_roles: [OWNER]}]"
@@ -113,3 +115,27 @@ class LossTrial:
         if goals - set(self.dispatcher.cancelled) and not halted:
             found.append("goal")
         return found
+
+
+MOTION_ACTIONS = frozenset(spec.name for spec in specs() if spec.motion)
+
+
+def motion_held_at(gov: Governor, harness: Harness, where: str
+                   ) -> tuple[asyncio.Event, asyncio.Event]:
+    """Motion waits at `where` (`ready`: for the robot; `write_ahead`: for its entry) until
+    the first event is set; the second is set once it waits there."""
+    release = asyncio.Event()
+    if where == "ready":
+        harness.dispatcher.hold_ready = release
+        return release, harness.dispatcher.ready_entered
+    entered = asyncio.Event()
+    write_ahead = gov._steps.write_ahead
+
+    async def held_write(entry: AuditRecord, *, urgent: bool = False) -> Any:
+        if entry.action_type in MOTION_ACTIONS:
+            entered.set()
+            await release.wait()
+        return await write_ahead(entry, urgent=urgent)
+
+    gov._steps.write_ahead = held_write  # type: ignore[method-assign]
+    return release, entered

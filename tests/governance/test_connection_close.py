@@ -15,35 +15,14 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 import pytest
-from govhelpers import ADMIN, OPS, PLANNER, Harness, LossTrial, command
+from govhelpers import ADMIN, OPS, PLANNER, Harness, LossTrial, command, motion_held_at
 
-from rcan_rtps.governance.audit import AuditRecord
 from rcan_rtps.governance.governor import MAX_IN_FLIGHT, Decision, Governor
 from rcan_rtps.rcan import Outcome
 
 TRIALS = 300
 GOAL = {"x": 1.0, "y": 2.0, "yaw": 0.0}
 MOTION = {"move": {"linear_x": 0.2}, "navigate": GOAL}
-
-
-def _held_at(gov: Governor, harness: Harness, where: str) -> tuple[asyncio.Event, asyncio.Event]:
-    """Motion waits at `where` (`ready`: for the robot; `write_ahead`: for its entry) until
-    the first event is set; the second is set once it waits there."""
-    release = asyncio.Event()
-    if where == "ready":
-        harness.dispatcher.hold_ready = release
-        return release, harness.dispatcher.ready_entered
-    entered = asyncio.Event()
-    write_ahead = gov._steps.write_ahead
-
-    async def held_write(entry: AuditRecord, *, urgent: bool = False) -> Any:
-        if entry.action_type in MOTION:
-            entered.set()
-            await release.wait()
-        return await write_ahead(entry, urgent=urgent)
-
-    gov._steps.write_ahead = held_write  # type: ignore[method-assign]
-    return release, entered
 
 
 @pytest.mark.parametrize("where", ["ready", "write_ahead"])
@@ -54,7 +33,7 @@ async def test_motion_decided_before_its_connection_closed_never_starts(
     closes. It is refused `stopped`; nothing of it reaches the robot. The loss is audited, of
     PLANNER's own motion (nothing else drives: nothing else to stop)."""
     gov = await harness.governor()
-    release, entered = _held_at(gov, harness, where)
+    release, entered = motion_held_at(gov, harness, where)
     moving = asyncio.ensure_future(gov.decide(command(action, MOTION[action]), PLANNER))
     await asyncio.wait_for(entered.wait(), timeout=10)
     lost = await gov.end_session(PLANNER)
@@ -112,7 +91,7 @@ async def test_only_the_closed_principals_motion_on_its_way_stops(harness: Harne
     PLANNER's connection closes: PLANNER's is refused, OPS's starts; nothing is halted."""
     gov = await harness.governor()
     await gov.decide(command("move", {"linear_x": 0.2}), OPS)
-    release, entered = _held_at(gov, harness, "write_ahead")
+    release, entered = motion_held_at(gov, harness, "write_ahead")
     theirs = asyncio.ensure_future(gov.decide(command("move", {"linear_x": 0.3}), OPS))
     mine = asyncio.ensure_future(gov.decide(command("move", {"linear_x": 0.1}), PLANNER))
     await asyncio.wait_for(entered.wait(), timeout=10)

@@ -164,6 +164,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
         return web.Response(body=document[0], content_type="application/json")
 
     app.router.add_post("/api/command", r.post_command)
+    app.router.add_post("/api/command/cancel", r.post_command_cancel)
     app.router.add_get("/api/status", r.get_status, allow_head=False)
     app.router.add_post("/api/heartbeat", r.post_heartbeat)
     app.router.add_get("/api/goals", r.get_goals, allow_head=False)

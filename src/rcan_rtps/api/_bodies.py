@@ -87,6 +87,15 @@ class HeartbeatAck(msgspec.Struct, kw_only=True):
     timestamp_ms: int
 
 
+class CommandCancelAck(msgspec.Struct, kw_only=True, omit_defaults=True):
+    """POST /api/command/cancel: whether any of the principal's motion was stopped (it was on
+    its way or running), and then that stop's decision (its audit entry's id)."""
+
+    principal: str
+    stopped: bool
+    decision: DecisionBody | None = None
+
+
 class HeartbeatReply(msgspec.Struct, kw_only=True, omit_defaults=True):
     """A HEARTBEAT message's reply (POST /api/command, the WebSocket): HeartbeatAck's fields
     with the message's id and an RCAN 3.x status."""

@@ -8,13 +8,15 @@ route would have sent.
 
 from __future__ import annotations
 
+import asyncio
 import json
+from collections.abc import Awaitable
 from typing import TYPE_CHECKING, Any
 
 import msgspec
 from aiohttp import web
 
-from rcan_rtps.governance import Principal
+from rcan_rtps.governance import Decision, Principal
 
 from . import _rare_routes as rare
 from . import _routes as r
@@ -29,6 +31,10 @@ if TYPE_CHECKING:
     from rcan_rtps.mcp_server.ports import Blob, Reply
 
 NOT_TEXT = "a string holds an unpaired surrogate: not Unicode text"
+
+
+async def _acked(stopping: Awaitable[Decision | None], principal: Principal) -> Reply:
+    return _reply(200, await r.cancel_acked(stopping, principal))
 
 
 def _reply(status: int, body: Any) -> Reply:
@@ -63,6 +69,19 @@ class LocalApi:
             return _reply(*await too_large(governor, self._principal))
         return _reply(*await run_command(governor, self._principal, raw, app[OBSERVE],
                                          app[CHECKS], app[INVOCATIONS], self._warnings))
+
+    async def motion(self, body: dict[str, Any]) -> Reply:
+        try:
+            return await self.command(body)
+        except asyncio.CancelledError:
+            # Its client cancelled the call (the SDK cancels the handler): told in this step,
+            # before the decision's task runs again. The stop's entry is the governor's task.
+            self._app[GOVERNOR].command_cancelled(self._principal)
+            raise
+
+    def cancel_motion(self) -> Awaitable[Reply]:
+        stopping = self._app[GOVERNOR].command_cancelled(self._principal)  # now, in this step
+        return _acked(stopping, self._principal)
 
     async def heartbeat(self) -> Reply:
         return _reply(200, r.heartbeat(self._app[GOVERNOR], self._principal))

@@ -13,6 +13,7 @@ from rcan_rtps.rcan import openapi_schemas
 from ._bodies import (
     ApiError,
     AuditPage,
+    CommandCancelAck,
     GoalList,
     HeartbeatAck,
     PendingList,
@@ -30,7 +31,7 @@ _REF = "#/components/schemas/{name}"
 
 _API_TYPES: tuple[type[msgspec.Struct], ...] = (
     ApiError, GoalView, GoalList, PendingList, PendingView, HeartbeatAck, AuditPage, VerifyReport,
-    WsFrame, SkillList,
+    WsFrame, SkillList, CommandCancelAck,
     Thought, WhoAmI, TicketReply,
 )
 
@@ -143,6 +144,12 @@ PATHS: dict[str, dict[str, Any]] = {
                                  "INVOKE, INVOKE_CANCEL or AUTHORIZE",
                                  _COMMAND_DECISION, _COMMAND_BODY,
                                  parameters=[_TRANSPORT_WARNINGS])},
+    "/api/command/cancel": {"post": _op(
+        "postCommandCancel", "A motion command of yours was cancelled by your client before "
+        "its answer (`rcan-rtps mcp` sends this for its MCP client): your motion that has not "
+        "started never does, and yours that runs stops — nobody else's; audited when anything "
+        "was stopped. No body",
+        {"200": _json("CommandCancelAck", "what was stopped"), **_errors()})},
     "/api/status": {"get": _op("getStatus", "The robot's STATUS (GUEST+)",
                                {"200": _json("Status", "STATUS"), **_errors()})},
     "/api/heartbeat": {"post": _op("postHeartbeat", "Keep a control session alive",

@@ -4,14 +4,17 @@ heartbeat and goals. The rest (HiTL, audit reads, images, thoughts, skills) is i
 
 from __future__ import annotations
 
+from collections.abc import Awaitable
+
 from aiohttp import web
 
 from rcan_rtps import _transport_warnings as transport
-from rcan_rtps.governance import Governor, Principal
+from rcan_rtps.governance import Decision, Governor, Principal
 from rcan_rtps.governance.clock import SystemClock, now_ms
 
 from ._bodies import (
     ApiError,
+    CommandCancelAck,
     GoalList,
     HeartbeatAck,
     error_body,
@@ -63,6 +66,21 @@ async def post_command(request: web.Request) -> web.Response:
     status, body = await run_command(governor, principal, raw, request.app[OBSERVE],
                                      request.app[CHECKS], request.app[INVOCATIONS], warnings)
     return json_response(body, status)
+
+
+async def post_command_cancel(request: web.Request) -> web.Response:
+    """A client cancelled a motion command of its principal's before its answer (`rcan-rtps
+    mcp`, for its MCP client): that principal's motion stops, nobody else's. No body."""
+    governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
+    return json_response(await cancel_acked(governor.command_cancelled(principal), principal))
+
+
+async def cancel_acked(stopping: Awaitable[Decision | None], principal: Principal
+                       ) -> CommandCancelAck:
+    """`Governor.command_cancelled`'s outcome (called by the caller, in its own step)."""
+    stopped = await stopping
+    return CommandCancelAck(principal=principal.name, stopped=stopped is not None,
+                            decision=None if stopped is None else stopped.body())
 
 
 async def get_status(request: web.Request) -> web.Response:

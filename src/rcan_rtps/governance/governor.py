@@ -20,7 +20,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
-from collections.abc import Callable, Coroutine, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -712,6 +712,40 @@ class Governor:
         applied = {"scope": "own", "goals_cancelled": [], "before_session": True}
         return await self._detached(self._own_stop_recorded(principal, applied))
 
+    def command_cancelled(self, principal: Principal) -> Awaitable[Decision | None]:
+        """A motion command of the principal's was cancelled by its client before its answer
+        came (the transport, which knows which of its calls are motion, says so). Its
+        decision goes on, detached, and is audited as ever; but its motion must not start,
+        or run on, for a caller that no longer wants it — and the governor cannot tell which
+        of the principal's motion it was: all of it stops, and nobody else's. Now, before
+        any await: its motion on its way never starts (as
+        `connection_closed`: refused `stopped`, or its goal cancelled once accepted), its
+        stream ends with zero, its goals are cancelled, and its control session ends
+        (nothing of its is left to guard).
+
+        Returns what to await: the entry of that stop of its own motion (NETWORK_LOSS_SAFE_STOP,
+        `applied.cancelled_by_client`), written even if nobody awaits it, or None when
+        nothing of its was on its way or running."""
+        if self._stopped:  # BRIDGE_STOPPED is the last entry: it halted everything before it
+            return _resolved(None)
+        on_its_way = self.connection_closed(principal)
+        stream = self.streams.active
+        ended = self.streams.end_of(principal.name, EndReason.CANCELLED)
+        goals = self.streams.take_goals(owner=principal.name)
+        if not (on_its_way or ended or goals):
+            return _resolved(None)
+        self._sessions.end(principal)
+        log.warning("a motion command of '%s' was cancelled by its client: its own motion "
+                    "is stopped (on its way: %s, stream ended: %s, goals cancelled: %d); "
+                    "nobody else's", principal.name, on_its_way, ended, len(goals),
+                    extra={"principal": principal.name})
+        self._base.cancel_goals(goals, principal, why="cancelled by its client")
+        applied = {"scope": "own", "cancelled_by_client": True, "on_its_way": on_its_way,
+                   "stream_ended": stream.message_id if ended and stream else None,
+                   "goals_cancelled": [g.goal_id for g in goals]}
+        # Detached: the cancelled caller's task may be cancelled again; the entry must not be.
+        return self._detached(self._own_stop_recorded(principal, applied))
+
     async def sweep(self) -> None:
         """One round of housekeeping: expire HiTL requests, stop for lost sessions, record
         e-stop repeats that waited long enough."""
@@ -787,6 +821,13 @@ def _claims_more(claimed: Any, role: Role) -> bool:
     if isinstance(claimed, int) and not isinstance(claimed, bool) and claimed in (1, 2, 3, 4, 5):
         return Role(claimed) > role
     return True  # unintelligible claims are treated as claiming more
+
+
+def _resolved(value: Decision | None) -> asyncio.Future[Decision | None]:
+    """A future already done, of `value`."""
+    done: asyncio.Future[Decision | None] = asyncio.get_running_loop().create_future()
+    done.set_result(value)
+    return done
 
 
 async def _awaited(future: asyncio.Future[Any]) -> Any:

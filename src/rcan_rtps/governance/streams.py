@@ -95,6 +95,7 @@ class EndReason(str, enum.Enum):
     STOPPED = "stopped"
     ESTOPPED = "estopped"
     SESSION_LOST = "session_lost"
+    CANCELLED = "cancelled"  # its sender's client cancelled a motion command (an own stop)
     ROBOT_LOST = "robot_lost"
     BRIDGE_STOPPED = "bridge_stopped"
 

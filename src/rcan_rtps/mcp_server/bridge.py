@@ -4,6 +4,11 @@ server, `rcan-rtps mcp`).
 Replies come back as they are (status and JSON body), refusals included: deciding is the
 bridge's. What is not a reply — the bridge unreachable, a body that is not JSON — is a
 `BridgeUnavailable`, whose message says so without a traceback.
+
+A command is carried through: its caller cancelled (its MCP client cancelled the call) gets
+no reply, but the request goes on — the bridge decides a command it has whoever waits, and a
+stop must reach it all the same (cancelled, the request was cut off before the bridge had
+it). A motion command cancelled so is withdrawn (`motion`).
 """
 
 from __future__ import annotations
@@ -11,7 +16,8 @@ from __future__ import annotations
 import asyncio
 import copy
 import json
-from collections.abc import Iterable
+import logging
+from collections.abc import Awaitable, Callable, Coroutine, Iterable
 from types import TracebackType
 from typing import Any, overload
 from urllib.parse import quote, urlsplit
@@ -22,6 +28,7 @@ from rcan_rtps import _transport_warnings as transport
 
 from .ports import Blob, BridgeUnavailable, Reply
 
+log = logging.getLogger(__name__)
 REQUEST_TIMEOUT_S = 10.0
 __all__ = ["BridgeClient", "BridgeUnavailable", "Reply", "check_url"]
 
@@ -41,6 +48,26 @@ def path_part(value: str) -> str:
     return quote(value, safe="")
 
 
+def _settled(carried: set[asyncio.Task[Any]]) -> Callable[[asyncio.Task[Any]], None]:
+    """A carried request's end: forgotten, and its error taken (its caller may be gone)."""
+    def done(task: asyncio.Task[Any]) -> None:
+        carried.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.debug("a request whose caller was cancelled failed: %s", task.exception())
+    return done
+
+
+def _stopped_by(stop: Reply, command: Reply) -> bool:
+    """Whether the stop of a cancel (POST /api/command/cancel) ended what `command` started:
+    its stream, or its goal."""
+    applied = (stop.body.get("decision") or {}).get("applied") or {}
+    started = command.body.get("message_id")
+    if started is not None and applied.get("stream_ended") == started:
+        return True
+    goal = command.body.get("goal_id")
+    return goal is not None and goal in (applied.get("goals_cancelled") or ())
+
+
 class BridgeClient:
     def __init__(self, url: str, token: str, *, timeout_s: float = REQUEST_TIMEOUT_S) -> None:
         self.url = check_url(url)
@@ -48,6 +75,11 @@ class BridgeClient:
         self._timeout = aiohttp.ClientTimeout(total=timeout_s)
         self._http: aiohttp.ClientSession | None = None
         self._command_headers: dict[str, str] = {}
+        # Requests carried through for callers that were cancelled, and the withdrawals of
+        # cancelled motion commands: all of them done before the session closes (shared by
+        # the `warning` views, as the session is).
+        self._carried: set[asyncio.Task[Any]] = set()
+        self._withdrawing: set[asyncio.Task[None]] = set()
 
     def warning(self, warnings: Iterable[str]) -> BridgeClient:
         """This client (its session shared), its commands carrying `warnings` for their audit
@@ -64,12 +96,55 @@ class BridgeClient:
 
     async def __aexit__(self, kind: type[BaseException] | None, exc: BaseException | None,
                         tb: TracebackType | None) -> None:
+        while self._carried or self._withdrawing:  # each bounded by the request timeout
+            await asyncio.wait({*self._carried, *self._withdrawing})
         if self._http is not None:
             await self._http.close()
 
     # -- RobotApi -------------------------------------------------------------------------
 
     async def command(self, body: dict[str, Any]) -> Reply:
+        return await asyncio.shield(self._carry(self._command(body)))
+
+    async def motion(self, body: dict[str, Any]) -> Reply:
+        if self._withdrawing:  # a cancelled motion command's withdrawal comes first (`_withdraw`)
+            await asyncio.wait(set(self._withdrawing))
+        sent = self._carry(self._command(body))
+        try:
+            return await asyncio.shield(sent)
+        except asyncio.CancelledError:
+            told = self.cancel_motion()  # at once: its motion must not start meanwhile
+            withdrawing = asyncio.ensure_future(self._withdraw(sent, told))
+            self._withdrawing.add(withdrawing)
+            withdrawing.add_done_callback(self._withdrawing.discard)
+            raise
+
+    def cancel_motion(self) -> Awaitable[Reply]:
+        return self._carry(self._request("POST", "/api/command/cancel"))
+
+    async def _withdraw(self, sent: asyncio.Task[Reply], told: Awaitable[Reply]) -> None:
+        """A cancelled motion command's withdrawal, once its reply is known: the bridge was
+        told at once (`told`), but that request may have reached it before the command itself
+        did (two connections: either may be read first). A command then executed, which that
+        stop did not stop, is stopped now. Meanwhile this seat's next motion command waits
+        (`motion`): this second stop must not stop that."""
+        try:
+            stopped, reply = await told, await sent
+            if reply.body.get("outcome") == "executed" and not _stopped_by(stopped, reply):
+                await self.cancel_motion()
+        except BridgeUnavailable as exc:
+            log.warning("withdrawing a cancelled motion command: %s", exc)
+        except Exception:  # nobody awaits this: the log has it
+            log.exception("withdrawing a cancelled motion command failed")
+
+    def _carry(self, request: Coroutine[Any, Any, Reply]) -> asyncio.Task[Reply]:
+        """`request` in a task of its own, which a cancelled caller leaves running."""
+        task = asyncio.ensure_future(request)
+        self._carried.add(task)
+        task.add_done_callback(_settled(self._carried))
+        return task
+
+    async def _command(self, body: dict[str, Any]) -> Reply:
         return await self._request("POST", "/api/command", body, headers=self._command_headers)
 
     async def heartbeat(self) -> Reply:

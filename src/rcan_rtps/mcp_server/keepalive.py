@@ -63,6 +63,10 @@ class Keepalive:
     def hold_goal(self, key: str, goal_id: str, session: str | None = None) -> None:
         self._hold(key, Hold(goal_id=goal_id, session=session))
 
+    def release(self, key: str) -> None:
+        """One hold's motion was stopped: it is not held any more."""
+        self._holds.pop(key, None)
+
     def release_all(self) -> None:
         """The robot was stopped: nothing this server started runs any more."""
         self._holds.clear()

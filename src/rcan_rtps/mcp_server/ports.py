@@ -9,6 +9,7 @@ refusals included — deciding is the bridge's.
 
 from __future__ import annotations
 
+from collections.abc import Awaitable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -42,6 +43,16 @@ class RobotApi(Protocol):
 
     async def command(self, body: dict[str, Any]) -> Reply:
         """POST /api/command."""
+
+    async def motion(self, body: dict[str, Any]) -> Reply:
+        """POST /api/command of a motion command (`move`, `navigate`, ...) that its caller
+        may cancel (its MCP client's `notifications/cancelled`): cancelled before its reply,
+        the bridge is told at once (`cancel_motion`)."""
+
+    def cancel_motion(self) -> Awaitable[Reply]:
+        """POST /api/command/cancel, under way when this returns: a motion command of the
+        principal's was cancelled by its client; the principal's motion that has not started
+        never does, and what of it runs stops (its own alone: `Governor.command_cancelled`)."""
 
     async def heartbeat(self) -> Reply:
         """POST /api/heartbeat."""

@@ -18,6 +18,7 @@ import logging
 import signal
 import sys
 import uuid
+from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import replace
 from typing import Any, cast
@@ -27,9 +28,10 @@ import mcp_types as types
 from mcp.server.context import ServerRequestContext
 from mcp.server.lowlevel import Server
 from mcp.server.stdio import stdio_server
+from mcp.shared.dispatcher import coerce_request_id
 from mcp.shared.exceptions import MCPError
 from mcp.shared.message import SessionMessage
-from mcp_types.jsonrpc import INTERNAL_ERROR, INVALID_REQUEST
+from mcp_types.jsonrpc import INTERNAL_ERROR, INVALID_REQUEST, RequestId
 
 from rcan_rtps import __version__
 from rcan_rtps import _stop_signals as stop_signals
@@ -56,6 +58,7 @@ log = logging.getLogger(__name__)
 POLL_S = 0.5
 CLIENT_MAX = 256  # the bridge's `ai_client` is at most this long
 LIST_TTL_MS = 300_000
+ANSWERED_KEPT = 256  # motion calls answered, remembered for a cancel that crossed the answer
 INSTRUCTIONS = (
     "Tools of one robot, governed by its rcan-rtps bridge: each action is checked against "
     "your role, the safety limits and the e-stop, and audited with your identity. A move is "
@@ -129,6 +132,10 @@ class RobotTools:
         self._described = tools is not None or manifest is not None
         self._tools = tools if tools is not None else derive_tools(manifest=manifest)
         self._listing: tuple[dict[str, ToolDef], types.ListToolsResult] | None = None
+        # Motion calls answered `executed`, by MCP session and request id, for a cancel that
+        # crossed the answer (`cancelled`): the seat and the key of their hold.
+        self._answered: OrderedDict[tuple[str | None, RequestId], tuple[Seat, str]] = (
+            OrderedDict())
 
     async def list_tools(self, ctx: ServerRequestContext[Any],
                          params: types.PaginatedRequestParams | None) -> types.ListToolsResult:
@@ -171,7 +178,43 @@ class RobotTools:
                 return await self._command(seat, tool, args, client_of(ctx))
             return await self._read(seat, tool.name, args)
 
-        return await _guarded(tool.name, call)
+        done = await _guarded(tool.name, call)
+        if tool.action is not None and tool.action.motion and ctx.request_id is not None:
+            self._answered_motion(self._seat_of(ctx), ctx.request_id, done)
+        return done
+
+    def _answered_motion(self, seat: Seat, request_id: RequestId,
+                         done: types.CallToolResult) -> None:
+        data = done.structured_content or {}
+        if data.get("outcome") != "executed":
+            return
+        self._answered[(seat.session, coerce_request_id(request_id))] = (
+            seat, str(data.get("thought_id")))
+        while len(self._answered) > ANSWERED_KEPT:
+            self._answered.popitem(last=False)
+
+    async def cancelled(self, ctx: ServerRequestContext[Any],
+                        params: types.CancelledNotificationParams) -> None:
+        """A client's `notifications/cancelled`. One naming a call being carried out cancels
+        its handler (the SDK does that; a motion call's `RobotApi.motion` then withdraws its
+        motion). One naming a motion call already answered `executed` crossed that answer,
+        which the client drops: it never learns its motion started, so that motion is
+        stopped now, as if the cancel had come in time (the principal's own alone)."""
+        if params.request_id is None:
+            return
+        seat = self._seat_of(ctx)
+        key = (seat.session, coerce_request_id(params.request_id))
+        answered = self._answered.get(key)
+        if answered is None or answered[0].keepalive is not seat.keepalive:  # not its call
+            return
+        del self._answered[key]
+        seat.keepalive.release(answered[1])
+        log.warning("the MCP client cancelled motion call %r after its answer (it started): "
+                    "its principal's motion is stopped", params.request_id)
+        try:
+            await seat.api.cancel_motion()
+        except BridgeUnavailable as exc:
+            log.warning("stopping the motion of a cancelled call: %s", exc)
 
     async def stop_reply(self, seat: Seat, call: StopCall, warnings: tuple[str, ...] = ()
                          ) -> dict[str, Any]:
@@ -214,7 +257,9 @@ class RobotTools:
             return failure(f"`{DURATION}` is required: a {tool.name} an agent starts is timed",
                            "SCHEMA_VALIDATION_FAILED")
         with seat.keepalive.calling(seat.session):
-            reply = await seat.api.command(body)
+            # A motion call its client cancels must not leave the robot moving (`motion`).
+            send = seat.api.motion if tool.action.motion else seat.api.command
+            reply = await send(body)
             if reply.ok:
                 self._started(seat, tool, args, reply.body, key=thought_id)
         return result(reply, _outcome_note(reply.body), thought_id=thought_id)
@@ -369,12 +414,15 @@ def refused(reply: Reply) -> MCPError:
 
 
 def build_server(tools: RobotTools) -> Server[Any]:
-    return Server("rcan-rtps", version=__version__, instructions=INSTRUCTIONS,
-                  on_list_tools=tools.list_tools, on_call_tool=tools.call_tool,
-                  get_tool_input_schema=tools.input_schema,
-                  on_list_resources=tools.list_resources,
-                  on_list_resource_templates=tools.list_resource_templates,
-                  on_read_resource=tools.read_resource)
+    server: Server[Any] = Server(
+        "rcan-rtps", version=__version__, instructions=INSTRUCTIONS,
+        on_list_tools=tools.list_tools, on_call_tool=tools.call_tool,
+        get_tool_input_schema=tools.input_schema, on_list_resources=tools.list_resources,
+        on_list_resource_templates=tools.list_resource_templates,
+        on_read_resource=tools.read_resource)
+    server.add_notification_handler("notifications/cancelled",
+                                    types.CancelledNotificationParams, tools.cancelled)
+    return server
 
 
 async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:

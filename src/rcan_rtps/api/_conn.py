@@ -12,13 +12,18 @@ middleware interfaces and `request.protocol`. The wrapper never parses bytes, so
 happens to contain a blank line cannot fool it. A WebSocket is one long request: no deadline
 applies while it is open. A timer that fires closes the transport; aiohttp sees an ordinary
 disconnect. The body has its own deadline (`body_timeout_s`, in `read_limited`: 408).
+
+The wrapper also tells a handler that asks (`ConnectionDeadlines.hung_up`) when its client
+hangs up: aiohttp's server (`handler_cancellation=False`, its default) lets a handler run on
+after its connection is lost and says nothing to it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 from aiohttp import web
 from aiohttp.typedefs import Handler, Middleware
@@ -39,6 +44,7 @@ class _Watched(asyncio.Protocol):
         self._timer_due = 0.0  # loop time the timer fires at
         self._deadline: float | None = None  # loop time the connection is closed at
         self._in_request = 0
+        self._on_lost: list[Callable[[], None]] | None = None  # made when first asked for
 
     # -- asyncio.Protocol: forwarded as they come ------------------------------------------
 
@@ -53,6 +59,9 @@ class _Watched(asyncio.Protocol):
         self._cancel_timer()
         self._owner.watched.pop(self._inner, None)
         self._inner.connection_lost(exc)
+        told, self._on_lost = self._on_lost or [], None
+        for hung_up in told:
+            hung_up()
 
     def data_received(self, data: bytes) -> None:
         assert isinstance(self._inner, asyncio.Protocol)
@@ -69,6 +78,15 @@ class _Watched(asyncio.Protocol):
         self._inner.resume_writing()
 
     # -- requests -------------------------------------------------------------------------
+
+    def tell_when_lost(self, hung_up: Callable[[], None]) -> None:
+        if self._on_lost is None:
+            self._on_lost = []
+        self._on_lost.append(hung_up)
+
+    def forget(self, hung_up: Callable[[], None]) -> None:
+        if self._on_lost is not None and hung_up in self._on_lost:
+            self._on_lost.remove(hung_up)
 
     def request_started(self) -> None:
         self._in_request += 1
@@ -129,6 +147,24 @@ class ConnectionDeadlines:
     def wrap(self, factory: ProtocolFactory) -> Callable[[], asyncio.Protocol]:
         """A protocol factory for `loop.create_server`: aiohttp's, behind deadlines."""
         return lambda: _Watched(factory(), self)
+
+    @contextlib.contextmanager
+    def hung_up(self, request: web.BaseRequest, call: Callable[[], None]) -> Iterator[None]:
+        """`call` (once, from the event loop) if the request's client hangs up — its
+        connection is lost — within the block; at once if it has already. Nothing for a
+        connection not served through `wrap` (aiohttp's test server, which cancels the
+        handler itself)."""
+        watched = self.watched.get(request.protocol)
+        if watched is None:
+            if request.transport is None:  # lost before the block (`watched` forgot it)
+                asyncio.get_running_loop().call_soon(call)
+            yield
+            return
+        watched.tell_when_lost(call)
+        try:
+            yield
+        finally:
+            watched.forget(call)
 
 
 def track_requests(deadlines: ConnectionDeadlines) -> Middleware:

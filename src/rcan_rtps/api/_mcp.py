@@ -40,7 +40,7 @@ from rcan_rtps.mcp_server.stops import Rescue, StopCall, not_served, stop_call, 
 from ._bodies import error_response, json_response
 from ._commands import read_limited, too_large
 from ._errors import BodyEncoding
-from ._keys import GOVERNOR, PRINCIPAL, SETTINGS
+from ._keys import DEADLINES, GOVERNOR, PRINCIPAL, SETTINGS
 
 if TYPE_CHECKING:
     from rcan_rtps.mcp_server.http import HttpMcp
@@ -51,6 +51,7 @@ log = logging.getLogger(__name__)
 SESSION_HEADER = "Mcp-Session-Id"
 IDENTITY_MAX = 256
 EXTRA_HINT = "MCP needs the SDK on the bridge: pip install 'rcan-rtps[mcp]'"
+CLIENT_CLOSED = 499  # the status of a request whose client hung up before its answer (nginx's)
 
 
 def agent_of(request: web.Request) -> Agent:
@@ -131,13 +132,46 @@ class McpEndpoint:
         async def run(scope: Any, receive: Any, send: Any) -> None:
             await server.handle(scope, receive, send, seat, principal.name, principal.role.name)
 
-        response = await _asgi.serve(run, request, body, {})
+        if request.method == "POST" and server.cancelled_by_hanging_up(
+                list(request.raw_headers), body):
+            response = await self._served_till_hang_up(run, request, body)
+        else:
+            response = await _asgi.serve(run, request, body, {})
         if response is None:
             return error_response(503, "ROBOT_UNAVAILABLE", outcome="failed",
                                   reason="mcp_no_response")
         if request.method == "DELETE" and response.status < 300 and seat.session:
             await self._session_closed(seat)
         return response
+
+    async def _served_till_hang_up(self, run: Any, request: web.Request, body: bytes
+                                   ) -> web.StreamResponse | None:
+        """A motion call whose client cancels it by hanging up (the 2026-07-28 protocol),
+        cancelled when it does, as the SDK cancels a call a `notifications/cancelled` names:
+        its `motion` withdraws the principal's motion. aiohttp's server lets a handler run on
+        after its client left (the bridge keeps its default, `handler_cancellation=False`: a
+        stop is never to be cut off midway), so the door cancels this call alone."""
+        from . import _asgi
+
+        serving = asyncio.ensure_future(_asgi.serve(run, request, body, {}))
+        hung_up = False
+
+        def cancel() -> None:
+            nonlocal hung_up
+            hung_up = True
+            serving.cancel()
+
+        deadlines = request.app.get(DEADLINES)  # what tells of a hang-up (`_conn`)
+        watching = deadlines.hung_up(request, cancel) if deadlines else contextlib.nullcontext()
+        with watching:
+            try:
+                return await serving  # the handler cancelled (at shutdown) cancels it too
+            except asyncio.CancelledError:
+                if not hung_up:
+                    raise
+        log.info("an MCP client hung up on its motion call (its cancel): the call is "
+                 "cancelled")
+        return web.Response(status=CLIENT_CLOSED)  # nobody reads it
 
     async def _stopping_call(self, server: HttpMcp, request: web.Request,
                              rescue: Rescue) -> web.StreamResponse:

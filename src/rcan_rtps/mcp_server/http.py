@@ -13,6 +13,7 @@ event stream would only add framing to each reply.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 from collections.abc import Mapping
 from typing import Any
@@ -67,6 +68,24 @@ class HttpMcp:
         # The SDK binds a session to the credential that opened it (here: the principal).
         user = AuthenticatedUser(AccessToken(token="-", client_id=principal, scopes=[role]))
         await self._manager.handle_request({**scope, "user": user, SEAT: seat}, receive, send)
+
+    def cancelled_by_hanging_up(self, headers: list[tuple[bytes, bytes]], body: bytes) -> bool:
+        """The request is a motion tool's call (`tools/call` with an id) of a sessionless
+        protocol (2026-07-28 on), whose client cancels it by closing the request: that wire
+        has no `notifications/cancelled`. Read as the SDK reads it (the last of a repeated
+        key); what it cannot read it refuses, and is no such call."""
+        if not _modern(headers):
+            return False
+        try:
+            message = json.loads(body)
+        except (ValueError, RecursionError):  # not JSON, not text, nested too deep
+            return False
+        if not isinstance(message, dict) or message.get("method") != "tools/call" \
+                or message.get("id") is None:
+            return False
+        params = message.get("params")
+        name = params.get("name") if isinstance(params, dict) else None
+        return isinstance(name, str) and self._tools.is_motion(name)
 
     async def run_stop(self, seat: Seat, name: str, arguments: dict[str, Any],
                        request_id: Any, scope_headers: list[tuple[bytes, bytes]]

@@ -149,6 +149,11 @@ class RobotTools:
                 for t in self._tools.values()]))
         return self._listing[1]
 
+    def is_motion(self, name: str) -> bool:
+        """The tool named so is a motion tool's (`move`, `navigate`, ...)."""
+        tool = self._tools.get(name)
+        return tool is not None and tool.action is not None and tool.action.motion
+
     def input_schema(self, name: str) -> Mapping[str, Any] | None:
         """A tool's input schema, for the SDK's checks of a call (without listing them all)."""
         tool = self._tools.get(name)

@@ -151,6 +151,10 @@ async def visit_every_route(client: Client, proc: RunProcess) -> str:
                  "/api/safety/manifest", "/.well-known/rcan-node.json"):
         status, _ = await client.call("GET", path, user)
         assert status == 200, path
+    # A cancelled motion command's withdrawal (`rcan-rtps mcp` sends it), before anything of
+    # the user's moves: nothing to stop.
+    status, cancel = await client.call("POST", "/api/command/cancel", user)
+    assert (status, cancel["stopped"]) == (200, False), cancel
     await client.websocket(owner)  # left open: the shutdown closes it
     # HiTL: one arm command denied, one withdrawn by its issuer, one approved.
     arm = {"action": "arm_joint", "params": {"joints": ["elbow"], "positions": [0.2],

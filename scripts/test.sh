@@ -13,9 +13,12 @@
 #                      by scripts/install-aarch64.sh, for tests/aarch64 under qemu (root on
 #                      Linux; scripts/aarch64-emulated.sh; kept outside the clone, rebuilt only
 #                      when its recipe changes)
+#   .cache/venv-py310  the wheel with its test extra on Python 3.10, the oldest the project
+#                      promises (scripts/python310.sh), where there is a 3.10 interpreter; part
+#                      of the suite runs on it after the rest (a missing one fails CI=true)
 # On Linux as root the suite runs inside a private network namespace (loopback only);
 # elsewhere every DDS participant is restricted to localhost discovery.
-# Extra arguments go to pytest (both phases: scripts/pytest_phases.sh).
+# Extra arguments go to pytest (both phases: scripts/pytest_phases.sh; not the 3.10 stage).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -101,6 +104,16 @@ rm -rf .cache/dist
 quiet_pip .venv/bin/pip wheel -q --no-deps -w .cache/dist .
 export RCAN_RTPS_WHEEL_DIR="$PWD/.cache/dist"
 
+echo "== Python 3.10 (.cache/venv-py310): the wheel on the oldest Python the project promises"
+# requires-python >= 3.10 (a Jetson's Ubuntu 22.04): scripts/python310.sh installs the wheel
+# with its test extra on a 3.10 interpreter; part of the suite runs there after the rest.
+py310_missing=""
+# Exit 3: no 3.10 interpreter here, the tests skipped (under CI=true that is exit 1 instead).
+bash scripts/python310.sh prepare .cache/dist/rcan_rtps-*.whl || case $? in
+  3) py310_missing=yes ;;
+  *) echo "the Python 3.10 environment was not made" >&2; exit 1 ;;
+esac
+
 echo "== arm64 root for the emulated aarch64 test (scripts/aarch64-emulated.sh prepare)"
 # Root on Linux only (binfmt_misc, chroot). Built once per recipe (cold: mmdebstrap, Cyclone C
 # cross-built, the binding built under emulation; docs/aarch64.md has the times) and kept
@@ -125,13 +138,25 @@ echo "== static checks"
 .venv/bin/mypy
 
 echo "== tests"
-# In parallel, then the serial tests alone (scripts/pytest_phases.sh; RCAN_RTPS_TEST_WORKERS).
-PHASES=(bash scripts/pytest_phases.sh "$@")
+# In parallel, then the serial tests alone (scripts/pytest_phases.sh; RCAN_RTPS_TEST_WORKERS),
+# then the Python 3.10 part (scripts/python310.sh), each in a private network namespace.
 if [ "$(uname -s)" = Linux ] && [ "$(id -u)" = 0 ] && [ -z "${RCAN_RTPS_IN_NETNS:-}" ]; then
-  export RCAN_RTPS_IN_NETNS=1
-  exec unshare -n sh -c 'ip link set lo up && ip link set lo multicast on &&
-    ip route add 224.0.0.0/4 dev lo && exec "$@"' sh "${PHASES[@]}"
+  isolated=(scripts/netns)
+else  # no namespace available: keep every participant on loopback
+  export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+  isolated=()
 fi
-# No namespace available: keep every participant on loopback.
-export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
-exec "${PHASES[@]}"
+suite=0
+"${isolated[@]}" bash scripts/pytest_phases.sh "$@" || suite=$?
+
+echo "== tests on Python 3.10 against the installed wheel (scripts/python310.sh)"
+py310=0
+if [ -n "$py310_missing" ]; then
+  echo "SKIPPED: no Python 3.10 interpreter (scripts/python310.sh find says where it looks)"
+else
+  started=$SECONDS
+  "${isolated[@]}" bash scripts/python310.sh test || py310=$?
+  echo "-- Python 3.10 stage: $(( SECONDS - started )) s"
+fi
+[ "$suite" -ne 0 ] && exit "$suite"
+exit "$py310"

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import sys
+import sysconfig
 from pathlib import Path
 
 import pytest
@@ -188,7 +190,23 @@ def _own_state_home(tmp_path_factory: pytest.TempPathFactory) -> None:
     os.environ["XDG_STATE_HOME"] = str(tmp_path_factory.mktemp("xdg-state"))
 
 
+def _refuse_the_source_tree() -> None:
+    """Under RCAN_RTPS_TEST_INSTALLED (scripts/python310.sh), the tests are of the installed
+    wheel: a rcan_rtps imported from src/ (PYTHONPATH, an editable install) would test the
+    tree instead, on whatever it happens to import."""
+    if not os.environ.get("RCAN_RTPS_TEST_INSTALLED"):
+        return
+    spec = importlib.util.find_spec("rcan_rtps")
+    origin = Path(spec.origin).resolve() if spec is not None and spec.origin else None
+    site = {Path(sysconfig.get_path(k)).resolve() for k in ("purelib", "platlib")}
+    if origin is None or not site.intersection(origin.parents):
+        raise pytest.UsageError(f"RCAN_RTPS_TEST_INSTALLED is set but rcan_rtps comes from "
+                                f"{origin or 'nowhere'}, not from {sys.executable}'s "
+                                "site-packages (an installed wheel)")
+
+
 def pytest_configure(config: pytest.Config) -> None:
+    _refuse_the_source_tree()
     # Whatever starts a DDS participant without naming a domain joins this worker's own, not
     # domain 0 shared with every other worker.
     os.environ["ROS_DOMAIN_ID"] = str(_DEFAULT_DOMAIN)

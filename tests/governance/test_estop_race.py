@@ -75,6 +75,7 @@ def _estop_won(harness: Harness, estopped: Decision, cleared: Decision) -> bool:
     return _seq(harness, estopped) > _seq(harness, cleared)
 
 
+@pytest.mark.slow  # a thousand races, each through the latch file: about a minute
 async def test_estop_and_clear_interleavings_agree_everywhere(harness: Harness) -> None:
     gov = await harness.governor()
     rng = random.Random(20261124)

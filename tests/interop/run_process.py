@@ -27,12 +27,14 @@ REQUEST_TIMEOUT = 10.0  # s: generous; a request that takes longer counts as a h
 
 
 class RunProcess:
-    """`python -m rcan_rtps <args>`; waits for its ready line (and the demo's tokens)."""
+    """`python -m rcan_rtps <args>` (or `program <args>`); waits for its ready line (and the
+    demo's tokens)."""
 
     def __init__(self, args: Sequence[str], env: dict[str, str], *, demo: bool,
-                 ready_timeout: float = 90.0) -> None:
+                 ready_timeout: float = 90.0,
+                 program: Sequence[str] = (sys.executable, "-m", "rcan_rtps")) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "rcan_rtps", *args], stdout=subprocess.PIPE,
+            [*program, *args], stdout=subprocess.PIPE,
             stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
         self.stdout: list[str] = []
         self.stderr: list[str] = []

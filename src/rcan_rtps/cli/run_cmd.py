@@ -85,11 +85,11 @@ def run_loop(main: Coroutine[Any, Any, int]) -> int:
         "event loop: %s", "asyncio" if uvloop is None else f"uvloop {uvloop.__version__}")
     if uvloop is None:
         return asyncio.run(main)
-    if sys.version_info >= (3, 11):
-        with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
-            return runner.run(main)
-    asyncio.set_event_loop_policy(uvloop.EventLoopPolicy())  # 3.10: no Runner
-    return asyncio.run(main)
+    # A uvloop loop for this run only, on every Python: 3.10's asyncio.run takes no loop
+    # factory, and uvloop's policy, set instead, made every later loop of the process (and
+    # other threads' loops meanwhile) a uvloop one, RCAN_RTPS_LOOP=asyncio or not.
+    result: int = uvloop.run(main)
+    return result
 
 
 def _uvloop() -> Any:

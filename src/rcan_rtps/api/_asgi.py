@@ -5,7 +5,8 @@ application runs (bounded like any other body), and what the route adds to the s
 asked) goes in as extra scope keys. The application's response is streamed as it comes
 (a Server-Sent Events stream stays open as long as the application writes to it). When the
 client goes away, the application's `receive()` says so (`http.disconnect`), and writes to
-the gone client raise `ConnectionResetError`, which ASGI applications take as a disconnect.
+the gone client raise `ConnectionResetError`, which ASGI applications take as a disconnect
+(but for a response's end, which is dropped: there is nothing left to tell that client).
 """
 
 from __future__ import annotations
@@ -79,8 +80,15 @@ class _Exchange:
             if body:
                 await self.response.write(body)
             if not message.get("more_body", False):
-                await self.response.write_eof()
-                self._done.set()
+                try:
+                    await self.response.write_eof()
+                except ConnectionResetError:
+                    # The client left first (the SDK's client closes its session and its
+                    # event stream together): nobody reads this end, and the SDK would log
+                    # its failure as an error with two tracebacks.
+                    pass
+                finally:
+                    self._done.set()
 
     def finish(self) -> None:
         self._done.set()

@@ -136,9 +136,14 @@ class RobotTools:
         # crossed the answer (`cancelled`): the seat and the key of their hold.
         self._answered: OrderedDict[tuple[str | None, RequestId], tuple[Seat, str]] = (
             OrderedDict())
+        # Per MCP session, its motion call answered last, until its next request: a listing
+        # that comes next is the SDK client checking that answer (`_checking`).
+        self._last_answered: OrderedDict[str | None, tuple[str | None, RequestId]] = (
+            OrderedDict())
 
     async def list_tools(self, ctx: ServerRequestContext[Any],
                          params: types.PaginatedRequestParams | None) -> types.ListToolsResult:
+        self._checking(self._seat_of(ctx), ctx.request_id)
         if not self._described:
             await self._describe(self._seat_of(ctx).api)
         if self._listing is None or self._listing[0] is not self._tools:
@@ -172,6 +177,7 @@ class RobotTools:
 
     async def call_tool(self, ctx: ServerRequestContext[Any],
                         params: types.CallToolRequestParams) -> types.CallToolResult:
+        self._last_answered.pop(self._seat_of(ctx).session, None)  # a call came in between
         tool = self._tools.get(params.name)
         if tool is None:
             return failure(f"no tool named {params.name!r}", "UNKNOWN_TOOL")
@@ -193,8 +199,27 @@ class RobotTools:
         data = done.structured_content or {}
         if data.get("outcome") != "executed":
             return
-        self._answered[(seat.session, coerce_request_id(request_id))] = (
-            seat, str(data.get("thought_id")))
+        key = (seat.session, coerce_request_id(request_id))
+        self._answered[key] = (seat, str(data.get("thought_id")))
+        self._last_answered[seat.session] = key
+        self._last_answered.move_to_end(seat.session)
+        for kept in (self._answered, self._last_answered):
+            while len(kept) > ANSWERED_KEPT:
+                kept.popitem(last=False)
+
+    def _checking(self, seat: Seat, request_id: RequestId | None) -> None:
+        """A tools/list right after a motion call's answer: the SDK's client lists the tools
+        to check that answer when it has no list (a session's first call; a list past its
+        ttl), and a caller cancelled meanwhile never gets the answer — the client's
+        `notifications/cancelled` names this listing, not the call. A cancel of it is taken
+        as one of that call (`cancelled`): else the move ran on, held by the heartbeats for
+        its whole duration. A listing cancelled for its own sake then stops the principal's
+        motion too: the safe side."""
+        last = self._last_answered.pop(seat.session, None)
+        answered = None if last is None else self._answered.get(last)
+        if answered is None or request_id is None:
+            return
+        self._answered[(seat.session, coerce_request_id(request_id))] = answered
         while len(self._answered) > ANSWERED_KEPT:
             self._answered.popitem(last=False)
 

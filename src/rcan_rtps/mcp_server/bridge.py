@@ -5,10 +5,12 @@ Replies come back as they are (status and JSON body), refusals included: decidin
 bridge's. What is not a reply — the bridge unreachable, a body that is not JSON — is a
 `BridgeUnavailable`, whose message says so without a traceback.
 
-A command is carried through: its caller cancelled (its MCP client cancelled the call) gets
-no reply, but the request goes on — the bridge decides a command it has whoever waits, and a
-stop must reach it all the same (cancelled, the request was cut off before the bridge had
-it). A motion command cancelled so is withdrawn (`motion`).
+A stop is carried through: its caller cancelled (its MCP client cancelled the call) gets no
+reply, but the request goes on — a stop must reach the bridge all the same (cut off, it
+mostly never did). A motion command is carried through too and, cancelled so, withdrawn
+(`motion`). Any other command is cut off with its caller: a `clear_estop`, `lock` or
+`unlock` its client no longer wants is not sent on (if the bridge had it whole already, it
+decides it: the client cannot tell).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from urllib.parse import quote, urlsplit
 import aiohttp
 
 from rcan_rtps import _transport_warnings as transport
+from rcan_rtps.rcan._salvage import stop_intent
 
 from .ports import Blob, BridgeUnavailable, Reply
 
@@ -104,6 +107,8 @@ class BridgeClient:
     # -- RobotApi -------------------------------------------------------------------------
 
     async def command(self, body: dict[str, Any]) -> Reply:
+        if stop_intent(body.items()) is None:  # not a stop: it goes no further than its caller
+            return await self._command(body)
         return await asyncio.shield(self._carry(self._command(body)))
 
     async def motion(self, body: dict[str, Any]) -> Reply:

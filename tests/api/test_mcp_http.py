@@ -520,3 +520,38 @@ async def test_another_principals_motion_goes_on(api: Api, monkeypatch: pytest.M
     assert active is not None and (active.owner, active.target.linear_x) == ("ops", 0.3)
     assert ZERO not in api.dispatcher.samples[samples:]
     assert [a for a, _ in api.dispatcher.calls] == ["move"]  # OPS's, and no halt
+
+
+ARM = {"joints": ["elbow"], "positions": [0.5], "duration_s": 1.0, "confidence": 0.9}
+
+
+def held_for(api: Api, who: str) -> list[str]:
+    return [p.pending_id for p in api.gov.pending() if p.issued_by == who]
+
+
+async def test_an_arm_joint_held_for_approval_when_its_call_is_cancelled_is_withdrawn(
+        api: Api, monkeypatch: pytest.MonkeyPatch) -> None:
+    """PLANNER's arm_joint (gated behind an OWNER) is held, its answer `pending_auth` not yet
+    sent, when its client cancels the call: it is withdrawn (HITL_WITHDRAWN by PLANNER, its
+    reason its client's cancel), and an OWNER's approval is answered `pending_not_found` and
+    moves nothing. SLOW's arm_joint held beside it still waits. Before, it stayed pending and
+    the approval moved the arm for a client that had cancelled."""
+    status, theirs = await api.command("slow", {"action": "arm_joint", "params": {
+        "joints": ["elbow"], "positions": [0.2], "duration_s": 1.0}})
+    assert (status, theirs["outcome"]) == (202, "pending_auth"), theirs
+    release, decided = answers_held(api)
+    async with cancelling(api, monkeypatch) as client:
+        call = asyncio.ensure_future(client.call_tool("arm_joint", ARM))
+        await asyncio.wait_for(decided.wait(), timeout=30)
+        [mine] = held_for(api, "planner")
+        await cancelled(call)
+        [withdrawn] = await eventually(
+            lambda: [e for e in api.entries if e["event"] == "HITL_WITHDRAWN"],
+            what="its withdrawal")
+        release.set()
+    assert (withdrawn["principal"], withdrawn["pending_id"]) == ("planner", mine), withdrawn
+    assert "cancelled" in withdrawn["approvals"][0]["reason"], withdrawn
+    assert held_for(api, "planner") == [] and held_for(api, "slow") == [theirs["pending_id"]]
+    status, late = await review(api, "authorize", "ops", mine)
+    assert (status, late["reason"]) == (404, "pending_not_found"), late
+    assert api.dispatcher.calls == []

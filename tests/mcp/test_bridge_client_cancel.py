@@ -10,8 +10,13 @@ import contextlib
 from pathlib import Path
 from typing import Any
 
+import pytest
+from aiohttp import web
+from aiohttp.test_utils import TestClient, TestServer
+from aiohttp.typedefs import Handler
 from waiting import eventually
 
+from rcan_rtps.mcp_server import bridge as bridge_module
 from rcan_rtps.mcp_server.bridge import BridgeClient
 from tests.api.apihelpers import TOKENS, Api
 
@@ -54,5 +59,36 @@ async def test_a_cancelled_stop_still_stops(tmp_path: Path) -> None:
         assert [e["principal"] for e in api.entries
                 if e["event"] == "COMMAND_DISPATCHED" and e["action_type"] == "stop"] == [
                     "planner"]
+    finally:
+        await api.close()
+
+
+async def test_a_bridge_without_the_cancel_route_is_named_too_old_once(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+        ) -> None:
+    """A bridge that predates POST /api/command/cancel answers it 404 (as its router answers
+    any unknown route): the server logs, once, that the bridge is too old to withdraw a
+    cancelled motion call and that the agent should send stop. Before, it logged nothing."""
+    monkeypatch.setattr(bridge_module, "_warned_too_old", False)
+    api = Api(tmp_path)
+    app = await api.build()
+
+    @web.middleware
+    async def without_cancel(request: web.Request, handler: Handler) -> web.StreamResponse:
+        if request.path == "/api/command/cancel":
+            raise web.HTTPNotFound()  # innermost: as the router's own 404 would
+        return await handler(request)
+
+    app.middlewares.append(without_cancel)
+    api.client = TestClient(TestServer(app, host="127.0.0.1"))
+    await api.client.start_server()
+    try:
+        async with BridgeClient(str(api.http.make_url("/")), TOKENS["planner"]) as bridge:
+            for _ in range(2):
+                told = await bridge.cancel_motion()
+                assert told.status == 404, told
+        warned = [r for r in caplog.records if "too old" in r.getMessage()]
+        assert len(warned) == 1, caplog.records
+        assert "send stop" in warned[0].getMessage() and warned[0].levelname == "WARNING"
     finally:
         await api.close()

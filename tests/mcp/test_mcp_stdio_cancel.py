@@ -26,7 +26,7 @@ from waiting import eventually
 
 from rcan_rtps.governance import Principal
 from tests.api.apihelpers import TOKENS, ZERO, Api, own_stops
-from tests.api.test_mcp_http import MOVE, NAVIGATE, cancelled, failed
+from tests.api.test_mcp_http import ARM, MOVE, NAVIGATE, cancelled, failed
 from tests.mcp.test_mcp_stdio_stops import _reply, _send, _stdio
 
 CALL = (b'{"jsonrpc": "2.0", "id": %d, "method": "tools/call", '
@@ -120,6 +120,30 @@ async def test_a_move_the_bridge_takes_after_the_cancel_is_stopped(tmp_path: Pat
         assert stop["applied"]["stream_ended"] == moved[0]["message_id"], (stop, moved)
         assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
 
+
+
+async def test_an_arm_joint_held_after_the_cancel_is_withdrawn(tmp_path: Path) -> None:
+    """The cancel reaches the governor before the arm_joint's command does, which is then
+    held for an OWNER (`pending_auth`): the server, which waits for the command's answer once
+    its call is cancelled, has it withdrawn (HITL_WITHDRAWN by PLANNER), and an approval
+    moves nothing. Before, it stayed pending, and the approval moved the arm."""
+    async with agent(tmp_path) as (api, client):
+        release, taking = api.hold_decisions(lambda c: c.spec.motion, decided=False)
+        told = _cancels_seen(api)
+        call = asyncio.ensure_future(client.call_tool("arm_joint", ARM))
+        await asyncio.wait_for(taking.wait(), timeout=60)
+        await cancelled(call)
+        await asyncio.wait_for(told.wait(), timeout=60)  # told: nothing of PLANNER's yet
+        release.set()
+        [withdrawn] = await eventually(
+            lambda: [e for e in api.entries if e["event"] == "HITL_WITHDRAWN"],
+            what="its withdrawal")
+        assert withdrawn["principal"] == "planner", withdrawn
+        assert api.gov.pending() == []
+        status, late = await api.call("POST", "/api/hitl/authorize", "ops",
+                                      body={"pending_id": withdrawn["pending_id"]})
+        assert (status, late["reason"]) == (404, "pending_not_found"), late
+        assert api.dispatcher.calls == []
 
 async def test_stops_whose_calls_are_cancelled_still_stop(tmp_path: Path) -> None:
     """An e-stop and 7 stops, each call followed at once by its `notifications/cancelled`

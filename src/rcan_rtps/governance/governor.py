@@ -83,6 +83,11 @@ SWEEP_INTERVAL_S = 0.05  # session-loss halt latency is timeout + at most this
 # ~2 at 8, and ~20 % less CPU per command, for an e-stop p99 under 500 clients of ~28 ms
 # (18 ms at 8, 60 ms at 32; target 50 ms).
 MAX_IN_FLIGHT = 16
+# The reasons of the withdrawals of held motion that the governor makes for its issuer.
+CANCELLED_BY_CLIENT = "withdrawn: its client cancelled a motion command of its issuer's"
+STOPPED_WHILE_HELD = ("withdrawn: its issuer's motion was stopped while it was being held "
+                      "(a motion command cancelled by its client, its connection closed, "
+                      "or a stop)")
 
 
 class Governor:
@@ -387,7 +392,7 @@ class Governor:
         if isinstance(gate, Rejection):
             return await self._steps.refuse(command, principal, gate)
         if isinstance(gate, Escalate):
-            return await self._desk.hold(command, principal, gate.approver_role)
+            return await self._held(command, principal, gate.approver_role, arrived)
         # A command still being carried out (waiting for a subscriber, say) is not silence.
         with self._sessions.in_flight(principal):
             decision = await self._execute(command, principal, applied,
@@ -395,6 +400,23 @@ class Governor:
         self._opened(principal, command, decision)
         self._sessions.heartbeat(principal)
         return decision
+
+    async def _held(self, command: NormalizedCommand, principal: Principal,
+                    approver_role: Role, arrived: StopMark | None) -> Decision:
+        """A command a human must authorize, held (PENDING_AUTH) — unless it is motion that
+        a stop of its sender's motion came for since it arrived (`arrived`: its client
+        cancelled a motion call, its connection closed, a `stop`): that motion must never
+        start, and a human approving it later would start it. Refused `stopped` as motion
+        not held is; a stop that comes while its PENDING_AUTH entry is written withdraws it
+        as soon as it is held (`command_cancelled` withdraws only what is held already)."""
+        if arrived is not None and self.streams.stopped_since(arrived):
+            return await self._steps.refuse(command, principal, outcomes.STOPPED)
+        held = await self._desk.hold(command, principal, approver_role)
+        # In the step it was put in the store: no review of it can come first.
+        if arrived is None or held.pending_id is None or not self.streams.stopped_since(arrived):
+            return held
+        return await self._desk.resolve(held.pending_id, principal, "withdraw",
+                                        STOPPED_WHILE_HELD)
 
     def _opened(self, principal: Principal, command: NormalizedCommand,
                 decision: Decision) -> None:
@@ -719,21 +741,23 @@ class Governor:
         or run on, for a caller that no longer wants it — and the governor cannot tell which
         of the principal's motion it was: all of it stops, and nobody else's. Now, before
         any await: its motion on its way never starts (as
-        `connection_closed`: refused `stopped`, or its goal cancelled once accepted), its
-        stream ends with zero, its goals are cancelled, and its control session ends
-        (nothing of its is left to guard).
+        `connection_closed`: refused `stopped`, or its goal cancelled once accepted; held for
+        a human once decided, it is refused or withdrawn instead: `_held`), its stream ends
+        with zero, its goals are cancelled, its control session ends (nothing of its is left
+        to guard), and its motion held for a human is withdrawn (`_withdraw_held`).
 
         Returns what to await: the entry of that stop of its own motion (NETWORK_LOSS_SAFE_STOP,
         `applied.cancelled_by_client`), written even if nobody awaits it, or None when
-        nothing of its was on its way or running."""
+        nothing of its was on its way or running; done once its withdrawals are on record."""
         if self._stopped:  # BRIDGE_STOPPED is the last entry: it halted everything before it
             return _resolved(None)
+        withdrawn = self._withdraw_held(principal)
         on_its_way = self.connection_closed(principal)
         stream = self.streams.active
         ended = self.streams.end_of(principal.name, EndReason.CANCELLED)
         goals = self.streams.take_goals(owner=principal.name)
         if not (on_its_way or ended or goals):
-            return _resolved(None)
+            return self._after(withdrawn, _resolved(None))
         self._sessions.end(principal)
         log.warning("a motion command of '%s' was cancelled by its client: its own motion "
                     "is stopped (on its way: %s, stream ended: %s, goals cancelled: %d); "
@@ -744,7 +768,31 @@ class Governor:
                    "stream_ended": stream.message_id if ended and stream else None,
                    "goals_cancelled": [g.goal_id for g in goals]}
         # Detached: the cancelled caller's task may be cancelled again; the entry must not be.
-        return self._detached(self._own_stop_recorded(principal, applied))
+        return self._after(withdrawn,
+                           self._detached(self._own_stop_recorded(principal, applied)))
+
+    def _after(self, withdrawn: list[asyncio.Future[Decision]],
+               stopped: asyncio.Future[Decision | None] | asyncio.Future[Decision]
+               ) -> Awaitable[Decision | None]:
+        """`stopped`, done once the withdrawals are on record too."""
+        if not withdrawn:
+            return stopped
+        return self._steps.spawn(_after(withdrawn, stopped))
+
+    def _withdraw_held(self, principal: Principal) -> list[asyncio.Future[Decision]]:
+        """Withdraws the principal's motion held for a human, as its issuer would
+        (HITL_WITHDRAWN, `CANCELLED_BY_CLIENT`): the cancelled command may be one of them,
+        answered `pending_auth` as the cancel came, and a human approving it later would move
+        the robot for a client that no longer wants it. From this step on no approval of
+        them counts (`HitlDesk.withdrawing`). Its other held commands stay."""
+        ids = self._desk.withdrawing(principal.name, lambda c: c.spec.motion)
+        if ids:
+            log.warning("a motion command of '%s' was cancelled by its client: its motion "
+                        "held for approval is withdrawn (%s)", principal.name, ", ".join(ids),
+                        extra={"principal": principal.name})
+        return [self._detached(self._desk.resolve(pending_id, principal, "withdraw",
+                                                  CANCELLED_BY_CLIENT))
+                for pending_id in ids]
 
     async def sweep(self) -> None:
         """One round of housekeeping: expire HiTL requests, stop for lost sessions, record
@@ -832,6 +880,13 @@ def _resolved(value: Decision | None) -> asyncio.Future[Decision | None]:
 
 async def _awaited(future: asyncio.Future[Any]) -> Any:
     return await future
+
+
+async def _after(first: list[asyncio.Future[Decision]],
+                 then: Awaitable[Decision | None]) -> Decision | None:
+    """`then`'s outcome, once `first` are done too (their outcomes are on record)."""
+    await asyncio.gather(*first, return_exceptions=True)
+    return await then
 
 
 def _fingerprint(command: NormalizedCommand) -> bytes:

@@ -62,6 +62,7 @@ class Held:
         self.pending = pending
         self.approvals: list[Approval] = []
         self.lock = asyncio.Lock()
+        self.withdrawing = False  # its withdrawal is under way: no approval counts any more
 
     @property
     def missing(self) -> int:

@@ -110,6 +110,22 @@ class HitlDesk:
             return None
         return found[0] if len(found) == 1 else None
 
+    def withdrawing(self, issuer: str, which: Callable[[NormalizedCommand], bool]
+                    ) -> list[str]:
+        """The ids of `issuer`'s held commands that `which` picks, to be withdrawn by the
+        caller (`resolve`), and no longer approved from this step on: an approval that comes
+        before its withdrawal is refused `pending_not_found`, as one after it is. One past its
+        TTL is left to expire."""
+        now = now_ms(self._clock)
+        ids = []
+        for held in self._pending.list():
+            pending = held.pending
+            if pending.issuer.name == issuer and pending.expires_at_ms > now \
+                    and which(pending.command):
+                held.withdrawing = True
+                ids.append(pending.pending_id)
+        return ids
+
     async def hold(self, command: NormalizedCommand, principal: Principal,
                    approver_role: Role) -> Decision:
         pending = PendingCommand(
@@ -170,6 +186,9 @@ class HitlDesk:
         taken from the store and returned with every review so far, to run or discard."""
         pending = held.pending
         if self._pending.get(pending.pending_id) is not held:  # resolved while this waited
+            return await self._refuse(verdict, reviewer, outcomes.PENDING_NOT_FOUND,
+                                      pending.pending_id, message_id)
+        if held.withdrawing and verdict == "approve":  # its issuer withdraws it (`withdrawing`)
             return await self._refuse(verdict, reviewer, outcomes.PENDING_NOT_FOUND,
                                       pending.pending_id, message_id)
         if pending.expires_at_ms <= now_ms(self._clock):

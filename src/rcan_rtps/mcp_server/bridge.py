@@ -60,6 +60,22 @@ def _settled(carried: set[asyncio.Task[Any]]) -> Callable[[asyncio.Task[Any]], N
     return done
 
 
+_warned_too_old = False
+
+
+def _warn_too_old(url: str) -> None:
+    """Once a process: the bridge has no POST /api/command/cancel (it predates it), so a
+    cancelled motion call's motion is not stopped, nor its held command withdrawn."""
+    global _warned_too_old
+    if _warned_too_old:
+        return
+    _warned_too_old = True
+    log.warning("the bridge at %s is too old to withdraw a cancelled motion call (POST "
+                "/api/command/cancel: 404): its motion may start or run on, and a command of "
+                "it held for approval stays pending; the agent should send stop (and withdraw "
+                "what it no longer wants approved)", url)
+
+
 def _stopped_by(stop: Reply, command: Reply) -> bool:
     """Whether the stop of a cancel (POST /api/command/cancel) ended what `command` started:
     its stream, or its goal."""
@@ -125,7 +141,13 @@ class BridgeClient:
             raise
 
     def cancel_motion(self) -> Awaitable[Reply]:
-        return self._carry(self._request("POST", "/api/command/cancel"))
+        return self._carry(self._cancel())
+
+    async def _cancel(self) -> Reply:
+        told = await self._request("POST", "/api/command/cancel")
+        if told.status == 404:
+            _warn_too_old(self.url)
+        return told
 
     async def _withdraw(self, sent: asyncio.Task[Reply], told: Awaitable[Reply]) -> None:
         """A cancelled motion command's withdrawal, once its reply is known: the bridge was
@@ -135,7 +157,12 @@ class BridgeClient:
         (`motion`): this second stop must not stop that."""
         try:
             stopped, reply = await told, await sent
-            if reply.body.get("outcome") == "executed" and not _stopped_by(stopped, reply):
+            outcome = reply.body.get("outcome")
+            # Held for a human after the cancel was decided (it found nothing of its yet):
+            # a second cancel withdraws it (`Governor.command_cancelled`), lest an approval
+            # start it for nobody.
+            if outcome == "pending_auth" or (outcome == "executed"
+                                             and not _stopped_by(stopped, reply)):
                 await self.cancel_motion()
         except BridgeUnavailable as exc:
             log.warning("withdrawing a cancelled motion command: %s", exc)

@@ -555,3 +555,30 @@ async def test_an_arm_joint_held_for_approval_when_its_call_is_cancelled_is_with
     status, late = await review(api, "authorize", "ops", mine)
     assert (status, late["reason"]) == (404, "pending_not_found"), late
     assert api.dispatcher.calls == []
+
+
+async def test_an_arm_joint_whose_held_answer_crosses_its_cancel_is_withdrawn(
+        api: Api, monkeypatch: pytest.MonkeyPatch) -> None:
+    """PLANNER's arm_joint is held for an OWNER and its answer `pending_auth` made, on its
+    way out, when its client cancels the call: the client drops that answer and never learns
+    of the pending id, so the command is withdrawn as if the cancel had come in time
+    (HITL_WITHDRAWN by PLANNER, its reason its client's cancel); an OWNER's approval after it
+    is answered `pending_not_found` and moves nothing. Before, only an `executed` answer was
+    remembered: it stayed held and the approval moved the arm for a client that had
+    cancelled."""
+    reply, answered = replies_held(monkeypatch, b"pending_auth")
+    async with cancelling(api, monkeypatch) as client:
+        call = asyncio.ensure_future(client.call_tool("arm_joint", ARM))
+        await asyncio.wait_for(answered.wait(), timeout=30)
+        [mine] = held_for(api, "planner")
+        await cancelled(call)
+        [withdrawn] = await eventually(
+            lambda: [e for e in api.entries if e["event"] == "HITL_WITHDRAWN"],
+            what="its withdrawal")
+    reply.set()
+    assert (withdrawn["principal"], withdrawn["pending_id"]) == ("planner", mine), withdrawn
+    assert "cancelled" in withdrawn["approvals"][0]["reason"], withdrawn
+    assert held_for(api, "planner") == []
+    status, late = await review(api, "authorize", "ops", mine)
+    assert (status, late["reason"]) == (404, "pending_not_found"), late
+    assert api.dispatcher.calls == []

@@ -132,8 +132,9 @@ class RobotTools:
         self._described = tools is not None or manifest is not None
         self._tools = tools if tools is not None else derive_tools(manifest=manifest)
         self._listing: tuple[dict[str, ToolDef], types.ListToolsResult] | None = None
-        # Motion calls answered `executed`, by MCP session and request id, for a cancel that
-        # crossed the answer (`cancelled`): the seat and the key of their hold.
+        # Motion calls answered `executed` or `pending_auth`, by MCP session and request id,
+        # for a cancel that crossed the answer (`cancelled`): the seat and the key of their
+        # hold (none for a held one: nothing of it runs yet).
         self._answered: OrderedDict[tuple[str | None, RequestId], tuple[Seat, str]] = (
             OrderedDict())
         # Per MCP session, its motion call answered last, until its next request: a listing
@@ -197,7 +198,9 @@ class RobotTools:
     def _answered_motion(self, seat: Seat, request_id: RequestId,
                          done: types.CallToolResult) -> None:
         data = done.structured_content or {}
-        if data.get("outcome") != "executed":
+        # A held one too: a client that drops its `pending_auth` answer never learns of it,
+        # and a human approving it later would move the robot for a caller that cancelled.
+        if data.get("outcome") not in ("executed", "pending_auth"):
             return
         key = (seat.session, coerce_request_id(request_id))
         self._answered[key] = (seat, str(data.get("thought_id")))
@@ -227,9 +230,10 @@ class RobotTools:
                         params: types.CancelledNotificationParams) -> None:
         """A client's `notifications/cancelled`. One naming a call being carried out cancels
         its handler (the SDK does that; a motion call's `RobotApi.motion` then withdraws its
-        motion). One naming a motion call already answered `executed` crossed that answer,
-        which the client drops: it never learns its motion started, so that motion is
-        stopped now, as if the cancel had come in time (the principal's own alone)."""
+        motion). One naming a motion call already answered `executed` or `pending_auth`
+        crossed that answer, which the client drops: it never learns its motion started, or
+        was held for a human, so that motion is stopped, or withdrawn, now, as if the cancel
+        had come in time (the principal's own alone: `Governor.command_cancelled`)."""
         if params.request_id is None:
             return
         seat = self._seat_of(ctx)
@@ -239,8 +243,9 @@ class RobotTools:
             return
         del self._answered[key]
         seat.keepalive.release(answered[1])
-        log.warning("the MCP client cancelled motion call %r after its answer (it started): "
-                    "its principal's motion is stopped", params.request_id)
+        log.warning("the MCP client cancelled motion call %r after its answer (it started, "
+                    "or was held for approval): its principal's motion is stopped and its "
+                    "held motion withdrawn", params.request_id)
         try:
             await seat.api.cancel_motion()
         except BridgeUnavailable as exc:

@@ -582,3 +582,52 @@ async def test_an_arm_joint_whose_held_answer_crosses_its_cancel_is_withdrawn(
     status, late = await review(api, "authorize", "ops", mine)
     assert (status, late["reason"]) == (404, "pending_not_found"), late
     assert api.dispatcher.calls == []
+
+
+def first_reply_held(monkeypatch: pytest.MonkeyPatch, saying: bytes
+                     ) -> tuple[asyncio.Event, asyncio.Event]:
+    """The first reply saying `saying` is held on its way out of /mcp until the first event
+    is set (the second is set once it is held); the others go out."""
+    release, answered = asyncio.Event(), asyncio.Event()
+    send = _asgi._Exchange.send
+
+    async def held(exchange: Any, message: Any) -> None:
+        if message["type"] == "http.response.body" and saying in message.get("body", b"") \
+                and not answered.is_set():
+            answered.set()
+            await release.wait()
+        await send(exchange, message)
+
+    monkeypatch.setattr(_asgi._Exchange, "send", held)
+    return release, answered
+
+
+async def test_another_principals_answers_do_not_make_a_crossing_cancel_miss(
+        api: Api, monkeypatch: pytest.MonkeyPatch) -> None:
+    """PLANNER's arm_joint is held and its answer on its way out when LESSEE's agent (no
+    session, the 2026 protocol) makes as many motion calls as the bridge remembers answers
+    of, each answered `pending_auth`; then PLANNER's client cancels its call. The cancel
+    still names a remembered call of PLANNER's: its arm_joint is withdrawn. Before, the
+    answers were remembered in one store for all principals, the oldest let go first:
+    another principal's calls pushed PLANNER's out, the cancel named nothing, and an OWNER
+    could approve the arm_joint later for a client that had cancelled it."""
+    from rcan_rtps.mcp_server.server import ANSWERED_KEPT
+
+    reply, answered = first_reply_held(monkeypatch, b"pending_auth")
+    async with cancelling(api, monkeypatch) as client:
+        call = asyncio.ensure_future(client.call_tool("arm_joint", ARM))
+        await asyncio.wait_for(answered.wait(), timeout=30)
+        [mine] = held_for(api, "planner")
+        async with agent(api, "lessee") as other:
+            for _ in range(ANSWERED_KEPT):
+                assert data(await other.call_tool("arm_joint", ARM))["outcome"] == \
+                    "pending_auth"
+        await cancelled(call)
+        [withdrawn] = await eventually(
+            lambda: [e for e in api.entries if e["event"] == "HITL_WITHDRAWN"],
+            what="its withdrawal")
+    reply.set()
+    assert (withdrawn["principal"], withdrawn["pending_id"]) == ("planner", mine), withdrawn
+    assert len(held_for(api, "lessee")) == ANSWERED_KEPT  # nobody else's is withdrawn
+    status, late = await review(api, "authorize", "ops", mine)
+    assert (status, late["reason"]) == (404, "pending_not_found"), late

@@ -21,7 +21,7 @@ import uuid
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import replace
-from typing import Any, cast
+from typing import Any, Generic, TypeVar, cast
 
 import anyio
 import mcp_types as types
@@ -58,7 +58,8 @@ log = logging.getLogger(__name__)
 POLL_S = 0.5
 CLIENT_MAX = 256  # the bridge's `ai_client` is at most this long
 LIST_TTL_MS = 300_000
-ANSWERED_KEPT = 256  # motion calls answered, remembered for a cancel that crossed the answer
+# Motion calls answered, remembered for a cancel that crossed the answer: so many a principal.
+ANSWERED_KEPT = 256
 INSTRUCTIONS = (
     "Tools of one robot, governed by its rcan-rtps bridge: each action is checked against "
     "your role, the safety limits and the e-stop, and audited with your identity. A move is "
@@ -115,6 +116,39 @@ def _outcome_note(body: dict[str, Any]) -> str:
 
 
 SeatOf = Callable[[ServerRequestContext[Any]], Seat]
+K = TypeVar("K")
+V = TypeVar("V")
+
+
+class PerPrincipal(Generic[K, V]):
+    """What is remembered of a principal's calls, apart from everyone else's (its seats'
+    `Keepalive` names it: one a principal), at most `ANSWERED_KEPT` of them, its oldest let
+    go first. Apart, so that another principal's calls never push one of its out: a cancel
+    crossing its answer would then name nothing, and its motion run on, or stay held for a
+    human to approve, for a client that cancelled it."""
+
+    def __init__(self) -> None:
+        self._kept: dict[Keepalive, OrderedDict[K, V]] = {}
+
+    def get(self, principal: Keepalive, key: K) -> V | None:
+        kept = self._kept.get(principal)
+        return None if kept is None else kept.get(key)
+
+    def put(self, principal: Keepalive, key: K, value: V) -> None:
+        kept = self._kept.setdefault(principal, OrderedDict())
+        kept[key] = value
+        kept.move_to_end(key)
+        while len(kept) > ANSWERED_KEPT:
+            kept.popitem(last=False)
+
+    def pop(self, principal: Keepalive, key: K) -> V | None:
+        kept = self._kept.get(principal)
+        if kept is None:
+            return None
+        value = kept.pop(key, None)
+        if not kept:
+            del self._kept[principal]
+        return value
 
 
 class RobotTools:
@@ -132,15 +166,15 @@ class RobotTools:
         self._described = tools is not None or manifest is not None
         self._tools = tools if tools is not None else derive_tools(manifest=manifest)
         self._listing: tuple[dict[str, ToolDef], types.ListToolsResult] | None = None
-        # Motion calls answered `executed` or `pending_auth`, by MCP session and request id,
-        # for a cancel that crossed the answer (`cancelled`): the seat and the key of their
+        # Motion calls answered `executed` or `pending_auth`, per principal, by MCP session
+        # and request id, for a cancel that crossed the answer (`cancelled`): the key of their
         # hold (none for a held one: nothing of it runs yet).
-        self._answered: OrderedDict[tuple[str | None, RequestId], tuple[Seat, str]] = (
-            OrderedDict())
-        # Per MCP session, its motion call answered last, until its next request: a listing
-        # that comes next is the SDK client checking that answer (`_checking`).
-        self._last_answered: OrderedDict[str | None, tuple[str | None, RequestId]] = (
-            OrderedDict())
+        self._answered: PerPrincipal[tuple[str | None, RequestId], str] = PerPrincipal()
+        # Per MCP session (per principal), its motion call answered last, until its next
+        # request: a listing that comes next is the SDK client checking that answer
+        # (`_checking`).
+        self._last_answered: PerPrincipal[str | None, tuple[str | None, RequestId]] = (
+            PerPrincipal())
 
     async def list_tools(self, ctx: ServerRequestContext[Any],
                          params: types.PaginatedRequestParams | None) -> types.ListToolsResult:
@@ -178,21 +212,21 @@ class RobotTools:
 
     async def call_tool(self, ctx: ServerRequestContext[Any],
                         params: types.CallToolRequestParams) -> types.CallToolResult:
-        self._last_answered.pop(self._seat_of(ctx).session, None)  # a call came in between
+        seat = self._seat_of(ctx)
+        self._last_answered.pop(seat.keepalive, seat.session)  # a call came in between
         tool = self._tools.get(params.name)
         if tool is None:
             return failure(f"no tool named {params.name!r}", "UNKNOWN_TOOL")
         args = dict(params.arguments or {})
 
         async def call() -> types.CallToolResult:
-            seat = self._seat_of(ctx)
             if tool.action is not None:
                 return await self._command(seat, tool, args, client_of(ctx))
             return await self._read(seat, tool.name, args)
 
         done = await _guarded(tool.name, call)
         if tool.action is not None and tool.action.motion and ctx.request_id is not None:
-            self._answered_motion(self._seat_of(ctx), ctx.request_id, done)
+            self._answered_motion(seat, ctx.request_id, done)
         return done
 
     def _answered_motion(self, seat: Seat, request_id: RequestId,
@@ -203,12 +237,8 @@ class RobotTools:
         if data.get("outcome") not in ("executed", "pending_auth"):
             return
         key = (seat.session, coerce_request_id(request_id))
-        self._answered[key] = (seat, str(data.get("thought_id")))
-        self._last_answered[seat.session] = key
-        self._last_answered.move_to_end(seat.session)
-        for kept in (self._answered, self._last_answered):
-            while len(kept) > ANSWERED_KEPT:
-                kept.popitem(last=False)
+        self._answered.put(seat.keepalive, key, str(data.get("thought_id")))
+        self._last_answered.put(seat.keepalive, seat.session, key)
 
     def _checking(self, seat: Seat, request_id: RequestId | None) -> None:
         """A tools/list right after a motion call's answer: the SDK's client lists the tools
@@ -218,13 +248,12 @@ class RobotTools:
         as one of that call (`cancelled`): else the move ran on, held by the heartbeats for
         its whole duration. A listing cancelled for its own sake then stops the principal's
         motion too: the safe side."""
-        last = self._last_answered.pop(seat.session, None)
-        answered = None if last is None else self._answered.get(last)
+        last = self._last_answered.pop(seat.keepalive, seat.session)
+        answered = None if last is None else self._answered.get(seat.keepalive, last)
         if answered is None or request_id is None:
             return
-        self._answered[(seat.session, coerce_request_id(request_id))] = answered
-        while len(self._answered) > ANSWERED_KEPT:
-            self._answered.popitem(last=False)
+        self._answered.put(seat.keepalive, (seat.session, coerce_request_id(request_id)),
+                           answered)
 
     async def cancelled(self, ctx: ServerRequestContext[Any],
                         params: types.CancelledNotificationParams) -> None:
@@ -237,12 +266,12 @@ class RobotTools:
         if params.request_id is None:
             return
         seat = self._seat_of(ctx)
-        key = (seat.session, coerce_request_id(params.request_id))
-        answered = self._answered.get(key)
-        if answered is None or answered[0].keepalive is not seat.keepalive:  # not its call
+        # Only its principal's calls are looked at: another's is never its to cancel.
+        answered = self._answered.pop(seat.keepalive,
+                                      (seat.session, coerce_request_id(params.request_id)))
+        if answered is None:
             return
-        del self._answered[key]
-        seat.keepalive.release(answered[1])
+        seat.keepalive.release(answered)
         log.warning("the MCP client cancelled motion call %r after its answer (it started, "
                     "or was held for approval): its principal's motion is stopped and its "
                     "held motion withdrawn", params.request_id)

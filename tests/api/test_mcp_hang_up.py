@@ -28,7 +28,7 @@ from mcp.shared._httpx_utils import create_mcp_http_client
 from waiting import eventually
 
 from rcan_rtps.api import ApiServer
-from tests.api.apihelpers import TOKENS, ZERO, Api, auth, own_stops
+from tests.api.apihelpers import TOKENS, Api, auth, own_stops
 from tests.api.test_mcp_http import (
     AGENT,
     CLIENT,
@@ -36,6 +36,8 @@ from tests.api.test_mcp_http import (
     NAVIGATE,
     _endpoint,
     answers_held,
+    assert_never_started,
+    assert_zeroed_by_cancel,
     cancelled,
     failed,
 )
@@ -85,13 +87,7 @@ async def test_a_motion_call_hung_up_on_while_it_waits_never_starts(
         [stop] = await eventually(lambda: own_stops(api.entries), what="the hang-up's stop")
         release.set()
         [refused] = await eventually(lambda: failed(api, tool), what="its refusal")
-    assert refused["deny_reason"] == "COMMAND_REJECTED:stopped", refused
-    assert stop["principal"] == "planner" and stop["applied"] == {
-        "scope": "own", "cancelled_by_client": True, "on_its_way": True,
-        "stream_ended": None, "goals_cancelled": []}, stop
-    assert api.dispatcher.calls == [] and api.dispatcher.samples == []
-    assert api.gov.streams.active is None and api.gov.streams.goals == {}
-    assert not _endpoint(api)._keepalives["planner"].holding
+    assert_never_started(api, stop, refused)
 
 
 async def test_a_move_hung_up_on_as_its_answer_is_made_is_zeroed(
@@ -108,11 +104,7 @@ async def test_a_move_hung_up_on_as_its_answer_is_made_is_zeroed(
         assert active is not None and active.owner == "planner"
         await cancelled(call)
         [stop] = await eventually(lambda: own_stops(api.entries), what="the hang-up's stop")
-    assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
-    [ended] = [e for e in api.entries if e["event"] == "STREAM_ENDED"]
-    assert (ended["params"]["reason"], ended["params"]["ended_by"]) == ("cancelled", "planner")
-    assert stop["applied"]["stream_ended"] == active.message_id, stop
-    assert stop["applied"]["cancelled_by_client"] is True
+    assert_zeroed_by_cancel(api, stop, active)
     assert [a for a, _ in api.dispatcher.calls] == ["move"]  # no stop of the whole robot
     assert not _endpoint(api)._keepalives["planner"].holding
 

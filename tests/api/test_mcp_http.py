@@ -419,15 +419,17 @@ def answers_held(api: Api) -> tuple[asyncio.Event, asyncio.Event]:
     return api.hold_decisions(lambda command: command.spec.motion, decided=True)
 
 
-def replies_held(monkeypatch: pytest.MonkeyPatch, saying: bytes
+def replies_held(monkeypatch: pytest.MonkeyPatch, saying: bytes, *, first_only: bool = False
                  ) -> tuple[asyncio.Event, asyncio.Event]:
     """A reply saying `saying` is held on its way out of /mcp (its handler has returned)
-    until the first event is set; the second is set once one is held."""
+    until the first event is set; the second is set once one is held. `first_only`: only
+    the first such reply is held, the others go out."""
     release, answered = asyncio.Event(), asyncio.Event()
     send = _asgi._Exchange.send
 
     async def held(exchange: Any, message: Any) -> None:
-        if message["type"] == "http.response.body" and saying in message.get("body", b""):
+        if message["type"] == "http.response.body" and saying in message.get("body", b"") \
+                and not (first_only and answered.is_set()):
             answered.set()
             await release.wait()
         await send(exchange, message)
@@ -448,6 +450,35 @@ async def cancelling(api: Api, monkeypatch: pytest.MonkeyPatch) -> AsyncIterator
         reply.set()
 
 
+async def withdrawals(api: Api) -> list[dict[str, Any]]:
+    """The HITL_WITHDRAWN entries, once there is one."""
+    return await eventually(lambda: [e for e in api.entries if e["event"] == "HITL_WITHDRAWN"],
+                            what="its withdrawal")
+
+
+def assert_never_started(api: Api, stop: dict[str, Any], refused: dict[str, Any]) -> None:
+    """PLANNER's motion call, cancelled while it waited for the robot: refused `stopped`,
+    nothing of it reached the robot, its own stop audited as its client's cancel, and no
+    heartbeat holds anything of it."""
+    assert refused["deny_reason"] == "COMMAND_REJECTED:stopped", refused
+    assert stop["principal"] == "planner" and stop["applied"] == {
+        "scope": "own", "cancelled_by_client": True, "on_its_way": True,
+        "stream_ended": None, "goals_cancelled": []}, stop
+    assert api.dispatcher.calls == [] and api.dispatcher.samples == []
+    assert api.gov.streams.active is None and api.gov.streams.goals == {}
+    assert not _endpoint(api)._keepalives["planner"].holding
+
+
+def assert_zeroed_by_cancel(api: Api, stop: dict[str, Any], active: Any) -> None:
+    """PLANNER's running move (`active`), cancelled by its client: its stream ended with
+    zero, ended as cancelled by PLANNER, its own stop audited as its client's cancel."""
+    assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
+    [ended] = [e for e in api.entries if e["event"] == "STREAM_ENDED"]
+    assert (ended["params"]["reason"], ended["params"]["ended_by"]) == ("cancelled", "planner")
+    assert stop["applied"]["stream_ended"] == active.message_id, stop
+    assert stop["applied"]["cancelled_by_client"] is True
+
+
 @pytest.mark.parametrize(("tool", "args"), [("move", MOVE), ("navigate", NAVIGATE)])
 async def test_a_motion_call_cancelled_while_it_waits_never_starts(
         api: Api, monkeypatch: pytest.MonkeyPatch, tool: str, args: dict[str, Any]) -> None:
@@ -462,13 +493,7 @@ async def test_a_motion_call_cancelled_while_it_waits_never_starts(
         [stop] = await eventually(lambda: own_stops(api.entries), what="the cancel's own stop")
         release.set()
         [refused] = await eventually(lambda: failed(api, tool), what="its refusal")
-    assert refused["deny_reason"] == "COMMAND_REJECTED:stopped", refused
-    assert stop["principal"] == "planner" and stop["applied"] == {
-        "scope": "own", "cancelled_by_client": True, "on_its_way": True,
-        "stream_ended": None, "goals_cancelled": []}, stop
-    assert api.dispatcher.calls == [] and api.dispatcher.samples == []
-    assert api.gov.streams.active is None and api.gov.streams.goals == {}
-    assert not _endpoint(api)._keepalives["planner"].holding
+    assert_never_started(api, stop, refused)
 
 
 @pytest.mark.parametrize("answer", ["being_made", "on_its_way_out"])
@@ -492,11 +517,7 @@ async def test_a_move_cancelled_after_it_started_is_zeroed(
         [stop] = await eventually(lambda: own_stops(api.entries), what="the cancel's own stop")
     if answer == "on_its_way_out":
         reply.set()
-    assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
-    [ended] = [e for e in api.entries if e["event"] == "STREAM_ENDED"]
-    assert (ended["params"]["reason"], ended["params"]["ended_by"]) == ("cancelled", "planner")
-    assert stop["applied"]["stream_ended"] == active.message_id, stop
-    assert stop["applied"]["cancelled_by_client"] is True
+    assert_zeroed_by_cancel(api, stop, active)
     assert [a for a, _ in api.dispatcher.calls] == ["move"]  # no stop of the whole robot
     assert not _endpoint(api)._keepalives["planner"].holding
 
@@ -545,9 +566,7 @@ async def test_an_arm_joint_held_for_approval_when_its_call_is_cancelled_is_with
         await asyncio.wait_for(decided.wait(), timeout=30)
         [mine] = held_for(api, "planner")
         await cancelled(call)
-        [withdrawn] = await eventually(
-            lambda: [e for e in api.entries if e["event"] == "HITL_WITHDRAWN"],
-            what="its withdrawal")
+        [withdrawn] = await withdrawals(api)
         release.set()
     assert (withdrawn["principal"], withdrawn["pending_id"]) == ("planner", mine), withdrawn
     assert "cancelled" in withdrawn["approvals"][0]["reason"], withdrawn
@@ -572,9 +591,7 @@ async def test_an_arm_joint_whose_held_answer_crosses_its_cancel_is_withdrawn(
         await asyncio.wait_for(answered.wait(), timeout=30)
         [mine] = held_for(api, "planner")
         await cancelled(call)
-        [withdrawn] = await eventually(
-            lambda: [e for e in api.entries if e["event"] == "HITL_WITHDRAWN"],
-            what="its withdrawal")
+        [withdrawn] = await withdrawals(api)
     reply.set()
     assert (withdrawn["principal"], withdrawn["pending_id"]) == ("planner", mine), withdrawn
     assert "cancelled" in withdrawn["approvals"][0]["reason"], withdrawn
@@ -582,24 +599,6 @@ async def test_an_arm_joint_whose_held_answer_crosses_its_cancel_is_withdrawn(
     status, late = await review(api, "authorize", "ops", mine)
     assert (status, late["reason"]) == (404, "pending_not_found"), late
     assert api.dispatcher.calls == []
-
-
-def first_reply_held(monkeypatch: pytest.MonkeyPatch, saying: bytes
-                     ) -> tuple[asyncio.Event, asyncio.Event]:
-    """The first reply saying `saying` is held on its way out of /mcp until the first event
-    is set (the second is set once it is held); the others go out."""
-    release, answered = asyncio.Event(), asyncio.Event()
-    send = _asgi._Exchange.send
-
-    async def held(exchange: Any, message: Any) -> None:
-        if message["type"] == "http.response.body" and saying in message.get("body", b"") \
-                and not answered.is_set():
-            answered.set()
-            await release.wait()
-        await send(exchange, message)
-
-    monkeypatch.setattr(_asgi._Exchange, "send", held)
-    return release, answered
 
 
 async def test_another_principals_answers_do_not_make_a_crossing_cancel_miss(
@@ -613,7 +612,7 @@ async def test_another_principals_answers_do_not_make_a_crossing_cancel_miss(
     could approve the arm_joint later for a client that had cancelled it."""
     from rcan_rtps.mcp_server.server import ANSWERED_KEPT
 
-    reply, answered = first_reply_held(monkeypatch, b"pending_auth")
+    reply, answered = replies_held(monkeypatch, b"pending_auth", first_only=True)
     async with cancelling(api, monkeypatch) as client:
         call = asyncio.ensure_future(client.call_tool("arm_joint", ARM))
         await asyncio.wait_for(answered.wait(), timeout=30)
@@ -623,9 +622,7 @@ async def test_another_principals_answers_do_not_make_a_crossing_cancel_miss(
                 assert data(await other.call_tool("arm_joint", ARM))["outcome"] == \
                     "pending_auth"
         await cancelled(call)
-        [withdrawn] = await eventually(
-            lambda: [e for e in api.entries if e["event"] == "HITL_WITHDRAWN"],
-            what="its withdrawal")
+        [withdrawn] = await withdrawals(api)
     reply.set()
     assert (withdrawn["principal"], withdrawn["pending_id"]) == ("planner", mine), withdrawn
     assert len(held_for(api, "lessee")) == ANSWERED_KEPT  # nobody else's is withdrawn

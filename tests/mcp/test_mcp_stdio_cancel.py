@@ -26,7 +26,7 @@ from waiting import eventually
 
 from rcan_rtps.governance import Principal
 from tests.api.apihelpers import TOKENS, ZERO, Api, own_stops
-from tests.api.test_mcp_http import ARM, MOVE, NAVIGATE, cancelled, failed
+from tests.api.test_mcp_http import ARM, MOVE, NAVIGATE, cancelled, failed, withdrawals
 from tests.mcp.test_mcp_stdio_stops import _reply, _send, _stdio
 
 CALL = (b'{"jsonrpc": "2.0", "id": %d, "method": "tools/call", '
@@ -135,9 +135,7 @@ async def test_an_arm_joint_held_after_the_cancel_is_withdrawn(tmp_path: Path) -
         await cancelled(call)
         await asyncio.wait_for(told.wait(), timeout=60)  # told: nothing of PLANNER's yet
         release.set()
-        [withdrawn] = await eventually(
-            lambda: [e for e in api.entries if e["event"] == "HITL_WITHDRAWN"],
-            what="its withdrawal")
+        [withdrawn] = await withdrawals(api)
         assert withdrawn["principal"] == "planner", withdrawn
         assert api.gov.pending() == []
         status, late = await api.call("POST", "/api/hitl/authorize", "ops",

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +16,7 @@ from recording import RecordingDispatcher
 from rcan_rtps.config import RcanConfig, loads_config
 from rcan_rtps.governance.audit import AuditLog, AuditRecord
 from rcan_rtps.governance.clock import ManualClock
-from rcan_rtps.governance.governor import Governor
+from rcan_rtps.governance.governor import Decision, Governor
 from rcan_rtps.governance.hitl import Notifier
 from rcan_rtps.governance.rbac import DEFAULT_RATE_LIMITS, Principal
 from rcan_rtps.rcan import NormalizedCommand, Role, validate_command
@@ -139,3 +139,19 @@ def motion_held_at(gov: Governor, harness: Harness, where: str
 
     gov._steps.write_ahead = held_write  # type: ignore[method-assign]
     return release, entered
+
+
+async def held_motion_stopped(gov: Governor, harness: Harness, where: str,
+                              motion: Coroutine[Any, Any, Decision],
+                              stop: Callable[[], Awaitable[Decision | None]]) -> Decision | None:
+    """`motion` waits at `where` (`motion_held_at`) when `stop` comes; then it goes on and is
+    refused `stopped`, and the governor's tasks end. The stop's decision."""
+    release, entered = motion_held_at(gov, harness, where)
+    moving = asyncio.ensure_future(motion)
+    await asyncio.wait_for(entered.wait(), timeout=10)
+    stopped = await stop()
+    release.set()
+    moved = await moving
+    assert (moved.http_status, moved.reason) == (409, "stopped"), moved
+    await asyncio.gather(*gov._tasks)
+    return stopped

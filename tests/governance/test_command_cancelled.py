@@ -11,7 +11,15 @@ import asyncio
 from typing import Any
 
 import pytest
-from govhelpers import OPS, PLANNER, Harness, command, motion_held_at, principal
+from govhelpers import (
+    OPS,
+    PLANNER,
+    Harness,
+    command,
+    held_motion_stopped,
+    motion_held_at,
+    principal,
+)
 
 from rcan_rtps.governance.audit import AuditEvent, AuditRecord
 from rcan_rtps.governance.governor import (
@@ -40,15 +48,10 @@ async def test_motion_on_its_way_when_its_command_is_cancelled_never_starts(
     it is refused `stopped`, nothing of it reaches the robot, and the stop of PLANNER's own
     motion is audited as its client's cancel."""
     gov = await harness.governor()
-    release, entered = motion_held_at(gov, harness, where)
-    moving = asyncio.ensure_future(gov.decide(command(action, MOTION[action]), PLANNER))
-    await asyncio.wait_for(entered.wait(), timeout=10)
-    stopped = await gov.command_cancelled(PLANNER)
+    stopped = await held_motion_stopped(gov, harness, where,
+                                        gov.decide(command(action, MOTION[action]), PLANNER),
+                                        lambda: gov.command_cancelled(PLANNER))
     assert stopped is not None and stopped.outcome is Outcome.EXECUTED, stopped
-    release.set()
-    moved = await moving
-    assert (moved.http_status, moved.reason) == (409, "stopped"), moved
-    await asyncio.gather(*gov._tasks)
     assert gov.streams.active is None and gov.streams.goals == {}
     assert harness.dispatcher.calls == [] and harness.dispatcher.samples == []
     [entry] = _own_stops(harness)

@@ -15,7 +15,16 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 import pytest
-from govhelpers import ADMIN, OPS, PLANNER, Harness, LossTrial, command, motion_held_at
+from govhelpers import (
+    ADMIN,
+    OPS,
+    PLANNER,
+    Harness,
+    LossTrial,
+    command,
+    held_motion_stopped,
+    motion_held_at,
+)
 
 from rcan_rtps.governance.governor import MAX_IN_FLIGHT, Decision, Governor
 from rcan_rtps.rcan import Outcome
@@ -33,15 +42,10 @@ async def test_motion_decided_before_its_connection_closed_never_starts(
     closes. It is refused `stopped`; nothing of it reaches the robot. The loss is audited, of
     PLANNER's own motion (nothing else drives: nothing else to stop)."""
     gov = await harness.governor()
-    release, entered = motion_held_at(gov, harness, where)
-    moving = asyncio.ensure_future(gov.decide(command(action, MOTION[action]), PLANNER))
-    await asyncio.wait_for(entered.wait(), timeout=10)
-    lost = await gov.end_session(PLANNER)
+    lost = await held_motion_stopped(gov, harness, where,
+                                     gov.decide(command(action, MOTION[action]), PLANNER),
+                                     lambda: gov.end_session(PLANNER))
     assert lost is not None and lost.outcome is Outcome.EXECUTED, lost
-    release.set()
-    moved = await moving
-    assert (moved.http_status, moved.reason) == (409, "stopped"), moved
-    await asyncio.gather(*gov._tasks)
     assert gov.streams.active is None and gov.streams.goals == {}
     assert [a for a, _ in harness.dispatcher.calls] == []  # nothing reached the robot
     assert harness.dispatcher.samples == []

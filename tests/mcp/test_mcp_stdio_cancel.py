@@ -107,12 +107,7 @@ async def test_a_move_the_bridge_takes_after_the_cancel_is_stopped(tmp_path: Pat
     on its way yet, and the move then starts. The server, which waits for the move's answer
     once its call is cancelled, stops it when that answer says it executed."""
     async with agent(tmp_path) as (api, client):
-        release, taking = api.hold_decisions(lambda c: c.spec.motion, decided=False)
-        told = _cancels_seen(api)
-        call = asyncio.ensure_future(client.call_tool("move", MOVE))
-        await asyncio.wait_for(taking.wait(), timeout=60)
-        await cancelled(call)
-        await asyncio.wait_for(told.wait(), timeout=60)  # told: nothing of PLANNER's yet
+        release = await cancel_read_first(api, client, "move", MOVE)
         assert own_stops(api.entries) == []
         release.set()
         [stop] = await eventually(lambda: own_stops(api.entries), what="the move's stop")
@@ -121,19 +116,13 @@ async def test_a_move_the_bridge_takes_after_the_cancel_is_stopped(tmp_path: Pat
         assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
 
 
-
 async def test_an_arm_joint_held_after_the_cancel_is_withdrawn(tmp_path: Path) -> None:
     """The cancel reaches the governor before the arm_joint's command does, which is then
     held for an OWNER (`pending_auth`): the server, which waits for the command's answer once
     its call is cancelled, has it withdrawn (HITL_WITHDRAWN by PLANNER), and an approval
     moves nothing. Before, it stayed pending, and the approval moved the arm."""
     async with agent(tmp_path) as (api, client):
-        release, taking = api.hold_decisions(lambda c: c.spec.motion, decided=False)
-        told = _cancels_seen(api)
-        call = asyncio.ensure_future(client.call_tool("arm_joint", ARM))
-        await asyncio.wait_for(taking.wait(), timeout=60)
-        await cancelled(call)
-        await asyncio.wait_for(told.wait(), timeout=60)  # told: nothing of PLANNER's yet
+        release = await cancel_read_first(api, client, "arm_joint", ARM)
         release.set()
         [withdrawn] = await withdrawals(api)
         assert withdrawn["principal"] == "planner", withdrawn
@@ -142,6 +131,7 @@ async def test_an_arm_joint_held_after_the_cancel_is_withdrawn(tmp_path: Path) -
                                       body={"pending_id": withdrawn["pending_id"]})
         assert (status, late["reason"]) == (404, "pending_not_found"), late
         assert api.dispatcher.calls == []
+
 
 async def test_stops_whose_calls_are_cancelled_still_stop(tmp_path: Path) -> None:
     """An e-stop and 7 stops, each call followed at once by its `notifications/cancelled`
@@ -164,6 +154,20 @@ async def test_stops_whose_calls_are_cancelled_still_stop(tmp_path: Path) -> Non
         assert sorted(e["action_type"] for e in stops) == ["estop"] + ["stop"] * (count - 1)
         assert {e["outcome"] for e in stops} == {"executed"}, stops
         assert api.gov.latch.latched
+
+
+async def cancel_read_first(api: Api, client: Client, tool: str, args: dict[str, Any]
+                            ) -> asyncio.Event:
+    """PLANNER's call of `tool`, cancelled while the bridge is still taking its command, and
+    the cancel told to the governor first (two connections: either may be read first), when
+    nothing of PLANNER's is on its way yet. The event lets the command go on."""
+    release, taking = api.hold_decisions(lambda c: c.spec.motion, decided=False)
+    told = _cancels_seen(api)
+    call = asyncio.ensure_future(client.call_tool(tool, args))
+    await asyncio.wait_for(taking.wait(), timeout=60)
+    await cancelled(call)
+    await asyncio.wait_for(told.wait(), timeout=60)
+    return release
 
 
 def _cancels_seen(api: Api) -> asyncio.Event:

@@ -777,7 +777,7 @@ class Governor:
         """`stopped`, done once the withdrawals are on record too."""
         if not withdrawn:
             return stopped
-        return self._steps.spawn(_after(withdrawn, stopped))
+        return self._steps.spawn(_gathered_then(withdrawn, stopped))
 
     def _withdraw_held(self, principal: Principal) -> list[asyncio.Future[Decision]]:
         """Withdraws the principal's motion held for a human, as its issuer would
@@ -882,8 +882,8 @@ async def _awaited(future: asyncio.Future[Any]) -> Any:
     return await future
 
 
-async def _after(first: list[asyncio.Future[Decision]],
-                 then: Awaitable[Decision | None]) -> Decision | None:
+async def _gathered_then(first: list[asyncio.Future[Decision]],
+                         then: Awaitable[Decision | None]) -> Decision | None:
     """`then`'s outcome, once `first` are done too (their outcomes are on record)."""
     await asyncio.gather(*first, return_exceptions=True)
     return await then

@@ -14,6 +14,7 @@ from typing import Any
 from oracle.client import OracleEnv, RclpyOracle
 from waiting import eventually
 
+from rcan_rtps.bridge.arm_holds import JointPositions
 from rcan_rtps.bridge.commanders import CommanderWatch
 from rcan_rtps.bridge.commands import RosDispatcher
 from rcan_rtps.bridge.goals import GoalRoutes
@@ -98,15 +99,16 @@ async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id
     audit = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path,
                                 audited=events.audited)
     goals = GoalRoutes(node, ros2, events=events) if navigation else None
+    joints = JointPositions()  # heard by the telemetry, read by a stop holding an arm
     dispatcher = RosDispatcher(node, ros2, goals, telemetry_age=lambda: telemetry.age_s(),
-                               events=events)
+                               events=events, joint_positions=joints)
     notifier = DiagnosticsNotifier(node, ros2.diagnostics_topic)
     governor = Governor.from_config(config, audit=audit, dispatcher=dispatcher,
                                     notifier=notifier, events=events)
     telemetry = TelemetryState(node, config, estop_latched=lambda: governor.latch.latched,
                                active_goals=goals.active if goals else list,
                                navigation=goals.navigation if goals else lambda: None,
-                               events=events)
+                               events=events, joint_positions=joints)
     wire_robot_side(events, governor, telemetry, goals, notifier)
     events.freeze()
     await governor.start()

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import pytest
-from waiting import take
+from waiting import eventually, take
 
-from .bridge_rig import AGENT, Rig, bridge_config, close_rig, make_rig
+from .bridge_rig import AGENT, OPS, Rig, bridge_config, close_rig, make_rig
 
 TRAJ = "trajectory_msgs/msg/JointTrajectory"
 CMD_VEL, TWIST = "/robot1/cmd_vel", "geometry_msgs/msg/Twist"
@@ -102,3 +103,132 @@ async def test_refusals_reach_no_arm(rig: Rig) -> None:
         assert ok.http_status == 200, ok
         (first,) = await take(rig.oracle, topic)
         assert first["points"][0]["positions"] == [0.9]
+
+
+# -- a stop takes back an arm's trajectory (it runs on in its controller after it is sent) --
+JOINT_STATES, JOINT_STATE = "/robot1/joint_states", "sensor_msgs/msg/JointState"
+LONG = {"group": "left", "joints": ["l_shoulder", "l_elbow"], "positions": [1.0, 2.0],
+        "duration_s": 60.0}
+
+
+async def arm_heard_at(rig: Rig, positions: list[float], velocities: list[float]) -> None:
+    """The robot's joint_states (rclpy, 50 Hz) says the left arm is there, moving so."""
+    await rig.oracle.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+    await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                           value={"name": ["l_shoulder", "l_elbow", "r_elbow"],
+                                  "position": [*positions, 9.0], "velocity": [*velocities, 0.0]})
+
+
+async def sent_long_trajectory(rig: Rig) -> None:
+    moving = await rig.command(AGENT, {"action": "arm_joint", "params": LONG})
+    assert moving.http_status == 200, moving
+    (first,) = await take(rig.oracle, LEFT)
+    assert first["points"][0]["positions"] == [1.0, 2.0]
+
+
+def assert_held_at(hold: dict[str, Any], positions: list[float], slack: list[float]) -> None:
+    """joint_trajectory_controller's own hold: every joint the trajectory moved, one point at
+    rest where they are, due at once, starting now (a zero stamp)."""
+    assert hold["joint_names"] == ["l_shoulder", "l_elbow"]
+    (point,) = hold["points"]
+    for got, at, ahead in zip(point["positions"], positions, slack, strict=True):
+        assert at <= got <= at + ahead, (point, positions)
+    assert point["velocities"] == [0.0, 0.0]
+    assert point["time_from_start"] == {"sec": 0, "nanosec": 0}
+    assert hold["header"]["stamp"] == {"sec": 0, "nanosec": 0}
+
+
+async def nothing_more_on_left(rig: Rig) -> None:
+    """The sentinel: the next trajectory sent is the next sample (one reliable, ordered
+    writer), so a hold published before it would have come first."""
+    after = await rig.command(AGENT, {"action": "arm_joint", "params": {
+        **LONG, "positions": [0.5, 0.5], "duration_s": 1.0}})
+    assert after.http_status == 200, after
+    (next_sample,) = await take(rig.oracle, LEFT)
+    assert next_sample["points"][0]["positions"] == [0.5, 0.5], next_sample
+
+
+@pytest.mark.parametrize("action", ["stop", "estop"])
+async def test_a_stop_holds_a_moving_arm_where_it_is(rig: Rig, action: str) -> None:
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)  # the base, stopped too
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    await sent_long_trajectory(rig)
+    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+        ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+    stopped = await rig.command(AGENT, {"action": action})
+    assert stopped.http_status == 200 and stopped.outcome.value == "executed", stopped
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+    assert await rig.oracle.acall("publishers_info", topic=RIGHT) == []  # never commanded
+    if action == "estop":  # the sentinel below moves the arm: the robot's e-stop is let go
+        await rig.oracle.acall("subscribe", topic="/robot1/emergency_stop",
+                               type="std_msgs/msg/Bool", qos="transient_local")
+        cleared = await rig.command(OPS, {"action": "clear_estop"})
+        assert cleared.http_status == 200, cleared
+    again = await rig.command(AGENT, {"action": "stop"})  # held once: nothing runs now
+    assert again.http_status == 200, again
+    await nothing_more_on_left(rig)
+
+
+async def test_a_hold_carries_the_arm_forward_by_its_velocity(rig: Rig) -> None:
+    # Heard up to 20 ms before the stop (50 Hz) at 0.5 rad/s: the hold is where the arm is
+    # now, not where it was (which would drive it back); telemetry_stale_s bounds the age.
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.5])
+    await sent_long_trajectory(rig)
+    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+        ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+    stopped = await rig.command(AGENT, {"action": "stop"})
+    assert stopped.http_status == 200, stopped
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.5 * 1.0])
+    assert hold["points"][0]["positions"][1] > -0.5
+
+
+async def test_an_ended_trajectory_is_not_held(rig: Rig) -> None:
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)  # the stop reaches the base
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    short = await rig.command(AGENT, {"action": "arm_joint", "params": {
+        **LONG, "duration_s": 0.1}})
+    assert short.http_status == 200, short
+    await take(rig.oracle, LEFT)
+
+    def ended() -> bool:  # attended meanwhile: a session-loss halt would hold the arm
+        rig.governor.heartbeat(AGENT)
+        return not rig.dispatcher.arms.running()
+
+    await eventually(ended, timeout=10.0, interval=0.2,
+                     what="the trajectory's end (its time, and the settling after it)")
+    stopped = await rig.command(AGENT, {"action": "stop"})
+    assert stopped.http_status == 200, stopped
+    await nothing_more_on_left(rig)
+
+
+async def test_an_arm_nobody_heard_is_not_held_and_the_stop_says_so(rig: Rig) -> None:
+    # No joint_states: a hold at a guess could drive the arm anywhere. The rest of the stop
+    # happens; its answer fails, naming the arm and why, and the audit records it.
+    await sent_long_trajectory(rig)
+    stopped = await rig.command(AGENT, {"action": "stop"})
+    assert stopped.outcome.value == "failed" and stopped.http_status == 503, stopped
+    assert LEFT in (stopped.reason or "") and "l_shoulder" in (stopped.reason or ""), stopped
+    failed = [e for e in rig.entries() if e["event"] == "COMMAND_FAILED"]
+    assert failed and failed[-1]["action_type"] == "stop", failed
+    # Heard now: the next stop holds it (the trajectory was not forgotten).
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+        ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+    again = await rig.command(AGENT, {"action": "stop"})
+    assert again.http_status == 200, again
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+
+
+async def test_a_lost_session_holds_its_arm(rig: Rig) -> None:
+    # Nobody attends the session the trajectory opened (session_timeout_s: 1): the safe stop
+    # halts the robot, the arm included.
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    await sent_long_trajectory(rig)
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+    lost = [e for e in rig.entries() if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+    assert lost and lost[-1]["principal"] == AGENT.name, lost

@@ -13,8 +13,8 @@ ROBOT_UNAVAILABLE at once. A topic that never matched yet gets `match_timeout_s`
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
-from typing import Any, Protocol
+from collections.abc import Callable, Collection
+from typing import Any, NamedTuple, Protocol
 
 from ..config import Ros2Config
 from ..events import Events
@@ -35,6 +35,7 @@ from ..ros.errors import GraphTimeout, seconds
 from ..ros.participant import RosNode, RosPublisher
 from ..ros.qos import QosProfile
 from ..ros.rostime import now_msg
+from .arm_holds import ArmHolds, ArmsHeld, JointPositions
 
 log = logging.getLogger(__name__)
 # s the bridge, stopping, waits for the robot to acknowledge its last zero (within the bounded
@@ -84,6 +85,24 @@ class _Kit:
 
     def setting(self, key: str) -> Any:
         return getattr(self._ros2, key)
+
+
+class Halted(NamedTuple):
+    """What a halt reached: the velocity topic's reader, goals cancelled, arms held."""
+
+    reached: bool
+    cancelled: int
+    arms: ArmsHeld
+
+    def result(self, topic: str, *, told: bool = False) -> DispatchResult:
+        """A stop's result on `topic` (`told`: an e-stop's signal reached the robot): failed
+        if nothing was reached, or an arm that may be moving could not be held."""
+        if self.arms.not_held:
+            return DispatchResult(ok=False, ros2_topic=topic,
+                                  detail="; ".join(self.arms.not_held))
+        if not (told or self.reached or self.cancelled or self.arms.held):
+            return DispatchResult(ok=False, ros2_topic=topic, detail=f"no subscriber on {topic}")
+        return DispatchResult(ok=True, ros2_topic=topic)
 
 
 class CommandPublisher(Protocol):
@@ -147,12 +166,15 @@ class RosDispatcher:
 
     def __init__(self, node: RosNode, ros2: Ros2Config, goals: GoalServers | None = None,
                  *, telemetry_age: Callable[[], float | None] = lambda: None,
-                 events: Events | None = None) -> None:
+                 events: Events | None = None,
+                 joint_positions: JointPositions | None = None) -> None:
         self.node = node
         self.ros2 = ros2
         self.goals = goals  # None: no goal action is available (every goal is refused)
         self.events = events or Events()  # `command_sent`: e.g. leave `safe_stop` state
         self._telemetry_age = telemetry_age  # seconds since the robot last published, if ever
+        # The arms' trajectories that may still be running, for a stop to hold them.
+        self.arms = ArmHolds(joint_positions or JointPositions(), ros2.telemetry_stale_s)
         self._ever_matched: set[str] = set()
         self._publishers: dict[tuple[str, str, bool], CommandPublisher] = {}
         self._routes: dict[int, _Route] = {}
@@ -307,7 +329,7 @@ class RosDispatcher:
         except LookupError as exc:
             return DispatchResult(ok=False, detail=str(exc))
         if command.spec.motion:
-            return self._publish_motion(route, applied)
+            return self._publish_motion(route, applied, command.message_id)
         return self._publish(route, applied)
 
     async def cancel_goal(self, goal_id: str) -> bool:
@@ -362,14 +384,26 @@ class RosDispatcher:
         route.publisher.publish(route.message(params))
         return DispatchResult(ok=True, ros2_topic=route.publisher.topic)
 
-    def _publish_motion(self, route: _Route, params: ActionParams) -> DispatchResult:
+    def _publish_motion(self, route: _Route, params: ActionParams,
+                        message_id: str) -> DispatchResult:
         # `ready` passed before the write-ahead entry; the robot may have gone silent or its
         # reader left while that was written. Checked again with no await before the write.
         pub = route.publisher
         why = self._silent() or (None if pub.matched_count() else f"no subscriber on {pub.topic}")
         if why is not None:
             return DispatchResult(ok=False, ros2_topic=pub.topic, detail=why)
-        return self._publish(route, params)
+        result = self._publish(route, params)
+        hold = route.spec.hold
+        if hold is not None:  # it runs on after this: a stop takes it back
+            kit = route.kit
+            self.arms.sent(pub, message_id, hold.joints(params), hold.runs_for_s(params),
+                           lambda joints, where: hold.build(joints, where, kit))
+        return result
+
+    def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
+        """Holds the arms still running a trajectory of `message_ids` (a stop of one
+        principal's motion alone); no await."""
+        return self.arms.hold(message_ids)
 
     def _goal_server(self, ros: SendGoal[Any]) -> str | None:
         return self.goals.action_name(ros.action_key) if self.goals is not None else None
@@ -396,11 +430,12 @@ class RosDispatcher:
             kit = self._goal_kits[type_name] = _Kit(self.node, self.ros2, type_name)
         return kit
 
-    async def halt(self) -> tuple[bool, int]:
-        """Zero velocity and cancel every goal; (velocity topic reached, goals cancelled)."""
+    async def halt(self) -> Halted:
+        """Zero velocity, hold the arms whose trajectories may still run, cancel every goal."""
         zero = self._halt.message(with_effect(Effect.HALT).params())
         matched_before = self.cmd_vel.matched_count() > 0
         self.cmd_vel.publish(zero)  # first, unconditionally: late joiners stop too
+        arms = self.arms.hold_all()  # before any await, as the zero
         reached = matched_before or await self._matched(self.cmd_vel)
         if reached and not matched_before:
             self.cmd_vel.publish(zero)  # the first preceded the match
@@ -410,7 +445,9 @@ class RosDispatcher:
                 cancelled = await self.goals.cancel_all()  # on every goal server
             except Exception:
                 log.exception("cancelling goals failed")
-        return reached, cancelled
+        for why in arms.not_held:
+            log.warning("halting: %s", why)
+        return Halted(reached, cancelled, arms)
 
     async def halt_before_leaving(self) -> None:
         """The bridge is stopping: halt, then wait (at most LEAVING_ACK_S) until the robot's
@@ -423,11 +460,8 @@ class RosDispatcher:
                         "within %s", self.cmd_vel.topic, seconds(LEAVING_ACK_S))
 
     async def _stop(self) -> DispatchResult:
-        reached, cancelled = await self.halt()
-        if not reached and not cancelled:
-            return DispatchResult(ok=False, ros2_topic=self.cmd_vel.topic,
-                                  detail=f"no subscriber on {self.cmd_vel.topic}")
-        return DispatchResult(ok=True, ros2_topic=self.cmd_vel.topic)
+        halted = await self.halt()
+        return halted.result(self.cmd_vel.topic)
 
     async def _estop(self, ros: EstopSignal, params: ActionParams) -> DispatchResult:
         # The governor has already latched; here the robot is told, and motion halted too.
@@ -437,11 +471,8 @@ class RosDispatcher:
         told = await self._matched(route.publisher)
         if told:
             route.publisher.publish(signal)  # the first write may have preceded the match
-        reached, cancelled = await self.halt()
-        if not (told or reached or cancelled):
-            return DispatchResult(ok=False, ros2_topic=route.publisher.topic,
-                                  detail=f"no subscriber on {route.publisher.topic}")
-        return DispatchResult(ok=True, ros2_topic=route.publisher.topic)
+        halted = await self.halt()
+        return halted.result(route.publisher.topic, told=told)
 
 
 def _halt_route() -> Halt:

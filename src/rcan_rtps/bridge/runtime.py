@@ -52,6 +52,7 @@ from ..governance.decision_log import log_entry
 from ..governance.signatures import Signatures
 from ..rcan import Status
 from ..ros.participant import RosNode
+from .arm_holds import JointPositions
 from .commanders import CommanderWatch
 from .commands import RosDispatcher
 from .errors import BridgeStateError
@@ -176,6 +177,8 @@ class Bridge:
         self.events = Events()  # who is told what; frozen once the API serves
         self._diagnostics: DiagnosticsNotifier | None = None
         self.telemetry: TelemetryState | None = None
+        # Heard by the telemetry's JointState reader, read by a stop holding an arm.
+        self._joint_positions = JointPositions()
         self.commanders: CommanderWatch | None = None
         self.images: ImageSource | None = None  # bridge.ros2.images, when any
         self.server: ApiServer | None = None
@@ -315,7 +318,8 @@ class Bridge:
         self._on_stop("goal action clients", goals.close)
         goals.start()
         self.dispatcher = RosDispatcher(node, ros2, goals, telemetry_age=self._telemetry_age,
-                                        events=self.events)
+                                        events=self.events,
+                                        joint_positions=self._joint_positions)
         return goals, self.dispatcher
 
     def _governance(self, node: RosNode, audit: AuditLog, goals: GoalRoutes,
@@ -328,7 +332,8 @@ class Bridge:
                       else governor.latch.close())
         telemetry = self.telemetry = TelemetryState(
             node, self.config, estop_latched=lambda: governor.latch.latched,
-            active_goals=goals.active, navigation=goals.navigation, events=self.events)
+            active_goals=goals.active, navigation=goals.navigation, events=self.events,
+            joint_positions=self._joint_positions)
         self._on_stop("telemetry", telemetry.close)
         if self.config.bridge.ros2.images:
             from .images import ImageFeeds  # only where a camera is configured

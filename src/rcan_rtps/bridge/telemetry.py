@@ -52,6 +52,7 @@ from ..rcan import (
 from ..ros import qos
 from ..ros.participant import RosNode
 from ..ros.rostime import quaternion_to_yaw
+from .arm_holds import JointPositions
 from .faults import FaultTable, Level
 from .hostcpu import CpuMeter
 from .joints import bounded_joints
@@ -80,8 +81,11 @@ class TelemetryState:
                  estop_latched: Callable[[], bool], active_goals: Callable[[], list[str]],
                  navigation: Callable[[], Navigation | None] = lambda: None,
                  monotonic: Callable[[], float] = time.monotonic,
-                 events: Events | None = None) -> None:
+                 events: Events | None = None,
+                 joint_positions: JointPositions | None = None) -> None:
         self.config = config
+        # Where the joints an arm hold needs are (`arm_holds`): told every JointState.
+        self._joint_positions = joint_positions or JointPositions()
         self._estop_latched = estop_latched
         self._active_goals = active_goals
         self._navigation = navigation
@@ -166,6 +170,7 @@ class TelemetryState:
         return self._velocity is not None and not self._twist_at_rest
 
     def _on_joints(self, msg: Any) -> None:
+        self._joint_positions.heard(msg.name, msg.position, msg.velocity)
         with self._lock:
             self._joints = bounded_joints(msg.name, msg.position, msg.velocity,
                                           self._commanded_joints)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import enum
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Generic, Protocol, TypeVar
 
@@ -51,6 +51,18 @@ Builder = Callable[[P, MessageKit], Any]  # a message object, or its plain data 
 
 
 @dataclass(frozen=True)
+class Hold(Generic[P]):
+    """How a stop takes back what a route's message started and what runs on after it was
+    sent (an arm's trajectory): which joints it moves (`joints`), for how long at most
+    (`runs_for_s`), and the message that holds those joints where they were measured
+    (`build`: the joints and their positions, in that order)."""
+
+    joints: Callable[[P], Sequence[str]]
+    runs_for_s: Callable[[P], float]
+    build: Callable[[Sequence[str], Sequence[float], MessageKit], Any]
+
+
+@dataclass(frozen=True)
 class Publish(Generic[P]):
     """Publish one message on a topic named by a `bridge.ros2` config key."""
 
@@ -62,6 +74,8 @@ class Publish(Generic[P]):
     # Named groups (a `bridge.ros2` mapping name → {topic}): the params' `group` picks the
     # topic; with no group configured, `topic_key`'s.
     group_key: str | None = None
+    # What runs on after the message was sent, and how a stop holds it (None: nothing runs on).
+    hold: Hold[P] | None = None
 
     def publishes(self) -> tuple[Publish[Any], ...]:
         """What this route publishes, its own message first."""

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 from typing import Annotated, Any
 
 import msgspec
 
 from .._enums import Role
 from .._types import ActionParams, Finite, JointName, Strict, whole
-from ._spec import ActionSpec, Effect, Invariant, MessageKit, Publish
+from ._spec import ActionSpec, Effect, Hold, Invariant, MessageKit, Publish
 
 TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
 MAX_JOINTS = 64
@@ -84,6 +85,20 @@ def trajectory(params: ArmJointParams, kit: MessageKit) -> dict[str, Any]:
                        for p in params.trajectory()]}
 
 
+def held_where_measured(joints: Sequence[str], positions: Sequence[float],
+                        kit: MessageKit) -> dict[str, Any]:
+    """What joint_trajectory_controller does itself when a goal is cancelled: one point, at
+    the measured positions, at rest, due at once (a zero stamp: now). It replaces the
+    trajectory running (the topic interface has no cancel; an empty trajectory is refused)."""
+    return {"joint_names": list(joints),
+            "points": [{"positions": list(positions), "velocities": [0.0] * len(joints),
+                        "time_from_start": _duration(0.0)}]}
+
+
+def _runs_for_s(params: ArmJointParams) -> float:
+    return params.trajectory()[-1].time_from_start_s
+
+
 SPEC = ActionSpec(
     order=20,
     name="arm_joint",
@@ -93,7 +108,9 @@ SPEC = ActionSpec(
     effect=Effect.MOTION,
     default_role=Role.USER,
     ros=Publish(topic_key="joint_trajectory_topic", type_name=TRAJECTORY, build=trajectory,
-                group_key="arms"),
+                group_key="arms",
+                hold=Hold(joints=lambda p: p.joints, runs_for_s=_runs_for_s,
+                          build=held_where_measured)),
     invariants=(Invariant.ESTOP_GUARD, Invariant.FINITE, Invariant.JOINT_GROUP),
     example={"joints": ["elbow"], "positions": [0.8], "duration_s": 0.5},
 )

@@ -1,0 +1,163 @@
+"""A stop takes back the arms' trajectories: what runs on after it was sent.
+
+Zero velocity and goal cancels do not reach an arm: a JointTrajectory runs on in its
+controller up to its last point's time (`arm_joint` allows an hour), and
+joint_trajectory_controller's topic has no cancel (an empty trajectory is refused). So the
+dispatcher remembers, per trajectory topic, the last trajectory it sent there and until when it
+may run; a stop sends each arm still due the message its route declares to hold it
+(`Publish.hold`): one point at the joints' measured positions, at rest, due at once — what the
+controller does itself when its action goal is cancelled.
+
+Where the joints are comes from `joint_states` (`JointPositions`, fed by the telemetry reader).
+A position heard `age` seconds ago is carried forward by the velocity heard with it (a hold at
+where the arm was, not where it is, would drive it back); older than `max_age_s` (the robot's
+telemetry counts as silent then), or never heard, the arm is not held: a hold at a guess could
+move it anywhere. That arm is reported (the stop fails, saying which and why).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Collection, Sequence
+from typing import Any, NamedTuple, Protocol
+
+# A controller may still be settling onto the last point just after its time.
+SETTLING_S = 1.0
+
+
+class JointPositions:
+    """The last measured position (and velocity) of each joint the bridge may have to hold,
+    whichever JointState carried it: written on the telemetry reader's thread, read on the
+    loop. Only watched joints are kept (a JointState's size is its sender's choice)."""
+
+    def __init__(self, monotonic: Callable[[], float] = time.monotonic) -> None:
+        self._monotonic = monotonic
+        self._lock = threading.Lock()
+        self._watching: dict[str, frozenset[str]] = {}  # who watches → its joints
+        self._watched: frozenset[str] = frozenset()
+        self._heard: dict[str, tuple[float, float, float]] = {}  # → (position, velocity, at)
+
+    def watch(self, who: str, joints: Collection[str]) -> None:
+        """`who` (a trajectory topic) needs `joints` now, instead of what it needed before."""
+        with self._lock:
+            self._watching[who] = frozenset(joints)
+            self._watched = frozenset().union(*self._watching.values())
+            for name in set(self._heard) - self._watched:
+                del self._heard[name]
+
+    def heard(self, names: Sequence[str], positions: Sequence[float],
+              velocities: Sequence[float]) -> None:
+        """One JointState (its parallel lists; `velocities` may be empty)."""
+        watched = self._watched
+        if not watched:
+            return
+        at = self._monotonic()
+        with self._lock:
+            for i, name in enumerate(names):
+                if name in watched and i < len(positions):
+                    velocity = velocities[i] if i < len(velocities) else 0.0
+                    self._heard[name] = (float(positions[i]), float(velocity), at)
+
+    def now(self, joints: Sequence[str], max_age_s: float) -> list[float] | str:
+        """Where `joints` are now (their last positions carried forward by their velocities),
+        or why that is not known."""
+        now = self._monotonic()
+        found = []
+        with self._lock:
+            for name in joints:
+                heard = self._heard.get(name)
+                if heard is None:
+                    return f"no joint_states heard for {name!r}"
+                position, velocity, at = heard
+                if now - at > max_age_s:
+                    return f"joint_states for {name!r} last heard {now - at:.1f} s ago"
+                found.append(position + velocity * (now - at))
+        if not all(map(_finite, found)):
+            return "joint_states carried a position or velocity that is not finite"
+        return found
+
+
+def _finite(value: float) -> bool:
+    return value - value == 0.0
+
+
+class HoldPublisher(Protocol):
+    @property
+    def topic(self) -> str: ...
+
+    def publish(self, message: Any) -> None: ...
+
+
+class _Running(NamedTuple):
+    message_id: str
+    joints: tuple[str, ...]
+    due: float  # monotonic: after this, it has ended (settled included)
+    publisher: HoldPublisher
+    hold: Callable[[Sequence[str], Sequence[float]], Any]  # joints, positions → message
+
+
+class ArmsHeld(NamedTuple):
+    """What a stop did to the arms: topics held, and arms that could not be (why)."""
+
+    held: tuple[str, ...] = ()
+    not_held: tuple[str, ...] = ()
+
+
+class ArmHolds:
+    """The trajectories that may still be running, one per topic (a new one replaces the
+    last, in the controller as here), and holding them."""
+
+    def __init__(self, positions: JointPositions, max_age_s: float,
+                 monotonic: Callable[[], float] = time.monotonic) -> None:
+        self.positions = positions
+        self._max_age_s = max_age_s
+        self._monotonic = monotonic
+        self._running: dict[str, _Running] = {}
+
+    def sent(self, publisher: HoldPublisher, message_id: str, joints: Sequence[str],
+             runs_for_s: float, hold: Callable[[Sequence[str], Sequence[float]], Any]) -> None:
+        """A trajectory went out on `publisher`, running `runs_for_s` from now."""
+        due = self._monotonic() + runs_for_s + SETTLING_S
+        self._running[publisher.topic] = _Running(message_id, tuple(joints), due, publisher,
+                                                  hold)
+        self.positions.watch(publisher.topic, joints)
+
+    def hold_all(self) -> ArmsHeld:
+        """Every arm whose trajectory may still be running is held (a stop of the robot)."""
+        return self._hold(list(self._running.values()))
+
+    def hold(self, message_ids: Collection[str]) -> ArmsHeld:
+        """The arms still running one of `message_ids`' trajectories are held (a stop of one
+        principal's motion alone); others' trajectories run on."""
+        return self._hold([r for r in self._running.values() if r.message_id in message_ids])
+
+    def _hold(self, running: list[_Running]) -> ArmsHeld:
+        now = self._monotonic()
+        held, not_held = [], []
+        for run in running:
+            topic = run.publisher.topic
+            if now > run.due:  # ended: holding it now would only fight whoever moves it next
+                self._forget(topic)
+                continue
+            where = self.positions.now(run.joints, self._max_age_s)
+            if isinstance(where, str):
+                not_held.append(f"the arm on {topic} was not held: {where}")
+                continue
+            try:
+                run.publisher.publish(run.hold(run.joints, where))
+            except Exception as exc:  # one arm's fault must not keep the others moving
+                not_held.append(f"the arm on {topic} was not held: {exc!r}")
+                continue
+            self._forget(topic)
+            held.append(topic)
+        return ArmsHeld(tuple(held), tuple(not_held))
+
+    def _forget(self, topic: str) -> None:
+        del self._running[topic]
+        self.positions.watch(topic, ())
+
+    def running(self) -> list[str]:
+        """The message ids of the trajectories that may still be running."""
+        now = self._monotonic()
+        return [r.message_id for r in self._running.values() if now <= r.due]

@@ -10,9 +10,11 @@ controller does itself when its action goal is cancelled.
 
 Where the joints are comes from `joint_states` (`JointPositions`, fed by the telemetry reader).
 A position heard `age` seconds ago is carried forward by the velocity heard with it (a hold at
-where the arm was, not where it is, would drive it back); older than `max_age_s` (the robot's
-telemetry counts as silent then), or never heard, the arm is not held: a hold at a guess could
-move it anywhere. That arm is reported (the stop fails, saying which and why).
+where the arm was, not where it is, drives it back), by at most `MAX_LEAD` (rad or m): the
+velocity is the robot's word, and a wrong one must not turn a hold into a long move. Older than
+`MAX_AGE_S` (or the robot's telemetry counts as silent), or never heard, the arm is not held:
+a hold at a guess could move it anywhere. That arm is reported (the stop fails, saying which
+and why), and the next stop tries again.
 """
 
 from __future__ import annotations
@@ -24,6 +26,10 @@ from typing import Any, NamedTuple, Protocol
 
 # A controller may still be settling onto the last point just after its time.
 SETTLING_S = 1.0
+# joint_states comes at 10-1000 Hz: older than this, an arm moving at 1 rad/s has moved a
+# visible way since, and holding it there would drive it back as far.
+MAX_AGE_S = 0.5
+MAX_LEAD = 0.1  # how far a hold may carry a joint past where it was heard
 
 
 class JointPositions:
@@ -56,8 +62,9 @@ class JointPositions:
         with self._lock:
             for i, name in enumerate(names):
                 if name in watched and i < len(positions):
-                    velocity = velocities[i] if i < len(velocities) else 0.0
-                    self._heard[name] = (float(positions[i]), float(velocity), at)
+                    velocity = float(velocities[i]) if i < len(velocities) else 0.0
+                    self._heard[name] = (float(positions[i]),
+                                         velocity if _finite(velocity) else 0.0, at)
 
     def now(self, joints: Sequence[str], max_age_s: float) -> list[float] | str:
         """Where `joints` are now (their last positions carried forward by their velocities),
@@ -71,10 +78,11 @@ class JointPositions:
                     return f"no joint_states heard for {name!r}"
                 position, velocity, at = heard
                 if now - at > max_age_s:
-                    return f"joint_states for {name!r} last heard {now - at:.1f} s ago"
-                found.append(position + velocity * (now - at))
-        if not all(map(_finite, found)):
-            return "joint_states carried a position or velocity that is not finite"
+                    return f"joint_states for {name!r} last heard {now - at:.2f} s ago"
+                if not _finite(position):
+                    return f"joint_states gave {name!r} the position {position}"
+                lead = max(-MAX_LEAD, min(MAX_LEAD, velocity * (now - at)))
+                found.append(position + lead)
         return found
 
 
@@ -111,7 +119,7 @@ class ArmHolds:
     def __init__(self, positions: JointPositions, max_age_s: float,
                  monotonic: Callable[[], float] = time.monotonic) -> None:
         self.positions = positions
-        self._max_age_s = max_age_s
+        self._max_age_s = min(max_age_s, MAX_AGE_S)
         self._monotonic = monotonic
         self._running: dict[str, _Running] = {}
 

@@ -1,0 +1,141 @@
+"""`bridge.arm_holds` alone: where a stop holds an arm, and when it does not (a manual clock;
+the wire is tests/interop/test_arms.py)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import pytest
+
+from rcan_rtps.bridge.arm_holds import MAX_AGE_S, MAX_LEAD, SETTLING_S, ArmHolds, JointPositions
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Topic:
+    def __init__(self, topic: str, fail: bool = False) -> None:
+        self.topic, self.fail = topic, fail
+        self.sent: list[Any] = []
+
+    def publish(self, message: Any) -> None:
+        if self.fail:
+            raise RuntimeError("writer closed")
+        self.sent.append(message)
+
+
+def hold(joints: Sequence[str], where: Sequence[float]) -> Any:
+    return (list(joints), list(where))
+
+
+@pytest.fixture
+def clock() -> Clock:
+    return Clock()
+
+
+@pytest.fixture
+def positions(clock: Clock) -> JointPositions:
+    return JointPositions(clock)
+
+
+def test_only_watched_joints_are_kept_from_any_joint_state(positions: JointPositions,
+                                                           clock: Clock) -> None:
+    positions.heard(["a", "b"], [1.0, 2.0], [])  # nobody watches yet
+    positions.watch("/arm", ["a", "b"])
+    assert positions.now(["a"], 1.0) == "no joint_states heard for 'a'"
+    # Two publishers, each with part of the arm (a gripper's node, the arm's broadcaster).
+    positions.heard(["a", "x"], [1.0, 5.0], [0.0, 0.0])
+    positions.heard(["b"], [2.0], [])
+    assert positions.now(["a", "b"], 1.0) == [1.0, 2.0]
+    assert positions.now(["x"], 1.0) == "no joint_states heard for 'x'"
+    positions.watch("/arm", ["b"])  # its next trajectory moves b only: a is let go
+    assert positions.now(["a"], 1.0) == "no joint_states heard for 'a'"
+
+
+def test_a_sender_s_inconsistent_lists_are_read_as_far_as_they_go(
+        positions: JointPositions) -> None:
+    positions.watch("/arm", ["a", "b", "c"])
+    positions.heard(["a", "b", "c", "a"], [1.0, 2.0], [0.0])  # short lists, a name twice
+    assert positions.now(["a", "b"], 1.0) == [1.0, 2.0]
+    assert positions.now(["c"], 1.0) == "no joint_states heard for 'c'"
+
+
+def test_a_position_is_carried_forward_by_its_velocity_by_at_most_max_lead(
+        positions: JointPositions, clock: Clock) -> None:
+    positions.watch("/arm", ["a", "b", "c"])
+    positions.heard(["a", "b", "c"], [1.0, 1.0, 1.0], [0.5, 1e300, -math.inf])
+    clock.t += 0.1
+    a, b, c = positions.now(["a", "b", "c"], 1.0)
+    assert a == pytest.approx(1.05)
+    assert b == 1.0 + MAX_LEAD  # a wrong velocity does not make the hold a long move
+    assert c == 1.0  # not a velocity at all: not carried
+
+
+def test_old_or_not_finite_positions_hold_nothing(positions: JointPositions,
+                                                  clock: Clock) -> None:
+    positions.watch("/arm", ["a", "b"])
+    positions.heard(["a", "b"], [1.0, math.nan], [])
+    assert "position nan" in str(positions.now(["b"], 1.0))
+    clock.t += 0.6
+    assert positions.now(["a"], 0.5) == "joint_states for 'a' last heard 0.60 s ago"
+
+
+def test_a_stop_holds_each_running_trajectory_once(positions: JointPositions,
+                                                   clock: Clock) -> None:
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left, right = Topic("/left"), Topic("/right")
+    arms.sent(left, "m1", ["a"], 5.0, hold)
+    arms.sent(right, "m2", ["b"], 5.0, hold)
+    positions.heard(["a", "b"], [0.1, 0.2], [])
+    assert arms.hold_all() == (("/left", "/right"), ())
+    assert left.sent == [(["a"], [0.1])] and right.sent == [(["b"], [0.2])]
+    assert arms.running() == [] and arms.hold_all() == ((), ())
+
+
+def test_the_last_trajectory_on_a_topic_is_the_one_held(positions: JointPositions,
+                                                        clock: Clock) -> None:
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = Topic("/left")
+    arms.sent(left, "m1", ["a", "b"], 60.0, hold)
+    arms.sent(left, "m2", ["b"], 0.5, hold)  # replaces m1, in the controller too
+    positions.heard(["a", "b"], [0.1, 0.2], [])
+    assert arms.running() == ["m2"]
+    clock.t += 0.5 + SETTLING_S + 0.01  # m2 has ended, settled included
+    assert arms.running() == []
+    assert arms.hold_all() == ((), ()) and left.sent == []
+
+
+def test_a_stop_of_one_principal_holds_only_its_trajectories(positions: JointPositions,
+                                                             clock: Clock) -> None:
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left, right = Topic("/left"), Topic("/right")
+    arms.sent(left, "mine", ["a"], 5.0, hold)
+    arms.sent(right, "theirs", ["b"], 5.0, hold)
+    positions.heard(["a", "b"], [0.1, 0.2], [])
+    assert arms.hold({"mine", "unknown"}) == (("/left",), ())
+    assert right.sent == [] and arms.running() == ["theirs"]
+
+
+def test_an_arm_that_cannot_be_held_is_named_and_kept_for_the_next_stop(
+        positions: JointPositions, clock: Clock) -> None:
+    arms = ArmHolds(positions, max_age_s=10.0, monotonic=clock)  # bounded by MAX_AGE_S
+    left, right = Topic("/left"), Topic("/right", fail=True)
+    arms.sent(left, "m1", ["a"], 5.0, hold)
+    arms.sent(right, "m2", ["b"], 5.0, hold)
+    positions.heard(["a", "b"], [0.1, 0.2], [])
+    clock.t += MAX_AGE_S + 0.01
+    held = arms.hold_all()
+    assert held.held == () and len(held.not_held) == 2
+    assert "the arm on /left was not held: joint_states for 'a' last heard" in held.not_held[0]
+    positions.heard(["a", "b"], [0.3, 0.4], [])
+    held = arms.hold_all()  # the faulty writer does not keep the other arm moving
+    assert held.held == ("/left",) and left.sent == [(["a"], [0.3])]
+    assert held.not_held == ("the arm on /right was not held: RuntimeError('writer closed')",)
+    assert arms.running() == ["m2"]

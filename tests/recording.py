@@ -8,11 +8,12 @@ dispatch (`hold`, then `entered`) or in its readiness check (`hold_ready`, then 
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Collection
 from typing import Any
 
 import msgspec
 
-from rcan_rtps.governance import DispatchResult
+from rcan_rtps.governance import ArmsHeld, DispatchResult
 from rcan_rtps.rcan import ActionParams, MoveParams, NormalizedCommand
 
 UNAVAILABLE = "no subscriber on /robot1/cmd_vel"
@@ -31,6 +32,8 @@ class RecordingDispatcher:
         self.cancelled: list[str] = []  # goals cancelled one by one (the arbiter's)
         self.signals: list[int] = []  # e-stop signals published as the latch engaged
         self._goals = 0
+        self.running: list[str] = []  # message ids of arm trajectories still running
+        self.holds: list[list[str]] = []  # `hold_trajectories` calls: the ids it held
 
     def route(self, command: NormalizedCommand) -> str | None:
         return f"/robot1/{command.action}"
@@ -52,11 +55,29 @@ class RecordingDispatcher:
         if not self.available:
             return DispatchResult(ok=False, detail=UNAVAILABLE)
         self.calls.append((command.action, msgspec.to_builtins(applied)))
+        if command.spec.stopping:  # a halt of the robot holds every arm
+            self.running.clear()
         goal_id = None
         if command.spec.starts_goal:
             self._goals += 1
             goal_id = f"goal-{self._goals}"
-        return DispatchResult(ok=True, ros2_topic=f"/robot1/{command.action}", goal_id=goal_id)
+        runs_on = command.spec.ros.publishes()[0].hold is not None if command.spec.motion \
+            and command.spec.ros.publishes() else False
+        if runs_on:
+            self.running.append(command.message_id)
+        topic = f"/robot1/{command.action}"
+        if runs_on:  # an arm's trajectory: one topic per set of joints (one per arm)
+            topic += "/" + "-".join(getattr(applied, "joints", ()))
+        return DispatchResult(ok=True, ros2_topic=topic, goal_id=goal_id, runs_on=runs_on)
+
+    def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
+        held = [m for m in self.running if m in message_ids]
+        self.running = [m for m in self.running if m not in message_ids]
+        self.holds.append(held)
+        return ArmsHeld(held=tuple(f"held {m}" for m in held))
+
+    def running_trajectories(self) -> list[str]:
+        return list(self.running)
 
     async def cancel_goal(self, goal_id: str) -> bool:
         self.cancelled.append(goal_id)

@@ -24,6 +24,8 @@ import time
 from collections.abc import Callable, Collection, Sequence
 from typing import Any, NamedTuple, Protocol
 
+from ..governance import ArmsHeld
+
 # A controller may still be settling onto the last point just after its time.
 SETTLING_S = 1.0
 # joint_states comes at 10-1000 Hz: older than this, an arm moving at 1 rad/s has moved a
@@ -103,13 +105,6 @@ class _Running(NamedTuple):
     due: float  # monotonic: after this, it has ended (settled included)
     publisher: HoldPublisher
     hold: Callable[[Sequence[str], Sequence[float]], Any]  # joints, positions → message
-
-
-class ArmsHeld(NamedTuple):
-    """What a stop did to the arms: topics held, and arms that could not be (why)."""
-
-    held: tuple[str, ...] = ()
-    not_held: tuple[str, ...] = ()
 
 
 class ArmHolds:

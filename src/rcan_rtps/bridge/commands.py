@@ -18,7 +18,7 @@ from typing import Any, NamedTuple, Protocol
 
 from ..config import Ros2Config
 from ..events import Events
-from ..governance import DispatchResult
+from ..governance import ArmsHeld, DispatchResult
 from ..rcan import ActionParams, ActionSpec, Effect, NormalizedCommand
 from ..rcan.actions import (
     EstopSignal,
@@ -35,7 +35,7 @@ from ..ros.errors import GraphTimeout, seconds
 from ..ros.participant import RosNode, RosPublisher
 from ..ros.qos import QosProfile
 from ..ros.rostime import now_msg
-from .arm_holds import ArmHolds, ArmsHeld, JointPositions
+from .arm_holds import ArmHolds, JointPositions
 
 log = logging.getLogger(__name__)
 # s the bridge, stopping, waits for the robot to acknowledge its last zero (within the bounded
@@ -394,16 +394,21 @@ class RosDispatcher:
             return DispatchResult(ok=False, ros2_topic=pub.topic, detail=why)
         result = self._publish(route, params)
         hold = route.spec.hold
-        if hold is not None:  # it runs on after this: a stop takes it back
-            kit = route.kit
-            self.arms.sent(pub, message_id, hold.joints(params), hold.runs_for_s(params),
-                           lambda joints, where: hold.build(joints, where, kit))
-        return result
+        if hold is None:
+            return result
+        kit = route.kit  # it runs on after this: a stop takes it back
+        self.arms.sent(pub, message_id, hold.joints(params), hold.runs_for_s(params),
+                       lambda joints, where: hold.build(joints, where, kit))
+        return DispatchResult(ok=True, ros2_topic=pub.topic, runs_on=True)
 
     def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
         """Holds the arms still running a trajectory of `message_ids` (a stop of one
         principal's motion alone); no await."""
         return self.arms.hold(message_ids)
+
+    def running_trajectories(self) -> list[str]:
+        """The message ids of the trajectories that may still be running."""
+        return self.arms.running()
 
     def _goal_server(self, ros: SendGoal[Any]) -> str | None:
         return self.goals.action_name(ros.action_key) if self.goals is not None else None

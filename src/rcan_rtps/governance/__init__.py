@@ -39,7 +39,7 @@ from .errors import (
     GovernanceError,
 )
 from .estop import EstopMachine, LatchFile
-from .governor import Decision, Dispatcher, DispatchResult, Governor
+from .governor import ArmsHeld, Decision, Dispatcher, DispatchResult, Governor
 from .hitl import HitlPolicy, Notifier, PendingCommand, WebhookNotifier
 from .idempotency import Idempotency
 from .invariants import (
@@ -85,6 +85,7 @@ __all__ = [
     "GENESIS",
     "SCOPES",
     "AllOf",
+    "ArmsHeld",
     "AuditError",
     "AuditEvent",
     "AuditIntegrityError",

@@ -56,6 +56,7 @@ from .resume import resume
 from .review import HitlDesk, PendingRecord
 from .sessions import Sessions
 from .steps import (
+    ArmsHeld,
     Decision,
     Dispatcher,
     DispatchResult,
@@ -73,7 +74,7 @@ from .streams import AccelLimits, EndReason, HeldGoal, StopMark, VelocityStreams
 if TYPE_CHECKING:
     from .thoughts import ThoughtLog
 
-__all__ = ["MAX_IN_FLIGHT", "Decision", "DispatchResult", "Dispatcher", "Governor"]
+__all__ = ["MAX_IN_FLIGHT", "ArmsHeld", "Decision", "DispatchResult", "Dispatcher", "Governor"]
 
 log = logging.getLogger(__name__)
 SWEEP_INTERVAL_S = 0.05  # session-loss halt latency is timeout + at most this
@@ -106,6 +107,10 @@ class Governor:
         self.latch = latch
         self.events = events or Events()
         self._steps = Steps(audit, dispatcher)
+        # Whose command sent what runs on, per topic (`DispatchResult.runs_on`: an arm's
+        # trajectory; the next on a topic replaces it): a stop of its sender's motion alone
+        # holds it, and while it runs, its sender drives (bounded by the robot's topics).
+        self._runs_on: dict[str, tuple[str, str]] = {}
         self._tasks = self._steps.tasks
         self._dispatcher = dispatcher
         self._roles = roles
@@ -512,7 +517,16 @@ class Governor:
                                            stops)
             if refused is not None:
                 return await self._steps.failed(command, principal, refused)
+        if result.runs_on and result.ros2_topic:
+            self._runs_on[result.ros2_topic] = (owner.name, command.message_id)
         return executed(command, applied, receipt, result)
+
+    def _trajectories(self, owner: str, *, others: bool = False) -> list[str]:
+        """The message ids of `owner`'s (or, `others`, everyone else's) commands whose motion
+        may still run on (`_runs_on`); when that cannot be read, all of them."""
+        running = self._steps.running_trajectories()
+        return [message_id for who, message_id in self._runs_on.values()
+                if (who != owner) == others and (running is None or message_id in running)]
 
     async def _halt(self, command: NormalizedCommand, principal: Principal,
                     params: ActionParams, event: AuditEvent) -> Decision:
@@ -659,7 +673,8 @@ class Governor:
         not halt another principal's motion."""
         self.streams.end_of(principal.name, EndReason.SESSION_LOST)  # zero first, at once
         own = self.streams.take_goals(owner=principal.name)
-        if self.streams.driven_by_other_than(principal.name):
+        if (self.streams.driven_by_other_than(principal.name)
+                or self._trajectories(principal.name, others=True)):
             return await self._own_stop(principal, why, own)
         log.warning("control session of '%s' lost (%s): halting the robot (safe stop)",
                     principal.name, why)
@@ -688,9 +703,19 @@ class Governor:
         # Its motion still on its way (a goal being sent, a move waiting for its entry) is
         # stopped too, as it comes: refused, or cancelled once its server accepted it.
         self.streams.own_stop(principal.name)
+        arms = self._hold_own(principal)
         self._base.cancel_goals(goals, principal, why="session lost")
-        applied = {"scope": "own", "goals_cancelled": [g.goal_id for g in goals]}
+        applied = {"scope": "own", "goals_cancelled": [g.goal_id for g in goals],
+                   **_arms_applied(arms)}
         return await self._own_stop_recorded(principal, applied)
+
+    def _hold_own(self, principal: Principal) -> ArmsHeld:
+        """Holds the arms still running a trajectory of `principal`'s (no await)."""
+        arms = self._steps.hold_trajectories(self._trajectories(principal.name))
+        for why in arms.not_held:
+            log.warning("stopping the motion of '%s': %s", principal.name, why,
+                        extra={"principal": principal.name})
+        return arms
 
     async def _own_stop_recorded(self, principal: Principal, applied: dict[str, Any]
                                  ) -> Decision:
@@ -756,17 +781,19 @@ class Governor:
         stream = self.streams.active
         ended = self.streams.end_of(principal.name, EndReason.CANCELLED)
         goals = self.streams.take_goals(owner=principal.name)
-        if not (on_its_way or ended or goals):
+        arms = self._hold_own(principal)
+        if not (on_its_way or ended or goals or arms.held or arms.not_held):
             return self._after(withdrawn, _resolved(None))
         self._sessions.end(principal)
         log.warning("a motion command of '%s' was cancelled by its client: its own motion "
-                    "is stopped (on its way: %s, stream ended: %s, goals cancelled: %d); "
-                    "nobody else's", principal.name, on_its_way, ended, len(goals),
+                    "is stopped (on its way: %s, stream ended: %s, goals cancelled: %d, arms "
+                    "held: %d); nobody else's", principal.name, on_its_way, ended, len(goals),
+                    len(arms.held),
                     extra={"principal": principal.name})
         self._base.cancel_goals(goals, principal, why="cancelled by its client")
         applied = {"scope": "own", "cancelled_by_client": True, "on_its_way": on_its_way,
                    "stream_ended": stream.message_id if ended and stream else None,
-                   "goals_cancelled": [g.goal_id for g in goals]}
+                   "goals_cancelled": [g.goal_id for g in goals], **_arms_applied(arms)}
         # Detached: the cancelled caller's task may be cancelled again; the entry must not be.
         return self._after(withdrawn,
                            self._detached(self._own_stop_recorded(principal, applied)))
@@ -895,3 +922,9 @@ def _fingerprint(command: NormalizedCommand) -> bytes:
                                 "ruri": command.ruri}, order="sorted")
 
 
+def _arms_applied(arms: ArmsHeld) -> dict[str, list[str]]:
+    """What an own stop's entry says of the arms (nothing when none was running)."""
+    facts = {"arms_held": list(arms.held)} if arms.held else {}
+    if arms.not_held:
+        facts["arms_not_held"] = list(arms.not_held)
+    return facts

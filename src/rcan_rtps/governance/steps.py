@@ -11,8 +11,8 @@ import asyncio
 import hashlib
 import logging
 import uuid
-from collections.abc import Awaitable, Coroutine, Sequence
-from typing import Any, Protocol
+from collections.abc import Awaitable, Collection, Coroutine, Sequence
+from typing import Any, NamedTuple, Protocol
 
 import msgspec
 
@@ -34,6 +34,16 @@ class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):
     ros2_topic: str | None = None
     goal_id: str | None = None
     detail: str | None = None
+    # What was sent runs on after this (an arm's trajectory): a stop of its sender's motion
+    # alone holds it (`Dispatcher.hold_trajectories`), and while it runs its sender drives.
+    runs_on: bool = False
+
+
+class ArmsHeld(NamedTuple):
+    """What a stop did to the arms: the topics held, and the arms that could not be (why)."""
+
+    held: tuple[str, ...] = ()
+    not_held: tuple[str, ...] = ()
 
 
 class Dispatcher(Protocol):
@@ -65,6 +75,15 @@ class Dispatcher(Protocol):
     def signal_estop(self) -> None:
         """Publish the e-stop signal now (no await): the moment the latch engages, beside the
         zero velocity; the e-stop's dispatch then tells the robot again and halts it."""
+        ...
+
+    def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
+        """Hold what the commands `message_ids` sent that still runs on (`runs_on`), now (no
+        await); a stop of the whole robot holds every one itself."""
+        ...
+
+    def running_trajectories(self) -> Collection[str]:
+        """The message ids of the commands whose `runs_on` motion may still be running."""
         ...
 
 
@@ -164,6 +183,23 @@ class Steps:
         except Exception as exc:  # a broken readiness check counts as "not ready"
             log.exception("readiness check for %s failed", command.action)
             return f"readiness check failed: {exc!r}"
+
+    def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
+        if not message_ids:
+            return ArmsHeld()
+        try:
+            return self.dispatcher.hold_trajectories(message_ids)
+        except Exception as exc:  # reported with the stop, never raised into it
+            log.exception("holding the arms failed")
+            return ArmsHeld(not_held=(f"holding the arms failed: {exc!r}",))
+
+    def running_trajectories(self) -> Collection[str] | None:
+        """None: not known (count every one as running: fail closed)."""
+        try:
+            return self.dispatcher.running_trajectories()
+        except Exception:
+            log.exception("reading the running trajectories failed")
+            return None
 
     async def dispatch(self, command: NormalizedCommand, applied: ActionParams | None = None
                        ) -> Sent:

@@ -7,6 +7,7 @@ first trajectory below is sent on a writer made for it, and must arrive all the 
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -232,3 +233,32 @@ async def test_a_lost_session_holds_its_arm(rig: Rig) -> None:
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
     lost = [e for e in rig.entries() if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
     assert lost and lost[-1]["principal"] == AGENT.name, lost
+
+
+async def test_an_estop_holds_the_arm_before_it_waits_for_the_robots_estop_reader(
+        rig: Rig) -> None:
+    # Nothing subscribes to emergency_stop (joint_trajectory_controller does not): the e-stop
+    # waits up to match_timeout_s (3 s here) for a reader of its signal. The arm is held
+    # before that wait, as the stop's zero velocity is, not after it.
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    attending = asyncio.ensure_future(attend(rig))  # no session-loss halt holds it first
+    try:
+        await sent_long_trajectory(rig)
+        await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+            ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+        estop = asyncio.ensure_future(rig.command(AGENT, {"action": "estop"}))
+        (hold,) = await take(rig.oracle, LEFT)
+        assert not estop.done(), "the hold came only after the e-stop's wait for its reader"
+        assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+        stopped = await estop
+        assert stopped.outcome.value == "executed", stopped  # the halt reached the base
+    finally:
+        attending.cancel()
+
+
+async def attend(rig: Rig) -> None:
+    """The agent's session is attended (session_timeout_s: 1) until cancelled."""
+    while True:
+        rig.governor.heartbeat(AGENT)
+        await asyncio.sleep(0.1)

@@ -437,13 +437,22 @@ class RosDispatcher:
 
     async def halt(self) -> Halted:
         """Zero velocity, hold the arms whose trajectories may still run, cancel every goal."""
+        return await self._halted(self._halt_now())
+
+    def _halt_now(self) -> tuple[bool, ArmsHeld]:
+        """A halt's first step, before any await: zero velocity and the arms held. Whether
+        the velocity topic had a reader before, and what the hold reached."""
         zero = self._halt.message(with_effect(Effect.HALT).params())
         matched_before = self.cmd_vel.matched_count() > 0
         self.cmd_vel.publish(zero)  # first, unconditionally: late joiners stop too
-        arms = self.arms.hold_all()  # before any await, as the zero
+        return matched_before, self.arms.hold_all()
+
+    async def _halted(self, first: tuple[bool, ArmsHeld]) -> Halted:
+        """The rest of a halt after `_halt_now`: the zero again once matched, goals cancelled."""
+        matched_before, arms = first
         reached = matched_before or await self._matched(self.cmd_vel)
-        if reached and not matched_before:
-            self.cmd_vel.publish(zero)  # the first preceded the match
+        if reached and not matched_before:  # the first zero preceded the match
+            self.cmd_vel.publish(self._halt.message(with_effect(Effect.HALT).params()))
         cancelled = 0
         if self.goals is not None:
             try:
@@ -473,10 +482,14 @@ class RosDispatcher:
         route = self._routes[id(ros.signal)]
         signal = route.message(params)
         route.publisher.publish(signal)
+        # The base and the arms are halted before waiting for the signal's reader: a robot
+        # may have none (joint_trajectory_controller does not read it), and the wait is up
+        # to match_timeout_s.
+        first = self._halt_now()
         told = await self._matched(route.publisher)
         if told:
             route.publisher.publish(signal)  # the first write may have preceded the match
-        halted = await self.halt()
+        halted = await self._halted(first)
         return halted.result(route.publisher.topic, told=told)
 
 

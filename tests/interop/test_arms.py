@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from oracle.client import RclpyOracle
 from waiting import eventually, take
 
 from .bridge_rig import AGENT, OPS, Rig, bridge_config, close_rig, make_rig
@@ -233,6 +234,38 @@ async def test_a_lost_session_holds_its_arm(rig: Rig) -> None:
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
     lost = [e for e in rig.entries() if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
     assert lost and lost[-1]["principal"] == AGENT.name, lost
+
+
+async def test_two_senders_of_different_positions_hold_no_arm_at_either(
+        rig: Rig, jazzy_python: Path, domain_id: int) -> None:
+    # A joint_state_publisher left running beside the robot's broadcaster (its zeros, the
+    # same rate): the last JointState heard is either's. A hold at the zeros would step the
+    # arm across its reach; the stop fails instead, naming the jump, as for an arm unheard.
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    with RclpyOracle(jazzy_python, "joint_state_publisher", "/robot1",
+                     domain_id=domain_id) as other:
+        await other.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+        await other.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                          value={"name": ["l_shoulder", "l_elbow"], "position": [0.0, 0.0]})
+        assert await other.acall("wait_subscribers", topic=JOINT_STATES) >= 1
+        for _ in range(5):
+            rig.governor.heartbeat(AGENT)
+            await sent_long_trajectory(rig)
+            await eventually(lambda: "no joint_states" not in str(
+                rig.dispatcher.arms.positions.now(["l_shoulder", "l_elbow"], 1.0)))
+            stopped = await rig.command(AGENT, {"action": "stop"})
+            assert stopped.http_status == 503, (stopped, await take(rig.oracle, LEFT))
+            assert LEFT in (stopped.reason or "") and "jumped" in (stopped.reason or ""), \
+                stopped
+        await other.acall("stop_periodic", topic=JOINT_STATES)
+    # One sender again: the next stop holds the arm where that one says it is.
+    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+        ["l_shoulder", "l_elbow"], 1.0), list), what="joint_states of one sender")
+    again = await rig.command(AGENT, {"action": "stop"})
+    assert again.http_status == 200, again
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
 
 
 async def test_an_estop_holds_the_arm_before_it_waits_for_the_robots_estop_reader(

@@ -12,13 +12,15 @@ Where the joints are comes from `joint_states` (`JointPositions`, fed by the tel
 A position heard `age` seconds ago is carried forward by the velocity heard with it (a hold at
 where the arm was, not where it is, drives it back), by at most `MAX_LEAD` (rad or m): the
 velocity is the robot's word, and a wrong one must not turn a hold into a long move. Older than
-`MAX_AGE_S` (or the robot's telemetry counts as silent), or never heard, the arm is not held:
-a hold at a guess could move it anywhere. That arm is reported (the stop fails, saying which
+`MAX_AGE_S` (or the robot's telemetry counts as silent), never heard, or jumping between
+JointStates within MAX_AGE_S (two senders disagree), the arm is not held: a hold at a guess
+could move it anywhere. That arm is reported (the stop fails, saying which
 and why), and the next stop tries again.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable, Collection, Sequence
@@ -45,6 +47,8 @@ class JointPositions:
         self._watching: dict[str, frozenset[str]] = {}  # who watches → its joints
         self._watched: frozenset[str] = frozenset()
         self._heard: dict[str, tuple[float, float, float]] = {}  # → (position, velocity, at)
+        # → (at, from, to): the last time a joint's position jumped between two JointStates
+        self._jumped: dict[str, tuple[float, float, float]] = {}
 
     def watch(self, who: str, joints: Collection[str]) -> None:
         """`who` (a trajectory topic) needs `joints` now, instead of what it needed before."""
@@ -53,6 +57,7 @@ class JointPositions:
             self._watched = frozenset().union(*self._watching.values())
             for name in set(self._heard) - self._watched:
                 del self._heard[name]
+                self._jumped.pop(name, None)
 
     def heard(self, names: Sequence[str], positions: Sequence[float],
               velocities: Sequence[float]) -> None:
@@ -65,8 +70,11 @@ class JointPositions:
             for i, name in enumerate(names):
                 if name in watched and i < len(positions):
                     velocity = float(velocities[i]) if i < len(velocities) else 0.0
-                    self._heard[name] = (float(positions[i]),
-                                         velocity if _finite(velocity) else 0.0, at)
+                    heard = (float(positions[i]), velocity if _finite(velocity) else 0.0, at)
+                    before = self._heard.get(name)
+                    if before is not None and _jumped(before, heard):
+                        self._jumped[name] = (at, before[0], heard[0])
+                    self._heard[name] = heard
 
     def now(self, joints: Sequence[str], max_age_s: float) -> list[float] | str:
         """Where `joints` are now (their last positions carried forward by their velocities),
@@ -83,6 +91,10 @@ class JointPositions:
                     return f"joint_states for {name!r} last heard {now - at:.2f} s ago"
                 if not _finite(position):
                     return f"joint_states gave {name!r} the position {position}"
+                jumped = self._jumped.get(name)
+                if jumped is not None and now - jumped[0] <= max_age_s:
+                    return (f"joint_states for {name!r} jumped from {jumped[1]:.3f} to "
+                            f"{jumped[2]:.3f} {now - jumped[0]:.2f} s ago (two senders?)")
                 lead = max(-MAX_LEAD, min(MAX_LEAD, velocity * (now - at)))
                 found.append(position + lead)
         return found
@@ -90,6 +102,20 @@ class JointPositions:
 
 def _finite(value: float) -> bool:
     return value - value == 0.0
+
+
+def _jumped(before: tuple[float, float, float], after: tuple[float, float, float]) -> bool:
+    """`after` is not where a joint heard at `before` (at most MAX_AGE_S earlier) can be:
+    farther than its speeds (either sample's) carry it in between, plus MAX_LEAD. Two
+    senders of one joint's position (a joint_state_publisher left running beside the robot's
+    broadcaster) interleave so; a hold at whichever came last may be a step across the
+    arm's reach. A wrap of a continuous joint by whole turns is no jump."""
+    (was, v0, t0), (now, v1, t1) = before, after
+    if t1 - t0 > MAX_AGE_S:  # unheard meanwhile: it may have moved anywhere
+        return False
+    moved = now - was
+    moved -= 2 * math.pi * round(moved / (2 * math.pi)) if _finite(moved) else 0.0
+    return abs(moved) > MAX_LEAD + max(abs(v0), abs(v1)) * (t1 - t0)
 
 
 class HoldPublisher(Protocol):

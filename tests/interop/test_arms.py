@@ -8,6 +8,8 @@ first trajectory below is sent on a writer made for it, and must arrive all the 
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -264,6 +266,33 @@ async def test_two_senders_of_different_positions_hold_no_arm_at_either(
         ["l_shoulder", "l_elbow"], 1.0), list), what="joint_states of one sender")
     again = await rig.command(AGENT, {"action": "stop"})
     assert again.http_status == 200, again
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+
+
+async def test_a_bridge_leaving_waits_for_the_arms_hold_to_be_acknowledged(
+        rig: Rig, jazzy_python: Path, domain_id: int,
+        caplog: pytest.LogCaptureFixture) -> None:
+    # As for the zero velocity: a hold dropped at a busy reader is sent again only while the
+    # bridge's writer lives. The arm's subscriber here is frozen (SIGSTOP): it acknowledges
+    # nothing, and the bridge, leaving, waits for it (bounded) and says so; let go, it gets
+    # the hold.
+    with RclpyOracle(jazzy_python, "joint_state_broadcaster", "/robot1",
+                     domain_id=domain_id) as robot:
+        await robot.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+        await robot.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                          value={"name": ["l_shoulder", "l_elbow"],
+                                 "position": [0.25, -0.5], "velocity": [0.0, 0.0]})
+        await sent_long_trajectory(rig)
+        await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+            ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+        os.kill(rig.oracle.proc.pid, signal.SIGSTOP)
+        try:
+            await rig.dispatcher.halt_before_leaving()
+        finally:
+            os.kill(rig.oracle.proc.pid, signal.SIGCONT)
+    assert [r.getMessage() for r in caplog.records if LEFT in r.getMessage()] == [
+        f"leaving with the hold on {LEFT} not acknowledged by every subscriber within 2 s"]
     (hold,) = await take(rig.oracle, LEFT)
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
 

@@ -9,7 +9,15 @@ from typing import Any
 
 import pytest
 
-from rcan_rtps.bridge.arm_holds import MAX_AGE_S, MAX_LEAD, SETTLING_S, ArmHolds, JointPositions
+from rcan_rtps.bridge.arm_holds import (
+    MAX_AGE_S,
+    MAX_JOINT_NAME,
+    MAX_KEPT,
+    MAX_LEAD,
+    SETTLING_S,
+    ArmHolds,
+    JointPositions,
+)
 
 
 class Clock:
@@ -45,18 +53,31 @@ def positions(clock: Clock) -> JointPositions:
     return JointPositions(clock)
 
 
-def test_only_watched_joints_are_kept_from_any_joint_state(positions: JointPositions,
-                                                           clock: Clock) -> None:
-    positions.heard(["a", "b"], [1.0, 2.0], [])  # nobody watches yet
-    positions.watch("/arm", ["a", "b"])
-    assert positions.now(["a"], 1.0) == "no joint_states heard for 'a'"
-    # Two publishers, each with part of the arm (a gripper's node, the arm's broadcaster).
-    positions.heard(["a", "x"], [1.0, 5.0], [0.0, 0.0])
-    positions.heard(["b"], [2.0], [])
+def test_joints_are_kept_from_any_joint_state_before_any_trajectory(
+        positions: JointPositions, clock: Clock) -> None:
+    # Heard before its first trajectory: a stop right after it (before the next JointState)
+    # finds where the arm is.
+    positions.heard(["a", "b"], [1.0, 2.0], [])
     assert positions.now(["a", "b"], 1.0) == [1.0, 2.0]
-    assert positions.now(["x"], 1.0) == "no joint_states heard for 'x'"
-    positions.watch("/arm", ["b"])  # its next trajectory moves b only: a is let go
-    assert positions.now(["a"], 1.0) == "no joint_states heard for 'a'"
+    # Two publishers, each with part of the arm (a gripper's node, the arm's broadcaster).
+    positions.heard(["a", "x"], [1.05, 5.0], [0.0, 0.0])
+    positions.heard(["b"], [2.05], [])
+    assert positions.now(["a", "b", "x"], 1.0) == [1.05, 2.05, 5.0]
+    assert positions.now(["y"], 1.0) == "no joint_states heard for 'y'"
+
+
+def test_a_joint_state_s_size_is_bounded_but_not_for_watched_joints(
+        positions: JointPositions) -> None:
+    long_name = "j" * (MAX_JOINT_NAME + 1)
+    positions.heard([long_name], [1.0], [])  # no command can name it
+    assert positions.now([long_name], 1.0) == f"no joint_states heard for {long_name!r}"
+    junk = [f"junk{i}" for i in range(MAX_KEPT + 10)]
+    positions.heard(junk, [0.0] * len(junk), [])
+    positions.heard(["elbow"], [0.5], [])
+    assert positions.now(["elbow"], 1.0) == "no joint_states heard for 'elbow'"
+    positions.watch("/arm", ["elbow"])  # its trajectory: kept from the next JointState
+    positions.heard(["elbow"], [0.5], [])
+    assert positions.now(["elbow"], 1.0) == [0.5]
 
 
 def test_a_sender_s_inconsistent_lists_are_read_as_far_as_they_go(

@@ -254,8 +254,7 @@ async def test_two_senders_of_different_positions_hold_no_arm_at_either(
         for _ in range(5):
             rig.governor.heartbeat(AGENT)
             await sent_long_trajectory(rig)
-            await eventually(lambda: "no joint_states" not in str(
-                rig.dispatcher.arms.positions.now(["l_shoulder", "l_elbow"], 1.0)))
+            await both_heard(rig)
             stopped = await rig.command(AGENT, {"action": "stop"})
             assert stopped.http_status == 503, (stopped, await take(rig.oracle, LEFT))
             assert LEFT in (stopped.reason or "") and "jumped" in (stopped.reason or ""), \
@@ -268,6 +267,19 @@ async def test_two_senders_of_different_positions_hold_no_arm_at_either(
     assert again.http_status == 200, again
     (hold,) = await take(rig.oracle, LEFT)
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+
+
+async def both_heard(rig: Rig) -> None:
+    """The bridge has heard the left elbow from both senders (as STATUS shows its joints)."""
+    seen: set[float] = set()
+
+    def heard_both() -> bool:
+        joints = rig.telemetry.status(pending_auth=0).telemetry.joints
+        if joints is not None and "l_elbow" in joints.names:
+            seen.add(joints.positions[joints.names.index("l_elbow")])
+        return {0.0, -0.5} <= seen
+
+    await eventually(heard_both, what=lambda: f"both senders heard, seen {seen}")
 
 
 async def test_a_bridge_leaving_waits_for_the_arms_hold_to_be_acknowledged(
@@ -294,6 +306,27 @@ async def test_a_bridge_leaving_waits_for_the_arms_hold_to_be_acknowledged(
     assert [r.getMessage() for r in caplog.records if LEFT in r.getMessage()] == [
         f"leaving with the hold on {LEFT} not acknowledged by every subscriber within 2 s"]
     (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+
+
+async def test_a_stop_right_after_the_arms_command_holds_it(rig: Rig) -> None:
+    # joint_states at 5 Hz, heard since before the trajectory: a stop at once after it (as
+    # an agent's "oops") holds the arm where those said it was. Before, the bridge kept a
+    # joint's position only from its first trajectory on: the stop found none and failed
+    # (503, the arm not held: its trajectory ran on), as the demo's (10 Hz) did 100 ms on.
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    await rig.oracle.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+    await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=5.0,
+                           value={"name": ["l_shoulder", "l_elbow"],
+                                  "position": [0.25, -0.5], "velocity": [0.0, 0.0]})
+    await eventually(lambda: (rig.telemetry.status(pending_auth=0).telemetry.joints
+                              is not None), what="the arm's joint_states, heard")
+    moving = await rig.command(AGENT, {"action": "arm_joint", "params": LONG})
+    assert moving.http_status == 200, moving
+    stopped = await rig.command(AGENT, {"action": "stop"})
+    assert stopped.http_status == 200, stopped
+    (first, hold) = await take(rig.oracle, LEFT, until=lambda got: len(got) >= 2)
+    assert first["points"][0]["positions"] == [1.0, 2.0]
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
 
 

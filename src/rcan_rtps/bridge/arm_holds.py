@@ -34,12 +34,18 @@ SETTLING_S = 1.0
 # visible way since, and holding it there would drive it back as far.
 MAX_AGE_S = 0.5
 MAX_LEAD = 0.1  # how far a hold may carry a joint past where it was heard
+MAX_KEPT = 256  # joints kept that no trajectory moves (yet)
+MAX_JOINT_NAME = 128  # a longer name no command can give (rcan JointName)
 
 
 class JointPositions:
     """The last measured position (and velocity) of each joint the bridge may have to hold,
     whichever JointState carried it: written on the telemetry reader's thread, read on the
-    loop. Only watched joints are kept (a JointState's size is its sender's choice)."""
+    loop. Every joint is kept from when it is heard, not from its first trajectory on: a
+    stop right after that trajectory (before the next JointState) must find where it is.
+    A JointState's size is its sender's choice: at most MAX_KEPT joints are kept besides the
+    watched ones (those of the trajectories that may be running), and no name longer than
+    a command may give."""
 
     def __init__(self, monotonic: Callable[[], float] = time.monotonic) -> None:
         self._monotonic = monotonic
@@ -51,30 +57,31 @@ class JointPositions:
         self._jumped: dict[str, tuple[float, float, float]] = {}
 
     def watch(self, who: str, joints: Collection[str]) -> None:
-        """`who` (a trajectory topic) needs `joints` now, instead of what it needed before."""
+        """`who` (a trajectory topic) needs `joints` now, instead of what it needed before:
+        they are kept whatever else was heard."""
         with self._lock:
             self._watching[who] = frozenset(joints)
             self._watched = frozenset().union(*self._watching.values())
-            for name in set(self._heard) - self._watched:
-                del self._heard[name]
-                self._jumped.pop(name, None)
 
     def heard(self, names: Sequence[str], positions: Sequence[float],
               velocities: Sequence[float]) -> None:
         """One JointState (its parallel lists; `velocities` may be empty)."""
-        watched = self._watched
-        if not watched:
-            return
         at = self._monotonic()
         with self._lock:
-            for i, name in enumerate(names):
-                if name in watched and i < len(positions):
-                    velocity = float(velocities[i]) if i < len(velocities) else 0.0
-                    heard = (float(positions[i]), velocity if _finite(velocity) else 0.0, at)
-                    before = self._heard.get(name)
-                    if before is not None and _jumped(before, heard):
-                        self._jumped[name] = (at, before[0], heard[0])
-                    self._heard[name] = heard
+            for i, name in enumerate(names[:len(positions)]):
+                if name not in self._heard and not self._keeps(name):
+                    continue
+                velocity = float(velocities[i]) if i < len(velocities) else 0.0
+                heard = (float(positions[i]), velocity if _finite(velocity) else 0.0, at)
+                before = self._heard.get(name)
+                if before is not None and _jumped(before, heard):
+                    self._jumped[name] = (at, before[0], heard[0])
+                self._heard[name] = heard
+
+    def _keeps(self, name: str) -> bool:
+        """Whether a joint not kept yet is kept from now on."""
+        return name in self._watched or (len(self._heard) < MAX_KEPT
+                                         and len(name) <= MAX_JOINT_NAME)
 
     def now(self, joints: Sequence[str], max_age_s: float) -> list[float] | str:
         """Where `joints` are now (their last positions carried forward by their velocities),

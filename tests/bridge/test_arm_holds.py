@@ -120,12 +120,28 @@ def test_a_stop_holds_each_running_trajectory_once(positions: JointPositions,
     assert arms.running() == [] and arms.hold_all() == ((), ())
 
 
-def test_the_last_trajectory_on_a_topic_is_the_one_held(positions: JointPositions,
-                                                        clock: Clock) -> None:
+def test_a_trajectory_the_next_on_its_topic_may_not_have_replaced_is_held_too(
+        positions: JointPositions, clock: Clock) -> None:
+    # joint_trajectory_controller refuses m2 (only some of its joints, without
+    # allow_partial_joints_goal), and the topic says nothing: m1 may run on. Each joint set
+    # still due is held, oldest first (a hold of a set the controller refuses is refused).
     arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
     left = Topic("/left")
     arms.sent(left, "m1", ["a", "b"], 60.0, hold)
-    arms.sent(left, "m2", ["b"], 0.5, hold)  # replaces m1, in the controller too
+    arms.sent(left, "m2", ["b"], 0.5, hold)
+    positions.heard(["a", "b"], [0.1, 0.2], [])
+    assert arms.running() == ["m1", "m2"]
+    assert arms.hold_all() == (("/left",), ())
+    assert left.sent == [(["a", "b"], [0.1, 0.2]), (["b"], [0.2])]
+    assert arms.running() == []
+
+
+def test_a_trajectory_of_the_same_joints_replaces_the_last_and_an_ended_one_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = Topic("/left")
+    arms.sent(left, "m1", ["a", "b"], 60.0, hold)
+    arms.sent(left, "m2", ["b", "a"], 0.5, hold)  # the controller takes it as it took m1
     positions.heard(["a", "b"], [0.1, 0.2], [])
     assert arms.running() == ["m2"]
     clock.t += 0.5 + SETTLING_S + 0.01  # m2 has ended, settled included

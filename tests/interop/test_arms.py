@@ -330,6 +330,38 @@ async def test_a_stop_right_after_the_arms_command_holds_it(rig: Rig) -> None:
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
 
 
+PARTIAL = {**LONG, "joints": ["l_elbow"], "positions": [0.0], "duration_s": 1.0}
+
+
+@pytest.mark.parametrize("stop", ["stop", "cancelled"])
+async def test_a_trajectory_a_later_one_may_not_have_replaced_is_held_too(
+        rig: Rig, stop: str) -> None:
+    # The whole arm's 60 s trajectory, then one of the elbow alone (another principal's):
+    # joint_trajectory_controller refuses the second unless allow_partial_joints_goal, and
+    # its topic says nothing, so the first may run on. A stop (the robot's, or the first
+    # sender's own: its call cancelled) holds the whole arm too, before the elbow alone.
+    # Before, the bridge (and the governor) knew only the last trajectory on the topic.
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    await sent_long_trajectory(rig)
+    partial = await rig.command(OPS, {"action": "arm_joint", "params": PARTIAL})
+    assert partial.http_status == 200, partial
+    await take(rig.oracle, LEFT)
+    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+        ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+    if stop == "stop":
+        stopped = await rig.command(AGENT, {"action": "stop"})
+        assert stopped.http_status == 200, stopped
+        expected = [["l_shoulder", "l_elbow"], ["l_elbow"]]
+    else:
+        own = await rig.governor.command_cancelled(AGENT)
+        assert own is not None and own.applied and own.applied["arms_held"] == [LEFT], own
+        expected = [["l_shoulder", "l_elbow"]]  # the other principal's runs on
+    holds = await take(rig.oracle, LEFT, until=lambda got: len(got) >= len(expected))
+    assert [h["joint_names"] for h in holds] == expected, holds
+    assert_held_at(holds[0], [0.25, -0.5], [0.0, 0.0])
+
+
 async def test_an_estop_holds_the_arm_before_it_waits_for_the_robots_estop_reader(
         rig: Rig) -> None:
     # Nothing subscribes to emergency_stop (joint_trajectory_controller does not): the e-stop

@@ -3,10 +3,11 @@
 Zero velocity and goal cancels do not reach an arm: a JointTrajectory runs on in its
 controller up to its last point's time (`arm_joint` allows an hour), and
 joint_trajectory_controller's topic has no cancel (an empty trajectory is refused). So the
-dispatcher remembers, per trajectory topic, the last trajectory it sent there and until when it
-may run; a stop sends each arm still due the message its route declares to hold it
-(`Publish.hold`): one point at the joints' measured positions, at rest, due at once — what the
-controller does itself when its action goal is cancelled.
+dispatcher remembers, per trajectory topic, the trajectories it sent there and until when they
+may run (the controller may have refused the last, `ArmHolds`); a stop sends each arm still
+due the message its route declares to hold it (`Publish.hold`): one point at the joints'
+measured positions, at rest, due at once — what the controller does itself when its action
+goal is cancelled.
 
 Where the joints are comes from `joint_states` (`JointPositions`, fed by the telemetry reader).
 A position heard `age` seconds ago is carried forward by the velocity heard with it (a hold at
@@ -36,6 +37,7 @@ MAX_AGE_S = 0.5
 MAX_LEAD = 0.1  # how far a hold may carry a joint past where it was heard
 MAX_KEPT = 256  # joints kept that no trajectory moves (yet)
 MAX_JOINT_NAME = 128  # a longer name no command can give (rcan JointName)
+MAX_SETS = 8  # distinct joint sets remembered per trajectory topic
 
 
 class JointPositions:
@@ -141,59 +143,83 @@ class _Running(NamedTuple):
 
 
 class ArmHolds:
-    """The trajectories that may still be running, one per topic (a new one replaces the
-    last, in the controller as here), and holding them."""
+    """The trajectories that may still be running, per topic, and holding them.
+
+    A new trajectory on a topic does not make the bridge forget the ones before it: it
+    replaces them in the controller only if the controller takes it, and the topic answers
+    nothing. joint_trajectory_controller refuses one naming only some of its joints (unless
+    `allow_partial_joints_goal`) or a joint it lacks, and the one before runs on. So a stop
+    holds each joint set still due on the topic, oldest first: a hold of a set the
+    controller refuses is refused too, and the hold of the set it ran is taken. One entry per
+    distinct joint set (the later replaces the earlier), at most MAX_SETS per topic."""
 
     def __init__(self, positions: JointPositions, max_age_s: float,
                  monotonic: Callable[[], float] = time.monotonic) -> None:
         self.positions = positions
         self._max_age_s = min(max_age_s, MAX_AGE_S)
         self._monotonic = monotonic
-        self._running: dict[str, _Running] = {}
+        self._running: dict[str, list[_Running]] = {}  # topic → oldest first
 
     def sent(self, publisher: HoldPublisher, message_id: str, joints: Sequence[str],
              runs_for_s: float, hold: Callable[[Sequence[str], Sequence[float]], Any]) -> None:
         """A trajectory went out on `publisher`, running `runs_for_s` from now."""
-        due = self._monotonic() + runs_for_s + SETTLING_S
-        self._running[publisher.topic] = _Running(message_id, tuple(joints), due, publisher,
-                                                  hold)
-        self.positions.watch(publisher.topic, joints)
+        now = self._monotonic()
+        topic = publisher.topic
+        new = _Running(message_id, tuple(joints), now + runs_for_s + SETTLING_S, publisher,
+                       hold)
+        runs = [r for r in self._running.get(topic, ())
+                if now <= r.due and set(r.joints) != set(new.joints)]
+        self._running[topic] = [*runs, new][-MAX_SETS:]
+        self._watch(topic)
 
     def hold_all(self) -> ArmsHeld:
         """Every arm whose trajectory may still be running is held (a stop of the robot)."""
-        return self._hold(list(self._running.values()))
+        return self._hold(lambda run: True)
 
     def hold(self, message_ids: Collection[str]) -> ArmsHeld:
         """The arms still running one of `message_ids`' trajectories are held (a stop of one
         principal's motion alone); others' trajectories run on."""
-        return self._hold([r for r in self._running.values() if r.message_id in message_ids])
+        return self._hold(lambda run: run.message_id in message_ids)
 
-    def _hold(self, running: list[_Running]) -> ArmsHeld:
+    def _hold(self, chosen: Callable[[_Running], bool]) -> ArmsHeld:
         now = self._monotonic()
         held, not_held = [], []
-        for run in running:
-            topic = run.publisher.topic
-            if now > run.due:  # ended: holding it now would only fight whoever moves it next
-                self._forget(topic)
-                continue
-            where = self.positions.now(run.joints, self._max_age_s)
-            if isinstance(where, str):
-                not_held.append(f"the arm on {topic} was not held: {where}")
-                continue
-            try:
-                run.publisher.publish(run.hold(run.joints, where))
-            except Exception as exc:  # one arm's fault must not keep the others moving
-                not_held.append(f"the arm on {topic} was not held: {exc!r}")
-                continue
-            self._forget(topic)
-            held.append(topic)
+        for topic in list(self._running):
+            # ended: holding it now would only fight whoever moves it next
+            runs = [r for r in self._running[topic] if now <= r.due]
+            kept = [r for r in runs if not chosen(r)]
+            reached = False
+            for run in (r for r in runs if chosen(r)):  # oldest first
+                why = self._hold_one(run)
+                if why is None:
+                    reached = True
+                else:
+                    kept.append(run)  # the next stop tries again
+                    not_held.append(f"the arm on {topic} was not held: {why}")
+            if reached:
+                held.append(topic)
+            self._running[topic] = [r for r in runs if r in kept]
+            self._watch(topic)
         return ArmsHeld(tuple(held), tuple(not_held))
 
-    def _forget(self, topic: str) -> None:
-        del self._running[topic]
-        self.positions.watch(topic, ())
+    def _hold_one(self, run: _Running) -> str | None:
+        """Publishes the hold of one trajectory's joints; why not, if it could not."""
+        where = self.positions.now(run.joints, self._max_age_s)
+        if isinstance(where, str):
+            return where
+        try:
+            run.publisher.publish(run.hold(run.joints, where))
+        except Exception as exc:  # one arm's fault must not keep the others moving
+            return repr(exc)
+        return None
+
+    def _watch(self, topic: str) -> None:
+        runs = self._running.get(topic, [])
+        if not runs:
+            self._running.pop(topic, None)
+        self.positions.watch(topic, {j for r in runs for j in r.joints})
 
     def running(self) -> list[str]:
         """The message ids of the trajectories that may still be running."""
         now = self._monotonic()
-        return [r.message_id for r in self._running.values() if now <= r.due]
+        return [r.message_id for runs in self._running.values() for r in runs if now <= r.due]

@@ -178,33 +178,34 @@ def test_an_arm_that_cannot_be_held_is_named_and_kept_for_the_next_stop(
     assert arms.running() == ["m2"]
 
 
-def test_a_joint_whose_joint_states_disagree_is_not_held(positions: JointPositions,
-                                                          clock: Clock) -> None:
-    # The robot's broadcaster and a joint_state_publisher left running (its zeros): a hold
-    # at whichever came last may be a step across the arm's reach.
-    positions.watch("/arm", ["a", "b"])
-    positions.heard(["a", "b"], [0.25, -0.5], [0.0, 0.0])
+def test_a_joint_whose_joint_states_senders_disagree_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    # The robot's broadcaster (1) and a joint_state_publisher left running (2, its zeros): a
+    # hold at whichever came last may be a step across the arm's reach.
+    positions.heard(["a", "b"], [0.25, -0.5], [0.0, 0.0], sender=1)
     clock.t += 0.02
-    positions.heard(["a", "b"], [0.0, 0.0], [])
+    positions.heard(["a", "b"], [0.0, 0.0], [], sender=2)
     assert positions.now(["a", "b"], 1.0) == (
-        "joint_states for 'a' jumped from 0.250 to 0.000 0.00 s ago (two senders?)")
+        "joint_states senders disagree on 'a': 0.250 and 0.000, 0.00 s ago")
     clock.t += 0.02
-    positions.heard(["a", "b"], [0.25, -0.5], [0.0, 0.0])  # the next from the robot
+    positions.heard(["a", "b"], [0.25, -0.5], [0.0, 0.0], sender=1)
     assert isinstance(positions.now(["a", "b"], 1.0), str)
-    # One sender again: held once the jump is MAX_AGE_S old.
+    # One sender again: held once the disagreement is MAX_AGE_S old.
     for _ in range(round(MAX_AGE_S / 0.02) + 1):
         clock.t += 0.02
-        positions.heard(["a", "b"], [0.25, -0.5], [0.0, 0.0])
+        positions.heard(["a", "b"], [0.25, -0.5], [0.0, 0.0], sender=1)
     assert positions.now(["a", "b"], MAX_AGE_S) == [0.25, -0.5]
 
 
-def test_motion_its_velocities_explain_is_no_jump(positions: JointPositions,
-                                                  clock: Clock) -> None:
-    positions.watch("/arm", ["fast", "wrap", "quiet"])
-    positions.heard(["fast", "wrap", "quiet"], [0.0, math.pi - 0.01, 0.0], [3.0, 1.0, 0.0])
-    clock.t += 0.1  # 10 Hz: 0.3 rad at 3 rad/s; a continuous joint wraps to -pi
-    positions.heard(["fast", "wrap", "quiet"], [0.3, -math.pi + 0.09, 0.0], [3.0, 1.0, 0.0])
-    clock.t += 2.0  # unheard for long: it may be anywhere now
-    positions.heard(["quiet"], [1.5], [0.0])
-    assert positions.now(["quiet"], 1.0) == [1.5]
+def test_one_sender_never_disagrees_with_itself_nor_senders_that_agree(
+        positions: JointPositions, clock: Clock) -> None:
+    # No velocities given, 10 Hz, 3 rad/s: 0.3 rad between two samples of one sender.
+    positions.heard(["fast", "wrap"], [0.0, math.pi - 0.01], [], sender=1)
+    clock.t += 0.1
+    positions.heard(["fast", "wrap"], [0.3, math.pi - 0.01], [], sender=1)
+    # Another sender (a driver restarted): where the first left it, or a turn around.
+    clock.t += 0.1
+    positions.heard(["fast", "wrap"], [0.35, -math.pi + 0.02], [0.5, 0.0], sender=3)
+    clock.t += 2.0  # the first again, after long: the joint may be anywhere now
+    positions.heard(["fast"], [1.5], [0.0], sender=1)
     assert isinstance(positions.now(["fast", "wrap"], 10.0), list)

@@ -242,7 +242,7 @@ async def test_two_senders_of_different_positions_hold_no_arm_at_either(
         rig: Rig, jazzy_python: Path, domain_id: int) -> None:
     # A joint_state_publisher left running beside the robot's broadcaster (its zeros, the
     # same rate): the last JointState heard is either's. A hold at the zeros would step the
-    # arm across its reach; the stop fails instead, naming the jump, as for an arm unheard.
+    # arm across its reach; the stop fails instead, naming the disagreement, as for an arm unheard.
     await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
     await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
     with RclpyOracle(jazzy_python, "joint_state_publisher", "/robot1",
@@ -257,7 +257,7 @@ async def test_two_senders_of_different_positions_hold_no_arm_at_either(
             await both_heard(rig)
             stopped = await rig.command(AGENT, {"action": "stop"})
             assert stopped.http_status == 503, (stopped, await take(rig.oracle, LEFT))
-            assert LEFT in (stopped.reason or "") and "jumped" in (stopped.reason or ""), \
+            assert LEFT in (stopped.reason or "") and "disagree" in (stopped.reason or ""), \
                 stopped
         await other.acall("stop_periodic", topic=JOINT_STATES)
     # One sender again: the next stop holds the arm where that one says it is.

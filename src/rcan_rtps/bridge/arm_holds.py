@@ -13,8 +13,8 @@ Where the joints are comes from `joint_states` (`JointPositions`, fed by the tel
 A position heard `age` seconds ago is carried forward by the velocity heard with it (a hold at
 where the arm was, not where it is, drives it back), by at most `MAX_LEAD` (rad or m): the
 velocity is the robot's word, and a wrong one must not turn a hold into a long move. Older than
-`MAX_AGE_S` (or the robot's telemetry counts as silent), never heard, or jumping between
-JointStates within MAX_AGE_S (two senders disagree), the arm is not held: a hold at a guess
+`MAX_AGE_S` (or the robot's telemetry counts as silent), never heard, or two senders of
+joint_states disagreeing on it within MAX_AGE_S, the arm is not held: a hold at a guess
 could move it anywhere. That arm is reported (the stop fails, saying which
 and why), and the next stop tries again.
 """
@@ -54,8 +54,8 @@ class JointPositions:
         self._lock = threading.Lock()
         self._watching: dict[str, frozenset[str]] = {}  # who watches → its joints
         self._watched: frozenset[str] = frozenset()
-        self._heard: dict[str, tuple[float, float, float]] = {}  # → (position, velocity, at)
-        # → (at, from, to): the last time a joint's position jumped between two JointStates
+        self._heard: dict[str, _Heard] = {}
+        # → (at, from, to): the last time two senders disagreed on where a joint is
         self._jumped: dict[str, tuple[float, float, float]] = {}
 
     def watch(self, who: str, joints: Collection[str]) -> None:
@@ -66,18 +66,20 @@ class JointPositions:
             self._watched = frozenset().union(*self._watching.values())
 
     def heard(self, names: Sequence[str], positions: Sequence[float],
-              velocities: Sequence[float]) -> None:
-        """One JointState (its parallel lists; `velocities` may be empty)."""
+              velocities: Sequence[float], sender: int | None = None) -> None:
+        """One JointState (its parallel lists; `velocities` may be empty) from `sender` (its
+        writer, if known)."""
         at = self._monotonic()
         with self._lock:
             for i, name in enumerate(names[:len(positions)]):
                 if name not in self._heard and not self._keeps(name):
                     continue
                 velocity = float(velocities[i]) if i < len(velocities) else 0.0
-                heard = (float(positions[i]), velocity if _finite(velocity) else 0.0, at)
+                heard = _Heard(float(positions[i]), velocity if _finite(velocity) else 0.0,
+                               at, sender)
                 before = self._heard.get(name)
-                if before is not None and _jumped(before, heard):
-                    self._jumped[name] = (at, before[0], heard[0])
+                if before is not None and _disagree(before, heard):
+                    self._jumped[name] = (at, before.position, heard.position)
                 self._heard[name] = heard
 
     def _keeps(self, name: str) -> bool:
@@ -95,15 +97,15 @@ class JointPositions:
                 heard = self._heard.get(name)
                 if heard is None:
                     return f"no joint_states heard for {name!r}"
-                position, velocity, at = heard
+                position, velocity, at, _ = heard
                 if now - at > max_age_s:
                     return f"joint_states for {name!r} last heard {now - at:.2f} s ago"
                 if not _finite(position):
                     return f"joint_states gave {name!r} the position {position}"
                 jumped = self._jumped.get(name)
                 if jumped is not None and now - jumped[0] <= max_age_s:
-                    return (f"joint_states for {name!r} jumped from {jumped[1]:.3f} to "
-                            f"{jumped[2]:.3f} {now - jumped[0]:.2f} s ago (two senders?)")
+                    return (f"joint_states senders disagree on {name!r}: {jumped[1]:.3f} "
+                            f"and {jumped[2]:.3f}, {now - jumped[0]:.2f} s ago")
                 lead = max(-MAX_LEAD, min(MAX_LEAD, velocity * (now - at)))
                 found.append(position + lead)
         return found
@@ -113,18 +115,27 @@ def _finite(value: float) -> bool:
     return value - value == 0.0
 
 
-def _jumped(before: tuple[float, float, float], after: tuple[float, float, float]) -> bool:
-    """`after` is not where a joint heard at `before` (at most MAX_AGE_S earlier) can be:
-    farther than its speeds (either sample's) carry it in between, plus MAX_LEAD. Two
-    senders of one joint's position (a joint_state_publisher left running beside the robot's
-    broadcaster) interleave so; a hold at whichever came last may be a step across the
-    arm's reach. A wrap of a continuous joint by whole turns is no jump."""
-    (was, v0, t0), (now, v1, t1) = before, after
-    if t1 - t0 > MAX_AGE_S:  # unheard meanwhile: it may have moved anywhere
+class _Heard(NamedTuple):
+    position: float
+    velocity: float  # 0 when not given or not finite
+    at: float  # monotonic
+    sender: int | None  # the writer's handle, if known
+
+
+def _disagree(before: _Heard, after: _Heard) -> bool:
+    """Two senders of one joint's position (a joint_state_publisher left running beside the
+    robot's broadcaster) disagree on where it is: `after`, from another sender than
+    `before` (at most MAX_AGE_S earlier), is farther from it than either's speed carries
+    the joint in between, plus MAX_LEAD. A hold at whichever came last may be a step across
+    the arm's reach. One sender's own samples never disagree, however fast the joint moves
+    (a sender may give no velocities); a wrap of a continuous joint by whole turns is no
+    disagreement."""
+    if before.sender == after.sender or after.at - before.at > MAX_AGE_S:
         return False
-    moved = now - was
+    moved = after.position - before.position
     moved -= 2 * math.pi * round(moved / (2 * math.pi)) if _finite(moved) else 0.0
-    return abs(moved) > MAX_LEAD + max(abs(v0), abs(v1)) * (t1 - t0)
+    speed = max(abs(before.velocity), abs(after.velocity))
+    return abs(moved) > MAX_LEAD + speed * (after.at - before.at)
 
 
 class HoldPublisher(Protocol):

@@ -232,3 +232,16 @@ async def test_a_lost_session_holds_its_arm(rig: Rig) -> None:
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
     lost = [e for e in rig.entries() if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
     assert lost and lost[-1]["principal"] == AGENT.name, lost
+
+
+async def test_the_bridge_leaving_holds_a_moving_arm(rig: Rig) -> None:
+    # What the bridge runs as it stops (SIGINT, SIGTERM): the hold is acknowledged by the
+    # controller's reader before the writer goes (a sample lost then is never repaired).
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    await sent_long_trajectory(rig)
+    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+        ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+    await rig.dispatcher.halt_before_leaving()
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])

@@ -12,6 +12,7 @@ ROBOT_UNAVAILABLE at once. A topic that never matched yet gets `match_timeout_s`
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import Callable, Collection
 from typing import Any, NamedTuple, Protocol
@@ -117,6 +118,8 @@ class CommandPublisher(Protocol):
 
     async def wait_for_subscribers(self, count: int = 1, timeout: float = 5.0) -> int: ...
 
+    async def acknowledged(self, timeout: float) -> bool: ...
+
 
 class FirstUsePublisher:
     """A publisher whose topic, type and writer are made by its first use (issue 27: idle
@@ -149,6 +152,9 @@ class FirstUsePublisher:
 
     async def wait_for_subscribers(self, count: int = 1, timeout: float = 5.0) -> int:
         return await self.publisher().wait_for_subscribers(count, timeout)
+
+    async def acknowledged(self, timeout: float) -> bool:
+        return await self.publisher().acknowledged(timeout)
 
 
 class _Route:
@@ -456,13 +462,18 @@ class RosDispatcher:
 
     async def halt_before_leaving(self) -> None:
         """The bridge is stopping: halt, then wait (at most LEAVING_ACK_S) until the robot's
-        subscriptions acknowledged the zero. A zero dropped at a busy reader is sent again only
-        while our writer lives, and the process exits right after: seen once in CI, a
-        SIGINT during a move left an rclpy subscriber's last Twist the move's."""
-        await self.halt()
-        if not await self.cmd_vel.acknowledged(LEAVING_ACK_S):
-            log.warning("leaving with the zero on %s not acknowledged by every subscriber "
-                        "within %s", self.cmd_vel.topic, seconds(LEAVING_ACK_S))
+        subscriptions acknowledged the zero and each arm's hold. A sample dropped at a busy
+        reader is sent again only while our writer lives, and the process exits right after:
+        seen once in CI, a SIGINT during a move left an rclpy subscriber's last Twist the
+        move's."""
+        halted = await self.halt()
+        sent: list[CommandPublisher] = [self.cmd_vel, *(
+            p for p in self._publishers.values() if p.topic in halted.arms.held)]
+        acked = await asyncio.gather(*(p.acknowledged(LEAVING_ACK_S) for p in sent))
+        for publisher, ok in zip(sent, acked, strict=True):
+            if not ok:
+                log.warning("leaving with the halt on %s not acknowledged by every subscriber "
+                            "within %s", publisher.topic, seconds(LEAVING_ACK_S))
 
     async def _stop(self) -> DispatchResult:
         halted = await self.halt()

@@ -307,3 +307,88 @@ async def test_no_invoke_result_is_audited_after_the_bridge_stopped(api: Api) ->
     await api.gov.invoke_result(Principal("planner", Role.USER), invoke_id="inv-late",
                                 status="success", outcome="executed", facts={})
     assert api.entries[-1]["event"] == "BRIDGE_STOPPED"
+
+
+# -- an arm's skill: its trajectory runs on after it is sent ---------------------------------
+ARM_SKILLS = ("skills: {wave: {action: arm_joint, params: {joints: [elbow], positions: [0.8]}, "
+              "allow: [duration_s]}}")
+
+
+@pytest.fixture
+async def arm_api(tmp_path: Path) -> AsyncIterator[Api]:
+    harness = await Api(tmp_path, bridge_extra=ARM_SKILLS, gates="[]").start()
+    yield harness
+    await harness.close()
+
+
+def wave(msg_id: str, duration_s: float, **fields: Any) -> dict[str, Any]:
+    return invoke("wave", msg_id, params={"duration_s": duration_s}, **fields)
+
+
+async def test_an_arm_skill_is_answered_when_its_trajectory_s_time_is_up(arm_api: Api
+                                                                         ) -> None:
+    """Not when it is sent: the skill is done when the arm is (a topic reports no end)."""
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-w", 0.3)))
+    await sent(arm_api, "arm_joint")
+    assert not reply.done()
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["status"], body["outcome"]) == (200, "success", "executed"), body
+    assert arm_api.dispatcher.holds == []
+
+
+async def test_invoke_cancel_holds_an_arm_skill_where_it_is(arm_api: Api) -> None:
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-w", 60.0)))
+    await sent(arm_api, "arm_joint")
+    status, body = await arm_api.command("planner", cancel("inv-w"))
+    assert (status, body["status"], body["reply_to"]) == (200, "cancelled", "inv-w"), body
+    assert arm_api.dispatcher.holds == [["inv-w"]] and arm_api.dispatcher.running == []
+    assert (await asyncio.wait_for(reply, 10))[1]["status"] == "cancelled"
+    [entry] = [e for e in arm_api.entries if e.get("action_type") == "hold_trajectory"]
+    assert (entry["event"], entry["principal"], entry["params"]["sent_by"],
+            entry["params"]["why"], entry["sent_first"]) == (
+        "COMMAND_DISPATCHED", "planner", "inv-w", "INVOKE_CANCEL", True)
+
+
+async def test_an_arm_skill_past_its_timeout_is_held(arm_api: Api) -> None:
+    status, body = await arm_api.command("planner", wave("inv-t", 60.0, timeout_ms=50))
+    assert (status, body["status"], body["error"]["code"]) == (200, "timeout", 7002), body
+    assert arm_api.dispatcher.holds == [["inv-t"]]
+
+
+async def test_an_arm_skill_a_stop_held_is_not_a_success(arm_api: Api) -> None:
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-s", 0.5)))
+    await sent(arm_api, "arm_joint")
+    status, _ = await arm_api.command("planner", {"action": "stop"})
+    assert status == 200
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["status"]) == (200, "failure"), body
+    assert "a stop held the arm" in body["error"]["message"], body
+
+
+async def test_a_cancel_that_cannot_hold_the_arm_says_so_and_the_skill_runs_on(
+        arm_api: Api) -> None:
+    arm_api.dispatcher.unheard_arms = True  # no joint_states: no hold at a guess
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-u", 0.5)))
+    await sent(arm_api, "arm_joint")
+    status, body = await arm_api.command("planner", cancel("inv-u"))
+    assert (status, body["outcome"], body["error_code"]) == (
+        503, "failed", "ROBOT_UNAVAILABLE"), body
+    assert "no joint_states heard" in body["reason"], body
+    [entry] = [e for e in arm_api.entries if e.get("action_type") == "hold_trajectory"]
+    assert entry["event"] == "COMMAND_FAILED", entry
+    # The arm ran on: its INVOKE is answered when its time is up, as it was.
+    assert (await asyncio.wait_for(reply, 10))[1]["status"] == "success"
+
+
+async def test_a_cancel_while_the_arm_skill_is_decided_holds_it_once_sent(
+        arm_api: Api) -> None:
+    arm_api.dispatcher.hold_ready = asyncio.Event()  # its command waits for the robot
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-d", 60.0)))
+    await asyncio.wait_for(arm_api.dispatcher.ready_entered.wait(), 10)
+    cancelled = asyncio.create_task(arm_api.command("planner", cancel("inv-d")))
+    await asyncio.sleep(0.05)
+    arm_api.dispatcher.hold_ready.set()
+    for task in (reply, cancelled):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "cancelled"), body
+    assert arm_api.dispatcher.holds == [["inv-d"]]

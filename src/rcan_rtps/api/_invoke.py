@@ -4,12 +4,15 @@ An INVOKE names a skill of `bridge.skills`; the skill's action, with its fixed p
 those the invoker may set, becomes a command the governor decides like any other (roles,
 invariants, HiTL, audit: nothing is bypassed). Its reply is an INVOKE_RESULT: at once for a
 command that is done when it is executed or refused; for one that starts a goal (navigate,
-dock), when the goal ends, or at `timeout_ms` (the goal is then cancelled: `timeout`). A held
+dock), when the goal ends, or at `timeout_ms` (the goal is then cancelled: `timeout`); for an
+arm's trajectory, which reports no end, when its time is up (a stop that held it before makes
+it a `failure`), or at `timeout_ms` (the arm is then held where it is). A held
 INVOKE (HiTL) is answered 202 `pending` like any held command; its approval is answered to
 the approver.
 
 INVOKE_CANCEL names an INVOKE of its own sender by msg_id: a goal it started is cancelled
-through the governor (audited) and the INVOKE is answered `cancelled`; a held one is withdrawn.
+through the governor (audited), an arm it moves is held where it is (audited:
+`hold_trajectory`), and the INVOKE is answered `cancelled`; a held one is withdrawn.
 One already answered is left alone (§19.4: the earlier result stands, and is repeated); one
 never seen is `not_found`.
 
@@ -77,6 +80,10 @@ class _Running:
     pending_id: str | None = None
     cancelled: bool = False  # by its INVOKE_CANCEL: a canceled goal is then `cancelled`
     ended: asyncio.Future[GoalView] = field(
+        default_factory=lambda: asyncio.get_running_loop().create_future())
+    # An arm's trajectory it sent (the command's message id), and its hold by INVOKE_CANCEL.
+    trajectory: str | None = None
+    held: asyncio.Future[Decision] = field(
         default_factory=lambda: asyncio.get_running_loop().create_future())
     answered: asyncio.Future[InvokeResult] = field(
         default_factory=lambda: asyncio.get_running_loop().create_future())
@@ -157,6 +164,14 @@ class Invocations:
             body = decision.body()
             body.msg_id, body.status = invoke.msg_id, "pending"
             return Started(reply=(decision.http_status, body))
+        if (decision.outcome is Outcome.EXECUTED and decision.runs_for_s is not None
+                and decision.message_id is not None):  # an arm's trajectory runs on
+            running.trajectory = decision.message_id
+            if running.cancelled:  # cancelled while it was being decided
+                running.held.set_result(await governor.hold_trajectory(
+                    decision.message_id, principal, message_id=None, why="INVOKE_CANCEL"))
+            return Started(finish=lambda: self._finish_trajectory(governor, principal, invoke,
+                                                                  key, running, decision))
         if decision.outcome is not Outcome.EXECUTED or decision.goal_id is None:
             del self._running[key]
             result = self._result(running, decision, _decided_status(decision))
@@ -193,6 +208,47 @@ class Invocations:
             self._running.pop(key, None)
             self._by_goal.pop(running.goal_id, None)
         return 200, await self._answer(governor, principal, key, running, result)
+
+    async def _finish_trajectory(self, governor: Governor, principal: Principal,
+                                 invoke: Invoke, key: tuple[str, str], running: _Running,
+                                 decision: Decision) -> Reply:
+        """An arm's trajectory reports no end (a topic, not an action): it is done when its
+        time is up, unless a stop held it before; held by its INVOKE_CANCEL, `cancelled`;
+        past `timeout_ms` first, held then (`timeout`)."""
+        assert running.trajectory is not None and decision.runs_for_s is not None
+        since = time.monotonic() - running.started
+        left = invoke.timeout_ms / 1000 - since
+        try:
+            try:
+                held = await asyncio.wait_for(asyncio.shield(running.held),
+                                              max(min(decision.runs_for_s - since, left), 0.0))
+            except asyncio.TimeoutError:
+                result = await self._trajectory_over(governor, principal, running, decision,
+                                                     timed_out=decision.runs_for_s - since > left,
+                                                     timeout_ms=invoke.timeout_ms)
+            else:
+                result = self._result(running, decision, "cancelled" if held.outcome is
+                                      Outcome.EXECUTED else "failure", held.reason or
+                                      "held where it was by INVOKE_CANCEL")
+        finally:
+            self._running.pop(key, None)
+        return 200, await self._answer(governor, principal, key, running, result)
+
+    async def _trajectory_over(self, governor: Governor, principal: Principal,
+                               running: _Running, decision: Decision, *, timed_out: bool,
+                               timeout_ms: int) -> InvokeResult:
+        assert running.trajectory is not None
+        if timed_out:
+            held = await governor.hold_trajectory(running.trajectory, principal,
+                                                  message_id=decision.message_id,
+                                                  why="INVOKE timeout")
+            return self._result(running, decision, "timeout",
+                                f"not done within {timeout_ms} ms: the arm held where it was "
+                                f"({held.outcome.value})")
+        if governor.trajectory_running(running.trajectory):
+            return self._result(running, decision, "success")
+        return self._result(running, decision, "failure",
+                            "a stop held the arm before its trajectory's time was up")
 
     def _ended(self, running: _Running, decision: Decision, view: GoalView) -> InvokeResult:
         if view.state == "succeeded":
@@ -238,6 +294,14 @@ class Invocations:
                                                   why="INVOKE_CANCEL")
             if decision.outcome is not Outcome.EXECUTED:
                 return decision.http_status, _body(decision.body(), cancel.message_id)
+        if running.trajectory is not None and not running.held.done():
+            held = await governor.hold_trajectory(running.trajectory, principal,
+                                                  message_id=cancel.message_id,
+                                                  why="INVOKE_CANCEL")
+            if held.outcome is not Outcome.EXECUTED:  # it runs on: its end is answered then
+                running.cancelled = False
+                return held.http_status, _body(held.body(), cancel.message_id)
+            running.held.set_result(held)
         try:  # the INVOKE's own answer, once its goal has wound down
             answered = await asyncio.wait_for(asyncio.shield(running.answered),
                                               cancel.cancel_timeout_ms / 1000)

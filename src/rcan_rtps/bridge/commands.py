@@ -403,9 +403,10 @@ class RosDispatcher:
         if hold is None:
             return result
         kit = route.kit  # it runs on after this: a stop takes it back
-        self.arms.sent(pub, message_id, hold.joints(params), hold.runs_for_s(params),
+        runs_for_s = hold.runs_for_s(params)
+        self.arms.sent(pub, message_id, hold.joints(params), runs_for_s,
                        lambda joints, where: hold.build(joints, where, kit))
-        return DispatchResult(ok=True, ros2_topic=pub.topic, runs_on=True)
+        return DispatchResult(ok=True, ros2_topic=pub.topic, runs_for_s=runs_for_s)
 
     def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
         """Holds the arms still running a trajectory of `message_ids` (a stop of one

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from oracle.client import OracleEnv, both_rmws
 from waiting import eventually, take
 
 from .bridge_rig import AGENT, OPS, Rig, bridge_config, close_rig, make_rig
@@ -27,8 +28,8 @@ arms:
 
 
 @pytest.fixture
-async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Rig]:
-    rig = await make_rig(bridge_config(tmp_path, domain_id, extra_ros2=ARMS), jazzy_python,
+async def rig(tmp_path: Path, jazzy_oracle: OracleEnv, domain_id: int) -> AsyncIterator[Rig]:
+    rig = await make_rig(bridge_config(tmp_path, domain_id, extra_ros2=ARMS), jazzy_oracle,
                          domain_id)
     try:
         for topic in (LEFT, RIGHT):
@@ -148,6 +149,7 @@ async def nothing_more_on_left(rig: Rig) -> None:
     assert next_sample["points"][0]["positions"] == [0.5, 0.5], next_sample
 
 
+@both_rmws
 @pytest.mark.parametrize("action", ["stop", "estop"])
 async def test_a_stop_holds_a_moving_arm_where_it_is(rig: Rig, action: str) -> None:
     await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)  # the base, stopped too

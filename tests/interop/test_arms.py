@@ -7,6 +7,7 @@ first trajectory below is sent on a writer made for it, and must arrive all the 
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -108,6 +109,7 @@ async def test_refusals_reach_no_arm(rig: Rig) -> None:
 
 # -- a stop takes back an arm's trajectory (it runs on in its controller after it is sent) --
 JOINT_STATES, JOINT_STATE = "/robot1/joint_states", "sensor_msgs/msg/JointState"
+ESTOP, BOOL = "/robot1/emergency_stop", "std_msgs/msg/Bool"
 LONG = {"group": "left", "joints": ["l_shoulder", "l_elbow"], "positions": [1.0, 2.0],
         "duration_s": 60.0}
 
@@ -163,8 +165,7 @@ async def test_a_stop_holds_a_moving_arm_where_it_is(rig: Rig, action: str) -> N
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
     assert await rig.oracle.acall("publishers_info", topic=RIGHT) == []  # never commanded
     if action == "estop":  # the sentinel below moves the arm: the robot's e-stop is let go
-        await rig.oracle.acall("subscribe", topic="/robot1/emergency_stop",
-                               type="std_msgs/msg/Bool", qos="transient_local")
+        await rig.oracle.acall("subscribe", topic=ESTOP, type=BOOL, qos="transient_local")
         cleared = await rig.command(OPS, {"action": "clear_estop"})
         assert cleared.http_status == 200, cleared
     again = await rig.command(AGENT, {"action": "stop"})  # held once: nothing runs now
@@ -247,3 +248,43 @@ async def test_the_bridge_leaving_holds_a_moving_arm(rig: Rig) -> None:
     await rig.dispatcher.halt_before_leaving()
     (hold,) = await take(rig.oracle, LEFT)
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+
+
+@pytest.fixture
+async def patient_rig(tmp_path: Path, jazzy_python: Path, domain_id: int
+                      ) -> AsyncIterator[Rig]:
+    """A rig whose topics may take a minute to match (`match_timeout_s: 60`)."""
+    config = bridge_config(tmp_path, domain_id, extra_ros2=ARMS + "match_timeout_s: 60.0\n")
+    rig = await make_rig(config, jazzy_python, domain_id)
+    try:
+        await rig.oracle.acall("subscribe", topic=LEFT, type=TRAJ)
+        yield rig
+    finally:
+        await close_rig(rig)
+
+
+@pytest.mark.parametrize("action", ["stop", "estop"])
+async def test_no_hold_waits_for_another_topic_to_match(patient_rig: Rig, action: str
+                                                        ) -> None:
+    # Nothing subscribes to cmd_vel or emergency_stop (an arm on a stand), and they never
+    # matched: the stop waits (up to match_timeout_s) to know whether its zero or its
+    # e-stop signal reached anyone — but the arm is held first, never after that wait.
+    rig = patient_rig
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    await sent_long_trajectory(rig)
+    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+        ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+    stopping = asyncio.create_task(rig.command(AGENT, {"action": action}))
+
+    async def held() -> list[Any]:  # attended: no session-loss halt holds it instead
+        rig.governor.heartbeat(AGENT)
+        return list(await rig.oracle.acall("take", topic=LEFT))
+
+    try:
+        (hold,) = await eventually(held, what="the hold")  # within 10 s, not after the 60
+        assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+    finally:  # the robot reads them now: the stop's waits end (no minute-long teardown)
+        for topic, type_name, profile in ((CMD_VEL, TWIST, "default"), (ESTOP, BOOL,
+                                                                          "transient_local")):
+            await rig.oracle.acall("subscribe", topic=topic, type=type_name, qos=profile)
+        await asyncio.wait_for(stopping, 30.0)

@@ -444,22 +444,40 @@ class RosDispatcher:
 
     async def halt(self) -> Halted:
         """Zero velocity, hold the arms whose trajectories may still run, cancel every goal."""
+        return await self._halt_rest(*self._halt_now())
+
+    def _halt_now(self) -> tuple[Any, bool, ArmsHeld]:
+        """What a halt sends at once, before any await: zero velocity (unconditionally: late
+        joiners stop too), and each arm's hold. (zero, whether cmd_vel had matched, arms)."""
         zero = self._halt.message(with_effect(Effect.HALT).params())
         matched_before = self.cmd_vel.matched_count() > 0
-        self.cmd_vel.publish(zero)  # first, unconditionally: late joiners stop too
-        arms = self.arms.hold_all()  # before any await, as the zero
-        reached = matched_before or await self._matched(self.cmd_vel)
-        if reached and not matched_before:
-            self.cmd_vel.publish(zero)  # the first preceded the match
-        cancelled = 0
-        if self.goals is not None:
-            try:
-                cancelled = await self.goals.cancel_all()  # on every goal server
-            except Exception:
-                log.exception("cancelling goals failed")
+        self.cmd_vel.publish(zero)
+        return zero, matched_before, self.arms.hold_all()
+
+    async def _halt_rest(self, zero: Any, matched_before: bool, arms: ArmsHeld) -> Halted:
+        # The goal cancels do not wait for cmd_vel to match: a robot may never read it.
+        reached, cancelled = await asyncio.gather(self._zero_reached(zero, matched_before),
+                                                  self._cancel_goals())
         for why in arms.not_held:
             log.warning("halting: %s", why)
         return Halted(reached, cancelled, arms)
+
+    async def _zero_reached(self, zero: Any, matched_before: bool) -> bool:
+        if matched_before:
+            return True
+        reached = await self._matched(self.cmd_vel)
+        if reached:
+            self.cmd_vel.publish(zero)  # the first preceded the match
+        return reached
+
+    async def _cancel_goals(self) -> int:
+        if self.goals is None:
+            return 0
+        try:
+            return await self.goals.cancel_all()  # on every goal server
+        except Exception:
+            log.exception("cancelling goals failed")
+            return 0
 
     async def halt_before_leaving(self) -> None:
         """The bridge is stopping: halt, then wait (at most LEAVING_ACK_S) until the robot's
@@ -485,11 +503,16 @@ class RosDispatcher:
         route = self._routes[id(ros.signal)]
         signal = route.message(params)
         route.publisher.publish(signal)
+        halting = self._halt_now()  # the halt never waits for the e-stop topic to match
+        told, halted = await asyncio.gather(self._told(route, signal),
+                                            self._halt_rest(*halting))
+        return halted.result(route.publisher.topic, told=told)
+
+    async def _told(self, route: _Route, signal: Any) -> bool:
         told = await self._matched(route.publisher)
         if told:
             route.publisher.publish(signal)  # the first write may have preceded the match
-        halted = await self.halt()
-        return halted.result(route.publisher.topic, told=told)
+        return told
 
 
 def _halt_route() -> Halt:

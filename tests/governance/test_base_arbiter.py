@@ -330,3 +330,32 @@ async def test_goals_cancelled_at_their_sender_s_request_are_not_remembered_fore
     assert len(gov._base._ended_by) == 8
     assert gov._base.goal_ended("lost-0") is None  # the oldest were let go
     assert gov._base.goal_ended("lost-19") == "invoke_cancel by ops"
+
+
+async def test_a_senders_end_of_one_stream_ends_that_stream_alone(tmp_path: Path) -> None:
+    """`Governor.end_stream` (an INVOKE_CANCEL of a move, its timeout): the stream the named
+    command of that principal started, never a move that replaced it nor anyone else's; its
+    STREAM_ENDED says `cancelled`, by whom and why. Every end, recorded in an entry of its own
+    or in the replacing move's, is told on `Events.stream_ended`."""
+    gov, wire, _, _ = await stream_governor(tmp_path)
+    told: list[tuple[str, str]] = []
+    gov.events.stream_ended.subscribe(
+        lambda ended: told.append((ended.stream.message_id, ended.reason.value)))
+    one, two = command("move", {"linear_x": 0.2}), command("move", {"linear_x": 0.3})
+    m1, m2 = one.message_id, two.message_id
+    first, second = await gov.decide(one, PLANNER), await gov.decide(two, PLANNER)
+    assert first.outcome is second.outcome is Outcome.EXECUTED
+    assert told == [(m1, "replaced")]
+    assert not gov.end_stream(m1, PLANNER, why="INVOKE_CANCEL")  # m-2 replaced it
+    assert not gov.end_stream(m2, OPS, why="INVOKE_CANCEL")  # not ops's
+    assert gov.streams.active is not None and gov.streams.active.message_id == m2
+    assert wire.wire[-1] != ZERO and gov.stream_running(m2, PLANNER)
+    assert gov.end_stream(m2, PLANNER, why="INVOKE_CANCEL")
+    assert (gov.streams.active, wire.wire[-1], told[-1]) == (None, ZERO, (m2, "cancelled"))
+    assert not gov.stream_running(m2, PLANNER)
+    await _settled(gov)
+    [ended] = [e for e in audit_entries(tmp_path / "audit.jsonl")
+               if e["event"] == "STREAM_ENDED"]
+    assert (ended["message_id"], ended["params"]["reason"], ended["params"]["ended_by"],
+            ended["params"]["why"], ended["applied"]["zero_sent"]) == (
+        m2, "cancelled", "planner", "INVOKE_CANCEL", True), ended

@@ -131,7 +131,8 @@ class Governor:
         # The one owner of the velocity streams; an e-stop ends them first thing.
         self.streams = streams or VelocityStreams(dispatcher, latch)
         self._base = BaseArbiter(self._steps, self.streams, priorities or MotionPriorities(),
-                                 latch, self._sending, held_locks)
+                                 latch, self._sending, held_locks,
+                                 stream_ended=self.events.stream_ended.emit)
         self._estops = EstopLane(self._steps, latch, self.streams, clock)
         self._desk = HitlDesk(self._steps, hitl, clock, timeout_s=hitl_timeout_s,
                               require_distinct_approver=require_distinct_approver,
@@ -668,6 +669,20 @@ class Governor:
             return decision(failed, receipt, message_id=entry.message_id)
         return Decision(outcome=Outcome.EXECUTED, http_status=200, audit_id=receipt.audit_id,
                         message_id=entry.message_id, applied=entry.params)
+
+    def end_stream(self, sent_by: str, principal: Principal, *, why: str) -> bool:
+        """End the velocity stream `principal`'s command `sent_by` started, if it still runs,
+        at its sender's request (an INVOKE_CANCEL of the INVOKE that started it, its timeout:
+        §19): zero at once, as any stop (no await); its STREAM_ENDED says `cancelled`, by
+        whom and `why`. Only that stream: a later move that replaced it, or anyone else's,
+        runs on. Whether it ended."""
+        return self.streams.end_command(principal.name, sent_by, EndReason.CANCELLED, why=why)
+
+    def stream_running(self, sent_by: str, principal: Principal) -> bool:
+        """Whether the velocity stream `principal`'s command `sent_by` started still runs."""
+        active = self.streams.active
+        return active is not None and (active.owner, active.message_id) == (principal.name,
+                                                                            sent_by)
 
     def trajectory_running(self, sent_by: str) -> bool:
         """Whether the trajectory the command `sent_by` sent may still be running (not held

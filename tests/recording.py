@@ -33,6 +33,7 @@ class RecordingDispatcher:
         self.signals: list[int] = []  # e-stop signals published as the latch engaged
         self._goals = 0
         self.running: list[str] = []  # message ids of arm trajectories still running
+        self._arm_topics: dict[str, str] = {}  # an arm trajectory's message id → its topic
         self.holds: list[list[str]] = []  # `hold_trajectories` calls: the ids it held
         self.unheard_arms = False  # when set: no arm can be held (no joint_states heard)
 
@@ -65,11 +66,13 @@ class RecordingDispatcher:
         publishes = command.spec.ros.publishes() if command.spec.motion else ()
         hold = publishes[0].hold if publishes else None
         runs_for_s = hold.runs_for_s(applied) if hold is not None else None
-        if runs_for_s is not None:
-            self.running.append(command.message_id)
         topic = f"/robot1/{command.action}"
         if runs_for_s is not None:  # an arm's trajectory: a topic per set of joints (per arm)
             topic += "/" + "-".join(getattr(applied, "joints", ()))
+            # The arm's controller replaces the trajectory it ran with this one.
+            self.running = [m for m in self.running if self._arm_topics.get(m) != topic]
+            self._arm_topics[command.message_id] = topic
+            self.running.append(command.message_id)
         return DispatchResult(ok=True, ros2_topic=topic, goal_id=goal_id,
                               runs_for_s=runs_for_s)
 

@@ -153,9 +153,10 @@ MOVERS = set(WHO)  # the principals whose role may move (VIEWER, a GUEST, may no
 
 
 class BaseModel(RuleBasedStateMachine):
-    """Streams, goals, locks, priorities, e-stop, clear and session loss (with moves waiting
-    their turn, or not), in any order: the base never has two owners, and nothing moves while
-    the e-stop is latched."""
+    """Streams, goals, arm trajectories, locks, priorities, e-stop, clear and session loss (with
+    moves waiting their turn, or not), in any order: the base never has two owners, nothing
+    moves while the e-stop is latched, a stop leaves no arm running, and a session loss holds
+    its principal's arms (and only theirs, unless it halts the robot)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -164,6 +165,7 @@ class BaseModel(RuleBasedStateMachine):
         self.gov, self.wire, self.timer, _ = self.run(stream_governor(self.tmp))
         self.run(self.gov.start())
         self.latched_at: int | None = None  # wire length when the e-stop latched
+        self.arm_owner: dict[str, str] = {}  # an arm trajectory's message id → who sent it
 
     def run(self, coro: Any) -> Any:
         return self.loop.run_until_complete(coro)
@@ -185,6 +187,20 @@ class BaseModel(RuleBasedStateMachine):
     def navigate(self, who: Any) -> None:
         self.decide("navigate", GOAL, who)
 
+    @rule(who=st.sampled_from(WHO), joint=st.sampled_from(["elbow", "wrist"]))
+    def arm(self, who: Any, joint: str) -> None:
+        """A trajectory on one of two arms (the double gives each its own topic): it runs on
+        until a stop holds it, its time is up, or the next on that arm replaces it."""
+        decided = self.decide("arm_joint", {"joints": [joint], "positions": [0.5],
+                                            "duration_s": 30.0}, who)
+        if decided.outcome is Outcome.EXECUTED:
+            self.arm_owner[decided.message_id] = who.name
+
+    @precondition(lambda self: bool(self.wire.running))
+    @rule(data=st.data())
+    def a_trajectory_s_time_is_up(self, data: st.DataObject) -> None:
+        self.wire.running.remove(data.draw(st.sampled_from(self.wire.running)))
+
     @rule(name=st.sampled_from(["teleop", "top"]), who=st.sampled_from([OPS, ADMIN]))
     def lock(self, name: str, who: Any) -> None:
         self.decide("lock", {"name": name}, who)
@@ -197,6 +213,7 @@ class BaseModel(RuleBasedStateMachine):
     def estop(self, who: Any) -> None:
         assert self.decide("estop", {}, who).outcome is Outcome.EXECUTED
         self.latched_at = len(self.wire.wire)
+        assert not self.wire.running  # every arm held
 
     @rule()
     def clear(self) -> None:
@@ -206,6 +223,7 @@ class BaseModel(RuleBasedStateMachine):
     @rule(who=st.sampled_from(WHO))
     def stop(self, who: Any) -> None:
         self.decide("stop", {}, who)
+        assert not self.wire.running  # every arm held
 
     @precondition(lambda self: bool(self.gov.streams.goals))
     @rule(data=st.data())
@@ -237,6 +255,8 @@ class BaseModel(RuleBasedStateMachine):
         streams = self.gov.streams
         driving = {g.owner for g in streams.goals.values()}
         driving |= {streams.active.owner} if streams.active is not None else set()
+        driving |= {self.arm_owner[m] for m in self.wire.running}  # an arm runs on
+        others_arms = [m for m in self.wire.running if self.arm_owner[m] != lost.name]
         on_its_way = {w.name for w in waiting if w in MOVERS}
         narrowed = bool((driving | on_its_way) - {lost.name})
 
@@ -257,10 +277,23 @@ class BaseModel(RuleBasedStateMachine):
 
         halted, decided = self.run(lost_while_waiting())
         assert halted is not narrowed, (lost.name, driving, [w.name for w in waiting])
+        # Its arms are held, whoever else drives; a halt holds everyone's, else theirs run on.
+        assert not any(self.arm_owner[m] == lost.name for m in self.wire.running)
+        if not halted:
+            assert set(others_arms) <= set(self.wire.running), (others_arms, self.wire.running)
         if VIEWER in waiting:
             assert decided[VIEWER.name].error_code is ErrorCode.INSUFFICIENT_PRIVILEGES
         if lost.name in decided:
             assert decided[lost.name].outcome is not Outcome.EXECUTED, decided[lost.name]
+
+    @precondition(lambda self: bool(self.wire.running))
+    @rule(data=st.data(), waiting=st.sets(st.sampled_from([VIEWER, *WHO])))
+    def an_arm_s_sender_s_session_is_lost(self, data: st.DataObject, waiting: set[Any]) -> None:
+        """As above, `lost` one whose arm runs (else rare): its arm is held, and another
+        principal's arm, a stream or a goal makes it a stop of `lost`'s motion alone."""
+        senders = sorted({self.arm_owner[m] for m in self.wire.running})
+        name = data.draw(st.sampled_from(senders))
+        self.a_session_is_lost_while_moves_wait(next(w for w in WHO if w.name == name), waiting)
 
     @invariant()
     def one_owner_of_the_base(self) -> None:

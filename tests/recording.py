@@ -33,7 +33,9 @@ class RecordingDispatcher:
         self.signals: list[int] = []  # e-stop signals published as the latch engaged
         self._goals = 0
         self.running: list[str] = []  # message ids of arm trajectories still running
+        self._arm_topics: dict[str, str] = {}  # an arm trajectory's message id → its topic
         self.holds: list[list[str]] = []  # `hold_trajectories` calls: the ids it held
+        self.unheard_arms = False  # when set: no arm can be held (no joint_states heard)
 
     def route(self, command: NormalizedCommand) -> str | None:
         return f"/robot1/{command.action}"
@@ -61,16 +63,23 @@ class RecordingDispatcher:
         if command.spec.starts_goal:
             self._goals += 1
             goal_id = f"goal-{self._goals}"
-        runs_on = command.spec.ros.publishes()[0].hold is not None if command.spec.motion \
-            and command.spec.ros.publishes() else False
-        if runs_on:
-            self.running.append(command.message_id)
+        publishes = command.spec.ros.publishes() if command.spec.motion else ()
+        hold = publishes[0].hold if publishes else None
+        runs_for_s = hold.runs_for_s(applied) if hold is not None else None
         topic = f"/robot1/{command.action}"
-        if runs_on:  # an arm's trajectory: one topic per set of joints (one per arm)
+        if runs_for_s is not None:  # an arm's trajectory: a topic per set of joints (per arm)
             topic += "/" + "-".join(getattr(applied, "joints", ()))
-        return DispatchResult(ok=True, ros2_topic=topic, goal_id=goal_id, runs_on=runs_on)
+            # The arm's controller replaces the trajectory it ran with this one.
+            self.running = [m for m in self.running if self._arm_topics.get(m) != topic]
+            self._arm_topics[command.message_id] = topic
+            self.running.append(command.message_id)
+        return DispatchResult(ok=True, ros2_topic=topic, goal_id=goal_id,
+                              runs_for_s=runs_for_s)
 
     def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
+        if self.unheard_arms:
+            return ArmsHeld(not_held=tuple(f"{m} not held: no joint_states heard"
+                                           for m in self.running if m in message_ids))
         held = [m for m in self.running if m in message_ids]
         self.running = [m for m in self.running if m not in message_ids]
         self.holds.append(held)

@@ -3,9 +3,10 @@
 The kernel's own reactions are calls, not events (the latch engaging zeroes the streams and
 publishes the e-stop Bool; a stream's end is audited by the arbiter that owns it). Events are
 what listens from outside: STATUS, metrics, the diagnostics notifier, telemetry, the
-WebSocket's goal events, the audit of a goal's end. Each channel's subscribers are fixed when
-the bridge starts (`freeze`): a subscription after that is a wiring bug and raises, and an
-emit — from the event loop or from a DDS thread — reads a tuple nobody changes any more.
+WebSocket's goal events, the audit of a goal's end, an INVOKE waiting for its stream's end.
+Each channel's subscribers are fixed when the bridge starts (`freeze`): a subscription after
+that is a wiring bug and raises, and an emit — from the event loop or from a DDS thread —
+reads a tuple nobody changes any more.
 
 A subscriber that fails is logged and the rest are still told: listeners are informative and
 must never break what they listen to.
@@ -24,6 +25,7 @@ if TYPE_CHECKING:  # types only: governance and api import this module, never th
     from .bridge.sent_goals import GoalFinished
     from .governance.audit import AuditReceipt, AuditRecord
     from .governance.rbac import Principal
+    from .governance.streams import StreamEnded
 
 __all__ = ["Channel", "Events", "EventsFrozenError"]
 
@@ -86,6 +88,10 @@ class Events(msgspec.Struct, frozen=True):
     # A goal ended, once per goal (the audit's GOAL_FINISHED).
     goal_finished: Channel[[GoalFinished]] = msgspec.field(
         default_factory=_channel("goal finished"))
+    # A velocity stream ended, once audited (an INVOKE of a `move` skill is answered then); on
+    # the event loop, in the step that ended it.
+    stream_ended: Channel[[StreamEnded]] = msgspec.field(
+        default_factory=_channel("stream ended"))
 
     def freeze(self) -> None:
         """From now on the subscribers are fixed."""

@@ -16,8 +16,8 @@ import pytest
 
 from rcan_rtps.api import GoalView
 from rcan_rtps.governance import Principal
-from rcan_rtps.rcan import Role
-from tests.api.apihelpers import Api, auth
+from rcan_rtps.rcan import MoveParams, Role
+from tests.api.apihelpers import ZERO, Api, auth
 from tests.api.test_ws import _frame
 
 TARGET = "rcan://registry.local/clearpath/husky/v1/a200-0001"
@@ -213,9 +213,10 @@ async def test_each_answer_carries_the_suites_names_and_is_audited_first(api: Ap
             entry["role"]) == ("success", "executed", "inv-1", "planner", "USER"), entry
     assert entry["params"]["skill"] == "nudge" and entry["params"]["duration_ms"] >= 0
     assert "deny_reason" not in entry or entry["deny_reason"] is None
-    # the lifecycle, from the log alone: the command the skill ran, then its result
+    # the lifecycle, from the log alone: the command the skill ran, the end of the stream it
+    # started (its move is done then, not when it is sent), then its result
     lifecycle = [e["event"] for e in api.entries if e.get("message_id") == "inv-1"]
-    assert lifecycle == ["COMMAND_DISPATCHED", "INVOKE_RESULT"]
+    assert lifecycle == ["COMMAND_DISPATCHED", "STREAM_ENDED", "INVOKE_RESULT"]
 
 
 async def test_a_goal_skills_result_is_audited_when_the_goal_ends(api: Api) -> None:
@@ -307,3 +308,231 @@ async def test_no_invoke_result_is_audited_after_the_bridge_stopped(api: Api) ->
     await api.gov.invoke_result(Principal("planner", Role.USER), invoke_id="inv-late",
                                 status="success", outcome="executed", facts={})
     assert api.entries[-1]["event"] == "BRIDGE_STOPPED"
+
+
+# -- an arm's skill: its trajectory runs on after it is sent ---------------------------------
+ARM_SKILLS = ("skills: {wave: {action: arm_joint, params: {joints: [elbow], positions: [0.8]}, "
+              "allow: [duration_s]}}")
+
+
+@pytest.fixture
+async def arm_api(tmp_path: Path) -> AsyncIterator[Api]:
+    harness = await Api(tmp_path, bridge_extra=ARM_SKILLS, gates="[]").start()
+    yield harness
+    await harness.close()
+
+
+def wave(msg_id: str, duration_s: float, **fields: Any) -> dict[str, Any]:
+    return invoke("wave", msg_id, params={"duration_s": duration_s}, **fields)
+
+
+async def test_an_arm_skill_is_answered_when_its_trajectory_s_time_is_up(arm_api: Api
+                                                                         ) -> None:
+    """Not when it is sent: the skill is done when the arm is (a topic reports no end)."""
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-w", 0.3)))
+    await sent(arm_api, "arm_joint")
+    assert not reply.done()
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["status"], body["outcome"]) == (200, "success", "executed"), body
+    assert arm_api.dispatcher.holds == []
+
+
+async def test_invoke_cancel_holds_an_arm_skill_where_it_is(arm_api: Api) -> None:
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-w", 60.0)))
+    await sent(arm_api, "arm_joint")
+    status, body = await arm_api.command("planner", cancel("inv-w"))
+    assert (status, body["status"], body["reply_to"]) == (200, "cancelled", "inv-w"), body
+    assert arm_api.dispatcher.holds == [["inv-w"]] and arm_api.dispatcher.running == []
+    assert (await asyncio.wait_for(reply, 10))[1]["status"] == "cancelled"
+    [entry] = [e for e in arm_api.entries if e.get("action_type") == "hold_trajectory"]
+    assert (entry["event"], entry["principal"], entry["params"]["sent_by"],
+            entry["params"]["why"], entry["sent_first"]) == (
+        "COMMAND_DISPATCHED", "planner", "inv-w", "INVOKE_CANCEL", True)
+
+
+async def test_an_arm_skill_past_its_timeout_is_held(arm_api: Api) -> None:
+    status, body = await arm_api.command("planner", wave("inv-t", 60.0, timeout_ms=50))
+    assert (status, body["status"], body["error"]["code"]) == (200, "timeout", 7002), body
+    assert arm_api.dispatcher.holds == [["inv-t"]]
+
+
+async def test_an_arm_skill_a_stop_held_is_not_a_success(arm_api: Api) -> None:
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-s", 0.5)))
+    await sent(arm_api, "arm_joint")
+    status, _ = await arm_api.command("planner", {"action": "stop"})
+    assert status == 200
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["status"]) == (200, "failure"), body
+    assert "a stop held the arm" in body["error"]["message"], body
+
+
+async def test_a_cancel_that_cannot_hold_the_arm_says_so_and_the_skill_runs_on(
+        arm_api: Api) -> None:
+    arm_api.dispatcher.unheard_arms = True  # no joint_states: no hold at a guess
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-u", 0.5)))
+    await sent(arm_api, "arm_joint")
+    status, body = await arm_api.command("planner", cancel("inv-u"))
+    assert (status, body["outcome"], body["error_code"]) == (
+        503, "failed", "ROBOT_UNAVAILABLE"), body
+    assert "no joint_states heard" in body["reason"], body
+    [entry] = [e for e in arm_api.entries if e.get("action_type") == "hold_trajectory"]
+    assert entry["event"] == "COMMAND_FAILED", entry
+    # The arm ran on: its INVOKE is answered when its time is up, as it was.
+    assert (await asyncio.wait_for(reply, 10))[1]["status"] == "success"
+
+
+async def test_a_cancel_while_the_arm_skill_is_decided_holds_it_once_sent(
+        arm_api: Api) -> None:
+    arm_api.dispatcher.hold_ready = asyncio.Event()  # its command waits for the robot
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-d", 60.0)))
+    await asyncio.wait_for(arm_api.dispatcher.ready_entered.wait(), 10)
+    cancelled = asyncio.create_task(arm_api.command("planner", cancel("inv-d")))
+    await asyncio.sleep(0.05)
+    arm_api.dispatcher.hold_ready.set()
+    for task in (reply, cancelled):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "cancelled"), body
+    assert arm_api.dispatcher.holds == [["inv-d"]]
+
+
+# -- a move's skill: its velocity stream drives on after it is sent ---------------------------
+MOVE_SKILLS = SKILLS + "\n  motion: {principal_priorities: {ops: 100}}"  # ops preempts
+
+
+@pytest.fixture
+async def move_api(tmp_path: Path) -> AsyncIterator[Api]:
+    harness = await Api(tmp_path, bridge_extra=MOVE_SKILLS).start()
+    yield harness
+    await harness.close()
+
+
+def nudge(msg_id: str, duration_s: float | None = None, **fields: Any) -> dict[str, Any]:
+    """The skill `nudge` (linear_x 0.3): for `duration_s`, else until something ends it."""
+    params = {} if duration_s is None else {"duration_s": duration_s}
+    return invoke("nudge", msg_id, params=params, **fields)
+
+
+def stream_ends(api: Api, message_id: str) -> list[dict[str, Any]]:
+    return [e for e in api.entries if e["event"] == "STREAM_ENDED"
+            and e["message_id"] == message_id]
+
+
+async def test_a_move_skill_is_answered_when_its_stream_ends(move_api: Api) -> None:
+    """Not when it is sent: the skill is done when its duration is (STREAM_ENDED `completed`
+    first, then INVOKE_RESULT `success`)."""
+    api = move_api
+    reply = asyncio.create_task(api.command("planner", nudge("inv-m", 0.5)))
+    await sent(api, "move")
+    assert not reply.done()
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["status"], body["outcome"]) == (200, "success", "executed"), body
+    [end] = stream_ends(api, "inv-m")
+    [result] = results(api, "inv-m")
+    assert (end["params"]["reason"], end["seq"] < result["seq"]) == ("completed", True), end
+    assert api.dispatcher.samples[-1] == ZERO and api.gov.streams.active is None
+
+
+async def test_invoke_cancel_ends_a_move_skills_stream(move_api: Api) -> None:
+    api = move_api
+    reply = asyncio.create_task(api.command("planner", nudge("inv-c")))  # until ended
+    await sent(api, "move")
+    status, body = await api.command("planner", cancel("inv-c"))
+    assert (status, body["status"], body["reply_to"], body["error"]["code"]) == (
+        200, "cancelled", "inv-c", 7007), body
+    assert (await asyncio.wait_for(reply, 10))[1]["status"] == "cancelled"
+    assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
+    [end] = stream_ends(api, "inv-c")
+    assert (end["params"]["reason"], end["params"]["ended_by"], end["params"]["why"],
+            end["applied"]["zero_sent"]) == ("cancelled", "planner", "INVOKE_CANCEL", True), end
+    [result] = results(api, "inv-c")  # one INVOKE_RESULT, after the stream's end
+    assert (result["status"], end["seq"] < result["seq"]) == ("cancelled", True), result
+
+
+async def test_a_move_skill_a_stop_ended_is_a_failure(move_api: Api) -> None:
+    api = move_api
+    reply = asyncio.create_task(api.command("planner", nudge("inv-s")))
+    await sent(api, "move")
+    status, _ = await api.command("ops", {"action": "stop"})
+    assert status == 200
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["status"], body["error"]["code"]) == (200, "failure", 7006), body
+    assert body["error"]["message"] == "the move ended before it was done: a stop ended it (ops)"
+    assert stream_ends(api, "inv-s")[0]["params"]["reason"] == "stopped"
+
+
+async def test_a_move_skill_another_principals_higher_move_preempted_is_a_failure(
+        move_api: Api) -> None:
+    api = move_api
+    reply = asyncio.create_task(api.command("planner", nudge("inv-p")))
+    await sent(api, "move")
+    status, taken = await api.command("ops", {"action": "move", "params": {"linear_x": 0.1}})
+    assert (status, taken["outcome"]) == (200, "executed"), taken
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["status"]) == (200, "failure"), body
+    assert "preempted it (ops)" in body["error"]["message"], body
+    active = api.gov.streams.active  # ops's move drives on
+    assert active is not None and active.owner == "ops"
+    status, body = await api.command("planner", cancel("inv-p"))  # answered: it stands
+    assert (status, body["reason"], body["status"]) == (409, "invoke_finished", "failure"), body
+    assert api.gov.streams.active is active
+
+
+async def test_a_move_skill_past_its_timeout_is_ended_with_zero(move_api: Api) -> None:
+    api = move_api
+    status, body = await api.command("planner", nudge("inv-t", timeout_ms=50))
+    assert (status, body["status"], body["error"]["code"]) == (200, "timeout", 7002), body
+    assert "not done within 50 ms" in body["error"]["message"], body
+    assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
+    [end] = stream_ends(api, "inv-t")
+    assert (end["params"]["reason"], end["params"]["why"], end["applied"]["zero_sent"]) == (
+        "cancelled", "INVOKE timeout", True), end
+
+
+async def test_a_cancel_while_the_move_skill_is_decided_ends_its_stream_once_started(
+        move_api: Api) -> None:
+    api = move_api
+    api.dispatcher.hold_ready = asyncio.Event()  # its command waits for the robot
+    reply = asyncio.create_task(api.command("planner", nudge("inv-d")))
+    await asyncio.wait_for(api.dispatcher.ready_entered.wait(), 10)
+    cancelled = asyncio.create_task(api.command("planner", cancel("inv-d")))
+    await asyncio.sleep(0.05)
+    api.dispatcher.hold_ready.set()
+    for task in (reply, cancelled):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "cancelled"), body
+    assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
+    assert stream_ends(api, "inv-d")[0]["params"]["why"] == "INVOKE_CANCEL"
+
+
+async def test_a_cancel_of_a_move_its_sender_replaced_leaves_the_new_stream(
+        move_api: Api) -> None:
+    """The planner's next move replaced the skill's stream; its INVOKE_CANCEL, arriving while
+    that end is being answered, must not end the move that drives now."""
+    api = move_api
+    release, answering = asyncio.Event(), asyncio.Event()
+    invoke_result = api.gov.invoke_result
+
+    async def held_result(principal: Principal, **fields: Any) -> None:
+        if fields["invoke_id"] == "inv-r":  # the INVOKE's answer waits (a busy disk)
+            answering.set()
+            await release.wait()
+        await invoke_result(principal, **fields)
+
+    api.gov.invoke_result = held_result  # type: ignore[method-assign]
+    reply = asyncio.create_task(api.command("planner", nudge("inv-r")))
+    await sent(api, "move")
+    status, taken = await api.command("planner", {"action": "move",
+                                                  "params": {"linear_x": 0.2}})
+    assert (status, taken["outcome"]) == (200, "executed"), taken
+    await asyncio.wait_for(answering.wait(), 10)
+    cancelled = asyncio.create_task(api.command("planner", cancel("inv-r")))
+    await asyncio.sleep(0.05)
+    release.set()
+    for task in (reply, cancelled):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "failure"), body
+        assert "another move of its sender's replaced it" in body["error"]["message"], body
+    active = api.gov.streams.active
+    assert active is not None and active.message_id == taken["message_id"]
+    assert ZERO not in api.dispatcher.samples
+    assert MoveParams(linear_x=0.2, linear_y=0.0, angular_z=0.0) in api.dispatcher.samples

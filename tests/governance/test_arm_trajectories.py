@@ -1,4 +1,4 @@
-"""An arm's trajectory runs on after it is sent (`DispatchResult.runs_on`): a stop of its
+"""An arm's trajectory runs on after it is sent (`DispatchResult.runs_for_s`): a stop of its
 sender's motion alone holds it (`Dispatcher.hold_trajectories`), nobody else's; and while it
 runs its sender drives the robot, so another principal's session loss does not halt it.
 (A stop of the whole robot holds every arm in the bridge: tests/interop/test_arms.py.)"""

@@ -153,9 +153,10 @@ MOVERS = set(WHO)  # the principals whose role may move (VIEWER, a GUEST, may no
 
 
 class BaseModel(RuleBasedStateMachine):
-    """Streams, goals, locks, priorities, e-stop, clear and session loss (with moves waiting
-    their turn, or not), in any order: the base never has two owners, and nothing moves while
-    the e-stop is latched."""
+    """Streams, goals, arm trajectories, locks, priorities, e-stop, clear and session loss (with
+    moves waiting their turn, or not), in any order: the base never has two owners, nothing
+    moves while the e-stop is latched, a stop leaves no arm running, and a session loss holds
+    its principal's arms (and only theirs, unless it halts the robot)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -164,6 +165,7 @@ class BaseModel(RuleBasedStateMachine):
         self.gov, self.wire, self.timer, _ = self.run(stream_governor(self.tmp))
         self.run(self.gov.start())
         self.latched_at: int | None = None  # wire length when the e-stop latched
+        self.arm_owner: dict[str, str] = {}  # an arm trajectory's message id → who sent it
 
     def run(self, coro: Any) -> Any:
         return self.loop.run_until_complete(coro)
@@ -185,6 +187,20 @@ class BaseModel(RuleBasedStateMachine):
     def navigate(self, who: Any) -> None:
         self.decide("navigate", GOAL, who)
 
+    @rule(who=st.sampled_from(WHO), joint=st.sampled_from(["elbow", "wrist"]))
+    def arm(self, who: Any, joint: str) -> None:
+        """A trajectory on one of two arms (the double gives each its own topic): it runs on
+        until a stop holds it, its time is up, or the next on that arm replaces it."""
+        decided = self.decide("arm_joint", {"joints": [joint], "positions": [0.5],
+                                            "duration_s": 30.0}, who)
+        if decided.outcome is Outcome.EXECUTED:
+            self.arm_owner[decided.message_id] = who.name
+
+    @precondition(lambda self: bool(self.wire.running))
+    @rule(data=st.data())
+    def a_trajectory_s_time_is_up(self, data: st.DataObject) -> None:
+        self.wire.running.remove(data.draw(st.sampled_from(self.wire.running)))
+
     @rule(name=st.sampled_from(["teleop", "top"]), who=st.sampled_from([OPS, ADMIN]))
     def lock(self, name: str, who: Any) -> None:
         self.decide("lock", {"name": name}, who)
@@ -197,6 +213,7 @@ class BaseModel(RuleBasedStateMachine):
     def estop(self, who: Any) -> None:
         assert self.decide("estop", {}, who).outcome is Outcome.EXECUTED
         self.latched_at = len(self.wire.wire)
+        assert not self.wire.running  # every arm held
 
     @rule()
     def clear(self) -> None:
@@ -206,6 +223,7 @@ class BaseModel(RuleBasedStateMachine):
     @rule(who=st.sampled_from(WHO))
     def stop(self, who: Any) -> None:
         self.decide("stop", {}, who)
+        assert not self.wire.running  # every arm held
 
     @precondition(lambda self: bool(self.gov.streams.goals))
     @rule(data=st.data())
@@ -237,6 +255,8 @@ class BaseModel(RuleBasedStateMachine):
         streams = self.gov.streams
         driving = {g.owner for g in streams.goals.values()}
         driving |= {streams.active.owner} if streams.active is not None else set()
+        driving |= {self.arm_owner[m] for m in self.wire.running}  # an arm runs on
+        others_arms = [m for m in self.wire.running if self.arm_owner[m] != lost.name]
         on_its_way = {w.name for w in waiting if w in MOVERS}
         narrowed = bool((driving | on_its_way) - {lost.name})
 
@@ -257,10 +277,23 @@ class BaseModel(RuleBasedStateMachine):
 
         halted, decided = self.run(lost_while_waiting())
         assert halted is not narrowed, (lost.name, driving, [w.name for w in waiting])
+        # Its arms are held, whoever else drives; a halt holds everyone's, else theirs run on.
+        assert not any(self.arm_owner[m] == lost.name for m in self.wire.running)
+        if not halted:
+            assert set(others_arms) <= set(self.wire.running), (others_arms, self.wire.running)
         if VIEWER in waiting:
             assert decided[VIEWER.name].error_code is ErrorCode.INSUFFICIENT_PRIVILEGES
         if lost.name in decided:
             assert decided[lost.name].outcome is not Outcome.EXECUTED, decided[lost.name]
+
+    @precondition(lambda self: bool(self.wire.running))
+    @rule(data=st.data(), waiting=st.sets(st.sampled_from([VIEWER, *WHO])))
+    def an_arm_s_sender_s_session_is_lost(self, data: st.DataObject, waiting: set[Any]) -> None:
+        """As above, `lost` one whose arm runs (else rare): its arm is held, and another
+        principal's arm, a stream or a goal makes it a stop of `lost`'s motion alone."""
+        senders = sorted({self.arm_owner[m] for m in self.wire.running})
+        name = data.draw(st.sampled_from(senders))
+        self.a_session_is_lost_while_moves_wait(next(w for w in WHO if w.name == name), waiting)
 
     @invariant()
     def one_owner_of_the_base(self) -> None:
@@ -330,3 +363,32 @@ async def test_goals_cancelled_at_their_sender_s_request_are_not_remembered_fore
     assert len(gov._base._ended_by) == 8
     assert gov._base.goal_ended("lost-0") is None  # the oldest were let go
     assert gov._base.goal_ended("lost-19") == "invoke_cancel by ops"
+
+
+async def test_a_senders_end_of_one_stream_ends_that_stream_alone(tmp_path: Path) -> None:
+    """`Governor.end_stream` (an INVOKE_CANCEL of a move, its timeout): the stream the named
+    command of that principal started, never a move that replaced it nor anyone else's; its
+    STREAM_ENDED says `cancelled`, by whom and why. Every end, recorded in an entry of its own
+    or in the replacing move's, is told on `Events.stream_ended`."""
+    gov, wire, _, _ = await stream_governor(tmp_path)
+    told: list[tuple[str, str]] = []
+    gov.events.stream_ended.subscribe(
+        lambda ended: told.append((ended.stream.message_id, ended.reason.value)))
+    one, two = command("move", {"linear_x": 0.2}), command("move", {"linear_x": 0.3})
+    m1, m2 = one.message_id, two.message_id
+    first, second = await gov.decide(one, PLANNER), await gov.decide(two, PLANNER)
+    assert first.outcome is second.outcome is Outcome.EXECUTED
+    assert told == [(m1, "replaced")]
+    assert not gov.end_stream(m1, PLANNER, why="INVOKE_CANCEL")  # m-2 replaced it
+    assert not gov.end_stream(m2, OPS, why="INVOKE_CANCEL")  # not ops's
+    assert gov.streams.active is not None and gov.streams.active.message_id == m2
+    assert wire.wire[-1] != ZERO and gov.stream_running(m2, PLANNER)
+    assert gov.end_stream(m2, PLANNER, why="INVOKE_CANCEL")
+    assert (gov.streams.active, wire.wire[-1], told[-1]) == (None, ZERO, (m2, "cancelled"))
+    assert not gov.stream_running(m2, PLANNER)
+    await _settled(gov)
+    [ended] = [e for e in audit_entries(tmp_path / "audit.jsonl")
+               if e["event"] == "STREAM_ENDED"]
+    assert (ended["message_id"], ended["params"]["reason"], ended["params"]["ended_by"],
+            ended["params"]["why"], ended["applied"]["zero_sent"]) == (
+        m2, "cancelled", "planner", "INVOKE_CANCEL", True), ended

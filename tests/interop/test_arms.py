@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from oracle.client import RclpyOracle
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
 from waiting import eventually, take
 
 from .bridge_rig import AGENT, OPS, Rig, bridge_config, close_rig, make_rig
@@ -31,8 +31,8 @@ arms:
 
 
 @pytest.fixture
-async def rig(tmp_path: Path, jazzy_python: Path, domain_id: int) -> AsyncIterator[Rig]:
-    rig = await make_rig(bridge_config(tmp_path, domain_id, extra_ros2=ARMS), jazzy_python,
+async def rig(tmp_path: Path, jazzy_oracle: OracleEnv, domain_id: int) -> AsyncIterator[Rig]:
+    rig = await make_rig(bridge_config(tmp_path, domain_id, extra_ros2=ARMS), jazzy_oracle,
                          domain_id)
     try:
         for topic in (LEFT, RIGHT):
@@ -111,6 +111,7 @@ async def test_refusals_reach_no_arm(rig: Rig) -> None:
 
 # -- a stop takes back an arm's trajectory (it runs on in its controller after it is sent) --
 JOINT_STATES, JOINT_STATE = "/robot1/joint_states", "sensor_msgs/msg/JointState"
+ESTOP, BOOL = "/robot1/emergency_stop", "std_msgs/msg/Bool"
 LONG = {"group": "left", "joints": ["l_shoulder", "l_elbow"], "positions": [1.0, 2.0],
         "duration_s": 60.0}
 
@@ -152,6 +153,7 @@ async def nothing_more_on_left(rig: Rig) -> None:
     assert next_sample["points"][0]["positions"] == [0.5, 0.5], next_sample
 
 
+@both_rmws
 @pytest.mark.parametrize("action", ["stop", "estop"])
 async def test_a_stop_holds_a_moving_arm_where_it_is(rig: Rig, action: str) -> None:
     await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)  # the base, stopped too
@@ -165,8 +167,7 @@ async def test_a_stop_holds_a_moving_arm_where_it_is(rig: Rig, action: str) -> N
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
     assert await rig.oracle.acall("publishers_info", topic=RIGHT) == []  # never commanded
     if action == "estop":  # the sentinel below moves the arm: the robot's e-stop is let go
-        await rig.oracle.acall("subscribe", topic="/robot1/emergency_stop",
-                               type="std_msgs/msg/Bool", qos="transient_local")
+        await rig.oracle.acall("subscribe", topic=ESTOP, type=BOOL, qos="transient_local")
         cleared = await rig.command(OPS, {"action": "clear_estop"})
         assert cleared.http_status == 200, cleared
     again = await rig.command(AGENT, {"action": "stop"})  # held once: nothing runs now
@@ -296,15 +297,17 @@ async def test_a_bridge_leaving_waits_for_the_arms_hold_to_be_acknowledged(
                           value={"name": ["l_shoulder", "l_elbow"],
                                  "position": [0.25, -0.5], "velocity": [0.0, 0.0]})
         await sent_long_trajectory(rig)
-        await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
-            ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+        await eventually(lambda: (rig.governor.heartbeat(AGENT),  # no session-loss halt
+                                  isinstance(rig.dispatcher.arms.positions.now(
+                                      ["l_shoulder", "l_elbow"], 1.0), list))[1],
+                         what="the arm's joint_states")
         os.kill(rig.oracle.proc.pid, signal.SIGSTOP)
         try:
             await rig.dispatcher.halt_before_leaving()
         finally:
             os.kill(rig.oracle.proc.pid, signal.SIGCONT)
-    assert [r.getMessage() for r in caplog.records if LEFT in r.getMessage()] == [
-        f"leaving with the hold on {LEFT} not acknowledged by every subscriber within 2 s"]
+    assert [m for m in (r.getMessage() for r in caplog.records) if m.startswith("leaving")] == [
+        f"leaving with the halt on {LEFT} not acknowledged by every subscriber within 2 s"]
     (hold,) = await take(rig.oracle, LEFT)
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
 
@@ -362,30 +365,54 @@ async def test_a_trajectory_a_later_one_may_not_have_replaced_is_held_too(
     assert_held_at(holds[0], [0.25, -0.5], [0.0, 0.0])
 
 
-async def test_an_estop_holds_the_arm_before_it_waits_for_the_robots_estop_reader(
-        rig: Rig) -> None:
-    # Nothing subscribes to emergency_stop (joint_trajectory_controller does not): the e-stop
-    # waits up to match_timeout_s (3 s here) for a reader of its signal. The arm is held
-    # before that wait, as the stop's zero velocity is, not after it.
+async def test_the_bridge_leaving_holds_a_moving_arm(rig: Rig) -> None:
+    # What the bridge runs as it stops (SIGINT, SIGTERM): the hold is acknowledged by the
+    # controller's reader before the writer goes (a sample lost then is never repaired).
     await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
     await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
-    attending = asyncio.ensure_future(attend(rig))  # no session-loss halt holds it first
+    await sent_long_trajectory(rig)
+    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+        ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+    await rig.dispatcher.halt_before_leaving()
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+
+
+@pytest.fixture
+async def patient_rig(tmp_path: Path, jazzy_python: Path, domain_id: int
+                      ) -> AsyncIterator[Rig]:
+    """A rig whose topics may take a minute to match (`match_timeout_s: 60`)."""
+    config = bridge_config(tmp_path, domain_id, extra_ros2=ARMS + "match_timeout_s: 60.0\n")
+    rig = await make_rig(config, jazzy_python, domain_id)
     try:
-        await sent_long_trajectory(rig)
-        await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
-            ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
-        estop = asyncio.ensure_future(rig.command(AGENT, {"action": "estop"}))
-        (hold,) = await take(rig.oracle, LEFT)
-        assert not estop.done(), "the hold came only after the e-stop's wait for its reader"
-        assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
-        stopped = await estop
-        assert stopped.outcome.value == "executed", stopped  # the halt reached the base
+        await rig.oracle.acall("subscribe", topic=LEFT, type=TRAJ)
+        yield rig
     finally:
-        attending.cancel()
+        await close_rig(rig)
 
 
-async def attend(rig: Rig) -> None:
-    """The agent's session is attended (session_timeout_s: 1) until cancelled."""
-    while True:
+@pytest.mark.parametrize("action", ["stop", "estop"])
+async def test_no_hold_waits_for_another_topic_to_match(patient_rig: Rig, action: str
+                                                        ) -> None:
+    # Nothing subscribes to cmd_vel or emergency_stop (an arm on a stand), and they never
+    # matched: the stop waits (up to match_timeout_s) to know whether its zero or its
+    # e-stop signal reached anyone — but the arm is held first, never after that wait.
+    rig = patient_rig
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    await sent_long_trajectory(rig)
+    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+        ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+    stopping = asyncio.create_task(rig.command(AGENT, {"action": action}))
+
+    async def held() -> list[Any]:  # attended: no session-loss halt holds it instead
         rig.governor.heartbeat(AGENT)
-        await asyncio.sleep(0.1)
+        return list(await rig.oracle.acall("take", topic=LEFT))
+
+    try:
+        (hold,) = await eventually(held, what="the hold")  # within 10 s, not after the 60
+        assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+    finally:  # the robot reads them now: the stop's waits end (no minute-long teardown)
+        for topic, type_name, profile in ((CMD_VEL, TWIST, "default"), (ESTOP, BOOL,
+                                                                          "transient_local")):
+            await rig.oracle.acall("subscribe", topic=topic, type=type_name, qos=profile)
+        await asyncio.wait_for(stopping, 30.0)

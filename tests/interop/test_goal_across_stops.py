@@ -182,3 +182,39 @@ async def test_motion_waiting_for_its_entry_when_its_connection_closes_never_sta
 async def _took(rig: Rig, into: list[dict[str, Any]]) -> bool:
     into += await rig.oracle.acall("take", topic="/robot1/cmd_vel")
     return bool(into)
+
+
+@pytest.fixture
+async def readerless_rig(tmp_path: Path, jazzy_python: Path, domain_id: int
+                         ) -> AsyncIterator[Rig]:
+    """Nothing reads cmd_vel (a robot driven by its own planner's topic), and a topic may take
+    a minute to match (`match_timeout_s: 60`)."""
+    config = bridge_config(tmp_path, domain_id, extra=MOTION,
+                           extra_ros2="match_timeout_s: 60.0\n")
+    async with navigation_rig(config, jazzy_python, domain_id, _until_cancelled) as rig:
+        yield rig
+
+
+@pytest.mark.parametrize("action", ["stop", "estop"])
+async def test_a_stop_cancels_goals_without_waiting_for_cmd_vel_to_match(
+        readerless_rig: Rig, action: str) -> None:
+    # The stop waits (up to match_timeout_s) to know whether its zero reached anyone; the
+    # goal cancels go out beside that wait, never after it (before: a minute here).
+    rig = readerless_rig
+    sent = await rig.command(AGENT, GOAL)
+    assert sent.http_status == 200, sent
+    view = nav_tracker(rig).goals()[-1]
+    stopping = asyncio.create_task(rig.command(AGENT, {"action": action}))
+
+    def cancelled() -> bool:  # attended: no session-loss halt cancels it instead
+        rig.governor.heartbeat(AGENT)
+        return view.state == "canceled"
+
+    try:
+        await eventually(cancelled, what=f"goal {view.goal_id} cancelled (now {view.state})")
+    finally:  # the robot reads them now: the stop's waits end
+        await rig.oracle.acall("subscribe", topic="/robot1/cmd_vel",
+                               type="geometry_msgs/msg/Twist")
+        await rig.oracle.acall("subscribe", topic="/robot1/emergency_stop",
+                               type="std_msgs/msg/Bool", qos="transient_local")
+        await asyncio.wait_for(stopping, 30.0)

@@ -141,7 +141,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app.cleanup_ctx.append(_status_owner(status, governor, robot))
     app[GOAL_EVENTS] = goal_events = GoalEvents()
     robot.watch_goals(goal_events.offer)
-    app[INVOCATIONS] = Skills(config.bridge.skills, robot)
+    app[INVOCATIONS] = Skills(config.bridge.skills, robot, governor.events)
     app[IMAGES] = images or NO_IMAGES
     app[WS_TICKETS] = WsTickets((clock or SystemClock()).monotonic)
     app[APPROVALS] = approvals = ApprovalsFeed(governor.pending)

@@ -4,12 +4,20 @@ An INVOKE names a skill of `bridge.skills`; the skill's action, with its fixed p
 those the invoker may set, becomes a command the governor decides like any other (roles,
 invariants, HiTL, audit: nothing is bypassed). Its reply is an INVOKE_RESULT: at once for a
 command that is done when it is executed or refused; for one that starts a goal (navigate,
-dock), when the goal ends, or at `timeout_ms` (the goal is then cancelled: `timeout`). A held
+dock), when the goal ends, or at `timeout_ms` (the goal is then cancelled: `timeout`); for an
+arm's trajectory, which reports no end, when its time is up (a stop that held it before makes
+it a `failure`), or at `timeout_ms` (the arm is then held where it is); for a `move`, when its
+velocity stream ends (`success` by its own `duration_s`; anything else that ended it — a stop,
+an e-stop, another move, a lost session or robot — makes it a `failure` naming that), or at
+`timeout_ms` (the stream is then ended, zero sent). A held
 INVOKE (HiTL) is answered 202 `pending` like any held command; its approval is answered to
 the approver.
 
 INVOKE_CANCEL names an INVOKE of its own sender by msg_id: a goal it started is cancelled
-through the governor (audited) and the INVOKE is answered `cancelled`; a held one is withdrawn.
+through the governor (audited), an arm it moves is held where it is (audited:
+`hold_trajectory`), the velocity stream it drives is ended, zero sent (audited: its
+STREAM_ENDED `cancelled`, `why: INVOKE_CANCEL`), and the INVOKE is answered `cancelled`; a
+held one is withdrawn.
 One already answered is left alone (§19.4: the earlier result stands, and is repeated); one
 never seen is `not_found`.
 
@@ -32,6 +40,7 @@ import msgspec
 from rcan_rtps.config import SkillConfig
 from rcan_rtps.governance import Governor, Principal, Rejection, outcomes
 from rcan_rtps.governance.governor import Decision
+from rcan_rtps.governance.streams import EndReason, StreamEnded
 from rcan_rtps.rcan import (
     STATUS_OF,
     Authorization,
@@ -64,6 +73,20 @@ NOT_YOUR_PRINCIPAL_ID = Rejection(403, Outcome.DENIED, ErrorCode.INSUFFICIENT_PR
 _CONFLICTS = {"lower_priority", "motion_locked"}
 _STATUS_OF_KIND: dict[str, InvokeStatus] = {
     "not_found": "not_found", "invalid_params": "invalid_params", "conflict": "failure"}
+# Why an INVOKE ends the stream of its move (its STREAM_ENDED's `why`).
+BY_INVOKE_CANCEL = "INVOKE_CANCEL"
+BY_INVOKE_TIMEOUT = "INVOKE timeout"
+# What ended a move's stream before it was done, for its INVOKE's `failure`.
+_STREAM_ENDED_BY = {
+    EndReason.REPLACED: "another move of its sender's replaced it",
+    EndReason.PREEMPTED: "a higher-priority move or a motion lock preempted it",
+    EndReason.STOPPED: "a stop ended it",
+    EndReason.ESTOPPED: "an e-stop ended it",
+    EndReason.SESSION_LOST: "its sender's control session was lost",
+    EndReason.CANCELLED: "its sender's client cancelled a motion command",
+    EndReason.ROBOT_LOST: "the robot could not be sent its velocity",
+    EndReason.BRIDGE_STOPPED: "the bridge stopped",
+}
 
 
 @dataclass
@@ -77,6 +100,14 @@ class _Running:
     pending_id: str | None = None
     cancelled: bool = False  # by its INVOKE_CANCEL: a canceled goal is then `cancelled`
     ended: asyncio.Future[GoalView] = field(
+        default_factory=lambda: asyncio.get_running_loop().create_future())
+    # An arm's trajectory it sent (the command's message id), and its hold by INVOKE_CANCEL.
+    trajectory: str | None = None
+    held: asyncio.Future[Decision] = field(
+        default_factory=lambda: asyncio.get_running_loop().create_future())
+    # A move's velocity stream (the command's message id), and its end, once heard.
+    stream: str | None = None
+    stream_end: asyncio.Future[StreamEnded] = field(
         default_factory=lambda: asyncio.get_running_loop().create_future())
     answered: asyncio.Future[InvokeResult] = field(
         default_factory=lambda: asyncio.get_running_loop().create_future())
@@ -99,6 +130,7 @@ class Invocations:
         self._robot = robot
         self._running: dict[tuple[str, str], _Running] = {}
         self._by_goal: dict[str, _Running] = {}
+        self._by_stream: dict[tuple[str, str], _Running] = {}  # by (owner, message id)
         self._finished: OrderedDict[tuple[str, str], InvokeResult] = OrderedDict()
 
     def listed(self, governor: Governor) -> SkillList:
@@ -135,10 +167,14 @@ class Invocations:
                 governor, principal, invoke, outcomes.schema_failed(exc.path),
                 "invalid_params", exc.detail, path=exc.path))
         running = self._running[key] = _Running(skill=invoke.skill, invoke_id=invoke.msg_id)
+        if command.spec.streamed:  # listened for now: a move to a standstill ends as it starts
+            running.stream = command.message_id
+            self._by_stream[principal.name, command.message_id] = running
         try:
             decision = await governor.decide(command, principal)
         except BaseException:
             del self._running[key]
+            self._forget_stream(principal, running)
             raise
         return await self._decided(governor, principal, invoke, key, running, decision)
 
@@ -152,11 +188,24 @@ class Invocations:
 
     async def _decided(self, governor: Governor, principal: Principal, invoke: Invoke,
                        key: tuple[str, str], running: _Running, decision: Decision) -> Started:
+        if running.stream is not None:
+            if self._stream_started(governor, principal, running, decision):
+                return Started(finish=lambda: self._finish_stream(governor, principal, invoke,
+                                                                  key, running, decision))
+            self._forget_stream(principal, running)
         if decision.outcome is Outcome.PENDING_AUTH:  # held: an INVOKE_CANCEL withdraws it
             running.pending_id = decision.pending_id
             body = decision.body()
             body.msg_id, body.status = invoke.msg_id, "pending"
             return Started(reply=(decision.http_status, body))
+        if (decision.outcome is Outcome.EXECUTED and decision.runs_for_s is not None
+                and decision.message_id is not None):  # an arm's trajectory runs on
+            running.trajectory = decision.message_id
+            if running.cancelled:  # cancelled while it was being decided
+                running.held.set_result(await governor.hold_trajectory(
+                    decision.message_id, principal, message_id=None, why="INVOKE_CANCEL"))
+            return Started(finish=lambda: self._finish_trajectory(governor, principal, invoke,
+                                                                  key, running, decision))
         if decision.outcome is not Outcome.EXECUTED or decision.goal_id is None:
             del self._running[key]
             result = self._result(running, decision, _decided_status(decision))
@@ -193,6 +242,111 @@ class Invocations:
             self._running.pop(key, None)
             self._by_goal.pop(running.goal_id, None)
         return 200, await self._answer(governor, principal, key, running, result)
+
+    async def _finish_trajectory(self, governor: Governor, principal: Principal,
+                                 invoke: Invoke, key: tuple[str, str], running: _Running,
+                                 decision: Decision) -> Reply:
+        """An arm's trajectory reports no end (a topic, not an action): it is done when its
+        time is up, unless a stop held it before; held by its INVOKE_CANCEL, `cancelled`;
+        past `timeout_ms` first, held then (`timeout`)."""
+        assert running.trajectory is not None and decision.runs_for_s is not None
+        since = time.monotonic() - running.started
+        left = invoke.timeout_ms / 1000 - since
+        try:
+            try:
+                held = await asyncio.wait_for(asyncio.shield(running.held),
+                                              max(min(decision.runs_for_s - since, left), 0.0))
+            except asyncio.TimeoutError:
+                result = await self._trajectory_over(governor, principal, running, decision,
+                                                     timed_out=decision.runs_for_s - since > left,
+                                                     timeout_ms=invoke.timeout_ms)
+            else:
+                result = self._result(running, decision, "cancelled" if held.outcome is
+                                      Outcome.EXECUTED else "failure", held.reason or
+                                      "held where it was by INVOKE_CANCEL")
+        finally:
+            self._running.pop(key, None)
+        return 200, await self._answer(governor, principal, key, running, result)
+
+    async def _trajectory_over(self, governor: Governor, principal: Principal,
+                               running: _Running, decision: Decision, *, timed_out: bool,
+                               timeout_ms: int) -> InvokeResult:
+        assert running.trajectory is not None
+        if timed_out:
+            held = await governor.hold_trajectory(running.trajectory, principal,
+                                                  message_id=decision.message_id,
+                                                  why="INVOKE timeout")
+            return self._result(running, decision, "timeout",
+                                f"not done within {timeout_ms} ms: the arm held where it was "
+                                f"({held.outcome.value})")
+        if governor.trajectory_running(running.trajectory):
+            return self._result(running, decision, "success")
+        return self._result(running, decision, "failure",
+                            "a stop held the arm before its trajectory's time was up")
+
+    def _stream_started(self, governor: Governor, principal: Principal, running: _Running,
+                        decision: Decision) -> bool:
+        """Whether the INVOKE's move started a stream its answer waits for: executed, and
+        its end heard or the stream running (else the decision repeated an earlier one's,
+        whose stream ended before this INVOKE listened: answered as decided). Cancelled while
+        it was being decided, it is ended now."""
+        assert running.stream is not None
+        if decision.outcome is not Outcome.EXECUTED:
+            return False
+        if running.stream_end.done():
+            return True
+        if not governor.stream_running(running.stream, principal):
+            return False
+        if running.cancelled:  # its INVOKE_CANCEL came while it was being decided
+            governor.end_stream(running.stream, principal, why=BY_INVOKE_CANCEL)
+        return True
+
+    async def _finish_stream(self, governor: Governor, principal: Principal, invoke: Invoke,
+                             key: tuple[str, str], running: _Running,
+                             decision: Decision) -> Reply:
+        """A move is done when its velocity stream ends (`stream_ended`); past `timeout_ms`
+        first, the stream is ended then, zero sent (`timeout`). Under way until it is answered:
+        an INVOKE_CANCEL meanwhile gets that answer (not `not_found`)."""
+        assert running.stream is not None
+        left = invoke.timeout_ms / 1000 - (time.monotonic() - running.started)
+        try:
+            try:
+                ended = await asyncio.wait_for(asyncio.shield(running.stream_end),
+                                               max(left, 0.0))
+            except asyncio.TimeoutError:
+                governor.end_stream(running.stream, principal, why=BY_INVOKE_TIMEOUT)
+                result = self._result(running, decision, "timeout",
+                                      f"not done within {invoke.timeout_ms} ms: its velocity "
+                                      "stream ended, zero sent")
+            else:
+                result = self._stream_result(running, decision, ended)
+            return 200, await self._answer(governor, principal, key, running, result)
+        finally:
+            self._running.pop(key, None)
+            self._forget_stream(principal, running)
+
+    def _stream_result(self, running: _Running, decision: Decision,
+                       ended: StreamEnded) -> InvokeResult:
+        if ended.reason is EndReason.COMPLETED:  # its duration is over
+            return self._result(running, decision, "success")
+        if ended.reason is EndReason.CANCELLED and ended.why == BY_INVOKE_CANCEL:
+            return self._result(running, decision, "cancelled",
+                                "its velocity stream ended by the client's INVOKE_CANCEL, "
+                                "zero sent")
+        why = _STREAM_ENDED_BY.get(ended.reason, ended.reason.value)
+        by = f" ({ended.by})" if ended.by else ""
+        return self._result(running, decision, "failure",
+                            f"the move ended before it was done: {why}{by}")
+
+    def stream_ended(self, ended: StreamEnded) -> None:
+        """Each end of a velocity stream (`Events.stream_ended`, through `_skills.Skills`)."""
+        running = self._by_stream.get((ended.stream.owner, ended.stream.message_id))
+        if running is not None and not running.stream_end.done():
+            running.stream_end.set_result(ended)
+
+    def _forget_stream(self, principal: Principal, running: _Running) -> None:
+        if running.stream is not None:
+            self._by_stream.pop((principal.name, running.stream), None)
 
     def _ended(self, running: _Running, decision: Decision, view: GoalView) -> InvokeResult:
         if view.state == "succeeded":
@@ -238,6 +392,18 @@ class Invocations:
                                                   why="INVOKE_CANCEL")
             if decision.outcome is not Outcome.EXECUTED:
                 return decision.http_status, _body(decision.body(), cancel.message_id)
+        if running.stream is not None and not running.stream_end.done():
+            # Only this INVOKE's stream: one that replaced it runs on. Not yet started (being
+            # decided), it is ended once it starts (`_stream_started`).
+            governor.end_stream(running.stream, principal, why=BY_INVOKE_CANCEL)
+        if running.trajectory is not None and not running.held.done():
+            held = await governor.hold_trajectory(running.trajectory, principal,
+                                                  message_id=cancel.message_id,
+                                                  why="INVOKE_CANCEL")
+            if held.outcome is not Outcome.EXECUTED:  # it runs on: its end is answered then
+                running.cancelled = False
+                return held.http_status, _body(held.body(), cancel.message_id)
+            running.held.set_result(held)
         try:  # the INVOKE's own answer, once its goal has wound down
             answered = await asyncio.wait_for(asyncio.shield(running.answered),
                                               cancel.cancel_timeout_ms / 1000)

@@ -17,22 +17,32 @@ from rcan_rtps.config import SkillConfig
 from .ports import GoalView, RobotView
 
 if TYPE_CHECKING:
+    from rcan_rtps.events import Events
+    from rcan_rtps.governance.streams import StreamEnded
+
     from ._invoke import Invocations
 
 
 class Skills:
     """The skills an INVOKE may name, made into `_invoke.Invocations` on first use."""
 
-    def __init__(self, skills: Mapping[str, SkillConfig], robot: RobotView | None) -> None:
+    def __init__(self, skills: Mapping[str, SkillConfig], robot: RobotView | None,
+                 events: Events | None = None) -> None:
         self._skills = dict(skills)
         self._robot = robot
         self._made: Invocations | None = None
         if robot is not None:  # now: the robot's channels take no subscriber once started
             robot.watch_goals(self._goal_changed)
+        if events is not None and self._skills:  # the governor's, likewise
+            events.stream_ended.subscribe(self._stream_ended)
 
     def _goal_changed(self, view: GoalView) -> None:
         if self._made is not None:  # else no INVOKE is waiting for any goal
             self._made.goal_changed(view)
+
+    def _stream_ended(self, ended: StreamEnded) -> None:
+        if self._made is not None:  # else no INVOKE is waiting for any stream
+            self._made.stream_ended(ended)
 
     def invocations(self) -> Invocations:
         if self._made is None:

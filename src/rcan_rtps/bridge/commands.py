@@ -154,7 +154,7 @@ class FirstUsePublisher:
         return await self.publisher().wait_for_subscribers(count, timeout)
 
     async def acknowledged(self, timeout: float) -> bool:
-        return self._made is None or await self._made.acknowledged(timeout)
+        return await self.publisher().acknowledged(timeout)
 
 
 class _Route:
@@ -403,9 +403,10 @@ class RosDispatcher:
         if hold is None:
             return result
         kit = route.kit  # it runs on after this: a stop takes it back
-        self.arms.sent(pub, message_id, hold.joints(params), hold.runs_for_s(params),
+        runs_for_s = hold.runs_for_s(params)
+        self.arms.sent(pub, message_id, hold.joints(params), runs_for_s,
                        lambda joints, where: hold.build(joints, where, kit))
-        return DispatchResult(ok=True, ros2_topic=pub.topic, runs_on=True)
+        return DispatchResult(ok=True, ros2_topic=pub.topic, runs_for_s=runs_for_s)
 
     def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
         """Holds the arms still running a trajectory of `message_ids` (a stop of one
@@ -443,46 +444,55 @@ class RosDispatcher:
 
     async def halt(self) -> Halted:
         """Zero velocity, hold the arms whose trajectories may still run, cancel every goal."""
-        return await self._halted(self._halt_now())
+        return await self._halt_rest(*self._halt_now())
 
-    def _halt_now(self) -> tuple[bool, ArmsHeld]:
-        """A halt's first step, before any await: zero velocity and the arms held. Whether
-        the velocity topic had a reader before, and what the hold reached."""
+    def _halt_now(self) -> tuple[Any, bool, ArmsHeld]:
+        """What a halt sends at once, before any await: zero velocity (unconditionally: late
+        joiners stop too), and each arm's hold. (zero, whether cmd_vel had matched, arms)."""
         zero = self._halt.message(with_effect(Effect.HALT).params())
         matched_before = self.cmd_vel.matched_count() > 0
-        self.cmd_vel.publish(zero)  # first, unconditionally: late joiners stop too
-        return matched_before, self.arms.hold_all()
+        self.cmd_vel.publish(zero)
+        return zero, matched_before, self.arms.hold_all()
 
-    async def _halted(self, first: tuple[bool, ArmsHeld]) -> Halted:
-        """The rest of a halt after `_halt_now`: the zero again once matched, goals cancelled."""
-        matched_before, arms = first
-        reached = matched_before or await self._matched(self.cmd_vel)
-        if reached and not matched_before:  # the first zero preceded the match
-            self.cmd_vel.publish(self._halt.message(with_effect(Effect.HALT).params()))
-        cancelled = 0
-        if self.goals is not None:
-            try:
-                cancelled = await self.goals.cancel_all()  # on every goal server
-            except Exception:
-                log.exception("cancelling goals failed")
+    async def _halt_rest(self, zero: Any, matched_before: bool, arms: ArmsHeld) -> Halted:
+        # The goal cancels do not wait for cmd_vel to match: a robot may never read it.
+        reached, cancelled = await asyncio.gather(self._zero_reached(zero, matched_before),
+                                                  self._cancel_goals())
         for why in arms.not_held:
             log.warning("halting: %s", why)
         return Halted(reached, cancelled, arms)
 
+    async def _zero_reached(self, zero: Any, matched_before: bool) -> bool:
+        if matched_before:
+            return True
+        reached = await self._matched(self.cmd_vel)
+        if reached:
+            self.cmd_vel.publish(zero)  # the first preceded the match
+        return reached
+
+    async def _cancel_goals(self) -> int:
+        if self.goals is None:
+            return 0
+        try:
+            return await self.goals.cancel_all()  # on every goal server
+        except Exception:
+            log.exception("cancelling goals failed")
+            return 0
+
     async def halt_before_leaving(self) -> None:
         """The bridge is stopping: halt, then wait (at most LEAVING_ACK_S) until the robot's
-        subscriptions acknowledged the zero and the arms' holds. A sample dropped at a busy
+        subscriptions acknowledged the zero and each arm's hold. A sample dropped at a busy
         reader is sent again only while our writer lives, and the process exits right after:
         seen once in CI, a SIGINT during a move left an rclpy subscriber's last Twist the
-        move's; a hold lost so leaves an arm's trajectory running (up to an hour)."""
+        move's."""
         halted = await self.halt()
-        sent: list[tuple[str, CommandPublisher]] = [("the zero", self.cmd_vel)]
-        sent += [("the hold", p) for p in self._publishers.values() if p.topic in halted.arms.held]
-        acked = await asyncio.gather(*(p.acknowledged(LEAVING_ACK_S) for _, p in sent))
-        for (what, publisher), ok in zip(sent, acked, strict=True):
+        sent: list[CommandPublisher] = [self.cmd_vel, *(
+            p for p in self._publishers.values() if p.topic in halted.arms.held)]
+        acked = await asyncio.gather(*(p.acknowledged(LEAVING_ACK_S) for p in sent))
+        for publisher, ok in zip(sent, acked, strict=True):
             if not ok:
-                log.warning("leaving with %s on %s not acknowledged by every subscriber "
-                            "within %s", what, publisher.topic, seconds(LEAVING_ACK_S))
+                log.warning("leaving with the halt on %s not acknowledged by every subscriber "
+                            "within %s", publisher.topic, seconds(LEAVING_ACK_S))
 
     async def _stop(self) -> DispatchResult:
         halted = await self.halt()
@@ -493,15 +503,16 @@ class RosDispatcher:
         route = self._routes[id(ros.signal)]
         signal = route.message(params)
         route.publisher.publish(signal)
-        # The base and the arms are halted before waiting for the signal's reader: a robot
-        # may have none (joint_trajectory_controller does not read it), and the wait is up
-        # to match_timeout_s.
-        first = self._halt_now()
+        halting = self._halt_now()  # the halt never waits for the e-stop topic to match
+        told, halted = await asyncio.gather(self._told(route, signal),
+                                            self._halt_rest(*halting))
+        return halted.result(route.publisher.topic, told=told)
+
+    async def _told(self, route: _Route, signal: Any) -> bool:
         told = await self._matched(route.publisher)
         if told:
             route.publisher.publish(signal)  # the first write may have preceded the match
-        halted = await self._halted(first)
-        return halted.result(route.publisher.topic, told=told)
+        return told
 
 
 def _halt_route() -> Halt:

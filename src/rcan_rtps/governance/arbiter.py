@@ -52,7 +52,8 @@ class BaseArbiter:
 
     def __init__(self, steps: Steps, streams: VelocityStreams, priorities: MotionPriorities,
                  latch: EstopMachine, sending: Sending,
-                 held_locks: Mapping[str, str] | None = None) -> None:
+                 held_locks: Mapping[str, str] | None = None,
+                 stream_ended: Callable[[StreamEnded], None] | None = None) -> None:
         self._steps = steps
         self.streams = streams
         self.priorities = priorities
@@ -63,6 +64,8 @@ class BaseArbiter:
         # Goals the arbiter cancelled → why, by whom (for their GOAL_FINISHED); bounded: a goal
         # whose server vanished never reports its end.
         self._ended_by: OrderedDict[str, str] = OrderedDict()
+        # Told of each end once it is audited (`Events.stream_ended`: an INVOKE waiting for it).
+        self._told: Callable[[StreamEnded], None] = stream_ended or (lambda ended: None)
         streams.on_end = self._stream_ended
 
     def admits(self, priority: int) -> Rejection | None:
@@ -225,15 +228,20 @@ class BaseArbiter:
         return executed(command, audited[0], audited[1], result)
 
     def _stream_ended(self, ended: StreamEnded) -> None:
-        if ended.recorded:  # the replacing move's entry says so (`applied.replaces`)
-            return
+        if not ended.recorded:  # else the replacing move's entry says so (`applied.replaces`)
+            self._record_end(ended)
+        self._told(ended)
+
+    def _record_end(self, ended: StreamEnded) -> None:
         stream = ended.stream
+        params: dict[str, Any] = {"reason": ended.reason.value, "ended_by": ended.by,
+                                  "samples": stream.samples,
+                                  "seconds": round(ended.at - stream.started_at, 3)}
+        if ended.why is not None:
+            params["why"] = ended.why
         entry = AuditRecord(
             event=AuditEvent.STREAM_ENDED, principal=stream.owner, action_type=stream.action,
-            message_id=stream.message_id,
-            params={"reason": ended.reason.value, "ended_by": ended.by,
-                    "samples": stream.samples,
-                    "seconds": round(ended.at - stream.started_at, 3)},
+            message_id=stream.message_id, params=params,
             applied={"last": ended.last._asdict(), "zero_sent": ended.zeroed})
         # Sealed in the step that ended it (a stop's halt, the e-stop's reflex), not a task's
         # step later: the log lists it where the robot got its zero, before the stop's entry.

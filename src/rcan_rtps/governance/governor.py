@@ -108,7 +108,7 @@ class Governor:
         self.latch = latch
         self.events = events or Events()
         self._steps = Steps(audit, dispatcher)
-        # Whose command sent what runs on, per topic (`DispatchResult.runs_on`: an arm's
+        # Whose command sent what runs on, per topic (`DispatchResult.runs_for_s`: an arm's
         # trajectory; the next on a topic may not replace it: its controller may refuse that
         # one): a stop of its sender's motion alone holds it, and while it runs, its sender
         # drives. Per topic: message id → owner, those still running, at most RUNS_ON_KEPT.
@@ -133,7 +133,8 @@ class Governor:
         # The one owner of the velocity streams; an e-stop ends them first thing.
         self.streams = streams or VelocityStreams(dispatcher, latch)
         self._base = BaseArbiter(self._steps, self.streams, priorities or MotionPriorities(),
-                                 latch, self._sending, held_locks)
+                                 latch, self._sending, held_locks,
+                                 stream_ended=self.events.stream_ended.emit)
         self._estops = EstopLane(self._steps, latch, self.streams, clock)
         self._desk = HitlDesk(self._steps, hitl, clock, timeout_s=hitl_timeout_s,
                               require_distinct_approver=require_distinct_approver,
@@ -519,7 +520,7 @@ class Governor:
                                            stops)
             if refused is not None:
                 return await self._steps.failed(command, principal, refused)
-        if result.runs_on and result.ros2_topic:
+        if result.runs_for_s is not None and result.ros2_topic:
             self._ran_on(result.ros2_topic, owner.name, command.message_id)
         return executed(command, applied, receipt, result)
 
@@ -649,6 +650,54 @@ class Governor:
         timeout: §19), audited before the cancel goes out."""
         return await self._detached(self._base.cancel_requested(
             goal_id, principal, message_id=message_id, why=why))
+
+    async def hold_trajectory(self, sent_by: str, principal: Principal, *,
+                              message_id: str | None, why: str) -> Decision:
+        """Hold the arm still running the trajectory the command `sent_by` sent, at its
+        sender's request (an INVOKE_CANCEL of the INVOKE that sent it, its timeout: §19).
+        Held first, as any stop (it never waits for the disk), then audited: a
+        COMMAND_DISPATCHED `hold_trajectory` entry, or COMMAND_FAILED naming why the arm could
+        not be held. The caller has checked the command is `principal`'s."""
+        arms = self._steps.hold_trajectories([sent_by])
+        facts = {"sent_by": sent_by, "why": why, **_arms_applied(arms)}
+        failed = outcomes.robot_unavailable("; ".join(arms.not_held)) if arms.not_held else None
+        entry = AuditRecord(
+            event=AuditEvent.COMMAND_FAILED if failed else AuditEvent.COMMAND_DISPATCHED,
+            principal=principal.name, role=principal.role.name, message_id=message_id,
+            action_type="hold_trajectory", params=facts,
+            outcome=(failed.outcome if failed else Outcome.EXECUTED).value,
+            deny_reason=failed.deny_reason if failed else None, sent_first=True)
+        # Detached: the INVOKE_CANCEL's task may be cancelled; the entry must not be.
+        return await self._detached(self._hold_recorded(entry, failed))
+
+    async def _hold_recorded(self, entry: AuditRecord, failed: Rejection | None) -> Decision:
+        receipt = await self._steps.write_ahead(entry, urgent=True)
+        if receipt is None:
+            return decision(outcomes.AUDIT_UNAVAILABLE, message_id=entry.message_id)
+        if failed is not None:
+            return decision(failed, receipt, message_id=entry.message_id)
+        return Decision(outcome=Outcome.EXECUTED, http_status=200, audit_id=receipt.audit_id,
+                        message_id=entry.message_id, applied=entry.params)
+
+    def end_stream(self, sent_by: str, principal: Principal, *, why: str) -> bool:
+        """End the velocity stream `principal`'s command `sent_by` started, if it still runs,
+        at its sender's request (an INVOKE_CANCEL of the INVOKE that started it, its timeout:
+        §19): zero at once, as any stop (no await); its STREAM_ENDED says `cancelled`, by
+        whom and `why`. Only that stream: a later move that replaced it, or anyone else's,
+        runs on. Whether it ended."""
+        return self.streams.end_command(principal.name, sent_by, EndReason.CANCELLED, why=why)
+
+    def stream_running(self, sent_by: str, principal: Principal) -> bool:
+        """Whether the velocity stream `principal`'s command `sent_by` started still runs."""
+        active = self.streams.active
+        return active is not None and (active.owner, active.message_id) == (principal.name,
+                                                                            sent_by)
+
+    def trajectory_running(self, sent_by: str) -> bool:
+        """Whether the trajectory the command `sent_by` sent may still be running (not held
+        by a stop, its time not up); when that cannot be read, it may."""
+        running = self._steps.running_trajectories()
+        return running is None or sent_by in running
 
     async def expire_pending(self) -> list[Decision]:
         """Discard and audit (HITL_EXPIRED) every pending command past its TTL."""

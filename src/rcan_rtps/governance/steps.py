@@ -34,9 +34,10 @@ class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):
     ros2_topic: str | None = None
     goal_id: str | None = None
     detail: str | None = None
-    # What was sent runs on after this (an arm's trajectory): a stop of its sender's motion
-    # alone holds it (`Dispatcher.hold_trajectories`), and while it runs its sender drives.
-    runs_on: bool = False
+    # What was sent runs on after this, for up to so many seconds (an arm's trajectory): a
+    # stop of its sender's motion alone holds it (`Dispatcher.hold_trajectories`), and while
+    # it runs its sender drives.
+    runs_for_s: float | None = None
 
 
 class ArmsHeld(NamedTuple):
@@ -78,12 +79,12 @@ class Dispatcher(Protocol):
         ...
 
     def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
-        """Hold what the commands `message_ids` sent that still runs on (`runs_on`), now (no
-        await); a stop of the whole robot holds every one itself."""
+        """Hold what the commands `message_ids` sent that still runs on (`runs_for_s`), now
+        (no await); a stop of the whole robot holds every one itself."""
         ...
 
     def running_trajectories(self) -> Collection[str]:
-        """The message ids of the commands whose `runs_on` motion may still be running."""
+        """The message ids of the commands whose motion may still run on (`runs_for_s`)."""
         ...
 
 
@@ -100,6 +101,7 @@ class Decision(msgspec.Struct, frozen=True, kw_only=True):
     ros2_topic: str | None = None
     goal_id: str | None = None
     warnings: list[str] | None = None  # a stop executed in spite of these problems
+    runs_for_s: float | None = None  # what it sent runs on so long (`DispatchResult`)
 
     def body(self) -> DecisionBody:
         return DecisionBody(
@@ -314,7 +316,8 @@ def executed(command: NormalizedCommand, applied: dict[str, Any], receipt: Audit
              result: DispatchResult) -> Decision:
     return Decision(outcome=Outcome.EXECUTED, http_status=200, applied=applied,
                     audit_id=receipt.audit_id, message_id=command.message_id,
-                    ros2_topic=result.ros2_topic, goal_id=result.goal_id)
+                    ros2_topic=result.ros2_topic, goal_id=result.goal_id,
+                    runs_for_s=result.runs_for_s)
 
 
 def decision(rejection: Rejection, receipt: AuditReceipt | None = None, *,

@@ -14,7 +14,8 @@ the engaged motion locks. Everything about it runs on the event loop, without aw
   when the latch flips, before the e-stop's first await; and every sample checks the latch
   right before it is written: no non-zero sample follows a latched e-stop.
 
-Every end is reported (`on_end`) so the governor audits it (STREAM_ENDED). Priorities and
+Every end is reported (`on_end`) so the governor audits it (STREAM_ENDED) and tells whoever
+waits for it (an INVOKE of a `move` skill is answered then). Priorities and
 locks work like twist_mux's: a higher priority preempts, a lower one is refused while a higher
 stream runs or a higher lock is engaged.
 
@@ -129,6 +130,7 @@ class StreamEnded(msgspec.Struct, frozen=True):
     at: float
     zeroed: bool  # zero was sent (False: the next stream took over the wire)
     recorded: bool = False  # the replacing move's own entry records it (`applied.replaces`)
+    why: str | None = None  # what made `by` end it, when more than `reason` says (`end_command`)
 
 
 class Replaces(NamedTuple):
@@ -382,6 +384,17 @@ class VelocityStreams:
         self._finish(reason, by, zero=True)
         return True
 
+    def end_command(self, owner: str, message_id: str, reason: EndReason, *,
+                    why: str | None = None) -> bool:
+        """End the active stream if it is the one `owner`'s command `message_id` started
+        (True), sending zero at once; any other stream — a later move of `owner`'s that
+        replaced it, someone else's — is left alone."""
+        active = self.active
+        if active is None or (active.owner, active.message_id) != (owner, message_id):
+            return False
+        self._finish(reason, owner, zero=True, why=why)
+        return True
+
     def end_of(self, owner: str, reason: EndReason) -> bool:
         """End the active stream if it is `owner`'s (True), sending zero at once."""
         if self.active is None or self.active.owner != owner:
@@ -457,7 +470,8 @@ class VelocityStreams:
         return why
 
     def _finish(self, reason: EndReason, by: str | None, *, zero: bool,
-                recorded: bool = False, keep_timer: bool = False) -> None:
+                recorded: bool = False, keep_timer: bool = False,
+                why: str | None = None) -> None:
         stream, self.active = self.active, None
         if self._handle is not None and not keep_timer:
             self._handle.cancel()
@@ -466,7 +480,8 @@ class VelocityStreams:
             self._send(ZERO)
         if stream is None:
             return
-        ended = StreamEnded(stream, reason, by, self._last, self._clock().time(), zero, recorded)
+        ended = StreamEnded(stream, reason, by, self._last, self._clock().time(), zero, recorded,
+                            why)
         try:
             self.on_end(ended)
         except Exception:  # reporting must never keep a stream alive

@@ -34,7 +34,8 @@ HALT = Halt(velocity=Publish(topic_key="cmd_vel_topic", type_key="cmd_vel_type",
 SPEC = ActionSpec(
     order=40,
     name="stop",
-    summary="Stop: zero velocity, cancel every goal (navigation, docking).",
+    summary="Stop: zero velocity, hold each arm still moving where it is, cancel every goal "
+            "(navigation, docking).",
     params=StopParams,
     effect=Effect.HALT,
     default_role=Role.USER,

@@ -9,7 +9,15 @@ from typing import Any
 
 import pytest
 
-from rcan_rtps.bridge.arm_holds import MAX_AGE_S, MAX_LEAD, SETTLING_S, ArmHolds, JointPositions
+from rcan_rtps.bridge.arm_holds import (
+    MAX_AGE_S,
+    MAX_JOINT_NAME,
+    MAX_KEPT,
+    MAX_LEAD,
+    SETTLING_S,
+    ArmHolds,
+    JointPositions,
+)
 
 
 class Clock:
@@ -45,18 +53,31 @@ def positions(clock: Clock) -> JointPositions:
     return JointPositions(clock)
 
 
-def test_only_watched_joints_are_kept_from_any_joint_state(positions: JointPositions,
-                                                           clock: Clock) -> None:
-    positions.heard(["a", "b"], [1.0, 2.0], [])  # nobody watches yet
-    positions.watch("/arm", ["a", "b"])
-    assert positions.now(["a"], 1.0) == "no joint_states heard for 'a'"
-    # Two publishers, each with part of the arm (a gripper's node, the arm's broadcaster).
-    positions.heard(["a", "x"], [1.0, 5.0], [0.0, 0.0])
-    positions.heard(["b"], [2.0], [])
+def test_joints_are_kept_from_any_joint_state_before_any_trajectory(
+        positions: JointPositions, clock: Clock) -> None:
+    # Heard before its first trajectory: a stop right after it (before the next JointState)
+    # finds where the arm is.
+    positions.heard(["a", "b"], [1.0, 2.0], [])
     assert positions.now(["a", "b"], 1.0) == [1.0, 2.0]
-    assert positions.now(["x"], 1.0) == "no joint_states heard for 'x'"
-    positions.watch("/arm", ["b"])  # its next trajectory moves b only: a is let go
-    assert positions.now(["a"], 1.0) == "no joint_states heard for 'a'"
+    # Two publishers, each with part of the arm (a gripper's node, the arm's broadcaster).
+    positions.heard(["a", "x"], [1.05, 5.0], [0.0, 0.0])
+    positions.heard(["b"], [2.05], [])
+    assert positions.now(["a", "b", "x"], 1.0) == [1.05, 2.05, 5.0]
+    assert positions.now(["y"], 1.0) == "no joint_states heard for 'y'"
+
+
+def test_a_joint_state_s_size_is_bounded_but_not_for_watched_joints(
+        positions: JointPositions) -> None:
+    long_name = "j" * (MAX_JOINT_NAME + 1)
+    positions.heard([long_name], [1.0], [])  # no command can name it
+    assert positions.now([long_name], 1.0) == f"no joint_states heard for {long_name!r}"
+    junk = [f"junk{i}" for i in range(MAX_KEPT + 10)]
+    positions.heard(junk, [0.0] * len(junk), [])
+    positions.heard(["elbow"], [0.5], [])
+    assert positions.now(["elbow"], 1.0) == "no joint_states heard for 'elbow'"
+    positions.watch("/arm", ["elbow"])  # its trajectory: kept from the next JointState
+    positions.heard(["elbow"], [0.5], [])
+    assert positions.now(["elbow"], 1.0) == [0.5]
 
 
 def test_a_sender_s_inconsistent_lists_are_read_as_far_as_they_go(
@@ -99,12 +120,28 @@ def test_a_stop_holds_each_running_trajectory_once(positions: JointPositions,
     assert arms.running() == [] and arms.hold_all() == ((), ())
 
 
-def test_the_last_trajectory_on_a_topic_is_the_one_held(positions: JointPositions,
-                                                        clock: Clock) -> None:
+def test_a_trajectory_the_next_on_its_topic_may_not_have_replaced_is_held_too(
+        positions: JointPositions, clock: Clock) -> None:
+    # joint_trajectory_controller refuses m2 (only some of its joints, without
+    # allow_partial_joints_goal), and the topic says nothing: m1 may run on. Each joint set
+    # still due is held, oldest first (a hold of a set the controller refuses is refused).
     arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
     left = Topic("/left")
     arms.sent(left, "m1", ["a", "b"], 60.0, hold)
-    arms.sent(left, "m2", ["b"], 0.5, hold)  # replaces m1, in the controller too
+    arms.sent(left, "m2", ["b"], 0.5, hold)
+    positions.heard(["a", "b"], [0.1, 0.2], [])
+    assert arms.running() == ["m1", "m2"]
+    assert arms.hold_all() == (("/left",), ())
+    assert left.sent == [(["a", "b"], [0.1, 0.2]), (["b"], [0.2])]
+    assert arms.running() == []
+
+
+def test_a_trajectory_of_the_same_joints_replaces_the_last_and_an_ended_one_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = Topic("/left")
+    arms.sent(left, "m1", ["a", "b"], 60.0, hold)
+    arms.sent(left, "m2", ["b", "a"], 0.5, hold)  # the controller takes it as it took m1
     positions.heard(["a", "b"], [0.1, 0.2], [])
     assert arms.running() == ["m2"]
     clock.t += 0.5 + SETTLING_S + 0.01  # m2 has ended, settled included
@@ -139,3 +176,36 @@ def test_an_arm_that_cannot_be_held_is_named_and_kept_for_the_next_stop(
     assert held.held == ("/left",) and left.sent == [(["a"], [0.3])]
     assert held.not_held == ("the arm on /right was not held: RuntimeError('writer closed')",)
     assert arms.running() == ["m2"]
+
+
+def test_a_joint_whose_joint_states_senders_disagree_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    # The robot's broadcaster (1) and a joint_state_publisher left running (2, its zeros): a
+    # hold at whichever came last may be a step across the arm's reach.
+    positions.heard(["a", "b"], [0.25, -0.5], [0.0, 0.0], sender=1)
+    clock.t += 0.02
+    positions.heard(["a", "b"], [0.0, 0.0], [], sender=2)
+    assert positions.now(["a", "b"], 1.0) == (
+        "joint_states senders disagree on 'a': 0.250 and 0.000, 0.00 s ago")
+    clock.t += 0.02
+    positions.heard(["a", "b"], [0.25, -0.5], [0.0, 0.0], sender=1)
+    assert isinstance(positions.now(["a", "b"], 1.0), str)
+    # One sender again: held once the disagreement is MAX_AGE_S old.
+    for _ in range(round(MAX_AGE_S / 0.02) + 1):
+        clock.t += 0.02
+        positions.heard(["a", "b"], [0.25, -0.5], [0.0, 0.0], sender=1)
+    assert positions.now(["a", "b"], MAX_AGE_S) == [0.25, -0.5]
+
+
+def test_one_sender_never_disagrees_with_itself_nor_senders_that_agree(
+        positions: JointPositions, clock: Clock) -> None:
+    # No velocities given, 10 Hz, 3 rad/s: 0.3 rad between two samples of one sender.
+    positions.heard(["fast", "wrap"], [0.0, math.pi - 0.01], [], sender=1)
+    clock.t += 0.1
+    positions.heard(["fast", "wrap"], [0.3, math.pi - 0.01], [], sender=1)
+    # Another sender (a driver restarted): where the first left it, or a turn around.
+    clock.t += 0.1
+    positions.heard(["fast", "wrap"], [0.35, -math.pi + 0.02], [0.5, 0.0], sender=3)
+    clock.t += 2.0  # the first again, after long: the joint may be anywhere now
+    positions.heard(["fast"], [1.5], [0.0], sender=1)
+    assert isinstance(positions.now(["fast", "wrap"], 10.0), list)

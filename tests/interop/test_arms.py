@@ -8,12 +8,14 @@ first trajectory below is sent on a writer made for it, and must arrive all the 
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from oracle.client import OracleEnv, both_rmws
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
 from waiting import eventually, take
 
 from .bridge_rig import AGENT, OPS, Rig, bridge_config, close_rig, make_rig
@@ -235,6 +237,132 @@ async def test_a_lost_session_holds_its_arm(rig: Rig) -> None:
     assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
     lost = [e for e in rig.entries() if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
     assert lost and lost[-1]["principal"] == AGENT.name, lost
+
+
+async def test_two_senders_of_different_positions_hold_no_arm_at_either(
+        rig: Rig, jazzy_python: Path, domain_id: int) -> None:
+    # A joint_state_publisher left running beside the robot's broadcaster (its zeros, the
+    # same rate): the last JointState heard is either's. A hold at the zeros would step the
+    # arm across its reach; the stop fails instead, naming the disagreement, as for an arm unheard.
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    with RclpyOracle(jazzy_python, "joint_state_publisher", "/robot1",
+                     domain_id=domain_id) as other:
+        await other.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+        await other.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                          value={"name": ["l_shoulder", "l_elbow"], "position": [0.0, 0.0]})
+        assert await other.acall("wait_subscribers", topic=JOINT_STATES) >= 1
+        for _ in range(5):
+            rig.governor.heartbeat(AGENT)
+            await sent_long_trajectory(rig)
+            await both_heard(rig)
+            stopped = await rig.command(AGENT, {"action": "stop"})
+            assert stopped.http_status == 503, (stopped, await take(rig.oracle, LEFT))
+            assert LEFT in (stopped.reason or "") and "disagree" in (stopped.reason or ""), \
+                stopped
+        await other.acall("stop_periodic", topic=JOINT_STATES)
+    # One sender again: the next stop holds the arm where that one says it is.
+    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+        ["l_shoulder", "l_elbow"], 1.0), list), what="joint_states of one sender")
+    again = await rig.command(AGENT, {"action": "stop"})
+    assert again.http_status == 200, again
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+
+
+async def both_heard(rig: Rig) -> None:
+    """The bridge has heard the left elbow from both senders (as STATUS shows its joints)."""
+    seen: set[float] = set()
+
+    def heard_both() -> bool:
+        joints = rig.telemetry.status(pending_auth=0).telemetry.joints
+        if joints is not None and "l_elbow" in joints.names:
+            seen.add(joints.positions[joints.names.index("l_elbow")])
+        return {0.0, -0.5} <= seen
+
+    await eventually(heard_both, what=lambda: f"both senders heard, seen {seen}")
+
+
+async def test_a_bridge_leaving_waits_for_the_arms_hold_to_be_acknowledged(
+        rig: Rig, jazzy_python: Path, domain_id: int,
+        caplog: pytest.LogCaptureFixture) -> None:
+    # As for the zero velocity: a hold dropped at a busy reader is sent again only while the
+    # bridge's writer lives. The arm's subscriber here is frozen (SIGSTOP): it acknowledges
+    # nothing, and the bridge, leaving, waits for it (bounded) and says so; let go, it gets
+    # the hold.
+    with RclpyOracle(jazzy_python, "joint_state_broadcaster", "/robot1",
+                     domain_id=domain_id) as robot:
+        await robot.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+        await robot.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                          value={"name": ["l_shoulder", "l_elbow"],
+                                 "position": [0.25, -0.5], "velocity": [0.0, 0.0]})
+        await sent_long_trajectory(rig)
+        await eventually(lambda: (rig.governor.heartbeat(AGENT),  # no session-loss halt
+                                  isinstance(rig.dispatcher.arms.positions.now(
+                                      ["l_shoulder", "l_elbow"], 1.0), list))[1],
+                         what="the arm's joint_states")
+        os.kill(rig.oracle.proc.pid, signal.SIGSTOP)
+        try:
+            await rig.dispatcher.halt_before_leaving()
+        finally:
+            os.kill(rig.oracle.proc.pid, signal.SIGCONT)
+    assert [m for m in (r.getMessage() for r in caplog.records) if m.startswith("leaving")] == [
+        f"leaving with the halt on {LEFT} not acknowledged by every subscriber within 2 s"]
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+
+
+async def test_a_stop_right_after_the_arms_command_holds_it(rig: Rig) -> None:
+    # joint_states at 5 Hz, heard since before the trajectory: a stop at once after it (as
+    # an agent's "oops") holds the arm where those said it was. Before, the bridge kept a
+    # joint's position only from its first trajectory on: the stop found none and failed
+    # (503, the arm not held: its trajectory ran on), as the demo's (10 Hz) did 100 ms on.
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    await rig.oracle.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+    await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=5.0,
+                           value={"name": ["l_shoulder", "l_elbow"],
+                                  "position": [0.25, -0.5], "velocity": [0.0, 0.0]})
+    await eventually(lambda: (rig.telemetry.status(pending_auth=0).telemetry.joints
+                              is not None), what="the arm's joint_states, heard")
+    moving = await rig.command(AGENT, {"action": "arm_joint", "params": LONG})
+    assert moving.http_status == 200, moving
+    stopped = await rig.command(AGENT, {"action": "stop"})
+    assert stopped.http_status == 200, stopped
+    (first, hold) = await take(rig.oracle, LEFT, until=lambda got: len(got) >= 2)
+    assert first["points"][0]["positions"] == [1.0, 2.0]
+    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+
+
+PARTIAL = {**LONG, "joints": ["l_elbow"], "positions": [0.0], "duration_s": 1.0}
+
+
+@pytest.mark.parametrize("stop", ["stop", "cancelled"])
+async def test_a_trajectory_a_later_one_may_not_have_replaced_is_held_too(
+        rig: Rig, stop: str) -> None:
+    # The whole arm's 60 s trajectory, then one of the elbow alone (another principal's):
+    # joint_trajectory_controller refuses the second unless allow_partial_joints_goal, and
+    # its topic says nothing, so the first may run on. A stop (the robot's, or the first
+    # sender's own: its call cancelled) holds the whole arm too, before the elbow alone.
+    # Before, the bridge (and the governor) knew only the last trajectory on the topic.
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    await sent_long_trajectory(rig)
+    partial = await rig.command(OPS, {"action": "arm_joint", "params": PARTIAL})
+    assert partial.http_status == 200, partial
+    await take(rig.oracle, LEFT)
+    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
+        ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+    if stop == "stop":
+        stopped = await rig.command(AGENT, {"action": "stop"})
+        assert stopped.http_status == 200, stopped
+        expected = [["l_shoulder", "l_elbow"], ["l_elbow"]]
+    else:
+        own = await rig.governor.command_cancelled(AGENT)
+        assert own is not None and own.applied and own.applied["arms_held"] == [LEFT], own
+        expected = [["l_shoulder", "l_elbow"]]  # the other principal's runs on
+    holds = await take(rig.oracle, LEFT, until=lambda got: len(got) >= len(expected))
+    assert [h["joint_names"] for h in holds] == expected, holds
+    assert_held_at(holds[0], [0.25, -0.5], [0.0, 0.0])
 
 
 async def test_the_bridge_leaving_holds_a_moving_arm(rig: Rig) -> None:

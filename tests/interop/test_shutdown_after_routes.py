@@ -147,6 +147,9 @@ async def heartbeats(client: Client, token: str) -> AsyncIterator[None]:
 async def visit_every_route(client: Client, proc: RunProcess) -> str:
     """Every route, with a goal running at the end; its goal_id."""
     user, owner = proc.user, proc.owner
+    # The sim's arm heard first: the stop below, right after the arm's trajectory, holds it
+    # where its joint_states say (unheard, the stop would fail: the arm not held).
+    await eventually(lambda: _arm_heard(client), timeout=30, what="the sim's joint_states")
     for path in ("/api/status", "/api/openapi.json", "/api/metrics", "/api/goals",
                  "/api/safety/manifest", "/.well-known/rcan-node.json"):
         status, _ = await client.call("GET", path, user)
@@ -280,6 +283,12 @@ async def test_a_signal_after_every_route_stops_the_robot(
             assert states[-1:] in ([CANCELING], [CANCELED]), states
         finally:
             proc.kill()
+
+
+async def _arm_heard(client: Client) -> bool:
+    status, body = await client.call("GET", "/api/status", client.proc.user)
+    joints = body["telemetry"]["joints"] if status == 200 else None
+    return bool(joints) and "elbow" in joints["names"]
 
 
 async def _driving(client: Client, goal_id: str) -> bool:

@@ -170,7 +170,9 @@ class TelemetryState:
         return self._velocity is not None and not self._twist_at_rest
 
     def _on_joints(self, msg: Any) -> None:
-        self._joint_positions.heard(msg.name, msg.position, msg.velocity)
+        info = getattr(msg, "sample_info", None)  # whose: two senders may disagree
+        self._joint_positions.heard(msg.name, msg.position, msg.velocity,
+                                    None if info is None else info.publication_handle)
         with self._lock:
             self._joints = bounded_joints(msg.name, msg.position, msg.velocity,
                                           self._commanded_joints)

@@ -77,6 +77,7 @@ if TYPE_CHECKING:
 __all__ = ["MAX_IN_FLIGHT", "ArmsHeld", "Decision", "DispatchResult", "Dispatcher", "Governor"]
 
 log = logging.getLogger(__name__)
+RUNS_ON_KEPT = 8  # per topic: as many as the dispatcher may hold (bridge.arm_holds.MAX_SETS)
 SWEEP_INTERVAL_S = 0.05  # session-loss halt latency is timeout + at most this
 # Commands decided at once; the rest wait their turn without using the event loop, so a flood
 # of requests cannot queue the e-stop lane (which never waits here) behind itself. The limit
@@ -108,9 +109,10 @@ class Governor:
         self.events = events or Events()
         self._steps = Steps(audit, dispatcher)
         # Whose command sent what runs on, per topic (`DispatchResult.runs_for_s`: an arm's
-        # trajectory; the next on a topic replaces it): a stop of its sender's motion alone
-        # holds it, and while it runs, its sender drives (bounded by the robot's topics).
-        self._runs_on: dict[str, tuple[str, str]] = {}
+        # trajectory; the next on a topic may not replace it: its controller may refuse that
+        # one): a stop of its sender's motion alone holds it, and while it runs, its sender
+        # drives. Per topic: message id → owner, those still running, at most RUNS_ON_KEPT.
+        self._runs_on: dict[str, dict[str, str]] = {}
         self._tasks = self._steps.tasks
         self._dispatcher = dispatcher
         self._roles = roles
@@ -519,14 +521,21 @@ class Governor:
             if refused is not None:
                 return await self._steps.failed(command, principal, refused)
         if result.runs_for_s is not None and result.ros2_topic:
-            self._runs_on[result.ros2_topic] = (owner.name, command.message_id)
+            self._ran_on(result.ros2_topic, owner.name, command.message_id)
         return executed(command, applied, receipt, result)
+
+    def _ran_on(self, topic: str, owner: str, message_id: str) -> None:
+        running = self._steps.running_trajectories()
+        sent = {m: who for m, who in self._runs_on.get(topic, {}).items()
+                if running is None or m in running}
+        sent[message_id] = owner
+        self._runs_on[topic] = dict(list(sent.items())[-RUNS_ON_KEPT:])
 
     def _trajectories(self, owner: str, *, others: bool = False) -> list[str]:
         """The message ids of `owner`'s (or, `others`, everyone else's) commands whose motion
         may still run on (`_runs_on`); when that cannot be read, all of them."""
         running = self._steps.running_trajectories()
-        return [message_id for who, message_id in self._runs_on.values()
+        return [message_id for sent in self._runs_on.values() for message_id, who in sent.items()
                 if (who != owner) == others and (running is None or message_id in running)]
 
     async def _halt(self, command: NormalizedCommand, principal: Principal,

@@ -246,7 +246,7 @@ class RosPublisher:
         if self.closed:
             return False
         try:
-            return await asyncio.to_thread(self.writer.wait_for_acks, int(timeout * 1e9))
+            return await asyncio.to_thread(_acked, self.writer, int(timeout * 1e9))
         except DDSException:  # deleted meanwhile: nothing more can be acknowledged
             return False
 
@@ -641,3 +641,13 @@ class RosNode:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _acked(writer: DataWriter[Any], timeout_ns: int) -> bool:
+    """`writer.wait_for_acks`, False on its timeout: cyclonedds-python (11.0.1) compares a
+    non-zero return code with `Exception.DDS_RETCODE_TIMEOUT`, the builtin's attribute that
+    is not there, so every timeout raised AttributeError instead of returning False."""
+    try:
+        return bool(writer.wait_for_acks(timeout_ns))
+    except AttributeError:
+        return False

@@ -82,7 +82,6 @@ def test_a_joint_state_s_size_is_bounded_but_not_for_watched_joints(
 
 def test_a_sender_s_inconsistent_lists_are_read_as_far_as_they_go(
         positions: JointPositions) -> None:
-    positions.watch("/arm", ["a", "b", "c"])
     positions.heard(["a", "b", "c", "a"], [1.0, 2.0], [0.0])  # short lists, a name twice
     assert positions.now(["a", "b"], 1.0) == [1.0, 2.0]
     assert positions.now(["c"], 1.0) == "no joint_states heard for 'c'"
@@ -90,7 +89,6 @@ def test_a_sender_s_inconsistent_lists_are_read_as_far_as_they_go(
 
 def test_a_position_is_carried_forward_by_its_velocity_by_at_most_max_lead(
         positions: JointPositions, clock: Clock) -> None:
-    positions.watch("/arm", ["a", "b", "c"])
     positions.heard(["a", "b", "c"], [1.0, 1.0, 1.0], [0.5, 1e300, -math.inf])
     clock.t += 0.1
     a, b, c = positions.now(["a", "b", "c"], 1.0)
@@ -101,7 +99,6 @@ def test_a_position_is_carried_forward_by_its_velocity_by_at_most_max_lead(
 
 def test_old_or_not_finite_positions_hold_nothing(positions: JointPositions,
                                                   clock: Clock) -> None:
-    positions.watch("/arm", ["a", "b"])
     positions.heard(["a", "b"], [1.0, math.nan], [])
     assert "position nan" in str(positions.now(["b"], 1.0))
     clock.t += 0.6

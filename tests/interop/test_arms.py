@@ -23,6 +23,8 @@ from .bridge_rig import AGENT, OPS, Rig, bridge_config, close_rig, make_rig
 TRAJ = "trajectory_msgs/msg/JointTrajectory"
 CMD_VEL, TWIST = "/robot1/cmd_vel", "geometry_msgs/msg/Twist"
 LEFT, RIGHT = "/robot1/left_arm/joint_trajectory", "/robot1/right_arm/joint_trajectory"
+JOINT_STATES, JOINT_STATE = "/robot1/joint_states", "sensor_msgs/msg/JointState"
+ESTOP, BOOL = "/robot1/emergency_stop", "std_msgs/msg/Bool"
 ARMS = """\
 arms:
   left: {topic: left_arm/joint_trajectory, joints: [l_shoulder, l_elbow]}
@@ -42,7 +44,17 @@ async def rig(tmp_path: Path, jazzy_oracle: OracleEnv, domain_id: int) -> AsyncI
         await close_rig(rig)
 
 
+async def both_arms_heard(rig: Rig) -> None:
+    """The robot's joint_states (rclpy, 50 Hz): a trajectory no stop could take back (its
+    joints unheard) is not sent."""
+    await rig.oracle.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+    await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                           value={"name": ["l_shoulder", "l_elbow", "r_shoulder", "r_elbow"],
+                                  "position": [0.0] * 4, "velocity": [0.0] * 4})
+
+
 async def test_each_arm_gets_its_own_multi_point_trajectory(rig: Rig) -> None:
+    await both_arms_heard(rig)
     left = await rig.command(AGENT, {"action": "arm_joint", "params": {
         "group": "left", "joints": ["l_shoulder", "l_elbow"], "points": [
             {"positions": [0.1, 0.2], "time_from_start_s": 0.5},
@@ -68,6 +80,7 @@ async def test_each_arm_gets_its_own_multi_point_trajectory(rig: Rig) -> None:
 
 
 async def test_an_arms_writer_is_made_by_its_first_command(rig: Rig) -> None:
+    await both_arms_heard(rig)
     # Once rclpy sees the bridge's cmd_vel writer it has seen every writer the bridge made at
     # start (they are announced in the order they were made, the arms' first).
     assert await rig.oracle.acall("wait_publishers", topic=CMD_VEL) == 1
@@ -90,6 +103,7 @@ async def test_an_arms_writer_is_made_by_its_first_command(rig: Rig) -> None:
 
 
 async def test_refusals_reach_no_arm(rig: Rig) -> None:
+    await both_arms_heard(rig)
     refused = [
         {"joints": ["l_elbow"], "positions": [0.1], "duration_s": 1.0},  # which arm?
         {"group": "left", "joints": ["r_elbow"], "positions": [0.1], "duration_s": 1.0},
@@ -110,8 +124,6 @@ async def test_refusals_reach_no_arm(rig: Rig) -> None:
 
 
 # -- a stop takes back an arm's trajectory (it runs on in its controller after it is sent) --
-JOINT_STATES, JOINT_STATE = "/robot1/joint_states", "sensor_msgs/msg/JointState"
-ESTOP, BOOL = "/robot1/emergency_stop", "std_msgs/msg/Bool"
 LONG = {"group": "left", "joints": ["l_shoulder", "l_elbow"], "positions": [1.0, 2.0],
         "duration_s": 60.0}
 
@@ -208,23 +220,47 @@ async def test_an_ended_trajectory_is_not_held(rig: Rig) -> None:
     await nothing_more_on_left(rig)
 
 
-async def test_an_arm_nobody_heard_is_not_held_and_the_stop_says_so(rig: Rig) -> None:
-    # No joint_states: a hold at a guess could drive the arm anywhere. The rest of the stop
-    # happens; its answer fails, naming the arm and why, and the audit records it.
+async def test_an_arm_nobody_heard_is_not_moved(rig: Rig) -> None:
+    # No joint_states (they get match_timeout_s to come, as a topic gets to match): a
+    # trajectory no stop could take back is not sent.
+    refused = await rig.command(AGENT, {"action": "arm_joint", "params": LONG})
+    assert (refused.http_status, refused.error_code.value if refused.error_code else None) == (
+        503, "ROBOT_UNAVAILABLE"), refused
+    assert "a stop could not hold the arm on " + LEFT in (refused.reason or ""), refused
+    assert "no joint_states heard for 'l_shoulder'" in (refused.reason or ""), refused
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    await sent_long_trajectory(rig)  # the first sample on the arm's topic: nothing went before
+
+
+async def test_an_arm_whose_joint_states_stopped_is_not_held_and_the_stop_says_so(
+        rig: Rig) -> None:
+    # Its joint_states stop after the trajectory went out: a hold at where the arm was heard
+    # could drive it anywhere. The rest of the stop happens; its answer fails, naming the
+    # arm and why, and the audit records it.
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
     await sent_long_trajectory(rig)
+    await rig.oracle.acall("stop_periodic", topic=JOINT_STATES)
+
+    def stale() -> bool:  # attended meanwhile: a session-loss halt would try it first
+        rig.governor.heartbeat(AGENT)
+        return rig.dispatcher.arms.cannot_hold(["l_shoulder", "l_elbow"]) is not None
+
+    await eventually(stale, interval=0.1, what="the arm's joint_states gone stale")
     stopped = await rig.command(AGENT, {"action": "stop"})
     assert stopped.outcome.value == "failed" and stopped.http_status == 503, stopped
-    assert LEFT in (stopped.reason or "") and "l_shoulder" in (stopped.reason or ""), stopped
+    assert LEFT in (stopped.reason or "") and "last heard" in (stopped.reason or ""), stopped
     failed = [e for e in rig.entries() if e["event"] == "COMMAND_FAILED"]
     assert failed and failed[-1]["action_type"] == "stop", failed
-    # Heard now: the next stop holds it (the trajectory was not forgotten).
-    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
-    await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(
-        ["l_shoulder", "l_elbow"], 1.0), list), what="the arm's joint_states")
+    # Heard again: the next stop holds it (the trajectory was not forgotten).
+    await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                           value={"name": ["l_shoulder", "l_elbow"], "position": [0.3, -0.4],
+                                  "velocity": [0.0, 0.0]})
+    await eventually(lambda: rig.dispatcher.arms.cannot_hold(["l_shoulder", "l_elbow"]) is None,
+                     what="the arm's joint_states again")
     again = await rig.command(AGENT, {"action": "stop"})
     assert again.http_status == 200, again
     (hold,) = await take(rig.oracle, LEFT)
-    assert_held_at(hold, [0.25, -0.5], [0.0, 0.0])
+    assert_held_at(hold, [0.3, -0.4], [0.0, 0.0])
 
 
 async def test_a_lost_session_holds_its_arm(rig: Rig) -> None:
@@ -244,22 +280,25 @@ async def test_two_senders_of_different_positions_hold_no_arm_at_either(
     # A joint_state_publisher left running beside the robot's broadcaster (its zeros, the
     # same rate): the last JointState heard is either's. A hold at the zeros would step the
     # arm across its reach; the stop fails instead, naming the disagreement, as for an arm unheard.
+    # While they disagree, no trajectory goes out either (no stop could take it back).
     await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
     await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
     with RclpyOracle(jazzy_python, "joint_state_publisher", "/robot1",
                      domain_id=domain_id) as other:
         await other.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+        assert await other.acall("wait_subscribers", topic=JOINT_STATES) >= 1
+        await sent_long_trajectory(rig)  # one sender yet: it goes out
         await other.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
                           value={"name": ["l_shoulder", "l_elbow"], "position": [0.0, 0.0]})
-        assert await other.acall("wait_subscribers", topic=JOINT_STATES) >= 1
         for _ in range(5):
             rig.governor.heartbeat(AGENT)
-            await sent_long_trajectory(rig)
             await both_heard(rig)
             stopped = await rig.command(AGENT, {"action": "stop"})
             assert stopped.http_status == 503, (stopped, await take(rig.oracle, LEFT))
             assert LEFT in (stopped.reason or "") and "disagree" in (stopped.reason or ""), \
                 stopped
+            refused = await rig.command(AGENT, {"action": "arm_joint", "params": LONG})
+            assert refused.http_status == 503 and "disagree" in (refused.reason or ""), refused
         await other.acall("stop_periodic", topic=JOINT_STATES)
     # One sender again: the next stop holds the arm where that one says it is.
     await eventually(lambda: isinstance(rig.dispatcher.arms.positions.now(

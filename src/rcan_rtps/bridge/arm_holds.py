@@ -87,6 +87,11 @@ class JointPositions:
         return name in self._watched or (len(self._heard) < MAX_KEPT
                                          and len(name) <= MAX_JOINT_NAME)
 
+    def known(self, joints: Sequence[str]) -> bool:
+        """Whether each of `joints` was ever heard (lately or not)."""
+        with self._lock:
+            return all(name in self._heard for name in joints)
+
     def now(self, joints: Sequence[str], max_age_s: float) -> list[float] | str:
         """Where `joints` are now (their last positions carried forward by their velocities),
         or why that is not known."""
@@ -182,6 +187,11 @@ class ArmHolds:
                 if now <= r.due and set(r.joints) != set(new.joints)]
         self._running[topic] = [*runs, new][-MAX_SETS:]
         self._watch(topic)
+
+    def cannot_hold(self, joints: Sequence[str]) -> str | None:
+        """Why a hold of `joints` could not be made now (None: it could)."""
+        where = self.positions.now(joints, self._max_age_s)
+        return where if isinstance(where, str) else None
 
     def hold_all(self) -> ArmsHeld:
         """Every arm whose trajectory may still be running is held (a stop of the robot)."""

@@ -181,6 +181,9 @@ class RosDispatcher:
         self._telemetry_age = telemetry_age  # seconds since the robot last published, if ever
         # The arms' trajectories that may still be running, for a stop to hold them.
         self.arms = ArmHolds(joint_positions or JointPositions(), ros2.telemetry_stale_s)
+        # Heard whatever a JointState's size: a configured arm's joints (`bridge.ros2.arms`).
+        self.arms.positions.watch("bridge.ros2.arms",
+                                  [j for arm in ros2.arms.values() for j in arm.joints])
         self._ever_matched: set[str] = set()
         self._publishers: dict[tuple[str, str, bool], CommandPublisher] = {}
         self._routes: dict[int, _Route] = {}
@@ -311,12 +314,28 @@ class RosDispatcher:
             server = self._goal_server(spec.ros)
             return None if server is not None else f"{spec.ros.type_name} is not available"
         try:
-            pub = self._route_of(spec, command.params).publisher
+            route = self._route_of(spec, command.params)
         except LookupError as exc:
             return str(exc)
-        if await self._matched(pub):
+        if not await self._matched(route.publisher):
+            return f"no subscriber on {route.publisher.topic}"
+        return await self._takes_back(route, command.params)
+
+    async def _takes_back(self, route: _Route, params: ActionParams) -> str | None:
+        """None if a stop could take back what `route` would start (an arm's trajectory: its
+        joints heard lately), else why not: nothing is sent that no stop could stop. Joints
+        never heard get `match_timeout_s` to be (start-up), as a topic gets to match."""
+        hold = route.spec.hold
+        if hold is None:
             return None
-        return f"no subscriber on {pub.topic}"
+        joints = hold.joints(params)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.ros2.match_timeout_s
+        while (why := self.arms.cannot_hold(joints)) is not None:
+            if self.arms.positions.known(joints) or loop.time() >= deadline:
+                return f"a stop could not hold the arm on {route.publisher.topic}: {why}"
+            await asyncio.sleep(0.02)
+        return None
 
     async def dispatch(self, command: NormalizedCommand,
                        applied: ActionParams) -> DispatchResult:
@@ -396,10 +415,13 @@ class RosDispatcher:
         # reader left while that was written. Checked again with no await before the write.
         pub = route.publisher
         why = self._silent() or (None if pub.matched_count() else f"no subscriber on {pub.topic}")
+        hold = route.spec.hold
+        if why is None and hold is not None:  # its joints' news may have gone stale since
+            held_by = self.arms.cannot_hold(hold.joints(params))
+            why = None if held_by is None else f"a stop could not hold the arm: {held_by}"
         if why is not None:
             return DispatchResult(ok=False, ros2_topic=pub.topic, detail=why)
         result = self._publish(route, params)
-        hold = route.spec.hold
         if hold is None:
             return result
         kit = route.kit  # it runs on after this: a stop takes it back

@@ -536,3 +536,21 @@ async def test_a_cancel_of_a_move_its_sender_replaced_leaves_the_new_stream(
     assert active is not None and active.message_id == taken["message_id"]
     assert ZERO not in api.dispatcher.samples
     assert MoveParams(linear_x=0.2, linear_y=0.0, angular_z=0.0) in api.dispatcher.samples
+
+
+async def test_a_cancel_while_a_held_invoke_is_decided_withdraws_it_once_held(
+        api: Api) -> None:
+    """Red team 13: an INVOKE_CANCEL that came while the INVOKE was being held (its
+    PENDING_AUTH entry on its way to the disk) left it held: a reviewer's approval later
+    moved the arm its invoker had cancelled."""
+    release, entered = api.hold_decisions(lambda c: c.action == "arm_joint", decided=True)
+    reply = asyncio.create_task(api.command("planner", invoke("raise_elbow", "inv-h")))
+    await asyncio.wait_for(entered.wait(), 10)
+    cancelled = asyncio.create_task(api.command("planner", cancel("inv-h")))
+    await asyncio.sleep(0.05)
+    release.set()
+    for task in (reply, cancelled):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "cancelled"), body
+    assert api.gov.pending() == [] and api.dispatcher.calls == []
+    assert len(results(api, "inv-h")) == 1

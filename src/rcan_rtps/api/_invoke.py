@@ -195,6 +195,12 @@ class Invocations:
             self._forget_stream(principal, running)
         if decision.outcome is Outcome.PENDING_AUTH:  # held: an INVOKE_CANCEL withdraws it
             running.pending_id = decision.pending_id
+            if running.cancelled and decision.pending_id is not None:
+                # Its INVOKE_CANCEL came while it was being held: a reviewer must never
+                # approve what its invoker cancelled. Withdrawn now; both are answered so.
+                status, result = await self._withdrawn(governor, principal, key, running,
+                                                       "INVOKE_CANCEL", message_id=None)
+                return Started(reply=(status, result))
             body = decision.body()
             body.msg_id, body.status = invoke.msg_id, "pending"
             return Started(reply=(decision.http_status, body))
@@ -377,15 +383,8 @@ class Invocations:
             return await self._not_running(governor, principal, cancel, key)
         running.cancelled = True
         if running.pending_id is not None:
-            decision = await governor.withdraw(running.pending_id, principal, cancel.reason,
-                                               message_id=cancel.message_id)
-            self._running.pop(key, None)
-            status: InvokeStatus = ("cancelled" if decision.reason == "hitl_withdrawn"
-                                    else "failure")
-            result = self._result(running, decision, status, "withdrawn by INVOKE_CANCEL"
-                                  if status == "cancelled" else decision.reason)
-            return decision.http_status, await self._answer(governor, principal, key, running,
-                                                            result)
+            return await self._withdrawn(governor, principal, key, running, cancel.reason,
+                                         message_id=cancel.message_id)
         if running.goal_id is not None:
             decision = await governor.cancel_goal(running.goal_id, principal,
                                                   message_id=cancel.message_id,
@@ -413,6 +412,20 @@ class Invocations:
                                      skill=running.skill, reply_to=running.invoke_id,
                                      reason="cancelling", msg_id=cancel.message_id)
         return 200, answered
+
+    async def _withdrawn(self, governor: Governor, principal: Principal, key: tuple[str, str],
+                         running: _Running, reason: str | None, *,
+                         message_id: str | None) -> Reply:
+        """A held INVOKE withdrawn by its INVOKE_CANCEL, and answered."""
+        assert running.pending_id is not None
+        decision = await governor.withdraw(running.pending_id, principal, reason,
+                                           message_id=message_id)
+        self._running.pop(key, None)
+        status: InvokeStatus = "cancelled" if decision.reason == "hitl_withdrawn" else "failure"
+        result = self._result(running, decision, status, "withdrawn by INVOKE_CANCEL"
+                              if status == "cancelled" else decision.reason)
+        return decision.http_status, await self._answer(governor, principal, key, running,
+                                                        result)
 
     async def _not_running(self, governor: Governor, principal: Principal,
                            cancel: InvokeCancel, key: tuple[str, str]) -> Reply:

@@ -554,3 +554,64 @@ async def test_a_cancel_while_a_held_invoke_is_decided_withdraws_it_once_held(
         assert (status, body["status"]) == (200, "cancelled"), body
     assert api.gov.pending() == [] and api.dispatcher.calls == []
     assert len(results(api, "inv-h")) == 1
+
+
+async def test_two_cancels_while_the_arm_skill_is_decided_hold_it_and_answer_both(
+        arm_api: Api) -> None:
+    """Red team 13: a second INVOKE_CANCEL (a client retrying) that came while the first's
+    hold, made as the trajectory was sent, was being audited held the arm again and set the
+    hold's result first: the INVOKE's own setting then raised (InvalidStateError), its reply
+    was a 500 and it stayed `running` for ever."""
+    api = arm_api
+    api.dispatcher.hold_ready = asyncio.Event()  # its command waits for the robot
+    release, holding = asyncio.Event(), asyncio.Event()
+    hold_trajectory = api.gov.hold_trajectory
+
+    async def slow_hold(sent_by: str, principal: Principal, **fields: Any) -> Any:
+        if not holding.is_set():  # the first hold's entry waits (a busy disk)
+            holding.set()
+            await release.wait()
+        return await hold_trajectory(sent_by, principal, **fields)
+
+    api.gov.hold_trajectory = slow_hold  # type: ignore[method-assign]
+    reply = asyncio.create_task(api.command("planner", wave("inv-2", 60.0)))
+    await asyncio.wait_for(api.dispatcher.ready_entered.wait(), 10)
+    first = asyncio.create_task(api.command("planner", cancel("inv-2")))
+    await asyncio.sleep(0.05)
+    api.dispatcher.hold_ready.set()
+    await asyncio.wait_for(holding.wait(), 10)
+    second = asyncio.create_task(api.command("planner", cancel("inv-2")))
+    await asyncio.sleep(0.05)
+    release.set()
+    for task in (reply, first, second):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "cancelled"), body
+    assert api.dispatcher.holds == [["inv-2"]]
+    assert len(results(api, "inv-2")) == 1
+
+
+async def test_two_cancels_of_a_held_invoke_answer_it_once(api: Api) -> None:
+    """Red team 13: a second INVOKE_CANCEL that came while the first's withdrawal was being
+    audited withdrew it again (refused: no longer held) and answered the INVOKE a second time,
+    a `failure` after its `cancelled` (§19.1: one INVOKE_RESULT)."""
+    status, body = await api.command("planner", invoke("raise_elbow", "inv-w2"))
+    assert (status, body["status"]) == (202, "pending"), body
+    release, withdrawing = asyncio.Event(), asyncio.Event()
+    withdraw = api.gov.withdraw
+
+    async def slow_withdraw(pending_id: str, principal: Principal, *args: Any,
+                            **fields: Any) -> Any:
+        withdrawing.set()  # its entry waits (a busy disk)
+        await release.wait()
+        return await withdraw(pending_id, principal, *args, **fields)
+
+    api.gov.withdraw = slow_withdraw  # type: ignore[method-assign]
+    first = asyncio.create_task(api.command("planner", cancel("inv-w2")))
+    await asyncio.wait_for(withdrawing.wait(), 10)
+    second = asyncio.create_task(api.command("planner", cancel("inv-w2")))
+    await asyncio.sleep(0.05)
+    release.set()
+    for task in (first, second):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "cancelled"), body
+    assert [e["status"] for e in results(api, "inv-w2")] == ["cancelled"]

@@ -381,7 +381,29 @@ class Invocations:
         running = self._running.get(key)
         if running is None:
             return await self._not_running(governor, principal, cancel, key)
-        running.cancelled = True
+        # Another INVOKE_CANCEL of it under way (a client retrying) does what it takes
+        # already: this one waits for the answer with it, never holding or withdrawing twice
+        # (the INVOKE would be answered twice).
+        already, running.cancelled = running.cancelled, True
+        if not already:
+            answer = await self._cancelling(governor, principal, cancel, key, running)
+            if answer is not None:
+                return answer
+        try:  # the INVOKE's own answer, once its goal has wound down
+            answered = await asyncio.wait_for(asyncio.shield(running.answered),
+                                              cancel.cancel_timeout_ms / 1000)
+        except asyncio.TimeoutError:
+            return 202, InvokeResult(type="INVOKE_RESULT", status="cancelled",
+                                     invoke_id=running.invoke_id, payload={},
+                                     skill=running.skill, reply_to=running.invoke_id,
+                                     reason="cancelling", msg_id=cancel.message_id)
+        return 200, answered
+
+    async def _cancelling(self, governor: Governor, principal: Principal,
+                          cancel: InvokeCancel, key: tuple[str, str],
+                          running: _Running) -> Reply | None:
+        """What an INVOKE_CANCEL does to its INVOKE: its reply if that is the answer (a held
+        one withdrawn, a cancel refused), else None (the INVOKE's own answer is waited for)."""
         if running.pending_id is not None:
             return await self._withdrawn(governor, principal, key, running, cancel.reason,
                                          message_id=cancel.message_id)
@@ -389,7 +411,8 @@ class Invocations:
             decision = await governor.cancel_goal(running.goal_id, principal,
                                                   message_id=cancel.message_id,
                                                   why="INVOKE_CANCEL")
-            if decision.outcome is not Outcome.EXECUTED:
+            if decision.outcome is not Outcome.EXECUTED:  # it runs on: a retry may cancel it
+                running.cancelled = False
                 return decision.http_status, _body(decision.body(), cancel.message_id)
         if running.stream is not None and not running.stream_end.done():
             # Only this INVOKE's stream: one that replaced it runs on. Not yet started (being
@@ -403,15 +426,7 @@ class Invocations:
                 running.cancelled = False
                 return held.http_status, _body(held.body(), cancel.message_id)
             running.held.set_result(held)
-        try:  # the INVOKE's own answer, once its goal has wound down
-            answered = await asyncio.wait_for(asyncio.shield(running.answered),
-                                              cancel.cancel_timeout_ms / 1000)
-        except asyncio.TimeoutError:
-            return 202, InvokeResult(type="INVOKE_RESULT", status="cancelled",
-                                     invoke_id=running.invoke_id, payload={},
-                                     skill=running.skill, reply_to=running.invoke_id,
-                                     reason="cancelling", msg_id=cancel.message_id)
-        return 200, answered
+        return None
 
     async def _withdrawn(self, governor: Governor, principal: Principal, key: tuple[str, str],
                          running: _Running, reason: str | None, *,

@@ -615,3 +615,24 @@ async def test_two_cancels_of_a_held_invoke_answer_it_once(api: Api) -> None:
         status, body = await asyncio.wait_for(task, 10)
         assert (status, body["status"]) == (200, "cancelled"), body
     assert [e["status"] for e in results(api, "inv-w2")] == ["cancelled"]
+
+
+async def test_an_invoke_whose_websocket_closed_is_still_answered_in_the_log(api: Api) -> None:
+    """Red team 13: the socket's close cancelled the INVOKE's wait for its goal (nobody left
+    to answer), and no INVOKE_RESULT was ever audited: its lifecycle had no end in the log."""
+    async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
+        await ws.send_str(json.dumps(invoke("go_home", "inv-gone")))
+        await sent(api, "navigate")
+
+    async def answered() -> list[dict[str, Any]]:
+        while not (found := results(api, "inv-gone")):
+            await asyncio.sleep(0.01)
+        return found
+
+    [entry] = await asyncio.wait_for(answered(), 10)
+    assert (entry["status"], entry["params"]["error"]["name"]) == ("failure", "SkillFailed"), entry
+    api.robot.goal_changed(ended("goal-1", "canceled"))  # its end, heard later, adds nothing
+    await asyncio.sleep(0.05)
+    assert len(results(api, "inv-gone")) == 1
+    status, body = await api.command("planner", cancel("inv-gone"))
+    assert (status, body["status"]) == (409, "failure"), body  # §19.4: the earlier one stands

@@ -109,6 +109,7 @@ class _Running:
     stream: str | None = None
     stream_end: asyncio.Future[StreamEnded] = field(
         default_factory=lambda: asyncio.get_running_loop().create_future())
+    answering: bool = False  # its one INVOKE_RESULT is on its way to the log
     answered: asyncio.Future[InvokeResult] = field(
         default_factory=lambda: asyncio.get_running_loop().create_future())
 
@@ -132,6 +133,7 @@ class Invocations:
         self._by_goal: dict[str, _Running] = {}
         self._by_stream: dict[tuple[str, str], _Running] = {}  # by (owner, message id)
         self._finished: OrderedDict[tuple[str, str], InvokeResult] = OrderedDict()
+        self._left: set[asyncio.Task[InvokeResult]] = set()  # answers nobody waits for
 
     def listed(self, governor: Governor) -> SkillList:
         """What GET /api/skills says: the §18/§19.7 `invoke` capability and each skill."""
@@ -190,8 +192,9 @@ class Invocations:
                        key: tuple[str, str], running: _Running, decision: Decision) -> Started:
         if running.stream is not None:
             if self._stream_started(governor, principal, running, decision):
-                return Started(finish=lambda: self._finish_stream(governor, principal, invoke,
-                                                                  key, running, decision))
+                return Started(finish=lambda: self._until_answered(
+                    governor, principal, key, running, decision,
+                    self._finish_stream(governor, principal, invoke, key, running, decision)))
             self._forget_stream(principal, running)
         if decision.outcome is Outcome.PENDING_AUTH:  # held: an INVOKE_CANCEL withdraws it
             running.pending_id = decision.pending_id
@@ -210,8 +213,9 @@ class Invocations:
             if running.cancelled:  # cancelled while it was being decided
                 running.held.set_result(await governor.hold_trajectory(
                     decision.message_id, principal, message_id=None, why="INVOKE_CANCEL"))
-            return Started(finish=lambda: self._finish_trajectory(governor, principal, invoke,
-                                                                  key, running, decision))
+            return Started(finish=lambda: self._until_answered(
+                governor, principal, key, running, decision,
+                self._finish_trajectory(governor, principal, invoke, key, running, decision)))
         if decision.outcome is not Outcome.EXECUTED or decision.goal_id is None:
             del self._running[key]
             result = self._result(running, decision, _decided_status(decision))
@@ -225,8 +229,28 @@ class Invocations:
         if running.cancelled:  # cancelled while its goal was being sent
             await governor.cancel_goal(decision.goal_id, principal, message_id=None,
                                        why="INVOKE_CANCEL")
-        return Started(finish=lambda: self._finish(governor, principal, invoke, key, running,
-                                                   decision))
+        return Started(finish=lambda: self._until_answered(
+            governor, principal, key, running, decision,
+            self._finish(governor, principal, invoke, key, running, decision)))
+
+    async def _until_answered(self, governor: Governor, principal: Principal,
+                              key: tuple[str, str], running: _Running, decision: Decision,
+                              finish: Awaitable[Reply]) -> Reply:
+        """`finish`, the INVOKE's answer; if its waiter is cancelled first (its WebSocket
+        closed), it is still answered in the log — `failure`, its client gone — so that every
+        INVOKE's lifecycle ends in an INVOKE_RESULT entry (§19.5)."""
+        try:
+            return await finish
+        except asyncio.CancelledError:
+            if not running.answering:
+                self._running.pop(key, None)
+                result = self._result(running, decision, "failure",
+                                      "its client left before it was done: not followed on")
+                task = asyncio.ensure_future(self._answer(governor, principal, key, running,
+                                                          result))
+                self._left.add(task)
+                task.add_done_callback(self._left.discard)
+            raise
 
     async def _finish(self, governor: Governor, principal: Principal, invoke: Invoke,
                       key: tuple[str, str], running: _Running, decision: Decision) -> Reply:
@@ -485,6 +509,7 @@ class Invocations:
                       running: _Running, result: InvokeResult) -> InvokeResult:
         """The INVOKE's one INVOKE_RESULT (§19.1): audited, remembered for a late
         INVOKE_CANCEL, handed to a cancel waiting for it."""
+        running.answering = True
         await _audit(governor, principal, result)
         self._finished[key] = result
         self._finished.move_to_end(key)

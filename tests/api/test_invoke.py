@@ -636,3 +636,31 @@ async def test_an_invoke_whose_websocket_closed_is_still_answered_in_the_log(api
     assert len(results(api, "inv-gone")) == 1
     status, body = await api.command("planner", cancel("inv-gone"))
     assert (status, body["status"]) == (409, "failure"), body  # §19.4: the earlier one stands
+
+
+async def test_an_arm_skill_whose_time_is_up_while_its_cancel_is_audited_is_cancelled(
+        arm_api: Api) -> None:
+    """Red team 13: the trajectory's time came up while its INVOKE_CANCEL's hold (made at
+    once) was being audited: the arm no longer ran, so the INVOKE and the cancel were both
+    answered `failure`, 'a stop held the arm', of an arm its own client's cancel held."""
+    api = arm_api
+    release, auditing = asyncio.Event(), asyncio.Event()
+    write_ahead = api.gov._steps.write_ahead
+
+    async def slow_write(entry: Any, *, urgent: bool = False) -> Any:
+        if entry.action_type == "hold_trajectory":  # the hold's entry waits (a busy disk)
+            auditing.set()
+            await release.wait()
+        return await write_ahead(entry, urgent=urgent)
+
+    api.gov._steps.write_ahead = slow_write  # type: ignore[method-assign]
+    reply = asyncio.create_task(api.command("planner", wave("inv-x", 0.3)))
+    await sent(api, "arm_joint")
+    cancelled = asyncio.create_task(api.command("planner", cancel("inv-x")))
+    await asyncio.wait_for(auditing.wait(), 10)
+    await asyncio.wait({reply}, timeout=1.0)  # past the trajectory's 0.3 s
+    release.set()
+    for task in (reply, cancelled):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "cancelled"), body
+    assert api.dispatcher.holds == [["inv-x"]]

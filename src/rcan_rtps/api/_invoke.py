@@ -302,6 +302,11 @@ class Invocations:
                                running: _Running, decision: Decision, *, timed_out: bool,
                                timeout_ms: int) -> InvokeResult:
         assert running.trajectory is not None
+        if running.cancelled and not governor.trajectory_running(running.trajectory):
+            # Its INVOKE_CANCEL's hold is made (at once), its entry still on its way to the
+            # log: no stop's, and no second hold.
+            return self._result(running, decision, "cancelled",
+                                "held where it was by INVOKE_CANCEL")
         if timed_out:
             held = await governor.hold_trajectory(running.trajectory, principal,
                                                   message_id=decision.message_id,

@@ -536,3 +536,131 @@ async def test_a_cancel_of_a_move_its_sender_replaced_leaves_the_new_stream(
     assert active is not None and active.message_id == taken["message_id"]
     assert ZERO not in api.dispatcher.samples
     assert MoveParams(linear_x=0.2, linear_y=0.0, angular_z=0.0) in api.dispatcher.samples
+
+
+async def test_a_cancel_while_a_held_invoke_is_decided_withdraws_it_once_held(
+        api: Api) -> None:
+    """Red team 13: an INVOKE_CANCEL that came while the INVOKE was being held (its
+    PENDING_AUTH entry on its way to the disk) left it held: a reviewer's approval later
+    moved the arm its invoker had cancelled."""
+    release, entered = api.hold_decisions(lambda c: c.action == "arm_joint", decided=True)
+    reply = asyncio.create_task(api.command("planner", invoke("raise_elbow", "inv-h")))
+    await asyncio.wait_for(entered.wait(), 10)
+    cancelled = asyncio.create_task(api.command("planner", cancel("inv-h")))
+    await asyncio.sleep(0.05)
+    release.set()
+    for task in (reply, cancelled):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "cancelled"), body
+    assert api.gov.pending() == [] and api.dispatcher.calls == []
+    assert len(results(api, "inv-h")) == 1
+
+
+async def test_two_cancels_while_the_arm_skill_is_decided_hold_it_and_answer_both(
+        arm_api: Api) -> None:
+    """Red team 13: a second INVOKE_CANCEL (a client retrying) that came while the first's
+    hold, made as the trajectory was sent, was being audited held the arm again and set the
+    hold's result first: the INVOKE's own setting then raised (InvalidStateError), its reply
+    was a 500 and it stayed `running` for ever."""
+    api = arm_api
+    api.dispatcher.hold_ready = asyncio.Event()  # its command waits for the robot
+    release, holding = asyncio.Event(), asyncio.Event()
+    hold_trajectory = api.gov.hold_trajectory
+
+    async def slow_hold(sent_by: str, principal: Principal, **fields: Any) -> Any:
+        if not holding.is_set():  # the first hold's entry waits (a busy disk)
+            holding.set()
+            await release.wait()
+        return await hold_trajectory(sent_by, principal, **fields)
+
+    api.gov.hold_trajectory = slow_hold  # type: ignore[method-assign]
+    reply = asyncio.create_task(api.command("planner", wave("inv-2", 60.0)))
+    await asyncio.wait_for(api.dispatcher.ready_entered.wait(), 10)
+    first = asyncio.create_task(api.command("planner", cancel("inv-2")))
+    await asyncio.sleep(0.05)
+    api.dispatcher.hold_ready.set()
+    await asyncio.wait_for(holding.wait(), 10)
+    second = asyncio.create_task(api.command("planner", cancel("inv-2")))
+    await asyncio.sleep(0.05)
+    release.set()
+    for task in (reply, first, second):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "cancelled"), body
+    assert api.dispatcher.holds == [["inv-2"]]
+    assert len(results(api, "inv-2")) == 1
+
+
+async def test_two_cancels_of_a_held_invoke_answer_it_once(api: Api) -> None:
+    """Red team 13: a second INVOKE_CANCEL that came while the first's withdrawal was being
+    audited withdrew it again (refused: no longer held) and answered the INVOKE a second time,
+    a `failure` after its `cancelled` (§19.1: one INVOKE_RESULT)."""
+    status, body = await api.command("planner", invoke("raise_elbow", "inv-w2"))
+    assert (status, body["status"]) == (202, "pending"), body
+    release, withdrawing = asyncio.Event(), asyncio.Event()
+    withdraw = api.gov.withdraw
+
+    async def slow_withdraw(pending_id: str, principal: Principal, *args: Any,
+                            **fields: Any) -> Any:
+        withdrawing.set()  # its entry waits (a busy disk)
+        await release.wait()
+        return await withdraw(pending_id, principal, *args, **fields)
+
+    api.gov.withdraw = slow_withdraw  # type: ignore[method-assign]
+    first = asyncio.create_task(api.command("planner", cancel("inv-w2")))
+    await asyncio.wait_for(withdrawing.wait(), 10)
+    second = asyncio.create_task(api.command("planner", cancel("inv-w2")))
+    await asyncio.sleep(0.05)
+    release.set()
+    for task in (first, second):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "cancelled"), body
+    assert [e["status"] for e in results(api, "inv-w2")] == ["cancelled"]
+
+
+async def test_an_invoke_whose_websocket_closed_is_still_answered_in_the_log(api: Api) -> None:
+    """Red team 13: the socket's close cancelled the INVOKE's wait for its goal (nobody left
+    to answer), and no INVOKE_RESULT was ever audited: its lifecycle had no end in the log."""
+    async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
+        await ws.send_str(json.dumps(invoke("go_home", "inv-gone")))
+        await sent(api, "navigate")
+
+    async def answered() -> list[dict[str, Any]]:
+        while not (found := results(api, "inv-gone")):
+            await asyncio.sleep(0.01)
+        return found
+
+    [entry] = await asyncio.wait_for(answered(), 10)
+    assert (entry["status"], entry["params"]["error"]["name"]) == ("failure", "SkillFailed"), entry
+    api.robot.goal_changed(ended("goal-1", "canceled"))  # its end, heard later, adds nothing
+    await asyncio.sleep(0.05)
+    assert len(results(api, "inv-gone")) == 1
+    status, body = await api.command("planner", cancel("inv-gone"))
+    assert (status, body["status"]) == (409, "failure"), body  # §19.4: the earlier one stands
+
+
+async def test_an_arm_skill_whose_time_is_up_while_its_cancel_is_audited_is_cancelled(
+        arm_api: Api) -> None:
+    """Red team 13: the trajectory's time came up while its INVOKE_CANCEL's hold (made at
+    once) was being audited: the arm no longer ran, so the INVOKE and the cancel were both
+    answered `failure`, 'a stop held the arm', of an arm its own client's cancel held."""
+    api = arm_api
+    release, auditing = asyncio.Event(), asyncio.Event()
+    write_ahead = api.gov._steps.write_ahead
+
+    async def slow_write(entry: Any, *, urgent: bool = False) -> Any:
+        if entry.action_type == "hold_trajectory":  # the hold's entry waits (a busy disk)
+            auditing.set()
+            await release.wait()
+        return await write_ahead(entry, urgent=urgent)
+
+    api.gov._steps.write_ahead = slow_write  # type: ignore[method-assign]
+    reply = asyncio.create_task(api.command("planner", wave("inv-x", 0.3)))
+    await sent(api, "arm_joint")
+    cancelled = asyncio.create_task(api.command("planner", cancel("inv-x")))
+    await asyncio.wait_for(auditing.wait(), 10)
+    await asyncio.wait({reply}, timeout=1.0)  # past the trajectory's 0.3 s
+    release.set()
+    for task in (reply, cancelled):
+        status, body = await asyncio.wait_for(task, 10)
+        assert (status, body["status"]) == (200, "cancelled"), body
+    assert api.dispatcher.holds == [["inv-x"]]

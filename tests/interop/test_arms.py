@@ -455,3 +455,40 @@ async def test_no_hold_waits_for_another_topic_to_match(patient_rig: Rig, action
                                                                           "transient_local")):
             await rig.oracle.acall("subscribe", topic=topic, type=type_name, qos=profile)
         await asyncio.wait_for(stopping, 30.0)
+
+
+async def test_one_command_at_a_time_waits_for_an_arms_joints(patient_rig: Rig) -> None:
+    # Red team 13: each arm_joint whose joints were never heard waited match_timeout_s in an
+    # admission slot; sixteen of them (a USER's, naming an arm whose joint_states never
+    # come) kept every slot, and an OWNER's move waited 2.8 s of the rig's 3.0 behind them.
+    # The first waits; the next on that topic is refused at once.
+    rig = patient_rig
+    first = asyncio.create_task(rig.command(AGENT, {"action": "arm_joint", "params": LONG}))
+    await eventually(lambda: LEFT in rig.dispatcher.awaiting_joints,
+                     what="the first command waiting for the arm's joints")
+    refused = await asyncio.wait_for(rig.command(AGENT, {"action": "arm_joint",
+                                                         "params": LONG}), 10.0)
+    assert (refused.http_status, refused.reason) == (
+        503, f"a stop could not hold the arm on {LEFT}: no joint_states heard for "
+        "'l_shoulder'"), refused
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])  # the first's joints come: it is sent
+    moving = await asyncio.wait_for(first, 30.0)
+    assert moving.http_status == 200, moving
+    (sample,) = await take(rig.oracle, LEFT)
+    assert sample["points"][0]["positions"] == [1.0, 2.0]
+
+
+async def test_a_stop_while_an_arm_command_waits_for_its_joints_wins(patient_rig: Rig) -> None:
+    # Red team 13: a stop that came while an arm_joint waited for its joints to be heard
+    # (`ready`): once they are, the trajectory is refused `stopped` and never sent.
+    rig = patient_rig
+    await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)  # the stop's zero is read
+    first = asyncio.create_task(rig.command(AGENT, {"action": "arm_joint", "params": LONG}))
+    await eventually(lambda: LEFT in rig.dispatcher.awaiting_joints,
+                     what="the command waiting for the arm's joints")
+    stopped = await asyncio.wait_for(rig.command(AGENT, {"action": "stop"}), 30.0)
+    assert stopped.http_status == 200, stopped
+    await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
+    refused = await asyncio.wait_for(first, 30.0)
+    assert (refused.http_status, refused.reason) == (409, "stopped"), refused
+    await nothing_more_on_left(rig)

@@ -109,6 +109,7 @@ class _Running:
     stream: str | None = None
     stream_end: asyncio.Future[StreamEnded] = field(
         default_factory=lambda: asyncio.get_running_loop().create_future())
+    answering: bool = False  # its one INVOKE_RESULT is on its way to the log
     answered: asyncio.Future[InvokeResult] = field(
         default_factory=lambda: asyncio.get_running_loop().create_future())
 
@@ -132,6 +133,7 @@ class Invocations:
         self._by_goal: dict[str, _Running] = {}
         self._by_stream: dict[tuple[str, str], _Running] = {}  # by (owner, message id)
         self._finished: OrderedDict[tuple[str, str], InvokeResult] = OrderedDict()
+        self._left: set[asyncio.Task[InvokeResult]] = set()  # answers nobody waits for
 
     def listed(self, governor: Governor) -> SkillList:
         """What GET /api/skills says: the §18/§19.7 `invoke` capability and each skill."""
@@ -190,11 +192,18 @@ class Invocations:
                        key: tuple[str, str], running: _Running, decision: Decision) -> Started:
         if running.stream is not None:
             if self._stream_started(governor, principal, running, decision):
-                return Started(finish=lambda: self._finish_stream(governor, principal, invoke,
-                                                                  key, running, decision))
+                return Started(finish=lambda: self._until_answered(
+                    governor, principal, key, running, decision,
+                    self._finish_stream(governor, principal, invoke, key, running, decision)))
             self._forget_stream(principal, running)
         if decision.outcome is Outcome.PENDING_AUTH:  # held: an INVOKE_CANCEL withdraws it
             running.pending_id = decision.pending_id
+            if running.cancelled and decision.pending_id is not None:
+                # Its INVOKE_CANCEL came while it was being held: a reviewer must never
+                # approve what its invoker cancelled. Withdrawn now; both are answered so.
+                status, result = await self._withdrawn(governor, principal, key, running,
+                                                       "INVOKE_CANCEL", message_id=None)
+                return Started(reply=(status, result))
             body = decision.body()
             body.msg_id, body.status = invoke.msg_id, "pending"
             return Started(reply=(decision.http_status, body))
@@ -204,8 +213,9 @@ class Invocations:
             if running.cancelled:  # cancelled while it was being decided
                 running.held.set_result(await governor.hold_trajectory(
                     decision.message_id, principal, message_id=None, why="INVOKE_CANCEL"))
-            return Started(finish=lambda: self._finish_trajectory(governor, principal, invoke,
-                                                                  key, running, decision))
+            return Started(finish=lambda: self._until_answered(
+                governor, principal, key, running, decision,
+                self._finish_trajectory(governor, principal, invoke, key, running, decision)))
         if decision.outcome is not Outcome.EXECUTED or decision.goal_id is None:
             del self._running[key]
             result = self._result(running, decision, _decided_status(decision))
@@ -219,8 +229,28 @@ class Invocations:
         if running.cancelled:  # cancelled while its goal was being sent
             await governor.cancel_goal(decision.goal_id, principal, message_id=None,
                                        why="INVOKE_CANCEL")
-        return Started(finish=lambda: self._finish(governor, principal, invoke, key, running,
-                                                   decision))
+        return Started(finish=lambda: self._until_answered(
+            governor, principal, key, running, decision,
+            self._finish(governor, principal, invoke, key, running, decision)))
+
+    async def _until_answered(self, governor: Governor, principal: Principal,
+                              key: tuple[str, str], running: _Running, decision: Decision,
+                              finish: Awaitable[Reply]) -> Reply:
+        """`finish`, the INVOKE's answer; if its waiter is cancelled first (its WebSocket
+        closed), it is still answered in the log — `failure`, its client gone — so that every
+        INVOKE's lifecycle ends in an INVOKE_RESULT entry (§19.5)."""
+        try:
+            return await finish
+        except asyncio.CancelledError:
+            if not running.answering:
+                self._running.pop(key, None)
+                result = self._result(running, decision, "failure",
+                                      "its client left before it was done: not followed on")
+                task = asyncio.ensure_future(self._answer(governor, principal, key, running,
+                                                          result))
+                self._left.add(task)
+                task.add_done_callback(self._left.discard)
+            raise
 
     async def _finish(self, governor: Governor, principal: Principal, invoke: Invoke,
                       key: tuple[str, str], running: _Running, decision: Decision) -> Reply:
@@ -272,6 +302,11 @@ class Invocations:
                                running: _Running, decision: Decision, *, timed_out: bool,
                                timeout_ms: int) -> InvokeResult:
         assert running.trajectory is not None
+        if running.cancelled and not governor.trajectory_running(running.trajectory):
+            # Its INVOKE_CANCEL's hold is made (at once), its entry still on its way to the
+            # log: no stop's, and no second hold.
+            return self._result(running, decision, "cancelled",
+                                "held where it was by INVOKE_CANCEL")
         if timed_out:
             held = await governor.hold_trajectory(running.trajectory, principal,
                                                   message_id=decision.message_id,
@@ -375,22 +410,38 @@ class Invocations:
         running = self._running.get(key)
         if running is None:
             return await self._not_running(governor, principal, cancel, key)
-        running.cancelled = True
+        # Another INVOKE_CANCEL of it under way (a client retrying) does what it takes
+        # already: this one waits for the answer with it, never holding or withdrawing twice
+        # (the INVOKE would be answered twice).
+        already, running.cancelled = running.cancelled, True
+        if not already:
+            answer = await self._cancelling(governor, principal, cancel, key, running)
+            if answer is not None:
+                return answer
+        try:  # the INVOKE's own answer, once its goal has wound down
+            answered = await asyncio.wait_for(asyncio.shield(running.answered),
+                                              cancel.cancel_timeout_ms / 1000)
+        except asyncio.TimeoutError:
+            return 202, InvokeResult(type="INVOKE_RESULT", status="cancelled",
+                                     invoke_id=running.invoke_id, payload={},
+                                     skill=running.skill, reply_to=running.invoke_id,
+                                     reason="cancelling", msg_id=cancel.message_id)
+        return 200, answered
+
+    async def _cancelling(self, governor: Governor, principal: Principal,
+                          cancel: InvokeCancel, key: tuple[str, str],
+                          running: _Running) -> Reply | None:
+        """What an INVOKE_CANCEL does to its INVOKE: its reply if that is the answer (a held
+        one withdrawn, a cancel refused), else None (the INVOKE's own answer is waited for)."""
         if running.pending_id is not None:
-            decision = await governor.withdraw(running.pending_id, principal, cancel.reason,
-                                               message_id=cancel.message_id)
-            self._running.pop(key, None)
-            status: InvokeStatus = ("cancelled" if decision.reason == "hitl_withdrawn"
-                                    else "failure")
-            result = self._result(running, decision, status, "withdrawn by INVOKE_CANCEL"
-                                  if status == "cancelled" else decision.reason)
-            return decision.http_status, await self._answer(governor, principal, key, running,
-                                                            result)
+            return await self._withdrawn(governor, principal, key, running, cancel.reason,
+                                         message_id=cancel.message_id)
         if running.goal_id is not None:
             decision = await governor.cancel_goal(running.goal_id, principal,
                                                   message_id=cancel.message_id,
                                                   why="INVOKE_CANCEL")
-            if decision.outcome is not Outcome.EXECUTED:
+            if decision.outcome is not Outcome.EXECUTED:  # it runs on: a retry may cancel it
+                running.cancelled = False
                 return decision.http_status, _body(decision.body(), cancel.message_id)
         if running.stream is not None and not running.stream_end.done():
             # Only this INVOKE's stream: one that replaced it runs on. Not yet started (being
@@ -404,15 +455,21 @@ class Invocations:
                 running.cancelled = False
                 return held.http_status, _body(held.body(), cancel.message_id)
             running.held.set_result(held)
-        try:  # the INVOKE's own answer, once its goal has wound down
-            answered = await asyncio.wait_for(asyncio.shield(running.answered),
-                                              cancel.cancel_timeout_ms / 1000)
-        except asyncio.TimeoutError:
-            return 202, InvokeResult(type="INVOKE_RESULT", status="cancelled",
-                                     invoke_id=running.invoke_id, payload={},
-                                     skill=running.skill, reply_to=running.invoke_id,
-                                     reason="cancelling", msg_id=cancel.message_id)
-        return 200, answered
+        return None
+
+    async def _withdrawn(self, governor: Governor, principal: Principal, key: tuple[str, str],
+                         running: _Running, reason: str | None, *,
+                         message_id: str | None) -> Reply:
+        """A held INVOKE withdrawn by its INVOKE_CANCEL, and answered."""
+        assert running.pending_id is not None
+        decision = await governor.withdraw(running.pending_id, principal, reason,
+                                           message_id=message_id)
+        self._running.pop(key, None)
+        status: InvokeStatus = "cancelled" if decision.reason == "hitl_withdrawn" else "failure"
+        result = self._result(running, decision, status, "withdrawn by INVOKE_CANCEL"
+                              if status == "cancelled" else decision.reason)
+        return decision.http_status, await self._answer(governor, principal, key, running,
+                                                        result)
 
     async def _not_running(self, governor: Governor, principal: Principal,
                            cancel: InvokeCancel, key: tuple[str, str]) -> Reply:
@@ -457,6 +514,7 @@ class Invocations:
                       running: _Running, result: InvokeResult) -> InvokeResult:
         """The INVOKE's one INVOKE_RESULT (§19.1): audited, remembered for a late
         INVOKE_CANCEL, handed to a cancel waiting for it."""
+        running.answering = True
         await _audit(governor, principal, result)
         self._finished[key] = result
         self._finished.move_to_end(key)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
 from typing import Any, NamedTuple, Protocol
 
 from ..config import Ros2Config
@@ -185,6 +185,8 @@ class RosDispatcher:
         self.arms.positions.watch("bridge.ros2.arms",
                                   [j for arm in ros2.arms.values() for j in arm.joints])
         self._ever_matched: set[str] = set()
+        # Arm topics a command waits on for joints never heard (`_takes_back`): one at a time.
+        self._awaiting_joints: set[str] = set()
         self._publishers: dict[tuple[str, str, bool], CommandPublisher] = {}
         self._routes: dict[int, _Route] = {}
         self._grouped: dict[tuple[int, str], _Route] = {}  # (route, group) → its own topic
@@ -324,18 +326,38 @@ class RosDispatcher:
     async def _takes_back(self, route: _Route, params: ActionParams) -> str | None:
         """None if a stop could take back what `route` would start (an arm's trajectory: its
         joints heard lately), else why not: nothing is sent that no stop could stop. Joints
-        never heard get `match_timeout_s` to be (start-up), as a topic gets to match."""
+        never heard get `match_timeout_s` to be (start-up), as a topic gets to match — one
+        command per arm's topic at a time: each waiter holds an admission slot, and commands
+        naming joints no robot publishes would otherwise keep them all (everyone's commands
+        but stops waited behind them); the others are refused at once."""
         hold = route.spec.hold
         if hold is None:
             return None
-        joints = hold.joints(params)
+        joints, topic = hold.joints(params), route.publisher.topic
+        why = self.arms.cannot_hold(joints)
+        if why is None:
+            return None
+        if self.arms.positions.known(joints) or topic in self._awaiting_joints:
+            return f"a stop could not hold the arm on {topic}: {why}"
+        self._awaiting_joints.add(topic)
+        try:
+            return await self._joints_heard(joints, topic)
+        finally:
+            self._awaiting_joints.discard(topic)
+
+    async def _joints_heard(self, joints: Sequence[str], topic: str) -> str | None:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.ros2.match_timeout_s
         while (why := self.arms.cannot_hold(joints)) is not None:
             if self.arms.positions.known(joints) or loop.time() >= deadline:
-                return f"a stop could not hold the arm on {route.publisher.topic}: {why}"
+                return f"a stop could not hold the arm on {topic}: {why}"
             await asyncio.sleep(0.02)
         return None
+
+    @property
+    def awaiting_joints(self) -> frozenset[str]:
+        """The arm topics a command waits on for joints never heard."""
+        return frozenset(self._awaiting_joints)
 
     async def dispatch(self, command: NormalizedCommand,
                        applied: ActionParams) -> DispatchResult:

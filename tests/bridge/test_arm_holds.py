@@ -205,4 +205,22 @@ def test_one_sender_never_disagrees_with_itself_nor_senders_that_agree(
     positions.heard(["fast", "wrap"], [0.35, -math.pi + 0.02], [0.5, 0.0], sender=3)
     clock.t += 2.0  # the first again, after long: the joint may be anywhere now
     positions.heard(["fast"], [1.5], [0.0], sender=1)
-    assert isinstance(positions.now(["fast", "wrap"], 10.0), list)
+    assert isinstance(positions.now(["fast", "wrap"], 10.0, resting_holds=True), list)
+
+
+def test_a_joint_heard_at_rest_holds_longer_while_nothing_of_ours_moves_it(
+        positions: JointPositions, clock: Clock) -> None:
+    # A busy computer delays joint_states (1.7 s measured under CPU load): an arm heard at
+    # rest, its velocity given, is where it was — until a trajectory of ours moves it.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    positions.heard(["rest", "unsaid", "slow"], [0.4, 0.5, 0.6], [0.0, math.nan, 0.3])
+    clock.t += 1.5
+    assert arms.cannot_hold(["rest"]) is None  # MAX_AGE_S passed, at rest: still known
+    assert "last heard 1.50 s ago" in str(arms.cannot_hold(["unsaid"]))  # no velocity given
+    assert "last heard 1.50 s ago" in str(arms.cannot_hold(["slow"]))  # it was moving
+    left = Topic("/left")
+    arms.sent(left, "m1", ["rest"], 30.0, hold)  # ours moves it now
+    assert "last heard 1.50 s ago" in str(arms.cannot_hold(["rest"]))
+    assert arms.hold_all().not_held  # nor is it held where it was heard
+    clock.t += 1.0
+    assert "last heard 2.50 s ago" in str(positions.now(["rest"], 2.0, resting_holds=True))

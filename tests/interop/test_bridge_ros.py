@@ -94,6 +94,13 @@ async def test_arm_joint_becomes_a_joint_trajectory(rig: Rig) -> None:
     topic = "/robot1/joint_trajectory_controller/joint_trajectory"
     # Not `subscribe`: the bridge makes this writer with the first arm command (issue 27).
     await rig.oracle.acall("subscribe", topic=topic, type="trajectory_msgs/msg/JointTrajectory")
+    # Where the arm is (a trajectory no stop could take back is not sent).
+    await rig.oracle.acall("publisher", topic="/robot1/joint_states",
+                           type="sensor_msgs/msg/JointState")
+    await rig.oracle.acall("publish_periodic", topic="/robot1/joint_states",
+                           type="sensor_msgs/msg/JointState", rate=50.0,
+                           value={"name": ["shoulder", "elbow"], "position": [0.0, 0.0],
+                                  "velocity": [0.0, 0.0]})
     decision = await rig.command(AGENT, {"action": "arm_joint", "params": {
         "joints": ["shoulder", "elbow"], "positions": [0.5, -1.25], "duration_s": 2.5}})
     assert decision.http_status == 200, decision

@@ -371,7 +371,7 @@ async def transcript_of_a_session(client: Client, http: aiohttp.ClientSession,
         if name == "wait_for_approval":
             code, approved = await call(http, sim, sim.owner, "POST", "/api/hitl/authorize",
                                         {"pending_id": pending_id})
-            assert code == 200, approved
+            assert code == 200, (approved.get("reason"), approved)
             lines.append(f"  (an OWNER: POST /api/hitl/authorize → {code} "
                          f"{approved['outcome']})")
         done = await client.call_tool(name, sent)

@@ -35,6 +35,7 @@ SETTLING_S = 1.0
 # visible way since, and holding it there would drive it back as far.
 MAX_AGE_S = 0.5
 MAX_LEAD = 0.1  # how far a hold may carry a joint past where it was heard
+REST_SPEED = 0.01  # rad/s or m/s: a joint heard this slow (its velocity given) was at rest
 MAX_KEPT = 256  # joints kept that no trajectory moves (yet)
 MAX_JOINT_NAME = 128  # a longer name no command can give (rcan JointName)
 MAX_SETS = 8  # distinct joint sets remembered per trajectory topic
@@ -74,9 +75,10 @@ class JointPositions:
             for i, name in enumerate(names[:len(positions)]):
                 if name not in self._heard and not self._keeps(name):
                     continue
-                velocity = float(velocities[i]) if i < len(velocities) else 0.0
-                heard = _Heard(float(positions[i]), velocity if _finite(velocity) else 0.0,
-                               at, sender)
+                given = float(velocities[i]) if i < len(velocities) else math.nan
+                velocity = given if _finite(given) else 0.0
+                heard = _Heard(float(positions[i]), velocity, at, sender,
+                               _finite(given) and abs(given) <= REST_SPEED)
                 before = self._heard.get(name)
                 if before is not None and _disagree(before, heard):
                     self._jumped[name] = (at, before.position, heard.position)
@@ -92,9 +94,14 @@ class JointPositions:
         with self._lock:
             return all(name in self._heard for name in joints)
 
-    def now(self, joints: Sequence[str], max_age_s: float) -> list[float] | str:
+    def now(self, joints: Sequence[str], max_age_s: float, *,
+            resting_holds: bool = False) -> list[float] | str:
         """Where `joints` are now (their last positions carried forward by their velocities),
-        or why that is not known."""
+        or why that is not known: heard more than MAX_AGE_S ago, a joint may have moved a
+        visible way since — unless `resting_holds` (nothing of ours moves it) and it was
+        heard at rest, its velocity given: then up to `max_age_s` (the robot's telemetry
+        counting as silent). A busy computer delays joint_states that long (1.7 s measured
+        under CPU load); an arm at rest is where it was."""
         now = self._monotonic()
         found = []
         with self._lock:
@@ -102,13 +109,14 @@ class JointPositions:
                 heard = self._heard.get(name)
                 if heard is None:
                     return f"no joint_states heard for {name!r}"
-                position, velocity, at, _ = heard
-                if now - at > max_age_s:
-                    return f"joint_states for {name!r} last heard {now - at:.2f} s ago"
+                position, velocity, at, _, resting = heard
+                age = now - at
+                if age > max_age_s or (age > MAX_AGE_S and not (resting_holds and resting)):
+                    return f"joint_states for {name!r} last heard {age:.2f} s ago"
                 if not _finite(position):
                     return f"joint_states gave {name!r} the position {position}"
                 jumped = self._jumped.get(name)
-                if jumped is not None and now - jumped[0] <= max_age_s:
+                if jumped is not None and now - jumped[0] <= MAX_AGE_S:
                     return (f"joint_states senders disagree on {name!r}: {jumped[1]:.3f} "
                             f"and {jumped[2]:.3f}, {now - jumped[0]:.2f} s ago")
                 lead = max(-MAX_LEAD, min(MAX_LEAD, velocity * (now - at)))
@@ -125,6 +133,7 @@ class _Heard(NamedTuple):
     velocity: float  # 0 when not given or not finite
     at: float  # monotonic
     sender: int | None  # the writer's handle, if known
+    resting: bool = False  # its velocity was given, and at most REST_SPEED
 
 
 def _disagree(before: _Heard, after: _Heard) -> bool:
@@ -172,7 +181,7 @@ class ArmHolds:
     def __init__(self, positions: JointPositions, max_age_s: float,
                  monotonic: Callable[[], float] = time.monotonic) -> None:
         self.positions = positions
-        self._max_age_s = min(max_age_s, MAX_AGE_S)
+        self._max_age_s = max_age_s  # the robot's telemetry counts as silent after this
         self._monotonic = monotonic
         self._running: dict[str, list[_Running]] = {}  # topic → oldest first
 
@@ -189,8 +198,12 @@ class ArmHolds:
         self._watch(topic)
 
     def cannot_hold(self, joints: Sequence[str]) -> str | None:
-        """Why a hold of `joints` could not be made now (None: it could)."""
-        where = self.positions.now(joints, self._max_age_s)
+        """Why a hold of `joints` could not be made now (None: it could); while none of our
+        trajectories moves them, a joint heard at rest holds where it was heard."""
+        now, moving = self._monotonic(), set(joints)
+        still = not any(moving.intersection(r.joints) for runs in self._running.values()
+                        for r in runs if now <= r.due)
+        where = self.positions.now(joints, self._max_age_s, resting_holds=still)
         return where if isinstance(where, str) else None
 
     def hold_all(self) -> ArmsHeld:

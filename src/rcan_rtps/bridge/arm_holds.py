@@ -13,10 +13,11 @@ Where the joints are comes from `joint_states` (`JointPositions`, fed by the tel
 A position heard `age` seconds ago is carried forward by the velocity heard with it (a hold at
 where the arm was, not where it is, drives it back), by at most `MAX_LEAD` (rad or m): the
 velocity is the robot's word, and a wrong one must not turn a hold into a long move. Older than
-`MAX_AGE_S` (or the robot's telemetry counts as silent), never heard, or two senders of
-joint_states disagreeing on it within MAX_AGE_S, the arm is not held: a hold at a guess
-could move it anywhere. That arm is reported (the stop fails, saying which
-and why), and the next stop tries again.
+`MAX_AGE_S` (a joint heard at rest that nothing of ours moves: until the robot's telemetry
+counts as silent), never heard, or two senders of joint_states disagreeing on it within
+MAX_AGE_S, the arm is not held: a hold at a guess could move it anywhere. That arm is
+reported (the stop fails, saying which and why), and the next stop tries again; and no
+trajectory is sent for joints a hold could not be made for (`RosDispatcher.ready`).
 """
 
 from __future__ import annotations

@@ -97,8 +97,10 @@ class Halted(NamedTuple):
 
     def result(self, topic: str, *, told: bool = False) -> DispatchResult:
         """A stop's result on `topic` (`told`: an e-stop's signal reached the robot): failed
-        if nothing was reached, or an arm that may be moving could not be held."""
-        if self.arms.not_held:
+        if nothing was reached, or an arm that may be moving could not be held — unless the
+        robot was told to e-stop: its own e-stop stops its arm, the hold is the bridge's
+        second measure (logged when it could not be made)."""
+        if self.arms.not_held and not told:
             return DispatchResult(ok=False, ros2_topic=topic,
                                   detail="; ".join(self.arms.not_held))
         if not (told or self.reached or self.cancelled or self.arms.held):

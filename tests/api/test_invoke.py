@@ -381,17 +381,23 @@ async def test_a_cancel_that_cannot_hold_the_arm_says_so_and_the_skill_runs_on(
     assert (await asyncio.wait_for(reply, 10))[1]["status"] == "success"
 
 
+async def cancelled_while_decided(api: Api, body: dict[str, Any]) -> None:
+    """The INVOKE `body` is cancelled while its command waits for the robot (`ready`); both
+    the INVOKE and its cancel are answered `cancelled`."""
+    api.dispatcher.hold_ready = asyncio.Event()  # its command waits for the robot
+    reply = asyncio.create_task(api.command("planner", body))
+    await asyncio.wait_for(api.dispatcher.ready_entered.wait(), 10)
+    cancelled = asyncio.create_task(api.command("planner", cancel(body["msg_id"])))
+    await asyncio.sleep(0.05)
+    api.dispatcher.hold_ready.set()
+    for task in (reply, cancelled):
+        status, answer = await asyncio.wait_for(task, 10)
+        assert (status, answer["status"]) == (200, "cancelled"), answer
+
+
 async def test_a_cancel_while_the_arm_skill_is_decided_holds_it_once_sent(
         arm_api: Api) -> None:
-    arm_api.dispatcher.hold_ready = asyncio.Event()  # its command waits for the robot
-    reply = asyncio.create_task(arm_api.command("planner", wave("inv-d", 60.0)))
-    await asyncio.wait_for(arm_api.dispatcher.ready_entered.wait(), 10)
-    cancelled = asyncio.create_task(arm_api.command("planner", cancel("inv-d")))
-    await asyncio.sleep(0.05)
-    arm_api.dispatcher.hold_ready.set()
-    for task in (reply, cancelled):
-        status, body = await asyncio.wait_for(task, 10)
-        assert (status, body["status"]) == (200, "cancelled"), body
+    await cancelled_while_decided(arm_api, wave("inv-d", 60.0))
     assert arm_api.dispatcher.holds == [["inv-d"]]
 
 
@@ -491,15 +497,7 @@ async def test_a_move_skill_past_its_timeout_is_ended_with_zero(move_api: Api) -
 async def test_a_cancel_while_the_move_skill_is_decided_ends_its_stream_once_started(
         move_api: Api) -> None:
     api = move_api
-    api.dispatcher.hold_ready = asyncio.Event()  # its command waits for the robot
-    reply = asyncio.create_task(api.command("planner", nudge("inv-d")))
-    await asyncio.wait_for(api.dispatcher.ready_entered.wait(), 10)
-    cancelled = asyncio.create_task(api.command("planner", cancel("inv-d")))
-    await asyncio.sleep(0.05)
-    api.dispatcher.hold_ready.set()
-    for task in (reply, cancelled):
-        status, body = await asyncio.wait_for(task, 10)
-        assert (status, body["status"]) == (200, "cancelled"), body
+    await cancelled_while_decided(api, nudge("inv-d"))
     assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
     assert stream_ends(api, "inv-d")[0]["params"]["why"] == "INVOKE_CANCEL"
 

@@ -202,7 +202,7 @@ class Invocations:
                 # Its INVOKE_CANCEL came while it was being held: a reviewer must never
                 # approve what its invoker cancelled. Withdrawn now; both are answered so.
                 status, result = await self._withdrawn(governor, principal, key, running,
-                                                       "INVOKE_CANCEL", message_id=None)
+                                                       BY_INVOKE_CANCEL, message_id=None)
                 return Started(reply=(status, result))
             body = decision.body()
             body.msg_id, body.status = invoke.msg_id, "pending"
@@ -212,7 +212,7 @@ class Invocations:
             running.trajectory = decision.message_id
             if running.cancelled:  # cancelled while it was being decided
                 running.held.set_result(await governor.hold_trajectory(
-                    decision.message_id, principal, message_id=None, why="INVOKE_CANCEL"))
+                    decision.message_id, principal, message_id=None, why=BY_INVOKE_CANCEL))
             return Started(finish=lambda: self._until_answered(
                 governor, principal, key, running, decision,
                 self._finish_trajectory(governor, principal, invoke, key, running, decision)))
@@ -228,7 +228,7 @@ class Invocations:
             self.goal_changed(view)
         if running.cancelled:  # cancelled while its goal was being sent
             await governor.cancel_goal(decision.goal_id, principal, message_id=None,
-                                       why="INVOKE_CANCEL")
+                                       why=BY_INVOKE_CANCEL)
         return Started(finish=lambda: self._until_answered(
             governor, principal, key, running, decision,
             self._finish(governor, principal, invoke, key, running, decision)))
@@ -439,10 +439,9 @@ class Invocations:
         if running.goal_id is not None:
             decision = await governor.cancel_goal(running.goal_id, principal,
                                                   message_id=cancel.message_id,
-                                                  why="INVOKE_CANCEL")
+                                                  why=BY_INVOKE_CANCEL)
             if decision.outcome is not Outcome.EXECUTED:  # it runs on: a retry may cancel it
-                running.cancelled = False
-                return decision.http_status, _body(decision.body(), cancel.message_id)
+                return _cancel_refused(running, decision, cancel)
         if running.stream is not None and not running.stream_end.done():
             # Only this INVOKE's stream: one that replaced it runs on. Not yet started (being
             # decided), it is ended once it starts (`_stream_started`).
@@ -450,10 +449,9 @@ class Invocations:
         if running.trajectory is not None and not running.held.done():
             held = await governor.hold_trajectory(running.trajectory, principal,
                                                   message_id=cancel.message_id,
-                                                  why="INVOKE_CANCEL")
+                                                  why=BY_INVOKE_CANCEL)
             if held.outcome is not Outcome.EXECUTED:  # it runs on: its end is answered then
-                running.cancelled = False
-                return held.http_status, _body(held.body(), cancel.message_id)
+                return _cancel_refused(running, held, cancel)
             running.held.set_result(held)
         return None
 
@@ -575,6 +573,13 @@ async def _refuse(governor: Governor, principal: Principal, rejection: Rejection
                   msg_id: str | None) -> Reply:
     decision = await governor.reject_request(principal, rejection, message_id=msg_id)
     return decision.http_status, _body(decision.body(), msg_id)
+
+
+def _cancel_refused(running: _Running, refused: Decision, cancel: InvokeCancel) -> Reply:
+    """An INVOKE_CANCEL whose cancel of the goal, or hold of the arm, was refused: the
+    INVOKE runs on (a retry may cancel it), and the cancel is answered with the refusal."""
+    running.cancelled = False
+    return refused.http_status, _body(refused.body(), cancel.message_id)
 
 
 def _body(body: DecisionBody, msg_id: str | None) -> DecisionBody:

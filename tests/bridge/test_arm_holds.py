@@ -422,7 +422,7 @@ def test_a_hold_at_the_desired_state_lies_on_the_approved_path(data: st.DataObje
     positions.heard(names, start, [0.0] * joints)
     left = Topic("/left")
     arms.sent(left, "m1", names, times[-1], hold, path=points)
-    clock.t += data.draw(st.floats(MAX_AGE_S + 0.01, times[-1] + SETTLING_S))
+    clock.t += data.draw(st.floats(MAX_AGE_S + 0.01, times[-1] + SETTLING_S / 2))  # still due
     assert arms.hold_all().at_desired == ("/left",)
     ((_, where),) = left.sent
     for j, at in enumerate(where):

@@ -353,6 +353,24 @@ def test_a_late_arm_two_trajectories_of_ours_may_drive_is_not_held(
     assert all("another trajectory of ours names 'a'" in why for why in held.not_held)
 
 
+def test_a_late_arm_another_trajectory_of_ours_went_to_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    # m2 names 'b' alone, on the same controller: one that takes partial goals holds 'a'
+    # where it is then (m1 stops), one that does not refuses m2 (m1 runs on). Another arm
+    # (its own topic and joints) has no rival.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left, right = Topic("/left"), Topic("/right")
+    positions.heard(["a", "b", "c"], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    arms.sent(left, "m1", ["a"], 10.0, hold, path=line(([1.0], 10.0)))
+    arms.sent(left, "m2", ["b"], 10.0, hold, path=line(([1.0], 10.0)))
+    arms.sent(right, "m3", ["c"], 10.0, hold, path=line(([1.0], 10.0)))
+    clock.t += MAX_AGE_S + 0.1
+    held = arms.hold_all()
+    assert held.held == ("/right",) and held.at_desired == ("/right",) and left.sent == []
+    assert len(held.not_held) == 2
+    assert all("another trajectory of ours went to /left" in why for why in held.not_held)
+
+
 def test_a_trajectory_sent_without_its_points_is_held_only_where_measured(
         positions: JointPositions, clock: Clock) -> None:
     arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)

@@ -26,9 +26,9 @@ its span, so on the approved path by construction). It is used only if the traje
 known to be what drives the arm: the last positions heard, late as they are, were where it
 had them when they were heard (within MAX_LEAD plus its speed × TRACKING_SLACK_S), they are
 no older than the robot's telemetry may be (`telemetry_stale_s`), and no other trajectory of
-ours names those joints (the controller may run either). Otherwise the controller refused
-or aborted it, or something else drives the arm, and a hold there could be a step across
-its reach. A hold made so is reported (`ArmsHeld.at_desired`, logged).
+ours still due names those joints or went to that topic (the controller may run either).
+Otherwise the controller refused or aborted it, or something else drives the arm, and a hold
+there could be a step across its reach. A hold made so is reported (`ArmsHeld.at_desired`, logged).
 
 An arm not held is reported (the stop fails, saying which and why), and the next stop tries
 again; and no trajectory is sent for joints a hold could not be made for where measured
@@ -367,16 +367,15 @@ class ArmHolds:
 
     def _desired(self, run: _Running, due: Sequence[_Running], now: float) -> list[float] | str:
         """Where `run`'s controller drives its joints now (its trajectory at now), or why
-        that is not trusted: no trajectory kept, another of ours naming its joints (which
-        one the controller runs is not known), a measurement older than the robot's
+        that is not trusted: no trajectory kept, another of ours that the controller may run
+        instead (`_rival`), a measurement older than the robot's
         telemetry may be, or the last measurements off the trajectory where it had them then
         (the controller refused or aborted it, or something else drives the arm)."""
         if run.path is None:
             return "no trajectory is known to tell where its controller drives it"
-        shared = sorted({j for r in due if r is not run for j in set(r.joints) & set(run.joints)})
-        if shared:
-            return (f"another trajectory of ours names {', '.join(map(repr, shared))}: which "
-                    "one its controller runs is not known")
+        rival = self._rival(run, due)
+        if rival is not None:
+            return f"{rival}: which one its controller runs is not known"
         last = self.positions.last(run.joints)
         if last is None:
             return "a joint was never heard"
@@ -391,6 +390,20 @@ class ArmHolds:
                 return (f"{name!r} was last heard {off:.3f} from where its trajectory had it "
                         f"then (more than {tolerance:.3f}): the arm was not following it")
         return run.path.at(now - run.sent_at)
+
+    @staticmethod
+    def _rival(run: _Running, due: Sequence[_Running]) -> str | None:
+        """Another trajectory of ours still due that the controller may run instead of `run`
+        on its joints: one naming some of them, or any other on its topic (a controller
+        that takes partial goals holds the joints one leaves out, and stops `run` there)."""
+        others = [r for r in due if r is not run]
+        shared = sorted({j for r in others for j in set(r.joints) & set(run.joints)})
+        if shared:
+            return f"another trajectory of ours names {', '.join(map(repr, shared))}"
+        topic = run.publisher.topic
+        if any(r.publisher.topic == topic for r in others):
+            return f"another trajectory of ours went to {topic}"
+        return None
 
     @staticmethod
     def _publish(run: _Running, positions: Sequence[float]) -> str | None:

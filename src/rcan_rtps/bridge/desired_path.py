@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import bisect
 import functools
+import itertools
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -62,7 +63,7 @@ class DesiredPath:
         """Each joint's highest speed along the whole trajectory (rad/s or m/s); worked out
         when first asked (a stop with late measurements), not as the trajectory goes out."""
         peaks = [0.0] * len(self._knots[0].positions)
-        for a, b in zip(self._knots, self._knots[1:], strict=False):
+        for a, b in itertools.pairwise(self._knots):
             for j, speed in enumerate(_segment_peaks(a, b)):
                 peaks[j] = max(peaks[j], speed)
         return peaks

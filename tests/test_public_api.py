@@ -262,6 +262,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "MoveParams",
         "NavigateParams",
         "NoParams",
+        "PathPoint",
         "Publish",
         "RosRoute",
         "SendGoal",

@@ -8,6 +8,8 @@ from collections.abc import Sequence
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rcan_rtps.bridge.arm_holds import (
     MAX_AGE_S,
@@ -15,9 +17,15 @@ from rcan_rtps.bridge.arm_holds import (
     MAX_KEPT,
     MAX_LEAD,
     SETTLING_S,
+    TRACKING_SLACK_S,
     ArmHolds,
     JointPositions,
+    Missing,
+    Unknown,
 )
+from rcan_rtps.bridge.desired_path import DesiredPath
+from rcan_rtps.governance import ArmsHeld
+from rcan_rtps.rcan.actions import PathPoint
 
 
 class Clock:
@@ -112,9 +120,9 @@ def test_a_stop_holds_each_running_trajectory_once(positions: JointPositions,
     arms.sent(left, "m1", ["a"], 5.0, hold)
     arms.sent(right, "m2", ["b"], 5.0, hold)
     positions.heard(["a", "b"], [0.1, 0.2], [])
-    assert arms.hold_all() == (("/left", "/right"), ())
+    assert arms.hold_all() == ArmsHeld(("/left", "/right"))
     assert left.sent == [(["a"], [0.1])] and right.sent == [(["b"], [0.2])]
-    assert arms.running() == [] and arms.hold_all() == ((), ())
+    assert arms.running() == [] and arms.hold_all() == ArmsHeld()
 
 
 def test_a_trajectory_the_next_on_its_topic_may_not_have_replaced_is_held_too(
@@ -128,7 +136,7 @@ def test_a_trajectory_the_next_on_its_topic_may_not_have_replaced_is_held_too(
     arms.sent(left, "m2", ["b"], 0.5, hold)
     positions.heard(["a", "b"], [0.1, 0.2], [])
     assert arms.running() == ["m1", "m2"]
-    assert arms.hold_all() == (("/left",), ())
+    assert arms.hold_all() == ArmsHeld(("/left",))
     assert left.sent == [(["a", "b"], [0.1, 0.2]), (["b"], [0.2])]
     assert arms.running() == []
 
@@ -143,7 +151,7 @@ def test_a_trajectory_of_the_same_joints_replaces_the_last_and_an_ended_one_is_n
     assert arms.running() == ["m2"]
     clock.t += 0.5 + SETTLING_S + 0.01  # m2 has ended, settled included
     assert arms.running() == []
-    assert arms.hold_all() == ((), ()) and left.sent == []
+    assert arms.hold_all() == ArmsHeld() and left.sent == []
 
 
 def test_a_stop_of_one_principal_holds_only_its_trajectories(positions: JointPositions,
@@ -153,7 +161,7 @@ def test_a_stop_of_one_principal_holds_only_its_trajectories(positions: JointPos
     arms.sent(left, "mine", ["a"], 5.0, hold)
     arms.sent(right, "theirs", ["b"], 5.0, hold)
     positions.heard(["a", "b"], [0.1, 0.2], [])
-    assert arms.hold({"mine", "unknown"}) == (("/left",), ())
+    assert arms.hold({"mine", "unknown"}) == ArmsHeld(("/left",))
     assert right.sent == [] and arms.running() == ["theirs"]
 
 
@@ -224,3 +232,217 @@ def test_a_joint_heard_at_rest_holds_longer_while_nothing_of_ours_moves_it(
     assert arms.hold_all().not_held  # nor is it held where it was heard
     clock.t += 1.0
     assert "last heard 2.50 s ago" in str(positions.now(["rest"], 2.0, resting_holds=True))
+
+
+# -- joint_states late: a hold where the controller drives the arm (its trajectory, now) --
+def line(*points: tuple[list[float], float]) -> list[PathPoint]:
+    """Positions-only points (the controller interpolates straight lines between them)."""
+    return [PathPoint(tuple(at), None, time_s) for at, time_s in points]
+
+
+def test_the_first_segment_runs_straight_from_the_start_state() -> None:
+    path = DesiredPath([0.0, 2.0], None, line(([1.0, 1.0], 2.0)))
+    assert path.at(0.5) == pytest.approx([0.25, 1.75])
+    assert path.at(-1.0) == [0.0, 2.0] and path.at(math.nan) == [0.0, 2.0]  # not started
+    assert path.peak_speeds == pytest.approx([0.5, 0.5])
+
+
+def test_points_without_velocities_are_joined_by_straight_lines() -> None:
+    path = DesiredPath([0.0, 0.0], [0.0, 0.0],  # the start's velocities alone: still lines
+                       line(([1.0, -1.0], 1.0), ([1.0, 1.0], 3.0), ([0.0, 0.0], 4.0)))
+    assert path.at(0.5) == pytest.approx([0.5, -0.5])
+    assert path.at(1.0) == pytest.approx([1.0, -1.0])
+    assert path.at(2.0) == pytest.approx([1.0, 0.0])
+    assert path.at(3.5) == pytest.approx([0.5, 0.5])
+    assert path.peak_speeds == pytest.approx([1.0, 1.0])
+
+
+def test_points_with_velocities_at_both_ends_are_joined_by_cubics() -> None:
+    # Start at rest (its velocity measured), through 1 rad at 1 s moving 1 rad/s, on to 2 rad.
+    points = [PathPoint((1.0,), (1.0,), 1.0), PathPoint((2.0,), (1.0,), 2.0)]
+    path = DesiredPath([0.0], [0.0], points)
+    # The cubic with p(0)=0, p'(0)=0, p(1)=1, p'(1)=1 is 2t² - t³.
+    assert path.at(0.5)[0] == pytest.approx(2 * 0.25 - 0.125)
+    assert path.at(1.5)[0] == pytest.approx(1.5)  # ends' velocities equal the slope: a line
+    eps = 1e-6  # its velocities at the ends are the points' (a Hermite cubic)
+    assert (path.at(eps)[0] - path.at(0.0)[0]) / eps == pytest.approx(0.0, abs=1e-5)
+    assert (path.at(1.0)[0] - path.at(1.0 - eps)[0]) / eps == pytest.approx(1.0, rel=1e-4)
+    assert path.peak_speeds == pytest.approx([4 / 3])  # p'(t) = 4t - 3t², highest at t = 2/3
+    # Without the start's velocities (not in its joint_states): the first segment is a line.
+    assert DesiredPath([0.0], None, points).at(0.5) == pytest.approx([0.5])
+
+
+def test_past_its_last_point_the_trajectory_stays_there() -> None:
+    path = DesiredPath([0.0], None, line(([1.0], 1.0), ([3.0], 2.0)))
+    assert path.at(2.0) == [3.0] and path.at(1e9) == [3.0]
+
+
+def stale_after(arms: ArmHolds, positions: JointPositions, clock: Clock, heard_at: float,
+                heard: list[float], path: list[PathPoint], *, start: float = 0.0) -> Topic:
+    """An arm heard at `start`, at rest, sent along `path`; heard at `heard` `heard_at` s
+    later, then not again: now MAX_AGE_S (and a little) after that."""
+    left = Topic("/left")
+    positions.heard(["a"], [start], [0.0])
+    arms.sent(left, "m1", ["a"], path[-1].time_s, hold, path=path)
+    clock.t += heard_at
+    positions.heard(["a"], heard, [0.0])
+    clock.t += MAX_AGE_S + 0.1
+    stale = positions.now(["a"], 10.0)
+    assert isinstance(stale, Unknown) and stale.missing is Missing.STALE
+    return left
+
+
+def test_a_late_arm_that_followed_its_trajectory_is_held_where_the_trajectory_has_it(
+        positions: JointPositions, clock: Clock) -> None:
+    # 0 → 1 rad over 2 s; heard 0.3 s in at 0.15 (where the trajectory had it), then late.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = stale_after(arms, positions, clock, 0.3, [0.15], line(([1.0], 2.0)))
+    assert arms.hold_all() == ArmsHeld(("/left",), (), ("/left",))
+    ((joints, (at,)),) = left.sent
+    assert joints == ["a"] and at == pytest.approx(0.5 * (0.3 + MAX_AGE_S + 0.1))
+    assert arms.running() == []
+
+
+def test_a_late_arm_that_was_not_following_its_trajectory_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    # Heard at 0.6 where the trajectory had 0.15: farther than MAX_LEAD + 0.5 rad/s × the
+    # slack (the controller refused it, or something else drives the arm).
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = stale_after(arms, positions, clock, 0.3, [0.6], line(([1.0], 2.0)))
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [] and arms.running() == ["m1"]
+    (why,) = held.not_held
+    assert why.startswith("the arm on /left was not held: joint_states for 'a' last heard 0.60")
+    assert "'a' was last heard 0.450 from where its trajectory had it then" in why
+    assert "the arm was not following it" in why
+
+
+@pytest.mark.parametrize(("off", "held"), [(0.001, True), (-0.001, False)])
+def test_a_late_sample_tracks_within_the_slack(off: float, held: bool) -> None:
+    # A sample taken TRACKING_SLACK_S before it was heard (delivery under load), the arm
+    # MAX_LEAD behind that (following error), still tracks: 0.5 rad/s, heard at 1.0 s.
+    clock = Clock()
+    positions = JointPositions(clock)
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    behind = 0.5 * (1.0 - TRACKING_SLACK_S) - MAX_LEAD
+    stale_after(arms, positions, clock, 1.0, [behind + off], line(([1.0], 2.0)))
+    assert arms.hold_all().at_desired == (("/left",) if held else ())
+
+
+def test_a_late_arm_unheard_longer_than_the_robot_s_telemetry_may_be_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = stale_after(arms, positions, clock, 0.3, [0.15], line(([1.0], 20.0)))
+    clock.t += 2.0
+    (why,) = arms.hold_all().not_held
+    assert "unheard for longer than the robot's telemetry may be (2 s)" in why
+    assert left.sent == []
+
+
+def test_a_late_arm_two_trajectories_of_ours_may_drive_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    # m2 names 'a' alone: the controller may have refused it (m1 runs on) or taken it.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a", "b"], [0.0, 0.0], [0.0, 0.0])
+    arms.sent(left, "m1", ["a", "b"], 10.0, hold, path=line(([1.0, 1.0], 10.0)))
+    arms.sent(left, "m2", ["a"], 10.0, hold, path=line(([-1.0], 10.0)))
+    clock.t += MAX_AGE_S + 0.1
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [] and len(held.not_held) == 2
+    assert all("another trajectory of ours names 'a'" in why for why in held.not_held)
+
+
+def test_a_late_arm_another_trajectory_of_ours_went_to_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    # m2 names 'b' alone, on the same controller: one that takes partial goals holds 'a'
+    # where it is then (m1 stops), one that does not refuses m2 (m1 runs on). Another arm
+    # (its own topic and joints) has no rival.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left, right = Topic("/left"), Topic("/right")
+    positions.heard(["a", "b", "c"], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    arms.sent(left, "m1", ["a"], 10.0, hold, path=line(([1.0], 10.0)))
+    arms.sent(left, "m2", ["b"], 10.0, hold, path=line(([1.0], 10.0)))
+    arms.sent(right, "m3", ["c"], 10.0, hold, path=line(([1.0], 10.0)))
+    clock.t += MAX_AGE_S + 0.1
+    held = arms.hold_all()
+    assert held.held == ("/right",) and held.at_desired == ("/right",) and left.sent == []
+    assert len(held.not_held) == 2
+    assert all("another trajectory of ours went to /left" in why for why in held.not_held)
+
+
+def test_a_trajectory_sent_without_its_points_is_held_only_where_measured(
+        positions: JointPositions, clock: Clock) -> None:
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.0], [0.0])
+    arms.sent(left, "m1", ["a"], 10.0, hold)
+    clock.t += MAX_AGE_S + 0.1
+    (why,) = arms.hold_all().not_held
+    assert "no trajectory is known to tell where its controller drives it" in why
+
+
+def test_only_age_is_worked_around(positions: JointPositions, clock: Clock) -> None:
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = Topic("/left")
+    # Never heard: no start, nothing to follow.
+    arms.sent(left, "m0", ["x"], 10.0, hold, path=line(([1.0], 10.0)))
+    clock.t += MAX_AGE_S + 0.1
+    unheard = positions.now(["x"], 2.0)
+    assert isinstance(unheard, Unknown) and unheard.missing is Missing.UNHEARD
+    assert arms.hold_all().not_held == (
+        "the arm on /left was not held: no joint_states heard for 'x'",)
+    # Not finite, and late too: the non-finite position is the reason.
+    positions.heard(["n"], [0.0], [0.0])
+    arms.sent(Topic("/n"), "m1", ["n"], 10.0, hold, path=line(([1.0], 10.0)))
+    positions.heard(["n"], [math.nan], [0.0])
+    clock.t += MAX_AGE_S + 0.1
+    not_finite = positions.now(["n"], 2.0)
+    assert isinstance(not_finite, Unknown) and not_finite.missing is Missing.NOT_FINITE
+    assert "the arm on /n was not held: joint_states gave 'n' the position nan" in (
+        arms.hold(["m1"]).not_held)
+
+
+def test_a_late_arm_whose_senders_disagreed_before_they_went_quiet_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    # The robot's broadcaster and a joint_state_publisher (its zeros), then both silent: the
+    # last sample is either's, so whether the arm followed the trajectory is not known.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.25], [0.0], sender=1)
+    arms.sent(left, "m1", ["a"], 10.0, hold, path=line(([0.25], 10.0)))
+    clock.t += 0.02
+    positions.heard(["a"], [0.0], [], sender=2)
+    clock.t += MAX_AGE_S + 0.1
+    disagree = positions.now(["a"], 2.0)
+    assert isinstance(disagree, Unknown) and disagree.missing is Missing.DISAGREE
+    (why,) = arms.hold_all().not_held
+    assert "joint_states senders disagree on 'a': 0.250 and 0.000" in why
+    assert left.sent == []
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data())
+def test_a_hold_at_the_desired_state_lies_on_the_approved_path(data: st.DataObject) -> None:
+    # Positions-only: each joint's hold is between its lowest and highest of the start and
+    # the points, whenever the stop comes (before the start, between points, after the end).
+    clock = Clock()
+    positions = JointPositions(clock)
+    arms = ArmHolds(positions, max_age_s=3600.0, monotonic=clock)
+    joints = data.draw(st.integers(1, 3))
+    value = st.floats(-10.0, 10.0, allow_nan=False)
+    start = data.draw(st.lists(value, min_size=joints, max_size=joints))
+    gaps = data.draw(st.lists(st.floats(0.01, 5.0), min_size=1, max_size=5))
+    times = [sum(gaps[:i + 1]) for i in range(len(gaps))]
+    points = [PathPoint(tuple(data.draw(st.lists(value, min_size=joints, max_size=joints))),
+                        None, t) for t in times]
+    names = [f"j{i}" for i in range(joints)]
+    positions.heard(names, start, [0.0] * joints)
+    left = Topic("/left")
+    arms.sent(left, "m1", names, times[-1], hold, path=points)
+    clock.t += data.draw(st.floats(MAX_AGE_S + 0.01, times[-1] + SETTLING_S / 2))  # still due
+    assert arms.hold_all().at_desired == ("/left",)
+    ((_, where),) = left.sent
+    for j, at in enumerate(where):
+        along = [start[j], *(p.positions[j] for p in points)]
+        assert min(along) - 1e-9 <= at <= max(along) + 1e-9, (where, start, points)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -234,21 +235,24 @@ async def test_an_arm_nobody_heard_is_not_moved(rig: Rig) -> None:
 
 async def test_an_arm_whose_joint_states_stopped_is_not_held_and_the_stop_says_so(
         rig: Rig) -> None:
-    # Its joint_states stop after the trajectory went out: a hold at where the arm was heard
-    # could drive it anywhere. The rest of the stop happens; its answer fails, naming the
-    # arm and why, and the audit records it.
+    # Its joint_states stop after the trajectory went out, for longer than the robot's
+    # telemetry may be late (telemetry_stale_s: 1): neither where the arm was heard nor where
+    # its trajectory has it is trusted. The rest of the stop happens; its answer fails,
+    # naming the arm and why, and the audit records it.
     await arm_heard_at(rig, [0.25, -0.5], [0.0, 0.0])
     await sent_long_trajectory(rig)
     await rig.oracle.acall("stop_periodic", topic=JOINT_STATES)
 
-    def stale() -> bool:  # attended meanwhile: a session-loss halt would try it first
+    def silent() -> bool:  # attended meanwhile: a session-loss halt would try it first
         rig.governor.heartbeat(AGENT)
-        return rig.dispatcher.arms.cannot_hold(["l_shoulder", "l_elbow"]) is not None
+        last = rig.dispatcher.arms.positions.last(["l_shoulder", "l_elbow"])
+        return last is not None and time.monotonic() - max(at for _, at in last) > 1.0
 
-    await eventually(stale, interval=0.1, what="the arm's joint_states gone stale")
+    await eventually(silent, interval=0.1, what="the arm's joint_states silent")
     stopped = await rig.command(AGENT, {"action": "stop"})
     assert stopped.outcome.value == "failed" and stopped.http_status == 503, stopped
     assert LEFT in (stopped.reason or "") and "last heard" in (stopped.reason or ""), stopped
+    assert "unheard for longer than the robot's telemetry may be" in (stopped.reason or "")
     failed = [e for e in rig.entries() if e["event"] == "COMMAND_FAILED"]
     assert failed and failed[-1]["action_type"] == "stop", failed
     # Heard again: the next stop holds it (the trajectory was not forgotten).
@@ -261,6 +265,135 @@ async def test_an_arm_whose_joint_states_stopped_is_not_held_and_the_stop_says_s
     assert again.http_status == 200, again
     (hold,) = await take(rig.oracle, LEFT)
     assert_held_at(hold, [0.3, -0.4], [0.0, 0.0])
+
+
+# -- joint_states late (a busy robot computer): held where the trajectory has the arm --
+START, TARGET, RUN_S = [0.25, -0.5], [2.25, 1.5], 10.0
+SPEED = 0.2  # rad/s, each joint: (TARGET - START) / RUN_S
+WRITE_S = 0.005  # s: how late after its write returns the bridge may note a trajectory sent
+ARM_JOINTS = ["l_shoulder", "l_elbow"]
+
+
+@pytest.fixture
+async def late_rig(tmp_path: Path, jazzy_oracle: OracleEnv, domain_id: int
+                   ) -> AsyncIterator[Rig]:
+    """The robot's telemetry may be 5 s late before it counts as silent; the oracle notes
+    when each message on the left arm's topic arrives (CLOCK_MONOTONIC, as the bridge's)."""
+    config = bridge_config(tmp_path, domain_id, extra_ros2=ARMS + "telemetry_stale_s: 5.0\n")
+    rig = await make_rig(config, jazzy_oracle, domain_id)
+    try:
+        await rig.oracle.acall("subscribe", topic=LEFT, type=TRAJ, arrival=True)
+        await rig.oracle.acall("subscribe", topic=CMD_VEL, type=TWIST)
+        yield rig
+    finally:
+        await close_rig(rig)
+
+
+def along(elapsed_s: float) -> list[float]:
+    """Where joint_trajectory_controller drives the arm `elapsed_s` into the trajectory
+    (positions only: a straight line from where it was)."""
+    done = min(max(elapsed_s / RUN_S, 0.0), 1.0)
+    return [a + (b - a) * done for a, b in zip(START, TARGET, strict=True)]
+
+
+async def joints_say(rig: Rig, positions: list[float], velocity: float) -> None:
+    await rig.oracle.acall("publish", topic=JOINT_STATES, type=JOINT_STATE, period=0.0,
+                           value={"name": ARM_JOINTS, "position": positions,
+                                  "velocity": [velocity] * len(positions)})
+
+
+async def moving_then_late(rig: Rig, follows: bool) -> tuple[float, float]:
+    """The arm at START, at rest; its trajectory to TARGET sent; for 1 s joint_states say it
+    follows it (`follows`) or stands far off it, then they stop while it is still due, until
+    older than MAX_AGE_S. (CLOCK_MONOTONIC s when the command was made, when the oracle got
+    the trajectory.)"""
+    await rig.oracle.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+    await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                           value={"name": ARM_JOINTS, "position": START,
+                                  "velocity": [0.0, 0.0]})
+    await eventually(lambda: rig.dispatcher.arms.cannot_hold(ARM_JOINTS) is None,
+                     what="the arm's joint_states")
+    commanded = time.monotonic()
+    moving = await rig.command(AGENT, {"action": "arm_joint", "params": {
+        "group": "left", "joints": ARM_JOINTS, "positions": TARGET, "duration_s": RUN_S}})
+    assert moving.http_status == 200, moving
+    (sent,) = await take(rig.oracle, LEFT)
+    got_at = sent["arrived_ns"] / 1e9
+    await rig.oracle.acall("stop_periodic", topic=JOINT_STATES)
+    while time.monotonic() - got_at < 1.0:
+        rig.governor.heartbeat(AGENT)
+        elapsed = time.monotonic() - got_at
+        await joints_say(rig, along(elapsed) if follows else [-2.0, -2.0],
+                         SPEED if follows else 0.0)
+        await asyncio.sleep(0.02)
+
+    def late() -> bool:  # attended meanwhile: a session-loss halt would hold it first
+        rig.governor.heartbeat(AGENT)
+        why = rig.dispatcher.arms.cannot_hold(ARM_JOINTS)
+        return why is not None and "last heard" in why
+
+    await eventually(late, interval=0.05, what="the arm's joint_states late")
+    return commanded, got_at
+
+
+@both_rmws
+@pytest.mark.parametrize("stop", ["stop", "cancelled"])
+async def test_a_late_arm_that_followed_its_trajectory_is_held_where_it_has_the_arm(
+        late_rig: Rig, stop: str, caplog: pytest.LogCaptureFixture) -> None:
+    # A busy robot computer delays joint_states (0.76 s and 1.7 s measured under CPU load):
+    # the arm was heard following its trajectory, then nothing for more than MAX_AGE_S. The
+    # stop holds it where its controller drives it now. Before, it failed (503, the arm not
+    # held: its trajectory ran on).
+    rig = late_rig
+    commanded, got_at = await moving_then_late(rig, follows=True)
+    stopping = time.monotonic()
+    if stop == "stop":
+        stopped = await rig.command(AGENT, {"action": "stop"})
+        assert stopped.http_status == 200 and stopped.outcome.value == "executed", stopped
+    else:  # an MCP client cancelled the agent's call: its own stop
+        own = await rig.governor.command_cancelled(AGENT)
+        assert own is not None and own.applied is not None, own
+        assert own.applied["arms_held"] == [LEFT], own
+        assert own.applied["arms_held_at_desired"] == [LEFT], own
+        assert "arms_not_held" not in own.applied, own
+    (hold,) = await take(rig.oracle, LEFT)
+    held_at = hold["arrived_ns"] / 1e9
+    # The bridge's "now into the trajectory" lies between (the stop began) - (the oracle got
+    # the trajectory) and (the oracle got the hold) - (the command began), on one clock
+    # (CLOCK_MONOTONIC), give or take the bridge noting its send just after its write
+    # returned (WRITE_S): the hold lies between where the trajectory has the arm then.
+    lowest, highest = along(stopping - got_at - WRITE_S), along(held_at - commanded)
+    assert_held_at(hold["msg"], lowest,
+                   [b - a for a, b in zip(lowest, highest, strict=True)])
+    assert f"holding the arm on {LEFT} where its trajectory has it now" in caplog.text
+
+
+@both_rmws
+async def test_a_late_arm_that_was_not_following_its_trajectory_is_not_held(
+        late_rig: Rig) -> None:
+    # Heard far off its trajectory (the controller refused it, or something else drives the
+    # arm), then late: where the trajectory has it is no place to hold it. The stop fails,
+    # naming the arm and why, and nothing goes to the arm.
+    rig = late_rig
+    await moving_then_late(rig, follows=False)
+    stopped = await rig.command(AGENT, {"action": "stop"})
+    assert stopped.http_status == 503 and stopped.outcome.value == "failed", stopped
+    assert LEFT in (stopped.reason or "") and "not following it" in (stopped.reason or "")
+    # Heard again, at rest where it is: the next stop holds it there, the first sample on
+    # the arm's topic since the trajectory (one reliable, ordered writer).
+    await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                           value={"name": ARM_JOINTS, "position": [-2.0, -2.0],
+                                  "velocity": [0.0, 0.0]})
+
+    def heard() -> bool:
+        rig.governor.heartbeat(AGENT)
+        return rig.dispatcher.arms.cannot_hold(ARM_JOINTS) is None
+
+    await eventually(heard, what="the arm's joint_states again")
+    again = await rig.command(AGENT, {"action": "stop"})
+    assert again.http_status == 200, again
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold["msg"], [-2.0, -2.0], [0.0, 0.0])
 
 
 async def test_a_lost_session_holds_its_arm(rig: Rig) -> None:

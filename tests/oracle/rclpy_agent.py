@@ -214,12 +214,18 @@ class Agent:
         self.periodic.pop(topic).set()
         return self.published.get(topic, 0)
 
-    def op_subscribe(self, topic: str, type: str, qos: str = "default") -> bool:
+    def op_subscribe(self, topic: str, type: str, qos: str = "default",
+                     arrival: bool = False) -> bool:
+        """Keeps each message received on `topic`; with `arrival`, as `{"arrived_ns":
+        CLOCK_MONOTONIC ns when it came, "msg": the message}`."""
         self.received.setdefault(topic, [])
 
         def on_message(msg: Any, topic: str = topic) -> None:
+            got = plain(msg)
+            if arrival:
+                got = {"arrived_ns": time.monotonic_ns(), "msg": got}
             with self.lock:
-                self.received[topic].append(plain(msg))
+                self.received[topic].append(got)
 
         def on_matched(status: Any, topic: str = topic) -> None:
             with self.lock:

@@ -12,16 +12,33 @@ goal is cancelled.
 Where the joints are comes from `joint_states` (`JointPositions`, fed by the telemetry reader).
 A position heard `age` seconds ago is carried forward by the velocity heard with it (a hold at
 where the arm was, not where it is, drives it back), by at most `MAX_LEAD` (rad or m): the
-velocity is the robot's word, and a wrong one must not turn a hold into a long move. Older than
-`MAX_AGE_S` (a joint heard at rest that nothing of ours moves: until the robot's telemetry
-counts as silent), never heard, or two senders of joint_states disagreeing on it within
-MAX_AGE_S, the arm is not held: a hold at a guess could move it anywhere. That arm is
-reported (the stop fails, saying which and why), and the next stop tries again; and no
-trajectory is sent for joints a hold could not be made for (`RosDispatcher.ready`).
+velocity is the robot's word, and a wrong one must not turn a hold into a long move. Never
+heard, not finite, or two senders of joint_states disagreeing on it within MAX_AGE_S (of now,
+or of its last sample), the arm is not held: a hold at a guess could move it anywhere.
+
+Older than `MAX_AGE_S` (a joint heard at rest that nothing of ours moves: until the robot's
+telemetry counts as silent) and that its only fault, the measurement is late — on a busy
+robot computer exactly when a moving arm must stop (0.76 s and 1.7 s measured under CPU
+load). Then the better estimate is the controller's own: the trajectory we sent, evaluated
+now from where the joints were measured as it went out (`DesiredPath`: straight lines, or
+cubics where velocities are given, as joint_trajectory_controller interpolates; clamped to
+its span, so on the approved path by construction). It is used only if the trajectory is
+known to be what drives the arm: the last positions heard, late as they are, were where it
+had them when they were heard (within MAX_LEAD plus its speed × TRACKING_SLACK_S), they are
+no older than the robot's telemetry may be (`telemetry_stale_s`), and no other trajectory of
+ours still due names those joints or went to that topic (the controller may run either).
+Otherwise the controller refused or aborted it, or something else drives the arm, and a hold
+there could be a step across its reach. A hold made so is reported (`ArmsHeld.at_desired`, logged).
+
+An arm not held is reported (the stop fails, saying which and why), and the next stop tries
+again; and no trajectory is sent for joints a hold could not be made for where measured
+(`RosDispatcher.ready`).
 """
 
 from __future__ import annotations
 
+import enum
+import logging
 import math
 import threading
 import time
@@ -29,6 +46,10 @@ from collections.abc import Callable, Collection, Sequence
 from typing import Any, NamedTuple, Protocol
 
 from ..governance import ArmsHeld
+from ..rcan.actions import PathPoint
+from .desired_path import DesiredPath
+
+log = logging.getLogger(__name__)
 
 # A controller may still be settling onto the last point just after its time.
 SETTLING_S = 1.0
@@ -36,6 +57,13 @@ SETTLING_S = 1.0
 # visible way since, and holding it there would drive it back as far.
 MAX_AGE_S = 0.5
 MAX_LEAD = 0.1  # how far a hold may carry a joint past where it was heard
+# How far behind (s) a late joint_states sample may describe the arm when it is checked against
+# our trajectory at the time it was heard: MAX_AGE_S, the age a measured hold accepts. A
+# sample is heard after it was taken (delivery; under load the backlog that made it late),
+# and the controller starts a trajectory a cycle or a delivery after we sent it: a tracking
+# arm is then up to its speed × that behind the trajectory. Farther off than a measurement
+# the bridge would hold at (plus MAX_LEAD, the controller's following error) is not tracking.
+TRACKING_SLACK_S = MAX_AGE_S
 REST_SPEED = 0.01  # rad/s or m/s: a joint heard this slow (its velocity given) was at rest
 MAX_KEPT = 256  # joints kept that no trajectory moves (yet)
 MAX_JOINT_NAME = 128  # a longer name no command can give (rcan JointName)
@@ -79,7 +107,7 @@ class JointPositions:
                 given = float(velocities[i]) if i < len(velocities) else math.nan
                 velocity = given if _finite(given) else 0.0
                 heard = _Heard(float(positions[i]), velocity, at, sender,
-                               _finite(given) and abs(given) <= REST_SPEED)
+                               _finite(given) and abs(given) <= REST_SPEED, _finite(given))
                 before = self._heard.get(name)
                 if before is not None and _disagree(before, heard):
                     self._jumped[name] = (at, before.position, heard.position)
@@ -96,33 +124,87 @@ class JointPositions:
             return all(name in self._heard for name in joints)
 
     def now(self, joints: Sequence[str], max_age_s: float, *,
-            resting_holds: bool = False) -> list[float] | str:
+            resting_holds: bool = False) -> list[float] | Unknown:
         """Where `joints` are now (their last positions carried forward by their velocities),
         or why that is not known: heard more than MAX_AGE_S ago, a joint may have moved a
         visible way since — unless `resting_holds` (nothing of ours moves it) and it was
         heard at rest, its velocity given: then up to `max_age_s` (the robot's telemetry
         counting as silent). A busy computer delays joint_states that long (1.7 s measured
-        under CPU load); an arm at rest is where it was."""
+        under CPU load); an arm at rest is where it was. A reason other than age comes
+        first: only a joint whose sole fault is its age is `Missing.STALE`."""
         now = self._monotonic()
-        found = []
+        found: list[float] = []
+        stale: Unknown | None = None
         with self._lock:
             for name in joints:
                 heard = self._heard.get(name)
-                if heard is None:
-                    return f"no joint_states heard for {name!r}"
-                position, velocity, at, _, resting = heard
-                age = now - at
-                if age > max_age_s or (age > MAX_AGE_S and not (resting_holds and resting)):
-                    return f"joint_states for {name!r} last heard {age:.2f} s ago"
-                if not _finite(position):
-                    return f"joint_states gave {name!r} the position {position}"
-                jumped = self._jumped.get(name)
-                if jumped is not None and now - jumped[0] <= MAX_AGE_S:
-                    return (f"joint_states senders disagree on {name!r}: {jumped[1]:.3f} "
-                            f"and {jumped[2]:.3f}, {now - jumped[0]:.2f} s ago")
-                lead = max(-MAX_LEAD, min(MAX_LEAD, velocity * (now - at)))
-                found.append(position + lead)
-        return found
+                why = self._unknown(name, heard, now, max_age_s, resting_holds)
+                if why is not None and why.missing is not Missing.STALE:
+                    return why
+                stale = stale or why
+                if heard is not None:
+                    lead = max(-MAX_LEAD, min(MAX_LEAD, heard.velocity * (now - heard.at)))
+                    found.append(heard.position + lead)
+        return stale or found
+
+    def _unknown(self, name: str, heard: _Heard | None, now: float, max_age_s: float,
+                 resting_holds: bool) -> Unknown | None:
+        """Why where `name` is now is not known from `heard` (its last sample), if it is
+        not."""
+        if heard is None:
+            return Unknown(Missing.UNHEARD, f"no joint_states heard for {name!r}")
+        if not _finite(heard.position):
+            return Unknown(Missing.NOT_FINITE,
+                           f"joint_states gave {name!r} the position {heard.position}")
+        jumped = self._jumped.get(name)
+        # Senders that disagreed within MAX_AGE_S before its last sample (so lately, if that
+        # is recent): which is right is not known, then or since.
+        if jumped is not None and heard.at - jumped[0] <= MAX_AGE_S:
+            return Unknown(Missing.DISAGREE,
+                           f"joint_states senders disagree on {name!r}: {jumped[1]:.3f} and "
+                           f"{jumped[2]:.3f}, {now - jumped[0]:.2f} s ago")
+        age = now - heard.at
+        if age > max_age_s or (age > MAX_AGE_S and not (resting_holds and heard.resting)):
+            return Unknown(Missing.STALE, f"joint_states for {name!r} last heard {age:.2f} s ago")
+        return None
+
+    def last(self, joints: Sequence[str]) -> list[tuple[float, float]] | None:
+        """Each joint's last position heard and when (monotonic), however old; None if one
+        was never heard."""
+        with self._lock:
+            heard = [self._heard.get(name) for name in joints]
+        if any(h is None for h in heard):
+            return None
+        return [(h.position, h.at) for h in heard if h is not None]
+
+    def velocities(self, joints: Sequence[str]) -> list[float] | None:
+        """The velocities last heard with `joints`' positions; None unless each was given."""
+        with self._lock:
+            heard = [self._heard.get(name) for name in joints]
+        if any(h is None or not h.given for h in heard):
+            return None
+        return [h.velocity for h in heard if h is not None]
+
+
+class Missing(enum.Enum):
+    """Why where a joint is is not known."""
+
+    UNHEARD = "unheard"  # no joint_states ever named it
+    STALE = "stale"  # heard, but too long ago (its only fault)
+    NOT_FINITE = "not_finite"  # its position was NaN or infinite
+    DISAGREE = "disagree"  # two senders of joint_states disagreed on it
+
+
+class Unknown(str):
+    """Why where joints are is not known: the text a stop reports, and what kind of reason
+    (`missing`), so that only age can be worked around."""
+
+    missing: Missing
+
+    def __new__(cls, missing: Missing, text: str) -> Unknown:
+        made = super().__new__(cls, text)
+        made.missing = missing
+        return made
 
 
 def _finite(value: float) -> bool:
@@ -135,6 +217,7 @@ class _Heard(NamedTuple):
     at: float  # monotonic
     sender: int | None  # the writer's handle, if known
     resting: bool = False  # its velocity was given, and at most REST_SPEED
+    given: bool = False  # its velocity was given (and finite)
 
 
 def _disagree(before: _Heard, after: _Heard) -> bool:
@@ -166,6 +249,17 @@ class _Running(NamedTuple):
     due: float  # monotonic: after this, it has ended (settled included)
     publisher: HoldPublisher
     hold: Callable[[Sequence[str], Sequence[float]], Any]  # joints, positions → message
+    sent_at: float = 0.0  # monotonic: when it went out (its controller starts it then)
+    path: DesiredPath | None = None  # where its controller drives the joints, from sent_at
+
+
+class _Where(NamedTuple):
+    """Where a hold puts a trajectory's joints: measured, or (`desired`) where the
+    controller drives them now, their measurements late."""
+
+    positions: list[float]
+    desired: bool = False
+    late: str = ""  # why not where measured (desired)
 
 
 class ArmHolds:
@@ -187,25 +281,38 @@ class ArmHolds:
         self._running: dict[str, list[_Running]] = {}  # topic → oldest first
 
     def sent(self, publisher: HoldPublisher, message_id: str, joints: Sequence[str],
-             runs_for_s: float, hold: Callable[[Sequence[str], Sequence[float]], Any]) -> None:
-        """A trajectory went out on `publisher`, running `runs_for_s` from now."""
+             runs_for_s: float, hold: Callable[[Sequence[str], Sequence[float]], Any],
+             *, path: Sequence[PathPoint] = ()) -> None:
+        """A trajectory went out on `publisher`, running `runs_for_s` from now through
+        `path`'s points (none given: a stop holds it only where it is measured). Where the
+        joints were measured as it went out is its start (a hold had to be possible then)."""
         now = self._monotonic()
         topic = publisher.topic
         new = _Running(message_id, tuple(joints), now + runs_for_s + SETTLING_S, publisher,
-                       hold)
+                       hold, now, self._desired_path(joints, path))
         runs = [r for r in self._running.get(topic, ())
                 if now <= r.due and set(r.joints) != set(new.joints)]
         self._running[topic] = [*runs, new][-MAX_SETS:]
         self._watch(topic)
 
+    def _desired_path(self, joints: Sequence[str], path: Sequence[PathPoint]
+                      ) -> DesiredPath | None:
+        start = self._measured(joints)
+        if not path or isinstance(start, Unknown):  # no start known: never estimated
+            return None
+        return DesiredPath(start, self.positions.velocities(joints), path)
+
     def cannot_hold(self, joints: Sequence[str]) -> str | None:
         """Why a hold of `joints` could not be made now (None: it could); while none of our
         trajectories moves them, a joint heard at rest holds where it was heard."""
+        where = self._measured(joints)
+        return where if isinstance(where, Unknown) else None
+
+    def _measured(self, joints: Sequence[str]) -> list[float] | Unknown:
         now, moving = self._monotonic(), set(joints)
         still = not any(moving.intersection(r.joints) for runs in self._running.values()
                         for r in runs if now <= r.due)
-        where = self.positions.now(joints, self._max_age_s, resting_holds=still)
-        return where if isinstance(where, str) else None
+        return self.positions.now(joints, self._max_age_s, resting_holds=still)
 
     def hold_all(self) -> ArmsHeld:
         """Every arm whose trajectory may still be running is held (a stop of the robot)."""
@@ -218,14 +325,20 @@ class ArmHolds:
 
     def _hold(self, chosen: Callable[[_Running], bool]) -> ArmsHeld:
         now = self._monotonic()
-        held, not_held = [], []
+        due = [r for runs in self._running.values() for r in runs if now <= r.due]
+        held, at_desired, not_held = [], [], []
         for topic in list(self._running):
             # ended: holding it now would only fight whoever moves it next
             runs = [r for r in self._running[topic] if now <= r.due]
             kept = [r for r in runs if not chosen(r)]
-            reached = False
+            reached = desired = False
             for run in (r for r in runs if chosen(r)):  # oldest first
-                why = self._hold_one(run)
+                where = self._where(run, due, now)
+                why = where if isinstance(where, str) else self._publish(run, where.positions)
+                if why is None and isinstance(where, _Where) and where.desired:
+                    log.warning("holding the arm on %s where its trajectory has it now, not "
+                                "where it was measured: %s", topic, where.late)
+                    desired = True
                 if why is None:
                     reached = True
                 else:
@@ -233,17 +346,70 @@ class ArmHolds:
                     not_held.append(f"the arm on {topic} was not held: {why}")
             if reached:
                 held.append(topic)
+            if desired:
+                at_desired.append(topic)
             self._running[topic] = [r for r in runs if r in kept]
             self._watch(topic)
-        return ArmsHeld(tuple(held), tuple(not_held))
+        return ArmsHeld(tuple(held), tuple(not_held), tuple(at_desired))
 
-    def _hold_one(self, run: _Running) -> str | None:
+    def _where(self, run: _Running, due: Sequence[_Running], now: float) -> _Where | str:
+        """Where a hold puts `run`'s joints, or why it cannot be made: measured; with only
+        late measurements, where its controller drives them now if they were following it."""
+        measured = self.positions.now(run.joints, self._max_age_s)
+        if not isinstance(measured, Unknown):
+            return _Where(measured)
+        if measured.missing is not Missing.STALE:
+            return str(measured)
+        desired = self._desired(run, due, now)
+        if isinstance(desired, str):
+            return f"{measured}, and {desired}"
+        return _Where(desired, desired=True, late=str(measured))
+
+    def _desired(self, run: _Running, due: Sequence[_Running], now: float) -> list[float] | str:
+        """Where `run`'s controller drives its joints now (its trajectory at now), or why
+        that is not trusted: no trajectory kept, another of ours that the controller may run
+        instead (`_rival`), a measurement older than the robot's
+        telemetry may be, or the last measurements off the trajectory where it had them then
+        (the controller refused or aborted it, or something else drives the arm)."""
+        if run.path is None:
+            return "no trajectory is known to tell where its controller drives it"
+        rival = self._rival(run, due)
+        if rival is not None:
+            return f"{rival}: which one its controller runs is not known"
+        last = self.positions.last(run.joints)
+        if last is None:
+            return "a joint was never heard"
+        speeds = run.path.peak_speeds
+        for i, (name, (position, at)) in enumerate(zip(run.joints, last, strict=True)):
+            if now - at > self._max_age_s:
+                return (f"{name!r} unheard for longer than the robot's telemetry may be "
+                        f"({self._max_age_s:g} s)")
+            off = abs(position - run.path.at(at - run.sent_at)[i])
+            tolerance = MAX_LEAD + speeds[i] * TRACKING_SLACK_S
+            if not off <= tolerance:
+                return (f"{name!r} was last heard {off:.3f} from where its trajectory had it "
+                        f"then (more than {tolerance:.3f}): the arm was not following it")
+        return run.path.at(now - run.sent_at)
+
+    @staticmethod
+    def _rival(run: _Running, due: Sequence[_Running]) -> str | None:
+        """Another trajectory of ours still due that the controller may run instead of `run`
+        on its joints: one naming some of them, or any other on its topic (a controller
+        that takes partial goals holds the joints one leaves out, and stops `run` there)."""
+        others = [r for r in due if r is not run]
+        shared = sorted({j for r in others for j in set(r.joints) & set(run.joints)})
+        if shared:
+            return f"another trajectory of ours names {', '.join(map(repr, shared))}"
+        topic = run.publisher.topic
+        if any(r.publisher.topic == topic for r in others):
+            return f"another trajectory of ours went to {topic}"
+        return None
+
+    @staticmethod
+    def _publish(run: _Running, positions: Sequence[float]) -> str | None:
         """Publishes the hold of one trajectory's joints; why not, if it could not."""
-        where = self.positions.now(run.joints, self._max_age_s)
-        if isinstance(where, str):
-            return where
         try:
-            run.publisher.publish(run.hold(run.joints, where))
+            run.publisher.publish(run.hold(run.joints, positions))
         except Exception as exc:  # one arm's fault must not keep the others moving
             return repr(exc)
         return None

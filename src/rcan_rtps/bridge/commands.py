@@ -451,7 +451,8 @@ class RosDispatcher:
         kit = route.kit  # it runs on after this: a stop takes it back
         runs_for_s = hold.runs_for_s(params)
         self.arms.sent(pub, message_id, hold.joints(params), runs_for_s,
-                       lambda joints, where: hold.build(joints, where, kit))
+                       lambda joints, where: hold.build(joints, where, kit),
+                       path=hold.path(params) if hold.path is not None else ())
         return DispatchResult(ok=True, ros2_topic=pub.topic, runs_for_s=runs_for_s)
 
     def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:

@@ -983,6 +983,8 @@ def _fingerprint(command: NormalizedCommand) -> bytes:
 def _arms_applied(arms: ArmsHeld) -> dict[str, list[str]]:
     """What an own stop's entry says of the arms (nothing when none was running)."""
     facts = {"arms_held": list(arms.held)} if arms.held else {}
+    if arms.at_desired:  # held where their trajectories had them: joint_states late
+        facts["arms_held_at_desired"] = list(arms.at_desired)
     if arms.not_held:
         facts["arms_not_held"] = list(arms.not_held)
     return facts

@@ -41,10 +41,13 @@ class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):
 
 
 class ArmsHeld(NamedTuple):
-    """What a stop did to the arms: the topics held, and the arms that could not be (why)."""
+    """What a stop did to the arms: the topics held, the arms that could not be (why), and of
+    the topics held those held where their trajectory had the arm rather than where it was
+    measured (its joint_states late)."""
 
     held: tuple[str, ...] = ()
     not_held: tuple[str, ...] = ()
+    at_desired: tuple[str, ...] = ()
 
 
 class Dispatcher(Protocol):

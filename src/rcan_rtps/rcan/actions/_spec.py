@@ -5,7 +5,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Generic, Protocol, TypeVar
+from typing import Any, Generic, NamedTuple, Protocol, TypeVar
 
 from .._enums import Role
 from .._types import ActionParams
@@ -50,16 +50,30 @@ class MessageKit(Protocol):
 Builder = Callable[[P, MessageKit], Any]  # a message object, or its plain data (a mapping)
 
 
+class PathPoint(NamedTuple):
+    """One point of a joint trajectory, as its controller reads it: where each joint is due
+    (`positions`, the route's joints' order), how fast (`velocities`: None if not given), and
+    when (`time_s` after the trajectory starts)."""
+
+    positions: tuple[float, ...]
+    velocities: tuple[float, ...] | None
+    time_s: float
+
+
 @dataclass(frozen=True)
 class Hold(Generic[P]):
     """How a stop takes back what a route's message started and what runs on after it was
     sent (an arm's trajectory): which joints it moves (`joints`), for how long at most
     (`runs_for_s`), and the message that holds those joints where they were measured
-    (`build`: the joints and their positions, in that order)."""
+    (`build`: the joints and their positions, in that order). `path`: the points the message
+    sends them through, if the bridge may work out where the controller drives them at a
+    given time (a stop while their measurements are late holds them there); None: it may
+    not, and such a stop fails."""
 
     joints: Callable[[P], Sequence[str]]
     runs_for_s: Callable[[P], float]
     build: Callable[[Sequence[str], Sequence[float], MessageKit], Any]
+    path: Callable[[P], Sequence[PathPoint]] | None = None
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ import msgspec
 
 from .._enums import Role
 from .._types import ActionParams, Finite, JointName, Strict, whole
-from ._spec import ActionSpec, Effect, Hold, Invariant, MessageKit, Publish
+from ._spec import ActionSpec, Effect, Hold, Invariant, MessageKit, PathPoint, Publish
 
 TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
 MAX_JOINTS = 64
@@ -99,6 +99,14 @@ def _runs_for_s(params: ArmJointParams) -> float:
     return params.trajectory()[-1].time_from_start_s
 
 
+def _path(params: ArmJointParams) -> list[PathPoint]:
+    """The points as `trajectory` sends them (its velocities: none unless given)."""
+    return [PathPoint(tuple(p.positions),
+                      tuple(p.velocities) if p.velocities is not None else None,
+                      p.time_from_start_s)
+            for p in params.trajectory()]
+
+
 SPEC = ActionSpec(
     order=20,
     name="arm_joint",
@@ -110,7 +118,7 @@ SPEC = ActionSpec(
     ros=Publish(topic_key="joint_trajectory_topic", type_name=TRAJECTORY, build=trajectory,
                 group_key="arms",
                 hold=Hold(joints=lambda p: p.joints, runs_for_s=_runs_for_s,
-                          build=held_where_measured)),
+                          build=held_where_measured, path=_path)),
     invariants=(Invariant.ESTOP_GUARD, Invariant.FINITE, Invariant.JOINT_GROUP),
     example={"joints": ["elbow"], "positions": [0.8], "duration_s": 0.5},
 )

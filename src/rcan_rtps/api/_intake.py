@@ -22,6 +22,7 @@ import asyncio
 import logging
 import time
 from collections.abc import Awaitable, Callable
+from contextlib import AbstractContextManager
 from typing import Any
 
 import msgspec
@@ -56,6 +57,10 @@ log = logging.getLogger(__name__)
 Reply = tuple[int, Any]
 Deliver = Callable[[Reply], Awaitable[None]]
 Observe = Callable[[float], None]
+# Calls its argument, within the block, if the request's client hangs up
+# (`ConnectionDeadlines.hung_up`, bound to a request).
+HangUp = Callable[[Callable[[], None]], AbstractContextManager[None]]
+CLIENT_CLOSED = 499  # the status of a request whose client hung up before its answer (nginx's)
 
 TOO_DEEP = "JSON is nested too deeply"
 # A bug in validation must not take a transport down: it is answered (and audited) like this.
@@ -194,16 +199,18 @@ def _replay_refusal(message: NormalizedCommand | Heartbeat | Invoke | InvokeCanc
 
 async def decide(governor: Governor, principal: Principal, item: Intake,
                  observe: Observe | None = None,
-                 invocations: Skills | None = None) -> Reply:
+                 invocations: Skills | None = None, hung_up: HangUp | None = None) -> Reply:
     """The decision for one intake; pre-command refusals are audited for the principal. An
-    INVOKE of a goal is answered when the goal ends (`_invoke`)."""
+    INVOKE of a goal is answered when the goal ends (`_invoke`); with `hung_up`, an INVOKE
+    whose client hangs up before that is answered to nobody (`CLIENT_CLOSED`) and its
+    motion stopped (`_invoke`: nobody is left to answer for it)."""
     started = time.perf_counter()
     try:
         if item.heartbeat is not None:
             return 200, heartbeat(governor, principal, item.heartbeat)
         if item.message3 is not None:
             return await _message3(governor, principal, item.message3,
-                                   invocations or NO_SKILLS)
+                                   invocations or NO_SKILLS, hung_up)
         if item.command is not None:
             decision = await governor.decide(item.command, principal)
             return decision.http_status, replied(decision.body(), item.command.envelope)
@@ -228,7 +235,7 @@ async def decide(governor: Governor, principal: Principal, item: Intake,
 
 async def _message3(governor: Governor, principal: Principal,
                     message: Invoke | InvokeCancel | Authorization,
-                    skills: Skills) -> Reply:
+                    skills: Skills, hung_up: HangUp | None) -> Reply:
     if isinstance(message, Authorization):
         from ._invoke import authorize  # with the INVOKEs: see `_skills`
 
@@ -236,10 +243,32 @@ async def _message3(governor: Governor, principal: Principal,
     if isinstance(message, InvokeCancel):
         return await skills.invocations().cancel(governor, principal, message)
     started = await skills.invocations().start(governor, principal, message)
-    if started.finish is not None:
+    if started.finish is None:
+        assert started.reply is not None
+        return started.reply
+    if hung_up is None:
         return await started.finish()
-    assert started.reply is not None
-    return started.reply
+    return await _unless_hung_up(started.finish(), hung_up)
+
+
+async def _unless_hung_up(finish: Awaitable[Reply], hung_up: HangUp) -> Reply:
+    """An INVOKE's answer, given up if its client hangs up first (a server that lets its
+    handler run on after that tells no one): its wait is cancelled, which stops its motion."""
+    answering = asyncio.ensure_future(finish)
+    left = False
+
+    def leave() -> None:
+        nonlocal left
+        left = True
+        answering.cancel()
+
+    with hung_up(leave):
+        try:
+            return await answering
+        except asyncio.CancelledError:
+            if not left:  # this handler itself was cancelled: so is `answering`
+                raise
+    return CLIENT_CLOSED, error_body("CLIENT_CLOSED", reason="client_hung_up", outcome="failed")
 
 
 def replied(body: DecisionBody, envelope: Envelope | None) -> DecisionBody:

@@ -4,6 +4,7 @@ heartbeat and goals. The rest (HiTL, audit reads, images, thoughts, skills) is i
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Awaitable
 
 from aiohttp import web
@@ -25,6 +26,7 @@ from ._errors import BodyEncoding
 from ._intake import intake
 from ._keys import (
     CHECKS,
+    DEADLINES,
     GOVERNOR,
     INVOCATIONS,
     OBSERVE,
@@ -63,8 +65,13 @@ async def post_command(request: web.Request) -> web.Response:
         response = json_response(body, status)
         response.force_close()  # the rest of the body is not worth reading
         return response
+    # An INVOKE is answered when its skill is done: a client that hangs up before that is
+    # gone, and its skill's motion is stopped (aiohttp runs the handler on, telling no one).
+    deadlines = request.app.get(DEADLINES)
+    hung_up = None if deadlines is None else functools.partial(deadlines.hung_up, request)
     status, body = await run_command(governor, principal, raw, request.app[OBSERVE],
-                                     request.app[CHECKS], request.app[INVOCATIONS], warnings)
+                                     request.app[CHECKS], request.app[INVOCATIONS], warnings,
+                                     hung_up)
     return json_response(body, status)
 
 

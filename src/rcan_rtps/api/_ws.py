@@ -15,8 +15,9 @@ when the goal ends, while the frames behind it go on being decided. A bad frame
 (invalid UTF-8, not JSON, schema, 413) gets its error outcome frame and the socket goes on; so
 does a command whose decision raised (503 frame). A *text* frame that is not UTF-8 is a
 protocol error (RFC 6455 §8.1): aiohttp closes the socket (1007). Any client frame, ping or
-pong counts as a heartbeat. When the socket closes, a control session its principal holds ends
-at once: the governor stops the robot (§10.8) after the command in flight and every stop sent
+pong counts as a heartbeat. When the socket closes, the motion of its INVOKEs not answered yet
+stops at once (nobody is left to answer: `_invoke`), and a control session its principal holds
+ends: the governor stops the robot (§10.8) after the command in flight and every stop sent
 have been decided; queued commands are dropped.
 
 Outcome frames go out through the socket's outbox (`_Outbox`), never awaited by what reads
@@ -269,16 +270,20 @@ class _Commands:
         task.add_done_callback(self._invoking.discard)
 
     async def close(self) -> None:
-        """Stop taking commands; finish the one in flight and every stop; drop the rest."""
+        """Stop taking commands; stop the motion of the INVOKEs under way (nobody is left to
+        answer: `_invoke`) at once; finish the command in flight and every stop; drop the
+        rest."""
         self._worker.cancel()
+        invoking = list(self._invoking)
+        for task in invoking:  # now, not once the command in flight is decided
+            task.cancel()
+        await asyncio.gather(*invoking, return_exceptions=True)
         with contextlib.suppress(asyncio.CancelledError):
             await self._worker
         if self._current is not None:
             with contextlib.suppress(Exception):
                 await self._current
         await self._lane.drain()  # a stop the client sent must never be dropped
-        for task in list(self._invoking):  # nobody is left to answer
-            task.cancel()
         await self._outbox.close()
 
 

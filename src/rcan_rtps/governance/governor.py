@@ -693,6 +693,11 @@ class Governor:
         return active is not None and (active.owner, active.message_id) == (principal.name,
                                                                             sent_by)
 
+    def goal_held(self, goal_id: str) -> bool:
+        """Whether the goal `goal_id` still holds the base: sent, not ended, and not taken by
+        a stop (which cancels it itself)."""
+        return goal_id in self.streams.goals
+
     def trajectory_running(self, sent_by: str) -> bool:
         """Whether the trajectory the command `sent_by` sent may still be running (not held
         by a stop, its time not up); when that cannot be read, it may."""

@@ -1,4 +1,4 @@
-"""An INVOKE whose client leaves before its answer.
+"""An INVOKE whose client leaves before its answer, and INVOKE_CANCEL on the WebSocket.
 
 An INVOKE is answered when its skill is done (a goal's end, a move's stream's end, an arm's
 trajectory's time). A client that leaves before that — its HTTP request hung up on, its
@@ -7,6 +7,10 @@ stop it (the stream ended with zero, the arm held, the goal cancelled; each audi
 INVOKE's client left`) and the INVOKE is answered once, in the log (`failure`). Before, the
 motion ran on until the INVOKE's `timeout_ms` or its principal's session lapsed, or (the
 WebSocket) until its command in flight had been decided.
+
+An INVOKE_CANCEL is the stop of one skill's motion: on the WebSocket it goes through the stop
+lane, never behind the socket's queue (a command held for a human, a full backlog), never 429.
+Before, it waited its turn behind them while the skill's motion ran on.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from waiting import eventually
 
 from rcan_rtps.api import ApiServer
 from tests.api.apihelpers import ZERO, Api, auth, own_stops
-from tests.api.test_invoke import invoke, nudge, results, sent, stream_ends, wave
+from tests.api.test_invoke import cancel, invoke, nudge, results, sent, stream_ends, wave
 
 SKILLS = ("skills: {go_home: {action: navigate, params: {x: 0, y: 0, yaw: 0}}, "
           "nudge: {action: move, params: {linear_x: 0.3}, allow: [duration_s]}, "
@@ -31,6 +35,7 @@ SKILLS = ("skills: {go_home: {action: navigate, params: {x: 0, y: 0, yaw: 0}}, "
           "allow: [duration_s]}}\n"
           "  motion: {locks: [{name: teleop, priority: 0}]}")  # a lock a USER may engage
 LOCK = {"action": "lock", "params": {"name": "teleop"}}
+WS_BACKLOG = 32  # ApiSettings.ws_max_in_flight
 BY_CLIENT_LEFT = "INVOKE's client left"  # the `why` of what stopped its motion
 
 
@@ -134,3 +139,72 @@ async def test_a_websocket_invoke_is_stopped_as_its_socket_closes(api: Api, kind
     _not_running(api, kind, "inv-w")
     await asyncio.wait_for(closing, 30)
     assert len(results(api, "inv-w")) == 1
+
+
+async def _outcomes(ws: aiohttp.ClientWebSocketResponse, count: int) -> list[dict[str, Any]]:
+    """The next `count` outcome frames (others skipped)."""
+    found: list[dict[str, Any]] = []
+
+    async def wait() -> None:
+        while len(found) < count:
+            msg = await ws.receive()
+            assert msg.type is aiohttp.WSMsgType.TEXT, msg
+            frame = json.loads(msg.data)
+            if frame["type"] == "outcome":
+                found.append(frame)
+
+    await asyncio.wait_for(wait(), 30)
+    return found
+
+
+@pytest.mark.parametrize("ahead", ["held", "full"])
+async def test_a_websocket_invoke_cancel_does_not_wait_behind_the_queue(api: Api,
+                                                                        ahead: str) -> None:
+    """A command in flight that is not decided (`held`), and behind it a full backlog
+    (`full`): the INVOKE_CANCEL is answered and the skill's stream ended before any of them
+    is decided. Before, it waited behind them (`held`), or was refused 429 (`full`)."""
+    release, entered = api.hold_decisions(lambda c: c.action == "lock", decided=False)
+    async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
+        await ws.send_str(json.dumps(nudge("inv-c")))
+        await sent(api, "move")
+        await ws.send_str(json.dumps(LOCK))
+        await asyncio.wait_for(entered.wait(), 10)
+        if ahead == "full":
+            for _ in range(WS_BACKLOG):
+                await ws.send_str(json.dumps(LOCK))  # each held in its turn
+        await ws.send_str(json.dumps(cancel("inv-c")))
+        try:  # the INVOKE's answer and the cancel's, each the INVOKE_RESULT `cancelled`
+            answers = await _outcomes(ws, 2)
+            assert [e for e in api.entries if e.get("action_type") == "lock"] == []
+        finally:
+            release.set()
+        assert [(f["http_status"], f["body"].get("reply_to"), f["body"].get("status"))
+                for f in answers] == [(200, "inv-c", "cancelled")] * 2, answers
+        assert api.dispatcher.samples[-1] == ZERO
+        [end] = stream_ends(api, "inv-c")
+        assert (end["params"]["reason"], end["params"]["why"]) == ("cancelled",
+                                                                   "INVOKE_CANCEL"), end
+        [locked] = await _outcomes(ws, 1)
+        assert locked["body"]["outcome"] == "executed", locked
+    assert len(results(api, "inv-c")) == 1
+
+
+async def test_a_websocket_invoke_cancel_of_a_queued_invoke_cancels_it_once_decided(
+        api: Api) -> None:
+    """Guard of the lane above (passes before it too): an INVOKE_CANCEL that comes while its
+    INVOKE still waits in the socket's queue is not `not_found` for overtaking it — it is
+    decided once its INVOKE is, which it then cancels."""
+    release, entered = api.hold_decisions(lambda c: c.action == "lock", decided=False)
+    async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
+        await ws.send_str(json.dumps(LOCK))
+        await asyncio.wait_for(entered.wait(), 10)
+        await ws.send_str(json.dumps(nudge("inv-q")))
+        await ws.send_str(json.dumps(cancel("inv-q")))
+        release.set()
+        answers = await _outcomes(ws, 3)
+    by_invoke = [(f["body"]["reply_to"], f["body"]["status"]) for f in answers
+                 if f["body"].get("reply_to") == "inv-q"]
+    assert by_invoke == [("inv-q", "cancelled")] * 2, answers
+    assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
+    [end] = stream_ends(api, "inv-q")
+    assert end["params"]["why"] == "INVOKE_CANCEL", end

@@ -300,16 +300,19 @@ async def decide_safely(governor: Governor, principal: Principal, item: Intake,
 
 
 class StopLane:
-    """`stop`/`estop` of one connection, decided the moment they arrive, concurrently with (and
-    never behind) the connection's other commands. Their replies may overtake earlier
-    commands' replies; each carries its `message_id`."""
+    """`stop`/`estop` of one connection (and, on the WebSocket, INVOKE_CANCEL: the stop of one
+    skill's motion), decided the moment they arrive, concurrently with (and never behind) the
+    connection's other commands. Their replies may overtake earlier commands' replies; each
+    carries its `message_id` (an INVOKE_CANCEL's INVOKE_RESULT, its `reply_to`)."""
 
     def __init__(self, governor: Governor, principal: Principal, deliver: Deliver, *,
-                 observe: Observe | None = None, width: int = 4) -> None:
+                 observe: Observe | None = None, width: int = 4,
+                 invocations: Skills | None = None) -> None:
         self._governor = governor
         self._principal = principal
         self._deliver = deliver
         self._observe = observe
+        self._invocations = invocations  # an INVOKE_CANCEL's INVOKEs
         self._room = asyncio.Semaphore(width)
         self._running: set[asyncio.Task[None]] = set()
 
@@ -322,7 +325,8 @@ class StopLane:
 
     async def _run(self, item: Intake) -> None:
         try:
-            reply = await decide_safely(self._governor, self._principal, item, self._observe)
+            reply = await decide_safely(self._governor, self._principal, item, self._observe,
+                                        self._invocations)
             await self._deliver(reply)
         except Exception:  # a failed delivery must not go unnoticed, nor kill the lane
             log.exception("delivering a stop outcome to %s failed", self._principal.name,

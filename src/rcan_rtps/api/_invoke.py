@@ -274,7 +274,9 @@ class Invocations:
         """Its arm held, its goal cancelled (each audited, as an INVOKE_CANCEL's), then its
         answer. An INVOKE_CANCEL under way stops them itself: never held or cancelled twice."""
         try:
-            if not running.cancelled:
+            if running.cancelled:
+                stopped.append("its INVOKE_CANCEL stops its motion")
+            else:
                 stopped += await self._stop_left(governor, principal, running, decision)
         except Exception:  # nobody awaits this task: the log has it, and it is answered
             log.exception("stopping the motion of INVOKE %s, whose client left, failed",

@@ -26,6 +26,7 @@ import pytest
 from waiting import eventually
 
 from rcan_rtps.api import ApiServer
+from rcan_rtps.api._keys import DEADLINES
 from tests.api.apihelpers import ZERO, Api, auth, own_stops
 from tests.api.test_invoke import cancel, invoke, nudge, results, sent, stream_ends, wave
 
@@ -111,6 +112,33 @@ async def test_a_rest_invoke_hung_up_on_stops_its_motion(served: tuple[Api, str]
     assert answer["deny_reason"].startswith("its client left before it was done"), answer
     _not_running(api, kind, "inv-h")
     assert own_stops(api.entries) == []  # its own motion alone: no stop of the principal's
+
+
+async def test_a_rest_invoke_hung_up_on_while_it_is_decided_stops_once_started(
+        served: tuple[Api, str]) -> None:
+    """The client hangs up while the skill's command is being decided (its stream started,
+    the decision not yet returned): the wait for its answer begins after its connection is
+    gone, and its motion stops then."""
+    api, url = served
+    release, entered = api.hold_decisions(lambda c: c.action == "move", decided=True)
+    async with aiohttp.ClientSession() as session:
+        call = asyncio.ensure_future(session.post(f"{url}/api/command", json=nudge("inv-d"),
+                                                  headers=auth("planner")))
+        await asyncio.wait_for(entered.wait(), 10)
+        call.cancel()
+    await eventually(lambda: _conn_count(api) == 0, what="its connection gone")
+    assert api.gov.streams.active is not None  # started, its INVOKE not yet waiting
+    release.set()
+    await eventually(lambda: _stops(api, "move", "inv-d"), what="its motion stopped")
+    assert len(_stopped(api, "move", "inv-d")) == 1
+    [answer] = await eventually(lambda: results(api, "inv-d"), what="its INVOKE_RESULT")
+    assert answer["status"] == "failure", answer
+
+
+def _conn_count(api: Api) -> int:
+    """Connections the server still watches (`ConnectionDeadlines`)."""
+    assert api.app is not None
+    return len(api.app[DEADLINES].watched)
 
 
 @pytest.mark.parametrize("kind", ["move", "arm", "goal"])

@@ -236,3 +236,34 @@ async def test_a_websocket_invoke_cancel_of_a_queued_invoke_cancels_it_once_deci
     assert api.gov.streams.active is None and api.dispatcher.samples[-1] == ZERO
     [end] = stream_ends(api, "inv-q")
     assert end["params"]["why"] == "INVOKE_CANCEL", end
+
+
+async def test_a_websocket_invoke_cancel_past_its_room_is_refused_and_a_stop_still_goes(
+        api: Api, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`ws_max_in_flight` INVOKE_CANCELs being decided (a goal slow to wind down): one more is
+    refused 429 at once, and a `stop` behind it is decided. Before, the reader waited for
+    room in the cancel lane, and the stop behind it with it."""
+    wound_down = asyncio.Event()
+    recorded = api.dispatcher.cancel_goal
+
+    async def slow_cancel(goal_id: str) -> bool:
+        await wound_down.wait()
+        return await recorded(goal_id)
+
+    monkeypatch.setattr(api.dispatcher, "cancel_goal", slow_cancel)
+    slow = cancel("inv-g")
+    slow["payload"]["cancel_timeout_ms"] = 600_000  # each waits for the goal, not a clock
+    async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
+        await ws.send_str(json.dumps(invoke("go_home", "inv-g")))
+        await sent(api, "navigate")
+        for _ in range(WS_BACKLOG + 1):
+            await ws.send_str(json.dumps(slow))
+        await ws.send_str(json.dumps({"action": "stop"}))
+        try:
+            frames = await _outcomes(ws, 2)
+        finally:
+            wound_down.set()
+        assert [f["http_status"] for f in frames] == [429, 200], frames
+        assert frames[1]["body"]["outcome"] == "executed", frames
+        assert [e["outcome"] for e in api.entries if e.get("action_type") == "stop"] == [
+            "executed"]

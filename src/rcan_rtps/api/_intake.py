@@ -319,6 +319,18 @@ class StopLane:
     async def submit(self, item: Intake) -> None:
         """Start deciding `item`; waits only while `width` stops are already being decided."""
         await self._room.acquire()
+        self._start(item)
+
+    async def try_submit(self, item: Intake) -> bool:
+        """Start deciding `item` if there is room now (never waits); False, not taken, if
+        `width` are already being decided. For what may be refused: a stop never is."""
+        if self._room.locked():
+            return False
+        await self._room.acquire()  # not locked: taken at once, no suspension
+        self._start(item)
+        return True
+
+    def _start(self, item: Intake) -> None:
         task = asyncio.create_task(self._run(item))
         self._running.add(task)
         task.add_done_callback(self._running.discard)

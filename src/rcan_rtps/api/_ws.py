@@ -206,6 +206,8 @@ class _Commands:
         # winding down, up to its cancel_timeout_ms) and must not take a stop's room.
         self._cancel_lane = StopLane(governor, principal, self._deliver, observe=observe,
                                      width=settings.ws_max_in_flight, invocations=invocations)
+        self._cancel_room = settings.ws_max_in_flight  # cancels held for queued INVOKEs
+        self._held_cancels = 0
         self._current: asyncio.Future[Reply] | None = None
         self._worker = asyncio.create_task(self._work())
 
@@ -218,9 +220,9 @@ class _Commands:
         self._outbox.pong(payload)
 
     async def take(self, raw: bytes) -> None:
-        """Validate now; a stop or an INVOKE_CANCEL is decided at once (never 429), anything
-        else queues. A deaf client's other commands are not taken: it would never learn their
-        outcomes."""
+        """Validate now; a stop is decided at once (never 429), so is an INVOKE_CANCEL (429
+        only past `ws_max_in_flight` of them), anything else queues. A deaf client's other
+        commands are not taken: it would never learn their outcomes."""
         item = intake(raw, self._limit, self._checks, self._principal.name)
         if isinstance(item.message3, InvokeCancel):
             await self._invoke_cancel(item, item.message3)
@@ -241,14 +243,21 @@ class _Commands:
             self._queued[item.message3.msg_id] += 1
 
     async def _invoke_cancel(self, item: Intake, cancel: InvokeCancel) -> None:
-        """An INVOKE_CANCEL stops its skill's motion: through the lane, never behind this
-        socket's queue, never 429. One whose INVOKE is still queued here waits for it to be
-        decided (then there is motion to stop, or a hold to withdraw; before, it would be
-        `not_found` and the INVOKE would run after it)."""
-        if self._queued[cancel.invoke_id] > 0:
+        """An INVOKE_CANCEL stops its skill's motion: through its lane, never behind this
+        socket's queue; 429 only when `ws_max_in_flight` are already being decided. One whose
+        INVOKE is still queued here waits for it to be decided (then there is motion to stop,
+        or a hold to withdraw; before, it would be `not_found` and the INVOKE would run after
+        it), at most `ws_max_in_flight` held so."""
+        if self._queued[cancel.invoke_id] > 0 and self._held_cancels < self._cancel_room:
             self._cancels.setdefault(cancel.invoke_id, []).append(item)
+            self._held_cancels += 1
             return
-        await self._cancel_lane.submit(item)
+        # Full: refused, not waited for — waiting here would hold up this socket's reader,
+        # and with it the stops behind (a client with that many cancels out can send `stop`).
+        if not await self._cancel_lane.try_submit(item):
+            body = error_body(ErrorCode.RATE_LIMITED, reason="too_many_in_flight",
+                              message_id=item.message_id)
+            await self._deliver((429, body))
 
     async def _deliver(self, reply: Reply) -> None:
         status, body = reply
@@ -279,7 +288,8 @@ class _Commands:
             await self._invoke(invoke, skills)
         finally:
             for cancel in self._cancels.pop(invoke.msg_id, ()):
-                await self._cancel_lane.submit(cancel)
+                self._held_cancels -= 1
+                await self._cancel_lane.submit(cancel)  # the worker waits, not the reader
 
     async def _invoke(self, invoke: Invoke, skills: Skills) -> None:
         """Decided in order like any command; an INVOKE whose goal is under way is answered
@@ -327,6 +337,7 @@ class _Commands:
             for cancel in cancels:
                 await self._cancel_lane.submit(cancel)
         self._cancels.clear()
+        self._held_cancels = 0
         await self._lane.drain()  # a stop the client sent must never be dropped
         await self._cancel_lane.drain()
         await self._outbox.close()

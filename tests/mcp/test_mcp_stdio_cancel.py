@@ -176,13 +176,13 @@ async def cancel_read_first(api: Api, client: Client, tool: str, args: dict[str,
 def _cancels_seen(api: Api) -> asyncio.Event:
     """Set once the governor has been told of a cancelled command (and has acted on it)."""
     seen = asyncio.Event()
-    command_cancelled = api.gov.command_cancelled
+    motion_cancelled = api.gov.motion_cancelled
 
     def told(principal: Principal) -> Any:
-        stopping = command_cancelled(principal)
+        cancelled = motion_cancelled(principal)
         seen.set()
-        return stopping
+        return cancelled
 
-    api.gov.command_cancelled = told  # type: ignore[method-assign]
+    api.gov.motion_cancelled = told  # type: ignore[method-assign]
     return seen
 

@@ -89,11 +89,14 @@ class HeartbeatAck(msgspec.Struct, kw_only=True):
 
 class CommandCancelAck(msgspec.Struct, kw_only=True, omit_defaults=True):
     """POST /api/command/cancel: whether any of the principal's motion was stopped (it was on
-    its way or running), and then that stop's decision (its audit entry's id)."""
+    its way or running), and then that stop's decision (its audit entry's id); and the
+    pending ids of its motion held for a human that was withdrawn (HITL_WITHDRAWN: it never
+    runs), when there was any — `stopped` stays false for those alone: nothing moved."""
 
     principal: str
     stopped: bool
     decision: DecisionBody | None = None
+    withdrawn: list[str] = msgspec.field(default_factory=list)
 
 
 class HeartbeatReply(msgspec.Struct, kw_only=True, omit_defaults=True):

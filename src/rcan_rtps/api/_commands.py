@@ -19,7 +19,16 @@ from rcan_rtps.rcan import ErrorCode, convert_at, decode_object
 
 from ._bodies import error_body
 from ._errors import BodyEncoding, BodyTimeout
-from ._intake import NO_CHECKS, Checks, Observe, Reply, decide, intake, with_warnings
+from ._intake import (
+    NO_CHECKS,
+    Checks,
+    HangUp,
+    Observe,
+    Reply,
+    decide,
+    intake,
+    with_warnings,
+)
 from ._skills import Skills
 
 T = TypeVar("T")
@@ -120,12 +129,12 @@ async def schema_failure(governor: Governor, principal: Principal, path: str,
 async def run_command(governor: Governor, principal: Principal, raw: bytes,
                       observe: Observe | None = None, checks: Checks = NO_CHECKS,
                       invocations: Skills | None = None,
-                      warnings: tuple[str, ...] = ()) -> Reply:
+                      warnings: tuple[str, ...] = (), hung_up: HangUp | None = None) -> Reply:
     """A whole body, already within the size limit, to its reply (an INVOKE of a goal: when
-    the goal has ended). `warnings`: what the transport found wrong around the body, which
-    a stop carries (`with_warnings`)."""
+    the goal has ended; given up if `hung_up` tells its client left). `warnings`: what the
+    transport found wrong around the body, which a stop carries (`with_warnings`)."""
     item = with_warnings(intake(raw, len(raw), checks, principal.name), warnings)
-    return await decide(governor, principal, item, observe, invocations)
+    return await decide(governor, principal, item, observe, invocations, hung_up)
 
 
 def decode_as(raw: bytes, kind: type[T]) -> T:

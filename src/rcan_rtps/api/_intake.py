@@ -22,6 +22,7 @@ import asyncio
 import logging
 import time
 from collections.abc import Awaitable, Callable
+from contextlib import AbstractContextManager
 from typing import Any
 
 import msgspec
@@ -56,6 +57,10 @@ log = logging.getLogger(__name__)
 Reply = tuple[int, Any]
 Deliver = Callable[[Reply], Awaitable[None]]
 Observe = Callable[[float], None]
+# Calls its argument, within the block, if the request's client hangs up
+# (`ConnectionDeadlines.hung_up`, bound to a request).
+HangUp = Callable[[Callable[[], None]], AbstractContextManager[None]]
+CLIENT_CLOSED = 499  # the status of a request whose client hung up before its answer (nginx's)
 
 TOO_DEEP = "JSON is nested too deeply"
 # A bug in validation must not take a transport down: it is answered (and audited) like this.
@@ -194,16 +199,18 @@ def _replay_refusal(message: NormalizedCommand | Heartbeat | Invoke | InvokeCanc
 
 async def decide(governor: Governor, principal: Principal, item: Intake,
                  observe: Observe | None = None,
-                 invocations: Skills | None = None) -> Reply:
+                 invocations: Skills | None = None, hung_up: HangUp | None = None) -> Reply:
     """The decision for one intake; pre-command refusals are audited for the principal. An
-    INVOKE of a goal is answered when the goal ends (`_invoke`)."""
+    INVOKE of a goal is answered when the goal ends (`_invoke`); with `hung_up`, an INVOKE
+    whose client hangs up before that is answered to nobody (`CLIENT_CLOSED`) and its
+    motion stopped (`_invoke`: nobody is left to answer for it)."""
     started = time.perf_counter()
     try:
         if item.heartbeat is not None:
             return 200, heartbeat(governor, principal, item.heartbeat)
         if item.message3 is not None:
             return await _message3(governor, principal, item.message3,
-                                   invocations or NO_SKILLS)
+                                   invocations or NO_SKILLS, hung_up)
         if item.command is not None:
             decision = await governor.decide(item.command, principal)
             return decision.http_status, replied(decision.body(), item.command.envelope)
@@ -228,7 +235,7 @@ async def decide(governor: Governor, principal: Principal, item: Intake,
 
 async def _message3(governor: Governor, principal: Principal,
                     message: Invoke | InvokeCancel | Authorization,
-                    skills: Skills) -> Reply:
+                    skills: Skills, hung_up: HangUp | None) -> Reply:
     if isinstance(message, Authorization):
         from ._invoke import authorize  # with the INVOKEs: see `_skills`
 
@@ -236,10 +243,32 @@ async def _message3(governor: Governor, principal: Principal,
     if isinstance(message, InvokeCancel):
         return await skills.invocations().cancel(governor, principal, message)
     started = await skills.invocations().start(governor, principal, message)
-    if started.finish is not None:
+    if started.finish is None:
+        assert started.reply is not None
+        return started.reply
+    if hung_up is None:
         return await started.finish()
-    assert started.reply is not None
-    return started.reply
+    return await _unless_hung_up(started.finish(), hung_up)
+
+
+async def _unless_hung_up(finish: Awaitable[Reply], hung_up: HangUp) -> Reply:
+    """An INVOKE's answer, given up if its client hangs up first (a server that lets its
+    handler run on after that tells no one): its wait is cancelled, which stops its motion."""
+    answering = asyncio.ensure_future(finish)
+    left = False
+
+    def leave() -> None:
+        nonlocal left
+        left = True
+        answering.cancel()
+
+    with hung_up(leave):
+        try:
+            return await answering
+        except asyncio.CancelledError:
+            if not left:  # this handler itself was cancelled: so is `answering`
+                raise
+    return CLIENT_CLOSED, error_body("CLIENT_CLOSED", reason="client_hung_up", outcome="failed")
 
 
 def replied(body: DecisionBody, envelope: Envelope | None) -> DecisionBody:
@@ -271,29 +300,45 @@ async def decide_safely(governor: Governor, principal: Principal, item: Intake,
 
 
 class StopLane:
-    """`stop`/`estop` of one connection, decided the moment they arrive, concurrently with (and
-    never behind) the connection's other commands. Their replies may overtake earlier
-    commands' replies; each carries its `message_id`."""
+    """`stop`/`estop` of one connection (and, on the WebSocket, INVOKE_CANCEL: the stop of one
+    skill's motion), decided the moment they arrive, concurrently with (and never behind) the
+    connection's other commands. Their replies may overtake earlier commands' replies; each
+    carries its `message_id` (an INVOKE_CANCEL's INVOKE_RESULT, its `reply_to`)."""
 
     def __init__(self, governor: Governor, principal: Principal, deliver: Deliver, *,
-                 observe: Observe | None = None, width: int = 4) -> None:
+                 observe: Observe | None = None, width: int = 4,
+                 invocations: Skills | None = None) -> None:
         self._governor = governor
         self._principal = principal
         self._deliver = deliver
         self._observe = observe
+        self._invocations = invocations  # an INVOKE_CANCEL's INVOKEs
         self._room = asyncio.Semaphore(width)
         self._running: set[asyncio.Task[None]] = set()
 
     async def submit(self, item: Intake) -> None:
         """Start deciding `item`; waits only while `width` stops are already being decided."""
         await self._room.acquire()
+        self._start(item)
+
+    async def try_submit(self, item: Intake) -> bool:
+        """Start deciding `item` if there is room now (never waits); False, not taken, if
+        `width` are already being decided. For what may be refused: a stop never is."""
+        if self._room.locked():
+            return False
+        await self._room.acquire()  # not locked: taken at once, no suspension
+        self._start(item)
+        return True
+
+    def _start(self, item: Intake) -> None:
         task = asyncio.create_task(self._run(item))
         self._running.add(task)
         task.add_done_callback(self._running.discard)
 
     async def _run(self, item: Intake) -> None:
         try:
-            reply = await decide_safely(self._governor, self._principal, item, self._observe)
+            reply = await decide_safely(self._governor, self._principal, item, self._observe,
+                                        self._invocations)
             await self._deliver(reply)
         except Exception:  # a failed delivery must not go unnoticed, nor kill the lane
             log.exception("delivering a stop outcome to %s failed", self._principal.name,

@@ -11,7 +11,10 @@ velocity stream ends (`success` by its own `duration_s`; anything else that ende
 an e-stop, another move, a lost session or robot — makes it a `failure` naming that), or at
 `timeout_ms` (the stream is then ended, zero sent). A held
 INVOKE (HiTL) is answered 202 `pending` like any held command; its approval is answered to
-the approver.
+the approver. An INVOKE whose client leaves before its answer (its WebSocket closes, its HTTP
+request is hung up on: the wait for its answer is cancelled) leaves nobody to answer for its
+motion: that is stopped as its INVOKE_CANCEL would stop it (`why: INVOKE's client left`), in
+a task of its own, and the INVOKE is answered in the log alone, `failure`.
 
 INVOKE_CANCEL names an INVOKE of its own sender by msg_id: a goal it started is cancelled
 through the governor (audited), an arm it moves is held where it is (audited:
@@ -30,6 +33,7 @@ INVOKE_RESULT can be read back from the log (rcan-spec's conformance case L3-INV
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Mapping
@@ -59,6 +63,7 @@ from rcan_rtps.rcan import (
 from ._bodies import Capability, SkillList, SkillView
 from .ports import GoalView, RobotView
 
+log = logging.getLogger(__name__)
 Reply = tuple[int, object]
 TERMINAL = frozenset({"succeeded", "canceled", "aborted", "rejected", "lost"})
 FINISHED_KEPT = 1024  # answered INVOKEs remembered for a late INVOKE_CANCEL
@@ -76,6 +81,7 @@ _STATUS_OF_KIND: dict[str, InvokeStatus] = {
 # Why an INVOKE ends the stream of its move (its STREAM_ENDED's `why`).
 BY_INVOKE_CANCEL = "INVOKE_CANCEL"
 BY_INVOKE_TIMEOUT = "INVOKE timeout"
+BY_CLIENT_LEFT = "INVOKE's client left"
 # What ended a move's stream before it was done, for its INVOKE's `failure`.
 _STREAM_ENDED_BY = {
     EndReason.REPLACED: "another move of its sender's replaced it",
@@ -236,21 +242,67 @@ class Invocations:
     async def _until_answered(self, governor: Governor, principal: Principal,
                               key: tuple[str, str], running: _Running, decision: Decision,
                               finish: Awaitable[Reply]) -> Reply:
-        """`finish`, the INVOKE's answer; if its waiter is cancelled first (its WebSocket
-        closed), it is still answered in the log — `failure`, its client gone — so that every
-        INVOKE's lifecycle ends in an INVOKE_RESULT entry (§19.5)."""
+        """`finish`, the INVOKE's answer; if its waiter is cancelled first (its client left:
+        its WebSocket closed, its HTTP request hung up), its motion is stopped as its
+        INVOKE_CANCEL would stop it and it is answered in the log — `failure`, its client
+        gone — so that every INVOKE's lifecycle ends in an INVOKE_RESULT entry (§19.5)."""
         try:
             return await finish
         except asyncio.CancelledError:
             if not running.answering:
                 self._running.pop(key, None)
-                result = self._result(running, decision, "failure",
-                                      "its client left before it was done: not followed on")
-                task = asyncio.ensure_future(self._answer(governor, principal, key, running,
-                                                          result))
-                self._left.add(task)
-                task.add_done_callback(self._left.discard)
+                self._left_behind(governor, principal, key, running, decision)
             raise
+
+    def _left_behind(self, governor: Governor, principal: Principal, key: tuple[str, str],
+                     running: _Running, decision: Decision) -> None:
+        """An INVOKE whose client left before its answer: motion nobody is left to answer for
+        must not run on until its session times out. Its stream ends now (zero, no await);
+        its arm's hold, its goal's cancel and its answer are a task of their own, which the
+        cancelled waiter cannot cut off."""
+        ended = (running.stream is not None and not running.stream_end.done()
+                 and governor.end_stream(running.stream, principal, why=BY_CLIENT_LEFT))
+        task = asyncio.ensure_future(self._stopped_then_answered(
+            governor, principal, key, running, decision, ["its velocity stream ended, zero "
+                                                          "sent"] if ended else []))
+        self._left.add(task)
+        task.add_done_callback(self._left.discard)
+
+    async def _stopped_then_answered(self, governor: Governor, principal: Principal,
+                                     key: tuple[str, str], running: _Running,
+                                     decision: Decision, stopped: list[str]) -> InvokeResult:
+        """Its arm held, its goal cancelled (each audited, as an INVOKE_CANCEL's), then its
+        answer. An INVOKE_CANCEL under way stops them itself: never held or cancelled twice."""
+        try:
+            if running.cancelled:
+                stopped.append("its INVOKE_CANCEL stops its motion")
+            else:
+                stopped += await self._stop_left(governor, principal, running, decision)
+        except Exception:  # nobody awaits this task: the log has it, and it is answered
+            log.exception("stopping the motion of INVOKE %s, whose client left, failed",
+                          running.invoke_id, extra={"principal": principal.name})
+            stopped.append("stopping its motion failed (see the bridge's log)")
+        done = "; ".join(stopped) or "not followed on"
+        result = self._result(running, decision, "failure",
+                              f"its client left before it was done: {done}")
+        return await self._answer(governor, principal, key, running, result)
+
+    async def _stop_left(self, governor: Governor, principal: Principal, running: _Running,
+                         decision: Decision) -> list[str]:
+        stopped = []
+        if (running.trajectory is not None and not running.held.done()
+                and governor.trajectory_running(running.trajectory)):
+            held = await governor.hold_trajectory(running.trajectory, principal,
+                                                  message_id=decision.message_id,
+                                                  why=BY_CLIENT_LEFT)
+            stopped.append(f"the arm held where it was ({held.outcome.value})")
+        if (running.goal_id is not None and not running.ended.done()
+                and governor.goal_held(running.goal_id)):
+            cancelled = await governor.cancel_goal(running.goal_id, principal,
+                                                   message_id=decision.message_id,
+                                                   why=BY_CLIENT_LEFT)
+            stopped.append(f"its goal cancelled ({cancelled.outcome.value})")
+        return stopped
 
     async def _finish(self, governor: Governor, principal: Principal, invoke: Invoke,
                       key: tuple[str, str], running: _Running, decision: Decision) -> Reply:

@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING, Any
 import msgspec
 from aiohttp import web
 
-from rcan_rtps.governance import Decision, Principal
+from rcan_rtps.governance import Principal
+from rcan_rtps.governance.governor import ClientCancel
 
 from . import _rare_routes as rare
 from . import _routes as r
@@ -33,8 +34,8 @@ if TYPE_CHECKING:
 NOT_TEXT = "a string holds an unpaired surrogate: not Unicode text"
 
 
-async def _acked(stopping: Awaitable[Decision | None], principal: Principal) -> Reply:
-    return _reply(200, await r.cancel_acked(stopping, principal))
+async def _acked(cancelled: ClientCancel, principal: Principal) -> Reply:
+    return _reply(200, await r.cancel_acked(cancelled, principal))
 
 
 def _reply(status: int, body: Any) -> Reply:
@@ -80,8 +81,8 @@ class LocalApi:
             raise
 
     def cancel_motion(self) -> Awaitable[Reply]:
-        stopping = self._app[GOVERNOR].command_cancelled(self._principal)  # now, in this step
-        return _acked(stopping, self._principal)
+        cancelled = self._app[GOVERNOR].motion_cancelled(self._principal)  # now, in this step
+        return _acked(cancelled, self._principal)
 
     async def heartbeat(self) -> Reply:
         return _reply(200, r.heartbeat(self._app[GOVERNOR], self._principal))

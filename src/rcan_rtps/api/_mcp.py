@@ -40,6 +40,7 @@ from rcan_rtps.mcp_server.stops import Rescue, StopCall, not_served, stop_call, 
 from ._bodies import error_response, json_response
 from ._commands import read_limited, too_large
 from ._errors import BodyEncoding
+from ._intake import CLIENT_CLOSED
 from ._keys import DEADLINES, GOVERNOR, PRINCIPAL, SETTINGS
 
 if TYPE_CHECKING:
@@ -51,7 +52,6 @@ log = logging.getLogger(__name__)
 SESSION_HEADER = "Mcp-Session-Id"
 IDENTITY_MAX = 256
 EXTRA_HINT = "MCP needs the SDK on the bridge: pip install 'rcan-rtps[mcp]'"
-CLIENT_CLOSED = 499  # the status of a request whose client hung up before its answer (nginx's)
 
 
 def agent_of(request: web.Request) -> Agent:

@@ -148,8 +148,10 @@ PATHS: dict[str, dict[str, Any]] = {
         "postCommandCancel", "A motion command of yours was cancelled by your client before "
         "its answer (`rcan-rtps mcp` sends this for its MCP client): your motion that has not "
         "started never does, and yours that runs stops — nobody else's; audited when anything "
-        "was stopped. No body",
-        {"200": _json("CommandCancelAck", "what was stopped"), **_errors()})},
+        "was stopped. Your motion held for a human is withdrawn (never runs): `withdrawn` "
+        "lists its pending ids. No body",
+        {"200": _json("CommandCancelAck", "what was stopped, and what held was withdrawn"),
+         **_errors()})},
     "/api/status": {"get": _op("getStatus", "The robot's STATUS (GUEST+)",
                                {"200": _json("Status", "STATUS"), **_errors()})},
     "/api/heartbeat": {"post": _op("postHeartbeat", "Keep a control session alive",

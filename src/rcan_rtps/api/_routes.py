@@ -4,13 +4,14 @@ heartbeat and goals. The rest (HiTL, audit reads, images, thoughts, skills) is i
 
 from __future__ import annotations
 
-from collections.abc import Awaitable
+import functools
 
 from aiohttp import web
 
 from rcan_rtps import _transport_warnings as transport
-from rcan_rtps.governance import Decision, Governor, Principal
+from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.governance.clock import SystemClock, now_ms
+from rcan_rtps.governance.governor import ClientCancel
 
 from ._bodies import (
     ApiError,
@@ -25,6 +26,7 @@ from ._errors import BodyEncoding
 from ._intake import intake
 from ._keys import (
     CHECKS,
+    DEADLINES,
     GOVERNOR,
     INVOCATIONS,
     OBSERVE,
@@ -63,8 +65,13 @@ async def post_command(request: web.Request) -> web.Response:
         response = json_response(body, status)
         response.force_close()  # the rest of the body is not worth reading
         return response
+    # An INVOKE is answered when its skill is done: a client that hangs up before that is
+    # gone, and its skill's motion is stopped (aiohttp runs the handler on, telling no one).
+    deadlines = request.app.get(DEADLINES)
+    hung_up = None if deadlines is None else functools.partial(deadlines.hung_up, request)
     status, body = await run_command(governor, principal, raw, request.app[OBSERVE],
-                                     request.app[CHECKS], request.app[INVOCATIONS], warnings)
+                                     request.app[CHECKS], request.app[INVOCATIONS], warnings,
+                                     hung_up)
     return json_response(body, status)
 
 
@@ -72,15 +79,16 @@ async def post_command_cancel(request: web.Request) -> web.Response:
     """A client cancelled a motion command of its principal's before its answer (`rcan-rtps
     mcp`, for its MCP client): that principal's motion stops, nobody else's. No body."""
     governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
-    return json_response(await cancel_acked(governor.command_cancelled(principal), principal))
+    return json_response(await cancel_acked(governor.motion_cancelled(principal), principal))
 
 
-async def cancel_acked(stopping: Awaitable[Decision | None], principal: Principal
-                       ) -> CommandCancelAck:
-    """`Governor.command_cancelled`'s outcome (called by the caller, in its own step)."""
-    stopped = await stopping
+async def cancel_acked(cancelled: ClientCancel, principal: Principal) -> CommandCancelAck:
+    """`Governor.motion_cancelled`'s outcome (called by the caller, in its own step): what it
+    stopped, and what held for a human it withdrew (that is not `stopped`: it never moved)."""
+    stopped = await cancelled.stopping
     return CommandCancelAck(principal=principal.name, stopped=stopped is not None,
-                            decision=None if stopped is None else stopped.body())
+                            decision=None if stopped is None else stopped.body(),
+                            withdrawn=list(cancelled.withdrawn))
 
 
 async def get_status(request: web.Request) -> web.Response:

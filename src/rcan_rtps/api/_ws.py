@@ -8,15 +8,19 @@ socket opens and at each change of that list (`_approvals`). Client frames are C
 bodies (text, or binary UTF-8 JSON). Each is validated as it arrives; a valid `stop` or `estop`
 is decided at once, concurrently with the socket's queue (never refused with 429, never behind
 queued commands), so its outcome frame may overtake the outcomes of commands sent before it:
-match outcomes by `message_id` (every command has one; send your own to know it). Other frames
-are decided in order, at most `ws_max_in_flight` waiting (beyond: a 429 frame); an INVOKE
-whose goal is under way is answered (its INVOKE_RESULT outcome frame, `reply_to` its msg_id)
-when the goal ends, while the frames behind it go on being decided. A bad frame
+match outcomes by `message_id` (every command has one; send your own to know it). So is a
+valid INVOKE_CANCEL (the stop of its skill's motion; its INVOKE_RESULT's `reply_to` names the
+INVOKE), unless its INVOKE still waits in this socket's queue: then it is decided right after
+that INVOKE is (overtaking it, it would find nothing to cancel, and the INVOKE would run).
+Other frames are decided in order, at most `ws_max_in_flight` waiting (beyond: a 429 frame);
+an INVOKE whose goal is under way is answered (its INVOKE_RESULT outcome frame, `reply_to` its
+msg_id) when the goal ends, while the frames behind it go on being decided. A bad frame
 (invalid UTF-8, not JSON, schema, 413) gets its error outcome frame and the socket goes on; so
 does a command whose decision raised (503 frame). A *text* frame that is not UTF-8 is a
 protocol error (RFC 6455 §8.1): aiohttp closes the socket (1007). Any client frame, ping or
-pong counts as a heartbeat. When the socket closes, a control session its principal holds ends
-at once: the governor stops the robot (§10.8) after the command in flight and every stop sent
+pong counts as a heartbeat. When the socket closes, the motion of its INVOKEs not answered yet
+stops at once (nobody is left to answer: `_invoke`), and a control session its principal holds
+ends: the governor stops the robot (§10.8) after the command in flight and every stop sent
 have been decided; queued commands are dropped.
 
 Outcome frames go out through the socket's outbox (`_Outbox`), never awaited by what reads
@@ -31,7 +35,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from typing import Literal, Protocol
 
@@ -39,7 +43,7 @@ import msgspec
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from rcan_rtps.governance import Governor, Principal
-from rcan_rtps.rcan import ErrorCode, Invoke
+from rcan_rtps.rcan import ErrorCode, Invoke, InvokeCancel
 
 from ._bodies import WsFrame, error_body, failure_reply
 from ._intake import (
@@ -187,6 +191,10 @@ class _Commands:
         self._checks = checks
         self._invocations = invocations
         self._invoking: set[asyncio.Task[None]] = set()  # INVOKEs waiting for their goals
+        # INVOKEs queued here, not started yet (by msg_id), and the INVOKE_CANCELs of them
+        # that came meanwhile: each goes to the lane once its INVOKE is decided (`_work`).
+        self._queued: Counter[str] = Counter()
+        self._cancels: dict[str, list[Intake]] = {}
         self._observe = observe
         self._governor = governor
         self._principal = principal
@@ -194,6 +202,12 @@ class _Commands:
         self._queue: asyncio.Queue[Intake] = asyncio.Queue(settings.ws_max_in_flight)
         self._lane = StopLane(governor, principal, self._deliver, observe=observe,
                               width=settings.stop_lane_width)
+        # INVOKE_CANCELs have a lane of their own: one waits for its INVOKE's answer (a goal
+        # winding down, up to its cancel_timeout_ms) and must not take a stop's room.
+        self._cancel_lane = StopLane(governor, principal, self._deliver, observe=observe,
+                                     width=settings.ws_max_in_flight, invocations=invocations)
+        self._cancel_room = settings.ws_max_in_flight  # cancels held for queued INVOKEs
+        self._held_cancels = 0
         self._current: asyncio.Future[Reply] | None = None
         self._worker = asyncio.create_task(self._work())
 
@@ -206,9 +220,13 @@ class _Commands:
         self._outbox.pong(payload)
 
     async def take(self, raw: bytes) -> None:
-        """Validate now; a stop is decided at once (never 429), anything else queues. A deaf
-        client's other commands are not taken: it would never learn their outcomes."""
+        """Validate now; a stop is decided at once (never 429), so is an INVOKE_CANCEL (429
+        only past `ws_max_in_flight` of them), anything else queues. A deaf client's other
+        commands are not taken: it would never learn their outcomes."""
         item = intake(raw, self._limit, self._checks, self._principal.name)
+        if isinstance(item.message3, InvokeCancel):
+            await self._invoke_cancel(item, item.message3)
+            return
         if item.stopping:
             await self._lane.submit(item)
             return
@@ -217,6 +235,26 @@ class _Commands:
         try:
             self._queue.put_nowait(item)
         except asyncio.QueueFull:
+            body = error_body(ErrorCode.RATE_LIMITED, reason="too_many_in_flight",
+                              message_id=item.message_id)
+            await self._deliver((429, body))
+            return
+        if isinstance(item.message3, Invoke) and self._invocations is not None:
+            self._queued[item.message3.msg_id] += 1
+
+    async def _invoke_cancel(self, item: Intake, cancel: InvokeCancel) -> None:
+        """An INVOKE_CANCEL stops its skill's motion: through its lane, never behind this
+        socket's queue; 429 only when `ws_max_in_flight` are already being decided. One whose
+        INVOKE is still queued here waits for it to be decided (then there is motion to stop,
+        or a hold to withdraw; before, it would be `not_found` and the INVOKE would run after
+        it), at most `ws_max_in_flight` held so."""
+        if self._queued[cancel.invoke_id] > 0 and self._held_cancels < self._cancel_room:
+            self._cancels.setdefault(cancel.invoke_id, []).append(item)
+            self._held_cancels += 1
+            return
+        # Full: refused, not waited for — waiting here would hold up this socket's reader,
+        # and with it the stops behind (a client with that many cancels out can send `stop`).
+        if not await self._cancel_lane.try_submit(item):
             body = error_body(ErrorCode.RATE_LIMITED, reason="too_many_in_flight",
                               message_id=item.message_id)
             await self._deliver((429, body))
@@ -230,7 +268,7 @@ class _Commands:
             item = await self._queue.get()
             try:
                 if isinstance(item.message3, Invoke) and self._invocations is not None:
-                    await self._invoke(item.message3, self._invocations)
+                    await self._invoked(item.message3, self._invocations)
                     continue
                 self._current = asyncio.ensure_future(
                     decide_safely(self._governor, self._principal, item, self._observe,
@@ -239,6 +277,19 @@ class _Commands:
             except Exception:  # never the end of this socket's commands
                 log.exception("WebSocket command of %s failed", self._principal.name,
                               extra={"principal": self._principal.name})
+
+    async def _invoked(self, invoke: Invoke, skills: Skills) -> None:
+        """An INVOKE in its turn; then the INVOKE_CANCELs of it that came while it was queued
+        go to the lane."""
+        self._queued[invoke.msg_id] -= 1
+        if self._queued[invoke.msg_id] <= 0:
+            del self._queued[invoke.msg_id]
+        try:
+            await self._invoke(invoke, skills)
+        finally:
+            for cancel in self._cancels.pop(invoke.msg_id, ()):
+                self._held_cancels -= 1
+                await self._cancel_lane.submit(cancel)  # the worker waits, not the reader
 
     async def _invoke(self, invoke: Invoke, skills: Skills) -> None:
         """Decided in order like any command; an INVOKE whose goal is under way is answered
@@ -269,16 +320,26 @@ class _Commands:
         task.add_done_callback(self._invoking.discard)
 
     async def close(self) -> None:
-        """Stop taking commands; finish the one in flight and every stop; drop the rest."""
+        """Stop taking commands; stop the motion of the INVOKEs under way (nobody is left to
+        answer: `_invoke`) at once; finish the command in flight and every stop; drop the
+        rest."""
         self._worker.cancel()
+        invoking = list(self._invoking)
+        for task in invoking:  # now, not once the command in flight is decided
+            task.cancel()
+        await asyncio.gather(*invoking, return_exceptions=True)
         with contextlib.suppress(asyncio.CancelledError):
             await self._worker
         if self._current is not None:
             with contextlib.suppress(Exception):
                 await self._current
+        for cancels in self._cancels.values():  # their INVOKEs are dropped: answered so
+            for cancel in cancels:
+                await self._cancel_lane.submit(cancel)
+        self._cancels.clear()
+        self._held_cancels = 0
         await self._lane.drain()  # a stop the client sent must never be dropped
-        for task in list(self._invoking):  # nobody is left to answer
-            task.cancel()
+        await self._cancel_lane.drain()
         await self._outbox.close()
 
 

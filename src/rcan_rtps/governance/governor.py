@@ -22,7 +22,7 @@ import functools
 import logging
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import msgspec
 
@@ -90,6 +90,14 @@ CANCELLED_BY_CLIENT = "withdrawn: its client cancelled a motion command of its i
 STOPPED_WHILE_HELD = ("withdrawn: its issuer's motion was stopped while it was being held "
                       "(a motion command cancelled by its client, its connection closed, "
                       "or a stop)")
+
+
+class ClientCancel(NamedTuple):
+    """What `Governor.motion_cancelled` did: the principal's motion held for a human that it
+    withdrew (pending ids: never to run), and the stop of its motion to await."""
+
+    withdrawn: tuple[str, ...]
+    stopping: Awaitable[Decision | None]
 
 
 class Governor:
@@ -693,6 +701,11 @@ class Governor:
         return active is not None and (active.owner, active.message_id) == (principal.name,
                                                                             sent_by)
 
+    def goal_held(self, goal_id: str) -> bool:
+        """Whether the goal `goal_id` still holds the base: sent, not ended, and not taken by
+        a stop (which cancels it itself)."""
+        return goal_id in self.streams.goals
+
     def trajectory_running(self, sent_by: str) -> bool:
         """Whether the trajectory the command `sent_by` sent may still be running (not held
         by a stop, its time not up); when that cannot be read, it may."""
@@ -818,6 +831,10 @@ class Governor:
         return await self._detached(self._own_stop_recorded(principal, applied))
 
     def command_cancelled(self, principal: Principal) -> Awaitable[Decision | None]:
+        """`motion_cancelled`'s stop alone (its `stopping`)."""
+        return self.motion_cancelled(principal).stopping
+
+    def motion_cancelled(self, principal: Principal) -> ClientCancel:
         """A motion command of the principal's was cancelled by its client before its answer
         came (the transport, which knows which of its calls are motion, says so). Its
         decision goes on, detached, and is audited as ever; but its motion must not start,
@@ -829,19 +846,21 @@ class Governor:
         with zero, its goals are cancelled, its control session ends (nothing of its is left
         to guard), and its motion held for a human is withdrawn (`_withdraw_held`).
 
-        Returns what to await: the entry of that stop of its own motion (NETWORK_LOSS_SAFE_STOP,
-        `applied.cancelled_by_client`), written even if nobody awaits it, or None when
-        nothing of its was on its way or running; done once its withdrawals are on record."""
+        Returns the held commands withdrawn (their pending ids) and what to await: the entry
+        of that stop of its own motion (NETWORK_LOSS_SAFE_STOP, `applied.cancelled_by_client`),
+        written even if nobody awaits it, or None when nothing of its was on its way or
+        running; done once its withdrawals are on record."""
         if self._stopped:  # BRIDGE_STOPPED is the last entry: it halted everything before it
-            return _resolved(None)
-        withdrawn = self._withdraw_held(principal)
+            return ClientCancel((), _resolved(None))
+        ids = self._desk.withdrawing(principal.name, lambda c: c.spec.motion)
+        withdrawn = self._withdraw_held(principal, ids)
         on_its_way = self.connection_closed(principal)
         stream = self.streams.active
         ended = self.streams.end_of(principal.name, EndReason.CANCELLED)
         goals = self.streams.take_goals(owner=principal.name)
         arms = self._hold_own(principal)
         if not (on_its_way or ended or goals or arms.held or arms.not_held):
-            return self._after(withdrawn, _resolved(None))
+            return ClientCancel(tuple(ids), self._after(withdrawn, _resolved(None)))
         self._sessions.end(principal)
         log.warning("a motion command of '%s' was cancelled by its client: its own motion "
                     "is stopped (on its way: %s, stream ended: %s, goals cancelled: %d, arms "
@@ -853,8 +872,8 @@ class Governor:
                    "stream_ended": stream.message_id if ended and stream else None,
                    "goals_cancelled": [g.goal_id for g in goals], **_arms_applied(arms)}
         # Detached: the cancelled caller's task may be cancelled again; the entry must not be.
-        return self._after(withdrawn,
-                           self._detached(self._own_stop_recorded(principal, applied)))
+        return ClientCancel(tuple(ids), self._after(
+            withdrawn, self._detached(self._own_stop_recorded(principal, applied))))
 
     def _after(self, withdrawn: list[asyncio.Future[Decision]],
                stopped: asyncio.Future[Decision | None] | asyncio.Future[Decision]
@@ -864,13 +883,13 @@ class Governor:
             return stopped
         return self._steps.spawn(_gathered_then(withdrawn, stopped))
 
-    def _withdraw_held(self, principal: Principal) -> list[asyncio.Future[Decision]]:
-        """Withdraws the principal's motion held for a human, as its issuer would
+    def _withdraw_held(self, principal: Principal, ids: list[str]
+                       ) -> list[asyncio.Future[Decision]]:
+        """Withdraws the principal's motion held for a human (`ids`), as its issuer would
         (HITL_WITHDRAWN, `CANCELLED_BY_CLIENT`): the cancelled command may be one of them,
         answered `pending_auth` as the cancel came, and a human approving it later would move
-        the robot for a client that no longer wants it. From this step on no approval of
-        them counts (`HitlDesk.withdrawing`). Its other held commands stay."""
-        ids = self._desk.withdrawing(principal.name, lambda c: c.spec.motion)
+        the robot for a client that no longer wants it. From the step that picked them on no
+        approval of them counts (`HitlDesk.withdrawing`). Its other held commands stay."""
         if ids:
             log.warning("a motion command of '%s' was cancelled by its client: its motion "
                         "held for approval is withdrawn (%s)", principal.name, ", ".join(ids),

@@ -101,7 +101,9 @@ class RecordingDispatcher:
         return LeftHalted(zero_reached=True, arms=arms,
                           goals_cancelled=tuple(g.goal_id for g in left.goals if g.goal_id),
                           goals_not_cancelled=tuple(f"{g.message_id}: no id" for g in left.goals
-                                                    if not g.goal_id))
+                                                    if not g.goal_id),
+                          still_left=tuple(a.message_id for a in left.arms
+                                           if self.unheard_arms))
 
     async def cancel_goal(self, goal_id: str) -> bool:
         self.cancelled.append(goal_id)

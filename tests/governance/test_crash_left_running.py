@@ -238,6 +238,28 @@ async def test_an_arm_that_could_not_be_held_fails_the_entry_loudly(harness: Har
     await gov.stop()
 
 
+async def test_an_arm_not_held_is_tried_again_after_the_next_crash(harness: Harness) -> None:
+    """A crash loop (out of memory at every start, say): the arm a start could not hold is
+    in its entry (`still_left`), and the next start after another crash tries it again."""
+    arm_id, _ = await _crashed_with_an_arm_and_a_goal(harness)
+    harness.dispatcher.unheard_arms = True
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    assert harness.entries[-1]["applied"]["still_left"] == [arm_id]
+    await harness.restart()  # killed again: no BRIDGE_STOPPED
+    harness.dispatcher.unheard_arms = False
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [_, again] = harness.dispatcher.left
+    assert [a.message_id for a in again.arms] == [arm_id] and again.goals == []
+    assert harness.entries[-1]["applied"]["arms_held"] == [again.arms[0].topic]
+    await harness.restart()  # and again: held this time, nothing is left
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    assert len(harness.dispatcher.left) == 2
+    await gov.stop()
+
+
 async def test_a_start_after_a_clean_stop_takes_nothing_back(harness: Harness) -> None:
     gov = await harness.governor(gates="[]")
     await gov.start()

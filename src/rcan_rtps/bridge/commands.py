@@ -42,6 +42,7 @@ from ..ros.participant import RosNode, RosPublisher
 from ..ros.qos import QosProfile
 from ..ros.rostime import now_msg
 from .arm_holds import ArmHolds, JointPositions
+from .goals import CANCELING_NOTHING
 
 log = logging.getLogger(__name__)
 # s the bridge, stopping, waits for the robot to acknowledge its last zero (within the bounded
@@ -548,36 +549,43 @@ class RosDispatcher:
         zero = self._halt.message(with_effect(Effect.HALT).params())
         matched_before = self.cmd_vel.matched_count() > 0
         self.cmd_vel.publish(zero)  # the first word, before anything is waited for
-        reached, (cancelled, not_cancelled), arms = await asyncio.gather(
-            self._zero_reached(zero, matched_before), self._cancel_left(left.goals),
-            self._hold_left(left.arms))
-        return LeftHalted(reached, cancelled, not_cancelled, arms)
+        reached, (cancelled, not_cancelled, goals_left), (arms, arms_left) = \
+            await asyncio.gather(self._zero_reached(zero, matched_before),
+                                 self._cancel_left(left.goals), self._hold_left(left.arms))
+        return LeftHalted(reached, cancelled, not_cancelled, arms, (*arms_left, *goals_left))
 
     async def _cancel_left(self, goals: Sequence[LeftGoal]
-                           ) -> tuple[tuple[str, ...], tuple[str, ...]]:
-        """(what is canceling, why each other goal is not)."""
+                           ) -> tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]:
+        """(what is canceling, why each other goal is not, the message ids of those no
+        server answered for: they may still run)."""
         if not goals:
-            return (), ()
+            return (), (), ()
         timeout = self.ros2.match_timeout_s
         if self.goals is None:
             whys: list[str | None] = ["no goal server is configured"] * len(goals)
         else:
             whys = list(await asyncio.gather(*(
                 self.goals.cancel_left(g.server, g.goal_id, timeout) for g in goals)))
-        cancelled, not_cancelled = [], []
+        cancelled, not_cancelled, still = [], [], []
         for goal, why in zip(goals, whys, strict=True):
             named = goal.goal_id or f"every goal of {goal.server} (no goal id recorded)"
             if why is None:
                 cancelled.append(named)
-            else:
-                not_cancelled.append(f"{named}, of command {goal.message_id}: {why}")
-        return tuple(cancelled), tuple(not_cancelled)
+                continue
+            not_cancelled.append(f"{named}, of command {goal.message_id}: {why}")
+            if why != CANCELING_NOTHING:
+                still.append(goal.message_id)
+        return tuple(cancelled), tuple(not_cancelled), tuple(still)
 
-    async def _hold_left(self, arms: Sequence[LeftArm]) -> ArmsHeld:
+    async def _hold_left(self, arms: Sequence[LeftArm]) -> tuple[ArmsHeld, tuple[str, ...]]:
+        """(the arms held and why others were not, the message ids of those not held)."""
         outcomes = await asyncio.gather(*(self._hold_one_left(arm) for arm in arms))
         held = tuple(dict.fromkeys(topic for topic, why in outcomes if why is None))
-        return ArmsHeld(held, tuple(f"the arm on {topic} was not held: {why}"
-                                    for topic, why in outcomes if why is not None))
+        not_held = tuple(f"the arm on {topic} was not held: {why}"
+                         for topic, why in outcomes if why is not None)
+        still = tuple(arm.message_id for arm, (_, why) in zip(arms, outcomes, strict=True)
+                      if why is not None)
+        return ArmsHeld(held, not_held), still
 
     async def _hold_one_left(self, arm: LeftArm) -> tuple[str, str | None]:
         """(the arm's topic, why it was not held — None: held)."""

@@ -42,6 +42,10 @@ def route_mapping(ros2: Ros2Config, action_key: str) -> RequestMapping:
     return RequestMapping(ros2.request_mappings.get(name, ros2.request_mapping))
 
 
+# What a server answers for a goal it does not have running (it ended, or never was).
+CANCELING_NOTHING = "its server is canceling nothing (it had ended?)"
+
+
 class GoalRoutes:
     """The bridge's goals: one tracker per goal route, found by the route's config key."""
 
@@ -110,7 +114,7 @@ class GoalRoutes:
         if any(o is True for o in outcomes):
             return None
         errors = [f"{type(o).__name__}: {o}" for o in outcomes if isinstance(o, BaseException)]
-        return "; ".join(errors) or "its server is canceling nothing (it had ended?)"
+        return "; ".join(errors) or CANCELING_NOTHING
 
     async def cancel(self, goal_id: str) -> bool:
         """Cancels one goal this bridge sent, on its own server; True if it is canceling."""

@@ -224,7 +224,9 @@ class Governor:
         except Exception as exc:  # recorded as not taken back; never raised into the start
             log.exception("taking back the motion a crashed run left failed")
             return LeftHalted(zero_reached=False, goals_not_cancelled=(repr(exc),),
-                              arms=ArmsHeld(not_held=(repr(exc),)))
+                              arms=ArmsHeld(not_held=(repr(exc),)),
+                              still_left=tuple([*(a.message_id for a in left.arms),
+                                                *(g.message_id for g in left.goals)]))
 
     async def _took_back(self, left: LeftRunning, halted: LeftHalted) -> None:
         """The one entry of the halt of a crashed run's motion: a NETWORK_LOSS_SAFE_STOP of
@@ -235,6 +237,8 @@ class Governor:
             "goals_cancelled": list(halted.goals_cancelled), **_arms_applied(halted.arms)}
         if halted.goals_not_cancelled:
             applied["goals_not_cancelled"] = list(halted.goals_not_cancelled)
+        if halted.still_left:  # the next start after another crash tries these again
+            applied["still_left"] = list(halted.still_left)
         for why in halted.arms.not_held:
             log.error("an arm the crashed run left moving may still move: %s", why)
         for why in halted.goals_not_cancelled:

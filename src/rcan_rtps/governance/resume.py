@@ -96,14 +96,10 @@ class LeftRunning(msgspec.Struct, kw_only=True):
         return bool(self.arms or self.goals or self.streams)
 
     def facts(self) -> dict[str, Any]:
-        """What an entry records of it."""
-        return {"arms": [{"message_id": a.message_id, "topic": a.topic, "joints": a.joints,
-                          "sent_at_ms": a.sent_at_ms, "runs_for_s": a.runs_for_s}
-                         for a in self.arms],
-                "goals": [{"message_id": g.message_id, "server": g.server,
-                           "goal_id": g.goal_id} for g in self.goals],
-                "streams": [{"message_id": s.message_id, "topic": s.topic}
-                            for s in self.streams]}
+        """What an entry records of it (all of it: a later scan takes up what a start could
+        not take back from here, `still_left`)."""
+        facts: dict[str, Any] = msgspec.to_builtins(self)
+        return facts
 
 
 class Resumed(msgspec.Struct):
@@ -217,8 +213,22 @@ class _Motion:
         facts: dict[str, Any] = applied if isinstance(applied, dict) else {}
         if facts.get("scope") == "own":
             self._own_stop(str(entry.get("principal")), facts)
-        else:  # an e-stop, a safe stop of the whole robot, a start's halt of a crash
-            self._halted_all(str(entry.get("message_id")))
+            return
+        # An e-stop, a safe stop of the whole robot, a start's halt of a crash.
+        self._halted_all(str(entry.get("message_id")))
+        if facts.get("scope") == "crash":
+            self._still_left(facts)
+
+    def _still_left(self, facts: dict[str, Any]) -> None:
+        """What a start's halt of a crashed run could not take back (an arm not held, a
+        goal no server answered for) runs on: listed again, for the next start to try."""
+        still = set(facts.get("still_left") or ())
+        try:
+            left = msgspec.convert(facts.get("left") or {}, LeftRunning)
+        except msgspec.ValidationError:
+            return
+        self.arms.update((a.message_id, a) for a in left.arms if a.message_id in still)
+        self.goals.update((g.message_id, g) for g in left.goals if g.message_id in still)
 
     def _halted_all(self, message_id: str) -> None:
         self._halted[message_id] = (self.arms, self.goals, self.streams)

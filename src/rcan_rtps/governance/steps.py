@@ -55,6 +55,8 @@ class LeftHalted(NamedTuple):
     goals_cancelled: tuple[str, ...] = ()  # their ids (a goal with none: its server, all)
     goals_not_cancelled: tuple[str, ...] = ()  # why, for each
     arms: ArmsHeld = ArmsHeld()
+    # The message ids of what may still run: arms not held, goals no server answered for.
+    still_left: tuple[str, ...] = ()
 
 
 class Dispatcher(Protocol):

@@ -39,6 +39,7 @@ class RecordingDispatcher:
         self.holds: list[list[str]] = []  # `hold_trajectories` calls: the ids it held
         self.unheard_arms = False  # when set: no arm can be held (no joint_states heard)
         self.left: list[LeftRunning] = []  # `halt_left` calls: what a crashed run left
+        self.halt_hold: asyncio.Event | None = None  # when set: `halt_left` waits for it
 
     def route(self, command: NormalizedCommand) -> str | None:
         return f"/robot1/{command.action}"
@@ -95,6 +96,8 @@ class RecordingDispatcher:
         """A crashed run's motion taken back: recorded (`left`); each arm held unless
         `unheard_arms`, each goal with an id cancelled."""
         self.left.append(left)
+        if self.halt_hold is not None:
+            await self.halt_hold.wait()
         topics = tuple(a.topic or "" for a in left.arms)
         arms = (ArmsHeld(not_held=tuple(f"{t}: no joint_states heard" for t in topics))
                 if self.unheard_arms else ArmsHeld(held=topics))

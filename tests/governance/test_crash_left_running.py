@@ -8,11 +8,13 @@ The logs are built with the audit writer itself (signed, chained), entry by entr
 
 from __future__ import annotations
 
+import asyncio
 import uuid
 from pathlib import Path
 from typing import Any
 
 from govhelpers import PLANNER, RURI, Harness, command
+from waiting import eventually
 
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
 from rcan_rtps.governance.clock import ManualClock
@@ -257,6 +259,27 @@ async def test_an_arm_not_held_is_tried_again_after_the_next_crash(harness: Harn
     gov = await harness.governor(gates="[]")
     await gov.start()
     assert len(harness.dispatcher.left) == 2
+    await gov.stop()
+
+
+async def test_a_crash_during_the_halt_leaves_it_to_the_next_start(harness: Harness) -> None:
+    """Killed again while taking back what the first crash left (before that halt's entry):
+    its BRIDGE_STARTED lists what it set out to take back, and the next start does."""
+    arm_id, goal_message_id = await _crashed_with_an_arm_and_a_goal(harness)
+    harness.dispatcher.halt_hold = asyncio.Event()  # the halt never finishes
+    gov = await harness.governor(gates="[]")
+    starting = asyncio.ensure_future(gov.start())
+    await eventually(lambda: harness.dispatcher.left and
+                     harness.entries[-1]["event"] == "BRIDGE_STARTED", what="halting")
+    starting.cancel()
+    await harness.restart()  # killed mid-halt: no entry of it, no BRIDGE_STOPPED
+    harness.dispatcher.halt_hold = None
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [_, again] = harness.dispatcher.left
+    assert [a.message_id for a in again.arms] == [arm_id]
+    assert [g.message_id for g in again.goals] == [goal_message_id]
+    assert harness.entries[-1]["applied"]["scope"] == "crash"
     await gov.stop()
 
 

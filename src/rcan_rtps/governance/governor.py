@@ -199,6 +199,8 @@ class Governor:
         halting = self._steps.spawn(self._halting(self.left_running)) \
             if self.left_running else None
         params: dict[str, Any] = {"estop_latched": self.latch.latched}
+        if self.left_running:  # a crash during the halt: the next start takes it up from here
+            params["left_running"] = self.left_running.facts()
         if self.latch.reason:
             params["estop_reason"] = self.latch.reason
         released = self._base.retake_locks()

@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -158,7 +158,10 @@ class _Motion:
 
     def apply(self, entry: dict[str, Any]) -> None:
         event, message_id = entry.get("event"), entry.get("message_id")
-        if event in _EXECUTED and entry.get("outcome") == "executed":
+        if event == "BRIDGE_STARTED":  # the boundary: what it set out to take back runs on
+            given = entry.get("params")
+            self._taken_up((given if isinstance(given, dict) else {}).get("left_running"))
+        elif event in _EXECUTED and entry.get("outcome") == "executed":
             self._executed(entry)
         elif event in _HALTS:
             self._halt(entry)
@@ -223,12 +226,18 @@ class _Motion:
         """What a start's halt of a crashed run could not take back (an arm not held, a
         goal no server answered for) runs on: listed again, for the next start to try."""
         still = set(facts.get("still_left") or ())
+        self._taken_up(facts.get("left"), lambda message_id: message_id in still)
+
+    def _taken_up(self, facts: Any, chosen: Callable[[str], bool] = lambda _: True) -> None:
+        """The motion an entry lists as left by a crashed run (`LeftRunning.facts`), those
+        `chosen`, as running still."""
         try:
-            left = msgspec.convert(facts.get("left") or {}, LeftRunning)
+            left = msgspec.convert(facts or {}, LeftRunning)
         except msgspec.ValidationError:
             return
-        self.arms.update((a.message_id, a) for a in left.arms if a.message_id in still)
-        self.goals.update((g.message_id, g) for g in left.goals if g.message_id in still)
+        self.arms.update((a.message_id, a) for a in left.arms if chosen(a.message_id))
+        self.goals.update((g.message_id, g) for g in left.goals if chosen(g.message_id))
+        self.streams.update((s.message_id, s) for s in left.streams if chosen(s.message_id))
 
     def _halted_all(self, message_id: str) -> None:
         self._halted[message_id] = (self.arms, self.goals, self.streams)

@@ -109,7 +109,7 @@ class Governor:
                  left_running: LeftRunning | None = None) -> None:
         self.audit = audit
         # What the previous run left running, having not ended with BRIDGE_STOPPED (a crash):
-        # taken back by `start` (`_take_back`).
+        # taken back by `start` (`_halting`, recorded by `_took_back`).
         self.left_running = left_running or LeftRunning()
         self.latch = latch
         self.events = events or Events()
@@ -190,7 +190,7 @@ class Governor:
     async def start(self) -> None:
         """BRIDGE_STARTED (durable), then a latched start tells the robot again. After a crash
         (the previous run did not end with BRIDGE_STOPPED), the motion it left is taken back
-        first, and recorded before this returns (`_take_back`)."""
+        first, and recorded before this returns (`_took_back`)."""
         # A stop goes out before its entry is durable (stops never wait for the disk): the
         # halt of what the crashed run left starts now, before BRIDGE_STARTED is written, and
         # its entry follows BRIDGE_STARTED once the halt is done — BRIDGE_STARTED stays a

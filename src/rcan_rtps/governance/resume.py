@@ -242,6 +242,8 @@ class _Motion:
     def _halted_all(self, message_id: str) -> None:
         self._halted[message_id] = (self.arms, self.goals, self.streams)
         self.arms, self.goals, self.streams = {}, {}, {}
+        if len(self._halted) > MAX_LEFT:  # a stop's COMMAND_FAILED follows it closely
+            del self._halted[next(iter(self._halted))]
 
     def _own_stop(self, principal: str, facts: dict[str, Any]) -> None:
         """A stop of `principal`'s motion alone: its goals it cancelled and its arms on the

@@ -14,6 +14,8 @@ from typing import Any
 import msgspec
 
 from rcan_rtps.governance import ArmsHeld, DispatchResult
+from rcan_rtps.governance.resume import LeftRunning
+from rcan_rtps.governance.steps import LeftHalted
 from rcan_rtps.rcan import ActionParams, MoveParams, NormalizedCommand
 
 UNAVAILABLE = "no subscriber on /robot1/cmd_vel"
@@ -36,6 +38,8 @@ class RecordingDispatcher:
         self._arm_topics: dict[str, str] = {}  # an arm trajectory's message id → its topic
         self.holds: list[list[str]] = []  # `hold_trajectories` calls: the ids it held
         self.unheard_arms = False  # when set: no arm can be held (no joint_states heard)
+        self.left: list[LeftRunning] = []  # `halt_left` calls: what a crashed run left
+        self.halt_hold: asyncio.Event | None = None  # when set: `halt_left` waits for it
 
     def route(self, command: NormalizedCommand) -> str | None:
         return f"/robot1/{command.action}"
@@ -87,6 +91,22 @@ class RecordingDispatcher:
 
     def running_trajectories(self) -> list[str]:
         return list(self.running)
+
+    async def halt_left(self, left: LeftRunning) -> LeftHalted:
+        """A crashed run's motion taken back: recorded (`left`); each arm held unless
+        `unheard_arms`, each goal with an id cancelled."""
+        self.left.append(left)
+        if self.halt_hold is not None:
+            await self.halt_hold.wait()
+        topics = tuple(a.topic or "" for a in left.arms)
+        arms = (ArmsHeld(not_held=tuple(f"{t}: no joint_states heard" for t in topics))
+                if self.unheard_arms else ArmsHeld(held=topics))
+        return LeftHalted(zero_reached=True, arms=arms,
+                          goals_cancelled=tuple(g.goal_id for g in left.goals if g.goal_id),
+                          goals_not_cancelled=tuple(f"{g.message_id}: no id" for g in left.goals
+                                                    if not g.goal_id),
+                          still_left=tuple(a.message_id for a in left.arms
+                                           if self.unheard_arms))
 
     async def cancel_goal(self, goal_id: str) -> bool:
         self.cancelled.append(goal_id)

@@ -17,9 +17,13 @@ import logging
 from collections.abc import Callable, Collection, Sequence
 from typing import Any, NamedTuple, Protocol
 
+import msgspec
+
 from ..config import Ros2Config
 from ..events import Events
 from ..governance import ArmsHeld, DispatchResult
+from ..governance.resume import LeftArm, LeftGoal, LeftRunning
+from ..governance.steps import LeftHalted
 from ..rcan import ActionParams, ActionSpec, Effect, NormalizedCommand
 from ..rcan.actions import (
     EstopSignal,
@@ -28,6 +32,7 @@ from ..rcan.actions import (
     NoRoute,
     Publish,
     SendGoal,
+    action_spec,
     specs,
     with_effect,
 )
@@ -37,6 +42,7 @@ from ..ros.participant import RosNode, RosPublisher
 from ..ros.qos import QosProfile
 from ..ros.rostime import now_msg
 from .arm_holds import ArmHolds, JointPositions
+from .goals import CANCELING_NOTHING
 
 log = logging.getLogger(__name__)
 # s the bridge, stopping, waits for the robot to acknowledge its last zero (within the bounded
@@ -54,9 +60,11 @@ class GoalServers(Protocol):
         ...
 
     async def send(self, action_key: str, goal: dict[str, Any], timeout: float, *,
-                   message_id: str | None = None, command: str | None = None) -> str:
+                   message_id: str | None = None, command: str | None = None,
+                   goal_id: str | None = None) -> str:
         """Sends a goal to its route's server (for the command `message_id` of action
-        `command`); returns its id once accepted. Raises on rejection/unavailability."""
+        `command`, with the id `goal_id` its entry names, if chosen); returns its id once
+        accepted. Raises on rejection/unavailability."""
         ...
 
     async def cancel_all(self) -> int:
@@ -65,6 +73,12 @@ class GoalServers(Protocol):
 
     async def cancel(self, goal_id: str) -> bool:
         """Cancels one goal this bridge sent, on its own server; True if it is canceling."""
+        ...
+
+    async def cancel_left(self, server: str | None, goal_id: str | None,
+                          timeout: float) -> str | None:
+        """Cancels a goal a crashed run sent (by id; with none, every goal of `server`);
+        None once canceling, else why not."""
         ...
 
 
@@ -477,7 +491,8 @@ class RosDispatcher:
             goal_id = await self.goals.send(ros.action_key, goal,
                                             timeout=self.ros2.match_timeout_s,
                                             message_id=command.message_id,
-                                            command=command.spec.name)
+                                            command=command.spec.name,
+                                            goal_id=command.goal_id)
         except Exception as exc:  # rejected, no server, timeout: all mean "not executing"
             log.warning("%s goal not accepted: %s", ros.type_name, exc)
             return DispatchResult(ok=False, ros2_topic=server, detail=str(exc))
@@ -525,6 +540,91 @@ class RosDispatcher:
         except Exception:
             log.exception("cancelling goals failed")
             return 0
+
+    # -- a crashed run's motion, taken back at start ----------------------------------
+    async def halt_left(self, left: LeftRunning) -> LeftHalted:
+        """What a crashed run left, taken back (`Dispatcher.halt_left`): zero velocity now
+        (again once matched), its goals cancelled by id, its arms still due held where
+        joint_states says they are. Each waits up to `match_timeout_s` for its peer: the
+        bridge has just joined the domain."""
+        zero = self._halt.message(with_effect(Effect.HALT).params())
+        matched_before = self.cmd_vel.matched_count() > 0
+        self.cmd_vel.publish(zero)  # the first word, before anything is waited for
+        reached, (cancelled, not_cancelled, goals_left), (arms, arms_left) = \
+            await asyncio.gather(self._zero_reached(zero, matched_before),
+                                 self._cancel_left(left.goals), self._hold_left(left.arms))
+        return LeftHalted(reached, cancelled, not_cancelled, arms, (*arms_left, *goals_left))
+
+    async def _cancel_left(self, goals: Sequence[LeftGoal]
+                           ) -> tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]:
+        """(what is canceling, why each other goal is not, the message ids of those no
+        server answered for: they may still run)."""
+        if not goals:
+            return (), (), ()
+        timeout = self.ros2.match_timeout_s
+        if self.goals is None:
+            whys: list[str | None] = ["no goal server is configured"] * len(goals)
+        else:
+            whys = list(await asyncio.gather(*(
+                self.goals.cancel_left(g.server, g.goal_id, timeout) for g in goals)))
+        cancelled, not_cancelled, still = [], [], []
+        for goal, why in zip(goals, whys, strict=True):
+            named = goal.goal_id or f"every goal of {goal.server} (no goal id recorded)"
+            if why is None:
+                cancelled.append(named)
+                continue
+            not_cancelled.append(f"{named}, of command {goal.message_id}: {why}")
+            if why != CANCELING_NOTHING:
+                still.append(goal.message_id)
+        return tuple(cancelled), tuple(not_cancelled), tuple(still)
+
+    async def _hold_left(self, arms: Sequence[LeftArm]) -> tuple[ArmsHeld, tuple[str, ...]]:
+        """(the arms held and why others were not, the message ids of those not held)."""
+        outcomes = await asyncio.gather(*(self._hold_one_left(arm) for arm in arms))
+        held = tuple(dict.fromkeys(topic for topic, why in outcomes if why is None))
+        not_held = tuple(f"the arm on {topic} was not held: {why}"
+                         for topic, why in outcomes if why is not None)
+        still = tuple(arm.message_id for arm, (_, why) in zip(arms, outcomes, strict=True)
+                      if why is not None)
+        return ArmsHeld(held, not_held), still
+
+    async def _hold_one_left(self, arm: LeftArm) -> tuple[str, str | None]:
+        """(the arm's topic, why it was not held — None: held)."""
+        topic = arm.topic or "(no topic recorded)"
+        try:
+            spec = action_spec(arm.action)
+            route = self._route_of(spec, msgspec.convert(arm.params, spec.params))
+        except (LookupError, TypeError, ValueError, msgspec.ValidationError) as exc:
+            return topic, f"its route is not configured now ({exc})"
+        hold = route.spec.hold
+        if hold is None or route.publisher.topic != arm.topic:  # config changed since
+            return topic, f"its trajectory went to {topic}, the arm's topic is now " \
+                          f"{route.publisher.topic}"
+        watcher = f"left by a crashed run: {arm.message_id}"
+        self.arms.positions.watch(watcher, arm.joints)  # kept whatever else is heard
+        try:
+            if not await self._matched(route.publisher):
+                return topic, f"no subscriber on {topic}"
+            where = await self._joints_now(arm.joints)
+            if isinstance(where, str):
+                return topic, where
+            route.publisher.publish(hold.build(arm.joints, where, route.kit))
+            return topic, None
+        finally:
+            self.arms.positions.watch(watcher, ())
+
+    async def _joints_now(self, joints: Sequence[str]) -> list[float] | str:
+        """Where `joints` are, heard within `match_timeout_s`; else why not known. Never a
+        joint heard at rest long ago: the crashed run's trajectory may be moving it."""
+        loop = asyncio.get_running_loop()
+        wait = self.ros2.match_timeout_s
+        deadline = loop.time() + wait
+        while isinstance(where := self.arms.positions.now(joints, self.ros2.telemetry_stale_s),
+                         str):
+            if loop.time() >= deadline:
+                return f"{where} (waited {wait:g} s at start-up)"
+            await asyncio.sleep(0.02)
+        return where
 
     async def halt_before_leaving(self) -> None:
         """The bridge is stopping: halt, then wait (at most LEAVING_ACK_S) until the robot's

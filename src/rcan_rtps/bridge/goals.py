@@ -42,6 +42,10 @@ def route_mapping(ros2: Ros2Config, action_key: str) -> RequestMapping:
     return RequestMapping(ros2.request_mappings.get(name, ros2.request_mapping))
 
 
+# What a server answers for a goal it does not have running (it ended, or never was).
+CANCELING_NOTHING = "its server is canceling nothing (it had ended?)"
+
+
 class GoalRoutes:
     """The bridge's goals: one tracker per goal route, found by the route's config key."""
 
@@ -76,13 +80,16 @@ class GoalRoutes:
         return tracker.action_name if tracker is not None else None
 
     async def send(self, action_key: str, goal: dict[str, Any], timeout: float, *,
-                   message_id: str | None = None, command: str | None = None) -> str:
-        """Sends a goal to its route's own server; its id once accepted. Raises on rejection
-        or unavailability, and LookupError for a route the registry did not declare."""
+                   message_id: str | None = None, command: str | None = None,
+                   goal_id: str | None = None) -> str:
+        """Sends a goal to its route's own server (with the id `goal_id` if given); its id
+        once accepted. Raises on rejection or unavailability, and LookupError for a route
+        the registry did not declare."""
         tracker = self._by_key.get(action_key)
         if tracker is None:
             raise LookupError(f"no goal route `{action_key}`")
-        return await tracker.send(goal, timeout, message_id=message_id, command=command)
+        return await tracker.send(goal, timeout, message_id=message_id, command=command,
+                                  goal_id=goal_id)
 
     async def cancel_all(self) -> int:
         """Cancels every goal on every goal server, whoever sent it: `stop` means stop. The
@@ -93,6 +100,21 @@ class GoalRoutes:
             if isinstance(count, BaseException):
                 log.error("cancelling goals on %s failed: %s", tracker.action_name, count)
         return sum(c for c in counts if isinstance(c, int))
+
+    async def cancel_left(self, server: str | None, goal_id: str | None,
+                          timeout: float) -> str | None:
+        """Cancels a goal a crashed run left on `server` (`GoalTracker.cancel_left`; on
+        every goal server when that one is no longer configured: an id names one goal
+        wherever it is). None once a server is canceling it, else why not."""
+        trackers = [t for t in self.trackers if t.action_name == server] or self.trackers
+        if not trackers:
+            return "no goal server is configured"
+        outcomes = await asyncio.gather(*(t.cancel_left(goal_id, timeout) for t in trackers),
+                                        return_exceptions=True)
+        if any(o is True for o in outcomes):
+            return None
+        errors = [f"{type(o).__name__}: {o}" for o in outcomes if isinstance(o, BaseException)]
+        return "; ".join(errors) or CANCELING_NOTHING
 
     async def cancel(self, goal_id: str) -> bool:
         """Cancels one goal this bridge sent, on its own server; True if it is canceling."""

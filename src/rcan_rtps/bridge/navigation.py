@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+import uuid
 from typing import TYPE_CHECKING, Any
 
 from ..api.ports import GoalView
@@ -67,15 +68,18 @@ class GoalTracker:
         return self.client.type_name
 
     async def send(self, goal: dict[str, Any], timeout: float, *,
-                   message_id: str | None = None, command: str | None = None) -> str:
-        """Sends a goal (for the command `message_id` of action `command`); its id once
-        accepted. Raises on rejection, or when no server answers within `timeout`."""
+                   message_id: str | None = None, command: str | None = None,
+                   goal_id: str | None = None) -> str:
+        """Sends a goal (for the command `message_id` of action `command`, with the id
+        `goal_id` if given); its id once accepted. Raises on rejection, or when no server
+        answers within `timeout`."""
         stops = self._stops
         if self._sent is None:
             from .sent_goals import SentGoals  # a goal is a move, never a stop
 
             self._sent = SentGoals(self.client, self._views, self.events, self._keep)
-        goal_id = await self._sent.send(goal, timeout, message_id=message_id, command=command)
+        goal_id = await self._sent.send(goal, timeout, message_id=message_id, command=command,
+                                        goal_id=goal_id)
         if self._stops != stops:
             await self._stopped_while_sent(goal_id)
         return goal_id
@@ -106,6 +110,15 @@ class GoalTracker:
     async def cancel(self, goal_id: str) -> bool:
         """Cancels one goal this bridge sent; True if the server is canceling it."""
         return self._sent is not None and await self._sent.cancel(goal_id)
+
+    async def cancel_left(self, goal_id: str | None, timeout: float) -> bool:
+        """Cancels a goal a crashed run of the bridge left, by its id (any client may), or
+        with no id known every goal of the server (as a stop does); waits up to `timeout`
+        for the server. True if the server is canceling it (them)."""
+        if goal_id is None:
+            await self.client.prepare_cancel(timeout)
+            return await self.client.cancel_all(timeout, server_wide=True) > 0
+        return await self.client.cancel_goal_id(uuid.UUID(goal_id).bytes, timeout)
 
     def warn_cancelling(self, why: str) -> None:
         """Logs each active goal about to be cancelled, and why."""

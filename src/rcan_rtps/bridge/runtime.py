@@ -4,8 +4,9 @@
            anything touches the robot: a start that fails here leaves no trace on the graph
            and writes no audit entry
     start: ROS node → audit log → goal action clients → dispatcher → governor → telemetry
-           → governor started (BRIDGE_STARTED) → watch for other publishers on the command
-           topics → HTTP API → mDNS advert
+           → governor started (BRIDGE_STARTED; after a run that did not end with
+           BRIDGE_STOPPED, the motion it left taken back first: docs/governance.md) → watch
+           for other publishers on the command topics → HTTP API → mDNS advert
     stop:  mDNS withdrawn → API closed (no new commands) → watch ended → velocity streams
            ended → robot halted (zero velocity, goals cancelled) → telemetry → governor
            (BRIDGE_STOPPED)

@@ -80,10 +80,13 @@ class SentGoals:
         self._handles: dict[str, ClientGoal] = {}  # goals not yet finished
 
     async def send(self, goal: dict[str, Any], timeout: float, *,
-                   message_id: str | None = None, command: str | None = None) -> str:
-        """Sends a goal (for the command `message_id` of action `command`); its id once
-        accepted. Raises on rejection, or when no server answers within `timeout`."""
-        handle = await self.client.send_goal(goal, timeout=timeout)
+                   message_id: str | None = None, command: str | None = None,
+                   goal_id: str | None = None) -> str:
+        """Sends a goal (for the command `message_id` of action `command`, with the id
+        `goal_id` if given); its id once accepted. Raises on rejection, or when no server
+        answers within `timeout`."""
+        chosen = uuid.UUID(goal_id).bytes if goal_id is not None else None
+        handle = await self.client.send_goal(goal, timeout=timeout, goal_id=chosen)
         if not handle.accepted:
             raise ActionError(f"{self.client.name} rejected the goal")
         goal_id = str(uuid.UUID(bytes=handle.goal_id))

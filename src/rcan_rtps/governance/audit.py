@@ -131,11 +131,14 @@ class AuditRecord(msgspec.Struct, kw_only=True, frozen=True):
     # conformance suite's names; `outcome` is the governor's decision on the skill's command).
     invoke_id: str | None = None
     status: str | None = None
+    # The id a goal-starting command's goal is sent with, written ahead (a restart after a
+    # crash cancels it by id: governance.resume).
+    goal_id: str | None = None
 
 
 # Left out of an entry when None: older entries never had them.
 _OPTIONAL = frozenset({"ai", "pending_id", "warnings", "sent_first", "approvals", "rcan",
-                       "invoke_id", "status"})
+                       "invoke_id", "status", "goal_id"})
 
 
 class AuditReceipt(msgspec.Struct, frozen=True):

@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+import uuid
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -52,7 +53,7 @@ from .invariants import Check, Violation, safety_policy
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
-from .resume import resume
+from .resume import LeftRunning, resume
 from .review import HitlDesk, PendingRecord
 from .sessions import Sessions
 from .steps import (
@@ -60,6 +61,7 @@ from .steps import (
     Decision,
     Dispatcher,
     DispatchResult,
+    LeftHalted,
     Steps,
     ai_facts,
     bridge_command,
@@ -111,8 +113,12 @@ class Governor:
                  priorities: MotionPriorities | None = None,
                  held_locks: Mapping[str, str] | None = None,
                  events: Events | None = None,
-                 ai: AiPolicy | None = None) -> None:
+                 ai: AiPolicy | None = None,
+                 left_running: LeftRunning | None = None) -> None:
         self.audit = audit
+        # What the previous run left running, having not ended with BRIDGE_STOPPED (a crash):
+        # taken back by `start` (`_halting`, recorded by `_took_back`).
+        self.left_running = left_running or LeftRunning()
         self.latch = latch
         self.events = events or Events()
         self._steps = Steps(audit, dispatcher)
@@ -159,7 +165,7 @@ class Governor:
         latch_file = LatchFile(Path(bridge.safety.estop_state_path or beside_audit))
         # A missing latch file is a first start only if the audit log is new as well.
         latched, reason = latch_file.load(first_start=audit.head.last_seq == 0)
-        resumed = resume(audit.path)
+        resumed = resume(audit.path, now_ms=now_ms(clock))
         if resumed.latched and not latched:  # the stricter of file and signed chain
             latched, reason = True, (
                 f"the audit log's last e-stop (by {resumed.latched_by}) was never cleared, "
@@ -184,14 +190,25 @@ class Governor:
             session_timeout_s=bridge.safety.session_timeout_s,
             unattended_move_s=bridge.safety.unattended_move_s,
             robot_ruri=config.robot.ruri, held_locks=resumed.locks, events=events,
-            ai=AiPolicy(bridge.ai.agents),
+            ai=AiPolicy(bridge.ai.agents), left_running=resumed.left,
         )
 
     # -- lifecycle --------------------------------------------------------------------------
 
     async def start(self) -> None:
-        """BRIDGE_STARTED (durable), then a latched start tells the robot again."""
+        """BRIDGE_STARTED (durable), then a latched start tells the robot again. After a crash
+        (the previous run did not end with BRIDGE_STOPPED), the motion it left is taken back
+        first, and recorded before this returns (`_took_back`)."""
+        # A stop goes out before its entry is durable (stops never wait for the disk): the
+        # halt of what the crashed run left starts now, before BRIDGE_STARTED is written, and
+        # its entry follows BRIDGE_STARTED once the halt is done — BRIDGE_STARTED stays a
+        # run's first entry (the boundary `resume` reads back to), and the entry can say what
+        # was taken back and what could not be.
+        halting = self._steps.spawn(self._halting(self.left_running)) \
+            if self.left_running else None
         params: dict[str, Any] = {"estop_latched": self.latch.latched}
+        if self.left_running:  # a crash during the halt: the next start takes it up from here
+            params["left_running"] = self.left_running.facts()
         if self.latch.reason:
             params["estop_reason"] = self.latch.reason
         released = self._base.retake_locks()
@@ -204,7 +221,47 @@ class Governor:
             await self.latch.file.write(False, "first start", now_ms(self._clock))
         if self.latch.latched:  # latched now; the robot is told without delaying the start
             self._steps.spawn(_awaited(self.latch.engage(self._estops.republish)))
+        if halting is not None:
+            await self._took_back(self.left_running, await halting)
         self._sweeper = asyncio.create_task(self._sweep_forever())
+
+    async def _halting(self, left: LeftRunning) -> LeftHalted:
+        log.warning("the previous run did not stop cleanly (no BRIDGE_STOPPED): taking back "
+                    "the motion it left (%d arm trajectories, %d goals, %d velocity streams)",
+                    len(left.arms), len(left.goals), len(left.streams))
+        try:
+            return await self._dispatcher.halt_left(left)
+        except Exception as exc:  # recorded as not taken back; never raised into the start
+            log.exception("taking back the motion a crashed run left failed")
+            return LeftHalted(zero_reached=False, goals_not_cancelled=(repr(exc),),
+                              arms=ArmsHeld(not_held=(repr(exc),)),
+                              still_left=tuple([*(a.message_id for a in left.arms),
+                                                *(g.message_id for g in left.goals)]))
+
+    async def _took_back(self, left: LeftRunning, halted: LeftHalted) -> None:
+        """The one entry of the halt of a crashed run's motion: a NETWORK_LOSS_SAFE_STOP of
+        scope `crash` (every session of that run was lost), what it found and what it did.
+        Failed when an arm that may still move could not be held (loudly: nobody else will)."""
+        applied: dict[str, Any] = {
+            "scope": "crash", "left": left.facts(), "zero_reached": halted.zero_reached,
+            "goals_cancelled": list(halted.goals_cancelled), **_arms_applied(halted.arms)}
+        if halted.goals_not_cancelled:
+            applied["goals_not_cancelled"] = list(halted.goals_not_cancelled)
+        if halted.still_left:  # the next start after another crash tries these again
+            applied["still_left"] = list(halted.still_left)
+        for why in halted.arms.not_held:
+            log.error("an arm the crashed run left moving may still move: %s", why)
+        for why in halted.goals_not_cancelled:
+            log.warning("a goal the crashed run left: %s", why)
+        stop = bridge_command(Effect.HALT)
+        failed = "; ".join(halted.arms.not_held) or None
+        entry = AuditRecord(
+            event=AuditEvent.NETWORK_LOSS_SAFE_STOP, message_id=stop.message_id,
+            action_type=stop.action, params={}, applied=applied,
+            outcome=(Outcome.FAILED if failed else Outcome.EXECUTED).value,
+            deny_reason=f"arms not held: {failed}" if failed else None,
+            ros2_topic=self._steps.route(stop), sent_first=True)
+        await self._steps.record_event(entry)
 
     async def stop(self) -> None:
         """BRIDGE_STOPPED once the sweeper, the tasks and the latch are done. Idempotent."""
@@ -506,6 +563,8 @@ class Governor:
         if spec.streamed:
             return await self._base.stream(command, principal, owner, params, applied, event,
                                       pending_id, priority, stops)
+        if spec.starts_goal:  # its id chosen now: its entry names it (a crash's restart cancels)
+            command = msgspec.structs.replace(command, goal_id=str(uuid.uuid4()))
         entry = record(event, command, principal, Outcome.EXECUTED, applied=applied,
                          pending_id=pending_id, ros2_topic=self._steps.route(command))
         receipt = await self._steps.write_ahead(entry)

@@ -9,38 +9,115 @@ Locks are taken up the same way: the locks of the last start or stop, plus the `
 less the `unlock`s executed after it. A start re-engages them (fail closed: a lock keeps lower
 priorities off the base) and records them in its BRIDGE_STARTED entry; one the config no longer
 declares is recorded there as released.
+
+A run that did not end with BRIDGE_STOPPED (killed, out of memory, the board's power cut) left
+its motion to nobody: every session of it was lost, and a lost session's motion halts
+(docs/governance.md). So the same replay lists the motion that run started and no later entry
+shows ended (`LeftRunning`): arm trajectories still due by the wall clock (sent at the entry's
+`timestamp_ms`, running `Hold.runs_for_s` of the `applied` parameters, as the dispatcher
+counted them), goals (their `goal_id`, written ahead since goals were sent with an id chosen
+before their entry; older entries have none) and velocity streams. A start halts them
+(`Governor.start`). Ended: GOAL_FINISHED, STREAM_ENDED, a COMMAND_FAILED of the command, a
+later trajectory of the same joints on the same topic (it replaced it), a stop of everyone's
+motion (a `stop`, an e-stop, a safe stop of the whole robot) unless that stop's own
+COMMAND_FAILED follows, and a stop of one principal's motion for what it says it stopped.
 """
 
 from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import msgspec
 
 from rcan_rtps.rcan import Effect
-from rcan_rtps.rcan.actions import with_effect
+from rcan_rtps.rcan.actions import Publish, action_spec, with_effect
 
 _CHUNK = 64 * 1024
 _ENGAGED = ("ESTOP", "ESTOP_REPEATED")
 _BOUNDARIES = ("BRIDGE_STARTED", "BRIDGE_STOPPED")
+# A controller may still be settling onto a trajectory's last point just after its time (as
+# bridge.arm_holds.SETTLING_S).
+SETTLING_S = 1.0
+MAX_LEFT = 64  # of each kind: the newest are kept (a run's log may hold any number)
+_EXECUTED = ("COMMAND_DISPATCHED", "HITL_AUTHORIZED")  # the entries motion is sent after
+_HALTS = ("ESTOP", "NETWORK_LOSS_SAFE_STOP")  # besides an executed `stop`
+
+
+class LeftArm(msgspec.Struct, frozen=True, kw_only=True):
+    """An arm's trajectory a crashed run sent that may still run in its controller."""
+
+    message_id: str
+    action: str
+    principal: str | None
+    topic: str | None  # where it went (`ros2_topic`)
+    params: dict[str, Any]  # as sent (`applied`): routes the hold (its `group`)
+    joints: list[str]
+    sent_at_ms: int  # the wall time of its entry
+    runs_for_s: float
+
+    @property
+    def due_ms(self) -> int:
+        """Wall time after which it has ended, settling included."""
+        return self.sent_at_ms + round((self.runs_for_s + SETTLING_S) * 1000)
+
+
+class LeftGoal(msgspec.Struct, frozen=True, kw_only=True):
+    """A goal a crashed run sent that no entry shows ended."""
+
+    message_id: str
+    action: str
+    principal: str | None
+    server: str | None
+    goal_id: str | None  # None: its entry predates goal ids written ahead (cannot be named)
+
+
+class LeftStream(msgspec.Struct, frozen=True, kw_only=True):
+    """A velocity stream a crashed run was sending that no entry shows ended."""
+
+    message_id: str
+    action: str
+    principal: str | None
+    topic: str | None
+
+
+class LeftRunning(msgspec.Struct, kw_only=True):
+    """The motion the previous run left possibly running (it did not end with BRIDGE_STOPPED)."""
+
+    arms: list[LeftArm] = msgspec.field(default_factory=list)
+    goals: list[LeftGoal] = msgspec.field(default_factory=list)
+    streams: list[LeftStream] = msgspec.field(default_factory=list)
+
+    def __bool__(self) -> bool:
+        return bool(self.arms or self.goals or self.streams)
+
+    def facts(self) -> dict[str, Any]:
+        """What an entry records of it (all of it: a later scan takes up what a start could
+        not take back from here, `still_left`)."""
+        facts: dict[str, Any] = msgspec.to_builtins(self)
+        return facts
 
 
 class Resumed(msgspec.Struct):
-    """The log's last word: `latched` None when it never spoke of the e-stop."""
+    """The log's last word: `latched` None when it never spoke of the e-stop; `crashed` when
+    the previous run did not end with BRIDGE_STOPPED, and then what it `left` running."""
 
     latched: bool | None = None
     latched_by: str | None = None
     locks: dict[str, str] = msgspec.field(default_factory=dict)  # name → who engaged it
+    crashed: bool = False
+    left: LeftRunning = msgspec.field(default_factory=LeftRunning)
 
 
-def resume(path: Path | str) -> Resumed:
+def resume(path: Path | str, *, now_ms: int | None = None) -> Resumed:
     """Read the log's tail backwards to its last start or stop; a missing log is a first start.
 
-    Entries are trusted as they stand: the log was verified when it was opened.
+    Entries are trusted as they stand: the log was verified when it was opened. `now_ms`:
+    the wall time arm trajectories are due against (default: now).
     """
     seen: list[dict[str, Any]] = []  # newest first, down to the boundary
     try:
@@ -51,9 +128,152 @@ def resume(path: Path | str) -> Resumed:
     except (OSError, ValueError) as exc:  # it verified at open: this is no time to trust it
         return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc})")
     found = Resumed()
+    motion = _Motion()
     for entry in reversed(seen):  # replayed oldest first, from the boundary on
         _apply(found, entry)
+        motion.apply(entry)
+    # No boundary at all in a log with entries is no clean stop either: fail closed.
+    found.crashed = bool(seen) and seen[0].get("event") != "BRIDGE_STOPPED"
+    if found.crashed:
+        found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
     return found
+
+
+class _Motion:
+    """The motion sent since the boundary, less what ended, replayed oldest first."""
+
+    def __init__(self) -> None:
+        self.arms: dict[str, LeftArm] = {}  # message id → (insertion order: oldest first)
+        self.goals: dict[str, LeftGoal] = {}
+        self.streams: dict[str, LeftStream] = {}
+        # A stop's message id → what it ended, given back if its own COMMAND_FAILED follows.
+        self._halted: dict[str, tuple[dict[str, LeftArm], dict[str, LeftGoal],
+                                      dict[str, LeftStream]]] = {}
+
+    def left(self, now_ms: int) -> LeftRunning:
+        return LeftRunning(
+            arms=[a for a in self.arms.values() if a.due_ms > now_ms][-MAX_LEFT:],
+            goals=list(self.goals.values())[-MAX_LEFT:],
+            streams=list(self.streams.values())[-MAX_LEFT:])
+
+    def apply(self, entry: dict[str, Any]) -> None:
+        event, message_id = entry.get("event"), entry.get("message_id")
+        if event == "BRIDGE_STARTED":  # the boundary: what it set out to take back runs on
+            given = entry.get("params")
+            self._taken_up((given if isinstance(given, dict) else {}).get("left_running"))
+        elif event in _EXECUTED and entry.get("outcome") == "executed":
+            self._executed(entry)
+        elif event in _HALTS:
+            self._halt(entry)
+        elif event == "COMMAND_FAILED" and isinstance(message_id, str):
+            self._failed(message_id)
+        elif event == "GOAL_FINISHED":
+            self._goal_finished(entry)
+        elif event == "STREAM_ENDED" and isinstance(message_id, str):
+            self.streams.pop(message_id, None)
+
+    def _executed(self, entry: dict[str, Any]) -> None:
+        try:
+            spec = action_spec(str(entry.get("action_type")))
+        except KeyError:  # not an action of the registry (cancel_goal): nothing it started
+            return
+        message_id, topic = str(entry.get("message_id")), entry.get("ros2_topic")
+        principal = entry.get("principal")
+        if spec.effect is Effect.HALT:
+            self._halted_all(message_id)
+        elif spec.starts_goal:
+            goal_id = entry.get("goal_id")
+            self.goals[message_id] = LeftGoal(
+                message_id=message_id, action=spec.name, principal=principal, server=topic,
+                goal_id=goal_id if isinstance(goal_id, str) else None)
+        elif spec.streamed:
+            self.streams[message_id] = LeftStream(message_id=message_id, action=spec.name,
+                                                  principal=principal, topic=topic)
+        elif isinstance(spec.ros, Publish) and spec.ros.hold is not None:
+            self._trajectory(entry, spec.name, spec.ros, message_id)
+
+    def _trajectory(self, entry: dict[str, Any], action: str, ros: Publish[Any],
+                    message_id: str) -> None:
+        applied = entry.get("applied")
+        hold = ros.hold
+        assert hold is not None
+        try:
+            params = msgspec.convert(applied, action_spec(action).params)
+            joints, runs_for_s = list(hold.joints(params)), float(hold.runs_for_s(params))
+        except (msgspec.ValidationError, TypeError, ValueError):
+            return  # not what an executed command's entry holds: nothing was sent for it
+        arm = LeftArm(message_id=message_id, action=action, principal=entry.get("principal"),
+                      topic=entry.get("ros2_topic"), params=dict(applied or {}),
+                      joints=joints, sent_at_ms=int(entry.get("timestamp_ms") or 0),
+                      runs_for_s=runs_for_s)
+        for earlier, run in list(self.arms.items()):  # the controller replaced it
+            if run.topic == arm.topic and set(run.joints) == set(arm.joints):
+                del self.arms[earlier]
+        self.arms[message_id] = arm
+
+    def _halt(self, entry: dict[str, Any]) -> None:
+        applied = entry.get("applied")
+        facts: dict[str, Any] = applied if isinstance(applied, dict) else {}
+        if facts.get("scope") == "own":
+            self._own_stop(str(entry.get("principal")), facts)
+            return
+        # An e-stop, a safe stop of the whole robot, a start's halt of a crash.
+        self._halted_all(str(entry.get("message_id")))
+        if facts.get("scope") == "crash":
+            self._still_left(facts)
+
+    def _still_left(self, facts: dict[str, Any]) -> None:
+        """What a start's halt of a crashed run could not take back (an arm not held, a
+        goal no server answered for) runs on: listed again, for the next start to try."""
+        still = set(facts.get("still_left") or ())
+        self._taken_up(facts.get("left"), lambda message_id: message_id in still)
+
+    def _taken_up(self, facts: Any, chosen: Callable[[str], bool] = lambda _: True) -> None:
+        """The motion an entry lists as left by a crashed run (`LeftRunning.facts`), those
+        `chosen`, as running still."""
+        try:
+            left = msgspec.convert(facts or {}, LeftRunning)
+        except msgspec.ValidationError:
+            return
+        self.arms.update((a.message_id, a) for a in left.arms if chosen(a.message_id))
+        self.goals.update((g.message_id, g) for g in left.goals if chosen(g.message_id))
+        self.streams.update((s.message_id, s) for s in left.streams if chosen(s.message_id))
+
+    def _halted_all(self, message_id: str) -> None:
+        self._halted[message_id] = (self.arms, self.goals, self.streams)
+        self.arms, self.goals, self.streams = {}, {}, {}
+        if len(self._halted) > MAX_LEFT:  # a stop's COMMAND_FAILED follows it closely
+            del self._halted[next(iter(self._halted))]
+
+    def _own_stop(self, principal: str, facts: dict[str, Any]) -> None:
+        """A stop of `principal`'s motion alone: its goals it cancelled and its arms on the
+        topics it held end; the arms it could not hold run on."""
+        cancelled = set(facts.get("goals_cancelled") or ())
+        held = set(facts.get("arms_held") or ())
+        self.goals = {m: g for m, g in self.goals.items()
+                      if not (g.principal == principal and g.goal_id in cancelled)}
+        self.arms = {m: a for m, a in self.arms.items()
+                     if not (a.principal == principal and a.topic in held)}
+        self.streams = {m: s for m, s in self.streams.items() if s.principal != principal}
+
+    def _failed(self, message_id: str) -> None:
+        """The send of `message_id` failed: it started nothing — or, a stop's, ended nothing."""
+        for running in (self.arms, self.goals, self.streams):
+            running.pop(message_id, None)
+        given_back = self._halted.pop(message_id, None)
+        if given_back is not None:
+            arms, goals, streams = given_back
+            self.arms = {**arms, **self.arms}
+            self.goals = {**goals, **self.goals}
+            self.streams = {**streams, **self.streams}
+
+    def _goal_finished(self, entry: dict[str, Any]) -> None:
+        given = entry.get("params")
+        goal_id = given.get("goal_id") if isinstance(given, dict) else None
+        message_id = entry.get("message_id")
+        self.goals = {m: g for m, g in self.goals.items()
+                      if not (g.goal_id is not None and g.goal_id == goal_id)
+                      and not (g.goal_id is None and m == message_id)}
 
 
 def _apply(state: Resumed, entry: dict[str, Any]) -> None:
@@ -97,6 +317,7 @@ def _backwards(path: Path) -> Iterator[dict[str, Any]]:
         return
     try:
         end, tail = os.fstat(fd).st_size, b""
+        first = not _ends_line(fd, end)  # an unterminated last line: a crash mid-append
         while end > 0:
             start = max(0, end - _CHUNK)
             block = os.pread(fd, end - start, start) + tail
@@ -105,6 +326,27 @@ def _backwards(path: Path) -> Iterator[dict[str, Any]]:
             tail = lines.pop(0) if end > 0 else b""  # maybe cut: completed by the next read
             for line in reversed(lines):
                 if line.strip():
-                    yield json.loads(line)
+                    parsed = _parsed(line, last=first)
+                    first = False
+                    if parsed is not None:
+                        yield parsed
     finally:
         os.close(fd)
+
+
+def _ends_line(fd: int, size: int) -> bool:
+    return size == 0 or os.pread(fd, 1, size - 1) == b"\n"
+
+
+def _parsed(line: bytes, *, last: bool) -> dict[str, Any] | None:
+    """One entry; None for a torn last line (unterminated: its append never finished, and
+    the log cuts it when it opens), which is no entry. Anything else unreadable raises."""
+    try:
+        entry = json.loads(line)
+    except ValueError:
+        if last:
+            return None
+        raise
+    if not isinstance(entry, dict):
+        raise ValueError(f"an audit line that is no entry: {line[:40]!r}")
+    return entry

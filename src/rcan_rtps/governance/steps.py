@@ -23,6 +23,7 @@ from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
 from .errors import AuditError
 from .outcomes import AUDIT_UNAVAILABLE, DISPATCH_ERROR, Rejection, robot_unavailable
 from .rbac import Principal
+from .resume import LeftRunning
 
 log = logging.getLogger("rcan_rtps.governance.governor")  # one logger for the kernel's steps
 
@@ -48,6 +49,17 @@ class ArmsHeld(NamedTuple):
     held: tuple[str, ...] = ()
     not_held: tuple[str, ...] = ()
     at_desired: tuple[str, ...] = ()
+
+
+class LeftHalted(NamedTuple):
+    """What a start did to the motion a crashed run left (`Dispatcher.halt_left`)."""
+
+    zero_reached: bool  # the zero velocity reached a reader of the velocity topic
+    goals_cancelled: tuple[str, ...] = ()  # their ids (a goal with none: its server, all)
+    goals_not_cancelled: tuple[str, ...] = ()  # why, for each
+    arms: ArmsHeld = ArmsHeld()
+    # The message ids of what may still run: arms not held, goals no server answered for.
+    still_left: tuple[str, ...] = ()
 
 
 class Dispatcher(Protocol):
@@ -88,6 +100,13 @@ class Dispatcher(Protocol):
 
     def running_trajectories(self) -> Collection[str]:
         """The message ids of the commands whose motion may still run on (`runs_for_s`)."""
+        ...
+
+    async def halt_left(self, left: LeftRunning) -> LeftHalted:
+        """Takes back the motion a crashed run left (a start's first act): zero velocity, each
+        goal cancelled by its id (one with no id known: every goal of its server), each arm
+        still due held where joint_states says it is (never at a guess: an arm whose
+        joints are not heard within the start-up wait is reported, not held)."""
         ...
 
 
@@ -273,7 +292,7 @@ def record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
            outcome: Outcome, *, applied: dict[str, Any] | None = None,
            rejection: Rejection | None = None, ros2_topic: str | None = None,
            pending_id: str | None = None, sent_first: bool | None = None) -> AuditRecord:
-    """The audit entry of `command`'s decision."""
+    """The audit entry of `command`'s decision (its goal's id, when one was chosen for it)."""
     return AuditRecord(
         event=event, principal=principal.name, role=principal.role.name,
         message_id=command.message_id, action_type=command.action, params=command.requested,
@@ -284,6 +303,7 @@ def record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
         # A held command's reviews (who approved, denied or withdrew it, and why).
         approvals=[msgspec.to_builtins(a) for a in command.approvals] or None,
         rcan=command.envelope.audit_facts() if command.envelope is not None else None,
+        goal_id=command.goal_id if outcome is Outcome.EXECUTED else None,
     )
 
 

@@ -102,6 +102,10 @@ class NormalizedCommand(msgspec.Struct, frozen=True, kw_only=True):
     approvals: tuple[Approval, ...] = ()
     # A message of the RCAN 3.x generation: what it carried beyond the command (`_v3`).
     envelope: Envelope | None = None
+    # The id its goal is sent with (a command that starts one): chosen by the governor before
+    # its write-ahead entry, which records it, so a restart after a crash can cancel the goal
+    # by id. Set by the governor only (never decoded from a body).
+    goal_id: str | None = None
 
     @property
     def spec(self) -> ActionSpec[Any]:

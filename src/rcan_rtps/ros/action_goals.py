@@ -667,21 +667,25 @@ class GoalSender:
         return False
 
     async def send_goal(self, goal: IdlStruct | Mapping[str, Any] | None = None,
-                        timeout: float = 10.0) -> ClientGoal:
-        """Sends a goal; the returned goal says `accepted` (or its state is REJECTED)."""
+                        timeout: float = 10.0, *, goal_id: bytes | None = None) -> ClientGoal:
+        """Sends a goal; the returned goal says `accepted` (or its state is REJECTED).
+        `goal_id`: its 16-byte id, when the caller chose it (default: a new random one)."""
         values = self.node.values
         message = goal if isinstance(goal, IdlStruct) else \
             values.build(self.types.goal.name, goal)
         with self.client._closed_said():
-            return await self._send_goal(message, timeout)
+            return await self._send_goal(message, timeout, goal_id or uuid.uuid4().bytes)
 
-    async def _send_goal(self, message: IdlStruct, timeout: float) -> ClientGoal:
+    async def _send_goal(self, message: IdlStruct, timeout: float,
+                         goal_id: bytes) -> ClientGoal:
         values = self.node.values
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
         await self._wait_for_server(timeout)
         self._forget_ended()
-        handle = ClientGoal(self, uuid.uuid4().bytes)
+        if goal_id in self._goals:  # a server would take it for the one it has
+            raise ActionError(f"{self.name}: goal {uuid.UUID(bytes=goal_id)} was sent already")
+        handle = ClientGoal(self, goal_id)
         self._goals[handle.goal_id] = handle  # before sending: feedback may come quickly
         self.goals_sent += 1
         self._expect_feedback(handle)

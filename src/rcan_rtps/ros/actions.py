@@ -169,6 +169,24 @@ class ActionClient:
         with self._closed_said():
             await self._cancel_srv.wait_for_service(timeout)
 
+    async def cancel_goal_id(self, goal_id: bytes, timeout: float = 10.0) -> bool:
+        """Asks the server to cancel the goal `goal_id`, whoever sent it (a goal of a previous
+        run of ours, which no handle here knows); True if the server is canceling it. Waits
+        up to `timeout` for the server's cancel service first."""
+        await self.prepare_cancel(timeout)
+        request = {"goal_info": {"goal_id": {"uuid": goal_id}}}
+
+        def names_it(reply: Any) -> bool:
+            return any(bytes(info.goal_id.uuid) == goal_id for info in reply.goals_canceling)
+
+        def ours(reply: Any) -> bool:  # Fast DDS: names our goal, or refuses naming none
+            return names_it(reply) or (int(reply.return_code) != 0 and not reply.goals_canceling)
+
+        with self._closed_said():
+            reply: Any = await self._cancel_srv.call(request, timeout, accept=ours,
+                                                     unidentified_ok=True)
+        return names_it(reply)
+
     def status_matches(self) -> int:
         """How many times a status writer has matched our reader (a server appeared, or
         came back); 0 once closed."""
@@ -192,9 +210,10 @@ class ActionClient:
 
     # -- goals ----------------------------------------------------------------------
     async def send_goal(self, goal: IdlStruct | Mapping[str, Any] | None = None,
-                        timeout: float = 10.0) -> ClientGoal:
-        """Sends a goal; the returned goal says `accepted` (or its state is REJECTED)."""
-        return await self._goal_side().send_goal(goal, timeout)
+                        timeout: float = 10.0, *, goal_id: bytes | None = None) -> ClientGoal:
+        """Sends a goal; the returned goal says `accepted` (or its state is REJECTED).
+        `goal_id`: its id, when the caller chose it (a new random one by default)."""
+        return await self._goal_side().send_goal(goal, timeout, goal_id=goal_id)
 
     async def cancel_all(self, timeout: float = 10.0, *, server_wide: bool = False) -> int:
         """Cancels this client's open goals (or, `server_wide`, every goal of the server,

@@ -1,0 +1,297 @@
+"""A run that did not end with BRIDGE_STOPPED (SIGKILL, out of memory, power) left the motion
+it started running with nobody governing it: an arm's trajectory runs on in its controller (up
+to an hour), a goal in its server. `resume` lists it from the signed log, less what a later
+entry shows ended; a start takes it back (`Dispatcher.halt_left`) and records that in one
+NETWORK_LOSS_SAFE_STOP of scope `crash`, after its BRIDGE_STARTED. A clean stop leaves nothing.
+
+The logs are built with the audit writer itself (signed, chained), entry by entry."""
+
+from __future__ import annotations
+
+import asyncio
+import uuid
+from pathlib import Path
+from typing import Any
+
+from govhelpers import PLANNER, RURI, Harness, command
+from waiting import eventually
+
+from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
+from rcan_rtps.governance.clock import ManualClock
+from rcan_rtps.governance.resume import SETTLING_S, resume
+from rcan_rtps.rcan import Outcome
+
+ARM_TOPIC = "/robot1/left_arm/joint_trajectory"
+NAV = "/robot1/navigate_to_pose"
+LONG = {"group": "left", "joints": ["l_shoulder", "l_elbow"], "positions": [1.0, 2.0],
+        "duration_s": 60.0}
+
+
+class Log:
+    """A signed log written entry by entry, on a manual clock."""
+
+    def __init__(self, path: Path, clock: ManualClock, audit: AuditLog) -> None:
+        self.path, self.clock, self.audit = path, clock, audit
+
+    @classmethod
+    async def open(cls, tmp: Path, clock: ManualClock) -> Log:
+        path = tmp / "audit.jsonl"
+        return cls(path, clock, await AuditLog.open(path, tmp / "audit.key", ruri=RURI,
+                                                    clock=clock))
+
+    async def add(self, event: AuditEvent, **fields: Any) -> None:
+        await self.audit.append(AuditRecord(event=event, **fields))
+
+    async def started(self) -> None:
+        await self.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {}})
+
+    async def arm(self, message_id: str, params: dict[str, Any] = LONG) -> None:
+        await self.add(AuditEvent.COMMAND_DISPATCHED, principal="planner", role="USER",
+                       message_id=message_id, action_type="arm_joint", params=params,
+                       applied=params, outcome="executed", ros2_topic=ARM_TOPIC)
+
+    async def goal(self, message_id: str, goal_id: str | None) -> None:
+        params = {"x": 1.0, "y": 2.0, "yaw": 0.0}
+        await self.add(AuditEvent.COMMAND_DISPATCHED, principal="planner", role="USER",
+                       message_id=message_id, action_type="navigate", params=params,
+                       applied=params, outcome="executed", ros2_topic=NAV, goal_id=goal_id)
+
+    async def stop(self, message_id: str) -> None:
+        await self.add(AuditEvent.COMMAND_DISPATCHED, principal="ops", role="OWNER",
+                       message_id=message_id, action_type="stop", params={}, applied={},
+                       outcome="executed", ros2_topic="/robot1/cmd_vel", sent_first=True)
+
+    def now_ms(self) -> int:
+        return int(self.clock.time() * 1000)
+
+
+async def test_an_arm_trajectory_still_due_after_a_crash_is_listed(
+        tmp_path: Path, clock: ManualClock) -> None:
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    sent_at = log.now_ms()
+    await log.arm("arm-1")
+    clock.advance(10)
+    await log.audit.close()  # killed: no BRIDGE_STOPPED
+    found = resume(log.path, now_ms=log.now_ms())
+    assert found.crashed
+    [arm] = found.left.arms
+    assert (arm.message_id, arm.topic, arm.joints) == ("arm-1", ARM_TOPIC,
+                                                       ["l_shoulder", "l_elbow"])
+    assert (arm.sent_at_ms, arm.runs_for_s, arm.params["group"]) == (sent_at, 60.0, "left")
+    assert (found.left.goals, found.left.streams) == ([], [])
+
+
+async def test_a_trajectory_that_ended_by_its_time_is_not_listed(
+        tmp_path: Path, clock: ManualClock) -> None:
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    points = {"group": "left", "joints": ["l_elbow"], "points": [
+        {"positions": [0.1], "time_from_start_s": 1.0},
+        {"positions": [0.2], "time_from_start_s": 5.0}]}
+    await log.arm("arm-1", points)
+    await log.audit.close()
+    due = log.now_ms() + round((5.0 + SETTLING_S) * 1000)  # its last point, settled
+    assert [a.message_id for a in resume(log.path, now_ms=due - 1).left.arms] == ["arm-1"]
+    assert resume(log.path, now_ms=due).left.arms == []
+    assert resume(log.path, now_ms=due).crashed
+
+
+async def test_motion_a_later_stop_took_back_is_not_listed(
+        tmp_path: Path, clock: ManualClock) -> None:
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("arm-1")
+    await log.goal("nav-1", str(uuid.uuid4()))
+    await log.stop("stop-1")
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert found.crashed and not found.left
+
+
+async def test_a_stop_that_failed_took_back_nothing(tmp_path: Path, clock: ManualClock) -> None:
+    """Its own COMMAND_FAILED follows (say, an arm it could not hold): what ran, runs."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("arm-1")
+    await log.stop("stop-1")
+    await log.add(AuditEvent.COMMAND_FAILED, principal="ops", message_id="stop-1",
+                  action_type="stop", outcome="failed",
+                  deny_reason="robot_unavailable:the arm was not held")
+    await log.audit.close()
+    assert [a.message_id for a in resume(log.path, now_ms=log.now_ms()).left.arms] == ["arm-1"]
+
+
+async def test_a_stop_of_one_principal_ends_what_it_says_it_held(
+        tmp_path: Path, clock: ManualClock) -> None:
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("arm-1")
+    goal_id = str(uuid.uuid4())
+    await log.goal("nav-1", goal_id)
+    await log.add(AuditEvent.NETWORK_LOSS_SAFE_STOP, principal="planner", message_id="own-1",
+                  action_type="stop", outcome="executed", applied={
+                      "scope": "own", "goals_cancelled": [goal_id], "arms_held": [ARM_TOPIC]})
+    await log.audit.close()
+    assert not resume(log.path, now_ms=log.now_ms()).left
+
+
+async def test_a_clean_stop_leaves_nothing(tmp_path: Path, clock: ManualClock) -> None:
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("arm-1")
+    await log.goal("nav-1", str(uuid.uuid4()))
+    await log.add(AuditEvent.BRIDGE_STOPPED, params={"estop_latched": False, "locks": {}})
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert not found.crashed and not found.left
+
+
+async def test_goals_are_listed_by_id_or_as_having_none(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A goal's id is written ahead in its entry; an entry of a bridge before that has none
+    (its goal is listed all the same: its server's goals are cancelled). GOAL_FINISHED ends
+    one, by its id (or, having none, by its command's message id)."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    ids = [str(uuid.uuid4()) for _ in range(2)]
+    await log.goal("nav-1", ids[0])
+    await log.goal("nav-2", None)
+    await log.goal("nav-3", ids[1])
+    await log.goal("nav-4", None)
+    for message_id, goal_id in (("nav-3", ids[1]), ("nav-4", str(uuid.uuid4()))):
+        await log.add(AuditEvent.GOAL_FINISHED, message_id=message_id,
+                      params={"goal_id": goal_id}, outcome="succeeded", ros2_topic=NAV)
+    await log.audit.close()
+    goals = resume(log.path, now_ms=log.now_ms()).left.goals
+    assert [(g.message_id, g.goal_id, g.server) for g in goals] == [
+        ("nav-1", ids[0], NAV), ("nav-2", None, NAV)]
+
+
+async def test_a_torn_last_line_does_not_hide_what_came_before(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Killed mid-append: the last line is cut short. The scan reads past it (the log cuts
+    it when it opens); the motion before it is listed, and the latch is not taken for it."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("arm-1")
+    await log.audit.close()
+    with log.path.open("ab") as f:
+        f.write(b'{"event":"COMMAND_DISPATCHED","seq":4,"mess')
+    found = resume(log.path, now_ms=log.now_ms())
+    assert found.latched is False and found.crashed
+    assert [a.message_id for a in found.left.arms] == ["arm-1"]
+
+
+# -- a start takes it back ------------------------------------------------------------------
+
+async def _crashed_with_an_arm_and_a_goal(harness: Harness) -> tuple[str, str]:
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    arm = await gov.decide(command("arm_joint", {"joints": ["elbow"], "positions": [0.8],
+                                                 "duration_s": 600.0}), PLANNER)
+    goal = await gov.decide(command("navigate", {"x": 1.0, "y": 0.0, "yaw": 0.0}), PLANNER)
+    assert arm.outcome is goal.outcome is Outcome.EXECUTED, (arm, goal)
+    assert arm.message_id is not None and goal.message_id is not None
+    await harness.restart()  # the log closed, no BRIDGE_STOPPED: a crash
+    return arm.message_id, goal.message_id
+
+
+async def test_a_goal_s_id_is_written_ahead(harness: Harness) -> None:
+    await _crashed_with_an_arm_and_a_goal(harness)
+    [sent] = [e for e in harness.entries if e.get("action_type") == "navigate"]
+    assert uuid.UUID(sent["goal_id"]).version == 4, sent
+
+
+async def test_a_start_after_a_crash_takes_back_what_it_left(harness: Harness) -> None:
+    arm_id, goal_message_id = await _crashed_with_an_arm_and_a_goal(harness)
+    [goal_id] = [e["goal_id"] for e in harness.entries if e.get("action_type") == "navigate"]
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [left] = harness.dispatcher.left
+    assert [a.message_id for a in left.arms] == [arm_id]
+    assert [(g.message_id, g.goal_id) for g in left.goals] == [(goal_message_id, goal_id)]
+    started, took_back = harness.entries[-2:]
+    assert started["event"] == "BRIDGE_STARTED"
+    assert (took_back["event"], took_back["outcome"]) == ("NETWORK_LOSS_SAFE_STOP", "executed")
+    applied = took_back["applied"]
+    assert applied["scope"] == "crash" and applied["goals_cancelled"] == [goal_id]
+    assert applied["arms_held"] == [left.arms[0].topic]
+    assert [a["message_id"] for a in applied["left"]["arms"]] == [arm_id]
+    await gov.stop()
+    # Taken back: the next start after another crash finds nothing more to take back.
+    await harness.restart()
+    harness.dispatcher.left.clear()
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    assert harness.dispatcher.left == []
+    await gov.stop()
+
+
+async def test_an_arm_that_could_not_be_held_fails_the_entry_loudly(harness: Harness) -> None:
+    await _crashed_with_an_arm_and_a_goal(harness)
+    harness.dispatcher.unheard_arms = True
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    took_back = harness.entries[-1]
+    assert (took_back["event"], took_back["outcome"]) == ("NETWORK_LOSS_SAFE_STOP", "failed")
+    assert "no joint_states heard" in took_back["deny_reason"]
+    assert took_back["applied"]["arms_not_held"], took_back
+    await gov.stop()
+
+
+async def test_an_arm_not_held_is_tried_again_after_the_next_crash(harness: Harness) -> None:
+    """A crash loop (out of memory at every start, say): the arm a start could not hold is
+    in its entry (`still_left`), and the next start after another crash tries it again."""
+    arm_id, _ = await _crashed_with_an_arm_and_a_goal(harness)
+    harness.dispatcher.unheard_arms = True
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    assert harness.entries[-1]["applied"]["still_left"] == [arm_id]
+    await harness.restart()  # killed again: no BRIDGE_STOPPED
+    harness.dispatcher.unheard_arms = False
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [_, again] = harness.dispatcher.left
+    assert [a.message_id for a in again.arms] == [arm_id] and again.goals == []
+    assert harness.entries[-1]["applied"]["arms_held"] == [again.arms[0].topic]
+    await harness.restart()  # and again: held this time, nothing is left
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    assert len(harness.dispatcher.left) == 2
+    await gov.stop()
+
+
+async def test_a_crash_during_the_halt_leaves_it_to_the_next_start(harness: Harness) -> None:
+    """Killed again while taking back what the first crash left (before that halt's entry):
+    its BRIDGE_STARTED lists what it set out to take back, and the next start does."""
+    arm_id, goal_message_id = await _crashed_with_an_arm_and_a_goal(harness)
+    harness.dispatcher.halt_hold = asyncio.Event()  # the halt never finishes
+    gov = await harness.governor(gates="[]")
+    starting = asyncio.ensure_future(gov.start())
+    await eventually(lambda: harness.dispatcher.left and
+                     harness.entries[-1]["event"] == "BRIDGE_STARTED", what="halting")
+    starting.cancel()
+    await harness.restart()  # killed mid-halt: no entry of it, no BRIDGE_STOPPED
+    harness.dispatcher.halt_hold = None
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [_, again] = harness.dispatcher.left
+    assert [a.message_id for a in again.arms] == [arm_id]
+    assert [g.message_id for g in again.goals] == [goal_message_id]
+    assert harness.entries[-1]["applied"]["scope"] == "crash"
+    await gov.stop()
+
+
+async def test_a_start_after_a_clean_stop_takes_nothing_back(harness: Harness) -> None:
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    await gov.decide(command("arm_joint", {"joints": ["elbow"], "positions": [0.8],
+                                           "duration_s": 600.0}), PLANNER)
+    await gov.stop()
+    await harness.restart()
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    assert harness.dispatcher.left == []
+    assert harness.entries[-1]["event"] == "BRIDGE_STARTED"
+    await gov.stop()

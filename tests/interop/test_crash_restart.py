@@ -1,0 +1,227 @@
+"""A bridge killed mid-flight (SIGKILL) left its motion running with nobody governing it: an
+arm's JointTrajectory runs on in its controller (the topic has no cancel, no timeout), a
+navigation goal in its server. Restarted on the same state directory (`rcan-rtps run`, a
+real process both times), the bridge takes that motion back before its ready line: each arm
+held where joint_states says it is, each goal cancelled by its id, a zero velocity — and
+records it (NETWORK_LOSS_SAFE_STOP, `applied.scope: crash`) right after its BRIDGE_STARTED.
+
+The robot: an rclpy node (both RMWs) subscribed to the arm's trajectory topic and cmd_vel,
+publishing joint_states; for the goal, a NavigateToPose server of our own on a participant
+of its own (the rclpy oracle serves only Fibonacci) that records every cancel request."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import textwrap
+import uuid
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
+from waiting import take
+
+from rcan_rtps.ros.action_server import ActionServer, ServerGoal
+from rcan_rtps.ros.participant import RosNode
+
+from .run_process import RunProcess
+
+TOKEN = "c" * 32
+TRAJ = "trajectory_msgs/msg/JointTrajectory"
+LEFT = "/robot1/left_arm/joint_trajectory"
+JOINT_STATES, JOINT_STATE = "/robot1/joint_states", "sensor_msgs/msg/JointState"
+CMD_VEL, TWIST = "/robot1/cmd_vel", "geometry_msgs/msg/Twist"
+NAV = "nav2_msgs/action/NavigateToPose"
+LONG = {"group": "left", "joints": ["l_shoulder", "l_elbow"], "positions": [1.0, 2.0],
+        "duration_s": 600.0}
+AT = [0.25, -0.5]  # where joint_states says the arm is
+
+
+def _config(state: Path, domain_id: int) -> str:
+    return textwrap.dedent(f"""\
+        robot:
+          ruri: rcan://registry.local/acme/rover/unit-0001
+          name: Crash Rover
+        bridge:
+          ros2:
+            namespace: /robot1
+            node_name: rcan_bridge
+            domain_id: {domain_id}
+            match_timeout_s: 10.0
+            arms:
+              left: {{topic: left_arm/joint_trajectory, joints: [l_shoulder, l_elbow]}}
+          api:
+            auth_token_env: RCAN_BRIDGE_TOKEN
+          safety:
+            max_linear_vel: 1.5
+            max_angular_vel: 1.0
+            session_timeout_s: 3600
+            workspace: [[-10, -10], [10, -10], [10, 10], [-10, 10]]
+          audit:
+            path: {state / "audit.jsonl"}
+            key_path: {state / "audit.key"}
+        """)
+
+
+class Bridge:
+    """`rcan-rtps run` on one config and state directory, started again after a SIGKILL."""
+
+    def __init__(self, config: Path, state: Path) -> None:
+        self.config, self.audit = config, state / "audit.jsonl"
+        self.run: RunProcess | None = None
+
+    async def start(self) -> RunProcess:
+        """Started, once its ready line is out (waited for off the loop: the test's own
+        peers answer on it meanwhile)."""
+        env = {**os.environ, "RCAN_BRIDGE_TOKEN": TOKEN}
+        args = ["run", "--config", str(self.config), "--port", "0", "--no-mdns"]
+        self.run = await asyncio.to_thread(RunProcess, args, env, demo=False)
+        return self.run
+
+    def kill(self) -> None:
+        assert self.run is not None
+        self.run.kill()  # SIGKILL: no BRIDGE_STOPPED, no halt on the way out
+
+    def close(self) -> None:
+        if self.run is not None:
+            self.run.stop()
+
+    async def command(self, body: dict[str, Any]) -> dict[str, Any]:
+        assert self.run is not None
+        headers = {"Authorization": f"Bearer {TOKEN}"}
+        async with aiohttp.ClientSession(headers=headers) as http, \
+                http.post(self.run.url + "/api/command", json=body) as resp:
+            answer: dict[str, Any] = await resp.json()
+            assert resp.status == 200, answer
+            return answer
+
+    def entries(self) -> list[dict[str, Any]]:
+        return [json.loads(line) for line in self.audit.read_text().splitlines()]
+
+
+
+def took_back_in(entries: list[dict[str, Any]]) -> dict[str, Any]:
+    """The entry of the last start's halt of a crashed run's motion, checked to follow that
+    start's BRIDGE_STARTED (nothing between them)."""
+    starts = [i for i, e in enumerate(entries) if e["event"] == "BRIDGE_STARTED"]
+    assert len(entries) > starts[-1] + 1, "nothing recorded after the last BRIDGE_STARTED"
+    after = entries[starts[-1] + 1]
+    assert (after["event"], after["applied"]["scope"]) == ("NETWORK_LOSS_SAFE_STOP",
+                                                            "crash"), after
+    return after
+
+
+@pytest.fixture
+def bridge(tmp_path: Path, domain_id: int) -> Iterator[Bridge]:
+    state = tmp_path / "state"
+    config = tmp_path / "robot.rcan.yaml"
+    config.write_text(_config(state, domain_id))
+    made = Bridge(config, state)
+    try:
+        yield made
+    finally:
+        made.close()
+
+
+@pytest.fixture
+async def robot(jazzy_oracle: OracleEnv, domain_id: int) -> AsyncIterator[RclpyOracle]:
+    """The rclpy side: the left arm's trajectory topic and cmd_vel read, joint_states at
+    50 Hz (the arm at rest at AT)."""
+    with RclpyOracle(jazzy_oracle, "robot", "/robot1", domain_id=domain_id) as oracle:
+        for topic, type_name in ((LEFT, TRAJ), (CMD_VEL, TWIST)):
+            await oracle.acall("subscribe", topic=topic, type=type_name)
+        await oracle.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+        await oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                           value={"name": ["l_shoulder", "l_elbow"], "position": AT,
+                                  "velocity": [0.0, 0.0]})
+        yield oracle
+
+
+@both_rmws
+async def test_a_restart_after_a_kill_holds_the_arm_it_left_moving(
+        bridge: Bridge, robot: RclpyOracle) -> None:
+    await bridge.start()
+    moving = await bridge.command({"action": "arm_joint", "params": LONG})
+    (sent,) = await take(robot, LEFT)
+    assert sent["points"][0]["positions"] == [1.0, 2.0]
+    bridge.kill()
+    await robot.acall("take", topic=CMD_VEL)  # what the first run sent is not the point
+    await bridge.start()
+    written = bridge.entries()  # as the ready line came
+    (hold,) = await take(robot, LEFT)
+    assert hold["joint_names"] == ["l_shoulder", "l_elbow"]
+    (point,) = hold["points"]
+    assert point["positions"] == AT and point["velocities"] == [0.0, 0.0]
+    assert point["time_from_start"] == {"sec": 0, "nanosec": 0}
+    zeros = await take(robot, CMD_VEL)  # and a zero velocity, the first word
+    assert zeros[0]["linear"] == {"x": 0.0, "y": 0.0, "z": 0.0}, zeros
+    # The start awaited the hold before its ready line: its entry was written by then.
+    took_back = took_back_in(written)
+    assert took_back["outcome"] == "executed", took_back
+    assert took_back["applied"]["arms_held"] == [LEFT]
+    assert [a["message_id"] for a in took_back["applied"]["left"]["arms"]] == [
+        moving["message_id"]]
+
+
+async def test_a_restart_after_a_kill_with_the_arm_unheard_says_so(
+        bridge: Bridge, robot: RclpyOracle) -> None:
+    """joint_states stops with the bridge's death: the arm is not held at a guess; the entry
+    fails, naming it."""
+    await bridge.start()
+    await bridge.command({"action": "arm_joint", "params": LONG})
+    await take(robot, LEFT)
+    bridge.kill()
+    await robot.acall("stop_periodic", topic=JOINT_STATES)
+    await bridge.start()
+    took_back = took_back_in(bridge.entries())
+    assert took_back["outcome"] == "failed", took_back
+    [why] = took_back["applied"]["arms_not_held"]
+    assert why.startswith(f"the arm on {LEFT} was not held: no joint_states heard"), why
+    assert await robot.acall("take", topic=LEFT) == []  # nothing sent at a guess
+
+
+class CancelRecordingServer(ActionServer):
+    """Our NavigateToPose server, recording the goal id of every cancel request."""
+
+    cancels: list[bytes]
+
+    async def _on_cancel(self, request: Any) -> dict[str, Any]:
+        self.cancels.append(bytes(request.goal_info.goal_id.uuid))
+        return await super()._on_cancel(request)
+
+
+async def _until_cancelled(goal: ServerGoal) -> dict[str, Any]:
+    await goal.cancel_requested.wait()
+    goal.canceled()
+    return {}
+
+
+@both_rmws
+async def test_a_restart_after_a_kill_cancels_the_goal_it_left_by_its_id(
+        bridge: Bridge, robot: RclpyOracle, domain_id: int) -> None:
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as node:
+        server = CancelRecordingServer(node, "navigate_to_pose", NAV, _until_cancelled)
+        server.cancels = []
+        try:
+            await bridge.start()
+            sent = await bridge.command({"action": "navigate",
+                                         "params": {"x": 3.0, "y": 0.0, "yaw": 0.0}})
+            goal_id = uuid.UUID(sent["goal_id"]).bytes
+            bridge.kill()
+            await asyncio.sleep(0.5)  # a cancel would be on its way by now: none is
+            assert server.cancels == []
+            await bridge.start()
+            # Awaited before the ready line: the server has answered it already.
+            assert server.cancels == [goal_id]
+            took_back = took_back_in(bridge.entries())
+            assert took_back["applied"]["goals_cancelled"] == [sent["goal_id"]], took_back
+            [dispatched] = [e for e in bridge.entries() if e.get("action_type") == "navigate"]
+            assert dispatched["goal_id"] == sent["goal_id"]  # written ahead
+            zeros = await take(robot, CMD_VEL)
+            assert zeros[-1]["linear"]["x"] == 0.0
+        finally:
+            await server.close()

@@ -182,6 +182,14 @@ async def test_a_restart_after_a_kill_with_the_arm_unheard_says_so(
     [why] = took_back["applied"]["arms_not_held"]
     assert why.startswith(f"the arm on {LEFT} was not held: no joint_states heard"), why
     assert await robot.acall("take", topic=LEFT) == []  # nothing sent at a guess
+    # Heard again, the next stop of this run holds it, as it would one of its own.
+    await robot.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                      value={"name": ["l_shoulder", "l_elbow"], "position": AT,
+                             "velocity": [0.0, 0.0]})
+    stopped = await bridge.command({"action": "stop"})
+    assert stopped["outcome"] == "executed", stopped
+    (hold,) = await take(robot, LEFT)
+    assert hold["points"][0]["positions"] == AT, hold
 
 
 class CancelRecordingServer(ActionServer):

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections.abc import Callable, Collection, Sequence
 from typing import Any, NamedTuple, Protocol
 
@@ -41,7 +42,7 @@ from ..ros.errors import GraphTimeout, seconds
 from ..ros.participant import RosNode, RosPublisher
 from ..ros.qos import QosProfile
 from ..ros.rostime import now_msg
-from .arm_holds import ArmHolds, JointPositions
+from .arm_holds import SETTLING_S, ArmHolds, JointPositions
 from .goals import CANCELING_NOTHING
 
 log = logging.getLogger(__name__)
@@ -604,14 +605,20 @@ class RosDispatcher:
         self.arms.positions.watch(watcher, arm.joints)  # kept whatever else is heard
         try:
             if not await self._matched(route.publisher):
-                return topic, f"no subscriber on {topic}"
-            where = await self._joints_now(arm.joints)
-            if isinstance(where, str):
-                return topic, where
-            route.publisher.publish(hold.build(arm.joints, where, route.kit))
-            return topic, None
+                why: str | None = f"no subscriber on {topic}"
+            else:
+                where = await self._joints_now(arm.joints)
+                why = where if isinstance(where, str) else None
+                if not isinstance(where, str):
+                    route.publisher.publish(hold.build(arm.joints, where, route.kit))
         finally:
             self.arms.positions.watch(watcher, ())
+        if why is not None:  # the next stop of this run tries again, as for one of its own
+            kit = route.kit
+            self.arms.sent(route.publisher, arm.message_id, arm.joints,
+                           max(0.0, (arm.due_ms - time.time() * 1000) / 1000 - SETTLING_S),
+                           lambda joints, where: hold.build(joints, where, kit))
+        return topic, why
 
     async def _joints_now(self, joints: Sequence[str]) -> list[float] | str:
         """Where `joints` are, heard within `match_timeout_s`; else why not known. Never a

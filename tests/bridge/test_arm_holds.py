@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from rcan_rtps.bridge.arm_holds import (
@@ -294,12 +294,13 @@ def stale_after(arms: ArmHolds, positions: JointPositions, clock: Clock, heard_a
 
 def test_a_late_arm_that_followed_its_trajectory_is_held_where_the_trajectory_has_it(
         positions: JointPositions, clock: Clock) -> None:
-    # 0 → 1 rad over 2 s; heard 0.3 s in at 0.15 (where the trajectory had it), then late.
+    # 0 → 1 rad over 2 s; heard 1 s in at 0.5 (where the trajectory had it, farther from
+    # where it started than the tolerance: not an arm left standing), then late.
     arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
-    left = stale_after(arms, positions, clock, 0.3, [0.15], line(([1.0], 2.0)))
+    left = stale_after(arms, positions, clock, 1.0, [0.5], line(([1.0], 2.0)))
     assert arms.hold_all() == ArmsHeld(("/left",), (), ("/left",))
     ((joints, (at,)),) = left.sent
-    assert joints == ["a"] and at == pytest.approx(0.5 * (0.3 + MAX_AGE_S + 0.1))
+    assert joints == ["a"] and at == pytest.approx(0.5 * (1.0 + MAX_AGE_S + 0.1))
     assert arms.running() == []
 
 
@@ -425,7 +426,9 @@ def test_a_late_arm_whose_senders_disagreed_before_they_went_quiet_is_not_held(
 @given(data=st.data())
 def test_a_hold_at_the_desired_state_lies_on_the_approved_path(data: st.DataObject) -> None:
     # Positions-only: each joint's hold is between its lowest and highest of the start and
-    # the points, whenever the stop comes (before the start, between points, after the end).
+    # the points, whenever the stop comes (before the start, between points, after the end),
+    # the arm last heard where the trajectory had it some time before. Not held there only
+    # when that sample could as well be of an arm standing where it started.
     clock = Clock()
     positions = JointPositions(clock)
     arms = ArmHolds(positions, max_age_s=3600.0, monotonic=clock)
@@ -440,9 +443,69 @@ def test_a_hold_at_the_desired_state_lies_on_the_approved_path(data: st.DataObje
     positions.heard(names, start, [0.0] * joints)
     left = Topic("/left")
     arms.sent(left, "m1", names, times[-1], hold, path=points)
-    clock.t += data.draw(st.floats(MAX_AGE_S + 0.01, times[-1] + SETTLING_S / 2))  # still due
-    assert arms.hold_all().at_desired == ("/left",)
+    stop_s = data.draw(st.floats(MAX_AGE_S + 0.01, times[-1] + SETTLING_S / 2))  # still due
+    heard_s = data.draw(st.floats(0.0, stop_s - MAX_AGE_S - 0.01))
+    clock.t += heard_s
+    positions.heard(names, DesiredPath(start, None, points).at(heard_s), [])
+    clock.t += stop_s - heard_s
+    held = arms.hold_all()
+    event("not held: the sample cannot tell" if held.not_held else "held where it has it")
+    if held.not_held:
+        (why,) = held.not_held
+        assert "cannot tell it following its trajectory from standing where it was" in why
+        return
+    assert held.at_desired == ("/left",)
     ((_, where),) = left.sent
     for j, at in enumerate(where):
         along = [start[j], *(p.positions[j] for p in points)]
         assert min(along) - 1e-9 <= at <= max(along) + 1e-9, (where, start, points)
+
+
+# -- what a late arm's last samples must show before it is held where its trajectory has it --
+def test_a_late_arm_heard_where_it_stood_when_sent_is_not_held_where_its_trajectory_has_it(
+        positions: JointPositions, clock: Clock) -> None:
+    # 0 → 1 rad over 2 s (0.5 rad/s); heard 0.3 s in still at 0 — an arm standing where it
+    # was (the controller refused the trajectory) and an arm following it look alike then:
+    # the trajectory had moved it 0.15, less than the tracking tolerance. A hold at where
+    # the trajectory has it now (0.45) would move an arm that never moved.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = stale_after(arms, positions, clock, 0.3, [0.0], line(([1.0], 2.0)))
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [] and arms.running() == ["m1"]
+    (why,) = held.not_held
+    assert "cannot tell it following its trajectory from standing where it was" in why
+
+
+def test_a_late_arm_unheard_since_its_trajectory_went_out_is_not_held_where_it_has_it(
+        positions: JointPositions, clock: Clock) -> None:
+    # Heard at rest as it went out, then nothing: no sample says the controller runs it.
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.0], [0.0])
+    arms.sent(left, "m1", ["a"], 2.0, hold, path=line(([1.0], 2.0)))
+    clock.t += 1.5
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [], left.sent
+
+
+def test_a_large_velocity_does_not_make_any_late_sample_look_like_tracking(
+        positions: JointPositions, clock: Clock) -> None:
+    # A last point moving 1000 rad/s (jazzy's controller refuses it by default:
+    # allow_nonzero_velocity_at_trajectory_end) makes the tracking tolerance 500 rad; the
+    # arm heard standing at 0, 5.4 s in. Its cubic has the arm near -160 rad 6 s in.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    points = [PathPoint((0.5,), (0.0,), 5.0), PathPoint((1.0,), (1000.0,), 10.0)]
+    left = stale_after(arms, positions, clock, 5.4, [0.0], points)
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [], left.sent
+
+
+def test_a_late_hold_that_hardly_moves_the_arm_needs_no_more_evidence(
+        positions: JointPositions, clock: Clock) -> None:
+    # Where the trajectory has it now is within MAX_LEAD of where it was last heard: no
+    # longer a move than a hold where measured may make.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = stale_after(arms, positions, clock, 0.3, [0.0], line(([1.0], 20.0)))
+    assert arms.hold_all().at_desired == ("/left",)
+    ((_, (at,)),) = left.sent
+    assert at == pytest.approx(0.05 * (0.3 + MAX_AGE_S + 0.1))

@@ -24,9 +24,11 @@ now from where the joints were measured as it went out (`DesiredPath`: straight 
 cubics where velocities are given, as joint_trajectory_controller interpolates; clamped to
 its span, so on the approved path by construction). It is used only if the trajectory is
 known to be what drives the arm: the last positions heard, late as they are, were where it
-had them when they were heard (within MAX_LEAD plus its speed × TRACKING_SLACK_S), they are
-no older than the robot's telemetry may be (`telemetry_stale_s`), and no other trajectory of
-ours still due names those joints or went to that topic (the controller may run either).
+had them when they were heard (within MAX_LEAD plus its speed × TRACKING_SLACK_S), and an
+arm left standing where it was would not have been (the trajectory had moved a joint farther
+than that by then; else the hold is no farther than MAX_LEAD from them), they are no older
+than the robot's telemetry may be (`telemetry_stale_s`), and no other trajectory of ours
+still due names those joints or went to that topic (the controller may run either).
 Otherwise the controller refused or aborted it, or something else drives the arm, and a hold
 there could be a step across its reach. A hold made so is reported (`ArmsHeld.at_desired`, logged).
 
@@ -379,17 +381,28 @@ class ArmHolds:
         last = self.positions.last(run.joints)
         if last is None:
             return "a joint was never heard"
-        speeds = run.path.peak_speeds
+        speeds, start = run.path.peak_speeds, run.path.at(0.0)
+        shown = False  # a sample an arm left standing where it was would not match
         for i, (name, (position, at)) in enumerate(zip(run.joints, last, strict=True)):
             if now - at > self._max_age_s:
                 return (f"{name!r} unheard for longer than the robot's telemetry may be "
                         f"({self._max_age_s:g} s)")
-            off = abs(position - run.path.at(at - run.sent_at)[i])
+            then = run.path.at(at - run.sent_at)[i]
+            off = abs(position - then)
             tolerance = MAX_LEAD + speeds[i] * TRACKING_SLACK_S
             if not off <= tolerance:
                 return (f"{name!r} was last heard {off:.3f} from where its trajectory had it "
                         f"then (more than {tolerance:.3f}): the arm was not following it")
-        return run.path.at(now - run.sent_at)
+            shown = shown or abs(start[i] - then) > tolerance
+        desired = run.path.at(now - run.sent_at)
+        # Samples heard before the trajectory had moved the arm farther than the tolerance
+        # match an arm that never moved (the controller refused it: jazzy's refuses a last
+        # point still moving) as well: then a hold there may move no farther than MAX_LEAD.
+        if not shown and any(abs(d - p) > MAX_LEAD
+                             for d, (p, _) in zip(desired, last, strict=True)):
+            return ("its last samples cannot tell it following its trajectory from standing "
+                    "where it was when the trajectory went out")
+        return desired
 
     @staticmethod
     def _rival(run: _Running, due: Sequence[_Running]) -> str | None:

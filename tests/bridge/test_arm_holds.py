@@ -509,3 +509,24 @@ def test_a_late_hold_that_hardly_moves_the_arm_needs_no_more_evidence(
     assert arms.hold_all().at_desired == ("/left",)
     ((_, (at,)),) = left.sent
     assert at == pytest.approx(0.05 * (0.3 + MAX_AGE_S + 0.1))
+
+
+def test_a_trajectory_the_path_cannot_be_worked_out_for_does_not_break_a_stop(
+        positions: JointPositions, clock: Clock) -> None:
+    # A first point 5e-324 s in (valid: its time is > 0) with velocities, from a start whose
+    # velocities were heard: its cubic's coefficients divide by the segment's time squared,
+    # 0.0 in floats. With the arm's joint_states late the stop works that out; it must not
+    # raise out of the stop, which would leave the other arm (and the goal cancels) undone.
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left, right = Topic("/left"), Topic("/right")
+    positions.heard(["a"], [0.0], [0.0])
+    arms.sent(left, "m1", ["a"], 10.0, hold,
+              path=[PathPoint((1.0,), (0.0,), 5e-324), PathPoint((2.0,), None, 10.0)])
+    clock.t += 1.0
+    positions.heard(["b"], [0.5], [0.0])
+    arms.sent(right, "m2", ["b"], 10.0, hold)
+    held = arms.hold_all()
+    assert held.held == ("/right",) and right.sent == [(["b"], [0.5])]
+    (why,) = held.not_held
+    assert why.startswith("the arm on /left was not held: ") and left.sent == []
+    assert arms.running() == ["m1"]  # the next stop tries again

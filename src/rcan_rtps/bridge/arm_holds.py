@@ -335,7 +335,7 @@ class ArmHolds:
             kept = [r for r in runs if not chosen(r)]
             reached = desired = False
             for run in (r for r in runs if chosen(r)):  # oldest first
-                where = self._where(run, due, now)
+                where = self._where_or_why(run, due, now)
                 why = where if isinstance(where, str) else self._publish(run, where.positions)
                 if why is None and isinstance(where, _Where) and where.desired:
                     log.warning("holding the arm on %s where its trajectory has it now, not "
@@ -353,6 +353,14 @@ class ArmHolds:
             self._running[topic] = [r for r in runs if r in kept]
             self._watch(topic)
         return ArmsHeld(tuple(held), tuple(not_held), tuple(at_desired))
+
+    def _where_or_why(self, run: _Running, due: Sequence[_Running], now: float
+                      ) -> _Where | str:
+        try:
+            return self._where(run, due, now)
+        except Exception as exc:  # one arm's fault must not keep the others moving
+            log.exception("working out where to hold the arm on %s failed", run.publisher.topic)
+            return f"where to hold it could not be worked out: {exc!r}"
 
     def _where(self, run: _Running, due: Sequence[_Running], now: float) -> _Where | str:
         """Where a hold puts `run`'s joints, or why it cannot be made: measured; with only

@@ -530,3 +530,45 @@ def test_a_trajectory_the_path_cannot_be_worked_out_for_does_not_break_a_stop(
     (why,) = held.not_held
     assert why.startswith("the arm on /left was not held: ") and left.sent == []
     assert arms.running() == ["m1"]  # the next stop tries again
+
+
+def test_a_late_arm_whose_trajectory_may_have_been_refused_for_the_one_before_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    # m1: 0 → 2 rad over 4 s (0.5 rad/s). 1 s in, m2 for the same joint goes out: on at the
+    # same speed to 1.5 at 2 s, then back to 0 — its last point still moving, which jazzy's
+    # controller refuses: m1 runs on. The arm heard 1.8 s into m2 at 1.4 follows either.
+    # Then late: 3.5 s into m2, m1 has it at 2.0, m2 at 0.28 — a hold there is a 1.7 rad
+    # step back for an arm on its way to 2.0.
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.0], [0.0])
+    arms.sent(left, "m1", ["a"], 4.0, hold, path=line(([2.0], 4.0)))
+    clock.t += 1.0
+    positions.heard(["a"], [0.5], [0.5])
+    arms.sent(left, "m2", ["a"], 4.0, hold,
+              path=[PathPoint((1.5,), (0.5,), 2.0), PathPoint((0.0,), (-0.01,), 4.0)])
+    clock.t += 1.8
+    positions.heard(["a"], [1.4], [0.5])
+    clock.t += 1.7
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [], left.sent
+    (why,) = held.not_held
+    assert "cannot tell it from a trajectory of ours it replaced" in why
+
+
+def test_a_late_arm_heard_following_the_trajectory_that_replaced_another_is_held_there(
+        positions: JointPositions, clock: Clock) -> None:
+    # m2 turns the arm back 1 s into m1; heard 1.5 s in on m2's way, far off m1's: the
+    # controller took m2. Late, it is held where m2 has it (its end, -0.5).
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.0], [0.0])
+    arms.sent(left, "m1", ["a"], 4.0, hold, path=line(([2.0], 4.0)))
+    clock.t += 1.0
+    positions.heard(["a"], [0.5], [0.5])
+    arms.sent(left, "m2", ["a"], 2.0, hold, path=line(([-0.5], 2.0)))
+    clock.t += 1.5
+    positions.heard(["a"], [-0.25], [-0.5])
+    clock.t += 0.6
+    assert arms.hold_all().at_desired == ("/left",)
+    assert left.sent == [(["a"], [-0.5])]

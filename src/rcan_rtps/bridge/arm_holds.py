@@ -27,8 +27,10 @@ known to be what drives the arm: the last positions heard, late as they are, wer
 had them when they were heard (within MAX_LEAD plus its speed × TRACKING_SLACK_S), and an
 arm left standing where it was would not have been (the trajectory had moved a joint farther
 than that by then; else the hold is no farther than MAX_LEAD from them), they are no older
-than the robot's telemetry may be (`telemetry_stale_s`), and no other trajectory of ours
-still due names those joints or went to that topic (the controller may run either).
+than the robot's telemetry may be (`telemetry_stale_s`), no other trajectory of ours
+still due names those joints or went to that topic (the controller may run either), and none
+it replaced for the same joints, still due, is followed by those samples as well while it has
+them elsewhere now (the controller refused this one, and runs that one on).
 Otherwise the controller refused or aborted it, or something else drives the arm, and a hold
 there could be a step across its reach. A hold made so is reported (`ArmsHeld.at_desired`, logged).
 
@@ -253,6 +255,10 @@ class _Running(NamedTuple):
     hold: Callable[[Sequence[str], Sequence[float]], Any]  # joints, positions → message
     sent_at: float = 0.0  # monotonic: when it went out (its controller starts it then)
     path: DesiredPath | None = None  # where its controller drives the joints, from sent_at
+    # Ours on its topic, of the same joints, still due when it went out (newest last, at
+    # most MAX_SETS + 1 kept): forgotten for it, but the controller runs one on if it
+    # refused this one.
+    replaced: tuple[_Running, ...] = ()
 
 
 class _Where(NamedTuple):
@@ -290,10 +296,13 @@ class ArmHolds:
         joints were measured as it went out is its start (a hold had to be possible then)."""
         now = self._monotonic()
         topic = publisher.topic
+        before = [r for r in self._running.get(topic, ()) if now <= r.due]
+        replaced = [old for r in before if set(r.joints) == set(joints)
+                    for old in (*r.replaced, r._replace(replaced=())) if now <= old.due]
         new = _Running(message_id, tuple(joints), now + runs_for_s + SETTLING_S, publisher,
-                       hold, now, self._desired_path(joints, path))
-        runs = [r for r in self._running.get(topic, ())
-                if now <= r.due and set(r.joints) != set(new.joints)]
+                       hold, now, self._desired_path(joints, path),
+                       tuple(replaced[-(MAX_SETS + 1):]))
+        runs = [r for r in before if set(r.joints) != set(new.joints)]
         self._running[topic] = [*runs, new][-MAX_SETS:]
         self._watch(topic)
 
@@ -410,7 +419,32 @@ class ArmHolds:
                              for d, (p, _) in zip(desired, last, strict=True)):
             return ("its last samples cannot tell it following its trajectory from standing "
                     "where it was when the trajectory went out")
-        return desired
+        return self._replaced_may_drive(run, last, desired, now) or desired
+
+    @staticmethod
+    def _replaced_may_drive(run: _Running, last: Sequence[tuple[float, float]],
+                            desired: Sequence[float], now: float) -> str | None:
+        """Why a trajectory of ours that `run` replaced may be what drives its joints (the
+        controller refused `run`, and runs that one on): the last samples follow it too, and
+        it has them elsewhere now; None if none may."""
+        if len(run.replaced) > MAX_SETS:
+            return "more trajectories of ours it replaced are still due than are kept"
+        for before in (r for r in run.replaced if now <= r.due):
+            if before.path is None:
+                return "it replaced a trajectory of ours not known to be elsewhere"
+            order = [before.joints.index(name) for name in run.joints]
+            speeds = before.path.peak_speeds
+            there = before.path.at(now - before.sent_at)
+            follows = all(
+                abs(position - before.path.at(at - before.sent_at)[j])
+                <= MAX_LEAD + speeds[j] * TRACKING_SLACK_S
+                for (position, at), j in zip(last, order, strict=True))
+            elsewhere = any(abs(d - there[j]) > MAX_LEAD
+                            for d, j in zip(desired, order, strict=True))
+            if follows and elsewhere:
+                return ("its last samples cannot tell it from a trajectory of ours it replaced, "
+                        "which its controller runs on if it refused this one")
+        return None
 
     @staticmethod
     def _rival(run: _Running, due: Sequence[_Running]) -> str | None:

@@ -572,3 +572,21 @@ def test_a_late_arm_heard_following_the_trajectory_that_replaced_another_is_held
     clock.t += 0.6
     assert arms.hold_all().at_desired == ("/left",)
     assert left.sent == [(["a"], [-0.5])]
+
+
+def test_a_hold_where_its_trajectory_has_the_arm_is_never_a_non_finite_position(
+        positions: JointPositions, clock: Clock) -> None:
+    # A joint_states sender gives the joint 1e308 rad/s as the trajectory goes out (finite:
+    # taken), then positions along the cubic that starts that fast: 2 s in, the cubic has it
+    # at inf. A measured hold is never made at a non-finite position; nor is this one.
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.0], [1e308])
+    arms.sent(left, "m1", ["a"], 100.0, hold, path=[PathPoint((1.0,), (0.0,), 100.0)])
+    clock.t += 1.0
+    positions.heard(["a"], [9.801e307], [1e308])
+    clock.t += 1.0
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [], left.sent
+    (why,) = held.not_held
+    assert "not finite" in why

@@ -412,6 +412,8 @@ class ArmHolds:
                         f"then (more than {tolerance:.3f}): the arm was not following it")
             shown = shown or abs(start[i] - then) > tolerance
         desired = run.path.at(now - run.sent_at)
+        if not all(map(_finite, desired)):  # a cubic overflowing (a velocity heard absurd)
+            return f"its trajectory has the arm at {desired} now: not finite"
         # Samples heard before the trajectory had moved the arm farther than the tolerance
         # match an arm that never moved (the controller refused it: jazzy's refuses a last
         # point still moving) as well: then a hold there may move no farther than MAX_LEAD.

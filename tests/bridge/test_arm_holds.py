@@ -590,3 +590,22 @@ def test_a_hold_where_its_trajectory_has_the_arm_is_never_a_non_finite_position(
     assert held.held == () and left.sent == [], left.sent
     (why,) = held.not_held
     assert "not finite" in why
+
+
+def test_a_late_arm_standing_short_of_its_carried_forward_start_is_not_held_at_desired(
+        positions: JointPositions, clock: Clock) -> None:
+    # Heard at 0 moving 1 rad/s 0.2 s before the trajectory went out: its start is carried
+    # forward to 0.1 (MAX_LEAD). The controller refused the trajectory (0.1 → -2 over 4 s)
+    # and the arm stands at 0: 0.8 s in, the trajectory has it at -0.32, farther from its
+    # start than the tolerance (0.3625), and 0 is within the tolerance of it. Standing
+    # short of that start by up to MAX_LEAD is no sign of following it.
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.0], [1.0])
+    clock.t += 0.2
+    arms.sent(left, "m1", ["a"], 4.0, hold, path=line(([-2.0], 4.0)))
+    clock.t += 0.8
+    positions.heard(["a"], [0.0], [0.0])
+    clock.t += MAX_AGE_S + 0.1
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [], left.sent

@@ -273,9 +273,9 @@ SPEED = 0.2  # rad/s, each joint: (TARGET - START) / RUN_S
 WRITE_S = 0.005  # s: how late after its write returns the bridge may note a trajectory sent
 ARM_JOINTS = ["l_shoulder", "l_elbow"]
 # s: how long joint_states show the arm before they go late; by then the trajectory has
-# moved it farther than the tracking tolerance (0.1 + SPEED × 0.5) from START, so that an
-# arm following it and one left standing there look different.
-FOLLOW_S = 1.5
+# moved it farther than the tracking tolerance (0.1 + SPEED × 0.5) and MAX_LEAD from START,
+# so that an arm following it and one left standing there look different.
+FOLLOW_S = 2.0
 
 
 @pytest.fixture

@@ -26,7 +26,7 @@ its span, so on the approved path by construction). It is used only if the traje
 known to be what drives the arm: the last positions heard, late as they are, were where it
 had them when they were heard (within MAX_LEAD plus its speed × TRACKING_SLACK_S), and an
 arm left standing where it was would not have been (the trajectory had moved a joint farther
-than that by then; else the hold is no farther than MAX_LEAD from them), they are no older
+than that and MAX_LEAD by then; else the hold is no farther than MAX_LEAD from them), they are no older
 than the robot's telemetry may be (`telemetry_stale_s`), no other trajectory of ours
 still due names those joints or went to that topic (the controller may run either), and none
 it replaced for the same joints, still due, is followed by those samples as well while it has
@@ -410,7 +410,9 @@ class ArmHolds:
             if not off <= tolerance:
                 return (f"{name!r} was last heard {off:.3f} from where its trajectory had it "
                         f"then (more than {tolerance:.3f}): the arm was not following it")
-            shown = shown or abs(start[i] - then) > tolerance
+            # The start was carried forward by up to MAX_LEAD: an arm left standing may be
+            # that far short of it.
+            shown = shown or abs(start[i] - then) > tolerance + MAX_LEAD
         desired = run.path.at(now - run.sent_at)
         if not all(map(_finite, desired)):  # a cubic overflowing (a velocity heard absurd)
             return f"its trajectory has the arm at {desired} now: not finite"

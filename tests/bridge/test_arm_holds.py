@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from rcan_rtps.bridge.arm_holds import (
@@ -294,12 +294,13 @@ def stale_after(arms: ArmHolds, positions: JointPositions, clock: Clock, heard_a
 
 def test_a_late_arm_that_followed_its_trajectory_is_held_where_the_trajectory_has_it(
         positions: JointPositions, clock: Clock) -> None:
-    # 0 → 1 rad over 2 s; heard 0.3 s in at 0.15 (where the trajectory had it), then late.
+    # 0 → 1 rad over 2 s; heard 1 s in at 0.5 (where the trajectory had it, farther from
+    # where it started than the tolerance: not an arm left standing), then late.
     arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
-    left = stale_after(arms, positions, clock, 0.3, [0.15], line(([1.0], 2.0)))
+    left = stale_after(arms, positions, clock, 1.0, [0.5], line(([1.0], 2.0)))
     assert arms.hold_all() == ArmsHeld(("/left",), (), ("/left",))
     ((joints, (at,)),) = left.sent
-    assert joints == ["a"] and at == pytest.approx(0.5 * (0.3 + MAX_AGE_S + 0.1))
+    assert joints == ["a"] and at == pytest.approx(0.5 * (1.0 + MAX_AGE_S + 0.1))
     assert arms.running() == []
 
 
@@ -425,7 +426,9 @@ def test_a_late_arm_whose_senders_disagreed_before_they_went_quiet_is_not_held(
 @given(data=st.data())
 def test_a_hold_at_the_desired_state_lies_on_the_approved_path(data: st.DataObject) -> None:
     # Positions-only: each joint's hold is between its lowest and highest of the start and
-    # the points, whenever the stop comes (before the start, between points, after the end).
+    # the points, whenever the stop comes (before the start, between points, after the end),
+    # the arm last heard where the trajectory had it some time before. Not held there only
+    # when that sample could as well be of an arm standing where it started.
     clock = Clock()
     positions = JointPositions(clock)
     arms = ArmHolds(positions, max_age_s=3600.0, monotonic=clock)
@@ -440,9 +443,169 @@ def test_a_hold_at_the_desired_state_lies_on_the_approved_path(data: st.DataObje
     positions.heard(names, start, [0.0] * joints)
     left = Topic("/left")
     arms.sent(left, "m1", names, times[-1], hold, path=points)
-    clock.t += data.draw(st.floats(MAX_AGE_S + 0.01, times[-1] + SETTLING_S / 2))  # still due
-    assert arms.hold_all().at_desired == ("/left",)
+    stop_s = data.draw(st.floats(MAX_AGE_S + 0.01, times[-1] + SETTLING_S / 2))  # still due
+    heard_s = data.draw(st.floats(0.0, stop_s - MAX_AGE_S - 0.01))
+    clock.t += heard_s
+    positions.heard(names, DesiredPath(start, None, points).at(heard_s), [])
+    clock.t += stop_s - heard_s
+    held = arms.hold_all()
+    event("not held: the sample cannot tell" if held.not_held else "held where it has it")
+    if held.not_held:
+        (why,) = held.not_held
+        assert "cannot tell it following its trajectory from standing where it was" in why
+        return
+    assert held.at_desired == ("/left",)
     ((_, where),) = left.sent
     for j, at in enumerate(where):
         along = [start[j], *(p.positions[j] for p in points)]
         assert min(along) - 1e-9 <= at <= max(along) + 1e-9, (where, start, points)
+
+
+# -- what a late arm's last samples must show before it is held where its trajectory has it --
+def test_a_late_arm_heard_where_it_stood_when_sent_is_not_held_where_its_trajectory_has_it(
+        positions: JointPositions, clock: Clock) -> None:
+    # 0 → 1 rad over 2 s (0.5 rad/s); heard 0.3 s in still at 0 — an arm standing where it
+    # was (the controller refused the trajectory) and an arm following it look alike then:
+    # the trajectory had moved it 0.15, less than the tracking tolerance. A hold at where
+    # the trajectory has it now (0.45) would move an arm that never moved.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = stale_after(arms, positions, clock, 0.3, [0.0], line(([1.0], 2.0)))
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [] and arms.running() == ["m1"]
+    (why,) = held.not_held
+    assert "cannot tell it following its trajectory from standing where it was" in why
+
+
+def test_a_late_arm_unheard_since_its_trajectory_went_out_is_not_held_where_it_has_it(
+        positions: JointPositions, clock: Clock) -> None:
+    # Heard at rest as it went out, then nothing: no sample says the controller runs it.
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.0], [0.0])
+    arms.sent(left, "m1", ["a"], 2.0, hold, path=line(([1.0], 2.0)))
+    clock.t += 1.5
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [], left.sent
+
+
+def test_a_large_velocity_does_not_make_any_late_sample_look_like_tracking(
+        positions: JointPositions, clock: Clock) -> None:
+    # A last point moving 1000 rad/s (jazzy's controller refuses it by default:
+    # allow_nonzero_velocity_at_trajectory_end) makes the tracking tolerance 500 rad; the
+    # arm heard standing at 0, 5.4 s in. Its cubic has the arm near -160 rad 6 s in.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    points = [PathPoint((0.5,), (0.0,), 5.0), PathPoint((1.0,), (1000.0,), 10.0)]
+    left = stale_after(arms, positions, clock, 5.4, [0.0], points)
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [], left.sent
+
+
+def test_a_late_hold_that_hardly_moves_the_arm_needs_no_more_evidence(
+        positions: JointPositions, clock: Clock) -> None:
+    # Where the trajectory has it now is within MAX_LEAD of where it was last heard: no
+    # longer a move than a hold where measured may make.
+    arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
+    left = stale_after(arms, positions, clock, 0.3, [0.0], line(([1.0], 20.0)))
+    assert arms.hold_all().at_desired == ("/left",)
+    ((_, (at,)),) = left.sent
+    assert at == pytest.approx(0.05 * (0.3 + MAX_AGE_S + 0.1))
+
+
+def test_a_trajectory_the_path_cannot_be_worked_out_for_does_not_break_a_stop(
+        positions: JointPositions, clock: Clock) -> None:
+    # A first point 5e-324 s in (valid: its time is > 0) with velocities, from a start whose
+    # velocities were heard: its cubic's coefficients divide by the segment's time squared,
+    # 0.0 in floats. With the arm's joint_states late the stop works that out; it must not
+    # raise out of the stop, which would leave the other arm (and the goal cancels) undone.
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left, right = Topic("/left"), Topic("/right")
+    positions.heard(["a"], [0.0], [0.0])
+    arms.sent(left, "m1", ["a"], 10.0, hold,
+              path=[PathPoint((1.0,), (0.0,), 5e-324), PathPoint((2.0,), None, 10.0)])
+    clock.t += 1.0
+    positions.heard(["b"], [0.5], [0.0])
+    arms.sent(right, "m2", ["b"], 10.0, hold)
+    held = arms.hold_all()
+    assert held.held == ("/right",) and right.sent == [(["b"], [0.5])]
+    (why,) = held.not_held
+    assert why.startswith("the arm on /left was not held: ") and left.sent == []
+    assert arms.running() == ["m1"]  # the next stop tries again
+
+
+def test_a_late_arm_whose_trajectory_may_have_been_refused_for_the_one_before_is_not_held(
+        positions: JointPositions, clock: Clock) -> None:
+    # m1: 0 → 2 rad over 4 s (0.5 rad/s). 1 s in, m2 for the same joint goes out: on at the
+    # same speed to 1.5 at 2 s, then back to 0 — its last point still moving, which jazzy's
+    # controller refuses: m1 runs on. The arm heard 1.8 s into m2 at 1.4 follows either.
+    # Then late: 3.5 s into m2, m1 has it at 2.0, m2 at 0.28 — a hold there is a 1.7 rad
+    # step back for an arm on its way to 2.0.
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.0], [0.0])
+    arms.sent(left, "m1", ["a"], 4.0, hold, path=line(([2.0], 4.0)))
+    clock.t += 1.0
+    positions.heard(["a"], [0.5], [0.5])
+    arms.sent(left, "m2", ["a"], 4.0, hold,
+              path=[PathPoint((1.5,), (0.5,), 2.0), PathPoint((0.0,), (-0.01,), 4.0)])
+    clock.t += 1.8
+    positions.heard(["a"], [1.4], [0.5])
+    clock.t += 1.7
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [], left.sent
+    (why,) = held.not_held
+    assert "cannot tell it from a trajectory of ours it replaced" in why
+
+
+def test_a_late_arm_heard_following_the_trajectory_that_replaced_another_is_held_there(
+        positions: JointPositions, clock: Clock) -> None:
+    # m2 turns the arm back 1 s into m1; heard 1.5 s in on m2's way, far off m1's: the
+    # controller took m2. Late, it is held where m2 has it (its end, -0.5).
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.0], [0.0])
+    arms.sent(left, "m1", ["a"], 4.0, hold, path=line(([2.0], 4.0)))
+    clock.t += 1.0
+    positions.heard(["a"], [0.5], [0.5])
+    arms.sent(left, "m2", ["a"], 2.0, hold, path=line(([-0.5], 2.0)))
+    clock.t += 1.5
+    positions.heard(["a"], [-0.25], [-0.5])
+    clock.t += 0.6
+    assert arms.hold_all().at_desired == ("/left",)
+    assert left.sent == [(["a"], [-0.5])]
+
+
+def test_a_hold_where_its_trajectory_has_the_arm_is_never_a_non_finite_position(
+        positions: JointPositions, clock: Clock) -> None:
+    # A joint_states sender gives the joint 1e308 rad/s as the trajectory goes out (finite:
+    # taken), then positions along the cubic that starts that fast: 2 s in, the cubic has it
+    # at inf. A measured hold is never made at a non-finite position; nor is this one.
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.0], [1e308])
+    arms.sent(left, "m1", ["a"], 100.0, hold, path=[PathPoint((1.0,), (0.0,), 100.0)])
+    clock.t += 1.0
+    positions.heard(["a"], [9.801e307], [1e308])
+    clock.t += 1.0
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [], left.sent
+    (why,) = held.not_held
+    assert "not finite" in why
+
+
+def test_a_late_arm_standing_short_of_its_carried_forward_start_is_not_held_at_desired(
+        positions: JointPositions, clock: Clock) -> None:
+    # Heard at 0 moving 1 rad/s 0.2 s before the trajectory went out: its start is carried
+    # forward to 0.1 (MAX_LEAD). The controller refused the trajectory (0.1 → -2 over 4 s)
+    # and the arm stands at 0: 0.8 s in, the trajectory has it at -0.32, farther from its
+    # start than the tolerance (0.3625), and 0 is within the tolerance of it. Standing
+    # short of that start by up to MAX_LEAD is no sign of following it.
+    arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
+    left = Topic("/left")
+    positions.heard(["a"], [0.0], [1.0])
+    clock.t += 0.2
+    arms.sent(left, "m1", ["a"], 4.0, hold, path=line(([-2.0], 4.0)))
+    clock.t += 0.8
+    positions.heard(["a"], [0.0], [0.0])
+    clock.t += MAX_AGE_S + 0.1
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [], left.sent

@@ -272,6 +272,10 @@ START, TARGET, RUN_S = [0.25, -0.5], [2.25, 1.5], 10.0
 SPEED = 0.2  # rad/s, each joint: (TARGET - START) / RUN_S
 WRITE_S = 0.005  # s: how late after its write returns the bridge may note a trajectory sent
 ARM_JOINTS = ["l_shoulder", "l_elbow"]
+# s: how long joint_states show the arm before they go late; by then the trajectory has
+# moved it farther than the tracking tolerance (0.1 + SPEED × 0.5) and MAX_LEAD from START,
+# so that an arm following it and one left standing there look different.
+FOLLOW_S = 2.0
 
 
 @pytest.fixture
@@ -302,11 +306,13 @@ async def joints_say(rig: Rig, positions: list[float], velocity: float) -> None:
                                   "velocity": [velocity] * len(positions)})
 
 
-async def moving_then_late(rig: Rig, follows: bool) -> tuple[float, float]:
-    """The arm at START, at rest; its trajectory to TARGET sent; for 1 s joint_states say it
-    follows it (`follows`) or stands far off it, then they stop while it is still due, until
-    older than MAX_AGE_S. (CLOCK_MONOTONIC s when the command was made, when the oracle got
-    the trajectory.)"""
+async def moving_then_late(rig: Rig, says: str, for_s: float = FOLLOW_S
+                           ) -> tuple[float, float]:
+    """The arm at START, at rest; its trajectory to TARGET sent; for `for_s` joint_states
+    say it follows it (`says` "follows"), stands far off it ("off") or stands at START (the
+    controller refused it: "stands"), then they stop while it is still due, until older
+    than MAX_AGE_S. (CLOCK_MONOTONIC s when the command was made, when the oracle got the
+    trajectory.)"""
     await rig.oracle.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
     await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
                            value={"name": ARM_JOINTS, "position": START,
@@ -320,11 +326,11 @@ async def moving_then_late(rig: Rig, follows: bool) -> tuple[float, float]:
     (sent,) = await take(rig.oracle, LEFT)
     got_at = sent["arrived_ns"] / 1e9
     await rig.oracle.acall("stop_periodic", topic=JOINT_STATES)
-    while time.monotonic() - got_at < 1.0:
+    while time.monotonic() - got_at < for_s:
         rig.governor.heartbeat(AGENT)
         elapsed = time.monotonic() - got_at
-        await joints_say(rig, along(elapsed) if follows else [-2.0, -2.0],
-                         SPEED if follows else 0.0)
+        heard = {"follows": along(elapsed), "off": [-2.0, -2.0], "stands": START}[says]
+        await joints_say(rig, heard, SPEED if says == "follows" else 0.0)
         await asyncio.sleep(0.02)
 
     def late() -> bool:  # attended meanwhile: a session-loss halt would hold it first
@@ -345,7 +351,7 @@ async def test_a_late_arm_that_followed_its_trajectory_is_held_where_it_has_the_
     # stop holds it where its controller drives it now. Before, it failed (503, the arm not
     # held: its trajectory ran on).
     rig = late_rig
-    commanded, got_at = await moving_then_late(rig, follows=True)
+    commanded, got_at = await moving_then_late(rig, "follows")
     stopping = time.monotonic()
     if stop == "stop":
         stopped = await rig.command(AGENT, {"action": "stop"})
@@ -375,7 +381,7 @@ async def test_a_late_arm_that_was_not_following_its_trajectory_is_not_held(
     # arm), then late: where the trajectory has it is no place to hold it. The stop fails,
     # naming the arm and why, and nothing goes to the arm.
     rig = late_rig
-    await moving_then_late(rig, follows=False)
+    await moving_then_late(rig, "off")
     stopped = await rig.command(AGENT, {"action": "stop"})
     assert stopped.http_status == 503 and stopped.outcome.value == "failed", stopped
     assert LEFT in (stopped.reason or "") and "not following it" in (stopped.reason or "")
@@ -394,6 +400,37 @@ async def test_a_late_arm_that_was_not_following_its_trajectory_is_not_held(
     assert again.http_status == 200, again
     (hold,) = await take(rig.oracle, LEFT)
     assert_held_at(hold["msg"], [-2.0, -2.0], [0.0, 0.0])
+
+
+@both_rmws
+async def test_a_late_arm_heard_standing_where_it_was_is_not_moved_by_a_stop(
+        late_rig: Rig) -> None:
+    # joint_states show the arm standing at START for 0.5 s after its trajectory went out
+    # (the controller refused it: jazzy's refuses one whose last point still moves), then
+    # go late. The trajectory had moved it 0.1 rad by then, less than the tracking tolerance:
+    # an arm following it would have been heard there too. Before, the stop held the arm
+    # where the trajectory had it (0.2 rad and more from where it stood), a move the arm
+    # would never have made; now it fails, and nothing goes to the arm.
+    rig = late_rig
+    await moving_then_late(rig, "stands", for_s=0.5)
+    stopped = await rig.command(AGENT, {"action": "stop"})
+    assert stopped.http_status == 503 and stopped.outcome.value == "failed", stopped
+    assert "cannot tell it following its trajectory" in (stopped.reason or ""), stopped
+    # Heard again, at rest where it stood: the next stop holds it there, the first sample on
+    # the arm's topic since the trajectory (one reliable, ordered writer): nothing went before.
+    await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                           value={"name": ARM_JOINTS, "position": START,
+                                  "velocity": [0.0, 0.0]})
+
+    def heard() -> bool:
+        rig.governor.heartbeat(AGENT)
+        return rig.dispatcher.arms.cannot_hold(ARM_JOINTS) is None
+
+    await eventually(heard, what="the arm's joint_states again")
+    again = await rig.command(AGENT, {"action": "stop"})
+    assert again.http_status == 200, again
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold["msg"], START, [0.0, 0.0])
 
 
 async def test_a_lost_session_holds_its_arm(rig: Rig) -> None:

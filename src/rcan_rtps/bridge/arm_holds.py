@@ -24,9 +24,13 @@ now from where the joints were measured as it went out (`DesiredPath`: straight 
 cubics where velocities are given, as joint_trajectory_controller interpolates; clamped to
 its span, so on the approved path by construction). It is used only if the trajectory is
 known to be what drives the arm: the last positions heard, late as they are, were where it
-had them when they were heard (within MAX_LEAD plus its speed × TRACKING_SLACK_S), they are
-no older than the robot's telemetry may be (`telemetry_stale_s`), and no other trajectory of
-ours still due names those joints or went to that topic (the controller may run either).
+had them when they were heard (within MAX_LEAD plus its speed × TRACKING_SLACK_S), and an
+arm left standing where it was would not have been (the trajectory had moved a joint farther
+than that and MAX_LEAD by then; else the hold is no farther than MAX_LEAD from them), they are no older
+than the robot's telemetry may be (`telemetry_stale_s`), no other trajectory of ours
+still due names those joints or went to that topic (the controller may run either), and none
+it replaced for the same joints, still due, is followed by those samples as well while it has
+them elsewhere now (the controller refused this one, and runs that one on).
 Otherwise the controller refused or aborted it, or something else drives the arm, and a hold
 there could be a step across its reach. A hold made so is reported (`ArmsHeld.at_desired`, logged).
 
@@ -251,6 +255,10 @@ class _Running(NamedTuple):
     hold: Callable[[Sequence[str], Sequence[float]], Any]  # joints, positions → message
     sent_at: float = 0.0  # monotonic: when it went out (its controller starts it then)
     path: DesiredPath | None = None  # where its controller drives the joints, from sent_at
+    # Ours on its topic, of the same joints, still due when it went out (newest last, at
+    # most MAX_SETS + 1 kept): forgotten for it, but the controller runs one on if it
+    # refused this one.
+    replaced: tuple[_Running, ...] = ()
 
 
 class _Where(NamedTuple):
@@ -288,10 +296,13 @@ class ArmHolds:
         joints were measured as it went out is its start (a hold had to be possible then)."""
         now = self._monotonic()
         topic = publisher.topic
+        before = [r for r in self._running.get(topic, ()) if now <= r.due]
+        replaced = [old for r in before if set(r.joints) == set(joints)
+                    for old in (*r.replaced, r._replace(replaced=())) if now <= old.due]
         new = _Running(message_id, tuple(joints), now + runs_for_s + SETTLING_S, publisher,
-                       hold, now, self._desired_path(joints, path))
-        runs = [r for r in self._running.get(topic, ())
-                if now <= r.due and set(r.joints) != set(new.joints)]
+                       hold, now, self._desired_path(joints, path),
+                       tuple(replaced[-(MAX_SETS + 1):]))
+        runs = [r for r in before if set(r.joints) != set(new.joints)]
         self._running[topic] = [*runs, new][-MAX_SETS:]
         self._watch(topic)
 
@@ -333,7 +344,7 @@ class ArmHolds:
             kept = [r for r in runs if not chosen(r)]
             reached = desired = False
             for run in (r for r in runs if chosen(r)):  # oldest first
-                where = self._where(run, due, now)
+                where = self._where_or_why(run, due, now)
                 why = where if isinstance(where, str) else self._publish(run, where.positions)
                 if why is None and isinstance(where, _Where) and where.desired:
                     log.warning("holding the arm on %s where its trajectory has it now, not "
@@ -351,6 +362,14 @@ class ArmHolds:
             self._running[topic] = [r for r in runs if r in kept]
             self._watch(topic)
         return ArmsHeld(tuple(held), tuple(not_held), tuple(at_desired))
+
+    def _where_or_why(self, run: _Running, due: Sequence[_Running], now: float
+                      ) -> _Where | str:
+        try:
+            return self._where(run, due, now)
+        except Exception as exc:  # one arm's fault must not keep the others moving
+            log.exception("working out where to hold the arm on %s failed", run.publisher.topic)
+            return f"where to hold it could not be worked out: {exc!r}"
 
     def _where(self, run: _Running, due: Sequence[_Running], now: float) -> _Where | str:
         """Where a hold puts `run`'s joints, or why it cannot be made: measured; with only
@@ -379,17 +398,57 @@ class ArmHolds:
         last = self.positions.last(run.joints)
         if last is None:
             return "a joint was never heard"
-        speeds = run.path.peak_speeds
+        speeds, start = run.path.peak_speeds, run.path.at(0.0)
+        shown = False  # a sample an arm left standing where it was would not match
         for i, (name, (position, at)) in enumerate(zip(run.joints, last, strict=True)):
             if now - at > self._max_age_s:
                 return (f"{name!r} unheard for longer than the robot's telemetry may be "
                         f"({self._max_age_s:g} s)")
-            off = abs(position - run.path.at(at - run.sent_at)[i])
+            then = run.path.at(at - run.sent_at)[i]
+            off = abs(position - then)
             tolerance = MAX_LEAD + speeds[i] * TRACKING_SLACK_S
             if not off <= tolerance:
                 return (f"{name!r} was last heard {off:.3f} from where its trajectory had it "
                         f"then (more than {tolerance:.3f}): the arm was not following it")
-        return run.path.at(now - run.sent_at)
+            # The start was carried forward by up to MAX_LEAD: an arm left standing may be
+            # that far short of it.
+            shown = shown or abs(start[i] - then) > tolerance + MAX_LEAD
+        desired = run.path.at(now - run.sent_at)
+        if not all(map(_finite, desired)):  # a cubic overflowing (a velocity heard absurd)
+            return f"its trajectory has the arm at {desired} now: not finite"
+        # Samples heard before the trajectory had moved the arm farther than the tolerance
+        # match an arm that never moved (the controller refused it: jazzy's refuses a last
+        # point still moving) as well: then a hold there may move no farther than MAX_LEAD.
+        if not shown and any(abs(d - p) > MAX_LEAD
+                             for d, (p, _) in zip(desired, last, strict=True)):
+            return ("its last samples cannot tell it following its trajectory from standing "
+                    "where it was when the trajectory went out")
+        return self._replaced_may_drive(run, last, desired, now) or desired
+
+    @staticmethod
+    def _replaced_may_drive(run: _Running, last: Sequence[tuple[float, float]],
+                            desired: Sequence[float], now: float) -> str | None:
+        """Why a trajectory of ours that `run` replaced may be what drives its joints (the
+        controller refused `run`, and runs that one on): the last samples follow it too, and
+        it has them elsewhere now; None if none may."""
+        if len(run.replaced) > MAX_SETS:
+            return "more trajectories of ours it replaced are still due than are kept"
+        for before in (r for r in run.replaced if now <= r.due):
+            if before.path is None:
+                return "it replaced a trajectory of ours not known to be elsewhere"
+            order = [before.joints.index(name) for name in run.joints]
+            speeds = before.path.peak_speeds
+            there = before.path.at(now - before.sent_at)
+            follows = all(
+                abs(position - before.path.at(at - before.sent_at)[j])
+                <= MAX_LEAD + speeds[j] * TRACKING_SLACK_S
+                for (position, at), j in zip(last, order, strict=True))
+            elsewhere = any(abs(d - there[j]) > MAX_LEAD
+                            for d, j in zip(desired, order, strict=True))
+            if follows and elsewhere:
+                return ("its last samples cannot tell it from a trajectory of ours it replaced, "
+                        "which its controller runs on if it refused this one")
+        return None
 
     @staticmethod
     def _rival(run: _Running, due: Sequence[_Running]) -> str | None:

@@ -26,8 +26,8 @@ its span, so on the approved path by construction). It is used only if the traje
 known to be what drives the arm: the last positions heard, late as they are, were where it
 had them when they were heard (within MAX_LEAD plus its speed × TRACKING_SLACK_S), and an
 arm left standing where it was would not have been (the trajectory had moved a joint farther
-than that and MAX_LEAD by then; else the hold is no farther than MAX_LEAD from them), they are no older
-than the robot's telemetry may be (`telemetry_stale_s`), no other trajectory of ours
+than that and MAX_LEAD by then; else the hold is no farther than MAX_LEAD from them), they
+are no older than the robot's telemetry may be (`telemetry_stale_s`), no other trajectory of ours
 still due names those joints or went to that topic (the controller may run either), and none
 it replaced for the same joints, still due, is followed by those samples as well while it has
 them elsewhere now (the controller refused this one, and runs that one on).

@@ -17,6 +17,7 @@ from __future__ import annotations
 import bisect
 import functools
 import itertools
+from array import array
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -25,8 +26,14 @@ from ..rcan.actions import PathPoint
 
 class _Knot(NamedTuple):
     time_s: float
-    positions: tuple[float, ...]
-    velocities: tuple[float, ...] | None
+    # Packed doubles: a trajectory is kept while it may run (several per arm, up to 1000
+    # points of 64 joints each): 8 bytes a value, not a float object's 24 and its pointer.
+    positions: array[float]
+    velocities: array[float] | None
+
+
+def _packed(values: Sequence[float] | None) -> array[float] | None:
+    return None if values is None else array("d", values)
 
 
 class DesiredPath:
@@ -37,9 +44,9 @@ class DesiredPath:
                  points: Sequence[PathPoint]) -> None:
         if not points:
             raise ValueError("a trajectory has at least one point")
-        self._knots = [_Knot(0.0, tuple(start),
-                             None if start_velocities is None else tuple(start_velocities)),
-                       *(_Knot(p.time_s, p.positions, p.velocities) for p in points)]
+        self._knots = [_Knot(0.0, array("d", start), _packed(start_velocities)),
+                       *(_Knot(p.time_s, array("d", p.positions), _packed(p.velocities))
+                         for p in points)]
         self._times = [k.time_s for k in self._knots]
 
     @property

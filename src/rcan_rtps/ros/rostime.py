@@ -14,8 +14,9 @@ def now_msg() -> dict[str, int]:
 
 
 def duration_msg(seconds: float) -> dict[str, int]:
-    whole = math.floor(seconds)
-    return {"sec": int(whole), "nanosec": round((seconds - whole) * 1e9) % 1_000_000_000}
+    # Rounded once, as a whole: rounding the fraction alone sent 0.9999999999 s as 0 s.
+    sec, nanosec = divmod(round(seconds * 1e9), 1_000_000_000)
+    return {"sec": sec, "nanosec": nanosec}
 
 
 def yaw_to_quaternion(yaw: float) -> dict[str, float]:

@@ -9,7 +9,6 @@ then `joint_trajectory_topic`). One target (`positions` over `duration_s`) or se
 from __future__ import annotations
 
 import itertools
-import math
 from collections.abc import Sequence
 from typing import Annotated, Any
 
@@ -52,9 +51,13 @@ class ArmJointParams(ActionParams, frozen=True, omit_defaults=True):
             raise ValueError("`duration_s` goes with `positions`; each point has its own time")
         for point in self.trajectory():
             _check_point(point, len(self.joints))
-        times = [p.time_from_start_s for p in self.trajectory()]
-        if any(b <= a for a, b in itertools.pairwise(times)):
-            raise ValueError("`time_from_start_s` must increase from point to point")
+        # Compared as sent (whole nanoseconds, `_duration`): times that round together
+        # would be one instant to the controller, and the bridge's model of the trajectory
+        # (a stop's hold, bridge/desired_path.py) would not be what the controller runs.
+        sent = [_nanoseconds(p.time_from_start_s) for p in self.trajectory()]
+        if sent[0] < 1 or any(b <= a for a, b in itertools.pairwise(sent)):
+            raise ValueError("`time_from_start_s` must increase from point to point, by at "
+                             "least 1 ns (from 0 too)")
 
     def trajectory(self) -> list[TrajectoryPoint]:
         """The points, whichever form was given."""
@@ -71,9 +74,15 @@ def _check_point(point: TrajectoryPoint, joints: int) -> None:
         raise ValueError("`velocities` must have one entry per joint")
 
 
+def _nanoseconds(seconds: float) -> int:
+    duration = _duration(seconds)
+    return duration["sec"] * 1_000_000_000 + duration["nanosec"]
+
+
 def _duration(seconds: float) -> dict[str, int]:
-    whole = math.floor(seconds)
-    return {"sec": int(whole), "nanosec": round((seconds - whole) * 1e9) % 1_000_000_000}
+    # Rounded once, as a whole: rounding the fraction alone sent 0.9999999999 s as 0 s.
+    sec, nanosec = divmod(round(seconds * 1e9), 1_000_000_000)
+    return {"sec": sec, "nanosec": nanosec}
 
 
 def trajectory(params: ArmJointParams, kit: MessageKit) -> dict[str, Any]:

@@ -295,3 +295,48 @@ async def test_a_start_after_a_clean_stop_takes_nothing_back(harness: Harness) -
     assert harness.dispatcher.left == []
     assert harness.entries[-1]["event"] == "BRIDGE_STARTED"
     await gov.stop()
+
+
+async def test_a_trajectory_whose_replacement_failed_is_still_listed(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A later trajectory of the same joints replaces the one running only if it was sent:
+    written ahead, then refused (its COMMAND_FAILED: the robot went silent, its client left),
+    it replaced nothing, and the first runs on."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("arm-1")
+    await log.arm("arm-2", {**LONG, "duration_s": 0.5})
+    await log.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id="arm-2",
+                  action_type="arm_joint", outcome="failed",
+                  deny_reason="robot_unavailable:robot silent")
+    clock.advance(10)
+    await log.audit.close()
+    assert [a.message_id for a in resume(log.path, now_ms=log.now_ms()).left.arms] == ["arm-1"]
+
+
+async def test_a_start_holds_an_arm_whose_replacement_was_refused_after_its_entry(
+        harness: Harness) -> None:
+    """The governor's own log of it: an arm's long trajectory, then one of the same joints
+    that the robot refused once written ahead (gone silent meanwhile); killed. The first
+    still runs: the restart takes it back."""
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    elbow = {"joints": ["elbow"], "positions": [0.8]}
+    first = await gov.decide(command("arm_joint", {**elbow, "duration_s": 600.0}), PLANNER)
+    assert first.outcome is Outcome.EXECUTED, first
+    harness.dispatcher.hold = asyncio.Event()
+    replacing = asyncio.ensure_future(
+        gov.decide(command("arm_joint", {**elbow, "duration_s": 0.5}), PLANNER))
+    await asyncio.wait_for(harness.dispatcher.entered.wait(), timeout=10)
+    harness.dispatcher.available = False  # silent while its entry was written
+    harness.dispatcher.hold.set()
+    refused = await replacing
+    assert refused.outcome is Outcome.FAILED, refused
+    harness.dispatcher.hold, harness.dispatcher.available = None, True
+    harness.clock.advance(10)
+    await harness.restart()  # killed: no BRIDGE_STOPPED
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [left] = harness.dispatcher.left
+    assert [a.message_id for a in left.arms] == [first.message_id]
+    await gov.stop()

@@ -18,7 +18,8 @@ shows ended (`LeftRunning`): arm trajectories still due by the wall clock (sent 
 counted them), goals (their `goal_id`, written ahead since goals were sent with an id chosen
 before their entry; older entries have none) and velocity streams. A start halts them
 (`Governor.start`). Ended: GOAL_FINISHED, STREAM_ENDED, a COMMAND_FAILED of the command, a
-later trajectory of the same joints on the same topic (it replaced it), a stop of everyone's
+later trajectory of the same joints on the same topic (it replaced it, unless its own
+COMMAND_FAILED follows: refused once written ahead, it was never sent), a stop of everyone's
 motion (a `stop`, an e-stop, a safe stop of the whole robot) unless that stop's own
 COMMAND_FAILED follows, and a stop of one principal's motion for what it says it stopped.
 """
@@ -146,9 +147,12 @@ class _Motion:
         self.arms: dict[str, LeftArm] = {}  # message id → (insertion order: oldest first)
         self.goals: dict[str, LeftGoal] = {}
         self.streams: dict[str, LeftStream] = {}
+        # A trajectory's message id → the arms it replaced, given back if its own
+        # COMMAND_FAILED follows (written ahead, then refused: it was never sent).
+        self._replaced: dict[str, list[LeftArm]] = {}
         # A stop's message id → what it ended, given back if its own COMMAND_FAILED follows.
         self._halted: dict[str, tuple[dict[str, LeftArm], dict[str, LeftGoal],
-                                      dict[str, LeftStream]]] = {}
+                                      dict[str, LeftStream], dict[str, list[LeftArm]]]] = {}
 
     def left(self, now_ms: int) -> LeftRunning:
         return LeftRunning(
@@ -206,9 +210,13 @@ class _Motion:
                       topic=entry.get("ros2_topic"), params=dict(applied or {}),
                       joints=joints, sent_at_ms=int(entry.get("timestamp_ms") or 0),
                       runs_for_s=runs_for_s)
-        for earlier, run in list(self.arms.items()):  # the controller replaced it
-            if run.topic == arm.topic and set(run.joints) == set(arm.joints):
-                del self.arms[earlier]
+        replaced = [run for run in self.arms.values()  # the controller replaced them
+                    if run.topic == arm.topic and set(run.joints) == set(arm.joints)]
+        for run in replaced:
+            del self.arms[run.message_id]
+        if replaced:
+            self._replaced[message_id] = replaced
+            _keep_newest(self._replaced)
         self.arms[message_id] = arm
 
     def _halt(self, entry: dict[str, Any]) -> None:
@@ -240,10 +248,9 @@ class _Motion:
         self.streams.update((s.message_id, s) for s in left.streams if chosen(s.message_id))
 
     def _halted_all(self, message_id: str) -> None:
-        self._halted[message_id] = (self.arms, self.goals, self.streams)
-        self.arms, self.goals, self.streams = {}, {}, {}
-        if len(self._halted) > MAX_LEFT:  # a stop's COMMAND_FAILED follows it closely
-            del self._halted[next(iter(self._halted))]
+        self._halted[message_id] = (self.arms, self.goals, self.streams, self._replaced)
+        self.arms, self.goals, self.streams, self._replaced = {}, {}, {}, {}
+        _keep_newest(self._halted)
 
     def _own_stop(self, principal: str, facts: dict[str, Any]) -> None:
         """A stop of `principal`'s motion alone: its goals it cancelled and its arms on the
@@ -254,18 +261,25 @@ class _Motion:
                       if not (g.principal == principal and g.goal_id in cancelled)}
         self.arms = {m: a for m, a in self.arms.items()
                      if not (a.principal == principal and a.topic in held)}
+        self._replaced = {m: kept for m, arms in self._replaced.items()
+                          if (kept := [a for a in arms
+                                       if not (a.principal == principal and a.topic in held)])}
         self.streams = {m: s for m, s in self.streams.items() if s.principal != principal}
 
     def _failed(self, message_id: str) -> None:
         """The send of `message_id` failed: it started nothing — or, a stop's, ended nothing."""
         for running in (self.arms, self.goals, self.streams):
             running.pop(message_id, None)
+        # A trajectory refused after its entry replaced nothing: what it replaced runs on.
+        self.arms = {**{a.message_id: a for a in self._replaced.pop(message_id, ())},
+                     **self.arms}
         given_back = self._halted.pop(message_id, None)
         if given_back is not None:
-            arms, goals, streams = given_back
+            arms, goals, streams, replaced = given_back
             self.arms = {**arms, **self.arms}
             self.goals = {**goals, **self.goals}
             self.streams = {**streams, **self.streams}
+            self._replaced = {**replaced, **self._replaced}
 
     def _goal_finished(self, entry: dict[str, Any]) -> None:
         given = entry.get("params")
@@ -274,6 +288,13 @@ class _Motion:
         self.goals = {m: g for m, g in self.goals.items()
                       if not (g.goal_id is not None and g.goal_id == goal_id)
                       and not (g.goal_id is None and m == message_id)}
+
+
+def _keep_newest(given_back: dict[str, Any]) -> None:
+    """What a command's COMMAND_FAILED may give back, for the newest MAX_LEFT commands: it
+    follows its command closely (a run's log may hold any number)."""
+    while len(given_back) > MAX_LEFT:
+        del given_back[next(iter(given_back))]
 
 
 def _apply(state: Resumed, entry: dict[str, Any]) -> None:

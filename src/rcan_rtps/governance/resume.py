@@ -115,26 +115,24 @@ class Resumed(msgspec.Struct):
 
 
 def resume(path: Path | str, *, now_ms: int | None = None) -> Resumed:
-    """Read the log's tail backwards to its last start or stop; a missing log is a first start.
+    """Replay the log from its last start or stop on; a missing log is a first start.
 
     Entries are trusted as they stand: the log was verified when it was opened. `now_ms`:
-    the wall time arm trajectories are due against (default: now).
+    the wall time arm trajectories are due against (default: now). The run since the
+    boundary may be long (weeks up): its entries are replayed one at a time, never held.
     """
-    seen: list[dict[str, Any]] = []  # newest first, down to the boundary
-    try:
-        for entry in _backwards(Path(path)):
-            seen.append(entry)
-            if entry.get("event") in _BOUNDARIES:
-                break
-    except (OSError, ValueError) as exc:  # it verified at open: this is no time to trust it
-        return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc})")
     found = Resumed()
     motion = _Motion()
-    for entry in reversed(seen):  # replayed oldest first, from the boundary on
-        _apply(found, entry)
-        motion.apply(entry)
+    last: dict[str, Any] | None = None
+    try:
+        for entry in _since_boundary(Path(path)):  # oldest first
+            last = entry
+            _apply(found, entry)
+            motion.apply(entry)
+    except (OSError, ValueError) as exc:  # it verified at open: this is no time to trust it
+        return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc})")
     # No boundary at all in a log with entries is no clean stop either: fail closed.
-    found.crashed = bool(seen) and seen[0].get("event") != "BRIDGE_STOPPED"
+    found.crashed = last is not None and last.get("event") != "BRIDGE_STOPPED"
     if found.crashed:
         found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
     return found
@@ -330,29 +328,64 @@ def _lock_entry(state: Resumed, entry: dict[str, Any], action: Any) -> None:
         state.locks.pop(name, None)
 
 
-def _backwards(path: Path) -> Iterator[dict[str, Any]]:
-    """Parsed entries from the last line to the first, read in chunks from the end."""
+def _since_boundary(path: Path) -> Iterator[dict[str, Any]]:
+    """Parsed entries from the last start or stop (the log's start when it has none) to the
+    end, oldest first."""
     try:
         fd = os.open(path, os.O_RDONLY)
     except FileNotFoundError:
         return
     try:
-        end, tail = os.fstat(fd).st_size, b""
-        first = not _ends_line(fd, end)  # an unterminated last line: a crash mid-append
-        while end > 0:
-            start = max(0, end - _CHUNK)
-            block = os.pread(fd, end - start, start) + tail
-            end = start
-            lines = block.split(b"\n")
-            tail = lines.pop(0) if end > 0 else b""  # maybe cut: completed by the next read
-            for line in reversed(lines):
-                if line.strip():
-                    parsed = _parsed(line, last=first)
-                    first = False
-                    if parsed is not None:
-                        yield parsed
+        size = os.fstat(fd).st_size
+        torn_at = None if _ends_line(fd, size) else size  # a crash mid-append
+        yield from _forwards(fd, _boundary_at(fd, size, torn_at), size, torn_at)
     finally:
         os.close(fd)
+
+
+def _boundary_at(fd: int, size: int, torn_at: int | None) -> int:
+    """The offset of the last BRIDGE_STARTED or BRIDGE_STOPPED line, read back from the end
+    in chunks; 0 if there is none. Only a line naming one is parsed here."""
+    for offset, line in _lines_backwards(fd, size):
+        if b"BRIDGE_ST" not in line:  # the event's name, in whatever field: checked below
+            continue
+        entry = _parsed(line, last=offset + len(line) == torn_at)
+        if entry is not None and entry.get("event") in _BOUNDARIES:
+            return offset
+    return 0
+
+
+def _lines_backwards(fd: int, size: int) -> Iterator[tuple[int, bytes]]:
+    """(offset, line) from the last line to the first."""
+    end, tail = size, b""
+    while end > 0:
+        start = max(0, end - _CHUNK)
+        block = os.pread(fd, end - start, start) + tail
+        lines = block.split(b"\n")
+        tail = lines.pop(0) if start > 0 else b""  # maybe cut: completed by the next read
+        offset = start + len(block)
+        for line in reversed(lines):
+            offset -= len(line) + 1
+            if line.strip():
+                yield offset + 1, line
+        end = start
+
+
+def _forwards(fd: int, offset: int, size: int, torn_at: int | None
+              ) -> Iterator[dict[str, Any]]:
+    """Parsed entries from `offset` to the end, a chunk at a time."""
+    rest = b""
+    while offset < size:
+        block = rest + os.pread(fd, min(_CHUNK, size - offset), offset)
+        offset += len(block) - len(rest)
+        lines = block.split(b"\n")
+        rest = lines.pop() if offset < size else b""
+        for n, line in enumerate(lines):
+            if line.strip():
+                entry = _parsed(line, last=torn_at is not None and offset >= size
+                                and n == len(lines) - 1)
+                if entry is not None:
+                    yield entry
 
 
 def _ends_line(fd: int, size: int) -> bool:

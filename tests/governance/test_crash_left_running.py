@@ -377,3 +377,26 @@ def test_the_scan_of_a_long_run_holds_no_more_than_its_motion(tmp_path: Path) ->
 
 def _line(**entry: Any) -> bytes:
     return json.dumps(entry, sort_keys=True, separators=(",", ":")).encode() + b"\n"
+
+
+async def test_another_principal_s_command_of_the_same_id_ends_nothing_of_this_one(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Message ids are unique per principal only: another's command of the same id that
+    failed, or that started a goal too, leaves this one's motion listed."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("m-1")  # the planner's
+    await log.goal("g-1", str(uuid.uuid4()))
+    params = {"x": 1.0, "y": 2.0, "yaw": 0.0}
+    for message_id in ("m-1", "g-1"):
+        await log.add(AuditEvent.COMMAND_DISPATCHED, principal="ops", role="OWNER",
+                      message_id=message_id, action_type="navigate", params=params,
+                      applied=params, outcome="executed", ros2_topic=NAV,
+                      goal_id=str(uuid.uuid4()))
+    await log.add(AuditEvent.COMMAND_FAILED, principal="ops", message_id="m-1",
+                  action_type="navigate", outcome="failed", deny_reason="robot_unavailable")
+    await log.audit.close()
+    left = resume(log.path, now_ms=log.now_ms()).left
+    assert [(a.principal, a.message_id) for a in left.arms] == [("planner", "m-1")]
+    assert [(g.principal, g.message_id) for g in left.goals] == [("planner", "g-1"),
+                                                                  ("ops", "g-1")]

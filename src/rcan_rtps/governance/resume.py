@@ -138,19 +138,27 @@ def resume(path: Path | str, *, now_ms: int | None = None) -> Resumed:
     return found
 
 
+# A command, as its entries name it: message ids are unique per principal only.
+_Key = tuple[Any, str]  # (principal, message id)
+
+
+def _key(entry: dict[str, Any]) -> _Key:
+    return entry.get("principal"), str(entry.get("message_id"))
+
+
 class _Motion:
     """The motion sent since the boundary, less what ended, replayed oldest first."""
 
     def __init__(self) -> None:
-        self.arms: dict[str, LeftArm] = {}  # message id → (insertion order: oldest first)
-        self.goals: dict[str, LeftGoal] = {}
-        self.streams: dict[str, LeftStream] = {}
-        # A trajectory's message id → the arms it replaced, given back if its own
-        # COMMAND_FAILED follows (written ahead, then refused: it was never sent).
-        self._replaced: dict[str, list[LeftArm]] = {}
-        # A stop's message id → what it ended, given back if its own COMMAND_FAILED follows.
-        self._halted: dict[str, tuple[dict[str, LeftArm], dict[str, LeftGoal],
-                                      dict[str, LeftStream], dict[str, list[LeftArm]]]] = {}
+        self.arms: dict[_Key, LeftArm] = {}  # (insertion order: oldest first)
+        self.goals: dict[_Key, LeftGoal] = {}
+        self.streams: dict[_Key, LeftStream] = {}
+        # A trajectory → the arms it replaced, given back if its own COMMAND_FAILED follows
+        # (written ahead, then refused: it was never sent).
+        self._replaced: dict[_Key, list[LeftArm]] = {}
+        # A stop → what it ended, given back if its own COMMAND_FAILED follows.
+        self._halted: dict[_Key, tuple[dict[_Key, LeftArm], dict[_Key, LeftGoal],
+                                       dict[_Key, LeftStream], dict[_Key, list[LeftArm]]]] = {}
 
     def left(self, now_ms: int) -> LeftRunning:
         return LeftRunning(
@@ -168,11 +176,12 @@ class _Motion:
         elif event in _HALTS:
             self._halt(entry)
         elif event == "COMMAND_FAILED" and isinstance(message_id, str):
-            self._failed(message_id)
+            self._failed(_key(entry))
         elif event == "GOAL_FINISHED":
             self._goal_finished(entry)
         elif event == "STREAM_ENDED" and isinstance(message_id, str):
-            self.streams.pop(message_id, None)
+            # Its owner's, where the command's entry may name its approver: by id alone.
+            self.streams = {k: s for k, s in self.streams.items() if k[1] != message_id}
 
     def _executed(self, entry: dict[str, Any]) -> None:
         try:
@@ -182,14 +191,14 @@ class _Motion:
         message_id, topic = str(entry.get("message_id")), entry.get("ros2_topic")
         principal = entry.get("principal")
         if spec.effect is Effect.HALT:
-            self._halted_all(message_id)
+            self._halted_all(_key(entry))
         elif spec.starts_goal:
             goal_id = entry.get("goal_id")
-            self.goals[message_id] = LeftGoal(
+            self.goals[_key(entry)] = LeftGoal(
                 message_id=message_id, action=spec.name, principal=principal, server=topic,
                 goal_id=goal_id if isinstance(goal_id, str) else None)
         elif spec.streamed:
-            self.streams[message_id] = LeftStream(message_id=message_id, action=spec.name,
+            self.streams[_key(entry)] = LeftStream(message_id=message_id, action=spec.name,
                                                   principal=principal, topic=topic)
         elif isinstance(spec.ros, Publish) and spec.ros.hold is not None:
             self._trajectory(entry, spec.name, spec.ros, message_id)
@@ -208,14 +217,14 @@ class _Motion:
                       topic=entry.get("ros2_topic"), params=dict(applied or {}),
                       joints=joints, sent_at_ms=int(entry.get("timestamp_ms") or 0),
                       runs_for_s=runs_for_s)
-        replaced = [run for run in self.arms.values()  # the controller replaced them
-                    if run.topic == arm.topic and set(run.joints) == set(arm.joints)]
-        for run in replaced:
-            del self.arms[run.message_id]
+        replaced = {k: run for k, run in self.arms.items()  # the controller replaced them
+                    if run.topic == arm.topic and set(run.joints) == set(arm.joints)}
+        for k in replaced:
+            del self.arms[k]
         if replaced:
-            self._replaced[message_id] = replaced
+            self._replaced[_key(entry)] = list(replaced.values())
             _keep_newest(self._replaced)
-        self.arms[message_id] = arm
+        self.arms[_key(entry)] = arm
 
     def _halt(self, entry: dict[str, Any]) -> None:
         applied = entry.get("applied")
@@ -224,7 +233,7 @@ class _Motion:
             self._own_stop(str(entry.get("principal")), facts)
             return
         # An e-stop, a safe stop of the whole robot, a start's halt of a crash.
-        self._halted_all(str(entry.get("message_id")))
+        self._halted_all(_key(entry))
         if facts.get("scope") == "crash":
             self._still_left(facts)
 
@@ -241,12 +250,15 @@ class _Motion:
             left = msgspec.convert(facts or {}, LeftRunning)
         except msgspec.ValidationError:
             return
-        self.arms.update((a.message_id, a) for a in left.arms if chosen(a.message_id))
-        self.goals.update((g.message_id, g) for g in left.goals if chosen(g.message_id))
-        self.streams.update((s.message_id, s) for s in left.streams if chosen(s.message_id))
+        self.arms.update(((a.principal, a.message_id), a) for a in left.arms
+                         if chosen(a.message_id))
+        self.goals.update(((g.principal, g.message_id), g) for g in left.goals
+                          if chosen(g.message_id))
+        self.streams.update(((s.principal, s.message_id), s) for s in left.streams
+                            if chosen(s.message_id))
 
-    def _halted_all(self, message_id: str) -> None:
-        self._halted[message_id] = (self.arms, self.goals, self.streams, self._replaced)
+    def _halted_all(self, stop: _Key) -> None:
+        self._halted[stop] = (self.arms, self.goals, self.streams, self._replaced)
         self.arms, self.goals, self.streams, self._replaced = {}, {}, {}, {}
         _keep_newest(self._halted)
 
@@ -264,14 +276,14 @@ class _Motion:
                                        if not (a.principal == principal and a.topic in held)])}
         self.streams = {m: s for m, s in self.streams.items() if s.principal != principal}
 
-    def _failed(self, message_id: str) -> None:
-        """The send of `message_id` failed: it started nothing — or, a stop's, ended nothing."""
+    def _failed(self, command: _Key) -> None:
+        """The send of `command` failed: it started nothing — or, a stop's, ended nothing."""
         for running in (self.arms, self.goals, self.streams):
-            running.pop(message_id, None)
+            running.pop(command, None)
         # A trajectory refused after its entry replaced nothing: what it replaced runs on.
-        self.arms = {**{a.message_id: a for a in self._replaced.pop(message_id, ())},
-                     **self.arms}
-        given_back = self._halted.pop(message_id, None)
+        self.arms = {**{(a.principal, a.message_id): a
+                        for a in self._replaced.pop(command, ())}, **self.arms}
+        given_back = self._halted.pop(command, None)
         if given_back is not None:
             arms, goals, streams, replaced = given_back
             self.arms = {**arms, **self.arms}
@@ -285,10 +297,10 @@ class _Motion:
         message_id = entry.get("message_id")
         self.goals = {m: g for m, g in self.goals.items()
                       if not (g.goal_id is not None and g.goal_id == goal_id)
-                      and not (g.goal_id is None and m == message_id)}
+                      and not (g.goal_id is None and m[1] == message_id)}
 
 
-def _keep_newest(given_back: dict[str, Any]) -> None:
+def _keep_newest(given_back: dict[_Key, Any]) -> None:
     """What a command's COMMAND_FAILED may give back, for the newest MAX_LEFT commands: it
     follows its command closely (a run's log may hold any number)."""
     while len(given_back) > MAX_LEFT:

@@ -400,3 +400,44 @@ async def test_another_principal_s_command_of_the_same_id_ends_nothing_of_this_o
     assert [(a.principal, a.message_id) for a in left.arms] == [("planner", "m-1")]
     assert [(g.principal, g.message_id) for g in left.goals] == [("planner", "g-1"),
                                                                   ("ops", "g-1")]
+
+
+async def test_a_failed_hold_of_an_arm_named_by_its_command_s_id_ends_nothing(
+        harness: Harness) -> None:
+    """An INVOKE's timeout, or its client gone, holds its arm and cancels its goal under the
+    id of the command that sent them; when that hold or cancel fails, its COMMAND_FAILED
+    bears that id — and the motion runs on. A restart after a crash takes it back."""
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    arm = await gov.decide(command("arm_joint", {"joints": ["elbow"], "positions": [0.8],
+                                                 "duration_s": 600.0}), PLANNER)
+    assert arm.outcome is Outcome.EXECUTED and arm.message_id is not None, arm
+    harness.dispatcher.unheard_arms = True  # the hold cannot be made
+    held = await gov.hold_trajectory(arm.message_id, PLANNER, message_id=arm.message_id,
+                                     why="INVOKE's client left")
+    assert held.outcome is Outcome.FAILED, held
+    assert harness.entries[-1]["event"] == "COMMAND_FAILED"
+    await harness.restart()  # killed: no BRIDGE_STOPPED
+    harness.dispatcher.unheard_arms = False
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [left] = harness.dispatcher.left
+    assert [a.message_id for a in left.arms] == [arm.message_id]
+    await gov.stop()
+
+
+async def test_a_failed_cancel_of_a_goal_named_by_its_command_s_id_ends_nothing(
+        tmp_path: Path, clock: ManualClock) -> None:
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    goal_id = str(uuid.uuid4())
+    await log.goal("nav-1", goal_id)
+    await log.add(AuditEvent.COMMAND_DISPATCHED, principal="planner", message_id="nav-1",
+                  action_type="cancel_goal", outcome="executed",
+                  params={"goal_id": goal_id, "why": "INVOKE timeout"})
+    await log.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id="nav-1",
+                  action_type="cancel_goal", params={"goal_id": goal_id}, outcome="failed",
+                  deny_reason="robot_unavailable:goal_not_cancelled")
+    await log.audit.close()
+    goals = resume(log.path, now_ms=log.now_ms()).left.goals
+    assert [(g.message_id, g.goal_id) for g in goals] == [("nav-1", goal_id)]

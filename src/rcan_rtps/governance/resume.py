@@ -17,7 +17,8 @@ shows ended (`LeftRunning`): arm trajectories still due by the wall clock (sent 
 `timestamp_ms`, running `Hold.runs_for_s` of the `applied` parameters, as the dispatcher
 counted them), goals (their `goal_id`, written ahead since goals were sent with an id chosen
 before their entry; older entries have none) and velocity streams. A start halts them
-(`Governor.start`). Ended: GOAL_FINISHED, STREAM_ENDED, a COMMAND_FAILED of the command, a
+(`Governor.start`). Ended: GOAL_FINISHED, STREAM_ENDED, a COMMAND_FAILED of the command
+(its principal's and action's: a failed hold or cancel under its id ended nothing), a
 later trajectory of the same joints on the same topic (it replaced it, unless its own
 COMMAND_FAILED follows: refused once written ahead, it was never sent), a stop of everyone's
 motion (a `stop`, an e-stop, a safe stop of the whole robot) unless that stop's own
@@ -138,12 +139,19 @@ def resume(path: Path | str, *, now_ms: int | None = None) -> Resumed:
     return found
 
 
-# A command, as its entries name it: message ids are unique per principal only.
-_Key = tuple[Any, str]  # (principal, message id)
+# A command, as its entries name it: message ids are unique per principal only, and a
+# hold or cancel of a command's motion (an INVOKE's timeout, its client gone) bears the
+# command's id under an action of its own (`hold_trajectory`, `cancel_goal`): its
+# COMMAND_FAILED says that motion runs on, not that the command failed.
+_Key = tuple[Any, str, Any]  # (principal, message id, action)
 
 
 def _key(entry: dict[str, Any]) -> _Key:
-    return entry.get("principal"), str(entry.get("message_id"))
+    return entry.get("principal"), str(entry.get("message_id")), entry.get("action_type")
+
+
+def _key_of(left: LeftArm | LeftGoal | LeftStream) -> _Key:
+    return left.principal, left.message_id, left.action
 
 
 class _Motion:
@@ -250,12 +258,9 @@ class _Motion:
             left = msgspec.convert(facts or {}, LeftRunning)
         except msgspec.ValidationError:
             return
-        self.arms.update(((a.principal, a.message_id), a) for a in left.arms
-                         if chosen(a.message_id))
-        self.goals.update(((g.principal, g.message_id), g) for g in left.goals
-                          if chosen(g.message_id))
-        self.streams.update(((s.principal, s.message_id), s) for s in left.streams
-                            if chosen(s.message_id))
+        self.arms.update((_key_of(a), a) for a in left.arms if chosen(a.message_id))
+        self.goals.update((_key_of(g), g) for g in left.goals if chosen(g.message_id))
+        self.streams.update((_key_of(s), s) for s in left.streams if chosen(s.message_id))
 
     def _halted_all(self, stop: _Key) -> None:
         self._halted[stop] = (self.arms, self.goals, self.streams, self._replaced)
@@ -281,8 +286,7 @@ class _Motion:
         for running in (self.arms, self.goals, self.streams):
             running.pop(command, None)
         # A trajectory refused after its entry replaced nothing: what it replaced runs on.
-        self.arms = {**{(a.principal, a.message_id): a
-                        for a in self._replaced.pop(command, ())}, **self.arms}
+        self.arms = {**{_key_of(a): a for a in self._replaced.pop(command, ())}, **self.arms}
         given_back = self._halted.pop(command, None)
         if given_back is not None:
             arms, goals, streams, replaced = given_back

@@ -441,3 +441,19 @@ async def test_a_failed_cancel_of_a_goal_named_by_its_command_s_id_ends_nothing(
     await log.audit.close()
     goals = resume(log.path, now_ms=log.now_ms()).left.goals
     assert [(g.message_id, g.goal_id) for g in goals] == [("nav-1", goal_id)]
+
+
+async def test_an_entry_of_an_unexpected_shape_latches_the_start_not_crashes_it(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Signed, so written by a bridge — but perhaps another version of it: a field of
+    another type is no reason for the start to end in a traceback. It fails closed, as an
+    unreadable tail does: latched, saying why."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("arm-1")
+    await log.add(AuditEvent.NETWORK_LOSS_SAFE_STOP, principal="planner", message_id="own-1",
+                  action_type="stop", outcome="executed",
+                  applied={"scope": "own", "goals_cancelled": 5, "arms_held": 7})
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert found.latched is True and "unreadable" in str(found.latched_by), found

@@ -130,8 +130,10 @@ def resume(path: Path | str, *, now_ms: int | None = None) -> Resumed:
             last = entry
             _apply(found, entry)
             motion.apply(entry)
-    except (OSError, ValueError) as exc:  # it verified at open: this is no time to trust it
-        return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc})")
+    # It verified at open: this is no time to trust it. An entry of a shape this version
+    # does not expect (another version's) fails closed as well, never a traceback.
+    except (OSError, ValueError, TypeError, AttributeError) as exc:
+        return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc!r})")
     # No boundary at all in a log with entries is no clean stop either: fail closed.
     found.crashed = last is not None and last.get("event") != "BRIDGE_STOPPED"
     if found.crashed:

@@ -14,6 +14,9 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import signal
+import subprocess
+import sys
 import textwrap
 import uuid
 from collections.abc import AsyncIterator, Iterator
@@ -23,7 +26,7 @@ from typing import Any
 import aiohttp
 import pytest
 from oracle.client import OracleEnv, RclpyOracle, both_rmws
-from waiting import take
+from waiting import eventually, take
 
 from rcan_rtps.ros.action_server import ActionServer, ServerGoal
 from rcan_rtps.ros.participant import RosNode
@@ -233,3 +236,48 @@ async def test_a_restart_after_a_kill_cancels_the_goal_it_left_by_its_id(
             assert zeros[-1]["linear"]["x"] == 0.0
         finally:
             await server.close()
+
+
+async def _killed_while_taking_back(bridge: Bridge) -> None:
+    """A start killed during its halt of what the crashed run left: its BRIDGE_STARTED is
+    written (the halt began before it), the halt still waits for joint_states (unheard:
+    up to match_timeout_s), no ready line yet."""
+    env = {**os.environ, "RCAN_BRIDGE_TOKEN": TOKEN}
+    args = [sys.executable, "-m", "rcan_rtps", "run", "--config", str(bridge.config),
+            "--port", "0", "--no-mdns"]
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        def started_again() -> bool:  # read as text: a line may be half written
+            return bridge.audit.read_text().count('"event":"BRIDGE_STARTED"') == 2
+
+        await eventually(started_again, timeout=60, what="the second BRIDGE_STARTED")
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+async def test_a_start_killed_during_its_halt_leaves_it_to_the_next_start(
+        bridge: Bridge, robot: RclpyOracle) -> None:
+    """Killed right after its trajectory went out; restarted with the arm unheard (the halt
+    waits for it) and killed again mid-halt; restarted with the arm heard: the third start
+    holds it (from the second's BRIDGE_STARTED, `params.left_running`)."""
+    await bridge.start()
+    moving = await bridge.command({"action": "arm_joint", "params": LONG})
+    await take(robot, LEFT)
+    bridge.kill()
+    await robot.acall("stop_periodic", topic=JOINT_STATES)
+    await _killed_while_taking_back(bridge)
+    entries = bridge.entries()
+    assert entries[-1]["event"] == "BRIDGE_STARTED", entries[-1]  # nothing of the halt
+    assert await robot.acall("take", topic=LEFT) == []  # nothing sent at a guess
+    await robot.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                      value={"name": ["l_shoulder", "l_elbow"], "position": AT,
+                             "velocity": [0.0, 0.0]})
+    await bridge.start()
+    (hold,) = await take(robot, LEFT)
+    assert hold["points"][0]["positions"] == AT, hold
+    took_back = took_back_in(bridge.entries())
+    assert took_back["outcome"] == "executed", took_back
+    assert [a["message_id"] for a in took_back["applied"]["left"]["arms"]] == [
+        moving["message_id"]]

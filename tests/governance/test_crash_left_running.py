@@ -457,3 +457,18 @@ async def test_an_entry_of_an_unexpected_shape_latches_the_start_not_crashes_it(
     await log.audit.close()
     found = resume(log.path, now_ms=log.now_ms())
     assert found.latched is True and "unreadable" in str(found.latched_by), found
+
+
+async def test_a_trajectory_replaced_just_before_the_crash_is_still_listed(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Killed between a trajectory's write-ahead entry and its publish: the log cannot tell
+    whether it went out, and if it did not, the one it would have replaced runs on (here
+    600 s, where the later one was over in a second). Fail closed: both are listed while
+    due — a hold of an arm that the later one stopped holds it where it already is."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("arm-1")
+    await log.arm("arm-2", {**LONG, "duration_s": 0.5})
+    clock.advance(10)
+    await log.audit.close()
+    assert [a.message_id for a in resume(log.path, now_ms=log.now_ms()).left.arms] == ["arm-1"]

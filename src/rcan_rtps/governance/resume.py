@@ -20,7 +20,9 @@ before their entry; older entries have none) and velocity streams. A start halts
 (`Governor.start`). Ended: GOAL_FINISHED, STREAM_ENDED, a COMMAND_FAILED of the command
 (its principal's and action's: a failed hold or cancel under its id ended nothing), a
 later trajectory of the same joints on the same topic (it replaced it, unless its own
-COMMAND_FAILED follows: refused once written ahead, it was never sent), a stop of everyone's
+COMMAND_FAILED follows: refused once written ahead, it was never sent; the newest such
+replacement may not have been sent either — the crash came between its entry and its
+publish — so what it replaced stays listed while due), a stop of everyone's
 motion (a `stop`, an e-stop, a safe stop of the whole robot) unless that stop's own
 COMMAND_FAILED follows, and a stop of one principal's motion for what it says it stopped.
 """
@@ -171,8 +173,13 @@ class _Motion:
                                        dict[_Key, LeftStream], dict[_Key, list[LeftArm]]]] = {}
 
     def left(self, now_ms: int) -> LeftRunning:
+        # Fail closed: the bridge may have died between a trajectory's write-ahead entry and
+        # its publish (nothing in the log tells), and then the one it replaced runs on. Both
+        # are listed while due; a hold of an arm the later one did stop holds it at rest.
+        replaced = [run for by, runs in self._replaced.items() if by in self.arms
+                    for run in runs]
         return LeftRunning(
-            arms=[a for a in self.arms.values() if a.due_ms > now_ms][-MAX_LEFT:],
+            arms=[a for a in (*replaced, *self.arms.values()) if a.due_ms > now_ms][-MAX_LEFT:],
             goals=list(self.goals.values())[-MAX_LEFT:],
             streams=list(self.streams.values())[-MAX_LEFT:])
 

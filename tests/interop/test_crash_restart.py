@@ -18,6 +18,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 import uuid
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
@@ -28,6 +29,8 @@ import pytest
 from oracle.client import OracleEnv, RclpyOracle, both_rmws
 from waiting import eventually, take
 
+from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
+from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.ros.action_server import ActionServer, ServerGoal
 from rcan_rtps.ros.participant import RosNode
 
@@ -281,3 +284,31 @@ async def test_a_start_killed_during_its_halt_leaves_it_to_the_next_start(
     assert took_back["outcome"] == "executed", took_back
     assert [a["message_id"] for a in took_back["applied"]["left"]["arms"]] == [
         moving["message_id"]]
+
+
+async def test_an_arm_left_stamped_ahead_of_the_clock_is_kept_no_longer_than_it_runs(
+        bridge: Bridge, robot: RclpyOracle) -> None:
+    """A board without a clock of its own comes up after a power cut with the time it last
+    saved (fake-hwclock: up to an hour behind the entries the crashed run wrote). A left
+    trajectory of 1 s, stamped an hour ahead of that clock, is due for the scan (fail closed);
+    unheard at start, it is kept for the next stop to hold — but no longer than it can run:
+    1 s, not the hour the clock is behind. Before, every stop failed (503, the arm not held)
+    for that hour while joint_states stayed silent."""
+    await robot.acall("stop_periodic", topic=JOINT_STATES)
+    ahead = ManualClock(time.time() + 3600)
+    log = await AuditLog.open(bridge.audit, bridge.audit.parent / "audit.key",
+                              ruri="rcan://registry.local/acme/rover/unit-0001", clock=ahead)
+    await log.append(AuditRecord(event=AuditEvent.BRIDGE_STARTED,
+                                 params={"estop_latched": False, "locks": {}}))
+    short = {**LONG, "duration_s": 1.0}
+    await log.append(AuditRecord(
+        event=AuditEvent.COMMAND_DISPATCHED, principal="operator", role="USER",
+        message_id=str(uuid.uuid4()), action_type="arm_joint", params=short, applied=short,
+        outcome="executed", ros2_topic=LEFT))
+    await log.close()  # no BRIDGE_STOPPED: a crash
+    await bridge.start()
+    took_back = took_back_in(bridge.entries())
+    assert took_back["outcome"] == "failed", took_back  # unheard: not held at a guess
+    await asyncio.sleep(1.0 + 1.0)  # its time (and settling) is over by now, whatever the clock
+    stopped = await bridge.command({"action": "stop"})
+    assert stopped["outcome"] == "executed", stopped

@@ -157,3 +157,21 @@ async def test_the_id_of_another_s_trajectory_sent_while_this_one_was_written_ah
     await gov.command_cancelled(PLANNER)
     assert harness.dispatcher.running == [SHARED_ID]  # OPS's arm runs on
     await gov.stop()
+
+
+async def test_a_hold_of_one_s_own_ended_trajectory_leaves_another_s_of_the_same_id(
+        harness: Harness) -> None:
+    """Once one's trajectory ended (a stop held it), another principal may use its id; an
+    INVOKE of the first still waiting on it (its timeout, its client gone) then holds by that
+    id — and must not hold the other's arm, which it never sent."""
+    gov = await _governor(harness)
+    mine = await gov.decide(command("arm_joint", OTHER_ARM, message_id=SHARED_ID), PLANNER)
+    assert mine.outcome is Outcome.EXECUTED, mine
+    assert (await gov.decide(command("stop"), OPS)).outcome is Outcome.EXECUTED
+    theirs = await gov.decide(command("arm_joint", ARM, message_id=SHARED_ID), OPS)
+    assert theirs.outcome is Outcome.EXECUTED, theirs
+    await gov.hold_trajectory(SHARED_ID, PLANNER, message_id=SHARED_ID, why="INVOKE timeout")
+    assert harness.dispatcher.running == [SHARED_ID]  # OPS's arm runs on
+    await gov.command_cancelled(PLANNER)  # nor a stop of the first's own motion
+    assert harness.dispatcher.running == [SHARED_ID]
+    await gov.stop()

@@ -612,6 +612,12 @@ class Governor:
                 if running is None or m in running}
         sent[message_id] = owner
         self._runs_on[topic] = dict(list(sent.items())[-RUNS_ON_KEPT:])
+        # Another principal's trajectory of this id (ids are unique per principal only) has
+        # ended, or this one would have been refused (`_names_others_arm`): forgotten, so
+        # that a stop of that principal's motion does not hold this one by its id.
+        for elsewhere in self._runs_on.values():
+            if elsewhere.get(message_id, owner) != owner:
+                del elsewhere[message_id]
 
     def _trajectories(self, owner: str, *, others: bool = False) -> list[str]:
         """The message ids of `owner`'s (or, `others`, everyone else's) commands whose motion
@@ -740,7 +746,11 @@ class Governor:
         Held first, as any stop (it never waits for the disk), then audited: a
         COMMAND_DISPATCHED `hold_trajectory` entry, or COMMAND_FAILED naming why the arm could
         not be held. The caller has checked the command is `principal`'s."""
-        arms = self._steps.hold_trajectories([sent_by])
+        # Arms are held by id, unique per principal only: another's trajectory of this id
+        # running means this one's ended (else the other's was refused: `_names_others_arm`),
+        # and that one is not this principal's to hold.
+        theirs = sent_by in self._trajectories(principal.name, others=True)
+        arms = self._steps.hold_trajectories([] if theirs else [sent_by])
         facts = {"sent_by": sent_by, "why": why, **_arms_applied(arms)}
         failed = outcomes.robot_unavailable("; ".join(arms.not_held)) if arms.not_held else None
         entry = AuditRecord(

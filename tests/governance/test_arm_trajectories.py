@@ -15,6 +15,7 @@ from rcan_rtps.rcan import Outcome
 
 ARM = {"joints": ["elbow"], "positions": [0.8], "duration_s": 30.0}
 OTHER_ARM = {**ARM, "joints": ["wrist"]}  # another arm: the double gives it its own topic
+SHARED_ID = "7f0c1a52-9b9e-4d8e-8a52-2f6f3a0e9c11"  # two principals may each choose it
 
 
 async def _governor(harness: Harness) -> Governor:
@@ -108,4 +109,69 @@ async def test_unreadable_running_trajectories_count_as_running(harness: Harness
     await gov.safe_stop(PLANNER, "silent")
     assert "stop" not in [a for a, _ in harness.dispatcher.calls]
     assert harness.dispatcher.holds == [[mine]]
+    await gov.stop()
+
+
+async def test_a_message_id_of_another_s_running_trajectory_holds_nothing_of_theirs(
+        harness: Harness) -> None:
+    """Message ids are the client's, unique per principal only (a retry is matched by
+    principal and id); an arm is held by the id of the command that sent it. One principal's
+    arm command naming the id of another's trajectory still running is refused (409): else
+    a stop of its own motion (its call cancelled, its INVOKE's client gone, its session
+    lost) would hold the other's arm as well."""
+    gov = await _governor(harness)
+    theirs = await gov.decide(command("arm_joint", ARM, message_id=SHARED_ID), OPS)
+    assert theirs.outcome is Outcome.EXECUTED, theirs
+    mine = await gov.decide(command("arm_joint", OTHER_ARM, message_id=SHARED_ID), PLANNER)
+    assert (mine.http_status, mine.reason) == (
+        409, "message_id_of_another_principal_s_running_arm"), mine
+    await gov.command_cancelled(PLANNER)
+    assert harness.dispatcher.running == [SHARED_ID]  # OPS's arm runs on
+    await gov.stop()
+
+
+async def test_the_id_of_another_s_trajectory_sent_while_this_one_was_written_ahead(
+        harness: Harness) -> None:
+    """The same, when the other's came while this one's entry was being written: checked
+    again after the write, with no await before the publish."""
+    gov = await _governor(harness)
+    release, entered = asyncio.Event(), asyncio.Event()
+    write_ahead = gov._steps.write_ahead
+
+    async def held_write(entry: Any, *, urgent: bool = False) -> Any:
+        if entry.principal == PLANNER.name and entry.action_type == "arm_joint":
+            entered.set()
+            await release.wait()
+        return await write_ahead(entry, urgent=urgent)
+
+    gov._steps.write_ahead = held_write  # type: ignore[method-assign]
+    mine = asyncio.ensure_future(
+        gov.decide(command("arm_joint", OTHER_ARM, message_id=SHARED_ID), PLANNER))
+    await asyncio.wait_for(entered.wait(), timeout=10)
+    theirs = await gov.decide(command("arm_joint", ARM, message_id=SHARED_ID), OPS)
+    assert theirs.outcome is Outcome.EXECUTED, theirs
+    release.set()
+    refused = await mine
+    assert (refused.http_status, refused.outcome) == (409, Outcome.DENIED), refused
+    assert harness.entries[-1]["event"] == "COMMAND_FAILED"
+    await gov.command_cancelled(PLANNER)
+    assert harness.dispatcher.running == [SHARED_ID]  # OPS's arm runs on
+    await gov.stop()
+
+
+async def test_a_hold_of_one_s_own_ended_trajectory_leaves_another_s_of_the_same_id(
+        harness: Harness) -> None:
+    """Once one's trajectory ended (a stop held it), another principal may use its id; an
+    INVOKE of the first still waiting on it (its timeout, its client gone) then holds by that
+    id — and must not hold the other's arm, which it never sent."""
+    gov = await _governor(harness)
+    mine = await gov.decide(command("arm_joint", OTHER_ARM, message_id=SHARED_ID), PLANNER)
+    assert mine.outcome is Outcome.EXECUTED, mine
+    assert (await gov.decide(command("stop"), OPS)).outcome is Outcome.EXECUTED
+    theirs = await gov.decide(command("arm_joint", ARM, message_id=SHARED_ID), OPS)
+    assert theirs.outcome is Outcome.EXECUTED, theirs
+    await gov.hold_trajectory(SHARED_ID, PLANNER, message_id=SHARED_ID, why="INVOKE timeout")
+    assert harness.dispatcher.running == [SHARED_ID]  # OPS's arm runs on
+    await gov.command_cancelled(PLANNER)  # nor a stop of the first's own motion
+    assert harness.dispatcher.running == [SHARED_ID]
     await gov.stop()

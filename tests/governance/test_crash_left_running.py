@@ -9,6 +9,8 @@ The logs are built with the audit writer itself (signed, chained), entry by entr
 from __future__ import annotations
 
 import asyncio
+import json
+import tracemalloc
 import uuid
 from pathlib import Path
 from typing import Any
@@ -295,3 +297,178 @@ async def test_a_start_after_a_clean_stop_takes_nothing_back(harness: Harness) -
     assert harness.dispatcher.left == []
     assert harness.entries[-1]["event"] == "BRIDGE_STARTED"
     await gov.stop()
+
+
+async def test_a_trajectory_whose_replacement_failed_is_still_listed(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A later trajectory of the same joints replaces the one running only if it was sent:
+    written ahead, then refused (its COMMAND_FAILED: the robot went silent, its client left),
+    it replaced nothing, and the first runs on."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("arm-1")
+    await log.arm("arm-2", {**LONG, "duration_s": 0.5})
+    await log.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id="arm-2",
+                  action_type="arm_joint", outcome="failed",
+                  deny_reason="robot_unavailable:robot silent")
+    clock.advance(10)
+    await log.audit.close()
+    assert [a.message_id for a in resume(log.path, now_ms=log.now_ms()).left.arms] == ["arm-1"]
+
+
+async def test_a_start_holds_an_arm_whose_replacement_was_refused_after_its_entry(
+        harness: Harness) -> None:
+    """The governor's own log of it: an arm's long trajectory, then one of the same joints
+    that the robot refused once written ahead (gone silent meanwhile); killed. The first
+    still runs: the restart takes it back."""
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    elbow = {"joints": ["elbow"], "positions": [0.8]}
+    first = await gov.decide(command("arm_joint", {**elbow, "duration_s": 600.0}), PLANNER)
+    assert first.outcome is Outcome.EXECUTED, first
+    harness.dispatcher.hold = asyncio.Event()
+    replacing = asyncio.ensure_future(
+        gov.decide(command("arm_joint", {**elbow, "duration_s": 0.5}), PLANNER))
+    await asyncio.wait_for(harness.dispatcher.entered.wait(), timeout=10)
+    harness.dispatcher.available = False  # silent while its entry was written
+    harness.dispatcher.hold.set()
+    refused = await replacing
+    assert refused.outcome is Outcome.FAILED, refused
+    harness.dispatcher.hold, harness.dispatcher.available = None, True
+    harness.clock.advance(10)
+    await harness.restart()  # killed: no BRIDGE_STOPPED
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [left] = harness.dispatcher.left
+    assert [a.message_id for a in left.arms] == [first.message_id]
+    await gov.stop()
+
+
+def test_the_scan_of_a_long_run_holds_no_more_than_its_motion(tmp_path: Path) -> None:
+    """A run may write any number of entries (weeks up, a command a second): the scan back
+    to its start reads them one at a time and keeps what they left running, never the run.
+    Before, every entry of the run was held at once (100 000: 54 MB of log, 326 MB of
+    memory at start, more with each day up: a board's start ends out of memory, again at
+    each restart). The lines are written as the log writes them (compact, sorted keys); the
+    scan reads what opening the log verified."""
+    path = tmp_path / "audit.jsonl"
+    runs = 20_000
+    with path.open("wb") as log:
+        log.write(_line(event="BRIDGE_STARTED", params={"estop_latched": False, "locks": {}}))
+        for n in range(runs):
+            goal_id = str(uuid.UUID(int=n))
+            log.write(_line(event="COMMAND_DISPATCHED", principal="planner", role="USER",
+                            message_id=f"nav-{n}", action_type="navigate",
+                            params={"x": 1.0, "y": 2.0, "yaw": 0.0}, outcome="executed",
+                            applied={"x": 1.0, "y": 2.0, "yaw": 0.0}, ros2_topic=NAV,
+                            goal_id=goal_id, timestamp_ms=n))
+            log.write(_line(event="GOAL_FINISHED", message_id=f"nav-{n}", outcome="succeeded",
+                            params={"goal_id": goal_id}, ros2_topic=NAV, timestamp_ms=n))
+    size = path.stat().st_size
+    tracemalloc.start()
+    try:
+        found = resume(path, now_ms=runs)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert found.crashed and found.left.goals == [] and found.latched is False
+    assert peak < size / 4, (peak, size)
+
+
+def _line(**entry: Any) -> bytes:
+    return json.dumps(entry, sort_keys=True, separators=(",", ":")).encode() + b"\n"
+
+
+async def test_another_principal_s_command_of_the_same_id_ends_nothing_of_this_one(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Message ids are unique per principal only: another's command of the same id that
+    failed, or that started a goal too, leaves this one's motion listed."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("m-1")  # the planner's
+    await log.goal("g-1", str(uuid.uuid4()))
+    params = {"x": 1.0, "y": 2.0, "yaw": 0.0}
+    for message_id in ("m-1", "g-1"):
+        await log.add(AuditEvent.COMMAND_DISPATCHED, principal="ops", role="OWNER",
+                      message_id=message_id, action_type="navigate", params=params,
+                      applied=params, outcome="executed", ros2_topic=NAV,
+                      goal_id=str(uuid.uuid4()))
+    await log.add(AuditEvent.COMMAND_FAILED, principal="ops", message_id="m-1",
+                  action_type="navigate", outcome="failed", deny_reason="robot_unavailable")
+    await log.audit.close()
+    left = resume(log.path, now_ms=log.now_ms()).left
+    assert [(a.principal, a.message_id) for a in left.arms] == [("planner", "m-1")]
+    assert [(g.principal, g.message_id) for g in left.goals] == [("planner", "g-1"),
+                                                                  ("ops", "g-1")]
+
+
+async def test_a_failed_hold_of_an_arm_named_by_its_command_s_id_ends_nothing(
+        harness: Harness) -> None:
+    """An INVOKE's timeout, or its client gone, holds its arm and cancels its goal under the
+    id of the command that sent them; when that hold or cancel fails, its COMMAND_FAILED
+    bears that id — and the motion runs on. A restart after a crash takes it back."""
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    arm = await gov.decide(command("arm_joint", {"joints": ["elbow"], "positions": [0.8],
+                                                 "duration_s": 600.0}), PLANNER)
+    assert arm.outcome is Outcome.EXECUTED and arm.message_id is not None, arm
+    harness.dispatcher.unheard_arms = True  # the hold cannot be made
+    held = await gov.hold_trajectory(arm.message_id, PLANNER, message_id=arm.message_id,
+                                     why="INVOKE's client left")
+    assert held.outcome is Outcome.FAILED, held
+    assert harness.entries[-1]["event"] == "COMMAND_FAILED"
+    await harness.restart()  # killed: no BRIDGE_STOPPED
+    harness.dispatcher.unheard_arms = False
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [left] = harness.dispatcher.left
+    assert [a.message_id for a in left.arms] == [arm.message_id]
+    await gov.stop()
+
+
+async def test_a_failed_cancel_of_a_goal_named_by_its_command_s_id_ends_nothing(
+        tmp_path: Path, clock: ManualClock) -> None:
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    goal_id = str(uuid.uuid4())
+    await log.goal("nav-1", goal_id)
+    await log.add(AuditEvent.COMMAND_DISPATCHED, principal="planner", message_id="nav-1",
+                  action_type="cancel_goal", outcome="executed",
+                  params={"goal_id": goal_id, "why": "INVOKE timeout"})
+    await log.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id="nav-1",
+                  action_type="cancel_goal", params={"goal_id": goal_id}, outcome="failed",
+                  deny_reason="robot_unavailable:goal_not_cancelled")
+    await log.audit.close()
+    goals = resume(log.path, now_ms=log.now_ms()).left.goals
+    assert [(g.message_id, g.goal_id) for g in goals] == [("nav-1", goal_id)]
+
+
+async def test_an_entry_of_an_unexpected_shape_latches_the_start_not_crashes_it(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Signed, so written by a bridge — but perhaps another version of it: a field of
+    another type is no reason for the start to end in a traceback. It fails closed, as an
+    unreadable tail does: latched, saying why."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("arm-1")
+    await log.add(AuditEvent.NETWORK_LOSS_SAFE_STOP, principal="planner", message_id="own-1",
+                  action_type="stop", outcome="executed",
+                  applied={"scope": "own", "goals_cancelled": 5, "arms_held": 7})
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert found.latched is True and "unreadable" in str(found.latched_by), found
+
+
+async def test_a_trajectory_replaced_just_before_the_crash_is_still_listed(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Killed between a trajectory's write-ahead entry and its publish: the log cannot tell
+    whether it went out, and if it did not, the one it would have replaced runs on (here
+    600 s, where the later one was over in a second). Fail closed: both are listed while
+    due — a hold of an arm that the later one stopped holds it where it already is."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.arm("arm-1")
+    await log.arm("arm-2", {**LONG, "duration_s": 0.5})
+    clock.advance(10)
+    await log.audit.close()
+    assert [a.message_id for a in resume(log.path, now_ms=log.now_ms()).left.arms] == ["arm-1"]

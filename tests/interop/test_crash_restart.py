@@ -14,7 +14,11 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import signal
+import subprocess
+import sys
 import textwrap
+import time
 import uuid
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
@@ -23,8 +27,10 @@ from typing import Any
 import aiohttp
 import pytest
 from oracle.client import OracleEnv, RclpyOracle, both_rmws
-from waiting import take
+from waiting import eventually, take
 
+from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
+from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.ros.action_server import ActionServer, ServerGoal
 from rcan_rtps.ros.participant import RosNode
 
@@ -233,3 +239,76 @@ async def test_a_restart_after_a_kill_cancels_the_goal_it_left_by_its_id(
             assert zeros[-1]["linear"]["x"] == 0.0
         finally:
             await server.close()
+
+
+async def _killed_while_taking_back(bridge: Bridge) -> None:
+    """A start killed during its halt of what the crashed run left: its BRIDGE_STARTED is
+    written (the halt began before it), the halt still waits for joint_states (unheard:
+    up to match_timeout_s), no ready line yet."""
+    env = {**os.environ, "RCAN_BRIDGE_TOKEN": TOKEN}
+    args = [sys.executable, "-m", "rcan_rtps", "run", "--config", str(bridge.config),
+            "--port", "0", "--no-mdns"]
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        def started_again() -> bool:  # read as text: a line may be half written
+            return bridge.audit.read_text().count('"event":"BRIDGE_STARTED"') == 2
+
+        await eventually(started_again, timeout=60, what="the second BRIDGE_STARTED")
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+async def test_a_start_killed_during_its_halt_leaves_it_to_the_next_start(
+        bridge: Bridge, robot: RclpyOracle) -> None:
+    """Killed right after its trajectory went out; restarted with the arm unheard (the halt
+    waits for it) and killed again mid-halt; restarted with the arm heard: the third start
+    holds it (from the second's BRIDGE_STARTED, `params.left_running`)."""
+    await bridge.start()
+    moving = await bridge.command({"action": "arm_joint", "params": LONG})
+    await take(robot, LEFT)
+    bridge.kill()
+    await robot.acall("stop_periodic", topic=JOINT_STATES)
+    await _killed_while_taking_back(bridge)
+    entries = bridge.entries()
+    assert entries[-1]["event"] == "BRIDGE_STARTED", entries[-1]  # nothing of the halt
+    assert await robot.acall("take", topic=LEFT) == []  # nothing sent at a guess
+    await robot.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                      value={"name": ["l_shoulder", "l_elbow"], "position": AT,
+                             "velocity": [0.0, 0.0]})
+    await bridge.start()
+    (hold,) = await take(robot, LEFT)
+    assert hold["points"][0]["positions"] == AT, hold
+    took_back = took_back_in(bridge.entries())
+    assert took_back["outcome"] == "executed", took_back
+    assert [a["message_id"] for a in took_back["applied"]["left"]["arms"]] == [
+        moving["message_id"]]
+
+
+async def test_an_arm_left_stamped_ahead_of_the_clock_is_kept_no_longer_than_it_runs(
+        bridge: Bridge, robot: RclpyOracle) -> None:
+    """A board without a clock of its own comes up after a power cut with the time it last
+    saved (fake-hwclock: up to an hour behind the entries the crashed run wrote). A left
+    trajectory of 1 s, stamped an hour ahead of that clock, is due for the scan (fail closed);
+    unheard at start, it is kept for the next stop to hold — but no longer than it can run:
+    1 s, not the hour the clock is behind. Before, every stop failed (503, the arm not held)
+    for that hour while joint_states stayed silent."""
+    await robot.acall("stop_periodic", topic=JOINT_STATES)
+    ahead = ManualClock(time.time() + 3600)
+    log = await AuditLog.open(bridge.audit, bridge.audit.parent / "audit.key",
+                              ruri="rcan://registry.local/acme/rover/unit-0001", clock=ahead)
+    await log.append(AuditRecord(event=AuditEvent.BRIDGE_STARTED,
+                                 params={"estop_latched": False, "locks": {}}))
+    short = {**LONG, "duration_s": 1.0}
+    await log.append(AuditRecord(
+        event=AuditEvent.COMMAND_DISPATCHED, principal="operator", role="USER",
+        message_id=str(uuid.uuid4()), action_type="arm_joint", params=short, applied=short,
+        outcome="executed", ros2_topic=LEFT))
+    await log.close()  # no BRIDGE_STOPPED: a crash
+    await bridge.start()
+    took_back = took_back_in(bridge.entries())
+    assert took_back["outcome"] == "failed", took_back  # unheard: not held at a guess
+    await asyncio.sleep(1.0 + 1.0)  # its time (and settling) is over by now, whatever the clock
+    stopped = await bridge.command({"action": "stop"})
+    assert stopped["outcome"] == "executed", stopped

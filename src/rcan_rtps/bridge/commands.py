@@ -615,8 +615,10 @@ class RosDispatcher:
             self.arms.positions.watch(watcher, ())
         if why is not None:  # the next stop of this run tries again, as for one of its own
             kit = route.kit
-            self.arms.sent(route.publisher, arm.message_id, arm.joints,
-                           max(0.0, (arm.due_ms - time.time() * 1000) / 1000 - SETTLING_S),
+            # Never longer than it runs: sent before now, whatever the clock says (one set
+            # back across the restart puts its entry ahead of now).
+            left_s = min(arm.runs_for_s, (arm.due_ms - time.time() * 1000) / 1000 - SETTLING_S)
+            self.arms.sent(route.publisher, arm.message_id, arm.joints, max(0.0, left_s),
                            lambda joints, where: hold.build(joints, where, kit))
         return topic, why
 

@@ -38,6 +38,7 @@ from rcan_rtps.rcan import (
     Role,
     parse_ruri,
 )
+from rcan_rtps.rcan.actions import Publish
 
 from ..events import Events
 from . import outcomes
@@ -563,6 +564,9 @@ class Governor:
         if spec.streamed:
             return await self._base.stream(command, principal, owner, params, applied, event,
                                       pending_id, priority, stops)
+        if self._names_others_arm(command, owner):
+            return await self._steps.refuse(command, principal, outcomes.ID_OF_ANOTHER_S_ARM,
+                                            event=event, pending_id=pending_id)
         if spec.starts_goal:  # its id chosen now: its entry names it (a crash's restart cancels)
             command = msgspec.structs.replace(command, goal_id=str(uuid.uuid4()))
         entry = record(event, command, principal, Outcome.EXECUTED, applied=applied,
@@ -572,6 +576,8 @@ class Governor:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         # Checked again after the write, with no await between this check and the publish.
         halted = self.streams.halted_since(stops) if motion else None
+        if halted is None and self._names_others_arm(command, owner):  # came meanwhile
+            halted = outcomes.ID_OF_ANOTHER_S_ARM
         if halted is not None:
             return await self._steps.failed(command, principal, halted)
         if motion:
@@ -591,12 +597,27 @@ class Governor:
             self._ran_on(result.ros2_topic, owner.name, command.message_id)
         return executed(command, applied, receipt, result)
 
+    def _names_others_arm(self, command: NormalizedCommand, owner: Principal) -> bool:
+        """Whether `command` would send an arm's trajectory under the message id of another
+        principal's trajectory still running. An arm is held by that id (a stop of one
+        principal's motion, an INVOKE's cancel or its client gone), and clients choose ids,
+        unique per principal only: the other's arm would be held with this one's."""
+        ros = command.spec.ros
+        return (isinstance(ros, Publish) and ros.hold is not None
+                and command.message_id in self._trajectories(owner.name, others=True))
+
     def _ran_on(self, topic: str, owner: str, message_id: str) -> None:
         running = self._steps.running_trajectories()
         sent = {m: who for m, who in self._runs_on.get(topic, {}).items()
                 if running is None or m in running}
         sent[message_id] = owner
         self._runs_on[topic] = dict(list(sent.items())[-RUNS_ON_KEPT:])
+        # Another principal's trajectory of this id (ids are unique per principal only) has
+        # ended, or this one would have been refused (`_names_others_arm`): forgotten, so
+        # that a stop of that principal's motion does not hold this one by its id.
+        for elsewhere in self._runs_on.values():
+            if elsewhere.get(message_id, owner) != owner:
+                del elsewhere[message_id]
 
     def _trajectories(self, owner: str, *, others: bool = False) -> list[str]:
         """The message ids of `owner`'s (or, `others`, everyone else's) commands whose motion
@@ -725,7 +746,11 @@ class Governor:
         Held first, as any stop (it never waits for the disk), then audited: a
         COMMAND_DISPATCHED `hold_trajectory` entry, or COMMAND_FAILED naming why the arm could
         not be held. The caller has checked the command is `principal`'s."""
-        arms = self._steps.hold_trajectories([sent_by])
+        # Arms are held by id, unique per principal only: another's trajectory of this id
+        # running means this one's ended (else the other's was refused: `_names_others_arm`),
+        # and that one is not this principal's to hold.
+        theirs = sent_by in self._trajectories(principal.name, others=True)
+        arms = self._steps.hold_trajectories([] if theirs else [sent_by])
         facts = {"sent_by": sent_by, "why": why, **_arms_applied(arms)}
         failed = outcomes.robot_unavailable("; ".join(arms.not_held)) if arms.not_held else None
         entry = AuditRecord(

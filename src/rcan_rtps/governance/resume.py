@@ -17,8 +17,12 @@ shows ended (`LeftRunning`): arm trajectories still due by the wall clock (sent 
 `timestamp_ms`, running `Hold.runs_for_s` of the `applied` parameters, as the dispatcher
 counted them), goals (their `goal_id`, written ahead since goals were sent with an id chosen
 before their entry; older entries have none) and velocity streams. A start halts them
-(`Governor.start`). Ended: GOAL_FINISHED, STREAM_ENDED, a COMMAND_FAILED of the command, a
-later trajectory of the same joints on the same topic (it replaced it), a stop of everyone's
+(`Governor.start`). Ended: GOAL_FINISHED, STREAM_ENDED, a COMMAND_FAILED of the command
+(its principal's and action's: a failed hold or cancel under its id ended nothing), a
+later trajectory of the same joints on the same topic (it replaced it, unless its own
+COMMAND_FAILED follows: refused once written ahead, it was never sent; the newest such
+replacement may not have been sent either — the crash came between its entry and its
+publish — so what it replaced stays listed while due), a stop of everyone's
 motion (a `stop`, an e-stop, a safe stop of the whole robot) unless that stop's own
 COMMAND_FAILED follows, and a stop of one principal's motion for what it says it stopped.
 """
@@ -114,45 +118,68 @@ class Resumed(msgspec.Struct):
 
 
 def resume(path: Path | str, *, now_ms: int | None = None) -> Resumed:
-    """Read the log's tail backwards to its last start or stop; a missing log is a first start.
+    """Replay the log from its last start or stop on; a missing log is a first start.
 
     Entries are trusted as they stand: the log was verified when it was opened. `now_ms`:
-    the wall time arm trajectories are due against (default: now).
+    the wall time arm trajectories are due against (default: now). The run since the
+    boundary may be long (weeks up): its entries are replayed one at a time, never held.
     """
-    seen: list[dict[str, Any]] = []  # newest first, down to the boundary
-    try:
-        for entry in _backwards(Path(path)):
-            seen.append(entry)
-            if entry.get("event") in _BOUNDARIES:
-                break
-    except (OSError, ValueError) as exc:  # it verified at open: this is no time to trust it
-        return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc})")
     found = Resumed()
     motion = _Motion()
-    for entry in reversed(seen):  # replayed oldest first, from the boundary on
-        _apply(found, entry)
-        motion.apply(entry)
+    last: dict[str, Any] | None = None
+    try:
+        for entry in _since_boundary(Path(path)):  # oldest first
+            last = entry
+            _apply(found, entry)
+            motion.apply(entry)
+    # It verified at open: this is no time to trust it. An entry of a shape this version
+    # does not expect (another version's) fails closed as well, never a traceback.
+    except (OSError, ValueError, TypeError, AttributeError) as exc:
+        return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc!r})")
     # No boundary at all in a log with entries is no clean stop either: fail closed.
-    found.crashed = bool(seen) and seen[0].get("event") != "BRIDGE_STOPPED"
+    found.crashed = last is not None and last.get("event") != "BRIDGE_STOPPED"
     if found.crashed:
         found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
     return found
+
+
+# A command, as its entries name it: message ids are unique per principal only, and a
+# hold or cancel of a command's motion (an INVOKE's timeout, its client gone) bears the
+# command's id under an action of its own (`hold_trajectory`, `cancel_goal`): its
+# COMMAND_FAILED says that motion runs on, not that the command failed.
+_Key = tuple[Any, str, Any]  # (principal, message id, action)
+
+
+def _key(entry: dict[str, Any]) -> _Key:
+    return entry.get("principal"), str(entry.get("message_id")), entry.get("action_type")
+
+
+def _key_of(left: LeftArm | LeftGoal | LeftStream) -> _Key:
+    return left.principal, left.message_id, left.action
 
 
 class _Motion:
     """The motion sent since the boundary, less what ended, replayed oldest first."""
 
     def __init__(self) -> None:
-        self.arms: dict[str, LeftArm] = {}  # message id → (insertion order: oldest first)
-        self.goals: dict[str, LeftGoal] = {}
-        self.streams: dict[str, LeftStream] = {}
-        # A stop's message id → what it ended, given back if its own COMMAND_FAILED follows.
-        self._halted: dict[str, tuple[dict[str, LeftArm], dict[str, LeftGoal],
-                                      dict[str, LeftStream]]] = {}
+        self.arms: dict[_Key, LeftArm] = {}  # (insertion order: oldest first)
+        self.goals: dict[_Key, LeftGoal] = {}
+        self.streams: dict[_Key, LeftStream] = {}
+        # A trajectory → the arms it replaced, given back if its own COMMAND_FAILED follows
+        # (written ahead, then refused: it was never sent).
+        self._replaced: dict[_Key, list[LeftArm]] = {}
+        # A stop → what it ended, given back if its own COMMAND_FAILED follows.
+        self._halted: dict[_Key, tuple[dict[_Key, LeftArm], dict[_Key, LeftGoal],
+                                       dict[_Key, LeftStream], dict[_Key, list[LeftArm]]]] = {}
 
     def left(self, now_ms: int) -> LeftRunning:
+        # Fail closed: the bridge may have died between a trajectory's write-ahead entry and
+        # its publish (nothing in the log tells), and then the one it replaced runs on. Both
+        # are listed while due; a hold of an arm the later one did stop holds it at rest.
+        replaced = [run for by, runs in self._replaced.items() if by in self.arms
+                    for run in runs]
         return LeftRunning(
-            arms=[a for a in self.arms.values() if a.due_ms > now_ms][-MAX_LEFT:],
+            arms=[a for a in (*replaced, *self.arms.values()) if a.due_ms > now_ms][-MAX_LEFT:],
             goals=list(self.goals.values())[-MAX_LEFT:],
             streams=list(self.streams.values())[-MAX_LEFT:])
 
@@ -166,11 +193,12 @@ class _Motion:
         elif event in _HALTS:
             self._halt(entry)
         elif event == "COMMAND_FAILED" and isinstance(message_id, str):
-            self._failed(message_id)
+            self._failed(_key(entry))
         elif event == "GOAL_FINISHED":
             self._goal_finished(entry)
         elif event == "STREAM_ENDED" and isinstance(message_id, str):
-            self.streams.pop(message_id, None)
+            # Its owner's, where the command's entry may name its approver: by id alone.
+            self.streams = {k: s for k, s in self.streams.items() if k[1] != message_id}
 
     def _executed(self, entry: dict[str, Any]) -> None:
         try:
@@ -180,14 +208,14 @@ class _Motion:
         message_id, topic = str(entry.get("message_id")), entry.get("ros2_topic")
         principal = entry.get("principal")
         if spec.effect is Effect.HALT:
-            self._halted_all(message_id)
+            self._halted_all(_key(entry))
         elif spec.starts_goal:
             goal_id = entry.get("goal_id")
-            self.goals[message_id] = LeftGoal(
+            self.goals[_key(entry)] = LeftGoal(
                 message_id=message_id, action=spec.name, principal=principal, server=topic,
                 goal_id=goal_id if isinstance(goal_id, str) else None)
         elif spec.streamed:
-            self.streams[message_id] = LeftStream(message_id=message_id, action=spec.name,
+            self.streams[_key(entry)] = LeftStream(message_id=message_id, action=spec.name,
                                                   principal=principal, topic=topic)
         elif isinstance(spec.ros, Publish) and spec.ros.hold is not None:
             self._trajectory(entry, spec.name, spec.ros, message_id)
@@ -206,10 +234,14 @@ class _Motion:
                       topic=entry.get("ros2_topic"), params=dict(applied or {}),
                       joints=joints, sent_at_ms=int(entry.get("timestamp_ms") or 0),
                       runs_for_s=runs_for_s)
-        for earlier, run in list(self.arms.items()):  # the controller replaced it
-            if run.topic == arm.topic and set(run.joints) == set(arm.joints):
-                del self.arms[earlier]
-        self.arms[message_id] = arm
+        replaced = {k: run for k, run in self.arms.items()  # the controller replaced them
+                    if run.topic == arm.topic and set(run.joints) == set(arm.joints)}
+        for k in replaced:
+            del self.arms[k]
+        if replaced:
+            self._replaced[_key(entry)] = list(replaced.values())
+            _keep_newest(self._replaced)
+        self.arms[_key(entry)] = arm
 
     def _halt(self, entry: dict[str, Any]) -> None:
         applied = entry.get("applied")
@@ -218,7 +250,7 @@ class _Motion:
             self._own_stop(str(entry.get("principal")), facts)
             return
         # An e-stop, a safe stop of the whole robot, a start's halt of a crash.
-        self._halted_all(str(entry.get("message_id")))
+        self._halted_all(_key(entry))
         if facts.get("scope") == "crash":
             self._still_left(facts)
 
@@ -235,15 +267,14 @@ class _Motion:
             left = msgspec.convert(facts or {}, LeftRunning)
         except msgspec.ValidationError:
             return
-        self.arms.update((a.message_id, a) for a in left.arms if chosen(a.message_id))
-        self.goals.update((g.message_id, g) for g in left.goals if chosen(g.message_id))
-        self.streams.update((s.message_id, s) for s in left.streams if chosen(s.message_id))
+        self.arms.update((_key_of(a), a) for a in left.arms if chosen(a.message_id))
+        self.goals.update((_key_of(g), g) for g in left.goals if chosen(g.message_id))
+        self.streams.update((_key_of(s), s) for s in left.streams if chosen(s.message_id))
 
-    def _halted_all(self, message_id: str) -> None:
-        self._halted[message_id] = (self.arms, self.goals, self.streams)
-        self.arms, self.goals, self.streams = {}, {}, {}
-        if len(self._halted) > MAX_LEFT:  # a stop's COMMAND_FAILED follows it closely
-            del self._halted[next(iter(self._halted))]
+    def _halted_all(self, stop: _Key) -> None:
+        self._halted[stop] = (self.arms, self.goals, self.streams, self._replaced)
+        self.arms, self.goals, self.streams, self._replaced = {}, {}, {}, {}
+        _keep_newest(self._halted)
 
     def _own_stop(self, principal: str, facts: dict[str, Any]) -> None:
         """A stop of `principal`'s motion alone: its goals it cancelled and its arms on the
@@ -254,18 +285,24 @@ class _Motion:
                       if not (g.principal == principal and g.goal_id in cancelled)}
         self.arms = {m: a for m, a in self.arms.items()
                      if not (a.principal == principal and a.topic in held)}
+        self._replaced = {m: kept for m, arms in self._replaced.items()
+                          if (kept := [a for a in arms
+                                       if not (a.principal == principal and a.topic in held)])}
         self.streams = {m: s for m, s in self.streams.items() if s.principal != principal}
 
-    def _failed(self, message_id: str) -> None:
-        """The send of `message_id` failed: it started nothing — or, a stop's, ended nothing."""
+    def _failed(self, command: _Key) -> None:
+        """The send of `command` failed: it started nothing — or, a stop's, ended nothing."""
         for running in (self.arms, self.goals, self.streams):
-            running.pop(message_id, None)
-        given_back = self._halted.pop(message_id, None)
+            running.pop(command, None)
+        # A trajectory refused after its entry replaced nothing: what it replaced runs on.
+        self.arms = {**{_key_of(a): a for a in self._replaced.pop(command, ())}, **self.arms}
+        given_back = self._halted.pop(command, None)
         if given_back is not None:
-            arms, goals, streams = given_back
+            arms, goals, streams, replaced = given_back
             self.arms = {**arms, **self.arms}
             self.goals = {**goals, **self.goals}
             self.streams = {**streams, **self.streams}
+            self._replaced = {**replaced, **self._replaced}
 
     def _goal_finished(self, entry: dict[str, Any]) -> None:
         given = entry.get("params")
@@ -273,7 +310,14 @@ class _Motion:
         message_id = entry.get("message_id")
         self.goals = {m: g for m, g in self.goals.items()
                       if not (g.goal_id is not None and g.goal_id == goal_id)
-                      and not (g.goal_id is None and m == message_id)}
+                      and not (g.goal_id is None and m[1] == message_id)}
+
+
+def _keep_newest(given_back: dict[_Key, Any]) -> None:
+    """What a command's COMMAND_FAILED may give back, for the newest MAX_LEFT commands: it
+    follows its command closely (a run's log may hold any number)."""
+    while len(given_back) > MAX_LEFT:
+        del given_back[next(iter(given_back))]
 
 
 def _apply(state: Resumed, entry: dict[str, Any]) -> None:
@@ -309,29 +353,64 @@ def _lock_entry(state: Resumed, entry: dict[str, Any], action: Any) -> None:
         state.locks.pop(name, None)
 
 
-def _backwards(path: Path) -> Iterator[dict[str, Any]]:
-    """Parsed entries from the last line to the first, read in chunks from the end."""
+def _since_boundary(path: Path) -> Iterator[dict[str, Any]]:
+    """Parsed entries from the last start or stop (the log's start when it has none) to the
+    end, oldest first."""
     try:
         fd = os.open(path, os.O_RDONLY)
     except FileNotFoundError:
         return
     try:
-        end, tail = os.fstat(fd).st_size, b""
-        first = not _ends_line(fd, end)  # an unterminated last line: a crash mid-append
-        while end > 0:
-            start = max(0, end - _CHUNK)
-            block = os.pread(fd, end - start, start) + tail
-            end = start
-            lines = block.split(b"\n")
-            tail = lines.pop(0) if end > 0 else b""  # maybe cut: completed by the next read
-            for line in reversed(lines):
-                if line.strip():
-                    parsed = _parsed(line, last=first)
-                    first = False
-                    if parsed is not None:
-                        yield parsed
+        size = os.fstat(fd).st_size
+        torn_at = None if _ends_line(fd, size) else size  # a crash mid-append
+        yield from _forwards(fd, _boundary_at(fd, size, torn_at), size, torn_at)
     finally:
         os.close(fd)
+
+
+def _boundary_at(fd: int, size: int, torn_at: int | None) -> int:
+    """The offset of the last BRIDGE_STARTED or BRIDGE_STOPPED line, read back from the end
+    in chunks; 0 if there is none. Only a line naming one is parsed here."""
+    for offset, line in _lines_backwards(fd, size):
+        if b"BRIDGE_ST" not in line:  # the event's name, in whatever field: checked below
+            continue
+        entry = _parsed(line, last=offset + len(line) == torn_at)
+        if entry is not None and entry.get("event") in _BOUNDARIES:
+            return offset
+    return 0
+
+
+def _lines_backwards(fd: int, size: int) -> Iterator[tuple[int, bytes]]:
+    """(offset, line) from the last line to the first."""
+    end, tail = size, b""
+    while end > 0:
+        start = max(0, end - _CHUNK)
+        block = os.pread(fd, end - start, start) + tail
+        lines = block.split(b"\n")
+        tail = lines.pop(0) if start > 0 else b""  # maybe cut: completed by the next read
+        offset = start + len(block)
+        for line in reversed(lines):
+            offset -= len(line) + 1
+            if line.strip():
+                yield offset + 1, line
+        end = start
+
+
+def _forwards(fd: int, offset: int, size: int, torn_at: int | None
+              ) -> Iterator[dict[str, Any]]:
+    """Parsed entries from `offset` to the end, a chunk at a time."""
+    rest = b""
+    while offset < size:
+        block = rest + os.pread(fd, min(_CHUNK, size - offset), offset)
+        offset += len(block) - len(rest)
+        lines = block.split(b"\n")
+        rest = lines.pop() if offset < size else b""
+        for n, line in enumerate(lines):
+            if line.strip():
+                entry = _parsed(line, last=torn_at is not None and offset >= size
+                                and n == len(lines) - 1)
+                if entry is not None:
+                    yield entry
 
 
 def _ends_line(fd: int, size: int) -> bool:

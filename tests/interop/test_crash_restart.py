@@ -192,7 +192,10 @@ async def test_a_restart_after_a_kill_with_the_arm_unheard_says_so(
     await robot.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
                       value={"name": ["l_shoulder", "l_elbow"], "position": AT,
                              "velocity": [0.0, 0.0]})
-    stopped = await bridge.command({"action": "stop"})
+    # Until the bridge has heard them, a stop answers 503 naming the arm (and the next
+    # retries): a stop is sent again until one is answered 200.
+    stopped = await eventually(lambda: bridge.command({"action": "stop"}),
+                               what="a stop answered 200 once joint_states are heard")
     assert stopped["outcome"] == "executed", stopped
     (hold,) = await take(robot, LEFT)
     assert hold["points"][0]["positions"] == AT, hold

@@ -5,7 +5,8 @@ cancel, not in the bridge's goals, ended by its COMMAND_FAILED in a restart's re
 
 The robot side is a NavigateToPose server of our own (Cyclone mapping) whose accept waits
 until the test lets it go: the goal is accepted only after the bridge gave up on it. Its
-goals run until cancelled; it records the goal id of every cancel request."""
+goals run until cancelled; it records the goal id of every cancel request. And an rclpy Jazzy
+Fibonacci server (both RMWs) that answers each goal request only after the timeout."""
 
 from __future__ import annotations
 
@@ -17,9 +18,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
 from waiting import eventually
 
+from rcan_rtps.bridge.navigation import GoalTracker
+from rcan_rtps.bridge.sent_goals import GoalFinished
 from rcan_rtps.ros.action_server import ActionServer, ServerGoal
+from rcan_rtps.ros.errors import WireError
 from rcan_rtps.ros.participant import RosNode
 
 from .bridge_rig import AGENT, NAV, Rig, bridge_config, close_rig, make_rig, nav_tracker
@@ -134,3 +139,31 @@ async def test_a_goal_whose_send_was_cancelled_is_cancelled_once_accepted(
     await eventually(lambda: server.ended.get(sent) == "canceled", timeout=20,
                      what=lambda: f"the late goal cancelled (now {server.ended.get(sent)})")
     assert sent in server.cancels
+
+
+FIB = "test_msgs/action/Fibonacci"
+
+
+@both_rmws
+async def test_a_goal_an_rclpy_server_accepts_after_the_send_timed_out_is_cancelled(
+        jazzy_oracle: OracleEnv, domain_id: int, jazzy_share: Path) -> None:
+    with RclpyOracle(jazzy_oracle, "fib_server", "/", domain_id=domain_id) as oracle, \
+            RosNode("rcan_late", "/", domain_id=domain_id, distro="jazzy",
+                    idl_paths=[jazzy_share]) as node:
+        # answers each goal request 4 s late; its goals run 80 s unless cancelled
+        await oracle.acall("action_server", name="/fib", mode="slow", accept_after=4.0)
+        tracker = GoalTracker(node, "/fib", FIB)
+        ended: list[GoalFinished] = []
+        tracker.events.goal_finished.subscribe(ended.append)
+        try:
+            await tracker.client.wait_for_server(20.0)
+            goal_id = str(uuid.uuid4())
+            with pytest.raises(WireError, match="no reply within the timeout"):
+                await tracker.send({"order": 400}, timeout=1.0, message_id="m-late",
+                                   goal_id=goal_id)
+            [end] = await eventually(lambda: ended, timeout=30, what="the late goal's end")
+            assert (end.view.goal_id, end.view.state, end.message_id) == (
+                goal_id, "canceled", "m-late"), end
+            assert end.view.detail is not None and "cancelled by the bridge" in end.view.detail
+        finally:
+            await tracker.close()

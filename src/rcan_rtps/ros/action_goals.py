@@ -18,6 +18,9 @@ otherwise the client cross-checks against the status topic, which names goals by
   end (`_tied_result`);
 - a cancel reply is ours only if it lists our goal id (or refuses, naming no goal).
 A server that leaves the graph ends its open goals with `GoalState.SERVER_LOST`.
+A goal whose send gave up after its request went out is cancelled should the server accept
+it late: at once, and whenever the status topic lists it running within a bounded watch
+(`GoalSender._give_up`, LATE_WATCH_S); `ActionClient.on_late_goal` is told of it.
 """
 
 from __future__ import annotations

@@ -215,7 +215,9 @@ class ActionClient:
     async def send_goal(self, goal: IdlStruct | Mapping[str, Any] | None = None,
                         timeout: float = 10.0, *, goal_id: bytes | None = None) -> ClientGoal:
         """Sends a goal; the returned goal says `accepted` (or its state is REJECTED).
-        `goal_id`: its id, when the caller chose it (a new random one by default)."""
+        `goal_id`: its id, when the caller chose it (a new random one by default). Should the
+        send give up (no reply in time, cancelled), a server that accepts the goal late has
+        it cancelled (`on_late_goal` is told: `action_goals.GoalSender._give_up`)."""
         return await self._goal_side().send_goal(goal, timeout, goal_id=goal_id)
 
     async def cancel_all(self, timeout: float = 10.0, *, server_wide: bool = False) -> int:

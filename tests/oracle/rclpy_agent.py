@@ -426,11 +426,14 @@ class Agent:
         """Destroys our server of `name` (a clean leave: its writer and reader go)."""
         return bool(self.node.destroy_service(self.services.pop(name)))
 
-    def op_action_server(self, name: str, mode: str = "succeed", period: float = 0.05) -> bool:
-        """test_msgs/action/Fibonacci; mode: succeed | abort | reject | slow (cancelable)."""
+    def op_action_server(self, name: str, mode: str = "succeed", period: float = 0.05,
+                         accept_after: float = 0.0) -> bool:
+        """test_msgs/action/Fibonacci; mode: succeed | abort | reject | slow (cancelable).
+        `accept_after`: s each goal request is held before it is answered (a busy server)."""
         from test_msgs.action import Fibonacci
 
         def on_goal(goal: Any) -> Any:
+            time.sleep(accept_after)
             return GoalResponse.REJECT if mode == "reject" else GoalResponse.ACCEPT
 
         def execute(handle: Any) -> Any:

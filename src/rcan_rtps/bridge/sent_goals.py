@@ -7,6 +7,11 @@ goal's watcher records its feedback (as plain values) and its result, so the API
 progress without touching DDS; the bridge's `Events` hear of every change (`goal`), of the
 active goals changing (`robot`, STATUS) and of each goal's end, once (`goal_finished`, the
 audit log).
+
+A goal whose send gave up (no answer in time, the send cancelled: its command failed) is
+cancelled by the action client should its server accept it after all (`ros.action_goals`,
+`GoalSender._give_up`); such a late goal is shown and audited here like any goal's end, with
+the command that sent it, and logged as a warning.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ import msgspec
 from ..api.ports import GoalState, GoalView
 from ..events import Events
 from ..rcan import Navigation
-from ..ros.action_goals import ClientGoal
+from ..ros.action_goals import ClientGoal, LateGoal
 from ..ros.actions import ActionClient
 from ..ros.actions import GoalState as RosGoalState
 from ..ros.errors import ActionError, WireError
@@ -36,6 +41,9 @@ _STATES: dict[RosGoalState, GoalState] = {
     RosGoalState.SERVER_LOST: "lost",
 }
 RESULT_TIMEOUT_S = 3600.0
+# Sends given up on whose command is remembered, should their goal be accepted late (the
+# action client watches as many: `ros.action_goals.MAX_GIVEN_UP`); the oldest go first.
+KEEP_GIVEN_UP = 64
 
 
 class GoalFinished(msgspec.Struct, frozen=True):
@@ -78,6 +86,9 @@ class SentGoals:
         self._watchers: set[asyncio.Task[None]] = set()
         self._message_ids: dict[str, str | None] = {}  # goal → the command that sent it
         self._handles: dict[str, ClientGoal] = {}  # goals not yet finished
+        # goal → (the command that sent it, its action) for sends that gave up
+        self._given_up: dict[str, tuple[str | None, str | None]] = {}
+        client.on_late_goal = self._late_goal
 
     async def send(self, goal: dict[str, Any], timeout: float, *,
                    message_id: str | None = None, command: str | None = None,
@@ -85,8 +96,12 @@ class SentGoals:
         """Sends a goal (for the command `message_id` of action `command`, with the id
         `goal_id` if given); its id once accepted. Raises on rejection, or when no server
         answers within `timeout`."""
-        chosen = uuid.UUID(goal_id).bytes if goal_id is not None else None
-        handle = await self.client.send_goal(goal, timeout=timeout, goal_id=chosen)
+        chosen = uuid.UUID(goal_id).bytes if goal_id is not None else uuid.uuid4().bytes
+        try:
+            handle = await self.client.send_goal(goal, timeout=timeout, goal_id=chosen)
+        except BaseException:  # (cancelled too: its caller went away) it may come late
+            self._remember_given_up(str(uuid.UUID(bytes=chosen)), message_id, command)
+            raise
         if not handle.accepted:
             raise ActionError(f"{self.client.name} rejected the goal")
         goal_id = str(uuid.UUID(bytes=handle.goal_id))
@@ -101,6 +116,38 @@ class SentGoals:
         self._tell()
         self._tell_event(self._views[goal_id])
         return goal_id
+
+    def _remember_given_up(self, goal_id: str, message_id: str | None,
+                           command: str | None) -> None:
+        self._given_up[goal_id] = (message_id, command)
+        while len(self._given_up) > KEEP_GIVEN_UP:
+            del self._given_up[next(iter(self._given_up))]
+
+    def _late_goal(self, late: LateGoal) -> None:
+        """The server accepted a goal after its send had given up (its command was answered
+        failed), and the client cancelled it: shown among the goals and audited
+        (GOAL_FINISHED, with the command that sent it), so that no goal ran unrecorded."""
+        goal_id = str(uuid.UUID(bytes=late.goal_id))
+        message_id, command = self._given_up.pop(goal_id, (None, None))
+        state = _STATES[late.state]
+        ended = state if state in TERMINAL else "unknown"
+        by = "cancelled by the bridge" if late.canceled else "not cancelled by the bridge"
+        now_in = f"ended {state}" if state in TERMINAL else \
+            f"{late.state.name.lower()}, not seen ended"
+        detail = (f"accepted by {self.client.name} after its send had given up (the command "
+                  f"failed); {by}; {now_in}")
+        log.warning("goal %s (command %s): %s", goal_id, message_id, detail)
+        now = now_ms()
+        view = GoalView(goal_id=goal_id, action=self.client.name,
+                        action_type=self.client.type_name, command=command, state=ended,
+                        detail=detail, created_ms=now, updated_ms=now)
+        if state in TERMINAL:  # (an end not seen is not listed as a goal still running)
+            self._views[goal_id] = view
+            self._message_ids[goal_id] = message_id
+            self._forget_old()
+        self._tell_event(view)
+        self.events.goal_finished.emit(GoalFinished(view=msgspec.structs.replace(view),
+                                                    message_id=message_id))
 
     async def _watch(self, goal_id: str, handle: ClientGoal) -> None:
         """Follows a goal: its feedback (on a task of its own, as feedback sent before the end

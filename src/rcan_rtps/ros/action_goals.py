@@ -18,6 +18,9 @@ otherwise the client cross-checks against the status topic, which names goals by
   end (`_tied_result`);
 - a cancel reply is ours only if it lists our goal id (or refuses, naming no goal).
 A server that leaves the graph ends its open goals with `GoalState.SERVER_LOST`.
+A goal whose send gave up after its request went out is cancelled should the server accept
+it late: at once, and whenever the status topic lists it running within a bounded watch
+(`GoalSender._give_up`, LATE_WATCH_S); `ActionClient.on_late_goal` is told of it.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from cyclonedds.core import DDSException
 from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
-from .actions import UUID_TYPE, GoalState, _stamp
+from .actions import CANCEL_TYPE, UUID_TYPE, GoalState, _stamp
 from .captured_replies import CapturedSample
 from .errors import (
     ActionError,
@@ -100,6 +103,18 @@ RESULT_ASK_S = 5.0  # s: a get_result request unanswered this long is sent again
 # samples and their HEARTBEATs were seen dropped at our socket for over 10 s.
 UNLISTED_S = 1.0
 LAST_ASK_S = 5.0
+# A goal whose send gave up after its request went out (no reply in time, the send cancelled)
+# may still be accepted by a server that was only slow (`GoalSender._give_up`): its status is
+# watched for max(LATE_WATCH_S, the send's timeout) and it is cancelled as soon as it shows.
+# A server that answered later than the send's timeout was busy about that long: it is given
+# as long again. And no less than 10 s: the status sample listing it may have been dropped at
+# our socket, and a Fast DDS writer sends it again only with a HEARTBEAT (REPAIR_S, up to 7 s
+# with one dropped); a running goal's status may not be written again. A goal accepted later
+# than that is not seen here: a stop (a server-wide cancel) still cancels it.
+LATE_WATCH_S = 10.0
+MAX_GIVEN_UP = 64  # goals whose send gave up, watched at once (the oldest is let go of first)
+TAKE_BACK_CANCEL_S = 2.0  # s a cancel of such a goal waits for its reply (as a stop's does)
+TAKE_BACK_RETRY_S = 1.0  # s between cancels of one listed running whose cancel went unanswered
 
 
 def forget_after() -> float:
@@ -118,6 +133,52 @@ class GoalResult:
     state: GoalState
     result: IdlStruct | None
     detail: str = ""
+
+
+@dataclass(frozen=True)
+class LateGoal:
+    """A goal whose send gave up that the server accepted after all (`GoalSender._give_up`).
+    `state`: the last state the status topic listed (CANCELING: the server said it was
+    canceling it, and no end was listed within the watch); `canceled`: the server took our
+    cancel of it."""
+
+    goal_id: bytes
+    state: GoalState
+    canceled: bool
+
+
+class _GivenUp:
+    """A goal whose send gave up, watched for on the status topic until `deadline` (loop
+    time); `span`: how long its watch is (also how long its end is waited for)."""
+
+    def __init__(self, goal_id: bytes, span: float) -> None:
+        self.goal_id = goal_id
+        self.span = span
+        self.deadline = asyncio.get_running_loop().time() + span
+        self.state: GoalState | None = None  # as the status topic last listed it
+        self._changed = asyncio.Event()
+        self.task: asyncio.Task[None] | None = None
+
+    def listed(self, state: GoalState) -> None:
+        self.state = state
+        self._changed.set()
+
+    @property
+    def settled(self) -> bool:
+        """Listed ended, or being canceled: nothing more to cancel."""
+        return self.state is not None and (self.state.terminal or
+                                           self.state is GoalState.CANCELING)
+
+    @property
+    def ended(self) -> bool:
+        return self.state is not None and self.state.terminal
+
+    async def change(self, until: float) -> None:
+        """Until the status topic lists it again, or `until` (loop time)."""
+        self._changed.clear()
+        left = until - asyncio.get_running_loop().time()
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(self._changed.wait(), max(0.0, left))
 
 
 # -- client -------------------------------------------------------------------------
@@ -429,6 +490,10 @@ class GoalSender:
         # of once nothing more can come for them (`ClientGoal.forgettable`), so a client
         # that lives for weeks keeps only the goals of the last moments.
         self._goals: dict[bytes, ClientGoal] = {}
+        # Goals whose send gave up, watched for on the status topic (`_give_up`), oldest first;
+        # cancelled on a cancel client of their own, made by the first (`_take_back_client`).
+        self._given_up: dict[bytes, _GivenUp] = {}
+        self._take_back_srv: ServiceClient | None = None
         self.goals_sent = 0
         self._unknown_status_logged = False
         self._server_seen = False
@@ -683,7 +748,8 @@ class GoalSender:
         deadline = loop.time() + timeout
         await self._wait_for_server(timeout)
         self._forget_ended()
-        if goal_id in self._goals:  # a server would take it for the one it has
+        # A server would take it for the one it has; one given up on is cancelled if seen.
+        if goal_id in self._goals or goal_id in self._given_up:
             raise ActionError(f"{self.name}: goal {uuid.UUID(bytes=goal_id)} was sent already")
         handle = ClientGoal(self, goal_id)
         self._goals[handle.goal_id] = handle  # before sending: feedback may come quickly
@@ -696,12 +762,116 @@ class GoalSender:
             return await self._sent(handle, request, deadline)
         except BaseException:
             # Nobody has it: the caller is told it failed. (A stop cancels every goal of the
-            # server, whoever sent it: GoalTracker.cancel_all.)
+            # server, whoever sent it: GoalTracker.cancel_all.) A slow server may still
+            # accept it: it is cancelled should it show up (no await before the watch starts:
+            # the status topic's news of it is not missed).
             self._goals.pop(handle.goal_id, None)
             handle._release_capture()
+            self._give_up(handle.goal_id, timeout)
             raise
         finally:
             handle._sending = False
+
+    def _give_up(self, goal_id: bytes, timeout: float) -> None:
+        """The send of `goal_id` gave up after its request went out (no reply within
+        `timeout`, the send cancelled, an answer the status topic never confirmed): a server
+        that was only slow may accept it yet, and it would run with nobody following it.
+        Cancelled at once, and again should the status topic list it running within
+        max(LATE_WATCH_S, `timeout`); whoever listens (`ActionClient.on_late_goal`) is told
+        of one that showed up. At most MAX_GIVEN_UP are watched: the oldest is let go of."""
+        if self.client._gone():
+            return  # closed: its endpoints are gone (a bridge halts the robot as it stops)
+        while len(self._given_up) >= MAX_GIVEN_UP:
+            oldest = self._given_up.pop(next(iter(self._given_up)))
+            log.warning("action %s: goal %s, whose send gave up, is no longer watched for "
+                        "(over %d such at once); should its server accept it late, only a "
+                        "stop cancels it", self.name, uuid.UUID(bytes=oldest.goal_id),
+                        MAX_GIVEN_UP)
+            if oldest.task is not None:
+                oldest.task.cancel()
+        watch = self._given_up[goal_id] = _GivenUp(goal_id, max(LATE_WATCH_S, timeout))
+        watch.task = asyncio.get_running_loop().create_task(self._take_back(watch))
+
+    async def _take_back(self, watch: _GivenUp) -> None:
+        """Cancels a goal whose send gave up: at once (the server may have it already), and
+        whenever the status topic lists it running until its watch ends; then waits (as
+        long again) for its end and tells `on_late_goal` of it, if the server had it."""
+        loop = asyncio.get_running_loop()
+        try:
+            canceled = await self._cancel_given_up(watch)
+            while not canceled and not watch.settled and loop.time() < watch.deadline:
+                if self.client._gone():
+                    return
+                # Listed running and the cancel unanswered: asked again, every RETRY_S.
+                until = watch.deadline if watch.state is None else \
+                    min(watch.deadline, loop.time() + TAKE_BACK_RETRY_S)
+                await watch.change(until)
+                if watch.state is not None and not watch.settled:
+                    canceled = await self._cancel_given_up(watch)
+            if watch.state is None and not canceled:
+                log.debug("action %s: goal %s, whose send gave up, was not accepted within "
+                          "%s", self.name, uuid.UUID(bytes=watch.goal_id), seconds(watch.span))
+                return
+            ends_by = loop.time() + watch.span
+            while not watch.ended and loop.time() < ends_by:
+                await watch.change(ends_by)
+            state = watch.state if watch.ended or not canceled else GoalState.CANCELING
+            assert state is not None
+            self._tell_late(LateGoal(watch.goal_id, state, canceled))
+        finally:
+            if self._given_up.get(watch.goal_id) is watch:
+                del self._given_up[watch.goal_id]
+
+    def _tell_late(self, late: LateGoal) -> None:
+        """Tells the client's listener of a late goal; with none, the log (a warning)."""
+        listener = self.client.on_late_goal
+        if listener is None:
+            log.warning("action %s: goal %s, whose send had given up, was accepted by the "
+                        "server after all; %s, now %s", self.name,
+                        uuid.UUID(bytes=late.goal_id),
+                        "cancelled" if late.canceled else "not cancelled", late.state.name)
+            return
+        try:
+            listener(late)
+        except Exception:  # a listener's bug: the late goal is still said
+            log.exception("action %s: telling of late goal %s (%s) failed", self.name,
+                          uuid.UUID(bytes=late.goal_id), late.state.name)
+
+    async def _cancel_given_up(self, watch: _GivenUp) -> bool:
+        """Asks the server to cancel a goal whose send gave up; True if it is canceling it.
+        On a cancel client of its own: with a Fast DDS server a client has one request out
+        at a time (services.py), and a stop's server-wide cancel must not queue behind this
+        one, which a busy server may leave unanswered."""
+        loop = asyncio.get_running_loop()
+        request = {"goal_info": {"goal_id": {"uuid": watch.goal_id}}}
+
+        def ours(reply: Any) -> bool:  # Fast DDS: names our goal, or refuses naming none
+            return _names_goal(reply, watch.goal_id) or (
+                int(reply.return_code) != 0 and not reply.goals_canceling)
+
+        try:
+            with self.client._closed_said():
+                client = self._take_back_client()
+                # (its first use matches it with the server: up to the watch's end)
+                await client.wait_for_service(max(TAKE_BACK_CANCEL_S,
+                                                  watch.deadline - loop.time()))
+                reply: Any = await client.call(request, TAKE_BACK_CANCEL_S, accept=ours,
+                                               unidentified_ok=True)
+        except (WireError, DDSException) as exc:
+            if self.client._gone():
+                return False  # closed: the watch ends (`_take_back`)
+            log.info("action %s: cancelling goal %s, whose send gave up: %s", self.name,
+                     uuid.UUID(bytes=watch.goal_id), exc)
+            return False
+        return _names_goal(reply, watch.goal_id)
+
+    def _take_back_client(self) -> ServiceClient:
+        if self._take_back_srv is None:
+            self.client._check_open()
+            self._take_back_srv = ServiceClient(self.node, action_names(self.name)["cancel_goal"],
+                                                CANCEL_TYPE,
+                                                mapping=self.client.mapping)
+        return self._take_back_srv
 
     async def _sent(self, handle: ClientGoal, request: Any, deadline: float) -> ClientGoal:
         loop = asyncio.get_running_loop()
@@ -881,7 +1051,8 @@ class GoalSender:
         for status in array.status_list:  # type: ignore[attr-defined]
             goal_id = bytes(status.goal_info.goal_id.uuid)
             goal = self._goals.get(goal_id)
-            if goal is None:  # another client's, or one of ours let go of: nothing to us
+            if goal is None:  # another client's, one of ours let go of, or given up on
+                self._note_given_up(goal_id, int(status.status))
                 continue
             value = int(status.status)
             if value not in _WIRE_STATES:
@@ -895,6 +1066,11 @@ class GoalSender:
             goal._listed = (state, _stamp(status.goal_info.stamp))
             if not goal.state.terminal:
                 goal.state = state
+
+    def _note_given_up(self, goal_id: bytes, value: int) -> None:
+        watch = self._given_up.get(goal_id)
+        if watch is not None and value in _WIRE_STATES:
+            watch.listed(GoalState(value))
 
     def _on_feedback(self, message: IdlStruct) -> None:
         # (None: another client's goal, or one of ours let go of, whose feedback nobody waits
@@ -953,8 +1129,12 @@ class GoalSender:
         """Deletes the goal and result services' endpoints and the feedback reader."""
         for goal in self._goals.values():
             goal._release_capture()
-        for client in (self._send, self._get):
-            client.close()
+        for watch in self._given_up.values():
+            if watch.task is not None:
+                watch.task.cancel()
+        for client in (self._send, self._get, self._take_back_srv):
+            if client is not None:
+                client.close()
         self._close_feedback()
 
     def _close_feedback(self) -> None:

@@ -34,7 +34,7 @@ from .participant import RosNode
 from .services import RequestMapping, ServiceClient
 
 if TYPE_CHECKING:
-    from .action_goals import ClientGoal, GoalSender
+    from .action_goals import ClientGoal, GoalSender, LateGoal
     from .typesys.model import ActionType
 
 log = logging.getLogger(__name__)
@@ -88,6 +88,9 @@ class ActionClient:
         self._cancel_srv = ServiceClient(node, names["cancel_goal"], CANCEL_TYPE,
                                          mapping=mapping)
         self._sending: GoalSender | None = None  # the goal side, made by the first goal
+        # Told of a goal whose send gave up that the server accepted after all, which the
+        # client has cancelled (`action_goals.GoalSender._give_up`); on the event loop.
+        self.on_late_goal: Callable[[LateGoal], None] | None = None
         self._closed = False
         loop = asyncio.get_running_loop()
 
@@ -212,7 +215,9 @@ class ActionClient:
     async def send_goal(self, goal: IdlStruct | Mapping[str, Any] | None = None,
                         timeout: float = 10.0, *, goal_id: bytes | None = None) -> ClientGoal:
         """Sends a goal; the returned goal says `accepted` (or its state is REJECTED).
-        `goal_id`: its id, when the caller chose it (a new random one by default)."""
+        `goal_id`: its id, when the caller chose it (a new random one by default). Should the
+        send give up (no reply in time, cancelled), a server that accepts the goal late has
+        it cancelled (`on_late_goal` is told: `action_goals.GoalSender._give_up`)."""
         return await self._goal_side().send_goal(goal, timeout, goal_id=goal_id)
 
     async def cancel_all(self, timeout: float = 10.0, *, server_wide: bool = False) -> int:
@@ -273,7 +278,7 @@ class ActionClient:
 
 
 _SERVER_SIDE = ("ActionServer", "Execute", "ServerGoal")
-_GOAL_SIDE = ("ClientGoal", "GoalResult", "GoalSender")
+_GOAL_SIDE = ("ClientGoal", "GoalResult", "GoalSender", "LateGoal")
 
 
 def __getattr__(name: str) -> Any:

@@ -1,0 +1,169 @@
+"""A goal whose send gave up must not run: red team 15 found that a navigation goal sent to a
+busy server (no answer within the send's timeout: its command answered failed) could still be
+accepted afterwards, and then ran with nothing governing it — no handle for a stop's own
+cancel, not in the bridge's goals, ended by its COMMAND_FAILED in a restart's replay.
+
+The robot side is a NavigateToPose server of our own (Cyclone mapping) whose accept waits
+until the test lets it go: the goal is accepted only after the bridge gave up on it. Its
+goals run until cancelled; it records the goal id of every cancel request. And an rclpy Jazzy
+Fibonacci server (both RMWs) that answers each goal request only after the timeout."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import uuid
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from oracle.client import OracleEnv, RclpyOracle, both_rmws
+from waiting import eventually
+
+from rcan_rtps.bridge.navigation import GoalTracker
+from rcan_rtps.bridge.sent_goals import GoalFinished
+from rcan_rtps.ros.action_server import ActionServer, ServerGoal
+from rcan_rtps.ros.errors import WireError
+from rcan_rtps.ros.participant import RosNode
+
+from .bridge_rig import AGENT, NAV, Rig, bridge_config, close_rig, make_rig, nav_tracker
+
+
+class SlowServer(ActionServer):
+    """Accepts each goal only once `release` is set; records the goal ids it was sent, the
+    cancels it got, and how each goal ended."""
+
+    def __init__(self, node: RosNode) -> None:
+        self.release = asyncio.Event()
+        self.sent: list[bytes] = []
+        self.cancels: list[bytes] = []
+        self.ended: dict[bytes, str] = {}
+        super().__init__(node, "navigate_to_pose", NAV, self._until_cancelled,
+                         accept=self._accept_late)
+
+    async def _accept_late(self, goal: Any) -> bool:
+        await self.release.wait()
+        return True
+
+    async def _on_send_goal(self, request: Any) -> dict[str, Any]:
+        self.sent.append(bytes(request.goal_id.uuid))
+        return await super()._on_send_goal(request)
+
+    async def _on_cancel(self, request: Any) -> dict[str, Any]:
+        self.cancels.append(bytes(request.goal_info.goal_id.uuid))
+        return await super()._on_cancel(request)
+
+    async def _until_cancelled(self, goal: ServerGoal) -> dict[str, Any]:
+        self.ended[goal.goal_id] = "running"
+        await goal.cancel_requested.wait()
+        goal.canceled()
+        self.ended[goal.goal_id] = "canceled"
+        return {}
+
+
+@pytest.fixture
+async def slow(tmp_path: Path, jazzy_python: Path,
+               domain_id: int) -> AsyncIterator[tuple[Rig, SlowServer]]:
+    # match_timeout_s: 3.0 is the goal send's timeout
+    config = bridge_config(tmp_path, domain_id)
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node:
+        server = SlowServer(robot_node)
+        rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
+        heartbeat = asyncio.create_task(_hold_session(rig))
+        try:
+            await eventually(nav_tracker(rig).client.server_present,
+                             what="the NavigateToPose server")
+            yield rig, server
+        finally:
+            heartbeat.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await heartbeat
+            server.release.set()
+            await close_rig(rig)
+            await server.close()
+
+
+async def _hold_session(rig: Rig) -> None:
+    while True:
+        rig.governor.heartbeat(AGENT)
+        await asyncio.sleep(0.2)
+
+
+def _finished(rig: Rig, goal_id: str) -> dict[str, Any] | None:
+    for entry in rig.entries():
+        if entry["event"] == "GOAL_FINISHED" and entry["params"]["goal_id"] == goal_id:
+            return entry
+    return None
+
+
+async def test_a_goal_accepted_after_its_send_timed_out_is_cancelled_and_audited(
+        slow: tuple[Rig, SlowServer]) -> None:
+    rig, server = slow
+    decision = await rig.command(AGENT, {"action": "navigate",
+                                         "params": {"x": 3.0, "y": 0.0, "yaw": 0.0}})
+    assert decision.http_status != 200, decision  # no answer within the send's timeout
+    [failed] = [e for e in rig.entries() if e["event"] == "COMMAND_FAILED"]
+    assert failed["message_id"] == decision.message_id
+    [goal] = server.sent
+    goal_id = str(uuid.UUID(bytes=goal))
+    # The bridge cancels it at once; the server, not having it yet, cancels nothing.
+    await eventually(lambda: goal in server.cancels, what="a cancel of the goal given up")
+    server.release.set()  # the busy server gets to it at last: accepted
+    await eventually(lambda: server.ended.get(goal) == "canceled", timeout=20,
+                     what=lambda: f"the late goal cancelled (now {server.ended.get(goal)})")
+    assert server.cancels.count(goal) >= 2  # again, once the status topic listed it
+    entry = await eventually(lambda: _finished(rig, goal_id), what="its GOAL_FINISHED")
+    assert entry["outcome"] == "canceled", entry
+    assert entry["message_id"] == decision.message_id  # the failed command that sent it
+    assert "after its send had given up" in entry["deny_reason"], entry
+    assert rig.goals is not None and rig.goals.active() == []
+    view = rig.goals.goal(goal_id)
+    assert view is not None and view.state == "canceled", view
+
+
+async def test_a_goal_whose_send_was_cancelled_is_cancelled_once_accepted(
+        slow: tuple[Rig, SlowServer]) -> None:
+    """The send's caller went away (its task cancelled) while the server held the request."""
+    rig, server = slow
+    tracker = nav_tracker(rig)
+    goal = {"pose": {"header": {"frame_id": "map"},
+                     "pose": {"position": {"x": 3.0}, "orientation": {"w": 1.0}}}}
+    sending = asyncio.create_task(tracker.send(goal, timeout=60.0, message_id="m-1",
+                                               command="navigate"))
+    [sent] = await eventually(lambda: server.sent, what="the goal request at the server")
+    sending.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await sending
+    server.release.set()
+    await eventually(lambda: server.ended.get(sent) == "canceled", timeout=20,
+                     what=lambda: f"the late goal cancelled (now {server.ended.get(sent)})")
+    assert sent in server.cancels
+
+
+FIB = "test_msgs/action/Fibonacci"
+
+
+@both_rmws
+async def test_a_goal_an_rclpy_server_accepts_after_the_send_timed_out_is_cancelled(
+        jazzy_oracle: OracleEnv, domain_id: int, jazzy_share: Path) -> None:
+    with RclpyOracle(jazzy_oracle, "fib_server", "/", domain_id=domain_id) as oracle, \
+            RosNode("rcan_late", "/", domain_id=domain_id, distro="jazzy",
+                    idl_paths=[jazzy_share]) as node:
+        # answers each goal request 4 s late; its goals run 80 s unless cancelled
+        await oracle.acall("action_server", name="/fib", mode="slow", accept_after=4.0)
+        tracker = GoalTracker(node, "/fib", FIB)
+        ended: list[GoalFinished] = []
+        tracker.events.goal_finished.subscribe(ended.append)
+        try:
+            await tracker.client.wait_for_server(20.0)
+            goal_id = str(uuid.uuid4())
+            with pytest.raises(WireError, match="no reply within the timeout"):
+                await tracker.send({"order": 400}, timeout=1.0, message_id="m-late",
+                                   goal_id=goal_id)
+            [end] = await eventually(lambda: ended, timeout=30, what="the late goal's end")
+            assert (end.view.goal_id, end.view.state, end.message_id) == (
+                goal_id, "canceled", "m-late"), end
+            assert end.view.detail is not None and "cancelled by the bridge" in end.view.detail
+        finally:
+            await tracker.close()

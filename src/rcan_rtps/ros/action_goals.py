@@ -823,17 +823,18 @@ class GoalSender:
                 del self._given_up[watch.goal_id]
 
     def _tell_late(self, late: LateGoal) -> None:
-        """Tells the client's listener of a late goal; with none, the log (a warning)."""
-        listener = self.client.on_late_goal
-        if listener is None:
+        """Tells the client's callback of a late goal (on the loop, never a Cyclone thread);
+        with none, the log (a warning)."""
+        tell = self.client.on_late_goal
+        if tell is None:
             log.warning("action %s: goal %s, whose send had given up, was accepted by the "
                         "server after all; %s, now %s", self.name,
                         uuid.UUID(bytes=late.goal_id),
                         "cancelled" if late.canceled else "not cancelled", late.state.name)
             return
         try:
-            listener(late)
-        except Exception:  # a listener's bug: the late goal is still said
+            tell(late)
+        except Exception:  # a callback's bug: the late goal is still said
             log.exception("action %s: telling of late goal %s (%s) failed", self.name,
                           uuid.UUID(bytes=late.goal_id), late.state.name)
 

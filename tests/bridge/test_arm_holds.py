@@ -292,6 +292,13 @@ def stale_after(arms: ArmHolds, positions: JointPositions, clock: Clock, heard_a
     return left
 
 
+def not_held(arms: ArmHolds, left: Topic) -> tuple[str, ...]:
+    """A stop holds no arm and sends nothing on `left`: why, each arm it could not hold."""
+    held = arms.hold_all()
+    assert held.held == () and left.sent == [], left.sent
+    return held.not_held
+
+
 def test_a_late_arm_that_followed_its_trajectory_is_held_where_the_trajectory_has_it(
         positions: JointPositions, clock: Clock) -> None:
     # 0 → 1 rad over 2 s; heard 1 s in at 0.5 (where the trajectory had it, farther from
@@ -310,9 +317,8 @@ def test_a_late_arm_that_was_not_following_its_trajectory_is_not_held(
     # slack (the controller refused it, or something else drives the arm).
     arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
     left = stale_after(arms, positions, clock, 0.3, [0.6], line(([1.0], 2.0)))
-    held = arms.hold_all()
-    assert held.held == () and left.sent == [] and arms.running() == ["m1"]
-    (why,) = held.not_held
+    (why,) = not_held(arms, left)
+    assert arms.running() == ["m1"]
     assert why.startswith("the arm on /left was not held: joint_states for 'a' last heard 0.60")
     assert "'a' was last heard 0.450 from where its trajectory had it then" in why
     assert "the arm was not following it" in why
@@ -349,9 +355,8 @@ def test_a_late_arm_two_trajectories_of_ours_may_drive_is_not_held(
     arms.sent(left, "m1", ["a", "b"], 10.0, hold, path=line(([1.0, 1.0], 10.0)))
     arms.sent(left, "m2", ["a"], 10.0, hold, path=line(([-1.0], 10.0)))
     clock.t += MAX_AGE_S + 0.1
-    held = arms.hold_all()
-    assert held.held == () and left.sent == [] and len(held.not_held) == 2
-    assert all("another trajectory of ours names 'a'" in why for why in held.not_held)
+    whys = not_held(arms, left)
+    assert len(whys) == 2 and all("another trajectory of ours names 'a'" in why for why in whys)
 
 
 def test_a_late_arm_another_trajectory_of_ours_went_to_is_not_held(
@@ -470,9 +475,8 @@ def test_a_late_arm_heard_where_it_stood_when_sent_is_not_held_where_its_traject
     # the trajectory has it now (0.45) would move an arm that never moved.
     arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
     left = stale_after(arms, positions, clock, 0.3, [0.0], line(([1.0], 2.0)))
-    held = arms.hold_all()
-    assert held.held == () and left.sent == [] and arms.running() == ["m1"]
-    (why,) = held.not_held
+    (why,) = not_held(arms, left)
+    assert arms.running() == ["m1"]
     assert "cannot tell it following its trajectory from standing where it was" in why
 
 
@@ -484,8 +488,7 @@ def test_a_late_arm_unheard_since_its_trajectory_went_out_is_not_held_where_it_h
     positions.heard(["a"], [0.0], [0.0])
     arms.sent(left, "m1", ["a"], 2.0, hold, path=line(([1.0], 2.0)))
     clock.t += 1.5
-    held = arms.hold_all()
-    assert held.held == () and left.sent == [], left.sent
+    not_held(arms, left)
 
 
 def test_a_large_velocity_does_not_make_any_late_sample_look_like_tracking(
@@ -496,8 +499,7 @@ def test_a_large_velocity_does_not_make_any_late_sample_look_like_tracking(
     arms = ArmHolds(positions, max_age_s=2.0, monotonic=clock)
     points = [PathPoint((0.5,), (0.0,), 5.0), PathPoint((1.0,), (1000.0,), 10.0)]
     left = stale_after(arms, positions, clock, 5.4, [0.0], points)
-    held = arms.hold_all()
-    assert held.held == () and left.sent == [], left.sent
+    not_held(arms, left)
 
 
 def test_a_late_hold_that_hardly_moves_the_arm_needs_no_more_evidence(
@@ -550,9 +552,7 @@ def test_a_late_arm_whose_trajectory_may_have_been_refused_for_the_one_before_is
     clock.t += 1.8
     positions.heard(["a"], [1.4], [0.5])
     clock.t += 1.7
-    held = arms.hold_all()
-    assert held.held == () and left.sent == [], left.sent
-    (why,) = held.not_held
+    (why,) = not_held(arms, left)
     assert "cannot tell it from a trajectory of ours it replaced" in why
 
 
@@ -586,9 +586,7 @@ def test_a_hold_where_its_trajectory_has_the_arm_is_never_a_non_finite_position(
     clock.t += 1.0
     positions.heard(["a"], [9.801e307], [1e308])
     clock.t += 1.0
-    held = arms.hold_all()
-    assert held.held == () and left.sent == [], left.sent
-    (why,) = held.not_held
+    (why,) = not_held(arms, left)
     assert "not finite" in why
 
 
@@ -607,5 +605,4 @@ def test_a_late_arm_standing_short_of_its_carried_forward_start_is_not_held_at_d
     clock.t += 0.8
     positions.heard(["a"], [0.0], [0.0])
     clock.t += MAX_AGE_S + 0.1
-    held = arms.hold_all()
-    assert held.held == () and left.sent == [], left.sent
+    not_held(arms, left)

@@ -374,6 +374,25 @@ async def test_a_late_arm_that_followed_its_trajectory_is_held_where_it_has_the_
     assert f"holding the arm on {LEFT} where its trajectory has it now" in caplog.text
 
 
+async def held_once_heard_again(rig: Rig, where: list[float]) -> None:
+    """joint_states again, the arm at rest at `where`: once the bridge has heard them, the
+    next stop holds it there — the first sample on the arm's topic since the trajectory
+    (one reliable, ordered writer), so nothing went to the arm before."""
+    await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                           value={"name": ARM_JOINTS, "position": where,
+                                  "velocity": [0.0, 0.0]})
+
+    def heard() -> bool:
+        rig.governor.heartbeat(AGENT)
+        return rig.dispatcher.arms.cannot_hold(ARM_JOINTS) is None
+
+    await eventually(heard, what="the arm's joint_states again")
+    again = await rig.command(AGENT, {"action": "stop"})
+    assert again.http_status == 200, again
+    (hold,) = await take(rig.oracle, LEFT)
+    assert_held_at(hold["msg"], where, [0.0, 0.0])
+
+
 @both_rmws
 async def test_a_late_arm_that_was_not_following_its_trajectory_is_not_held(
         late_rig: Rig) -> None:
@@ -385,21 +404,8 @@ async def test_a_late_arm_that_was_not_following_its_trajectory_is_not_held(
     stopped = await rig.command(AGENT, {"action": "stop"})
     assert stopped.http_status == 503 and stopped.outcome.value == "failed", stopped
     assert LEFT in (stopped.reason or "") and "not following it" in (stopped.reason or "")
-    # Heard again, at rest where it is: the next stop holds it there, the first sample on
-    # the arm's topic since the trajectory (one reliable, ordered writer).
-    await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
-                           value={"name": ARM_JOINTS, "position": [-2.0, -2.0],
-                                  "velocity": [0.0, 0.0]})
-
-    def heard() -> bool:
-        rig.governor.heartbeat(AGENT)
-        return rig.dispatcher.arms.cannot_hold(ARM_JOINTS) is None
-
-    await eventually(heard, what="the arm's joint_states again")
-    again = await rig.command(AGENT, {"action": "stop"})
-    assert again.http_status == 200, again
-    (hold,) = await take(rig.oracle, LEFT)
-    assert_held_at(hold["msg"], [-2.0, -2.0], [0.0, 0.0])
+    # Heard again, at rest where it is: the next stop holds it there.
+    await held_once_heard_again(rig, [-2.0, -2.0])
 
 
 @both_rmws
@@ -416,21 +422,8 @@ async def test_a_late_arm_heard_standing_where_it_was_is_not_moved_by_a_stop(
     stopped = await rig.command(AGENT, {"action": "stop"})
     assert stopped.http_status == 503 and stopped.outcome.value == "failed", stopped
     assert "cannot tell it following its trajectory" in (stopped.reason or ""), stopped
-    # Heard again, at rest where it stood: the next stop holds it there, the first sample on
-    # the arm's topic since the trajectory (one reliable, ordered writer): nothing went before.
-    await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
-                           value={"name": ARM_JOINTS, "position": START,
-                                  "velocity": [0.0, 0.0]})
-
-    def heard() -> bool:
-        rig.governor.heartbeat(AGENT)
-        return rig.dispatcher.arms.cannot_hold(ARM_JOINTS) is None
-
-    await eventually(heard, what="the arm's joint_states again")
-    again = await rig.command(AGENT, {"action": "stop"})
-    assert again.http_status == 200, again
-    (hold,) = await take(rig.oracle, LEFT)
-    assert_held_at(hold["msg"], START, [0.0, 0.0])
+    # Heard again, at rest where it stood: the next stop holds it there; nothing went before.
+    await held_once_heard_again(rig, START)
 
 
 async def test_a_lost_session_holds_its_arm(rig: Rig) -> None:

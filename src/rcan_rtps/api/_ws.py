@@ -207,7 +207,6 @@ class _Commands:
         self._cancel_lane = StopLane(governor, principal, self._deliver, observe=observe,
                                      width=settings.ws_max_in_flight, invocations=invocations)
         self._cancel_room = settings.ws_max_in_flight  # cancels held for queued INVOKEs
-        self._held_cancels = 0
         self._current: asyncio.Future[Reply] | None = None
         self._worker = asyncio.create_task(self._work())
 
@@ -248,9 +247,9 @@ class _Commands:
         INVOKE is still queued here waits for it to be decided (then there is motion to stop,
         or a hold to withdraw; before, it would be `not_found` and the INVOKE would run after
         it), at most `ws_max_in_flight` held so."""
-        if self._queued[cancel.invoke_id] > 0 and self._held_cancels < self._cancel_room:
+        held = sum(map(len, self._cancels.values()))  # at most _cancel_room: a short sum
+        if self._queued[cancel.invoke_id] > 0 and held < self._cancel_room:
             self._cancels.setdefault(cancel.invoke_id, []).append(item)
-            self._held_cancels += 1
             return
         # Full: refused, not waited for — waiting here would hold up this socket's reader,
         # and with it the stops behind (a client with that many cancels out can send `stop`).
@@ -288,7 +287,6 @@ class _Commands:
             await self._invoke(invoke, skills)
         finally:
             for cancel in self._cancels.pop(invoke.msg_id, ()):
-                self._held_cancels -= 1
                 await self._cancel_lane.submit(cancel)  # the worker waits, not the reader
 
     async def _invoke(self, invoke: Invoke, skills: Skills) -> None:
@@ -337,7 +335,6 @@ class _Commands:
             for cancel in cancels:
                 await self._cancel_lane.submit(cancel)
         self._cancels.clear()
-        self._held_cancels = 0
         await self._lane.drain()  # a stop the client sent must never be dropped
         await self._cancel_lane.drain()
         await self._outbox.close()

@@ -39,7 +39,7 @@ from typing import Any
 import msgspec
 
 from rcan_rtps.rcan import Effect
-from rcan_rtps.rcan.actions import Publish, action_spec, with_effect
+from rcan_rtps.rcan.actions import ActionSpec, Hold, Publish, action_spec, with_effect
 
 _CHUNK = 64 * 1024
 _ENGAGED = ("ESTOP", "ESTOP_REPEATED")
@@ -218,19 +218,17 @@ class _Motion:
             self.streams[_key(entry)] = LeftStream(message_id=message_id, action=spec.name,
                                                   principal=principal, topic=topic)
         elif isinstance(spec.ros, Publish) and spec.ros.hold is not None:
-            self._trajectory(entry, spec.name, spec.ros, message_id)
+            self._trajectory(entry, spec, spec.ros.hold, message_id)
 
-    def _trajectory(self, entry: dict[str, Any], action: str, ros: Publish[Any],
+    def _trajectory(self, entry: dict[str, Any], spec: ActionSpec[Any], hold: Hold[Any],
                     message_id: str) -> None:
         applied = entry.get("applied")
-        hold = ros.hold
-        assert hold is not None
         try:
-            params = msgspec.convert(applied, action_spec(action).params)
+            params = msgspec.convert(applied, spec.params)
             joints, runs_for_s = list(hold.joints(params)), float(hold.runs_for_s(params))
         except (msgspec.ValidationError, TypeError, ValueError):
             return  # not what an executed command's entry holds: nothing was sent for it
-        arm = LeftArm(message_id=message_id, action=action, principal=entry.get("principal"),
+        arm = LeftArm(message_id=message_id, action=spec.name, principal=entry.get("principal"),
                       topic=entry.get("ros2_topic"), params=dict(applied or {}),
                       joints=joints, sent_at_ms=int(entry.get("timestamp_ms") or 0),
                       runs_for_s=runs_for_s)

@@ -27,6 +27,8 @@ from waiting import eventually
 
 from rcan_rtps.api import ApiServer
 from rcan_rtps.api._keys import DEADLINES
+from rcan_rtps.governance import Principal
+from rcan_rtps.rcan import Role
 from tests.api.apihelpers import ZERO, Api, auth, own_stops
 from tests.api.test_invoke import cancel, invoke, nudge, results, sent, stream_ends, wave
 
@@ -38,6 +40,7 @@ SKILLS = ("skills: {go_home: {action: navigate, params: {x: 0, y: 0, yaw: 0}}, "
 LOCK = {"action": "lock", "params": {"name": "teleop"}}
 WS_BACKLOG = 32  # ApiSettings.ws_max_in_flight
 BY_CLIENT_LEFT = "INVOKE's client left"  # the `why` of what stopped its motion
+PLANNER = Principal("planner", Role.USER)  # the sender of each INVOKE here
 
 
 @pytest.fixture
@@ -73,7 +76,7 @@ def _stops(api: Api, kind: str, msg_id: str) -> bool:
     if kind == "move":
         return api.gov.streams.active is None
     if kind == "arm":
-        return not api.gov.trajectory_running(msg_id)
+        return not api.gov.trajectory_running(msg_id, PLANNER)
     return api.dispatcher.cancelled == ["goal-1"]
 
 

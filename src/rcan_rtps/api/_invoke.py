@@ -291,7 +291,7 @@ class Invocations:
                          decision: Decision) -> list[str]:
         stopped = []
         if (running.trajectory is not None and not running.held.done()
-                and governor.trajectory_running(running.trajectory)):
+                and governor.trajectory_running(running.trajectory, principal)):
             held = await governor.hold_trajectory(running.trajectory, principal,
                                                   message_id=decision.message_id,
                                                   why=BY_CLIENT_LEFT)
@@ -354,7 +354,7 @@ class Invocations:
                                running: _Running, decision: Decision, *, timed_out: bool,
                                timeout_ms: int) -> InvokeResult:
         assert running.trajectory is not None
-        if running.cancelled and not governor.trajectory_running(running.trajectory):
+        if running.cancelled and not governor.trajectory_running(running.trajectory, principal):
             # Its INVOKE_CANCEL's hold is made (at once), its entry still on its way to the
             # log: no stop's, and no second hold.
             return self._result(running, decision, "cancelled",
@@ -366,7 +366,7 @@ class Invocations:
             return self._result(running, decision, "timeout",
                                 f"not done within {timeout_ms} ms: the arm held where it was "
                                 f"({held.outcome.value})")
-        if governor.trajectory_running(running.trajectory):
+        if governor.trajectory_running(running.trajectory, principal):
             return self._result(running, decision, "success")
         return self._result(running, decision, "failure",
                             "a stop held the arm before its trajectory's time was up")

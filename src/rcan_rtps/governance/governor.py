@@ -790,9 +790,13 @@ class Governor:
         a stop (which cancels it itself)."""
         return goal_id in self.streams.goals
 
-    def trajectory_running(self, sent_by: str) -> bool:
-        """Whether the trajectory the command `sent_by` sent may still be running (not held
-        by a stop, its time not up); when that cannot be read, it may."""
+    def trajectory_running(self, sent_by: str, principal: Principal) -> bool:
+        """Whether the trajectory `principal`'s command `sent_by` sent may still be running
+        (not held by a stop, its time not up); when that cannot be read, it may."""
+        # Ids are unique per principal only: another's trajectory of this id sent means this
+        # one's ended (`_ran_on`), and its running is not this one's (an INVOKE's success).
+        if sent_by in self._trajectories(principal.name, others=True):
+            return False
         running = self._steps.running_trajectories()
         return running is None or sent_by in running
 

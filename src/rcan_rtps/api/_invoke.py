@@ -33,11 +33,13 @@ INVOKE_RESULT can be read back from the log (rcan-spec's conformance case L3-INV
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 import msgspec
 
@@ -64,6 +66,7 @@ from ._bodies import Capability, SkillList, SkillView
 from .ports import GoalView, RobotView
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 Reply = tuple[int, object]
 TERMINAL = frozenset({"succeeded", "canceled", "aborted", "rejected", "lost"})
 FINISHED_KEPT = 1024  # answered INVOKEs remembered for a late INVOKE_CANCEL
@@ -122,10 +125,12 @@ class _Running:
 
 @dataclass(frozen=True)
 class Started:
-    """An INVOKE decided: its reply now, or `finish` to await it (a goal under way)."""
+    """An INVOKE decided: its reply now, or `finish()`, a future of its answer for its one
+    waiter (a goal, a stream or a trajectory under way). Cancelling that future — its client
+    left — stops the INVOKE's motion and answers it in the log (`Invocations._answering`)."""
 
     reply: Reply | None = None
-    finish: Callable[[], Awaitable[Reply]] | None = None
+    finish: Callable[[], asyncio.Future[Reply]] | None = None
 
 
 class Invocations:
@@ -139,7 +144,9 @@ class Invocations:
         self._by_goal: dict[str, _Running] = {}
         self._by_stream: dict[tuple[str, str], _Running] = {}  # by (owner, message id)
         self._finished: OrderedDict[tuple[str, str], InvokeResult] = OrderedDict()
-        self._left: set[asyncio.Task[InvokeResult]] = set()  # answers nobody waits for
+        # INVOKEs being decided and answered: tasks of their own, which the cancellation of
+        # what waits for them (a client gone) cannot cut off before the answer is in the log.
+        self._tasks: set[asyncio.Future[Any]] = set()
 
     def listed(self, governor: Governor) -> SkillList:
         """What GET /api/skills says: the §18/§19.7 `invoke` capability and each skill."""
@@ -151,6 +158,19 @@ class Invocations:
     # -- INVOKE ---------------------------------------------------------------------------
 
     async def start(self, governor: Governor, principal: Principal, invoke: Invoke) -> Started:
+        """Decide the INVOKE, in a task of its own: a caller cancelled meanwhile (its
+        WebSocket closed while the INVOKE was decided, or in the very step its decision came)
+        cuts off its wait, never the INVOKE's answer (red team 15: no INVOKE_RESULT entry was
+        written). Nobody waits for that answer then: an INVOKE under way is one whose client
+        left (`_answering`), its motion stopped and its answer in the log alone."""
+        deciding = self._keep(asyncio.ensure_future(self._start(governor, principal, invoke)))
+        try:
+            return await asyncio.shield(deciding)
+        except asyncio.CancelledError:
+            deciding.add_done_callback(_nobody_waits)
+            raise
+
+    async def _start(self, governor: Governor, principal: Principal, invoke: Invoke) -> Started:
         self._forget_reviewed(governor)
         skill = self.skills.get(invoke.skill)
         if skill is None:
@@ -198,9 +218,9 @@ class Invocations:
                        key: tuple[str, str], running: _Running, decision: Decision) -> Started:
         if running.stream is not None:
             if self._stream_started(governor, principal, running, decision):
-                return Started(finish=lambda: self._until_answered(
+                return self._answering(
                     governor, principal, key, running, decision,
-                    self._finish_stream(governor, principal, invoke, key, running, decision)))
+                    self._finish_stream(governor, principal, invoke, key, running, decision))
             self._forget_stream(principal, running)
         if decision.outcome is Outcome.PENDING_AUTH:  # held: an INVOKE_CANCEL withdraws it
             running.pending_id = decision.pending_id
@@ -219,9 +239,9 @@ class Invocations:
             if running.cancelled:  # cancelled while it was being decided
                 running.held.set_result(await governor.hold_trajectory(
                     decision.message_id, principal, message_id=None, why=BY_INVOKE_CANCEL))
-            return Started(finish=lambda: self._until_answered(
+            return self._answering(
                 governor, principal, key, running, decision,
-                self._finish_trajectory(governor, principal, invoke, key, running, decision)))
+                self._finish_trajectory(governor, principal, invoke, key, running, decision))
         if decision.outcome is not Outcome.EXECUTED or decision.goal_id is None:
             del self._running[key]
             result = self._result(running, decision, _decided_status(decision))
@@ -235,24 +255,52 @@ class Invocations:
         if running.cancelled:  # cancelled while its goal was being sent
             await governor.cancel_goal(decision.goal_id, principal, message_id=None,
                                        why=BY_INVOKE_CANCEL)
-        return Started(finish=lambda: self._until_answered(
+        return self._answering(
             governor, principal, key, running, decision,
-            self._finish(governor, principal, invoke, key, running, decision)))
+            self._finish(governor, principal, invoke, key, running, decision))
 
-    async def _until_answered(self, governor: Governor, principal: Principal,
-                              key: tuple[str, str], running: _Running, decision: Decision,
-                              finish: Awaitable[Reply]) -> Reply:
-        """`finish`, the INVOKE's answer; if its waiter is cancelled first (its client left:
-        its WebSocket closed, its HTTP request hung up), its motion is stopped as its
-        INVOKE_CANCEL would stop it and it is answered in the log — `failure`, its client
-        gone — so that every INVOKE's lifecycle ends in an INVOKE_RESULT entry (§19.5)."""
-        try:
-            return await finish
-        except asyncio.CancelledError:
-            if not running.answering:
-                self._running.pop(key, None)
-                self._left_behind(governor, principal, key, running, decision)
-            raise
+    def _answering(self, governor: Governor, principal: Principal, key: tuple[str, str],
+                   running: _Running, decision: Decision,
+                   finish: Coroutine[object, object, Reply]) -> Started:
+        """An INVOKE under way: `finish`, its answer, runs from now on in a task of its own
+        (its waiter may be cancelled, or never scheduled at all); `Started.finish` hands its
+        one waiter a future of it. That future cancelled before the answer is on its way
+        (its client left: its WebSocket closed, its HTTP request hung up), its motion is
+        stopped as its INVOKE_CANCEL would stop it and it is answered in the log —
+        `failure`, its client gone — so that every INVOKE's lifecycle ends in an
+        INVOKE_RESULT entry (§19.5)."""
+        answer = self._keep(asyncio.ensure_future(finish))
+
+        def waiter() -> asyncio.Future[Reply]:
+            waiting: asyncio.Future[Reply] = asyncio.get_running_loop().create_future()
+            answer.add_done_callback(functools.partial(_handed_on, waiting))
+
+            def given_up(waited: asyncio.Future[Reply]) -> None:
+                if waited.cancelled():
+                    self._client_left(governor, principal, key, running, decision, answer)
+
+            waiting.add_done_callback(given_up)
+            return waiting
+
+        return Started(finish=waiter)
+
+    def _client_left(self, governor: Governor, principal: Principal, key: tuple[str, str],
+                     running: _Running, decision: Decision, answer: asyncio.Future[Reply]
+                     ) -> None:
+        if running.answering or self._running.get(key) is not running:
+            return  # its one answer is made, or on its way to the log: it stands
+        del self._running[key]
+        answer.cancel()  # its own wait ends; what it would have done, done here
+        self._left_behind(governor, principal, key, running, decision)
+        if running.goal_id is not None:  # (the cancelled task may never have run)
+            self._by_goal.pop(running.goal_id, None)
+        self._forget_stream(principal, running)
+
+    def _keep(self, task: asyncio.Future[T]) -> asyncio.Future[T]:
+        """`task`, referenced until it is done (the loop holds tasks weakly)."""
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
 
     def _left_behind(self, governor: Governor, principal: Principal, key: tuple[str, str],
                      running: _Running, decision: Decision) -> None:
@@ -262,11 +310,9 @@ class Invocations:
         cancelled waiter cannot cut off."""
         ended = (running.stream is not None and not running.stream_end.done()
                  and governor.end_stream(running.stream, principal, why=BY_CLIENT_LEFT))
-        task = asyncio.ensure_future(self._stopped_then_answered(
+        self._keep(asyncio.ensure_future(self._stopped_then_answered(
             governor, principal, key, running, decision, ["its velocity stream ended, zero "
-                                                          "sent"] if ended else []))
-        self._left.add(task)
-        task.add_done_callback(self._left.discard)
+                                                          "sent"] if ended else [])))
 
     async def _stopped_then_answered(self, governor: Governor, principal: Principal,
                                      key: tuple[str, str], running: _Running,
@@ -321,7 +367,7 @@ class Invocations:
         else:
             result = self._ended(running, decision, view)
         finally:
-            self._running.pop(key, None)
+            self._forget(key, running)
             self._by_goal.pop(running.goal_id, None)
         return 200, await self._answer(governor, principal, key, running, result)
 
@@ -347,7 +393,7 @@ class Invocations:
                                       Outcome.EXECUTED else "failure", held.reason or
                                       "held where it was by INVOKE_CANCEL")
         finally:
-            self._running.pop(key, None)
+            self._forget(key, running)
         return 200, await self._answer(governor, principal, key, running, result)
 
     async def _trajectory_over(self, governor: Governor, principal: Principal,
@@ -409,7 +455,7 @@ class Invocations:
                 result = self._stream_result(running, decision, ended)
             return 200, await self._answer(governor, principal, key, running, result)
         finally:
-            self._running.pop(key, None)
+            self._forget(key, running)
             self._forget_stream(principal, running)
 
     def _stream_result(self, running: _Running, decision: Decision,
@@ -431,9 +477,18 @@ class Invocations:
         if running is not None and not running.stream_end.done():
             running.stream_end.set_result(ended)
 
+    def _forget(self, key: tuple[str, str], running: _Running) -> None:
+        """`running` is no longer under way; a later INVOKE of its msg_id (its client left
+        this one) that took its key stays."""
+        if self._running.get(key) is running:
+            del self._running[key]
+
     def _forget_stream(self, principal: Principal, running: _Running) -> None:
-        if running.stream is not None:
-            self._by_stream.pop((principal.name, running.stream), None)
+        if running.stream is None:
+            return
+        by = (principal.name, running.stream)
+        if self._by_stream.get(by) is running:  # (as `_forget`)
+            del self._by_stream[by]
 
     def _ended(self, running: _Running, decision: Decision, view: GoalView) -> InvokeResult:
         if view.state == "succeeded":
@@ -563,7 +618,11 @@ class Invocations:
     async def _answer(self, governor: Governor, principal: Principal, key: tuple[str, str],
                       running: _Running, result: InvokeResult) -> InvokeResult:
         """The INVOKE's one INVOKE_RESULT (§19.1): audited, remembered for a late
-        INVOKE_CANCEL, handed to a cancel waiting for it."""
+        INVOKE_CANCEL, handed to a cancel waiting for it. Only the first answer counts: an
+        INVOKE answered as its client left may have been answered by its own end in that
+        very step (a task cancelled as what it waits for is done runs on: `wait_for`)."""
+        if running.answering:
+            return await asyncio.shield(running.answered)
         running.answering = True
         await _audit(governor, principal, result)
         self._finished[key] = result
@@ -637,6 +696,35 @@ def _cancel_refused(running: _Running, refused: Decision, cancel: InvokeCancel) 
 def _body(body: DecisionBody, msg_id: str | None) -> DecisionBody:
     body.msg_id, body.status = msg_id or body.message_id, STATUS_OF[body.outcome]
     return body
+
+
+def _handed_on(waiting: asyncio.Future[Reply], answer: asyncio.Future[Reply]) -> None:
+    """An INVOKE's answer task done: its waiter gets what it gave (an error nobody waits for
+    any more is logged here)."""
+    if answer.cancelled():  # its client left (the waiter was cancelled first), or shutdown
+        waiting.cancel()
+        return
+    error = answer.exception()
+    if waiting.done():
+        if error is not None:
+            log.error("answering an INVOKE whose client left failed", exc_info=error)
+    elif error is not None:
+        waiting.set_exception(error)
+    else:
+        waiting.set_result(answer.result())
+
+
+def _nobody_waits(deciding: asyncio.Future[Started]) -> None:
+    """An INVOKE decided after its caller was cancelled (its client left): one under way is
+    left as a client that leaves leaves it (`Invocations._answering`); one answered at once
+    is answered in the log already."""
+    if deciding.cancelled():
+        return
+    error = deciding.exception()
+    if error is not None:
+        log.error("an INVOKE whose client left failed", exc_info=error)
+    elif (started := deciding.result()).finish is not None:
+        started.finish().cancel()
 
 
 def _view(skill: SkillConfig, governor: Governor) -> SkillView:

@@ -350,6 +350,18 @@ async def test_invoke_cancel_holds_an_arm_skill_where_it_is(arm_api: Api) -> Non
         "COMMAND_DISPATCHED", "planner", "inv-w", "INVOKE_CANCEL", True)
 
 
+async def test_a_cancels_answer_echoes_its_own_id_and_names_the_invoke(arm_api: Api) -> None:
+    """Both answers are the INVOKE_RESULT; each has the id of the message it answers as
+    `msg_id` (RCANResponse's echo), `reply_to` the INVOKE. Before, the cancel's answer had the
+    INVOKE's msg_id: a client could not tell the two apart."""
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-e", 60.0)))
+    await sent(arm_api, "arm_joint")
+    status, body = await arm_api.command("planner", cancel("inv-e", message_id="cancel-e"))
+    assert (status, body["msg_id"], body["reply_to"]) == (200, "cancel-e", "inv-e"), body
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["msg_id"], body["reply_to"]) == (200, "inv-e", "inv-e"), body
+
+
 async def test_an_arm_skill_past_its_timeout_is_held(arm_api: Api) -> None:
     status, body = await arm_api.command("planner", wave("inv-t", 60.0, timeout_ms=50))
     assert (status, body["status"], body["error"]["code"]) == (200, "timeout", 7002), body

@@ -524,7 +524,7 @@ class Invocations:
         if not already:
             answer = await self._cancelling(governor, principal, cancel, key, running)
             if answer is not None:
-                return answer
+                return _as_cancels(answer, cancel)
         try:  # the INVOKE's own answer, once its goal has wound down
             answered = await asyncio.wait_for(asyncio.shield(running.answered),
                                               cancel.cancel_timeout_ms / 1000)
@@ -533,7 +533,7 @@ class Invocations:
                                      invoke_id=running.invoke_id, payload={},
                                      skill=running.skill, reply_to=running.invoke_id,
                                      reason="cancelling", msg_id=cancel.message_id)
-        return 200, answered
+        return _as_cancels((200, answered), cancel)
 
     async def _cancelling(self, governor: Governor, principal: Principal,
                           cancel: InvokeCancel, key: tuple[str, str],
@@ -684,6 +684,16 @@ async def _refuse(governor: Governor, principal: Principal, rejection: Rejection
                   msg_id: str | None) -> Reply:
     decision = await governor.reject_request(principal, rejection, message_id=msg_id)
     return decision.http_status, _body(decision.body(), msg_id)
+
+
+def _as_cancels(reply: Reply, cancel: InvokeCancel) -> Reply:
+    """The INVOKE's INVOKE_RESULT as its INVOKE_CANCEL's answer: with the cancel's own id as
+    `msg_id`, when it has one (RCANResponse's echo of the message it answers; `reply_to`
+    names the INVOKE), as its 202 and 409 answers have."""
+    status, body = reply
+    if isinstance(body, InvokeResult) and cancel.message_id is not None:
+        return status, msgspec.structs.replace(body, msg_id=cancel.message_id)
+    return reply
 
 
 def _cancel_refused(running: _Running, refused: Decision, cancel: InvokeCancel) -> Reply:

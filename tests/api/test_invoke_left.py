@@ -26,9 +26,9 @@ import pytest
 from waiting import eventually
 
 from rcan_rtps.api import ApiServer
-from rcan_rtps.api._keys import DEADLINES
+from rcan_rtps.api._keys import DEADLINES, INVOCATIONS
 from rcan_rtps.governance import Principal
-from rcan_rtps.rcan import Role
+from rcan_rtps.rcan import Invoke, Role, validate_message
 from tests.api.apihelpers import ZERO, Api, auth, own_stops
 from tests.api.test_invoke import cancel, invoke, nudge, results, sent, stream_ends, wave
 
@@ -293,6 +293,23 @@ async def test_a_websocket_invoke_decided_as_its_socket_closes_is_answered_in_th
             "goal": not api.gov.goal_held("goal-1")}[kind]  # (the session's stop, first)
     await asyncio.sleep(0.05)
     assert len(results(api, "inv-x")) == 1
+
+
+async def test_an_invoke_on_its_way_as_its_connection_closes_never_starts(api: Api) -> None:
+    """An INVOKE's command arrives at the governor in its caller's step, as any command: a
+    connection closing from the next step on wins over it (`Governor.connection_closed`): its
+    move never starts, and its answer is in the log. (Decided in a task begun a step later,
+    the move arrived after the close and started, to be stopped again once decided.)"""
+    invoke = validate_message(json.dumps(nudge("inv-a")).encode())
+    assert isinstance(invoke, Invoke) and api.app is not None
+    starting = asyncio.ensure_future(
+        api.app[INVOCATIONS].invocations().start(api.gov, PLANNER, invoke))
+    await asyncio.sleep(0)  # its first step: the INVOKE is a command, on its way
+    api.gov.connection_closed(PLANNER)
+    starting.cancel()  # as its socket's close cancels it
+    [answer] = await eventually(lambda: results(api, "inv-a"), what="its INVOKE_RESULT")
+    assert answer["status"] == "failure", answer
+    assert api.dispatcher.calls == [] and api.gov.streams.active is None
 
 
 RACE_TRIALS = 90  # 30 a skill, the close moved one loop turn further each time

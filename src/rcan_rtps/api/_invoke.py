@@ -37,7 +37,7 @@ import functools
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Coroutine, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -158,19 +158,12 @@ class Invocations:
     # -- INVOKE ---------------------------------------------------------------------------
 
     async def start(self, governor: Governor, principal: Principal, invoke: Invoke) -> Started:
-        """Decide the INVOKE, in a task of its own: a caller cancelled meanwhile (its
+        """Decide the INVOKE. Once it is a command, it arrives at the governor in this step
+        and is decided and answered in tasks of their own: a caller cancelled meanwhile (its
         WebSocket closed while the INVOKE was decided, or in the very step its decision came)
         cuts off its wait, never the INVOKE's answer (red team 15: no INVOKE_RESULT entry was
         written). Nobody waits for that answer then: an INVOKE under way is one whose client
         left (`_answering`), its motion stopped and its answer in the log alone."""
-        deciding = self._keep(asyncio.ensure_future(self._start(governor, principal, invoke)))
-        try:
-            return await asyncio.shield(deciding)
-        except asyncio.CancelledError:
-            deciding.add_done_callback(_nobody_waits)
-            raise
-
-    async def _start(self, governor: Governor, principal: Principal, invoke: Invoke) -> Started:
         self._forget_reviewed(governor)
         skill = self.skills.get(invoke.skill)
         if skill is None:
@@ -198,10 +191,22 @@ class Invocations:
         if command.spec.streamed:  # listened for now: a move to a standstill ends as it starts
             running.stream = command.message_id
             self._by_stream[principal.name, command.message_id] = running
+        deciding = governor.decide_soon(command, principal)  # arrived: a stop from now wins
+        started = self._keep(asyncio.ensure_future(self._once_decided(
+            governor, principal, invoke, key, running, deciding)))
         try:
-            decision = await governor.decide(command, principal)
+            return await asyncio.shield(started)
+        except asyncio.CancelledError:
+            started.add_done_callback(_nobody_waits)
+            raise
+
+    async def _once_decided(self, governor: Governor, principal: Principal, invoke: Invoke,
+                            key: tuple[str, str], running: _Running,
+                            deciding: Awaitable[Decision]) -> Started:
+        try:
+            decision = await deciding
         except BaseException:
-            del self._running[key]
+            self._forget(key, running)
             self._forget_stream(principal, running)
             raise
         return await self._decided(governor, principal, invoke, key, running, decision)
@@ -636,7 +641,14 @@ class Invocations:
     async def _refused(self, governor: Governor, principal: Principal, invoke: Invoke,
                        rejection: Rejection, kind: str, message: str, *,
                        path: str | None = None) -> Reply:
-        """An INVOKE refused before it became a command: audited, answered INVOKE_RESULT."""
+        """An INVOKE refused before it became a command: audited, answered INVOKE_RESULT; in
+        a task of its own, whose entries a caller cancelled meanwhile does not cut off."""
+        return await asyncio.shield(self._keep(asyncio.ensure_future(self._refusal(
+            governor, principal, invoke, rejection, kind, message, path=path))))
+
+    async def _refusal(self, governor: Governor, principal: Principal, invoke: Invoke,
+                       rejection: Rejection, kind: str, message: str, *,
+                       path: str | None) -> Reply:
         decision = await governor.reject_request(principal, rejection, message_id=invoke.msg_id,
                                                  rcan=invoke.envelope.audit_facts())
         result = InvokeResult(

@@ -210,7 +210,15 @@ class Api:
             await release.wait()
             return done if done is not None else await decide(command, principal)
 
+        decide_soon = self.gov.decide_soon
+
+        def held_soon(command: NormalizedCommand, principal: Any) -> Any:  # an INVOKE's
+            if not held(command):
+                return decide_soon(command, principal)
+            return asyncio.shield(asyncio.ensure_future(held_decide(command, principal)))
+
         self.gov.decide = held_decide  # type: ignore[method-assign]
+        self.gov.decide_soon = held_soon  # type: ignore[method-assign]
         return release, entered
 
     @property

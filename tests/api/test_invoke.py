@@ -350,6 +350,18 @@ async def test_invoke_cancel_holds_an_arm_skill_where_it_is(arm_api: Api) -> Non
         "COMMAND_DISPATCHED", "planner", "inv-w", "INVOKE_CANCEL", True)
 
 
+async def test_a_cancels_answer_echoes_its_own_id_and_names_the_invoke(arm_api: Api) -> None:
+    """Both answers are the INVOKE_RESULT; each has the id of the message it answers as
+    `msg_id` (RCANResponse's echo), `reply_to` the INVOKE. Before, the cancel's answer had the
+    INVOKE's msg_id: a client could not tell the two apart."""
+    reply = asyncio.create_task(arm_api.command("planner", wave("inv-e", 60.0)))
+    await sent(arm_api, "arm_joint")
+    status, body = await arm_api.command("planner", cancel("inv-e", message_id="cancel-e"))
+    assert (status, body["msg_id"], body["reply_to"]) == (200, "cancel-e", "inv-e"), body
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["msg_id"], body["reply_to"]) == (200, "inv-e", "inv-e"), body
+
+
 async def test_an_arm_skill_past_its_timeout_is_held(arm_api: Api) -> None:
     status, body = await arm_api.command("planner", wave("inv-t", 60.0, timeout_ms=50))
     assert (status, body["status"], body["error"]["code"]) == (200, "timeout", 7002), body
@@ -364,6 +376,28 @@ async def test_an_arm_skill_a_stop_held_is_not_a_success(arm_api: Api) -> None:
     status, body = await asyncio.wait_for(reply, 10)
     assert (status, body["status"]) == (200, "failure"), body
     assert "a stop held the arm" in body["error"]["message"], body
+
+
+async def test_an_arm_skill_a_stop_held_is_no_success_for_another_principals_of_its_id(
+        arm_api: Api) -> None:
+    """Message ids are unique per principal only. The planner's arm skill is held by its stop;
+    the OWNER's skill of the same msg_id then runs on that arm. The planner's INVOKE, its time
+    up, is a failure: before, `trajectory_running` asked by id alone, and it reported success
+    on the OWNER's trajectory."""
+    api = arm_api
+    mine = asyncio.create_task(api.command("planner", wave("inv-same", 0.5)))
+    await sent(api, "arm_joint")
+    assert (await api.command("planner", {"action": "stop"}))[0] == 200
+    theirs = asyncio.create_task(api.command("ops", wave("inv-same", 60.0)))
+    await sent(api, "arm_joint", 2)
+    status, body = await asyncio.wait_for(mine, 10)
+    assert (status, body["status"]) == (200, "failure"), body
+    assert "a stop held the arm" in body["error"]["message"], body
+    assert api.dispatcher.running == ["inv-same"]  # the OWNER's, untouched
+    status, body = await api.command("ops", cancel("inv-same"))  # its own id: its own arm
+    assert (status, body["status"]) == (200, "cancelled"), body
+    assert (await asyncio.wait_for(theirs, 10))[1]["status"] == "cancelled"
+    assert [e["principal"] for e in results(api, "inv-same")] == ["planner", "ops"]
 
 
 async def test_a_cancel_that_cannot_hold_the_arm_says_so_and_the_skill_runs_on(

@@ -26,7 +26,9 @@ import pytest
 from waiting import eventually
 
 from rcan_rtps.api import ApiServer
-from rcan_rtps.api._keys import DEADLINES
+from rcan_rtps.api._keys import DEADLINES, INVOCATIONS
+from rcan_rtps.governance import Principal
+from rcan_rtps.rcan import Invoke, Role, validate_message
 from tests.api.apihelpers import ZERO, Api, auth, own_stops
 from tests.api.test_invoke import cancel, invoke, nudge, results, sent, stream_ends, wave
 
@@ -38,6 +40,7 @@ SKILLS = ("skills: {go_home: {action: navigate, params: {x: 0, y: 0, yaw: 0}}, "
 LOCK = {"action": "lock", "params": {"name": "teleop"}}
 WS_BACKLOG = 32  # ApiSettings.ws_max_in_flight
 BY_CLIENT_LEFT = "INVOKE's client left"  # the `why` of what stopped its motion
+PLANNER = Principal("planner", Role.USER)  # the sender of each INVOKE here
 
 
 @pytest.fixture
@@ -73,7 +76,7 @@ def _stops(api: Api, kind: str, msg_id: str) -> bool:
     if kind == "move":
         return api.gov.streams.active is None
     if kind == "arm":
-        return not api.gov.trajectory_running(msg_id)
+        return not api.gov.trajectory_running(msg_id, PLANNER)
     return api.dispatcher.cancelled == ["goal-1"]
 
 
@@ -267,3 +270,82 @@ async def test_a_websocket_invoke_cancel_past_its_room_is_refused_and_a_stop_sti
         assert frames[1]["body"]["outcome"] == "executed", frames
         assert [e["outcome"] for e in api.entries if e.get("action_type") == "stop"] == [
             "executed"]
+
+
+@pytest.mark.parametrize("kind", ["move", "arm", "goal"])
+async def test_a_websocket_invoke_decided_as_its_socket_closes_is_answered_in_the_log(
+        api: Api, kind: str) -> None:
+    """The race below, made certain: the INVOKE's command is decided (its motion started)
+    and its decision held back from the INVOKE while the socket closes. Once it comes, the
+    INVOKE is answered in the log (`failure`, its client gone) and its motion is stopped.
+    Before, the close cancelled the INVOKE's wait for its decision: no INVOKE_RESULT entry."""
+    action, body = SKILL_OF[kind]
+    release, entered = api.hold_decisions(lambda c: c.action == action, decided=True)
+    ws = await api.http.ws_connect("/api/ws", headers=auth("planner"))
+    await ws.send_str(json.dumps(body("inv-x")))
+    await asyncio.wait_for(entered.wait(), 10)
+    await ws.close()
+    await eventually(lambda: own_stops(api.entries), what="the socket's session stop")
+    release.set()
+    [answer] = await eventually(lambda: results(api, "inv-x"), what="its INVOKE_RESULT")
+    assert (answer["status"], answer["params"]["error"]["name"]) == ("failure", "SkillFailed")
+    assert {"move": api.gov.streams.active is None, "arm": api.dispatcher.running == [],
+            "goal": not api.gov.goal_held("goal-1")}[kind]  # (the session's stop, first)
+    await asyncio.sleep(0.05)
+    assert len(results(api, "inv-x")) == 1
+
+
+async def test_an_invoke_on_its_way_as_its_connection_closes_never_starts(api: Api) -> None:
+    """An INVOKE's command arrives at the governor in its caller's step, as any command: a
+    connection closing from the next step on wins over it (`Governor.connection_closed`): its
+    move never starts, and its answer is in the log. (Decided in a task begun a step later,
+    the move arrived after the close and started, to be stopped again once decided.)"""
+    invoke = validate_message(json.dumps(nudge("inv-a")).encode())
+    assert isinstance(invoke, Invoke) and api.app is not None
+    starting = asyncio.ensure_future(
+        api.app[INVOCATIONS].invocations().start(api.gov, PLANNER, invoke))
+    await asyncio.sleep(0)  # its first step: the INVOKE is a command, on its way
+    api.gov.connection_closed(PLANNER)
+    starting.cancel()  # as its socket's close cancels it
+    [answer] = await eventually(lambda: results(api, "inv-a"), what="its INVOKE_RESULT")
+    assert answer["status"] == "failure", answer
+    assert api.dispatcher.calls == [] and api.gov.streams.active is None
+
+
+RACE_TRIALS = 90  # 30 a skill, the close moved one loop turn further each time
+DECIDED = ("COMMAND_DISPATCHED", "COMMAND_FAILED", "COMMAND_REJECTED")
+
+
+def _decided(api: Api, msg_id: str, action: str) -> bool:
+    """Whether the governor decided the INVOKE `msg_id`'s command (its entry is in the log)."""
+    return any(e["event"] in DECIDED and e["message_id"] == msg_id
+               and e.get("action_type") == action for e in api.entries)
+
+
+async def test_every_decided_websocket_invoke_is_answered_in_the_log_whenever_its_socket_closes(
+        api: Api) -> None:
+    """Red team 15: a socket closing in the loop step in which its INVOKE's decision completes
+    (or while it is decided) cut off the INVOKE before it was answered: no INVOKE_RESULT entry
+    (the session's safe stop still stopped its motion). Each trial sends an INVOKE and closes
+    its socket a few loop turns later, sweeping the close across the decision; every INVOKE
+    the governor decided must have exactly one INVOKE_RESULT entry."""
+    kinds = list(SKILL_OF)
+    sent_ids: list[tuple[str, str]] = []
+    for trial in range(RACE_TRIALS):
+        action, body = SKILL_OF[kinds[trial % len(kinds)]]
+        msg_id = f"inv-race-{trial}"
+        ws = await api.http.ws_connect("/api/ws", headers=auth("planner"))
+        await ws.send_str(json.dumps(body(msg_id)))
+        for _ in range(trial // len(kinds)):
+            await asyncio.sleep(0)
+        await ws.close()
+        sent_ids.append((msg_id, action))
+
+    def all_answered() -> bool:
+        decided = [m for m, action in sent_ids if _decided(api, m, action)]
+        assert decided, "no INVOKE was decided: the sweep missed the decisions"
+        missing = [m for m in decided if len(results(api, m)) != 1]
+        assert missing == [], f"{len(missing)} of {len(decided)} decided INVOKEs: {missing}"
+        return True
+
+    await eventually(all_answered, timeout=5, what="every decided INVOKE answered once")

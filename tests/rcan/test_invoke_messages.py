@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rcan.message import MessageType, RCANMessage
 
 from rcan_rtps.rcan import (
     Authorization,
@@ -126,6 +127,53 @@ def test_section_16_4s_decision_words(decision: str, verdict: str) -> None:
 def test_a_malformed_authorize_is_a_schema_error(body: dict[str, Any]) -> None:
     with pytest.raises(SchemaValidationError):
         parse(body)
+
+
+TARGET = "rcan://registry.local/clearpath/husky/v1/a200-0001"
+
+
+def sdk_message(kind: MessageType, payload: dict[str, Any]) -> tuple[RCANMessage, Any]:
+    """A message of the official SDK's envelope (`RCANMessage.to_dict()`: rcan_version,
+    msg_id, timestamp in Unix seconds, target…), with the number and payload `to_dict()`
+    drops put back (tests/interop/test_sdk_invoke), and what it parses to."""
+    message = RCANMessage(type=kind, target=TARGET, payload=payload)
+    put_back = {"payload": payload} if kind is MessageType.INVOKE_CANCEL else payload
+    return message, parse(message.to_dict() | {"message_type": int(kind)} | put_back)
+
+
+def test_the_sdks_envelope_times_each_of_them_and_names_a_cancel_and_an_authorize() -> None:
+    """The SDK's envelope gives its time as `timestamp` (seconds): read as §8.3's sent time
+    when `timestamp_ms` is not given (before, an SDK-built INVOKE was refused MESSAGE_STALE,
+    no timestamp); its `msg_id` is an INVOKE_CANCEL's or AUTHORIZE's own id (§19.4's
+    `msg_id` is in `payload`, naming the INVOKE)."""
+    sent, invoke = sdk_message(MessageType.INVOKE, {"skill_id": "nudge"})
+    assert isinstance(invoke, Invoke)
+    assert (invoke.msg_id, invoke.envelope.sent_at_s) == (sent.msg_id, sent.timestamp)
+    sent, cancel = sdk_message(MessageType.INVOKE_CANCEL, {"msg_id": invoke.msg_id})
+    assert isinstance(cancel, InvokeCancel)
+    assert (cancel.invoke_id, cancel.message_id, cancel.envelope.msg_id,
+            cancel.envelope.sent_at_s) == (invoke.msg_id, sent.msg_id, sent.msg_id,
+                                           sent.timestamp)
+    sent, authorize = sdk_message(MessageType.AUTHORIZE, {"pending_id": "p1",
+                                                          "decision": "approve"})
+    assert isinstance(authorize, Authorization)
+    assert (authorize.message_id, authorize.envelope.sent_at_s) == (sent.msg_id,
+                                                                    sent.timestamp)
+
+
+@pytest.mark.parametrize(("extra", "path"), [
+    ({"timestamp": 1000.0, "timestamp_ms": 2_000_000}, "$.timestamp"),
+    ({"msg_id": "a", "message_id": "b"}, "$.msg_id"),
+])
+def test_a_cancel_that_gives_its_time_or_id_twice_must_agree(extra: dict[str, Any],
+                                                             path: str) -> None:
+    body = {**PROSE["invokeCancel"], "rcan_version": "3.2", **extra}
+    with pytest.raises(SchemaValidationError) as caught:
+        parse(body)
+    assert caught.value.path == path, caught.value
+    assert isinstance(parse({**body, "timestamp_ms": 1_000_000, "message_id": "a"}
+                            if "timestamp" in extra else {**body, "message_id": "a"}),
+                      InvokeCancel)
 
 
 def test_none_of_them_is_a_command() -> None:

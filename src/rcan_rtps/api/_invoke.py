@@ -33,11 +33,13 @@ INVOKE_RESULT can be read back from the log (rcan-spec's conformance case L3-INV
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 import msgspec
 
@@ -64,6 +66,7 @@ from ._bodies import Capability, SkillList, SkillView
 from .ports import GoalView, RobotView
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 Reply = tuple[int, object]
 TERMINAL = frozenset({"succeeded", "canceled", "aborted", "rejected", "lost"})
 FINISHED_KEPT = 1024  # answered INVOKEs remembered for a late INVOKE_CANCEL
@@ -122,10 +125,12 @@ class _Running:
 
 @dataclass(frozen=True)
 class Started:
-    """An INVOKE decided: its reply now, or `finish` to await it (a goal under way)."""
+    """An INVOKE decided: its reply now, or `finish()`, a future of its answer for its one
+    waiter (a goal, a stream or a trajectory under way). Cancelling that future — its client
+    left — stops the INVOKE's motion and answers it in the log (`Invocations._answering`)."""
 
     reply: Reply | None = None
-    finish: Callable[[], Awaitable[Reply]] | None = None
+    finish: Callable[[], asyncio.Future[Reply]] | None = None
 
 
 class Invocations:
@@ -139,7 +144,9 @@ class Invocations:
         self._by_goal: dict[str, _Running] = {}
         self._by_stream: dict[tuple[str, str], _Running] = {}  # by (owner, message id)
         self._finished: OrderedDict[tuple[str, str], InvokeResult] = OrderedDict()
-        self._left: set[asyncio.Task[InvokeResult]] = set()  # answers nobody waits for
+        # INVOKEs being decided and answered: tasks of their own, which the cancellation of
+        # what waits for them (a client gone) cannot cut off before the answer is in the log.
+        self._tasks: set[asyncio.Future[Any]] = set()
 
     def listed(self, governor: Governor) -> SkillList:
         """What GET /api/skills says: the §18/§19.7 `invoke` capability and each skill."""
@@ -151,6 +158,12 @@ class Invocations:
     # -- INVOKE ---------------------------------------------------------------------------
 
     async def start(self, governor: Governor, principal: Principal, invoke: Invoke) -> Started:
+        """Decide the INVOKE. Once it is a command, it arrives at the governor in this step
+        and is decided and answered in tasks of their own: a caller cancelled meanwhile (its
+        WebSocket closed while the INVOKE was decided, or in the very step its decision came)
+        cuts off its wait, never the INVOKE's answer (red team 15: no INVOKE_RESULT entry was
+        written). Nobody waits for that answer then: an INVOKE under way is one whose client
+        left (`_answering`), its motion stopped and its answer in the log alone."""
         self._forget_reviewed(governor)
         skill = self.skills.get(invoke.skill)
         if skill is None:
@@ -178,10 +191,22 @@ class Invocations:
         if command.spec.streamed:  # listened for now: a move to a standstill ends as it starts
             running.stream = command.message_id
             self._by_stream[principal.name, command.message_id] = running
+        deciding = governor.decide_soon(command, principal)  # arrived: a stop from now wins
+        started = self._keep(asyncio.ensure_future(self._once_decided(
+            governor, principal, invoke, key, running, deciding)))
         try:
-            decision = await governor.decide(command, principal)
+            return await asyncio.shield(started)
+        except asyncio.CancelledError:
+            started.add_done_callback(_nobody_waits)
+            raise
+
+    async def _once_decided(self, governor: Governor, principal: Principal, invoke: Invoke,
+                            key: tuple[str, str], running: _Running,
+                            deciding: Awaitable[Decision]) -> Started:
+        try:
+            decision = await deciding
         except BaseException:
-            del self._running[key]
+            self._forget(key, running)
             self._forget_stream(principal, running)
             raise
         return await self._decided(governor, principal, invoke, key, running, decision)
@@ -198,9 +223,9 @@ class Invocations:
                        key: tuple[str, str], running: _Running, decision: Decision) -> Started:
         if running.stream is not None:
             if self._stream_started(governor, principal, running, decision):
-                return Started(finish=lambda: self._until_answered(
+                return self._answering(
                     governor, principal, key, running, decision,
-                    self._finish_stream(governor, principal, invoke, key, running, decision)))
+                    self._finish_stream(governor, principal, invoke, key, running, decision))
             self._forget_stream(principal, running)
         if decision.outcome is Outcome.PENDING_AUTH:  # held: an INVOKE_CANCEL withdraws it
             running.pending_id = decision.pending_id
@@ -219,9 +244,9 @@ class Invocations:
             if running.cancelled:  # cancelled while it was being decided
                 running.held.set_result(await governor.hold_trajectory(
                     decision.message_id, principal, message_id=None, why=BY_INVOKE_CANCEL))
-            return Started(finish=lambda: self._until_answered(
+            return self._answering(
                 governor, principal, key, running, decision,
-                self._finish_trajectory(governor, principal, invoke, key, running, decision)))
+                self._finish_trajectory(governor, principal, invoke, key, running, decision))
         if decision.outcome is not Outcome.EXECUTED or decision.goal_id is None:
             del self._running[key]
             result = self._result(running, decision, _decided_status(decision))
@@ -235,24 +260,52 @@ class Invocations:
         if running.cancelled:  # cancelled while its goal was being sent
             await governor.cancel_goal(decision.goal_id, principal, message_id=None,
                                        why=BY_INVOKE_CANCEL)
-        return Started(finish=lambda: self._until_answered(
+        return self._answering(
             governor, principal, key, running, decision,
-            self._finish(governor, principal, invoke, key, running, decision)))
+            self._finish(governor, principal, invoke, key, running, decision))
 
-    async def _until_answered(self, governor: Governor, principal: Principal,
-                              key: tuple[str, str], running: _Running, decision: Decision,
-                              finish: Awaitable[Reply]) -> Reply:
-        """`finish`, the INVOKE's answer; if its waiter is cancelled first (its client left:
-        its WebSocket closed, its HTTP request hung up), its motion is stopped as its
-        INVOKE_CANCEL would stop it and it is answered in the log — `failure`, its client
-        gone — so that every INVOKE's lifecycle ends in an INVOKE_RESULT entry (§19.5)."""
-        try:
-            return await finish
-        except asyncio.CancelledError:
-            if not running.answering:
-                self._running.pop(key, None)
-                self._left_behind(governor, principal, key, running, decision)
-            raise
+    def _answering(self, governor: Governor, principal: Principal, key: tuple[str, str],
+                   running: _Running, decision: Decision,
+                   finish: Coroutine[object, object, Reply]) -> Started:
+        """An INVOKE under way: `finish`, its answer, runs from now on in a task of its own
+        (its waiter may be cancelled, or never scheduled at all); `Started.finish` hands its
+        one waiter a future of it. That future cancelled before the answer is on its way
+        (its client left: its WebSocket closed, its HTTP request hung up), its motion is
+        stopped as its INVOKE_CANCEL would stop it and it is answered in the log —
+        `failure`, its client gone — so that every INVOKE's lifecycle ends in an
+        INVOKE_RESULT entry (§19.5)."""
+        answer = self._keep(asyncio.ensure_future(finish))
+
+        def waiter() -> asyncio.Future[Reply]:
+            waiting: asyncio.Future[Reply] = asyncio.get_running_loop().create_future()
+            answer.add_done_callback(functools.partial(_handed_on, waiting))
+
+            def given_up(waited: asyncio.Future[Reply]) -> None:
+                if waited.cancelled():
+                    self._client_left(governor, principal, key, running, decision, answer)
+
+            waiting.add_done_callback(given_up)
+            return waiting
+
+        return Started(finish=waiter)
+
+    def _client_left(self, governor: Governor, principal: Principal, key: tuple[str, str],
+                     running: _Running, decision: Decision, answer: asyncio.Future[Reply]
+                     ) -> None:
+        if running.answering or self._running.get(key) is not running:
+            return  # its one answer is made, or on its way to the log: it stands
+        del self._running[key]
+        answer.cancel()  # its own wait ends; what it would have done, done here
+        self._left_behind(governor, principal, key, running, decision)
+        if running.goal_id is not None:  # (the cancelled task may never have run)
+            self._by_goal.pop(running.goal_id, None)
+        self._forget_stream(principal, running)
+
+    def _keep(self, task: asyncio.Future[T]) -> asyncio.Future[T]:
+        """`task`, referenced until it is done (the loop holds tasks weakly)."""
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
 
     def _left_behind(self, governor: Governor, principal: Principal, key: tuple[str, str],
                      running: _Running, decision: Decision) -> None:
@@ -262,11 +315,9 @@ class Invocations:
         cancelled waiter cannot cut off."""
         ended = (running.stream is not None and not running.stream_end.done()
                  and governor.end_stream(running.stream, principal, why=BY_CLIENT_LEFT))
-        task = asyncio.ensure_future(self._stopped_then_answered(
+        self._keep(asyncio.ensure_future(self._stopped_then_answered(
             governor, principal, key, running, decision, ["its velocity stream ended, zero "
-                                                          "sent"] if ended else []))
-        self._left.add(task)
-        task.add_done_callback(self._left.discard)
+                                                          "sent"] if ended else [])))
 
     async def _stopped_then_answered(self, governor: Governor, principal: Principal,
                                      key: tuple[str, str], running: _Running,
@@ -291,7 +342,7 @@ class Invocations:
                          decision: Decision) -> list[str]:
         stopped = []
         if (running.trajectory is not None and not running.held.done()
-                and governor.trajectory_running(running.trajectory)):
+                and governor.trajectory_running(running.trajectory, principal)):
             held = await governor.hold_trajectory(running.trajectory, principal,
                                                   message_id=decision.message_id,
                                                   why=BY_CLIENT_LEFT)
@@ -321,7 +372,7 @@ class Invocations:
         else:
             result = self._ended(running, decision, view)
         finally:
-            self._running.pop(key, None)
+            self._forget(key, running)
             self._by_goal.pop(running.goal_id, None)
         return 200, await self._answer(governor, principal, key, running, result)
 
@@ -347,14 +398,14 @@ class Invocations:
                                       Outcome.EXECUTED else "failure", held.reason or
                                       "held where it was by INVOKE_CANCEL")
         finally:
-            self._running.pop(key, None)
+            self._forget(key, running)
         return 200, await self._answer(governor, principal, key, running, result)
 
     async def _trajectory_over(self, governor: Governor, principal: Principal,
                                running: _Running, decision: Decision, *, timed_out: bool,
                                timeout_ms: int) -> InvokeResult:
         assert running.trajectory is not None
-        if running.cancelled and not governor.trajectory_running(running.trajectory):
+        if running.cancelled and not governor.trajectory_running(running.trajectory, principal):
             # Its INVOKE_CANCEL's hold is made (at once), its entry still on its way to the
             # log: no stop's, and no second hold.
             return self._result(running, decision, "cancelled",
@@ -366,7 +417,7 @@ class Invocations:
             return self._result(running, decision, "timeout",
                                 f"not done within {timeout_ms} ms: the arm held where it was "
                                 f"({held.outcome.value})")
-        if governor.trajectory_running(running.trajectory):
+        if governor.trajectory_running(running.trajectory, principal):
             return self._result(running, decision, "success")
         return self._result(running, decision, "failure",
                             "a stop held the arm before its trajectory's time was up")
@@ -409,7 +460,7 @@ class Invocations:
                 result = self._stream_result(running, decision, ended)
             return 200, await self._answer(governor, principal, key, running, result)
         finally:
-            self._running.pop(key, None)
+            self._forget(key, running)
             self._forget_stream(principal, running)
 
     def _stream_result(self, running: _Running, decision: Decision,
@@ -431,9 +482,18 @@ class Invocations:
         if running is not None and not running.stream_end.done():
             running.stream_end.set_result(ended)
 
+    def _forget(self, key: tuple[str, str], running: _Running) -> None:
+        """`running` is no longer under way; a later INVOKE of its msg_id (its client left
+        this one) that took its key stays."""
+        if self._running.get(key) is running:
+            del self._running[key]
+
     def _forget_stream(self, principal: Principal, running: _Running) -> None:
-        if running.stream is not None:
-            self._by_stream.pop((principal.name, running.stream), None)
+        if running.stream is None:
+            return
+        by = (principal.name, running.stream)
+        if self._by_stream.get(by) is running:  # (as `_forget`)
+            del self._by_stream[by]
 
     def _ended(self, running: _Running, decision: Decision, view: GoalView) -> InvokeResult:
         if view.state == "succeeded":
@@ -469,7 +529,7 @@ class Invocations:
         if not already:
             answer = await self._cancelling(governor, principal, cancel, key, running)
             if answer is not None:
-                return answer
+                return _as_cancels(answer, cancel)
         try:  # the INVOKE's own answer, once its goal has wound down
             answered = await asyncio.wait_for(asyncio.shield(running.answered),
                                               cancel.cancel_timeout_ms / 1000)
@@ -478,7 +538,7 @@ class Invocations:
                                      invoke_id=running.invoke_id, payload={},
                                      skill=running.skill, reply_to=running.invoke_id,
                                      reason="cancelling", msg_id=cancel.message_id)
-        return 200, answered
+        return _as_cancels((200, answered), cancel)
 
     async def _cancelling(self, governor: Governor, principal: Principal,
                           cancel: InvokeCancel, key: tuple[str, str],
@@ -563,7 +623,11 @@ class Invocations:
     async def _answer(self, governor: Governor, principal: Principal, key: tuple[str, str],
                       running: _Running, result: InvokeResult) -> InvokeResult:
         """The INVOKE's one INVOKE_RESULT (§19.1): audited, remembered for a late
-        INVOKE_CANCEL, handed to a cancel waiting for it."""
+        INVOKE_CANCEL, handed to a cancel waiting for it. Only the first answer counts: an
+        INVOKE answered as its client left may have been answered by its own end in that
+        very step (a task cancelled as what it waits for is done runs on: `wait_for`)."""
+        if running.answering:
+            return await asyncio.shield(running.answered)
         running.answering = True
         await _audit(governor, principal, result)
         self._finished[key] = result
@@ -577,7 +641,14 @@ class Invocations:
     async def _refused(self, governor: Governor, principal: Principal, invoke: Invoke,
                        rejection: Rejection, kind: str, message: str, *,
                        path: str | None = None) -> Reply:
-        """An INVOKE refused before it became a command: audited, answered INVOKE_RESULT."""
+        """An INVOKE refused before it became a command: audited, answered INVOKE_RESULT; in
+        a task of its own, whose entries a caller cancelled meanwhile does not cut off."""
+        return await asyncio.shield(self._keep(asyncio.ensure_future(self._refusal(
+            governor, principal, invoke, rejection, kind, message, path=path))))
+
+    async def _refusal(self, governor: Governor, principal: Principal, invoke: Invoke,
+                       rejection: Rejection, kind: str, message: str, *,
+                       path: str | None) -> Reply:
         decision = await governor.reject_request(principal, rejection, message_id=invoke.msg_id,
                                                  rcan=invoke.envelope.audit_facts())
         result = InvokeResult(
@@ -627,6 +698,16 @@ async def _refuse(governor: Governor, principal: Principal, rejection: Rejection
     return decision.http_status, _body(decision.body(), msg_id)
 
 
+def _as_cancels(reply: Reply, cancel: InvokeCancel) -> Reply:
+    """The INVOKE's INVOKE_RESULT as its INVOKE_CANCEL's answer: with the cancel's own id as
+    `msg_id`, when it has one (RCANResponse's echo of the message it answers; `reply_to`
+    names the INVOKE), as its 202 and 409 answers have."""
+    status, body = reply
+    if isinstance(body, InvokeResult) and cancel.message_id is not None:
+        return status, msgspec.structs.replace(body, msg_id=cancel.message_id)
+    return reply
+
+
 def _cancel_refused(running: _Running, refused: Decision, cancel: InvokeCancel) -> Reply:
     """An INVOKE_CANCEL whose cancel of the goal, or hold of the arm, was refused: the
     INVOKE runs on (a retry may cancel it), and the cancel is answered with the refusal."""
@@ -637,6 +718,35 @@ def _cancel_refused(running: _Running, refused: Decision, cancel: InvokeCancel) 
 def _body(body: DecisionBody, msg_id: str | None) -> DecisionBody:
     body.msg_id, body.status = msg_id or body.message_id, STATUS_OF[body.outcome]
     return body
+
+
+def _handed_on(waiting: asyncio.Future[Reply], answer: asyncio.Future[Reply]) -> None:
+    """An INVOKE's answer task done: its waiter gets what it gave (an error nobody waits for
+    any more is logged here)."""
+    if answer.cancelled():  # its client left (the waiter was cancelled first), or shutdown
+        waiting.cancel()
+        return
+    error = answer.exception()
+    if waiting.done():
+        if error is not None:
+            log.error("answering an INVOKE whose client left failed", exc_info=error)
+    elif error is not None:
+        waiting.set_exception(error)
+    else:
+        waiting.set_result(answer.result())
+
+
+def _nobody_waits(deciding: asyncio.Future[Started]) -> None:
+    """An INVOKE decided after its caller was cancelled (its client left): one under way is
+    left as a client that leaves leaves it (`Invocations._answering`); one answered at once
+    is answered in the log already."""
+    if deciding.cancelled():
+        return
+    error = deciding.exception()
+    if error is not None:
+        log.error("an INVOKE whose client left failed", exc_info=error)
+    elif (started := deciding.result()).finish is not None:
+        started.finish().cancel()
 
 
 def _view(skill: SkillConfig, governor: Governor) -> SkillView:

@@ -19,7 +19,8 @@ msg_id) when the goal ends, while the frames behind it go on being decided. A ba
 does a command whose decision raised (503 frame). A *text* frame that is not UTF-8 is a
 protocol error (RFC 6455 §8.1): aiohttp closes the socket (1007). Any client frame, ping or
 pong counts as a heartbeat. When the socket closes, the motion of its INVOKEs not answered yet
-stops at once (nobody is left to answer: `_invoke`), and a control session its principal holds
+stops at once (nobody is left to answer: `_invoke`; one being decided, once it is: each is
+answered in the log, INVOKE_RESULT `failure`), and a control session its principal holds
 ends: the governor stops the robot (§10.8) after the command in flight and every stop sent
 have been decided; queued commands are dropped.
 
@@ -190,7 +191,9 @@ class _Commands:
         self._outbox = _Outbox(ws)
         self._checks = checks
         self._invocations = invocations
-        self._invoking: set[asyncio.Task[None]] = set()  # INVOKEs waiting for their goals
+        # The answers of INVOKEs under way (a goal, a stream, a trajectory): each cancelled
+        # as the socket closes, which stops that INVOKE's motion (`Started.finish`).
+        self._invoking: set[asyncio.Future[Reply]] = set()
         # INVOKEs queued here, not started yet (by msg_id), and the INVOKE_CANCELs of them
         # that came meanwhile: each goes to the lane once its INVOKE is decided (`_work`).
         self._queued: Counter[str] = Counter()
@@ -259,6 +262,9 @@ class _Commands:
             await self._deliver((429, body))
 
     async def _deliver(self, reply: Reply) -> None:
+        self._put(reply)
+
+    def _put(self, reply: Reply) -> None:
         status, body = reply
         self._outbox.put(WsFrame(type="outcome", http_status=status, body=body))
 
@@ -304,28 +310,29 @@ class _Commands:
             assert started.reply is not None
             await self._deliver(started.reply)
             return
-        finish = started.finish
+        answer = started.finish()  # now: a close from here on finds it (no task to start)
+        self._invoking.add(answer)
+        answer.add_done_callback(self._answered)
 
-        async def answer() -> None:
-            try:
-                await self._deliver(await finish())
-            except Exception:
-                log.exception("answering an INVOKE of %s failed", self._principal.name,
-                              extra={"principal": self._principal.name})
-
-        task = asyncio.create_task(answer())
-        self._invoking.add(task)
-        task.add_done_callback(self._invoking.discard)
+    def _answered(self, answer: asyncio.Future[Reply]) -> None:
+        """An INVOKE's answer, once its skill is done: its outcome frame."""
+        self._invoking.discard(answer)
+        if answer.cancelled():  # the socket closed: answered in the log alone
+            return
+        error = answer.exception()
+        if error is not None:
+            log.error("answering an INVOKE of %s failed", self._principal.name,
+                      exc_info=error, extra={"principal": self._principal.name})
+            return
+        self._put(answer.result())
 
     async def close(self) -> None:
         """Stop taking commands; stop the motion of the INVOKEs under way (nobody is left to
         answer: `_invoke`) at once; finish the command in flight and every stop; drop the
         rest."""
-        self._worker.cancel()
-        invoking = list(self._invoking)
-        for task in invoking:  # now, not once the command in flight is decided
-            task.cancel()
-        await asyncio.gather(*invoking, return_exceptions=True)
+        self._worker.cancel()  # an INVOKE being decided is left once decided (`_invoke`)
+        for answer in list(self._invoking):  # now, not once the command in flight is decided
+            answer.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await self._worker
         if self._current is not None:

@@ -306,21 +306,55 @@ class Governor:
         elif effect is Effect.HALT:  # the e-stop lane: no admission queue
             decided = await self._detached(self._decide(command, principal))
         else:
-            decided = await self._admitted(command, principal)
+            arrived, done = self._arrival(command, principal)
+            decided = await self._admitted(command, principal, arrived, done)
+        return self._as_told(command, principal, decided)
+
+    def decide_soon(self, command: NormalizedCommand, principal: Principal
+                    ) -> asyncio.Future[Decision]:
+        """`decide`, for a caller that must learn the decision even if it is cancelled
+        meanwhile (an INVOKE whose client left is still answered in the log, §19.5): the
+        command arrives now, in the caller's step, as in `decide` (a stop, or its
+        connection's close, from the next step on wins over it), and is decided in a task
+        of its own; the future returned is shielded from the caller's cancellation."""
+        if command.spec.stopping:
+            return asyncio.shield(self._steps.spawn(self.decide(command, principal)))
+        # In this step, as `decide` makes it; its task is never cancelled (the caller's
+        # cancel stops at the shield), so `_admitted` ends what `_arrival` began.
+        arrival = self._arrival(command, principal)
+        return asyncio.shield(self._steps.spawn(self._admitted_told(command, principal,
+                                                                    *arrival)))
+
+    async def _admitted_told(self, command: NormalizedCommand, principal: Principal,
+                             arrived: StopMark | None, done: Callable[[], None] | None
+                             ) -> Decision:
+        decided = await self._admitted(command, principal, arrived, done)
+        return self._as_told(command, principal, decided)
+
+    def _as_told(self, command: NormalizedCommand, principal: Principal,
+                 decided: Decision) -> Decision:
+        """The decision as its caller is told it: its thought remembered, its warnings."""
         if command.ai is not None:
             self._remember_thought(command, principal, decided)
         if command.warnings:  # executed anyway: the caller learns what was wrong
             return msgspec.structs.replace(decided, warnings=list(command.warnings))
         return decided
 
-    async def _admitted(self, command: NormalizedCommand, principal: Principal) -> Decision:
-        """A command that waits its turn (`MAX_IN_FLIGHT`). Motion is on its way from the
-        moment it arrives (`_on_its_way`): a stop of it that comes while it waits (a `stop`,
-        its connection closing) wins over it as over motion further on
-        (`VelocityStreams.arrived`)."""
+    def _arrival(self, command: NormalizedCommand, principal: Principal
+                 ) -> tuple[StopMark | None, Callable[[], None] | None]:
+        """Motion is on its way from the moment it arrives (`_on_its_way`): its stop mark,
+        and what ends its being decided (`VelocityStreams.arrived`, `decided`)."""
         on_its_way = self._on_its_way(command, principal)  # in this step: no stop between
         arrived = self.streams.arrived(principal.name) if on_its_way else None
         done = functools.partial(self.streams.decided, principal.name) if arrived else None
+        return arrived, done
+
+    async def _admitted(self, command: NormalizedCommand, principal: Principal,
+                        arrived: StopMark | None, done: Callable[[], None] | None
+                        ) -> Decision:
+        """A command that waits its turn (`MAX_IN_FLIGHT`), on its way since it arrived
+        (`_arrival`): a stop of it that comes while it waits (a `stop`, its connection
+        closing) wins over it as over motion further on (`VelocityStreams.arrived`)."""
         try:
             await self._admission.acquire()
         except BaseException:  # its caller left before it was decided: nothing on its way
@@ -790,9 +824,13 @@ class Governor:
         a stop (which cancels it itself)."""
         return goal_id in self.streams.goals
 
-    def trajectory_running(self, sent_by: str) -> bool:
-        """Whether the trajectory the command `sent_by` sent may still be running (not held
-        by a stop, its time not up); when that cannot be read, it may."""
+    def trajectory_running(self, sent_by: str, principal: Principal) -> bool:
+        """Whether the trajectory `principal`'s command `sent_by` sent may still be running
+        (not held by a stop, its time not up); when that cannot be read, it may."""
+        # Ids are unique per principal only: another's trajectory of this id sent means this
+        # one's ended (`_ran_on`), and its running is not this one's (an INVOKE's success).
+        if sent_by in self._trajectories(principal.name, others=True):
+            return False
         running = self._steps.running_trajectories()
         return running is None or sent_by in running
 

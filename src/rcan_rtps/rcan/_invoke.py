@@ -19,6 +19,11 @@ MessageType table (§3, and the SDK's `rcan.message.MessageType`):
 
 Envelope fields (`rcan_version`, `ruri`, `timestamp_ms`, `message_id`) are accepted on each, and
 §3.5 applies as to any message: with `rcan_version`, unknown fields are ignored and recorded.
+The official SDK's envelope (`rcan.message.RCANMessage.to_dict()`, which has no builder of
+these) times a message by `timestamp`, in Unix seconds: read as its sent time when
+`timestamp_ms` is not given, as for the SDK's COMMAND. Its `msg_id` is an INVOKE_CANCEL's or
+an AUTHORIZE's own id, as `message_id` is (§19.4's `msg_id` is in `payload`: the INVOKE's).
+Given twice, each must agree.
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ DEFAULT_CANCEL_TIMEOUT_MS = 5_000  # §19.4
 SkillName = Annotated[str, msgspec.Meta(
     min_length=1, max_length=128, pattern=whole(r"[a-z][a-z0-9_]*(\.[a-z][a-z0-9_]*)*"))]
 TimestampMs = Annotated[int, msgspec.Meta(ge=0)]
+UnixSeconds = Annotated[float, msgspec.Meta(ge=0.0, le=1e11)]  # the SDK envelope's `timestamp`
 Millis = Annotated[int, msgspec.Meta(ge=1, le=86_400_000)]
 
 
@@ -53,6 +59,7 @@ class InvokeMessage(Strict, frozen=True, kw_only=True):
     rcan_version: VersionText | None = None
     ruri: Text | None = None
     timestamp_ms: TimestampMs | None = None
+    timestamp: UnixSeconds | None = None
 
 
 class CancelPayload(Strict, frozen=True, kw_only=True):
@@ -72,9 +79,11 @@ class InvokeCancelMessage(Strict, frozen=True, kw_only=True):
     # (and never recorded: it is a credential).
     session_token: Annotated[str, msgspec.Meta(min_length=1, max_length=8192)] | None = None
     message_id: MsgId | None = None
+    msg_id: MsgId | None = None  # the SDK envelope's: its own id (the INVOKE's is in payload)
     rcan_version: VersionText | None = None
     ruri: Text | None = None
     timestamp_ms: TimestampMs | None = None
+    timestamp: UnixSeconds | None = None
 
 
 class AuthorizeMessage(Strict, frozen=True, kw_only=True):
@@ -86,9 +95,11 @@ class AuthorizeMessage(Strict, frozen=True, kw_only=True):
     principal_id: Annotated[str, msgspec.Meta(min_length=1, max_length=128)] | None = None
     reason: ShortText | None = None  # ours: recorded with the review
     message_id: MsgId | None = None
+    msg_id: MsgId | None = None  # the SDK envelope's
     rcan_version: VersionText | None = None
     ruri: Text | None = None
     timestamp_ms: TimestampMs | None = None
+    timestamp: UnixSeconds | None = None
 
 
 # -- what they become -----------------------------------------------------------------------
@@ -141,8 +152,20 @@ def is_kind(obj: dict[str, Any], name: str, number: int) -> bool:
     return obj.get("type") == name or obj.get("message_type") == number
 
 
-def _seconds(ms: int | None) -> float | None:
-    return None if ms is None else ms / 1000.0
+def _sent_at(ms: int | None, seconds: float | None) -> float | None:
+    """The message's sent time: `timestamp_ms`, or the SDK envelope's `timestamp`."""
+    if ms is None:
+        return seconds
+    if seconds is not None and abs(seconds - ms / 1000.0) >= 0.001:
+        raise SchemaValidationError("$.timestamp", "differs from timestamp_ms")
+    return ms / 1000.0
+
+
+def _own_id(message_id: str | None, msg_id: str | None) -> str | None:
+    """The message's own id: `message_id`, or the SDK envelope's `msg_id`."""
+    if message_id is not None and msg_id is not None and message_id != msg_id:
+        raise SchemaValidationError("$.msg_id", "differs from message_id")
+    return message_id or msg_id
 
 
 def from_invoke(msg: InvokeMessage, ignored: tuple[str, ...], made_id: str) -> Invoke:
@@ -156,7 +179,8 @@ def from_invoke(msg: InvokeMessage, ignored: tuple[str, ...], made_id: str) -> I
                   client_msg_id=msg.msg_id is not None, ruri=msg.ruri,
                   timestamp_ms=msg.timestamp_ms,
                   envelope=Envelope(version=msg.rcan_version, msg_id=msg_id, ignored=ignored,
-                                    sent_at_s=_seconds(msg.timestamp_ms), skill=skill))
+                                    sent_at_s=_sent_at(msg.timestamp_ms, msg.timestamp),
+                                    skill=skill))
 
 
 def from_cancel(msg: InvokeCancelMessage, ignored: tuple[str, ...]) -> InvokeCancel:
@@ -169,11 +193,12 @@ def from_cancel(msg: InvokeCancelMessage, ignored: tuple[str, ...]) -> InvokeCan
     else:
         assert msg.cancel_msg_id is not None
         invoke_id, timeout, reason = msg.cancel_msg_id, DEFAULT_CANCEL_TIMEOUT_MS, msg.reason
+    own_id = _own_id(msg.message_id, msg.msg_id)
     return InvokeCancel(invoke_id=invoke_id, reason=reason, cancel_timeout_ms=timeout,
-                        principal_id=msg.principal_id, message_id=msg.message_id, ruri=msg.ruri,
-                        envelope=Envelope(version=msg.rcan_version, msg_id=msg.message_id,
+                        principal_id=msg.principal_id, message_id=own_id, ruri=msg.ruri,
+                        envelope=Envelope(version=msg.rcan_version, msg_id=own_id,
                                           ignored=ignored,
-                                          sent_at_s=_seconds(msg.timestamp_ms)))
+                                          sent_at_s=_sent_at(msg.timestamp_ms, msg.timestamp)))
 
 
 def from_authorize(msg: AuthorizeMessage, ignored: tuple[str, ...]) -> Authorization:
@@ -182,12 +207,13 @@ def from_authorize(msg: AuthorizeMessage, ignored: tuple[str, ...]) -> Authoriza
                                     "or pending_id")
     verdict: Literal["approve", "deny"] = (
         "approve" if msg.decision in ("APPROVE", "approve") else "deny")
+    own_id = _own_id(msg.message_id, msg.msg_id)
     return Authorization(verdict=verdict, pending_id=msg.pending_id, thought_id=msg.thought_id,
                          principal_id=msg.principal_id, reason=msg.reason,
-                         message_id=msg.message_id, ruri=msg.ruri,
-                         envelope=Envelope(version=msg.rcan_version, msg_id=msg.message_id,
+                         message_id=own_id, ruri=msg.ruri,
+                         envelope=Envelope(version=msg.rcan_version, msg_id=own_id,
                                            ignored=ignored,
-                                           sent_at_s=_seconds(msg.timestamp_ms)))
+                                           sent_at_s=_sent_at(msg.timestamp_ms, msg.timestamp)))
 
 
 # -- INVOKE_RESULT ----------------------------------------------------------------------------

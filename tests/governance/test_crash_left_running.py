@@ -170,6 +170,27 @@ async def test_goals_are_listed_by_id_or_as_having_none(
         ("nav-1", ids[0], NAV), ("nav-2", None, NAV)]
 
 
+async def test_a_goal_whose_send_gave_up_is_listed_until_its_end(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A COMMAND_FAILED naming the goal (its send gave up after the request went out: the
+    server may accept it late) does not end it; its GOAL_FINISHED does. One naming none (the
+    server refused it) does."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    ids = [str(uuid.uuid4()) for _ in range(3)]
+    for n, goal_id in enumerate(ids, 1):
+        await log.goal(f"nav-{n}", goal_id)
+    for n, goal_id in ((1, ids[0]), (2, None), (3, ids[2])):
+        await log.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id=f"nav-{n}",
+                      action_type="navigate", outcome="failed", goal_id=goal_id,
+                      deny_reason="robot_unavailable:no reply within the timeout")
+    await log.add(AuditEvent.GOAL_FINISHED, message_id="nav-3", params={"goal_id": ids[2]},
+                  outcome="canceled", ros2_topic=NAV)
+    await log.audit.close()
+    goals = resume(log.path, now_ms=log.now_ms()).left.goals
+    assert [(g.message_id, g.goal_id, g.server) for g in goals] == [("nav-1", ids[0], NAV)]
+
+
 async def test_a_torn_last_line_does_not_hide_what_came_before(
         tmp_path: Path, clock: ManualClock) -> None:
     """Killed mid-append: the last line is cut short. The scan reads past it (the log cuts
@@ -227,6 +248,34 @@ async def test_a_start_after_a_crash_takes_back_what_it_left(harness: Harness) -
     gov = await harness.governor(gates="[]")
     await gov.start()
     assert harness.dispatcher.left == []
+    await gov.stop()
+
+
+async def test_a_start_after_a_crash_cancels_a_goal_whose_send_gave_up(
+        harness: Harness) -> None:
+    """Killed while a goal whose send gave up was watched for (its server may accept it
+    late): its COMMAND_FAILED names it, and the restart cancels it by id. A goal its server
+    refused is not named, nor taken back."""
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    failed = {}
+    for send in ("gave up", "rejected"):
+        harness.dispatcher.goal_send = send
+        decided = await gov.decide(command("navigate", {"x": 1.0, "y": 0.0, "yaw": 0.0}),
+                                   PLANNER)
+        assert decided.outcome is not Outcome.EXECUTED, decided
+        failed[send] = decided.message_id
+    [written] = [e["goal_id"] for e in harness.entries
+                 if e["event"] == "COMMAND_DISPATCHED" and e["message_id"] == failed["gave up"]]
+    [named] = [e["goal_id"] for e in harness.entries if e["event"] == "COMMAND_FAILED"
+               and e["message_id"] == failed["gave up"]]
+    assert named == written
+    await harness.restart()  # no BRIDGE_STOPPED: a crash
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [left] = harness.dispatcher.left
+    assert [(g.message_id, g.goal_id) for g in left.goals] == [(failed["gave up"], written)]
+    assert harness.entries[-1]["applied"]["goals_cancelled"] == [written]
     await gov.stop()
 
 

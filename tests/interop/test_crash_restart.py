@@ -315,3 +315,62 @@ async def test_an_arm_left_stamped_ahead_of_the_clock_is_kept_no_longer_than_it_
     await asyncio.sleep(1.0 + 1.0)  # its time (and settling) is over by now, whatever the clock
     stopped = await bridge.command({"action": "stop"})
     assert stopped["outcome"] == "executed", stopped
+
+
+class HeldAcceptServer(CancelRecordingServer):
+    """Accepts each goal only once `release` is set (a busy server: the bridge's send gives
+    up first); its goals run until cancelled (`running`: their ids, until then)."""
+
+    def __init__(self, node: RosNode) -> None:
+        self.release = asyncio.Event()
+        self.cancels = []
+        self.running: set[bytes] = set()
+        super().__init__(node, "navigate_to_pose", NAV, self._until_cancelled,
+                         accept=self._accept_late)
+
+    async def _accept_late(self, goal: Any) -> bool:
+        await self.release.wait()
+        return True
+
+    async def _until_cancelled(self, goal: ServerGoal) -> dict[str, Any]:
+        self.running.add(goal.goal_id)
+        try:
+            return await _until_cancelled(goal)
+        finally:
+            self.running.discard(goal.goal_id)
+
+
+async def test_a_restart_after_a_kill_during_a_late_goal_s_watch_cancels_it(
+        bridge: Bridge, robot: RclpyOracle, domain_id: int) -> None:
+    """The goal's send gave up (no answer within match_timeout_s: its command failed) and
+    the bridge was killed while it watched for the server accepting it late. The server then
+    accepts it: it runs with nobody governing it. Before, the restart took the command's
+    COMMAND_FAILED for the goal's end and left it running; now the COMMAND_FAILED names the
+    goal (it may run) and the restart cancels it by id."""
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as node:
+        server = HeldAcceptServer(node)
+        try:
+            run = await bridge.start()
+            headers = {"Authorization": f"Bearer {TOKEN}"}
+            async with aiohttp.ClientSession(headers=headers) as http, \
+                    http.post(run.url + "/api/command", json={
+                        "action": "navigate", "params": {"x": 3.0, "y": 0.0, "yaw": 0.0},
+                    }) as resp:
+                answer = await resp.json()
+            assert answer["outcome"] == "failed", answer
+            [failed] = [e for e in bridge.entries() if e["event"] == "COMMAND_FAILED"]
+            [dispatched] = [e for e in bridge.entries() if e.get("action_type") == "navigate"
+                            and e["event"] == "COMMAND_DISPATCHED"]
+            assert failed["goal_id"] == dispatched["goal_id"], failed  # it may run
+            goal = uuid.UUID(failed["goal_id"]).bytes
+            bridge.kill()  # mid-watch: its late cancel dies with it
+            server.release.set()
+            await eventually(lambda: goal in server.running, what="the late goal running")
+            await bridge.start()
+            # Awaited before the ready line: the server is canceling it by then.
+            took_back = took_back_in(bridge.entries())
+            assert took_back["applied"]["goals_cancelled"] == [failed["goal_id"]], took_back
+            await eventually(lambda: goal not in server.running,
+                             what="the late goal cancelled")
+        finally:
+            await server.close()

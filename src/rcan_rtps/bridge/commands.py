@@ -72,6 +72,12 @@ class GoalServers(Protocol):
         """Cancels every active goal on every server; returns how many were active."""
         ...
 
+    def may_run(self, goal_id: str) -> bool:
+        """Whether a goal whose send failed may run all the same: its send gave up after
+        its request went out (its server may accept it late), or it was accepted and is
+        being cancelled. Not one its server refused."""
+        ...
+
     async def cancel(self, goal_id: str) -> bool:
         """Cancels one goal this bridge sent, on its own server; True if it is canceling."""
         ...
@@ -496,7 +502,11 @@ class RosDispatcher:
                                             goal_id=command.goal_id)
         except Exception as exc:  # rejected, no server, timeout: all mean "not executing"
             log.warning("%s goal not accepted: %s", ros.type_name, exc)
-            return DispatchResult(ok=False, ros2_topic=server, detail=str(exc))
+            # A send that gave up may still be accepted late: the failure names the goal,
+            # so that a crash's restart cancels it (`governance.resume`).
+            may_run = command.goal_id is not None and self.goals.may_run(command.goal_id)
+            return DispatchResult(ok=False, ros2_topic=server, detail=str(exc),
+                                  goal_id=command.goal_id if may_run else None)
         return DispatchResult(ok=True, ros2_topic=server, goal_id=goal_id)
 
     def _goal_kit(self, type_name: str) -> _Kit:

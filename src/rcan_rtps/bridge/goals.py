@@ -116,6 +116,12 @@ class GoalRoutes:
         errors = [f"{type(o).__name__}: {o}" for o in outcomes if isinstance(o, BaseException)]
         return "; ".join(errors) or CANCELING_NOTHING
 
+    def may_run(self, goal_id: str) -> bool:
+        """Whether a goal whose send failed may run on its server all the same
+        (`GoalTracker.may_run`): its command's COMMAND_FAILED names it, for a crash's
+        restart to cancel."""
+        return any(t.may_run(goal_id) for t in self.trackers)
+
     async def cancel(self, goal_id: str) -> bool:
         """Cancels one goal this bridge sent, on its own server; True if it is canceling."""
         for tracker in self.trackers:

@@ -111,6 +111,13 @@ class GoalTracker:
         """Cancels one goal this bridge sent; True if the server is canceling it."""
         return self._sent is not None and await self._sent.cancel(goal_id)
 
+    def may_run(self, goal_id: str) -> bool:
+        """Whether the server may run `goal_id` though its send failed: the send gave up
+        after its request went out (the server may accept it late: watched for), or it was
+        accepted and is being cancelled (a stop came while it was on its way) — not when
+        the server refused it."""
+        return self.client.watching_late(uuid.UUID(goal_id).bytes) or goal_id in self.active()
+
     async def cancel_left(self, goal_id: str | None, timeout: float) -> bool:
         """Cancels a goal a crashed run of the bridge left, by its id (any client may), or
         with no id known every goal of the server (as a stop does); waits up to `timeout`

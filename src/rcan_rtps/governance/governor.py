@@ -587,12 +587,14 @@ class Governor:
             # A goal the bridge refused because a stop came while it was on its way (it
             # cancels it: `GoalTracker`) is answered as one this governor cancels: `stopped`.
             halted = self.streams.halted_since(stops) if spec.starts_goal else None
-            return await self._steps.failed(command, principal, halted or failure)
+            return await self._steps.failed(command, principal, halted or failure,
+                                            goal_id=result.goal_id)
         if spec.starts_goal:  # a stop or e-stop since it was decided: cancelled by id
             refused = self._base.hold_goal(result.goal_id, owner, priority, command.message_id,
                                            stops)
-            if refused is not None:
-                return await self._steps.failed(command, principal, refused)
+            if refused is not None:  # (running until its cancel ends it: named, as it may run)
+                return await self._steps.failed(command, principal, refused,
+                                                goal_id=result.goal_id)
         if result.runs_for_s is not None and result.ros2_topic:
             self._ran_on(result.ros2_topic, owner.name, command.message_id)
         return executed(command, applied, receipt, result)

@@ -18,7 +18,8 @@ shows ended (`LeftRunning`): arm trajectories still due by the wall clock (sent 
 counted them), goals (their `goal_id`, written ahead since goals were sent with an id chosen
 before their entry; older entries have none) and velocity streams. A start halts them
 (`Governor.start`). Ended: GOAL_FINISHED, STREAM_ENDED, a COMMAND_FAILED of the command
-(its principal's and action's: a failed hold or cancel under its id ended nothing), a
+(its principal's and action's: a failed hold or cancel under its id ended nothing;
+one naming a goal did not end it: its send gave up, the server may accept it late), a
 later trajectory of the same joints on the same topic (it replaced it, unless its own
 COMMAND_FAILED follows: refused once written ahead, it was never sent; the newest such
 replacement may not have been sent either — the crash came between its entry and its
@@ -193,7 +194,9 @@ class _Motion:
         elif event in _HALTS:
             self._halt(entry)
         elif event == "COMMAND_FAILED" and isinstance(message_id, str):
+            sent = self.goals.get(_key(entry))
             self._failed(_key(entry))
+            self._may_run(entry, sent)
         elif event == "GOAL_FINISHED":
             self._goal_finished(entry)
         elif event == "STREAM_ENDED" and isinstance(message_id, str):
@@ -301,6 +304,20 @@ class _Motion:
             self.goals = {**goals, **self.goals}
             self.streams = {**streams, **self.streams}
             self._replaced = {**replaced, **self._replaced}
+
+    def _may_run(self, failed: dict[str, Any], sent: LeftGoal | None) -> None:
+        """A COMMAND_FAILED naming a goal: its send gave up after the request went out (the
+        server may accept it late), or it was accepted and was being cancelled. Failed, it
+        is not ended: listed until its GOAL_FINISHED (fails closed; a cancel by id of a goal
+        the server never had cancels nothing)."""
+        goal_id = failed.get("goal_id")
+        if not isinstance(goal_id, str):
+            return
+        self.goals[_key(failed)] = LeftGoal(
+            message_id=str(failed.get("message_id")), action=str(failed.get("action_type")),
+            principal=failed.get("principal"),
+            server=sent.server if sent is not None else None,  # (None: asked of every one)
+            goal_id=goal_id)
 
     def _goal_finished(self, entry: dict[str, Any]) -> None:
         given = entry.get("params")

@@ -33,6 +33,9 @@ class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):
 
     ok: bool
     ros2_topic: str | None = None
+    # The goal started; on a failure, one its server may run all the same (its send gave up
+    # after the request went out, or it was accepted and is being cancelled): the command's
+    # COMMAND_FAILED names it, for a crash's restart to cancel (`resume`).
     goal_id: str | None = None
     detail: str | None = None
     # What was sent runs on after this, for up to so many seconds (an arm's trajectory): a
@@ -238,15 +241,17 @@ class Steps:
         return result, robot_unavailable(result.detail)
 
     async def failed(self, command: NormalizedCommand, principal: Principal,
-                     rejection: Rejection) -> Decision:
-        """After a write-ahead entry: the send did not happen or failed (COMMAND_FAILED)."""
-        return await self.refuse(command, principal, rejection, event=AuditEvent.COMMAND_FAILED)
+                     rejection: Rejection, *, goal_id: str | None = None) -> Decision:
+        """After a write-ahead entry: the send did not happen or failed (COMMAND_FAILED);
+        `goal_id`: a goal of it that may run all the same (`DispatchResult.goal_id`)."""
+        return await self.refuse(command, principal, rejection, event=AuditEvent.COMMAND_FAILED,
+                                 goal_id=goal_id)
 
     async def refuse(self, command: NormalizedCommand, principal: Principal,
                      rejection: Rejection, *, event: AuditEvent = AuditEvent.COMMAND_REJECTED,
-                     pending_id: str | None = None) -> Decision:
+                     pending_id: str | None = None, goal_id: str | None = None) -> Decision:
         entry = record(event, command, principal, rejection.outcome, rejection=rejection,
-                       pending_id=pending_id)
+                       pending_id=pending_id, goal_id=goal_id)
         receipt = await self.write_ahead(entry)
         if receipt is None:
             return decision(AUDIT_UNAVAILABLE, message_id=command.message_id)
@@ -291,8 +296,10 @@ async def _stopped(entry: AuditRecord, signals: Sequence[asyncio.Future[Any]],
 def record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
            outcome: Outcome, *, applied: dict[str, Any] | None = None,
            rejection: Rejection | None = None, ros2_topic: str | None = None,
-           pending_id: str | None = None, sent_first: bool | None = None) -> AuditRecord:
-    """The audit entry of `command`'s decision (its goal's id, when one was chosen for it)."""
+           pending_id: str | None = None, sent_first: bool | None = None,
+           goal_id: str | None = None) -> AuditRecord:
+    """The audit entry of `command`'s decision (its goal's id, when one was chosen for it;
+    a failure's names `goal_id`, a goal that may run all the same)."""
     return AuditRecord(
         event=event, principal=principal.name, role=principal.role.name,
         message_id=command.message_id, action_type=command.action, params=command.requested,
@@ -303,7 +310,7 @@ def record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
         # A held command's reviews (who approved, denied or withdrew it, and why).
         approvals=[msgspec.to_builtins(a) for a in command.approvals] or None,
         rcan=command.envelope.audit_facts() if command.envelope is not None else None,
-        goal_id=command.goal_id if outcome is Outcome.EXECUTED else None,
+        goal_id=command.goal_id if outcome is Outcome.EXECUTED else goal_id,
     )
 
 

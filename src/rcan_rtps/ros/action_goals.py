@@ -866,6 +866,11 @@ class GoalSender:
             return False
         return _names_goal(reply, watch.goal_id)
 
+    def watching(self, goal_id: bytes) -> bool:
+        """Whether `goal_id`'s send gave up after its request went out and its late
+        acceptance is being watched for (`_give_up`): its server may run it yet."""
+        return goal_id in self._given_up
+
     def _take_back_client(self) -> ServiceClient:
         if self._take_back_srv is None:
             self.client._check_open()

@@ -220,6 +220,11 @@ class ActionClient:
         it cancelled (`on_late_goal` is told: `action_goals.GoalSender._give_up`)."""
         return await self._goal_side().send_goal(goal, timeout, goal_id=goal_id)
 
+    def watching_late(self, goal_id: bytes) -> bool:
+        """Whether the send of `goal_id` gave up after its request went out, and the server
+        accepting it late is being watched for (`action_goals.GoalSender._give_up`)."""
+        return self._sending is not None and self._sending.watching(goal_id)
+
     async def cancel_all(self, timeout: float = 10.0, *, server_wide: bool = False) -> int:
         """Cancels this client's open goals (or, `server_wide`, every goal of the server,
         whoever sent it: zero goal id and stamp). Returns how many goals are canceling."""

@@ -42,7 +42,8 @@ _STATES: dict[RosGoalState, GoalState] = {
 }
 RESULT_TIMEOUT_S = 3600.0
 # Sends given up on whose command is remembered, should their goal be accepted late (the
-# action client watches as many: `ros.action_goals.MAX_GIVEN_UP`); the oldest go first.
+# action client watches as many: `ros.action_goals.MAX_GIVEN_UP`, and sends no goal while it
+# does; past it, sends that were on their way then, the oldest forgotten first).
 KEEP_GIVEN_UP = 64
 
 
@@ -100,7 +101,8 @@ class SentGoals:
         try:
             handle = await self.client.send_goal(goal, timeout=timeout, goal_id=chosen)
         except BaseException:  # (cancelled too: its caller went away) it may come late
-            self._remember_given_up(str(uuid.UUID(bytes=chosen)), message_id, command)
+            if self.client.watching_late(chosen):  # (not: refused before it went out)
+                self._remember_given_up(str(uuid.UUID(bytes=chosen)), message_id, command)
             raise
         if not handle.accepted:
             raise ActionError(f"{self.client.name} rejected the goal")

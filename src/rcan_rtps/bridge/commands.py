@@ -435,14 +435,16 @@ class RosDispatcher:
             return f"robot silent: no telemetry for {age:.1f} s"
         return None
 
-    async def _matched(self, pub: CommandPublisher) -> bool:
+    async def _matched(self, pub: CommandPublisher, timeout: float | None = None) -> bool:
+        """Whether `pub` has its robot-side reader: waited for (`timeout`, default
+        `match_timeout_s`) only if it never had one."""
         if pub.matched_count():
             self._ever_matched.add(pub.topic)
             return True
         if pub.topic in self._ever_matched:
             return False  # the robot's reader left: unavailable now, not after a timeout
         try:
-            await pub.wait_for_subscribers(1, timeout=self.ros2.match_timeout_s)
+            await pub.wait_for_subscribers(1, timeout=timeout or self.ros2.match_timeout_s)
         except GraphTimeout:
             return False
         self._ever_matched.add(pub.topic)
@@ -556,7 +558,7 @@ class RosDispatcher:
     async def halt_left(self, left: LeftRunning) -> LeftHalted:
         """What a crashed run left, taken back (`Dispatcher.halt_left`): zero velocity now
         (again once matched), its goals cancelled by id, its arms still due held where
-        joint_states says they are. Each waits up to `match_timeout_s` for its peer: the
+        joint_states says they are. Each waits up to `_crash_wait_s` for its peer: the
         bridge has just joined the domain."""
         zero = self._halt.message(with_effect(Effect.HALT).params())
         matched_before = self.cmd_vel.matched_count() > 0
@@ -572,7 +574,7 @@ class RosDispatcher:
         server answered for: they may still run)."""
         if not goals:
             return (), (), ()
-        timeout = self.ros2.match_timeout_s
+        timeout = self._crash_wait_s
         if self.goals is None:
             whys: list[str | None] = ["no goal server is configured"] * len(goals)
         else:
@@ -614,7 +616,7 @@ class RosDispatcher:
         watcher = f"left by a crashed run: {arm.message_id}"
         self.arms.positions.watch(watcher, arm.joints)  # kept whatever else is heard
         try:
-            if not await self._matched(route.publisher):
+            if not await self._matched(route.publisher, self._crash_wait_s):
                 why: str | None = f"no subscriber on {topic}"
             else:
                 where = await self._joints_now(arm.joints)
@@ -632,11 +634,16 @@ class RosDispatcher:
                            lambda joints, where: hold.build(joints, where, kit))
         return topic, why
 
+    @property
+    def _crash_wait_s(self) -> float:
+        """How long the take-back of a crashed run's motion waits for each peer."""
+        return max(self.ros2.match_timeout_s, self.ros2.crash_halt_wait_s)
+
     async def _joints_now(self, joints: Sequence[str]) -> list[float] | str:
-        """Where `joints` are, heard within `match_timeout_s`; else why not known. Never a
+        """Where `joints` are, heard within `_crash_wait_s`; else why not known. Never a
         joint heard at rest long ago: the crashed run's trajectory may be moving it."""
         loop = asyncio.get_running_loop()
-        wait = self.ros2.match_timeout_s
+        wait = self._crash_wait_s
         deadline = loop.time() + wait
         while isinstance(where := self.arms.positions.now(joints, self.ros2.telemetry_stale_s),
                          str):

@@ -14,7 +14,7 @@ from typing import Any
 import msgspec
 
 from rcan_rtps.governance import ArmsHeld, DispatchResult
-from rcan_rtps.governance.resume import LeftRunning
+from rcan_rtps.governance.resume import LeftGoal, LeftRunning
 from rcan_rtps.governance.steps import LeftHalted
 from rcan_rtps.rcan import ActionParams, MoveParams, NormalizedCommand
 
@@ -43,6 +43,7 @@ class RecordingDispatcher:
         # A goal's send: "rejected" by its server, or "gave up" (no reply in time: its
         # server may accept it late); None: accepted.
         self.goal_send: str | None = None
+        self.watched: list[LeftGoal] = []  # goals whose send gave up, not yet settled
 
     def route(self, command: NormalizedCommand) -> str | None:
         return f"/robot1/{command.action}"
@@ -98,6 +99,9 @@ class RecordingDispatcher:
 
     def running_trajectories(self) -> list[str]:
         return list(self.running)
+
+    def goals_watched(self) -> list[LeftGoal]:
+        return list(self.watched)
 
     async def halt_left(self, left: LeftRunning) -> LeftHalted:
         """A crashed run's motion taken back: recorded (`left`); each arm held unless

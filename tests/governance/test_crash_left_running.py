@@ -15,12 +15,13 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+import msgspec
 from govhelpers import PLANNER, RURI, Harness, command
 from waiting import eventually
 
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
 from rcan_rtps.governance.clock import ManualClock
-from rcan_rtps.governance.resume import SETTLING_S, resume
+from rcan_rtps.governance.resume import SETTLING_S, LeftGoal, resume
 from rcan_rtps.rcan import Outcome
 
 ARM_TOPIC = "/robot1/left_arm/joint_trajectory"
@@ -345,6 +346,41 @@ async def test_a_start_after_a_clean_stop_takes_nothing_back(harness: Harness) -
     await gov.start()
     assert harness.dispatcher.left == []
     assert harness.entries[-1]["event"] == "BRIDGE_STARTED"
+    await gov.stop()
+
+
+async def test_a_clean_stop_leaves_the_goals_still_watched_to_the_next_start(
+        harness: Harness) -> None:
+    """Stopped while a goal whose send gave up is watched for and its server has not
+    accepted it (the stop's server-wide cancel cannot reach it; the watch ends with the
+    bridge): BRIDGE_STOPPED names it, and the next start cancels it by id (scope
+    `stopped`). A start after that takes nothing more back."""
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    goal_id = str(uuid.uuid4())
+    watched = LeftGoal(message_id="nav-1", action="navigate", principal=None, server=NAV,
+                       goal_id=goal_id)
+    harness.dispatcher.watched = [watched]
+    await gov.stop()
+    stopped = harness.entries[-1]
+    assert stopped["event"] == "BRIDGE_STOPPED"
+    assert stopped["params"]["left_running"]["goals"] == [msgspec.to_builtins(watched)]
+    harness.dispatcher.watched = []
+    await harness.restart()
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [left] = harness.dispatcher.left
+    assert left.goals == [watched] and left.arms == left.streams == []
+    took_back = harness.entries[-1]
+    assert (took_back["event"], took_back["applied"]["scope"]) == (
+        "NETWORK_LOSS_SAFE_STOP", "stopped"), took_back
+    assert took_back["applied"]["goals_cancelled"] == [goal_id]
+    await gov.stop()
+    assert "left_running" not in harness.entries[-1]["params"]
+    await harness.restart()
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    assert len(harness.dispatcher.left) == 1
     await gov.stop()
 
 

@@ -110,14 +110,15 @@ class Bridge:
 
 
 
-def took_back_in(entries: list[dict[str, Any]]) -> dict[str, Any]:
-    """The entry of the last start's halt of a crashed run's motion, checked to follow that
-    start's BRIDGE_STARTED (nothing between them)."""
+def took_back_in(entries: list[dict[str, Any]], scope: str = "crash") -> dict[str, Any]:
+    """The entry of the last start's halt of a crashed run's motion (`scope` `stopped`:
+    of the goals a clean stop left), checked to follow that start's BRIDGE_STARTED (nothing
+    between them)."""
     starts = [i for i, e in enumerate(entries) if e["event"] == "BRIDGE_STARTED"]
     assert len(entries) > starts[-1] + 1, "nothing recorded after the last BRIDGE_STARTED"
     after = entries[starts[-1] + 1]
     assert (after["event"], after["applied"]["scope"]) == ("NETWORK_LOSS_SAFE_STOP",
-                                                            "crash"), after
+                                                            scope), after
     return after
 
 
@@ -385,6 +386,49 @@ class HeldAcceptServer(CancelRecordingServer):
             self.running.discard(goal.goal_id)
 
 
+async def _given_up_navigate(bridge: Bridge, run: Any) -> tuple[dict[str, Any], bytes]:
+    """A navigate whose send gives up (the server holds it past match_timeout_s): its
+    COMMAND_FAILED entry, and its goal's id."""
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    async with aiohttp.ClientSession(headers=headers) as http, \
+            http.post(run.url + "/api/command", json={
+                "action": "navigate", "params": {"x": 3.0, "y": 0.0, "yaw": 0.0},
+            }) as resp:
+        answer = await resp.json()
+    assert answer["outcome"] == "failed", answer
+    [failed] = [e for e in bridge.entries() if e["event"] == "COMMAND_FAILED"]
+    assert "goal_id" in failed, failed  # it may run
+    return failed, uuid.UUID(failed["goal_id"]).bytes
+
+
+async def test_a_clean_stop_during_a_late_goal_s_watch_leaves_it_to_the_next_start(
+        bridge: Bridge, robot: RclpyOracle, domain_id: int) -> None:
+    """Stopped (SIGTERM) while a goal whose send gave up is watched, its server not having
+    accepted it yet: the stop's server-wide cancel cannot reach it, and the watch ends with
+    the process. BRIDGE_STOPPED names it (`params.left_running`), and the next start cancels
+    it by id before it serves. Before, the stop was clean and left it running."""
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as node:
+        server = HeldAcceptServer(node)
+        try:
+            run = await bridge.start()
+            failed, goal = await _given_up_navigate(bridge, run)
+            assert run.stop() == 0
+            stopped = bridge.entries()[-1]
+            assert stopped["event"] == "BRIDGE_STOPPED", stopped
+            [left] = stopped["params"]["left_running"]["goals"]
+            assert (left["goal_id"], left["message_id"]) == (failed["goal_id"],
+                                                             failed["message_id"]), left
+            server.release.set()
+            await eventually(lambda: goal in server.running, what="the late goal running")
+            await bridge.start()
+            took_back = took_back_in(bridge.entries(), scope="stopped")
+            assert took_back["applied"]["goals_cancelled"] == [failed["goal_id"]], took_back
+            await eventually(lambda: goal not in server.running,
+                             what="the late goal cancelled")
+        finally:
+            await server.close()
+
+
 async def test_a_restart_after_a_kill_during_a_late_goal_s_watch_cancels_it(
         bridge: Bridge, robot: RclpyOracle, domain_id: int) -> None:
     """The goal's send gave up (no answer within match_timeout_s: its command failed) and
@@ -395,19 +439,10 @@ async def test_a_restart_after_a_kill_during_a_late_goal_s_watch_cancels_it(
     with RosNode("nav_robot", "/robot1", domain_id=domain_id) as node:
         server = HeldAcceptServer(node)
         try:
-            run = await bridge.start()
-            headers = {"Authorization": f"Bearer {TOKEN}"}
-            async with aiohttp.ClientSession(headers=headers) as http, \
-                    http.post(run.url + "/api/command", json={
-                        "action": "navigate", "params": {"x": 3.0, "y": 0.0, "yaw": 0.0},
-                    }) as resp:
-                answer = await resp.json()
-            assert answer["outcome"] == "failed", answer
-            [failed] = [e for e in bridge.entries() if e["event"] == "COMMAND_FAILED"]
+            failed, goal = await _given_up_navigate(bridge, await bridge.start())
             [dispatched] = [e for e in bridge.entries() if e.get("action_type") == "navigate"
                             and e["event"] == "COMMAND_DISPATCHED"]
             assert failed["goal_id"] == dispatched["goal_id"], failed  # it may run
-            goal = uuid.UUID(failed["goal_id"]).bytes
             bridge.kill()  # mid-watch: its late cancel dies with it
             server.release.set()
             await eventually(lambda: goal in server.running, what="the late goal running")

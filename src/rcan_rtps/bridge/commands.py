@@ -78,6 +78,15 @@ class GoalServers(Protocol):
         being cancelled. Not one its server refused."""
         ...
 
+    def unsettled(self) -> list[tuple[str, str, str | None, str | None]]:
+        """(server, goal id, command, action) of each goal whose send gave up that its
+        server may still accept or run (watched for, not seen ended or canceling)."""
+        ...
+
+    async def settle(self, timeout: float) -> None:
+        """Waits up to `timeout` for those goals to settle (the bridge is leaving)."""
+        ...
+
     async def cancel(self, goal_id: str) -> bool:
         """Cancels one goal this bridge sent, on its own server; True if it is canceling."""
         ...
@@ -478,6 +487,15 @@ class RosDispatcher:
                        path=hold.path(params) if hold.path is not None else ())
         return DispatchResult(ok=True, ros2_topic=pub.topic, runs_for_s=runs_for_s)
 
+    def goals_watched(self) -> list[LeftGoal]:
+        """The goals whose send gave up that their server may still accept or run (watched
+        for, not seen ended or canceling): a clean stop leaves them to the next start."""
+        if self.goals is None:
+            return []
+        return [LeftGoal(message_id=message_id or "", action=action or "", principal=None,
+                         server=server, goal_id=goal_id)
+                for server, goal_id, message_id, action in self.goals.unsettled()]
+
     def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
         """Holds the arms still running a trajectory of `message_ids` (a stop of one
         principal's motion alone); no await."""
@@ -661,7 +679,13 @@ class RosDispatcher:
         halted = await self.halt()
         sent: list[CommandPublisher] = [self.cmd_vel, *(
             p for p in self._publishers.values() if p.topic in halted.arms.held)]
-        acked = await asyncio.gather(*(p.acknowledged(LEAVING_ACK_S) for p in sent))
+        # Meanwhile, goals whose send gave up that their server has not yet accepted: the
+        # halt's server-wide cancel reached none of them, and their watches end as the
+        # bridge leaves. Those still unsettled then, BRIDGE_STOPPED names (`goals_watched`).
+        acking = asyncio.gather(*(p.acknowledged(LEAVING_ACK_S) for p in sent))
+        if self.goals is not None:
+            await asyncio.gather(acking, self.goals.settle(LEAVING_ACK_S))
+        acked = await acking
         for publisher, ok in zip(sent, acked, strict=True):
             if not ok:
                 log.warning("leaving with the halt on %s not acknowledged by every subscriber "

@@ -42,6 +42,7 @@ def route_mapping(ros2: Ros2Config, action_key: str) -> RequestMapping:
     return RequestMapping(ros2.request_mappings.get(name, ros2.request_mapping))
 
 
+SETTLE_POLL_S = 0.05  # s between looks at the watched goals while the bridge leaves
 # What a server answers for a goal it does not have running (it ended, or never was).
 CANCELING_NOTHING = "its server is canceling nothing (it had ended?)"
 
@@ -115,6 +116,20 @@ class GoalRoutes:
             return None
         errors = [f"{type(o).__name__}: {o}" for o in outcomes if isinstance(o, BaseException)]
         return "; ".join(errors) or CANCELING_NOTHING
+
+    def unsettled(self) -> list[tuple[str, str, str | None, str | None]]:
+        """(server, goal id, command, action) of each goal whose send gave up that its
+        server may still accept or run: watched for, not yet seen ended or canceling."""
+        return [(t.action_name, *goal) for t in self.trackers for goal in t.unsettled()]
+
+    async def settle(self, timeout: float) -> None:
+        """Waits up to `timeout` for the goals whose send gave up to settle (each watch
+        cancels its goal as soon as the server lists it): the bridge is leaving, and its
+        watches end with it."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while self.unsettled() and loop.time() < deadline:
+            await asyncio.sleep(SETTLE_POLL_S)
 
     def may_run(self, goal_id: str) -> bool:
         """Whether a goal whose send failed may run on its server all the same

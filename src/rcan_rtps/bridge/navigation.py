@@ -111,6 +111,11 @@ class GoalTracker:
         """Cancels one goal this bridge sent; True if the server is canceling it."""
         return self._sent is not None and await self._sent.cancel(goal_id)
 
+    def unsettled(self) -> list[tuple[str, str | None, str | None]]:
+        """(goal id, command, action) of each goal whose send gave up that the server may
+        still accept or run (`SentGoals.unsettled`)."""
+        return [] if self._sent is None else self._sent.unsettled()
+
     def may_run(self, goal_id: str) -> bool:
         """Whether the server may run `goal_id` though its send failed: the send gave up
         after its request went out (the server may accept it late: watched for), or it was

@@ -125,6 +125,12 @@ class SentGoals:
         while len(self._given_up) > KEEP_GIVEN_UP:
             del self._given_up[next(iter(self._given_up))]
 
+    def unsettled(self) -> list[tuple[str, str | None, str | None]]:
+        """(goal id, the command that sent it, its action) of each goal whose send gave up
+        that its server may still accept or run (`ActionClient.unsettled_late`)."""
+        ids = [str(uuid.UUID(bytes=g)) for g in self.client.unsettled_late()]
+        return [(g, *self._given_up.get(g, (None, None))) for g in ids]
+
     def _late_goal(self, late: LateGoal) -> None:
         """The server accepted a goal after its send had given up (its command was answered
         failed), and the client cancelled it: shown among the goals and audited

@@ -26,6 +26,10 @@ replacement may not have been sent either — the crash came between its entry a
 publish — so what it replaced stays listed while due), a stop of everyone's
 motion (a `stop`, an e-stop, a safe stop of the whole robot) unless that stop's own
 COMMAND_FAILED follows, and a stop of one principal's motion for what it says it stopped.
+
+A clean stop may leave goals as well: those whose send gave up that their server had not yet
+accepted, which its BRIDGE_STOPPED names (`params.left_running`, `Governor.stop`); they are
+listed (`Resumed.left`, not `crashed`) for the start to cancel.
 """
 
 from __future__ import annotations
@@ -139,8 +143,8 @@ def resume(path: Path | str, *, now_ms: int | None = None) -> Resumed:
         return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc!r})")
     # No boundary at all in a log with entries is no clean stop either: fail closed.
     found.crashed = last is not None and last.get("event") != "BRIDGE_STOPPED"
-    if found.crashed:
-        found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
+    # (after a clean stop: only the goals its BRIDGE_STOPPED named, `Governor.stop`)
+    found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
     return found
 
 
@@ -186,7 +190,7 @@ class _Motion:
 
     def apply(self, entry: dict[str, Any]) -> None:
         event, message_id = entry.get("event"), entry.get("message_id")
-        if event == "BRIDGE_STARTED":  # the boundary: what it set out to take back runs on
+        if event in _BOUNDARIES:  # what a start set out to take back, or a stop left, runs on
             given = entry.get("params")
             self._taken_up((given if isinstance(given, dict) else {}).get("left_running"))
         elif event in _EXECUTED and entry.get("outcome") == "executed":
@@ -252,7 +256,7 @@ class _Motion:
             return
         # An e-stop, a safe stop of the whole robot, a start's halt of a crash.
         self._halted_all(_key(entry))
-        if facts.get("scope") == "crash":
+        if facts.get("scope") in ("crash", "stopped"):
             self._still_left(facts)
 
     def _still_left(self, facts: dict[str, Any]) -> None:

@@ -23,7 +23,7 @@ from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
 from .errors import AuditError
 from .outcomes import AUDIT_UNAVAILABLE, DISPATCH_ERROR, Rejection, robot_unavailable
 from .rbac import Principal
-from .resume import LeftRunning
+from .resume import LeftGoal, LeftRunning
 
 log = logging.getLogger("rcan_rtps.governance.governor")  # one logger for the kernel's steps
 
@@ -103,6 +103,12 @@ class Dispatcher(Protocol):
 
     def running_trajectories(self) -> Collection[str]:
         """The message ids of the commands whose motion may still run on (`runs_for_s`)."""
+        ...
+
+    def goals_watched(self) -> list[LeftGoal]:
+        """The goals whose send gave up that their server may still accept or run (watched
+        for their late acceptance, not seen ended or canceling): BRIDGE_STOPPED names them,
+        for the next start to cancel."""
         ...
 
     async def halt_left(self, left: LeftRunning) -> LeftHalted:
@@ -219,6 +225,13 @@ class Steps:
         except Exception as exc:  # reported with the stop, never raised into it
             log.exception("holding the arms failed")
             return ArmsHeld(not_held=(f"holding the arms failed: {exc!r}",))
+
+    def goals_watched(self) -> list[LeftGoal]:
+        try:
+            return self.dispatcher.goals_watched()
+        except Exception:  # the stop is recorded all the same
+            log.exception("reading the goals watched for late acceptance failed")
+            return []
 
     def running_trajectories(self) -> Collection[str] | None:
         """None: not known (count every one as running: fail closed)."""

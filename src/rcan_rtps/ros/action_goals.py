@@ -156,6 +156,7 @@ class _GivenUp:
         self.span = span
         self.deadline = asyncio.get_running_loop().time() + span
         self.state: GoalState | None = None  # as the status topic last listed it
+        self.canceled = False  # the server answered our cancel of it: canceling
         self._changed = asyncio.Event()
         self.task: asyncio.Task[None] | None = None
 
@@ -806,7 +807,7 @@ class GoalSender:
         long again) for its end and tells `on_late_goal` of it, if the server had it."""
         loop = asyncio.get_running_loop()
         try:
-            canceled = await self._cancel_given_up(watch)
+            canceled = watch.canceled = await self._cancel_given_up(watch)
             while not canceled and not watch.settled and loop.time() < watch.deadline:
                 if self.client._gone():
                     return
@@ -815,7 +816,7 @@ class GoalSender:
                     min(watch.deadline, loop.time() + TAKE_BACK_RETRY_S)
                 await watch.change(until)
                 if watch.state is not None and not watch.settled:
-                    canceled = await self._cancel_given_up(watch)
+                    canceled = watch.canceled = await self._cancel_given_up(watch)
             if watch.state is None and not canceled:
                 log.debug("action %s: goal %s, whose send gave up, was not accepted within "
                           "%s", self.name, uuid.UUID(bytes=watch.goal_id), seconds(watch.span))
@@ -873,6 +874,12 @@ class GoalSender:
                      uuid.UUID(bytes=watch.goal_id), exc)
             return False
         return _names_goal(reply, watch.goal_id)
+
+    def unsettled(self) -> list[bytes]:
+        """The goals whose send gave up that are watched for and not yet seen ended or
+        being canceled (listed so, or our cancel answered so): their server may run them
+        yet. Oldest first."""
+        return [w.goal_id for w in self._given_up.values() if not (w.settled or w.canceled)]
 
     def watching(self, goal_id: bytes) -> bool:
         """Whether `goal_id`'s send gave up after its request went out and its late

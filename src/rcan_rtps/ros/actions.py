@@ -220,6 +220,11 @@ class ActionClient:
         it cancelled (`on_late_goal` is told: `action_goals.GoalSender._give_up`)."""
         return await self._goal_side().send_goal(goal, timeout, goal_id=goal_id)
 
+    def unsettled_late(self) -> list[bytes]:
+        """The goals whose send gave up that are watched for and not yet seen ended or
+        being canceled: their server may still accept (or run) them. Oldest first."""
+        return [] if self._sending is None else self._sending.unsettled()
+
     def watching_late(self, goal_id: bytes) -> bool:
         """Whether the send of `goal_id` gave up after its request went out, and the server
         accepting it late is being watched for (`action_goals.GoalSender._give_up`)."""

@@ -371,6 +371,7 @@ class HeldAcceptServer(CancelRecordingServer):
         self.release = asyncio.Event()
         self.cancels = []
         self.running: set[bytes] = set()
+        self.ended: dict[bytes, str] = {}  # how each goal that ran ended
         super().__init__(node, "navigate_to_pose", NAV, self._until_cancelled,
                          accept=self._accept_late)
 
@@ -381,7 +382,9 @@ class HeldAcceptServer(CancelRecordingServer):
     async def _until_cancelled(self, goal: ServerGoal) -> dict[str, Any]:
         self.running.add(goal.goal_id)
         try:
-            return await _until_cancelled(goal)
+            result = await _until_cancelled(goal)
+            self.ended[goal.goal_id] = "canceled"
+            return result
         finally:
             self.running.discard(goal.goal_id)
 
@@ -452,5 +455,35 @@ async def test_a_restart_after_a_kill_during_a_late_goal_s_watch_cancels_it(
             assert took_back["applied"]["goals_cancelled"] == [failed["goal_id"]], took_back
             await eventually(lambda: goal not in server.running,
                              what="the late goal cancelled")
+        finally:
+            await server.close()
+
+
+async def test_a_restart_watches_a_goal_left_that_its_server_accepts_after_the_restart(
+        bridge: Bridge, robot: RclpyOracle, domain_id: int) -> None:
+    """Killed during a late-goal watch, and the server still holds the request when the
+    restart takes back what the run left: its cancel by id finds nothing. The restart
+    watches for the goal as its own send that gave up: accepted after the ready line, it
+    is cancelled and audited (GOAL_FINISHED, with the failed command). Before, it ran on."""
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as node:
+        server = HeldAcceptServer(node)
+        try:
+            failed, goal = await _given_up_navigate(bridge, await bridge.start())
+            bridge.kill()
+            await bridge.start()
+            took_back = took_back_in(bridge.entries())
+            [why] = took_back["applied"]["goals_not_cancelled"]
+            assert why.startswith(failed["goal_id"]), why
+            server.release.set()
+            await eventually(lambda: server.ended.get(goal) == "canceled", timeout=20,
+                             what="the late goal cancelled")
+
+            def finished() -> dict[str, Any] | None:
+                return next((e for e in bridge.entries() if e["event"] == "GOAL_FINISHED"
+                             and e["params"]["goal_id"] == failed["goal_id"]), None)
+
+            entry = await eventually(finished, what="its GOAL_FINISHED")
+            assert (entry["outcome"], entry["message_id"]) == (
+                "canceled", failed["message_id"]), entry
         finally:
             await server.close()

@@ -92,9 +92,11 @@ class GoalServers(Protocol):
         ...
 
     async def cancel_left(self, server: str | None, goal_id: str | None,
-                          timeout: float) -> str | None:
+                          timeout: float, *, message_id: str | None = None,
+                          command: str | None = None) -> str | None:
         """Cancels a goal a crashed run sent (by id; with none, every goal of `server`);
-        None once canceling, else why not."""
+        None once canceling, else why not (then one with an id is watched for its server
+        accepting it late: the command `message_id` of `command` may have given up on it)."""
         ...
 
 
@@ -597,7 +599,8 @@ class RosDispatcher:
             whys: list[str | None] = ["no goal server is configured"] * len(goals)
         else:
             whys = list(await asyncio.gather(*(
-                self.goals.cancel_left(g.server, g.goal_id, timeout) for g in goals)))
+                self.goals.cancel_left(g.server, g.goal_id, timeout, message_id=g.message_id,
+                                       command=g.action) for g in goals)))
         cancelled, not_cancelled, still = [], [], []
         for goal, why in zip(goals, whys, strict=True):
             named = goal.goal_id or f"every goal of {goal.server} (no goal id recorded)"

@@ -103,10 +103,13 @@ class GoalRoutes:
         return sum(c for c in counts if isinstance(c, int))
 
     async def cancel_left(self, server: str | None, goal_id: str | None,
-                          timeout: float) -> str | None:
+                          timeout: float, *, message_id: str | None = None,
+                          command: str | None = None) -> str | None:
         """Cancels a goal a crashed run left on `server` (`GoalTracker.cancel_left`; on
         every goal server when that one is no longer configured: an id names one goal
-        wherever it is). None once a server is canceling it, else why not."""
+        wherever it is). None once a server is canceling it, else why not. One no server
+        is canceling is watched for (`GoalTracker.watch_left`): its send may have given up
+        on a server that has not accepted it yet (the command `message_id` of `command`)."""
         trackers = [t for t in self.trackers if t.action_name == server] or self.trackers
         if not trackers:
             return "no goal server is configured"
@@ -114,6 +117,9 @@ class GoalRoutes:
                                         return_exceptions=True)
         if any(o is True for o in outcomes):
             return None
+        if goal_id is not None:
+            for tracker in trackers:
+                tracker.watch_left(goal_id, timeout, message_id=message_id, command=command)
         errors = [f"{type(o).__name__}: {o}" for o in outcomes if isinstance(o, BaseException)]
         return "; ".join(errors) or CANCELING_NOTHING
 

@@ -132,6 +132,18 @@ class GoalTracker:
             return await self.client.cancel_all(timeout, server_wide=True) > 0
         return await self.client.cancel_goal_id(uuid.UUID(goal_id).bytes, timeout)
 
+    def watch_left(self, goal_id: str, timeout: float, *, message_id: str | None,
+                   command: str | None) -> None:
+        """Watches for the server accepting late a goal a crashed run left that it is not
+        running now: its send may have given up on a server still holding the request. It
+        is cancelled as soon as it is listed running, and audited, as a goal whose send gave
+        up in this run (`SentGoals.watch_left`)."""
+        if self._sent is None:
+            from .sent_goals import SentGoals  # (a goal was sent: by the crashed run)
+
+            self._sent = SentGoals(self.client, self._views, self.events, self._keep)
+        self._sent.watch_left(goal_id, timeout, message_id=message_id, command=command)
+
     def warn_cancelling(self, why: str) -> None:
         """Logs each active goal about to be cancelled, and why."""
         for goal_id in self.active():

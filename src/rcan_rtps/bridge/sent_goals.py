@@ -125,6 +125,15 @@ class SentGoals:
         while len(self._given_up) > KEEP_GIVEN_UP:
             del self._given_up[next(iter(self._given_up))]
 
+    def watch_left(self, goal_id: str, timeout: float, *, message_id: str | None,
+                   command: str | None) -> None:
+        """A goal a crashed run left, its send perhaps given up: watched for as one whose
+        send gave up here (`ActionClient.watch_late`), for max(LATE_WATCH_S, `timeout`)."""
+        chosen = uuid.UUID(goal_id).bytes
+        self.client.watch_late(chosen, timeout)
+        if self.client.watching_late(chosen):
+            self._remember_given_up(goal_id, message_id, command)
+
     def unsettled(self) -> list[tuple[str, str | None, str | None]]:
         """(goal id, the command that sent it, its action) of each goal whose send gave up
         that its server may still accept or run (`ActionClient.unsettled_late`)."""

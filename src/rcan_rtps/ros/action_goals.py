@@ -875,6 +875,21 @@ class GoalSender:
             return False
         return _names_goal(reply, watch.goal_id)
 
+    def watch_left(self, goal_id: bytes, timeout: float) -> None:
+        """A goal a previous run of ours sent, which the server is not running now: its
+        send may have given up on a server still holding the request. Watched as one whose
+        send gave up here (`_give_up`), unless it is ours already or there is no room (then
+        only a stop cancels it, logged)."""
+        if goal_id in self._goals or goal_id in self._given_up:
+            return
+        if len(self._given_up) >= MAX_GIVEN_UP:
+            log.warning("action %s: goal %s, left by a previous run, is not watched for (%d "
+                        "goals whose send gave up are): should its server accept it late, "
+                        "only a stop cancels it", self.name, uuid.UUID(bytes=goal_id),
+                        len(self._given_up))
+            return
+        self._give_up(goal_id, timeout)
+
     def unsettled(self) -> list[bytes]:
         """The goals whose send gave up that are watched for and not yet seen ended or
         being canceled (listed so, or our cancel answered so): their server may run them

@@ -265,7 +265,10 @@ async def test_a_restart_waits_past_match_timeout_for_the_arm_s_joint_states(
     the arm. Before, it gave up at match_timeout_s: the arm not held at start."""
     bridge = default_bridge
     await bridge.start()
-    moving = await bridge.command({"action": "arm_joint", "params": LONG})
+    # Its first command waits only match_timeout_s for the arm's topic and joints: on a busy
+    # host, sent again until one is answered 200 (a 503 sent nothing).
+    moving = await eventually(lambda: bridge.command({"action": "arm_joint", "params": LONG}),
+                              what="the trajectory sent")
     await take(robot, LEFT)
     bridge.kill()
     await robot.acall("stop_periodic", topic=JOINT_STATES)

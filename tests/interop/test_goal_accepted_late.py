@@ -227,3 +227,32 @@ async def test_a_stop_during_a_watch_leaves_the_watched_goal_cancelled(
     assert entry["outcome"] == "canceled", entry
     errors = [r for r in caplog.records if r.levelname in ("ERROR", "CRITICAL")]
     assert errors == [], [r.getMessage() for r in errors]
+
+
+async def _refuse(goal: Any) -> bool:
+    return False
+
+
+async def test_a_goal_its_server_refused_is_not_named_by_its_command_s_failure(
+        tmp_path: Path, jazzy_python: Path, domain_id: int) -> None:
+    """The counterpart: a goal the server refused cannot run. Its COMMAND_FAILED names no
+    goal (a restart after a crash takes nothing back for it), as one whose send gave up
+    does (test_crash_restart)."""
+    config = bridge_config(tmp_path, domain_id)
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node:
+        server = SlowServer(robot_node)
+        server._accept = _refuse
+        rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
+        try:
+            await eventually(nav_tracker(rig).client.server_present,
+                             what="the NavigateToPose server")
+            rig.governor.heartbeat(AGENT)
+            decision = await rig.command(AGENT, {"action": "navigate",
+                                                 "params": {"x": 3.0, "y": 0.0, "yaw": 0.0}})
+            assert decision.http_status != 200, decision
+            [failed] = [e for e in rig.entries() if e["event"] == "COMMAND_FAILED"]
+            assert "rejected" in failed["deny_reason"], failed
+            assert failed.get("goal_id") is None, failed
+        finally:
+            await close_rig(rig)
+            await server.close()

@@ -14,7 +14,7 @@ from typing import Any
 import msgspec
 
 from rcan_rtps.governance import ArmsHeld, DispatchResult
-from rcan_rtps.governance.resume import LeftRunning
+from rcan_rtps.governance.resume import LeftGoal, LeftRunning
 from rcan_rtps.governance.steps import LeftHalted
 from rcan_rtps.rcan import ActionParams, MoveParams, NormalizedCommand
 
@@ -40,6 +40,10 @@ class RecordingDispatcher:
         self.unheard_arms = False  # when set: no arm can be held (no joint_states heard)
         self.left: list[LeftRunning] = []  # `halt_left` calls: what a crashed run left
         self.halt_hold: asyncio.Event | None = None  # when set: `halt_left` waits for it
+        # A goal's send: "rejected" by its server, or "gave up" (no reply in time: its
+        # server may accept it late); None: accepted.
+        self.goal_send: str | None = None
+        self.watched: list[LeftGoal] = []  # goals whose send gave up, not yet settled
 
     def route(self, command: NormalizedCommand) -> str | None:
         return f"/robot1/{command.action}"
@@ -64,6 +68,10 @@ class RecordingDispatcher:
         if command.spec.stopping:  # a halt of the robot holds every arm
             self.running.clear()
         goal_id = None
+        if command.spec.starts_goal and self.goal_send is not None:
+            may_run = command.goal_id if self.goal_send == "gave up" else None
+            return DispatchResult(ok=False, detail=f"the goal's send: {self.goal_send}",
+                                  goal_id=may_run)
         if command.spec.starts_goal:
             self._goals += 1
             goal_id = f"goal-{self._goals}"
@@ -91,6 +99,9 @@ class RecordingDispatcher:
 
     def running_trajectories(self) -> list[str]:
         return list(self.running)
+
+    def goals_watched(self) -> list[LeftGoal]:
+        return list(self.watched)
 
     async def halt_left(self, left: LeftRunning) -> LeftHalted:
         """A crashed run's motion taken back: recorded (`left`); each arm held unless

@@ -15,12 +15,13 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+import msgspec
 from govhelpers import PLANNER, RURI, Harness, command
 from waiting import eventually
 
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
 from rcan_rtps.governance.clock import ManualClock
-from rcan_rtps.governance.resume import SETTLING_S, resume
+from rcan_rtps.governance.resume import SETTLING_S, LeftGoal, resume
 from rcan_rtps.rcan import Outcome
 
 ARM_TOPIC = "/robot1/left_arm/joint_trajectory"
@@ -170,6 +171,27 @@ async def test_goals_are_listed_by_id_or_as_having_none(
         ("nav-1", ids[0], NAV), ("nav-2", None, NAV)]
 
 
+async def test_a_goal_whose_send_gave_up_is_listed_until_its_end(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A COMMAND_FAILED naming the goal (its send gave up after the request went out: the
+    server may accept it late) does not end it; its GOAL_FINISHED does. One naming none (the
+    server refused it) does."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    ids = [str(uuid.uuid4()) for _ in range(3)]
+    for n, goal_id in enumerate(ids, 1):
+        await log.goal(f"nav-{n}", goal_id)
+    for n, goal_id in ((1, ids[0]), (2, None), (3, ids[2])):
+        await log.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id=f"nav-{n}",
+                      action_type="navigate", outcome="failed", goal_id=goal_id,
+                      deny_reason="robot_unavailable:no reply within the timeout")
+    await log.add(AuditEvent.GOAL_FINISHED, message_id="nav-3", params={"goal_id": ids[2]},
+                  outcome="canceled", ros2_topic=NAV)
+    await log.audit.close()
+    goals = resume(log.path, now_ms=log.now_ms()).left.goals
+    assert [(g.message_id, g.goal_id, g.server) for g in goals] == [("nav-1", ids[0], NAV)]
+
+
 async def test_a_torn_last_line_does_not_hide_what_came_before(
         tmp_path: Path, clock: ManualClock) -> None:
     """Killed mid-append: the last line is cut short. The scan reads past it (the log cuts
@@ -227,6 +249,34 @@ async def test_a_start_after_a_crash_takes_back_what_it_left(harness: Harness) -
     gov = await harness.governor(gates="[]")
     await gov.start()
     assert harness.dispatcher.left == []
+    await gov.stop()
+
+
+async def test_a_start_after_a_crash_cancels_a_goal_whose_send_gave_up(
+        harness: Harness) -> None:
+    """Killed while a goal whose send gave up was watched for (its server may accept it
+    late): its COMMAND_FAILED names it, and the restart cancels it by id. A goal its server
+    refused is not named, nor taken back."""
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    failed = {}
+    for send in ("gave up", "rejected"):
+        harness.dispatcher.goal_send = send
+        decided = await gov.decide(command("navigate", {"x": 1.0, "y": 0.0, "yaw": 0.0}),
+                                   PLANNER)
+        assert decided.outcome is not Outcome.EXECUTED, decided
+        failed[send] = decided.message_id
+    [written] = [e["goal_id"] for e in harness.entries
+                 if e["event"] == "COMMAND_DISPATCHED" and e["message_id"] == failed["gave up"]]
+    [named] = [e["goal_id"] for e in harness.entries if e["event"] == "COMMAND_FAILED"
+               and e["message_id"] == failed["gave up"]]
+    assert named == written
+    await harness.restart()  # no BRIDGE_STOPPED: a crash
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [left] = harness.dispatcher.left
+    assert [(g.message_id, g.goal_id) for g in left.goals] == [(failed["gave up"], written)]
+    assert harness.entries[-1]["applied"]["goals_cancelled"] == [written]
     await gov.stop()
 
 
@@ -296,6 +346,41 @@ async def test_a_start_after_a_clean_stop_takes_nothing_back(harness: Harness) -
     await gov.start()
     assert harness.dispatcher.left == []
     assert harness.entries[-1]["event"] == "BRIDGE_STARTED"
+    await gov.stop()
+
+
+async def test_a_clean_stop_leaves_the_goals_still_watched_to_the_next_start(
+        harness: Harness) -> None:
+    """Stopped while a goal whose send gave up is watched for and its server has not
+    accepted it (the stop's server-wide cancel cannot reach it; the watch ends with the
+    bridge): BRIDGE_STOPPED names it, and the next start cancels it by id (scope
+    `stopped`). A start after that takes nothing more back."""
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    goal_id = str(uuid.uuid4())
+    watched = LeftGoal(message_id="nav-1", action="navigate", principal=None, server=NAV,
+                       goal_id=goal_id)
+    harness.dispatcher.watched = [watched]
+    await gov.stop()
+    stopped = harness.entries[-1]
+    assert stopped["event"] == "BRIDGE_STOPPED"
+    assert stopped["params"]["left_running"]["goals"] == [msgspec.to_builtins(watched)]
+    harness.dispatcher.watched = []
+    await harness.restart()
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    [left] = harness.dispatcher.left
+    assert left.goals == [watched] and left.arms == left.streams == []
+    took_back = harness.entries[-1]
+    assert (took_back["event"], took_back["applied"]["scope"]) == (
+        "NETWORK_LOSS_SAFE_STOP", "stopped"), took_back
+    assert took_back["applied"]["goals_cancelled"] == [goal_id]
+    await gov.stop()
+    assert "left_running" not in harness.entries[-1]["params"]
+    await harness.restart()
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    assert len(harness.dispatcher.left) == 1
     await gov.stop()
 
 

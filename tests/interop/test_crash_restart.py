@@ -47,7 +47,7 @@ LONG = {"group": "left", "joints": ["l_shoulder", "l_elbow"], "positions": [1.0,
 AT = [0.25, -0.5]  # where joint_states says the arm is
 
 
-def _config(state: Path, domain_id: int) -> str:
+def _config(state: Path, domain_id: int, match_timeout_s: float = 10.0) -> str:
     return textwrap.dedent(f"""\
         robot:
           ruri: rcan://registry.local/acme/rover/unit-0001
@@ -57,7 +57,7 @@ def _config(state: Path, domain_id: int) -> str:
             namespace: /robot1
             node_name: rcan_bridge
             domain_id: {domain_id}
-            match_timeout_s: 10.0
+            match_timeout_s: {match_timeout_s}
             arms:
               left: {{topic: left_arm/joint_trajectory, joints: [l_shoulder, l_elbow]}}
           api:
@@ -110,22 +110,35 @@ class Bridge:
 
 
 
-def took_back_in(entries: list[dict[str, Any]]) -> dict[str, Any]:
-    """The entry of the last start's halt of a crashed run's motion, checked to follow that
-    start's BRIDGE_STARTED (nothing between them)."""
+def took_back_in(entries: list[dict[str, Any]], scope: str = "crash") -> dict[str, Any]:
+    """The entry of the last start's halt of a crashed run's motion (`scope` `stopped`:
+    of the goals a clean stop left), checked to follow that start's BRIDGE_STARTED (nothing
+    between them)."""
     starts = [i for i, e in enumerate(entries) if e["event"] == "BRIDGE_STARTED"]
     assert len(entries) > starts[-1] + 1, "nothing recorded after the last BRIDGE_STARTED"
     after = entries[starts[-1] + 1]
     assert (after["event"], after["applied"]["scope"]) == ("NETWORK_LOSS_SAFE_STOP",
-                                                            "crash"), after
+                                                            scope), after
     return after
 
 
 @pytest.fixture
 def bridge(tmp_path: Path, domain_id: int) -> Iterator[Bridge]:
+    yield from _bridge(tmp_path, _config(tmp_path / "state", domain_id))
+
+
+@pytest.fixture
+def default_bridge(tmp_path: Path, domain_id: int) -> Iterator[Bridge]:
+    """With the default match_timeout_s (1 s) and crash_halt_wait_s."""
+    config = "".join(line for line in _config(tmp_path / "state", domain_id).splitlines(True)
+                     if "match_timeout_s" not in line)
+    yield from _bridge(tmp_path, config)
+
+
+def _bridge(tmp_path: Path, text: str) -> Iterator[Bridge]:
     state = tmp_path / "state"
     config = tmp_path / "robot.rcan.yaml"
-    config.write_text(_config(state, domain_id))
+    config.write_text(text)
     made = Bridge(config, state)
     try:
         yield made
@@ -244,6 +257,42 @@ async def test_a_restart_after_a_kill_cancels_the_goal_it_left_by_its_id(
             await server.close()
 
 
+async def test_a_restart_waits_past_match_timeout_for_the_arm_s_joint_states(
+        default_bridge: Bridge, robot: RclpyOracle) -> None:
+    """On a busy board joint_states can take over a second to be heard after the restart
+    joins the domain. Here they come only once the restart's take-back has waited longer
+    than match_timeout_s (1 s): the take-back waits up to crash_halt_wait_s (5 s) and holds
+    the arm. Before, it gave up at match_timeout_s: the arm not held at start."""
+    bridge = default_bridge
+    await bridge.start()
+    # Its first command waits only match_timeout_s for the arm's topic and joints: on a busy
+    # host, sent again until one is answered 200 (a 503 sent nothing).
+    moving = await eventually(lambda: bridge.command({"action": "arm_joint", "params": LONG}),
+                              what="the trajectory sent")
+    await take(robot, LEFT)
+    bridge.kill()
+    await robot.acall("stop_periodic", topic=JOINT_STATES)
+    restarting = asyncio.create_task(bridge.start())
+
+    def started_again() -> bool:  # read as text: a line may be half written
+        return bridge.audit.read_text().count('"event":"BRIDGE_STARTED"') == 2
+
+    await eventually(started_again, timeout=60, what="the second BRIDGE_STARTED")
+    # The take-back began before that entry; joint_states come past match_timeout_s.
+    await asyncio.sleep(1.5)
+    await robot.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                      value={"name": ["l_shoulder", "l_elbow"], "position": AT,
+                             "velocity": [0.0, 0.0]})
+    await restarting
+    took_back = took_back_in(bridge.entries())
+    assert took_back["outcome"] == "executed", took_back
+    assert took_back["applied"]["arms_held"] == [LEFT]
+    assert [a["message_id"] for a in took_back["applied"]["left"]["arms"]] == [
+        moving["message_id"]]
+    (hold,) = await take(robot, LEFT)
+    assert hold["points"][0]["positions"] == AT, hold
+
+
 async def _killed_while_taking_back(bridge: Bridge) -> None:
     """A start killed during its halt of what the crashed run left: its BRIDGE_STARTED is
     written (the halt began before it), the halt still waits for joint_states (unheard:
@@ -315,3 +364,129 @@ async def test_an_arm_left_stamped_ahead_of_the_clock_is_kept_no_longer_than_it_
     await asyncio.sleep(1.0 + 1.0)  # its time (and settling) is over by now, whatever the clock
     stopped = await bridge.command({"action": "stop"})
     assert stopped["outcome"] == "executed", stopped
+
+
+class HeldAcceptServer(CancelRecordingServer):
+    """Accepts each goal only once `release` is set (a busy server: the bridge's send gives
+    up first); its goals run until cancelled (`running`: their ids, until then)."""
+
+    def __init__(self, node: RosNode) -> None:
+        self.release = asyncio.Event()
+        self.cancels = []
+        self.running: set[bytes] = set()
+        self.ended: dict[bytes, str] = {}  # how each goal that ran ended
+        super().__init__(node, "navigate_to_pose", NAV, self._until_cancelled,
+                         accept=self._accept_late)
+
+    async def _accept_late(self, goal: Any) -> bool:
+        await self.release.wait()
+        return True
+
+    async def _until_cancelled(self, goal: ServerGoal) -> dict[str, Any]:
+        self.running.add(goal.goal_id)
+        try:
+            result = await _until_cancelled(goal)
+            self.ended[goal.goal_id] = "canceled"
+            return result
+        finally:
+            self.running.discard(goal.goal_id)
+
+
+async def _given_up_navigate(bridge: Bridge, run: Any) -> tuple[dict[str, Any], bytes]:
+    """A navigate whose send gives up (the server holds it past match_timeout_s): its
+    COMMAND_FAILED entry, and its goal's id."""
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    async with aiohttp.ClientSession(headers=headers) as http, \
+            http.post(run.url + "/api/command", json={
+                "action": "navigate", "params": {"x": 3.0, "y": 0.0, "yaw": 0.0},
+            }) as resp:
+        answer = await resp.json()
+    assert answer["outcome"] == "failed", answer
+    [failed] = [e for e in bridge.entries() if e["event"] == "COMMAND_FAILED"]
+    assert "goal_id" in failed, failed  # it may run
+    return failed, uuid.UUID(failed["goal_id"]).bytes
+
+
+async def test_a_clean_stop_during_a_late_goal_s_watch_leaves_it_to_the_next_start(
+        bridge: Bridge, robot: RclpyOracle, domain_id: int) -> None:
+    """Stopped (SIGTERM) while a goal whose send gave up is watched, its server not having
+    accepted it yet: the stop's server-wide cancel cannot reach it, and the watch ends with
+    the process. BRIDGE_STOPPED names it (`params.left_running`), and the next start cancels
+    it by id before it serves. Before, the stop was clean and left it running."""
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as node:
+        server = HeldAcceptServer(node)
+        try:
+            run = await bridge.start()
+            failed, goal = await _given_up_navigate(bridge, run)
+            assert run.stop() == 0
+            stopped = bridge.entries()[-1]
+            assert stopped["event"] == "BRIDGE_STOPPED", stopped
+            [left] = stopped["params"]["left_running"]["goals"]
+            assert (left["goal_id"], left["message_id"]) == (failed["goal_id"],
+                                                             failed["message_id"]), left
+            server.release.set()
+            await eventually(lambda: goal in server.running, what="the late goal running")
+            await bridge.start()
+            took_back = took_back_in(bridge.entries(), scope="stopped")
+            assert took_back["applied"]["goals_cancelled"] == [failed["goal_id"]], took_back
+            await eventually(lambda: goal not in server.running,
+                             what="the late goal cancelled")
+        finally:
+            await server.close()
+
+
+async def test_a_restart_after_a_kill_during_a_late_goal_s_watch_cancels_it(
+        bridge: Bridge, robot: RclpyOracle, domain_id: int) -> None:
+    """The goal's send gave up (no answer within match_timeout_s: its command failed) and
+    the bridge was killed while it watched for the server accepting it late. The server then
+    accepts it: it runs with nobody governing it. Before, the restart took the command's
+    COMMAND_FAILED for the goal's end and left it running; now the COMMAND_FAILED names the
+    goal (it may run) and the restart cancels it by id."""
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as node:
+        server = HeldAcceptServer(node)
+        try:
+            failed, goal = await _given_up_navigate(bridge, await bridge.start())
+            [dispatched] = [e for e in bridge.entries() if e.get("action_type") == "navigate"
+                            and e["event"] == "COMMAND_DISPATCHED"]
+            assert failed["goal_id"] == dispatched["goal_id"], failed  # it may run
+            bridge.kill()  # mid-watch: its late cancel dies with it
+            server.release.set()
+            await eventually(lambda: goal in server.running, what="the late goal running")
+            await bridge.start()
+            # Awaited before the ready line: the server is canceling it by then.
+            took_back = took_back_in(bridge.entries())
+            assert took_back["applied"]["goals_cancelled"] == [failed["goal_id"]], took_back
+            await eventually(lambda: goal not in server.running,
+                             what="the late goal cancelled")
+        finally:
+            await server.close()
+
+
+async def test_a_restart_watches_a_goal_left_that_its_server_accepts_after_the_restart(
+        bridge: Bridge, robot: RclpyOracle, domain_id: int) -> None:
+    """Killed during a late-goal watch, and the server still holds the request when the
+    restart takes back what the run left: its cancel by id finds nothing. The restart
+    watches for the goal as its own send that gave up: accepted after the ready line, it
+    is cancelled and audited (GOAL_FINISHED, with the failed command). Before, it ran on."""
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as node:
+        server = HeldAcceptServer(node)
+        try:
+            failed, goal = await _given_up_navigate(bridge, await bridge.start())
+            bridge.kill()
+            await bridge.start()
+            took_back = took_back_in(bridge.entries())
+            [why] = took_back["applied"]["goals_not_cancelled"]
+            assert why.startswith(failed["goal_id"]), why
+            server.release.set()
+            await eventually(lambda: server.ended.get(goal) == "canceled", timeout=20,
+                             what="the late goal cancelled")
+
+            def finished() -> dict[str, Any] | None:
+                return next((e for e in bridge.entries() if e["event"] == "GOAL_FINISHED"
+                             and e["params"]["goal_id"] == failed["goal_id"]), None)
+
+            entry = await eventually(finished, what="its GOAL_FINISHED")
+            assert (entry["outcome"], entry["message_id"]) == (
+                "canceled", failed["message_id"]), entry
+        finally:
+            await server.close()

@@ -23,8 +23,9 @@ from waiting import eventually
 
 from rcan_rtps.bridge.navigation import GoalTracker
 from rcan_rtps.bridge.sent_goals import GoalFinished
+from rcan_rtps.ros.action_goals import MAX_GIVEN_UP
 from rcan_rtps.ros.action_server import ActionServer, ServerGoal
-from rcan_rtps.ros.errors import WireError
+from rcan_rtps.ros.errors import ActionError, WireError
 from rcan_rtps.ros.participant import RosNode
 
 from .bridge_rig import AGENT, NAV, Rig, bridge_config, close_rig, make_rig, nav_tracker
@@ -167,3 +168,91 @@ async def test_a_goal_an_rclpy_server_accepts_after_the_send_timed_out_is_cancel
             assert end.view.detail is not None and "cancelled by the bridge" in end.view.detail
         finally:
             await tracker.close()
+
+
+GOAL = {"pose": {"header": {"frame_id": "map"},
+                 "pose": {"position": {"x": 3.0}, "orientation": {"w": 1.0}}}}
+
+
+async def test_past_the_watch_s_bound_a_goal_is_not_sent_and_none_is_let_go_of(
+        domain_id: int, caplog: pytest.LogCaptureFixture) -> None:
+    """MAX_GIVEN_UP sends gave up on a server that holds every request: each is watched. The
+    next goal is refused before its request goes out, saying why; before, it was sent, and
+    the oldest watched goal was let go of — accepted late, it ran on with nobody to cancel
+    it but a stop. Released, the server accepts every one it got: each is cancelled."""
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node, \
+            RosNode("rcan_bound", "/", domain_id=domain_id) as node:
+        server = SlowServer(robot_node)
+        tracker = GoalTracker(node, "/robot1/navigate_to_pose", NAV)
+        try:
+            await tracker.client.wait_for_server(20.0)
+            gave_up = await asyncio.gather(*(
+                tracker.send(GOAL, timeout=2.0, message_id=f"m-{n}")
+                for n in range(MAX_GIVEN_UP)), return_exceptions=True)
+            assert all(isinstance(e, WireError) for e in gave_up), gave_up
+            assert len(server.sent) == MAX_GIVEN_UP
+            with pytest.raises(ActionError, match=f"{MAX_GIVEN_UP} goals whose send gave up"):
+                await tracker.send(GOAL, timeout=2.0, message_id="m-over")
+            assert len(server.sent) == MAX_GIVEN_UP  # its request never went out
+            assert "no longer watched" not in caplog.text
+            server.release.set()
+            await eventually(lambda: len(server.ended) == MAX_GIVEN_UP, timeout=30,
+                             what=lambda: f"{len(server.ended)} accepted")
+            await eventually(
+                lambda: all(state == "canceled" for state in server.ended.values()),
+                timeout=30, what=lambda: f"all cancelled: {sorted(server.ended.values())}")
+        finally:
+            server.release.set()
+            await tracker.close()
+            await server.close()
+
+
+async def test_a_stop_during_a_watch_leaves_the_watched_goal_cancelled(
+        slow: tuple[Rig, SlowServer], caplog: pytest.LogCaptureFixture) -> None:
+    """A stop (a server-wide cancel: the server has nothing yet) while a goal whose send
+    gave up is watched: the stop is answered, the watch goes on, and the goal, accepted
+    after the stop, is cancelled and audited; nothing raises."""
+    rig, server = slow
+    decision = await rig.command(AGENT, {"action": "navigate",
+                                         "params": {"x": 3.0, "y": 0.0, "yaw": 0.0}})
+    assert decision.http_status != 200, decision
+    [goal] = server.sent
+    stopped = await rig.command(AGENT, {"action": "stop"})
+    assert stopped.audit_id is not None, stopped  # answered and audited
+    server.release.set()
+    await eventually(lambda: server.ended.get(goal) == "canceled", timeout=20,
+                     what=lambda: f"the late goal cancelled (now {server.ended.get(goal)})")
+    entry = await eventually(lambda: _finished(rig, str(uuid.UUID(bytes=goal))),
+                             what="its GOAL_FINISHED")
+    assert entry["outcome"] == "canceled", entry
+    errors = [r for r in caplog.records if r.levelname in ("ERROR", "CRITICAL")]
+    assert errors == [], [r.getMessage() for r in errors]
+
+
+async def _refuse(goal: Any) -> bool:
+    return False
+
+
+async def test_a_goal_its_server_refused_is_not_named_by_its_command_s_failure(
+        tmp_path: Path, jazzy_python: Path, domain_id: int) -> None:
+    """The counterpart: a goal the server refused cannot run. Its COMMAND_FAILED names no
+    goal (a restart after a crash takes nothing back for it), as one whose send gave up
+    does (test_crash_restart)."""
+    config = bridge_config(tmp_path, domain_id)
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node:
+        server = SlowServer(robot_node)
+        server._accept = _refuse
+        rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
+        try:
+            await eventually(nav_tracker(rig).client.server_present,
+                             what="the NavigateToPose server")
+            rig.governor.heartbeat(AGENT)
+            decision = await rig.command(AGENT, {"action": "navigate",
+                                                 "params": {"x": 3.0, "y": 0.0, "yaw": 0.0}})
+            assert decision.http_status != 200, decision
+            [failed] = [e for e in rig.entries() if e["event"] == "COMMAND_FAILED"]
+            assert "rejected" in failed["deny_reason"], failed
+            assert failed.get("goal_id") is None, failed
+        finally:
+            await close_rig(rig)
+            await server.close()

@@ -72,14 +72,31 @@ class GoalServers(Protocol):
         """Cancels every active goal on every server; returns how many were active."""
         ...
 
+    def may_run(self, goal_id: str) -> bool:
+        """Whether a goal whose send failed may run all the same: its send gave up after
+        its request went out (its server may accept it late), or it was accepted and is
+        being cancelled. Not one its server refused."""
+        ...
+
+    def unsettled(self) -> list[tuple[str, str, str | None, str | None]]:
+        """(server, goal id, command, action) of each goal whose send gave up that its
+        server may still accept or run (watched for, not seen ended or canceling)."""
+        ...
+
+    async def settle(self, timeout: float) -> None:
+        """Waits up to `timeout` for those goals to settle (the bridge is leaving)."""
+        ...
+
     async def cancel(self, goal_id: str) -> bool:
         """Cancels one goal this bridge sent, on its own server; True if it is canceling."""
         ...
 
     async def cancel_left(self, server: str | None, goal_id: str | None,
-                          timeout: float) -> str | None:
+                          timeout: float, *, message_id: str | None = None,
+                          command: str | None = None) -> str | None:
         """Cancels a goal a crashed run sent (by id; with none, every goal of `server`);
-        None once canceling, else why not."""
+        None once canceling, else why not (then one with an id is watched for its server
+        accepting it late: the command `message_id` of `command` may have given up on it)."""
         ...
 
 
@@ -429,14 +446,16 @@ class RosDispatcher:
             return f"robot silent: no telemetry for {age:.1f} s"
         return None
 
-    async def _matched(self, pub: CommandPublisher) -> bool:
+    async def _matched(self, pub: CommandPublisher, timeout: float | None = None) -> bool:
+        """Whether `pub` has its robot-side reader: waited for (`timeout`, default
+        `match_timeout_s`) only if it never had one."""
         if pub.matched_count():
             self._ever_matched.add(pub.topic)
             return True
         if pub.topic in self._ever_matched:
             return False  # the robot's reader left: unavailable now, not after a timeout
         try:
-            await pub.wait_for_subscribers(1, timeout=self.ros2.match_timeout_s)
+            await pub.wait_for_subscribers(1, timeout=timeout or self.ros2.match_timeout_s)
         except GraphTimeout:
             return False
         self._ever_matched.add(pub.topic)
@@ -470,6 +489,15 @@ class RosDispatcher:
                        path=hold.path(params) if hold.path is not None else ())
         return DispatchResult(ok=True, ros2_topic=pub.topic, runs_for_s=runs_for_s)
 
+    def goals_watched(self) -> list[LeftGoal]:
+        """The goals whose send gave up that their server may still accept or run (watched
+        for, not seen ended or canceling): a clean stop leaves them to the next start."""
+        if self.goals is None:
+            return []
+        return [LeftGoal(message_id=message_id or "", action=action or "", principal=None,
+                         server=server, goal_id=goal_id)
+                for server, goal_id, message_id, action in self.goals.unsettled()]
+
     def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
         """Holds the arms still running a trajectory of `message_ids` (a stop of one
         principal's motion alone); no await."""
@@ -496,7 +524,11 @@ class RosDispatcher:
                                             goal_id=command.goal_id)
         except Exception as exc:  # rejected, no server, timeout: all mean "not executing"
             log.warning("%s goal not accepted: %s", ros.type_name, exc)
-            return DispatchResult(ok=False, ros2_topic=server, detail=str(exc))
+            # A send that gave up may still be accepted late: the failure names the goal,
+            # so that a crash's restart cancels it (`governance.resume`).
+            may_run = command.goal_id is not None and self.goals.may_run(command.goal_id)
+            return DispatchResult(ok=False, ros2_topic=server, detail=str(exc),
+                                  goal_id=command.goal_id if may_run else None)
         return DispatchResult(ok=True, ros2_topic=server, goal_id=goal_id)
 
     def _goal_kit(self, type_name: str) -> _Kit:
@@ -546,7 +578,7 @@ class RosDispatcher:
     async def halt_left(self, left: LeftRunning) -> LeftHalted:
         """What a crashed run left, taken back (`Dispatcher.halt_left`): zero velocity now
         (again once matched), its goals cancelled by id, its arms still due held where
-        joint_states says they are. Each waits up to `match_timeout_s` for its peer: the
+        joint_states says they are. Each waits up to `_crash_wait_s` for its peer: the
         bridge has just joined the domain."""
         zero = self._halt.message(with_effect(Effect.HALT).params())
         matched_before = self.cmd_vel.matched_count() > 0
@@ -562,12 +594,13 @@ class RosDispatcher:
         server answered for: they may still run)."""
         if not goals:
             return (), (), ()
-        timeout = self.ros2.match_timeout_s
+        timeout = self._crash_wait_s
         if self.goals is None:
             whys: list[str | None] = ["no goal server is configured"] * len(goals)
         else:
             whys = list(await asyncio.gather(*(
-                self.goals.cancel_left(g.server, g.goal_id, timeout) for g in goals)))
+                self.goals.cancel_left(g.server, g.goal_id, timeout, message_id=g.message_id,
+                                       command=g.action) for g in goals)))
         cancelled, not_cancelled, still = [], [], []
         for goal, why in zip(goals, whys, strict=True):
             named = goal.goal_id or f"every goal of {goal.server} (no goal id recorded)"
@@ -604,7 +637,7 @@ class RosDispatcher:
         watcher = f"left by a crashed run: {arm.message_id}"
         self.arms.positions.watch(watcher, arm.joints)  # kept whatever else is heard
         try:
-            if not await self._matched(route.publisher):
+            if not await self._matched(route.publisher, self._crash_wait_s):
                 why: str | None = f"no subscriber on {topic}"
             else:
                 where = await self._joints_now(arm.joints)
@@ -622,11 +655,16 @@ class RosDispatcher:
                            lambda joints, where: hold.build(joints, where, kit))
         return topic, why
 
+    @property
+    def _crash_wait_s(self) -> float:
+        """How long the take-back of a crashed run's motion waits for each peer."""
+        return max(self.ros2.match_timeout_s, self.ros2.crash_halt_wait_s)
+
     async def _joints_now(self, joints: Sequence[str]) -> list[float] | str:
-        """Where `joints` are, heard within `match_timeout_s`; else why not known. Never a
+        """Where `joints` are, heard within `_crash_wait_s`; else why not known. Never a
         joint heard at rest long ago: the crashed run's trajectory may be moving it."""
         loop = asyncio.get_running_loop()
-        wait = self.ros2.match_timeout_s
+        wait = self._crash_wait_s
         deadline = loop.time() + wait
         while isinstance(where := self.arms.positions.now(joints, self.ros2.telemetry_stale_s),
                          str):
@@ -644,7 +682,13 @@ class RosDispatcher:
         halted = await self.halt()
         sent: list[CommandPublisher] = [self.cmd_vel, *(
             p for p in self._publishers.values() if p.topic in halted.arms.held)]
-        acked = await asyncio.gather(*(p.acknowledged(LEAVING_ACK_S) for p in sent))
+        # Meanwhile, goals whose send gave up that their server has not yet accepted: the
+        # halt's server-wide cancel reached none of them, and their watches end as the
+        # bridge leaves. Those still unsettled then, BRIDGE_STOPPED names (`goals_watched`).
+        acking = asyncio.gather(*(p.acknowledged(LEAVING_ACK_S) for p in sent))
+        if self.goals is not None:
+            await asyncio.gather(acking, self.goals.settle(LEAVING_ACK_S))
+        acked = await acking
         for publisher, ok in zip(sent, acked, strict=True):
             if not ok:
                 log.warning("leaving with the halt on %s not acknowledged by every subscriber "

@@ -42,6 +42,7 @@ def route_mapping(ros2: Ros2Config, action_key: str) -> RequestMapping:
     return RequestMapping(ros2.request_mappings.get(name, ros2.request_mapping))
 
 
+SETTLE_POLL_S = 0.05  # s between looks at the watched goals while the bridge leaves
 # What a server answers for a goal it does not have running (it ended, or never was).
 CANCELING_NOTHING = "its server is canceling nothing (it had ended?)"
 
@@ -102,10 +103,13 @@ class GoalRoutes:
         return sum(c for c in counts if isinstance(c, int))
 
     async def cancel_left(self, server: str | None, goal_id: str | None,
-                          timeout: float) -> str | None:
+                          timeout: float, *, message_id: str | None = None,
+                          command: str | None = None) -> str | None:
         """Cancels a goal a crashed run left on `server` (`GoalTracker.cancel_left`; on
         every goal server when that one is no longer configured: an id names one goal
-        wherever it is). None once a server is canceling it, else why not."""
+        wherever it is). None once a server is canceling it, else why not. One no server
+        is canceling is watched for (`GoalTracker.watch_left`): its send may have given up
+        on a server that has not accepted it yet (the command `message_id` of `command`)."""
         trackers = [t for t in self.trackers if t.action_name == server] or self.trackers
         if not trackers:
             return "no goal server is configured"
@@ -113,8 +117,31 @@ class GoalRoutes:
                                         return_exceptions=True)
         if any(o is True for o in outcomes):
             return None
+        if goal_id is not None:
+            for tracker in trackers:
+                tracker.watch_left(goal_id, timeout, message_id=message_id, command=command)
         errors = [f"{type(o).__name__}: {o}" for o in outcomes if isinstance(o, BaseException)]
         return "; ".join(errors) or CANCELING_NOTHING
+
+    def unsettled(self) -> list[tuple[str, str, str | None, str | None]]:
+        """(server, goal id, command, action) of each goal whose send gave up that its
+        server may still accept or run: watched for, not yet seen ended or canceling."""
+        return [(t.action_name, *goal) for t in self.trackers for goal in t.unsettled()]
+
+    async def settle(self, timeout: float) -> None:
+        """Waits up to `timeout` for the goals whose send gave up to settle (each watch
+        cancels its goal as soon as the server lists it): the bridge is leaving, and its
+        watches end with it."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while self.unsettled() and loop.time() < deadline:
+            await asyncio.sleep(SETTLE_POLL_S)
+
+    def may_run(self, goal_id: str) -> bool:
+        """Whether a goal whose send failed may run on its server all the same
+        (`GoalTracker.may_run`): its command's COMMAND_FAILED names it, for a crash's
+        restart to cancel."""
+        return any(t.may_run(goal_id) for t in self.trackers)
 
     async def cancel(self, goal_id: str) -> bool:
         """Cancels one goal this bridge sent, on its own server; True if it is canceling."""

@@ -111,6 +111,18 @@ class GoalTracker:
         """Cancels one goal this bridge sent; True if the server is canceling it."""
         return self._sent is not None and await self._sent.cancel(goal_id)
 
+    def unsettled(self) -> list[tuple[str, str | None, str | None]]:
+        """(goal id, command, action) of each goal whose send gave up that the server may
+        still accept or run (`SentGoals.unsettled`)."""
+        return [] if self._sent is None else self._sent.unsettled()
+
+    def may_run(self, goal_id: str) -> bool:
+        """Whether the server may run `goal_id` though its send failed: the send gave up
+        after its request went out (the server may accept it late: watched for), or it was
+        accepted and is being cancelled (a stop came while it was on its way) — not when
+        the server refused it."""
+        return self.client.watching_late(uuid.UUID(goal_id).bytes) or goal_id in self.active()
+
     async def cancel_left(self, goal_id: str | None, timeout: float) -> bool:
         """Cancels a goal a crashed run of the bridge left, by its id (any client may), or
         with no id known every goal of the server (as a stop does); waits up to `timeout`
@@ -119,6 +131,18 @@ class GoalTracker:
             await self.client.prepare_cancel(timeout)
             return await self.client.cancel_all(timeout, server_wide=True) > 0
         return await self.client.cancel_goal_id(uuid.UUID(goal_id).bytes, timeout)
+
+    def watch_left(self, goal_id: str, timeout: float, *, message_id: str | None,
+                   command: str | None) -> None:
+        """Watches for the server accepting late a goal a crashed run left that it is not
+        running now: its send may have given up on a server still holding the request. It
+        is cancelled as soon as it is listed running, and audited, as a goal whose send gave
+        up in this run (`SentGoals.watch_left`)."""
+        if self._sent is None:
+            from .sent_goals import SentGoals  # (a goal was sent: by the crashed run)
+
+            self._sent = SentGoals(self.client, self._views, self.events, self._keep)
+        self._sent.watch_left(goal_id, timeout, message_id=message_id, command=command)
 
     def warn_cancelling(self, why: str) -> None:
         """Logs each active goal about to be cancelled, and why."""

@@ -42,7 +42,8 @@ _STATES: dict[RosGoalState, GoalState] = {
 }
 RESULT_TIMEOUT_S = 3600.0
 # Sends given up on whose command is remembered, should their goal be accepted late (the
-# action client watches as many: `ros.action_goals.MAX_GIVEN_UP`); the oldest go first.
+# action client watches as many: `ros.action_goals.MAX_GIVEN_UP`, and sends no goal while it
+# does; past it, sends that were on their way then, the oldest forgotten first).
 KEEP_GIVEN_UP = 64
 
 
@@ -100,7 +101,8 @@ class SentGoals:
         try:
             handle = await self.client.send_goal(goal, timeout=timeout, goal_id=chosen)
         except BaseException:  # (cancelled too: its caller went away) it may come late
-            self._remember_given_up(str(uuid.UUID(bytes=chosen)), message_id, command)
+            if self.client.watching_late(chosen):  # (not: refused before it went out)
+                self._remember_given_up(str(uuid.UUID(bytes=chosen)), message_id, command)
             raise
         if not handle.accepted:
             raise ActionError(f"{self.client.name} rejected the goal")
@@ -122,6 +124,21 @@ class SentGoals:
         self._given_up[goal_id] = (message_id, command)
         while len(self._given_up) > KEEP_GIVEN_UP:
             del self._given_up[next(iter(self._given_up))]
+
+    def watch_left(self, goal_id: str, timeout: float, *, message_id: str | None,
+                   command: str | None) -> None:
+        """A goal a crashed run left, its send perhaps given up: watched for as one whose
+        send gave up here (`ActionClient.watch_late`), for max(LATE_WATCH_S, `timeout`)."""
+        chosen = uuid.UUID(goal_id).bytes
+        self.client.watch_late(chosen, timeout)
+        if self.client.watching_late(chosen):
+            self._remember_given_up(goal_id, message_id, command)
+
+    def unsettled(self) -> list[tuple[str, str | None, str | None]]:
+        """(goal id, the command that sent it, its action) of each goal whose send gave up
+        that its server may still accept or run (`ActionClient.unsettled_late`)."""
+        ids = [str(uuid.UUID(bytes=g)) for g in self.client.unsettled_late()]
+        return [(g, *self._given_up.get(g, (None, None))) for g in ids]
 
     def _late_goal(self, late: LateGoal) -> None:
         """The server accepted a goal after its send had given up (its command was answered

@@ -200,6 +200,11 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     telemetry_stale_s: Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)] = 2.0
     # How long a command waits for a subscriber or action server before ROBOT_UNAVAILABLE.
     match_timeout_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 1.0
+    # How long a start's take-back of what a crashed run left waits for each peer (an arm's
+    # trajectory topic and its joint_states, a goal's server), at least match_timeout_s:
+    # the API is not serving yet, and an arm not heard by then is reported, not held (a
+    # busy board's joint_states can take more than a second to be heard after joining).
+    crash_halt_wait_s: Annotated[float, msgspec.Meta(gt=0.0, le=60.0)] = 5.0
     # How often a streamed `move` republishes its velocity (ros2_control's diff drive stops
     # after 0.5 s without a command: 20 Hz leaves ten samples of margin).
     cmd_rate_hz: Annotated[float, msgspec.Meta(ge=1.0, le=1000.0)] = 20.0

@@ -115,11 +115,14 @@ class Governor:
                  held_locks: Mapping[str, str] | None = None,
                  events: Events | None = None,
                  ai: AiPolicy | None = None,
-                 left_running: LeftRunning | None = None) -> None:
+                 left_running: LeftRunning | None = None, left_by_crash: bool = True) -> None:
         self.audit = audit
-        # What the previous run left running, having not ended with BRIDGE_STOPPED (a crash):
-        # taken back by `start` (`_halting`, recorded by `_took_back`).
+        # What the previous run left running, having not ended with BRIDGE_STOPPED (a crash)
+        # — or, `left_by_crash` False, the goals its BRIDGE_STOPPED named (their send gave
+        # up; the server had not accepted them yet): taken back by `start` (`_halting`,
+        # recorded by `_took_back`).
         self.left_running = left_running or LeftRunning()
+        self._left_by_crash = left_by_crash
         self.latch = latch
         self.events = events or Events()
         self._steps = Steps(audit, dispatcher)
@@ -192,6 +195,7 @@ class Governor:
             unattended_move_s=bridge.safety.unattended_move_s,
             robot_ruri=config.robot.ruri, held_locks=resumed.locks, events=events,
             ai=AiPolicy(bridge.ai.agents), left_running=resumed.left,
+            left_by_crash=resumed.crashed,
         )
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -227,8 +231,10 @@ class Governor:
         self._sweeper = asyncio.create_task(self._sweep_forever())
 
     async def _halting(self, left: LeftRunning) -> LeftHalted:
-        log.warning("the previous run did not stop cleanly (no BRIDGE_STOPPED): taking back "
-                    "the motion it left (%d arm trajectories, %d goals, %d velocity streams)",
+        why = ("did not stop cleanly (no BRIDGE_STOPPED)" if self._left_by_crash else
+               "stopped with goals its server might still accept")
+        log.warning("the previous run %s: taking back the motion it left (%d arm "
+                    "trajectories, %d goals, %d velocity streams)", why,
                     len(left.arms), len(left.goals), len(left.streams))
         try:
             return await self._dispatcher.halt_left(left)
@@ -241,10 +247,12 @@ class Governor:
 
     async def _took_back(self, left: LeftRunning, halted: LeftHalted) -> None:
         """The one entry of the halt of a crashed run's motion: a NETWORK_LOSS_SAFE_STOP of
-        scope `crash` (every session of that run was lost), what it found and what it did.
-        Failed when an arm that may still move could not be held (loudly: nobody else will)."""
+        scope `crash` (every session of that run was lost) — or `stopped`, of the goals a
+        clean stop left — what it found and what it did. Failed when an arm that may still
+        move could not be held (loudly: nobody else will)."""
         applied: dict[str, Any] = {
-            "scope": "crash", "left": left.facts(), "zero_reached": halted.zero_reached,
+            "scope": "crash" if self._left_by_crash else "stopped", "left": left.facts(),
+            "zero_reached": halted.zero_reached,
             "goals_cancelled": list(halted.goals_cancelled), **_arms_applied(halted.arms)}
         if halted.goals_not_cancelled:
             applied["goals_not_cancelled"] = list(halted.goals_not_cancelled)
@@ -276,7 +284,16 @@ class Governor:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         await self.latch.close()
         await self._estops.record_repeats()
-        params = {"estop_latched": self.latch.latched, "locks": dict(self._base.lock_holders)}
+        params: dict[str, Any] = {"estop_latched": self.latch.latched,
+                                  "locks": dict(self._base.lock_holders)}
+        # The bridge's halt had their server canceling everything it had: these it had not
+        # accepted yet, and their watches end with the bridge. The next start cancels them.
+        watched = LeftRunning(goals=self._steps.goals_watched())
+        if watched:
+            log.warning("stopping with %d goals whose send gave up not yet seen ended (their "
+                        "server may accept them late): the next start cancels them",
+                        len(watched.goals))
+            params["left_running"] = watched.facts()
         await self.audit.append(AuditRecord(event=AuditEvent.BRIDGE_STOPPED, params=params))
 
     def _latch_flipped(self) -> None:
@@ -621,12 +638,14 @@ class Governor:
             # A goal the bridge refused because a stop came while it was on its way (it
             # cancels it: `GoalTracker`) is answered as one this governor cancels: `stopped`.
             halted = self.streams.halted_since(stops) if spec.starts_goal else None
-            return await self._steps.failed(command, principal, halted or failure)
+            return await self._steps.failed(command, principal, halted or failure,
+                                            goal_id=result.goal_id)
         if spec.starts_goal:  # a stop or e-stop since it was decided: cancelled by id
             refused = self._base.hold_goal(result.goal_id, owner, priority, command.message_id,
                                            stops)
-            if refused is not None:
-                return await self._steps.failed(command, principal, refused)
+            if refused is not None:  # (running until its cancel ends it: named, as it may run)
+                return await self._steps.failed(command, principal, refused,
+                                                goal_id=result.goal_id)
         if result.runs_for_s is not None and result.ros2_topic:
             self._ran_on(result.ros2_topic, owner.name, command.message_id)
         return executed(command, applied, receipt, result)

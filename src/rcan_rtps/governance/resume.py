@@ -18,13 +18,18 @@ shows ended (`LeftRunning`): arm trajectories still due by the wall clock (sent 
 counted them), goals (their `goal_id`, written ahead since goals were sent with an id chosen
 before their entry; older entries have none) and velocity streams. A start halts them
 (`Governor.start`). Ended: GOAL_FINISHED, STREAM_ENDED, a COMMAND_FAILED of the command
-(its principal's and action's: a failed hold or cancel under its id ended nothing), a
+(its principal's and action's: a failed hold or cancel under its id ended nothing;
+one naming a goal did not end it: its send gave up, the server may accept it late), a
 later trajectory of the same joints on the same topic (it replaced it, unless its own
 COMMAND_FAILED follows: refused once written ahead, it was never sent; the newest such
 replacement may not have been sent either — the crash came between its entry and its
 publish — so what it replaced stays listed while due), a stop of everyone's
 motion (a `stop`, an e-stop, a safe stop of the whole robot) unless that stop's own
 COMMAND_FAILED follows, and a stop of one principal's motion for what it says it stopped.
+
+A clean stop may leave goals as well: those whose send gave up that their server had not yet
+accepted, which its BRIDGE_STOPPED names (`params.left_running`, `Governor.stop`); they are
+listed (`Resumed.left`, not `crashed`) for the start to cancel.
 """
 
 from __future__ import annotations
@@ -138,8 +143,8 @@ def resume(path: Path | str, *, now_ms: int | None = None) -> Resumed:
         return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc!r})")
     # No boundary at all in a log with entries is no clean stop either: fail closed.
     found.crashed = last is not None and last.get("event") != "BRIDGE_STOPPED"
-    if found.crashed:
-        found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
+    # (after a clean stop: only the goals its BRIDGE_STOPPED named, `Governor.stop`)
+    found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
     return found
 
 
@@ -185,7 +190,7 @@ class _Motion:
 
     def apply(self, entry: dict[str, Any]) -> None:
         event, message_id = entry.get("event"), entry.get("message_id")
-        if event == "BRIDGE_STARTED":  # the boundary: what it set out to take back runs on
+        if event in _BOUNDARIES:  # what a start set out to take back, or a stop left, runs on
             given = entry.get("params")
             self._taken_up((given if isinstance(given, dict) else {}).get("left_running"))
         elif event in _EXECUTED and entry.get("outcome") == "executed":
@@ -193,7 +198,9 @@ class _Motion:
         elif event in _HALTS:
             self._halt(entry)
         elif event == "COMMAND_FAILED" and isinstance(message_id, str):
+            sent = self.goals.get(_key(entry))
             self._failed(_key(entry))
+            self._may_run(entry, sent)
         elif event == "GOAL_FINISHED":
             self._goal_finished(entry)
         elif event == "STREAM_ENDED" and isinstance(message_id, str):
@@ -249,7 +256,7 @@ class _Motion:
             return
         # An e-stop, a safe stop of the whole robot, a start's halt of a crash.
         self._halted_all(_key(entry))
-        if facts.get("scope") == "crash":
+        if facts.get("scope") in ("crash", "stopped"):
             self._still_left(facts)
 
     def _still_left(self, facts: dict[str, Any]) -> None:
@@ -301,6 +308,20 @@ class _Motion:
             self.goals = {**goals, **self.goals}
             self.streams = {**streams, **self.streams}
             self._replaced = {**replaced, **self._replaced}
+
+    def _may_run(self, failed: dict[str, Any], sent: LeftGoal | None) -> None:
+        """A COMMAND_FAILED naming a goal: its send gave up after the request went out (the
+        server may accept it late), or it was accepted and was being cancelled. Failed, it
+        is not ended: listed until its GOAL_FINISHED (fails closed; a cancel by id of a goal
+        the server never had cancels nothing)."""
+        goal_id = failed.get("goal_id")
+        if not isinstance(goal_id, str):
+            return
+        self.goals[_key(failed)] = LeftGoal(
+            message_id=str(failed.get("message_id")), action=str(failed.get("action_type")),
+            principal=failed.get("principal"),
+            server=sent.server if sent is not None else None,  # (None: asked of every one)
+            goal_id=goal_id)
 
     def _goal_finished(self, entry: dict[str, Any]) -> None:
         given = entry.get("params")

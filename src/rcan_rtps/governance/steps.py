@@ -23,7 +23,7 @@ from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
 from .errors import AuditError
 from .outcomes import AUDIT_UNAVAILABLE, DISPATCH_ERROR, Rejection, robot_unavailable
 from .rbac import Principal
-from .resume import LeftRunning
+from .resume import LeftGoal, LeftRunning
 
 log = logging.getLogger("rcan_rtps.governance.governor")  # one logger for the kernel's steps
 
@@ -33,6 +33,9 @@ class DispatchResult(msgspec.Struct, frozen=True, kw_only=True):
 
     ok: bool
     ros2_topic: str | None = None
+    # The goal started; on a failure, one its server may run all the same (its send gave up
+    # after the request went out, or it was accepted and is being cancelled): the command's
+    # COMMAND_FAILED names it, for a crash's restart to cancel (`resume`).
     goal_id: str | None = None
     detail: str | None = None
     # What was sent runs on after this, for up to so many seconds (an arm's trajectory): a
@@ -100,6 +103,12 @@ class Dispatcher(Protocol):
 
     def running_trajectories(self) -> Collection[str]:
         """The message ids of the commands whose motion may still run on (`runs_for_s`)."""
+        ...
+
+    def goals_watched(self) -> list[LeftGoal]:
+        """The goals whose send gave up that their server may still accept or run (watched
+        for their late acceptance, not seen ended or canceling): BRIDGE_STOPPED names them,
+        for the next start to cancel."""
         ...
 
     async def halt_left(self, left: LeftRunning) -> LeftHalted:
@@ -217,6 +226,13 @@ class Steps:
             log.exception("holding the arms failed")
             return ArmsHeld(not_held=(f"holding the arms failed: {exc!r}",))
 
+    def goals_watched(self) -> list[LeftGoal]:
+        try:
+            return self.dispatcher.goals_watched()
+        except Exception:  # the stop is recorded all the same
+            log.exception("reading the goals watched for late acceptance failed")
+            return []
+
     def running_trajectories(self) -> Collection[str] | None:
         """None: not known (count every one as running: fail closed)."""
         try:
@@ -238,15 +254,17 @@ class Steps:
         return result, robot_unavailable(result.detail)
 
     async def failed(self, command: NormalizedCommand, principal: Principal,
-                     rejection: Rejection) -> Decision:
-        """After a write-ahead entry: the send did not happen or failed (COMMAND_FAILED)."""
-        return await self.refuse(command, principal, rejection, event=AuditEvent.COMMAND_FAILED)
+                     rejection: Rejection, *, goal_id: str | None = None) -> Decision:
+        """After a write-ahead entry: the send did not happen or failed (COMMAND_FAILED);
+        `goal_id`: a goal of it that may run all the same (`DispatchResult.goal_id`)."""
+        return await self.refuse(command, principal, rejection, event=AuditEvent.COMMAND_FAILED,
+                                 goal_id=goal_id)
 
     async def refuse(self, command: NormalizedCommand, principal: Principal,
                      rejection: Rejection, *, event: AuditEvent = AuditEvent.COMMAND_REJECTED,
-                     pending_id: str | None = None) -> Decision:
+                     pending_id: str | None = None, goal_id: str | None = None) -> Decision:
         entry = record(event, command, principal, rejection.outcome, rejection=rejection,
-                       pending_id=pending_id)
+                       pending_id=pending_id, goal_id=goal_id)
         receipt = await self.write_ahead(entry)
         if receipt is None:
             return decision(AUDIT_UNAVAILABLE, message_id=command.message_id)
@@ -291,8 +309,10 @@ async def _stopped(entry: AuditRecord, signals: Sequence[asyncio.Future[Any]],
 def record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
            outcome: Outcome, *, applied: dict[str, Any] | None = None,
            rejection: Rejection | None = None, ros2_topic: str | None = None,
-           pending_id: str | None = None, sent_first: bool | None = None) -> AuditRecord:
-    """The audit entry of `command`'s decision (its goal's id, when one was chosen for it)."""
+           pending_id: str | None = None, sent_first: bool | None = None,
+           goal_id: str | None = None) -> AuditRecord:
+    """The audit entry of `command`'s decision (its goal's id, when one was chosen for it;
+    a failure's names `goal_id`, a goal that may run all the same)."""
     return AuditRecord(
         event=event, principal=principal.name, role=principal.role.name,
         message_id=command.message_id, action_type=command.action, params=command.requested,
@@ -303,7 +323,7 @@ def record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
         # A held command's reviews (who approved, denied or withdrew it, and why).
         approvals=[msgspec.to_builtins(a) for a in command.approvals] or None,
         rcan=command.envelope.audit_facts() if command.envelope is not None else None,
-        goal_id=command.goal_id if outcome is Outcome.EXECUTED else None,
+        goal_id=command.goal_id if outcome is Outcome.EXECUTED else goal_id,
     )
 
 

@@ -112,7 +112,7 @@ LAST_ASK_S = 5.0
 # with one dropped); a running goal's status may not be written again. A goal accepted later
 # than that is not seen here: a stop (a server-wide cancel) still cancels it.
 LATE_WATCH_S = 10.0
-MAX_GIVEN_UP = 64  # goals whose send gave up, watched at once (the oldest is let go of first)
+MAX_GIVEN_UP = 64  # goals whose send gave up, watched at once (no goal is sent while as many)
 TAKE_BACK_CANCEL_S = 2.0  # s a cancel of such a goal waits for its reply (as a stop's does)
 TAKE_BACK_RETRY_S = 1.0  # s between cancels of one listed running whose cancel went unanswered
 
@@ -156,6 +156,7 @@ class _GivenUp:
         self.span = span
         self.deadline = asyncio.get_running_loop().time() + span
         self.state: GoalState | None = None  # as the status topic last listed it
+        self.canceled = False  # the server answered our cancel of it: canceling
         self._changed = asyncio.Event()
         self.task: asyncio.Task[None] | None = None
 
@@ -751,6 +752,7 @@ class GoalSender:
         # A server would take it for the one it has; one given up on is cancelled if seen.
         if goal_id in self._goals or goal_id in self._given_up:
             raise ActionError(f"{self.name}: goal {uuid.UUID(bytes=goal_id)} was sent already")
+        self._check_watch_room()
         handle = ClientGoal(self, goal_id)
         self._goals[handle.goal_id] = handle  # before sending: feedback may come quickly
         self.goals_sent += 1
@@ -772,23 +774,30 @@ class GoalSender:
         finally:
             handle._sending = False
 
+    def _check_watch_room(self) -> None:
+        """Refuses a goal while MAX_GIVEN_UP sends that gave up are watched for: a server
+        that left so many unanswered is not answering, and making room would let go of a
+        goal it may still accept (to run with nobody to cancel it but a stop). Nothing is
+        sent; the watches end within max(LATE_WATCH_S, their send's timeout)."""
+        if len(self._given_up) >= MAX_GIVEN_UP:
+            log.warning("action %s: a goal refused: %d goals whose send gave up are watched "
+                        "for", self.name, len(self._given_up))
+            raise ActionError(
+                f"{self.name}: {len(self._given_up)} goals whose send gave up are watched for "
+                f"their server accepting them late (at most {MAX_GIVEN_UP}): no goal is sent "
+                f"until it answers")
+
     def _give_up(self, goal_id: bytes, timeout: float) -> None:
         """The send of `goal_id` gave up after its request went out (no reply within
         `timeout`, the send cancelled, an answer the status topic never confirmed): a server
         that was only slow may accept it yet, and it would run with nobody following it.
         Cancelled at once, and again should the status topic list it running within
         max(LATE_WATCH_S, `timeout`); whoever listens (`ActionClient.on_late_goal`) is told
-        of one that showed up. At most MAX_GIVEN_UP are watched: the oldest is let go of."""
+        of one that showed up. MAX_GIVEN_UP are watched, and no goal is sent while as many
+        are (`_check_watch_room`); sends already on their way when the last room was taken
+        may give up too: watched as well (few: each was let through with room left)."""
         if self.client._gone():
             return  # closed: its endpoints are gone (a bridge halts the robot as it stops)
-        while len(self._given_up) >= MAX_GIVEN_UP:
-            oldest = self._given_up.pop(next(iter(self._given_up)))
-            log.warning("action %s: goal %s, whose send gave up, is no longer watched for "
-                        "(over %d such at once); should its server accept it late, only a "
-                        "stop cancels it", self.name, uuid.UUID(bytes=oldest.goal_id),
-                        MAX_GIVEN_UP)
-            if oldest.task is not None:
-                oldest.task.cancel()
         watch = self._given_up[goal_id] = _GivenUp(goal_id, max(LATE_WATCH_S, timeout))
         watch.task = asyncio.get_running_loop().create_task(self._take_back(watch))
 
@@ -798,7 +807,7 @@ class GoalSender:
         long again) for its end and tells `on_late_goal` of it, if the server had it."""
         loop = asyncio.get_running_loop()
         try:
-            canceled = await self._cancel_given_up(watch)
+            canceled = watch.canceled = await self._cancel_given_up(watch)
             while not canceled and not watch.settled and loop.time() < watch.deadline:
                 if self.client._gone():
                     return
@@ -807,7 +816,7 @@ class GoalSender:
                     min(watch.deadline, loop.time() + TAKE_BACK_RETRY_S)
                 await watch.change(until)
                 if watch.state is not None and not watch.settled:
-                    canceled = await self._cancel_given_up(watch)
+                    canceled = watch.canceled = await self._cancel_given_up(watch)
             if watch.state is None and not canceled:
                 log.debug("action %s: goal %s, whose send gave up, was not accepted within "
                           "%s", self.name, uuid.UUID(bytes=watch.goal_id), seconds(watch.span))
@@ -865,6 +874,32 @@ class GoalSender:
                      uuid.UUID(bytes=watch.goal_id), exc)
             return False
         return _names_goal(reply, watch.goal_id)
+
+    def watch_left(self, goal_id: bytes, timeout: float) -> None:
+        """A goal a previous run of ours sent, which the server is not running now: its
+        send may have given up on a server still holding the request. Watched as one whose
+        send gave up here (`_give_up`), unless it is ours already or there is no room (then
+        only a stop cancels it, logged)."""
+        if goal_id in self._goals or goal_id in self._given_up:
+            return
+        if len(self._given_up) >= MAX_GIVEN_UP:
+            log.warning("action %s: goal %s, left by a previous run, is not watched for (%d "
+                        "goals whose send gave up are): should its server accept it late, "
+                        "only a stop cancels it", self.name, uuid.UUID(bytes=goal_id),
+                        len(self._given_up))
+            return
+        self._give_up(goal_id, timeout)
+
+    def unsettled(self) -> list[bytes]:
+        """The goals whose send gave up that are watched for and not yet seen ended or
+        being canceled (listed so, or our cancel answered so): their server may run them
+        yet. Oldest first."""
+        return [w.goal_id for w in self._given_up.values() if not (w.settled or w.canceled)]
+
+    def watching(self, goal_id: bytes) -> bool:
+        """Whether `goal_id`'s send gave up after its request went out and its late
+        acceptance is being watched for (`_give_up`): its server may run it yet."""
+        return goal_id in self._given_up
 
     def _take_back_client(self) -> ServiceClient:
         if self._take_back_srv is None:

@@ -220,6 +220,21 @@ class ActionClient:
         it cancelled (`on_late_goal` is told: `action_goals.GoalSender._give_up`)."""
         return await self._goal_side().send_goal(goal, timeout, goal_id=goal_id)
 
+    def watch_late(self, goal_id: bytes, timeout: float) -> None:
+        """Watches for the server accepting `goal_id` late, as if its send had given up
+        here (a goal of a previous run of ours: `action_goals.GoalSender.watch_left`)."""
+        self._goal_side().watch_left(goal_id, timeout)
+
+    def unsettled_late(self) -> list[bytes]:
+        """The goals whose send gave up that are watched for and not yet seen ended or
+        being canceled: their server may still accept (or run) them. Oldest first."""
+        return [] if self._sending is None else self._sending.unsettled()
+
+    def watching_late(self, goal_id: bytes) -> bool:
+        """Whether the send of `goal_id` gave up after its request went out, and the server
+        accepting it late is being watched for (`action_goals.GoalSender._give_up`)."""
+        return self._sending is not None and self._sending.watching(goal_id)
+
     async def cancel_all(self, timeout: float = 10.0, *, server_wide: bool = False) -> int:
         """Cancels this client's open goals (or, `server_wide`, every goal of the server,
         whoever sent it: zero goal id and stamp). Returns how many goals are canceling."""

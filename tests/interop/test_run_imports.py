@@ -280,3 +280,66 @@ def test_with_goal_servers_the_stop_path_is_loaded_before_ready(tmp_path: Path,
 
 def ours(modules: set[str]) -> set[str]:
     return {m for m in modules if m.startswith("rcan_rtps")}
+
+
+# Only a start runs them (issue 27, item 6): the audit log's replay (`Governor.from_config`),
+# let go of once the bridge has started (`run_cmd.release_free_memory`).
+START_ONLY = {"rcan_rtps.governance.resume"}
+# A bridge started in-process as `run` starts it, then let go of what `run` lets go of before
+# its ready line: which of our modules are still imported, and whether the replay's code is
+# still alive (a reference kept to it anywhere would keep its module's memory).
+STARTED_AND_RELEASED = """
+import asyncio, gc, json, sys, weakref
+from rcan_rtps.bridge.runtime import Bridge, BridgeOptions
+from rcan_rtps.cli.run_cmd import release_free_memory
+from rcan_rtps.config import load_config
+
+async def main():
+    env = {"RCAN_BRIDGE_TOKEN": sys.argv[2]}
+    bridge = Bridge(load_config(sys.argv[1], env=env),
+                    BridgeOptions(port=0, host="127.0.0.1", mdns=False, env=env))
+    bridge.prepare()
+    await bridge.start()
+    try:
+        replay = weakref.ref(sys.modules["rcan_rtps.governance.resume"].resume)
+        release_free_memory()
+        gc.collect()
+        print(json.dumps({"modules": sorted(m for m in sys.modules if m.startswith("rcan_rtps")),
+                          "replay_alive": replay() is not None}))
+    finally:
+        await bridge.stop()
+
+asyncio.run(main())
+"""
+
+
+def idle_config(tmp_path: Path, domain_id: int, ros2_extra: str = "") -> Path:
+    state = tmp_path / "state"
+    state.mkdir(mode=0o700)
+    config = tmp_path / "robot.rcan.yaml"
+    config.write_text(
+        "robot: {ruri: rcan://registry.local/acme/rover/unit-0001}\n"
+        "bridge:\n"
+        f"  ros2: {{namespace: /robot1, domain_id: {domain_id}{ros2_extra}}}\n"
+        "  api: {auth_token_env: RCAN_BRIDGE_TOKEN}\n"
+        "  safety: {max_linear_vel: 1.0, max_angular_vel: 1.0, session_timeout_s: 3600}\n"
+        f"  audit: {{path: {state / 'audit.jsonl'}, key_path: {state / 'audit.key'}}}\n")
+    return config
+
+
+def started_and_released(config: Path, domain_id: int) -> dict[str, object]:
+    done = subprocess.run([sys.executable, "-c", STARTED_AND_RELEASED, str(config), TOKEN],
+                          capture_output=True, text=True, timeout=120, env=child_env(domain_id))
+    assert done.returncode == 0, done.stderr
+    found: dict[str, object] = json.loads(done.stdout.splitlines()[-1])
+    return found
+
+
+def test_an_idle_bridge_holds_no_start_only_code(tmp_path: Path, domain_id: int) -> None:
+    """Started, then released as `run` does before its ready line: the replay's module is gone
+    and nothing keeps its code alive."""
+    found = started_and_released(idle_config(tmp_path, domain_id), domain_id)
+    modules = set(found["modules"])  # type: ignore[call-overload]
+    assert "rcan_rtps.bridge.runtime" in modules  # the list is the run's
+    assert not START_ONLY & modules, f"still imported: {sorted(START_ONLY & modules)}"
+    assert found["replay_alive"] is False, "something keeps the replay's code alive"

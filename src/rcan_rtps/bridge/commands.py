@@ -23,7 +23,7 @@ import msgspec
 from ..config import Ros2Config
 from ..events import Events
 from ..governance import ArmsHeld, DispatchResult
-from ..governance.resume import LeftArm, LeftGoal, LeftRunning
+from ..governance.left import LeftArm, LeftGoal, LeftRunning
 from ..governance.steps import LeftHalted
 from ..rcan import ActionParams, ActionSpec, Effect, NormalizedCommand
 from ..rcan.actions import (

@@ -13,9 +13,10 @@ import re
 import signal
 import subprocess
 import sys
+import time
 import urllib.error
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -285,6 +286,10 @@ def ours(modules: set[str]) -> set[str]:
 # Only a start runs them (issue 27, item 6): the audit log's replay (`Governor.from_config`),
 # let go of once the bridge has started (`run_cmd.release_free_memory`).
 START_ONLY = {"rcan_rtps.governance.resume"}
+# Only an arm that can move needs them: loaded at start when the config names arms, else by
+# the first arm command, never by a stop (issue 27, item 6).
+ARM_HOLDS = {"rcan_rtps.bridge.arm_holds", "rcan_rtps.bridge.desired_path"}
+
 # A bridge started in-process as `run` starts it, then let go of what `run` lets go of before
 # its ready line: which of our modules are still imported, and whether the replay's code is
 # still alive (a reference kept to it anywhere would keep its module's memory).
@@ -335,11 +340,83 @@ def started_and_released(config: Path, domain_id: int) -> dict[str, object]:
     return found
 
 
-def test_an_idle_bridge_holds_no_start_only_code(tmp_path: Path, domain_id: int) -> None:
+TARGET = 1.5  # rad, 20 s away: the sim's elbow is far from it when stopped
+
+
+def elbow(url: str) -> tuple[float, float] | None:
+    """The sim's elbow as the bridge last heard it: (position, velocity)."""
+    joints = json.loads(get(url + "/api/status", TOKEN)[1])["telemetry"]["joints"] or {}
+    names, positions, velocities = (joints.get(k) or [] for k in
+                                    ("names", "positions", "velocities"))
+    if "elbow" not in names or len(velocities) != len(names):
+        return None
+    i = names.index("elbow")
+    return float(positions[i]), float(velocities[i])
+
+
+def elbow_when(url: str, wanted: Callable[[float, float], bool],
+               timeout: float = 10.0) -> tuple[float, float] | None:
+    """The elbow once `wanted(position, velocity)` (None if not within `timeout`)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        found = elbow(url)
+        if found is not None and wanted(*found):
+            return found
+        time.sleep(0.1)  # the sim publishes joint_states at 10 Hz
+    return None
+
+
+ARMS = ", arms: {left: {topic: left_arm/joint_trajectory, joints: [l_shoulder]}}"
+
+
+def test_an_idle_bridge_holds_no_start_only_or_arm_code(tmp_path: Path, domain_id: int) -> None:
     """Started, then released as `run` does before its ready line: the replay's module is gone
-    and nothing keeps its code alive."""
+    and nothing keeps its code alive; with no arm configured, the arms' holds are not loaded."""
     found = started_and_released(idle_config(tmp_path, domain_id), domain_id)
     modules = set(found["modules"])  # type: ignore[call-overload]
     assert "rcan_rtps.bridge.runtime" in modules  # the list is the run's
     assert not START_ONLY & modules, f"still imported: {sorted(START_ONLY & modules)}"
     assert found["replay_alive"] is False, "something keeps the replay's code alive"
+    assert not ARM_HOLDS & modules, f"imported with no arm: {sorted(ARM_HOLDS & modules)}"
+
+
+def test_a_bridge_with_arms_loads_their_holds_at_start(tmp_path: Path, domain_id: int) -> None:
+    found = started_and_released(idle_config(tmp_path, domain_id, ARMS), domain_id)
+    modules = set(found["modules"])  # type: ignore[call-overload]
+    assert not ARM_HOLDS - modules, f"not loaded at start: {sorted(ARM_HOLDS - modules)}"
+
+
+def test_the_first_arm_command_loads_the_holds_and_a_stop_holds_its_arm(
+        tmp_path: Path, domain_id: int) -> None:
+    """No arm configured (the default trajectory topic): a stop before any arm command
+    imports nothing of ours; the first arm_joint loads the holds before its outcome is
+    written and is executed; the stop right after it holds the arm (its entry says so) and
+    imports nothing."""
+    with sim_robot(domain_id):
+        proc = config_run(tmp_path, domain_id)
+        try:
+            first_stop = post(proc.url, TOKEN, {"action": "stop"})
+            moved = post(proc.url, TOKEN, {"action": "arm_joint", "params": {
+                "joints": ["elbow"], "positions": [TARGET], "duration_s": 20.0}})
+            moving = elbow_when(proc.url, lambda _, velocity: velocity > 0.0)
+            stopped = post(proc.url, TOKEN, {"action": "stop"})
+            held = elbow_when(proc.url, lambda _, velocity: velocity == 0.0)
+            proc.signal(signal.SIGINT)
+            assert proc.wait(EXIT_TIMEOUT) == 0, proc.output()
+        finally:
+            proc.kill()
+    assert first_stop[0] == 200 and stopped[0] == 200, (first_stop, stopped, proc.output())
+    assert moved[0] == 200 and moved[1].get("outcome") == "executed", moved
+    started, _ = start_and_serving(proc)
+    assert not ARM_HOLDS & started, f"imported at start: {sorted(ARM_HOLDS & started)}"
+    lines = list(proc.stderr)
+    running = next(i for i, line in enumerate(lines) if "bridge running" in line)
+    (stop_1, stop_2), (arm,) = outcome_lines(lines, "stop"), outcome_lines(lines, "arm_joint")
+    assert stop_1 < arm < stop_2, lines[stop_1:]
+    before_arm, with_arm = imported(lines[running:stop_1]), imported(lines[stop_1:arm])
+    assert not ours(before_arm), f"a stop before any arm imported {sorted(ours(before_arm))}"
+    assert not ARM_HOLDS - with_arm, f"the arm command did not load {sorted(ARM_HOLDS - with_arm)}"
+    after_arm = imported(lines[arm:])
+    assert not ours(after_arm), f"after the arm command, a stop imported {sorted(ours(after_arm))}"
+    # Held where it was: moving, then at rest far from the target it was 20 s from.
+    assert moving is not None and held is not None and held[0] < TARGET / 2, (moving, held)

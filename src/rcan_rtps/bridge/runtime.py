@@ -53,11 +53,11 @@ from ..governance.decision_log import log_entry
 from ..governance.signatures import Signatures
 from ..rcan import Status
 from ..ros.participant import RosNode
-from .arm_holds import JointPositions
 from .commanders import CommanderWatch
 from .commands import RosDispatcher
 from .errors import BridgeStateError
 from .goals import GoalRoutes, route_mapping
+from .joint_positions import JointPositions
 from .notify import DiagnosticsNotifier, FanOutNotifier
 from .telemetry import TelemetryState
 

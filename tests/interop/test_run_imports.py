@@ -283,16 +283,17 @@ def ours(modules: set[str]) -> set[str]:
     return {m for m in modules if m.startswith("rcan_rtps")}
 
 
-# Only a start runs them (issue 27, item 6): the audit log's replay (`Governor.from_config`),
-# let go of once the bridge has started (`run_cmd.release_free_memory`).
-START_ONLY = {"rcan_rtps.governance.resume"}
+# Only a start runs them (issue 27, item 6): the audit log's replay (`Governor.from_config`)
+# and the IDL parser (the start loads every type a stop needs), let go of once the bridge has
+# started (`run_cmd.release_free_memory`).
+START_ONLY = {"rcan_rtps.governance.resume", "rcan_rtps.ros.typesys.idl_parser"}
 # Only an arm that can move needs them: loaded at start when the config names arms, else by
 # the first arm command, never by a stop (issue 27, item 6).
 ARM_HOLDS = {"rcan_rtps.bridge.arm_holds", "rcan_rtps.bridge.desired_path"}
 
 # A bridge started in-process as `run` starts it, then let go of what `run` lets go of before
-# its ready line: which of our modules are still imported, and whether the replay's code is
-# still alive (a reference kept to it anywhere would keep its module's memory).
+# its ready line: which of our modules are still imported, and which start-only code is still
+# alive (a reference kept to it anywhere would keep its module's memory).
 STARTED_AND_RELEASED = """
 import asyncio, gc, json, sys, weakref
 from rcan_rtps.bridge.runtime import Bridge, BridgeOptions
@@ -306,11 +307,12 @@ async def main():
     bridge.prepare()
     await bridge.start()
     try:
-        replay = weakref.ref(sys.modules["rcan_rtps.governance.resume"].resume)
+        code = [weakref.ref(sys.modules["rcan_rtps.governance.resume"].resume),
+                weakref.ref(sys.modules["rcan_rtps.ros.typesys.idl_parser"].parse_idl)]
         release_free_memory()
         gc.collect()
         print(json.dumps({"modules": sorted(m for m in sys.modules if m.startswith("rcan_rtps")),
-                          "replay_alive": replay() is not None}))
+                          "alive": [ref().__name__ for ref in code if ref() is not None]}))
     finally:
         await bridge.stop()
 
@@ -370,13 +372,14 @@ ARMS = ", arms: {left: {topic: left_arm/joint_trajectory, joints: [l_shoulder]}}
 
 
 def test_an_idle_bridge_holds_no_start_only_or_arm_code(tmp_path: Path, domain_id: int) -> None:
-    """Started, then released as `run` does before its ready line: the replay's module is gone
-    and nothing keeps its code alive; with no arm configured, the arms' holds are not loaded."""
+    """Started, then released as `run` does before its ready line: the start-only modules are
+    gone and nothing keeps their code alive; with no arm configured, the arms' holds are not
+    loaded."""
     found = started_and_released(idle_config(tmp_path, domain_id), domain_id)
     modules = set(found["modules"])  # type: ignore[call-overload]
     assert "rcan_rtps.bridge.runtime" in modules  # the list is the run's
     assert not START_ONLY & modules, f"still imported: {sorted(START_ONLY & modules)}"
-    assert found["replay_alive"] is False, "something keeps the replay's code alive"
+    assert found["alive"] == [], f"something keeps {found['alive']} alive"
     assert not ARM_HOLDS & modules, f"imported with no arm: {sorted(ARM_HOLDS & modules)}"
 
 

@@ -211,9 +211,10 @@ async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
     return 0
 
 
-# Modules only a start runs (the audit log's replay: `Governor.from_config`): let go of once
-# started. Later users import them again — none of them is on a stop path.
-START_ONLY = ("rcan_rtps.governance.resume",)
+# Modules only a start runs: the audit log's replay (`Governor.from_config`), the IDL parser
+# (a start loads the types of everything a stop publishes or calls: `TypeStore._load_for`).
+# Let go of once started; a later user imports them again — none of them is on a stop path.
+START_ONLY = ("rcan_rtps.governance.resume", "rcan_rtps.ros.typesys.idl_parser")
 
 
 def release_free_memory() -> None:

@@ -277,6 +277,10 @@ class _ServiceEnd:
         self.node = node
         self.name = node.resolve(service)
         srv = node.store.service(type_name)
+        # Its endpoints are made by the first call, which may be a stop's (a server-wide
+        # cancel): every type they nest is loaded now, so that call parses no IDL.
+        node.store.load_nested(srv.request.name)
+        node.store.load_nested(srv.response.name)
         self.type_name = srv.name
         self.request_type, self.response_type = srv.request.name, srv.response.name
         self.request_topic, self.reply_topic = mangle_service(self.name)

@@ -293,12 +293,17 @@ ARM_HOLDS = {"rcan_rtps.bridge.arm_holds", "rcan_rtps.bridge.desired_path"}
 
 # A bridge started in-process as `run` starts it, then let go of what `run` lets go of before
 # its ready line: which of our modules are still imported, and which start-only code is still
-# alive (a reference kept to it anywhere would keep its module's memory).
+# alive (a reference kept to it anywhere would keep its module's memory). The start-only
+# modules are imported first, so that the weak references are to what the start uses.
 STARTED_AND_RELEASED = """
-import asyncio, gc, json, sys, weakref
+import asyncio, importlib, json, sys, weakref
 from rcan_rtps.bridge.runtime import Bridge, BridgeOptions
 from rcan_rtps.cli.run_cmd import release_free_memory
 from rcan_rtps.config import load_config
+
+code = [weakref.ref(vars(importlib.import_module(module))[name]) for module, name in
+        (("rcan_rtps.governance.resume", "resume"),
+         ("rcan_rtps.ros.typesys.idl_parser", "parse_idl"))]
 
 async def main():
     env = {"RCAN_BRIDGE_TOKEN": sys.argv[2]}
@@ -307,10 +312,7 @@ async def main():
     bridge.prepare()
     await bridge.start()
     try:
-        code = [weakref.ref(sys.modules["rcan_rtps.governance.resume"].resume),
-                weakref.ref(sys.modules["rcan_rtps.ros.typesys.idl_parser"].parse_idl)]
         release_free_memory()
-        gc.collect()
         print(json.dumps({"modules": sorted(m for m in sys.modules if m.startswith("rcan_rtps")),
                           "alive": [ref().__name__ for ref in code if ref() is not None]}))
     finally:

@@ -15,6 +15,7 @@ from collections.abc import Coroutine
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from .._modules import let_go
 from ..bridge.demo import (
     OWNER_TOKEN_ENV,
     USER_TOKEN_ENV,
@@ -134,17 +135,6 @@ def _read_config(args: argparse.Namespace, env: dict[str, str]) -> RcanConfig:
         gc.collect()  # the modules' reference cycles
 
 
-def let_go(names: list[str]) -> None:
-    """Forgets the modules `names` (and their attribute on their package): with nothing else
-    referring to them, their memory is freed; a later user imports them again."""
-    for name in names:
-        if sys.modules.pop(name, None) is None:
-            continue
-        parent, _, attr = name.rpartition(".")
-        if parent in sys.modules:
-            vars(sys.modules[parent]).pop(attr, None)
-
-
 CURL_EXAMPLES = (
     "curl -s -H 'Authorization: Bearer {token}' {url}/api/status",
     "curl -s -H 'Authorization: Bearer {token}' -H 'Content-Type: application/json' "
@@ -211,17 +201,10 @@ async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
     return 0
 
 
-# Modules only a start runs: the audit log's replay (`Governor.from_config`), the IDL parser
-# (a start loads the types of everything a stop publishes or calls: `TypeStore._load_for`).
-# Let go of once started; a later user imports them again — none of them is on a stop path.
-START_ONLY = ("rcan_rtps.governance.resume", "rcan_rtps.ros.typesys.idl_parser")
-
-
 def release_free_memory() -> None:
-    """Start-up's modules (START_ONLY) and garbage let go of, and the C heap's free pages
-    handed back to the system (glibc's malloc_trim; elsewhere nothing more): ~0.6 MB of idle
-    RSS."""
-    let_go(list(START_ONLY))
+    """Start-up's garbage collected and the C heap's free pages handed back to the system
+    (glibc's malloc_trim; elsewhere nothing more): ~0.6 MB of idle RSS. The start-only
+    modules were let go of by the start itself (`Bridge._acquire`)."""
     gc.collect()
     if not sys.platform.startswith("linux"):
         return

@@ -166,8 +166,8 @@ class Governor:
         latch_file = LatchFile(Path(bridge.safety.estop_state_path or beside_audit))
         # A missing latch file is a first start only if the audit log is new as well.
         latched, reason = latch_file.load(first_start=audit.head.last_seq == 0)
-        # The replay runs once, here: a run lets go of its module once started
-        # (`cli.run_cmd.release_free_memory`; idle memory, issue 27).
+        # The replay runs once, here: a bridge lets go of its module once started
+        # (`rcan_rtps._modules.START_ONLY`; idle memory, issue 27).
         from .resume import resume
 
         resumed = resume(audit.path, now_ms=now_ms(clock))

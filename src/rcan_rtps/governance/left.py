@@ -2,7 +2,7 @@
 it back (`Governor.start`, the dispatcher's `halt_left`).
 
 The types alone, apart from the replay that finds them (`resume.py`): the replay runs once,
-at start, and is then let go of (`cli.run_cmd.release_free_memory`: idle memory, issue 27),
+at start, and is then let go of (`rcan_rtps._modules.START_ONLY`: idle memory, issue 27),
 while these stay in use by the governor and the dispatcher.
 """
 

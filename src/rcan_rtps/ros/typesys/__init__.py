@@ -50,7 +50,7 @@ __all__ = [
 
 def __getattr__(name: str) -> Any:
     """`parse_idl` from its module on first use: a bridge lets the parser go once started
-    (`cli.run_cmd.START_ONLY`; idle memory, issue 27)."""
+    (`rcan_rtps._modules.START_ONLY`; idle memory, issue 27)."""
     if name == "parse_idl":
         from .idl_parser import parse_idl
 

@@ -205,8 +205,8 @@ class TypeStore:
         if path is None:
             return
         # Imported by the first type a process loads: a bridge's start loads every type its
-        # stops use, then lets the parser go (`cli.run_cmd.START_ONLY`; idle memory, issue
-        # 27); a later first use (a goal, an arm command) imports it again.
+        # stops use, then lets the parser go (`rcan_rtps._modules.START_ONLY`; idle memory,
+        # issue 27); a later first use (a goal, an arm command) imports it again.
         from .idl_parser import parse_idl
 
         parsed = parse_idl(path.read_text(encoding="utf-8"), str(path))

@@ -11,11 +11,13 @@ from __future__ import annotations
 import sys
 from collections.abc import Iterable
 
-# Modules only a start runs: the audit log's replay (`Governor.from_config`) and the IDL
-# parser (a start loads the types of everything a stop publishes or calls; a service client
-# loads what its endpoints nest when it is made: `TypeStore.load_nested`). A later user
-# imports them again — a first goal or arm command, never a stop.
-START_ONLY = ("rcan_rtps.governance.resume", "rcan_rtps.ros.typesys.idl_parser")
+# Modules only a start runs: the audit log's replay (`Governor.from_config`), the IDL parser
+# and the XTypes describer (a start makes the topics of everything a stop publishes; a service
+# client loads what its endpoints nest when it is made, `TypeStore.load_nested`, and an action
+# client's cancel service describes its topics ahead, `ServiceClient.describe_ahead`). A later
+# user imports them again — a first goal or arm command, never a stop.
+START_ONLY = ("rcan_rtps.governance.resume", "rcan_rtps.ros.typesys.idl_parser",
+              "rcan_rtps.ros.typesys.xtypes")
 
 
 def let_go(names: Iterable[str]) -> None:

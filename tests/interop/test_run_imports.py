@@ -283,10 +283,11 @@ def ours(modules: set[str]) -> set[str]:
     return {m for m in modules if m.startswith("rcan_rtps")}
 
 
-# Only a start runs them (issue 27, item 6): the audit log's replay (`Governor.from_config`)
-# and the IDL parser (the start loads every type a stop needs), let go of once the bridge has
-# started (`run_cmd.release_free_memory`).
-START_ONLY = {"rcan_rtps.governance.resume", "rcan_rtps.ros.typesys.idl_parser"}
+# Only a start runs them (issue 27, item 6): the audit log's replay (`Governor.from_config`),
+# the IDL parser and the XTypes describer (the start loads and describes every type a stop
+# needs), let go of by the start once the robot side is built (`rcan_rtps._modules`).
+START_ONLY = {"rcan_rtps.governance.resume", "rcan_rtps.ros.typesys.idl_parser",
+              "rcan_rtps.ros.typesys.xtypes"}
 # Only an arm that can move needs them: loaded at start when the config names arms, else by
 # the first arm command, never by a stop (issue 27, item 6).
 ARM_HOLDS = {"rcan_rtps.bridge.arm_holds", "rcan_rtps.bridge.desired_path"}
@@ -303,7 +304,8 @@ from rcan_rtps.config import load_config
 
 code = [weakref.ref(vars(importlib.import_module(module))[name]) for module, name in
         (("rcan_rtps.governance.resume", "resume"),
-         ("rcan_rtps.ros.typesys.idl_parser", "parse_idl"))]
+         ("rcan_rtps.ros.typesys.idl_parser", "parse_idl"),
+         ("rcan_rtps.ros.typesys.xtypes", "describe"))]
 
 async def main():
     env = {"RCAN_BRIDGE_TOKEN": sys.argv[2]}

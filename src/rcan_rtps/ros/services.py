@@ -344,6 +344,15 @@ class ServiceClient(_ServiceEnd):
         self.closed = False
         self.dropped_replies = 0  # replies not ours: foreign guid, unsolicited, not accepted
 
+    def describe_ahead(self) -> None:
+        """Describes the types of its topics now, in either mapping, and keeps that: its
+        first call — a stop's server-wide cancel, for an action client — then makes its
+        endpoints without describing anything (a bridge lets the describer go once started:
+        `rcan_rtps._modules.START_ONLY`)."""
+        for type_name in (self.request_type, self.response_type):
+            self.node.types.keep_description(type_name)  # Fast DDS' mapping
+            self.node.types.keep_description(type_name, cyclone.wrapper_model)
+
     # -- discovery --------------------------------------------------------------
     def server_guids(self) -> list[bytes]:
         """GUIDs of the request readers of this service's servers (from discovery)."""

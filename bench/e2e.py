@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from oracle.client import RclpyOracle  # noqa: E402
 from report import baseline_tree, write_section  # noqa: E402 (bench/report.py)
 
+from rcan_rtps._modules import START_ONLY  # noqa: E402
 from rcan_rtps.ros.participant import RosNode  # noqa: E402
 
 TOKEN = "bench-token-0123456789abcdef0123"
@@ -658,9 +659,10 @@ async def floor_importing(modules: list[str]) -> float:
 
 
 def by_package(modules: list[str]) -> list[tuple[str, list[str]]]:
-    """`modules` of ours (a run drops its config loader: left out), grouped by PACKAGES."""
-    ours = [m for m in modules if m.split(".")[0] == "rcan_rtps"
-            and m not in ("rcan_rtps.config._load", "rcan_rtps.config._schema")]
+    """`modules` of ours, grouped by PACKAGES; left out, what a run lets go of before its
+    ready line: its config loader, and the modules only its start uses (`START_ONLY`)."""
+    gone = {"rcan_rtps.config._load", "rcan_rtps.config._schema", *START_ONLY}
+    ours = [m for m in modules if m.split(".")[0] == "rcan_rtps" and m not in gone]
     groups = []
     for package in PACKAGES:
         found = [m for m in ours if m == package or m.startswith(package + ".")]
@@ -732,9 +734,10 @@ async def footprint_section(args: argparse.Namespace) -> str:
         "are not imported; the bench config itself names the default two, as a robot with "
         "nav2 does.", "",
         "This tree's share, a package at a time: the floor importing the modules of ours an "
-        "idle run has imported (from its own import log), one package more per step, collected "
-        "and trimmed as a run is before its ready line; the rest is what starting the bridge "
-        "builds.", "", packages, "",
+        "idle run has imported (from its own import log; less those a run lets go of before "
+        "its ready line: the config loader and `rcan_rtps._modules.START_ONLY`), one package "
+        "more per step, collected and trimmed as a run is before its ready line; the rest is "
+        "what starting the bridge builds.", "", packages, "",
         f"Conditions of this run: {git_head()}, baseline `{args.baseline_ref}`, on the "
         f"project's 2-core machine; 1-minute load average {load_start:.2f} as it started and "
         f"{os.getloadavg()[0]:.2f} as it ended.",

@@ -14,7 +14,7 @@ from typing import Any
 import msgspec
 
 from rcan_rtps.governance import ArmsHeld, DispatchResult
-from rcan_rtps.governance.resume import LeftGoal, LeftRunning
+from rcan_rtps.governance.left import LeftGoal, LeftRunning
 from rcan_rtps.governance.steps import LeftHalted
 from rcan_rtps.rcan import ActionParams, MoveParams, NormalizedCommand
 

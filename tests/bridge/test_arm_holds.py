@@ -11,19 +11,17 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from rcan_rtps.bridge.arm_holds import (
+from rcan_rtps.bridge.arm_holds import SETTLING_S, TRACKING_SLACK_S, ArmHolds
+from rcan_rtps.bridge.desired_path import DesiredPath
+from rcan_rtps.bridge.joint_positions import (
     MAX_AGE_S,
     MAX_JOINT_NAME,
     MAX_KEPT,
     MAX_LEAD,
-    SETTLING_S,
-    TRACKING_SLACK_S,
-    ArmHolds,
     JointPositions,
     Missing,
     Unknown,
 )
-from rcan_rtps.bridge.desired_path import DesiredPath
 from rcan_rtps.governance import ArmsHeld
 from rcan_rtps.rcan.actions import PathPoint
 

@@ -21,7 +21,8 @@ from waiting import eventually
 
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
 from rcan_rtps.governance.clock import ManualClock
-from rcan_rtps.governance.resume import SETTLING_S, LeftGoal, resume
+from rcan_rtps.governance.left import SETTLING_S, LeftGoal
+from rcan_rtps.governance.resume import resume
 from rcan_rtps.rcan import Outcome
 
 ARM_TOPIC = "/robot1/left_arm/joint_trajectory"

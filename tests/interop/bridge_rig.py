@@ -14,10 +14,10 @@ from typing import Any
 from oracle.client import OracleEnv, RclpyOracle
 from waiting import eventually
 
-from rcan_rtps.bridge.arm_holds import JointPositions
 from rcan_rtps.bridge.commanders import CommanderWatch
 from rcan_rtps.bridge.commands import RosDispatcher
 from rcan_rtps.bridge.goals import GoalRoutes
+from rcan_rtps.bridge.joint_positions import JointPositions
 from rcan_rtps.bridge.navigation import GoalTracker
 from rcan_rtps.bridge.notify import DiagnosticsNotifier
 from rcan_rtps.bridge.runtime import watch_commanders, wire_robot_side

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import sys
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import pytest
 from dropping import DeafCapture
 from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
+from waiting import eventually
 
 from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.errors import ServiceTimeout, ServiceUnavailable, ValueFitError, WireError
@@ -259,3 +261,25 @@ async def test_a_long_lived_client_keeps_a_bounded_number_of_goals(
     assert max(tracked) == 1 and client.goals_tracked == 0, \
         f"goals tracked at each send: {tracked}"
     assert not [r.message for r in caplog.records if r.name == "rcan_rtps.ros.actions"]
+
+
+@both_rmws
+async def test_a_stops_first_cancel_imports_nothing(
+        oracle: RclpyOracle, node: RosNode, domain_id: int, jazzy_share: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bridge lets the IDL parser and the XTypes describer go once started (issue 27): a
+    stop's server-wide cancel that is its cancel service's first call, on either mapping,
+    still makes that service's endpoints and cancels another client's goal with both
+    modules unimportable (as under `pip install -U` beside a running bridge)."""
+    await oracle.acall("action_server", name="/fib", mode="slow")
+    client = ActionClient(node, "/fib", FIB)  # as a bridge's, made at start
+    with RosNode("rcan_other", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as elsewhere:  # RViz, a script
+        far = await ActionClient(elsewhere, "/fib", FIB).send_goal({"order": 40}, timeout=20)
+        assert far.accepted
+        await eventually(client.server_present, timeout=20, what="the server seen")
+        assert not client._cancel_srv._pairs  # no endpoint of its cancel service made yet
+        for module in ("rcan_rtps.ros.typesys.idl_parser", "rcan_rtps.ros.typesys.xtypes"):
+            monkeypatch.setitem(sys.modules, module, None)  # importing it raises ImportError
+        assert await client.cancel_all(timeout=20, server_wide=True) == 1
+        assert (await far.result(timeout=30)).state is GoalState.CANCELED

@@ -13,9 +13,10 @@ import re
 import signal
 import subprocess
 import sys
+import time
 import urllib.error
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -280,3 +281,149 @@ def test_with_goal_servers_the_stop_path_is_loaded_before_ready(tmp_path: Path,
 
 def ours(modules: set[str]) -> set[str]:
     return {m for m in modules if m.startswith("rcan_rtps")}
+
+
+# Only a start runs them (issue 27, item 6): the audit log's replay (`Governor.from_config`),
+# the IDL parser and the XTypes describer (the start loads and describes every type a stop
+# needs), let go of by the start once the robot side is built (`rcan_rtps._modules`).
+START_ONLY = {"rcan_rtps.governance.resume", "rcan_rtps.ros.typesys.idl_parser",
+              "rcan_rtps.ros.typesys.xtypes"}
+# Only an arm that can move needs them: loaded at start when the config names arms, else by
+# the first arm command, never by a stop (issue 27, item 6).
+ARM_HOLDS = {"rcan_rtps.bridge.arm_holds", "rcan_rtps.bridge.desired_path"}
+
+# A bridge started in-process as `run` starts it, then let go of what `run` lets go of before
+# its ready line: which of our modules are still imported, and which start-only code is still
+# alive (a reference kept to it anywhere would keep its module's memory). The start-only
+# modules are imported first, so that the weak references are to what the start uses.
+STARTED_AND_RELEASED = """
+import asyncio, importlib, json, sys, weakref
+from rcan_rtps.bridge.runtime import Bridge, BridgeOptions
+from rcan_rtps.cli.run_cmd import release_free_memory
+from rcan_rtps.config import load_config
+
+code = [weakref.ref(vars(importlib.import_module(module))[name]) for module, name in
+        (("rcan_rtps.governance.resume", "resume"),
+         ("rcan_rtps.ros.typesys.idl_parser", "parse_idl"),
+         ("rcan_rtps.ros.typesys.xtypes", "describe"))]
+
+async def main():
+    env = {"RCAN_BRIDGE_TOKEN": sys.argv[2]}
+    bridge = Bridge(load_config(sys.argv[1], env=env),
+                    BridgeOptions(port=0, host="127.0.0.1", mdns=False, env=env))
+    bridge.prepare()
+    await bridge.start()
+    try:
+        release_free_memory()
+        print(json.dumps({"modules": sorted(m for m in sys.modules if m.startswith("rcan_rtps")),
+                          "alive": [ref().__name__ for ref in code if ref() is not None]}))
+    finally:
+        await bridge.stop()
+
+asyncio.run(main())
+"""
+
+
+def idle_config(tmp_path: Path, domain_id: int, ros2_extra: str = "") -> Path:
+    state = tmp_path / "state"
+    state.mkdir(mode=0o700)
+    config = tmp_path / "robot.rcan.yaml"
+    config.write_text(
+        "robot: {ruri: rcan://registry.local/acme/rover/unit-0001}\n"
+        "bridge:\n"
+        f"  ros2: {{namespace: /robot1, domain_id: {domain_id}{ros2_extra}}}\n"
+        "  api: {auth_token_env: RCAN_BRIDGE_TOKEN}\n"
+        "  safety: {max_linear_vel: 1.0, max_angular_vel: 1.0, session_timeout_s: 3600}\n"
+        f"  audit: {{path: {state / 'audit.jsonl'}, key_path: {state / 'audit.key'}}}\n")
+    return config
+
+
+def started_and_released(config: Path, domain_id: int) -> dict[str, object]:
+    done = subprocess.run([sys.executable, "-c", STARTED_AND_RELEASED, str(config), TOKEN],
+                          capture_output=True, text=True, timeout=120, env=child_env(domain_id))
+    assert done.returncode == 0, done.stderr
+    found: dict[str, object] = json.loads(done.stdout.splitlines()[-1])
+    return found
+
+
+TARGET = 1.5  # rad, 20 s away: the sim's elbow is far from it when stopped
+
+
+def elbow(url: str) -> tuple[float, float] | None:
+    """The sim's elbow as the bridge last heard it: (position, velocity)."""
+    joints = json.loads(get(url + "/api/status", TOKEN)[1])["telemetry"]["joints"] or {}
+    names, positions, velocities = (joints.get(k) or [] for k in
+                                    ("names", "positions", "velocities"))
+    if "elbow" not in names or len(velocities) != len(names):
+        return None
+    i = names.index("elbow")
+    return float(positions[i]), float(velocities[i])
+
+
+def elbow_when(url: str, wanted: Callable[[float, float], bool],
+               timeout: float = 10.0) -> tuple[float, float] | None:
+    """The elbow once `wanted(position, velocity)` (None if not within `timeout`)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        found = elbow(url)
+        if found is not None and wanted(*found):
+            return found
+        time.sleep(0.1)  # the sim publishes joint_states at 10 Hz
+    return None
+
+
+ARMS = ", arms: {left: {topic: left_arm/joint_trajectory, joints: [l_shoulder]}}"
+
+
+def test_an_idle_bridge_holds_no_start_only_or_arm_code(tmp_path: Path, domain_id: int) -> None:
+    """Started, then released as `run` does before its ready line: the start-only modules are
+    gone and nothing keeps their code alive; with no arm configured, the arms' holds are not
+    loaded."""
+    found = started_and_released(idle_config(tmp_path, domain_id), domain_id)
+    modules = set(found["modules"])  # type: ignore[call-overload]
+    assert "rcan_rtps.bridge.runtime" in modules  # the list is the run's
+    assert not START_ONLY & modules, f"still imported: {sorted(START_ONLY & modules)}"
+    assert found["alive"] == [], f"something keeps {found['alive']} alive"
+    assert not ARM_HOLDS & modules, f"imported with no arm: {sorted(ARM_HOLDS & modules)}"
+
+
+def test_a_bridge_with_arms_loads_their_holds_at_start(tmp_path: Path, domain_id: int) -> None:
+    found = started_and_released(idle_config(tmp_path, domain_id, ARMS), domain_id)
+    modules = set(found["modules"])  # type: ignore[call-overload]
+    assert not ARM_HOLDS - modules, f"not loaded at start: {sorted(ARM_HOLDS - modules)}"
+
+
+def test_the_first_arm_command_loads_the_holds_and_a_stop_holds_its_arm(
+        tmp_path: Path, domain_id: int) -> None:
+    """No arm configured (the default trajectory topic): a stop before any arm command
+    imports nothing of ours; the first arm_joint loads the holds before its outcome is
+    written and is executed; the stop right after it holds the arm (its entry says so) and
+    imports nothing."""
+    with sim_robot(domain_id):
+        proc = config_run(tmp_path, domain_id)
+        try:
+            first_stop = post(proc.url, TOKEN, {"action": "stop"})
+            moved = post(proc.url, TOKEN, {"action": "arm_joint", "params": {
+                "joints": ["elbow"], "positions": [TARGET], "duration_s": 20.0}})
+            moving = elbow_when(proc.url, lambda _, velocity: velocity > 0.0)
+            stopped = post(proc.url, TOKEN, {"action": "stop"})
+            held = elbow_when(proc.url, lambda _, velocity: velocity == 0.0)
+            proc.signal(signal.SIGINT)
+            assert proc.wait(EXIT_TIMEOUT) == 0, proc.output()
+        finally:
+            proc.kill()
+    assert first_stop[0] == 200 and stopped[0] == 200, (first_stop, stopped, proc.output())
+    assert moved[0] == 200 and moved[1].get("outcome") == "executed", moved
+    started, _ = start_and_serving(proc)
+    assert not ARM_HOLDS & started, f"imported at start: {sorted(ARM_HOLDS & started)}"
+    lines = list(proc.stderr)
+    running = next(i for i, line in enumerate(lines) if "bridge running" in line)
+    (stop_1, stop_2), (arm,) = outcome_lines(lines, "stop"), outcome_lines(lines, "arm_joint")
+    assert stop_1 < arm < stop_2, lines[stop_1:]
+    before_arm, with_arm = imported(lines[running:stop_1]), imported(lines[stop_1:arm])
+    assert not ours(before_arm), f"a stop before any arm imported {sorted(ours(before_arm))}"
+    assert not ARM_HOLDS - with_arm, f"the arm command did not load {sorted(ARM_HOLDS - with_arm)}"
+    after_arm = imported(lines[arm:])
+    assert not ours(after_arm), f"after the arm command, a stop imported {sorted(ours(after_arm))}"
+    # Held where it was: moving, then at rest far from the target it was 20 s from.
+    assert moving is not None and held is not None and held[0] < TARGET / 2, (moving, held)

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import sys
 from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
 from dropping import flood, small_buffers
 from holding import reader_thread_held
+from waiting import eventually
 
 from rcan_rtps.ros import action_goals, qos
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
@@ -435,4 +437,26 @@ async def test_a_server_keeps_the_newest_ended_goals_and_every_running_one(
     assert server.goals_kept == 4
     assert await running.cancel(timeout=10)
     assert (await running.result(timeout=20)).state is GoalState.CANCELED
+    await server.close()
+
+
+async def test_a_stops_first_cancel_imports_nothing(nodes: tuple[RosNode, RosNode],
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bridge lets the IDL parser and the XTypes describer go once started (issue 27): a
+    stop's server-wide cancel that is its cancel service's first call still makes that
+    service's endpoints and cancels the server's goals with both modules unimportable (as
+    under `pip install -U` beside a running bridge): nothing on that path imports them."""
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "/robot1/navigate_to_pose", NAV, navigate)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)  # as at start
+    other = ActionClient(server_node, "/robot1/navigate_to_pose", NAV)  # RViz, a script
+    far = await other.send_goal({**GOAL, "pose": {"pose": {"position": {"x": 500.0}}}},
+                                timeout=20)
+    assert far.accepted
+    await eventually(client.server_present, timeout=20, what="the server seen")
+    assert not client._cancel_srv._pairs  # no endpoint of its cancel service made yet
+    for module in ("rcan_rtps.ros.typesys.idl_parser", "rcan_rtps.ros.typesys.xtypes"):
+        monkeypatch.setitem(sys.modules, module, None)  # importing it raises ImportError
+    assert await client.cancel_all(timeout=20, server_wide=True) == 1
+    assert (await far.result(timeout=20)).state is GoalState.CANCELED
     await server.close()

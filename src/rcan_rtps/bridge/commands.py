@@ -16,14 +16,14 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable, Collection, Sequence
-from typing import Any, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import msgspec
 
 from ..config import Ros2Config
 from ..events import Events
 from ..governance import ArmsHeld, DispatchResult
-from ..governance.resume import LeftArm, LeftGoal, LeftRunning
+from ..governance.left import SETTLING_S, LeftArm, LeftGoal, LeftRunning
 from ..governance.steps import LeftHalted
 from ..rcan import ActionParams, ActionSpec, Effect, NormalizedCommand
 from ..rcan.actions import (
@@ -42,8 +42,11 @@ from ..ros.errors import GraphTimeout, seconds
 from ..ros.participant import RosNode, RosPublisher
 from ..ros.qos import QosProfile
 from ..ros.rostime import now_msg
-from .arm_holds import SETTLING_S, ArmHolds, JointPositions
 from .goals import CANCELING_NOTHING
+from .joint_positions import JointPositions
+
+if TYPE_CHECKING:
+    from .arm_holds import ArmHolds
 
 log = logging.getLogger(__name__)
 # s the bridge, stopping, waits for the robot to acknowledge its last zero (within the bounded
@@ -213,11 +216,19 @@ class RosDispatcher:
         self.goals = goals  # None: no goal action is available (every goal is refused)
         self.events = events or Events()  # `command_sent`: e.g. leave `safe_stop` state
         self._telemetry_age = telemetry_age  # seconds since the robot last published, if ever
-        # The arms' trajectories that may still be running, for a stop to hold them.
-        self.arms = ArmHolds(joint_positions or JointPositions(), ros2.telemetry_stale_s)
+        # Where the joints are, followed from the start: a stop right after a first
+        # trajectory must find them.
+        self.positions = joint_positions or JointPositions()
         # Heard whatever a JointState's size: a configured arm's joints (`bridge.ros2.arms`).
-        self.arms.positions.watch("bridge.ros2.arms",
-                                  [j for arm in ros2.arms.values() for j in arm.joints])
+        self.positions.watch("bridge.ros2.arms",
+                             [j for arm in ros2.arms.values() for j in arm.joints])
+        # The arms' trajectories that may still be running, for a stop to hold them: made
+        # (its module loaded) at start when arms are configured, else by the first arm
+        # command (`ready`, before its entry is written) — never by a stop: with none made,
+        # no trajectory was sent, and a stop has no arm to hold (idle memory, issue 27).
+        self._arms: ArmHolds | None = None
+        if ros2.arms:
+            self._holds()
         self._ever_matched: set[str] = set()
         # Arm topics a command waits on for joints never heard (`_takes_back`): one at a time.
         self._awaiting_joints: set[str] = set()
@@ -244,6 +255,20 @@ class RosDispatcher:
         self._direct = {spec.name: self._route_of(spec) for spec in specs()
                         if spec.ros.publishes() and not spec.ros.publishes()[0].group_key}
         self._command_topics = self._topics_by_motion()
+
+    @property
+    def arms(self) -> ArmHolds:
+        """The arms' holds, made by the first use (`_holds`)."""
+        return self._holds()
+
+    def _holds(self) -> ArmHolds:
+        """The arms' holds, made (loaded) by the first call (see `__init__`): never from a
+        stop."""
+        if self._arms is None:
+            from .arm_holds import ArmHolds
+
+            self._arms = ArmHolds(self.positions, self.ros2.telemetry_stale_s)
+        return self._arms
 
     def _topics_by_motion(self) -> dict[str, bool]:
         topics: dict[str, bool] = {self.cmd_vel.topic: True, self.estop.topic: False}
@@ -368,10 +393,10 @@ class RosDispatcher:
         if hold is None:
             return None
         joints, topic = hold.joints(params), route.publisher.topic
-        why = self.arms.cannot_hold(joints)
+        why = self.arms.cannot_hold(joints)  # loads the holds: the first arm command
         if why is None:
             return None
-        if self.arms.positions.known(joints) or topic in self._awaiting_joints:
+        if self.positions.known(joints) or topic in self._awaiting_joints:
             return f"a stop could not hold the arm on {topic}: {why}"
         self._awaiting_joints.add(topic)
         try:
@@ -383,7 +408,7 @@ class RosDispatcher:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.ros2.match_timeout_s
         while (why := self.arms.cannot_hold(joints)) is not None:
-            if self.arms.positions.known(joints) or loop.time() >= deadline:
+            if self.positions.known(joints) or loop.time() >= deadline:
                 return f"a stop could not hold the arm on {topic}: {why}"
             await asyncio.sleep(0.02)
         return None
@@ -500,12 +525,12 @@ class RosDispatcher:
 
     def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
         """Holds the arms still running a trajectory of `message_ids` (a stop of one
-        principal's motion alone); no await."""
-        return self.arms.hold(message_ids)
+        principal's motion alone); no await. No arm command yet: none to hold."""
+        return self._arms.hold(message_ids) if self._arms is not None else ArmsHeld()
 
     def running_trajectories(self) -> list[str]:
         """The message ids of the trajectories that may still be running."""
-        return self.arms.running()
+        return self._arms.running() if self._arms is not None else []
 
     def _goal_server(self, ros: SendGoal[Any]) -> str | None:
         return self.goals.action_name(ros.action_key) if self.goals is not None else None
@@ -547,7 +572,9 @@ class RosDispatcher:
         zero = self._halt.message(with_effect(Effect.HALT).params())
         matched_before = self.cmd_vel.matched_count() > 0
         self.cmd_vel.publish(zero)
-        return zero, matched_before, self.arms.hold_all()
+        # No import here: with no holds made yet, no trajectory was sent (`arms`).
+        arms = self._arms.hold_all() if self._arms is not None else ArmsHeld()
+        return zero, matched_before, arms
 
     async def _halt_rest(self, zero: Any, matched_before: bool, arms: ArmsHeld) -> Halted:
         # The goal cancels do not wait for cmd_vel to match: a robot may never read it.
@@ -614,6 +641,8 @@ class RosDispatcher:
 
     async def _hold_left(self, arms: Sequence[LeftArm]) -> tuple[ArmsHeld, tuple[str, ...]]:
         """(the arms held and why others were not, the message ids of those not held)."""
+        if arms:  # at start, the zero already out: the holds are made (loaded) for them
+            self._holds()
         outcomes = await asyncio.gather(*(self._hold_one_left(arm) for arm in arms))
         held = tuple(dict.fromkeys(topic for topic, why in outcomes if why is None))
         not_held = tuple(f"the arm on {topic} was not held: {why}"
@@ -635,7 +664,7 @@ class RosDispatcher:
             return topic, f"its trajectory went to {topic}, the arm's topic is now " \
                           f"{route.publisher.topic}"
         watcher = f"left by a crashed run: {arm.message_id}"
-        self.arms.positions.watch(watcher, arm.joints)  # kept whatever else is heard
+        self.positions.watch(watcher, arm.joints)  # kept whatever else is heard
         try:
             if not await self._matched(route.publisher, self._crash_wait_s):
                 why: str | None = f"no subscriber on {topic}"
@@ -645,7 +674,7 @@ class RosDispatcher:
                 if not isinstance(where, str):
                     route.publisher.publish(hold.build(arm.joints, where, route.kit))
         finally:
-            self.arms.positions.watch(watcher, ())
+            self.positions.watch(watcher, ())
         if why is not None:  # the next stop of this run tries again, as for one of its own
             kit = route.kit
             # Never longer than it runs: sent before now, whatever the clock says (one set
@@ -666,7 +695,7 @@ class RosDispatcher:
         loop = asyncio.get_running_loop()
         wait = self._crash_wait_s
         deadline = loop.time() + wait
-        while isinstance(where := self.arms.positions.now(joints, self.ros2.telemetry_stale_s),
+        while isinstance(where := self.positions.now(joints, self.ros2.telemetry_stale_s),
                          str):
             if loop.time() >= deadline:
                 return f"{where} (waited {wait:g} s at start-up)"

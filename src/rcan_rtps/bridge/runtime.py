@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import enum
+import gc
 import inspect
 import logging
 import os
@@ -36,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from .._modules import START_ONLY, let_go
 from ..api import ApiServer, bind, build_app, cert_principals, server_ssl_context
 from ..api.ports import GoalView, ImageSource
 from ..config import RcanConfig, plaintext_problem
@@ -53,11 +55,11 @@ from ..governance.decision_log import log_entry
 from ..governance.signatures import Signatures
 from ..rcan import Status
 from ..ros.participant import RosNode
-from .arm_holds import JointPositions
 from .commanders import CommanderWatch
 from .commands import RosDispatcher
 from .errors import BridgeStateError
 from .goals import GoalRoutes, route_mapping
+from .joint_positions import JointPositions
 from .notify import DiagnosticsNotifier, FanOutNotifier
 from .telemetry import TelemetryState
 
@@ -291,10 +293,19 @@ class Bridge:
         governor, telemetry = self._governance(node, audit, goals, dispatcher)
         await self._start_governor(governor, dispatcher)
         self._watch_commanders(node, governor, dispatcher, telemetry)
+        self._let_go_of_start_only()
         await self._serve(governor, telemetry, goals)
         self.events.freeze()  # every listener is wired: none may be added from now on
         if self.options.mdns:
             self._advertise_soon()
+
+    @staticmethod
+    def _let_go_of_start_only() -> None:
+        """The robot side is built and the governor started (a crash's motion taken back):
+        the modules only that needed are let go of, now, so that the rest of the start (the
+        API, mDNS) fills the memory they leave (idle memory, issue 27)."""
+        let_go(START_ONLY)
+        gc.collect()  # a module's functions and its namespace are a reference cycle
 
     def _join_domain(self) -> RosNode:
         ros2 = self.config.bridge.ros2

@@ -52,9 +52,9 @@ from ..rcan import (
 from ..ros import qos
 from ..ros.participant import RosNode
 from ..ros.rostime import quaternion_to_yaw
-from .arm_holds import JointPositions
 from .faults import FaultTable, Level
 from .hostcpu import CpuMeter
+from .joint_positions import JointPositions
 from .joints import bounded_joints
 
 log = logging.getLogger(__name__)

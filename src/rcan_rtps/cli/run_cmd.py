@@ -15,6 +15,7 @@ from collections.abc import Coroutine
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from .._modules import let_go
 from ..bridge.demo import (
     OWNER_TOKEN_ENV,
     USER_TOKEN_ENV,
@@ -130,11 +131,7 @@ def _read_config(args: argparse.Namespace, env: dict[str, str]) -> RcanConfig:
         return _config(args, env)
     finally:
         del sys.modules["yaml._yaml"]
-        for name in [n for n in sys.modules if n.split(".")[0] == "yaml" or n in _LOADER]:
-            del sys.modules[name]
-        package = sys.modules["rcan_rtps.config"]
-        for name in _LOADER[1:]:
-            vars(package).pop(name.rsplit(".", 1)[1], None)
+        let_go([n for n in sys.modules if n.split(".")[0] == "yaml" or n in _LOADER])
         gc.collect()  # the modules' reference cycles
 
 
@@ -206,7 +203,8 @@ async def _run(args: argparse.Namespace, stopper: SignalStopper) -> int:
 
 def release_free_memory() -> None:
     """Start-up's garbage collected and the C heap's free pages handed back to the system
-    (glibc's malloc_trim; elsewhere nothing more): ~0.6 MB of idle RSS."""
+    (glibc's malloc_trim; elsewhere nothing more): ~0.6 MB of idle RSS. The start-only
+    modules were let go of by the start itself (`Bridge._acquire`)."""
     gc.collect()
     if not sys.platform.startswith("linux"):
         return

@@ -51,10 +51,10 @@ from .estop_lane import EstopLane
 from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand
 from .idempotency import Conflict, Idempotency
 from .invariants import Check, Violation, safety_policy
+from .left import LeftRunning
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
-from .resume import LeftRunning, resume
 from .review import HitlDesk, PendingRecord
 from .sessions import Sessions
 from .steps import (
@@ -169,6 +169,10 @@ class Governor:
         latch_file = LatchFile(Path(bridge.safety.estop_state_path or beside_audit))
         # A missing latch file is a first start only if the audit log is new as well.
         latched, reason = latch_file.load(first_start=audit.head.last_seq == 0)
+        # The replay runs once, here: a bridge lets go of its module once started
+        # (`rcan_rtps._modules.START_ONLY`; idle memory, issue 27).
+        from .resume import resume
+
         resumed = resume(audit.path, now_ms=now_ms(clock))
         if resumed.latched and not latched:  # the stricter of file and signed chain
             latched, reason = True, (

@@ -21,9 +21,9 @@ from rcan_rtps.rcan.actions import MoveParams, with_effect
 
 from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
 from .errors import AuditError
+from .left import LeftGoal, LeftRunning
 from .outcomes import AUDIT_UNAVAILABLE, DISPATCH_ERROR, Rejection, robot_unavailable
 from .rbac import Principal
-from .resume import LeftGoal, LeftRunning
 
 log = logging.getLogger("rcan_rtps.governance.governor")  # one logger for the kernel's steps
 

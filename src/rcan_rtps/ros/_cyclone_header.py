@@ -36,7 +36,6 @@ from .qos import QosProfile
 from .typesys.cdr import byte_order
 from .typesys.ddstypes import make_topic, use_bytes_codec
 from .typesys.model import Field, FieldType, MessageType, Primitive
-from .typesys.xtypes import describe
 
 ENCAPSULATION_SIZE = 4
 HEADER_SIZE = 16  # uint64 client_guid at offset 4, int64 seq at offset 12 (after encapsulation)
@@ -127,8 +126,7 @@ def wrapper_topic(node: RosNode, dds_topic: str, type_name: str) -> Topic[Any]:
     if found is None:
         try:
             found = make_topic(node.participant, dds_topic, wrapper_struct(node, type_name),
-                               describe(wrapper_model(node.store.message(type_name)),
-                                        node.store.message))
+                               node.types.description(type_name, wrapper_model))
         except Exception as exc:  # cyclonedds raises a bare DDSException
             raise WireError(f"cannot create {dds_topic} with the Cyclone request header in "
                             f"this participant (a plain one exists?): {exc}") from exc

@@ -87,6 +87,7 @@ class ActionClient:
         names = action_names(self.name)
         self._cancel_srv = ServiceClient(node, names["cancel_goal"], CANCEL_TYPE,
                                          mapping=mapping)
+        self._cancel_srv.describe_ahead()  # a stop may be its first call: it describes nothing
         self._sending: GoalSender | None = None  # the goal side, made by the first goal
         # Told of a goal whose send gave up that the server accepted after all, which the
         # client has cancelled (`action_goals.GoalSender._give_up`); on the event loop.

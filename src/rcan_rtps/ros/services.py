@@ -277,6 +277,10 @@ class _ServiceEnd:
         self.node = node
         self.name = node.resolve(service)
         srv = node.store.service(type_name)
+        # Its endpoints are made by the first call, which may be a stop's (a server-wide
+        # cancel): every type they nest is loaded now, so that call parses no IDL.
+        node.store.load_nested(srv.request.name)
+        node.store.load_nested(srv.response.name)
         self.type_name = srv.name
         self.request_type, self.response_type = srv.request.name, srv.response.name
         self.request_topic, self.reply_topic = mangle_service(self.name)
@@ -339,6 +343,15 @@ class ServiceClient(_ServiceEnd):
         self._stale = False
         self.closed = False
         self.dropped_replies = 0  # replies not ours: foreign guid, unsolicited, not accepted
+
+    def describe_ahead(self) -> None:
+        """Describes the types of its topics now, in either mapping, and keeps that: its
+        first call — a stop's server-wide cancel, for an action client — then makes its
+        endpoints without describing anything (a bridge lets the describer go once started:
+        `rcan_rtps._modules.START_ONLY`)."""
+        for type_name in (self.request_type, self.response_type):
+            self.node.types.keep_description(type_name)  # Fast DDS' mapping
+            self.node.types.keep_description(type_name, cyclone.wrapper_model)
 
     # -- discovery --------------------------------------------------------------
     def server_guids(self) -> list[bytes]:

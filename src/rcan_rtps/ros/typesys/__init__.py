@@ -9,9 +9,10 @@ Public API::
     MessageValues(types)                      plain values ⇄ messages, validated with paths
 """
 
+from typing import TYPE_CHECKING, Any
+
 from .ddstypes import DdsTypes
 from .hashing import rihs01
-from .idl_parser import parse_idl
 from .model import (
     ActionType,
     Collection,
@@ -25,6 +26,9 @@ from .model import (
 )
 from .store import TypeStore
 from .values import MessageValues
+
+if TYPE_CHECKING:
+    from .idl_parser import parse_idl
 
 __all__ = [
     "ActionType",
@@ -42,3 +46,13 @@ __all__ = [
     "parse_idl",
     "rihs01",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """`parse_idl` from its module on first use: a bridge lets the parser go once started
+    (`rcan_rtps._modules.START_ONLY`; idle memory, issue 27)."""
+    if name == "parse_idl":
+        from .idl_parser import parse_idl
+
+        return parse_idl
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

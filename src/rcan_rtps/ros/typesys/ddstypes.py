@@ -15,7 +15,8 @@ from __future__ import annotations
 import threading
 import typing
 import weakref
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct, make_idl_struct
@@ -26,7 +27,15 @@ from cyclonedds.topic import Topic
 from ..errors import UnsupportedTypeError
 from .model import Collection, FieldType, MessageType, Primitive
 from .store import TypeStore
-from .xtypes import Description, describe, refuse_sequence_bound
+
+if TYPE_CHECKING:
+    from .xtypes import Description
+
+# A model changed before it is described (the Cyclone request header's `wrapper_model`).
+Wrap = Callable[[MessageType], MessageType]
+# cyclonedds' IDL classes take no larger sequence bound (`types.sequence`: it returns a
+# TypeError in place of the type, which fails later with a traceback): refused clearly here.
+MAX_SEQUENCE_BOUND = 65535
 
 _PRIMITIVES: dict[Primitive, Any] = {
     Primitive.BOOLEAN: bool,
@@ -74,6 +83,14 @@ _ADJUSTED: weakref.WeakSet[type[IdlStruct]] = weakref.WeakSet()
 # (to drop its reference to a sertype's type when an equal one exists); no DDS thread runs our
 # code, and a thread waiting for the lock releases the GIL, so it cannot close a deadlock.
 _TOPIC_LOCK = threading.Lock()
+
+
+def refuse_sequence_bound(ftype: FieldType, field_name: str) -> None:
+    """Raises UnsupportedTypeError for a bounded sequence cyclonedds cannot declare."""
+    if ftype.size > MAX_SEQUENCE_BOUND:
+        raise UnsupportedTypeError(
+            f"{field_name}: a sequence bound of {ftype.size} (over {MAX_SEQUENCE_BOUND}) is "
+            "not supported on the wire yet")
 
 
 class _Described:
@@ -152,6 +169,7 @@ class DdsTypes:
         self._classes: dict[str, type[IdlStruct]] = {}
         self._names: dict[type[IdlStruct], str] = {}  # the other way round
         self._by_asked: dict[str, type[IdlStruct]] = {}  # as asked for: "pkg/T", "pkg/msg/T"…
+        self._kept: dict[tuple[str, Wrap | None], Description] = {}  # keep_description
         self._lock = threading.RLock()
 
     def struct(self, name: str) -> type[IdlStruct]:
@@ -169,9 +187,24 @@ class DdsTypes:
             self._by_asked[name] = cls
             return cls
 
-    def description(self, name: str) -> Description:
-        """The XTypes description of a ROS type's topics (`make_topic`)."""
-        return describe(self.store.message(name), self.store.message)
+    def description(self, name: str, wrap: Wrap | None = None) -> Description:
+        """The XTypes description of a ROS type's topics (`make_topic`); with `wrap`, of
+        the type as `wrap` changes it. One kept (`keep_description`) is not made again."""
+        kept = self._kept.get((name, wrap))
+        if kept is not None:
+            return kept
+        # Imported by the first topic a process makes: a bridge lets the describer go once
+        # started (`rcan_rtps._modules.START_ONLY`; idle memory, issue 27); a later first
+        # use (a goal, an arm command) imports it again, a stop never (`keep_description`).
+        from .xtypes import describe
+
+        msg = self.store.message(name)
+        return describe(msg if wrap is None else wrap(msg), self.store.message)
+
+    def keep_description(self, name: str, wrap: Wrap | None = None) -> None:
+        """Describes `name` (as `wrap` changes it) now, and keeps it: a topic made of it
+        later — a service's, by a stop's first call — describes nothing."""
+        self._kept[(name, wrap)] = self.description(name, wrap)
 
     def name_of(self, cls: type[Any]) -> str | None:
         """The ROS name of a struct class this registry made, else None."""

@@ -16,7 +16,6 @@ from pathlib import Path
 
 from ..errors import UnknownTypeError, UnsupportedDistroError
 from .hashing import rihs01
-from .idl_parser import parse_idl
 from .model import (
     ActionType,
     Collection,
@@ -158,6 +157,18 @@ class TypeStore:
             self.message(name + "_FeedbackMessage"),
         )
 
+    def load_nested(self, name: str) -> None:
+        """Loads `name` and every type it nests, now: the types of endpoints made later (a
+        service's, by its first call) are then built without parsing anything."""
+        todo, seen = [normalize_name(name)], set()
+        while todo:
+            current = todo.pop()
+            if current in seen:
+                continue
+            seen.add(current)
+            todo += [f.type.nested for f in self.message(current).fields
+                     if f.type.nested is not None]
+
     def require(self, name: str) -> str:
         """`name` normalized, once it is known or its file is found; raises UnknownTypeError.
         Parses nothing: for a type whose definition is wanted only later (an action client's
@@ -193,6 +204,11 @@ class TypeStore:
         path = self._path_of(interface)
         if path is None:
             return
+        # Imported by the first type a process loads: a bridge's start loads every type its
+        # stops use, then lets the parser go (`rcan_rtps._modules.START_ONLY`; idle memory,
+        # issue 27); a later first use (a goal, an arm command) imports it again.
+        from .idl_parser import parse_idl
+
         parsed = parse_idl(path.read_text(encoding="utf-8"), str(path))
         for struct in parsed.structs.values():
             self._types.setdefault(struct.name, struct)

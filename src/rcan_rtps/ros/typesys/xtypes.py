@@ -26,11 +26,8 @@ from collections.abc import Callable, Sequence
 from hashlib import md5
 
 from ..errors import UnsupportedTypeError
+from .ddstypes import refuse_sequence_bound
 from .model import Collection, Field, FieldType, MessageType, Primitive
-
-# cyclonedds' IDL classes take no larger sequence bound (`types.sequence`: it returns a
-# TypeError in place of the type, which fails later with a traceback): refused clearly here.
-MAX_SEQUENCE_BOUND = 65535
 
 # Type kinds and type identifier kinds (XTypes 1.3, 7.3.4.9).
 TK_NONE = 0x00
@@ -332,14 +329,6 @@ class _Describer:
         out.sequence([pair(h.complete_id, h.complete_object) for h in types])
         out.sequence([pair(h.complete_id, h.minimal_id) for h in types])
         return bytes(out.buf)
-
-
-def refuse_sequence_bound(ftype: FieldType, field_name: str) -> None:
-    """Raises UnsupportedTypeError for a bounded sequence cyclonedds cannot declare."""
-    if ftype.size > MAX_SEQUENCE_BOUND:
-        raise UnsupportedTypeError(
-            f"{field_name}: a sequence bound of {ftype.size} (over {MAX_SEQUENCE_BOUND}) is "
-            "not supported on the wire yet")
 
 
 def _byte_sequence(ftype: FieldType) -> bool:

@@ -558,3 +558,47 @@ async def test_a_trajectory_replaced_just_before_the_crash_is_still_listed(
     clock.advance(10)
     await log.audit.close()
     assert [a.message_id for a in resume(log.path, now_ms=log.now_ms()).left.arms] == ["arm-1"]
+
+
+async def test_a_goal_id_that_is_no_uuid_is_listed_unnamed_not_as_given(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Red team 16: a goal id an entry gives that is no UUID (another version's log, a
+    damaged one) made the start's take-back raise turning it into bytes — the whole
+    take-back failed, arms included, with a traceback, at every start. Now it is listed
+    with no id (every goal of its server is cancelled: fail closed), wherever it was read:
+    a dispatched goal's entry, a COMMAND_FAILED naming it, a clean stop's list. Ids of
+    other spellings of a UUID are listed as the take-back writes them."""
+    log = await Log.open(tmp_path, clock)
+    braced = uuid.uuid4()
+    named = {"message_id": "nav-0", "action": "navigate", "principal": None,
+             "server": NAV, "goal_id": "{" + braced.hex.upper() + "}"}
+    await log.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {},
+                                                     "left_running": {"goals": [named]}})
+    await log.goal("nav-1", "not-a-uuid")
+    await log.goal("nav-2", str(uuid.uuid4()))
+    await log.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id="nav-2",
+                  action_type="navigate", outcome="failed", goal_id="../../etc\n{}",
+                  deny_reason="robot_unavailable:no reply within the timeout")
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert found.latched is False and found.crashed, found
+    assert [(g.message_id, g.goal_id) for g in found.left.goals] == [
+        ("nav-0", str(braced)), ("nav-1", None), ("nav-2", None)]
+
+
+async def test_motion_left_that_a_boundary_lists_unreadably_latches_the_start(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A clean stop's (or a start's) list of the motion left running that does not read as
+    one (a goal id of another type, say): before, the whole list was dropped in silence and
+    the goals it named ran on with nobody to cancel them. Now the start fails closed:
+    latched, saying why (as for any entry of an unexpected shape)."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    good = {"message_id": "nav-1", "action": "navigate", "principal": None, "server": NAV,
+            "goal_id": str(uuid.uuid4())}
+    await log.add(AuditEvent.BRIDGE_STOPPED, params={
+        "estop_latched": False, "locks": {},
+        "left_running": {"goals": [good, {**good, "message_id": "nav-2", "goal_id": 7}]}})
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert found.latched is True and "unreadable" in str(found.latched_by), found

@@ -602,3 +602,23 @@ async def test_motion_left_that_a_boundary_lists_unreadably_latches_the_start(
     await log.audit.close()
     found = resume(log.path, now_ms=log.now_ms())
     assert found.latched is True and "unreadable" in str(found.latched_by), found
+
+
+async def test_every_goal_a_clean_stop_names_is_listed_even_of_one_message_id(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Red team 16: a clean stop names the goals still watched by id, with no principal
+    (`Dispatcher.goals_watched`); message ids are unique per principal only, so two
+    principals' goals of one message id — or two of a command not known — were listed as
+    one (the last), and the next start left the other to run. Each is listed."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    named = [{"message_id": message_id, "action": action, "principal": None,
+              "server": NAV, "goal_id": str(uuid.uuid4())}
+             for message_id, action in (("m-1", "navigate"), ("m-1", "navigate"),
+                                        ("", ""), ("", ""))]
+    await log.add(AuditEvent.BRIDGE_STOPPED, params={"estop_latched": False, "locks": {},
+                                                     "left_running": {"goals": named}})
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert not found.crashed
+    assert [g.goal_id for g in found.left.goals] == [g["goal_id"] for g in named]

@@ -220,8 +220,9 @@ class _Motion:
             # would run with nobody to cancel them). The start fails closed: latched.
             raise ValueError(f"motion left running, unreadable: {exc}") from exc
         self.arms.update((_key_of(a), a) for a in left.arms if chosen(a.message_id))
-        self.goals.update((_key_of(g), msgspec.structs.replace(g, goal_id=_goal_id(g.goal_id)))
-                          for g in left.goals if chosen(g.message_id))
+        goals = (msgspec.structs.replace(g, goal_id=_goal_id(g.goal_id)) for g in left.goals
+                 if chosen(g.message_id))
+        self.goals.update((_taken_up_key(g), g) for g in goals)
         self.streams.update((_key_of(s), s) for s in left.streams if chosen(s.message_id))
 
     def _halted_all(self, stop: _Key) -> None:
@@ -277,6 +278,17 @@ class _Motion:
         self.goals = {m: g for m, g in self.goals.items()
                       if not (g.goal_id is not None and g.goal_id == goal_id)
                       and not (g.goal_id is None and m[1] == message_id)}
+
+
+def _taken_up_key(goal: LeftGoal) -> _Key:
+    """A goal an entry lists as left running, by its id when it has one: a clean stop names
+    its goals by id alone (no principal: `Dispatcher.goals_watched`), and message ids are
+    unique per principal only — two such goals of one message id (or of no command known)
+    are two goals, not one listed in place of the other (red team 16: the next start left
+    the other to run). A COMMAND_FAILED of this run ends no goal of an earlier run's."""
+    if goal.goal_id is None:
+        return _key_of(goal)
+    return goal.principal, goal.message_id, (goal.action, goal.goal_id)
 
 
 def _goal_id(given: Any) -> str | None:

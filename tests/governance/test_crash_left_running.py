@@ -622,3 +622,20 @@ async def test_every_goal_a_clean_stop_names_is_listed_even_of_one_message_id(
     found = resume(log.path, now_ms=log.now_ms())
     assert not found.crashed
     assert [g.goal_id for g in found.left.goals] == [g["goal_id"] for g in named]
+
+
+async def test_an_arm_left_running_for_ever_latches_the_start_not_crashes_it(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Red team 16: an arm a boundary lists as left running whose run time is out of any
+    range (another version's entry, a damaged one: 1e308 s) made resume raise OverflowError
+    working out when it is due — the start ended in a traceback. It fails closed as any
+    entry of an unexpected shape: latched, saying why."""
+    log = await Log.open(tmp_path, clock)
+    arm = {"message_id": "arm-1", "action": "arm_joint", "principal": "planner",
+           "topic": ARM_TOPIC, "params": {}, "joints": ["elbow"], "sent_at_ms": 1,
+           "runs_for_s": 1e308}
+    await log.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {},
+                                                     "left_running": {"arms": [arm]}})
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert found.latched is True and "unreadable" in str(found.latched_by), found

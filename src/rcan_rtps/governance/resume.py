@@ -83,14 +83,15 @@ def resume(path: Path | str, *, now_ms: int | None = None) -> Resumed:
             last = entry
             _apply(found, entry)
             motion.apply(entry)
+        # (after a clean stop: only the goals its BRIDGE_STOPPED named, `Governor.stop`)
+        found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
     # It verified at open: this is no time to trust it. An entry of a shape this version
-    # does not expect (another version's) fails closed as well, never a traceback.
-    except (OSError, ValueError, TypeError, AttributeError) as exc:
+    # does not expect (another version's) fails closed as well, never a traceback — an arm
+    # run for a time out of range included (OverflowError working out when it is due).
+    except (OSError, ValueError, TypeError, AttributeError, ArithmeticError) as exc:
         return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc!r})")
     # No boundary at all in a log with entries is no clean stop either: fail closed.
     found.crashed = last is not None and last.get("event") != "BRIDGE_STOPPED"
-    # (after a clean stop: only the goals its BRIDGE_STOPPED named, `Governor.stop`)
-    found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
     return found
 
 

@@ -25,6 +25,7 @@ from waiting import eventually
 from rcan_rtps.bridge.navigation import GoalTracker
 from rcan_rtps.bridge.sent_goals import GoalFinished
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
+from rcan_rtps.governance.left import LeftArm, LeftGoal, LeftRunning
 from rcan_rtps.ros.action_goals import MAX_GIVEN_UP
 from rcan_rtps.ros.action_server import ActionServer, ServerGoal
 from rcan_rtps.ros.errors import ActionError, WireError
@@ -294,3 +295,24 @@ async def test_a_crashed_run_s_goal_id_that_is_no_uuid_fails_nothing_at_the_rest
         finally:
             await close_rig(rig)
             await server.close()
+
+
+async def test_a_take_back_whose_goal_part_raises_keeps_what_the_arm_part_found(
+        slow: tuple[Rig, SlowServer]) -> None:
+    """The take-back's parts (the zero, the goals, the arms) run side by side; one that
+    raises is reported for its own motion alone. Before, a goal whose cancel raised (a goal
+    id that is no UUID, handed on unchecked) made the whole take-back raise: the arms' own
+    outcome was lost, recorded as the goal's exception."""
+    rig, _ = slow
+    left = LeftRunning(
+        goals=[LeftGoal(message_id="nav-1", action="navigate", principal=None, server=None,
+                        goal_id="not-a-uuid")],
+        arms=[LeftArm(message_id="arm-1", action="arm_joint", principal=None,
+                      topic="/robot1/gone_arm/joint_trajectory", params={},
+                      joints=["elbow"], sent_at_ms=0, runs_for_s=600.0)])
+    halted = await rig.dispatcher.halt_left(left)
+    [why_goal] = halted.goals_not_cancelled
+    assert "ValueError" in why_goal, halted
+    [why_arm] = halted.arms.not_held
+    assert "ValueError" not in why_arm and "gone_arm" in why_arm, halted
+    assert set(halted.still_left) == {"nav-1", "arm-1"}, halted

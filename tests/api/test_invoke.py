@@ -696,3 +696,23 @@ async def test_an_arm_skill_whose_time_is_up_while_its_cancel_is_audited_is_canc
         status, body = await asyncio.wait_for(task, 10)
         assert (status, body["status"]) == (200, "cancelled"), body
     assert api.dispatcher.holds == [["inv-x"]]
+
+
+@pytest.mark.parametrize("id_field", ["msg_id", "message_id"])
+async def test_a_replayed_versioned_invoke_is_refused_whichever_field_names_it(
+        api: Api, id_field: str) -> None:
+    """Red team 16: §8.3's replay window holds for an INVOKE named by the envelope's
+    `message_id` as by §19's `msg_id` (INVOKE_CANCEL and AUTHORIZE took both). Before, an
+    INVOKE's `message_id` was ignored as an unknown envelope field: each copy got an id of its
+    own, and a replay ran the skill again."""
+    body = invoke("nudge", "unused", params={"duration_s": 1.0}, rcan_version="3.2",
+                  timestamp_ms=int(api.clock.time() * 1000))
+    del body["msg_id"]
+    body[id_field] = "inv-replayed"
+    status, first = await api.command("planner", body)
+    assert (status, first["status"], first["reply_to"]) == (200, "success",
+                                                           "inv-replayed"), first
+    api.clock.advance(1)
+    status, again = await api.command("planner", body)
+    assert (status, again["error_code"]) == (409, "REPLAY_DETECTED"), again
+    assert [a for a, _ in api.dispatcher.calls] == ["move"]

@@ -558,3 +558,84 @@ async def test_a_trajectory_replaced_just_before_the_crash_is_still_listed(
     clock.advance(10)
     await log.audit.close()
     assert [a.message_id for a in resume(log.path, now_ms=log.now_ms()).left.arms] == ["arm-1"]
+
+
+async def test_a_goal_id_that_is_no_uuid_is_listed_unnamed_not_as_given(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Red team 16: a goal id an entry gives that is no UUID (another version's log, a
+    damaged one) made the start's take-back raise turning it into bytes — the whole
+    take-back failed, arms included, with a traceback, at every start. Now it is listed
+    with no id (every goal of its server is cancelled: fail closed), wherever it was read:
+    a dispatched goal's entry, a COMMAND_FAILED naming it, a clean stop's list. Ids of
+    other spellings of a UUID are listed as the take-back writes them."""
+    log = await Log.open(tmp_path, clock)
+    braced = uuid.uuid4()
+    named = {"message_id": "nav-0", "action": "navigate", "principal": None,
+             "server": NAV, "goal_id": "{" + braced.hex.upper() + "}"}
+    await log.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {},
+                                                     "left_running": {"goals": [named]}})
+    await log.goal("nav-1", "not-a-uuid")
+    await log.goal("nav-2", str(uuid.uuid4()))
+    await log.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id="nav-2",
+                  action_type="navigate", outcome="failed", goal_id="../../etc\n{}",
+                  deny_reason="robot_unavailable:no reply within the timeout")
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert found.latched is False and found.crashed, found
+    assert [(g.message_id, g.goal_id) for g in found.left.goals] == [
+        ("nav-0", str(braced)), ("nav-1", None), ("nav-2", None)]
+
+
+async def test_motion_left_that_a_boundary_lists_unreadably_latches_the_start(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A clean stop's (or a start's) list of the motion left running that does not read as
+    one (a goal id of another type, say): before, the whole list was dropped in silence and
+    the goals it named ran on with nobody to cancel them. Now the start fails closed:
+    latched, saying why (as for any entry of an unexpected shape)."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    good = {"message_id": "nav-1", "action": "navigate", "principal": None, "server": NAV,
+            "goal_id": str(uuid.uuid4())}
+    await log.add(AuditEvent.BRIDGE_STOPPED, params={
+        "estop_latched": False, "locks": {},
+        "left_running": {"goals": [good, {**good, "message_id": "nav-2", "goal_id": 7}]}})
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert found.latched is True and "unreadable" in str(found.latched_by), found
+
+
+async def test_every_goal_a_clean_stop_names_is_listed_even_of_one_message_id(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Red team 16: a clean stop names the goals still watched by id, with no principal
+    (`Dispatcher.goals_watched`); message ids are unique per principal only, so two
+    principals' goals of one message id — or two of a command not known — were listed as
+    one (the last), and the next start left the other to run. Each is listed."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    named = [{"message_id": message_id, "action": action, "principal": None,
+              "server": NAV, "goal_id": str(uuid.uuid4())}
+             for message_id, action in (("m-1", "navigate"), ("m-1", "navigate"),
+                                        ("", ""), ("", ""))]
+    await log.add(AuditEvent.BRIDGE_STOPPED, params={"estop_latched": False, "locks": {},
+                                                     "left_running": {"goals": named}})
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert not found.crashed
+    assert [g.goal_id for g in found.left.goals] == [g["goal_id"] for g in named]
+
+
+async def test_an_arm_left_running_for_ever_latches_the_start_not_crashes_it(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Red team 16: an arm a boundary lists as left running whose run time is out of any
+    range (another version's entry, a damaged one: 1e308 s) made resume raise OverflowError
+    working out when it is due — the start ended in a traceback. It fails closed as any
+    entry of an unexpected shape: latched, saying why."""
+    log = await Log.open(tmp_path, clock)
+    arm = {"message_id": "arm-1", "action": "arm_joint", "principal": "planner",
+           "topic": ARM_TOPIC, "params": {}, "joints": ["elbow"], "sent_at_ms": 1,
+           "runs_for_s": 1e308}
+    await log.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {},
+                                                     "left_running": {"arms": [arm]}})
+    await log.audit.close()
+    found = resume(log.path, now_ms=log.now_ms())
+    assert found.latched is True and "unreadable" in str(found.latched_by), found

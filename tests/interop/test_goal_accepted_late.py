@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import uuid
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -23,6 +24,8 @@ from waiting import eventually
 
 from rcan_rtps.bridge.navigation import GoalTracker
 from rcan_rtps.bridge.sent_goals import GoalFinished
+from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
+from rcan_rtps.governance.left import LeftArm, LeftGoal, LeftRunning
 from rcan_rtps.ros.action_goals import MAX_GIVEN_UP
 from rcan_rtps.ros.action_server import ActionServer, ServerGoal
 from rcan_rtps.ros.errors import ActionError, WireError
@@ -256,3 +259,60 @@ async def test_a_goal_its_server_refused_is_not_named_by_its_command_s_failure(
         finally:
             await close_rig(rig)
             await server.close()
+
+
+async def test_a_crashed_run_s_goal_id_that_is_no_uuid_fails_nothing_at_the_restart(
+        tmp_path: Path, jazzy_python: Path, domain_id: int,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Red team 16: a goal id in the log that is no UUID (another version's entry, a damaged
+    one) made the restart's take-back raise (ValueError turning it into bytes, in the watch
+    for its late acceptance): the whole take-back was recorded not done — its arms, its
+    zero — with a traceback, and again at every start. Now that goal cannot be named: every
+    goal of its server is cancelled (here it had none), and nothing raises."""
+    config = bridge_config(tmp_path, domain_id)
+    audit = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path)
+    await audit.append(AuditRecord(event=AuditEvent.BRIDGE_STARTED,
+                                   params={"estop_latched": False, "locks": {}}))
+    params = {"x": 3.0, "y": 0.0, "yaw": 0.0}
+    await audit.append(AuditRecord(
+        event=AuditEvent.COMMAND_DISPATCHED, principal=AGENT.name, role="USER",
+        message_id="nav-1", action_type="navigate", params=params, applied=params,
+        outcome="executed", ros2_topic="/robot1/navigate_to_pose", goal_id="not-a-uuid"))
+    await audit.close()  # killed: no BRIDGE_STOPPED
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node:
+        server = SlowServer(robot_node)
+        server.release.set()
+        rig = await make_rig(config, jazzy_python, domain_id, navigation=True)
+        try:
+            [took_back] = [e for e in rig.entries() if e["event"] == "NETWORK_LOSS_SAFE_STOP"]
+            applied = took_back["applied"]
+            assert applied["scope"] == "crash", took_back
+            assert "ValueError" not in json.dumps(took_back), took_back
+            assert applied["left"]["goals"][0]["goal_id"] is None, took_back
+            # (No e-stop state file beside this log: the start is latched, logged as ERROR.)
+            tracebacks = [r for r in caplog.records if r.exc_info]
+            assert tracebacks == [], [r.getMessage() for r in tracebacks]
+        finally:
+            await close_rig(rig)
+            await server.close()
+
+
+async def test_a_take_back_whose_goal_part_raises_keeps_what_the_arm_part_found(
+        slow: tuple[Rig, SlowServer]) -> None:
+    """The take-back's parts (the zero, the goals, the arms) run side by side; one that
+    raises is reported for its own motion alone. Before, a goal whose cancel raised (a goal
+    id that is no UUID, handed on unchecked) made the whole take-back raise: the arms' own
+    outcome was lost, recorded as the goal's exception."""
+    rig, _ = slow
+    left = LeftRunning(
+        goals=[LeftGoal(message_id="nav-1", action="navigate", principal=None, server=None,
+                        goal_id="not-a-uuid")],
+        arms=[LeftArm(message_id="arm-1", action="arm_joint", principal=None,
+                      topic="/robot1/gone_arm/joint_trajectory", params={},
+                      joints=["elbow"], sent_at_ms=0, runs_for_s=600.0)])
+    halted = await rig.dispatcher.halt_left(left)
+    [why_goal] = halted.goals_not_cancelled
+    assert "ValueError" in why_goal, halted
+    [why_arm] = halted.arms.not_held
+    assert "ValueError" not in why_arm and "gone_arm" in why_arm, halted
+    assert set(halted.still_left) == {"nav-1", "arm-1"}, halted

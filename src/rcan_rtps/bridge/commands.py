@@ -610,9 +610,23 @@ class RosDispatcher:
         zero = self._halt.message(with_effect(Effect.HALT).params())
         matched_before = self.cmd_vel.matched_count() > 0
         self.cmd_vel.publish(zero)  # the first word, before anything is waited for
-        reached, (cancelled, not_cancelled, goals_left), (arms, arms_left) = \
-            await asyncio.gather(self._zero_reached(zero, matched_before),
-                                 self._cancel_left(left.goals), self._hold_left(left.arms))
+        # Each part's outcome stands whatever another's: one that raised (a goal's cancel,
+        # say) is reported for its own motion alone, never for the arms held beside it
+        # (red team 16: a goal's ValueError had the arms held recorded as not held).
+        reached, goals, held = await asyncio.gather(
+            self._zero_reached(zero, matched_before), self._cancel_left(left.goals),
+            self._hold_left(left.arms), return_exceptions=True)
+        if isinstance(reached, BaseException):
+            log.error("taking back a crashed run's motion: the zero's reach: %r", reached)
+            reached = False
+        if isinstance(goals, BaseException):
+            log.error("taking back a crashed run's goals failed: %r", goals)
+            goals = ((), tuple(f"{g.goal_id or g.server}: {goals!r}" for g in left.goals),
+                     tuple(g.message_id for g in left.goals))
+        if isinstance(held, BaseException):
+            log.error("taking back a crashed run's arms failed: %r", held)
+            held = (ArmsHeld(not_held=(repr(held),)), tuple(a.message_id for a in left.arms))
+        (cancelled, not_cancelled, goals_left), (arms, arms_left) = goals, held
         return LeftHalted(reached, cancelled, not_cancelled, arms, (*arms_left, *goals_left))
 
     async def _cancel_left(self, goals: Sequence[LeftGoal]

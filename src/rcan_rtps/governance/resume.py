@@ -37,6 +37,7 @@ from __future__ import annotations
 import json
 import os
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -82,14 +83,15 @@ def resume(path: Path | str, *, now_ms: int | None = None) -> Resumed:
             last = entry
             _apply(found, entry)
             motion.apply(entry)
+        # (after a clean stop: only the goals its BRIDGE_STOPPED named, `Governor.stop`)
+        found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
     # It verified at open: this is no time to trust it. An entry of a shape this version
-    # does not expect (another version's) fails closed as well, never a traceback.
-    except (OSError, ValueError, TypeError, AttributeError) as exc:
+    # does not expect (another version's) fails closed as well, never a traceback — an arm
+    # run for a time out of range included (OverflowError working out when it is due).
+    except (OSError, ValueError, TypeError, AttributeError, ArithmeticError) as exc:
         return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc!r})")
     # No boundary at all in a log with entries is no clean stop either: fail closed.
     found.crashed = last is not None and last.get("event") != "BRIDGE_STOPPED"
-    # (after a clean stop: only the goals its BRIDGE_STOPPED named, `Governor.stop`)
-    found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
     return found
 
 
@@ -162,10 +164,9 @@ class _Motion:
         if spec.effect is Effect.HALT:
             self._halted_all(_key(entry))
         elif spec.starts_goal:
-            goal_id = entry.get("goal_id")
             self.goals[_key(entry)] = LeftGoal(
                 message_id=message_id, action=spec.name, principal=principal, server=topic,
-                goal_id=goal_id if isinstance(goal_id, str) else None)
+                goal_id=_goal_id(entry.get("goal_id")))
         elif spec.streamed:
             self.streams[_key(entry)] = LeftStream(message_id=message_id, action=spec.name,
                                                   principal=principal, topic=topic)
@@ -215,10 +216,14 @@ class _Motion:
         `chosen`, as running still."""
         try:
             left = msgspec.convert(facts or {}, LeftRunning)
-        except msgspec.ValidationError:
-            return
+        except msgspec.ValidationError as exc:
+            # Motion the entry says runs on, unreadable: never dropped in silence (its goals
+            # would run with nobody to cancel them). The start fails closed: latched.
+            raise ValueError(f"motion left running, unreadable: {exc}") from exc
         self.arms.update((_key_of(a), a) for a in left.arms if chosen(a.message_id))
-        self.goals.update((_key_of(g), g) for g in left.goals if chosen(g.message_id))
+        goals = (msgspec.structs.replace(g, goal_id=_goal_id(g.goal_id)) for g in left.goals
+                 if chosen(g.message_id))
+        self.goals.update((_taken_up_key(g), g) for g in goals)
         self.streams.update((_key_of(s), s) for s in left.streams if chosen(s.message_id))
 
     def _halted_all(self, stop: _Key) -> None:
@@ -259,22 +264,46 @@ class _Motion:
         server may accept it late), or it was accepted and was being cancelled. Failed, it
         is not ended: listed until its GOAL_FINISHED (fails closed; a cancel by id of a goal
         the server never had cancels nothing)."""
-        goal_id = failed.get("goal_id")
-        if not isinstance(goal_id, str):
+        if not isinstance(failed.get("goal_id"), str):
             return
         self.goals[_key(failed)] = LeftGoal(
             message_id=str(failed.get("message_id")), action=str(failed.get("action_type")),
             principal=failed.get("principal"),
             server=sent.server if sent is not None else None,  # (None: asked of every one)
-            goal_id=goal_id)
+            goal_id=_goal_id(failed.get("goal_id")))
 
     def _goal_finished(self, entry: dict[str, Any]) -> None:
         given = entry.get("params")
-        goal_id = given.get("goal_id") if isinstance(given, dict) else None
+        goal_id = _goal_id(given.get("goal_id")) if isinstance(given, dict) else None
         message_id = entry.get("message_id")
         self.goals = {m: g for m, g in self.goals.items()
                       if not (g.goal_id is not None and g.goal_id == goal_id)
                       and not (g.goal_id is None and m[1] == message_id)}
+
+
+def _taken_up_key(goal: LeftGoal) -> _Key:
+    """A goal an entry lists as left running, by its id when it has one: a clean stop names
+    its goals by id alone (no principal: `Dispatcher.goals_watched`), and message ids are
+    unique per principal only — two such goals of one message id (or of no command known)
+    are two goals, not one listed in place of the other (red team 16: the next start left
+    the other to run). A COMMAND_FAILED of this run ends no goal of an earlier run's."""
+    if goal.goal_id is None:
+        return _key_of(goal)
+    return goal.principal, goal.message_id, (goal.action, goal.goal_id)
+
+
+def _goal_id(given: Any) -> str | None:
+    """A goal id an entry gives, as the take-back names it (`str(uuid.UUID(...))`); None
+    when it is no goal id: the goal cannot be named, so every goal of its server is
+    cancelled (fail closed), as for an entry that predates goal ids. Never raised into the
+    start: the take-back turns an id into its 16 bytes (red team 16: a goal id not a UUID
+    failed the whole take-back, arms included, with a traceback, at every start)."""
+    if not isinstance(given, str):
+        return None
+    try:
+        return str(uuid.UUID(given))
+    except ValueError:
+        return None
 
 
 def _keep_newest(given_back: dict[_Key, Any]) -> None:

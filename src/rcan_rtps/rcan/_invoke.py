@@ -22,8 +22,8 @@ Envelope fields (`rcan_version`, `ruri`, `timestamp_ms`, `message_id`) are accep
 The official SDK's envelope (`rcan.message.RCANMessage.to_dict()`, which has no builder of
 these) times a message by `timestamp`, in Unix seconds: read as its sent time when
 `timestamp_ms` is not given, as for the SDK's COMMAND. Its `msg_id` is an INVOKE_CANCEL's or
-an AUTHORIZE's own id, as `message_id` is (§19.4's `msg_id` is in `payload`: the INVOKE's).
-Given twice, each must agree.
+an AUTHORIZE's own id, as `message_id` is (§19.4's `msg_id` is in `payload`: the INVOKE's);
+an INVOKE's `message_id` is its `msg_id`. Given twice, each must agree.
 """
 
 from __future__ import annotations
@@ -56,6 +56,9 @@ class InvokeMessage(Strict, frozen=True, kw_only=True):
     params: dict[str, Any] = msgspec.field(default_factory=dict)
     timeout_ms: Millis = DEFAULT_TIMEOUT_MS
     msg_id: MsgId | None = None
+    # The envelope's name of the same id (§3): read, never ignored — ignored, each copy of
+    # an INVOKE got an id of its own and §8.3's replay window let a replay run it again.
+    message_id: MsgId | None = None
     rcan_version: VersionText | None = None
     ruri: Text | None = None
     timestamp_ms: TimestampMs | None = None
@@ -174,9 +177,10 @@ def from_invoke(msg: InvokeMessage, ignored: tuple[str, ...], made_id: str) -> I
         raise SchemaValidationError("$.skill", "required: the skill to invoke")
     if msg.skill is not None and msg.skill_id is not None and msg.skill != msg.skill_id:
         raise SchemaValidationError("$.skill_id", "differs from skill")
-    msg_id = msg.msg_id or made_id
+    given = _own_id(msg.message_id, msg.msg_id)
+    msg_id = given or made_id
     return Invoke(skill=skill, params=msg.params, timeout_ms=msg.timeout_ms, msg_id=msg_id,
-                  client_msg_id=msg.msg_id is not None, ruri=msg.ruri,
+                  client_msg_id=given is not None, ruri=msg.ruri,
                   timestamp_ms=msg.timestamp_ms,
                   envelope=Envelope(version=msg.rcan_version, msg_id=msg_id, ignored=ignored,
                                     sent_at_s=_sent_at(msg.timestamp_ms, msg.timestamp),

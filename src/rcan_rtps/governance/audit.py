@@ -67,7 +67,10 @@ log = logging.getLogger(__name__)
 _UNSIGNED = ("audit_id", "sig")
 _REQUIRED = ("seq", "audit_id", "prev_hash", "sig", "event", "timestamp_ms")
 CHECKPOINT_EVERY = 1000  # entries between checkpoints: bounds what a start after a crash re-checks
-RESUME_POINT_TAG = b"rcan-rtps resume point v1\n"  # what AuditLog.sign_resume_point signs
+# What AuditLog.sign_resume_point signs before a start point's body. Its version changes with
+# the meaning of the replay's state (governance.resume.StartPoint): an older point then fails
+# its signature and is not used (the start replays from the boundary), never misread.
+RESUME_POINT_TAG = b"rcan-rtps resume point v1\n"
 # When the disk is fast (smoothed write+fsync below INLINE_FSYNC_S) the loop writes: an idle
 # log's append at once (none in the last INLINE_GAP_S), a burst's entries together one loop
 # turn after the turn the first was sealed in (group commit; the turn held back lets the next

@@ -28,11 +28,12 @@ from rcan_rtps.governance.audit import (
     AuditEvent,
     AuditLog,
     AuditRecord,
+    Checkpoint,
     load_or_create_key,
 )
 from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.governance.governor import _write_start_point
-from rcan_rtps.governance.resume import point_path, resume
+from rcan_rtps.governance.resume import point_path, resume, write_point
 from rcan_rtps.rcan import Effect, Outcome
 from rcan_rtps.rcan.actions import with_effect
 
@@ -361,3 +362,17 @@ async def test_the_governor_writes_points_at_each_checkpoint(harness: Harness) -
     last = harness.entries[-1]
     assert (point["seq"], point["audit_id"], point["last_event"]) == (
         last["seq"], last["audit_id"], "BRIDGE_STOPPED")
+
+
+async def test_a_checkpoint_past_the_log_s_end_writes_no_point(tmp_path: Path,
+                                                              clock: ManualClock) -> None:
+    """The log cut below its checkpoint (by someone else, while it ran): no point, an error
+    the log's hook logs; before, the replay read past the end forever and hung the log's
+    close (tests/api/test_hitl_audit.py's cut-back log)."""
+    run = await Run.open(tmp_path, clock)
+    await run.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {}})
+    await run.audit.close()
+    size = run.path.stat().st_size
+    past = Checkpoint(seq=9, audit_id="sha256:" + "0" * 64, start=size, end=size + 100)
+    with pytest.raises(ValueError, match="ends at"):
+        write_point(run.path, past, _pubkey(tmp_path), lambda body: b"")

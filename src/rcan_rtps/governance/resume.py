@@ -120,7 +120,11 @@ class _Replay:
         except FileNotFoundError:
             return
         try:
-            size = os.fstat(fd).st_size if until is None else until
+            size = os.fstat(fd).st_size
+            if until is not None:
+                if until > size:  # the file was cut below the checkpoint (by someone else)
+                    raise ValueError(f"the log ends at {size}, before {until}")
+                size = until
             torn_at = None if _ends_line(fd, size) else size  # a crash mid-append
             point = _usable_point(fd, path, size, pubkey)
             boundary = _boundary_at(fd, size, torn_at, floor=0 if point is None else point.end)
@@ -433,7 +437,10 @@ def _forwards(fd: int, offset: int, size: int, torn_at: int | None
     """Parsed entries from `offset` to the end, a chunk at a time."""
     rest = b""
     while offset < size:
-        block = rest + os.pread(fd, min(_CHUNK, size - offset), offset)
+        read = os.pread(fd, min(_CHUNK, size - offset), offset)
+        if not read:  # the file is shorter than it was: never loop on it
+            raise ValueError(f"the audit log ends at {offset}, before {size}")
+        block = rest + read
         offset += len(block) - len(rest)
         lines = block.split(b"\n")
         rest = lines.pop() if offset < size else b""

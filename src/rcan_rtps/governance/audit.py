@@ -67,6 +67,10 @@ log = logging.getLogger(__name__)
 _UNSIGNED = ("audit_id", "sig")
 _REQUIRED = ("seq", "audit_id", "prev_hash", "sig", "event", "timestamp_ms")
 CHECKPOINT_EVERY = 1000  # entries between checkpoints: bounds what a start after a crash re-checks
+# What AuditLog.sign_resume_point signs before a start point's body. Its version changes with
+# the meaning of the replay's state (governance.resume.StartPoint): an older point then fails
+# its signature and is not used (the start replays from the boundary), never misread.
+RESUME_POINT_TAG = b"rcan-rtps resume point v1\n"
 # When the disk is fast (smoothed write+fsync below INLINE_FSYNC_S) the loop writes: an idle
 # log's append at once (none in the last INLINE_GAP_S), a burst's entries together one loop
 # turn after the turn the first was sealed in (group commit; the turn held back lets the next
@@ -627,6 +631,7 @@ class AuditLog:
         self._checkpointed_seq = -1  # none written by this process yet
         self._fsync_s = 0.0  # smoothed write+fsync time
         self._checkpointing: asyncio.Task[None] | None = None
+        self._checkpoint_hooks: list[Callable[[Checkpoint], None]] = []
         self._last_write_end = 0.0
         # Told of every durable entry (e.g. metrics); a failing listener is logged, not raised.
         self.audited: Channel[[AuditRecord, AuditReceipt]] = audited or Channel("audit")
@@ -775,6 +780,22 @@ class AuditLog:
             log.exception("audit checkpoint not written")
             return
         self._checkpointed_seq = cp.seq
+        for hook in self._checkpoint_hooks:
+            try:
+                await asyncio.get_running_loop().run_in_executor(self._writer, hook, cp)
+            except Exception:  # a start-up aid: the next start replays more
+                log.exception("audit checkpoint hook failed")
+
+    def on_checkpoint(self, hook: Callable[[Checkpoint], None]) -> None:
+        """Run `hook` on the log's writer thread after each checkpoint (every CHECKPOINT_EVERY
+        entries and at close), with that checkpoint: the file holds every entry up to it."""
+        self._checkpoint_hooks.append(hook)
+
+    def sign_resume_point(self, body: bytes) -> bytes:
+        """Ed25519 by the log's key over RESUME_POINT_TAG + `body` (governance.resume's start
+        points). The tag starts no other message the key signs (audit ids, tree heads,
+        checkpoints, 32-byte digests), so none can stand for one of these."""
+        return self._key.sign(RESUME_POINT_TAG + body)
 
     async def close(self) -> None:
         """Waits for queued writes, checkpoints, sends the last tree heads to the witness

@@ -44,7 +44,7 @@ from ..events import Events
 from . import outcomes
 from .ai import AiPolicy
 from .arbiter import BaseArbiter
-from .audit import AuditEvent, AuditLog, AuditRecord
+from .audit import AuditEvent, AuditLog, AuditRecord, Checkpoint
 from .clock import Clock, SystemClock, now_ms
 from .estop import EstopMachine, LatchFile
 from .estop_lane import EstopLane
@@ -75,6 +75,8 @@ from .steps import (
 from .streams import AccelLimits, EndReason, HeldGoal, StopMark, VelocityStreams
 
 if TYPE_CHECKING:
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
     from .thoughts import ThoughtLog
 
 __all__ = ["MAX_IN_FLIGHT", "ArmsHeld", "Decision", "DispatchResult", "Dispatcher", "Governor"]
@@ -173,7 +175,9 @@ class Governor:
         # (`rcan_rtps._modules.START_ONLY`; idle memory, issue 27).
         from .resume import resume
 
-        resumed = resume(audit.path, now_ms=now_ms(clock))
+        resumed = resume(audit.path, now_ms=now_ms(clock), pubkey=audit.public_key)
+        audit.on_checkpoint(functools.partial(_write_start_point, audit.path,
+                                              audit.public_key, audit.sign_resume_point))
         if resumed.latched and not latched:  # the stricter of file and signed chain
             latched, reason = True, (
                 f"the audit log's last e-stop (by {resumed.latched_by}) was never cleared, "
@@ -1152,3 +1156,13 @@ def _arms_applied(arms: ArmsHeld) -> dict[str, list[str]]:
     if arms.not_held:
         facts["arms_not_held"] = list(arms.not_held)
     return facts
+
+
+def _write_start_point(path: Path, pubkey: Ed25519PublicKey, sign: Callable[[bytes], bytes],
+                       cp: Checkpoint) -> None:
+    """The replay's state at an audit checkpoint, for the next start to replay from
+    (`governance.resume`): imported here, on the log's writer thread, as the start let go of
+    it (`rcan_rtps._modules.START_ONLY`)."""
+    from .resume import write_point
+
+    write_point(path, cp, pubkey, sign)

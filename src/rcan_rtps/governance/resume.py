@@ -30,24 +30,41 @@ COMMAND_FAILED follows, and a stop of one principal's motion for what it says it
 A clean stop may leave goals as well: those whose send gave up that their server had not yet
 accepted, which its BRIDGE_STOPPED names (`params.left_running`, `Governor.stop`); they are
 listed (`Resumed.left`, not `crashed`) for the start to cancel.
+
+A run may be months long; its replay would grow with it (0.57 s per 100 000 entries), and the
+e-stop waits for the start. So the running bridge writes the replay's state beside the log at
+each audit checkpoint (`<log>.resume`, a start point: `write_point`, from the previous point on),
+signed with the log's key and naming the last entry it covers (its seq, audit_id and byte span).
+A start replays from the later of the last boundary and that entry: the same result
+(`tests/governance/test_resume_points.py` checks both ways agree) at a cost bounded by the
+entries between checkpoints. A point that is missing, not signed by the key, or does not name
+an entry of this log as it stands is not used: the replay goes back to the boundary.
 """
 
 from __future__ import annotations
 
+import base64
 import json
+import logging
 import os
 import time
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import msgspec
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from rcan_rtps.rcan import Effect
 from rcan_rtps.rcan.actions import ActionSpec, Hold, Publish, action_spec, with_effect
 
+from ._durable import atomic_write
+from .audit import RESUME_POINT_TAG, Checkpoint, entry_id
 from .left import LeftArm, LeftGoal, LeftRunning, LeftStream
+
+log = logging.getLogger(__name__)
 
 _CHUNK = 64 * 1024
 _ENGAGED = ("ESTOP", "ESTOP_REPEATED")
@@ -68,31 +85,117 @@ class Resumed(msgspec.Struct):
     left: LeftRunning = msgspec.field(default_factory=LeftRunning)
 
 
-def resume(path: Path | str, *, now_ms: int | None = None) -> Resumed:
-    """Replay the log from its last start or stop on; a missing log is a first start.
+def resume(path: Path | str, *, now_ms: int | None = None,
+           pubkey: Ed25519PublicKey | None = None) -> Resumed:
+    """Replay the log from its last start or stop on (or from its start point, `pubkey`'s:
+    without one, none is used); a missing log is a first start.
 
     Entries are trusted as they stand: the log was verified when it was opened. `now_ms`:
     the wall time arm trajectories are due against (default: now). The run since the
     boundary may be long (weeks up): its entries are replayed one at a time, never held.
     """
-    found = Resumed()
-    motion = _Motion()
-    last: dict[str, Any] | None = None
+    replay = _Replay()
     try:
-        for entry in _since_boundary(Path(path)):  # oldest first
-            last = entry
-            _apply(found, entry)
-            motion.apply(entry)
-        # (after a clean stop: only the goals its BRIDGE_STOPPED named, `Governor.stop`)
-        found.left = motion.left(int(time.time() * 1000) if now_ms is None else now_ms)
+        replay.run(Path(path), pubkey)
+        # (inside: working out when an arm is due may overflow, as an entry may be misshapen)
+        return replay.result(int(time.time() * 1000) if now_ms is None else now_ms)
     # It verified at open: this is no time to trust it. An entry of a shape this version
     # does not expect (another version's) fails closed as well, never a traceback — an arm
     # run for a time out of range included (OverflowError working out when it is due).
     except (OSError, ValueError, TypeError, AttributeError, ArithmeticError) as exc:
         return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc!r})")
-    # No boundary at all in a log with entries is no clean stop either: fail closed.
-    found.crashed = last is not None and last.get("event") != "BRIDGE_STOPPED"
-    return found
+
+
+class _Replay:
+    """The replay's state: the log's last word so far and the motion still running."""
+
+    def __init__(self) -> None:
+        self.found = Resumed()
+        self.motion = _Motion()
+        self.last_event: str | None = None  # of the last entry replayed (None: none yet)
+
+    def run(self, path: Path, pubkey: Ed25519PublicKey | None, *,
+            until: int | None = None) -> None:
+        """Replay the entries from the boundary or the start point, to `until` (a line's
+        end; default the file's)."""
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except FileNotFoundError:
+            return
+        try:
+            size = os.fstat(fd).st_size
+            if until is not None:
+                if until > size:  # the file was cut below the checkpoint (by someone else)
+                    raise ValueError(f"the log ends at {size}, before {until}")
+                size = until
+            torn_at = None if _ends_line(fd, size) else size  # a crash mid-append
+            point = _usable_point(fd, path, size, pubkey)
+            boundary = _boundary_at(fd, size, torn_at, floor=0 if point is None else point.end)
+            if point is not None and boundary is None:
+                self._restore(point)
+            for entry in _forwards(fd, _start_at(point, boundary), size, torn_at):
+                self.apply(entry)
+        finally:
+            os.close(fd)
+
+    def apply(self, entry: dict[str, Any]) -> None:
+        event = entry.get("event")
+        self.last_event = event if isinstance(event, str) else ""
+        _apply(self.found, entry)
+        self.motion.apply(entry)
+
+    def result(self, now_ms: int) -> Resumed:
+        found = msgspec.structs.replace(self.found, locks=dict(self.found.locks))
+        # No boundary at all in a log with entries is no clean stop either: fail closed.
+        found.crashed = self.last_event is not None and self.last_event != "BRIDGE_STOPPED"
+        # (after a clean stop: only the goals its BRIDGE_STOPPED named, `Governor.stop`)
+        found.left = self.motion.left(now_ms)
+        return found
+
+    def point(self, cp: Checkpoint) -> StartPoint:
+        motion = self.motion
+        return StartPoint(
+            seq=cp.seq, audit_id=cp.audit_id, start=cp.start, end=cp.end,
+            last_event=self.last_event, latched=self.found.latched,
+            latched_by=self.found.latched_by, locks=dict(self.found.locks),
+            motion=_MotionState(
+                arms=list(motion.arms.items()), goals=list(motion.goals.items()),
+                streams=list(motion.streams.items()), replaced=list(motion._replaced.items()),
+                halted=[(k, _MotionState(arms=list(a.items()), goals=list(g.items()),
+                                         streams=list(s.items()), replaced=list(r.items())))
+                        for k, (a, g, s, r) in motion._halted.items()]))
+
+    def _restore(self, point: StartPoint) -> None:
+        self.last_event = point.last_event
+        self.found = Resumed(latched=point.latched, latched_by=point.latched_by,
+                             locks=dict(point.locks))
+        state, motion = point.motion, self.motion
+        motion.arms, motion.goals = _by_key(state.arms), _by_key(state.goals)
+        motion.streams, motion._replaced = _by_key(state.streams), _by_key(state.replaced)
+        motion._halted = {_frozen(k): (_by_key(h.arms), _by_key(h.goals), _by_key(h.streams),
+                                       _by_key(h.replaced))
+                          for k, h in state.halted}
+
+
+V = TypeVar("V")
+
+
+def _by_key(pairs: list[tuple[tuple[Any, str, Any], V]]) -> dict[_Key, V]:
+    """A point's (key, value) pairs as `_Motion`'s dictionary, each key as it was made."""
+    return {_frozen(key): value for key, value in pairs}
+
+
+def _frozen(key: tuple[Any, str, Any]) -> _Key:
+    """A key read back from a point: JSON holds a tuple inside it (a goal taken up by its id,
+    `_taken_up_key`) as a list, which no dict can hold as a key."""
+    principal, message_id, action = key
+    return principal, message_id, tuple(action) if isinstance(action, list) else action
+
+
+def _start_at(point: StartPoint | None, boundary: int | None) -> int:
+    if boundary is not None:
+        return boundary
+    return 0 if point is None else point.end
 
 
 # A command, as its entries name it: message ids are unique per principal only, and a
@@ -346,41 +449,27 @@ def _lock_entry(state: Resumed, entry: dict[str, Any], action: Any) -> None:
         state.locks.pop(name, None)
 
 
-def _since_boundary(path: Path) -> Iterator[dict[str, Any]]:
-    """Parsed entries from the last start or stop (the log's start when it has none) to the
-    end, oldest first."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except FileNotFoundError:
-        return
-    try:
-        size = os.fstat(fd).st_size
-        torn_at = None if _ends_line(fd, size) else size  # a crash mid-append
-        yield from _forwards(fd, _boundary_at(fd, size, torn_at), size, torn_at)
-    finally:
-        os.close(fd)
-
-
-def _boundary_at(fd: int, size: int, torn_at: int | None) -> int:
-    """The offset of the last BRIDGE_STARTED or BRIDGE_STOPPED line, read back from the end
-    in chunks; 0 if there is none. Only a line naming one is parsed here."""
-    for offset, line in _lines_backwards(fd, size):
+def _boundary_at(fd: int, size: int, torn_at: int | None, *, floor: int) -> int | None:
+    """The offset of the last BRIDGE_STARTED or BRIDGE_STOPPED line at or after `floor` (a
+    line's start), read back from the end in chunks; None if there is none (with `floor` 0:
+    0, the log's start). Only a line naming one is parsed here."""
+    for offset, line in _lines_backwards(fd, size, floor):
         if b"BRIDGE_ST" not in line:  # the event's name, in whatever field: checked below
             continue
         entry = _parsed(line, last=offset + len(line) == torn_at)
         if entry is not None and entry.get("event") in _BOUNDARIES:
             return offset
-    return 0
+    return 0 if floor == 0 else None
 
 
-def _lines_backwards(fd: int, size: int) -> Iterator[tuple[int, bytes]]:
-    """(offset, line) from the last line to the first."""
+def _lines_backwards(fd: int, size: int, floor: int = 0) -> Iterator[tuple[int, bytes]]:
+    """(offset, line) from the last line to the first at or after `floor` (a line's start)."""
     end, tail = size, b""
-    while end > 0:
-        start = max(0, end - _CHUNK)
+    while end > floor:
+        start = max(floor, end - _CHUNK)
         block = os.pread(fd, end - start, start) + tail
         lines = block.split(b"\n")
-        tail = lines.pop(0) if start > 0 else b""  # maybe cut: completed by the next read
+        tail = lines.pop(0) if start > floor else b""  # maybe cut: completed by the next read
         offset = start + len(block)
         for line in reversed(lines):
             offset -= len(line) + 1
@@ -394,7 +483,10 @@ def _forwards(fd: int, offset: int, size: int, torn_at: int | None
     """Parsed entries from `offset` to the end, a chunk at a time."""
     rest = b""
     while offset < size:
-        block = rest + os.pread(fd, min(_CHUNK, size - offset), offset)
+        read = os.pread(fd, min(_CHUNK, size - offset), offset)
+        if not read:  # the file is shorter than it was: never loop on it
+            raise ValueError(f"the audit log ends at {offset}, before {size}")
+        block = rest + read
         offset += len(block) - len(rest)
         lines = block.split(b"\n")
         rest = lines.pop() if offset < size else b""
@@ -422,3 +514,100 @@ def _parsed(line: bytes, *, last: bool) -> dict[str, Any] | None:
     if not isinstance(entry, dict):
         raise ValueError(f"an audit line that is no entry: {line[:40]!r}")
     return entry
+
+
+# -- start points ---------------------------------------------------------------------------
+
+class _MotionState(msgspec.Struct, kw_only=True):
+    """`_Motion`'s dictionaries as (key, value) pairs, in their order."""
+
+    arms: list[tuple[tuple[Any, str, Any], LeftArm]]
+    goals: list[tuple[tuple[Any, str, Any], LeftGoal]]
+    streams: list[tuple[tuple[Any, str, Any], LeftStream]]
+    replaced: list[tuple[tuple[Any, str, Any], list[LeftArm]]]
+    halted: list[tuple[tuple[Any, str, Any], _MotionState]] = msgspec.field(
+        default_factory=list)
+
+
+class StartPoint(msgspec.Struct, kw_only=True):
+    """The replay's state after the entry `seq` (its audit_id and the byte span of its line):
+    where a start may replay from instead of the boundary."""
+
+    seq: int
+    audit_id: str
+    start: int
+    end: int
+    last_event: str | None
+    latched: bool | None
+    latched_by: str | None
+    locks: dict[str, Any]
+    motion: _MotionState
+
+
+class _PointFile(msgspec.Struct):
+    body: msgspec.Raw  # a StartPoint, as signed
+    sig: str  # base64 Ed25519 over RESUME_POINT_TAG + body
+
+
+def point_path(log_path: Path) -> Path:
+    return log_path.with_name(log_path.name + ".resume")
+
+
+def write_point(log_path: Path, cp: Checkpoint, pubkey: Ed25519PublicKey,
+                sign: Callable[[bytes], bytes]) -> None:
+    """The start point after checkpoint `cp`'s entry, replayed from the previous point (or the
+    boundary): run on the audit log's writer thread (`AuditLog.on_checkpoint`)."""
+    replay = _Replay()
+    replay.run(log_path, pubkey, until=cp.end)
+    body = msgspec.json.encode(replay.point(cp))
+    sig = base64.b64encode(sign(body)).decode()
+    atomic_write(point_path(log_path), msgspec.json.encode(_PointFile(msgspec.Raw(body), sig)))
+
+
+def _usable_point(fd: int, log_path: Path, size: int,
+                  pubkey: Ed25519PublicKey | None) -> StartPoint | None:
+    """The start point, if `pubkey` signed it and it names a line of this log before `size`
+    as it stands; else None (logged: the replay goes back to the boundary)."""
+    if pubkey is None:
+        return None
+    path = point_path(log_path)
+    try:
+        point = _signed_point(path.read_bytes(), pubkey)
+        _names_its_line(fd, point, size)
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        log.warning("audit start point %s not used (%s): replaying from the last start", path,
+                    exc)
+        return None
+    return point
+
+
+def _signed_point(data: bytes, pubkey: Ed25519PublicKey) -> StartPoint:
+    """Raises ValueError unless `data` is a point file signed by `pubkey`."""
+    try:
+        file = msgspec.json.decode(data, type=_PointFile)
+        body = bytes(file.body)
+        pubkey.verify(base64.b64decode(file.sig, validate=True), RESUME_POINT_TAG + body)
+        return msgspec.json.decode(body, type=StartPoint)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise ValueError(f"malformed: {exc}") from exc
+    except (ValueError, InvalidSignature) as exc:  # (a bad base64 is a ValueError)
+        raise ValueError("not signed by the audit log's key") from exc
+
+
+def _names_its_line(fd: int, point: StartPoint, size: int) -> None:
+    """Raises ValueError unless the line at the point's span is its entry, whole."""
+    if not 0 <= point.start < point.end <= size:
+        raise ValueError(f"its entry's span {point.start}..{point.end} is not in the log")
+    line = os.pread(fd, point.end - point.start, point.start)
+    if not line.endswith(b"\n") or (point.start > 0 and os.pread(fd, 1, point.start - 1)
+                                     != b"\n"):
+        raise ValueError("its span is not a line of the log")
+    try:
+        entry = msgspec.json.decode(line[:-1])
+    except msgspec.DecodeError as exc:
+        raise ValueError("its span is not an entry") from exc
+    if (not isinstance(entry, dict) or entry.get("seq") != point.seq
+            or entry.get("audit_id") != point.audit_id or entry_id(entry) != point.audit_id):
+        raise ValueError(f"the log's line there is not its entry (seq {point.seq})")

@@ -271,7 +271,9 @@ def test_with_goal_servers_the_stop_path_is_loaded_before_ready(tmp_path: Path,
     assert not ours(before_goal), f"a stop before any goal imported {sorted(ours(before_goal))}"
     assert not GOAL_SENDING - with_goal, \
         f"the first goal did not load {sorted(GOAL_SENDING - with_goal)}"
-    after_goal = imported(lines[goal:])
+    # Up to the stop's own outcome: the leaving's closing checkpoint then writes a start
+    # point, which imports the log's replay again (governance.resume.write_point).
+    after_goal = imported(lines[goal:stop_2 + 1])
     assert not ours(after_goal), f"after the goal, a stop imported {sorted(ours(after_goal))}"
     # Where the server side lives, and that the run never loaded it.
     assert {c.__module__ for c in (ActionServer, ServerGoal, ServiceServer)} <= SERVER_SIDE
@@ -423,7 +425,7 @@ def test_the_first_arm_command_loads_the_holds_and_a_stop_holds_its_arm(
     before_arm, with_arm = imported(lines[running:stop_1]), imported(lines[stop_1:arm])
     assert not ours(before_arm), f"a stop before any arm imported {sorted(ours(before_arm))}"
     assert not ARM_HOLDS - with_arm, f"the arm command did not load {sorted(ARM_HOLDS - with_arm)}"
-    after_arm = imported(lines[arm:])
+    after_arm = imported(lines[arm:stop_2 + 1])  # (as after_goal above)
     assert not ours(after_arm), f"after the arm command, a stop imported {sorted(ours(after_arm))}"
     # Held where it was: moving, then at rest far from the target it was 20 s from.
     assert moving is not None and held is not None and held[0] < TARGET / 2, (moving, held)

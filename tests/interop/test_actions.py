@@ -14,6 +14,7 @@ from dropping import DeafCapture
 from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
 from waiting import eventually
 
+from rcan_rtps._modules import START_ONLY
 from rcan_rtps.ros.actions import ActionClient, GoalState
 from rcan_rtps.ros.errors import ServiceTimeout, ServiceUnavailable, ValueFitError, WireError
 from rcan_rtps.ros.handshake import ANNOUNCE_TRIES
@@ -279,7 +280,7 @@ async def test_a_stops_first_cancel_imports_nothing(
         assert far.accepted
         await eventually(client.server_present, timeout=20, what="the server seen")
         assert not client._cancel_srv._pairs  # no endpoint of its cancel service made yet
-        for module in ("rcan_rtps.ros.typesys.idl_parser", "rcan_rtps.ros.typesys.xtypes"):
+        for module in START_ONLY:  # (the IDL parser and the XTypes describer among them)
             monkeypatch.setitem(sys.modules, module, None)  # importing it raises ImportError
         assert await client.cancel_all(timeout=20, server_wide=True) == 1
         assert (await far.result(timeout=30)).state is GoalState.CANCELED

@@ -175,17 +175,7 @@ NO_GOAL_SERVERS = ", nav_action: null, dock_action: null"
 
 def config_run(tmp_path: Path, domain_id: int, ros2_extra: str = "") -> RunProcess:
     """`run --config` of a robot on /robot1 (no --sim: the simulator serves goals itself)."""
-    state = tmp_path / "state"
-    state.mkdir(mode=0o700)
-    config = tmp_path / "robot.rcan.yaml"
-    config.write_text(
-        "robot: {ruri: rcan://registry.local/acme/rover/unit-0001}\n"
-        "bridge:\n"
-        f"  ros2: {{namespace: /robot1, domain_id: {domain_id}"
-        f"{ros2_extra}}}\n"
-        "  api: {auth_token_env: RCAN_BRIDGE_TOKEN}\n"
-        "  safety: {max_linear_vel: 1.0, max_angular_vel: 1.0, session_timeout_s: 3600}\n"
-        f"  audit: {{path: {state / 'audit.jsonl'}, key_path: {state / 'audit.key'}}}\n")
+    config = idle_config(tmp_path, domain_id, ros2_extra)
     env = child_env(domain_id, PYTHONPROFILEIMPORTTIME="1", RCAN_BRIDGE_TOKEN=TOKEN)
     return RunProcess(["run", "--config", str(config), "--port", "0", "--no-mdns"], env,
                       demo=False)

@@ -12,6 +12,7 @@ from dropping import flood, small_buffers
 from holding import reader_thread_held
 from waiting import eventually
 
+from rcan_rtps._modules import START_ONLY
 from rcan_rtps.ros import action_goals, qos
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
 from rcan_rtps.ros.errors import ActionError
@@ -455,7 +456,7 @@ async def test_a_stops_first_cancel_imports_nothing(nodes: tuple[RosNode, RosNod
     assert far.accepted
     await eventually(client.server_present, timeout=20, what="the server seen")
     assert not client._cancel_srv._pairs  # no endpoint of its cancel service made yet
-    for module in ("rcan_rtps.ros.typesys.idl_parser", "rcan_rtps.ros.typesys.xtypes"):
+    for module in START_ONLY:  # (the IDL parser and the XTypes describer among them)
         monkeypatch.setitem(sys.modules, module, None)  # importing it raises ImportError
     assert await client.cancel_all(timeout=20, server_wide=True) == 1
     assert (await far.result(timeout=20)).state is GoalState.CANCELED

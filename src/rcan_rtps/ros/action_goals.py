@@ -775,17 +775,20 @@ class GoalSender:
             handle._sending = False
 
     def _check_watch_room(self) -> None:
-        """Refuses a goal while MAX_GIVEN_UP sends that gave up are watched for: a server
-        that left so many unanswered is not answering, and making room would let go of a
-        goal it may still accept (to run with nobody to cancel it but a stop). Nothing is
-        sent; the watches end within max(LATE_WATCH_S, their send's timeout)."""
-        if len(self._given_up) >= MAX_GIVEN_UP:
-            log.warning("action %s: a goal refused: %d goals whose send gave up are watched "
-                        "for", self.name, len(self._given_up))
-            raise ActionError(
-                f"{self.name}: {len(self._given_up)} goals whose send gave up are watched for "
-                f"their server accepting them late (at most {MAX_GIVEN_UP}): no goal is sent "
-                f"until it answers")
+        """Refuses a goal while MAX_GIVEN_UP sends that gave up are watched for, or could be:
+        each send on its way may give up too, so it holds a place. A server that left so
+        many unanswered is not answering, and making room would let go of a goal it may
+        still accept (to run with nobody to cancel it but a stop). Nothing is sent; the
+        watches end within max(LATE_WATCH_S, their send's timeout)."""
+        on_way = sum(1 for goal in self._goals.values() if goal._sending)
+        if len(self._given_up) + on_way < MAX_GIVEN_UP:
+            return
+        log.warning("action %s: a goal refused: %d goals whose send gave up are watched "
+                    "for, %d sends on their way", self.name, len(self._given_up), on_way)
+        raise ActionError(
+            f"{self.name}: {len(self._given_up)} goals whose send gave up are watched for "
+            f"their server accepting them late and {on_way} sends are on their way (at most "
+            f"{MAX_GIVEN_UP} together): no goal is sent until it answers")
 
     def _give_up(self, goal_id: bytes, timeout: float) -> None:
         """The send of `goal_id` gave up after its request went out (no reply within
@@ -794,8 +797,7 @@ class GoalSender:
         Cancelled at once, and again should the status topic list it running within
         max(LATE_WATCH_S, `timeout`); whoever listens (`ActionClient.on_late_goal`) is told
         of one that showed up. MAX_GIVEN_UP are watched, and no goal is sent while as many
-        are (`_check_watch_room`); sends already on their way when the last room was taken
-        may give up too: watched as well (few: each was let through with room left)."""
+        could be (`_check_watch_room`: a send on its way holds a place)."""
         if self.client._gone():
             return  # closed: its endpoints are gone (a bridge halts the robot as it stops)
         watch = self._given_up[goal_id] = _GivenUp(goal_id, max(LATE_WATCH_S, timeout))

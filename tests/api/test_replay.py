@@ -7,6 +7,7 @@ the idempotent retry.
 
 from __future__ import annotations
 
+import json
 import uuid
 from typing import Any
 
@@ -14,6 +15,7 @@ from rcan.safety import make_estop_message, make_resume_message, make_stop_messa
 
 from tests.api.apihelpers import Api
 from tests.api.test_rcan3_messages import TARGET, sdk_command
+from tests.api.test_stop_lane import WS_BACKLOG, _cmd, _held_socket, _outcome
 
 
 def versioned(msg: dict[str, Any], api: Api, age_s: float = 0.0) -> dict[str, Any]:
@@ -113,3 +115,24 @@ async def test_1_2_messages_keep_the_idempotent_retry(api: Api) -> None:
     again = await api.command("planner", body)
     assert first == again and first[0] == 200
     assert [a for a, _ in api.dispatcher.calls] == ["move"]
+
+
+async def test_a_message_a_full_socket_queue_refused_may_be_sent_again(api: Api) -> None:
+    """A versioned message refused 429 by a full WebSocket queue was never taken: its retry
+    is decided, not refused as a replay (before: 409 REPLAY_DETECTED, its id spent by a
+    message nothing was done with). Once decided, the same message again is a replay."""
+    ws = await _held_socket(api)
+    for _ in range(WS_BACKLOG):
+        await ws.send_str(_cmd("move", params={"linear_x": 0.1}))
+    msg = sdk_command(api, "move", {"linear_x": 0.2, "duration_s": 1.0})
+    await ws.send_str(json.dumps(msg))
+    refused = await _outcome(ws)
+    assert (refused["http_status"], refused["body"]["reason"]) == (429, "too_many_in_flight")
+    api.dispatcher.hold.set()
+    assert [(await _outcome(ws))["http_status"] for _ in range(1 + WS_BACKLOG)] == \
+        [200] * (1 + WS_BACKLOG)
+    for expected in (200, 409):  # its retry, then a replay of it
+        await ws.send_str(json.dumps(msg))
+        frame = await _outcome(ws)
+        assert frame["http_status"] == expected, frame
+    await ws.close()

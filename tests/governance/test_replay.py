@@ -69,3 +69,25 @@ def test_the_bound_is_per_sender_and_a_replay_is_a_replay_from_anyone() -> None:
     clock.advance(31)
     assert window.check("g4", clock.time(), sender="guest") is None
     assert len(window) == 1
+
+
+def test_an_id_given_back_by_its_sender_passes_again_and_is_then_kept_its_full_window() -> None:
+    """A message refused before anything was done with it (a full WebSocket queue's 429)
+    gives its id back: the client's retry is the same message, not a replay. Only its own
+    sender gives it back; the first admission's expiry does not cut the second's short."""
+    clock = ManualClock()
+    window = ReplayWindow(clock, window_s=30, max_entries=1)
+    assert window.check("m", clock.time(), sender="a") is None
+    window.release("m", sender="b")  # not b's to give back
+    refused = window.check("m", clock.time(), sender="a")
+    assert refused is not None and refused.error_code.value == "REPLAY_DETECTED"
+    window.release("m", sender="a")
+    window.release("unknown", sender="a")
+    window.release(None, sender="a")
+    assert len(window) == 0
+    clock.advance(20)
+    assert window.check("m", clock.time(), sender="a") is None  # its retry, 20 s later
+    assert window.check("other", clock.time(), sender="a") is not None  # a's bound: 1 held
+    clock.advance(15)  # past the first admission's expiry, within the retry's
+    replay = window.check("m", clock.time(), sender="a")
+    assert replay is not None and replay.error_code.value == "REPLAY_DETECTED"

@@ -197,6 +197,15 @@ def _replay_refusal(message: NormalizedCommand | Heartbeat | Invoke | InvokeCanc
                         sender=principal or "")
 
 
+def give_back_id(item: Intake, checks: Checks, principal: str) -> None:
+    """The replay window forgets the id of a message refused before anything was done with
+    it (a full queue's 429): the client's retry of it is the same message, not a replay."""
+    message = item.command or item.heartbeat or item.message3
+    envelope = None if message is None else message.envelope
+    if checks.replay is not None and envelope is not None and envelope.replay_checked:
+        checks.replay.release(envelope.msg_id, principal)
+
+
 async def decide(governor: Governor, principal: Principal, item: Intake,
                  observe: Observe | None = None,
                  invocations: Skills | None = None, hung_up: HangUp | None = None) -> Reply:

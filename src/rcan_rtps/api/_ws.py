@@ -55,6 +55,7 @@ from ._intake import (
     Reply,
     StopLane,
     decide_safely,
+    give_back_id,
     intake,
 )
 from ._keys import (
@@ -237,9 +238,7 @@ class _Commands:
         try:
             self._queue.put_nowait(item)
         except asyncio.QueueFull:
-            body = error_body(ErrorCode.RATE_LIMITED, reason="too_many_in_flight",
-                              message_id=item.message_id)
-            await self._deliver((429, body))
+            await self._too_many(item)
             return
         if isinstance(item.message3, Invoke) and self._invocations is not None:
             self._queued[item.message3.msg_id] += 1
@@ -257,9 +256,14 @@ class _Commands:
         # Full: refused, not waited for — waiting here would hold up this socket's reader,
         # and with it the stops behind (a client with that many cancels out can send `stop`).
         if not await self._cancel_lane.try_submit(item):
-            body = error_body(ErrorCode.RATE_LIMITED, reason="too_many_in_flight",
-                              message_id=item.message_id)
-            await self._deliver((429, body))
+            await self._too_many(item)
+
+    async def _too_many(self, item: Intake) -> None:
+        """429: not taken, so its id is not spent (a retry of it is not a replay)."""
+        give_back_id(item, self._checks, self._principal.name)
+        body = error_body(ErrorCode.RATE_LIMITED, reason="too_many_in_flight",
+                          message_id=item.message_id)
+        await self._deliver((429, body))
 
     async def _deliver(self, reply: Reply) -> None:
         self._put(reply)

@@ -41,7 +41,7 @@ class ReplayWindow:
         self.safety_window_s = min(window_s, SAFETY_WINDOW_S)
         self.ahead_s = ahead_s
         self._max = max_entries  # per sender
-        self._seen: dict[str, str] = {}  # msg_id → its sender
+        self._seen: dict[str, tuple[str, float]] = {}  # msg_id → (its sender, stale at)
         self._held: Counter[str] = Counter()  # sender → how many of its ids are kept
         self._expiry: list[tuple[float, str]] = []  # (when it goes stale, msg_id), soonest first
 
@@ -67,18 +67,33 @@ class ReplayWindow:
             return outcomes.REPLAY_DETECTED
         if self._held[sender] >= self._max:
             return WINDOW_FULL
-        self._seen[msg_id] = sender
+        self._seen[msg_id] = (sender, sent_at_s + window)
         self._held[sender] += 1
         heapq.heappush(self._expiry, (sent_at_s + window, msg_id))
         return None
 
+    def release(self, msg_id: str | None, sender: str = "") -> None:
+        """Forgets an id `check` let through whose message was then refused before anything
+        was done with it (a full queue's 429): its retry is the same message, not a replay.
+        Only the sender that brought the id releases it."""
+        if msg_id is None:
+            return
+        kept = self._seen.get(msg_id)
+        if kept is not None and kept[0] == sender:
+            self._drop(msg_id)
+
     def _forget_stale(self, now: float) -> None:
         while self._expiry and self._expiry[0][0] < now:
-            _, msg_id = heapq.heappop(self._expiry)
-            sender = self._seen.pop(msg_id)
-            self._held[sender] -= 1
-            if not self._held[sender]:
-                del self._held[sender]
+            stale_at, msg_id = heapq.heappop(self._expiry)
+            kept = self._seen.get(msg_id)
+            if kept is not None and kept[1] == stale_at:  # (not released and seen again)
+                self._drop(msg_id)
+
+    def _drop(self, msg_id: str) -> None:
+        sender, _ = self._seen.pop(msg_id)
+        self._held[sender] -= 1
+        if not self._held[sender]:
+            del self._held[sender]
 
 
 def _stale(reason: str) -> Rejection:

@@ -29,6 +29,7 @@ What SDK 3.7.0 offers for §19, and what it lacks (its installed source):
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import json
 from collections.abc import AsyncIterator
@@ -152,6 +153,15 @@ async def test_an_sdk_invoke_hung_up_on_over_rest_stops_the_robot(
     audit_ids_hold(demo)
 
 
+@contextlib.asynccontextmanager
+async def user_socket(http: aiohttp.ClientSession,
+                      demo: Demo) -> AsyncIterator[aiohttp.ClientWebSocketResponse]:
+    """The demo's USER's WebSocket."""
+    async with http.ws_connect(demo.url + "/api/ws",
+                               headers={"Authorization": f"Bearer {demo.user}"}) as ws:
+        yield ws
+
+
 async def outcome_frames(ws: aiohttp.ClientWebSocketResponse,
                          count: int) -> list[dict[str, Any]]:
     """The next `count` outcome frames' bodies (status and goal frames skipped)."""
@@ -174,8 +184,7 @@ async def test_an_sdk_invoke_cancel_over_the_websocket_stops_the_robot(
     demo = sim
     robot = await robot_of(http, demo)
     invoke = sdk_invoke(robot, "nudge")
-    async with http.ws_connect(demo.url + "/api/ws",
-                               headers={"Authorization": f"Bearer {demo.user}"}) as ws:
+    async with user_socket(http, demo) as ws:
         await ws.send_json(sdk_wire(invoke))
         await wait_status(http, demo, driving)
         cancel = sdk_cancel(robot, invoke, "enough")
@@ -202,8 +211,7 @@ async def test_an_sdk_invoke_cancel_over_the_websocket_withdraws_a_held_skill(
     demo = sim
     robot = await robot_of(http, demo)
     invoke = sdk_invoke(robot, "raise_elbow")
-    async with http.ws_connect(demo.url + "/api/ws",
-                               headers={"Authorization": f"Bearer {demo.user}"}) as ws:
+    async with user_socket(http, demo) as ws:
         await ws.send_json(sdk_wire(invoke))
         [held] = await outcome_frames(ws, 1)
         assert (held["http_status"], RCANResponse.from_dict(held).status) == (202, "pending"), held
@@ -228,8 +236,7 @@ async def test_an_sdk_invoke_whose_websocket_closes_stops_the_robot(
     demo = sim
     robot = await robot_of(http, demo)
     invoke = sdk_invoke(robot, "nudge")
-    async with http.ws_connect(demo.url + "/api/ws",
-                               headers={"Authorization": f"Bearer {demo.user}"}) as ws:
+    async with user_socket(http, demo) as ws:
         await ws.send_json(sdk_wire(invoke))
         await wait_status(http, demo, driving)
     await wait_status(http, demo, standing)

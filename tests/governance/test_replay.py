@@ -6,6 +6,9 @@ import time
 import uuid
 
 import pytest
+from hypothesis import settings
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 from rcan.replay import ReplayCache
 
 from rcan_rtps.governance import ManualClock, SystemClock
@@ -91,3 +94,62 @@ def test_an_id_given_back_by_its_sender_passes_again_and_is_then_kept_its_full_w
     clock.advance(15)  # past the first admission's expiry, within the retry's
     replay = window.check("m", clock.time(), sender="a")
     assert replay is not None and replay.error_code.value == "REPLAY_DETECTED"
+
+
+IDS = st.sampled_from(["a", "b", "c"])  # few: the same id comes back often
+
+
+class ReplayModel(RuleBasedStateMachine):
+    """The window against a plain model of §8.3 as this module states it: an id seen (and
+    not given back) while its message is fresh is a replay from anyone; a sender holds at
+    most `MAX` fresh ids; a given-back id is free again; time only moves forward."""
+
+    MAX = 3
+    WINDOW = 30.0
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.clock = ManualClock()
+        self.window = ReplayWindow(self.clock, window_s=self.WINDOW, max_entries=self.MAX)
+        self.kept: dict[str, tuple[str, float]] = {}  # id → (sender, stale after)
+
+    def _forget_stale(self) -> None:
+        now = self.clock.time()
+        self.kept = {i: (s, at) for i, (s, at) in self.kept.items() if at >= now}
+
+    @rule(msg_id=IDS,
+          sender=st.sampled_from(["p", "q"]), age_s=st.sampled_from([0.0, 29.0, 31.0]))
+    def check(self, msg_id: str, sender: str, age_s: float) -> None:
+        sent = self.clock.time() - age_s
+        verdict = self.window.check(msg_id, sent, sender=sender)
+        self._forget_stale()
+        if age_s > self.WINDOW:
+            expected = "MESSAGE_STALE"
+        elif msg_id in self.kept:
+            expected = "REPLAY_DETECTED"
+        elif sum(1 for s, _ in self.kept.values() if s == sender) >= self.MAX:
+            expected = "RATE_LIMITED"
+        else:
+            expected = None
+            self.kept[msg_id] = (sender, sent + self.WINDOW)
+        assert (None if verdict is None else verdict.error_code.value) == expected
+
+    @rule(msg_id=IDS, sender=st.sampled_from(["p", "q"]))
+    def give_back(self, msg_id: str, sender: str) -> None:
+        self.window.release(msg_id, sender)
+        if self.kept.get(msg_id, ("", 0.0))[0] == sender:
+            del self.kept[msg_id]
+
+    @rule(seconds=st.sampled_from([5.0, 20.0]))
+    def advance(self, seconds: float) -> None:
+        self.clock.advance(seconds)
+
+    @invariant()
+    def holds_no_more_than_the_model(self) -> None:
+        self._forget_stale()
+        assert len(self.window) >= len(self.kept)  # (stale ids go at the next check)
+
+
+TestReplayModel = ReplayModel.TestCase
+# (a give-back, a later admission, then the first one's expiry: a few steps deep)
+TestReplayModel.settings = settings(max_examples=400, stateful_step_count=20, deadline=None)

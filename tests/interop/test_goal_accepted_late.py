@@ -26,6 +26,7 @@ from rcan_rtps.bridge.navigation import GoalTracker
 from rcan_rtps.bridge.sent_goals import GoalFinished
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
 from rcan_rtps.governance.left import LeftArm, LeftGoal, LeftRunning
+from rcan_rtps.ros import action_goals
 from rcan_rtps.ros.action_goals import MAX_GIVEN_UP
 from rcan_rtps.ros.action_server import ActionServer, ServerGoal
 from rcan_rtps.ros.errors import ActionError, WireError
@@ -209,6 +210,37 @@ async def test_past_the_watch_s_bound_a_goal_is_not_sent_and_none_is_let_go_of(
             await eventually(
                 lambda: all(state == "canceled" for state in server.ended.values()),
                 timeout=30, what=lambda: f"all cancelled: {sorted(server.ended.values())}")
+        finally:
+            server.release.set()
+            await tracker.close()
+            await server.close()
+
+
+async def test_a_goal_accepted_after_its_watch_ended_is_cancelled_when_listed(
+        domain_id: int, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """The server accepts a given-up goal only after its watch ended (here 1 s, the send's
+    timeout; in a run at least LATE_WATCH_S): cancelled as soon as the status topic lists
+    it running (before: it ran on until a stop), and the tracker told of it as a late goal
+    (which a bridge audits: GOAL_FINISHED)."""
+    monkeypatch.setattr(action_goals, "LATE_WATCH_S", 0.5)
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node, \
+            RosNode("rcan_unseen", "/", domain_id=domain_id) as node:
+        server = SlowServer(robot_node)
+        tracker = GoalTracker(node, "/robot1/navigate_to_pose", NAV)
+        try:
+            await tracker.client.wait_for_server(20.0)
+            with pytest.raises(WireError):
+                await tracker.send(GOAL, timeout=1.0, message_id="m-unseen")
+            [goal] = server.sent
+            await eventually(lambda: not tracker.client.watching_late(goal), timeout=20,
+                             what="the watch's end")
+            server.release.set()  # accepted now, after the watch
+            await eventually(lambda: server.ended.get(goal) == "canceled", timeout=30,
+                             what=lambda: f"the goal cancelled (now {server.ended.get(goal)})")
+            told = f"goal {uuid.UUID(bytes=goal)} (command m-unseen): accepted by"
+            await eventually(lambda: told in caplog.text, timeout=30, what="the late goal told")
+            assert "cancelled by the bridge; ended canceled" in caplog.text
         finally:
             server.release.set()
             await tracker.close()

@@ -110,9 +110,14 @@ LAST_ASK_S = 5.0
 # as long again. And no less than 10 s: the status sample listing it may have been dropped at
 # our socket, and a Fast DDS writer sends it again only with a HEARTBEAT (REPAIR_S, up to 7 s
 # with one dropped); a running goal's status may not be written again. A goal accepted later
-# than that is not seen here: a stop (a server-wide cancel) still cancels it.
+# than that is cancelled when the status topic lists it running (MAX_UNSEEN); a stop (a
+# server-wide cancel) cancels it too.
 LATE_WATCH_S = 10.0
 MAX_GIVEN_UP = 64  # goals whose send gave up, watched at once (no goal is sent while as many)
+# Goals whose watch ended without the status topic listing them, kept by id (the newest this
+# many: 16 bytes and a float each) so that the server accepting one later still has it
+# cancelled as soon as it is listed, not run on until a stop.
+MAX_UNSEEN = 1024
 TAKE_BACK_CANCEL_S = 2.0  # s a cancel of such a goal waits for its reply (as a stop's does)
 TAKE_BACK_RETRY_S = 1.0  # s between cancels of one listed running whose cancel went unanswered
 
@@ -126,6 +131,7 @@ def forget_after() -> float:
 
 # the values a GoalStatus may carry on the wire (REJECTED and SERVER_LOST are ours alone)
 _WIRE_STATES = frozenset(int(s) for s in GoalState if s < GoalState.REJECTED)
+_RUNNING_STATES = frozenset({int(GoalState.ACCEPTED), int(GoalState.EXECUTING)})
 
 
 @dataclass(frozen=True)
@@ -494,6 +500,8 @@ class GoalSender:
         # Goals whose send gave up, watched for on the status topic (`_give_up`), oldest first;
         # cancelled on a cancel client of their own, made by the first (`_take_back_client`).
         self._given_up: dict[bytes, _GivenUp] = {}
+        # Those whose watch ended unlisted: goal id → its watch's span (`_note_given_up`).
+        self._unseen: dict[bytes, float] = {}
         self._take_back_srv: ServiceClient | None = None
         self.goals_sent = 0
         self._unknown_status_logged = False
@@ -750,7 +758,7 @@ class GoalSender:
         await self._wait_for_server(timeout)
         self._forget_ended()
         # A server would take it for the one it has; one given up on is cancelled if seen.
-        if goal_id in self._goals or goal_id in self._given_up:
+        if goal_id in self._goals or goal_id in self._given_up or goal_id in self._unseen:
             raise ActionError(f"{self.name}: goal {uuid.UUID(bytes=goal_id)} was sent already")
         self._check_watch_room()
         handle = ClientGoal(self, goal_id)
@@ -821,7 +829,9 @@ class GoalSender:
                     canceled = watch.canceled = await self._cancel_given_up(watch)
             if watch.state is None and not canceled:
                 log.debug("action %s: goal %s, whose send gave up, was not accepted within "
-                          "%s", self.name, uuid.UUID(bytes=watch.goal_id), seconds(watch.span))
+                          "%s; cancelled should it be listed later", self.name,
+                          uuid.UUID(bytes=watch.goal_id), seconds(watch.span))
+                self._keep_unseen(watch)
                 return
             ends_by = loop.time() + watch.span
             while not watch.ended and loop.time() < ends_by:
@@ -1109,6 +1119,20 @@ class GoalSender:
         watch = self._given_up.get(goal_id)
         if watch is not None and value in _WIRE_STATES:
             watch.listed(GoalState(value))
+        elif goal_id in self._unseen and value in _RUNNING_STATES:
+            # Accepted after its watch ended: taken back as when it was first given up on
+            # (even past MAX_GIVEN_UP: that bound refuses sends, never a take-back).
+            log.warning("action %s: goal %s, whose send gave up, is listed running after "
+                        "its watch ended: cancelling it", self.name, uuid.UUID(bytes=goal_id))
+            self._give_up(goal_id, self._unseen.pop(goal_id))
+            watch = self._given_up.get(goal_id)  # (None: this client is closed)
+            if watch is not None:
+                watch.listed(GoalState(value))
+
+    def _keep_unseen(self, watch: _GivenUp) -> None:
+        self._unseen[watch.goal_id] = watch.span
+        while len(self._unseen) > MAX_UNSEEN:
+            del self._unseen[next(iter(self._unseen))]
 
     def _on_feedback(self, message: IdlStruct) -> None:
         # (None: another client's goal, or one of ours let go of, whose feedback nobody waits

@@ -518,3 +518,36 @@ async def test_an_unwritable_log_refuses_to_seal_at_once(
     await audit_log.close()
     with pytest.raises(AuditWriteError):
         audit_log.seal(record(1), urgent=True)
+
+
+async def test_entries_are_written_while_a_checkpoint_hook_runs(
+        tmp_path: Path, clock: ManualClock, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A checkpoint's hooks (the start point: a replay of up to 1000 entries) run beside the
+    writer thread: entries appended meanwhile become durable without waiting for them
+    (before: the hook held the writer thread, and on a slow disk — where every entry is
+    written by that thread — every command's entry waited)."""
+    monkeypatch.setattr(audit_mod, "INLINE_FSYNC_S", 0.0)  # a slow disk: the thread writes
+    log = await AuditLog.open(tmp_path / "audit.jsonl", tmp_path / "audit.key", ruri=RURI,
+                              clock=clock)
+    entered, release = threading.Event(), threading.Event()
+    seen: list[int] = []
+
+    def slow_hook(cp: audit_mod.Checkpoint) -> None:
+        seen.append(cp.seq)
+        entered.set()
+        release.wait(60)
+
+    log.on_checkpoint(slow_hook)
+    try:
+        await log.append(record(1))
+        checkpointing = asyncio.create_task(log.checkpoint())
+        assert await asyncio.to_thread(entered.wait, 60)
+        receipt = await asyncio.wait_for(log.append(record(2)), 30)  # (hangs before)
+        assert receipt.seq == 2 and not checkpointing.done()
+    finally:
+        release.set()
+    await checkpointing
+    await log.append(record(3))
+    await log.close()  # its closing checkpoint runs the hook too, and waits for it
+    assert seen == [1, 3]
+    assert [e["seq"] for e in lines_of(tmp_path / "audit.jsonl")] == [1, 2, 3]

@@ -1161,8 +1161,8 @@ def _arms_applied(arms: ArmsHeld) -> dict[str, list[str]]:
 def _write_start_point(path: Path, pubkey: Ed25519PublicKey, sign: Callable[[bytes], bytes],
                        cp: Checkpoint) -> None:
     """The replay's state at an audit checkpoint, for the next start to replay from
-    (`governance.resume`): imported here, on the log's writer thread, as the start let go of
-    it (`rcan_rtps._modules.START_ONLY`)."""
+    (`governance.resume`): imported here, on the log's checkpoint-hook thread, as the start
+    let go of it (`rcan_rtps._modules.START_ONLY`)."""
     from .resume import write_point
 
     write_point(path, cp, pubkey, sign)

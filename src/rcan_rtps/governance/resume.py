@@ -556,7 +556,7 @@ def point_path(log_path: Path) -> Path:
 def write_point(log_path: Path, cp: Checkpoint, pubkey: Ed25519PublicKey,
                 sign: Callable[[bytes], bytes]) -> None:
     """The start point after checkpoint `cp`'s entry, replayed from the previous point (or the
-    boundary): run on the audit log's writer thread (`AuditLog.on_checkpoint`)."""
+    boundary): run on the audit log's checkpoint-hook thread (`AuditLog.on_checkpoint`)."""
     replay = _Replay()
     replay.run(log_path, pubkey, until=cp.end)
     body = msgspec.json.encode(replay.point(cp))

@@ -23,7 +23,9 @@ from rcan_rtps.governance.governor import Decision, Governor
 from rcan_rtps.governance.rbac import Principal
 from rcan_rtps.rcan import NormalizedCommand, Outcome, Role
 
-TRIALS = 200
+TRIALS = 200  # at least; more, up to MAX_TRIALS, until each order was seen NEEDED times
+MAX_TRIALS = 2000  # (a busy machine shifts the timing: one order may come rarely)
+NEEDED = TRIALS // 20 + 1
 MOTIONS = {"move": {"linear_x": 0.2}, "navigate": {"x": 1.0, "y": 2.0, "yaw": 0.0}}
 Stop = Callable[[Governor], Awaitable[Decision]]
 
@@ -81,8 +83,14 @@ async def test_the_log_lists_a_stop_and_a_motion_in_the_order_the_robot_got_them
     # stop ended everything), so PLANNER's silence halts the robot.
     mover = OPS
     rng = random.Random(20261127)
-    trials: list[tuple[int, Decision, Decision, int, int]] = []
-    for trial in range(TRIALS):
+    trials: list[tuple[int, Decision, Decision, bool]] = []
+    robot_order: dict[bool, int] = {True: 0, False: 0}
+    # Both sides exercised: motion the robot got after the stop, and before it (not after a
+    # session loss: motion of OPS's decided before it makes it stop PLANNER's only).
+    sides = (False,) if stop_kind == "session_lost" else (False, True)
+    for trial in range(MAX_TRIALS):
+        if trial >= TRIALS and all(robot_order[side] >= NEEDED for side in sides):
+            break
         calls_before = len(harness.dispatcher.calls)
         moved, stopped, _ = await _race(gov, rng, stop, command(action, MOTIONS[action]), mover)
         assert stopped.outcome is Outcome.EXECUTED, (trial, stopped)
@@ -91,25 +99,21 @@ async def test_the_log_lists_a_stop_and_a_motion_in_the_order_the_robot_got_them
         # another principal's motion runs or is on its way stops only the lost principal's:
         # nothing is sent to the robot).
         if moved.outcome is Outcome.EXECUTED and action in calls and "stop" in calls:
-            trials.append((trial, moved, stopped, calls.index(action), calls.index("stop")))
+            motion_first_on_robot = calls.index(action) < calls.index("stop")
+            robot_order[motion_first_on_robot] += 1
+            trials.append((trial, moved, stopped, motion_first_on_robot))
         await gov.decide(command("stop"), ADMIN)  # the next trial starts still
         await asyncio.sleep(0.001)  # its cancels and STREAM_ENDED entries are written
     await gov.stop()
     seqs = _seqs(harness)
-    robot_order: dict[bool, int] = {True: 0, False: 0}
     disagree = []
-    for trial, moved, stopped, motion_at, zero_at in trials:
+    for trial, moved, stopped, motion_first_on_robot in trials:
         assert moved.audit_id is not None and stopped.audit_id is not None, trial
-        motion_first_on_robot = motion_at < zero_at
-        robot_order[motion_first_on_robot] += 1
         if (seqs[moved.audit_id] < seqs[stopped.audit_id]) != motion_first_on_robot:
             disagree.append(trial)
     assert disagree == [], (f"{len(disagree)} of {len(trials)} trials: the log's order of the "
                             f"stop and the {action} is not the robot's: {disagree}")
-    # Both sides exercised: motion the robot got after the stop, and before it (not after a
-    # session loss: motion of OPS's decided before it makes it stop PLANNER's only).
-    assert robot_order[False] > TRIALS // 20, robot_order
-    assert robot_order[True] > TRIALS // 20 or stop_kind == "session_lost", robot_order
+    assert all(robot_order[side] >= NEEDED for side in sides), robot_order
 
 
 
@@ -127,7 +131,9 @@ async def test_the_log_lists_an_estop_where_it_latched(
         return await gov.decide(command("estop"), ADMIN)
 
     before, refused = [], []
-    for trial in range(TRIALS):
+    for trial in range(MAX_TRIALS):
+        if trial >= TRIALS and min(len(before), len(refused)) >= NEEDED:
+            break
         calls_before, signals_before = len(harness.dispatcher.calls), len(
             harness.dispatcher.signals)
         moved, stopped, _ = await _race(gov, rng, estop, command("move", MOTIONS["move"]), OPS)
@@ -150,8 +156,7 @@ async def test_the_log_lists_an_estop_where_it_latched(
                      if seqs[moved.audit_id] < seqs[stopped.audit_id]]
     assert out_of_order == [], (f"{len(out_of_order)} of {len(before) + len(refused)} trials: "
                                 f"a move listed on the wrong side of the e-stop: {out_of_order}")
-    assert len(before) > TRIALS // 20 and len(refused) > TRIALS // 20, (len(before),
-                                                                        len(refused))
+    assert min(len(before), len(refused)) >= NEEDED, (len(before), len(refused))
 
 
 DRIVER = principal("driver", Role.OWNER)  # 1000 commands a minute: not rate-limited here
@@ -180,8 +185,11 @@ async def test_a_stream_a_stop_ends_is_listed_where_its_zero_went(
         monkeypatch.setattr(audit, "INLINE_FSYNC_S", 0.0)
     gov = await harness.governor()
     stop, rng = STREAM_STOPS[stop_kind], random.Random(20261130)
-    misplaced, after_stop = [], 0
-    for trial in range(TRIALS // 2):
+    misplaced, after_stop, tried = [], 0, 0
+    for trial in range(MAX_TRIALS // 4):  # (at least TRIALS // 2; more while moves decided
+        if trial >= TRIALS // 2 and after_stop >= NEEDED:  # after a stop were few)
+            break
+        tried += 1
         driving = await gov.decide(command("move", {"linear_x": 0.2}), DRIVER)
         assert driving.outcome is Outcome.EXECUTED and gov.streams.active is not None, trial
         delay = rng.choice([0.0, rng.uniform(0, 0.003)])
@@ -202,7 +210,7 @@ async def test_a_stream_a_stop_ends_is_listed_where_its_zero_went(
         after_stop += moved.audit_id is not None and seqs[moved.audit_id] > stop_seq
     await gov.stop()
     places = Counter(after for _, _, after in misplaced)  # entries after the stop's: how many
-    assert misplaced == [], (f"{len(misplaced)} of {TRIALS // 2} trials: a stream's end not "
+    assert misplaced == [], (f"{len(misplaced)} of {tried} trials: a stream's end not "
                              f"listed where the stop sent its zero (this many entries after "
                              f"the stop's: trials) {dict(places)}: {misplaced[:10]}")
-    assert after_stop > TRIALS // 20, after_stop  # commands were decided right after the stop
+    assert after_stop >= NEEDED, after_stop  # commands were decided right after the stop

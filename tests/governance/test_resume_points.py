@@ -379,3 +379,42 @@ async def test_a_checkpoint_past_the_log_s_end_writes_no_point(tmp_path: Path,
     past = Checkpoint(seq=9, audit_id="sha256:" + "0" * 64, start=size, end=size + 100)
     with pytest.raises(ValueError, match="ends at"):
         write_point(run.path, past, _pubkey(tmp_path), lambda body: b"")
+
+
+async def test_a_point_that_is_no_regular_file_is_not_read(
+        tmp_path: Path, clock: ManualClock, caplog: pytest.LogCaptureFixture) -> None:
+    """A FIFO in the point's place (or a link to a device): the start does not wait on it
+    for a writer that never comes (before: `read_bytes` blocked the start, and with it the
+    e-stop, for good) — it replays from the boundary, and says why."""
+    import os
+    import threading
+
+    run = await _crashed_with_an_arm(tmp_path, clock)
+    point_path(run.path).unlink()
+    os.mkfifo(point_path(run.path))
+    found: list[tuple[bool, list[str], list[str]]] = []
+    replay = threading.Thread(target=lambda: found.append(
+        _left_ids(run, pubkey=_pubkey(tmp_path))), daemon=True)
+    replay.start()
+    replay.join(30)
+    blocked = replay.is_alive()  # on the FIFO's open, for a writer
+    if blocked:  # (let the blocked open go, so the thread ends)
+        os.close(os.open(point_path(run.path), os.O_WRONLY | os.O_NONBLOCK))
+        replay.join(30)
+    assert not blocked
+    assert found == [(True, ["arm_joint-1"], ["navigate-2"])]
+    assert "not a regular file" in caplog.text
+
+
+async def test_a_huge_point_is_not_read(tmp_path: Path, clock: ManualClock,
+                                        caplog: pytest.LogCaptureFixture) -> None:
+    """A point far larger than any the replay's state makes is not read into memory (a
+    start reading gigabytes before its e-stop answers): refused by its size, unread."""
+    from rcan_rtps.governance.resume import MAX_POINT_BYTES
+
+    run = await _crashed_with_an_arm(tmp_path, clock)
+    with point_path(run.path).open("r+b") as file:  # sparse: no disk, no memory here
+        file.truncate(MAX_POINT_BYTES + 1)
+    assert _left_ids(run, pubkey=_pubkey(tmp_path)) == (True, ["arm_joint-1"], ["navigate-2"])
+    assert f"larger than {MAX_POINT_BYTES}" in caplog.text
+

@@ -60,7 +60,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from rcan_rtps.rcan import Effect
 from rcan_rtps.rcan.actions import ActionSpec, Hold, Publish, action_spec, with_effect
 
-from ._durable import atomic_write
+from ._durable import atomic_write, read_small
 from .audit import RESUME_POINT_TAG, Checkpoint, entry_id
 from .left import LeftArm, LeftGoal, LeftRunning, LeftStream
 
@@ -69,6 +69,9 @@ log = logging.getLogger(__name__)
 _CHUNK = 64 * 1024
 _ENGAGED = ("ESTOP", "ESTOP_REPEATED")
 _BOUNDARIES = ("BRIDGE_STARTED", "BRIDGE_STOPPED")
+# A start point's file is read whole before its signature can be checked: a larger one is not
+# read (the replay goes back to the boundary). The replay's state is far smaller than this.
+MAX_POINT_BYTES = 64 * 1024 * 1024
 MAX_LEFT = 64  # of each kind: the newest are kept (a run's log may hold any number)
 _EXECUTED = ("COMMAND_DISPATCHED", "HITL_AUTHORIZED")  # the entries motion is sent after
 _HALTS = ("ESTOP", "NETWORK_LOSS_SAFE_STOP")  # besides an executed `stop`
@@ -572,7 +575,7 @@ def _usable_point(fd: int, log_path: Path, size: int,
         return None
     path = point_path(log_path)
     try:
-        point = _signed_point(path.read_bytes(), pubkey)
+        point = _signed_point(read_small(path, MAX_POINT_BYTES), pubkey)
         _names_its_line(fd, point, size)
     except FileNotFoundError:
         return None

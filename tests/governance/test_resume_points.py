@@ -418,3 +418,45 @@ async def test_a_huge_point_is_not_read(tmp_path: Path, clock: ManualClock,
     assert _left_ids(run, pubkey=_pubkey(tmp_path)) == (True, ["arm_joint-1"], ["navigate-2"])
     assert f"larger than {MAX_POINT_BYTES}" in caplog.text
 
+
+async def test_goals_past_the_list_s_bound_are_still_taken_back(tmp_path: Path,
+                                                              clock: ManualClock) -> None:
+    """A crashed run left more goals running than the list names by id (MAX_LEFT): the
+    oldest are not dropped (before: the 6 oldest of 70 were in no list, and ran on after the
+    start's take-back with nobody to cancel them) — their server's every goal is cancelled
+    (one listed with no goal id), as for a goal whose id was never recorded. With or without
+    the start point."""
+    from rcan_rtps.governance.resume import MAX_LEFT
+
+    run = await Run.open(tmp_path, clock)
+    await run.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {}})
+    ids = [f"00000000-0000-4000-8000-{n:012d}" for n in range(MAX_LEFT + 6)]
+    for n, goal_id in enumerate(ids):
+        await run.command("navigate", {"x": 1.0, "y": 2.0, "yaw": 0.0},
+                          "/robot1/navigate_to_pose", goal_id=goal_id)
+        if n == MAX_LEFT:
+            await run.point()
+    await run.crash()
+    for pubkey in (None, _pubkey(tmp_path)):
+        goals = resume(run.path, now_ms=int(clock.time() * 1000), pubkey=pubkey).left.goals
+        named = {g.goal_id for g in goals}
+        everything = [g for g in goals if g.goal_id is None]
+        assert named - {None} == set(ids[-len(named - {None}):])
+        assert [g.server for g in everything] == ["/robot1/navigate_to_pose"]
+        assert len(goals) <= MAX_LEFT
+
+
+def test_goals_of_too_many_servers_past_the_bound_cancel_every_goal() -> None:
+    """Past the bound, goals of more servers than half the list holds: one listed for every
+    goal of every server (no server, no id), then the newest by id; still at most MAX_LEFT."""
+    from rcan_rtps.governance.left import LeftGoal
+    from rcan_rtps.governance.resume import MAX_LEFT, _goals_left
+
+    goals = [LeftGoal(message_id=f"m{n}", action="navigate", principal="planner",
+                      server=f"/server{n}", goal_id=f"00000000-0000-4000-8000-{n:012d}")
+             for n in range(2 * MAX_LEFT)]
+    left = _goals_left(goals)
+    assert len(left) == MAX_LEFT
+    assert (left[0].server, left[0].goal_id) == (None, None)
+    assert left[1:] == goals[-(MAX_LEFT - 1):]
+    assert _goals_left(goals[:MAX_LEFT]) == goals[:MAX_LEFT]

@@ -238,7 +238,7 @@ class _Motion:
                     for run in runs]
         return LeftRunning(
             arms=[a for a in (*replaced, *self.arms.values()) if a.due_ms > now_ms][-MAX_LEFT:],
-            goals=list(self.goals.values())[-MAX_LEFT:],
+            goals=_goals_left(list(self.goals.values())),
             streams=list(self.streams.values())[-MAX_LEFT:])
 
     def apply(self, entry: dict[str, Any]) -> None:
@@ -385,6 +385,22 @@ class _Motion:
         self.goals = {m: g for m, g in self.goals.items()
                       if not (g.goal_id is not None and g.goal_id == goal_id)
                       and not (g.goal_id is None and m[1] == message_id)}
+
+
+def _goals_left(goals: list[LeftGoal]) -> list[LeftGoal]:
+    """The goals left (oldest first), at most MAX_LEFT listed: the newest by their own ids,
+    and none of the older dropped (they would run on with nobody to cancel them): each server
+    of theirs is listed once with no goal id, so that every goal of it is cancelled (as for
+    an entry that predates goal ids); servers too many for that, every goal of every one."""
+    first, every = 0, dict[Any, LeftGoal]()  # server → the goal naming all of its
+    while len(goals) - first + len(every) > MAX_LEFT:
+        older = goals[first]
+        first += 1
+        every[older.server] = msgspec.structs.replace(older, principal=None, goal_id=None)
+        if len(every) > MAX_LEFT // 2:  # (servers are the config's: not in a real run)
+            anywhere = msgspec.structs.replace(older, principal=None, server=None, goal_id=None)
+            return [anywhere, *goals[-(MAX_LEFT - 1):]]
+    return [*every.values(), *goals[first:]]
 
 
 def _taken_up_key(goal: LeftGoal) -> _Key:

@@ -460,3 +460,30 @@ def test_goals_of_too_many_servers_past_the_bound_cancel_every_goal() -> None:
     assert (left[0].server, left[0].goal_id) == (None, None)
     assert left[1:] == goals[-(MAX_LEFT - 1):]
     assert _goals_left(goals[:MAX_LEFT]) == goals[:MAX_LEFT]
+
+
+@pytest.mark.parametrize(("outcome", "listed"), [
+    ("unknown", True), ("lost", True), ("succeeded", False), ("canceled", False),
+    ("aborted", False)])
+async def test_a_goal_finished_with_no_end_seen_is_still_taken_back(
+        tmp_path: Path, clock: ManualClock, outcome: str, listed: bool) -> None:
+    """A GOAL_FINISHED that saw no end: a goal its server accepted after its send gave up,
+    whose cancel went unanswered and whose end was not seen within its watch (`unknown`:
+    `SentGoals._late_goal`), or whose server was lost from sight (`lost`). It may run still:
+    a crash after it leaves it to the start (before: ended, it was in no list, and ran on
+    with nobody to cancel it). An end its server listed ends it."""
+    goal_id = "00000000-0000-4000-8000-0000000000aa"
+    run = await Run.open(tmp_path, clock)
+    await run.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {}})
+    sent = await run.command("navigate", {"x": 1.0, "y": 2.0, "yaw": 0.0},
+                             "/robot1/navigate_to_pose", goal_id=goal_id)
+    await run.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id=sent,
+                  action_type="navigate", outcome="failed", goal_id=goal_id)
+    await run.point()
+    await run.add(AuditEvent.GOAL_FINISHED, message_id=sent, params={"goal_id": goal_id},
+                  outcome=outcome, deny_reason="accepted after its send had given up",
+                  ros2_topic="/robot1/navigate_to_pose")
+    await run.crash()
+    for pubkey in (None, _pubkey(tmp_path)):
+        found = resume(run.path, now_ms=int(clock.time() * 1000), pubkey=pubkey)
+        assert [g.goal_id for g in found.left.goals] == ([goal_id] if listed else [])

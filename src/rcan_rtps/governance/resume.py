@@ -17,7 +17,8 @@ shows ended (`LeftRunning`): arm trajectories still due by the wall clock (sent 
 `timestamp_ms`, running `Hold.runs_for_s` of the `applied` parameters, as the dispatcher
 counted them), goals (their `goal_id`, written ahead since goals were sent with an id chosen
 before their entry; older entries have none) and velocity streams. A start halts them
-(`Governor.start`). Ended: GOAL_FINISHED, STREAM_ENDED, a COMMAND_FAILED of the command
+(`Governor.start`). Ended: GOAL_FINISHED of an end its server listed (not `unknown`, not
+`lost`), STREAM_ENDED, a COMMAND_FAILED of the command
 (its principal's and action's: a failed hold or cancel under its id ended nothing;
 one naming a goal did not end it: its send gave up, the server may accept it late), a
 later trajectory of the same joints on the same topic (it replaced it, unless its own
@@ -75,6 +76,10 @@ MAX_POINT_BYTES = 64 * 1024 * 1024
 MAX_LEFT = 64  # of each kind: the newest are kept (a run's log may hold any number)
 _EXECUTED = ("COMMAND_DISPATCHED", "HITL_AUTHORIZED")  # the entries motion is sent after
 _HALTS = ("ESTOP", "NETWORK_LOSS_SAFE_STOP")  # besides an executed `stop`
+# A GOAL_FINISHED's outcomes that are an end its server listed. Not `unknown` (a goal accepted
+# after its send gave up whose end was not seen: `SentGoals._late_goal`) nor `lost` (its server
+# vanished from sight, and may run it still).
+_GOAL_ENDS = ("succeeded", "canceled", "aborted", "rejected")
 
 
 class Resumed(msgspec.Struct):
@@ -379,6 +384,8 @@ class _Motion:
             goal_id=_goal_id(failed.get("goal_id")))
 
     def _goal_finished(self, entry: dict[str, Any]) -> None:
+        if entry.get("outcome") not in _GOAL_ENDS:
+            return  # no end seen (`unknown`, `lost`): it may run still (fails closed)
         given = entry.get("params")
         goal_id = _goal_id(given.get("goal_id")) if isinstance(given, dict) else None
         message_id = entry.get("message_id")

@@ -487,3 +487,20 @@ async def test_a_goal_finished_with_no_end_seen_is_still_taken_back(
     for pubkey in (None, _pubkey(tmp_path)):
         found = resume(run.path, now_ms=int(clock.time() * 1000), pubkey=pubkey)
         assert [g.goal_id for g in found.left.goals] == ([goal_id] if listed else [])
+
+
+async def test_a_point_that_cannot_be_written_is_said_in_one_line(
+        tmp_path: Path, clock: ManualClock, caplog: pytest.LogCaptureFixture) -> None:
+    """The log cut below its checkpoint while it ran (by someone else): the point is not
+    written, and the log says why in one line at each checkpoint — never a traceback (before:
+    `audit checkpoint hook failed` with the ValueError's traceback, every 1000 entries)."""
+    run = await Run.open(tmp_path, clock)
+    await run.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {}})
+    cut = run.path.stat().st_size
+    await run.command("move", {"linear_x": 0.2, "angular_z": 0.0}, "/robot1/cmd_vel")
+    with run.path.open("r+b") as file:
+        file.truncate(cut)
+    await run.audit.checkpoint()
+    await run.audit.close()
+    assert "audit start point not written" in caplog.text and "ends at" in caplog.text
+    assert not [r for r in caplog.records if r.exc_info]

@@ -335,3 +335,24 @@ async def test_an_estop_during_a_clear_wins_and_is_listed_where_it_took_effect(
     else:
         assert cleared.outcome is Outcome.EXECUTED, cleared
         assert _seq(harness, cleared) < _seq(harness, estopped) < _seq(harness, moved)
+
+
+async def test_a_fifo_where_the_latch_file_is_written_holds_up_no_estop(
+        harness: Harness) -> None:
+    """A FIFO at the latch file's temporary name (`.estop.state.<pid>.tmp`, put there by
+    whoever can write the directory): the e-stop is persisted all the same (before: the
+    writer thread's open waited for a reader for good, and the e-stop never answered)."""
+    import os
+
+    gov = await harness.governor()
+    await gov.start()
+    fifo = harness.tmp / f".estop.state.{os.getpid()}.tmp"
+    os.mkfifo(fifo)
+    try:
+        decided = await asyncio.wait_for(gov.decide(command("estop"), VIEWER), 30)
+    except TimeoutError:
+        decided = None
+        os.close(os.open(fifo, os.O_RDONLY | os.O_NONBLOCK))  # (let the writer go)
+    assert decided is not None and decided.outcome is Outcome.EXECUTED, decided
+    assert json.loads((harness.tmp / "estop.state").read_text())["latched"] is True
+    await gov.stop()

@@ -40,7 +40,12 @@ def write_all(fd: int, data: bytes) -> None:
 def atomic_write(path: Path, data: bytes, mode: int = 0o600) -> None:
     """Write-then-rename, so a reader sees the old content or the new one, never half."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    # Made afresh, never opened as found: a FIFO there (its name is no secret) would hold
+    # this thread — and the e-stop's persistence, or the audit log's writer — for a reader
+    # that never comes, and a link there would have the write land in its target.
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(tmp)  # (a leftover of a write a crash cut, or what someone put there)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, mode)
     try:
         try:
             write_all(fd, data)

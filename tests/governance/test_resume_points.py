@@ -504,3 +504,22 @@ async def test_a_point_that_cannot_be_written_is_said_in_one_line(
     await run.audit.close()
     assert "audit start point not written" in caplog.text and "ends at" in caplog.text
     assert not [r for r in caplog.records if r.exc_info]
+
+
+async def test_goals_listed_with_no_id_on_two_servers_are_both_kept(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A list of motion left that names, with no goal id, every goal of two servers under one
+    command (a clean stop's goals whose command was forgotten are named `""`, and past the
+    list's bound each server's are folded into one such): both servers' are kept (before:
+    keyed by principal, command and action alone, the second replaced the first, whose
+    server's goals the start then did not cancel)."""
+    every = [{"message_id": "", "action": "", "principal": None, "server": server,
+              "goal_id": None} for server in ("/robot1/navigate_to_pose", "/robot1/dock")]
+    run = await Run.open(tmp_path, clock)
+    await run.add(AuditEvent.BRIDGE_STOPPED, params={
+        "estop_latched": False, "locks": {}, "left_running": {"goals": every}})
+    await run.crash()
+    for pubkey in (None, _pubkey(tmp_path)):
+        goals = resume(run.path, now_ms=int(clock.time() * 1000), pubkey=pubkey).left.goals
+        assert sorted(str(g.server) for g in goals) == ["/robot1/dock",
+                                                        "/robot1/navigate_to_pose"]

@@ -416,8 +416,8 @@ def _taken_up_key(goal: LeftGoal) -> _Key:
     unique per principal only — two such goals of one message id (or of no command known)
     are two goals, not one listed in place of the other (red team 16: the next start left
     the other to run). A COMMAND_FAILED of this run ends no goal of an earlier run's."""
-    if goal.goal_id is None:
-        return _key_of(goal)
+    if goal.goal_id is None:  # every goal of its server: one per server, whatever its command
+        return goal.principal, goal.message_id, (goal.action, goal.server)
     return goal.principal, goal.message_id, (goal.action, goal.goal_id)
 
 

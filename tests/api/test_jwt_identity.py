@@ -129,3 +129,23 @@ async def test_a_wrong_static_token_is_told_nothing(jwt_api: JwtApi) -> None:
     status, reply, challenge = await jwt_api.call("GET", "/api/status", "not-a-token-at-all")
     assert (status, reply.get("reason")) == (401, None)
     assert challenge == 'Bearer realm="rcan", error="invalid_token"'
+
+
+@pytest.mark.parametrize("claim", ["exp", "iat", "nbf", "rcan_role"])
+async def test_a_jwt_time_past_any_float_is_refused_as_its_claim(
+        jwt_api: JwtApi, claim: str, caplog: pytest.LogCaptureFixture) -> None:
+    """A signed claim of 401 digits (JSON integers have no bound; an issuer's bug): refused
+    401 as that claim, never a 500 with a traceback (before: `math.isfinite` overflowed
+    turning it into a float)."""
+    reasons = {"exp": "jwt_expired", "iat": "jwt_not_yet_valid", "nbf": "jwt_not_yet_valid",
+               "rcan_role": "jwt_claims"}
+    extra: dict[str, Any] = {claim: 10**400}
+    if claim == "rcan_role":
+        extra["role"] = None
+    body = {"sub": "agent", "role": "USER", "aud": "rcan-bridge",
+            "exp": jwt_api.api.clock.time() + 60, **extra}
+    body = {k: v for k, v in body.items() if v is not None}
+    token = sign_jwt(jwt_api.key, body, {"alg": "EdDSA", "kid": KID})
+    status, reply, _ = await jwt_api.call("GET", "/api/status", token)
+    assert (status, reply.get("reason")) == (401, reasons[claim]), reply
+    assert "Traceback" not in caplog.text

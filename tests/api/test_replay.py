@@ -136,3 +136,36 @@ async def test_a_message_a_full_socket_queue_refused_may_be_sent_again(api: Api)
         frame = await _outcome(ws)
         assert frame["http_status"] == expected, frame
     await ws.close()
+
+
+async def test_a_timestamp_past_any_float_is_refused_clearly_and_a_stop_still_stops(
+        api: Api, caplog: Any) -> None:
+    """A `timestamp_ms` of 401 digits (JSON integers have no bound; one turned into seconds
+    overflowed a float): the e-stop that carries it still latches, a stop still stops,
+    anything else is refused 400 with its path — never 503 internal_error with a traceback
+    (before: every one of these, the e-stop included, was refused so, nothing stopped)."""
+    huge = 10**400
+    estop = {**make_estop_message(ruri=TARGET, reason="drill"), "rcan_version": "3.2",
+             "timestamp_ms": huge}
+    status, body = await api.command("viewer", estop)
+    assert (status, body["outcome"]) == (200, "executed"), body
+    assert api.gov.latch.latched
+    stop = {"message_type": 1, "ruri": TARGET, "action": "stop", "rcan_version": "3.2",
+            "timestamp_ms": huge}
+    status, body = await api.command("planner", stop)
+    assert (status, body["outcome"]) == (200, "executed"), body
+    others = [
+        {"message_type": 1, "ruri": TARGET, "action": "move", "rcan_version": "3.2",
+         "parameters": {"linear_x": 0.1}, "timestamp_ms": huge},
+        {"message_type": 4, "rcan_version": "3.2", "timestamp_ms": huge},
+        {"type": "INVOKE", "skill": "nudge", "msg_id": "i-huge", "rcan_version": "3.2",
+         "timestamp_ms": huge},
+        {"type": "INVOKE", "skill": "nudge", "msg_id": "i-huge-2", "rcan_version": "3.2",
+         "timestamp_ms": huge, "timestamp": 1.0},
+    ]
+    for other in others:
+        status, body = await api.command("planner", other)
+        assert (status, body["error_code"], body["path"]) == (
+            400, "SCHEMA_VALIDATION_FAILED", "$.timestamp_ms"), body
+    assert "Traceback" not in caplog.text and "unexpectedly" not in caplog.text
+    assert [a for a, _ in api.dispatcher.calls if a == "move"] == []

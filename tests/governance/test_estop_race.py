@@ -335,3 +335,48 @@ async def test_an_estop_during_a_clear_wins_and_is_listed_where_it_took_effect(
     else:
         assert cleared.outcome is Outcome.EXECUTED, cleared
         assert _seq(harness, cleared) < _seq(harness, estopped) < _seq(harness, moved)
+
+
+async def test_a_fifo_where_the_latch_file_is_written_holds_up_no_estop(
+        harness: Harness) -> None:
+    """A FIFO at the latch file's temporary name (`.estop.state.<pid>.tmp`, put there by
+    whoever can write the directory): the e-stop is persisted all the same (before: the
+    writer thread's open waited for a reader for good, and the e-stop never answered)."""
+    import os
+
+    gov = await harness.governor()
+    await gov.start()
+    fifo = harness.tmp / f".estop.state.{os.getpid()}.tmp"
+    os.mkfifo(fifo)
+    try:
+        decided = await asyncio.wait_for(gov.decide(command("estop"), VIEWER), 30)
+    except TimeoutError:
+        decided = None
+        os.close(os.open(fifo, os.O_RDONLY | os.O_NONBLOCK))  # (let the writer go)
+    assert decided is not None and decided.outcome is Outcome.EXECUTED, decided
+    assert json.loads((harness.tmp / "estop.state").read_text())["latched"] is True
+    await gov.stop()
+
+
+def test_a_latch_file_that_is_no_regular_file_starts_latched(tmp_path: Path) -> None:
+    """A FIFO in the latch file's place: the start does not wait on it for a writer (before:
+    `read_bytes` held the start, and every e-stop after it, for good); unreadable, it starts
+    latched (fails closed), and says why."""
+    import os
+
+    path = tmp_path / "estop.state"
+    os.mkfifo(path)
+    latch = estop.LatchFile(path)
+    found: list[tuple[bool, str | None]] = []
+    loading = threading.Thread(target=lambda: found.append(latch.load(first_start=False)),
+                               daemon=True)
+    loading.start()
+    loading.join(30)
+    blocked = loading.is_alive()
+    if blocked:  # (let the blocked open go, so the thread ends)
+        os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))
+        loading.join(30)
+    latch.close()
+    assert not blocked
+    [(latched, why)] = found
+    assert latched and why is not None and "not a regular file" in why

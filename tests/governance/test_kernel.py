@@ -232,6 +232,38 @@ async def test_a_checkpoint_that_does_not_match_means_a_full_check(tmp_path: Pat
     assert info.value.seq == 4
 
 
+async def test_a_checkpoint_that_is_no_regular_file_means_a_full_check(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A FIFO in the checkpoint's place: the open does not wait on it for a writer that never
+    comes (before: `read_bytes` blocked the start, and the e-stop with it, for good); it
+    verifies the whole log, and says why."""
+    import threading
+
+    path, key = tmp_path / "audit.jsonl", tmp_path / "audit.key"
+    await _fill(path, key, 20)
+    checkpoint_path(path).unlink()
+    os.mkfifo(checkpoint_path(path))
+    heads: list[int] = []
+
+    def open_log() -> None:
+        async def opened() -> None:
+            log = await AuditLog.open(path, key)
+            heads.append(log.head.last_seq)
+            await log.close()
+        asyncio.run(opened())
+
+    opening = threading.Thread(target=open_log, daemon=True)
+    opening.start()
+    opening.join(30)
+    blocked = opening.is_alive()  # on the FIFO's open, for a writer
+    if blocked:  # (let the blocked open go, so the thread ends)
+        os.close(os.open(checkpoint_path(path), os.O_WRONLY | os.O_NONBLOCK))
+        opening.join(30)
+    assert not blocked
+    assert heads == [20]
+    assert "unusable" in caplog.text
+
+
 async def test_entries_after_the_checkpoint_are_verified(tmp_path: Path) -> None:
     path, key = tmp_path / "audit.jsonl", tmp_path / "audit.key"
     await _fill(path, key, 20)

@@ -379,3 +379,147 @@ async def test_a_checkpoint_past_the_log_s_end_writes_no_point(tmp_path: Path,
     past = Checkpoint(seq=9, audit_id="sha256:" + "0" * 64, start=size, end=size + 100)
     with pytest.raises(ValueError, match="ends at"):
         write_point(run.path, past, _pubkey(tmp_path), lambda body: b"")
+
+
+async def test_a_point_that_is_no_regular_file_is_not_read(
+        tmp_path: Path, clock: ManualClock, caplog: pytest.LogCaptureFixture) -> None:
+    """A FIFO in the point's place (or a link to a device): the start does not wait on it
+    for a writer that never comes (before: `read_bytes` blocked the start, and with it the
+    e-stop, for good) — it replays from the boundary, and says why."""
+    import os
+    import threading
+
+    run = await _crashed_with_an_arm(tmp_path, clock)
+    point_path(run.path).unlink()
+    os.mkfifo(point_path(run.path))
+    found: list[tuple[bool, list[str], list[str]]] = []
+    replay = threading.Thread(target=lambda: found.append(
+        _left_ids(run, pubkey=_pubkey(tmp_path))), daemon=True)
+    replay.start()
+    replay.join(30)
+    blocked = replay.is_alive()  # on the FIFO's open, for a writer
+    if blocked:  # (let the blocked open go, so the thread ends)
+        os.close(os.open(point_path(run.path), os.O_WRONLY | os.O_NONBLOCK))
+        replay.join(30)
+    assert not blocked
+    assert found == [(True, ["arm_joint-1"], ["navigate-2"])]
+    assert "not a regular file" in caplog.text
+
+
+async def test_a_huge_point_is_not_read(tmp_path: Path, clock: ManualClock,
+                                        caplog: pytest.LogCaptureFixture) -> None:
+    """A point far larger than any the replay's state makes is not read into memory (a
+    start reading gigabytes before its e-stop answers): refused by its size, unread."""
+    from rcan_rtps.governance.resume import MAX_POINT_BYTES
+
+    run = await _crashed_with_an_arm(tmp_path, clock)
+    with point_path(run.path).open("r+b") as file:  # sparse: no disk, no memory here
+        file.truncate(MAX_POINT_BYTES + 1)
+    assert _left_ids(run, pubkey=_pubkey(tmp_path)) == (True, ["arm_joint-1"], ["navigate-2"])
+    assert f"larger than {MAX_POINT_BYTES}" in caplog.text
+
+
+async def test_goals_past_the_list_s_bound_are_still_taken_back(tmp_path: Path,
+                                                              clock: ManualClock) -> None:
+    """A crashed run left more goals running than the list names by id (MAX_LEFT): the
+    oldest are not dropped (before: the 6 oldest of 70 were in no list, and ran on after the
+    start's take-back with nobody to cancel them) — their server's every goal is cancelled
+    (one listed with no goal id), as for a goal whose id was never recorded. With or without
+    the start point."""
+    from rcan_rtps.governance.resume import MAX_LEFT
+
+    run = await Run.open(tmp_path, clock)
+    await run.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {}})
+    ids = [f"00000000-0000-4000-8000-{n:012d}" for n in range(MAX_LEFT + 6)]
+    for n, goal_id in enumerate(ids):
+        await run.command("navigate", {"x": 1.0, "y": 2.0, "yaw": 0.0},
+                          "/robot1/navigate_to_pose", goal_id=goal_id)
+        if n == MAX_LEFT:
+            await run.point()
+    await run.crash()
+    for pubkey in (None, _pubkey(tmp_path)):
+        goals = resume(run.path, now_ms=int(clock.time() * 1000), pubkey=pubkey).left.goals
+        named = {g.goal_id for g in goals}
+        everything = [g for g in goals if g.goal_id is None]
+        assert named - {None} == set(ids[-len(named - {None}):])
+        assert [g.server for g in everything] == ["/robot1/navigate_to_pose"]
+        assert len(goals) <= MAX_LEFT
+
+
+def test_goals_of_too_many_servers_past_the_bound_cancel_every_goal() -> None:
+    """Past the bound, goals of more servers than half the list holds: one listed for every
+    goal of every server (no server, no id), then the newest by id; still at most MAX_LEFT."""
+    from rcan_rtps.governance.left import LeftGoal
+    from rcan_rtps.governance.resume import MAX_LEFT, _goals_left
+
+    goals = [LeftGoal(message_id=f"m{n}", action="navigate", principal="planner",
+                      server=f"/server{n}", goal_id=f"00000000-0000-4000-8000-{n:012d}")
+             for n in range(2 * MAX_LEFT)]
+    left = _goals_left(goals)
+    assert len(left) == MAX_LEFT
+    assert (left[0].server, left[0].goal_id) == (None, None)
+    assert left[1:] == goals[-(MAX_LEFT - 1):]
+    assert _goals_left(goals[:MAX_LEFT]) == goals[:MAX_LEFT]
+
+
+@pytest.mark.parametrize(("outcome", "listed"), [
+    ("unknown", True), ("lost", True), ("succeeded", False), ("canceled", False),
+    ("aborted", False)])
+async def test_a_goal_finished_with_no_end_seen_is_still_taken_back(
+        tmp_path: Path, clock: ManualClock, outcome: str, listed: bool) -> None:
+    """A GOAL_FINISHED that saw no end: a goal its server accepted after its send gave up,
+    whose cancel went unanswered and whose end was not seen within its watch (`unknown`:
+    `SentGoals._late_goal`), or whose server was lost from sight (`lost`). It may run still:
+    a crash after it leaves it to the start (before: ended, it was in no list, and ran on
+    with nobody to cancel it). An end its server listed ends it."""
+    goal_id = "00000000-0000-4000-8000-0000000000aa"
+    run = await Run.open(tmp_path, clock)
+    await run.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {}})
+    sent = await run.command("navigate", {"x": 1.0, "y": 2.0, "yaw": 0.0},
+                             "/robot1/navigate_to_pose", goal_id=goal_id)
+    await run.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id=sent,
+                  action_type="navigate", outcome="failed", goal_id=goal_id)
+    await run.point()
+    await run.add(AuditEvent.GOAL_FINISHED, message_id=sent, params={"goal_id": goal_id},
+                  outcome=outcome, deny_reason="accepted after its send had given up",
+                  ros2_topic="/robot1/navigate_to_pose")
+    await run.crash()
+    for pubkey in (None, _pubkey(tmp_path)):
+        found = resume(run.path, now_ms=int(clock.time() * 1000), pubkey=pubkey)
+        assert [g.goal_id for g in found.left.goals] == ([goal_id] if listed else [])
+
+
+async def test_a_point_that_cannot_be_written_is_said_in_one_line(
+        tmp_path: Path, clock: ManualClock, caplog: pytest.LogCaptureFixture) -> None:
+    """The log cut below its checkpoint while it ran (by someone else): the point is not
+    written, and the log says why in one line at each checkpoint — never a traceback (before:
+    `audit checkpoint hook failed` with the ValueError's traceback, every 1000 entries)."""
+    run = await Run.open(tmp_path, clock)
+    await run.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {}})
+    cut = run.path.stat().st_size
+    await run.command("move", {"linear_x": 0.2, "angular_z": 0.0}, "/robot1/cmd_vel")
+    with run.path.open("r+b") as file:
+        file.truncate(cut)
+    await run.audit.checkpoint()
+    await run.audit.close()
+    assert "audit start point not written" in caplog.text and "ends at" in caplog.text
+    assert not [r for r in caplog.records if r.exc_info]
+
+
+async def test_goals_listed_with_no_id_on_two_servers_are_both_kept(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A list of motion left that names, with no goal id, every goal of two servers under one
+    command (a clean stop's goals whose command was forgotten are named `""`, and past the
+    list's bound each server's are folded into one such): both servers' are kept (before:
+    keyed by principal, command and action alone, the second replaced the first, whose
+    server's goals the start then did not cancel)."""
+    every = [{"message_id": "", "action": "", "principal": None, "server": server,
+              "goal_id": None} for server in ("/robot1/navigate_to_pose", "/robot1/dock")]
+    run = await Run.open(tmp_path, clock)
+    await run.add(AuditEvent.BRIDGE_STOPPED, params={
+        "estop_latched": False, "locks": {}, "left_running": {"goals": every}})
+    await run.crash()
+    for pubkey in (None, _pubkey(tmp_path)):
+        goals = resume(run.path, now_ms=int(clock.time() * 1000), pubkey=pubkey).left.goals
+        assert sorted(str(g.server) for g in goals) == ["/robot1/dock",
+                                                        "/robot1/navigate_to_pose"]

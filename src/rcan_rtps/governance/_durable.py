@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import stat
 from pathlib import Path
 
 
@@ -39,7 +40,12 @@ def write_all(fd: int, data: bytes) -> None:
 def atomic_write(path: Path, data: bytes, mode: int = 0o600) -> None:
     """Write-then-rename, so a reader sees the old content or the new one, never half."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    # Made afresh, never opened as found: a FIFO there (its name is no secret) would hold
+    # this thread — and the e-stop's persistence, or the audit log's writer — for a reader
+    # that never comes, and a link there would have the write land in its target.
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(tmp)  # (a leftover of a write a crash cut, or what someone put there)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, mode)
     try:
         try:
             write_all(fd, data)
@@ -52,3 +58,24 @@ def atomic_write(path: Path, data: bytes, mode: int = 0o600) -> None:
             os.unlink(tmp)
         raise
     fsync_dir(path.parent)
+
+
+def read_small(path: Path, limit: int) -> bytes:
+    """A small file's bytes (a checkpoint, a start point). Raises FileNotFoundError if there is
+    none, ValueError if it is no regular file or holds more than `limit` bytes: a FIFO put in
+    its place would block the reader (a start, with its e-stop) for a writer that never comes,
+    and a device or a huge file would be read into memory before anything could refuse it."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # (a FIFO's open blocks without it)
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise ValueError(f"{path} is not a regular file")
+        if info.st_size > limit:
+            raise ValueError(f"{path} is larger than {limit} bytes ({info.st_size})")
+        # (one byte more than it holds: a file grown meanwhile is seen, never read on)
+        data = os.pread(fd, info.st_size + 1, 0)
+    finally:
+        os.close(fd)
+    if len(data) > info.st_size:
+        raise ValueError(f"{path} is being written")
+    return data

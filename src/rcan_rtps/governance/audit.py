@@ -52,7 +52,7 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from ..events import Channel
-from ._durable import atomic_write, fsync_dir, full_fsync, write_all
+from ._durable import atomic_write, fsync_dir, full_fsync, read_small, write_all
 from .clock import Clock, SystemClock
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
 from .keyfacts import read_public_pem
@@ -67,10 +67,11 @@ log = logging.getLogger(__name__)
 _UNSIGNED = ("audit_id", "sig")
 _REQUIRED = ("seq", "audit_id", "prev_hash", "sig", "event", "timestamp_ms")
 CHECKPOINT_EVERY = 1000  # entries between checkpoints: bounds what a start after a crash re-checks
+MAX_CHECKPOINT_BYTES = 64 * 1024  # a checkpoint holds at most 64 peaks: larger is not one
 # What AuditLog.sign_resume_point signs before a start point's body. Its version changes with
 # the meaning of the replay's state (governance.resume.StartPoint): an older point then fails
 # its signature and is not used (the start replays from the boundary), never misread.
-RESUME_POINT_TAG = b"rcan-rtps resume point v1\n"
+RESUME_POINT_TAG = b"rcan-rtps resume point v2\n"  # v2: a GOAL_FINISHED seeing no end ends nothing
 # When the disk is fast (smoothed write+fsync below INLINE_FSYNC_S) the loop writes: an idle
 # log's append at once (none in the last INLINE_GAP_S), a burst's entries together one loop
 # turn after the turn the first was sealed in (group commit; the turn held back lets the next
@@ -500,7 +501,7 @@ def read_checkpoint(path: Path, pubkey: Ed25519PublicKey | None) -> Checkpoint:
     """The checkpoint at `path`, its signature checked when `pubkey` is given; raises OSError
     (FileNotFoundError if there is none) or ValueError (malformed, or not signed by `pubkey`)."""
     try:
-        cp = msgspec.json.decode(path.read_bytes(), type=Checkpoint)
+        cp = msgspec.json.decode(read_small(path, MAX_CHECKPOINT_BYTES), type=Checkpoint)
     except msgspec.DecodeError as exc:
         raise ValueError(f"checkpoint {path} is malformed: {exc}") from exc
     if pubkey is not None:

@@ -30,11 +30,14 @@ from typing import Any, TypeVar
 
 import msgspec
 
-from ._durable import atomic_write
+from ._durable import atomic_write, read_small
 from .errors import EstopStateError
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
+
+
+MAX_LATCH_BYTES = 64 * 1024  # a latch file holds a bool, a name and a time: larger is not one
 
 
 class LatchState(msgspec.Struct, frozen=True, kw_only=True):
@@ -57,13 +60,13 @@ class LatchFile:
         """(latched, why it starts latched); fails closed on anything but a clear `false`."""
         self._found_at_load = True
         try:
-            state = msgspec.json.decode(self.path.read_bytes(), type=LatchState)
+            state = msgspec.json.decode(read_small(self.path, MAX_LATCH_BYTES), type=LatchState)
         except FileNotFoundError:
             self._found_at_load = False
             if first_start:
                 return False, None
             return True, f"e-stop state {self.path} is missing: latched until cleared"
-        except (OSError, msgspec.DecodeError) as exc:
+        except (OSError, ValueError) as exc:  # (msgspec.DecodeError is one; so is a FIFO)
             return True, f"e-stop state {self.path} is unreadable ({exc}): latched until cleared"
         if state.latched:
             return True, f"latched by {state.by or 'unknown'} before this start"

@@ -1165,4 +1165,10 @@ def _write_start_point(path: Path, pubkey: Ed25519PublicKey, sign: Callable[[byt
     let go of it (`rcan_rtps._modules.START_ONLY`)."""
     from .resume import write_point
 
-    write_point(path, cp, pubkey, sign)
+    try:
+        write_point(path, cp, pubkey, sign)
+    except (OSError, ValueError) as exc:  # (a full disk; a log cut or altered by another)
+        # One line, no traceback: the next start replays from the previous point or the
+        # boundary (the same result, only slower), and this is said at each checkpoint.
+        log.error("audit start point not written (%s): the next start replays further back",
+                  exc)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import base64
 import binascii
-import math
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -97,8 +96,15 @@ def _json_object(raw: bytes) -> dict[str, Any]:
     return obj
 
 
+_MAGNITUDE = 1e15  # past any time in s (year 31 million) and any role level
+
+
 def _is_time(value: Any) -> TypeGuard[float]:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    """A number (not a bool) of a magnitude a time or a level can have: compared, never
+    converted (`math.isfinite` of a JSON integer of 400 digits overflowed: a 500); NaN and
+    the infinities fail the comparison."""
+    return (isinstance(value, int | float) and not isinstance(value, bool)
+            and -_MAGNITUDE < value < _MAGNITUDE)
 
 
 # One PEM key (a token's `kid` is not looked at), or a JWKS's keys by `kid`.

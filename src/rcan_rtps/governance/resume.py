@@ -17,7 +17,8 @@ shows ended (`LeftRunning`): arm trajectories still due by the wall clock (sent 
 `timestamp_ms`, running `Hold.runs_for_s` of the `applied` parameters, as the dispatcher
 counted them), goals (their `goal_id`, written ahead since goals were sent with an id chosen
 before their entry; older entries have none) and velocity streams. A start halts them
-(`Governor.start`). Ended: GOAL_FINISHED, STREAM_ENDED, a COMMAND_FAILED of the command
+(`Governor.start`). Ended: GOAL_FINISHED of an end its server listed (not `unknown`, not
+`lost`), STREAM_ENDED, a COMMAND_FAILED of the command
 (its principal's and action's: a failed hold or cancel under its id ended nothing;
 one naming a goal did not end it: its send gave up, the server may accept it late), a
 later trajectory of the same joints on the same topic (it replaced it, unless its own
@@ -60,7 +61,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from rcan_rtps.rcan import Effect
 from rcan_rtps.rcan.actions import ActionSpec, Hold, Publish, action_spec, with_effect
 
-from ._durable import atomic_write
+from ._durable import atomic_write, read_small
 from .audit import RESUME_POINT_TAG, Checkpoint, entry_id
 from .left import LeftArm, LeftGoal, LeftRunning, LeftStream
 
@@ -69,9 +70,16 @@ log = logging.getLogger(__name__)
 _CHUNK = 64 * 1024
 _ENGAGED = ("ESTOP", "ESTOP_REPEATED")
 _BOUNDARIES = ("BRIDGE_STARTED", "BRIDGE_STOPPED")
+# A start point's file is read whole before its signature can be checked: a larger one is not
+# read (the replay goes back to the boundary). The replay's state is far smaller than this.
+MAX_POINT_BYTES = 64 * 1024 * 1024
 MAX_LEFT = 64  # of each kind: the newest are kept (a run's log may hold any number)
 _EXECUTED = ("COMMAND_DISPATCHED", "HITL_AUTHORIZED")  # the entries motion is sent after
 _HALTS = ("ESTOP", "NETWORK_LOSS_SAFE_STOP")  # besides an executed `stop`
+# A GOAL_FINISHED's outcomes that are an end its server listed. Not `unknown` (a goal accepted
+# after its send gave up whose end was not seen: `SentGoals._late_goal`) nor `lost` (its server
+# vanished from sight, and may run it still).
+_GOAL_ENDS = ("succeeded", "canceled", "aborted", "rejected")
 
 
 class Resumed(msgspec.Struct):
@@ -235,7 +243,7 @@ class _Motion:
                     for run in runs]
         return LeftRunning(
             arms=[a for a in (*replaced, *self.arms.values()) if a.due_ms > now_ms][-MAX_LEFT:],
-            goals=list(self.goals.values())[-MAX_LEFT:],
+            goals=_goals_left(list(self.goals.values())),
             streams=list(self.streams.values())[-MAX_LEFT:])
 
     def apply(self, entry: dict[str, Any]) -> None:
@@ -376,6 +384,8 @@ class _Motion:
             goal_id=_goal_id(failed.get("goal_id")))
 
     def _goal_finished(self, entry: dict[str, Any]) -> None:
+        if entry.get("outcome") not in _GOAL_ENDS:
+            return  # no end seen (`unknown`, `lost`): it may run still (fails closed)
         given = entry.get("params")
         goal_id = _goal_id(given.get("goal_id")) if isinstance(given, dict) else None
         message_id = entry.get("message_id")
@@ -384,14 +394,30 @@ class _Motion:
                       and not (g.goal_id is None and m[1] == message_id)}
 
 
+def _goals_left(goals: list[LeftGoal]) -> list[LeftGoal]:
+    """The goals left (oldest first), at most MAX_LEFT listed: the newest by their own ids,
+    and none of the older dropped (they would run on with nobody to cancel them): each server
+    of theirs is listed once with no goal id, so that every goal of it is cancelled (as for
+    an entry that predates goal ids); servers too many for that, every goal of every one."""
+    first, every = 0, dict[Any, LeftGoal]()  # server → the goal naming all of its
+    while len(goals) - first + len(every) > MAX_LEFT:
+        older = goals[first]
+        first += 1
+        every[older.server] = msgspec.structs.replace(older, principal=None, goal_id=None)
+        if len(every) > MAX_LEFT // 2:  # (servers are the config's: not in a real run)
+            anywhere = msgspec.structs.replace(older, principal=None, server=None, goal_id=None)
+            return [anywhere, *goals[-(MAX_LEFT - 1):]]
+    return [*every.values(), *goals[first:]]
+
+
 def _taken_up_key(goal: LeftGoal) -> _Key:
     """A goal an entry lists as left running, by its id when it has one: a clean stop names
     its goals by id alone (no principal: `Dispatcher.goals_watched`), and message ids are
     unique per principal only — two such goals of one message id (or of no command known)
     are two goals, not one listed in place of the other (red team 16: the next start left
     the other to run). A COMMAND_FAILED of this run ends no goal of an earlier run's."""
-    if goal.goal_id is None:
-        return _key_of(goal)
+    if goal.goal_id is None:  # every goal of its server: one per server, whatever its command
+        return goal.principal, goal.message_id, (goal.action, goal.server)
     return goal.principal, goal.message_id, (goal.action, goal.goal_id)
 
 
@@ -572,7 +598,7 @@ def _usable_point(fd: int, log_path: Path, size: int,
         return None
     path = point_path(log_path)
     try:
-        point = _signed_point(path.read_bytes(), pubkey)
+        point = _signed_point(read_small(path, MAX_POINT_BYTES), pubkey)
         _names_its_line(fd, point, size)
     except FileNotFoundError:
         return None

@@ -33,7 +33,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from ._errors import SchemaValidationError
-from ._types import ShortText, Strict, whole
+from ._types import ShortText, Strict, TimestampMs, whole
 from ._v3 import Envelope, MsgId, Text, VersionText
 
 INVOKE_TYPE, INVOKE_RESULT_TYPE, INVOKE_CANCEL_TYPE, AUTHORIZE_TYPE = 11, 12, 13, 45
@@ -43,7 +43,6 @@ DEFAULT_CANCEL_TIMEOUT_MS = 5_000  # §19.4
 # §19.7: lowercase words joined by underscores, a reverse-DNS prefix for third parties.
 SkillName = Annotated[str, msgspec.Meta(
     min_length=1, max_length=128, pattern=whole(r"[a-z][a-z0-9_]*(\.[a-z][a-z0-9_]*)*"))]
-TimestampMs = Annotated[int, msgspec.Meta(ge=0)]
 UnixSeconds = Annotated[float, msgspec.Meta(ge=0.0, le=1e11)]  # the SDK envelope's `timestamp`
 Millis = Annotated[int, msgspec.Meta(ge=1, le=86_400_000)]
 

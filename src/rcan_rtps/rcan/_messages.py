@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from ._enums import RoleName
-from ._types import ActionParams, Confidence, MessageId, ShortText, Strict
+from ._types import ActionParams, Confidence, MessageId, ShortText, Strict, TimestampMs
 from ._v3 import Envelope, Status3, VersionText
 from .actions import ActionName, ActionSpec, action_spec
 
@@ -51,7 +51,7 @@ class EnvelopeCommand(Strict, frozen=True):
     action: ActionName
     parameters: dict[str, Any] = msgspec.field(default_factory=dict)
     message_id: MessageId | None = None
-    timestamp_ms: Annotated[int, msgspec.Meta(ge=0)] | None = None
+    timestamp_ms: TimestampMs | None = None
     priority: Annotated[int, msgspec.Meta(ge=0, le=255)] = 0
     ai: AiInfo | None = None
     rcan_version: VersionText | None = None  # present: §3.5 applies (see `_v3`)
@@ -77,7 +77,7 @@ class SafetyMessage(Strict, frozen=True):
     safety_event: Literal["ESTOP", "STOP", "RESUME"]
     ruri: Annotated[str, msgspec.Meta(max_length=512)]
     reason: Annotated[str, msgspec.Meta(max_length=512)] | None = None
-    timestamp_ms: Annotated[int, msgspec.Meta(ge=0)] | None = None
+    timestamp_ms: TimestampMs | None = None
     message_id: MessageId | None = None
     rcan_version: VersionText | None = None  # the SDK leaves it out; present: §3.5 applies
 

@@ -22,6 +22,7 @@ import msgspec
 from ._errors import InvalidRuriError, SchemaValidationError
 from ._messages import AiInfo, NormalizedCommand
 from ._ruri import parse_ruri
+from ._types import TimestampMs
 from ._v3 import Envelope, readable_id
 from .actions import Effect, StopParams, with_effect
 
@@ -404,8 +405,11 @@ def _ruri(given: Any, warnings: list[str]) -> str | None:
 
 
 def _timestamp(given: Any) -> int | None:
-    ok = isinstance(given, int) and not isinstance(given, bool) and given >= 0
-    return given if ok else None
+    """The stop's `timestamp_ms` if it is one the schema takes (its problem is a warning)."""
+    try:
+        return msgspec.convert(given, TimestampMs)
+    except msgspec.ValidationError:
+        return None
 
 
 def _ai(obj: dict[str, Any], warnings: list[str]) -> AiInfo | None:

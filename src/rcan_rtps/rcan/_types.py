@@ -23,6 +23,10 @@ JointName = Annotated[
     str, msgspec.Meta(min_length=1, max_length=128, pattern=whole(r"[A-Za-z0-9_./-]+"))
 ]
 MessageId = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+# A sender's clock in Unix ms: JSON integers have no bound, and one of 400 digits overflowed a
+# float when made seconds (a 503 for every message, stops included). 1e14 ms is the 1e11 s the
+# SDK's `timestamp` in seconds is bounded by.
+TimestampMs = Annotated[int, msgspec.Meta(ge=0, le=10**14)]
 
 
 class Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True):

@@ -24,7 +24,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from ._errors import SchemaValidationError, VersionIncompatibleError
-from ._types import Confidence, Strict, whole
+from ._types import Confidence, Strict, TimestampMs, whole
 
 SPOKEN = ("1.2", "3.2")  # what mDNS and the node manifest announce
 _MAJORS = {1: 2, 3: 2}  # MAJOR → the highest MINOR of it this bridge knows
@@ -74,7 +74,7 @@ class HeartbeatMessage(Strict, frozen=True, kw_only=True):
     rcan_version: VersionText | None = None
     ruri: Text | None = None
     message_id: MsgId | None = None
-    timestamp_ms: Annotated[int, msgspec.Meta(ge=0)] | None = None
+    timestamp_ms: TimestampMs | None = None
     latency_budget_ms: Annotated[int, msgspec.Meta(ge=1)] | None = None
     uptime_ms: Annotated[int, msgspec.Meta(ge=0)] | None = None
     sequence: Annotated[int, msgspec.Meta(ge=0)] | None = None

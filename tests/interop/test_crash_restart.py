@@ -12,6 +12,7 @@ of its own (the rclpy oracle serves only Fibonacci) that records every cancel re
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import signal
@@ -433,6 +434,48 @@ async def test_a_clean_stop_during_a_late_goal_s_watch_leaves_it_to_the_next_sta
                              what="the late goal cancelled")
         finally:
             await server.close()
+
+
+async def test_a_clean_stop_after_a_goal_s_server_vanished_leaves_the_goal_to_the_next_start(
+        bridge: Bridge, robot: RclpyOracle, domain_id: int) -> None:
+    """A goal was running when its server's participant vanished (a partition, a crashed
+    nav stack: no end of it said): the bridge finds it `lost`, and a clean stop's
+    server-wide cancel finds no server. A server that comes back with it runs it with
+    nobody to cancel it: BRIDGE_STOPPED names it (`params.left_running`), and the next
+    start tries to cancel it by id. Before, the stop named nothing and the start tried
+    nothing (red team 17)."""
+    node = RosNode("nav_robot", "/robot1", domain_id=domain_id)
+    server = HeldAcceptServer(node)
+    server.release.set()  # accepted at once, running until cancelled
+    try:
+        run = await bridge.start()
+        headers = {"Authorization": f"Bearer {TOKEN}"}
+        async with aiohttp.ClientSession(headers=headers) as http, \
+                http.post(run.url + "/api/command", json={
+                    "action": "navigate", "params": {"x": 3.0, "y": 0.0, "yaw": 0.0},
+                }) as resp:
+            answer = await resp.json()
+        assert answer["outcome"] == "executed", answer
+        [dispatched] = [e for e in bridge.entries() if e.get("action_type") == "navigate"]
+        goal_id = dispatched["goal_id"]
+        await eventually(lambda: uuid.UUID(goal_id).bytes in server.running,
+                         what="the goal running")
+        node.close()  # its participant gone, the goal's end never said
+        await eventually(lambda: [e for e in bridge.entries() if e["event"] == "GOAL_FINISHED"
+                                  and e["params"]["goal_id"] == goal_id],
+                         timeout=30, what="the goal lost")
+        assert run.stop() == 0
+        stopped = bridge.entries()[-1]
+        assert stopped["event"] == "BRIDGE_STOPPED", stopped
+        [left] = stopped["params"]["left_running"]["goals"]
+        assert (left["goal_id"], left["message_id"]) == (goal_id, answer["message_id"]), left
+        await bridge.start()
+        took_back = took_back_in(bridge.entries(), scope="stopped")
+        assert goal_id in json.dumps(took_back["applied"]), took_back
+    finally:
+        with contextlib.suppress(Exception):  # (its node is gone: closing says so)
+            await server.close()
+        node.close()
 
 
 async def test_a_restart_after_a_kill_during_a_late_goal_s_watch_cancels_it(

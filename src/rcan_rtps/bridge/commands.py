@@ -86,6 +86,11 @@ class GoalServers(Protocol):
         server may still accept or run (watched for, not seen ended or canceling)."""
         ...
 
+    def not_seen_ended(self) -> list[tuple[str, str, str | None, str | None]]:
+        """(server, goal id, command, action) of each goal of this run whose end was not
+        seen that a stop's cancel may not have reached (its server lost from sight)."""
+        ...
+
     async def settle(self, timeout: float) -> None:
         """Waits up to `timeout` for those goals to settle (the bridge is leaving)."""
         ...
@@ -515,13 +520,17 @@ class RosDispatcher:
         return DispatchResult(ok=True, ros2_topic=pub.topic, runs_for_s=runs_for_s)
 
     def goals_watched(self) -> list[LeftGoal]:
-        """The goals whose send gave up that their server may still accept or run (watched
-        for, not seen ended or canceling): a clean stop leaves them to the next start."""
+        """The goals their server may still accept or run that the stop's cancel may not have
+        reached: those whose send gave up (watched for, not seen ended or canceling), and
+        those whose end was not seen, their server lost from sight (it may come back with
+        them). A clean stop leaves them to the next start, which cancels them by id."""
         if self.goals is None:
             return []
+        found = {goal[1]: goal for goal in (*self.goals.unsettled(),
+                                             *self.goals.not_seen_ended())}
         return [LeftGoal(message_id=message_id or "", action=action or "", principal=None,
                          server=server, goal_id=goal_id)
-                for server, goal_id, message_id, action in self.goals.unsettled()]
+                for server, goal_id, message_id, action in found.values()]
 
     def hold_trajectories(self, message_ids: Collection[str]) -> ArmsHeld:
         """Holds the arms still running a trajectory of `message_ids` (a stop of one

@@ -128,6 +128,11 @@ class GoalRoutes:
         server may still accept or run: watched for, not yet seen ended or canceling."""
         return [(t.action_name, *goal) for t in self.trackers for goal in t.unsettled()]
 
+    def not_seen_ended(self) -> list[tuple[str, str, str | None, str | None]]:
+        """(server, goal id, command, action) of each goal of this run whose end was not
+        seen that a stop's cancel may not have reached (`GoalTracker.not_seen_ended`)."""
+        return [(t.action_name, *goal) for t in self.trackers for goal in t.not_seen_ended()]
+
     async def settle(self, timeout: float) -> None:
         """Waits up to `timeout` for the goals whose send gave up to settle (each watch
         cancels its goal as soon as the server lists it): the bridge is leaving, and its

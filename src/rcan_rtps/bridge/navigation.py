@@ -116,6 +116,13 @@ class GoalTracker:
         still accept or run (`SentGoals.unsettled`)."""
         return [] if self._sent is None else self._sent.unsettled()
 
+    def not_seen_ended(self) -> list[tuple[str, str | None, str | None]]:
+        """(goal id, command, action) of each goal of this run that the server may still run
+        though a stop's cancel may not have reached it (`SentGoals.not_seen_ended`)."""
+        if self._sent is None:
+            return []
+        return self._sent.not_seen_ended(self.client.server_present())
+
     def may_run(self, goal_id: str) -> bool:
         """Whether the server may run `goal_id` though its send failed: the send gave up
         after its request went out (the server may accept it late: watched for), or it was

@@ -140,6 +140,16 @@ class SentGoals:
         ids = [str(uuid.UUID(bytes=g)) for g in self.client.unsettled_late()]
         return [(g, *self._given_up.get(g, (None, None))) for g in ids]
 
+    def not_seen_ended(self, server_present: bool) -> list[tuple[str, str | None, str | None]]:
+        """(goal id, the command that sent it, its action) of each goal of this run whose end
+        was not seen and that a stop's server-wide cancel may not have reached: its server
+        lost from sight, or its end unknown — or, the server absent now, any not ended. A
+        server that comes back may run them: a clean stop names them for the next start."""
+        unseen = ("lost", "unknown")
+        return [(goal_id, self._message_ids.get(goal_id), view.command)
+                for goal_id, view in self._views.items()
+                if view.state in unseen or (not server_present and view.state not in TERMINAL)]
+
     def _late_goal(self, late: LateGoal) -> None:
         """The server accepted a goal after its send had given up (its command was answered
         failed), and the client cancelled it: shown among the goals and audited

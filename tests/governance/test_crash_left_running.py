@@ -641,3 +641,26 @@ async def test_an_arm_left_running_for_ever_latches_the_start_not_crashes_it(
     await log.audit.close()
     found = resume(log.path, now_ms=log.now_ms())
     assert found.latched is True and "unreadable" in str(found.latched_by), found
+
+
+async def test_more_arm_trajectories_left_than_listed_are_held_all_the_same(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A crashed run left more arm trajectories still due than the list names one by one
+    (MAX_LEFT: here 70, each moving a joint of its own, so none replaced another): those of
+    one route are listed as one, every joint they move, until the last is due. Before, the
+    list kept the newest 64: 6 joints ran on with nobody to hold them (red team 17)."""
+    from rcan_rtps.governance.resume import MAX_LEFT
+
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    joints = [f"j{n}" for n in range(MAX_LEFT + 6)]
+    for n, joint in enumerate(joints):
+        await log.arm(f"arm-{n}", {"group": "left", "joints": [joint], "positions": [0.5],
+                                   "duration_s": 60.0 + n})
+    await log.arm("short", {"group": "left", "joints": ["wrist"], "positions": [0.5],
+                            "duration_s": 1.0})
+    clock.advance(10)
+    await log.audit.close()  # killed: no BRIDGE_STOPPED
+    [arm] = resume(log.path, now_ms=log.now_ms()).left.arms
+    assert sorted(arm.joints) == sorted(joints)  # the short one is over: not held
+    assert (arm.topic, arm.runs_for_s) == (ARM_TOPIC, 60.0 + MAX_LEFT + 5)

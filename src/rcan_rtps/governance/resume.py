@@ -242,7 +242,7 @@ class _Motion:
         replaced = [run for by, runs in self._replaced.items() if by in self.arms
                     for run in runs]
         return LeftRunning(
-            arms=[a for a in (*replaced, *self.arms.values()) if a.due_ms > now_ms][-MAX_LEFT:],
+            arms=_arms_left([a for a in (*replaced, *self.arms.values()) if a.due_ms > now_ms]),
             goals=_goals_left(list(self.goals.values())),
             streams=list(self.streams.values())[-MAX_LEFT:])
 
@@ -408,6 +408,26 @@ def _goals_left(goals: list[LeftGoal]) -> list[LeftGoal]:
             anywhere = msgspec.structs.replace(older, principal=None, server=None, goal_id=None)
             return [anywhere, *goals[-(MAX_LEFT - 1):]]
     return [*every.values(), *goals[first:]]
+
+
+def _arms_left(arms: list[LeftArm]) -> list[LeftArm]:
+    """The arm trajectories left (oldest first), at most MAX_LEFT listed, none dropped (it
+    would run on with nobody to hold it): past MAX_LEFT, those of one route (topic, action,
+    group) are listed as one — every joint any of them moves, until the last of them is due
+    — so a hold stops them all. Routes are the configuration's: a handful."""
+    if len(arms) <= MAX_LEFT:
+        return arms
+    by_route: dict[tuple[Any, ...], LeftArm] = {}
+    for arm in arms:
+        route = (arm.topic, arm.action, arm.params.get("group"))
+        kept = by_route.pop(route, None)  # (re-inserted: the routes in order of last use)
+        if kept is not None:
+            last = max(kept, arm, key=lambda a: a.due_ms)
+            arm = msgspec.structs.replace(last, message_id=arm.message_id,
+                                          joints=list(dict.fromkeys([*kept.joints,
+                                                                     *arm.joints])))
+        by_route[route] = arm
+    return list(by_route.values())[-MAX_LEFT:]
 
 
 def _taken_up_key(goal: LeftGoal) -> _Key:

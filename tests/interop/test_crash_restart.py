@@ -393,15 +393,21 @@ class HeldAcceptServer(CancelRecordingServer):
             self.running.discard(goal.goal_id)
 
 
-async def _given_up_navigate(bridge: Bridge, run: Any) -> tuple[dict[str, Any], bytes]:
-    """A navigate whose send gives up (the server holds it past match_timeout_s): its
-    COMMAND_FAILED entry, and its goal's id."""
+async def _navigate(run: Any) -> dict[str, Any]:
+    """The answer to a navigate sent to `run`."""
     headers = {"Authorization": f"Bearer {TOKEN}"}
     async with aiohttp.ClientSession(headers=headers) as http, \
             http.post(run.url + "/api/command", json={
                 "action": "navigate", "params": {"x": 3.0, "y": 0.0, "yaw": 0.0},
             }) as resp:
-        answer = await resp.json()
+        answer: dict[str, Any] = await resp.json()
+    return answer
+
+
+async def _given_up_navigate(bridge: Bridge, run: Any) -> tuple[dict[str, Any], bytes]:
+    """A navigate whose send gives up (the server holds it past match_timeout_s): its
+    COMMAND_FAILED entry, and its goal's id."""
+    answer = await _navigate(run)
     assert answer["outcome"] == "failed", answer
     [failed] = [e for e in bridge.entries() if e["event"] == "COMMAND_FAILED"]
     assert "goal_id" in failed, failed  # it may run
@@ -449,12 +455,7 @@ async def test_a_clean_stop_after_a_goal_s_server_vanished_leaves_the_goal_to_th
     server.release.set()  # accepted at once, running until cancelled
     try:
         run = await bridge.start()
-        headers = {"Authorization": f"Bearer {TOKEN}"}
-        async with aiohttp.ClientSession(headers=headers) as http, \
-                http.post(run.url + "/api/command", json={
-                    "action": "navigate", "params": {"x": 3.0, "y": 0.0, "yaw": 0.0},
-                }) as resp:
-            answer = await resp.json()
+        answer = await _navigate(run)
         assert answer["outcome"] == "executed", answer
         [dispatched] = [e for e in bridge.entries() if e.get("action_type") == "navigate"]
         goal_id = dispatched["goal_id"]

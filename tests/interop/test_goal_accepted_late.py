@@ -178,6 +178,23 @@ GOAL = {"pose": {"header": {"frame_id": "map"},
                  "pose": {"position": {"x": 3.0}, "orientation": {"w": 1.0}}}}
 
 
+@contextlib.asynccontextmanager
+async def slow_server_and_tracker(domain_id: int) -> AsyncIterator[tuple[SlowServer,
+                                                                        GoalTracker]]:
+    """A SlowServer on its own node and a GoalTracker of it on another, the server found."""
+    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node, \
+            RosNode("rcan_tracker", "/", domain_id=domain_id) as node:
+        server = SlowServer(robot_node)
+        tracker = GoalTracker(node, "/robot1/navigate_to_pose", NAV)
+        try:
+            await tracker.client.wait_for_server(20.0)
+            yield server, tracker
+        finally:
+            server.release.set()
+            await tracker.close()
+            await server.close()
+
+
 async def test_past_the_watch_s_bound_a_goal_is_not_sent_and_none_is_let_go_of(
         domain_id: int, caplog: pytest.LogCaptureFixture) -> None:
     """MAX_GIVEN_UP sends gave up on a server that holds every request: each is watched. The
@@ -186,34 +203,25 @@ async def test_past_the_watch_s_bound_a_goal_is_not_sent_and_none_is_let_go_of(
     it but a stop. Sent all at once, the ones past the bound are refused too (a send on its
     way holds a place: before, all went out and ~80 were watched). Released, the server
     accepts every one it got: each is cancelled."""
-    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node, \
-            RosNode("rcan_bound", "/", domain_id=domain_id) as node:
-        server = SlowServer(robot_node)
-        tracker = GoalTracker(node, "/robot1/navigate_to_pose", NAV)
-        try:
-            await tracker.client.wait_for_server(20.0)
-            over = 8
-            outcomes = await asyncio.gather(*(
-                tracker.send(GOAL, timeout=2.0, message_id=f"m-{n}")
-                for n in range(MAX_GIVEN_UP + over)), return_exceptions=True)
-            assert all(isinstance(e, WireError) for e in outcomes), outcomes
-            refused = [e for e in outcomes if "sends are on their way" in str(e)]
-            assert (len(outcomes) - len(refused), len(refused)) == (MAX_GIVEN_UP, over)
-            assert len(server.sent) == MAX_GIVEN_UP
-            with pytest.raises(ActionError, match=f"{MAX_GIVEN_UP} goals whose send gave up"):
-                await tracker.send(GOAL, timeout=2.0, message_id="m-over")
-            assert len(server.sent) == MAX_GIVEN_UP  # its request never went out
-            assert "no longer watched" not in caplog.text
-            server.release.set()
-            await eventually(lambda: len(server.ended) == MAX_GIVEN_UP, timeout=30,
-                             what=lambda: f"{len(server.ended)} accepted")
-            await eventually(
-                lambda: all(state == "canceled" for state in server.ended.values()),
-                timeout=30, what=lambda: f"all cancelled: {sorted(server.ended.values())}")
-        finally:
-            server.release.set()
-            await tracker.close()
-            await server.close()
+    async with slow_server_and_tracker(domain_id) as (server, tracker):
+        over = 8
+        outcomes = await asyncio.gather(*(
+            tracker.send(GOAL, timeout=2.0, message_id=f"m-{n}")
+            for n in range(MAX_GIVEN_UP + over)), return_exceptions=True)
+        assert all(isinstance(e, WireError) for e in outcomes), outcomes
+        refused = [e for e in outcomes if "sends are on their way" in str(e)]
+        assert (len(outcomes) - len(refused), len(refused)) == (MAX_GIVEN_UP, over)
+        assert len(server.sent) == MAX_GIVEN_UP
+        with pytest.raises(ActionError, match=f"{MAX_GIVEN_UP} goals whose send gave up"):
+            await tracker.send(GOAL, timeout=2.0, message_id="m-over")
+        assert len(server.sent) == MAX_GIVEN_UP  # its request never went out
+        assert "no longer watched" not in caplog.text
+        server.release.set()
+        await eventually(lambda: len(server.ended) == MAX_GIVEN_UP, timeout=30,
+                         what=lambda: f"{len(server.ended)} accepted")
+        await eventually(
+            lambda: all(state == "canceled" for state in server.ended.values()),
+            timeout=30, what=lambda: f"all cancelled: {sorted(server.ended.values())}")
 
 
 async def test_a_goal_accepted_after_its_watch_ended_is_cancelled_when_listed(
@@ -224,27 +232,18 @@ async def test_a_goal_accepted_after_its_watch_ended_is_cancelled_when_listed(
     it running (before: it ran on until a stop), and the tracker told of it as a late goal
     (which a bridge audits: GOAL_FINISHED)."""
     monkeypatch.setattr(action_goals, "LATE_WATCH_S", 0.5)
-    with RosNode("nav_robot", "/robot1", domain_id=domain_id) as robot_node, \
-            RosNode("rcan_unseen", "/", domain_id=domain_id) as node:
-        server = SlowServer(robot_node)
-        tracker = GoalTracker(node, "/robot1/navigate_to_pose", NAV)
-        try:
-            await tracker.client.wait_for_server(20.0)
-            with pytest.raises(WireError):
-                await tracker.send(GOAL, timeout=1.0, message_id="m-unseen")
-            [goal] = server.sent
-            await eventually(lambda: not tracker.client.watching_late(goal), timeout=20,
-                             what="the watch's end")
-            server.release.set()  # accepted now, after the watch
-            await eventually(lambda: server.ended.get(goal) == "canceled", timeout=30,
-                             what=lambda: f"the goal cancelled (now {server.ended.get(goal)})")
-            told = f"goal {uuid.UUID(bytes=goal)} (command m-unseen): accepted by"
-            await eventually(lambda: told in caplog.text, timeout=30, what="the late goal told")
-            assert "cancelled by the bridge; ended canceled" in caplog.text
-        finally:
-            server.release.set()
-            await tracker.close()
-            await server.close()
+    async with slow_server_and_tracker(domain_id) as (server, tracker):
+        with pytest.raises(WireError):
+            await tracker.send(GOAL, timeout=1.0, message_id="m-unseen")
+        [goal] = server.sent
+        await eventually(lambda: not tracker.client.watching_late(goal), timeout=20,
+                         what="the watch's end")
+        server.release.set()  # accepted now, after the watch
+        await eventually(lambda: server.ended.get(goal) == "canceled", timeout=30,
+                         what=lambda: f"the goal cancelled (now {server.ended.get(goal)})")
+        told = f"goal {uuid.UUID(bytes=goal)} (command m-unseen): accepted by"
+        await eventually(lambda: told in caplog.text, timeout=30, what="the late goal told")
+        assert "cancelled by the bridge; ended canceled" in caplog.text
 
 
 async def test_a_stop_during_a_watch_leaves_the_watched_goal_cancelled(

@@ -533,3 +533,18 @@ def test_unattended_move_s_is_checked() -> None:
     assert config.bridge.safety.unattended_move_s == 1.5
     path, _, _ = only_issue(with_safety("unattended_move_s: 0"))
     assert path == "$.bridge.safety.unattended_move_s"
+
+
+@pytest.mark.parametrize(("value", "read_as"), [("1:5", "65"), ("1:30", "90"),
+                                                ("1:0:0.5", "3600.5")])
+def test_a_base_60_number_is_refused_not_read_as_yaml_1_1_would(value: str, read_as: str) -> None:
+    """Red team 18: YAML 1.1 reads an unquoted `1:5` as 65 (base 60): a speed limit written
+    so loaded as 65 m/s, looser than any reading of what was written. Now it is an error."""
+    text = MINIMAL.replace("max_linear_vel: 1.5", f"max_linear_vel: {value}")
+    path, line, message = only_issue(text)
+    assert (path, line) == ("$.bridge.safety.max_linear_vel", 5)
+    assert f"reads the unquoted {value} as {read_as}" in message and "base 60" in message
+    port = MINIMAL.replace("{auth_token_env", "{port: 1:30, auth_token_env")
+    assert only_issue(port)[:2] == ("$.bridge.api.port", 4)
+    operator = MINIMAL.replace("robot:\n", "robot:\n  operator: 1:30\n")
+    assert "quote it ('1:30')" in only_issue(operator)[2]  # for a text, the old advice

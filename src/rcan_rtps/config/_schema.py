@@ -26,6 +26,7 @@ MAP_TAG = "tag:yaml.org,2002:map"
 STR_TAG = "tag:yaml.org,2002:str"
 INT_TAG = "tag:yaml.org,2002:int"
 _SEQ_TAG = "tag:yaml.org,2002:seq"
+_NUMBER_TAGS = (INT_TAG, "tag:yaml.org,2002:float")
 _NULL_TAG = "tag:yaml.org,2002:null"
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 _PLAINTEXT_KEYS = ("token", "auth_token", "password", "secret")
@@ -238,6 +239,11 @@ class Walker:
         value = self._construct(node, at)
         if value is INVALID:
             return INVALID
+        if node.tag in _NUMBER_TAGS and ":" in node.value and _expected(info) != "str":
+            # YAML 1.1's base 60: `1:5` is 65. Nobody writes a limit so; a typo must not
+            # load as a number far from any reading of it.
+            return self.fail(at, f"YAML reads the unquoted {node.value} as {value!r} (a "
+                             "base 60 number); write the number itself")
         value, problem = _scalar_problem(value, info)
         if problem is not None and _expected(info) == "str" and node.style is None:
             # `kid: 12345678` (an SDK key id that happens to be all digits), `name: yes`, ...

@@ -548,3 +548,20 @@ def test_a_base_60_number_is_refused_not_read_as_yaml_1_1_would(value: str, read
     assert only_issue(port)[:2] == ("$.bridge.api.port", 4)
     operator = MINIMAL.replace("robot:\n", "robot:\n  operator: 1:30\n")
     assert "quote it ('1:30')" in only_issue(operator)[2]  # for a text, the old advice
+
+
+@pytest.mark.parametrize(("key", "value", "read_as"), [
+    ("max_linear_vel", "010", "8"), ("max_linear_vel", "-0_17", "-15"),
+    ("session_timeout_s", "0100", "64")])
+def test_a_leading_zero_octal_number_is_refused(key: str, value: str, read_as: str) -> None:
+    """Red team 18: YAML 1.1 reads an unquoted `010` as 8 (octal): fewer approvals, a shorter
+    or longer limit than the digits say. Now it is an error; `0x10` (explicit) still loads."""
+    text = (MINIMAL.replace("max_linear_vel: 1.5", f"max_linear_vel: {value}")
+            if key == "max_linear_vel" else with_safety(f"{key}: {value}"))
+    path, _, message = only_issue(text)
+    assert path == f"$.bridge.safety.{key}"
+    assert f"reads the unquoted {value} as {read_as}" in message and "octal" in message
+    gate = MINIMAL + "  hitl:\n    gates: [{action: move, approvals: 010}]\n"
+    assert only_issue(gate)[0] == "$.bridge.hitl.gates[0].approvals"
+    assert loads_config(with_safety("session_timeout_s: 0x10"),
+                        env={}).bridge.safety.session_timeout_s == 16.0

@@ -239,11 +239,11 @@ class Walker:
         value = self._construct(node, at)
         if value is INVALID:
             return INVALID
-        if node.tag in _NUMBER_TAGS and ":" in node.value and _expected(info) != "str":
-            # YAML 1.1's base 60: `1:5` is 65. Nobody writes a limit so; a typo must not
-            # load as a number far from any reading of it.
-            return self.fail(at, f"YAML reads the unquoted {node.value} as {value!r} (a "
-                             "base 60 number); write the number itself")
+        if node.tag in _NUMBER_TAGS and _expected(info) != "str":
+            misread = _misread_number(node.value)
+            if misread is not None:
+                return self.fail(at, f"YAML reads the unquoted {node.value} as {value!r} "
+                                 f"({misread}); write the number itself")
         value, problem = _scalar_problem(value, info)
         if problem is not None and _expected(info) == "str" and node.style is None:
             # `kid: 12345678` (an SDK key id that happens to be all digits), `name: yes`, ...
@@ -289,6 +289,20 @@ def _unknown_key(name: str, fields: dict[str, Any]) -> str:
 
     close = difflib.get_close_matches(name, fields, n=1)
     return "unknown key" + (f"; did you mean `{close[0]}`?" if close else "")
+
+
+def _misread_number(text: str) -> str | None:
+    """How YAML 1.1 reads a plain number other than its digits say, or None.
+
+    Base 60 (`1:5` is 65) and a leading zero's octal (`010` is 8): nobody writes a limit so
+    meaning that, and a typo must not load as a number far from any reading of it. `0x10`
+    says what it is and stays.
+    """
+    if ":" in text:
+        return "a base 60 number"
+    if re.fullmatch(r"[-+]?0[0-7_]+", text):
+        return "octal, for its leading zero"
+    return None
 
 
 def _fits(node: yaml.Node, info: mi.Type) -> bool:

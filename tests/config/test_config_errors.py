@@ -565,3 +565,16 @@ def test_a_leading_zero_octal_number_is_refused(key: str, value: str, read_as: s
     assert only_issue(gate)[0] == "$.bridge.hitl.gates[0].approvals"
     assert loads_config(with_safety("session_timeout_s: 0x10"),
                         env={}).bridge.safety.session_timeout_s == 16.0
+
+
+@pytest.mark.parametrize("value", ["1e3", "2E-1", "1e400"])
+def test_a_number_yaml_reads_as_text_says_so(value: str) -> None:
+    """Red team 18: `max_linear_vel: 1e3` was refused as "Expected `float`, got `str`", no
+    word of why a number is a string: YAML 1.1's floats need a dot and a signed exponent."""
+    text = MINIMAL.replace("max_linear_vel: 1.5", f"max_linear_vel: {value}")
+    path, _, message = only_issue(text)
+    assert path == "$.bridge.safety.max_linear_vel"
+    assert message.startswith("Expected `float`, got `str`")
+    assert f"reads the unquoted {value} as text" in message and "1.0e+3" in message
+    nan = MINIMAL.replace("max_linear_vel: 1.5", "max_linear_vel: nan")
+    assert only_issue(nan)[2] == "Expected `float`, got `str`"  # a word, not digits

@@ -251,6 +251,8 @@ class Walker:
                 _kind_of(value), _kind_of(value))
             problem += (f": YAML reads the unquoted {node.value} as {read_as}; "
                         f"quote it ('{node.value}') to mean the text")
+        elif problem is not None and isinstance(value, str) and node.style is None:
+            problem += _number_as_text(value)
         return value if problem is None else self.fail(at, problem)
 
     def _construct(self, node: yaml.Node, at: Where) -> Any:
@@ -303,6 +305,14 @@ def _misread_number(text: str) -> str | None:
     if re.fullmatch(r"[-+]?0[0-7_]+", text):
         return "octal, for its leading zero"
     return None
+
+
+def _number_as_text(text: str) -> str:
+    """Why a plain value that looks like a number is text (`1e3`), or nothing to add."""
+    if not re.fullmatch(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?", text):
+        return ""  # `nan`, `inf` too are text, but no digits of a number were meant
+    return (f": YAML reads the unquoted {text} as text (its floats need a dot and a signed "
+            "exponent: write 1.0e+3, not 1e3)")
 
 
 def _fits(node: yaml.Node, info: mi.Type) -> bool:

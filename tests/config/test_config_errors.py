@@ -533,3 +533,48 @@ def test_unattended_move_s_is_checked() -> None:
     assert config.bridge.safety.unattended_move_s == 1.5
     path, _, _ = only_issue(with_safety("unattended_move_s: 0"))
     assert path == "$.bridge.safety.unattended_move_s"
+
+
+@pytest.mark.parametrize(("value", "read_as"), [("1:5", "65"), ("1:30", "90"),
+                                                ("1:0:0.5", "3600.5")])
+def test_a_base_60_number_is_refused_not_read_as_yaml_1_1_would(value: str, read_as: str) -> None:
+    """Red team 18: YAML 1.1 reads an unquoted `1:5` as 65 (base 60): a speed limit written
+    so loaded as 65 m/s, looser than any reading of what was written. Now it is an error."""
+    text = MINIMAL.replace("max_linear_vel: 1.5", f"max_linear_vel: {value}")
+    path, line, message = only_issue(text)
+    assert (path, line) == ("$.bridge.safety.max_linear_vel", 5)
+    assert f"reads the unquoted {value} as {read_as}" in message and "base 60" in message
+    port = MINIMAL.replace("{auth_token_env", "{port: 1:30, auth_token_env")
+    assert only_issue(port)[:2] == ("$.bridge.api.port", 4)
+    operator = MINIMAL.replace("robot:\n", "robot:\n  operator: 1:30\n")
+    assert "quote it ('1:30')" in only_issue(operator)[2]  # for a text, the old advice
+
+
+@pytest.mark.parametrize(("key", "value", "read_as"), [
+    ("max_linear_vel", "010", "8"), ("max_linear_vel", "-0_17", "-15"),
+    ("session_timeout_s", "0100", "64")])
+def test_a_leading_zero_octal_number_is_refused(key: str, value: str, read_as: str) -> None:
+    """Red team 18: YAML 1.1 reads an unquoted `010` as 8 (octal): fewer approvals, a shorter
+    or longer limit than the digits say. Now it is an error; `0x10` (explicit) still loads."""
+    text = (MINIMAL.replace("max_linear_vel: 1.5", f"max_linear_vel: {value}")
+            if key == "max_linear_vel" else with_safety(f"{key}: {value}"))
+    path, _, message = only_issue(text)
+    assert path == f"$.bridge.safety.{key}"
+    assert f"reads the unquoted {value} as {read_as}" in message and "octal" in message
+    gate = MINIMAL + "  hitl:\n    gates: [{action: move, approvals: 010}]\n"
+    assert only_issue(gate)[0] == "$.bridge.hitl.gates[0].approvals"
+    assert loads_config(with_safety("session_timeout_s: 0x10"),
+                        env={}).bridge.safety.session_timeout_s == 16.0
+
+
+@pytest.mark.parametrize("value", ["1e3", "2E-1", "1e400"])
+def test_a_number_yaml_reads_as_text_says_so(value: str) -> None:
+    """Red team 18: `max_linear_vel: 1e3` was refused as "Expected `float`, got `str`", no
+    word of why a number is a string: YAML 1.1's floats need a dot and a signed exponent."""
+    text = MINIMAL.replace("max_linear_vel: 1.5", f"max_linear_vel: {value}")
+    path, _, message = only_issue(text)
+    assert path == "$.bridge.safety.max_linear_vel"
+    assert message.startswith("Expected `float`, got `str`")
+    assert f"reads the unquoted {value} as text" in message and "1.0e+3" in message
+    nan = MINIMAL.replace("max_linear_vel: 1.5", "max_linear_vel: nan")
+    assert only_issue(nan)[2] == "Expected `float`, got `str`"  # a word, not digits

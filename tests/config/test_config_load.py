@@ -9,6 +9,7 @@ import pytest
 
 from rcan_rtps.cli import config_cmd
 from rcan_rtps.config import ConfigError, load_config, loads_config
+from rcan_rtps.config._load import MAX_CONFIG_BYTES
 
 REPO = Path(__file__).resolve().parents[2]
 MINIMAL = """\
@@ -155,3 +156,24 @@ def test_cli_check_ok_and_errors(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert run_cli("config", "check", str(tmp_path / "missing.yaml")) == 1
     bad.write_bytes(b"\xff\xfe")
     assert run_cli("config", "check", str(bad)) == 1
+
+
+def test_a_file_too_large_to_be_a_config_is_refused_unread(tmp_path: Path) -> None:
+    # Red team 18: a 60 MB file took minutes and /dev/zero ended in a MemoryError traceback,
+    # both read whole before YAML saw a byte. Now reading stops past the limit.
+    big = tmp_path / "big.rcan.yaml"
+    big.write_text(MINIMAL + ("# padding\n" * (MAX_CONFIG_BYTES // 10 + 1)))
+    with pytest.raises(ConfigError) as info:
+        load_config(big)
+    [issue] = info.value.issues
+    assert issue.path == "$" and f"more than {MAX_CONFIG_BYTES} bytes" in issue.message
+    with pytest.raises(ConfigError, match="more than"):
+        load_config("/dev/zero")  # endless: only the limit's worth is read
+
+
+def test_a_file_just_under_the_limit_loads(tmp_path: Path) -> None:
+    config = tmp_path / "padded.rcan.yaml"
+    padding = "#" * (MAX_CONFIG_BYTES - len(MINIMAL.encode()) - 1) + "\n"
+    config.write_text(MINIMAL + padding)
+    assert config.stat().st_size == MAX_CONFIG_BYTES
+    assert load_config(config, env={}).bridge.safety.max_linear_vel == 1.5

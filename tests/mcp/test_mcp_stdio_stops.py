@@ -149,3 +149,13 @@ async def _stdio(tmp_path: Path) -> AsyncIterator[tuple[Api, asyncio.subprocess.
             proc.kill()
             await proc.wait()
         await api.close()
+
+
+async def test_an_estop_too_large_for_the_bridge_still_stops(tmp_path: Path) -> None:
+    """Red team 18: an e-stop whose `reasoning` made the request larger than the bridge takes
+    (`max_body_bytes`) was refused PAYLOAD_TOO_LARGE and the robot was not stopped. Now the
+    server sends the stop again without its arguments, and says so."""
+    big = b'"name": "estop", "arguments": {"reasoning": "' + b"x" * 100_000 + b'"}'
+    reply = await _estop_over_stdio(tmp_path, CALL % big)
+    warnings = reply["result"]["structuredContent"]["warnings"]
+    assert any("larger than the bridge takes" in w for w in warnings), warnings

@@ -27,6 +27,9 @@ from ._schema import (
 )
 
 _SCHEMA = msgspec.inspect.type_info(RcanConfig)
+# Far above any real config (the largest example is 5 KB): what is larger is no config, and
+# reading it whole (a huge file, /dev/zero) could take minutes or all the memory there is.
+MAX_CONFIG_BYTES = 1024 * 1024
 
 
 def load_config(
@@ -35,8 +38,16 @@ def load_config(
     """Read and validate a config file; raises ConfigError listing every issue found."""
     source = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
+        with open(path, "rb") as file:
+            data = file.read(MAX_CONFIG_BYTES + 1)  # one byte more tells "too large"
+    except OSError as exc:
+        raise ConfigError(source, [ConfigIssue("$", None, f"cannot read: {exc}")]) from exc
+    if len(data) > MAX_CONFIG_BYTES:
+        msg = f"more than {MAX_CONFIG_BYTES} bytes: too large to be a config file"
+        raise ConfigError(source, [ConfigIssue("$", None, msg)])
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
         raise ConfigError(source, [ConfigIssue("$", None, f"cannot read: {exc}")]) from exc
     config = loads_config(text, source=source, env=env)
     return _resolve_paths(config, Path(path).resolve().parent)

@@ -26,6 +26,7 @@ MAP_TAG = "tag:yaml.org,2002:map"
 STR_TAG = "tag:yaml.org,2002:str"
 INT_TAG = "tag:yaml.org,2002:int"
 _SEQ_TAG = "tag:yaml.org,2002:seq"
+_NUMBER_TAGS = (INT_TAG, "tag:yaml.org,2002:float")
 _NULL_TAG = "tag:yaml.org,2002:null"
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 _PLAINTEXT_KEYS = ("token", "auth_token", "password", "secret")
@@ -238,6 +239,11 @@ class Walker:
         value = self._construct(node, at)
         if value is INVALID:
             return INVALID
+        if node.tag in _NUMBER_TAGS and _expected(info) != "str":
+            misread = _misread_number(node.value)
+            if misread is not None:
+                return self.fail(at, f"YAML reads the unquoted {node.value} as {value!r} "
+                                 f"({misread}); write the number itself")
         value, problem = _scalar_problem(value, info)
         if problem is not None and _expected(info) == "str" and node.style is None:
             # `kid: 12345678` (an SDK key id that happens to be all digits), `name: yes`, ...
@@ -245,6 +251,8 @@ class Walker:
                 _kind_of(value), _kind_of(value))
             problem += (f": YAML reads the unquoted {node.value} as {read_as}; "
                         f"quote it ('{node.value}') to mean the text")
+        elif problem is not None and isinstance(value, str) and node.style is None:
+            problem += _number_as_text(value)
         return value if problem is None else self.fail(at, problem)
 
     def _construct(self, node: yaml.Node, at: Where) -> Any:
@@ -283,6 +291,28 @@ def _unknown_key(name: str, fields: dict[str, Any]) -> str:
 
     close = difflib.get_close_matches(name, fields, n=1)
     return "unknown key" + (f"; did you mean `{close[0]}`?" if close else "")
+
+
+def _misread_number(text: str) -> str | None:
+    """How YAML 1.1 reads a plain number other than its digits say, or None.
+
+    Base 60 (`1:5` is 65) and a leading zero's octal (`010` is 8): nobody writes a limit so
+    meaning that, and a typo must not load as a number far from any reading of it. `0x10`
+    says what it is and stays.
+    """
+    if ":" in text:
+        return "a base 60 number"
+    if re.fullmatch(r"[-+]?0[0-7_]+", text):
+        return "octal, for its leading zero"
+    return None
+
+
+def _number_as_text(text: str) -> str:
+    """Why a plain value that looks like a number is text (`1e3`), or nothing to add."""
+    if not re.fullmatch(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?", text):
+        return ""  # `nan`, `inf` too are text, but no digits of a number were meant
+    return (f": YAML reads the unquoted {text} as text (its floats need a dot and a signed "
+            "exponent: write 1.0e+3, not 1e3)")
 
 
 def _fits(node: yaml.Node, info: mi.Type) -> bool:

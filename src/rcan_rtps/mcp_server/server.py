@@ -58,6 +58,9 @@ log = logging.getLogger(__name__)
 POLL_S = 0.5
 CLIENT_MAX = 256  # the bridge's `ai_client` is at most this long
 LIST_TTL_MS = 300_000
+PAYLOAD_TOO_LARGE = 413  # the bridge's answer to a body over its `api.max_body_bytes`
+TOO_LARGE_STOP = ("$.params.arguments: larger than the bridge takes (its max_body_bytes): the "
+                  "stop was sent again without them (no confidence, reasoning or reason)")
 # Motion calls answered, remembered for a cancel that crossed the answer: so many a principal.
 ANSWERED_KEPT = 256
 INSTRUCTIONS = (
@@ -324,9 +327,22 @@ class RobotTools:
             # A motion call its client cancels must not leave the robot moving (`motion`).
             send = seat.api.motion if tool.action.motion else seat.api.command
             reply = await send(body)
+            if tool.action.stopping and reply.status == PAYLOAD_TOO_LARGE:
+                return await self._stop_unsaid(seat, tool, body)
             if reply.ok:
                 self._started(seat, tool, args, reply.body, key=thought_id)
         return result(reply, _outcome_note(reply.body), thought_id=thought_id)
+
+    async def _stop_unsaid(self, seat: Seat, tool: ToolDef, body: dict[str, Any]
+                           ) -> types.CallToolResult:
+        """A stop whose arguments made it larger than the bridge takes, sent again without
+        them: what says stop, stops (the first, refused, is in the audit log too)."""
+        bare = {k: v for k, v in body.items() if k not in ("confidence", "ai_reasoning")}
+        reply = await seat.api.command({**bare, "params": {}})
+        if reply.ok:
+            self._started(seat, tool, {}, reply.body, key=body["thought_id"])
+        done = result(reply, _outcome_note(reply.body), thought_id=body["thought_id"])
+        return _warned(done, (TOO_LARGE_STOP,))
 
     def _started(self, seat: Seat, tool: ToolDef, params: dict[str, Any],
                  body: dict[str, Any], key: str) -> None:

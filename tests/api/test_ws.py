@@ -69,7 +69,7 @@ async def test_commands_in_outcomes_out_like_rest(api: Api) -> None:
 
 async def test_oversized_frames(api: Api) -> None:
     async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
-        await ws.send_str('{"action": "stop", "pad": "' + "x" * (64 * 1024) + '"}')
+        await ws.send_str('{"action": "move", "pad": "' + "x" * (64 * 1024) + '"}')
         frame = await _frame(ws, "outcome")
         assert (frame["http_status"], frame["body"]["error_code"]) == (413,
                                                                        "PAYLOAD_TOO_LARGE")

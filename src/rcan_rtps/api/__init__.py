@@ -49,9 +49,13 @@ Decisions where the profile is silent:
   `METHOD_NOT_ALLOWED`; an unexpected exception is logged and answered 503 `failed`
   ROBOT_UNAVAILABLE `internal_error` (audit failure: 503 COMMAND_REJECTED `audit_unavailable`);
   the API never answers 500.
-- WebSocket: frames over `max_body_bytes` get a 413 outcome frame (audited); over 4× that the
-  socket is closed (1009) before buffering. More than 32 queued commands → 429 frame. The
-  credential must be in the upgrade request's headers (or the client certificate).
+- A stop or e-stop over `max_body_bytes` stops all the same (a warning says its size), on
+  every door, up to 4× that (`_intake.STOP_ROOM`): a body that says stop is read that far, any
+  other gets 413 (REST reads no further than 4× before refusing).
+- WebSocket: frames over `max_body_bytes` get a 413 outcome frame (audited) unless they say
+  stop; over 4× that the socket is closed (1009) before buffering. More than 32 queued
+  commands → 429 frame. The credential must be in the upgrade request's headers (or the
+  client certificate).
 - E-stop lane (`_intake`): every frame is validated as it arrives; a valid `stop`/`estop` is
   decided at once, concurrently with the socket's queue — never 429, never behind queued
   commands — so its outcome frame may overtake earlier commands' frames (match by

@@ -63,6 +63,9 @@ HangUp = Callable[[Callable[[], None]], AbstractContextManager[None]]
 CLIENT_CLOSED = 499  # the status of a request whose client hung up before its answer (nginx's)
 
 TOO_DEEP = "JSON is nested too deeply"
+# How many times `max_body_bytes` a transport reads of a body before refusing it unread: a
+# larger one is read only to find a stop in it (a stop always stops); the rest get 413.
+STOP_ROOM = 4
 # A bug in validation must not take a transport down: it is answered (and audited) like this.
 _INTERNAL = Rejection(503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE, "internal_error")
 _WALL = SystemClock()
@@ -109,7 +112,7 @@ def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS,
     window; every failure becomes a refusal, never a raise. A stop that fails the last two is
     still that stop, with a warning for each failure."""
     if len(raw) > limit:
-        return Intake(refusal=outcomes.PAYLOAD_TOO_LARGE)
+        return _oversize(raw, limit, checks, principal)
     try:
         message = validate_message(raw)
     except RecursionError:  # msgspec gives up on deep nesting with this, not a DecodeError
@@ -133,6 +136,16 @@ def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS,
     if not isinstance(message, NormalizedCommand):
         return _checked_message3(message, checks, principal)
     return _checked(message, checks, principal)
+
+
+def _oversize(raw: bytes, limit: int, checks: Checks, principal: str | None) -> Intake:
+    """A body over the size limit (a transport reads up to STOP_ROOM times it): refused 413,
+    unless it says stop — a stop always stops, its size a warning. Read first without the
+    checks: an oversize message that is no stop does not use up its msg_id."""
+    if not intake(raw, len(raw)).stopping:
+        return Intake(refusal=outcomes.PAYLOAD_TOO_LARGE)
+    said = f"$: {len(raw)} bytes, over the {limit} taken: stopped all the same"
+    return with_warnings(intake(raw, len(raw), checks, principal), (said,))
 
 
 def _checked_message3(message: Invoke | InvokeCancel | Authorization, checks: Checks,

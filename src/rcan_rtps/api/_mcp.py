@@ -40,7 +40,7 @@ from rcan_rtps.mcp_server.stops import Rescue, StopCall, not_served, stop_call, 
 from ._bodies import error_response, json_response
 from ._commands import read_limited, too_large
 from ._errors import BodyEncoding
-from ._intake import CLIENT_CLOSED
+from ._intake import CLIENT_CLOSED, STOP_ROOM
 from ._keys import DEADLINES, GOVERNOR, PRINCIPAL, SETTINGS
 
 if TYPE_CHECKING:
@@ -112,8 +112,9 @@ class McpEndpoint:
             return error_response(501, "NOT_IMPLEMENTED", reason=EXTRA_HINT)
         app, principal = request.app, request[PRINCIPAL]
         settings = app[SETTINGS]
-        try:
-            body = await read_limited(request, settings.max_body_bytes, settings.body_timeout_s)
+        limit = settings.max_body_bytes
+        try:  # (up to STOP_ROOM times the limit: only a stop may be larger)
+            body = await read_limited(request, limit * STOP_ROOM, settings.body_timeout_s)
         except BodyEncoding as exc:  # a stop in bytes its header misnames still stops
             found = stop_rescue(exc.raw) if request.method == "POST" else None
             if found is None:
@@ -121,10 +122,13 @@ class McpEndpoint:
             said = f"$: {exc.reason}: read as sent"
             return await self._stopping_call(server, request, found._replace(
                 warnings=(said, *found.warnings)))
-        if body is None:
+        rescue = stop_rescue(body) if body is not None and request.method == "POST" else None
+        if body is None or (len(body) > limit and rescue is None):
             status, refused = await too_large(app[GOVERNOR], principal)
             return json_response(refused, status)
-        rescue = stop_rescue(body) if request.method == "POST" else None
+        if rescue is not None and len(body) > limit:  # a stop always stops
+            said = f"$: {len(body)} bytes, over the {limit} taken: stopped all the same"
+            rescue = rescue._replace(warnings=(said, *rescue.warnings))
         if rescue is not None:
             return await self._stopping_call(server, request, rescue)
         seat = self._seat(app, principal, agent_of(request), request.headers.get(SESSION_HEADER))

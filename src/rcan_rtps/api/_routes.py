@@ -23,7 +23,7 @@ from ._bodies import (
 )
 from ._commands import read_limited, run_command, too_large
 from ._errors import BodyEncoding
-from ._intake import intake
+from ._intake import STOP_ROOM, intake
 from ._keys import (
     CHECKS,
     DEADLINES,
@@ -40,10 +40,11 @@ from .ports import GoalView, RobotView
 _WALL = SystemClock()
 
 
-async def read_body(request: web.Request) -> bytes | None:
-    """The request's body, or None when it is over the configured size."""
+async def read_body(request: web.Request, room: int = 1) -> bytes | None:
+    """The request's body, or None when it is over `room` times the configured size (a
+    command's is read up to STOP_ROOM times it: only a stop may be larger, `intake`)."""
     settings = request.app[SETTINGS]
-    return await read_limited(request, settings.max_body_bytes, settings.body_timeout_s)
+    return await read_limited(request, settings.max_body_bytes * room, settings.body_timeout_s)
 
 
 async def post_command(request: web.Request) -> web.Response:
@@ -54,7 +55,7 @@ async def post_command(request: web.Request) -> web.Response:
     # audit entry records it, bounded and marked as the client's; any other command drops it.
     warnings = transport.recorded(request.headers.getall(transport.HEADER, ()))
     try:
-        raw = await read_body(request)
+        raw = await read_body(request, STOP_ROOM)
     except BodyEncoding as exc:
         # A stop always stops: bytes that say stop, whatever their header says they are.
         if not intake(exc.raw, len(exc.raw)).stopping:
@@ -69,6 +70,13 @@ async def post_command(request: web.Request) -> web.Response:
     # gone, and its skill's motion is stopped (aiohttp runs the handler on, telling no one).
     deadlines = request.app.get(DEADLINES)
     hung_up = None if deadlines is None else functools.partial(deadlines.hung_up, request)
+    limit = request.app[SETTINGS].max_body_bytes
+    if len(raw) > limit and not intake(raw, limit).stopping:  # (a stop always stops)
+        status, body = await too_large(governor, principal)
+        return json_response(body, status)
+    if len(raw) > limit:
+        warnings = (*warnings, f"$: {len(raw)} bytes, over the {limit} taken: stopped all "
+                    "the same")
     status, body = await run_command(governor, principal, raw, request.app[OBSERVE],
                                      request.app[CHECKS], request.app[INVOCATIONS], warnings,
                                      hung_up)

@@ -49,6 +49,7 @@ from rcan_rtps.rcan import ErrorCode, Invoke, InvokeCancel
 from ._bodies import WsFrame, error_body, failure_reply
 from ._intake import (
     NO_CHECKS,
+    STOP_ROOM,
     Checks,
     Intake,
     Observe,
@@ -75,9 +76,9 @@ from ._skills import Skills
 
 log = logging.getLogger(__name__)
 _CLOSING = (WSMsgType.CLOSE, WSMsgType.CLOSING, WSMsgType.CLOSED, WSMsgType.ERROR)
-# Hard cap on one frame; frames between the body limit and this get a 413 outcome frame,
-# larger ones close the socket (1009) before they are buffered.
-_FRAME_CAP_FACTOR = 4
+# Hard cap on one frame (`_intake.STOP_ROOM` times the body limit); frames between the body
+# limit and this get a 413 outcome frame unless they say stop (a stop always stops), larger
+# ones close the socket (1009) before they are buffered.
 OUTBOX_BYTES = 1 << 20  # outcome frames a client may leave unread before it counts as deaf
 DEAF_QUIET_S = 1.0  # a deaf client's frames paused this long: every stop it sent is read
 CLOSE_S = 5.0  # closing a deaf client's socket (it reads no close frame either)
@@ -355,7 +356,7 @@ async def websocket(request: web.Request) -> web.WebSocketResponse:
     app, principal = request.app, request[PRINCIPAL]
     governor, settings = app[GOVERNOR], app[SETTINGS]
     ws = web.WebSocketResponse(autoping=False, heartbeat=None,
-                               max_msg_size=settings.max_body_bytes * _FRAME_CAP_FACTOR)
+                               max_msg_size=settings.max_body_bytes * STOP_ROOM)
     transport = request.transport  # cut off if its client does not read (`_cut_off`)
     await ws.prepare(request)
     app[SOCKETS].add(ws)

@@ -76,4 +76,6 @@ async def test_an_oversize_mcp_estop_stops(api: Api, protocol: str,
     data: dict[str, Any] = stopped(reply)
     assert api.gov.latch.latched
     _said_large(data["warnings"])
+    # decided once, as it came: not refused first and sent again without its arguments
+    assert "COMMAND_REJECTED" not in [e["event"] for e in api.entries]
     no_traceback(caplog)

@@ -24,6 +24,7 @@ from . import _routes as r
 from ._bodies import GoalList, PendingList
 from ._commands import run_command, schema_failure, too_large
 from ._images import image_list
+from ._intake import STOP_ROOM, intake
 from ._keys import CHECKS, GOVERNOR, IMAGES, INVOCATIONS, OBSERVE, ROBOT, SETTINGS, STATUS
 from ._safety_manifest import manifest_reply
 from .ports import ImageFrame
@@ -66,10 +67,14 @@ class LocalApi:
             raw = msgspec.json.encode(body)
         except UnicodeEncodeError:  # an unpaired surrogate (from an agent's JSON): no text
             return _reply(*await schema_failure(governor, self._principal, "$", NOT_TEXT))
-        if len(raw) > app[SETTINGS].max_body_bytes:
+        limit, warnings = app[SETTINGS].max_body_bytes, self._warnings
+        if len(raw) > limit * STOP_ROOM or (len(raw) > limit and not intake(raw, limit).stopping):
             return _reply(*await too_large(governor, self._principal))
+        if len(raw) > limit:  # a stop always stops (as at the HTTP doors: `_intake._oversize`)
+            warnings = (*warnings, f"$: {len(raw)} bytes, over the {limit} taken: stopped all "
+                        "the same")
         return _reply(*await run_command(governor, self._principal, raw, app[OBSERVE],
-                                         app[CHECKS], app[INVOCATIONS], self._warnings))
+                                         app[CHECKS], app[INVOCATIONS], warnings))
 
     async def motion(self, body: dict[str, Any]) -> Reply:
         try:

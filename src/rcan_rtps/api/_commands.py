@@ -129,11 +129,14 @@ async def schema_failure(governor: Governor, principal: Principal, path: str,
 async def run_command(governor: Governor, principal: Principal, raw: bytes,
                       observe: Observe | None = None, checks: Checks = NO_CHECKS,
                       invocations: Skills | None = None,
-                      warnings: tuple[str, ...] = (), hung_up: HangUp | None = None) -> Reply:
-    """A whole body, already within the size limit, to its reply (an INVOKE of a goal: when
-    the goal has ended; given up if `hung_up` tells its client left). `warnings`: what the
-    transport found wrong around the body, which a stop carries (`with_warnings`)."""
-    item = with_warnings(intake(raw, len(raw), checks, principal.name), warnings)
+                      warnings: tuple[str, ...] = (), hung_up: HangUp | None = None,
+                      limit: int | None = None) -> Reply:
+    """A whole body to its reply (an INVOKE of a goal: when the goal has ended; given up if
+    `hung_up` tells its client left). `warnings`: what the transport found wrong around the
+    body, which a stop carries (`with_warnings`). `limit`: the size over which only a stop is
+    taken (`intake`); None: the body is within it already."""
+    limit = len(raw) if limit is None else limit
+    item = with_warnings(intake(raw, limit, checks, principal.name), warnings)
     return await decide(governor, principal, item, observe, invocations, hung_up)
 
 

@@ -144,8 +144,13 @@ def _oversize(raw: bytes, limit: int, checks: Checks, principal: str | None) -> 
     checks: an oversize message that is no stop does not use up its msg_id."""
     if not intake(raw, len(raw)).stopping:
         return Intake(refusal=outcomes.PAYLOAD_TOO_LARGE)
-    said = f"$: {len(raw)} bytes, over the {limit} taken: stopped all the same"
-    return with_warnings(intake(raw, len(raw), checks, principal), (said,))
+    return with_warnings(intake(raw, len(raw), checks, principal),
+                         (oversize_warning(len(raw), limit),))
+
+
+def oversize_warning(size: int, limit: int) -> str:
+    """What a stop over the size limit carries: it stopped all the same."""
+    return f"$: {size} bytes, over the {limit} taken: stopped all the same"
 
 
 def _checked_message3(message: Invoke | InvokeCancel | Authorization, checks: Checks,

@@ -24,7 +24,7 @@ from . import _routes as r
 from ._bodies import GoalList, PendingList
 from ._commands import run_command, schema_failure, too_large
 from ._images import image_list
-from ._intake import STOP_ROOM, intake
+from ._intake import STOP_ROOM
 from ._keys import CHECKS, GOVERNOR, IMAGES, INVOCATIONS, OBSERVE, ROBOT, SETTINGS, STATUS
 from ._safety_manifest import manifest_reply
 from .ports import ImageFrame
@@ -67,14 +67,13 @@ class LocalApi:
             raw = msgspec.json.encode(body)
         except UnicodeEncodeError:  # an unpaired surrogate (from an agent's JSON): no text
             return _reply(*await schema_failure(governor, self._principal, "$", NOT_TEXT))
-        limit, warnings = app[SETTINGS].max_body_bytes, self._warnings
-        if len(raw) > limit * STOP_ROOM or (len(raw) > limit and not intake(raw, limit).stopping):
+        limit = app[SETTINGS].max_body_bytes
+        if len(raw) > limit * STOP_ROOM:  # (as the HTTP doors read no further)
             return _reply(*await too_large(governor, self._principal))
-        if len(raw) > limit:  # a stop always stops (as at the HTTP doors: `_intake._oversize`)
-            warnings = (*warnings, f"$: {len(raw)} bytes, over the {limit} taken: stopped all "
-                        "the same")
+        # Over `limit`, only a stop is taken (`_intake._oversize`), as at the HTTP doors.
         return _reply(*await run_command(governor, self._principal, raw, app[OBSERVE],
-                                         app[CHECKS], app[INVOCATIONS], warnings))
+                                         app[CHECKS], app[INVOCATIONS], self._warnings,
+                                         limit=limit))
 
     async def motion(self, body: dict[str, Any]) -> Reply:
         try:

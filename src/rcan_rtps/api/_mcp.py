@@ -40,7 +40,7 @@ from rcan_rtps.mcp_server.stops import Rescue, StopCall, not_served, stop_call, 
 from ._bodies import error_response, json_response
 from ._commands import read_limited, too_large
 from ._errors import BodyEncoding
-from ._intake import CLIENT_CLOSED, STOP_ROOM
+from ._intake import CLIENT_CLOSED, STOP_ROOM, oversize_warning
 from ._keys import DEADLINES, GOVERNOR, PRINCIPAL, SETTINGS
 
 if TYPE_CHECKING:
@@ -127,7 +127,7 @@ class McpEndpoint:
             status, refused = await too_large(app[GOVERNOR], principal)
             return json_response(refused, status)
         if rescue is not None and len(body) > limit:  # a stop always stops
-            said = f"$: {len(body)} bytes, over the {limit} taken: stopped all the same"
+            said = oversize_warning(len(body), limit)
             rescue = rescue._replace(warnings=(said, *rescue.warnings))
         if rescue is not None:
             return await self._stopping_call(server, request, rescue)

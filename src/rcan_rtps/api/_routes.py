@@ -70,16 +70,9 @@ async def post_command(request: web.Request) -> web.Response:
     # gone, and its skill's motion is stopped (aiohttp runs the handler on, telling no one).
     deadlines = request.app.get(DEADLINES)
     hung_up = None if deadlines is None else functools.partial(deadlines.hung_up, request)
-    limit = request.app[SETTINGS].max_body_bytes
-    if len(raw) > limit and not intake(raw, limit).stopping:  # (a stop always stops)
-        status, body = await too_large(governor, principal)
-        return json_response(body, status)
-    if len(raw) > limit:
-        warnings = (*warnings, f"$: {len(raw)} bytes, over the {limit} taken: stopped all "
-                    "the same")
     status, body = await run_command(governor, principal, raw, request.app[OBSERVE],
                                      request.app[CHECKS], request.app[INVOCATIONS], warnings,
-                                     hung_up)
+                                     hung_up, limit=request.app[SETTINGS].max_body_bytes)
     return json_response(body, status)
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
+import gc
 import logging
 import threading
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -266,6 +267,52 @@ async def test_a_call_waiting_for_its_reply_when_the_node_closes_says_so(
         with pytest.raises(ServiceUnavailable, match="its node /rcan_client was closed"):
             await asyncio.wait_for(call, 15)
         await server.close()
+
+
+async def _cancelled_then_closed(client: ServiceClient, asked: Callable[[], Any],
+                                 caplog: pytest.LogCaptureFixture) -> None:
+    """Cancels a call waiting for its reply and closes its client in the same step (as an
+    action client's close does to its take-back cancels); then nothing may be left saying
+    "Future exception was never retrieved" when the reply's future is collected."""
+    call = asyncio.ensure_future(client.call({}, timeout=600))
+    await asyncio.wait_for(asked(), 15)
+    await asyncio.sleep(0.1)  # waiting for the reply
+    call.cancel()
+    client.close()  # fails the reply's future before the cancelled call runs again
+    with pytest.raises(asyncio.CancelledError):
+        await call
+    del call
+    gc.collect()
+    await asyncio.sleep(0)
+    assert not [r for r in caplog.records if "never retrieved" in r.getMessage()]
+
+
+async def test_a_call_cancelled_as_its_client_closes_leaves_no_unretrieved_error(
+        domain_id: int, node: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    """Cyclone mapping (our server). The reply's future, failed by the close after its
+    waiter had been cancelled, was logged at collection as an exception never retrieved."""
+    asked = asyncio.Event()
+
+    async def hang(request: object) -> dict[str, object]:
+        asked.set()
+        await asyncio.sleep(3600)
+        return {}
+
+    with RosNode("rcan_server", "/", domain_id=domain_id) as server_node:
+        server = ServiceServer(server_node, "/slow", "std_srvs/srv/Trigger", hang)
+        client = ServiceClient(node, "/slow", "std_srvs/srv/Trigger")
+        await _cancelled_then_closed(client, asked.wait, caplog)
+        await server.close()
+
+
+async def test_a_fastdds_call_cancelled_as_its_client_closes_leaves_no_unretrieved_error(
+        oracle: RclpyOracle, node: RosNode, caplog: pytest.LogCaptureFixture) -> None:
+    """As above, with a Fast DDS server (one request at a time: the plain path)."""
+    await oracle.acall("service_server", name="/trigger", type="std_srvs/srv/Trigger",
+                       delay=30)
+    client = ServiceClient(node, "/trigger", "std_srvs/srv/Trigger")
+    await client.wait_for_service(15)
+    await _cancelled_then_closed(client, lambda: _requested(oracle, "/trigger"), caplog)
 
 
 async def test_a_call_waiting_for_its_server_when_the_node_closes_says_so(

@@ -558,14 +558,17 @@ class ServiceClient(_ServiceEnd):
         node is closed, ServiceUnavailable (nothing can bring it any more: the client's
         own close fails the future itself)."""
         loop = asyncio.get_running_loop()
-        while not future.done():
-            left = deadline - loop.time()
-            if left <= 0:
-                raise asyncio.TimeoutError
-            await asyncio.wait((future,), timeout=min(left, NODE_CLOSED_POLL))
-            if not future.done():
-                self._check_open()
-        return future.result()
+        try:
+            while not future.done():
+                left = deadline - loop.time()
+                if left <= 0:
+                    raise asyncio.TimeoutError
+                await asyncio.wait((future,), timeout=min(left, NODE_CLOSED_POLL))
+                if not future.done():
+                    self._check_open()
+            return future.result()
+        finally:
+            _abandon(future)
 
     async def _call_cyclone(self, pair: _Pair, message: IdlStruct,
                             deadline: float) -> IdlStruct:
@@ -735,6 +738,18 @@ class ServiceClient(_ServiceEnd):
             pair.close()
             if mapping is RequestMapping.FASTDDS and self.node.identities is not None:
                 self.node.identities.unuse()
+
+
+def _abandon(future: asyncio.Future[Any]) -> None:
+    """A reply's future its call no longer waits for (timed out, cancelled, or done): one
+    still pending is cancelled, so nothing fails it later, and an exception it holds is
+    retrieved. A call cancelled as its client closes (an action client's close cancels its
+    take-back calls, then closes their client) left one failed by the close and logged,
+    when collected, as an exception never retrieved."""
+    if not future.done():
+        future.cancel()
+    elif not future.cancelled():
+        future.exception()
 
 
 def __getattr__(name: str) -> Any:

@@ -152,11 +152,16 @@ async def _stdio(tmp_path: Path) -> AsyncIterator[tuple[Api, asyncio.subprocess.
 
 
 async def test_an_estop_too_large_for_the_bridge_still_stops(tmp_path: Path) -> None:
-    """Red team 18: an e-stop whose `reasoning` made the request larger than the bridge takes
-    (`max_body_bytes`) was refused PAYLOAD_TOO_LARGE and the robot was not stopped. Now the
-    server sends the stop again without its arguments, and says so. (The bridge reads a stop
-    up to STOP_ROOM times its limit: this one, 300 kB, is past that too.)"""
-    big = b'"name": "estop", "arguments": {"reasoning": "' + b"x" * 300_000 + b'"}'
-    reply = await _estop_over_stdio(tmp_path, CALL % big)
+    """Red team 18: an e-stop whose arguments made the request larger than the bridge takes
+    was refused PAYLOAD_TOO_LARGE and the robot was not stopped. A body large by its text
+    (300 kB of `reasoning`) the bridge now reads through its skeleton and stops; one large
+    by its shape (its reasoning a list of 300 000 numbers) it still refuses, and the server
+    sends the stop again without its arguments, and says so."""
+    text = b'"name": "estop", "arguments": {"reasoning": "' + b"x" * 300_000 + b'"}'
+    reply = await _estop_over_stdio(tmp_path, CALL % text)
+    warnings = reply["result"]["structuredContent"]["warnings"]
+    assert any("kept only in part): stopped all the same" in w for w in warnings), warnings
+    shape = b'"name": "estop", "arguments": {"reasoning": [' + b"0," * 300_000 + b'0]}'
+    reply = await _estop_over_stdio(tmp_path, CALL % shape)
     warnings = reply["result"]["structuredContent"]["warnings"]
     assert any("larger than the bridge takes" in w for w in warnings), warnings

@@ -50,8 +50,11 @@ Decisions where the profile is silent:
   ROBOT_UNAVAILABLE `internal_error` (audit failure: 503 COMMAND_REJECTED `audit_unavailable`);
   the API never answers 500.
 - A stop or e-stop over `max_body_bytes` stops all the same (a warning says its size), on
-  every door, up to 4× that (`_intake.STOP_ROOM`): a body that says stop is read that far, any
-  other gets 413 (REST reads no further than 4× before refusing).
+  every door; any other body over it gets 413. Up to 4× the limit (`_intake.STOP_ROOM`) a
+  body is held whole; past that REST and `/mcp` read it on to its end through its skeleton
+  (`_skim`: its shape, each string cut to `max_body_bytes` / 16 bytes, held to 4× the limit;
+  compressed bodies inflated a piece at a time), so a stop of any size stops; a body still
+  larger by its shape (a huge array) gets 413.
 - WebSocket: frames over `max_body_bytes` get a 413 outcome frame (audited) unless they say
   stop; over 4× that the socket is closed (1009) before buffering. More than 32 queued
   commands → 429 frame. The credential must be in the upgrade request's headers (or the

@@ -10,7 +10,8 @@ from __future__ import annotations
 import asyncio
 import sys
 import zlib
-from typing import TypeVar
+from collections.abc import Iterator
+from typing import NamedTuple, TypeVar
 
 from aiohttp import web
 
@@ -21,15 +22,18 @@ from ._bodies import error_body
 from ._errors import BodyEncoding, BodyTimeout
 from ._intake import (
     NO_CHECKS,
+    STOP_ROOM,
     Checks,
     HangUp,
     Observe,
     Reply,
+    Skimmed,
     decide,
     intake,
     with_warnings,
 )
 from ._skills import Skills
+from ._skim import Skeleton
 
 T = TypeVar("T")
 
@@ -72,6 +76,119 @@ async def _read(request: web.Request, limit: int) -> bytes | None:
         if len(buf) > limit:  # chunked bodies state no length: count as they come
             return None
     return bytes(buf)
+
+
+class CommandBody(NamedTuple):
+    """A command's body as `read_command` read it: whole, or — past STOP_ROOM times the
+    limit — its skeleton (`_skim`), which is only ever taken if it says stop."""
+
+    data: bytes
+    skimmed: Skimmed | None = None  # what the skeleton stands for; None: held whole
+    warnings: tuple[str, ...] = ()  # what else was wrong with how it came (a stop's)
+
+
+# Inflated a piece at a time when skimming, and the loop given a turn after each: a body
+# read that far must not hold it (a stop on another connection is decided meanwhile).
+_SKIM_PIECE = 64 * 1024
+
+
+async def read_command(request: web.Request, limit: int,
+                       timeout_s: float | None) -> CommandBody | None:
+    """A command's body (REST, `/mcp`): whole up to STOP_ROOM times `limit`, as `read_limited`
+    reads it; past that it is read on to its end through a `Skeleton` (its strings cut to
+    `limit` / 16 bytes), so that a stop of any size stops and no body is held past the room;
+    None when even the skeleton is larger (a body large by its shape, not its text).
+
+    Raises BodyTimeout (the whole body within `timeout_s` of its headers, as for any body)
+    and BodyEncoding."""
+    try:
+        if sys.version_info >= (3, 11):
+            async with asyncio.timeout(timeout_s):
+                return await _read_command(request, limit)
+        return await asyncio.wait_for(_read_command(request, limit), timeout_s)
+    except asyncio.TimeoutError as exc:
+        raise BodyTimeout(f"body not complete within {timeout_s} s") from exc
+
+
+async def _read_command(request: web.Request, limit: int) -> CommandBody | None:
+    room = limit * STOP_ROOM
+    header = request.headers.get("Content-Encoding", "")
+    held = bytearray()
+    chunks = request.content.iter_chunked(_SKIM_PIECE)
+    async for chunk in chunks:
+        held += chunk
+        if len(held) > room:
+            break
+    else:
+        data = decoded(header, bytes(held), room)
+        if data is not None:
+            return CommandBody(data)
+        # (it inflates past the room: skimmed as it inflates, from its start)
+    skeleton = Skeleton(keep=max(limit // 16, 64), cap=room)
+    inflater = _Inflater(header, bytes(held))
+    pieces = [bytes(held)]
+    while True:
+        for piece in pieces:
+            for text in inflater.undo(piece):
+                if not skeleton.feed(text):
+                    return None
+                await asyncio.sleep(0)
+        chunk = await request.content.read(_SKIM_PIECE)
+        if not chunk:
+            break
+        pieces = [chunk]
+    inflater.finish()
+    return CommandBody(skeleton.text, Skimmed(skeleton.size, skeleton.shortened),
+                       inflater.warnings)
+
+
+class _Inflater:
+    """A skimmed body's content coding undone a piece at a time: none, or one of gzip and
+    deflate (what a client that compresses sends). A body whose start is not what its
+    header says is read as sent, warned of (a stop in bytes its header misnames still
+    stops, as `decoded`'s callers do for a body held whole)."""
+
+    def __init__(self, header: str, start: bytes) -> None:
+        codings = [c.strip().lower() for c in header.split(",")]
+        codings = [c for c in codings if c not in ("", "identity")]
+        self.warnings: tuple[str, ...] = ()
+        self._zlib: zlib._Decompress | None = None
+        if len(codings) > 1 or (codings and codings[0] not in _CODINGS):
+            raise BodyEncoding(415, "a body this large is taken in one Content-Encoding at "
+                               "most, gzip or deflate", b"")
+        if codings:
+            self._zlib = _decompressor(codings[0], start)
+            if self._zlib is None:
+                self.warnings = (f"$: the body is not {codings[0]} data, as its "
+                                 "Content-Encoding says: read as sent",)
+
+    def undo(self, data: bytes) -> Iterator[bytes]:
+        inflater = self._zlib
+        if inflater is None:
+            yield data
+            return
+        try:
+            yield inflater.decompress(data, _SKIM_PIECE)
+            while inflater.unconsumed_tail:
+                yield inflater.decompress(inflater.unconsumed_tail, _SKIM_PIECE)
+        except zlib.error as exc:
+            raise BodyEncoding(400, f"the body's compressed data is damaged: {exc}", b"") \
+                from None
+
+    def finish(self) -> None:
+        if self._zlib is not None and not self._zlib.eof:
+            raise BodyEncoding(400, "the body's compressed data ends early", b"")
+
+
+def _decompressor(coding: str, start: bytes) -> zlib._Decompress | None:
+    """A decompressor for `coding` that takes the body's first bytes; None if none does."""
+    for wbits in _CODINGS[coding]:
+        try:
+            zlib.decompressobj(wbits).decompress(start[:_SKIM_PIECE], 1)
+        except zlib.error:
+            continue
+        return zlib.decompressobj(wbits)
+    return None
 
 
 # The codings a body may come in, and zlib's window bits for them: 47 reads a zlib or a gzip
@@ -130,13 +247,15 @@ async def run_command(governor: Governor, principal: Principal, raw: bytes,
                       observe: Observe | None = None, checks: Checks = NO_CHECKS,
                       invocations: Skills | None = None,
                       warnings: tuple[str, ...] = (), hung_up: HangUp | None = None,
-                      limit: int | None = None) -> Reply:
+                      limit: int | None = None, skimmed: Skimmed | None = None) -> Reply:
     """A whole body to its reply (an INVOKE of a goal: when the goal has ended; given up if
     `hung_up` tells its client left). `warnings`: what the transport found wrong around the
     body, which a stop carries (`with_warnings`). `limit`: the size over which only a stop is
-    taken (`intake`); None: the body is within it already."""
+    taken (`intake`); None: the body is within it already. `skimmed`: `raw` is the skeleton
+    of a larger body (`read_command`)."""
     limit = len(raw) if limit is None else limit
-    item = with_warnings(intake(raw, limit, checks, principal.name), warnings)
+    item = with_warnings(intake(raw, limit, checks, principal.name, skimmed=skimmed),
+                         warnings)
     return await decide(governor, principal, item, observe, invocations, hung_up)
 
 

@@ -23,7 +23,7 @@ import logging
 import time
 from collections.abc import Awaitable, Callable
 from contextlib import AbstractContextManager
-from typing import Any
+from typing import Any, NamedTuple
 
 import msgspec
 
@@ -63,8 +63,10 @@ HangUp = Callable[[Callable[[], None]], AbstractContextManager[None]]
 CLIENT_CLOSED = 499  # the status of a request whose client hung up before its answer (nginx's)
 
 TOO_DEEP = "JSON is nested too deeply"
-# How many times `max_body_bytes` a transport reads of a body before refusing it unread: a
-# larger one is read only to find a stop in it (a stop always stops); the rest get 413.
+# How many times `max_body_bytes` a transport holds of a body: a larger one is read only to
+# find a stop in it (a stop always stops), the rest get 413. REST and `/mcp` read one larger
+# still on to its end through its skeleton (`_skim`, held to this room); the WebSocket, whose
+# frames aiohttp assembles whole, refuses a frame larger than this.
 STOP_ROOM = 4
 # A bug in validation must not take a transport down: it is answered (and audited) like this.
 _INTERNAL = Rejection(503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE, "internal_error")
@@ -107,12 +109,13 @@ class Intake(msgspec.Struct, frozen=True):
 
 
 def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS,
-           principal: str | None = None) -> Intake:
+           principal: str | None = None, *, skimmed: Skimmed | None = None) -> Intake:
     """Size check, `validate_message`, then the sender's signature policy and the replay
     window; every failure becomes a refusal, never a raise. A stop that fails the last two is
-    still that stop, with a warning for each failure."""
-    if len(raw) > limit:
-        return _oversize(raw, limit, checks, principal)
+    still that stop, with a warning for each failure. `skimmed`: `raw` is the skeleton of a
+    larger body (`_commands.read_command`), taken only if it says stop."""
+    if skimmed is not None or len(raw) > limit:
+        return _oversize(raw, limit, checks, principal, skimmed)
     try:
         message = validate_message(raw)
     except RecursionError:  # msgspec gives up on deep nesting with this, not a DecodeError
@@ -138,19 +141,29 @@ def intake(raw: bytes, limit: int, checks: Checks = NO_CHECKS,
     return _checked(message, checks, principal)
 
 
-def _oversize(raw: bytes, limit: int, checks: Checks, principal: str | None) -> Intake:
-    """A body over the size limit (a transport reads up to STOP_ROOM times it): refused 413,
-    unless it says stop — a stop always stops, its size a warning. Read first without the
-    checks: an oversize message that is no stop does not use up its msg_id."""
+def _oversize(raw: bytes, limit: int, checks: Checks, principal: str | None,
+              skimmed: Skimmed | None) -> Intake:
+    """A body over the size limit: refused 413, unless it says stop — a stop always stops,
+    its size a warning. Read first without the checks: an oversize message that is no stop
+    does not use up its msg_id."""
     if not intake(raw, len(raw)).stopping:
         return Intake(refusal=outcomes.PAYLOAD_TOO_LARGE)
+    size, shortened = (len(raw), 0) if skimmed is None else skimmed
     return with_warnings(intake(raw, len(raw), checks, principal),
-                         (oversize_warning(len(raw), limit),))
+                         (oversize_warning(size, limit, shortened),))
 
 
-def oversize_warning(size: int, limit: int) -> str:
+class Skimmed(NamedTuple):
+    """What a skeleton stands for (`_commands.read_command`)."""
+
+    size: int  # the body's, as sent
+    shortened: int  # strings cut
+
+
+def oversize_warning(size: int, limit: int, shortened: int = 0) -> str:
     """What a stop over the size limit carries: it stopped all the same."""
-    return f"$: {size} bytes, over the {limit} taken: stopped all the same"
+    cut = f" ({shortened} of its strings kept only in part)" if shortened else ""
+    return f"$: {size} bytes, over the {limit} taken{cut}: stopped all the same"
 
 
 def _checked_message3(message: Invoke | InvokeCancel | Authorization, checks: Checks,

@@ -38,9 +38,9 @@ from rcan_rtps.governance import Principal
 from rcan_rtps.mcp_server.stops import Rescue, StopCall, not_served, stop_call, stop_rescue
 
 from ._bodies import error_response, json_response
-from ._commands import read_limited, too_large
+from ._commands import read_command, too_large
 from ._errors import BodyEncoding
-from ._intake import CLIENT_CLOSED, STOP_ROOM, oversize_warning
+from ._intake import CLIENT_CLOSED, oversize_warning
 from ._keys import DEADLINES, GOVERNOR, PRINCIPAL, SETTINGS
 
 if TYPE_CHECKING:
@@ -113,8 +113,8 @@ class McpEndpoint:
         app, principal = request.app, request[PRINCIPAL]
         settings = app[SETTINGS]
         limit = settings.max_body_bytes
-        try:  # (up to STOP_ROOM times the limit: only a stop may be larger)
-            body = await read_limited(request, limit * STOP_ROOM, settings.body_timeout_s)
+        try:  # (held up to STOP_ROOM times the limit, skimmed past it: only a stop may be)
+            read = await read_command(request, limit, settings.body_timeout_s)
         except BodyEncoding as exc:  # a stop in bytes its header misnames still stops
             found = stop_rescue(exc.raw) if request.method == "POST" else None
             if found is None:
@@ -122,13 +122,17 @@ class McpEndpoint:
             said = f"$: {exc.reason}: read as sent"
             return await self._stopping_call(server, request, found._replace(
                 warnings=(said, *found.warnings)))
-        rescue = stop_rescue(body) if body is not None and request.method == "POST" else None
-        if body is None or (len(body) > limit and rescue is None):
+        rescue = stop_rescue(read.data) if read is not None and request.method == "POST" \
+            else None
+        oversize = read is not None and (read.skimmed is not None or len(read.data) > limit)
+        if read is None or (oversize and rescue is None):
             status, refused = await too_large(app[GOVERNOR], principal)
             return json_response(refused, status)
-        if rescue is not None and len(body) > limit:  # a stop always stops
-            said = oversize_warning(len(body), limit)
-            rescue = rescue._replace(warnings=(said, *rescue.warnings))
+        body = read.data
+        if rescue is not None and oversize:  # a stop always stops
+            size, shortened = read.skimmed or (len(read.data), 0)
+            rescue = rescue._replace(warnings=(oversize_warning(size, limit, shortened),
+                                               *read.warnings, *rescue.warnings))
         if rescue is not None:
             return await self._stopping_call(server, request, rescue)
         seat = self._seat(app, principal, agent_of(request), request.headers.get(SESSION_HEADER))

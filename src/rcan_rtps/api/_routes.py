@@ -21,9 +21,9 @@ from ._bodies import (
     error_body,
     json_response,
 )
-from ._commands import read_limited, run_command, too_large
+from ._commands import CommandBody, read_command, read_limited, run_command, too_large
 from ._errors import BodyEncoding
-from ._intake import STOP_ROOM, intake
+from ._intake import intake
 from ._keys import (
     CHECKS,
     DEADLINES,
@@ -40,11 +40,11 @@ from .ports import GoalView, RobotView
 _WALL = SystemClock()
 
 
-async def read_body(request: web.Request, room: int = 1) -> bytes | None:
-    """The request's body, or None when it is over `room` times the configured size (a
-    command's is read up to STOP_ROOM times it: only a stop may be larger, `intake`)."""
+async def read_body(request: web.Request) -> bytes | None:
+    """The request's body, or None when it is over the configured size (a command's is read
+    by `read_command`: a stop may be larger)."""
     settings = request.app[SETTINGS]
-    return await read_limited(request, settings.max_body_bytes * room, settings.body_timeout_s)
+    return await read_limited(request, settings.max_body_bytes, settings.body_timeout_s)
 
 
 async def post_command(request: web.Request) -> web.Response:
@@ -54,25 +54,27 @@ async def post_command(request: web.Request) -> web.Response:
     # What the client's transport found wrong with a stop (`rcan-rtps mcp`'s door): a stop's
     # audit entry records it, bounded and marked as the client's; any other command drops it.
     warnings = transport.recorded(request.headers.getall(transport.HEADER, ()))
+    settings = request.app[SETTINGS]
     try:
-        raw = await read_body(request, STOP_ROOM)
+        read = await read_command(request, settings.max_body_bytes, settings.body_timeout_s)
     except BodyEncoding as exc:
         # A stop always stops: bytes that say stop, whatever their header says they are.
         if not intake(exc.raw, len(exc.raw)).stopping:
             raise
-        raw, warnings = exc.raw, (*warnings, f"$: {exc.reason}: read as sent")
-    if raw is None:
+        read, warnings = CommandBody(exc.raw), (*warnings, f"$: {exc.reason}: read as sent")
+    if read is None:
         status, body = await too_large(governor, principal)
         response = json_response(body, status)
-        response.force_close()  # the rest of the body is not worth reading
+        response.force_close()  # large by its shape: the rest is not worth reading
         return response
     # An INVOKE is answered when its skill is done: a client that hangs up before that is
     # gone, and its skill's motion is stopped (aiohttp runs the handler on, telling no one).
     deadlines = request.app.get(DEADLINES)
     hung_up = None if deadlines is None else functools.partial(deadlines.hung_up, request)
-    status, body = await run_command(governor, principal, raw, request.app[OBSERVE],
-                                     request.app[CHECKS], request.app[INVOCATIONS], warnings,
-                                     hung_up, limit=request.app[SETTINGS].max_body_bytes)
+    status, body = await run_command(governor, principal, read.data, request.app[OBSERVE],
+                                     request.app[CHECKS], request.app[INVOCATIONS],
+                                     (*warnings, *read.warnings), hung_up,
+                                     limit=settings.max_body_bytes, skimmed=read.skimmed)
     return json_response(body, status)
 
 

@@ -21,7 +21,9 @@ from typing import Any
 import pytest
 from mcp import Client, StdioServerParameters
 from mcp.client.stdio import stdio_client
+from mcp.shared.exceptions import MCPError
 from mcp_types import CallToolResult
+from mcp_types.jsonrpc import INVALID_REQUEST
 
 from rcan_rtps.api._intake import STOP_ROOM
 from rcan_rtps.mcp_server.server import TOO_LARGE_STOP
@@ -95,6 +97,47 @@ async def test_an_oversize_stop_over_mcp_http_stops(api: Api, log: pytest.LogCap
     stopped_once(api, tool, who, done)
     assert api.dispatcher.calls[0][1] == {"reason": "person"}
     no_traceback(log)
+
+
+@MODES
+async def test_an_estop_past_the_room_over_mcp_http_is_a_clear_error(
+        api: Api, log: pytest.LogCaptureFixture, mode: str) -> None:
+    """The body is refused unread (413, audited): the SDK's client raises at once (no hang)
+    an error that says so and that nothing stopped — a JSON-RPC error. Before, the 413's body
+    was the bridge's own error, which the SDK's client shows as "Server returned an error
+    response". The same client's bare e-stop then latches."""
+    async with agent(api, "viewer", mode=mode) as client:
+        with pytest.raises(MCPError) as refused:
+            await client.call_tool("estop", {"reasoning": PAST_ROOM})
+        assert not api.gov.latch.latched and api.dispatcher.calls == []
+        error = refused.value
+        assert error.code == INVALID_REQUEST, error
+        assert error.message.startswith("PAYLOAD_TOO_LARGE: the request is over what the "
+                                        f"bridge takes ({LIMIT} bytes"), error.message
+        assert "nothing was done (no stop either)" in error.message, error.message
+        done = data(await client.call_tool("estop", {}))
+    assert done["outcome"] == "executed", done
+    assert [a for a, _ in api.dispatcher.calls] == ["estop"] and api.gov.latch.latched
+    rejected, latched = decided(api)
+    assert (rejected["event"], rejected["deny_reason"]) == (
+        "COMMAND_REJECTED", "PAYLOAD_TOO_LARGE"), rejected
+    assert error.data["audit_id"] == rejected["audit_id"], error.data
+    assert error.data["error_code"] == "PAYLOAD_TOO_LARGE", error.data
+    assert latched["audit_id"] == done["audit_id"]
+    no_traceback(log)
+
+
+@MODES
+async def test_an_oversize_move_over_mcp_http_is_the_same_clear_error(
+        api: Api, mode: str) -> None:
+    """Over the limit and no stop: refused as before (413), with the same error."""
+    async with agent(api, "planner", mode=mode) as client:
+        with pytest.raises(MCPError) as refused:
+            await client.call_tool("move", {"linear_x": 0.1, "duration_s": 1.0,
+                                            "confidence": 0.9, "reasoning": BIG})
+    assert refused.value.message.startswith("PAYLOAD_TOO_LARGE: "), refused.value
+    assert refused.value.data["error_code"] == "PAYLOAD_TOO_LARGE", refused.value
+    assert api.dispatcher.calls == []
 
 
 # -- `rcan-rtps mcp` (stdio) against the bridge ------------------------------------------------

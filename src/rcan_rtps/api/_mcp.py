@@ -19,7 +19,8 @@ is run here, as the authenticated principal, and answered with its tool result. 
 notification's stop and the stops of a JSON-RPC batch (which the SDK refuses whole) are run
 here too. The stop carries what was wrong as
 `warnings`, in its tool result and its audit entry. Any other body the SDK answers as it
-would, its session checks included.
+would, its session checks included. A body too large (over `max_body_bytes`, or a stop over
+`STOP_ROOM` times it) is refused 413 as a JSON-RPC error, which an MCP client shows.
 """
 
 from __future__ import annotations
@@ -35,7 +36,14 @@ from aiohttp import web
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import Principal
-from rcan_rtps.mcp_server.stops import Rescue, StopCall, not_served, stop_call, stop_rescue
+from rcan_rtps.mcp_server.stops import (
+    INVALID_REQUEST,
+    Rescue,
+    StopCall,
+    not_served,
+    stop_call,
+    stop_rescue,
+)
 
 from ._bodies import error_response, json_response
 from ._commands import read_limited, too_large
@@ -73,6 +81,19 @@ def _named(request: web.Request, name: str) -> list[tuple[bytes, bytes]]:
     the body now does (the SDK refuses a call whose header and body disagree)."""
     return [(k.lower(), name.encode() if k.lower() == b"mcp-name" else v)
             for k, v in request.raw_headers]
+
+
+def _too_large_error(refused: Any, limit: int) -> dict[str, Any]:
+    """A body too large, answered as a JSON-RPC error (the request's id unread), the bridge's
+    refusal its `data`: an MCP client shows its message (the SDK's client says only "Server
+    returned an error response" of a 413 that is no JSON-RPC error) — an agent whose e-stop
+    was refused learns that nothing stopped, and how to send it."""
+    message = (f"PAYLOAD_TOO_LARGE: the request is over what the bridge takes ({limit} bytes, "
+               f"its max_body_bytes; an estop or stop up to {limit * STOP_ROOM}): refused "
+               "unread, nothing was done (no stop either): send it smaller (a stop without "
+               "its reasoning)")
+    return {"jsonrpc": "2.0", "id": None,
+            "error": {"code": INVALID_REQUEST, "message": message, "data": refused}}
 
 
 def _refusal(answered: Any) -> str:
@@ -125,7 +146,7 @@ class McpEndpoint:
         rescue = stop_rescue(body) if body is not None and request.method == "POST" else None
         if body is None or (len(body) > limit and rescue is None):
             status, refused = await too_large(app[GOVERNOR], principal)
-            return json_response(refused, status)
+            return json_response(_too_large_error(refused, limit), status)
         if rescue is not None and len(body) > limit:  # a stop always stops
             said = oversize_warning(len(body), limit)
             rescue = rescue._replace(warnings=(said, *rescue.warnings))

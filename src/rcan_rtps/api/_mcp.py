@@ -19,7 +19,8 @@ is run here, as the authenticated principal, and answered with its tool result. 
 notification's stop and the stops of a JSON-RPC batch (which the SDK refuses whole) are run
 here too. The stop carries what was wrong as
 `warnings`, in its tool result and its audit entry. Any other body the SDK answers as it
-would, its session checks included.
+would, its session checks included. A body too large (over `max_body_bytes`, or a stop over
+`STOP_ROOM` times it) is refused 413 as a JSON-RPC error, which an MCP client shows.
 """
 
 from __future__ import annotations
@@ -35,12 +36,19 @@ from aiohttp import web
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import Principal
-from rcan_rtps.mcp_server.stops import Rescue, StopCall, not_served, stop_call, stop_rescue
+from rcan_rtps.mcp_server.stops import (
+    INVALID_REQUEST,
+    Rescue,
+    StopCall,
+    not_served,
+    stop_call,
+    stop_rescue,
+)
 
 from ._bodies import error_response, json_response
 from ._commands import read_command, too_large
 from ._errors import BodyEncoding
-from ._intake import CLIENT_CLOSED, oversize_warning
+from ._intake import CLIENT_CLOSED, STOP_ROOM, oversize_warning
 from ._keys import DEADLINES, GOVERNOR, PRINCIPAL, SETTINGS
 
 if TYPE_CHECKING:
@@ -73,6 +81,20 @@ def _named(request: web.Request, name: str) -> list[tuple[bytes, bytes]]:
     the body now does (the SDK refuses a call whose header and body disagree)."""
     return [(k.lower(), name.encode() if k.lower() == b"mcp-name" else v)
             for k, v in request.raw_headers]
+
+
+def _too_large_error(refused: Any, limit: int) -> dict[str, Any]:
+    """A body too large, answered as a JSON-RPC error (the request's id unread), the bridge's
+    refusal its `data`: an MCP client shows its message (the SDK's client says only "Server
+    returned an error response" of a 413 that is no JSON-RPC error) — an agent whose e-stop
+    was refused learns that nothing stopped, and how to send it."""
+    message = (f"PAYLOAD_TOO_LARGE: the request is over what the bridge takes ({limit} bytes, "
+               "its max_body_bytes) and is no stop it could read (an estop or stop is taken "
+               "at any size, unless its shape alone, a huge list, is over "
+               f"{limit * STOP_ROOM}): nothing was done (no stop either): send it smaller "
+               "(a stop without its arguments)")
+    return {"jsonrpc": "2.0", "id": None,
+            "error": {"code": INVALID_REQUEST, "message": message, "data": refused}}
 
 
 def _refusal(answered: Any) -> str:
@@ -127,7 +149,7 @@ class McpEndpoint:
         oversize = read is not None and (read.skimmed is not None or len(read.data) > limit)
         if read is None or (oversize and rescue is None):
             status, refused = await too_large(app[GOVERNOR], principal)
-            return json_response(refused, status)
+            return json_response(_too_large_error(refused, limit), status)
         body = read.data
         if rescue is not None and oversize:  # a stop always stops
             size, shortened = read.skimmed or (len(read.data), 0)

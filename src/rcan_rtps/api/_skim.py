@@ -78,8 +78,12 @@ class Skeleton:
         if self._escaped:  # the byte an escape's backslash took, in this chunk
             self._escaped = False
             at += 1
-        rest = _STRING_REST.match(chunk, at)
-        end = rest.end() if rest is not None else at
+        quote = chunk.find(b'"', at)
+        if chunk.find(b"\\", at, len(chunk) if quote < 0 else quote) < 0:
+            end = len(chunk) if quote < 0 else quote  # no escape on the way (memchr: fast)
+        else:
+            rest = _STRING_REST.match(chunk, at)
+            end = rest.end() if rest is not None else at
         if end == len(chunk):
             return end
         if chunk[end] == _BACKSLASH:  # the chunk's last byte: what it escapes comes next

@@ -92,3 +92,27 @@ async def test_a_bearer_token_is_no_ambient_credential_and_still_counts_from_any
         assert resp.status == 200
         assert api.entry((await resp.json())["audit_id"])["principal"] == "viewer"
 
+
+async def test_a_guest_asking_for_tickets_in_a_loop_leaves_the_operator_its_own(
+        api: Api) -> None:
+    """Tickets were bounded only in all (1024 unredeemed): a GUEST asking `POST
+    /api/ws-ticket` in a loop (each lives 30 s) used them all, and every other principal's
+    console got 429 and no live view, for as long as it kept asking. One principal now holds
+    at most a few; the others still get theirs."""
+    from rcan_rtps.api._keys import WS_TICKETS
+
+    assert api.app is not None
+    tickets = api.app[WS_TICKETS]
+    tickets._max = 32  # the bound in all, made small (the test asks that many)
+    answers = [await api.call("POST", "/api/ws-ticket", "viewer") for _ in range(32)]
+    issued = [body["ticket"] for status, body in answers if status == 200]
+    assert issued and answers[-1][0] == 429
+    status, body = await api.call("POST", "/api/ws-ticket", "ops")
+    assert status == 200, body
+    async with api.http.ws_connect(f"/api/ws?ticket={body['ticket']}") as ws:
+        assert (await ws.receive_json(timeout=5))["type"] in ("status", "approvals")
+    # a ticket redeemed gives its principal room for one more
+    async with api.http.ws_connect(f"/api/ws?ticket={issued[0]}") as ws:
+        assert (await ws.receive_json(timeout=5))["type"] == "status"
+    assert (await api.call("POST", "/api/ws-ticket", "viewer"))[0] == 200
+    assert (await api.call("POST", "/api/ws-ticket", "viewer"))[0] == 429

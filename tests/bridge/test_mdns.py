@@ -187,3 +187,43 @@ def test_discover_rejects_a_bad_timeout(capsys: pytest.CaptureFixture[str]) -> N
 
 def test_service_type() -> None:
     assert SERVICE_TYPE == "_rcan._tcp.local."
+
+
+# What a peer says is shown, never obeyed: terminal escape sequences (ESC, the 8-bit CSI
+# \x9b, BEL, a carriage return, a bidi override) in an advert's name or TXT.
+HOSTILE = "evil\x1b]0;owned\x07\x1b[2J\r\x9b31m\u202e"
+HOSTILE_NAME = "evil\x9b2J\u202e"  # zeroconf sends no ASCII control character in a name
+
+
+@needs_netns
+async def test_discover_shows_a_hostile_adverts_control_characters_escaped() -> None:
+    """Red team 19: `rcan-rtps discover` printed an advert's instance name and TXT values to
+    the terminal as they came, so any peer on the network could send the operator's
+    terminal escape sequences (clear the screen, retitle the window, rewrite or hide the
+    robots listed above it, and on some terminals write the clipboard). They are now shown
+    escaped (`\\x1b`); printable text, non-ASCII letters included, is shown as it is."""
+    from zeroconf.asyncio import AsyncServiceInfo, AsyncZeroconf
+
+    hostile = AsyncServiceInfo(
+        SERVICE_TYPE, f"rover-{HOSTILE_NAME}.{SERVICE_TYPE}", port=18765,
+        properties={"ruri": f"rcan://x/{HOSTILE}", f"k{HOSTILE}": HOSTILE, "name": "Rövar"},
+        server="hostile.local.", addresses=[socket.inet_aton("127.0.0.1")])
+    peer = AsyncZeroconf(interfaces=LOOPBACK)
+    try:
+        await (await peer.async_register_service(hostile))
+        async with RcanBrowser(interfaces=LOOPBACK) as browser:
+            await browser.wait_for(lambda robots: any(r.instance.startswith("rover-")
+                                                      for r in robots), timeout_s=30)
+        out = io.StringIO()
+
+        def run() -> int:
+            with contextlib.redirect_stdout(out):
+                return main(["discover", "--timeout", "5", "--interface", "127.0.0.1"])
+
+        assert await asyncio.to_thread(run) == 0
+    finally:
+        await peer.async_close()
+    shown = out.getvalue()
+    assert "rover-evil" in shown and "Rövar" in shown
+    assert not [c for c in shown if not c.isprintable() and c != "\n"], repr(shown)
+    assert "\\x1b]0;owned\\x07" in shown

@@ -38,6 +38,9 @@ Decisions where the profile is silent:
 - Principal: the `Authorization: Bearer` credential; without one, a verified mTLS client
   certificate whose subject CN is a configured principal's name. A presented credential that
   fails is 401 even if a certificate would have named someone; two Authorization headers are 401.
+  A certificate (which a browser presents by itself, whatever page asks) names no one in a
+  request whose `Origin` is another host than the bridge's: 401 (no cross-site request acts
+  as its principal); a bearer token counts from any origin.
 - A refused JWT's 401 has a `reason` (`jwt_expired`, `jwt_lifetime_too_long`, `jwt_unknown_kid`,
   ...) and the message in `WWW-Authenticate: ... error_description`; a JWT's principal is
   `jwt:<iss>/<sub>`, never a configured one (docs/governance.md, Identity).

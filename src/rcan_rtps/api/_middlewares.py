@@ -157,8 +157,12 @@ async def _unauthenticated(request: web.Request,
 
 def _principal(request: web.Request) -> tuple[Principal | None, bool]:
     """(principal or None, whether a credential was presented); a refused bearer credential
-    raises AuthenticationError. A WebSocket ticket counts only without an `Authorization`
-    header, and only from the page's own origin (`_tickets`)."""
+    raises AuthenticationError. A WebSocket ticket or a client certificate counts only without
+    an `Authorization` header, and only from no origin or the bridge's own (`_tickets`): a
+    browser presents its certificate by itself, whichever site's page made the request (a
+    cross-site POST or WebSocket would otherwise act as the certificate's principal). A
+    bearer token is sent only by who holds it: its request is the token's, whatever its
+    `Origin`."""
     headers = request.headers.getall("Authorization", [])
     if len(headers) > 1:  # two credentials: which one counts is ambiguous, so neither does
         return None, True
@@ -174,7 +178,8 @@ def _principal(request: web.Request) -> tuple[Principal | None, bool]:
     name = peer_common_name(request)
     if name is None:
         return None, False
-    return request.app[CERT_PRINCIPALS].get(name), True
+    principal = request.app[CERT_PRINCIPALS].get(name)
+    return (principal if same_origin(request) else None), True
 
 
 def peer_common_name(request: web.Request) -> str | None:

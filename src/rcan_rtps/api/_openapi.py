@@ -304,8 +304,9 @@ def openapi_document() -> dict[str, Any]:
         "info": {"title": "rcan-rtps bridge API", "version": __version__,
                  "description": "RCAN governance (RCAN 1.2, bridge spec v1.0) in front of a "
                                 "ROS 2 robot. Every /api route needs a Bearer token (or, for "
-                                "/api/ws, a ticket) or a mapped mTLS client certificate; the "
-                                "node manifest and the console's static files need none."},
+                                "/api/ws, a ticket) or a mapped mTLS client certificate (a "
+                                "ticket or certificate: not from a page of another origin); "
+                                "the node manifest and the console's static files need none."},
         "security": [{"bearer": []}],
         "paths": PATHS,
         "components": {

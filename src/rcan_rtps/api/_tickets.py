@@ -8,7 +8,9 @@ A ticket is:
 - short-lived: `TTL_S` seconds from its issue (monotonic clock);
 - its issuer's: the socket's principal is the one that asked for it (a ticket carries no
   role of its own, and nothing of the bearer token);
-- bounded: at most `MAX_OUTSTANDING` unredeemed tickets exist (beyond: 429);
+- bounded: at most `MAX_OUTSTANDING` unredeemed tickets exist, and at most `PER_PRINCIPAL`
+  of one principal (beyond: 429) — a page needs one at a time, and one principal (a GUEST)
+  asking in a loop must not use up every other principal's tickets, console included;
 - same-origin: a browser redeeming it from another origin (an `Origin` header that names
   another host than the request's) is refused, and the ticket is spent.
 
@@ -20,7 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import secrets
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from urllib.parse import urlsplit
 
@@ -31,6 +33,7 @@ from rcan_rtps.governance import Principal
 
 TTL_S = 30.0
 MAX_OUTSTANDING = 1024
+PER_PRINCIPAL = 8
 WS_PATH = "/api/ws"
 TICKET_PATH = "/api/ws-ticket"
 
@@ -50,20 +53,25 @@ class WsTickets:
     """The unredeemed tickets of one app; `now` is a monotonic clock in seconds."""
 
     def __init__(self, now: Callable[[], float], *, ttl_s: float = TTL_S,
-                 max_outstanding: int = MAX_OUTSTANDING) -> None:
+                 max_outstanding: int = MAX_OUTSTANDING,
+                 per_principal: int = PER_PRINCIPAL) -> None:
         self._now = now
         self._ttl = ttl_s
         self._max = max_outstanding
+        self._per_principal = per_principal
         # digest → (principal, expiry); insertion order is expiry order (one fixed TTL).
         self._open: OrderedDict[bytes, tuple[Principal, float]] = OrderedDict()
+        self._held: Counter[str] = Counter()  # principal name → its unredeemed tickets
 
     def issue(self, principal: Principal) -> str | None:
-        """A new ticket for `principal`, or None when too many are outstanding."""
+        """A new ticket for `principal`, or None when too many are outstanding (its own, or
+        all principals')."""
         self._forget_expired()
-        if len(self._open) >= self._max:
+        if len(self._open) >= self._max or self._held[principal.name] >= self._per_principal:
             return None
         ticket = secrets.token_urlsafe(32)
         self._open[_digest(ticket)] = (principal, self._now() + self._ttl)
+        self._held[principal.name] += 1
         return ticket
 
     def redeem(self, ticket: str) -> Principal | None:
@@ -72,6 +80,7 @@ class WsTickets:
         if found is None:
             return None
         principal, expires = found
+        self._let_go(principal)
         return principal if self._now() < expires else None
 
     @property
@@ -88,7 +97,12 @@ class WsTickets:
             digest, (_, expires) = next(iter(self._open.items()))
             if expires > now:
                 return
-            del self._open[digest]
+            self._let_go(self._open.pop(digest)[0])
+
+    def _let_go(self, principal: Principal) -> None:
+        self._held[principal.name] -= 1
+        if self._held[principal.name] <= 0:
+            del self._held[principal.name]
 
 
 def ticket_of(request: web.Request) -> str | None:

@@ -31,9 +31,17 @@ async def _discover(args: argparse.Namespace) -> int:
                               "txt": robot.txt}, sort_keys=True))
             continue
         where = ", ".join(f"{a}:{robot.port}" for a in robot.addresses) or "?"
-        print(f"{robot.instance}  {robot.txt.get('ruri', '?')}  [{where}]")
+        print(f"{shown(robot.instance)}  {shown(robot.txt.get('ruri', '?'))}  [{where}]")
         for key in sorted(robot.txt):
-            print(f"    {key}={robot.txt[key]}")
+            print(f"    {shown(key)}={shown(robot.txt[key])}")
     if not robots and not args.json:
         print(f"no RCAN robots found in {args.timeout:g} s")
     return 0
+
+
+def shown(text: str) -> str:
+    """`text` for a terminal: what any peer on the network announced is shown, never obeyed —
+    a character that does not print (ESC, BEL, CR, the 8-bit CSI, a bidi override) is
+    written as its escape (`\\x1b`), anything printable (non-ASCII letters too) as it is."""
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii")
+                   for c in text)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import AsyncIterator, Callable, Mapping
 from typing import TYPE_CHECKING
 
@@ -37,6 +38,7 @@ from ._keys import (
     ROBOT,
     SETTINGS,
     SOCKETS,
+    SOCKETS_OF,
     STATUS,
     WS_TICKETS,
     ApiSettings,
@@ -134,6 +136,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
                                 else cert_principals)
     sockets: set[web.WebSocketResponse] = set()
     app[SOCKETS] = sockets
+    app[SOCKETS_OF] = Counter()
     app[READS] = reads = FirstUse(lambda: _audit_reads(governor, settings))
     app[STATUS] = status = StatusHub(
         lambda: robot.status(pending_auth=len(governor.pending())),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Protocol
 
@@ -63,6 +64,7 @@ AUTHENTICATOR = web.AppKey("authenticator", Authenticator)
 CERT_PRINCIPALS = web.AppKey("cert_principals", Mapping[str, Principal])
 SETTINGS = web.AppKey("settings", ApiSettings)
 SOCKETS = web.AppKey("sockets", set[web.WebSocketResponse])
+SOCKETS_OF = web.AppKey("sockets_of", Counter[str])  # open WebSockets per principal (`_ws`)
 DEADLINES = web.AppKey("connection_deadlines", ConnectionDeadlines)
 # The audit log's readers (`_reads`), made by the first read: most runs are never asked.
 READS: web.AppKey[FirstUse[AuditReads]] = web.AppKey("audit_reads")

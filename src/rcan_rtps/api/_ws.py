@@ -46,7 +46,7 @@ from aiohttp import WSCloseCode, WSMsgType, web
 from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.rcan import ErrorCode, Invoke, InvokeCancel
 
-from ._bodies import WsFrame, error_body, failure_reply
+from ._bodies import WsFrame, error_body, error_response, failure_reply
 from ._intake import (
     NO_CHECKS,
     STOP_ROOM,
@@ -69,6 +69,7 @@ from ._keys import (
     PRINCIPAL,
     SETTINGS,
     SOCKETS,
+    SOCKETS_OF,
     STATUS,
     ApiSettings,
 )
@@ -83,6 +84,9 @@ OUTBOX_BYTES = 1 << 20  # outcome frames a client may leave unread before it cou
 DEAF_QUIET_S = 1.0  # a deaf client's frames paused this long: every stop it sent is read
 CLOSE_S = 5.0  # closing a deaf client's socket (it reads no close frame either)
 NOT_READING = b"outcome frames not read"
+# Sockets one principal may hold at once (beyond: 429 before the handshake). A console, an
+# agent and a few tools need a handful; hundreds are an attack on the file descriptors.
+MAX_SOCKETS_PER_PRINCIPAL = 32
 
 
 async def _send(ws: web.WebSocketResponse, frame: WsFrame) -> bool:
@@ -352,14 +356,47 @@ class _Commands:
         await self._outbox.close()
 
 
-async def websocket(request: web.Request) -> web.WebSocketResponse:
+async def websocket(request: web.Request) -> web.StreamResponse:
     app, principal = request.app, request[PRINCIPAL]
-    governor, settings = app[GOVERNOR], app[SETTINGS]
+    settings = app[SETTINGS]
+    held = app[SOCKETS_OF]
+    if held[principal.name] >= MAX_SOCKETS_PER_PRINCIPAL:
+        return _too_many_sockets(principal)
     ws = web.WebSocketResponse(autoping=False, heartbeat=None,
                                max_msg_size=settings.max_body_bytes * STOP_ROOM)
     transport = request.transport  # cut off if its client does not read (`_cut_off`)
-    await ws.prepare(request)
+    held[principal.name] += 1  # (before the handshake's await: sockets opened at once count)
+    try:
+        await ws.prepare(request)
+    except BaseException:
+        _let_go(held, principal.name)
+        raise
     app[SOCKETS].add(ws)
+    try:
+        return await _serve(ws, request, principal, transport)
+    finally:
+        _let_go(held, principal.name)
+
+
+def _too_many_sockets(principal: Principal) -> web.Response:
+    """One principal's sockets are bounded: a GUEST holding hundreds would use up the process's
+    file descriptors, and then nobody's e-stop — REST or WebSocket — could connect. That
+    principal keeps its e-stop over the sockets it has and over REST."""
+    log.warning("WebSocket of %s refused: it holds %d already", principal.name,
+                MAX_SOCKETS_PER_PRINCIPAL, extra={"principal": principal.name})
+    return error_response(429, ErrorCode.RATE_LIMITED, reason="too_many_sockets")
+
+
+def _let_go(held: Counter[str], name: str) -> None:
+    held[name] -= 1
+    if held[name] <= 0:
+        del held[name]
+
+
+async def _serve(ws: web.WebSocketResponse, request: web.Request, principal: Principal,
+                 transport: asyncio.Transport | None) -> web.WebSocketResponse:
+    app = request.app
+    governor, settings = app[GOVERNOR], app[SETTINGS]
     commands = _Commands(ws, governor, principal, settings, app[OBSERVE], app[CHECKS],
                          app[INVOCATIONS])
     pushers = [asyncio.create_task(_push(ws, app[STATUS].subscribe, "status")),

@@ -61,6 +61,7 @@ from .errors import BridgeStateError
 from .goals import GoalRoutes, route_mapping
 from .joint_positions import JointPositions
 from .notify import DiagnosticsNotifier, FanOutNotifier
+from .open_files import raise_open_file_limit
 from .telemetry import TelemetryState
 
 if TYPE_CHECKING:
@@ -382,6 +383,7 @@ class Bridge:
     async def _serve(self, governor: Governor, telemetry: TelemetryState,
                      goals: GoalRoutes) -> None:
         api, opts = self.config.bridge.api, self.options
+        raise_open_file_limit()  # before the first client: each connection is a descriptor
         app = build_app(governor=governor, authenticator=self._authenticator,
                         robot=BridgeView(telemetry, goals), config=self.config,
                         cert_principals=cert_principals(self.config) if api.tls else None,

@@ -6,6 +6,7 @@ import argparse
 import json
 
 from .. import _stop_signals as stop_signals
+from .._printable import shown
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -37,11 +38,3 @@ async def _discover(args: argparse.Namespace) -> int:
     if not robots and not args.json:
         print(f"no RCAN robots found in {args.timeout:g} s")
     return 0
-
-
-def shown(text: str) -> str:
-    """`text` for a terminal: what any peer on the network announced is shown, never obeyed —
-    a character that does not print (ESC, BEL, CR, the 8-bit CSI, a bidi override) is
-    written as its escape (`\\x1b`), anything printable (non-ASCII letters too) as it is."""
-    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii")
-                   for c in text)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from .. import _stop_signals as stop_signals
+from .._printable import shown
 from ..ros.graph import Direction, Endpoint, RosGraph, node_fqn
 from ..ros.names import EndpointKind, action_of, is_hidden
 from ._common import make_node, warn_if_alone
@@ -33,7 +34,7 @@ async def _list(args: argparse.Namespace) -> int:
         await graph.settle(args.spin_time)
         for namespace, name in graph.nodes():
             if args.all or not name.startswith("_"):
-                print(node_fqn(namespace, name))
+                print(shown(node_fqn(namespace, name)))  # (as a peer named itself)
         warn_if_alone(args, node, graph)
     return 0
 
@@ -84,9 +85,9 @@ async def _info(args: argparse.Namespace) -> int:
             return 1
         mine = [e for e in graph.endpoints()
                 if node_fqn(e.node_namespace, e.node_name) == target]
-        print(target)
+        print(shown(target))
         for section, entries in describe_node(mine, args.include_hidden).items():
             print(f"  {section}:")
             for name, types in sorted(entries.items()):
-                print(f"    {name}: {', '.join(sorted(types))}")
+                print(shown(f"    {name}: {', '.join(sorted(types))}"))
     return 0

@@ -11,6 +11,7 @@ import time
 from typing import Any
 
 from .. import _stop_signals as stop_signals
+from .._printable import shown
 from ..ros import qos as qos_mod
 from ..ros.errors import GraphTimeout, seconds
 from ..ros.graph import Direction, Endpoint, RosGraph, short_gid
@@ -122,7 +123,8 @@ async def _list(args: argparse.Namespace) -> int:
     node, graph = await _graph(args)
     with node:
         for name, types in graph.topics(args.include_hidden_topics).items():
-            print(f"{name} [{', '.join(types)}]" if args.show_types else name)
+            # (names and types are what any participant on the domain says: shown, not obeyed)
+            print(shown(f"{name} [{', '.join(types)}]" if args.show_types else name))
         warn_if_alone(args, node, graph)
     return 0
 
@@ -132,7 +134,7 @@ async def _type(args: argparse.Namespace) -> int:
     with node:
         types = graph.topics(include_hidden=True).get(node.resolve(args.topic), [])
     for name in types:
-        print(name)
+        print(shown(name))
     return 0 if types else 1
 
 
@@ -142,7 +144,7 @@ async def _find(args: argparse.Namespace) -> int:
     with node:
         for name, types in graph.topics(args.include_hidden_topics).items():
             if wanted in types:
-                print(name)
+                print(shown(name))
     return 0
 
 
@@ -150,9 +152,9 @@ def _describe_endpoint(e: Endpoint) -> str:
     q = e.qos
     depth = f"KEEP_LAST ({q.depth})" if q.history is qos_mod.History.KEEP_LAST else "KEEP_ALL"
     return "\n".join([
-        f"Node name: {e.node_name}",
-        f"Node namespace: {e.node_namespace}",
-        f"Topic type: {e.ros_type}",
+        f"Node name: {shown(e.node_name)}",
+        f"Node namespace: {shown(e.node_namespace)}",
+        f"Topic type: {shown(e.ros_type)}",
         f"Topic type hash: {e.type_hash or 'INVALID'}",
         f"Endpoint type: {e.direction.value}",
         f"GID: {short_gid(e.gid)}",
@@ -176,7 +178,7 @@ async def _info(args: argparse.Namespace) -> int:
             return 1
         pubs = [e for e in endpoints if e.direction is Direction.PUBLISHER]
         subs = [e for e in endpoints if e.direction is Direction.SUBSCRIPTION]
-        print(f"Type: {', '.join(sorted({e.ros_type for e in endpoints}))}")
+        print(shown(f"Type: {', '.join(sorted({e.ros_type for e in endpoints}))}"))
         print(f"Publisher count: {len(pubs)}")
         if args.verbose:
             print()
@@ -240,7 +242,7 @@ async def _pub(args: argparse.Namespace) -> int:
         else:
             check_type(node, graph, pub.topic, args.type)
         print("publisher: beginning loop", flush=True)
-        shown = _shown(node.values.to_plain(args.type, message))
+        said = _shown(node.values.to_plain(args.type, message))
         period = 1.0 / args.rate if args.rate > 0 else 0.0
         sent = 0
         next_check = time.monotonic() + TYPE_CHECK_PERIOD
@@ -250,7 +252,7 @@ async def _pub(args: argparse.Namespace) -> int:
                 next_check = time.monotonic() + TYPE_CHECK_PERIOD
             pub.publish(message)
             sent += 1
-            print(f"publishing #{sent}: {args.type}({shown})", flush=True)
+            print(f"publishing #{sent}: {args.type}({said})", flush=True)
             if not times or sent < times:
                 await asyncio.sleep(period)
         await asyncio.sleep(0.3)  # let reliable delivery finish before the participant goes

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 
+from .._printable import shown  # (a deny_reason holds paths through the client's own keys)
 from .audit import AuditEvent, AuditReceipt, AuditRecord
 
 log = logging.getLogger("rcan_rtps.decisions")
@@ -35,16 +36,6 @@ def describe(record: AuditRecord) -> str:
     if record.ros2_topic:
         parts.append(f"on {record.ros2_topic}")
     return shown(" ".join(parts))
-
-
-def shown(text: str) -> str:
-    """`text` with what is not printable escaped (`\\n`, `\\u202e`): a deny_reason holds
-    paths through the client's own keys, and a newline or bidi control there would forge or
-    reorder a line of the server's log."""
-    if text.isprintable():
-        return text
-    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii")
-                   for c in text)
 
 
 def log_entry(record: AuditRecord, receipt: AuditReceipt) -> None:

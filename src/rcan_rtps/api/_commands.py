@@ -10,8 +10,8 @@ from __future__ import annotations
 import asyncio
 import sys
 import zlib
-from collections.abc import Iterator
-from typing import NamedTuple, TypeVar
+from collections.abc import Coroutine, Iterator
+from typing import Any, NamedTuple, TypeVar
 
 from aiohttp import web
 
@@ -60,11 +60,16 @@ async def _read_raw(request: web.Request, limit: int, timeout_s: float | None) -
     if content.is_eof():  # all of it arrived with the headers (the usual small command)
         data = content.read_nowait()  # no timer to arm and cancel, no chunk loop
         return data if len(data) <= limit else None
+    return await _in_time(_read(request, limit), timeout_s)
+
+
+async def _in_time(reading: Coroutine[Any, Any, T], timeout_s: float | None) -> T:
+    """`reading`'s result, or BodyTimeout after `timeout_s`."""
     try:
         if sys.version_info >= (3, 11):  # no extra task (and loop turn) per request
             async with asyncio.timeout(timeout_s):
-                return await _read(request, limit)
-        return await asyncio.wait_for(_read(request, limit), timeout_s)
+                return await reading
+        return await asyncio.wait_for(reading, timeout_s)
     except asyncio.TimeoutError as exc:
         raise BodyTimeout(f"body not complete within {timeout_s} s") from exc
 
@@ -101,21 +106,22 @@ async def read_command(request: web.Request, limit: int,
 
     Raises BodyTimeout (the whole body within `timeout_s` of its headers, as for any body)
     and BodyEncoding."""
-    try:
-        if sys.version_info >= (3, 11):
-            async with asyncio.timeout(timeout_s):
-                return await _read_command(request, limit)
-        return await asyncio.wait_for(_read_command(request, limit), timeout_s)
-    except asyncio.TimeoutError as exc:
-        raise BodyTimeout(f"body not complete within {timeout_s} s") from exc
-
-
-async def _read_command(request: web.Request, limit: int) -> CommandBody | None:
     room = limit * STOP_ROOM
     header = request.headers.get("Content-Encoding", "")
-    held = bytearray()
-    chunks = request.content.iter_chunked(_SKIM_PIECE)
-    async for chunk in chunks:
+    content = request.content
+    if content.is_eof():  # all of it arrived with the headers (the usual small command)
+        held = content.read_nowait()  # no timer to arm and cancel, no chunk loop
+        if len(held) <= room:
+            data = decoded(header, held, room)
+            if data is not None:
+                return CommandBody(data)
+        return await _in_time(_skimmed(request, limit, held), timeout_s)
+    return await _in_time(_read_command(request, limit, header), timeout_s)
+
+
+async def _read_command(request: web.Request, limit: int, header: str) -> CommandBody | None:
+    room, held = limit * STOP_ROOM, bytearray()
+    async for chunk in request.content.iter_chunked(_SKIM_PIECE):
         held += chunk
         if len(held) > room:
             break
@@ -124,9 +130,15 @@ async def _read_command(request: web.Request, limit: int) -> CommandBody | None:
         if data is not None:
             return CommandBody(data)
         # (it inflates past the room: skimmed as it inflates, from its start)
+    return await _skimmed(request, limit, bytes(held))
+
+
+async def _skimmed(request: web.Request, limit: int, held: bytes) -> CommandBody | None:
+    """The body's skeleton, from what is `held` of it on to its end (`read_command`)."""
+    header, room = request.headers.get("Content-Encoding", ""), limit * STOP_ROOM
     skeleton = Skeleton(keep=max(limit // 16, 64), cap=room)
-    inflater = _Inflater(header, bytes(held))
-    pieces = [bytes(held)]
+    inflater = _Inflater(header, held)
+    pieces = [held]
     while True:
         for piece in pieces:
             for text in inflater.undo(piece):

@@ -247,10 +247,10 @@ async def test_a_call_behind_another_s_announcement_wait_ends_at_its_own_deadlin
     assert reply.success and pair.unannounced == 1 and pair.renewed == ANNOUNCE_TRIES - 1
 
 
-async def test_a_call_waiting_for_its_reply_when_the_node_closes_says_so(
-        domain_id: int, node: RosNode) -> None:
-    """Closing the node (not the client) while a call waited for its reply left the call
-    waiting out its timeout, then reporting that no reply came in time."""
+@contextlib.asynccontextmanager
+async def _hanging_server(domain_id: int) -> AsyncIterator[asyncio.Event]:
+    """A Trigger server at /slow (our own, Cyclone mapping) that never answers; the event is
+    set when a request reaches it."""
     asked = asyncio.Event()
 
     async def hang(request: object) -> dict[str, object]:
@@ -260,13 +260,23 @@ async def test_a_call_waiting_for_its_reply_when_the_node_closes_says_so(
 
     with RosNode("rcan_server", "/", domain_id=domain_id) as server_node:
         server = ServiceServer(server_node, "/slow", "std_srvs/srv/Trigger", hang)
+        try:
+            yield asked
+        finally:
+            await server.close()
+
+
+async def test_a_call_waiting_for_its_reply_when_the_node_closes_says_so(
+        domain_id: int, node: RosNode) -> None:
+    """Closing the node (not the client) while a call waited for its reply left the call
+    waiting out its timeout, then reporting that no reply came in time."""
+    async with _hanging_server(domain_id) as asked:
         client = ServiceClient(node, "/slow", "std_srvs/srv/Trigger")
         call = asyncio.ensure_future(client.call({}, timeout=600))
         await asyncio.wait_for(asked.wait(), 15)
         node.close()
         with pytest.raises(ServiceUnavailable, match="its node /rcan_client was closed"):
             await asyncio.wait_for(call, 15)
-        await server.close()
 
 
 async def _cancelled_then_closed(client: ServiceClient, asked: Callable[[], Any],
@@ -291,18 +301,9 @@ async def test_a_call_cancelled_as_its_client_closes_leaves_no_unretrieved_error
         domain_id: int, node: RosNode, caplog: pytest.LogCaptureFixture) -> None:
     """Cyclone mapping (our server). The reply's future, failed by the close after its
     waiter had been cancelled, was logged at collection as an exception never retrieved."""
-    asked = asyncio.Event()
-
-    async def hang(request: object) -> dict[str, object]:
-        asked.set()
-        await asyncio.sleep(3600)
-        return {}
-
-    with RosNode("rcan_server", "/", domain_id=domain_id) as server_node:
-        server = ServiceServer(server_node, "/slow", "std_srvs/srv/Trigger", hang)
+    async with _hanging_server(domain_id) as asked:
         client = ServiceClient(node, "/slow", "std_srvs/srv/Trigger")
         await _cancelled_then_closed(client, asked.wait, caplog)
-        await server.close()
 
 
 async def test_a_fastdds_call_cancelled_as_its_client_closes_leaves_no_unretrieved_error(

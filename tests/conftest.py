@@ -13,6 +13,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
+from asyncio_log_guard import AsyncioLogGuard  # noqa: E402
 from oracle.client import RMWS, OracleEnv  # noqa: E402
 from shm_sweep import segments, sweep  # noqa: E402
 
@@ -207,6 +208,9 @@ def _refuse_the_source_tree() -> None:
 
 def pytest_configure(config: pytest.Config) -> None:
     _refuse_the_source_tree()
+    # An error asyncio logs (an exception never retrieved, a task destroyed pending) fails the
+    # run: tests/asyncio_log_guard.py.
+    config.pluginmanager.register(AsyncioLogGuard(config), "rcan-asyncio-log-guard")
     # Whatever starts a DDS participant without naming a domain joins this worker's own, not
     # domain 0 shared with every other worker.
     os.environ["ROS_DOMAIN_ID"] = str(_DEFAULT_DOMAIN)

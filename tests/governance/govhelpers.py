@@ -68,6 +68,7 @@ class Harness:
         self.clock = clock
         self.dispatcher = RecordingDispatcher()
         self.logs: list[AuditLog] = []
+        self.governors: list[Governor] = []
 
     def config(self, hitl_extra: str = "", gates: str = ARM_GATE) -> RcanConfig:
         text = CONFIG % {"ruri": RURI, "dir": self.tmp, "hitl_extra": hitl_extra,
@@ -80,10 +81,19 @@ class Harness:
         log = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path,
                                   ruri=RURI, clock=self.clock, group_commit=group_commit)
         self.logs.append(log)
-        return Governor.from_config(config, audit=log, dispatcher=self.dispatcher,
-                                    clock=self.clock, notifier=notifier)
+        governor = Governor.from_config(config, audit=log, dispatcher=self.dispatcher,
+                                        clock=self.clock, notifier=notifier)
+        self.governors.append(governor)
+        return governor
 
     async def restart(self) -> None:
+        """The process ends without a clean stop (no BRIDGE_STOPPED): its audit logs are
+        closed, and its governors' e-stop machines end with it — one dropped running would
+        leave its worker task pending for the garbage collector ("Task was destroyed but it
+        is pending!" in the log, at whatever test the collector runs in)."""
+        for governor in self.governors:
+            await governor.latch.close()
+        self.governors.clear()
         for log in self.logs:
             await log.close()
         self.logs.clear()

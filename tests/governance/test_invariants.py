@@ -239,6 +239,7 @@ async def test_clear_that_cannot_persist_stays_latched(tmp_path: Path) -> None:
     with pytest.raises(EstopStateError):
         await machine.clear(clear)
     assert machine.latched
+    await machine.close()  # its worker must not be left pending for the collector
 
 
 async def test_clear_followed_by_an_estop_stays_latched(tmp_path: Path) -> None:

@@ -12,6 +12,7 @@ import asyncio
 import math
 import random
 import tempfile
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +31,7 @@ from streamhelpers import (
     stream_governor,
 )
 
+from rcan_rtps.governance.audit import AuditLog
 from rcan_rtps.governance.governor import Governor
 from rcan_rtps.governance.streams import Velocity
 from rcan_rtps.rcan import Outcome, Role
@@ -102,8 +104,28 @@ def test_every_sample_is_within_the_velocity_and_acceleration_limits(
 # -- plain cases --------------------------------------------------------------------------------
 
 
+# What `_governor` made in the test under way, ended after it (`_end_governors`).
+_made: list[tuple[Governor, AuditLog]] = []
+
+
+@pytest.fixture(autouse=True)
+async def _end_governors() -> AsyncIterator[None]:
+    """Each governor a test made ends after it, its tasks and e-stop machine done: one
+    dropped with its machine's worker pending leaves it to the garbage collector, which logs
+    'Task was destroyed but it is pending!' (tests/asyncio_log_guard.py)."""
+    yield
+    made = list(_made)
+    _made.clear()
+    for gov, log in made:
+        gov.end_streams()
+        await asyncio.gather(*gov._tasks, return_exceptions=True)
+        await gov.latch.close()
+        await log.close()
+
+
 async def _governor(tmp: Path, **kw: Any) -> tuple[Governor, Wire, ManualTimer]:
-    gov, wire, timer, _ = await stream_governor(tmp, **kw)
+    gov, wire, timer, log = await stream_governor(tmp, **kw)
+    _made.append((gov, log))
     return gov, wire, timer
 
 

@@ -1,8 +1,9 @@
 """What a DDS participant names is shown, never obeyed: `topic list` printed topic and type
 names as they came (Cyclone refuses such a topic name of its own, but not a type name, and a
-remote participant of another vendor announces whatever it likes), so any participant on the domain could send the operator's terminal
-escape sequences (retitle it, clear it, hide lines of the listing). Red team 19 found it in
-`discover` (mDNS); the ROS listings had the same fault."""
+remote participant of another vendor announces whatever it likes), so any participant on the
+domain could send the operator's terminal escape sequences (retitle it, clear it, hide lines
+of the listing). Red team 19 found it in `discover` (mDNS); the ROS listings had the same
+fault."""
 
 
 from collections.abc import Iterator

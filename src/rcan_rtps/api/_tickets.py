@@ -29,6 +29,7 @@ from urllib.parse import urlsplit
 import msgspec
 from aiohttp import web
 
+from rcan_rtps._counts import count_down
 from rcan_rtps.governance import Principal
 
 TTL_S = 30.0
@@ -80,7 +81,7 @@ class WsTickets:
         if found is None:
             return None
         principal, expires = found
-        self._let_go(principal)
+        count_down(self._held, principal.name)
         return principal if self._now() < expires else None
 
     @property
@@ -97,12 +98,7 @@ class WsTickets:
             digest, (_, expires) = next(iter(self._open.items()))
             if expires > now:
                 return
-            self._let_go(self._open.pop(digest)[0])
-
-    def _let_go(self, principal: Principal) -> None:
-        self._held[principal.name] -= 1
-        if self._held[principal.name] <= 0:
-            del self._held[principal.name]
+            count_down(self._held, self._open.pop(digest)[0].name)
 
 
 def ticket_of(request: web.Request) -> str | None:

@@ -43,6 +43,7 @@ from typing import Literal, Protocol
 import msgspec
 from aiohttp import WSCloseCode, WSMsgType, web
 
+from rcan_rtps._counts import count_down
 from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.rcan import ErrorCode, Invoke, InvokeCancel
 
@@ -295,9 +296,7 @@ class _Commands:
     async def _invoked(self, invoke: Invoke, skills: Skills) -> None:
         """An INVOKE in its turn; then the INVOKE_CANCELs of it that came while it was queued
         go to the lane."""
-        self._queued[invoke.msg_id] -= 1
-        if self._queued[invoke.msg_id] <= 0:
-            del self._queued[invoke.msg_id]
+        count_down(self._queued, invoke.msg_id)
         try:
             await self._invoke(invoke, skills)
         finally:
@@ -369,13 +368,13 @@ async def websocket(request: web.Request) -> web.StreamResponse:
     try:
         await ws.prepare(request)
     except BaseException:
-        _let_go(held, principal.name)
+        count_down(held, principal.name)
         raise
     app[SOCKETS].add(ws)
     try:
         return await _serve(ws, request, principal, transport)
     finally:
-        _let_go(held, principal.name)
+        count_down(held, principal.name)
 
 
 def _too_many_sockets(principal: Principal) -> web.Response:
@@ -385,12 +384,6 @@ def _too_many_sockets(principal: Principal) -> web.Response:
     log.warning("WebSocket of %s refused: it holds %d already", principal.name,
                 MAX_SOCKETS_PER_PRINCIPAL, extra={"principal": principal.name})
     return error_response(429, ErrorCode.RATE_LIMITED, reason="too_many_sockets")
-
-
-def _let_go(held: Counter[str], name: str) -> None:
-    held[name] -= 1
-    if held[name] <= 0:
-        del held[name]
 
 
 async def _serve(ws: web.WebSocketResponse, request: web.Request, principal: Principal,

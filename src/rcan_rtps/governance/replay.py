@@ -19,6 +19,7 @@ from __future__ import annotations
 import heapq
 from collections import Counter
 
+from rcan_rtps._counts import count_down
 from rcan_rtps.rcan import ErrorCode, Outcome
 
 from . import outcomes
@@ -91,9 +92,7 @@ class ReplayWindow:
 
     def _drop(self, msg_id: str) -> None:
         sender, _ = self._seen.pop(msg_id)
-        self._held[sender] -= 1
-        if not self._held[sender]:
-            del self._held[sender]
+        count_down(self._held, sender)
 
 
 def _stale(reason: str) -> Rejection:

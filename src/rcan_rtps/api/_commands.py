@@ -36,6 +36,10 @@ from ._skills import Skills
 from ._skim import Skeleton
 
 T = TypeVar("T")
+# Bodies are read a chunk of this at a time; one skimmed is inflated this much at a time, the
+# loop given a turn after each: a body read that far must not hold it (a stop on another
+# connection is decided meanwhile).
+_PIECE = 64 * 1024
 
 
 async def read_limited(request: web.Request, limit: int,
@@ -75,11 +79,17 @@ async def _in_time(reading: Coroutine[Any, Any, T], timeout_s: float | None) -> 
 
 
 async def _read(request: web.Request, limit: int) -> bytes | None:
+    held = await _held(request, limit)
+    return held if len(held) <= limit else None
+
+
+async def _held(request: web.Request, limit: int) -> bytes:
+    """The body, or its start once past `limit` (by one chunk at most)."""
     buf = bytearray()
-    async for chunk in request.content.iter_chunked(64 * 1024):
+    async for chunk in request.content.iter_chunked(_PIECE):
         buf += chunk
         if len(buf) > limit:  # chunked bodies state no length: count as they come
-            return None
+            break
     return bytes(buf)
 
 
@@ -92,11 +102,6 @@ class CommandBody(NamedTuple):
     warnings: tuple[str, ...] = ()  # what else was wrong with how it came (a stop's)
 
 
-# Inflated a piece at a time when skimming, and the loop given a turn after each: a body
-# read that far must not hold it (a stop on another connection is decided meanwhile).
-_SKIM_PIECE = 64 * 1024
-
-
 async def read_command(request: web.Request, limit: int,
                        timeout_s: float | None) -> CommandBody | None:
     """A command's body (REST, `/mcp`): whole up to STOP_ROOM times `limit`, as `read_limited`
@@ -106,49 +111,44 @@ async def read_command(request: web.Request, limit: int,
 
     Raises BodyTimeout (the whole body within `timeout_s` of its headers, as for any body)
     and BodyEncoding."""
-    room = limit * STOP_ROOM
     header = request.headers.get("Content-Encoding", "")
     content = request.content
     if content.is_eof():  # all of it arrived with the headers (the usual small command)
         held = content.read_nowait()  # no timer to arm and cancel, no chunk loop
-        if len(held) <= room:
-            data = decoded(header, held, room)
-            if data is not None:
-                return CommandBody(data)
-        return await _in_time(_skimmed(request, limit, held), timeout_s)
+        whole = _whole(held, limit, header)
+        if whole is not None:
+            return whole
+        return await _in_time(_skimmed(request, limit, held, header), timeout_s)
     return await _in_time(_read_command(request, limit, header), timeout_s)
 
 
 async def _read_command(request: web.Request, limit: int, header: str) -> CommandBody | None:
-    room, held = limit * STOP_ROOM, bytearray()
-    async for chunk in request.content.iter_chunked(_SKIM_PIECE):
-        held += chunk
-        if len(held) > room:
-            break
-    else:
-        data = decoded(header, bytes(held), room)
-        if data is not None:
-            return CommandBody(data)
-        # (it inflates past the room: skimmed as it inflates, from its start)
-    return await _skimmed(request, limit, bytes(held))
+    held = await _held(request, limit * STOP_ROOM)
+    whole = _whole(held, limit, header)
+    return whole if whole is not None else await _skimmed(request, limit, held, header)
 
 
-async def _skimmed(request: web.Request, limit: int, held: bytes) -> CommandBody | None:
+def _whole(held: bytes, limit: int, header: str) -> CommandBody | None:
+    """`held`, decoded, when it is the whole body and within STOP_ROOM times `limit` once
+    decoded; None: it is to be skimmed, from its start."""
+    room = limit * STOP_ROOM
+    data = decoded(header, held, room) if len(held) <= room else None
+    return None if data is None else CommandBody(data)
+
+
+async def _skimmed(request: web.Request, limit: int, held: bytes,
+                   header: str) -> CommandBody | None:
     """The body's skeleton, from what is `held` of it on to its end (`read_command`)."""
-    header, room = request.headers.get("Content-Encoding", ""), limit * STOP_ROOM
+    room = limit * STOP_ROOM
     skeleton = Skeleton(keep=max(limit // 16, 64), cap=room)
     inflater = _Inflater(header, held)
-    pieces = [held]
-    while True:
-        for piece in pieces:
-            for text in inflater.undo(piece):
-                if not skeleton.feed(text):
-                    return None
-                await asyncio.sleep(0)
-        chunk = await request.content.read(_SKIM_PIECE)
-        if not chunk:
-            break
-        pieces = [chunk]
+    piece = held
+    while piece:
+        for text in inflater.undo(piece):
+            if not skeleton.feed(text):
+                return None
+            await asyncio.sleep(0)
+        piece = await request.content.read(_PIECE)
     inflater.finish()
     return CommandBody(skeleton.text, Skimmed(skeleton.size, skeleton.shortened),
                        inflater.warnings)
@@ -161,8 +161,7 @@ class _Inflater:
     stops, as `decoded`'s callers do for a body held whole)."""
 
     def __init__(self, header: str, start: bytes) -> None:
-        codings = [c.strip().lower() for c in header.split(",")]
-        codings = [c for c in codings if c not in ("", "identity")]
+        codings = _codings(header)
         self.warnings: tuple[str, ...] = ()
         self._zlib: zlib._Decompress | None = None
         if len(codings) > 1 or (codings and codings[0] not in _CODINGS):
@@ -180,9 +179,9 @@ class _Inflater:
             yield data
             return
         try:
-            yield inflater.decompress(data, _SKIM_PIECE)
+            yield inflater.decompress(data, _PIECE)
             while inflater.unconsumed_tail:
-                yield inflater.decompress(inflater.unconsumed_tail, _SKIM_PIECE)
+                yield inflater.decompress(inflater.unconsumed_tail, _PIECE)
         except zlib.error as exc:
             raise BodyEncoding(400, f"the body's compressed data is damaged: {exc}", b"") \
                 from None
@@ -196,7 +195,7 @@ def _decompressor(coding: str, start: bytes) -> zlib._Decompress | None:
     """A decompressor for `coding` that takes the body's first bytes; None if none does."""
     for wbits in _CODINGS[coding]:
         try:
-            zlib.decompressobj(wbits).decompress(start[:_SKIM_PIECE], 1)
+            zlib.decompressobj(wbits).decompress(start[:_PIECE], 1)
         except zlib.error:
             continue
         return zlib.decompressobj(wbits)
@@ -214,9 +213,8 @@ _CODINGS = {"gzip": (47,), "x-gzip": (47,), "deflate": (47, -15)}
 def decoded(header: str, raw: bytes, limit: int) -> bytes | None:
     """`raw` with the codings `header` lists undone (the last applied first); None when the
     result exceeds `limit`. Raises BodyEncoding for a coding not taken or data not so coded."""
-    codings = [c.strip().lower() for c in header.split(",")]
     data: bytes | None = raw
-    for coding in reversed([c for c in codings if c not in ("", "identity")]):
+    for coding in reversed(_codings(header)):
         if coding not in _CODINGS:
             raise BodyEncoding(415, f"Content-Encoding {coding[:32]!r} is not taken (gzip, "
                                "deflate or none)", raw)
@@ -225,6 +223,12 @@ def decoded(header: str, raw: bytes, limit: int) -> bytes | None:
         if data is None:
             return None
     return data
+
+
+def _codings(header: str) -> list[str]:
+    """The codings a Content-Encoding header lists, in the order applied (identity left out)."""
+    codings = (c.strip().lower() for c in header.split(","))
+    return [c for c in codings if c not in ("", "identity")]
 
 
 def _inflate(coding: str, data: bytes, limit: int, raw: bytes) -> bytes | None:

@@ -148,9 +148,8 @@ def _oversize(raw: bytes, limit: int, checks: Checks, principal: str | None,
     does not use up its msg_id."""
     if not intake(raw, len(raw)).stopping:
         return Intake(refusal=outcomes.PAYLOAD_TOO_LARGE)
-    size, shortened = (len(raw), 0) if skimmed is None else skimmed
     return with_warnings(intake(raw, len(raw), checks, principal),
-                         (oversize_warning(size, limit, shortened),))
+                         (oversize_warning(raw, limit, skimmed),))
 
 
 class Skimmed(NamedTuple):
@@ -160,8 +159,10 @@ class Skimmed(NamedTuple):
     shortened: int  # strings cut
 
 
-def oversize_warning(size: int, limit: int, shortened: int = 0) -> str:
-    """What a stop over the size limit carries: it stopped all the same."""
+def oversize_warning(raw: bytes, limit: int, skimmed: Skimmed | None = None) -> str:
+    """What a stop over the size limit carries: it stopped all the same. `skimmed`: `raw` is
+    the skeleton of a body that size."""
+    size, shortened = (len(raw), 0) if skimmed is None else skimmed
     cut = f" ({shortened} of its strings kept only in part)" if shortened else ""
     return f"$: {size} bytes, over the {limit} taken{cut}: stopped all the same"
 

@@ -152,8 +152,7 @@ class McpEndpoint:
             return json_response(_too_large_error(refused, limit), status)
         body = read.data
         if rescue is not None and oversize:  # a stop always stops
-            size, shortened = read.skimmed or (len(read.data), 0)
-            rescue = rescue._replace(warnings=(oversize_warning(size, limit, shortened),
+            rescue = rescue._replace(warnings=(oversize_warning(body, limit, read.skimmed),
                                                *read.warnings, *rescue.warnings))
         if rescue is not None:
             return await self._stopping_call(server, request, rescue)

@@ -93,30 +93,6 @@ def no_traceback(log: pytest.LogCaptureFixture) -> None:
 # -- the bridge's /mcp (streamable HTTP) -------------------------------------------------------
 
 @MODES
-@STOPS
-async def test_an_oversize_stop_over_mcp_http_stops(api: Api, log: pytest.LogCaptureFixture,
-                                                    mode: str, tool: str, who: str) -> None:
-    async with agent(api, who, mode=mode) as client:
-        done = data(await client.call_tool(tool, {"reason": "person", "reasoning": BIG}))
-        assert (await client.list_tools()).tools  # the session goes on
-    stopped_once(api, tool, who, done)
-    assert api.dispatcher.calls[0][1] == {"reason": "person"}
-    no_traceback(log)
-
-
-@MODES
-async def test_an_estop_past_the_room_over_mcp_http_stops(
-        api: Api, log: pytest.LogCaptureFixture, mode: str) -> None:
-    """Read through its skeleton: it latches once, its reasoning kept in part, and the
-    client is told. Before, refused 413 unread."""
-    async with agent(api, "viewer", mode=mode) as client:
-        done = data(await client.call_tool("estop", {"reasoning": PAST_ROOM}))
-    stopped_once(api, "estop", "viewer", done, SAID_CUT)
-    assert [e["event"] for e in api.entries if e["event"] != "SESSION_OPENED"] == ["ESTOP"]
-    no_traceback(log)
-
-
-@MODES
 async def test_an_estop_past_the_room_by_its_shape_over_mcp_http_is_a_clear_error(
         api: Api, log: pytest.LogCaptureFixture, mode: str) -> None:
     """The body is refused (413, audited): the SDK's client raises at once (no hang)
@@ -184,25 +160,48 @@ def no_server_traceback(tmp_path: Path) -> None:
     assert "Traceback" not in said, said
 
 
+@contextlib.asynccontextmanager
+async def http_agent(tmp_path: Path, who: str, mode: str
+                     ) -> AsyncIterator[tuple[Api, Client]]:
+    """An API, and the SDK's client of its `/mcp` as `who`."""
+    api = await Api(tmp_path).start()
+    try:
+        async with agent(api, who, mode=mode) as client:
+            yield api, client
+    finally:
+        await api.close()
+
+
+# Each MCP transport a stop may come by: the bridge's /mcp, `rcan-rtps mcp` against the bridge.
+AGENTS = pytest.mark.parametrize("open_agent", [http_agent, stdio_agent],
+                                 ids=["mcp_http", "stdio"])
+
+
+@AGENTS
 @MODES
 @STOPS
-async def test_an_oversize_stop_over_stdio_stops(tmp_path: Path, log: pytest.LogCaptureFixture,
-                                                 mode: str, tool: str, who: str) -> None:
-    async with stdio_agent(tmp_path, who, mode) as (api, client):
+async def test_an_oversize_stop_stops(tmp_path: Path, log: pytest.LogCaptureFixture,
+                                      open_agent: Any, mode: str, tool: str, who: str) -> None:
+    async with open_agent(tmp_path, who, mode) as (api, client):
         done = data(await client.call_tool(tool, {"reason": "person", "reasoning": BIG}))
+        assert (await client.list_tools()).tools  # the session goes on
         stopped_once(api, tool, who, done)
         assert api.dispatcher.calls[0][1] == {"reason": "person"}
     no_traceback(log)
 
 
+@AGENTS
 @MODES
-async def test_an_estop_past_the_room_over_stdio_stops(
-        tmp_path: Path, log: pytest.LogCaptureFixture, mode: str) -> None:
-    async with stdio_agent(tmp_path, "viewer", mode) as (api, client):
+async def test_an_estop_past_the_room_stops(tmp_path: Path, log: pytest.LogCaptureFixture,
+                                            open_agent: Any, mode: str) -> None:
+    """Read through its skeleton: it latches once, its reasoning kept in part, and the
+    client is told. Before, refused 413 unread."""
+    async with open_agent(tmp_path, "viewer", mode) as (api, client):
         done = data(await client.call_tool("estop", {"reason": "person",
                                                      "reasoning": PAST_ROOM}))
         stopped_once(api, "estop", "viewer", done, SAID_CUT)
         assert api.dispatcher.calls == [("estop", {"reason": "person"})]
+        assert [e["event"] for e in api.entries if e["event"] != "SESSION_OPENED"] == ["ESTOP"]
     no_traceback(log)
 
 

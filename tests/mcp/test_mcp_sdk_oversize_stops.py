@@ -28,7 +28,7 @@ from mcp_types import CallToolResult
 from mcp_types.jsonrpc import INVALID_REQUEST
 
 from rcan_rtps.api._intake import STOP_ROOM
-from rcan_rtps.mcp_server.server import TOO_LARGE_STOP
+from rcan_rtps.mcp_server.stop_tool import TOO_LARGE_STOP
 from tests.api.apihelpers import TOKENS, Api
 from tests.api.test_mcp_http import CLIENT, agent
 

@@ -3,11 +3,12 @@
 Authenticated like every API route (the `authenticate` middleware runs first: no principal,
 no MCP). The official SDK (`rcan-rtps[mcp]`) is imported on the first request to `/mcp`, so
 a bridge nobody asks for MCP never loads it; without the extra, `/mcp` answers 501 saying
-what to install. Each request runs as its principal (`_local.LocalApi`: the REST routes'
-own functions), naming the agent's model from its `RCAN-AI-Provider` and `RCAN-AI-Model`
-headers (or the `ai_provider` and `ai_model` query parameters, for clients that can set no
-header but `Authorization`). A principal's timed moves and goals are held by heartbeats
-while they run; a session the client closes (DELETE) stops what it left running.
+what to install (a stop excepted: see below). Each request runs as its principal
+(`_local.LocalApi`: the REST routes' own functions), naming the agent's model from its
+`RCAN-AI-Provider` and `RCAN-AI-Model` headers (or the `ai_provider` and `ai_model` query
+parameters, for clients that can set no header but `Authorization`). A principal's timed
+moves and goals are held by heartbeats while they run; a session the client closes (DELETE)
+stops what it left running.
 
 A stop stops whatever else is wrong with its request (`mcp_server.stops.stop_rescue`, which
 the stdio door shares): a `tools/call` that says stop (`estop`, `stop`: the registry's ESTOP
@@ -17,10 +18,13 @@ arguments — and its answer held back: if the stop did not reach the bridge (th
 it: no valid session over the 2025 protocol, a header that disagrees with the body, ...), it
 is run here, as the authenticated principal, and answered with its tool result. A
 notification's stop and the stops of a JSON-RPC batch (which the SDK refuses whole) are run
-here too. The stop carries what was wrong as
-`warnings`, in its tool result and its audit entry. Any other body the SDK answers as it
-would, its session checks included. A body too large (over `max_body_bytes`, or a stop over
-`STOP_ROOM` times it) is refused 413 as a JSON-RPC error, which an MCP client shows.
+here too, and so is every stop while the SDK is not installed, fails to start or fails the
+call (`mcp_server.stop_tool`: no SDK import). A server of the SDK's that ends before the
+bridge does is said once in the log and started again by the next request. The stop carries
+what was wrong as `warnings`, in its tool result and its audit entry. Any other body the SDK
+answers as it would, its session checks included. A body too large (over `max_body_bytes`,
+or a stop over `STOP_ROOM` times it) is refused 413 as a JSON-RPC error, which an MCP client
+shows.
 """
 
 from __future__ import annotations
@@ -76,6 +80,16 @@ def agent_of(request: web.Request) -> Agent:
     return Agent(named("RCAN-AI-Provider", "ai_provider"), named("RCAN-AI-Model", "ai_model"))
 
 
+def _failure(exc: BaseException) -> str:
+    """An exception of the SDK's, in one line (the log keeps no traceback of a library's
+    failure it recovers from; a group names its first)."""
+    inner = getattr(exc, "exceptions", None)
+    if inner:
+        return _failure(inner[0])
+    said = str(exc).splitlines()[0][:200] if str(exc) else ""
+    return f"{type(exc).__name__}: {said}" if said else type(exc).__name__
+
+
 def _named(request: web.Request, name: str) -> list[tuple[bytes, bytes]]:
     """The request's headers (as ASGI has them) with `Mcp-Name`, if sent, naming the tool as
     the body now does (the SDK refuses a call whose header and body disagree)."""
@@ -129,9 +143,6 @@ class McpEndpoint:
         # a bridge nobody asks for MCP keeps its idle memory (issue 27).
         from . import _asgi
 
-        server = await self._started(request.app)
-        if server is None:
-            return error_response(501, "NOT_IMPLEMENTED", reason=EXTRA_HINT)
         app, principal = request.app, request[PRINCIPAL]
         settings = app[SETTINGS]
         limit = settings.max_body_bytes
@@ -142,7 +153,7 @@ class McpEndpoint:
             if found is None:
                 raise
             said = f"$: {exc.reason}: read as sent"
-            return await self._stopping_call(server, request, found._replace(
+            return await self._stopping_call(request, found._replace(
                 warnings=(said, *found.warnings)))
         rescue = stop_rescue(read.data) if read is not None and request.method == "POST" \
             else None
@@ -155,7 +166,10 @@ class McpEndpoint:
             rescue = rescue._replace(warnings=(oversize_warning(body, limit, read.skimmed),
                                                *read.warnings, *rescue.warnings))
         if rescue is not None:
-            return await self._stopping_call(server, request, rescue)
+            return await self._stopping_call(request, rescue)
+        server = await self._started(app)
+        if server is None:
+            return error_response(501, "NOT_IMPLEMENTED", reason=EXTRA_HINT)
         seat = self._seat(app, principal, agent_of(request), request.headers.get(SESSION_HEADER))
 
         async def run(scope: Any, receive: Any, send: Any) -> None:
@@ -202,21 +216,26 @@ class McpEndpoint:
                  "cancelled")
         return web.Response(status=CLIENT_CLOSED)  # nobody reads it
 
-    async def _stopping_call(self, server: HttpMcp, request: web.Request,
-                             rescue: Rescue) -> web.StreamResponse:
+    async def _stopping_call(self, request: web.Request, rescue: Rescue
+                             ) -> web.StreamResponse:
         """A body that says stop: it stops, whatever the SDK would make of it. A stop the SDK
-        can run (in a valid session, or sessionless) it runs and answers; one it refuses or
-        cannot take (a notification) the door runs as its tool runs it, the refusal its
-        warning; a batch's stops the door runs."""
+        can run (in a valid session, or sessionless) it runs and answers; one it refuses,
+        cannot take (a notification) or fails, and every stop while it is not installed or
+        not running, the door runs as its tool runs it, why as its warning; a batch's stops
+        the door runs."""
         if rescue.batch is not None:
-            return await self._stop_batch(server, request, rescue.warnings, rescue.batch)
+            return await self._stop_batch(request, rescue.warnings, rescue.batch)
         call = rescue.call
         assert call is not None
         warnings = (*rescue.warnings, *call.warnings)
         if call.notification:  # the SDK would take it as an unknown notification: no stop
-            await self._stop_at_door(server, request, call, (
+            await self._stop_at_door(request, call, (
                 *warnings, "$: a notification (no id): run, and not answered"))
             return web.Response(status=202)
+        server, why_not = await self._server_for_stop(request.app)
+        if server is None:
+            return json_response(await self._stop_at_door(request, call, (
+                *warnings, f"$: {why_not}: the bridge ran the stop")))
         from . import _asgi
         from ._local import LocalApi
 
@@ -230,17 +249,35 @@ class McpEndpoint:
         # A body rewritten (the tool's own name, a repeated key resolved) names its tool anew.
         rewritten = call.warnings or rescue.warnings
         extra = {"headers": _named(request, call.name)} if rewritten else {}
-        answered = await _asgi.answer(run, request, rescue.body, extra)
+        try:
+            answered = await _asgi.answer(run, request, rescue.body, extra)
+            refusal = _refusal(answered)
+        except Exception as exc:  # the SDK's fault, not the stop's: the door runs it
+            log.warning("the MCP server failed a stop's call (%s): the bridge runs it",
+                        _failure(exc))
+            answered, refusal = None, f"$: the MCP server failed ({_failure(exc)}): the " \
+                                      "bridge ran the stop"
         if isinstance(seat.api, LocalApi) and seat.api.commanded:  # the SDK ran it
             if answered is None:
                 return error_response(503, "ROBOT_UNAVAILABLE", outcome="failed",
                                       reason="mcp_no_response")
             return answered.response()
-        reply = await self._stop_at_door(server, request, call, (*warnings, _refusal(answered)))
+        reply = await self._stop_at_door(request, call, (*warnings, refusal))
         return json_response(reply)
 
-    async def _stop_batch(self, server: HttpMcp, request: web.Request,
-                          warnings: tuple[str, ...], batch: list[Any]) -> web.Response:
+    async def _server_for_stop(self, app: web.Application) -> tuple[HttpMcp | None, str]:
+        """The SDK's server, or None and why there is none (a stop's warning): a stop never
+        waits on, or fails with, the SDK."""
+        try:
+            server = await self._started(app)
+        except Exception as exc:
+            log.warning("the MCP server did not start (%s): the bridge runs the stop",
+                        _failure(exc))
+            return None, f"the MCP server did not start ({_failure(exc)})"
+        return server, EXTRA_HINT if server is None else ""
+
+    async def _stop_batch(self, request: web.Request, warnings: tuple[str, ...],
+                          batch: list[Any]) -> web.Response:
         """A JSON-RPC batch's replies, in order: each stop's call run and answered with its
         tool result, every other request refused; a notification gets no reply, though a
         stop in one is run."""
@@ -250,19 +287,20 @@ class McpEndpoint:
             if call is None:
                 reply = not_served(member)
             else:
-                reply = await self._stop_at_door(server, request, call,
-                                                 (*warnings, *call.warnings))
+                reply = await self._stop_at_door(request, call, (*warnings, *call.warnings))
                 reply = None if call.notification else reply
             if reply is not None:
                 replies.append(reply)
         return json_response(replies) if replies else web.Response(status=202)
 
-    async def _stop_at_door(self, server: HttpMcp, request: web.Request, call: StopCall,
+    async def _stop_at_door(self, request: web.Request, call: StopCall,
                             warnings: tuple[str, ...]) -> dict[str, Any]:
-        """`call` run by the bridge, as the authenticated principal (no MCP session)."""
+        """`call` run by the bridge, as the authenticated principal (no MCP session, no SDK):
+        `warnings` go with it to its audit entry."""
+        from rcan_rtps.mcp_server.stop_tool import stop_reply
+
         seat = self._seat(request.app, request[PRINCIPAL], agent_of(request), None, warnings)
-        return await server.run_stop(seat, call.name, call.arguments, call.request_id,
-                                     list(request.raw_headers))
+        return await stop_reply(seat, call)
 
     def _seat(self, app: web.Application, principal: Principal, agent: Agent,
               session: str | None, warnings: tuple[str, ...] = ()) -> Seat:
@@ -271,15 +309,23 @@ class McpEndpoint:
 
         from ._local import LocalApi
 
-        assert self._fixed is not None
-        api = LocalApi(app, principal, self._fixed, warnings)
+        fixed = self._fixed_part()
+        api = LocalApi(app, principal, fixed, warnings)
         keepalive = self._keepalives.get(principal.name)
         if keepalive is None:  # one per principal: heartbeats are a principal's
             keepalive = self._keepalives[principal.name] = Keepalive(LocalApi(
-                app, principal, self._fixed))
+                app, principal, fixed))
             self._beating.append(asyncio.create_task(keepalive.run(),
                                                      name=f"mcp-keepalive-{principal.name}"))
         return Seat(api, agent, keepalive, session)
+
+    def _fixed_part(self) -> dict[str, Any]:
+        """The safety manifest's static part, which the tools describe the robot with."""
+        if self._fixed is None:
+            from ._safety_manifest import static_part
+
+            self._fixed = static_part(self._config)
+        return self._fixed
 
     async def _session_closed(self, seat: Seat) -> None:
         """The client closed its session: stop what it started that still runs."""
@@ -314,22 +360,34 @@ class McpEndpoint:
             log.warning("a client asked for MCP: %s", EXTRA_HINT)
             self._missing = True
             return None
-        from ._safety_manifest import static_part
-
-        self._fixed = static_part(self._config)
-        server = HttpMcp(self._fixed, max_body_bytes=app[SETTINGS].max_body_bytes)
+        server = HttpMcp(self._fixed_part(), max_body_bytes=app[SETTINGS].max_body_bytes)
         # The SDK's modules (pydantic's schemas: tens of thousands of objects) live as long as
         # the bridge: out of the collector's sight, like what start-up built (`run`), so that a
         # collection during a command does not scan them all (ms pauses, measured).
         gc.freeze()
         ready = asyncio.Event()
         self._serving = serving = asyncio.create_task(server.run(ready, self._stop), name="mcp")
+        serving.add_done_callback(self._ended)
         waiting = asyncio.create_task(ready.wait())
         await asyncio.wait([serving, waiting], return_when=asyncio.FIRST_COMPLETED)
         waiting.cancel()
         if serving.done():
             serving.result()  # it failed to start: raise why (the request is answered 503)
         return server
+
+    def _ended(self, serving: asyncio.Task[None]) -> None:
+        """The SDK's server ended: at `close`, as asked; before, it failed, and the next
+        request to `/mcp` starts another (its sessions are gone: clients open new ones; stops
+        run meanwhile, at the door). Said once, its exception retrieved: never "never
+        retrieved"."""
+        failed = None if serving.cancelled() else serving.exception()
+        if self._stop.is_set() or self._serving is not serving or self._server is None:
+            if failed is not None and self._server is not None:  # (a start's failure: raised)
+                log.warning("the MCP server failed while closing: %s", _failure(failed))
+            return
+        self._server = self._serving = None
+        log.warning("the MCP server stopped (%s): the next request to /mcp starts it again",
+                    "cancelled" if failed is None else _failure(failed))
 
     async def close(self) -> None:
         """End every session (their streams close), then the heartbeats: the bridge is

@@ -26,7 +26,6 @@ from mcp_types.version import HANDSHAKE_PROTOCOL_VERSIONS
 
 from .seat import Seat
 from .server import RobotTools, build_server
-from .stops import StopCall
 
 SEAT = "rcan.seat"  # the ASGI scope key of a request's seat
 MAX_SESSIONS = 256
@@ -86,18 +85,6 @@ class HttpMcp:
         params = message.get("params")
         name = params.get("name") if isinstance(params, dict) else None
         return isinstance(name, str) and self._tools.is_motion(name)
-
-    async def run_stop(self, seat: Seat, name: str, arguments: dict[str, Any],
-                       request_id: Any, scope_headers: list[tuple[bytes, bytes]]
-                       ) -> dict[str, Any]:
-        """The JSON-RPC reply to a stopping tool's call run by the bridge's door (not in an MCP
-        session: the SDK would not run it), as the tool runs it. A reply of the 2026-07-28
-        protocol says its result is complete, as the SDK's own do."""
-        call = StopCall(name, arguments, request_id, False, ())
-        reply = await self._tools.stop_reply(seat, call)  # warnings: the seat's, audited
-        if _modern(scope_headers):
-            reply["result"]["resultType"] = "complete"
-        return reply
 
 
 def _modern(headers: list[tuple[bytes, bytes]]) -> bool:

@@ -17,7 +17,6 @@ import json
 import logging
 import signal
 import sys
-import uuid
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import replace
@@ -35,7 +34,6 @@ from mcp_types.jsonrpc import INTERNAL_ERROR, INVALID_REQUEST, RequestId
 
 from rcan_rtps import __version__
 from rcan_rtps import _stop_signals as stop_signals
-from rcan_rtps._transport_warnings import unrecorded
 
 from .bridge import BridgeClient
 from .keepalive import Keepalive
@@ -48,19 +46,24 @@ from .resources import (
     RESOURCE_NOT_FOUND,
     RESOURCES,
 )
+from .results import (
+    ai_fields,
+    command_body,
+    failure_json,
+    outcome_note,
+    reply_json,
+    result_json,
+)
 from .seat import Agent, Seat
 from .stdio import StdinLines
 from .stdio_door import StdioDoor
-from .stops import StopCall
+from .stop_tool import run_stop, stop_reply
 from .tools import DURATION, WAIT_MAX_S, ToolDef, derive_tools
 
 log = logging.getLogger(__name__)
 POLL_S = 0.5
 CLIENT_MAX = 256  # the bridge's `ai_client` is at most this long
 LIST_TTL_MS = 300_000
-PAYLOAD_TOO_LARGE = 413  # the bridge's answer to a body over its `api.max_body_bytes`
-TOO_LARGE_STOP = ("$.params.arguments: larger than the bridge takes (its max_body_bytes): the "
-                  "stop was sent again without them (no confidence, reasoning or reason)")
 # Motion calls answered, remembered for a cancel that crossed the answer: so many a principal.
 ANSWERED_KEPT = 256
 INSTRUCTIONS = (
@@ -68,12 +71,6 @@ INSTRUCTIONS = (
     "your role, the safety limits and the e-stop, and audited with your identity. A move is "
     "timed (duration_s). State your confidence: low confidence waits for a human. A held "
     "command returns a pending_id: call wait_for_approval. estop and stop always work.")
-
-
-def ai_fields(agent: Agent) -> dict[str, str]:
-    """The short form's AI identity fields the agent has (none it has not)."""
-    fields = {"ai_provider": agent.provider, "ai_model": agent.model}
-    return {k: v for k, v in fields.items() if v is not None}
 
 
 def client_of(ctx: ServerRequestContext[Any]) -> str:
@@ -87,35 +84,15 @@ def client_of(ctx: ServerRequestContext[Any]) -> str:
 
 def result(reply: Reply, note: str, **extra: Any) -> types.CallToolResult:
     """The bridge's reply as a tool result: an error when it refused (4xx, 5xx)."""
-    return tool_result({"http_status": reply.status, **reply.body, **extra}, note,
-                       error=not reply.ok)
+    return types.CallToolResult.model_validate(reply_json(reply, note, **extra))
 
 
 def tool_result(data: dict[str, Any], note: str, *, error: bool) -> types.CallToolResult:
-    """`data` as structured content, and as text under a first line that says what it is:
-    `note`, or for an error the RCAN `error_code` and `reason`."""
-    head = note
-    if error:
-        code = data.get("error_code") or data.get("outcome") or "REFUSED"
-        head = f"refused: {code}: {data.get('reason') or 'no reason given'}"
-    return types.CallToolResult(
-        content=[types.TextContent(type="text", text=f"{head}\n{json.dumps(data)}")],
-        structured_content=data, is_error=error)
+    return types.CallToolResult.model_validate(result_json(data, note, error=error))
 
 
 def failure(message: str, error_code: str) -> types.CallToolResult:
-    data = {"error_code": error_code, "reason": message}
-    return types.CallToolResult(
-        content=[types.TextContent(type="text", text=f"{error_code}: {message}")],
-        structured_content=data, is_error=True)
-
-
-def _outcome_note(body: dict[str, Any]) -> str:
-    outcome = body.get("outcome", "")
-    if outcome == "pending_auth":
-        return (f"pending_auth: held for a human; call wait_for_approval with pending_id "
-                f"{body.get('pending_id')}")
-    return str(outcome)
+    return types.CallToolResult.model_validate(failure_json(message, error_code))
 
 
 SeatOf = Callable[[ServerRequestContext[Any]], Seat]
@@ -283,66 +260,26 @@ class RobotTools:
         except BridgeUnavailable as exc:
             log.warning("stopping the motion of a cancelled call: %s", exc)
 
-    async def stop_reply(self, seat: Seat, call: StopCall, warnings: tuple[str, ...] = ()
-                         ) -> dict[str, Any]:
-        """The JSON-RPC reply to a stop's call a door runs itself (the SDK would not run it
-        as sent); `warnings`, what the door found wrong, lead its result's own where the
-        bridge's reply (which has those its audit entry recorded) does not carry them."""
-        done = await self.stop(seat, call.name, call.arguments, "unknown")
-        if done is None:  # not a stopping tool: only the doors' stops come here
-            raise ValueError(f"{call.name!r} is no stopping tool")
-        answered = (done.structured_content or {}).get("warnings") or ()
-        missing = unrecorded(warnings, answered if isinstance(answered, list) else ())
-        if missing:
-            done = _warned(done, tuple(missing))
-        result = done.model_dump(mode="json", by_alias=True, exclude_none=True)
-        return {"jsonrpc": "2.0", "id": call.request_id, "result": result}
-
-    async def stop(self, seat: Seat, name: str, args: dict[str, Any],
-                   client: str) -> types.CallToolResult | None:
-        """A stopping tool's call that no MCP session carries (the bridge's `/mcp` runs the
-        stops of a JSON-RPC batch itself): as `call_tool` runs it. None: no stopping tool."""
-        tool = self._tools.get(name)
-        if tool is None or tool.action is None or not tool.action.stopping:
-            return None
-        return await _guarded(name, lambda: self._command(seat, tool, dict(args), client))
-
     # -- actions --------------------------------------------------------------------------
 
     async def _command(self, seat: Seat, tool: ToolDef, args: dict[str, Any],
                        client: str) -> types.CallToolResult:
         assert tool.action is not None
-        thought_id = uuid.uuid4().hex
-        body: dict[str, Any] = {"action": tool.name, **ai_fields(seat.agent),
-                                "ai_client": client, "thought_id": thought_id}
-        if "confidence" in args:
-            body["confidence"] = args.pop("confidence")
-        if "reasoning" in args:
-            body["ai_reasoning"] = args.pop("reasoning")
-        body["params"] = args
-        if tool.timed and args.get(DURATION) is None:
+        if tool.action.stopping:  # as the doors run the stops the SDK does not
+            return types.CallToolResult.model_validate(
+                await run_stop(seat, tool.name, args, client))
+        body = command_body(seat.agent, client, tool.name, args)
+        params, thought_id = body["params"], body["thought_id"]
+        if tool.timed and params.get(DURATION) is None:
             return failure(f"`{DURATION}` is required: a {tool.name} an agent starts is timed",
                            "SCHEMA_VALIDATION_FAILED")
         with seat.keepalive.calling(seat.session):
             # A motion call its client cancels must not leave the robot moving (`motion`).
             send = seat.api.motion if tool.action.motion else seat.api.command
             reply = await send(body)
-            if tool.action.stopping and reply.status == PAYLOAD_TOO_LARGE:
-                return await self._stop_unsaid(seat, tool, body)
             if reply.ok:
-                self._started(seat, tool, args, reply.body, key=thought_id)
-        return result(reply, _outcome_note(reply.body), thought_id=thought_id)
-
-    async def _stop_unsaid(self, seat: Seat, tool: ToolDef, body: dict[str, Any]
-                           ) -> types.CallToolResult:
-        """A stop whose arguments made it larger than the bridge takes, sent again without
-        them: what says stop, stops (the first, refused, is in the audit log too)."""
-        bare = {k: v for k, v in body.items() if k not in ("confidence", "ai_reasoning")}
-        reply = await seat.api.command({**bare, "params": {}})
-        if reply.ok:
-            self._started(seat, tool, {}, reply.body, key=body["thought_id"])
-        done = result(reply, _outcome_note(reply.body), thought_id=body["thought_id"])
-        return _warned(done, (TOO_LARGE_STOP,))
+                self._started(seat, tool, params, reply.body, key=thought_id)
+        return result(reply, outcome_note(reply.body), thought_id=thought_id)
 
     def _started(self, seat: Seat, tool: ToolDef, params: dict[str, Any],
                  body: dict[str, Any], key: str) -> None:
@@ -476,14 +413,6 @@ async def _guarded(name: str, call: Callable[[], Awaitable[types.CallToolResult]
         return failure(f"{name} failed inside the MCP server (see its log)", "INTERNAL_ERROR")
 
 
-def _warned(done: types.CallToolResult, warnings: tuple[str, ...]) -> types.CallToolResult:
-    """`done` with `warnings` before those its data has (the bridge's)."""
-    data = dict(done.structured_content or {})
-    data["warnings"] = [*warnings, *(data.get("warnings") or ())]
-    text = next((c.text for c in done.content if isinstance(c, types.TextContent)), "")
-    return tool_result(data, text.split("\n", 1)[0], error=bool(done.is_error))
-
-
 def refused(reply: Reply) -> MCPError:
     """A resource the bridge would not give, as an MCP error naming its RCAN refusal."""
     code = reply.body.get("error_code") or reply.body.get("outcome") or "REFUSED"
@@ -517,7 +446,7 @@ async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:
         gc.freeze()  # the SDK's modules live as long as the process: no collection scans them
         replies = Replies()
         # A stop's warnings go to the bridge with it (its audit entry), as /mcp's do.
-        door = StdioDoor(lambda call, warnings: tools.stop_reply(
+        door = StdioDoor(lambda call, warnings: stop_reply(
             replace(seat, api=bridge.warning(warnings)), call, warnings), replies.send)
         # The SDK's own stdin reader cannot be cancelled: see stdio.py. (The SDK only
         # iterates what it is given.) Every line is screened for a stop first (stdio_door).

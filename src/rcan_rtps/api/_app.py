@@ -46,7 +46,7 @@ from ._keys import (
 )
 from ._lazy import FirstUse, Handler, on_first_request
 from ._metrics import Metrics
-from ._middlewares import authenticate, last_resort
+from ._middlewares import authenticate, last_resort, safe_headers
 from ._skills import Skills
 from ._status import StatusHub
 from ._tickets import WsTickets
@@ -126,6 +126,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
                           client_max_size=settings.max_body_bytes,
                           # Bodies are decoded by `read_limited`, which answers a bad one.
                           handler_args={"auto_decompress": False})
+    app.on_response_prepare.append(safe_headers)
     app[DEADLINES] = deadlines  # ApiServer serves connections through it
     app[GOVERNOR] = governor
     app[AUTHENTICATOR] = authenticator

@@ -197,3 +197,13 @@ def peer_common_name(request: web.Request) -> str | None:
     names = [attr[1] for rdn in subject if isinstance(rdn, tuple) for attr in rdn
              if isinstance(attr, tuple) and attr[0] == "commonName"]
     return names[0] if len(names) == 1 else None  # several CNs: no unambiguous identity
+
+
+async def safe_headers(request: web.Request, response: web.StreamResponse) -> None:
+    """Every response (`on_response_prepare`, so also those of aiohttp's own errors and of
+    the middlewares) says `nosniff`: a browser never runs an answer as another type than it
+    is labelled (an error page echoing a path, a JSON body, as script or HTML). One that sets
+    no caching of its own is not stored (`no-store`): status, audit pages and WebSocket
+    tickets are for the caller now, not for a browser's disk or a proxy."""
+    response.headers.setdefault("X-Content-Type-Options", "nosniff")
+    response.headers.setdefault("Cache-Control", "no-store")

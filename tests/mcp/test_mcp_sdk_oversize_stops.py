@@ -74,7 +74,11 @@ def stopped_once(api: Api, tool: str, who: str, done: dict[str, Any],
     """The robot stopped (latched, for an e-stop) by `who`'s one decision, whose warnings,
     the size's among them (`said`), came back to the client: its entry."""
     assert done["outcome"] == "executed", done
-    assert any(said in w for w in done.get("warnings", [])), done
+    warnings = done.get("warnings", [])
+    # Said once, and only as the size: before, /mcp also handed the stop to the SDK (sure to
+    # refuse it 413, a second warning) and measured the command it made again (a third).
+    assert [w for w in warnings if "bytes, over the" in w or "HTTP 413" in w] == [
+        w for w in warnings if said in w] and len([w for w in warnings if said in w]) == 1, done
     assert [a for a, _ in api.dispatcher.calls] == [tool]
     assert api.gov.latch.latched == (tool == "estop")
     [entry] = decided(api)  # decided once, as it came: no COMMAND_REJECTED then a resend

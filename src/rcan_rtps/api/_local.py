@@ -50,14 +50,19 @@ def _reply(status: int, body: Any) -> Reply:
 class LocalApi:
     """`mcp_server.ports.RobotApi` inside the bridge, as `principal`; `warnings`: what the
     request was found wrong with before it reached a tool, which its stops carry;
-    `commanded`: whether a command was sent through it (a stop the SDK did run)."""
+    `measured`: the door has measured (and warned of) the size of what the client sent, so a
+    command made from it is not measured against `max_body_bytes` again (up to `STOP_ROOM`
+    times it, as the doors read); `commanded`: whether a command was sent through it (a stop
+    the SDK did run)."""
 
     def __init__(self, app: web.Application, principal: Principal,
-                 fixed_manifest: dict[str, Any], warnings: tuple[str, ...] = ()) -> None:
+                 fixed_manifest: dict[str, Any], warnings: tuple[str, ...] = (), *,
+                 measured: bool = False) -> None:
         self._app = app
         self._principal = principal
         self._manifest = fixed_manifest
         self._warnings = warnings
+        self._measured = measured
         self.commanded = False
 
     async def command(self, body: dict[str, Any]) -> Reply:
@@ -70,6 +75,8 @@ class LocalApi:
         limit = app[SETTINGS].max_body_bytes
         if len(raw) > limit * STOP_ROOM:  # (as the HTTP doors read no further)
             return _reply(*await too_large(governor, self._principal))
+        if self._measured:
+            limit *= STOP_ROOM
         # Over `limit`, only a stop is taken (`_intake._oversize`), as at the HTTP doors.
         return _reply(*await run_command(governor, self._principal, raw, app[OBSERVE],
                                          app[CHECKS], app[INVOCATIONS], self._warnings,

@@ -166,7 +166,7 @@ class McpEndpoint:
             rescue = rescue._replace(warnings=(oversize_warning(body, limit, read.skimmed),
                                                *read.warnings, *rescue.warnings))
         if rescue is not None:
-            return await self._stopping_call(request, rescue)
+            return await self._stopping_call(request, rescue, oversize=oversize)
         server = await self._started(app)
         if server is None:
             return error_response(501, "NOT_IMPLEMENTED", reason=EXTRA_HINT)
@@ -216,13 +216,14 @@ class McpEndpoint:
                  "cancelled")
         return web.Response(status=CLIENT_CLOSED)  # nobody reads it
 
-    async def _stopping_call(self, request: web.Request, rescue: Rescue
-                             ) -> web.StreamResponse:
+    async def _stopping_call(self, request: web.Request, rescue: Rescue, *,
+                             oversize: bool = False) -> web.StreamResponse:
         """A body that says stop: it stops, whatever the SDK would make of it. A stop the SDK
         can run (in a valid session, or sessionless) it runs and answers; one it refuses,
         cannot take (a notification) or fails, and every stop while it is not installed or
         not running, the door runs as its tool runs it, why as its warning; a batch's stops
-        the door runs."""
+        and an `oversize` one (over what the SDK takes: its size is the warning) the door
+        runs."""
         if rescue.batch is not None:
             return await self._stop_batch(request, rescue.warnings, rescue.batch)
         call = rescue.call
@@ -232,6 +233,8 @@ class McpEndpoint:
             await self._stop_at_door(request, call, (
                 *warnings, "$: a notification (no id): run, and not answered"))
             return web.Response(status=202)
+        if oversize:  # over what the SDK takes (the bridge's limit): it would refuse it 413
+            return json_response(await self._stop_at_door(request, call, warnings))
         server, why_not = await self._server_for_stop(request.app)
         if server is None:
             return json_response(await self._stop_at_door(request, call, (
@@ -299,18 +302,20 @@ class McpEndpoint:
         `warnings` go with it to its audit entry."""
         from rcan_rtps.mcp_server.stop_tool import stop_reply
 
-        seat = self._seat(request.app, request[PRINCIPAL], agent_of(request), None, warnings)
+        seat = self._seat(request.app, request[PRINCIPAL], agent_of(request), None, warnings,
+                          measured=True)  # (the client's body: its size is warned of here)
         return await stop_reply(seat, call)
 
     def _seat(self, app: web.Application, principal: Principal, agent: Agent,
-              session: str | None, warnings: tuple[str, ...] = ()) -> Seat:
+              session: str | None, warnings: tuple[str, ...] = (), *,
+              measured: bool = False) -> Seat:
         from rcan_rtps.mcp_server.keepalive import Keepalive
         from rcan_rtps.mcp_server.seat import Seat
 
         from ._local import LocalApi
 
         fixed = self._fixed_part()
-        api = LocalApi(app, principal, fixed, warnings)
+        api = LocalApi(app, principal, fixed, warnings, measured=measured)
         keepalive = self._keepalives.get(principal.name)
         if keepalive is None:  # one per principal: heartbeats are a principal's
             keepalive = self._keepalives[principal.name] = Keepalive(LocalApi(

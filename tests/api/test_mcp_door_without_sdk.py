@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import subprocess
 import sys
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -132,6 +135,7 @@ async def test_a_stop_the_sdk_fails_is_run_by_the_door(api: Api, log: pytest.Log
                                                        protocol: str) -> None:
     from rcan_rtps.mcp_server.http import HttpMcp
 
+    await headers(api, "viewer", LEGACY)  # the SDK's server started (a session opened)
     sent = await headers(api, "viewer", protocol)
 
     async def failing(*args: Any, **kwargs: Any) -> None:
@@ -159,18 +163,21 @@ async def test_a_server_gone_is_started_again_and_stops_meanwhile_run(
     await eventually(lambda: any("the MCP server stopped" in r.getMessage()
                                  for r in log.records), timeout=30.0,
                      what="the door noticing its server ended")
-    # The session died with its server: the new one does not know it (404), the door runs it.
+    # The session died with its server: the door runs the stop at once (it does not wait
+    # for a new server), with nothing to warn of: the robot is stopped as the tool stops it.
     status, reply = await post(api, call("estop", b'"reason": "x"', LEGACY), sent)
     assert status == 200, reply
     data = stopped(reply)
-    assert "HTTP 404" in warned(data, "the bridge ran the stop"), data
-    assert api.gov.latch.latched
-    assert door._serving is not None and door._serving is not serving
-    # Anything else is served again: a new session opens and lists the tools.
+    assert not data.get("warnings") and api.gov.latch.latched, data
+    # Anything else is served again, by a new server: a new session opens, lists the tools.
     fresh = await headers(api, "viewer", LEGACY)
     listing = b'{"jsonrpc": "2.0", "id": 5, "method": "tools/list", "params": {}}'
     status, reply = await post(api, listing, fresh)
     assert status == 200 and any(t["name"] == "estop" for t in reply["result"]["tools"]), reply
+    assert door._serving is not None and door._serving is not serving
+    # The old session's requests are the new server's to refuse (it does not know it: 404).
+    async with api.http.post("/mcp", data=listing, headers=sent) as resp:
+        assert resp.status == 404, await resp.text()
     no_traceback(log)
 
 
@@ -198,3 +205,53 @@ async def test_a_server_that_fails_is_said_once_and_retrieved(
     await asyncio.sleep(0)
     assert len([r for r in log.records if "the MCP server stopped" in r.getMessage()]) == 1
     no_traceback(log)
+
+
+# -- the SDK's import does not hold the bridge up ---------------------------------------------
+
+IMPORT_SCRIPT = """
+import asyncio, sys
+from pathlib import Path
+from tests.api.apihelpers import Api
+from tests.api.test_mcp_stop_intake import LEGACY, call, headers
+
+def importing():
+    http = sys.modules.get("rcan_rtps.mcp_server.http")
+    return http is None or bool(getattr(http.__spec__, "_initializing", False))
+
+async def main(first):
+    api = await Api(Path(sys.argv[1])).start()
+    if first == "stop":  # the run's first MCP request is an e-stop: answered at once
+        sent = {"Authorization": "Bearer " + sys.argv[3], "Content-Type": "application/json",
+                "Accept": "application/json, text/event-stream"}
+        async with api.http.post("/mcp", data=call("estop", b"", LEGACY), headers=sent) as r:
+            print("mcp estop", r.status, (await r.json())["result"]["isError"],
+                  "during" if importing() else "after")
+    opening = asyncio.ensure_future(headers(api, "viewer", LEGACY))
+    while "mcp" not in sys.modules and not opening.done():  # the SDK's import has begun
+        await asyncio.sleep(0.001)
+    status, body = await api.command("viewer", {"action": "estop"})
+    print("rest estop", status, body["outcome"], "during" if importing() else "after")
+    await opening
+    await api.close()
+
+asyncio.run(main(sys.argv[2]))
+"""
+
+
+@pytest.mark.parametrize("first", ["session", "stop"])
+def test_the_sdk_is_imported_while_the_bridge_answers(tmp_path: Path, first: str) -> None:
+    """The SDK takes ~1 s of CPU to import, on the first request to `/mcp`: imported on the
+    loop, it held every other request up — an e-stop over REST sent then was answered only
+    once it was done. Now it is imported on a thread: that e-stop is answered while the
+    import still runs, and a first MCP request that is a stop does not wait for it at all."""
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(root / "src"), str(root), str(root / "tests")])}
+    run = subprocess.run([sys.executable, "-c", IMPORT_SCRIPT, str(tmp_path), first,
+                          TOKENS["viewer"]], capture_output=True, text=True, timeout=120,
+                         check=False, cwd=root, env=env)
+    assert run.returncode == 0, run.stderr
+    assert "rest estop 200 executed during" in run.stdout, run.stdout
+    if first == "stop":
+        assert "mcp estop 200 False during" in run.stdout, run.stdout

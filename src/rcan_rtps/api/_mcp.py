@@ -32,6 +32,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
+import importlib
+import importlib.util
 import json
 import logging
 from typing import TYPE_CHECKING, Any
@@ -131,7 +133,7 @@ class McpEndpoint:
         self._fixed: dict[str, Any] | None = None
         self._server: HttpMcp | None = None
         self._missing = False
-        self._starting: asyncio.Lock | None = None
+        self._starting: asyncio.Task[HttpMcp | None] | None = None
         self._stop = asyncio.Event()
         self._serving: asyncio.Task[None] | None = None
         self._beating: list[asyncio.Task[None]] = []
@@ -167,7 +169,11 @@ class McpEndpoint:
                                                *read.warnings, *rescue.warnings))
         if rescue is not None:
             return await self._stopping_call(request, rescue, oversize=oversize)
-        server = await self._started(app)
+        try:
+            server = await self._started(app)
+        except Exception:  # said in the log once, by `_start_ended`
+            return error_response(503, "ROBOT_UNAVAILABLE", outcome="failed",
+                                  reason="the MCP server did not start (see the bridge's log)")
         if server is None:
             return error_response(501, "NOT_IMPLEMENTED", reason=EXTRA_HINT)
         seat = self._seat(app, principal, agent_of(request), request.headers.get(SESSION_HEADER))
@@ -235,10 +241,10 @@ class McpEndpoint:
             return web.Response(status=202)
         if oversize:  # over what the SDK takes (the bridge's limit): it would refuse it 413
             return json_response(await self._stop_at_door(request, call, warnings))
-        server, why_not = await self._server_for_stop(request.app)
+        server, why_not = self._server_for_stop(request.app)
         if server is None:
-            return json_response(await self._stop_at_door(request, call, (
-                *warnings, f"$: {why_not}: the bridge ran the stop")))
+            said = () if why_not is None else (f"$: {why_not}: the bridge ran the stop",)
+            return json_response(await self._stop_at_door(request, call, (*warnings, *said)))
         from . import _asgi
         from ._local import LocalApi
 
@@ -268,16 +274,17 @@ class McpEndpoint:
         reply = await self._stop_at_door(request, call, (*warnings, refusal))
         return json_response(reply)
 
-    async def _server_for_stop(self, app: web.Application) -> tuple[HttpMcp | None, str]:
-        """The SDK's server, or None and why there is none (a stop's warning): a stop never
-        waits on, or fails with, the SDK."""
-        try:
-            server = await self._started(app)
-        except Exception as exc:
-            log.warning("the MCP server did not start (%s): the bridge runs the stop",
-                        _failure(exc))
-            return None, f"the MCP server did not start ({_failure(exc)})"
-        return server, EXTRA_HINT if server is None else ""
+    def _server_for_stop(self, app: web.Application) -> tuple[HttpMcp | None, str | None]:
+        """The SDK's server if it runs, else None and why, if the client should know (a
+        stop's warning): a stop never waits for the SDK to start (the requests after it
+        will), nor fails with it."""
+        if self._server is not None:
+            return self._server, None
+        if self._missing or importlib.util.find_spec("mcp") is None:
+            self._missing = True
+            return None, EXTRA_HINT
+        self._start_task(app)
+        return None, None
 
     async def _stop_batch(self, request: web.Request, warnings: tuple[str, ...],
                           batch: list[Any]) -> web.Response:
@@ -347,25 +354,43 @@ class McpEndpoint:
             await asyncio.shield(stopping)
 
     async def _started(self, app: web.Application) -> HttpMcp | None:
+        """The SDK's server, started by the first request that needs it (None: the SDK is not
+        installed); a start that fails raises, and the next request tries again."""
         if self._server is not None or self._missing:
             return self._server
-        if self._starting is None:
-            self._starting = asyncio.Lock()
-        async with self._starting:
-            if self._server is None and not self._missing:
-                self._server = await self._start(app)
-        return self._server
+        # Shielded: the start is every waiting request's, not the one that began it.
+        return await asyncio.shield(self._start_task(app))
+
+    def _start_task(self, app: web.Application) -> asyncio.Task[HttpMcp | None]:
+        if self._starting is None or self._starting.done():
+            self._starting = asyncio.create_task(self._start(app), name="mcp-start")
+            self._starting.add_done_callback(self._start_ended)
+        return self._starting
+
+    def _start_ended(self, starting: asyncio.Task[HttpMcp | None]) -> None:
+        """Its outcome kept (or said, when it failed: each waiting request raises it too)."""
+        if starting.cancelled():
+            return
+        failed = starting.exception()
+        if failed is not None:
+            log.warning("the MCP server did not start: %s", _failure(failed))
+        else:
+            self._server = starting.result()
 
     async def _start(self, app: web.Application) -> HttpMcp | None:
+        # The SDK's modules take ~1 s of CPU to import (pydantic's schemas): imported on a
+        # thread, the loop runs on meanwhile (a stop is never held up behind an import; the
+        # interpreter hands the thread and the loop turns every few ms).
         try:
-            from rcan_rtps.mcp_server.http import HttpMcp
+            http = await asyncio.to_thread(importlib.import_module, "rcan_rtps.mcp_server.http")
         except ModuleNotFoundError as exc:
             if exc.name is None or exc.name.split(".")[0] not in ("mcp", "mcp_types"):
                 raise
             log.warning("a client asked for MCP: %s", EXTRA_HINT)
             self._missing = True
             return None
-        server = HttpMcp(self._fixed_part(), max_body_bytes=app[SETTINGS].max_body_bytes)
+        server: HttpMcp = http.HttpMcp(self._fixed_part(),
+                                       max_body_bytes=app[SETTINGS].max_body_bytes)
         # The SDK's modules (pydantic's schemas: tens of thousands of objects) live as long as
         # the bridge: out of the collector's sight, like what start-up built (`run`), so that a
         # collection during a command does not scan them all (ms pauses, measured).
@@ -400,6 +425,8 @@ class McpEndpoint:
         self._stop.set()
         if self._stopping:  # a closed session's stop still on its way
             await asyncio.wait(list(self._stopping))
+        if self._starting is not None:  # (an import on its thread cannot be cut short)
+            await asyncio.wait([self._starting])
         if self._serving is not None:
             await asyncio.wait([self._serving])
         for task in self._beating:

@@ -50,6 +50,7 @@ async def test_deny_discards(harness: Harness, gov: Governor) -> None:
     d = await gov.deny(held.pending_id or "", OPS)
     assert (d.http_status, d.outcome, d.reason) == (200, Outcome.DENIED, "hitl_denied")
     assert harness.entries[-1]["event"] == "HITL_DENIED"
+    assert harness.entries[-1]["outcome"] == "denied"  # bridge spec §3.1 flow 3 step 6
     assert harness.dispatcher.calls == [] and gov.pending() == []
 
 
@@ -62,6 +63,7 @@ async def test_expiry_is_swept_and_audited(harness: Harness, gov: Governor) -> N
     assert expired.reason == "pending_expired"
     entry = harness.entries[-1]
     assert (entry["event"], entry["pending_id"]) == ("HITL_EXPIRED", held.pending_id)
+    assert entry["outcome"] == "denied"  # bridge spec §3.1 flow 3 step 6: timeout is a deny
     d = await gov.authorize(held.pending_id or "", OPS)
     assert d.reason == "pending_not_found"
     assert harness.dispatcher.calls == []

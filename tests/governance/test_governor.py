@@ -134,6 +134,21 @@ async def test_velocity_over_limit_row(harness: Harness, gov: Governor, field: s
     assert harness.dispatcher.calls == []
 
 
+@pytest.mark.parametrize("field", ["linear_x", "linear_y", "angular_z"])
+async def test_with_velocity_exceed_deny_off_any_excess_is_clamped_not_refused(
+        harness: Harness, field: str) -> None:
+    """Bridge spec §10.2: "clamping or denial per config" — `velocity_exceed_deny: false`
+    clamps even a request far over the limit, and what is sent is within it."""
+    gov = await harness.governor(safety_extra="velocity_exceed_deny: false")
+    limit = 0.5 if field == "angular_z" else 1.0
+    d = await gov.decide(command("move", {field: -limit * 5}), PLANNER)
+    check(d, 200, Outcome.EXECUTED)
+    assert d.applied is not None and d.applied[field] == -limit
+    [(action, sent)] = harness.dispatcher.calls
+    assert (action, sent[field]) == ("move", -limit)
+    assert one_new_entry(harness, 0)["params"] == {field: -limit * 5}  # as requested
+
+
 async def test_estop_active_row(harness: Harness, gov: Governor) -> None:
     await gov.decide(command("estop"), VIEWER)
     goal = {"x": 1, "y": 1, "yaw": 0}

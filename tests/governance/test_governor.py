@@ -467,6 +467,23 @@ async def test_lifecycle_and_session_loss(harness: Harness, gov: Governor) -> No
             if e["event"] == "STREAM_ENDED"] == [("session_lost", "planner")]
 
 
+@pytest.mark.parametrize("timeout_s", [0.5, 10.0])
+async def test_the_session_timeout_is_the_configs(harness: Harness, timeout_s: float) -> None:
+    """Profile §10.8: the silence a session survives is `safety.session_timeout_s`, not the
+    default 2.0 — shorter (a robot that must stop sooner) or longer."""
+    gov = await harness.governor(safety_extra=f"session_timeout_s: {timeout_s}")
+    await gov.start()
+    await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)
+    harness.clock.advance(timeout_s * 0.9)
+    await gov.sweep()
+    assert "NETWORK_LOSS_SAFE_STOP" not in [e["event"] for e in harness.entries]
+    harness.clock.advance(timeout_s * 0.2)
+    await gov.sweep()
+    assert [e["event"] for e in harness.entries].count("NETWORK_LOSS_SAFE_STOP") == 1
+    assert harness.dispatcher.calls[-1] == ("stop", {})
+    await gov.stop()
+
+
 async def test_broken_audit_log_refuses_commands(harness: Harness, gov: Governor) -> None:
     gov.audit._broken = OSError("disk gone")
     d = await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)

@@ -69,6 +69,18 @@ async def test_expiry_is_swept_and_audited(harness: Harness, gov: Governor) -> N
     assert harness.dispatcher.calls == []
 
 
+async def test_the_timeout_is_the_configs(harness: Harness) -> None:
+    """Bridge spec §10.3: "the §9 HiTL gate with configurable timeout"."""
+    gov = await harness.governor(hitl_timeout=45)
+    held = await hold(gov)
+    assert held.expires_at_ms == int(harness.clock.time() * 1000) + 45_000
+    harness.clock.advance(44)
+    assert await gov.expire_pending() == []
+    harness.clock.advance(1)
+    [expired] = await gov.expire_pending()
+    assert (expired.reason, harness.entries[-1]["event"]) == ("pending_expired", "HITL_EXPIRED")
+
+
 async def test_late_authorize_expires_it_first(harness: Harness, gov: Governor) -> None:
     held = await hold(gov)
     harness.clock.advance(301)  # the sweep has not run yet

@@ -45,6 +45,9 @@ def test_defaults_from_the_profile() -> None:
     assert safety.session_timeout_s == 2.0
     assert safety.velocity_exceed_deny is True
     assert config.bridge.api.port == 8765
+    # not the bridge spec's 0.0.0.0: loopback unless the deployment opts in to a network
+    # (docs/governance.md, "Decisions where the profile is silent": api.host)
+    assert config.bridge.api.host == "127.0.0.1"
 
 
 def test_domain_and_distro_fall_back_to_ros_env() -> None:

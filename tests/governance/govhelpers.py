@@ -30,13 +30,14 @@ bridge:
   ros2: {namespace: /robot1}
   api: {auth_token_env: RCAN_BRIDGE_TOKEN}
   hitl:
-    timeout_seconds: 300
+    timeout_seconds: %(hitl_timeout)s
     gates: %(gates)s
     %(hitl_extra)s
   safety:
     max_linear_vel: 1.0
     max_angular_vel: 0.5
     workspace: [[-10, -10], [10, -10], [10, 10], [-10, 10]]
+    %(safety_extra)s
   audit: {path: "%(dir)s/audit.jsonl", key_path: "%(dir)s/audit.key"}
 """
 
@@ -70,14 +71,17 @@ class Harness:
         self.logs: list[AuditLog] = []
         self.governors: list[Governor] = []
 
-    def config(self, hitl_extra: str = "", gates: str = ARM_GATE) -> RcanConfig:
+    def config(self, hitl_extra: str = "", gates: str = ARM_GATE,
+               safety_extra: str = "", hitl_timeout: float = 300) -> RcanConfig:
         text = CONFIG % {"ruri": RURI, "dir": self.tmp, "hitl_extra": hitl_extra,
-                         "gates": gates}
+                         "gates": gates, "safety_extra": safety_extra,
+                         "hitl_timeout": hitl_timeout}
         return loads_config(text, env={})
 
     async def governor(self, hitl_extra: str = "", notifier: Notifier | None = None,
-                       group_commit: bool = True, gates: str = ARM_GATE) -> Governor:
-        config = self.config(hitl_extra, gates)
+                       group_commit: bool = True, gates: str = ARM_GATE,
+                       safety_extra: str = "", hitl_timeout: float = 300) -> Governor:
+        config = self.config(hitl_extra, gates, safety_extra, hitl_timeout)
         log = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path,
                                   ruri=RURI, clock=self.clock, group_commit=group_commit)
         self.logs.append(log)

@@ -134,6 +134,21 @@ async def test_velocity_over_limit_row(harness: Harness, gov: Governor, field: s
     assert harness.dispatcher.calls == []
 
 
+@pytest.mark.parametrize("field", ["linear_x", "linear_y", "angular_z"])
+async def test_with_velocity_exceed_deny_off_any_excess_is_clamped_not_refused(
+        harness: Harness, field: str) -> None:
+    """Bridge spec §10.2: "clamping or denial per config" — `velocity_exceed_deny: false`
+    clamps even a request far over the limit, and what is sent is within it."""
+    gov = await harness.governor(safety_extra="velocity_exceed_deny: false")
+    limit = 0.5 if field == "angular_z" else 1.0
+    d = await gov.decide(command("move", {field: -limit * 5}), PLANNER)
+    check(d, 200, Outcome.EXECUTED)
+    assert d.applied is not None and d.applied[field] == -limit
+    [(action, sent)] = harness.dispatcher.calls
+    assert (action, sent[field]) == ("move", -limit)
+    assert one_new_entry(harness, 0)["params"] == {field: -limit * 5}  # as requested
+
+
 async def test_estop_active_row(harness: Harness, gov: Governor) -> None:
     await gov.decide(command("estop"), VIEWER)
     goal = {"x": 1, "y": 1, "yaw": 0}
@@ -450,6 +465,23 @@ async def test_lifecycle_and_session_loss(harness: Harness, gov: Governor) -> No
         "BRIDGE_STARTED", "COMMAND_DISPATCHED", "NETWORK_LOSS_SAFE_STOP", "BRIDGE_STOPPED"]
     assert [(e["params"]["reason"], e["principal"]) for e in harness.entries
             if e["event"] == "STREAM_ENDED"] == [("session_lost", "planner")]
+
+
+@pytest.mark.parametrize("timeout_s", [0.5, 10.0])
+async def test_the_session_timeout_is_the_configs(harness: Harness, timeout_s: float) -> None:
+    """Profile §10.8: the silence a session survives is `safety.session_timeout_s`, not the
+    default 2.0 — shorter (a robot that must stop sooner) or longer."""
+    gov = await harness.governor(safety_extra=f"session_timeout_s: {timeout_s}")
+    await gov.start()
+    await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)
+    harness.clock.advance(timeout_s * 0.9)
+    await gov.sweep()
+    assert "NETWORK_LOSS_SAFE_STOP" not in [e["event"] for e in harness.entries]
+    harness.clock.advance(timeout_s * 0.2)
+    await gov.sweep()
+    assert [e["event"] for e in harness.entries].count("NETWORK_LOSS_SAFE_STOP") == 1
+    assert harness.dispatcher.calls[-1] == ("stop", {})
+    await gov.stop()
 
 
 async def test_broken_audit_log_refuses_commands(harness: Harness, gov: Governor) -> None:

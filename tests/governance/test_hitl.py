@@ -50,6 +50,7 @@ async def test_deny_discards(harness: Harness, gov: Governor) -> None:
     d = await gov.deny(held.pending_id or "", OPS)
     assert (d.http_status, d.outcome, d.reason) == (200, Outcome.DENIED, "hitl_denied")
     assert harness.entries[-1]["event"] == "HITL_DENIED"
+    assert harness.entries[-1]["outcome"] == "denied"  # bridge spec §3.1 flow 3 step 6
     assert harness.dispatcher.calls == [] and gov.pending() == []
 
 
@@ -62,9 +63,22 @@ async def test_expiry_is_swept_and_audited(harness: Harness, gov: Governor) -> N
     assert expired.reason == "pending_expired"
     entry = harness.entries[-1]
     assert (entry["event"], entry["pending_id"]) == ("HITL_EXPIRED", held.pending_id)
+    assert entry["outcome"] == "denied"  # bridge spec §3.1 flow 3 step 6: timeout is a deny
     d = await gov.authorize(held.pending_id or "", OPS)
     assert d.reason == "pending_not_found"
     assert harness.dispatcher.calls == []
+
+
+async def test_the_timeout_is_the_configs(harness: Harness) -> None:
+    """Bridge spec §10.3: "the §9 HiTL gate with configurable timeout"."""
+    gov = await harness.governor(hitl_timeout=45)
+    held = await hold(gov)
+    assert held.expires_at_ms == int(harness.clock.time() * 1000) + 45_000
+    harness.clock.advance(44)
+    assert await gov.expire_pending() == []
+    harness.clock.advance(1)
+    [expired] = await gov.expire_pending()
+    assert (expired.reason, harness.entries[-1]["event"]) == ("pending_expired", "HITL_EXPIRED")
 
 
 async def test_late_authorize_expires_it_first(harness: Harness, gov: Governor) -> None:

@@ -26,6 +26,7 @@ from rcan_rtps.governance.errors import AuthConfigError, AuthenticationError
 from rcan_rtps.governance.jwt import JwtVerifier, jwt_principal_name
 from rcan_rtps.governance.rbac import (
     DEFAULT_ACTION_ROLES,
+    DEFAULT_RATE_LIMITS,
     SCOPES,
     Principal,
     RateLimiter,
@@ -57,6 +58,9 @@ def test_profile_defaults() -> None:
     assert policy.required("clear_estop") is Role.OWNER
     assert [r.name for r in sorted(SCOPES.values())] == [
         "GUEST", "USER", "LEASEE", "OWNER", "CREATOR"]
+    # the profile's default rate limits per principal per minute (None: unlimited)
+    assert dict(DEFAULT_RATE_LIMITS) == {Role.GUEST: 10, Role.USER: 100, Role.LEASEE: 500,
+                                         Role.OWNER: 1000, Role.CREATOR: None}
 
 
 def test_estop_cannot_be_raised_by_override() -> None:

@@ -129,6 +129,83 @@ async def test_estop_latches_and_only_owner_clears(rig: Rig) -> None:
                                       "params": {"linear_x": 0.1}})).http_status == 200
 
 
+async def test_the_configured_command_topics_are_the_ones_used(tmp_path: Path,
+                                                              jazzy_python: Path,
+                                                              domain_id: int) -> None:
+    """Spec §4 (e-stop: "topic name configurable") and §5 (`cmd_vel_topic`, `estop_topic`):
+    an e-stop on a topic the robot does not listen on would stop nothing. A relative name
+    resolves in the namespace, an absolute one does not (profile, Config)."""
+    config = bridge_config(tmp_path, domain_id, extra_ros2=(
+        "cmd_vel_topic: base/cmd_vel\nestop_topic: /safety/estop\n"
+        "joint_trajectory_topic: arm/trajectory\njoint_states_topic: arm/joint_states"))
+    rig = await make_rig(config, jazzy_python, domain_id)
+    try:
+        await subscribe(rig, "/robot1/base/cmd_vel", TWIST)
+        await subscribe(rig, "/safety/estop", "std_msgs/msg/Bool")
+        moved = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.2}})
+        assert moved.http_status == 200, moved
+        assert (await take(rig.oracle, "/robot1/base/cmd_vel"))[0]["linear"]["x"] == 0.2
+        # The arm: sent only where its joints are heard, on the configured joint_states.
+        trajectory, states = "/robot1/arm/trajectory", "/robot1/arm/joint_states"
+        await rig.oracle.acall("subscribe", topic=trajectory,
+                               type="trajectory_msgs/msg/JointTrajectory")
+        await rig.oracle.acall("publisher", topic=states, type="sensor_msgs/msg/JointState")
+        await rig.oracle.acall("publish_periodic", topic=states,
+                               type="sensor_msgs/msg/JointState", rate=50.0,
+                               value={"name": ["elbow"], "position": [0.0], "velocity": [0.0]})
+        arm = await rig.command(AGENT, {"action": "arm_joint", "params": {
+            "joints": ["elbow"], "positions": [0.5], "duration_s": 1.0}})
+        assert arm.http_status == 200, arm
+        assert (await take(rig.oracle, trajectory))[0]["joint_names"] == ["elbow"]
+        assert (await rig.command(VIEWER, {"action": "estop"})).http_status == 200
+        await take(rig.oracle, "/safety/estop", until=lambda got: {"data": True} in got)
+        assert rig.entries()[-1]["ros2_topic"] == "/safety/estop"
+    finally:
+        await close_rig(rig)
+
+
+async def test_the_configured_telemetry_topics_are_the_ones_read(tmp_path: Path,
+                                                                jazzy_python: Path,
+                                                                domain_id: int) -> None:
+    """Spec §5 `odom_topic`, `diagnostics_topic` (an ERROR there is a fault), profile
+    `battery_topic`: STATUS reads the topics the config names, not the defaults."""
+    topics = {"odom": ("/robot1/base/odom", "nav_msgs/msg/Odometry"),
+              "diagnostics": ("/robot1/health", "diagnostic_msgs/msg/DiagnosticArray"),
+              "battery": ("/power/battery", "sensor_msgs/msg/BatteryState")}
+    config = bridge_config(tmp_path, domain_id, extra_ros2=(
+        "odom_topic: base/odom\ndiagnostics_topic: health\nbattery_topic: /power/battery"))
+    rig = await make_rig(config, jazzy_python, domain_id)
+    try:
+        for topic, type_name in topics.values():
+            await rig.oracle.acall("publisher", topic=topic, type=type_name)
+        published = {topic for topic, _ in topics.values()}
+        read = [s for s in rig.telemetry.subscriptions if s.topic in published]
+        assert len(read) == len(published)  # the bridge reads exactly the configured names
+        for subscription in read:
+            await subscription.wait_for_publishers(1, timeout=15)
+        odom = {"pose": {"pose": {"position": {"x": 2.5}, "orientation": {"w": 1.0}}}}
+        await rig.oracle.acall("publish", topic=topics["odom"][0], type=topics["odom"][1],
+                               value=odom, count=3)
+        await rig.oracle.acall("publish", topic=topics["battery"][0],
+                               type=topics["battery"][1], value={"percentage": 0.5}, count=3)
+        await rig.oracle.acall("publish", topic=topics["diagnostics"][0],
+                               type=topics["diagnostics"][1],
+                               value={"status": [{"level": 2, "name": "motor",
+                                                  "message": "overheat"}]}, count=3)
+
+        def all_heard() -> bool:
+            status = rig.telemetry.status(pending_auth=0)
+            position = status.telemetry.position
+            return (status.state == "fault" and status.battery_pct is not None
+                    and position is not None and position.x == 2.5)
+
+        await eventually(all_heard, timeout=15)
+        status = rig.telemetry.status(pending_auth=0)
+        assert status.battery_pct is not None and abs(status.battery_pct - 50.0) < 1e-4
+    finally:
+        await close_rig(rig)
+
+
 async def test_no_subscriber_is_robot_unavailable(rig: Rig) -> None:
     decision = await rig.command(AGENT, {"action": "move", "params": {"linear_x": 0.1}})
     assert decision.http_status == 503 and decision.error_code.value == "ROBOT_UNAVAILABLE"

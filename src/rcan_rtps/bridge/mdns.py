@@ -1,7 +1,8 @@
 """mDNS (zeroconf, async): advertise the robot as `_rcan._tcp.local.` and find RCAN robots.
 
     Advert.from_config(config, api_url=, addresses=) -> Advert     what is announced
-    Advert.for_server(config, host=, port=, tls=) -> Advert         ... for a bound API
+    Advert.for_server(config, host=, port=, tls=, live=) -> Advert  ... for a bound API
+    live_records(status) -> dict                                   STATUS's TXT records
     RcanAdvertiser(advert, interfaces=)                            async context manager:
         register on enter, `update(advert)` re-announces a changed address or endpoint,
         `follow(provider, interval_s)` re-announces whatever `provider()` says now,
@@ -11,7 +12,8 @@
 
 Instance `<manufacturer>-<model>-<device-id>` (from the RURI); TXT per the profile: `ruri`,
 `role` (lowest role that may command motion), `version`/`spec` (RCAN 1.2), `bridge=ros2`,
-`distro`, `api`, `status_endpoint`, `model`, `name`, `caps`. Tests bind zeroconf to 127.0.0.1
+`distro`, `api`, `status_endpoint`, `model`, `name`, `caps`; and, from a running bridge,
+STATUS's `state` and `telemetry_ts` (`live_records`). Tests bind zeroconf to 127.0.0.1
 only and run inside a private network namespace (`scripts/netns`).
 """
 
@@ -21,7 +23,7 @@ import asyncio
 import contextlib
 import logging
 import socket
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from types import TracebackType
 from typing import Any
 
@@ -32,7 +34,7 @@ from zeroconf.asyncio import AsyncServiceBrowser, AsyncServiceInfo, AsyncZerocon
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import RolePolicy
-from rcan_rtps.rcan import SPOKEN, Effect, Role, parse_ruri
+from rcan_rtps.rcan import SPOKEN, Effect, Role, Status, parse_ruri
 from rcan_rtps.rcan.actions import names, specs
 
 log = logging.getLogger(__name__)
@@ -65,18 +67,38 @@ class Advert(msgspec.Struct, frozen=True, kw_only=True):
 
     @classmethod
     def for_server(cls, config: RcanConfig, *, host: str, port: int,
-                   tls: bool = False) -> Advert:
+                   tls: bool = False, live: Mapping[str, str] | None = None) -> Advert:
         """The advert of an API bound to `host`:`port`. A wildcard bind announces every
         interface address, and its `api` URL names the mDNS host `<instance>.local`, which
-        resolves to exactly those; call again (or `follow`) to pick up address changes."""
+        resolves to exactly those; call again (or `follow`) to pick up address changes.
+        `live`: what the robot's STATUS says now (`live_records`), announced with it."""
         addresses = addresses_for(host)
         wildcard = host in _WILDCARDS
         ruri = parse_ruri(config.robot.ruri)
         where = f"{ruri.manufacturer}-{ruri.model}-{ruri.device_id}.local" if wildcard else \
             addresses[0]
         scheme = "https" if tls else "http"
-        return cls.from_config(config, api_url=f"{scheme}://{where}:{port}",
-                               addresses=addresses)
+        advert = cls.from_config(config, api_url=f"{scheme}://{where}:{port}",
+                                 addresses=addresses)
+        if live:
+            advert = msgspec.structs.replace(advert, txt={**advert.txt, **live})
+        return advert
+
+
+def live_records(status: Status) -> dict[str, str]:
+    """The TXT records of a robot's STATUS (spec §3.1 flow 2, §5.1: a registry reads STATUS
+    and the latest telemetry's time from the advert): its `state`, and the time of its newest
+    telemetry message (Unix seconds) to the minute, none before the first. Coarse on purpose:
+    a changed record is announced again to every listener (RFC 6762 §8.4), so a record that
+    changed with every message would announce every robot of a fleet at each `follow` round;
+    the state changes with what the robot does, the minute once a minute. The whole STATUS is
+    at `status_endpoint`."""
+    records = {"state": str(status.state)}
+    age = status.ros.last_telemetry_age_s
+    if age is not None:
+        newest_s = status.timestamp_ms / 1000 - age
+        records["telemetry_ts"] = str(int(newest_s // 60 * 60))
+    return records
 
 
 def addresses_for(host: str) -> list[str]:

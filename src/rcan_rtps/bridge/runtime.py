@@ -406,14 +406,17 @@ class Bridge:
         self._on_stop("withdrawing the mDNS advert", withdraw)
 
     async def _advertise(self) -> None:
-        from .mdns import Advert, RcanAdvertiser
+        from .mdns import Advert, RcanAdvertiser, live_records
 
         api, opts = self.config.bridge.api, self.options
         host, port = opts.host or api.host, int(self.url.rsplit(":", 1)[1])
         tls = api.tls is not None
 
         def current() -> Advert:
-            return Advert.for_server(self.config, host=host, port=port, tls=tls)
+            telemetry = self.telemetry
+            live = None if telemetry is None else live_records(
+                telemetry.status(pending_auth=0, counted=False))
+            return Advert.for_server(self.config, host=host, port=port, tls=tls, live=live)
 
         self.advertiser = RcanAdvertiser(current(), interfaces=opts.mdns_interfaces)
         try:
@@ -423,4 +426,5 @@ class Bridge:
                         type(exc).__name__, exc, self.url)
             log.debug("mDNS advertisement failure", exc_info=True)
             return
-        self.advertiser.follow(current)  # re-announce when the address changes
+        # Re-announce when the address, or what STATUS says in the advert, changes.
+        self.advertiser.follow(current)

@@ -237,14 +237,16 @@ class TelemetryState:
     def age_s(self) -> float | None:
         return None if self._last_rx is None else self._monotonic() - self._last_rx
 
-    def status(self, *, pending_auth: int) -> Status:
+    def status(self, *, pending_auth: int, counted: bool = True) -> Status:
+        """STATUS now; `counted=False`: a look that takes no `seq` (the mDNS advert's: the
+        STATUS clients see keep their sequence without gaps)."""
         with self._lock:
             age = self.age_s()
             faults = self._faults.faults()
             foreign, foreign_motion = self._foreign, self._foreign_motion
             telemetry = Telemetry(self._position, self._yaw, self._velocity, self._joints)
             battery, volts = self._battery, self._battery_v
-            self._seq += 1
+            self._seq += counted
             now_us = self._last_us = max(time.time_ns() // 1000, self._last_us + 1)
             seq = self._seq
             odom_stale, joints_stale = self._stale(self._odom_rx), self._stale(self._joints_rx)

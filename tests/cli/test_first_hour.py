@@ -87,3 +87,22 @@ def test_agent_client_without_a_server_says_so() -> None:
     agent = _agent("http://127.0.0.1:9", "some-token")
     assert agent.returncode == 1
     assert "cannot reach the bridge" in agent.stderr and "Traceback" not in agent.stderr
+
+
+def _operator(url: str, token: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "RCAN_URL": url, "RCAN_TOKEN": token}
+    return subprocess.run([sys.executable, str(ROOT / "examples" / "operator_approve.py"),
+                           "--yes"], capture_output=True, text=True, env=env, timeout=60)
+
+
+def test_operator_approve_without_a_server_says_so() -> None:
+    operator = _operator("http://127.0.0.1:9", "some-token")
+    assert operator.returncode == 1
+    assert "cannot reach the bridge" in operator.stderr and "Traceback" not in operator.stderr
+    assert len(operator.stderr.splitlines()) == 1
+
+
+def test_operator_approve_without_a_token_says_which() -> None:
+    operator = _operator("http://127.0.0.1:9", "")
+    assert operator.returncode == 2
+    assert "set RCAN_TOKEN to an OWNER token" in operator.stderr

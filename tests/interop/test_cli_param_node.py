@@ -62,6 +62,19 @@ def test_param_list_get_set_dump(oracle: RclpyOracle, domain_id: int) -> None:
     assert params["wheels"] == [1, 2, 3, 4] and params["enabled"] is True
 
 
+def test_node_list_warns_of_two_nodes_with_one_name(jazzy_python: Path, domain_id: int) -> None:
+    """A second process started under a name already taken (a second sim, a robot's node
+    launched twice) is the mistake `ros2 node list` warns of: one line would hide it."""
+    with RclpyOracle(jazzy_python, "twin", "/demo", domain_id=domain_id), \
+            RclpyOracle(jazzy_python, "twin", "/demo", domain_id=domain_id), \
+            RclpyOracle(jazzy_python, "single", "/demo", domain_id=domain_id):
+        nodes = cli(domain_id, "node", "list", *SPIN)
+    assert nodes.returncode == 0, nodes.stderr
+    assert {"/demo/twin", "/demo/single"} <= set(nodes.stdout.splitlines())
+    warnings = [line for line in nodes.stderr.splitlines() if "share" in line]
+    assert len(warnings) == 1 and "/demo/twin" in warnings[0] and "single" not in warnings[0]
+
+
 def parse_node_info(text: str) -> dict[str, dict[str, list[str]]]:
     sections: dict[str, dict[str, list[str]]] = {}
     current = ""

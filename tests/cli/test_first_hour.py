@@ -106,3 +106,15 @@ def test_operator_approve_without_a_token_says_which() -> None:
     operator = _operator("http://127.0.0.1:9", "")
     assert operator.returncode == 2
     assert "set RCAN_TOKEN to an OWNER token" in operator.stderr
+
+
+@pytest.mark.parametrize("values", ["{data: true", "{data: [1, 2}", "data: {a: 1]"])
+def test_values_that_are_not_yaml_are_one_line(values: str,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """A bracket left open printed PyYAML's five-line report, '<unicode string>' and a caret
+    included, after a '<message>: ' that named no field."""
+    assert main(["service", "call", "/x", "std_srvs/srv/SetBool", values]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("rcan-rtps: error: VALUES is not valid YAML: ")
+    assert "<unicode string>" not in err and "<message>" not in err and "column " in err

@@ -118,3 +118,20 @@ def test_values_that_are_not_yaml_are_one_line(values: str,
     assert len(err.splitlines()) == 1, err
     assert err.startswith("rcan-rtps: error: VALUES is not valid YAML: ")
     assert "<unicode string>" not in err and "<message>" not in err and "column " in err
+
+
+def test_a_second_run_on_a_port_in_use_says_what_to_do(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The README's two commands, run twice: the second `run --sim` said only the errno."""
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        assert main(["run", "--sim", "--no-mdns", "--port", str(port),
+                     "--state-dir", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    assert f"cannot listen on 127.0.0.1:{port}: Address already in use" in err
+    assert "another `rcan-rtps run`" in err and "--port" in err

@@ -75,6 +75,19 @@ def test_node_list_warns_of_two_nodes_with_one_name(jazzy_python: Path, domain_i
     assert len(warnings) == 1 and "/demo/twin" in warnings[0] and "single" not in warnings[0]
 
 
+@pytest.mark.parametrize("verb", [["get", "/demo/tuned_typo", "max_speed"],
+                                  ["list", "/demo/tuned_typo"], ["dump", "demo/tuned_typo"]])
+def test_param_on_a_node_not_there_names_the_node(oracle: RclpyOracle, domain_id: int,
+                                                  verb: list[str]) -> None:
+    """A typo'd node name said 'no server for service …/get_parameters (rcl_interfaces/srv/
+    GetParameters) within 10 s': the user named a node, not a service."""
+    done = cli(domain_id, "param", *verb)
+    assert done.returncode == 1 and done.stdout == ""
+    assert done.stderr.strip() == (
+        "rcan-rtps: error: no node /demo/tuned_typo serves parameters within 3 s; "
+        "`rcan-rtps node list` shows the nodes there are")
+
+
 def parse_node_info(text: str) -> dict[str, dict[str, list[str]]]:
     sections: dict[str, dict[str, list[str]]] = {}
     current = ""

@@ -26,11 +26,23 @@ def request(method: str, path: str, body: Any = None) -> tuple[int, Any]:
             return resp.status, json.loads(resp.read())
     except urllib.error.HTTPError as err:
         return err.code, json.loads(err.read())
+    except (urllib.error.URLError, OSError) as err:
+        reason = getattr(err, "reason", err)
+        raise SystemExit(f"operator_approve: cannot reach the bridge at {URL} ({reason}): is "
+                         "`rcan-rtps run` running? (RCAN_URL sets the address)") from None
 
 
 def main() -> int:
+    if not TOKEN:
+        print("set RCAN_TOKEN to an OWNER token (rcan-rtps run --sim prints one)",
+              file=sys.stderr)
+        return 2
     approve_all = "--yes" in sys.argv[1:]
     status, body = request("GET", "/api/hitl/pending")
+    if status == 401:
+        print(f"{URL} refused the token (401): set RCAN_TOKEN to an OWNER token "
+              "(rcan-rtps run --sim prints one)", file=sys.stderr)
+        return 1
     if status != 200:
         print(f"cannot list pending commands: {status} {body}", file=sys.stderr)
         return 1

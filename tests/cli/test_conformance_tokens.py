@@ -68,3 +68,13 @@ def test_a_token_with_a_line_end_is_a_clear_error(
         assert _conformance(args) == 2
     err = capsys.readouterr().err
     assert "control character" in err and "rcan_abc" not in err and "rcan_def" not in err
+
+
+def test_a_bridge_that_does_not_answer_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    """A wrong --url (or a bridge not started) was 24 FAIL lines of the same connection error
+    and 'not conformant': the run never reached a case."""
+    args = parse_args(["conformance", "--url", "http://127.0.0.1:1", "--token", "t" * 32])
+    assert _conformance(args) == 2
+    out, err = capsys.readouterr()
+    assert "FAIL" not in out and len(err.splitlines()) == 1
+    assert "cannot reach the bridge at http://127.0.0.1:1" in err

@@ -87,3 +87,51 @@ def test_agent_client_without_a_server_says_so() -> None:
     agent = _agent("http://127.0.0.1:9", "some-token")
     assert agent.returncode == 1
     assert "cannot reach the bridge" in agent.stderr and "Traceback" not in agent.stderr
+
+
+def _operator(url: str, token: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "RCAN_URL": url, "RCAN_TOKEN": token}
+    return subprocess.run([sys.executable, str(ROOT / "examples" / "operator_approve.py"),
+                           "--yes"], capture_output=True, text=True, env=env, timeout=60)
+
+
+def test_operator_approve_without_a_server_says_so() -> None:
+    operator = _operator("http://127.0.0.1:9", "some-token")
+    assert operator.returncode == 1
+    assert "cannot reach the bridge" in operator.stderr and "Traceback" not in operator.stderr
+    assert len(operator.stderr.splitlines()) == 1
+
+
+def test_operator_approve_without_a_token_says_which() -> None:
+    operator = _operator("http://127.0.0.1:9", "")
+    assert operator.returncode == 2
+    assert "set RCAN_TOKEN to an OWNER token" in operator.stderr
+
+
+@pytest.mark.parametrize("values", ["{data: true", "{data: [1, 2}", "data: {a: 1]"])
+def test_values_that_are_not_yaml_are_one_line(values: str,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """A bracket left open printed PyYAML's five-line report, '<unicode string>' and a caret
+    included, after a '<message>: ' that named no field."""
+    assert main(["service", "call", "/x", "std_srvs/srv/SetBool", values]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("rcan-rtps: error: VALUES is not valid YAML: ")
+    assert "<unicode string>" not in err and "<message>" not in err and "column " in err
+
+
+def test_a_second_run_on_a_port_in_use_says_what_to_do(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The README's two commands, run twice: the second `run --sim` said only the errno."""
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        assert main(["run", "--sim", "--no-mdns", "--port", str(port),
+                     "--state-dir", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    assert f"cannot listen on 127.0.0.1:{port}: Address already in use" in err
+    assert "another `rcan-rtps run`" in err and "--port" in err

@@ -62,3 +62,16 @@ def test_verify_missing_file_and_bad_key(
     assert run("audit", "verify", str(chain_file), "--pubkey", str(tmp_path / "junk.pem")) == 1
     assert run("audit", "export-pubkey", str(tmp_path / "nope.key")) == 1
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_export_pubkey_given_the_public_key_says_which_file_it_wants(
+    chain_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The `.pub` beside the log is the file a newcomer finds; its 0644 mode was reported as
+    a signing key readable by others."""
+    public = chain_file.with_name("a.jsonl.pub")
+    public.chmod(0o644)
+    assert run("audit", "export-pubkey", str(public)) == 1
+    err = capsys.readouterr().err
+    assert err == (f"FAIL {public} is a public key already: export-pubkey reads the bridge's "
+                   "signing key (bridge.audit.key_path)\n")

@@ -219,6 +219,14 @@ async def test_estop_latch_persists(tmp_path: Path) -> None:
     assert _loaded(state)  # anything odd: latched
 
 
+async def test_a_latch_found_at_start_says_it_is_the_e_stop(tmp_path: Path) -> None:
+    # `run` logs this reason as an ERROR line of its own: "latched by ops …" named no e-stop
+    state = tmp_path / "estop.state"
+    await LatchFile(state).write(True, "ops", 1)
+    latched, why = LatchFile(state).load(first_start=False)
+    assert latched and why == "e-stop latched by ops before this start; held until a clear_estop"
+
+
 async def test_missing_latch_file_is_latched_unless_first_start(tmp_path: Path) -> None:
     state = tmp_path / "estop.state"
     latched, why = LatchFile(state).load(first_start=False)

@@ -62,6 +62,32 @@ def test_param_list_get_set_dump(oracle: RclpyOracle, domain_id: int) -> None:
     assert params["wheels"] == [1, 2, 3, 4] and params["enabled"] is True
 
 
+def test_node_list_warns_of_two_nodes_with_one_name(jazzy_python: Path, domain_id: int) -> None:
+    """A second process started under a name already taken (a second sim, a robot's node
+    launched twice) is the mistake `ros2 node list` warns of: one line would hide it."""
+    with RclpyOracle(jazzy_python, "twin", "/demo", domain_id=domain_id), \
+            RclpyOracle(jazzy_python, "twin", "/demo", domain_id=domain_id), \
+            RclpyOracle(jazzy_python, "single", "/demo", domain_id=domain_id):
+        nodes = cli(domain_id, "node", "list", *SPIN)
+    assert nodes.returncode == 0, nodes.stderr
+    assert {"/demo/twin", "/demo/single"} <= set(nodes.stdout.splitlines())
+    warnings = [line for line in nodes.stderr.splitlines() if "share" in line]
+    assert len(warnings) == 1 and "/demo/twin" in warnings[0] and "single" not in warnings[0]
+
+
+@pytest.mark.parametrize("verb", [["get", "/demo/tuned_typo", "max_speed"],
+                                  ["list", "/demo/tuned_typo"], ["dump", "demo/tuned_typo"]])
+def test_param_on_a_node_not_there_names_the_node(oracle: RclpyOracle, domain_id: int,
+                                                  verb: list[str]) -> None:
+    """A typo'd node name said 'no server for service …/get_parameters (rcl_interfaces/srv/
+    GetParameters) within 10 s': the user named a node, not a service."""
+    done = cli(domain_id, "param", *verb)
+    assert done.returncode == 1 and done.stdout == ""
+    assert done.stderr.strip() == (
+        "rcan-rtps: error: no node /demo/tuned_typo serves parameters within 3 s; "
+        "`rcan-rtps node list` shows the nodes there are")
+
+
 def parse_node_info(text: str) -> dict[str, dict[str, list[str]]]:
     sections: dict[str, dict[str, list[str]]] = {}
     current = ""

@@ -51,6 +51,18 @@ def test_service_list_and_call(oracle: RclpyOracle, domain_id: int) -> None:
     assert oracle.call("service_requests", name="/demo/enable") == [{"data": True}]
 
 
+def test_service_call_with_another_type_than_the_servers_says_so(oracle: RclpyOracle,
+                                                                 domain_id: int) -> None:
+    """A wrong TYPE for a served service waited 10 s and said 'no server': the two types'
+    endpoints never match, as `topic pub` with a wrong type already says at once."""
+    oracle.call("service_server", name="/demo/enable", type="std_srvs/srv/SetBool")
+    done = cli(domain_id, "service", "call", "/demo/enable", "std_srvs/srv/Trigger")
+    assert done.returncode == 1 and "requester:" not in done.stdout
+    assert done.stderr.strip() == ("rcan-rtps: error: type mismatch: /demo/enable has "
+                                   "std_srvs/srv/SetBool, you asked for std_srvs/srv/Trigger")
+    assert oracle.call("service_requests", name="/demo/enable") == []
+
+
 def test_service_call_failures_are_messages(domain_id: int) -> None:
     done = cli(domain_id, "service", "call", "/nobody", "std_srvs/srv/Trigger", "--timeout", "1")
     assert done.returncode != 0

@@ -101,6 +101,16 @@ def test_every_in_scope_case_passes_against_the_simulator(sim: Sim) -> None:
     assert "rcan-conformance-v1.4.json" in done.stdout  # the vendored source is named
 
 
+@pytest.mark.parametrize("role", ["OWNER", "USER"])
+def test_a_token_the_bridge_refuses_is_one_line(sim: Sim, role: str) -> None:
+    """A mistyped token was a run of FAIL lines (and a few PASSes) ending 'not conformant'."""
+    wrong = Sim(sim.url, {**sim.tokens, role: "rcan_not-a-token-of-this-bridge"})
+    run = _conformance(wrong)
+    assert run.returncode == 2 and "FAIL" not in run.stdout and "PASS" not in run.stdout
+    assert run.stderr.strip() == (f"rcan-rtps conformance: the bridge at {sim.url} refused "
+                                  f"the {role}'s token (401 UNAUTHENTICATED)")
+
+
 def test_a_level_runs_the_cases_up_to_it(sim: Sim) -> None:
     done = _conformance(sim, "--level", "L1")
     assert set(_lines(done.stdout)) == {c.id for c in load_suite().upto("L1")}, \

@@ -135,6 +135,17 @@ def test_reindex_leaves_out_a_torn_last_record(
     assert BagReader(crashed).summary().message_count == 3
 
 
+def test_reindex_of_a_complete_bag_leaves_nothing_out(tmp_path: Path) -> None:
+    # a recorder stopped with Ctrl-C closes its file: the closing magic is no torn record
+    file = _complete_bag(tmp_path / "whole")
+    (done,) = reindex(tmp_path / "whole")
+    assert (done.messages, done.dropped_bytes) == (50, 0)
+    (again,) = reindex(tmp_path / "whole")
+    assert (again.messages, again.dropped_bytes) == (50, 0)
+    with file.open("rb") as stream:
+        assert make_reader(stream).get_summary() is not None
+
+
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "rcan_rtps", *args], capture_output=True,
                           text=True, timeout=60)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import socket
 import ssl
 from types import TracebackType
@@ -127,6 +128,9 @@ def bind(host: str, port: int) -> socket.socket:
         sock.listen(1024)
     except OSError as exc:
         sock.close()
-        raise OSError(exc.errno, f"cannot listen on {host}:{port}: {exc.strerror}") from exc
+        hint = "" if exc.errno != errno.EADDRINUSE else \
+            " (another `rcan-rtps run`? --port chooses another, 0 any free one)"
+        raise OSError(exc.errno, f"cannot listen on {host}:{port}: {exc.strerror}{hint}") \
+            from exc
     sock.setblocking(False)
     return sock

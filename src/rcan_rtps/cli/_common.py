@@ -11,7 +11,7 @@ from typing import Any
 
 import yaml
 
-from ..ros.errors import GraphTimeout, ValueFitError, WireError, seconds
+from ..ros.errors import GraphTimeout, WireError, seconds
 from ..ros.graph import Direction, Endpoint, RosGraph
 from ..ros.participant import RosNode, localhost_requested
 from ..ros.typesys.store import TypeStore, env_idl_paths, normalize_name
@@ -39,7 +39,19 @@ def parse_values(text: str) -> Any:
     try:
         return yaml.safe_load(text) if text.strip() else {}
     except yaml.YAMLError as exc:
-        raise ValueFitError("", f"VALUES is not valid YAML: {exc}") from None
+        raise WireError(f"VALUES is not valid YAML: {_yaml_problem(exc)}") from None
+
+
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    """PyYAML's problem and where, in one line (its own text spans lines, with a caret)."""
+    problem = getattr(exc, "problem", None)
+    mark = getattr(exc, "problem_mark", None)
+    if problem is None:
+        return " ".join(str(exc).split())
+    if mark is None:
+        return str(problem)
+    line = f"line {mark.line + 1}, " if mark.line else ""
+    return f"{problem} (at {line}column {mark.column + 1})"
 
 
 def dump(values: Any) -> str:

@@ -158,6 +158,10 @@ def _read_json(path: str) -> Any:
 
 
 def export_pubkey_command(args: argparse.Namespace) -> int:
+    if _is_public_key(args.keyfile):
+        print(f"FAIL {args.keyfile} is a public key already: export-pubkey reads the bridge's "
+              "signing key (bridge.audit.key_path)", file=sys.stderr)
+        return 1
     try:
         key = load_private_key(args.keyfile)
     except AuditError as exc:
@@ -165,3 +169,14 @@ def export_pubkey_command(args: argparse.Namespace) -> int:
         return 1
     sys.stdout.write(public_key_pem(key).decode())
     return 0
+
+
+def _is_public_key(path: str) -> bool:
+    """Whether `path` is a PEM public key (the `.pub` beside the log), read only that far."""
+    try:
+        if not Path(path).is_file():  # (a FIFO would block the read)
+            return False
+        with open(path, "rb") as file:
+            return file.read(64).lstrip().startswith(b"-----BEGIN PUBLIC KEY-----")
+    except OSError:
+        return False  # the key loader names what is wrong with it

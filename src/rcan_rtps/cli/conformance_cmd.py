@@ -77,6 +77,7 @@ def _owner_token(args: argparse.Namespace) -> str | None:
 
 def _conformance(args: argparse.Namespace) -> int:
     from rcan_rtps.conformance import load_suite, run_suite
+    from rcan_rtps.conformance.runner import unusable
 
     suite = load_suite()
     source = suite.vendored.source
@@ -86,6 +87,10 @@ def _conformance(args: argparse.Namespace) -> int:
     if owner is None:
         return 2
     tokens = {"OWNER": owner, **dict(args.token_for)}
+    problem = stop_signals.run(unusable(args.url, tokens))
+    if problem is not None:
+        print(f"rcan-rtps conformance: {problem}", file=sys.stderr)
+        return 2
     results = stop_signals.run(run_suite(suite, args.level, args.url, tokens,
                                          skill=args.skill,
                                          report=lambda r: print(r.line(), flush=True)))

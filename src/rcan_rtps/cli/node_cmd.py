@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from .. import _stop_signals as stop_signals
 from .._printable import shown
@@ -35,8 +36,17 @@ async def _list(args: argparse.Namespace) -> int:
         for namespace, name in graph.nodes():
             if args.all or not name.startswith("_"):
                 print(shown(node_fqn(namespace, name)))  # (as a peer named itself)
+        _warn_of_shared_names(graph.nodes_sharing_a_name())
         warn_if_alone(args, node, graph)
     return 0
+
+
+def _warn_of_shared_names(shared: list[tuple[str, str]]) -> None:
+    """One line, as `ros2 node list` warns: listed once, two processes would pass unseen."""
+    if shared:
+        names = ", ".join(shown(node_fqn(namespace, name)) for namespace, name in shared)
+        print(f"rcan-rtps: warning: several nodes share the name {names}: services, "
+              "parameters and the graph cannot tell them apart", file=sys.stderr)
 
 
 SECTIONS = ("Subscribers", "Publishers", "Service Servers", "Service Clients",

@@ -4,12 +4,16 @@ services every ROS 2 node serves (`<node>/list_parameters`, `get_parameters`, â€
 from __future__ import annotations
 
 import argparse
+import asyncio
 import re
+import time
 from typing import Any
 
 import yaml
 
 from .. import _stop_signals as stop_signals
+from ..ros.errors import GraphTimeout, seconds
+from ..ros.graph import RosGraph
 from ..ros.parameters import (
     BOOL,
     BOOL_ARRAY,
@@ -26,6 +30,10 @@ from ..ros.parameters import (
 from ..ros.participant import RosNode
 from ..ros.services import ServiceClient
 from ._common import make_node
+
+# How long a parameter command looks for its node's services on the graph before saying the
+# node is not there (as `service call` looks for a server; --timeout, when shorter, wins).
+NODE_PATIENCE = 3.0
 
 # ros2 param get's wording, by type.
 GET_LABELS = {
@@ -71,12 +79,29 @@ def _common_options(parser: argparse.ArgumentParser) -> None:
                         help="seconds to wait for the node's services (default 10)")
 
 
+async def _await_parameter_server(node: RosNode, target: str, patience: float) -> None:
+    """Waits (up to `patience` s) for `target`'s parameter services on the graph: a node not
+    there is named as one (the user named a node, not a service), as `service call` does."""
+    graph = RosGraph(node)
+    service = f"{target}/get_parameters"
+    deadline = time.monotonic() + patience
+    while True:
+        graph.refresh()
+        if service in graph.services(include_hidden=True):
+            return
+        if time.monotonic() >= deadline:
+            raise GraphTimeout(f"no node {target} serves parameters within {seconds(patience)}; "
+                               "`rcan-rtps node list` shows the nodes there are")
+        await asyncio.sleep(0.1)
+
+
 def _node_fqn(name: str) -> str:
     return name if name.startswith("/") else "/" + name
 
 
 async def _call(node: RosNode, target: str, service: str, values: dict[str, Any],
                 timeout: float) -> dict[str, Any]:
+    await _await_parameter_server(node, _node_fqn(target), min(timeout, NODE_PATIENCE))
     kind = "".join(part.capitalize() for part in service.split("_"))
     client = ServiceClient(node, f"{_node_fqn(target)}/{service}", f"rcl_interfaces/srv/{kind}")
     try:

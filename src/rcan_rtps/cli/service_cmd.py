@@ -8,7 +8,7 @@ import re
 import time
 
 from .. import _stop_signals as stop_signals
-from ..ros.errors import ServiceUnavailable, seconds
+from ..ros.errors import ServiceUnavailable, WireError, seconds
 from ..ros.graph import RosGraph
 from ..ros.participant import RosNode
 from ..ros.services import RequestMapping, ServiceClient
@@ -117,6 +117,10 @@ async def _server_type(args: argparse.Namespace, node: RosNode, service: str, gi
         raise ServiceUnavailable(f"no server for service {service} within "
                                  f"{seconds(patience)}; {hint}")
     if given is not None:
+        asked = node.store.service(given).name
+        if asked not in types:  # DDS never matches the two: waiting cannot help
+            raise WireError(f"type mismatch: {service} has {', '.join(types)}, you asked for "
+                            f"{asked}")
         return given
     if len(types) > 1:
         raise ServiceUnavailable(f"servers of {service} have several types "

@@ -46,6 +46,23 @@ async def run_suite(suite: Suite, level: Level, url: str, tokens: Mapping[str, s
     return results
 
 
+async def unusable(url: str, tokens: Mapping[str, str],
+                   timeout: aiohttp.ClientTimeout | None = None) -> str | None:
+    """Why no case could run (the bridge does not answer, or refuses a token given: a wrong
+    --url or token), or None. Each case would otherwise fail alike, saying so again."""
+    async with aiohttp.ClientSession(timeout=timeout or aiohttp.ClientTimeout(total=20)) as s:
+        bridge = BridgeUnderTest(s, url, tokens)
+        for role in tokens:
+            try:
+                reply = await bridge.call(role, "GET", "/api/status")
+            except (aiohttp.ClientError, asyncio.TimeoutError) as exc:
+                return f"cannot reach the bridge at {url} ({exc or type(exc).__name__}): " \
+                       "is it running there? (--url)"
+            if reply.status == 401:
+                return f"the bridge at {url} refused the {role}'s token (401 UNAUTHENTICATED)"
+    return None
+
+
 async def _run_case(bridge: BridgeUnderTest, case: Case) -> Result:
     if case.out_of_scope is not None:
         return Result(case, "out of scope", case.out_of_scope)

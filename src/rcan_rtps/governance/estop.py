@@ -69,7 +69,8 @@ class LatchFile:
         except (OSError, ValueError) as exc:  # (msgspec.DecodeError is one; so is a FIFO)
             return True, f"e-stop state {self.path} is unreadable ({exc}): latched until cleared"
         if state.latched:
-            return True, f"latched by {state.by or 'unknown'} before this start"
+            return True, (f"e-stop latched by {state.by or 'unknown'} before this start; "
+                          "held until a clear_estop")
         return False, None
 
     def missing(self) -> bool:

@@ -443,6 +443,8 @@ def complete_records(file: Path) -> tuple[bytes, int]:
         if offset > len(data):
             break
         end = offset
+    if data[end:] == MCAP_MAGIC:  # a closed file ends with the magic after its footer
+        end = len(data)
     return data[:end], len(data) - end
 
 

@@ -17,6 +17,7 @@ import enum
 import logging
 import sys
 import time
+from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -379,6 +380,12 @@ class RosGraph:
         alive, another or this one (an info naming no such participant names no node)."""
         found = {(n.namespace, n.name) for nodes in self._live_infos() for n in nodes}
         return sorted(found)
+
+    def nodes_sharing_a_name(self) -> list[tuple[str, str]]:
+        """(namespace, name) of every name more than one live node announces (two processes
+        started under one name): the graph, services and parameters cannot tell them apart."""
+        announced = Counter((n.namespace, n.name) for nodes in self._live_infos() for n in nodes)
+        return sorted(name for name, count in announced.items() if count > 1)
 
 
 def _take_all(reader: BuiltinDataReader, batch: int = 256) -> Iterator[Any]:

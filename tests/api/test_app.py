@@ -121,7 +121,10 @@ async def test_clamped_within_ten_percent_and_denied_beyond(api: Api) -> None:
 async def test_guest_move_is_forbidden_and_nothing_dispatched(api: Api) -> None:
     status, body = await api.command("viewer", {"action": "move", "params": {"linear_x": 0.1}})
     assert (status, body["error_code"]) == (403, "INSUFFICIENT_PRIVILEGES")
-    assert api.entry(body["audit_id"])["deny_reason"] == "INSUFFICIENT_PRIVILEGES"
+    # What was needed, said (before: the bare code, while the GET routes said the role).
+    assert body["reason"] == "move needs USER or higher", body
+    assert api.entry(body["audit_id"])["deny_reason"] == (
+        "INSUFFICIENT_PRIVILEGES:move needs USER or higher")
     assert api.dispatcher.calls == []
 
 
@@ -131,6 +134,7 @@ async def test_claimed_higher_role_is_refused_and_audited(api: Api,
                                                           claim: dict[str, object]) -> None:
     status, body = await api.command("planner", {"action": "move", **claim})
     assert (status, body["error_code"]) == (403, "INSUFFICIENT_PRIVILEGES")
+    assert body["reason"] == "the message claims a role above USER, the credential's", body
     entry = api.entry(body["audit_id"])
     assert (entry["principal"], entry["role"], entry["outcome"]) == ("planner", "USER",
                                                                      "denied")

@@ -92,9 +92,10 @@ async def test_late_authorize_expires_it_first(harness: Harness, gov: Governor) 
 
 async def test_wrong_role_cannot_approve_or_deny(harness: Harness, gov: Governor) -> None:
     held = await hold(gov)
-    for verb in (gov.authorize, gov.deny):
+    for verb, said in ((gov.authorize, "approve"), (gov.deny, "deny")):
         d = await verb(held.pending_id or "", principal("lease", Role.LEASEE))
         assert (d.http_status, d.error_code) == (403, ErrorCode.INSUFFICIENT_PRIVILEGES)
+        assert d.reason == f"to {said} it needs OWNER or higher", d.reason  # what was needed
     assert len(gov.pending()) == 1  # still waiting
     assert (await gov.authorize(held.pending_id or "", ADMIN)).outcome is Outcome.EXECUTED
 

@@ -490,9 +490,11 @@ class Governor:
 
     def _precheck(self, command: NormalizedCommand, principal: Principal) -> Rejection | None:
         if _claims_more(command.claimed_role, principal.role):
-            return outcomes.INSUFFICIENT_PRIVILEGES
+            return outcomes.privileges(f"the message claims a role above {principal.role.name}, "
+                                       "the credential's")
         if not self._roles.allows(principal.role, command.action):
-            return outcomes.INSUFFICIENT_PRIVILEGES
+            return outcomes.privileges(f"{command.action} needs "
+                                       f"{self._roles.required(command.action).name} or higher")
         elsewhere = self.not_this_robot(command.ruri)
         if elsewhere is not None:
             return elsewhere

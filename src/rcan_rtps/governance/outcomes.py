@@ -27,9 +27,15 @@ def _rejected(reason: Reason, outcome: Outcome = Outcome.DENIED, status: int = 4
 D, S = Outcome.DENIED, Outcome.SAFETY_VIOLATION
 
 UNAUTHENTICATED = Rejection(401, D, ErrorCode.UNAUTHENTICATED)
-INSUFFICIENT_PRIVILEGES = Rejection(403, D, ErrorCode.INSUFFICIENT_PRIVILEGES)
 SELF_APPROVAL = Rejection(403, D, ErrorCode.INSUFFICIENT_PRIVILEGES, Reason.SELF_APPROVAL.value)
 RATE_LIMITED = Rejection(429, D, ErrorCode.RATE_LIMITED)
+
+
+def privileges(reason: str) -> Rejection:
+    """403 INSUFFICIENT_PRIVILEGES saying what was needed (the role, never a credential)."""
+    return Rejection(403, D, ErrorCode.INSUFFICIENT_PRIVILEGES, reason)
+
+
 PAYLOAD_TOO_LARGE = Rejection(413, D, ErrorCode.PAYLOAD_TOO_LARGE)
 NOT_THIS_ROBOT = Rejection(400, D, ErrorCode.INVALID_RURI, Reason.NOT_THIS_ROBOT.value)
 ROBOT_UNAVAILABLE = Rejection(503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE)

@@ -212,7 +212,8 @@ class HitlDesk:
         pending = held.pending
         issuer = reviewer.name == pending.issuer.name
         if reviewer.role < pending.approver_role and not (verdict == "withdraw" and issuer):
-            return outcomes.INSUFFICIENT_PRIVILEGES
+            return outcomes.privileges(f"to {verdict} it needs {pending.approver_role.name} or "
+                                       "higher")
         if verdict != "approve":
             return None
         if issuer and (self._distinct or pending.approvals_required > 1):

@@ -49,6 +49,27 @@ def test_interface_show_hides_the_empty_placeholder(capsys: pytest.CaptureFixtur
     assert out.splitlines()[0] == "---" and "success" in out
 
 
+def test_a_short_name_shows_the_one_service_or_action_of_that_name(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """`pkg/T` was read as the message `pkg/msg/T` only: a service or action named short was
+    'unknown type'."""
+    assert main(["interface", "show", "std_srvs/Trigger"]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0] == "---" and "boolean success" in out
+    assert main(["interface", "show", "nav2_msgs/NavigateToPose"]) == 0
+    assert "PoseStamped pose" in capsys.readouterr().out
+    assert main(["interface", "show", "std_msgs/String"]) == 0  # a message first, as before
+    assert capsys.readouterr().out == "string data\n"
+
+
+def test_a_package_and_kind_is_no_type(capsys: pytest.CaptureFixture[str]) -> None:
+    """It said "unknown type 'nav_msgs/msg/msg'"."""
+    assert main(["interface", "show", "nav_msgs/msg"]) == 1
+    err = capsys.readouterr().err
+    assert "unknown type 'nav_msgs/msg'" in err and "nav_msgs/msg/msg" not in err
+    assert "nav_msgs/msg/" in err  # the package's messages suggested
+
+
 def test_an_unbundled_type_points_at_idl_path(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["interface", "show", "my_msgs/action/Fibonacci"]) == 1
     err = capsys.readouterr().err

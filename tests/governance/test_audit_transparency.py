@@ -371,6 +371,9 @@ def test_consistency_proofs_verify_and_fail_on_tamper(
 
 def test_proof_errors_are_messages(laid_out: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert run("audit", "prove", str(laid_out), str(N_ENTRIES + 1)) == 1
+    capsys.readouterr()
+    assert run("audit", "prove", str(laid_out), "0") == 1  # a 0-based index: said so
+    assert "entries are counted from 1" in capsys.readouterr().err
     assert run("audit", "consistency", str(laid_out), "5", "3") == 1
     assert run("audit", "prove", "--verify", str(laid_out)) == 1  # not a proof (no key first)
     assert run("audit", "prove", "--verify", str(laid_out), "--pubkey",

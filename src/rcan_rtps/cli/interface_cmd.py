@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..ros.errors import UnknownTypeError
 from ..ros.typesys.model import MessageType
 from ..ros.typesys.store import TypeStore, normalize_name
 from ._common import make_store
@@ -61,9 +62,27 @@ def _describe(store: TypeStore, msg: MessageType, indent: str = "") -> list[str]
     return lines
 
 
+KINDS = ("msg", "srv", "action")
+
+
+def _interface(store: TypeStore, given: str) -> str:
+    """`given` as the full name of an interface: `pkg/T` is the message `pkg/msg/T`, or else
+    the one service or action of that name (`std_srvs/Trigger`)."""
+    parts = given.strip("/").split("/")
+    if len(parts) == 2 and parts[1] in KINDS:  # a package's kind, not a type
+        raise UnknownTypeError(given, [n for n in store.interface_names()
+                                       if n.startswith(f"{parts[0]}/{parts[1]}/")])
+    name = normalize_name(given)
+    if len(parts) != 2 or name in store.interface_names():
+        return name
+    found = [f"{parts[0]}/{kind}/{parts[1]}" for kind in KINDS
+             if f"{parts[0]}/{kind}/{parts[1]}" in store.interface_names()]
+    return found[0] if len(found) == 1 else name
+
+
 def show_command(args: argparse.Namespace) -> int:
     store = make_store(args)
-    name = normalize_name(args.type)
+    name = _interface(store, args.type)
     kind = name.split("/")[1] if name.count("/") == 2 else "msg"
     if kind == "srv" and name in store.interface_names():
         svc = store.service(name)

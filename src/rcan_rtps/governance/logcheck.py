@@ -231,7 +231,9 @@ def prove_inclusion(path: Path, seq: int, pubkey: Ed25519PublicKey | None,
                          f"{f' of size {tree_size}' if tree_size is not None else ''} "
                          f"beside {path}")
     head = max(heads, key=lambda h: (h.tree_size, h.timestamp_ms))
-    if not 1 <= seq <= head.tree_size:
+    if seq < 1:  # a 0-based index, most likely
+        raise ProofError(f"seq {seq}: entries are counted from 1 (the first is seq 1)")
+    if seq > head.tree_size:
         raise ProofError(f"seq {seq} is not covered by the {head.describe()}")
     leaves = [leaf_hash(line) for line in _lines_of(path)[:head.tree_size]]
     _same_root(leaves, head)

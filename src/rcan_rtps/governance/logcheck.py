@@ -255,10 +255,19 @@ def _same_root(leaves: list[bytes], head: TreeHead) -> None:
                          f"the {head.describe()}")
 
 
+def _proof_head(value: Any) -> TreeHead:
+    """A proof's tree head; raises ValueError (or msgspec's) unless its root is 32 bytes of
+    hex (`TreeHead.root` would raise on the proof's check, outside the document's)."""
+    head = msgspec.convert(value, TreeHead)
+    if len(head.root) != 32:
+        raise ValueError(f"root_hash {head.root_hash!r} is not 32 bytes")
+    return head
+
+
 def check_inclusion(doc: Any, pubkey: Ed25519PublicKey) -> str:
     """Verify an inclusion proof document; returns what it proves, raises ProofError."""
     try:
-        head = msgspec.convert(doc["tree_head"], TreeHead)
+        head = _proof_head(doc["tree_head"])
         entry: str = doc["entry"]
         seq = int(doc["seq"])
         index = int(doc["leaf_index"])
@@ -313,7 +322,7 @@ def check_consistency(doc: Any, pubkey: Ed25519PublicKey | None) -> str:
         old, new = int(doc["old_size"]), int(doc["new_size"])
         old_root, new_root = bytes.fromhex(doc["old_root"]), bytes.fromhex(doc["new_root"])
         path = [bytes.fromhex(h) for h in doc["consistency_path"]]
-        heads = [(size, root, None if doc.get(k) is None else msgspec.convert(doc[k], TreeHead))
+        heads = [(size, root, None if doc.get(k) is None else _proof_head(doc[k]))
                  for size, root, k in ((old, old_root, "old_tree_head"),
                                        (new, new_root, "new_tree_head"))]
     except (KeyError, TypeError, ValueError, AttributeError, msgspec.MsgspecError) as exc:

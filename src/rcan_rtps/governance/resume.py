@@ -62,6 +62,7 @@ from rcan_rtps.rcan import Effect
 from rcan_rtps.rcan.actions import ActionSpec, Hold, Publish, action_spec, with_effect
 
 from ._durable import atomic_write, read_small
+from ._json import decode, decode_as
 from .audit import RESUME_POINT_TAG, Checkpoint, entry_id
 from .left import LeftArm, LeftGoal, LeftRunning, LeftStream
 
@@ -110,7 +111,9 @@ def resume(path: Path | str, *, now_ms: int | None = None,
     # It verified at open: this is no time to trust it. An entry of a shape this version
     # does not expect (another version's) fails closed as well, never a traceback — an arm
     # run for a time out of range included (OverflowError working out when it is due).
-    except (OSError, ValueError, TypeError, AttributeError, ArithmeticError) as exc:
+    # (RecursionError: a line nested thousands of levels deep, which Python's json refuses so)
+    except (OSError, ValueError, TypeError, AttributeError, ArithmeticError,
+            RecursionError) as exc:
         return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc!r})")
 
 
@@ -632,10 +635,10 @@ def _usable_point(fd: int, log_path: Path, size: int,
 def _signed_point(data: bytes, pubkey: Ed25519PublicKey) -> StartPoint:
     """Raises ValueError unless `data` is a point file signed by `pubkey`."""
     try:
-        file = msgspec.json.decode(data, type=_PointFile)
+        file = decode_as(data, _PointFile)
         body = bytes(file.body)
         pubkey.verify(base64.b64decode(file.sig, validate=True), RESUME_POINT_TAG + body)
-        return msgspec.json.decode(body, type=StartPoint)
+        return decode_as(body, StartPoint)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
         raise ValueError(f"malformed: {exc}") from exc
     except (ValueError, InvalidSignature) as exc:  # (a bad base64 is a ValueError)
@@ -651,9 +654,14 @@ def _names_its_line(fd: int, point: StartPoint, size: int) -> None:
                                      != b"\n"):
         raise ValueError("its span is not a line of the log")
     try:
-        entry = msgspec.json.decode(line[:-1])
+        entry = decode(line[:-1])
     except msgspec.DecodeError as exc:
         raise ValueError("its span is not an entry") from exc
-    if (not isinstance(entry, dict) or entry.get("seq") != point.seq
-            or entry.get("audit_id") != point.audit_id or entry_id(entry) != point.audit_id):
+    try:
+        its_entry = (isinstance(entry, dict) and entry.get("seq") == point.seq
+                     and entry.get("audit_id") == point.audit_id
+                     and entry_id(entry) == point.audit_id)
+    except RecursionError:  # nested too deeply to be an entry
+        its_entry = False
+    if not its_entry:
         raise ValueError(f"the log's line there is not its entry (seq {point.seq})")

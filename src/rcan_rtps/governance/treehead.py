@@ -26,6 +26,7 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from ._durable import full_fsync, write_all
+from ._json import decode_as
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +93,7 @@ def parse_tree_heads(data: bytes) -> tuple[list[TreeHead | BadTreeHead], bytes]:
 
 def _parse(line: bytes, n: int) -> TreeHead | BadTreeHead:
     try:
-        head = msgspec.json.decode(line, type=TreeHead, strict=True)
+        head = decode_as(line, TreeHead)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
         return BadTreeHead(n, f"not a tree head ({exc})")
     if head.line() != line + b"\n":

@@ -11,20 +11,31 @@ The bound is per sender because one window shared by all let any principal, a GU
 messages are all refused later, fill it and so have every other principal's refused. An id
 seen from any sender is a replay from every sender.
 
+The window is kept in memory, so a start reads back the ids the audit log's last entries
+name (`remember_logged`): a message the previous run took, sent again while it could still be
+fresh, is a replay after a restart too.
+
 The 1.2 forms and unversioned messages keep the idempotent retry instead (the governor's).
 """
 
 from __future__ import annotations
 
 import heapq
+import os
 from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+
+import msgspec
 
 from rcan_rtps._counts import count_down
 from rcan_rtps.rcan import ErrorCode, Outcome
 
 from . import outcomes
+from ._json import decode
 from .clock import Clock
 from .outcomes import Rejection
+from .resume import lines_backwards
 
 DEFAULT_WINDOW_S = 30.0
 SAFETY_WINDOW_S = 10.0  # §8.3: a SAFETY message's window is never longer
@@ -73,6 +84,27 @@ class ReplayWindow:
         heapq.heappush(self._expiry, (sent_at_s + window, msg_id))
         return None
 
+    def remember_logged(self, path: Path) -> int:
+        """At start: remember the ids the audit log at `path` names (of messages decided,
+        refused or held) in entries logged while those messages could still be fresh, each
+        until it could no longer be. Returns how many.
+
+        A message taken at time t was sent at most `ahead_s` after t, so it is stale by
+        t + ahead_s + window_s at the latest; every entry naming an id counts (a message
+        refused after the window took its id — an e-stop was latched, say — must not pass
+        when sent again once the new run has cleared it)."""
+        now = self._clock.time()
+        keep_s = self.window_s + self.ahead_s
+        remembered = 0
+        for msg_id, sender, logged_s in _logged_ids(path, since_s=now - keep_s):
+            stale_at = logged_s + keep_s
+            if msg_id not in self._seen:
+                self._seen[msg_id] = (sender, stale_at)
+                self._held[sender] += 1
+                heapq.heappush(self._expiry, (stale_at, msg_id))
+                remembered += 1
+        return remembered
+
     def release(self, msg_id: str | None, sender: str = "") -> None:
         """Forgets an id `check` let through whose message was then refused before anything
         was done with it (a full queue's 429): its retry is the same message, not a replay.
@@ -98,3 +130,31 @@ class ReplayWindow:
 def _stale(reason: str) -> Rejection:
     return Rejection(outcomes.MESSAGE_STALE.http_status, Outcome.DENIED, ErrorCode.MESSAGE_STALE,
                      reason)
+
+
+def _logged_ids(path: Path, *, since_s: float) -> Iterator[tuple[str, str, float]]:
+    """(message_id, principal, logged at, s) of the entries of the log at `path`, from its
+    end back to the first logged before `since_s`. The log was verified when it was opened:
+    a line that cannot be read (a torn tail) is passed over."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return
+    try:
+        for _, line in lines_backwards(fd, os.fstat(fd).st_size):
+            try:
+                entry = decode(line)
+            except msgspec.DecodeError:
+                continue
+            if not isinstance(entry, dict):
+                continue
+            logged_ms = entry.get("timestamp_ms")
+            if not isinstance(logged_ms, int) or isinstance(logged_ms, bool):
+                continue
+            if logged_ms / 1000 < since_s:
+                return
+            msg_id, principal = entry.get("message_id"), entry.get("principal")
+            if isinstance(msg_id, str):
+                yield msg_id, principal if isinstance(principal, str) else "", logged_ms / 1000
+    finally:
+        os.close(fd)

@@ -502,7 +502,7 @@ def _boundary_at(fd: int, size: int, torn_at: int | None, *, floor: int) -> int 
     """The offset of the last BRIDGE_STARTED or BRIDGE_STOPPED line at or after `floor` (a
     line's start), read back from the end in chunks; None if there is none (with `floor` 0:
     0, the log's start). Only a line naming one is parsed here."""
-    for offset, line in _lines_backwards(fd, size, floor):
+    for offset, line in lines_backwards(fd, size, floor):
         if b"BRIDGE_ST" not in line:  # the event's name, in whatever field: checked below
             continue
         entry = _parsed(line, last=offset + len(line) == torn_at)
@@ -511,7 +511,7 @@ def _boundary_at(fd: int, size: int, torn_at: int | None, *, floor: int) -> int 
     return 0 if floor == 0 else None
 
 
-def _lines_backwards(fd: int, size: int, floor: int = 0) -> Iterator[tuple[int, bytes]]:
+def lines_backwards(fd: int, size: int, floor: int = 0) -> Iterator[tuple[int, bytes]]:
     """(offset, line) from the last line to the first at or after `floor` (a line's start)."""
     end, tail = size, b""
     while end > floor:

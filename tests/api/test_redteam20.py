@@ -100,3 +100,23 @@ async def test_ids_of_a_previous_run_are_forgotten_once_stale(tmp_path: Path) ->
         assert replay is not None and len(replay) == 0
     finally:
         await again.close()
+
+
+async def test_a_replay_after_a_restart_is_refused_whatever_the_case_of_its_uuid(
+        tmp_path: Path) -> None:
+    """The log names a message by its id's canonical spelling (a UUID in lower case), the
+    window kept it as sent: a message whose msg_id is an upper-case UUID (signed so,
+    unchangeable) passed again after a restart. One UUID is one id, however it is spelled."""
+    api = await Api(tmp_path).start()
+    msg = sdk_command(api, "move", {"linear_x": 0.3, "duration_s": 1.0})
+    msg["msg_id"] = msg["msg_id"].upper()
+    assert (await api.command("planner", msg))[0] == 200
+    again = await _restarted(api, after_s=3)
+    try:
+        status, body = await again.command("planner", msg)
+        assert (status, body.get("error_code")) == (409, "REPLAY_DETECTED"), body
+        msg["msg_id"] = msg["msg_id"].lower()  # the same id
+        status, body = await again.command("planner", msg)
+        assert (status, body.get("error_code")) == (409, "REPLAY_DETECTED"), body
+    finally:
+        await again.close()

@@ -30,6 +30,7 @@ import msgspec
 
 from rcan_rtps._counts import count_down
 from rcan_rtps.rcan import ErrorCode, Outcome
+from rcan_rtps.rcan._v3 import normal_id
 
 from . import outcomes
 from ._json import decode
@@ -74,6 +75,9 @@ class ReplayWindow:
             return _stale(f"more_than_{self.ahead_s:g}_s_ahead")
         if msg_id is None:  # nothing to remember it by: fresh is all that can be said
             return None
+        # One UUID is one id however it is spelled: the audit log (and so `remember_logged`)
+        # names it in its canonical spelling.
+        msg_id = normal_id(msg_id)
         self._forget_stale(now)
         if msg_id in self._seen:
             return outcomes.REPLAY_DETECTED
@@ -111,6 +115,7 @@ class ReplayWindow:
         Only the sender that brought the id releases it."""
         if msg_id is None:
             return
+        msg_id = normal_id(msg_id)
         kept = self._seen.get(msg_id)
         if kept is not None and kept[0] == sender:
             self._drop(msg_id)

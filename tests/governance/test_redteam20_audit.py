@@ -10,7 +10,14 @@ ignores any unusable checkpoint). Each test failed on main (6969ad9).
 from __future__ import annotations
 
 import argparse
+import asyncio
+import contextlib
 import json
+import os
+import stat
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -19,7 +26,7 @@ from rcan_rtps.cli import audit_cmd
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord, checkpoint_path
 from rcan_rtps.governance.errors import AuditIntegrityError
 from rcan_rtps.governance.resume import point_path, resume
-from rcan_rtps.governance.treehead import tree_head_path
+from rcan_rtps.governance.treehead import public_key_path, tree_head_path
 
 DEEP = b"[" * 5000 + b"]" * 5000
 
@@ -139,3 +146,97 @@ def test_a_consistency_proof_with_a_root_that_is_not_hex_is_refused(
     proof.write_text(json.dumps(doc))
     assert run("audit", "consistency", "--verify", str(proof)) == 1
     assert "not a consistency proof" in capsys.readouterr().err
+
+
+# -- FIFOs beside the log --------------------------------------------------------------------
+
+
+def _fifo_at(path: Path) -> None:
+    path.unlink(missing_ok=True)
+    os.mkfifo(path)
+
+
+class _Drain:
+    """Reads a FIFO empty until stopped, on a thread: what lets a writer blocked on it (the
+    failure these tests look for) go on, so that a failing test ends instead of hanging."""
+
+    def __init__(self, path: Path) -> None:
+        self._fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.01):
+            with contextlib.suppress(BlockingIOError):
+                while os.read(self._fd, 1 << 16):
+                    pass
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        os.close(self._fd)
+
+
+def _feed(path: Path) -> None:
+    """Give a reader blocked on the FIFO at `path` its end of file (if it still is one)."""
+    if stat.S_ISFIFO(path.stat().st_mode):
+        fd = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
+        os.close(fd)
+
+
+async def test_a_fifo_at_the_public_key_does_not_hold_a_start(
+        log_file: Path, tmp_path: Path) -> None:
+    """A start read `<log>.pub` to see whether it holds the key: a FIFO there (its name is no
+    secret) held the start — and its e-stop — for a writer that never comes. It is replaced
+    by the key, as a file that is not the key is."""
+    pub = public_key_path(log_file)
+    _fifo_at(pub)
+    opening = asyncio.ensure_future(AuditLog.open(log_file, tmp_path / "k.key"))
+    done, _ = await asyncio.wait([opening], timeout=10)
+    if not done:
+        _feed(pub)
+    await (await opening).close()
+    assert done, "the start was held by the FIFO"
+    assert pub.is_file() and pub.read_bytes().startswith(b"-----BEGIN PUBLIC KEY-----")
+
+
+async def test_a_fifo_at_the_tree_heads_does_not_stall_the_log(
+        log_file: Path, tmp_path: Path) -> None:
+    """Tree heads were appended to a FIFO at `<log>.sth` until its buffer filled (~300
+    heads), then the writer blocked: every append after it (every governed command) hung.
+    The log now writes no tree heads there (as when the file cannot be opened)."""
+    heads = tree_head_path(log_file)
+    _fifo_at(heads)
+    log = await AuditLog.open(log_file, tmp_path / "k.key")
+    stalled, drain = None, None
+    try:
+        for i in range(600):
+            append = asyncio.ensure_future(log.append(
+                AuditRecord(event=AuditEvent.COMMAND_DISPATCHED, params={"i": i})))
+            done, _ = await asyncio.wait([append], timeout=10)
+            if not done:
+                stalled, drain = i, _Drain(heads)
+                await append
+                break
+    finally:
+        await log.close()
+        if drain is not None:
+            drain.stop()
+    assert stalled is None, f"append {stalled} stalled"
+
+
+@pytest.mark.parametrize("sidecar", [public_key_path, tree_head_path])
+def test_verify_names_a_fifo_beside_the_log(
+        log_file: Path, sidecar: Callable[[Path], Path],
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """`audit verify` read a FIFO at `<log>.pub` or `<log>.sth` for ever."""
+    _fifo_at(sidecar(log_file))
+    with ThreadPoolExecutor(1) as pool:
+        code = pool.submit(run, "audit", "verify", str(log_file))
+        try:
+            assert code.result(timeout=10) == 1
+        finally:
+            if not code.done():
+                _feed(sidecar(log_file))
+    assert "not a regular file" in capsys.readouterr().err

@@ -991,6 +991,15 @@ def _witness(url: str | None) -> Witness | None:
     return Witness(url)
 
 
+def _held_there(path: Path, size: int) -> bytes | None:
+    """The bytes of `path` if it is a regular file of at most `size` bytes, else None (then it
+    is written afresh): a FIFO there would hold the start for a writer that never comes."""
+    try:
+        return read_small(path, size)
+    except (FileNotFoundError, ValueError):
+        return None
+
+
 def _make_dirs(*paths: Path) -> None:
     """Create each missing parent directory, private (0700): audit trails are not for all."""
     for path in paths:
@@ -1006,7 +1015,7 @@ def _open_sidecars(path: Path, key: Ed25519PrivateKey) -> TreeHeadFile | None:
     pub = public_key_path(path)
     pem = public_key_pem(key)
     try:
-        if not pub.exists() or pub.read_bytes() != pem:
+        if _held_there(pub, len(pem)) != pem:
             atomic_write(pub, pem, mode=0o644)
     except OSError as exc:
         log.warning("audit public key not written to %s: %s", pub, exc)

@@ -17,6 +17,7 @@ from typing import Any
 import msgspec
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
+from ._durable import read_regular
 from .audit import checkpoint_path, entries, read_checkpoint
 from .errors import AuditError, AuditIntegrityError
 from .merkle import (
@@ -103,10 +104,10 @@ def check_log(path: Path, pubkey: Ed25519PublicKey | None,
 def _anchors(file: Path, source: str, pubkey: Ed25519PublicKey | None,
              report: LogReport) -> list[_Anchor]:
     try:
-        data = file.read_bytes()
+        data = read_regular(file)
     except FileNotFoundError:
         return []
-    except OSError as exc:
+    except (OSError, ValueError) as exc:  # (ValueError: a FIFO, say, which would never end)
         report.problems.append(f"{source}: cannot read {file}: {exc}")
         return []
     heads, torn = parse_tree_heads(data)

@@ -17,8 +17,10 @@ reads.
 from __future__ import annotations
 
 import base64
+import errno
 import logging
 import os
+import stat
 from pathlib import Path
 
 import msgspec
@@ -114,6 +116,10 @@ class TreeHeadFile:
         self.path = path
         self._fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o600)
         try:
+            # A FIFO there takes heads until its buffer is full, then blocks the log's writer
+            # (and every governed command behind it): no heads rather than that.
+            if not stat.S_ISREG(os.fstat(self._fd).st_mode):
+                raise OSError(errno.EINVAL, "not a regular file", str(path))
             self._size = _cut_torn_tail(self._fd, path)
         except BaseException:
             os.close(self._fd)

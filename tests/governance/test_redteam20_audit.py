@@ -23,8 +23,11 @@ from pathlib import Path
 import pytest
 
 from rcan_rtps.cli import audit_cmd
+from rcan_rtps.governance import outcomes
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord, checkpoint_path
+from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.governance.errors import AuditIntegrityError
+from rcan_rtps.governance.replay import ReplayWindow
 from rcan_rtps.governance.resume import point_path, resume
 from rcan_rtps.governance.treehead import public_key_path, tree_head_path
 
@@ -240,3 +243,32 @@ def test_verify_names_a_fifo_beside_the_log(
             if not code.done():
                 _feed(sidecar(log_file))
     assert "not a regular file" in capsys.readouterr().err
+
+
+# -- the replay window read back from the log ------------------------------------------------
+
+
+async def _logged(tmp_path: Path, at: float, ids: list[str]) -> Path:
+    log = await AuditLog.open(tmp_path / "r.jsonl", tmp_path / "k.key", clock=ManualClock(at))
+    for msg_id in ids:
+        await log.append(AuditRecord(event=AuditEvent.COMMAND_DISPATCHED, principal="p",
+                                     message_id=msg_id))
+    await log.close()
+    return tmp_path / "r.jsonl"
+
+
+async def test_a_start_remembers_only_ids_that_could_still_be_fresh(tmp_path: Path) -> None:
+    path = await _logged(tmp_path, 1_800_000_000.0, ["m-1", "m-2"])
+    window = ReplayWindow(ManualClock(1_800_000_010.0))  # 10 s later: both could be
+    assert window.remember_logged(path) == 2
+    assert window.check("m-1", 1_800_000_009.0) == outcomes.REPLAY_DETECTED
+    later = ReplayWindow(ManualClock(1_800_000_040.0))  # past window_s + ahead_s
+    assert later.remember_logged(path) == 0
+
+
+async def test_ids_logged_by_a_clock_far_ahead_are_not_remembered(tmp_path: Path) -> None:
+    """After the clock went back an hour, the run's last entries seem to come from the
+    future: a message they name can never be fresh again here, so none is kept (they would
+    only fill the sender's bound)."""
+    path = await _logged(tmp_path, 1_800_003_600.0, ["m-1"])
+    assert ReplayWindow(ManualClock(1_800_000_000.0)).remember_logged(path) == 0

@@ -21,6 +21,7 @@ The 1.2 forms and unversioned messages keep the idempotent retry instead (the go
 from __future__ import annotations
 
 import heapq
+import itertools
 import os
 from collections import Counter
 from collections.abc import Iterator
@@ -42,6 +43,9 @@ DEFAULT_WINDOW_S = 30.0
 SAFETY_WINDOW_S = 10.0  # §8.3: a SAFETY message's window is never longer
 DEFAULT_AHEAD_S = 5.0  # §8.4's clock-drift tolerance
 DEFAULT_MAX_ENTRIES = 10_000
+# How far back a start reads the log for ids (`remember_logged`): the window's time bounds it,
+# this too, should the clock have gone back (every entry then seems recent).
+_MAX_LINES_BACK = 200_000
 WINDOW_FULL = Rejection(429, Outcome.DENIED, ErrorCode.RATE_LIMITED, "replay_window_full")
 
 
@@ -101,6 +105,8 @@ class ReplayWindow:
         keep_s = self.window_s + self.ahead_s
         remembered = 0
         for msg_id, sender, logged_s in _logged_ids(path, since_s=now - keep_s):
+            if logged_s - self.window_s > now + self.ahead_s:
+                continue  # logged by a clock far ahead of ours: never fresh again here
             stale_at = logged_s + keep_s
             if msg_id not in self._seen:
                 self._seen[msg_id] = (sender, stale_at)
@@ -146,7 +152,8 @@ def _logged_ids(path: Path, *, since_s: float) -> Iterator[tuple[str, str, float
     except FileNotFoundError:
         return
     try:
-        for _, line in lines_backwards(fd, os.fstat(fd).st_size):
+        lines = itertools.islice(lines_backwards(fd, os.fstat(fd).st_size), _MAX_LINES_BACK)
+        for _, line in lines:
             try:
                 entry = decode(line)
             except msgspec.DecodeError:

@@ -130,7 +130,9 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app[DEADLINES] = deadlines  # ApiServer serves connections through it
     app[GOVERNOR] = governor
     app[AUTHENTICATOR] = authenticator
-    app[CHECKS] = message_checks(config, clock or SystemClock(), signatures)
+    app[CHECKS] = checks = message_checks(config, clock or SystemClock(), signatures)
+    if checks.replay is not None:  # a restart must not forget what could be replayed
+        checks.replay.remember_logged(governor.audit.path)
     app[ROBOT] = robot
     app[SETTINGS] = settings
     app[CERT_PRINCIPALS] = dict(config_cert_principals(config) if cert_principals is None

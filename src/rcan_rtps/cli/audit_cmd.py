@@ -153,7 +153,9 @@ def _read_json(path: str) -> Any:
 
     try:
         return json.loads(Path(path).read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+    # (ValueError: JSONDecodeError, and a number of more digits than Python converts;
+    # RecursionError: nested deeper than Python's json goes)
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise ProofError(f"{path} is not JSON: {exc}") from exc
 
 

@@ -79,3 +79,19 @@ def read_small(path: Path, limit: int) -> bytes:
     if len(data) > info.st_size:
         raise ValueError(f"{path} is being written")
     return data
+
+
+def read_regular(path: Path) -> bytes:
+    """A regular file's bytes, whatever its size (a log's sidecar of tree heads). Raises
+    FileNotFoundError if there is none, ValueError if it is no regular file: a FIFO put in its
+    place would hold the reader for a writer that never comes (`read_small`, unbounded)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise ValueError(f"{path} is not a regular file")
+        chunks = []
+        while chunk := os.read(fd, 1 << 20):
+            chunks.append(chunk)
+    finally:
+        os.close(fd)
+    return b"".join(chunks)

@@ -53,6 +53,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 
 from ..events import Channel
 from ._durable import atomic_write, fsync_dir, full_fsync, read_small, write_all
+from ._json import decode, decode_as
 from .clock import Clock, SystemClock
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
 from .keyfacts import read_public_pem
@@ -341,18 +342,21 @@ def _lines(data: bytes) -> Iterator[tuple[int, bytes]]:
 def _check_line(line: bytes, seq: int, prev: str, pubkey: Ed25519PublicKey | None) -> str:
     """Verify one line as entry `seq` after `prev`; returns its audit_id or raises."""
     try:
-        entry = msgspec.json.decode(line)
+        entry = decode(line)
     except (msgspec.DecodeError, UnicodeDecodeError) as exc:
         raise AuditIntegrityError(seq, f"not JSON ({exc})") from exc
     if not isinstance(entry, dict) or not all(k in entry for k in _REQUIRED):
         raise AuditIntegrityError(seq, "not an audit entry")
-    if canonical_entry(entry) != line:
+    try:
+        canonical_line, audit_id = canonical_entry(entry), entry_id(entry)
+    except RecursionError as exc:  # (recursive: msgspec decodes deeper than this goes)
+        raise AuditIntegrityError(seq, "nested too deeply to be an audit entry") from exc
+    if canonical_line != line:
         raise AuditIntegrityError(seq, "not in canonical form")
     if entry["seq"] != seq:
         raise AuditIntegrityError(seq, f"found seq {entry['seq']!r} where {seq} belongs")
     if entry["prev_hash"] != prev:
         raise AuditIntegrityError(seq, "prev_hash does not link to the previous entry")
-    audit_id = entry_id(entry)
     if entry["audit_id"] != audit_id:
         raise AuditIntegrityError(seq, "audit_id does not match the entry's content")
     sig = _sig_bytes(entry["sig"], seq)
@@ -412,11 +416,15 @@ def _only_damage_left(data: bytes, offset: int) -> bool:
 
 def _well_formed(line: bytes) -> bool:
     try:
-        entry = msgspec.json.decode(line)
+        entry = decode(line)
     except (msgspec.DecodeError, UnicodeDecodeError):
         return False
-    return (isinstance(entry, dict) and all(k in entry for k in _REQUIRED)
-            and entry.get("audit_id") == entry_id(entry))
+    if not isinstance(entry, dict) or not all(k in entry for k in _REQUIRED):
+        return False
+    try:
+        return bool(entry.get("audit_id") == entry_id(entry))
+    except RecursionError:  # nested too deeply to be one
+        return False
 
 
 def verify(
@@ -501,7 +509,7 @@ def read_checkpoint(path: Path, pubkey: Ed25519PublicKey | None) -> Checkpoint:
     """The checkpoint at `path`, its signature checked when `pubkey` is given; raises OSError
     (FileNotFoundError if there is none) or ValueError (malformed, or not signed by `pubkey`)."""
     try:
-        cp = msgspec.json.decode(read_small(path, MAX_CHECKPOINT_BYTES), type=Checkpoint)
+        cp = decode_as(read_small(path, MAX_CHECKPOINT_BYTES), Checkpoint)
     except msgspec.DecodeError as exc:
         raise ValueError(f"checkpoint {path} is malformed: {exc}") from exc
     if pubkey is not None:
@@ -532,12 +540,15 @@ def _resume_point(fd: int, cp: Checkpoint) -> tuple[int, str, int] | None:
     if not line.endswith(b"\n"):
         return None
     try:
-        entry = msgspec.json.decode(line[:-1])
+        entry = decode(line[:-1])
     except msgspec.DecodeError:
         return None
     if not isinstance(entry, dict) or entry.get("seq") != cp.seq:
         return None
-    if entry.get("audit_id") != cp.audit_id or entry_id(entry) != cp.audit_id:
+    try:
+        if entry.get("audit_id") != cp.audit_id or entry_id(entry) != cp.audit_id:
+            return None
+    except RecursionError:  # nested too deeply to be its entry
         return None
     return cp.seq, cp.audit_id, cp.end
 
@@ -980,6 +991,15 @@ def _witness(url: str | None) -> Witness | None:
     return Witness(url)
 
 
+def _held_there(path: Path, size: int) -> bytes | None:
+    """The bytes of `path` if it is a regular file of at most `size` bytes, else None (then it
+    is written afresh): a FIFO there would hold the start for a writer that never comes."""
+    try:
+        return read_small(path, size)
+    except (FileNotFoundError, ValueError):
+        return None
+
+
 def _make_dirs(*paths: Path) -> None:
     """Create each missing parent directory, private (0700): audit trails are not for all."""
     for path in paths:
@@ -995,7 +1015,7 @@ def _open_sidecars(path: Path, key: Ed25519PrivateKey) -> TreeHeadFile | None:
     pub = public_key_path(path)
     pem = public_key_pem(key)
     try:
-        if not pub.exists() or pub.read_bytes() != pem:
+        if _held_there(pub, len(pem)) != pem:
             atomic_write(pub, pem, mode=0o644)
     except OSError as exc:
         log.warning("audit public key not written to %s: %s", pub, exc)

@@ -17,6 +17,10 @@ from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
+from ._durable import read_small
+
+MAX_PEM_BYTES = 64 * 1024  # a public key's PEM is a few hundred bytes
+
 
 class KeyFacts:
     """The public names of one Ed25519 public key."""
@@ -43,7 +47,8 @@ def read_public_pem(path: str | os.PathLike[str]) -> Ed25519PublicKey:
     from cryptography.hazmat.primitives import serialization  # verifiers only, not a run
 
     try:
-        key = serialization.load_pem_public_key(Path(path).read_bytes())
+        # (read_small: a FIFO there would hold the reader for ever)
+        key = serialization.load_pem_public_key(read_small(Path(path), MAX_PEM_BYTES))
     except (OSError, ValueError) as exc:
         raise ValueError(f"cannot load {path}: {exc}") from exc
     if not isinstance(key, Ed25519PublicKey):

@@ -17,6 +17,7 @@ from typing import Any
 import msgspec
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
+from ._durable import read_regular
 from .audit import checkpoint_path, entries, read_checkpoint
 from .errors import AuditError, AuditIntegrityError
 from .merkle import (
@@ -103,10 +104,10 @@ def check_log(path: Path, pubkey: Ed25519PublicKey | None,
 def _anchors(file: Path, source: str, pubkey: Ed25519PublicKey | None,
              report: LogReport) -> list[_Anchor]:
     try:
-        data = file.read_bytes()
+        data = read_regular(file)
     except FileNotFoundError:
         return []
-    except OSError as exc:
+    except (OSError, ValueError) as exc:  # (ValueError: a FIFO, say, which would never end)
         report.problems.append(f"{source}: cannot read {file}: {exc}")
         return []
     heads, torn = parse_tree_heads(data)
@@ -257,10 +258,19 @@ def _same_root(leaves: list[bytes], head: TreeHead) -> None:
                          f"the {head.describe()}")
 
 
+def _proof_head(value: Any) -> TreeHead:
+    """A proof's tree head; raises ValueError (or msgspec's) unless its root is 32 bytes of
+    hex (`TreeHead.root` would raise on the proof's check, outside the document's)."""
+    head = msgspec.convert(value, TreeHead)
+    if len(head.root) != 32:
+        raise ValueError(f"root_hash {head.root_hash!r} is not 32 bytes")
+    return head
+
+
 def check_inclusion(doc: Any, pubkey: Ed25519PublicKey) -> str:
     """Verify an inclusion proof document; returns what it proves, raises ProofError."""
     try:
-        head = msgspec.convert(doc["tree_head"], TreeHead)
+        head = _proof_head(doc["tree_head"])
         entry: str = doc["entry"]
         seq = int(doc["seq"])
         index = int(doc["leaf_index"])
@@ -315,7 +325,7 @@ def check_consistency(doc: Any, pubkey: Ed25519PublicKey | None) -> str:
         old, new = int(doc["old_size"]), int(doc["new_size"])
         old_root, new_root = bytes.fromhex(doc["old_root"]), bytes.fromhex(doc["new_root"])
         path = [bytes.fromhex(h) for h in doc["consistency_path"]]
-        heads = [(size, root, None if doc.get(k) is None else msgspec.convert(doc[k], TreeHead))
+        heads = [(size, root, None if doc.get(k) is None else _proof_head(doc[k]))
                  for size, root, k in ((old, old_root, "old_tree_head"),
                                        (new, new_root, "new_tree_head"))]
     except (KeyError, TypeError, ValueError, AttributeError, msgspec.MsgspecError) as exc:

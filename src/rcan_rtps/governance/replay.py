@@ -11,25 +11,41 @@ The bound is per sender because one window shared by all let any principal, a GU
 messages are all refused later, fill it and so have every other principal's refused. An id
 seen from any sender is a replay from every sender.
 
+The window is kept in memory, so a start reads back the ids the audit log's last entries
+name (`remember_logged`): a message the previous run took, sent again while it could still be
+fresh, is a replay after a restart too.
+
 The 1.2 forms and unversioned messages keep the idempotent retry instead (the governor's).
 """
 
 from __future__ import annotations
 
 import heapq
+import itertools
+import os
 from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+
+import msgspec
 
 from rcan_rtps._counts import count_down
 from rcan_rtps.rcan import ErrorCode, Outcome
+from rcan_rtps.rcan._v3 import normal_id
 
 from . import outcomes
+from ._json import decode
 from .clock import Clock
 from .outcomes import Rejection
+from .resume import lines_backwards
 
 DEFAULT_WINDOW_S = 30.0
 SAFETY_WINDOW_S = 10.0  # §8.3: a SAFETY message's window is never longer
 DEFAULT_AHEAD_S = 5.0  # §8.4's clock-drift tolerance
 DEFAULT_MAX_ENTRIES = 10_000
+# How far back a start reads the log for ids (`remember_logged`): the window's time bounds it,
+# this too, should the clock have gone back (every entry then seems recent).
+_MAX_LINES_BACK = 200_000
 WINDOW_FULL = Rejection(429, Outcome.DENIED, ErrorCode.RATE_LIMITED, "replay_window_full")
 
 
@@ -63,6 +79,9 @@ class ReplayWindow:
             return _stale(f"more_than_{self.ahead_s:g}_s_ahead")
         if msg_id is None:  # nothing to remember it by: fresh is all that can be said
             return None
+        # One UUID is one id however it is spelled: the audit log (and so `remember_logged`)
+        # names it in its canonical spelling.
+        msg_id = normal_id(msg_id)
         self._forget_stale(now)
         if msg_id in self._seen:
             return outcomes.REPLAY_DETECTED
@@ -73,12 +92,36 @@ class ReplayWindow:
         heapq.heappush(self._expiry, (sent_at_s + window, msg_id))
         return None
 
+    def remember_logged(self, path: Path) -> int:
+        """At start: remember the ids the audit log at `path` names (of messages decided,
+        refused or held) in entries logged while those messages could still be fresh, each
+        until it could no longer be. Returns how many.
+
+        A message taken at time t was sent at most `ahead_s` after t, so it is stale by
+        t + ahead_s + window_s at the latest; every entry naming an id counts (a message
+        refused after the window took its id — an e-stop was latched, say — must not pass
+        when sent again once the new run has cleared it)."""
+        now = self._clock.time()
+        keep_s = self.window_s + self.ahead_s
+        remembered = 0
+        for msg_id, sender, logged_s in _logged_ids(path, since_s=now - keep_s):
+            if logged_s - self.window_s > now + self.ahead_s:
+                continue  # logged by a clock far ahead of ours: never fresh again here
+            stale_at = logged_s + keep_s
+            if msg_id not in self._seen:
+                self._seen[msg_id] = (sender, stale_at)
+                self._held[sender] += 1
+                heapq.heappush(self._expiry, (stale_at, msg_id))
+                remembered += 1
+        return remembered
+
     def release(self, msg_id: str | None, sender: str = "") -> None:
         """Forgets an id `check` let through whose message was then refused before anything
         was done with it (a full queue's 429): its retry is the same message, not a replay.
         Only the sender that brought the id releases it."""
         if msg_id is None:
             return
+        msg_id = normal_id(msg_id)
         kept = self._seen.get(msg_id)
         if kept is not None and kept[0] == sender:
             self._drop(msg_id)
@@ -98,3 +141,32 @@ class ReplayWindow:
 def _stale(reason: str) -> Rejection:
     return Rejection(outcomes.MESSAGE_STALE.http_status, Outcome.DENIED, ErrorCode.MESSAGE_STALE,
                      reason)
+
+
+def _logged_ids(path: Path, *, since_s: float) -> Iterator[tuple[str, str, float]]:
+    """(message_id, principal, logged at, s) of the entries of the log at `path`, from its
+    end back to the first logged before `since_s`. The log was verified when it was opened:
+    a line that cannot be read (a torn tail) is passed over."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return
+    try:
+        lines = itertools.islice(lines_backwards(fd, os.fstat(fd).st_size), _MAX_LINES_BACK)
+        for _, line in lines:
+            try:
+                entry = decode(line)
+            except msgspec.DecodeError:
+                continue
+            if not isinstance(entry, dict):
+                continue
+            logged_ms = entry.get("timestamp_ms")
+            if not isinstance(logged_ms, int) or isinstance(logged_ms, bool):
+                continue
+            if logged_ms / 1000 < since_s:
+                return
+            msg_id, principal = entry.get("message_id"), entry.get("principal")
+            if isinstance(msg_id, str):
+                yield msg_id, principal if isinstance(principal, str) else "", logged_ms / 1000
+    finally:
+        os.close(fd)

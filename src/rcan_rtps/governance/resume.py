@@ -62,6 +62,7 @@ from rcan_rtps.rcan import Effect
 from rcan_rtps.rcan.actions import ActionSpec, Hold, Publish, action_spec, with_effect
 
 from ._durable import atomic_write, read_small
+from ._json import decode, decode_as
 from .audit import RESUME_POINT_TAG, Checkpoint, entry_id
 from .left import LeftArm, LeftGoal, LeftRunning, LeftStream
 
@@ -110,7 +111,9 @@ def resume(path: Path | str, *, now_ms: int | None = None,
     # It verified at open: this is no time to trust it. An entry of a shape this version
     # does not expect (another version's) fails closed as well, never a traceback — an arm
     # run for a time out of range included (OverflowError working out when it is due).
-    except (OSError, ValueError, TypeError, AttributeError, ArithmeticError) as exc:
+    # (RecursionError: a line nested thousands of levels deep, which Python's json refuses so)
+    except (OSError, ValueError, TypeError, AttributeError, ArithmeticError,
+            RecursionError) as exc:
         return Resumed(latched=True, latched_by=f"an unreadable audit tail ({exc!r})")
 
 
@@ -499,7 +502,7 @@ def _boundary_at(fd: int, size: int, torn_at: int | None, *, floor: int) -> int 
     """The offset of the last BRIDGE_STARTED or BRIDGE_STOPPED line at or after `floor` (a
     line's start), read back from the end in chunks; None if there is none (with `floor` 0:
     0, the log's start). Only a line naming one is parsed here."""
-    for offset, line in _lines_backwards(fd, size, floor):
+    for offset, line in lines_backwards(fd, size, floor):
         if b"BRIDGE_ST" not in line:  # the event's name, in whatever field: checked below
             continue
         entry = _parsed(line, last=offset + len(line) == torn_at)
@@ -508,7 +511,7 @@ def _boundary_at(fd: int, size: int, torn_at: int | None, *, floor: int) -> int 
     return 0 if floor == 0 else None
 
 
-def _lines_backwards(fd: int, size: int, floor: int = 0) -> Iterator[tuple[int, bytes]]:
+def lines_backwards(fd: int, size: int, floor: int = 0) -> Iterator[tuple[int, bytes]]:
     """(offset, line) from the last line to the first at or after `floor` (a line's start)."""
     end, tail = size, b""
     while end > floor:
@@ -632,10 +635,10 @@ def _usable_point(fd: int, log_path: Path, size: int,
 def _signed_point(data: bytes, pubkey: Ed25519PublicKey) -> StartPoint:
     """Raises ValueError unless `data` is a point file signed by `pubkey`."""
     try:
-        file = msgspec.json.decode(data, type=_PointFile)
+        file = decode_as(data, _PointFile)
         body = bytes(file.body)
         pubkey.verify(base64.b64decode(file.sig, validate=True), RESUME_POINT_TAG + body)
-        return msgspec.json.decode(body, type=StartPoint)
+        return decode_as(body, StartPoint)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
         raise ValueError(f"malformed: {exc}") from exc
     except (ValueError, InvalidSignature) as exc:  # (a bad base64 is a ValueError)
@@ -651,9 +654,14 @@ def _names_its_line(fd: int, point: StartPoint, size: int) -> None:
                                      != b"\n"):
         raise ValueError("its span is not a line of the log")
     try:
-        entry = msgspec.json.decode(line[:-1])
+        entry = decode(line[:-1])
     except msgspec.DecodeError as exc:
         raise ValueError("its span is not an entry") from exc
-    if (not isinstance(entry, dict) or entry.get("seq") != point.seq
-            or entry.get("audit_id") != point.audit_id or entry_id(entry) != point.audit_id):
+    try:
+        its_entry = (isinstance(entry, dict) and entry.get("seq") == point.seq
+                     and entry.get("audit_id") == point.audit_id
+                     and entry_id(entry) == point.audit_id)
+    except RecursionError:  # nested too deeply to be an entry
+        its_entry = False
+    if not its_entry:
         raise ValueError(f"the log's line there is not its entry (seq {point.seq})")

@@ -17,8 +17,10 @@ reads.
 from __future__ import annotations
 
 import base64
+import errno
 import logging
 import os
+import stat
 from pathlib import Path
 
 import msgspec
@@ -26,6 +28,7 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from ._durable import full_fsync, write_all
+from ._json import decode_as
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +95,7 @@ def parse_tree_heads(data: bytes) -> tuple[list[TreeHead | BadTreeHead], bytes]:
 
 def _parse(line: bytes, n: int) -> TreeHead | BadTreeHead:
     try:
-        head = msgspec.json.decode(line, type=TreeHead, strict=True)
+        head = decode_as(line, TreeHead)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
         return BadTreeHead(n, f"not a tree head ({exc})")
     if head.line() != line + b"\n":
@@ -113,6 +116,10 @@ class TreeHeadFile:
         self.path = path
         self._fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o600)
         try:
+            # A FIFO there takes heads until its buffer is full, then blocks the log's writer
+            # (and every governed command behind it): no heads rather than that.
+            if not stat.S_ISREG(os.fstat(self._fd).st_mode):
+                raise OSError(errno.EINVAL, "not a regular file", str(path))
             self._size = _cut_torn_tail(self._fd, path)
         except BaseException:
             os.close(self._fd)

@@ -65,6 +65,29 @@ class Pairs(list[tuple[str, Any]]):
     """A JSON object as its key/value pairs, every occurrence kept."""
 
 
+MAX_DEPTH = 32  # levels of objects and arrays a message may nest (the body itself is one)
+
+
+def nested_deeper_than(obj: Any, limit: int) -> bool:
+    """Whether `obj` (decoded JSON, objects as dicts or `Pairs`) nests more than `limit`
+    levels of containers. Iterative: it is asked of what is too deep to recurse into."""
+    todo: list[tuple[Any, int]] = [(obj, 1)]
+    while todo:
+        item, depth = todo.pop()
+        if isinstance(item, Pairs):
+            children: Iterable[Any] = (value for _, value in item)
+        elif isinstance(item, dict):
+            children = item.values()
+        elif isinstance(item, list):
+            children = item
+        else:
+            continue
+        if depth > limit:
+            return True
+        todo.extend((child, depth + 1) for child in children)
+    return False
+
+
 def count_keys(obj: Any) -> int:
     count, todo = 0, [obj]
     while todo:
@@ -147,12 +170,15 @@ def read_leniently(raw: bytes, *, pairs: bool = False) -> Lenient | None:
         try:
             value = json.loads(text, parse_constant=reader.constant, parse_int=reader.integer,
                                parse_float=reader.real, object_pairs_hook=Pairs if pairs else None)
-            surrogates: list[bool] = []
-            value = _clean(value, surrogates)
+            # Deeper than a message may be: what Python's json read, the audit log's encoders
+            # (recursive) could not write, so the stop would go unrecorded (red team 20).
+            deep = nested_deeper_than(value, MAX_DEPTH)
         except RecursionError:  # a stop says so near the top: what is deep need not be read
+            deep = True
+        if deep:
             value = _Shallow(text, reader, pairs).read()
-            surrogates = []
-            value = _clean(value, surrogates)
+        surrogates: list[bool] = []
+        value = _clean(value, surrogates)
     except (ValueError, RecursionError):  # not JSON
         return None
     if surrogates:
@@ -171,7 +197,7 @@ class _Shallow:
     `params.name`), so a field nested thousands of levels deep, which Python's json and
     msgspec give up on, must not keep it from being read. Iterative where it is deep."""
 
-    DEPTH = 32
+    DEPTH = MAX_DEPTH
 
     def __init__(self, text: str, reader: _Reader, pairs: bool) -> None:
         self._text = text

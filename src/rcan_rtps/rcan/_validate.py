@@ -28,7 +28,14 @@ from ._invoke import (
 )
 from ._messages import AiInfo, EnvelopeCommand, NormalizedCommand, SafetyMessage, ShortCommand
 from ._ruri import parse_ruri
-from ._salvage import duplicate_key, nonfinite_stop, salvage_stop, stop_intent
+from ._salvage import (
+    MAX_DEPTH,
+    duplicate_key,
+    nested_deeper_than,
+    nonfinite_stop,
+    salvage_stop,
+    stop_intent,
+)
 from ._signatures import signed_bytes
 from ._types import ActionParams, Confidence, Strict
 from ._v3 import (
@@ -182,6 +189,13 @@ def _decode(raw: bytes) -> dict[str, Any]:
         raise SchemaValidationError("$", "JSON nested too deeply") from exc
     if not isinstance(obj, dict):
         raise SchemaValidationError("$", "expected a JSON object")
+    # (the count first: a body with fewer brackets than levels allowed cannot nest deeper)
+    if raw.count(b"[") + raw.count(b"{") > MAX_DEPTH and nested_deeper_than(obj, MAX_DEPTH):
+        # msgspec reads ~1000 levels; the audit log's encoders are recursive and give up
+        # hundreds of levels earlier, so such a message could not be recorded (a stop among
+        # them: it stopped, unrecorded, and was answered "failed"). A stop is still read,
+        # what is deeper than this as null (`_salvage.read_leniently`).
+        raise SchemaValidationError("$", f"JSON nested more than {MAX_DEPTH} levels deep")
     return obj
 
 

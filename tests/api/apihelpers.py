@@ -14,6 +14,7 @@ from typing import Any
 
 from aiohttp import web
 from aiohttp.test_utils import TestClient, TestServer
+from local_http import serve_post
 from recording import RecordingDispatcher
 
 from rcan_rtps.api import GoalView, build_app
@@ -266,12 +267,6 @@ async def webhook_receiver() -> tuple[web.AppRunner, str, list[dict[str, Any]]]:
         received.append(await request.json())
         return web.Response(status=204)
 
-    app = web.Application()
-    app.router.add_post("/hitl", hook)
-    runner = web.AppRunner(app, access_log=None)
-    await runner.setup()
-    site = web.TCPSite(runner, "127.0.0.1", 0)
-    await site.start()
-    host, port = runner.addresses[0][:2]
-    return runner, f"http://{host}:{port}/hitl", received
+    runner, url = await serve_post("/hitl", hook)
+    return runner, url, received
 

@@ -19,13 +19,18 @@ def run(*argv: str) -> int:
     return code
 
 
-@pytest.fixture
-async def chain_file(tmp_path: Path) -> Path:
+async def three_entries(tmp_path: Path) -> Path:
+    """A signed log of three dispatched commands (and its key), closed."""
     log = await AuditLog.open(tmp_path / "a.jsonl", tmp_path / "k.key")
     for i in range(3):
         await log.append(AuditRecord(event=AuditEvent.COMMAND_DISPATCHED, params={"i": i}))
     await log.close()
     return tmp_path / "a.jsonl"
+
+
+@pytest.fixture
+async def chain_file(tmp_path: Path) -> Path:
+    return await three_entries(tmp_path)
 
 
 def test_verify_ok_with_exported_key(

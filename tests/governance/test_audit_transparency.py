@@ -4,7 +4,6 @@ recovery from a full disk."""
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import functools
 import http.server
@@ -22,12 +21,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from rcan_rtps.cli import audit_cmd
 from rcan_rtps.governance import audit as audit_mod
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord, Checkpoint
 from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.governance.merkle import leaf_hash, root_of
 from rcan_rtps.governance.treehead import TreeHead, parse_tree_heads
+from tests.governance.test_audit_cli import run
 
 N_ENTRIES = 8
 FIXTURES = [HealthCheck.function_scoped_fixture]  # capsys and a read-only laid-out log
@@ -38,14 +37,6 @@ def record(i: int) -> AuditRecord:
     return AuditRecord(event=AuditEvent.COMMAND_DISPATCHED, principal="ops", role="OWNER",
                        message_id=f"m{i}", action_type="move", params={"linear_x": 0.1 * i},
                        outcome="executed")
-
-
-def run(*argv: str) -> int:
-    parser = argparse.ArgumentParser()
-    audit_cmd.register(parser.add_subparsers(required=True))
-    args = parser.parse_args(list(argv))
-    code: int = args.func(args)
-    return code
 
 
 @functools.lru_cache(maxsize=1)

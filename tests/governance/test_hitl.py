@@ -11,6 +11,7 @@ import msgspec
 import pytest
 from aiohttp import web
 from govhelpers import ADMIN, OPS, PLANNER, Harness, command, principal
+from local_http import serve_post
 from waiting import eventually
 
 from rcan_rtps.governance.governor import Decision, Governor
@@ -331,14 +332,8 @@ class Hook:
 @pytest.fixture
 async def hook() -> AsyncIterator[tuple[Hook, str]]:
     hook = Hook()
-    app = web.Application()
-    app.router.add_post("/hitl", hook.handle)
-    runner = web.AppRunner(app)
-    await runner.setup()
-    site = web.TCPSite(runner, "127.0.0.1", 0)
-    await site.start()
-    port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
-    yield hook, f"http://127.0.0.1:{port}/hitl"
+    runner, url = await serve_post("/hitl", hook.handle)
+    yield hook, url
     hook.release.set()
     await runner.cleanup()
 

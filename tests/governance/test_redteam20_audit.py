@@ -9,7 +9,6 @@ ignores any unusable checkpoint). Each test failed on main (6969ad9).
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import json
@@ -22,7 +21,6 @@ from pathlib import Path
 
 import pytest
 
-from rcan_rtps.cli import audit_cmd
 from rcan_rtps.governance import outcomes
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord, checkpoint_path
 from rcan_rtps.governance.clock import ManualClock
@@ -30,25 +28,14 @@ from rcan_rtps.governance.errors import AuditIntegrityError
 from rcan_rtps.governance.replay import ReplayWindow
 from rcan_rtps.governance.resume import point_path, resume
 from rcan_rtps.governance.treehead import public_key_path, tree_head_path
+from tests.governance.test_audit_cli import run, three_entries
 
 DEEP = b"[" * 5000 + b"]" * 5000
 
 
-def run(*argv: str) -> int:
-    parser = argparse.ArgumentParser()
-    audit_cmd.register(parser.add_subparsers(required=True))
-    args = parser.parse_args(list(argv))
-    code: int = args.func(args)
-    return code
-
-
 @pytest.fixture
 async def log_file(tmp_path: Path) -> Path:
-    log = await AuditLog.open(tmp_path / "a.jsonl", tmp_path / "k.key")
-    for i in range(3):
-        await log.append(AuditRecord(event=AuditEvent.COMMAND_DISPATCHED, params={"i": i}))
-    await log.close()
-    return tmp_path / "a.jsonl"
+    return await three_entries(tmp_path)
 
 
 def _deep_entry(line: bytes, depth: int) -> bytes:

@@ -12,6 +12,7 @@ from typing import Any
 import aiohttp
 import pytest
 from aiohttp import web
+from local_http import serve_post
 
 from rcan_rtps.bridge.runtime import Bridge, BridgeOptions
 
@@ -38,15 +39,9 @@ class Hook:
 @pytest.fixture
 async def hook() -> AsyncIterator[tuple[Hook, str]]:
     receiver = Hook()
-    app = web.Application()
-    app.router.add_post("/hitl", receiver.handle)
-    runner = web.AppRunner(app)
-    await runner.setup()
-    site = web.TCPSite(runner, "127.0.0.1", 0)
-    await site.start()
-    port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+    runner, url = await serve_post("/hitl", receiver.handle)
     try:
-        yield receiver, f"http://127.0.0.1:{port}/hitl"
+        yield receiver, url
     finally:
         receiver.release.set()
         await runner.cleanup()

@@ -18,7 +18,7 @@ from rcan_rtps.governance import outcomes
 from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.governance.estop import EstopMachine, LatchFile
 from rcan_rtps.governance.governor import Governor
-from rcan_rtps.governance.idempotency import CONFLICT, Idempotency
+from rcan_rtps.governance.idempotency import CONFLICT, DECIDED_BEFORE, Idempotency
 from rcan_rtps.governance.invariants import (
     AccelerationLimit,
     AllOf,
@@ -294,6 +294,21 @@ async def test_idempotency_is_bounded_in_size() -> None:
         cache.resolve(key, key)
     assert len(cache) <= 100
     assert cache.claim(9_999, b"f") is not None  # the newest are still remembered
+
+
+async def test_keys_an_earlier_run_decided_are_refused_for_the_rest_of_their_ttl() -> None:
+    clock = ManualClock()
+    cache: Idempotency[str, int] = Idempotency(clock, ttl_s=600, max_entries=3)
+    assert cache.remember_decided([("old", 590.0), ("gone", 600.0), ("ahead", -5.0),
+                                   ("b", 1.0), ("c", 2.0), ("d", 3.0)]) == 3
+    assert cache.claim("gone", b"f") is None  # its ttl was over at start
+    assert cache.claim("ahead", b"f") is None  # logged by a clock ahead: not trusted
+    assert cache.claim("old", b"f") is DECIDED_BEFORE
+    assert cache.claim("old", b"other") is DECIDED_BEFORE  # whatever it is now
+    assert cache.claim("d", b"f") is None  # past max_entries: not remembered
+    clock.advance(10.0)
+    assert cache.claim("old", b"f") is None  # its 600 s are over: a new first time
+    assert cache.claim("b", b"f") is DECIDED_BEFORE
 
 
 def test_a_declared_flag_is_no_number_posing_as_one() -> None:

@@ -21,7 +21,7 @@ import asyncio
 import functools
 import logging
 import uuid
-from collections.abc import Awaitable, Callable, Coroutine, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -49,12 +49,13 @@ from .clock import Clock, SystemClock, now_ms
 from .estop import EstopMachine, LatchFile
 from .estop_lane import EstopLane
 from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand
-from .idempotency import Conflict, Idempotency
+from .idempotency import Conflict, DecidedBefore, Idempotency
 from .invariants import Check, Violation, safety_policy
 from .left import LeftRunning
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
+from .replay import logged_ids
 from .review import HitlDesk, PendingRecord
 from .sessions import Sessions
 from .steps import (
@@ -224,6 +225,7 @@ class Governor:
             params["left_running"] = self.left_running.facts()
         if self.latch.reason:
             params["estop_reason"] = self.latch.reason
+        self._idem.remember_decided(self._decided_before())
         released = self._base.retake_locks()
         params["locks"] = dict(self._base.lock_holders)
         if released:
@@ -237,6 +239,14 @@ class Governor:
         if halting is not None:
             await self._took_back(self.left_running, await halting)
         self._sweeper = asyncio.create_task(self._sweep_forever())
+
+    def _decided_before(self) -> Iterator[tuple[tuple[str, str], float]]:
+        """((principal, message_id), age in s) of what the log shows decided within the
+        idempotency ttl: before this start, by an earlier run."""
+        now = self._clock.time()
+        for msg_id, principal, logged_s in logged_ids(self.audit.path,
+                                                     since_s=now - self._idem.ttl_s):
+            yield (principal, msg_id), now - logged_s
 
     async def _halting(self, left: LeftRunning) -> LeftHalted:
         why = ("did not stop cleanly (no BRIDGE_STOPPED)" if self._left_by_crash else
@@ -478,6 +488,8 @@ class Governor:
         earlier = self._idem.claim(key, _fingerprint(command))
         if isinstance(earlier, Conflict):
             return await self._steps.refuse(command, principal, outcomes.MESSAGE_ID_CONFLICT)
+        if isinstance(earlier, DecidedBefore):
+            return await self._steps.refuse(command, principal, outcomes.DECIDED_BEFORE_RESTART)
         if earlier is not None:  # a retry: the first outcome, nothing executed twice
             return await earlier
         try:

@@ -3,13 +3,15 @@
 Bounded in time (`ttl_s`) and size (`max_entries`): memory never grows with the number of
 commands served. Only ids a client chose are kept (a generated id can never be retried). An id
 reused for a different command (another action or other parameters) is a conflict, not a retry.
+Outcomes live in memory, so a start remembers the keys the audit log shows an earlier run
+decided within the ttl (`remember_decided`): their retry is refused, never run a second time.
 """
 
 from __future__ import annotations
 
 import asyncio
 from collections import OrderedDict
-from collections.abc import Hashable
+from collections.abc import Hashable, Iterable
 from typing import Generic, TypeVar
 
 from .clock import Clock
@@ -25,21 +27,47 @@ class Conflict:
 CONFLICT = Conflict()
 
 
+class DecidedBefore:
+    """`claim`'s answer for a key an earlier run decided: its outcome is in the audit log, not
+    here, and what it decided must not be done twice."""
+
+
+DECIDED_BEFORE = DecidedBefore()
+
+
 class Idempotency(Generic[K, T]):
     """First outcome per key; concurrent duplicates wait for the first one."""
 
     def __init__(self, clock: Clock, ttl_s: float = 600.0, max_entries: int = 10_000) -> None:
         self._clock = clock
-        self._ttl = ttl_s
+        self.ttl_s = self._ttl = ttl_s
         self._max = max_entries
         self._entries: OrderedDict[K, tuple[float, bytes, asyncio.Future[T]]] = OrderedDict()
+        self._before: dict[K, float] = {}  # key → when an earlier run decided it (monotonic)
 
     def __len__(self) -> int:
         return len(self._entries)
 
-    def claim(self, key: K, fingerprint: bytes) -> asyncio.Future[T] | Conflict | None:
-        """The earlier outcome (a future), CONFLICT, or None after reserving `key`."""
+    def remember_decided(self, decided: Iterable[tuple[K, float]]) -> int:
+        """At start: the keys an earlier run decided, each with its age (s), kept for what is
+        left of the ttl (at most `max_entries`). Returns how many."""
+        now = self._clock.monotonic()
+        for key, age_s in decided:
+            if len(self._before) >= self._max:
+                break
+            if 0 <= age_s < self._ttl:  # (a negative age: a clock that has gone back)
+                self._before.setdefault(key, now - age_s)
+        return len(self._before)
+
+    def claim(self, key: K, fingerprint: bytes
+              ) -> asyncio.Future[T] | Conflict | DecidedBefore | None:
+        """The earlier outcome (a future), CONFLICT, DECIDED_BEFORE (an earlier run's), or None
+        after reserving `key`."""
         self._prune()
+        before = self._before.pop(key, None)
+        if before is not None and self._clock.monotonic() - before < self._ttl:
+            self._before[key] = before
+            return DECIDED_BEFORE
         seen = self._entries.get(key)
         if seen is not None:
             return seen[2] if seen[1] == fingerprint else CONFLICT

@@ -46,6 +46,8 @@ AUDIT_UNAVAILABLE = Rejection(
     503, Outcome.FAILED, ErrorCode.COMMAND_REJECTED, Reason.AUDIT_UNAVAILABLE.value
 )
 MESSAGE_ID_CONFLICT = Rejection(409, D, ErrorCode.MESSAGE_ID_CONFLICT)
+DECIDED_BEFORE_RESTART = Rejection(409, D, ErrorCode.MESSAGE_ID_CONFLICT,
+                                   Reason.DECIDED_BEFORE_RESTART.value)
 # An arm is held by the message id of the command that sent it; ids are unique per principal.
 ID_OF_ANOTHER_S_ARM = Rejection(409, D, ErrorCode.MESSAGE_ID_CONFLICT,
                                 "message_id_of_another_principal_s_running_arm")

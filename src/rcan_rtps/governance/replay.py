@@ -104,7 +104,7 @@ class ReplayWindow:
         now = self._clock.time()
         keep_s = self.window_s + self.ahead_s
         remembered = 0
-        for msg_id, sender, logged_s in _logged_ids(path, since_s=now - keep_s):
+        for msg_id, sender, logged_s in logged_ids(path, since_s=now - keep_s):
             if logged_s - self.window_s > now + self.ahead_s:
                 continue  # logged by a clock far ahead of ours: never fresh again here
             stale_at = logged_s + keep_s
@@ -143,7 +143,7 @@ def _stale(reason: str) -> Rejection:
                      reason)
 
 
-def _logged_ids(path: Path, *, since_s: float) -> Iterator[tuple[str, str, float]]:
+def logged_ids(path: Path, *, since_s: float) -> Iterator[tuple[str, str, float]]:
     """(message_id, principal, logged at, s) of the entries of the log at `path`, from its
     end back to the first logged before `since_s`. The log was verified when it was opened:
     a line that cannot be read (a torn tail) is passed over."""

@@ -100,5 +100,8 @@ class Reason(str, enum.Enum):
     UNKNOWN_LOCK = "unknown_lock"  # not in bridge.motion.locks
     # A check was handed parameters it cannot read (another type, a field missing): refused.
     PARAMS_NOT_UNDERSTOOD = "params_not_understood"
+    # A retried id the audit log shows an earlier run of the bridge decided: its outcome is
+    # the log's (that run's memory is gone), and it is not run a second time.
+    DECIDED_BEFORE_RESTART = "decided_before_restart"
     AI_MODEL_REQUIRED = "ai_model_required"  # an AI command without `ai.model` (§16.1)
     AI_MODEL_NOT_ALLOWED = "ai_model_not_allowed"  # not one of its agent's `ai.agents` models

@@ -52,10 +52,10 @@ from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand
 from .idempotency import Conflict, DecidedBefore, Idempotency
 from .invariants import Check, Violation, safety_policy
 from .left import LeftRunning
+from .log_tail import logged_ids
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
-from .replay import logged_ids
 from .review import HitlDesk, PendingRecord
 from .sessions import Sessions
 from .steps import (

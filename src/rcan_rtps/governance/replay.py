@@ -21,31 +21,22 @@ The 1.2 forms and unversioned messages keep the idempotent retry instead (the go
 from __future__ import annotations
 
 import heapq
-import itertools
-import os
 from collections import Counter
-from collections.abc import Iterator
 from pathlib import Path
-
-import msgspec
 
 from rcan_rtps._counts import count_down
 from rcan_rtps.rcan import ErrorCode, Outcome
 from rcan_rtps.rcan._v3 import normal_id
 
 from . import outcomes
-from ._json import decode
 from .clock import Clock
+from .log_tail import logged_ids
 from .outcomes import Rejection
-from .resume import lines_backwards
 
 DEFAULT_WINDOW_S = 30.0
 SAFETY_WINDOW_S = 10.0  # §8.3: a SAFETY message's window is never longer
 DEFAULT_AHEAD_S = 5.0  # §8.4's clock-drift tolerance
 DEFAULT_MAX_ENTRIES = 10_000
-# How far back a start reads the log for ids (`remember_logged`): the window's time bounds it,
-# this too, should the clock have gone back (every entry then seems recent).
-_MAX_LINES_BACK = 200_000
 WINDOW_FULL = Rejection(429, Outcome.DENIED, ErrorCode.RATE_LIMITED, "replay_window_full")
 
 
@@ -141,32 +132,3 @@ class ReplayWindow:
 def _stale(reason: str) -> Rejection:
     return Rejection(outcomes.MESSAGE_STALE.http_status, Outcome.DENIED, ErrorCode.MESSAGE_STALE,
                      reason)
-
-
-def logged_ids(path: Path, *, since_s: float) -> Iterator[tuple[str, str, float]]:
-    """(message_id, principal, logged at, s) of the entries of the log at `path`, from its
-    end back to the first logged before `since_s`. The log was verified when it was opened:
-    a line that cannot be read (a torn tail) is passed over."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except FileNotFoundError:
-        return
-    try:
-        lines = itertools.islice(lines_backwards(fd, os.fstat(fd).st_size), _MAX_LINES_BACK)
-        for _, line in lines:
-            try:
-                entry = decode(line)
-            except msgspec.DecodeError:
-                continue
-            if not isinstance(entry, dict):
-                continue
-            logged_ms = entry.get("timestamp_ms")
-            if not isinstance(logged_ms, int) or isinstance(logged_ms, bool):
-                continue
-            if logged_ms / 1000 < since_s:
-                return
-            msg_id, principal = entry.get("message_id"), entry.get("principal")
-            if isinstance(msg_id, str):
-                yield msg_id, principal if isinstance(principal, str) else "", logged_ms / 1000
-    finally:
-        os.close(fd)

@@ -65,6 +65,7 @@ from ._durable import atomic_write, read_small
 from ._json import decode, decode_as
 from .audit import RESUME_POINT_TAG, Checkpoint, entry_id
 from .left import LeftArm, LeftGoal, LeftRunning, LeftStream
+from .log_tail import lines_backwards
 
 log = logging.getLogger(__name__)
 
@@ -509,22 +510,6 @@ def _boundary_at(fd: int, size: int, torn_at: int | None, *, floor: int) -> int 
         if entry is not None and entry.get("event") in _BOUNDARIES:
             return offset
     return 0 if floor == 0 else None
-
-
-def lines_backwards(fd: int, size: int, floor: int = 0) -> Iterator[tuple[int, bytes]]:
-    """(offset, line) from the last line to the first at or after `floor` (a line's start)."""
-    end, tail = size, b""
-    while end > floor:
-        start = max(floor, end - _CHUNK)
-        block = os.pread(fd, end - start, start) + tail
-        lines = block.split(b"\n")
-        tail = lines.pop(0) if start > floor else b""  # maybe cut: completed by the next read
-        offset = start + len(block)
-        for line in reversed(lines):
-            offset -= len(line) + 1
-            if line.strip():
-                yield offset + 1, line
-        end = start
 
 
 def _forwards(fd: int, offset: int, size: int, torn_at: int | None

@@ -6,6 +6,7 @@ import contextlib
 import fcntl
 import os
 import stat
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -60,22 +61,30 @@ def atomic_write(path: Path, data: bytes, mode: int = 0o600) -> None:
     fsync_dir(path.parent)
 
 
+@contextlib.contextmanager
+def _regular(path: Path) -> Iterator[tuple[int, os.stat_result]]:
+    """An open descriptor of `path` and its stat; ValueError unless it is a regular file. Opened
+    without blocking: a FIFO's open would wait for a writer that never comes."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise ValueError(f"{path} is not a regular file")
+        yield fd, info
+    finally:
+        os.close(fd)
+
+
 def read_small(path: Path, limit: int) -> bytes:
     """A small file's bytes (a checkpoint, a start point). Raises FileNotFoundError if there is
     none, ValueError if it is no regular file or holds more than `limit` bytes: a FIFO put in
     its place would block the reader (a start, with its e-stop) for a writer that never comes,
     and a device or a huge file would be read into memory before anything could refuse it."""
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # (a FIFO's open blocks without it)
-    try:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise ValueError(f"{path} is not a regular file")
+    with _regular(path) as (fd, info):
         if info.st_size > limit:
             raise ValueError(f"{path} is larger than {limit} bytes ({info.st_size})")
         # (one byte more than it holds: a file grown meanwhile is seen, never read on)
         data = os.pread(fd, info.st_size + 1, 0)
-    finally:
-        os.close(fd)
     if len(data) > info.st_size:
         raise ValueError(f"{path} is being written")
     return data
@@ -83,15 +92,10 @@ def read_small(path: Path, limit: int) -> bytes:
 
 def read_regular(path: Path) -> bytes:
     """A regular file's bytes, whatever its size (a log's sidecar of tree heads). Raises
-    FileNotFoundError if there is none, ValueError if it is no regular file: a FIFO put in its
-    place would hold the reader for a writer that never comes (`read_small`, unbounded)."""
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-    try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise ValueError(f"{path} is not a regular file")
+    FileNotFoundError if there is none, ValueError if it is no regular file (as `read_small`,
+    unbounded)."""
+    with _regular(path) as (fd, _):
         chunks = []
         while chunk := os.read(fd, 1 << 20):
             chunks.append(chunk)
-    finally:
-        os.close(fd)
     return b"".join(chunks)

@@ -40,7 +40,7 @@ class Idempotency(Generic[K, T]):
 
     def __init__(self, clock: Clock, ttl_s: float = 600.0, max_entries: int = 10_000) -> None:
         self._clock = clock
-        self.ttl_s = self._ttl = ttl_s
+        self.ttl_s = ttl_s
         self._max = max_entries
         self._entries: OrderedDict[K, tuple[float, bytes, asyncio.Future[T]]] = OrderedDict()
         self._before: dict[K, float] = {}  # key → when an earlier run decided it (monotonic)
@@ -55,7 +55,7 @@ class Idempotency(Generic[K, T]):
         for key, age_s in decided:
             if len(self._before) >= self._max:
                 break
-            if 0 <= age_s < self._ttl:  # (a negative age: a clock that has gone back)
+            if 0 <= age_s < self.ttl_s:  # (a negative age: a clock that has gone back)
                 self._before.setdefault(key, now - age_s)
         return len(self._before)
 
@@ -64,10 +64,11 @@ class Idempotency(Generic[K, T]):
         """The earlier outcome (a future), CONFLICT, DECIDED_BEFORE (an earlier run's), or None
         after reserving `key`."""
         self._prune()
-        before = self._before.pop(key, None)
-        if before is not None and self._clock.monotonic() - before < self._ttl:
-            self._before[key] = before
-            return DECIDED_BEFORE
+        before = self._before.get(key)
+        if before is not None:
+            if self._clock.monotonic() - before < self.ttl_s:
+                return DECIDED_BEFORE
+            del self._before[key]  # its ttl is over: a new first time
         seen = self._entries.get(key)
         if seen is not None:
             return seen[2] if seen[1] == fingerprint else CONFLICT
@@ -88,7 +89,7 @@ class Idempotency(Generic[K, T]):
             seen[2].exception()  # mark retrieved: nobody may be waiting
 
     def _prune(self) -> None:
-        horizon = self._clock.monotonic() - self._ttl
+        horizon = self._clock.monotonic() - self.ttl_s
         # Oldest first: expired ones always go; beyond the size bound the oldest decided go
         # too (a retry that late gets a fresh decision rather than unbounded memory).
         while self._entries:

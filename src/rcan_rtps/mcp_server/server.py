@@ -18,7 +18,7 @@ import logging
 import signal
 import sys
 from collections import OrderedDict
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 from typing import Any, Generic, TypeVar, cast
 
@@ -58,7 +58,7 @@ from .results import (
 from .seat import Agent, Seat
 from .stdio import StdinLines
 from .stdio_door import StdioDoor
-from .stop_tool import run_stop, stop_reply
+from .stop_tool import guarded, run_stop, stop_reply
 from .tools import DURATION, WAIT_MAX_S, ToolDef, derive_tools
 
 log = logging.getLogger(__name__)
@@ -213,7 +213,7 @@ class RobotTools:
                 return await self._command(seat, tool, args, client_of(ctx))
             return await self._read(seat, tool.name, args)
 
-        done = await _guarded(tool.name, call)
+        done = await guarded(tool.name, call, failure)
         if tool.action is not None and tool.action.motion and ctx.request_id is not None:
             self._answered_motion(seat, ctx.request_id, done)
         return done
@@ -297,9 +297,7 @@ class RobotTools:
             return
         applied = body.get("applied") or {}
         duration = applied.get(DURATION, params.get(DURATION))  # as governed, if it says
-        if spec.stopping:
-            keepalive.release_all()
-        elif tool.timed and isinstance(duration, int | float):
+        if tool.timed and isinstance(duration, int | float):
             keepalive.hold_for(key, float(duration), seat.session)
         elif spec.starts_goal and isinstance(body.get("goal_id"), str):
             keepalive.hold_goal(key, body["goal_id"], seat.session)
@@ -407,18 +405,6 @@ class RobotTools:
         assert resource is not None
         return types.ReadResourceResult(contents=[types.TextResourceContents(
             uri=uri, mime_type=JSON_TYPE, text=json.dumps(resource.shape(reply.body)))])
-
-
-async def _guarded(name: str, call: Callable[[], Awaitable[types.CallToolResult]]
-                   ) -> types.CallToolResult:
-    """`call`'s result; what it raises as a tool error, never a traceback to the agent."""
-    try:
-        return await call()
-    except BridgeUnavailable as exc:
-        return failure(str(exc), "BRIDGE_UNAVAILABLE")
-    except Exception:  # the log has it
-        log.exception("tool %s failed", name)
-        return failure(f"{name} failed inside the MCP server (see its log)", "INTERNAL_ERROR")
 
 
 def refused(reply: Reply) -> MCPError:

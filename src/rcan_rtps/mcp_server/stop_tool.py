@@ -8,7 +8,8 @@ stdio server's), is not installed or is not running. A stop stops whatever else 
 from __future__ import annotations
 
 import logging
-from typing import Any
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
 
 from rcan_rtps._transport_warnings import unrecorded
 
@@ -18,6 +19,7 @@ from .seat import Seat
 from .stops import StopCall
 
 log = logging.getLogger(__name__)
+R = TypeVar("R")
 PAYLOAD_TOO_LARGE = 413  # the bridge's answer to a body over its `api.max_body_bytes`
 TOO_LARGE_STOP = ("$.params.arguments: larger than the bridge takes (its max_body_bytes): the "
                   "stop was sent again without them (no confidence, reasoning or reason)")
@@ -40,16 +42,17 @@ async def run_stop(seat: Seat, action: str, args: dict[str, Any], client: str) -
     return warned_json(done, warnings) if warnings else done
 
 
-async def guarded_stop(seat: Seat, action: str, args: dict[str, Any], client: str) -> Result:
-    """`run_stop`'s result; what it raises as a tool error, never a traceback to the agent."""
+async def guarded(name: str, call: Callable[[], Awaitable[R]],
+                  failed: Callable[[str, str], R]) -> R:
+    """`call`'s result; what it raises as a tool error (`failed(message, error_code)`), never
+    a traceback to the agent: the SDK's tool calls and the doors' stops alike."""
     try:
-        return await run_stop(seat, action, args, client)
+        return await call()
     except BridgeUnavailable as exc:
-        return failure_json(str(exc), "BRIDGE_UNAVAILABLE")
+        return failed(str(exc), "BRIDGE_UNAVAILABLE")
     except Exception:  # the log has it
-        log.exception("tool %s failed", action)
-        return failure_json(f"{action} failed inside the MCP server (see its log)",
-                            "INTERNAL_ERROR")
+        log.exception("tool %s failed", name)
+        return failed(f"{name} failed inside the MCP server (see its log)", "INTERNAL_ERROR")
 
 
 async def stop_reply(seat: Seat, call: StopCall, warnings: tuple[str, ...] = ()
@@ -57,7 +60,8 @@ async def stop_reply(seat: Seat, call: StopCall, warnings: tuple[str, ...] = ()
     """The JSON-RPC reply to a stop's call a door runs itself; `warnings`, what the door found
     wrong, lead its result's own where the bridge's reply (which has those its audit entry
     recorded) does not carry them."""
-    done = await guarded_stop(seat, call.name, call.arguments, "unknown")
+    done = await guarded(call.name, lambda: run_stop(seat, call.name, call.arguments,
+                                                     "unknown"), failure_json)
     answered = done["structuredContent"].get("warnings") or ()
     missing = unrecorded(warnings, answered if isinstance(answered, list) else ())
     if missing:

@@ -46,9 +46,10 @@ from rcan_rtps.governance.merkle import CompactTree, leaf_hash
 from rcan_rtps.rcan import SPOKEN, ErrorCode, Role, SchemaValidationError
 
 from ._bodies import error_response
-from ._errors import ReadsBusy
+from ._errors import AuditUnreadable, ReadsBusy
 from ._keys import PRINCIPAL, READS
 from ._node_manifest import AUDIT_EXPORT, newest_version
+from ._reads import decoded
 
 log = logging.getLogger(__name__)
 PATH = AUDIT_EXPORT
@@ -90,7 +91,7 @@ class Selection:
 
     def chosen(self, line: bytes) -> _Entry | None:
         """The line's seq and time if it falls in the range, else None."""
-        entry = _ENTRY.decode(line)
+        entry = decoded(_ENTRY, line)
         q = self.query
         inside = q.lo_ms <= entry.timestamp_ms and (q.hi_ms is None
                                                     or entry.timestamp_ms < q.hi_ms)
@@ -217,6 +218,16 @@ def _body_of(lines: Iterable[bytes], fmt: str) -> bytes:
     return b"".join(line + b"\n" for line in lines)
 
 
+def _cut_short(request: web.Request, response: web.StreamResponse) -> web.StreamResponse:
+    """A line read in pass one is no entry in pass two: the file was changed under the export,
+    after its headers went out. The connection is closed before the chunked body's end, so
+    the client sees an incomplete export, never a short one that looks whole."""
+    log.warning("audit export of %s cut short: %s", request.path_qs, AuditUnreadable.REASON)
+    if request.transport is not None:
+        request.transport.close()
+    return response
+
+
 def handler(governor: Governor, read_role: Role
             ) -> Callable[[web.Request], Awaitable[web.StreamResponse]]:
     key = KeyFacts(governor.audit.public_key)
@@ -233,10 +244,8 @@ def handler(governor: Governor, read_role: Role
         path = governor.audit.path
         try:
             chosen = await select(request, path, query)
-        except msgspec.DecodeError:
-            return error_response(503, "AUDIT_UNREADABLE",
-                                  reason="a line of the log is not an audit entry: run "
-                                         "`rcan-rtps audit verify`")
+        except AuditUnreadable:
+            return error_response(503, "AUDIT_UNREADABLE", reason=AuditUnreadable.REASON)
         root = chosen.tree.root()
         chain_root = "sha256:" + root.hex()
         issuer_sig = signature_text(governor.audit.sign_digest(root))
@@ -256,8 +265,11 @@ def handler(governor: Governor, read_role: Role
                 "rcan_version": newest_version(SPOKEN)}) + b"\n")
         start = chosen.end if chosen.start is None else chosen.start
         while start < chosen.end:
-            body, start = await _on_reader(request, _body_chunk, chosen, path, start,
-                                           query.format)
+            try:
+                body, start = await _on_reader(request, _body_chunk, chosen, path, start,
+                                               query.format)
+            except AuditUnreadable:
+                return _cut_short(request, response)
             await response.write(body)
         await response.write_eof()
         return response

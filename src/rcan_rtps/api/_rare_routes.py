@@ -23,7 +23,7 @@ from ._bodies import (
     json_response,
 )
 from ._commands import decode_as, schema_failure, too_large
-from ._errors import ReadsBusy
+from ._errors import AuditUnreadable, ReadsBusy
 from ._images import REFUSALS, frame_headers, image_list
 from ._keys import GOVERNOR, IMAGES, INVOCATIONS, PRINCIPAL, READS, SETTINGS
 from ._routes import read_body
@@ -182,6 +182,12 @@ def _page_body(app: web.Application, lines: list[bytes], since: int) -> bytes:
 
 
 _READS_BUSY = (429, error_body(ErrorCode.RATE_LIMITED, reason="reads_busy"))
+_UNREADABLE = (503, error_body("AUDIT_UNREADABLE", reason=AuditUnreadable.REASON))
+
+
+def _refusal(status: int, body: ApiError) -> web.Response:
+    """A read's refusal: busy (429) says when to come back, an unreadable log does not."""
+    return json_response(body, status, {"Retry-After": "1"} if status == 429 else None)
 
 
 async def get_audit(request: web.Request) -> web.Response:
@@ -193,11 +199,14 @@ async def get_audit(request: web.Request) -> web.Response:
     except SchemaValidationError as exc:
         return error_response(400, ErrorCode.SCHEMA_VALIDATION_FAILED, reason=exc.detail,
                               path=exc.path)
-    lines = await request.app[READS].get().page(since, limit)
-    if lines is None:  # the reader is busy: a bound, not a fault; try again shortly
-        return json_response(_READS_BUSY[1], _READS_BUSY[0], {"Retry-After": "1"})
-    return web.Response(body=_page_body(request.app, lines, since),
-                        content_type="application/json")
+    try:
+        lines = await request.app[READS].get().page(since, limit)
+        if lines is None:  # the reader is busy: a bound, not a fault; try again shortly
+            return _refusal(*_READS_BUSY)
+        return web.Response(body=_page_body(request.app, lines, since),
+                            content_type="application/json")
+    except AuditUnreadable:
+        return _refusal(*_UNREADABLE)
 
 
 async def my_audit(app: web.Application, principal: Principal, since: int, limit: int,
@@ -208,9 +217,11 @@ async def my_audit(app: web.Application, principal: Principal, since: int, limit
     try:
         lines = await app[READS].get().read(entries_of, app[GOVERNOR].audit.path,
                                             principal.name, since, limit, last)
+        return 200, _page_body(app, lines, since)
     except ReadsBusy:
         return _READS_BUSY
-    return 200, _page_body(app, lines, since)
+    except AuditUnreadable:
+        return _UNREADABLE
 
 
 async def get_my_audit(request: web.Request) -> web.Response:
@@ -225,7 +236,7 @@ async def get_my_audit(request: web.Request) -> web.Response:
                                   last > 0)
     if isinstance(body, bytes):
         return web.Response(body=body, content_type="application/json")
-    return json_response(body, status, {"Retry-After": "1"})
+    return _refusal(status, body)
 
 
 async def get_audit_verify(request: web.Request) -> web.Response:

@@ -5,6 +5,8 @@ from the audit writer, with bounded concurrency.
   pool full of reads would hold every command's reply (an e-stop's too) behind them.
 - Pages: one dedicated reader thread; at most `backlog` pages wait for it, beyond that the
   caller answers 429 RATE_LIMITED `reads_busy` (with Retry-After). Scanning a page is short.
+  A line that is not an entry (edited or damaged on disk while the bridge runs) raises
+  AuditUnreadable, answered 503: reads never verify, but they never fail on what they find.
 - Verification is CPU-bound Python (decode, canonical re-encode, SHA-256, Ed25519 per entry):
   in a thread it would fight the event loop for the GIL. It runs in one spawned worker process
   at lowered priority (the robot's commands come first on a small CPU). One run at a time;
@@ -38,7 +40,7 @@ import msgspec
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from ._bodies import VerifyReport
-from ._errors import ReadsBusy
+from ._errors import AuditUnreadable, ReadsBusy
 
 log = logging.getLogger(__name__)
 _NICE = 10  # verification yields the CPU to the bridge
@@ -60,6 +62,15 @@ class _Who(msgspec.Struct):
 _WHO = msgspec.json.Decoder(_Who)
 
 
+def decoded(decoder: msgspec.json.Decoder[T], line: bytes) -> T:
+    """`decoder.decode(line)`; raises AuditUnreadable for a line that is not such an entry
+    (msgspec raises RecursionError, not DecodeError, for a value nested thousands deep)."""
+    try:
+        return decoder.decode(line)
+    except (msgspec.DecodeError, RecursionError) as exc:
+        raise AuditUnreadable(AuditUnreadable.REASON) from exc
+
+
 def complete_lines(path: Path) -> bytes:
     data = path.read_bytes()
     return data[: data.rfind(b"\n") + 1]  # a line being appended right now is not one yet
@@ -68,7 +79,7 @@ def complete_lines(path: Path) -> bytes:
 def entries_after(path: Path, since: int, limit: int) -> list[bytes]:
     found: list[bytes] = []
     for line in complete_lines(path).splitlines():
-        if _SEQ.decode(line).seq > since:
+        if decoded(_SEQ, line).seq > since:
             found.append(line)
             if len(found) == limit:
                 break
@@ -80,7 +91,7 @@ def entries_of(path: Path, principal: str, since: int, limit: int, last: bool) -
     `limit` (a whole scan: the log has no index by principal)."""
     found: collections.deque[bytes] = collections.deque(maxlen=limit if last else None)
     for line in complete_lines(path).splitlines():
-        who = _WHO.decode(line)
+        who = decoded(_WHO, line)
         if who.seq > since and who.principal == principal:
             found.append(line)
             if not last and len(found) == limit:
@@ -89,7 +100,7 @@ def entries_of(path: Path, principal: str, since: int, limit: int, last: bool) -
 
 
 def line_seq(line: bytes) -> int:
-    return _SEQ.decode(line).seq
+    return decoded(_SEQ, line).seq
 
 
 def last_line(path: Path, block: int = 4096) -> bytes | None:

@@ -13,7 +13,10 @@ the manifest cannot say what the bridge does not do:
 - `estop`: the action, the ROS topic its latched signal is published on, whether it is latched
   now, who may raise (any authenticated principal) and who may clear it;
 - `audit_*` and `audit`: count, newest entry time, the chain head and the newest signed tree
-  head, the signing key's id, the export route — no file path;
+  head, the signing key's id, the export route — no file path. A last line of the log (or of
+  its tree heads) that is not one (edited or damaged on disk while the bridge runs) is shown,
+  not raised: count and time null, `audit.problem` says so, and `audit_trail_complete` is
+  false;
 - clock fields (§8.4) from the kernel's clock discipline (`governance.timesync`).
 
 Fields P66 has that the bridge cannot know are left out (`hardware_safety`: a bridge sees no
@@ -38,10 +41,10 @@ from rcan_rtps.rcan import SPOKEN, ErrorCode, Role
 from rcan_rtps.rcan.actions import Effect, EstopSignal, Invariant, specs, with_effect
 
 from ._bodies import ApiError, error_body, json_response
-from ._errors import ReadsBusy
+from ._errors import AuditUnreadable, ReadsBusy
 from ._keys import GOVERNOR, READS
 from ._node_manifest import AUDIT_EXPORT, newest_version
-from ._reads import last_line
+from ._reads import decoded, last_line
 
 PATH = "/api/safety/manifest"
 PROTOCOL = 66
@@ -50,6 +53,17 @@ PROTOCOL = 66
 class _Tail(msgspec.Struct):
     seq: int
     timestamp_ms: int
+
+
+_TAIL = msgspec.json.Decoder(_Tail)
+_TREE_HEAD = msgspec.json.Decoder(dict[str, Any])
+
+
+class _Tails(msgspec.Struct, frozen=True):
+    count: int | None  # the newest entry's seq; 0: an empty log; None: not readable
+    last_event: float | None  # its time (Unix seconds)
+    tree_head: dict[str, Any] | None
+    problem: str | None  # what of the two files' last lines could not be read
 
 
 def p66_invariants(audit_healthy: bool) -> dict[str, bool]:
@@ -110,36 +124,51 @@ def static_part(config: RcanConfig) -> dict[str, Any]:
     }
 
 
-def _audit_tails(path: Path) -> tuple[_Tail | None, dict[str, Any] | None]:
+def _audit_tails(path: Path) -> _Tails:
     """The newest entry's seq and time, and the newest signed tree head (reader thread)."""
     entry, head = last_line(path), last_line(tree_head_path(path))
-    tail = None if entry is None else msgspec.json.decode(entry, type=_Tail)
-    return tail, None if head is None else msgspec.json.decode(head)
+    problems: list[str] = []
+    count: int | None = 0
+    last_event: float | None = None
+    tree_head: dict[str, Any] | None = None
+    try:
+        if entry is not None:
+            tail = decoded(_TAIL, entry)
+            count, last_event = tail.seq, tail.timestamp_ms / 1000.0
+    except AuditUnreadable:
+        count = None
+        problems.append("the log's last line is not an audit entry")
+    try:
+        tree_head = None if head is None else decoded(_TREE_HEAD, head)
+    except AuditUnreadable:
+        problems.append("the last tree head is not one")
+    problem = "; ".join(problems) + ": run `rcan-rtps audit verify`" if problems else None
+    return _Tails(count, last_event, tree_head, problem)
 
 
 async def live_part(app: web.Application, governor: Governor) -> dict[str, Any]:
     from rcan_rtps.governance.timesync import clock_status  # ctypes: only once asked
 
     audit = governor.audit
-    tail, tree_head = await app[READS].get().read(_audit_tails, audit.path)
-    clock = clock_status()
-    head = audit.head
+    tails: _Tails = await app[READS].get().read(_audit_tails, audit.path)
+    clock, head = clock_status(), audit.head
     return {
-        "invariants": p66_invariants(audit.healthy),
+        "invariants": p66_invariants(audit.healthy and tails.problem is None),
         "estop_latched": governor.latch.latched,
         "clock_synchronized": clock.synchronized,
         "clock_source": clock.source,
         "clock_drift_ms": clock.error_ms,
-        "audit_count": 0 if tail is None else tail.seq,
-        "audit_last_event": None if tail is None else tail.timestamp_ms / 1000.0,
+        "audit_count": tails.count,
+        "audit_last_event": tails.last_event,
         "audit": {
             "format": "JSON lines, RCAN canonical JSON v1, SHA-256 hash chain, Ed25519 "
                       "signatures, RFC 6962 tree heads",
             "kid": KeyFacts(audit.public_key).kid,
             "healthy": audit.healthy,
             "chain_head": {"seq": head.last_seq, "audit_id": head.last_audit_id},
-            "tree_head": tree_head,
+            "tree_head": tails.tree_head,
             "export": AUDIT_EXPORT,
+            "problem": tails.problem,
         },
     }
 

@@ -461,3 +461,32 @@ async def test_a_stops_first_cancel_imports_nothing(nodes: tuple[RosNode, RosNod
     assert await client.cancel_all(timeout=20, server_wide=True) == 1
     assert (await far.result(timeout=20)).state is GoalState.CANCELED
     await server.close()
+
+
+async def test_an_early_result_ask_that_fails_unexpectedly_leaves_the_usual_way(
+        nodes: tuple[RosNode, RosNode], monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """The result asked for before the status topic shows the goal's end (here at once:
+    LAST_ASK_S covers the whole wait) fails with an error no wire error explains: the goal
+    ends the usual way, one warning; the error neither reaches the caller nor goes
+    unretrieved in a task (the suite fails on asyncio's "never retrieved")."""
+    monkeypatch.setattr(action_goals, "LAST_ASK_S", 1000.0)
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "navigate_to_pose", NAV, navigate)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    goal = await client.send_goal(GOAL, timeout=20)
+    get = client._goal_side()._get
+    asked = get.answer
+    failed: list[str] = []
+
+    async def first_ask_fails(*args: Any, **kwargs: Any) -> Any:
+        if not failed:
+            failed.append("early")
+            raise RuntimeError("not a wire error")
+        return await asked(*args, **kwargs)
+
+    monkeypatch.setattr(get, "answer", first_ask_fails)
+    outcome = await goal.result(timeout=20)
+    assert failed == ["early"] and outcome.state is GoalState.SUCCEEDED
+    assert [r.getMessage() for r in caplog.records if "not a wire error" in r.getMessage()]
+    await server.close()

@@ -1047,6 +1047,11 @@ class GoalSender:
                                             accept=lambda reply: _ended(reply) is not None)
         except (WireError, DDSException):  # timed out, ambiguous, its node closed: the usual way
             return None
+        except Exception as exc:  # (a fault of ours: this ask is only a shortcut, never a need)
+            log.warning("action %s: goal %s: the early ask for its result failed (%r); its end "
+                        "is waited for on the status topic", self.name,
+                        uuid.UUID(bytes=goal.goal_id), exc)
+            return None
         reply: Any = answer.reply
         state = _ended(reply)
         if not answer.tied or state is None:

@@ -377,7 +377,8 @@ async def test_a_checkpoint_past_the_log_s_end_writes_no_point(tmp_path: Path,
     await run.audit.close()
     size = run.path.stat().st_size
     past = Checkpoint(seq=9, audit_id="sha256:" + "0" * 64, start=size, end=size + 100)
-    with pytest.raises(ValueError, match="ends at"):
+    with pytest.raises(ValueError, match=r"is not where the log's writer put it \(its entry's "
+                       r"span .* is not in the log\)"):
         write_point(run.path, past, _pubkey(tmp_path), lambda body: b"")
 
 
@@ -502,8 +503,36 @@ async def test_a_point_that_cannot_be_written_is_said_in_one_line(
         file.truncate(cut)
     await run.audit.checkpoint()
     await run.audit.close()
-    assert "audit start point not written" in caplog.text and "ends at" in caplog.text
+    assert "audit start point not written (checkpoint 2 is not where the log's writer put it" \
+        in caplog.text and "is not in the log" in caplog.text
     assert not [r for r in caplog.records if r.exc_info]
+
+
+@pytest.mark.parametrize(("planted", "said"), [
+    (b"garbage", "an audit line not JSON"),
+    (b"[3, 1]", "an audit line that is no entry"),
+    (b"[" * 50_000 + b"]" * 50_000, "an audit line nested too deeply"),
+])
+async def test_a_line_planted_in_a_running_log_is_named_not_taken(
+        tmp_path: Path, clock: ManualClock, caplog: pytest.LogCaptureFixture,
+        planted: bytes, said: str) -> None:
+    """A line written into the log by someone else while it ran shifts the entries after it:
+    no start point is written naming the writer's offsets (before: one was written for a
+    deep line, to be refused at the next start), said in one line; the next start's replay
+    latches, naming what the line is (before: json's bare "Expecting value")."""
+    run = await Run.open(tmp_path, clock)
+    await run.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {}})
+    with run.path.open("ab") as file:
+        file.write(planted + b"\n")
+    await run.command("move", {"linear_x": 0.2, "angular_z": 0.0}, "/robot1/cmd_vel")
+    await run.audit.checkpoint()
+    await run.audit.close()
+    assert "audit start point not written (checkpoint 2 is not where the log's writer put " \
+        "it" in caplog.text
+    assert not point_path(run.path).exists()
+    assert not [r for r in caplog.records if r.exc_info]
+    found = resume(run.path, now_ms=int(clock.time() * 1000), pubkey=_pubkey(tmp_path))
+    assert found.latched and said in (found.latched_by or "")
 
 
 async def test_goals_listed_with_no_id_on_two_servers_are_both_kept(

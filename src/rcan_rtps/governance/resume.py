@@ -541,10 +541,11 @@ def _parsed(line: bytes, *, last: bool) -> dict[str, Any] | None:
     the log cuts it when it opens), which is no entry. Anything else unreadable raises."""
     try:
         entry = json.loads(line)
-    except ValueError:
+    except (ValueError, RecursionError) as exc:  # (json recurses: a line thousands deep)
         if last:
             return None
-        raise
+        what = "nested too deeply" if isinstance(exc, RecursionError) else f"not JSON ({exc})"
+        raise ValueError(f"an audit line {what}: {line[:40]!r}") from exc
     if not isinstance(entry, dict):
         raise ValueError(f"an audit line that is no entry: {line[:40]!r}")
     return entry
@@ -591,11 +592,26 @@ def write_point(log_path: Path, cp: Checkpoint, pubkey: Ed25519PublicKey,
                 sign: Callable[[bytes], bytes]) -> None:
     """The start point after checkpoint `cp`'s entry, replayed from the previous point (or the
     boundary): run on the audit log's checkpoint-hook thread (`AuditLog.on_checkpoint`)."""
+    _at_its_place(log_path, cp)
     replay = _Replay()
     replay.run(log_path, pubkey, until=cp.end)
     body = msgspec.json.encode(replay.point(cp))
     sig = base64.b64encode(sign(body)).decode()
     atomic_write(point_path(log_path), msgspec.json.encode(_PointFile(msgspec.Raw(body), sig)))
+
+
+def _at_its_place(log_path: Path, cp: Checkpoint) -> None:
+    """Raises ValueError unless the checkpoint's entry is where the log's writer put it: a
+    line written into the file by anyone else shifts every later entry (a cut removes it),
+    and a point naming the writer's offsets would be refused at the next start anyway."""
+    fd = os.open(log_path, os.O_RDONLY)
+    try:
+        _names_its_line(fd, cp, os.fstat(fd).st_size)
+    except ValueError as exc:
+        raise ValueError(f"checkpoint {cp.seq} is not where the log's writer put it ({exc}): "
+                         f"the file was changed by another") from exc
+    finally:
+        os.close(fd)
 
 
 def _usable_point(fd: int, log_path: Path, size: int,
@@ -630,7 +646,7 @@ def _signed_point(data: bytes, pubkey: Ed25519PublicKey) -> StartPoint:
         raise ValueError("not signed by the audit log's key") from exc
 
 
-def _names_its_line(fd: int, point: StartPoint, size: int) -> None:
+def _names_its_line(fd: int, point: StartPoint | Checkpoint, size: int) -> None:
     """Raises ValueError unless the line at the point's span is its entry, whole."""
     if not 0 <= point.start < point.end <= size:
         raise ValueError(f"its entry's span {point.start}..{point.end} is not in the log")

@@ -1,4 +1,10 @@
-"""An injectable clock: wall time for timestamps and TTLs, monotonic time for rate limits."""
+"""An injectable clock: wall time for timestamps and for what is compared with the timestamps
+of messages and tokens; monotonic time for durations (rate limits, TTLs, timeouts).
+
+The wall clock can be stepped under a running bridge, forward or back (a board without an RTC
+boots at 1970 and NTP then steps it by decades; an operator runs `date -s`; NTP steps back
+a few seconds). `LatestWall` is the wall time for checks that must not be undone by a step
+back: what went stale by the latest time this run has read stays stale."""
 
 from __future__ import annotations
 
@@ -40,6 +46,23 @@ class ManualClock:
     def advance(self, seconds: float) -> None:
         self._wall += seconds
         self._mono += seconds
+
+    def step(self, seconds: float) -> None:
+        """The wall clock alone is set forward (or back, negative), as NTP or `date -s` do."""
+        self._wall += seconds
+
+
+class LatestWall:
+    """The latest wall time read so far through it: a step back of the wall clock does not
+    take it back (it waits until the wall clock passes it again); a step forward moves it."""
+
+    def __init__(self, clock: Clock) -> None:
+        self._clock = clock
+        self._latest = clock.time()
+
+    def time(self) -> float:
+        self._latest = max(self._latest, self._clock.time())
+        return self._latest
 
 
 def now_ms(clock: Clock) -> int:

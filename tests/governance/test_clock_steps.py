@@ -1,0 +1,185 @@
+"""Red team 21: the wall clock stepped under a running bridge (NTP after a boot at 1970, an
+operator's `date -s`, NTP stepping back a few seconds). A step may refuse or expire things;
+it never re-admits a replay, keeps a stale approval alive, or runs a command twice.
+
+`ManualClock.step` moves the wall clock alone; `advance` moves both clocks (time passing).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from govhelpers import OPS, PLANNER, Harness, command
+
+from rcan_rtps.governance import outcomes
+from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
+from rcan_rtps.governance.clock import LatestWall, ManualClock
+from rcan_rtps.governance.governor import Governor
+from rcan_rtps.governance.replay import ReplayWindow
+from rcan_rtps.rcan import Outcome
+
+T = 1_800_000_000.0
+HOUR = 3600.0
+
+
+def test_latest_wall_never_goes_back_and_follows_a_step_forward() -> None:
+    clock = ManualClock(T)
+    latest = LatestWall(clock)
+    clock.step(-HOUR)
+    assert latest.time() == T
+    clock.step(2 * HOUR)
+    assert latest.time() == T + HOUR
+
+
+# -- the replay window (§8.3) ------------------------------------------------------------------
+
+
+def _taken_then_forgotten(clock: ManualClock, window: ReplayWindow) -> float:
+    """A message taken, then its id forgotten once it went stale (another check forgets)."""
+    sent = clock.time()
+    assert window.check("m", sent) is None
+    clock.advance(31)
+    assert window.check("later", clock.time()) is None
+    assert len(window) == 1  # "m" is forgotten
+    return sent
+
+
+def test_a_step_back_does_not_make_a_forgotten_message_fresh_again() -> None:
+    """NTP steps back 2 s: a message stale and forgotten 1 s ago would be fresh by the clock
+    now — it is refused as stale, not taken a second time."""
+    clock = ManualClock(T)
+    window = ReplayWindow(clock, window_s=30)
+    sent = _taken_then_forgotten(clock, window)
+    clock.step(-2)
+    assert clock.time() - sent < 30  # fresh by the clock now
+    replay = window.check("m", sent)
+    assert replay is not None and replay.error_code.value == "MESSAGE_STALE"
+    assert replay.reason == "older_than_30_s_before_the_clock_went_back"
+
+
+def test_a_step_forward_then_back_does_not_re_admit_a_replay() -> None:
+    """`date -s` an hour ahead (every id is forgotten as stale), then set right again."""
+    clock = ManualClock(T)
+    window = ReplayWindow(clock, window_s=30)
+    sent = clock.time()
+    assert window.check("m", sent) is None
+    clock.step(HOUR)
+    assert window.check("m", sent) is not None  # stale now
+    assert window.check("ahead", clock.time()) is None
+    assert len(window) == 1  # "m" was forgotten
+    clock.step(-HOUR)
+    replay = window.check("m", sent)
+    assert replay is not None and replay.error_code.value == "MESSAGE_STALE"
+
+
+def test_after_a_step_back_fresh_messages_pass_within_the_window_and_later_again() -> None:
+    """A step back shorter than the window refuses nothing new; a longer one refuses what
+    the clock stepped back from until the clock has passed it again."""
+    clock = ManualClock(T)
+    window = ReplayWindow(clock, window_s=30)
+    assert window.check("a", clock.time()) is None
+    clock.step(-5)
+    assert window.check("b", clock.time()) is None
+    clock.step(-HOUR)
+    refused = window.check("c", clock.time())
+    assert refused is not None and refused.reason.endswith("_before_the_clock_went_back")
+    clock.advance(HOUR - 20)
+    assert window.check("d", clock.time()) is None
+
+
+async def _logged(tmp_path: Path, at: float, ids: list[str]) -> Path:
+    log = await AuditLog.open(tmp_path / "r.jsonl", tmp_path / "k.key", clock=ManualClock(at))
+    for msg_id in ids:
+        await log.append(AuditRecord(event=AuditEvent.COMMAND_DISPATCHED, principal="p",
+                                     message_id=msg_id))
+    await log.close()
+    return tmp_path / "r.jsonl"
+
+
+async def test_a_start_behind_the_log_remembers_its_last_ids_until_the_clock_passes_them(
+        tmp_path: Path) -> None:
+    """The bridge restarts with the clock an hour behind its log (stepped back, or a start
+    before NTP set it); NTP then steps it forward: a message the last run took seconds before
+    it ended is fresh again — and a replay."""
+    path = await _logged(tmp_path, T + HOUR, ["m-1"])
+    clock = ManualClock(T)
+    window = ReplayWindow(clock)
+    window.remember_logged(path)
+    clock.step(HOUR + 5)
+    assert window.check("m-1", T + HOUR) == outcomes.REPLAY_DETECTED
+
+
+async def test_a_start_reads_back_only_the_last_entries_of_a_log_ahead_of_it(
+        tmp_path: Path) -> None:
+    """Entries far older than the log's last are stale whatever the clock says now."""
+    log = await AuditLog.open(tmp_path / "r.jsonl", tmp_path / "k.key",
+                              clock=(at := ManualClock(T + HOUR)))
+    await log.append(AuditRecord(event=AuditEvent.COMMAND_DISPATCHED, principal="p",
+                                 message_id="old"))
+    at.advance(600)
+    await log.append(AuditRecord(event=AuditEvent.COMMAND_DISPATCHED, principal="p",
+                                 message_id="new"))
+    await log.close()
+    assert ReplayWindow(ManualClock(T)).remember_logged(tmp_path / "r.jsonl") == 1
+
+
+# -- HiTL approvals (§9) -------------------------------------------------------------------
+
+ARM = {"joints": ["shoulder", "elbow"], "positions": [0.1, -0.2], "duration_s": 2.0}
+
+
+async def _held(gov: Governor) -> str:
+    d = await gov.decide(command("arm_joint", ARM), PLANNER)
+    assert d.outcome is Outcome.PENDING_AUTH and d.pending_id
+    return d.pending_id
+
+
+async def test_a_step_back_keeps_no_held_command_past_its_ttl(harness: Harness,
+                                                             gov: Governor) -> None:
+    """The clock steps back an hour while a command waits (TTL 300 s): 301 s later it has
+    expired, swept and audited; an approval then runs nothing."""
+    pending_id = await _held(gov)
+    harness.clock.step(-HOUR)
+    harness.clock.advance(301)
+    [expired] = await gov.expire_pending()
+    assert (expired.reason, harness.entries[-1]["event"]) == ("pending_expired", "HITL_EXPIRED")
+    late = await gov.authorize(pending_id, OPS)
+    assert (late.http_status, late.reason) == (404, "pending_not_found")
+    assert harness.dispatcher.calls == []
+
+
+async def test_an_approval_after_a_step_back_past_the_ttl_is_refused_before_any_sweep(
+        harness: Harness, gov: Governor) -> None:
+    """Set back to 1970 (a board without an RTC reset by hand): the approval comes before the
+    sweep ran, past the TTL as it is measured, and is refused as expired."""
+    pending_id = await _held(gov)
+    harness.clock.step(-harness.clock.time())
+    harness.clock.advance(301)
+    late = await gov.authorize(pending_id, OPS)
+    assert (late.http_status, late.reason) == (404, "pending_expired")
+    assert harness.dispatcher.calls == []
+
+
+async def test_a_step_back_keeps_withdrawn_nothing_that_expired(harness: Harness,
+                                                               gov: Governor) -> None:
+    """A command past its TTL (the clock stepped back meanwhile) is left to expire, not
+    withdrawn as if it still waited."""
+    await _held(gov)
+    harness.clock.step(-HOUR)
+    harness.clock.advance(301)
+    cancel = gov.motion_cancelled(PLANNER)
+    await cancel.stopping
+    assert cancel.withdrawn == ()
+    [expired] = await gov.expire_pending()
+    assert expired.reason == "pending_expired"
+
+
+async def test_a_step_forward_past_its_expiry_expires_a_held_command(harness: Harness,
+                                                                    gov: Governor) -> None:
+    """NTP steps forward past `expires_at_ms`, which the issuer and approvers were shown:
+    the command expires, as it said it would (a step may expire things, never prolong)."""
+    pending_id = await _held(gov)
+    harness.clock.step(HOUR)
+    late = await gov.authorize(pending_id, OPS)
+    assert (late.http_status, late.reason) == (404, "pending_expired")
+    assert harness.dispatcher.calls == []

@@ -1,0 +1,84 @@
+"""Red team 21 through the app: the wall clock stepped while the bridge runs, or between two
+runs. A step may refuse or expire; it never runs a command twice nor takes a replay.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tests.api.apihelpers import Api
+from tests.api.test_rcan3_messages import sdk_command
+
+HOUR = 3600.0
+MOVE = {"action": "move", "message_id": "0b4e7a44-3f0e-4a86-9c55-5d3a3b7f2c10",
+        "params": {"linear_x": 0.2, "duration_s": 1.0}}
+
+
+async def _restarted_behind(api: Api, behind_s: float) -> Api:
+    """The bridge stopped and started again on the same audit log at once, its wall clock
+    `behind_s` behind the time the log's last entry was written (stepped back, or a start
+    before NTP set it); its e-stop, latched by the motion the first run left, cleared."""
+    then = api.clock.time()
+    await api.close()
+    again = Api(api.tmp)
+    again.clock.step(then - behind_s - again.clock.time())  # the wall clock alone
+    await again.start()
+    await again.gov.start()
+    status, _ = await again.command("ops", {"action": "clear_estop"})
+    assert status == 200
+    return again
+
+
+async def _closed(api: Api) -> None:
+    await api.gov.stop()
+    await api.close()
+
+
+def _moves(api: Api) -> int:
+    return sum(action == "move" for action, _ in api.dispatcher.calls)
+
+
+async def test_a_retry_after_a_restart_behind_the_log_is_refused(tmp_path: Path) -> None:
+    """The log's entries seem to come from the future: the move the first run decided is
+    still a decided one (its retry within the ttl refused), not a new first time."""
+    api = await Api(tmp_path).start()
+    status, first = await api.command("planner", MOVE)
+    assert (status, first["outcome"]) == (200, "executed"), first
+    again = await _restarted_behind(api, HOUR)
+    try:
+        status, body = await again.command("planner", MOVE)
+        assert (status, body["reason"]) == (409, "decided_before_restart"), body
+        assert _moves(again) == 0
+    finally:
+        await _closed(again)
+
+
+async def test_a_replay_after_a_restart_behind_the_log_and_ntp_is_refused(
+        tmp_path: Path) -> None:
+    """The first run took a command; the bridge starts again an hour behind; NTP steps the
+    clock forward: the command, sent again within its window, is a replay."""
+    api = await Api(tmp_path).start()
+    msg = sdk_command(api, "move", {"linear_x": 0.3, "duration_s": 1.0})
+    assert (await api.command("planner", msg))[0] == 200
+    again = await _restarted_behind(api, HOUR)
+    try:
+        again.clock.step(HOUR + 3)
+        status, body = await again.command("planner", msg)
+        assert (status, body["error_code"]) == (409, "REPLAY_DETECTED"), body
+        assert _moves(again) == 0
+    finally:
+        await _closed(again)
+
+
+async def test_a_replay_after_a_step_back_under_a_running_bridge_is_refused(
+        api: Api) -> None:
+    """NTP steps back 5 s just after the window forgot a command's id: the command, fresh
+    again by the clock now, is refused as stale, and nothing moves."""
+    msg = sdk_command(api, "move", {"linear_x": 0.3, "duration_s": 1.0})
+    assert (await api.command("planner", msg))[0] == 200
+    api.clock.advance(32)
+    assert (await api.command("planner", sdk_command(api, "stop")))[0] == 200  # forgets it
+    api.clock.step(-5)
+    status, body = await api.command("planner", msg)
+    assert (status, body["error_code"]) == (408, "MESSAGE_STALE"), body
+    assert _moves(api) == 1

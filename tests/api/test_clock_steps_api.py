@@ -5,6 +5,10 @@ runs. A step may refuse or expire; it never runs a command twice nor takes a rep
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
+
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from jwthelpers import sign_jwt, write_jwks
 
 from tests.api.apihelpers import Api
 from tests.api.test_rcan3_messages import sdk_command
@@ -82,3 +86,33 @@ async def test_a_replay_after_a_step_back_under_a_running_bridge_is_refused(
     status, body = await api.command("planner", msg)
     assert (status, body["error_code"]) == (408, "MESSAGE_STALE"), body
     assert _moves(api) == 1
+
+
+async def test_a_jwt_expired_before_a_step_back_stays_expired(tmp_path: Path) -> None:
+    """A token used, then expired (exp + the 30 s leeway) while the bridge checked another;
+    the clock steps back an hour: the token, unexpired by the clock now, is still refused."""
+    key = Ed25519PrivateKey.generate()
+    jwks = write_jwks(tmp_path / "jwks.json", {"idp": key})
+    api = await Api(tmp_path, api_extra=f"jwt: {{jwks: '{jwks}', audience: rcan-bridge}}"
+                    ).start()
+
+    def token(exp_in_s: float) -> str:
+        body = {"sub": "agent", "role": "USER", "aud": "rcan-bridge",
+                "exp": api.clock.time() + exp_in_s}
+        return sign_jwt(key, body, {"alg": "EdDSA", "kid": "idp"})
+
+    async def status(bearer: str) -> tuple[int, Any]:
+        async with api.http.get("/api/status",
+                                headers={"Authorization": f"Bearer {bearer}"}) as resp:
+            return resp.status, await resp.json()
+
+    try:
+        short = token(60)
+        assert (await status(short))[0] == 200
+        api.clock.advance(120)
+        assert (await status(token(60)))[0] == 200  # the bridge reads the time
+        api.clock.step(-HOUR)
+        code, reply = await status(short)
+        assert (code, reply.get("reason")) == (401, "jwt_expired"), reply
+    finally:
+        await api.close()

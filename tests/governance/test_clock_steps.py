@@ -183,3 +183,37 @@ async def test_a_step_forward_past_its_expiry_expires_a_held_command(harness: Ha
     late = await gov.authorize(pending_id, OPS)
     assert (late.http_status, late.reason) == (404, "pending_expired")
     assert harness.dispatcher.calls == []
+
+
+# -- e-stops ---------------------------------------------------------------------------------
+
+
+async def test_a_step_back_does_not_delay_the_record_of_repeated_estops(
+        harness: Harness, gov: Governor) -> None:
+    """E-stops repeated while latched are recorded together every minute: a step back of an
+    hour does not hold them unrecorded for an hour more."""
+    await gov.start()
+    await gov.decide(command("estop"), PLANNER)
+    await gov.decide(command("estop"), PLANNER)
+    harness.clock.step(-HOUR)
+    harness.clock.advance(61)
+    await gov.sweep()
+    entry = harness.entries[-1]
+    assert (entry["event"], entry["params"]["count"]) == ("ESTOP_REPEATED", 1)
+    await gov.stop()
+
+
+async def test_a_step_back_to_1970_leaves_the_estop_latched(harness: Harness,
+                                                           gov: Governor) -> None:
+    """The latch holds whatever the clock does; a stop still stops."""
+    await gov.start()
+    await gov.decide(command("estop"), PLANNER)
+    harness.clock.step(-harness.clock.time())
+    harness.clock.advance(3600)
+    await gov.sweep()
+    assert gov.latch.latched
+    moved = await gov.decide(command("move", {"linear_x": 0.2, "duration_s": 1.0}), OPS)
+    assert moved.outcome is not Outcome.EXECUTED
+    stopped = await gov.decide(command("stop"), PLANNER)
+    assert stopped.outcome is Outcome.EXECUTED
+    await gov.stop()

@@ -116,3 +116,23 @@ async def test_a_jwt_expired_before_a_step_back_stays_expired(tmp_path: Path) ->
         assert (code, reply.get("reason")) == (401, "jwt_expired"), reply
     finally:
         await api.close()
+
+
+async def test_after_a_step_back_of_an_hour_stops_still_stop(api: Api) -> None:
+    """An hour back (the clock had been set ahead, NTP sets it right): a new move is refused
+    as stale until the clock passes the time it was stepped back from; a stop and an e-stop,
+    stamped by the clock now, still stop."""
+    assert (await api.command("planner", sdk_command(api, "move", {"linear_x": 0.3})))[0] \
+        == 200
+    api.clock.step(-HOUR)
+    status, body = await api.command("planner", sdk_command(api, "move", {"linear_x": 0.3}))
+    assert (status, body["reason"]) == (
+        408, "older_than_30_s_before_the_clock_went_back"), body
+    entry = api.entry(body["audit_id"])  # refused on the record, saying why
+    assert (entry["outcome"], entry["deny_reason"]) == (
+        "denied", "MESSAGE_STALE:older_than_30_s_before_the_clock_went_back"), entry
+    status, body = await api.command("planner", sdk_command(api, "stop"))
+    assert (status, body["outcome"]) == (200, "executed"), body
+    status, body = await api.command("viewer", sdk_command(api, "estop"))
+    assert (status, body["outcome"]) == (200, "executed"), body
+    assert [a for a, _ in api.dispatcher.calls] == ["move", "stop", "estop"]

@@ -217,3 +217,54 @@ async def test_a_step_back_to_1970_leaves_the_estop_latched(harness: Harness,
     stopped = await gov.decide(command("stop"), PLANNER)
     assert stopped.outcome is Outcome.EXECUTED
     await gov.stop()
+
+
+# -- control sessions (§10.8): the dead-man -------------------------------------------------
+
+
+async def test_a_step_back_does_not_keep_a_silent_session_driving(harness: Harness,
+                                                                 gov: Governor) -> None:
+    """The silence a session survives is measured on the monotonic clock: set back an hour
+    (or to 1970), a silent driver is stopped when its 2 s are up, as ever."""
+    await gov.start()
+    await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)
+    harness.clock.step(-harness.clock.time())
+    harness.clock.advance(2.1)
+    await gov.sweep()
+    assert [e["event"] for e in harness.entries].count("NETWORK_LOSS_SAFE_STOP") == 1
+    assert harness.dispatcher.calls[-1] == ("stop", {})
+    await gov.stop()
+
+
+async def test_a_step_forward_does_not_cut_a_session_short(harness: Harness,
+                                                          gov: Governor) -> None:
+    """Ten years forward (NTP after a boot with a stale date): a driver heard 1 s ago still
+    drives."""
+    await gov.start()
+    await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)
+    harness.clock.step(10 * 365 * 86400)
+    harness.clock.advance(1.0)
+    await gov.sweep()
+    assert "NETWORK_LOSS_SAFE_STOP" not in [e["event"] for e in harness.entries]
+    await gov.stop()
+
+
+# -- the audit log --------------------------------------------------------------------------
+
+
+async def test_a_log_written_across_steps_back_verifies_and_opens_again(
+        harness: Harness, gov: Governor) -> None:
+    """Entries are ordered by seq and hash chain, not by time: a log whose timestamps go back
+    (a step to 1970 mid-run) verifies, and a start reads it back."""
+    await gov.start()
+    await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)
+    harness.clock.step(-harness.clock.time())
+    await gov.decide(command("stop"), PLANNER)
+    await gov.stop()
+    times = [e["timestamp_ms"] for e in harness.entries]
+    assert times != sorted(times)
+    await harness.restart()
+    again = await harness.governor()
+    await again.start()
+    assert harness.entries[-1]["event"] == "BRIDGE_STARTED"
+    await again.stop()

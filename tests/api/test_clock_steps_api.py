@@ -136,3 +136,17 @@ async def test_after_a_step_back_of_an_hour_stops_still_stop(api: Api) -> None:
     status, body = await api.command("viewer", sdk_command(api, "estop"))
     assert (status, body["outcome"]) == (200, "executed"), body
     assert [a for a, _ in api.dispatcher.calls] == ["move", "stop", "estop"]
+
+
+async def test_a_restart_ends_the_refusals_of_a_step_back(tmp_path: Path) -> None:
+    """After an hour back, a new run (which has read no later time) takes new messages."""
+    api = await Api(tmp_path).start()
+    assert (await api.command("planner", sdk_command(api, "move", {"linear_x": 0.3})))[0] \
+        == 200
+    again = await _restarted_behind(api, HOUR)
+    try:
+        status, body = await again.command("planner",
+                                           sdk_command(again, "move", {"linear_x": 0.3}))
+        assert (status, body["outcome"]) == (200, "executed"), body
+    finally:
+        await _closed(again)

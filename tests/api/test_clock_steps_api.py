@@ -150,3 +150,27 @@ async def test_a_restart_ends_the_refusals_of_a_step_back(tmp_path: Path) -> Non
         assert (status, body["outcome"]) == (200, "executed"), body
     finally:
         await _closed(again)
+
+
+async def test_a_jwt_that_expired_while_no_token_was_checked_stays_expired(
+        tmp_path: Path) -> None:
+    """No token is checked between a token's expiry and the step back; the governor's sweep
+    read the time meanwhile (every 50 ms as it runs): the token is still refused."""
+    key = Ed25519PrivateKey.generate()
+    jwks = write_jwks(tmp_path / "jwks.json", {"idp": key})
+    api = await Api(tmp_path, api_extra=f"jwt: {{jwks: '{jwks}', audience: rcan-bridge}}"
+                    ).start()
+    body = {"sub": "agent", "role": "USER", "aud": "rcan-bridge", "exp": api.clock.time() + 60}
+    short = sign_jwt(key, body, {"alg": "EdDSA", "kid": "idp"})
+    try:
+        async with api.http.get("/api/status",
+                                headers={"Authorization": f"Bearer {short}"}) as resp:
+            assert resp.status == 200
+        api.clock.advance(120)
+        await api.gov.sweep()
+        api.clock.step(-HOUR)
+        async with api.http.get("/api/status",
+                                headers={"Authorization": f"Bearer {short}"}) as resp:
+            assert (resp.status, (await resp.json()).get("reason")) == (401, "jwt_expired")
+    finally:
+        await api.close()

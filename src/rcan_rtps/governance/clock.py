@@ -9,6 +9,7 @@ back: what went stale by the latest time this run has read stays stale."""
 from __future__ import annotations
 
 import time
+import weakref
 from typing import Protocol
 
 
@@ -54,7 +55,9 @@ class ManualClock:
 
 class LatestWall:
     """The latest wall time read so far through it: a step back of the wall clock does not
-    take it back (it waits until the wall clock passes it again); a step forward moves it."""
+    take it back (it waits until the wall clock passes it again); a step forward moves it.
+    One per clock (`latest_wall`), read by every check that uses it and by the governor's
+    sweep, so that it is as late as the last time anyone looked."""
 
     def __init__(self, clock: Clock) -> None:
         self._clock = clock
@@ -63,6 +66,19 @@ class LatestWall:
     def time(self) -> float:
         self._latest = max(self._latest, self._clock.time())
         return self._latest
+
+
+_LATEST: weakref.WeakKeyDictionary[Clock, LatestWall] = weakref.WeakKeyDictionary()
+_SYSTEM = SystemClock()
+
+
+def latest_wall(clock: Clock) -> LatestWall:
+    """The `LatestWall` of `clock`: one for every `SystemClock` (they read the same clock)."""
+    key = _SYSTEM if isinstance(clock, SystemClock) else clock
+    found = _LATEST.get(key)
+    if found is None:
+        found = _LATEST[key] = LatestWall(key)
+    return found
 
 
 def now_ms(clock: Clock) -> int:

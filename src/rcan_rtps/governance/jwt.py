@@ -21,7 +21,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from rcan_rtps.config import JwtConfig
 from rcan_rtps.rcan import JWT_LEVELS, M2M_TRUSTED, M2M_TRUSTED_LEVEL, Role
 
-from .clock import Clock, LatestWall
+from .clock import Clock, latest_wall
 from .errors import AuthConfigError, AuthenticationError
 from .keyfacts import read_public_pem
 from .rbac import DEFAULT_RATE_LIMITS, Principal
@@ -183,7 +183,7 @@ class JwtVerifier:
         self._clock = clock
         # exp is judged by the latest wall time read: a token that expired stays expired
         # when the clock is stepped back (nbf and iat by the clock now).
-        self._latest = LatestWall(clock)
+        self._latest = latest_wall(clock)
         self._limits = limits
 
     @classmethod

@@ -35,7 +35,7 @@ from rcan_rtps.rcan import ErrorCode, Outcome
 from rcan_rtps.rcan._v3 import normal_id
 
 from . import outcomes
-from .clock import Clock, LatestWall
+from .clock import Clock, latest_wall
 from .log_tail import logged_ids
 from .outcomes import Rejection
 
@@ -51,7 +51,7 @@ class ReplayWindow:
                  ahead_s: float = DEFAULT_AHEAD_S,
                  max_entries: int = DEFAULT_MAX_ENTRIES) -> None:
         self._clock = clock
-        self._latest = LatestWall(clock)
+        self._latest = latest_wall(clock)
         self.window_s = window_s
         self.safety_window_s = min(window_s, SAFETY_WINDOW_S)
         self.ahead_s = ahead_s

@@ -7,6 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import aiohttp
+import pytest
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from jwthelpers import sign_jwt, write_jwks
 
@@ -174,3 +176,15 @@ async def test_a_jwt_that_expired_while_no_token_was_checked_stays_expired(
             assert (resp.status, (await resp.json()).get("reason")) == (401, "jwt_expired")
     finally:
         await api.close()
+
+
+async def test_a_step_back_keeps_no_websocket_ticket_past_its_30_s(api: Api) -> None:
+    """A ticket lives 30 s of monotonic time: an hour back, it has expired all the same."""
+    status, body = await api.call("POST", "/api/ws-ticket", "ops")
+    assert status == 200, body
+    api.clock.step(-HOUR)
+    api.clock.advance(31)
+    with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+        async with api.http.ws_connect(f"/api/ws?ticket={body['ticket']}"):
+            pass
+    assert refused.value.status == 401

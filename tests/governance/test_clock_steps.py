@@ -9,14 +9,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from govhelpers import OPS, PLANNER, Harness, command
+from govhelpers import OPS, PLANNER, Harness, command, principal
 
 from rcan_rtps.governance import outcomes
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
 from rcan_rtps.governance.clock import LatestWall, ManualClock
 from rcan_rtps.governance.governor import Governor
+from rcan_rtps.governance.rbac import RateLimiter
 from rcan_rtps.governance.replay import ReplayWindow
-from rcan_rtps.rcan import Outcome
+from rcan_rtps.rcan import Outcome, Role
 
 T = 1_800_000_000.0
 HOUR = 3600.0
@@ -268,3 +269,20 @@ async def test_a_log_written_across_steps_back_verifies_and_opens_again(
     await again.start()
     assert harness.entries[-1]["event"] == "BRIDGE_STARTED"
     await again.stop()
+
+
+# -- rate limits ------------------------------------------------------------------------------
+
+
+def test_a_step_forward_refills_no_rate_limit() -> None:
+    """A principal out of requests stays out when the clock is set ten years forward."""
+    clock = ManualClock(T)
+    limiter = RateLimiter(clock)
+    guest = principal("guest", Role.GUEST)  # 10 a minute
+    assert all(limiter.allow(guest) for _ in range(10))
+    assert not limiter.allow(guest)
+    clock.step(10 * 365 * 86400)
+    assert not limiter.allow(guest)
+    clock.advance(6.1)  # a minute's tenth: one more
+    assert limiter.allow(guest)
+    assert not limiter.allow(guest)

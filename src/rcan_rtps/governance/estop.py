@@ -256,9 +256,14 @@ class EstopRepeats:
     def __init__(self, every_ms: int = 60_000) -> None:
         self.every_ms = every_ms
         self._tallies: dict[str, Tally] = {}
+        # When the oldest tally began, on the monotonic clock: the wall clock's `first_ms`
+        # is what the entry says, not how long it has waited (a step back would hold it).
+        self._since_mono: float | None = None
 
     def add(self, principal: str, at_ms: int, *, failed: bool,
-            warnings: tuple[str, ...] = ()) -> None:
+            at_mono: float, warnings: tuple[str, ...] = ()) -> None:
+        if self._since_mono is None:
+            self._since_mono = at_mono
         tally = self._tallies.get(principal)
         if tally is None:
             tally = self._tallies[principal] = Tally(first_ms=at_ms)
@@ -269,10 +274,11 @@ class EstopRepeats:
             if warning not in tally.warnings and len(tally.warnings) < self.MAX_WARNINGS:
                 tally.warnings.append(warning)
 
-    def due(self, now_ms: int) -> bool:
-        """Some tally has waited `every_ms` to be recorded."""
-        return any(now_ms - t.first_ms >= self.every_ms for t in self._tallies.values())
+    def due(self, now_mono: float) -> bool:
+        """Some tally has waited `every_ms` to be recorded (`now_mono`: monotonic, s)."""
+        since = self._since_mono
+        return since is not None and (now_mono - since) * 1000 >= self.every_ms
 
     def take(self) -> dict[str, Tally]:
-        taken, self._tallies = self._tallies, {}
+        taken, self._tallies, self._since_mono = self._tallies, {}, None
         return taken

@@ -91,7 +91,7 @@ class EstopLane:
         assert self._latched_by is not None
         result, failure = await self._steps.dispatch(command, command.params)
         self._repeats.add(principal.name, now_ms(self._clock), failed=failure is not None,
-                          warnings=command.warnings)
+                          warnings=command.warnings, at_mono=self._clock.monotonic())
         if failure is not None:
             return decision(failure, message_id=command.message_id)
         return Decision(outcome=Outcome.EXECUTED, http_status=200, applied={},
@@ -99,7 +99,7 @@ class EstopLane:
                         reason="already_latched", ros2_topic=result.ros2_topic)
 
     def repeats_due(self) -> bool:
-        return self._repeats.due(now_ms(self._clock))
+        return self._repeats.due(self._clock.monotonic())
 
     async def record_repeats(self) -> None:
         """One ESTOP_REPEATED entry per principal for the repeats counted so far."""

@@ -45,7 +45,7 @@ from . import outcomes
 from .ai import AiPolicy
 from .arbiter import BaseArbiter
 from .audit import AuditEvent, AuditLog, AuditRecord, Checkpoint
-from .clock import Clock, SystemClock, now_ms
+from .clock import Clock, SystemClock, latest_wall, now_ms
 from .estop import EstopMachine, LatchFile
 from .estop_lane import EstopLane
 from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand
@@ -1063,7 +1063,10 @@ class Governor:
 
     async def sweep(self) -> None:
         """One round of housekeeping: expire HiTL requests, stop for lost sessions, record
-        e-stop repeats that waited long enough."""
+        e-stop repeats that waited long enough. And read the wall clock into its latest
+        time: what expired before a step back stays expired (JWTs, the replay window), even
+        when nothing was checked between its expiry and the step."""
+        latest_wall(self._clock).time()
         await self.expire_pending()
         if self._estops.repeats_due():  # in order with the latch's transitions
             await self.latch.then(self._estops.record_repeats)

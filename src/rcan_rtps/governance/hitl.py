@@ -58,8 +58,11 @@ class Held:
     `lock`: one review at a time (checked, audited, counted, maybe released), so two approvals
     racing cannot both count as the last one, nor one approver count twice."""
 
-    def __init__(self, pending: PendingCommand) -> None:
+    def __init__(self, pending: PendingCommand, due_mono: float) -> None:
         self.pending = pending
+        # Its TTL on the monotonic clock: a wall clock stepped back keeps no approval alive
+        # past it (and one stepped forward past `expires_at_ms` expires it, as it says).
+        self.due_mono = due_mono
         self.approvals: list[Approval] = []
         self.lock = asyncio.Lock()
         self.withdrawing = False  # its withdrawal is under way: no approval counts any more
@@ -68,6 +71,10 @@ class Held:
     def missing(self) -> int:
         """Approvals still needed before it may run."""
         return self.pending.approvals_required - len(self.approvals)
+
+    def expired(self, now_ms: int, now_mono: float) -> bool:
+        """Past its TTL by either clock."""
+        return self.pending.expires_at_ms <= now_ms or self.due_mono <= now_mono
 
     def approved_by(self, name: str) -> bool:
         return any(a.principal == name for a in self.approvals)
@@ -134,8 +141,8 @@ class PendingStore:
     def __init__(self) -> None:
         self._pending: dict[str, Held] = {}
 
-    def put(self, pending: PendingCommand) -> Held:
-        held = self._pending[pending.pending_id] = Held(pending)
+    def put(self, pending: PendingCommand, due_mono: float) -> Held:
+        held = self._pending[pending.pending_id] = Held(pending, due_mono)
         return held
 
     def get(self, pending_id: str) -> Held | None:
@@ -144,8 +151,8 @@ class PendingStore:
     def take(self, pending_id: str) -> Held | None:
         return self._pending.pop(pending_id, None)
 
-    def take_expired(self, now_ms: int) -> list[Held]:
-        gone = [h for h in self._pending.values() if h.pending.expires_at_ms <= now_ms]
+    def take_expired(self, now_ms: int, now_mono: float) -> list[Held]:
+        gone = [h for h in self._pending.values() if h.expired(now_ms, now_mono)]
         for h in gone:
             del self._pending[h.pending.pending_id]
         return gone

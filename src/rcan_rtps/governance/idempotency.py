@@ -50,13 +50,17 @@ class Idempotency(Generic[K, T]):
 
     def remember_decided(self, decided: Iterable[tuple[K, float]]) -> int:
         """At start: the keys an earlier run decided, each with its age (s), kept for what is
-        left of the ttl (at most `max_entries`). Returns how many."""
+        left of the ttl (at most `max_entries`). Returns how many.
+
+        A negative age (logged ahead of the clock now: it was stepped back between the runs,
+        or this start came before NTP set it) is kept the whole ttl: how long ago it was
+        decided is unknown, and its retry must not run a second time."""
         now = self._clock.monotonic()
         for key, age_s in decided:
             if len(self._before) >= self._max:
                 break
-            if 0 <= age_s < self.ttl_s:  # (a negative age: a clock that has gone back)
-                self._before.setdefault(key, now - age_s)
+            if age_s < self.ttl_s:
+                self._before.setdefault(key, now - max(0.0, age_s))
         return len(self._before)
 
     def claim(self, key: K, fingerprint: bytes

@@ -21,7 +21,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from rcan_rtps.config import JwtConfig
 from rcan_rtps.rcan import JWT_LEVELS, M2M_TRUSTED, M2M_TRUSTED_LEVEL, Role
 
-from .clock import Clock
+from .clock import Clock, latest_wall
 from .errors import AuthConfigError, AuthenticationError
 from .keyfacts import read_public_pem
 from .rbac import DEFAULT_RATE_LIMITS, Principal
@@ -181,6 +181,9 @@ class JwtVerifier:
         self._leeway = leeway_s
         self._max_lifetime = max_lifetime_s
         self._clock = clock
+        # exp is judged by the latest wall time read: a token that expired stays expired
+        # when the clock is stepped back (nbf and iat by the clock now).
+        self._latest = latest_wall(clock)
         self._limits = limits
 
     @classmethod
@@ -274,10 +277,12 @@ class JwtVerifier:
 
     def _check_times(self, claims: dict[str, Any]) -> None:
         """exp required, not past; nbf and iat not in the future; exp at most max_lifetime_s
-        after iat (or, without iat, after now): a token cannot be made to last for ever."""
-        now = self._clock.time()
+        after iat (or, without iat, after now): a token cannot be made to last for ever.
+        Expired by the latest wall time read (`LatestWall`): a step back of the clock does
+        not bring an expired token back."""
+        now, latest = self._clock.time(), self._latest.time()
         exp, nbf, iat = claims.get("exp"), claims.get("nbf"), claims.get("iat")
-        if not _is_time(exp) or now > exp + self._leeway:
+        if not _is_time(exp) or latest > exp + self._leeway:
             raise _refused(EXPIRED, "JWT expired or without exp")
         if nbf is not None and (not _is_time(nbf) or now + self._leeway < nbf):
             raise _refused(NOT_YET, "JWT not valid yet")

@@ -15,6 +15,12 @@ The window is kept in memory, so a start reads back the ids the audit log's last
 name (`remember_logged`): a message the previous run took, sent again while it could still be
 fresh, is a replay after a restart too.
 
+The wall clock may be stepped under the bridge. Ids are forgotten, and messages judged stale,
+by the latest wall time this run has read (`LatestWall`) as well as by the wall time now: a
+step back cannot make a message fresh again whose id was forgotten — it is refused as stale
+(`..._before_the_clock_went_back`) until the clock has passed the time it was stepped back
+from. A step forward makes what was fresh stale at once.
+
 The 1.2 forms and unversioned messages keep the idempotent retry instead (the governor's).
 """
 
@@ -29,7 +35,7 @@ from rcan_rtps.rcan import ErrorCode, Outcome
 from rcan_rtps.rcan._v3 import normal_id
 
 from . import outcomes
-from .clock import Clock
+from .clock import Clock, latest_wall
 from .log_tail import logged_ids
 from .outcomes import Rejection
 
@@ -45,6 +51,7 @@ class ReplayWindow:
                  ahead_s: float = DEFAULT_AHEAD_S,
                  max_entries: int = DEFAULT_MAX_ENTRIES) -> None:
         self._clock = clock
+        self._latest = latest_wall(clock)
         self.window_s = window_s
         self.safety_window_s = min(window_s, SAFETY_WINDOW_S)
         self.ahead_s = ahead_s
@@ -60,7 +67,7 @@ class ReplayWindow:
               safety: bool = False, sender: str = "") -> Rejection | None:
         """None if the message may go on (its id is then remembered), else why not.
         `sender`: the authenticated principal, whose own ids count against its bound."""
-        now = self._clock.time()
+        now, latest = self._clock.time(), self._latest.time()
         window = self.safety_window_s if safety else self.window_s
         if sent_at_s is None:
             return _stale("no_timestamp")
@@ -68,12 +75,14 @@ class ReplayWindow:
             return _stale(f"older_than_{window:g}_s")
         if sent_at_s - now > self.ahead_s:
             return _stale(f"more_than_{self.ahead_s:g}_s_ahead")
+        if latest - sent_at_s > window:  # its id may have been forgotten before the step
+            return _stale(f"older_than_{window:g}_s_before_the_clock_went_back")
         if msg_id is None:  # nothing to remember it by: fresh is all that can be said
             return None
         # One UUID is one id however it is spelled: the audit log (and so `remember_logged`)
         # names it in its canonical spelling.
         msg_id = normal_id(msg_id)
-        self._forget_stale(now)
+        self._forget_stale(latest)
         if msg_id in self._seen:
             return outcomes.REPLAY_DETECTED
         if self._held[sender] >= self._max:
@@ -91,13 +100,18 @@ class ReplayWindow:
         A message taken at time t was sent at most `ahead_s` after t, so it is stale by
         t + ahead_s + window_s at the latest; every entry naming an id counts (a message
         refused after the window took its id — an e-stop was latched, say — must not pass
-        when sent again once the new run has cleared it)."""
+        when sent again once the new run has cleared it).
+
+        Entries logged ahead of the clock now (it was stepped back, or this start came before
+        NTP set it) are kept too, until the clock passes them: their messages become fresh
+        again when it does. Only the last run's last `window_s + ahead_s` are read."""
         now = self._clock.time()
         keep_s = self.window_s + self.ahead_s
-        remembered = 0
+        remembered, newest = 0, now
         for msg_id, sender, logged_s in logged_ids(path, since_s=now - keep_s):
-            if logged_s - self.window_s > now + self.ahead_s:
-                continue  # logged by a clock far ahead of ours: never fresh again here
+            newest = max(newest, logged_s)
+            if logged_s < newest - keep_s:
+                break  # stale by the log's own last entries, whatever the clock says now
             stale_at = logged_s + keep_s
             if msg_id not in self._seen:
                 self._seen[msg_id] = (sender, stale_at)

@@ -116,11 +116,11 @@ class HitlDesk:
         caller (`resolve`), and no longer approved from this step on: an approval that comes
         before its withdrawal is refused `pending_not_found`, as one after it is. One past its
         TTL is left to expire."""
-        now = now_ms(self._clock)
+        now, mono = now_ms(self._clock), self._clock.monotonic()
         ids = []
         for held in self._pending.list():
             pending = held.pending
-            if pending.issuer.name == issuer and pending.expires_at_ms > now \
+            if pending.issuer.name == issuer and not held.expired(now, mono) \
                     and which(pending.command):
                 held.withdrawing = True
                 ids.append(pending.pending_id)
@@ -128,6 +128,7 @@ class HitlDesk:
 
     async def hold(self, command: NormalizedCommand, principal: Principal,
                    approver_role: Role) -> Decision:
+        due_mono = self._clock.monotonic() + self._ttl_ms / 1000
         pending = PendingCommand(
             pending_id=uuid.uuid4().hex, command=command, issuer=principal,
             approver_role=approver_role,
@@ -137,7 +138,8 @@ class HitlDesk:
         entry = record(AuditEvent.PENDING_AUTH, command, principal, Outcome.PENDING_AUTH,
                        pending_id=pending.pending_id)
         receipt = await self._steps.audit.append(entry)
-        self._pending.put(pending)  # only once its PENDING_AUTH entry is durable
+        # Only once its PENDING_AUTH entry is durable; its TTL counts from when it was held.
+        self._pending.put(pending, due_mono)
         self._changed()
         if self._notifier is not None:
             self._steps.spawn(self._notifier.notify(pending.message()))  # never awaited here
@@ -191,7 +193,7 @@ class HitlDesk:
         if held.withdrawing and verdict == "approve":  # its issuer withdraws it (`withdrawing`)
             return await self._refuse(verdict, reviewer, outcomes.PENDING_NOT_FOUND,
                                       pending.pending_id, message_id)
-        if pending.expires_at_ms <= now_ms(self._clock):
+        if held.expired(now_ms(self._clock), self._clock.monotonic()):
             await self.expire()
             return await self._refuse(verdict, reviewer, outcomes.PENDING_EXPIRED,
                                       pending.pending_id, message_id)
@@ -251,7 +253,7 @@ class HitlDesk:
         """Discard and audit (HITL_EXPIRED, with any approvals it had) every pending command
         past its TTL."""
         decisions = []
-        expired = self._pending.take_expired(now_ms(self._clock))
+        expired = self._pending.take_expired(now_ms(self._clock), self._clock.monotonic())
         if expired:
             self._changed()
         for held in expired:

@@ -516,7 +516,8 @@ def test_a_trajectory_the_path_cannot_be_worked_out_for_does_not_break_a_stop(
     # A first point 5e-324 s in (valid: its time is > 0) with velocities, from a start whose
     # velocities were heard: its cubic's coefficients divide by the segment's time squared,
     # 0.0 in floats. With the arm's joint_states late the stop works that out; it must not
-    # raise out of the stop, which would leave the other arm (and the goal cancels) undone.
+    # raise out of the stop, which would leave the other arm (and the goal cancels) undone,
+    # nor log a traceback (it did: ZeroDivisionError): such a segment's speed is unbounded.
     arms = ArmHolds(positions, max_age_s=5.0, monotonic=clock)
     left, right = Topic("/left"), Topic("/right")
     positions.heard(["a"], [0.0], [0.0])
@@ -529,6 +530,8 @@ def test_a_trajectory_the_path_cannot_be_worked_out_for_does_not_break_a_stop(
     assert held.held == ("/right",) and right.sent == [(["b"], [0.5])]
     (why,) = held.not_held
     assert why.startswith("the arm on /left was not held: ") and left.sent == []
+    assert why.endswith("its trajectory's peak speed is not finite: where it has the arm "
+                        "cannot be checked")
     assert arms.running() == ["m1"]  # the next stop tries again
 
 

@@ -224,6 +224,9 @@ class ArmHolds:
         if last is None:
             return "a joint was never heard"
         speeds, start = run.path.peak_speeds, run.path.at(0.0)
+        if not all(map(_finite, speeds)):  # (a segment too short for its cubic to bound)
+            return ("its trajectory's peak speed is not finite: where it has the arm cannot be "
+                    "checked")
         shown = False  # a sample an arm left standing where it was would not match
         for i, (name, (position, at)) in enumerate(zip(run.joints, last, strict=True)):
             if now - at > self._max_age_s:

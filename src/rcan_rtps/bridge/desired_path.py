@@ -17,6 +17,7 @@ from __future__ import annotations
 import bisect
 import functools
 import itertools
+import math
 from array import array
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -101,10 +102,15 @@ def _segment_peaks(a: _Knot, b: _Knot) -> list[float]:
 def _cubic_peak(pa: float, va: float, pb: float, vb: float, span: float) -> float:
     """The highest |velocity| of the Hermite cubic on [0, span]: its velocity is a parabola,
     highest at an end or at its vertex."""
+    square = span * span
+    if square == 0.0:  # a segment so short (5e-324 s in) its square is 0.0: no bound
+        return math.inf
     slope = (pb - pa) / span
     # velocity(τ) = va + c2·τ + c3·τ² (the cubic's derivative)
     c2 = (6 * slope - 4 * va - 2 * vb) / span
-    c3 = (3 * va + 3 * vb - 6 * slope) / span**2
+    c3 = (3 * va + 3 * vb - 6 * slope) / square
+    if not (math.isfinite(c2) and math.isfinite(c3)):  # overflowed: no bound either
+        return math.inf
     candidates = [abs(va), abs(vb)]
     if c3 != 0.0:
         vertex = -c2 / (2 * c3)

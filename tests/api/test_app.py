@@ -224,6 +224,7 @@ async def test_estop_from_guest_latches_and_blocks_motion(api: Api) -> None:
     assert (await api.command("planner", {"action": "move"}))[0] == 200
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_broken_robot_view_is_503_not_500(api: Api) -> None:
     def broken(*, pending_auth: int) -> object:
         raise RuntimeError("bridge bug")

@@ -193,6 +193,7 @@ async def test_a_reset_mid_response_is_no_error(served: Served,
     _assert_quiet(log)
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_a_connection_error_of_the_bridge_itself_is_still_an_error(
         api: Api, log: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
     """Only a client that went away is quiet: a ConnectionError with the client still there

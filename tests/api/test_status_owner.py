@@ -121,6 +121,7 @@ async def test_many_subscribers_cost_no_computation(hub: Any) -> None:
     assert source.computed == before + 1  # one computation for all 200
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_a_broken_source_is_logged_once_and_survived(
         hub: Any, caplog: pytest.LogCaptureFixture) -> None:
     owner, source = hub

@@ -10,6 +10,7 @@ from collections import Counter
 from typing import Any
 
 import aiohttp
+import pytest
 
 from rcan_rtps.governance import Governor
 from tests.api.apihelpers import Api, auth
@@ -136,6 +137,7 @@ async def test_bad_frames_never_end_the_socket(api: Api) -> None:
         assert api.dispatcher.calls == [("estop", {})]
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_a_decision_that_raises_does_not_end_the_socket(
         api: Api, monkeypatch: Any) -> None:
     real = Governor.decide

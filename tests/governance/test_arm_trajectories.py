@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+import pytest
 from govhelpers import OPS, PLANNER, Harness, command
 
 from rcan_rtps.governance.governor import Governor
@@ -95,6 +96,7 @@ async def test_an_ended_trajectory_does_not_keep_its_sender_driving(harness: Har
     await gov.stop()
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_unreadable_running_trajectories_count_as_running(harness: Harness) -> None:
     """When the bridge cannot say what runs, another principal's arm counts as running (a
     halt for PLANNER's silence must not stop it), and PLANNER's own is held all the same."""

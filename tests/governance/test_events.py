@@ -28,6 +28,7 @@ def test_a_channel_tells_its_subscribers_in_order_until_frozen() -> None:
         channel.subscribe(lambda n: None)
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 def test_a_failing_listener_is_logged_and_the_rest_are_still_told(
         caplog: pytest.LogCaptureFixture) -> None:
     heard: list[str] = []
@@ -55,6 +56,7 @@ def test_freezing_the_events_freezes_every_channel() -> None:
             channel.subscribe(lambda *args: None)
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_the_latch_reflex_sends_the_bool_before_status_hears_and_survives_a_bad_listener(
         harness: Harness) -> None:
     gov = await harness.governor()

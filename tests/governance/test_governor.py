@@ -231,6 +231,7 @@ async def test_robot_unavailable_row(harness: Harness, gov: Governor) -> None:
     assert (entry["event"], entry["outcome"]) == ("COMMAND_DISPATCHED", "failed")
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_dispatch_exception_is_failed_not_a_crash(harness: Harness, gov: Governor) -> None:
     harness.dispatcher.raises = RuntimeError("bridge bug")
     d = await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)
@@ -264,6 +265,7 @@ async def test_a_stop_addressed_to_another_robot_still_stops(
     assert [c[0] for c in harness.dispatcher.calls] == [action]
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_failing_safety_check_denies(harness: Harness, gov: Governor,
                                            monkeypatch: pytest.MonkeyPatch) -> None:
     def broken(*_: object) -> None:
@@ -426,6 +428,7 @@ async def test_a_decision_task_cancelled_before_it_ran_does_not_leave_its_caller
         await asyncio.wait_for(caller, 5.0)
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_a_failing_decision_reaches_its_caller_or_the_log(
     gov: Governor, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -484,6 +487,7 @@ async def test_the_session_timeout_is_the_configs(harness: Harness, timeout_s: f
     await gov.stop()
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_broken_audit_log_refuses_commands(harness: Harness, gov: Governor) -> None:
     gov.audit._broken = OSError("disk gone")
     d = await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)

@@ -125,6 +125,7 @@ def test_goal_in_another_frame_is_refused() -> None:
     assert Workspace(None, "map")(NAV, NavigateParams(x=1e6, y=0, yaw=0))  # none configured
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 def test_any_exception_in_a_check_denies() -> None:
     def broken(*_: object) -> NoParams:
         raise KeyError("oops")

@@ -110,6 +110,7 @@ async def test_a_stop_is_sent_first_and_durable_before_its_reply(harness: Harnes
     assert entry["sent_first"] is True and entry["audit_id"] == d.audit_id
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_audit_failure_sends_no_motion_but_the_estop_still_goes(harness: Harness) -> None:
     gov = await harness.governor()
     os.close(gov.audit._fd)  # every further write fails
@@ -168,6 +169,7 @@ async def test_deleted_latch_file_starts_latched_and_says_why(harness: Harness) 
     await gov.stop()
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_a_clear_that_cannot_be_persisted_is_audited_as_failed(
         harness: Harness, monkeypatch: pytest.MonkeyPatch) -> None:
     gov = await harness.governor()

@@ -66,6 +66,7 @@ async def test_a_cleared_estop_starts_clear(harness: Harness) -> None:
     await _stopped(gov)
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_a_clear_that_was_not_persisted_stays_latched_after_a_crash(
         harness: Harness) -> None:
     """ESTOP_CLEARED written, then the latch file write failed (COMMAND_FAILED): latched."""

@@ -485,6 +485,7 @@ async def test_reader_leaving_is_unavailable_at_once(tmp_path: Path, jazzy_pytho
 # -- 3. The audit log cannot be written ------------------------------------------------------
 
 
+@pytest.mark.logs_traceback  # (a fault injected on purpose)
 async def test_unwritable_audit_blocks_motion_but_not_estop(
         tmp_path: Path, jazzy_python: Path, domain_id: int,
         monkeypatch: pytest.MonkeyPatch) -> None:

@@ -76,6 +76,7 @@ async def test_callbacks_run_on_the_nodes_reader_thread(nodes: tuple[RosNode, Ro
     assert a.reader_thread.alive() and len(reader_threads(a)) == 1
 
 
+@pytest.mark.logs_traceback  # (a user's callback raising: its traceback is the user's)
 async def test_a_failing_callback_does_not_silence_the_subscription(
         nodes: tuple[RosNode, RosNode]) -> None:
     a, b = nodes

@@ -17,6 +17,7 @@ from waiting import eventually_sync
 
 from rcan_rtps.ros.graph import Direction, RosGraph
 from rcan_rtps.ros.participant import RosNode
+from rcan_rtps.ros.typesys.store import TypeStore
 
 HASH = r"RIHS01 [0-9a-f]{12}…"
 
@@ -113,6 +114,30 @@ def test_echo_with_a_cyclone_publisher_of_another_type_coming_later_says_it_once
     assert re.fullmatch(
         rf"rcan-rtps: error: type mismatch: /wrong/chatter has std_msgs/msg/String \({HASH}\), "
         rf"you asked for std_msgs/msg/Int32 \({HASH}\)\n", stderr), stderr
+
+
+def test_pub_of_another_definition_under_the_same_name_on_humble_says_it_once(
+        domain_id: int, tmp_path: Path) -> None:
+    """Humble announces no type hash: the graph shows the same name on both sides, and only
+    DDS (the peer's XTypes type information) sees the definitions differ. The one error says
+    so (before: the participant's warning, then "publishing anyway" to nobody, exit 0)."""
+    changed = tmp_path / "std_msgs" / "msg"
+    changed.mkdir(parents=True)
+    (changed / "String.idl").write_text(
+        "module std_msgs { module msg {\n  struct String {\n    string data;\n"
+        "    int32 extra;\n  };\n}; };\n")
+    with RosNode("changed_peer", "/wrong", domain_id=domain_id,
+                 store=TypeStore([tmp_path], "humble")) as peer:
+        peer.create_subscription("/wrong/text", "std_msgs/msg/String",
+                                 callback=lambda message: None)
+        done = cli(domain_id, "--distro", "humble", "topic", "pub", "--once", "/wrong/text",
+                   "std_msgs/msg/String", "{data: hi}")
+    assert done.returncode == 1
+    assert done.stderr == (
+        "rcan-rtps: error: type mismatch: /wrong/text has an endpoint of another type than "
+        "the std_msgs/msg/String (no type hash) you asked for, in name or definition (DDS "
+        "reports it; the ROS graph cannot say which: no type hash to compare)\n"), done.stderr
+    assert "publishing #" not in done.stdout
 
 
 def test_echo_into_a_pipe_closed_early_ends_quietly(oracle: RclpyOracle, domain_id: int,

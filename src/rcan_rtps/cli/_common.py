@@ -178,6 +178,6 @@ class TypeGuard:
     def _unnamed_conflict(self) -> str:
         name = normalize_name(self.type_name)
         ours = self.node.store.hash_of(name) if self.node.store.distro != "humble" else ""
-        return (f"type mismatch: {self.topic} has an endpoint of another type (DDS reports "
-                f"it; the ROS graph does not name it), you asked for {name} "
-                f"({_short_hash(ours)})")
+        return (f"type mismatch: {self.topic} has an endpoint of another type than the "
+                f"{name} ({_short_hash(ours)}) you asked for, in name or definition (DDS "
+                "reports it; the ROS graph cannot say which: no type hash to compare)")

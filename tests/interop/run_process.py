@@ -28,11 +28,13 @@ REQUEST_TIMEOUT = 10.0  # s: generous; a request that takes longer counts as a h
 
 class RunProcess:
     """`python -m rcan_rtps <args>` (or `program <args>`); waits for its ready line (and the
-    demo's tokens)."""
+    demo's tokens). `ready`: the ready line of another command than `run` (its group 1 is
+    kept as `url`)."""
 
     def __init__(self, args: Sequence[str], env: dict[str, str], *, demo: bool,
                  ready_timeout: float = 90.0,
-                 program: Sequence[str] = (sys.executable, "-m", "rcan_rtps")) -> None:
+                 program: Sequence[str] = (sys.executable, "-m", "rcan_rtps"),
+                 ready: str = r"^rcan-rtps ready api=(\S+)$") -> None:
         self.proc = subprocess.Popen(
             [*program, *args], stdout=subprocess.PIPE,
             stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
@@ -42,7 +44,7 @@ class RunProcess:
         self._cond = threading.Condition()
         for stream, sink in ((self.proc.stdout, self.stdout), (self.proc.stderr, self.stderr)):
             threading.Thread(target=self._drain, args=(stream, sink), daemon=True).start()
-        self.url = self.wait_for(r"^rcan-rtps ready api=(\S+)$", ready_timeout).group(1)
+        self.url = self.wait_for(ready, ready_timeout).group(1)
         self.user = self.owner = ""
         if demo:
             self.user = self.wait_for(r"USER \(operator\) (\S+)", 10).group(1)

@@ -7,7 +7,7 @@ import asyncio
 import os
 import sys
 import time
-from typing import Any
+from typing import Any, Protocol
 
 import yaml
 
@@ -20,6 +20,7 @@ from ._options import IDL_PATH_AFTER_VERB, add_global_options, merge_global_opti
 __all__ = ["IDL_PATH_AFTER_VERB", "add_global_options", "merge_global_options"]
 
 TYPE_CHECK_PERIOD = 0.5  # s between looks at the graph for endpoints of another type
+OTHER_TYPE_PATIENCE = 2.0  # s the graph has to name an endpoint DDS says is of another type
 TOPIC_HELP = "topic name, e.g. /robot1/odom (relative names resolve from /)"
 VALUES_HELP = "field values as YAML, e.g. \"{linear: {x: 0.2}}\" (default: all defaults)"
 
@@ -122,11 +123,61 @@ def type_conflict(store: TypeStore, own_node: str, endpoints: list[Endpoint], to
             f"({_short_hash(ours)})")
 
 
-def check_type(node: RosNode, graph: RosGraph, topic: str, type_name: str) -> None:
-    """Fails when the graph shows `topic` with another type: DDS never matches the two
-    (Cyclone reports it as an incompatible TYPE_CONSISTENCY), so waiting cannot help."""
-    graph.refresh()
-    problem = type_conflict(node.store, node.name, graph.topic_endpoints(topic), topic,
-                            type_name)
-    if problem is not None:
-        raise WireError(problem)
+class OwnEndpoint(Protocol):
+    """A publisher or subscription of the command, made with `warn_other_type=False`."""
+
+    other_type_events: int
+
+
+class TypeGuard:
+    """Ends a command whose topic has endpoints of another type than its own, with one error
+    that names both types and RIHS01 hashes (`type_conflict`), raised as a WireError: DDS
+    never matches the two, so waiting cannot help.
+
+    It hears of such an endpoint two ways: the graph, looked at every TYPE_CHECK_PERIOD,
+    and the DDS status of the command's own endpoint (`other_type_events`; the participant's
+    own warning about it is off, so that the user reads one line about one problem). The
+    status can come a moment before the graph shows the other endpoint; the error then
+    waits for the graph up to OTHER_TYPE_PATIENCE and, without it, still says what DDS saw.
+    `topic echo` and `topic pub` share it."""
+
+    def __init__(self, node: RosNode, graph: RosGraph, topic: str, type_name: str) -> None:
+        self.node, self.graph, self.topic, self.type_name = node, graph, topic, type_name
+        self.endpoint: OwnEndpoint | None = None
+        self._next_look = 0.0
+        self._status_since: float | None = None  # when DDS first said "another type"
+
+    def watch(self, endpoint: OwnEndpoint) -> None:
+        self.endpoint = endpoint
+
+    def check(self) -> None:
+        """Raises WireError when the topic has an endpoint of another type."""
+        now = time.monotonic()
+        self._next_look = now + TYPE_CHECK_PERIOD
+        self.graph.refresh()
+        problem = type_conflict(self.node.store, self.node.name,
+                                self.graph.topic_endpoints(self.topic), self.topic,
+                                self.type_name)
+        if problem is not None:
+            raise WireError(problem)
+        if self._status_since is None:
+            if self._dds_saw_other_type():
+                self._status_since = now
+        elif now - self._status_since >= OTHER_TYPE_PATIENCE:
+            raise WireError(self._unnamed_conflict())
+
+    def check_when_due(self) -> None:
+        """`check` when its period is over, or at once when DDS just reported a conflict."""
+        news = self._status_since is None and self._dds_saw_other_type()
+        if news or time.monotonic() >= self._next_look:
+            self.check()
+
+    def _dds_saw_other_type(self) -> bool:
+        return self.endpoint is not None and self.endpoint.other_type_events > 0
+
+    def _unnamed_conflict(self) -> str:
+        name = normalize_name(self.type_name)
+        ours = self.node.store.hash_of(name) if self.node.store.distro != "humble" else ""
+        return (f"type mismatch: {self.topic} has an endpoint of another type than the "
+                f"{name} ({_short_hash(ours)}) you asked for, in name or definition (DDS "
+                "reports it; the ROS graph cannot say which: no type hash to compare)")

@@ -245,6 +245,7 @@ def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: 
     from ..sim.camera import SimCamera
     from ..sim.docking import DockingServer
     from ..sim.navigation import NavigationServer
+    from ..sim.others import warn_of_other_robots
     from ..sim.parameters import serve_parameters
     from ..sim.robot import SimRobot
 
@@ -262,9 +263,14 @@ def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: 
     parameters = serve_parameters(robot)
     sim_task = asyncio.create_task(robot.run(stop))
     camera_task = asyncio.create_task(SimCamera(sim_node, robot).run(stop))
+    # A second robot on these topics is warned of, once; the look is no part of the robot.
+    looking = asyncio.create_task(warn_of_other_robots(sim_node))
 
     async def stop_sim() -> None:
         stop.set()
+        looking.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await looking
         for server in servers:
             await server.close()
         await parameters.close()

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 
 from .. import _stop_signals as stop_signals
 from ..ros.participant import RosNode
 from ..sim.docking import DockingServer
 from ..sim.navigation import NavigationServer
+from ..sim.others import warn_of_other_robots
 from ..sim.parameters import serve_parameters
 from ..sim.robot import SimParams, SimRobot
 from ._common import make_store
@@ -45,9 +47,13 @@ async def _run(args: argparse.Namespace) -> int:
         docking = DockingServer(robot, args.dock_action)
         parameters = serve_parameters(robot)
         print(f"rcan-rtps sim ready node={node.fqn} domain={node.domain_id}", flush=True)
+        looking = asyncio.create_task(warn_of_other_robots(node))  # beside the robot's loop
         try:
             await robot.run(stop)
         finally:
+            looking.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await looking
             await nav.close()
             await docking.close()
             await parameters.close()

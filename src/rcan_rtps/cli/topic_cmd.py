@@ -22,8 +22,8 @@ from ._common import (
     TOPIC_HELP,
     TYPE_CHECK_PERIOD,
     VALUES_HELP,
+    TypeGuard,
     alone_hint,
-    check_type,
     make_node,
     parse_values,
     resolve_type,
@@ -199,17 +199,17 @@ async def _echo(args: argparse.Namespace) -> int:
         topic = node.resolve(args.topic)
         type_name, pubs = await resolve_type(args, node, graph, topic, args.type, args.timeout)
         shape = EchoFormat(args, node.values, type_name)  # bad type or field: fail now
-        check_type(node, graph, topic, type_name)
-        sub = node.create_subscription(topic, type_name, chosen_qos(args, pubs))
+        guard = TypeGuard(node, graph, topic, type_name)
+        guard.check()
+        sub = node.create_subscription(topic, type_name, chosen_qos(args, pubs),
+                                       warn_other_type=False)
+        guard.watch(sub)
         limit = 1 if args.once else args.count
         seen = 0
         deadline = time.monotonic() + args.timeout if args.timeout else None
-        next_check = time.monotonic() + TYPE_CHECK_PERIOD
         while not limit or seen < limit:
+            guard.check_when_due()  # a publisher of another type is never heard: say so
             now = time.monotonic()
-            if now >= next_check:  # a publisher of another type is never heard: say so
-                check_type(node, graph, topic, type_name)
-                next_check = now + TYPE_CHECK_PERIOD
             left = deadline - now if deadline else None
             if left is not None and left <= 0:
                 break
@@ -230,26 +230,25 @@ async def _pub(args: argparse.Namespace) -> int:
     values = parse_values(args.values)
     node = make_node(args)
     with node:
-        pub = node.create_publisher(args.topic, args.type, qos_mod.preset(args.qos_profile))
+        pub = node.create_publisher(args.topic, args.type, qos_mod.preset(args.qos_profile),
+                                    warn_other_type=False)
+        guard = TypeGuard(node, RosGraph(node), pub.topic, args.type)
+        guard.watch(pub)
         message = node.values.build(args.type, values)
         times = 1 if args.once else args.times
         wait_for = args.wait_matching_subscriptions
         if wait_for is None:
             wait_for = 1 if times else 0
-        graph = RosGraph(node)
         if wait_for:
-            await _await_subscribers(node, graph, pub, wait_for, SUBSCRIBER_PATIENCE)
+            await _await_subscribers(pub, guard, wait_for, SUBSCRIBER_PATIENCE)
         else:
-            check_type(node, graph, pub.topic, args.type)
+            guard.check()
         print("publisher: beginning loop", flush=True)
         said = _shown(node.values.to_plain(args.type, message))
         period = 1.0 / args.rate if args.rate > 0 else 0.0
         sent = 0
-        next_check = time.monotonic() + TYPE_CHECK_PERIOD
         while not times or sent < times:
-            if time.monotonic() >= next_check:  # a subscription of another type appeared
-                check_type(node, graph, pub.topic, args.type)
-                next_check = time.monotonic() + TYPE_CHECK_PERIOD
+            guard.check_when_due()  # a subscription of another type appeared
             pub.publish(message)
             sent += 1
             print(f"publishing #{sent}: {args.type}({said})", flush=True)
@@ -259,13 +258,13 @@ async def _pub(args: argparse.Namespace) -> int:
     return 0
 
 
-async def _await_subscribers(node: RosNode, graph: RosGraph, pub: RosPublisher, wanted: int,
+async def _await_subscribers(pub: RosPublisher, guard: TypeGuard, wanted: int,
                              patience: float) -> None:
     """Up to `patience` s for `wanted` matched subscriptions; a subscription of another type
     (which never matches) ends the wait with an error."""
     deadline = time.monotonic() + patience
     while True:
-        check_type(node, graph, pub.topic, pub.type_name)
+        guard.check()
         left = deadline - time.monotonic()
         if left <= 0:
             print(f"warning: no subscriber matched {pub.topic}; publishing anyway",

@@ -24,6 +24,8 @@ from typing import Any, Generic, TypeVar, cast
 
 import anyio
 import mcp_types as types
+import msgspec
+import pydantic
 from mcp.server.context import ServerRequestContext
 from mcp.server.lowlevel import Server
 from mcp.server.stdio import stdio_server
@@ -57,7 +59,7 @@ from .results import (
 )
 from .seat import Agent, Seat
 from .stdio import StdinLines
-from .stdio_door import StdioDoor
+from .stdio_door import PARSE_ERROR, StdioDoor, Unreadable
 from .stop_tool import guarded, run_stop, stop_reply
 from .tools import DURATION, WAIT_MAX_S, ToolDef, derive_tools
 
@@ -441,7 +443,8 @@ async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:
         replies = Replies()
         # A stop's warnings go to the bridge with it (its audit entry), as /mcp's do.
         door = StdioDoor(lambda call, warnings: stop_reply(
-            replace(seat, api=bridge.warning(warnings)), call, warnings), replies.send)
+            replace(seat, api=bridge.warning(warnings)), call, warnings), replies.send,
+            sdk_unreadable)
         # The SDK's own stdin reader cannot be cancelled: see stdio.py. (The SDK only
         # iterates what it is given.) Every line is screened for a stop first (stdio_door).
         stdin = cast("anyio.AsyncFile[str]", StdinLines(sys.stdin.fileno(), door.screen))
@@ -463,6 +466,30 @@ async def serve_stdio(url: str, token: str, agent: Agent) -> int | None:
                 f"MCP server ended by {signal.Signals(ended_by).name}"
             await stop_left_running(seat, why)
     return ended_by
+
+
+def sdk_unreadable(text: str) -> Unreadable | None:
+    """Why the SDK's stdio transport would drop the line `text` unanswered (it reads each
+    line with this adapter, and passes over one it cannot); None when it reads it."""
+    try:
+        types.jsonrpc_message_adapter.validate_json(text, by_name=False)
+    except Exception as exc:  # pydantic's ValidationError, as the SDK's own reader catches
+        if isinstance(exc, pydantic.ValidationError) and any(
+                e["type"] == "json_invalid" for e in exc.errors(include_url=False)):
+            return Unreadable(PARSE_ERROR, "not JSON")
+        return Unreadable(INVALID_REQUEST, "not a JSON-RPC 2.0 request, notification or "
+                          "response", _request_id(text))
+    return None
+
+
+def _request_id(text: str) -> int | str | None:
+    """The `id` of a JSON object, when it is one JSON-RPC allows (the error answers it)."""
+    try:
+        message = msgspec.json.decode(text)
+    except (msgspec.DecodeError, RecursionError):
+        return None
+    found = message.get("id") if isinstance(message, dict) else None
+    return found if isinstance(found, (int, str)) and not isinstance(found, bool) else None
 
 
 class Replies:

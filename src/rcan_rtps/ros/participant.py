@@ -193,11 +193,14 @@ def gid_bytes(entity: Any, size: int) -> bytes:
 
 
 class RosPublisher:
-    def __init__(self, node: RosNode, topic: str, type_name: str, writer: DataWriter[Any]) -> None:
+    def __init__(self, node: RosNode, topic: str, type_name: str, writer: DataWriter[Any],
+                 warn_other_type: bool = True) -> None:
         self.node, self.topic, self.type_name, self.writer = node, topic, type_name, writer
         self.codec = node.codecs.of(type_name).prepare_encoders()
         self.closed = False
         self.incompatible_qos_events = 0
+        self.other_type_events = 0  # of them, subscriptions of another type (name or hash)
+        self._warn_other_type = warn_other_type
         # The matched count is kept by the node's reader thread from PUBLICATION_MATCHED, so
         # asking it costs no DDS call (the bridge asks before every move).
         self._matched = 0
@@ -207,8 +210,10 @@ class RosPublisher:
     def _on_incompatible(self, status: Any) -> None:  # on the node's reader thread
         self.incompatible_qos_events += 1
         if status.last_policy_id == qos_mod.TYPE_CONSISTENCY_POLICY_ID:
-            log.warning("publisher %s: a subscription has another type (name or definition); "
-                        "no messages will be sent to it", self.topic)
+            self.other_type_events += 1
+            if self._warn_other_type:
+                log.warning("publisher %s: a subscription has another type (name or "
+                            "definition); no messages will be sent to it", self.topic)
             return
         # rclpy's default handler says the same (its event callbacks are optional too).
         log.warning("publisher %s: a subscription requests incompatible QoS; no messages will "
@@ -273,9 +278,11 @@ class RosSubscription:
 
     def __init__(self, node: RosNode, topic: str, type_name: str, qos: QosProfile,
                  callback: Callable[[IdlStruct], None] | None, maxsize: int,
-                 raw: bool = False) -> None:
+                 raw: bool = False, warn_other_type: bool = True) -> None:
         self.node, self.topic, self.type_name = node, topic, type_name
         self.incompatible_qos_events = 0
+        self.other_type_events = 0  # of them, publishers of another type (name or hash)
+        self._warn_other_type = warn_other_type
         self._callback = callback
         self._queue: asyncio.Queue[IdlStruct] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -321,8 +328,10 @@ class RosSubscription:
     def _on_incompatible(self, status: Any) -> None:
         self.incompatible_qos_events += 1
         if status.last_policy_id == qos_mod.TYPE_CONSISTENCY_POLICY_ID:
-            log.warning("subscription %s: a publisher has another type (name or definition); "
-                        "it will not be heard", self.topic)
+            self.other_type_events += 1
+            if self._warn_other_type:
+                log.warning("subscription %s: a publisher has another type (name or "
+                            "definition); it will not be heard", self.topic)
             return
         log.warning("subscription %s: a publisher offers incompatible QoS; it will not be "
                     "heard (last incompatible policy: %s)", self.topic,
@@ -461,18 +470,23 @@ class RosNode:
         return f"typehash={self.store.hash_of(type_name)};".encode()
 
     def create_publisher(self, topic: str, type_name: str,
-                         qos: QosProfile = qos_mod.DEFAULT) -> RosPublisher:
+                         qos: QosProfile = qos_mod.DEFAULT, *,
+                         warn_other_type: bool = True) -> RosPublisher:
+        """`warn_other_type=False`: a subscription of another type is only counted
+        (`other_type_events`), not logged, for an owner that reports it itself."""
         full = self.resolve(topic)
         writer = self.create_writer(mangle_topic(full), type_name, qos)
-        return RosPublisher(self, full, type_name, writer)
+        return RosPublisher(self, full, type_name, writer, warn_other_type)
 
     def create_subscription(self, topic: str, type_name: str,
                             qos: QosProfile = qos_mod.DEFAULT, *,
                             callback: Callable[[IdlStruct], None] | None = None,
-                            maxsize: int = 1000, raw: bool = False) -> RosSubscription:
-        """Samples arrive as typed messages, or with `raw` as `CdrSample` bytes undecoded."""
+                            maxsize: int = 1000, raw: bool = False,
+                            warn_other_type: bool = True) -> RosSubscription:
+        """Samples arrive as typed messages, or with `raw` as `CdrSample` bytes undecoded.
+        `warn_other_type`: as for `create_publisher`."""
         sub = RosSubscription(self, self.resolve(topic), type_name, qos, callback, maxsize,
-                              raw)
+                              raw, warn_other_type)
         # The node owns its subscriptions: a dropped handle must not silence the topic.
         self._subscriptions.append(sub)
         self.track_reader(sub.reader)

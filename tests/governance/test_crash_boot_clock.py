@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from govhelpers import PLANNER, Harness, command
+from govhelpers import OPS, PLANNER, Harness, command
 from test_crash_left_running import LONG, Log
 
 from rcan_rtps.governance.audit import AuditEvent, load_or_create_key
@@ -24,14 +24,16 @@ PAST_ITS_END_S = 3600.0  # a wall-clock step forward, well past its end
 
 
 async def _crashed_with_an_arm(harness: Harness) -> str:
-    """A run that sent an arm a trajectory of RUNS_S and was killed 10 s later."""
+    """A run that sent an arm a trajectory of RUNS_S and was killed; restarted 10 s later
+    (the clock moved after the kill: moved before it, the run's own sweep would stop the
+    arm, its planner silent past the session timeout)."""
     gov = await harness.governor(gates="[]")
     await gov.start()
     arm = await gov.decide(command("arm_joint", {"joints": ["elbow"], "positions": [0.8],
                                                  "duration_s": RUNS_S}), PLANNER)
     assert arm.outcome is Outcome.EXECUTED and arm.message_id is not None, arm
-    harness.clock.advance(10)
     await harness.restart()  # no BRIDGE_STOPPED: a crash
+    harness.clock.advance(10)
     return arm.message_id
 
 
@@ -85,6 +87,25 @@ async def test_the_start_point_keeps_the_stamp(harness: Harness) -> None:
     from_boundary = resume(path, now_ms=now_ms, boot=boot)
     assert from_point == from_boundary
     assert [a.message_id for a in from_point.left.arms] == [arm_id]
+
+
+async def test_an_approved_arm_trajectory_is_dated_by_the_boot_clock_too(
+        harness: Harness) -> None:
+    """Held for approval, then approved: its HITL_AUTHORIZED entry is the one it was sent
+    after, and records the boot clock of that moment."""
+    gov = await harness.governor()  # (arm_joint needs an OWNER's approval)
+    await gov.start()
+    held = await gov.decide(command("arm_joint", {"joints": ["elbow"], "positions": [0.8],
+                                                  "duration_s": RUNS_S}), PLANNER)
+    assert held.outcome is Outcome.PENDING_AUTH and held.pending_id, held
+    harness.clock.advance(1.5)  # (within the planner's session timeout: no safe stop)
+    approved = await gov.authorize(held.pending_id, OPS)
+    assert approved.outcome is Outcome.EXECUTED, approved
+    [authorized] = [e for e in harness.entries if e["event"] == "HITL_AUTHORIZED"]
+    assert authorized["boot"] == {"boot_id": "manual-boot-1", "ms": 1500}
+    await harness.restart()  # killed
+    harness.clock.step(PAST_ITS_END_S)
+    assert await _taken_back(harness) == [held.message_id]
 
 
 async def test_a_wall_clock_set_back_in_the_same_boot_keeps_no_ended_arm(

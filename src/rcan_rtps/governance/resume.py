@@ -13,9 +13,10 @@ declares is recorded there as released.
 A run that did not end with BRIDGE_STOPPED (killed, out of memory, the board's power cut) left
 its motion to nobody: every session of it was lost, and a lost session's motion halts
 (docs/governance.md). So the same replay lists the motion that run started and no later entry
-shows ended (`LeftRunning`): arm trajectories still due by the wall clock (sent at the entry's
-`timestamp_ms`, running `Hold.runs_for_s` of the `applied` parameters, as the dispatcher
-counted them), goals (their `goal_id`, written ahead since goals were sent with an id chosen
+shows ended (`LeftRunning`): arm trajectories still due (running `Hold.runs_for_s` of the
+`applied` parameters, as the dispatcher counted them, from their entry: by the boot clock it
+records when this start is in the same boot, else from its `timestamp_ms` by the wall clock:
+`LeftArm.left_ms`), goals (their `goal_id`, written ahead since goals were sent with an id chosen
 before their entry; older entries have none) and velocity streams. A start halts them
 (`Governor.start`). Ended: GOAL_FINISHED of an end its server listed (not `unknown`, not
 `lost`), STREAM_ENDED, a COMMAND_FAILED of the command

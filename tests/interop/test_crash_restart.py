@@ -31,7 +31,7 @@ from oracle.client import OracleEnv, RclpyOracle, both_rmws
 from waiting import eventually, take
 
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
-from rcan_rtps.governance.clock import ManualClock
+from rcan_rtps.governance.clock import ManualClock, system_boot
 from rcan_rtps.ros.action_server import ActionServer, ServerGoal
 from rcan_rtps.ros.participant import RosNode
 
@@ -365,6 +365,62 @@ async def test_an_arm_left_stamped_ahead_of_the_clock_is_kept_no_longer_than_it_
     await asyncio.sleep(1.0 + 1.0)  # its time (and settling) is over by now, whatever the clock
     stopped = await bridge.command({"action": "stop"})
     assert stopped["outcome"] == "executed", stopped
+
+
+async def _crashed_an_hour_ago_by_the_wall_clock(bridge: Bridge) -> str:
+    """The log of a run killed just now, in this boot, with a trajectory of 600 s running,
+    written as if the wall clock had been set forward an hour since (NTP's first sync,
+    `date -s`): by its wall time it ended long ago; its boot stamp (this boot's, read now)
+    says it was sent just now."""
+    boot = system_boot()
+    assert boot is not None  # Linux: CLOCK_BOOTTIME and a boot id
+    behind = ManualClock(time.time() - 3600)
+    log = await AuditLog.open(bridge.audit, bridge.audit.parent / "audit.key",
+                              ruri="rcan://registry.local/acme/rover/unit-0001", clock=behind)
+    await log.append(AuditRecord(event=AuditEvent.BRIDGE_STARTED,
+                                 params={"estop_latched": False, "locks": {}}))
+    message_id = str(uuid.uuid4())
+    await log.append(AuditRecord(
+        event=AuditEvent.COMMAND_DISPATCHED, principal="operator", role="USER",
+        message_id=message_id, action_type="arm_joint", params=LONG, applied=LONG,
+        outcome="executed", ros2_topic=LEFT, boot={"boot_id": boot.boot_id, "ms": boot.ms}))
+    await log.close()  # no BRIDGE_STOPPED: a crash
+    return message_id
+
+
+async def test_a_wall_clock_set_forward_across_the_restart_drops_no_arm(
+        bridge: Bridge, robot: RclpyOracle) -> None:
+    """The real boot clock (the bridge's process reads CLOCK_BOOTTIME and the boot id):
+    the trajectory still has ten minutes to run, so it is held, whatever the wall clock
+    says. Before, it was judged ended and left to run."""
+    message_id = await _crashed_an_hour_ago_by_the_wall_clock(bridge)
+    await bridge.start()
+    took_back = took_back_in(bridge.entries())
+    assert took_back["outcome"] == "executed", took_back
+    assert took_back["applied"]["arms_held"] == [LEFT]
+    assert [a["message_id"] for a in took_back["applied"]["left"]["arms"]] == [message_id]
+    (hold,) = await take(robot, LEFT)
+    assert hold["points"][0]["positions"] == AT, hold
+
+
+async def test_an_arm_unheard_after_a_wall_clock_step_is_kept_for_the_next_stop(
+        bridge: Bridge, robot: RclpyOracle) -> None:
+    """Unheard at start, that arm is kept for the next stop to hold for what is left of its
+    time by the boot clock (before: by the wall clock, nothing, so no stop held it)."""
+    await robot.acall("stop_periodic", topic=JOINT_STATES)
+    await _crashed_an_hour_ago_by_the_wall_clock(bridge)
+    await bridge.start()
+    took_back = took_back_in(bridge.entries())
+    assert took_back["outcome"] == "failed", took_back  # unheard: not held at a guess
+    await asyncio.sleep(2.0)  # past the settling second any arm of ours is kept for
+    await robot.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                      value={"name": ["l_shoulder", "l_elbow"], "position": AT,
+                             "velocity": [0.0, 0.0]})
+    stopped = await eventually(lambda: bridge.command({"action": "stop"}),
+                               what="a stop answered 200 once joint_states are heard")
+    assert stopped["outcome"] == "executed", stopped
+    (hold,) = await take(robot, LEFT)
+    assert hold["points"][0]["positions"] == AT, hold
 
 
 class HeldAcceptServer(CancelRecordingServer):

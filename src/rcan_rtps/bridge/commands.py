@@ -23,6 +23,7 @@ import msgspec
 from ..config import Ros2Config
 from ..events import Events
 from ..governance import ArmsHeld, DispatchResult
+from ..governance.clock import system_boot
 from ..governance.left import SETTLING_S, LeftArm, LeftGoal, LeftRunning
 from ..governance.steps import LeftHalted
 from ..rcan import ActionParams, ActionSpec, Effect, NormalizedCommand
@@ -701,8 +702,10 @@ class RosDispatcher:
         if why is not None:  # the next stop of this run tries again, as for one of its own
             kit = route.kit
             # Never longer than it runs: sent before now, whatever the clock says (one set
-            # back across the restart puts its entry ahead of now).
-            left_s = min(arm.runs_for_s, (arm.due_ms - time.time() * 1000) / 1000 - SETTLING_S)
+            # back across the restart puts its entry ahead of now). By the boot clock in
+            # the boot it was sent in (the wall clock may have been set forward since).
+            left_ms = arm.left_ms(int(time.time() * 1000), system_boot())
+            left_s = min(arm.runs_for_s, left_ms / 1000 - SETTLING_S)
             self.arms.sent(route.publisher, arm.message_id, arm.joints, max(0.0, left_s),
                            lambda joints, where: hold.build(joints, where, kit))
         return topic, why

@@ -140,11 +140,15 @@ class AuditRecord(msgspec.Struct, kw_only=True, frozen=True):
     # The id a goal-starting command's goal is sent with, written ahead (a restart after a
     # crash cancels it by id: governance.resume).
     goal_id: str | None = None
+    # An arm trajectory's entry: the boot clock when it was written (`{"boot_id": ...,
+    # "ms": ...}`, `clock.BootInstant`), so that a restart in the same boot after a crash
+    # knows how long it has run whatever the wall clock did (governance.resume).
+    boot: dict[str, Any] | None = None
 
 
 # Left out of an entry when None: older entries never had them.
 _OPTIONAL = frozenset({"ai", "pending_id", "warnings", "sent_first", "approvals", "rcan",
-                       "invoke_id", "status", "goal_id"})
+                       "invoke_id", "status", "goal_id", "boot"})
 
 
 class AuditReceipt(msgspec.Struct, frozen=True):

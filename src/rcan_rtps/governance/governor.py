@@ -176,7 +176,8 @@ class Governor:
         # (`rcan_rtps._modules.START_ONLY`; idle memory, issue 27).
         from .resume import resume
 
-        resumed = resume(audit.path, now_ms=now_ms(clock), pubkey=audit.public_key)
+        resumed = resume(audit.path, now_ms=now_ms(clock), boot=clock.boot(),
+                         pubkey=audit.public_key)
         audit.on_checkpoint(functools.partial(_write_start_point, audit.path,
                                               audit.public_key, audit.sign_resume_point))
         if resumed.latched and not latched:  # the stricter of file and signed chain
@@ -643,7 +644,8 @@ class Governor:
         if spec.starts_goal:  # its id chosen now: its entry names it (a crash's restart cancels)
             command = msgspec.structs.replace(command, goal_id=str(uuid.uuid4()))
         entry = record(event, command, principal, Outcome.EXECUTED, applied=applied,
-                         pending_id=pending_id, ros2_topic=self._steps.route(command))
+                       pending_id=pending_id, ros2_topic=self._steps.route(command),
+                       boot=self._clock.boot() if _is_trajectory(command) else None)
         receipt = await self._steps.write_ahead(entry)
         if receipt is None:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
@@ -677,8 +679,7 @@ class Governor:
         principal's trajectory still running. An arm is held by that id (a stop of one
         principal's motion, an INVOKE's cancel or its client gone), and clients choose ids,
         unique per principal only: the other's arm would be held with this one's."""
-        ros = command.spec.ros
-        return (isinstance(ros, Publish) and ros.hold is not None
+        return (_is_trajectory(command)
                 and command.message_id in self._trajectories(owner.name, others=True))
 
     def _ran_on(self, topic: str, owner: str, message_id: str) -> None:
@@ -1189,3 +1190,10 @@ def _write_start_point(path: Path, pubkey: Ed25519PublicKey, sign: Callable[[byt
         # boundary (the same result, only slower), and this is said at each checkpoint.
         log.error("audit start point not written (%s): the next start replays further back",
                   exc)
+
+
+def _is_trajectory(command: NormalizedCommand) -> bool:
+    """Whether `command` sends an arm's trajectory (it runs on in its controller: its entry
+    is stamped with the boot clock, for a restart after a crash to take it back)."""
+    ros = command.spec.ros
+    return isinstance(ros, Publish) and ros.hold is not None

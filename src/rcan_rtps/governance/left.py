@@ -12,13 +12,19 @@ from typing import Any
 
 import msgspec
 
+from .clock import BootInstant
+
 # A controller may still be settling onto a trajectory's last point just after its time (as
 # bridge.arm_holds.SETTLING_S).
 SETTLING_S = 1.0
 
 
-class LeftArm(msgspec.Struct, frozen=True, kw_only=True):
-    """An arm's trajectory a crashed run sent that may still run in its controller."""
+class LeftArm(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
+    """An arm's trajectory a crashed run sent that may still run in its controller.
+
+    Dated by the boot clock when its entry was stamped with it and the start is in that
+    same boot (exact: the boot clock is never stepped); else by the wall clock of its entry
+    (an entry written before the stamp, another boot, a platform without a boot clock)."""
 
     message_id: str
     action: str
@@ -28,11 +34,28 @@ class LeftArm(msgspec.Struct, frozen=True, kw_only=True):
     joints: list[str]
     sent_at_ms: int  # the wall time of its entry
     runs_for_s: float
+    # The boot clock of its entry (`AuditRecord.boot`), when it was stamped: the boot's id
+    # and ms since that boot. (Left out of `facts` when None: as entries were before.)
+    sent_boot_id: str | None = None
+    sent_boot_ms: int | None = None
 
     @property
     def due_ms(self) -> int:
         """Wall time after which it has ended, settling included."""
-        return self.sent_at_ms + round((self.runs_for_s + SETTLING_S) * 1000)
+        return self.sent_at_ms + self._lasts_ms
+
+    def left_ms(self, wall_ms: int, boot: BootInstant | None) -> int:
+        """How much longer it may run (settling included; <= 0: it has ended) at wall time
+        `wall_ms` and `boot` (now on the boot clock): by the boot clock in the boot it was
+        sent in, whatever the wall clock did since; else by the wall clock."""
+        if (boot is not None and self.sent_boot_ms is not None
+                and self.sent_boot_id == boot.boot_id):
+            return self.sent_boot_ms + self._lasts_ms - boot.ms
+        return self.due_ms - wall_ms
+
+    @property
+    def _lasts_ms(self) -> int:
+        return round((self.runs_for_s + SETTLING_S) * 1000)
 
 
 class LeftGoal(msgspec.Struct, frozen=True, kw_only=True):

@@ -13,9 +13,10 @@ declares is recorded there as released.
 A run that did not end with BRIDGE_STOPPED (killed, out of memory, the board's power cut) left
 its motion to nobody: every session of it was lost, and a lost session's motion halts
 (docs/governance.md). So the same replay lists the motion that run started and no later entry
-shows ended (`LeftRunning`): arm trajectories still due by the wall clock (sent at the entry's
-`timestamp_ms`, running `Hold.runs_for_s` of the `applied` parameters, as the dispatcher
-counted them), goals (their `goal_id`, written ahead since goals were sent with an id chosen
+shows ended (`LeftRunning`): arm trajectories still due (running `Hold.runs_for_s` of the
+`applied` parameters, as the dispatcher counted them, from their entry: by the boot clock it
+records when this start is in the same boot, else from its `timestamp_ms` by the wall clock:
+`LeftArm.left_ms`), goals (their `goal_id`, written ahead since goals were sent with an id chosen
 before their entry; older entries have none) and velocity streams. A start halts them
 (`Governor.start`). Ended: GOAL_FINISHED of an end its server listed (not `unknown`, not
 `lost`), STREAM_ENDED, a COMMAND_FAILED of the command
@@ -64,6 +65,7 @@ from rcan_rtps.rcan.actions import ActionSpec, Hold, Publish, action_spec, with_
 from ._durable import atomic_write, read_small
 from ._json import decode, decode_as
 from .audit import RESUME_POINT_TAG, Checkpoint, entry_id
+from .clock import BootInstant, system_boot
 from .left import LeftArm, LeftGoal, LeftRunning, LeftStream
 from .log_tail import lines_backwards
 
@@ -95,20 +97,23 @@ class Resumed(msgspec.Struct):
     left: LeftRunning = msgspec.field(default_factory=LeftRunning)
 
 
-def resume(path: Path | str, *, now_ms: int | None = None,
+def resume(path: Path | str, *, now_ms: int | None = None, boot: BootInstant | None = None,
            pubkey: Ed25519PublicKey | None = None) -> Resumed:
     """Replay the log from its last start or stop on (or from its start point, `pubkey`'s:
     without one, none is used); a missing log is a first start.
 
     Entries are trusted as they stand: the log was verified when it was opened. `now_ms`:
-    the wall time arm trajectories are due against (default: now). The run since the
+    the wall time arm trajectories are due against, `boot` the boot clock then (default,
+    both: now; `now_ms` given without `boot`: the wall clock alone). The run since the
     boundary may be long (weeks up): its entries are replayed one at a time, never held.
     """
     replay = _Replay()
+    if now_ms is None:
+        now_ms, boot = int(time.time() * 1000), system_boot()
     try:
         replay.run(Path(path), pubkey)
         # (inside: working out when an arm is due may overflow, as an entry may be misshapen)
-        return replay.result(int(time.time() * 1000) if now_ms is None else now_ms)
+        return replay.result(now_ms, boot)
     # It verified at open: this is no time to trust it. An entry of a shape this version
     # does not expect (another version's) fails closed as well, never a traceback — an arm
     # run for a time out of range included (OverflowError working out when it is due).
@@ -156,12 +161,12 @@ class _Replay:
         _apply(self.found, entry)
         self.motion.apply(entry)
 
-    def result(self, now_ms: int) -> Resumed:
+    def result(self, now_ms: int, boot: BootInstant | None) -> Resumed:
         found = msgspec.structs.replace(self.found, locks=dict(self.found.locks))
         # No boundary at all in a log with entries is no clean stop either: fail closed.
         found.crashed = self.last_event is not None and self.last_event != "BRIDGE_STOPPED"
         # (after a clean stop: only the goals its BRIDGE_STOPPED named, `Governor.stop`)
-        found.left = self.motion.left(now_ms)
+        found.left = self.motion.left(now_ms, boot)
         return found
 
     def point(self, cp: Checkpoint) -> StartPoint:
@@ -239,14 +244,15 @@ class _Motion:
         self._halted: dict[_Key, tuple[dict[_Key, LeftArm], dict[_Key, LeftGoal],
                                        dict[_Key, LeftStream], dict[_Key, list[LeftArm]]]] = {}
 
-    def left(self, now_ms: int) -> LeftRunning:
+    def left(self, now_ms: int, boot: BootInstant | None) -> LeftRunning:
         # Fail closed: the bridge may have died between a trajectory's write-ahead entry and
         # its publish (nothing in the log tells), and then the one it replaced runs on. Both
         # are listed while due; a hold of an arm the later one did stop holds it at rest.
         replaced = [run for by, runs in self._replaced.items() if by in self.arms
                     for run in runs]
         return LeftRunning(
-            arms=_arms_left([a for a in (*replaced, *self.arms.values()) if a.due_ms > now_ms]),
+            arms=_arms_left([a for a in (*replaced, *self.arms.values())
+                             if a.left_ms(now_ms, boot) > 0], now_ms, boot),
             goals=_goals_left(list(self.goals.values())),
             streams=list(self.streams.values())[-MAX_LEFT:])
 
@@ -296,10 +302,11 @@ class _Motion:
             joints, runs_for_s = list(hold.joints(params)), float(hold.runs_for_s(params))
         except (msgspec.ValidationError, TypeError, ValueError):
             return  # not what an executed command's entry holds: nothing was sent for it
+        boot_id, boot_ms = _boot_stamp(entry)
         arm = LeftArm(message_id=message_id, action=spec.name, principal=entry.get("principal"),
                       topic=entry.get("ros2_topic"), params=dict(applied or {}),
                       joints=joints, sent_at_ms=int(entry.get("timestamp_ms") or 0),
-                      runs_for_s=runs_for_s)
+                      runs_for_s=runs_for_s, sent_boot_id=boot_id, sent_boot_ms=boot_ms)
         replaced = {k: run for k, run in self.arms.items()  # the controller replaced them
                     if run.topic == arm.topic and set(run.joints) == set(arm.joints)}
         for k in replaced:
@@ -414,7 +421,19 @@ def _goals_left(goals: list[LeftGoal]) -> list[LeftGoal]:
     return [*every.values(), *goals[first:]]
 
 
-def _arms_left(arms: list[LeftArm]) -> list[LeftArm]:
+def _boot_stamp(entry: dict[str, Any]) -> tuple[str | None, int | None]:
+    """The boot clock an arm's entry was stamped with (`AuditRecord.boot`); (None, None)
+    when it has none or none this version reads (then the wall clock dates the arm)."""
+    boot = entry.get("boot")
+    if not isinstance(boot, dict):
+        return None, None
+    boot_id, ms = boot.get("boot_id"), boot.get("ms")
+    if not isinstance(boot_id, str) or not isinstance(ms, int) or isinstance(ms, bool):
+        return None, None
+    return boot_id, ms
+
+
+def _arms_left(arms: list[LeftArm], now_ms: int, boot: BootInstant | None) -> list[LeftArm]:
     """The arm trajectories left (oldest first), at most MAX_LEFT listed, none dropped (it
     would run on with nobody to hold it): past MAX_LEFT, those of one route (topic, action,
     group) are listed as one — every joint any of them moves, until the last of them is due
@@ -426,7 +445,7 @@ def _arms_left(arms: list[LeftArm]) -> list[LeftArm]:
         route = (arm.topic, arm.action, arm.params.get("group"))
         kept = by_route.pop(route, None)  # (re-inserted: the routes in order of last use)
         if kept is not None:
-            last = max(kept, arm, key=lambda a: a.due_ms)
+            last = max(kept, arm, key=lambda a: a.left_ms(now_ms, boot))
             arm = msgspec.structs.replace(last, message_id=arm.message_id,
                                           joints=list(dict.fromkeys([*kept.joints,
                                                                      *arm.joints])))

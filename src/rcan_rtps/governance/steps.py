@@ -20,6 +20,7 @@ from rcan_rtps.rcan import ActionParams, DecisionBody, Effect, ErrorCode, Normal
 from rcan_rtps.rcan.actions import MoveParams, with_effect
 
 from .audit import AuditEvent, AuditLog, AuditReceipt, AuditRecord
+from .clock import BootInstant
 from .errors import AuditError
 from .left import LeftGoal, LeftRunning
 from .outcomes import AUDIT_UNAVAILABLE, DISPATCH_ERROR, Rejection, robot_unavailable
@@ -310,9 +311,10 @@ def record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
            outcome: Outcome, *, applied: dict[str, Any] | None = None,
            rejection: Rejection | None = None, ros2_topic: str | None = None,
            pending_id: str | None = None, sent_first: bool | None = None,
-           goal_id: str | None = None) -> AuditRecord:
+           goal_id: str | None = None, boot: BootInstant | None = None) -> AuditRecord:
     """The audit entry of `command`'s decision (its goal's id, when one was chosen for it;
-    a failure's names `goal_id`, a goal that may run all the same)."""
+    a failure's names `goal_id`, a goal that may run all the same; `boot`: an arm
+    trajectory's, the boot clock as it is written)."""
     return AuditRecord(
         event=event, principal=principal.name, role=principal.role.name,
         message_id=command.message_id, action_type=command.action, params=command.requested,
@@ -324,6 +326,7 @@ def record(event: AuditEvent, command: NormalizedCommand, principal: Principal,
         approvals=[msgspec.to_builtins(a) for a in command.approvals] or None,
         rcan=command.envelope.audit_facts() if command.envelope is not None else None,
         goal_id=command.goal_id if outcome is Outcome.EXECUTED else goal_id,
+        boot=None if boot is None else {"boot_id": boot.boot_id, "ms": boot.ms},
     )
 
 

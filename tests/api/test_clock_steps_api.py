@@ -14,6 +14,7 @@ from jwthelpers import sign_jwt, write_jwks
 
 from tests.api.apihelpers import Api
 from tests.api.test_rcan3_messages import sdk_command
+from tests.api.test_retry_after_restart import _closed, _moves
 
 HOUR = 3600.0
 MOVE = {"action": "move", "message_id": "0b4e7a44-3f0e-4a86-9c55-5d3a3b7f2c10",
@@ -33,15 +34,6 @@ async def _restarted_behind(api: Api, behind_s: float) -> Api:
     status, _ = await again.command("ops", {"action": "clear_estop"})
     assert status == 200
     return again
-
-
-async def _closed(api: Api) -> None:
-    await api.gov.stop()
-    await api.close()
-
-
-def _moves(api: Api) -> int:
-    return sum(action == "move" for action, _ in api.dispatcher.calls)
 
 
 async def test_a_retry_after_a_restart_behind_the_log_is_refused(tmp_path: Path) -> None:

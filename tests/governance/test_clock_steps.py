@@ -18,6 +18,7 @@ from rcan_rtps.governance.governor import Governor
 from rcan_rtps.governance.rbac import RateLimiter
 from rcan_rtps.governance.replay import ReplayWindow
 from rcan_rtps.rcan import Outcome, Role
+from tests.governance.test_redteam20_audit import _logged
 
 T = 1_800_000_000.0
 HOUR = 3600.0
@@ -86,15 +87,6 @@ def test_after_a_step_back_fresh_messages_pass_within_the_window_and_later_again
     assert refused is not None and refused.reason.endswith("_before_the_clock_went_back")
     clock.advance(HOUR - 20)
     assert window.check("d", clock.time()) is None
-
-
-async def _logged(tmp_path: Path, at: float, ids: list[str]) -> Path:
-    log = await AuditLog.open(tmp_path / "r.jsonl", tmp_path / "k.key", clock=ManualClock(at))
-    for msg_id in ids:
-        await log.append(AuditRecord(event=AuditEvent.COMMAND_DISPATCHED, principal="p",
-                                     message_id=msg_id))
-    await log.close()
-    return tmp_path / "r.jsonl"
 
 
 async def test_a_start_behind_the_log_remembers_its_last_ids_until_the_clock_passes_them(

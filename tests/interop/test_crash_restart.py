@@ -203,16 +203,7 @@ async def test_a_restart_after_a_kill_with_the_arm_unheard_says_so(
     assert why.startswith(f"the arm on {LEFT} was not held: no joint_states heard"), why
     assert await robot.acall("take", topic=LEFT) == []  # nothing sent at a guess
     # Heard again, the next stop of this run holds it, as it would one of its own.
-    await robot.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
-                      value={"name": ["l_shoulder", "l_elbow"], "position": AT,
-                             "velocity": [0.0, 0.0]})
-    # Until the bridge has heard them, a stop answers 503 naming the arm (and the next
-    # retries): a stop is sent again until one is answered 200.
-    stopped = await eventually(lambda: bridge.command({"action": "stop"}),
-                               what="a stop answered 200 once joint_states are heard")
-    assert stopped["outcome"] == "executed", stopped
-    (hold,) = await take(robot, LEFT)
-    assert hold["points"][0]["positions"] == AT, hold
+    await _heard_then_held_by_a_stop(bridge, robot)
 
 
 class CancelRecordingServer(ActionServer):
@@ -403,6 +394,19 @@ async def test_a_wall_clock_set_forward_across_the_restart_drops_no_arm(
     assert hold["points"][0]["positions"] == AT, hold
 
 
+async def _heard_then_held_by_a_stop(bridge: Bridge, robot: RclpyOracle) -> None:
+    """The left arm's joint_states heard again: a stop holds it where they say. Until the
+    bridge has heard them, a stop answers 503 naming the arm: sent again until one is 200."""
+    await robot.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
+                      value={"name": ["l_shoulder", "l_elbow"], "position": AT,
+                             "velocity": [0.0, 0.0]})
+    stopped = await eventually(lambda: bridge.command({"action": "stop"}),
+                               what="a stop answered 200 once joint_states are heard")
+    assert stopped["outcome"] == "executed", stopped
+    (hold,) = await take(robot, LEFT)
+    assert hold["points"][0]["positions"] == AT, hold
+
+
 async def test_an_arm_unheard_after_a_wall_clock_step_is_kept_for_the_next_stop(
         bridge: Bridge, robot: RclpyOracle) -> None:
     """Unheard at start, that arm is kept for the next stop to hold for what is left of its
@@ -413,14 +417,7 @@ async def test_an_arm_unheard_after_a_wall_clock_step_is_kept_for_the_next_stop(
     took_back = took_back_in(bridge.entries())
     assert took_back["outcome"] == "failed", took_back  # unheard: not held at a guess
     await asyncio.sleep(2.0)  # past the settling second any arm of ours is kept for
-    await robot.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE, rate=50.0,
-                      value={"name": ["l_shoulder", "l_elbow"], "position": AT,
-                             "velocity": [0.0, 0.0]})
-    stopped = await eventually(lambda: bridge.command({"action": "stop"}),
-                               what="a stop answered 200 once joint_states are heard")
-    assert stopped["outcome"] == "executed", stopped
-    (hold,) = await take(robot, LEFT)
-    assert hold["points"][0]["positions"] == AT, hold
+    await _heard_then_held_by_a_stop(bridge, robot)
 
 
 class HeldAcceptServer(CancelRecordingServer):

@@ -22,7 +22,13 @@ from pathlib import Path
 import pytest
 
 from rcan_rtps.governance import outcomes
-from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord, checkpoint_path
+from rcan_rtps.governance.audit import (
+    AuditEvent,
+    AuditLog,
+    AuditRecord,
+    carries_its_id,
+    checkpoint_path,
+)
 from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.governance.errors import AuditIntegrityError
 from rcan_rtps.governance.replay import ReplayWindow
@@ -62,6 +68,29 @@ def test_verify_names_a_deep_line_without_a_traceback(
     assert run("audit", "verify", str(log_file)) == 1
     err = capsys.readouterr().err
     assert f"seq {at + 1}" in err and "Traceback" not in err, err
+
+
+def test_verify_names_damage_followed_by_a_deep_entry(
+        log_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Damage amid the log, then an entry too deep to hash: whether anything well-formed
+    follows the damage is asked of that entry too (`carries_its_id`), which must say no,
+    not raise."""
+    deep = _deep_entry(log_file.read_bytes().splitlines()[1], 900)
+    _insert(log_file, 1, b"not an entry")
+    _insert(log_file, 2, deep)  # the first line after the damage
+    assert run("audit", "verify", str(log_file)) == 1
+    err = capsys.readouterr().err
+    assert "seq 2" in err and "Traceback" not in err, err
+
+
+def test_an_entry_too_deep_to_hash_carries_no_id() -> None:
+    entry = json.loads(_deep_entry(json.dumps({"seq": 1}).encode(), 900))
+    assert not _deeper_by(200, lambda: carries_its_id(entry, "sha256:00"))
+
+
+def _deeper_by(frames: int, call: Callable[[], bool]) -> bool:
+    """`call()` with `frames` more on the stack (the bridge calls from deeper than a test)."""
+    return call() if frames == 0 else _deeper_by(frames - 1, call)
 
 
 def test_verify_names_a_deep_tree_head_and_checkpoint(

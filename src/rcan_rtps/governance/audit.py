@@ -218,6 +218,15 @@ def entry_id(entry: dict[str, Any]) -> str:
     return "sha256:" + hashlib.sha256(canonical_entry(body)).hexdigest()
 
 
+def carries_its_id(entry: dict[str, Any], audit_id: object) -> bool:
+    """Whether `audit_id` is `entry`'s own id. False for an entry nested too deeply to hash
+    (its canonical JSON is written recursively): no entry this log wrote is."""
+    try:
+        return entry_id(entry) == audit_id
+    except RecursionError:
+        return False
+
+
 def iso_utc(ms: int) -> str:
     return _iso_second(ms // 1000) + f".{ms % 1000:03d}Z"
 
@@ -425,10 +434,7 @@ def _well_formed(line: bytes) -> bool:
         return False
     if not isinstance(entry, dict) or not all(k in entry for k in _REQUIRED):
         return False
-    try:
-        return bool(entry.get("audit_id") == entry_id(entry))
-    except RecursionError:  # nested too deeply to be one
-        return False
+    return carries_its_id(entry, entry.get("audit_id"))
 
 
 def verify(
@@ -549,10 +555,7 @@ def _resume_point(fd: int, cp: Checkpoint) -> tuple[int, str, int] | None:
         return None
     if not isinstance(entry, dict) or entry.get("seq") != cp.seq:
         return None
-    try:
-        if entry.get("audit_id") != cp.audit_id or entry_id(entry) != cp.audit_id:
-            return None
-    except RecursionError:  # nested too deeply to be its entry
+    if entry.get("audit_id") != cp.audit_id or not carries_its_id(entry, cp.audit_id):
         return None
     return cp.seq, cp.audit_id, cp.end
 

@@ -64,7 +64,7 @@ from rcan_rtps.rcan.actions import ActionSpec, Hold, Publish, action_spec, with_
 
 from ._durable import atomic_write, read_small
 from ._json import decode, decode_as
-from .audit import RESUME_POINT_TAG, Checkpoint, entry_id
+from .audit import RESUME_POINT_TAG, Checkpoint, carries_its_id
 from .clock import BootInstant, system_boot
 from .left import LeftArm, LeftGoal, LeftRunning, LeftStream
 from .log_tail import lines_backwards
@@ -677,11 +677,8 @@ def _names_its_line(fd: int, point: StartPoint | Checkpoint, size: int) -> None:
         entry = decode(line[:-1])
     except msgspec.DecodeError as exc:
         raise ValueError("its span is not an entry") from exc
-    try:
-        its_entry = (isinstance(entry, dict) and entry.get("seq") == point.seq
-                     and entry.get("audit_id") == point.audit_id
-                     and entry_id(entry) == point.audit_id)
-    except RecursionError:  # nested too deeply to be an entry
-        its_entry = False
+    its_entry = (isinstance(entry, dict) and entry.get("seq") == point.seq
+                 and entry.get("audit_id") == point.audit_id
+                 and carries_its_id(entry, point.audit_id))
     if not its_entry:
         raise ValueError(f"the log's line there is not its entry (seq {point.seq})")

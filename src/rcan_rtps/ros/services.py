@@ -18,7 +18,8 @@ sample identity names another request (another client's, or one we gave up on) i
 A reply whose identity cannot be read (the capture is off, RCAN_RTPS_RPC_IDENTITY=off; the
 traffic is encrypted, DDS-Security; its datagram not found in the capture) is taken as ours
 only while this client is the service's only one in the graph, when it was sent and when it
-came: otherwise it could be another client's answer, and the call fails with AmbiguousReply
+came, and the others left at least QUIET_AFTER_CLIENT_LEFT_S before: otherwise it could be
+another client's answer, and the call fails with AmbiguousReply
 (`ambiguous_reply`) rather than return it. Actions, which cross-check the reply themselves
 (goal ids on the status topic, in a cancel's answer), and a stop's server-wide cancel, which
 needs no answer, take it still (`unidentified_ok`); `ServiceClient.answer` tells them whether
@@ -39,6 +40,8 @@ import contextlib
 import enum
 import itertools
 import logging
+import math
+import time
 import weakref
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
@@ -82,6 +85,12 @@ NODE_CLOSED_POLL = 0.1
 CAPTURE_REPLY_AFTER = 0.5
 CAPTURE_POLL = 0.1
 CAPTURE_SETTLE = 0.2
+# s after the other clients of a service left during which a reply without a readable
+# identity is still not taken as ours: a reply to a request one of them gave up on may come
+# after it left. Longer than a Fast DDS writer's repair of a lost reply (its HEARTBEAT period
+# is 3 s) and than the late replies seen under load; a server slower than this to answer a
+# request whose client left stays the window (docs/design/rpc-identity.md).
+QUIET_AFTER_CLIENT_LEFT_S = 10.0
 
 # A server's replies reach every client's reply reader, and every client's requests every
 # server's request reader: a reader keeps this many while the node's reader thread waits for
@@ -341,6 +350,9 @@ class ServiceClient(_ServiceEnd):
         self._plain_lock = asyncio.Lock()
         self._plain_waiter: _Outstanding | None = None
         self._stale = False
+        # When a look at the graph first found the other clients gone (`_other_clients`);
+        # None while they are there; -inf: none was ever seen.
+        self._others_gone_at: float | None = -math.inf
         self.closed = False
         self.dropped_replies = 0  # replies not ours: foreign guid, unsolicited, not accepted
 
@@ -370,13 +382,23 @@ class ServiceClient(_ServiceEnd):
 
     def _other_clients(self, pair: _Pair) -> bool:
         """Whether another client of this service is in the graph (another request writer or
-        reply reader, of any process, this one's included): a reply without a readable
-        identity could then be its answer."""
+        reply reader, of any process, this one's included), or left it less than
+        QUIET_AFTER_CLIENT_LEFT_S ago: a reply without a readable identity could then be its
+        answer. A client that left may have left its last request unanswered (it gave up
+        on it: timed out, refused as ambiguous), and the server's reply to it still goes to
+        every reply reader — ours, once we are the only one (a clean-clone CI under load
+        took such a reply for its own request, 1 of 150)."""
         graph = self._graph
         graph.refresh()
         clients = graph.gids_on(self.request_topic, Direction.PUBLISHER) \
             | graph.gids_on(self.reply_topic, Direction.SUBSCRIPTION)
-        return bool(clients - {pair.writer_guid, bytes(pair.reader.guid.bytes)})
+        now = time.monotonic()
+        if clients - {pair.writer_guid, bytes(pair.reader.guid.bytes)}:
+            self._others_gone_at = None
+            return True
+        if self._others_gone_at is None:  # the first look without them: they left by now
+            self._others_gone_at = now
+        return now - self._others_gone_at < QUIET_AFTER_CLIENT_LEFT_S
 
     def resolve_mapping(self) -> RequestMapping | None:
         """The configured mapping, or the servers' (None while there is no server)."""

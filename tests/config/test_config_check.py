@@ -112,6 +112,7 @@ def write_tls(directory: Path) -> dict[str, Path]:
     paths["key"].write_bytes(key.private_bytes(serialization.Encoding.PEM,
                                                serialization.PrivateFormat.PKCS8,
                                                serialization.NoEncryption()))
+    paths["key"].chmod(0o600)  # the bridge refuses a TLS key others may read
     return paths
 
 

@@ -34,7 +34,6 @@ import socket
 import ssl
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .._modules import START_ONLY, let_go
@@ -49,8 +48,8 @@ from ..governance import (
     SystemClock,
     TokenAuthenticator,
     WebhookNotifier,
-    load_private_key,
 )
+from ..governance.audit import check_key_file
 from ..governance.decision_log import log_entry
 from ..governance.signatures import Signatures
 from ..rcan import Status
@@ -276,9 +275,8 @@ class Bridge:
             api, self.config.bridge.rbac, opts.env, clock=SystemClock())
         self._ssl = server_ssl_context(api.tls) if api.tls else None
         self._signatures = Signatures.from_config(api)  # a key that does not load: refuse now
-        key = Path(self.config.bridge.audit.key_path)
-        if key.exists():
-            load_private_key(key)  # unreadable, too open or not Ed25519: refuse now
+        # unreadable, too open or not Ed25519: refuse now
+        check_key_file(self.config.bridge.audit.key_path)
         host = opts.host or api.host
         plaintext = plaintext_problem(api, host)  # --host may point a loopback config outward
         if plaintext is not None:

@@ -80,6 +80,12 @@ def read_small(path: Path, limit: int) -> bytes:
     none, ValueError if it is no regular file or holds more than `limit` bytes: a FIFO put in
     its place would block the reader (a start, with its e-stop) for a writer that never comes,
     and a device or a huge file would be read into memory before anything could refuse it."""
+    return read_small_with_mode(path, limit)[0]
+
+
+def read_small_with_mode(path: Path, limit: int) -> tuple[bytes, int]:
+    """`read_small`, and the file's mode as the read file has it (a private key's permissions
+    are judged on the very file read, not on whatever a stat before found at its name)."""
     with _regular(path) as (fd, info):
         if info.st_size > limit:
             raise ValueError(f"{path} is larger than {limit} bytes ({info.st_size})")
@@ -87,7 +93,7 @@ def read_small(path: Path, limit: int) -> bytes:
         data = os.pread(fd, info.st_size + 1, 0)
     if len(data) > info.st_size:
         raise ValueError(f"{path} is being written")
-    return data
+    return data, info.st_mode
 
 
 def read_regular(path: Path) -> bytes:

@@ -52,7 +52,14 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from ..events import Channel
-from ._durable import atomic_write, fsync_dir, full_fsync, read_small, write_all
+from ._durable import (
+    atomic_write,
+    fsync_dir,
+    full_fsync,
+    read_small,
+    read_small_with_mode,
+    write_all,
+)
 from ._json import decode, decode_as
 from .clock import Clock, SystemClock
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
@@ -68,6 +75,7 @@ log = logging.getLogger(__name__)
 _UNSIGNED = ("audit_id", "sig")
 _REQUIRED = ("seq", "audit_id", "prev_hash", "sig", "event", "timestamp_ms")
 CHECKPOINT_EVERY = 1000  # entries between checkpoints: bounds what a start after a crash re-checks
+MAX_KEY_BYTES = 64 * 1024  # an Ed25519 key's PEM is 119 bytes; larger is no key
 MAX_CHECKPOINT_BYTES = 64 * 1024  # a checkpoint holds at most 64 peaks: larger is not one
 # What AuditLog.sign_resume_point signs before a start point's body. Its version changes with
 # the meaning of the replay's state (governance.resume.StartPoint): an older point then fails
@@ -259,19 +267,30 @@ def load_or_create_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
     return key
 
 
+def check_key_file(path: str | os.PathLike[str]) -> None:
+    """Raises AuditKeyError if a key file is at `path` (a dangling link too) that a start
+    would refuse; none there is fine (the start makes one). What `run` checks before it joins
+    the domain, and `config check` with it: the two must agree."""
+    if os.path.lexists(path):
+        load_private_key(path)
+
+
 def load_private_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
     path = Path(path)
     try:
-        mode = path.stat().st_mode
-    except OSError as exc:
+        # read_small: a FIFO at key_path held `run` (and `config check`) for a writer that
+        # never came; a device or a huge file is no key either.
+        pem, mode = read_small_with_mode(path, MAX_KEY_BYTES)
+    except (OSError, ValueError) as exc:
         raise AuditKeyError(f"cannot read audit key {path}: {exc}") from exc
-    # A signing key others can read lets them forge entries: refuse, as ssh does.
+    # A signing key others can read lets them forge entries (and one they can write, swap it):
+    # refuse, as ssh does.
     if mode & 0o077:
-        raise AuditKeyError(f"audit key {path} is readable by others (mode {mode & 0o777:o})")
+        raise AuditKeyError(f"audit key {path} is open to others (mode {mode & 0o777:o}): "
+                            "it must be 0600")
     try:
-        pem = path.read_bytes()
         key = _ed25519_pkcs8(pem) or _load_pem(pem)
-    except (OSError, ValueError, TypeError) as exc:
+    except (ValueError, TypeError) as exc:
         raise AuditKeyError(f"cannot load audit key {path}: {exc}") from exc
     if not isinstance(key, Ed25519PrivateKey):
         raise AuditKeyError(f"audit key {path} is not an Ed25519 key")

@@ -21,12 +21,14 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from rcan_rtps.config import JwtConfig
 from rcan_rtps.rcan import JWT_LEVELS, M2M_TRUSTED, M2M_TRUSTED_LEVEL, Role
 
+from ._durable import read_small
 from .clock import Clock, latest_wall
 from .errors import AuthConfigError, AuthenticationError
 from .keyfacts import read_public_pem
 from .rbac import DEFAULT_RATE_LIMITS, Principal
 
 _MAX_JWT = 8192
+MAX_JWKS_BYTES = 1024 * 1024  # a key set of thousands of keys: larger is none
 _B64URL = re.compile(r"^[A-Za-z0-9_-]*$")
 JWT_PREFIX = "jwt:"
 DEFAULT_MAX_JWT_LIFETIME_S = 86400.0
@@ -121,8 +123,9 @@ def load_pem_key(path: str) -> Ed25519PublicKey:
 def load_jwks(path: str) -> dict[str, Ed25519PublicKey]:
     """An RFC 7517 key set of Ed25519 public keys (RFC 8037 `OKP`), each with its own `kid`."""
     try:
-        doc = msgspec.json.decode(Path(path).read_bytes())
-    except (OSError, msgspec.DecodeError, UnicodeDecodeError) as exc:
+        # (read_small: a FIFO there held the start for a writer that never came)
+        doc = msgspec.json.decode(read_small(Path(path), MAX_JWKS_BYTES))
+    except (OSError, ValueError, msgspec.DecodeError) as exc:
         raise AuthConfigError(f"cannot load JWKS {path}: {exc}") from exc
     keys = doc.get("keys") if isinstance(doc, dict) else None
     if not isinstance(keys, list) or not keys:

@@ -1,0 +1,121 @@
+"""Red team 22: settings that loaded and silently weakened what they seem to say. An action's
+role lowered below its default (a GUEST clearing anyone's e-stop); a motion priority given to
+a name no principal has (a typo, a Cyrillic look-alike: nobody gets it); two principals told
+apart by case alone."""
+
+from __future__ import annotations
+
+import pytest
+
+from rcan_rtps.config import ConfigError, loads_config
+from rcan_rtps.governance import RolePolicy
+from rcan_rtps.rcan import Role
+from rcan_rtps.rcan.actions import specs
+
+CONFIG = """\
+robot: {ruri: rcan://registry.local/acme/bot/v1/abcdefgh01}
+bridge:
+  api:
+    principals:
+      - {name: viewer, role: GUEST, token_env: RT_VIEWER}
+      - {name: admin, role: OWNER, token_env: RT_OPS}
+%(principals)s
+  safety: {max_linear_vel: 1.0, max_angular_vel: 1.0}
+%(extra)s
+"""
+
+
+def _config(extra: str = "", principals: str = "") -> str:
+    return CONFIG % {"extra": extra, "principals": principals}
+
+
+def _refusal(text: str) -> tuple[str, str]:
+    with pytest.raises(ConfigError) as info:
+        loads_config(text, env={})
+    [issue] = info.value.issues
+    return issue.path, issue.message
+
+
+# -- action roles: raised, never lowered ------------------------------------------------------
+
+
+@pytest.mark.parametrize(("action", "role", "default"), [
+    ("clear_estop", "GUEST", "OWNER"),  # any viewer could clear an e-stop an operator raised
+    ("clear_estop", "LEASEE", "OWNER"),
+    ("clear_estop", "CONTRIBUTOR", "OWNER"),  # RCAN v2's name of GUEST
+    ("move", "GUEST", "USER"),
+    ("arm_joint", "CONTRIBUTOR", "USER"),
+    ("unlock", "GUEST", "USER"),
+])
+def test_an_action_role_below_its_default_is_refused(action: str, role: str,
+                                                     default: str) -> None:
+    """docs/actions.md: `action_roles` may raise the defaults. Before: it lowered them too."""
+    path, message = _refusal(_config(f"  rbac: {{action_roles: {{{action}: {role}}}}}"))
+    assert path == "$.bridge.rbac.action_roles"
+    assert message == (f"{action}: {role} is below its default role {default}; a role may be "
+                       "raised, never lowered")
+
+
+@pytest.mark.parametrize("roles", [
+    "{clear_estop: OWNER}", "{clear_estop: ADMIN}", "{clear_estop: CREATOR}",
+    "{move: LEASEE, navigate: OPERATOR, stop: USER}", "{estop: GUEST}", "{estop: CONTRIBUTOR}",
+])
+def test_an_action_role_at_or_above_its_default_loads(roles: str) -> None:
+    config = loads_config(_config(f"  rbac: {{action_roles: {roles}}}"), env={})
+    policy = RolePolicy({a: Role[r] for a, r in config.bridge.rbac.action_roles.items()})
+    for spec in specs():
+        assert policy.required(spec.name) >= spec.default_role
+    assert not policy.allows(Role.GUEST, "clear_estop")
+    assert policy.allows(Role.GUEST, "estop")
+
+
+def test_the_estop_rule_still_comes_first() -> None:
+    path, message = _refusal(_config("  rbac: {action_roles: {estop: USER}}"))
+    assert (path, message) == ("$.bridge.rbac.action_roles", "estop cannot be raised above GUEST")
+
+
+# -- motion priorities name principals that exist ---------------------------------------------
+
+
+@pytest.mark.parametrize("name", [
+    "\u0430dmin",  # Cyrillic а: looks like `admin`, is nobody
+    "Admin", "ADMIN", "admin ", "operator",
+])
+def test_a_motion_priority_for_no_principal_is_refused(name: str) -> None:
+    """Before: loaded; the priority went to nobody, and `admin` kept its role's (a safety
+    supervisor meant to preempt the planner could not)."""
+    path, message = _refusal(_config(f"  motion: {{principal_priorities: {{'{name}': 100}}}}"))
+    assert path == "$.bridge"
+    assert message == (f"`motion.principal_priorities` names {name!r}, which is not in "
+                       "`api.principals` (a JWT's principal is `jwt:<iss>/<sub>`)")
+
+
+def test_a_motion_priority_for_a_jwt_principal_needs_a_jwt_issuer() -> None:
+    text = _config("  motion: {principal_priorities: {'jwt:idp/planner': 20}}")
+    assert _refusal(text)[1] == ("`motion.principal_priorities` names 'jwt:idp/planner', but "
+                                 "there is no `api.jwt`")
+
+
+def test_motion_priorities_of_configured_principals_load() -> None:
+    config = loads_config(_config("  motion: {principal_priorities: {admin: 100, viewer: 1}}"),
+                          env={})
+    assert config.bridge.motion.principal_priorities == {"admin": 100, "viewer": 1}
+
+
+def test_the_default_principal_of_auth_token_env_may_have_a_priority() -> None:
+    text = _config("  motion: {principal_priorities: {default: 5}}").replace(
+        "    principals:\n      - {name: viewer, role: GUEST, token_env: RT_VIEWER}\n"
+        "      - {name: admin, role: OWNER, token_env: RT_OPS}\n", "    auth_token_env: RT_OPS\n")
+    assert loads_config(text, env={}).bridge.motion.principal_priorities == {"default": 5}
+
+
+# -- principals told apart by case alone -------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["ADMIN", "Admin", "aDmIn"])
+def test_two_principals_differing_only_in_case_are_refused(name: str) -> None:
+    """`admin` an OWNER and `ADMIN` a GUEST read as one in the audit log and the console."""
+    extra = f"      - {{name: {name}, role: GUEST, token_env: RT_OTHER}}"
+    path, message = _refusal(_config(principals=extra))
+    assert path == "$.bridge.api.principals"
+    assert message == f"'admin' and {name!r} differ only in case"

@@ -338,7 +338,11 @@ _SPKI_ED25519 = bytes.fromhex("302a300506032b6570032100")
 def public_key_pem(key: Ed25519PrivateKey) -> bytes:
     """The SubjectPublicKeyInfo PEM of `key`'s public key, the bytes `cryptography`'s PEM writer
     makes; made here for the same reason as `_ed25519_pkcs8_pem` (a run writes it at open)."""
-    der = base64.b64encode(_SPKI_ED25519 + key.public_key().public_bytes_raw())  # one line
+    return public_key_pem_of(key.public_key())
+
+
+def public_key_pem_of(key: Ed25519PublicKey) -> bytes:
+    der = base64.b64encode(_SPKI_ED25519 + key.public_bytes_raw())  # one line
     return b"\n".join((b"-----BEGIN PUBLIC KEY-----", der, b"-----END PUBLIC KEY-----", b""))
 
 
@@ -1084,12 +1088,24 @@ def _scan_from_checkpoint(fd: int, path: Path, pubkey: Ed25519PublicKey) -> _Sca
     try:
         scan = _scan(data, pubkey, seq=seq, prev=prev, tree=tree)
     except AuditIntegrityError as exc:
-        raise AuditIntegrityError(exc.seq, exc.detail + "; refusing to start",
-                                  path=str(path)) from exc
+        raise AuditIntegrityError(exc.seq, exc.detail + _replaced_key_hint(path, pubkey)
+                                  + "; refusing to start", path=str(path)) from exc
     end = offset + scan.good_end
     span = (offset + scan.last_start, end) if scan.good_end else (
         (cp.start, cp.end) if resume and cp else (0, 0))
     return _Scan(head=scan.head, good_end=end, torn=scan.torn, last_span=span, tree=scan.tree)
+
+
+def _replaced_key_hint(path: Path, pubkey: Ed25519PublicKey) -> str:
+    """What a log that does not verify says when the key beside it (`<log>.pub`, written by
+    the runs that signed it) is not the signing key's: a key_path replaced (or pointed at
+    another key) is why, not a damaged log. Else nothing."""
+    pub = _held_there(public_key_path(path), MAX_KEY_BYTES)
+    if pub is None or pub == public_key_pem_of(pubkey):
+        return ""
+    return (f" (the signing key is not the one {public_key_path(path).name} holds: a replaced "
+            "key_path? key rotation is not supported — put the log's key back, or start a "
+            "new log)")
 
 
 def _resume_tree(fd: int, cp: Checkpoint | None,

@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 import ipaddress
 import math
+import os
 import re
 from collections.abc import Callable, Iterable
 from typing import Annotated, Any, Literal
@@ -502,6 +503,18 @@ def _witness_problem(url: str | None) -> str | None:
     from rcan_rtps.governance.witness import witness_problem  # the witness's own rule
 
     return witness_problem(url)
+
+
+# The files an audit log keeps beside itself (`<log><suffix>`): governance/audit.py,
+# resume.py and treehead.py name them; a test keeps this list equal to theirs.
+AUDIT_SIDECARS = (".checkpoint", ".resume", ".sth", ".pub")
+
+
+def estop_state_file(bridge: BridgeConfig) -> str:
+    """Where the e-stop latch is kept: `safety.estop_state_path`, else estop.state beside the
+    audit log."""
+    default = os.path.join(os.path.dirname(bridge.audit.path), "estop.state")
+    return bridge.safety.estop_state_path or default
 
 
 class AuditConfig(_Section, frozen=True, kw_only=True):

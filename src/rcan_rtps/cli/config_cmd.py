@@ -63,7 +63,7 @@ def run_problems(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
         problems.append(f"token variables unset or shorter than {MIN_TOKEN_BYTES} bytes: "
                         f"{', '.join(missing)}")
     return (problems + tls_problems(config) + jwt_problems(config) + signer_problems(config)
-            + audit_key_problems(config))
+            + audit_key_problems(config) + state_file_problems(config))
 
 
 def approval_problems(config: RcanConfig) -> list[str]:
@@ -172,3 +172,23 @@ def audit_key_problems(config: RcanConfig) -> list[str]:
     except AuditKeyError as exc:
         return [f"bridge.audit.key_path: {exc}"]
     return []
+
+
+def state_file_problems(config: RcanConfig) -> list[str]:
+    """The audit log or the e-stop latch at something that is no regular file (a device, a
+    FIFO, a directory): `run` refuses them before it starts, as here."""
+    from rcan_rtps.config import estop_state_file
+    from rcan_rtps.governance import AuditError, EstopStateError
+    from rcan_rtps.governance.audit import check_log_file
+    from rcan_rtps.governance.estop import check_latch_file
+
+    problems = []
+    try:
+        check_log_file(config.bridge.audit.path)
+    except AuditError as exc:
+        problems.append(f"bridge.audit.path: {exc}")
+    try:
+        check_latch_file(estop_state_file(config.bridge))
+    except EstopStateError as exc:
+        problems.append(f"bridge.safety.estop_state_path: {exc}")
+    return problems

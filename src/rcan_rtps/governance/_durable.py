@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import os
 import stat
@@ -38,8 +39,25 @@ def write_all(fd: int, data: bytes) -> None:
         view = view[written:]
 
 
+def not_regular_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why the file at `path` (links followed) cannot be one the bridge keeps its state in: it
+    is there, and no regular file (a device, a FIFO, a directory). None when it is regular or
+    not there (it is made); other errors are left to whoever opens it."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISREG(mode):
+        return None
+    return f"{os.fspath(path)} is not a regular file"
+
+
 def atomic_write(path: Path, data: bytes, mode: int = 0o600) -> None:
-    """Write-then-rename, so a reader sees the old content or the new one, never half."""
+    """Write-then-rename, so a reader sees the old content or the new one, never half. A
+    device at `path` is never replaced (run as root, `estop_state_path: /dev/null` had the
+    first e-stop put a file in the place of the system's /dev/null)."""
+    if _is_device(path):
+        raise PermissionError(errno.EPERM, "a device is never replaced", os.fspath(path))
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     # Made afresh, never opened as found: a FIFO there (its name is no secret) would hold
     # this thread — and the e-stop's persistence, or the audit log's writer — for a reader
@@ -59,6 +77,14 @@ def atomic_write(path: Path, data: bytes, mode: int = 0o600) -> None:
             os.unlink(tmp)
         raise
     fsync_dir(path.parent)
+
+
+def _is_device(path: Path) -> bool:
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return False
+    return stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
 
 
 @contextlib.contextmanager

@@ -42,6 +42,7 @@ import hashlib
 import json
 import logging
 import os
+import stat
 import time
 from collections.abc import Awaitable, Callable, Coroutine, Iterator
 from pathlib import Path
@@ -56,6 +57,7 @@ from ._durable import (
     atomic_write,
     fsync_dir,
     full_fsync,
+    not_regular_problem,
     read_small,
     read_small_with_mode,
     write_all,
@@ -265,6 +267,15 @@ def load_or_create_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
         os.close(fd)
     fsync_dir(path.parent)
     return key
+
+
+def check_log_file(path: str | os.PathLike[str]) -> None:
+    """Raises AuditError if something is at `path` that is no regular file (a device such as
+    /dev/null, where every entry would vanish; a FIFO; a directory): what `run` and `config
+    check` refuse before the start, which would only fail after joining the domain."""
+    problem = not_regular_problem(path)
+    if problem is not None:
+        raise AuditError(f"audit log {problem}")
 
 
 def check_key_file(path: str | os.PathLike[str]) -> None:
@@ -1061,6 +1072,8 @@ def _open_and_scan(path: Path, pubkey: Ed25519PublicKey) -> tuple[int, _Scan]:
     created = not path.exists()
     fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o600)
     try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # /dev/null: every entry would vanish
+            raise AuditError(f"audit log {path} is not a regular file")
         _lock(fd, path)
         scan = _scan_from_checkpoint(fd, path, pubkey)
         if scan.torn:

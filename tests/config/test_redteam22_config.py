@@ -1,14 +1,18 @@
 """Red team 22: settings that loaded and silently weakened what they seem to say. An action's
 role lowered below its default (a GUEST clearing anyone's e-stop); a motion priority given to
 a name no principal has (a typo, a Cyrillic look-alike: nobody gets it); two principals told
-apart by case alone."""
+apart by case alone; one token that two principals hold."""
 
 from __future__ import annotations
 
+import hashlib
+from pathlib import Path
+
 import pytest
 
+from rcan_rtps.cli.main import main
 from rcan_rtps.config import ConfigError, loads_config
-from rcan_rtps.governance import RolePolicy
+from rcan_rtps.governance import AuthConfigError, ManualClock, RolePolicy, TokenAuthenticator
 from rcan_rtps.rcan import Role
 from rcan_rtps.rcan.actions import specs
 
@@ -119,3 +123,49 @@ def test_two_principals_differing_only_in_case_are_refused(name: str) -> None:
     path, message = _refusal(_config(principals=extra))
     assert path == "$.bridge.api.principals"
     assert message == f"'admin' and {name!r} differ only in case"
+
+
+# -- one token, two principals ----------------------------------------------------------------
+
+TWO = """\
+robot: {ruri: rcan://registry.local/acme/bot/v1/abcdefgh01}
+bridge:
+  api:
+    principals:
+      - {name: viewer, role: GUEST, %(viewer)s}
+      - {name: ops, role: OWNER, %(ops)s}
+  safety: {max_linear_vel: 1.0, max_angular_vel: 1.0}
+"""
+TOKEN_A, TOKEN_B = "a" * 32, "b" * 32
+
+
+@pytest.mark.parametrize(("viewer", "ops", "env"), [
+    ("token_env: RT_A", "token_env: RT_A", {"RT_A": TOKEN_A}),  # one variable named twice
+    ("token_env: RT_A", "token_env: RT_B", {"RT_A": TOKEN_A, "RT_B": TOKEN_A}),  # same value
+    ("token_env: RT_A", f"token_sha256: {hashlib.sha256(TOKEN_A.encode()).hexdigest()}",
+     {"RT_A": TOKEN_A}),  # a variable's token and another's digest
+])
+def test_one_token_of_two_principals_is_refused_by_run_and_config_check(
+        viewer: str, ops: str, env: dict[str, str], tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Before: loaded, and the token authenticated as whichever principal came last — here
+    the OWNER, for a token handed out as the viewer's."""
+    text = TWO % {"viewer": viewer, "ops": ops}
+    config = loads_config(text, env={})
+    with pytest.raises(AuthConfigError, match="have the same token") as info:
+        TokenAuthenticator.from_config(config.bridge.api, config.bridge.rbac, env,
+                                       clock=ManualClock())
+    assert str(info.value).startswith("principals viewer ($RT_A) and ops (")
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    (tmp_path / "robot.rcan.yaml").write_text(text)
+    assert main(["config", "check", str(tmp_path / "robot.rcan.yaml")]) == 1
+    assert "bridge.api.principals: principals viewer ($RT_A) and ops" in capsys.readouterr().err
+
+
+def test_each_principal_with_its_own_token_is_itself() -> None:
+    config = loads_config(TWO % {"viewer": "token_env: RT_A", "ops": "token_env: RT_B"}, env={})
+    auth = TokenAuthenticator.from_config(config.bridge.api, config.bridge.rbac,
+                                          {"RT_A": TOKEN_A, "RT_B": TOKEN_B}, clock=ManualClock())
+    assert auth.authenticate(TOKEN_A).role is Role.GUEST
+    assert auth.authenticate(TOKEN_B).role is Role.OWNER

@@ -10,7 +10,7 @@ from collections.abc import Mapping
 
 from rcan_rtps.config import ConfigError, RcanConfig, load_config
 from rcan_rtps.governance.hitl import HitlPolicy
-from rcan_rtps.governance.rbac import MIN_TOKEN_BYTES
+from rcan_rtps.governance.rbac import MIN_TOKEN_BYTES, shared_token_problem
 from rcan_rtps.rcan import Role
 
 
@@ -62,6 +62,9 @@ def run_problems(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
     if missing:
         problems.append(f"token variables unset or shorter than {MIN_TOKEN_BYTES} bytes: "
                         f"{', '.join(missing)}")
+    shared = shared_token_problem(config.bridge.api, env)
+    if shared is not None:
+        problems.append(f"bridge.api.principals: {shared}")
     return (problems + tls_problems(config) + jwt_problems(config) + signer_problems(config)
             + audit_key_problems(config) + state_file_problems(config))
 

@@ -169,3 +169,20 @@ def test_each_principal_with_its_own_token_is_itself() -> None:
                                           {"RT_A": TOKEN_A, "RT_B": TOKEN_B}, clock=ManualClock())
     assert auth.authenticate(TOKEN_A).role is Role.GUEST
     assert auth.authenticate(TOKEN_B).role is Role.OWNER
+
+
+# -- a number told it is text -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("value", ["!!str 1.0", "!!str 2", "!<tag:yaml.org,2002:str> 0.5"])
+def test_a_number_tagged_as_text_is_not_told_it_lacks_a_dot(value: str) -> None:
+    """Before: `!!str 1.0` was refused with "YAML reads the unquoted 1.0 as text (its floats
+    need a dot ...)", advice that fits `1e3`, not a number the file itself tagged as text."""
+    text = _config().replace("max_linear_vel: 1.0", f"max_linear_vel: {value}")
+    path, message = _refusal(text)
+    assert (path, message) == ("$.bridge.safety.max_linear_vel", "Expected `float`, got `str`")
+
+
+def test_a_plain_1e3_is_still_told_why_it_is_text() -> None:
+    _, message = _refusal(_config().replace("max_linear_vel: 1.0", "max_linear_vel: 1e3"))
+    assert "YAML reads the unquoted 1e3 as text" in message

@@ -1,6 +1,7 @@
-"""Red team 22: the audit signing key replaced. A start with another key is refused (key
-rotation is not supported), and now says so, instead of blaming a torn tail or an edit; a key
-replaced on disk while the log is open changes nothing until the next start."""
+"""Red team 22: the audit signing key replaced, and a JWK not meant for verifying. A start
+with another key is refused (key rotation is not supported), and now says so, instead of
+blaming a torn tail or an edit; a key replaced on disk while the log is open changes nothing
+until the next start."""
 
 from __future__ import annotations
 
@@ -8,7 +9,10 @@ import os
 from pathlib import Path
 
 import pytest
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from jwthelpers import public_jwk
 
+from rcan_rtps.governance import AuthConfigError
 from rcan_rtps.governance.audit import (
     AuditLog,
     checkpoint_path,
@@ -17,6 +21,7 @@ from rcan_rtps.governance.audit import (
     verify,
 )
 from rcan_rtps.governance.errors import AuditIntegrityError
+from rcan_rtps.governance.jwt import load_jwks
 from rcan_rtps.governance.treehead import public_key_path
 from tests.governance.test_audit import record
 
@@ -69,3 +74,28 @@ async def test_a_key_replaced_while_the_log_is_open_signs_nothing_until_a_restar
     await log.close()
     assert public_key_path(path).read_bytes() == public_key_pem_of(original)
     assert verify(path, original).last_seq == 2
+
+
+# -- a JWK meant for something else than verifying tokens ------------------------------------
+
+
+@pytest.mark.parametrize("key_ops", ['["encrypt"]', '["sign"]', '[]', '"verify"'])
+def test_a_jwk_whose_key_ops_leave_out_verify_is_refused(key_ops: str, tmp_path: Path) -> None:
+    """RFC 7517 §4.3: `key_ops` lists what a key is for. Before: a key marked for encrypting
+    only (or an empty list) checked tokens all the same; `use: enc` was already refused."""
+    x = public_jwk(Ed25519PrivateKey.generate(), "a")["x"]
+    path = tmp_path / "jwks.json"
+    jwk = f'{{"kty": "OKP", "crv": "Ed25519", "x": "{x}", "kid": "a", "key_ops": {key_ops}}}'
+    path.write_text(f'{{"keys": [{jwk}]}}')
+    with pytest.raises(AuthConfigError, match=r"not a key for verifying \(`key_ops`"):
+        load_jwks(str(path))
+
+
+@pytest.mark.parametrize("extra", ['"key_ops": ["verify"]', '"key_ops": ["verify", "sign"]',
+                                   '"x5t": "whatever"', '"alg": "EdDSA", "use": "sig"'])
+def test_a_jwk_for_verifying_with_other_members_loads(extra: str, tmp_path: Path) -> None:
+    x = public_jwk(Ed25519PrivateKey.generate(), "a")["x"]
+    path = tmp_path / "jwks.json"
+    jwk = f'{{"kty": "OKP", "crv": "Ed25519", "x": "{x}", "kid": "a", {extra}}}'
+    path.write_text(f'{{"keys": [{jwk}]}}')
+    assert list(load_jwks(str(path))) == ["a"]

@@ -159,6 +159,10 @@ def _jwk_problem(jwk: dict[str, Any]) -> str | None:
         return "holds a private key (`d`): the bridge needs public keys only"
     if jwk.get("use", "sig") != "sig" or jwk.get("alg", "EdDSA") not in ("EdDSA", "Ed25519"):
         return "is not a signing key for EdDSA (`use`, `alg`)"
+    ops = jwk.get("key_ops", ["verify"])
+    if not (isinstance(ops, list) and "verify" in ops):
+        # RFC 7517 §4.3: a key whose operations leave out `verify` is not for checking tokens
+        return "is not a key for verifying (`key_ops` without \"verify\")"
     raw = _b64url_or_none(x) if isinstance(x, str) else None
     if raw is None or len(raw) != 32:
         return "`x` must be the 32-byte public key, base64url without padding"

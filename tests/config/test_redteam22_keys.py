@@ -161,3 +161,46 @@ def test_a_tls_key_of_its_owner_or_its_group_passes(mode: int, tmp_path: Path) -
     (tmp_path / "tls").mkdir()
     write_tls(tmp_path / "tls")["key"].chmod(mode)
     assert check(tmp_path, config_text("0.0.0.0", TLS)) == 0
+
+
+# -- keys the bridge trusts credentials by, in files others may write ---------------------------
+
+
+@pytest.mark.parametrize(("name", "api_extra", "said"), [
+    ("keys.json", JWKS, "bridge.api.jwt: cannot load JWKS"),
+    ("key.pem", JWT_PEM, "bridge.api.jwt: cannot load"),
+    ("ops.pub", SIGNER, "kid 'k1': cannot read"),
+    ("tls/clients.pem", TLS, "bridge.api.tls.client_ca:"),
+])
+@pytest.mark.parametrize("mode", [0o666, 0o646, 0o664])
+def test_a_trusted_key_file_others_may_write_is_refused(
+        name: str, api_extra: str, said: str, mode: int, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Whoever writes a JWT issuer's key set puts their own key in and mints OWNER tokens;
+    a principal's signing key, signs as it; a client CA, names any principal by certificate.
+    Before: loaded whatever the mode (ssh refuses such an authorized_keys)."""
+    _trusted_files(tmp_path)
+    (tmp_path / name).chmod(mode)
+    text = config_text("127.0.0.1", api_extra)
+    assert check(tmp_path, text) == 1
+    err = capsys.readouterr().err
+    assert said in err and f"may be written by others (mode {mode:o})" in err, err
+    assert "may be written by others" in _bridge_refuses(tmp_path)
+    (tmp_path / name).chmod(0o644)
+    assert check(tmp_path, text) == 0
+
+
+def _trusted_files(directory: Path) -> None:
+    """A JWKS, a JWT PEM, a signer's key and TLS files, each 0644 (the TLS key 0600)."""
+    from jwthelpers import write_jwks
+
+    issuer = Ed25519PrivateKey.generate()
+    write_jwks(directory / "keys.json", {"k1": issuer})
+    pem = issuer.public_key().public_bytes(serialization.Encoding.PEM,
+                                           serialization.PublicFormat.SubjectPublicKeyInfo)
+    (directory / "key.pem").write_bytes(pem)
+    (directory / "ops.pub").write_bytes(pem)
+    (directory / "tls").mkdir()
+    write_tls(directory / "tls")
+    for name in ("keys.json", "key.pem", "ops.pub", "tls/clients.pem", "tls/server.pem"):
+        (directory / name).chmod(0o644)

@@ -14,6 +14,7 @@ from rcan_rtps.rcan import Role
 # A TLS key others may read lets them pose as the bridge and collect bearer tokens; one they
 # may write, swap it. 0640 stays allowed: a group such as Debian's ssl-cert is the convention.
 _TLS_KEY_TOO_OPEN = 0o027
+_CA_WRITABLE_BY_OTHERS = 0o022  # (as the keys the bridge trusts: governance's read_trusted)
 
 
 def server_ssl_context(tls: TlsConfig) -> ssl.SSLContext:
@@ -43,6 +44,10 @@ def _check_tls_file(key: str, path: str) -> None:
         os.close(fd)
     if not stat.S_ISREG(mode):
         raise ValueError(f"bridge.api.tls.{key}: {path} is not a regular file")
+    if key == "client_ca" and mode & _CA_WRITABLE_BY_OTHERS:
+        raise ValueError(f"bridge.api.tls.client_ca: {path} may be written by others (mode "
+                         f"{mode & 0o777:o}): whoever can write it can add their own CA, and "
+                         "a certificate of theirs would name any principal (chmod go-w)")
     if key == "key" and mode & _TLS_KEY_TOO_OPEN:
         raise ValueError(f"bridge.api.tls.key: {path} is open to others (mode "
                          f"{mode & 0o777:o}): make it 0600 (or 0640 for a group such as "

@@ -109,6 +109,21 @@ def read_small(path: Path, limit: int) -> bytes:
     return read_small_with_mode(path, limit)[0]
 
 
+# Group or others may write it: whoever can, can put their own key in (ssh's StrictModes rule).
+WRITABLE_BY_OTHERS = 0o022
+
+
+def read_trusted(path: Path, limit: int) -> bytes:
+    """`read_small` of a file the bridge trusts keys from (a JWT issuer's key or key set, a
+    principal's signing key): ValueError if its group or others may write it — they could put
+    their own key there and mint tokens or sign commands of any role."""
+    data, mode = read_small_with_mode(path, limit)
+    if mode & WRITABLE_BY_OTHERS:
+        raise ValueError(f"{path} may be written by others (mode {mode & 0o777:o}): whoever "
+                         "can write it can put their own key in (chmod go-w)")
+    return data
+
+
 def read_small_with_mode(path: Path, limit: int) -> tuple[bytes, int]:
     """`read_small`, and the file's mode as the read file has it (a private key's permissions
     are judged on the very file read, not on whatever a stat before found at its name)."""

@@ -21,7 +21,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from rcan_rtps.config import JwtConfig
 from rcan_rtps.rcan import JWT_LEVELS, M2M_TRUSTED, M2M_TRUSTED_LEVEL, Role
 
-from ._durable import read_small
+from ._durable import read_trusted
 from .clock import Clock, latest_wall
 from .errors import AuthConfigError, AuthenticationError
 from .keyfacts import read_public_pem
@@ -115,7 +115,7 @@ JwtKeys = Ed25519PublicKey | Mapping[str, Ed25519PublicKey]
 
 def load_pem_key(path: str) -> Ed25519PublicKey:
     try:
-        return read_public_pem(path)
+        return read_public_pem(path, trusted=True)
     except ValueError as exc:
         raise AuthConfigError(f"{exc} (the JWT public key)") from exc
 
@@ -124,7 +124,7 @@ def load_jwks(path: str) -> dict[str, Ed25519PublicKey]:
     """An RFC 7517 key set of Ed25519 public keys (RFC 8037 `OKP`), each with its own `kid`."""
     try:
         # (read_small: a FIFO there held the start for a writer that never came)
-        doc = msgspec.json.decode(read_small(Path(path), MAX_JWKS_BYTES))
+        doc = msgspec.json.decode(read_trusted(Path(path), MAX_JWKS_BYTES))
     except (OSError, ValueError, msgspec.DecodeError) as exc:
         raise AuthConfigError(f"cannot load JWKS {path}: {exc}") from exc
     keys = doc.get("keys") if isinstance(doc, dict) else None

@@ -40,7 +40,7 @@ from rcan_rtps.rcan._signatures import (
     verifies,
 )
 
-from ._durable import read_small
+from ._durable import read_trusted
 from .errors import AuthConfigError
 from .outcomes import Rejection
 
@@ -150,7 +150,7 @@ def _trusted(principal: str, key: SignerKey) -> TrustedKey:
             path = key.public_key_file or ""
             try:
                 # (read_small: a FIFO there held the start for a writer that never came)
-                data = read_small(Path(path), MAX_KEY_FILE_BYTES)
+                data = read_trusted(Path(path), MAX_KEY_FILE_BYTES)
             except OSError as exc:
                 raise AuthConfigError(f"{where}: cannot read {path}: {exc.strerror}") from None
             except ValueError as exc:

@@ -271,7 +271,7 @@ def load_or_create_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
 
 def check_log_file(path: str | os.PathLike[str]) -> None:
     """Raises AuditError if something is at `path` that is no regular file (a device such as
-    /dev/null, where every entry would vanish; a FIFO; a directory): what `run` and `config
+    /dev/null, which keeps no entry; a FIFO; a directory): what `run` and `config
     check` refuse before the start, which would only fail after joining the domain."""
     problem = not_regular_problem(path)
     if problem is not None:
@@ -1072,7 +1072,7 @@ def _open_and_scan(path: Path, pubkey: Ed25519PublicKey) -> tuple[int, _Scan]:
     created = not path.exists()
     fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o600)
     try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):  # /dev/null: every entry would vanish
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # /dev/null keeps no entry
             raise AuditError(f"audit log {path} is not a regular file")
         _lock(fd, path)
         scan = _scan_from_checkpoint(fd, path, pubkey)

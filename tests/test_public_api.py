@@ -313,6 +313,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "SecurityConfig",
         "SkillConfig",
         "TlsConfig",
+        "estop_state_file",
         "load_config",
         "loads_config",
         "plaintext_problem",

@@ -34,6 +34,7 @@ class _Issued:
         key_path.write_bytes(self.key.private_bytes(
             serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
             serialization.NoEncryption()))
+        key_path.chmod(0o600)  # the bridge refuses a TLS key others may read
         return cert_path, key_path
 
 

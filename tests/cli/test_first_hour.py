@@ -28,7 +28,7 @@ def test_config_check_names_unset_token_variables(monkeypatch: pytest.MonkeyPatc
     assert "run` would fail here" in err and "RCAN_OPS_TOKEN" in err and "--file-only" in err
     assert main(["config", "check", "--file-only", str(EXAMPLE)]) == 0
     for name in TOKEN_VARS:
-        monkeypatch.setenv(name, "t" * 32)
+        monkeypatch.setenv(name, name * 2)  # each principal its own token
     assert main(["config", "check", str(EXAMPLE)]) == 0
     assert ": ok (" in capsys.readouterr().out
 

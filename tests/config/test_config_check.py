@@ -112,6 +112,7 @@ def write_tls(directory: Path) -> dict[str, Path]:
     paths["key"].write_bytes(key.private_bytes(serialization.Encoding.PEM,
                                                serialization.PrivateFormat.PKCS8,
                                                serialization.NoEncryption()))
+    paths["key"].chmod(0o600)  # the bridge refuses a TLS key others may read
     return paths
 
 
@@ -180,14 +181,16 @@ def test_a_good_jwks_passes(tmp_path: Path) -> None:
 
 PRINCIPALS = """principals:
       - {name: ops, role: OWNER, token_env: RCAN_CHECK_TOKEN}
-      - {name: admin, role: ADMIN, token_env: RCAN_CHECK_TOKEN}
-      - {name: planner, role: USER, token_env: RCAN_CHECK_TOKEN}
+      - {name: admin, role: ADMIN, token_sha256: "%(admin)s"}
+      - {name: planner, role: USER, token_sha256: "%(planner)s"}
 """
 
 
 def _gated(approvals: int, roles: str = "[OWNER]") -> str:
     api = CONFIG.replace("    auth_token_env: RCAN_CHECK_TOKEN\n", "")
-    return (api % {"host": "127.0.0.1", "api_extra": PRINCIPALS}
+    # (each its own token: one token of two principals is refused)
+    principals = PRINCIPALS % {"admin": "a" * 64, "planner": "b" * 64}
+    return (api % {"host": "127.0.0.1", "api_extra": principals}
             + f"  hitl:\n    gates: [{{action: arm_joint, require_auth: true, "
             f"authorized_roles: {roles}, approvals: {approvals}}}]\n")
 

@@ -30,7 +30,7 @@ CONFIG = """\
 robot: {ruri: "%(ruri)s"}
 bridge:
   ros2: {namespace: /robot1, cmd_rate_hz: %(rate)s}
-  api: {auth_token_env: RCAN_BRIDGE_TOKEN}
+  api: {principals: [{name: low-agent, role: USER, token_env: RCAN_LOW_AGENT_TOKEN}]}
   safety:
     max_linear_vel: %(lin)s
     max_angular_vel: %(ang)s

@@ -2,17 +2,28 @@
 
 from __future__ import annotations
 
+import os
 import ssl
+import stat
 
 from rcan_rtps.config import RcanConfig, TlsConfig
 from rcan_rtps.governance import Principal
 from rcan_rtps.governance.rbac import rate_limits
 from rcan_rtps.rcan import Role
 
+# A TLS key others may read lets them pose as the bridge and collect bearer tokens; one they
+# may write, swap it. 0640 stays allowed: a group such as Debian's ssl-cert is the convention.
+_TLS_KEY_TOO_OPEN = 0o027
+_CA_WRITABLE_BY_OTHERS = 0o022  # (as the keys the bridge trusts: governance's read_trusted)
+
 
 def server_ssl_context(tls: TlsConfig) -> ssl.SSLContext:
     """TLS 1.2+ with the configured certificate; with `client_ca`, client certificates are
-    required (mTLS) and must chain to that CA."""
+    required (mTLS) and must chain to that CA. Raises ValueError for a file that is no regular
+    file (a FIFO would hold the start for good) or a key open to others."""
+    for key, path in (("cert", tls.cert), ("key", tls.key), ("client_ca", tls.client_ca)):
+        if path is not None:
+            _check_tls_file(key, path)
     context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
     context.minimum_version = ssl.TLSVersion.TLSv1_2
     context.load_cert_chain(tls.cert, tls.key)
@@ -20,6 +31,27 @@ def server_ssl_context(tls: TlsConfig) -> ssl.SSLContext:
         context.load_verify_locations(cafile=tls.client_ca)
         context.verify_mode = ssl.CERT_REQUIRED
     return context
+
+
+def _check_tls_file(key: str, path: str) -> None:
+    """ValueError, naming the config key, unless `path` is a regular file (and, for the key,
+    one that others can neither read nor write). Opened without blocking, as a FIFO's open
+    waits for a writer; OSError (missing, unreadable) is left to the caller."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        mode = os.fstat(fd).st_mode
+    finally:
+        os.close(fd)
+    if not stat.S_ISREG(mode):
+        raise ValueError(f"bridge.api.tls.{key}: {path} is not a regular file")
+    if key == "client_ca" and mode & _CA_WRITABLE_BY_OTHERS:
+        raise ValueError(f"bridge.api.tls.client_ca: {path} may be written by others (mode "
+                         f"{mode & 0o777:o}): whoever can write it can add their own CA, and "
+                         "a certificate of theirs would name any principal (chmod go-w)")
+    if key == "key" and mode & _TLS_KEY_TOO_OPEN:
+        raise ValueError(f"bridge.api.tls.key: {path} is open to others (mode "
+                         f"{mode & 0o777:o}): make it 0600 (or 0640 for a group such as "
+                         "ssl-cert)")
 
 
 def cert_principals(config: RcanConfig) -> dict[str, Principal]:

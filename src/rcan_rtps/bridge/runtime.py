@@ -34,13 +34,12 @@ import socket
 import ssl
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .._modules import START_ONLY, let_go
 from ..api import ApiServer, bind, build_app, cert_principals, server_ssl_context
 from ..api.ports import GoalView, ImageSource
-from ..config import RcanConfig, plaintext_problem
+from ..config import RcanConfig, estop_state_file, plaintext_problem
 from ..events import Events
 from ..governance import (
     AuditLog,
@@ -49,9 +48,10 @@ from ..governance import (
     SystemClock,
     TokenAuthenticator,
     WebhookNotifier,
-    load_private_key,
 )
+from ..governance.audit import check_key_file, check_log_file
 from ..governance.decision_log import log_entry
+from ..governance.estop import check_latch_file
 from ..governance.signatures import Signatures
 from ..rcan import Status
 from ..ros.participant import RosNode
@@ -276,9 +276,10 @@ class Bridge:
             api, self.config.bridge.rbac, opts.env, clock=SystemClock())
         self._ssl = server_ssl_context(api.tls) if api.tls else None
         self._signatures = Signatures.from_config(api)  # a key that does not load: refuse now
-        key = Path(self.config.bridge.audit.key_path)
-        if key.exists():
-            load_private_key(key)  # unreadable, too open or not Ed25519: refuse now
+        # unreadable, too open or not Ed25519: refuse now; so a log or latch at a device
+        check_key_file(self.config.bridge.audit.key_path)
+        check_log_file(self.config.bridge.audit.path)
+        check_latch_file(estop_state_file(self.config.bridge))
         host = opts.host or api.host
         plaintext = plaintext_problem(api, host)  # --host may point a loopback config outward
         if plaintext is not None:

@@ -10,7 +10,7 @@ from collections.abc import Mapping
 
 from rcan_rtps.config import ConfigError, RcanConfig, load_config
 from rcan_rtps.governance.hitl import HitlPolicy
-from rcan_rtps.governance.rbac import MIN_TOKEN_BYTES
+from rcan_rtps.governance.rbac import MIN_TOKEN_BYTES, shared_token_problem
 from rcan_rtps.rcan import Role
 
 
@@ -55,14 +55,18 @@ def _report(heading: str, problems: list[str]) -> bool:
 
 
 def run_problems(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
-    """What stops `rcan-rtps run` with this config on this machine: tokens, TLS, JWT and
-    signing keys."""
+    """What stops `rcan-rtps run` with this config on this machine: tokens, TLS, JWT,
+    principals' signing keys and the audit log's key."""
     problems: list[str] = []
     missing = missing_tokens(config, env)
     if missing:
         problems.append(f"token variables unset or shorter than {MIN_TOKEN_BYTES} bytes: "
                         f"{', '.join(missing)}")
-    return problems + tls_problems(config) + jwt_problems(config) + signer_problems(config)
+    shared = shared_token_problem(config.bridge.api, env)
+    if shared is not None:
+        problems.append(f"bridge.api.principals: {shared}")
+    return (problems + tls_problems(config) + jwt_problems(config) + signer_problems(config)
+            + audit_key_problems(config) + state_file_problems(config))
 
 
 def approval_problems(config: RcanConfig) -> list[str]:
@@ -102,8 +106,9 @@ def missing_tokens(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
 def _unreadable(key: str, path: str) -> str | None:
     """Why the file a config key names cannot be read, or None."""
     try:
-        with open(path, "rb"):
-            return None
+        # Without blocking: a FIFO's open waits for a writer (the load names it, below).
+        os.close(os.open(path, os.O_RDONLY | os.O_NONBLOCK))
+        return None
     except OSError as exc:
         return f"{key}: cannot read {path}: {exc.strerror or exc}"
 
@@ -157,3 +162,36 @@ def signer_problems(config: RcanConfig) -> list[str]:
     except AuthConfigError as exc:
         return [f"bridge.api: {exc}"]
     return []
+
+
+def audit_key_problems(config: RcanConfig) -> list[str]:
+    """An audit signing key file `run` would refuse (open to others, not Ed25519, no regular
+    file); none there is fine, `run` makes one. The very check `run` makes before it starts."""
+    from rcan_rtps.governance import AuditKeyError
+    from rcan_rtps.governance.audit import check_key_file
+
+    try:
+        check_key_file(config.bridge.audit.key_path)
+    except AuditKeyError as exc:
+        return [f"bridge.audit.key_path: {exc}"]
+    return []
+
+
+def state_file_problems(config: RcanConfig) -> list[str]:
+    """The audit log or the e-stop latch at something that is no regular file (a device, a
+    FIFO, a directory): `run` refuses them before it starts, as here."""
+    from rcan_rtps.config import estop_state_file
+    from rcan_rtps.governance import AuditError, EstopStateError
+    from rcan_rtps.governance.audit import check_log_file
+    from rcan_rtps.governance.estop import check_latch_file
+
+    problems = []
+    try:
+        check_log_file(config.bridge.audit.path)
+    except AuditError as exc:
+        problems.append(f"bridge.audit.path: {exc}")
+    try:
+        check_latch_file(estop_state_file(config.bridge))
+    except EstopStateError as exc:
+        problems.append(f"bridge.safety.estop_state_path: {exc}")
+    return problems

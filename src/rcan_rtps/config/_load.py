@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import os
+import urllib.parse
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import msgspec.inspect
 import yaml
 
 from ._errors import ConfigError, ConfigIssue
-from ._model import PrincipalConfig, RcanConfig
+from ._model import AUDIT_SIDECARS, PrincipalConfig, RcanConfig, estop_state_file
 from ._schema import (
     INT_TAG,
     INVALID,
@@ -50,7 +51,11 @@ def load_config(
     except UnicodeDecodeError as exc:
         raise ConfigError(source, [ConfigIssue("$", None, f"cannot read: {exc}")]) from exc
     config = loads_config(text, source=source, env=env)
-    return _resolve_paths(config, Path(path).resolve().parent)
+    config = _resolve_paths(config, Path(path).resolve().parent)
+    issues = shared_file_issues(config, source)
+    if issues:
+        raise ConfigError(source, issues)
+    return config
 
 
 def loads_config(
@@ -176,3 +181,45 @@ def _signer_paths(principal: PrincipalConfig, base: Path) -> PrincipalConfig:
             for key in principal.signatures.keys]
     return msgspec.structs.replace(principal, signatures=msgspec.structs.replace(
         principal.signatures, keys=keys))
+
+
+def shared_file_issues(config: RcanConfig, source: str) -> list[ConfigIssue]:
+    """Files the bridge writes that are one file with another it writes or reads (after
+    `..` and links are resolved). `estop_state_path: audit.jsonl` loaded, and the first e-stop
+    replaced the audit log with the latch (the running log went on into an unlinked file);
+    `path` = `key_path` made the key the log. Files it only reads may be one (a certificate
+    that is its own CA)."""
+    by_file: dict[str, list[tuple[str, str, bool]]] = {}
+    for key, path, written in _bridge_files(config, source):
+        by_file.setdefault(os.path.realpath(path), []).append((key, path, written))
+    issues = []
+    for names in by_file.values():
+        writers = [(key, path) for key, path, written in names if written]
+        if len(names) > 1 and writers:
+            key, path = writers[0]
+            others = ", ".join(other for other, _, _ in names[1:])
+            issues.append(ConfigIssue(f"$.{key}", None, f"{path} is also {others}: the bridge "
+                                      "writes it, so it must be a file of its own"))
+    return issues
+
+
+def _bridge_files(config: RcanConfig, source: str) -> list[tuple[str, str, bool]]:
+    """(config key, path, whether the bridge writes it): those it writes first, so that a
+    file it only reads is reported at the key of the write that would clobber it."""
+    bridge, api = config.bridge, config.bridge.api
+    log = bridge.audit.path
+    written = [("bridge.audit.path", log), ("bridge.audit.key_path", bridge.audit.key_path),
+               ("bridge.safety.estop_state_path", estop_state_file(bridge))]
+    written += [(f"bridge.audit.path ({suffix})", log + suffix) for suffix in AUDIT_SIDECARS]
+    witness = bridge.audit.witness
+    if witness is not None and witness.startswith("file:"):
+        parts = urllib.parse.urlsplit(witness)
+        written.append(("bridge.audit.witness", urllib.parse.unquote(parts.path)))
+    read = [("the config file", source)]
+    if api.tls is not None:
+        read += [("bridge.api.tls.cert", api.tls.cert), ("bridge.api.tls.key", api.tls.key)]
+        if api.tls.client_ca is not None:
+            read.append(("bridge.api.tls.client_ca", api.tls.client_ca))
+    if api.jwt is not None:
+        read.append(("bridge.api.jwt", api.jwt.jwks or api.jwt.public_key or ""))
+    return [(k, p, True) for k, p in written] + [(k, p, False) for k, p in read]

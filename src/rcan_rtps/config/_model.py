@@ -10,8 +10,9 @@ from __future__ import annotations
 import functools
 import ipaddress
 import math
+import os
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -406,6 +407,13 @@ def _principals_problem(principals: list[PrincipalConfig]) -> str | None:
     names = [p.name for p in principals]
     if len(set(names)) != len(names):
         return "repeats a name"
+    folded: dict[str, str] = {}
+    for name in names:
+        other = folded.setdefault(name.casefold(), name)
+        if other != name:
+            # Two principals a reader of the audit log, or a certificate's CN, tells apart by
+            # case alone: one name, two roles.
+            return f"{other!r} and {name!r} differ only in case"
     digests = [p.token_sha256.lower() for p in principals if p.token_sha256]
     if len(set(digests)) != len(digests):
         return "two share a token_sha256"
@@ -497,6 +505,18 @@ def _witness_problem(url: str | None) -> str | None:
     return witness_problem(url)
 
 
+# The files an audit log keeps beside itself (`<log><suffix>`): governance/audit.py,
+# resume.py and treehead.py name them; a test keeps this list equal to theirs.
+AUDIT_SIDECARS = (".checkpoint", ".resume", ".sth", ".pub")
+
+
+def estop_state_file(bridge: BridgeConfig) -> str:
+    """Where the e-stop latch is kept: `safety.estop_state_path`, else estop.state beside the
+    audit log."""
+    default = os.path.join(os.path.dirname(bridge.audit.path), "estop.state")
+    return bridge.safety.estop_state_path or default
+
+
 class AuditConfig(_Section, frozen=True, kw_only=True):
     path: str = "/var/lib/rcan/audit.jsonl"
     key_path: str = "/var/lib/rcan/audit-ed25519.key"
@@ -504,11 +524,23 @@ class AuditConfig(_Section, frozen=True, kw_only=True):
     witness: Annotated[str | None, _check(_witness_problem)] = None
 
 
-def _estop_role_problem(action_roles: dict[ActionName, AnyRoleName]) -> str | None:
+def _action_roles_problem(action_roles: dict[ActionName, AnyRoleName]) -> str | None:
     # An e-stop must always be available to any authenticated principal.
     estop = with_effect(Effect.ESTOP).name
     if Role[action_roles.get(estop, "GUEST")] is not Role.GUEST:
         return f"{estop} cannot be raised above GUEST"
+    return _lowered_role_problem(action_roles)
+
+
+def _lowered_role_problem(action_roles: dict[ActionName, AnyRoleName]) -> str | None:
+    """A role below the action's default (docs/actions.md: roles may be raised): a table
+    that let a GUEST clear anyone's e-stop, or drive, loaded without a word."""
+    defaults = {spec.name: spec.default_role for spec in specs()}
+    for action, name in action_roles.items():
+        default = defaults.get(action)
+        if default is not None and Role[name] < default:
+            return (f"{action}: {name} is below its default role {default.name}; a role "
+                    "may be raised, never lowered")
     return None
 
 
@@ -523,7 +555,7 @@ def _same_role_twice_problem(by_role: dict[AnyRoleName, Any]) -> str | None:
 
 
 class RbacConfig(_Section, frozen=True, kw_only=True):
-    action_roles: Annotated[dict[ActionName, AnyRoleName], _check(_estop_role_problem)] = {}
+    action_roles: Annotated[dict[ActionName, AnyRoleName], _check(_action_roles_problem)] = {}
     rate_limits_per_min: Annotated[
         dict[AnyRoleName, Annotated[int, msgspec.Meta(ge=1)] | None],
         _check(_same_role_twice_problem)] = {}
@@ -611,15 +643,21 @@ class AiConfig(_Section, frozen=True, kw_only=True):
 
 def unknown_agents_problem(ai: AiConfig, api: ApiConfig) -> str | None:
     """Agents that name no principal this config can authenticate (a typo would bind no one)."""
+    return unknown_principals_problem("ai.agents", ai.agents, api)
+
+
+def unknown_principals_problem(key: str, names: Iterable[str], api: ApiConfig) -> str | None:
+    """The first of `names` (keys of `key`) that is no principal this config can
+    authenticate: a typo, or a look-alike (`аdmin` with a Cyrillic а), would bind no one."""
     known = {p.name for p in api.principals}
     if not api.principals and api.auth_token_env:
         known.add("default")  # auth_token_env's one principal
-    for name in ai.agents:
+    for name in names:
         if name.startswith("jwt:"):
             if api.jwt is None:
-                return f"`ai.agents` names {name!r}, but there is no `api.jwt`"
+                return f"`{key}` names {name!r}, but there is no `api.jwt`"
         elif name not in known:
-            return (f"`ai.agents` names {name!r}, which is not in `api.principals` "
+            return (f"`{key}` names {name!r}, which is not in `api.principals` "
                     "(a JWT's principal is `jwt:<iss>/<sub>`)")
     return None
 
@@ -639,7 +677,8 @@ class BridgeConfig(_Section, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        problem = unknown_agents_problem(self.ai, self.api)
+        problem = unknown_agents_problem(self.ai, self.api) or unknown_principals_problem(
+            "motion.principal_priorities", self.motion.principal_priorities, self.api)
         if problem is not None:
             raise ValueError(problem)
 

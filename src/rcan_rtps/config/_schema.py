@@ -251,7 +251,7 @@ class Walker:
                 _kind_of(value), _kind_of(value))
             problem += (f": YAML reads the unquoted {node.value} as {read_as}; "
                         f"quote it ('{node.value}') to mean the text")
-        elif problem is not None and isinstance(value, str) and node.style is None:
+        elif problem is not None and isinstance(value, str) and _read_as_text(node):
             problem += _number_as_text(value)
         return value if problem is None else self.fail(at, problem)
 
@@ -305,6 +305,16 @@ def _misread_number(text: str) -> str | None:
     if re.fullmatch(r"[-+]?0[0-7_]+", text):
         return "octal, for its leading zero"
     return None
+
+
+def _read_as_text(node: yaml.ScalarNode) -> bool:
+    """Whether YAML itself made a plain scalar text (`1e3`), not a `!!str` tag: `!!str 1.0`
+    was told its 1.0 needs a dot."""
+    if node.style is not None:
+        return False
+    resolver = yaml.resolver.Resolver()  # SafeLoader's: the same implicit rules
+    implicit = resolver.resolve(yaml.ScalarNode, node.value, (True, False))  # type: ignore[no-untyped-call]
+    return bool(implicit == STR_TAG)
 
 
 def _number_as_text(text: str) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import os
 import stat
@@ -38,8 +39,25 @@ def write_all(fd: int, data: bytes) -> None:
         view = view[written:]
 
 
+def not_regular_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why the file at `path` (links followed) cannot be one the bridge keeps its state in: it
+    is there, and no regular file (a device, a FIFO, a directory). None when it is regular or
+    not there (it is made); other errors are left to whoever opens it."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISREG(mode):
+        return None
+    return f"{os.fspath(path)} is not a regular file"
+
+
 def atomic_write(path: Path, data: bytes, mode: int = 0o600) -> None:
-    """Write-then-rename, so a reader sees the old content or the new one, never half."""
+    """Write-then-rename, so a reader sees the old content or the new one, never half. A
+    device at `path` is never replaced (run as root, `estop_state_path: /dev/null` had the
+    first e-stop put a file in the place of the system's /dev/null)."""
+    if _is_device(path):
+        raise PermissionError(errno.EPERM, "a device is never replaced", os.fspath(path))
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     # Made afresh, never opened as found: a FIFO there (its name is no secret) would hold
     # this thread — and the e-stop's persistence, or the audit log's writer — for a reader
@@ -61,6 +79,14 @@ def atomic_write(path: Path, data: bytes, mode: int = 0o600) -> None:
     fsync_dir(path.parent)
 
 
+def _is_device(path: Path) -> bool:
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return False
+    return stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+
+
 @contextlib.contextmanager
 def _regular(path: Path) -> Iterator[tuple[int, os.stat_result]]:
     """An open descriptor of `path` and its stat; ValueError unless it is a regular file. Opened
@@ -80,6 +106,27 @@ def read_small(path: Path, limit: int) -> bytes:
     none, ValueError if it is no regular file or holds more than `limit` bytes: a FIFO put in
     its place would block the reader (a start, with its e-stop) for a writer that never comes,
     and a device or a huge file would be read into memory before anything could refuse it."""
+    return read_small_with_mode(path, limit)[0]
+
+
+# Group or others may write it: whoever can, can put their own key in (ssh's StrictModes rule).
+WRITABLE_BY_OTHERS = 0o022
+
+
+def read_trusted(path: Path, limit: int) -> bytes:
+    """`read_small` of a file the bridge trusts keys from (a JWT issuer's key or key set, a
+    principal's signing key): ValueError if its group or others may write it — they could put
+    their own key there and mint tokens or sign commands of any role."""
+    data, mode = read_small_with_mode(path, limit)
+    if mode & WRITABLE_BY_OTHERS:
+        raise ValueError(f"{path} may be written by others (mode {mode & 0o777:o}): whoever "
+                         "can write it can put their own key in (chmod go-w)")
+    return data
+
+
+def read_small_with_mode(path: Path, limit: int) -> tuple[bytes, int]:
+    """`read_small`, and the file's mode as the read file has it (a private key's permissions
+    are judged on the very file read, not on whatever a stat before found at its name)."""
     with _regular(path) as (fd, info):
         if info.st_size > limit:
             raise ValueError(f"{path} is larger than {limit} bytes ({info.st_size})")
@@ -87,7 +134,7 @@ def read_small(path: Path, limit: int) -> bytes:
         data = os.pread(fd, info.st_size + 1, 0)
     if len(data) > info.st_size:
         raise ValueError(f"{path} is being written")
-    return data
+    return data, info.st_mode
 
 
 def read_regular(path: Path) -> bytes:

@@ -42,6 +42,7 @@ import hashlib
 import json
 import logging
 import os
+import stat
 import time
 from collections.abc import Awaitable, Callable, Coroutine, Iterator
 from pathlib import Path
@@ -52,7 +53,15 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from ..events import Channel
-from ._durable import atomic_write, fsync_dir, full_fsync, read_small, write_all
+from ._durable import (
+    atomic_write,
+    fsync_dir,
+    full_fsync,
+    not_regular_problem,
+    read_small,
+    read_small_with_mode,
+    write_all,
+)
 from ._json import decode, decode_as
 from .clock import Clock, SystemClock
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
@@ -68,6 +77,7 @@ log = logging.getLogger(__name__)
 _UNSIGNED = ("audit_id", "sig")
 _REQUIRED = ("seq", "audit_id", "prev_hash", "sig", "event", "timestamp_ms")
 CHECKPOINT_EVERY = 1000  # entries between checkpoints: bounds what a start after a crash re-checks
+MAX_KEY_BYTES = 64 * 1024  # an Ed25519 key's PEM is 119 bytes; larger is no key
 MAX_CHECKPOINT_BYTES = 64 * 1024  # a checkpoint holds at most 64 peaks: larger is not one
 # What AuditLog.sign_resume_point signs before a start point's body. Its version changes with
 # the meaning of the replay's state (governance.resume.StartPoint): an older point then fails
@@ -259,19 +269,39 @@ def load_or_create_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
     return key
 
 
+def check_log_file(path: str | os.PathLike[str]) -> None:
+    """Raises AuditError if something is at `path` that is no regular file (a device such as
+    /dev/null, which keeps no entry; a FIFO; a directory): what `run` and `config
+    check` refuse before the start, which would only fail after joining the domain."""
+    problem = not_regular_problem(path)
+    if problem is not None:
+        raise AuditError(f"audit log {problem}")
+
+
+def check_key_file(path: str | os.PathLike[str]) -> None:
+    """Raises AuditKeyError if a key file is at `path` (a dangling link too) that a start
+    would refuse; none there is fine (the start makes one). What `run` checks before it joins
+    the domain, and `config check` with it: the two must agree."""
+    if os.path.lexists(path):
+        load_private_key(path)
+
+
 def load_private_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
     path = Path(path)
     try:
-        mode = path.stat().st_mode
-    except OSError as exc:
+        # read_small: a FIFO at key_path held `run` (and `config check`) for a writer that
+        # never came; a device or a huge file is no key either.
+        pem, mode = read_small_with_mode(path, MAX_KEY_BYTES)
+    except (OSError, ValueError) as exc:
         raise AuditKeyError(f"cannot read audit key {path}: {exc}") from exc
-    # A signing key others can read lets them forge entries: refuse, as ssh does.
+    # A signing key others can read lets them forge entries (and one they can write, swap it):
+    # refuse, as ssh does.
     if mode & 0o077:
-        raise AuditKeyError(f"audit key {path} is readable by others (mode {mode & 0o777:o})")
+        raise AuditKeyError(f"audit key {path} is open to others (mode {mode & 0o777:o}): "
+                            "it must be 0600")
     try:
-        pem = path.read_bytes()
         key = _ed25519_pkcs8(pem) or _load_pem(pem)
-    except (OSError, ValueError, TypeError) as exc:
+    except (ValueError, TypeError) as exc:
         raise AuditKeyError(f"cannot load audit key {path}: {exc}") from exc
     if not isinstance(key, Ed25519PrivateKey):
         raise AuditKeyError(f"audit key {path} is not an Ed25519 key")
@@ -319,7 +349,11 @@ _SPKI_ED25519 = bytes.fromhex("302a300506032b6570032100")
 def public_key_pem(key: Ed25519PrivateKey) -> bytes:
     """The SubjectPublicKeyInfo PEM of `key`'s public key, the bytes `cryptography`'s PEM writer
     makes; made here for the same reason as `_ed25519_pkcs8_pem` (a run writes it at open)."""
-    der = base64.b64encode(_SPKI_ED25519 + key.public_key().public_bytes_raw())  # one line
+    return public_key_pem_of(key.public_key())
+
+
+def public_key_pem_of(key: Ed25519PublicKey) -> bytes:
+    der = base64.b64encode(_SPKI_ED25519 + key.public_bytes_raw())  # one line
     return b"\n".join((b"-----BEGIN PUBLIC KEY-----", der, b"-----END PUBLIC KEY-----", b""))
 
 
@@ -1038,6 +1072,8 @@ def _open_and_scan(path: Path, pubkey: Ed25519PublicKey) -> tuple[int, _Scan]:
     created = not path.exists()
     fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o600)
     try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # /dev/null keeps no entry
+            raise AuditError(f"audit log {path} is not a regular file")
         _lock(fd, path)
         scan = _scan_from_checkpoint(fd, path, pubkey)
         if scan.torn:
@@ -1065,12 +1101,24 @@ def _scan_from_checkpoint(fd: int, path: Path, pubkey: Ed25519PublicKey) -> _Sca
     try:
         scan = _scan(data, pubkey, seq=seq, prev=prev, tree=tree)
     except AuditIntegrityError as exc:
-        raise AuditIntegrityError(exc.seq, exc.detail + "; refusing to start",
-                                  path=str(path)) from exc
+        raise AuditIntegrityError(exc.seq, exc.detail + _replaced_key_hint(path, pubkey)
+                                  + "; refusing to start", path=str(path)) from exc
     end = offset + scan.good_end
     span = (offset + scan.last_start, end) if scan.good_end else (
         (cp.start, cp.end) if resume and cp else (0, 0))
     return _Scan(head=scan.head, good_end=end, torn=scan.torn, last_span=span, tree=scan.tree)
+
+
+def _replaced_key_hint(path: Path, pubkey: Ed25519PublicKey) -> str:
+    """What a log that does not verify says when the key beside it (`<log>.pub`, written by
+    the runs that signed it) is not the signing key's: a key_path replaced (or pointed at
+    another key) is why, not a damaged log. Else nothing."""
+    pub = _held_there(public_key_path(path), MAX_KEY_BYTES)
+    if pub is None or pub == public_key_pem_of(pubkey):
+        return ""
+    return (f" (the signing key is not the one {public_key_path(path).name} holds: a replaced "
+            "key_path? key rotation is not supported — put the log's key back, or start a "
+            "new log)")
 
 
 def _resume_tree(fd: int, cp: Checkpoint | None,

@@ -24,13 +24,14 @@ import concurrent.futures
 import contextlib
 import inspect
 import logging
+import os
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
 import msgspec
 
-from ._durable import atomic_write, read_small
+from ._durable import atomic_write, not_regular_problem, read_small
 from .errors import EstopStateError
 
 log = logging.getLogger(__name__)
@@ -38,6 +39,15 @@ T = TypeVar("T")
 
 
 MAX_LATCH_BYTES = 64 * 1024  # a latch file holds a bool, a name and a time: larger is not one
+
+
+def check_latch_file(path: str | os.PathLike[str]) -> None:
+    """Raises EstopStateError if something is at `path` that is no regular file. Loading one
+    starts latched (fails closed), but a configured path that is a device or a FIFO is a
+    mistake said before the start: `/dev/null` would swallow the latch."""
+    problem = not_regular_problem(path)
+    if problem is not None:
+        raise EstopStateError(f"e-stop state {problem}")
 
 
 class LatchState(msgspec.Struct, frozen=True, kw_only=True):

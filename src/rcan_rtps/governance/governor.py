@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import msgspec
 
-from rcan_rtps.config import RcanConfig
+from rcan_rtps.config import RcanConfig, estop_state_file
 from rcan_rtps.rcan import (
     ActionParams,
     Effect,
@@ -168,8 +168,7 @@ class Governor:
                     clock: Clock | None = None, notifier: Notifier | None = None,
                     events: Events | None = None) -> Governor:
         bridge, clock = config.bridge, clock or SystemClock()
-        beside_audit = Path(bridge.audit.path).parent / "estop.state"
-        latch_file = LatchFile(Path(bridge.safety.estop_state_path or beside_audit))
+        latch_file = LatchFile(Path(estop_state_file(bridge)))
         # A missing latch file is a first start only if the audit log is new as well.
         latched, reason = latch_file.load(first_start=audit.head.last_seq == 0)
         # The replay runs once, here: a bridge lets go of its module once started

@@ -21,12 +21,14 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from rcan_rtps.config import JwtConfig
 from rcan_rtps.rcan import JWT_LEVELS, M2M_TRUSTED, M2M_TRUSTED_LEVEL, Role
 
+from ._durable import read_trusted
 from .clock import Clock, latest_wall
 from .errors import AuthConfigError, AuthenticationError
 from .keyfacts import read_public_pem
 from .rbac import DEFAULT_RATE_LIMITS, Principal
 
 _MAX_JWT = 8192
+MAX_JWKS_BYTES = 1024 * 1024  # a key set of thousands of keys: larger is none
 _B64URL = re.compile(r"^[A-Za-z0-9_-]*$")
 JWT_PREFIX = "jwt:"
 DEFAULT_MAX_JWT_LIFETIME_S = 86400.0
@@ -113,7 +115,7 @@ JwtKeys = Ed25519PublicKey | Mapping[str, Ed25519PublicKey]
 
 def load_pem_key(path: str) -> Ed25519PublicKey:
     try:
-        return read_public_pem(path)
+        return read_public_pem(path, trusted=True)
     except ValueError as exc:
         raise AuthConfigError(f"{exc} (the JWT public key)") from exc
 
@@ -121,8 +123,9 @@ def load_pem_key(path: str) -> Ed25519PublicKey:
 def load_jwks(path: str) -> dict[str, Ed25519PublicKey]:
     """An RFC 7517 key set of Ed25519 public keys (RFC 8037 `OKP`), each with its own `kid`."""
     try:
-        doc = msgspec.json.decode(Path(path).read_bytes())
-    except (OSError, msgspec.DecodeError, UnicodeDecodeError) as exc:
+        # (read_small: a FIFO there held the start for a writer that never came)
+        doc = msgspec.json.decode(read_trusted(Path(path), MAX_JWKS_BYTES))
+    except (OSError, ValueError, msgspec.DecodeError) as exc:
         raise AuthConfigError(f"cannot load JWKS {path}: {exc}") from exc
     keys = doc.get("keys") if isinstance(doc, dict) else None
     if not isinstance(keys, list) or not keys:
@@ -156,6 +159,10 @@ def _jwk_problem(jwk: dict[str, Any]) -> str | None:
         return "holds a private key (`d`): the bridge needs public keys only"
     if jwk.get("use", "sig") != "sig" or jwk.get("alg", "EdDSA") not in ("EdDSA", "Ed25519"):
         return "is not a signing key for EdDSA (`use`, `alg`)"
+    ops = jwk.get("key_ops", ["verify"])
+    if not (isinstance(ops, list) and "verify" in ops):
+        # RFC 7517 §4.3: a key whose operations leave out `verify` is not for checking tokens
+        return "is not a key for verifying (`key_ops` without \"verify\")"
     raw = _b64url_or_none(x) if isinstance(x, str) else None
     if raw is None or len(raw) != 32:
         return "`x` must be the 32-byte public key, base64url without padding"

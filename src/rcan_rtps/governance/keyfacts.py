@@ -17,7 +17,7 @@ from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
-from ._durable import read_small
+from ._durable import read_small, read_trusted
 
 MAX_PEM_BYTES = 64 * 1024  # a public key's PEM is a few hundred bytes
 
@@ -41,14 +41,17 @@ def signature_text(signature: bytes) -> str:
     return "ed25519:" + base64.b64encode(signature).decode()
 
 
-def read_public_pem(path: str | os.PathLike[str]) -> Ed25519PublicKey:
+def read_public_pem(path: str | os.PathLike[str], *, trusted: bool = False) -> Ed25519PublicKey:
     """The Ed25519 public key in a PEM file; a ValueError says what is wrong with it (callers
-    raise it as their own configuration error, naming what the key is for)."""
+    raise it as their own configuration error, naming what the key is for). `trusted`: a key
+    the bridge accepts credentials by (a JWT issuer's), refused if others may write the file;
+    a key a verifier was handed (`audit verify --pubkey`) is the reader's business."""
     from cryptography.hazmat.primitives import serialization  # verifiers only, not a run
 
+    read = read_trusted if trusted else read_small
     try:
         # (read_small: a FIFO there would hold the reader for ever)
-        key = serialization.load_pem_public_key(read_small(Path(path), MAX_PEM_BYTES))
+        key = serialization.load_pem_public_key(read(Path(path), MAX_PEM_BYTES))
     except (OSError, ValueError) as exc:
         raise ValueError(f"cannot load {path}: {exc}") from exc
     if not isinstance(key, Ed25519PublicKey):

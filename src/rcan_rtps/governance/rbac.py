@@ -106,6 +106,9 @@ class TokenAuthenticator:
         if not api.principals and api.auth_token_env:
             digest = _env_digest(api.auth_token_env, env)
             entries.append((Principal("default", Role.OWNER, limits[Role.OWNER]), digest))
+        shared = shared_token_problem(api, env)
+        if shared is not None:
+            raise AuthConfigError(shared)
         if api.jwt is None:
             return cls(entries)
         from .jwt import JwtVerifier  # only a JWT config needs it
@@ -125,6 +128,28 @@ class TokenAuthenticator:
         if found is None:
             raise AuthenticationError("invalid credentials")
         return found
+
+
+def shared_token_problem(api: ApiConfig, env: Mapping[str, str]) -> str | None:
+    """Two principals one token authenticates (one variable named twice, two holding the same
+    value, or a variable's token whose digest another's `token_sha256` is): `authenticate`
+    would pick one of them — the roles may differ — so a start refuses. Unset variables are
+    left to the check that reports them."""
+    holders: dict[bytes, str] = {}
+    for p in api.principals:
+        if p.token_env:
+            token = env.get(p.token_env)
+            if not token:
+                continue
+            digest, source = _digest(token), f"${p.token_env}"
+        else:
+            digest, source = bytes.fromhex(p.token_sha256 or ""), "its token_sha256"
+        mine = f"{p.name} ({source})"
+        other = holders.setdefault(digest, mine)
+        if other != mine:
+            return (f"principals {other} and {mine} have the same token: who presents it "
+                    "would be either; give each its own")
+    return None
 
 
 def _env_digest(name: str, env: Mapping[str, str]) -> bytes:

@@ -40,10 +40,13 @@ from rcan_rtps.rcan._signatures import (
     verifies,
 )
 
+from ._durable import read_trusted
 from .errors import AuthConfigError
 from .outcomes import Rejection
 
 SIGNATURE_STATUS = 403
+# An ML-DSA-65 public key is 1952 bytes (PEM: ~2.7 KB): a file far larger holds no key.
+MAX_KEY_FILE_BYTES = 64 * 1024
 
 
 class TrustedKey(msgspec.Struct, frozen=True):
@@ -146,9 +149,12 @@ def _trusted(principal: str, key: SignerKey) -> TrustedKey:
         else:
             path = key.public_key_file or ""
             try:
-                data = Path(path).read_bytes()
+                # (read_small: a FIFO there held the start for a writer that never came)
+                data = read_trusted(Path(path), MAX_KEY_FILE_BYTES)
             except OSError as exc:
                 raise AuthConfigError(f"{where}: cannot read {path}: {exc.strerror}") from None
+            except ValueError as exc:
+                raise AuthConfigError(f"{where}: cannot read {path}: {exc}") from None
             loaded = load_public_key(key.alg, data)
     except KeyLoadError as exc:
         raise AuthConfigError(f"{where}: the public key {exc}") from None

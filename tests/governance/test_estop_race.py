@@ -337,6 +337,32 @@ async def test_an_estop_during_a_clear_wins_and_is_listed_where_it_took_effect(
         assert _seq(harness, cleared) < _seq(harness, estopped) < _seq(harness, moved)
 
 
+async def test_a_move_refused_for_an_estop_waiting_behind_a_clear_is_listed_after_it(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Unlatched; a clear under way, not yet decided (held waiting for the robot); an e-stop
+    arrives — latched at once, its entry waiting for its turn behind the clear — and a move
+    is refused for it. The refusal waits for the ESTOP entry to be sealed: before, it was
+    listed before it, where the log says the robot was unlatched (a clean-clone CI under
+    load, the stateful model's race_on_a_slow_disk: ESTOP seq 4, the move's refusal 3)."""
+    gov = await harness.governor()
+    held = _HeldClear(harness, monkeypatch, "ready")
+    clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), OPS))
+    await asyncio.wait_for(held.entered.wait(), 60)
+    estopping = asyncio.ensure_future(gov.decide(command("estop"), VIEWER))
+    await asyncio.sleep(0)  # the e-stop has arrived: latched
+    assert gov.latch.latched
+    moving = asyncio.ensure_future(gov.decide(command("move", MOVE), ADMIN))
+    await asyncio.sleep(0.05)  # the move's decision under way (its refusal, before: sealed)
+    held.release()
+    _, estopped, moved = await clearing, await estopping, await moving
+    await gov.stop()
+    assert moved.reason == Reason.ESTOP_ACTIVE.value, moved
+    entries = harness.entries
+    assert _latched_by_the_log(entries) == [], [
+        (e["seq"], e["event"], e["action_type"], e["deny_reason"]) for e in entries]
+    assert _seq(harness, estopped) < _seq(harness, moved)
+
+
 async def test_a_fifo_where_the_latch_file_is_written_holds_up_no_estop(
         harness: Harness) -> None:
     """A FIFO at the latch file's temporary name (`.estop.state.<pid>.tmp`, put there by

@@ -126,6 +126,10 @@ class EstopMachine:
         self._worker: asyncio.Task[None] | None = None
         self._unfinished = 0  # transitions submitted and not done
         self._clear_decided = False  # the transition under way is a clear, its entry sealed
+        # E-stops latched and waiting for their turn, their entries not sealed yet
+        # (`listed`), and who waits for them to be.
+        self._unbegun_engages = 0
+        self._listing: list[asyncio.Future[None]] = []
 
     @property
     def latched(self) -> bool:
@@ -142,6 +146,7 @@ class EstopMachine:
         if flipped:
             self._tell()
         if self._unfinished and not (self._unfinished == 1 and self._clear_decided):
+            self._unbegun_engages += 1
             return self._submit(work, engage=True)
         try:
             begun = work()
@@ -163,6 +168,29 @@ class EstopMachine:
         """From the clear under way: an e-stop arrived after it (it wins: the clear must not
         unlatch; one arriving before the clear is decided gets the clear refused)."""
         return self._engages_waiting > 0
+
+    async def listed(self, within_s: float) -> None:
+        """Returns once every e-stop that has latched has begun its work, which seals its
+        entry in its first step (or after `within_s`, a transition ahead of it stuck on a
+        disk): a command refused for the latch then is listed after the e-stop that latched
+        it. One that arrived while a clear was under way, not yet decided, latched at once
+        but waits for its turn; a move refused meanwhile was listed before its ESTOP (seen
+        in a clean-clone CI under load: the stateful model's race_on_a_slow_disk)."""
+        if not self._unbegun_engages:
+            return
+        waiting: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._listing.append(waiting)
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(asyncio.shield(waiting), within_s)
+
+    def _began_engage(self) -> None:
+        self._unbegun_engages -= 1
+        if self._unbegun_engages:
+            return
+        listing, self._listing = self._listing, []
+        for waiting in listing:
+            if not waiting.done():
+                waiting.set_result(None)
 
     def then(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Run `work` in order with the transitions, changing nothing of the latch itself."""
@@ -227,7 +255,15 @@ class EstopMachine:
             if engage:
                 self._engages_waiting -= 1
             try:
-                result = await (work if inspect.isawaitable(work) else work())
+                if inspect.isawaitable(work):
+                    result = await work
+                else:
+                    try:
+                        running = work()  # an e-stop's first step seals its entry
+                    finally:
+                        if engage:
+                            self._began_engage()
+                    result = await running
             except Exception as exc:  # the caller gets it; the machine goes on
                 if not done.done():
                     done.set_exception(exc)

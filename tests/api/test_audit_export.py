@@ -66,6 +66,7 @@ async def test_jsonl_is_a_header_then_the_entries_verbatim(api: Api) -> None:
                     "chain_root": headers["X-Audit-Chain-Root"],
                     "issuer_sig": headers["X-Audit-Issuer-Sig"],
                     "kid": headers["X-Audit-Kid"], "rcan_version": "3.2"}
+    assert headers["X-Audit-Count"] == "2"
     _check_root_and_sig(api, headers, chosen)
 
 

@@ -716,3 +716,19 @@ async def test_a_replayed_versioned_invoke_is_refused_whichever_field_names_it(
     status, again = await api.command("planner", body)
     assert (status, again["error_code"]) == (409, "REPLAY_DETECTED"), again
     assert [a for a, _ in api.dispatcher.calls] == ["move"]
+
+
+async def test_an_invoke_a_higher_move_holds_the_base_from_is_a_skill_conflict(
+        move_api: Api) -> None:
+    """§19.3's 7005 SkillConflict: the arbiter refuses the skill's move because a higher
+    principal's stream holds the base; told apart from any other refusal (7006)."""
+    api = move_api
+    status, held = await api.command("ops", {"action": "move", "params": {"linear_x": 0.1}})
+    assert (status, held["outcome"]) == (200, "executed"), held
+    status, body = await api.command("planner", nudge("inv-x", 0.5))
+    assert (status, body["status"], body["error"]["code"], body["error"]["name"]) == (
+        409, "failure", 7005, "SkillConflict"), body
+    [result] = results(api, "inv-x")
+    assert result["params"]["error"] == {"code": 7005, "name": "SkillConflict"}, result
+    active = api.gov.streams.active  # ops's move drives on
+    assert active is not None and active.owner == "ops"

@@ -732,3 +732,17 @@ async def test_an_invoke_a_higher_move_holds_the_base_from_is_a_skill_conflict(
     assert result["params"]["error"] == {"code": 7005, "name": "SkillConflict"}, result
     active = api.gov.streams.active  # ops's move drives on
     assert active is not None and active.owner == "ops"
+
+
+async def test_a_cancel_naming_another_principal_as_its_sender_is_refused(api: Api) -> None:
+    """rcan-spec's INVOKE_CANCEL `principal_id` must be the authenticated principal: a cancel
+    that claims to be someone else's cancels nothing (403, audited)."""
+    status, body = await api.command("planner", invoke("raise_elbow", "inv-who"))
+    assert (status, body["status"]) == (202, "pending"), body
+    flat = {**json.loads((DATA / "invoke-cancel.json").read_text())["examples"][0],
+            "message_type": 13, "ruri": TARGET, "principal_id": "ops",
+            "cancel_msg_id": "inv-who"}
+    status, body = await api.command("planner", flat)
+    assert (status, body["reason"]) == (403, "principal_id_not_yours"), body
+    assert api.entry(body["audit_id"])["event"] == "COMMAND_REJECTED"
+    assert len(api.gov.pending()) == 1  # still held for its reviewer

@@ -746,3 +746,16 @@ async def test_a_cancel_naming_another_principal_as_its_sender_is_refused(api: A
     assert (status, body["reason"]) == (403, "principal_id_not_yours"), body
     assert api.entry(body["audit_id"])["event"] == "COMMAND_REJECTED"
     assert len(api.gov.pending()) == 1  # still held for its reviewer
+
+
+async def test_an_invoke_sent_again_is_answered_from_its_first_decision(move_api: Api) -> None:
+    """An unversioned INVOKE retried with its msg_id (no replay window: the idempotent retry)
+    runs its skill once; the retry's answer is the first one, and is audited again."""
+    api = move_api
+    first = await api.command("planner", nudge("inv-r", 0.2))
+    assert (first[0], first[1]["status"]) == (200, "success"), first
+    again = await api.command("planner", nudge("inv-r", 0.2))
+    assert (again[0], again[1]["status"], again[1]["audit_id"]) == (
+        200, "success", first[1]["audit_id"]), again
+    assert [a for a, _ in api.dispatcher.calls] == ["move"]  # run once
+    assert [e["status"] for e in results(api, "inv-r")] == ["success", "success"]

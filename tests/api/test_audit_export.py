@@ -153,3 +153,15 @@ def test_csv_columns_follow_the_audit_record() -> None:
 
     columns: tuple[Any, ...] = _audit_export.CSV_COLUMNS
     assert set(AuditRecord.__struct_fields__) <= set(columns) and columns[-1] == "entry"
+
+
+async def test_from_and_to_take_up_to_three_decimals(api: Api) -> None:
+    """Milliseconds: the log's own resolution (`timestamp_ms`), so an export can start or end
+    between two entries logged within the same second."""
+    lines = await _entries_over_time(api)
+    status, headers, body = await export(api, f"?from={T0 + 9.999}&to={T0 + 20.001}")
+    assert status == 200, body
+    header, *exported = body.splitlines()
+    assert json.loads(header)["from"] == T0 + 9.999 and exported == lines[1:3]
+    status, headers, body = await export(api, f"?from={T0 + 10.001}")
+    assert body.splitlines()[1:] == lines[2:]

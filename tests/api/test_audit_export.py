@@ -4,6 +4,7 @@ X-Audit-Chain-Root and X-Audit-Issuer-Sig; a bad parameter is a 400 JSON body, n
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import csv
 import hashlib
@@ -165,3 +166,26 @@ async def test_from_and_to_take_up_to_three_decimals(api: Api) -> None:
     assert json.loads(header)["from"] == T0 + 9.999 and exported == lines[1:3]
     status, headers, body = await export(api, f"?from={T0 + 10.001}")
     assert body.splitlines()[1:] == lines[2:]
+
+
+async def test_entries_appended_during_an_export_are_not_in_it(
+        api: Api, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The headers (count, root, signature) are made in the first pass; an entry appended
+    before the second pass reads the body must not go out under a root that does not hold it."""
+    lines = await _entries_over_time(api)
+    loop = asyncio.get_running_loop()
+    real = _audit_export._body_chunk
+    appended: list[int] = []
+
+    def body_chunk(*args: Any) -> tuple[bytes, int]:
+        if not appended:  # on the reader thread: a stop is logged meanwhile
+            stop = api.command("planner", {"action": "stop"})
+            appended.append(asyncio.run_coroutine_threadsafe(stop, loop).result(10)[0])
+        return real(*args)
+
+    monkeypatch.setattr(_audit_export, "_body_chunk", body_chunk)
+    status, headers, body = await export(api, "")
+    assert (status, appended) == (200, [200])
+    assert len((api.tmp / "audit.jsonl").read_bytes().splitlines()) == len(lines) + 1
+    assert body.splitlines()[1:] == lines and headers["X-Audit-Count"] == str(len(lines))
+    _check_root_and_sig(api, headers, lines)

@@ -759,3 +759,20 @@ async def test_an_invoke_sent_again_is_answered_from_its_first_decision(move_api
         200, "success", first[1]["audit_id"]), again
     assert [a for a, _ in api.dispatcher.calls] == ["move"]  # run once
     assert [e["status"] for e in results(api, "inv-r")] == ["success", "success"]
+
+
+async def test_a_cancel_whose_goal_does_not_wind_down_in_time_is_answered_cancelling(
+        api: Api) -> None:
+    """§19.4 `cancel_timeout_ms`: the cancel is answered 202 `cancelling` when the goal has not
+    ended in time; the INVOKE's own answer follows once it does."""
+    reply = asyncio.create_task(api.command("planner", invoke("go_home", "inv-slow")))
+    await sent(api, "navigate")
+    slow = cancel("inv-slow")
+    slow["payload"]["cancel_timeout_ms"] = 50  # the goal below never ends on its own
+    status, body = await api.command("planner", slow)
+    assert (status, body["status"], body["reason"], body["reply_to"]) == (
+        202, "cancelled", "cancelling", "inv-slow"), body
+    assert api.dispatcher.cancelled == ["goal-1"] and not reply.done()
+    api.robot.goal_changed(ended("goal-1", "canceled"))
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["status"], body["error"]["code"]) == (200, "cancelled", 7007), body

@@ -589,3 +589,11 @@ def test_the_replay_window_is_bounded_as_the_profile_says(line: str, words: str)
     text = MINIMAL + f"  security: {{{line}}}\n"
     got_path, _, message = only_issue(text)
     assert got_path == "$.bridge.security.replay_window_s" and words in message
+
+
+def test_an_optional_ros_name_is_checked_on_construction_too() -> None:
+    """`nav_action: RosTopic | None`: the loader refused '0' but Ros2Config(nav_action='0')
+    and msgspec.convert took it (Hypothesis found it: test_mutated_configs_load_exactly...)."""
+    with pytest.raises(ValueError, match="`nav_action`: is not a valid ROS name"):
+        Ros2Config(nav_action="0")
+    assert Ros2Config(nav_action=None).nav_action is None

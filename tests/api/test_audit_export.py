@@ -4,6 +4,7 @@ X-Audit-Chain-Root and X-Audit-Issuer-Sig; a bad parameter is a 400 JSON body, n
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import csv
 import hashlib
@@ -66,6 +67,7 @@ async def test_jsonl_is_a_header_then_the_entries_verbatim(api: Api) -> None:
                     "chain_root": headers["X-Audit-Chain-Root"],
                     "issuer_sig": headers["X-Audit-Issuer-Sig"],
                     "kid": headers["X-Audit-Kid"], "rcan_version": "3.2"}
+    assert headers["X-Audit-Count"] == "2"
     _check_root_and_sig(api, headers, chosen)
 
 
@@ -152,3 +154,38 @@ def test_csv_columns_follow_the_audit_record() -> None:
 
     columns: tuple[Any, ...] = _audit_export.CSV_COLUMNS
     assert set(AuditRecord.__struct_fields__) <= set(columns) and columns[-1] == "entry"
+
+
+async def test_from_and_to_take_up_to_three_decimals(api: Api) -> None:
+    """Milliseconds: the log's own resolution (`timestamp_ms`), so an export can start or end
+    between two entries logged within the same second."""
+    lines = await _entries_over_time(api)
+    status, _, body = await export(api, f"?from={T0 + 9.999}&to={T0 + 20.001}")
+    assert status == 200, body
+    header, *exported = body.splitlines()
+    assert json.loads(header)["from"] == T0 + 9.999 and exported == lines[1:3]
+    status, _, body = await export(api, f"?from={T0 + 10.001}")
+    assert (status, body.splitlines()[1:]) == (200, lines[2:])
+
+
+async def test_entries_appended_during_an_export_are_not_in_it(
+        api: Api, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The headers (count, root, signature) are made in the first pass; an entry appended
+    before the second pass reads the body must not go out under a root that does not hold it."""
+    lines = await _entries_over_time(api)
+    loop = asyncio.get_running_loop()
+    real = _audit_export._body_chunk
+    appended: list[int] = []
+
+    def body_chunk(*args: Any) -> tuple[bytes, int]:
+        if not appended:  # on the reader thread: a stop is logged meanwhile
+            stop = api.command("planner", {"action": "stop"})
+            appended.append(asyncio.run_coroutine_threadsafe(stop, loop).result(10)[0])
+        return real(*args)
+
+    monkeypatch.setattr(_audit_export, "_body_chunk", body_chunk)
+    status, headers, body = await export(api, "")
+    assert (status, appended) == (200, [200])
+    assert len((api.tmp / "audit.jsonl").read_bytes().splitlines()) == len(lines) + 1
+    assert body.splitlines()[1:] == lines and headers["X-Audit-Count"] == str(len(lines))
+    _check_root_and_sig(api, headers, lines)

@@ -169,5 +169,9 @@ async def test_under_a_required_signature_policy_authorize_is_refused(tmp_path: 
         invoke = {"type": "INVOKE", "skill": "go_home", "msg_id": "inv-1"}
         status, body = await harness.command("ops", invoke)
         assert (status, body["error_code"]) == (403, "SIGNATURE_REQUIRED"), body
+        # nor INVOKE_CANCEL (a `stop` is what stops a robot whatever its signature says)
+        cancel = {"type": "INVOKE_CANCEL", "payload": {"msg_id": "inv-1"}}
+        status, body = await harness.command("ops", cancel)
+        assert (status, body["error_code"]) == (403, "SIGNATURE_REQUIRED"), body
     finally:
         await harness.close()

@@ -70,6 +70,9 @@ async def test_not_an_object(api: Api, raw: bytes) -> None:
                                         "duration_s": 1, "group": "arm\n"}}, "$.params.group"),
     ({"action": "lock", "params": {"name": "door\n"}}, "$.params.name"),
     ({"rcan": "3.2", "cmd": "move", "msg_id": "m-1\n", "params": {}}, "$.msg_id"),
+    # docs/rcan-profile.md: a msg_id is 1-64 characters of [A-Za-z0-9._:-]
+    ({"rcan": "3.2", "cmd": "move", "msg_id": "m" * 65, "params": {}}, "$.msg_id"),
+    ({"rcan": "3.2", "cmd": "move", "msg_id": "m 1", "params": {}}, "$.msg_id"),
 ], ids=lambda v: v if isinstance(v, str) else None)
 async def test_wrong_types(api: Api, body: dict[str, Any], path: str) -> None:
     await _schema_refusal(api, json.dumps(body).encode(), path)

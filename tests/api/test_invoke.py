@@ -716,3 +716,63 @@ async def test_a_replayed_versioned_invoke_is_refused_whichever_field_names_it(
     status, again = await api.command("planner", body)
     assert (status, again["error_code"]) == (409, "REPLAY_DETECTED"), again
     assert [a for a, _ in api.dispatcher.calls] == ["move"]
+
+
+async def test_an_invoke_a_higher_move_holds_the_base_from_is_a_skill_conflict(
+        move_api: Api) -> None:
+    """§19.3's 7005 SkillConflict: the arbiter refuses the skill's move because a higher
+    principal's stream holds the base; told apart from any other refusal (7006)."""
+    api = move_api
+    status, held = await api.command("ops", {"action": "move", "params": {"linear_x": 0.1}})
+    assert (status, held["outcome"]) == (200, "executed"), held
+    status, body = await api.command("planner", nudge("inv-x", 0.5))
+    assert (status, body["status"], body["error"]["code"], body["error"]["name"]) == (
+        409, "failure", 7005, "SkillConflict"), body
+    [result] = results(api, "inv-x")
+    assert result["params"]["error"] == {"code": 7005, "name": "SkillConflict"}, result
+    active = api.gov.streams.active  # ops's move drives on
+    assert active is not None and active.owner == "ops"
+
+
+async def test_a_cancel_naming_another_principal_as_its_sender_is_refused(api: Api) -> None:
+    """rcan-spec's INVOKE_CANCEL `principal_id` must be the authenticated principal: a cancel
+    that claims to be someone else's cancels nothing (403, audited)."""
+    status, body = await api.command("planner", invoke("raise_elbow", "inv-who"))
+    assert (status, body["status"]) == (202, "pending"), body
+    flat = {**json.loads((DATA / "invoke-cancel.json").read_text())["examples"][0],
+            "message_type": 13, "ruri": TARGET, "principal_id": "ops",
+            "cancel_msg_id": "inv-who"}
+    status, body = await api.command("planner", flat)
+    assert (status, body["reason"]) == (403, "principal_id_not_yours"), body
+    assert api.entry(body["audit_id"])["event"] == "COMMAND_REJECTED"
+    assert len(api.gov.pending()) == 1  # still held for its reviewer
+
+
+async def test_an_invoke_sent_again_is_answered_from_its_first_decision(move_api: Api) -> None:
+    """An unversioned INVOKE retried with its msg_id (no replay window: the idempotent retry)
+    runs its skill once; the retry's answer is the first one, and is audited again."""
+    api = move_api
+    first = await api.command("planner", nudge("inv-r", 0.2))
+    assert (first[0], first[1]["status"]) == (200, "success"), first
+    again = await api.command("planner", nudge("inv-r", 0.2))
+    assert (again[0], again[1]["status"], again[1]["audit_id"]) == (
+        200, "success", first[1]["audit_id"]), again
+    assert [a for a, _ in api.dispatcher.calls] == ["move"]  # run once
+    assert [e["status"] for e in results(api, "inv-r")] == ["success", "success"]
+
+
+async def test_a_cancel_whose_goal_does_not_wind_down_in_time_is_answered_cancelling(
+        api: Api) -> None:
+    """§19.4 `cancel_timeout_ms`: the cancel is answered 202 `cancelling` when the goal has not
+    ended in time; the INVOKE's own answer follows once it does."""
+    reply = asyncio.create_task(api.command("planner", invoke("go_home", "inv-slow")))
+    await sent(api, "navigate")
+    slow = cancel("inv-slow")
+    slow["payload"]["cancel_timeout_ms"] = 50  # the goal below never ends on its own
+    status, body = await api.command("planner", slow)
+    assert (status, body["status"], body["reason"], body["reply_to"]) == (
+        202, "cancelled", "cancelling", "inv-slow"), body
+    assert api.dispatcher.cancelled == ["goal-1"] and not reply.done()
+    api.robot.goal_changed(ended("goal-1", "canceled"))
+    status, body = await asyncio.wait_for(reply, 10)
+    assert (status, body["status"], body["error"]["code"]) == (200, "cancelled", 7007), body

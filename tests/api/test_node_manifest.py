@@ -86,3 +86,15 @@ async def test_the_sdk_parses_and_verifies_it_over_tls(
     assert manifest["api_base"] == url + "/api"
     assert NodeClient().verify_node(manifest)  # the SDK's own well-formedness rules
     assert manifest["ruri"] == RURI
+
+
+async def test_api_base_is_the_connections_never_the_host_header(api: Api) -> None:
+    """A client that pins the manifest's `api_base` must not be sent where a Host (or a
+    forwarded host) header of someone else's request said."""
+    spoofed = {"Host": "evil.example:443", "X-Forwarded-Host": "evil.example",
+               "X-Forwarded-Proto": "https", "Forwarded": "host=evil.example;proto=https"}
+    status, manifest = await api.call("GET", PATH, headers=spoofed)
+    assert status == 200
+    host, port = api.http.server.host, api.http.server.port
+    assert manifest["api_base"] == f"http://{host}:{port}/api"
+

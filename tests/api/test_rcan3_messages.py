@@ -162,7 +162,9 @@ async def test_a_heartbeat_message_holds_the_control_session(api: Api) -> None:
     status, _ = await api.command("planner", sdk_command(api, "move", {"linear_x": 0.2}))
     assert status == 200  # a held move: as long as planner's session lasts
     api.clock.advance(50)  # session_timeout_s is 60
+    logged = len(api.entries)
     status, body = await api.command("planner", heartbeat(api))
+    assert len(api.entries) == logged  # a HEARTBEAT is no command: not audited
     assert (status, body["ok"], body["status"], body["principal"]) == (200, True, "ok",
                                                                        "planner"), body
     assert body["msg_id"] == "f6a7b8c9-d0e1-2345-fabc-456789012345"

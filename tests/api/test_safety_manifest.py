@@ -73,6 +73,7 @@ async def test_audit_facts_name_the_log_head_and_tree_head(api: Api, tmp_path: P
     assert manifest["audit"]["tree_head"] == json.loads(heads[-1])
     assert manifest["audit"]["tree_head"]["tree_size"] == last["seq"]
     assert manifest["audit_enabled"] is True and manifest["audit"]["healthy"] is True
+    assert manifest["audit_retention_days"] is None  # the bridge never prunes its log
 
 
 async def test_clock_fields_are_the_kernels(api: Api) -> None:

@@ -578,3 +578,22 @@ def test_a_number_yaml_reads_as_text_says_so(value: str) -> None:
     assert f"reads the unquoted {value} as text" in message and "1.0e+3" in message
     nan = MINIMAL.replace("max_linear_vel: 1.5", "max_linear_vel: nan")
     assert only_issue(nan)[2] == "Expected `float`, got `str`"  # a word, not digits
+
+
+@pytest.mark.parametrize(("line", "words"), [
+    ("replay_window_s: 4.9", "Expected `float` >= 5.0"),
+    ("replay_window_s: 301", "Expected `float` <= 300.0"),
+])
+def test_the_replay_window_is_bounded_as_the_profile_says(line: str, words: str) -> None:
+    """docs/rcan-profile.md §8.3: `replay_window_s` 5-300 s (a longer one keeps replays open)."""
+    text = MINIMAL + f"  security: {{{line}}}\n"
+    got_path, _, message = only_issue(text)
+    assert got_path == "$.bridge.security.replay_window_s" and words in message
+
+
+def test_an_optional_ros_name_is_checked_on_construction_too() -> None:
+    """`nav_action: RosTopic | None`: the loader refused '0' but Ros2Config(nav_action='0')
+    and msgspec.convert took it (Hypothesis found it: test_mutated_configs_load_exactly...)."""
+    with pytest.raises(ValueError, match="`nav_action`: is not a valid ROS name"):
+        Ros2Config(nav_action="0")
+    assert Ros2Config(nav_action=None).nav_action is None

@@ -29,3 +29,22 @@ def test_the_first_sender_keeps_the_thought_and_sees_who_else_named_it() -> None
     assert theirs is not None and (theirs.model, theirs.also_named_by[:1]) == (
         "forged-0", ["planner"])
     assert log.read("th", OPS, f"p{NAMERS}") is None  # past the bound: the audit has it
+
+
+def _thought(log: ThoughtLog, thought_id: str, n: int = 0) -> None:
+    sent = command("stop", {}, ai_provider="acme", ai_model="m", thought_id=thought_id)
+    log.remember(sent, principal("planner", Role.USER), n, outcome="executed", audit_id=None)
+
+
+def test_the_log_keeps_the_newest_thoughts_and_each_ones_newest_commands() -> None:
+    """docs/rcan-profile.md §16.5: the last 1 024 thoughts, each with up to 64 commands (a
+    bridge that ran for months must not grow without bound; the audit log has everything)."""
+    log = ThoughtLog()
+    for n in range(70):
+        _thought(log, "busy", n)
+    busy = log.read("busy", OPS)
+    assert busy is not None and len(busy.commands) == 64
+    for n in range(1024):
+        _thought(log, f"t{n}")
+    assert log.read("busy", OPS) is None  # the oldest let go first
+    assert log.read("t0", OPS) is not None and log.read("t1023", OPS) is not None

@@ -56,11 +56,23 @@ def field_check(info: msgspec.inspect.Type) -> Problem | None:
     return None
 
 
+def _optional_check(info: msgspec.inspect.Type) -> Problem | None:
+    """The check of `X | None`'s X, passing None: the loader's walk checks the value of an
+    optional field, so direct construction (and msgspec.convert) must too."""
+    if not isinstance(info, msgspec.inspect.UnionType):
+        return field_check(info)
+    checks = [field_check(t) for t in info.types if not isinstance(t, msgspec.inspect.NoneType)]
+    if len(checks) != 1 or checks[0] is None:
+        return None
+    inner = checks[0]
+    return lambda value: None if value is None else inner(value)
+
+
 @functools.cache
 def _field_checks(cls: type[msgspec.Struct]) -> tuple[tuple[str, Problem], ...]:
     info = msgspec.inspect.type_info(cls)
     assert isinstance(info, msgspec.inspect.StructType)
-    checks = ((field.name, field_check(field.type)) for field in info.fields)
+    checks = ((field.name, _optional_check(field.type)) for field in info.fields)
     return tuple((name, problem) for name, problem in checks if problem is not None)
 
 

@@ -176,7 +176,8 @@ async def _recorded(node: RosNode, selection: _Selection, output: Path, stop: as
     deadline = time.monotonic() + duration if duration > 0 else None
     print(f"Recording to '{output}'...", flush=True)
     try:
-        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline) \
+                and writer.failure is None:  # a full disk ends the recording
             graph.refresh()
             for topic, pubs in _publishers_by_topic(graph).items():
                 if selection.wants(topic):

@@ -259,6 +259,14 @@ def test_a_file_shorter_than_a_footer_is_cut_short(tmp_path: Path) -> None:
         list(BagReader(file).messages())
 
 
+def test_no_topics_wanted_reads_no_messages(tmp_path: Path) -> None:
+    # `play` of a bag none of whose topics it can publish (unknown types, not CDR) asks for
+    # no topics: the library read that as all, and play failed on the first (KeyError)
+    file = _valid_bag(tmp_path / "bag")
+    assert list(BagReader(file).messages(set())) == []
+    assert len(list(BagReader(file).messages())) == 20
+
+
 # -- byte mutation ----------------------------------------------------------------
 @pytest.fixture(scope="module")
 def seed_files(tmp_path_factory: pytest.TempPathFactory) -> list[bytes]:

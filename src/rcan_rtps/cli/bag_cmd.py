@@ -16,6 +16,7 @@ from typing import Any
 from .. import _stop_signals as stop_signals
 from ..ros import qos as qos_mod
 from ..ros.bag import (
+    BagError,
     BagMessage,
     BagReader,
     BagSummary,
@@ -24,6 +25,7 @@ from ..ros.bag import (
     qos_dict,
     reindex,
 )
+from ..ros.errors import CdrDecodeError
 from ..ros.graph import Direction, Endpoint, RosGraph
 from ..ros.names import is_hidden
 from ..ros.participant import RosNode, RosPublisher, RosSubscription
@@ -228,6 +230,10 @@ def _publishers(node: RosNode, topics: list[BagTopic],
                 remaps: dict[str, str]) -> dict[str, RosPublisher]:
     publishers = {}
     for topic in topics:
+        if topic.serialization_format != "cdr":  # its bytes would go out as CDR
+            print(f"warning: '{topic.name}' is encoded {topic.serialization_format[:32]!r}, "
+                  "not cdr; not played", file=sys.stderr)
+            continue
         if topic.type not in node.store:
             print(f"warning: type {topic.type} of '{topic.name}' is unknown (add its IDL with "
                   "--idl-path); not played", file=sys.stderr)
@@ -267,11 +273,13 @@ async def _play(args: argparse.Namespace) -> int:
         await _await_matches(node, publishers)
         if args.delay > 0:
             await asyncio.sleep(args.delay)
+        refused = _Refused()
         while True:
-            await _play_once(node, reader, summary, publishers, args)
+            await _play_once(node, reader, summary, publishers, args, refused)
             if not args.loop:
                 break
         await asyncio.sleep(0.3)  # let reliable delivery finish before the participant goes
+    refused.check(args.bag)
     return 0
 
 
@@ -287,8 +295,28 @@ def playback(messages: Iterable[BagMessage], begin_ns: int, end_ns: int | None,
         yield (message.log_time_ns - begin_ns) / 1e9 / rate, message
 
 
+class _Refused:
+    """The bag's messages DDS refused to publish (not the CDR of their topic's type): played
+    past, then told in one line when the playback ends."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.first = ""
+
+    def add(self, message: BagMessage, error: CdrDecodeError) -> None:
+        if not self.count:
+            self.first = f"'{message.topic}' at {format_seconds(message.log_time_ns)}: {error}"
+        self.count += 1
+
+    def check(self, bag: str) -> None:
+        if self.count:
+            raise BagError(f"{self.count} message(s) of '{bag}' were not published, DDS "
+                           f"refused them (first: {self.first}); the others were played")
+
+
 async def _play_once(node: RosNode, reader: BagReader, summary: BagSummary,
-                     publishers: dict[str, RosPublisher], args: argparse.Namespace) -> None:
+                     publishers: dict[str, RosPublisher], args: argparse.Namespace,
+                     refused: _Refused) -> None:
     begin_ns = summary.start_ns + round(args.start_offset * 1e9)
     end_ns = begin_ns + round(args.playback_duration * 1e9) \
         if args.playback_duration >= 0 else None
@@ -299,7 +327,10 @@ async def _play_once(node: RosNode, reader: BagReader, summary: BagSummary,
         # when the bag is played faster than it can be.
         await asyncio.sleep(max(0.0, start + offset - time.monotonic()))
         pub = publishers[message.topic]
-        pub.publish_cdr(message.data)
+        try:
+            pub.publish_cdr(message.data)
+        except CdrDecodeError as exc:  # a damaged or hostile bag's message
+            refused.add(message, exc)
 
 
 # -- info -------------------------------------------------------------------------

@@ -535,7 +535,10 @@ class BagReader:
                           _distro_of(self.path, records))
 
     def messages(self, topics: set[str] | None = None) -> Iterator[BagMessage]:
-        """Every message in receive-time order (per file, files in order)."""
+        """Every message in receive-time order (per file, files in order); of `topics` only,
+        when given (an empty set: none, where the library would read all)."""
+        if topics is not None and not topics:
+            return
         for file in self.files:
             check_mcap(file)
             with open_regular(file) as stream:

@@ -31,6 +31,7 @@ from mcap.records import (
     Footer,
     Header,
     McapRecord,
+    Message,
     Schema,
     Statistics,
 )
@@ -265,6 +266,34 @@ def test_no_topics_wanted_reads_no_messages(tmp_path: Path) -> None:
     file = _valid_bag(tmp_path / "bag")
     assert list(BagReader(file).messages(set())) == []
     assert len(list(BagReader(file).messages())) == 20
+
+
+def test_reindex_says_what_it_could_not_carry_over(tmp_path: Path) -> None:
+    # channel 1 defined twice (another topic and schema the second time) and a message of a
+    # channel never defined: reindex kept the first definition and dropped the message,
+    # saying nothing of either
+    string = serialize(STRING, {"data": "hi"})
+    records = [
+        Schema(id=1, name=STRING, encoding="ros2msg", data=b"string data\n"),
+        Schema(id=2, name="std_msgs/msg/Int32", encoding="ros2msg", data=b"int32 data\n"),
+        Channel(id=1, topic="/a", message_encoding="cdr", schema_id=1, metadata={}),
+        Message(channel_id=1, sequence=0, log_time=1, publish_time=1, data=string),
+        Channel(id=1, topic="/b", message_encoding="cdr", schema_id=2, metadata={}),
+        Message(channel_id=1, sequence=1, log_time=2, publish_time=2, data=string),
+        Message(channel_id=7, sequence=0, log_time=3, publish_time=3, data=string),
+    ]
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "bag_0.mcap").write_bytes(
+        MAGIC + _record(Header(profile="ros2", library="test"))
+        + b"".join(_record(r) for r in records) + _record(DataEnd(data_section_crc=0))
+        + _record(Footer(summary_start=0, summary_offset_start=0, summary_crc=0)) + MAGIC)
+    done = _cli("bag", "reindex", str(bag))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines()[0] == (
+        f"Reindexed '{bag / 'bag_0.mcap'}': 2 messages (left out 1 messages of a channel "
+        "the file never defines; 1 schema or channel ids defined again otherwise: the first "
+        "definition kept)")
 
 
 # -- byte mutation ----------------------------------------------------------------

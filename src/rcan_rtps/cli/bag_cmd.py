@@ -22,6 +22,7 @@ from ..ros.bag import (
     BagSummary,
     BagTopic,
     BagWriter,
+    ReindexedFile,
     qos_dict,
     reindex,
 )
@@ -386,10 +387,22 @@ def info_command(args: argparse.Namespace) -> int:
 
 
 # -- reindex ----------------------------------------------------------------------
+def _left_out(done: ReindexedFile) -> str:
+    """What a damaged file's rebuild could not carry over, as the end of its line."""
+    notes = []
+    if done.dropped_bytes:
+        notes.append(f"left out a torn last record of {done.dropped_bytes} B")
+    if done.unattributed:
+        notes.append(f"left out {done.unattributed} messages of a channel the file never "
+                     "defines")
+    if done.redefined:
+        notes.append(f"{done.redefined} schema or channel ids defined again otherwise: the "
+                     "first definition kept")
+    return f" ({'; '.join(notes)})" if notes else ""
+
+
 def reindex_command(args: argparse.Namespace) -> int:
     for done in reindex(Path(args.bag), args.distro or ""):
-        torn = f" (left out a torn last record of {done.dropped_bytes} B)" \
-            if done.dropped_bytes else ""
-        print(f"Reindexed '{done.path}': {done.messages} messages{torn}")
+        print(f"Reindexed '{done.path}': {done.messages} messages{_left_out(done)}")
     print(f"Wrote '{Path(args.bag) / 'metadata.yaml'}'")
     return 0

@@ -769,6 +769,8 @@ class ReindexedFile:
     path: Path
     messages: int
     dropped_bytes: int  # the torn record(s) at the end, left out
+    unattributed: int = 0  # messages of a channel the file never defines: left out
+    redefined: int = 0  # schema or channel ids defined again with other contents: the first kept
 
 
 def complete_records(stream: IO[bytes]) -> tuple[int, int]:
@@ -820,25 +822,30 @@ def reindex_file(file: Path, distro: str) -> tuple[ReindexedFile, list[_TopicRec
             temporary.unlink(missing_ok=True)
             raise
         os.replace(temporary, file)
-    count, topics, (first, last) = result
-    return ReindexedFile(file, count, dropped), topics, (first, last)
+    count, topics, (first, last), left = result
+    return ReindexedFile(file, count, dropped, *left), topics, (first, last)
 
 
 def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path
-             ) -> tuple[int, list[_TopicRecord], tuple[int, int]]:
+             ) -> tuple[int, list[_TopicRecord], tuple[int, int], tuple[int, int]]:
     """Writes `records` anew with `writer` (summary and indexes at the end): the message
-    count, the topics, and the first and last receive times."""
+    count, the topics, the first and last receive times, and what was left out (messages of
+    no channel; schema or channel ids defined again otherwise, of which the first is kept)."""
     topics: dict[int, _TopicRecord] = {}
     schema_ids: dict[int, int] = {}
     schema_names: dict[int, str] = {}
     channels: dict[int, int] = {}
-    first, last, count = 2**63, 0, 0
+    first_seen: dict[tuple[type, int], Any] = {}
+    first, last, count, unattributed, redefined = 2**63, 0, 0, 0, 0
     profile, library = "ros2", f"rcan-rtps {__version__} (reindex)"
     header = next(records, None)
     if header is not None and hasattr(header, "profile"):
         profile = header.profile or profile
     writer.start(profile=profile, library=library)
     for record in records:
+        if isinstance(record, (Schema, Channel)):
+            known = first_seen.setdefault((type(record), record.id), record)
+            redefined += known != record  # (the summary repeats them as they were)
         if isinstance(record, Schema) and record.id not in schema_ids:
             schema_ids[record.id] = writer.register_schema(record.name, record.encoding,
                                                            record.data)
@@ -852,7 +859,9 @@ def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path
                 record.metadata.get("topic_type_hash", ""),
                 _offered_list(record.metadata.get("offered_qos_profiles", "")),
                 channels[record.id])
-        elif isinstance(record, Message) and record.channel_id in channels:
+        elif isinstance(record, Message) and record.channel_id not in channels:
+            unattributed += 1
+        elif isinstance(record, Message):
             writer.add_message(channels[record.channel_id], log_time=record.log_time,
                                data=record.data, publish_time=record.publish_time,
                                sequence=record.sequence)
@@ -865,7 +874,7 @@ def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path
     writer.add_metadata("rosbag2", {
         "serialized_metadata": yaml.safe_dump(info, sort_keys=False), "ROS_DISTRO": distro})
     writer.finish()
-    return count, list(topics.values()), (first, last)
+    return count, list(topics.values()), (first, last), (unattributed, redefined)
 
 
 def _offered_list(text: str) -> list[dict[str, Any]]:

@@ -192,7 +192,8 @@ class BagWriter:
         self.file_name = f"{directory.name}_0.mcap"
         self.store = store
         self._stream = (directory / self.file_name).open("wb")
-        fcntl.flock(self._stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with contextlib.suppress(OSError):  # a file system without locks: recorded unlocked
+            fcntl.flock(self._stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         self._mcap = Writer(self._stream, compression=CompressionType.NONE)
         self._schemas: dict[str, int] = {}
         self._topics: dict[str, _TopicRecord] = {}
@@ -804,6 +805,8 @@ def _not_being_recorded(file: Path) -> Iterator[IO[bytes]]:
         except BlockingIOError:
             raise BagError(f"'{file}' is being recorded (its recorder holds it); reindex it "
                            "once the recording ends") from None
+        except OSError:  # a file system without locks: no recorder can have locked it either
+            pass
         yield stream
 
 

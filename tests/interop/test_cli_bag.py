@@ -307,3 +307,49 @@ def test_a_recorder_ended_by_a_signal_closes_a_complete_bag(
     assert "Topic: /hup/chatter | Type: std_msgs/msg/String | Count: 3 |" in info.stdout
     _, messages = read_bag(bag)
     assert [m.data for _, m in messages["/hup/chatter"]] == ["before the signal"] * 3
+
+
+def test_a_message_dds_refuses_is_played_past_and_told_in_one_line(
+        oracle: RclpyOracle, domain_id: int, tmp_path: Path) -> None:
+    """A bag's string whose CDR claims 2^31 bytes in 4 (red team 22): Cyclone refuses it
+    (BAD_PARAMETER), which tracebacked `play`; now the messages around it are played and one
+    line at the end says what was not."""
+    from rcan_rtps.ros.bag import BagWriter
+    from rcan_rtps.ros.serialization import serialize
+    from rcan_rtps.ros.typesys.store import TypeStore
+
+    bag = tmp_path / "lying"
+    writer = BagWriter(bag, TypeStore(distro="jazzy"), flush_period=60)
+    writer.add_topic("/lying/chatter", "std_msgs/msg/String", [])
+    lie = b"\x00\x01\x00\x00" + (2**31).to_bytes(4, "little")
+    for i, data in enumerate([serialize("std_msgs/msg/String", {"data": "before"}), lie,
+                              serialize("std_msgs/msg/String", {"data": "after"})]):
+        writer.write("/lying/chatter", 1_000_000_000 + i * 10_000_000, data)
+    writer.close()
+
+    oracle.call("subscribe", topic="/lying/chatter", type="std_msgs/msg/String")
+    played = cli(domain_id, "bag", "play", str(bag), "-d", PLAY_DELAY)
+    assert played.returncode == 1 and "Traceback" not in played.stderr, played.stderr
+    (line,) = played.stderr.strip().splitlines()
+    assert line.startswith(f"rcan-rtps: error: 1 message(s) of '{bag}' were not published")
+    assert "'/lying/chatter' at 1.010000000" in line
+    assert [m["data"] for m in take_all(oracle, "/lying/chatter", 2)] == ["before", "after"]
+
+
+def test_a_topic_not_in_cdr_is_not_played(domain_id: int, tmp_path: Path) -> None:
+    """A channel whose messages are JSON, with a ROS type's name (red team 22): its bytes
+    went out as that type's CDR."""
+    from mcap.writer import Writer
+
+    file = tmp_path / "json.mcap"
+    with file.open("wb") as stream:
+        writer = Writer(stream)
+        writer.start(profile="ros2", library="test")
+        schema = writer.register_schema("std_msgs/msg/String", "ros2msg", b"string data\n")
+        channel = writer.register_channel("/json/chatter", "json", schema, {})
+        writer.add_message(channel, log_time=1, publish_time=1, data=b'{"data": "hi"}')
+        writer.finish()
+    played = cli(domain_id, "bag", "play", str(file))
+    assert played.returncode == 0, played.stderr
+    assert played.stderr.strip() == \
+        "warning: '/json/chatter' is encoded 'json', not cdr; not played"

@@ -16,14 +16,17 @@ from typing import Any
 from .. import _stop_signals as stop_signals
 from ..ros import qos as qos_mod
 from ..ros.bag import (
+    BagError,
     BagMessage,
     BagReader,
     BagSummary,
     BagTopic,
     BagWriter,
+    ReindexedFile,
     qos_dict,
     reindex,
 )
+from ..ros.errors import CdrDecodeError
 from ..ros.graph import Direction, Endpoint, RosGraph
 from ..ros.names import is_hidden
 from ..ros.participant import RosNode, RosPublisher, RosSubscription
@@ -176,7 +179,8 @@ async def _recorded(node: RosNode, selection: _Selection, output: Path, stop: as
     deadline = time.monotonic() + duration if duration > 0 else None
     print(f"Recording to '{output}'...", flush=True)
     try:
-        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline) \
+                and writer.failure is None:  # a full disk ends the recording
             graph.refresh()
             for topic, pubs in _publishers_by_topic(graph).items():
                 if selection.wants(topic):
@@ -227,6 +231,10 @@ def _publishers(node: RosNode, topics: list[BagTopic],
                 remaps: dict[str, str]) -> dict[str, RosPublisher]:
     publishers = {}
     for topic in topics:
+        if topic.serialization_format != "cdr":  # its bytes would go out as CDR
+            print(f"warning: '{topic.name}' is encoded {topic.serialization_format[:32]!r}, "
+                  "not cdr; not played", file=sys.stderr)
+            continue
         if topic.type not in node.store:
             print(f"warning: type {topic.type} of '{topic.name}' is unknown (add its IDL with "
                   "--idl-path); not played", file=sys.stderr)
@@ -266,11 +274,13 @@ async def _play(args: argparse.Namespace) -> int:
         await _await_matches(node, publishers)
         if args.delay > 0:
             await asyncio.sleep(args.delay)
+        refused = _Refused()
         while True:
-            await _play_once(node, reader, summary, publishers, args)
+            await _play_once(node, reader, summary, publishers, args, refused)
             if not args.loop:
                 break
         await asyncio.sleep(0.3)  # let reliable delivery finish before the participant goes
+    refused.check(args.bag)
     return 0
 
 
@@ -286,8 +296,28 @@ def playback(messages: Iterable[BagMessage], begin_ns: int, end_ns: int | None,
         yield (message.log_time_ns - begin_ns) / 1e9 / rate, message
 
 
+class _Refused:
+    """The bag's messages DDS refused to publish (not the CDR of their topic's type): played
+    past, then told in one line when the playback ends."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.first = ""
+
+    def add(self, message: BagMessage, error: CdrDecodeError) -> None:
+        if not self.count:
+            self.first = f"'{message.topic}' at {format_seconds(message.log_time_ns)}: {error}"
+        self.count += 1
+
+    def check(self, bag: str) -> None:
+        if self.count:
+            raise BagError(f"{self.count} message(s) of '{bag}' were not published, DDS "
+                           f"refused them (first: {self.first}); the others were played")
+
+
 async def _play_once(node: RosNode, reader: BagReader, summary: BagSummary,
-                     publishers: dict[str, RosPublisher], args: argparse.Namespace) -> None:
+                     publishers: dict[str, RosPublisher], args: argparse.Namespace,
+                     refused: _Refused) -> None:
     begin_ns = summary.start_ns + round(args.start_offset * 1e9)
     end_ns = begin_ns + round(args.playback_duration * 1e9) \
         if args.playback_duration >= 0 else None
@@ -298,7 +328,10 @@ async def _play_once(node: RosNode, reader: BagReader, summary: BagSummary,
         # when the bag is played faster than it can be.
         await asyncio.sleep(max(0.0, start + offset - time.monotonic()))
         pub = publishers[message.topic]
-        pub.publish_cdr(message.data)
+        try:
+            pub.publish_cdr(message.data)
+        except CdrDecodeError as exc:  # a damaged or hostile bag's message
+            refused.add(message, exc)
 
 
 # -- info -------------------------------------------------------------------------
@@ -354,10 +387,22 @@ def info_command(args: argparse.Namespace) -> int:
 
 
 # -- reindex ----------------------------------------------------------------------
+def _left_out(done: ReindexedFile) -> str:
+    """What a damaged file's rebuild could not carry over, as the end of its line."""
+    notes = []
+    if done.dropped_bytes:
+        notes.append(f"left out a torn last record of {done.dropped_bytes} B")
+    if done.unattributed:
+        notes.append(f"left out {done.unattributed} messages of a channel the file never "
+                     "defines")
+    if done.redefined:
+        notes.append(f"{done.redefined} schema or channel ids defined again otherwise: the "
+                     "first definition kept")
+    return f" ({'; '.join(notes)})" if notes else ""
+
+
 def reindex_command(args: argparse.Namespace) -> int:
     for done in reindex(Path(args.bag), args.distro or ""):
-        torn = f" (left out a torn last record of {done.dropped_bytes} B)" \
-            if done.dropped_bytes else ""
-        print(f"Reindexed '{done.path}': {done.messages} messages{torn}")
+        print(f"Reindexed '{done.path}': {done.messages} messages{_left_out(done)}")
     print(f"Wrote '{Path(args.bag) / 'metadata.yaml'}'")
     return 0

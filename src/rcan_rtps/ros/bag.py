@@ -17,21 +17,27 @@ complete bag (summary, indexes, metadata) like `ros2 bag reindex`.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import io
 import os
+import stat
 import struct
-import sys
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, cast
 
+import lz4.frame
 import yaml
-from mcap.exceptions import McapError
+import zstandard
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import make_reader
-from mcap.records import Channel, Message, Metadata, Schema
+from mcap.records import Channel, Chunk, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
+from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
 from .. import __version__
@@ -48,6 +54,14 @@ FLUSH_PERIOD = 0.5  # s: the most a killed recorder loses (and the age of metada
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 RECORD_HEAD = struct.Struct("<BQ")  # every MCAP record: opcode, then length
 REINDEX_HINT = "`rcan-rtps bag reindex {bag}` rebuilds its summary and index"
+# A chunk (compressed or inflated) larger than this is refused, not read: a hostile file's
+# chunk can claim, or inflate to, any size. rosbag2 closes a chunk at about 1 MiB; one message
+# (a point cloud, an image) can make it larger, rarely near this.
+CHUNK_LIMIT = 512 * 2**20
+COMPRESSIONS = ("", "zstd", "lz4")
+# A bag's metadata.yaml is a few KiB (a few MiB with thousands of topics); parsing YAML in
+# Python takes about a second a MiB, so a larger one is refused, not parsed for minutes.
+METADATA_LIMIT = 4 * 2**20
 
 
 class BagError(WireError):
@@ -78,33 +92,74 @@ def qos_dict(profile: QosProfile, *, history_known: bool = True) -> dict[str, An
     }
 
 
+class _PlainLoader(yaml.SafeLoader):
+    """Safe YAML without aliases. A bag's YAML (metadata.yaml, a channel's QoS) has none, and
+    nine lines of nested aliases stand for a billion items that whoever walks them (str(),
+    a loop) never finishes."""
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
+        if self.check_event(yaml.AliasEvent):
+            raise yaml.composer.ComposerError(None, None, "an alias (*name): not accepted in "
+                                              "a bag's YAML", self.peek_event().start_mark)
+        return super().compose_node(parent, index)
+
+
+def load_yaml(text: str) -> Any:
+    """`text` parsed as plain YAML (no aliases); BagError when it is not."""
+    try:
+        return yaml.load(text, Loader=_PlainLoader)  # a SafeLoader
+    except (yaml.YAMLError, RecursionError) as exc:  # RecursionError: [[[[… nested deeper
+        raise BagError(_first_line(exc)) from None  # than Python's stack
+
+
+def _int(value: Any, default: int) -> int:
+    """`value` as an integer when it is one (or a string of one); else `default`."""
+    if isinstance(value, bool):
+        return default
+    if isinstance(value, int):
+        return value
+    with contextlib.suppress(TypeError, ValueError):
+        return int(str(value))
+    return default
+
+
 def _seconds(value: Any) -> float | None:
     if not isinstance(value, dict):
         return None
-    sec, nsec = int(value.get("sec", 0)), int(value.get("nsec", 0))
+    sec, nsec = _int(value.get("sec"), 0), _int(value.get("nsec"), 0)
     if (sec, nsec) in ((_INFINITE["sec"], _INFINITE["nsec"]), (0, 0), (2147483647, 4294967295)):
+        return None
+    if sec < 0 or nsec < 0 or sec >= 2**31:  # no such QoS: unknown, as an infinite one
         return None
     return sec + nsec / 1e9
 
 
 def parse_offered_qos(text: str | list[Any] | None) -> list[QosProfile]:
-    """The profiles of a channel's `offered_qos_profiles` (YAML text or a parsed list)."""
-    items = yaml.safe_load(text) if isinstance(text, str) else text
-    profiles = []
-    for item in items or []:
-        history = str(item.get("history", "keep_last")).lower()
-        depth = int(item.get("depth", 0) or 0)
-        profiles.append(QosProfile(
-            history=History.KEEP_ALL if history == "keep_all" else History.KEEP_LAST,
-            depth=depth if depth > 0 else 10,
-            reliability=Reliability.BEST_EFFORT
-            if str(item.get("reliability")).lower() == "best_effort" else Reliability.RELIABLE,
-            durability=Durability.TRANSIENT_LOCAL
-            if str(item.get("durability")).lower() == "transient_local" else Durability.VOLATILE,
-            lifespan_s=_seconds(item.get("lifespan")),
-            deadline_s=_seconds(item.get("deadline")),
-        ))
-    return profiles
+    """The profiles of a channel's `offered_qos_profiles` (YAML text or a parsed list). What
+    is not a profile (bad YAML, a number, a list of strings, a field of the wrong type) counts
+    as unknown: a bag's QoS is advice to `play`, which then uses the defaults."""
+    try:
+        items = load_yaml(text) if isinstance(text, str) else text
+    except BagError:
+        return []
+    if not isinstance(items, list):
+        return []
+    return [_profile(item) for item in items if isinstance(item, dict)]
+
+
+def _profile(item: dict[Any, Any]) -> QosProfile:
+    history = str(item.get("history", "keep_last")).lower()
+    depth = _int(item.get("depth"), 0)
+    return QosProfile(
+        history=History.KEEP_ALL if history == "keep_all" else History.KEEP_LAST,
+        depth=depth if 0 < depth < 2**31 else 10,
+        reliability=Reliability.BEST_EFFORT
+        if str(item.get("reliability")).lower() == "best_effort" else Reliability.RELIABLE,
+        durability=Durability.TRANSIENT_LOCAL
+        if str(item.get("durability")).lower() == "transient_local" else Durability.VOLATILE,
+        lifespan_s=_seconds(item.get("lifespan")),
+        deadline_s=_seconds(item.get("deadline")),
+    )
 
 
 # -- writing ------------------------------------------------------------------------
@@ -120,7 +175,13 @@ class _TopicRecord:
 
 class BagWriter:
     """Writes one bag; `write` may be called from any thread. Every `flush_period` seconds
-    (a thread of its own) what was written so far reaches the file and `metadata.yaml`."""
+    (a thread of its own) what was written so far reaches the file and `metadata.yaml`.
+    The file is locked (flock) while written: `reindex` refuses it.
+
+    A write that fails (a full disk, a file size limit) ends the writing: the file is left
+    as it was, its complete records readable and `reindex` completing it, and `failure` says
+    what happened (`close` raises it). Writing on would append after a torn record, and
+    buffer in memory what cannot reach the disk."""
 
     def __init__(self, directory: Path, store: TypeStore, *,
                  flush_period: float = FLUSH_PERIOD) -> None:
@@ -131,43 +192,81 @@ class BagWriter:
         self.file_name = f"{directory.name}_0.mcap"
         self.store = store
         self._stream = (directory / self.file_name).open("wb")
+        with contextlib.suppress(OSError):  # a file system without locks: recorded unlocked
+            fcntl.flock(self._stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         self._mcap = Writer(self._stream, compression=CompressionType.NONE)
-        self._mcap.start(profile="ros2", library=f"rcan-rtps {__version__}")
         self._schemas: dict[str, int] = {}
         self._topics: dict[str, _TopicRecord] = {}
         self._lock = threading.Lock()
         self._start_ns: int | None = None
         self._end_ns = 0
         self._closed = False
+        self.failure: BagError | None = None
+        self._kept = 0  # messages on disk at the last flush
+        with self._lock, self._failing_on_oserror():
+            self._mcap.start(profile="ros2", library=f"rcan-rtps {__version__}")
         self.flush()  # the header and metadata.yaml on disk from the start
+        if (failure := self.failure_so_far()) is not None:
+            with contextlib.suppress(OSError):
+                self._stream.close()
+            raise failure
         self._stop = threading.Event()
         self._flusher = threading.Thread(target=self._flush_every, args=(flush_period,),
                                          name=f"bag-flush-{directory.name}", daemon=True)
         self._flusher.start()
 
+    def failure_so_far(self) -> BagError | None:
+        """`failure` (a call: mypy would take a check of the attribute just after a
+        `_failing_on_oserror` block for the check it already made before)."""
+        return self.failure
+
+    @property
+    def failed(self) -> bool:
+        return self.failure_so_far() is not None
+
+    @contextlib.contextmanager
+    def _failing_on_oserror(self) -> Iterator[None]:
+        """Within (under the lock): an OSError ends the writing, kept as `failure`."""
+        try:
+            yield
+        except OSError as exc:
+            if self.failure is None:
+                self.failure = BagError(
+                    f"could not write bag '{self.directory}' ({exc.strerror or exc}): "
+                    f"recording stopped; the {self._kept} messages written before are in "
+                    f"it, and `rcan-rtps bag reindex {self.directory}` completes it")
+
     def add_topic(self, name: str, type_name: str, offered: list[dict[str, Any]]) -> None:
         with self._lock:
-            if name in self._topics:
+            if name in self._topics or self.failure is not None:
                 return
             schema_id = self._schemas.get(type_name)
             if schema_id is None:
                 text = full_definition(type_name, self.store.message)
-                schema_id = self._mcap.register_schema(type_name, "ros2msg", text.encode())
+                with self._failing_on_oserror():
+                    schema_id = self._mcap.register_schema(type_name, "ros2msg", text.encode())
+                if self.failed:
+                    return
                 self._schemas[type_name] = schema_id
             type_hash = self.store.hash_of(type_name) if self.store.distro != "humble" else ""
             metadata = {"offered_qos_profiles": _qos_text(offered)}
             if type_hash:
                 metadata["topic_type_hash"] = type_hash
-            channel_id = self._mcap.register_channel(name, "cdr", schema_id, metadata)
-            self._topics[name] = _TopicRecord(name, type_name, type_hash, offered, channel_id)
+            with self._failing_on_oserror():
+                channel_id = self._mcap.register_channel(name, "cdr", schema_id, metadata)
+                self._topics[name] = _TopicRecord(name, type_name, type_hash, offered,
+                                                  channel_id)
 
     def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
         with self._lock:
-            if self._closed:
+            if self._closed or self.failure is not None:
                 return
             record = self._topics[topic]
-            self._mcap.add_message(record.channel_id, log_time=log_time_ns, data=data,
-                                   publish_time=log_time_ns, sequence=record.count)
+            with self._failing_on_oserror():
+                self._mcap.add_message(record.channel_id, log_time=log_time_ns, data=data,
+                                       publish_time=log_time_ns, sequence=record.count)
+            if self.failed:
+                return
             record.count += 1
             if self._start_ns is None:
                 self._start_ns = log_time_ns
@@ -182,19 +281,16 @@ class BagWriter:
         """The chunk in progress to the file, then metadata.yaml counting what it holds
         (under the lock: a message counted there is in the file)."""
         with self._lock:
-            if self._closed:
+            if self._closed or self.failure is not None:
                 return
-            self._mcap.flush()
-            write_metadata(self.directory, self._metadata())
+            with self._failing_on_oserror():
+                self._mcap.flush()
+                write_metadata(self.directory, self._metadata())
+                self._kept = self.message_count
 
     def _flush_every(self, period: float) -> None:
-        while not self._stop.wait(period):
-            try:
-                self.flush()
-            except OSError as exc:  # a full disk: say so once, keep recording in memory
-                print(f"warning: bag '{self.directory}' could not be flushed: {exc}",
-                      file=sys.stderr)
-                return
+        while not self._stop.wait(period) and self.failure is None:
+            self.flush()
 
     def close(self) -> None:
         self._stop.set()
@@ -204,14 +300,24 @@ class BagWriter:
             if self._closed:
                 return
             self._closed = True
-            info = self._metadata()
-            self._mcap.add_metadata("rosbag2", {
-                "serialized_metadata": yaml.safe_dump(info, sort_keys=False),
-                "ROS_DISTRO": self.store.distro,
-            })
-            self._mcap.finish()
-            self._stream.close()
-            write_metadata(self.directory, info)
+            if self.failure is None:
+                with self._failing_on_oserror():
+                    self._finish()
+            with contextlib.suppress(OSError):  # what the disk refused is refused again
+                self._stream.close()
+        if self.failure is not None:
+            raise self.failure
+
+    def _finish(self) -> None:
+        """The summary, indexes and closing magic; metadata.yaml counting every message."""
+        info = self._metadata()
+        self._mcap.add_metadata("rosbag2", {
+            "serialized_metadata": yaml.safe_dump(info, sort_keys=False),
+            "ROS_DISTRO": self.store.distro,
+        })
+        self._mcap.finish()
+        self._stream.flush()
+        write_metadata(self.directory, info)
 
     def _metadata(self) -> dict[str, Any]:
         files = [(self.file_name, self._start_ns or 0, self._end_ns, self.message_count)]
@@ -299,14 +405,13 @@ class BagMessage:
 
 def bag_files(path: Path) -> list[Path]:
     """The MCAP files of a bag directory (in metadata order) or the file itself."""
-    if path.is_file():
-        return [path]
-    if not path.is_dir():
+    if not path.exists():
         raise BagError(f"bag path '{path}' does not exist")
+    if not path.is_dir():
+        return [path]  # a regular file or not: opening it says (open_regular)
     meta = path / METADATA_FILE
-    if meta.is_file():
-        info = _load_metadata(meta)
-        names = info.get("relative_file_paths") or []
+    if meta.exists():
+        names = metadata_file_names(_load_metadata(meta), meta)
         files = [path / Path(n).name for n in names]
         if files and all(f.is_file() for f in files):
             return files
@@ -316,22 +421,58 @@ def bag_files(path: Path) -> list[Path]:
     return found
 
 
-def _load_metadata(meta: Path) -> dict[str, Any]:
+def open_regular(file: Path) -> IO[bytes]:
+    """`file` opened for reading, when it is a regular file. A FIFO would block the open
+    until someone writes to it, and a device (a symlink to /dev/zero) never ends: both are
+    refused, the open made without blocking so the FIFO cannot hang it."""
     try:
-        loaded = yaml.safe_load(meta.read_text(encoding="utf-8")) or {}
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        fd = os.open(file, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError as exc:
+        raise BagError(f"cannot open '{file}': {exc.strerror}") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise BagError(f"'{file}' is not a regular file (a FIFO, device or socket is no bag)")
+    return os.fdopen(fd, "rb")
+
+
+def _load_metadata(meta: Path) -> dict[str, Any]:
+    with open_regular(meta) as stream:
+        raw = stream.read(METADATA_LIMIT + 1)
+    if len(raw) > METADATA_LIMIT:
+        raise BagError(f"'{meta}' is not a bag's metadata.yaml: larger than "
+                       f"{METADATA_LIMIT // 2**20} MiB")
+    try:
+        loaded = load_yaml(raw.decode("utf-8")) or {}
+    except (BagError, UnicodeDecodeError) as exc:
         raise BagError(f"'{meta}' is not a bag's metadata.yaml: {_first_line(exc)}") from None
     info = loaded.get("rosbag2_bagfile_information", {}) if isinstance(loaded, dict) else {}
     return info if isinstance(info, dict) else {}
 
 
+def metadata_file_names(info: dict[str, Any], meta: Path) -> list[str]:
+    """The `relative_file_paths` of a loaded metadata.yaml: a list of names, or none."""
+    names = info.get("relative_file_paths")
+    if names is None:
+        return []
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise BagError(f"'{meta}' is not a bag's metadata.yaml: relative_file_paths is not "
+                       "a list of file names")
+    return names
+
+
+def metadata_distro(info: dict[str, Any]) -> str:
+    """The `ros_distro` of a loaded metadata.yaml when it is a name; else ''."""
+    distro = info.get("ros_distro")
+    return distro if isinstance(distro, str) and len(distro) < 64 else ""
+
+
 def _distro_of(path: Path, records: dict[str, dict[str, str]]) -> str:
     meta = path / METADATA_FILE
-    if path.is_dir() and meta.is_file():
-        distro = _load_metadata(meta).get("ros_distro")
+    if path.is_dir() and meta.exists():
+        distro = metadata_distro(_load_metadata(meta))
         if distro:
-            return str(distro)
-    return records.get("rosbag2", {}).get("ROS_DISTRO", "") or "unknown"
+            return distro
+    return records.get("rosbag2", {}).get("ROS_DISTRO", "")[:64] or "unknown"
 
 
 def _first_line(exc: BaseException) -> str:
@@ -346,7 +487,7 @@ def _bag_of(file: Path) -> Path:
 
 def check_mcap(file: Path) -> None:
     """Fails with what is wrong when `file` cannot be an MCAP file at all."""
-    with file.open("rb") as stream:
+    with open_regular(file) as stream:
         head = stream.read(len(MCAP_MAGIC))
     if not head:
         raise BagError(f"'{file}' is empty (did the recorder die before writing anything?)")
@@ -360,7 +501,8 @@ def _damaged(file: Path, exc: BaseException) -> BagError:
 
 
 # Reading a damaged file fails in the mcap library's parsing (struct, sizes, decoding).
-_PARSE_ERRORS = (McapError, struct.error, ValueError, IndexError, KeyError, EOFError)
+_PARSE_ERRORS = (McapError, struct.error, ValueError, IndexError, KeyError, EOFError, OverflowError,
+                 zstandard.ZstdError)
 
 
 class BagReader:
@@ -373,18 +515,7 @@ class BagReader:
         start, end, count = 2**63, 0, 0
         records: dict[str, dict[str, str]] = {}
         for file in self.files:
-            check_mcap(file)
-            try:
-                with file.open("rb") as stream:
-                    reader = make_reader(stream)
-                    summary = reader.get_summary()
-                    if summary is None:
-                        raise BagError(f"'{file}' has no summary section (was the recording "
-                                       "cut short?); " + REINDEX_HINT.format(bag=_bag_of(file)))
-                    for rec in reader.iter_metadata():
-                        records[rec.name] = dict(rec.metadata)
-            except _PARSE_ERRORS as exc:
-                raise _damaged(file, exc) from None
+            summary = _file_summary(file, records)
             stats = summary.statistics
             if stats is not None and stats.message_count:
                 start = min(start, stats.message_start_time)
@@ -405,11 +536,24 @@ class BagReader:
                           _distro_of(self.path, records))
 
     def messages(self, topics: set[str] | None = None) -> Iterator[BagMessage]:
-        """Every message in receive-time order (per file, files in order)."""
+        """Every message in receive-time order (per file, files in order); of `topics` only,
+        when given (an empty set: none, where the library would read all)."""
+        if topics is not None and not topics:
+            return
         for file in self.files:
             check_mcap(file)
-            with file.open("rb") as stream:
-                reader = make_reader(stream)
+            with open_regular(file) as stream:
+                reader = make_reader(_bounded(stream))
+                try:
+                    summary = reader.get_summary()
+                    if summary is not None:
+                        check_chunks(BoundedFile(stream), summary, file)
+                except _PARSE_ERRORS as exc:
+                    raise _damaged(file, exc) from None
+                if summary is None or not summary.chunk_indexes:
+                    # the library would read the data section, its chunks unchecked
+                    yield from _unindexed_messages(stream, summary, topics, file)
+                    continue
                 found = reader.iter_messages(topics=sorted(topics) if topics else None,
                                              log_time_order=True)
                 while True:
@@ -423,102 +567,335 @@ class BagReader:
                                      message.log_time, message.data)
 
 
+def _file_summary(file: Path, records: dict[str, dict[str, str]]) -> Summary:
+    """The summary section of `file`; its metadata records into `records`."""
+    check_mcap(file)
+    try:
+        with open_regular(file) as stream:
+            reader = make_reader(_bounded(stream))
+            summary = reader.get_summary()
+            if summary is None:
+                raise BagError(f"'{file}' has no summary section (was the recording "
+                               "cut short?); " + REINDEX_HINT.format(bag=_bag_of(file)))
+            for rec in reader.iter_metadata():
+                records[rec.name] = dict(rec.metadata)
+    except _PARSE_ERRORS as exc:
+        raise _damaged(file, exc) from None
+    return summary
+
+
+def _bounded(stream: IO[bytes]) -> IO[bytes]:
+    """`stream` as a BoundedFile, typed as the file the mcap library asks for."""
+    return cast(IO[bytes], BoundedFile(stream))  # it has the calls the library makes
+
+
+def _unindexed_messages(stream: IO[bytes], summary: Summary | None, topics: set[str] | None,
+                        file: Path) -> Iterator[BagMessage]:
+    """The messages of a file without chunk indexes, in file order, each chunk checked and
+    inflated here (within CHUNK_LIMIT)."""
+    stream.seek(0)
+    channels: dict[int, Channel] = dict(summary.channels) if summary else {}
+    schemas: dict[int, Schema] = dict(summary.schemas) if summary else {}
+    for record in data_records(stream, file):
+        if isinstance(record, Schema):
+            schemas.setdefault(record.id, record)
+        elif isinstance(record, Channel):
+            channels.setdefault(record.id, record)
+        elif isinstance(record, Message) and record.channel_id in channels:
+            channel = channels[record.channel_id]
+            if topics is None or channel.topic in topics:
+                schema = schemas.get(channel.schema_id)
+                yield BagMessage(channel.topic, schema.name if schema else "",
+                                 record.log_time, record.data)
+
+
+# -- chunks, within limits ------------------------------------------------------------
+CHUNK_FIELDS = struct.Struct("<BQQQQI")  # opcode, length, start, end, uncompressed size, crc
+
+
+def check_chunks(stream: BoundedFile, summary: Summary, file: Path) -> None:
+    """Refuses a file whose chunk indexes point at anything but a chunk that fits in the
+    file and inflates to at most CHUNK_LIMIT, before the mcap library reads one: it would
+    allocate what a chunk claims (zstd) or inflate it without limit (lz4)."""
+    for index in summary.chunk_indexes:
+        if index.chunk_start_offset >= stream.end:
+            raise BagError(f"'{file}' is damaged: a chunk index points past its end")
+        stream.seek(index.chunk_start_offset)
+        chunk = _chunk_head(stream, stream.end - index.chunk_start_offset, file)
+        if chunk.compression == "lz4":  # its frame need not say its size: inflate to see
+            stream.seek(index.chunk_start_offset + RECORD_HEAD.size)
+            inflate(Chunk.read(ReadDataStream(cast(IO[bytes], stream))), file)
+
+
+def _chunk_head(stream: BoundedFile, room: int, file: Path) -> Chunk:
+    """The fixed fields of the chunk record at the stream's position (its data left out),
+    checked against the `room` left in the file and CHUNK_LIMIT."""
+    head = stream.read(CHUNK_FIELDS.size)
+    if len(head) < CHUNK_FIELDS.size:
+        raise BagError(f"'{file}' is damaged: a chunk index points past its end")
+    opcode, length, start, end, uncompressed, crc = CHUNK_FIELDS.unpack(head)
+    if opcode != 0x06:
+        raise BagError(f"'{file}' is damaged: a chunk index points at no chunk")
+    if length > room - RECORD_HEAD.size:
+        raise BagError(f"'{file}' is damaged: a chunk runs past its end")
+    compression = _short_string(stream, file)
+    (data_length,) = struct.unpack("<Q", stream.read(8).ljust(8, b"\xff"))
+    if data_length > length:
+        raise BagError(f"'{file}' is damaged: a chunk's data runs past the chunk")
+    chunk = Chunk(compression=compression, data=b"", message_end_time=end,
+                  message_start_time=start, uncompressed_crc=crc,
+                  uncompressed_size=uncompressed)
+    check_chunk_limits(chunk, length, file)
+    return chunk
+
+
+def _short_string(stream: BoundedFile, file: Path) -> str:
+    (length,) = struct.unpack("<I", stream.read(4).ljust(4, b"\xff"))
+    text = stream.read(length) if length <= 16 else b"?"
+    try:
+        return text.decode("ascii")
+    except UnicodeDecodeError:
+        raise BagError(f"'{file}' is damaged: a chunk's compression is not a name") from None
+
+
+def check_chunk_limits(chunk: Chunk, record_length: int, file: Path) -> None:
+    if chunk.compression not in COMPRESSIONS:
+        raise BagError(f"'{file}' has a chunk compressed with {chunk.compression[:16]!r}: "
+                       "not one MCAP names (zstd, lz4)")
+    if max(record_length, chunk.uncompressed_size) > CHUNK_LIMIT:
+        raise BagError(f"'{file}' has a chunk of {max(record_length, chunk.uncompressed_size)}"
+                       f" B, over the {CHUNK_LIMIT // 2**20} MiB this tool reads (a damaged "
+                       "or hostile file)")
+
+
+def inflate(chunk: Chunk, file: Path) -> bytes:
+    """The records a chunk holds, inflated, never to more than the size it claims (itself
+    within CHUNK_LIMIT)."""
+    check_chunk_limits(chunk, len(chunk.data), file)
+    claimed = chunk.uncompressed_size
+    try:
+        if chunk.compression == "zstd":
+            reader = zstandard.ZstdDecompressor().stream_reader(chunk.data,
+                                                                read_across_frames=True)
+            data = reader.read(claimed + 1)
+        elif chunk.compression == "lz4":
+            data = _inflate_lz4(chunk.data, claimed, file)
+        else:
+            data = chunk.data
+    except (zstandard.ZstdError, RuntimeError) as exc:  # lz4 raises RuntimeError
+        raise BagError(f"'{file}' is damaged: a chunk does not inflate "
+                       f"({_first_line(exc)})") from None
+    if len(data) != claimed:
+        raise BagError(f"'{file}' is damaged: a chunk inflates to "
+                       f"{'more' if len(data) > claimed else 'less'} than the "
+                       f"{claimed} B it claims")
+    return data
+
+
+def _inflate_lz4(data: bytes, claimed: int, file: Path) -> bytes:
+    """An LZ4 frame inflated to at most `claimed` + 1 bytes; the frame must end there (the
+    library's own decompress, which `play` calls after, fails on a cut frame)."""
+    decompressor = lz4.frame.LZ4FrameDecompressor()
+    inflated: bytes = decompressor.decompress(data, max_length=claimed + 1)
+    if len(inflated) <= claimed and not decompressor.eof:
+        raise BagError(f"'{file}' is damaged: a chunk's LZ4 frame is cut short")
+    return inflated
+
+
+class BoundedFile:
+    """A binary file as the mcap library reads it, seen up to `end` (its size): a read never
+    asks for more than is left, so a length field of 2^62 costs what the file holds, not an
+    allocation of 2^62 bytes; a seek before the start or past `end` is a file cut short."""
+
+    def __init__(self, stream: IO[bytes], end: int | None = None) -> None:
+        self.stream = stream
+        self.end = os.fstat(stream.fileno()).st_size if end is None else end
+
+    def read(self, size: int | None = -1) -> bytes:
+        left = max(0, self.end - self.stream.tell())
+        return self.stream.read(left if size is None or size < 0 else min(size, left))
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self.stream.tell(), io.SEEK_END: self.end}[whence]
+        if not 0 <= base + offset <= self.end:
+            raise EndOfFile()  # an offset in a damaged file: the reader's "cut short"
+        return self.stream.seek(base + offset)
+
+    def tell(self) -> int:
+        return self.stream.tell()
+
+    def seekable(self) -> bool:
+        return True
+
+    def readable(self) -> bool:
+        return True
+
+
+def data_records(stream: IO[bytes], file: Path, end: int | None = None) -> Iterator[Any]:
+    """The records of an MCAP file from its start up to `end` (its end: None), chunks opened
+    here within CHUNK_LIMIT; ends quietly where the bytes end."""
+    stream.seek(0)
+    source: Any = BoundedFile(stream, end)
+    found = StreamReader(source, emit_chunks=True, record_size_limit=CHUNK_LIMIT).records
+    while True:
+        try:
+            record = next(found)
+        except (StopIteration, EndOfFile):
+            return
+        except _PARSE_ERRORS as exc:
+            raise BagError(f"'{file}' is damaged inside its data ({_first_line(exc)})") \
+                from None
+        if isinstance(record, Chunk):
+            yield from _chunk_records(record, file)
+        else:
+            yield record
+
+
+def _chunk_records(chunk: Chunk, file: Path) -> Iterator[Any]:
+    found = StreamReader(io.BytesIO(inflate(chunk, file)), skip_magic=True,
+                         record_size_limit=CHUNK_LIMIT).records
+    while True:
+        try:
+            yield next(found)
+        except (StopIteration, EndOfFile):
+            return
+        except _PARSE_ERRORS as exc:
+            raise BagError(f"'{file}' is damaged inside a chunk ({_first_line(exc)})") \
+                from None
+
+
 # -- reindex ------------------------------------------------------------------------
 @dataclass
 class ReindexedFile:
     path: Path
     messages: int
     dropped_bytes: int  # the torn record(s) at the end, left out
+    unattributed: int = 0  # messages of a channel the file never defines: left out
+    redefined: int = 0  # schema or channel ids defined again with other contents: the first kept
 
 
-def complete_records(file: Path) -> tuple[bytes, int]:
-    """The file up to its last complete record (the whole file when it is complete), and
-    how many bytes after that were left out. A killed writer's last write may be torn."""
-    check_mcap(file)
-    data = file.read_bytes()
+def complete_records(stream: IO[bytes]) -> tuple[int, int]:
+    """Where the file's last complete record ends (the file's end when it is complete), and
+    how many bytes after that are left out: a killed writer's last write may be torn. Reads
+    the records' heads only."""
+    size = os.fstat(stream.fileno()).st_size
     end = offset = len(MCAP_MAGIC)
-    while offset + RECORD_HEAD.size <= len(data):
-        _, length = RECORD_HEAD.unpack_from(data, offset)
+    while offset + RECORD_HEAD.size <= size:
+        stream.seek(offset)
+        _, length = RECORD_HEAD.unpack(stream.read(RECORD_HEAD.size))
         offset += RECORD_HEAD.size + length
-        if offset > len(data):
+        if offset > size:
             break
         end = offset
-    if data[end:] == MCAP_MAGIC:  # a closed file ends with the magic after its footer
-        end = len(data)
-    return data[:end], len(data) - end
+    stream.seek(end)
+    if stream.read() == MCAP_MAGIC:  # a closed file ends with the magic after its footer
+        end = size
+    return end, size - end
 
 
-def _records(data: bytes, file: Path) -> Iterator[Any]:
-    """The records of a prefix of complete records (chunks opened), up to the footer."""
-    found = StreamReader(io.BytesIO(data)).records
-    while True:
+@contextlib.contextmanager
+def _not_being_recorded(file: Path) -> Iterator[IO[bytes]]:
+    """`file` open, and locked as a recorder locks the file it writes (BagWriter): a file
+    still being recorded is refused. Replaced while its recorder goes on writing, all it
+    wrote after would be lost."""
+    check_mcap(file)
+    with open_regular(file) as stream:
         try:
-            yield next(found)
-        except (StopIteration, McapError):  # McapError: EndOfFile where the prefix ends
-            return
-        except (struct.error, ValueError, IndexError) as exc:
-            raise BagError(f"'{file}' is damaged inside its data ({_first_line(exc)}); "
-                           "cannot reindex it") from None
+            fcntl.flock(stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise BagError(f"'{file}' is being recorded (its recorder holds it); reindex it "
+                           "once the recording ends") from None
+        except OSError:  # a file system without locks: no recorder can have locked it either
+            pass
+        yield stream
 
 
 def reindex_file(file: Path, distro: str) -> tuple[ReindexedFile, list[_TopicRecord],
                                                     tuple[int, int]]:
     """Rewrites `file` as a complete MCAP (summary, chunk and message indexes, statistics)
     holding every message its complete records hold; the original is replaced in one step."""
-    data, dropped = complete_records(file)
-    temporary = file.with_name(f".{file.name}.reindex")
+    with _not_being_recorded(file) as source:
+        end, dropped = complete_records(source)
+        temporary = file.with_name(f".{file.name}.reindex")
+        try:
+            with temporary.open("wb") as stream:
+                writer = Writer(stream, compression=CompressionType.NONE)
+                result = _rewrite(data_records(source, file, end), writer, distro, file)
+        except BaseException:
+            temporary.unlink(missing_ok=True)
+            raise
+        os.replace(temporary, file)
+    count, topics, (first, last), left = result
+    return ReindexedFile(file, count, dropped, *left), topics, (first, last)
+
+
+def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path
+             ) -> tuple[int, list[_TopicRecord], tuple[int, int], tuple[int, int]]:
+    """Writes `records` anew with `writer` (summary and indexes at the end): the message
+    count, the topics, the first and last receive times, and what was left out (messages of
+    no channel; schema or channel ids defined again otherwise, of which the first is kept)."""
     topics: dict[int, _TopicRecord] = {}
     schema_ids: dict[int, int] = {}
     schema_names: dict[int, str] = {}
     channels: dict[int, int] = {}
-    first, last, count = 2**63, 0, 0
+    first_seen: dict[tuple[type, int], Any] = {}
+    first, last, count, unattributed, redefined = 2**63, 0, 0, 0, 0
     profile, library = "ros2", f"rcan-rtps {__version__} (reindex)"
-    with temporary.open("wb") as stream:
-        writer = Writer(stream, compression=CompressionType.NONE)
-        records = _records(data, file)
-        header = next(records, None)
-        if header is not None and hasattr(header, "profile"):
-            profile = header.profile or profile
-        writer.start(profile=profile, library=library)
-        for record in records:
-            if isinstance(record, Schema) and record.id not in schema_ids:
-                schema_ids[record.id] = writer.register_schema(record.name, record.encoding,
-                                                               record.data)
-                schema_names[record.id] = record.name
-            elif isinstance(record, Channel) and record.id not in channels:
-                channels[record.id] = writer.register_channel(
-                    record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0),
-                    dict(record.metadata))
-                topics[record.id] = _TopicRecord(
-                    record.topic, schema_names.get(record.schema_id, ""),
-                    record.metadata.get("topic_type_hash", ""),
-                    _offered_list(record.metadata.get("offered_qos_profiles", "")),
-                    channels[record.id])
-            elif isinstance(record, Message) and record.channel_id in channels:
-                writer.add_message(channels[record.channel_id], log_time=record.log_time,
-                                   data=record.data, publish_time=record.publish_time,
-                                   sequence=record.sequence)
-                topics[record.channel_id].count += 1
-                first, last = min(first, record.log_time), max(last, record.log_time)
-                count += 1
-            elif isinstance(record, Metadata) and record.name != "rosbag2":
-                writer.add_metadata(record.name, dict(record.metadata))
-        info = bag_metadata(list(topics.values()),
-                            [(file.name, first, last, count)], distro)
-        writer.add_metadata("rosbag2", {
-            "serialized_metadata": yaml.safe_dump(info, sort_keys=False), "ROS_DISTRO": distro})
-        writer.finish()
-    os.replace(temporary, file)
-    return ReindexedFile(file, count, dropped), list(topics.values()), (first, last)
+    header = next(records, None)
+    if header is not None and hasattr(header, "profile"):
+        profile = header.profile or profile
+    writer.start(profile=profile, library=library)
+    for record in records:
+        if isinstance(record, (Schema, Channel)):
+            known = first_seen.setdefault((type(record), record.id), record)
+            redefined += known != record  # (the summary repeats them as they were)
+        if isinstance(record, Schema) and record.id not in schema_ids:
+            schema_ids[record.id] = writer.register_schema(record.name, record.encoding,
+                                                           record.data)
+            schema_names[record.id] = record.name
+        elif isinstance(record, Channel) and record.id not in channels:
+            channels[record.id] = writer.register_channel(
+                record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0),
+                dict(record.metadata))
+            topics[record.id] = _TopicRecord(
+                record.topic, schema_names.get(record.schema_id, ""),
+                record.metadata.get("topic_type_hash", ""),
+                _offered_list(record.metadata.get("offered_qos_profiles", "")),
+                channels[record.id])
+        elif isinstance(record, Message) and record.channel_id not in channels:
+            unattributed += 1
+        elif isinstance(record, Message):
+            writer.add_message(channels[record.channel_id], log_time=record.log_time,
+                               data=record.data, publish_time=record.publish_time,
+                               sequence=record.sequence)
+            topics[record.channel_id].count += 1
+            first, last = min(first, record.log_time), max(last, record.log_time)
+            count += 1
+        elif isinstance(record, Metadata) and record.name != "rosbag2":
+            writer.add_metadata(record.name, dict(record.metadata))
+    info = bag_metadata(list(topics.values()), [(file.name, first, last, count)], distro)
+    writer.add_metadata("rosbag2", {
+        "serialized_metadata": yaml.safe_dump(info, sort_keys=False), "ROS_DISTRO": distro})
+    writer.finish()
+    return count, list(topics.values()), (first, last), (unattributed, redefined)
 
 
 def _offered_list(text: str) -> list[dict[str, Any]]:
     try:
-        loaded = yaml.safe_load(text) if text else []
-    except yaml.YAMLError:
+        loaded = load_yaml(text) if text else []
+    except BagError:
         return []
     return [item for item in loaded if isinstance(item, dict)] if isinstance(loaded, list) \
         else []
+
+
+def _old_distro(meta: Path) -> str:
+    """The distro the metadata.yaml being replaced names; '' when it names none or is not a
+    bag's metadata.yaml at all (reindex writes it anew either way)."""
+    try:
+        return metadata_distro(_load_metadata(meta)) if meta.exists() else ""
+    except BagError:
+        return ""
 
 
 def reindex(path: Path, distro: str = "") -> list[ReindexedFile]:
@@ -531,8 +908,7 @@ def reindex(path: Path, distro: str = "") -> list[ReindexedFile]:
     if not files:
         raise BagError(f"no .mcap file in '{path}'")
     meta = path / METADATA_FILE
-    old = _load_metadata(meta) if meta.is_file() else {}
-    distro = distro or str(old.get("ros_distro") or "") or "unknown"
+    distro = distro or _old_distro(meta) or "unknown"
     done: list[ReindexedFile] = []
     merged: dict[str, _TopicRecord] = {}
     spans: list[tuple[str, int, int, int]] = []

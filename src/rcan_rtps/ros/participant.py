@@ -29,7 +29,7 @@ from cyclonedds.topic import Topic
 
 from . import qos as qos_mod
 from . import raw_cdr
-from .errors import GraphTimeout, WireError, seconds
+from .errors import CdrDecodeError, GraphTimeout, WireError, seconds
 from .names import expand_topic_name, mangle_topic, normalize_namespace, validate_node_name
 from .qos import QosProfile
 from .readers import Decode, ReaderThread, Watch, WriterWatch
@@ -228,8 +228,15 @@ class RosPublisher:
         """Publishes a sample given as CDR bytes (4-byte header + body) of this topic's type.
         This holds the GIL inside Cyclone, local delivery included. That is safe only
         because no Cyclone thread ever waits for the GIL: never give a reader a Listener
-        (see the invariant in readers.py)."""
-        raw_cdr.write(self.writer, data)
+        (see the invariant in readers.py). Bytes Cyclone refuses as no sample of the type (a
+        string without its NUL, a sequence longer than the bytes) raise CdrDecodeError."""
+        try:
+            raw_cdr.write(self.writer, data)
+        except DDSException as exc:
+            if exc.code != DDSException.DDS_RETCODE_BAD_PARAMETER:
+                raise
+            raise CdrDecodeError(f"{len(data)} bytes that are not the CDR of a "
+                                 f"{self.type_name} (Cyclone refused them)") from None
 
     def _on_matched(self, count: int) -> None:  # on the node's reader thread (first: creation)
         self._matched = count

@@ -2,19 +2,18 @@
 
 from __future__ import annotations
 
-import os
 import ssl
-import stat
+from pathlib import Path
 
 from rcan_rtps.config import RcanConfig, TlsConfig
 from rcan_rtps.governance import Principal
+from rcan_rtps.governance._durable import WRITABLE_BY_OTHERS, regular_mode
 from rcan_rtps.governance.rbac import rate_limits
 from rcan_rtps.rcan import Role
 
 # A TLS key others may read lets them pose as the bridge and collect bearer tokens; one they
 # may write, swap it. 0640 stays allowed: a group such as Debian's ssl-cert is the convention.
 _TLS_KEY_TOO_OPEN = 0o027
-_CA_WRITABLE_BY_OTHERS = 0o022  # (as the keys the bridge trusts: governance's read_trusted)
 
 
 def server_ssl_context(tls: TlsConfig) -> ssl.SSLContext:
@@ -37,14 +36,12 @@ def _check_tls_file(key: str, path: str) -> None:
     """ValueError, naming the config key, unless `path` is a regular file (and, for the key,
     one that others can neither read nor write). Opened without blocking, as a FIFO's open
     waits for a writer; OSError (missing, unreadable) is left to the caller."""
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     try:
-        mode = os.fstat(fd).st_mode
-    finally:
-        os.close(fd)
-    if not stat.S_ISREG(mode):
-        raise ValueError(f"bridge.api.tls.{key}: {path} is not a regular file")
-    if key == "client_ca" and mode & _CA_WRITABLE_BY_OTHERS:
+        mode = regular_mode(Path(path))
+    except ValueError as exc:
+        raise ValueError(f"bridge.api.tls.{key}: {exc}") from None
+    # (as for the keys the bridge trusts: governance's read_trusted)
+    if key == "client_ca" and mode & WRITABLE_BY_OTHERS:
         raise ValueError(f"bridge.api.tls.client_ca: {path} may be written by others (mode "
                          f"{mode & 0o777:o}): whoever can write it can add their own CA, and "
                          "a certificate of theirs would name any principal (chmod go-w)")

@@ -101,6 +101,13 @@ def _regular(path: Path) -> Iterator[tuple[int, os.stat_result]]:
         os.close(fd)
 
 
+def regular_mode(path: Path) -> int:
+    """The mode of the regular file at `path`, judged on the file opened (without blocking);
+    ValueError unless it is one, OSError if it cannot be opened."""
+    with _regular(path) as (_, info):
+        return info.st_mode
+
+
 def read_small(path: Path, limit: int) -> bytes:
     """A small file's bytes (a checkpoint, a start point). Raises FileNotFoundError if there is
     none, ValueError if it is no regular file or holds more than `limit` bytes: a FIFO put in

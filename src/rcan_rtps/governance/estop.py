@@ -127,9 +127,10 @@ class EstopMachine:
         self._unfinished = 0  # transitions submitted and not done
         self._clear_decided = False  # the transition under way is a clear, its entry sealed
         # E-stops latched and waiting for their turn, their entries not sealed yet
-        # (`listed`), and who waits for them to be.
+        # (`listed`); the event is set while there are none.
         self._unbegun_engages = 0
-        self._listing: list[asyncio.Future[None]] = []
+        self._all_begun = asyncio.Event()
+        self._all_begun.set()
 
     @property
     def latched(self) -> bool:
@@ -147,6 +148,7 @@ class EstopMachine:
             self._tell()
         if self._unfinished and not (self._unfinished == 1 and self._clear_decided):
             self._unbegun_engages += 1
+            self._all_begun.clear()
             return self._submit(work, engage=True)
         try:
             begun = work()
@@ -176,21 +178,15 @@ class EstopMachine:
         it. One that arrived while a clear was under way, not yet decided, latched at once
         but waits for its turn; a move refused meanwhile was listed before its ESTOP (seen
         in a clean-clone CI under load: the stateful model's race_on_a_slow_disk)."""
-        if not self._unbegun_engages:
+        if self._all_begun.is_set():
             return
-        waiting: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        self._listing.append(waiting)
         with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(asyncio.shield(waiting), within_s)
+            await asyncio.wait_for(self._all_begun.wait(), within_s)
 
     def _began_engage(self) -> None:
         self._unbegun_engages -= 1
-        if self._unbegun_engages:
-            return
-        listing, self._listing = self._listing, []
-        for waiting in listing:
-            if not waiting.done():
-                waiting.set_result(None)
+        if not self._unbegun_engages:
+            self._all_begun.set()
 
     def then(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Run `work` in order with the transitions, changing nothing of the latch itself."""

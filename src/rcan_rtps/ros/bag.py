@@ -138,13 +138,7 @@ def parse_offered_qos(text: str | list[Any] | None) -> list[QosProfile]:
     """The profiles of a channel's `offered_qos_profiles` (YAML text or a parsed list). What
     is not a profile (bad YAML, a number, a list of strings, a field of the wrong type) counts
     as unknown: a bag's QoS is advice to `play`, which then uses the defaults."""
-    try:
-        items = load_yaml(text) if isinstance(text, str) else text
-    except BagError:
-        return []
-    if not isinstance(items, list):
-        return []
-    return [_profile(item) for item in items if isinstance(item, dict)]
+    return [_profile(item) for item in _offered_list(text)]
 
 
 def _profile(item: dict[Any, Any]) -> QosProfile:
@@ -880,9 +874,11 @@ def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path
     return count, list(topics.values()), (first, last), (unattributed, redefined)
 
 
-def _offered_list(text: str) -> list[dict[str, Any]]:
+def _offered_list(text: str | list[Any] | None) -> list[dict[str, Any]]:
+    """The profiles of an `offered_qos_profiles` (YAML text or a parsed list) as mappings;
+    what is not one is left out (bad YAML, a number, a list of strings: none)."""
     try:
-        loaded = load_yaml(text) if text else []
+        loaded = load_yaml(text) if isinstance(text, str) and text else text
     except BagError:
         return []
     return [item for item in loaded if isinstance(item, dict)] if isinstance(loaded, list) \

@@ -189,6 +189,9 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "invoke_command",
         "reply_id",
         "skill_error",
+        # §18's Capability Object Map (STATUS's `caps`, GET /api/skills)
+        "Capability",
+        "invoke_caps",
         "ActionName",
         "ActionParams",
         "ActionSpec",

@@ -256,6 +256,27 @@ async def test_navigation_progress_and_outcome_over_http_and_websocket(
     assert finished[0]["message_id"] == body["message_id"]
 
 
+async def test_status_lists_the_invoke_capability_as_skills_does(
+        demo: Demo, http: aiohttp.ClientSession) -> None:
+    """§18.4: STATUS carries the `invoke` capability of the Capability Object Map, its
+    `params.skills` the demo's skills — over HTTP and in the WebSocket's status frames — as
+    GET /api/skills gives it (one source: the config's skills)."""
+    _, skills = await call(http, demo, demo.user, "GET", "/api/skills")
+    assert skills["caps"]["invoke"]["params"]["skills"] == [
+        "go_home", "go_to", "hold_still", "nudge", "raise_elbow"]
+    _, status = await call(http, demo, demo.user, "GET", "/api/status")
+    assert status["caps"] == skills["caps"], status
+    frames: list[dict[str, Any]] = []
+    async with http.ws_connect(demo.url + "/api/ws",
+                               headers={"Authorization": f"Bearer {demo.user}"}) as ws:
+        reader = asyncio.create_task(_frames(ws, frames))
+        await eventually(lambda: any(f["type"] == "status" for f in frames), timeout=20,
+                         what="a status frame")
+        reader.cancel()
+    pushed = next(f["body"] for f in frames if f["type"] == "status")
+    assert pushed["caps"] == skills["caps"], pushed
+
+
 async def test_dock_docks_the_simulated_robot(demo: Demo, http: aiohttp.ClientSession) -> None:
     """Issue 23 item 4: `dock` is a nav2 DockRobot goal to the sim's own docking server: the
     robot drives onto its dock `home` and charges there."""

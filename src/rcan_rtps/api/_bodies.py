@@ -9,7 +9,7 @@ import msgspec
 from aiohttp import web
 
 from rcan_rtps.governance import AuditError
-from rcan_rtps.rcan import DecisionBody, ErrorCode, PendingAuth, Reason
+from rcan_rtps.rcan import Capability, DecisionBody, ErrorCode, PendingAuth, Reason
 
 from .ports import GoalView
 
@@ -36,14 +36,6 @@ class ApiError(msgspec.Struct, kw_only=True, omit_defaults=True):
 
 class GoalList(msgspec.Struct, kw_only=True):
     goals: list[GoalView]
-
-
-class Capability(msgspec.Struct, kw_only=True):
-    """A Capability Descriptor of RCAN §18.2."""
-
-    version: str = "1.0"
-    required: bool = False
-    params: dict[str, Any] = msgspec.field(default_factory=dict)
 
 
 class SkillView(msgspec.Struct, kw_only=True):

@@ -58,11 +58,12 @@ from rcan_rtps.rcan import (
     InvokeStatus,
     Outcome,
     SchemaValidationError,
+    invoke_caps,
     invoke_command,
     skill_error,
 )
 
-from ._bodies import Capability, SkillList, SkillView
+from ._bodies import SkillList, SkillView
 from .ports import GoalView, RobotView
 
 log = logging.getLogger(__name__)
@@ -150,10 +151,9 @@ class Invocations:
 
     def listed(self, governor: Governor) -> SkillList:
         """What GET /api/skills says: the §18/§19.7 `invoke` capability and each skill."""
-        names = sorted(self.skills)
         return SkillList(
-            caps={"invoke": Capability(params={"skills": names})},
-            skills={name: _view(self.skills[name], governor) for name in names})
+            caps=invoke_caps(self.skills),
+            skills={name: _view(self.skills[name], governor) for name in sorted(self.skills)})
 
     # -- INVOKE ---------------------------------------------------------------------------
 

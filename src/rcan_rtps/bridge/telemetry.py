@@ -48,6 +48,7 @@ from ..rcan import (
     Status,
     Telemetry,
     Velocity,
+    invoke_caps,
 )
 from ..ros import qos
 from ..ros.participant import RosNode
@@ -113,6 +114,7 @@ class TelemetryState:
         self._arm_joints = {config.bridge.ros2.resolve(arm.topic): frozenset(arm.joints)
                             for arm in config.bridge.ros2.arms.values()}
         self.safe_stopped = False
+        self._caps = invoke_caps(config.bridge.skills)  # fixed for the run, as its skills
         self._started = monotonic()
         self._cpu = CpuMeter()
         self._seq = 0
@@ -270,6 +272,7 @@ class TelemetryState:
             uptime_ms=int((self._monotonic() - self._started) * 1000), seq=seq,
             timestamp_us=now_us, position=_position(telemetry),
             foreign_publishers=foreign[:MAX_FOREIGN], foreign_publishers_count=len(foreign),
+            caps=self._caps,
         )
 
     def _state(self, estop: bool, faults: list[Fault], stale: bool, goals: list[str],

@@ -43,6 +43,7 @@ from ._messages import (
     AiInfo,
     Approval,
     Authorize,
+    Capability,
     DecisionBody,
     EnvelopeCommand,
     ErrorBody,
@@ -59,6 +60,7 @@ from ._messages import (
     Status,
     Telemetry,
     Velocity,
+    invoke_caps,
 )
 from ._ruri import RobotId, Ruri, parse_ruri
 from ._schema import openapi_schemas
@@ -103,6 +105,7 @@ __all__ = [
     "ArmJointParams",
     "Authorization",
     "Authorize",
+    "Capability",
     "DecisionBody",
     "Effect",
     "Envelope",
@@ -147,6 +150,7 @@ __all__ = [
     "action_spec",
     "convert_at",
     "decode_object",
+    "invoke_caps",
     "invoke_command",
     "openapi_schemas",
     "parse_ruri",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -248,6 +249,22 @@ class RobotPosition(msgspec.Struct):
     heading_rad: float | None
 
 
+class Capability(msgspec.Struct, kw_only=True):
+    """A Capability Descriptor of RCAN §18.2."""
+
+    version: str = "1.0"
+    required: bool = False
+    params: dict[str, Any] = msgspec.field(default_factory=dict)
+
+
+def invoke_caps(skills: Iterable[str]) -> dict[str, Capability]:
+    """§18's Capability Object Map of what an INVOKE may name: the `invoke` capability,
+    its `params.skills` every skill declared (§19.7: an INVOKE's skill MUST be one of
+    them). Listed with no skill too: INVOKE is always answered (7001 for a skill not
+    declared), so a client learns from the empty list rather than from a missing key."""
+    return {"invoke": Capability(params={"skills": sorted(skills)})}
+
+
 class Status(msgspec.Struct, kw_only=True):
     """STATUS (GET /api/status and the WebSocket stream).
 
@@ -279,3 +296,6 @@ class Status(msgspec.Struct, kw_only=True):
     # 32 listed; `foreign_publishers_count` says how many there are).
     foreign_publishers: list[ForeignPublisher] = []
     foreign_publishers_count: int = 0
+    # §18.4: the robot's capabilities as a Capability Object Map: the `invoke` capability
+    # (invoke_caps), as GET /api/skills gives it.
+    caps: dict[str, Capability] = {}

@@ -37,7 +37,7 @@ from rcan_rtps.governance import Governor
 from rcan_rtps.governance.keyfacts import KeyFacts
 from rcan_rtps.governance.rbac import RolePolicy
 from rcan_rtps.governance.treehead import tree_head_path
-from rcan_rtps.rcan import SPOKEN, ErrorCode, Role
+from rcan_rtps.rcan import SPOKEN, ErrorCode
 from rcan_rtps.rcan.actions import Effect, EstopSignal, Invariant, specs, with_effect
 
 from ._bodies import ApiError, error_body, json_response
@@ -90,7 +90,7 @@ def static_part(config: RcanConfig) -> dict[str, Any]:
     """What only the config and the registry decide (built once)."""
     bridge = config.bridge
     safety, ros2 = bridge.safety, bridge.ros2
-    roles = RolePolicy({a: Role[r] for a, r in bridge.rbac.action_roles.items()})
+    roles = RolePolicy.from_config(bridge.rbac)
     estop_spec, clear_spec = with_effect(Effect.ESTOP), with_effect(Effect.CLEAR_ESTOP)
     assert isinstance(estop_spec.ros, EstopSignal)
     limits = {k: v for k, v in msgspec.structs.asdict(safety).items()

@@ -34,7 +34,7 @@ from zeroconf.asyncio import AsyncServiceBrowser, AsyncServiceInfo, AsyncZerocon
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import RolePolicy
-from rcan_rtps.rcan import SPOKEN, Effect, Role, Status, parse_ruri
+from rcan_rtps.rcan import SPOKEN, Effect, Status, parse_ruri
 from rcan_rtps.rcan.actions import names, specs
 
 log = logging.getLogger(__name__)
@@ -118,7 +118,7 @@ def addresses_for(host: str) -> list[str]:
 
 def txt_records(config: RcanConfig, *, api_url: str) -> dict[str, str]:
     ruri = parse_ruri(config.robot.ruri)
-    roles = RolePolicy({a: Role[r] for a, r in config.bridge.rbac.action_roles.items()})
+    roles = RolePolicy.from_config(config.bridge.rbac)
     # The role a client needs to command the robot: to move it, and to stop what it started.
     lowest = min(roles.required(s.name) for s in specs() if s.motion or s.effect is Effect.HALT)
     return {

@@ -78,7 +78,7 @@ def approval_problems(config: RcanConfig) -> list[str]:
     roles = [Role[p.role] for p in api.principals]
     if not api.principals and api.auth_token_env:
         roles.append(Role.OWNER)  # the one default principal
-    policy = HitlPolicy(bridge.hitl, Role[bridge.rbac.hitl_approver_role])
+    policy = HitlPolicy.from_config(bridge.hitl, bridge.rbac)
     problems = []
     for gate in bridge.hitl.gates:
         if not gate.require_auth:

@@ -674,6 +674,34 @@ def unknown_principals_problem(key: str, names: Iterable[str], api: ApiConfig) -
     return None
 
 
+def issuer_roles(rbac: RbacConfig) -> dict[str, Role]:
+    """The role each action needs to be issued: its default, as `rbac.action_roles` raises it
+    (governance.RolePolicy's table; the e-stop is never gated, so its GUEST is not needed)."""
+    return {spec.name: Role[rbac.action_roles.get(spec.name, spec.default_role.name)]
+            for spec in specs()}
+
+
+def approver_below_issuer_problem(hitl: HitlConfig, rbac: RbacConfig) -> str | None:
+    """An approver role below the role its held action needs to be issued: a viewer (GUEST)
+    approving an AI's move releases motion it may not command itself. A gate's
+    `authorized_roles` are judged against its action's role; `rbac.hitl_approver_role`
+    against the lowest role of any action a human may be asked about (an action the
+    confidence gate holds whose role is higher is approved at that role: governance.hitl)."""
+    needs = issuer_roles(rbac)
+    for index, gate in enumerate(hitl.gates):
+        for name in gate.authorized_roles:
+            if Role[name] < needs[gate.action]:
+                return (f"`hitl.gates[{index}].authorized_roles` lets {name} approve "
+                        f"{gate.action}, which needs {needs[gate.action].name} to be issued: "
+                        "an approver must be allowed to issue what it approves")
+    lowest = min(needs[spec.name] for spec in specs() if spec.hitl.gateable)
+    if Role[rbac.hitl_approver_role] < lowest:
+        return (f"`rbac.hitl_approver_role` is {rbac.hitl_approver_role}, below {lowest.name}, "
+                "the lowest role that may issue anything a human is asked to approve: an "
+                "approver must be allowed to issue what it approves")
+    return None
+
+
 class BridgeConfig(_Section, frozen=True, kw_only=True):
     type: Literal["ros2"] = "ros2"
     ros2: Ros2Config = Ros2Config()
@@ -689,8 +717,9 @@ class BridgeConfig(_Section, frozen=True, kw_only=True):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        problem = unknown_agents_problem(self.ai, self.api) or unknown_principals_problem(
+        problem = (unknown_agents_problem(self.ai, self.api) or unknown_principals_problem(
             "motion.principal_priorities", self.motion.principal_priorities, self.api)
+            or approver_below_issuer_problem(self.hitl, self.rbac))
         if problem is not None:
             raise ValueError(problem)
 

@@ -192,12 +192,12 @@ class Governor:
                                                     safety.max_angular_accel))
         return cls(
             audit=audit, dispatcher=dispatcher, clock=clock, latch=latch, notifier=notifier,
-            roles=RolePolicy({a: Role[r] for a, r in bridge.rbac.action_roles.items()}),
+            roles=RolePolicy.from_config(bridge.rbac),
             limiter=RateLimiter(clock),
             safety=safety_policy(safety, latch, bridge.ros2.nav_frame_id, streams,
                                  arms=bridge.ros2.arms),
             streams=streams, priorities=MotionPriorities(bridge.motion),
-            hitl=HitlPolicy(bridge.hitl, Role[bridge.rbac.hitl_approver_role]),
+            hitl=HitlPolicy.from_config(bridge.hitl, bridge.rbac),
             hitl_timeout_s=bridge.hitl.timeout_seconds,
             require_distinct_approver=bridge.hitl.require_distinct_approver,
             session_timeout_s=bridge.safety.session_timeout_s,

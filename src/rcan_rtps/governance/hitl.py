@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Mapping
 from typing import Literal, Protocol, cast
 
 import aiohttp
 import msgspec
 
-from rcan_rtps.config import HitlConfig
+from rcan_rtps.config import HitlConfig, RbacConfig, issuer_roles
 from rcan_rtps.rcan import Approval, NormalizedCommand, PendingAuth, Role, RoleName
 from rcan_rtps.rcan.actions import specs
 
@@ -97,9 +98,13 @@ class Escalate(msgspec.Struct, frozen=True):
 class HitlPolicy:
     """Decides, per command, whether it passes, is refused, or waits for a human."""
 
-    def __init__(self, config: HitlConfig, default_approver: Role = Role.OWNER) -> None:
+    def __init__(self, config: HitlConfig, default_approver: Role = Role.OWNER,
+                 issuer_roles: Mapping[str, Role] | None = None) -> None:
         self._gate = config.confidence_gate
         self._default = default_approver
+        # The role each action needs to be issued: no approver is below it (config refuses
+        # a gate's role below it; the default approver is raised to it, per action).
+        self._issuer_roles = dict(issuer_roles or {})
         # Distinct approvers per action; whatever holds the command (a gate, the confidence gate).
         self._approvals = {g.action: g.approvals for g in config.gates}
         # The registry's defaults first; a configured gate for an action replaces its default.
@@ -113,8 +118,17 @@ class HitlPolicy:
             for g in config.gates if g.require_auth and g.action not in NEVER_GATED
         })
 
+    @classmethod
+    def from_config(cls, config: HitlConfig, rbac: RbacConfig) -> HitlPolicy:
+        return cls(config, Role[rbac.hitl_approver_role], issuer_roles(rbac))
+
     def approver_role(self, action: str) -> Role:
-        return self._actions.get(action, self._default)
+        """Who may approve a held `action`: its gate's lowest authorized role, else the
+        default approver; never below the role that may issue it — a lower one would release
+        motion it may not command (a viewer approving an AI's arm move)."""
+        configured = self._actions.get(action, self._default)
+        issuer = self._issuer_roles.get(action, Role.GUEST)
+        return issuer if issuer > configured else configured
 
     def approvals(self, action: str) -> int:
         """How many distinct approvers a held `action` needs."""
@@ -131,7 +145,7 @@ class HitlPolicy:
                     return outcomes.CONFIDENCE_BELOW_GATE
                 return Escalate(self.approver_role(command.action))
         if command.action in self._actions:
-            return Escalate(self._actions[command.action])
+            return Escalate(self.approver_role(command.action))
         return None
 
 

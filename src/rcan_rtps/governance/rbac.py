@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import msgspec
 
-from rcan_rtps.config import ApiConfig, RbacConfig
+from rcan_rtps.config import ApiConfig, RbacConfig, issuer_roles
 from rcan_rtps.rcan import Effect, Role
 from rcan_rtps.rcan.actions import specs, with_effect
 
@@ -57,6 +57,10 @@ class RolePolicy:
         self._required = {**DEFAULT_ACTION_ROLES, **(overrides or {})}
         # Even a config cannot take the e-stop away from any authenticated principal.
         self._required[with_effect(Effect.ESTOP).name] = Role.GUEST
+
+    @classmethod
+    def from_config(cls, rbac: RbacConfig) -> RolePolicy:
+        return cls(issuer_roles(rbac))
 
     def required(self, action: str) -> Role:
         return self._required[action]

@@ -94,7 +94,10 @@ async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id
     """`watch_s`: watch the command topics for other publishers, polling so often; `watch`:
     as often as the config says."""
     ros2 = config.bridge.ros2
-    node = RosNode(ros2.node_name, ros2.namespace, domain_id=domain_id, distro=ros2.distro)
+    # As `run` makes it: the endpoints the robot obeys marked with its robot's id, so that
+    # the rclpy peers of these tests meet the USER_DATA a real bridge's endpoints carry.
+    node = RosNode(ros2.node_name, ros2.namespace, domain_id=domain_id, distro=ros2.distro,
+                   governed_by=config.robot.ruri)
     events = Events()
     audit = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path,
                                 audited=events.audited)

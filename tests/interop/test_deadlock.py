@@ -147,7 +147,8 @@ async def test_sim_with_remote_cmd_vel_publisher_at_100hz(tmp_path: Path,
                        *state_args(tmp_path, "state")], env, demo=True)
     pub = subprocess.Popen(
         [sys.executable, "-m", "rcan_rtps", "--localhost", "topic", "pub", "/robot1/cmd_vel",
-         "geometry_msgs/msg/Twist", "{linear: {x: 0.05}}", "-r", "100"],
+         "geometry_msgs/msg/Twist", "{linear: {x: 0.05}}", "-r", "100",
+         "--ungoverned"],  # beside the bridge on purpose
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     try:
         report = await hammer(proc.url, proc.owner, _move, SECONDS, rate_hz=12.0)

@@ -547,7 +547,7 @@ async def test_default_tools_say_to_add_localhost(demo: Demo, http: aiohttp.Clie
     assert "/robot1/sim_robot" in nodes.stdout and "--localhost" not in nodes.stderr
     pub = await asyncio.to_thread(cli, "--localhost", "topic", "pub", "/robot1/cmd_vel",
                                   "geometry_msgs/msg/Twist", "{linear: {x: 0.1}}", "-t", "3",
-                                  "-r", "20")
+                                  "-r", "20", "--ungoverned")  # the bridge governs it
     assert pub.returncode == 0, pub.stderr
     shown = [line for line in pub.stdout.splitlines() if line.startswith("publishing #")]
     assert [line.split(":")[0] for line in shown] == ["publishing #1", "publishing #2",

@@ -184,7 +184,8 @@ class FirstUsePublisher:
 
     def publisher(self) -> RosPublisher:
         if self._made is None:
-            self._made = self._node.create_publisher(self._name, self._type, self._qos)
+            self._made = self._node.create_publisher(self._name, self._type, self._qos,
+                                                     governed=True)
         return self._made
 
     def publish(self, message: Any) -> None:
@@ -336,7 +337,8 @@ class RosDispatcher:
             publisher = made.publisher()
         else:
             publisher = self.node.create_publisher(
-                topic, type_name, ESTOP_QOS if publish.latched else qos.DEFAULT)
+                topic, type_name, ESTOP_QOS if publish.latched else qos.DEFAULT,
+                governed=True)
         self._publishers[key] = publisher
         return publisher
 

@@ -43,7 +43,7 @@ class GoalTracker:
                  keep: int = 200, mapping: RequestMapping = RequestMapping.AUTO,
                  events: Events | None = None) -> None:
         self.node = node
-        self.client = ActionClient(node, action, type_name, mapping=mapping)
+        self.client = ActionClient(node, action, type_name, mapping=mapping, governed=True)
         self._views: dict[str, GoalView] = {}
         self._keep = keep
         self._sent: SentGoals | None = None  # made by the first goal

@@ -313,7 +313,8 @@ class Bridge:
         ros2 = self.config.bridge.ros2
         node = self.node = RosNode(ros2.node_name, ros2.namespace or "/",
                                    domain_id=ros2.domain_id, distro=ros2.distro,
-                                   localhost=self.options.localhost)
+                                   localhost=self.options.localhost,
+                                   governed_by=self.config.robot.ruri)
         self._on_stop("leaving the ROS graph", node.close)
         return node
 

@@ -13,8 +13,9 @@ from ..ros.action_goals import ClientGoal
 from ..ros.actions import ActionClient, GoalState
 from ..ros.graph import Direction, RosGraph, node_fqn
 from ..ros.names import EndpointKind, action_names
-from ..ros.services import RequestMapping
+from ..ros.services import RequestMapping, shared_graph
 from ._common import VALUES_HELP, dump, make_node, parse_values, warn_if_alone
+from ._governed import UNGOVERNED, GovernorGuard, action_topics
 from ._options import add_spin_time
 from .service_cmd import MAPPING_HELP, MAPPINGS
 
@@ -46,6 +47,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     send.add_argument("--timeout", type=float, default=10.0,
                       help="seconds to find the server and have the goal answered")
     send.add_argument("--mapping", choices=MAPPINGS, default="auto", help=MAPPING_HELP)
+    send.add_argument(UNGOVERNED[0], action="store_true", help=UNGOVERNED[1])
     send.set_defaults(func=lambda a: stop_signals.run(_send_goal(a)))
 
 
@@ -90,6 +92,8 @@ async def _send_goal(args: argparse.Namespace) -> int:
         message = node.values.build(goal_type, values)  # bad values fail before the graph
         print("Waiting for an action server to become available...", flush=True)
         await client.wait_for_server(args.timeout)  # a stop until here ends it: nothing sent
+        await GovernorGuard(shared_graph(node), action_topics(client.name),
+                            allowed=args.ungoverned).look_before_sending()
         print("Sending goal:\n" + _indent(dump(node.values.to_plain(goal_type, message))),
               flush=True)
         # From here a goal may be running on the server: Ctrl-C, SIGTERM or SIGHUP (its

@@ -28,10 +28,11 @@ from ..ros.bag import (
 )
 from ..ros.errors import CdrDecodeError
 from ..ros.graph import Direction, Endpoint, RosGraph
-from ..ros.names import is_hidden
+from ..ros.names import is_hidden, mangle_topic
 from ..ros.participant import RosNode, RosPublisher, RosSubscription
 from ._common import make_node
 from ._echo import adapted_qos
+from ._governed import UNGOVERNED, GovernorGuard
 
 DISCOVERY_PERIOD = 0.1  # s between looks for new topics while recording
 RECORD_DEPTH = 1000  # reader history: a slow disk must not cost messages
@@ -83,6 +84,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                       help="play at most S seconds of the bag (default: all)")
     play.add_argument("-m", "--remap", nargs="+", default=[], metavar="FROM:=TO",
                       help="publish topic FROM under the name TO")
+    play.add_argument(UNGOVERNED[0], action="store_true", help=UNGOVERNED[1])
     play.set_defaults(func=lambda a: stop_signals.run(_play(a)))
 
     info = actions.add_parser("info", help="summary of a bag")
@@ -272,11 +274,15 @@ async def _play(args: argparse.Namespace) -> int:
     with make_node(args) as node:
         publishers = _publishers(node, topics, _remaps(args.remap))
         await _await_matches(node, publishers)
+        governor = GovernorGuard(RosGraph(node), {mangle_topic(p.topic): p.topic
+                                                  for p in publishers.values()},
+                                 allowed=args.ungoverned)
+        await governor.look_before_sending()
         if args.delay > 0:
             await asyncio.sleep(args.delay)
         refused = _Refused()
         while True:
-            await _play_once(node, reader, summary, publishers, args, refused)
+            await _play_once(reader, summary, publishers, args, refused, governor)
             if not args.loop:
                 break
         await asyncio.sleep(0.3)  # let reliable delivery finish before the participant goes
@@ -315,9 +321,9 @@ class _Refused:
                            f"refused them (first: {self.first}); the others were played")
 
 
-async def _play_once(node: RosNode, reader: BagReader, summary: BagSummary,
+async def _play_once(reader: BagReader, summary: BagSummary,
                      publishers: dict[str, RosPublisher], args: argparse.Namespace,
-                     refused: _Refused) -> None:
+                     refused: _Refused, governor: GovernorGuard) -> None:
     begin_ns = summary.start_ns + round(args.start_offset * 1e9)
     end_ns = begin_ns + round(args.playback_duration * 1e9) \
         if args.playback_duration >= 0 else None
@@ -327,6 +333,7 @@ async def _play_once(node: RosNode, reader: BagReader, summary: BagSummary,
         # Awaited even when late (0 s): a stop signal lands here, between two messages, also
         # when the bag is played faster than it can be.
         await asyncio.sleep(max(0.0, start + offset - time.monotonic()))
+        governor.check_when_due()  # a governor found since ends the playback
         pub = publishers[message.topic]
         try:
             pub.publish_cdr(message.data)

@@ -11,9 +11,10 @@ from .. import _stop_signals as stop_signals
 from ..ros.errors import ServiceUnavailable, WireError, seconds
 from ..ros.graph import RosGraph
 from ..ros.participant import RosNode
-from ..ros.services import RequestMapping, ServiceClient
+from ..ros.services import RequestMapping, ServiceClient, shared_graph
 from ..ros.typesys.store import normalize_name
 from ._common import VALUES_HELP, alone_hint, dump, make_node, parse_values, warn_if_alone
+from ._governed import UNGOVERNED, GovernorGuard, service_topics
 from ._options import add_spin_time
 
 # How long `call` looks for a server on the graph before saying there is none (discovery
@@ -57,6 +58,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     call.add_argument("values", metavar="VALUES", nargs="?", default=None, help=VALUES_HELP)
     call.add_argument("--timeout", type=float, default=10.0, help="seconds (default 10)")
     call.add_argument("--mapping", choices=MAPPINGS, default="auto", help=MAPPING_HELP)
+    call.add_argument(UNGOVERNED[0], action="store_true", help=UNGOVERNED[1])
     call.set_defaults(func=lambda a: stop_signals.run(_call(a)))
 
 
@@ -139,6 +141,8 @@ async def _call(args: argparse.Namespace) -> int:
                                        min(args.timeout, SERVER_PATIENCE))
         client = ServiceClient(node, service, type_name, mapping=RequestMapping(args.mapping))
         request = node.values.build(client.request_type, values)  # bad values fail here
+        await GovernorGuard(shared_graph(node), service_topics(service),
+                            allowed=args.ungoverned).look_before_sending()
         print(f"requester: making request: {client.request_type}", flush=True)
         response = await client.call(request, args.timeout)
         print("response:\n" + dump(node.values.to_plain(client.response_type, response)))

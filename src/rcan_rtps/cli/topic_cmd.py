@@ -15,6 +15,7 @@ from .._printable import shown
 from ..ros import qos as qos_mod
 from ..ros.errors import GraphTimeout, seconds
 from ..ros.graph import Direction, Endpoint, RosGraph, short_gid
+from ..ros.names import mangle_topic
 from ..ros.participant import RosNode, RosPublisher
 from ..ros.typesys.store import normalize_name
 from . import _measure
@@ -30,6 +31,7 @@ from ._common import (
     warn_if_alone,
 )
 from ._echo import EchoFormat, adapted_qos, add_qos_options, chosen_qos
+from ._governed import UNGOVERNED, GovernorGuard
 from ._options import add_spin_time
 
 SUBSCRIBER_PATIENCE = 5.0  # s `pub --once/--times` waits for subscriptions to match
@@ -82,6 +84,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     mode.add_argument("-t", "--times", type=int, default=0, metavar="N",
                       help="publish N messages and exit (default: until Ctrl-C)")
     pub.add_argument("-r", "--rate", type=float, default=1.0, help="Hz (default 1)")
+    pub.add_argument(UNGOVERNED[0], action="store_true", help=UNGOVERNED[1])
     pub.add_argument("-w", "--wait-matching-subscriptions", type=int, default=None, metavar="N",
                      help="first wait up to 5 s for N subscribers (default: 1 with --once or "
                      "--times, else 0)")
@@ -232,8 +235,11 @@ async def _pub(args: argparse.Namespace) -> int:
     with node:
         pub = node.create_publisher(args.topic, args.type, qos_mod.preset(args.qos_profile),
                                     warn_other_type=False)
-        guard = TypeGuard(node, RosGraph(node), pub.topic, args.type)
+        graph = RosGraph(node)
+        guard = TypeGuard(node, graph, pub.topic, args.type)
         guard.watch(pub)
+        governor = GovernorGuard(graph, {mangle_topic(pub.topic): pub.topic},
+                                 allowed=args.ungoverned)
         message = node.values.build(args.type, values)
         times = 1 if args.once else args.times
         wait_for = args.wait_matching_subscriptions
@@ -243,12 +249,14 @@ async def _pub(args: argparse.Namespace) -> int:
             await _await_subscribers(pub, guard, wait_for, SUBSCRIBER_PATIENCE)
         else:
             guard.check()
+        await governor.look_before_sending()
         print("publisher: beginning loop", flush=True)
         said = _shown(node.values.to_plain(args.type, message))
         period = 1.0 / args.rate if args.rate > 0 else 0.0
         sent = 0
         while not times or sent < times:
             guard.check_when_due()  # a subscription of another type appeared
+            governor.check_when_due()  # a governor found since
             pub.publish(message)
             sent += 1
             print(f"publishing #{sent}: {args.type}({said})", flush=True)

@@ -490,7 +490,7 @@ class GoalSender:
         self.types, self.type_name = client.types, client.type_name  # parses the action
         names = action_names(self.name)
         self._send = ServiceClient(self.node, names["send_goal"], self.type_name + "_SendGoal",
-                                   mapping=client.mapping)
+                                   mapping=client.mapping, governed=client.governed)
         self._get = ServiceClient(self.node, names["get_result"], self.type_name + "_GetResult",
                                   mapping=client.mapping)
         # Our goals the status and feedback topics may still speak of: those ended are let go
@@ -917,8 +917,8 @@ class GoalSender:
         if self._take_back_srv is None:
             self.client._check_open()
             self._take_back_srv = ServiceClient(self.node, action_names(self.name)["cancel_goal"],
-                                                CANCEL_TYPE,
-                                                mapping=self.client.mapping)
+                                                CANCEL_TYPE, mapping=self.client.mapping,
+                                                governed=self.client.governed)
         return self._take_back_srv
 
     async def _sent(self, handle: ClientGoal, request: Any, deadline: float) -> ClientGoal:

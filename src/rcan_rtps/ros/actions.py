@@ -75,8 +75,11 @@ class ActionClient:
     cancels every goal of its server."""
 
     def __init__(self, node: RosNode, action: str, type_name: str, *,
-                 mapping: RequestMapping = RequestMapping.AUTO) -> None:
+                 mapping: RequestMapping = RequestMapping.AUTO,
+                 governed: bool = False) -> None:
         self.node = node
+        # Goals and cancels the robot obeys: their endpoints carry the node's `governed_by`.
+        self.governed = governed
         self.name = node.resolve(action)
         # The action's own definition is parsed by its first use (`types`: the first goal);
         # canceling needs only CancelGoal and the status type. An unknown action still fails
@@ -86,7 +89,7 @@ class ActionClient:
         self.mapping = mapping
         names = action_names(self.name)
         self._cancel_srv = ServiceClient(node, names["cancel_goal"], CANCEL_TYPE,
-                                         mapping=mapping)
+                                         mapping=mapping, governed=governed)
         self._cancel_srv.describe_ahead()  # a stop may be its first call: it describes nothing
         self._sending: GoalSender | None = None  # the goal side, made by the first goal
         # Told of a goal whose send gave up that the server accepted after all, which the
@@ -101,8 +104,11 @@ class ActionClient:
                     loop.call_soon_threadsafe(handler, sample)
             return hop
 
+        # Governed, it says so from the start: its goal and cancel writers come with their
+        # first use, and a tool about to send a goal beside it must see it before that.
         self._status = node.create_subscription(
-            names["status"], STATUS_TYPE, qos_mod.ACTION_STATUS, callback=on_loop(self._on_status))
+            names["status"], STATUS_TYPE, qos_mod.ACTION_STATUS,
+            callback=on_loop(self._on_status), governed=governed)
         self._on_loop = on_loop
 
     @property

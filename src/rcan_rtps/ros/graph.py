@@ -97,6 +97,9 @@ class Endpoint:
     # rmw_cyclonedds' `serviceid=`/`clientid=` of a service endpoint: the mark of its
     # request-reply mapping that survives DDS-Security (which rewrites the GUID's vendor bytes)
     service_id: str = ""
+    # Who governs this endpoint, when its USER_DATA says (`RosNode.governed_by`): a writer
+    # the robot obeys, or a reader of a governed action's status.
+    governed_by: str = ""
 
 
 class _Node(msgspec.Struct, frozen=True):
@@ -120,6 +123,7 @@ class _Seen(msgspec.Struct, frozen=True):
     qos: QosProfile  # one object per distinct profile (`RosGraph._profiles`)
     type_hash: str
     service_id: str
+    governed_by: str
 
 
 def vendor_of(gid: bytes) -> str:
@@ -194,7 +198,8 @@ class RosGraph:
         return _Seen(direction, sys.intern(sample.topic_name), sys.intern(sample.type_name),
                      sample.participant_key.bytes, self._shared(profile),
                      user_data.get("typehash", ""),
-                     user_data.get("serviceid") or user_data.get("clientid") or "")
+                     user_data.get("serviceid") or user_data.get("clientid") or "",
+                     sys.intern(user_data.get(qos_mod.GOVERNED_BY, "")))
 
     def _shared(self, profile: QosProfile) -> QosProfile:
         """The one object kept for profiles equal to `profile`."""
@@ -341,7 +346,7 @@ class RosGraph:
                 seen.direction, mangled.kind, mangled.name,
                 ros_type_of(seen.type_name, mangled.kind), seen.topic_name,
                 seen.type_name, key, seen.participant, seen.qos, seen.type_hash,
-                vendor_of(key), name, namespace, seen.service_id,
+                vendor_of(key), name, namespace, seen.service_id, seen.governed_by,
             ))
         return sorted(found, key=lambda e: (e.ros_name, e.direction.value, e.node_name))
 

@@ -31,7 +31,7 @@ from . import qos as qos_mod
 from . import raw_cdr
 from .errors import CdrDecodeError, GraphTimeout, WireError, seconds
 from .names import expand_topic_name, mangle_topic, normalize_namespace, validate_node_name
-from .qos import QosProfile
+from .qos import GOVERNED_BY, QosProfile
 from .readers import Decode, ReaderThread, Watch, WriterWatch
 from .rtps_capture import IdentityCapture, capture_supported
 from .typesys.cdr import CdrCodecs
@@ -285,7 +285,8 @@ class RosSubscription:
 
     def __init__(self, node: RosNode, topic: str, type_name: str, qos: QosProfile,
                  callback: Callable[[IdlStruct], None] | None, maxsize: int,
-                 raw: bool = False, warn_other_type: bool = True) -> None:
+                 raw: bool = False, warn_other_type: bool = True,
+                 governed: bool = False) -> None:
         self.node, self.topic, self.type_name = node, topic, type_name
         self.incompatible_qos_events = 0
         self.other_type_events = 0  # of them, publishers of another type (name or hash)
@@ -298,9 +299,10 @@ class RosSubscription:
             self._loop = asyncio.get_running_loop()
             self._queue = asyncio.Queue(maxsize)
         dds_topic = node.topic(mangle_topic(topic), type_name)
-        user_data = node.endpoint_user_data(type_name)
+        user_data = ((node.endpoint_user_data(type_name) or b"")
+                     + (node.governed_entry if governed else "").encode())
         self.reader: DataReader[Any] = DataReader(
-            node.subscriber, dds_topic, qos=qos.to_dds(user_data))
+            node.subscriber, dds_topic, qos=qos.to_dds(user_data or None))
         # Historical (transient-local) samples already in the reader trigger the condition.
         self._watch = node.watch(self.reader, self._on_samples, f"subscription {topic}",
                                  on_incompatible_qos=self._on_incompatible,
@@ -396,9 +398,13 @@ class RosNode:
     def __init__(self, name: str, namespace: str = "/", *, domain_id: int | None = None,
                  localhost: bool | None = None, distro: str | None = None,
                  idl_paths: Iterable[str | Path] = (), store: TypeStore | None = None,
-                 enclave: str = "/") -> None:
+                 enclave: str = "/", governed_by: str = "") -> None:
         validate_node_name(name)
         self.name = name
+        # Who governs what this node commands (a bridge's robot id): its commanding writers
+        # say so in their USER_DATA (`governed_by=…;`), so that a tool about to publish there
+        # beside it can tell (`graph.Endpoint.governed_by`). rmw ignores keys it does not know.
+        self.governed_entry = qos_mod.user_data_entry(GOVERNED_BY, governed_by)
         self.namespace = normalize_namespace(namespace)
         self.store = store or TypeStore([*idl_paths, *env_idl_paths()], distro)
         self.types = DdsTypes(self.store)
@@ -478,22 +484,29 @@ class RosNode:
 
     def create_publisher(self, topic: str, type_name: str,
                          qos: QosProfile = qos_mod.DEFAULT, *,
-                         warn_other_type: bool = True) -> RosPublisher:
+                         warn_other_type: bool = True, governed: bool = False
+                         ) -> RosPublisher:
         """`warn_other_type=False`: a subscription of another type is only counted
-        (`other_type_events`), not logged, for an owner that reports it itself."""
+        (`other_type_events`), not logged, for an owner that reports it itself.
+        `governed`: the robot obeys it (a bridge commands it): its writer carries the
+        node's `governed_by`."""
         full = self.resolve(topic)
-        writer = self.create_writer(mangle_topic(full), type_name, qos)
+        writer = self.create_writer(mangle_topic(full), type_name, qos,
+                                    self.governed_entry if governed else "")
         return RosPublisher(self, full, type_name, writer, warn_other_type)
 
     def create_subscription(self, topic: str, type_name: str,
                             qos: QosProfile = qos_mod.DEFAULT, *,
                             callback: Callable[[IdlStruct], None] | None = None,
                             maxsize: int = 1000, raw: bool = False,
-                            warn_other_type: bool = True) -> RosSubscription:
+                            warn_other_type: bool = True,
+                            governed: bool = False) -> RosSubscription:
         """Samples arrive as typed messages, or with `raw` as `CdrSample` bytes undecoded.
-        `warn_other_type`: as for `create_publisher`."""
+        `warn_other_type`, `governed`: as for `create_publisher` (a governed reader: an
+        action client's status, there from the start where its goal writers are made by
+        the first goal)."""
         sub = RosSubscription(self, self.resolve(topic), type_name, qos, callback, maxsize,
-                              raw, warn_other_type)
+                              raw, warn_other_type, governed)
         # The node owns its subscriptions: a dropped handle must not silence the topic.
         self._subscriptions.append(sub)
         self.track_reader(sub.reader)

@@ -165,6 +165,20 @@ def from_dds(qos: Qos) -> QosProfile:
     return profile
 
 
+# The USER_DATA key of a writer the robot obeys, naming who governs it (`RosNode.governed_by`).
+GOVERNED_BY = "governed_by"
+
+
+def user_data_entry(key: str, value: str) -> str:
+    """`key=value;` for an entity's USER_DATA, or "" for no value. A value that would split
+    the list (`;`, `=`) or does not print is refused: readers parse it as text."""
+    if not value:
+        return ""
+    if not value.isprintable() or any(c in value for c in ";="):
+        raise ValueError(f"{key}: {value!r} cannot be a USER_DATA value")
+    return f"{key}={value};"
+
+
 def user_data_of(qos: Qos | None) -> dict[str, str]:
     """`key=value;` pairs from an entity's USER_DATA (`typehash=…;`, `enclave=…;`)."""
     if qos is None:

@@ -282,9 +282,13 @@ class _ServiceEnd:
 
     _ROLE: ClassVar[_Role]
 
-    def __init__(self, node: RosNode, service: str, type_name: str, qos: QosProfile) -> None:
+    def __init__(self, node: RosNode, service: str, type_name: str, qos: QosProfile,
+                 governed: bool = False) -> None:
         self.node = node
         self.name = node.resolve(service)
+        # A client the robot obeys (an action's goals and cancels): its request writer
+        # carries the node's `governed_by`.
+        self._governed = node.governed_entry if governed else ""
         srv = node.store.service(type_name)
         # Its endpoints are made by the first call, which may be a stop's (a server-wide
         # cancel): every type they nest is loaded now, so that call parses no IDL.
@@ -302,7 +306,8 @@ class _ServiceEnd:
         replies = (self.reply_topic, self.response_type)
         out, into = (requests, replies) if self._ROLE is _Role.CLIENT else (replies, requests)
         return _Pair(self.node, mapping, out, into, self._qos,
-                     f"{self._ROLE.value}={format_endpoint_id(self.id)};", deliver)
+                     f"{self._ROLE.value}={format_endpoint_id(self.id)};{self._governed}",
+                     deliver)
 
 
 @dataclass(slots=True)
@@ -340,8 +345,8 @@ class ServiceClient(_ServiceEnd):
 
     def __init__(self, node: RosNode, service: str, type_name: str, *,
                  mapping: RequestMapping = RequestMapping.AUTO,
-                 qos: QosProfile = qos_mod.SERVICES) -> None:
-        super().__init__(node, service, type_name, qos)
+                 qos: QosProfile = qos_mod.SERVICES, governed: bool = False) -> None:
+        super().__init__(node, service, type_name, qos, governed)
         self.mapping = mapping
         self._graph = shared_graph(node)
         self._pairs: dict[RequestMapping, _Pair] = {}

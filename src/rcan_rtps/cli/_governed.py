@@ -1,0 +1,100 @@
+"""Publishing where a governor commands the robot: refused unless asked for.
+
+A bridge (`rcan-rtps run`) marks each writer the robot obeys — velocity and trajectory
+topics, the e-stop's, its action clients' goal and cancel requests — with its robot's id
+(`ros.graph.Endpoint.governed_by`). A message published beside one reaches the robot without
+passing that governance: no role, no limits, no HiTL, no audit entry, and through a latched
+e-stop. So the commands that send (`topic pub`, `bag play`, `service call`, `action
+send_goal`) refuse a topic a governed writer is on, unless `--ungoverned` says that is meant
+(the bridge then lists the sender among the robot's other commanders).
+
+A tool only sees what it has discovered: each command looks for GOVERNOR_LOOK_S before it
+sends and again while it sends (a governor found later ends it). This guards against a
+mistake; it is no security boundary — any DDS peer can publish, and what keeps one out is
+DDS-Security's permissions (SROS2).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+import time
+
+from .._printable import shown
+from ..ros.errors import WireError
+from ..ros.graph import RosGraph
+from ..ros.names import action_names, action_of, mangle_service, mangle_topic
+
+GOVERNOR_LOOK_S = 1.0  # s a command looks at the graph for a governor before it first sends
+LOOK_PERIOD = 0.5  # s between looks while it sends
+UNGOVERNED = ("--ungoverned", "send even where a governor (an rcan-rtps bridge) commands the "
+              "robot: past its roles, limits, approvals, audit and e-stop")
+
+
+class GovernedTopic(WireError):
+    """The command would send where a governor commands the robot."""
+
+
+class GovernorGuard:
+    """Looks for governed endpoints on the DDS topics a command sends on (`topics`: DDS name
+    → what to call it), as `TypeGuard` looks for other types."""
+
+    def __init__(self, graph: RosGraph, topics: dict[str, str], *, allowed: bool) -> None:
+        self.graph, self.topics, self.allowed = graph, topics, allowed
+        self._next_look = 0.0
+        self._warned: set[tuple[str, str]] = set()
+
+    async def look_before_sending(self) -> None:
+        """Looks for GOVERNOR_LOOK_S (discovery takes a moment), raising at the first seen."""
+        deadline = time.monotonic() + GOVERNOR_LOOK_S
+        while True:
+            self.check()
+            if time.monotonic() >= deadline:
+                return
+            await asyncio.sleep(0.05)
+
+    def check_when_due(self) -> None:
+        if time.monotonic() >= self._next_look:
+            self.check()
+
+    def check(self) -> None:
+        """Raises GovernedTopic for a governed endpoint on one of the topics (or, allowed,
+        says once on stderr that the governor is passed by)."""
+        self._next_look = time.monotonic() + LOOK_PERIOD
+        self.graph.refresh()
+        for dds_topic, name in self.topics.items():
+            for governor in sorted(self._governors_on(dds_topic)):
+                self._found(name, governor)
+
+    def _governors_on(self, dds_topic: str) -> set[str]:
+        return {e.governed_by for e in self.graph.endpoints()
+                if e.dds_topic == dds_topic and e.governed_by}
+
+    def _found(self, name: str, governor: str) -> None:
+        said = shown(governor)  # a peer's words: what does not print, escaped
+        if not self.allowed:
+            raise GovernedTopic(
+                f"{name} is governed: the rcan-rtps bridge of {said} commands the robot "
+                "there, and what is sent beside it passes its roles, limits, approvals, "
+                "audit and e-stop by. Command the robot through the bridge's API, or add "
+                "--ungoverned to send anyway")
+        if (name, governor) not in self._warned:
+            self._warned.add((name, governor))
+            print(f"warning: {name} is governed by {said}: sending ungoverned "
+                  "(--ungoverned)", file=sys.stderr, flush=True)
+
+
+def action_topics(action: str) -> dict[str, str]:
+    """The DDS topics a governed action client is seen on: its status reader from the
+    start, its goal and cancel request writers from their first use."""
+    names = action_names(action)
+    return {mangle_topic(names["status"]): action,
+            mangle_service(names["send_goal"])[0]: action,
+            mangle_service(names["cancel_goal"])[0]: action}
+
+
+def service_topics(service: str) -> dict[str, str]:
+    """A service's request topic; for one of an action's services, the action's too."""
+    part_of = action_of(service)
+    return {mangle_service(service)[0]: service,
+            **(action_topics(part_of[0]) if part_of is not None else {})}

@@ -1,0 +1,135 @@
+"""The CLI's sending commands refuse where a bridge governs the robot (`cli/_governed.py`).
+
+`rcan-rtps run` marks the endpoints the robot obeys (velocity, trajectories, the e-stop's, its
+action clients) with its robot's id in USER_DATA; `topic pub`, `bag play`, `service call` and
+`action send_goal` on one of those topics would command the robot past the bridge's roles,
+limits, approvals, audit and e-stop, so they refuse unless `--ungoverned`. Against a real
+`run --sim` (its own robot a real ROS 2 node) and a real rclpy subscriber on the marked topic.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from waiting import eventually_sync
+
+from rcan_rtps.ros.bag import BagWriter
+from rcan_rtps.ros.serialization import serialize
+from rcan_rtps.ros.typesys.store import TypeStore
+from tests.interop.test_demo import Demo, _run_demo
+
+TWIST = "geometry_msgs/msg/Twist"
+STRING = "std_msgs/msg/String"
+CLI_TIMEOUT = 60
+
+
+@pytest.fixture
+def demo(tmp_path: Path, domain_id: int) -> Iterator[Demo]:
+    yield from _run_demo(tmp_path, domain_id, "--state-dir", str(tmp_path / "state"))
+
+
+def cli(demo: Demo, *args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(demo.domain_id),
+           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}  # as the demo keeps to loopback
+    return subprocess.run([sys.executable, "-m", "rcan_rtps", *args], env=env, text=True,
+                          capture_output=True, timeout=CLI_TIMEOUT)
+
+
+def status(demo: Demo) -> dict[str, Any]:
+    request = urllib.request.Request(demo.url + "/api/status",
+                                     headers={"Authorization": f"Bearer {demo.user}"})
+    with urllib.request.urlopen(request, timeout=10) as reply:
+        body: dict[str, Any] = json.loads(reply.read())
+    return body
+
+
+def refused(done: subprocess.CompletedProcess[str], demo: Demo, name: str) -> None:
+    ruri = status(demo)["ruri"]
+    assert done.returncode == 1, (done.stdout, done.stderr)
+    assert f"{name} is governed: the rcan-rtps bridge of {ruri}" in done.stderr, done.stderr
+    assert "--ungoverned" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_topic_pub_on_the_bridges_velocity_topic_is_refused(demo: Demo) -> None:
+    done = cli(demo, "topic", "pub", "/robot1/cmd_vel", TWIST, "{linear: {x: 0.5}}", "--once")
+    refused(done, demo, "/robot1/cmd_vel")
+    assert "publishing #" not in done.stdout  # nothing was sent
+    # Another topic is no one's to govern.
+    other = cli(demo, "topic", "pub", "/robot1/chatter", STRING, "{data: hi}", "--once",
+                "-w", "0")
+    assert other.returncode == 0 and "publishing #1" in other.stdout, other.stderr
+
+
+def test_ungoverned_sends_and_the_bridge_lists_the_sender(demo: Demo) -> None:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(demo.domain_id),
+           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}  # as the demo keeps to loopback
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rcan_rtps", "topic", "pub", "/robot1/cmd_vel", TWIST,
+         "{}", "--times", "100", "--rate", "20", "--ungoverned"],
+        env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        def listed() -> bool:
+            return any(f["topic"] == "/robot1/cmd_vel" and not f["expected"]
+                       for f in status(demo)["foreign_publishers"])
+        eventually_sync(listed, timeout=30, what="the ungoverned sender in STATUS")
+        out, err = proc.communicate(timeout=CLI_TIMEOUT)  # zero twists, 5 s of them
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert "publishing #100" in out, err
+    assert "warning: /robot1/cmd_vel is governed by" in err and "ungoverned" in err, err
+
+
+def test_action_send_goal_and_its_services_are_refused(demo: Demo) -> None:
+    """The bridge's navigate client is seen from the start (its status reader), before its
+    first goal makes the goal writers."""
+    done = cli(demo, "action", "send_goal", "/robot1/navigate_to_pose",
+               "nav2_msgs/action/NavigateToPose", "{pose: {pose: {position: {x: 1.0}}}}",
+               "--timeout", "20")
+    refused(done, demo, "/robot1/navigate_to_pose")
+    assert "Sending goal" not in done.stdout
+    cancel = cli(demo, "service", "call", "/robot1/navigate_to_pose/_action/cancel_goal",
+                 "action_msgs/srv/CancelGoal", "{}", "--timeout", "20")
+    assert cancel.returncode == 1, cancel.stderr
+    assert "/robot1/navigate_to_pose is governed" in cancel.stderr, cancel.stderr
+
+
+def _bag(where: Path, topic: str, type_name: str, values: dict[str, Any]) -> Path:
+    writer = BagWriter(where, TypeStore(distro="jazzy"), flush_period=60)
+    writer.add_topic(topic, type_name, [])
+    for i in range(20):
+        writer.write(topic, 1_000_000_000 + i * 50_000_000, serialize(type_name, values))
+    writer.close()
+    return where
+
+
+def test_bag_play_onto_a_governed_topic_is_refused(demo: Demo, tmp_path: Path) -> None:
+    bag = _bag(tmp_path / "drive", "/robot1/cmd_vel", TWIST, {"linear": {"x": 1.0}})
+    refused(cli(demo, "bag", "play", str(bag)), demo, "/robot1/cmd_vel")
+    # remapped away from the robot, it plays
+    done = cli(demo, "bag", "play", str(bag), "-m", "/robot1/cmd_vel:=/replay/cmd_vel")
+    assert done.returncode == 0, done.stderr
+
+
+def test_nothing_moved_the_robot_while_refusing(demo: Demo) -> None:
+    """The refused commands sent nothing: the robot stays at rest where it started."""
+    def at_rest() -> dict[str, Any] | None:
+        body = status(demo)
+        return body if body["ros"]["connected"] and body["telemetry"]["position"] else None
+    before = eventually_sync(at_rest, timeout=20, what="the robot's position")["telemetry"]
+    for _ in range(3):
+        cli(demo, "topic", "pub", "/robot1/cmd_vel", TWIST, "{linear: {x: 1.0}}", "--times",
+            "5", "--rate", "20")
+    time.sleep(0.5)
+    after = status(demo)["telemetry"]
+    assert after["position"] == before["position"], (before, after)

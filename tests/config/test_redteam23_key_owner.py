@@ -55,3 +55,35 @@ def test_a_key_file_owned_by_another_user_is_refused(
     assert f"is owned by uid {NOBODY}" in _bridge_refuses(tmp_path)
     os.chown(tmp_path / name, 0, 0)  # root's own is fine (the bridge's user's, too)
     assert check(tmp_path, text) == 0
+
+
+# -- the directory a key file is in ----------------------------------------------------------
+
+
+@pytest.mark.parametrize(("name", "api_extra", "said"), [
+    ("keys/keys.json", JWKS.replace("keys.json", "keys/keys.json"), "bridge.api.jwt:"),
+    ("keys/ops.pub", SIGNER.replace("ops.pub", "keys/ops.pub"), "kid 'k1':"),
+    ("keys/clients.pem", TLS.replace("tls/clients.pem", "keys/clients.pem"),
+     "bridge.api.tls.client_ca:"),
+])
+@pytest.mark.parametrize("directory_mode", [0o775, 0o777])
+def test_a_key_file_in_a_directory_others_may_write_is_refused(
+        name: str, api_extra: str, said: str, directory_mode: int, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Red team 22 refused a trusted key file its group may write; one in a directory its
+    group may write passed, and whoever may write the directory replaces the file (a new
+    file, their key in it, renamed over the old): /etc/rcan 0775 root:robots let any member
+    of robots mint OWNER tokens. ssh's StrictModes judges the directories too."""
+    _trusted_files(tmp_path)
+    (tmp_path / "keys").mkdir()
+    os.replace(tmp_path / Path(name).name if "clients" not in name
+               else tmp_path / "tls" / "clients.pem", tmp_path / name)
+    text = config_text("127.0.0.1", api_extra)
+    assert check(tmp_path, text) == 0
+    (tmp_path / "keys").chmod(directory_mode)
+    assert check(tmp_path, text) == 1
+    err = capsys.readouterr().err
+    assert said in err and f"{tmp_path / 'keys'} may be written by others" in err, err
+    assert "may be written by others" in _bridge_refuses(tmp_path)
+    (tmp_path / "keys").chmod(directory_mode | 0o1000)  # sticky: others cannot replace it
+    assert check(tmp_path, text) == 0

@@ -11,6 +11,7 @@ from rcan_rtps.governance._durable import (
     WRITABLE_BY_OTHERS,
     foreign_owner_problem,
     regular_stat,
+    writable_directory_problem,
 )
 from rcan_rtps.governance.rbac import rate_limits
 from rcan_rtps.rcan import Role
@@ -53,6 +54,9 @@ def _check_tls_file(key: str, path: str) -> None:
         raise ValueError(f"bridge.api.tls.client_ca: {path} may be written by others (mode "
                          f"{mode & 0o777:o}): whoever can write it can add their own CA, and "
                          "a certificate of theirs would name any principal (chmod go-w)")
+    directory = writable_directory_problem(Path(path)) if key == "client_ca" else None
+    if directory is not None:
+        raise ValueError(f"bridge.api.tls.client_ca: {directory}")
     if key == "key" and mode & _TLS_KEY_TOO_OPEN:
         raise ValueError(f"bridge.api.tls.key: {path} is open to others (mode "
                          f"{mode & 0o777:o}): make it 0600 (or 0640 for a group such as "

@@ -132,6 +132,30 @@ def read_small(path: Path, limit: int) -> bytes:
 WRITABLE_BY_OTHERS = 0o022
 
 
+def writable_directory_problem(path: Path) -> str | None:
+    """Why a file the bridge trusts keys from may be replaced by others: a directory it is in
+    (the named path's and, through links, the file's) may be written by its group or others
+    and is not sticky, or is owned by neither this user nor root — whoever may write the
+    directory renames a file of their own over it, whatever the file's own mode (ssh's
+    StrictModes walks the directories too)."""
+    mine = os.geteuid()
+    named = Path(os.path.abspath(path)).parents
+    resolved = Path(os.path.realpath(path)).parents
+    for directory in dict.fromkeys([*named, *resolved]):
+        try:
+            info = os.stat(directory)
+        except OSError:
+            continue  # (the file's own open says what is wrong)
+        if info.st_uid not in (mine, 0):
+            return (f"{directory} is owned by uid {info.st_uid}, neither this user ({mine}) "
+                    f"nor root: its owner can replace {path} (chown it)")
+        if info.st_mode & WRITABLE_BY_OTHERS and not info.st_mode & stat.S_ISVTX:
+            return (f"{directory} may be written by others (mode {info.st_mode & 0o7777:o}): "
+                    f"whoever can write it can replace {path} with their own (chmod go-w, "
+                    "or +t)")
+    return None
+
+
 def read_trusted(path: Path, limit: int) -> bytes:
     """`read_small` of a file the bridge trusts keys from (a JWT issuer's key or key set, a
     principal's signing key): ValueError if its group or others may write it — they could put
@@ -144,6 +168,9 @@ def read_trusted(path: Path, limit: int) -> bytes:
     if mode & WRITABLE_BY_OTHERS:
         raise ValueError(f"{path} may be written by others (mode {mode & 0o777:o}): whoever "
                          "can write it can put their own key in (chmod go-w)")
+    directory = writable_directory_problem(path)
+    if directory is not None:
+        raise ValueError(directory)
     return data
 
 

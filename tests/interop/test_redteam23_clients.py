@@ -70,6 +70,40 @@ async def test_a_client_come_and_gone_between_our_calls_keeps_replies_ambiguous(
         await asyncio.sleep(0)
 
 
+async def test_a_client_our_graph_never_saw_alive_keeps_replies_ambiguous(
+        slow_server: RclpyOracle, domain_id: int, jazzy_share: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """As above, with nothing of ours looking at the graph while the other client is there:
+    the discovery reader keeps one sample an endpoint, and its last one, its disposal, names
+    no topic. The graph never saw it alive, yet it left a request behind all the same."""
+    monkeypatch.setenv("RCAN_RTPS_RPC_IDENTITY", "off")
+    with RosNode("caller", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as node:
+        client = ServiceClient(node, "/slow", SET_BOOL)
+        await client.wait_for_service(timeout=30)
+        assert (await client.call({"data": True}, timeout=20)).success  # alone: answered
+
+        with RosNode("other", "/", domain_id=domain_id, distro="jazzy",
+                     idl_paths=[jazzy_share]) as other_node:
+            other = ServiceClient(other_node, "/slow", SET_BOOL)
+            await other.wait_for_service(timeout=30)
+            # (its view, not ours: ours must not be refreshed meanwhile)
+            await eventually(lambda: _clients_seen(other_node) == 2, timeout=30,
+                             what="our client in the other's graph")
+            with contextlib.suppress(ServiceTimeout, AmbiguousReply):
+                await other.call({"data": False}, timeout=0.5)
+            other.close()
+        await asyncio.sleep(1.0)  # its disposal on its way to us (the server answers at 3 s)
+        try:
+            reply = await client.call({"data": True}, timeout=20)
+        except AmbiguousReply:
+            pass
+        else:
+            assert reply.success, f"took the other client's reply as ours: {reply.message}"
+        client.close()
+        await asyncio.sleep(0)
+
+
 def _clients_seen(node: RosNode) -> int:
     graph = shared_graph(node)
     graph.refresh()

@@ -181,8 +181,13 @@ class RosGraph:
                     self._endpoints[key] = self._seen(direction, sample)
                 else:
                     gone = self._endpoints.pop(key, None)
-                    if gone is not None:
-                        self._note_left(gone)
+                    # One never seen alive (it came and went between two refreshes: the
+                    # reader keeps an endpoint's last sample) left all the same; its
+                    # disposal names its topic.
+                    topic = gone.topic_name if gone is not None else \
+                        getattr(sample, "topic_name", None)
+                    if isinstance(topic, str) and topic:
+                        self._note_left(topic, direction)
         # Participants before their nodes: an info is kept by its participant being alive.
         # ros_discovery_info is keyless: a participant that leaves leaves its last sample
         # behind while any other writer remains. Its nodes go with it, as in rmw's graph.
@@ -206,9 +211,9 @@ class RosGraph:
                      user_data.get("typehash", ""),
                      user_data.get("serviceid") or user_data.get("clientid") or "")
 
-    def _note_left(self, gone: _Seen) -> None:
+    def _note_left(self, topic: str, direction: Direction) -> None:
         now = time.monotonic()
-        where = (gone.topic_name, gone.direction)
+        where = (sys.intern(topic), direction)
         self._left_at.pop(where, None)  # (re-inserted last: the table stays oldest first)
         self._left_at[where] = now
         if len(self._left_at) > self._departures_bound:

@@ -7,7 +7,12 @@ from pathlib import Path
 
 from rcan_rtps.config import RcanConfig, TlsConfig
 from rcan_rtps.governance import Principal
-from rcan_rtps.governance._durable import WRITABLE_BY_OTHERS, regular_mode
+from rcan_rtps.governance._durable import (
+    WRITABLE_BY_OTHERS,
+    foreign_owner_problem,
+    regular_stat,
+    writable_directory_problem,
+)
 from rcan_rtps.governance.rbac import rate_limits
 from rcan_rtps.rcan import Role
 
@@ -37,14 +42,21 @@ def _check_tls_file(key: str, path: str) -> None:
     one that others can neither read nor write). Opened without blocking, as a FIFO's open
     waits for a writer; OSError (missing, unreadable) is left to the caller."""
     try:
-        mode = regular_mode(Path(path))
+        info = regular_stat(Path(path))
     except ValueError as exc:
         raise ValueError(f"bridge.api.tls.{key}: {exc}") from None
+    mode = info.st_mode
+    owner = foreign_owner_problem(Path(path), info) if key in ("key", "client_ca") else None
+    if owner is not None:  # (the certificate is public; whoever swaps it has no key for it)
+        raise ValueError(f"bridge.api.tls.{key}: {owner}")
     # (as for the keys the bridge trusts: governance's read_trusted)
     if key == "client_ca" and mode & WRITABLE_BY_OTHERS:
         raise ValueError(f"bridge.api.tls.client_ca: {path} may be written by others (mode "
                          f"{mode & 0o777:o}): whoever can write it can add their own CA, and "
                          "a certificate of theirs would name any principal (chmod go-w)")
+    directory = writable_directory_problem(Path(path)) if key == "client_ca" else None
+    if directory is not None:
+        raise ValueError(f"bridge.api.tls.client_ca: {directory}")
     if key == "key" and mode & _TLS_KEY_TOO_OPEN:
         raise ValueError(f"bridge.api.tls.key: {path} is open to others (mode "
                          f"{mode & 0o777:o}): make it 0600 (or 0640 for a group such as "

@@ -53,6 +53,7 @@ from ..governance.audit import check_key_file, check_log_file
 from ..governance.decision_log import log_entry
 from ..governance.estop import check_latch_file
 from ..governance.signatures import Signatures
+from ..governance.witness import check_witness_file
 from ..rcan import Status
 from ..ros.participant import RosNode
 from .commanders import CommanderWatch
@@ -280,6 +281,8 @@ class Bridge:
         check_key_file(self.config.bridge.audit.key_path)
         check_log_file(self.config.bridge.audit.path)
         check_latch_file(estop_state_file(self.config.bridge))
+        if self.config.bridge.audit.witness is not None:
+            check_witness_file(self.config.bridge.audit.witness)
         host = opts.host or api.host
         plaintext = plaintext_problem(api, host)  # --host may point a loopback config outward
         if plaintext is not None:

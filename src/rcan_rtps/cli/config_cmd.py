@@ -178,12 +178,13 @@ def audit_key_problems(config: RcanConfig) -> list[str]:
 
 
 def state_file_problems(config: RcanConfig) -> list[str]:
-    """The audit log or the e-stop latch at something that is no regular file (a device, a
-    FIFO, a directory): `run` refuses them before it starts, as here."""
+    """The audit log, the e-stop latch or a file witness at something that is no regular file
+    (a device, a FIFO, a directory): `run` refuses them before it starts, as here."""
     from rcan_rtps.config import estop_state_file
     from rcan_rtps.governance import AuditError, EstopStateError
     from rcan_rtps.governance.audit import check_log_file
     from rcan_rtps.governance.estop import check_latch_file
+    from rcan_rtps.governance.witness import check_witness_file
 
     problems = []
     try:
@@ -194,4 +195,10 @@ def state_file_problems(config: RcanConfig) -> list[str]:
         check_latch_file(estop_state_file(config.bridge))
     except EstopStateError as exc:
         problems.append(f"bridge.safety.estop_state_path: {exc}")
+    witness = config.bridge.audit.witness
+    try:
+        if witness is not None:
+            check_witness_file(witness)
+    except ValueError as exc:
+        problems.append(f"bridge.audit.witness: {exc}")
     return problems

@@ -189,9 +189,9 @@ def shared_file_issues(config: RcanConfig, source: str) -> list[ConfigIssue]:
     replaced the audit log with the latch (the running log went on into an unlinked file);
     `path` = `key_path` made the key the log. Files it only reads may be one (a certificate
     that is its own CA)."""
-    by_file: dict[str, list[tuple[str, str, bool]]] = {}
+    by_file: dict[object, list[tuple[str, str, bool]]] = {}
     for key, path, written in _bridge_files(config, source):
-        by_file.setdefault(os.path.realpath(path), []).append((key, path, written))
+        by_file.setdefault(_file_identity(path), []).append((key, path, written))
     issues = []
     for names in by_file.values():
         writers = [(key, path) for key, path, written in names if written]
@@ -201,6 +201,17 @@ def shared_file_issues(config: RcanConfig, source: str) -> list[ConfigIssue]:
             issues.append(ConfigIssue(f"$.{key}", None, f"{path} is also {others}: the bridge "
                                       "writes it, so it must be a file of its own"))
     return issues
+
+
+def _file_identity(path: str) -> object:
+    """What makes two paths one file: the inode of one that is there (a hard link is a second
+    name of it, as is a name differing in case on a case-insensitive file system), else the
+    path with `..` and links resolved (the file a start would make)."""
+    try:
+        info = os.stat(path)
+    except (OSError, ValueError):
+        return os.path.realpath(path)
+    return (info.st_dev, info.st_ino)
 
 
 def _bridge_files(config: RcanConfig, source: str) -> list[tuple[str, str, bool]]:

@@ -35,9 +35,10 @@ from ._skills import skill_problem
 # A relative, absolute or `~/` name of one or more tokens. rcl wants `~` followed by `/` (or
 # alone): `~cmd_vel` would resolve to `/ns/rcan_bridgecmd_vel`, the node's name run into it.
 _ROS_NAME = re.compile(r"^(~/|/)?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*$")
-_NODE_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
-_PRINCIPAL = r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$"
-_ENV_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
+# whole(): a bare `$` also matched before a final newline ("admin\n" loaded beside admin).
+_NODE_NAME = whole(r"[A-Za-z_][A-Za-z0-9_]*")
+_PRINCIPAL = whole(r"[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}")
+_ENV_NAME = whole(r"[A-Za-z_][A-Za-z0-9_]*")
 
 # What is wrong with a field's (already well-typed) value, or None.
 Problem = Callable[[Any], str | None]

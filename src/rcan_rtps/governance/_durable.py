@@ -101,11 +101,23 @@ def _regular(path: Path) -> Iterator[tuple[int, os.stat_result]]:
         os.close(fd)
 
 
-def regular_mode(path: Path) -> int:
-    """The mode of the regular file at `path`, judged on the file opened (without blocking);
+def regular_stat(path: Path) -> os.stat_result:
+    """The stat of the regular file at `path`, judged on the file opened (without blocking);
     ValueError unless it is one, OSError if it cannot be opened."""
     with _regular(path) as (_, info):
-        return info.st_mode
+        return info
+
+
+def foreign_owner_problem(path: Path, info: os.stat_result) -> str | None:
+    """Why a key file is not the bridge's to trust or hold: neither the user it runs as nor
+    root owns it. Its owner may rewrite it (chmod it first) and read it, whatever its mode
+    says — the mode checks alone let another user's 0644 key set be trusted, and their
+    0600 private key be used (ssh's StrictModes: owned by the user or root)."""
+    mine = os.geteuid()
+    if info.st_uid in (mine, 0):
+        return None
+    return (f"{path} is owned by uid {info.st_uid}, neither this user ({mine}) nor root: "
+            "its owner can rewrite or read it whatever its mode (chown it)")
 
 
 def read_small(path: Path, limit: int) -> bytes:
@@ -113,27 +125,58 @@ def read_small(path: Path, limit: int) -> bytes:
     none, ValueError if it is no regular file or holds more than `limit` bytes: a FIFO put in
     its place would block the reader (a start, with its e-stop) for a writer that never comes,
     and a device or a huge file would be read into memory before anything could refuse it."""
-    return read_small_with_mode(path, limit)[0]
+    return read_small_with_stat(path, limit)[0]
 
 
 # Group or others may write it: whoever can, can put their own key in (ssh's StrictModes rule).
 WRITABLE_BY_OTHERS = 0o022
 
 
+def writable_directory_problem(path: Path) -> str | None:
+    """Why a file the bridge trusts keys from may be replaced by others: a directory it is in
+    (the named path's and, through links, the file's) may be written by its group or others
+    and is not sticky, or is owned by neither this user nor root — whoever may write the
+    directory renames a file of their own over it, whatever the file's own mode (ssh's
+    StrictModes walks the directories too)."""
+    mine = os.geteuid()
+    named = Path(os.path.abspath(path)).parents
+    resolved = Path(os.path.realpath(path)).parents
+    for directory in dict.fromkeys([*named, *resolved]):
+        try:
+            info = os.stat(directory)
+        except OSError:
+            continue  # (the file's own open says what is wrong)
+        if info.st_uid not in (mine, 0):
+            return (f"{directory} is owned by uid {info.st_uid}, neither this user ({mine}) "
+                    f"nor root: its owner can replace {path} (chown it)")
+        if info.st_mode & WRITABLE_BY_OTHERS and not info.st_mode & stat.S_ISVTX:
+            return (f"{directory} may be written by others (mode {info.st_mode & 0o7777:o}): "
+                    f"whoever can write it can replace {path} with their own (chmod go-w, "
+                    "or +t)")
+    return None
+
+
 def read_trusted(path: Path, limit: int) -> bytes:
     """`read_small` of a file the bridge trusts keys from (a JWT issuer's key or key set, a
     principal's signing key): ValueError if its group or others may write it — they could put
     their own key there and mint tokens or sign commands of any role."""
-    data, mode = read_small_with_mode(path, limit)
+    data, info = read_small_with_stat(path, limit)
+    mode = info.st_mode
+    owner = foreign_owner_problem(path, info)
+    if owner is not None:
+        raise ValueError(owner)
     if mode & WRITABLE_BY_OTHERS:
         raise ValueError(f"{path} may be written by others (mode {mode & 0o777:o}): whoever "
                          "can write it can put their own key in (chmod go-w)")
+    directory = writable_directory_problem(path)
+    if directory is not None:
+        raise ValueError(directory)
     return data
 
 
-def read_small_with_mode(path: Path, limit: int) -> tuple[bytes, int]:
-    """`read_small`, and the file's mode as the read file has it (a private key's permissions
-    are judged on the very file read, not on whatever a stat before found at its name)."""
+def read_small_with_stat(path: Path, limit: int) -> tuple[bytes, os.stat_result]:
+    """`read_small`, and the stat of the very file read (a private key's permissions and owner
+    are judged on it, not on whatever a stat before found at its name)."""
     with _regular(path) as (fd, info):
         if info.st_size > limit:
             raise ValueError(f"{path} is larger than {limit} bytes ({info.st_size})")
@@ -141,7 +184,7 @@ def read_small_with_mode(path: Path, limit: int) -> tuple[bytes, int]:
         data = os.pread(fd, info.st_size + 1, 0)
     if len(data) > info.st_size:
         raise ValueError(f"{path} is being written")
-    return data, info.st_mode
+    return data, info
 
 
 def read_regular(path: Path) -> bytes:

@@ -55,11 +55,12 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 from ..events import Channel
 from ._durable import (
     atomic_write,
+    foreign_owner_problem,
     fsync_dir,
     full_fsync,
     not_regular_problem,
     read_small,
-    read_small_with_mode,
+    read_small_with_stat,
     write_all,
 )
 from ._json import decode, decode_as
@@ -291,9 +292,13 @@ def load_private_key(path: str | os.PathLike[str]) -> Ed25519PrivateKey:
     try:
         # read_small: a FIFO at key_path held `run` (and `config check`) for a writer that
         # never came; a device or a huge file is no key either.
-        pem, mode = read_small_with_mode(path, MAX_KEY_BYTES)
+        pem, info = read_small_with_stat(path, MAX_KEY_BYTES)
     except (OSError, ValueError) as exc:
         raise AuditKeyError(f"cannot read audit key {path}: {exc}") from exc
+    mode = info.st_mode
+    owner = foreign_owner_problem(path, info)
+    if owner is not None:
+        raise AuditKeyError(f"audit key {owner}")
     # A signing key others can read lets them forge entries (and one they can write, swap it):
     # refuse, as ssh does.
     if mode & 0o077:

@@ -19,11 +19,12 @@ from __future__ import annotations
 import collections
 import logging
 import os
+import stat
 import threading
 import urllib.parse
 from pathlib import Path
 
-from ._durable import full_fsync, write_all
+from ._durable import full_fsync, not_regular_problem, write_all
 
 log = logging.getLogger(__name__)
 WITNESS_QUEUE = 256
@@ -40,6 +41,23 @@ def witness_problem(url: str) -> str | None:
     if parts.scheme in ("http", "https"):
         return None if parts.netloc else f"no host in {url!r}"
     return f"must be a file://, http:// or https:// URL, not {url!r}"
+
+
+def witness_file(url: str) -> Path | None:
+    """The file a `file:` witness appends to (None for a URL witness)."""
+    if not url.startswith("file:"):
+        return None
+    return Path(urllib.parse.unquote(urllib.parse.urlsplit(url).path))
+
+
+def check_witness_file(url: str) -> None:
+    """Raises ValueError if a `file:` witness names something that is no regular file: at
+    /dev/null the tree heads go nowhere, at a FIFO its thread waits for a reader for good.
+    What `run` and `config check` refuse before the start."""
+    path = witness_file(url)
+    problem = None if path is None else not_regular_problem(path)
+    if problem is not None:
+        raise ValueError(f"audit witness {problem}")
 
 
 class Witness:
@@ -105,9 +123,9 @@ class Witness:
 
     def _send(self, batch: list[bytes]) -> None:
         try:
-            if self.url.startswith("file:"):
-                _append(Path(urllib.parse.unquote(urllib.parse.urlsplit(self.url).path)),
-                        b"".join(batch))
+            path = witness_file(self.url)
+            if path is not None:
+                _append(path, b"".join(batch))
             else:
                 for line in batch:
                     _post(self.url, line.rstrip(b"\n"))
@@ -123,9 +141,14 @@ class Witness:
 
 
 def _append(path: Path, data: bytes) -> None:
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+    # Without blocking: a FIFO put there since the start fails the open (no reader) or the
+    # check below, instead of holding this thread, and every head after, for a reader.
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NONBLOCK, 0o600)
     try:
-        size = os.fstat(fd).st_size
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise ValueError(f"{path} is not a regular file")
+        size = info.st_size
         try:
             write_all(fd, data)
             full_fsync(fd)

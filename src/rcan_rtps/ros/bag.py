@@ -358,8 +358,20 @@ def write_metadata(directory: Path, info: dict[str, Any]) -> None:
     """metadata.yaml, replaced in one step: a reader (or a crash) sees the old or the new."""
     text = yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
     temporary = directory / f".{METADATA_FILE}.tmp"
-    temporary.write_text(text, encoding="utf-8")
+    with fresh_file(temporary) as stream:
+        stream.write(text.encode("utf-8"))
     os.replace(temporary, directory / METADATA_FILE)
+
+
+def fresh_file(path: Path) -> IO[bytes]:
+    """A new file at `path`, for writing, whatever was there removed first and never opened:
+    a bag folder is often someone else's (a tarball), and a link planted at a temporary's
+    fixed name had the write land in its target (any file of the user running reindex), a
+    FIFO there held the write for a reader that never came."""
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(path)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o666)
+    return os.fdopen(fd, "wb")
 
 
 def _qos_text(offered: list[dict[str, Any]]) -> str:
@@ -812,7 +824,7 @@ def reindex_file(file: Path, distro: str) -> tuple[ReindexedFile, list[_TopicRec
         end, dropped = complete_records(source)
         temporary = file.with_name(f".{file.name}.reindex")
         try:
-            with temporary.open("wb") as stream:
+            with fresh_file(temporary) as stream:
                 writer = Writer(stream, compression=CompressionType.NONE)
                 result = _rewrite(data_records(source, file, end), writer, distro, file)
         except BaseException:

@@ -56,6 +56,10 @@ MAX_UNKNOWN_INFO_BYTES = 8 << 20
 INFO_BATCH = 4
 # Distinct QoS profiles kept before those no endpoint uses are let go of (RosGraph._shared).
 PROFILES_KEPT = 64
+# Departures kept (`left_at`): those older than DEPARTURES_KEPT_S go once the table doubled
+# past DEPARTURES_BOUND, so a peer churning ever new topics cannot grow it for good.
+DEPARTURES_BOUND = 256
+DEPARTURES_KEPT_S = 120.0
 # An info's gid, in its first 16 bytes after the 4-byte CDR header (octets: no alignment),
 # read there from a sample too large to decode.
 INFO_GID = slice(4, 20)
@@ -160,6 +164,10 @@ class RosGraph:
         self._alive: set[bytes] = set()  # participants discovery knows (this one included)
         self.bad_infos = 0  # ros_discovery_info samples that did not decode (dropped)
         self.large_infos = 0  # and those larger than MAX_INFO_BYTES (dropped undecoded)
+        # (DDS topic, direction) -> monotonic time an endpoint of it was last seen leaving
+        # (`left_at`), oldest first
+        self._left_at: dict[tuple[str, Direction], float] = {}
+        self._departures_bound = DEPARTURES_BOUND
         # monotonic time each kind of those was last logged: at most one per BAD_LOG_S
         self._dropped_logged_at: dict[str, float] = {}
         # Grows whenever a refresh took anything: a view computed at one generation is
@@ -176,7 +184,14 @@ class RosGraph:
                 if sample.sample_info.instance_state == InstanceState.Alive:
                     self._endpoints[key] = self._seen(direction, sample)
                 else:
-                    self._endpoints.pop(key, None)
+                    gone = self._endpoints.pop(key, None)
+                    # One never seen alive (it came and went between two refreshes: the
+                    # reader keeps an endpoint's last sample) left all the same; its
+                    # disposal names its topic.
+                    topic = gone.topic_name if gone is not None else \
+                        getattr(sample, "topic_name", None)
+                    if isinstance(topic, str) and topic:
+                        self._note_left(topic, direction)
         # Participants before their nodes: an info is kept by its participant being alive.
         # ros_discovery_info is keyless: a participant that leaves leaves its last sample
         # behind while any other writer remains. Its nodes go with it, as in rmw's graph.
@@ -200,6 +215,23 @@ class RosGraph:
                      user_data.get("typehash", ""),
                      user_data.get("serviceid") or user_data.get("clientid") or "",
                      sys.intern(user_data.get(qos_mod.GOVERNED_BY, "")))
+
+    def _note_left(self, topic: str, direction: Direction) -> None:
+        now = time.monotonic()
+        where = (sys.intern(topic), direction)
+        self._left_at.pop(where, None)  # (re-inserted last: the table stays oldest first)
+        self._left_at[where] = now
+        if len(self._left_at) > self._departures_bound:
+            self._left_at = {k: at for k, at in self._left_at.items()
+                             if now - at < DEPARTURES_KEPT_S}
+            self._departures_bound = max(DEPARTURES_BOUND, 2 * len(self._left_at))
+
+    def left_at(self, dds_topic: str, direction: Direction) -> float | None:
+        """When (time.monotonic) an endpoint on this DDS topic in this direction was last seen
+        leaving the graph, by any refresh (whoever refreshed, whether or not anyone was
+        looking at that topic then); None if none was in the last DEPARTURES_KEPT_S at least.
+        A service client that came and went between two calls of ours left this behind."""
+        return self._left_at.get((dds_topic, direction))
 
     def _shared(self, profile: QosProfile) -> QosProfile:
         """The one object kept for profiles equal to `profile`."""

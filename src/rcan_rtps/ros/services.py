@@ -40,7 +40,6 @@ import contextlib
 import enum
 import itertools
 import logging
-import math
 import time
 import weakref
 from collections.abc import Callable, Iterator, Mapping
@@ -355,9 +354,6 @@ class ServiceClient(_ServiceEnd):
         self._plain_lock = asyncio.Lock()
         self._plain_waiter: _Outstanding | None = None
         self._stale = False
-        # When a look at the graph first found the other clients gone (`_other_clients`);
-        # None while they are there; -inf: none was ever seen.
-        self._others_gone_at: float | None = -math.inf
         self.closed = False
         self.dropped_replies = 0  # replies not ours: foreign guid, unsolicited, not accepted
 
@@ -397,13 +393,12 @@ class ServiceClient(_ServiceEnd):
         graph.refresh()
         clients = graph.gids_on(self.request_topic, Direction.PUBLISHER) \
             | graph.gids_on(self.reply_topic, Direction.SUBSCRIPTION)
-        now = time.monotonic()
         if clients - {pair.writer_guid, bytes(pair.reader.guid.bytes)}:
-            self._others_gone_at = None
             return True
-        if self._others_gone_at is None:  # the first look without them: they left by now
-            self._others_gone_at = now
-        return now - self._others_gone_at < QUIET_AFTER_CLIENT_LEFT_S
+        # When the graph saw the last request writer leave, whenever that was: a client that
+        # came and went between two of our calls, never seen by one, counts as well.
+        left = graph.left_at(self.request_topic, Direction.PUBLISHER)
+        return left is not None and time.monotonic() - left < QUIET_AFTER_CLIENT_LEFT_S
 
     def resolve_mapping(self) -> RequestMapping | None:
         """The configured mapping, or the servers' (None while there is no server)."""

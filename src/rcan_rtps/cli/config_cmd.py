@@ -179,16 +179,21 @@ def audit_key_problems(config: RcanConfig) -> list[str]:
 
 def state_file_problems(config: RcanConfig) -> list[str]:
     """The audit log, the e-stop latch or a file witness at something that is no regular file
-    (a device, a FIFO, a directory): `run` refuses them before it starts, as here."""
+    (a device, a FIFO, a directory): `run` refuses them before it starts, as here. And an
+    audit log whose read-back a start would refuse (`check_log_contents`: read only, beside
+    a running bridge too)."""
     from rcan_rtps.config import estop_state_file
     from rcan_rtps.governance import AuditError, EstopStateError
-    from rcan_rtps.governance.audit import check_log_file
+    from rcan_rtps.governance.audit import check_log_contents, check_log_file
     from rcan_rtps.governance.estop import check_latch_file
     from rcan_rtps.governance.witness import check_witness_file
 
     problems = []
+    audit = config.bridge.audit
     try:
-        check_log_file(config.bridge.audit.path)
+        check_log_file(audit.path)
+        if not audit_key_problems(config):  # else said there: the log cannot be judged
+            check_log_contents(audit.path, audit.key_path)
     except AuditError as exc:
         problems.append(f"bridge.audit.path: {exc}")
     try:

@@ -279,6 +279,35 @@ def check_log_file(path: str | os.PathLike[str]) -> None:
         raise AuditError(f"audit log {problem}")
 
 
+def check_log_contents(path: str | os.PathLike[str],
+                       key_path: str | os.PathLike[str]) -> None:
+    """Raises the AuditError a start would raise reading the log at `path` back: a break in
+    its chain since the checkpoint, a bad signature, entries another key signed (a replaced
+    `key_path`), or entries with no key to verify them (the start would make a new one).
+    Read only: no lock taken (a running bridge holds it), nothing cut or written — a torn
+    tail, which the start cuts and audits, passes. No log, or an empty one, is fine."""
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise AuditError(f"cannot read audit log {path}: {exc}") from exc
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise AuditError(f"audit log {path} is not a regular file")
+        if not os.path.lexists(key_path):
+            if os.fstat(fd).st_size:
+                raise AuditKeyError(
+                    f"audit key {key_path} is missing, but the log {path} has entries: a "
+                    "start would make a new key and refuse them (put the log's key back, or "
+                    "start a new log)")
+            return
+        _scan_from_checkpoint(fd, path, load_private_key(key_path).public_key())
+    finally:
+        os.close(fd)
+
+
 def check_key_file(path: str | os.PathLike[str]) -> None:
     """Raises AuditKeyError if a key file is at `path` (a dangling link too) that a start
     would refuse; none there is fine (the start makes one). What `run` checks before it joins

@@ -1,0 +1,126 @@
+"""`config check` reads an existing audit log back as a start would, and says what the start
+would refuse — read only, so beside a running bridge too (it holds the log's lock)."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import pytest
+
+from rcan_rtps.cli.main import main
+from rcan_rtps.governance import (
+    AuditEvent,
+    AuditIntegrityError,
+    AuditKeyError,
+    AuditLog,
+    AuditRecord,
+)
+from rcan_rtps.governance.audit import load_or_create_key
+
+CONFIG = """\
+robot: {ruri: rcan://registry.local/acme/bot/v1/abcdefgh01}
+bridge:
+  api: {auth_token_env: RT_OPS}
+  safety: {max_linear_vel: 1.0, max_angular_vel: 1.0}
+  audit: {path: "%(dir)s/audit.jsonl", key_path: "%(dir)s/audit.key"}
+"""
+
+
+@pytest.fixture
+def config(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.setenv("RT_OPS", "x" * 32)
+    path = tmp_path / "robot.rcan.yaml"
+    path.write_text(CONFIG % {"dir": tmp_path})
+    return path
+
+
+async def _write_log(where: Path, entries: int = 5) -> None:
+    log = await AuditLog.open(where / "audit.jsonl", where / "audit.key")
+    for i in range(entries):
+        await log.append(AuditRecord(event=AuditEvent.COMMAND_REJECTED, principal="ops",
+                                     params={"n": i}))
+    await log.close()
+
+
+def _check(config: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    code = main(["config", "check", str(config)])
+    out = capsys.readouterr()
+    return code, out.out + out.err
+
+
+async def _start_refusal(where: Path) -> str:
+    with pytest.raises((AuditIntegrityError, AuditKeyError)) as info:
+        await AuditLog.open(where / "audit.jsonl", where / "audit.key")
+    return str(info.value)
+
+
+async def test_a_good_log_and_no_log_pass(config: Path, tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    assert _check(config, capsys)[0] == 0  # no log yet: the first start makes it
+    await _write_log(tmp_path)
+    code, said = _check(config, capsys)
+    assert code == 0, said
+
+
+async def test_an_edited_last_entry_is_refused_as_the_start_refuses_it(
+        config: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    await _write_log(tmp_path)
+    log = tmp_path / "audit.jsonl"
+    lines = log.read_bytes().splitlines(keepends=True)
+    lines[-1] = lines[-1].replace(b'"n":4', b'"n":7')
+    log.write_bytes(b"".join(lines))
+    code, said = _check(config, capsys)
+    refusal = await _start_refusal(tmp_path)
+    assert code == 1
+    assert f"bridge.audit.path: {refusal}" in said, (said, refusal)
+
+
+async def test_a_replaced_key_is_named(config: Path, tmp_path: Path,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    await _write_log(tmp_path)
+    (tmp_path / "audit.key").unlink()
+    load_or_create_key(tmp_path / "audit.key")  # another key at key_path
+    code, said = _check(config, capsys)
+    assert code == 1
+    assert "the signing key is not the one audit.jsonl.pub holds" in said, said
+    assert f"bridge.audit.path: {await _start_refusal(tmp_path)}" in said
+
+
+async def test_a_log_without_its_key_is_refused(config: Path, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    await _write_log(tmp_path)
+    (tmp_path / "audit.key").unlink()
+    code, said = _check(config, capsys)
+    assert code == 1
+    assert "is missing, but the log" in said and "has entries" in said, said
+    assert not (tmp_path / "audit.key").exists()  # config check made no key
+
+
+async def test_a_torn_tail_passes_and_is_left_for_the_start_to_cut(
+        config: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    await _write_log(tmp_path)
+    log = tmp_path / "audit.jsonl"
+    with log.open("ab") as f:
+        f.write(b'{"seq":6,"half a line')
+    before = log.read_bytes()
+    code, said = _check(config, capsys)
+    assert code == 0, said
+    assert log.read_bytes() == before  # read only: the start cuts it, and audits the cut
+
+
+async def test_beside_a_running_bridges_log_it_reads_and_disturbs_nothing(
+        config: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    await _write_log(tmp_path)
+    running = await AuditLog.open(tmp_path / "audit.jsonl", tmp_path / "audit.key")
+    try:
+        first = await running.append(AuditRecord(event=AuditEvent.COMMAND_REJECTED,
+                                                 principal="ops"))
+        code, said = await asyncio.to_thread(_check, config, capsys)
+        assert code == 0, said
+        then = await running.append(AuditRecord(event=AuditEvent.COMMAND_REJECTED,
+                                                principal="ops"))
+        assert then.seq == first.seq + 1  # the running log went on where it was
+    finally:
+        await running.close()
+    assert _check(config, capsys)[0] == 0

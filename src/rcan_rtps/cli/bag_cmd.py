@@ -397,6 +397,12 @@ def info_command(args: argparse.Namespace) -> int:
 def _left_out(done: ReindexedFile) -> str:
     """What a damaged file's rebuild could not carry over, as the end of its line."""
     notes = []
+    for start, end in done.skipped:
+        notes.append(f"stepped over {end - start} B of damage at byte {start}, kept what "
+                     "follows")
+    if done.unreadable:
+        notes.append(f"left out {done.unreadable} damaged record(s) or chunk(s) whose "
+                     f"messages could not be read (first: {done.unreadable_why})")
     if done.dropped_bytes:
         notes.append(f"left out a torn last record of {done.dropped_bytes} B")
     if done.unattributed:

@@ -21,9 +21,11 @@ import contextlib
 import fcntl
 import io
 import os
+import re
 import stat
 import struct
 import threading
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -778,25 +780,96 @@ class ReindexedFile:
     dropped_bytes: int  # the torn record(s) at the end, left out
     unattributed: int = 0  # messages of a channel the file never defines: left out
     redefined: int = 0  # schema or channel ids defined again with other contents: the first kept
+    # damage in the middle stepped over (byte ranges), what follows it kept
+    skipped: list[tuple[int, int]] = field(default_factory=list)
+    unreadable: int = 0  # whole records (chunks) whose contents could not be read: left out
+    unreadable_why: str = ""  # the first one's reason
 
 
-def complete_records(stream: IO[bytes]) -> tuple[int, int]:
-    """Where the file's last complete record ends (the file's end when it is complete), and
-    how many bytes after that are left out: a killed writer's last write may be torn. Reads
-    the records' heads only."""
+# Record types of the MCAP spec (Header 0x01 … DataEnd 0x0F): a head with another opcode is
+# no record of this file's.
+MCAP_OPCODES = range(0x01, 0x10)
+# Past a damaged record, how far reindex looks for the next whole one, and how many whole
+# records in a row (unless the file ends with them) make one: a head's length must fit the
+# file, which 8 bytes of garbage pass about as often as their 3 high bytes are 0.
+RESYNC_LIMIT = 64 * 2**20
+RESYNC_RECORDS = 8
+# A head that may start a record: a known opcode, and a length under 2^40 (1 TiB).
+_CANDIDATE = re.compile(rb"[\x01-\x0f](?=.....\x00\x00\x00)", re.DOTALL)
+
+
+@dataclass
+class RecordLayout:
+    """Where a file's whole records are (`spans`: byte ranges of records one after the other),
+    the damage between them that was stepped over (`skipped`), and the torn bytes at its end
+    that start no whole record (`torn`)."""
+
+    spans: list[tuple[int, int]]
+    skipped: list[tuple[int, int]]
+    torn: int
+
+
+def record_layout(stream: IO[bytes]) -> RecordLayout:
+    """The file's records by their heads alone: a killed writer's torn last record is left
+    out; damage in the middle (a head that is no record's) is stepped over to the next run of
+    whole records, as far as RESYNC_LIMIT, so that what follows it is kept."""
     size = os.fstat(stream.fileno()).st_size
-    end = offset = len(MCAP_MAGIC)
-    while offset + RECORD_HEAD.size <= size:
+    spans: list[tuple[int, int]] = []
+    skipped: list[tuple[int, int]] = []
+    start = len(MCAP_MAGIC)
+    while True:
+        end, _ = _whole_records(stream, start, size)
+        if _ends_here(stream, end, size):
+            spans.append((start, size))
+            return RecordLayout(spans, skipped, 0)
+        spans.append((start, end))
+        resume = _next_records(stream, end, size)
+        if resume is None:
+            return RecordLayout(spans, skipped, size - end)
+        skipped.append((end, resume))
+        start = resume
+
+
+def _whole_records(stream: IO[bytes], offset: int, size: int,
+                   at_most: int | None = None) -> tuple[int, int]:
+    """Whole records of known types from `offset` (at most `at_most`): where they end, and
+    how many there are."""
+    count = 0
+    while offset + RECORD_HEAD.size <= size and (at_most is None or count < at_most):
         stream.seek(offset)
-        _, length = RECORD_HEAD.unpack(stream.read(RECORD_HEAD.size))
-        offset += RECORD_HEAD.size + length
-        if offset > size:
+        opcode, length = RECORD_HEAD.unpack(stream.read(RECORD_HEAD.size))
+        if opcode not in MCAP_OPCODES or length > size - offset - RECORD_HEAD.size:
             break
-        end = offset
-    stream.seek(end)
-    if stream.read() == MCAP_MAGIC:  # a closed file ends with the magic after its footer
-        end = size
-    return end, size - end
+        offset += RECORD_HEAD.size + length
+        count += 1
+    return offset, count
+
+
+def _ends_here(stream: IO[bytes], offset: int, size: int) -> bool:
+    """Whether the file ends at `offset`, or with only the closing magic after it."""
+    if offset == size:
+        return True
+    stream.seek(offset)
+    return stream.read(len(MCAP_MAGIC) + 1) == MCAP_MAGIC
+
+
+def _next_records(stream: IO[bytes], damaged: int, size: int) -> int | None:
+    """Where whole records start again after the damaged head at `damaged`: RESYNC_RECORDS
+    of them in a row, or fewer that end the file. None within RESYNC_LIMIT: the rest is
+    taken for a torn tail."""
+    window_end = min(size, damaged + 1 + RESYNC_LIMIT)
+    block = 1 << 20
+    for base in range(damaged + 1, window_end, block):
+        stream.seek(base)
+        data = stream.read(min(block, window_end - base) + RECORD_HEAD.size - 1)
+        for found in _CANDIDATE.finditer(data):
+            at = base + found.start()
+            if at >= window_end:
+                break
+            end, count = _whole_records(stream, at, size, RESYNC_RECORDS)
+            if count == RESYNC_RECORDS or (count and _ends_here(stream, end, size)):
+                return at
+    return None
 
 
 @contextlib.contextmanager
@@ -821,18 +894,83 @@ def reindex_file(file: Path, distro: str) -> tuple[ReindexedFile, list[_TopicRec
     """Rewrites `file` as a complete MCAP (summary, chunk and message indexes, statistics)
     holding every message its complete records hold; the original is replaced in one step."""
     with _not_being_recorded(file) as source:
-        end, dropped = complete_records(source)
+        layout = record_layout(source)
+        losses = _Losses()
         temporary = file.with_name(f".{file.name}.reindex")
         try:
             with fresh_file(temporary) as stream:
                 writer = Writer(stream, compression=CompressionType.NONE)
-                result = _rewrite(data_records(source, file, end), writer, distro, file)
+                result = _rewrite(salvaged_records(source, file, layout, losses), writer,
+                                  distro, file)
         except BaseException:
             temporary.unlink(missing_ok=True)
             raise
         os.replace(temporary, file)
     count, topics, (first, last), left = result
-    return ReindexedFile(file, count, dropped, *left), topics, (first, last)
+    return ReindexedFile(file, count, layout.torn, *left, skipped=layout.skipped,
+                         unreadable=losses.records, unreadable_why=losses.first), \
+        topics, (first, last)
+
+
+@dataclass
+class _Losses:
+    records: int = 0  # framed records that do not parse; chunks that do not inflate or check
+    first: str = ""  # why the first was left out
+
+    def add(self, why: str) -> None:
+        self.records += 1
+        self.first = self.first or why
+
+
+def salvaged_records(stream: IO[bytes], file: Path, layout: RecordLayout,
+                     losses: _Losses) -> Iterator[Any]:
+    """The records of `layout`'s spans, each parsed on its own (chunks opened, within
+    CHUNK_LIMIT): one whose contents do not parse, or a chunk that does not inflate or
+    whose CRC differs, is counted in `losses` and left out, and the others still come."""
+    for start, end in layout.spans:
+        offset = start
+        while offset + RECORD_HEAD.size <= end:
+            stream.seek(offset)
+            head = stream.read(RECORD_HEAD.size)
+            opcode, length = RECORD_HEAD.unpack(head)
+            if opcode not in MCAP_OPCODES or length > end - offset - RECORD_HEAD.size:
+                break  # the closing magic of a complete file
+            offset += RECORD_HEAD.size + length
+            if length > CHUNK_LIMIT:
+                losses.add(f"a record of {length} B, over the {CHUNK_LIMIT >> 20} MiB read")
+                continue
+            yield from _salvaged(head + stream.read(length), file, losses)
+
+
+def _salvaged(raw: bytes, file: Path, losses: _Losses) -> list[Any]:
+    """The record `raw` is (a chunk: the records it holds, its CRC checked), or [] and one
+    more loss."""
+    try:
+        record = next(StreamReader(io.BytesIO(raw), skip_magic=True, emit_chunks=True,
+                                   record_size_limit=CHUNK_LIMIT).records)
+        if not isinstance(record, Chunk):
+            return [record]
+        data = inflate(record, file)
+        if record.uncompressed_crc and zlib.crc32(data) != record.uncompressed_crc:
+            raise BagError(f"'{file}' is damaged: a chunk's CRC does not match")
+        return _all_records(data)
+    except BagError as exc:
+        losses.add(str(exc).replace(f"'{file}' is damaged: ", "").replace(f"'{file}' ", ""))
+    except (StopIteration, EndOfFile, *_PARSE_ERRORS) as exc:
+        losses.add(f"a record that does not parse ({_first_line(exc)})")
+    return []
+
+
+def _all_records(data: bytes) -> list[Any]:
+    """Every record of `data` (a chunk's, inflated); a parse error raises."""
+    found = StreamReader(io.BytesIO(data), skip_magic=True,
+                         record_size_limit=CHUNK_LIMIT).records
+    records = []
+    while True:
+        try:
+            records.append(next(found))
+        except (StopIteration, EndOfFile):  # the reader's end is an EndOfFile
+            return records
 
 
 def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path

@@ -317,6 +317,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "SkillConfig",
         "TlsConfig",
         "estop_state_file",
+        "issuer_roles",
         "load_config",
         "loads_config",
         "plaintext_problem",

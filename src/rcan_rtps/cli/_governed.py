@@ -31,10 +31,6 @@ UNGOVERNED = ("--ungoverned", "send even where a governor (an rcan-rtps bridge) 
               "robot: past its roles, limits, approvals, audit and e-stop")
 
 
-class GovernedTopic(WireError):
-    """The command would send where a governor commands the robot."""
-
-
 class GovernorGuard:
     """Looks for governed endpoints on the DDS topics a command sends on (`topics`: DDS name
     → what to call it), as `TypeGuard` looks for other types."""
@@ -58,8 +54,8 @@ class GovernorGuard:
             self.check()
 
     def check(self) -> None:
-        """Raises GovernedTopic for a governed endpoint on one of the topics (or, allowed,
-        says once on stderr that the governor is passed by)."""
+        """Raises WireError (one line, exit 1) for a governed endpoint on one of the topics
+        (or, allowed, says once on stderr that the governor is passed by)."""
         self._next_look = time.monotonic() + LOOK_PERIOD
         self.graph.refresh()
         for dds_topic, name in self.topics.items():
@@ -73,7 +69,7 @@ class GovernorGuard:
     def _found(self, name: str, governor: str) -> None:
         said = shown(governor)  # a peer's words: what does not print, escaped
         if not self.allowed:
-            raise GovernedTopic(
+            raise WireError(
                 f"{name} is governed: the rcan-rtps bridge of {said} commands the robot "
                 "there, and what is sent beside it passes its roles, limits, approvals, "
                 "audit and e-stop by. Command the robot through the bridge's API, or add "

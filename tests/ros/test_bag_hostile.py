@@ -274,7 +274,8 @@ def test_no_topics_wanted_reads_no_messages(tmp_path: Path) -> None:
 def test_reindex_says_what_it_could_not_carry_over(tmp_path: Path) -> None:
     # channel 1 defined twice (another topic and schema the second time) and a message of a
     # channel never defined: reindex kept the first definition and dropped the message,
-    # saying nothing of either
+    # saying nothing of either; the message after the second definition (of /a or /b?) went
+    # to /a
     string = serialize(STRING, {"data": "hi"})
     records = [
         Schema(id=1, name=STRING, encoding="ros2msg", data=b"string data\n"),
@@ -294,9 +295,10 @@ def test_reindex_says_what_it_could_not_carry_over(tmp_path: Path) -> None:
     done = _cli("bag", "reindex", str(bag))
     assert done.returncode == 0, done.stderr
     assert done.stdout.splitlines()[0] == (
-        f"Reindexed '{bag / 'bag_0.mcap'}': 2 messages (left out 1 messages of a channel "
-        "the file never defines; 1 schema or channel ids defined again otherwise: the first "
-        "definition kept)")
+        f"Reindexed '{bag / 'bag_0.mcap'}': 1 messages (left out 1 messages of a channel "
+        "the file never defines; channel id 1 is defined twice, as '/a' and as '/b': the "
+        "first definition kept; left out 1 messages of a channel after its id was defined "
+        "again (of which definition, none can tell))")
 
 
 # -- byte mutation ----------------------------------------------------------------

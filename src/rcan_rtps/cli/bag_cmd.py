@@ -408,9 +408,11 @@ def _left_out(done: ReindexedFile) -> str:
     if done.unattributed:
         notes.append(f"left out {done.unattributed} messages of a channel the file never "
                      "defines")
-    if done.redefined:
-        notes.append(f"{done.redefined} schema or channel ids defined again otherwise: the "
-                     "first definition kept")
+    for conflict in done.conflicts:
+        notes.append(f"{conflict}: the first definition kept")
+    if done.conflicted:
+        notes.append(f"left out {done.conflicted} messages of a channel after its id was "
+                     "defined again (of which definition, none can tell)")
     return f" ({'; '.join(notes)})" if notes else ""
 
 

@@ -513,6 +513,88 @@ _PARSE_ERRORS = (McapError, struct.error, ValueError, IndexError, KeyError, EOFE
                  zstandard.ZstdError)
 
 
+class Definitions:
+    """The schemas and channels of a file by id, as its records define them: the first
+    definition of an id is kept; one repeated as it was (a chunked file's summary repeats
+    them all) is nothing; one under a known id with other contents is a conflict. A channel
+    whose id, or its schema's, was defined otherwise cannot say which topic (or type) its
+    messages are of."""
+
+    def __init__(self) -> None:
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        # ("channel"|"schema", id): the first name (topic, type) and the other
+        self.conflicts: dict[tuple[str, int], tuple[str, str]] = {}
+
+    def add(self, record: Any) -> None:
+        if isinstance(record, Schema):
+            self._define(self.schemas, "schema", record, record.name)
+        elif isinstance(record, Channel):
+            self._define(self.channels, "channel", record, record.topic)
+
+    def _define(self, known: dict[int, Any], kind: str, record: Any, name: str) -> None:
+        first = known.setdefault(record.id, record)
+        if first != record and (kind, record.id) not in self.conflicts:
+            self.conflicts[kind, record.id] = (
+                first.name if kind == "schema" else first.topic, name)
+
+    def conflict_of(self, channel_id: int) -> str:
+        """Why the messages of `channel_id` cannot be attributed; '' when they can."""
+        channel = self.channels.get(channel_id)
+        return self.conflict_of_id("channel", channel_id) or \
+            self.conflict_of_id("schema", channel.schema_id if channel else -1)
+
+    def conflict_of_id(self, kind: str, key: int) -> str:
+        """The words for a `kind` ("channel", "schema") id defined twice; '' if it is not."""
+        if (kind, key) not in self.conflicts:
+            return ""
+        was, other = self.conflicts[kind, key]
+        return f"{kind} id {key} is defined twice, as '{_printable(was)}' and as " \
+            f"'{_printable(other)}'"
+
+    def topics_of(self, channel_id: int) -> set[str]:
+        """The topics a channel id is defined with (two when they conflict)."""
+        channel = self.channels.get(channel_id)
+        other = self.conflicts.get(("channel", channel_id), ("", ""))[1]
+        return {t for t in (channel.topic if channel else "", other) if t}
+
+    def refuse(self, file: Path, channel_id: int) -> BagError:
+        return BagError(f"'{file}': {self.conflict_of(channel_id)}, so its messages cannot "
+                        "be told apart: not played (`rcan-rtps bag reindex` keeps the first "
+                        "definition and leaves out the messages after the second)")
+
+
+def _printable(text: str) -> str:
+    return text[:64].encode("unicode_escape").decode("ascii")
+
+
+def _summary_definitions(stream: IO[bytes], file: Path) -> Definitions:
+    """The schemas and channels of a closed file's summary section, as `Definitions`."""
+    found = Definitions()
+    tail = FOOTER_TAIL.size
+    size = os.fstat(stream.fileno()).st_size
+    if size < len(MCAP_MAGIC) + tail:
+        return found
+    stream.seek(size - tail)
+    opcode, _, summary_start, _, _, magic = FOOTER_TAIL.unpack(stream.read(tail))
+    if opcode != 0x02 or magic != MCAP_MAGIC or not 0 < summary_start < size - tail:
+        return found
+    stream.seek(summary_start)
+    records = StreamReader(BoundedFile(stream, size - tail), skip_magic=True,  # type: ignore[arg-type]
+                           record_size_limit=CHUNK_LIMIT).records
+    try:
+        for record in records:
+            found.add(record)
+    except EndOfFile:  # the footer, left out: the summary's end
+        pass
+    except _PARSE_ERRORS as exc:
+        raise _damaged(file, exc) from None
+    return found
+
+
+FOOTER_TAIL = struct.Struct("<BQQQI8s")  # the footer record and the closing magic
+
+
 class BagReader:
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -558,9 +640,12 @@ class BagReader:
                         check_chunks(BoundedFile(stream), summary, file)
                 except _PARSE_ERRORS as exc:
                     raise _damaged(file, exc) from None
+                # the library keeps the last of two definitions of an id: read them here
+                definitions = _summary_definitions(stream, file)
+                _refuse_conflicts(definitions, topics, file)
                 if summary is None or not summary.chunk_indexes:
                     # the library would read the data section, its chunks unchecked
-                    yield from _unindexed_messages(stream, summary, topics, file)
+                    yield from _unindexed_messages(stream, definitions, topics, file)
                     continue
                 found = reader.iter_messages(topics=sorted(topics) if topics else None,
                                              log_time_order=True)
@@ -573,6 +658,14 @@ class BagReader:
                         raise _damaged(file, exc) from None
                     yield BagMessage(channel.topic, schema.name if schema else "",
                                      message.log_time, message.data)
+
+
+def _refuse_conflicts(definitions: Definitions, topics: set[str] | None, file: Path) -> None:
+    """Fails when a channel played (of `topics`; all: None) cannot be attributed."""
+    for channel_id in definitions.channels:
+        if definitions.conflict_of(channel_id) and (
+                topics is None or definitions.topics_of(channel_id) & topics):
+            raise definitions.refuse(file, channel_id)
 
 
 def _file_summary(file: Path, records: dict[str, dict[str, str]]) -> Summary:
@@ -597,22 +690,19 @@ def _bounded(stream: IO[bytes]) -> IO[bytes]:
     return cast(IO[bytes], BoundedFile(stream))  # it has the calls the library makes
 
 
-def _unindexed_messages(stream: IO[bytes], summary: Summary | None, topics: set[str] | None,
-                        file: Path) -> Iterator[BagMessage]:
+def _unindexed_messages(stream: IO[bytes], definitions: Definitions,
+                        topics: set[str] | None, file: Path) -> Iterator[BagMessage]:
     """The messages of a file without chunk indexes, in file order, each chunk checked and
     inflated here (within CHUNK_LIMIT)."""
     stream.seek(0)
-    channels: dict[int, Channel] = dict(summary.channels) if summary else {}
-    schemas: dict[int, Schema] = dict(summary.schemas) if summary else {}
     for record in data_records(stream, file):
-        if isinstance(record, Schema):
-            schemas.setdefault(record.id, record)
-        elif isinstance(record, Channel):
-            channels.setdefault(record.id, record)
-        elif isinstance(record, Message) and record.channel_id in channels:
-            channel = channels[record.channel_id]
-            if topics is None or channel.topic in topics:
-                schema = schemas.get(channel.schema_id)
+        definitions.add(record)
+        if isinstance(record, Message) and record.channel_id in definitions.channels:
+            channel = definitions.channels[record.channel_id]
+            if topics is None or definitions.topics_of(record.channel_id) & topics:
+                if definitions.conflict_of(record.channel_id):
+                    raise definitions.refuse(file, record.channel_id)
+                schema = definitions.schemas.get(channel.schema_id)
                 yield BagMessage(channel.topic, schema.name if schema else "",
                                  record.log_time, record.data)
 
@@ -779,7 +869,8 @@ class ReindexedFile:
     messages: int
     dropped_bytes: int  # the torn record(s) at the end, left out
     unattributed: int = 0  # messages of a channel the file never defines: left out
-    redefined: int = 0  # schema or channel ids defined again with other contents: the first kept
+    conflicted: int = 0  # messages of a channel after its id was defined again otherwise
+    conflicts: list[str] = field(default_factory=list)  # ids defined again: the first kept
     # damage in the middle stepped over (byte ranges), what follows it kept
     skipped: list[tuple[int, int]] = field(default_factory=list)
     unreadable: int = 0  # whole records (chunks) whose contents could not be read: left out
@@ -974,25 +1065,25 @@ def _all_records(data: bytes) -> list[Any]:
 
 
 def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path
-             ) -> tuple[int, list[_TopicRecord], tuple[int, int], tuple[int, int]]:
+             ) -> tuple[int, list[_TopicRecord], tuple[int, int], tuple[int, int, list[str]]]:
     """Writes `records` anew with `writer` (summary and indexes at the end): the message
-    count, the topics, the first and last receive times, and what was left out (messages of
-    no channel; schema or channel ids defined again otherwise, of which the first is kept)."""
+    count, the topics, the first and last receive times, and what was left out: messages of
+    no channel; messages of a channel after its id, or its schema's, was defined again
+    otherwise (which of the two they are of, none can tell); the words for those
+    redefinitions, of which the first definition is kept."""
     topics: dict[int, _TopicRecord] = {}
     schema_ids: dict[int, int] = {}
     schema_names: dict[int, str] = {}
     channels: dict[int, int] = {}
-    first_seen: dict[tuple[type, int], Any] = {}
-    first, last, count, unattributed, redefined = 2**63, 0, 0, 0, 0
+    definitions = Definitions()
+    first, last, count, unattributed, conflicted = 2**63, 0, 0, 0, 0
     profile, library = "ros2", f"rcan-rtps {__version__} (reindex)"
     header = next(records, None)
     if header is not None and hasattr(header, "profile"):
         profile = header.profile or profile
     writer.start(profile=profile, library=library)
     for record in records:
-        if isinstance(record, (Schema, Channel)):
-            known = first_seen.setdefault((type(record), record.id), record)
-            redefined += known != record  # (the summary repeats them as they were)
+        definitions.add(record)  # (the summary repeats them as they were: not a conflict)
         if isinstance(record, Schema) and record.id not in schema_ids:
             schema_ids[record.id] = writer.register_schema(record.name, record.encoding,
                                                            record.data)
@@ -1008,6 +1099,8 @@ def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path
                 channels[record.id])
         elif isinstance(record, Message) and record.channel_id not in channels:
             unattributed += 1
+        elif isinstance(record, Message) and definitions.conflict_of(record.channel_id):
+            conflicted += 1
         elif isinstance(record, Message):
             writer.add_message(channels[record.channel_id], log_time=record.log_time,
                                data=record.data, publish_time=record.publish_time,
@@ -1021,7 +1114,8 @@ def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path
     writer.add_metadata("rosbag2", {
         "serialized_metadata": yaml.safe_dump(info, sort_keys=False), "ROS_DISTRO": distro})
     writer.finish()
-    return count, list(topics.values()), (first, last), (unattributed, redefined)
+    said = [definitions.conflict_of_id(kind, key) for kind, key in definitions.conflicts]
+    return count, list(topics.values()), (first, last), (unattributed, conflicted, said)
 
 
 def _offered_list(text: str | list[Any] | None) -> list[dict[str, Any]]:

@@ -38,36 +38,9 @@ def slow_server(jazzy_oracle: OracleEnv, domain_id: int) -> RclpyOracle:
 async def test_a_client_come_and_gone_between_our_calls_keeps_replies_ambiguous(
         slow_server: RclpyOracle, domain_id: int, jazzy_share: Path,
         monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("RCAN_RTPS_RPC_IDENTITY", "off")
-    with RosNode("caller", "/", domain_id=domain_id, distro="jazzy",
-                 idl_paths=[jazzy_share]) as node:
-        client = ServiceClient(node, "/slow", SET_BOOL)
-        await client.wait_for_service(timeout=30)
-        assert (await client.call({"data": True}, timeout=20)).success  # alone: answered
-
-        # Another client comes, asks, gives up before the answer and leaves, all while
-        # ours makes no call.
-        with RosNode("other", "/", domain_id=domain_id, distro="jazzy",
-                     idl_paths=[jazzy_share]) as other_node:
-            other = ServiceClient(other_node, "/slow", SET_BOOL)
-            await other.wait_for_service(timeout=30)
-            await eventually(lambda: _clients_seen(node) == 2, timeout=30,
-                             what="the other client in our graph")
-            with contextlib.suppress(ServiceTimeout, AmbiguousReply):
-                await other.call({"data": False}, timeout=0.5)
-            other.close()
-        await eventually(lambda: _clients_seen(node) == 1, timeout=30,
-                         what="the other client gone from our graph")
-
-        # The server still answers the other's request (data False) first.
-        try:
-            reply = await client.call({"data": True}, timeout=20)
-        except AmbiguousReply:
-            pass  # the fix: the other left just now
-        else:
-            assert reply.success, f"took the other client's reply as ours: {reply.message}"
-        client.close()
-        await asyncio.sleep(0)
+    """Another client comes, asks, gives up before the answer and leaves, all while ours
+    makes no call (our graph sees it come and go)."""
+    await _trial(domain_id, jazzy_share, monkeypatch, ours_looks=True)
 
 
 async def test_a_client_our_graph_never_saw_alive_keeps_replies_ambiguous(
@@ -76,28 +49,39 @@ async def test_a_client_our_graph_never_saw_alive_keeps_replies_ambiguous(
     """As above, with nothing of ours looking at the graph while the other client is there:
     the discovery reader keeps one sample an endpoint, and its last one, its disposal, names
     no topic. The graph never saw it alive, yet it left a request behind all the same."""
+    await _trial(domain_id, jazzy_share, monkeypatch, ours_looks=False)
+
+
+async def _trial(domain_id: int, jazzy_share: Path, monkeypatch: pytest.MonkeyPatch, *,
+                 ours_looks: bool) -> None:
+    """Our client answered alone; another client's request left unanswered at the server
+    (`ours_looks`: our graph refreshed while that client is there); then our next call must
+    not take the server's reply to it (data False) as ours: ambiguous, or our own answer."""
     monkeypatch.setenv("RCAN_RTPS_RPC_IDENTITY", "off")
     with RosNode("caller", "/", domain_id=domain_id, distro="jazzy",
                  idl_paths=[jazzy_share]) as node:
         client = ServiceClient(node, "/slow", SET_BOOL)
         await client.wait_for_service(timeout=30)
         assert (await client.call({"data": True}, timeout=20)).success  # alone: answered
-
         with RosNode("other", "/", domain_id=domain_id, distro="jazzy",
                      idl_paths=[jazzy_share]) as other_node:
             other = ServiceClient(other_node, "/slow", SET_BOOL)
             await other.wait_for_service(timeout=30)
-            # (its view, not ours: ours must not be refreshed meanwhile)
-            await eventually(lambda: _clients_seen(other_node) == 2, timeout=30,
-                             what="our client in the other's graph")
+            watched = node if ours_looks else other_node  # the other's view leaves ours be
+            await eventually(lambda: _clients_seen(watched) == 2, timeout=30,
+                             what="both clients in a graph")
             with contextlib.suppress(ServiceTimeout, AmbiguousReply):
                 await other.call({"data": False}, timeout=0.5)
             other.close()
-        await asyncio.sleep(1.0)  # its disposal on its way to us (the server answers at 3 s)
+        if ours_looks:
+            await eventually(lambda: _clients_seen(node) == 1, timeout=30,
+                             what="the other client gone from our graph")
+        else:
+            await asyncio.sleep(1.0)  # its disposal on its way (the server answers at 3 s)
         try:
             reply = await client.call({"data": True}, timeout=20)
         except AmbiguousReply:
-            pass
+            pass  # the fix: the other left just now
         else:
             assert reply.success, f"took the other client's reply as ours: {reply.message}"
         client.close()

@@ -58,13 +58,11 @@ class GovernorGuard:
         (or, allowed, says once on stderr that the governor is passed by)."""
         self._next_look = time.monotonic() + LOOK_PERIOD
         self.graph.refresh()
+        governed = {(e.dds_topic, e.governed_by) for e in self.graph.endpoints()
+                    if e.governed_by and e.dds_topic in self.topics}  # one look at the graph
         for dds_topic, name in self.topics.items():
-            for governor in sorted(self._governors_on(dds_topic)):
+            for governor in sorted(g for t, g in governed if t == dds_topic):
                 self._found(name, governor)
-
-    def _governors_on(self, dds_topic: str) -> set[str]:
-        return {e.governed_by for e in self.graph.endpoints()
-                if e.dds_topic == dds_topic and e.governed_by}
 
     def _found(self, name: str, governor: str) -> None:
         said = shown(governor)  # a peer's words: what does not print, escaped

@@ -850,7 +850,12 @@ def data_records(stream: IO[bytes], file: Path, end: int | None = None) -> Itera
 
 
 def _chunk_records(chunk: Chunk, file: Path) -> Iterator[Any]:
-    found = StreamReader(io.BytesIO(inflate(chunk, file)), skip_magic=True,
+    yield from _records_of(inflate(chunk, file), file)
+
+
+def _records_of(data: bytes, file: Path) -> Iterator[Any]:
+    """The records of a chunk's inflated `data`; one that does not parse is a BagError."""
+    found = StreamReader(io.BytesIO(data), skip_magic=True,
                          record_size_limit=CHUNK_LIMIT).records
     while True:
         try:
@@ -921,18 +926,27 @@ def record_layout(stream: IO[bytes]) -> RecordLayout:
         start = resume
 
 
+def _heads(stream: IO[bytes], offset: int, end: int) -> Iterator[tuple[int, int]]:
+    """(offset, length) of each whole record of a known type from `offset`, up to the first
+    head that is none (or to `end`); read by heads alone."""
+    while offset + RECORD_HEAD.size <= end:
+        stream.seek(offset)
+        opcode, length = RECORD_HEAD.unpack(stream.read(RECORD_HEAD.size))
+        if opcode not in MCAP_OPCODES or length > end - offset - RECORD_HEAD.size:
+            return
+        yield offset, length
+        offset += RECORD_HEAD.size + length
+
+
 def _whole_records(stream: IO[bytes], offset: int, size: int,
                    at_most: int | None = None) -> tuple[int, int]:
     """Whole records of known types from `offset` (at most `at_most`): where they end, and
     how many there are."""
     count = 0
-    while offset + RECORD_HEAD.size <= size and (at_most is None or count < at_most):
-        stream.seek(offset)
-        opcode, length = RECORD_HEAD.unpack(stream.read(RECORD_HEAD.size))
-        if opcode not in MCAP_OPCODES or length > size - offset - RECORD_HEAD.size:
+    for at, length in _heads(stream, offset, size):
+        if at_most is not None and count == at_most:
             break
-        offset += RECORD_HEAD.size + length
-        count += 1
+        offset, count = at + RECORD_HEAD.size + length, count + 1
     return offset, count
 
 
@@ -1018,19 +1032,13 @@ def salvaged_records(stream: IO[bytes], file: Path, layout: RecordLayout,
     """The records of `layout`'s spans, each parsed on its own (chunks opened, within
     CHUNK_LIMIT): one whose contents do not parse, or a chunk that does not inflate or
     whose CRC differs, is counted in `losses` and left out, and the others still come."""
-    for start, end in layout.spans:
-        offset = start
-        while offset + RECORD_HEAD.size <= end:
-            stream.seek(offset)
-            head = stream.read(RECORD_HEAD.size)
-            opcode, length = RECORD_HEAD.unpack(head)
-            if opcode not in MCAP_OPCODES or length > end - offset - RECORD_HEAD.size:
-                break  # the closing magic of a complete file
-            offset += RECORD_HEAD.size + length
+    for start, end in layout.spans:  # (a complete file's span ends at its closing magic)
+        for offset, length in _heads(stream, start, end):  # (each head read after a seek)
             if length > CHUNK_LIMIT:
                 losses.add(f"a record of {length} B, over the {CHUNK_LIMIT >> 20} MiB read")
                 continue
-            yield from _salvaged(head + stream.read(length), file, losses)
+            stream.seek(offset)
+            yield from _salvaged(stream.read(RECORD_HEAD.size + length), file, losses)
 
 
 def _salvaged(raw: bytes, file: Path, losses: _Losses) -> list[Any]:
@@ -1044,24 +1052,13 @@ def _salvaged(raw: bytes, file: Path, losses: _Losses) -> list[Any]:
         data = inflate(record, file)
         if record.uncompressed_crc and zlib.crc32(data) != record.uncompressed_crc:
             raise BagError(f"'{file}' is damaged: a chunk's CRC does not match")
-        return _all_records(data)
-    except BagError as exc:
-        losses.add(str(exc).replace(f"'{file}' is damaged: ", "").replace(f"'{file}' ", ""))
+        return list(_records_of(data, file))
+    except BagError as exc:  # the file is named in the line reindex prints: said once
+        losses.add(str(exc).replace(f"'{file}' is damaged: ", "")
+                   .replace(f"'{file}' is ", "").replace(f"'{file}' ", ""))
     except (StopIteration, EndOfFile, *_PARSE_ERRORS) as exc:
         losses.add(f"a record that does not parse ({_first_line(exc)})")
     return []
-
-
-def _all_records(data: bytes) -> list[Any]:
-    """Every record of `data` (a chunk's, inflated); a parse error raises."""
-    found = StreamReader(io.BytesIO(data), skip_magic=True,
-                         record_size_limit=CHUNK_LIMIT).records
-    records = []
-    while True:
-        try:
-            records.append(next(found))
-        except (StopIteration, EndOfFile):  # the reader's end is an EndOfFile
-            return records
 
 
 def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path

@@ -298,11 +298,9 @@ class RosSubscription:
         if callback is None:
             self._loop = asyncio.get_running_loop()
             self._queue = asyncio.Queue(maxsize)
-        dds_topic = node.topic(mangle_topic(topic), type_name)
-        user_data = ((node.endpoint_user_data(type_name) or b"")
-                     + (node.governed_entry if governed else "").encode())
-        self.reader: DataReader[Any] = DataReader(
-            node.subscriber, dds_topic, qos=qos.to_dds(user_data or None))
+        # (tracked by the node: it announces it and closes it with itself)
+        self.reader = node.create_reader(mangle_topic(topic), type_name, qos,
+                                         node.governed_entry if governed else "")
         # Historical (transient-local) samples already in the reader trigger the condition.
         self._watch = node.watch(self.reader, self._on_samples, f"subscription {topic}",
                                  on_incompatible_qos=self._on_incompatible,
@@ -509,7 +507,6 @@ class RosNode:
                               raw, warn_other_type, governed)
         # The node owns its subscriptions: a dropped handle must not silence the topic.
         self._subscriptions.append(sub)
-        self.track_reader(sub.reader)
         return sub
 
     def create_writer(self, dds_topic: str, type_name: str, qos: QosProfile,

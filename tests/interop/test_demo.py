@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import aiohttp
+import jsonschema
 import pytest
 from waiting import SPIN, eventually, take
 
@@ -266,6 +267,10 @@ async def test_status_lists_the_invoke_capability_as_skills_does(
         "go_home", "go_to", "hold_still", "nudge", "raise_elbow"]
     _, status = await call(http, demo, demo.user, "GET", "/api/status")
     assert status["caps"] == skills["caps"], status
+    # rcan-spec's own schema of the map (schemas/capability-object.json)
+    schema = json.loads((Path(__file__).parents[1] / "data" / "rcan-spec"
+                         / "capability-object.json").read_text())
+    jsonschema.Draft7Validator(schema).validate(status["caps"])
     frames: list[dict[str, Any]] = []
     async with http.ws_connect(demo.url + "/api/ws",
                                headers={"Authorization": f"Bearer {demo.user}"}) as ws:

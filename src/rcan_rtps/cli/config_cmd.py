@@ -20,8 +20,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     check = actions.add_parser(
         "check", help="validate a config file, listing every problem",
         description="Validates FILE, then checks what `rcan-rtps run` needs here: every token "
-        "variable it names is set, its TLS files and JWT keys exist and load (--file-only: "
-        "the file alone, for a machine that will not run it).")
+        "variable it names is set, its TLS files and JWT keys exist and load, the audit key, "
+        "log and e-stop latch are files a start takes, and an existing audit log reads back as "
+        "a start reads it (read only: beside a running bridge too). --file-only: the file "
+        "alone, for a machine that will not run it.")
     check.add_argument("file", metavar="FILE", help="the .rcan.yaml to check")
     check.add_argument("--file-only", action="store_true",
                        help="check the file alone, not the token variables, TLS files and JWT "

@@ -23,7 +23,8 @@ import pytest
 
 from rcan_rtps.governance import AuditEvent, AuditLog, AuditRecord
 from rcan_rtps.governance.audit import checkpoint_path, load_or_create_key
-from tests.interop.run_process import RunProcess, child_env, post
+
+from .run_process import RunProcess, child_env, post
 
 TOKEN = "t" * 32
 TOKEN_ENV = "RCAN_BRIDGE_TOKEN"

@@ -124,3 +124,30 @@ async def test_beside_a_running_bridges_log_it_reads_and_disturbs_nothing(
     finally:
         await running.close()
     assert _check(config, capsys)[0] == 0
+
+
+async def test_it_reads_back_no_further_than_the_start_does(
+        config: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The cost bound the start has (it verifies from its last checkpoint on): an entry
+    edited before the checkpoint is seen by neither (`audit verify` reads it all), one
+    after it by both. Guards the bound, not the check: a config check reading the whole
+    chain on every call would refuse the first log, which the start takes."""
+    log, checkpoint = tmp_path / "audit.jsonl", tmp_path / "audit.jsonl.checkpoint"
+    await _write_log(tmp_path, 3)
+    at_third = checkpoint.read_bytes()
+    await _write_log(tmp_path, 3)
+    checkpoint.write_bytes(at_third)  # a crashed run: entries 4 to 6 after the checkpoint
+    lines = log.read_bytes().splitlines(keepends=True)
+    lines[1] = lines[1].replace(b'"n":1', b'"n":7')  # entry 2, before the checkpoint
+    log.write_bytes(b"".join(lines))
+    assert _check(config, capsys)[0] == 0
+    lines[4] = lines[4].replace(b'"n":1', b'"n":7')  # entry 5, after it
+    log.write_bytes(b"".join(lines))
+    code, said = _check(config, capsys)
+    assert code == 1
+    assert f"bridge.audit.path: {await _start_refusal(tmp_path)}" in said, said
+    checkpoint.write_bytes(at_third)
+    lines[4] = lines[4].replace(b'"n":7', b'"n":1')
+    log.write_bytes(b"".join(lines))
+    started = await AuditLog.open(log, tmp_path / "audit.key")  # the start takes it, too
+    await started.close()

@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING
 from .._modules import START_ONLY, let_go
 from ..api import ApiServer, bind, build_app, cert_principals, server_ssl_context
 from ..api.ports import GoalView, ImageSource
-from ..config import RcanConfig, estop_state_file, plaintext_problem
+from ..config import RcanConfig, plaintext_problem
 from ..events import Events
 from ..governance import (
     AuditLog,
@@ -49,11 +49,9 @@ from ..governance import (
     TokenAuthenticator,
     WebhookNotifier,
 )
-from ..governance.audit import check_key_file, check_log_file
 from ..governance.decision_log import log_entry
-from ..governance.estop import check_latch_file
 from ..governance.signatures import Signatures
-from ..governance.witness import check_witness_file
+from ..governance.start_files import start_file_problems
 from ..rcan import Status
 from ..ros.participant import RosNode
 from .commanders import CommanderWatch
@@ -277,12 +275,11 @@ class Bridge:
             api, self.config.bridge.rbac, opts.env, clock=SystemClock())
         self._ssl = server_ssl_context(api.tls) if api.tls else None
         self._signatures = Signatures.from_config(api)  # a key that does not load: refuse now
-        # unreadable, too open or not Ed25519: refuse now; so a log or latch at a device
-        check_key_file(self.config.bridge.audit.key_path)
-        check_log_file(self.config.bridge.audit.path)
-        check_latch_file(estop_state_file(self.config.bridge))
-        if self.config.bridge.audit.witness is not None:
-            check_witness_file(self.config.bridge.audit.witness)
+        # A key unreadable, too open or not Ed25519, a log, latch or witness at a device:
+        # refuse now, with the first (`config check` lists them all, from the same list).
+        problems = start_file_problems(self.config.bridge)
+        if problems:
+            raise problems[0].error
         host = opts.host or api.host
         plaintext = plaintext_problem(api, host)  # --host may point a loopback config outward
         if plaintext is not None:

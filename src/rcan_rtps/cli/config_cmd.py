@@ -20,8 +20,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     check = actions.add_parser(
         "check", help="validate a config file, listing every problem",
         description="Validates FILE, then checks what `rcan-rtps run` needs here: every token "
-        "variable it names is set, its TLS files and JWT keys exist and load (--file-only: "
-        "the file alone, for a machine that will not run it).")
+        "variable it names is set, its TLS files and JWT keys exist and load, the audit key, "
+        "log and e-stop latch are files a start takes, and an existing audit log reads back as "
+        "a start reads it (read only: beside a running bridge too). --file-only: the file "
+        "alone, for a machine that will not run it.")
     check.add_argument("file", metavar="FILE", help="the .rcan.yaml to check")
     check.add_argument("--file-only", action="store_true",
                        help="check the file alone, not the token variables, TLS files and JWT "
@@ -56,7 +58,7 @@ def _report(heading: str, problems: list[str]) -> bool:
 
 def run_problems(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
     """What stops `rcan-rtps run` with this config on this machine: tokens, TLS, JWT,
-    principals' signing keys and the audit log's key."""
+    principals' signing keys, and the files a start opens (the audit log read back too)."""
     problems: list[str] = []
     missing = missing_tokens(config, env)
     if missing:
@@ -66,7 +68,7 @@ def run_problems(config: RcanConfig, env: Mapping[str, str]) -> list[str]:
     if shared is not None:
         problems.append(f"bridge.api.principals: {shared}")
     return (problems + tls_problems(config) + jwt_problems(config) + signer_problems(config)
-            + audit_key_problems(config) + state_file_problems(config))
+            + start_file_problems(config))
 
 
 def approval_problems(config: RcanConfig) -> list[str]:
@@ -164,46 +166,11 @@ def signer_problems(config: RcanConfig) -> list[str]:
     return []
 
 
-def audit_key_problems(config: RcanConfig) -> list[str]:
-    """An audit signing key file `run` would refuse (open to others, not Ed25519, no regular
-    file); none there is fine, `run` makes one. The very check `run` makes before it starts."""
-    from rcan_rtps.governance import AuditKeyError
-    from rcan_rtps.governance.audit import check_key_file
+def start_file_problems(config: RcanConfig) -> list[str]:
+    """The files a start opens (the audit key, the audit log, the e-stop latch, a file
+    witness) as `run` judges them before it starts — the same list, all of it here — and an
+    existing audit log read back as the start will (read only: beside a running bridge too).
+    None there is fine: the first start makes them."""
+    from rcan_rtps.governance.start_files import start_file_problems as problems_of
 
-    try:
-        check_key_file(config.bridge.audit.key_path)
-    except AuditKeyError as exc:
-        return [f"bridge.audit.key_path: {exc}"]
-    return []
-
-
-def state_file_problems(config: RcanConfig) -> list[str]:
-    """The audit log, the e-stop latch or a file witness at something that is no regular file
-    (a device, a FIFO, a directory): `run` refuses them before it starts, as here. And an
-    audit log whose read-back a start would refuse (`check_log_contents`: read only, beside
-    a running bridge too)."""
-    from rcan_rtps.config import estop_state_file
-    from rcan_rtps.governance import AuditError, EstopStateError
-    from rcan_rtps.governance.audit import check_log_contents, check_log_file
-    from rcan_rtps.governance.estop import check_latch_file
-    from rcan_rtps.governance.witness import check_witness_file
-
-    problems = []
-    audit = config.bridge.audit
-    try:
-        check_log_file(audit.path)
-        if not audit_key_problems(config):  # else said there: the log cannot be judged
-            check_log_contents(audit.path, audit.key_path)
-    except AuditError as exc:
-        problems.append(f"bridge.audit.path: {exc}")
-    try:
-        check_latch_file(estop_state_file(config.bridge))
-    except EstopStateError as exc:
-        problems.append(f"bridge.safety.estop_state_path: {exc}")
-    witness = config.bridge.audit.witness
-    try:
-        if witness is not None:
-            check_witness_file(witness)
-    except ValueError as exc:
-        problems.append(f"bridge.audit.witness: {exc}")
-    return problems
+    return [str(problem) for problem in problems_of(config.bridge, read_log_back=True)]

@@ -65,6 +65,8 @@ def test_a_key_file_owned_by_another_user_is_refused(
     ("keys/ops.pub", SIGNER.replace("ops.pub", "keys/ops.pub"), "kid 'k1':"),
     ("keys/clients.pem", TLS.replace("tls/clients.pem", "keys/clients.pem"),
      "bridge.api.tls.client_ca:"),
+    ("keys/server.key", TLS.replace("tls/server.key", "keys/server.key"),
+     "bridge.api.tls.key:"),
 ])
 @pytest.mark.parametrize("directory_mode", [0o775, 0o777])
 def test_a_key_file_in_a_directory_others_may_write_is_refused(
@@ -76,8 +78,9 @@ def test_a_key_file_in_a_directory_others_may_write_is_refused(
     of robots mint OWNER tokens. ssh's StrictModes judges the directories too."""
     _trusted_files(tmp_path)
     (tmp_path / "keys").mkdir()
-    os.replace(tmp_path / Path(name).name if "clients" not in name
-               else tmp_path / "tls" / "clients.pem", tmp_path / name)
+    tls_file = "clients" in name or "server" in name
+    os.replace(tmp_path / "tls" / Path(name).name if tls_file
+               else tmp_path / Path(name).name, tmp_path / name)
     text = config_text("127.0.0.1", api_extra)
     assert check(tmp_path, text) == 0
     (tmp_path / "keys").chmod(directory_mode)

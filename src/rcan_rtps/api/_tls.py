@@ -54,9 +54,11 @@ def _check_tls_file(key: str, path: str) -> None:
         raise ValueError(f"bridge.api.tls.client_ca: {path} may be written by others (mode "
                          f"{mode & 0o777:o}): whoever can write it can add their own CA, and "
                          "a certificate of theirs would name any principal (chmod go-w)")
-    directory = writable_directory_problem(Path(path)) if key == "client_ca" else None
+    # Whoever may write the directory renames a pair of their own over the key and the
+    # certificate: the bridge then serves as them (the certificate alone is public).
+    directory = writable_directory_problem(Path(path)) if key != "cert" else None
     if directory is not None:
-        raise ValueError(f"bridge.api.tls.client_ca: {directory}")
+        raise ValueError(f"bridge.api.tls.{key}: {directory}")
     if key == "key" and mode & _TLS_KEY_TOO_OPEN:
         raise ValueError(f"bridge.api.tls.key: {path} is open to others (mode "
                          f"{mode & 0o777:o}): make it 0600 (or 0640 for a group such as "

@@ -23,7 +23,7 @@ from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
-from rcan_rtps.governance import estop
+from rcan_rtps.governance import estop, steps
 from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.governance.governor import Decision, Governor
 from rcan_rtps.rcan import Outcome, Reason
@@ -337,13 +337,18 @@ async def test_an_estop_during_a_clear_wins_and_is_listed_where_it_took_effect(
         assert _seq(harness, cleared) < _seq(harness, estopped) < _seq(harness, moved)
 
 
-async def test_a_move_refused_for_an_estop_waiting_behind_a_clear_is_listed_after_it(
-        harness: Harness, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("wait_for_listing_s", [steps.LISTED_WITHIN_S, 0.0])
+async def test_a_move_refused_for_an_estop_arriving_during_a_clear_is_listed_after_it(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch, wait_for_listing_s: float) -> None:
     """Unlatched; a clear under way, not yet decided (held waiting for the robot); an e-stop
-    arrives — latched at once, its entry waiting for its turn behind the clear — and a move
-    is refused for it. The refusal waits for the ESTOP entry to be sealed: before, it was
-    listed before it, where the log says the robot was unlatched (a clean-clone CI under
-    load, the stateful model's race_on_a_slow_disk: ESTOP seq 4, the move's refusal 3)."""
+    arrives — latched at once — and a move is refused for it. The refusal is listed after
+    the ESTOP entry: before, that entry waited for its turn behind the clear, and the move's
+    refusal was listed before it, where the log says the robot was unlatched (a clean-clone
+    CI under load, the stateful model's race_on_a_slow_disk: ESTOP seq 4, the move's refusal
+    3). A refusal then waited for the entry at most `LISTED_WITHIN_S`: a clear held longer
+    (its disk stuck; here a bound of 0) still let it through first. Now the e-stop does not
+    wait for a clear at all: its entry is sealed as it arrives."""
+    monkeypatch.setattr(steps, "LISTED_WITHIN_S", wait_for_listing_s)
     gov = await harness.governor()
     held = _HeldClear(harness, monkeypatch, "ready")
     clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), OPS))

@@ -106,7 +106,8 @@ class LatchFile:
 
 
 # A transition's work (or, begun at once, its awaitable), its caller's future, engage or not.
-_Job = tuple[Callable[[], Awaitable[Any]] | Awaitable[Any], "asyncio.Future[Any]", bool]
+# (work, its result, an e-stop, a clear)
+_Job = tuple[Callable[[], Awaitable[Any]] | Awaitable[Any], "asyncio.Future[Any]", bool, bool]
 
 
 class EstopMachine:
@@ -125,7 +126,7 @@ class EstopMachine:
         self._queue: asyncio.Queue[_Job] | None = None
         self._worker: asyncio.Task[None] | None = None
         self._unfinished = 0  # transitions submitted and not done
-        self._clear_decided = False  # the transition under way is a clear, its entry sealed
+        self._unfinished_clears = 0  # of them, clears
         # E-stops latched and waiting for their turn, their entries not sealed yet
         # (`listed`); the event is set while there are none.
         self._unbegun_engages = 0
@@ -139,14 +140,17 @@ class EstopMachine:
 
     def engage(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Latch now (synchronously), then run `work` in order: at once (`work()` called in
-        this step) if no transition is under way, or only a decided clear, so what it does
-        before its first await happens with the flip and is sealed after the clear's entry;
-        else at its turn. Its result is returned in order either way."""
+        this step) if no transition is under way, or only clears, so what it does before its
+        first await happens with the flip: its entry is sealed where the e-stop took effect,
+        before any refusal for its latch. A clear under way cannot hold it up: one decided
+        already neither unlatches nor publishes after it (`overtaken`), one not yet decided is
+        refused for it. Else (an e-stop or recorded repeats ahead) at its turn. Its result is
+        returned in order either way."""
         flipped, self._latched = not self._latched, True
         self._engages_waiting += 1
         if flipped:
             self._tell()
-        if self._unfinished and not (self._unfinished == 1 and self._clear_decided):
+        if self._unfinished > self._unfinished_clears:
             self._unbegun_engages += 1
             self._all_begun.clear()
             return self._submit(work, engage=True)
@@ -158,13 +162,7 @@ class EstopMachine:
 
     def clear(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Run `work` in order; it calls `unlatch()` once the clear is durable."""
-        return self._submit(work, engage=False)
-
-    def decided(self) -> None:
-        """From the clear under way, in the step its entry is sealed: an e-stop arriving from
-        now on begins at once, its entry sealed right there, after the clear's (not at its
-        turn, after the clear's latch file and publish, with other entries sealed between)."""
-        self._clear_decided = True
+        return self._submit(work, engage=False, clear=True)
 
     def overtaken(self) -> bool:
         """From the clear under way: an e-stop arrived after it (it wins: the clear must not
@@ -175,9 +173,8 @@ class EstopMachine:
         """Returns once every e-stop that has latched has begun its work, which seals its
         entry in its first step (or after `within_s`, a transition ahead of it stuck on a
         disk): a command refused for the latch then is listed after the e-stop that latched
-        it. One that arrived while a clear was under way, not yet decided, latched at once
-        but waits for its turn; a move refused meanwhile was listed before its ESTOP (seen
-        in a clean-clone CI under load: the stateful model's race_on_a_slow_disk)."""
+        it. An e-stop waits for its turn only behind another e-stop's transition or recorded
+        repeats (`engage`), so this rarely waits at all."""
         if self._all_begun.is_set():
             return
         with contextlib.suppress(asyncio.TimeoutError):
@@ -232,22 +229,23 @@ class EstopMachine:
                 await worker
         self.file.close()
 
-    def _submit(self, work: Callable[[], Awaitable[T]] | Awaitable[T], *, engage: bool
-                ) -> asyncio.Future[T]:
+    def _submit(self, work: Callable[[], Awaitable[T]] | Awaitable[T], *, engage: bool,
+                clear: bool = False) -> asyncio.Future[T]:
         loop = asyncio.get_running_loop()
         self._unfinished += 1
+        self._unfinished_clears += clear
         if self._queue is None:
             self._queue = asyncio.Queue()
         if self._worker is None or self._worker.done():
             self._worker = loop.create_task(self._work(), name="estop-machine")
         done: asyncio.Future[T] = loop.create_future()
-        self._queue.put_nowait((work, done, engage))
+        self._queue.put_nowait((work, done, engage, clear))
         return done
 
     async def _work(self) -> None:
         assert self._queue is not None
         while True:
-            work, done, engage = await self._queue.get()
+            work, done, engage, clear = await self._queue.get()
             if engage:
                 self._engages_waiting -= 1
             try:
@@ -267,8 +265,8 @@ class EstopMachine:
                 if not done.done():
                     done.set_result(result)
             finally:
-                self._clear_decided = False
                 self._unfinished -= 1
+                self._unfinished_clears -= clear
                 self._queue.task_done()
 
 

@@ -117,10 +117,10 @@ class EstopLane:
         """Audited, persisted, unlatched (unless an e-stop came after it), published.
 
         Decided when its entry is sealed. An e-stop that arrived before that (while it
-        waited for the robot, or for its turn) wins: the clear is refused (`estop_active`),
-        listed before that e-stop. One that arrives after it wins too: it is sealed in its
-        own step, right after this entry (`EstopMachine.decided`), and this clear neither
-        writes the latch file nor unlatches nor publishes."""
+        waited for the robot, or for its turn) wins: the clear is refused (`estop_active`).
+        One that arrives after it wins too, and this clear neither writes the latch file nor
+        unlatches nor publishes. Either way the e-stop did not wait for this clear: its entry
+        was sealed as it arrived (`EstopMachine.engage`)."""
         steps = self._steps
         why = await steps.ready(command)
         if why is not None:
@@ -135,7 +135,6 @@ class EstopLane:
         # Decided: its entry is sealed as the write begins, in this step. An e-stop from now
         # on is a new one, audited in full, sealed at once after this entry.
         latched_by, self._latched_by = self._latched_by, None
-        self._latch.decided()
         receipt = await steps.write_ahead(entry)
         if receipt is None:
             if self._latched_by is None:

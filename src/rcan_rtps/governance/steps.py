@@ -154,8 +154,9 @@ class Decision(msgspec.Struct, frozen=True, kw_only=True):
 Sent = tuple[DispatchResult, Rejection | None]
 
 
-# s a refusal for the e-stop waits at most for that e-stop's entry to be sealed (it waits for
-# its turn behind a clear under way; longer only with that clear's disk stuck)
+# s a refusal for the e-stop waits at most for that e-stop's entry to be sealed (an e-stop
+# waits for its turn only behind another e-stop's transition or recorded repeats, never behind
+# a clear; longer only with that work's disk stuck)
 LISTED_WITHIN_S = 2.0
 
 

@@ -99,12 +99,12 @@ class HitlPolicy:
     """Decides, per command, whether it passes, is refused, or waits for a human."""
 
     def __init__(self, config: HitlConfig, default_approver: Role = Role.OWNER,
-                 issuer_roles: Mapping[str, Role] | None = None) -> None:
+                 roles_to_issue: Mapping[str, Role] | None = None) -> None:
         self._gate = config.confidence_gate
         self._default = default_approver
         # The role each action needs to be issued: no approver is below it (config refuses
         # a gate's role below it; the default approver is raised to it, per action).
-        self._issuer_roles = dict(issuer_roles or {})
+        self._issuer_roles = dict(roles_to_issue or {})
         # Distinct approvers per action; whatever holds the command (a gate, the confidence gate).
         self._approvals = {g.action: g.approvals for g in config.gates}
         # The registry's defaults first; a configured gate for an action replaces its default.

@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import heapq
 import io
+import itertools
 import os
 import re
 import stat
@@ -37,7 +39,7 @@ import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, Message, Metadata, Schema
+from mcap.records import Channel, Chunk, ChunkIndex, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
@@ -647,17 +649,7 @@ class BagReader:
                     # the library would read the data section, its chunks unchecked
                     yield from _unindexed_messages(stream, definitions, topics, file)
                     continue
-                found = reader.iter_messages(topics=sorted(topics) if topics else None,
-                                             log_time_order=True)
-                while True:
-                    try:
-                        schema, channel, message = next(found)
-                    except StopIteration:
-                        break
-                    except _PARSE_ERRORS as exc:
-                        raise _damaged(file, exc) from None
-                    yield BagMessage(channel.topic, schema.name if schema else "",
-                                     message.log_time, message.data)
+                yield from _indexed_messages(stream, summary, definitions, topics, file)
 
 
 def _refuse_conflicts(definitions: Definitions, topics: set[str] | None, file: Path) -> None:
@@ -707,22 +699,60 @@ def _unindexed_messages(stream: IO[bytes], definitions: Definitions,
                                  record.log_time, record.data)
 
 
+def _indexed_messages(stream: IO[bytes], summary: Summary, definitions: Definitions,
+                      topics: set[str] | None, file: Path) -> Iterator[BagMessage]:
+    """The messages of a file's indexed chunks in receive-time order, as the mcap library
+    orders them (a chunk is opened when its first time is due), each chunk read and inflated
+    here within CHUNK_LIMIT: the library allocates what a chunk claims. The schemas and
+    channels inside the chunks are checked against the summary's (`definitions`)."""
+    due: list[tuple[int, int, int, int, Any]] = []  # (time, chunk, index, serial, what)
+    serial = itertools.count()
+    for index in summary.chunk_indexes:
+        heapq.heappush(due, (index.message_start_time, index.chunk_start_offset, -1,
+                             next(serial), index))
+    while due:
+        *_, item = heapq.heappop(due)
+        if isinstance(item, Message):
+            channel = definitions.channels[item.channel_id]
+            schema = definitions.schemas.get(channel.schema_id)
+            yield BagMessage(channel.topic, schema.name if schema else "", item.log_time,
+                             item.data)
+            continue
+        for at, record in enumerate(_indexed_chunk(stream, item, file)):
+            definitions.add(record)
+            if not isinstance(record, Message) or record.channel_id not in definitions.channels:
+                continue
+            if topics is None or definitions.topics_of(record.channel_id) & topics:
+                if definitions.conflict_of(record.channel_id):
+                    raise definitions.refuse(file, record.channel_id)
+                heapq.heappush(due, (record.log_time, item.chunk_start_offset, at,
+                                     next(serial), record))
+
+
+def _indexed_chunk(stream: IO[bytes], index: ChunkIndex, file: Path) -> list[Any]:
+    """The records of the chunk `index` points at (check_chunks checked its head)."""
+    bounded = BoundedFile(stream)
+    try:
+        bounded.seek(index.chunk_start_offset + RECORD_HEAD.size)
+        chunk = Chunk.read(ReadDataStream(cast(IO[bytes], bounded)))
+    except _PARSE_ERRORS as exc:
+        raise _damaged(file, exc) from None
+    return list(_records_of(inflate(chunk, file), file))
+
+
 # -- chunks, within limits ------------------------------------------------------------
 CHUNK_FIELDS = struct.Struct("<BQQQQI")  # opcode, length, start, end, uncompressed size, crc
 
 
 def check_chunks(stream: BoundedFile, summary: Summary, file: Path) -> None:
     """Refuses a file whose chunk indexes point at anything but a chunk that fits in the
-    file and inflates to at most CHUNK_LIMIT, before the mcap library reads one: it would
-    allocate what a chunk claims (zstd) or inflate it without limit (lz4)."""
+    file and claims at most CHUNK_LIMIT, before any message is played (each is inflated,
+    within its claim, when it is read)."""
     for index in summary.chunk_indexes:
         if index.chunk_start_offset >= stream.end:
             raise BagError(f"'{file}' is damaged: a chunk index points past its end")
         stream.seek(index.chunk_start_offset)
-        chunk = _chunk_head(stream, stream.end - index.chunk_start_offset, file)
-        if chunk.compression == "lz4":  # its frame need not say its size: inflate to see
-            stream.seek(index.chunk_start_offset + RECORD_HEAD.size)
-            inflate(Chunk.read(ReadDataStream(cast(IO[bytes], stream))), file)
+        _chunk_head(stream, stream.end - index.chunk_start_offset, file)
 
 
 def _chunk_head(stream: BoundedFile, room: int, file: Path) -> Chunk:
@@ -768,14 +798,13 @@ def check_chunk_limits(chunk: Chunk, record_length: int, file: Path) -> None:
 
 def inflate(chunk: Chunk, file: Path) -> bytes:
     """The records a chunk holds, inflated, never to more than the size it claims (itself
-    within CHUNK_LIMIT)."""
+    within CHUNK_LIMIT). Inflated a block at a time: the memory taken is what the data
+    inflates to, not what the chunk claims (a chunk of 500 B may claim 500 MiB)."""
     check_chunk_limits(chunk, len(chunk.data), file)
     claimed = chunk.uncompressed_size
     try:
         if chunk.compression == "zstd":
-            reader = zstandard.ZstdDecompressor().stream_reader(chunk.data,
-                                                                read_across_frames=True)
-            data = reader.read(claimed + 1)
+            data = _inflate_zstd(chunk.data, claimed)
         elif chunk.compression == "lz4":
             data = _inflate_lz4(chunk.data, claimed, file)
         else:
@@ -790,14 +819,34 @@ def inflate(chunk: Chunk, file: Path) -> bytes:
     return data
 
 
+INFLATE_BLOCK = 1 << 20  # what one step of inflating may add
+
+
+def _inflate_zstd(data: bytes, claimed: int) -> bytes:
+    """zstd frames inflated to at most `claimed` + 1 bytes, a block at a time (a read of
+    `claimed` bytes at once allocates them whatever the frames hold)."""
+    reader = zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=True)
+    inflated = bytearray()
+    while len(inflated) <= claimed:
+        block = reader.read(min(INFLATE_BLOCK, claimed + 1 - len(inflated)))
+        if not block:
+            break
+        inflated += block
+    return bytes(inflated)
+
+
 def _inflate_lz4(data: bytes, claimed: int, file: Path) -> bytes:
-    """An LZ4 frame inflated to at most `claimed` + 1 bytes; the frame must end there (the
-    library's own decompress, which `play` calls after, fails on a cut frame)."""
+    """An LZ4 frame inflated to at most `claimed` + 1 bytes, a block at a time; the frame
+    must end there (a cut frame is damage)."""
     decompressor = lz4.frame.LZ4FrameDecompressor()
-    inflated: bytes = decompressor.decompress(data, max_length=claimed + 1)
+    inflated = bytearray(decompressor.decompress(data, max_length=min(INFLATE_BLOCK,
+                                                                        claimed + 1)))
+    while len(inflated) <= claimed and not decompressor.eof and not decompressor.needs_input:
+        inflated += decompressor.decompress(b"", max_length=min(
+            INFLATE_BLOCK, claimed + 1 - len(inflated)))
     if len(inflated) <= claimed and not decompressor.eof:
         raise BagError(f"'{file}' is damaged: a chunk's LZ4 frame is cut short")
-    return inflated
+    return bytes(inflated)
 
 
 class BoundedFile:

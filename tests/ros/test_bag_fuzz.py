@@ -219,6 +219,7 @@ def test_a_hostile_file_is_read_within_limits_or_refused(tmp_path: Path, data: b
     (bag / "fuzz_0.mcap").write_bytes(data)
     file = bag / "fuzz_0.mcap"
     _within_limits(lambda: BagReader(bag).summary(), bag, set())
+    _within_limits(lambda: BagReader(bag).damage(), bag, set())
     _within_limits(lambda: list(BagReader(file).messages()), bag, set())
     _within_limits(lambda: list(BagReader(bag).messages({"/a"})), bag, set())
     _within_limits(lambda: reindex(bag), bag, {"fuzz_0.mcap", "metadata.yaml"})

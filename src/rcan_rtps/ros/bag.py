@@ -405,6 +405,14 @@ class BagSummary:
     ros_distro: str
 
 
+@dataclass
+class BagDamage:
+    """Damage a bag's summary does not show (`BagReader.damage`)."""
+
+    chunks: list[str] = field(default_factory=list)  # "<file> at byte N: why", one a chunk
+    conflicts: list[str] = field(default_factory=list)  # "<file>: <id> is defined twice, …"
+
+
 @dataclass(frozen=True)
 class BagMessage:
     topic: str
@@ -573,16 +581,12 @@ def _printable(text: str) -> str:
 def _summary_definitions(stream: IO[bytes], file: Path) -> Definitions:
     """The schemas and channels of a closed file's summary section, as `Definitions`."""
     found = Definitions()
-    tail = FOOTER_TAIL.size
+    summary_start = _summary_start(stream)
+    if summary_start is None:
+        return found
     size = os.fstat(stream.fileno()).st_size
-    if size < len(MCAP_MAGIC) + tail:
-        return found
-    stream.seek(size - tail)
-    opcode, _, summary_start, _, _, magic = FOOTER_TAIL.unpack(stream.read(tail))
-    if opcode != 0x02 or magic != MCAP_MAGIC or not 0 < summary_start < size - tail:
-        return found
     stream.seek(summary_start)
-    records = StreamReader(BoundedFile(stream, size - tail), skip_magic=True,  # type: ignore[arg-type]
+    records = StreamReader(BoundedFile(stream, size - FOOTER_TAIL.size), skip_magic=True,  # type: ignore[arg-type]
                            record_size_limit=CHUNK_LIMIT).records
     try:
         for record in records:
@@ -592,6 +596,76 @@ def _summary_definitions(stream: IO[bytes], file: Path) -> Definitions:
     except _PARSE_ERRORS as exc:
         raise _damaged(file, exc) from None
     return found
+
+
+def _summary_start(stream: IO[bytes]) -> int | None:
+    """Where a closed file's summary section starts (its data section's end); None when
+    its footer says it has none, or there is no footer."""
+    tail = FOOTER_TAIL.size
+    size = os.fstat(stream.fileno()).st_size
+    if size < len(MCAP_MAGIC) + tail:
+        return None
+    stream.seek(size - tail)
+    opcode, _, summary_start, _, _, magic = FOOTER_TAIL.unpack(stream.read(tail))
+    if opcode != 0x02 or magic != MCAP_MAGIC or not 0 < summary_start < size - tail:
+        return None
+    return int(summary_start)
+
+
+# Records of the data section `bag info` reads: schemas and channels, and chunks (which hold
+# them as recorders write them); messages and indexes are stepped over.
+_DEFINING_OPCODES = {0x03, 0x04, 0x06}
+
+
+def _check_data_section(stream: IO[bytes], file: Path, found: BagDamage) -> None:
+    """Adds to `found` the chunks of `file` whose CRC does not match or that do not inflate,
+    and the summary's definitions that the data section's contradict."""
+    size = os.fstat(stream.fileno()).st_size
+    end = _summary_start(stream) or size
+    in_data = Definitions()
+    for offset, length in _heads(stream, len(MCAP_MAGIC), end):
+        if _opcode_at(stream, offset) not in _DEFINING_OPCODES:
+            continue
+        if length > CHUNK_LIMIT:
+            found.chunks.append(f"{file.name} at byte {offset}: a record of {length} B, over "
+                                f"the {CHUNK_LIMIT >> 20} MiB read")
+            continue
+        stream.seek(offset)
+        try:
+            for record in _checked_records(stream.read(RECORD_HEAD.size + length), file):
+                in_data.add(record)
+        except BagError as exc:
+            found.chunks.append(f"{file.name} at byte {offset}: "
+                                + str(exc).replace(f"'{file}' is damaged: ", "")
+                                .replace(f"'{file}' ", ""))
+    in_summary = _summary_definitions(stream, file)
+    for record in [*in_summary.schemas.values(), *in_summary.channels.values()]:
+        in_data.add(record)
+    found.conflicts += [f"{file.name}: " + in_data.conflict_of_id(kind, key)
+                        + " (the summary's differs from the data section's)"
+                        for kind, key in in_data.conflicts]
+
+
+def _opcode_at(stream: IO[bytes], offset: int) -> int:
+    stream.seek(offset)
+    return stream.read(1)[0]
+
+
+def _checked_records(raw: bytes, file: Path) -> list[Any]:
+    """The record `raw` is (a chunk: the records it holds, inflated and its CRC checked);
+    BagError when it does not parse, inflate or check."""
+    try:
+        record = next(StreamReader(io.BytesIO(raw), skip_magic=True, emit_chunks=True,
+                                   record_size_limit=CHUNK_LIMIT).records)
+    except (StopIteration, EndOfFile, *_PARSE_ERRORS) as exc:
+        raise BagError(f"'{file}' is damaged: a record that does not parse "
+                       f"({_first_line(exc)})") from None
+    if not isinstance(record, Chunk):
+        return [record]
+    data = inflate(record, file)
+    if record.uncompressed_crc and zlib.crc32(data) != record.uncompressed_crc:
+        raise BagError(f"'{file}' is damaged: a chunk's CRC does not match")
+    return list(_records_of(data, file))
 
 
 FOOTER_TAIL = struct.Struct("<BQQQI8s")  # the footer record and the closing magic
@@ -626,6 +700,17 @@ class BagReader:
                           start if count else 0, end if count else 0, count,
                           sorted(topics.values(), key=lambda t: t.name),
                           _distro_of(self.path, records))
+
+    def damage(self) -> BagDamage:
+        """What `summary` cannot see, read from each file's data section (its chunks read
+        once, inflated one at a time): chunks whose CRC does not match or that do not
+        inflate, and summaries whose schemas or channels are not the data section's."""
+        found = BagDamage()
+        for file in self.files:
+            check_mcap(file)
+            with open_regular(file) as stream:
+                _check_data_section(stream, file, found)
+        return found
 
     def messages(self, topics: set[str] | None = None) -> Iterator[BagMessage]:
         """Every message in receive-time order (per file, files in order); of `topics` only,
@@ -1094,19 +1179,10 @@ def _salvaged(raw: bytes, file: Path, losses: _Losses) -> list[Any]:
     """The record `raw` is (a chunk: the records it holds, its CRC checked), or [] and one
     more loss."""
     try:
-        record = next(StreamReader(io.BytesIO(raw), skip_magic=True, emit_chunks=True,
-                                   record_size_limit=CHUNK_LIMIT).records)
-        if not isinstance(record, Chunk):
-            return [record]
-        data = inflate(record, file)
-        if record.uncompressed_crc and zlib.crc32(data) != record.uncompressed_crc:
-            raise BagError(f"'{file}' is damaged: a chunk's CRC does not match")
-        return list(_records_of(data, file))
+        return _checked_records(raw, file)
     except BagError as exc:  # the file is named in the line reindex prints: said once
         losses.add(str(exc).replace(f"'{file}' is damaged: ", "")
                    .replace(f"'{file}' is ", "").replace(f"'{file}' ", ""))
-    except (StopIteration, EndOfFile, *_PARSE_ERRORS) as exc:
-        losses.add(f"a record that does not parse ({_first_line(exc)})")
     return []
 
 

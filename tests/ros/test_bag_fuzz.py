@@ -95,6 +95,32 @@ def test_a_chunk_claiming_more_than_it_holds_costs_what_it_holds(
     assert peak[0] < MEMORY_LIMIT, f"{peak[0] >> 20} MiB for a file of {file.stat().st_size} B"
 
 
+def _nested_chunk() -> bytes:
+    """A chunk record claiming CLAIM, to be put inside another chunk."""
+    data = _compressed("zstd", _one_message(), sized=False)
+    return _record(_chunk("zstd", data, CLAIM))
+
+
+@pytest.mark.parametrize("step", ["info", "play", "reindex"])
+def test_a_chunk_inside_a_chunk_is_damage_not_inflated_to_its_claim(tmp_path: Path,
+                                                                   step: str) -> None:
+    """MCAP has no chunk in a chunk; the mcap library's parse of a chunk's records inflated
+    one found there to what it claims (400 MiB for a file of 700 B), and played it."""
+    inner = _nested_chunk()
+    file = _one_chunk_file(tmp_path / "bag" / "bag_0.mcap", _chunk("", inner, len(inner)))
+    with _peak_memory() as peak:
+        if step == "info":
+            (line,) = BagReader(file.parent).damage().chunks
+            assert line.endswith(": damaged inside a chunk (a chunk in it)"), line
+        elif step == "play":
+            with pytest.raises(BagError, match="a chunk in it"):
+                list(BagReader(file.parent).messages())
+        else:
+            (done,) = reindex(file.parent)
+            assert (done.messages, done.unreadable) == (0, 1), done
+    assert peak[0] < MEMORY_LIMIT, f"{peak[0] >> 20} MiB"
+
+
 def test_play_says_a_chunk_claiming_more_than_it_holds_is_damaged(tmp_path: Path) -> None:
     """The library's zstd read played such a chunk as if its claim were true."""
     data = _compressed("zstd", _one_message(), sized=False)
@@ -121,7 +147,7 @@ _INNER = st.lists(st.one_of(_SCHEMA, _CHANNEL, _MESSAGE), max_size=5)
 def _chunks(draw: st.DrawFn) -> bytes:
     """A chunk of real records, its claimed size and CRC true or not."""
     inner = b"".join(_record(r) for r in draw(_INNER)) + draw(st.sampled_from(
-        [b"", RECORD_HEAD.pack(0x05, 2**63), RECORD_HEAD.pack(0x05, 0)]))
+        [b"", RECORD_HEAD.pack(0x05, 2**63), RECORD_HEAD.pack(0x05, 0), _nested_chunk()]))
     compression = draw(st.sampled_from(["", "zstd", "lz4"]))
     data = _compressed(compression, inner, sized=draw(st.booleans()))
     claimed = draw(st.sampled_from([len(inner), len(inner) + 1, max(0, len(inner) - 1),
@@ -224,3 +250,35 @@ def test_a_hostile_file_is_read_within_limits_or_refused(tmp_path: Path, data: b
     _within_limits(lambda: list(BagReader(bag).messages({"/a"})), bag, set())
     _within_limits(lambda: reindex(bag), bag, {"fuzz_0.mcap", "metadata.yaml"})
     _within_limits(lambda: list(BagReader(bag).messages()), bag, set())
+
+
+def test_a_chunk_indexed_many_times_is_played_once(tmp_path: Path) -> None:
+    """A summary may index one chunk any number of times: each index was read as a chunk of
+    its own, the chunk's messages played once per index and all held at once (they are due
+    together), so 1 MiB of summary multiplied one chunk's memory ten thousand times."""
+    messages = [Message(channel_id=1, sequence=i, log_time=10 + i, publish_time=10 + i,
+                        data=b"\x00\x01\x00\x00" + bytes(200)) for i in range(1000)]
+    inner = b"".join(_record(m) for m in messages)
+    schema = Schema(id=1, name=STRING, encoding="ros2msg", data=b"string data\n")
+    channel = Channel(id=1, topic="/a", message_encoding="cdr", schema_id=1, metadata={})
+    head = MAGIC + _record(Header(profile="ros2", library="test")) + _record(schema) \
+        + _record(channel)
+    chunk = _record(Chunk(compression="", data=inner, message_start_time=10,
+                          message_end_time=1009, uncompressed_crc=zlib.crc32(inner),
+                          uncompressed_size=len(inner)))
+    body = head + chunk + _record(DataEnd(data_section_crc=0))
+    index = ChunkIndex(chunk_length=len(chunk), chunk_start_offset=len(head), compression="",
+                       compressed_size=len(inner), message_end_time=1009,
+                       message_index_length=0, message_index_offsets={},
+                       message_start_time=10, uncompressed_size=len(inner))
+    summary = _record(schema) + _record(channel) + _record(index) * 200 + _record(Statistics(
+        message_count=1000, schema_count=1, channel_count=1, attachment_count=0,
+        metadata_count=0, chunk_count=1, message_start_time=10, message_end_time=1009,
+        channel_message_counts={1: 1000}))
+    footer = _record(Footer(summary_start=len(body), summary_offset_start=0, summary_crc=0))
+    file = tmp_path / "bag_0.mcap"
+    file.write_bytes(body + summary + footer + MAGIC)
+    with _peak_memory() as peak:
+        played = sum(1 for _ in BagReader(file).messages())
+    assert played == 1000
+    assert peak[0] < MEMORY_LIMIT, f"{peak[0] >> 20} MiB"

@@ -635,9 +635,7 @@ def _check_data_section(stream: IO[bytes], file: Path, found: BagDamage) -> None
             for record in _checked_records(stream.read(RECORD_HEAD.size + length), file):
                 in_data.add(record)
         except BagError as exc:
-            found.chunks.append(f"{file.name} at byte {offset}: "
-                                + str(exc).replace(f"'{file}' is damaged: ", "")
-                                .replace(f"'{file}' ", ""))
+            found.chunks.append(f"{file.name} at byte {offset}: {_unnamed(exc, file)}")
     in_summary = _summary_definitions(stream, file)
     for record in [*in_summary.schemas.values(), *in_summary.channels.values()]:
         in_data.add(record)
@@ -792,7 +790,10 @@ def _indexed_messages(stream: IO[bytes], summary: Summary, definitions: Definiti
     channels inside the chunks are checked against the summary's (`definitions`)."""
     due: list[tuple[int, int, int, int, Any]] = []  # (time, chunk, index, serial, what)
     serial = itertools.count()
-    for index in summary.chunk_indexes:
+    # one chunk indexed twice or more (a hostile summary) is read once: its messages held
+    # and played once per index, memory was the chunk's times the summary's count of indexes
+    by_offset = {index.chunk_start_offset: index for index in summary.chunk_indexes}
+    for index in by_offset.values():
         heapq.heappush(due, (index.message_start_time, index.chunk_start_offset, -1,
                              next(serial), index))
     while due:
@@ -988,17 +989,21 @@ def _chunk_records(chunk: Chunk, file: Path) -> Iterator[Any]:
 
 
 def _records_of(data: bytes, file: Path) -> Iterator[Any]:
-    """The records of a chunk's inflated `data`; one that does not parse is a BagError."""
-    found = StreamReader(io.BytesIO(data), skip_magic=True,
+    """The records of a chunk's inflated `data`; one that does not parse is a BagError, and
+    so is a chunk in it (MCAP has none: the library would inflate it to what it claims)."""
+    found = StreamReader(io.BytesIO(data), skip_magic=True, emit_chunks=True,
                          record_size_limit=CHUNK_LIMIT).records
     while True:
         try:
-            yield next(found)
+            record = next(found)
         except (StopIteration, EndOfFile):
             return
         except _PARSE_ERRORS as exc:
             raise BagError(f"'{file}' is damaged inside a chunk ({_first_line(exc)})") \
                 from None
+        if isinstance(record, Chunk):
+            raise BagError(f"'{file}' is damaged inside a chunk (a chunk in it)")
+        yield record
 
 
 # -- reindex ------------------------------------------------------------------------
@@ -1181,9 +1186,14 @@ def _salvaged(raw: bytes, file: Path, losses: _Losses) -> list[Any]:
     try:
         return _checked_records(raw, file)
     except BagError as exc:  # the file is named in the line reindex prints: said once
-        losses.add(str(exc).replace(f"'{file}' is damaged: ", "")
-                   .replace(f"'{file}' is ", "").replace(f"'{file}' ", ""))
+        losses.add(_unnamed(exc, file))
     return []
+
+
+def _unnamed(exc: BagError, file: Path) -> str:
+    """What `exc` says of `file`, without naming it (the line it goes in names it)."""
+    return str(exc).replace(f"'{file}' is damaged: ", "").replace(f"'{file}' is ", "") \
+        .replace(f"'{file}' ", "")
 
 
 def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path

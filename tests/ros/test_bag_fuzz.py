@@ -121,6 +121,29 @@ def test_a_chunk_inside_a_chunk_is_damage_not_inflated_to_its_claim(tmp_path: Pa
     assert peak[0] < MEMORY_LIMIT, f"{peak[0] >> 20} MiB"
 
 
+@pytest.mark.parametrize("step", ["info", "damage", "play"])
+def test_a_footer_pointing_at_a_chunk_is_refused_not_inflated(tmp_path: Path,
+                                                              step: str) -> None:
+    """A footer whose summary starts at a chunk of the data section: the mcap library read
+    that chunk as part of the summary, inflated to its claim (400 MiB for 500 B)."""
+    data = _compressed("zstd", _one_message(), sized=False)
+    file = _one_chunk_file(tmp_path / "bag" / "bag_0.mcap", _chunk("zstd", data, CLAIM))
+    whole = file.read_bytes()
+    chunk_at = whole.index(_record(_chunk("zstd", data, CLAIM)))
+    footer = _record(Footer(summary_start=chunk_at, summary_offset_start=0, summary_crc=0))
+    file.write_bytes(whole[:-len(footer) - len(MAGIC)] + footer + MAGIC)
+    reader = BagReader(file.parent)
+    with _peak_memory() as peak, pytest.raises(
+            BagError, match=f"its summary section holds a chunk \\(at byte {chunk_at}\\)"):
+        if step == "info":
+            reader.summary()
+        elif step == "damage":
+            reader.damage()
+        else:
+            list(reader.messages())
+    assert peak[0] < MEMORY_LIMIT, f"{peak[0] >> 20} MiB"
+
+
 def test_play_says_a_chunk_claiming_more_than_it_holds_is_damaged(tmp_path: Path) -> None:
     """The library's zstd read played such a chunk as if its claim were true."""
     data = _compressed("zstd", _one_message(), sized=False)

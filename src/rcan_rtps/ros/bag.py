@@ -584,6 +584,7 @@ def _summary_definitions(stream: IO[bytes], file: Path) -> Definitions:
     summary_start = _summary_start(stream)
     if summary_start is None:
         return found
+    _check_summary_section(stream, file)
     size = os.fstat(stream.fileno()).st_size
     stream.seek(summary_start)
     records = StreamReader(BoundedFile(stream, size - FOOTER_TAIL.size), skip_magic=True,  # type: ignore[arg-type]
@@ -610,6 +611,24 @@ def _summary_start(stream: IO[bytes]) -> int | None:
     if opcode != 0x02 or magic != MCAP_MAGIC or not 0 < summary_start < size - tail:
         return None
     return int(summary_start)
+
+
+def _check_summary_section(stream: IO[bytes], file: Path) -> None:
+    """Refuses a summary section holding a chunk (MCAP's has none: a footer pointing at the
+    data section makes one), walked head by head as the mcap library walks it: the library
+    inflates a chunk it meets there to what it claims, before anything can check it. Leaves
+    the stream at its start."""
+    start = _summary_start(stream)
+    size = os.fstat(stream.fileno()).st_size
+    offset = size if start is None else start
+    while offset + RECORD_HEAD.size <= size:  # (each step moves on by 9 B at least)
+        stream.seek(offset)
+        opcode, length = RECORD_HEAD.unpack(stream.read(RECORD_HEAD.size))
+        if opcode == 0x06:
+            raise BagError(f"'{file}' is damaged: its summary section holds a chunk (at byte "
+                           f"{offset}); " + REINDEX_HINT.format(bag=_bag_of(file)))
+        offset += RECORD_HEAD.size + length
+    stream.seek(0)  # where the mcap library's reader starts
 
 
 # Records of the data section `bag info` reads: schemas and channels, and chunks (which hold
@@ -718,6 +737,7 @@ class BagReader:
         for file in self.files:
             check_mcap(file)
             with open_regular(file) as stream:
+                _check_summary_section(stream, file)
                 reader = make_reader(_bounded(stream))
                 try:
                     summary = reader.get_summary()
@@ -748,6 +768,7 @@ def _file_summary(file: Path, records: dict[str, dict[str, str]]) -> Summary:
     check_mcap(file)
     try:
         with open_regular(file) as stream:
+            _check_summary_section(stream, file)
             reader = make_reader(_bounded(stream))
             summary = reader.get_summary()
             if summary is None:

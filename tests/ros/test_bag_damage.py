@@ -122,3 +122,25 @@ def test_a_summary_that_contradicts_the_data_section_is_damage(tmp_path: Path,
         "channel id 1 is defined twice, as '/a' and as '/b'"]
     assert [m.topic for m in BagReader(file).messages()] == ["/a", "/a"]
     assert BagReader(file).damage().conflicts == []
+
+
+def test_play_of_some_topics_reads_only_the_chunks_that_hold_them(tmp_path: Path) -> None:
+    """As the mcap library did: a chunk whose index names none of the channels played is
+    not read (a damaged one of another topic does not stop the playback)."""
+    folder = tmp_path / "two"
+    folder.mkdir()
+    file = folder / "two_0.mcap"
+    with file.open("wb") as stream:
+        writer = Writer(stream, compression=CompressionType.LZ4, chunk_size=200)
+        writer.start(profile="ros2", library="test")
+        schema = writer.register_schema(STRING, "ros2msg", b"string data\n")
+        for topic in ("/a", "/b"):
+            channel = writer.register_channel(topic, "cdr", schema, {})
+            for i in range(15):
+                writer.add_message(channel, log_time=i, publish_time=i,
+                                   data=serialize(STRING, {"data": f"{topic} number {i:02}"}))
+        writer.finish()
+    _flip(file, _chunk_offsets(file)[-1] + 60)  # the last chunk: /b's only
+    assert len([m for m in BagReader(file).messages({"/a"})]) == 15
+    with pytest.raises(BagError, match="inflate"):
+        list(BagReader(file).messages())

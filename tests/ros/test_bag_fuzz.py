@@ -32,6 +32,7 @@ from mcap.records import (
     Header,
     Message,
     MessageIndex,
+    MetadataIndex,
     Schema,
     Statistics,
 )
@@ -142,6 +143,23 @@ def test_a_footer_pointing_at_a_chunk_is_refused_not_inflated(tmp_path: Path,
         else:
             list(reader.messages())
     assert peak[0] < MEMORY_LIMIT, f"{peak[0] >> 20} MiB"
+
+
+def test_a_metadata_index_pointing_at_a_chunk_is_refused_not_inflated(tmp_path: Path) -> None:
+    """`bag info` reads the metadata records (rosbag2's, for the distro) the summary indexes:
+    the mcap library parsed whatever an index pointed at, a chunk inflated to its claim."""
+    data = _compressed("zstd", _one_message(), sized=False)
+    file = _one_chunk_file(tmp_path / "bag" / "bag_0.mcap", _chunk("zstd", data, CLAIM))
+    whole = file.read_bytes()
+    chunk_at = whole.index(_record(_chunk("zstd", data, CLAIM)))
+    index = _record(MetadataIndex(offset=chunk_at, length=100, name="rosbag2"))
+    tail = len(_record(Footer(summary_start=0, summary_offset_start=0, summary_crc=0))) \
+        + len(MAGIC)
+    file.write_bytes(whole[:-tail] + index + whole[-tail:])
+    with _peak_memory() as peak, pytest.raises(BagError) as refused:
+        BagReader(file.parent).summary()
+    assert peak[0] < MEMORY_LIMIT, f"{peak[0] >> 20} MiB"
+    assert "a metadata index points at no metadata record" in str(refused.value)
 
 
 def test_play_says_a_chunk_claiming_more_than_it_holds_is_damaged(tmp_path: Path) -> None:

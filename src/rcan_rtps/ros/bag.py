@@ -774,11 +774,32 @@ def _file_summary(file: Path, records: dict[str, dict[str, str]]) -> Summary:
             if summary is None:
                 raise BagError(f"'{file}' has no summary section (was the recording "
                                "cut short?); " + REINDEX_HINT.format(bag=_bag_of(file)))
-            for rec in reader.iter_metadata():
+            for rec in _metadata_records(stream, summary, file):
                 records[rec.name] = dict(rec.metadata)
     except _PARSE_ERRORS as exc:
         raise _damaged(file, exc) from None
     return summary
+
+
+METADATA_OPCODE = 0x0C
+
+
+def _metadata_records(stream: IO[bytes], summary: Summary, file: Path) -> Iterator[Metadata]:
+    """The metadata records the summary's metadata indexes point at, each read once. The
+    mcap library's own read parses whatever an index points at: a chunk there, it inflated
+    to what the chunk claims."""
+    bounded = BoundedFile(stream)
+    for offset in dict.fromkeys(index.offset for index in summary.metadata_indexes):
+        bounded.seek(offset)
+        head = bounded.read(RECORD_HEAD.size)
+        if len(head) < RECORD_HEAD.size or head[0] != METADATA_OPCODE:
+            raise BagError(f"'{file}' is damaged: a metadata index points at no metadata "
+                           "record; " + REINDEX_HINT.format(bag=_bag_of(file)))
+        bounded.seek(offset)
+        record = next(StreamReader(cast(IO[bytes], bounded), skip_magic=True,
+                                   emit_chunks=True, record_size_limit=CHUNK_LIMIT).records)
+        if isinstance(record, Metadata):
+            yield record
 
 
 def _bounded(stream: IO[bytes]) -> IO[bytes]:
@@ -813,7 +834,8 @@ def _indexed_messages(stream: IO[bytes], summary: Summary, definitions: Definiti
     serial = itertools.count()
     # one chunk indexed twice or more (a hostile summary) is read once: its messages held
     # and played once per index, memory was the chunk's times the summary's count of indexes
-    by_offset = {index.chunk_start_offset: index for index in summary.chunk_indexes}
+    by_offset = {index.chunk_start_offset: index for index in summary.chunk_indexes
+                 if _may_hold(index, definitions, topics)}
     for index in by_offset.values():
         heapq.heappush(due, (index.message_start_time, index.chunk_start_offset, -1,
                              next(serial), index))
@@ -834,6 +856,14 @@ def _indexed_messages(stream: IO[bytes], summary: Summary, definitions: Definiti
                     raise definitions.refuse(file, record.channel_id)
                 heapq.heappush(due, (record.log_time, item.chunk_start_offset, at,
                                      next(serial), record))
+
+
+def _may_hold(index: ChunkIndex, definitions: Definitions, topics: set[str] | None) -> bool:
+    """Whether the chunk of `index` may hold messages of `topics` (all: None), as its index's
+    channels say (an index that names none may hold any)."""
+    return topics is None or not index.message_index_offsets or any(
+        definitions.topics_of(channel_id) & topics
+        for channel_id in index.message_index_offsets)
 
 
 def _indexed_chunk(stream: IO[bytes], index: ChunkIndex, file: Path) -> list[Any]:

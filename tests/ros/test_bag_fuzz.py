@@ -211,18 +211,22 @@ _DATA = st.lists(st.one_of(_SCHEMA.map(_record), _CHANNEL.map(_record),
 
 @st.composite
 def _hostile_files(draw: st.DrawFn) -> bytes:
-    """Magic, header, data records, DataEnd, a summary whose chunk indexes and footer
-    point where hypothesis likes (a record's start, backwards, past the end), the magic;
-    then a few byte edits."""
+    """Magic, header, data records (one of them a chunk claiming CLAIM, which a reader
+    that trusts the claim allocates), DataEnd, a summary whose chunk and metadata indexes
+    and footer point where hypothesis likes (that chunk, a record's start, backwards, past
+    the end), the magic; then a few byte edits."""
     head = MAGIC + _record(Header(profile="ros2", library="fuzz"))
     records = draw(_DATA)
+    bomb = draw(st.integers(0, len(records)))
+    records.insert(bomb, _record(_chunk("zstd", _compressed(
+        "zstd", _one_message(), sized=False), CLAIM)))
     starts, at = [], len(head)
     for record in records:
         starts.append(at)
         at += len(record)
     body = head + b"".join(records) + _record(DataEnd(data_section_crc=0))
-    offsets = st.sampled_from([*starts, 0, 1, len(body), 2**63]) if starts \
-        else st.sampled_from([0, 1, len(body), 2**63])
+    offsets = st.one_of(st.just(starts[bomb]),
+                        st.sampled_from([*starts, 0, 1, len(body), 2**63]))
     summary = [*draw(st.lists(st.one_of(_SCHEMA, _CHANNEL), max_size=3)),
                *draw(st.lists(st.builds(
                    ChunkIndex, chunk_length=_LENGTHS, chunk_start_offset=offsets,
@@ -230,12 +234,14 @@ def _hostile_files(draw: st.DrawFn) -> bytes:
                    compressed_size=_LENGTHS, message_end_time=_TIMES,
                    message_index_length=_LENGTHS, message_index_offsets=st.just({}),
                    message_start_time=_TIMES, uncompressed_size=_LENGTHS), max_size=3)),
+               *draw(st.lists(st.builds(MetadataIndex, offset=offsets, length=_LENGTHS,
+                                        name=st.just("rosbag2")), max_size=2)),
                Statistics(message_count=1, schema_count=1, channel_count=1,
                           attachment_count=0, metadata_count=0, chunk_count=1,
                           message_start_time=1, message_end_time=2,
                           channel_message_counts={1: 1})]
     tail = b"".join(_record(r) for r in summary)
-    summary_start = draw(st.sampled_from([len(body), 0, 1, len(body) // 2, 2**63]))
+    summary_start = draw(st.one_of(st.sampled_from([len(body), 0, 1, 2**63]), offsets))
     footer = _record(Footer(summary_start=summary_start, summary_offset_start=0,
                             summary_crc=0))
     whole = body + tail + footer + MAGIC

@@ -36,7 +36,9 @@ from mcap.records import (
     Schema,
     Statistics,
 )
+from mcap.writer import CompressionType, Writer
 
+from rcan_rtps.ros import bag as bag_module
 from rcan_rtps.ros.bag import RECORD_HEAD, BagError, BagReader, reindex
 from tests.ros.test_bag_hostile import MAGIC, STRING, _chunk, _mutated, _one_chunk_file, _record
 
@@ -329,3 +331,33 @@ def test_a_chunk_indexed_many_times_is_played_once(tmp_path: Path) -> None:
         played = sum(1 for _ in BagReader(file).messages())
     assert played == 1000
     assert peak[0] < MEMORY_LIMIT, f"{peak[0] >> 20} MiB"
+
+
+def _zstd_chunks_file(file: Path, *, overlapping: bool) -> Path:
+    """8 zstd chunks of 1 MiB of messages each (zeros: a few KiB compressed), each over the
+    same 16 ns (`overlapping`), or one after the other as a recorder writes them."""
+    with file.open("wb") as stream:
+        writer = Writer(stream, compression=CompressionType.ZSTD, chunk_size=2**20)
+        writer.start(profile="ros2", library="test")
+        schema = writer.register_schema(STRING, "ros2msg", b"string data\n")
+        channel = writer.register_channel("/a", "cdr", schema, {})
+        for i in range(8 * 16):
+            when = i % 16 if overlapping else i  # (each chunk: 16 messages)
+            writer.add_message(channel, log_time=when, publish_time=when,
+                               data=b"\x00\x01\x00\x00" + bytes(2**16))
+        writer.finish()
+    return file
+
+
+def test_chunks_overlapping_in_time_are_held_within_a_limit(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Play puts overlapping chunks' messages in time order, holding them until due: chunks
+    that all start at once were all held (zstd bombs: GiBs from a file of KiBs)."""
+    monkeypatch.setattr(bag_module, "HELD_LIMIT", 4 * 2**20)  # 8 chunks of 1 MiB
+    apart = _zstd_chunks_file(tmp_path / "apart.mcap", overlapping=False)
+    assert sum(1 for _ in BagReader(apart).messages()) == 128  # a chunk at a time
+    together = _zstd_chunks_file(tmp_path / "together.mcap", overlapping=True)
+    assert together.stat().st_size < 2**20 // 4
+    with pytest.raises(BagError, match="chunks overlapping in time that hold more than 4 "
+                                       "MiB of messages at once"):
+        list(BagReader(together).messages())

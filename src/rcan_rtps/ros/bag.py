@@ -824,6 +824,12 @@ def _unindexed_messages(stream: IO[bytes], definitions: Definitions,
                                  record.log_time, record.data)
 
 
+# The messages play holds at once to put overlapping chunks in receive-time order. A
+# recorder's chunks follow each other in time (two overlap by a few messages); a hostile
+# file's chunks, each within CHUNK_LIMIT, may all start at once, and be zstd bombs.
+HELD_LIMIT = 2 * CHUNK_LIMIT
+
+
 def _indexed_messages(stream: IO[bytes], summary: Summary, definitions: Definitions,
                       topics: set[str] | None, file: Path) -> Iterator[BagMessage]:
     """The messages of a file's indexed chunks in receive-time order, as the mcap library
@@ -839,9 +845,11 @@ def _indexed_messages(stream: IO[bytes], summary: Summary, definitions: Definiti
     for index in by_offset.values():
         heapq.heappush(due, (index.message_start_time, index.chunk_start_offset, -1,
                              next(serial), index))
+    held = 0  # bytes of the messages waiting in `due`
     while due:
         *_, item = heapq.heappop(due)
         if isinstance(item, Message):
+            held -= len(item.data)
             channel = definitions.channels[item.channel_id]
             schema = definitions.schemas.get(channel.schema_id)
             yield BagMessage(channel.topic, schema.name if schema else "", item.log_time,
@@ -856,6 +864,11 @@ def _indexed_messages(stream: IO[bytes], summary: Summary, definitions: Definiti
                     raise definitions.refuse(file, record.channel_id)
                 heapq.heappush(due, (record.log_time, item.chunk_start_offset, at,
                                      next(serial), record))
+                held += len(record.data)
+        if held > HELD_LIMIT:
+            raise BagError(f"'{file}' has chunks overlapping in time that hold more than "
+                           f"{HELD_LIMIT >> 20} MiB of messages at once (a damaged or "
+                           "hostile file): not played")
 
 
 def _may_hold(index: ChunkIndex, definitions: Definitions, topics: set[str] | None) -> bool:

@@ -16,6 +16,7 @@ from typing import Any
 from .. import _stop_signals as stop_signals
 from ..ros import qos as qos_mod
 from ..ros.bag import (
+    BagDamage,
     BagError,
     BagMessage,
     BagReader,
@@ -368,7 +369,7 @@ def _labelled(label: str, lines: list[str]) -> list[str]:
     return [head + lines[0], *(" " * LABEL_WIDTH + line for line in lines[1:])]
 
 
-def describe(summary: BagSummary) -> str:
+def describe(summary: BagSummary, damage: BagDamage | None = None) -> str:
     topics = [f"Topic: {t.name} | Type: {t.type} | Count: {t.count} | "
               f"Serialization Format: {t.serialization_format}" for t in summary.topics]
     lines = [
@@ -384,12 +385,24 @@ def describe(summary: BagSummary) -> str:
         *_labelled("Topic information:", topics),
         *_labelled("Service:", ["0"]),
         "Service information: ",
+        *_damage_lines(damage or BagDamage()),
     ]
     return "\n".join(lines)
 
 
+def _damage_lines(damage: BagDamage) -> list[str]:
+    """What the data section showed that the summary does not: none for a sound bag."""
+    lines = []
+    if damage.chunks:
+        lines += _labelled("Damaged chunks:", [f"{len(damage.chunks)}", *damage.chunks])
+    if damage.conflicts:
+        lines += _labelled("Conflicts:", damage.conflicts)
+    return lines
+
+
 def info_command(args: argparse.Namespace) -> int:
-    print(describe(BagReader(Path(args.bag)).summary()))
+    reader = BagReader(Path(args.bag))
+    print(describe(reader.summary(), reader.damage()))
     return 0
 
 

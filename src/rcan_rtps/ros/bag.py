@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import heapq
 import io
+import itertools
 import os
 import re
 import stat
@@ -37,7 +39,7 @@ import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, Message, Metadata, Schema
+from mcap.records import Channel, Chunk, ChunkIndex, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
@@ -403,6 +405,14 @@ class BagSummary:
     ros_distro: str
 
 
+@dataclass
+class BagDamage:
+    """Damage a bag's summary does not show (`BagReader.damage`)."""
+
+    chunks: list[str] = field(default_factory=list)  # "<file> at byte N: why", one a chunk
+    conflicts: list[str] = field(default_factory=list)  # "<file>: <id> is defined twice, …"
+
+
 @dataclass(frozen=True)
 class BagMessage:
     topic: str
@@ -571,16 +581,13 @@ def _printable(text: str) -> str:
 def _summary_definitions(stream: IO[bytes], file: Path) -> Definitions:
     """The schemas and channels of a closed file's summary section, as `Definitions`."""
     found = Definitions()
-    tail = FOOTER_TAIL.size
+    summary_start = _summary_start(stream)
+    if summary_start is None:
+        return found
+    _check_summary_section(stream, file)
     size = os.fstat(stream.fileno()).st_size
-    if size < len(MCAP_MAGIC) + tail:
-        return found
-    stream.seek(size - tail)
-    opcode, _, summary_start, _, _, magic = FOOTER_TAIL.unpack(stream.read(tail))
-    if opcode != 0x02 or magic != MCAP_MAGIC or not 0 < summary_start < size - tail:
-        return found
     stream.seek(summary_start)
-    records = StreamReader(BoundedFile(stream, size - tail), skip_magic=True,  # type: ignore[arg-type]
+    records = StreamReader(BoundedFile(stream, size - FOOTER_TAIL.size), skip_magic=True,  # type: ignore[arg-type]
                            record_size_limit=CHUNK_LIMIT).records
     try:
         for record in records:
@@ -590,6 +597,92 @@ def _summary_definitions(stream: IO[bytes], file: Path) -> Definitions:
     except _PARSE_ERRORS as exc:
         raise _damaged(file, exc) from None
     return found
+
+
+def _summary_start(stream: IO[bytes]) -> int | None:
+    """Where a closed file's summary section starts (its data section's end); None when
+    its footer says it has none, or there is no footer."""
+    tail = FOOTER_TAIL.size
+    size = os.fstat(stream.fileno()).st_size
+    if size < len(MCAP_MAGIC) + tail:
+        return None
+    stream.seek(size - tail)
+    opcode, _, summary_start, _, _, magic = FOOTER_TAIL.unpack(stream.read(tail))
+    if opcode != 0x02 or magic != MCAP_MAGIC or not 0 < summary_start < size - tail:
+        return None
+    return int(summary_start)
+
+
+def _check_summary_section(stream: IO[bytes], file: Path) -> None:
+    """Refuses a summary section holding a chunk (MCAP's has none: a footer pointing at the
+    data section makes one), walked head by head as the mcap library walks it: the library
+    inflates a chunk it meets there to what it claims, before anything can check it. Leaves
+    the stream at its start."""
+    start = _summary_start(stream)
+    size = os.fstat(stream.fileno()).st_size
+    offset = size if start is None else start
+    while offset + RECORD_HEAD.size <= size:  # (each step moves on by 9 B at least)
+        stream.seek(offset)
+        opcode, length = RECORD_HEAD.unpack(stream.read(RECORD_HEAD.size))
+        if opcode == 0x06:
+            raise BagError(f"'{file}' is damaged: its summary section holds a chunk (at byte "
+                           f"{offset}); " + REINDEX_HINT.format(bag=_bag_of(file)))
+        offset += RECORD_HEAD.size + length
+    stream.seek(0)  # where the mcap library's reader starts
+
+
+# Records of the data section `bag info` reads: schemas and channels, and chunks (which hold
+# them as recorders write them); messages and indexes are stepped over.
+_DEFINING_OPCODES = {0x03, 0x04, 0x06}
+
+
+def _check_data_section(stream: IO[bytes], file: Path, found: BagDamage) -> None:
+    """Adds to `found` the chunks of `file` whose CRC does not match or that do not inflate,
+    and the summary's definitions that the data section's contradict."""
+    size = os.fstat(stream.fileno()).st_size
+    end = _summary_start(stream) or size
+    in_data = Definitions()
+    for offset, length in _heads(stream, len(MCAP_MAGIC), end):
+        if _opcode_at(stream, offset) not in _DEFINING_OPCODES:
+            continue
+        if length > CHUNK_LIMIT:
+            found.chunks.append(f"{file.name} at byte {offset}: a record of {length} B, over "
+                                f"the {CHUNK_LIMIT >> 20} MiB read")
+            continue
+        stream.seek(offset)
+        try:
+            for record in _checked_records(stream.read(RECORD_HEAD.size + length), file):
+                in_data.add(record)
+        except BagError as exc:
+            found.chunks.append(f"{file.name} at byte {offset}: {_unnamed(exc, file)}")
+    in_summary = _summary_definitions(stream, file)
+    for record in [*in_summary.schemas.values(), *in_summary.channels.values()]:
+        in_data.add(record)
+    found.conflicts += [f"{file.name}: " + in_data.conflict_of_id(kind, key)
+                        + " (the summary's differs from the data section's)"
+                        for kind, key in in_data.conflicts]
+
+
+def _opcode_at(stream: IO[bytes], offset: int) -> int:
+    stream.seek(offset)
+    return stream.read(1)[0]
+
+
+def _checked_records(raw: bytes, file: Path) -> list[Any]:
+    """The record `raw` is (a chunk: the records it holds, inflated and its CRC checked);
+    BagError when it does not parse, inflate or check."""
+    try:
+        record = next(StreamReader(io.BytesIO(raw), skip_magic=True, emit_chunks=True,
+                                   record_size_limit=CHUNK_LIMIT).records)
+    except (StopIteration, EndOfFile, *_PARSE_ERRORS) as exc:
+        raise BagError(f"'{file}' is damaged: a record that does not parse "
+                       f"({_first_line(exc)})") from None
+    if not isinstance(record, Chunk):
+        return [record]
+    data = inflate(record, file)
+    if record.uncompressed_crc and zlib.crc32(data) != record.uncompressed_crc:
+        raise BagError(f"'{file}' is damaged: a chunk's CRC does not match")
+    return list(_records_of(data, file))
 
 
 FOOTER_TAIL = struct.Struct("<BQQQI8s")  # the footer record and the closing magic
@@ -625,6 +718,17 @@ class BagReader:
                           sorted(topics.values(), key=lambda t: t.name),
                           _distro_of(self.path, records))
 
+    def damage(self) -> BagDamage:
+        """What `summary` cannot see, read from each file's data section (its chunks read
+        once, inflated one at a time): chunks whose CRC does not match or that do not
+        inflate, and summaries whose schemas or channels are not the data section's."""
+        found = BagDamage()
+        for file in self.files:
+            check_mcap(file)
+            with open_regular(file) as stream:
+                _check_data_section(stream, file, found)
+        return found
+
     def messages(self, topics: set[str] | None = None) -> Iterator[BagMessage]:
         """Every message in receive-time order (per file, files in order); of `topics` only,
         when given (an empty set: none, where the library would read all)."""
@@ -633,6 +737,7 @@ class BagReader:
         for file in self.files:
             check_mcap(file)
             with open_regular(file) as stream:
+                _check_summary_section(stream, file)
                 reader = make_reader(_bounded(stream))
                 try:
                     summary = reader.get_summary()
@@ -647,17 +752,7 @@ class BagReader:
                     # the library would read the data section, its chunks unchecked
                     yield from _unindexed_messages(stream, definitions, topics, file)
                     continue
-                found = reader.iter_messages(topics=sorted(topics) if topics else None,
-                                             log_time_order=True)
-                while True:
-                    try:
-                        schema, channel, message = next(found)
-                    except StopIteration:
-                        break
-                    except _PARSE_ERRORS as exc:
-                        raise _damaged(file, exc) from None
-                    yield BagMessage(channel.topic, schema.name if schema else "",
-                                     message.log_time, message.data)
+                yield from _indexed_messages(stream, summary, definitions, topics, file)
 
 
 def _refuse_conflicts(definitions: Definitions, topics: set[str] | None, file: Path) -> None:
@@ -673,16 +768,38 @@ def _file_summary(file: Path, records: dict[str, dict[str, str]]) -> Summary:
     check_mcap(file)
     try:
         with open_regular(file) as stream:
+            _check_summary_section(stream, file)
             reader = make_reader(_bounded(stream))
             summary = reader.get_summary()
             if summary is None:
                 raise BagError(f"'{file}' has no summary section (was the recording "
                                "cut short?); " + REINDEX_HINT.format(bag=_bag_of(file)))
-            for rec in reader.iter_metadata():
+            for rec in _metadata_records(stream, summary, file):
                 records[rec.name] = dict(rec.metadata)
     except _PARSE_ERRORS as exc:
         raise _damaged(file, exc) from None
     return summary
+
+
+METADATA_OPCODE = 0x0C
+
+
+def _metadata_records(stream: IO[bytes], summary: Summary, file: Path) -> Iterator[Metadata]:
+    """The metadata records the summary's metadata indexes point at, each read once. The
+    mcap library's own read parses whatever an index points at: a chunk there, it inflated
+    to what the chunk claims."""
+    bounded = BoundedFile(stream)
+    for offset in dict.fromkeys(index.offset for index in summary.metadata_indexes):
+        bounded.seek(offset)
+        head = bounded.read(RECORD_HEAD.size)
+        if len(head) < RECORD_HEAD.size or head[0] != METADATA_OPCODE:
+            raise BagError(f"'{file}' is damaged: a metadata index points at no metadata "
+                           "record; " + REINDEX_HINT.format(bag=_bag_of(file)))
+        bounded.seek(offset)
+        record = next(StreamReader(cast(IO[bytes], bounded), skip_magic=True,
+                                   emit_chunks=True, record_size_limit=CHUNK_LIMIT).records)
+        if isinstance(record, Metadata):
+            yield record
 
 
 def _bounded(stream: IO[bytes]) -> IO[bytes]:
@@ -707,22 +824,85 @@ def _unindexed_messages(stream: IO[bytes], definitions: Definitions,
                                  record.log_time, record.data)
 
 
+# The messages play holds at once to put overlapping chunks in receive-time order. A
+# recorder's chunks follow each other in time (two overlap by a few messages); a hostile
+# file's chunks, each within CHUNK_LIMIT, may all start at once, and be zstd bombs.
+HELD_LIMIT = 2 * CHUNK_LIMIT
+
+
+def _indexed_messages(stream: IO[bytes], summary: Summary, definitions: Definitions,
+                      topics: set[str] | None, file: Path) -> Iterator[BagMessage]:
+    """The messages of a file's indexed chunks in receive-time order, as the mcap library
+    orders them (a chunk is opened when its first time is due), each chunk read and inflated
+    here within CHUNK_LIMIT: the library allocates what a chunk claims. The schemas and
+    channels inside the chunks are checked against the summary's (`definitions`)."""
+    due: list[tuple[int, int, int, int, Any]] = []  # (time, chunk, index, serial, what)
+    serial = itertools.count()
+    # one chunk indexed twice or more (a hostile summary) is read once: its messages held
+    # and played once per index, memory was the chunk's times the summary's count of indexes
+    by_offset = {index.chunk_start_offset: index for index in summary.chunk_indexes
+                 if _may_hold(index, definitions, topics)}
+    for index in by_offset.values():
+        heapq.heappush(due, (index.message_start_time, index.chunk_start_offset, -1,
+                             next(serial), index))
+    held = 0  # bytes of the messages waiting in `due`
+    while due:
+        *_, item = heapq.heappop(due)
+        if isinstance(item, Message):
+            held -= len(item.data)
+            channel = definitions.channels[item.channel_id]
+            schema = definitions.schemas.get(channel.schema_id)
+            yield BagMessage(channel.topic, schema.name if schema else "", item.log_time,
+                             item.data)
+            continue
+        for at, record in enumerate(_indexed_chunk(stream, item, file)):
+            definitions.add(record)
+            if not isinstance(record, Message) or record.channel_id not in definitions.channels:
+                continue
+            if topics is None or definitions.topics_of(record.channel_id) & topics:
+                if definitions.conflict_of(record.channel_id):
+                    raise definitions.refuse(file, record.channel_id)
+                heapq.heappush(due, (record.log_time, item.chunk_start_offset, at,
+                                     next(serial), record))
+                held += len(record.data)
+        if held > HELD_LIMIT:
+            raise BagError(f"'{file}' has chunks overlapping in time that hold more than "
+                           f"{HELD_LIMIT >> 20} MiB of messages at once (a damaged or "
+                           "hostile file): not played")
+
+
+def _may_hold(index: ChunkIndex, definitions: Definitions, topics: set[str] | None) -> bool:
+    """Whether the chunk of `index` may hold messages of `topics` (all: None), as its index's
+    channels say (an index that names none may hold any)."""
+    return topics is None or not index.message_index_offsets or any(
+        definitions.topics_of(channel_id) & topics
+        for channel_id in index.message_index_offsets)
+
+
+def _indexed_chunk(stream: IO[bytes], index: ChunkIndex, file: Path) -> list[Any]:
+    """The records of the chunk `index` points at (check_chunks checked its head)."""
+    bounded = BoundedFile(stream)
+    try:
+        bounded.seek(index.chunk_start_offset + RECORD_HEAD.size)
+        chunk = Chunk.read(ReadDataStream(cast(IO[bytes], bounded)))
+    except _PARSE_ERRORS as exc:
+        raise _damaged(file, exc) from None
+    return list(_records_of(inflate(chunk, file), file))
+
+
 # -- chunks, within limits ------------------------------------------------------------
 CHUNK_FIELDS = struct.Struct("<BQQQQI")  # opcode, length, start, end, uncompressed size, crc
 
 
 def check_chunks(stream: BoundedFile, summary: Summary, file: Path) -> None:
     """Refuses a file whose chunk indexes point at anything but a chunk that fits in the
-    file and inflates to at most CHUNK_LIMIT, before the mcap library reads one: it would
-    allocate what a chunk claims (zstd) or inflate it without limit (lz4)."""
+    file and claims at most CHUNK_LIMIT, before any message is played (each is inflated,
+    within its claim, when it is read)."""
     for index in summary.chunk_indexes:
         if index.chunk_start_offset >= stream.end:
             raise BagError(f"'{file}' is damaged: a chunk index points past its end")
         stream.seek(index.chunk_start_offset)
-        chunk = _chunk_head(stream, stream.end - index.chunk_start_offset, file)
-        if chunk.compression == "lz4":  # its frame need not say its size: inflate to see
-            stream.seek(index.chunk_start_offset + RECORD_HEAD.size)
-            inflate(Chunk.read(ReadDataStream(cast(IO[bytes], stream))), file)
+        _chunk_head(stream, stream.end - index.chunk_start_offset, file)
 
 
 def _chunk_head(stream: BoundedFile, room: int, file: Path) -> Chunk:
@@ -768,14 +948,13 @@ def check_chunk_limits(chunk: Chunk, record_length: int, file: Path) -> None:
 
 def inflate(chunk: Chunk, file: Path) -> bytes:
     """The records a chunk holds, inflated, never to more than the size it claims (itself
-    within CHUNK_LIMIT)."""
+    within CHUNK_LIMIT). Inflated a block at a time: the memory taken is what the data
+    inflates to, not what the chunk claims (a chunk of 500 B may claim 500 MiB)."""
     check_chunk_limits(chunk, len(chunk.data), file)
     claimed = chunk.uncompressed_size
     try:
         if chunk.compression == "zstd":
-            reader = zstandard.ZstdDecompressor().stream_reader(chunk.data,
-                                                                read_across_frames=True)
-            data = reader.read(claimed + 1)
+            data = _inflate_zstd(chunk.data, claimed)
         elif chunk.compression == "lz4":
             data = _inflate_lz4(chunk.data, claimed, file)
         else:
@@ -790,14 +969,34 @@ def inflate(chunk: Chunk, file: Path) -> bytes:
     return data
 
 
+INFLATE_BLOCK = 1 << 20  # what one step of inflating may add
+
+
+def _inflate_zstd(data: bytes, claimed: int) -> bytes:
+    """zstd frames inflated to at most `claimed` + 1 bytes, a block at a time (a read of
+    `claimed` bytes at once allocates them whatever the frames hold)."""
+    reader = zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=True)
+    inflated = bytearray()
+    while len(inflated) <= claimed:
+        block = reader.read(min(INFLATE_BLOCK, claimed + 1 - len(inflated)))
+        if not block:
+            break
+        inflated += block
+    return bytes(inflated)
+
+
 def _inflate_lz4(data: bytes, claimed: int, file: Path) -> bytes:
-    """An LZ4 frame inflated to at most `claimed` + 1 bytes; the frame must end there (the
-    library's own decompress, which `play` calls after, fails on a cut frame)."""
+    """An LZ4 frame inflated to at most `claimed` + 1 bytes, a block at a time; the frame
+    must end there (a cut frame is damage)."""
     decompressor = lz4.frame.LZ4FrameDecompressor()
-    inflated: bytes = decompressor.decompress(data, max_length=claimed + 1)
+    inflated = bytearray(decompressor.decompress(data, max_length=min(INFLATE_BLOCK,
+                                                                        claimed + 1)))
+    while len(inflated) <= claimed and not decompressor.eof and not decompressor.needs_input:
+        inflated += decompressor.decompress(b"", max_length=min(
+            INFLATE_BLOCK, claimed + 1 - len(inflated)))
     if len(inflated) <= claimed and not decompressor.eof:
         raise BagError(f"'{file}' is damaged: a chunk's LZ4 frame is cut short")
-    return inflated
+    return bytes(inflated)
 
 
 class BoundedFile:
@@ -854,17 +1053,21 @@ def _chunk_records(chunk: Chunk, file: Path) -> Iterator[Any]:
 
 
 def _records_of(data: bytes, file: Path) -> Iterator[Any]:
-    """The records of a chunk's inflated `data`; one that does not parse is a BagError."""
-    found = StreamReader(io.BytesIO(data), skip_magic=True,
+    """The records of a chunk's inflated `data`; one that does not parse is a BagError, and
+    so is a chunk in it (MCAP has none: the library would inflate it to what it claims)."""
+    found = StreamReader(io.BytesIO(data), skip_magic=True, emit_chunks=True,
                          record_size_limit=CHUNK_LIMIT).records
     while True:
         try:
-            yield next(found)
+            record = next(found)
         except (StopIteration, EndOfFile):
             return
         except _PARSE_ERRORS as exc:
             raise BagError(f"'{file}' is damaged inside a chunk ({_first_line(exc)})") \
                 from None
+        if isinstance(record, Chunk):
+            raise BagError(f"'{file}' is damaged inside a chunk (a chunk in it)")
+        yield record
 
 
 # -- reindex ------------------------------------------------------------------------
@@ -1045,20 +1248,16 @@ def _salvaged(raw: bytes, file: Path, losses: _Losses) -> list[Any]:
     """The record `raw` is (a chunk: the records it holds, its CRC checked), or [] and one
     more loss."""
     try:
-        record = next(StreamReader(io.BytesIO(raw), skip_magic=True, emit_chunks=True,
-                                   record_size_limit=CHUNK_LIMIT).records)
-        if not isinstance(record, Chunk):
-            return [record]
-        data = inflate(record, file)
-        if record.uncompressed_crc and zlib.crc32(data) != record.uncompressed_crc:
-            raise BagError(f"'{file}' is damaged: a chunk's CRC does not match")
-        return list(_records_of(data, file))
+        return _checked_records(raw, file)
     except BagError as exc:  # the file is named in the line reindex prints: said once
-        losses.add(str(exc).replace(f"'{file}' is damaged: ", "")
-                   .replace(f"'{file}' is ", "").replace(f"'{file}' ", ""))
-    except (StopIteration, EndOfFile, *_PARSE_ERRORS) as exc:
-        losses.add(f"a record that does not parse ({_first_line(exc)})")
+        losses.add(_unnamed(exc, file))
     return []
+
+
+def _unnamed(exc: BagError, file: Path) -> str:
+    """What `exc` says of `file`, without naming it (the line it goes in names it)."""
+    return str(exc).replace(f"'{file}' is damaged: ", "").replace(f"'{file}' is ", "") \
+        .replace(f"'{file}' ", "")
 
 
 def _rewrite(records: Iterator[Any], writer: Writer, distro: str, file: Path

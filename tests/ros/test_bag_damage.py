@@ -5,6 +5,7 @@ reindex`, which keeps the data section's (its first) definition."""
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +14,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
+from rcan_rtps.cli import bag_cmd
 from rcan_rtps.ros.bag import BagError, BagReader, reindex
 from rcan_rtps.ros.serialization import serialize
 from tests.ros.test_bag_definitions import STRING_SCHEMA, _channel, _file, _message
@@ -144,3 +146,25 @@ def test_play_of_some_topics_reads_only_the_chunks_that_hold_them(tmp_path: Path
     assert len([m for m in BagReader(file).messages({"/a"})]) == 15
     with pytest.raises(BagError, match="inflate"):
         list(BagReader(file).messages())
+
+
+def _info(file: Path, check: bool | None, capsys: pytest.CaptureFixture[str]) -> str:
+    assert bag_cmd.info_command(argparse.Namespace(bag=str(file), check=check)) == 0
+    return capsys.readouterr().out
+
+
+def test_a_large_bag_s_chunks_are_read_only_when_asked(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Reading every chunk of a bag of gigabytes takes minutes, where its summary comes at
+    once: over CHECK_AUTO_BYTES `bag info` says it did not read them, `--check` does."""
+    file = _chunked_bag(tmp_path / "many", CompressionType.NONE)
+    _flip(file, file.read_bytes().index(b"message number 17") + 3)
+    assert "Damaged chunks:    1" in _info(file, None, capsys)  # small: read
+    assert "Damaged chunks" not in _info(file, False, capsys)  # --no-check
+    monkeypatch.setattr(bag_cmd, "CHECK_AUTO_BYTES", file.stat().st_size - 1)
+    large = _info(file, None, capsys)
+    assert "Damaged chunks" not in large
+    assert large.endswith("Chunks not read for damage: the bag is over 0 MiB (--check reads "
+                          "them)\n"), large
+    assert "Damaged chunks:    1" in _info(file, True, capsys)  # --check

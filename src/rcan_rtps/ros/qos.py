@@ -10,6 +10,7 @@ from cyclonedds.core import Policy
 from cyclonedds.qos import Qos
 from cyclonedds.util import duration
 
+from . import _cyclone_qos  # noqa: F401  (the binding's QoS getters, made not to leak)
 from .errors import QosError
 
 _UNLIMITED = -1  # DDS_LENGTH_UNLIMITED

@@ -133,3 +133,18 @@ def test_nothing_moved_the_robot_while_refusing(demo: Demo) -> None:
     time.sleep(0.5)
     after = status(demo)["telemetry"]
     assert after["position"] == before["position"], (before, after)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "red team 24, open: the trajectory writer is made on first use (FirstUsePublisher, issue "
+    "27's idle memory), so an idle bridge's arm topic carries no governed_by mark; the fix "
+    "(an eager writer, or another mark) is the lead's trade-off"))
+def test_an_arm_trajectory_topic_is_governed_before_the_first_arm_command(demo: Demo) -> None:
+    """Red team 24: the bridge made its trajectory writer on first use (an idle bridge builds
+    no JointTrajectory), so an idle bridge's arm topic carried no mark, and `topic pub` there
+    drove the arm past the bridge until the bridge had itself sent a trajectory."""
+    topic = "/robot1/joint_trajectory_controller/joint_trajectory"
+    done = cli(demo, "topic", "pub", topic, "trajectory_msgs/msg/JointTrajectory", "{}",
+               "--once", "-w", "0")
+    refused(done, demo, topic)
+    assert "publishing #" not in done.stdout

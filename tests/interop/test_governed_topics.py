@@ -186,3 +186,27 @@ def test_a_peers_mark_is_shown_bounded_and_escaped(domain_id: int) -> None:
         assert "\ufffd\\x1b[2JBBB" in done.stderr and "(60005 characters)" in done.stderr
     finally:
         del writers, participant
+
+
+def test_a_bridge_that_comes_while_sending_ends_the_sending(tmp_path: Path,
+                                                           domain_id: int) -> None:
+    """Red team 24: the look while sending (every LOOK_PERIOD) had no test of its own — a
+    `topic pub --rate` already sending when `run` starts stops at the bridge's mark."""
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id),
+           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}  # as the demo keeps to loopback
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rcan_rtps", "topic", "pub", "/robot1/cmd_vel", TWIST, "{}",
+         "--rate", "10", "-w", "0"],
+        env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    demo = _run_demo(tmp_path, domain_id, "--state-dir", str(tmp_path / "state"))
+    try:
+        assert proc.stdout is not None
+        while "publishing #1" not in proc.stdout.readline():  # sending, no governor yet
+            assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+        running = next(demo)
+        out, err = proc.communicate(timeout=CLI_TIMEOUT)
+        refused(subprocess.CompletedProcess(proc.args, proc.returncode, out, err), running,
+                "/robot1/cmd_vel")
+    finally:
+        proc.kill()
+        demo.close()  # the bridge stopped as the fixture stops it

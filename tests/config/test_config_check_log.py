@@ -4,6 +4,10 @@ would refuse — read only, so beside a running bridge too (it holds the log's l
 from __future__ import annotations
 
 import asyncio
+import os
+import resource
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -16,7 +20,7 @@ from rcan_rtps.governance import (
     AuditLog,
     AuditRecord,
 )
-from rcan_rtps.governance.audit import load_or_create_key
+from rcan_rtps.governance.audit import READ_BACK_LIMIT, load_or_create_key
 
 CONFIG = """\
 robot: {ruri: rcan://registry.local/acme/bot/v1/abcdefgh01}
@@ -151,3 +155,49 @@ async def test_it_reads_back_no_further_than_the_start_does(
     log.write_bytes(b"".join(lines))
     started = await AuditLog.open(log, tmp_path / "audit.key")  # the start takes it, too
     await started.close()
+
+
+# Address space for the config check below: the interpreter and its imports fit, a log of
+# LARGE_LOG read into memory (twice: its chunks, then their join) does not.
+ADDRESS_SPACE = 1536 << 20
+LARGE_LOG = 3 << 30
+
+
+def _limited() -> None:
+    resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE, ADDRESS_SPACE))
+
+
+async def test_a_log_of_gigabytes_is_not_read_into_memory(
+        config: Path, tmp_path: Path) -> None:
+    """Red team 24: a sparse (or runaway) log of 3 GiB past its checkpoint was read whole
+    into memory: a MemoryError's traceback under a memory limit, the OOM killer without one.
+    More than READ_BACK_LIMIT is left unread — said in a note, not a failure (a start reads
+    it) — and nothing is written."""
+    await _write_log(tmp_path)
+    log = tmp_path / "audit.jsonl"
+    os.truncate(log, LARGE_LOG)  # sparse: no disk, and no newline in the zeros
+    done = await asyncio.to_thread(
+        subprocess.run,
+        [sys.executable, "-c", "import sys; from rcan_rtps.cli.main import main; "
+         f"sys.exit(main(['config', 'check', {str(config)!r}]))"],
+        capture_output=True, text=True, preexec_fn=_limited, timeout=120,
+        env={**os.environ, "RT_OPS": "x" * 32})
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    assert f"note: audit log {log} not read back: " in done.stderr, done.stderr
+    assert f"more than config check reads ({READ_BACK_LIMIT})" in done.stderr
+    assert log.stat().st_size == LARGE_LOG  # read only: the start cuts what it must
+
+
+async def test_a_log_within_the_bound_is_still_read_back(
+        config: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The bound is on what is read, not a way around the check: an edited entry in a log
+    below it is refused as before."""
+    await _write_log(tmp_path)
+    log = tmp_path / "audit.jsonl"
+    lines = log.read_bytes().splitlines(keepends=True)
+    lines[-1] = lines[-1].replace(b'"n":4', b'"n":7')
+    log.write_bytes(b"".join(lines) + b"x" * (READ_BACK_LIMIT // 2))  # a torn tail of 128 MiB
+    code, said = _check(config, capsys)
+    assert code == 1 and "note:" not in said, said
+    assert f"bridge.audit.path: {await _start_refusal(tmp_path)}" in said, said

@@ -27,6 +27,9 @@ from ..ros.names import action_names, action_of, mangle_service, mangle_topic
 
 GOVERNOR_LOOK_S = 1.0  # s a command looks at the graph for a governor before it first sends
 LOOK_PERIOD = 0.5  # s between looks while it sends
+# Characters of a governor's name shown: a RURI is far shorter, but the mark is a peer's own
+# words, of any length (a 60 KB one filled the terminal with the error's one line).
+SHOWN_GOVERNOR = 200
 UNGOVERNED = ("--ungoverned", "send even where a governor (an rcan-rtps bridge) commands the "
               "robot: past its roles, limits, approvals, audit and e-stop")
 
@@ -65,7 +68,7 @@ class GovernorGuard:
                 self._found(name, governor)
 
     def _found(self, name: str, governor: str) -> None:
-        said = shown(governor)  # a peer's words: what does not print, escaped
+        said = _shown_governor(governor)
         if not self.allowed:
             raise WireError(
                 f"{name} is governed: the rcan-rtps bridge of {said} commands the robot "
@@ -76,6 +79,13 @@ class GovernorGuard:
             self._warned.add((name, governor))
             print(f"warning: {name} is governed by {said}: sending ungoverned "
                   "(--ungoverned)", file=sys.stderr, flush=True)
+
+
+def _shown_governor(governor: str) -> str:
+    """A peer's words: what does not print escaped, and no more than SHOWN_GOVERNOR of them."""
+    if len(governor) <= SHOWN_GOVERNOR:
+        return shown(governor)
+    return f"{shown(governor[:SHOWN_GOVERNOR])}… ({len(governor)} characters)"
 
 
 def action_topics(action: str) -> dict[str, str]:

@@ -173,4 +173,8 @@ def start_file_problems(config: RcanConfig) -> list[str]:
     None there is fine: the first start makes them."""
     from rcan_rtps.governance.start_files import start_file_problems as problems_of
 
-    return [str(problem) for problem in problems_of(config.bridge, read_log_back=True)]
+    notes: list[str] = []
+    problems = problems_of(config.bridge, read_log_back=True, notes=notes)
+    for note in notes:  # not a problem: unchecked, said so (a start reads it)
+        print(f"note: {note}", file=sys.stderr)
+    return [str(problem) for problem in problems]

@@ -279,18 +279,28 @@ def check_log_file(path: str | os.PathLike[str]) -> None:
         raise AuditError(f"audit log {problem}")
 
 
-def check_log_contents(path: str | os.PathLike[str],
-                       key_path: str | os.PathLike[str]) -> None:
+# The most config check reads back of a log (see check_log_contents): a busy robot's entries
+# between two checkpoints are far fewer; a log of no checkpoint that grew past it is not read.
+READ_BACK_LIMIT = 256 << 20
+
+
+def check_log_contents(path: str | os.PathLike[str], key_path: str | os.PathLike[str], *,
+                       limit: int = READ_BACK_LIMIT) -> str | None:
     """Raises the AuditError a start would raise reading the log at `path` back: a break in
     its chain since the checkpoint, a bad signature, entries another key signed (a replaced
     `key_path`), or entries with no key to verify them (the start would make a new one).
     Read only: no lock taken (a running bridge holds it), nothing cut or written — a torn
-    tail, which the start cuts and audits, passes. No log, or an empty one, is fine."""
+    tail, which the start cuts and audits, passes. No log, or an empty one, is fine.
+
+    More than `limit` bytes to read (past the checkpoint, or the whole log where there is
+    none that matches) are not read back: the start holds them in memory at once, and so did
+    this — a sparse or runaway file of gigabytes took twice its size and ended in a
+    MemoryError's traceback, or the OOM killer. Returns what was not read, then, for a note."""
     path = Path(path)
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except FileNotFoundError:
-        return
+        return None
     except OSError as exc:
         raise AuditError(f"cannot read audit log {path}: {exc}") from exc
     try:
@@ -302,10 +312,14 @@ def check_log_contents(path: str | os.PathLike[str],
                     f"audit key {key_path} is missing, but the log {path} has entries: a "
                     "start would make a new key and refuse them (put the log's key back, or "
                     "start a new log)")
-            return
-        _scan_from_checkpoint(fd, path, load_private_key(key_path).public_key())
+            return None
+        _scan_from_checkpoint(fd, path, load_private_key(key_path).public_key(), limit=limit)
+    except _TooLargeToRead as exc:
+        return (f"audit log {path} not read back: {exc.size} bytes to verify, more than "
+                f"config check reads ({limit}); a start reads them all")
     finally:
         os.close(fd)
+    return None
 
 
 def check_key_file(path: str | os.PathLike[str]) -> None:
@@ -1121,16 +1135,19 @@ def _open_and_scan(path: Path, pubkey: Ed25519PublicKey) -> tuple[int, _Scan]:
     return fd, scan
 
 
-def _scan_from_checkpoint(fd: int, path: Path, pubkey: Ed25519PublicKey) -> _Scan:
+def _scan_from_checkpoint(fd: int, path: Path, pubkey: Ed25519PublicKey, *,
+                          limit: int | None = None) -> _Scan:
+    """The log verified from its checkpoint (`limit`: raise _TooLargeToRead rather than read
+    more bytes than that)."""
     cp = _read_checkpoint(checkpoint_path(path), pubkey)
     resume = _resume_point(fd, cp) if cp is not None else None
     if cp is not None and resume is None:
         log.warning("audit checkpoint does not match %s: verifying the whole log", path)
-    data = _read_from(fd, 0 if resume is None else resume[2])
-    tree = _resume_tree(fd, cp, resume)
+    data = _read_from(fd, 0 if resume is None else resume[2], limit)
+    tree = _resume_tree(fd, cp, resume, limit)
     if tree is None:
         resume, tree = None, CompactTree()
-        data = _read_from(fd, 0)
+        data = _read_from(fd, 0, limit)
     seq, prev, offset = resume or (0, GENESIS, 0)
     try:
         scan = _scan(data, pubkey, seq=seq, prev=prev, tree=tree)
@@ -1155,8 +1172,8 @@ def _replaced_key_hint(path: Path, pubkey: Ed25519PublicKey) -> str:
             "new log)")
 
 
-def _resume_tree(fd: int, cp: Checkpoint | None,
-                 resume: tuple[int, str, int] | None) -> CompactTree | None:
+def _resume_tree(fd: int, cp: Checkpoint | None, resume: tuple[int, str, int] | None,
+                 limit: int | None = None) -> CompactTree | None:
     """The Merkle tree at the checkpoint: its peaks, or (a checkpoint of an older version)
     the lines it vouches for, hashed once. None: verify and hash from the start instead."""
     if cp is None or resume is None:
@@ -1165,7 +1182,7 @@ def _resume_tree(fd: int, cp: Checkpoint | None,
     if tree is not None:
         return tree
     tree = CompactTree()
-    tree.extend(leaf_hash(line) for _, line in _lines(_read_from(fd, 0)[:resume[2]]))
+    tree.extend(leaf_hash(line) for _, line in _lines(_read_from(fd, 0, limit)[:resume[2]]))
     return tree if tree.size == cp.seq else None
 
 
@@ -1176,7 +1193,16 @@ def _lock(fd: int, path: Path) -> None:
         raise AuditError(f"audit log {path} is in use by another process") from exc
 
 
-def _read_from(fd: int, offset: int) -> bytes:
+class _TooLargeToRead(AuditError):
+    def __init__(self, size: int) -> None:
+        super().__init__(size)
+        self.size = size
+
+
+def _read_from(fd: int, offset: int, limit: int | None = None) -> bytes:
+    """The file from `offset` on; more than `limit` bytes there: _TooLargeToRead, unread."""
+    if limit is not None and (size := os.fstat(fd).st_size - offset) > limit:
+        raise _TooLargeToRead(size)
     os.lseek(fd, offset, os.SEEK_SET)
     chunks = []
     while chunk := os.read(fd, 1 << 20):

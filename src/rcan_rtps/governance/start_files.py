@@ -28,11 +28,12 @@ class StartFileProblem(NamedTuple):
         return f"{self.key}: {self.error}"
 
 
-def start_file_problems(bridge: BridgeConfig, *,
-                        read_log_back: bool = False) -> list[StartFileProblem]:
+def start_file_problems(bridge: BridgeConfig, *, read_log_back: bool = False,
+                        notes: list[str] | None = None) -> list[StartFileProblem]:
     """Every start file's problem, in the order a start meets them. With `read_log_back`, an
     existing log is also read back as the start reads it (read only: beside a running bridge
-    too) — unless its key or the log file itself is refused already (it cannot be judged)."""
+    too) — unless its key or the log file itself is refused already (it cannot be judged);
+    a log too large to read back is added to `notes` instead."""
     audit = bridge.audit
     problems: list[StartFileProblem] = []
     try:
@@ -42,7 +43,9 @@ def start_file_problems(bridge: BridgeConfig, *,
     try:
         check_log_file(audit.path)
         if read_log_back and not problems:
-            check_log_contents(audit.path, audit.key_path)
+            note = check_log_contents(audit.path, audit.key_path)
+            if note is not None and notes is not None:
+                notes.append(note)
     except AuditError as exc:
         problems.append(StartFileProblem("bridge.audit.path", exc))
     try:

@@ -136,10 +136,6 @@ def test_nothing_moved_the_robot_while_refusing(demo: Demo) -> None:
     assert after["position"] == before["position"], (before, after)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "red team 24, open: the trajectory writer is made on first use (FirstUsePublisher, issue "
-    "27's idle memory), so an idle bridge's arm topic carries no governed_by mark; the fix "
-    "(an eager writer, or another mark) is the lead's trade-off"))
 def test_an_arm_trajectory_topic_is_governed_before_the_first_arm_command(demo: Demo) -> None:
     """Red team 24: the bridge made its trajectory writer on first use (an idle bridge builds
     no JointTrajectory), so an idle bridge's arm topic carried no mark, and `topic pub` there

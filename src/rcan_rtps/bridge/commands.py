@@ -40,8 +40,7 @@ from ..rcan.actions import (
 )
 from ..ros import qos
 from ..ros.errors import GraphTimeout, seconds
-from ..ros.participant import RosNode, RosPublisher
-from ..ros.qos import QosProfile
+from ..ros.participant import RosNode
 from ..ros.rostime import now_msg
 from .goals import CANCELING_NOTHING
 from .joint_positions import JointPositions
@@ -164,43 +163,6 @@ class CommandPublisher(Protocol):
     async def acknowledged(self, timeout: float) -> bool: ...
 
 
-class FirstUsePublisher:
-    """A publisher whose topic, type and writer are made by its first use (issue 27: idle
-    memory): a topic the bridge commands only for a motion no stop sends (an arm's
-    trajectory). Its name is known from the start (the foreign-publisher watch, the audit);
-    the first command on it waits for its robot-side reader as a start-up does
-    (`match_timeout_s`). Never for what a stop or an e-stop publishes: those are made at
-    start, so that no stop waits for a type to be built."""
-
-    def __init__(self, node: RosNode, topic: str, type_name: str, qos: QosProfile) -> None:
-        self._node, self._name, self._qos = node, topic, qos
-        self._type = node.store.require(type_name)  # an unknown type still fails the start
-        self.topic = node.resolve(topic)
-        self._made: RosPublisher | None = None
-
-    @property
-    def made(self) -> bool:
-        return self._made is not None
-
-    def publisher(self) -> RosPublisher:
-        if self._made is None:
-            self._made = self._node.create_publisher(self._name, self._type, self._qos,
-                                                     governed=True)
-        return self._made
-
-    def publish(self, message: Any) -> None:
-        self.publisher().publish(message)
-
-    def matched_count(self) -> int:
-        return self.publisher().matched_count()
-
-    async def wait_for_subscribers(self, count: int = 1, timeout: float = 5.0) -> int:
-        return await self.publisher().wait_for_subscribers(count, timeout)
-
-    async def acknowledged(self, timeout: float) -> bool:
-        return await self.publisher().acknowledged(timeout)
-
-
 class _Route:
     """One declared `Publish`, bound to its publisher."""
 
@@ -244,8 +206,11 @@ class RosDispatcher:
         self._grouped: dict[tuple[int, str], _Route] = {}  # (route, group) → its own topic
         self._goal_kits: dict[str, _Kit] = {}
         self._direct: dict[str, _Route] = {}
-        # What a stop, an e-stop and a velocity stream publish on is made now; the topics
-        # of other actions (arm trajectories) by their first command (`FirstUsePublisher`).
+        # Every topic the bridge commands is written from the start, arm trajectories too,
+        # though only a motion uses them: its writer is what marks the topic as governed
+        # (`governed_by` in USER_DATA), and the project's own tools refuse to publish beside
+        # it. Made on first use (issue 27's idle memory, ~0.1 MB), an idle bridge's arm topic
+        # was unmarked and `topic pub` drove the arm past it (red team 24).
         self.cmd_vel = self._made_now(_halt_route().velocity)  # where halting sends zero
         # Latched (transient-local): a robot node that (re)joins still learns the e-stop state.
         self.estop = self._made_now(_estop_route().signal)
@@ -313,9 +278,8 @@ class RosDispatcher:
         key = (topic, type_name, publish.latched)
         publisher = self._publishers.get(key)
         if publisher is None:
-            publisher = FirstUsePublisher(self.node, topic, type_name,
-                                          ESTOP_QOS if publish.latched else qos.DEFAULT)
-            self._publishers[key] = publisher
+            publisher = self._publishers[key] = self.node.create_publisher(
+                topic, type_name, ESTOP_QOS if publish.latched else qos.DEFAULT, governed=True)
         route = _Route(publish, publisher, _Kit(self.node, self.ros2, type_name))
         if group_topic is None:
             self._routes[id(publish)] = route
@@ -326,21 +290,9 @@ class RosDispatcher:
         topic = group_topic or getattr(self.ros2, publish.topic_key)
         return topic, publish.type_name or getattr(self.ros2, publish.type_key or "")
 
-    def _made_now(self, publish: Publish[Any]) -> RosPublisher:
-        """The publisher of `publish`'s own topic, made now (a stop must not wait for it)."""
-        topic, type_name = self._topic_and_type(publish)
-        key = (topic, type_name, publish.latched)
-        made = self._publishers.get(key)
-        if isinstance(made, RosPublisher):
-            return made
-        if isinstance(made, FirstUsePublisher):
-            publisher = made.publisher()
-        else:
-            publisher = self.node.create_publisher(
-                topic, type_name, ESTOP_QOS if publish.latched else qos.DEFAULT,
-                governed=True)
-        self._publishers[key] = publisher
-        return publisher
+    def _made_now(self, publish: Publish[Any]) -> CommandPublisher:
+        """The publisher of `publish`'s own topic (made by its route)."""
+        return self._bind(publish).publisher
 
     def _route_of(self, spec: ActionSpec[Any], params: ActionParams | None = None) -> _Route:
         """The route of an action's own message; for a grouped one, the params' group's."""

@@ -411,3 +411,51 @@ def test_a_latch_file_that_is_no_regular_file_starts_latched(tmp_path: Path) -> 
     assert not blocked
     [(latched, why)] = found
     assert latched and why is not None and "not a regular file" in why
+
+
+@pytest.mark.parametrize("wait_for_listing_s", [steps.LISTED_WITHIN_S, 0.0])
+async def test_an_estop_behind_a_clear_and_recorded_repeats_is_listed_where_it_took_effect(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch, wait_for_listing_s: float) -> None:
+    """Latched, an e-stop repeated while latched; a clear under way, waiting for the robot,
+    when the sweep finds the repeats due and queues their recording behind it (a `then`
+    job). The clear goes on: records the repeats itself, is decided (ESTOP_CLEARED sealed)
+    and its latch file sticks on the disk. Now an e-stop, and a move refused for it. The
+    e-stop waited for its turn behind the `then` job — so behind the clear after all — and
+    the move's refusal, once its wait for the ESTOP entry (`LISTED_WITHIN_S`; here also 0)
+    ran out, was listed between ESTOP_CLEARED and that ESTOP, as if refused while unlatched.
+    An e-stop begins at once behind recorded repeats too: only another e-stop holds it."""
+    monkeypatch.setattr(steps, "LISTED_WITHIN_S", wait_for_listing_s)
+    gov = await harness.governor()
+    await gov.decide(command("estop"), VIEWER)
+    repeated = await gov.decide(command("estop"), PLANNER)
+    assert repeated.reason == "already_latched", repeated
+    harness.clock.advance(61)  # the repeats are due to be recorded
+    at_ready = _HeldClear(harness, monkeypatch, "ready")
+    at_latch_file = _HeldClear(harness, monkeypatch, "latch_file")
+    clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), OPS))
+    await asyncio.wait_for(at_ready.entered.wait(), 60)
+    sweeping = asyncio.ensure_future(gov.sweep())
+    for _ in range(100):  # until the sweep has queued the repeats' recording
+        if gov.latch._unfinished == 2:
+            break
+        await asyncio.sleep(0)
+    assert gov.latch._unfinished == 2
+    at_ready.release()
+    await asyncio.wait_for(at_latch_file.entered.wait(), 60)  # decided, its file stuck
+    estopping = asyncio.ensure_future(gov.decide(command("estop"), VIEWER))
+    await asyncio.sleep(0)  # the e-stop has arrived: latched
+    assert gov.latch.latched
+    moved = await gov.decide(command("move", MOVE), ADMIN)
+    assert moved.reason == Reason.ESTOP_ACTIVE.value, moved
+    at_latch_file.release()
+    cleared, estopped = await clearing, await estopping
+    await sweeping
+    await gov.stop()
+    assert cleared.outcome is Outcome.EXECUTED, cleared
+    assert estopped.outcome is Outcome.EXECUTED and estopped.reason is None, estopped
+    assert gov.latch.latched and _persisted(harness) and _published(harness) is True
+    entries = harness.entries
+    assert _latched_by_the_log(entries) == [], [
+        (e["seq"], e["event"], e["action_type"], e["deny_reason"]) for e in entries]
+    assert _seq(harness, cleared) < _seq(harness, estopped) < _seq(harness, moved)
+    assert [e["event"] for e in entries].count("ESTOP_REPEATED") == 1

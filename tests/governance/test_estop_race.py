@@ -411,3 +411,234 @@ def test_a_latch_file_that_is_no_regular_file_starts_latched(tmp_path: Path) -> 
     assert not blocked
     [(latched, why)] = found
     assert latched and why is not None and "not a regular file" in why
+
+
+@pytest.mark.parametrize("wait_for_listing_s", [steps.LISTED_WITHIN_S, 0.0])
+async def test_an_estop_behind_a_clear_and_recorded_repeats_is_listed_where_it_took_effect(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch, wait_for_listing_s: float) -> None:
+    """Latched, an e-stop repeated while latched; a clear under way, waiting for the robot,
+    when the sweep finds the repeats due and queues their recording behind it (a `then`
+    job). The clear goes on: records the repeats itself, is decided (ESTOP_CLEARED sealed)
+    and its latch file sticks on the disk. Now an e-stop, and a move refused for it. The
+    e-stop waited for its turn behind the `then` job — so behind the clear after all — and
+    the move's refusal, once its wait for the ESTOP entry (`LISTED_WITHIN_S`; here also 0)
+    ran out, was listed between ESTOP_CLEARED and that ESTOP, as if refused while unlatched.
+    An e-stop begins at once behind recorded repeats too: only another e-stop holds it."""
+    monkeypatch.setattr(steps, "LISTED_WITHIN_S", wait_for_listing_s)
+    gov = await harness.governor()
+    await gov.decide(command("estop"), VIEWER)
+    repeated = await gov.decide(command("estop"), PLANNER)
+    assert repeated.reason == "already_latched", repeated
+    harness.clock.advance(61)  # the repeats are due to be recorded
+    at_ready = _HeldClear(harness, monkeypatch, "ready")
+    at_latch_file = _HeldClear(harness, monkeypatch, "latch_file")
+    clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), OPS))
+    await asyncio.wait_for(at_ready.entered.wait(), 60)
+    sweeping = asyncio.ensure_future(gov.sweep())
+    for _ in range(100):  # until the sweep has queued the repeats' recording
+        if gov.latch._unfinished == 2:
+            break
+        await asyncio.sleep(0)
+    assert gov.latch._unfinished == 2
+    at_ready.release()
+    await asyncio.wait_for(at_latch_file.entered.wait(), 60)  # decided, its file stuck
+    estopping = asyncio.ensure_future(gov.decide(command("estop"), VIEWER))
+    await asyncio.sleep(0)  # the e-stop has arrived: latched
+    assert gov.latch.latched
+    moved = await gov.decide(command("move", MOVE), ADMIN)
+    assert moved.reason == Reason.ESTOP_ACTIVE.value, moved
+    at_latch_file.release()
+    cleared, estopped = await clearing, await estopping
+    await sweeping
+    await gov.stop()
+    assert cleared.outcome is Outcome.EXECUTED, cleared
+    assert estopped.outcome is Outcome.EXECUTED and estopped.reason is None, estopped
+    assert gov.latch.latched and _persisted(harness) and _published(harness) is True
+    entries = harness.entries
+    assert _latched_by_the_log(entries) == [], [
+        (e["seq"], e["event"], e["action_type"], e["deny_reason"]) for e in entries]
+    assert _seq(harness, cleared) < _seq(harness, estopped) < _seq(harness, moved)
+    assert [e["event"] for e in entries].count("ESTOP_REPEATED") == 1
+
+
+# -- adversarial: what an e-stop begun at once, past clears, must not break ----------------
+
+
+def _moved_while_latched(entries: list[dict[str, Any]]) -> list[int]:
+    """The seqs of motion written ahead (sent) at a point where the log says latched: none."""
+    from govhelpers import MOTION_ACTIONS
+
+    latched, wrong = False, []
+    for entry in entries:
+        if entry["event"] == "BRIDGE_STARTED":
+            latched = entry["params"]["estop_latched"]
+        elif entry["event"] == "ESTOP":
+            latched = True
+        elif entry["event"] == "ESTOP_CLEARED" and entry["outcome"] == "executed":
+            latched = False
+        elif (entry["event"] == "COMMAND_DISPATCHED" and latched
+              and entry["action_type"] in MOTION_ACTIONS):
+            wrong.append(entry["seq"])
+    return wrong
+
+
+def _log_agrees(entries: list[dict[str, Any]]) -> None:
+    shown = [(e["seq"], e["event"], e["action_type"], e["deny_reason"]) for e in entries]
+    assert _latched_by_the_log(entries) == [], shown
+    assert _moved_while_latched(entries) == [], shown
+
+
+async def _until(check: Any, what: str) -> None:
+    for _ in range(1000):
+        if check():
+            return
+        await asyncio.sleep(0)
+    raise AssertionError(f"never {what}")
+
+
+@pytest.mark.parametrize("held_at", ["ready", "latch_file", "publish"])
+async def test_two_clears_queued_then_an_estop(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch, held_at: str) -> None:
+    """Latched; a clear under way (held at `held_at`) and a second one queued behind it; then
+    an e-stop, which begins at once (no e-stop ahead), and a move refused for it. The second
+    clear came before the e-stop: it is refused for it at its turn (cleared nothing), listed
+    after the ESTOP; the first clears only if decided before the e-stop came, and then
+    neither unlatches (latch_file) nor, past its publish, stays the last word. Replies in
+    order: first clear, second clear, e-stop."""
+    monkeypatch.setattr(steps, "LISTED_WITHIN_S", 0.0)
+    gov = await harness.governor()
+    await gov.decide(command("estop"), VIEWER)
+    held = _HeldClear(harness, monkeypatch, held_at)
+    acks: list[str] = []
+
+    async def acked(name: str, coro: Any) -> Decision:
+        d = await coro
+        acks.append(name)
+        return d
+
+    first = asyncio.ensure_future(acked("c1", gov.decide(command("clear_estop"), OPS)))
+    await asyncio.wait_for(held.entered.wait(), 60)
+    second = asyncio.ensure_future(acked("c2", gov.decide(command("clear_estop"), ADMIN)))
+    await _until(lambda: gov.latch._unfinished == 2, "queued")
+    estopping = asyncio.ensure_future(acked("e", gov.decide(command("estop"), VIEWER)))
+    await asyncio.sleep(0)
+    assert gov.latch.latched
+    moved = await gov.decide(command("move", MOVE), ADMIN)
+    assert moved.reason == Reason.ESTOP_ACTIVE.value, moved
+    held.release()
+    c1, c2, e = await first, await second, await estopping
+    await gov.stop()
+    assert acks == ["c1", "c2", "e"]
+    assert e.outcome is Outcome.EXECUTED, e
+    assert (c2.http_status, c2.reason) == (409, Reason.ESTOP_ACTIVE.value), c2
+    assert gov.latch.latched and _persisted(harness) and _published(harness) is True
+    _log_agrees(harness.entries)
+    if held_at == "ready":
+        assert (c1.http_status, c1.reason) == (409, Reason.ESTOP_ACTIVE.value), c1
+        assert e.reason == "already_latched"  # the first ESTOP holds the latch still
+    else:
+        assert c1.outcome is Outcome.EXECUTED and e.reason is None, (c1, e)
+        assert _seq(harness, c1) < _seq(harness, e) < _seq(harness, moved) < _seq(harness, c2)
+
+
+@pytest.mark.parametrize("held_at", ["ready", "latch_file"])
+async def test_a_flood_of_estops_during_a_clear_is_one_entry(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch, held_at: str) -> None:
+    """Latched; a clear under way; 30 e-stops arrive at once. The first begins at once, the
+    others wait behind it (an e-stop ahead) and are repeats of it: at most one new ESTOP
+    entry (a clear decided before them), the rest recorded together (ESTOP_REPEATED, one per
+    principal), never one entry each."""
+    gov = await harness.governor()
+    await gov.decide(command("estop"), VIEWER)
+    held = _HeldClear(harness, monkeypatch, held_at)
+    clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), OPS))
+    await asyncio.wait_for(held.entered.wait(), 60)
+    flood = [asyncio.ensure_future(gov.decide(command("estop"), who))
+             for who in [VIEWER, PLANNER, ADMIN] * 10]
+    await asyncio.sleep(0)
+    held.release()
+    cleared, estops = await clearing, await asyncio.gather(*flood)
+    await gov.stop()
+    assert all(d.outcome is Outcome.EXECUTED for d in estops), estops
+    events = [e["event"] for e in harness.entries]
+    assert events.count("ESTOP") == (1 if held_at == "ready" else 2), events
+    assert events.count("ESTOP_REPEATED") <= 3, events
+    repeated = sum(e["params"]["count"] for e in harness.entries
+                   if e["event"] == "ESTOP_REPEATED")
+    assert repeated == (30 if held_at == "ready" else 29)
+    assert gov.latch.latched and _persisted(harness) and _published(harness) is True
+    _log_agrees(harness.entries)
+    assert (cleared.outcome is Outcome.EXECUTED) is (held_at != "ready")
+
+
+async def test_an_estop_while_a_clear_records_repeats_is_a_repeat_and_wins(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Latched, a repeat tallied; a clear under way, not yet decided, held while it records
+    that repeat (ESTOP_REPEATED on a slow disk). An e-stop comes: begun at once, it is a
+    repeat of the ESTOP holding the latch (no entry of its own, none needed: the log says
+    latched), tallied anew; the clear, overtaken, is refused; the new tally is recorded
+    later on its own, not lost and not merged into the one already written."""
+    gov = await harness.governor()
+    await gov.decide(command("estop"), VIEWER)
+    await gov.decide(command("estop"), PLANNER)
+    entered, release = asyncio.Event(), asyncio.Event()
+    record_event = gov._steps.record_event
+
+    async def slow_record(record: Any) -> None:
+        if record.event.value == "ESTOP_REPEATED" and not release.is_set():
+            entered.set()
+            await release.wait()
+        await record_event(record)
+
+    monkeypatch.setattr(gov._steps, "record_event", slow_record)
+    clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), OPS))
+    await asyncio.wait_for(entered.wait(), 60)
+    repeating = asyncio.ensure_future(gov.decide(command("estop"), ADMIN))
+    await asyncio.sleep(0)  # begun at once (replied in order, after the clear)
+    moved = await gov.decide(command("move", MOVE), ADMIN)
+    assert moved.reason == Reason.ESTOP_ACTIVE.value, moved
+    release.set()
+    cleared, again = await clearing, await repeating
+    assert again.reason == "already_latched", again
+    assert (cleared.http_status, cleared.reason) == (409, Reason.ESTOP_ACTIVE.value), cleared
+    await gov.stop()
+    assert gov.latch.latched and _persisted(harness) and _published(harness) is True
+    repeated = [(e["principal"], e["params"]["count"]) for e in harness.entries
+                if e["event"] == "ESTOP_REPEATED"]
+    assert repeated == [("planner", 1), ("root", 1)]
+    _log_agrees(harness.entries)
+
+
+async def test_an_estop_while_a_decided_clears_entry_fails_to_be_written(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Latched; a clear decided (its entry handed to the log, which then fails: audit
+    unavailable); an e-stop comes meanwhile — begun at once, a new ESTOP (the clear had let go
+    of the latch's entry). The clear answers audit_unavailable and unlatches nothing; the
+    e-stop's entry holds the latch after it, so the next e-stop is a repeat of that one."""
+    gov = await harness.governor()
+    first = await gov.decide(command("estop"), VIEWER)
+    entered, release = asyncio.Event(), asyncio.Event()
+    write_ahead = gov._steps.write_ahead
+
+    async def failing(entry: Any, *, urgent: bool = False) -> Any:
+        if entry.action_type == "clear_estop":
+            entered.set()
+            await release.wait()
+            return None  # the log could not write it
+        return await write_ahead(entry, urgent=urgent)
+
+    monkeypatch.setattr(gov._steps, "write_ahead", failing)
+    clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), OPS))
+    await asyncio.wait_for(entered.wait(), 60)
+    estopping = asyncio.ensure_future(gov.decide(command("estop"), PLANNER))
+    await asyncio.sleep(0)  # begun at once (replied in order, after the clear)
+    release.set()
+    cleared, estopped = await clearing, await estopping
+    assert estopped.outcome is Outcome.EXECUTED and estopped.reason is None, estopped
+    assert cleared.reason == "audit_unavailable", cleared
+    again = await gov.decide(command("estop"), ADMIN)
+    assert (again.reason, again.audit_id) == ("already_latched", estopped.audit_id)
+    assert first.audit_id != estopped.audit_id
+    await gov.stop()
+    assert gov.latch.latched and _persisted(harness) and _published(harness) is True
+    _log_agrees(harness.entries)

@@ -5,10 +5,10 @@ transition is persisted, audited, published and acknowledged before the next one
 order of acknowledgements is the audit order. Two rules make an acknowledged e-stop stick:
 
 - an e-stop latches in memory the moment it arrives (before any await), so no motion command
-  passes from then on, even while earlier transitions are still being written; when no
-  transition is under way, or only a clear that is decided (its entry sealed: `decided`),
-  its work also begins right there (its audit entry sealed where it took effect, after the
-  clear's: `EstopLane.estop`), else at its turn; its reply comes in order all the same;
+  passes from then on, even while earlier transitions are still being written; unless
+  another e-stop is under way or waiting, its work also begins right there (its audit entry
+  sealed where it took effect: `EstopLane.estop`), else at its turn; its reply comes in
+  order all the same;
 - a clear unlatches only if no e-stop arrived after it; otherwise that e-stop keeps the robot
   stopped: one that came before the clear was decided gets it refused (`overtaken`), one
   that came after leaves it audited, publishing nothing.
@@ -106,8 +106,7 @@ class LatchFile:
 
 
 # A transition's work (or, begun at once, its awaitable), its caller's future, engage or not.
-# (work, its result, an e-stop, a clear)
-_Job = tuple[Callable[[], Awaitable[Any]] | Awaitable[Any], "asyncio.Future[Any]", bool, bool]
+_Job = tuple[Callable[[], Awaitable[Any]] | Awaitable[Any], "asyncio.Future[Any]", bool]
 
 
 class EstopMachine:
@@ -126,7 +125,7 @@ class EstopMachine:
         self._queue: asyncio.Queue[_Job] | None = None
         self._worker: asyncio.Task[None] | None = None
         self._unfinished = 0  # transitions submitted and not done
-        self._unfinished_clears = 0  # of them, clears
+        self._unfinished_engages = 0  # of them, e-stops
         # E-stops latched and waiting for their turn, their entries not sealed yet
         # (`listed`); the event is set while there are none.
         self._unbegun_engages = 0
@@ -140,17 +139,19 @@ class EstopMachine:
 
     def engage(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Latch now (synchronously), then run `work` in order: at once (`work()` called in
-        this step) if no transition is under way, or only clears, so what it does before its
-        first await happens with the flip: its entry is sealed where the e-stop took effect,
-        before any refusal for its latch. A clear under way cannot hold it up: one decided
-        already neither unlatches nor publishes after it (`overtaken`), one not yet decided is
-        refused for it. Else (an e-stop or recorded repeats ahead) at its turn. Its result is
-        returned in order either way."""
+        this step) unless another e-stop is unfinished, so what it does before its first
+        await happens with the flip: its entry is sealed where the e-stop took effect, before
+        any refusal for its latch. A clear under way cannot hold it up: one decided already
+        neither unlatches nor publishes after it (`overtaken`), one not yet decided is refused
+        for it. Nor can `then` work (recorded repeats), which may itself wait behind a clear.
+        Behind another e-stop, at its turn: that one's entry is sealed already, and a flood
+        of them is counted as repeats of it (`EstopLane.estop`), not listed one entry each.
+        Its result is returned in order either way."""
         flipped, self._latched = not self._latched, True
         self._engages_waiting += 1
         if flipped:
             self._tell()
-        if self._unfinished > self._unfinished_clears:
+        if self._unfinished_engages:
             self._unbegun_engages += 1
             self._all_begun.clear()
             return self._submit(work, engage=True)
@@ -162,7 +163,7 @@ class EstopMachine:
 
     def clear(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Run `work` in order; it calls `unlatch()` once the clear is durable."""
-        return self._submit(work, engage=False, clear=True)
+        return self._submit(work, engage=False)
 
     def overtaken(self) -> bool:
         """From the clear under way: an e-stop arrived after it (it wins: the clear must not
@@ -173,8 +174,8 @@ class EstopMachine:
         """Returns once every e-stop that has latched has begun its work, which seals its
         entry in its first step (or after `within_s`, a transition ahead of it stuck on a
         disk): a command refused for the latch then is listed after the e-stop that latched
-        it. An e-stop waits for its turn only behind another e-stop's transition or recorded
-        repeats (`engage`), so this rarely waits at all."""
+        it. An e-stop waits for its turn only behind another e-stop's transition (`engage`),
+        whose entry is sealed already, so this rarely waits at all."""
         if self._all_begun.is_set():
             return
         with contextlib.suppress(asyncio.TimeoutError):
@@ -186,7 +187,10 @@ class EstopMachine:
             self._all_begun.set()
 
     def then(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
-        """Run `work` in order with the transitions, changing nothing of the latch itself."""
+        """Run `work` in order with the transitions, changing nothing of the latch itself.
+        An e-stop does not wait for it (`engage`): it must write nothing whose place in the
+        log matters against an e-stop's entry (recorded repeats: those of the e-stop holding
+        the latch, which a later e-stop only repeats)."""
         return self._submit(work, engage=False)
 
     def unlatch(self) -> bool:
@@ -229,23 +233,23 @@ class EstopMachine:
                 await worker
         self.file.close()
 
-    def _submit(self, work: Callable[[], Awaitable[T]] | Awaitable[T], *, engage: bool,
-                clear: bool = False) -> asyncio.Future[T]:
+    def _submit(self, work: Callable[[], Awaitable[T]] | Awaitable[T], *, engage: bool
+                ) -> asyncio.Future[T]:
         loop = asyncio.get_running_loop()
         self._unfinished += 1
-        self._unfinished_clears += clear
+        self._unfinished_engages += engage
         if self._queue is None:
             self._queue = asyncio.Queue()
         if self._worker is None or self._worker.done():
             self._worker = loop.create_task(self._work(), name="estop-machine")
         done: asyncio.Future[T] = loop.create_future()
-        self._queue.put_nowait((work, done, engage, clear))
+        self._queue.put_nowait((work, done, engage))
         return done
 
     async def _work(self) -> None:
         assert self._queue is not None
         while True:
-            work, done, engage, clear = await self._queue.get()
+            work, done, engage = await self._queue.get()
             if engage:
                 self._engages_waiting -= 1
             try:
@@ -266,7 +270,7 @@ class EstopMachine:
                     done.set_result(result)
             finally:
                 self._unfinished -= 1
-                self._unfinished_clears -= clear
+                self._unfinished_engages -= engage
                 self._queue.task_done()
 
 

@@ -155,8 +155,8 @@ Sent = tuple[DispatchResult, Rejection | None]
 
 
 # s a refusal for the e-stop waits at most for that e-stop's entry to be sealed (an e-stop
-# waits for its turn only behind another e-stop's transition or recorded repeats, never behind
-# a clear; longer only with that work's disk stuck)
+# waits for its turn only behind another e-stop's transition, never behind a clear or recorded
+# repeats; longer only with that work's disk stuck)
 LISTED_WITHIN_S = 2.0
 
 

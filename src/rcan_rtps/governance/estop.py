@@ -126,11 +126,6 @@ class EstopMachine:
         self._worker: asyncio.Task[None] | None = None
         self._unfinished = 0  # transitions submitted and not done
         self._unfinished_engages = 0  # of them, e-stops
-        # E-stops latched and waiting for their turn, their entries not sealed yet
-        # (`listed`); the event is set while there are none.
-        self._unbegun_engages = 0
-        self._all_begun = asyncio.Event()
-        self._all_begun.set()
 
     @property
     def latched(self) -> bool:
@@ -139,21 +134,21 @@ class EstopMachine:
 
     def engage(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Latch now (synchronously), then run `work` in order: at once (`work()` called in
-        this step) unless another e-stop is unfinished, so what it does before its first
-        await happens with the flip: its entry is sealed where the e-stop took effect, before
-        any refusal for its latch. A clear under way cannot hold it up: one decided already
-        neither unlatches nor publishes after it (`overtaken`), one not yet decided is refused
-        for it. Nor can `then` work (recorded repeats), which may itself wait behind a clear.
-        Behind another e-stop, at its turn: that one's entry is sealed already, and a flood
-        of them is counted as repeats of it (`EstopLane.estop`), not listed one entry each.
-        Its result is returned in order either way."""
+        this step) if it latched, or if no other e-stop is unfinished, so what it does before
+        its first await happens with the flip: its entry is sealed where the e-stop took
+        effect, before any refusal for its latch (a refusal waits for nothing: what latched
+        is listed already). A clear under way cannot hold it up: one decided already neither
+        unlatches nor publishes after it (`overtaken`), one not yet decided is refused for
+        it. Nor can `then` work (recorded repeats), which may itself wait behind a clear.
+        One that finds another e-stop unfinished (it latched nothing: that one did, and
+        nothing unlatches while an e-stop is in line) waits for its turn, and a flood of them
+        is counted as repeats (`EstopLane.estop`), not listed one entry each. Its result is
+        returned in order either way."""
         flipped, self._latched = not self._latched, True
         self._engages_waiting += 1
         if flipped:
             self._tell()
-        if self._unfinished_engages:
-            self._unbegun_engages += 1
-            self._all_begun.clear()
+        if self._unfinished_engages and not flipped:
             return self._submit(work, engage=True)
         try:
             begun = work()
@@ -169,22 +164,6 @@ class EstopMachine:
         """From the clear under way: an e-stop arrived after it (it wins: the clear must not
         unlatch; one arriving before the clear is decided gets the clear refused)."""
         return self._engages_waiting > 0
-
-    async def listed(self, within_s: float) -> None:
-        """Returns once every e-stop that has latched has begun its work, which seals its
-        entry in its first step (or after `within_s`, a transition ahead of it stuck on a
-        disk): a command refused for the latch then is listed after the e-stop that latched
-        it. An e-stop waits for its turn only behind another e-stop's transition (`engage`),
-        whose entry is sealed already, so this rarely waits at all."""
-        if self._all_begun.is_set():
-            return
-        with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(self._all_begun.wait(), within_s)
-
-    def _began_engage(self) -> None:
-        self._unbegun_engages -= 1
-        if not self._unbegun_engages:
-            self._all_begun.set()
 
     def then(self, work: Callable[[], Awaitable[T]]) -> asyncio.Future[T]:
         """Run `work` in order with the transitions, changing nothing of the latch itself.
@@ -256,12 +235,7 @@ class EstopMachine:
                 if inspect.isawaitable(work):
                     result = await work
                 else:
-                    try:
-                        running = work()  # an e-stop's first step seals its entry
-                    finally:
-                        if engage:
-                            self._began_engage()
-                    result = await running
+                    result = await work()  # an e-stop's first step seals its entry
             except Exception as exc:  # the caller gets it; the machine goes on
                 if not done.done():
                     done.set_exception(exc)

@@ -129,7 +129,7 @@ class EstopLane:
         await self.record_repeats()  # the e-stops it clears come first in the log
         if self._latch.overtaken():  # an e-stop came while it waited: nothing is cleared
             return await steps.refuse(command, principal, outcomes.ESTOP_ACTIVE,
-                                      pending_id=pending_id, after_estop=False)
+                                      pending_id=pending_id)
         entry = record(AuditEvent.ESTOP_CLEARED, command, principal, Outcome.EXECUTED,
                        applied={}, pending_id=pending_id, ros2_topic=steps.route(command))
         # Decided: its entry is sealed as the write begins, in this step. An e-stop from now

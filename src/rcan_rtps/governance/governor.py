@@ -128,7 +128,7 @@ class Governor:
         self._left_by_crash = left_by_crash
         self.latch = latch
         self.events = events or Events()
-        self._steps = Steps(audit, dispatcher, latch)
+        self._steps = Steps(audit, dispatcher)
         # Whose command sent what runs on, per topic (`DispatchResult.runs_for_s`: an arm's
         # trajectory; the next on a topic may not replace it: its controller may refuse that
         # one): a stop of its sender's motion alone holds it, and while it runs, its sender

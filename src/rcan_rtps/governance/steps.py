@@ -26,7 +26,6 @@ from .left import LeftGoal, LeftRunning
 from .outcomes import (
     AUDIT_UNAVAILABLE,
     DISPATCH_ERROR,
-    ESTOP_ACTIVE,
     Rejection,
     robot_unavailable,
 )
@@ -154,26 +153,12 @@ class Decision(msgspec.Struct, frozen=True, kw_only=True):
 Sent = tuple[DispatchResult, Rejection | None]
 
 
-# s a refusal for the e-stop waits at most for that e-stop's entry to be sealed (an e-stop
-# waits for its turn only behind another e-stop's transition, never behind a clear or recorded
-# repeats; longer only with that work's disk stuck)
-LISTED_WITHIN_S = 2.0
-
-
-class Listing(Protocol):
-    """The e-stop machine, as a refusal for its latch sees it (`EstopMachine.listed`)."""
-
-    async def listed(self, within_s: float) -> None: ...
-
-
 class Steps:
     """Audit, robot and background tasks, as every part of the kernel uses them."""
 
-    def __init__(self, audit: AuditLog, dispatcher: Dispatcher,
-                 latch: Listing | None = None) -> None:
+    def __init__(self, audit: AuditLog, dispatcher: Dispatcher) -> None:
         self.audit = audit
         self.dispatcher = dispatcher
-        self.latch = latch
         self.tasks: set[asyncio.Task[Any]] = set()
 
     async def write_ahead(self, record: AuditRecord, *, urgent: bool = False
@@ -284,11 +269,7 @@ class Steps:
     async def refuse(self, command: NormalizedCommand, principal: Principal,
                      rejection: Rejection, *, event: AuditEvent = AuditEvent.COMMAND_REJECTED,
                      pending_id: str | None = None, goal_id: str | None = None,
-                     after_estop: bool = True) -> Decision:
-        """`after_estop`: a refusal for the latch is listed after the e-stop that latched it
-        (False: a clear it overtook, which is listed before it and which it waits for)."""
-        if rejection == ESTOP_ACTIVE and after_estop and self.latch is not None:
-            await self.latch.listed(LISTED_WITHIN_S)
+                     ) -> Decision:
         entry = record(event, command, principal, rejection.outcome, rejection=rejection,
                        pending_id=pending_id, goal_id=goal_id)
         receipt = await self.write_ahead(entry)

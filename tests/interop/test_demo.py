@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import os
@@ -137,7 +138,27 @@ async def test_a_2s_move_at_half_a_metre_per_second_drives_one_metre(
     assert 0.9 <= distance <= 1.1, distance  # one Twist alone would have been 0.25 m
 
 
+async def _beat(http: aiohttp.ClientSession, demo: Demo) -> None:
+    """The README's `beat &`: the operator's heartbeat every second, holding its control
+    session while a goal drives (5 s of silence and the bridge stops it: a clean-clone CI
+    under load once saw the tour's goal `canceled` for it)."""
+    while True:
+        code, _ = await call(http, demo, demo.user, "POST", "/api/heartbeat")
+        assert code == 200, code
+        await asyncio.sleep(1.0)
+
+
 async def test_readme_tour(demo: Demo, http: aiohttp.ClientSession) -> None:
+    beating = asyncio.create_task(_beat(http, demo))
+    try:
+        await _tour(demo, http)
+    finally:
+        beating.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await beating
+
+
+async def _tour(demo: Demo, http: aiohttp.ClientSession) -> None:
     status = await wait_status(http, demo, lambda s: s["ros"]["connected"])
     assert status["state"] == "idle" and status["ruri"].startswith("rcan://")
 

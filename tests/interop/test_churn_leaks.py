@@ -243,8 +243,8 @@ async def test_endpoints_that_come_and_go_leave_no_memory_behind(bridge: RunProc
     gc.freeze() keeps from ever freeing them. Either one alone grew the bridge by 8.9 MB
     over these (~2.2 kB an endpoint, for as long as it ran); now the bridge's graph is read
     at each poll of the command topics and the look's graph is closed (1.1 MB measured,
-    the reader's history of ros_discovery_info filling up), and its anonymous memory stays
-    within a third of either; memory is read, not time."""
+    the reader's history of ros_discovery_info filling up; 2.3 MB on a loaded machine), and
+    its anonymous memory stays within half of either; memory is read, not time."""
     pid = bridge.proc.pid
     with RosNode("churn_endpoints", "/", domain_id=domain_id, localhost=True) as peer:
         async def endpoints(count: int) -> None:
@@ -259,7 +259,7 @@ async def test_endpoints_that_come_and_go_leave_no_memory_behind(bridge: RunProc
         await endpoints(ENDPOINTS)
         grown = _anonymous_kb(pid) - before
     print(f"{ENDPOINTS} endpoints came and went: anonymous memory +{grown} kB")
-    assert grown < 2900, grown
+    assert grown < 4400, grown
 
 
 SOCKETS = 2500

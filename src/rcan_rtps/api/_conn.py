@@ -45,6 +45,7 @@ class _Watched(asyncio.Protocol):
         self._deadline: float | None = None  # loop time the connection is closed at
         self._in_request = 0
         self._on_lost: list[Callable[[], None]] | None = None  # made when first asked for
+        self._lost = False  # the connection is gone: no deadline is armed any more
 
     # -- asyncio.Protocol: forwarded as they come ------------------------------------------
 
@@ -55,6 +56,7 @@ class _Watched(asyncio.Protocol):
         self._inner.connection_made(transport)
 
     def connection_lost(self, exc: Exception | None) -> None:
+        self._lost = True
         self._disarm()
         self._cancel_timer()
         self._owner.watched.pop(self._inner, None)
@@ -101,6 +103,12 @@ class _Watched(asyncio.Protocol):
         # A deadline, not a timer per request: the timer in place fires no later than any
         # deadline since it was set and re-arms itself for what is left (keep-alive requests
         # then cost no timer of their own).
+        if self._lost:
+            # A request that ends after its connection did (a WebSocket its client closed,
+            # a handler that runs on after a hang-up): a keep-alive timer armed now would
+            # hold this dead connection and aiohttp's handler (~3.5 kB) for
+            # keepalive_timeout_s, as many as connections came in that time.
+            return
         loop = asyncio.get_running_loop()
         self._deadline = loop.time() + seconds
         if self._timer is None or self._timer_due > self._deadline:

@@ -49,8 +49,9 @@ from collections.abc import Callable
 from typing import Any
 
 from ..rcan import ForeignPublisher
-from ..ros.graph import MAX_NODE_FQN, Endpoint, RosGraph, node_fqn, short_gid
+from ..ros.graph import MAX_NODE_FQN, Endpoint, node_fqn, short_gid
 from ..ros.participant import RosNode
+from ..ros.services import shared_graph
 from .report_budget import ReportBudget
 
 log = logging.getLogger(__name__)
@@ -158,7 +159,11 @@ class CommanderWatch:
                  show: Callable[[list[ForeignPublisher], set[str]], None], audit: Audit,
                  interval: float = POLL_S, expected: Expected | None = None,
                  monotonic: Callable[[], float] = time.monotonic) -> None:
-        self._graph = RosGraph(node)
+        # The node's one view, the one its service and action clients refresh before each
+        # call: polled here, it is read at least every `interval` even when no call is made
+        # (its builtin readers keep every endpoint that came and went until a refresh takes
+        # it: an idle bridge beside peers that come and go grew ~2 kB per endpoint).
+        self._graph = shared_graph(node)
         self._own = node.participant.guid.bytes
         self._topics = set(topics)
         self._expected = dict(expected or {})

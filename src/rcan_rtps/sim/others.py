@@ -32,9 +32,15 @@ async def warn_of_other_robots(node: RosNode, odom_topic: str = "odom") -> list[
     topic = node.resolve(odom_topic)
     try:
         graph = RosGraph(node)
-        await graph.settle(SETTLE_S)
-        others = describe_other_publishers(graph.publishers_on({topic}),
-                                           node.participant.guid.bytes)
+        try:
+            await graph.settle(SETTLE_S)
+            others = describe_other_publishers(graph.publishers_on({topic}),
+                                               node.participant.guid.bytes)
+        finally:
+            # Its readers go now: nobody reads them after this look, and left to the
+            # collector they outlived it (frozen by `run`'s gc.freeze()), keeping every
+            # peer that came and went since.
+            graph.close()
     except Exception as exc:  # DDS refused a builtin reader, the node closed meanwhile, …
         log.warning("could not look for another robot publishing %s: %s", topic, exc)
         return []

@@ -49,9 +49,8 @@ from collections.abc import Callable
 from typing import Any
 
 from ..rcan import ForeignPublisher
-from ..ros.graph import MAX_NODE_FQN, Endpoint, node_fqn, short_gid
+from ..ros.graph import MAX_NODE_FQN, Endpoint, node_fqn, shared_graph, short_gid
 from ..ros.participant import RosNode
-from ..ros.services import shared_graph
 from .report_budget import ReportBudget
 
 log = logging.getLogger(__name__)

@@ -11,9 +11,9 @@ from typing import Any
 from .. import _stop_signals as stop_signals
 from ..ros.action_goals import ClientGoal
 from ..ros.actions import ActionClient, GoalState
-from ..ros.graph import Direction, RosGraph, node_fqn
+from ..ros.graph import Direction, RosGraph, node_fqn, shared_graph
 from ..ros.names import EndpointKind, action_names
-from ..ros.services import RequestMapping, shared_graph
+from ..ros.services import RequestMapping
 from ._common import VALUES_HELP, dump, make_node, parse_values, warn_if_alone
 from ._governed import UNGOVERNED, GovernorGuard, action_topics
 from ._options import add_spin_time

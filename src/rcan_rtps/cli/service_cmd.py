@@ -9,9 +9,9 @@ import time
 
 from .. import _stop_signals as stop_signals
 from ..ros.errors import ServiceUnavailable, WireError, seconds
-from ..ros.graph import RosGraph
+from ..ros.graph import RosGraph, shared_graph
 from ..ros.participant import RosNode
-from ..ros.services import RequestMapping, ServiceClient, shared_graph
+from ..ros.services import RequestMapping, ServiceClient
 from ..ros.typesys.store import normalize_name
 from ._common import VALUES_HELP, alone_hint, dump, make_node, parse_values, warn_if_alone
 from ._governed import UNGOVERNED, GovernorGuard, service_topics

@@ -48,7 +48,7 @@ from .errors import (
     WireError,
     seconds,
 )
-from .graph import Direction
+from .graph import Direction, shared_graph
 from .handshake import (
     CYCLONE_VENDOR,
     FASTDDS_VENDOR,
@@ -68,7 +68,6 @@ from .services import (
     PAIR_READER_DEPTH,
     RequestMapping,
     ServiceClient,
-    shared_graph,
 )
 
 if TYPE_CHECKING:

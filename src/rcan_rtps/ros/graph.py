@@ -18,6 +18,7 @@ import enum
 import logging
 import sys
 import time
+import weakref
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -482,3 +483,15 @@ def node_fqn(namespace: str, name: str) -> str:
 def short_gid(gid: bytes) -> str:
     return ".".join(f"{b:02x}" for b in gid)
 
+
+# One discovery view per node, shared by its service and action clients and the bridge's
+# commander watch (which reads it even when no call is made: its readers never fill up).
+_graphs: weakref.WeakKeyDictionary[RosNode, RosGraph] = weakref.WeakKeyDictionary()
+
+
+def shared_graph(node: RosNode) -> RosGraph:
+    """One discovery view per node, shared by its clients."""
+    graph = _graphs.get(node)
+    if graph is None:
+        graph = _graphs[node] = RosGraph(node)
+    return graph

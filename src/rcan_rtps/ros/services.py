@@ -55,7 +55,7 @@ from . import _cyclone_header as cyclone
 from . import qos as qos_mod
 from . import raw_cdr
 from .errors import AmbiguousReply, ServiceTimeout, ServiceUnavailable, WireError, seconds
-from .graph import Direction, Endpoint, RosGraph
+from .graph import Direction, Endpoint, shared_graph
 from .handshake import (
     POLL,
     WriterGuids,
@@ -116,7 +116,6 @@ def mapping_of_vendor(guid: bytes, service_id: str = "") -> RequestMapping:
 
 _id_counters: weakref.WeakKeyDictionary[RosNode, itertools.count[int]] = \
     weakref.WeakKeyDictionary()
-_graphs: weakref.WeakKeyDictionary[RosNode, RosGraph] = weakref.WeakKeyDictionary()
 
 
 def new_endpoint_id(node: RosNode) -> bytes:
@@ -130,14 +129,6 @@ def new_endpoint_id(node: RosNode) -> bytes:
 def format_endpoint_id(raw: bytes) -> str:
     """rmw_cyclonedds' text form: hex bytes joined by '.', only the first zero-padded."""
     return f"{raw[0]:02x}" + "".join(f".{b:x}" for b in raw[1:])
-
-
-def shared_graph(node: RosNode) -> RosGraph:
-    """One discovery view per node, shared by its clients."""
-    graph = _graphs.get(node)
-    if graph is None:
-        graph = _graphs[node] = RosGraph(node)
-    return graph
 
 
 def _user_data(endpoint: Any) -> dict[str, str]:

@@ -17,7 +17,7 @@ import asyncio
 import contextlib
 import os
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -205,6 +205,16 @@ def _anonymous_kb(pid: int) -> int:
     raise AssertionError(f"no RssAnon in /proc/{pid}/status")
 
 
+async def _grown_kb(pid: int, operations: Callable[[int], Awaitable[None]], warm_up: int,
+                    count: int) -> int:
+    """How much `pid`'s anonymous memory grew over `count` operations, after `warm_up` of
+    them (pools, first-use paths, the allocator's arenas)."""
+    await operations(warm_up)
+    before = _anonymous_kb(pid)
+    await operations(count)
+    return _anonymous_kb(pid) - before
+
+
 async def test_stops_by_the_thousand_leave_no_memory_behind(bridge: RunProcess) -> None:
     """Each stop is audited, zeroes the velocity and cancels every goal on both goal
     servers (two service calls). The cyclonedds binding leaked each matched endpoint's
@@ -221,10 +231,7 @@ async def test_stops_by_the_thousand_leave_no_memory_behind(bridge: RunProcess) 
                                      headers=headers) as resp:
                     assert resp.status == 200, await resp.text()
 
-        await stops(WARM_UP_STOPS)  # pools, first-use paths, a checkpoint, the arenas
-        before = _anonymous_kb(pid)
-        await stops(STOPS)
-        grown = _anonymous_kb(pid) - before
+        grown = await _grown_kb(pid, stops, WARM_UP_STOPS, STOPS)
     print(f"{STOPS} stops: anonymous memory +{grown} kB")
     assert grown < 1100, grown
 
@@ -254,10 +261,7 @@ async def test_endpoints_that_come_and_go_leave_no_memory_behind(bridge: RunProc
                 await asyncio.sleep(0.001)  # (discovery sends it before its deletion)
                 subscription.close()
 
-        await endpoints(WARM_UP_ENDPOINTS)
-        before = _anonymous_kb(pid)
-        await endpoints(ENDPOINTS)
-        grown = _anonymous_kb(pid) - before
+        grown = await _grown_kb(pid, endpoints, WARM_UP_ENDPOINTS, ENDPOINTS)
     print(f"{ENDPOINTS} endpoints came and went: anonymous memory +{grown} kB")
     assert grown < 4400, grown
 
@@ -282,9 +286,6 @@ async def test_websockets_by_the_thousand_leave_no_memory_behind(bridge: RunProc
                     frame = await ws.receive_json(timeout=20)
                     assert "type" in frame, frame
 
-        await sockets(WARM_UP_SOCKETS)
-        before = _anonymous_kb(pid)
-        await sockets(SOCKETS)
-        grown = _anonymous_kb(pid) - before
+        grown = await _grown_kb(pid, sockets, WARM_UP_SOCKETS, SOCKETS)
     print(f"{SOCKETS} WebSockets: anonymous memory +{grown} kB")
     assert grown < 4000, grown

@@ -579,12 +579,13 @@ def _printable(text: str) -> str:
 
 
 def _summary_definitions(stream: IO[bytes], file: Path) -> Definitions:
-    """The schemas and channels of a closed file's summary section, as `Definitions`."""
+    """The schemas and channels of a closed file's summary section, as `Definitions`. The
+    caller has refused a summary section holding a chunk (`_check_summary_section`): the
+    reader below would inflate it."""
     found = Definitions()
     summary_start = _summary_start(stream)
     if summary_start is None:
         return found
-    _check_summary_section(stream, file)
     size = os.fstat(stream.fileno()).st_size
     stream.seek(summary_start)
     records = StreamReader(BoundedFile(stream, size - FOOTER_TAIL.size), skip_magic=True,  # type: ignore[arg-type]
@@ -655,6 +656,7 @@ def _check_data_section(stream: IO[bytes], file: Path, found: BagDamage) -> None
                 in_data.add(record)
         except BagError as exc:
             found.chunks.append(f"{file.name} at byte {offset}: {_unnamed(exc, file)}")
+    _check_summary_section(stream, file)
     in_summary = _summary_definitions(stream, file)
     for record in [*in_summary.schemas.values(), *in_summary.channels.values()]:
         in_data.add(record)

@@ -22,7 +22,7 @@ from waiting import eventually
 from rcan_rtps.governance.audit import AuditEvent, AuditLog, AuditRecord
 from rcan_rtps.governance.clock import ManualClock
 from rcan_rtps.governance.left import SETTLING_S, LeftGoal
-from rcan_rtps.governance.resume import resume
+from rcan_rtps.governance.resume import point_path, resume
 from rcan_rtps.rcan import Outcome
 
 ARM_TOPIC = "/robot1/left_arm/joint_trajectory"
@@ -59,6 +59,20 @@ class Log:
         await self.add(AuditEvent.COMMAND_DISPATCHED, principal="planner", role="USER",
                        message_id=message_id, action_type="navigate", params=params,
                        applied=params, outcome="executed", ros2_topic=NAV, goal_id=goal_id)
+
+    async def move(self, message_id: str, replaces: str | None = None) -> None:
+        """A held velocity stream; `replaces`: the stream its entry says it ended."""
+        applied: dict[str, Any] = {"linear_x": 0.2, "angular_z": 0.0}
+        if replaces is not None:
+            applied["replaces"] = {"message_id": replaces, "reason": "replaced"}
+        await self.add(AuditEvent.COMMAND_DISPATCHED, principal="planner", role="USER",
+                       message_id=message_id, action_type="move",
+                       params={"linear_x": 0.2}, applied=applied, outcome="executed",
+                       ros2_topic="/robot1/cmd_vel")
+
+    async def stream_ended(self, message_id: str) -> None:
+        await self.add(AuditEvent.STREAM_ENDED, principal="planner", action_type="move",
+                       message_id=message_id, params={"reason": "completed"})
 
     async def stop(self, message_id: str) -> None:
         await self.add(AuditEvent.COMMAND_DISPATCHED, principal="ops", role="OWNER",
@@ -664,3 +678,79 @@ async def test_more_arm_trajectories_left_than_listed_are_held_all_the_same(
     [arm] = resume(log.path, now_ms=log.now_ms()).left.arms
     assert sorted(arm.joints) == sorted(joints)  # the short one is over: not held
     assert (arm.topic, arm.runs_for_s) == (ARM_TOPIC, 60.0 + MAX_LEFT + 5)
+
+
+async def test_a_stream_a_later_move_replaced_ends_with_that_move(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A move that replaces the stream running says so in its own entry (`applied.replaces`);
+    no STREAM_ENDED of the replaced one follows. Before, each replaced stream stayed in the
+    replay's state for the rest of the run (and in every start point: ~1.1 kB per move made
+    over REST), and a crash listed them all as left running."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.move("move-1")
+    await log.move("move-2", replaces="move-1")
+    await log.move("move-3", replaces="move-2")
+    await log.stream_ended("move-3")
+    await log.audit.close()  # killed: no BRIDGE_STOPPED
+    assert resume(log.path, now_ms=log.now_ms()).left.streams == []
+
+
+async def test_the_stream_a_move_replaced_is_listed_while_the_move_is(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """The crash may have come between the move's entry and its first sample: the stream it
+    replaced may be the one still on the wire. Both are listed (fail closed), as for a
+    replaced trajectory; the replaced one alone once the move's own COMMAND_FAILED says it
+    was refused after its entry."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.move("move-1")
+    await log.move("move-2", replaces="move-1")
+    await log.audit.close()
+    left = resume(log.path, now_ms=log.now_ms()).left.streams
+    assert [s.message_id for s in left] == ["move-1", "move-2"]
+
+    log = await Log.open(tmp_path / "refused", clock)
+    await log.started()
+    await log.move("move-1")
+    await log.move("move-2", replaces="move-1")
+    await log.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id="move-2",
+                  action_type="move", outcome="failed",
+                  deny_reason="robot_unavailable:robot silent")
+    await log.audit.close()
+    left = resume(log.path, now_ms=log.now_ms()).left.streams
+    assert [s.message_id for s in left] == ["move-1"]
+
+
+async def test_a_stream_given_back_by_its_replacer_s_failure_ends_by_its_own_entry(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """Given back, the replaced stream runs on until its own end (the replacer never took
+    the wire, so the live bridge records that end in a STREAM_ENDED of its own)."""
+    log = await Log.open(tmp_path, clock)
+    await log.started()
+    await log.move("move-1")
+    await log.move("move-2", replaces="move-1")
+    await log.add(AuditEvent.COMMAND_FAILED, principal="planner", message_id="move-2",
+                  action_type="move", outcome="failed", deny_reason="estop_active")
+    await log.stream_ended("move-1")
+    await log.audit.close()
+    assert resume(log.path, now_ms=log.now_ms()).left.streams == []
+
+
+async def test_a_run_of_replaced_moves_leaves_the_replay_no_bigger(harness: Harness) -> None:
+    """The governor's own log of it: moves made one after another over REST (each replacing
+    the stream before it), then a kill. The replay and the start point it writes hold the
+    last move and the one it replaced, not every move of the run."""
+    gov = await harness.governor(gates="[]")
+    await gov.start()
+    moves = [await gov.decide(command("move", {"linear_x": 0.1 + n / 1000}), PLANNER)
+             for n in range(40)]
+    assert all(m.outcome is Outcome.EXECUTED for m in moves)
+    replacing = [e for e in harness.entries if e.get("message_id") == moves[-1].message_id]
+    assert replacing[0]["applied"]["replaces"]["message_id"] == moves[-2].message_id
+    await harness.logs[0].checkpoint()  # a start point, as the running bridge writes them
+    point = json.loads(point_path(harness.tmp / "audit.jsonl").read_bytes())
+    assert len(point["body"]["motion"]["streams"]) == 1, point["body"]["motion"]
+    await harness.restart()  # killed: no BRIDGE_STOPPED
+    left = resume(harness.tmp / "audit.jsonl").left.streams
+    assert [s.message_id for s in left] == [moves[-2].message_id, moves[-1].message_id]

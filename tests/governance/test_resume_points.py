@@ -70,11 +70,12 @@ class Run:
         await self.audit.append(AuditRecord(event=event, **fields))
 
     async def command(self, action: str, params: dict[str, Any], topic: str | None, *,
-                      principal: str = "planner", **more: Any) -> str:
+                      principal: str = "planner", applied: dict[str, Any] | None = None,
+                      **more: Any) -> str:
         message_id = self.next_id(action)
         fields = dict(principal=principal, message_id=message_id, action_type=action,
-                      params=params, applied=params, outcome="executed", ros2_topic=topic,
-                      **more)
+                      params=params, applied=params if applied is None else applied,
+                      outcome="executed", ros2_topic=topic, **more)
         self.commands.append(fields)
         await self.add(AuditEvent.COMMAND_DISPATCHED, role="USER", **fields)
         return message_id
@@ -100,7 +101,7 @@ steps = st.one_of(
               st.sampled_from([0.5, 2.0, 60.0])),
     st.tuples(st.just("goal"), st.sampled_from(PRINCIPALS), st.booleans()),
     st.tuples(st.just("finish"), st.integers(0, 20)),
-    st.tuples(st.just("move"), st.sampled_from(PRINCIPALS)),
+    st.tuples(st.just("move"), st.sampled_from(PRINCIPALS), st.booleans()),
     st.tuples(st.just("ended"), st.integers(0, 40)),
     st.tuples(st.just("failed"), st.integers(0, 3), st.booleans()),
     st.tuples(st.just("failed"), st.integers(0, 3), st.booleans()),
@@ -135,8 +136,7 @@ async def _step(run: Run, step: Step) -> None:
         await run.add(AuditEvent.GOAL_FINISHED, message_id=goal, params={"goal_id": goal},
                       outcome="succeeded")
     elif kind == "move":
-        await run.command("move", {"linear_x": 0.2, "angular_z": 0.0}, "/robot1/cmd_vel",
-                          principal=step[1])
+        await _move(run, step[1], replaces=step[2])
     elif kind == "ended" and run.commands:
         ended = run.commands[step[1] % len(run.commands)]
         await run.add(AuditEvent.STREAM_ENDED, message_id=ended["message_id"],
@@ -162,6 +162,17 @@ async def _step(run: Run, step: Step) -> None:
         run.clock.advance(step[1])
     elif kind == "point":
         await run.point()
+
+
+async def _move(run: Run, principal: str, *, replaces: bool) -> None:
+    """A move; `replaces`: its entry says it replaced the last move's stream, as the
+    governor's does when that stream is running (`applied.replaces`)."""
+    params = {"linear_x": 0.2, "angular_z": 0.0}
+    moves = [c["message_id"] for c in run.commands if c["action_type"] == "move"]
+    applied = dict(params)
+    if replaces and moves:
+        applied["replaces"] = {"message_id": moves[-1], "reason": "replaced"}
+    await run.command("move", params, "/robot1/cmd_vel", principal=principal, applied=applied)
 
 
 async def _failed(run: Run, failed: dict[str, Any], *, named: bool) -> None:
@@ -238,6 +249,11 @@ async def _equivalence(tmp: Path, run_steps: list[Step], crashed: bool) -> None:
 # A goal a boundary lists by its id (keyed by it: red team 16), then a point: the point's
 # key must come back as the key it was, not one no dict can hold.
 @example([("goal", "planner", True), ("started", False), ("point",)], True)
+# A move's stream replaced by another's after a point, the replacer refused: given back.
+@example([("move", "planner", False), ("point",), ("move", "other", True),
+          ("failed", 0, False)], True)
+@example([("move", "planner", False), ("move", "other", True), ("point",),
+          ("failed", 0, False), ("stop",), ("point",), ("failed", 0, False)], True)
 def test_a_start_from_the_last_point_finds_what_a_start_from_the_boundary_finds(
         run_steps: list[Step], crashed: bool) -> None:
     with tempfile.TemporaryDirectory() as tmp:
@@ -287,6 +303,33 @@ async def test_a_start_replays_from_its_point_not_from_the_run_s_first_entry(
     assert _left_ids(run, pubkey=_pubkey(tmp_path)) == (True, ["arm_joint-1"], ["navigate-2"])
     from_boundary = resume(run.path)  # reads the garbled line: fails closed
     assert from_boundary.latched and "unreadable" in str(from_boundary.latched_by)
+
+
+async def test_a_point_of_the_replay_s_earlier_meaning_is_not_used(
+        tmp_path: Path, clock: ManualClock) -> None:
+    """A point signed under the previous tag (v2: a replaced stream stayed listed until the
+    run ended) holds a state the replay of today would not find: it is not used, and the
+    replay goes back to the boundary (the run's moves read as they are read today)."""
+    run = await Run.open(tmp_path, clock)
+    await run.add(AuditEvent.BRIDGE_STARTED, params={"estop_latched": False, "locks": {}})
+    await _move(run, "planner", replaces=False)
+    await _move(run, "planner", replaces=True)
+    await run.add(AuditEvent.STREAM_ENDED, message_id=run.commands[-1]["message_id"],
+                  params={"reason": "completed"})
+    await run.point()
+    await run.crash()
+    path = point_path(run.path)
+    file = json.loads(path.read_bytes())
+    file["body"]["motion"]["streams"] = [[["planner", "move-1", "move"], {
+        "message_id": "move-1", "action": "move", "principal": "planner",
+        "topic": "/robot1/cmd_vel"}]]  # as v2 left it
+    body = json.dumps(file["body"]).encode()
+    key = load_or_create_key(tmp_path / "audit.key")
+    old_tag = b"rcan-rtps resume point v2\n"
+    path.write_bytes(json.dumps({"body": file["body"], "sig": base64.b64encode(
+        key.sign(old_tag + body)).decode()}).encode())
+    found = resume(run.path, now_ms=int(clock.time() * 1000), pubkey=_pubkey(tmp_path))
+    assert found.left.streams == [] and found.crashed
 
 
 def _rewrite_point(run: Run, change: Any) -> None:

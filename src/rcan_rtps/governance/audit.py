@@ -83,7 +83,11 @@ MAX_CHECKPOINT_BYTES = 64 * 1024  # a checkpoint holds at most 64 peaks: larger 
 # What AuditLog.sign_resume_point signs before a start point's body. Its version changes with
 # the meaning of the replay's state (governance.resume.StartPoint): an older point then fails
 # its signature and is not used (the start replays from the boundary), never misread.
-RESUME_POINT_TAG = b"rcan-rtps resume point v2\n"  # v2: a GOAL_FINISHED seeing no end ends nothing
+# A point's replay state must be what the replay from the boundary finds; a change of what an
+# entry ends changes the tag, so that a point of the old meaning is not used (replayed from
+# the boundary once). v2: a GOAL_FINISHED seeing no end ends nothing. v3: a move's entry ends
+# the stream it says it replaced (`applied.replaces`).
+RESUME_POINT_TAG = b"rcan-rtps resume point v3\n"
 # When the disk is fast (smoothed write+fsync below INLINE_FSYNC_S) the loop writes: an idle
 # log's append at once (none in the last INLINE_GAP_S), a burst's entries together one loop
 # turn after the turn the first was sealed in (group commit; the turn held back lets the next

@@ -25,7 +25,9 @@ one naming a goal did not end it: its send gave up, the server may accept it lat
 later trajectory of the same joints on the same topic (it replaced it, unless its own
 COMMAND_FAILED follows: refused once written ahead, it was never sent; the newest such
 replacement may not have been sent either — the crash came between its entry and its
-publish — so what it replaced stays listed while due), a stop of everyone's
+publish — so what it replaced stays listed while due), a move whose entry says it replaced
+a stream (`applied.replaces`: that stream's end has no entry of its own; given back, and
+listed, on the same terms as a replaced trajectory), a stop of everyone's
 motion (a `stop`, an e-stop, a safe stop of the whole robot) unless that stop's own
 COMMAND_FAILED follows, and a stop of one principal's motion for what it says it stopped.
 
@@ -53,7 +55,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 import msgspec
 from cryptography.exceptions import InvalidSignature
@@ -175,23 +177,15 @@ class _Replay:
             seq=cp.seq, audit_id=cp.audit_id, start=cp.start, end=cp.end,
             last_event=self.last_event, latched=self.found.latched,
             latched_by=self.found.latched_by, locks=dict(self.found.locks),
-            motion=_MotionState(
-                arms=list(motion.arms.items()), goals=list(motion.goals.items()),
-                streams=list(motion.streams.items()), replaced=list(motion._replaced.items()),
-                halted=[(k, _MotionState(arms=list(a.items()), goals=list(g.items()),
-                                         streams=list(s.items()), replaced=list(r.items())))
-                        for k, (a, g, s, r) in motion._halted.items()]))
+            motion=_MotionState.of(motion.running(), motion._halted))
 
     def _restore(self, point: StartPoint) -> None:
         self.last_event = point.last_event
         self.found = Resumed(latched=point.latched, latched_by=point.latched_by,
                              locks=dict(point.locks))
         state, motion = point.motion, self.motion
-        motion.arms, motion.goals = _by_key(state.arms), _by_key(state.goals)
-        motion.streams, motion._replaced = _by_key(state.streams), _by_key(state.replaced)
-        motion._halted = {_frozen(k): (_by_key(h.arms), _by_key(h.goals), _by_key(h.streams),
-                                       _by_key(h.replaced))
-                          for k, h in state.halted}
+        motion.set_running(state.running())
+        motion._halted = {_frozen(k): h.running() for k, h in state.halted}
 
 
 V = TypeVar("V")
@@ -230,6 +224,16 @@ def _key_of(left: LeftArm | LeftGoal | LeftStream) -> _Key:
     return left.principal, left.message_id, left.action
 
 
+class _Running(NamedTuple):
+    """`_Motion`'s running motion and what it replaced, as a stop found it."""
+
+    arms: dict[_Key, LeftArm]
+    goals: dict[_Key, LeftGoal]
+    streams: dict[_Key, LeftStream]
+    replaced: dict[_Key, list[LeftArm]]
+    replaced_streams: dict[_Key, list[LeftStream]]
+
+
 class _Motion:
     """The motion sent since the boundary, less what ended, replayed oldest first."""
 
@@ -240,9 +244,19 @@ class _Motion:
         # A trajectory → the arms it replaced, given back if its own COMMAND_FAILED follows
         # (written ahead, then refused: it was never sent).
         self._replaced: dict[_Key, list[LeftArm]] = {}
+        # A move → the stream its entry says it replaced, the same way. (Kept in `streams`,
+        # every replaced move of a long run piled up there and in each start point.)
+        self._replaced_streams: dict[_Key, list[LeftStream]] = {}
         # A stop → what it ended, given back if its own COMMAND_FAILED follows.
-        self._halted: dict[_Key, tuple[dict[_Key, LeftArm], dict[_Key, LeftGoal],
-                                       dict[_Key, LeftStream], dict[_Key, list[LeftArm]]]] = {}
+        self._halted: dict[_Key, _Running] = {}
+
+    def running(self) -> _Running:
+        return _Running(self.arms, self.goals, self.streams, self._replaced,
+                        self._replaced_streams)
+
+    def set_running(self, running: _Running) -> None:
+        (self.arms, self.goals, self.streams, self._replaced,
+         self._replaced_streams) = running
 
     def left(self, now_ms: int, boot: BootInstant | None) -> LeftRunning:
         # Fail closed: the bridge may have died between a trajectory's write-ahead entry and
@@ -250,11 +264,13 @@ class _Motion:
         # are listed while due; a hold of an arm the later one did stop holds it at rest.
         replaced = [run for by, runs in self._replaced.items() if by in self.arms
                     for run in runs]
+        streams = {_key_of(s): s for by, ended in self._replaced_streams.items()
+                   if by in self.streams for s in ended}
         return LeftRunning(
             arms=_arms_left([a for a in (*replaced, *self.arms.values())
                              if a.left_ms(now_ms, boot) > 0], now_ms, boot),
             goals=_goals_left(list(self.goals.values())),
-            streams=list(self.streams.values())[-MAX_LEFT:])
+            streams=list({**streams, **self.streams}.values())[-MAX_LEFT:])
 
     def apply(self, entry: dict[str, Any]) -> None:
         event, message_id = entry.get("event"), entry.get("message_id")
@@ -272,8 +288,7 @@ class _Motion:
         elif event == "GOAL_FINISHED":
             self._goal_finished(entry)
         elif event == "STREAM_ENDED" and isinstance(message_id, str):
-            # Its owner's, where the command's entry may name its approver: by id alone.
-            self.streams = {k: s for k, s in self.streams.items() if k[1] != message_id}
+            self._stream_ended(message_id)
 
     def _executed(self, entry: dict[str, Any]) -> None:
         try:
@@ -289,8 +304,8 @@ class _Motion:
                 message_id=message_id, action=spec.name, principal=principal, server=topic,
                 goal_id=_goal_id(entry.get("goal_id")))
         elif spec.streamed:
-            self.streams[_key(entry)] = LeftStream(message_id=message_id, action=spec.name,
-                                                  principal=principal, topic=topic)
+            self._stream(entry, LeftStream(message_id=message_id, action=spec.name,
+                                           principal=principal, topic=topic))
         elif isinstance(spec.ros, Publish) and spec.ros.hold is not None:
             self._trajectory(entry, spec, spec.ros.hold, message_id)
 
@@ -315,6 +330,27 @@ class _Motion:
             self._replaced[_key(entry)] = list(replaced.values())
             _keep_newest(self._replaced)
         self.arms[_key(entry)] = arm
+
+    def _stream(self, entry: dict[str, Any], stream: LeftStream) -> None:
+        """A move's stream; the one its entry says it replaced ends, set aside (no
+        STREAM_ENDED of it follows: `StreamEnded.recorded`)."""
+        key, ended = _key(entry), _replaced_id(entry.get("applied"))
+        if ended is not None:
+            replaced = [s for k, s in self.streams.items() if k[1] == ended and k != key]
+            if replaced:
+                self.streams = {k: s for k, s in self.streams.items()
+                                if k[1] != ended or k == key}
+                self._replaced_streams[key] = replaced
+                _keep_newest(self._replaced_streams)
+        self.streams[key] = stream
+
+    def _stream_ended(self, message_id: str) -> None:
+        """Its owner's, where the command's entry may name its approver: by id alone. Set
+        aside, it ends there too; as a replacer, what it replaced is let go (it ran)."""
+        self.streams = {k: s for k, s in self.streams.items() if k[1] != message_id}
+        self._replaced_streams = {
+            by: running for by, ended in self._replaced_streams.items() if by[1] != message_id
+            if (running := [s for s in ended if s.message_id != message_id])}
 
     def _halt(self, entry: dict[str, Any]) -> None:
         applied = entry.get("applied")
@@ -349,8 +385,8 @@ class _Motion:
         self.streams.update((_key_of(s), s) for s in left.streams if chosen(s.message_id))
 
     def _halted_all(self, stop: _Key) -> None:
-        self._halted[stop] = (self.arms, self.goals, self.streams, self._replaced)
-        self.arms, self.goals, self.streams, self._replaced = {}, {}, {}, {}
+        self._halted[stop] = self.running()
+        self.set_running(_Running({}, {}, {}, {}, {}))
         _keep_newest(self._halted)
 
     def _own_stop(self, principal: str, facts: dict[str, Any]) -> None:
@@ -366,20 +402,21 @@ class _Motion:
                           if (kept := [a for a in arms
                                        if not (a.principal == principal and a.topic in held)])}
         self.streams = {m: s for m, s in self.streams.items() if s.principal != principal}
+        self._replaced_streams = {
+            m: others for m, ended in self._replaced_streams.items()
+            if (others := [s for s in ended if s.principal != principal])}
 
     def _failed(self, command: _Key) -> None:
         """The send of `command` failed: it started nothing — or, a stop's, ended nothing."""
         for running in (self.arms, self.goals, self.streams):
             running.pop(command, None)
-        # A trajectory refused after its entry replaced nothing: what it replaced runs on.
+        # A trajectory or move refused after its entry replaced nothing: that runs on.
         self.arms = {**{_key_of(a): a for a in self._replaced.pop(command, ())}, **self.arms}
+        self.streams = {**{_key_of(s): s for s in self._replaced_streams.pop(command, ())},
+                        **self.streams}
         given_back = self._halted.pop(command, None)
         if given_back is not None:
-            arms, goals, streams, replaced = given_back
-            self.arms = {**arms, **self.arms}
-            self.goals = {**goals, **self.goals}
-            self.streams = {**streams, **self.streams}
-            self._replaced = {**replaced, **self._replaced}
+            self.set_running(_merged(given_back, self.running()))
 
     def _may_run(self, failed: dict[str, Any], sent: LeftGoal | None) -> None:
         """A COMMAND_FAILED naming a goal: its send gave up after the request went out (the
@@ -476,6 +513,20 @@ def _goal_id(given: Any) -> str | None:
         return str(uuid.UUID(given))
     except ValueError:
         return None
+
+
+def _merged(older: _Running, newer: _Running) -> _Running:
+    """Both, each collection in order: the older first."""
+    return _Running({**older.arms, **newer.arms}, {**older.goals, **newer.goals},
+                    {**older.streams, **newer.streams}, {**older.replaced, **newer.replaced},
+                    {**older.replaced_streams, **newer.replaced_streams})
+
+
+def _replaced_id(applied: Any) -> str | None:
+    """The message id of the stream a move's `applied` says it replaced (`Replaces.entry`)."""
+    replaces = applied.get("replaces") if isinstance(applied, dict) else None
+    given = replaces.get("message_id") if isinstance(replaces, dict) else None
+    return given if isinstance(given, str) else None
 
 
 def _keep_newest(given_back: dict[_Key, Any]) -> None:
@@ -581,6 +632,22 @@ class _MotionState(msgspec.Struct, kw_only=True):
     replaced: list[tuple[tuple[Any, str, Any], list[LeftArm]]]
     halted: list[tuple[tuple[Any, str, Any], _MotionState]] = msgspec.field(
         default_factory=list)
+    # (a point written before replaced streams were set aside has none)
+    replaced_streams: list[tuple[tuple[Any, str, Any], list[LeftStream]]] = msgspec.field(
+        default_factory=list)
+
+    @classmethod
+    def of(cls, running: _Running, halted: dict[_Key, _Running] | None = None,
+           ) -> _MotionState:
+        return cls(arms=list(running.arms.items()), goals=list(running.goals.items()),
+                   streams=list(running.streams.items()),
+                   replaced=list(running.replaced.items()),
+                   replaced_streams=list(running.replaced_streams.items()),
+                   halted=[(k, cls.of(h)) for k, h in (halted or {}).items()])
+
+    def running(self) -> _Running:
+        return _Running(_by_key(self.arms), _by_key(self.goals), _by_key(self.streams),
+                        _by_key(self.replaced), _by_key(self.replaced_streams))
 
 
 class StartPoint(msgspec.Struct, kw_only=True):

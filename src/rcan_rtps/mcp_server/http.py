@@ -4,7 +4,9 @@ The bridge's route (`rcan_rtps.api._mcp`) authenticates each request like any ot
 its `Seat` — the principal's view of the bridge, the agent identity the request names, the
 principal's heartbeats — and hands the request to `HttpMcp.handle` with that seat in the ASGI
 scope. A session belongs to the principal that opened it: the SDK answers a request for it
-with another credential as if the session did not exist (404).
+with another credential as if the session did not exist (404). A principal holds at most
+`MAX_SESSIONS_PER_PRINCIPAL` sessions, all principals `MAX_SESSIONS` (`sessions`: at its cap,
+a principal's session idle longest is closed for its new one).
 
 Responses are plain JSON, not an event stream per call: a tool call has one answer, and an
 event stream would only add framing to each reply.
@@ -21,14 +23,17 @@ from typing import Any
 from mcp.server.auth.middleware.bearer_auth import AuthenticatedUser
 from mcp.server.auth.provider import AccessToken
 from mcp.server.context import ServerRequestContext
-from mcp.server.streamable_http_manager import StreamableHTTPSessionManager
 from mcp_types.version import HANDSHAKE_PROTOCOL_VERSIONS
 
 from .seat import Seat
 from .server import RobotTools, build_server
+from .sessions import CappedSessions
 
 SEAT = "rcan.seat"  # the ASGI scope key of a request's seat
-MAX_SESSIONS = 256
+MAX_SESSIONS = 256  # all principals' together
+# One principal's (an agent and a few tools need a handful): far enough below MAX_SESSIONS
+# that no principal alone, nor a few, fill the bridge's.
+MAX_SESSIONS_PER_PRINCIPAL = 16
 SESSION_IDLE_S = 30 * 60.0
 Asgi = Any  # the ASGI callables, typed by the caller
 
@@ -52,9 +57,10 @@ class HttpMcp:
             sdk_log.setLevel(logging.WARNING)
         self._tools = RobotTools(seat_of, manifest=manifest)
         server = build_server(self._tools)
-        self._manager = StreamableHTTPSessionManager(
+        self._manager = CappedSessions(
             server, json_response=True, session_idle_timeout=SESSION_IDLE_S,
-            max_request_body_size=max_body_bytes, max_sessions=MAX_SESSIONS)
+            max_request_body_size=max_body_bytes, max_sessions=MAX_SESSIONS,
+            per_principal=MAX_SESSIONS_PER_PRINCIPAL)
 
     async def run(self, ready: asyncio.Event, stop: asyncio.Event) -> None:
         """Serve sessions until `stop`; then end them all (their open streams close)."""

@@ -1,0 +1,168 @@
+"""A cap on each principal's MCP sessions, beside the SDK's cap on them all (`/mcp`).
+
+The SDK's session manager caps the sessions it holds (`max_sessions`): past it, every new
+session is refused until one ends (DELETE) or has been idle `session_idle_timeout`. Alone,
+that cap is anyone's to fill: one client that opens sessions and abandons them (never sends
+DELETE, never comes back) shut every principal out for half an hour. Here each principal also
+has a cap of its own, well below the whole, so that no principal alone fills the whole.
+
+A principal at its cap that opens another session gets room made in its own sessions: the one
+idle longest (no request in flight the longest) is closed — as the idle timeout would close
+it, only sooner — and answers 404 like any expired session. Only when none of them is idle
+(each has a request in flight: a call being answered, an event stream open) is the new one
+refused, 429 with a JSON-RPC error that names the cap. Other principals' sessions are never
+touched. The manager's overall cap stays, its refusal (503) said as plainly.
+
+Why close rather than refuse: the sessions a principal leaves idle are almost always ones its
+client has abandoned (a crashed or restarted agent: the SDK's client sends no DELETE when it
+dies), and that client is the one asking again; refusing would lock the principal out of its
+own door for the idle timeout. A session with a request in flight is alive: closing it would
+cut a call in progress, so a live client never loses its session to a newcomer of its own.
+Closing a session does what its idle expiry does: motion it started is held (heartbeats) until
+that move or goal ends, as after an expiry; its principal stops it from any session.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from contextvars import ContextVar
+from typing import Any, NamedTuple
+
+from mcp.server.auth.middleware.bearer_auth import AuthorizationContext
+from mcp.server.streamable_http import StreamableHTTPServerTransport
+from mcp.server.streamable_http_manager import StreamableHTTPSessionManager
+from mcp_types import INTERNAL_ERROR, INVALID_REQUEST
+from starlette.types import Message, Receive, Scope, Send
+
+log = logging.getLogger(__name__)
+
+
+class Refusal(NamedTuple):
+    """A new session refused: the HTTP status, and what the JSON-RPC error says."""
+
+    status: int
+    code: int
+    message: str
+
+
+# The refusal of the opening request being handled, set by `_admit_session` (which returns
+# only "no room") for `_handle_stateful_request` to answer: the SDK's own refusal is fixed
+# text that names no cap and no principal.
+_REFUSED: ContextVar[list[Refusal]] = ContextVar("rcan_mcp_session_refused")
+SDK_LOG = "mcp.server.streamable_http_manager"
+
+
+class _RefusalsSaidHere(logging.Filter):
+    """Drops the SDK's log line of a refusal this module made and logged itself (the SDK's
+    would count the sessions of all principals against the cap of one)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not _REFUSED.get([])
+
+
+class CappedSessions(StreamableHTTPSessionManager):
+    """The SDK's session manager, with `per_principal` sessions at most for each principal
+    (the credential a session is bound to) within its `max_sessions`."""
+
+    def __init__(self, *args: Any, per_principal: int, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        if self.session_idle_timeout is None:  # (idleness is read off the idle clock)
+            raise ValueError("a per-principal cap needs sessions that expire when idle")
+        if self.max_sessions is not None and not 0 < per_principal < self.max_sessions:
+            raise ValueError("a principal's cap must be below the cap on all sessions")
+        self.per_principal = per_principal
+        sdk_log = logging.getLogger(SDK_LOG)
+        if not any(isinstance(f, _RefusalsSaidHere) for f in sdk_log.filters):
+            sdk_log.addFilter(_RefusalsSaidHere())
+
+    async def _handle_stateful_request(self, scope: Scope, receive: Receive, send: Send
+                                       ) -> None:
+        refused: list[Refusal] = []
+        token = _REFUSED.set(refused)
+        try:
+            await super()._handle_stateful_request(scope, receive, _answering(refused, send))
+        finally:
+            _REFUSED.reset(token)
+
+    def _admit_session(self, requestor: AuthorizationContext | None
+                       ) -> StreamableHTTPServerTransport | None:
+        # Called under the manager's lock, and synchronous: the count, the choice and the
+        # close happen with no other opening in between (a flood of concurrent openings by
+        # one principal gets no more than its cap).
+        mine = [sid for sid, owner in self._session_owners.items() if owner == requestor]
+        name = requestor["client_id"] if requestor is not None else "?"
+        if requestor is not None and len(mine) >= self.per_principal:
+            idle = self._idle_longest(mine)
+            if idle is None:
+                log.info("MCP: %s has %d sessions open, none idle: a new one refused",
+                         name, len(mine))
+                self._refuse(Refusal(429, INVALID_REQUEST, (
+                    f"too many MCP sessions: principal {name!r} has {len(mine)} open, its "
+                    f"cap ({self.per_principal} per principal), each with a request in "
+                    "flight: end one (DELETE) or open a new one once one is idle")))
+                return None
+            log.info("MCP: %s is at its cap of %d sessions: the one idle longest is closed "
+                     "for a new one", name, self.per_principal)
+            self._expire(idle)
+        admitted = super()._admit_session(requestor)
+        if admitted is None:
+            log.warning("MCP: %d sessions open, the cap over all principals: a new one of "
+                        "%s refused", len(self._server_instances), name)
+            timeout = self.session_idle_timeout or 0.0
+            self._refuse(Refusal(503, INTERNAL_ERROR, (
+                f"the bridge's MCP sessions are all taken ({self.max_sessions}, its cap over "
+                f"all principals): try again later (a session idle {timeout / 60:g} min "
+                "closes)")))
+        return admitted
+
+    def _idle_longest(self, sessions: list[str]) -> str | None:
+        """Of `sessions`, the one with no request in flight for the longest, if any is idle.
+        The SDK's idle clock says it: while a request is in flight (an event stream open
+        included) a session's idle deadline is infinite; once the last one ends, it is that
+        moment plus the idle timeout — the earliest deadline is the longest idle."""
+        deadlines: dict[str, float] = {}
+        for sid in sessions:
+            idle_scope = self._server_instances[sid].idle_scope
+            # (None: a session being opened, its transport not yet connected)
+            if idle_scope is not None and not idle_scope.cancel_called \
+                    and idle_scope.deadline != math.inf:
+                deadlines[sid] = idle_scope.deadline
+        return min(deadlines, key=deadlines.__getitem__) if deadlines else None
+
+    def _expire(self, session_id: str) -> None:
+        """Close an idle session as its idle timeout would: forgotten at once (its id answers
+        404 from now on), and its idle scope cancelled, which ends its server task; that
+        task discards the session and terminates its transport, as after an expiry."""
+        transport = self._server_instances.pop(session_id)
+        self._session_owners.pop(session_id, None)
+        if transport.idle_scope is not None:
+            transport.idle_scope.cancel()
+
+    @staticmethod
+    def _refuse(refusal: Refusal) -> None:
+        refused = _REFUSED.get(None)
+        if refused is not None:
+            refused.append(refusal)
+
+
+def _answering(refused: list[Refusal], send: Send) -> Send:
+    """`send`, but the SDK's answer to an opening this module refused replaced by the
+    refusal's own (the SDK's is one message start and one body: both are dropped)."""
+
+    async def answer(message: Message) -> None:
+        if not refused:
+            await send(message)
+            return
+        if message["type"] != "http.response.start":
+            return
+        status, code, said = refused[0]
+        body = json.dumps({"jsonrpc": "2.0", "id": None,
+                           "error": {"code": code, "message": said}}).encode()
+        await send({"type": "http.response.start", "status": status,
+                    "headers": [(b"content-type", b"application/json"),
+                                (b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": body, "more_body": False})
+
+    return answer

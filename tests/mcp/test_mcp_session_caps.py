@@ -133,6 +133,34 @@ def test_the_shipped_cap_of_a_principal_is_well_below_the_whole() -> None:
     assert 0 < per * 8 <= whole, SHIPPED
 
 
+def test_an_sdk_without_the_parts_the_cap_stands_on_is_said_at_start(
+        caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The per-principal cap overrides the SDK's private session admission: an SDK that
+    renamed it would admit every session uncapped, silently. This SDK has them all (else
+    this test fails first), and one without them is warned of at construction."""
+    from mcp.server.lowlevel import Server
+    from mcp.server.streamable_http_manager import StreamableHTTPSessionManager
+
+    from rcan_rtps.mcp_server import sessions
+
+    def made() -> sessions.CappedSessions:
+        with caplog.at_level("WARNING", logger=sessions.__name__):
+            return sessions.CappedSessions(Server("t"), session_idle_timeout=60.0,
+                                           max_sessions=8, per_principal=2)
+
+    assert all(hasattr(made(), n) for n in sessions._SDK_PARTS)
+    assert "lacks" not in caplog.text
+    real_init = StreamableHTTPSessionManager.__init__
+
+    def init_without_owners(self: Any, *args: Any, **kwargs: Any) -> None:
+        real_init(self, *args, **kwargs)
+        del self._session_owners
+
+    monkeypatch.setattr(StreamableHTTPSessionManager, "__init__", init_without_owners)
+    made()
+    assert "lacks _session_owners" in caplog.text
+
+
 async def test_sessions_one_principal_abandons_never_shut_out_another(api: Api) -> None:
     """PLANNER abandons as many sessions as the bridge holds in all: it holds its cap, and
     VIEWER (a GUEST) still opens a session and calls a tool. Before, VIEWER was refused

@@ -52,6 +52,8 @@ class Refusal(NamedTuple):
 # text that names no cap and no principal.
 _REFUSED: ContextVar[list[Refusal]] = ContextVar("rcan_mcp_session_refused")
 SDK_LOG = "mcp.server.streamable_http_manager"
+_SDK_PARTS = ("_admit_session", "_handle_stateful_request", "_session_owners",
+              "_server_instances")
 
 
 class _RefusalsSaidHere(logging.Filter):
@@ -73,6 +75,12 @@ class CappedSessions(StreamableHTTPSessionManager):
         if self.max_sessions is not None and not 0 < per_principal < self.max_sessions:
             raise ValueError("a principal's cap must be below the cap on all sessions")
         self.per_principal = per_principal
+        # The cap stands on the SDK's private parts (mcp 2.3): one that lacks them would
+        # take every session uncapped, in silence. Said once, loudly, at start.
+        missing = [n for n in _SDK_PARTS if not hasattr(self, n)]
+        if missing:
+            log.warning("MCP: this mcp SDK lacks %s: sessions are capped over all principals "
+                        "only, not per principal", ", ".join(missing))
         sdk_log = logging.getLogger(SDK_LOG)
         if not any(isinstance(f, _RefusalsSaidHere) for f in sdk_log.filters):
             sdk_log.addFilter(_RefusalsSaidHere())

@@ -2,12 +2,15 @@
 BRIDGE_STOPPED), written with the project's own AuditLog (valid, signed), then started on.
 
 Measured for each N: in-process `AuditLog.open` and `resume` (each in a fresh interpreter, the
-log's files copied fresh each round so every round is a start after that crash), and, with
-`--run`, `rcan-rtps run` from its launch to its ready line (run it in the network namespace:
-scripts/netns). The result replaces the `## Start after a long run` section of
-docs/benchmarks.md. Usage: .venv/bin/python bench/startup.py [--entries 10000,100000,1000000]
-[--rounds 3] [--run] [--dir DIR] [--baseline-ref REF]: with a baseline ref, that ref's `src`
-(a temporary git worktree) is measured on the same logs, alternately with this tree's.
+log's files copied fresh each round so every round is a start after that crash) and that
+interpreter's peak memory (ru_maxrss), and, with `--run`, `rcan-rtps run` from its launch to its
+ready line and its peak memory then (VmHWM; run it in the network namespace: scripts/netns).
+With `--unchecked`, the run's checkpoints after its first entry were never written (nor its start
+points): the start verifies and replays the whole run. The result replaces the `## Start after a
+long run` section of docs/benchmarks.md. Usage: .venv/bin/python bench/startup.py [--entries
+10000,100000,1000000] [--rounds 3] [--run] [--unchecked] [--dir DIR] [--baseline-ref REF]:
+with a baseline ref, that ref's `src` (a temporary git worktree) is measured on the same logs,
+alternately with this tree's.
 """
 
 from __future__ import annotations
@@ -56,24 +59,34 @@ sys.path.insert(0, sys.argv[3])
 from startup import records
 from rcan_rtps.governance.audit import AuditLog
 
-async def main(path, n):
+async def main(path, n, unchecked):
     log = await AuditLog.open(path, os.path.join(os.path.dirname(path), "audit.key"))
-    if hasattr(log, "on_checkpoint"):  # start points, as Governor.from_config has them written
+    # Start points, as Governor.from_config has them written (not where checkpoints fail).
+    if not unchecked and hasattr(log, "on_checkpoint"):
         import functools
         from pathlib import Path
         from rcan_rtps.governance.governor import _write_start_point
         log.on_checkpoint(functools.partial(_write_start_point, Path(path), log.public_key,
                                             log.sign_resume_point))
+    run = records(n)
+    await log.append(next(run))
+    if unchecked:  # the checkpoint after it is the last one written
+        await log.checkpoint()
+        with open(path + ".checkpoint", "rb") as f:
+            first = f.read()
     batch = []
-    for record in records(n):
+    for record in run:
         batch.append(log.append(record))
         if len(batch) == 64:
             await asyncio.gather(*batch)
             batch = []
     await asyncio.gather(*batch)
+    if unchecked:  # the later checkpoints were never written
+        with open(path + ".checkpoint", "wb") as f:
+            f.write(first)
     os._exit(0)  # a crash: no BRIDGE_STOPPED, no closing checkpoint
 
-asyncio.run(main(sys.argv[1], int(sys.argv[2])))
+asyncio.run(main(sys.argv[1], int(sys.argv[2]), sys.argv[4] == "1"))
 """
 
 
@@ -117,12 +130,12 @@ def _command(message_id: str, action: str, params: dict[str, Any], topic: str, *
                        applied=params, outcome="executed", ros2_topic=topic, goal_id=goal_id)
 
 
-def write_run(directory: Path, n: int, src: Path) -> None:
+def write_run(directory: Path, n: int, src: Path, *, unchecked: bool = False) -> None:
     directory.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(src), os.environ.get(
         "PYTHONPATH", "")])}
     subprocess.run([sys.executable, "-c", WRITER, str(directory / "audit.jsonl"), str(n),
-                    str(Path(__file__).parent)], check=True, env=env)
+                    str(Path(__file__).parent), "1" if unchecked else "0"], check=True, env=env)
 
 
 def fresh_copy(written: Path, into: Path) -> Path:
@@ -138,7 +151,7 @@ def fresh_copy(written: Path, into: Path) -> Path:
 # -- measuring a start -----------------------------------------------------------------------
 
 IN_PROCESS = r"""
-import asyncio, json, sys, time
+import asyncio, json, resource, sys, time
 from pathlib import Path
 
 async def main(directory):
@@ -151,7 +164,8 @@ async def main(directory):
     kwargs = {"pubkey": log.public_key} if "pubkey" in replay.resume.__code__.co_varnames else {}
     found = replay.resume(path, **kwargs)
     resumed = time.perf_counter()
-    times = {"open_s": opened - started, "resume_s": resumed - opened}
+    times = {"open_s": opened - started, "resume_s": resumed - opened,
+             "start_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     if hasattr(replay, "write_point"):  # what the running bridge does at each checkpoint
         from rcan_rtps.governance.audit import checkpoint_path, read_checkpoint
         cp = read_checkpoint(checkpoint_path(path), log.public_key)
@@ -174,24 +188,34 @@ def in_process(directory: Path, src: Path) -> dict[str, float]:
     return result
 
 
-def run_to_ready(directory: Path, src: Path) -> float:
-    """Seconds from launching `rcan-rtps run` to its ready line."""
+def run_to_ready(directory: Path, src: Path) -> tuple[float, float]:
+    """Seconds from launching `rcan-rtps run` to its ready line, and its peak memory (MB) then."""
     config = directory / "bench.rcan.yaml"
     config.write_text(CONFIG.format(audit=directory, port=free_port()))
     env = {**os.environ, "PYTHONPATH": str(src), "RCAN_BENCH_TOKEN": TOKEN}
     started = time.monotonic()
     with (directory / "bridge.log").open("w") as log:
         proc = subprocess.Popen([sys.executable, "-m", "rcan_rtps", "run", "--config",
-                                 str(config), "--no-mdns"], stdout=subprocess.PIPE, stderr=log,
-                                text=True, env=env)
+                                 str(config), "--no-mdns", "--localhost"],
+                                stdout=subprocess.PIPE, stderr=log, text=True, env=env)
     assert proc.stdout is not None
     line = proc.stdout.readline()
     ready = time.monotonic() - started
+    peak_mb = _peak_mb(proc.pid)
     proc.send_signal(2)
     proc.wait(timeout=60)
     if not re.match(r"rcan-rtps ready api=", line):
         raise RuntimeError(f"bridge did not start: {line}{(directory / 'bridge.log').read_text()}")
-    return ready
+    return ready, peak_mb
+
+
+def _peak_mb(pid: int) -> float:
+    """A running process's peak resident memory so far (VmHWM), in MB."""
+    with open(f"/proc/{pid}/status") as status:
+        for line in status:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    raise RuntimeError(f"no VmHWM for {pid}")
 
 
 def free_port() -> int:
@@ -217,7 +241,7 @@ def measure(args: argparse.Namespace, sides: list[Side], base: Path) -> dict[int
     sizes: dict[int, int] = {}
     for n in args.entries:
         written = base / f"run-{n}"
-        write_run(written, n, sides[-1].src)
+        write_run(written, n, sides[-1].src, unchecked=args.unchecked)
         sizes[n] = (written / "audit.jsonl").stat().st_size
         for r in range(args.rounds):
             for side in sides if r % 2 == 0 else reversed(sides):
@@ -225,8 +249,9 @@ def measure(args: argparse.Namespace, sides: list[Side], base: Path) -> dict[int
                 for what, value in in_process(copy, side.src).items():
                     side.add(n, what, value)
                 if args.run:
-                    side.add(n, "ready_s", run_to_ready(fresh_copy(written, base / "start"),
-                                                        side.src))
+                    ready, peak_mb = run_to_ready(fresh_copy(written, base / "start"), side.src)
+                    side.add(n, "ready_s", ready)
+                    side.add(n, "ready_mb", peak_mb)
         shutil.rmtree(written)
         print(n, {s.name: {k[1]: round(statistics.median(v), 4) for k, v in s.samples.items()
                            if k[0] == n} for s in sides}, flush=True)
@@ -234,31 +259,37 @@ def measure(args: argparse.Namespace, sides: list[Side], base: Path) -> dict[int
 
 
 def report(args: argparse.Namespace, sides: list[Side], sizes: dict[int, int]) -> str:
-    whats = [("open_s", "`AuditLog.open`"), ("resume_s", "`resume`"),
-             ("point_s", "a start point written")]
+    whats = [("open_s", "`AuditLog.open`", "s"), ("resume_s", "`resume`", "s"),
+             ("start_mb", "open + resume, peak", "MB"), ("point_s", "a start point written", "s")]
     if args.run:
-        whats.append(("ready_s", "`run` → ready line"))
+        whats += [("ready_s", "`run` → ready line", "s"), ("ready_mb", "`run`, peak", "MB")]
     head = "| entries of the last run | log size |" + "".join(
-        f" {label} {side.name} (s) |" for _, label in whats for side in sides)
+        f" {label} {side.name} ({unit}) |" for _, label, unit in whats for side in sides)
     rows = [head, "|" + "---|" * (2 + len(whats) * len(sides))]
     for n in args.entries:
         cells = [f"{n:,}", f"{sizes[n] / 1e6:.0f} MB"]
-        for what, _ in whats:
+        for what, _, unit in whats:
             for side in sides:
                 value = side.median(n, what)
-                cells.append("—" if value is None else f"{value:.3f}")
+                cells.append("—" if value is None else f"{value:.0f}" if unit == "MB"
+                             else f"{value:.3f}")
         rows.append("| " + " | ".join(cells) + " |")
     load = os.getloadavg()
     return "\n".join([
         SECTION, "",
-        f"`bench/startup.py`: a run of N entries written with the project's `AuditLog` (signed, "
+        "`bench/startup.py`: a run of N entries written with the project's `AuditLog` (signed, "
         "chained; a BRIDGE_STARTED, then velocity streams that end, arm trajectories, goals "
         "that finish, a stop every 100 entries) that crashed (its writer exits without "
-        "closing the log: no BRIDGE_STOPPED, no closing checkpoint); each start is made on a "
+        "closing the log: no BRIDGE_STOPPED, no closing checkpoint"
+        + ("; nor were its checkpoints after its first entry written, nor its start points: "
+           "the start verifies and replays the whole run" if args.unchecked else "")
+        + "); each start is made on a "
         "fresh copy of its files (warm page cache), in a fresh interpreter. `AuditLog.open`: "
         "the lock, the check of what the audit checkpoint does not cover, the tree head; "
         "`resume`: the replay of the last run for the e-stop latch, the locks and the motion "
-        "a crash left running; `run` → ready line: `rcan-rtps run --no-mdns` from launch to "
+        "a crash left running; peak: the most resident memory of the interpreter doing both "
+        "(ru_maxrss), and of `run` at its ready line (VmHWM); `run` → ready line: `rcan-rtps "
+        "run --no-mdns --localhost` from launch to "
         "its ready line (a DDS participant in a private network namespace); a start point "
         "written: what the running bridge does on its audit writer thread at each checkpoint "
         "(every 1 000 entries), `resume.write_point` from the crashed run's last point (up to "
@@ -276,6 +307,8 @@ def main() -> None:
                         type=lambda s: [int(x) for x in s.split(",")])
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--run", action="store_true", help="also `run` to its ready line")
+    parser.add_argument("--unchecked", action="store_true",
+                        help="the run's checkpoints after its first entry were not written")
     parser.add_argument("--dir", type=Path, default=None)
     parser.add_argument("--baseline-ref", default=None)
     parser.add_argument("--no-write", action="store_true", help="print, leave the doc alone")

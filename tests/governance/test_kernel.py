@@ -291,9 +291,10 @@ async def test_start_up_work_does_not_grow_with_the_log(tmp_path: Path) -> None:
     scanned: list[int] = []
     real_scan = audit_mod._scan
 
-    def counting_scan(data, pubkey, **kw):  # type: ignore[no-untyped-def]
-        scanned.append(len(data))
-        return real_scan(data, pubkey, **kw)
+    def counting_scan(lines, pubkey, **kw):  # type: ignore[no-untyped-def]
+        read = list(lines)
+        scanned.append(sum(len(line) + 1 for _, line in read))
+        return real_scan(iter(read), pubkey, **kw)
 
     audit_mod._scan = counting_scan  # type: ignore[assignment]
     try:

@@ -16,7 +16,10 @@ Writes run on the loop when the disk is fast (see INLINE_FSYNC_S), else on the l
 (never the default executor, which costly reads may fill).
 A signed checkpoint beside the log records the last verified entry (and the Merkle tree's peaks
 there), so opening the log checks only what was appended after it: start-up time does not grow
-with the log. `verify` and `rcan-rtps audit verify` still check the whole chain.
+with the log. Nor does its memory with what it checks (a crash may leave any number of
+entries past the checkpoint, or a checkpoint that no longer matches): it reads and verifies one
+line at a time (READ_CHUNK at once), and a torn tail is measured and hashed, never held.
+`verify` and `rcan-rtps audit verify` still check the whole chain.
 
 Transparency (`treehead`, `merkle`): each commit batch, once durable, gets a signed tree head
 (RFC 6962 root over the entries' lines) appended to `<log>.sth` and handed to the witness; the
@@ -297,9 +300,9 @@ def check_log_contents(path: str | os.PathLike[str], key_path: str | os.PathLike
     tail, which the start cuts and audits, passes. No log, or an empty one, is fine.
 
     More than `limit` bytes to read (past the checkpoint, or the whole log where there is
-    none that matches) are not read back: the start holds them in memory at once, and so did
-    this — a sparse or runaway file of gigabytes took twice its size and ended in a
-    MemoryError's traceback, or the OOM killer. Returns what was not read, then, for a note."""
+    none that matches) are not read back: the log is read a line at a time (as the start
+    reads it), but verifying takes time (some 0.2 ms an entry: a runaway log of gigabytes,
+    many minutes). Returns what was not read, then, for a note."""
     path = Path(path)
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
@@ -422,13 +425,21 @@ def load_public_key(path: str | os.PathLike[str]) -> Ed25519PublicKey:
 class _Scan(msgspec.Struct):
     head: ChainHead
     good_end: int  # byte offset just past the last complete, valid line
-    torn: bytes  # an unterminated tail (a crash mid-append), or b""
+    torn: int  # bytes of an unterminated tail (a crash mid-append) after good_end, or 0
     last_start: int = 0  # byte offset of the last valid line
     last_span: tuple[int, int] = (0, 0)  # (start, end) of the last valid line in the file
     tree: CompactTree | None = None  # the Merkle tree of the valid lines, when asked for
+    torn_sha256: str = ""  # of the torn tail, once the log is opened (what its entry records)
 
 
-def _lines(data: bytes) -> Iterator[tuple[int, bytes]]:
+_Lines = Iterator[tuple[int, bytes]]  # (offset, line without its newline), in order
+# What a scan of the file reads at a time: it holds this and the longest line, never the part
+# of the log it verifies (a crashed run's 200 000 entries past its checkpoint, 139 MB, were
+# read whole and joined: 278 MB at once).
+READ_CHUNK = 64 * 1024
+
+
+def _lines(data: bytes) -> _Lines:
     start = 0
     while start < len(data):
         end = data.find(b"\n", start)
@@ -436,6 +447,48 @@ def _lines(data: bytes) -> Iterator[tuple[int, bytes]]:
             return
         yield start, data[start:end]
         start = end + 1
+
+
+def _file_lines(fd: int, offset: int, end: int) -> _Lines:
+    """`_lines` of the file's bytes from `offset` (a line's start) to `end`, read a chunk at a
+    time. An unterminated tail is not read in, only looked through for a newline."""
+    while offset < end:
+        block = os.pread(fd, min(READ_CHUNK, end - offset), offset)
+        if b"\n" not in block:  # a line longer than a chunk, or the unterminated tail
+            newline = _next_newline(fd, offset + len(block), end)
+            if not block or newline is None:
+                return
+            block = os.pread(fd, newline + 1 - offset, offset)
+        lines = block.split(b"\n")
+        lines.pop()  # after the last newline: a line's start, read again with the next chunk
+        for line in lines:
+            yield offset, line
+            offset += len(line) + 1
+
+
+def _next_newline(fd: int, offset: int, end: int) -> int | None:
+    """The offset of the first newline at or after `offset` (before `end`), or None."""
+    while offset < end:
+        block = os.pread(fd, min(READ_CHUNK, end - offset), offset)
+        if not block:  # the file is shorter than it was
+            return None
+        found = block.find(b"\n")
+        if found >= 0:
+            return offset + found
+        offset += len(block)
+    return None
+
+
+def _sha256_of(fd: int, start: int, end: int) -> str:
+    """The hex SHA-256 of the file's bytes from `start` to `end`, a chunk at a time."""
+    digest = hashlib.sha256()
+    while start < end:
+        block = os.pread(fd, min(READ_CHUNK, end - start), start)
+        if not block:
+            break
+        digest.update(block)
+        start += len(block)
+    return digest.hexdigest()
 
 
 def _check_line(line: bytes, seq: int, prev: str, pubkey: Ed25519PublicKey | None) -> str:
@@ -478,39 +531,40 @@ def _sig_bytes(text: Any, seq: int) -> bytes:
     return sig
 
 
-def _scan(data: bytes, pubkey: Ed25519PublicKey | None, *, seq: int = 0,
-          prev: str = GENESIS, tree: CompactTree | None = None) -> _Scan:
-    """Verify `data` as the entries after `seq` (whose id is `prev`); each valid line is
-    added to `tree` (the tree of the entries up to `seq`), if given."""
-    good_end = last_start = 0
-    for start, line in _lines(data):
-        prev = _check_at(data, start, line, seq + 1, prev, pubkey)
+def _scan(lines: _Lines, pubkey: Ed25519PublicKey | None, *, seq: int = 0,
+          prev: str = GENESIS, tree: CompactTree | None = None, start: int = 0) -> _Scan:
+    """Verify `lines`, which begin at offset `start`, as the entries after `seq` (whose id is
+    `prev`); each valid line is added to `tree` (the tree of the entries up to `seq`), if
+    given. One line at a time: what is held does not grow with the lines. `torn` is left to
+    the caller, which knows where its bytes end (past `good_end`: an unterminated tail)."""
+    good_end = last_start = start
+    for offset, line in lines:
+        prev = _check_at(lines, line, seq + 1, prev, pubkey)
         seq += 1
-        good_end, last_start = start + len(line) + 1, start
+        good_end, last_start = offset + len(line) + 1, offset
         if tree is not None:
             tree.append(leaf_hash(line))
     head = ChainHead(count=seq, last_seq=seq, last_audit_id=prev)
-    return _Scan(head=head, good_end=good_end, torn=data[good_end:], last_start=last_start,
-                 tree=tree)
+    return _Scan(head=head, good_end=good_end, torn=0, last_start=last_start, tree=tree)
 
 
-def _check_at(data: bytes, start: int, line: bytes, seq: int, prev: str,
+def _check_at(rest: _Lines, line: bytes, seq: int, prev: str,
               pubkey: Ed25519PublicKey | None) -> str:
-    """`_check_line` for the line at `start` of `data`; a failure that nothing well-formed
-    follows is reported as the damaged last line it is (a torn tail, or an edit there)."""
+    """`_check_line`; a failure that nothing well-formed follows (in `rest`, the lines after
+    `line`) is reported as the damaged last line it is (a torn tail, or an edit there)."""
     try:
         return _check_line(line, seq, prev, pubkey)
     except AuditIntegrityError as exc:
-        if _only_damage_left(data, start + len(line) + 1):
+        if _only_damage_left(rest):
             raise AuditIntegrityError(exc.seq, "the last line is damaged (a torn tail, or "
                                       f"an edit): {exc.detail}") from exc
         raise
 
 
-def _only_damage_left(data: bytes, offset: int) -> bool:
-    """No well-formed entry (one whose audit_id matches its content) follows `offset`: a
-    failure before it is confined to the end of the file, as a crash mid-append leaves it."""
-    return not any(_well_formed(line) for _, line in _lines(data[offset:]))
+def _only_damage_left(rest: _Lines) -> bool:
+    """No well-formed entry (one whose audit_id matches its content) is in `rest`: a failure
+    before it is confined to the end of the file, as a crash mid-append leaves it."""
+    return not any(_well_formed(line) for _, line in rest)
 
 
 def _well_formed(line: bytes) -> bool:
@@ -542,8 +596,9 @@ def entries(data: bytes, pubkey: Ed25519PublicKey | None = None
     (seq, audit_id, line without its newline). Raises AuditIntegrityError at the first break,
     after yielding the valid entries before it."""
     seq, prev, end = 0, GENESIS, 0
-    for start, line in _lines(data):
-        prev = _check_at(data, start, line, seq + 1, prev, pubkey)
+    lines = _lines(data)
+    for start, line in lines:
+        prev = _check_at(lines, line, seq + 1, prev, pubkey)
         seq, end = seq + 1, start + len(line) + 1
         yield seq, prev, line
     if end < len(data):
@@ -552,8 +607,8 @@ def entries(data: bytes, pubkey: Ed25519PublicKey | None = None
 
 def verify_bytes(data: bytes, pubkey: Ed25519PublicKey | None = None) -> ChainHead:
     """`verify` on the content of an audit file."""
-    scan = _scan(data, pubkey)
-    if scan.torn:
+    scan = _scan(_lines(data), pubkey)
+    if scan.good_end < len(data):
         raise AuditIntegrityError(scan.head.last_seq + 1, "incomplete last line (torn tail)")
     return scan.head
 
@@ -778,8 +833,7 @@ class AuditLog:
         if scan.torn:
             await log.append(AuditRecord(
                 event=AuditEvent.AUDIT_TAIL_RECOVERED,
-                params={"cut_bytes": len(scan.torn),
-                        "cut_sha256": hashlib.sha256(scan.torn).hexdigest(),
+                params={"cut_bytes": scan.torn, "cut_sha256": scan.torn_sha256,
                         "after_seq": scan.head.last_seq},
             ))
         else:  # a head for what is there (older logs have none; the witness learns of it)
@@ -1129,6 +1183,7 @@ def _open_and_scan(path: Path, pubkey: Ed25519PublicKey) -> tuple[int, _Scan]:
         _lock(fd, path)
         scan = _scan_from_checkpoint(fd, path, pubkey)
         if scan.torn:
+            scan.torn_sha256 = _sha256_of(fd, scan.good_end, scan.good_end + scan.torn)
             os.ftruncate(fd, scan.good_end)
             full_fsync(fd)
         if created:
@@ -1141,27 +1196,29 @@ def _open_and_scan(path: Path, pubkey: Ed25519PublicKey) -> tuple[int, _Scan]:
 
 def _scan_from_checkpoint(fd: int, path: Path, pubkey: Ed25519PublicKey, *,
                           limit: int | None = None) -> _Scan:
-    """The log verified from its checkpoint (`limit`: raise _TooLargeToRead rather than read
-    more bytes than that)."""
+    """The log verified from its checkpoint, line by line (`limit`: raise _TooLargeToRead
+    rather than read more bytes than that)."""
     cp = _read_checkpoint(checkpoint_path(path), pubkey)
     resume = _resume_point(fd, cp) if cp is not None else None
     if cp is not None and resume is None:
         log.warning("audit checkpoint does not match %s: verifying the whole log", path)
-    data = _read_from(fd, 0 if resume is None else resume[2], limit)
+    size = os.fstat(fd).st_size  # (the end of what is verified: a line appended later is not)
+    _within(limit, size - (0 if resume is None else resume[2]))
     tree = _resume_tree(fd, cp, resume, limit)
     if tree is None:
         resume, tree = None, CompactTree()
-        data = _read_from(fd, 0, limit)
+        _within(limit, size)
     seq, prev, offset = resume or (0, GENESIS, 0)
     try:
-        scan = _scan(data, pubkey, seq=seq, prev=prev, tree=tree)
+        scan = _scan(_file_lines(fd, offset, size), pubkey, seq=seq, prev=prev, tree=tree,
+                     start=offset)
     except AuditIntegrityError as exc:
         raise AuditIntegrityError(exc.seq, exc.detail + _replaced_key_hint(path, pubkey)
                                   + "; refusing to start", path=str(path)) from exc
-    end = offset + scan.good_end
-    span = (offset + scan.last_start, end) if scan.good_end else (
+    end = scan.good_end
+    span = (scan.last_start, end) if end > offset else (
         (cp.start, cp.end) if resume and cp else (0, 0))
-    return _Scan(head=scan.head, good_end=end, torn=scan.torn, last_span=span, tree=scan.tree)
+    return _Scan(head=scan.head, good_end=end, torn=size - end, last_span=span, tree=scan.tree)
 
 
 def _replaced_key_hint(path: Path, pubkey: Ed25519PublicKey) -> str:
@@ -1185,8 +1242,9 @@ def _resume_tree(fd: int, cp: Checkpoint | None, resume: tuple[int, str, int] | 
     tree = cp.compact_tree()
     if tree is not None:
         return tree
+    _within(limit, os.fstat(fd).st_size)
     tree = CompactTree()
-    tree.extend(leaf_hash(line) for _, line in _lines(_read_from(fd, 0, limit)[:resume[2]]))
+    tree.extend(leaf_hash(line) for _, line in _file_lines(fd, 0, resume[2]))
     return tree if tree.size == cp.seq else None
 
 
@@ -1203,12 +1261,7 @@ class _TooLargeToRead(AuditError):
         self.size = size
 
 
-def _read_from(fd: int, offset: int, limit: int | None = None) -> bytes:
-    """The file from `offset` on; more than `limit` bytes there: _TooLargeToRead, unread."""
-    if limit is not None and (size := os.fstat(fd).st_size - offset) > limit:
+def _within(limit: int | None, size: int) -> None:
+    """Raises _TooLargeToRead if `size` bytes are more than `limit` to read."""
+    if limit is not None and size > limit:
         raise _TooLargeToRead(size)
-    os.lseek(fd, offset, os.SEEK_SET)
-    chunks = []
-    while chunk := os.read(fd, 1 << 20):
-        chunks.append(chunk)
-    return b"".join(chunks)

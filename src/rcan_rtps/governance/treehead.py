@@ -161,21 +161,18 @@ class TreeHeadFile:
 
 
 def _cut_torn_tail(fd: int, path: Path) -> int:
-    """Cut an unterminated last line (a crash mid-append; the file is not fsynced per head)."""
-    size = os.fstat(fd).st_size
-    if size == 0:
-        return 0
-    start = max(0, size - 4096)
-    while True:
-        tail = os.pread(fd, size - start, start)
-        cut = tail.rfind(b"\n")
+    """Cut an unterminated last line (a crash mid-append; the file is not fsynced per head).
+    Read back a block at a time, each alone: a file without a newline in megabytes (not
+    heads) is neither held nor read again with every block."""
+    size = end = os.fstat(fd).st_size
+    keep = 0
+    while end > 0:
+        start = max(0, end - 4096)
+        cut = os.pread(fd, end - start, start).rfind(b"\n")
         if cut >= 0:
             keep = start + cut + 1
             break
-        if start == 0:
-            keep = 0
-            break
-        start = max(0, start - 4096)
+        end = start
     if keep != size:
         log.warning("audit tree heads %s: cutting an incomplete last line (%d bytes)",
                     path, size - keep)

@@ -70,6 +70,7 @@ from ._json import decode, decode_as
 from .clock import Clock, SystemClock
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
 from .keyfacts import read_public_pem
+from .log_tail import lines_forwards
 from .merkle import CompactTree, leaf_hash
 from .treehead import TreeHead, TreeHeadFile, public_key_path, sign_tree_head, tree_head_path
 
@@ -447,36 +448,6 @@ def _lines(data: bytes) -> _Lines:
             return
         yield start, data[start:end]
         start = end + 1
-
-
-def _file_lines(fd: int, offset: int, end: int) -> _Lines:
-    """`_lines` of the file's bytes from `offset` (a line's start) to `end`, read a chunk at a
-    time. An unterminated tail is not read in, only looked through for a newline."""
-    while offset < end:
-        block = os.pread(fd, min(READ_CHUNK, end - offset), offset)
-        if b"\n" not in block:  # a line longer than a chunk, or the unterminated tail
-            newline = _next_newline(fd, offset + len(block), end)
-            if not block or newline is None:
-                return
-            block = os.pread(fd, newline + 1 - offset, offset)
-        lines = block.split(b"\n")
-        lines.pop()  # after the last newline: a line's start, read again with the next chunk
-        for line in lines:
-            yield offset, line
-            offset += len(line) + 1
-
-
-def _next_newline(fd: int, offset: int, end: int) -> int | None:
-    """The offset of the first newline at or after `offset` (before `end`), or None."""
-    while offset < end:
-        block = os.pread(fd, min(READ_CHUNK, end - offset), offset)
-        if not block:  # the file is shorter than it was
-            return None
-        found = block.find(b"\n")
-        if found >= 0:
-            return offset + found
-        offset += len(block)
-    return None
 
 
 def _sha256_of(fd: int, start: int, end: int) -> str:
@@ -1210,7 +1181,7 @@ def _scan_from_checkpoint(fd: int, path: Path, pubkey: Ed25519PublicKey, *,
         _within(limit, size)
     seq, prev, offset = resume or (0, GENESIS, 0)
     try:
-        scan = _scan(_file_lines(fd, offset, size), pubkey, seq=seq, prev=prev, tree=tree,
+        scan = _scan(lines_forwards(fd, offset, size), pubkey, seq=seq, prev=prev, tree=tree,
                      start=offset)
     except AuditIntegrityError as exc:
         raise AuditIntegrityError(exc.seq, exc.detail + _replaced_key_hint(path, pubkey)
@@ -1244,7 +1215,7 @@ def _resume_tree(fd: int, cp: Checkpoint | None, resume: tuple[int, str, int] | 
         return tree
     _within(limit, os.fstat(fd).st_size)
     tree = CompactTree()
-    tree.extend(leaf_hash(line) for _, line in _file_lines(fd, 0, resume[2]))
+    tree.extend(leaf_hash(line) for _, line in lines_forwards(fd, 0, resume[2]))
     return tree if tree.size == cp.seq else None
 
 

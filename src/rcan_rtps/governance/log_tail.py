@@ -1,6 +1,8 @@
-"""The audit log read from its end: lines backwards, and the message ids its newest entries
-name — what a start reads back (the replay window's ids, the idempotent retries an earlier
-run decided) without the start-only replay of `resume`, which a run lets go of.
+"""The audit log read a line at a time, a chunk of the file held at once (never the file:
+a log may be months long): lines forwards (what opening the log verifies, a page of
+GET /api/audit) and backwards, and the message ids its newest entries name — what a start
+reads back (the replay window's ids, the idempotent retries an earlier run decided) without
+the start-only replay of `resume`, which a run lets go of.
 """
 
 from __future__ import annotations
@@ -18,6 +20,37 @@ CHUNK = 64 * 1024
 # How far back a start reads the log for ids: the time asked for bounds it, this too, should
 # the clock have gone back (every entry then seems recent).
 MAX_LINES_BACK = 200_000
+
+
+def lines_forwards(fd: int, offset: int, end: int) -> Iterator[tuple[int, bytes]]:
+    """(offset, line without its newline) from `offset` (a line's start) to `end`, read a
+    chunk at a time. An unterminated tail (a line being appended, or torn) is not read in,
+    only looked through for a newline; a line longer than a chunk is read whole."""
+    while offset < end:
+        block = os.pread(fd, min(CHUNK, end - offset), offset)
+        if b"\n" not in block:
+            newline = next_newline(fd, offset + len(block), end)
+            if not block or newline is None:
+                return
+            block = os.pread(fd, newline + 1 - offset, offset)
+        lines = block.split(b"\n")
+        lines.pop()  # after the last newline: a line's start, read again with the next chunk
+        for line in lines:
+            yield offset, line
+            offset += len(line) + 1
+
+
+def next_newline(fd: int, offset: int, end: int) -> int | None:
+    """The offset of the first newline at or after `offset` (before `end`), or None."""
+    while offset < end:
+        block = os.pread(fd, min(CHUNK, end - offset), offset)
+        if not block:  # the file is shorter than it was
+            return None
+        found = block.find(b"\n")
+        if found >= 0:
+            return offset + found
+        offset += len(block)
+    return None
 
 
 def lines_backwards(fd: int, size: int, floor: int = 0) -> Iterator[tuple[int, bytes]]:

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 from collections import Counter, deque
 from collections.abc import Callable
@@ -410,7 +411,8 @@ async def _serve(ws: web.WebSocketResponse, request: web.Request, principal: Pri
     pushers = [asyncio.create_task(_push(ws, app[STATUS].subscribe, "status")),
                asyncio.create_task(_push(ws, app[GOAL_EVENTS].subscribe, "goal"))]
     if principal.role >= settings.hitl_list_role:  # who may list what waits for a human
-        pushers.append(asyncio.create_task(_push(ws, app[APPROVALS].subscribe, "approvals")))
+        pushers.append(asyncio.create_task(_push(
+            ws, functools.partial(app[APPROVALS].subscribe, principal), "approvals")))
     left = app[CREDENTIAL_LEFT]
     expired = False
     try:

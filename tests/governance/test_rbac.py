@@ -165,7 +165,9 @@ def claims(**kw: Any) -> dict[str, Any]:
 
 def test_valid_jwt(issuer: tuple[Ed25519PrivateKey, JwtVerifier]) -> None:
     key, verifier = issuer
-    assert verifier.verify(jwt(key, claims())) == Principal("jwt:/agent-7", Role.USER, 100)
+    # Taken until its exp plus the leeway (30 s): what outlives a request (a WebSocket) ends then.
+    assert verifier.verify(jwt(key, claims())) == Principal("jwt:/agent-7", Role.USER, 100,
+                                                            expires_at=NOW + 60 + 30)
     assert verifier.verify(jwt(key, claims(aud=["x", "rcan-bridge"]))).role is Role.USER
     named = verifier.verify(jwt(key, claims(iss="https://idp.example/", iat=NOW - 5)))
     assert named.name == "jwt:https:%2F%2Fidp.example%2F/agent-7"

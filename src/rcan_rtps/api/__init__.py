@@ -19,7 +19,8 @@ document is no secret — but the node manifest, which §17.3 makes public):
     GET  /api/goals[/{goal_id}]  goals of every goal action (GUEST+), 404 when unknown
     GET  /api/skills             the skills an INVOKE may name: §18's `invoke` capability and
                                  each skill's action, role, fixed and allowed params (GUEST+)
-    GET  /api/hitl/pending       pending commands (the lowest role that can approve one)
+    GET  /api/hitl/pending       pending commands (the lowest role that can approve one):
+                                 those the caller could approve, and its own
     POST /api/hitl/authorize     {"pending_id", "reason"?} → decision; the governor checks the
                                  approver; 202 while more approvals are needed (n-of-m)
     POST /api/hitl/deny          {"pending_id"} → decision (any approver's denial ends it)

@@ -11,6 +11,7 @@ from aiohttp import WSCloseCode, web
 
 from rcan_rtps.config import RcanConfig
 from rcan_rtps.governance import Clock, Governor, Principal, SystemClock
+from rcan_rtps.governance.clock import latest_wall
 from rcan_rtps.governance.replay import ReplayWindow
 from rcan_rtps.governance.signatures import Signatures
 from rcan_rtps.rcan import Role
@@ -28,6 +29,7 @@ from ._keys import (
     AUTHENTICATOR,
     CERT_PRINCIPALS,
     CHECKS,
+    CREDENTIAL_LEFT,
     DEADLINES,
     GOAL_EVENTS,
     GOVERNOR,
@@ -92,6 +94,17 @@ def settings_from_config(config: RcanConfig) -> ApiSettings:
     )
 
 
+def credential_left(clock: Clock) -> Callable[[Principal], float | None]:
+    """`CREDENTIAL_LEFT`: judged as the JWT verifier judges `exp`, by the latest wall time."""
+    latest = latest_wall(clock)
+
+    def left(principal: Principal) -> float | None:
+        expires = principal.expires_at
+        return None if expires is None else expires - latest.time()
+
+    return left
+
+
 def message_checks(config: RcanConfig, clock: Clock,
                    signatures: Signatures | None = None) -> Checks:
     """§8.3's window, and the principals' signature keys and policies (loaded from the config
@@ -150,6 +163,7 @@ def build_app(*, governor: Governor, authenticator: Authenticator, robot: RobotV
     app[INVOCATIONS] = Skills(config.bridge.skills, robot, governor.events)
     app[IMAGES] = images or NO_IMAGES
     app[WS_TICKETS] = WsTickets((clock or SystemClock()).monotonic)
+    app[CREDENTIAL_LEFT] = credential_left(clock or SystemClock())
     app[APPROVALS] = approvals = ApprovalsFeed(governor.pending)
     app.cleanup_ctx.append(_approvals_feed(approvals, governor))
     metrics = Metrics(governor, status)

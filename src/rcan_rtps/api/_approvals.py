@@ -5,7 +5,8 @@ An approver's socket gets `{"type": "approvals", "body": {"pending": [PENDING_AU
 held, an approval counted (n-of-m), one approved, denied, withdrawn or expired. The HiTL desk
 says so through the governance channel (which also fires for the e-stop latch: a socket is
 never sent the list it was sent last). A subscriber that falls behind only ever gets the
-newest list.
+newest list. Each gets the held commands it may read (`readable`): those it could approve,
+and its own — not every one, because it may list some.
 """
 
 from __future__ import annotations
@@ -15,24 +16,36 @@ from collections.abc import Callable
 
 import msgspec
 
-from rcan_rtps.rcan import PendingAuth
+from rcan_rtps.governance import Principal
+from rcan_rtps.rcan import PendingAuth, Role
 
 from ._bodies import PendingList
 from ._wakeup import Wakeup
 
 
+def readable(reader: Principal, pending: list[PendingAuth]) -> list[PendingAuth]:
+    """The held commands `reader` may read, as `GET /api/hitl/pending/{id}` lets it: those it
+    could approve, and its own. Whoever may list held commands (`hitl_list_role`, the lowest
+    role any gate names) used to be shown every one — what it was told was not found by id."""
+    return [p for p in pending
+            if p.issued_by == reader.name or reader.role >= Role[p.requires_auth_from_role]]
+
+
 class ApprovalsSubscription:
-    def __init__(self, feed: ApprovalsFeed) -> None:
+    def __init__(self, feed: ApprovalsFeed, reader: Principal) -> None:
         self._feed = feed
+        self._reader = reader
         self._latest: PendingList | None = None
         self._offered: bytes | None = None  # the encoding of the last list offered
         self._ready = asyncio.Event()
 
-    def offer(self, pending: PendingList, encoded: bytes) -> None:
+    def offer(self, pending: list[PendingAuth]) -> None:
+        mine = PendingList(pending=readable(self._reader, pending))
+        encoded = msgspec.json.encode(mine)
         if encoded == self._offered:  # e.g. the latch flipped: the list is what it was
             return
         self._offered = encoded
-        self._latest = pending
+        self._latest = mine
         self._ready.set()
 
     async def next(self) -> PendingList:
@@ -62,11 +75,11 @@ class ApprovalsFeed:
     def changed(self) -> None:
         self._wakeup.changed()
 
-    def subscribe(self) -> ApprovalsSubscription:
-        """The list as it is now first, then each change."""
-        subscription = ApprovalsSubscription(self)
+    def subscribe(self, reader: Principal) -> ApprovalsSubscription:
+        """The list as it is now first, then each change: what `reader` may read of it."""
+        subscription = ApprovalsSubscription(self, reader)
         self._subscribers.add(subscription)
-        subscription.offer(*self._now())
+        subscription.offer(self._pending())
         return subscription
 
     def unsubscribe(self, subscription: ApprovalsSubscription) -> None:
@@ -77,10 +90,6 @@ class ApprovalsFeed:
         return len(self._subscribers)
 
     def _refresh(self) -> None:
-        current = self._now()
+        current = self._pending()
         for subscription in list(self._subscribers):
-            subscription.offer(*current)
-
-    def _now(self) -> tuple[PendingList, bytes]:
-        current = PendingList(pending=self._pending())
-        return current, msgspec.json.encode(current)
+            subscription.offer(current)

@@ -73,6 +73,10 @@ IMAGES = web.AppKey("images", ImageSource)  # bridge.ros2.images (none: an empty
 INVOCATIONS = web.AppKey("invocations", Skills)  # bridge.skills and INVOKEs under way
 WS_TICKETS = web.AppKey("ws_tickets", WsTickets)  # how a browser opens the WebSocket
 APPROVALS = web.AppKey("approvals", ApprovalsFeed)  # held commands, for approvers' sockets
+# Seconds left on a principal's credential (`Principal.expires_at`), by the latest wall time
+# read (a step back gives an expired JWT no more time); None: it does not expire.
+CREDENTIAL_LEFT: web.AppKey[Callable[[Principal], float | None]] = web.AppKey(
+    "credential_left")
 # Seconds per decided command, reported to the metrics (a no-op where there are none).
 OBSERVE: web.AppKey[Callable[[float], None]] = web.AppKey("observe_command_seconds")
 

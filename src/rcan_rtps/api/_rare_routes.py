@@ -13,6 +13,7 @@ from rcan_rtps.governance import Governor, Principal
 from rcan_rtps.governance.hitl import Verdict
 from rcan_rtps.rcan import Authorize, ErrorCode, PendingAuth, Role, SchemaValidationError
 
+from ._approvals import readable
 from ._bodies import (
     ApiError,
     AuditPage,
@@ -80,8 +81,9 @@ async def get_image(request: web.Request) -> web.Response:
 
 
 async def get_pending(request: web.Request) -> web.Response:
-    """The held commands, for those who could approve one; `?mine=true`: the caller's own,
-    for any principal (an agent that waits on several)."""
+    """The held commands, for those who could approve one: those the caller could approve,
+    and its own (`readable`); `?mine=true`: the caller's own, for any principal (an agent
+    that waits on several)."""
     governor, principal = request.app[GOVERNOR], request[PRINCIPAL]
     mine = request.query.get("mine")
     if mine not in (None, "true", "false"):
@@ -93,7 +95,8 @@ async def get_pending(request: web.Request) -> web.Response:
             return refused
     await governor.expire_pending()  # what has timed out is gone, and audited as such
     return json_response(PendingList(pending=own_pending(governor, principal)
-                                     if mine == "true" else governor.pending()))
+                                     if mine == "true" else readable(principal,
+                                                                     governor.pending())))
 
 
 def own_pending(governor: Governor, principal: Principal) -> list[PendingAuth]:

@@ -29,12 +29,17 @@ frames: a client that sends and does not read cannot hold up its own later stop.
 leaves more than `OUTBOX_BYTES` of outcomes unread is not reading: its outcomes are dropped,
 only its stops are taken from then on, and once its frames pause (`DEAF_QUIET_S`) its socket
 is closed with 1008 ("outcome frames not read").
+
+A socket lasts longer than the credential that opened it may: one whose JWT has run out
+(`Principal.expires_at`) is closed with 1008 ("credential expired") at its next frame, or when
+its time is up while it is idle. A stop in that frame is still taken; nothing else is.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 from collections import Counter, deque
 from collections.abc import Callable
@@ -63,6 +68,7 @@ from ._intake import (
 from ._keys import (
     APPROVALS,
     CHECKS,
+    CREDENTIAL_LEFT,
     GOAL_EVENTS,
     GOVERNOR,
     INVOCATIONS,
@@ -85,6 +91,7 @@ OUTBOX_BYTES = 1 << 20  # outcome frames a client may leave unread before it cou
 DEAF_QUIET_S = 1.0  # a deaf client's frames paused this long: every stop it sent is read
 CLOSE_S = 5.0  # closing a deaf client's socket (it reads no close frame either)
 NOT_READING = b"outcome frames not read"
+CREDENTIAL_EXPIRED = b"credential expired"
 # Sockets one principal may hold at once (beyond: 429 before the handshake). A console, an
 # agent and a few tools need a handful; hundreds are an attack on the file descriptors.
 MAX_SOCKETS_PER_PRINCIPAL = 32
@@ -249,6 +256,15 @@ class _Commands:
         if isinstance(item.message3, Invoke) and self._invocations is not None:
             self._queued[item.message3.msg_id] += 1
 
+    async def take_stop(self, raw: bytes) -> None:
+        """A frame that came once the socket's credential had run out: a stop still stops
+        (it can only make the robot safer); anything else is not taken."""
+        item = intake(raw, self._limit, self._checks, self._principal.name)
+        if item.stopping:
+            await self._lane.submit(item)
+        else:  # not taken: its id is not spent
+            give_back_id(item, self._checks, self._principal.name)
+
     async def _invoke_cancel(self, item: Intake, cancel: InvokeCancel) -> None:
         """An INVOKE_CANCEL stops its skill's motion: through its lane, never behind this
         socket's queue; 429 only when `ws_max_in_flight` are already being decided. One whose
@@ -395,32 +411,62 @@ async def _serve(ws: web.WebSocketResponse, request: web.Request, principal: Pri
     pushers = [asyncio.create_task(_push(ws, app[STATUS].subscribe, "status")),
                asyncio.create_task(_push(ws, app[GOAL_EVENTS].subscribe, "goal"))]
     if principal.role >= settings.hitl_list_role:  # who may list what waits for a human
-        pushers.append(asyncio.create_task(_push(ws, app[APPROVALS].subscribe, "approvals")))
+        pushers.append(asyncio.create_task(_push(
+            ws, functools.partial(app[APPROVALS].subscribe, principal), "approvals")))
+    left = app[CREDENTIAL_LEFT]
+    expired = False
     try:
         while True:
             try:  # a deaf client's socket is read until its frames pause: its stops count
-                msg = await ws.receive(timeout=DEAF_QUIET_S if commands.deaf else None)
+                msg = await ws.receive(timeout=_wait_s(commands.deaf, left(principal)))
             except asyncio.TimeoutError:
-                log.warning("WebSocket of %s does not read its outcome frames: closed (1008)",
-                            principal.name, extra={"principal": principal.name})
-                break
+                if commands.deaf:
+                    log.warning("WebSocket of %s does not read its outcome frames: closed "
+                                "(1008)", principal.name, extra={"principal": principal.name})
+                    break
+                expired = _expired(left(principal))
+                if expired:
+                    break
+                continue  # (the wall clock was set back meanwhile: its time is not up)
             if msg.type in _CLOSING:
+                break
+            if _expired(left(principal)):  # its credential ran out while this frame came
+                expired = True
+                if msg.type in (WSMsgType.TEXT, WSMsgType.BINARY):
+                    await commands.take_stop(_raw(msg.data))  # nothing else of it
                 break
             governor.heartbeat(principal)  # any frame shows the client is there
             if msg.type is WSMsgType.PING:
                 commands.pong(msg.data)
             elif msg.type in (WSMsgType.TEXT, WSMsgType.BINARY):
-                raw = msg.data.encode() if isinstance(msg.data, str) else msg.data
-                await commands.take(raw)
+                await commands.take(_raw(msg.data))
     finally:
         for pusher in pushers:
             pusher.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await pusher
+        if expired:
+            log.warning("WebSocket of %s closed (1008): its credential expired",
+                        principal.name, extra={"principal": principal.name})
         await _end(ws, governor, principal, commands,
-                   transport if commands.deaf else None)
+                   transport if commands.deaf else None, expired=expired)
         app[SOCKETS].discard(ws)
     return ws
+
+
+def _raw(data: str | bytes) -> bytes:
+    return data.encode() if isinstance(data, str) else data
+
+
+def _wait_s(deaf: bool, credential_left: float | None) -> float | None:
+    """How long to wait for a frame: a deaf client's until its frames pause, anyone's no
+    longer than its credential has left (None: for ever)."""
+    waits = [w for w in (DEAF_QUIET_S if deaf else None, credential_left) if w is not None]
+    return max(0.0, min(waits)) if waits else None
+
+
+def _expired(credential_left: float | None) -> bool:
+    return credential_left is not None and credential_left <= 0
 
 
 def _cut_off(transport: asyncio.Transport | None) -> None:
@@ -436,9 +482,11 @@ def _cut_off(transport: asyncio.Transport | None) -> None:
 
 
 async def _end(ws: web.WebSocketResponse, governor: Governor, principal: Principal,
-               commands: _Commands, deaf: asyncio.Transport | None) -> None:
+               commands: _Commands, deaf: asyncio.Transport | None, *,
+               expired: bool = False) -> None:
     """The socket's end: its stops decided, its principal's control session ended, the socket
-    closed (`deaf`: the transport of a client that does not read, cut off)."""
+    closed (`deaf`: the transport of a client that does not read, cut off; `expired`: its
+    credential ran out, closed 1008)."""
     # First, before its command in flight is awaited: motion that has not started by now
     # never does (it would start after its connection is gone, with nobody to stop it).
     on_its_way = governor.connection_closed(principal)
@@ -457,5 +505,7 @@ async def _end(ws: web.WebSocketResponse, governor: Governor, principal: Princip
                             extra={"principal": principal.name, "audit_id": stop.audit_id})
         if deaf is not None:
             _cut_off(deaf)
+        elif not ws.closed and expired:
+            await ws.close(code=WSCloseCode.POLICY_VIOLATION, message=CREDENTIAL_EXPIRED)
         elif not ws.closed:
             await ws.close()

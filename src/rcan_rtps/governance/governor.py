@@ -555,10 +555,13 @@ class Governor:
         cancelled a motion call, its connection closed, a `stop`): that motion must never
         start, and a human approving it later would start it. Refused `stopped` as motion
         not held is; a stop that comes while its PENDING_AUTH entry is written withdraws it
-        as soon as it is held (`command_cancelled` withdraws only what is held already)."""
+        as soon as it is held (`command_cancelled` withdraws only what is held already).
+        What it is held with (`PendingCommand.stops`) makes a stop of the robot that comes
+        while it waits a stop for it too (`_run_approved`)."""
         if arrived is not None and self.streams.stopped_since(arrived):
             return await self._steps.refuse(command, principal, outcomes.STOPPED)
-        held = await self._desk.hold(command, principal, approver_role)
+        held = await self._desk.hold(command, principal, approver_role,
+                                     self.streams.stops if command.spec.motion else None)
         # In the step it was put in the store: no review of it can come first.
         if arrived is None or held.pending_id is None or not self.streams.stopped_since(arrived):
             return held
@@ -882,7 +885,15 @@ class Governor:
     async def _run_approved(self, command: NormalizedCommand, approver: Principal,
                             pending: PendingCommand) -> Decision:
         """The last approval released it: the state *now* decides, not the state when the
-        command arrived; it runs as its issuer's, audited as HITL_AUTHORIZED."""
+        command arrived; it runs as its issuer's, audited as HITL_AUTHORIZED. Motion that a
+        stop of the robot (a `stop`, an e-stop, a session loss's halt) came after it was held
+        is refused `stopped`: that stop was for all motion decided before it, and a human
+        approving it later — from a list read before the stop, say — must not start it."""
+        stopped = pending.stops is not None and self.streams.stops != pending.stops
+        if stopped and not self.latch.latched:  # (latched: refused `estop_active`, below)
+            return await self._steps.refuse(command, approver, outcomes.STOPPED,
+                                            event=AuditEvent.HITL_AUTHORIZED,
+                                            pending_id=pending.pending_id)
         try:
             applied = self._safety(command, command.params)
         except Violation as violation:

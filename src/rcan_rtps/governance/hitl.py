@@ -36,6 +36,9 @@ class PendingCommand(msgspec.Struct, frozen=True, kw_only=True):
     approver_role: Role
     expires_at_ms: int
     approvals_required: int = 1  # distinct approvers (`hitl.gates[].approvals`)
+    # Motion only: the robot-wide stops so far (`VelocityStreams.stops`) when it was held. A
+    # stop after that was a stop for it too: approved later, it is refused `stopped`.
+    stops: int | None = None
 
     def message(self, approvals: list[Approval] | None = None) -> PendingAuth:
         ai = self.command.ai

@@ -241,7 +241,8 @@ class JwtVerifier:
         if not _is_name(sub):
             raise _refused(CLAIMS, f"JWT needs a sub (1-{_MAX_CLAIM_CHARS} chars)")
         role = self._role(claims.get("role"), claims.get("rcan_role"))
-        return Principal(jwt_principal_name(iss, sub), role, self._limits[role])
+        return Principal(jwt_principal_name(iss, sub), role, self._limits[role],
+                         expires_at=float(claims["exp"]) + self._leeway)
 
     def _role(self, name: Any, level: Any) -> Role:
         """The role a token states: `role` (a name, the profile's or RCAN v2's) and/or

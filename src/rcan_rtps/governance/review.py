@@ -127,13 +127,14 @@ class HitlDesk:
         return ids
 
     async def hold(self, command: NormalizedCommand, principal: Principal,
-                   approver_role: Role) -> Decision:
+                   approver_role: Role, stops: int | None = None) -> Decision:
+        """`stops`: motion's robot-wide stops so far (`PendingCommand.stops`)."""
         due_mono = self._clock.monotonic() + self._ttl_ms / 1000
         pending = PendingCommand(
             pending_id=uuid.uuid4().hex, command=command, issuer=principal,
             approver_role=approver_role,
             expires_at_ms=now_ms(self._clock) + self._ttl_ms,
-            approvals_required=self._policy.approvals(command.action),
+            approvals_required=self._policy.approvals(command.action), stops=stops,
         )
         entry = record(AuditEvent.PENDING_AUTH, command, principal, Outcome.PENDING_AUTH,
                        pending_id=pending.pending_id)

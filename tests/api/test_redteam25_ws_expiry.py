@@ -1,0 +1,124 @@
+"""Red team 25: a WebSocket does not outlive its JWT.
+
+A JWT is checked when its request comes; a WebSocket is one request that lasts. A socket
+opened with a token that then expired went on commanding the robot, heartbeating its control
+session and receiving the held commands, for as long as it stayed open (hours, after a token
+of minutes). Now it is closed (1008 "credential expired") once the token has run out: at its
+first frame after that, or when its time is up while it is idle. A stop sent on it then still
+stops; nothing else of it is taken."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from jwthelpers import sign_jwt
+
+from tests.api.apihelpers import Api
+
+LEEWAY_S = 30  # api.jwt.leeway_s's default: a token is taken this long after its exp
+
+
+@pytest.fixture
+async def jwt_api(tmp_path: Path) -> AsyncIterator[tuple[Api, Ed25519PrivateKey]]:
+    key = Ed25519PrivateKey.generate()
+    pem = key.public_key().public_bytes(serialization.Encoding.PEM,
+                                        serialization.PublicFormat.SubjectPublicKeyInfo)
+    (tmp_path / "jwt.pem").write_bytes(pem)
+    api = await Api(tmp_path, api_extra=f"jwt: {{public_key: '{tmp_path / 'jwt.pem'}', "
+                                         "audience: rcan-bridge}").start()
+    yield api, key
+    await api.close()
+
+
+def token(api: Api, key: Ed25519PrivateKey, left_s: float) -> str:
+    """A USER's JWT taken for `left_s` more seconds (its exp, plus the leeway)."""
+    claims = {"sub": "planner-7", "role": "USER", "aud": "rcan-bridge",
+              "exp": api.clock.time() + left_s - LEEWAY_S}
+    return sign_jwt(key, claims, {"alg": "EdDSA"})
+
+
+async def outcome(ws: aiohttp.ClientWebSocketResponse) -> dict[str, Any]:
+    while True:
+        msg = await asyncio.wait_for(ws.receive(), timeout=30)
+        assert msg.type is aiohttp.WSMsgType.TEXT, msg
+        frame = json.loads(msg.data)
+        if frame["type"] == "outcome":
+            return dict(frame)
+
+
+async def closed(ws: aiohttp.ClientWebSocketResponse) -> list[dict[str, Any]]:
+    """The outcome frames before the socket closed, once it has (status frames go on for as
+    long as it is open: 30 s of them is a socket left open)."""
+    return await asyncio.wait_for(_closed(ws), timeout=30)
+
+
+async def _closed(ws: aiohttp.ClientWebSocketResponse) -> list[dict[str, Any]]:
+    outcomes = []
+    while True:
+        msg = await ws.receive()
+        if msg.type is not aiohttp.WSMsgType.TEXT:
+            break
+        frame = json.loads(msg.data)
+        if frame["type"] == "outcome":
+            outcomes.append(frame)
+    assert msg.type in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED), msg
+    return outcomes
+
+
+MOVE = json.dumps({"action": "move", "params": {"linear_x": 0.2, "duration_s": 1.0}})
+
+
+async def test_a_socket_whose_jwt_expired_commands_nothing(
+        jwt_api: tuple[Api, Ed25519PrivateKey]) -> None:
+    api, key = jwt_api
+    headers = {"Authorization": f"Bearer {token(api, key, 600)}"}
+    async with api.http.ws_connect("/api/ws", headers=headers) as ws:
+        await ws.send_str(MOVE)
+        assert (await outcome(ws))["http_status"] == 200  # while the token holds
+        api.clock.advance(601)
+        await ws.send_str(MOVE)
+        assert await closed(ws) == []
+        assert ws.close_code == aiohttp.WSCloseCode.POLICY_VIOLATION
+    assert [a for a, _ in api.dispatcher.calls].count("move") == 1
+    # (A REST request with the same token is refused alike.)
+    async with api.http.post("/api/command", data=MOVE, headers=headers) as resp:
+        assert resp.status == 401
+
+
+async def test_a_stop_on_an_expired_socket_still_stops(
+        jwt_api: tuple[Api, Ed25519PrivateKey]) -> None:
+    api, key = jwt_api
+    headers = {"Authorization": f"Bearer {token(api, key, 600)}"}
+    async with api.http.ws_connect("/api/ws", headers=headers) as ws:
+        api.clock.advance(601)
+        await ws.send_str(json.dumps({"action": "stop"}))
+        [stopped] = await closed(ws)
+        assert (stopped["http_status"], stopped["body"]["outcome"]) == (200, "executed")
+    assert [a for a, _ in api.dispatcher.calls] == ["stop"]
+
+
+async def test_an_idle_socket_is_closed_when_its_jwt_runs_out(
+        jwt_api: tuple[Api, Ed25519PrivateKey]) -> None:
+    api, key = jwt_api
+    headers = {"Authorization": f"Bearer {token(api, key, 0.2)}"}
+    async with api.http.ws_connect("/api/ws", headers=headers) as ws:
+        api.clock.advance(1)  # its time is up; the socket sends nothing
+        await closed(ws)
+        assert ws.close_code == aiohttp.WSCloseCode.POLICY_VIOLATION
+
+
+async def test_a_configured_token_s_socket_stays_open(api: Api) -> None:
+    """A configured token does not expire: nothing changes for its sockets."""
+    async with api.http.ws_connect("/api/ws", headers={
+            "Authorization": "Bearer planner-token-0123456789abcdef"}) as ws:
+        api.clock.advance(10 * 24 * 3600)
+        await ws.send_str(MOVE)
+        assert (await outcome(ws))["http_status"] == 200

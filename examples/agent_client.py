@@ -80,8 +80,10 @@ def run() -> int:
                 break
             time.sleep(0.2)
         print(f"navigate goal {goal_id}: {goal.get('state')}")
-    command("move", {"linear_x": 0.2}, confidence=0.3)  # low confidence: a human decides
     command("stop", {}, confidence=1.0)
+    # Low confidence: a human decides. Sent after the stop: a stop withdraws the motion held
+    # for a human before it.
+    command("move", {"linear_x": 0.2}, confidence=0.3)
     _, status_body = request("GET", "/api/status")
     print(f"robot state: {status_body.get('state')}, pending approvals: "
           f"{status_body.get('pending_auth')}")

@@ -126,6 +126,9 @@ async def test_listing_pending_expires_what_timed_out(hitl: Hitl) -> None:
 
 async def test_approval_rechecks_invariants_now(hitl: Hitl) -> None:
     api = hitl.api
+    # The e-stop withdraws held motion itself (test_held_motion_withdrawn.py): taken out
+    # here, as a fault would, the approval's recheck is what refuses it (the backstop).
+    api.gov._desk.withdrawing = lambda issuer, which: []  # type: ignore[method-assign]
     low = {"action": "move", "params": {"linear_x": 0.2}, "ai_model": "m", "confidence": 0.1}
     status, body = await api.command("planner", low)  # confidence gate escalates
     assert status == 202

@@ -60,6 +60,7 @@ async def test_a_reader_lists_what_it_could_approve_and_its_own(gated: Api) -> N
     own = await held_navigation(gated, "lessee")
     assert (await gated.call("GET", f"/api/hitl/pending/{arm}", "lessee"))[0] == 404
     assert await listed(gated, "lessee") == {navigation, own}
-    assert await approvals_frame(gated, "lessee") == {navigation, own}
     assert await listed(gated, "ops") == {arm, navigation, own}  # an OWNER: every one
     assert await approvals_frame(gated, "ops") == {arm, navigation, own}
+    # Last: a principal's socket closing withdraws its held motion (`own`, here).
+    assert await approvals_frame(gated, "lessee") == {navigation, own}

@@ -107,6 +107,13 @@ class Harness:
         return audit_entries(self.tmp / "audit.jsonl")
 
 
+def withdrawals_missed(gov: Governor) -> None:
+    """No stop withdraws held motion any more, as if that step had failed (`HitlDesk.
+    withdrawing` picks nothing): what the checks of an approval (`Governor._run_approved`)
+    do on their own, the backstop."""
+    gov._desk.withdrawing = lambda issuer, which: []  # type: ignore[method-assign]
+
+
 class LossTrial:
     """One trial of a principal's loss racing its motion, as the dispatcher saw it from the
     trial's start: what of the lost principal's motion outlived the loss."""

@@ -10,7 +10,15 @@ from typing import Any
 import msgspec
 import pytest
 from aiohttp import web
-from govhelpers import ADMIN, OPS, PLANNER, Harness, command, principal
+from govhelpers import (
+    ADMIN,
+    OPS,
+    PLANNER,
+    Harness,
+    command,
+    principal,
+    withdrawals_missed,
+)
 from local_http import serve_post
 from waiting import eventually
 
@@ -118,6 +126,7 @@ async def test_self_approval_allowed_by_default(gov: Governor) -> None:
 async def test_authorize_rechecks_invariants_at_approval_time(
     harness: Harness, gov: Governor
 ) -> None:
+    withdrawals_missed(gov)  # the e-stop withdraws held motion: the recheck is its backstop
     held = await hold(gov)
     await gov.decide(command("estop"), PLANNER)  # latched while the request waited
     d = await gov.authorize(held.pending_id or "", OPS)
@@ -241,6 +250,7 @@ async def test_a_deny_by_any_approver_ends_it(harness: Harness) -> None:
 
 async def test_the_final_approval_rechecks_the_invariants(harness: Harness) -> None:
     gov = await harness.governor(gates=TWO_OWNERS)
+    withdrawals_missed(gov)  # the e-stop withdraws held motion: the recheck is its backstop
     held = await hold(gov)
     assert (await gov.authorize(held.pending_id or "", OPS)).http_status == 202
     await gov.decide(command("estop"), PLANNER)

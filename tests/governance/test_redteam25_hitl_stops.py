@@ -3,11 +3,16 @@
 A stop of the robot (`stop`, an e-stop, a session loss's halt) is a stop for all motion decided
 before it. Motion held for a human was decided before it: approved after the stop (an e-stop
 since cleared, a `stop` long done), it used to run — an approver working from a list read
-before the stop restarted what the stop was for."""
+before the stop restarted what the stop was for.
+
+Such a stop now withdraws that held motion itself (test_held_motion_withdrawn_by_stops.py);
+these tests take the withdrawal out (`withdrawals_missed`), as a fault would, to show the
+approval's own check still refuses it: the backstop."""
 
 from __future__ import annotations
 
-from govhelpers import ADMIN, OPS, PLANNER, Harness, command, principal
+import pytest
+from govhelpers import ADMIN, OPS, PLANNER, Harness, command, principal, withdrawals_missed
 
 from rcan_rtps.governance.governor import Decision, Governor
 from rcan_rtps.rcan import Outcome, Role
@@ -22,6 +27,13 @@ async def held_arm(gov: Governor) -> str:
     held = await gov.decide(command("arm_joint", ARM), PLANNER)
     assert held.outcome is Outcome.PENDING_AUTH and held.pending_id
     return held.pending_id
+
+
+@pytest.fixture
+async def gov(harness: Harness) -> Governor:
+    governor = await harness.governor()
+    withdrawals_missed(governor)
+    return governor
 
 
 def refused_stopped(harness: Harness, d: Decision, pending_id: str) -> None:
@@ -52,6 +64,7 @@ async def test_held_motion_approved_after_a_stop_does_not_run(
 
 async def test_a_held_move_does_not_outlive_a_stop(harness: Harness) -> None:
     gov = await harness.governor(gates=MOVE_GATE)
+    withdrawals_missed(gov)
     held = await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)
     assert held.outcome is Outcome.PENDING_AUTH and held.pending_id
     await gov.decide(command("stop"), PLANNER)
@@ -64,6 +77,7 @@ async def test_a_held_move_does_not_outlive_a_stop(harness: Harness) -> None:
 async def test_the_last_of_several_approvals_after_a_stop_does_not_run_it(
         harness: Harness) -> None:
     gov = await harness.governor(gates=TWO_OWNERS)
+    withdrawals_missed(gov)
     pending_id = await held_arm(gov)
     assert (await gov.authorize(pending_id, OPS)).http_status == 202
     await gov.decide(command("stop"), PLANNER)

@@ -169,16 +169,17 @@ async def test_estop_latches_while_the_agent_waits(sim: Demo, http: aiohttp.Clie
         await asyncio.sleep(0.5)
         stopped = await client.call_tool("estop", {"reason": "agent saw a person"})
         assert not stopped.is_error and data(stopped)["outcome"] == "executed", stopped
-        assert not waiting.done()  # the e-stop did not wait behind the wait
+        # The e-stop withdrew the held arm_joint (it stops all held motion), which ends the
+        # wait: an e-stop that waited behind the wait would have found it ended still
+        # pending, at its timeout.
+        done = data(await waiting)
+        assert (done["state"], done["decision"]["reason"]) == ("resolved", "hitl_withdrawn"), done
         await wait_status(http, sim, lambda s: s["estop"])
         refused = await client.call_tool("move", {"linear_x": 0.1, "duration_s": 1.0,
                                                   "confidence": 0.9})
         assert refused.is_error and data(refused)["http_status"] == 409, data(refused)
         clear = await client.call_tool("clear_estop", {})  # an OWNER's, not a USER's
         assert clear.is_error and data(clear)["http_status"] == 403, data(clear)
-        waiting.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await waiting
     estops = [e for e in entries(sim) if e.get("action_type") == "estop"]
     assert estops and estops[0]["ai"]["client"] == AGENT["client"], estops
 

@@ -96,6 +96,11 @@ CANCELLED_BY_CLIENT = "withdrawn: its client cancelled a motion command of its i
 STOPPED_WHILE_HELD = ("withdrawn: its issuer's motion was stopped while it was being held "
                       "(a motion command cancelled by its client, its connection closed, "
                       "or a stop)")
+# `{}`: the stop — "a stop by 'ops'", "an e-stop", "a halt for the lost control session of …".
+ROBOT_STOPPED = "withdrawn: the robot was stopped while it was held ({})"
+CONNECTION_CLOSED = "withdrawn: a connection of its issuer's closed while it was held"
+# `{}`: why the session was lost ("no command or heartbeat for 2 s", "its connection closed").
+SESSION_LOST = "withdrawn: its issuer's control session was lost while it was held ({})"
 
 
 class ClientCancel(NamedTuple):
@@ -318,7 +323,8 @@ class Governor:
         """The latch's reflex, at the flip and before any await (no loop turn, no disk): an
         e-stop zeroes the stream and publishes the e-stop Bool; then STATUS is told. Each
         step is tried on its own: one failing must not keep the next from the robot."""
-        for step in (self.streams.on_latch, self._signal_estop, self.events.governance.emit):
+        for step in (self.streams.on_latch, self._signal_estop, self._estop_withdraws,
+                     self.events.governance.emit):
             try:
                 step()
             except Exception:
@@ -327,6 +333,10 @@ class Governor:
     def _signal_estop(self) -> None:
         if self.latch.latched:
             self._dispatcher.signal_estop()
+
+    def _estop_withdraws(self) -> None:
+        if self.latch.latched:  # a stop of the robot (`VelocityStreams.on_latch`)
+            self._robot_stopped("an e-stop")
 
     # -- commands ---------------------------------------------------------------------------
 
@@ -597,6 +607,7 @@ class Governor:
             return await self._base.lock(command, principal, params, event, pending_id)
         if spec.effect is Effect.HALT:  # zero at once, before the stop is even audited
             self.streams.halt(principal.name)
+            self._robot_stopped(f"a stop by '{principal.name}'")
             return await self._halt(command, principal, params, event)
         owner = issuer or principal  # a stream is its issuer's, at the issuer's priority
         if not spec.motion:
@@ -888,7 +899,10 @@ class Governor:
         command arrived; it runs as its issuer's, audited as HITL_AUTHORIZED. Motion that a
         stop of the robot (a `stop`, an e-stop, a session loss's halt) came after it was held
         is refused `stopped`: that stop was for all motion decided before it, and a human
-        approving it later — from a list read before the stop, say — must not start it."""
+        approving it later — from a list read before the stop, say — must not start it. The
+        stop withdraws such motion itself (`_robot_stopped`), in its step; this is the
+        backstop, should a withdrawal miss one (motion being decided once approved is
+        stopped as any other: `_carry_out`)."""
         stopped = pending.stops is not None and self.streams.stops != pending.stops
         if stopped and not self.latch.latched:  # (latched: refused `estop_active`, below)
             return await self._steps.refuse(command, approver, outcomes.STOPPED,
@@ -926,6 +940,7 @@ class Governor:
         # A halt of the whole robot: a stop for all motion decided before it (only the
         # principal's own: nobody else's is on its way, `driven_by_other_than`).
         self.streams.halt(principal.name, EndReason.SESSION_LOST)
+        self._robot_stopped(f"a halt for the lost control session of '{principal.name}'")
         self.streams.take_goals()  # the halt cancels every goal
         self.events.session_lost.emit(principal)  # e.g. log the goals being cancelled
         stop = bridge_command(Effect.HALT)
@@ -946,8 +961,10 @@ class Governor:
         log.warning("control session of '%s' lost (%s): its goals cancelled; the base stays "
                     "with who holds it", principal.name, why)
         # Its motion still on its way (a goal being sent, a move waiting for its entry) is
-        # stopped too, as it comes: refused, or cancelled once its server accepted it.
+        # stopped too, as it comes: refused, or cancelled once its server accepted it; and
+        # its motion held for a human is withdrawn (nobody else's).
         self.streams.own_stop(principal.name)
+        self._withdraw_held(principal, SESSION_LOST.format(why))
         arms = self._hold_own(principal)
         self._base.cancel_goals(goals, principal, why="session lost")
         applied = {"scope": "own", "goals_cancelled": [g.goal_id for g in goals],
@@ -978,7 +995,10 @@ class Governor:
         started (waiting its turn, for the robot or for its entry: it opened no session yet;
         a goal being sent) never starts, or is cancelled once its server accepted it; nobody
         else's is touched. Whether any was on its way. `end_session` does this first; a
-        connection that awaits its command in flight before that calls it before."""
+        connection that awaits its command in flight before that calls it before. Its motion
+        held for a human is withdrawn (`CONNECTION_CLOSED`): an approval must not start motion
+        for a client that is gone."""
+        self._withdraw_held(principal, CONNECTION_CLOSED)
         return self.streams.own_stop(principal.name)
 
     async def end_session(self, principal: Principal, *, on_its_way: bool = False
@@ -1026,15 +1046,15 @@ class Governor:
         running; done once its withdrawals are on record."""
         if self._stopped:  # BRIDGE_STOPPED is the last entry: it halted everything before it
             return ClientCancel((), _resolved(None))
-        ids = self._desk.withdrawing(principal.name, lambda c: c.spec.motion)
-        withdrawn = self._withdraw_held(principal, ids)
+        withdrawing = self._withdraw_held(principal, CANCELLED_BY_CLIENT)
+        ids, withdrawn = tuple(withdrawing), list(withdrawing.values())
         on_its_way = self.connection_closed(principal)
         stream = self.streams.active
         ended = self.streams.end_of(principal.name, EndReason.CANCELLED)
         goals = self.streams.take_goals(owner=principal.name)
         arms = self._hold_own(principal)
         if not (on_its_way or ended or goals or arms.held or arms.not_held):
-            return ClientCancel(tuple(ids), self._after(withdrawn, _resolved(None)))
+            return ClientCancel(ids, self._after(withdrawn, _resolved(None)))
         self._sessions.end(principal)
         log.warning("a motion command of '%s' was cancelled by its client: its own motion "
                     "is stopped (on its way: %s, stream ended: %s, goals cancelled: %d, arms "
@@ -1046,7 +1066,7 @@ class Governor:
                    "stream_ended": stream.message_id if ended and stream else None,
                    "goals_cancelled": [g.goal_id for g in goals], **_arms_applied(arms)}
         # Detached: the cancelled caller's task may be cancelled again; the entry must not be.
-        return ClientCancel(tuple(ids), self._after(
+        return ClientCancel(ids, self._after(
             withdrawn, self._detached(self._own_stop_recorded(principal, applied))))
 
     def _after(self, withdrawn: list[asyncio.Future[Decision]],
@@ -1057,20 +1077,38 @@ class Governor:
             return stopped
         return self._steps.spawn(_gathered_then(withdrawn, stopped))
 
-    def _withdraw_held(self, principal: Principal, ids: list[str]
-                       ) -> list[asyncio.Future[Decision]]:
-        """Withdraws the principal's motion held for a human (`ids`), as its issuer would
-        (HITL_WITHDRAWN, `CANCELLED_BY_CLIENT`): the cancelled command may be one of them,
-        answered `pending_auth` as the cancel came, and a human approving it later would move
-        the robot for a client that no longer wants it. From the step that picked them on no
-        approval of them counts (`HitlDesk.withdrawing`). Its other held commands stay."""
-        if ids:
-            log.warning("a motion command of '%s' was cancelled by its client: its motion "
-                        "held for approval is withdrawn (%s)", principal.name, ", ".join(ids),
-                        extra={"principal": principal.name})
-        return [self._detached(self._desk.resolve(pending_id, principal, "withdraw",
-                                                  CANCELLED_BY_CLIENT))
-                for pending_id in ids]
+    def _withdraw_held(self, issuer: Principal | None, reason: str
+                       ) -> dict[str, asyncio.Future[Decision]]:
+        """Withdraws the motion held for a human of `issuer` (None: of everyone) that a stop
+        of it came for, in this step: each as its issuer would withdraw it (HITL_WITHDRAWN,
+        `reason` saying the stop; its issuer reads that in its pending record, approvers see
+        it leave the list). From this step on no approval of it counts
+        (`HitlDesk.withdrawing`); its entry follows once the desk has it. Held commands that
+        are not motion, and others' when `issuer` is named, stay. By pending id, what to
+        await for each entry.
+
+        Why: such a stop is one for all motion of `issuer`'s (or all motion) decided before it,
+        held motion included; approved later it would start motion for a client that cancelled
+        it or is gone, or restart what a stop of the robot was for (`_run_approved` still
+        refuses held motion approved after a stop of the robot, should a withdrawal miss it:
+        the backstop)."""
+        if self._stopped:  # BRIDGE_STOPPED is the last entry
+            return {}
+        picked = self._desk.withdrawing(issuer.name if issuer else None,
+                                        lambda c: c.spec.motion)
+        if picked:
+            log.warning("motion held for approval is withdrawn (%s): %s", reason,
+                        ", ".join(f"{p.pending_id} of '{p.issuer.name}'" for p in picked),
+                        extra={"principal": issuer.name} if issuer else None)
+        return {p.pending_id: self._detached(self._desk.resolve(p.pending_id, p.issuer,
+                                                                "withdraw", reason))
+                for p in picked}
+
+    def _robot_stopped(self, cause: str) -> None:
+        """A stop of the robot in this step (`VelocityStreams.halt`: a `stop`, an e-stop
+        latching, a session loss's halt): every held motion command is withdrawn
+        (`ROBOT_STOPPED`), nobody's motion held after it is touched."""
+        self._withdraw_held(None, ROBOT_STOPPED.format(cause))
 
     async def sweep(self) -> None:
         """One round of housekeeping: expire HiTL requests, stop for lost sessions, record

@@ -6,6 +6,8 @@ store of pending commands. This module is what happens to them: a held command i
 command's own lock; an approval of several is on record (HITL_APPROVAL) before it counts; a
 denial or a withdrawal ends it; an expired one is discarded and audited. The command the last
 approval releases goes back to the governor, which runs it through the pipeline as it is *now*.
+A stop withdraws the held motion it is a stop for (`withdrawing` picks it in the stop's step,
+each withdrawn as its issuer would, by `resolve`).
 
 What came of a held command stays readable for a while (`KEPT_RESOLVED` of them, the oldest let
 go first): its issuer — an agent waiting for a human — learns it was executed, denied, withdrawn
@@ -110,21 +112,23 @@ class HitlDesk:
             return None
         return found[0] if len(found) == 1 else None
 
-    def withdrawing(self, issuer: str, which: Callable[[NormalizedCommand], bool]
-                    ) -> list[str]:
-        """The ids of `issuer`'s held commands that `which` picks, to be withdrawn by the
-        caller (`resolve`), and no longer approved from this step on: an approval that comes
-        before its withdrawal is refused `pending_not_found`, as one after it is. One past its
-        TTL is left to expire."""
+    def withdrawing(self, issuer: str | None, which: Callable[[NormalizedCommand], bool]
+                    ) -> list[PendingCommand]:
+        """The held commands of `issuer` (None: of everyone) that `which` picks, to be
+        withdrawn by the caller (`resolve`, each by its issuer), and no longer approved from
+        this step on: an approval that comes before its withdrawal is refused
+        `pending_not_found`, as one after it is. One past its TTL is left to expire; one
+        being withdrawn already is not picked again (a second withdrawal would only be
+        refused, and audited so, once the first took it)."""
         now, mono = now_ms(self._clock), self._clock.monotonic()
-        ids = []
+        picked = []
         for held in self._pending.list():
             pending = held.pending
-            if pending.issuer.name == issuer and not held.expired(now, mono) \
-                    and which(pending.command):
+            if (issuer is None or pending.issuer.name == issuer) and not held.withdrawing \
+                    and not held.expired(now, mono) and which(pending.command):
                 held.withdrawing = True
-                ids.append(pending.pending_id)
-        return ids
+                picked.append(pending)
+        return picked
 
     async def hold(self, command: NormalizedCommand, principal: Principal,
                    approver_role: Role, stops: int | None = None) -> Decision:

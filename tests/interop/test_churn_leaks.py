@@ -33,7 +33,7 @@ from waiting import eventually
 
 from rcan_rtps.ros.graph import RosGraph
 from rcan_rtps.ros.participant import RosNode
-from rcan_rtps.ros.services import ServiceClient
+from rcan_rtps.ros.services import ServiceClient, ServiceServer
 
 from .run_process import RunProcess, child_env, state_args
 
@@ -289,3 +289,37 @@ async def test_websockets_by_the_thousand_leave_no_memory_behind(bridge: RunProc
         grown = await _grown_kb(pid, sockets, WARM_UP_SOCKETS, SOCKETS)
     print(f"{SOCKETS} WebSockets: anonymous memory +{grown} kB")
     assert grown < 4000, grown
+
+
+CLIENTS = 2000
+WARM_UP_CLIENTS = 300
+
+
+async def test_service_clients_by_the_thousand_leave_no_memory_behind(domain_id: int) -> None:
+    """A ServiceClient made, called once and closed, over and over, against a ServiceServer
+    of another node of this process: each client's writer, reader, read condition and
+    handshake probe are made and deleted. Measured per entity kind (bench/entity_churn.py),
+    none leaves anything behind in Cyclone or the binding (0-50 B each over 10,000); a
+    whole client ~40 B here, ~120 B against a server in another process. One whose
+    endpoints stayed alive (still tracked by the node, or their delete skipped) would keep
+    a reader with its history and a writer, and grow the node's ros_discovery_info, each
+    time. The bound is ~0.5 kB a client; memory is read, not time."""
+    async def trigger(_request: Any) -> dict[str, Any]:
+        return {"success": True, "message": "ok"}
+
+    with RosNode("churn_server", "/", domain_id=domain_id, localhost=True) as server_node, \
+            RosNode("churn_client", "/", domain_id=domain_id, localhost=True) as node:
+        server = ServiceServer(server_node, "/churn", "std_srvs/srv/Trigger", trigger)
+        try:
+            async def clients(count: int) -> None:
+                for _ in range(count):
+                    client = ServiceClient(node, "/churn", "std_srvs/srv/Trigger")
+                    reply = await client.call({}, timeout=20)
+                    assert reply.success, reply
+                    client.close()
+
+            grown = await _grown_kb(os.getpid(), clients, WARM_UP_CLIENTS, CLIENTS)
+        finally:
+            await server.close()
+    print(f"{CLIENTS} service clients made, called and closed: anonymous memory +{grown} kB")
+    assert grown < CLIENTS // 2, grown

@@ -154,7 +154,8 @@ def last_line(path: Path, block: int = 4096) -> bytes | None:
 
 def verify_file(path: str, public_key: bytes) -> VerifyReport:
     """Chain, signatures, tree heads and start-up checkpoint of what is on disk, as
-    `rcan-rtps audit verify` checks them (runs in the worker process)."""
+    `rcan-rtps audit verify` checks them, a line at a time (runs in the worker process: the
+    log of a long run is never held)."""
     # Imported here, in the worker process: the bridge itself never checks its whole log.
     from rcan_rtps.governance.logcheck import check_log
 

@@ -88,7 +88,7 @@ def _is_device(path: Path) -> bool:
 
 
 @contextlib.contextmanager
-def _regular(path: Path) -> Iterator[tuple[int, os.stat_result]]:
+def regular_file(path: Path) -> Iterator[tuple[int, os.stat_result]]:
     """An open descriptor of `path` and its stat; ValueError unless it is a regular file. Opened
     without blocking: a FIFO's open would wait for a writer that never comes."""
     fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
@@ -104,7 +104,7 @@ def _regular(path: Path) -> Iterator[tuple[int, os.stat_result]]:
 def regular_stat(path: Path) -> os.stat_result:
     """The stat of the regular file at `path`, judged on the file opened (without blocking);
     ValueError unless it is one, OSError if it cannot be opened."""
-    with _regular(path) as (_, info):
+    with regular_file(path) as (_, info):
         return info
 
 
@@ -177,7 +177,7 @@ def read_trusted(path: Path, limit: int) -> bytes:
 def read_small_with_stat(path: Path, limit: int) -> tuple[bytes, os.stat_result]:
     """`read_small`, and the stat of the very file read (a private key's permissions and owner
     are judged on it, not on whatever a stat before found at its name)."""
-    with _regular(path) as (fd, info):
+    with regular_file(path) as (fd, info):
         if info.st_size > limit:
             raise ValueError(f"{path} is larger than {limit} bytes ({info.st_size})")
         # (one byte more than it holds: a file grown meanwhile is seen, never read on)
@@ -185,14 +185,3 @@ def read_small_with_stat(path: Path, limit: int) -> tuple[bytes, os.stat_result]
     if len(data) > info.st_size:
         raise ValueError(f"{path} is being written")
     return data, info
-
-
-def read_regular(path: Path) -> bytes:
-    """A regular file's bytes, whatever its size (a log's sidecar of tree heads). Raises
-    FileNotFoundError if there is none, ValueError if it is no regular file (as `read_small`,
-    unbounded)."""
-    with _regular(path) as (fd, _):
-        chunks = []
-        while chunk := os.read(fd, 1 << 20):
-            chunks.append(chunk)
-    return b"".join(chunks)

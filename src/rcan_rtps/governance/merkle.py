@@ -7,9 +7,10 @@ reference vectors in the tests).
 
 `CompactTree` is what a writer keeps: one hash per set bit of the tree size (the roots of the
 perfect subtrees the leaves fill from the left), O(log n) memory, O(1) amortised hashes per
-appended leaf and O(log n) for the root. Proofs need interior nodes, so they are built from the
-full list of leaf hashes (a verifier reads the whole log anyway); checking a proof needs only
-the proof, the sizes and the roots.
+appended leaf and O(log n) for the root. A proof is the roots of disjoint ranges of leaves,
+known from the sizes alone (`inclusion_ranges`, `consistency_ranges`): they are computed in one
+pass over the leaves (`roots_of_ranges`), a log read a line at a time, never held. Checking a
+proof needs only the proof, the sizes and the roots.
 """
 
 from __future__ import annotations
@@ -86,36 +87,78 @@ def inclusion_proof(leaves: Sequence[bytes], index: int, size: int) -> list[byte
     """PATH(index, D[size]) of RFC 9162 §2.1.3.1, over the first `size` leaf hashes."""
     if not 0 <= index < size <= len(leaves):
         raise ValueError(f"no leaf {index} in a tree of {size}")
-    return _path(leaves, index, 0, size)
+    return roots_of_ranges(leaves, inclusion_ranges(index, size))
 
 
-def _path(leaves: Sequence[bytes], m: int, lo: int, hi: int) -> list[bytes]:
-    n = hi - lo
-    if n == 1:
-        return []
-    k = _split(n)
-    if m < k:
-        return [*_path(leaves, m, lo, lo + k), root_of(leaves[lo + k:hi])]
-    return [*_path(leaves, m - k, lo + k, hi), root_of(leaves[lo:lo + k])]
+def inclusion_ranges(index: int, size: int) -> list[tuple[int, int]]:
+    """The leaf ranges [lo, hi) whose roots are PATH(index, D[size]), in the proof's order:
+    what the proof needs, known from the two numbers alone (0 <= index < size)."""
+    ranges: list[tuple[int, int]] = []
+    lo, hi = 0, size
+    while hi - lo > 1:
+        k = _split(hi - lo)
+        if index < lo + k:
+            ranges.append((lo + k, hi))
+            hi = lo + k
+        else:
+            ranges.append((lo, lo + k))
+            lo += k
+    return ranges[::-1]  # the recursion's innermost sibling comes first
 
 
 def consistency_proof(leaves: Sequence[bytes], old: int, new: int) -> list[bytes]:
     """PROOF(old, D[new]) of RFC 9162 §2.1.4.1 (empty when old is 0 or old == new)."""
     if not 0 <= old <= new <= len(leaves):
         raise ValueError(f"no consistency proof from {old} to {new} leaves")
+    return roots_of_ranges(leaves, consistency_ranges(old, new))
+
+
+def consistency_ranges(old: int, new: int) -> list[tuple[int, int]]:
+    """The leaf ranges [lo, hi) whose roots are PROOF(old, D[new]), in the proof's order
+    (none when old is 0 or old == new; 0 <= old <= new)."""
     if old in (0, new):
         return []
-    return _subproof(leaves, old, 0, new, True)
+    ranges: list[tuple[int, int]] = []
+    lo, hi, m, whole = 0, new, old, True
+    while m != hi - lo:
+        k = _split(hi - lo)
+        if m <= k:
+            ranges.append((lo + k, hi))
+            hi = lo + k
+        else:
+            ranges.append((lo, lo + k))
+            lo, m, whole = lo + k, m - k, False
+    if not whole:
+        ranges.append((lo, hi))
+    return ranges[::-1]
 
 
-def _subproof(leaves: Sequence[bytes], m: int, lo: int, hi: int, whole: bool) -> list[bytes]:
-    n = hi - lo
-    if m == n:
-        return [] if whole else [root_of(leaves[lo:hi])]
-    k = _split(n)
-    if m <= k:
-        return [*_subproof(leaves, m, lo, lo + k, whole), root_of(leaves[lo + k:hi])]
-    return [*_subproof(leaves, m - k, lo + k, hi, False), root_of(leaves[lo:lo + k])]
+def roots_of_ranges(leaves: Iterable[bytes], ranges: Sequence[tuple[int, int]]) -> list[bytes]:
+    """The root of each of `ranges` (disjoint [lo, hi) of leaf indexes), in their order, from
+    one pass over `leaves` that stops after the last range: a proof made from a log read a
+    line at a time holds O(log² n) hashes, never the leaves. A range the leaves end in has
+    the root of the part they reach (callers check the count first)."""
+    order = sorted(range(len(ranges)), key=lambda i: ranges[i][0])
+    roots = [EMPTY_ROOT] * len(ranges)
+    if not order:
+        return roots
+    pending = iter(order)
+    current = next(pending)
+    tree = CompactTree()
+    for index, leaf in enumerate(leaves):
+        lo, hi = ranges[current]
+        if index < lo:
+            continue
+        tree.append(leaf)
+        if index + 1 == hi:
+            roots[current], tree = tree.root(), CompactTree()
+            following = next(pending, None)
+            if following is None:
+                return roots
+            current = following
+    if tree.size:
+        roots[current] = tree.root()
+    return roots
 
 
 def verify_inclusion(leaf: bytes, index: int, size: int, proof: Sequence[bytes],

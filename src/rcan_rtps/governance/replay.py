@@ -13,7 +13,16 @@ seen from any sender is a replay from every sender.
 
 The window is kept in memory, so a start reads back the ids the audit log's last entries
 name (`remember_logged`): a message the previous run took, sent again while it could still be
-fresh, is a replay after a restart too.
+fresh, is a replay after a restart too. The start keeps the same bound: the newest
+`max_entries` of each sender's ids (a flood's refusals are logged with their ids too: 200 000
+of them, 65 MB at start, were all kept). It fails closed on the ids it does not keep: every
+message of that sender sent no later than the newest of them could have been (its log time +
+`ahead_s`) is refused as stale (`older_than_the_ids_kept_at_start`) until the window has passed
+it; a message it sends after the restart is newer. (While the kept ids are held the sender's
+window is full anyway, but they are the log's last lines, not always its latest times: after a
+step back of the last run's clock they may go stale first.) Per sender, as the bound is: one
+refusing every sender's would again let a flooding GUEST have other principals' messages
+refused. (A forgotten id sent by another principal runs with that principal's rights.)
 
 The wall clock may be stepped under the bridge. Ids are forgotten, and messages judged stale,
 by the latest wall time this run has read (`LatestWall`) as well as by the wall time now: a
@@ -27,6 +36,7 @@ The 1.2 forms and unversioned messages keep the idempotent retry instead (the go
 from __future__ import annotations
 
 import heapq
+import math
 from collections import Counter
 from pathlib import Path
 
@@ -44,6 +54,7 @@ SAFETY_WINDOW_S = 10.0  # §8.3: a SAFETY message's window is never longer
 DEFAULT_AHEAD_S = 5.0  # §8.4's clock-drift tolerance
 DEFAULT_MAX_ENTRIES = 10_000
 WINDOW_FULL = Rejection(429, Outcome.DENIED, ErrorCode.RATE_LIMITED, "replay_window_full")
+FORGOTTEN_AT_START = "older_than_the_ids_kept_at_start"
 
 
 class ReplayWindow:
@@ -59,6 +70,8 @@ class ReplayWindow:
         self._seen: dict[str, tuple[str, float]] = {}  # msg_id → (its sender, stale at)
         self._held: Counter[str] = Counter()  # sender → how many of its ids are kept
         self._expiry: list[tuple[float, str]] = []  # (when it goes stale, msg_id), soonest first
+        # sender → sent at or before this, its message may bear an id the start did not keep
+        self._forgotten_until: dict[str, float] = {}
 
     def __len__(self) -> int:
         return len(self._seen)
@@ -85,6 +98,8 @@ class ReplayWindow:
         self._forget_stale(latest)
         if msg_id in self._seen:
             return outcomes.REPLAY_DETECTED
+        if sent_at_s <= self._forgotten_until.get(sender, -math.inf):
+            return _stale(FORGOTTEN_AT_START)
         if self._held[sender] >= self._max:
             return WINDOW_FULL
         self._seen[msg_id] = (sender, sent_at_s + window)
@@ -102,6 +117,10 @@ class ReplayWindow:
         refused after the window took its id — an e-stop was latched, say — must not pass
         when sent again once the new run has cleared it).
 
+        At most `max_entries` of one sender's, the newest (as a run holds them): when an id
+        of a sender is not kept, its messages sent up to that id's log time + `ahead_s` are
+        refused as stale until the window has passed that time (`check`).
+
         Entries logged ahead of the clock now (it was stepped back, or this start came before
         NTP set it) are kept too, until the clock passes them: their messages become fresh
         again when it does. Only the last run's last `window_s + ahead_s` are read."""
@@ -112,13 +131,24 @@ class ReplayWindow:
             newest = max(newest, logged_s)
             if logged_s < newest - keep_s:
                 break  # stale by the log's own last entries, whatever the clock says now
+            if msg_id in self._seen:
+                continue
+            if self._held[sender] >= self._max:  # (read from the newest: this one is older)
+                self._forget_logged(sender, logged_s)
+                continue
             stale_at = logged_s + keep_s
-            if msg_id not in self._seen:
-                self._seen[msg_id] = (sender, stale_at)
-                self._held[sender] += 1
-                heapq.heappush(self._expiry, (stale_at, msg_id))
-                remembered += 1
+            self._seen[msg_id] = (sender, stale_at)
+            self._held[sender] += 1
+            heapq.heappush(self._expiry, (stale_at, msg_id))
+            remembered += 1
         return remembered
+
+    def _forget_logged(self, sender: str, logged_s: float) -> None:
+        """An id of `sender` logged at `logged_s` is not kept: refuse what may bear it (its
+        message was sent `ahead_s` after it was taken at the latest)."""
+        sent_by = logged_s + self.ahead_s
+        if sent_by > self._forgotten_until.get(sender, -math.inf):
+            self._forgotten_until[sender] = sent_by
 
     def release(self, msg_id: str | None, sender: str = "") -> None:
         """Forgets an id `check` let through whose message was then refused before anything
@@ -132,6 +162,10 @@ class ReplayWindow:
             self._drop(msg_id)
 
     def _forget_stale(self, now: float) -> None:
+        if self._forgotten_until:  # (rare: after a start that left some ids out)
+            for sender, sent_by in list(self._forgotten_until.items()):
+                if now - sent_by > self.window_s:  # all it covers is stale
+                    del self._forgotten_until[sender]
         while self._expiry and self._expiry[0][0] < now:
             stale_at, msg_id = heapq.heappop(self._expiry)
             kept = self._seen.get(msg_id)

@@ -21,6 +21,7 @@ import errno
 import logging
 import os
 import stat
+from collections.abc import Iterator
 from pathlib import Path
 
 import msgspec
@@ -29,6 +30,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey,
 
 from ._durable import full_fsync, write_all
 from ._json import decode_as
+from .log_tail import lines_forwards
 
 log = logging.getLogger(__name__)
 
@@ -89,11 +91,30 @@ def parse_tree_heads(data: bytes) -> tuple[list[TreeHead | BadTreeHead], bytes]:
     out: list[TreeHead | BadTreeHead] = []
     lines = data.split(b"\n")
     for n, line in enumerate(lines[:-1], start=1):
-        out.append(_parse(line, n))
+        out.append(parse_tree_head(line, n))
     return out, lines[-1]
 
 
-def _parse(line: bytes, n: int) -> TreeHead | BadTreeHead:
+class HeadLines:
+    """The heads of an open tree-head file up to byte `end`, parsed a line at a time as
+    `parse_tree_heads` parses them (a file of a head per commit batch grows with the log: it
+    is never held). Once iterated, `torn` is the length of its unterminated tail."""
+
+    def __init__(self, fd: int, end: int) -> None:
+        self._fd, self._end = fd, end
+        self.torn = 0
+
+    def __iter__(self) -> Iterator[tuple[int, TreeHead | BadTreeHead]]:
+        """(line number from 1, the head or why not)."""
+        tail = 0  # where the unterminated tail, if any, starts
+        for n, (offset, line) in enumerate(lines_forwards(self._fd, 0, self._end), start=1):
+            tail = offset + len(line) + 1
+            yield n, parse_tree_head(line, n)
+        self.torn = self._end - tail
+
+
+def parse_tree_head(line: bytes, n: int) -> TreeHead | BadTreeHead:
+    """Line `n` (1-based) of a tree-head file, without its newline: the head, or why not."""
     try:
         head = decode_as(line, TreeHead)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:

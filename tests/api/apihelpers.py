@@ -12,6 +12,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+import aiohttp
 from aiohttp import web
 from aiohttp.test_utils import TestClient, TestServer
 from local_http import serve_post
@@ -270,3 +271,16 @@ async def webhook_receiver() -> tuple[web.AppRunner, str, list[dict[str, Any]]]:
     runner, url = await serve_post("/hitl", hook)
     return runner, url, received
 
+
+async def next_frame(ws: aiohttp.ClientWebSocketResponse, kind: str) -> dict[str, Any]:
+    """The next WebSocket frame of `kind` ("status", "outcome", "approvals", ...), skipping
+    the others."""
+    async def wait() -> dict[str, Any]:
+        while True:
+            msg = await ws.receive()
+            assert msg.type is aiohttp.WSMsgType.TEXT, msg
+            frame: dict[str, Any] = json.loads(msg.data)
+            if frame["type"] == kind:
+                return frame
+
+    return await asyncio.wait_for(wait(), timeout=30)

@@ -8,7 +8,6 @@ in `GET /api/hitl/pending/{id}`."""
 
 from __future__ import annotations
 
-import asyncio
 import json
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -19,7 +18,7 @@ import pytest
 from waiting import eventually
 
 from rcan_rtps.governance.governor import CONNECTION_CLOSED, ROBOT_STOPPED
-from tests.api.apihelpers import Api, auth
+from tests.api.apihelpers import Api, auth, next_frame
 from tests.api.test_hitl_reviews import ARM, hold
 
 
@@ -32,15 +31,7 @@ async def api(tmp_path: Path) -> AsyncIterator[Api]:
 
 async def _next(ws: aiohttp.ClientWebSocketResponse, kind: str) -> dict[str, Any]:
     """The body of the next frame of `kind`, skipping the others."""
-    async def wait() -> dict[str, Any]:
-        while True:
-            msg = await ws.receive()
-            assert msg.type is aiohttp.WSMsgType.TEXT, msg
-            frame: dict[str, Any] = json.loads(msg.data)
-            if frame["type"] == kind:
-                return dict(frame["body"])
-
-    return await asyncio.wait_for(wait(), timeout=30)
+    return dict((await next_frame(ws, kind))["body"])
 
 
 async def _listed_until(ws: aiohttp.ClientWebSocketResponse, wanted: set[str]) -> None:

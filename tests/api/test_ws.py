@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-from typing import Any
 
 import aiohttp
 import pytest
@@ -12,28 +11,15 @@ from waiting import eventually
 
 from rcan_rtps.governance import Principal
 from rcan_rtps.rcan import Role
-from tests.api.apihelpers import Api, auth
-
-
-async def _frame(ws: aiohttp.ClientWebSocketResponse, kind: str) -> dict[str, Any]:
-    """The next frame of `kind` ("status" / "outcome"), skipping the others."""
-    async def wait() -> dict[str, Any]:
-        while True:
-            msg = await ws.receive()
-            assert msg.type is aiohttp.WSMsgType.TEXT, msg
-            frame: dict[str, Any] = json.loads(msg.data)
-            if frame["type"] == kind:
-                return frame
-
-    return await asyncio.wait_for(wait(), timeout=30)
+from tests.api.apihelpers import Api, auth, next_frame
 
 
 async def test_status_is_pushed(api: Api) -> None:
     async with api.http.ws_connect("/api/ws", headers=auth("viewer")) as ws:
-        first = await _frame(ws, "status")
+        first = await next_frame(ws, "status")
         assert first["body"]["ruri"] == api.robot.status(pending_auth=0).ruri
         api.robot.x = 7.5
-        while (await _frame(ws, "status"))["body"]["telemetry"]["position"]["x"] != 7.5:
+        while (await next_frame(ws, "status"))["body"]["telemetry"]["position"]["x"] != 7.5:
             pass
 
 
@@ -42,7 +28,7 @@ async def test_commands_in_outcomes_out_like_rest(api: Api) -> None:
                                                       "params": {"linear_x": 0.3}})
     async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
         await ws.send_str(json.dumps({"action": "move", "params": {"linear_x": 0.3}}))
-        frame = await _frame(ws, "outcome")
+        frame = await next_frame(ws, "outcome")
         assert frame["http_status"] == rest_status == 200
         assert frame["body"].keys() == rest.keys()
         # The same, but ramped from what the REST move commands now (its stream is held).
@@ -53,24 +39,24 @@ async def test_commands_in_outcomes_out_like_rest(api: Api) -> None:
         assert api.entry(frame["body"]["audit_id"])["principal"] == "planner"
 
         await ws.send_str('{"action": "move", "params": {"linear_x": NaN}}')
-        frame = await _frame(ws, "outcome")
+        frame = await next_frame(ws, "outcome")
         assert (frame["http_status"], frame["body"]["error_code"]) == (
             400, "SCHEMA_VALIDATION_FAILED")
         assert api.entry(frame["body"]["audit_id"])["deny_reason"].startswith("SCHEMA")
 
         await ws.send_bytes(b'{"action": "fly"}')
-        frame = await _frame(ws, "outcome")
+        frame = await next_frame(ws, "outcome")
         assert (frame["http_status"], frame["body"]["path"]) == (400, "$.action")
 
         await ws.send_str(json.dumps({"action": "move", "role": "CREATOR"}))
-        assert (await _frame(ws, "outcome"))["http_status"] == 403
+        assert (await next_frame(ws, "outcome"))["http_status"] == 403
     assert [a for a, _ in api.dispatcher.calls].count("move") == 2
 
 
 async def test_oversized_frames(api: Api) -> None:
     async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
         await ws.send_str('{"action": "move", "pad": "' + "x" * (64 * 1024) + '"}')
-        frame = await _frame(ws, "outcome")
+        frame = await next_frame(ws, "outcome")
         assert (frame["http_status"], frame["body"]["error_code"]) == (413,
                                                                        "PAYLOAD_TOO_LARGE")
         assert api.entry(frame["body"]["audit_id"])["deny_reason"] == "PAYLOAD_TOO_LARGE"
@@ -91,7 +77,7 @@ async def test_websocket_needs_credentials(api: Api) -> None:
 
 async def _hold_session(api: Api, ws: aiohttp.ClientWebSocketResponse) -> None:
     await ws.send_str(json.dumps({"action": "move", "params": {"linear_x": 0.2}}))
-    assert (await _frame(ws, "outcome"))["http_status"] == 200
+    assert (await next_frame(ws, "outcome"))["http_status"] == 200
 
 
 async def test_ping_counts_as_heartbeat(api: Api) -> None:
@@ -114,7 +100,7 @@ async def test_any_frame_counts_as_heartbeat(api: Api) -> None:
         await _hold_session(api, ws)
         api.clock.advance(50)
         await ws.send_str("{}")  # not a valid command, but the client is there
-        await _frame(ws, "outcome")
+        await next_frame(ws, "outcome")
         api.clock.advance(50)
         await api.gov.sweep()
         assert [a for a, _ in api.dispatcher.calls] == ["move"]
@@ -133,9 +119,9 @@ async def test_closing_the_socket_of_a_controller_stops_the_robot(api: Api) -> N
 
 async def test_closing_without_a_session_does_not_stop(api: Api) -> None:
     async with api.http.ws_connect("/api/ws", headers=auth("planner")) as ws:
-        await _frame(ws, "status")
+        await next_frame(ws, "status")
     async with api.http.ws_connect("/api/ws", headers=auth("viewer")) as ws:
-        await _frame(ws, "status")
+        await next_frame(ws, "status")
     # A socket that held a session, closing after those: its stop is the only one.
     ws = await api.http.ws_connect("/api/ws", headers=auth("planner"))
     await _hold_session(api, ws)
@@ -195,7 +181,7 @@ async def test_a_queued_estop_is_decided_even_after_close(api: Api) -> None:
 
 async def test_server_shutdown_closes_sockets(api: Api) -> None:
     ws = await api.http.ws_connect("/api/ws", headers=auth("viewer"))
-    await _frame(ws, "status")
+    await next_frame(ws, "status")
     closing = asyncio.create_task(api.http.server.close())  # the client answers meanwhile
     msg = await asyncio.wait_for(ws.receive(), timeout=30)
     while msg.type is aiohttp.WSMsgType.TEXT:

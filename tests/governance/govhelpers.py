@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shutil
+import tracemalloc
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from recording import RecordingDispatcher
 
@@ -176,3 +178,23 @@ async def held_motion_stopped(gov: Governor, harness: Harness, where: str,
     assert (moved.http_status, moved.reason) == (409, "stopped"), moved
     await asyncio.gather(*gov._tasks)
     return stopped
+
+
+T = TypeVar("T")
+
+
+def fresh_copy(written: Path, tmp: Path) -> Path:
+    """A fresh copy of the files of a log written once for a module (a start appends to
+    them); the log's path."""
+    for file in written.iterdir():
+        shutil.copy2(file, tmp / file.name)
+    return tmp / "audit.jsonl"
+
+
+def peak_of(call: Callable[[], T]) -> tuple[T, int]:
+    """What `call` returns, and the most memory it held at once (every thread's)."""
+    tracemalloc.start()
+    try:
+        return call(), tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()

@@ -12,13 +12,11 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
-import shutil
-import tracemalloc
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import pytest
+from govhelpers import fresh_copy, peak_of
 
 from rcan_rtps.governance import audit as audit_mod
 from rcan_rtps.governance.audit import (
@@ -36,7 +34,6 @@ from rcan_rtps.governance.treehead import TreeHeadFile, tree_head_path
 ENTRIES = 3000
 # A command's parameters of some size: the megabytes of a long run from fewer entries.
 PARAMS = {"linear_x": 0.2, "note": "x" * 2000}
-T = TypeVar("T")
 
 
 def record(i: int) -> AuditRecord:
@@ -70,22 +67,11 @@ def written(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture
 def run_log(written: Path, tmp_path: Path) -> Path:
     """A fresh copy of the run's files (a start appends to them); the log's path."""
-    for file in written.iterdir():
-        shutil.copy2(file, tmp_path / file.name)
-    return tmp_path / "audit.jsonl"
+    return fresh_copy(written, tmp_path)
 
 
 def past_first_checkpoint(path: Path) -> int:
     return path.stat().st_size - json.loads(checkpoint_path(path).read_bytes())["end"]
-
-
-def peak_of(call: Callable[[], T]) -> tuple[T, int]:
-    """What `call` returns, and the most memory it held at once (every thread's)."""
-    tracemalloc.start()
-    try:
-        return call(), tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
 
 
 def opened(path: Path) -> ChainHead:

@@ -12,14 +12,12 @@ from __future__ import annotations
 import asyncio
 import base64
 import json
-import shutil
-import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
-from typing import TypeVar
 
 import msgspec
 import pytest
+from govhelpers import fresh_copy, peak_of
 
 from rcan_rtps.api._reads import verify_file
 from rcan_rtps.governance.audit import (
@@ -46,7 +44,6 @@ from tests.governance.test_audit_cli import run
 
 ENTRIES = 3000
 NOTE = "x" * 2000  # a command's parameters of some size: megabytes from fewer entries
-T = TypeVar("T")
 
 
 def record(i: int) -> AuditRecord:
@@ -73,17 +70,7 @@ def written(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture
 def log_path(written: Path, tmp_path: Path) -> Path:
     """A fresh copy of the log and its files; the log's path."""
-    for file in written.iterdir():
-        shutil.copy2(file, tmp_path / file.name)
-    return tmp_path / "audit.jsonl"
-
-
-def peak_of(call: Callable[[], T]) -> tuple[T, int]:
-    tracemalloc.start()
-    try:
-        return call(), tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    return fresh_copy(written, tmp_path)
 
 
 def pubkey_of(path: Path) -> object:

@@ -75,3 +75,19 @@ def test_a_page_deep_in_a_long_log_holds_the_page_not_the_log(tmp_path: Path) ->
     assert [json.loads(line)["seq"] for line in mine] == [
         s for s in range(count - 59, count + 1) if s % 3 == 1][-20:]
     assert peak < size / 20, (peak, size)
+
+
+def test_a_damaged_line_past_the_page_does_not_refuse_it(tmp_path: Path) -> None:
+    """Reads never verify, and a page never fails on a line it does not reach: a line that is
+    no entry (planted on disk) past the page, where the halving looks first, is read over
+    from the last good probe on — not answered 503 (the whole read never got there)."""
+    path = tmp_path / "audit.jsonl"
+    lines = [_line(seq, 1000) for seq in range(1, 2001)]
+    middle = len(lines) // 2
+    lines[middle - 20: middle + 20] = [b"not an entry " + b"x" * 1000 + b"\n"] * 40
+    data = b"".join(lines)
+    path.write_bytes(data)
+    assert len(data) // 2 > 256 * 1024  # the halving probes the middle first
+    entries = [line.rstrip(b"\n") for line in lines]
+    assert entries_after(path, 0, 5) == entries[:5]
+    assert entries_of(path, "ops", 0, 3, False) == [entries[2], entries[5], entries[8]]

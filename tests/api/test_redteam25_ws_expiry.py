@@ -122,3 +122,39 @@ async def test_a_configured_token_s_socket_stays_open(api: Api) -> None:
         api.clock.advance(10 * 24 * 3600)
         await ws.send_str(MOVE)
         assert (await outcome(ws))["http_status"] == 200
+
+
+@pytest.mark.parametrize("deaf", [False, True])
+async def test_a_credential_run_out_before_the_wait_still_times_the_wait_out(
+        deaf: bool) -> None:
+    """The credential may run out while a frame is handled (a stop waiting for room in its
+    lane): the next wait is then for a credential with no time left. aiohttp takes a receive
+    timeout of 0 as none at all, so a wait of 0 left the socket open for good — pushed the
+    held commands, status and goals as long as its client kept it (review of red team 25).
+    Here a real aiohttp socket waits as `_serve` would: its wait ends, and nothing is lost
+    of a frame already come (it is read first)."""
+    from aiohttp import web
+    from aiohttp.test_utils import TestClient, TestServer
+
+    from rcan_rtps.api._ws import _wait_s
+
+    ended: asyncio.Queue[str] = asyncio.Queue()
+
+    async def handler(request: web.Request) -> web.WebSocketResponse:
+        ws = web.WebSocketResponse()
+        await ws.prepare(request)
+        for _ in range(2):  # the frame already come, then the wait that must end
+            try:
+                msg = await ws.receive(timeout=_wait_s(deaf, -1.0))
+                await ended.put(f"frame {msg.data}")
+            except asyncio.TimeoutError:
+                await ended.put("timed out")
+        await ws.close()
+        return ws
+
+    app = web.Application()
+    app.router.add_get("/ws", handler)
+    async with TestClient(TestServer(app)) as client, client.ws_connect("/ws") as ws:
+        await ws.send_str("stop")
+        assert await asyncio.wait_for(ended.get(), timeout=10) == "frame stop"
+        assert await asyncio.wait_for(ended.get(), timeout=10) == "timed out"

@@ -92,6 +92,7 @@ DEAF_QUIET_S = 1.0  # a deaf client's frames paused this long: every stop it sen
 CLOSE_S = 5.0  # closing a deaf client's socket (it reads no close frame either)
 NOT_READING = b"outcome frames not read"
 CREDENTIAL_EXPIRED = b"credential expired"
+MIN_WAIT_S = 0.01  # the shortest wait for a frame (`_wait_s`)
 # Sockets one principal may hold at once (beyond: 429 before the handshake). A console, an
 # agent and a few tools need a handful; hundreds are an attack on the file descriptors.
 MAX_SOCKETS_PER_PRINCIPAL = 32
@@ -460,9 +461,12 @@ def _raw(data: str | bytes) -> bytes:
 
 def _wait_s(deaf: bool, credential_left: float | None) -> float | None:
     """How long to wait for a frame: a deaf client's until its frames pause, anyone's no
-    longer than its credential has left (None: for ever)."""
+    longer than its credential has left (None: for ever). Never 0: aiohttp takes a timeout
+    of 0 as none at all, and a credential that ran out while a frame was handled left the
+    socket open for good (review of red team 25); a frame already come is still read (its
+    stop taken) before the socket closes."""
     waits = [w for w in (DEAF_QUIET_S if deaf else None, credential_left) if w is not None]
-    return max(0.0, min(waits)) if waits else None
+    return max(MIN_WAIT_S, min(waits)) if waits else None
 
 
 def _expired(credential_left: float | None) -> bool:

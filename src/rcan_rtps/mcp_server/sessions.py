@@ -16,8 +16,9 @@ touched. The manager's overall cap stays, its refusal (503) said as plainly.
 Why close rather than refuse: the sessions a principal leaves idle are almost always ones its
 client has abandoned (a crashed or restarted agent: the SDK's client sends no DELETE when it
 dies), and that client is the one asking again; refusing would lock the principal out of its
-own door for the idle timeout. A session with a request in flight is alive: closing it would
-cut a call in progress, so a live client never loses its session to a newcomer of its own.
+own door for the idle timeout. A session with a request in flight (a call being answered, an
+event stream held open) is never closed for a newcomer: that would cut it off mid-call. One
+idle between calls may be, live client or not: it reopens a session as an expired one would.
 Closing a session does what its idle expiry does: motion it started is held (heartbeats) until
 that move or goal ends, as after an expiry; its principal stops it from any session.
 """

@@ -17,8 +17,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from rcan.message import RCANMessage
 from rcan.safety import make_estop_message
 
-from tests.api.apihelpers import Api, auth
-from tests.api.test_ws import _frame
+from tests.api.apihelpers import Api, auth, next_frame
 
 TARGET = "rcan://registry.local/clearpath/husky/v1/a200-0001"
 DATA = Path(__file__).parents[1] / "data" / "rcan-spec"
@@ -119,7 +118,7 @@ async def test_the_websocket_takes_authorize(api: Api) -> None:
                         principal_id=None)
     async with api.http.ws_connect("/api/ws", headers=auth("ops")) as ws:
         await ws.send_str(json.dumps(message))
-        frame = await _frame(ws, "outcome")
+        frame = await next_frame(ws, "outcome")
         assert (frame["http_status"], frame["body"]["status"]) == (200, "ok"), frame
     assert [a for a, _ in api.dispatcher.calls] == ["arm_joint"]
 

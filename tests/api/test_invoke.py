@@ -17,8 +17,7 @@ import pytest
 from rcan_rtps.api import GoalView
 from rcan_rtps.governance import Principal
 from rcan_rtps.rcan import MoveParams, Role
-from tests.api.apihelpers import ZERO, Api, auth
-from tests.api.test_ws import _frame
+from tests.api.apihelpers import ZERO, Api, auth, next_frame
 
 TARGET = "rcan://registry.local/clearpath/husky/v1/a200-0001"
 DATA = Path(__file__).parents[1] / "data" / "rcan-spec"
@@ -187,10 +186,10 @@ async def test_the_websocket_takes_them_and_is_not_held_up(api: Api) -> None:
         await ws.send_str(json.dumps(invoke("go_home", "inv-ws")))
         await sent(api, "navigate")
         await ws.send_str(json.dumps(invoke("fly", "inv-no")))  # answered while it runs
-        frame = await _frame(ws, "outcome")
+        frame = await next_frame(ws, "outcome")
         assert (frame["http_status"], frame["body"]["reply_to"]) == (404, "inv-no"), frame
         api.robot.goal_changed(ended("goal-1", "succeeded"))
-        frame = await _frame(ws, "outcome")
+        frame = await next_frame(ws, "outcome")
         assert (frame["body"]["reply_to"], frame["body"]["status"]) == (
             "inv-ws", "success"), frame
 

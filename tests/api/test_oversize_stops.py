@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from rcan_rtps.api._intake import STOP_ROOM
-from tests.api.apihelpers import Api, auth
+from tests.api.apihelpers import Api, auth, next_frame
 from tests.api.test_mcp_stop_intake import (
     LEGACY,
     MODERN,
@@ -24,7 +24,6 @@ from tests.api.test_mcp_stop_intake import (
     post,
     stopped,
 )
-from tests.api.test_ws import _frame
 
 LIMIT = 64 * 1024  # the default max_body_bytes
 BIG = "r" * (100 * 1024)
@@ -89,7 +88,7 @@ async def test_a_body_past_the_room_by_its_shape_or_no_stop_is_413(api: Api) -> 
 async def test_an_oversize_websocket_stop_stops(api: Api) -> None:
     async with api.http.ws_connect("/api/ws", headers=auth("viewer")) as ws:
         await ws.send_bytes(_oversize("estop"))
-        frame = await _frame(ws, "outcome")
+        frame = await next_frame(ws, "outcome")
         assert (frame["http_status"], frame["body"]["outcome"]) == (200, "executed"), frame
         _said_large(frame["body"]["warnings"])
     assert api.gov.latch.latched

@@ -15,8 +15,7 @@ import pytest
 from rcan.message import RCANMessage, RCANResponse
 from rcan.safety import make_estop_message, make_resume_message
 
-from tests.api.apihelpers import RURI, Api, auth
-from tests.api.test_ws import _frame
+from tests.api.apihelpers import RURI, Api, auth, next_frame
 
 # The robot of apihelpers (configured in the 1.2 form), addressed in the 2.1+ form the SDK
 # insists on: the same robot.
@@ -197,6 +196,6 @@ async def test_the_websocket_speaks_the_sdks_messages_too(api: Api) -> None:
         for body, http, status in ((msg, 200, "ok"), (heartbeat(api), 200, "ok"),
                                    (msg, 409, "blocked")):
             await ws.send_str(json.dumps(body))
-            frame = await _frame(ws, "outcome")
+            frame = await next_frame(ws, "outcome")
             assert (frame["http_status"], frame["body"]["status"]) == (http, status), frame
     assert [a for a, _ in api.dispatcher.calls] == ["move"]

@@ -16,10 +16,9 @@ import pytest
 
 from rcan_rtps.api import ApiServer
 from rcan_rtps.governance.decision_log import log_entry
-from tests.api.apihelpers import Api, auth
+from tests.api.apihelpers import Api, auth, next_frame
 from tests.api.test_mcp_stop_intake import LEGACY, META, MODERN, headers, post, stopped, warned
 from tests.api.test_rcan3_messages import sdk_command
-from tests.api.test_ws import _frame
 
 SMALL_WINDOW = "security: {msg_id_cache_size: 100}"
 
@@ -125,7 +124,7 @@ async def test_a_websocket_estop_with_a_deeply_nested_field_stops(api: Api) -> N
     raw = b'{"action": "estop", "params": {"reason": "deep"}, "x": ' + DEEP + b"}"
     async with api.http.ws_connect("/api/ws", headers=auth("viewer")) as ws:
         await ws.send_bytes(raw)
-        frame = await _frame(ws, "outcome")
+        frame = await next_frame(ws, "outcome")
     assert (frame["http_status"], frame["body"]["outcome"]) == (200, "executed"), frame
     assert api.gov.latch.latched and [a for a, _ in api.dispatcher.calls] == ["estop"]
 

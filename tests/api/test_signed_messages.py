@@ -22,9 +22,8 @@ from rcan.signing import MLDSAKeyPair, _canonical_message_bytes, sign_message
 from rcan_rtps.config import ConfigError
 from rcan_rtps.governance import AuthConfigError
 from rcan_rtps.governance.signatures import Signatures
-from tests.api.apihelpers import Api, auth, make_config
+from tests.api.apihelpers import Api, auth, make_config, next_frame
 from tests.api.test_rcan3_messages import TARGET
-from tests.api.test_ws import _frame
 
 PLANNER_KEY = MLDSAKeyPair.generate()
 OPS_KEY = MLDSAKeyPair.generate()
@@ -234,12 +233,12 @@ async def test_off_records_a_signature_as_unverified(api: Api) -> None:
 async def test_the_websocket_applies_its_principals_policy(api: Api) -> None:
     async with api.http.ws_connect("/api/ws", headers=auth("ops")) as ws:
         await ws.send_str(json.dumps(message(api, "move", {"linear_x": 0.1}).to_dict()))
-        frame = await _frame(ws, "outcome")
+        frame = await next_frame(ws, "outcome")
         assert (frame["http_status"], frame["body"]["error_code"]) == (
             403, "SIGNATURE_REQUIRED"), frame
         await ws.send_str(json.dumps(sdk_signed(message(api, "move", {"linear_x": 0.1}),
                                                 OPS_KEY)))
-        frame = await _frame(ws, "outcome")
+        frame = await next_frame(ws, "outcome")
         assert frame["body"]["status"] == "ok", frame
 
 

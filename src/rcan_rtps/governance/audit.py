@@ -18,7 +18,7 @@ A signed checkpoint beside the log records the last verified entry (and the Merk
 there), so opening the log checks only what was appended after it: start-up time does not grow
 with the log. Nor does its memory with what it checks (a crash may leave any number of
 entries past the checkpoint, or a checkpoint that no longer matches): it reads and verifies one
-line at a time (READ_CHUNK at once), and a torn tail is measured and hashed, never held.
+line at a time (`log_tail.CHUNK` at once), and a torn tail is measured and hashed, never held.
 `verify` and `rcan-rtps audit verify` still check the whole chain, a line at a time too.
 
 Transparency (`treehead`, `merkle`): each commit batch, once durable, gets a signed tree head
@@ -70,7 +70,7 @@ from ._json import decode, decode_as
 from .clock import Clock, SystemClock
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
 from .keyfacts import read_public_pem
-from .log_tail import lines_forwards
+from .log_tail import CHUNK, lines_forwards
 from .merkle import CompactTree, leaf_hash
 from .treehead import TreeHead, TreeHeadFile, public_key_path, sign_tree_head, tree_head_path
 
@@ -433,11 +433,11 @@ class _Scan(msgspec.Struct):
     torn_sha256: str = ""  # of the torn tail, once the log is opened (what its entry records)
 
 
-_Lines = Iterator[tuple[int, bytes]]  # (offset, line without its newline), in order
-# What a scan of the file reads at a time: it holds this and the longest line, never the part
-# of the log it verifies (a crashed run's 200 000 entries past its checkpoint, 139 MB, were
-# read whole and joined: 278 MB at once).
-READ_CHUNK = 64 * 1024
+# (offset, line without its newline), in order. A scan of the file reads `log_tail.CHUNK` at a
+# time (`lines_forwards`): it holds that and the longest line, never the part of the log it
+# verifies (a crashed run's 200 000 entries past its checkpoint, 139 MB, were read whole and
+# joined: 278 MB at once).
+_Lines = Iterator[tuple[int, bytes]]
 
 
 def _lines(data: bytes) -> _Lines:
@@ -454,7 +454,7 @@ def _sha256_of(fd: int, start: int, end: int) -> str:
     """The hex SHA-256 of the file's bytes from `start` to `end`, a chunk at a time."""
     digest = hashlib.sha256()
     while start < end:
-        block = os.pread(fd, min(READ_CHUNK, end - start), start)
+        block = os.pread(fd, min(CHUNK, end - start), start)
         if not block:
             break
         digest.update(block)
@@ -571,7 +571,7 @@ def verify_fd(fd: int, end: int, pubkey: Ed25519PublicKey | None = None, *,
                 tree: CompactTree | None = None, each: Callable[[int, str], None] | None = None,
                 live: bool = False) -> ChainHead:
     """The entries of the open file `fd` up to byte `end`, verified from seq 1 as `verify_bytes`
-    verifies them, a line at a time (READ_CHUNK and the longest line held, never the file: a
+    verifies them, a line at a time (`log_tail.CHUNK` and the longest line held, never the file: a
     month-long log of 700 MB took 1.4 GB to verify whole). Each valid entry is added to `tree`
     and handed to `each` (`_scan`); raises AuditIntegrityError at the first break, after the
     valid entries before it were. An unterminated tail is a torn last line, also an error —

@@ -17,6 +17,7 @@ from collections.abc import Callable
 import msgspec
 
 from rcan_rtps.governance import Principal
+from rcan_rtps.governance.review import may_read
 from rcan_rtps.rcan import PendingAuth, Role
 
 from ._bodies import PendingList
@@ -28,7 +29,7 @@ def readable(reader: Principal, pending: list[PendingAuth]) -> list[PendingAuth]
     could approve, and its own. Whoever may list held commands (`hitl_list_role`, the lowest
     role any gate names) used to be shown every one — what it was told was not found by id."""
     return [p for p in pending
-            if p.issued_by == reader.name or reader.role >= Role[p.requires_auth_from_role]]
+            if may_read(reader, p.issued_by, Role[p.requires_auth_from_role])]
 
 
 class ApprovalsSubscription:

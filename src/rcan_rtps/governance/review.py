@@ -50,13 +50,19 @@ class PendingRecord(msgspec.Struct, frozen=True):
     decision: Decision | None = None
 
     def may_read(self, reader: Principal) -> bool:
-        return reader.name == self.issuer or reader.role >= self.approver_role
+        return may_read(reader, self.issuer, self.approver_role)
 
     @property
     def state(self) -> PendingState:
         if self.waiting:
             return "pending"
         return "resolving" if self.decision is None else "resolved"
+
+
+def may_read(reader: Principal, issuer: str, approver_role: Role) -> bool:
+    """Whether `reader` may read a held command: its issuer, or a role that could approve it
+    (its record by id and the held-command lists, `api._approvals.readable`, alike)."""
+    return reader.name == issuer or reader.role >= approver_role
 
 
 class HitlDesk:

@@ -19,7 +19,7 @@ from aiohttp import WSServerHandshakeError
 
 from rcan_rtps.api._tickets import TTL_S
 from rcan_rtps.console import CSP, asset_names
-from tests.api.apihelpers import Api, auth
+from tests.api.apihelpers import Api, auth, next_frame
 
 STATIC = Path(__file__).parents[2] / "src" / "rcan_rtps" / "console" / "static"
 ARM = {"action": "arm_joint", "params": {"joints": ["elbow"], "positions": [0.5],
@@ -157,18 +157,6 @@ async def ticket(api: Api, who: str) -> str:
     return str(body["ticket"])
 
 
-async def frame(ws: aiohttp.ClientWebSocketResponse, kind: str) -> dict[str, Any]:
-    async def wait() -> dict[str, Any]:
-        while True:
-            msg = await ws.receive()
-            assert msg.type is aiohttp.WSMsgType.TEXT, msg
-            got: dict[str, Any] = json.loads(msg.data)
-            if got["type"] == kind:
-                return got
-
-    return await asyncio.wait_for(wait(), timeout=30)
-
-
 async def refused(api: Api, path: str, **headers: str) -> int:
     with pytest.raises(WSServerHandshakeError) as caught:
         async with api.http.ws_connect(path, headers=headers):
@@ -179,9 +167,9 @@ async def refused(api: Api, path: str, **headers: str) -> int:
 async def test_a_ticket_opens_one_socket_as_its_issuer(api: Api) -> None:
     first = await ticket(api, "planner")
     async with api.http.ws_connect(f"/api/ws?ticket={first}") as ws:
-        assert (await frame(ws, "status"))["body"]["ruri"]
+        assert (await next_frame(ws, "status"))["body"]["ruri"]
         await ws.send_str(json.dumps({"action": "move", "params": {"linear_x": 0.2}}))
-        outcome = await frame(ws, "outcome")
+        outcome = await next_frame(ws, "outcome")
         assert outcome["http_status"] == 200, outcome
         assert api.entry(outcome["body"]["audit_id"])["principal"] == "planner"
     assert await refused(api, f"/api/ws?ticket={first}") == 401  # spent
@@ -200,7 +188,7 @@ async def test_wrong_expired_and_cross_origin_tickets_are_refused(api: Api) -> N
     assert await refused(api, f"/api/ws?ticket={foreign}", Origin=host) == 401
     fresh = await ticket(api, "ops")
     async with api.http.ws_connect(f"/api/ws?ticket={fresh}", headers={"Origin": host}) as ws:
-        assert (await frame(ws, "status"))["type"] == "status"
+        assert (await next_frame(ws, "status"))["type"] == "status"
     # a ticket is for the socket only, never a bearer credential elsewhere
     other = await ticket(api, "ops")
     assert (await get(api, f"/api/status?ticket={other}")).status == 401
@@ -229,17 +217,17 @@ async def test_tickets_are_bounded(api: Api) -> None:
 async def test_approvers_get_the_held_commands_live_and_a_guest_never(api: Api) -> None:
     async with api.http.ws_connect("/api/ws", headers=auth("ops")) as owner, \
             api.http.ws_connect(f"/api/ws?ticket={await ticket(api, 'viewer')}") as guest:
-        assert (await frame(owner, "approvals"))["body"] == {"pending": []}
+        assert (await next_frame(owner, "approvals"))["body"] == {"pending": []}
         status, held = await api.command("planner", {**ARM, "ai_model": "<script>x</script>",
                                                      "confidence": 0.9})
         assert status == 202, held
-        listed = (await frame(owner, "approvals"))["body"]["pending"]
+        listed = (await next_frame(owner, "approvals"))["body"]["pending"]
         assert [(p["pending_id"], p["ai_model"], p["issued_by"]) for p in listed] == [
             (held["pending_id"], "<script>x</script>", "planner")]
         status, body = await api.call("POST", "/api/hitl/deny", "ops",
                                       body={"pending_id": held["pending_id"]})
         assert status == 200, body
-        assert (await frame(owner, "approvals"))["body"] == {"pending": []}
+        assert (await next_frame(owner, "approvals"))["body"] == {"pending": []}
         # the guest saw both changes in STATUS, and never an approvals frame
         seen: list[dict[str, Any]] = []
         while True:

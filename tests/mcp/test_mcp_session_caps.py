@@ -231,3 +231,54 @@ async def test_a_session_used_by_another_principal_is_refused(api: Api) -> None:
         done = await agent.client.call_tool("get_status", {})
         assert not done.is_error, done
         assert await status_for(api, "planner", sid) == 200
+
+
+async def fill_the_whole(api: Api) -> dict[str, list[str]]:
+    """The bridge's cap over all principals filled by abandoned, idle sessions: PLANNER and
+    LESSEE at their caps, OPERATOR with the rest (fewer)."""
+    held = {"planner": await abandon(api, "planner", CAP),
+            "lessee": await abandon(api, "lessee", CAP),
+            "operator": await abandon(api, "operator", ALL - 2 * CAP)}
+    assert len(sessions(api)) == ALL
+    return held
+
+
+async def test_the_whole_cap_is_shared_fairly(api: Api) -> None:
+    """At the cap over all principals, VIEWER (holding none) gets room in the sessions of the
+    principal holding the most, its idle longest closed (404, as an expired one); again in the
+    next's; once no principal holds two more than VIEWER, its new session is refused 503 with
+    an error naming the cap over all, and nothing is closed for it. Before, VIEWER's first
+    session was refused while PLANNER's and LESSEE's abandoned ones lived on."""
+    held = await fill_the_whole(api)
+    first = await abandon(api, "viewer", 1)
+    assert set(sessions(api)) == {*held["planner"][1:], *held["lessee"],
+                                  *held["operator"], *first}
+    assert await status_for(api, "planner", held["planner"][0]) == 404
+    second = await abandon(api, "viewer", 1)  # PLANNER now holds 2, LESSEE 3
+    assert set(sessions(api)) == {*held["planner"][1:], *held["lessee"][1:],
+                                  *held["operator"], *first, *second}
+    before = set(sessions(api))  # 2 each: none holds VIEWER's 2 + 2
+    with pytest.raises(BaseException) as refused:
+        async with opened(api, "viewer"):
+            pass
+    error = mcp_error(refused.value)
+    assert f"sessions are all taken ({ALL}, its cap over all principals)" in error.message, \
+        error.message
+    assert set(sessions(api)) == before
+
+
+async def test_fair_room_is_made_only_in_idle_sessions(api: Api) -> None:
+    """PLANNER holds the most but each of its sessions has a request in flight: none of them
+    is closed for VIEWER; the idle longest of LESSEE (the next holding two more) is."""
+    async with contextlib.AsyncExitStack() as stack:
+        live = [await stack.enter_async_context(opened(api, "planner")) for _ in range(CAP)]
+        ids = [agent.session for agent in live]
+        await eventually(lambda: not any(idle(api, [sid]) for sid in ids),
+                         what="each live client's event stream open")
+        lessee = await abandon(api, "lessee", CAP)
+        operator = await abandon(api, "operator", ALL - 2 * CAP)
+        async with opened(api, "viewer") as guest:
+            assert not (await guest.client.call_tool("get_status", {})).is_error
+            assert set(sessions(api)) == {*ids, *lessee[1:], *operator, guest.session}
+        for agent in live:
+            assert (await agent.client.list_tools()).tools

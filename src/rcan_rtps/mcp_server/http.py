@@ -6,7 +6,8 @@ principal's heartbeats — and hands the request to `HttpMcp.handle` with that s
 scope. A session belongs to the principal that opened it: the SDK answers a request for it
 with another credential as if the session did not exist (404). A principal holds at most
 `MAX_SESSIONS_PER_PRINCIPAL` sessions, all principals `MAX_SESSIONS` (`sessions`: at its cap,
-a principal's session idle longest is closed for its new one).
+a principal's session idle longest is closed for its new one; at the cap over all, the
+idle longest of the principal holding the most).
 
 Responses are plain JSON, not an event stream per call: a tool call has one answer, and an
 event stream would only add framing to each reply.

@@ -11,7 +11,12 @@ idle longest (no request in flight the longest) is closed — as the idle timeou
 it, only sooner — and answers 404 like any expired session. Only when none of them is idle
 (each has a request in flight: a call being answered, an event stream open) is the new one
 refused, 429 with a JSON-RPC error that names the cap. Other principals' sessions are never
-touched. The manager's overall cap stays, its refusal (503) said as plainly.
+touched for that. The manager's overall cap stays, shared fairly: once it is reached (more
+principals than it holds caps' worth, each at its own), a new session of a principal holding
+fewer gets room made in the sessions of the one holding the most — at least two more than the
+newcomer's principal, so that no swap could be undone by the next —, its idle longest closed
+as above. Only when no such principal has one idle is the new session refused, 503, said as
+plainly as the 429.
 
 Why close rather than refuse: the sessions a principal leaves idle are almost always ones its
 client has abandoned (a crashed or restarted agent: the SDK's client sends no DELETE when it
@@ -115,6 +120,9 @@ class CappedSessions(StreamableHTTPSessionManager):
             log.info("MCP: %s is at its cap of %d sessions: the one idle longest is closed "
                      "for a new one", name, self.per_principal)
             self._expire(idle)
+        if requestor is not None and self.max_sessions is not None \
+                and len(self._server_instances) >= self.max_sessions:
+            self._make_room_fairly(name, len(mine))
         admitted = super()._admit_session(requestor)
         if admitted is None:
             log.warning("MCP: %d sessions open, the cap over all principals: a new one of "
@@ -125,6 +133,26 @@ class CappedSessions(StreamableHTTPSessionManager):
                 f"all principals): try again later (a session idle {timeout / 60:g} min "
                 "closes)")))
         return admitted
+
+    def _make_room_fairly(self, name: str, held: int) -> None:
+        """At the cap over all principals: close the session idle longest of the principal
+        holding the most, if it holds at least `held` + 2 (`held`: the newcomer's principal's
+        own); of the next such if the first has none idle. A swap between two principals one
+        apart would only move the unfairness, and could be swapped back at once."""
+        by_owner: dict[str, list[str]] = {}
+        for sid, owner in self._session_owners.items():
+            if owner is not None and owner["client_id"] != name:
+                by_owner.setdefault(owner["client_id"], []).append(sid)
+        for owner_name, theirs in sorted(by_owner.items(), key=lambda kv: -len(kv[1])):
+            if len(theirs) < held + 2:
+                return
+            idle = self._idle_longest(theirs)
+            if idle is not None:
+                log.info("MCP: %d sessions open, the cap over all principals: %s holds %d, "
+                         "its idle longest is closed for a new one of %s (holding %d)",
+                         len(self._server_instances), owner_name, len(theirs), name, held)
+                self._expire(idle)
+                return
 
     def _idle_longest(self, sessions: list[str]) -> str | None:
         """Of `sessions`, the one with no request in flight for the longest, if any is idle.

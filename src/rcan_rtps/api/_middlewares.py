@@ -21,7 +21,14 @@ from rcan_rtps.rcan import ErrorCode
 
 from ._bodies import error_response, failure_reply, json_response
 from ._errors import BodyEncoding, BodyTimeout
-from ._keys import AUTHENTICATOR, CERT_PRINCIPALS, GOVERNOR, PRINCIPAL, WS_TICKETS
+from ._keys import (
+    AUTHENTICATOR,
+    CERT_PRINCIPALS,
+    CREDENTIAL_LEFT,
+    GOVERNOR,
+    PRINCIPAL,
+    WS_TICKETS,
+)
 from ._tickets import same_origin, ticket_of
 
 log = logging.getLogger(__name__)
@@ -174,12 +181,26 @@ def _principal(request: web.Request) -> tuple[Principal | None, bool]:
     ticket = ticket_of(request)
     if ticket is not None:  # spent here, whatever comes of it (tickets are single-use)
         principal = request.app[WS_TICKETS].redeem(ticket)
+        if principal is not None:
+            _still_valid(request, principal)
         return (principal if same_origin(request) else None), True
     name = peer_common_name(request)
     if name is None:
         return None, False
     principal = request.app[CERT_PRINCIPALS].get(name)
     return (principal if same_origin(request) else None), True
+
+
+def _still_valid(request: web.Request, principal: Principal) -> None:
+    """Raises AuthenticationError if the credential a ticket was asked with has run out
+    since (a JWT's `exp`): a ticket lives `TTL_S`, a JWT may have less left, and the socket
+    it opened pushed the status and the held commands to a credential REST refuses."""
+    left = request.app[CREDENTIAL_LEFT](principal)
+    if left is not None and left <= 0:
+        from rcan_rtps.governance.jwt import EXPIRED  # (loaded: a JWT made this principal)
+
+        raise AuthenticationError("the JWT the ticket was asked with has expired",
+                                  reason=EXPIRED)
 
 
 def peer_common_name(request: web.Request) -> str | None:

@@ -2,6 +2,10 @@
 
     RCAN_URL=http://127.0.0.1:8765 RCAN_TOKEN=<OWNER token> python examples/operator_approve.py
     ... --yes      approve everything pending without asking (for demos and tests)
+
+An approver whose signature policy is `required` must sign its approvals: set RCAN_SIGNING_KEY
+to its key file (the official SDK's `MLDSAKeyPair.save`; `pip install rcan[pq]`) and each
+approval goes as an SDK-signed AUTHORIZE to /api/command. Denials need no signature.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from typing import Any
 
 URL = os.environ.get("RCAN_URL", "http://127.0.0.1:8765")
 TOKEN = os.environ.get("RCAN_TOKEN", "")
+SIGNING_KEY = os.environ.get("RCAN_SIGNING_KEY", "")
 
 
 def request(method: str, path: str, body: Any = None) -> tuple[int, Any]:
@@ -56,9 +61,30 @@ def main() -> int:
               f"{item.get('confidence')})")
         answer = "y" if approve_all else input("  approve? [y/N] ").strip().lower()
         verb = "authorize" if answer == "y" else "deny"
-        code, decision = request("POST", f"/api/hitl/{verb}", {"pending_id": item["pending_id"]})
+        if verb == "authorize" and SIGNING_KEY:
+            code, decision = request("POST", "/api/command", signed_approval(item))
+        else:
+            code, decision = request("POST", f"/api/hitl/{verb}",
+                                     {"pending_id": item["pending_id"]})
         print(f"  {verb}: {code} {decision.get('outcome')} {decision.get('reason') or ''}")
+        if decision.get("error_code") == "SIGNATURE_REQUIRED":
+            print("  this approver's approvals must be signed: set RCAN_SIGNING_KEY to its "
+                  "key file", file=sys.stderr)
     return 0
+
+
+def signed_approval(item: dict[str, Any]) -> dict[str, Any]:
+    """An AUTHORIZE signed as the SDK signs a COMMAND: the review is in `params`, naming the
+    held command by its pending_id and its message_id (the signature covers both)."""
+    from rcan.message import RCANMessage
+    from rcan.signing import MLDSAKeyPair, sign_message
+
+    _, status = request("GET", "/api/status")
+    params = {"decision": "approve", "pending_id": item["pending_id"],
+              "command_message_id": item["original_command"]["message_id"]}
+    message = RCANMessage(cmd="AUTHORIZE", target=status["ruri"], params=params)
+    body: dict[str, Any] = sign_message(message, MLDSAKeyPair.load(SIGNING_KEY)).to_dict()
+    return body
 
 
 if __name__ == "__main__":

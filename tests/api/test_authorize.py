@@ -152,7 +152,8 @@ async def test_a_400_of_a_versioned_message_carries_its_id(api: Api) -> None:
 
 async def test_under_a_required_signature_policy_authorize_is_refused(tmp_path: Path) -> None:
     """rcan-spec defines no signature for AUTHORIZE (nor INVOKE): a principal whose policy is
-    `required` is refused it, as an unsigned COMMAND would be."""
+    `required` is refused its approval, as an unsigned COMMAND would be (a signed approval is
+    the SDK's envelope: test_signed_approvals.py, where an unsigned denial passes)."""
     key = base64.b64encode(Ed25519PrivateKey.generate().public_key().public_bytes_raw())
     required = (f"signatures: {{policy: required, keys: [{{kid: ops-ed, alg: ed25519, "
                 f"public_key: {key.decode()}}}]}}")

@@ -273,3 +273,44 @@ def test_other_publishers_on_the_command_topics_are_shown_expected_or_not(
             assert page.console_errors() == []
     finally:
         sims.close()
+
+
+def test_an_owner_whose_approvals_must_be_signed_is_offered_deny_only(
+        browser: Any, tmp_path: Path, domain_id: int) -> None:
+    """The page cannot sign: under a `required` policy it says where to approve from, and
+    denies (a denial needs no signature)."""
+    import base64
+
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+    from rcan_rtps.bridge.demo import OWNER_TOKEN_ENV, demo_yaml
+
+    public = base64.b64encode(Ed25519PrivateKey.generate().public_key().public_bytes_raw())
+    owner = f"{{name: owner, role: OWNER, token_env: {OWNER_TOKEN_ENV}}}"
+    text = demo_yaml(state_dir=tmp_path / "state", port=8765, domain_id=domain_id,
+                     namespace="/robot1")
+    assert owner in text
+    config = tmp_path / "signing-owner.rcan.yaml"
+    config.write_text(text.replace(owner, owner[:-1] + (
+        ", signatures: {policy: required, keys: [{kid: owner-ed, alg: ed25519, "
+        f"public_key: {public.decode()}}}]}}}}")))
+    sims = run_sim(tmp_path, domain_id, "--config", str(config))
+    sim = next(sims)
+    try:
+        page = page_for(browser, sim, "owner-signing")
+        page.sign_in(sim.owner)
+        page.signed_in_as("owner (OWNER)")
+        pending = held_move(sim, 0.5)
+        card = f"li[data-pending='{pending}']"
+        page.wait("return document.querySelector(arguments[0]) !== null", "the held move", card)
+        assert page.js("return document.querySelector(arguments[0]) === null",
+                       f"{card} button[data-verdict=approve]")
+        assert "must be signed" in page.text(f"{card} .signed-only")
+        page.element(f"{card} button[data-verdict=deny]").click()
+        page.wait("return document.querySelector(arguments[0]) === null", "the denied one gone",
+                  card)
+        assert [e["pending_id"] for e in sim.entries() if e["event"] == "HITL_DENIED"] == [
+            pending]
+        assert page.console_errors() == []
+    finally:
+        next(sims, None)

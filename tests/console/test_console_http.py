@@ -138,12 +138,14 @@ async def test_whoami_follows_the_role(api: Api) -> None:
                for who in ("viewer", "planner", "ops")}
     assert answers["viewer"] == {
         "principal": "viewer", "role": "GUEST", "covers": ["GUEST"],
-        "may": {"command": False, "approve": False, "clear_estop": False,
-                "read_audit": False}}
+        "may": {"command": False, "approve": False, "must_sign_approvals": False,
+                "clear_estop": False, "read_audit": False}}
     assert answers["planner"]["may"] == {"command": True, "approve": False,
+                                         "must_sign_approvals": False,
                                          "clear_estop": False, "read_audit": False}
     assert answers["ops"]["covers"] == ["GUEST", "USER", "LEASEE", "OWNER"]
-    assert answers["ops"]["may"] == {"command": True, "approve": True, "clear_estop": True,
+    assert answers["ops"]["may"] == {"command": True, "approve": True,
+                                     "must_sign_approvals": False, "clear_estop": True,
                                      "read_audit": True}
 
 

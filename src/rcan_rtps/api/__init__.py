@@ -22,7 +22,9 @@ document is no secret — but the node manifest, which §17.3 makes public):
     GET  /api/hitl/pending       pending commands (the lowest role that can approve one):
                                  those the caller could approve, and its own
     POST /api/hitl/authorize     {"pending_id", "reason"?} → decision; the governor checks the
-                                 approver; 202 while more approvals are needed (n-of-m)
+                                 approver; 202 while more approvals are needed (n-of-m); 403
+                                 for an approver whose signature policy is `required` (it
+                                 sends a signed AUTHORIZE to /api/command instead)
     POST /api/hitl/deny          {"pending_id"} → decision (any approver's denial ends it)
     POST /api/hitl/withdraw      {"pending_id"} → decision; the issuer's own (or an approver's)
     GET  /api/audit?since=&limit= entries verbatim (rbac.audit_read_role, LEASEE by default)

@@ -23,7 +23,7 @@ from rcan_rtps.rcan import ErrorCode, Role
 
 from ._bodies import error_response, json_response
 from ._console import PREFIX
-from ._keys import GOVERNOR, PRINCIPAL, SETTINGS, WS_TICKETS
+from ._keys import CHECKS, GOVERNOR, PRINCIPAL, SETTINGS, WS_TICKETS
 from ._tickets import TicketReply
 
 INDEX = "index.html"
@@ -41,6 +41,9 @@ HEADERS = {
 class May(msgspec.Struct, kw_only=True):
     command: bool  # motion (`move`)
     approve: bool  # some held command could be this principal's to review
+    # Its approvals must be signed (its signature policy is `required`): the console cannot
+    # sign, so it offers only Deny and says where to approve from.
+    must_sign_approvals: bool
     clear_estop: bool
     read_audit: bool
 
@@ -92,10 +95,13 @@ async def get_whoami(request: web.Request) -> web.Response:
     principal, governor = request[PRINCIPAL], request.app[GOVERNOR]
     settings, role = request.app[SETTINGS], request[PRINCIPAL].role
     covers = sorted({r for r in Role if r <= role}, key=int)
+    signatures = request.app[CHECKS].signatures
     return json_response(WhoAmI(
         principal=principal.name, role=role.name, covers=[r.name for r in covers],
         may=May(command=role >= governor.role_for("move"),
                 approve=role >= settings.hitl_list_role,
+                must_sign_approvals=signatures is not None
+                and signatures.policy(principal.name) == "required",
                 clear_estop=role >= governor.role_for("clear_estop"),
                 read_audit=role >= settings.audit_read_role)))
 

@@ -169,12 +169,19 @@ def oversize_warning(raw: bytes, limit: int, skimmed: Skimmed | None = None) -> 
 
 def _checked_message3(message: Invoke | InvokeCancel | Authorization, checks: Checks,
                       principal: str | None) -> Intake:
-    """INVOKE, INVOKE_CANCEL, AUTHORIZE: the sender's signature policy (none of them can be
-    signed: under `required` they are refused, so no command escapes the policy through a
-    skill), then the replay window."""
+    """INVOKE, INVOKE_CANCEL, AUTHORIZE: the sender's signature policy, then the replay
+    window. INVOKE and INVOKE_CANCEL cannot be signed: under `required` they are refused, so
+    no command escapes the policy through a skill. An AUTHORIZE can (the SDK's envelope):
+    under `required` an approval must be, a denial need not (`Signatures.check_review`)."""
     refusal = None
     if checks.signatures is not None and principal is not None:
-        refusal, _ = checks.signatures.check(principal, message.envelope)
+        if isinstance(message, Authorization):
+            refusal, envelope = checks.signatures.check_review(
+                principal, message.verdict == "approve", message.envelope)
+            if envelope is not None and envelope is not message.envelope:
+                message = msgspec.structs.replace(message, envelope=envelope)
+        else:
+            refusal, _ = checks.signatures.check(principal, message.envelope)
     if refusal is None:
         refusal = _replay_refusal(message, checks.replay, principal)
     if refusal is None:

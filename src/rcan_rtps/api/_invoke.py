@@ -46,6 +46,7 @@ import msgspec
 from rcan_rtps.config import SkillConfig
 from rcan_rtps.governance import Governor, Principal, Rejection, outcomes
 from rcan_rtps.governance.governor import Decision
+from rcan_rtps.governance.review import ReviewMessage
 from rcan_rtps.governance.streams import EndReason, StreamEnded
 from rcan_rtps.rcan import (
     STATUS_OF,
@@ -573,7 +574,7 @@ class Invocations:
         """A held INVOKE withdrawn by its INVOKE_CANCEL, and answered."""
         assert running.pending_id is not None
         decision = await governor.withdraw(running.pending_id, principal, reason,
-                                           message_id=message_id)
+                                           said_by=ReviewMessage(message_id=message_id))
         self._running.pop(key, None)
         status: InvokeStatus = "cancelled" if decision.reason == "hitl_withdrawn" else "failure"
         result = self._result(running, decision, status, "withdrawn by INVOKE_CANCEL"
@@ -679,8 +680,9 @@ async def authorize(governor: Governor, principal: Principal, message: Authoriza
             return await _refuse(governor, principal, outcomes.PENDING_NOT_FOUND,
                                  message.message_id)
     review = governor.authorize if message.verdict == "approve" else governor.deny
-    decision = await review(pending_id, principal, message.reason,
-                            message_id=message.message_id)
+    said_by = ReviewMessage(message_id=message.message_id, rcan=message.envelope.audit_facts(),
+                            command_message_id=message.command_message_id)
+    decision = await review(pending_id, principal, message.reason, said_by=said_by)
     return decision.http_status, _body(decision.body(), message.message_id)
 
 

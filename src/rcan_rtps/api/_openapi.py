@@ -63,7 +63,8 @@ _COMMAND_BODY = {
     "content": {"application/json": {"schema": {
         "oneOf": [_ref("ShortCommand"), _ref("EnvelopeCommand"), _ref("RcanCommand"),
                   _ref("SafetyMessage"), _ref("HeartbeatMessage"), _ref("InvokeMessage"),
-                  _ref("InvokeCancelMessage"), _ref("AuthorizeMessage")]}}},
+                  _ref("InvokeCancelMessage"), _ref("AuthorizeMessage"),
+                  _ref("SignedAuthorizeMessage")]}}},
 }
 _AUTHORIZE_BODY = {"required": True,
                    "content": {"application/json": {"schema": _ref("Authorize")}}}
@@ -197,7 +198,9 @@ PATHS: dict[str, dict[str, Any]] = {
     "/api/hitl/authorize": {"post": _op(
         "postAuthorize", "Approve a pending command (`reason` is audited): 200 once it has "
         "as many distinct approvers as it needs and ran, 202 while it needs more (n-of-m); "
-        "the issuer is never one of several approvers, an approver counts once (409)",
+        "the issuer is never one of several approvers, an approver counts once (409); an "
+        "approver whose signature policy is `required` is refused 403 SIGNATURE_REQUIRED "
+        "(it sends a signed AUTHORIZE to /api/command)",
         _HITL_DECISION, _AUTHORIZE_BODY)},
     "/api/hitl/deny": {"post": _op(
         "postDeny", "Deny a pending command (any approver; ends it, whatever approvals it "

@@ -9,7 +9,7 @@ from __future__ import annotations
 import msgspec
 from aiohttp import web
 
-from rcan_rtps.governance import Governor, Principal
+from rcan_rtps.governance import Governor, Principal, Rejection
 from rcan_rtps.governance.hitl import Verdict
 from rcan_rtps.rcan import Authorize, ErrorCode, PendingAuth, Role, SchemaValidationError
 
@@ -26,7 +26,7 @@ from ._bodies import (
 from ._commands import decode_as, schema_failure, too_large
 from ._errors import AuditUnreadable, ReadsBusy
 from ._images import REFUSALS, frame_headers, image_list
-from ._keys import GOVERNOR, IMAGES, INVOCATIONS, PRINCIPAL, READS, SETTINGS
+from ._keys import CHECKS, GOVERNOR, IMAGES, INVOCATIONS, PRINCIPAL, READS, SETTINGS
 from ._routes import read_body
 from .ports import ImageFrame, ImageSource, ImageUnavailable
 
@@ -147,11 +147,26 @@ async def _resolve(request: web.Request, verdict: Verdict) -> web.Response:
     except SchemaValidationError as exc:
         status, body = await schema_failure(governor, principal, exc.path, exc.detail)
         return json_response(body, status)
+    refused = _unsigned_refusal(request, verdict)
+    if refused is not None:  # (audited as the desk audits its refusals, by pending_id)
+        decision = await governor.refuse_review(target.pending_id, principal, verdict, refused)
+        return json_response(decision.body(), decision.http_status)
     # The governor checks who may review it, and audits either way (with the reason).
     review = {"approve": governor.authorize, "deny": governor.deny,
               "withdraw": governor.withdraw}[verdict]
     decision = await review(target.pending_id, principal, target.reason)
     return json_response(decision.body(), decision.http_status)
+
+
+def _unsigned_refusal(request: web.Request, verdict: Verdict) -> Rejection | None:
+    """These bodies carry no signature: an approval by a principal whose policy is
+    `required` is refused (SIGNATURE_REQUIRED `unsigned`; it sends a signed AUTHORIZE to
+    /api/command or the WebSocket instead). Denials and withdrawals pass."""
+    signatures = request.app[CHECKS].signatures
+    if signatures is None:
+        return None
+    refusal, _ = signatures.check_review(request[PRINCIPAL].name, verdict == "approve", None)
+    return refusal
 
 
 # -- audit ----------------------------------------------------------------------------------

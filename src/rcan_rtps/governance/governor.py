@@ -48,7 +48,7 @@ from .audit import AuditEvent, AuditLog, AuditRecord, Checkpoint
 from .clock import Clock, SystemClock, latest_wall, now_ms
 from .estop import EstopMachine, LatchFile
 from .estop_lane import EstopLane
-from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand
+from .hitl import Escalate, HitlPolicy, Notifier, PendingCommand, Verdict
 from .idempotency import Conflict, DecidedBefore, Idempotency
 from .invariants import Check, Violation, safety_policy
 from .left import LeftRunning
@@ -56,7 +56,7 @@ from .log_tail import logged_ids
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
-from .review import HitlDesk, PendingRecord
+from .review import NO_MESSAGE, HitlDesk, PendingRecord, ReviewMessage
 from .sessions import Sessions
 from .steps import (
     ArmsHeld,
@@ -786,25 +786,35 @@ class Governor:
     # -- HiTL (the desk holds and reviews; an approved command comes back here) -------------
 
     async def authorize(self, pending_id: str, approver: Principal,
-                        reason: str | None = None, *, message_id: str | None = None
+                        reason: str | None = None, *, said_by: ReviewMessage = NO_MESSAGE
                         ) -> Decision:
         """One approval; the command runs once it has as many distinct ones as it needs.
-        `message_id`: the AUTHORIZE message's (§16.4), recorded with the review."""
+        `said_by`: the AUTHORIZE message (§16.4) that said it, recorded with the review (a
+        signed one is checked against the held command it names: `review`)."""
         return await self._detached(self._desk.resolve(pending_id, approver, "approve", reason,
-                                                       message_id))
+                                                       said_by))
 
     async def deny(self, pending_id: str, approver: Principal,
-                   reason: str | None = None, *, message_id: str | None = None) -> Decision:
+                   reason: str | None = None, *, said_by: ReviewMessage = NO_MESSAGE
+                   ) -> Decision:
         """Any approver's denial ends it, whatever approvals it had."""
         return await self._detached(self._desk.resolve(pending_id, approver, "deny", reason,
-                                                       message_id))
+                                                       said_by))
 
     async def withdraw(self, pending_id: str, principal: Principal,
-                       reason: str | None = None, *, message_id: str | None = None
+                       reason: str | None = None, *, said_by: ReviewMessage = NO_MESSAGE
                        ) -> Decision:
         """Its issuer takes a pending command back (an approver may too): never executed."""
         return await self._detached(self._desk.resolve(pending_id, principal, "withdraw",
-                                                       reason, message_id))
+                                                       reason, said_by))
+
+    async def refuse_review(self, pending_id: str, reviewer: Principal, verdict: Verdict,
+                            rejection: Rejection, said_by: ReviewMessage = NO_MESSAGE
+                            ) -> Decision:
+        """A review the transport refused before the desk saw it (an approval its
+        principal's policy wants signed): audited as the desk's refusals are."""
+        return await self._detached(self._desk.refuse(verdict, reviewer, rejection, pending_id,
+                                                      said_by))
 
     def pending(self) -> list[PendingAuth]:
         return self._desk.pending()

@@ -9,6 +9,13 @@ approval releases goes back to the governor, which runs it through the pipeline 
 A stop withdraws the held motion it is a stop for (`withdrawing` picks it in the stop's step,
 each withdrawn as its issuer would, by `resolve`).
 
+A review said by an RCAN message (an AUTHORIZE, §16.4) comes with that message's facts
+(`ReviewMessage`): its id and audit facts (the signature's alg, kid and whether it verified,
+recorded with the review and with a refusal of it), and — in the SDK's envelope — the held
+command's `message_id` it names: a review of any other command is refused (signed:
+`signed_for_another_command`; unsigned: `not_the_held_command`). Whether a review had to be
+signed is the transport's check, before it gets here (`signatures.Signatures.check_review`).
+
 What came of a held command stays readable for a while (`KEPT_RESOLVED` of them, the oldest let
 go first): its issuer — an agent waiting for a human — learns it was executed, denied, withdrawn
 or expired without the approvers' list or the audit log (GET /api/hitl/pending/{pending_id}).
@@ -19,7 +26,7 @@ from __future__ import annotations
 import uuid
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable
-from typing import Literal, cast
+from typing import Any, Literal, cast
 
 import msgspec
 
@@ -57,6 +64,17 @@ class PendingRecord(msgspec.Struct, frozen=True):
         if self.waiting:
             return "pending"
         return "resolving" if self.decision is None else "resolved"
+
+
+class ReviewMessage(msgspec.Struct, frozen=True, kw_only=True):
+    """The RCAN message (AUTHORIZE) that said a review, as the desk checks and records it."""
+
+    message_id: str | None = None
+    rcan: dict[str, Any] | None = None  # its envelope's audit facts (`Envelope.audit_facts`)
+    command_message_id: str | None = None  # the held command's message_id it was signed for
+
+
+NO_MESSAGE = ReviewMessage()
 
 
 def may_read(reader: Principal, issuer: str, approver_role: Role) -> bool:
@@ -159,15 +177,15 @@ class HitlDesk:
                         pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
 
     async def resolve(self, pending_id: str, reviewer: Principal, verdict: Verdict,
-                      reason: str | None, message_id: str | None = None) -> Decision:
-        """`message_id`: the AUTHORIZE message's (§16.4) that said it, if one did: recorded
-        with the review (and with a refusal of it)."""
+                      reason: str | None, said_by: ReviewMessage = NO_MESSAGE) -> Decision:
+        """`said_by`: the AUTHORIZE message (§16.4) that said it, if one did: recorded with
+        the review (and with a refusal of it)."""
         held = self._pending.get(pending_id)
         if held is None:
             return await self._refuse(verdict, reviewer, outcomes.PENDING_NOT_FOUND, pending_id,
-                                      message_id)
+                                      said_by)
         async with held.lock:  # one review at a time: each counted once, released once
-            reviewed = await self._review(held, reviewer, verdict, reason, message_id)
+            reviewed = await self._review(held, reviewer, verdict, reason, said_by)
         if isinstance(reviewed, Decision):
             return reviewed
         command, pending = reviewed, held.pending  # out of the store, with every review
@@ -193,28 +211,30 @@ class HitlDesk:
             pending_id=pending.pending_id)
 
     async def _review(self, held: Held, reviewer: Principal, verdict: Verdict,
-                      reason: str | None, message_id: str | None
+                      reason: str | None, said_by: ReviewMessage
                       ) -> Decision | NormalizedCommand:
         """Under `held.lock`: refused, or counted (an approval of several: still pending), or
         taken from the store and returned with every review so far, to run or discard."""
         pending = held.pending
         if self._pending.get(pending.pending_id) is not held:  # resolved while this waited
             return await self._refuse(verdict, reviewer, outcomes.PENDING_NOT_FOUND,
-                                      pending.pending_id, message_id)
+                                      pending.pending_id, said_by)
         if held.withdrawing and verdict == "approve":  # its issuer withdraws it (`withdrawing`)
             return await self._refuse(verdict, reviewer, outcomes.PENDING_NOT_FOUND,
-                                      pending.pending_id, message_id)
+                                      pending.pending_id, said_by)
         if held.expired(now_ms(self._clock), self._clock.monotonic()):
             await self.expire()
             return await self._refuse(verdict, reviewer, outcomes.PENDING_EXPIRED,
-                                      pending.pending_id, message_id)
+                                      pending.pending_id, said_by)
         refused = self._may_review(held, reviewer, verdict)
+        if refused is None:
+            refused = _signed_for(held, said_by)
         if refused is not None:
-            return await self._refuse(verdict, reviewer, refused, pending.pending_id,
-                                      message_id)
+            return await self._refuse(verdict, reviewer, refused, pending.pending_id, said_by)
+        sig = None if said_by.rcan is None else said_by.rcan.get("sig")
         review = Approval(principal=reviewer.name, role=cast(RoleName, reviewer.role.name),
                           decision=verdict, at_ms=now_ms(self._clock), reason=reason,
-                          message_id=message_id)
+                          message_id=said_by.message_id, sig=sig)
         if verdict == "approve" and held.missing > 1:
             return await self._count_approval(held, reviewer, review)
         self._pending.take(pending.pending_id)
@@ -250,15 +270,21 @@ class HitlDesk:
                         audit_id=receipt.audit_id, message_id=pending.command.message_id,
                         pending_id=pending.pending_id, expires_at_ms=pending.expires_at_ms)
 
+    async def refuse(self, verdict: Verdict, reviewer: Principal, rejection: Rejection,
+                     pending_id: str, said_by: ReviewMessage = NO_MESSAGE) -> Decision:
+        """A review refused before it reached the desk (its signature, say): audited as the
+        desk's own refusals are."""
+        return await self._refuse(verdict, reviewer, rejection, pending_id, said_by)
+
     async def _refuse(self, verdict: Verdict, reviewer: Principal, rejection: Rejection,
-                      pending_id: str, message_id: str | None = None) -> Decision:
+                      pending_id: str, said_by: ReviewMessage = NO_MESSAGE) -> Decision:
         verb = "hitl_authorize" if verdict == "approve" else f"hitl_{verdict}"
         entry = AuditRecord(event=AuditEvent.COMMAND_REJECTED, principal=reviewer.name,
                             role=reviewer.role.name, action_type=verb, pending_id=pending_id,
-                            message_id=message_id, outcome=rejection.outcome.value,
-                            deny_reason=rejection.deny_reason)
+                            message_id=said_by.message_id, outcome=rejection.outcome.value,
+                            deny_reason=rejection.deny_reason, rcan=said_by.rcan)
         return decision(rejection, await self._steps.audit.append(entry),
-                        message_id=message_id)
+                        message_id=said_by.message_id)
 
     async def expire(self) -> list[Decision]:
         """Discard and audit (HITL_EXPIRED, with any approvals it had) every pending command
@@ -275,6 +301,17 @@ class HitlDesk:
                 event=AuditEvent.HITL_EXPIRED, pending_id=p.pending_id))
             self._resolving(held, decisions[-1])
         return decisions
+
+
+def _signed_for(held: Held, said_by: ReviewMessage) -> Rejection | None:
+    """A review in the SDK's envelope names the held command by its message_id as well as
+    its pending_id: one that names another command reviews nothing (signed, its signer did
+    not review this one)."""
+    named = said_by.command_message_id
+    if named is None or named == held.pending.command.message_id:
+        return None
+    signed = said_by.rcan is not None and "sig" in said_by.rcan
+    return outcomes.SIGNED_FOR_ANOTHER_COMMAND if signed else outcomes.NOT_THE_HELD_COMMAND
 
 
 def _thought_of(command: NormalizedCommand) -> str | None:

@@ -15,6 +15,12 @@ algorithm not spoken, a kid nobody holds, a kid bound to another principal (a ke
 principal's alone). Stops are not refused for any of this: the intake turns every refusal into
 a warning on a stop (a request that says stop, stops).
 
+A review of a held command (§9, `check_review`) is held to the same policy when it approves:
+an approval releases motion, so under `required` it must come signed (an AUTHORIZE in the SDK's
+signed envelope, `rcan._invoke`) — a bearer token alone, stolen or not, releases nothing. A
+denial or a withdrawal only keeps the robot from moving: it passes unsigned under every
+policy, and is refused only for a signature that is given and fails.
+
 Checked when the message arrives, before the replay window records its id: a message refused
 for its signature does not use up its `msg_id`.
 """
@@ -121,6 +127,16 @@ class Signatures:
             loose = "_".join(envelope.unsigned_fields)
             return _required(f"{loose}_outside_signed_params"), verified
         return None, verified
+
+    def check_review(self, principal: str, approving: bool, envelope: Envelope | None
+                     ) -> tuple[Rejection | None, Envelope | None]:
+        """`check` for a review of a held command: `envelope` is its AUTHORIZE's (None: a
+        review without a message, POST /api/hitl/*). An approval is held to the policy; a
+        denial or withdrawal (the fail-safe direction) needs no signature, but one it gives
+        must hold."""
+        if not approving and (envelope is None or envelope.sig is None):
+            return None, envelope
+        return self.check(principal, envelope)
 
     def _refusal(self, principal: str, signer: Signer, envelope: Envelope) -> Rejection | None:
         sig = envelope.sig

@@ -15,6 +15,15 @@ MessageType table (§3, and the SDK's `rcan.message.MessageType`):
   principal_id, decision: APPROVE|REJECT, timestamp_ms, message_id}` (which numbers it 9),
   §16.4's `decision: approve|deny`; a held command is named by its `thought_id` (the schema's)
   or its `pending_id` (§3's PENDING_AUTH payload, and ours).
+- AUTHORIZE signed as the SDK signs (`rcan.signing.sign_message`): the SDK has
+  `MessageType.AUTHORIZE` (45) but no builder of it, and its `to_dict()` writes neither a
+  message's `type` nor its `payload`, and signs neither: what it signs is a COMMAND's `rcan`,
+  `msg_id`, `timestamp`, `cmd`, `target` and `params`. So a signed AUTHORIZE is the SDK's
+  COMMAND envelope with `cmd: "AUTHORIZE"` (the type's name), `target` this robot's RURI and
+  the review in `params` — `{decision, pending_id, command_message_id, reason?}`, where the
+  signature covers them: the held command by its `pending_id` (made by the bridge, never
+  reused) and by the `message_id` its PENDING_AUTH shows, so a signature names one held
+  command and no other (`governance.review` checks the second).
 - INVOKE_RESULT (12) is what the bridge answers an INVOKE with (`InvokeResult`).
 
 Envelope fields (`rcan_version`, `ruri`, `timestamp_ms`, `message_id`) are accepted on each, and
@@ -33,10 +42,12 @@ from typing import Annotated, Any, Literal
 import msgspec
 
 from ._errors import SchemaValidationError
+from ._signatures import signed_bytes
 from ._types import ShortText, Strict, TimestampMs, whole
-from ._v3 import Envelope, MsgId, Text, VersionText
+from ._v3 import Envelope, MsgId, Signature, Text, VersionText
 
 INVOKE_TYPE, INVOKE_RESULT_TYPE, INVOKE_CANCEL_TYPE, AUTHORIZE_TYPE = 11, 12, 13, 45
+AUTHORIZE_CMD = "AUTHORIZE"  # the SDK COMMAND envelope's `cmd` of a signed AUTHORIZE
 DEFAULT_TIMEOUT_MS = 30_000  # §19.2
 DEFAULT_CANCEL_TIMEOUT_MS = 5_000  # §19.4
 
@@ -104,6 +115,35 @@ class AuthorizeMessage(Strict, frozen=True, kw_only=True):
     timestamp: UnixSeconds | None = None
 
 
+PendingId = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+ReviewDecision = Literal["APPROVE", "REJECT", "approve", "deny"]
+
+
+class AuthorizeParams(Strict, frozen=True, kw_only=True):
+    """A signed AUTHORIZE's `params`: the review, all of it under the signature."""
+
+    decision: ReviewDecision
+    pending_id: PendingId
+    command_message_id: MsgId  # the held command's (its PENDING_AUTH's original_command)
+    reason: ShortText | None = None
+
+
+class SignedAuthorizeMessage(Strict, frozen=True, kw_only=True):
+    """AUTHORIZE in the SDK's COMMAND envelope, as `sign_message(RCANMessage(cmd="AUTHORIZE",
+    target=ruri, params=...), key).to_dict()` writes it (fields acted on)."""
+
+    rcan: VersionText | None = None
+    rcan_version: VersionText | None = None
+    msg_id: MsgId
+    timestamp: UnixSeconds
+    cmd: Literal["AUTHORIZE"]
+    target: Text
+    params: AuthorizeParams
+    sig: Signature | None = None
+    firmware_hash: Annotated[str, msgspec.Meta(max_length=256)] | None = None
+    attestation_ref: Annotated[str, msgspec.Meta(max_length=2048)] | None = None
+
+
 # -- what they become -----------------------------------------------------------------------
 
 
@@ -144,6 +184,8 @@ class Authorization(msgspec.Struct, frozen=True, kw_only=True):
     message_id: str | None
     ruri: str | None
     envelope: Envelope
+    # The held command's message_id the review names (a signed AUTHORIZE's, under its sig).
+    command_message_id: str | None = None
 
 
 Message3 = Invoke | InvokeCancel | Authorization
@@ -208,15 +250,32 @@ def from_authorize(msg: AuthorizeMessage, ignored: tuple[str, ...]) -> Authoriza
     if (msg.pending_id is None) == (msg.thought_id is None):
         raise SchemaValidationError("$.thought_id", "name the held command once: thought_id "
                                     "or pending_id")
-    verdict: Literal["approve", "deny"] = (
-        "approve" if msg.decision in ("APPROVE", "approve") else "deny")
     own_id = _own_id(msg.message_id, msg.msg_id)
-    return Authorization(verdict=verdict, pending_id=msg.pending_id, thought_id=msg.thought_id,
+    return Authorization(verdict=_verdict(msg.decision), pending_id=msg.pending_id,
+                         thought_id=msg.thought_id,
                          principal_id=msg.principal_id, reason=msg.reason,
                          message_id=own_id, ruri=msg.ruri,
                          envelope=Envelope(version=msg.rcan_version, msg_id=own_id,
                                            ignored=ignored,
                                            sent_at_s=_sent_at(msg.timestamp_ms, msg.timestamp)))
+
+
+def from_signed_authorize(msg: SignedAuthorizeMessage, obj: dict[str, Any],
+                          ignored: tuple[str, ...]) -> Authorization:
+    """`obj`, decoded as `msg`: the signed bytes are made again from what arrived."""
+    params = msg.params
+    return Authorization(
+        verdict=_verdict(params.decision), pending_id=params.pending_id, thought_id=None,
+        principal_id=None, reason=params.reason, message_id=msg.msg_id, ruri=msg.target,
+        command_message_id=params.command_message_id,
+        envelope=Envelope(version=msg.rcan_version or msg.rcan, msg_id=msg.msg_id,
+                          sent_at_s=msg.timestamp, ignored=ignored,
+                          firmware_hash=msg.firmware_hash, attestation_ref=msg.attestation_ref,
+                          sig=msg.sig, signed=signed_bytes(obj) if msg.sig is not None else None))
+
+
+def _verdict(decision: ReviewDecision) -> Literal["approve", "deny"]:
+    return "approve" if decision in ("APPROVE", "approve") else "deny"
 
 
 # -- INVOKE_RESULT ----------------------------------------------------------------------------

@@ -67,6 +67,8 @@ class Approval(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
     at_ms: int
     reason: str | None = None
     message_id: str | None = None  # the AUTHORIZE message (§16.4) that said it, if one did
+    # That message's signature, as its audit entry records one: {alg, kid, verified}.
+    sig: dict[str, Any] | None = None
 
 
 class SafetyMessage(Strict, frozen=True):

@@ -6,7 +6,13 @@ from typing import Any
 
 import msgspec
 
-from ._invoke import AuthorizeMessage, InvokeCancelMessage, InvokeMessage, InvokeResult
+from ._invoke import (
+    AuthorizeMessage,
+    InvokeCancelMessage,
+    InvokeMessage,
+    InvokeResult,
+    SignedAuthorizeMessage,
+)
 from ._messages import (
     Authorize,
     DecisionBody,
@@ -29,6 +35,7 @@ _TYPES: tuple[type[msgspec.Struct], ...] = (
     InvokeMessage,  # §19, and AUTHORIZE (§16.4): also command bodies
     InvokeCancelMessage,
     AuthorizeMessage,
+    SignedAuthorizeMessage,  # AUTHORIZE in the SDK's envelope, which may be signed
     InvokeResult,
     *dict.fromkeys(spec.params for spec in specs()),  # each parameter type once
     Status,

@@ -13,6 +13,7 @@ import msgspec
 
 from ._errors import InvalidRuriError, SchemaValidationError, VersionIncompatibleError
 from ._invoke import (
+    AUTHORIZE_CMD,
     AUTHORIZE_TYPE,
     INVOKE_CANCEL_TYPE,
     INVOKE_TYPE,
@@ -21,9 +22,11 @@ from ._invoke import (
     InvokeCancelMessage,
     InvokeMessage,
     Message3,
+    SignedAuthorizeMessage,
     from_authorize,
     from_cancel,
     from_invoke,
+    from_signed_authorize,
     is_kind,
 )
 from ._messages import AiInfo, EnvelopeCommand, NormalizedCommand, SafetyMessage, ShortCommand
@@ -237,6 +240,12 @@ def _message3(obj: dict[str, Any], version: str | None,
     elif is_kind(obj, "AUTHORIZE", AUTHORIZE_TYPE):
         authorize, ignored = _known(obj, AuthorizeMessage, version)
         message = from_authorize(authorize, ignored)
+    elif obj.get("cmd") == AUTHORIZE_CMD:  # the SDK's COMMAND envelope, signed or not
+        if version is None:
+            raise SchemaValidationError("$.rcan", "required: the RCAN version this AUTHORIZE "
+                                        "speaks (the SDK writes rcan and rcan_version)")
+        signed, ignored = _known(obj, SignedAuthorizeMessage, version)
+        message = from_signed_authorize(signed, obj, ignored)
     else:
         return None
     if message.ruri is not None:

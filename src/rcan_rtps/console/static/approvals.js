@@ -5,6 +5,9 @@ export class Approvals {
   constructor(api, whoami, notify) {
     this.api = api;
     this.covers = new Set(whoami.covers);
+    // Under a `required` signature policy an approval must be signed, which this page
+    // cannot do: it offers Deny only (a denial needs no signature) and says so.
+    this.mustSign = Boolean(whoami.may && whoami.may.must_sign_approvals);
     this.notify = notify;
     this.pending = [];
     this.reasons = new Map(); // pending id → reason typed so far (kept across re-renders)
@@ -55,8 +58,11 @@ export class Approvals {
     ];
     const expires = h("dd", { "data-expires": String(p.expires_at_ms) },
       this.left(p.expires_at_ms));
-    const actions = mine ? h("div", { class: "actions" }, reason,
-      this.button("Approve", "approve", p, reason),
+    const approve = this.mustSign
+      ? h("p", { class: "signed-only" }, "Your approvals must be signed: approve from a " +
+          "signing client (a signed AUTHORIZE). Denying needs no signature.")
+      : this.button("Approve", "approve", p, reason);
+    const actions = mine ? h("div", { class: "actions" }, reason, approve,
       this.button("Deny", "deny", p, reason)) : h("p", {}, "another role reviews this one");
     return h("li", { class: "approval", "data-pending": p.pending_id },
       h("div", { class: "what" }, String(cmd.action || "?")),
@@ -82,8 +88,7 @@ export class Approvals {
     if (reason.trim()) body.reason = reason.trim();
     try {
       const { status, body: reply } = await this.api.json("POST", path, body);
-      const outcome = reply && (reply.outcome || reply.error_code);
-      this.notify(`${verdict}: ${status} ${outcome || ""}`.trim(), status >= 400);
+      this.notify(this.said(verdict, status, reply), status >= 400);
       if (status < 400) this.reasons.delete(pendingId);
     } catch (err) {
       this.notify(`${verdict} failed: ${err.message}`, true);
@@ -91,5 +96,15 @@ export class Approvals {
       this.busy.delete(pendingId);
       this.render();
     }
+  }
+
+  said(verdict, status, reply) {
+    const refused = reply && reply.error_code;
+    const what = refused ? `${reply.error_code} ${reply.reason || ""}` : (reply && reply.outcome);
+    const line = `${verdict}: ${status} ${what || ""}`.trim();
+    if (refused && String(reply.error_code).startsWith("SIGNATURE_")) {
+      return `${line}: this principal's approvals must be signed; approve from a signing client`;
+    }
+    return line;
   }
 }

@@ -56,7 +56,7 @@ from .log_tail import logged_ids
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
-from .review import HitlDesk, PendingRecord
+from .review import Ended, HitlDesk, PendingRecord
 from .sessions import Sessions
 from .steps import (
     ArmsHeld,
@@ -812,6 +812,10 @@ class Governor:
     def pending_record(self, pending_id: str) -> PendingRecord | None:
         """One held command, waiting or what came of it (see `review`), or None if unknown."""
         return self._desk.record(pending_id)
+
+    def held_ended(self, pending_id: str) -> asyncio.Future[Ended] | None:
+        """What ends a held command (`HitlDesk.ended`): a held INVOKE is answered then."""
+        return self._desk.ended(pending_id)
 
     def role_for(self, action: str) -> Role:
         """The role `action` needs here (the profile's table, with the config's overrides)."""

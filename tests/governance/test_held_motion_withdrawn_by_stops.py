@@ -22,6 +22,7 @@ import pytest
 from govhelpers import ADMIN, OPS, PLANNER, Harness, command, principal
 
 from rcan_rtps.governance.governor import (
+    BRIDGE_STOPPING,
     CONNECTION_CLOSED,
     ROBOT_STOPPED,
     SESSION_LOST,
@@ -242,3 +243,19 @@ async def test_an_approval_and_a_stop_in_the_same_loop_turn(harness: Harness, st
         cause = "an e-stop" if stop == "estop" else "a stop by 'ops2'"
         assert (end["event"], end["approvals"][-1]["reason"]) == (
             "HITL_WITHDRAWN", ROBOT_STOPPED.format(cause))
+
+
+async def test_the_bridge_stopping_withdraws_every_held_command_before_bridge_stopped(
+        scene: Scene) -> None:
+    """Held commands live in memory alone: a bridge that stopped with them held left each a
+    PENDING_AUTH with no end in its log, and told no issuer. Its stop withdraws them all —
+    motion or not, anyone's — each by its issuer, before BRIDGE_STOPPED."""
+    gov, harness = scene.gov, scene.harness
+    await gov.start()
+    await gov.stop()
+    scene.withdrawn({pending_id: (who, BRIDGE_STOPPING) for pending_id, who in (
+        (scene.arm, "planner"), (scene.lock, "planner"), (scene.theirs, "other"))})
+    events = [e["event"] for e in harness.entries]
+    assert events[-1] == "BRIDGE_STOPPED"
+    assert events.count("HITL_WITHDRAWN") == 3
+    assert harness.dispatcher.calls == []  # nothing of them ran

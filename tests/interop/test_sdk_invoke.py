@@ -217,14 +217,43 @@ async def test_an_sdk_invoke_cancel_over_the_websocket_withdraws_a_held_skill(
         assert (held["http_status"], RCANResponse.from_dict(held).status) == (202, "pending"), held
         cancel = sdk_cancel(robot, invoke, "changed my mind")
         await ws.send_json(sdk_wire(cancel))
-        [withdrawn] = await outcome_frames(ws, 1)
-    read = invoke_result(withdrawn)
-    assert (withdrawn["http_status"], read.msg_id, withdrawn["reply_to"], read.status) == (
-        200, cancel.msg_id, invoke.msg_id, "cancelled"), withdrawn
-    assert withdrawn["error"]["message"] == "withdrawn by INVOKE_CANCEL", withdrawn
+        answers = await outcome_frames(ws, 2)  # the cancel's and the INVOKE's, either first
+    read = [invoke_result(body) for body in answers]
+    assert sorted(r.msg_id for r in read) == sorted([cancel.msg_id, invoke.msg_id]), answers
+    for withdrawn, result in zip(answers, read, strict=True):
+        assert (withdrawn["http_status"], withdrawn["reply_to"], result.status) == (
+            200, invoke.msg_id, "cancelled"), withdrawn
+        assert withdrawn["error"]["message"] == "withdrawn by INVOKE_CANCEL", withdrawn
     async with http.post(f"{demo.url}/api/hitl/authorize", json={"pending_id": held[
             "pending_id"]}, headers={"Authorization": f"Bearer {demo.owner}"}) as response:
         assert response.status == 404, await response.text()
+    log = entries(demo)
+    assert [e["event"] for e in log if e["message_id"] == invoke.msg_id] == [
+        "PENDING_AUTH", "HITL_WITHDRAWN", "INVOKE_RESULT"]
+    audit_ids_hold(demo)
+
+
+async def test_an_sdk_invoke_held_when_the_robot_is_stopped_is_answered(
+        sim: Demo, http: aiohttp.ClientSession) -> None:
+    """A stop withdraws all held motion: the held skill's INVOKE is answered on its socket
+    then (an INVOKE_RESULT the SDK reads, `failure` naming the stop). Before, its client
+    waited for ever after its 202 `pending`."""
+    demo = sim
+    robot = await robot_of(http, demo)
+    invoke = sdk_invoke(robot, "raise_elbow")
+    async with user_socket(http, demo) as ws:
+        await ws.send_json(sdk_wire(invoke))
+        [held] = await outcome_frames(ws, 1)
+        assert (held["http_status"], RCANResponse.from_dict(held).status) == (202, "pending"), held
+        async with http.post(f"{demo.url}/api/command", json={"action": "stop"},
+                             headers={"Authorization": f"Bearer {demo.owner}"}) as response:
+            assert response.status == 200, await response.text()
+        [answer] = await outcome_frames(ws, 1)
+    read = invoke_result(answer)
+    assert (read.msg_id, answer["reply_to"], read.status, answer["reason"]) == (
+        invoke.msg_id, invoke.msg_id, "failure", "hitl_withdrawn"), answer
+    assert answer["error"]["message"].startswith(
+        "withdrawn: the robot was stopped while it was held (a stop by "), answer
     log = entries(demo)
     assert [e["event"] for e in log if e["message_id"] == invoke.msg_id] == [
         "PENDING_AUTH", "HITL_WITHDRAWN", "INVOKE_RESULT"]

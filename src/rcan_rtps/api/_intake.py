@@ -291,9 +291,11 @@ async def _message3(governor: Governor, principal: Principal,
     if isinstance(message, InvokeCancel):
         return await skills.invocations().cancel(governor, principal, message)
     started = await skills.invocations().start(governor, principal, message)
-    if started.finish is None:
-        assert started.reply is not None
+    if started.reply is not None:
+        if started.finish is not None:  # held: answered as its hold ends, in the log alone
+            started.finish().add_done_callback(_answered_unheard)
         return started.reply
+    assert started.finish is not None
     if hung_up is None:
         return await started.finish()
     return await _unless_hung_up(started.finish(), hung_up)
@@ -317,6 +319,13 @@ async def _unless_hung_up(finish: Awaitable[Reply], hung_up: HangUp) -> Reply:
             if not left:  # this handler itself was cancelled: so is `answering`
                 raise
     return CLIENT_CLOSED, error_body("CLIENT_CLOSED", reason="client_hung_up", outcome="failed")
+
+
+def _answered_unheard(answer: asyncio.Future[Reply]) -> None:
+    """A held INVOKE's answer, which its REST client (answered 202) does not wait for: a
+    failure to make it is logged, as nobody else would see it."""
+    if not answer.cancelled() and (error := answer.exception()) is not None:
+        log.error("answering a held INVOKE failed", exc_info=error)
 
 
 def replied(body: DecisionBody, envelope: Envelope | None) -> DecisionBody:

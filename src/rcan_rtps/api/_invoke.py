@@ -9,12 +9,19 @@ arm's trajectory, which reports no end, when its time is up (a stop that held it
 it a `failure`), or at `timeout_ms` (the arm is then held where it is); for a `move`, when its
 velocity stream ends (`success` by its own `duration_s`; anything else that ended it — a stop,
 an e-stop, another move, a lost session or robot — makes it a `failure` naming that), or at
-`timeout_ms` (the stream is then ended, zero sent). A held
-INVOKE (HiTL) is answered 202 `pending` like any held command; its approval is answered to
-the approver. An INVOKE whose client leaves before its answer (its WebSocket closes, its HTTP
-request is hung up on: the wait for its answer is cancelled) leaves nobody to answer for its
-motion: that is stopped as its INVOKE_CANCEL would stop it (`why: INVOKE's client left`), in
-a task of its own, and the INVOKE is answered in the log alone, `failure`.
+`timeout_ms` (the stream is then ended, zero sent). A held INVOKE (HiTL) is answered 202
+`pending` like any held command, and its INVOKE_RESULT follows once its hold ends
+(`_reviewed`): approved, it is answered as any INVOKE so decided (its `timeout_ms` counting
+from the approval); denied `failure`; expired `timeout`; withdrawn `failure` naming who or what
+withdrew it (a stop of the robot, its connection closing, its issuer), or `cancelled` by its
+INVOKE_CANCEL. On the WebSocket that is a second outcome frame; over REST, whose request was
+answered with the 202, it is in the log alone. An approval is also answered to its approver.
+An INVOKE whose client leaves before its answer (its WebSocket closes, its HTTP request is hung
+up on: the wait for its answer is cancelled) leaves nobody to answer for its motion: that is
+stopped as its INVOKE_CANCEL would stop it (`why: INVOKE's client left`), in a task of its own,
+and the INVOKE is answered in the log alone, `failure`. A held INVOKE whose client leaves stays
+held: its hold's end answers it, in the log (its held motion is withdrawn as the connection
+closes: `Governor.connection_closed`).
 
 INVOKE_CANCEL names an INVOKE of its own sender by msg_id: a goal it started is cancelled
 through the governor (audited), an arm it moves is held where it is (audited:
@@ -46,7 +53,7 @@ import msgspec
 from rcan_rtps.config import SkillConfig
 from rcan_rtps.governance import Governor, Principal, Rejection, outcomes
 from rcan_rtps.governance.governor import Decision
-from rcan_rtps.governance.review import ReviewMessage
+from rcan_rtps.governance.review import Ended, ReviewMessage
 from rcan_rtps.governance.streams import EndReason, StreamEnded
 from rcan_rtps.rcan import (
     STATUS_OF,
@@ -108,7 +115,8 @@ class _Running:
     invoke_id: str
     started: float = field(default_factory=time.monotonic)
     goal_id: str | None = None
-    pending_id: str | None = None
+    pending_id: str | None = None  # held for a human, until its hold ends (`_reviewed`)
+    client_left: bool = False  # its client left while it was held: nobody hears its answer
     cancelled: bool = False  # by its INVOKE_CANCEL: a canceled goal is then `cancelled`
     ended: asyncio.Future[GoalView] = field(
         default_factory=lambda: asyncio.get_running_loop().create_future())
@@ -128,7 +136,8 @@ class _Running:
 @dataclass(frozen=True)
 class Started:
     """An INVOKE decided: its reply now, or `finish()`, a future of its answer for its one
-    waiter (a goal, a stream or a trajectory under way). Cancelling that future — its client
+    waiter (a goal, a stream or a trajectory under way), or both (held for a human: 202
+    `pending` now, its INVOKE_RESULT once its hold ends). Cancelling that future — its client
     left — stops the INVOKE's motion and answers it in the log (`Invocations._answering`)."""
 
     reply: Reply | None = None
@@ -165,7 +174,6 @@ class Invocations:
         cuts off its wait, never the INVOKE's answer (red team 15: no INVOKE_RESULT entry was
         written). Nobody waits for that answer then: an INVOKE under way is one whose client
         left (`_answering`), its motion stopped and its answer in the log alone."""
-        self._forget_reviewed(governor)
         skill = self.skills.get(invoke.skill)
         if skill is None:
             return Started(reply=await self._refused(
@@ -212,47 +220,100 @@ class Invocations:
             raise
         return await self._decided(governor, principal, invoke, key, running, decision)
 
-    def _forget_reviewed(self, governor: Governor) -> None:
-        """Held INVOKEs a reviewer has resolved (or that expired) are no longer under way:
-        what became of them was answered to the reviewer."""
-        held = {p.pending_id for p in governor.pending()}
-        for key, running in list(self._running.items()):
-            if running.pending_id is not None and running.pending_id not in held:
-                del self._running[key]
-
     async def _decided(self, governor: Governor, principal: Principal, invoke: Invoke,
                        key: tuple[str, str], running: _Running, decision: Decision) -> Started:
+        if decision.outcome is Outcome.PENDING_AUTH and decision.pending_id is not None:
+            return await self._held(governor, principal, invoke, key, running, decision,
+                                    decision.pending_id)
+        finish = await self._under_way(governor, principal, invoke, key, running, decision)
+        if finish is not None:
+            return self._answering(governor, principal, key, running, decision, finish)
+        return Started(reply=await self._answered_now(governor, principal, key, running,
+                                                      decision, _decided_status(decision)))
+
+    async def _answered_now(self, governor: Governor, principal: Principal,
+                            key: tuple[str, str], running: _Running, decision: Decision,
+                            status: InvokeStatus, message: str | None = None) -> Reply:
+        """An INVOKE done once decided (nothing of it runs on): answered now."""
+        self._forget(key, running)
+        self._forget_stream(principal, running)
+        result = self._result(running, decision, status, message)
+        return decision.http_status, await self._answer(governor, principal, key, running,
+                                                        result)
+
+    async def _held(self, governor: Governor, principal: Principal, invoke: Invoke,
+                    key: tuple[str, str], running: _Running, decision: Decision,
+                    pending_id: str) -> Started:
+        """Held for a human: 202 `pending` now, its INVOKE_RESULT once its hold ends
+        (`_reviewed`). An INVOKE_CANCEL that came while it was being held withdraws it now
+        (a reviewer must never approve what its invoker cancelled), and both are answered
+        `cancelled` then."""
+        running.pending_id = pending_id
+        ended = governor.held_ended(pending_id)
+        body = decision.body()
+        body.msg_id, body.status = invoke.msg_id, "pending"
+        if ended is None:  # a retry's, answered from a decision whose hold is long forgotten
+            self._forget(key, running)
+            self._forget_stream(principal, running)
+            return Started(reply=(decision.http_status, body))
+        reviewed = self._reviewed(governor, principal, invoke, key, running, decision, ended)
+        if running.cancelled:
+            await governor.withdraw(pending_id, principal, BY_INVOKE_CANCEL)
+            return Started(reply=await reviewed)
+        return Started(reply=(decision.http_status, body), finish=self._answering(
+            governor, principal, key, running, decision, reviewed).finish)
+
+    async def _reviewed(self, governor: Governor, principal: Principal, invoke: Invoke,
+                        key: tuple[str, str], running: _Running, held: Decision,
+                        ended: asyncio.Future[Ended]) -> Reply:
+        """A held INVOKE's answer, once its hold ends (`HitlDesk.ended`). Approved and
+        executed, it goes on as an INVOKE so decided (a goal, a move, an arm's trajectory
+        answered when done), its skill's time counted from the approval; else it is
+        answered now (`_review_status`)."""
+        try:
+            end = await asyncio.shield(ended)  # (others may await the same future)
+        except asyncio.CancelledError:
+            if not ended.cancelled():  # this task itself was cancelled
+                raise
+            return await self._answered_now(governor, principal, key, running, held,
+                                            "failure", "its review failed (see the bridge's "
+                                            "log): it did not run")
+        running.pending_id = None
+        decision = end.decision
+        if decision.outcome is Outcome.EXECUTED:
+            running.started = time.monotonic()  # its skill runs from its approval
+            finish = await self._under_way(governor, principal, invoke, key, running,
+                                           decision)
+            if finish is not None and running.client_left:
+                finish.close()  # nobody is left to answer for its motion: it is stopped
+                self._forget(key, running)
+                self._left_behind(governor, principal, key, running, decision)
+                return decision.http_status, await asyncio.shield(running.answered)
+            if finish is not None:
+                return await finish
+        status, message = _review_status(running, end)
+        return await self._answered_now(governor, principal, key, running, decision, status,
+                                        message)
+
+    async def _under_way(self, governor: Governor, principal: Principal, invoke: Invoke,
+                         key: tuple[str, str], running: _Running, decision: Decision
+                         ) -> Coroutine[object, object, Reply] | None:
+        """The answer of an INVOKE whose skill runs on once decided — a move's stream, an
+        arm's trajectory, a goal — to await (what it waits for, listened for now); None when
+        nothing of it runs on."""
         if running.stream is not None:
             if self._stream_started(governor, principal, running, decision):
-                return self._answering(
-                    governor, principal, key, running, decision,
-                    self._finish_stream(governor, principal, invoke, key, running, decision))
+                return self._finish_stream(governor, principal, invoke, key, running, decision)
             self._forget_stream(principal, running)
-        if decision.outcome is Outcome.PENDING_AUTH:  # held: an INVOKE_CANCEL withdraws it
-            running.pending_id = decision.pending_id
-            if running.cancelled and decision.pending_id is not None:
-                # Its INVOKE_CANCEL came while it was being held: a reviewer must never
-                # approve what its invoker cancelled. Withdrawn now; both are answered so.
-                status, result = await self._withdrawn(governor, principal, key, running,
-                                                       BY_INVOKE_CANCEL, message_id=None)
-                return Started(reply=(status, result))
-            body = decision.body()
-            body.msg_id, body.status = invoke.msg_id, "pending"
-            return Started(reply=(decision.http_status, body))
         if (decision.outcome is Outcome.EXECUTED and decision.runs_for_s is not None
                 and decision.message_id is not None):  # an arm's trajectory runs on
             running.trajectory = decision.message_id
             if running.cancelled:  # cancelled while it was being decided
                 running.held.set_result(await governor.hold_trajectory(
                     decision.message_id, principal, message_id=None, why=BY_INVOKE_CANCEL))
-            return self._answering(
-                governor, principal, key, running, decision,
-                self._finish_trajectory(governor, principal, invoke, key, running, decision))
+            return self._finish_trajectory(governor, principal, invoke, key, running, decision)
         if decision.outcome is not Outcome.EXECUTED or decision.goal_id is None:
-            del self._running[key]
-            result = self._result(running, decision, _decided_status(decision))
-            return Started(reply=(decision.http_status,
-                                  await self._answer(governor, principal, key, running, result)))
+            return None
         running.goal_id = decision.goal_id
         self._by_goal[decision.goal_id] = running
         view = None if self._robot is None else self._robot.goal(decision.goal_id)
@@ -261,9 +322,7 @@ class Invocations:
         if running.cancelled:  # cancelled while its goal was being sent
             await governor.cancel_goal(decision.goal_id, principal, message_id=None,
                                        why=BY_INVOKE_CANCEL)
-        return self._answering(
-            governor, principal, key, running, decision,
-            self._finish(governor, principal, invoke, key, running, decision))
+        return self._finish(governor, principal, invoke, key, running, decision)
 
     def _answering(self, governor: Governor, principal: Principal, key: tuple[str, str],
                    running: _Running, decision: Decision,
@@ -295,6 +354,9 @@ class Invocations:
                      ) -> None:
         if running.answering or self._running.get(key) is not running:
             return  # its one answer is made, or on its way to the log: it stands
+        if running.pending_id is not None:  # held: its hold's end answers it (`_reviewed`)
+            running.client_left = True
+            return
         del self._running[key]
         answer.cancel()  # its own wait ends; what it would have done, done here
         self._left_behind(governor, principal, key, running, decision)
@@ -519,7 +581,6 @@ class Invocations:
         if refused is not None:
             return await _refuse(governor, principal, refused, cancel.message_id)
         key = (principal.name, cancel.invoke_id)  # §19.4: only its own invoker cancels it
-        self._forget_reviewed(governor)
         running = self._running.get(key)
         if running is None:
             return await self._not_running(governor, principal, cancel, key)
@@ -544,11 +605,15 @@ class Invocations:
     async def _cancelling(self, governor: Governor, principal: Principal,
                           cancel: InvokeCancel, key: tuple[str, str],
                           running: _Running) -> Reply | None:
-        """What an INVOKE_CANCEL does to its INVOKE: its reply if that is the answer (a held
-        one withdrawn, a cancel refused), else None (the INVOKE's own answer is waited for)."""
+        """What an INVOKE_CANCEL does to its INVOKE: its reply if that is the answer (a cancel
+        refused), else None (the INVOKE's own answer is waited for). A held one is withdrawn,
+        and answered `cancelled` as its hold ends (`_reviewed`); one whose review ends it
+        first (an approval under way, say) is answered by that, its motion cancelled as it
+        starts (`_under_way`)."""
         if running.pending_id is not None:
-            return await self._withdrawn(governor, principal, key, running, cancel.reason,
-                                         message_id=cancel.message_id)
+            await governor.withdraw(running.pending_id, principal, cancel.reason,
+                                    said_by=ReviewMessage(message_id=cancel.message_id))
+            return None
         if running.goal_id is not None:
             decision = await governor.cancel_goal(running.goal_id, principal,
                                                   message_id=cancel.message_id,
@@ -567,20 +632,6 @@ class Invocations:
                 return _cancel_refused(running, held, cancel)
             running.held.set_result(held)
         return None
-
-    async def _withdrawn(self, governor: Governor, principal: Principal, key: tuple[str, str],
-                         running: _Running, reason: str | None, *,
-                         message_id: str | None) -> Reply:
-        """A held INVOKE withdrawn by its INVOKE_CANCEL, and answered."""
-        assert running.pending_id is not None
-        decision = await governor.withdraw(running.pending_id, principal, reason,
-                                           said_by=ReviewMessage(message_id=message_id))
-        self._running.pop(key, None)
-        status: InvokeStatus = "cancelled" if decision.reason == "hitl_withdrawn" else "failure"
-        result = self._result(running, decision, status, "withdrawn by INVOKE_CANCEL"
-                              if status == "cancelled" else decision.reason)
-        return decision.http_status, await self._answer(governor, principal, key, running,
-                                                        result)
 
     async def _not_running(self, governor: Governor, principal: Principal,
                            cancel: InvokeCancel, key: tuple[str, str]) -> Reply:
@@ -767,6 +818,25 @@ async def _audit(governor: Governor, principal: Principal, result: InvokeResult)
         principal, invoke_id=result.invoke_id, status=result.status, outcome=result.outcome,
         facts={k: v for k, v in facts.items() if v is not None},
         detail=None if result.error is None else result.error.message)
+
+
+def _review_status(running: _Running, end: Ended) -> tuple[InvokeStatus, str | None]:
+    """A held INVOKE's status once its hold ended, and its error's message: expired
+    `timeout`; withdrawn by its INVOKE_CANCEL `cancelled`; withdrawn otherwise or denied
+    `failure`, naming who or what did it (a stop's withdrawal says which stop); approved,
+    as any decision (`_decided_status`: a refusal of it as it ran is a `failure`)."""
+    decision, review = end.decision, end.review
+    if decision.reason == outcomes.PENDING_EXPIRED.reason:
+        return "timeout", "no approval came within its HiTL timeout: it expired"
+    if review is None or review.decision == "approve":
+        return _decided_status(decision), None
+    if review.decision == "withdraw" and running.cancelled:
+        return "cancelled", "withdrawn by INVOKE_CANCEL"
+    verb = "withdrawn" if review.decision == "withdraw" else "denied"
+    if review.reason is not None and review.reason.startswith(f"{verb}:"):
+        return "failure", review.reason  # the governor's words: which stop withdrew it
+    return "failure", f"{verb} by '{review.principal}'" + (
+        f": {review.reason}" if review.reason else "")
 
 
 def _decided_status(decision: Decision) -> InvokeStatus:

@@ -322,7 +322,8 @@ class _Commands:
 
     async def _invoke(self, invoke: Invoke, skills: Skills) -> None:
         """Decided in order like any command; an INVOKE whose goal is under way is answered
-        when it ends, while the frames behind it go on being decided."""
+        when it ends, one held for a human when its hold ends (after its 202 frame), while
+        the frames behind it go on being decided."""
         try:
             started = await skills.invocations().start(self._governor, self._principal,
                                                        invoke)
@@ -331,9 +332,9 @@ class _Commands:
                           extra={"principal": self._principal.name})
             await self._deliver(failure_reply(exc))
             return
-        if started.finish is None:
-            assert started.reply is not None
+        if started.reply is not None:  # (held for a human: 202 now, its answer later)
             await self._deliver(started.reply)
+        if started.finish is None:
             return
         answer = started.finish()  # now: a close from here on finds it (no task to start)
         self._invoking.add(answer)

@@ -7,9 +7,10 @@
            → governor started (BRIDGE_STARTED; after a run that did not end with
            BRIDGE_STOPPED, the motion it left taken back first: docs/governance.md) → watch
            for other publishers on the command topics → HTTP API → mDNS advert
-    stop:  mDNS withdrawn → API closed (no new commands) → watch ended → velocity streams
+    stop:  mDNS withdrawn → held commands withdrawn (HITL_WITHDRAWN; their issuers told while
+           still connected) → API closed (no new commands) → watch ended → velocity streams
            ended → robot halted (zero velocity, goals cancelled) → telemetry → governor
-           (BRIDGE_STOPPED)
+           (any held since withdrawn, then BRIDGE_STOPPED)
            → goal action clients → audit closed → ROS node left → API port released
 
 Each resource's cleanup goes on an `AsyncExitStack` as soon as the resource exists, so stop
@@ -395,6 +396,8 @@ class Bridge:
                                          ssl_context=self._ssl, sock=self._sock)
         self._on_stop("closing the API", server.close)  # first: start may fail half-way
         self.url = await server.start()
+        # Before the API closes: an issuer still connected hears of it (`withdraw_all_held`).
+        self._on_stop("withdrawing held commands", governor.withdraw_all_held)
 
     def _advertise_soon(self) -> None:
         # Joining mDNS takes ~1 s (probing): commands are accepted meanwhile.

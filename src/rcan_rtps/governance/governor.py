@@ -56,7 +56,7 @@ from .log_tail import logged_ids
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
-from .review import NO_MESSAGE, HitlDesk, PendingRecord, ReviewMessage
+from .review import NO_MESSAGE, Ended, HitlDesk, PendingRecord, ReviewMessage
 from .sessions import Sessions
 from .steps import (
     ArmsHeld,
@@ -101,6 +101,7 @@ ROBOT_STOPPED = "withdrawn: the robot was stopped while it was held ({})"
 CONNECTION_CLOSED = "withdrawn: a connection of its issuer's closed while it was held"
 # `{}`: why the session was lost ("no command or heartbeat for 2 s", "its connection closed").
 SESSION_LOST = "withdrawn: its issuer's control session was lost while it was held ({})"
+BRIDGE_STOPPING = "withdrawn: the bridge stopped while it was held"
 
 
 class ClientCancel(NamedTuple):
@@ -155,6 +156,7 @@ class Governor:
         self._admission = asyncio.Semaphore(MAX_IN_FLIGHT)
         self._sweeper: asyncio.Task[None] | None = None
         self.started = False  # BRIDGE_STARTED is durable
+        self._stopping = False  # `stop` began
         self._stopped = False
         # The one owner of the velocity streams; an e-stop ends them first thing.
         self.streams = streams or VelocityStreams(dispatcher, latch)
@@ -296,11 +298,14 @@ class Governor:
         await self._steps.record_event(entry)
 
     async def stop(self) -> None:
-        """BRIDGE_STOPPED once the sweeper, the tasks and the latch are done. Idempotent."""
-        if self._stopped:
+        """BRIDGE_STOPPED once the held commands are withdrawn (`withdraw_all_held`) and the
+        sweeper, the tasks and the latch are done. Idempotent."""
+        if self._stopping:
             return
-        self._stopped = True
+        self._stopping = True
         self.end_streams()
+        await self.withdraw_all_held()  # what was held since the run's stop path did it
+        self._stopped = True
         if self._sweeper is not None:
             self._sweeper.cancel()
             await asyncio.gather(self._sweeper, return_exceptions=True)
@@ -823,6 +828,10 @@ class Governor:
         """One held command, waiting or what came of it (see `review`), or None if unknown."""
         return self._desk.record(pending_id)
 
+    def held_ended(self, pending_id: str) -> asyncio.Future[Ended] | None:
+        """What ends a held command (`HitlDesk.ended`): a held INVOKE is answered then."""
+        return self._desk.ended(pending_id)
+
     def role_for(self, action: str) -> Role:
         """The role `action` needs here (the profile's table, with the config's overrides)."""
         return self._roles.required(action)
@@ -1087,10 +1096,22 @@ class Governor:
             return stopped
         return self._steps.spawn(_gathered_then(withdrawn, stopped))
 
-    def _withdraw_held(self, issuer: Principal | None, reason: str
-                       ) -> dict[str, asyncio.Future[Decision]]:
+    async def withdraw_all_held(self) -> None:
+        """The bridge is stopping: every command held for a human — motion or not, anyone's
+        — is withdrawn (HITL_WITHDRAWN by its issuer, `BRIDGE_STOPPING`), its entry awaited.
+        Held commands live in memory alone: left for the process to end with, each would
+        stay a PENDING_AUTH with no end in the log, and nobody would tell its issuer. The
+        run's stop path calls this before the API closes, while issuers may still be told
+        (a held INVOKE's INVOKE_RESULT, the approvals frames, their pending records); `stop`
+        again before BRIDGE_STOPPED, for any held since."""
+        withdrawing = self._withdraw_held(None, BRIDGE_STOPPING, motion_only=False)
+        await asyncio.gather(*withdrawing.values(), return_exceptions=True)
+
+    def _withdraw_held(self, issuer: Principal | None, reason: str, *,
+                       motion_only: bool = True) -> dict[str, asyncio.Future[Decision]]:
         """Withdraws the motion held for a human of `issuer` (None: of everyone) that a stop
-        of it came for, in this step: each as its issuer would withdraw it (HITL_WITHDRAWN,
+        of it came for (`motion_only` False: all it held, the bridge stopping), in this step:
+        each as its issuer would withdraw it (HITL_WITHDRAWN,
         `reason` saying the stop; its issuer reads that in its pending record, approvers see
         it leave the list). From this step on no approval of it counts
         (`HitlDesk.withdrawing`); its entry follows once the desk has it. Held commands that
@@ -1105,9 +1126,10 @@ class Governor:
         if self._stopped:  # BRIDGE_STOPPED is the last entry
             return {}
         picked = self._desk.withdrawing(issuer.name if issuer else None,
-                                        lambda c: c.spec.motion)
+                                        lambda c: c.spec.motion or not motion_only)
         if picked:
-            log.warning("motion held for approval is withdrawn (%s): %s", reason,
+            log.warning("%s held for approval is withdrawn (%s): %s",
+                        "motion" if motion_only else "every command", reason,
                         ", ".join(f"{p.pending_id} of '{p.issuer.name}'" for p in picked),
                         extra={"principal": issuer.name} if issuer else None)
         return {p.pending_id: self._detached(self._desk.resolve(p.pending_id, p.issuer,

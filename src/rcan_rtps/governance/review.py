@@ -19,10 +19,13 @@ signed is the transport's check, before it gets here (`signatures.Signatures.che
 What came of a held command stays readable for a while (`KEPT_RESOLVED` of them, the oldest let
 go first): its issuer — an agent waiting for a human — learns it was executed, denied, withdrawn
 or expired without the approvers' list or the audit log (GET /api/hitl/pending/{pending_id}).
+Whoever must answer for it once it ends (a held INVOKE's INVOKE_RESULT, §19) awaits that end
+(`ended`): the decision, and the review that made it.
 """
 
 from __future__ import annotations
 
+import asyncio
 import uuid
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable
@@ -55,6 +58,7 @@ class PendingRecord(msgspec.Struct, frozen=True):
     approver_role: Role
     waiting: bool = False
     decision: Decision | None = None
+    review: Approval | None = None  # the review that ended it (None: it expired)
 
     def may_read(self, reader: Principal) -> bool:
         return may_read(reader, self.issuer, self.approver_role)
@@ -75,6 +79,14 @@ class ReviewMessage(msgspec.Struct, frozen=True, kw_only=True):
 
 
 NO_MESSAGE = ReviewMessage()
+
+
+class Ended(msgspec.Struct, frozen=True):
+    """What ended a held command: its decision, and the review that made it — the last
+    approval, the denial or the withdrawal (who, and why) — or None when it expired."""
+
+    decision: Decision
+    review: Approval | None = None
 
 
 def may_read(reader: Principal, issuer: str, approver_role: Role) -> bool:
@@ -101,6 +113,8 @@ class HitlDesk:
         # The thought id of each resolved command still kept: one that named another held
         # command (withdrawn, denied, expired) is ambiguous for an AUTHORIZE that names it.
         self._resolved_thoughts: dict[str, str] = {}
+        # The ends awaited of held commands not ended yet (`ended`), by pending id.
+        self._awaited: dict[str, asyncio.Future[Ended]] = {}
 
     def pending(self) -> list[PendingAuth]:
         return [held.message() for held in self._pending.list()]
@@ -113,11 +127,33 @@ class HitlDesk:
             return PendingRecord(held.message(), p.issuer.name, p.approver_role, waiting=True)
         return self._resolved.get(pending_id)
 
-    def _resolving(self, held: Held, decided: Decision | None = None) -> None:
+    def ended(self, pending_id: str) -> asyncio.Future[Ended] | None:
+        """What ends the held command `pending_id`: a future, done once its decision is
+        (at once if it is, and still kept), cancelled if its review raised; None if it is
+        unknown. The caller must not cancel it (others may await the same one)."""
+        kept = self._resolved.get(pending_id)
+        if kept is not None and kept.decision is not None:
+            done: asyncio.Future[Ended] = asyncio.get_running_loop().create_future()
+            done.set_result(Ended(kept.decision, kept.review))
+            return done
+        if kept is None and self._pending.get(pending_id) is None:
+            return None
+        awaited = self._awaited.get(pending_id)
+        if awaited is None:
+            awaited = self._awaited[pending_id] = asyncio.get_running_loop().create_future()
+        return awaited
+
+    def _resolving(self, held: Held, decided: Decision | None = None,
+                   review: Approval | None = None) -> None:
         pending = held.pending
         self._resolved[pending.pending_id] = PendingRecord(
-            held.message(), pending.issuer.name, pending.approver_role, decision=decided)
+            held.message(), pending.issuer.name, pending.approver_role, decision=decided,
+            review=review)
         self._resolved.move_to_end(pending.pending_id)
+        if decided is not None:
+            awaited = self._awaited.pop(pending.pending_id, None)
+            if awaited is not None and not awaited.done():
+                awaited.set_result(Ended(decided, review))
         thought = _thought_of(pending.command)
         if thought is not None:
             self._resolved_thoughts[pending.pending_id] = thought
@@ -196,9 +232,16 @@ class HitlDesk:
         except BaseException:
             self._resolved.pop(pending.pending_id, None)  # never "being decided" for good
             self._resolved_thoughts.pop(pending.pending_id, None)
+            self._never_ends(pending.pending_id)
             raise
-        self._resolving(held, decided)
+        self._resolving(held, decided, command.approvals[-1] if command.approvals else None)
         return decided
+
+    def _never_ends(self, pending_id: str) -> None:
+        """Its review raised: what awaits its end is told so (its future cancelled)."""
+        awaited = self._awaited.pop(pending_id, None)
+        if awaited is not None:
+            awaited.cancel()
 
     async def _decide(self, command: NormalizedCommand, reviewer: Principal,
                       pending: PendingCommand, verdict: Verdict) -> Decision:
@@ -296,9 +339,13 @@ class HitlDesk:
         for held in expired:
             p = held.pending
             self._resolving(held)
-            decisions.append(await self._steps.refuse(
-                held.reviewed(), p.issuer, outcomes.PENDING_EXPIRED,
-                event=AuditEvent.HITL_EXPIRED, pending_id=p.pending_id))
+            try:
+                decisions.append(await self._steps.refuse(
+                    held.reviewed(), p.issuer, outcomes.PENDING_EXPIRED,
+                    event=AuditEvent.HITL_EXPIRED, pending_id=p.pending_id))
+            except BaseException:
+                self._never_ends(p.pending_id)
+                raise
             self._resolving(held, decisions[-1])
         return decisions
 

@@ -178,6 +178,41 @@ async def test_a_signature_approves_only_the_held_command_it_names(api: Api) -> 
     assert len(api.gov.pending()) == 2 and api.dispatcher.calls == []
 
 
+@pytest.mark.parametrize("spelt", [str.upper, lambda mid: f"urn:uuid:{mid}",
+                                   lambda mid: mid.replace("-", "")])
+async def test_the_held_command_is_named_by_its_uuid_however_spelt(api: Api, spelt: Any
+                                                                    ) -> None:
+    """A UUID is one message id however it is spelt (the replay window and the command path
+    read it so): an approval signed for the held command's message_id in capitals, as a URN
+    or without hyphens names that command. Before, it was refused 403 SIGNATURE_INVALID
+    `signed_for_another_command`: the signer had signed for this very command."""
+    pending_id, message_id = await held(api)
+    status, reply = await api.command("ops", signed(review(api, pending_id,
+                                                           spelt(message_id))))
+    assert (status, reply["outcome"]) == (200, "executed"), reply
+    assert [a for a, _ in api.dispatcher.calls] == ["arm_joint"]
+
+
+async def test_a_signed_approval_for_another_robot_is_audited_with_its_signature(
+        api: Api) -> None:
+    """A signed approval addressed to another robot releases nothing here (400 INVALID_RURI
+    `not_this_robot`), and its refusal is audited as every refused AUTHORIZE is: with the
+    signature's alg, kid and whether it verified. Before, that entry had no `rcan` at all:
+    whose key had signed an approval sent to the wrong robot was not on record."""
+    pending_id, message_id = await held(api)
+    msg = review(api, pending_id, message_id)
+    msg.target = TARGET.replace("a200-0001", "a200-0002")
+    body = signed(msg)
+    status, reply = await api.command("ops", body)
+    assert (status, reply["error_code"], reply["reason"]) == (
+        400, "INVALID_RURI", "not_this_robot"), reply
+    entry = api.entry(reply["audit_id"])
+    assert (entry["event"], entry["message_id"]) == ("COMMAND_REJECTED", body["msg_id"])
+    assert entry["rcan"]["sig"] == {"alg": "ml-dsa-65", "kid": OPS_KEY.key_id,
+                                    "verified": True}, entry
+    assert api.gov.pending() and api.dispatcher.calls == []
+
+
 async def test_a_signed_approval_is_used_once_and_only_while_fresh(api: Api) -> None:
     pending_id, message_id = await held(api)
     body = signed(review(api, pending_id, message_id))

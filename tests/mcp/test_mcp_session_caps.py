@@ -282,3 +282,43 @@ async def test_fair_room_is_made_only_in_idle_sessions(api: Api) -> None:
             assert set(sessions(api)) == {*ids, *lessee[1:], *operator, guest.session}
         for agent in live:
             assert (await agent.client.list_tools()).tools
+
+
+async def sessionless(api: Api, who: str, method: str) -> int:
+    """`who`'s request to `/mcp` without a session id that is no `initialize` (a call, an
+    event stream, a DELETE): it opens no session (the SDK answers 400)."""
+    headers = {"Authorization": f"Bearer {TOKENS[who]}",
+               "Accept": "application/json, text/event-stream",
+               "Mcp-Protocol-Version": "2025-06-18", **AGENT}
+    async with api.http.request(method, "/mcp", json=LISTED if method == "POST" else None,
+                                headers=headers) as resp:
+        return resp.status
+
+
+async def test_a_request_that_opens_no_session_closes_none(api: Api) -> None:
+    """At the cap over all principals, VIEWER's requests without a session id that are no
+    `initialize` open nothing, and close nothing: before, each closed the idle longest
+    session of the principal holding the most (room made for nobody), so a principal holding
+    none closed another's sessions at no cost, each time the cap was reached again. So did
+    PLANNER's own at its cap. A stop sent so still stops (the door runs it), and an
+    `initialize` still gets its room."""
+    held = await fill_the_whole(api)
+    before = set(sessions(api))
+    for who in ("viewer", "planner"):
+        for method in ("POST", "GET", "DELETE"):
+            assert await sessionless(api, who, method) == 400, (who, method)
+            assert set(sessions(api)) == before, (who, method)
+    for sid in held["planner"]:
+        assert await status_for(api, "planner", sid) == 200
+    # A stop in such a request still stops (the door runs what the SDK refuses), closing none.
+    stop = {"jsonrpc": "2.0", "id": 9, "method": "tools/call",
+            "params": {"name": "stop", "arguments": {}}}
+    headers = {"Authorization": f"Bearer {TOKENS['planner']}",
+               "Accept": "application/json, text/event-stream", **AGENT}
+    async with api.http.post("/mcp", json=stop, headers=headers) as resp:
+        assert resp.status == 200, await resp.text()
+    assert [action for action, _ in api.dispatcher.calls] == ["stop"]
+    assert set(sessions(api)) == before
+    first = await abandon(api, "viewer", 1)
+    assert set(sessions(api)) == {*held["planner"][1:], *held["lessee"],
+                                  *held["operator"], *first}

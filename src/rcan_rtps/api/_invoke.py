@@ -720,18 +720,20 @@ class Invocations:
 async def authorize(governor: Governor, principal: Principal, message: Authorization) -> Reply:
     """AUTHORIZE (§16.4) is `/api/hitl/authorize` or `/deny` in a message: the governor checks
     the reviewer's role, counts n-of-m approvals and audits, as for those endpoints."""
+    # (refused, it is audited with its envelope's facts: whose key signed it, if one did)
+    facts = message.envelope.audit_facts()
     refused = _addressed(governor, message.ruri, message.principal_id, principal)
     if refused is not None:
-        return await _refuse(governor, principal, refused, message.message_id)
+        return await _refuse(governor, principal, refused, message.message_id, facts)
     pending_id = message.pending_id
     if pending_id is None:
         assert message.thought_id is not None
         pending_id = governor.pending_for_thought(message.thought_id)
         if pending_id is None:
             return await _refuse(governor, principal, outcomes.PENDING_NOT_FOUND,
-                                 message.message_id)
+                                 message.message_id, facts)
     review = governor.authorize if message.verdict == "approve" else governor.deny
-    said_by = ReviewMessage(message_id=message.message_id, rcan=message.envelope.audit_facts(),
+    said_by = ReviewMessage(message_id=message.message_id, rcan=facts,
                             command_message_id=message.command_message_id)
     decision = await review(pending_id, principal, message.reason, said_by=said_by)
     return decision.http_status, _body(decision.body(), message.message_id)
@@ -746,8 +748,9 @@ def _addressed(governor: Governor, ruri: str | None, principal_id: str | None,
 
 
 async def _refuse(governor: Governor, principal: Principal, rejection: Rejection,
-                  msg_id: str | None) -> Reply:
-    decision = await governor.reject_request(principal, rejection, message_id=msg_id)
+                  msg_id: str | None, rcan: dict[str, Any] | None = None) -> Reply:
+    decision = await governor.reject_request(principal, rejection, message_id=msg_id,
+                                             rcan=rcan)
     return decision.http_status, _body(decision.body(), msg_id)
 
 

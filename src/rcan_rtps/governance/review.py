@@ -34,6 +34,7 @@ from typing import Any, Literal, cast
 import msgspec
 
 from rcan_rtps.rcan import Approval, NormalizedCommand, Outcome, PendingAuth, Role, RoleName
+from rcan_rtps.rcan._v3 import normal_id
 
 from . import outcomes
 from .audit import AuditEvent, AuditRecord
@@ -355,7 +356,9 @@ def _signed_for(held: Held, said_by: ReviewMessage) -> Rejection | None:
     its pending_id: one that names another command reviews nothing (signed, its signer did
     not review this one)."""
     named = said_by.command_message_id
-    if named is None or named == held.pending.command.message_id:
+    # (a UUID in any spelling is that UUID, as the replay window reads ids; a command's own
+    # message_id is kept in the canonical spelling)
+    if named is None or normal_id(named) == held.pending.command.message_id:
         return None
     signed = said_by.rcan is not None and "sig" in said_by.rcan
     return outcomes.SIGNED_FOR_ANOTHER_COMMAND if signed else outcomes.NOT_THE_HELD_COMMAND

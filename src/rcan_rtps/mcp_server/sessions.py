@@ -26,6 +26,13 @@ event stream held open) is never closed for a newcomer: that would cut it off mi
 idle between calls may be, live client or not: it reopens a session as an expired one would.
 Closing a session does what its idle expiry does: motion it started is held (heartbeats) until
 that move or goal ends, as after an expiry; its principal stops it from any session.
+
+Only a request that can open a session gets room made for it: a POST of an `initialize`. Any
+other request without a session id (a call, an event stream, a DELETE) opens none — the SDK
+answers it 400 — so it closes none either; at a cap it is refused 400 at once, saying that
+only an `initialize` opens a session. (Room made for a request that opens nothing would let
+a principal holding no session close others' at the cost of one request, each time the cap
+was reached again.)
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ import math
 from contextvars import ContextVar
 from typing import Any, NamedTuple
 
+import pydantic_core
 from mcp.server.auth.middleware.bearer_auth import AuthorizationContext
 from mcp.server.streamable_http import StreamableHTTPServerTransport
 from mcp.server.streamable_http_manager import StreamableHTTPSessionManager
@@ -57,6 +65,10 @@ class Refusal(NamedTuple):
 # only "no room") for `_handle_stateful_request` to answer: the SDK's own refusal is fixed
 # text that names no cap and no principal.
 _REFUSED: ContextVar[list[Refusal]] = ContextVar("rcan_mcp_session_refused")
+# Whether the opening request being handled can open a session (`_opens`): only then is room
+# made for it.
+_OPENS: ContextVar[bool] = ContextVar("rcan_mcp_session_opens", default=True)
+SESSION_HEADER = b"mcp-session-id"
 SDK_LOG = "mcp.server.streamable_http_manager"
 _SDK_PARTS = ("_admit_session", "_handle_stateful_request", "_session_owners",
               "_server_instances")
@@ -94,10 +106,14 @@ class CappedSessions(StreamableHTTPSessionManager):
     async def _handle_stateful_request(self, scope: Scope, receive: Receive, send: Send
                                        ) -> None:
         refused: list[Refusal] = []
-        token = _REFUSED.set(refused)
+        opens = True
+        if not any(k.lower() == SESSION_HEADER for k, _ in scope.get("headers", ())):
+            opens, receive = await _opens(scope, receive)
+        token, opening = _REFUSED.set(refused), _OPENS.set(opens)
         try:
             await super()._handle_stateful_request(scope, receive, _answering(refused, send))
         finally:
+            _OPENS.reset(opening)
             _REFUSED.reset(token)
 
     def _admit_session(self, requestor: AuthorizationContext | None
@@ -107,6 +123,13 @@ class CappedSessions(StreamableHTTPSessionManager):
         # one principal gets no more than its cap).
         mine = [sid for sid, owner in self._session_owners.items() if owner == requestor]
         name = requestor["client_id"] if requestor is not None else "?"
+        if not _OPENS.get() and (len(mine) >= self.per_principal or (
+                self.max_sessions is not None
+                and len(self._server_instances) >= self.max_sessions)):
+            self._refuse(Refusal(400, INVALID_REQUEST, (
+                "no session: a request without an Mcp-Session-Id opens one only if it is "
+                "an initialize")))
+            return None
         if requestor is not None and len(mine) >= self.per_principal:
             idle = self._idle_longest(mine)
             if idle is None:
@@ -182,6 +205,34 @@ class CappedSessions(StreamableHTTPSessionManager):
         refused = _REFUSED.get(None)
         if refused is not None:
             refused.append(refusal)
+
+
+async def _opens(scope: Scope, receive: Receive) -> tuple[bool, Receive]:
+    """Whether a request without a session id may open one (a POST of an `initialize`
+    request, read with the SDK's own parser), and a `receive` that hands the SDK its body
+    again. A body that comes in parts is not read ahead: it may be an opening."""
+    if scope.get("method") != "POST":
+        return False, receive
+    first = await receive()
+    if first.get("type") != "http.request" or first.get("more_body", False):
+        return True, _replaying(first, receive)
+    try:
+        message = pydantic_core.from_json(first.get("body", b""))
+    except (ValueError, RecursionError):  # not JSON: the SDK answers it 400, no opening
+        return False, _replaying(first, receive)
+    opening = isinstance(message, dict) and message.get("method") == "initialize" \
+        and message.get("id") is not None  # (a notification of that name opens nothing)
+    return opening, _replaying(first, receive)
+
+
+def _replaying(first: Message, receive: Receive) -> Receive:
+    """`receive`, its `first` message (already read) handed out once before the rest."""
+    pending = [first]
+
+    async def again() -> Message:
+        return pending.pop() if pending else await receive()
+
+    return again
 
 
 def _answering(refused: list[Refusal], send: Send) -> Send:

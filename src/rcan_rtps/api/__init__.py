@@ -41,7 +41,9 @@ Decisions where the profile is silent:
   fails is 401 even if a certificate would have named someone; two Authorization headers are 401.
   A certificate (which a browser presents by itself, whatever page asks) names no one in a
   request whose `Origin` is another host than the bridge's: 401 (no cross-site request acts
-  as its principal); a bearer token counts from any origin.
+  as its principal); a bearer token counts from any origin. A certificate's principal ends
+  at its notAfter (read at every request: a connection kept alive past it is refused 401
+  `certificate_expired`, its WebSocket closed 1008).
 - A refused JWT's 401 has a `reason` (`jwt_expired`, `jwt_lifetime_too_long`, `jwt_unknown_kid`,
   ...) and the message in `WWW-Authenticate: ... error_description`; a JWT's principal is
   `jwt:<iss>/<sub>`, never a configured one (docs/governance.md, Identity).

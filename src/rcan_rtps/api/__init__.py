@@ -25,7 +25,9 @@ document is no secret — but the node manifest, which §17.3 makes public):
                                  approver; 202 while more approvals are needed (n-of-m)
     POST /api/hitl/deny          {"pending_id"} → decision (any approver's denial ends it)
     POST /api/hitl/withdraw      {"pending_id"} → decision; the issuer's own (or an approver's)
-    GET  /api/audit?since=&limit= entries verbatim (rbac.audit_read_role, LEASEE by default)
+    GET  /api/audit?since=&limit= entries verbatim (rbac.audit_read_role, LEASEE by default):
+                                 up to `limit` (1000) and 4 MiB of them (one larger entry is
+                                 a page alone); page on from `next_since`
     GET  /api/audit/verify       chain + signature check of what is on disk
     GET  /api/openapi.json       OpenAPI 3.1, generated from the msgspec schemas
     GET  /api/ws                 WebSocket: STATUS stream, commands in, outcomes out

@@ -145,9 +145,9 @@ async def test_pages_are_bounded_and_never_hold_up_a_command(
     release = threading.Event()
     real = _reads.entries_after
 
-    def stuck(path: Path, since: int, limit: int) -> list[bytes]:
+    def stuck(path: Path, since: int, limit: int, max_bytes: int) -> list[bytes]:
         release.wait(120)
-        return real(path, since, limit)
+        return real(path, since, limit, max_bytes)
 
     monkeypatch.setattr(_reads, "entries_after", stuck)
     backlog = 8  # ApiSettings.audit_read_backlog

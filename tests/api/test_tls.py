@@ -18,9 +18,14 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 
 from rcan_rtps.api import ApiServer, cert_principals, server_ssl_context
+from rcan_rtps.governance import ManualClock
 from tests.api.apihelpers import Api, auth, make_config
 
 _NOW = dt.datetime.now(dt.timezone.utc)
+# The handshake judges a certificate by the real clock, the app by its own (a ManualClock's
+# wall time, which may be ahead): a client certificate is good a day past the later of both.
+APP_NOW = dt.datetime.fromtimestamp(ManualClock().time(), dt.timezone.utc)
+_GOOD_UNTIL = max(_NOW, APP_NOW) + dt.timedelta(days=1)
 
 
 class _Issued:
@@ -39,7 +44,7 @@ class _Issued:
 
 
 def _issue(cn: str, issuer: _Issued | None, *, ca: bool = False,
-           server: bool = False) -> _Issued:
+           server: bool = False, not_after: dt.datetime = _GOOD_UNTIL) -> _Issued:
     key = ec.generate_private_key(ec.SECP256R1())
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)])
     builder = (
@@ -49,7 +54,7 @@ def _issue(cn: str, issuer: _Issued | None, *, ca: bool = False,
         .public_key(key.public_key())
         .serial_number(x509.random_serial_number())
         .not_valid_before(_NOW - dt.timedelta(minutes=5))
-        .not_valid_after(_NOW + dt.timedelta(days=1))
+        .not_valid_after(not_after)
         .add_extension(x509.BasicConstraints(ca=ca, path_length=None), critical=True)
     )
     if ca:
@@ -77,9 +82,11 @@ class Pki:
             directory, "server")
         self.rogue_ca = _issue("rogue CA", None, ca=True)
 
-    def client(self, cn: str, *, rogue: bool = False) -> tuple[Path, Path]:
+    def client(self, cn: str, *, rogue: bool = False,
+               not_after: dt.datetime = _GOOD_UNTIL) -> tuple[Path, Path]:
         issuer = self.rogue_ca if rogue else self.ca
-        return _issue(cn, issuer).write(self.dir, f"client-{cn}-{int(rogue)}")
+        return _issue(cn, issuer, not_after=not_after).write(
+            self.dir, f"client-{cn}-{int(rogue)}-{not_after.timestamp():.0f}")
 
     def context(self, client: tuple[Path, Path] | None = None) -> ssl.SSLContext:
         context = ssl.create_default_context(cafile=str(self.ca_path))

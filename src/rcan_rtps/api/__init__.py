@@ -27,7 +27,9 @@ document is no secret — but the node manifest, which §17.3 makes public):
                                  sends a signed AUTHORIZE to /api/command instead)
     POST /api/hitl/deny          {"pending_id"} → decision (any approver's denial ends it)
     POST /api/hitl/withdraw      {"pending_id"} → decision; the issuer's own (or an approver's)
-    GET  /api/audit?since=&limit= entries verbatim (rbac.audit_read_role, LEASEE by default)
+    GET  /api/audit?since=&limit= entries verbatim (rbac.audit_read_role, LEASEE by default):
+                                 up to `limit` (1000) and 4 MiB of them (one larger entry is
+                                 a page alone); page on from `next_since`
     GET  /api/audit/verify       chain + signature check of what is on disk
     GET  /api/openapi.json       OpenAPI 3.1, generated from the msgspec schemas
     GET  /api/ws                 WebSocket: STATUS stream, commands in, outcomes out
@@ -43,7 +45,9 @@ Decisions where the profile is silent:
   fails is 401 even if a certificate would have named someone; two Authorization headers are 401.
   A certificate (which a browser presents by itself, whatever page asks) names no one in a
   request whose `Origin` is another host than the bridge's: 401 (no cross-site request acts
-  as its principal); a bearer token counts from any origin.
+  as its principal); a bearer token counts from any origin. A certificate's principal ends
+  at its notAfter (read at every request: a connection kept alive past it is refused 401
+  `certificate_expired`, its WebSocket closed 1008).
 - A refused JWT's 401 has a `reason` (`jwt_expired`, `jwt_lifetime_too_long`, `jwt_unknown_kid`,
   ...) and the message in `WWW-Authenticate: ... error_description`; a JWT's principal is
   `jwt:<iss>/<sub>`, never a configured one (docs/governance.md, Identity).

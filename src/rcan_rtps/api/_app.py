@@ -244,7 +244,8 @@ def _audit_reads(governor: Governor, settings: ApiSettings) -> AuditReads:
     from ._reads import AuditReads
 
     return AuditReads(governor.audit.path, governor.audit.public_key,
-                      backlog=settings.audit_read_backlog)
+                      backlog=settings.audit_read_backlog,
+                      page_bytes=settings.audit_page_bytes)
 
 
 def _rare(name: str) -> Handler:

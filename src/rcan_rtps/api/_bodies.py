@@ -103,7 +103,9 @@ class HeartbeatReply(msgspec.Struct, kw_only=True, omit_defaults=True):
 
 
 class AuditPage(msgspec.Struct, kw_only=True):
-    """Entries with seq > `since`, verbatim (canonical JSON, so each can be re-verified)."""
+    """Entries with seq > `since`, verbatim (canonical JSON, so each can be re-verified): up
+    to `limit` and `_reads.PAGE_BYTES` of them (one larger entry is a page alone); the next
+    page is `since=next_since`."""
 
     entries: list[dict[str, Any]]
     next_since: int

@@ -46,6 +46,7 @@ class ApiSettings(msgspec.Struct, frozen=True, kw_only=True):
     hitl_list_role: Role
     ws_max_in_flight: int = 32
     audit_page_max: int = 1000
+    audit_page_bytes: int = 4 * 1024 * 1024  # entries together (`_reads.PAGE_BYTES`)
     # Slow or silent peers (see `_conn` and `read_limited`); config: bridge.api.*_timeout_s.
     header_timeout_s: float = HEADER_TIMEOUT_S
     body_timeout_s: float = BODY_TIMEOUT_S

@@ -32,6 +32,7 @@ from ._keys import (
 from ._tickets import same_origin, ticket_of
 
 log = logging.getLogger(__name__)
+CERTIFICATE_EXPIRED = "certificate_expired"  # the 401's `reason` once a notAfter has passed
 
 _HTTP_CODES = {
     404: "NOT_FOUND",
@@ -184,27 +185,40 @@ def _principal(request: web.Request) -> tuple[Principal | None, bool]:
         if principal is not None:
             _still_valid(request, principal)
         return (principal if same_origin(request) else None), True
-    name = peer_common_name(request)
-    if name is None:
+    peer = peer_certificate(request)
+    if peer is None:
         return None, False
+    name, not_after = peer
     principal = request.app[CERT_PRINCIPALS].get(name)
-    return (principal if same_origin(request) else None), True
+    if principal is None or not same_origin(request):
+        return None, True
+    # Read at every request: a kept-alive (or resumed) TLS connection was verified once, at
+    # its handshake, and may live on past the certificate's notAfter.
+    principal = msgspec.structs.replace(principal, expires_at=not_after)
+    _still_valid(request, principal)
+    return principal, True
 
 
 def _still_valid(request: web.Request, principal: Principal) -> None:
-    """Raises AuthenticationError if the credential a ticket was asked with has run out
-    since (a JWT's `exp`): a ticket lives `TTL_S`, a JWT may have less left, and the socket
-    it opened pushed the status and the held commands to a credential REST refuses."""
+    """Raises AuthenticationError if `principal`'s credential has run out: a JWT's `exp` (a
+    ticket lives `TTL_S`, a JWT may have less left, and the socket it opened pushed the
+    status and the held commands to a credential REST refuses) or a client certificate's
+    notAfter (its connection, or a ticket asked for over it, outliving it)."""
     left = request.app[CREDENTIAL_LEFT](principal)
-    if left is not None and left <= 0:
-        from rcan_rtps.governance.jwt import EXPIRED  # (loaded: a JWT made this principal)
+    if left is None or left > 0:
+        return
+    if principal.name in request.app[CERT_PRINCIPALS]:  # (a JWT's name is never configured)
+        raise AuthenticationError("the client certificate has expired (notAfter passed)",
+                                  reason=CERTIFICATE_EXPIRED)
+    from rcan_rtps.governance.jwt import EXPIRED  # (loaded: a JWT made this principal)
 
-        raise AuthenticationError("the JWT the ticket was asked with has expired",
-                                  reason=EXPIRED)
+    raise AuthenticationError("the JWT the ticket was asked with has expired", reason=EXPIRED)
 
 
-def peer_common_name(request: web.Request) -> str | None:
-    """Subject CN of the client certificate, if the TLS handshake verified one."""
+def peer_certificate(request: web.Request) -> tuple[str, float] | None:
+    """Subject CN and notAfter (Unix time) of the client certificate, if the TLS handshake
+    verified one. The notAfter is OpenSSL's reading of the verified certificate (`ssl`'s
+    `getpeercert`), the one the handshake was judged by."""
     transport = request.transport
     if transport is None:
         return None
@@ -217,7 +231,18 @@ def peer_common_name(request: web.Request) -> str | None:
     subject = cert.get("subject", ())
     names = [attr[1] for rdn in subject if isinstance(rdn, tuple) for attr in rdn
              if isinstance(attr, tuple) and attr[0] == "commonName"]
-    return names[0] if len(names) == 1 else None  # several CNs: no unambiguous identity
+    if len(names) != 1:  # several CNs: no unambiguous identity
+        return None
+    return names[0], _not_after(cert.get("notAfter"))
+
+
+def _not_after(text: object) -> float:
+    """A certificate's notAfter as `getpeercert` spells it; one that cannot be read counts as
+    passed (fail closed: OpenSSL verified a certificate that has one)."""
+    try:
+        return float(ssl.cert_time_to_seconds(text)) if isinstance(text, str) else 0.0
+    except ValueError:
+        return 0.0
 
 
 async def safe_headers(request: web.Request, response: web.StreamResponse) -> None:

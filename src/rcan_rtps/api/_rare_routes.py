@@ -233,8 +233,9 @@ async def my_audit(app: web.Application, principal: Principal, since: int, limit
     from ._reads import entries_of
 
     try:
-        lines = await app[READS].get().read(entries_of, app[GOVERNOR].audit.path,
-                                            principal.name, since, limit, last)
+        reads = app[READS].get()
+        lines = await reads.read(entries_of, app[GOVERNOR].audit.path, principal.name, since,
+                                 limit, last, reads.page_bytes)
         return 200, _page_body(app, lines, since)
     except ReadsBusy:
         return _READS_BUSY

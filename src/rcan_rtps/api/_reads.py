@@ -3,7 +3,11 @@ from the audit writer, with bounded concurrency.
 
 - Never the default executor: the audit log writes and fsyncs through `asyncio.to_thread`, so a
   pool full of reads would hold every command's reply (an e-stop's too) behind them.
-- Pages: one dedicated reader thread; at most `backlog` pages wait for it, beyond that the
+- Pages: at most `limit` entries, and no more than `max_bytes` of them (`PAGE_BYTES`) unless
+  one entry alone is larger (then it is the page: paging goes on by `since` either way). An
+  entry holds a command's params as requested, and a stop's body is taken up to 4× the body
+  limit (`_intake.STOP_ROOM`; that limit may be 16 MiB): a thousand such entries made a page
+  of gigabytes. One dedicated reader thread; at most `backlog` pages wait for it, beyond that the
   caller answers 429 RATE_LIMITED `reads_busy` (with Retry-After). A page is read a chunk
   at a time from a line found by halving the file (`_first_after`): it holds the page, never
   the log, and a page deep in a long log reads a few blocks to get there.
@@ -50,6 +54,7 @@ log = logging.getLogger(__name__)
 _NICE = 10  # verification yields the CPU to the bridge
 T = TypeVar("T")
 _SCAN_BELOW = 256 * 1024  # a page's search stops halving here and reads on
+PAGE_BYTES = 4 * 1024 * 1024  # a page's entries, together (one larger entry is a page alone)
 
 
 class _Seq(msgspec.Struct):
@@ -76,24 +81,48 @@ def decoded(decoder: msgspec.json.Decoder[T], line: bytes) -> T:
         raise AuditUnreadable(AuditUnreadable.REASON) from exc
 
 
-def entries_after(path: Path, since: int, limit: int) -> list[bytes]:
+def entries_after(path: Path, since: int, limit: int,
+                  max_bytes: int = PAGE_BYTES) -> list[bytes]:
+    """The first entries with seq > since: at most `limit`, and `max_bytes` together unless
+    the first alone is larger."""
+    return _first(_lines_after(path, since), limit, max_bytes)
+
+
+def entries_of(path: Path, principal: str, since: int, limit: int, last: bool,
+               max_bytes: int = PAGE_BYTES) -> list[bytes]:
+    """One principal's entries with seq > since: the first `limit`, or with `last` the newest
+    `limit` (a whole scan: the log has no index by principal); `max_bytes` together unless
+    one alone is larger (with `last`, the newest that fit)."""
+    lines = (line for line in _lines_after(path, since)
+             if decoded(_WHO, line).principal == principal)
+    return _newest(lines, limit, max_bytes) if last else _first(lines, limit, max_bytes)
+
+
+def _first(lines: Iterator[bytes], limit: int, max_bytes: int) -> list[bytes]:
+    """The first lines, up to `limit` and `max_bytes` (at least one: paging must move on)."""
     found: list[bytes] = []
-    for line in _lines_after(path, since):
+    size = 0
+    for line in lines:
+        size += len(line)
+        if found and size > max_bytes:
+            break
         found.append(line)
         if len(found) == limit:
             break
     return found
 
 
-def entries_of(path: Path, principal: str, since: int, limit: int, last: bool) -> list[bytes]:
-    """One principal's entries with seq > since: the first `limit`, or with `last` the newest
-    `limit` (a whole scan: the log has no index by principal)."""
-    found: collections.deque[bytes] = collections.deque(maxlen=limit if last else None)
-    for line in _lines_after(path, since):
-        if decoded(_WHO, line).principal == principal:
-            found.append(line)
-            if not last and len(found) == limit:
-                break
+def _newest(lines: Iterator[bytes], limit: int, max_bytes: int) -> list[bytes]:
+    """The last lines, up to `limit` and `max_bytes` (at least the last one)."""
+    found: collections.deque[bytes] = collections.deque(maxlen=limit)
+    size = 0
+    for line in lines:
+        if len(found) == limit:
+            size -= len(found[0])  # (the deque drops it)
+        found.append(line)
+        size += len(line)
+        while size > max_bytes and len(found) > 1:
+            size -= len(found.popleft())
     return list(found)
 
 
@@ -199,8 +228,10 @@ def keep_signal_mask() -> Iterator[None]:
 class AuditReads:
     """The audit reads of one app; `close` on app cleanup."""
 
-    def __init__(self, path: Path, public_key: Ed25519PublicKey, *, backlog: int = 8) -> None:
+    def __init__(self, path: Path, public_key: Ed25519PublicKey, *, backlog: int = 8,
+                 page_bytes: int = PAGE_BYTES) -> None:
         self._path = path
+        self.page_bytes = page_bytes
         self._key = public_key.public_bytes_raw()
         self._thread = concurrent.futures.ThreadPoolExecutor(
             1, thread_name_prefix="rcan-audit-read")
@@ -234,14 +265,15 @@ class AuditReads:
             self._pages -= 1
 
     async def page(self, since: int, limit: int) -> list[bytes] | None:
-        """Entries with seq > since (at most `limit`), or None when too many pages wait."""
+        """Entries with seq > since (at most `limit`, and `page_bytes`: `entries_after`), or
+        None when too many pages wait."""
         if self._pages >= self._page_room:
             return None
         self._pages += 1
         try:
             loop = asyncio.get_running_loop()
             return await loop.run_in_executor(self._thread, entries_after, self._path, since,
-                                              limit)
+                                              limit, self.page_bytes)
         finally:
             self._pages -= 1
 

@@ -9,7 +9,8 @@ A ticket is:
 - its issuer's: the socket's principal is the one that asked for it (a ticket carries no
   role of its own, and nothing of the bearer token);
 - no longer good than that credential: redeemed once the JWT it was asked with has expired,
-  it is refused (401 `jwt_expired`, `_middlewares`), as the JWT itself would be;
+  or the client certificate's notAfter has passed, it is refused (401 `jwt_expired`,
+  `certificate_expired`: `_middlewares`), as the credential itself would be;
 - bounded: at most `MAX_OUTSTANDING` unredeemed tickets exist, and at most `PER_PRINCIPAL`
   of one principal (beyond: 429) — a page needs one at a time, and one principal (a GUEST)
   asking in a loop must not use up every other principal's tickets, console included;

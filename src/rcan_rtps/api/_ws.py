@@ -30,9 +30,10 @@ leaves more than `OUTBOX_BYTES` of outcomes unread is not reading: its outcomes 
 only its stops are taken from then on, and once its frames pause (`DEAF_QUIET_S`) its socket
 is closed with 1008 ("outcome frames not read").
 
-A socket lasts longer than the credential that opened it may: one whose JWT has run out
-(`Principal.expires_at`) is closed with 1008 ("credential expired") at its next frame, or when
-its time is up while it is idle. A stop in that frame is still taken; nothing else is.
+A socket lasts longer than the credential that opened it may: one whose JWT has run out, or
+whose client certificate's notAfter has passed (`Principal.expires_at`), is closed with 1008
+("credential expired") at its next frame, or when its time is up while it is idle. A stop in
+that frame is still taken; nothing else is.
 """
 
 from __future__ import annotations

@@ -13,12 +13,18 @@ computer). The log is read once, a line at a time (`audit.verify_fd`), and each 
 checked against the log's root when the scan reaches its size (heads are written in the order
 of their sizes); the few that are not in order wait for a second pass over the log's lines.
 A proof is the roots of ranges of leaves computed in one pass (`merkle.roots_of_ranges`).
+
+The problems listed are bounded too: the first `PROBLEMS_LISTED` of each file of tree heads
+and of the heads that do not match the log, then one line counting the rest (a tree-head file
+with millions of bad lines made a report of millions of lines, and the API's verify answer a
+JSON list as long).
 """
 
 from __future__ import annotations
 
 import collections
 import contextlib
+import heapq
 import itertools
 import os
 import sys
@@ -51,6 +57,8 @@ from .treehead import (
     tree_head_path,
 )
 
+PROBLEMS_LISTED = 100  # of each file of tree heads, and of the heads that do not match
+
 
 class LogReport(msgspec.Struct, kw_only=True):
     entries: int = 0  # valid entries, in order from seq 1
@@ -82,6 +90,7 @@ class _HeadFile:
     def __init__(self, place: int, source: str, *problems: str) -> None:
         self.place, self.source = place, source
         self.problems = list(problems)
+        self.unlisted = 0  # problems beyond the first PROBLEMS_LISTED, counted only
         self.notes: list[str] = []
         self.valid = 0  # valid heads read so far
         self.next: _Anchor | None = None
@@ -96,7 +105,7 @@ class _HeadFile:
         except FileNotFoundError:
             return
         except (OSError, ValueError) as exc:
-            self.problems.append(f"{self.source}: cannot read {file}: {exc}")
+            self._problem(f"{self.source}: cannot read {file}: {exc}")
             return
         self._heads = self._read(HeadLines(fd, info.st_size), file, pubkey)
 
@@ -105,22 +114,28 @@ class _HeadFile:
         try:
             for n, head in lines:
                 if isinstance(head, BadTreeHead):
-                    self.problems.append(f"{self.source} line {head.line_no}: {head.problem}")
+                    self._problem(f"{self.source} line {head.line_no}: {head.problem}")
                 elif pubkey is not None and not signature_ok(head, pubkey):
-                    self.problems.append(f"{self.source} line {n}: {head.describe()} has a "
-                                         "bad signature")
+                    self._problem(f"{self.source} line {n}: {head.describe()} has a bad "
+                                  "signature")
                 else:
                     self.valid += 1
                     yield _Anchor(f"{self.source} line {n}", head, (self.place, n),
                                   witnessed=self.place > 0)
         except OSError as exc:  # (an I/O error part way)
-            self.problems.append(f"{self.source}: cannot read {file}: {exc}")
+            self._problem(f"{self.source}: cannot read {file}: {exc}")
         if lines.torn:
             self.notes.append(f"{self.source}: an incomplete last line ignored ({lines.torn} "
                               "bytes; a crash while it was written)")
 
     def advance(self) -> None:
         self.next = next(self._heads, None)
+
+    def _problem(self, text: str) -> None:
+        if len(self.problems) < PROBLEMS_LISTED:
+            self.problems.append(text)
+        else:
+            self.unlisted += 1
 
 
 def check_log(path: Path, pubkey: Ed25519PublicKey | None,
@@ -160,6 +175,11 @@ def check_log(path: Path, pubkey: Ed25519PublicKey | None,
                        *chain, *roots.problems()]
     if checkpoint is not None:
         _checkpoint_holds(checkpoint, roots.checkpoint_id, report)
+    unlisted = sum(file.unlisted for file in heads) + roots.unlisted
+    if unlisted:
+        report.problems.append(f"{unlisted} more problems with tree heads not listed (the "
+                               f"first {PROBLEMS_LISTED} of each file, and of the heads that "
+                               "do not match the log, are)")
     report.notes = [n for file in heads for n in file.notes]
     _notes(report, pubkey, anchored, checkpoint)
     return report
@@ -195,7 +215,10 @@ class _RootCheck:
         self.tree = CompactTree()
         self.checkpoint_id: str | None = None
         self._files, self._checkpoint_seq, self._report = files, checkpoint_seq, report
-        self._held: list[tuple[tuple[int, int], str]] = []  # problems, with their order
+        # The first PROBLEMS_LISTED problems by their order (a heap: the latest on top, its
+        # order negated), and how many later ones were only counted.
+        self._held: list[tuple[tuple[int, int], str]] = []
+        self.unlisted = 0
         self._late: list[_Anchor] = []
         self._newest: _Anchor | None = None
         for file in files:
@@ -231,10 +254,10 @@ class _RootCheck:
             while file.next is not None:
                 anchor = file.next
                 if anchor.head.tree_size > entries:
-                    self._held.append((anchor.order, (
+                    self._hold(anchor.order, (
                         f"{anchor.source}: {anchor.head.describe()} covers more entries than "
                         f"the log's {entries} valid ones: the log is truncated or damaged "
-                        f"after seq {entries}")))
+                        f"after seq {entries}"))
                 else:
                     self._late.append(anchor)
                 file.advance()
@@ -246,9 +269,9 @@ class _RootCheck:
     def _judge(self, anchor: _Anchor, root: bytes) -> None:
         head = anchor.head
         if root != head.root:
-            self._held.append((anchor.order, (
+            self._hold(anchor.order, (
                 f"{anchor.source}: {head.describe()} has another root than the log's first "
-                f"{head.tree_size} entries: the log was rewritten")))
+                f"{head.tree_size} entries: the log was rewritten"))
             return
         if anchor.witnessed:
             self._report.witnessed += 1
@@ -260,8 +283,16 @@ class _RootCheck:
             self._newest = anchor
             self._report.newest = head
 
+    def _hold(self, order: tuple[int, int], problem: str) -> None:
+        item = ((-order[0], -order[1]), problem)
+        if len(self._held) < PROBLEMS_LISTED:
+            heapq.heappush(self._held, item)
+        else:
+            self.unlisted += 1
+            heapq.heappushpop(self._held, item)  # the latest of them goes
+
     def problems(self) -> list[str]:
-        return [problem for _, problem in sorted(self._held)]
+        return [problem for _, problem in sorted(self._held, reverse=True)]
 
 
 def _roots_at(fd: int | None, end: int, sizes: set[int]) -> dict[int, bytes]:

@@ -44,9 +44,9 @@ class Principal(msgspec.Struct, frozen=True):
     name: str
     role: Role
     rate_limit_per_min: int | None = None  # None: unlimited
-    # Wall time (Unix s) from which its credential is refused — a JWT's `exp` plus the leeway
-    # — or None (a configured token, a client certificate). What outlives one request (a
-    # WebSocket) must not outlive it.
+    # Wall time (Unix s) from which its credential is refused — a JWT's `exp` plus the leeway,
+    # a client certificate's notAfter — or None (a configured token). What outlives one
+    # request (a WebSocket, a kept-alive TLS connection) must not outlive it.
     expires_at: float | None = None
 
 

@@ -45,11 +45,15 @@ def approver_token(api: Api, key: Ed25519PrivateKey, left_s: float) -> str:
     return sign_jwt(key, claims, {"alg": "EdDSA"})
 
 
-async def ticket(api: Api, jwt: str) -> str:
+async def ticket(api: Api, jwt: str, good_for_s: float = 5) -> str:
+    """A ticket, said to be good for as long as the JWT has left (`good_for_s`), not for
+    the ticket's own 30 s."""
     async with api.http.post("/api/ws-ticket",
                              headers={"Authorization": f"Bearer {jwt}"}) as resp:
         assert resp.status == 200, await resp.text()
-        return str((await resp.json())["ticket"])
+        body = await resp.json()
+        assert body["expires_in_s"] == pytest.approx(good_for_s, abs=0.5), body
+        return str(body["ticket"])
 
 
 async def test_a_ticket_redeemed_after_its_jwt_ran_out_opens_no_socket(

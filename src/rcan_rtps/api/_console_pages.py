@@ -23,7 +23,7 @@ from rcan_rtps.rcan import ErrorCode, Role
 
 from ._bodies import error_response, json_response
 from ._console import PREFIX
-from ._keys import CHECKS, GOVERNOR, PRINCIPAL, SETTINGS, WS_TICKETS
+from ._keys import CHECKS, CREDENTIAL_LEFT, GOVERNOR, PRINCIPAL, SETTINGS, WS_TICKETS
 from ._tickets import TicketReply
 
 INDEX = "index.html"
@@ -113,6 +113,10 @@ async def post_ws_ticket(request: web.Request) -> web.Response:
     if ticket is None:
         return error_response(429, ErrorCode.RATE_LIMITED, reason="too_many_tickets",
                               headers={"Retry-After": "1"})
-    return json_response(TicketReply(ticket=ticket, expires_in_s=tickets.ttl_s,
+    # Good until the credential it was asked with runs out, if that comes first (a JWT's
+    # exp, a certificate's notAfter): its redemption is refused from then on.
+    left = request.app[CREDENTIAL_LEFT](principal)
+    good_for = tickets.ttl_s if left is None else max(0.0, min(tickets.ttl_s, left))
+    return json_response(TicketReply(ticket=ticket, expires_in_s=good_for,
                                      principal=principal.name),
                          headers={"Cache-Control": "no-store"})

@@ -28,6 +28,7 @@ from rcan_rtps.governance import (
     Notifier,
     TokenAuthenticator,
 )
+from rcan_rtps.governance.entry_bound import request_bytes_limit
 from rcan_rtps.rcan import MoveParams, NormalizedCommand, Status
 from rcan_rtps.rcan._messages import Position, RosInfo, Telemetry
 
@@ -177,7 +178,8 @@ class Api:
     async def build(self) -> web.Application:
         bridge = self.config.bridge
         self.log = await AuditLog.open(bridge.audit.path, bridge.audit.key_path, ruri=RURI,
-                                       clock=self.clock)
+                                       clock=self.clock,
+                                       request_bytes=request_bytes_limit(bridge.api.max_body_bytes))
         self.governor = Governor.from_config(self.config, audit=self.log,
                                              dispatcher=self.dispatcher, clock=self.clock,
                                              notifier=self.notifier)

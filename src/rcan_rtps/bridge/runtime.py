@@ -51,6 +51,7 @@ from ..governance import (
     WebhookNotifier,
 )
 from ..governance.decision_log import log_entry
+from ..governance.entry_bound import request_bytes_limit
 from ..governance.signatures import Signatures
 from ..governance.start_files import start_file_problems
 from ..rcan import Status
@@ -322,8 +323,10 @@ class Bridge:
     async def _open_audit(self) -> AuditLog:
         audit = self.config.bridge.audit
         # Every entry names the robot it governs (§6): a log read apart from its robot says whose.
-        self.audit = await AuditLog.open(audit.path, audit.key_path, ruri=self.config.robot.ruri,
-                                         witness=audit.witness, audited=self.events.audited)
+        self.audit = await AuditLog.open(
+            audit.path, audit.key_path, ruri=self.config.robot.ruri, witness=audit.witness,
+            audited=self.events.audited,
+            request_bytes=request_bytes_limit(self.config.bridge.api.max_body_bytes))
         self.events.audited.subscribe(log_entry)  # one log line per decision and safety event
         self._on_stop("closing the audit log", self.audit.close)
         return self.audit

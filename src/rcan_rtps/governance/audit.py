@@ -10,7 +10,9 @@ Canonical JSON comes in two versions, told apart by the entry's `canonical` fiel
 byte what the rcan SDK's `rcan.encoding.canonical_json` makes (sorted keys, no whitespace, raw
 UTF-8, whole-number floats written as integers, other floats as Python's `repr`); entries
 without it (written before) are sorted-keys msgspec JSON, where a whole float stays `50.0`.
-Both verify; a log may hold both, older entries first.
+Both verify; a log may hold both, older entries first. What a request puts in one entry (its
+params as requested, ...) is held to the log's `request_bytes`, past which a marker stands for
+it (`entry_bound`): canonical JSON writes `1e300` as 301 digits.
 
 Writes run on the loop when the disk is fast (see INLINE_FSYNC_S), else on the log's own thread
 (never the default executor, which costly reads may fill).
@@ -68,6 +70,7 @@ from ._durable import (
 )
 from ._json import decode, decode_as
 from .clock import Clock, SystemClock
+from .entry_bound import bound_request_content, request_bytes_limit, size_within
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
 from .keyfacts import read_public_pem
 from .log_tail import CHUNK, lines_forwards
@@ -165,6 +168,19 @@ class AuditRecord(msgspec.Struct, kw_only=True, frozen=True):
     boot: dict[str, Any] | None = None
 
 
+# The events whose `params` are a command's params as requested (its client's): held, with the
+# rest of the request's content, to the log's request bound (`entry_bound`). Others' params are
+# the bridge's own facts (a start's `left_running`, a goal's result), bounded where made and
+# always logged whole.
+_REQUESTED_PARAMS = frozenset({
+    AuditEvent.COMMAND_DISPATCHED, AuditEvent.COMMAND_REJECTED, AuditEvent.COMMAND_FAILED,
+    AuditEvent.PENDING_AUTH, AuditEvent.HITL_APPROVAL, AuditEvent.HITL_AUTHORIZED,
+    AuditEvent.HITL_DENIED, AuditEvent.HITL_WITHDRAWN, AuditEvent.HITL_EXPIRED,
+    AuditEvent.ESTOP, AuditEvent.ESTOP_CLEARED, AuditEvent.NETWORK_LOSS_SAFE_STOP,
+})
+# The request bound of a log opened without one: that of the default body limit (64 KiB).
+DEFAULT_REQUEST_BYTES = request_bytes_limit(64 * 1024)
+
 # Left out of an entry when None: older entries never had them.
 _OPTIONAL = frozenset({"ai", "pending_id", "warnings", "sent_first", "approvals", "rcan",
                        "invoke_id", "status", "goal_id", "boot"})
@@ -211,7 +227,12 @@ def _encode_v1(normal: Any, exponents: bool) -> bytes:
 
 
 def _whole_floats_as_ints(value: Any, exponents: list[bool]) -> Any:
-    """`value` with each whole float an int; notes in `exponents` a float written with one."""
+    """`value` with each whole float an int; notes in `exponents` a float written with one.
+    A struct (an arm trajectory's points in `applied`) or a tuple is read as the JSON it is
+    written as: left as it was, its whole floats were written `1.0` (an id the SDK, and
+    `verify`, compute otherwise) and a float with an exponent beside it failed the append."""
+    if isinstance(value, msgspec.Struct):
+        value = msgspec.to_builtins(value)
     if isinstance(value, float):
         if value.is_integer():
             return int(value)
@@ -220,7 +241,7 @@ def _whole_floats_as_ints(value: Any, exponents: list[bool]) -> Any:
         return value
     if isinstance(value, dict):
         return {k: _whole_floats_as_ints(v, exponents) for k, v in value.items()}
-    if isinstance(value, list):
+    if isinstance(value, (list, tuple)):
         return [_whole_floats_as_ints(v, exponents) for v in value]
     return value
 
@@ -744,8 +765,12 @@ class AuditLog:
                  writer: concurrent.futures.ThreadPoolExecutor,
                  tree: CompactTree | None = None, heads: TreeHeadFile | None = None,
                  witness: Witness | None = None,
-                 audited: Channel[[AuditRecord, AuditReceipt]] | None = None) -> None:
+                 audited: Channel[[AuditRecord, AuditReceipt]] | None = None,
+                 request_bytes: int = DEFAULT_REQUEST_BYTES) -> None:
         self.path = path
+        # What a request may put in one entry (`entry_bound`): `request_bytes_limit` of the
+        # config's `api.max_body_bytes`.
+        self.request_bytes = request_bytes
         self._fd = fd
         self._key = key
         self._seq = head.last_seq
@@ -782,13 +807,16 @@ class AuditLog:
     async def open(cls, path: str | os.PathLike[str], key_path: str | os.PathLike[str], *,
                    ruri: str | None = None, clock: Clock | None = None,
                    group_commit: bool = True, witness: str | None = None,
-                   audited: Channel[[AuditRecord, AuditReceipt]] | None = None) -> AuditLog:
+                   audited: Channel[[AuditRecord, AuditReceipt]] | None = None,
+                   request_bytes: int = DEFAULT_REQUEST_BYTES) -> AuditLog:
         """Open (or create) the log, verify what the checkpoint does not cover, cut a torn tail.
 
         A torn tail is cut and audited. Any other break raises AuditIntegrityError: the bridge
         must not start on it. Missing directories are created (mode 0700). The public key is
         written beside the log (`<log>.pub`); tree heads go to `<log>.sth` and, with
-        `witness` (a file://, http:// or https:// URL), to the witness too.
+        `witness` (a file://, http:// or https:// URL), to the witness too. `request_bytes`:
+        the most a request's content takes in one entry (`entry_bound.request_bytes_limit`
+        of the body limit); past it, a marker stands for it.
         """
         path = Path(path)
         writer = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="rcan-audit")
@@ -805,7 +833,8 @@ class AuditLog:
             raise
         log = cls(fd, key, scan.head, path=path, ruri=ruri, clock=clock or SystemClock(),
                   group_commit=group_commit, size=scan.good_end, writer=writer,
-                  tree=scan.tree, heads=heads, witness=sender, audited=audited)
+                  tree=scan.tree, heads=heads, witness=sender, audited=audited,
+                  request_bytes=request_bytes)
         log._last_span = scan.last_span
         if scan.torn:
             await log.append(AuditRecord(
@@ -829,6 +858,11 @@ class AuditLog:
         if len(digest) != 32:
             raise ValueError("a digest is 32 bytes")
         return self._key.sign(digest)
+
+    def logs_whole(self, params: dict[str, Any]) -> bool:
+        """Whether a command's `params` would be logged whole (within `request_bytes`): a
+        command that is to run must be (`Governor` refuses it otherwise)."""
+        return size_within(params, self.request_bytes) is not None
 
     @property
     def healthy(self) -> bool:
@@ -972,6 +1006,8 @@ class AuditLog:
             k: v for k, v in msgspec.structs.asdict(record).items()
             if not (k in _OPTIONAL and v is None)
         }
+        bound_request_content(entry, self.request_bytes,
+                              params=record.event in _REQUESTED_PARAMS)
         entry.update(
             seq=self._seq + 1, prev_hash=self._prev, timestamp=iso_utc(ms), timestamp_ms=ms,
             ruri=self._ruri, bridge="ros2", event=record.event.value,

@@ -531,6 +531,8 @@ class Governor:
                 return refused
         if command.spec.effect is not Effect.HALT and not self._limiter.allow(principal):
             return outcomes.RATE_LIMITED  # a stop is never rate-limited
+        if not command.spec.stopping and not self.audit.logs_whole(command.requested):
+            return outcomes.PARAMS_TOO_LARGE_TO_LOG  # never run with its params left out
         return None
 
     def not_this_robot(self, ruri: str | None) -> Rejection | None:

@@ -37,6 +37,10 @@ def privileges(reason: str) -> Rejection:
 
 
 PAYLOAD_TOO_LARGE = Rejection(413, D, ErrorCode.PAYLOAD_TOO_LARGE)
+# A command whose params its audit entry could not hold whole (`entry_bound`): refused before
+# it runs rather than run with its params left out of the record.
+PARAMS_TOO_LARGE_TO_LOG = Rejection(413, D, ErrorCode.PAYLOAD_TOO_LARGE,
+                                    "params_too_large_to_log")
 NOT_THIS_ROBOT = Rejection(400, D, ErrorCode.INVALID_RURI, Reason.NOT_THIS_ROBOT.value)
 ROBOT_UNAVAILABLE = Rejection(503, Outcome.FAILED, ErrorCode.ROBOT_UNAVAILABLE)
 DISPATCH_ERROR = Rejection(

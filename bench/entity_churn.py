@@ -12,13 +12,16 @@ Settings (environment): REMOTE=1 the servers in a process of their own; TRACE=1 
 share (tracemalloc, a run of its own: its traces count in RssAnon); CURVE=K RssAnon every K
 operations; SMALL_CACHES=1 the packet capture's bounded tables shrunk, SERVER_KEEP=16 the
 action server's kept goals (both fill over the first ~1,500 clients, which looks like
-growth per client until they are full); SETTLE=S seconds before the last read. The node's
+growth per client until they are full); SETTLE=S seconds before the last read; TRIM=1 glibc's
+free pages handed back (malloc_trim) before each read, so that freed memory the allocator
+keeps is not counted as growth. The node's
 shared graph is read after each operation, as a bridge's commander watch reads it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import gc
 import os
 import sys
@@ -44,6 +47,7 @@ from rcan_rtps.ros.services import ServiceClient, ServiceServer
 
 DOMAIN = 77
 TRACE = os.environ.get("TRACE") == "1"
+TRIM = os.environ.get("TRIM") == "1"  # malloc_trim before each read (glibc)
 SETTLE = float(os.environ.get("SETTLE", "0"))  # s before the last read
 CURVE = int(os.environ.get("CURVE", "0"))  # print RssAnon every CURVE operations
 REMOTE = os.environ.get("REMOTE") == "1"  # the server in a process of its own
@@ -61,6 +65,8 @@ if os.environ.get("SMALL_CACHES") == "1":
 
 
 def rss_anon_kb() -> int:
+    if TRIM:
+        ctypes.CDLL(None).malloc_trim(0)
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith("RssAnon:"):
             return int(line.split()[1])

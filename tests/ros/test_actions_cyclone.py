@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import sys
+import tracemalloc
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -13,7 +14,7 @@ from holding import reader_thread_held
 from waiting import eventually
 
 from rcan_rtps._modules import START_ONLY
-from rcan_rtps.ros import action_goals, qos
+from rcan_rtps.ros import action_goals, action_server, qos
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
 from rcan_rtps.ros.errors import ActionError
 from rcan_rtps.ros.participant import RosNode
@@ -436,6 +437,68 @@ async def test_a_server_keeps_the_newest_ended_goals_and_every_running_one(
         assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
         assert server.goals_kept <= 4  # the running goal and the 3 newest ended
     assert server.goals_kept == 4
+    assert await running.cancel(timeout=10)
+    assert (await running.result(timeout=20)).state is GoalState.CANCELED
+    await server.close()
+
+
+PAST_KEPT_GOALS = 40
+
+
+async def test_a_server_holds_nothing_more_per_goal_past_its_kept_goals(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """Each ended goal armed a timer of its own for the result timeout (15 minutes), which
+    outlived the goal once `keep_finished` had let go of it: ~0.6 kB a goal under uvloop (a
+    `run --sim` bridge taking navigate and stop pairs grew by that much a pair). Once the
+    kept goals are full, what the server's code allocated and still holds stays flat:
+    counted by tracemalloc, not by time."""
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "/robot1/navigate_to_pose", NAV, navigate,
+                          keep_finished=3)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    near = {**GOAL, "pose": {"pose": {"position": {"x": 0.5}}}}
+
+    async def goals(count: int) -> None:
+        for _ in range(count):
+            goal = await client.send_goal(near, timeout=20)
+            assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
+
+    def held_by_server() -> int:
+        where = tracemalloc.Filter(True, action_server.__file__, all_frames=True)
+        return sum(s.size for s in tracemalloc.take_snapshot().filter_traces([where])
+                   .statistics("filename"))
+
+    tracemalloc.start(12)  # (deep enough to reach the server's frame from the loop's)
+    try:
+        await goals(5)  # the kept goals full, of goals traced: their turnover cancels out
+        before = held_by_server()
+        await goals(PAST_KEPT_GOALS)
+        grown = held_by_server() - before
+    finally:
+        tracemalloc.stop()
+    assert server.goals_kept == 3
+    await server.close()
+    print(f"{PAST_KEPT_GOALS} goals past the kept ones: +{grown} B held")
+    assert grown < PAST_KEPT_GOALS * 40, grown
+
+
+async def test_a_servers_ended_goals_go_once_their_result_timed_out(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """The one expiry timer lets go of every ended goal whose result timed out, oldest first,
+    and re-arms itself for goals that end later; a running goal stays."""
+    server_node, client_node = nodes
+    server = ActionServer(server_node, "/robot1/navigate_to_pose", NAV, navigate,
+                          result_timeout=0.3)
+    client = ActionClient(client_node, "/robot1/navigate_to_pose", NAV)
+    running = await client.send_goal({**GOAL, "pose": {"pose": {"position": {"x": 500.0}}}},
+                                     timeout=20)
+    near = {**GOAL, "pose": {"pose": {"position": {"x": 0.5}}}}
+    for _ in range(2):  # a second round: the timer set again after it had run out of goals
+        for _ in range(3):
+            goal = await client.send_goal(near, timeout=20)
+            assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
+        await eventually(lambda: server.goals_kept == 1, timeout=20,
+                         what="only the running goal kept")
     assert await running.cancel(timeout=10)
     assert (await running.result(timeout=20)).state is GoalState.CANCELED
     await server.close()

@@ -7,6 +7,7 @@ robot and tests serve actions with it; issue 27, idle memory).
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 from collections.abc import Awaitable, Callable, Mapping
 from typing import Any
@@ -65,7 +66,13 @@ class ActionServer:
         self._result_timeout = result_timeout
         self._keep_finished = keep_finished
         self._goals: dict[bytes, ServerGoal] = {}
-        self._finished: dict[bytes, None] = {}  # ended goals still kept, oldest first
+        # Ended goals still kept, oldest first → when their result expires (loop time); one
+        # timeout for all, so the oldest always expires first.
+        self._finished: dict[bytes, float] = {}
+        # One timer, at the oldest kept goal's expiry: a timer per ended goal outlived the goal
+        # (let go of past keep_finished) for the whole result timeout, ~0.6 kB each — a robot
+        # taking goals and stops back to back grew by that much a goal for 15 minutes.
+        self._expiry: asyncio.TimerHandle | None = None
         self._tasks: set[asyncio.Task[None]] = set()
         self._closed = False
         names = action_names(self.name)
@@ -112,16 +119,29 @@ class ActionServer:
             self.node.values.build(self.types.result.name, result or {})
         goal.state = end
         goal.done.set_result(message)
-        self._finished[goal.goal_id] = None
+        self._finished[goal.goal_id] = asyncio.get_running_loop().time() + self._result_timeout
         while len(self._finished) > self._keep_finished:  # the oldest ended go first
             self._forget(next(iter(self._finished)))
         self._publish_status()
-        asyncio.get_running_loop().call_later(self._result_timeout, self._expire, goal.goal_id)
+        self._arm_expiry()
 
-    def _expire(self, goal_id: bytes) -> None:
-        if goal_id in self._finished:  # (not let go of already)
+    def _arm_expiry(self) -> None:
+        """The timer for the oldest ended goal kept, unless one is set (it re-arms itself)."""
+        if self._expiry is None and self._finished and not self._closed:
+            due = next(iter(self._finished.values()))
+            self._expiry = asyncio.get_running_loop().call_at(due, self._expire, due)
+
+    def _expire(self, due: float) -> None:
+        """Lets go of the ended goals whose result timed out by `due` (what the timer was set
+        for: a loop may run it a clock tick early), then waits for the next."""
+        self._expiry = None
+        expired = [g for g, _ in itertools.takewhile(lambda kept: kept[1] <= due,
+                                                     self._finished.items())]
+        for goal_id in expired:
             self._forget(goal_id)
+        if expired:
             self._publish_status()
+        self._arm_expiry()
 
     def _forget(self, goal_id: bytes) -> None:
         del self._finished[goal_id]
@@ -180,6 +200,9 @@ class ActionServer:
     async def close(self) -> None:
         """Cancels the goals being executed, then deletes the endpoints; idempotent."""
         self._closed = True
+        if self._expiry is not None:
+            self._expiry.cancel()
+            self._expiry = None
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)

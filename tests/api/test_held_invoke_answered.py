@@ -135,3 +135,29 @@ async def test_a_held_invoke_whose_socket_closed_is_answered_in_the_log(api: Api
     assert (entry["status"], entry["outcome"]) == ("failure", "denied"), entry
     assert entry["deny_reason"].startswith("withdrawn: "), entry
     assert api.gov.pending() == [] and api.dispatcher.calls == []
+
+
+LONG_ARM = ("skills: {reach: {action: arm_joint, params: {joints: [elbow], positions: [0.8], "
+            "duration_s: 30}}}")
+
+
+async def test_a_held_invoke_whose_socket_closes_as_its_approved_motion_runs(
+        tmp_path: Path) -> None:
+    """Approved, it runs as the approval decided it; its socket closing then stops its motion
+    and answers it in the log. That answer reported the hold's decision (`pending_auth`) as
+    what it ran under, not the approval's (`executed`)."""
+    api = await Api(tmp_path, bridge_extra=LONG_ARM).start()
+    try:
+        ws = await api.http.ws_connect("/api/ws", headers=auth("planner"))
+        await ws.send_str(json.dumps(invoke("reach", "inv-l")))
+        frame = await next_frame(ws, "outcome")
+        assert frame["body"]["status"] == "pending", frame
+        status, body = await api.call("POST", "/api/hitl/authorize", "ops",
+                                      body={"pending_id": frame["body"]["pending_id"]})
+        assert (status, body["outcome"]) == (200, "executed"), body
+        await ws.close()  # its 30 s trajectory under way
+        entry = await _one_result(api, "inv-l")
+        assert (entry["status"], entry["outcome"]) == ("failure", "executed"), entry
+        assert entry["deny_reason"].startswith("its client left before it was done"), entry
+    finally:
+        await api.close()

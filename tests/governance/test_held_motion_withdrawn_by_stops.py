@@ -259,3 +259,37 @@ async def test_the_bridge_stopping_withdraws_every_held_command_before_bridge_st
     assert events[-1] == "BRIDGE_STOPPED"
     assert events.count("HITL_WITHDRAWN") == 3
     assert harness.dispatcher.calls == []  # nothing of them ran
+
+
+async def test_a_held_command_past_its_ttl_when_the_bridge_stops_is_expired_first(
+        harness: Harness) -> None:
+    """`withdrawing` leaves a command past its TTL to the sweeper, which the bridge's stop
+    ends: one no sweep had come for yet was left a PENDING_AUTH with no end in the log, and
+    what awaited its end (a held INVOKE's answer) waited for good."""
+    gov = await harness.governor(gates=GATES, hitl_timeout=60)
+    held = await _held(gov, PLANNER)
+    ended = gov.held_ended(held)
+    assert ended is not None
+    harness.clock.advance(61)  # past its TTL
+    await gov.stop()  # (never started: no sweeper comes for it)
+    events = [e["event"] for e in harness.entries]
+    assert events[-2:] == ["HITL_EXPIRED", "BRIDGE_STOPPED"], events
+    assert ended.done() and ended.result().decision.reason == "pending_expired"
+
+
+async def test_an_expiry_cut_off_ends_what_awaits_each_held_command_it_took(
+        harness: Harness) -> None:
+    """The sweeper cancelled as the bridge stops, in the middle of an expiry: the held
+    commands it had taken out of the store after the one being written were never ended, and
+    a held INVOKE's answer waited on each for good."""
+    gov = await harness.governor(gates=GATES, hitl_timeout=60)
+    ids = [await _held(gov, PLANNER), await _held(gov, OTHER), await _held(gov, PLANNER)]
+    ends = [gov.held_ended(pending_id) for pending_id in ids]
+    harness.clock.advance(61)
+    expiring = asyncio.ensure_future(gov.expire_pending())
+    while not any(e["event"] == "HITL_EXPIRED" for e in harness.entries):
+        await asyncio.sleep(0)  # it took them all, and writes one after another
+    expiring.cancel()
+    await asyncio.gather(expiring, return_exceptions=True)
+    assert gov.pending() == []
+    assert all(end is not None and end.done() for end in ends), ends

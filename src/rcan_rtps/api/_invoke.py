@@ -117,6 +117,9 @@ class _Running:
     goal_id: str | None = None
     pending_id: str | None = None  # held for a human, until its hold ends (`_reviewed`)
     client_left: bool = False  # its client left while it was held: nobody hears its answer
+    # What its hold's end decided (`_reviewed`): an approval's decision, which its motion runs
+    # under and its answer reports — also one made as its client leaves (`_client_left`).
+    reviewed: Decision | None = None
     cancelled: bool = False  # by its INVOKE_CANCEL: a canceled goal is then `cancelled`
     ended: asyncio.Future[GoalView] = field(
         default_factory=lambda: asyncio.get_running_loop().create_future())
@@ -278,7 +281,7 @@ class Invocations:
             return await self._answered_now(governor, principal, key, running, held,
                                             "failure", "its review failed (see the bridge's "
                                             "log): it did not run")
-        running.pending_id = None
+        running.pending_id, running.reviewed = None, end.decision
         decision = end.decision
         if decision.outcome is Outcome.EXECUTED:
             running.started = time.monotonic()  # its skill runs from its approval
@@ -359,7 +362,7 @@ class Invocations:
             return
         del self._running[key]
         answer.cancel()  # its own wait ends; what it would have done, done here
-        self._left_behind(governor, principal, key, running, decision)
+        self._left_behind(governor, principal, key, running, running.reviewed or decision)
         if running.goal_id is not None:  # (the cancelled task may never have run)
             self._by_goal.pop(running.goal_id, None)
         self._forget_stream(principal, running)

@@ -1105,7 +1105,11 @@ class Governor:
         stay a PENDING_AUTH with no end in the log, and nobody would tell its issuer. The
         run's stop path calls this before the API closes, while issuers may still be told
         (a held INVOKE's INVOKE_RESULT, the approvals frames, their pending records); `stop`
-        again before BRIDGE_STOPPED, for any held since."""
+        again before BRIDGE_STOPPED, for any held since. One past its TTL that no sweep has
+        expired yet is expired first (HITL_EXPIRED): `withdrawing` leaves it to the sweeper,
+        which `stop` ends."""
+        if not self._stopped:  # BRIDGE_STOPPED is the last entry
+            await self._desk.expire()
         withdrawing = self._withdraw_held(None, BRIDGE_STOPPING, motion_only=False)
         await asyncio.gather(*withdrawing.values(), return_exceptions=True)
 

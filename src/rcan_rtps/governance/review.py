@@ -337,15 +337,16 @@ class HitlDesk:
         expired = self._pending.take_expired(now_ms(self._clock), self._clock.monotonic())
         if expired:
             self._changed()
-        for held in expired:
+        for i, held in enumerate(expired):
             p = held.pending
             self._resolving(held)
             try:
                 decisions.append(await self._steps.refuse(
                     held.reviewed(), p.issuer, outcomes.PENDING_EXPIRED,
                     event=AuditEvent.HITL_EXPIRED, pending_id=p.pending_id))
-            except BaseException:
-                self._never_ends(p.pending_id)
+            except BaseException:  # (the sweeper cancelled as the bridge stops, say)
+                for taken in expired[i:]:  # out of the store: nothing else would end them
+                    self._never_ends(taken.pending.pending_id)
                 raise
             self._resolving(held, decisions[-1])
         return decisions

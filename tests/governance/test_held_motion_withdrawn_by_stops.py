@@ -293,3 +293,21 @@ async def test_an_expiry_cut_off_ends_what_awaits_each_held_command_it_took(
     await asyncio.gather(expiring, return_exceptions=True)
     assert gov.pending() == []
     assert all(end is not None and end.done() for end in ends), ends
+
+
+async def test_no_motion_reaches_the_robot_once_the_bridge_began_stopping(
+        scene: Scene) -> None:
+    """The run's stop ends the streams, then halts the robot (`end_streams`, then the
+    dispatcher's halt): motion decided after that — an approval or a command already past
+    the API, in a task of its own — must never be sent after the halt, which is the last
+    thing the robot hears from this bridge. Before, only motion decided before the streams
+    ended was refused (its stop mark); one decided after went to the robot."""
+    gov, harness = scene.gov, scene.harness
+    await gov.start()
+    gov.end_streams()
+    approved = await gov.authorize(scene.arm, OPS)
+    moved = await gov.decide(command("move", {"linear_x": 0.2}), PLANNER)
+    assert (approved.reason, moved.reason) == ("stopped", "stopped"), (approved, moved)
+    assert [a for a, _ in harness.dispatcher.calls if a != "stop"] == []
+    stopped = await gov.decide(command("stop"), PLANNER)  # a stop still stops
+    assert stopped.outcome is Outcome.EXECUTED

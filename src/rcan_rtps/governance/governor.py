@@ -742,8 +742,10 @@ class Governor:
         return executed(command, applied, receipt, result)
 
     def end_streams(self) -> None:
-        """The bridge is stopping: zero now, before the robot is halted and the log closed."""
-        self.streams.halt(None, EndReason.BRIDGE_STOPPED)  # nothing decided starts after
+        """The bridge is stopping: zero now, before the robot is halted and the log closed;
+        no motion starts from now on, whenever decided (the robot's halt is the last thing
+        this bridge tells it)."""
+        self.streams.close(EndReason.BRIDGE_STOPPED)
 
     # -- goals the robot carries out -------------------------------------------------------
 

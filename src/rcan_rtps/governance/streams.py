@@ -201,6 +201,9 @@ class VelocityStreams:
         # Stops so far (`halt`, an e-stop latching): motion decided before one must not
         # start after it.
         self.stops = 0
+        # The bridge is stopping (`close`): no motion starts from then on, whenever decided
+        # (a robot halted last must stay so: nothing of ours may follow its halt).
+        self.closed = False
         # Motion decided and not yet started or refused, per owner (`deciding`): it drives
         # the base as much as a running stream does, for a session loss of someone else.
         self._deciding: dict[str, int] = {}
@@ -373,7 +376,13 @@ class VelocityStreams:
         (`stops`) — or None."""
         if self._latch.latched:
             return outcomes.ESTOP_ACTIVE
-        return outcomes.STOPPED if self.stopped_since(stops) else None
+        return outcomes.STOPPED if self.closed or self.stopped_since(stops) else None
+
+    def close(self, reason: EndReason) -> None:
+        """The bridge is stopping: a halt (`halt`), and no motion starts after it, whenever
+        it was decided (an approval or a command in a task of its own, past the API)."""
+        self.closed = True
+        self.halt(None, reason)
 
     def end(self, reason: EndReason, by: str | None = None) -> bool:
         """End the active stream, if any, sending zero at once (True). Without one (False),

@@ -17,32 +17,23 @@ from typing import Any
 
 import aiohttp
 import pytest
-from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
-from jwthelpers import sign_jwt
+from jwthelpers import expiring_jwt, jwt_issuer
 
 from tests.api.apihelpers import Api
-
-LEEWAY_S = 30  # api.jwt.leeway_s's default: a token is taken this long after its exp
 
 
 @pytest.fixture
 async def jwt_api(tmp_path: Path) -> AsyncIterator[tuple[Api, Ed25519PrivateKey]]:
-    key = Ed25519PrivateKey.generate()
-    pem = key.public_key().public_bytes(serialization.Encoding.PEM,
-                                        serialization.PublicFormat.SubjectPublicKeyInfo)
-    (tmp_path / "jwt.pem").write_bytes(pem)
-    api = await Api(tmp_path, api_extra=f"jwt: {{public_key: '{tmp_path / 'jwt.pem'}', "
-                                         "audience: rcan-bridge}").start()
+    key, trusted = jwt_issuer(tmp_path)
+    api = await Api(tmp_path, api_extra=trusted).start()
     yield api, key
     await api.close()
 
 
 def token(api: Api, key: Ed25519PrivateKey, left_s: float) -> str:
     """A USER's JWT taken for `left_s` more seconds (its exp, plus the leeway)."""
-    claims = {"sub": "planner-7", "role": "USER", "aud": "rcan-bridge",
-              "exp": api.clock.time() + left_s - LEEWAY_S}
-    return sign_jwt(key, claims, {"alg": "EdDSA"})
+    return expiring_jwt(key, api.clock.time(), left_s, sub="planner-7", role="USER")
 
 
 async def outcome(ws: aiohttp.ClientWebSocketResponse) -> dict[str, Any]:

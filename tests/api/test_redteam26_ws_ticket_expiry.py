@@ -16,33 +16,24 @@ from pathlib import Path
 
 import aiohttp
 import pytest
-from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
-from jwthelpers import sign_jwt
+from jwthelpers import expiring_jwt, jwt_issuer
 
 from tests.api.apihelpers import Api
 from tests.api.test_redteam25_pending_list import GATES, held_navigation
 
-LEEWAY_S = 30  # api.jwt.leeway_s's default: a token is taken this long after its exp
-
 
 @pytest.fixture
 async def jwt_gated(tmp_path: Path) -> AsyncIterator[tuple[Api, Ed25519PrivateKey]]:
-    key = Ed25519PrivateKey.generate()
-    pem = key.public_key().public_bytes(serialization.Encoding.PEM,
-                                        serialization.PublicFormat.SubjectPublicKeyInfo)
-    (tmp_path / "jwt.pem").write_bytes(pem)
-    api = await Api(tmp_path, gates=GATES, api_extra=(
-        f"jwt: {{public_key: '{tmp_path / 'jwt.pem'}', audience: rcan-bridge}}")).start()
+    key, trusted = jwt_issuer(tmp_path)
+    api = await Api(tmp_path, gates=GATES, api_extra=trusted).start()
     yield api, key
     await api.close()
 
 
 def approver_token(api: Api, key: Ed25519PrivateKey, left_s: float) -> str:
     """A LEASEE's JWT (it may approve navigation) taken for `left_s` more seconds."""
-    claims = {"sub": "approver-3", "role": "LEASEE", "aud": "rcan-bridge",
-              "exp": api.clock.time() + left_s - LEEWAY_S}
-    return sign_jwt(key, claims, {"alg": "EdDSA"})
+    return expiring_jwt(key, api.clock.time(), left_s, sub="approver-3", role="LEASEE")
 
 
 async def ticket(api: Api, jwt: str, good_for_s: float = 5) -> str:

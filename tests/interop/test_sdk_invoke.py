@@ -204,6 +204,14 @@ async def test_an_sdk_invoke_cancel_over_the_websocket_stops_the_robot(
     audit_ids_hold(demo)
 
 
+async def sent_held(ws: aiohttp.ClientWebSocketResponse, invoke: Any) -> dict[str, Any]:
+    """`invoke` (a skill the demo holds for an OWNER) sent: its 202 `pending` frame."""
+    await ws.send_json(sdk_wire(invoke))
+    [held] = await outcome_frames(ws, 1)
+    assert (held["http_status"], RCANResponse.from_dict(held).status) == (202, "pending"), held
+    return held
+
+
 async def test_an_sdk_invoke_cancel_over_the_websocket_withdraws_a_held_skill(
         sim: Demo, http: aiohttp.ClientSession) -> None:
     """raise_elbow is held for an OWNER (the demo's HiTL gate on arm_joint): its INVOKE_CANCEL
@@ -212,9 +220,7 @@ async def test_an_sdk_invoke_cancel_over_the_websocket_withdraws_a_held_skill(
     robot = await robot_of(http, demo)
     invoke = sdk_invoke(robot, "raise_elbow")
     async with user_socket(http, demo) as ws:
-        await ws.send_json(sdk_wire(invoke))
-        [held] = await outcome_frames(ws, 1)
-        assert (held["http_status"], RCANResponse.from_dict(held).status) == (202, "pending"), held
+        held = await sent_held(ws, invoke)
         cancel = sdk_cancel(robot, invoke, "changed my mind")
         await ws.send_json(sdk_wire(cancel))
         answers = await outcome_frames(ws, 2)  # the cancel's and the INVOKE's, either first
@@ -242,9 +248,7 @@ async def test_an_sdk_invoke_held_when_the_robot_is_stopped_is_answered(
     robot = await robot_of(http, demo)
     invoke = sdk_invoke(robot, "raise_elbow")
     async with user_socket(http, demo) as ws:
-        await ws.send_json(sdk_wire(invoke))
-        [held] = await outcome_frames(ws, 1)
-        assert (held["http_status"], RCANResponse.from_dict(held).status) == (202, "pending"), held
+        await sent_held(ws, invoke)
         async with http.post(f"{demo.url}/api/command", json={"action": "stop"},
                              headers={"Authorization": f"Bearer {demo.owner}"}) as response:
             assert response.status == 200, await response.text()

@@ -143,3 +143,25 @@ async def test_an_arm_trajectory_is_logged_in_canonical_json(api: Api) -> None:
     assert all(_sdk_recomputes(line) for line in lines)
     await api.close()
     _verified(api.tmp / "audit.jsonl")
+
+
+async def test_a_stop_with_an_out_of_range_number_leaves_the_log_json(api: Api) -> None:
+    """Red team 28: `1e400` is read as infinity (`_validate._DECODER`) and a stop keeps its
+    params as requested, unknown fields too. msgspec writes infinity `null`, but an entry with
+    a float written with an exponent beside it is written by Python's json: `Infinity`, which
+    is not JSON — the line failed `audit verify` and the log refused the next start. Any
+    principal's stop could do it (a GUEST's refused stop is logged with its params)."""
+    for who in ("planner", "viewer"):
+        raw = b'{"action":"stop","params":{"x":1e400,"y":[-1e999],"z":1e-7}}'
+        status, body = await api.command(who, raw=raw)
+        assert status in (200, 403), body
+    assert ("stop", {}) in api.dispatcher.calls  # the USER's stop stopped
+    lines = _lines(api)[-2:]
+    for line in lines:
+        entry = msgspec.json.decode(line)  # strict JSON: no Infinity token
+        assert entry["params"] == {"x": None, "y": [None], "z": 1e-07}
+        assert _sdk_recomputes(line)
+    await api.close()
+    _verified(api.tmp / "audit.jsonl")
+    reopened = await Api(api.tmp, gates="[]").start()  # the log opens for the next start
+    await reopened.close()

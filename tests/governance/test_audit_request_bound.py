@@ -21,7 +21,7 @@ from rcan.encoding import canonical_json
 
 from rcan_rtps.governance import AuditEvent, AuditLog, AuditRecord, ManualClock
 from rcan_rtps.governance.audit import canonical_v1
-from rcan_rtps.governance.entry_bound import request_bytes_limit
+from rcan_rtps.governance.entry_bound import request_bytes_limit, size_within
 from rcan_rtps.governance.governor import Governor
 from rcan_rtps.rcan import ErrorCode, Outcome
 
@@ -108,3 +108,18 @@ async def test_the_bridge_s_own_facts_are_never_cut(tmp_path: Path) -> None:
     await log.close()
     [line] = (tmp_path / "audit.jsonl").read_bytes().splitlines()
     assert json.loads(line)["params"] == json.loads(canonical_v1(facts))
+
+
+_ANY_NUMBER = st.integers(-(10**400), 10**400) | st.floats(allow_nan=False)
+
+
+@settings(max_examples=300, deadline=None)
+@given(value=st.recursive(
+    st.none() | st.booleans() | _ANY_NUMBER | _KEY,
+    lambda inner: st.lists(inner, max_size=6) | st.dictionaries(_KEY, inner, max_size=6),
+    max_leaves=30), exponent=st.booleans())
+def test_the_size_walk_is_the_canonical_size(value: Any, exponent: bool) -> None:
+    """Red team 28: `size_within` is exact, infinities too (a stop's `1e400`, written null),
+    with or without a float written with an exponent beside (which Python's json writes)."""
+    value = [value, 1e-07] if exponent else [value]
+    assert size_within(value, 10**9) == len(canonical_v1(value))

@@ -311,3 +311,47 @@ async def test_no_motion_reaches_the_robot_once_the_bridge_began_stopping(
     assert [a for a, _ in harness.dispatcher.calls if a != "stop"] == []
     stopped = await gov.decide(command("stop"), PLANNER)  # a stop still stops
     assert stopped.outcome is Outcome.EXECUTED
+
+
+async def test_no_estop_clear_reaches_the_robot_once_the_bridge_began_stopping(
+        harness: Harness) -> None:
+    """Red team 28: a clear_estop tells the robot its e-stop is released (`{"data": false}` on
+    the latched e-stop topic) and persists the latch file unlatched. One decided after the
+    streams ended — or waiting for the robot when they did (in a task of its own past the
+    API, which the run's stop awaits only after the robot's halt) — went out after the halt:
+    the last thing the robot heard from the bridge was its e-stop released, and the next
+    start began unlatched. Now it is refused `stopped` as motion is; the latch holds."""
+    gov = await harness.governor()
+    await gov.start()
+    await gov.decide(command("estop"), OPS)
+    gov.end_streams()
+    late = await gov.decide(command("clear_estop"), ADMIN)
+    assert (late.outcome, late.reason) == (Outcome.DENIED, "stopped"), late
+    assert [a for a, _ in harness.dispatcher.calls if a == "clear_estop"] == []
+    assert gov.latch.latched
+
+
+async def test_an_estop_clear_waiting_for_the_robot_as_the_bridge_stops_is_refused(
+        harness: Harness) -> None:
+    """(as above) The clear waited for the robot (`ready`) when the streams ended."""
+    gov = await harness.governor()
+    await gov.start()
+    await gov.decide(command("estop"), OPS)
+    robot = harness.dispatcher
+    wait, entered, ready = asyncio.Event(), asyncio.Event(), robot.ready
+
+    async def slow_ready(cmd: Any) -> str | None:
+        entered.set()
+        await wait.wait()
+        return await ready(cmd)
+
+    robot.ready = slow_ready  # type: ignore[method-assign]
+    clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), ADMIN))
+    await entered.wait()
+    gov.end_streams()  # the run's stop: streams ended, then the robot halted
+    wait.set()
+    waited = await clearing
+    assert waited.outcome is not Outcome.EXECUTED and waited.reason == "stopped", waited
+    assert [a for a, _ in robot.calls if a == "clear_estop"] == []
+    assert gov.latch.latched
+    assert gov.latch.file.load(first_start=False)[0]  # the next start is latched too

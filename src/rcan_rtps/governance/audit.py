@@ -46,6 +46,7 @@ import functools
 import hashlib
 import json
 import logging
+import math
 import os
 import stat
 import time
@@ -230,10 +231,14 @@ def _whole_floats_as_ints(value: Any, exponents: list[bool]) -> Any:
     """`value` with each whole float an int; notes in `exponents` a float written with one.
     A struct (an arm trajectory's points in `applied`) or a tuple is read as the JSON it is
     written as: left as it was, its whole floats were written `1.0` (an id the SDK, and
-    `verify`, compute otherwise) and a float with an exponent beside it failed the append."""
+    `verify`, compute otherwise) and a float with an exponent beside it failed the append.
+    A non-finite float (a stop's unknown param `1e400`, read as infinity) is null, as msgspec
+    writes it: Python's json would write `Infinity`, which is not JSON (red team 28)."""
     if isinstance(value, msgspec.Struct):
         value = msgspec.to_builtins(value)
     if isinstance(value, float):
+        if not math.isfinite(value):
+            return None
         if value.is_integer():
             return int(value)
         if "e" in repr(value):

@@ -34,6 +34,7 @@ whenever their canonical JSON fits, and the amplified form is never made to be m
 from __future__ import annotations
 
 import hashlib
+import math
 from typing import Any
 
 import msgspec
@@ -77,6 +78,8 @@ def _scalar_size(item: Any) -> int:
     if item is False:
         return 5
     if isinstance(item, float):
+        if not math.isfinite(item):  # (a stop's `1e400`, read as infinity): written null
+            return 4
         # A whole float is written as the integer (50.0 → 50, 1e300 → 301 digits), another
         # as Python's repr: the digits of one number, never the whole.
         return len(str(int(item))) if item.is_integer() else len(repr(item))

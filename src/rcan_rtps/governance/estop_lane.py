@@ -120,8 +120,13 @@ class EstopLane:
         waited for the robot, or for its turn) wins: the clear is refused (`estop_active`).
         One that arrives after it wins too, and this clear neither writes the latch file nor
         unlatches nor publishes. Either way the e-stop did not wait for this clear: its entry
-        was sealed as it arrived (`EstopMachine.engage`)."""
+        was sealed as it arrived (`EstopMachine.engage`). The bridge stopping wins as well
+        (`VelocityStreams.closed`): the robot's halt is the last thing the bridge tells it,
+        never its e-stop released after it, and the next start stays latched (red team 28)."""
         steps = self._steps
+        if self._stopping():
+            return await steps.refuse(command, principal, outcomes.STOPPED,
+                                      pending_id=pending_id)
         why = await steps.ready(command)
         if why is not None:
             return await steps.refuse(command, principal, outcomes.robot_unavailable(why),
@@ -142,6 +147,9 @@ class EstopLane:
             return decision(outcomes.AUDIT_UNAVAILABLE, message_id=command.message_id)
         if self._latch.overtaken():  # an e-stop since it was decided: its latch file holds
             return executed(command, {}, receipt, DispatchResult(ok=True))
+        if self._stopping():  # the bridge began stopping while it waited
+            self._latched_by = latched_by
+            return await steps.failed(command, principal, outcomes.STOPPED)
         try:
             await self._latch.file.write(False, principal.name, now_ms(self._clock))
         except EstopStateError:
@@ -154,6 +162,11 @@ class EstopLane:
         if failure is not None:
             return await steps.failed(command, principal, failure)
         return executed(command, {}, receipt, result)
+
+    def _stopping(self) -> bool:
+        """The bridge began stopping (`Governor.end_streams`): nothing more reaches the robot
+        but stops."""
+        return self._streams.closed
 
     async def republish(self) -> None:
         """Latched at start: the robot is told again."""

@@ -7,6 +7,13 @@ asked) goes in as extra scope keys. The application's response is streamed as it
 client goes away, the application's `receive()` says so (`http.disconnect`), and writes to
 the gone client raise `ConnectionResetError`, which ASGI applications take as a disconnect
 (but for a response's end, which is dropped: there is nothing left to tell that client).
+
+A request may be served for as long as its credential holds (`left`: the seconds it has;
+None: it does not expire), no longer. A stream open when the credential runs out (an MCP
+session's event stream) is ended: the application's `receive()` says the client left, and
+what it writes after is dropped, the response ended. A response not yet begun by then (a
+tool call still being answered) is answered 401 instead, once the application answers:
+nothing the application says after the credential ran out reaches its holder.
 """
 
 from __future__ import annotations
@@ -25,6 +32,12 @@ Send = Callable[[Message], Awaitable[None]]
 AsgiApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 GONE_POLL_S = 1.0  # how often a waiting `receive()` looks whether the client is still there
 FRAMING = ("content-length", "transfer-encoding")
+MIN_WAIT_S = 0.01  # the shortest wait for a credential's end (its clock may be set back)
+Left = Callable[[], float | None]
+EXPIRED_BODY = (b'{"jsonrpc": "2.0", "id": null, "error": {"code": -32600, "message": '
+                b'"CREDENTIAL_EXPIRED: the credential this request was sent with ran out '
+                b'while it was served: nothing more of it is sent; send the next request '
+                b'with a valid one (a stop too)"}}')
 
 
 def scope_of(request: web.Request, extra: dict[str, Any]) -> Scope:
@@ -46,26 +59,43 @@ def scope_of(request: web.Request, extra: dict[str, Any]) -> Scope:
 class _Exchange:
     """One request's `receive` and `send`, and the aiohttp response they build."""
 
-    def __init__(self, request: web.Request, body: bytes) -> None:
+    def __init__(self, request: web.Request, body: bytes, left: Left | None = None) -> None:
         self._request = request
         self._body: bytes | None = body
         self._done = asyncio.Event()
+        self._left = left
+        self.expired = False  # the credential ran out while the request was served
         self.response: web.StreamResponse | None = None
 
     async def receive(self) -> Message:
         if self._body is not None:
             body, self._body = self._body, None
             return {"type": "http.request", "body": body, "more_body": False}
-        while not self._done.is_set() and not self._gone():
+        while not self._done.is_set() and not self._gone() and not self._expired():
             with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(self._done.wait(), GONE_POLL_S)
+                await asyncio.wait_for(self._done.wait(), self._wait_s())
         return {"type": "http.disconnect"}
+
+    def _wait_s(self) -> float:
+        """How long to wait before looking again: the poll, or less if the credential runs
+        out sooner (never 0: looked at again after a clock set back, it may hold on)."""
+        left = self._left() if self._left is not None else None
+        return GONE_POLL_S if left is None else max(MIN_WAIT_S, min(GONE_POLL_S, left))
+
+    def _expired(self) -> bool:
+        if not self.expired and self._left is not None:
+            left = self._left()
+            self.expired = left is not None and left <= 0
+        return self.expired
 
     def _gone(self) -> bool:
         transport = self._request.transport
         return transport is None or transport.is_closing()
 
     async def send(self, message: Message) -> None:
+        if self._expired():
+            await self._cut()
+            return
         kind = message["type"]
         if kind == "http.response.start":
             response = web.StreamResponse(status=int(message["status"]))
@@ -90,14 +120,31 @@ class _Exchange:
                 finally:
                     self._done.set()
 
+    async def _cut(self) -> None:
+        """The credential ran out: a response begun is ended, one not begun is a 401; what
+        the application sends after either is dropped."""
+        if self._done.is_set():
+            return
+        self._done.set()
+        try:
+            if self.response is None:
+                self.response = web.Response(status=401, body=EXPIRED_BODY,
+                                             content_type="application/json")
+            else:
+                await self.response.write_eof()
+        except ConnectionResetError:  # the client left too
+            pass
+
     def finish(self) -> None:
         self._done.set()
 
 
 async def serve(app: AsgiApp, request: web.Request, body: bytes,
-                extra: dict[str, Any]) -> web.StreamResponse | None:
-    """Run `app` on this request; its response, or None if it sent none."""
-    exchange = _Exchange(request, body)
+                extra: dict[str, Any], left: Left | None = None
+                ) -> web.StreamResponse | None:
+    """Run `app` on this request, no longer than `left` says its credential holds; its
+    response, or None if it sent none."""
+    exchange = _Exchange(request, body, left)
     await _run(app, request, extra, exchange)
     return exchange.response
 

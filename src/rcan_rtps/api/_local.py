@@ -21,11 +21,21 @@ from rcan_rtps.governance.governor import ClientCancel
 
 from . import _rare_routes as rare
 from . import _routes as r
-from ._bodies import GoalList, PendingList
+from ._bodies import GoalList, PendingList, error_body
 from ._commands import run_command, schema_failure, too_large
 from ._images import image_list
 from ._intake import STOP_ROOM
-from ._keys import CHECKS, GOVERNOR, IMAGES, INVOCATIONS, OBSERVE, ROBOT, SETTINGS, STATUS
+from ._keys import (
+    CHECKS,
+    CREDENTIAL_LEFT,
+    GOVERNOR,
+    IMAGES,
+    INVOCATIONS,
+    OBSERVE,
+    ROBOT,
+    SETTINGS,
+    STATUS,
+)
 from ._safety_manifest import manifest_reply
 from .ports import ImageFrame
 
@@ -33,6 +43,13 @@ if TYPE_CHECKING:
     from rcan_rtps.mcp_server.ports import Blob, Reply
 
 NOT_TEXT = "a string holds an unpaired surrogate: not Unicode text"
+CREDENTIAL_EXPIRED = "credential_expired"  # a heartbeat's 401 once no credential holds
+
+
+def _outlasts(new: Principal, old: Principal) -> bool:
+    """Whether `new`'s credential holds longer than `old`'s (None: it does not expire)."""
+    return old.expires_at is not None and (new.expires_at is None
+                                           or new.expires_at > old.expires_at)
 
 
 async def _acked(cancelled: ClientCancel, principal: Principal) -> Reply:
@@ -95,7 +112,19 @@ class LocalApi:
         cancelled = self._app[GOVERNOR].motion_cancelled(self._principal)  # now, in this step
         return _acked(cancelled, self._principal)
 
+    def renewed(self, principal: Principal) -> None:
+        """A later request of the principal's, with a credential that may hold longer (a
+        fresh JWT): its heartbeats go on for as long as the latest credential holds."""
+        if principal.name == self._principal.name and _outlasts(principal, self._principal):
+            self._principal = principal
+
     async def heartbeat(self) -> Reply:
+        # Heartbeats are the principal's requests: refused, as REST refuses them, once its
+        # credential has run out (its control session then lapses, and the bridge stops what
+        # it left moving), not sent on its behalf for as long as its motion would run.
+        left = self._app[CREDENTIAL_LEFT](self._principal)
+        if left is not None and left <= 0:
+            return _reply(401, error_body("UNAUTHENTICATED", reason=CREDENTIAL_EXPIRED))
         return _reply(200, r.heartbeat(self._app[GOVERNOR], self._principal))
 
     async def status(self) -> Reply:

@@ -7,8 +7,10 @@ what to install (a stop excepted: see below). Each request runs as its principal
 (`_local.LocalApi`: the REST routes' own functions), naming the agent's model from its
 `RCAN-AI-Provider` and `RCAN-AI-Model` headers (or the `ai_provider` and `ai_model` query
 parameters, for clients that can set no header but `Authorization`). A principal's timed
-moves and goals are held by heartbeats while they run; a session the client closes (DELETE)
-stops what it left running.
+moves and goals are held by heartbeats while they run (and while its latest credential
+holds); a session the client closes (DELETE) stops what it left running. No request is served
+past its credential (`_asgi.serve`'s `left`): an event stream open when it runs out ends, a
+call answered after that is answered 401.
 
 A stop stops whatever else is wrong with its request (`mcp_server.stops.stop_rescue`, which
 the stdio door shares): a `tools/call` that says stop (`estop`, `stop`: the registry's ESTOP
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import gc
 import importlib
 import importlib.util
@@ -55,12 +58,15 @@ from ._bodies import error_response, json_response
 from ._commands import read_command, too_large
 from ._errors import BodyEncoding
 from ._intake import CLIENT_CLOSED, STOP_ROOM, oversize_warning
-from ._keys import DEADLINES, GOVERNOR, PRINCIPAL, SETTINGS
+from ._keys import CREDENTIAL_LEFT, DEADLINES, GOVERNOR, PRINCIPAL, SETTINGS
 
 if TYPE_CHECKING:
     from rcan_rtps.mcp_server.http import HttpMcp
     from rcan_rtps.mcp_server.keepalive import Keepalive
     from rcan_rtps.mcp_server.seat import Agent, Seat
+
+    from . import _asgi
+    from ._local import LocalApi
 
 log = logging.getLogger(__name__)
 SESSION_HEADER = "Mcp-Session-Id"
@@ -138,6 +144,7 @@ class McpEndpoint:
         self._serving: asyncio.Task[None] | None = None
         self._beating: list[asyncio.Task[None]] = []
         self._keepalives: dict[str, Keepalive] = {}
+        self._heartbeats: dict[str, LocalApi] = {}  # what each keepalive heartbeats through
         self._stopping: set[asyncio.Task[None]] = set()
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
@@ -181,11 +188,12 @@ class McpEndpoint:
         async def run(scope: Any, receive: Any, send: Any) -> None:
             await server.handle(scope, receive, send, seat, principal.name, principal.role.name)
 
+        left = functools.partial(app[CREDENTIAL_LEFT], principal)
         if request.method == "POST" and server.cancelled_by_hanging_up(
                 list(request.raw_headers), body):
-            response = await self._served_till_hang_up(run, request, body)
+            response = await self._served_till_hang_up(run, request, body, left)
         else:
-            response = await _asgi.serve(run, request, body, {})
+            response = await _asgi.serve(run, request, body, {}, left)
         if response is None:
             return error_response(503, "ROBOT_UNAVAILABLE", outcome="failed",
                                   reason="mcp_no_response")
@@ -193,8 +201,8 @@ class McpEndpoint:
             await self._session_closed(seat)
         return response
 
-    async def _served_till_hang_up(self, run: Any, request: web.Request, body: bytes
-                                   ) -> web.StreamResponse | None:
+    async def _served_till_hang_up(self, run: Any, request: web.Request, body: bytes,
+                                   left: _asgi.Left) -> web.StreamResponse | None:
         """A motion call whose client cancels it by hanging up (the 2026-07-28 protocol),
         cancelled when it does, as the SDK cancels a call a `notifications/cancelled` names:
         its `motion` withdraws the principal's motion. aiohttp's server lets a handler run on
@@ -202,7 +210,7 @@ class McpEndpoint:
         stop is never to be cut off midway), so the door cancels this call alone."""
         from . import _asgi
 
-        serving = asyncio.ensure_future(_asgi.serve(run, request, body, {}))
+        serving = asyncio.ensure_future(_asgi.serve(run, request, body, {}, left))
         hung_up = False
 
         def cancel() -> None:
@@ -324,9 +332,11 @@ class McpEndpoint:
         fixed = self._fixed_part()
         api = LocalApi(app, principal, fixed, warnings, measured=measured)
         keepalive = self._keepalives.get(principal.name)
-        if keepalive is None:  # one per principal: heartbeats are a principal's
-            keepalive = self._keepalives[principal.name] = Keepalive(LocalApi(
-                app, principal, fixed))
+        if keepalive is not None:  # heartbeats as long as its latest credential holds
+            self._heartbeats[principal.name].renewed(principal)
+        else:  # one per principal: heartbeats are a principal's
+            beats = self._heartbeats[principal.name] = LocalApi(app, principal, fixed)
+            keepalive = self._keepalives[principal.name] = Keepalive(beats)
             self._beating.append(asyncio.create_task(keepalive.run(),
                                                      name=f"mcp-keepalive-{principal.name}"))
         return Seat(api, agent, keepalive, session)

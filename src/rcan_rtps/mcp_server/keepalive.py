@@ -5,7 +5,9 @@ The bridge stops the robot when the sender of a motion command goes quiet for
 silence between tool calls, so this server holds the session for it — for as long as a move
 it started lasts, or a goal it started has not ended — and for nothing else: once the agent's
 motion is over (or stopped), the heartbeats stop, and if this server goes away, so do they,
-and the bridge halts what is left.
+and the bridge halts what is left. So they do once the principal's credential has run out
+(a heartbeat refused 401: a JWT past its exp, with no fresher one of the principal's since):
+what it left moving is then the bridge's to stop when its control session lapses.
 
 One `Keepalive` per agent principal (heartbeats are a principal's); each hold remembers the
 MCP session that started it, so a session that closes can stop what it left running
@@ -26,6 +28,7 @@ from .ports import BridgeUnavailable, RobotApi
 log = logging.getLogger(__name__)
 INTERVAL_S = 1.0  # the demo's session timeout is 5 s; a config's is at least this, or close
 MARGIN_S = 1.0  # past a move's end: its final zero is sent by the bridge, not by anyone here
+UNAUTHENTICATED = 401  # a heartbeat without a valid credential
 GOAL_ENDED = frozenset({"succeeded", "canceled", "aborted", "rejected", "unknown", "lost"})
 
 
@@ -140,5 +143,10 @@ class Keepalive:
         except BridgeUnavailable as exc:
             log.warning("heartbeat: %s", exc)
             return
-        if not reply.ok:
+        if reply.status == UNAUTHENTICATED:  # its credential ran out: no heartbeat holds
+            log.warning("heartbeat refused (%s): the principal's credential is no longer "
+                        "valid; its motion is not held any more (the bridge stops it when "
+                        "its control session lapses)", reply.body.get("reason"))
+            self.release_all()
+        elif not reply.ok:
             log.warning("heartbeat refused: %s %s", reply.status, reply.body.get("error_code"))

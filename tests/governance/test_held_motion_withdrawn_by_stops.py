@@ -355,3 +355,32 @@ async def test_an_estop_clear_waiting_for_the_robot_as_the_bridge_stops_is_refus
     assert [a for a, _ in robot.calls if a == "clear_estop"] == []
     assert gov.latch.latched
     assert gov.latch.file.load(first_start=False)[0]  # the next start is latched too
+
+
+async def test_an_estop_clear_whose_latch_file_write_spans_the_bridges_stop_is_undone(
+        harness: Harness) -> None:
+    """(as above) The streams ended while the clear's `false` was being written to the
+    latch file (past the clear's last look before the write): it is not unlatched nor
+    published, and the file is latched again — the next start is latched too."""
+    gov = await harness.governor()
+    await gov.start()
+    await gov.decide(command("estop"), OPS)
+    file, robot = gov.latch.file, harness.dispatcher
+    wait, entered, write = asyncio.Event(), asyncio.Event(), file.write
+
+    async def slow_write(latched: bool, by: str, at_ms: int) -> None:
+        if not latched:
+            entered.set()
+            await wait.wait()
+        await write(latched, by, at_ms)
+
+    file.write = slow_write  # type: ignore[method-assign]
+    clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), ADMIN))
+    await entered.wait()
+    gov.end_streams()
+    wait.set()
+    waited = await clearing
+    assert waited.outcome is not Outcome.EXECUTED and waited.reason == "stopped", waited
+    assert [a for a, _ in robot.calls if a == "clear_estop"] == []
+    assert gov.latch.latched
+    assert file.load(first_start=False)[0]

@@ -37,6 +37,8 @@ from .steps import (
 from .streams import VelocityStreams
 
 log = logging.getLogger("rcan_rtps.governance.governor")
+# Who the latch file names when a clear that came as the bridge stopped is undone.
+STOPPING_RELATCHED = "rcan-rtps (a clear_estop refused: the bridge was stopping)"
 
 
 class EstopLane:
@@ -156,12 +158,27 @@ class EstopLane:
             log.exception("e-stop clear not persisted: staying latched",
                           extra={"principal": principal.name, "audit_id": receipt.audit_id})
             return await steps.failed(command, principal, outcomes.ESTOP_STATE_UNWRITABLE)
+        if self._stopping():  # the bridge began stopping while the file was written
+            return await self._latched_again(command, principal, latched_by)
         if not self._latch.unlatch():  # an e-stop is next in line: the robot stays stopped
             return executed(command, {}, receipt, DispatchResult(ok=True))
         result, failure = await steps.dispatch(command, command.params)
         if failure is not None:
             return await steps.failed(command, principal, failure)
         return executed(command, {}, receipt, result)
+
+    async def _latched_again(self, command: NormalizedCommand, principal: Principal,
+                             latched_by: AuditReceipt | None) -> Decision:
+        """A clear whose `false` reached the latch file as the bridge began stopping: never
+        unlatched nor published, and the file latched again, so the next start is too."""
+        self._latched_by = latched_by
+        try:
+            await self._latch.file.write(True, STOPPING_RELATCHED, now_ms(self._clock))
+        except EstopStateError:  # the next start reads a clear file: said loudly
+            log.exception("e-stop clear refused as the bridge stopped, but its latch file "
+                          "could not be latched again: the next start will not be latched",
+                          extra={"principal": principal.name})
+        return await self._steps.failed(command, principal, outcomes.STOPPED)
 
     def _stopping(self) -> bool:
         """The bridge began stopping (`Governor.end_streams`): nothing more reaches the robot

@@ -16,11 +16,13 @@ stop was one principal's own."""
 from __future__ import annotations
 
 import asyncio
+import threading
 from typing import Any
 
 import pytest
 from govhelpers import ADMIN, OPS, PLANNER, Harness, command, principal
 
+from rcan_rtps.governance import estop
 from rcan_rtps.governance.governor import (
     BRIDGE_STOPPING,
     CONNECTION_CLOSED,
@@ -384,3 +386,37 @@ async def test_an_estop_clear_whose_latch_file_write_spans_the_bridges_stop_is_u
     assert [a for a, _ in robot.calls if a == "clear_estop"] == []
     assert gov.latch.latched
     assert file.load(first_start=False)[0]
+
+
+async def test_an_estop_in_the_window_of_a_clear_undone_by_the_stop_keeps_its_own_latch(
+        harness: Harness, monkeypatch: pytest.MonkeyPatch) -> None:
+    """(red team 29) An e-stop came while the clear's `false` was being written, and the
+    streams ended before the clear looked again: the e-stop's own `true` (queued after the
+    `false`) latches the file, naming who e-stopped; the clear undone must not write it over
+    with the bridge's name, nor take the latch back to the e-stop before the clear (a repeat
+    is answered with the entry that latched it: the later e-stop's)."""
+    gov = await harness.governor()
+    await gov.start()
+    await gov.decide(command("estop"), ADMIN)
+    writing, go = threading.Event(), threading.Event()
+    write = estop.atomic_write
+
+    def slow_write(path: Any, data: bytes) -> None:  # the disk, slow for the clear's `false`
+        if b'"latched":false' in data:
+            writing.set()
+            go.wait(10)
+        write(path, data)
+
+    monkeypatch.setattr(estop, "atomic_write", slow_write)
+    clearing = asyncio.ensure_future(gov.decide(command("clear_estop"), ADMIN))
+    while not writing.is_set():
+        await asyncio.sleep(0.01)
+    stopped = asyncio.ensure_future(gov.decide(command("estop"), OPS))
+    await asyncio.sleep(0)  # its first step: its `true` is queued after the `false`
+    gov.end_streams()
+    go.set()
+    waited, later = await clearing, await stopped
+    assert waited.reason == "stopped" and later.outcome is Outcome.EXECUTED, (waited, later)
+    assert gov.latch.file.path.read_bytes().count(b'"by":"ops"') == 1  # who e-stopped
+    again = await gov.decide(command("estop"), OPS)
+    assert again.reason == "already_latched" and again.audit_id == later.audit_id, again

@@ -20,6 +20,8 @@ from pathlib import Path
 import aiohttp
 import httpx2
 import pytest
+from aiohttp import web
+from aiohttp.test_utils import TestClient, TestServer
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from jwthelpers import sign_jwt
@@ -257,3 +259,40 @@ async def test_the_event_stream_ends_at_its_client_certificates_not_after(
             api.clock.advance(10)  # past the notAfter; the connection stays open
             rest = await asyncio.wait_for(stream.content.read(), timeout=30)
     assert b"event: message" not in rest, rest
+
+
+async def test_an_answer_begun_as_its_jwt_runs_out_does_not_leave_the_client_waiting(
+        tmp_path: Path) -> None:
+    """(red team 29) The credential ran out as an answer's head (its Content-Length) was
+    written: its body was then dropped and the response ended on a connection kept alive,
+    so the SDK's client waited for the bytes the head promised (its read timeout: 5 min).
+    Now an answer of a known length goes whole, head and body together, or is answered 401
+    whole (as a call answered after the expiry is): here it was on its way, so it goes."""
+    key = Ed25519PrivateKey.generate()
+    pem = key.public_key().public_bytes(serialization.Encoding.PEM,
+                                        serialization.PublicFormat.SubjectPublicKeyInfo)
+    (tmp_path / "jwt.pem").write_bytes(pem)
+    api = Api(tmp_path, api_extra=f"jwt: {{public_key: '{tmp_path / 'jwt.pem'}', "
+                                  "audience: rcan-bridge}")
+    app = await api.build()
+    armed: list[bool] = []
+
+    async def time_passes(request: web.Request, response: web.StreamResponse) -> None:
+        answer = request.method == "POST" and response.status == 200  # (no stream's head)
+        if armed and answer and request.path == "/mcp":
+            armed.clear()
+            api.clock.advance(120)  # as the head is written: the token has run out
+
+    app.on_response_prepare.append(time_passes)
+    api.client = TestClient(TestServer(app, host="127.0.0.1"))
+    await api.client.start_server()
+    try:
+        async with sdk_agent(api, token(api, key, 60)) as (client, web_client):
+            await client.list_tools()  # (the SDK's client asks before its first call's end)
+            armed.append(True)
+            # (30 s of waiting is a client left waiting: its read timeout is 300 s)
+            status = await asyncio.wait_for(client.call_tool("get_status", {}), timeout=30)
+            assert not armed and not status.is_error, status  # begun as it ran out: whole
+            web_client.headers["Authorization"] = f"Bearer {token(api, key, 60)}"  # (DELETE)
+    finally:
+        await api.close()

@@ -13,7 +13,9 @@ None: it does not expire), no longer. A stream open when the credential runs out
 session's event stream) is ended: the application's `receive()` says the client left, and
 what it writes after is dropped, the response ended. A response not yet begun by then (a
 tool call still being answered) is answered 401 instead, once the application answers:
-nothing the application says after the credential ran out reaches its holder.
+nothing the application says after the credential ran out reaches its holder. An answer of
+a known length is begun with its body, never its head alone (a head whose body was then cut
+left its client waiting for bytes that never came).
 """
 
 from __future__ import annotations
@@ -65,6 +67,9 @@ class _Exchange:
         self._done = asyncio.Event()
         self._left = left
         self.expired = False  # the credential ran out while the request was served
+        # A sized answer's head waits for its body (`_sized`): cut between the two, it is
+        # answered 401 whole, not a head whose promised body never comes.
+        self._head: Message | None = None
         self.response: web.StreamResponse | None = None
 
     async def receive(self) -> Message:
@@ -98,14 +103,15 @@ class _Exchange:
             return
         kind = message["type"]
         if kind == "http.response.start":
-            response = web.StreamResponse(status=int(message["status"]))
-            for name, value in message.get("headers", ()):
-                response.headers.add(name.decode("latin-1"), value.decode("latin-1"))
-            self.response = response
-            await response.prepare(self._request)
+            self._head = message
+            if not _sized(message):  # a stream: its head goes now
+                await self._begin(message)
         elif kind == "http.response.body":
             if self.response is None:
-                raise RuntimeError("ASGI body before its start")
+                if self._head is None:
+                    raise RuntimeError("ASGI body before its start")
+                await self._begin(self._head)
+            assert self.response is not None
             body = message.get("body", b"")
             if body:
                 await self.response.write(body)
@@ -120,6 +126,13 @@ class _Exchange:
                 finally:
                     self._done.set()
 
+    async def _begin(self, head: Message) -> None:
+        response = web.StreamResponse(status=int(head["status"]))
+        for name, value in head.get("headers", ()):
+            response.headers.add(name.decode("latin-1"), value.decode("latin-1"))
+        self.response = response
+        await response.prepare(self._request)
+
     async def _cut(self) -> None:
         """The credential ran out: a response begun is ended, one not begun is a 401; what
         the application sends after either is dropped."""
@@ -130,7 +143,7 @@ class _Exchange:
             if self.response is None:
                 self.response = web.Response(status=401, body=EXPIRED_BODY,
                                              content_type="application/json")
-            else:
+            else:  # (a stream, chunked: its end is said; a sized answer is not begun yet)
                 await self.response.write_eof()
         except ConnectionResetError:  # the client left too
             pass
@@ -147,6 +160,11 @@ async def serve(app: AsgiApp, request: web.Request, body: bytes,
     exchange = _Exchange(request, body, left)
     await _run(app, request, extra, exchange)
     return exchange.response
+
+
+def _sized(head: Message) -> bool:
+    """Whether a response's head says its body's length (an answer, not a stream)."""
+    return any(name.lower() == b"content-length" for name, _ in head.get("headers", ()))
 
 
 async def _run(app: AsgiApp, request: web.Request, extra: dict[str, Any],

@@ -170,13 +170,18 @@ class EstopLane:
     async def _latched_again(self, command: NormalizedCommand, principal: Principal,
                              latched_by: AuditReceipt | None) -> Decision:
         """A clear whose `false` reached the latch file as the bridge began stopping: never
-        unlatched nor published, and the file latched again, so the next start is too."""
+        unlatched nor published, and the file latched again, so the next start is too. An
+        e-stop since the clear was decided latched it already (its `true` is queued after
+        the `false`): the file names who e-stopped, and that e-stop holds the latch."""
+        if self._latch.overtaken():
+            return await self._steps.failed(command, principal, outcomes.STOPPED)
         self._latched_by = latched_by
         try:
             await self._latch.file.write(True, STOPPING_RELATCHED, now_ms(self._clock))
-        except EstopStateError:  # the next start reads a clear file: said loudly
+        except EstopStateError:  # the file says clear; the log's COMMAND_FAILED latches
             log.exception("e-stop clear refused as the bridge stopped, but its latch file "
-                          "could not be latched again: the next start will not be latched",
+                          "could not be latched again: it says clear (the next start is "
+                          "latched by the audit log's failed clear)",
                           extra={"principal": principal.name})
         return await self._steps.failed(command, principal, outcomes.STOPPED)
 

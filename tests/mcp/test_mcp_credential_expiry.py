@@ -22,9 +22,8 @@ import httpx2
 import pytest
 from aiohttp import web
 from aiohttp.test_utils import TestClient, TestServer
-from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
-from jwthelpers import sign_jwt
+from jwthelpers import expiring_jwt, jwt_issuer
 from mcp import Client
 from mcp.client.streamable_http import streamable_http_client
 from mcp.shared._httpx_utils import create_mcp_http_client
@@ -37,7 +36,6 @@ from tests.api.test_mcp_http import AGENT, CLIENT, _endpoint, data
 from tests.api.test_redteam26_cert_expiry import _soon
 from tests.api.test_tls import Pki, mtls_api, pki  # noqa: F401 (fixtures)
 
-LEEWAY_S = 30  # api.jwt.leeway_s's default: a token is taken this long after its exp
 INITIALIZE = {"jsonrpc": "2.0", "id": 1, "method": "initialize", "params": {
     "protocolVersion": "2025-06-18", "capabilities": {},
     "clientInfo": {"name": "raw", "version": "1"}}}
@@ -53,12 +51,8 @@ async def api(tmp_path: Path) -> AsyncIterator[Api]:
 
 @pytest.fixture
 async def jwt_api(tmp_path: Path) -> AsyncIterator[tuple[Api, Ed25519PrivateKey]]:
-    key = Ed25519PrivateKey.generate()
-    pem = key.public_key().public_bytes(serialization.Encoding.PEM,
-                                        serialization.PublicFormat.SubjectPublicKeyInfo)
-    (tmp_path / "jwt.pem").write_bytes(pem)
-    api = await Api(tmp_path, api_extra=f"jwt: {{public_key: '{tmp_path / 'jwt.pem'}', "
-                                         "audience: rcan-bridge}").start()
+    key, trusted = jwt_issuer(tmp_path)
+    api = await Api(tmp_path, api_extra=trusted).start()
     yield api, key
     await api.close()
 
@@ -66,9 +60,7 @@ async def jwt_api(tmp_path: Path) -> AsyncIterator[tuple[Api, Ed25519PrivateKey]
 def token(api: Api, key: Ed25519PrivateKey, left_s: float) -> str:
     """An OPERATOR's JWT (agent-7) taken for `left_s` more seconds (its exp, plus the
     leeway)."""
-    claims = {"sub": "agent-7", "role": "OPERATOR", "aud": "rcan-bridge",
-              "exp": api.clock.time() + left_s - LEEWAY_S}
-    return sign_jwt(key, claims, {"alg": "EdDSA"})
+    return expiring_jwt(key, api.clock.time(), left_s, sub="agent-7", role="OPERATOR")
 
 
 def headers_with(jwt: str, session: str | None = None) -> dict[str, str]:
@@ -268,12 +260,8 @@ async def test_an_answer_begun_as_its_jwt_runs_out_does_not_leave_the_client_wai
     so the SDK's client waited for the bytes the head promised (its read timeout: 5 min).
     Now an answer of a known length goes whole, head and body together, or is answered 401
     whole (as a call answered after the expiry is): here it was on its way, so it goes."""
-    key = Ed25519PrivateKey.generate()
-    pem = key.public_key().public_bytes(serialization.Encoding.PEM,
-                                        serialization.PublicFormat.SubjectPublicKeyInfo)
-    (tmp_path / "jwt.pem").write_bytes(pem)
-    api = Api(tmp_path, api_extra=f"jwt: {{public_key: '{tmp_path / 'jwt.pem'}', "
-                                  "audience: rcan-bridge}")
+    key, trusted = jwt_issuer(tmp_path)
+    api = Api(tmp_path, api_extra=trusted)
     app = await api.build()
     armed: list[bool] = []
 

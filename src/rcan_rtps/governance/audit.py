@@ -46,7 +46,6 @@ import functools
 import hashlib
 import json
 import logging
-import math
 import os
 import stat
 import time
@@ -71,7 +70,12 @@ from ._durable import (
 )
 from ._json import decode, decode_as
 from .clock import Clock, SystemClock
-from .entry_bound import bound_request_content, request_bytes_limit, size_within
+from .entry_bound import (
+    bound_request_content,
+    canonical_float,
+    request_bytes_limit,
+    size_within,
+)
 from .errors import AuditError, AuditIntegrityError, AuditKeyError, AuditWriteError
 from .keyfacts import read_public_pem
 from .log_tail import CHUNK, lines_forwards
@@ -237,13 +241,10 @@ def _whole_floats_as_ints(value: Any, exponents: list[bool]) -> Any:
     if isinstance(value, msgspec.Struct):
         value = msgspec.to_builtins(value)
     if isinstance(value, float):
-        if not math.isfinite(value):
-            return None
-        if value.is_integer():
-            return int(value)
-        if "e" in repr(value):
+        written = canonical_float(value)
+        if isinstance(written, float) and "e" in repr(written):
             exponents.append(True)
-        return value
+        return written
     if isinstance(value, dict):
         return {k: _whole_floats_as_ints(v, exponents) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

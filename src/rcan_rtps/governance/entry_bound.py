@@ -72,17 +72,23 @@ def size_within(value: Any, budget: int) -> int | None:
     return total
 
 
+def canonical_float(value: float) -> int | float | None:
+    """How RCAN canonical JSON v1 writes a float: null if it is not finite (a stop's `1e400`,
+    read as infinity), the integer if it is whole (50.0 → 50, 1e300 → 301 digits), else
+    itself (its repr). The log's encoder (`audit`) and the size walk here both ask this."""
+    if not math.isfinite(value):
+        return None
+    return int(value) if value.is_integer() else value
+
+
 def _scalar_size(item: Any) -> int:
     if item is None or item is True:
         return 4
     if item is False:
         return 5
-    if isinstance(item, float):
-        if not math.isfinite(item):  # (a stop's `1e400`, read as infinity): written null
-            return 4
-        # A whole float is written as the integer (50.0 → 50, 1e300 → 301 digits), another
-        # as Python's repr: the digits of one number, never the whole.
-        return len(str(int(item))) if item.is_integer() else len(repr(item))
+    if isinstance(item, float):  # the digits of one number, never the whole
+        written = canonical_float(item)
+        return 4 if written is None else len(repr(written))
     if isinstance(item, int):
         if item.bit_length() > 10_000:  # (str() refuses so many digits: counted instead)
             return item.bit_length() * 30103 // 100_000 + 2

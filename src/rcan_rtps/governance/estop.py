@@ -126,6 +126,9 @@ class EstopMachine:
         self._worker: asyncio.Task[None] | None = None
         self._unfinished = 0  # transitions submitted and not done
         self._unfinished_engages = 0  # of them, e-stops
+        # E-stops that arrived (repeats while latched included): a clear held for a human
+        # since fewer had is refused when approved (`Governor._run_approved`).
+        self.arrived = 0
 
     @property
     def latched(self) -> bool:
@@ -146,6 +149,7 @@ class EstopMachine:
         returned in order either way."""
         flipped, self._latched = not self._latched, True
         self._engages_waiting += 1
+        self.arrived += 1
         if flipped:
             self._tell()
         if self._unfinished_engages and not flipped:

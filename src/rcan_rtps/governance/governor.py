@@ -102,6 +102,20 @@ CONNECTION_CLOSED = "withdrawn: a connection of its issuer's closed while it was
 # `{}`: why the session was lost ("no command or heartbeat for 2 s", "its connection closed").
 SESSION_LOST = "withdrawn: its issuer's control session was lost while it was held ({})"
 BRIDGE_STOPPING = "withdrawn: the bridge stopped while it was held"
+ESTOPPED_WHILE_HELD = "withdrawn: an e-stop came while it was held"
+
+
+# Which held commands a withdrawal takes (`Governor._withdraw_held`).
+def _is_motion(command: NormalizedCommand) -> bool:
+    return command.spec.motion
+
+
+def _is_clear(command: NormalizedCommand) -> bool:
+    return command.spec.effect is Effect.CLEAR_ESTOP
+
+
+def _any(command: NormalizedCommand) -> bool:
+    return True
 
 
 class ClientCancel(NamedTuple):
@@ -343,6 +357,14 @@ class Governor:
         if self.latch.latched:  # a stop of the robot (`VelocityStreams.on_latch`)
             self._robot_stopped("an e-stop")
 
+    def _estop_withdraws_clears(self) -> None:
+        """An e-stop (a repeat while latched too) withdraws every clear_estop held for a human,
+        in its step: each was asked for before this e-stop, and approved later it would
+        release the robot from an e-stop nobody asked it to clear — as a clear under way that
+        an e-stop overtakes is refused (`EstopMachine.overtaken`). `_run_approved` refuses
+        one this misses (held as the e-stop came, say)."""
+        self._withdraw_held(None, ESTOPPED_WHILE_HELD, which=_is_clear, what="e-stop clear")
+
     # -- commands ---------------------------------------------------------------------------
 
     async def decide(self, command: NormalizedCommand, principal: Principal) -> Decision:
@@ -351,8 +373,9 @@ class Governor:
         if command.spec.stopping:
             command = self._forgiven(command, principal)
         if effect is Effect.ESTOP:  # any authenticated principal; latched right here
-            decided = await asyncio.shield(
-                self.latch.engage(lambda: self._estops.estop(command, principal)))
+            estopping = self.latch.engage(lambda: self._estops.estop(command, principal))
+            self._estop_withdraws_clears()
+            decided = await asyncio.shield(estopping)
         elif effect is Effect.HALT:  # the e-stop lane: no admission queue
             decided = await self._detached(self._decide(command, principal))
         else:
@@ -577,8 +600,10 @@ class Governor:
         while it waits a stop for it too (`_run_approved`)."""
         if arrived is not None and self.streams.stopped_since(arrived):
             return await self._steps.refuse(command, principal, outcomes.STOPPED)
+        clear = command.spec.effect is Effect.CLEAR_ESTOP
         held = await self._desk.hold(command, principal, approver_role,
-                                     self.streams.stops if command.spec.motion else None)
+                                     self.streams.stops if command.spec.motion else None,
+                                     self.latch.arrived if clear else None)
         # In the step it was put in the store: no review of it can come first.
         if arrived is None or held.pending_id is None or not self.streams.stopped_since(arrived):
             return held
@@ -926,6 +951,13 @@ class Governor:
         stop withdraws such motion itself (`_robot_stopped`), in its step; this is the
         backstop, should a withdrawal miss one (motion being decided once approved is
         stopped as any other: `_carry_out`)."""
+        if pending.estops is not None and self.latch.arrived != pending.estops:
+            # A clear held before an e-stop was not asked for that e-stop: approved, it would
+            # release the robot from an e-stop acknowledged after the clear was asked for (the
+            # e-stop withdraws it, `_estop_withdraws_clears`: this is the backstop).
+            return await self._steps.refuse(command, approver, outcomes.ESTOP_ACTIVE,
+                                            event=AuditEvent.HITL_AUTHORIZED,
+                                            pending_id=pending.pending_id)
         stopped = pending.stops is not None and self.streams.stops != pending.stops
         if stopped and not self.latch.latched:  # (latched: refused `estop_active`, below)
             return await self._steps.refuse(command, approver, outcomes.STOPPED,
@@ -1112,13 +1144,16 @@ class Governor:
         which `stop` ends."""
         if not self._stopped:  # BRIDGE_STOPPED is the last entry
             await self._desk.expire()
-        withdrawing = self._withdraw_held(None, BRIDGE_STOPPING, motion_only=False)
+        withdrawing = self._withdraw_held(None, BRIDGE_STOPPING, which=_any,
+                                          what="every command")
         await asyncio.gather(*withdrawing.values(), return_exceptions=True)
 
     def _withdraw_held(self, issuer: Principal | None, reason: str, *,
-                       motion_only: bool = True) -> dict[str, asyncio.Future[Decision]]:
+                       which: Callable[[NormalizedCommand], bool] = _is_motion,
+                       what: str = "motion") -> dict[str, asyncio.Future[Decision]]:
         """Withdraws the motion held for a human of `issuer` (None: of everyone) that a stop
-        of it came for (`motion_only` False: all it held, the bridge stopping), in this step:
+        of it came for (`which` picks other commands: all it held, the bridge stopping; the
+        clears an e-stop came after), in this step:
         each as its issuer would withdraw it (HITL_WITHDRAWN,
         `reason` saying the stop; its issuer reads that in its pending record, approvers see
         it leave the list). From this step on no approval of it counts
@@ -1133,11 +1168,9 @@ class Governor:
         the backstop)."""
         if self._stopped:  # BRIDGE_STOPPED is the last entry
             return {}
-        picked = self._desk.withdrawing(issuer.name if issuer else None,
-                                        lambda c: c.spec.motion or not motion_only)
+        picked = self._desk.withdrawing(issuer.name if issuer else None, which)
         if picked:
-            log.warning("%s held for approval is withdrawn (%s): %s",
-                        "motion" if motion_only else "every command", reason,
+            log.warning("%s held for approval is withdrawn (%s): %s", what, reason,
                         ", ".join(f"{p.pending_id} of '{p.issuer.name}'" for p in picked),
                         extra={"principal": issuer.name} if issuer else None)
         return {p.pending_id: self._detached(self._desk.resolve(p.pending_id, p.issuer,

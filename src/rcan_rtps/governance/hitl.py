@@ -39,6 +39,9 @@ class PendingCommand(msgspec.Struct, frozen=True, kw_only=True):
     # Motion only: the robot-wide stops so far (`VelocityStreams.stops`) when it was held. A
     # stop after that was a stop for it too: approved later, it is refused `stopped`.
     stops: int | None = None
+    # clear_estop only: the e-stops that had arrived (`EstopMachine.arrived`) when it was held.
+    # One after that is one it was not asked for: approved later, it is refused `estop_active`.
+    estops: int | None = None
 
     def message(self, approvals: list[Approval] | None = None) -> PendingAuth:
         ai = self.command.ai

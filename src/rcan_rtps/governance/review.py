@@ -192,14 +192,17 @@ class HitlDesk:
         return picked
 
     async def hold(self, command: NormalizedCommand, principal: Principal,
-                   approver_role: Role, stops: int | None = None) -> Decision:
-        """`stops`: motion's robot-wide stops so far (`PendingCommand.stops`)."""
+                   approver_role: Role, stops: int | None = None,
+                   estops: int | None = None) -> Decision:
+        """`stops`: motion's robot-wide stops so far (`PendingCommand.stops`); `estops`: a
+        clear's e-stops so far (`PendingCommand.estops`)."""
         due_mono = self._clock.monotonic() + self._ttl_ms / 1000
         pending = PendingCommand(
             pending_id=uuid.uuid4().hex, command=command, issuer=principal,
             approver_role=approver_role,
             expires_at_ms=now_ms(self._clock) + self._ttl_ms,
             approvals_required=self._policy.approvals(command.action), stops=stops,
+            estops=estops,
         )
         entry = record(AuditEvent.PENDING_AUTH, command, principal, Outcome.PENDING_AUTH,
                        pending_id=pending.pending_id)

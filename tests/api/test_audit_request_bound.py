@@ -56,6 +56,7 @@ def _marked(line: bytes, sent: bytes) -> dict[str, Any]:
     assert entry["params"] == {"omitted": "too_large_to_log", "json_bytes": len(compact),
                                "sha256": hashlib.sha256(compact).hexdigest(),
                                "limit_bytes": BOUND}, entry["params"]
+    assert entry["omitted"] == ["params"], entry.get("omitted")  # the bridge's marker
     assert len(line) <= BOUND + OVERHEAD
     return dict(entry)
 
@@ -97,6 +98,23 @@ async def test_a_guests_refused_stop_of_huge_params_is_bounded(api: Api) -> None
     entry = _marked(line, raw)
     assert (entry["event"], entry["outcome"]) == ("COMMAND_REJECTED", "denied")
     assert _sdk_recomputes(line)
+    await api.close()
+    _verified(api.tmp / "audit.jsonl")
+
+
+async def test_params_that_look_like_a_marker_are_logged_as_sent_and_not_listed(
+        api: Api) -> None:
+    """A request may send a marker's shape itself: it is logged as sent, and only the entry's
+    `omitted` list (which the bridge writes) says a field was replaced. Before, a forged marker
+    read as the bridge's, claiming a size and digest of params never sent."""
+    forged = {"omitted": "too_large_to_log", "json_bytes": 99_000_000,
+              "sha256": "0" * 64, "limit_bytes": BOUND}
+    for who, outcome in (("planner", "executed"), ("viewer", "denied")):
+        status, body = await api.command(who, {"action": "stop", "params": forged})
+        assert status in (200, 403), body
+        entry = json.loads(_lines(api)[-1])
+        assert (entry["outcome"], entry["params"]) == (outcome, forged), entry
+        assert "omitted" not in entry, entry
     await api.close()
     _verified(api.tmp / "audit.jsonl")
 

@@ -66,17 +66,18 @@ OUR_READER = OUR_PREFIX + b"\x00\x00\x36\x04"
 
 
 def heartbeat_message(reader_id: bytes, *, destination: bytes | None = None,
-                      little: bool = True) -> bytes:
+                      little: bool = True, last: int = 15) -> bytes:
     """An RTPS message from SERVER's participant: INFO_DST (if given), then a GAP and a
     HEARTBEAT addressed to `reader_id` (ENTITYID_UNKNOWN: to every reader), as a Fast DDS
-    writer announces itself to a new reader."""
+    writer announces itself to a new reader; the HEARTBEAT names samples 6 to `last`."""
     o = "<" if little else ">"
     e = 0x01 if little else 0x00
     info_dst = b"" if destination is None else struct.pack(o + "BBH", 0x0E, e, 12) + destination
     gap_body = reader_id + WRITER_ID + struct.pack(o + "iI", 0, 6) + \
         struct.pack(o + "iII", 0, 15, 0)
     gap = struct.pack(o + "BBH", 0x08, e, len(gap_body)) + gap_body
-    hb_body = reader_id + WRITER_ID + struct.pack(o + "iIiIi", 0, 6, 0, 15, 21)
+    hb_body = reader_id + WRITER_ID + \
+        struct.pack(o + "iIiIi", 0, 6, last >> 32, last & 0xFFFFFFFF, 21)
     hb = struct.pack(o + "BBH", 0x07, e, len(hb_body)) + hb_body
     return b"RTPS\x02\x03\x01\x0f" + PREFIX + info_dst + gap + hb
 
@@ -108,11 +109,12 @@ def test_parse_finds_heartbeats_and_whom_they_address() -> None:
     for little in (True, False):
         found = list(parse_rtps(heartbeat_message(OUR_READER[12:], destination=OUR_PREFIX,
                                                   little=little)))
-        assert found == [ReceivedHeartbeat(SERVER, OUR_READER)]
+        assert found == [ReceivedHeartbeat(SERVER, OUR_READER, 15)]
     assert list(parse_rtps(heartbeat_message(OUR_READER[12:]))) == \
-        [ReceivedHeartbeat(SERVER, UNKNOWN_PREFIX + OUR_READER[12:])]
-    assert list(parse_rtps(heartbeat_message(bytes(4), destination=OUR_PREFIX))) == \
-        [ReceivedHeartbeat(SERVER, OUR_PREFIX + bytes(4))]  # to all our readers
+        [ReceivedHeartbeat(SERVER, UNKNOWN_PREFIX + OUR_READER[12:], 15)]
+    to_all = heartbeat_message(bytes(4), destination=OUR_PREFIX, last=2**32 + 3)
+    assert list(parse_rtps(to_all)) == \
+        [ReceivedHeartbeat(SERVER, OUR_PREFIX + bytes(4), 2**32 + 3)]  # to all our readers
 
 
 @pytest.fixture
@@ -693,10 +695,10 @@ def test_parse_finds_the_acknacks_we_sent_and_whether_they_ask_again() -> None:
     for little in (True, False):
         assert list(rtps_capture.parse_acknacks(acknack_message(
             OUR_READER, SERVER, [16, 40], little=little))) == \
-            [rtps_capture.SentAcknack(OUR_READER, SERVER, True)]
+            [rtps_capture.SentAcknack(OUR_READER, SERVER, True, 16)]
         assert list(rtps_capture.parse_acknacks(acknack_message(
-            OUR_READER, SERVER, [], little=little))) == \
-            [rtps_capture.SentAcknack(OUR_READER, SERVER, False)]
+            OUR_READER, SERVER, [], little=little, base=40))) == \
+            [rtps_capture.SentAcknack(OUR_READER, SERVER, False, 40)]
 
 
 def test_a_repair_is_owed_until_a_heartbeat_since_the_mark_was_answered_asking_nothing(
@@ -729,4 +731,35 @@ def test_a_repair_is_owed_until_a_heartbeat_since_the_mark_was_answered_asking_n
     os.write(writer, pcap_record(acknack_message(OUR_READER, SERVER, [17]), ttl=255))
     assert not tail.repair_owed(SERVER, OUR_READER, end)  # later samples are not the goal's
     assert tail.repair_owed(SERVER, OUR_READER, tail.mark())  # (but a later goal's)
+    tail.unuse()
+
+
+def test_an_acknack_asking_nothing_with_its_base_not_past_the_heartbeat_answers_nothing(
+        capture: tuple[IdentityCapture, int]) -> None:
+    """A repair is owed until an ACKNACK takes all the HEARTBEAT named: its base past the
+    HEARTBEAT's last sequence number. Cyclone answers a HEARTBEAT within NackDelay of its last
+    NACK with an empty set whose base is the sample it still misses (ddsi_acknack.c,
+    AANR_SUPPRESSED_NACK), and an ACKNACK built before a HEARTBEAT was applied can be captured
+    after it: neither says the sample came. (Taken as answers, a Fast DDS server's feedback
+    dropped at our socket and dropped again on its repair was given up on.)"""
+    tail, writer = capture
+    tail.use()
+    end = tail.mark()
+    os.write(writer, pcap_record(heartbeat_message(OUR_READER[12:], destination=OUR_PREFIX,
+                                                   last=16)))
+    os.write(writer, pcap_record(acknack_message(OUR_READER, SERVER, [16]), ttl=255))
+    assert tail.repair_owed(SERVER, OUR_READER, end)  # NACKed
+    suppressed = pcap_record(acknack_message(OUR_READER, SERVER, [], base=16), ttl=255)
+    os.write(writer, suppressed)
+    assert tail.repair_owed(SERVER, OUR_READER, end)  # #16 still missing, the NACK held back
+    os.write(writer, pcap_record(acknack_message(OUR_READER, SERVER, [], base=12), ttl=255))
+    assert tail.repair_owed(SERVER, OUR_READER, end)  # built before #12 to #16 were named
+    os.write(writer, pcap_record(acknack_message(OUR_READER, SERVER, [], base=17), ttl=255))
+    assert not tail.repair_owed(SERVER, OUR_READER, end)  # #16 taken
+    later = tail.mark()
+    os.write(writer, pcap_record(heartbeat_message(bytes(4), destination=OUR_PREFIX, last=20)))
+    os.write(writer, pcap_record(acknack_message(OUR_READER, SERVER, [], base=17), ttl=255))
+    assert tail.repair_owed(SERVER, OUR_READER, later)  # to all our readers: #17 to #20 owed
+    os.write(writer, pcap_record(acknack_message(OUR_READER, SERVER, [], base=21), ttl=255))
+    assert not tail.repair_owed(SERVER, OUR_READER, later)
     tail.unuse()

@@ -13,7 +13,9 @@ canonical JSON together, in that order; a field that does not fit in what is lef
 a marker that says what was sent without repeating it: `{"omitted": "too_large_to_log",
 "json_bytes": N, "sha256": <hex>, "limit_bytes": L}`, where N and the digest are of the
 compact JSON the bridge decoded (msgspec's: keys in the order received, floats in their
-shortest round-trip form, so never amplified).
+shortest round-trip form, so never amplified). The entry's own `omitted` field lists the fields
+so replaced (`["params"]`, `"rcan.ignored"`, `"warnings"`): a request's params may look like
+a marker, and are then logged as sent, unlisted.
 
 `request_bytes_limit` derives the limit from the body limit so that an executed command's params
 are always logged whole: the only growth canonical JSON gives an accepted command's params is
@@ -44,6 +46,8 @@ FLOOR_BYTES = 64 * 1024
 # The canonical JSON of an accepted command's params is at most 2.75 times its body's size.
 GROWTH = 3
 OMITTED = "too_large_to_log"
+# The entry field that lists which of its request fields the bridge replaced by a marker.
+OMITTED_FIELDS = "omitted"
 
 
 def request_bytes_limit(max_body_bytes: int) -> int:
@@ -107,23 +111,31 @@ def omitted(value: Any, limit: int) -> dict[str, Any]:
 def bound_request_content(entry: dict[str, Any], limit: int, *, params: bool) -> None:
     """Holds `entry`'s request content to `limit` bytes together (in place): `params` (when
     `params`: the entry records a command's params as requested), then `rcan.ignored`, then
-    `warnings`; each that does not fit in what is left becomes its marker."""
-    left = limit
+    `warnings`; each that does not fit in what is left becomes its marker, and the entry's
+    `omitted` lists the fields so replaced. Only that list tells a marker from a client's
+    params that look like one (a request may send `{"omitted": "too_large_to_log", ...}`
+    itself: it is logged as sent, and not listed)."""
+    left, replaced = limit, list[str]()
     if params and entry.get("params") is not None:
-        left = _fitted(entry, "params", left, limit)
+        left = _fitted(entry, "params", left, limit, replaced)
     rcan = entry.get("rcan")
     if isinstance(rcan, dict) and rcan.get("ignored"):
         entry["rcan"] = rcan = dict(rcan)  # (the caller's own dict is left as it was)
-        left = _fitted(rcan, "ignored", left, limit)
+        left = _fitted(rcan, "ignored", left, limit, replaced, "rcan.ignored")
     if entry.get("warnings"):
-        _fitted(entry, "warnings", left, limit)
+        _fitted(entry, "warnings", left, limit, replaced)
+    if replaced:
+        entry[OMITTED_FIELDS] = replaced
 
 
-def _fitted(holder: dict[str, Any], key: str, left: int, limit: int) -> int:
-    """`holder[key]` kept if it fits in `left` bytes, else its marker; what is left then."""
+def _fitted(holder: dict[str, Any], key: str, left: int, limit: int, replaced: list[str],
+            name: str | None = None) -> int:
+    """`holder[key]` kept if it fits in `left` bytes, else its marker (and `name`, the
+    field's name in the entry, noted in `replaced`); what is left then."""
     size = size_within(holder[key], left)
     if size is not None:
         return left - size
+    replaced.append(name or key)
     if key == "warnings":  # a list of text stays one: its marker is the one line
         marker = omitted(holder[key], limit)
         holder[key] = [f"{len(holder[key])} warnings {OMITTED}: {marker['json_bytes']} bytes "

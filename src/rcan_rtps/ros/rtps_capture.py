@@ -81,6 +81,7 @@ PCAP_MAGICS = {b"\xd4\xc3\xb2\xa1": True, b"\xa1\xb2\xc3\xd4": False}  # → lit
 
 KEPT_IDENTITIES = 8192  # newest identified samples remembered; far more than a reader keeps
 KEPT_HEARTBEATS = 4096  # newest (writer, addressee) pairs a HEARTBEAT was heard for
+NOT_HEARD = (-1, 0)  # (file offset, last sequence number) of no HEARTBEAT
 KEPT_ACKNACKS = 4096  # newest (our reader, writer) pairs we sent an ACKNACK for
 UNKNOWN_PREFIX = bytes(12)  # no INFO_DST before it: addressed to whoever received it
 ENTITYID_UNKNOWN = bytes(4)
@@ -109,12 +110,14 @@ class ReceivedData(msgspec.Struct, frozen=True):
 
 
 class ReceivedHeartbeat(msgspec.Struct, frozen=True):
-    """A received HEARTBEAT: its writer, and to whom it is addressed."""
+    """A received HEARTBEAT: its writer, to whom it is addressed, and the last sequence
+    number the writer says it has written."""
 
     writer_guid: bytes
     # The INFO_DST prefix (UNKNOWN_PREFIX if none: to whoever received it) + the reader's
     # entity id (ENTITYID_UNKNOWN: to every reader of that participant matched with the writer)
     reader_guid: bytes
+    last_sn: int
 
 
 def capture_config(path: str | Path) -> str:
@@ -168,12 +171,14 @@ Received = ReceivedData | ReceivedHeartbeat | ReceivedPiece
 
 
 class SentAcknack(msgspec.Struct, frozen=True):
-    """An ACKNACK one of our readers sent: whose, to which writer, and whether it asks for
-    samples to be sent again (a non-empty set: the reader misses them)."""
+    """An ACKNACK one of our readers sent: whose, to which writer, whether it asks for
+    samples to be sent again (a non-empty set: the reader misses them), and its base: the
+    reader has every sample before it."""
 
     reader_guid: bytes
     writer_guid: bytes
     missing: bool
+    base: int
 
 
 def parse_acknacks(buf: bytes | mmap.mmap, start: int = 0,
@@ -194,7 +199,14 @@ def parse_acknacks(buf: bytes | mmap.mmap, start: int = 0,
             words = min((bits + 31) // 32, (stop - body - 20) // 4)
             asked = any(buf[body + 20:body + 20 + 4 * words])
             yield SentAcknack(prefix + bytes(buf[body:body + 4]),
-                              destination + bytes(buf[body + 4:body + 8]), bits > 0 and asked)
+                              destination + bytes(buf[body + 4:body + 8]), bits > 0 and asked,
+                              _sequence_number(buf, body + 8, order))
+
+
+def _sequence_number(buf: bytes | mmap.mmap, offset: int, order: str) -> int:
+    """The RTPS SequenceNumber_t at `offset` (high: signed 32 bits, low: unsigned)."""
+    high, low = struct.unpack_from(order + "iI", buf, offset)
+    return int((high << 32) | low)
 
 
 def _sender_prefix(buf: bytes | mmap.mmap, start: int, end: int) -> bytes | None:
@@ -254,7 +266,8 @@ def parse_rtps(buf: bytes | mmap.mmap, start: int = 0, end: int | None = None,
                 nanoseconds(*struct.unpack_from("<iI" if little else ">iI", buf, body))
         elif kind == HEARTBEAT and stop - body >= 28:
             yield ReceivedHeartbeat(prefix + bytes(buf[body + 4:body + 8]),
-                                    destination + bytes(buf[body:body + 4]))
+                                    destination + bytes(buf[body:body + 4]),
+                                    _sequence_number(buf, body + 16, "<" if little else ">"))
         elif kind == INFO_SRC and stop - body >= 20:
             prefix = bytes(buf[body + 8:body + 20])
         elif kind == INFO_DST and stop - body >= 12:
@@ -269,9 +282,8 @@ def _data(buf: bytes | mmap.mmap, body: int, stop: int, order: str, kind: int, p
     related = _inline_related(buf, body + 4 + to_inline_qos, stop, order)
     if related is None:
         return None
-    high, low = struct.unpack_from(order + "iI", buf, body + 12)
-    return ReceivedData(prefix + bytes(buf[body + 8:body + 12]), (high << 32) | low,
-                        timestamp, related)
+    return ReceivedData(prefix + bytes(buf[body + 8:body + 12]),
+                        _sequence_number(buf, body + 12, order), timestamp, related)
 
 
 def _parameters_end(buf: bytes | mmap.mmap, offset: int, end: int, order: str) -> int | None:
@@ -384,8 +396,9 @@ class IdentityCapture:
         self._punched = 0
         self._record_size = struct.Struct("<I")
         self._known: OrderedDict[tuple[bytes, int], SampleIdentity] = OrderedDict()
-        # (writer, addressee) → file offset of the newest record with such a HEARTBEAT
-        self._heartbeats: OrderedDict[tuple[bytes, bytes], int] = OrderedDict()
+        # (writer, addressee) → file offset of the newest record with such a HEARTBEAT, and
+        # the last sequence number that HEARTBEAT named
+        self._heartbeats: OrderedDict[tuple[bytes, bytes], tuple[int, int]] = OrderedDict()
         # (our reader, writer) → file offset of the newest HEARTBEAT of that writer applied to
         # that reader that the reader then answered asking for nothing (`repair_owed`)
         self._answered: OrderedDict[tuple[bytes, bytes], int] = OrderedDict()
@@ -614,7 +627,7 @@ class IdentityCapture:
                 continue
             if isinstance(data, ReceivedHeartbeat):
                 pair = (data.writer_guid, data.reader_guid)
-                self._heartbeats[pair] = at
+                self._heartbeats[pair] = (at, data.last_sn)
                 self._heartbeats.move_to_end(pair)
                 if len(self._heartbeats) > KEPT_HEARTBEATS:
                     self._heartbeats.popitem(last=False)
@@ -627,27 +640,33 @@ class IdentityCapture:
                 self._known.popitem(last=False)
 
     def _note_acknacks(self, buf: mmap.mmap, start: int, end: int, at: int) -> None:
-        """Notes, for the ACKNACKs of a datagram we sent that ask for nothing, the newest
-        HEARTBEAT they answer (our own datagram: never malformed; a failure is skipped all
-        the same, as for received ones)."""
+        """Notes, for each ACKNACK of a datagram we sent that takes everything the newest
+        HEARTBEAT applied to its reader named (it asks for nothing, and its base is past that
+        HEARTBEAT's last sequence number), that HEARTBEAT's place. One that asks for nothing
+        with its base not past it answers nothing: Cyclone sends such an ACKNACK when it holds
+        back a NACK it sent less than NackDelay ago (the sample still missing: ddsi_acknack.c,
+        `AANR_SUPPRESSED_NACK`), and one built before the HEARTBEAT was applied can be captured
+        after it. (Our own datagram: never malformed; a failure is skipped all the same, as
+        for received ones.)"""
         try:
             for sent in parse_acknacks(buf, start, end):
-                heard = self._heard_at(sent.writer_guid, sent.reader_guid)
-                if sent.missing or heard < 0:
+                heard_at, last = self._heard_at(sent.writer_guid, sent.reader_guid)
+                if sent.missing or heard_at < 0 or sent.base <= last:
                     continue
                 pair = (sent.reader_guid, sent.writer_guid)
-                self._answered[pair] = heard
+                self._answered[pair] = heard_at
                 self._answered.move_to_end(pair)
                 if len(self._answered) > KEPT_ACKNACKS:
                     self._answered.popitem(last=False)
         except Exception:  # (a parser bug): the question it answers stays "owed"
             self.unparsed += 1
 
-    def _heard_at(self, writer_guid: bytes, reader_guid: bytes) -> int:
+    def _heard_at(self, writer_guid: bytes, reader_guid: bytes) -> tuple[int, int]:
         """Where the newest HEARTBEAT of `writer_guid` addressed so that Cyclone applies it
-        to `reader_guid` is in the capture (-1: none heard)."""
+        to `reader_guid` is in the capture, and the last sequence number it named
+        (NOT_HEARD: none heard)."""
         entity, ours = reader_guid[12:], reader_guid[:12]
-        return max(self._heartbeats.get((writer_guid, r), -1)
+        return max(self._heartbeats.get((writer_guid, r), NOT_HEARD)
                    for r in (reader_guid, UNKNOWN_PREFIX + entity, ours + ENTITYID_UNKNOWN,
                              UNKNOWN_PREFIX + ENTITYID_UNKNOWN))
 
@@ -748,18 +767,20 @@ class IdentityCapture:
                  (writer_guid, UNKNOWN_PREFIX + ENTITYID_UNKNOWN, since))
 
         def heard() -> bool | None:
-            return True if any(self._heartbeats.get((w, r), -1) >= at for w, r, at in pairs) \
+            return True if any(self._heartbeats.get((w, r), NOT_HEARD)[0] >= at
+                               for w, r, at in pairs) \
                 else None
         return self._find(heard) is True
 
     def repair_owed(self, writer_guid: bytes, reader_guid: bytes, since: int) -> bool:
         """Whether our reader `reader_guid` may still be owed a sample `writer_guid` wrote
         before `since` (a `mark`): True until a HEARTBEAT of that writer applied to that
-        reader has reached our socket at or after `since`, and the ACKNACK the reader sent
-        after it asks for nothing. A reader answers every HEARTBEAT that asks for an answer
-        (as Fast DDS's and Cyclone's periodic ones do) and NACKs what it misses of what the
-        HEARTBEAT says was written; once one heard after `since` was answered asking for
-        nothing, what was written before `since` was taken, and later HEARTBEATs change
+        reader has reached our socket at or after `since`, and an ACKNACK the reader sent
+        after it takes all that HEARTBEAT named (asks for nothing, its base past the
+        HEARTBEAT's last sequence number: `_note_acknacks`). A reader answers every HEARTBEAT
+        that asks for an answer (as Fast DDS's and Cyclone's periodic ones do) and NACKs what
+        it misses of what the HEARTBEAT says was written; once one heard after `since` was
+        answered so, what was written before `since` was taken, and later HEARTBEATs change
         nothing. So a sample written before `since` and dropped at our
         socket keeps this True until the writer has sent it again and the reader took it.
         Only while a client uses the capture (`use`); the file is first flushed and read up

@@ -188,9 +188,13 @@ async def test_an_approval_counted_while_a_stop_comes_counts_and_then_it_is_with
     gov = await harness.governor(gates=TWO_OWNERS)
     pending_id = await _held(gov, PLANNER)
     first = asyncio.ensure_future(gov.authorize(pending_id, OPS))
-    await asyncio.sleep(0)
-    await asyncio.sleep(0)  # its review holds the command's lock, its entry being written
-    assert gov._desk._pending.get(pending_id).lock.locked()  # type: ignore[union-attr]
+    held = gov._desk._pending.get(pending_id)
+    assert held is not None
+    for _ in range(1000):  # until its review holds the command's lock, its entry being written
+        if held.lock.locked() or first.done():
+            break
+        await asyncio.sleep(0)
+    assert held.lock.locked() and not first.done()
     await gov.decide(command("stop"), OPS2)
     assert (await first).http_status == 202
     await asyncio.gather(*gov._tasks)

@@ -183,3 +183,37 @@ async def test_a_stop_with_an_out_of_range_number_leaves_the_log_json(api: Api) 
     _verified(api.tmp / "audit.jsonl")
     reopened = await Api(api.tmp, gates="[]").start()  # the log opens for the next start
     await reopened.close()
+
+
+def _estop_of_a_duplicated_key(i: int) -> bytes:
+    """An e-stop just under the body limit whose params name one ~30 KB key twice: its
+    duplicate-key warning quotes that key (twice: its path and the key)."""
+    key = f"{i:02d}" + "k" * 30_000
+    return (b'{"action":"estop","params":{"' + key.encode() + b'":1,"' + key.encode()
+            + b'":2}}')
+
+
+async def test_repeated_e_stops_warnings_are_held_to_the_bound(api: Api) -> None:
+    """Red team 30: e-stops repeated while latched are recorded together, one ESTOP_REPEATED
+    entry per principal keeping up to 8 distinct warnings — held to no bound: 10 GUEST
+    e-stops, each a duplicated 30 KB key within the 64 KiB body limit, made one entry of
+    480,960 bytes, 2.5x the 196,608 a request's content may take. Now those warnings are the
+    entry's `warnings`, held to the bound like any request's; each e-stop still stopped."""
+    for i in range(10):
+        raw = _estop_of_a_duplicated_key(i)
+        assert len(raw) < MAX_BODY
+        status, body = await api.command("viewer", raw=raw)
+        assert (status, body["outcome"]) == (200, "executed"), body
+    assert [c for c in api.dispatcher.calls if c[0] == "estop"] and api.gov.latch.latched
+    status, body = await api.command("ops", {"action": "clear_estop"})  # records the repeats
+    assert (status, body["outcome"]) == (200, "executed"), body
+    lines = [line for line in _lines(api) if b'"ESTOP_REPEATED"' in line]
+    assert len(lines) == 1
+    entry = json.loads(lines[0])
+    assert entry["params"]["count"] == 9  # the first latched: nine repeats
+    assert len(lines[0]) <= BOUND + OVERHEAD, len(lines[0])  # was 480,960 bytes
+    assert entry["omitted"] == ["warnings"], entry.get("omitted")  # the bridge's marker
+    assert len(entry["warnings"]) == 1 and "too_large_to_log" in entry["warnings"][0]
+    assert _sdk_recomputes(lines[0])
+    await api.close()
+    _verified(api.tmp / "audit.jsonl")

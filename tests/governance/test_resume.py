@@ -158,7 +158,7 @@ async def test_repeats_are_recorded_every_minute_and_at_stop(harness: Harness) -
     await gov.sweep()
     entry = harness.entries[-1]
     assert (entry["event"], entry["params"]["count"]) == ("ESTOP_REPEATED", 1)
-    assert "not a UUID" in entry["params"]["warnings"][0]
+    assert "not a UUID" in entry["warnings"][0]  # the entry's: request content (bounded)
     await gov.decide(command("estop"), PLANNER)
     await _stopped(gov)
     counted = [e for e in harness.entries if e["event"] == "ESTOP_REPEATED"]

@@ -152,8 +152,8 @@ async def test_a_session_is_the_principals_not_its_tokens(
 async def test_a_call_answered_after_its_jwt_ran_out_is_refused(
         jwt_api: tuple[Api, Ed25519PrivateKey]) -> None:
     """`wait_for_approval`, asked while the token held, answered once it had run out: the
-    decision is not sent to the expired credential (401); the held command itself is the
-    approver's to decide, as before."""
+    decision is not sent to the expired credential (401). The held command does not outlive
+    that credential either (red team 30): an approval is refused, and it is withdrawn."""
     api, key = jwt_api
     jwt = token(api, key, 60)
     session = await raw_session(api, jwt)
@@ -177,10 +177,11 @@ async def test_a_call_answered_after_its_jwt_ran_out_is_refused(
     assert not answer.done()
     api.clock.advance(120)  # the token runs out while the call waits
     status, approved = await review(api, "authorize", "ops", pending_id)
-    assert (status, approved["outcome"]) == (200, "executed"), approved
+    assert (status, approved.get("reason")) == (409, "issuer_credential_expired"), approved
     status, text = await asyncio.wait_for(answer, 30)
     assert status == 401, text
-    assert "CREDENTIAL_EXPIRED" in text and "executed" not in text and pending_id not in text
+    assert "CREDENTIAL_EXPIRED" in text and "withdrawn" not in text and pending_id not in text
+    assert [c for c in api.dispatcher.calls if c[0] == "arm_joint"] == []
 
 
 MOVE_30S = {"linear_x": 0.2, "duration_s": 30.0, "confidence": 0.9}  # the harness's longest

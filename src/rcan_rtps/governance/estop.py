@@ -264,7 +264,9 @@ class Tally(msgspec.Struct, kw_only=True):
     failed: int = 0  # the robot could not be told again
     first_ms: int = 0
     last_ms: int = 0
-    warnings: list[str] = msgspec.field(default_factory=list)  # distinct, at most MAX_WARNINGS
+    # Distinct, at most MAX_WARNINGS: request content, so the entry's `warnings` (held to the
+    # log's request bound, `entry_bound`), not its params (`EstopLane.record_repeats`).
+    warnings: list[str] = msgspec.field(default_factory=list)
 
 
 class EstopRepeats:

@@ -104,15 +104,18 @@ class EstopLane:
         return self._repeats.due(self._clock.monotonic())
 
     async def record_repeats(self) -> None:
-        """One ESTOP_REPEATED entry per principal for the repeats counted so far."""
+        """One ESTOP_REPEATED entry per principal for the repeats counted so far: its
+        `params` the bridge's count (`Tally`), its `warnings` what was wrong with the repeated
+        requests — request content, held to the log's bound on it (`entry_bound`) as any
+        request's warnings are; in `params` they were not (red team 30: a GUEST's duplicated
+        30 KB keys made one entry 2.5x that bound)."""
         estop = with_effect(Effect.ESTOP).name
         for name, tally in self._repeats.take().items():
             params = msgspec.structs.asdict(tally)
-            if not tally.warnings:
-                del params["warnings"]
+            warnings = params.pop("warnings") or None
             await self._steps.record_event(AuditRecord(
                 event=AuditEvent.ESTOP_REPEATED, principal=name, action_type=estop,
-                params=params, outcome=Outcome.EXECUTED.value))
+                params=params, outcome=Outcome.EXECUTED.value, warnings=warnings))
 
     async def clear(self, command: NormalizedCommand, principal: Principal,
                     event: AuditEvent, pending_id: str | None) -> Decision:

@@ -56,7 +56,7 @@ from .log_tail import logged_ids
 from .outcomes import Rejection
 from .priorities import MotionPriorities
 from .rbac import Principal, RateLimiter, RolePolicy
-from .review import NO_MESSAGE, Ended, HitlDesk, PendingRecord, ReviewMessage
+from .review import CREDENTIAL_EXPIRED, NO_MESSAGE, Ended, HitlDesk, PendingRecord, ReviewMessage
 from .sessions import Sessions
 from .steps import (
     ArmsHeld,
@@ -1169,6 +1169,12 @@ class Governor:
         if self._stopped:  # BRIDGE_STOPPED is the last entry
             return {}
         picked = self._desk.withdrawing(issuer.name if issuer else None, which)
+        return self._withdrawing(picked, reason, what, issuer)
+
+    def _withdrawing(self, picked: list[PendingCommand], reason: str, what: str,
+                     issuer: Principal | None = None) -> dict[str, asyncio.Future[Decision]]:
+        """Each of `picked` (marked `withdrawing` by the desk) withdrawn as its issuer would,
+        with `reason`; by pending id, what to await for each entry."""
         if picked:
             log.warning("%s held for approval is withdrawn (%s): %s", what, reason,
                         ", ".join(f"{p.pending_id} of '{p.issuer.name}'" for p in picked),
@@ -1176,6 +1182,23 @@ class Governor:
         return {p.pending_id: self._detached(self._desk.resolve(p.pending_id, p.issuer,
                                                                 "withdraw", reason))
                 for p in picked}
+
+    async def withdraw_for_ended_credentials(self) -> None:
+        """Every held command whose issuer's credential (the one it was held with: a JWT's
+        `exp` plus the leeway, a client certificate's notAfter) has run out is withdrawn
+        (HITL_WITHDRAWN by its issuer, `CREDENTIAL_EXPIRED`), its entry awaited. Over a
+        WebSocket its connection closes then and withdraws its motion; over REST nothing else
+        would end it, and approved it would run for a principal that no longer holds any
+        credential the bridge accepts (red team 30). An approval that comes before this does
+        the same and is refused (`HitlDesk`)."""
+        if self._stopped:  # BRIDGE_STOPPED is the last entry
+            return
+        withdrawing = self._withdrawing(self._desk.credentials_ended(), CREDENTIAL_EXPIRED,
+                                        "a command")
+        for done in await asyncio.gather(*withdrawing.values(), return_exceptions=True):
+            if isinstance(done, Exception):  # (the rest of the sweep goes on)
+                log.error("a held command whose issuer's credential expired was not "
+                          "withdrawn: %s", done)
 
     def _robot_stopped(self, cause: str) -> None:
         """A stop of the robot in this step (`VelocityStreams.halt`: a `stop`, an e-stop
@@ -1185,8 +1208,9 @@ class Governor:
 
     async def sweep(self) -> None:
         """One round of housekeeping: expire HiTL requests, stop for lost sessions, record
-        e-stop repeats that waited long enough. And read the wall clock into its latest
-        time: what expired before a step back stays expired (JWTs, the replay window), even
+        e-stop repeats that waited long enough, withdraw held commands whose issuer's
+        credential ran out. And read the wall clock into its latest time: what expired before
+        a step back stays expired (JWTs, the replay window, held commands' credentials), even
         when nothing was checked between its expiry and the step."""
         latest_wall(self._clock).time()
         await self.expire_pending()
@@ -1198,6 +1222,8 @@ class Governor:
         await asyncio.gather(*(
             self._steps.spawn(self.safe_stop(p, f"no command or heartbeat for {allowed:g} s"))
             for p, allowed in lost))
+        # Last: no stop waits for it (an approval meanwhile is refused by the desk itself).
+        await self.withdraw_for_ended_credentials()
 
     async def _sweep_forever(self) -> None:
         while True:

@@ -83,6 +83,14 @@ class Held:
         """Past its TTL by either clock."""
         return self.pending.expires_at_ms <= now_ms or self.due_mono <= now_mono
 
+    def credential_ended(self, wall_s: float) -> bool:
+        """Whether its issuer's credential — the one it was held with: a JWT's `exp` plus the
+        leeway, a client certificate's notAfter (`Principal.expires_at`) — has run out by
+        `wall_s` (the latest wall time read, as the API judges it). A configured token's
+        never does."""
+        expires = self.pending.issuer.expires_at
+        return expires is not None and expires <= wall_s
+
     def approved_by(self, name: str) -> bool:
         return any(a.principal == name for a in self.approvals)
 

@@ -76,6 +76,7 @@ PENDING_EXPIRED = _rejected(Reason.PENDING_EXPIRED, status=404)
 HITL_DENIED = _rejected(Reason.HITL_DENIED, status=200)
 HITL_WITHDRAWN = _rejected(Reason.HITL_WITHDRAWN, status=200)
 ALREADY_APPROVED = _rejected(Reason.ALREADY_APPROVED)
+ISSUER_CREDENTIAL_EXPIRED = _rejected(Reason.ISSUER_CREDENTIAL_EXPIRED)
 # A review whose `command_message_id` is not the held command's (governance.review): signed,
 # its signature is for another command; unsigned, it names another.
 SIGNED_FOR_ANOTHER_COMMAND = Rejection(403, D, ErrorCode.SIGNATURE_INVALID,

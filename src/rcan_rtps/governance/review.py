@@ -9,6 +9,15 @@ approval releases goes back to the governor, which runs it through the pipeline 
 A stop withdraws the held motion it is a stop for (`withdrawing` picks it in the stop's step,
 each withdrawn as its issuer would, by `resolve`).
 
+A held command belongs to the credential it was held with, not to its principal's name: it
+runs as that `Principal` (its role), so it never outlives that credential — a JWT's `exp`
+(plus the leeway), a client certificate's notAfter (`Principal.expires_at`; a configured
+token's never ends). The governor's sweep withdraws it once that has passed (`credentials_ended`
+picks it; HITL_WITHDRAWN, `CREDENTIAL_EXPIRED`), and an approval that comes first withdraws it
+so itself and is refused `issuer_credential_expired`. A fresh token of the same principal does not
+keep it: that token may state another role, and REST tells the bridge of no renewal between
+requests; its issuer asks again.
+
 A review said by an RCAN message (an AUTHORIZE, §16.4) comes with that message's facts
 (`ReviewMessage`): its id and audit facts (the signature's alg, kid and whether it verified,
 recorded with the review and with a refusal of it), and — in the SDK's envelope — the held
@@ -38,7 +47,7 @@ from rcan_rtps.rcan._v3 import normal_id
 
 from . import outcomes
 from .audit import AuditEvent, AuditRecord
-from .clock import Clock, now_ms
+from .clock import Clock, latest_wall, now_ms
 from .hitl import Held, HitlPolicy, Notifier, PendingCommand, PendingStore, Verdict
 from .outcomes import Rejection
 from .rbac import Principal
@@ -47,6 +56,9 @@ from .steps import Decision, Steps, decision, record
 # Runs an approved command (taken from the store, with every review) for its last approver.
 RunApproved = Callable[[NormalizedCommand, Principal, PendingCommand], Awaitable[Decision]]
 KEPT_RESOLVED = 1024
+# The reason of the withdrawal of a held command whose issuer's credential ran out.
+CREDENTIAL_EXPIRED = ("withdrawn: its issuer's credential (a JWT's exp, a client certificate's "
+                      "notAfter) expired while it was held")
 PendingState = Literal["pending", "resolving", "resolved"]
 
 
@@ -104,6 +116,9 @@ class HitlDesk:
         self._steps = steps
         self._policy = policy
         self._clock = clock
+        # Credentials are judged by the latest wall time read, as the API judges them
+        # (`api._keys.credential_left`): a clock stepped back revives none.
+        self._latest = latest_wall(clock)
         self._ttl_ms = int(timeout_s * 1000)
         self._distinct = require_distinct_approver
         self._notifier = notifier
@@ -191,6 +206,20 @@ class HitlDesk:
                 picked.append(pending)
         return picked
 
+    def credentials_ended(self) -> list[PendingCommand]:
+        """The held commands whose issuer's credential has run out (`Held.credential_ended`),
+        to be withdrawn by the caller as `withdrawing`'s are (`resolve`, by its issuer, with
+        `CREDENTIAL_EXPIRED`), and no longer approved from this step on. One past its TTL is
+        left to expire; one being withdrawn already is not picked again."""
+        now, mono, wall = now_ms(self._clock), self._clock.monotonic(), self._latest.time()
+        picked = []
+        for held in self._pending.list():
+            if not held.withdrawing and not held.expired(now, mono) \
+                    and held.credential_ended(wall):
+                held.withdrawing = True
+                picked.append(held.pending)
+        return picked
+
     async def hold(self, command: NormalizedCommand, principal: Principal,
                    approver_role: Role, stops: int | None = None,
                    estops: int | None = None) -> Decision:
@@ -228,7 +257,13 @@ class HitlDesk:
             reviewed = await self._review(held, reviewer, verdict, reason, said_by)
         if isinstance(reviewed, Decision):
             return reviewed
-        command, pending = reviewed, held.pending  # out of the store, with every review
+        return await self._end(held, reviewed, reviewer, verdict)
+
+    async def _end(self, held: Held, command: NormalizedCommand, reviewer: Principal,
+                   verdict: Verdict) -> Decision:
+        """Decides `held`, out of the store, as its last review says: `command` is it with
+        every review so far."""
+        pending = held.pending
         self._changed()
         self._resolving(held)  # readable as being decided, not as unknown, meanwhile
         try:
@@ -278,6 +313,12 @@ class HitlDesk:
             refused = _signed_for(held, said_by)
         if refused is not None:
             return await self._refuse(verdict, reviewer, refused, pending.pending_id, said_by)
+        if verdict == "approve" and held.credential_ended(self._latest.time()):
+            # An approver's, before the sweep came to it (a denial or a withdrawal ends it as
+            # asked: nothing runs either way).
+            await self._credential_expired(held)
+            return await self._refuse(verdict, reviewer, outcomes.ISSUER_CREDENTIAL_EXPIRED,
+                                      pending.pending_id, said_by)
         sig = None if said_by.rcan is None else said_by.rcan.get("sig")
         review = Approval(principal=reviewer.name, role=cast(RoleName, reviewer.role.name),
                           decision=verdict, at_ms=now_ms(self._clock), reason=reason,
@@ -286,6 +327,16 @@ class HitlDesk:
             return await self._count_approval(held, reviewer, review)
         self._pending.take(pending.pending_id)
         return held.reviewed(review)
+
+    async def _credential_expired(self, held: Held) -> Decision:
+        """Under `held.lock`: its issuer's credential ran out — withdrawn now, as its issuer's
+        (HITL_WITHDRAWN, `CREDENTIAL_EXPIRED`), as the sweep would have."""
+        issuer = held.pending.issuer
+        review = Approval(principal=issuer.name, role=cast(RoleName, issuer.role.name),
+                          decision="withdraw", at_ms=now_ms(self._clock),
+                          reason=CREDENTIAL_EXPIRED)
+        self._pending.take(held.pending.pending_id)
+        return await self._end(held, held.reviewed(review), issuer, "withdraw")
 
     def _may_review(self, held: Held, reviewer: Principal, verdict: Verdict
                     ) -> Rejection | None:

@@ -87,6 +87,9 @@ class Reason(str, enum.Enum):
     HITL_DENIED = "hitl_denied"
     HITL_WITHDRAWN = "hitl_withdrawn"  # the issuer (or an approver) took it back
     ALREADY_APPROVED = "already_approved"  # an approver's second approval counts once
+    # A review of a held command whose issuer's credential (a JWT's exp, a client
+    # certificate's notAfter) ran out while it was held: it is withdrawn, never run.
+    ISSUER_CREDENTIAL_EXPIRED = "issuer_credential_expired"
     # An AUTHORIZE whose command_message_id is not the held command's (unsigned; a signed
     # one is SIGNATURE_INVALID `signed_for_another_command`).
     NOT_THE_HELD_COMMAND = "not_the_held_command"

@@ -10,10 +10,13 @@ send gave up is cancelled whenever its server lists it running, whatever else wa
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import threading
 import uuid
 from collections.abc import AsyncIterator, Awaitable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from oracle.client import OracleEnv, RclpyOracle, both_rmws, fibonacci
@@ -21,6 +24,7 @@ from waiting import eventually
 
 from rcan_rtps.ros import qos
 from rcan_rtps.ros.action_goals import ClientGoal
+from rcan_rtps.ros.action_server import ActionServer, ServerGoal
 from rcan_rtps.ros.actions import STATUS_TYPE, ActionClient, GoalState
 from rcan_rtps.ros.errors import WireError
 from rcan_rtps.ros.participant import RosNode, RosPublisher
@@ -51,9 +55,9 @@ def listing(goal_id: bytes, state: GoalState) -> dict[str, object]:
 
 def list_until_heard(status: RosPublisher, goal: ClientGoal, claimed: GoalState
                      ) -> Awaitable[object]:
-    """Lists `goal` in `claimed` until our client has it so. The status topic is keyless
-    and its readers keep one sample (action_status_default): a listing that arrives with
-    the server's own in one take of the reader thread may be replaced by it."""
+    """Lists `goal` in `claimed` until our client has it so: whatever its status reader
+    keeps, a listing that came with the server's own in one take of the reader thread is
+    not lost (the last test below is about that)."""
     def heard() -> bool:
         if goal.state is not claimed:
             status.publish(listing(goal.goal_id, claimed))
@@ -127,3 +131,50 @@ async def test_a_foreign_listing_does_not_end_the_take_back_of_a_given_up_goal(
 async def _hostile_node(domain_id: int) -> AsyncIterator[RosNode]:
     with RosNode("hostile", "/robot1", domain_id=domain_id) as made:
         yield made
+
+
+async def test_another_writer_s_listing_does_not_replace_the_server_s_listing_unread(
+        domain_id: int, node: RosNode, hostile: RosNode, jazzy_share: Path) -> None:
+    """The status topic is keyless, and its readers kept one sample (action_status_default,
+    depth 1): a listing of another writer (a second server of the name, any node) that came
+    before our reader thread took the server's listing of our goal's end replaced it, and
+    the end was never seen (the server writes a goal's status only when it changes): a
+    bridge showed the goal running until its result's timeout, an hour. Here the reader
+    thread is held in another subscription's callback while both listings arrive."""
+    release = asyncio.Event()
+
+    async def execute(goal: ServerGoal) -> dict[str, Any]:
+        await release.wait()
+        return {"sequence": [0, 1, 1]}
+
+    held, holding = threading.Event(), threading.Event()
+
+    def hold(_: Any) -> None:  # on the node's reader thread
+        holding.set()
+        held.wait(30)
+
+    with RosNode("fib_robot", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as robot:
+        server = ActionServer(robot, "/fib", FIB, execute)
+        client = ActionClient(node, "/fib", FIB)
+        status = hostile.create_publisher("/fib/_action/status", STATUS_TYPE,
+                                          qos.ACTION_STATUS)
+        node.create_subscription("/hold", "std_msgs/msg/String", callback=hold)
+        holder = hostile.create_publisher("/hold", "std_msgs/msg/String")
+        try:
+            goal = await client.send_goal({"order": 2}, timeout=20)
+            await eventually(lambda: goal.state is GoalState.EXECUTING, what="executing")
+            await holder.wait_for_subscribers(1, timeout=10)
+            await status.wait_for_subscribers(1, timeout=10)
+            holder.publish({"data": "hold"})
+            await eventually(holding.is_set, what="the reader thread held")
+            release.set()  # the server lists the goal succeeded ...
+            await eventually(lambda: server._status.acknowledged(10), what="its listing in")
+            status.publish({"status_list": []})  # ... and another writer lists nothing
+            assert await status.acknowledged(10)
+            held.set()
+            assert await asyncio.wait_for(goal.ended(), 20) is GoalState.SUCCEEDED
+        finally:
+            held.set()
+            client.close()
+            await server.close()

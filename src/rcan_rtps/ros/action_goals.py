@@ -13,9 +13,10 @@ otherwise the client cross-checks against the status topic, which names goals by
 - "accepted" counts only once the status topic lists our goal id; "rejected" only if our
   id has not appeared there within a short grace period;
 - the result is requested once the status topic shows our goal terminal, and a reply
-  is ours only if its status is that terminal status; a goal accepted by a tied reply asks
-  earlier when the topic is late (`_status_late`) and takes only a tied reply naming an
-  end (`_tied_result`);
+  not tied to our request is ours only if its status is that terminal status (a tied one
+  is ours whatever it names: any peer may list our goal ended on the status topic); a
+  goal accepted by a tied reply asks earlier when the topic is late (`_status_late`) and
+  takes only a tied reply naming an end (`_tied_result`);
 - a cancel reply is ours only if it lists our goal id (or refuses, naming no goal).
 A server that leaves the graph ends its open goals with `GoalState.SERVER_LOST`.
 A goal whose send gave up after its request went out is cancelled should the server accept
@@ -164,12 +165,23 @@ class _GivenUp:
         self.deadline = asyncio.get_running_loop().time() + span
         self.state: GoalState | None = None  # as the status topic last listed it
         self.canceled = False  # the server answered our cancel of it: canceling
+        # Listed running since our last cancel of it went out: any writer may list it ended
+        # (or canceling) in between, so `state` alone may never show it running.
+        self.listed_running = False
         self._changed = asyncio.Event()
         self.task: asyncio.Task[None] | None = None
 
     def listed(self, state: GoalState) -> None:
         self.state = state
+        if int(state) in _RUNNING_STATES:
+            self.listed_running = True
         self._changed.set()
+
+    @property
+    def to_cancel(self) -> bool:
+        """Listed running, and our cancel not answered canceling: cancelled (again)."""
+        return not self.canceled and (self.listed_running or (
+            self.state is not None and not self.settled))
 
     @property
     def settled(self) -> bool:
@@ -831,7 +843,7 @@ class GoalSender:
         long again) for its end and tells `on_late_goal` of it, if the server had it."""
         loop = asyncio.get_running_loop()
         try:
-            canceled = watch.canceled = await self._cancel_given_up(watch)
+            canceled = await self._cancel_given_up(watch)
             while not canceled and not watch.settled and loop.time() < watch.deadline:
                 if self.client._gone():
                     return
@@ -839,19 +851,31 @@ class GoalSender:
                 until = watch.deadline if watch.state is None else \
                     min(watch.deadline, loop.time() + TAKE_BACK_RETRY_S)
                 await watch.change(until)
-                if watch.state is not None and not watch.settled:
-                    canceled = watch.canceled = await self._cancel_given_up(watch)
+                if watch.to_cancel:
+                    canceled = await self._cancel_given_up(watch)
             if watch.state is None and not canceled:
                 log.debug("action %s: goal %s, whose send gave up, was not accepted within "
                           "%s; cancelled should it be listed later", self.name,
                           uuid.UUID(bytes=watch.goal_id), seconds(watch.span))
                 self._keep_unseen(watch)
                 return
+            # Listed ended or canceling: by its server, or by another writer (a second
+            # server of the name, a broken or hostile node): listed running meanwhile, it is
+            # cancelled still, and once the watch is over kept as unseen (red team 31).
             ends_by = loop.time() + watch.span
             while not watch.ended and loop.time() < ends_by:
-                await watch.change(ends_by)
+                if self.client._gone():
+                    return
+                await watch.change(ends_by if not watch.to_cancel else
+                                   min(ends_by, loop.time() + TAKE_BACK_RETRY_S))
+                if watch.to_cancel:
+                    canceled = await self._cancel_given_up(watch)
+            if watch.to_cancel:  # listed running, then ended, between two looks
+                canceled = await self._cancel_given_up(watch)
             state = watch.state if watch.ended or not canceled else GoalState.CANCELING
             assert state is not None
+            if not canceled:
+                self._keep_unseen(watch)
             self._tell_late(LateGoal(watch.goal_id, state, canceled))
         finally:
             if self._given_up.get(watch.goal_id) is watch:
@@ -885,6 +909,7 @@ class GoalSender:
             return _names_goal(reply, watch.goal_id) or (
                 int(reply.return_code) != 0 and not reply.goals_canceling)
 
+        watch.listed_running = False  # (listed running again after this: cancelled again)
         try:
             with self.client._closed_said():
                 client = self._take_back_client()
@@ -899,7 +924,8 @@ class GoalSender:
             log.info("action %s: cancelling goal %s, whose send gave up: %s", self.name,
                      uuid.UUID(bytes=watch.goal_id), exc)
             return False
-        return _names_goal(reply, watch.goal_id)
+        watch.canceled = _names_goal(reply, watch.goal_id)
+        return watch.canceled
 
     def watch_left(self, goal_id: bytes, timeout: float) -> None:
         """A goal a previous run of ours sent, which the server is not running now: its
@@ -1018,7 +1044,10 @@ class GoalSender:
                               f"action server {self.name} left the graph before the goal ended")
         final = goal.state
 
-        def ours(reply: Any) -> bool:  # Fast DDS: another goal's result has another status
+        # Fast DDS, a reply not tied to our request: another goal's result has another
+        # status. (A tied reply is taken whatever it names, services.py: `final` may be
+        # another writer's listing.)
+        def ours(reply: Any) -> bool:
             return int(reply.status) == int(final)
 
         try:

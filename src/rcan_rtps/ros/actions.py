@@ -42,6 +42,12 @@ log = logging.getLogger(__name__)
 STATUS_TYPE = "action_msgs/msg/GoalStatusArray"
 CANCEL_TYPE = "action_msgs/srv/CancelGoal"
 UUID_TYPE = "unique_identifier_msgs/msg/UUID"
+# Samples our status reader keeps until the reader thread takes them. The topic is keyless:
+# with action_status_default's depth of 1, a listing of another writer (a second server of
+# the name, any node) arriving before the reader thread took the server's replaced it, and
+# a goal's end, written once, was never seen (red team 31). History is no RxO policy: what
+# matches is as with rcl's profile.
+STATUS_READER_DEPTH = 32
 # Ended goals a server keeps (for get_result and its status list) besides its result timeout:
 # a burst of goals must not hold thousands for 15 minutes, each one listed in every status.
 KEEP_FINISHED = 1000
@@ -107,7 +113,7 @@ class ActionClient:
         # Governed, it says so from the start: its goal and cancel writers come with their
         # first use, and a tool about to send a goal beside it must see it before that.
         self._status = node.create_subscription(
-            names["status"], STATUS_TYPE, qos_mod.ACTION_STATUS,
+            names["status"], STATUS_TYPE, qos_mod.ACTION_STATUS.with_(depth=STATUS_READER_DEPTH),
             callback=on_loop(self._on_status), governed=governed)
         self._on_loop = on_loop
 

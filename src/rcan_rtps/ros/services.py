@@ -24,7 +24,8 @@ another client's answer, and the call fails with AmbiguousReply
 (goal ids on the status topic, in a cancel's answer), and a stop's server-wide cancel, which
 needs no answer, take it still (`unidentified_ok`); `ServiceClient.answer` tells them whether
 the reply was tied to their request (`Answer`). Replies
-arriving while nothing is outstanding, or failing the caller's `accept` check, are dropped,
+arriving while nothing is outstanding, or not tied to the request and failing the caller's
+`accept` check, are dropped,
 and after a timeout a late reply gets to drain before the next request.
 
 `ServiceServer` speaks the Cyclone mapping only. Fast DDS clients cannot use it: they drop
@@ -543,11 +544,16 @@ class ServiceClient(_ServiceEnd):
     async def call(self, request: IdlStruct | Mapping[str, Any] | None = None,
                    timeout: float = 10.0, *, accept: Accept | None = None,
                    unidentified_ok: bool = False) -> IdlStruct:
-        """Sends one request and returns its response. `accept` may refuse a reply as not
-        ours; the wait then goes on. A Fast DDS reply whose identity cannot be read while other
-        clients of the service are in the graph is AmbiguousReply, unless `unidentified_ok`:
-        the caller tells its reply from another client's itself (an action: the status
-        topic, the goal ids) or needs none (a stop's server-wide cancel)."""
+        """Sends one request and returns its response. `accept` may refuse a reply not tied
+        to this request (`Answer`) as not ours; the wait then goes on. A reply tied to it is
+        ours whatever `accept` says, as the Cyclone mapping's always are: an action tells
+        its replies from another client's by what the status topic lists, which any peer
+        may write (red team 31: another writer listing our goal ended with another end had
+        the server's own result refused until the call's timeout). A Fast DDS reply whose
+        identity cannot be read while other clients of the service are in the graph is
+        AmbiguousReply, unless `unidentified_ok`: the caller tells its reply from another
+        client's itself (an action: the status topic, the goal ids) or needs none (a stop's
+        server-wide cancel)."""
         answer = await self.answer(request, timeout, accept=accept,
                                    unidentified_ok=unidentified_ok)
         return answer.reply
@@ -678,8 +684,9 @@ class ServiceClient(_ServiceEnd):
             await asyncio.sleep(CAPTURE_POLL)
 
     def _deliver_captured(self, pair: _Pair, data: bytes, waiter: _Outstanding) -> None:
-        """A reply the capture kept because it names our request (never on a secured node)."""
-        future, accept = waiter.future, waiter.accept
+        """A reply the capture kept because it names our request (never on a secured node):
+        tied to it, so ours whatever the caller's `accept` says (`call`)."""
+        future = waiter.future
         try:
             reply: Any = self.node.codecs.of(self.response_type).prepare_decoder().decode(data)
         except Exception as exc:  # bad input from the wire: said, not raised
@@ -687,9 +694,6 @@ class ServiceClient(_ServiceEnd):
                         "decode: %s", self.name, exc)
             return
         reply.sample_info = None  # (not taken from a reader)
-        if accept is not None and not accept(reply):
-            self.dropped_replies += 1
-            return
         pair.from_capture += 1
         log.info("service %s: our reply reached our socket but not our reader (dropped as "
                  "history); taken from the packet capture", self.name)
@@ -712,8 +716,10 @@ class ServiceClient(_ServiceEnd):
                 self.dropped_replies += 1
                 continue
             related = pair.related_identity(sample)
+            # (read from the clear: not what a secured node trusts, see `Answer`)
+            tied = related is not None and not self.node.secured
             if (related is not None and related != waiter.identity) or \
-                    not waiter.accepts(sample):
+                    (not tied and not waiter.accepts(sample)):
                 self.dropped_replies += 1  # names another request, or the caller refused it
                 continue
             if related is None and not waiter.unidentified_ok and \
@@ -721,8 +727,7 @@ class ServiceClient(_ServiceEnd):
                 self.dropped_replies += 1
                 waiter.future.set_exception(self._ambiguous())
                 continue
-            # (read from the clear: not what a secured node trusts, see `Answer`)
-            waiter.tied = related is not None and not self.node.secured
+            waiter.tied = tied
             waiter.future.set_result(sample)
 
     def _ambiguous(self) -> AmbiguousReply:

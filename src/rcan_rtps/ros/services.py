@@ -323,10 +323,14 @@ class Answer:
     related sample identity and it names our request (not under DDS-Security: there the
     capture sees only what travels in clear, which a forger could have sent). A reply not
     tied was taken only because this client was the service's only one in the graph, or
-    because the caller checks it itself (`unidentified_ok`)."""
+    because the caller checks it itself (`unidentified_ok`). `writer`: the GUID of the
+    reply writer it came from, as our reader names it (None: taken from the packet capture,
+    or its writer no longer matched): an action's goal is its status only from that
+    writer's participant (action_goals.py)."""
 
     reply: IdlStruct
     tied: bool
+    writer: bytes | None = None
 
 
 class ServiceClient(_ServiceEnd):
@@ -569,8 +573,21 @@ class ServiceClient(_ServiceEnd):
         with self._closed_said():
             pair = await self._wait_for_service(timeout)
             if pair.mapping is RequestMapping.CYCLONE:
-                return Answer(await self._call_cyclone(pair, message, deadline), tied=True)
+                reply = await self._call_cyclone(pair, message, deadline)
+                return Answer(reply, tied=True, writer=self._writer_of(pair, reply))
             return await self._call_plain(pair, message, deadline, accept, unidentified_ok)
+
+    @staticmethod
+    def _writer_of(pair: _Pair, reply: Any) -> bytes | None:
+        """The GUID of the writer of a reply our reader delivered (None: one taken from the
+        capture, or its writer gone meanwhile). The pair knows it already when the reply's
+        identity was looked up: once per writer."""
+        info = getattr(reply, "sample_info", None)
+        if info is None:
+            return None
+        with contextlib.suppress(DDSException):  # (our reader deleted meanwhile)
+            return pair.writer_guids.of(info.publication_handle)
+        return None
 
     async def _reply(self, future: asyncio.Future[IdlStruct], deadline: float) -> IdlStruct:
         """The reply `future` brings, or asyncio.TimeoutError at `deadline`; as soon as the
@@ -645,7 +662,7 @@ class ServiceClient(_ServiceEnd):
                 fallback = asyncio.create_task(
                     self._reply_from_capture(pair, capture, waiter))
             reply = await self._reply(future, deadline)
-            return Answer(reply, waiter.tied)
+            return Answer(reply, waiter.tied, self._writer_of(pair, reply))
         except asyncio.TimeoutError:
             self._stale = True
             raise ServiceTimeout(f"service {self.name}: no reply within the timeout") from None
@@ -707,6 +724,7 @@ class ServiceClient(_ServiceEnd):
                 future = self._pending.get(header.seq) \
                     if header.client_guid == pair.guid else None
                 if future is not None and not future.done():
+                    reply.sample_info = sample.sample_info  # (its writer: `_writer_of`)
                     future.set_result(reply)
                 else:  # another client's reply, or one we gave up on: never ours
                     self.dropped_replies += 1

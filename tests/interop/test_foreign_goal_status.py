@@ -352,3 +352,53 @@ async def test_another_writer_s_listing_does_not_make_a_rejected_goal_accepted(
         finally:
             client.close()
             await server.acall("ping")
+
+
+async def test_of_two_servers_of_the_name_the_one_that_answered_the_goal_lists_it(
+        domain_id: int, node: RosNode, jazzy_share: Path) -> None:
+    """Two servers of one name (ours, in this process): both get the goal request. The one
+    whose reply the client took has the goal; the other, slower to accept, runs it too and
+    aborts it at once. Its listing ended the goal here (ABORTED) while the first still ran
+    it; only the first one's listing counts now."""
+    release, second_may_accept = asyncio.Event(), asyncio.Event()
+
+    async def until_released(goal: ServerGoal) -> dict[str, Any]:
+        await release.wait()
+        return {"sequence": [0, 1, 1]}
+
+    async def at_once_aborted(goal: ServerGoal) -> dict[str, Any]:
+        goal.abort()
+        return {}
+
+    async def later(_: Any) -> bool:
+        await second_may_accept.wait()
+        return True
+
+    with RosNode("fib_robot", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as first_robot, \
+            RosNode("fib_robot_2", "/", domain_id=domain_id, distro="jazzy",
+                    idl_paths=[jazzy_share]) as second_robot:
+        first = ActionServer(first_robot, "/fib", FIB, until_released)
+        second = ActionServer(second_robot, "/fib", FIB, at_once_aborted, accept=later)
+        client = ActionClient(node, "/fib", FIB)
+        try:
+            await client.wait_for_server(20.0)
+            await client._status.wait_for_publishers(2, timeout=10)
+            goal = await client.send_goal({"order": 2}, timeout=20)  # the first's reply
+            await eventually(lambda: goal.state is GoalState.EXECUTING, what="executing")
+            second_may_accept.set()
+            await eventually(lambda: getattr(second._goals.get(goal.goal_id), "state", None)
+                             is GoalState.ABORTED, what="the second server's goal aborted")
+            await eventually(lambda: second._status.acknowledged(10),
+                             what="its listing in")
+            await node.delivered()
+            assert goal.state is GoalState.EXECUTING
+            assert client.foreign_listings >= 1
+            release.set()
+            assert await asyncio.wait_for(goal.ended(), 20) is GoalState.SUCCEEDED
+        finally:
+            release.set()
+            second_may_accept.set()
+            client.close()
+            await first.close()
+            await second.close()

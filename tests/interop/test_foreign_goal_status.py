@@ -354,12 +354,22 @@ async def test_another_writer_s_listing_does_not_make_a_rejected_goal_accepted(
             await server.acall("ping")
 
 
+class _SlowResults(ActionServer):
+    """Answers get_result a moment after the goal's end (another server answers first)."""
+
+    async def _on_get_result(self, request: Any) -> Any:
+        reply = await super()._on_get_result(request)
+        await asyncio.sleep(0.3)
+        return reply
+
+
 async def test_of_two_servers_of_the_name_the_one_that_answered_the_goal_lists_it(
         domain_id: int, node: RosNode, jazzy_share: Path) -> None:
     """Two servers of one name (ours, in this process): both get the goal request. The one
     whose reply the client took has the goal; the other, slower to accept, runs it too and
     aborts it at once. Its listing ended the goal here (ABORTED) while the first still ran
-    it; only the first one's listing counts now."""
+    it; and its get_result reply, first in (the request reaches every server), was taken
+    for the goal's result. Only the first one's listing and result count now."""
     release, second_may_accept = asyncio.Event(), asyncio.Event()
 
     async def until_released(goal: ServerGoal) -> dict[str, Any]:
@@ -378,7 +388,7 @@ async def test_of_two_servers_of_the_name_the_one_that_answered_the_goal_lists_i
                  idl_paths=[jazzy_share]) as first_robot, \
             RosNode("fib_robot_2", "/", domain_id=domain_id, distro="jazzy",
                     idl_paths=[jazzy_share]) as second_robot:
-        first = ActionServer(first_robot, "/fib", FIB, until_released)
+        first = _SlowResults(first_robot, "/fib", FIB, until_released)
         second = ActionServer(second_robot, "/fib", FIB, at_once_aborted, accept=later)
         client = ActionClient(node, "/fib", FIB)
         try:
@@ -396,6 +406,9 @@ async def test_of_two_servers_of_the_name_the_one_that_answered_the_goal_lists_i
             assert client.foreign_listings >= 1
             release.set()
             assert await asyncio.wait_for(goal.ended(), 20) is GoalState.SUCCEEDED
+            outcome = await goal.result(timeout=20)
+            assert outcome.state is GoalState.SUCCEEDED, outcome
+            assert outcome.result is not None and list(outcome.result.sequence) == [0, 1, 1]
         finally:
             release.set()
             second_may_accept.set()

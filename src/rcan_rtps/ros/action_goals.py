@@ -27,7 +27,9 @@ tied (and for a goal whose send gave up), any participant serving the action (a 
 request reader in the graph). Other writers' listings of our goals are ignored, counted
 (`foreign_listings`) and logged once per writer: they neither end a goal, nor keep it from
 a stop's cancel, nor count it accepted. Rclpy's servers, ours and rmw_cyclonedds' share one
-participant for a node's endpoints, so the status writer has the reply writer's prefix.
+participant for a node's endpoints, so the status writer has the reply writer's prefix. The
+get_result request reaches every server of the name: only the goal's server's reply is
+taken, once it is known (`ServiceClient.call`'s `from_participant`).
 A server that leaves the graph ends its open goals with `GoalState.SERVER_LOST`; so does
 one whose participant has had no status writer matched for LOST_GRACE while another's is
 (a restart: a new participant, which does not have its goals).
@@ -1166,7 +1168,8 @@ class GoalSender:
         request = {"goal_id": {"uuid": goal.goal_id}}
         try:
             answer = await self._get.answer(request, max(0.1, deadline - loop.time()),
-                                            accept=lambda reply: _ended(reply) is not None)
+                                            accept=lambda reply: _ended(reply) is not None,
+                                            from_participant=goal.server)
         except (WireError, DDSException):  # timed out, ambiguous, its node closed: the usual way
             return None
         except Exception as exc:  # (a fault of ours: this ask is only a shortcut, never a need)
@@ -1195,7 +1198,10 @@ class GoalSender:
         while True:
             left = max(0.1, deadline - loop.time())
             try:
-                return await self._get.call(request, min(RESULT_ASK_S, left), accept=ours)
+                # (every server gets the request: only the goal's server's reply is taken,
+                # when known — a second server of the name may have run it too)
+                return await self._get.call(request, min(RESULT_ASK_S, left), accept=ours,
+                                            from_participant=goal.server)
             except (ServiceTimeout, ServiceUnavailable):
                 if not self.check_server():
                     return None

@@ -18,7 +18,21 @@ otherwise the client cross-checks against the status topic, which names goals by
   goal accepted by a tied reply asks earlier when the topic is late (`_status_late`) and
   takes only a tied reply naming an end (`_tied_result`);
 - a cancel reply is ours only if it lists our goal id (or refuses, naming no goal).
-A server that leaves the graph ends its open goals with `GoalState.SERVER_LOST`.
+Any participant may write the status topic (a second server of the name, a broken or
+hostile node: DDS without security authenticates nobody), and the topic is keyless: a goal's
+status is taken only from its server's participant (`GoalSender.on_status`, `_Lister`) —
+the one whose reply writer answered its send_goal with a reply tied to our request (that
+writer's GUID prefix: `Answer.writer`), or, before that is known or when no reply could be
+tied (and for a goal whose send gave up), any participant serving the action (a send_goal
+request reader in the graph). Other writers' listings of our goals are ignored, counted
+(`foreign_listings`) and logged once per writer: they neither end a goal, nor keep it from
+a stop's cancel, nor count it accepted. Rclpy's servers, ours and rmw_cyclonedds' share one
+participant for a node's endpoints, so the status writer has the reply writer's prefix. The
+get_result request reaches every server of the name: only the goal's server's reply is
+taken, once it is known (`ServiceClient.call`'s `from_participant`).
+A server that leaves the graph ends its open goals with `GoalState.SERVER_LOST`; so does
+one whose participant has had no status writer matched for LOST_GRACE while another's is
+(a restart: a new participant, which does not have its goals).
 A goal whose send gave up after its request went out is cancelled should the server accept
 it late: at once, and whenever the status topic lists it running within a bounded watch
 (`GoalSender._give_up`, LATE_WATCH_S); `ActionClient.on_late_goal` is told of it.
@@ -58,6 +72,7 @@ from .handshake import (
     hear_announcements,
     matched_writers,
     may_withhold_before_heartbeat,
+    participant_prefix,
     writer_handle,
     writers_ready,
 )
@@ -122,6 +137,9 @@ MAX_GIVEN_UP = 64  # goals whose send gave up, watched at once (no goal is sent 
 MAX_UNSEEN = 1024
 TAKE_BACK_CANCEL_S = 2.0  # s a cancel of such a goal waits for its reply (as a stop's does)
 TAKE_BACK_RETRY_S = 1.0  # s between cancels of one listed running whose cancel went unanswered
+# Status writers of other participants than our goals' servers whose listing of one of our
+# goals was ignored and logged (once each): any peer may make writers by the thousand.
+MAX_FOREIGN_LOGGED = 64
 
 
 def forget_after() -> float:
@@ -157,7 +175,9 @@ class LateGoal:
 
 class _GivenUp:
     """A goal whose send gave up, watched for on the status topic until `deadline` (loop
-    time); `span`: how long its watch is (also how long its end is waited for)."""
+    time); `span`: how long its watch is (also how long its end is waited for). Only the
+    listings of participants serving the action count (there was no send_goal reply to
+    name its server: `GoalSender.on_status`)."""
 
     def __init__(self, goal_id: bytes, span: float) -> None:
         self.goal_id = goal_id
@@ -217,8 +237,15 @@ class ClientGoal:
         self.stamp: tuple[int, int] = (0, 0)
         self._state = GoalState.UNKNOWN
         self._ended_at: float | None = None  # monotonic time it was first seen terminal
-        # Its state and stamp as the status topic last listed them (None: not yet).
+        # Its state and stamp as its server last listed them on the status topic (None: not
+        # yet), and the GUID prefix of the participant whose status writer listed them.
         self._listed: tuple[GoalState, tuple[int, int]] | None = None
+        self._listed_by: bytes | None = None
+        # The GUID prefix of the participant whose reply writer answered its send_goal with
+        # a reply tied to our request: the server that has it, the only one whose listing
+        # of it counts (`GoalSender.on_status`). None until then, or when no reply could be
+        # tied: then any participant serving the action that our client matched.
+        self.server: bytes | None = None
         self._sending = True  # until `send_goal` has returned it (or failed)
         # A `feedback()` waited out its end: nothing sent before the end can come any more.
         self._window_closed = False
@@ -264,6 +291,16 @@ class ClientGoal:
         if state.terminal and self._ended_at is None:
             self._ended_at = time.monotonic()
         self._state = state
+
+    def _served_by(self, server: bytes) -> None:
+        """Its send_goal was answered by `server`'s participant (a reply tied to our
+        request): from now on only that participant's listing of it counts. A listing of
+        another server of the name (which got our request too) taken before is forgotten;
+        nobody has this goal yet (`send_goal` has not returned it)."""
+        self.server = server
+        if self._listed is not None and self._listed_by != server:
+            self._listed = self._listed_by = None
+            self._state, self._ended_at = GoalState.UNKNOWN, None
 
     def forgettable(self, now: float) -> bool:
         """Whether its client may let go of it: it has ended, `send_goal` is done with it,
@@ -531,8 +568,18 @@ class GoalSender:
         self._take_back_srv: ServiceClient | None = None
         self.goals_sent = 0
         self._unknown_status_logged = False
+        # The status writers' GUIDs by handle: a listing counts only from a goal's server.
+        self._status_writers = WriterGuids(self.node, client._status.reader)
+        self.foreign_listings = 0  # status samples listing our goals from another writer
+        self._foreign_logged: set[bytes | None] = set()
         self._server_seen = False
         self._lost_since: float | None = None
+        # The participants of the status writers matched with our reader (GUID prefixes),
+        # looked at again when the reader's matches change (`_servers_gone`); and since when
+        # (monotonic) a goal's server has had none there.
+        self._lister_matches: tuple[int, int] | None = None
+        self._listers: set[bytes] = set()
+        self._gone_since: dict[bytes, float] = {}
         self._feedback_ready: set[int] = set()  # feedback writers made ready (handshake.py)
         self._feedback_announced = False  # see `_await_feedback_announced`
         self._feedback_since = 0  # the capture's mark once the feedback reader was made
@@ -754,6 +801,7 @@ class GoalSender:
         self.client._check_open()
         if self.client._status.matched_count() > 0:
             self._server_seen, self._lost_since = True, None
+            self._servers_gone()
             return True
         if not self._server_seen:
             return True  # never there: that is wait_for_server's error to report
@@ -765,6 +813,35 @@ class GoalSender:
             if not goal.state.terminal:
                 goal.state = GoalState.SERVER_LOST
         return False
+
+    def _servers_gone(self) -> None:
+        """Ends as lost the open goals whose server (`ClientGoal.server`) has had no status
+        writer matched with our reader for LOST_GRACE, while another has: it restarted (a
+        new participant, which does not have its goals) or left with a second server of the
+        name still there, and only its listing of them counts. One DDS query while the
+        reader's matches stay as they were."""
+        reader = self.client._status.reader
+        matched = reader.get_subscription_matched_status()
+        seen = (int(matched.total_count), int(matched.current_count))
+        if seen != self._lister_matches:
+            self._lister_matches = seen
+            self._listers = {participant_prefix(g) for g in matched_writers(reader).values()}
+        servers = {g.server for g in self._goals.values()
+                   if g.server is not None and not g.state.terminal}
+        now = time.monotonic()
+        for server in list(self._gone_since):
+            if server in self._listers or server not in servers:
+                del self._gone_since[server]
+        for server in servers - self._listers:
+            since = self._gone_since.setdefault(server, now)
+            if now - since < LOST_GRACE:
+                continue
+            for goal in self._goals.values():
+                if goal.server == server and not goal.state.terminal:
+                    log.info("action %s: goal %s: its server left the graph (another server "
+                             "of the name is there, which does not have it): lost", self.name,
+                             uuid.UUID(bytes=goal.goal_id))
+                    goal.state = GoalState.SERVER_LOST
 
     async def send_goal(self, goal: IdlStruct | Mapping[str, Any] | None = None,
                         timeout: float = 10.0, *, goal_id: bytes | None = None) -> ClientGoal:
@@ -963,7 +1040,7 @@ class GoalSender:
 
     async def _sent(self, handle: ClientGoal, request: Any, deadline: float) -> ClientGoal:
         loop = asyncio.get_running_loop()
-        tied = False
+        tied, writer = False, None
         try:
             # Cross-checked: a Fast DDS reply not tied to our request counts only once the
             # status topic lists the goal (`_confirm`), so one whose identity cannot be read
@@ -971,10 +1048,11 @@ class GoalSender:
             answer = await self._send.answer(request, max(0.0, deadline - loop.time()),
                                              unidentified_ok=True)
             reply: Any = answer.reply
-            tied = answer.tied
+            tied, writer = answer.tied, answer.writer
         except ServiceTimeout:
             # The reply can be lost for good when datagrams are dropped at our socket (see
-            # `_ask_result`); the status topic names the goals the server accepted.
+            # `_ask_result`); the status topic names the goals the server accepted (a listing
+            # of a participant serving the action, never another writer's: `on_status`).
             if handle._listed is None:
                 raise
             log.info("action %s: no reply to goal %s, which the status topic lists: accepted",
@@ -987,8 +1065,11 @@ class GoalSender:
             # identity the capture read): it is ours, whenever the status topic lists the
             # goal. Its status sample and that writer's HEARTBEATs were seen dropped at our
             # socket for longer than `_confirm` waits (docs/design/zero-loss.md, "The goal's
-            # status late").
+            # status late"). Its writer's participant is the goal's server: only its listing
+            # of the goal counts from now on.
             accepted = bool(reply.accepted)
+            if writer is not None:
+                handle._served_by(participant_prefix(writer))
         else:
             accepted = await self._confirm(handle, bool(reply.accepted), deadline)
         handle.accepted, handle.tied = accepted, tied and accepted
@@ -1087,7 +1168,8 @@ class GoalSender:
         request = {"goal_id": {"uuid": goal.goal_id}}
         try:
             answer = await self._get.answer(request, max(0.1, deadline - loop.time()),
-                                            accept=lambda reply: _ended(reply) is not None)
+                                            accept=lambda reply: _ended(reply) is not None,
+                                            from_participant=goal.server)
         except (WireError, DDSException):  # timed out, ambiguous, its node closed: the usual way
             return None
         except Exception as exc:  # (a fault of ours: this ask is only a shortcut, never a need)
@@ -1116,7 +1198,10 @@ class GoalSender:
         while True:
             left = max(0.1, deadline - loop.time())
             try:
-                return await self._get.call(request, min(RESULT_ASK_S, left), accept=ours)
+                # (every server gets the request: only the goal's server's reply is taken,
+                # when known — a second server of the name may have run it too)
+                return await self._get.call(request, min(RESULT_ASK_S, left), accept=ours,
+                                            from_participant=goal.server)
             except (ServiceTimeout, ServiceUnavailable):
                 if not self.check_server():
                     return None
@@ -1142,13 +1227,23 @@ class GoalSender:
 
     def on_status(self, array: IdlStruct) -> None:
         # Any peer may write to the status topic: only our goals are noted (another's
-        # thousands of goal ids would be kept for good), and a status value action_msgs does
-        # not define leaves the goal as it was (it tells us nothing, and must not end it).
+        # thousands of goal ids would be kept for good), each only as its server lists it
+        # (`_Lister`: another writer's listing is ignored, counted), and a status value
+        # action_msgs does not define leaves the goal as it was (it tells us nothing, and
+        # must not end it).
+        lister = _Lister(self, array)
         for status in array.status_list:  # type: ignore[attr-defined]
             goal_id = bytes(status.goal_info.goal_id.uuid)
             goal = self._goals.get(goal_id)
             if goal is None:  # another client's, one of ours let go of, or given up on
-                self._note_given_up(goal_id, int(status.status))
+                if goal_id in self._given_up or goal_id in self._unseen:
+                    if lister.has(None):  # (no send_goal reply: its server's participant)
+                        self._note_given_up(goal_id, int(status.status))
+                    else:
+                        lister.foreign = True
+                continue
+            if not lister.has(goal.server):
+                lister.foreign = True
                 continue
             value = int(status.status)
             if value not in _WIRE_STATES:
@@ -1160,8 +1255,40 @@ class GoalSender:
                 continue
             state = GoalState(value)
             goal._listed = (state, _stamp(status.goal_info.stamp))
+            goal._listed_by = lister.prefix
             if not goal.state.terminal:
                 goal.state = state
+        if lister.foreign:
+            self._foreign_listing(lister)
+
+    def _status_writer(self, array: IdlStruct) -> bytes | None:
+        """The GUID of the writer of a status sample (None: not known, its writer no longer
+        matched). One DDS query per writer: the reader's handles are mapped once."""
+        info = getattr(array, "sample_info", None)
+        if info is None:
+            return None
+        with contextlib.suppress(DDSException):  # (its reader deleted meanwhile)
+            return self._status_writers.of(info.publication_handle)
+        return None
+
+    def _server_participants(self) -> set[bytes]:
+        """The GUID prefixes of the participants serving the action (their send_goal request
+        readers, in the graph): a goal's listing counts from them until its server is known
+        by its send_goal reply, or if it never is (a goal whose send gave up)."""
+        return {participant_prefix(guid) for guid in self._send.server_guids()}
+
+    def _foreign_listing(self, lister: _Lister) -> None:
+        """A status sample listed our goals from a writer that is not their server's (a
+        second server of the name, a broken or hostile node: DDS without security tells
+        nobody who writes): ignored, counted, logged once per writer."""
+        self.foreign_listings += 1
+        if lister.guid in self._foreign_logged or \
+                len(self._foreign_logged) >= MAX_FOREIGN_LOGGED:
+            return
+        self._foreign_logged.add(lister.guid)
+        log.debug("action %s: status writer %s, not of our goals' server, listed our goals: "
+                  "ignored (logged once per writer)", self.name,
+                  lister.guid.hex() if lister.guid is not None else "(unknown)")
 
     def _note_given_up(self, goal_id: bytes, value: int) -> None:
         watch = self._given_up.get(goal_id)
@@ -1237,6 +1364,7 @@ class GoalSender:
 
     def close(self) -> None:
         """Deletes the goal and result services' endpoints and the feedback reader."""
+        self._status_writers.close()
         for goal in self._goals.values():
             goal._release_capture()
         for watch in self._given_up.values():
@@ -1260,6 +1388,42 @@ class GoalSender:
         open_goals = [g for g in self._goals.values() if g.accepted and not g.state.terminal]
         results = await asyncio.gather(*(g.cancel(timeout) for g in open_goals))
         return sum(results)
+
+
+class _Lister:
+    """The writer of one status sample, as our goals' listings go: its participant's GUID
+    prefix, and (asked once a sample, only if a goal whose server is not known is listed)
+    whether that participant serves the action."""
+
+    def __init__(self, sender: GoalSender, array: IdlStruct) -> None:
+        self._sender, self._array = sender, array
+        self._guid: bytes | None = None
+        self._looked = False
+        self._serving: bool | None = None
+        self.foreign = False  # it listed a goal of ours that is not its participant's
+
+    @property
+    def guid(self) -> bytes | None:
+        if not self._looked:  # (only for a sample naming a goal of ours)
+            self._guid, self._looked = self._sender._status_writer(self._array), True
+        return self._guid
+
+    @property
+    def prefix(self) -> bytes | None:
+        return None if self.guid is None else participant_prefix(self.guid)
+
+    def has(self, server: bytes | None) -> bool:
+        """Whether its listing of a goal counts: its participant is the goal's `server`
+        (the send_goal reply's), or, with none known, serves the action. An unknown writer
+        never counts (its goals' server, if it was, has left: SERVER_LOST)."""
+        prefix = self.prefix
+        if prefix is None:
+            return False
+        if server is not None:
+            return prefix == server
+        if self._serving is None:
+            self._serving = prefix in self._sender._server_participants()
+        return self._serving
 
 
 def _ended(reply: Any) -> GoalState | None:

@@ -284,6 +284,12 @@ class ActionClient:
         return 0 if self._sending is None else self._sending.goals_tracked
 
     @property
+    def foreign_listings(self) -> int:
+        """Status samples that listed our goals from a writer not of their server's
+        participant: ignored (`action_goals.GoalSender.on_status`)."""
+        return 0 if self._sending is None else self._sending.foreign_listings
+
+    @property
     def feedback_renewed(self) -> int:
         """Feedback readers made again (their announcement unheard)."""
         return 0 if self._sending is None else self._sending.feedback_renewed

@@ -23,7 +23,10 @@ another client's answer, and the call fails with AmbiguousReply
 (`ambiguous_reply`) rather than return it. Actions, which cross-check the reply themselves
 (goal ids on the status topic, in a cancel's answer), and a stop's server-wide cancel, which
 needs no answer, take it still (`unidentified_ok`); `ServiceClient.answer` tells them whether
-the reply was tied to their request (`Answer`). Replies
+the reply was tied to their request, and which writer sent it (`Answer`). Every server of a
+name gets every request (in both mappings): a caller that knows which one it wants the
+reply of names its participant (`from_participant`: an action's get_result, its goal's
+server), and the others' replies are dropped. Replies
 arriving while nothing is outstanding, or not tied to the request and failing the caller's
 `accept` check, are dropped,
 and after a timeout a late reply gets to drain before the next request.
@@ -310,6 +313,7 @@ class _Outstanding:
     identity: SampleIdentity  # the request's (our writer's GUID, its sample number)
     unidentified_ok: bool  # taken without identity: the caller checks it itself (actions)
     alone: bool  # no other client of the service was in the graph as it was sent
+    participant: bytes | None = None  # the only server whose reply is taken (`call`)
     tied: bool = False  # the reply taken names this request (see `Answer.tied`)
 
     def accepts(self, reply: Any) -> bool:
@@ -323,10 +327,14 @@ class Answer:
     related sample identity and it names our request (not under DDS-Security: there the
     capture sees only what travels in clear, which a forger could have sent). A reply not
     tied was taken only because this client was the service's only one in the graph, or
-    because the caller checks it itself (`unidentified_ok`)."""
+    because the caller checks it itself (`unidentified_ok`). `writer`: the GUID of the
+    reply writer it came from, as our reader names it (None: taken from the packet capture,
+    or its writer no longer matched): an action's goal is its status only from that
+    writer's participant (action_goals.py)."""
 
     reply: IdlStruct
     tied: bool
+    writer: bytes | None = None
 
 
 class ServiceClient(_ServiceEnd):
@@ -343,6 +351,9 @@ class ServiceClient(_ServiceEnd):
         self._pairs: dict[RequestMapping, _Pair] = {}
         self._seq = itertools.count(1)
         self._pending: dict[int, asyncio.Future[IdlStruct]] = {}
+        # Cyclone mapping: the participant (GUID prefix) a pending request's reply must come
+        # from, where the caller named one (`call`'s `from_participant`).
+        self._pending_from: dict[int, bytes] = {}
         self._plain_lock = asyncio.Lock()
         self._plain_waiter: _Outstanding | None = None
         self._stale = False
@@ -543,7 +554,8 @@ class ServiceClient(_ServiceEnd):
     # -- calls ------------------------------------------------------------------
     async def call(self, request: IdlStruct | Mapping[str, Any] | None = None,
                    timeout: float = 10.0, *, accept: Accept | None = None,
-                   unidentified_ok: bool = False) -> IdlStruct:
+                   unidentified_ok: bool = False,
+                   from_participant: bytes | None = None) -> IdlStruct:
         """Sends one request and returns its response. `accept` may refuse a reply not tied
         to this request (`Answer`) as not ours; the wait then goes on. A reply tied to it is
         ours whatever `accept` says, as the Cyclone mapping's always are: an action tells
@@ -553,14 +565,19 @@ class ServiceClient(_ServiceEnd):
         identity cannot be read while other clients of the service are in the graph is
         AmbiguousReply, unless `unidentified_ok`: the caller tells its reply from another
         client's itself (an action: the status topic, the goal ids) or needs none (a stop's
-        server-wide cancel)."""
+        server-wide cancel). `from_participant` (a GUID prefix): every server gets the
+        request, and only this participant's reply is taken (an action's get_result: the
+        goal's server, when a second server of the name ran the goal too); a reply whose
+        writer is not known (taken from the capture) is taken still."""
         answer = await self.answer(request, timeout, accept=accept,
-                                   unidentified_ok=unidentified_ok)
+                                   unidentified_ok=unidentified_ok,
+                                   from_participant=from_participant)
         return answer.reply
 
     async def answer(self, request: IdlStruct | Mapping[str, Any] | None = None,
                      timeout: float = 10.0, *, accept: Accept | None = None,
-                     unidentified_ok: bool = False) -> Answer:
+                     unidentified_ok: bool = False,
+                     from_participant: bytes | None = None) -> Answer:
         """As `call`, also saying whether the reply is known to answer this request."""
         message = request if isinstance(request, IdlStruct) else \
             self.node.values.build(self.request_type, request)
@@ -569,8 +586,31 @@ class ServiceClient(_ServiceEnd):
         with self._closed_said():
             pair = await self._wait_for_service(timeout)
             if pair.mapping is RequestMapping.CYCLONE:
-                return Answer(await self._call_cyclone(pair, message, deadline), tied=True)
-            return await self._call_plain(pair, message, deadline, accept, unidentified_ok)
+                reply = await self._call_cyclone(pair, message, deadline, from_participant)
+                return Answer(reply, tied=True, writer=self._writer_of(pair, reply))
+            return await self._call_plain(pair, message, deadline, accept, unidentified_ok,
+                                          from_participant)
+
+    @staticmethod
+    def _writer_of(pair: _Pair, reply: Any) -> bytes | None:
+        """The GUID of the writer of a reply our reader delivered (None: one taken from the
+        capture, or its writer gone meanwhile). The pair knows it already when the reply's
+        identity was looked up: once per writer."""
+        info = getattr(reply, "sample_info", None)
+        if info is None:
+            return None
+        with contextlib.suppress(DDSException):  # (our reader deleted meanwhile)
+            return pair.writer_guids.of(info.publication_handle)
+        return None
+
+    @classmethod
+    def _from_elsewhere(cls, pair: _Pair, sample: Any, participant: bytes | None) -> bool:
+        """Whether a reply comes from a writer known to be of another participant than the
+        one the call asked for (`from_participant`)."""
+        if participant is None:
+            return False
+        writer = cls._writer_of(pair, sample)
+        return writer is not None and writer[:12] != participant
 
     async def _reply(self, future: asyncio.Future[IdlStruct], deadline: float) -> IdlStruct:
         """The reply `future` brings, or asyncio.TimeoutError at `deadline`; as soon as the
@@ -589,12 +629,14 @@ class ServiceClient(_ServiceEnd):
         finally:
             _abandon(future)
 
-    async def _call_cyclone(self, pair: _Pair, message: IdlStruct,
-                            deadline: float) -> IdlStruct:
+    async def _call_cyclone(self, pair: _Pair, message: IdlStruct, deadline: float,
+                            participant: bytes | None = None) -> IdlStruct:
         loop = asyncio.get_running_loop()
         seq = next(self._seq)
         future: asyncio.Future[IdlStruct] = loop.create_future()
         self._pending[seq] = future
+        if participant is not None:
+            self._pending_from[seq] = participant
         try:
             pair.write(message, cyclone.RequestHeader(pair.guid, seq))
             return await self._reply(future, deadline)
@@ -602,9 +644,11 @@ class ServiceClient(_ServiceEnd):
             raise ServiceTimeout(f"service {self.name}: no reply within the timeout") from None
         finally:
             self._pending.pop(seq, None)
+            self._pending_from.pop(seq, None)
 
     async def _call_plain(self, pair: _Pair, message: IdlStruct, deadline: float,
-                          accept: Accept | None, unidentified_ok: bool) -> Answer:
+                          accept: Accept | None, unidentified_ok: bool,
+                          participant: bytes | None = None) -> Answer:
         loop = asyncio.get_running_loop()
         try:
             await asyncio.wait_for(self._plain_lock.acquire(), max(0.0, deadline - loop.time()))
@@ -616,13 +660,15 @@ class ServiceClient(_ServiceEnd):
                 await asyncio.sleep(max(0.0, min(STALE_REPLY_GRACE, deadline - loop.time())))
                 self._stale = False
             self._check_open()  # closed while this call was queued
-            return await self._send_plain(pair, message, deadline, accept, unidentified_ok)
+            return await self._send_plain(pair, message, deadline, accept, unidentified_ok,
+                                          participant)
         finally:
             self._plain_waiter = None
             self._plain_lock.release()
 
     async def _send_plain(self, pair: _Pair, message: IdlStruct, deadline: float,
-                          accept: Accept | None, unidentified_ok: bool) -> Answer:
+                          accept: Accept | None, unidentified_ok: bool,
+                          participant: bytes | None = None) -> Answer:
         """Sends the request and waits for its reply: from the reader, or, if the reader
         never delivers it, from the packet capture (`_reply_from_capture`)."""
         future: asyncio.Future[IdlStruct] = asyncio.get_running_loop().create_future()
@@ -633,19 +679,20 @@ class ServiceClient(_ServiceEnd):
         capture = None if self.node.secured else self.node.identities
         # Before the request goes out, so that its reply is in what the capture has not read.
         captured = capture is not None and capture.expect_reply(
-            identity, matched_writers(pair.reader).values())
+            identity, [w for w in matched_writers(pair.reader).values()
+                       if participant is None or w[:12] == participant])
         fallback = None
         alone = unidentified_ok or not self._other_clients(pair)
         try:
             pair.write(message)
             waiter = self._plain_waiter = _Outstanding(future, accept, identity,
-                                                       unidentified_ok, alone)
+                                                       unidentified_ok, alone, participant)
             if captured:
                 assert capture is not None
                 fallback = asyncio.create_task(
                     self._reply_from_capture(pair, capture, waiter))
             reply = await self._reply(future, deadline)
-            return Answer(reply, waiter.tied)
+            return Answer(reply, waiter.tied, self._writer_of(pair, reply))
         except asyncio.TimeoutError:
             self._stale = True
             raise ServiceTimeout(f"service {self.name}: no reply within the timeout") from None
@@ -706,9 +753,12 @@ class ServiceClient(_ServiceEnd):
                 header, reply = sample.header, sample.payload
                 future = self._pending.get(header.seq) \
                     if header.client_guid == pair.guid else None
-                if future is not None and not future.done():
+                if future is not None and not future.done() and not self._from_elsewhere(
+                        pair, sample, self._pending_from.get(header.seq)):
+                    reply.sample_info = sample.sample_info  # (its writer: `_writer_of`)
                     future.set_result(reply)
-                else:  # another client's reply, or one we gave up on: never ours
+                else:  # another client's reply, one we gave up on, or another server's
+                    # (`from_participant`): never ours
                     self.dropped_replies += 1
                 continue
             waiter = self._plain_waiter
@@ -719,6 +769,7 @@ class ServiceClient(_ServiceEnd):
             # (read from the clear: not what a secured node trusts, see `Answer`)
             tied = related is not None and not self.node.secured
             if (related is not None and related != waiter.identity) or \
+                    self._from_elsewhere(pair, sample, waiter.participant) or \
                     (not tied and not waiter.accepts(sample)):
                 self.dropped_replies += 1  # names another request, or the caller refused it
                 continue

@@ -1264,12 +1264,7 @@ class GoalSender:
     def _status_writer(self, array: IdlStruct) -> bytes | None:
         """The GUID of the writer of a status sample (None: not known, its writer no longer
         matched). One DDS query per writer: the reader's handles are mapped once."""
-        info = getattr(array, "sample_info", None)
-        if info is None:
-            return None
-        with contextlib.suppress(DDSException):  # (its reader deleted meanwhile)
-            return self._status_writers.of(info.publication_handle)
-        return None
+        return self._status_writers.of_sample(array)
 
     def _server_participants(self) -> set[bytes]:
         """The GUID prefixes of the participants serving the action (their send_goal request

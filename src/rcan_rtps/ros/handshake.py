@@ -133,6 +133,18 @@ class WriterGuids:
             self._let_go_of_gone_writers()
         return guid
 
+    def of_sample(self, sample: Any) -> bytes | None:
+        """The GUID of the writer of a sample our reader delivered (its `sample_info`); None
+        for one with none (taken from the capture), or whose writer the reader no longer
+        knows, or once the reader is deleted."""
+        info = getattr(sample, "sample_info", None)
+        if info is None:
+            return None
+        try:
+            return self.of(info.publication_handle)
+        except DDSException:  # (the reader deleted meanwhile)
+            return None
+
     def _let_go_of_gone_writers(self) -> None:
         if self._letting_go is not None:
             return  # the next new writer looks again

@@ -596,12 +596,7 @@ class ServiceClient(_ServiceEnd):
         """The GUID of the writer of a reply our reader delivered (None: one taken from the
         capture, or its writer gone meanwhile). The pair knows it already when the reply's
         identity was looked up: once per writer."""
-        info = getattr(reply, "sample_info", None)
-        if info is None:
-            return None
-        with contextlib.suppress(DDSException):  # (our reader deleted meanwhile)
-            return pair.writer_guids.of(info.publication_handle)
-        return None
+        return pair.writer_guids.of_sample(reply)
 
     @classmethod
     def _from_elsewhere(cls, pair: _Pair, sample: Any, participant: bytes | None) -> bool:

@@ -51,6 +51,21 @@ def hostile(domain_id: int, jazzy_share: Path) -> Iterator[RosNode]:
         yield made
 
 
+@contextlib.asynccontextmanager
+async def client_and_forger(node: RosNode, hostile: RosNode
+                            ) -> AsyncIterator[tuple[ActionClient, RosPublisher]]:
+    """Our client of /fib, matched with its server, and a writer of another node on its
+    status topic, matched with our client (closed after)."""
+    status = hostile.create_publisher("/fib/_action/status", STATUS_TYPE, qos.ACTION_STATUS)
+    client = ActionClient(node, "/fib", FIB)
+    try:
+        await client.wait_for_server(20.0)
+        await status.wait_for_subscribers(1, timeout=10)
+        yield client, status
+    finally:
+        client.close()
+
+
 def listing(goal_id: bytes, state: GoalState) -> dict[str, object]:
     return {"status_list": [{"goal_info": {"goal_id": {"uuid": goal_id}},
                              "status": int(state)}]}
@@ -93,21 +108,16 @@ async def test_an_end_another_writer_lists_does_not_hide_the_end_the_server_repo
     Cyclone mapping (which never asked)."""
     with RclpyOracle(jazzy_oracle, "fib_server", "/", domain_id=domain_id) as server:
         await server.acall("action_server", name="/fib", mode="abort", period=0.1)
-        status = hostile.create_publisher("/fib/_action/status", STATUS_TYPE,
-                                          qos.ACTION_STATUS)
-        client = ActionClient(node, "/fib", FIB)
-        try:
-            await client.wait_for_server(20.0)
-            await status.wait_for_subscribers(1, timeout=10)
-            goal = await client.send_goal({"order": 30}, timeout=20)  # runs ~3 s
-            assert goal.accepted
-            await list_until_ignored(status, client, goal.goal_id, claimed)
-            outcome = await goal.result(timeout=25)
-            assert outcome.state is GoalState.ABORTED, outcome
-            assert outcome.result is not None and list(outcome.result.sequence) == fibonacci(30)
-        finally:
-            client.close()
-            await server.acall("ping")
+        async with client_and_forger(node, hostile) as (client, status):
+            try:
+                goal = await client.send_goal({"order": 30}, timeout=20)  # runs ~3 s
+                assert goal.accepted
+                await list_until_ignored(status, client, goal.goal_id, claimed)
+                outcome = await goal.result(timeout=25)
+                assert outcome.state is GoalState.ABORTED, outcome
+                assert outcome.result is not None and list(outcome.result.sequence) == fibonacci(30)
+            finally:
+                await server.acall("ping")
         assert uuid.UUID(bytes=goal.goal_id)
 
 
@@ -200,28 +210,23 @@ async def test_a_running_goal_another_writer_lists_ended_runs_on_and_a_stop_canc
     answered the send_goal lists our goal now."""
     with RclpyOracle(jazzy_oracle, "fib_server", "/", domain_id=domain_id) as server:
         await server.acall("action_server", name="/fib", mode="slow")  # 0.2 s a step
-        status = hostile.create_publisher("/fib/_action/status", STATUS_TYPE,
-                                          qos.ACTION_STATUS)
-        client = ActionClient(node, "/fib", FIB)
-        try:
-            await client.wait_for_server(20.0)
-            await status.wait_for_subscribers(1, timeout=10)
-            goal = await client.send_goal({"order": 400}, timeout=20)  # runs ~80 s
-            assert goal.accepted
-            await eventually(lambda: goal.state is GoalState.EXECUTING, timeout=20,
-                             what=lambda: f"executing (now {goal.state.name})")
-            ending = asyncio.create_task(goal.ended())
-            await list_once(status, node, goal.goal_id, claimed)
-            assert goal.state is GoalState.EXECUTING
-            assert client.foreign_listings >= 1
-            assert await client.cancel_all(10) == 1  # the stop path: it is still open
-            assert await asyncio.wait_for(ending, 30) is GoalState.CANCELED
-            outcome = await goal.result(timeout=30)
-            assert outcome.state is GoalState.CANCELED, outcome  # the server's own end
-            assert outcome.result is not None and len(outcome.result.sequence) < 400
-        finally:
-            client.close()
-            await server.acall("ping")
+        async with client_and_forger(node, hostile) as (client, status):
+            try:
+                goal = await client.send_goal({"order": 400}, timeout=20)  # runs ~80 s
+                assert goal.accepted
+                await eventually(lambda: goal.state is GoalState.EXECUTING, timeout=20,
+                                 what=lambda: f"executing (now {goal.state.name})")
+                ending = asyncio.create_task(goal.ended())
+                await list_once(status, node, goal.goal_id, claimed)
+                assert goal.state is GoalState.EXECUTING
+                assert client.foreign_listings >= 1
+                assert await client.cancel_all(10) == 1  # the stop path: it is still open
+                assert await asyncio.wait_for(ending, 30) is GoalState.CANCELED
+                outcome = await goal.result(timeout=30)
+                assert outcome.state is GoalState.CANCELED, outcome  # the server's own end
+                assert outcome.result is not None and len(outcome.result.sequence) < 400
+            finally:
+                await server.acall("ping")
 
 
 @both_rmws
@@ -234,24 +239,19 @@ async def test_another_writer_s_listing_does_not_count_an_unanswered_goal_accept
     with RclpyOracle(jazzy_oracle, "fib_server", "/", domain_id=domain_id) as server:
         # answers each goal request 4 s late
         await server.acall("action_server", name="/fib", mode="slow", accept_after=4.0)
-        status = hostile.create_publisher("/fib/_action/status", STATUS_TYPE,
-                                          qos.ACTION_STATUS)
-        client = ActionClient(node, "/fib", FIB)
-        try:
-            await client.wait_for_server(20.0)
-            await status.wait_for_subscribers(1, timeout=10)
-            goal_id = uuid.uuid4().bytes
-            sending = asyncio.create_task(
-                client.send_goal({"order": 400}, timeout=1.5, goal_id=goal_id))
-            while not sending.done():
-                await list_once(status, node, goal_id, GoalState.ACCEPTED)
-                await asyncio.sleep(0.1)
-            with pytest.raises(WireError, match="no reply within the timeout"):
-                await sending
-            assert client.foreign_listings >= 1
-        finally:
-            client.close()
-            await server.acall("ping")
+        async with client_and_forger(node, hostile) as (client, status):
+            try:
+                goal_id = uuid.uuid4().bytes
+                sending = asyncio.create_task(
+                    client.send_goal({"order": 400}, timeout=1.5, goal_id=goal_id))
+                while not sending.done():
+                    await list_once(status, node, goal_id, GoalState.ACCEPTED)
+                    await asyncio.sleep(0.1)
+                with pytest.raises(WireError, match="no reply within the timeout"):
+                    await sending
+                assert client.foreign_listings >= 1
+            finally:
+                await server.acall("ping")
 
 
 async def test_another_writer_s_listing_gives_no_given_up_goal_a_made_up_end(
@@ -335,23 +335,18 @@ async def test_another_writer_s_listing_does_not_make_a_rejected_goal_accepted(
                     idl_paths=[jazzy_share]) as hostile:
         assert node.identities is None
         await server.acall("action_server", name="/fib", mode="reject")
-        status = hostile.create_publisher("/fib/_action/status", STATUS_TYPE,
-                                          qos.ACTION_STATUS)
-        client = ActionClient(node, "/fib", FIB)
-        try:
-            await client.wait_for_server(20.0)
-            await status.wait_for_subscribers(1, timeout=10)
-            goal_id = uuid.uuid4().bytes
-            sending = asyncio.create_task(
-                client.send_goal({"order": 5}, timeout=10, goal_id=goal_id))
-            while not sending.done():
-                await list_once(status, node, goal_id, GoalState.ACCEPTED)
-            goal = await sending
-            assert (goal.accepted, goal.state) == (False, GoalState.REJECTED)
-            assert client.foreign_listings >= 1
-        finally:
-            client.close()
-            await server.acall("ping")
+        async with client_and_forger(node, hostile) as (client, status):
+            try:
+                goal_id = uuid.uuid4().bytes
+                sending = asyncio.create_task(
+                    client.send_goal({"order": 5}, timeout=10, goal_id=goal_id))
+                while not sending.done():
+                    await list_once(status, node, goal_id, GoalState.ACCEPTED)
+                goal = await sending
+                assert (goal.accepted, goal.state) == (False, GoalState.REJECTED)
+                assert client.foreign_listings >= 1
+            finally:
+                await server.acall("ping")
 
 
 class _SlowResults(ActionServer):

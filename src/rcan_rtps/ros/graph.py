@@ -8,6 +8,12 @@ Any peer may write ros_discovery_info, and cyclonedds' reader does not keep the 
 its IDL (`string<256>` for a node's namespace and name): a name is cut to that bound where
 the sample is read (`bound_node_name`), so every view — `node list`, `node info`, `topic
 info`, the bridge's other publishers — shows at most it.
+
+Any peer may also make and delete endpoints (or whole participants) faster than a refresh
+reads their discovery samples (~150 µs each, in Python), and a refresh runs on the caller's
+event loop (the bridge's commander watch, a service call, a stop's goal cancel): it takes at
+most REFRESH_TAKE samples of each builtin reader and says whether it caught up (`refresh`
+returns False while more wait), so that no flood holds the loop for as long as it lasts.
 """
 
 from __future__ import annotations
@@ -56,6 +62,13 @@ MAX_UNKNOWN_INFO_BYTES = 8 << 20
 # size is known only once it is in memory: a peer flooding samples past MAX_INFO_BYTES (the
 # reader keeps up to 1,000) is held this many at a time, not all at once (~2 GB).
 INFO_BATCH = 4
+# Discovery samples one refresh takes from each builtin reader at most (and ros_discovery_info
+# samples: its reader keeps 1,000). A refresh took every waiting sample, and while a peer
+# churning endpoints wrote them faster than they were read, it went on taking: 11 s on the
+# event loop for two peers each making 2,000 writers and leaving, round after round (red team
+# 32), the bridge's e-stop unanswered meanwhile. What is left waits in the reader (Cyclone
+# keeps one sample per endpoint) for the next refresh; ~150 ms of work at most per reader.
+REFRESH_TAKE = 1024
 # Distinct QoS profiles kept before those no endpoint uses are let go of (RosGraph._shared).
 PROFILES_KEPT = 64
 # Departures kept (`left_at`): those older than DEPARTURES_KEPT_S go once the table doubled
@@ -186,12 +199,16 @@ class RosGraph:
             with contextlib.suppress(DDSException):
                 reader.__del__()
 
-    def refresh(self) -> None:
-        taken = 0
+    def refresh(self) -> bool:
+        """Takes what discovery changed since the last refresh, REFRESH_TAKE samples of each
+        reader at most: True when it took all there was, False when more is waiting (a flood
+        of discovery: call again, after giving the loop a turn)."""
+        taken, caught_up = 0, True
         for direction, reader in ((Direction.PUBLISHER, self._pubs),
                                   (Direction.SUBSCRIPTION, self._subs)):
+            endpoints = 0
             for sample in _take_all(reader):
-                taken += 1
+                endpoints += 1
                 key = sample.key.bytes
                 if sample.sample_info.instance_state == InstanceState.Alive:
                     self._endpoints[key] = self._seen(direction, sample)
@@ -204,20 +221,25 @@ class RosGraph:
                         getattr(sample, "topic_name", None)
                     if isinstance(topic, str) and topic:
                         self._note_left(topic, direction)
+            taken += endpoints
+            caught_up &= endpoints < REFRESH_TAKE
         # Participants before their nodes: an info is kept by its participant being alive.
         # ros_discovery_info is keyless: a participant that leaves leaves its last sample
         # behind while any other writer remains. Its nodes go with it, as in rmw's graph.
+        participants = 0
         for participant in _take_all(self._participants):
-            taken += 1
+            participants += 1
             key = participant.key.bytes
             if participant.sample_info.instance_state == InstanceState.Alive:
                 self._alive.add(key)
             else:
                 self._alive.discard(key)
                 self._forget_info(key)
-        taken += self._take_node_infos()
+        infos = self._take_node_infos()
+        taken += participants + infos
         if taken:
             self.generation += 1
+        return caught_up and participants < REFRESH_TAKE and infos < REFRESH_TAKE
 
     def _seen(self, direction: Direction, sample: Any) -> _Seen:
         user_data = qos_mod.user_data_of(sample.qos)
@@ -437,25 +459,31 @@ class RosGraph:
         return sorted(name for name, count in announced.items() if count > 1)
 
 
-def _take_all(reader: BuiltinDataReader, batch: int = 256) -> Iterator[Any]:
-    """Every sample waiting, a batch at a time: the binding sizes its buffers by the count
-    asked for, so one take of 100,000 cost ~0.6 ms even with nothing to take (a refresh
-    polled each second on a quiet graph paid that thrice)."""
-    while True:
-        samples = reader.take(N=batch)
+def _take_all(reader: BuiltinDataReader, batch: int = 256,
+              limit: int = REFRESH_TAKE) -> Iterator[Any]:
+    """The samples waiting, up to `limit`, a batch at a time: the binding sizes its buffers
+    by the count asked for, so one take of 100,000 cost ~0.6 ms even with nothing to take (a
+    refresh polled each second on a quiet graph paid that thrice)."""
+    taken = 0
+    while taken < limit:
+        samples = reader.take(N=min(batch, limit - taken))
         yield from samples
+        taken += len(samples)
         if len(samples) < batch:
             return
 
 
-def _take_raw(reader: Any, batch: int) -> Iterator[raw_cdr.RawSample]:
-    """Every sample waiting (as CDR bytes, SampleInfo), `batch` at a time: a batch is let go
-    of before the next is taken."""
-    while True:
-        samples = raw_cdr.take(reader, ANY_SAMPLE, batch)
+def _take_raw(reader: Any, batch: int,
+              limit: int = REFRESH_TAKE) -> Iterator[raw_cdr.RawSample]:
+    """The samples waiting (as CDR bytes, SampleInfo), up to `limit`, `batch` at a time: a
+    batch is let go of before the next is taken."""
+    taken = 0
+    while taken < limit:
+        samples = raw_cdr.take(reader, ANY_SAMPLE, min(batch, limit - taken))
         count = len(samples)
         yield from samples
         del samples
+        taken += count
         if count < batch:
             return
 

@@ -485,3 +485,27 @@ async def test_a_discovery_info_past_the_size_bound_leaves_no_stale_nodes(
     assert ("/", "victim") in graph.nodes()
     hostile.announce()  # its next info, within the bound: listed again
     await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1])
+
+
+async def test_a_view_names_endpoints_without_walking_every_info(
+        victim: RosNode, hostile: RosNode, domain_id: int) -> None:
+    """Each view (`endpoints()`, which services and actions call before each call, a stop's
+    goal cancel included) built a table of every gid every live info names to name a few
+    endpoints: ~550 ms a call with eight peers each announcing 120,000 made-up gids within
+    MAX_INFO_BYTES (red team 32). Infos are indexed once, when read; a view's peak of traced
+    memory (what it allocates) must not grow with the infos' gids."""
+    graph = RosGraph(victim)
+    codec = hostile.codecs.of(DISCOVERY_TYPE)
+    with RosNode("second", "/", domain_id=domain_id) as second:
+        for peer in (hostile, second):
+            raw_cdr.write(peer._info_writer, _info(codec, peer.participant.guid.bytes,
+                                                   "crowded", 100_000))
+        await eventually(lambda: (graph.refresh(),
+                                  ("/", "crowded") in graph.nodes_sharing_a_name())[1])
+        tracemalloc.start()
+        try:
+            graph.endpoints()
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+    assert peak < 1_000_000, f"{peak} bytes allocated by one view"

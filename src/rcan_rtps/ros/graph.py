@@ -122,12 +122,22 @@ class Endpoint:
 
 
 class _Node(msgspec.Struct, frozen=True):
-    """A node a participant's ros_discovery_info announces: its names (bounded) and the gids
-    of its endpoints. What the views use of the sample, not the decoded sample."""
+    """A node a participant's ros_discovery_info announces: its names (bounded). With the
+    info's endpoint index (`_Info`), what the views use of the sample, not the decoded one."""
 
     namespace: str
     name: str
-    gids: tuple[bytes, ...]
+
+
+class _Info(msgspec.Struct, frozen=True):
+    """A participant's ros_discovery_info as the views use it: its nodes, and the node of each
+    endpoint gid it names — indexed once, when the sample is read. A view that walked every
+    gid of every info to name a few endpoints cost ~550 ms per call with eight peers each
+    announcing 120,000 made-up gids (within MAX_INFO_BYTES), and services and actions call
+    one before each call, a stop's goal cancel included (red team 32)."""
+
+    nodes: tuple[_Node, ...]
+    owners: dict[bytes, _Node]
 
 
 class _Seen(msgspec.Struct, frozen=True):
@@ -174,7 +184,7 @@ class RosGraph:
         # making endpoints of ever new QoS (a deadline per run) must not grow it for good.
         self._profiles: dict[QosProfile, QosProfile] = {}
         self._profiles_bound = PROFILES_KEPT
-        self._node_infos: dict[bytes, tuple[_Node, ...]] = {}
+        self._node_infos: dict[bytes, _Info] = {}
         self._info_sizes: dict[bytes, int] = {}  # bytes of each kept info's sample
         self._alive: set[bytes] = set()  # participants discovery knows (this one included)
         self.bad_infos = 0  # ros_discovery_info samples that did not decode (dropped)
@@ -294,13 +304,13 @@ class RosGraph:
             try:
                 info: Any = self._decode_info(data)
                 gid = bytes(info.gid.data)[:16]
-                nodes = _nodes_of(info)
+                read = _info_of(info)
             except Exception:
                 bad += 1
                 continue
             if sample_info.instance_state == InstanceState.Alive:
                 self._node_infos.pop(gid, None)  # re-inserted: the newest last
-                self._node_infos[gid], self._info_sizes[gid] = nodes, len(data)
+                self._node_infos[gid], self._info_sizes[gid] = read, len(data)
             else:
                 self._forget_info(gid)
         self._report_dropped(bad, large)
@@ -346,7 +356,7 @@ class RosGraph:
             self._forget_info(gid)
 
     def _live_infos(self) -> list[tuple[_Node, ...]]:
-        return [nodes for gid, nodes in self._node_infos.items() if gid in self._alive]
+        return [info.nodes for gid, info in self._node_infos.items() if gid in self._alive]
 
     async def settle(self, seconds: float = 1.0, patience: float = 4.0) -> None:
         """Lets discovery run for `seconds`, then up to `patience` more until every
@@ -367,22 +377,17 @@ class RosGraph:
         return ros_participants - set(self._node_infos)
 
     # -- views -----------------------------------------------------------------
-    def _owners(self, participants: set[bytes] | None = None
-                ) -> dict[tuple[bytes, bytes], tuple[str, str]]:
-        """(participant, endpoint) → its node, for these participants (None: all). An
-        endpoint's node is looked for in its own participant's info only (as rmw's graph
-        cache does): another peer's info cannot claim it."""
-        owners: dict[tuple[bytes, bytes], tuple[str, str]] = {}
-        for gid, nodes in self._node_infos.items():
-            if gid not in self._alive or (participants is not None and gid not in participants):
-                continue
-            for n in nodes:
-                for g in n.gids:
-                    owners[(gid, g)] = (n.namespace, n.name)
-        return owners
+    def _owner(self, participant: bytes, endpoint: bytes) -> _Node | None:
+        """The node of `endpoint`, looked for in its own participant's info only (as rmw's
+        graph cache does): another peer's info cannot claim it. A lookup, whatever the size
+        of the infos."""
+        info = self._node_infos.get(participant)
+        if info is None or participant not in self._alive:
+            return None
+        return info.owners.get(endpoint)
 
     def endpoints(self) -> list[Endpoint]:
-        return self._described(self._endpoints.items(), self._owners())
+        return self._described(self._endpoints.items())
 
     def publishers_on(self, topics: set[str]) -> list[Endpoint]:
         """The publishers of these ROS topics (fully qualified names), of any participant.
@@ -390,7 +395,7 @@ class RosGraph:
         wanted = {mangle_topic(t) for t in topics}
         chosen = [(key, seen) for key, seen in self._endpoints.items()
                   if seen.direction is Direction.PUBLISHER and seen.topic_name in wanted]
-        return self._described(chosen, self._owners({seen.participant for _, seen in chosen}))
+        return self._described(chosen)
 
     def gids_on(self, dds_topic: str, direction: Direction) -> set[bytes]:
         """The GUIDs of the endpoints on this DDS topic in this direction (none described:
@@ -398,16 +403,15 @@ class RosGraph:
         return {key for key, seen in self._endpoints.items()
                 if seen.direction is direction and seen.topic_name == dds_topic}
 
-    @staticmethod
-    def _described(chosen: Iterable[tuple[bytes, _Seen]],
-                   owners: dict[tuple[bytes, bytes], tuple[str, str]]) -> list[Endpoint]:
+    def _described(self, chosen: Iterable[tuple[bytes, _Seen]]) -> list[Endpoint]:
         found = []
         for key, seen in chosen:
             mangled = demangle(seen.topic_name)
             if mangled is None:
                 continue
-            namespace, name = owners.get((seen.participant, key),
-                                         ("_NODE_NAMESPACE_UNKNOWN_", "_NODE_NAME_UNKNOWN_"))
+            node = self._owner(seen.participant, key)
+            namespace, name = (node.namespace, node.name) if node is not None else \
+                ("_NODE_NAMESPACE_UNKNOWN_", "_NODE_NAME_UNKNOWN_")
             found.append(Endpoint(
                 seen.direction, mangled.kind, mangled.name,
                 ros_type_of(seen.type_name, mangled.kind), seen.topic_name,
@@ -498,10 +502,14 @@ def bound_node_name(text: str) -> str:
     return text[:MAX_INFO_NAME - len(more)] + more
 
 
-def _nodes_of(info: Any) -> tuple[_Node, ...]:
-    return tuple(_Node(bound_node_name(n.node_namespace), bound_node_name(n.node_name),
-                       tuple(bytes(g.data)[:16] for g in [*n.reader_gid_seq, *n.writer_gid_seq]))
-                 for n in info.node_entities_info_seq)
+def _info_of(info: Any) -> _Info:
+    nodes, owners = [], {}
+    for n in info.node_entities_info_seq:
+        node = _Node(bound_node_name(n.node_namespace), bound_node_name(n.node_name))
+        nodes.append(node)
+        for g in (*n.reader_gid_seq, *n.writer_gid_seq):
+            owners[bytes(g.data)[:16]] = node  # a gid two nodes name: the later one's
+    return _Info(tuple(nodes), owners)
 
 
 def node_fqn(namespace: str, name: str) -> str:

@@ -26,7 +26,7 @@ import sys
 import time
 import weakref
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -60,8 +60,14 @@ MAX_INFO_BYTES = 2 << 20
 MAX_UNKNOWN_INFO_BYTES = 8 << 20
 # ros_discovery_info samples taken at a time. The binding copies each one out whole, so its
 # size is known only once it is in memory: a peer flooding samples past MAX_INFO_BYTES (the
-# reader keeps up to 1,000) is held this many at a time, not all at once (~2 GB).
-INFO_BATCH = 4
+# reader keeps up to 1,000) is held this many at a time, not all at once (~2 GB). One: a
+# refresh's decoding stops within a sample of INFO_BYTES_TAKE (with 4, four samples past it).
+INFO_BATCH = 1
+# ros_discovery_info bytes one refresh decodes, about: decoding is ~150 ms of Python a MiB of
+# gids, on the caller's loop, and a peer may rewrite an info near MAX_INFO_BYTES as often as
+# it likes (each one read again). Past this a refresh stops between two batches and says it
+# is behind (`refresh`), so the loop gets a turn between ~2 MiB of decoding and the next.
+INFO_BYTES_TAKE = MAX_INFO_BYTES
 # Discovery samples one refresh takes from each builtin reader at most (and ros_discovery_info
 # samples: its reader keeps 1,000). A refresh took every waiting sample, and while a peer
 # churning endpoints wrote them faster than they were read, it went on taking: 11 s on the
@@ -245,11 +251,11 @@ class RosGraph:
             else:
                 self._alive.discard(key)
                 self._forget_info(key)
-        infos = self._take_node_infos()
+        infos, infos_caught_up = self._take_node_infos()
         taken += participants + infos
         if taken:
             self.generation += 1
-        return caught_up and participants < REFRESH_TAKE and infos < REFRESH_TAKE
+        return caught_up and participants < REFRESH_TAKE and infos_caught_up
 
     def _seen(self, direction: Direction, sample: Any) -> _Seen:
         user_data = qos_mod.user_data_of(sample.qos)
@@ -286,13 +292,16 @@ class RosGraph:
             self._profiles_bound = max(PROFILES_KEPT, 2 * len(in_use))
         return self._profiles.setdefault(profile, profile)
 
-    def _take_node_infos(self) -> int:
-        """Each participant's nodes from ros_discovery_info; how many samples were taken.
-        Any peer may write there: a sample that does not decode is dropped alone (the
-        others taken with it are kept), and never fails the refresh (services and actions
-        refresh before each call, a stop's goal cancel included)."""
-        bad = large = taken = 0
-        for data, sample_info in _take_raw(self._info, INFO_BATCH):
+    def _take_node_infos(self) -> tuple[int, bool]:
+        """Each participant's nodes from ros_discovery_info: (how many samples were taken,
+        whether all waiting were). At most REFRESH_TAKE samples, and batches until about
+        INFO_BYTES_TAKE were decoded. Any peer may write there: a sample that does not decode
+        is dropped alone (the others taken with it are kept), and never fails the refresh
+        (services and actions refresh before each call, a stop's goal cancel included)."""
+        bad = large = taken = decoded = 0
+        # (`decoded` is read as it grows: checked between two batches)
+        for data, sample_info in _take_raw(self._info, INFO_BATCH,
+                                           more=lambda: decoded < INFO_BYTES_TAKE):  # noqa: B023
             taken += 1
             if not sample_info.valid_data:
                 continue  # keyless: an invalid sample names no participant
@@ -301,6 +310,7 @@ class RosGraph:
                 # Its participant's nodes are not known now: the info it replaces is stale.
                 self._forget_info(bytes(data[INFO_GID]))
                 continue
+            decoded += len(data)
             try:
                 info: Any = self._decode_info(data)
                 gid = bytes(info.gid.data)[:16]
@@ -315,7 +325,7 @@ class RosGraph:
                 self._forget_info(gid)
         self._report_dropped(bad, large)
         self._bound_unknown_infos()
-        return taken
+        return taken, taken < REFRESH_TAKE and decoded < INFO_BYTES_TAKE
 
     def _report_dropped(self, bad: int, large: int) -> None:
         """Counts the samples dropped; a peer may write them as often as we refresh (before
@@ -477,12 +487,12 @@ def _take_all(reader: BuiltinDataReader, batch: int = 256,
             return
 
 
-def _take_raw(reader: Any, batch: int,
-              limit: int = REFRESH_TAKE) -> Iterator[raw_cdr.RawSample]:
-    """The samples waiting (as CDR bytes, SampleInfo), up to `limit`, `batch` at a time: a
-    batch is let go of before the next is taken."""
+def _take_raw(reader: Any, batch: int, limit: int = REFRESH_TAKE,
+              more: Callable[[], bool] = lambda: True) -> Iterator[raw_cdr.RawSample]:
+    """The samples waiting (as CDR bytes, SampleInfo), up to `limit`, `batch` at a time while
+    `more()`: a batch is let go of before the next is taken."""
     taken = 0
-    while taken < limit:
+    while taken < limit and more():
         samples = raw_cdr.take(reader, ANY_SAMPLE, min(batch, limit - taken))
         count = len(samples)
         yield from samples

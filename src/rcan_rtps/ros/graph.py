@@ -474,10 +474,11 @@ class RosGraph:
 
 
 def _take_all(reader: BuiltinDataReader, batch: int = 256,
-              limit: int = REFRESH_TAKE) -> Iterator[Any]:
-    """The samples waiting, up to `limit`, a batch at a time: the binding sizes its buffers
-    by the count asked for, so one take of 100,000 cost ~0.6 ms even with nothing to take (a
-    refresh polled each second on a quiet graph paid that thrice)."""
+              limit: int | None = None) -> Iterator[Any]:
+    """The samples waiting, up to `limit` (REFRESH_TAKE), a batch at a time: the binding sizes
+    its buffers by the count asked for, so one take of 100,000 cost ~0.6 ms even with nothing
+    to take (a refresh polled each second on a quiet graph paid that thrice)."""
+    limit = REFRESH_TAKE if limit is None else limit
     taken = 0
     while taken < limit:
         samples = reader.take(N=min(batch, limit - taken))
@@ -487,10 +488,11 @@ def _take_all(reader: BuiltinDataReader, batch: int = 256,
             return
 
 
-def _take_raw(reader: Any, batch: int, limit: int = REFRESH_TAKE,
+def _take_raw(reader: Any, batch: int, limit: int | None = None,
               more: Callable[[], bool] = lambda: True) -> Iterator[raw_cdr.RawSample]:
-    """The samples waiting (as CDR bytes, SampleInfo), up to `limit`, `batch` at a time while
-    `more()`: a batch is let go of before the next is taken."""
+    """The samples waiting (as CDR bytes, SampleInfo), up to `limit` (REFRESH_TAKE), `batch`
+    at a time while `more()`: a batch is let go of before the next is taken."""
+    limit = REFRESH_TAKE if limit is None else limit
     taken = 0
     while taken < limit and more():
         samples = raw_cdr.take(reader, ANY_SAMPLE, min(batch, limit - taken))

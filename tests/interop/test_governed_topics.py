@@ -21,9 +21,14 @@ from typing import Any
 
 import pytest
 from cyclonedds.idl import make_idl_struct
-from waiting import eventually_sync
+from waiting import eventually, eventually_sync
 
+from rcan_rtps.cli._governed import GovernorGuard
+from rcan_rtps.ros import graph as graph_mod
 from rcan_rtps.ros.bag import BagWriter
+from rcan_rtps.ros.errors import WireError
+from rcan_rtps.ros.names import mangle_topic
+from rcan_rtps.ros.participant import RosNode
 from rcan_rtps.ros.serialization import serialize
 from rcan_rtps.ros.typesys.store import TypeStore
 from tests.interop.test_demo import Demo, _run_demo
@@ -206,3 +211,29 @@ def test_a_bridge_that_comes_while_sending_ends_the_sending(tmp_path: Path,
     finally:
         proc.kill()
         demo.close()  # the bridge stopped as the fixture stops it
+
+
+async def test_a_governor_behind_unread_discovery_is_still_found(
+        domain_id: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A refresh takes so much discovery at a time (`REFRESH_TAKE`, red team 32): behind a
+    large graph or a flood, the bridge's governed writer may not be read within the look
+    before the first send (GOVERNOR_LOOK_S), and the command sent past it. The look goes on
+    until the graph has read what was waiting. Here a refresh takes 4 samples, and a
+    participant's 300 writers come before its governed one."""
+    with RosNode("crowd", "/robot1", domain_id=domain_id,
+                 governed_by="rcan://registry.local/acme/rover/unit-0001") as crowd, \
+            RosNode("cli", "/", domain_id=domain_id) as me:
+        for i in range(300):
+            crowd.create_publisher(f"/crowd/t{i}", STRING)
+        crowd.create_publisher("/robot1/cmd_vel", TWIST, governed=True)  # the last one
+        seen = graph_mod.RosGraph(me)  # all of it arrived, before the guard's graph exists
+        await eventually(lambda: (seen.refresh(), [e for e in seen.endpoints()
+                                                   if e.governed_by])[1], timeout=30)
+        seen.close()
+        monkeypatch.setattr(graph_mod, "REFRESH_TAKE", 4)
+        graph = graph_mod.RosGraph(me)  # its readers hold every endpoint, unread
+        guard = GovernorGuard(graph, {mangle_topic("/robot1/cmd_vel"): "/robot1/cmd_vel"},
+                              allowed=False)
+        with pytest.raises(WireError, match="is governed"):
+            await guard.look_before_sending()
+        graph.close()

@@ -31,6 +31,7 @@ from rcan_rtps.ros import qos, raw_cdr
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
 from rcan_rtps.ros.graph import (
     INFO_BATCH,
+    INFO_BYTES_TAKE,
     MAX_INFO_BYTES,
     MAX_INFO_NAME,
     MAX_NODE_FQN,
@@ -449,7 +450,8 @@ async def test_infos_of_made_up_participants_share_a_byte_budget(
     for data in samples:
         raw_cdr.write(hostile._info_writer, data)
     hostile.announce()
-    await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1])
+    # (each refresh decodes ~INFO_BYTES_TAKE: until one has taken all, the last included)
+    await eventually(lambda: graph.refresh() and ("/robot1", "hostile") in graph.nodes())
     kept = [gid for gid in graph._node_infos if gid not in graph._alive]
     assert 0 < len(kept) <= MAX_UNKNOWN_INFO_BYTES // len(samples[0]) < len(samples)
     newest = bytes(samples[-1][4:20])  # the gid, after the 4-byte CDR header
@@ -485,3 +487,54 @@ async def test_a_discovery_info_past_the_size_bound_leaves_no_stale_nodes(
     assert ("/", "victim") in graph.nodes()
     hostile.announce()  # its next info, within the bound: listed again
     await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1])
+
+
+async def test_a_view_names_endpoints_without_walking_every_info(
+        victim: RosNode, hostile: RosNode, domain_id: int) -> None:
+    """Each view (`endpoints()`, which services and actions call before each call, a stop's
+    goal cancel included) built a table of every gid every live info names to name a few
+    endpoints: ~550 ms a call with eight peers each announcing 120,000 made-up gids within
+    MAX_INFO_BYTES (red team 32). Infos are indexed once, when read; a view's peak of traced
+    memory (what it allocates) must not grow with the infos' gids."""
+    graph = RosGraph(victim)
+    codec = hostile.codecs.of(DISCOVERY_TYPE)
+    with RosNode("second", "/", domain_id=domain_id) as second:
+        for peer in (hostile, second):
+            raw_cdr.write(peer._info_writer, _info(codec, peer.participant.guid.bytes,
+                                                   "crowded", 100_000))
+        await eventually(lambda: (graph.refresh(),
+                                  ("/", "crowded") in graph.nodes_sharing_a_name())[1])
+        tracemalloc.start()
+        try:
+            graph.endpoints()
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+    assert peak < 1_000_000, f"{peak} bytes allocated by one view"
+
+
+async def test_a_refresh_decodes_so_many_discovery_info_bytes_at_a_time(
+        victim: RosNode, hostile: RosNode) -> None:
+    """Decoding an info within MAX_INFO_BYTES costs ~150 ms of Python a MiB of gids, on the
+    caller's loop, and a peer may write one as often as it likes: a refresh decoded every one
+    waiting (eight here, ~2 s; a peer writing ten a second held the loop for good). It stops
+    past INFO_BYTES_TAKE and says it is behind; the next refreshes take the rest."""
+    graph = RosGraph(victim)
+    graph.refresh()
+    writer = hostile.create_writer(DISCOVERY_TOPIC, DISCOVERY_TYPE,
+                                   qos.DISCOVERY_INFO.with_(depth=8))
+    await eventually(lambda: writer.get_publication_matched_status().current_count >= 1)
+    codec = hostile.codecs.of(DISCOVERY_TYPE)
+    samples = [_info(codec, uuid.uuid4().bytes, f"big_{i}", 100_000) for i in range(8)]
+    assert INFO_BYTES_TAKE // 2 < len(samples[0]) <= INFO_BYTES_TAKE
+    for data in samples:
+        raw_cdr.write(writer, data)
+    assert await asyncio.to_thread(writer.wait_for_acks, 60 * 10**9)  # all in our reader
+    await asyncio.sleep(0.5)  # acknowledged may still be on its way into the reader
+    def big() -> int:  # infos of made-up participants decoded and kept
+        return len([gid for gid in graph._info_sizes if gid not in graph._alive])
+
+    assert graph.refresh() is False
+    assert big() == 2  # the sample that crossed half the budget, and the one that passed it
+    await eventually(graph.refresh)  # the rest, refresh after refresh
+    assert big() == MAX_UNKNOWN_INFO_BYTES // len(samples[0])

@@ -36,7 +36,10 @@ change, never held back.
 
 Cost: a poll takes what discovery changed since the last one (nothing, on a quiet graph) and
 only then looks at the publishers of the command topics: a set lookup per endpoint of the
-graph. No lock of the bridge is held while DDS is called.
+graph. No lock of the bridge is held while DDS is called. Behind a flood of discovery (a peer
+making and deleting endpoints faster than they are read) a refresh takes so much at a time
+(`ros.graph.REFRESH_TAKE`) and the watch polls again at once, giving the loop a turn between
+two: a stop is answered while the flood lasts.
 """
 
 from __future__ import annotations
@@ -197,24 +200,29 @@ class CommanderWatch:
 
     async def _run(self) -> None:
         while True:
+            caught_up = True
             try:
-                self.poll()
+                caught_up = self.poll()
                 self._failed = False
             except Exception as exc:  # the watch fails alone, logged once until it works
                 if not self._failed:
                     log.warning("watching the command topics for other publishers failed "
                                 "(%s: %s); retrying", type(exc).__name__, exc)
                 self._failed = True
-            await asyncio.sleep(self.interval)
+            # Behind a flood of discovery (a refresh takes so much at a time, ros.graph):
+            # again at once, after the loop's other work, until caught up.
+            await asyncio.sleep(self.interval if caught_up else 0)
 
-    def poll(self) -> None:
-        """One look at the graph: what appeared and what went since the last."""
-        self._graph.refresh()
+    def poll(self) -> bool:
+        """One look at the graph: what appeared and what went since the last. False when
+        the graph has more discovery waiting than one refresh takes."""
+        caught_up = self._graph.refresh()
         if self._graph.generation != self._generation:  # else nothing came or went
             self._generation = self._graph.generation
             self.update(foreign_publishers(self._graph.publishers_on(self._topics), self._own,
                                            self._expected))
         self.tick()
+        return caught_up
 
     def tick(self) -> None:
         """What each poll does after reading the graph: appearances now due are told, and

@@ -44,28 +44,33 @@ class GovernorGuard:
         self._warned: set[tuple[str, str]] = set()
 
     async def look_before_sending(self) -> None:
-        """Looks for GOVERNOR_LOOK_S (discovery takes a moment), raising at the first seen."""
+        """Looks for GOVERNOR_LOOK_S (discovery takes a moment), raising at the first seen,
+        and on until the graph has read all discovery waiting: a refresh takes so much at a
+        time (`ros.graph.REFRESH_TAKE`), and behind a large graph or a flood of discovery the
+        governor may be among what is not read yet (fails closed: nothing sent meanwhile)."""
         deadline = time.monotonic() + GOVERNOR_LOOK_S
         while True:
-            self.check()
-            if time.monotonic() >= deadline:
+            caught_up = self.check()
+            if caught_up and time.monotonic() >= deadline:
                 return
-            await asyncio.sleep(0.05)
+            await asyncio.sleep(0.05 if caught_up else 0)
 
     def check_when_due(self) -> None:
         if time.monotonic() >= self._next_look:
             self.check()
 
-    def check(self) -> None:
+    def check(self) -> bool:
         """Raises WireError (one line, exit 1) for a governed endpoint on one of the topics
-        (or, allowed, says once on stderr that the governor is passed by)."""
+        (or, allowed, says once on stderr that the governor is passed by). False when the
+        graph has more discovery waiting than one refresh takes."""
         self._next_look = time.monotonic() + LOOK_PERIOD
-        self.graph.refresh()
+        caught_up = self.graph.refresh()
         governed = {(e.dds_topic, e.governed_by) for e in self.graph.endpoints()
                     if e.governed_by and e.dds_topic in self.topics}  # one look at the graph
         for dds_topic, name in self.topics.items():
             for governor in sorted(g for t, g in governed if t == dds_topic):
                 self._found(name, governor)
+        return caught_up
 
     def _found(self, name: str, governor: str) -> None:
         said = _shown_governor(governor)

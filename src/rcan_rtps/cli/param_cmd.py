@@ -1,5 +1,12 @@
 """`rcan-rtps param list|get|set|dump`, shaped like `ros2 param`, over the rcl_interfaces
-services every ROS 2 node serves (`<node>/list_parameters`, `get_parameters`, …)."""
+services every ROS 2 node serves (`<node>/list_parameters`, `get_parameters`, …).
+
+Any participant may serve those services under any node's name and answer what it likes:
+names and values are printed as `_printable.shown` makes them (never an escape sequence
+obeyed); a type rcl_interfaces does not define, or a `get_parameters` reply with another
+count of values than names asked for, is an error naming the node, not a traceback or a
+value shown as another; `dump` writes a name that nests below another parameter's value
+(`a` and `a.b`) dotted, as a params file may (rcl joins nested keys with dots)."""
 
 from __future__ import annotations
 
@@ -12,7 +19,8 @@ from typing import Any
 import yaml
 
 from .. import _stop_signals as stop_signals
-from ..ros.errors import GraphTimeout, seconds
+from .._printable import shown
+from ..ros.errors import GraphTimeout, WireError, seconds
 from ..ros.graph import RosGraph
 from ..ros.parameters import (
     BOOL,
@@ -122,6 +130,30 @@ def to_python(value: dict[str, Any]) -> Any:
     return None if field is None else value[field]
 
 
+def known_type(target: str, name: str, value: dict[str, Any]) -> int:
+    """The type of a ParameterValue `target` answered for `name`: one rcl_interfaces defines,
+    else a WireError (a node answering another number answers nothing we can show)."""
+    kind = int(value["type"])
+    if kind != NOT_SET and kind not in VALUE_FIELDS:
+        raise WireError(f"{shown(_node_fqn(target))} answered parameter {shown(name)} with "
+                        f"type {kind}, which rcl_interfaces/msg/ParameterType does not define")
+    return kind
+
+
+def answered_values(target: str, names: list[str], reply: dict[str, Any]
+                    ) -> list[dict[str, Any]]:
+    """A get_parameters reply's values, one per name asked for; a WireError when the node
+    answered another count (pairing them up would show values under the wrong names, or
+    leave parameters out unsaid)."""
+    values: list[dict[str, Any]] = reply["values"]
+    if len(values) != len(names):
+        raise WireError(f"{shown(_node_fqn(target))} answered {len(values)} value(s) for "
+                        f"the {len(names)} parameter(s) asked for")
+    for name, value in zip(names, values, strict=True):
+        known_type(target, name, value)
+    return values
+
+
 def to_parameter_value(value: Any) -> dict[str, Any]:
     """A YAML value as a ParameterValue, typed like ros2 param set types it."""
     if isinstance(value, bool):
@@ -161,7 +193,7 @@ async def _list(args: argparse.Namespace) -> int:
     with make_node(args) as node:
         for name in await parameter_names(node, args.node, args.timeout):
             if pattern is None or pattern.search(name):
-                print(f"  {name}")
+                print(f"  {shown(name)}")
     return 0
 
 
@@ -169,12 +201,12 @@ async def _get(args: argparse.Namespace) -> int:
     with make_node(args) as node:
         reply = await _call(node, args.node, "get_parameters", {"names": [args.name]},
                             args.timeout)
-    values = reply["values"]
-    if not values or values[0]["type"] == NOT_SET:
+    [value] = answered_values(args.node, [args.name], reply)
+    kind = value["type"]
+    if kind == NOT_SET:
         print("Parameter not set.")
         return 1
-    kind = values[0]["type"]
-    text = _format_value(kind, to_python(values[0]))
+    text = shown(_format_value(kind, to_python(value)))
     print(text if args.hide_type else f"{GET_LABELS[kind]} {text}")
     return 0
 
@@ -194,14 +226,16 @@ async def _set(args: argparse.Namespace) -> int:
 
 
 def _nest(flat: dict[str, Any]) -> dict[str, Any]:
-    """`a.b.c: v` → {a: {b: {c: v}}}, as ros2 param dump writes dotted names."""
+    """`a.b.c: v` → {a: {b: {c: v}}}, as ros2 param dump writes dotted names. A name below
+    another parameter's value (`a.b` beside `a`: a node may declare both) stays dotted at
+    the deepest level that is not a value (`a: 1`, `a.b: 2`), which rcl reads back as `a.b`."""
     tree: dict[str, Any] = {}
     for name, value in sorted(flat.items()):
-        *parents, leaf = name.split(".")
+        parts = name.split(".")
         level = tree
-        for part in parents:
-            level = level.setdefault(part, {})
-        level[leaf] = value
+        while len(parts) > 1 and isinstance(level.setdefault(parts[0], {}), dict):
+            level = level[parts.pop(0)]
+        level[".".join(parts)] = value
     return tree
 
 
@@ -209,8 +243,8 @@ async def _dump(args: argparse.Namespace) -> int:
     with make_node(args) as node:
         names = await parameter_names(node, args.node, args.timeout)
         reply = await _call(node, args.node, "get_parameters", {"names": names}, args.timeout)
-    values = {n: to_python(v) for n, v in zip(names, reply["values"], strict=False)
-              if v["type"] != NOT_SET}
+    values = {n: to_python(v) for n, v in zip(names, answered_values(args.node, names, reply),
+                                              strict=True) if v["type"] != NOT_SET}
     document = {_node_fqn(args.node): {"ros__parameters": _nest(values)}}
     print(yaml.safe_dump(document, sort_keys=False, default_flow_style=False).rstrip())
     return 0

@@ -8,6 +8,12 @@ Any peer may write ros_discovery_info, and cyclonedds' reader does not keep the 
 its IDL (`string<256>` for a node's namespace and name): a name is cut to that bound where
 the sample is read (`bound_node_name`), so every view — `node list`, `node info`, `topic
 info`, the bridge's other publishers — shows at most it.
+
+Any peer may also make and delete endpoints (or whole participants) faster than a refresh
+reads their discovery samples (~150 µs each, in Python), and a refresh runs on the caller's
+event loop (the bridge's commander watch, a service call, a stop's goal cancel): it takes at
+most REFRESH_TAKE samples of each builtin reader and says whether it caught up (`refresh`
+returns False while more wait), so that no flood holds the loop for as long as it lasts.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import sys
 import time
 import weakref
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,8 +60,21 @@ MAX_INFO_BYTES = 2 << 20
 MAX_UNKNOWN_INFO_BYTES = 8 << 20
 # ros_discovery_info samples taken at a time. The binding copies each one out whole, so its
 # size is known only once it is in memory: a peer flooding samples past MAX_INFO_BYTES (the
-# reader keeps up to 1,000) is held this many at a time, not all at once (~2 GB).
-INFO_BATCH = 4
+# reader keeps up to 1,000) is held this many at a time, not all at once (~2 GB). One: a
+# refresh's decoding stops within a sample of INFO_BYTES_TAKE (with 4, four samples past it).
+INFO_BATCH = 1
+# ros_discovery_info bytes one refresh decodes, about: decoding is ~150 ms of Python a MiB of
+# gids, on the caller's loop, and a peer may rewrite an info near MAX_INFO_BYTES as often as
+# it likes (each one read again). Past this a refresh stops between two batches and says it
+# is behind (`refresh`), so the loop gets a turn between ~2 MiB of decoding and the next.
+INFO_BYTES_TAKE = MAX_INFO_BYTES
+# Discovery samples one refresh takes from each builtin reader at most (and ros_discovery_info
+# samples: its reader keeps 1,000). A refresh took every waiting sample, and while a peer
+# churning endpoints wrote them faster than they were read, it went on taking: 11 s on the
+# event loop for two peers each making 2,000 writers and leaving, round after round (red team
+# 32), the bridge's e-stop unanswered meanwhile. What is left waits in the reader (Cyclone
+# keeps one sample per endpoint) for the next refresh; ~150 ms of work at most per reader.
+REFRESH_TAKE = 1024
 # Distinct QoS profiles kept before those no endpoint uses are let go of (RosGraph._shared).
 PROFILES_KEPT = 64
 # Departures kept (`left_at`): those older than DEPARTURES_KEPT_S go once the table doubled
@@ -109,12 +128,22 @@ class Endpoint:
 
 
 class _Node(msgspec.Struct, frozen=True):
-    """A node a participant's ros_discovery_info announces: its names (bounded) and the gids
-    of its endpoints. What the views use of the sample, not the decoded sample."""
+    """A node a participant's ros_discovery_info announces: its names (bounded). With the
+    info's endpoint index (`_Info`), what the views use of the sample, not the decoded one."""
 
     namespace: str
     name: str
-    gids: tuple[bytes, ...]
+
+
+class _Info(msgspec.Struct, frozen=True):
+    """A participant's ros_discovery_info as the views use it: its nodes, and the node of each
+    endpoint gid it names — indexed once, when the sample is read. A view that walked every
+    gid of every info to name a few endpoints cost ~550 ms per call with eight peers each
+    announcing 120,000 made-up gids (within MAX_INFO_BYTES), and services and actions call
+    one before each call, a stop's goal cancel included (red team 32)."""
+
+    nodes: tuple[_Node, ...]
+    owners: dict[bytes, _Node]
 
 
 class _Seen(msgspec.Struct, frozen=True):
@@ -161,7 +190,7 @@ class RosGraph:
         # making endpoints of ever new QoS (a deadline per run) must not grow it for good.
         self._profiles: dict[QosProfile, QosProfile] = {}
         self._profiles_bound = PROFILES_KEPT
-        self._node_infos: dict[bytes, tuple[_Node, ...]] = {}
+        self._node_infos: dict[bytes, _Info] = {}
         self._info_sizes: dict[bytes, int] = {}  # bytes of each kept info's sample
         self._alive: set[bytes] = set()  # participants discovery knows (this one included)
         self.bad_infos = 0  # ros_discovery_info samples that did not decode (dropped)
@@ -186,12 +215,16 @@ class RosGraph:
             with contextlib.suppress(DDSException):
                 reader.__del__()
 
-    def refresh(self) -> None:
-        taken = 0
+    def refresh(self) -> bool:
+        """Takes what discovery changed since the last refresh, REFRESH_TAKE samples of each
+        reader at most: True when it took all there was, False when more is waiting (a flood
+        of discovery: call again, after giving the loop a turn)."""
+        taken, caught_up = 0, True
         for direction, reader in ((Direction.PUBLISHER, self._pubs),
                                   (Direction.SUBSCRIPTION, self._subs)):
+            endpoints = 0
             for sample in _take_all(reader):
-                taken += 1
+                endpoints += 1
                 key = sample.key.bytes
                 if sample.sample_info.instance_state == InstanceState.Alive:
                     self._endpoints[key] = self._seen(direction, sample)
@@ -204,20 +237,25 @@ class RosGraph:
                         getattr(sample, "topic_name", None)
                     if isinstance(topic, str) and topic:
                         self._note_left(topic, direction)
+            taken += endpoints
+            caught_up &= endpoints < REFRESH_TAKE
         # Participants before their nodes: an info is kept by its participant being alive.
         # ros_discovery_info is keyless: a participant that leaves leaves its last sample
         # behind while any other writer remains. Its nodes go with it, as in rmw's graph.
+        participants = 0
         for participant in _take_all(self._participants):
-            taken += 1
+            participants += 1
             key = participant.key.bytes
             if participant.sample_info.instance_state == InstanceState.Alive:
                 self._alive.add(key)
             else:
                 self._alive.discard(key)
                 self._forget_info(key)
-        taken += self._take_node_infos()
+        infos, infos_caught_up = self._take_node_infos()
+        taken += participants + infos
         if taken:
             self.generation += 1
+        return caught_up and participants < REFRESH_TAKE and infos_caught_up
 
     def _seen(self, direction: Direction, sample: Any) -> _Seen:
         user_data = qos_mod.user_data_of(sample.qos)
@@ -254,13 +292,16 @@ class RosGraph:
             self._profiles_bound = max(PROFILES_KEPT, 2 * len(in_use))
         return self._profiles.setdefault(profile, profile)
 
-    def _take_node_infos(self) -> int:
-        """Each participant's nodes from ros_discovery_info; how many samples were taken.
-        Any peer may write there: a sample that does not decode is dropped alone (the
-        others taken with it are kept), and never fails the refresh (services and actions
-        refresh before each call, a stop's goal cancel included)."""
-        bad = large = taken = 0
-        for data, sample_info in _take_raw(self._info, INFO_BATCH):
+    def _take_node_infos(self) -> tuple[int, bool]:
+        """Each participant's nodes from ros_discovery_info: (how many samples were taken,
+        whether all waiting were). At most REFRESH_TAKE samples, and batches until about
+        INFO_BYTES_TAKE were decoded. Any peer may write there: a sample that does not decode
+        is dropped alone (the others taken with it are kept), and never fails the refresh
+        (services and actions refresh before each call, a stop's goal cancel included)."""
+        bad = large = taken = decoded = 0
+        # (`decoded` is read as it grows: checked between two batches)
+        for data, sample_info in _take_raw(self._info, INFO_BATCH,
+                                           more=lambda: decoded < INFO_BYTES_TAKE):  # noqa: B023
             taken += 1
             if not sample_info.valid_data:
                 continue  # keyless: an invalid sample names no participant
@@ -269,21 +310,22 @@ class RosGraph:
                 # Its participant's nodes are not known now: the info it replaces is stale.
                 self._forget_info(bytes(data[INFO_GID]))
                 continue
+            decoded += len(data)
             try:
                 info: Any = self._decode_info(data)
                 gid = bytes(info.gid.data)[:16]
-                nodes = _nodes_of(info)
+                read = _info_of(info)
             except Exception:
                 bad += 1
                 continue
             if sample_info.instance_state == InstanceState.Alive:
                 self._node_infos.pop(gid, None)  # re-inserted: the newest last
-                self._node_infos[gid], self._info_sizes[gid] = nodes, len(data)
+                self._node_infos[gid], self._info_sizes[gid] = read, len(data)
             else:
                 self._forget_info(gid)
         self._report_dropped(bad, large)
         self._bound_unknown_infos()
-        return taken
+        return taken, taken < REFRESH_TAKE and decoded < INFO_BYTES_TAKE
 
     def _report_dropped(self, bad: int, large: int) -> None:
         """Counts the samples dropped; a peer may write them as often as we refresh (before
@@ -324,7 +366,7 @@ class RosGraph:
             self._forget_info(gid)
 
     def _live_infos(self) -> list[tuple[_Node, ...]]:
-        return [nodes for gid, nodes in self._node_infos.items() if gid in self._alive]
+        return [info.nodes for gid, info in self._node_infos.items() if gid in self._alive]
 
     async def settle(self, seconds: float = 1.0, patience: float = 4.0) -> None:
         """Lets discovery run for `seconds`, then up to `patience` more until every
@@ -345,22 +387,17 @@ class RosGraph:
         return ros_participants - set(self._node_infos)
 
     # -- views -----------------------------------------------------------------
-    def _owners(self, participants: set[bytes] | None = None
-                ) -> dict[tuple[bytes, bytes], tuple[str, str]]:
-        """(participant, endpoint) → its node, for these participants (None: all). An
-        endpoint's node is looked for in its own participant's info only (as rmw's graph
-        cache does): another peer's info cannot claim it."""
-        owners: dict[tuple[bytes, bytes], tuple[str, str]] = {}
-        for gid, nodes in self._node_infos.items():
-            if gid not in self._alive or (participants is not None and gid not in participants):
-                continue
-            for n in nodes:
-                for g in n.gids:
-                    owners[(gid, g)] = (n.namespace, n.name)
-        return owners
+    def _owner(self, participant: bytes, endpoint: bytes) -> _Node | None:
+        """The node of `endpoint`, looked for in its own participant's info only (as rmw's
+        graph cache does): another peer's info cannot claim it. A lookup, whatever the size
+        of the infos."""
+        info = self._node_infos.get(participant)
+        if info is None or participant not in self._alive:
+            return None
+        return info.owners.get(endpoint)
 
     def endpoints(self) -> list[Endpoint]:
-        return self._described(self._endpoints.items(), self._owners())
+        return self._described(self._endpoints.items())
 
     def publishers_on(self, topics: set[str]) -> list[Endpoint]:
         """The publishers of these ROS topics (fully qualified names), of any participant.
@@ -368,7 +405,7 @@ class RosGraph:
         wanted = {mangle_topic(t) for t in topics}
         chosen = [(key, seen) for key, seen in self._endpoints.items()
                   if seen.direction is Direction.PUBLISHER and seen.topic_name in wanted]
-        return self._described(chosen, self._owners({seen.participant for _, seen in chosen}))
+        return self._described(chosen)
 
     def gids_on(self, dds_topic: str, direction: Direction) -> set[bytes]:
         """The GUIDs of the endpoints on this DDS topic in this direction (none described:
@@ -376,16 +413,15 @@ class RosGraph:
         return {key for key, seen in self._endpoints.items()
                 if seen.direction is direction and seen.topic_name == dds_topic}
 
-    @staticmethod
-    def _described(chosen: Iterable[tuple[bytes, _Seen]],
-                   owners: dict[tuple[bytes, bytes], tuple[str, str]]) -> list[Endpoint]:
+    def _described(self, chosen: Iterable[tuple[bytes, _Seen]]) -> list[Endpoint]:
         found = []
         for key, seen in chosen:
             mangled = demangle(seen.topic_name)
             if mangled is None:
                 continue
-            namespace, name = owners.get((seen.participant, key),
-                                         ("_NODE_NAMESPACE_UNKNOWN_", "_NODE_NAME_UNKNOWN_"))
+            node = self._owner(seen.participant, key)
+            namespace, name = (node.namespace, node.name) if node is not None else \
+                ("_NODE_NAMESPACE_UNKNOWN_", "_NODE_NAME_UNKNOWN_")
             found.append(Endpoint(
                 seen.direction, mangled.kind, mangled.name,
                 ros_type_of(seen.type_name, mangled.kind), seen.topic_name,
@@ -437,25 +473,33 @@ class RosGraph:
         return sorted(name for name, count in announced.items() if count > 1)
 
 
-def _take_all(reader: BuiltinDataReader, batch: int = 256) -> Iterator[Any]:
-    """Every sample waiting, a batch at a time: the binding sizes its buffers by the count
-    asked for, so one take of 100,000 cost ~0.6 ms even with nothing to take (a refresh
-    polled each second on a quiet graph paid that thrice)."""
-    while True:
-        samples = reader.take(N=batch)
+def _take_all(reader: BuiltinDataReader, batch: int = 256,
+              limit: int | None = None) -> Iterator[Any]:
+    """The samples waiting, up to `limit` (REFRESH_TAKE), a batch at a time: the binding sizes
+    its buffers by the count asked for, so one take of 100,000 cost ~0.6 ms even with nothing
+    to take (a refresh polled each second on a quiet graph paid that thrice)."""
+    limit = REFRESH_TAKE if limit is None else limit
+    taken = 0
+    while taken < limit:
+        samples = reader.take(N=min(batch, limit - taken))
         yield from samples
+        taken += len(samples)
         if len(samples) < batch:
             return
 
 
-def _take_raw(reader: Any, batch: int) -> Iterator[raw_cdr.RawSample]:
-    """Every sample waiting (as CDR bytes, SampleInfo), `batch` at a time: a batch is let go
-    of before the next is taken."""
-    while True:
-        samples = raw_cdr.take(reader, ANY_SAMPLE, batch)
+def _take_raw(reader: Any, batch: int, limit: int | None = None,
+              more: Callable[[], bool] = lambda: True) -> Iterator[raw_cdr.RawSample]:
+    """The samples waiting (as CDR bytes, SampleInfo), up to `limit` (REFRESH_TAKE), `batch`
+    at a time while `more()`: a batch is let go of before the next is taken."""
+    limit = REFRESH_TAKE if limit is None else limit
+    taken = 0
+    while taken < limit and more():
+        samples = raw_cdr.take(reader, ANY_SAMPLE, min(batch, limit - taken))
         count = len(samples)
         yield from samples
         del samples
+        taken += count
         if count < batch:
             return
 
@@ -470,10 +514,14 @@ def bound_node_name(text: str) -> str:
     return text[:MAX_INFO_NAME - len(more)] + more
 
 
-def _nodes_of(info: Any) -> tuple[_Node, ...]:
-    return tuple(_Node(bound_node_name(n.node_namespace), bound_node_name(n.node_name),
-                       tuple(bytes(g.data)[:16] for g in [*n.reader_gid_seq, *n.writer_gid_seq]))
-                 for n in info.node_entities_info_seq)
+def _info_of(info: Any) -> _Info:
+    nodes, owners = [], {}
+    for n in info.node_entities_info_seq:
+        node = _Node(bound_node_name(n.node_namespace), bound_node_name(n.node_name))
+        nodes.append(node)
+        for g in (*n.reader_gid_seq, *n.writer_gid_seq):
+            owners[bytes(g.data)[:16]] = node  # a gid two nodes name: the later one's
+    return _Info(tuple(nodes), owners)
 
 
 def node_fqn(namespace: str, name: str) -> str:

@@ -237,3 +237,28 @@ async def test_a_governor_behind_unread_discovery_is_still_found(
         with pytest.raises(WireError, match="is governed"):
             await guard.look_before_sending()
         graph.close()
+
+
+async def test_settle_reads_all_waiting_discovery(domain_id: int,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """`RosGraph.settle` (the CLI's views: `topic list`, `node info`) returned once its time
+    was up and every ROS participant had announced its nodes, whatever discovery still waited
+    unread: with a refresh taking so much at a time (`REFRESH_TAKE`, 4 here), a large graph
+    was listed in part."""
+    with RosNode("crowd", "/", domain_id=domain_id) as crowd, \
+            RosNode("cli", "/", domain_id=domain_id) as me:
+        for i in range(300):
+            crowd.create_publisher(f"/crowd/t{i}", STRING)
+        seen = graph_mod.RosGraph(me)
+        await eventually(lambda: (seen.refresh(), len(_crowd_topics(seen)) == 300)[1],
+                         timeout=30)
+        seen.close()
+        monkeypatch.setattr(graph_mod, "REFRESH_TAKE", 4)
+        graph = graph_mod.RosGraph(me)  # its readers hold every endpoint, unread
+        await graph.settle(0.0, 30.0)
+        assert len(_crowd_topics(graph)) == 300
+        graph.close()
+
+
+def _crowd_topics(graph: graph_mod.RosGraph) -> set[str]:
+    return {e.ros_name for e in graph.endpoints() if e.ros_name.startswith("/crowd/")}

@@ -369,15 +369,17 @@ class RosGraph:
         return [info.nodes for gid, info in self._node_infos.items() if gid in self._alive]
 
     async def settle(self, seconds: float = 1.0, patience: float = 4.0) -> None:
-        """Lets discovery run for `seconds`, then up to `patience` more until every
-        participant with ROS endpoints has announced its nodes. Fast DDS hands its
+        """Lets discovery run for `seconds`, then up to `patience` more until the graph has
+        read all waiting discovery and every participant with ROS endpoints has announced
+        its nodes. Fast DDS hands its
         latched ros_discovery_info to a late reader only on its next heartbeat (3 s)."""
         loop = asyncio.get_running_loop()
         start = loop.time()
         while True:
-            self.refresh()
+            caught_up = self.refresh()  # (False: more discovery waits, a big graph's or a flood's)
             elapsed = loop.time() - start
-            if elapsed >= seconds + patience or (elapsed >= seconds and not self._unannounced()):
+            if elapsed >= seconds + patience or \
+                    (elapsed >= seconds and caught_up and not self._unannounced()):
                 return
             await asyncio.sleep(0.1)
 

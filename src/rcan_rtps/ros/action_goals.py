@@ -1269,8 +1269,14 @@ class GoalSender:
     def _server_participants(self) -> set[bytes]:
         """The GUID prefixes of the participants serving the action (their send_goal request
         readers, in the graph): a goal's listing counts from them until its server is known
-        by its send_goal reply, or if it never is (a goal whose send gave up)."""
-        return {participant_prefix(guid) for guid in self._send.server_guids()}
+        by its send_goal reply, or if it never is (a goal whose send gave up). Empty once the
+        node's graph is gone (a status sample handed to the loop as the node closed: a
+        clean-clone CI logged the DDSException out of the status callback)."""
+        try:
+            guids = self._send.server_guids()
+        except DDSException:  # (the graph's readers deleted meanwhile)
+            return set()
+        return {participant_prefix(guid) for guid in guids}
 
     def _foreign_listing(self, lister: _Lister) -> None:
         """A status sample listed our goals from a writer that is not their server's (a

@@ -115,7 +115,8 @@ def bound_request_content(entry: dict[str, Any], limit: int, *, params: bool) ->
     `omitted` lists the fields so replaced. Only that list tells a marker from a client's
     params that look like one (a request may send `{"omitted": "too_large_to_log", ...}`
     itself: it is logged as sent, and not listed)."""
-    left, replaced = limit, list[str]()
+    left = limit
+    replaced: list[str] = []
     if params and entry.get("params") is not None:
         left = _fitted(entry, "params", left, limit, replaced)
     rcan = entry.get("rcan")

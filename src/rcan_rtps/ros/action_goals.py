@@ -799,9 +799,10 @@ class GoalSender:
         Raises ActionError once this client (or its node) is closed (whoever waits on a goal
         is told)."""
         self.client._check_open()
-        if self.client._status.matched_count() > 0:
+        matched = self.client._status.reader.get_subscription_matched_status()
+        if matched.current_count > 0:
             self._server_seen, self._lost_since = True, None
-            self._servers_gone()
+            self._servers_gone(matched)
             return True
         if not self._server_seen:
             return True  # never there: that is wait_for_server's error to report
@@ -814,18 +815,18 @@ class GoalSender:
                 goal.state = GoalState.SERVER_LOST
         return False
 
-    def _servers_gone(self) -> None:
+    def _servers_gone(self, matched: Any) -> None:
         """Ends as lost the open goals whose server (`ClientGoal.server`) has had no status
         writer matched with our reader for LOST_GRACE, while another has: it restarted (a
         new participant, which does not have its goals) or left with a second server of the
-        name still there, and only its listing of them counts. One DDS query while the
-        reader's matches stay as they were."""
-        reader = self.client._status.reader
-        matched = reader.get_subscription_matched_status()
+        name still there, and only its listing of them counts. `matched`: the status
+        reader's subscription-matched status, as `check_server` read it; the matched writers
+        are looked up again only when it changed."""
         seen = (int(matched.total_count), int(matched.current_count))
         if seen != self._lister_matches:
             self._lister_matches = seen
-            self._listers = {participant_prefix(g) for g in matched_writers(reader).values()}
+            self._listers = {participant_prefix(g)
+                             for g in matched_writers(self.client._status.reader).values()}
         servers = {g.server for g in self._goals.values()
                    if g.server is not None and not g.state.terminal}
         now = time.monotonic()
@@ -1261,11 +1262,6 @@ class GoalSender:
         if lister.foreign:
             self._foreign_listing(lister)
 
-    def _status_writer(self, array: IdlStruct) -> bytes | None:
-        """The GUID of the writer of a status sample (None: not known, its writer no longer
-        matched). One DDS query per writer: the reader's handles are mapped once."""
-        return self._status_writers.of_sample(array)
-
     def _server_participants(self) -> set[bytes]:
         """The GUID prefixes of the participants serving the action (their send_goal request
         readers, in the graph): a goal's listing counts from them until its server is known
@@ -1406,7 +1402,9 @@ class _Lister:
     @property
     def guid(self) -> bytes | None:
         if not self._looked:  # (only for a sample naming a goal of ours)
-            self._guid, self._looked = self._sender._status_writer(self._array), True
+            # (one DDS query per writer: the reader's handles are mapped once)
+            self._guid = self._sender._status_writers.of_sample(self._array)
+            self._looked = True
         return self._guid
 
     @property

@@ -67,6 +67,7 @@ from .handshake import (
     fastdds_writers,
     hear_announcements,
     matched_writers,
+    participant_prefix,
     writers_ready,
 )
 from .names import mangle_service
@@ -587,25 +588,18 @@ class ServiceClient(_ServiceEnd):
             pair = await self._wait_for_service(timeout)
             if pair.mapping is RequestMapping.CYCLONE:
                 reply = await self._call_cyclone(pair, message, deadline, from_participant)
-                return Answer(reply, tied=True, writer=self._writer_of(pair, reply))
+                return Answer(reply, tied=True, writer=pair.writer_guids.of_sample(reply))
             return await self._call_plain(pair, message, deadline, accept, unidentified_ok,
                                           from_participant)
 
     @staticmethod
-    def _writer_of(pair: _Pair, reply: Any) -> bytes | None:
-        """The GUID of the writer of a reply our reader delivered (None: one taken from the
-        capture, or its writer gone meanwhile). The pair knows it already when the reply's
-        identity was looked up: once per writer."""
-        return pair.writer_guids.of_sample(reply)
-
-    @classmethod
-    def _from_elsewhere(cls, pair: _Pair, sample: Any, participant: bytes | None) -> bool:
+    def _from_elsewhere(pair: _Pair, sample: Any, participant: bytes | None) -> bool:
         """Whether a reply comes from a writer known to be of another participant than the
         one the call asked for (`from_participant`)."""
         if participant is None:
             return False
-        writer = cls._writer_of(pair, sample)
-        return writer is not None and writer[:12] != participant
+        writer = pair.writer_guids.of_sample(sample)
+        return writer is not None and participant_prefix(writer) != participant
 
     async def _reply(self, future: asyncio.Future[IdlStruct], deadline: float) -> IdlStruct:
         """The reply `future` brings, or asyncio.TimeoutError at `deadline`; as soon as the
@@ -675,7 +669,7 @@ class ServiceClient(_ServiceEnd):
         # Before the request goes out, so that its reply is in what the capture has not read.
         captured = capture is not None and capture.expect_reply(
             identity, [w for w in matched_writers(pair.reader).values()
-                       if participant is None or w[:12] == participant])
+                       if participant is None or participant_prefix(w) == participant])
         fallback = None
         alone = unidentified_ok or not self._other_clients(pair)
         try:
@@ -687,7 +681,7 @@ class ServiceClient(_ServiceEnd):
                 fallback = asyncio.create_task(
                     self._reply_from_capture(pair, capture, waiter))
             reply = await self._reply(future, deadline)
-            return Answer(reply, waiter.tied, self._writer_of(pair, reply))
+            return Answer(reply, waiter.tied, pair.writer_guids.of_sample(reply))
         except asyncio.TimeoutError:
             self._stale = True
             raise ServiceTimeout(f"service {self.name}: no reply within the timeout") from None
@@ -750,7 +744,7 @@ class ServiceClient(_ServiceEnd):
                     if header.client_guid == pair.guid else None
                 if future is not None and not future.done() and not self._from_elsewhere(
                         pair, sample, self._pending_from.get(header.seq)):
-                    reply.sample_info = sample.sample_info  # (its writer: `_writer_of`)
+                    reply.sample_info = sample.sample_info  # (its writer: `Answer.writer`)
                     future.set_result(reply)
                 else:  # another client's reply, one we gave up on, or another server's
                     # (`from_participant`): never ours

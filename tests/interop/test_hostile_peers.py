@@ -12,8 +12,11 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import os
 import re
 import struct
+import subprocess
+import sys
 import tracemalloc
 import uuid
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -30,7 +33,6 @@ from rcan_rtps.bridge.faults import UNLISTED
 from rcan_rtps.ros import qos, raw_cdr
 from rcan_rtps.ros.actions import ActionClient, ActionServer, GoalState, ServerGoal
 from rcan_rtps.ros.graph import (
-    INFO_BATCH,
     INFO_BYTES_TAKE,
     MAX_INFO_BYTES,
     MAX_INFO_NAME,
@@ -39,6 +41,7 @@ from rcan_rtps.ros.graph import (
     MAX_UNKNOWN_INFOS,
     RosGraph,
 )
+from rcan_rtps.ros.handshake import participant_prefix, peers_know_our_readers
 from rcan_rtps.ros.participant import DISCOVERY_TOPIC, DISCOVERY_TYPE, RosNode
 
 from .bridge_rig import VIEWER, Rig, bridge_config, close_rig, make_rig
@@ -373,6 +376,7 @@ async def test_made_up_participants_in_discovery_info_name_no_node(
     """ros_discovery_info entries naming a gid no live participant has were kept for good
     and listed by nodes(); now they are never listed, and only so many are kept."""
     graph = RosGraph(victim)
+    await matched_by_graph(hostile)
     codec = hostile.codecs.of(DISCOVERY_TYPE)
     for i in range(400):
         raw_cdr.write(hostile._info_writer, bytes(codec.encode_value({
@@ -385,6 +389,14 @@ async def test_made_up_participants_in_discovery_info_name_no_node(
     assert not [n for n in graph.nodes() if n[1].startswith("ghost_")]
     assert ("/", "victim") in graph.nodes()
     assert len(graph._node_infos) <= MAX_UNKNOWN_INFOS + 2
+
+
+async def matched_by_graph(peer: RosNode) -> None:
+    """Waits until the peer's ros_discovery_info writer matched the graph's reader: before,
+    a write overwrites the last one in the writer's latched history of one (a test writing
+    several lost all but the last on a busy machine)."""
+    await eventually(
+        lambda: peer._info_writer.get_publication_matched_status().current_count >= 1)
 
 
 def _info(codec: Any, gid: bytes, name: str, endpoints: int) -> bytes:
@@ -400,6 +412,7 @@ async def test_a_discovery_info_past_the_size_bound_is_dropped_undecoded(
     (2.6 MB) was decoded and kept while the peer lived (~4 times its size in objects); now
     it is dropped undecoded with a warning, and the peer's next, honest info is read."""
     graph = RosGraph(victim)
+    await matched_by_graph(hostile)
     codec = hostile.codecs.of(DISCOVERY_TYPE)
     huge = _info(codec, hostile.participant.guid.bytes, "huge", 160_000)
     assert len(huge) > MAX_INFO_BYTES
@@ -411,32 +424,47 @@ async def test_a_discovery_info_past_the_size_bound_is_dropped_undecoded(
     assert not tracebacks(caplog)
 
 
-async def test_a_flood_of_discovery_infos_past_the_size_bound_is_held_a_few_at_a_time(
-        victim: RosNode, hostile: RosNode) -> None:
-    """A sample's size is known only once the binding has copied it out: a refresh took every
-    waiting ros_discovery_info sample (up to the reader's 1,000) into memory at once before
-    dropping those past the bound — 1,000 × 2 MiB for a peer writing them as fast as it can.
-    Here 24 such samples wait in the graph's reader; the refresh's peak of traced memory
-    must stay within a few samples' worth."""
+async def test_a_flood_of_discovery_infos_past_the_size_bound_is_not_held(
+        victim: RosNode, domain_id: int, jazzy_share: Path) -> None:
+    """Any peer may write ros_discovery_info samples of any size, and the graph's reader keeps
+    up to 1,000: taken only by a refresh, they waited inside Cyclone until the next one (200
+    samples of 4.8 MB grew a process by 920 MB, red team 32; a process that never refreshed
+    held them for good). The node's reader thread now takes each as it arrives and keeps
+    none past the size bound. A peer in another process writes 60 such samples, each
+    acknowledged by our reader before the next, while nothing here refreshes: this
+    process's resident memory must not grow by more than a few samples' worth (it grew by
+    ~4.6 MB a sample before)."""
     graph = RosGraph(victim)
     graph.refresh()
-    flood = 24
-    assert flood > 2 * INFO_BATCH
-    writer = hostile.create_writer(DISCOVERY_TOPIC, DISCOVERY_TYPE,
-                                   qos.DISCOVERY_INFO.with_(depth=flood))
-    await eventually(lambda: writer.get_publication_matched_status().current_count >= 1)
-    huge = _info(hostile.codecs.of(DISCOVERY_TYPE), uuid.uuid4().bytes, "huge", 140_000)
-    assert MAX_INFO_BYTES < len(huge) < MAX_INFO_BYTES + (1 << 20)
-    for _ in range(flood):
-        raw_cdr.write(writer, huge)
-    assert await asyncio.to_thread(writer.wait_for_acks, 60 * 10**9)  # all in our reader
-    tracemalloc.start()
-    try:  # acknowledged samples may still be on their way into the reader: refresh till in
+    flood, size = 60, 4_800_000
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    flooder = subprocess.Popen(
+        [sys.executable, str(Path(__file__).with_name("info_flooder.py")), str(flood),
+         str(size), str(domain_id), str(jazzy_share)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert flooder.stdout is not None and flooder.stdin is not None
+        assert await asyncio.to_thread(flooder.stdout.readline) == "ready\n"
+        before = _resident_bytes()
+        flooder.stdin.write("go\n")
+        flooder.stdin.flush()
+        assert await asyncio.wait_for(asyncio.to_thread(flooder.stdout.readline), 300) \
+            == "done\n"
+        grown = _resident_bytes() - before
         await eventually(lambda: (graph.refresh(), graph.large_infos == flood)[1])
-        peak = tracemalloc.get_traced_memory()[1]
     finally:
-        tracemalloc.stop()
-    assert peak < (INFO_BATCH + 2) * len(huge), f"{peak / len(huge):.1f} samples' worth held"
+        flooder.kill()
+        flooder.wait()
+        graph.close()
+    assert grown < 8 * size, f"grew by {grown / size:.1f} samples' worth"
+
+
+def _resident_bytes() -> int:
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    raise AssertionError("no VmRSS in /proc/self/status")
 
 
 async def test_infos_of_made_up_participants_share_a_byte_budget(
@@ -445,6 +473,7 @@ async def test_infos_of_made_up_participants_share_a_byte_budget(
     size bound (~0.5 GB of objects): they also share MAX_UNKNOWN_INFO_BYTES, the oldest
     going first."""
     graph = RosGraph(victim)
+    await matched_by_graph(hostile)
     codec = hostile.codecs.of(DISCOVERY_TYPE)
     samples = [_info(codec, uuid.uuid4().bytes, f"ghost_{i}", 90_000) for i in range(8)]
     for data in samples:
@@ -538,3 +567,30 @@ async def test_a_refresh_decodes_so_many_discovery_info_bytes_at_a_time(
     assert big() == 2  # the sample that crossed half the budget, and the one that passed it
     await eventually(graph.refresh)  # the rest, refresh after refresh
     assert big() == MAX_UNKNOWN_INFO_BYTES // len(samples[0])
+
+
+async def test_waiting_for_a_peer_does_not_decode_its_latched_history(
+        victim: RosNode, hostile: RosNode) -> None:
+    """Before a call, a client waits until the server's participant has matched its readers
+    (`peers_know_our_readers`): a fresh ros_discovery_info reader hears that participant's
+    latched info. It took up to 1,000 waiting samples at once through cyclonedds' own decoder,
+    so a peer keeping a deep latched history of large infos made every such wait decode
+    all of them (24 here, ~2.5 MB each). Each is now taken as it arrives by the node's
+    reader thread, only its gid kept: the wait's peak of traced memory stays within a few
+    samples, and the peer is still confirmed."""
+    flood = 24
+    writer = hostile.create_writer(DISCOVERY_TOPIC, DISCOVERY_TYPE,
+                                   qos.DISCOVERY_INFO.with_(depth=flood))
+    huge = _info(hostile.codecs.of(DISCOVERY_TYPE), hostile.participant.guid.bytes, "huge",
+                 150_000)
+    for _ in range(flood):  # (kept by the writer for late readers: transient-local)
+        raw_cdr.write(writer, huge)
+    peer = participant_prefix(hostile.participant.guid.bytes)
+    tracemalloc.start()
+    try:
+        confirmed = await peers_know_our_readers(victim, {peer}, timeout=30.0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert confirmed == {peer}
+    assert peak < 4 * len(huge), f"{peak / len(huge):.1f} samples' worth held"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import sys
 import tracemalloc
 from collections.abc import AsyncIterator
@@ -464,6 +465,10 @@ async def test_a_server_holds_nothing_more_per_goal_past_its_kept_goals(
             assert (await goal.result(timeout=20)).state is GoalState.SUCCEEDED
 
     def held_by_server() -> int:
+        """What is still reachable: each goal's task and objects make reference cycles, and
+        what the collector has not reached yet (its runs depend on what else allocated:
+        +2.4 to +3.9 kB over 40 goals, measured) is not held."""
+        gc.collect()
         where = tracemalloc.Filter(True, action_server.__file__, all_frames=True)
         return sum(s.size for s in tracemalloc.take_snapshot().filter_traces([where])
                    .statistics("filename"))

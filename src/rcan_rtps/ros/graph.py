@@ -26,7 +26,7 @@ import sys
 import time
 import weakref
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,40 +40,32 @@ from cyclonedds.builtin import (
 from cyclonedds.core import DDSException, InstanceState
 
 from . import qos as qos_mod
-from . import raw_cdr
+from .info_inbox import MAX_INFO_BYTES, InfoInbox
 from .names import EndpointKind, action_of, demangle, is_hidden, mangle_topic
 from .participant import DISCOVERY_TYPE, RosNode
 from .qos import QosProfile
-from .readers import ANY_SAMPLE, BAD_LOG_S
+from .readers import BAD_LOG_S, Watch
 from .typesys.store import normalize_name
 
 log = logging.getLogger(__name__)
 
 # ros_discovery_info entries kept for participants discovery has not (yet) announced: any peer
-# may write any gid there, so what names no live participant is bounded, then let go.
+# may write any gid there, so what names no live participant is bounded, then let go. They
+# share a budget of bytes as well as a count (an info may be up to MAX_INFO_BYTES, and its
+# decoded objects ~4 times that, kept while it is).
 MAX_UNKNOWN_INFOS = 256
-# The IDL bounds no sequence of an info, and decoding one costs ~4 times its size in Python
-# objects, kept while its participant lives: a sample larger than this is dropped undecoded
-# (a participant of 1,000 nodes with 60 endpoints each needs ~1 MB of it), and the kept infos
-# of participants not (yet) discovered share a budget as well as a count.
-MAX_INFO_BYTES = 2 << 20
 MAX_UNKNOWN_INFO_BYTES = 8 << 20
-# ros_discovery_info samples taken at a time. The binding copies each one out whole, so its
-# size is known only once it is in memory: a peer flooding samples past MAX_INFO_BYTES (the
-# reader keeps up to 1,000) is held this many at a time, not all at once (~2 GB). One: a
-# refresh's decoding stops within a sample of INFO_BYTES_TAKE (with 4, four samples past it).
-INFO_BATCH = 1
 # ros_discovery_info bytes one refresh decodes, about: decoding is ~150 ms of Python a MiB of
 # gids, on the caller's loop, and a peer may rewrite an info near MAX_INFO_BYTES as often as
-# it likes (each one read again). Past this a refresh stops between two batches and says it
-# is behind (`refresh`), so the loop gets a turn between ~2 MiB of decoding and the next.
+# it likes (each one read again). Past this a refresh stops and says it is behind
+# (`refresh`), so the loop gets a turn between ~2 MiB of decoding and the next.
 INFO_BYTES_TAKE = MAX_INFO_BYTES
-# Discovery samples one refresh takes from each builtin reader at most (and ros_discovery_info
-# samples: its reader keeps 1,000). A refresh took every waiting sample, and while a peer
-# churning endpoints wrote them faster than they were read, it went on taking: 11 s on the
-# event loop for two peers each making 2,000 writers and leaving, round after round (red team
-# 32), the bridge's e-stop unanswered meanwhile. What is left waits in the reader (Cyclone
-# keeps one sample per endpoint) for the next refresh; ~150 ms of work at most per reader.
+# Discovery samples one refresh takes from each builtin reader at most. A refresh took every
+# waiting sample, and while a peer churning endpoints wrote them faster than they were read,
+# it went on taking: 11 s on the event loop for two peers each making 2,000 writers and
+# leaving, round after round (red team 32), the bridge's e-stop unanswered meanwhile. What is
+# left waits in the reader (Cyclone keeps one sample per endpoint) for the next refresh;
+# ~150 ms of work at most per reader.
 REFRESH_TAKE = 1024
 # Distinct QoS profiles kept before those no endpoint uses are let go of (RosGraph._shared).
 PROFILES_KEPT = 64
@@ -81,9 +73,6 @@ PROFILES_KEPT = 64
 # past DEPARTURES_BOUND, so a peer churning ever new topics cannot grow it for good.
 DEPARTURES_BOUND = 256
 DEPARTURES_KEPT_S = 120.0
-# An info's gid, in its first 16 bytes after the 4-byte CDR header (octets: no alignment),
-# read there from a sample too large to decode.
-INFO_GID = slice(4, 20)
 # ros_discovery_info's IDL bound for a node's namespace and for its name, each.
 MAX_INFO_NAME = 256
 # A node's fully qualified name made of two names at that bound (`node_fqn`).
@@ -183,6 +172,10 @@ class RosGraph:
         self._subs = BuiltinDataReader(node.participant, BuiltinTopicDcpsSubscription)
         self._participants = BuiltinDataReader(node.participant, BuiltinTopicDcpsParticipant)
         self._info = node.discovery_reader()
+        # (taken as it arrives by the node's reader thread, its size looked at first)
+        self._inbox = InfoInbox()
+        self._info_watch = node.reader_thread.add(
+            Watch(self._info, self._inbox.arrived, "ros_discovery_info", raw=True))
         self._decode_info = node.codecs.of(DISCOVERY_TYPE).prepare_decoder().decode
         self._endpoints: dict[bytes, _Seen] = {}
         # Discovered QoS profiles, each kept once: a graph's endpoints share a handful. Those
@@ -195,6 +188,7 @@ class RosGraph:
         self._alive: set[bytes] = set()  # participants discovery knows (this one included)
         self.bad_infos = 0  # ros_discovery_info samples that did not decode (dropped)
         self.large_infos = 0  # and those larger than MAX_INFO_BYTES (dropped undecoded)
+        self.dropped_infos = 0  # and those dropped waiting for a refresh (InfoInbox's bounds)
         # (DDS topic, direction) -> monotonic time an endpoint of it was last seen leaving
         # (`left_at`), oldest first
         self._left_at: dict[tuple[str, Direction], float] = {}
@@ -211,6 +205,8 @@ class RosGraph:
         read condition refer to each other), for good once `gc.freeze()` (`run`) froze
         them: unread, each kept every participant and endpoint that came and went after
         (~2 kB each, for as long as the process runs)."""
+        with contextlib.suppress(DDSException):  # (the node's thread closed first)
+            self.node.reader_thread.remove(self._info_watch)
         for reader in (self._pubs, self._subs, self._participants, self._info):
             with contextlib.suppress(DDSException):
                 reader.__del__()
@@ -293,45 +289,42 @@ class RosGraph:
         return self._profiles.setdefault(profile, profile)
 
     def _take_node_infos(self) -> tuple[int, bool]:
-        """Each participant's nodes from ros_discovery_info: (how many samples were taken,
-        whether all waiting were). At most REFRESH_TAKE samples, and batches until about
-        INFO_BYTES_TAKE were decoded. Any peer may write there: a sample that does not decode
-        is dropped alone (the others taken with it are kept), and never fails the refresh
-        (services and actions refresh before each call, a stop's goal cancel included)."""
-        bad = large = taken = decoded = 0
-        # (`decoded` is read as it grows: checked between two batches)
-        for data, sample_info in _take_raw(self._info, INFO_BATCH,
-                                           more=lambda: decoded < INFO_BYTES_TAKE):  # noqa: B023
-            taken += 1
-            if not sample_info.valid_data:
-                continue  # keyless: an invalid sample names no participant
-            if len(data) > MAX_INFO_BYTES:
-                large += 1
-                # Its participant's nodes are not known now: the info it replaces is stale.
-                self._forget_info(bytes(data[INFO_GID]))
+        """Each participant's nodes from ros_discovery_info: (how many infos were taken,
+        whether all waiting were). The infos that arrived since the last refresh, the newest
+        per participant (`InfoInbox`), until about INFO_BYTES_TAKE were decoded. Any peer
+        may write there: an info that does not decode is dropped alone, and never fails the
+        refresh (services and actions refresh before each call, a stop's goal cancel
+        included)."""
+        bad = 0
+        arrivals, drained = self._inbox.take(INFO_BYTES_TAKE)
+        for raw_gid, arrived in arrivals:
+            if arrived.data is None:
+                # Past the size bound (or dropped waiting): the info it replaces is stale.
+                self._forget_info(raw_gid)
                 continue
-            decoded += len(data)
             try:
-                info: Any = self._decode_info(data)
+                info: Any = self._decode_info(arrived.data)
                 gid = bytes(info.gid.data)[:16]
                 read = _info_of(info)
             except Exception:
                 bad += 1
                 continue
-            if sample_info.instance_state == InstanceState.Alive:
+            if arrived.alive:
                 self._node_infos.pop(gid, None)  # re-inserted: the newest last
-                self._node_infos[gid], self._info_sizes[gid] = read, len(data)
+                self._node_infos[gid], self._info_sizes[gid] = read, len(arrived.data)
             else:
                 self._forget_info(gid)
-        self._report_dropped(bad, large)
+        self._report_dropped(bad)
         self._bound_unknown_infos()
-        return taken, taken < REFRESH_TAKE and decoded < INFO_BYTES_TAKE
+        return len(arrivals), drained
 
-    def _report_dropped(self, bad: int, large: int) -> None:
+    def _report_dropped(self, bad: int) -> None:
         """Counts the samples dropped; a peer may write them as often as we refresh (before
         each call, at each poll): each kind is logged at most once per BAD_LOG_S."""
         self.bad_infos += bad
-        self.large_infos += large
+        large, self.large_infos = self._inbox.large - self.large_infos, self._inbox.large
+        dropped, self.dropped_infos = \
+            self._inbox.dropped - self.dropped_infos, self._inbox.dropped
         if bad and self._may_log("bad"):
             log.warning("dropped ros_discovery_info sample(s) that do not decode (%d so far; "
                         "logged at most every %.0f s)", self.bad_infos, BAD_LOG_S)
@@ -339,6 +332,10 @@ class RosGraph:
             log.warning("dropped ros_discovery_info sample(s) larger than %d bytes, "
                         "undecoded: their participants' nodes are not shown (%d so far; "
                         "logged at most every %.0f s)", MAX_INFO_BYTES, self.large_infos,
+                        BAD_LOG_S)
+        if dropped and self._may_log("dropped"):
+            log.warning("dropped ros_discovery_info sample(s) arriving faster than they were "
+                        "read (%d so far; logged at most every %.0f s)", self.dropped_infos,
                         BAD_LOG_S)
 
     def _may_log(self, kind: str) -> bool:
@@ -487,22 +484,6 @@ def _take_all(reader: BuiltinDataReader, batch: int = 256,
         yield from samples
         taken += len(samples)
         if len(samples) < batch:
-            return
-
-
-def _take_raw(reader: Any, batch: int, limit: int | None = None,
-              more: Callable[[], bool] = lambda: True) -> Iterator[raw_cdr.RawSample]:
-    """The samples waiting (as CDR bytes, SampleInfo), up to `limit` (REFRESH_TAKE), `batch`
-    at a time while `more()`: a batch is let go of before the next is taken."""
-    limit = REFRESH_TAKE if limit is None else limit
-    taken = 0
-    while taken < limit and more():
-        samples = raw_cdr.take(reader, ANY_SAMPLE, min(batch, limit - taken))
-        count = len(samples)
-        yield from samples
-        del samples
-        taken += count
-        if count < batch:
             return
 
 

@@ -49,7 +49,10 @@ from cyclonedds.core import DDSException
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 
+from .info_inbox import INFO_GID, gid_of
 from .participant import RosNode
+from .raw_cdr import RawSample
+from .readers import Watch
 
 if TYPE_CHECKING:
     from .rtps_capture import IdentityCapture
@@ -193,22 +196,32 @@ async def peers_know_our_readers(node: RosNode, peers: Iterable[bytes],
     if not wanted:
         return set()
     probe = node.discovery_reader()
+    heard: set[bytes] = set()  # (added to by the reader thread: C-level set operations only)
     try:
-        return await _await_latched(probe, wanted, timeout)
+        # Any peer may write infos of any size (and a deep latched history of them): the
+        # node's reader thread takes each as it arrives and keeps only the gid it names.
+        watch = node.reader_thread.add(Watch(probe, lambda samples: _note_heard(heard, samples),
+                                             "ros_discovery_info (probe)", raw=True))
+        try:
+            return await _await_latched(probe, heard, wanted, timeout)
+        finally:
+            node.reader_thread.remove(watch, wait=False)
     finally:
         with contextlib.suppress(DDSException):
             probe.__del__()
 
 
-async def _await_latched(probe: DataReader[Any], wanted: set[bytes],
+def _note_heard(heard: set[bytes], samples: list[RawSample]) -> None:
+    for data, info in samples:
+        if info.valid_data and len(data) >= INFO_GID.stop:
+            heard.add(participant_prefix(gid_of(data)))
+
+
+async def _await_latched(probe: DataReader[Any], heard: set[bytes], wanted: set[bytes],
                          timeout: float) -> set[bytes]:
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout
-    heard: set[bytes] = set()
     while True:
-        for sample in probe.take(N=1000):
-            if sample.sample_info.valid_data:
-                heard.add(participant_prefix(bytes(sample.gid.data)))
         # A peer without a ros_discovery_info writer (not a ROS node) cannot be waited for.
         announcing = {participant_prefix(g) for g in matched_writers(probe).values()}
         waiting = (wanted & announcing) - heard

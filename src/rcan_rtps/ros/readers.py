@@ -68,12 +68,18 @@ Decode = Callable[[bytes], Any]
 
 class Watch:
     """One reader on a `ReaderThread`: `deliver(samples)` gets its valid samples, decoded by
-    `decode` (a generated codec; by default the topic type's own, slower one)."""
+    `decode` (a generated codec; by default the topic type's own, slower one).
+
+    `raw`: `deliver` gets every sample as it was taken — one `(CDR bytes, SampleInfo)` pair a
+    call, invalid ones included, undecoded — for a reader whose samples a peer may make of
+    any size: the owner looks at each (its size first) before the next is taken, so at most
+    one is held here, and the reader keeps none waiting for a later take."""
 
     def __init__(self, reader: DataReader[Any], deliver: Deliver, label: str,
                  on_incompatible_qos: OnIncompatible | None = None,
-                 decode: Decode | None = None) -> None:
+                 decode: Decode | None = None, raw: bool = False) -> None:
         self.reader = reader
+        self.raw = raw
         self.decode: Decode = decode or reader._topic.data_type.deserialize
         self.deliver = deliver
         self.label = label
@@ -179,9 +185,11 @@ class ReaderThread:
         self._wake()
         return watch
 
-    def remove(self, watch: AnyWatch) -> None:
+    def remove(self, watch: AnyWatch, wait: bool = True) -> None:
         """Stops deliveries to `watch`: none starts after this returns (unless the thread
-        itself is stuck in a callback for more than REMOVE_WAIT)."""
+        itself is stuck in a callback for more than REMOVE_WAIT). `wait=False`: returns at
+        once, for a watch whose late deliveries do no harm (the thread drops it at its next
+        pass, and none starts after a delivery in flight)."""
         if watch.closed:
             return
         watch.closed = True
@@ -193,7 +201,8 @@ class ReaderThread:
         if not running:
             return
         self._wake()
-        if threading.current_thread() is not self._thread and not done.wait(REMOVE_WAIT):
+        if wait and threading.current_thread() is not self._thread and \
+                not done.wait(REMOVE_WAIT):
             log.warning("%s: still busy after %.0f s; %s detached late", self.name,
                         REMOVE_WAIT, watch.label)
 
@@ -321,6 +330,9 @@ class ReaderThread:
                 self._call(watch, watch.on_incompatible_qos, status)
             if not watch.condition.triggered:
                 return
+            if watch.raw:
+                self._service_raw(watch)
+                return
             samples, _taken = take_valid(watch.reader, BATCH, watch)
         except DDSException:  # the reader was deleted under us (its owner closed it)
             if not watch.closed:
@@ -333,6 +345,15 @@ class ReaderThread:
             return
         if samples and not watch.closed:
             self._call(watch, watch.deliver, samples)
+
+    def _service_raw(self, watch: Watch) -> None:
+        """Up to BATCH samples, taken and delivered one at a time (see `Watch`)."""
+        for _ in range(BATCH):
+            taken = raw_cdr.take(watch.reader, ANY_SAMPLE, 1)
+            if not taken or watch.closed:
+                return
+            self._call(watch, watch.deliver, taken)
+            del taken  # (before the next is taken)
 
     def _call(self, watch: AnyWatch, fn: Callable[[Any], None], arg: Any) -> None:
         try:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -189,6 +190,42 @@ async def test_the_graph_keeps_each_endpoint_as_its_ros_view_with_shared_profile
     assert one.type_hash == a.store.hash_of(TWIST)
     assert one.dds_type == "geometry_msgs::msg::dds_::Twist_"
     assert not any(isinstance(held, Qos) for held in gc.get_referents(*graph._endpoints.values()))
+
+
+async def test_topic_and_type_names_are_shared_but_never_interned(
+        nodes: tuple[RosNode, RosNode], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Endpoints of one topic share its name and type name, one object each; but any peer
+    chooses them, and CPython 3.12.0-3.12.5 never frees an interned string (cpython#113993):
+    `sys.intern` of ever new names was memory a churning peer took for good. They are kept
+    by the graph's own table, which lets go of names no endpoint (nor a recent departure)
+    names once it doubled."""
+    monkeypatch.setattr(graph_mod, "TEXTS_KEPT", 8, raising=False)
+    monkeypatch.setattr(graph_mod, "DEPARTURES_BOUND", 2, raising=False)  # (nor kept as
+    monkeypatch.setattr(graph_mod, "DEPARTURES_KEPT_S", 0.0, raising=False)  # departures)
+    a, b = nodes
+    graph = RosGraph(a)
+    b.create_publisher("/idle/named", TWIST)
+    b.create_subscription("/idle/named", TWIST)
+    for n in range(12):
+        writer = b.create_publisher(f"/idle/churn{n}", TWIST)
+
+        def churn_seen(name: str = f"/idle/churn{n}") -> bool:
+            graph.refresh()
+            return any(e.ros_name == name for e in graph.endpoints())
+
+        await eventually(churn_seen, timeout=10.0, what=f"churn{n}")
+        writer.close()
+    await eventually(lambda: not churn_seen("/idle/churn11"), timeout=10.0, what="churn gone")
+    in_use = set(graph._texts_in_use())
+    assert len(graph._texts) <= max(8, 2 * len(in_use))
+    churned = [f"rt/idle/churn{n}" for n in range(12)]
+    assert len([name for name in churned if name in graph._texts._kept]) < 12
+    pub, sub = sorted((s for s in graph._endpoints.values() if s.topic_name == "rt/idle/named"),
+                      key=lambda s: s.direction.value)
+    assert pub.topic_name is sub.topic_name and pub.type_name is sub.type_name
+    # (interned, the table's own object would come back for an equal string made anew)
+    fresh = "".join(["rt/idle/", "named"])
+    assert sys.intern(fresh) is not pub.topic_name
 
 
 async def test_profiles_no_endpoint_uses_are_let_go_of(

@@ -22,13 +22,12 @@ import asyncio
 import contextlib
 import enum
 import logging
-import sys
 import time
 import weakref
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Hashable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import msgspec
 from cyclonedds.builtin import (
@@ -67,8 +66,10 @@ INFO_BYTES_TAKE = MAX_INFO_BYTES
 # left waits in the reader (Cyclone keeps one sample per endpoint) for the next refresh;
 # ~150 ms of work at most per reader.
 REFRESH_TAKE = 1024
-# Distinct QoS profiles kept before those no endpoint uses are let go of (RosGraph._shared).
+# Distinct QoS profiles, and topic and type names, kept before those no endpoint uses are
+# let go of (`KeptOnce`).
 PROFILES_KEPT = 64
+TEXTS_KEPT = 1024
 # Departures kept (`left_at`): those older than DEPARTURES_KEPT_S go once the table doubled
 # past DEPARTURES_BOUND, so a peer churning ever new topics cannot grow it for good.
 DEPARTURES_BOUND = 256
@@ -163,6 +164,34 @@ def ros_type_of(dds_type: str, kind: EndpointKind) -> str:
     return name
 
 
+K = TypeVar("K", bound=Hashable)
+
+
+class KeptOnce(Generic[K]):
+    """One object kept for each distinct value (`one`), so that equal values a graph's
+    endpoints share are one object. Past `bound` values the table is rebuilt from those
+    `in_use()` still names, and its bound doubles what is in use (a rebuild costs one pass
+    per as many new values)."""
+
+    def __init__(self, bound: int, in_use: Callable[[], Iterable[K]]) -> None:
+        self._kept: dict[K, K] = {}
+        self._least = self._bound = bound
+        self._in_use = in_use
+
+    def one(self, value: K) -> K:
+        kept = self._kept.get(value)
+        if kept is not None:
+            return kept
+        if len(self._kept) >= self._bound:
+            self._kept = {v: v for v in self._in_use()}
+            self._bound = max(self._least, 2 * len(self._kept))
+        self._kept[value] = value
+        return value
+
+    def __len__(self) -> int:
+        return len(self._kept)
+
+
 class RosGraph:
     """A live view of the graph, kept current by reading DDS discovery data."""
 
@@ -178,11 +207,13 @@ class RosGraph:
             Watch(self._info, self._inbox.arrived, "ros_discovery_info", raw=True))
         self._decode_info = node.codecs.of(DISCOVERY_TYPE).prepare_decoder().decode
         self._endpoints: dict[bytes, _Seen] = {}
-        # Discovered QoS profiles, each kept once: a graph's endpoints share a handful. Those
-        # no endpoint uses any more are let go of once the table doubled (`_shared`): a peer
-        # making endpoints of ever new QoS (a deadline per run) must not grow it for good.
-        self._profiles: dict[QosProfile, QosProfile] = {}
-        self._profiles_bound = PROFILES_KEPT
+        # Discovered QoS profiles, and topic and type names, each kept once: a graph's
+        # endpoints share a handful. Those no endpoint uses any more are let go of once a
+        # table doubled: a peer making endpoints of ever new QoS (a deadline per run) or
+        # names must not grow it for good. (Not `sys.intern`: any peer chooses the names,
+        # and CPython 3.12.0-3.12.5 never frees an interned string, cpython#113993.)
+        self._profiles = KeptOnce(PROFILES_KEPT, self._profiles_in_use)
+        self._texts = KeptOnce(TEXTS_KEPT, self._texts_in_use)
         self._node_infos: dict[bytes, _Info] = {}
         self._info_sizes: dict[bytes, int] = {}  # bytes of each kept info's sample
         self._alive: set[bytes] = set()  # participants discovery knows (this one included)
@@ -256,15 +287,16 @@ class RosGraph:
     def _seen(self, direction: Direction, sample: Any) -> _Seen:
         user_data = qos_mod.user_data_of(sample.qos)
         profile = qos_mod.from_dds(sample.qos)
-        return _Seen(direction, sys.intern(sample.topic_name), sys.intern(sample.type_name),
-                     sample.participant_key.bytes, self._shared(profile),
+        text = self._texts.one
+        return _Seen(direction, text(sample.topic_name), text(sample.type_name),
+                     sample.participant_key.bytes, self._profiles.one(profile),
                      user_data.get("typehash", ""),
                      user_data.get("serviceid") or user_data.get("clientid") or "",
-                     sys.intern(user_data.get(qos_mod.GOVERNED_BY, "")))
+                     text(user_data.get(qos_mod.GOVERNED_BY, "")))
 
     def _note_left(self, topic: str, direction: Direction) -> None:
         now = time.monotonic()
-        where = (sys.intern(topic), direction)
+        where = (self._texts.one(topic), direction)
         self._left_at.pop(where, None)  # (re-inserted last: the table stays oldest first)
         self._left_at[where] = now
         if len(self._left_at) > self._departures_bound:
@@ -279,14 +311,14 @@ class RosGraph:
         A service client that came and went between two calls of ours left this behind."""
         return self._left_at.get((dds_topic, direction))
 
-    def _shared(self, profile: QosProfile) -> QosProfile:
-        """The one object kept for profiles equal to `profile`."""
-        if profile not in self._profiles and len(self._profiles) >= self._profiles_bound:
-            in_use = {seen.qos: seen.qos for seen in self._endpoints.values()}
-            self._profiles = in_use
-            # (doubling what is in use: rebuilding costs one pass per as many new profiles)
-            self._profiles_bound = max(PROFILES_KEPT, 2 * len(in_use))
-        return self._profiles.setdefault(profile, profile)
+    def _profiles_in_use(self) -> Iterator[QosProfile]:
+        return (seen.qos for seen in self._endpoints.values())
+
+    def _texts_in_use(self) -> Iterator[str]:
+        for seen in self._endpoints.values():
+            yield from (seen.topic_name, seen.type_name, seen.governed_by)
+        for topic, _ in self._left_at:
+            yield topic
 
     def _take_node_infos(self) -> tuple[int, bool]:
         """Each participant's nodes from ros_discovery_info: (how many infos were taken,

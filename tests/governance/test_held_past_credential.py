@@ -137,3 +137,23 @@ async def test_a_credential_that_does_not_expire_keeps_it(
     assert _ends(harness, token) == [] and _ends(harness, later) == []
     for pending_id in (token, later):
         assert (await gov.authorize(pending_id, OPS)).outcome is Outcome.EXECUTED
+
+
+async def test_approvers_are_shown_when_the_issuer_s_credential_ends(
+        harness: Harness, clock: ManualClock) -> None:
+    """PENDING_AUTH said only its TTL's end: an approver could not tell that a command held
+    with a credential ending sooner would be withdrawn then. It now says that end when it
+    comes first (the pending list, a record, the webhook's message), and nothing otherwise:
+    a configured token, or a credential outliving the hold (TTL 300 s here)."""
+    gov = await harness.governor()
+    ends_soon = _agent(clock)
+    soon = await _held(gov, ends_soon)
+    token = await _held(gov, _agent(clock, None))
+    outlives = await _held(gov, _agent(clock, 400.0))
+    shown = {p.pending_id: p.issuer_credential_ends_at_ms for p in gov.pending()}
+    assert ends_soon.expires_at is not None
+    assert shown == {soon: int(ends_soon.expires_at * 1000), token: None, outlives: None}
+    record = gov.pending_record(soon)
+    assert record is not None
+    assert record.held.issuer_credential_ends_at_ms == shown[soon]
+    assert shown[soon] < record.held.expires_at_ms  # (sooner than the TTL: why it is shown)

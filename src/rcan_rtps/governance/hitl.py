@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from collections.abc import Mapping
 from typing import Literal, Protocol, cast
 
@@ -56,7 +57,15 @@ class PendingCommand(msgspec.Struct, frozen=True, kw_only=True):
             issued_by=self.issuer.name,
             approvals_required=self.approvals_required,
             approvals=list(approvals or ()),
+            issuer_credential_ends_at_ms=self.credential_ends_at_ms(),
         )
+
+    def credential_ends_at_ms(self) -> int | None:
+        """When the issuer's credential ends (ms), if it does before the hold's TTL."""
+        expires = self.issuer.expires_at
+        if expires is None or expires * 1000 >= self.expires_at_ms:
+            return None
+        return math.floor(expires * 1000)
 
 
 class Held:

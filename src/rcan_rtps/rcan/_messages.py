@@ -168,6 +168,10 @@ class PendingAuth(msgspec.Struct, kw_only=True):
     # the approvals it has so far.
     approvals_required: int = 1
     approvals: list[Approval] = []
+    # When its issuer's credential ends (a JWT's `exp` plus the leeway, a client
+    # certificate's notAfter), if before `expires_at_ms`: the hold is withdrawn then, and an
+    # approval after it is refused `issuer_credential_expired`. None: it ends no sooner.
+    issuer_credential_ends_at_ms: int | None = None
 
 
 class Authorize(Strict, frozen=True):

@@ -42,6 +42,7 @@ from rcan_rtps.ros.graph import (
     RosGraph,
 )
 from rcan_rtps.ros.handshake import participant_prefix, peers_know_our_readers
+from rcan_rtps.ros.info_inbox import INFO_GID, WAITING_INFOS
 from rcan_rtps.ros.participant import DISCOVERY_TOPIC, DISCOVERY_TYPE, RosNode
 
 from .bridge_rig import VIEWER, Rig, bridge_config, close_rig, make_rig
@@ -399,6 +400,74 @@ async def matched_by_graph(peer: RosNode) -> None:
         lambda: peer._info_writer.get_publication_matched_status().current_count >= 1)
 
 
+async def test_a_flood_of_made_up_gids_does_not_push_out_an_honest_nodes_info(
+        victim: RosNode, hostile: RosNode) -> None:
+    """A node writes its ros_discovery_info once (again only when its endpoints change), and
+    the graph keeps at most WAITING_INFOS infos waiting for a refresh. Past that the oldest
+    went: a peer writing more made-up gids than that between two refreshes (~40,000 a
+    second measured from another process) dropped the honest info for good, and the node
+    was never listed. The writer with the most waiting now loses its own oldest."""
+    flood = hostile.create_writer(DISCOVERY_TOPIC, DISCOVERY_TYPE,
+                                  qos.DISCOVERY_INFO.with_(depth=256))
+    graph = RosGraph(victim)
+    await matched_by_graph(hostile)
+    await eventually(lambda: flood.get_publication_matched_status().current_count >= 1)
+    await victim.delivered()  # the hostile node's own info is waiting for a refresh
+    codec = hostile.codecs.of(DISCOVERY_TYPE)
+    empty = bytearray(codec.encode_value({"gid": {"data": bytes(16)},
+                                          "node_entities_info_seq": []}))
+    for _ in range(2 * WAITING_INFOS // 256):
+        for _ in range(256):
+            empty[INFO_GID] = uuid.uuid4().bytes
+            raw_cdr.write(flood, bytes(empty))
+        await victim.delivered()  # (the reader keeps 1,000: never more than 256 in it)
+    assert graph._inbox.dropped >= WAITING_INFOS  # the bound was crossed
+    await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1],
+                     timeout=5)
+    graph.close()
+
+
+async def test_waiting_for_a_peer_keeps_only_the_peers_it_waits_for(
+        victim: RosNode, hostile: RosNode) -> None:
+    """While a client waits for a server's participant to confirm our readers
+    (`peers_know_our_readers`, up to the caller's timeout), any peer may write infos of
+    made-up gids: each one's gid was kept until the wait ended (~100,000 entries, 10 MB, in
+    5 s of a flood from another process). Only the peers waited for are kept now. The
+    hostile peer here announces no info of its own until the flood is written."""
+    flood = hostile.create_writer(DISCOVERY_TOPIC, DISCOVERY_TYPE, qos.DISCOVERY_INFO)
+    hostile.__dict__.pop("_info_writer").__del__()  # (announce() does nothing from here on)
+    peer = participant_prefix(hostile.participant.guid.bytes)
+    codec = hostile.codecs.of(DISCOVERY_TYPE)
+    empty = bytearray(codec.encode_value({"gid": {"data": bytes(16)},
+                                          "node_entities_info_seq": []}))
+    count = 10_000
+    tracemalloc.start()
+    try:
+        waiting = asyncio.create_task(peers_know_our_readers(victim, {peer}, timeout=60.0))
+        await eventually(lambda: flood.get_publication_matched_status().current_count >= 1)
+        for _ in range(count // 250):
+            for _ in range(250):
+                empty[INFO_GID] = uuid.uuid4().bytes
+                raw_cdr.write(flood, bytes(empty))
+            await victim.delivered()
+        empty[INFO_GID] = hostile.participant.guid.bytes[:16]
+        raw_cdr.write(flood, bytes(empty))
+        confirmed = await waiting
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert confirmed == {peer}
+    assert peak < 20 * count, f"{peak / count:.0f} bytes traced per made-up gid"
+
+
+async def write_acked(writer: Any, data: bytes) -> None:
+    """Writes a sample and waits until the matched readers have it: the next write to a
+    latched writer of depth 1 (a node's info writer) may otherwise replace it unsent. Under
+    -n 2, a 2.6 MB info written just before the peer's own was never read (review 52)."""
+    raw_cdr.write(writer, data)
+    assert await asyncio.to_thread(writer.wait_for_acks, 60 * 10**9)
+
+
 def _info(codec: Any, gid: bytes, name: str, endpoints: int) -> bytes:
     """A ros_discovery_info sample naming one node with `endpoints` made-up endpoint gids."""
     gids = [{"data": uuid.uuid4().bytes} for _ in range(endpoints)]
@@ -416,7 +485,7 @@ async def test_a_discovery_info_past_the_size_bound_is_dropped_undecoded(
     codec = hostile.codecs.of(DISCOVERY_TYPE)
     huge = _info(codec, hostile.participant.guid.bytes, "huge", 160_000)
     assert len(huge) > MAX_INFO_BYTES
-    raw_cdr.write(hostile._info_writer, huge)
+    await write_acked(hostile._info_writer, huge)
     hostile.announce()  # its own, real info after it
     await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1])
     assert ("/", "huge") not in graph.nodes() and graph.large_infos == 1
@@ -477,7 +546,7 @@ async def test_infos_of_made_up_participants_share_a_byte_budget(
     codec = hostile.codecs.of(DISCOVERY_TYPE)
     samples = [_info(codec, uuid.uuid4().bytes, f"ghost_{i}", 90_000) for i in range(8)]
     for data in samples:
-        raw_cdr.write(hostile._info_writer, data)
+        await write_acked(hostile._info_writer, data)
     hostile.announce()
     # (each refresh decodes ~INFO_BYTES_TAKE: until one has taken all, the last included)
     await eventually(lambda: graph.refresh() and ("/robot1", "hostile") in graph.nodes())

@@ -18,9 +18,18 @@ from rcan_rtps.ros.info_inbox import (
     InfoInbox,
 )
 
-ALIVE = SimpleNamespace(valid_data=True, instance_state=InstanceState.Alive)
-NO_WRITERS = SimpleNamespace(valid_data=True, instance_state=InstanceState.NotAliveNoWriters)
-INVALID = SimpleNamespace(valid_data=False, instance_state=InstanceState.NotAliveNoWriters)
+ALIVE = SimpleNamespace(valid_data=True, instance_state=InstanceState.Alive,
+                        publication_handle=1)
+NO_WRITERS = SimpleNamespace(valid_data=True, instance_state=InstanceState.NotAliveNoWriters,
+                             publication_handle=1)
+INVALID = SimpleNamespace(valid_data=False, instance_state=InstanceState.NotAliveNoWriters,
+                          publication_handle=1)
+
+
+def written_by(handle: int) -> SimpleNamespace:
+    """The SampleInfo of an alive sample of the writer with this instance handle."""
+    return SimpleNamespace(valid_data=True, instance_state=InstanceState.Alive,
+                           publication_handle=handle)
 
 
 def sample(gid: bytes, size: int = 64) -> bytes:
@@ -76,6 +85,21 @@ def test_past_the_count_bound_the_oldest_go() -> None:
     taken, _ = inbox.take(1 << 30)
     assert len(taken) == WAITING_INFOS and taken[0][0] == gid(10)
     assert inbox.dropped == 10
+
+
+def test_past_the_count_bound_the_writer_with_the_most_waiting_loses_its_oldest() -> None:
+    """A writer flooding made-up gids faster than refreshes run pushes out its own infos,
+    not the one each other writer wrote before (the oldest overall went: theirs)."""
+    inbox = InfoInbox()
+    for honest in range(5):
+        inbox.arrived([(sample(gid(10**6 + honest)), written_by(100 + honest))])
+    for n in range(3 * WAITING_INFOS):
+        inbox.arrived([(sample(gid(n)), written_by(7))])
+    taken, _ = inbox.take(1 << 30)
+    assert [g for g, _ in taken[:5]] == [gid(10**6 + h) for h in range(5)]
+    assert [g for g, _ in taken[5:]] == [gid(n) for n in range(2 * WAITING_INFOS + 5,
+                                                                3 * WAITING_INFOS)]
+    assert inbox.dropped == 2 * WAITING_INFOS + 5 and inbox.waiting() == 0
 
 
 def test_past_the_byte_bound_the_largest_become_marks_and_small_infos_stay() -> None:

@@ -16,7 +16,7 @@ now. What waits is bounded in count and bytes; a refresh decodes it on its own l
 from __future__ import annotations
 
 import threading
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from typing import Any
 
 import msgspec
@@ -32,8 +32,10 @@ MAX_INFO_BYTES = 2 << 20
 # read there from a sample before (or without) decoding it.
 INFO_GID = slice(4, 20)
 # Infos waiting for a refresh, at most: as many participants as a refresh takes samples of
-# each builtin reader. Past it the oldest go (a peer writing made-up gids faster than a
-# refresh runs: Cyclone's own history would have dropped them too).
+# each builtin reader. Past it the oldest of the writer with the most waiting goes: a peer
+# writing made-up gids faster than a refresh runs pushes out its own, never the one info
+# each honest participant wrote (the oldest overall went: 1,024 made-up gids written
+# between two refreshes dropped an honest node's info, written once, for good).
 WAITING_INFOS = 1024
 # And their bytes, at most: room for four samples at the size bound beside a graph's honest,
 # small infos. Past it the largest waiting sample is dropped first (it is a mark then: its
@@ -43,11 +45,13 @@ WAITING_INFO_BYTES = 4 * MAX_INFO_BYTES + (4 << 20)
 
 class Arrived(msgspec.Struct, frozen=True):
     """What arrived for one participant gid: its newest info's CDR bytes, or None when that
-    was past MAX_INFO_BYTES (or dropped waiting) — its nodes are unknown; and whether the
-    topic's instance was alive when it was taken (not: every writer left)."""
+    was past MAX_INFO_BYTES (or dropped waiting) — its nodes are unknown; whether the
+    topic's instance was alive when it was taken (not: every writer left); and the instance
+    handle of the writer that wrote it (its SampleInfo's `publication_handle`)."""
 
     data: bytes | None
     alive: bool
+    writer: int = 0
 
 
 class InfoInbox:
@@ -59,6 +63,7 @@ class InfoInbox:
         self._lock = threading.Lock()
         self._waiting: OrderedDict[bytes, Arrived] = OrderedDict()  # oldest first
         self._bytes = 0
+        self._per_writer: Counter[int] = Counter()  # infos waiting, by the writer's handle
         self.large = 0  # samples past MAX_INFO_BYTES, dropped as they arrived
         self.dropped = 0  # samples dropped waiting (the bounds above)
 
@@ -70,26 +75,44 @@ class InfoInbox:
                 continue  # keyless: an invalid sample names no participant
             alive = info.instance_state == InstanceState.Alive
             large = len(data) > MAX_INFO_BYTES
-            self._keep(gid_of(data), Arrived(None if large else data, alive), large)
+            self._keep(gid_of(data), Arrived(None if large else data, alive,
+                                             int(info.publication_handle)), large)
 
     def _keep(self, gid: bytes, arrived: Arrived, large: bool) -> None:
         with self._lock:
             self.large += large
-            self._bytes -= _size(self._waiting.pop(gid, None))
+            self._let_go(self._waiting.pop(gid, None))
             self._waiting[gid] = arrived
             self._bytes += _size(arrived)
+            self._per_writer[arrived.writer] += 1
             while len(self._waiting) > WAITING_INFOS:
-                self._bytes -= _size(self._waiting.popitem(last=False)[1])
-                self.dropped += 1
+                self._drop_of_busiest_writer()
             while self._bytes > WAITING_INFO_BYTES:
                 self._drop_largest()
+
+    def _let_go(self, arrived: Arrived | None) -> None:
+        """Accounts for an info no longer waiting (under the lock)."""
+        if arrived is None:
+            return
+        self._bytes -= _size(arrived)
+        self._per_writer[arrived.writer] -= 1
+        if not self._per_writer[arrived.writer]:
+            del self._per_writer[arrived.writer]
+
+    def _drop_of_busiest_writer(self) -> None:
+        """The oldest info of the writer with the most waiting goes (O(infos waiting) at
+        most, on the reader thread, only while the count bound is crossed)."""
+        busiest = max(self._per_writer, key=self._per_writer.__getitem__)
+        gid = next(g for g, a in self._waiting.items() if a.writer == busiest)
+        self._let_go(self._waiting.pop(gid))
+        self.dropped += 1
 
     def _drop_largest(self) -> None:
         gid = max(self._waiting, key=lambda g: _size(self._waiting[g]))
         kept = self._waiting[gid]
         self._bytes -= _size(kept)
         # (in place: its participant's older info, if any, is stale all the same)
-        self._waiting[gid] = Arrived(None, kept.alive)
+        self._waiting[gid] = Arrived(None, kept.alive, kept.writer)
         self.dropped += 1
 
     # -- the graph's loop -------------------------------------------------------------------
@@ -101,7 +124,7 @@ class InfoInbox:
         with self._lock:
             while self._waiting and size < budget:
                 gid, arrived = self._waiting.popitem(last=False)
-                self._bytes -= _size(arrived)
+                self._let_go(arrived)
                 size += _size(arrived)
                 taken.append((gid, arrived))
             return taken, not self._waiting

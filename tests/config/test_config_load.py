@@ -180,3 +180,14 @@ def test_a_file_just_under_the_limit_loads(tmp_path: Path) -> None:
     config.write_text(MINIMAL + padding)
     assert config.stat().st_size == MAX_CONFIG_BYTES
     assert load_config(config, env={}).bridge.safety.max_linear_vel == 1.5
+
+
+def test_the_sample_size_bound_is_configured_within_cyclones_range() -> None:
+    """`ros2.max_sample_bytes`: 256 MiB unless set; below 64 KiB (no ROS graph would work)
+    or past Cyclone's 32-bit size it is an error naming the key."""
+    assert loads_config(MINIMAL, env={}).bridge.ros2.max_sample_bytes == 256 << 20
+    set_to = MINIMAL + "  ros2: {max_sample_bytes: 16777216}\n"
+    assert loads_config(set_to, env={}).bridge.ros2.max_sample_bytes == 16 << 20
+    for bad in (1000, 1 << 31):
+        [(path, _line, _message)] = issues_of(MINIMAL + f"  ros2: {{max_sample_bytes: {bad}}}\n")
+        assert path == "$.bridge.ros2.max_sample_bytes"

@@ -10,6 +10,7 @@ stop stopping.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import os
@@ -528,12 +529,58 @@ async def test_a_flood_of_discovery_infos_past_the_size_bound_is_not_held(
     assert grown < 8 * size, f"grew by {grown / size:.1f} samples' worth"
 
 
-def _resident_bytes() -> int:
+async def test_a_sample_past_the_nodes_size_bound_is_dropped_as_it_arrives(
+        domain_id: int, jazzy_share: Path) -> None:
+    """Any peer may write a sample of any size to a topic we read, and Cyclone reassembled it
+    whole before any code of ours could look at it (a 50 MB info peaked a process at +100 MB).
+    A node's `max_sample_bytes` (the bridge's `ros2.max_sample_bytes`, 256 MiB by default)
+    is Cyclone's MaxSampleSize: larger samples are dropped as they arrive. With 8 MiB, a 4 MB
+    info still reaches the graph (counted past the info bound), a 20 MB one never does, and
+    the process's peak memory does not grow by it."""
+    with RosNode("bounded", "/", domain_id=domain_id, distro="jazzy", idl_paths=[jazzy_share],
+                 max_sample_bytes=8 << 20) as node:
+        graph = RosGraph(node)
+        try:
+            await _flood(1, 4_000_000, domain_id, jazzy_share)
+            await eventually(lambda: (graph.refresh(), graph.large_infos == 1)[1])
+            with contextlib.suppress(OSError):  # (the peak from here on: Linux ≥ 4.0)
+                Path("/proc/self/clear_refs").write_text("5")
+            before = _resident_bytes()
+            await _flood(1, 20_000_000, domain_id, jazzy_share)
+            await asyncio.sleep(1.0)  # (had it been taken, it would be in the graph's inbox)
+            peak = _resident_bytes("VmHWM:")
+            graph.refresh()
+            assert graph.large_infos == 1
+        finally:
+            graph.close()
+    assert peak - before < 20_000_000, f"peak grew by {(peak - before) >> 20} MiB"
+
+
+async def _flood(count: int, size: int, domain_id: int, share: Path) -> None:
+    """Runs info_flooder.py: `count` infos of `size` bytes, each acknowledged (or dropped)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    flooder = subprocess.Popen(
+        [sys.executable, str(Path(__file__).with_name("info_flooder.py")), str(count),
+         str(size), str(domain_id), str(share)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert flooder.stdout is not None and flooder.stdin is not None
+        assert await asyncio.to_thread(flooder.stdout.readline) == "ready\n"
+        flooder.stdin.write("go\n")
+        flooder.stdin.flush()
+        assert await asyncio.wait_for(asyncio.to_thread(flooder.stdout.readline), 300) \
+            == "done\n"
+    finally:
+        flooder.kill()
+        flooder.wait()
+
+
+def _resident_bytes(field: str = "VmRSS:") -> int:
     with open("/proc/self/status") as status:
         for line in status:
-            if line.startswith("VmRSS:"):
+            if line.startswith(field):
                 return int(line.split()[1]) * 1024
-    raise AssertionError("no VmRSS in /proc/self/status")
+    raise AssertionError(f"no {field} in /proc/self/status")
 
 
 async def test_infos_of_made_up_participants_share_a_byte_budget(

@@ -316,7 +316,8 @@ class Bridge:
         node = self.node = RosNode(ros2.node_name, ros2.namespace or "/",
                                    domain_id=ros2.domain_id, distro=ros2.distro,
                                    localhost=self.options.localhost,
-                                   governed_by=self.config.robot.ruri)
+                                   governed_by=self.config.robot.ruri,
+                                   max_sample_bytes=ros2.max_sample_bytes)
         self._on_stop("leaving the ROS graph", node.close)
         return node
 

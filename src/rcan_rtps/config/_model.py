@@ -227,6 +227,11 @@ class Ros2Config(_Section, frozen=True, kw_only=True):
     request_mapping: Literal["auto", "cyclone", "fastdds"] = "auto"
     request_mappings: dict[RosName, Literal["auto", "cyclone", "fastdds"]] = {}
     foreign_publishers: ForeignPublishersConfig = ForeignPublishersConfig()
+    # The largest sample (CDR bytes) the bridge takes from the graph or sends: any peer may
+    # write one of any size to a topic it reads, reassembled whole before anything can look
+    # at it. Larger ones are dropped as they arrive. The default (256 MiB) is above what ROS
+    # sends (a 4K Image is 25 MB); a robot may set less. CYCLONEDDS_URI's MaxSampleSize wins.
+    max_sample_bytes: Annotated[int, msgspec.Meta(ge=65536, lt=1 << 31)] = 256 << 20
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -67,6 +67,22 @@ _COMPAT_CONFIG = """<CycloneDDS><Domain Id="any"><Compatibility>
 _REPAIR_CONFIG = """<CycloneDDS><Domain Id="any"><Internal>
 <AutoReschedNackDelay>100 ms</AutoReschedNackDelay></Internal></Domain></CycloneDDS>"""
 
+# The largest sample (CDR bytes) Cyclone takes in or sends, by default. Any peer on the domain
+# may write a sample of any size to a topic we read: Cyclone reassembled it whole before any
+# code of ours could look at it (one 50 MB ros_discovery_info sample peaked the process at
+# +100 MB; a 1 GB one would take a robot computer's memory). Past it, Cyclone drops the sample
+# with a warning as it arrives. Above what ROS sends: a 4K rgb8 Image is 25 MB, a 10,000²
+# OccupancyGrid 100 MB. A node or the user's CYCLONEDDS_URI (`<Internal><MaxSampleSize>`)
+# may set another.
+DEFAULT_MAX_SAMPLE_BYTES = 256 << 20
+
+
+def _limits_config(max_sample_bytes: int) -> str:
+    return ('<CycloneDDS><Domain Id="any"><Internal>'
+            f"<MaxSampleSize>{max_sample_bytes}B</MaxSampleSize>"
+            "</Internal></Domain></CycloneDDS>")
+
+
 _domains: dict[int, tuple[Domain, int]] = {}  # domain id → (configured domain, nodes using it)
 _domains_lock = threading.Lock()
 # Per domain: Cyclone's packet capture, read for the request identity in Fast DDS replies
@@ -116,11 +132,11 @@ def localhost_requested(explicit: bool | None = None) -> bool:
     return os.environ.get("ROS_LOCALHOST_ONLY", "") == "1"
 
 
-def _acquire_domain(domain_id: int, localhost: bool) -> None:
+def _acquire_domain(domain_id: int, localhost: bool, max_sample_bytes: int) -> None:
     # A Domain object fixes the configuration for every participant of that id in
     # this process, so the first node decides; it must be created before them. The
-    # user's CYCLONEDDS_URI comes after our defaults (_REPAIR_CONFIG), which it may override,
-    # and before our other fragments, which refine it.
+    # user's CYCLONEDDS_URI comes after our defaults (_REPAIR_CONFIG, the sample size bound),
+    # which it may override, and before our other fragments, which refine it.
     with _domains_lock:
         if domain_id in _domains:
             domain, users = _domains[domain_id]
@@ -130,15 +146,16 @@ def _acquire_domain(domain_id: int, localhost: bool) -> None:
         capture = _new_capture()
         local = [*([_LOCALHOST_CONFIG] if localhost else []),
                  *([capture.config] if capture else [])]
+        ours = [_REPAIR_CONFIG, _limits_config(max_sample_bytes)]
         before = udp_socket_inodes()
         try:
             try:
                 domain = Domain(domain_id, ",".join(
-                    filter(None, [_REPAIR_CONFIG, user, _COMPAT_CONFIG, *local])))
+                    filter(None, [*ours, user, _COMPAT_CONFIG, *local])))
             except DDSException:  # an older Cyclone without <Compatibility>: do without it
                 log.warning("Cyclone DDS does not know <Compatibility>; Fast DDS 3 peers may "
                             "not match endpoints with sequences")
-                domain = Domain(domain_id, ",".join(filter(None, [_REPAIR_CONFIG, user, *local])))
+                domain = Domain(domain_id, ",".join(filter(None, [*ours, user, *local])))
             if capture is not None and capture.start():
                 _captures[domain_id] = capture
             elif capture is not None:
@@ -391,13 +408,20 @@ async def _wait_count(current: Callable[[], int], count: int, timeout: float,
 
 
 class RosNode:
-    """One ROS node on one DDS participant."""
+    """One ROS node on one DDS participant.
+
+    The first node of a domain in a process sets what all its nodes share: `localhost`, and
+    `max_sample_bytes`, the largest sample Cyclone takes in or sends (larger ones are dropped
+    as they arrive, with Cyclone's warning; DEFAULT_MAX_SAMPLE_BYTES)."""
 
     def __init__(self, name: str, namespace: str = "/", *, domain_id: int | None = None,
                  localhost: bool | None = None, distro: str | None = None,
                  idl_paths: Iterable[str | Path] = (), store: TypeStore | None = None,
-                 enclave: str = "/", governed_by: str = "") -> None:
+                 enclave: str = "/", governed_by: str = "",
+                 max_sample_bytes: int = DEFAULT_MAX_SAMPLE_BYTES) -> None:
         validate_node_name(name)
+        if not 0 < max_sample_bytes < 1 << 31:  # (Cyclone's bound: a 32-bit size)
+            raise WireError(f"max_sample_bytes {max_sample_bytes} is outside 1..2**31-1")
         self.name = name
         # Who governs what this node commands (a bridge's robot id): its commanding writers
         # say so in their USER_DATA (`governed_by=…;`), so that a tool about to publish there
@@ -411,7 +435,7 @@ class RosNode:
         self.domain_id = resolve_domain_id(domain_id)
         self.localhost = localhost_requested(localhost)
         security = _security_properties(enclave, self.domain_id)
-        _acquire_domain(self.domain_id, self.localhost)
+        _acquire_domain(self.domain_id, self.localhost, max_sample_bytes)
         before = udp_socket_inodes()
         try:
             self.participant = DomainParticipant(self.domain_id, qos=Qos(

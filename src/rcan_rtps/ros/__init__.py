@@ -2,7 +2,8 @@
 
 Public API (the modules stay importable for the finer parts: `names`, `qos`, `rostime`)::
 
-    RosNode(name, namespace, *, domain_id=, localhost=, distro=, idl_paths=)  context manager
+    RosNode(name, namespace, *, domain_id=, localhost=, distro=, idl_paths=,
+            max_sample_bytes=)                                             context manager
       .create_publisher(topic, type) -> RosPublisher
       .create_subscription(topic, type) -> RosSubscription   (async get / async for)
     ServiceClient / ServiceServer, ActionClient / ActionServer   over both request mappings

@@ -58,6 +58,7 @@ EXPECTED_EXPORTS: dict[str, set[str]] = {
         "RosNode",
         "RosPublisher",
         "RosSubscription",
+        "SampleTooLarge",
         "ServerGoal",
         "ServiceClient",
         "ServiceServer",

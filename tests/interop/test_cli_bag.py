@@ -336,6 +336,42 @@ def test_a_message_dds_refuses_is_played_past_and_told_in_one_line(
     assert [m["data"] for m in take_all(oracle, "/lying/chatter", 2)] == ["before", "after"]
 
 
+# `bag play` in a process whose domain bounds samples at 1 MiB (its first node decides).
+_PLAY_BOUNDED = ("import sys; from rcan_rtps.ros.participant import RosNode; "
+                 "holder = RosNode('holder', domain_id=int(sys.argv[1]), "
+                 "max_sample_bytes=1 << 20); from rcan_rtps.cli.main import main; "
+                 "sys.exit(main(sys.argv[2:]))")
+
+
+def test_a_message_past_the_sample_size_bound_is_played_past_and_told_in_one_line(
+        oracle: RclpyOracle, domain_id: int, tmp_path: Path) -> None:
+    """Cyclone sends no sample past the domain's `max_sample_bytes`: its write failed with a
+    bare DDSException ("Non specific error"), a traceback out of `play`. Now it is
+    SampleTooLarge, saying so, and played past like any message DDS refuses."""
+    from rcan_rtps.ros.bag import BagWriter
+    from rcan_rtps.ros.serialization import serialize
+    from rcan_rtps.ros.typesys.store import TypeStore
+
+    bag = tmp_path / "huge"
+    writer = BagWriter(bag, TypeStore(distro="jazzy"), flush_period=60)
+    writer.add_topic("/huge/chatter", "std_msgs/msg/String", [])
+    for i, text in enumerate(["before", "x" * (2 << 20), "after"]):
+        writer.write("/huge/chatter", 1_000_000_000 + i * 10_000_000,
+                     serialize("std_msgs/msg/String", {"data": text}))
+    writer.close()
+
+    oracle.call("subscribe", topic="/huge/chatter", type="std_msgs/msg/String")
+    played = subprocess.run(
+        [sys.executable, "-c", _PLAY_BOUNDED, str(domain_id), "bag", "play", str(bag), "-d",
+         PLAY_DELAY], capture_output=True, text=True, timeout=90,
+        env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
+    assert played.returncode == 1 and "Traceback" not in played.stderr, played.stderr
+    [line] = [line for line in played.stderr.splitlines() if line.startswith("rcan-rtps:")]
+    assert line.startswith(f"rcan-rtps: error: 1 message(s) of '{bag}' were not published")
+    assert "'/huge/chatter' at 1.010000000" in line and "past the largest sample" in line
+    assert [m["data"] for m in take_all(oracle, "/huge/chatter", 2)] == ["before", "after"]
+
+
 def test_a_topic_not_in_cdr_is_not_played(domain_id: int, tmp_path: Path) -> None:
     """A channel whose messages are JSON, with a ROS type's name (red team 22): its bytes
     went out as that type's CDR."""

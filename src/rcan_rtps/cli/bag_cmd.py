@@ -27,7 +27,7 @@ from ..ros.bag import (
     qos_dict,
     reindex,
 )
-from ..ros.errors import CdrDecodeError
+from ..ros.errors import CdrDecodeError, SampleTooLarge
 from ..ros.graph import Direction, Endpoint, RosGraph
 from ..ros.names import is_hidden, mangle_topic
 from ..ros.participant import RosNode, RosPublisher, RosSubscription
@@ -319,7 +319,7 @@ class _Refused:
         self.count = 0
         self.first = ""
 
-    def add(self, message: BagMessage, error: CdrDecodeError) -> None:
+    def add(self, message: BagMessage, error: CdrDecodeError | SampleTooLarge) -> None:
         if not self.count:
             self.first = f"'{message.topic}' at {format_seconds(message.log_time_ns)}: {error}"
         self.count += 1
@@ -346,7 +346,7 @@ async def _play_once(reader: BagReader, summary: BagSummary,
         pub = publishers[message.topic]
         try:
             pub.publish_cdr(message.data)
-        except CdrDecodeError as exc:  # a damaged or hostile bag's message
+        except (CdrDecodeError, SampleTooLarge) as exc:  # a damaged, hostile or huge message
             refused.add(message, exc)
 
 

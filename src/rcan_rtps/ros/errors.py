@@ -9,6 +9,7 @@
     ├── UnsupportedDistroError  a ROS distro the IDL bundle does not cover (also a ValueError)
     ├── ValueFitError           a value does not fit its type (with the field path)
     ├── CdrDecodeError          bytes that do not decode as the type they were said to be
+    ├── SampleTooLarge          a sample past the domain's size bound (`max_sample_bytes`)
     ├── InvalidNameError        a ROS name breaks a validity rule (the rule is named)
     ├── QosError                a QoS profile that cannot be built or cannot match
     ├── GraphTimeout            something did not appear on the graph in time
@@ -108,6 +109,11 @@ class ValueFitError(WireError):
 
 class CdrDecodeError(WireError):
     """Bytes that are not the CDR of the type named (truncated, wrong type, no header)."""
+
+
+class SampleTooLarge(WireError):
+    """A sample past the domain's bound on sample size (`RosNode(max_sample_bytes=)`):
+    Cyclone sends none such, nor takes one in."""
 
 
 class InvalidNameError(WireError):

@@ -29,7 +29,7 @@ from cyclonedds.topic import Topic
 
 from . import qos as qos_mod
 from . import raw_cdr
-from .errors import CdrDecodeError, GraphTimeout, WireError, seconds
+from .errors import CdrDecodeError, GraphTimeout, SampleTooLarge, WireError, seconds
 from .names import expand_topic_name, mangle_topic, normalize_namespace, validate_node_name
 from .qos import GOVERNED_BY, QosProfile
 from .readers import Decode, ReaderThread, Watch, WriterWatch
@@ -84,6 +84,7 @@ def _limits_config(max_sample_bytes: int) -> str:
 
 
 _domains: dict[int, tuple[Domain, int]] = {}  # domain id → (configured domain, nodes using it)
+_domain_bounds: dict[int, int] = {}  # domain id → the max_sample_bytes it was made with
 _domains_lock = threading.Lock()
 # Per domain: Cyclone's packet capture, read for the request identity in Fast DDS replies
 # (rtps_capture.py). RCAN_RTPS_RPC_IDENTITY=off leaves it out; RCAN_RTPS_CAPTURE_DIR says
@@ -167,6 +168,7 @@ def _acquire_domain(domain_id: int, localhost: bool, max_sample_bytes: int) -> N
                 capture.close()
             raise
         _domains[domain_id] = (domain, 1)
+        _domain_bounds[domain_id] = max_sample_bytes
         _domain_sockets[domain_id] = made_between(before, udp_socket_inodes())
 
 
@@ -180,6 +182,7 @@ def _release_domain(domain_id: int) -> None:
             _domains[domain_id] = (domain, users - 1)
             return
         del _domains[domain_id]
+        _domain_bounds.pop(domain_id, None)
         _domain_sockets.pop(domain_id, None)
         capture = _captures.pop(domain_id, None)
     if capture is not None:  # first: it may redirect Cyclone's descriptor while it lives
@@ -250,6 +253,14 @@ class RosPublisher:
         try:
             raw_cdr.write(self.writer, data)
         except DDSException as exc:
+            bound = _domain_bounds.get(self.node.domain_id)
+            # (Cyclone's size of a sample: its CDR with header, padded to whole words)
+            if exc.code == DDSException.DDS_RETCODE_ERROR and bound is not None and \
+                    len(data) + (-len(data) & 3) > bound:
+                raise SampleTooLarge(
+                    f"a {self.type_name} of {len(data)} bytes is past the largest sample "
+                    f"this process sends on domain {self.node.domain_id} ({bound} bytes: "
+                    "max_sample_bytes)") from None
             if exc.code != DDSException.DDS_RETCODE_BAD_PARAMETER:
                 raise
             raise CdrDecodeError(f"{len(data)} bytes that are not the CDR of a "

@@ -507,24 +507,17 @@ async def test_a_flood_of_discovery_infos_past_the_size_bound_is_not_held(
     graph = RosGraph(victim)
     graph.refresh()
     flood, size = 60, 4_800_000
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-    flooder = subprocess.Popen(
-        [sys.executable, str(Path(__file__).with_name("info_flooder.py")), str(flood),
-         str(size), str(domain_id), str(jazzy_share)],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
-    try:
-        assert flooder.stdout is not None and flooder.stdin is not None
-        assert await asyncio.to_thread(flooder.stdout.readline) == "ready\n"
+    before = 0
+
+    def ready() -> None:
+        nonlocal before
         before = _resident_bytes()
-        flooder.stdin.write("go\n")
-        flooder.stdin.flush()
-        assert await asyncio.wait_for(asyncio.to_thread(flooder.stdout.readline), 300) \
-            == "done\n"
+
+    try:
+        await _flood(flood, size, domain_id, jazzy_share, on_ready=ready)
         grown = _resident_bytes() - before
         await eventually(lambda: (graph.refresh(), graph.large_infos == flood)[1])
     finally:
-        flooder.kill()
-        flooder.wait()
         graph.close()
     assert grown < 8 * size, f"grew by {grown / size:.1f} samples' worth"
 
@@ -556,8 +549,10 @@ async def test_a_sample_past_the_nodes_size_bound_is_dropped_as_it_arrives(
     assert peak - before < 20_000_000, f"peak grew by {(peak - before) >> 20} MiB"
 
 
-async def _flood(count: int, size: int, domain_id: int, share: Path) -> None:
-    """Runs info_flooder.py: `count` infos of `size` bytes, each acknowledged (or dropped)."""
+async def _flood(count: int, size: int, domain_id: int, share: Path,
+                 on_ready: Callable[[], None] = lambda: None) -> None:
+    """Runs info_flooder.py: `count` infos of `size` bytes, each acknowledged (or dropped);
+    `on_ready()` once it is matched, before it writes."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     flooder = subprocess.Popen(
         [sys.executable, str(Path(__file__).with_name("info_flooder.py")), str(count),
@@ -566,6 +561,7 @@ async def _flood(count: int, size: int, domain_id: int, share: Path) -> None:
     try:
         assert flooder.stdout is not None and flooder.stdin is not None
         assert await asyncio.to_thread(flooder.stdout.readline) == "ready\n"
+        on_ready()
         flooder.stdin.write("go\n")
         flooder.stdin.flush()
         assert await asyncio.wait_for(asyncio.to_thread(flooder.stdout.readline), 300) \

@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -192,6 +192,20 @@ async def test_the_graph_keeps_each_endpoint_as_its_ros_view_with_shared_profile
     assert not any(isinstance(held, Qos) for held in gc.get_referents(*graph._endpoints.values()))
 
 
+async def _churn(graph: RosGraph, peer: RosNode, qos_of: Callable[[int], QosProfile]) -> None:
+    """`peer` makes twelve publishers (/idle/churn0..11, `qos_of(n)` each), one at a time,
+    each seen by `graph` before it is deleted, and the last seen gone."""
+    def seen(name: str) -> bool:
+        graph.refresh()
+        return any(e.ros_name == name for e in graph.endpoints())
+
+    for n in range(12):
+        writer = peer.create_publisher(f"/idle/churn{n}", TWIST, qos_of(n))
+        await eventually(lambda n=n: seen(f"/idle/churn{n}"), timeout=10.0, what=f"churn{n}")
+        writer.close()
+    await eventually(lambda: not seen("/idle/churn11"), timeout=10.0, what="churn gone")
+
+
 async def test_topic_and_type_names_are_shared_but_never_interned(
         nodes: tuple[RosNode, RosNode], monkeypatch: pytest.MonkeyPatch) -> None:
     """Endpoints of one topic share its name and type name, one object each; but any peer
@@ -206,16 +220,7 @@ async def test_topic_and_type_names_are_shared_but_never_interned(
     graph = RosGraph(a)
     b.create_publisher("/idle/named", TWIST)
     b.create_subscription("/idle/named", TWIST)
-    for n in range(12):
-        writer = b.create_publisher(f"/idle/churn{n}", TWIST)
-
-        def churn_seen(name: str = f"/idle/churn{n}") -> bool:
-            graph.refresh()
-            return any(e.ros_name == name for e in graph.endpoints())
-
-        await eventually(churn_seen, timeout=10.0, what=f"churn{n}")
-        writer.close()
-    await eventually(lambda: not churn_seen("/idle/churn11"), timeout=10.0, what="churn gone")
+    await _churn(graph, b, lambda n: QosProfile())
     in_use = set(graph._texts_in_use())
     assert len(graph._texts) <= max(8, 2 * len(in_use))
     churned = [f"rt/idle/churn{n}" for n in range(12)]
@@ -238,16 +243,7 @@ async def test_profiles_no_endpoint_uses_are_let_go_of(
     graph = RosGraph(a)
     kept = QosProfile(depth=99)
     b.create_publisher("/idle/kept", TWIST, kept)
-    for n in range(12):
-        writer = b.create_publisher(f"/idle/churn{n}", TWIST, QosProfile(depth=100 + n))
-
-        def churn_seen(name: str = f"/idle/churn{n}") -> bool:
-            graph.refresh()
-            return any(e.ros_name == name for e in graph.endpoints())
-
-        await eventually(churn_seen, timeout=10.0, what=f"churn{n}")
-        writer.close()
-    await eventually(lambda: not churn_seen("/idle/churn11"), timeout=10.0, what="churn gone")
+    await _churn(graph, b, lambda n: QosProfile(depth=100 + n))
     assert len(graph._profiles) <= 2 * 4, graph._profiles
     b.create_publisher("/idle/kept2", TWIST, kept)
 

@@ -152,6 +152,7 @@ class _Pair:
         self._loop = asyncio.get_running_loop()
         self._node = node
         self._into, self._qos, self._user = into, qos, user
+        self._out_type = out[1]  # what this pair writes: a request or a reply type
         self.writer: DataWriter[Any]
         if mapping is RequestMapping.CYCLONE:
             self.writer = cyclone.create_writer(node, *out, qos, user)
@@ -230,7 +231,14 @@ class _Pair:
     def write(self, message: IdlStruct, header: cyclone.RequestHeader | None = None) -> None:
         """Sends one request or reply (with the in-band header in the Cyclone mapping)."""
         data = self.out_codec.encode(message)
-        raw_cdr.write(self.writer, data if header is None else cyclone.wrap_cdr(header, data))
+        sample = data if header is None else cyclone.wrap_cdr(header, data)
+        try:
+            raw_cdr.write(self.writer, sample)
+        except DDSException as exc:  # a deleted writer's stays as it is (its node closed)
+            too_large = self._node.refused_for_size(exc, len(sample), f"a {self._out_type}")
+            if too_large is not None:
+                raise too_large from None
+            raise
         self.written += 1
 
     def related_identity(self, sample: Any) -> SampleIdentity | None:

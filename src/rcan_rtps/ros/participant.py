@@ -34,7 +34,7 @@ from .names import expand_topic_name, mangle_topic, normalize_namespace, validat
 from .qos import GOVERNED_BY, QosProfile
 from .readers import Decode, ReaderThread, Watch, WriterWatch
 from .rtps_capture import IdentityCapture, capture_supported
-from .sample_size import SampleBound, bound_in_force, refused_for_size
+from .sample_size import SampleBound, bound_in_force, past_bound, refused_for_size
 from .typesys.cdr import CdrCodecs
 from .typesys.ddstypes import DdsTypes, make_topic
 from .typesys.store import TypeStore, env_idl_paths
@@ -252,11 +252,8 @@ class RosPublisher:
         (see the invariant in readers.py). Bytes Cyclone refuses as no sample of the type (a
         string without its NUL, a sequence longer than the bytes) raise CdrDecodeError."""
         try:
-            raw_cdr.write(self.writer, data)
+            self.node.write_cdr(self.writer, data, f"a {self.type_name}")
         except DDSException as exc:
-            too_large = self.node.refused_for_size(exc, len(data), f"a {self.type_name}")
-            if too_large is not None:
-                raise too_large from None
             if exc.code != DDSException.DDS_RETCODE_BAD_PARAMETER:
                 raise
             raise CdrDecodeError(f"{len(data)} bytes that are not the CDR of a "
@@ -674,11 +671,8 @@ class RosNode:
             }],
         })
         try:
-            raw_cdr.write(self._info_writer, info)
-        except DDSException as exc:
-            too_large = self.refused_for_size(exc, len(info), f"{self.fqn}'s {DISCOVERY_TOPIC}")
-            if too_large is None:
-                raise
+            self.write_cdr(self._info_writer, info, f"{self.fqn}'s {DISCOVERY_TOPIC}")
+        except SampleTooLarge as too_large:
             # Its endpoints work all the same (DDS discovery matches them); only ROS's graph
             # (`ros2 node info`) misses them. Not an error of the endpoint being made, nor
             # of one being deleted: said once, until an announcement fits again.
@@ -689,12 +683,23 @@ class RosNode:
             return
         self._info_refused = False
 
-    def refused_for_size(self, exc: DDSException, length: int,
-                         what: str) -> SampleTooLarge | None:
-        """SampleTooLarge when `exc`, from writing `length` bytes of CDR on this node's
-        domain, is Cyclone refusing a sample past the domain's bound (sample_size.py)."""
-        return refused_for_size(exc, length, _domain_bounds.get(self.domain_id), what,
-                                self.domain_id)
+    def write_cdr(self, writer: DataWriter[Any], data: bytes, what: str) -> None:
+        """Writes one sample given as CDR bytes on `writer` (`what` names it in errors).
+        SampleTooLarge past the domain's bound on sample size, checked here first: Cyclone
+        drops such a sample with a warning, and its write fails only when a reader of it is
+        in this process (with readers elsewhere only, it returned as if sent). Other
+        DDSExceptions (a writer deleted: its node closed) are left as they are."""
+        bound = _domain_bounds.get(self.domain_id)
+        too_large = past_bound(len(data), bound, what, self.domain_id)
+        if too_large is not None:
+            raise too_large
+        try:
+            raw_cdr.write(writer, data)
+        except DDSException as exc:
+            refused = refused_for_size(exc, len(data), bound, what, self.domain_id)
+            if refused is not None:
+                raise refused from None
+            raise
 
     def close(self) -> None:
         """Leaves the graph: deleting the participant withdraws every endpoint. The reader

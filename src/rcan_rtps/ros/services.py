@@ -57,7 +57,6 @@ from cyclonedds.sub import DataReader
 
 from . import _cyclone_header as cyclone
 from . import qos as qos_mod
-from . import raw_cdr
 from .errors import AmbiguousReply, ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction, Endpoint, shared_graph
 from .handshake import (
@@ -232,13 +231,7 @@ class _Pair:
         """Sends one request or reply (with the in-band header in the Cyclone mapping)."""
         data = self.out_codec.encode(message)
         sample = data if header is None else cyclone.wrap_cdr(header, data)
-        try:
-            raw_cdr.write(self.writer, sample)
-        except DDSException as exc:  # a deleted writer's stays as it is (its node closed)
-            too_large = self._node.refused_for_size(exc, len(sample), f"a {self._out_type}")
-            if too_large is not None:
-                raise too_large from None
-            raise
+        self._node.write_cdr(self.writer, sample, f"a {self._out_type}")
         self.written += 1
 
     def related_identity(self, sample: Any) -> SampleIdentity | None:

@@ -11,11 +11,15 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import textwrap
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 from oracle.client import OracleEnv, RclpyOracle
+
+from .run_process import RunProcess, child_env, state_args
 
 BOUND = 65536  # the least `ros2.max_sample_bytes` allows; a 100 KB string is past it
 BIG = "x" * 100_000
@@ -160,3 +164,39 @@ def test_a_write_past_the_bound_cyclonedds_uri_sets_says_so(domain_id: int) -> N
     assert "a std_msgs/msg/String of 100009 bytes was not sent: Cyclone refused it on " \
            f"domain {domain_id}, most likely as past the MaxSampleSize CYCLONEDDS_URI sets" \
            in line, line
+
+
+def test_run_with_the_sim_takes_the_configs_bound(tmp_path: Path, domain_id: int,
+                                                   jazzy_share: Path) -> None:
+    """`run --sim` made its simulated robot's node first, without the config's bound: that
+    node set the domain's (256 MiB), and `ros2.max_sample_bytes` was silently not applied.
+    A peer writes a 100 KB ros_discovery_info: the bridge's Cyclone drops it as past 64 KiB."""
+    config = tmp_path / "robot.rcan.yaml"
+    config.write_text(textwrap.dedent(f"""\
+        robot: {{ruri: rcan://registry.local/acme/rover/unit-0001}}
+        bridge:
+          ros2: {{namespace: /robot1, domain_id: {domain_id}, max_sample_bytes: {BOUND}}}
+          api: {{host: 127.0.0.1, auth_token_env: RCAN_BRIDGE_TOKEN}}
+          safety: {{max_linear_vel: 1.0, max_angular_vel: 1.0}}
+          audit: {{path: {tmp_path / "audit.jsonl"}, key_path: {tmp_path / "audit.key"}}}
+        """))
+    env = child_env(domain_id, RCAN_BRIDGE_TOKEN="t" * 32)
+    proc = RunProcess(["run", "--sim", "--config", str(config), "--port", "0", "--no-mdns",
+                       *state_args(tmp_path, "state")], env, demo=False)
+    flooder = subprocess.Popen(
+        [sys.executable, str(Path(__file__).with_name("info_flooder.py")), "1", "100000",
+         str(domain_id), str(jazzy_share)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+        text=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path),
+                        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"})  # (as the demo's)
+    try:
+        assert flooder.stdout is not None and flooder.stdin is not None
+        # (bounded: a peer that never matches; the read ends when the flooder is killed)
+        ready = ThreadPoolExecutor(1).submit(flooder.stdout.readline)
+        assert ready.result(timeout=60) == "ready\n"
+        flooder.stdin.write("go\n")
+        flooder.stdin.flush()
+        proc.wait_for(rf"dropping oversize \(\d+ > {BOUND}\)", 60, stderr=True)
+    finally:
+        flooder.kill()
+        flooder.wait()
+        proc.stop()

@@ -97,7 +97,7 @@ async def make_rig(config: RcanConfig, jazzy_python: Path | OracleEnv, domain_id
     # As `run` makes it: the endpoints the robot obeys marked with its robot's id, so that
     # the rclpy peers of these tests meet the USER_DATA a real bridge's endpoints carry.
     node = RosNode(ros2.node_name, ros2.namespace, domain_id=domain_id, distro=ros2.distro,
-                   governed_by=config.robot.ruri)
+                   governed_by=config.robot.ruri, max_sample_bytes=ros2.max_sample_bytes)
     events = Events()
     audit = await AuditLog.open(config.bridge.audit.path, config.bridge.audit.key_path,
                                 audited=events.audited)

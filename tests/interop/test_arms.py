@@ -118,6 +118,46 @@ async def test_refusals_reach_no_arm(rig: Rig) -> None:
         assert first["points"][0]["positions"] == [0.9]
 
 
+BIG_ARM = """\
+max_sample_bytes: 65536
+arms:
+  big: {topic: big_arm/joint_trajectory, joints: [j0, j1, j2, j3, j4, j5, j6, j7]}
+"""
+
+
+async def test_a_trajectory_past_the_sample_size_bound_is_not_sent_and_said(
+        tmp_path: Path, jazzy_oracle: OracleEnv, domain_id: int) -> None:
+    """With `ros2.max_sample_bytes` below what a long trajectory takes (1,000 points of eight
+    joints with velocities, 160 kB of CDR, against 64 KiB), Cyclone dropped it with a warning
+    on stderr and returned as if it had sent it (no reader of it in this process): the
+    command was audited and answered as executed, and the arm never got it. It is now a
+    dispatch that failed, saying why."""
+    rig = await make_rig(bridge_config(tmp_path, domain_id, extra_ros2=BIG_ARM), jazzy_oracle,
+                         domain_id)
+    try:
+        await rig.oracle.acall("subscribe", topic="/robot1/big_arm/joint_trajectory", type=TRAJ)
+        joints = [f"j{n}" for n in range(8)]
+        await rig.oracle.acall("publisher", topic=JOINT_STATES, type=JOINT_STATE)
+        await rig.oracle.acall("publish_periodic", topic=JOINT_STATES, type=JOINT_STATE,
+                               rate=50.0, value={"name": joints, "position": [0.0] * 8,
+                                                 "velocity": [0.0] * 8})
+        points = [{"positions": [0.001 * n] * 8, "velocities": [0.0] * 8,
+                   "time_from_start_s": 0.01 * (n + 1)} for n in range(1000)]
+        sent = await rig.command(AGENT, {"action": "arm_joint", "params": {
+            "group": "big", "joints": joints, "points": points}})
+        assert (sent.http_status, sent.outcome.value) == (503, "failed"), sent
+        assert "160092 bytes is past the largest sample" in str(sent.reason), sent
+        [failed] = [e for e in rig.entries() if e["event"] == "COMMAND_FAILED"]
+        assert "max_sample_bytes" in failed["deny_reason"]
+        small = await rig.command(AGENT, {"action": "arm_joint", "params": {
+            "group": "big", "joints": joints, "positions": [0.1] * 8, "duration_s": 1.0}})
+        assert small.http_status == 200, small
+        (first,) = await take(rig.oracle, "/robot1/big_arm/joint_trajectory")
+        assert first["points"][0]["positions"] == [0.1] * 8  # (the long one never came)
+    finally:
+        await close_rig(rig)
+
+
 # -- a stop takes back an arm's trajectory (it runs on in its controller after it is sent) --
 LONG = {"group": "left", "joints": ["l_shoulder", "l_elbow"], "positions": [1.0, 2.0],
         "duration_s": 60.0}

@@ -39,7 +39,7 @@ from ..rcan.actions import (
     with_effect,
 )
 from ..ros import qos
-from ..ros.errors import GraphTimeout, seconds
+from ..ros.errors import GraphTimeout, SampleTooLarge, seconds
 from ..ros.participant import RosNode
 from ..ros.rostime import now_msg
 from .goals import CANCELING_NOTHING
@@ -449,7 +449,10 @@ class RosDispatcher:
     @staticmethod
     def _publish(route: _Route, params: ActionParams) -> DispatchResult:
         # No await before the write: `ready` waited, the governor checked the latch last.
-        route.publisher.publish(route.message(params))
+        try:
+            route.publisher.publish(route.message(params))
+        except SampleTooLarge as exc:  # (a trajectory past ros2.max_sample_bytes): not sent
+            return DispatchResult(ok=False, ros2_topic=route.publisher.topic, detail=str(exc))
         return DispatchResult(ok=True, ros2_topic=route.publisher.topic)
 
     def _publish_motion(self, route: _Route, params: ActionParams,
@@ -465,7 +468,7 @@ class RosDispatcher:
         if why is not None:
             return DispatchResult(ok=False, ros2_topic=pub.topic, detail=why)
         result = self._publish(route, params)
-        if hold is None:
+        if hold is None or not result.ok:  # (not sent: nothing runs on to be taken back)
             return result
         kit = route.kit  # it runs on after this: a stop takes it back
         runs_for_s = hold.runs_for_s(params)

@@ -250,8 +250,10 @@ def _start_sim(parts: contextlib.AsyncExitStack, config: RcanConfig, localhost: 
     from ..sim.robot import SimRobot
 
     ros2 = config.bridge.ros2
+    # (the domain's first node: it sets what the bridge's shares, the bound on sample size)
     sim_node = RosNode("sim_robot", ros2.namespace or "/", domain_id=ros2.domain_id,
-                       distro=ros2.distro, localhost=localhost)
+                       distro=ros2.distro, localhost=localhost,
+                       max_sample_bytes=ros2.max_sample_bytes)
     parts.callback(sim_node.close)
     robot = SimRobot(sim_node, cmd_vel_type=ros2.cmd_vel_type)
     # A goal server the config names none of (null) is not simulated either.

@@ -34,6 +34,7 @@ from .names import expand_topic_name, mangle_topic, normalize_namespace, validat
 from .qos import GOVERNED_BY, QosProfile
 from .readers import Decode, ReaderThread, Watch, WriterWatch
 from .rtps_capture import IdentityCapture, capture_supported
+from .sample_size import SampleBound, bound_in_force, past_bound, refused_for_size
 from .typesys.cdr import CdrCodecs
 from .typesys.ddstypes import DdsTypes, make_topic
 from .typesys.store import TypeStore, env_idl_paths
@@ -84,7 +85,7 @@ def _limits_config(max_sample_bytes: int) -> str:
 
 
 _domains: dict[int, tuple[Domain, int]] = {}  # domain id → (configured domain, nodes using it)
-_domain_bounds: dict[int, int] = {}  # domain id → the max_sample_bytes it was made with
+_domain_bounds: dict[int, SampleBound] = {}  # domain id → its bound on sample size in force
 _domains_lock = threading.Lock()
 # Per domain: Cyclone's packet capture, read for the request identity in Fast DDS replies
 # (rtps_capture.py). RCAN_RTPS_RPC_IDENTITY=off leaves it out; RCAN_RTPS_CAPTURE_DIR says
@@ -168,7 +169,7 @@ def _acquire_domain(domain_id: int, localhost: bool, max_sample_bytes: int) -> N
                 capture.close()
             raise
         _domains[domain_id] = (domain, 1)
-        _domain_bounds[domain_id] = max_sample_bytes
+        _domain_bounds[domain_id] = bound_in_force(max_sample_bytes, user)
         _domain_sockets[domain_id] = made_between(before, udp_socket_inodes())
 
 
@@ -251,16 +252,8 @@ class RosPublisher:
         (see the invariant in readers.py). Bytes Cyclone refuses as no sample of the type (a
         string without its NUL, a sequence longer than the bytes) raise CdrDecodeError."""
         try:
-            raw_cdr.write(self.writer, data)
+            self.node.write_cdr(self.writer, data, f"a {self.type_name}")
         except DDSException as exc:
-            bound = _domain_bounds.get(self.node.domain_id)
-            # (Cyclone's size of a sample: its CDR with header, padded to whole words)
-            if exc.code == DDSException.DDS_RETCODE_ERROR and bound is not None and \
-                    len(data) + (-len(data) & 3) > bound:
-                raise SampleTooLarge(
-                    f"a {self.type_name} of {len(data)} bytes is past the largest sample "
-                    f"this process sends on domain {self.node.domain_id} ({bound} bytes: "
-                    "max_sample_bytes)") from None
             if exc.code != DDSException.DDS_RETCODE_BAD_PARAMETER:
                 raise
             raise CdrDecodeError(f"{len(data)} bytes that are not the CDR of a "
@@ -477,6 +470,7 @@ class RosNode:
         self._readers: list[Any] = []
         self._writers: list[Any] = []
         self._subscriptions: list[RosSubscription] = []
+        self._info_refused = False  # the last announcement was past the sample size bound
         self._lock = threading.Lock()
         self.closed = False
         self.reader_thread = ReaderThread(self.participant, f"dds-read {self.fqn}")
@@ -676,7 +670,36 @@ class RosNode:
                 "writer_gid_seq": writers,
             }],
         })
-        raw_cdr.write(self._info_writer, info)
+        try:
+            self.write_cdr(self._info_writer, info, f"{self.fqn}'s {DISCOVERY_TOPIC}")
+        except SampleTooLarge as too_large:
+            # Its endpoints work all the same (DDS discovery matches them); only ROS's graph
+            # (`ros2 node info`) misses them. Not an error of the endpoint being made, nor
+            # of one being deleted: said once, until an announcement fits again.
+            if not self._info_refused:
+                log.warning("%s; peers do not see this node's endpoints change until its "
+                            "ros_discovery_info fits again", too_large)
+            self._info_refused = True
+            return
+        self._info_refused = False
+
+    def write_cdr(self, writer: DataWriter[Any], data: bytes, what: str) -> None:
+        """Writes one sample given as CDR bytes on `writer` (`what` names it in errors).
+        SampleTooLarge past the domain's bound on sample size, checked here first: Cyclone
+        drops such a sample with a warning, and its write fails only when a reader of it is
+        in this process (with readers elsewhere only, it returned as if sent). Other
+        DDSExceptions (a writer deleted: its node closed) are left as they are."""
+        bound = _domain_bounds.get(self.domain_id)
+        too_large = past_bound(len(data), bound, what, self.domain_id)
+        if too_large is not None:
+            raise too_large
+        try:
+            raw_cdr.write(writer, data)
+        except DDSException as exc:
+            refused = refused_for_size(exc, len(data), bound, what, self.domain_id)
+            if refused is not None:
+                raise refused from None
+            raise
 
     def close(self) -> None:
         """Leaves the graph: deleting the participant withdraws every endpoint. The reader

@@ -15,6 +15,7 @@ from typing import Any
 from cyclonedds.idl import IdlStruct
 
 from . import qos as qos_mod
+from .errors import SampleTooLarge
 from .handshake import matched_subscriptions, matched_writers
 from .participant import RosNode
 from .qos import QosProfile
@@ -70,8 +71,13 @@ class ServiceServer(_ServiceEnd):
         except Exception:  # a failing handler sends no reply, like rclpy; the client times out
             log.exception("service %s: the handler failed", self.name)
             return
-        if await self._client_reader_ready(_user_data(client).get("clientid"), writer_handle):
+        if not await self._client_reader_ready(_user_data(client).get("clientid"),
+                                               writer_handle):
+            return
+        try:
             self._pair.write(response, header)
+        except SampleTooLarge as exc:  # no reply, as for a failing handler: said here
+            log.warning("service %s: the reply was not sent: %s", self.name, exc)
 
     def _warn_once(self, guid: bytes) -> None:
         """Says once per client request writer that its requests are ignored. Only the

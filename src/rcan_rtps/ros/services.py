@@ -57,7 +57,6 @@ from cyclonedds.sub import DataReader
 
 from . import _cyclone_header as cyclone
 from . import qos as qos_mod
-from . import raw_cdr
 from .errors import AmbiguousReply, ServiceTimeout, ServiceUnavailable, WireError, seconds
 from .graph import Direction, Endpoint, shared_graph
 from .handshake import (
@@ -152,6 +151,7 @@ class _Pair:
         self._loop = asyncio.get_running_loop()
         self._node = node
         self._into, self._qos, self._user = into, qos, user
+        self._out_type = out[1]  # what this pair writes: a request or a reply type
         self.writer: DataWriter[Any]
         if mapping is RequestMapping.CYCLONE:
             self.writer = cyclone.create_writer(node, *out, qos, user)
@@ -230,7 +230,8 @@ class _Pair:
     def write(self, message: IdlStruct, header: cyclone.RequestHeader | None = None) -> None:
         """Sends one request or reply (with the in-band header in the Cyclone mapping)."""
         data = self.out_codec.encode(message)
-        raw_cdr.write(self.writer, data if header is None else cyclone.wrap_cdr(header, data))
+        sample = data if header is None else cyclone.wrap_cdr(header, data)
+        self._node.write_cdr(self.writer, sample, f"a {self._out_type}")
         self.written += 1
 
     def related_identity(self, sample: Any) -> SampleIdentity | None:

@@ -33,6 +33,10 @@ def test_the_user_sets_one_where_the_uri_names_it(tmp_path: Path) -> None:
     other.write_text(_OTHER)
     assert not bound_in_force(1 << 20, f"{other}").user_sets
     assert bound_in_force(1 << 20, str(tmp_path / "absent.xml")).user_sets  # (unread: may)
+    # (a comma inside inline XML names no file)
+    commas = "<CycloneDDS><Domain><General><Interfaces>auto, eth0</Interfaces></General>" \
+             "</Domain></CycloneDDS>"
+    assert not bound_in_force(1 << 20, commas).user_sets
 
 
 def test_a_sample_past_our_bound_is_too_large_before_it_is_written() -> None:

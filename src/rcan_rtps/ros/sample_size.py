@@ -35,14 +35,18 @@ class SampleBound(msgspec.Struct, frozen=True):
 
 def bound_in_force(ours: int, user_uri: str) -> SampleBound:
     """Ours, and whether `user_uri` (CYCLONEDDS_URI: inline XML and file names, comma
-    separated) mentions MaxSampleSize anywhere — a file that cannot be read here counts."""
-    texts = [token if token.startswith("<") else _read(token)
-             for token in (t.strip() for t in user_uri.split(",")) if token]
+    separated) mentions MaxSampleSize anywhere — in its text, or in a file it names (one that
+    cannot be read here counts). A token is taken for a file when it looks like one (`file://`,
+    a `/`, `.xml`): inline XML may hold commas too."""
+    files = [token for token in (t.strip() for t in user_uri.split(","))
+             if token.startswith("file://") or ("/" in token and "<" not in token)
+             or token.endswith(".xml")]
+    texts = [user_uri, *(_read(path) for path in files)]
     return SampleBound(ours, any("maxsamplesize" in text.lower() for text in texts))
 
 
 def _read(token: str) -> str:
-    path = token[7:] if token.startswith("file://") else token
+    path = token.removeprefix("file://")
     try:
         with Path(path).open(encoding="utf-8", errors="replace") as file:
             return file.read(_FILE_READ_LIMIT)

@@ -271,3 +271,17 @@ async def test_an_action_client_parses_its_action_at_its_first_use(
         client.close()
     with pytest.raises(UnknownTypeError, match="NavigateToPoze"):
         ActionClient(node, "navigate_to_pose", "nav2_msgs/action/NavigateToPoze")
+
+
+async def test_bag_plays_look_at_the_graph_lets_go_of_it(
+        nodes: tuple[RosNode, RosNode]) -> None:
+    """`bag play` looks at the graph once before playing (`_await_matches`). A graph's
+    ros_discovery_info reader is watched by the node's reader thread, which takes each info
+    into the graph's inbox: left open, that watch (its reader, its inbox of up to 12 MiB) stayed
+    for the whole playback, the collector never freeing it as it did the graph's other readers."""
+    from rcan_rtps.cli.bag_cmd import _await_matches
+
+    node, _ = nodes
+    await _await_matches(node, {})
+    assert [w.label for w in node.reader_thread._watches
+            if w.label.startswith("ros_discovery_info")] == []

@@ -256,14 +256,21 @@ def _publishers(node: RosNode, topics: list[BagTopic],
 
 
 async def _await_matches(node: RosNode, publishers: dict[str, RosPublisher]) -> None:
-    """Lets the subscriptions already on the graph match first, so none misses the start."""
+    """Lets the subscriptions already on the graph match first, so none misses the start.
+    Its graph is closed after the one look: left open, the node's reader thread kept taking
+    ros_discovery_info into it (and kept its reader) for as long as the playback ran."""
     graph = RosGraph(node)
-    await graph.settle(0.5, patience=1.0)
+    try:
+        await graph.settle(0.5, patience=1.0)
+        wanted_by = {pub.topic: sum(1 for e in graph.topic_endpoints(pub.topic)
+                                    if e.direction is Direction.SUBSCRIPTION)
+                     for pub in publishers.values()}
+    finally:
+        graph.close()
     deadline = time.monotonic() + MATCH_PATIENCE
     matched = False
     for pub in publishers.values():
-        wanted = sum(1 for e in graph.topic_endpoints(pub.topic)
-                     if e.direction is Direction.SUBSCRIPTION)
+        wanted = wanted_by[pub.topic]
         left = deadline - time.monotonic()
         if wanted and left > 0:
             matched = True

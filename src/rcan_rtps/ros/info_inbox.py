@@ -33,9 +33,10 @@ MAX_INFO_BYTES = 2 << 20
 INFO_GID = slice(4, 20)
 # Infos waiting for a refresh, at most: as many participants as a refresh takes samples of
 # each builtin reader. Past it the oldest of the writer with the most waiting goes: a peer
-# writing made-up gids faster than a refresh runs pushes out its own, never the one info
-# each honest participant wrote (the oldest overall went: 1,024 made-up gids written
-# between two refreshes dropped an honest node's info, written once, for good).
+# writing made-up gids faster than a refresh runs pushes out its own, not the one info each
+# honest participant wrote (the oldest overall went: 1,024 made-up gids written between two
+# refreshes dropped an honest node's info, written once, for good). Not when the flood is
+# spread over one writer per info: all tie at one, and the writer counted first goes first.
 WAITING_INFOS = 1024
 # And their bytes, at most: room for four samples at the size bound beside a graph's honest,
 # small infos. Past it the largest waiting sample is dropped first (it is a mark then: its

@@ -402,29 +402,37 @@ async def matched_by_graph(peer: RosNode) -> None:
 
 
 async def test_a_flood_of_made_up_gids_does_not_push_out_an_honest_nodes_info(
-        victim: RosNode, hostile: RosNode) -> None:
+        victim: RosNode, hostile: RosNode, domain_id: int, jazzy_share: Path) -> None:
     """A node writes its ros_discovery_info once (again only when its endpoints change), and
     the graph keeps at most WAITING_INFOS infos waiting for a refresh. Past that the oldest
     went: a peer writing more made-up gids than that between two refreshes (~40,000 a
     second measured from another process) dropped the honest info for good, and the node
-    was never listed. The writer with the most waiting now loses its own oldest."""
-    flood = hostile.create_writer(DISCOVERY_TOPIC, DISCOVERY_TYPE,
-                                  qos.DISCOVERY_INFO.with_(depth=256))
+    was never listed. Then the writer with the most waiting lost its own oldest — but a
+    flood of one info per writer tied every writer, the honest one first. Now the
+    participant whose writers have the most waiting loses its own oldest: here a flood of
+    one made-up gid per writer, WAITING_INFOS + 64 writers of one participant."""
     graph = RosGraph(victim)
     await matched_by_graph(hostile)
-    await eventually(lambda: flood.get_publication_matched_status().current_count >= 1)
     await victim.delivered()  # the hostile node's own info is waiting for a refresh
-    codec = hostile.codecs.of(DISCOVERY_TYPE)
-    empty = bytearray(codec.encode_value({"gid": {"data": bytes(16)},
-                                          "node_entities_info_seq": []}))
-    for _ in range(2 * WAITING_INFOS // 256):
-        for _ in range(256):
+    count = WAITING_INFOS + 64
+    with RosNode("flooder", "/", domain_id=domain_id, distro="jazzy",
+                 idl_paths=[jazzy_share]) as flooder:
+        floods = [flooder.create_writer(DISCOVERY_TOPIC, DISCOVERY_TYPE, qos.DISCOVERY_INFO)
+                  for _ in range(count)]
+        await eventually(lambda: all(w.get_publication_matched_status().current_count >= 1
+                                     for w in floods), timeout=60)
+        codec = flooder.codecs.of(DISCOVERY_TYPE)
+        empty = bytearray(codec.encode_value({"gid": {"data": bytes(16)},
+                                              "node_entities_info_seq": []}))
+        for n, flood in enumerate(floods):
             empty[INFO_GID] = uuid.uuid4().bytes
             raw_cdr.write(flood, bytes(empty))
-        await victim.delivered()  # (the reader keeps 1,000: never more than 256 in it)
-    assert graph._inbox.dropped >= WAITING_INFOS  # the bound was crossed
-    await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1],
-                     timeout=5)
+            if n % 256 == 255:
+                await victim.delivered()  # (the reader keeps 1,000: never more than 256)
+        await victim.delivered()
+        assert graph._inbox.dropped >= count - WAITING_INFOS  # the bound was crossed
+        await eventually(
+            lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1], timeout=5)
     graph.close()
 
 
@@ -487,9 +495,11 @@ async def test_a_discovery_info_past_the_size_bound_is_dropped_undecoded(
     huge = _info(codec, hostile.participant.guid.bytes, "huge", 160_000)
     assert len(huge) > MAX_INFO_BYTES
     await write_acked(hostile._info_writer, huge)
+    await victim.delivered()  # (acknowledged: in our reader; now handed over to the graph)
     hostile.announce()  # its own, real info after it
     await eventually(lambda: (graph.refresh(), ("/robot1", "hostile") in graph.nodes())[1])
-    assert ("/", "huge") not in graph.nodes() and graph.large_infos == 1
+    assert graph.large_infos == 1
+    assert ("/", "huge") not in graph.nodes()
     assert [r.getMessage() for r in caplog.records if "larger than" in r.getMessage()]
     assert not tracebacks(caplog)
 
@@ -590,6 +600,7 @@ async def test_infos_of_made_up_participants_share_a_byte_budget(
     samples = [_info(codec, uuid.uuid4().bytes, f"ghost_{i}", 90_000) for i in range(8)]
     for data in samples:
         await write_acked(hostile._info_writer, data)
+    await victim.delivered()  # (acknowledged: in our reader; now handed over to the graph)
     hostile.announce()
     # (each refresh decodes ~INFO_BYTES_TAKE: until one has taken all, the last included)
     await eventually(lambda: graph.refresh() and ("/robot1", "hostile") in graph.nodes())

@@ -102,6 +102,21 @@ def test_past_the_count_bound_the_writer_with_the_most_waiting_loses_its_oldest(
     assert inbox.dropped == 2 * WAITING_INFOS + 5 and inbox.waiting() == 0
 
 
+def test_a_flood_from_many_writers_of_one_participant_is_one_source() -> None:
+    """A peer spreading its flood over one writer per made-up gid tied every writer at one
+    info waiting, and the honest writers, counted first, went first (all five here). Counted
+    by their writers' participant, its writers are one source, and push out their own."""
+    participants = {100 + h: bytes([h]) for h in range(5)}  # five honest participants
+    inbox = InfoInbox(lambda handle: participants.get(handle, b"hostile"))
+    for honest in range(5):
+        inbox.arrived([(sample(gid(10**6 + honest)), written_by(100 + honest))])
+    for n in range(2 * WAITING_INFOS):
+        inbox.arrived([(sample(gid(n)), written_by(1000 + n))])  # a writer each
+    taken, _ = inbox.take(1 << 30)
+    assert [g for g, _ in taken[:5]] == [gid(10**6 + h) for h in range(5)]
+    assert len(taken) == WAITING_INFOS and inbox.dropped == WAITING_INFOS + 5
+
+
 def test_past_the_byte_bound_the_largest_become_marks_and_small_infos_stay() -> None:
     """A flood of large infos of made-up participants cannot push out a small, honest one
     that came before it."""

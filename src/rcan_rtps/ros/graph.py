@@ -66,6 +66,8 @@ INFO_BYTES_TAKE = MAX_INFO_BYTES
 # left waits in the reader (Cyclone keeps one sample per endpoint) for the next refresh;
 # ~150 ms of work at most per reader.
 REFRESH_TAKE = 1024
+# ros_discovery_info writers whose participant is remembered before the table starts anew.
+WRITERS_KNOWN = 4096
 # Distinct QoS profiles, and topic and type names, kept before those no endpoint uses are
 # let go of (`KeptOnce`).
 PROFILES_KEPT = 64
@@ -202,7 +204,9 @@ class RosGraph:
         self._participants = BuiltinDataReader(node.participant, BuiltinTopicDcpsParticipant)
         self._info = node.discovery_reader()
         # (taken as it arrives by the node's reader thread, its size looked at first)
-        self._inbox = InfoInbox()
+        self._inbox = InfoInbox(self._participant_of)
+        # writer handle → its participant's GUID prefix (the reader thread's alone)
+        self._writer_participants: dict[int, bytes] = {}
         self._info_watch = node.reader_thread.add(
             Watch(self._info, self._inbox.arrived, "ros_discovery_info", raw=True))
         self._decode_info = node.codecs.of(DISCOVERY_TYPE).prepare_decoder().decode
@@ -241,6 +245,22 @@ class RosGraph:
         for reader in (self._pubs, self._subs, self._participants, self._info):
             with contextlib.suppress(DDSException):
                 reader.__del__()
+
+    def _participant_of(self, handle: int) -> bytes:
+        """The participant (GUID prefix) of a ros_discovery_info writer, by the handle its
+        samples name it by; b"" once it is no longer matched. On the node's reader thread
+        (InfoInbox), with no lock of ours held: a DDS call that calls back into no Python."""
+        known = self._writer_participants.get(handle)
+        if known is None:
+            try:
+                data = self._info.get_matched_publication_data(handle)
+            except Exception:  # (no longer matched, the reader deleted: never the sample lost)
+                data = None
+            known = b"" if data is None else bytes(data.participant_key.bytes)[:12]
+            if len(self._writer_participants) >= WRITERS_KNOWN:  # (writers that left)
+                self._writer_participants.clear()
+            self._writer_participants[handle] = known
+        return known
 
     def refresh(self) -> bool:
         """Takes what discovery changed since the last refresh, REFRESH_TAKE samples of each

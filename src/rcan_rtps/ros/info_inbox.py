@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import threading
 from collections import Counter, OrderedDict
+from collections.abc import Callable
 from typing import Any
 
 import msgspec
@@ -32,11 +33,12 @@ MAX_INFO_BYTES = 2 << 20
 # read there from a sample before (or without) decoding it.
 INFO_GID = slice(4, 20)
 # Infos waiting for a refresh, at most: as many participants as a refresh takes samples of
-# each builtin reader. Past it the oldest of the writer with the most waiting goes: a peer
-# writing made-up gids faster than a refresh runs pushes out its own, not the one info each
-# honest participant wrote (the oldest overall went: 1,024 made-up gids written between two
-# refreshes dropped an honest node's info, written once, for good). Not when the flood is
-# spread over one writer per info: all tie at one, and the writer counted first goes first.
+# each builtin reader. Past it the oldest of the participant whose writers have the most
+# waiting goes: a peer writing made-up gids faster than a refresh runs, from one writer or
+# thousands, pushes out its own, not the one info each honest participant wrote (the oldest
+# overall went: 1,024 made-up gids written between two refreshes dropped an honest node's
+# info, written once, for good). Not when the flood comes from as many participants as it has
+# infos: all tie at one, and the source counted first goes first.
 WAITING_INFOS = 1024
 # And their bytes, at most: room for four samples at the size bound beside a graph's honest,
 # small infos. Past it the largest waiting sample is dropped first (it is a mark then: its
@@ -47,12 +49,17 @@ WAITING_INFO_BYTES = 4 * MAX_INFO_BYTES + (4 << 20)
 class Arrived(msgspec.Struct, frozen=True):
     """What arrived for one participant gid: its newest info's CDR bytes, or None when that
     was past MAX_INFO_BYTES (or dropped waiting) — its nodes are unknown; whether the
-    topic's instance was alive when it was taken (not: every writer left); and the instance
-    handle of the writer that wrote it (its SampleInfo's `publication_handle`)."""
+    topic's instance was alive when it was taken (not: every writer left); and who wrote it
+    (`InfoInbox`'s `source_of` its SampleInfo's `publication_handle`: the writer's
+    participant)."""
 
     data: bytes | None
     alive: bool
-    writer: int = 0
+    source: bytes = b""
+
+
+def _handle_bytes(handle: int) -> bytes:
+    return handle.to_bytes(8, "little")
 
 
 class InfoInbox:
@@ -60,11 +67,15 @@ class InfoInbox:
 
     One lock, held for dictionary work only: never across a DDS call or a decode."""
 
-    def __init__(self) -> None:
+    def __init__(self, source_of: Callable[[int], bytes] = _handle_bytes) -> None:
+        # Who wrote a sample, from its writer's handle: the bound on count is shared fairly
+        # between sources. A graph gives the writer's participant (a peer may make writers
+        # by the thousand in one participant: as one source they push out their own infos).
+        self._source_of = source_of
         self._lock = threading.Lock()
         self._waiting: OrderedDict[bytes, Arrived] = OrderedDict()  # oldest first
         self._bytes = 0
-        self._per_writer: Counter[int] = Counter()  # infos waiting, by the writer's handle
+        self._per_source: Counter[bytes] = Counter()  # infos waiting, by who wrote them
         self.large = 0  # samples past MAX_INFO_BYTES, dropped as they arrived
         self.dropped = 0  # samples dropped waiting (the bounds above)
 
@@ -76,8 +87,8 @@ class InfoInbox:
                 continue  # keyless: an invalid sample names no participant
             alive = info.instance_state == InstanceState.Alive
             large = len(data) > MAX_INFO_BYTES
-            self._keep(gid_of(data), Arrived(None if large else data, alive,
-                                             int(info.publication_handle)), large)
+            source = self._source_of(int(info.publication_handle))  # (before the lock)
+            self._keep(gid_of(data), Arrived(None if large else data, alive, source), large)
 
     def _keep(self, gid: bytes, arrived: Arrived, large: bool) -> None:
         with self._lock:
@@ -85,9 +96,9 @@ class InfoInbox:
             self._let_go(self._waiting.pop(gid, None))
             self._waiting[gid] = arrived
             self._bytes += _size(arrived)
-            self._per_writer[arrived.writer] += 1
+            self._per_source[arrived.source] += 1
             while len(self._waiting) > WAITING_INFOS:
-                self._drop_of_busiest_writer()
+                self._drop_of_busiest_source()
             while self._bytes > WAITING_INFO_BYTES:
                 self._drop_largest()
 
@@ -96,15 +107,15 @@ class InfoInbox:
         if arrived is None:
             return
         self._bytes -= _size(arrived)
-        self._per_writer[arrived.writer] -= 1
-        if not self._per_writer[arrived.writer]:
-            del self._per_writer[arrived.writer]
+        self._per_source[arrived.source] -= 1
+        if not self._per_source[arrived.source]:
+            del self._per_source[arrived.source]
 
-    def _drop_of_busiest_writer(self) -> None:
-        """The oldest info of the writer with the most waiting goes (O(infos waiting) at
+    def _drop_of_busiest_source(self) -> None:
+        """The oldest info of the source with the most waiting goes (O(infos waiting) at
         most, on the reader thread, only while the count bound is crossed)."""
-        busiest = max(self._per_writer, key=self._per_writer.__getitem__)
-        gid = next(g for g, a in self._waiting.items() if a.writer == busiest)
+        busiest = max(self._per_source, key=self._per_source.__getitem__)
+        gid = next(g for g, a in self._waiting.items() if a.source == busiest)
         self._let_go(self._waiting.pop(gid))
         self.dropped += 1
 
@@ -113,7 +124,7 @@ class InfoInbox:
         kept = self._waiting[gid]
         self._bytes -= _size(kept)
         # (in place: its participant's older info, if any, is stale all the same)
-        self._waiting[gid] = Arrived(None, kept.alive, kept.writer)
+        self._waiting[gid] = Arrived(None, kept.alive, kept.source)
         self.dropped += 1
 
     # -- the graph's loop -------------------------------------------------------------------

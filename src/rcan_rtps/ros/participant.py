@@ -134,7 +134,8 @@ def localhost_requested(explicit: bool | None = None) -> bool:
     return os.environ.get("ROS_LOCALHOST_ONLY", "") == "1"
 
 
-def _acquire_domain(domain_id: int, localhost: bool, max_sample_bytes: int) -> None:
+def _acquire_domain(domain_id: int, localhost: bool, max_sample_bytes: int) -> SampleBound:
+    """Joins (or makes) this process's domain `domain_id`: its bound on sample size."""
     # A Domain object fixes the configuration for every participant of that id in
     # this process, so the first node decides; it must be created before them. The
     # user's CYCLONEDDS_URI comes after our defaults (_REPAIR_CONFIG, the sample size bound),
@@ -143,7 +144,7 @@ def _acquire_domain(domain_id: int, localhost: bool, max_sample_bytes: int) -> N
         if domain_id in _domains:
             domain, users = _domains[domain_id]
             _domains[domain_id] = (domain, users + 1)
-            return
+            return _domain_bounds[domain_id]
         user = os.environ.get("CYCLONEDDS_URI", "").strip()
         capture = _new_capture()
         local = [*([_LOCALHOST_CONFIG] if localhost else []),
@@ -169,8 +170,9 @@ def _acquire_domain(domain_id: int, localhost: bool, max_sample_bytes: int) -> N
                 capture.close()
             raise
         _domains[domain_id] = (domain, 1)
-        _domain_bounds[domain_id] = bound_in_force(max_sample_bytes, user)
+        bound = _domain_bounds[domain_id] = bound_in_force(max_sample_bytes, user)
         _domain_sockets[domain_id] = made_between(before, udp_socket_inodes())
+    return bound
 
 
 def _release_domain(domain_id: int) -> None:
@@ -218,6 +220,7 @@ class RosPublisher:
                  warn_other_type: bool = True) -> None:
         self.node, self.topic, self.type_name, self.writer = node, topic, type_name, writer
         self.codec = node.codecs.of(type_name).prepare_encoders()
+        self._what = f"a {type_name}"  # (in errors: made once, not at each publish)
         self.closed = False
         self.incompatible_qos_events = 0
         self.other_type_events = 0  # of them, subscriptions of another type (name or hash)
@@ -252,7 +255,7 @@ class RosPublisher:
         (see the invariant in readers.py). Bytes Cyclone refuses as no sample of the type (a
         string without its NUL, a sequence longer than the bytes) raise CdrDecodeError."""
         try:
-            self.node.write_cdr(self.writer, data, f"a {self.type_name}")
+            self.node.write_cdr(self.writer, data, self._what)
         except DDSException as exc:
             if exc.code != DDSException.DDS_RETCODE_BAD_PARAMETER:
                 raise
@@ -439,7 +442,8 @@ class RosNode:
         self.domain_id = resolve_domain_id(domain_id)
         self.localhost = localhost_requested(localhost)
         security = _security_properties(enclave, self.domain_id)
-        _acquire_domain(self.domain_id, self.localhost, max_sample_bytes)
+        # (the domain's: read once, not at each write)
+        self._sample_bound = _acquire_domain(self.domain_id, self.localhost, max_sample_bytes)
         before = udp_socket_inodes()
         try:
             self.participant = DomainParticipant(self.domain_id, qos=Qos(
@@ -689,14 +693,14 @@ class RosNode:
         drops such a sample with a warning, and its write fails only when a reader of it is
         in this process (with readers elsewhere only, it returned as if sent). Other
         DDSExceptions (a writer deleted: its node closed) are left as they are."""
-        bound = _domain_bounds.get(self.domain_id)
-        too_large = past_bound(len(data), bound, what, self.domain_id)
+        too_large = past_bound(len(data), self._sample_bound, what, self.domain_id)
         if too_large is not None:
             raise too_large
         try:
             raw_cdr.write(writer, data)
         except DDSException as exc:
-            refused = refused_for_size(exc, len(data), bound, what, self.domain_id)
+            refused = refused_for_size(exc, len(data), self._sample_bound, what,
+                                       self.domain_id)
             if refused is not None:
                 raise refused from None
             raise

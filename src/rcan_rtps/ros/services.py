@@ -151,7 +151,7 @@ class _Pair:
         self._loop = asyncio.get_running_loop()
         self._node = node
         self._into, self._qos, self._user = into, qos, user
-        self._out_type = out[1]  # what this pair writes: a request or a reply type
+        self._what = f"a {out[1]}"  # what this pair writes, in errors: a request or reply
         self.writer: DataWriter[Any]
         if mapping is RequestMapping.CYCLONE:
             self.writer = cyclone.create_writer(node, *out, qos, user)
@@ -231,7 +231,7 @@ class _Pair:
         """Sends one request or reply (with the in-band header in the Cyclone mapping)."""
         data = self.out_codec.encode(message)
         sample = data if header is None else cyclone.wrap_cdr(header, data)
-        self._node.write_cdr(self.writer, sample, f"a {self._out_type}")
+        self._node.write_cdr(self.writer, sample, self._what)
         self.written += 1
 
     def related_identity(self, sample: Any) -> SampleIdentity | None:

@@ -19,6 +19,8 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from oracle.client import RclpyOracle
 
+from .bounded_cli import error_line, run_bounded
+
 # Arrival gaps at the rclpy node carry both processes' scheduling delays: beside the parallel
 # phase's workers a message could arrive 0.3 s late (gaps 729/10 ms for 450/100 recorded), so
 # the tests that compare them run in the serial phase (scripts/pytest_phases.sh).
@@ -336,13 +338,6 @@ def test_a_message_dds_refuses_is_played_past_and_told_in_one_line(
     assert [m["data"] for m in take_all(oracle, "/lying/chatter", 2)] == ["before", "after"]
 
 
-# `bag play` in a process whose domain bounds samples at 1 MiB (its first node decides).
-_PLAY_BOUNDED = ("import sys; from rcan_rtps.ros.participant import RosNode; "
-                 "holder = RosNode('holder', domain_id=int(sys.argv[1]), "
-                 "max_sample_bytes=1 << 20); from rcan_rtps.cli.main import main; "
-                 "sys.exit(main(sys.argv[2:]))")
-
-
 def test_a_message_past_the_sample_size_bound_is_played_past_and_told_in_one_line(
         oracle: RclpyOracle, domain_id: int, tmp_path: Path) -> None:
     """Cyclone sends no sample past the domain's `max_sample_bytes`: its write failed with a
@@ -361,12 +356,9 @@ def test_a_message_past_the_sample_size_bound_is_played_past_and_told_in_one_lin
     writer.close()
 
     oracle.call("subscribe", topic="/huge/chatter", type="std_msgs/msg/String")
-    played = subprocess.run(
-        [sys.executable, "-c", _PLAY_BOUNDED, str(domain_id), "bag", "play", str(bag), "-d",
-         PLAY_DELAY], capture_output=True, text=True, timeout=90,
-        env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
+    played = run_bounded(1 << 20, domain_id, "bag", "play", str(bag), "-d", PLAY_DELAY)
     assert played.returncode == 1 and "Traceback" not in played.stderr, played.stderr
-    [line] = [line for line in played.stderr.splitlines() if line.startswith("rcan-rtps:")]
+    line = error_line(played.stderr)
     assert line.startswith(f"rcan-rtps: error: 1 message(s) of '{bag}' were not published")
     assert "'/huge/chatter' at 1.010000000" in line and "past the largest sample" in line
     assert [m["data"] for m in take_all(oracle, "/huge/chatter", 2)] == ["before", "after"]

@@ -19,16 +19,11 @@ from pathlib import Path
 import pytest
 from oracle.client import OracleEnv, RclpyOracle
 
+from .bounded_cli import error_line, run_bounded
 from .run_process import RunProcess, child_env, state_args
 
 BOUND = 65536  # the least `ros2.max_sample_bytes` allows; a 100 KB string is past it
 BIG = "x" * 100_000
-
-# A CLI command in a process whose domain bounds samples at BOUND (its first node decides).
-_CLI_BOUNDED = ("import sys; from rcan_rtps.ros.participant import RosNode; "
-                "holder = RosNode('holder', domain_id=int(sys.argv[1]), "
-                f"max_sample_bytes={BOUND}); from rcan_rtps.cli.main import main; "
-                "sys.exit(main(sys.argv[2:]))")
 
 # Serves /big_echo (test_msgs/srv/BasicTypes) with a reply of 100 KB, past BOUND, then
 # prints how many requests it served; stops when stdin closes.
@@ -79,11 +74,6 @@ def _python(code: str, domain_id: int, *args: str, env: dict[str, str] | None = 
                           env=env or _env(domain_id))
 
 
-def _error_line(stderr: str) -> str:
-    [line] = [line for line in stderr.splitlines() if line.startswith("rcan-rtps:")]
-    return line
-
-
 @pytest.fixture
 def oracle(jazzy_oracle: OracleEnv, domain_id: int) -> Iterator[RclpyOracle]:
     with RclpyOracle(jazzy_oracle, "size_peer", "/", domain_id=domain_id) as agent:
@@ -95,16 +85,16 @@ def test_a_service_request_past_the_bound_is_a_clear_error(oracle: RclpyOracle,
     """`service call` (and every ServiceClient call: action goals, cancels, results,
     parameters) wrote its request with raw_cdr and let Cyclone's DDSException out."""
     oracle.call("echo_server", name="/echo")
-    done = _python(_CLI_BOUNDED, domain_id, "service", "call", "/echo",
-                   "test_msgs/srv/BasicTypes", f"{{string_value: {BIG}}}")
+    done = run_bounded(BOUND, domain_id, "service", "call", "/echo",
+                       "test_msgs/srv/BasicTypes", f"{{string_value: {BIG}}}")
     assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
-    line = _error_line(done.stderr)
+    line = error_line(done.stderr)
     assert "test_msgs/srv/BasicTypes_Request" in line, line
     assert f"past the largest sample this process sends on domain {domain_id} " \
            f"({BOUND} bytes: max_sample_bytes)" in line, line
     assert oracle.call("service_requests", name="/echo") == []
-    small = _python(_CLI_BOUNDED, domain_id, "service", "call", "/echo",
-                    "test_msgs/srv/BasicTypes", "{string_value: small}")
+    small = run_bounded(BOUND, domain_id, "service", "call", "/echo",
+                        "test_msgs/srv/BasicTypes", "{string_value: small}")
     assert small.returncode == 0, small.stderr  # the bound, not the service, refused it
 
 
@@ -160,7 +150,7 @@ def test_a_write_past_the_bound_cyclonedds_uri_sets_says_so(domain_id: int) -> N
          "std_msgs/msg/String", f"{{data: {BIG}}}"], capture_output=True, text=True,
         timeout=90, env=_env(domain_id, CYCLONEDDS_URI=uri))
     assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
-    line = _error_line(done.stderr)
+    line = error_line(done.stderr)
     assert "a std_msgs/msg/String of 100009 bytes was not sent: Cyclone refused it on " \
            f"domain {domain_id}, most likely as past the MaxSampleSize CYCLONEDDS_URI sets" \
            in line, line
